@@ -1,0 +1,112 @@
+"""Pinhole camera intrinsics and pose helpers.
+
+Conventions (used everywhere in GaussLite):
+- Camera axes follow OpenCV: x right, y down, z forward.
+- Poses are camera-to-world ``c2w`` 4x4 float64 matrices (metres); ``viewmat`` is world-to-camera.
+- Pixel centres sit at integer coordinates: pixel (u, v) covers [u-0.5, u+0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels for an image of ``width`` x ``height`` pixels.
+
+    Attributes:
+        fx, fy: focal lengths (pixels).
+        cx, cy: principal point (pixels).
+        width, height: image size (pixels).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        vals = np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
+        if not np.all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"invalid intrinsics: fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"invalid image size {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 float64 intrinsic matrix."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics for an image downscaled by ``factor`` (e.g. 2 halves width and height).
+
+        The new size is ``floor(width / factor)`` x ``floor(height / factor)``; focal lengths divide
+        by ``factor`` and the principal point moves so that pixel centres stay consistent:
+        ``c' = (c + 0.5) / factor - 0.5``.
+        """
+        if factor <= 0:
+            raise ValueError(f"downscale factor must be > 0, got {factor}")
+        return Intrinsics(
+            fx=self.fx / factor,
+            fy=self.fy / factor,
+            cx=(self.cx + 0.5) / factor - 0.5,
+            cy=(self.cy + 0.5) / factor - 0.5,
+            width=int(self.width // factor),
+            height=int(self.height // factor),
+        )
+
+    @staticmethod
+    def from_K(K: np.ndarray, width: int, height: int) -> "Intrinsics":
+        """Build from a 3x3 matrix ``K`` (pixels)."""
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be 3x3, got {K.shape}")
+        return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
+
+
+def check_rigid(c2w: np.ndarray, atol: float = 1e-3, what: str = "pose") -> np.ndarray:
+    """Validate a 4x4 rigid transform and return it as float64.
+
+    Raises:
+        ValueError: wrong shape, non-finite entries, last row not [0,0,0,1], or a rotation block
+            that is not orthonormal with determinant +1 (tolerance ``atol``). The message names ``what``.
+    """
+    T = np.asarray(c2w, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{what}: pose has NaN or infinite entries")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        raise ValueError(f"{what}: last row must be [0 0 0 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=atol) or abs(np.linalg.det(R) - 1.0) > atol:
+        raise ValueError(f"{what}: rotation block is not a proper rotation (non-rigid pose)")
+    return T
+
+
+def backproject(depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:
+    """Back-project a depth image to world points.
+
+    Args:
+        depth: (H, W) float depth in metres along the camera z axis; 0 = invalid.
+        intr: intrinsics matching the image size.
+        c2w: (4, 4) camera-to-world pose.
+
+    Returns:
+        (H, W, 3) float64 world points (metres); invalid pixels give the camera centre scaled by 0
+        depth, i.e. callers must mask with ``depth > 0``.
+    """
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    z = depth.astype(np.float64)
+    x = (u - intr.cx) / intr.fx * z
+    y = (v - intr.cy) / intr.fy * z
+    pc = np.stack([x, y, z], axis=-1)
+    return pc @ c2w[:3, :3].T + c2w[:3, 3] * (z[..., None] > 0)

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Creates .venv and installs GaussLite with its dependencies. Idempotent: a second run is fast.
+# torch is installed first and pinned (torch==2.13.0, CPU build): an unpinned torch pulls
+# several GB of CUDA packages.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.gausslite-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q "torch==2.13.0"
+  .venv/bin/python -m pip install -q -e ".[dev]"
+  touch "$stamp"
+fi
