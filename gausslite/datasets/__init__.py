@@ -1,0 +1,48 @@
+"""RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes) and scene annotations.
+
+Every loader is an :class:`RGBDDataset` yielding :class:`Frame` objects lazily; ``load_dataset`` picks
+the loader from the folder layout. ``dataset.annotations`` is a :class:`SceneAnnotations` or None.
+"""
+
+from gausslite.datasets.annotations import (
+    SceneAnnotations,
+    SceneObject,
+    Task,
+    find_annotation_files,
+    load_annotations,
+    parse_up_axis,
+)
+from gausslite.datasets.base import Frame, RGBDDataset
+from gausslite.datasets.loader import (
+    PosedImageDataset,
+    detect_layout,
+    downscale_depth,
+    downscale_rgb,
+    load_dataset,
+    read_depth,
+    read_rgb,
+)
+from gausslite.datasets.replica import ReplicaDataset
+from gausslite.datasets.sevenscenes import SevenScenesDataset
+from gausslite.datasets.tum import TUMDataset
+
+__all__ = [
+    "Frame",
+    "RGBDDataset",
+    "PosedImageDataset",
+    "ReplicaDataset",
+    "TUMDataset",
+    "SevenScenesDataset",
+    "load_dataset",
+    "detect_layout",
+    "downscale_rgb",
+    "downscale_depth",
+    "read_rgb",
+    "read_depth",
+    "SceneAnnotations",
+    "SceneObject",
+    "Task",
+    "load_annotations",
+    "find_annotation_files",
+    "parse_up_axis",
+]

@@ -1,0 +1,3 @@
+from gausslite.cli import main
+import sys
+sys.exit(main())

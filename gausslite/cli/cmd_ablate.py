@@ -1,0 +1,115 @@
+"""``gausslite ablate``: the paper's Table 3 at matched budget (SB, MVO, ROI, SIS, GFD cumulatively).
+
+Writes ``DIR/ablation.json`` (a list of rows: the five switches, ``roi_psnr``, ``psnr``,
+``seconds_per_frame``, ``n_gaussians``, per task and averaged), ``DIR/ablation.md`` and
+``DIR/ablation.png`` (ROI PSNR and full-image PSNR per row, the paper's Fig. 5 trade-off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gausslite.cli.cmd_map import add_mapping_args, config_from_args, resolve_dataset
+
+log = logging.getLogger("gausslite.ablate")
+
+SWITCHES = ("sb", "mvo", "roi", "sis", "gfd")
+
+
+def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True) -> list[dict]:
+    """Run every ablation row for every task at the same budget; return the rows (mean over tasks
+    in ``roi_psnr``/``psnr``/``seconds_per_frame``/``n_gaussians``, per task in ``per_task``)."""
+    from tqdm import tqdm
+
+    from gausslite.mapping.config import ablation_rows
+    from gausslite.pipeline import run_mapping
+
+    rows = []
+    jobs = [(name, sw, t) for name, sw in ablation_rows() for t in task_ids]
+    bar = tqdm(total=len(jobs), desc="ablation", disable=not progress, unit="run")
+    results: dict[str, dict[str, dict]] = {}
+    for name, sw, task in jobs:
+        cfg = base_cfg.model_copy(update={"mode": "gausslite", "components": sw})
+        bar.set_postfix(row=name, task=task)
+        _, m = run_mapping(dataset, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
+        results.setdefault(name, {})[task] = {
+            k: m[k] for k in ("roi_psnr", "psnr", "ssim", "roi_ssim", "seconds_per_frame", "n_gaussians", "n_active")
+        }
+        bar.update(1)
+    bar.close()
+    for name, sw in ablation_rows():
+        per = results[name]
+        row = {s: bool(getattr(sw, s)) for s in SWITCHES}
+        row["row"] = name
+        for k in ("roi_psnr", "psnr", "seconds_per_frame", "n_gaussians"):
+            vals = [v[k] for v in per.values() if v[k] is not None]
+            row[k] = float(np.mean(vals)) if vals else None
+        row["per_task"] = per
+        rows.append(row)
+    return rows
+
+
+def write_report(rows: list[dict], out: Path, title: str) -> None:
+    """Write ablation.json, ablation.md and ablation.png."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ablation.json").write_text(json.dumps(rows, indent=2))
+    mark = lambda b: "✓" if b else "✗"  # noqa: E731
+    lines = [f"# Ablation: {title}", "",
+             "| SB | MVO | ROI | SIS | GFD | ROI PSNR [dB] | PSNR [dB] | s/frame | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append("| " + " | ".join(mark(r[s]) for s in SWITCHES)
+                     + f" | {r['roi_psnr']:.2f} | {r['psnr']:.2f} | {r['seconds_per_frame']:.2f} | {r['n_gaussians']:.0f} |")
+    tasks = sorted(rows[0]["per_task"])
+    if len(tasks) > 1:
+        lines += ["", "ROI PSNR per task [dB]:", "", "| row | " + " | ".join(tasks) + " |",
+                  "|---|" + "---|" * len(tasks)]
+        for r in rows:
+            lines.append(f"| {r['row']} | " + " | ".join(f"{r['per_task'][t]['roi_psnr']:.2f}" for t in tasks) + " |")
+    (out / "ablation.md").write_text("\n".join(lines) + "\n")
+
+    fig, ax1 = plt.subplots(figsize=(7, 4))
+    x = np.arange(len(rows))
+    ax1.plot(x, [r["roi_psnr"] for r in rows], "o-", color="tab:red", label="ROI PSNR")
+    ax1.set_ylabel("ROI PSNR [dB]", color="tab:red")
+    ax2 = ax1.twinx()
+    ax2.plot(x, [r["psnr"] for r in rows], "s--", color="tab:blue", label="full-image PSNR")
+    ax2.set_ylabel("full-image PSNR [dB]", color="tab:blue")
+    ax1.set_xticks(x, [r["row"] for r in rows])
+    ax1.set_title(f"Ablation trade-off: {title}")
+    fig.tight_layout()
+    fig.savefig(out / "ablation.png", dpi=120)
+    plt.close(fig)
+
+
+def _handler(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    args.mode = "gausslite"
+    ds = resolve_dataset(args, out)
+    if ds.annotations is None:
+        log.error("%s has no tasks.json: ablation needs ground-truth ROI", ds.path)
+        return 2
+    task_ids = [t.id for t in ds.annotations.tasks] if args.task_id in (None, "all") else [args.task_id]
+    base = config_from_args(args, mode="gausslite")
+    rows = run_ablation(ds, base, task_ids, out, stride=args.stride, progress=not args.no_progress)
+    write_report(rows, out, f"{ds.path.name} ({', '.join(task_ids)})")
+    print((out / "ablation.md").read_text())
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("ablate", help="component ablation at matched budget (paper Table 3)")
+    add_mapping_args(p)
+    p.add_argument("--out", required=True, type=Path)
+    p.set_defaults(func=_handler)

@@ -1,0 +1,82 @@
+"""``gausslite serve SERVICE``: run one GaussLite gRPC service until SIGTERM/SIGINT (SPEC §1, §8).
+
+Adding a service is one entry in :data:`SERVICES`: the module must define
+``run(options: services.common.ServerOptions, config_path: str | None) -> int``. The module is
+imported lazily inside the handler, so the core ``gausslite`` package never imports gRPC.
+
+Every option falls back to an environment variable: ``GAUSSLITE_<SERVICE>_HOST``,
+``GAUSSLITE_<SERVICE>_PORT``, ``GAUSSLITE_<SERVICE>_CONFIG``, ``GAUSSLITE_TOKEN``,
+``GAUSSLITE_TLS_CERT``, ``GAUSSLITE_TLS_KEY``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from typing import Dict, NamedTuple
+
+
+class ServiceEntry(NamedTuple):
+    """``module`` defines ``run(options, config_path)``; ``default_port`` when none is given."""
+
+    module: str
+    default_port: int
+
+
+#: Service name → entry. Add ``"agent"`` / ``"fusion"`` here.
+SERVICES: Dict[str, ServiceEntry] = {
+    "parser": ServiceEntry("services.parser.server", 50051),
+}
+
+
+def register(subparsers) -> None:
+    """Add the ``serve`` subcommand to ``subparsers``."""
+    p = subparsers.add_parser("serve", help="run a GaussLite gRPC service",
+                              description="Run a GaussLite gRPC service until SIGTERM/SIGINT.")
+    p.add_argument("service", choices=sorted(SERVICES), help="which service")
+    p.add_argument("--host", default=None, help="bind address (env GAUSSLITE_<SERVICE>_HOST, default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None,
+                   help="port, 0 = ephemeral (env GAUSSLITE_<SERVICE>_PORT, default per service)")
+    p.add_argument("--token", default=None, help="require 'authorization: Bearer TOKEN' (env GAUSSLITE_TOKEN)")
+    p.add_argument("--tls-cert", default=None, help="PEM certificate (env GAUSSLITE_TLS_CERT)")
+    p.add_argument("--tls-key", default=None, help="PEM private key (env GAUSSLITE_TLS_KEY)")
+    p.add_argument("--config", default=None, help="service config file (env GAUSSLITE_<SERVICE>_CONFIG)")
+    p.add_argument("--max-workers", type=int, default=8, help="handler threads")
+    p.add_argument("--grace", type=float, default=5.0, help="shutdown grace period, seconds")
+    p.set_defaults(func=_handle)
+
+
+def resolve_options(args: argparse.Namespace, env=None):
+    """Merge CLI arguments with environment fallbacks into (ServerOptions, config_path).
+
+    Raises:
+        ValueError: a port from the environment is not an integer.
+    """
+    from services.common.server import ServerOptions
+
+    env = os.environ if env is None else env
+    entry = SERVICES[args.service]
+    prefix = f"GAUSSLITE_{args.service.upper()}_"
+    port = args.port if args.port is not None else int(env.get(prefix + "PORT", entry.default_port))
+    opts = ServerOptions(
+        host=args.host or env.get(prefix + "HOST", "127.0.0.1"),
+        port=port,
+        token=args.token or env.get("GAUSSLITE_TOKEN") or None,
+        tls_cert=args.tls_cert or env.get("GAUSSLITE_TLS_CERT") or None,
+        tls_key=args.tls_key or env.get("GAUSSLITE_TLS_KEY") or None,
+        max_workers=args.max_workers,
+        grace_s=args.grace,
+    )
+    return opts, args.config or env.get(prefix + "CONFIG") or None
+
+
+def _handle(args: argparse.Namespace) -> int:
+    try:
+        opts, config_path = resolve_options(args)
+        module = importlib.import_module(SERVICES[args.service].module)
+        return int(module.run(opts, config_path) or 0)
+    except (ValueError, OSError, RuntimeError) as e:
+        print(f"gausslite serve {args.service}: error: {e}", file=sys.stderr)
+        return 2

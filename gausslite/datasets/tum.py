@@ -1,0 +1,357 @@
+"""TUM RGB-D benchmark sequences (Sturm et al., IROS 2012) in their original layout.
+
+Layout (``shared/datasets/TUM_rgbd_dataset_freiburg1_rpy/README.md`` and the TUM RGB-D file-format page)::
+
+    rgb.txt          "timestamp filename" per line, '#' header lines
+    depth.txt        "timestamp filename" per line, 16-bit PNG, depth_m = value / 5000, 0 = no measurement
+    groundtruth.txt  "timestamp tx ty tz qx qy qz qw": camera-to-world (T_wc) of the optical centre,
+                     Hamilton quaternion, scalar last; 100 Hz motion capture
+
+Association: every colour frame takes the depth frame and the groundtruth sample with the nearest
+timestamp, provided the gap is at most ``max_depth_dt`` / ``max_pose_dt`` seconds (default 0.02 s each,
+as TUM's ``associate.py`` default); frames without a match are dropped with a logged warning. Matching
+is nearest-neighbour per colour frame (a depth frame may serve two colour frames). With
+``interpolate_poses=True`` the pose is linearly/slerp-interpolated between the groundtruth samples that
+bracket the colour timestamp (the frame is still dropped when the nearest sample is further than
+``max_pose_dt``).
+
+Intrinsics: TUM's published pinhole values chosen from the sequence name (folder name, else the
+``# file: '...bag'`` header of ``rgb.txt``): freiburg1/fr1 517.3 516.5 318.6 255.3, freiburg2/fr2 520.9
+521.0 325.1 249.7, freiburg3/fr3 535.4 539.2 320.1 247.6, otherwise the ROS default 525 525 319.5 239.5;
+all at 640x480. **Images are not undistorted by default** (as most GS-SLAM loaders do); pass
+``undistort=True`` to undistort colour (bilinear) and depth (nearest) with the published Freiburg
+distortion coefficients (fr3 and the default are distortion-free).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple, Union
+
+import cv2
+import numpy as np
+
+from gausslite.camera import Intrinsics, check_rigid
+from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.loader import PosedImageDataset, select_indices
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "TUMDataset",
+    "TUM_INTRINSICS",
+    "TUM_DISTORTION",
+    "freiburg_id",
+    "read_file_list",
+    "read_groundtruth",
+    "quat_to_rot",
+    "associate_nearest",
+]
+
+#: Published TUM RGB-D colour intrinsics (fx, fy, cx, cy) at 640x480; key None = ROS default.
+TUM_INTRINSICS = {
+    1: (517.3, 516.5, 318.6, 255.3),
+    2: (520.9, 521.0, 325.1, 249.7),
+    3: (535.4, 539.2, 320.1, 247.6),
+    None: (525.0, 525.0, 319.5, 239.5),
+}
+#: Published OpenCV distortion (k1, k2, p1, p2, k3) of the colour cameras.
+TUM_DISTORTION = {
+    1: (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    2: (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    3: (0.0, 0.0, 0.0, 0.0, 0.0),
+    None: (0.0, 0.0, 0.0, 0.0, 0.0),
+}
+TUM_SIZE = (640, 480)
+
+_FR_RE = re.compile(r"(?:freiburg|(?<![a-z])fr)_?([123])(?!\d)")
+
+
+def freiburg_id(name: str) -> Optional[int]:
+    """Freiburg camera number (1, 2, 3) named in ``name`` ("freiburg1", "fr2", ...), else None."""
+    m = _FR_RE.search(name.lower())
+    return int(m.group(1)) if m else None
+
+
+def _data_lines(path: Path):
+    if not path.is_file():
+        raise FileNotFoundError(f"TUM file not found: {path}")
+    with open(path, "r", encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            s = line.strip()
+            if s and not s.startswith("#"):
+                yield lineno, s
+
+
+def read_file_list(path: Path) -> Tuple[np.ndarray, List[str]]:
+    """Parse ``rgb.txt`` / ``depth.txt`` ("timestamp filename" lines, '#' comments).
+
+    Returns:
+        ``(timestamps (N,) float64 seconds, relative filenames)`` in file order.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: malformed line (message names file and line).
+    """
+    path = Path(path)
+    ts: List[float] = []
+    names: List[str] = []
+    for lineno, s in _data_lines(path):
+        parts = s.split()
+        if len(parts) != 2:
+            raise ValueError(f"{path}:{lineno}: expected 'timestamp filename', got {s!r}")
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: bad timestamp {parts[0]!r}") from None
+        if not math.isfinite(t):
+            raise ValueError(f"{path}:{lineno}: bad timestamp {parts[0]!r}")
+        ts.append(t)
+        names.append(parts[1])
+    return np.asarray(ts, dtype=np.float64), names
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit Hamilton quaternion ``(qx, qy, qz, qw)`` (scalar last).
+
+    Returns:
+        (3, 3) float64 (the input is normalised first).
+    """
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def read_groundtruth(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray, List[int]]:
+    """Parse ``groundtruth.txt`` ("timestamp tx ty tz qx qy qz qw", '#' comments).
+
+    Returns:
+        ``(timestamps (N,), translations (N, 3), unit quaternions (N, 4) xyzw, line numbers)``, sorted
+        by timestamp.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: malformed line, NaN values or a zero quaternion
+        (message names file and line), or no poses.
+    """
+    path = Path(path)
+    rows, lines = [], []
+    for lineno, s in _data_lines(path):
+        parts = s.split()
+        if len(parts) != 8:
+            raise ValueError(f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(parts)} fields")
+        try:
+            r = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: non-numeric value") from None
+        if not all(math.isfinite(v) for v in r):
+            raise ValueError(f"{path}:{lineno}: NaN or infinite value in pose")
+        qn = math.sqrt(sum(v * v for v in r[4:]))
+        if qn < 1e-6:
+            raise ValueError(f"{path}:{lineno}: zero quaternion")
+        rows.append(r[:4] + [v / qn for v in r[4:]])
+        lines.append(lineno)
+    if not rows:
+        raise ValueError(f"{path}: no poses")
+    a = np.asarray(rows, dtype=np.float64)
+    order = np.argsort(a[:, 0], kind="stable")
+    a = a[order]
+    return a[:, 0], a[:, 1:4], a[:, 4:8], [lines[i] for i in order]
+
+
+def associate_nearest(query: np.ndarray, ref_sorted: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """For each query time, the index of the nearest reference time and the absolute gap.
+
+    Args:
+        query: (N,) seconds. ref_sorted: (M,) seconds, ascending, M >= 1.
+
+    Returns:
+        ``(indices (N,) int64, gaps (N,) float64 seconds)``.
+    """
+    query = np.asarray(query, dtype=np.float64)
+    m = len(ref_sorted)
+    if m == 0:
+        raise ValueError("no reference timestamps to associate with")
+    if m == 1:
+        return np.zeros(len(query), dtype=np.int64), np.abs(query - ref_sorted[0])
+    j = np.clip(np.searchsorted(ref_sorted, query), 1, m - 1)
+    left = ref_sorted[j - 1]
+    right = ref_sorted[j]
+    use_left = np.abs(query - left) <= np.abs(right - query)
+    idx = np.where(use_left, j - 1, j).astype(np.int64)
+    return idx, np.abs(ref_sorted[idx] - query)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + t * (q1 - q0)
+    else:
+        th = math.acos(d)
+        q = (math.sin((1 - t) * th) * q0 + math.sin(t * th) * q1) / math.sin(th)
+    return q / np.linalg.norm(q)
+
+
+class TUMDataset(PosedImageDataset):
+    """TUM RGB-D sequence (see the module docstring for association, intrinsics and distortion).
+
+    Args:
+        path: sequence folder holding ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``.
+        downscale: factor >= 1 (int or float) for images and intrinsics.
+        max_frames: keep at most this many associated frames (after ``stride``).
+        stride: keep every ``stride``-th associated frame.
+        intrinsics: override: an ``Intrinsics`` (its size must match the images) or ``(fx, fy, cx, cy)``
+            at 640x480. Default: chosen from the sequence name.
+        depth_scale: raw depth units per metre (5000 for TUM).
+        max_depth_dt, max_pose_dt: maximum |colour - depth| and |colour - groundtruth| gaps (seconds).
+        interpolate_poses: interpolate between the bracketing groundtruth samples.
+        undistort: undistort images with ``distortion`` (default: the published Freiburg coefficients).
+        distortion: override ``(k1, k2, p1, p2, k3)``.
+
+    Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``freiburg`` (1/2/3/None),
+    ``distortion`` (5-tuple), ``n_dropped`` (colour frames without depth or pose match);
+    ``frame_ids`` are indices into ``rgb.txt``; timestamps are the colour timestamps.
+
+    Raises:
+        FileNotFoundError: missing folder, list files or listed image files.
+        ValueError: malformed list files (file:line), no associated frames, non-rigid poses, bad
+            annotations or arguments. Frame access raises for unreadable images or sizes that
+            disagree with the intrinsics.
+    """
+
+    def __init__(
+        self,
+        path: Union[str, Path],
+        downscale: Union[int, float] = 1,
+        max_frames: Optional[int] = None,
+        stride: int = 1,
+        intrinsics: Optional[Union[Intrinsics, Sequence[float]]] = None,
+        depth_scale: float = 5000.0,
+        max_depth_dt: float = 0.02,
+        max_pose_dt: float = 0.02,
+        interpolate_poses: bool = False,
+        undistort: bool = False,
+        distortion: Optional[Sequence[float]] = None,
+    ) -> None:
+        seq = Path(path)
+        if not seq.is_dir():
+            raise FileNotFoundError(f"TUM sequence folder not found: {seq}")
+        for v, nm in ((max_depth_dt, "max_depth_dt"), (max_pose_dt, "max_pose_dt")):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{nm} must be a finite number >= 0, got {v!r}")
+        rgb_file = seq / "rgb.txt"
+        rgb_ts, rgb_names = read_file_list(rgb_file)
+        depth_ts, depth_names = read_file_list(seq / "depth.txt")
+        gt_ts, gt_t, gt_q, gt_lines = read_groundtruth(seq / "groundtruth.txt")
+        if len(rgb_ts) == 0:
+            raise ValueError(f"{rgb_file}: no frames listed")
+        if len(depth_ts) == 0:
+            raise ValueError(f"{seq / 'depth.txt'}: no frames listed")
+
+        # sequence name -> Freiburg camera
+        fr = freiburg_id(seq.name)
+        if fr is None:
+            with open(rgb_file, "r", encoding="utf-8") as fh:
+                head = "".join(line for line in fh.readlines()[:5] if line.startswith("#"))
+            fr = freiburg_id(head)
+        self.freiburg = fr
+        if intrinsics is None:
+            intr = Intrinsics(*TUM_INTRINSICS[fr], *TUM_SIZE)
+        elif isinstance(intrinsics, Intrinsics):
+            intr = intrinsics
+        else:
+            vals = [float(v) for v in intrinsics]
+            if len(vals) != 4:
+                raise ValueError(f"intrinsics override must be Intrinsics or (fx, fy, cx, cy), got {intrinsics!r}")
+            intr = Intrinsics(*vals, *TUM_SIZE)
+        dist = TUM_DISTORTION[fr] if distortion is None else tuple(float(v) for v in distortion)
+        if len(dist) != 5 or not all(math.isfinite(v) for v in dist):
+            raise ValueError(f"distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {distortion!r}")
+        self.distortion = dist
+        self.undistort = bool(undistort)
+
+        # association
+        d_order = np.argsort(depth_ts, kind="stable")
+        d_idx, d_gap = associate_nearest(rgb_ts, depth_ts[d_order])
+        d_idx = d_order[d_idx]
+        g_idx, g_gap = associate_nearest(rgb_ts, gt_ts)
+        ok = (d_gap <= max_depth_dt) & (g_gap <= max_pose_dt)
+        keep = np.flatnonzero(ok)
+        self.n_dropped = int(len(rgb_ts) - len(keep))
+        if self.n_dropped:
+            bad = np.flatnonzero(~ok)
+            log.warning(
+                "%s: dropped %d of %d colour frames without depth within %.3f s or groundtruth within %.3f s "
+                "(first: %s)",
+                seq, self.n_dropped, len(rgb_ts), max_depth_dt, max_pose_dt,
+                ", ".join(f"{rgb_ts[i]:.6f}" for i in bad[:5]),
+            )
+        if len(keep) == 0:
+            raise ValueError(
+                f"{seq}: no colour frame has depth within {max_depth_dt} s and groundtruth within {max_pose_dt} s"
+            )
+
+        sel = [int(keep[k]) for k in select_indices(len(keep), stride, max_frames)]
+        poses = []
+        for i in sel:
+            g = int(g_idx[i])
+            t, q = gt_t[g], gt_q[g]
+            if interpolate_poses:
+                t, q = self._interp(rgb_ts[i], gt_ts, gt_t, gt_q, g)
+            T = np.eye(4)
+            T[:3, :3] = quat_to_rot(q)
+            T[:3, 3] = t
+            poses.append(check_rigid(T, what=f"{seq / 'groundtruth.txt'}:{gt_lines[g]}"))
+        rgb_paths = [seq / rgb_names[i] for i in sel]
+        depth_paths = [seq / depth_names[int(d_idx[i])] for i in sel]
+        for lst, listing in ((rgb_paths, "rgb.txt"), (depth_paths, "depth.txt")):
+            for p in lst:
+                if not p.is_file():
+                    raise FileNotFoundError(f"image listed in {seq / listing} not found: {p}")
+        super().__init__(
+            path=seq,
+            name=seq.name,
+            rgb_paths=rgb_paths,
+            depth_paths=depth_paths,
+            poses=np.stack(poses),
+            timestamps=rgb_ts[sel],
+            frame_ids=sel,
+            frame_names=[Path(rgb_names[i]).stem for i in sel],
+            native_intrinsics=intr,
+            depth_scale=depth_scale,
+            downscale=downscale,
+            annotations=load_annotations(seq),
+        )
+        self._maps = None
+
+    @staticmethod
+    def _interp(t_q: float, gt_ts: np.ndarray, gt_t: np.ndarray, gt_q: np.ndarray, g: int):
+        """Translation lerp + quaternion slerp between the samples bracketing ``t_q`` (nearest at the ends)."""
+        j = int(np.searchsorted(gt_ts, t_q))
+        if j <= 0 or j >= len(gt_ts) or gt_ts[j] == gt_ts[j - 1]:
+            return gt_t[g], gt_q[g]
+        a = (t_q - gt_ts[j - 1]) / (gt_ts[j] - gt_ts[j - 1])
+        return (1 - a) * gt_t[j - 1] + a * gt_t[j], _slerp(gt_q[j - 1], gt_q[j], a)
+
+    def _preprocess(self, rgb: np.ndarray, depth: np.ndarray, i: int):
+        """Undistort colour (bilinear) and depth (nearest, keeps values) when ``undistort=True``."""
+        if not self.undistort or not any(self.distortion):
+            return rgb, depth
+        if self._maps is None:
+            ni = self.native_intrinsics
+            K = ni.K
+            self._maps = cv2.initUndistortRectifyMap(
+                K, np.asarray(self.distortion), None, K, (ni.width, ni.height), cv2.CV_32FC1
+            )
+        mx, my = self._maps
+        rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return rgb, depth

@@ -1,0 +1,323 @@
+"""Online mapper with known poses: uniform baseline and task-conditioned GaussLite.
+
+Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
+1. seeding: N new Gaussians from depth-valid pixels (uniform, or SB/SIS/GFD with a relevance map w),
+   initial scale log(s0·m) with s0 the local median nearest-neighbour distance;
+2. a fixed number of Adam iterations; each iteration's view comes from a window of recent keyframes
+   (MVO: uniform over the window; otherwise the current frame with probability
+   ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM);
+3. ROI: after ``warmup_iters`` full-image iterations, the rest render and update only active
+   Gaussians with colour/depth/SSIM restricted to ROI ∩ rendered footprint; κ += 1 per active
+   iteration for every active Gaussian;
+4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget.
+
+The mapper does not care where w came from (ground truth or the attention front-end).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from gausslite.datasets.base import Frame
+from gausslite.gaussians import GaussianMap
+from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.model import GaussianModel
+from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
+from gausslite.metrics import ssim_map
+from gausslite.render import RenderOutput, rasterize
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    """A training view kept in the mapper's window (tensors on the mapper's device).
+
+    rgb (H,W,3) float32 [0,1]; depth (H,W) float32 metres (0 invalid); c2w (4,4) float64;
+    K (3,3) float32; roi (H,W) bool or None.
+    """
+
+    frame_id: int
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    c2w: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+    roi: Optional[torch.Tensor]
+
+
+@dataclass
+class FrameStats:
+    """What one ``map_frame`` call did (for logs and metrics.json)."""
+
+    frame_id: int
+    seconds: float
+    n_seeds: int
+    n_roi_seeds: int
+    n_gaussians: int
+    loss: float
+    active_iters: int
+    densify: dict = field(default_factory=dict)
+
+
+def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
+    """Convert a dataset ``Frame`` (uint8 rgb, metres depth) into a tensor ``Keyframe``."""
+    return Keyframe(
+        frame_id=frame.frame_id,
+        rgb=torch.from_numpy(frame.rgb).to(device, torch.float32) / 255.0,
+        depth=torch.from_numpy(np.ascontiguousarray(frame.depth)).to(device, torch.float32),
+        c2w=torch.from_numpy(np.asarray(frame.c2w, dtype=np.float64)).to(device),
+        K=torch.from_numpy(frame.intrinsics.K).to(device, torch.float32),
+        width=frame.intrinsics.width,
+        height=frame.intrinsics.height,
+        roi=None if roi is None else torch.from_numpy(np.asarray(roi, dtype=bool)).to(device),
+    )
+
+
+def photometric_loss(
+    out: RenderOutput,
+    kf: Keyframe,
+    lambda_depth: float,
+    lambda_ssim: float,
+    mask: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
+    """L = L1_colour + λ_d · L1_depth + λ_s · (1 − SSIM) (paper Eq. 1).
+
+    Args:
+        out: render of the keyframe's view.
+        kf: the keyframe (ground truth).
+        mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
+            None = full image. The depth term also requires valid ground-truth depth.
+    Returns:
+        scalar tensor (0 with a zero-gradient graph when the mask is empty).
+    """
+    valid_d = kf.depth > 0
+    if mask is None:
+        l1c = (out.color - kf.rgb).abs().mean()
+        dmask = valid_d
+        s = ssim_map(out.color, kf.rgb).mean()
+    else:
+        if not bool(mask.any()):
+            return out.color.sum() * 0.0
+        l1c = (out.color - kf.rgb).abs()[mask].mean()
+        dmask = valid_d & mask
+        s = ssim_map(out.color, kf.rgb)[mask].mean()
+    l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
+    return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
+
+
+class Mapper:
+    """The online mapper (one global map, known poses).
+
+    Args:
+        cfg: mapper configuration (mode, budgets, switches, learning rates).
+    """
+
+    def __init__(self, cfg: MapperConfig) -> None:
+        self.cfg = cfg
+        self.device = torch.device(cfg.device)
+        self.model = GaussianModel(cfg.lr, self.device)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+        self.window: deque[Keyframe] = deque(maxlen=cfg.window)
+        self.keyframes: list[Keyframe] = []
+        self.n_mapped = 0
+        self.stats: list[FrameStats] = []
+        self._reset_densify_stats()
+
+    # ------------------------------------------------------------------ map access
+    @property
+    def gmap(self) -> GaussianMap:
+        """Detached snapshot of the current map."""
+        return self.model.to_map()
+
+    def render(self, c2w: torch.Tensor | np.ndarray, K: torch.Tensor | np.ndarray, width: int, height: int,
+               subset: Optional[torch.Tensor] = None) -> RenderOutput:
+        """Render the current map (no gradients) from a camera-to-world pose ``c2w`` (4,4)."""
+        p = self.model.params
+        with torch.no_grad():
+            return rasterize(
+                p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+                K=K, width=width, height=height, c2w=c2w, subset=subset,
+                background=torch.tensor(self.cfg.background, device=self.device), backend=self.cfg.backend,
+            )
+
+    # ------------------------------------------------------------------ seeding
+    def _seed(self, frame: Frame, relevance: Optional[np.ndarray]) -> tuple[int, int]:
+        cfg, sw = self.cfg, self.cfg.effective()
+        n = cfg.seeds_per_frame
+        if self.n_mapped == 0:
+            n = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
+        n = min(n, cfg.max_gaussians - len(self.model))
+        if n <= 0:
+            return 0, 0
+        valid = frame.depth > 0
+        sel = select_seeds(
+            valid, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
+            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.rho, gfd_eps=cfg.gfd_eps,
+        )
+        if sel.pixels.size == 0:
+            return 0, 0
+        if sel.n_roi_shortfall:
+            log.debug("frame %d: ROI has %d fewer valid pixels than its seed share; moved to background",
+                      frame.frame_id, sel.n_roi_shortfall)
+        # a_i comes from w at the seed pixel, whatever the seeding strategy
+        is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
+        pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
+        s0 = local_median_nn_distance(pts, k=cfg.knn)
+        if sw.sis:
+            mult = np.where(is_roi, cfg.m_roi, cfg.m_bg)
+        else:
+            mult = np.full(pts.shape[0], cfg.m_uniform)
+        new = GaussianMap.from_points(
+            torch.from_numpy(pts).float(), torch.from_numpy(cols).float(),
+            torch.from_numpy(s0 * mult).float(), opacity=cfg.init_opacity,
+            active=torch.from_numpy(is_roi),
+        ).to(self.device)
+        cur = self.model.to_map()
+        n_old = len(self.model)
+        merged = cur.append(new)
+        parent = torch.cat([torch.arange(n_old, device=self.device),
+                            torch.full((len(new),), -1, dtype=torch.int64, device=self.device)])
+        self.model.set_map(merged, parent)
+        self._reset_densify_stats()
+        return int(sel.pixels.size), int(is_roi.sum())
+
+    # ------------------------------------------------------------------ density control
+    def _reset_densify_stats(self) -> None:
+        n = len(self.model)
+        self._grad_accum = torch.zeros(n, device=self.device)
+        self._grad_count = torch.zeros(n, device=self.device)
+
+    def _accumulate(self, out: RenderOutput, width: int, height: int) -> None:
+        g = out.means2d.grad
+        if g is None:
+            return
+        vis = out.radii > 0
+        scale = torch.tensor([width / 2.0, height / 2.0], device=g.device)
+        norm = (g * scale).norm(dim=1)
+        ids = out.ids[vis]
+        self._grad_accum.index_add_(0, ids, norm[vis])
+        self._grad_count.index_add_(0, ids, torch.ones_like(norm[vis]))
+
+    def _densify_and_prune(self) -> dict:
+        dc = self.cfg.densify
+        gmap = self.model.to_map()
+        n = len(gmap)
+        if n == 0:
+            return {}
+        avg = self._grad_accum / self._grad_count.clamp_min(1)
+        high = avg >= dc.grad_threshold
+        max_scale = gmap.log_scales.exp().max(dim=1).values
+        split = high & (max_scale > dc.split_scale_m)
+        clone = high & ~split
+        room = self.cfg.max_gaussians - n
+        n_new = int(clone.sum()) + int(split.sum())  # n_split=2: one extra row per split
+        if n_new > room:
+            # keep the highest-gradient candidates within the budget
+            cand = torch.nonzero(clone | split).squeeze(1)
+            order = torch.argsort(avg[cand], descending=True)
+            keep = cand[order[: max(room, 0)]]
+            sel = torch.zeros(n, dtype=torch.bool, device=self.device)
+            sel[keep] = True
+            clone &= sel
+            split &= sel
+        stats = {"clone": int(clone.sum()), "split": int(split.sum())}
+        if stats["clone"] or stats["split"]:
+            gmap, parent = gmap.densify(clone, split, n_split=2, generator=self.torch_gen)
+        else:
+            parent = torch.arange(n, device=self.device)
+        opacity = torch.sigmoid(gmap.opacity_logits)
+        big = gmap.log_scales.exp().max(dim=1).values > dc.max_scale_m
+        keep = ~((opacity < dc.prune_opacity) | big)
+        stats["prune"] = int((~keep).sum())
+        if stats["prune"]:
+            gmap = gmap.prune(keep)
+            parent = parent[keep]
+        self.model.set_map(gmap, parent)
+        self._reset_densify_stats()
+        return stats
+
+    # ------------------------------------------------------------------ optimisation
+    def _pick_view(self, current: Keyframe) -> Keyframe:
+        win = list(self.window)
+        if self.cfg.effective().mvo:
+            return win[int(self.rng.integers(len(win)))]
+        if len(win) == 1 or self.rng.random() < self.cfg.current_frame_prob:
+            return current
+        return win[int(self.rng.integers(len(win)))]
+
+    def _iterate(self, kf: Keyframe, active_phase: bool) -> float:
+        cfg = self.cfg
+        p = self.model.params
+        subset = self.model.active if active_phase else None
+        out = rasterize(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+            K=kf.K, width=kf.width, height=kf.height, c2w=kf.c2w, subset=subset,
+            background=torch.tensor(cfg.background, device=self.device), backend=cfg.backend,
+        )
+        mask = None
+        if active_phase:
+            roi = kf.roi if kf.roi is not None else torch.zeros_like(kf.depth, dtype=torch.bool)
+            mask = roi & (out.alpha.detach() > cfg.footprint_alpha)
+        loss = photometric_loss(out, kf, cfg.lambda_depth, cfg.lambda_ssim, mask)
+        loss.backward()
+        if cfg.densify.enabled:
+            self._accumulate(out, kf.width, kf.height)
+        self.model.step(update=self.model.active if active_phase else None)
+        if active_phase:
+            self.model.kappa[self.model.active] += 1
+        return float(loss.detach())
+
+    def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None) -> FrameStats:
+        """Seed and optimise for one posed RGB-D frame.
+
+        Args:
+            frame: the frame (its pose is trusted).
+            relevance: (H, W) bool relevance map w for this frame, or None (no ROI).
+        Returns:
+            FrameStats (seconds includes seeding, optimisation and density control).
+        Raises:
+            ValueError: relevance map of the wrong shape.
+        """
+        if relevance is not None and relevance.shape != frame.depth.shape:
+            raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
+        cfg, sw = self.cfg, self.cfg.effective()
+        t0 = time.perf_counter()
+        n_seeds, n_roi = self._seed(frame, relevance)
+        kf = keyframe_from_frame(frame, self.device, relevance)
+        self.window.append(kf)
+        if self.n_mapped % cfg.keyframe_every == 0:
+            self.keyframes.append(kf)
+        loss = 0.0
+        active_iters = 0
+        dstats: dict = {}
+        has_active = bool(self.model.active.any())
+        for it in range(cfg.iters_per_frame):
+            view = self._pick_view(kf)
+            active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
+            loss = self._iterate(view, active_phase)
+            active_iters += int(active_phase)
+            if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0:
+                for k, v in self._densify_and_prune().items():
+                    dstats[k] = dstats.get(k, 0) + v
+                has_active = bool(self.model.active.any())
+        self.n_mapped += 1
+        st = FrameStats(frame.frame_id, time.perf_counter() - t0, n_seeds, n_roi, len(self.model), loss,
+                        active_iters, dstats)
+        self.stats.append(st)
+        return st
+
+    def finalize(self) -> None:
+        """Optional extra iterations over all keyframes (``final_iters``), full image, all Gaussians."""
+        for _ in range(self.cfg.final_iters):
+            kf = self.keyframes[int(self.rng.integers(len(self.keyframes)))]
+            self._iterate(kf, active_phase=False)

@@ -1,0 +1,114 @@
+"""Learnable Gaussian parameters with their Adam optimiser, kept consistent through density control.
+
+The map's structure changes every mapped frame (new seeds, clone/split, prune, budget cap). This
+class owns the ``torch.nn.Parameter`` tensors and the Adam state, and rebuilds both from a
+``GaussianMap`` plus a ``parent_index`` that says which old row each new row derives from, so Adam
+moments survive density control (rows with parent −1 start with zero moments), as in 3DGS.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from gausslite.gaussians import GaussianMap
+from gausslite.mapping.config import LearningRates
+
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+class GaussianModel:
+    """Parameters of a ``GaussianMap`` under optimisation.
+
+    Attributes:
+        params: dict name → ``nn.Parameter`` for the five learnable fields (shapes as GaussianMap).
+        active: (N,) bool task flag a_i. kappa: (N,) int64 κ_i.
+        optimizer: ``torch.optim.Adam`` with one parameter group per field.
+    """
+
+    def __init__(self, lr: LearningRates, device: str | torch.device = "cpu") -> None:
+        self.lr = lr
+        self.device = torch.device(device)
+        self.params: dict[str, torch.nn.Parameter] = {}
+        self.optimizer: Optional[torch.optim.Adam] = None
+        self.set_map(GaussianMap.empty(device=self.device))
+
+    def __len__(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def to_map(self) -> GaussianMap:
+        """A detached ``GaussianMap`` snapshot of the current parameters (shares storage)."""
+        p = {k: v.detach() for k, v in self.params.items()}
+        return GaussianMap(active=self.active, kappa=self.kappa, **p)
+
+    def set_map(self, gmap: GaussianMap, parent_index: Optional[torch.Tensor] = None) -> None:
+        """Replace the parameters by ``gmap``'s fields, carrying Adam state along ``parent_index``.
+
+        Args:
+            gmap: the new map (its tensors are copied into fresh parameters).
+            parent_index: (M,) int64, for each row of ``gmap`` the row of the current parameters it
+                derives from, or −1 for a brand-new Gaussian. None drops all optimiser state.
+        """
+        old_state = {}
+        old_n = len(self) if self.params else 0
+        if self.optimizer is not None and parent_index is not None:
+            for name in PARAM_NAMES:
+                st = self.optimizer.state.get(self.params[name], None)
+                if st:
+                    old_state[name] = st
+        if parent_index is not None and int(parent_index.shape[0]) != len(gmap.means):
+            raise ValueError(f"parent_index has {parent_index.shape[0]} rows, map has {len(gmap.means)}")
+        new_params = {
+            name: torch.nn.Parameter(getattr(gmap, name).detach().to(self.device, torch.float32).clone().contiguous())
+            for name in PARAM_NAMES
+        }
+        self.active = gmap.active.to(self.device, torch.bool).clone()
+        self.kappa = gmap.kappa.to(self.device, torch.int64).clone()
+        groups = [{"params": [new_params[n]], "lr": getattr(self.lr, n), "name": n} for n in PARAM_NAMES]
+        opt = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        if parent_index is not None and old_state:
+            pi = parent_index.to(self.device)
+            has_parent = pi >= 0
+            src = pi.clamp_min(0)
+            for name, st in old_state.items():
+                new_st = {}
+                for key, val in st.items():
+                    if torch.is_tensor(val) and val.dim() > 0 and val.shape[0] == old_n:
+                        carried = val[src].clone()
+                        carried[~has_parent] = 0
+                        new_st[key] = carried
+                    else:
+                        new_st[key] = val.clone() if torch.is_tensor(val) else val
+                opt.state[new_params[name]] = new_st
+        self.params = new_params
+        self.optimizer = opt
+
+    def step(self, update: Optional[torch.Tensor] = None) -> None:
+        """One Adam step, then clear gradients.
+
+        Args:
+            update: optional (N,) bool; rows outside it keep their values and Adam moments exactly
+                (the ROI phase updates only active Gaussians: a zero gradient alone would still move
+                them through Adam's momentum).
+        """
+        assert self.optimizer is not None
+        frozen = None
+        if update is not None and not bool(update.all()):
+            keep = ~update
+            frozen = {}
+            for name, p in self.params.items():
+                st = self.optimizer.state.get(p, {})
+                frozen[name] = (
+                    p.detach()[keep].clone(),
+                    {k: v[keep].clone() for k, v in st.items() if torch.is_tensor(v) and v.dim() > 0},
+                )
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if frozen is not None:
+            with torch.no_grad():
+                for name, (vals, st) in frozen.items():
+                    p = self.params[name]
+                    p[keep] = vals
+                    for k, v in st.items():
+                        self.optimizer.state[p][k][keep] = v

@@ -1,0 +1,234 @@
+"""Image and depth metrics for evaluation and for the mapping loss (SPEC §9, paper Eq. loss).
+
+Conventions (every function here):
+    * colour images are (H, W, C) float tensors with values in [0, 1] (C = 3 for RGB; any C >= 1
+      works), peak value 1;
+    * depth maps are (H, W) float tensors in metres along the camera z axis, 0 (or non-finite) in
+      the ground truth = invalid;
+    * masks are (H, W) bool tensors; a mask *restricts* a metric to the True pixels;
+    * all inputs of one call must share shape and device.
+
+Metric functions return 0-dim torch tensors (so they can be logged or differentiated);
+:func:`evaluate_frame` returns plain Python floats. An empty selection (mask with no True pixel,
+or no valid ground-truth depth) gives NaN, never an exception.
+
+SSIM follows Wang et al. 2004 ("Image quality assessment: from error visibility to structural
+similarity") with an 11x11 Gaussian window (σ = 1.5), K1 = 0.01, K2 = 0.03, L = 1, computed per
+channel with zero padding to "same" size exactly as the reference 3DGS code (Kerbl et al. 2023,
+``utils/loss_utils.py``), so whole-image numbers are comparable with 3DGS/SplaTAM-style papers.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Dict, Optional
+
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "gaussian_window",
+    "psnr",
+    "ssim_map",
+    "ssim",
+    "ssim_loss",
+    "depth_l1",
+    "evaluate_frame",
+]
+
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+def _check_images(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor]) -> None:
+    if pred.ndim != 3 or gt.ndim != 3:
+        raise ValueError(f"images must be (H, W, C); got pred {tuple(pred.shape)}, gt {tuple(gt.shape)}")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} differ in shape")
+    if pred.device != gt.device:
+        raise ValueError(f"pred on {pred.device} but gt on {gt.device}")
+    if not (pred.is_floating_point() and gt.is_floating_point()):
+        raise ValueError(f"images must be float in [0, 1]; got {pred.dtype}, {gt.dtype}")
+    _check_mask(mask, tuple(pred.shape[:2]), pred.device)
+
+
+def _check_mask(mask: Optional[torch.Tensor], hw: tuple, device: torch.device) -> None:
+    if mask is None:
+        return
+    if mask.dtype != torch.bool or tuple(mask.shape) != hw:
+        raise ValueError(f"mask must be a {hw} bool tensor, got {mask.dtype} {tuple(mask.shape)}")
+    if mask.device != device:
+        raise ValueError(f"mask on {mask.device} but images on {device}")
+
+
+def gaussian_window(window: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Normalised 1-D Gaussian window, (window,), centred, sum 1: g[i] ∝ exp(-(i - window//2)² / 2σ²)."""
+    if int(window) != window or window < 1 or window % 2 == 0:
+        raise ValueError(f"SSIM window must be a positive odd integer, got {window}")
+    if not sigma > 0:
+        raise ValueError(f"SSIM sigma must be > 0, got {sigma}")
+    x = torch.arange(window, dtype=torch.float64) - window // 2
+    g = torch.exp(-(x**2) / (2.0 * sigma**2))
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB with peak value 1: 10 log10(1 / MSE).
+
+    Args:
+        pred, gt: (H, W, C) float images in [0, 1].
+        mask: optional (H, W) bool; MSE is averaged over the masked pixels and all channels.
+    Returns:
+        0-dim float64 tensor (computed in float64). ``inf`` for identical images (MSE = 0),
+        ``nan`` for an empty mask.
+    Raises:
+        ValueError: shape/dtype/device mismatch.
+    """
+    _check_images(pred, gt, mask)
+    se = (pred.to(torch.float64) - gt.to(torch.float64)) ** 2
+    if mask is not None:
+        se = se[mask]
+    mse = se.mean() if se.numel() else torch.tensor(math.nan, dtype=torch.float64, device=pred.device)
+    return 10.0 * torch.log10(1.0 / mse)
+
+
+def ssim_map(
+    pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5
+) -> torch.Tensor:
+    """Per-pixel SSIM (Wang et al. 2004), averaged over channels; differentiable.
+
+    Local means/variances/covariance use a separable ``window`` x ``window`` Gaussian (σ = ``sigma``)
+    per channel with zero padding ("same" output size; border pixels therefore see zeros, as in the
+    3DGS reference code). Statistics are computed in the input dtype.
+
+    Args:
+        pred, gt: (H, W, C) float images in [0, 1].
+    Returns:
+        (H, W) tensor of SSIM values in [-1, 1] (the mean over C channels of the per-channel map).
+    """
+    _check_images(pred, gt, None)
+    c = pred.shape[2]
+    g = gaussian_window(window, sigma, dtype=pred.dtype, device=pred.device)
+    pad = window // 2
+    x = pred.permute(2, 0, 1).unsqueeze(0)
+    y = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
+    # One grouped, separable (row then column) convolution over the 5 statistics' inputs.
+    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    kx = g.view(1, 1, 1, window).expand(5 * c, 1, 1, window).contiguous()
+    ky = g.view(1, 1, window, 1).expand(5 * c, 1, window, 1).contiguous()
+    filt = F.conv2d(stacked, kx, padding=(0, pad), groups=5 * c)
+    filt = F.conv2d(filt, ky, padding=(pad, 0), groups=5 * c)
+    mu_x, mu_y, e_xx, e_yy, e_xy = filt.split(c, dim=1)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    var_x, var_y, cov = e_xx - mu_xx, e_yy - mu_yy, e_xy - mu_xy
+    num = (2 * mu_xy + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_xx + mu_yy + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return (num / den)[0].mean(dim=0)
+
+
+def ssim(
+    pred: torch.Tensor,
+    gt: torch.Tensor,
+    mask: Optional[torch.Tensor] = None,
+    window: int = 11,
+    sigma: float = 1.5,
+) -> torch.Tensor:
+    """Mean SSIM (differentiable w.r.t. ``pred`` and ``gt``).
+
+    Args:
+        pred, gt: (H, W, C) float images in [0, 1].
+        mask: optional (H, W) bool; the SSIM *map* is averaged over the masked pixels. Each masked
+            pixel's SSIM still uses its full window, so the result depends on pixels within
+            ``window // 2`` of the mask (the convention of the paper's ROI-restricted loss).
+        window, sigma: Gaussian window size (odd) and standard deviation in pixels.
+    Returns:
+        0-dim tensor in the input dtype; 1 for identical images; ``nan`` for an empty mask.
+    """
+    _check_images(pred, gt, mask)
+    m = ssim_map(pred, gt, window, sigma)
+    if mask is not None:
+        m = m[mask]
+    if m.numel() == 0:
+        return torch.tensor(math.nan, dtype=pred.dtype, device=pred.device)
+    return m.mean()
+
+
+def ssim_loss(
+    pred: torch.Tensor,
+    gt: torch.Tensor,
+    mask: Optional[torch.Tensor] = None,
+    window: int = 11,
+    sigma: float = 1.5,
+) -> torch.Tensor:
+    """Training loss 1 − SSIM (optionally masked as in :func:`ssim`), differentiable.
+
+    Unlike :func:`ssim`, an empty mask gives a loss of exactly 0 that is still connected to the
+    graph (zero gradient), so a frame whose ROI is empty does not poison the optimiser with NaN.
+    """
+    _check_images(pred, gt, mask)
+    if mask is not None and not bool(mask.any()):
+        return pred.sum() * 0.0
+    return 1.0 - ssim(pred, gt, mask, window, sigma)
+
+
+def depth_l1(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean absolute depth error in metres over pixels with valid ground truth.
+
+    Args:
+        pred, gt: (H, W) float depth in metres; a pixel is valid where gt > 0 and finite
+            (and ``mask`` is True, if given). ``pred`` is used as is (0 predicted depth counts).
+        mask: optional (H, W) bool.
+    Returns:
+        0-dim tensor in ``pred``'s dtype (differentiable w.r.t. ``pred``); ``nan`` if no pixel is valid.
+    Raises:
+        ValueError: shape/device mismatch or non-2-D inputs.
+    """
+    if pred.ndim != 2 or pred.shape != gt.shape:
+        raise ValueError(f"depths must be matching (H, W); got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    if pred.device != gt.device:
+        raise ValueError(f"pred on {pred.device} but gt on {gt.device}")
+    _check_mask(mask, tuple(pred.shape), pred.device)
+    valid = (gt > 0) & torch.isfinite(gt)
+    if mask is not None:
+        valid = valid & mask
+    err = (pred - gt.to(pred.dtype)).abs()[valid]
+    if err.numel() == 0:
+        return torch.tensor(math.nan, dtype=pred.dtype, device=pred.device)
+    return err.mean()
+
+
+@torch.no_grad()
+def evaluate_frame(
+    pred_rgb: torch.Tensor,
+    gt_rgb: torch.Tensor,
+    pred_depth: Optional[torch.Tensor] = None,
+    gt_depth: Optional[torch.Tensor] = None,
+    roi_mask: Optional[torch.Tensor] = None,
+    lpips_fn: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None,
+) -> Dict[str, float]:
+    """All per-frame evaluation metrics as Python floats.
+
+    Args:
+        pred_rgb, gt_rgb: (H, W, 3) float in [0, 1].
+        pred_depth, gt_depth: (H, W) metres (both or neither; depth_l1 is skipped if either is None).
+        roi_mask: optional (H, W) bool ground-truth ROI mask.
+        lpips_fn: optional callable (pred, gt) -> 0-dim tensor, e.g. a :class:`gausslite.lpips.LPIPS`.
+    Returns:
+        Keys ``psnr``, ``ssim`` and, when available, ``depth_l1``, ``lpips``; with a mask also
+        ``roi_psnr``, ``roi_ssim`` and (with depth) ``roi_depth_l1``. NaN where a selection is empty.
+    """
+    out: Dict[str, float] = {
+        "psnr": float(psnr(pred_rgb, gt_rgb)),
+        "ssim": float(ssim(pred_rgb, gt_rgb)),
+    }
+    have_depth = pred_depth is not None and gt_depth is not None
+    if have_depth:
+        out["depth_l1"] = float(depth_l1(pred_depth, gt_depth))
+    if lpips_fn is not None:
+        out["lpips"] = float(lpips_fn(pred_rgb, gt_rgb))
+    if roi_mask is not None:
+        out["roi_psnr"] = float(psnr(pred_rgb, gt_rgb, roi_mask))
+        out["roi_ssim"] = float(ssim(pred_rgb, gt_rgb, roi_mask))
+        if have_depth:
+            out["roi_depth_l1"] = float(depth_l1(pred_depth, gt_depth, roi_mask))
+    return out

@@ -1,0 +1,236 @@
+"""Public entry point :func:`rasterize` of the differentiable Gaussian rasterizer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .autograd import RasterizeWarp, default_num_threads
+from .binning import bin_gaussians
+from .projection import project_gaussians
+from .reference import rasterize_reference
+
+BACKENDS = ("auto", "warp", "torch", "gsplat")
+
+
+@dataclass
+class RenderOutput:
+    """Rendered image and per-Gaussian screen-space data.
+
+    Attributes:
+        color: (H, W, 3) float32 RGB composited over the background (float64 only for
+            backend="torch" with float64 inputs; likewise depth and alpha).
+        depth: (H, W) float32 expected camera-z depth in metres, ``sum w_i z_i / alpha``;
+            0 where alpha < 1e-6.
+        alpha: (H, W) float32 accumulated opacity ``sum w_i = 1 - T_final``.
+        means2d: (M, 2) projected centres in pixels (dtype of the inputs); non-leaf, with
+            ``retain_grad()`` applied when grad is enabled so ``means2d.grad`` is readable after
+            backward (densification statistics).
+        radii: (M,) int32 screen radius in pixels (0 = culled).
+        ids: (M,) int64 indices into the N input Gaussians of the rows of means2d/radii.
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    means2d: torch.Tensor
+    radii: torch.Tensor
+    ids: torch.Tensor
+
+
+def _as_tensor(x, name: str, shape: tuple, device, dtype) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(np.ascontiguousarray(x))
+    if not isinstance(x, torch.Tensor):
+        try:
+            x = torch.as_tensor(x)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"{name} must be a tensor/array of shape {shape}, got {type(x)}") from e
+    if tuple(x.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(x.shape)}")
+    xd = x.detach().to(device=device, dtype=torch.float64)
+    if not torch.isfinite(xd).all():
+        raise ValueError(f"{name} contains NaN or Inf")
+    return xd
+
+
+def _check_params(means, quats, log_scales, opacity_logits, colors):
+    for name, t in (("means", means), ("quats", quats), ("log_scales", log_scales),
+                    ("opacity_logits", opacity_logits), ("colors", colors)):
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t)}")
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be floating point, got {t.dtype}")
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must have shape (N, 3), got {tuple(means.shape)}")
+    N = means.shape[0]
+    for name, t, shp in (("quats", quats, (N, 4)), ("log_scales", log_scales, (N, 3)),
+                         ("opacity_logits", opacity_logits, (N,)), ("colors", colors, (N, 3))):
+        if tuple(t.shape) != shp:
+            raise ValueError(f"{name} must have shape {shp} (N={N}), got {tuple(t.shape)}")
+        if t.device != means.device:
+            raise ValueError(f"{name} is on {t.device} but means is on {means.device}")
+    return N
+
+
+def _resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
+    if backend == "auto":
+        if device.type == "cuda":
+            from .gsplat_backend import gsplat_available
+
+            return "gsplat" if gsplat_available() else "warp"
+        return "warp"
+    if backend == "gsplat":
+        from .gsplat_backend import gsplat_available
+
+        if device.type != "cuda" or not gsplat_available():
+            raise ValueError("backend='gsplat' needs CUDA tensors and an importable gsplat package")
+    return backend
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    *,
+    K,
+    width: int,
+    height: int,
+    c2w=None,
+    viewmat=None,
+    subset=None,
+    background=None,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e4,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+    num_threads: int | None = None,
+) -> RenderOutput:
+    """Render 3D Gaussians into a pinhole camera, differentiably (Kerbl et al. 2023 3DGS).
+
+    Pipeline: optional subset gather -> :func:`project_gaussians` (EWA splatting, Zwicker et al.
+    2001) -> tile binning and depth sort -> per-pixel front-to-back alpha compositing (alpha
+    clamped to 0.99, alpha < 1/255 skipped, stop before transmittance < 1e-4) -> background and
+    depth normalisation in torch.
+
+    Args:
+        means: (N, 3) float32/float64 centres, world frame, metres.
+        quats: (N, 4) rotations (w, x, y, z), unnormalised (normalised inside).
+        log_scales: (N, 3) log standard deviations (scale = exp), metres.
+        opacity_logits: (N,) opacity logits (opacity = sigmoid).
+        colors: (N, 3) RGB, used as-is.
+        K: (3, 3) intrinsics in pixels (torch or numpy, any float dtype).
+        width, height: image size in pixels (> 0).
+        c2w: (4, 4) camera-to-world pose (OpenCV axes: x right, y down, z forward), or
+        viewmat: (4, 4) world-to-camera; exactly one of the two must be given.
+        subset: None, (N,) bool mask or int64 index tensor: render only those rows; gradients
+            reach the full tensors (zero outside the subset). No copy of the full map is made.
+        background: (3,) RGB composited behind (default black).
+        backend: "auto" (gsplat on CUDA if importable, else warp), "warp", "torch" (slow
+            reference, autograd only) or "gsplat" (CUDA only).
+        near, far: depth clipping planes (metres).
+        eps2d: low-pass variance added to the 2D covariance diagonal (px^2).
+        tile_size: tile edge in pixels (binning and CPU work split).
+        num_threads: CPU launch threads for the warp backend (default min(2, os.cpu_count())).
+
+    Returns:
+        :class:`RenderOutput`.
+
+    Raises:
+        ValueError: bad shapes/dtypes, NaN/Inf in K or pose, both or neither pose given,
+            width/height <= 0, unknown backend, out-of-range subset indices.
+    """
+    N = _check_params(means, quats, log_scales, opacity_logits, colors)
+    device, dtype = means.device, means.dtype
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"width and height must be > 0, got {width}x{height}")
+    width, height = int(width), int(height)
+    if tile_size <= 0:
+        raise ValueError(f"tile_size must be > 0, got {tile_size}")
+    if (c2w is None) == (viewmat is None):
+        raise ValueError("give exactly one of c2w (camera-to-world) or viewmat (world-to-camera)")
+    K64 = _as_tensor(K, "K", (3, 3), device, dtype)
+    if K64[0, 0] <= 0 or K64[1, 1] <= 0:
+        raise ValueError(f"K must have positive focal lengths, got fx={K64[0, 0]} fy={K64[1, 1]}")
+    if c2w is not None:
+        vm64 = torch.linalg.inv(_as_tensor(c2w, "c2w", (4, 4), device, dtype))
+    else:
+        vm64 = _as_tensor(viewmat, "viewmat", (4, 4), device, dtype)
+    backend = _resolve_backend(backend, device)
+    if background is None:
+        bg = torch.zeros(3, dtype=torch.float32, device=device)
+    else:
+        bg = _as_tensor(background, "background", (3,), device, dtype).to(torch.float32)
+
+    # Subset: gather only the selected rows (autograd scatters gradients back into the full tensors).
+    if subset is None:
+        ids = torch.arange(N, device=device)
+        sel = (means, quats, log_scales, opacity_logits, colors)
+    else:
+        if not isinstance(subset, torch.Tensor):
+            subset = torch.as_tensor(np.asarray(subset))
+        subset = subset.to(device)
+        if subset.dtype == torch.bool:
+            if tuple(subset.shape) != (N,):
+                raise ValueError(f"bool subset must have shape ({N},), got {tuple(subset.shape)}")
+            ids = torch.nonzero(subset).squeeze(1)
+        elif not subset.is_floating_point() and subset.dim() == 1:
+            ids = subset.to(torch.int64)
+            if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= N):
+                raise ValueError(f"subset indices must be in [0, {N}), got range "
+                                 f"[{int(ids.min())}, {int(ids.max())}]")
+        else:
+            raise ValueError("subset must be None, a (N,) bool mask or a 1-D integer index tensor")
+        sel = tuple(t.index_select(0, ids) for t in (means, quats, log_scales, opacity_logits, colors))
+    m, q, ls, ol, col = sel
+
+    if backend == "gsplat":
+        from .gsplat_backend import rasterize_gsplat
+
+        color_raw, depth_sum, alpha, means2d, radii = rasterize_gsplat(
+            m, q, ls, ol, col, viewmat=vm64.to(dtype), K=K64.to(dtype), width=width, height=height,
+            near=near, far=far, eps2d=eps2d, tile_size=tile_size,
+        )
+    else:
+        proj = project_gaussians(m, q, ls, vm64.to(dtype), K64.to(dtype), width, height,
+                                 near=near, far=far, eps2d=eps2d)
+        means2d, radii = proj.means2d, proj.radii
+        if torch.is_grad_enabled() and means2d.requires_grad:
+            means2d.retain_grad()
+        opac = torch.sigmoid(ol)
+        bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size)
+        if backend == "warp":
+            nt = default_num_threads() if num_threads is None else int(num_threads)
+            if nt <= 0:
+                raise ValueError(f"num_threads must be > 0, got {num_threads}")
+            color_raw, depth_sum, alpha = RasterizeWarp.apply(
+                means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,
+                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt,
+            )
+        else:
+            color_raw, depth_sum, alpha = rasterize_reference(
+                means2d, proj.conics, opac, col, proj.depths, bins, width, height, tile_size
+            )
+            if torch.is_grad_enabled() and not color_raw.requires_grad and means2d.requires_grad:
+                # Nothing was visible: keep the outputs attached to the graph (zero gradients).
+                z = 0.0 * (means2d.sum() + proj.conics.sum() + opac.sum() + col.sum() + proj.depths.sum())
+                color_raw, depth_sum, alpha = color_raw + z, depth_sum + z, alpha + z
+
+    # float32 output, except the reference keeps float64 so it can be gradchecked end to end.
+    out_dt = dtype if (backend == "torch" and dtype == torch.float64) else torch.float32
+    color_raw = color_raw.to(out_dt)
+    depth_sum = depth_sum.to(out_dt)
+    alpha = alpha.to(out_dt)
+    color = color_raw + (1.0 - alpha)[..., None] * bg.to(out_dt)
+    ok = alpha >= 1e-6
+    depth = torch.where(ok, depth_sum / torch.where(ok, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(depth_sum))
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d,
+                        radii=radii.to(torch.int32), ids=ids)

@@ -1,0 +1,45 @@
+"""Wire format for Gaussian subsets exchanged between agents and the fusion server.
+
+Paper Sec. III-E, SPEC §7–8.  See :mod:`gausslite.wire.codec` for the byte layout, precision and
+error hierarchy.  Pure library code (numpy + zstandard); the gRPC services call these functions.
+"""
+
+from gausslite.wire.codec import (
+    DEFAULT_LIMITS,
+    FORMAT_VERSION,
+    HEADER_SIZE,
+    LOSSLESS,
+    MAGIC,
+    BadMagic,
+    ChecksumMismatch,
+    ChunkHeader,
+    ConflictingDuplicate,
+    DecodedChunk,
+    GaussianArrays,
+    IncompleteSubset,
+    InconsistentChunks,
+    LimitExceeded,
+    MalformedChunk,
+    NonFiniteValues,
+    QuantConfig,
+    SubsetAssembler,
+    SubsetMeta,
+    TruncatedChunk,
+    UnsupportedVersion,
+    WireError,
+    WireLimits,
+    assemble,
+    decode_chunk,
+    encode_subset,
+    peek_header,
+    raw_bytes_per_gaussian,
+)
+
+__all__ = [
+    "DEFAULT_LIMITS", "FORMAT_VERSION", "HEADER_SIZE", "LOSSLESS", "MAGIC", "BadMagic",
+    "ChecksumMismatch", "ChunkHeader", "ConflictingDuplicate", "DecodedChunk", "GaussianArrays",
+    "IncompleteSubset", "InconsistentChunks", "LimitExceeded", "MalformedChunk", "NonFiniteValues",
+    "QuantConfig", "SubsetAssembler", "SubsetMeta", "TruncatedChunk", "UnsupportedVersion",
+    "WireError", "WireLimits", "assemble", "decode_chunk", "encode_subset", "peek_header",
+    "raw_bytes_per_gaussian",
+]

@@ -1,0 +1,1089 @@
+"""Wire codec for Gaussian subsets: versioned, chunked, quantised, zstd-compressed, checksummed.
+
+Source: paper Sec. III-E ("Multi-Agent Refinement": agents exchange only their ROI subset with the
+per-Gaussian active-optimisation count κ) and SPEC §7–8 ("subsets travel as chunked,
+zstd-compressed, versioned binary blocks ... with per-chunk checksums; upload is resumable and
+idempotent by (agent id, map version, chunk index)").
+
+Everything here is numpy; torch is only touched when converting from/to
+:class:`gausslite.gaussians.GaussianMap`.
+
+Chunk layout (format version 1, all integers little-endian)
+-----------------------------------------------------------
+::
+
+    off  size  field
+      0     4  magic b"GLWC"
+      4     2  u16 format version (= 1)
+      6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle; other bits must be 0
+      8     8  u64 map version
+     16     4  u32 chunk index (0-based)
+     20     4  u32 chunk count (>= 1)
+     24     8  u64 total Gaussian count of the subset
+     32     4  u32 Gaussian count n of this chunk
+     36     2  u16 agent id length L (1..limits.max_agent_id_bytes)
+     38     1  u8  mean bytes per axis (quantised: 1..4; lossless: 0)
+     39     1  u8  quaternion bits per smallest-three component (quantised: 4..20; lossless: 0)
+     40     1  u8  log-scale bits (quantised: 1..16; lossless: 0)
+     41     1  u8  opacity bits (quantised: 1..16; lossless: 0)
+     42     1  u8  colour bits (quantised: 1..16; lossless: 0)
+     43     1  u8  κ bytes (zigzag, 0..8; 0 means all κ are 0)
+     44     2  reserved, must be 0
+     46    24  3 x f64 mean origin (metres; quantised only, else 0)
+     70    24  3 x f64 mean step (metres per code; quantised only, else 0)
+     94     8  2 x f32 log-scale range lo, hi (quantised only)
+    102     8  2 x f32 colour range lo, hi (quantised only)
+    110     4  u32 raw (decompressed) payload length; must equal the length implied by n and the
+               parameters above
+    114     4  u32 compressed payload length P
+    118     L  agent id, UTF-8
+    118+L   P  payload: one zstd frame (with content size) of the raw payload
+    118+L+P 4  u32 CRC-32 (zlib.crc32) of every preceding byte of the chunk
+
+Raw payload = the following fields in order; each field is a (C, n) array of unsigned integers
+(C components) written with ``w`` bytes per value; with the shuffle flag the bytes are written as
+byte planes (component-major, then byte significance, then Gaussian), otherwise component-major with
+each value's ``w`` bytes contiguous:
+
+=============  ==  =========================================  ======================================
+field           C  quantised encoding                          lossless encoding
+=============  ==  =========================================  ======================================
+means           3  fixed point ``round((x-origin)/step)``,     float32 bits (w = 4)
+                   w = mean bytes
+quats           1  smallest-three: 2-bit index of the largest  4 components, float32 bits (C = 4)
+                   |component| + 3 x b-bit components,
+                   w = ceil((2 + 3b) / 8)
+log_scales      3  affine over [lo, hi], w = ceil(bits / 8)    float32 bits
+opacity         1  ``round(sigmoid(logit) * (2^bits - 1))``    float32 bits of the logit
+colors          3  affine over [lo, hi]                        float32 bits
+kappa           1  zigzag(κ), w = κ bytes                      same
+active          -  ``np.packbits`` (big bit order), ceil(n/8) bytes, in both modes
+=============  ==  =========================================  ======================================
+
+Precision of the quantised mode (defaults of :class:`QuantConfig`)
+------------------------------------------------------------------
+* means: fixed point on a grid of step ``mean_step`` (0.5 mm) anchored at the chunk's bounding-box
+  minimum, so the error is at most 0.25 mm (plus float32 rounding of the world coordinate) whatever
+  the box size; the code width grows with the box: 1 byte per axis up to 12.7 cm, 2 bytes (16 bit)
+  up to 32.8 m (a room), 3 bytes up to 8.4 km, else 4.  A fixed step rather than extent / 65535
+  keeps precision bounded for large boxes and avoids spending incompressible low bits on small
+  boxes (a 0.8 m ROI needs 11 bits per axis, not 16).  The decoder only reads origin and step
+  from the header, so other step rules stay wire-compatible.
+* quats: normalised (the renderer normalises anyway; zero quaternions become identity), sign fixed
+  so that the largest component is positive (q and -q are the same rotation).  Error per stored
+  component e <= (1/sqrt(2)) / (2^b - 1), hence |Δq| <= sqrt(12)·e and rotation error
+  <= 4·asin(sqrt(3)·e) (about 7e rad): 0.55 degree bound / 0.42 degree measured on random rotations
+  at the default b = 9 (29 bits in a 4-byte code whose constant top 3 bits zstd removes after
+  byte-plane shuffling); 0.27 degree bound at b = 10.
+* log_scales / colours: affine over the chunk's [min, max], clamped to ``scale_clamp`` /
+  ``color_clamp``; error <= (hi - lo) / (2 (2^bits - 1)) for values inside the clamp.
+* opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.00196 at 8
+  bit); decoded logits are finite (|logit| <= log(2 (2^bits - 1) - 1), 6.23 at 8 bit).
+* κ and the active flag are lossless in both modes.
+
+Hostile input
+-------------
+:func:`decode_chunk` and :class:`SubsetAssembler` raise only :class:`WireError` subclasses on bad
+bytes (after a ``TypeError`` for a non-bytes argument).  Sizes are checked against
+:class:`WireLimits` before any allocation proportional to a header field, and the zstd frame's
+declared content size must equal the (bounded) expected raw length before decompression.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+import zstandard
+
+__all__ = [
+    "FORMAT_VERSION",
+    "MAGIC",
+    "GaussianArrays",
+    "QuantConfig",
+    "WireLimits",
+    "ChunkHeader",
+    "DecodedChunk",
+    "SubsetMeta",
+    "SubsetAssembler",
+    "encode_subset",
+    "decode_chunk",
+    "peek_header",
+    "assemble",
+    "raw_bytes_per_gaussian",
+    "WireError",
+    "TruncatedChunk",
+    "BadMagic",
+    "UnsupportedVersion",
+    "ChecksumMismatch",
+    "LimitExceeded",
+    "MalformedChunk",
+    "NonFiniteValues",
+    "InconsistentChunks",
+    "ConflictingDuplicate",
+    "IncompleteSubset",
+]
+
+MAGIC = b"GLWC"
+FORMAT_VERSION = 1
+
+FLAG_LOSSLESS = 1
+FLAG_SHUFFLE = 2
+_KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_SHUFFLE
+
+_HEADER = struct.Struct("<4sHHQIIQIHBBBBBBH3d3d2f2fII")
+HEADER_SIZE = _HEADER.size  # 118
+_CRC = struct.Struct("<I")
+_PREFIX = struct.Struct("<4sH")
+
+_SQRT1_2 = 1.0 / math.sqrt(2.0)
+_QUAT_REST = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# errors
+
+
+class WireError(ValueError):
+    """Base class of every error raised for bad wire bytes (maps to gRPC INVALID_ARGUMENT)."""
+
+
+class TruncatedChunk(WireError):
+    """The chunk is shorter than its fixed header or than the lengths its header declares."""
+
+
+class BadMagic(WireError):
+    """The chunk does not start with :data:`MAGIC`."""
+
+
+class UnsupportedVersion(WireError):
+    """The chunk's format version is not :data:`FORMAT_VERSION`."""
+
+
+class ChecksumMismatch(WireError):
+    """The CRC-32 trailer does not match the chunk's bytes."""
+
+
+class LimitExceeded(WireError):
+    """A size or count exceeds :class:`WireLimits` (checked before allocating)."""
+
+
+class MalformedChunk(WireError):
+    """A structurally invalid chunk: bad header field, payload length, or zstd frame."""
+
+
+class NonFiniteValues(MalformedChunk):
+    """Decoded floating-point values contain NaN or infinity."""
+
+
+class InconsistentChunks(WireError):
+    """Chunks of one subset disagree (agent, map version, counts, mode) or overfill it."""
+
+
+class ConflictingDuplicate(InconsistentChunks):
+    """The same (agent, map version, chunk index) arrived twice with different content."""
+
+
+class IncompleteSubset(WireError):
+    """Assembly was requested while chunks are missing."""
+
+
+# --------------------------------------------------------------------------------------------
+# containers
+
+
+def _to_numpy(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):  # torch.Tensor, without importing torch here
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+@dataclass
+class GaussianArrays:
+    """A set of N Gaussians as numpy arrays (structure of arrays), the codec/fusion container.
+
+    Mirrors :class:`gausslite.gaussians.GaussianMap` (paper Sec. III-A, SPEC §2):
+
+    Attributes:
+        means: (N, 3) float32, world frame, metres.
+        quats: (N, 4) float32, rotation quaternion (w, x, y, z), not necessarily normalised.
+        log_scales: (N, 3) float32, natural log of per-axis standard deviation (metres).
+        opacity_logits: (N,) float32, opacity = sigmoid(logit).
+        colors: (N, 3) float32, RGB (nominally in [0, 1]).
+        kappa: (N,) int64, active-optimisation count κ.
+        active: (N,) bool, task flag a.
+
+    Raises:
+        ValueError: on inconsistent shapes (checked in ``__post_init__``).
+    """
+
+    means: np.ndarray
+    quats: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    colors: np.ndarray
+    kappa: np.ndarray
+    active: np.ndarray
+
+    _SPEC = {
+        "means": (np.float32, (3,)),
+        "quats": (np.float32, (4,)),
+        "log_scales": (np.float32, (3,)),
+        "opacity_logits": (np.float32, ()),
+        "colors": (np.float32, (3,)),
+        "kappa": (np.int64, ()),
+        "active": (np.bool_, ()),
+    }
+
+    def __post_init__(self) -> None:
+        n = None
+        for name, (dtype, tail) in self._SPEC.items():
+            arr = np.asarray(getattr(self, name))
+            if arr.dtype != dtype:
+                if name == "active" and arr.dtype != np.bool_:
+                    arr = arr != 0
+                else:
+                    arr = arr.astype(dtype)
+            if arr.ndim != 1 + len(tail) or tuple(arr.shape[1:]) != tail:
+                raise ValueError(f"{name}: expected shape (N, {tail}) got {arr.shape}")
+            if n is None:
+                n = arr.shape[0]
+            elif arr.shape[0] != n:
+                raise ValueError(f"{name}: {arr.shape[0]} rows, expected {n}")
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @classmethod
+    def from_any(cls, obj: Any) -> "GaussianArrays":
+        """Convert a GaussianMap (torch tensors), a GaussianArrays, or a mapping of arrays.
+
+        A mapping needs keys ``means, quats, log_scales, opacity_logits, colors, kappa``; ``active``
+        is optional (default all False).  Values may be numpy arrays or torch tensors (moved to CPU).
+        Conversion of float32/int64/bool CPU inputs is zero-copy.
+
+        Raises:
+            TypeError: unsupported object.  ValueError: bad shapes.
+        """
+        if isinstance(obj, GaussianArrays):
+            return obj
+        if isinstance(obj, Mapping):
+            get = obj.__getitem__
+            has = obj.__contains__
+        elif all(hasattr(obj, k) for k in ("means", "quats", "log_scales", "kappa")):
+            get = lambda k: getattr(obj, k)  # noqa: E731
+            has = lambda k: hasattr(obj, k)  # noqa: E731
+        else:
+            raise TypeError(f"cannot convert {type(obj).__name__} to GaussianArrays")
+        kw = {}
+        for name in cls._SPEC:
+            if name == "active" and not has("active"):
+                continue
+            kw[name] = _to_numpy(get(name))
+        if "active" not in kw:
+            kw["active"] = np.zeros(len(kw["means"]), dtype=bool)
+        return cls(**kw)
+
+    @classmethod
+    def empty(cls) -> "GaussianArrays":
+        """An empty set (N = 0)."""
+        return cls(
+            means=np.zeros((0, 3), np.float32), quats=np.zeros((0, 4), np.float32),
+            log_scales=np.zeros((0, 3), np.float32), opacity_logits=np.zeros(0, np.float32),
+            colors=np.zeros((0, 3), np.float32), kappa=np.zeros(0, np.int64),
+            active=np.zeros(0, bool),
+        )
+
+    def take(self, idx: Any) -> "GaussianArrays":
+        """Rows selected by an index array, boolean mask or slice."""
+        return GaussianArrays(**{k: getattr(self, k)[idx] for k in self._SPEC})
+
+    @classmethod
+    def concat(cls, parts: Sequence["GaussianArrays"]) -> "GaussianArrays":
+        """Row-wise concatenation (empty input gives :meth:`empty`)."""
+        parts = list(parts)
+        if not parts:
+            return cls.empty()
+        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in cls._SPEC})
+
+    def equals(self, other: "GaussianArrays") -> bool:
+        """Exact, bitwise equality of all fields (NaN-safe)."""
+        return len(self) == len(other) and all(
+            np.array_equal(
+                np.ascontiguousarray(getattr(self, k)).view(np.uint8),
+                np.ascontiguousarray(getattr(other, k)).view(np.uint8),
+            )
+            for k in self._SPEC
+        )
+
+    def to_gaussian_map(self, device: str = "cpu"):
+        """Convert to :class:`gausslite.gaussians.GaussianMap` (torch tensors, copies)."""
+        import torch
+
+        from gausslite.gaussians import GaussianMap
+
+        return GaussianMap(**{
+            k: torch.as_tensor(np.array(getattr(self, k)), device=device) for k in self._SPEC
+        })
+
+
+@dataclass(frozen=True)
+class QuantConfig:
+    """Encoding parameters (see the module docstring for the resulting precision).
+
+    Attributes:
+        lossless: float32 for every field (κ zigzag-packed, active bit-packed); no quantisation.
+        mean_step: fixed-point grid step of the means (metres); the max error is half of it
+            (default 0.5 mm → <= 0.25 mm).  The code width (1..4 bytes per axis) follows from the
+            chunk's bounding box: 2 bytes up to a 32.8 m extent, 3 bytes up to 8.4 km.
+        quat_bits: bits per smallest-three component (4..20).
+        scale_bits, opacity_bits, color_bits: code bits (1..16).
+        scale_clamp: (lo, hi) clamp of log-scales before per-chunk range fitting.
+        color_clamp: (lo, hi) clamp of colours before per-chunk range fitting.
+        zstd_level: zstd compression level (1..22).
+        shuffle: byte-plane shuffle before zstd.
+    """
+
+    lossless: bool = False
+    mean_step: float = 5e-4
+    quat_bits: int = 9
+    scale_bits: int = 8
+    opacity_bits: int = 8
+    color_bits: int = 8
+    scale_clamp: tuple[float, float] = (-16.0, 4.0)
+    color_clamp: tuple[float, float] = (-1.0, 2.0)
+    zstd_level: int = 3
+    shuffle: bool = True
+
+    def __post_init__(self) -> None:
+        if not (self.mean_step > 0 and math.isfinite(self.mean_step)):
+            raise ValueError("mean_step must be a positive finite number")
+        if not 4 <= self.quat_bits <= 20:
+            raise ValueError("quat_bits must be in 4..20")
+        for name in ("scale_bits", "opacity_bits", "color_bits"):
+            if not 1 <= getattr(self, name) <= 16:
+                raise ValueError(f"{name} must be in 1..16")
+        for name in ("scale_clamp", "color_clamp"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"{name} must be finite with lo < hi")
+        if not 1 <= self.zstd_level <= 22:
+            raise ValueError("zstd_level must be in 1..22")
+
+
+LOSSLESS = QuantConfig(lossless=True)
+
+
+@dataclass(frozen=True)
+class WireLimits:
+    """Decoder limits, enforced before allocation (SPEC §8: bounded message sizes).
+
+    Attributes:
+        max_chunk_bytes: largest accepted chunk (bytes on the wire).
+        max_chunk_gaussians: largest Gaussian count of one chunk.
+        max_total_gaussians: largest subset (total Gaussian count in a header).
+        max_chunks: largest chunk count of a subset.
+        max_agent_id_bytes: longest UTF-8 agent id.
+    """
+
+    max_chunk_bytes: int = 64 << 20
+    max_chunk_gaussians: int = 1 << 20
+    max_total_gaussians: int = 1 << 27
+    max_chunks: int = 1 << 16
+    max_agent_id_bytes: int = 255
+
+
+DEFAULT_LIMITS = WireLimits()
+
+
+@dataclass(frozen=True)
+class ChunkHeader:
+    """Parsed and validated chunk header (see the layout in the module docstring)."""
+
+    version: int
+    lossless: bool
+    shuffle: bool
+    agent_id: str
+    map_version: int
+    chunk_index: int
+    chunk_count: int
+    total_count: int
+    count: int
+    mean_bytes: int
+    quat_bits: int
+    scale_bits: int
+    opacity_bits: int
+    color_bits: int
+    kappa_bytes: int
+    mean_origin: tuple[float, float, float]
+    mean_step: tuple[float, float, float]
+    scale_range: tuple[float, float]
+    color_range: tuple[float, float]
+    raw_len: int
+    payload_len: int
+    wire_len: int
+
+
+@dataclass(frozen=True)
+class DecodedChunk:
+    """One decoded chunk.
+
+    Attributes:
+        header: the validated header.
+        arrays: the chunk's ``header.count`` Gaussians.
+        digest: 32-byte BLAKE2b of the semantic header fields and the raw payload: equal digests
+            mean identical content regardless of zstd level (used for idempotent re-delivery).
+    """
+
+    header: ChunkHeader
+    arrays: GaussianArrays
+    digest: bytes
+
+
+@dataclass(frozen=True)
+class SubsetMeta:
+    """Metadata of an assembled subset.
+
+    Attributes:
+        agent_id, map_version, total_count, chunk_count, lossless: from the (consistent) headers.
+        wire_bytes: sum of the chunks' lengths on the wire.
+    """
+
+    agent_id: str
+    map_version: int
+    total_count: int
+    chunk_count: int
+    lossless: bool
+    wire_bytes: int
+
+
+# --------------------------------------------------------------------------------------------
+# byte planes
+
+
+def _nbytes(bits: int) -> int:
+    return (bits + 7) // 8
+
+
+def _write_field(values: np.ndarray, width: int, shuffle: bool) -> bytes:
+    """(n, C) or (n,) unsigned ints (< 2^(8 width)) → C·n·width bytes (see module docstring)."""
+    v = np.asarray(values)
+    n = v.shape[0]
+    if width == 0 or n == 0:
+        return b""
+    v = v.reshape(n, -1)
+    c = v.shape[1]
+    u = np.ascontiguousarray(v.T.astype("<u8"))  # (C, n)
+    b = u.view(np.uint8).reshape(c, n, 8)[:, :, :width]
+    if shuffle:
+        b = b.transpose(0, 2, 1)
+    return np.ascontiguousarray(b).tobytes()
+
+
+def _read_field(buf: memoryview, n: int, c: int, width: int, shuffle: bool) -> np.ndarray:
+    """Inverse of :func:`_write_field`: returns (n, C) uint64."""
+    out = np.zeros((c, n, 8), dtype=np.uint8)
+    if width and n:
+        a = np.frombuffer(buf, dtype=np.uint8, count=c * n * width)
+        if shuffle:
+            out[:, :, :width] = a.reshape(c, width, n).transpose(0, 2, 1)
+        else:
+            out[:, :, :width] = a.reshape(c, n, width)
+    return out.view("<u8").reshape(c, n).T
+
+
+def _field_widths(h_lossless: bool, mean_bytes: int, quat_bits: int, scale_bits: int,
+                  opacity_bits: int, color_bits: int, kappa_bytes: int) -> list[tuple[int, int]]:
+    """[(components, bytes per value)] of means, quats, log_scales, opacity, colors, kappa."""
+    if h_lossless:
+        return [(3, 4), (4, 4), (3, 4), (1, 4), (3, 4), (1, kappa_bytes)]
+    return [
+        (3, mean_bytes),
+        (1, _nbytes(2 + 3 * quat_bits)),
+        (3, _nbytes(scale_bits)),
+        (1, _nbytes(opacity_bits)),
+        (3, _nbytes(color_bits)),
+        (1, kappa_bytes),
+    ]
+
+
+def _raw_len(n: int, widths: list[tuple[int, int]]) -> int:
+    return n * sum(c * w for c, w in widths) + (n + 7) // 8
+
+
+def raw_bytes_per_gaussian(quant: QuantConfig = QuantConfig(), kappa_bytes: int = 2,
+                           mean_bytes: int = 2) -> float:
+    """Uncompressed payload bytes per Gaussian for a configuration (before zstd).
+
+    Args:
+        quant: the configuration; kappa_bytes: zigzag κ width; mean_bytes: mean code width.
+    """
+    w = _field_widths(quant.lossless, mean_bytes, quant.quat_bits, quant.scale_bits, quant.opacity_bits,
+                      quant.color_bits, kappa_bytes)
+    return sum(c * x for c, x in w) + 0.125
+
+
+# --------------------------------------------------------------------------------------------
+# quantisers
+
+
+def _zigzag(k: np.ndarray) -> np.ndarray:
+    k = k.astype(np.int64)
+    return ((k << 1) ^ (k >> 63)).view(np.uint64)
+
+
+def _unzigzag(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.uint64)
+    return ((z >> np.uint64(1)) ^ (np.uint64(0) - (z & np.uint64(1)))).view(np.int64)
+
+
+def _width_for(max_value: int) -> int:
+    return (int(max_value).bit_length() + 7) // 8
+
+
+def _mean_params(means: np.ndarray, quant: QuantConfig) -> tuple[np.ndarray, np.ndarray, int]:
+    """Origin (3,) f64, step (3,) f64 and code width in bytes (1..4) for a block of means.
+
+    The grid step is ``quant.mean_step`` on every axis, anchored at the block's minimum corner; the
+    width is the fewest bytes that hold extent / step.  Only when the extent exceeds
+    (2^32 - 1) · step (> 2147 km at 0.5 mm) does the step grow to extent / (2^32 - 1), which is
+    still finer than float32 resolution at that magnitude.
+    """
+    if len(means) == 0:
+        return np.zeros(3), np.full(3, quant.mean_step), 1
+    m = means.astype(np.float64)
+    lo = m.min(axis=0)
+    ext = float((m.max(axis=0) - lo).max())
+    step = quant.mean_step
+    top = math.ceil(ext / step) if ext > 0 else 0
+    if top > 0xFFFFFFFF:
+        step = ext / 0xFFFFFFFF
+        top = 0xFFFFFFFF
+    return lo, np.full(3, step), max(1, _width_for(top))
+
+
+def _affine_range(x: np.ndarray, clamp: tuple[float, float]) -> tuple[float, float]:
+    if x.size == 0:
+        return 0.0, 0.0
+    lo = float(np.float32(np.clip(x.min(), clamp[0], clamp[1])))
+    hi = float(np.float32(np.clip(x.max(), clamp[0], clamp[1])))
+    return lo, hi
+
+
+def _affine_encode(x: np.ndarray, lo: float, hi: float, bits: int) -> np.ndarray:
+    m = (1 << bits) - 1
+    if hi <= lo:
+        return np.zeros(x.shape, np.uint64)
+    step = (hi - lo) / m
+    q = np.rint((np.clip(x.astype(np.float64), lo, hi) - lo) / step)
+    return np.clip(q, 0, m).astype(np.uint64)
+
+
+def _affine_decode(q: np.ndarray, lo: float, hi: float, bits: int) -> np.ndarray:
+    m = (1 << bits) - 1
+    step = (hi - lo) / m if hi > lo else 0.0
+    return (lo + q.astype(np.float64) * step).astype(np.float32)
+
+
+def _quat_encode(q: np.ndarray, bits: int) -> np.ndarray:
+    q = q.astype(np.float64)
+    norm = np.sqrt((q * q).sum(axis=1))
+    bad = norm == 0
+    q = np.where(bad[:, None], np.array([1.0, 0.0, 0.0, 0.0]), q / np.where(bad, 1.0, norm)[:, None])
+    idx = np.argmax(np.abs(q), axis=1)
+    sign = np.where(np.take_along_axis(q, idx[:, None], 1)[:, 0] < 0, -1.0, 1.0)
+    rest = np.take_along_axis(q, _QUAT_REST[idx], 1) * sign[:, None]
+    m = (1 << bits) - 1
+    u = np.clip(np.rint((rest + _SQRT1_2) / (2 * _SQRT1_2) * m), 0, m).astype(np.uint64)
+    b = np.uint64(bits)
+    return ((idx.astype(np.uint64) << (b * np.uint64(3))) | (u[:, 0] << (b * np.uint64(2)))
+            | (u[:, 1] << b) | u[:, 2])
+
+
+def _quat_decode(p: np.ndarray, bits: int) -> np.ndarray:
+    b = np.uint64(bits)
+    m = np.uint64((1 << bits) - 1)
+    hi = p >> (b * np.uint64(3))
+    if hi.size and int(hi.max()) > 3:
+        raise MalformedChunk("quaternion largest-component index out of range")
+    idx = hi.astype(np.int64)
+    u = np.stack([(p >> (b * np.uint64(2))) & m, (p >> b) & m, p & m], axis=1).astype(np.float64)
+    rest = u / float(m) * (2 * _SQRT1_2) - _SQRT1_2
+    big = np.sqrt(np.maximum(0.0, 1.0 - (rest * rest).sum(axis=1)))
+    out = np.empty((len(p), 4), np.float64)
+    np.put_along_axis(out, _QUAT_REST[idx], rest, 1)
+    np.put_along_axis(out, idx[:, None], big[:, None], 1)
+    return out.astype(np.float32)
+
+
+def _opacity_encode(logit: np.ndarray, bits: int) -> np.ndarray:
+    m = (1 << bits) - 1
+    p = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))
+    return np.clip(np.rint(p * m), 0, m).astype(np.uint64)
+
+
+def _opacity_decode(q: np.ndarray, bits: int) -> np.ndarray:
+    m = (1 << bits) - 1
+    p = np.clip(q.astype(np.float64) / m, 0.5 / m, 1.0 - 0.5 / m)
+    return np.log(p / (1.0 - p)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# encoding
+
+
+def _zstd_bound(n: int) -> int:
+    # ZSTD_COMPRESSBOUND plus slack for the frame header (content size) and block headers.
+    return n + (n >> 8) + (((128 << 10) - n) >> 11 if n < (128 << 10) else 0) + 64
+
+
+def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: int, count: int,
+                  total: int, quant: QuantConfig, cctx: zstandard.ZstdCompressor) -> bytes:
+    n = len(arr)
+    sh = quant.shuffle
+    kz = _zigzag(arr.kappa)
+    kb = _width_for(int(kz.max())) if n else 0
+    origin = step = np.zeros(3)
+    srange = crange = (0.0, 0.0)
+    if quant.lossless:
+        mb = qb = sb = ob = cb = 0
+        parts = [
+            _write_field(arr.means.view(np.uint32), 4, sh),
+            _write_field(arr.quats.view(np.uint32), 4, sh),
+            _write_field(arr.log_scales.view(np.uint32), 4, sh),
+            _write_field(arr.opacity_logits.view(np.uint32), 4, sh),
+            _write_field(arr.colors.view(np.uint32), 4, sh),
+        ]
+    else:
+        qb, sb, ob, cb = quant.quat_bits, quant.scale_bits, quant.opacity_bits, quant.color_bits
+        origin, step, mb = _mean_params(arr.means, quant)
+        mmax = (1 << (8 * mb)) - 1
+        safe = np.where(step > 0, step, 1.0)
+        mq = np.where(step > 0, np.rint((arr.means.astype(np.float64) - origin) / safe), 0.0)
+        mq = np.clip(mq, 0, mmax).astype(np.uint64)
+        srange = _affine_range(arr.log_scales, quant.scale_clamp)
+        crange = _affine_range(arr.colors, quant.color_clamp)
+        parts = [
+            _write_field(mq, mb, sh),
+            _write_field(_quat_encode(arr.quats, qb), _nbytes(2 + 3 * qb), sh),
+            _write_field(_affine_encode(arr.log_scales, *srange, sb), _nbytes(sb), sh),
+            _write_field(_opacity_encode(arr.opacity_logits, ob), _nbytes(ob), sh),
+            _write_field(_affine_encode(arr.colors, *crange, cb), _nbytes(cb), sh),
+        ]
+    parts.append(_write_field(kz, kb, sh))
+    parts.append(np.packbits(arr.active).tobytes())
+    raw = b"".join(parts)
+    assert len(raw) == _raw_len(n, _field_widths(quant.lossless, mb, qb, sb, ob, cb, kb))
+    payload = cctx.compress(raw)
+    flags = (FLAG_LOSSLESS if quant.lossless else 0) | (FLAG_SHUFFLE if sh else 0)
+    head = _HEADER.pack(
+        MAGIC, FORMAT_VERSION, flags, map_version, index, count, total, n, len(agent),
+        mb, qb, sb, ob, cb, kb, 0, *map(float, origin), *map(float, step), *srange, *crange,
+        len(raw), len(payload),
+    )
+    body = head + agent + payload
+    return body + _CRC.pack(zlib.crc32(body))
+
+
+def encode_subset(
+    gaussians: Any,
+    agent_id: str,
+    map_version: int,
+    *,
+    chunk_gaussians: Optional[int] = None,
+    max_chunk_bytes: Optional[int] = None,
+    quant: QuantConfig = QuantConfig(),
+    limits: WireLimits = DEFAULT_LIMITS,
+) -> list[bytes]:
+    """Encode a Gaussian subset into self-describing wire chunks (SPEC §8).
+
+    Args:
+        gaussians: a GaussianMap, GaussianArrays or mapping of arrays (see
+            :meth:`GaussianArrays.from_any`); N rows, all values finite.
+        agent_id: non-empty; UTF-8 length <= ``limits.max_agent_id_bytes``.
+        map_version: 0 <= map_version < 2^64.
+        chunk_gaussians: Gaussians per chunk (the last chunk may be smaller).  Default 65536 when
+            neither this nor ``max_chunk_bytes`` is given.
+        max_chunk_bytes: bound on each chunk's total wire size; the Gaussians per chunk are chosen
+            from the worst case (incompressible payload), so every chunk is guaranteed to fit.
+        quant: quantisation/compression parameters.
+        limits: the receiving side's limits; encoding refuses to produce chunks that violate them.
+
+    Returns:
+        list of chunks (bytes), chunk i has index i; at least one chunk (an empty subset is one
+        chunk with zero Gaussians).  Row order is preserved through :func:`assemble`.
+
+    Raises:
+        ValueError: bad arguments, non-finite values, negative... (κ may be any int64), limits.
+        TypeError: unsupported input container.
+    """
+    arr = GaussianArrays.from_any(gaussians)
+    if not isinstance(agent_id, str) or not agent_id:
+        raise ValueError("agent_id must be a non-empty str")
+    agent = agent_id.encode("utf-8")
+    if len(agent) > limits.max_agent_id_bytes:
+        raise ValueError(f"agent_id longer than {limits.max_agent_id_bytes} bytes")
+    if not isinstance(map_version, (int, np.integer)) or not 0 <= int(map_version) < 1 << 64:
+        raise ValueError("map_version must be an int in [0, 2^64)")
+    map_version = int(map_version)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        if not np.isfinite(getattr(arr, name)).all():
+            raise ValueError(f"{name} contains non-finite values")
+    n = len(arr)
+    if n > limits.max_total_gaussians:
+        raise ValueError(f"{n} Gaussians exceed limits.max_total_gaussians")
+    if chunk_gaussians is not None and max_chunk_bytes is not None:
+        raise ValueError("give chunk_gaussians or max_chunk_bytes, not both")
+    overhead = HEADER_SIZE + len(agent) + _CRC.size
+    if max_chunk_bytes is not None:
+        max_chunk_bytes = int(max_chunk_bytes)
+        if max_chunk_bytes > limits.max_chunk_bytes:
+            raise ValueError("max_chunk_bytes exceeds limits.max_chunk_bytes")
+        kb = _width_for(int(_zigzag(arr.kappa).max())) if n else 0
+        mb = 4 if quant.lossless else _mean_params(arr.means, quant)[2]
+        widths = _field_widths(quant.lossless, mb, quant.quat_bits, quant.scale_bits,
+                               quant.opacity_bits, quant.color_bits, kb)
+        fits = lambda k: overhead + _zstd_bound(_raw_len(k, widths)) <= max_chunk_bytes  # noqa
+        if not fits(1):
+            raise ValueError(f"max_chunk_bytes={max_chunk_bytes} cannot hold one Gaussian")
+        lo, hi = 1, max(1, min(n, limits.max_chunk_gaussians))
+        while lo < hi:  # largest k with fits(k)
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if fits(mid) else (lo, mid - 1)
+        per = lo
+    else:
+        per = 65536 if chunk_gaussians is None else int(chunk_gaussians)
+        if per < 1:
+            raise ValueError("chunk_gaussians must be >= 1")
+        if per > limits.max_chunk_gaussians:
+            raise ValueError("chunk_gaussians exceeds limits.max_chunk_gaussians")
+    count = max(1, -(-n // per))
+    if count > limits.max_chunks:
+        raise ValueError(f"{count} chunks exceed limits.max_chunks; use larger chunks")
+    cctx = zstandard.ZstdCompressor(level=quant.zstd_level, write_content_size=True,
+                                    write_checksum=False)
+    out = []
+    for i in range(count):
+        part = arr.take(slice(i * per, min(n, (i + 1) * per)))
+        chunk = _encode_chunk(part, agent, map_version, i, count, n, quant, cctx)
+        if len(chunk) > limits.max_chunk_bytes or (
+                max_chunk_bytes is not None and len(chunk) > max_chunk_bytes):
+            raise ValueError("a chunk exceeds the byte limit; use smaller chunks")
+        out.append(chunk)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# decoding
+
+
+def _as_view(data: Any) -> memoryview:
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
+    raise TypeError(f"chunk must be bytes-like, got {type(data).__name__}")
+
+
+def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
+    """Parse and fully validate a chunk's header and checksum, without decompressing.
+
+    Cheap (one CRC pass): servers can route, dedupe (agent, map version, chunk index) and reject
+    chunks before decoding.
+
+    Raises:
+        TypeError: ``data`` is not bytes-like.
+        TruncatedChunk, BadMagic, UnsupportedVersion, ChecksumMismatch, LimitExceeded,
+        MalformedChunk: see their docstrings (checked in this order).
+    """
+    buf = _as_view(data)
+    size = len(buf)
+    if size > limits.max_chunk_bytes:
+        raise LimitExceeded(f"chunk of {size} bytes exceeds {limits.max_chunk_bytes}")
+    if size < len(MAGIC):
+        raise TruncatedChunk(f"{size} bytes, shorter than the magic")
+    if bytes(buf[:4]) != MAGIC:
+        raise BadMagic(f"bad magic {bytes(buf[:4])!r}")
+    if size < _PREFIX.size:
+        raise TruncatedChunk("no version field")
+    version = _PREFIX.unpack_from(buf)[1]
+    if version != FORMAT_VERSION:
+        raise UnsupportedVersion(f"format version {version}, supported: {FORMAT_VERSION}")
+    if size < HEADER_SIZE:
+        raise TruncatedChunk(f"{size} bytes, shorter than the {HEADER_SIZE}-byte header")
+    (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
+     reserved, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen) = _HEADER.unpack_from(buf)
+    if alen > limits.max_agent_id_bytes:
+        raise LimitExceeded(f"agent id of {alen} bytes")
+    if plen > limits.max_chunk_bytes:
+        raise LimitExceeded(f"payload of {plen} bytes")
+    expected = HEADER_SIZE + alen + plen + _CRC.size
+    if size < expected:
+        raise TruncatedChunk(f"{size} bytes, header declares {expected}")
+    if size > expected:
+        raise MalformedChunk(f"{size - expected} trailing bytes")
+    (crc,) = _CRC.unpack_from(buf, size - _CRC.size)
+    if zlib.crc32(buf[: size - _CRC.size]) != crc:
+        raise ChecksumMismatch("CRC-32 mismatch")
+    # ---- semantic validation (a valid CRC says nothing about intent)
+    if flags & ~_KNOWN_FLAGS or reserved:
+        raise MalformedChunk(f"unknown flags {flags:#x} / reserved {reserved}")
+    lossless = bool(flags & FLAG_LOSSLESS)
+    if alen == 0:
+        raise MalformedChunk("empty agent id")
+    try:
+        agent_id = bytes(buf[HEADER_SIZE:HEADER_SIZE + alen]).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise MalformedChunk(f"agent id is not UTF-8: {e}") from None
+    if n > limits.max_chunk_gaussians:
+        raise LimitExceeded(f"chunk claims {n} Gaussians (limit {limits.max_chunk_gaussians})")
+    if total > limits.max_total_gaussians:
+        raise LimitExceeded(f"subset claims {total} Gaussians (limit {limits.max_total_gaussians})")
+    if count_chunks > limits.max_chunks:
+        raise LimitExceeded(f"subset claims {count_chunks} chunks (limit {limits.max_chunks})")
+    if count_chunks == 0 or index >= count_chunks:
+        raise MalformedChunk(f"chunk index {index} of {count_chunks}")
+    if n > total or (n == 0 and total != 0):
+        raise MalformedChunk(f"chunk count {n} vs subset total {total}")
+    if count_chunks > max(1, total):
+        raise MalformedChunk(f"{count_chunks} chunks for {total} Gaussians")
+    if kb > 8:
+        raise MalformedChunk(f"kappa bytes {kb}")
+    floats = (ox, oy, oz, sx, sy, sz, slo, shi, clo, chi)
+    if lossless:
+        if mb or qb or sb or ob or cb or any(floats):
+            raise MalformedChunk("lossless chunk with quantisation parameters")
+    else:
+        if mb not in (1, 2, 3, 4) or not 4 <= qb <= 20 or not all(1 <= b <= 16 for b in (sb, ob, cb)):
+            raise MalformedChunk(f"bad quantisation widths {(mb, qb, sb, ob, cb)}")
+        if not all(math.isfinite(f) for f in floats):
+            raise MalformedChunk("non-finite quantisation parameters")
+        if min(sx, sy, sz) < 0 or slo > shi or clo > chi:
+            raise MalformedChunk("negative mean step or inverted range")
+    want = _raw_len(n, _field_widths(lossless, mb, qb, sb, ob, cb, kb))
+    if raw_len != want:
+        raise MalformedChunk(f"raw length {raw_len}, expected {want} for {n} Gaussians")
+    return ChunkHeader(
+        version=version, lossless=lossless, shuffle=bool(flags & FLAG_SHUFFLE), agent_id=agent_id,
+        map_version=map_version, chunk_index=index, chunk_count=count_chunks, total_count=total,
+        count=n, mean_bytes=mb, quat_bits=qb, scale_bits=sb, opacity_bits=ob, color_bits=cb,
+        kappa_bytes=kb, mean_origin=(ox, oy, oz), mean_step=(sx, sy, sz), scale_range=(slo, shi),
+        color_range=(clo, chi), raw_len=raw_len, payload_len=plen, wire_len=size,
+    )
+
+
+def _decompress(payload: memoryview, raw_len: int) -> bytes:
+    try:
+        declared = zstandard.frame_content_size(payload)
+    except zstandard.ZstdError as e:
+        raise MalformedChunk(f"bad zstd frame header: {e}") from None
+    if declared != raw_len:
+        raise MalformedChunk(f"zstd frame declares {declared} bytes, header {raw_len}")
+    dobj = zstandard.ZstdDecompressor().decompressobj()
+    try:
+        raw = dobj.decompress(payload)
+    except zstandard.ZstdError as e:
+        raise MalformedChunk(f"zstd: {e}") from None
+    if not dobj.eof or dobj.unused_data or len(raw) != raw_len:
+        raise MalformedChunk("zstd payload incomplete, oversized or with trailing data")
+    return raw
+
+
+def _digest(h: ChunkHeader, raw: bytes) -> bytes:
+    ident = (h.version, h.lossless, h.shuffle, h.agent_id, h.map_version, h.chunk_index,
+             h.chunk_count, h.total_count, h.count, h.mean_bytes, h.quat_bits, h.scale_bits,
+             h.opacity_bits, h.color_bits, h.kappa_bytes, h.mean_origin, h.mean_step,
+             h.scale_range, h.color_range)
+    d = hashlib.blake2b(repr(ident).encode(), digest_size=32)
+    d.update(raw)
+    return d.digest()
+
+
+def decode_chunk(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> DecodedChunk:
+    """Decode one chunk produced by :func:`encode_subset`.
+
+    Args:
+        data: bytes-like chunk.
+        limits: decoder limits.
+
+    Returns:
+        :class:`DecodedChunk` with float32/int64/bool arrays (see :class:`GaussianArrays`).
+
+    Raises:
+        TypeError: ``data`` not bytes-like.  Otherwise only :class:`WireError` subclasses:
+        everything :func:`peek_header` raises, MalformedChunk (zstd errors, bad quaternion code),
+        NonFiniteValues (NaN/inf after decoding).
+    """
+    h = peek_header(data, limits)
+    buf = _as_view(data)
+    start = HEADER_SIZE + len(h.agent_id.encode("utf-8"))
+    raw = _decompress(buf[start:start + h.payload_len], h.raw_len)
+    mv = memoryview(raw)
+    n, sh = h.count, h.shuffle
+    widths = _field_widths(h.lossless, h.mean_bytes, h.quat_bits, h.scale_bits, h.opacity_bits,
+                           h.color_bits, h.kappa_bytes)
+    cols = []
+    off = 0
+    for c, w in widths:
+        cols.append(_read_field(mv[off:], n, c, w, sh))
+        off += c * w * n
+    active = np.unpackbits(np.frombuffer(raw, np.uint8, offset=off), count=n).astype(bool)
+    kappa = _unzigzag(cols[5][:, 0])
+    if h.lossless:
+        f = [c.astype(np.uint32).view(np.float32) for c in cols[:5]]
+        means, quats, scales, opac, colors = f[0], f[1], f[2], f[3][:, 0], f[4]
+    else:
+        step = np.asarray(h.mean_step)
+        mmax = (1 << (8 * h.mean_bytes)) - 1
+        if cols[0].size and int(cols[0].max()) > mmax:  # unreachable by construction; defensive
+            raise MalformedChunk("mean code out of range")
+        with np.errstate(over="ignore", invalid="ignore"):
+            means = (np.asarray(h.mean_origin) + cols[0].astype(np.float64) * step).astype(
+                np.float32)
+            quats = _quat_decode(cols[1][:, 0], h.quat_bits)
+            scales = _affine_decode(cols[2], *h.scale_range, h.scale_bits)
+            opac = _opacity_decode(cols[3][:, 0], h.opacity_bits)
+            colors = _affine_decode(cols[4], *h.color_range, h.color_bits)
+        for name, v, bits in (("log_scales", cols[2], h.scale_bits),
+                              ("opacity", cols[3], h.opacity_bits),
+                              ("colors", cols[4], h.color_bits)):
+            if v.size and int(v.max()) >= 1 << bits:
+                raise MalformedChunk(f"{name} code exceeds {bits} bits")
+    for name, v in (("means", means), ("quats", quats), ("log_scales", scales),
+                    ("opacity_logits", opac), ("colors", colors)):
+        if not np.isfinite(v).all():
+            raise NonFiniteValues(f"non-finite {name}")
+    arrays = GaussianArrays(means=means, quats=quats, log_scales=scales, opacity_logits=opac,
+                            colors=colors, kappa=kappa, active=active)
+    return DecodedChunk(header=h, arrays=arrays, digest=_digest(h, raw))
+
+
+# --------------------------------------------------------------------------------------------
+# assembly
+
+
+class SubsetAssembler:
+    """Streaming, order-independent, idempotent assembly of one subset's chunks (SPEC §8).
+
+    Chunks may arrive in any order; re-delivering a chunk with identical content (same digest,
+    see :class:`DecodedChunk`) is a no-op, a different chunk under the same index raises
+    :class:`ConflictingDuplicate`.  The first accepted chunk fixes (agent id, map version, chunk
+    count, total count, lossless flag); later chunks must agree.
+
+    Args:
+        limits: decoder limits for raw byte chunks.
+        agent_id, map_version: optional expected values (e.g. from an authenticated RPC); chunks
+            that disagree raise :class:`InconsistentChunks`.
+
+    Memory is bounded by ``limits.max_total_gaussians`` decoded Gaussians (the accepted counts can
+    never exceed the header's total).
+    """
+
+    def __init__(self, limits: WireLimits = DEFAULT_LIMITS, *, agent_id: Optional[str] = None,
+                 map_version: Optional[int] = None) -> None:
+        self.limits = limits
+        self._expect_agent = agent_id
+        self._expect_version = map_version
+        self._key: Optional[tuple] = None
+        self._chunks: dict[int, DecodedChunk] = {}
+        self._received = 0
+        self._wire_bytes = 0
+
+    # -- properties
+    @property
+    def agent_id(self) -> Optional[str]:
+        return self._key[0] if self._key else self._expect_agent
+
+    @property
+    def map_version(self) -> Optional[int]:
+        return self._key[1] if self._key else self._expect_version
+
+    @property
+    def chunk_count(self) -> Optional[int]:
+        """Chunk count from the first accepted chunk (None before any)."""
+        return self._key[2] if self._key else None
+
+    @property
+    def total_count(self) -> Optional[int]:
+        return self._key[3] if self._key else None
+
+    @property
+    def complete(self) -> bool:
+        return self._key is not None and len(self._chunks) == self._key[2]
+
+    def received(self) -> list[int]:
+        """Sorted indices of accepted chunks."""
+        return sorted(self._chunks)
+
+    def missing(self) -> list[int]:
+        """Sorted indices still missing (empty before the first chunk: the count is unknown)."""
+        if self._key is None:
+            return []
+        return [i for i in range(self._key[2]) if i not in self._chunks]
+
+    def add(self, chunk: Any) -> bool:
+        """Accept one chunk (bytes-like or :class:`DecodedChunk`).
+
+        Returns:
+            True when the chunk was new, False for an identical re-delivery.
+
+        Raises:
+            WireError subclasses from :func:`decode_chunk`; InconsistentChunks; ConflictingDuplicate.
+        """
+        dc = chunk if isinstance(chunk, DecodedChunk) else decode_chunk(chunk, self.limits)
+        h = dc.header
+        key = (h.agent_id, h.map_version, h.chunk_count, h.total_count, h.lossless)
+        if self._expect_agent is not None and h.agent_id != self._expect_agent:
+            raise InconsistentChunks(f"agent {h.agent_id!r}, expected {self._expect_agent!r}")
+        if self._expect_version is not None and h.map_version != self._expect_version:
+            raise InconsistentChunks(f"map version {h.map_version}, expected "
+                                     f"{self._expect_version}")
+        if self._key is not None and key != self._key:
+            raise InconsistentChunks(f"chunk header {key} disagrees with {self._key}")
+        old = self._chunks.get(h.chunk_index)
+        if old is not None:
+            if old.digest != dc.digest:
+                raise ConflictingDuplicate(f"chunk {h.chunk_index} re-sent with different content")
+            return False
+        if self._received + h.count > h.total_count:
+            raise InconsistentChunks("chunks hold more Gaussians than the subset total")
+        if len(self._chunks) + 1 == h.chunk_count and self._received + h.count != h.total_count:
+            raise InconsistentChunks("all chunks received but Gaussian counts do not add up")
+        self._key = key
+        self._chunks[h.chunk_index] = dc
+        self._received += h.count
+        self._wire_bytes += h.wire_len
+        return True
+
+    def result(self) -> tuple[GaussianArrays, SubsetMeta]:
+        """The assembled subset (rows in chunk-index order) and its metadata.
+
+        Raises:
+            IncompleteSubset: chunks are missing (or none was added).
+        """
+        if not self.complete:
+            raise IncompleteSubset(f"missing chunks {self.missing()[:16]}"
+                                   if self._key else "no chunk received")
+        agent, version, count, total, lossless = self._key
+        arrays = GaussianArrays.concat([self._chunks[i].arrays for i in range(count)])
+        return arrays, SubsetMeta(agent_id=agent, map_version=version, total_count=total,
+                                  chunk_count=count, lossless=lossless,
+                                  wire_bytes=self._wire_bytes)
+
+
+def assemble(chunks: Iterable[Any], limits: WireLimits = DEFAULT_LIMITS
+             ) -> tuple[GaussianArrays, SubsetMeta]:
+    """Decode and assemble a complete subset from its chunks (any order, duplicates allowed).
+
+    Raises:
+        WireError subclasses (see :class:`SubsetAssembler`), IncompleteSubset when chunks are
+        missing or ``chunks`` is empty.
+    """
+    asm = SubsetAssembler(limits)
+    for c in chunks:
+        asm.add(c)
+    return asm.result()
