@@ -187,6 +187,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
         ("lossless", full, LOSSLESS),
         ("lossless, no shuffle", full, QuantConfig(lossless=True, shuffle=False)),
         ("ROI subset, quantised", roi, QuantConfig()),
+        ("ROI subset, mean step 1 mm", roi, QuantConfig(mean_step=1e-3)),
         ("ROI subset, lossless", roi, LOSSLESS),
     ]
     rows = [run_case(name, g, q, reps) for name, g, q in cases]

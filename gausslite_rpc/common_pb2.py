@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1agausslite_rpc/common.proto\x12\x0cgausslite.v1\"=\n\x08Relation\x12\x11\n\tpredicate\x18\x01 \x01(\t\x12\x0e\n\x06target\x18\x02 \x01(\t\x12\x0e\n\x06\x61nchor\x18\x03 \x01(\t\"\x90\x01\n\tTaskGraph\x12\x0f\n\x07targets\x18\x01 \x03(\t\x12\x0f\n\x07\x61nchors\x18\x02 \x03(\t\x12)\n\trelations\x18\x03 \x03(\x0b\x32\x16.gausslite.v1.Relation\x12\x13\n\x0bunsupported\x18\x04 \x03(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\x05 \x01(\t\x12\x10\n\x08warnings\x18\x06 \x03(\tb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1agausslite_rpc/common.proto\x12\x0cgausslite.v1\"=\n\x08Relation\x12\x11\n\tpredicate\x18\x01 \x01(\t\x12\x0e\n\x06target\x18\x02 \x01(\t\x12\x0e\n\x06\x61nchor\x18\x03 \x01(\t\"\x90\x01\n\tTaskGraph\x12\x0f\n\x07targets\x18\x01 \x03(\t\x12\x0f\n\x07\x61nchors\x18\x02 \x03(\t\x12)\n\trelations\x18\x03 \x03(\x0b\x32\x16.gausslite.v1.Relation\x12\x13\n\x0bunsupported\x18\x04 \x03(\t\x12\x0f\n\x07\x62\x61\x63kend\x18\x05 \x01(\t\x12\x10\n\x08warnings\x18\x06 \x03(\t\"[\n\nIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\"\x13\n\x04Pose\x12\x0b\n\x03\x63\x32w\x18\x01 \x03(\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -35,4 +35,8 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_RELATION']._serialized_end=105
   _globals['_TASKGRAPH']._serialized_start=108
   _globals['_TASKGRAPH']._serialized_end=252
+  _globals['_INTRINSICS']._serialized_start=254
+  _globals['_INTRINSICS']._serialized_end=345
+  _globals['_POSE']._serialized_start=347
+  _globals['_POSE']._serialized_end=366
 # @@protoc_insertion_point(module_scope)

@@ -31,3 +31,25 @@ class TaskGraph(_message.Message):
     backend: str
     warnings: _containers.RepeatedScalarFieldContainer[str]
     def __init__(self, targets: _Optional[_Iterable[str]] = ..., anchors: _Optional[_Iterable[str]] = ..., relations: _Optional[_Iterable[_Union[Relation, _Mapping]]] = ..., unsupported: _Optional[_Iterable[str]] = ..., backend: _Optional[str] = ..., warnings: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class Intrinsics(_message.Message):
+    __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
+    FX_FIELD_NUMBER: _ClassVar[int]
+    FY_FIELD_NUMBER: _ClassVar[int]
+    CX_FIELD_NUMBER: _ClassVar[int]
+    CY_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+
+class Pose(_message.Message):
+    __slots__ = ("c2w",)
+    C2W_FIELD_NUMBER: _ClassVar[int]
+    c2w: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, c2w: _Optional[_Iterable[float]] = ...) -> None: ...

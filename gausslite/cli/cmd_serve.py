@@ -28,6 +28,8 @@ class ServiceEntry(NamedTuple):
 #: Service name → entry. Add ``"agent"`` / ``"fusion"`` here.
 SERVICES: Dict[str, ServiceEntry] = {
     "parser": ServiceEntry("services.parser.server", 50051),
+    "fusion": ServiceEntry("services.fusion_server.server", 50053),
+    "agent": ServiceEntry("services.agent.server", 50061),
 }
 
 

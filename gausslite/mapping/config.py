@@ -23,8 +23,8 @@ class LearningRates(_Strict):
     means: float = Field(2.5e-4, gt=0, description="metres per step (scaled by scene_scale)")
     quats: float = Field(2e-3, gt=0)
     log_scales: float = Field(5e-3, gt=0)
-    opacity_logits: float = Field(5e-2, gt=0)
-    colors: float = Field(5e-3, gt=0)
+    opacity_logits: float = Field(1e-1, gt=0)
+    colors: float = Field(1e-2, gt=0)
 
 
 class DensifyConfig(_Strict):
@@ -32,7 +32,7 @@ class DensifyConfig(_Strict):
 
     enabled: bool = True
     every: int = Field(20, ge=1, description="iterations between density-control steps")
-    grad_threshold: float = Field(2e-4, gt=0, description="mean ‖∂L/∂means2d‖ (normalised pixels)")
+    grad_threshold: float = Field(1e-3, gt=0, description="mean ‖∂L/∂means2d‖ (pixels × half image size)")
     split_scale_m: float = Field(
         0.02, gt=0, description="high-gradient Gaussians larger than this (metres) split, smaller clone"
     )

@@ -4,15 +4,17 @@ Port of the per-pixel loops of Kerbl et al. 2023 (diff-gaussian-rasterization ``
 ``renderCUDA`` backward) in the gsplat data layout, written without Warp tile primitives so the
 same source runs correctly on CPU (one thread per pixel, serial per launch) and CUDA.
 
-Per-Gaussian data is packed into one float32 row
-``gdata[g] = (u_hi, v_hi, a, b, c, o, r, g, b, z, u_lo, v_lo, p_min, 0, 0, 0)`` (64 bytes): pixel centre (u, v) stored as a
-float32 pair ``u = u_hi + u_lo`` (``u_hi - px`` is exact, so the pixel offset keeps ~float64
-precision at no cost; plain float32 u would carry ~1e-5 px rounding at u ~ 300), conic (a, b, c) with Mahalanobis form ``a dx^2 + 2 b dx dy + c dy^2``,
-post-sigmoid opacity o, colour rgb, camera depth z (metres) and
-``p_min = ln(1 / (255 o)) - 1e-3``: a conservative pre-test (power < p_min implies
-alpha < 1/255) that skips the exp for the many pixel/Gaussian pairs far outside the footprint;
-the exact ``alpha < 1/255`` test still decides the remaining pairs, so semantics are unchanged. Gradients are written to a
-(M, 10) buffer with the first ten columns of that layout (d/du, d/dv, ...).
+Per-Gaussian data is packed into one float32 row (64 bytes)
+``gdata[g] = (u_hi, v_hi, a, b, c, o, r, g, b, z, u_lo, v_lo, p_min, 0, 0, 0)``:
+- pixel centre (u, v) stored as a float32 pair ``u = u_hi + u_lo`` (``u_hi - px`` is exact, so
+  the pixel offset keeps ~float64 precision at no cost; plain float32 u would carry ~1e-5 px
+  rounding at u ~ 300);
+- conic (a, b, c) with Mahalanobis form ``a dx^2 + 2 b dx dy + c dy^2`` (px^-2);
+- post-sigmoid opacity o, colour rgb, camera depth z (metres);
+- ``p_min = ln(1 / (255 o)) - 1e-3``: a conservative pre-test (power < p_min implies
+  alpha < 1/255) that skips the exp for pairs far outside the footprint; the exact
+  ``alpha < 1/255`` test still decides the remaining pairs, so semantics are unchanged.
+Gradients are written to (M, 10) buffers holding the first ten columns of that layout.
 
 The footprint test of each (pixel, Gaussian) pair reads a per-intersection copy
 ``idata[j] = (u_hi, v_hi, a, b, c, u_lo, v_lo, p_min)`` stored in the sorted tile order, so the
@@ -219,6 +221,315 @@ def rasterize_bwd_kernel(
             wp.atomic_add(grad_gdata, g, 2, -0.5 * dl_dp * dx * dx)
             wp.atomic_add(grad_gdata, g, 3, -dl_dp * dx * dy)
             wp.atomic_add(grad_gdata, g, 4, -0.5 * dl_dp * dy * dy)
+
+
+# ------------------------------------------------------------------------------------ CPU tile kernels
+#
+# On CPU a Warp launch is a serial loop over thread ids, so the per-pixel kernels above evaluate
+# every (pixel, Gaussian) pair of a tile even though a Gaussian typically covers a small part of
+# each tile it is binned to. The tile kernels below run one *tile* per thread, Gaussian-outer and
+# pixel-inner: for each Gaussian of the tile list only the pixels inside a conservative row-wise
+# bound of its ``power >= p_min - 0.01`` ellipse (computed in float64, widened by 0.5 px) are
+# visited, and each visited pair is evaluated with exactly the float32 arithmetic and tests of the
+# per-pixel kernels. Every pixel still composites its Gaussians in list order with the same early
+# termination, so the outputs are identical (bit for bit in the forward pass); the backward pass
+# sums one tile's pixel contributions to a Gaussian locally before writing them once.
+# Per-pixel running state lives in global per-pixel arrays, so the kernels are race free on any
+# device, but they are only launched on CPU.
+
+
+@wp.func
+def _tile_rows(vv: wp.float64, ca: wp.float64, cb: wp.float64, cc: wp.float64, pr: wp.float64,
+               y0: int, y1: int):
+    """Rows [ya, yb] of ``[y0, y1]`` that can hold a pixel with ``power >= pr`` (conservative)."""
+    det = ca * cc - cb * cb
+    ya = y0
+    yb = y1
+    if ca > wp.float64(0.0) and det > wp.float64(0.0):
+        e = wp.sqrt(wp.max(wp.float64(-2.0) * pr * ca / det, wp.float64(0.0))) + wp.float64(0.5)
+        lo = wp.ceil(vv - e)
+        hi = wp.floor(vv + e)
+        if lo > wp.float64(y0):
+            ya = y1 + 1
+            if lo <= wp.float64(y1):
+                ya = int(lo)
+        if hi < wp.float64(y1):
+            yb = y0 - 1
+            if hi >= wp.float64(y0):
+                yb = int(hi)
+    return wp.vec2i(ya, yb)
+
+
+@wp.func
+def _row_span(uu: wp.float64, dy: wp.float64, ca: wp.float64, cb: wp.float64, cc: wp.float64,
+              pr: wp.float64, x0: int, x1: int):
+    """Columns [xa, xb] of ``[x0, x1]`` on a row at offset ``dy = v - py`` that can hold a pixel
+    with ``power >= pr`` (conservative: float64 roots widened by 0.5 px); empty if xa > xb."""
+    xa = x0
+    xb = x1
+    if ca > wp.float64(0.0):
+        disc = cb * cb * dy * dy - ca * (cc * dy * dy + wp.float64(2.0) * pr)
+        if disc < wp.float64(0.0):
+            xa = x1 + 1
+        else:
+            sq = wp.sqrt(disc)
+            # power(dx) >= pr  <=>  dx in [(-b dy - sq) / a, (-b dy + sq) / a], px = u - dx
+            lo = wp.ceil(uu - (sq - cb * dy) / ca - wp.float64(0.5))
+            hi = wp.floor(uu + (sq + cb * dy) / ca + wp.float64(0.5))
+            if lo > wp.float64(x0):
+                xa = x1 + 1
+                if lo <= wp.float64(x1):
+                    xa = int(lo)
+            if hi < wp.float64(x1):
+                xb = x0 - 1
+                if hi >= wp.float64(x0):
+                    xb = int(hi)
+    return wp.vec2i(xa, xb)
+
+
+@wp.kernel
+def rasterize_fwd_tile_kernel(
+    gdata: wp.array2d(dtype=wp.float32),
+    gids: wp.array(dtype=wp.int32),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tile_size: int,
+    tiles_x: int,
+    stripe: int,
+    nstripes: int,
+    out_feat: wp.array2d(dtype=wp.float32),
+    out_T: wp.array(dtype=wp.float32),
+    out_last: wp.array(dtype=wp.int32),
+):
+    """Forward pass of one tile (same outputs as :func:`rasterize_fwd_kernel`).
+
+    While the tile is processed, a pixel that has terminated is marked by a negated ``out_T``.
+    """
+    tid = wp.tid()
+    tr = tid // tiles_x
+    tx = tid - tr * tiles_x
+    ty = tr * nstripes + stripe
+    tile = ty * tiles_x + tx
+    x0 = tx * tile_size
+    y0 = ty * tile_size
+    x1 = wp.min(x0 + tile_size, width) - 1
+    y1 = wp.min(y0 + tile_size, height) - 1
+    start = tile_start[tile]
+    end = tile_end[tile]
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            for k in range(5):
+                out_feat[pix, k] = 0.0
+            out_T[pix] = 1.0
+            out_last[pix] = start
+    n_active = (x1 - x0 + 1) * (y1 - y0 + 1)
+    for j in range(start, end):
+        g = gids[j]
+        uh = gdata[g, 0]
+        vh = gdata[g, 1]
+        ca = gdata[g, 2]
+        cb = gdata[g, 3]
+        cc = gdata[g, 4]
+        op = gdata[g, 5]
+        ul = gdata[g, 10]
+        vl = gdata[g, 11]
+        pm = gdata[g, 12]
+        uu = wp.float64(uh) + wp.float64(ul)
+        vv = wp.float64(vh) + wp.float64(vl)
+        da = wp.float64(ca)
+        db = wp.float64(cb)
+        dc = wp.float64(cc)
+        pr = wp.float64(pm) - wp.float64(0.01)
+        rows = _tile_rows(vv, da, db, dc, pr, y0, y1)
+        hit = int(0)
+        for py in range(rows[0], rows[1] + 1):
+            span = _row_span(uu, vv - wp.float64(py), da, db, dc, pr, x0, x1)
+            if span[0] > span[1]:
+                continue
+            fy = float(py)
+            dy = (vh - fy) + vl
+            for px in range(span[0], span[1] + 1):
+                pix = py * width + px
+                T = out_T[pix]
+                if T < 0.0:
+                    continue
+                dx = (uh - float(px)) + ul
+                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                if power > 0.0 or power < pm:
+                    continue
+                alpha = wp.min(ALPHA_MAX, op * wp.exp(power))
+                if alpha < ALPHA_MIN:
+                    continue
+                test_T = T * (1.0 - alpha)
+                if test_T < T_MIN:
+                    out_T[pix] = -T
+                    n_active -= 1
+                    continue
+                if hit == 0:
+                    hit = 1
+                w = alpha * T
+                out_feat[pix, 0] += w * gdata[g, 6]
+                out_feat[pix, 1] += w * gdata[g, 7]
+                out_feat[pix, 2] += w * gdata[g, 8]
+                out_feat[pix, 3] += w * gdata[g, 9]
+                out_feat[pix, 4] += w
+                out_T[pix] = test_T
+                out_last[pix] = j + 1
+        if n_active == 0:
+            break
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            out_T[pix] = wp.abs(out_T[pix])
+
+
+@wp.kernel
+def rasterize_bwd_tile_kernel(
+    gdata: wp.array2d(dtype=wp.float32),
+    gids: wp.array(dtype=wp.int32),
+    tile_start: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tile_size: int,
+    tiles_x: int,
+    stripe: int,
+    nstripes: int,
+    final_T: wp.array(dtype=wp.float32),
+    last_idx: wp.array(dtype=wp.int32),
+    grad_feat: wp.array2d(dtype=wp.float32),
+    state: wp.array2d(dtype=wp.float32),
+    grad_gdata: wp.array2d(dtype=wp.float32),
+):
+    """Backward pass of one tile (same gradients as :func:`rasterize_bwd_kernel`, summed per
+    Gaussian over the tile before being added to ``grad_gdata``).
+
+    ``state[pix] = (T, R_r, R_g, R_b, R_d)`` is the back-to-front running state of each pixel.
+    """
+    tid = wp.tid()
+    tr = tid // tiles_x
+    tx = tid - tr * tiles_x
+    ty = tr * nstripes + stripe
+    tile = ty * tiles_x + tx
+    x0 = tx * tile_size
+    y0 = ty * tile_size
+    x1 = wp.min(x0 + tile_size, width) - 1
+    y1 = wp.min(y0 + tile_size, height) - 1
+    start = tile_start[tile]
+    maxlast = start
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            state[pix, 0] = final_T[pix]
+            state[pix, 1] = 0.0
+            state[pix, 2] = 0.0
+            state[pix, 3] = 0.0
+            state[pix, 4] = 0.0
+            maxlast = wp.max(maxlast, last_idx[pix])
+    for k in range(maxlast - start):
+        j = maxlast - 1 - k
+        g = gids[j]
+        uh = gdata[g, 0]
+        vh = gdata[g, 1]
+        ca = gdata[g, 2]
+        cbb = gdata[g, 3]
+        cc = gdata[g, 4]
+        op = gdata[g, 5]
+        fr = gdata[g, 6]
+        fg = gdata[g, 7]
+        fb = gdata[g, 8]
+        fd = gdata[g, 9]
+        ul = gdata[g, 10]
+        vl = gdata[g, 11]
+        pm = gdata[g, 12]
+        uu = wp.float64(uh) + wp.float64(ul)
+        vv = wp.float64(vh) + wp.float64(vl)
+        da = wp.float64(ca)
+        db = wp.float64(cbb)
+        dc = wp.float64(cc)
+        pr = wp.float64(pm) - wp.float64(0.01)
+        rows = _tile_rows(vv, da, db, dc, pr, y0, y1)
+        hit = int(0)
+        s_u = float(0.0)
+        s_v = float(0.0)
+        s_a = float(0.0)
+        s_b = float(0.0)
+        s_c = float(0.0)
+        s_o = float(0.0)
+        s_r = float(0.0)
+        s_g = float(0.0)
+        s_bl = float(0.0)
+        s_d = float(0.0)
+        for py in range(rows[0], rows[1] + 1):
+            span = _row_span(uu, vv - wp.float64(py), da, db, dc, pr, x0, x1)
+            if span[0] > span[1]:
+                continue
+            fy = float(py)
+            dy = (vh - fy) + vl
+            for px in range(span[0], span[1] + 1):
+                pix = py * width + px
+                if j >= last_idx[pix]:
+                    continue
+                dx = (uh - float(px)) + ul
+                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cbb * dx * dy
+                if power > 0.0 or power < pm:
+                    continue
+                G = wp.exp(power)
+                raw = op * G
+                alpha = wp.min(ALPHA_MAX, raw)
+                if alpha < ALPHA_MIN:
+                    continue
+                hit = 1
+                inv = 1.0 / (1.0 - alpha)
+                T = state[pix, 0] * inv
+                w = alpha * T
+                gr = grad_feat[pix, 0]
+                gg = grad_feat[pix, 1]
+                gb = grad_feat[pix, 2]
+                gd = grad_feat[pix, 3]
+                ga = grad_feat[pix, 4]
+                rr = state[pix, 1]
+                rg = state[pix, 2]
+                rb = state[pix, 3]
+                rd = state[pix, 4]
+                s_r += w * gr
+                s_g += w * gg
+                s_bl += w * gb
+                s_d += w * gd
+                dl_dalpha = (
+                    (fr * T - rr * inv) * gr
+                    + (fg * T - rg * inv) * gg
+                    + (fb * T - rb * inv) * gb
+                    + (fd * T - rd * inv) * gd
+                    + ga * final_T[pix] * inv
+                )
+                state[pix, 0] = T
+                state[pix, 1] = rr + fr * w
+                state[pix, 2] = rg + fg * w
+                state[pix, 3] = rb + fb * w
+                state[pix, 4] = rd + fd * w
+                if raw <= ALPHA_MAX:
+                    s_o += G * dl_dalpha
+                    dl_dp = alpha * dl_dalpha
+                    s_u += -dl_dp * (ca * dx + cbb * dy)
+                    s_v += -dl_dp * (cc * dy + cbb * dx)
+                    s_a += -0.5 * dl_dp * dx * dx
+                    s_b += -dl_dp * dx * dy
+                    s_c += -0.5 * dl_dp * dy * dy
+        if hit != 0:
+            wp.atomic_add(grad_gdata, g, 0, s_u)
+            wp.atomic_add(grad_gdata, g, 1, s_v)
+            wp.atomic_add(grad_gdata, g, 2, s_a)
+            wp.atomic_add(grad_gdata, g, 3, s_b)
+            wp.atomic_add(grad_gdata, g, 4, s_c)
+            wp.atomic_add(grad_gdata, g, 5, s_o)
+            wp.atomic_add(grad_gdata, g, 6, s_r)
+            wp.atomic_add(grad_gdata, g, 7, s_g)
+            wp.atomic_add(grad_gdata, g, 8, s_bl)
+            wp.atomic_add(grad_gdata, g, 9, s_d)
+
 
 
 def ensure_loaded(device: str) -> None:

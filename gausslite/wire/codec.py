@@ -720,7 +720,9 @@ def encode_subset(
         chunk with zero Gaussians).  Row order is preserved through :func:`assemble`.
 
     Raises:
-        ValueError: bad arguments, non-finite values, negative... (κ may be any int64), limits.
+        ValueError: empty/oversized agent id, map_version out of range, non-finite float fields,
+            bad chunking arguments, or output that would violate ``limits`` (κ may be any int64;
+            it is zigzag-coded).
         TypeError: unsupported input container.
     """
     arr = GaussianArrays.from_any(gaussians)

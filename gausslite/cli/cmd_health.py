@@ -1,0 +1,53 @@
+"""``gausslite health --target HOST:PORT [--service NAME]``: query the standard gRPC health service
+(``grpc.health.v1.Health/Check``) of a GaussLite server; exit 0 when SERVING, 1 otherwise (also on
+connection errors or when the deadline passes). Used by the docker-compose healthchecks (SPEC §8).
+
+Environment fallbacks: ``GAUSSLITE_HEALTH_TARGET``, ``GAUSSLITE_TLS_CA`` (PEM CA → TLS).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def register(subparsers) -> None:
+    """Add the ``health`` subcommand to ``subparsers``."""
+    p = subparsers.add_parser("health", help="check a gRPC service's health (exit 0 = SERVING)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--target", default=None, help="host:port (env GAUSSLITE_HEALTH_TARGET)")
+    p.add_argument("--service", default="", help="service name, e.g. gausslite.v1.Agent ('' = whole server)")
+    p.add_argument("--timeout", type=float, default=3.0, help="deadline in seconds (default 3)")
+    p.add_argument("--tls-ca", default=None, help="PEM CA certificate for TLS (env GAUSSLITE_TLS_CA)")
+    p.set_defaults(func=_handle)
+
+
+def check_health(target: str, service: str = "", timeout_s: float = 3.0, tls_ca: str | None = None) -> str:
+    """Health status name of ``service`` at ``target`` (``SERVING``, ``NOT_SERVING``, ``SERVICE_UNKNOWN``...),
+    or ``UNREACHABLE: <code>`` when the call fails."""
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    if tls_ca:
+        with open(tls_ca, "rb") as f:
+            ch = grpc.secure_channel(target, grpc.ssl_channel_credentials(f.read()))
+    else:
+        ch = grpc.insecure_channel(target)
+    with ch:
+        try:
+            r = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(service=service),
+                                                     timeout=timeout_s, wait_for_ready=True)
+        except grpc.RpcError as e:
+            return f"UNREACHABLE: {e.code().name}"
+        return health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)
+
+
+def _handle(args: argparse.Namespace) -> int:
+    target = args.target or os.environ.get("GAUSSLITE_HEALTH_TARGET")
+    if not target:
+        print("gausslite health: error: --target HOST:PORT is required", file=sys.stderr)
+        return 2
+    status = check_health(target, args.service, args.timeout, args.tls_ca or os.environ.get("GAUSSLITE_TLS_CA"))
+    print(f"{target} {args.service or '(server)'}: {status}")
+    return 0 if status == "SERVING" else 1

@@ -1,0 +1,113 @@
+"""``gausslite sim [--dataset PATH] --out DIR``: local two-agent simulation (parser + fusion server + two
+agents as separate processes on 127.0.0.1, configured like ``deploy/docker-compose.yml``), then concat /
+vote / vote+refine fusion, evaluation and ``DIR/report.json`` + ``DIR/report.md`` (SPEC §1, §7, §9).
+Without ``--dataset`` the synthetic default scene is generated into ``DIR/scene``.
+
+Also registers the agent options of ``gausslite serve agent`` (``--agent-id --parser --fusion --dataset
+--task --task-id --data-dir --annotations --set``): ``cmd_serve`` owns the generic serve options; the
+agent-specific ones are added to its sub-parser here (this module is registered after it) and are
+exported to the agent's environment variables (``GAUSSLITE_AGENT_ID``, ``GAUSSLITE_PARSER_ADDR``,
+``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_AGENT_DATASET``, ``GAUSSLITE_AGENT_TASK``,
+``GAUSSLITE_AGENT_TASK_ID``, ``GAUSSLITE_DATA_DIR``, ``GAUSSLITE_AGENT_ANNOTATIONS``,
+``GAUSSLITE_AGENT_SET``), which are also the documented fallbacks. gRPC is imported lazily.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+#: serve-agent flag → (argparse dest, environment variable, help)
+AGENT_FLAGS = {
+    "--agent-id": ("agent_id", "GAUSSLITE_AGENT_ID", "agent id on the fusion server (agent only)"),
+    "--parser": ("parser_addr", "GAUSSLITE_PARSER_ADDR", "parser service host:port; empty = in-process rules (agent)"),
+    "--fusion": ("fusion_addr", "GAUSSLITE_FUSION_ADDR", "fusion server host:port; empty = no pushes (agent)"),
+    "--dataset": ("agent_dataset", "GAUSSLITE_AGENT_DATASET", "auto-start a replay mission of this dataset (agent)"),
+    "--task": ("agent_task", "GAUSSLITE_AGENT_TASK", "task text of the auto-started mission (agent)"),
+    "--task-id": ("agent_task_id", "GAUSSLITE_AGENT_TASK_ID", "task id in tasks.json (GT relevance/eval) (agent)"),
+    "--data-dir": ("data_dir", "GAUSSLITE_DATA_DIR", "folder for results (agent: map.ply + summary.json)"),
+    "--annotations": ("agent_annotations", "GAUSSLITE_AGENT_ANNOTATIONS",
+                      "scene folder with objects.json/tasks.json for streamed missions (agent)"),
+}
+
+
+def register(subparsers) -> None:
+    """Add the ``sim`` subcommand, and the agent options of ``serve`` (when registered)."""
+    p = subparsers.add_parser("sim", help="local two-agent simulation with fusion and a report",
+                              description=__doc__.split("\n\n")[0],
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", default=None, help="scene folder (default: generate the synthetic scene)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--config", default=None, help="GaussLite YAML (default deploy/gausslite.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override, e.g. mapper.iters_per_frame=5 agent.max_frames=4 sim.scene.frames=6")
+    p.add_argument("--tasks", default=None, help="two task ids, comma-separated (agent_a,agent_b)")
+    p.add_argument("--iters", type=int, default=None, help="shortcut for mapper.iters_per_frame")
+    p.add_argument("--seeds", type=int, default=None, help="shortcut for mapper.seeds_per_frame")
+    p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
+    p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
+    p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
+    p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
+    p.set_defaults(func=_handle)
+    _extend_serve(subparsers)
+
+
+def _extend_serve(subparsers) -> None:
+    serve = getattr(subparsers, "choices", {}).get("serve")
+    if serve is None:
+        return
+    group = serve.add_argument_group("agent options (gausslite serve agent)")
+    existing = serve._option_string_actions  # options another module already added are reused
+    for flag, (dest, _env, help_) in AGENT_FLAGS.items():
+        if flag not in existing:
+            group.add_argument(flag, dest=dest, default=None, help=f"{help_} (env {_env})")
+    if "--set" not in existing:
+        group.add_argument("--set", dest="agent_overrides", action="append", default=None, metavar="KEY=VALUE",
+                           help="agent config override, e.g. mapper.iters_per_frame=5 (env GAUSSLITE_AGENT_SET, ';'-separated)")
+    original = serve.get_default("func")
+
+    def handle(args: argparse.Namespace) -> int:
+        if getattr(args, "service", None) == "agent":
+            export_agent_env(args, os.environ, serve)
+        return original(args)
+
+    serve.set_defaults(func=handle)
+
+
+def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
+    """Copy the given ``serve agent`` flags into their environment variables (flags win over env)."""
+    for flag, (dest, var, _h) in AGENT_FLAGS.items():
+        if serve_parser is not None and flag in serve_parser._option_string_actions:
+            dest = serve_parser._option_string_actions[flag].dest
+        val = getattr(args, dest, None)
+        if val is not None:
+            env[var] = str(val)
+    ov = getattr(args, "agent_overrides", None)
+    if ov:
+        env["GAUSSLITE_AGENT_SET"] = ";".join(ov)
+
+
+def _handle(args: argparse.Namespace) -> int:
+    overrides = list(args.overrides)
+    for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds", "mapper.seeds_per_frame"),
+                      ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
+        if getattr(args, flag) is not None:
+            overrides.append(f"{key}={getattr(args, flag)}")
+    if args.iters is not None and not any(o.startswith("mapper.warmup_iters=") for o in overrides):
+        overrides.append(f"mapper.warmup_iters={max(0, args.iters // 3)}")
+    tasks = [t.strip() for t in args.tasks.split(",")] if args.tasks else None
+    try:
+        from services.sim import run_sim
+
+        res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks,
+                      timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
+    except KeyboardInterrupt:
+        print("gausslite sim: interrupted (all services stopped)", file=sys.stderr)
+        return 130
+    except (ValueError, KeyError, OSError, RuntimeError, TimeoutError) as e:
+        print(f"gausslite sim: error: {e}", file=sys.stderr)
+        return 1
+    print((res.out / "report.md").read_text())
+    print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} in {res.seconds:.0f} s")
+    return 0

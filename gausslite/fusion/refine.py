@@ -1,0 +1,105 @@
+"""Optional joint refinement of a fused map (paper Sec. III-E, SPEC §7).
+
+After the voxel vote, a short joint optimisation over keyframes drawn uniformly from the union of the
+agents' keyframe buffers smooths the seams between the agents' contributions. It uses the mapper's
+loss (Eq. 1) and adaptive density control, with every Gaussian treated as active (full-image
+rendering, all Gaussians updated). κ and the active flags are carried through unchanged (daughters
+inherit them), so a refined map can be voted again.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from gausslite.camera import Intrinsics
+from gausslite.datasets.base import Frame
+from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.mapper import Mapper, keyframe_from_frame
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[float, str], None]
+
+
+@dataclass
+class RefineKeyframe:
+    """One keyframe of an agent's buffer.
+
+    Attributes:
+        rgb: (H, W, 3) uint8 RGB. depth: (H, W) float32 metres (0 = invalid).
+        c2w: (4, 4) float64 camera-to-world (OpenCV axes). K: (3, 3) float64 intrinsics (pixels).
+        width, height: image size in pixels (must match rgb/depth).
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    c2w: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+
+    def to_frame(self, frame_id: int) -> Frame:
+        """As a dataset ``Frame`` (validates sizes)."""
+        if self.rgb.shape != (self.height, self.width, 3) or self.depth.shape != (self.height, self.width):
+            raise ValueError(
+                f"keyframe {frame_id}: rgb {self.rgb.shape} / depth {self.depth.shape} do not match "
+                f"{self.width}x{self.height}"
+            )
+        intr = Intrinsics.from_K(self.K, self.width, self.height)
+        return Frame(frame_id, float(frame_id), self.rgb, self.depth.astype(np.float32), np.asarray(self.c2w, np.float64), intr)
+
+
+def refine_map(
+    gaussians,
+    keyframes: Sequence[RefineKeyframe],
+    iters: int,
+    progress: Optional[ProgressFn] = None,
+    seed: int = 0,
+    cfg: Optional[MapperConfig] = None,
+    **overrides,
+):
+    """Jointly optimise a (fused) map over a keyframe pool.
+
+    Args:
+        gaussians: ``GaussianArrays`` or ``GaussianMap`` (any container ``GaussianArrays.from_any`` takes).
+        keyframes: the union of the agents' keyframes; each iteration draws one uniformly.
+        iters: number of Adam iterations (0 returns the input unchanged).
+        progress: optional callback ``(fraction in [0,1], message)``, called about 20 times.
+        seed: RNG seed for view sampling and splits.
+        cfg: mapper config supplying learning rates, loss weights and density control (default
+            ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``max_gaussians=...``).
+    Returns:
+        ``GaussianArrays`` of the refined map.
+    Raises:
+        ValueError: ``iters`` < 0, no keyframes while ``iters`` > 0, or a malformed keyframe.
+    """
+    from gausslite.wire.codec import GaussianArrays
+
+    if iters < 0:
+        raise ValueError(f"iters must be >= 0, got {iters}")
+    arrays = GaussianArrays.from_any(gaussians)
+    if iters == 0 or len(arrays) == 0:
+        return arrays
+    if not keyframes:
+        raise ValueError("refinement needs at least one keyframe")
+    base = cfg or MapperConfig()
+    cfg = base.model_copy(update={"seed": seed, "max_gaussians": max(base.max_gaussians, len(arrays)), **overrides})
+    mapper = Mapper(cfg)
+    mapper.model.set_map(arrays.to_gaussian_map(cfg.device))
+    mapper._reset_densify_stats()
+    kfs = [keyframe_from_frame(k.to_frame(i), mapper.device) for i, k in enumerate(keyframes)]
+    rng = np.random.default_rng(seed)
+    every = max(1, iters // 20)
+    for it in range(iters):
+        kf = kfs[int(rng.integers(len(kfs)))]
+        loss = mapper._iterate(kf, active_phase=False)
+        if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0 and it + 1 < iters:
+            mapper._densify_and_prune()
+        if progress is not None and ((it + 1) % every == 0 or it + 1 == iters):
+            progress((it + 1) / iters, f"refine {it + 1}/{iters} loss {loss:.4f} gaussians {len(mapper.model)}")
+    return GaussianArrays.from_any(mapper.gmap)

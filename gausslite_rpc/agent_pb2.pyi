@@ -1,0 +1,174 @@
+from gausslite_rpc import common_pb2 as _common_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class MissionState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    MISSION_STATE_UNSPECIFIED: _ClassVar[MissionState]
+    MISSION_STATE_MAPPING: _ClassVar[MissionState]
+    MISSION_STATE_REPLAY_DONE: _ClassVar[MissionState]
+    MISSION_STATE_FINISHING: _ClassVar[MissionState]
+    MISSION_STATE_FINISHED: _ClassVar[MissionState]
+    MISSION_STATE_FAILED: _ClassVar[MissionState]
+MISSION_STATE_UNSPECIFIED: MissionState
+MISSION_STATE_MAPPING: MissionState
+MISSION_STATE_REPLAY_DONE: MissionState
+MISSION_STATE_FINISHING: MissionState
+MISSION_STATE_FINISHED: MissionState
+MISSION_STATE_FAILED: MissionState
+
+class CameraIntrinsics(_message.Message):
+    __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
+    FX_FIELD_NUMBER: _ClassVar[int]
+    FY_FIELD_NUMBER: _ClassVar[int]
+    CX_FIELD_NUMBER: _ClassVar[int]
+    CY_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+
+class StartMissionRequest(_message.Message):
+    __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id")
+    TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
+    TASK_ID_FIELD_NUMBER: _ClassVar[int]
+    DATASET_PATH_FIELD_NUMBER: _ClassVar[int]
+    ANNOTATIONS_PATH_FIELD_NUMBER: _ClassVar[int]
+    FUSION_ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    task_text: str
+    task_id: str
+    dataset_path: str
+    annotations_path: str
+    fusion_address: str
+    agent_id: str
+    def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ...) -> None: ...
+
+class StartMissionResponse(_message.Message):
+    __slots__ = ("mission_id", "graph", "agent_id", "replay_frames")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    GRAPH_FIELD_NUMBER: _ClassVar[int]
+    AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    REPLAY_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    graph: _common_pb2.TaskGraph
+    agent_id: str
+    replay_frames: int
+    def __init__(self, mission_id: _Optional[str] = ..., graph: _Optional[_Union[_common_pb2.TaskGraph, _Mapping]] = ..., agent_id: _Optional[str] = ..., replay_frames: _Optional[int] = ...) -> None: ...
+
+class FrameMsg(_message.Message):
+    __slots__ = ("mission_id", "frame_id", "timestamp", "color", "depth", "depth_scale", "c2w", "intrinsics")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
+    COLOR_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_SCALE_FIELD_NUMBER: _ClassVar[int]
+    C2W_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    frame_id: int
+    timestamp: float
+    color: bytes
+    depth: bytes
+    depth_scale: float
+    c2w: _containers.RepeatedScalarFieldContainer[float]
+    intrinsics: CameraIntrinsics
+    def __init__(self, mission_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., timestamp: _Optional[float] = ..., color: _Optional[bytes] = ..., depth: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., c2w: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ...) -> None: ...
+
+class StreamFramesResponse(_message.Message):
+    __slots__ = ("mission_id", "frames_received", "frames_mapped")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_RECEIVED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_MAPPED_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    frames_received: int
+    frames_mapped: int
+    def __init__(self, mission_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ...) -> None: ...
+
+class MissionRequest(_message.Message):
+    __slots__ = ("mission_id",)
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    def __init__(self, mission_id: _Optional[str] = ...) -> None: ...
+
+class FinishRequest(_message.Message):
+    __slots__ = ("mission_id", "skip_push", "skip_eval")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    SKIP_PUSH_FIELD_NUMBER: _ClassVar[int]
+    SKIP_EVAL_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    skip_push: bool
+    skip_eval: bool
+    def __init__(self, mission_id: _Optional[str] = ..., skip_push: _Optional[bool] = ..., skip_eval: _Optional[bool] = ...) -> None: ...
+
+class MissionStatus(_message.Message):
+    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
+    TASK_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_RECEIVED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_MAPPED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_QUEUED_FIELD_NUMBER: _ClassVar[int]
+    N_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    N_ACTIVE_FIELD_NUMBER: _ClassVar[int]
+    PUSHES_FIELD_NUMBER: _ClassVar[int]
+    PUSH_FAILURES_FIELD_NUMBER: _ClassVar[int]
+    LAST_PUSHED_VERSION_FIELD_NUMBER: _ClassVar[int]
+    LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_MAPPING_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_UPLOADED_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    agent_id: str
+    state: MissionState
+    task_text: str
+    task_id: str
+    frames_received: int
+    frames_mapped: int
+    frames_queued: int
+    n_gaussians: int
+    n_active: int
+    pushes: int
+    push_failures: int
+    last_pushed_version: int
+    last_error: str
+    seconds_mapping: float
+    keyframes_uploaded: int
+    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ...) -> None: ...
+
+class MissionSummary(_message.Message):
+    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame")
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    FINAL_PUSH_OK_FIELD_NUMBER: _ClassVar[int]
+    N_SHARED_FIELD_NUMBER: _ClassVar[int]
+    SHARE_PCT_FIELD_NUMBER: _ClassVar[int]
+    BYTES_ON_WIRE_FIELD_NUMBER: _ClassVar[int]
+    BYTES_PER_GAUSSIAN_FIELD_NUMBER: _ClassVar[int]
+    HAS_ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
+    ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
+    PSNR_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_PER_FRAME_FIELD_NUMBER: _ClassVar[int]
+    status: MissionStatus
+    final_push_ok: bool
+    n_shared: int
+    share_pct: float
+    bytes_on_wire: int
+    bytes_per_gaussian: float
+    has_roi_psnr: bool
+    roi_psnr: float
+    psnr: float
+    seconds_per_frame: float
+    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ...) -> None: ...

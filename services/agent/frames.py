@@ -1,0 +1,130 @@
+"""``FrameMsg`` ⇄ :class:`gausslite.datasets.Frame` (SPEC §8: clear INVALID_ARGUMENT for bad input).
+
+Wire form of one posed RGB-D frame: colour as JPEG or PNG (8-bit RGB), depth as a single-channel
+16-bit PNG with ``depth_scale`` metres per unit, ``c2w`` as 16 row-major doubles, pinhole intrinsics.
+:func:`decode_frame` validates everything and raises :class:`FrameError` (a ``ValueError``) with a
+message naming the problem; the server maps it to ``INVALID_ARGUMENT``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from gausslite.camera import Intrinsics, check_rigid
+from gausslite.datasets.base import Frame
+from gausslite_rpc import agent_pb2
+
+#: Largest accepted image side (pixels).
+MAX_SIDE = 8192
+#: Largest depth of a valid pixel after scaling (metres); larger values are rejected as a bad scale.
+MAX_DEPTH_M = 1000.0
+
+
+class FrameError(ValueError):
+    """A malformed ``FrameMsg`` (undecodable image, wrong shape, NaN pose, bad intrinsics...)."""
+
+
+def intrinsics_to_proto(intr: Intrinsics) -> agent_pb2.CameraIntrinsics:
+    """Library intrinsics → wire message."""
+    return agent_pb2.CameraIntrinsics(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
+                                      width=int(intr.width), height=int(intr.height))
+
+
+def intrinsics_from_proto(m: agent_pb2.CameraIntrinsics) -> Intrinsics:
+    """Wire message → library intrinsics.
+
+    Raises:
+        FrameError: non-finite or non-positive focal lengths, a size of 0 or above :data:`MAX_SIDE`.
+    """
+    if not (0 < m.width <= MAX_SIDE and 0 < m.height <= MAX_SIDE):
+        raise FrameError(f"intrinsics: image size {m.width}x{m.height} outside 1..{MAX_SIDE}")
+    vals = [m.fx, m.fy, m.cx, m.cy]
+    if not all(math.isfinite(v) for v in vals) or m.fx <= 0 or m.fy <= 0:
+        raise FrameError(f"intrinsics: fx, fy must be finite and > 0, cx, cy finite (got {vals})")
+    return Intrinsics(m.fx, m.fy, m.cx, m.cy, int(m.width), int(m.height))
+
+
+def encode_frame(frame: Frame, mission_id: str = "", color_format: str = ".png", jpeg_quality: int = 95,
+                 depth_scale: float = 1.0 / 6553.5) -> agent_pb2.FrameMsg:
+    """Encode a frame for ``StreamFrames``.
+
+    Args:
+        frame: the frame (rgb uint8 (H,W,3), depth float32 metres).
+        mission_id: the mission it belongs to.
+        color_format: ``.png`` (lossless) or ``.jpg``.
+        depth_scale: metres per 16-bit unit (default 1/6553.5: 0.15 mm steps, up to 10 m).
+    Raises:
+        ValueError: depth beyond the 16-bit range for ``depth_scale``; encoding failure.
+    """
+    bgr = cv2.cvtColor(np.ascontiguousarray(frame.rgb), cv2.COLOR_RGB2BGR)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if color_format in (".jpg", ".jpeg") else []
+    ok, col = cv2.imencode(color_format, bgr, params)
+    d = np.asarray(frame.depth, dtype=np.float64) / depth_scale
+    if np.nanmax(d, initial=0.0) > 65535.5:
+        raise ValueError(f"depth up to {np.nanmax(frame.depth):.2f} m does not fit 16 bits at scale {depth_scale}")
+    ok2, dep = cv2.imencode(".png", np.nan_to_num(d).round().clip(0, 65535).astype(np.uint16))
+    if not (ok and ok2):
+        raise ValueError("image encoding failed")
+    return agent_pb2.FrameMsg(
+        mission_id=mission_id, frame_id=int(frame.frame_id), timestamp=float(frame.timestamp),
+        color=col.tobytes(), depth=dep.tobytes(), depth_scale=float(depth_scale),
+        c2w=[float(v) for v in np.asarray(frame.c2w, dtype=np.float64).reshape(-1)],
+        intrinsics=intrinsics_to_proto(frame.intrinsics))
+
+
+def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
+    """Validate and decode one ``FrameMsg``.
+
+    Returns:
+        Frame with rgb (H,W,3) uint8, depth (H,W) float32 metres, c2w (4,4) float64.
+    Raises:
+        FrameError: missing/undecodable colour or depth, shapes that disagree with the intrinsics or each
+            other, a depth PNG that is not 16-bit single-channel, a non-positive/non-finite depth scale,
+            a pose that is not 16 finite numbers forming a rigid transform.
+    """
+    fid = int(msg.frame_id)
+    if not msg.HasField("intrinsics"):
+        raise FrameError(f"frame {fid}: intrinsics missing")
+    intr = intrinsics_from_proto(msg.intrinsics)
+    W, H = intr.width, intr.height
+    if len(msg.c2w) != 16:
+        raise FrameError(f"frame {fid}: c2w must have 16 numbers (row-major 4x4), got {len(msg.c2w)}")
+    c2w = np.asarray(msg.c2w, dtype=np.float64).reshape(4, 4)
+    if not np.all(np.isfinite(c2w)):
+        raise FrameError(f"frame {fid}: c2w has NaN or infinite entries")
+    try:
+        c2w = check_rigid(c2w, atol=1e-3, what=f"frame {fid} c2w")
+    except ValueError as e:
+        raise FrameError(str(e)) from None
+    if not (math.isfinite(msg.depth_scale) and msg.depth_scale > 0):
+        raise FrameError(f"frame {fid}: depth_scale must be finite and > 0 (metres per unit), got {msg.depth_scale}")
+    if not msg.color:
+        raise FrameError(f"frame {fid}: colour image missing")
+    if not msg.depth:
+        raise FrameError(f"frame {fid}: depth image missing")
+    bgr = cv2.imdecode(np.frombuffer(msg.color, np.uint8), cv2.IMREAD_UNCHANGED)
+    if bgr is None:
+        raise FrameError(f"frame {fid}: colour bytes are not a decodable JPEG/PNG image")
+    if bgr.dtype != np.uint8 or bgr.ndim != 3 or bgr.shape[2] not in (3, 4):
+        raise FrameError(f"frame {fid}: colour must be 8-bit RGB, got dtype {bgr.dtype} shape {bgr.shape}")
+    if bgr.shape[:2] != (H, W):
+        raise FrameError(f"frame {fid}: colour is {bgr.shape[1]}x{bgr.shape[0]}, intrinsics say {W}x{H}")
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGRA2RGB if bgr.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    draw = cv2.imdecode(np.frombuffer(msg.depth, np.uint8), cv2.IMREAD_UNCHANGED)
+    if draw is None:
+        raise FrameError(f"frame {fid}: depth bytes are not a decodable PNG image")
+    if draw.dtype != np.uint16 or draw.ndim != 2:
+        raise FrameError(f"frame {fid}: depth must be a single-channel 16-bit PNG, got dtype {draw.dtype} "
+                         f"shape {draw.shape}")
+    if draw.shape != (H, W):
+        raise FrameError(f"frame {fid}: depth is {draw.shape[1]}x{draw.shape[0]}, colour/intrinsics are {W}x{H}")
+    depth = (draw.astype(np.float64) * msg.depth_scale).astype(np.float32)
+    if float(depth.max(initial=0.0)) > MAX_DEPTH_M:
+        raise FrameError(f"frame {fid}: depth up to {depth.max():.1f} m: wrong depth_scale?")
+    if not np.any(depth > 0):
+        raise FrameError(f"frame {fid}: depth has no valid (non-zero) pixel")
+    return Frame(frame_id=fid, timestamp=float(msg.timestamp), rgb=np.ascontiguousarray(rgb), depth=depth,
+                 c2w=c2w, intrinsics=intr, name=f"frame{fid:06d}")

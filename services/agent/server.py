@@ -1,0 +1,417 @@
+"""Agent service: a thin gRPC server over :class:`services.agent.runtime.AgentRuntime` (SPEC §1, §7, §8;
+paper Sec. III-E).
+
+``gausslite.v1.Agent``:
+
+* ``StartMission`` — parses the task with the parser service (``parser_address``; empty → the
+  in-process rule parser), opens a mission, and either replays ``dataset_path`` or waits for frames.
+* ``StreamFrames`` — a client stream of posed RGB-D frames (:mod:`services.agent.frames` validates
+  each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses).
+* ``GetStatus`` / ``Finish`` — progress; final push + summary (ROI PSNR on its own task when the scene
+  has annotations).
+
+Status codes: INVALID_ARGUMENT (bad input), NOT_FOUND (unknown mission), FAILED_PRECONDITION (mission
+finished/replaying, no relevance source), UNAVAILABLE (parser unreachable), DEADLINE_EXCEEDED (Finish
+did not complete within the client's deadline). Health, reflection, bounded message sizes, bearer
+token and TLS come from :mod:`services.common.server`; on shutdown the health service goes
+NOT_SERVING, in-flight calls get the grace period and running missions are closed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import grpc
+
+from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
+from services.agent.frames import FrameError, decode_frame
+from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = "gausslite.v1.Agent"
+#: Frames of up to ~4K RGB-D (PNG colour + 16-bit depth) fit; larger ones → RESOURCE_EXHAUSTED.
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+MAX_TASK_BYTES = 2048
+
+_STATES = {
+    "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
+    "REPLAY_DONE": agent_pb2.MISSION_STATE_REPLAY_DONE,
+    "FINISHING": agent_pb2.MISSION_STATE_FINISHING,
+    "FINISHED": agent_pb2.MISSION_STATE_FINISHED,
+    "FAILED": agent_pb2.MISSION_STATE_FAILED,
+}
+
+
+@dataclass
+class AgentSettings:
+    """Settings of one agent process.
+
+    Attributes:
+        agent_id (str): id on the fusion server.
+        parser_address (str): parser service ``host:port``; empty → in-process rule parser.
+        fusion_address (str): fusion server ``host:port``; empty → no pushes (local mapping only).
+        token (str | None): bearer token sent to the parser and fusion services.
+        root_cert (str | None): PEM file of the CA for TLS to parser/fusion (None: plaintext).
+        data_dir (str | None): where finished missions write ``<agent_id>/<mission>/map.ply`` and
+            ``summary.json``.
+        dataset (str | None), task (str | None), task_id (str | None): auto-start a replay mission at boot.
+        annotations_path (str | None): default scene folder with ``objects.json``/``tasks.json`` for
+            streamed missions.
+        auto_finish (bool): finish an auto-started replay mission (final push) when it is mapped.
+        parser_timeout_s (float): deadline of the Parse call (waits for the parser to become ready).
+        config (AgentConfig): mission/mapper settings.
+    """
+
+    agent_id: str = "agent"
+    parser_address: str = ""
+    fusion_address: str = ""
+    token: Optional[str] = None
+    root_cert: Optional[str] = None
+    data_dir: Optional[str] = None
+    dataset: Optional[str] = None
+    task: Optional[str] = None
+    task_id: Optional[str] = None
+    annotations_path: Optional[str] = None
+    auto_finish: bool = True
+    parser_timeout_s: float = 30.0
+    config: AgentConfig = field(default_factory=lambda: AgentConfig())
+
+
+def _channel(address: str, root_cert: Optional[str]) -> grpc.Channel:
+    opts = [("grpc.max_receive_message_length", 4 * 1024 * 1024)]
+    if root_cert:
+        return grpc.secure_channel(address, grpc.ssl_channel_credentials(Path(root_cert).read_bytes()), opts)
+    return grpc.insecure_channel(address, opts)
+
+
+def parse_task_remote(address: str, text: str, token: Optional[str] = None, root_cert: Optional[str] = None,
+                      timeout_s: float = 30.0):
+    """Parse ``text`` with the parser service at ``address`` (waits for it to be ready up to the deadline).
+
+    Returns:
+        gausslite_rpc.common_pb2.TaskGraph.
+    Raises:
+        grpc.RpcError: the parser's error (INVALID_ARGUMENT, UNAVAILABLE, DEADLINE_EXCEEDED...).
+    """
+    md = (("authorization", f"Bearer {token}"),) if token else None
+    with _channel(address, root_cert) as ch:
+        return parser_pb2_grpc.ParserStub(ch).Parse(parser_pb2.ParseRequest(task_text=text), timeout=timeout_s,
+                                                    metadata=md, wait_for_ready=True)
+
+
+class AgentServicer(agent_pb2_grpc.AgentServicer):
+    """Implements ``gausslite.v1.Agent``; holds the missions of this agent (one runs at a time)."""
+
+    def __init__(self, settings: AgentSettings):
+        """Args: settings (AgentSettings)."""
+        self.settings = settings
+        self.missions: Dict[str, AgentRuntime] = {}
+        self.current: Optional[str] = None
+        self._lock = threading.Lock()
+        self._clients: List[object] = []
+
+    # ------------------------------------------------------------------ helpers
+    def _parse(self, text: str):
+        s = self.settings
+        if s.parser_address:
+            return parse_task_remote(s.parser_address, text, s.token, s.root_cert, s.parser_timeout_s)
+        from gausslite.parser import TaskParser
+
+        return TaskParser().parse(text)
+
+    def _fusion_client(self, address: str):
+        if not address:
+            return None
+        from services.fusion_server.client import FusionClient
+
+        root = Path(self.settings.root_cert).read_bytes() if self.settings.root_cert else None
+        c = FusionClient(address, token=self.settings.token, root_cert=root)
+        self._clients.append(c)
+        return c
+
+    def _save(self, rt: AgentRuntime) -> None:
+        if not self.settings.data_dir:
+            return
+        out = Path(self.settings.data_dir) / rt.agent_id / rt.mission_id
+        out.mkdir(parents=True, exist_ok=True)
+        rt.mapper.gmap.save_ply(out / "map.ply")
+        if rt.summary is not None:
+            (out / "summary.json").write_text(json.dumps(rt.summary.as_dict(), indent=2))
+        log.info("agent %s: mission %s written to %s", rt.agent_id, rt.mission_id, out)
+
+    def _mission(self, mission_id: str, context) -> AgentRuntime:
+        with self._lock:
+            mid = mission_id or self.current
+            rt = self.missions.get(mid) if mid else None
+        if rt is None:
+            context.abort(grpc.StatusCode.NOT_FOUND,
+                          f"unknown mission {mission_id!r}" if mission_id else "no mission has been started")
+        return rt
+
+    def start_mission(self, task_text: str, *, task_id: str = "", dataset_path: str = "",
+                      annotations_path: str = "", fusion_address: str = "", agent_id: str = "",
+                      auto_finish: bool = False) -> AgentRuntime:
+        """Create and start a mission (used by ``StartMission`` and by the boot-time auto start).
+
+        Raises:
+            ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
+            MissionError: another mission is still mapping.
+            FileNotFoundError: dataset/annotations path missing.
+            grpc.RpcError: the parser service failed.
+        """
+        from gausslite.datasets import load_dataset
+        from gausslite.datasets.annotations import load_annotations
+
+        s, cfg = self.settings, self.settings.config
+        if not task_text.strip():
+            raise ValueError("task_text is empty")
+        if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
+            raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
+        with self._lock:
+            cur = self.missions.get(self.current) if self.current else None
+            if cur is not None and cur.state in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+                raise MissionError(f"mission {cur.mission_id} is still {cur.state.lower()}; Finish it first")
+        dataset = None
+        annotations = None
+        if dataset_path:
+            if not Path(dataset_path).exists():
+                raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
+            dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
+                                   stride=cfg.stride)
+            annotations = dataset.annotations
+        ann_path = annotations_path or (s.annotations_path if not dataset_path else "")
+        if ann_path:
+            if not Path(ann_path).exists():
+                raise FileNotFoundError(f"annotations_path not found on the agent: {ann_path}")
+            annotations = load_annotations(ann_path)
+        graph = self._parse(task_text)
+        fusion = self._fusion_client(fusion_address or s.fusion_address)
+        rt = AgentRuntime(agent_id or s.agent_id, task_text, graph, cfg, annotations=annotations,
+                          task_id=task_id or None, fusion=fusion, on_finished=self._save)
+        with self._lock:
+            self.missions[rt.mission_id] = rt
+            self.current = rt.mission_id
+        if dataset is not None:
+            rt.replay(dataset)
+            if auto_finish:
+                threading.Thread(target=self._auto_finish, args=(rt,), daemon=True,
+                                 name=f"agent-{rt.agent_id}-autofinish").start()
+        log.info("agent %s: mission %s started (%s): %r → targets %s anchors %s", rt.agent_id, rt.mission_id,
+                 f"replay of {len(dataset)} frames" if dataset is not None else "streaming", task_text,
+                 list(graph.targets), list(graph.anchors))
+        return rt
+
+    def _auto_finish(self, rt: AgentRuntime) -> None:
+        rt.wait_mapped()
+        if rt.state != "FAILED":
+            try:
+                rt.finish()
+            except Exception as e:
+                log.error("agent %s: auto finish failed: %s", rt.agent_id, e)
+
+    # ------------------------------------------------------------------ RPCs
+    def StartMission(self, request, context):  # noqa: N802
+        try:
+            rt = self.start_mission(request.task_text, task_id=request.task_id, dataset_path=request.dataset_path,
+                                    annotations_path=request.annotations_path,
+                                    fusion_address=request.fusion_address, agent_id=request.agent_id)
+        except (FileNotFoundError, KeyError) as e:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0] if isinstance(e, KeyError) else e))
+        except MissionError as e:
+            context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+        except ValueError as e:
+            msg = str(e)
+            code = (grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT)
+            context.abort(code, msg)
+        except grpc.RpcError as e:
+            code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
+            context.abort(code, f"parser service: {e.code().name}: {e.details()}")
+        from services.parser.server import graph_to_proto
+
+        g = rt.graph
+        gp = g if hasattr(g, "SerializeToString") else graph_to_proto(g)
+        return agent_pb2.StartMissionResponse(mission_id=rt.mission_id, graph=gp, agent_id=rt.agent_id,
+                                              replay_frames=rt.replay_frames)
+
+    def StreamFrames(self, request_iterator, context):  # noqa: N802
+        rt: Optional[AgentRuntime] = None
+        n = 0
+        for msg in request_iterator:
+            if rt is None:
+                rt = self._mission(msg.mission_id, context)
+                if rt.replaying or rt.replay_frames:
+                    context.abort(grpc.StatusCode.FAILED_PRECONDITION,
+                                  f"mission {rt.mission_id} replays a dataset; it takes no streamed frames")
+            elif msg.mission_id and msg.mission_id != rt.mission_id:
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"frame {msg.frame_id}: mission_id {msg.mission_id!r} differs from the stream's "
+                              f"{rt.mission_id!r}")
+            try:
+                frame = decode_frame(msg)
+            except FrameError as e:
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+            try:
+                while True:
+                    try:
+                        rt.submit(frame, timeout=1.0)
+                        break
+                    except Exception as e:  # queue.Full: re-check that the client is still there
+                        if isinstance(e, MissionError):
+                            raise
+                        if not context.is_active():
+                            return agent_pb2.StreamFramesResponse()
+            except MissionError as e:
+                code = (grpc.StatusCode.INVALID_ARGUMENT if "image size" in str(e)
+                        else grpc.StatusCode.FAILED_PRECONDITION)
+                context.abort(code, str(e))
+            n += 1
+        if rt is None:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "empty frame stream")
+        st = rt.status()
+        return agent_pb2.StreamFramesResponse(mission_id=rt.mission_id, frames_received=n,
+                                              frames_mapped=st["frames_mapped"])
+
+    @staticmethod
+    def _status_proto(st: dict) -> agent_pb2.MissionStatus:
+        d = dict(st)
+        d["state"] = _STATES.get(d["state"], agent_pb2.MISSION_STATE_UNSPECIFIED)
+        return agent_pb2.MissionStatus(**d)
+
+    def GetStatus(self, request, context):  # noqa: N802
+        return self._status_proto(self._mission(request.mission_id, context).status())
+
+    def Finish(self, request, context):  # noqa: N802
+        rt = self._mission(request.mission_id, context)
+        remaining = context.time_remaining()
+        try:
+            s = rt.finish(push=not request.skip_push, evaluate=not request.skip_eval,
+                          timeout_s=None if remaining is None else max(0.1, remaining - 0.5))
+        except TimeoutError as e:
+            context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, f"{e}; call Finish again to keep waiting")
+        return agent_pb2.MissionSummary(
+            status=self._status_proto(s.status), final_push_ok=s.final_push_ok, n_shared=s.n_shared,
+            share_pct=s.share_pct, bytes_on_wire=s.bytes_on_wire, bytes_per_gaussian=s.bytes_per_gaussian,
+            has_roi_psnr=s.roi_psnr is not None, roi_psnr=s.roi_psnr or 0.0, psnr=s.psnr or 0.0,
+            seconds_per_frame=s.seconds_per_frame)
+
+    def close(self) -> None:
+        """Close every mission and fusion client (after the server stopped)."""
+        for rt in list(self.missions.values()):
+            rt.close()
+        for c in self._clients:
+            try:
+                c.close()
+            except Exception:
+                pass
+
+
+@dataclass
+class RunningAgent:
+    """A started agent server: ``running`` (RunningServer) and its ``servicer``."""
+
+    running: RunningServer
+    servicer: AgentServicer
+
+    @property
+    def port(self) -> int:
+        return self.running.port
+
+    @property
+    def address(self) -> str:
+        return self.running.address
+
+    def stop(self, grace_s: Optional[float] = None) -> None:
+        """Graceful stop: NOT_SERVING, finish in-flight calls (grace), then close the missions."""
+        self.running.stop(grace_s)
+        self.servicer.close()
+
+
+def serve(options: ServerOptions, settings: Optional[AgentSettings] = None) -> RunningAgent:
+    """Start the agent service (non-blocking); auto-starts a replay mission when ``settings.dataset`` and
+    ``settings.task`` are set.
+
+    Args:
+        options (ServerOptions): bind address/limits/token/TLS (``max_message_bytes`` capped at
+            :data:`MAX_MESSAGE_BYTES`).
+        settings (AgentSettings | None): agent id, parser/fusion addresses, config.
+    Returns:
+        RunningAgent.
+    Raises:
+        RuntimeError: the address cannot be bound. ValueError / FileNotFoundError / grpc.RpcError: the
+            auto-start mission cannot start (the server is stopped again then).
+    """
+    settings = settings or AgentSettings()
+    servicer = AgentServicer(settings)
+    opts = ServerOptions(**{**options.__dict__, "max_message_bytes": min(max(options.max_message_bytes, 16 << 20),
+                                                                         MAX_MESSAGE_BYTES)})
+    running = build_server(opts, lambda srv: agent_pb2_grpc.add_AgentServicer_to_server(servicer, srv),
+                           [SERVICE_NAME])
+    agent = RunningAgent(running, servicer)
+    if settings.dataset and settings.task:
+        try:
+            servicer.start_mission(settings.task, task_id=settings.task_id or "", dataset_path=settings.dataset,
+                                   auto_finish=settings.auto_finish)
+        except BaseException:
+            agent.stop(0)
+            raise
+    return agent
+
+
+ENV = {
+    "agent_id": "GAUSSLITE_AGENT_ID",
+    "parser_address": "GAUSSLITE_PARSER_ADDR",
+    "fusion_address": "GAUSSLITE_FUSION_ADDR",
+    "data_dir": "GAUSSLITE_DATA_DIR",
+    "dataset": "GAUSSLITE_AGENT_DATASET",
+    "task": "GAUSSLITE_AGENT_TASK",
+    "task_id": "GAUSSLITE_AGENT_TASK_ID",
+    "annotations_path": "GAUSSLITE_AGENT_ANNOTATIONS",
+    "root_cert": "GAUSSLITE_TLS_CA",
+}
+
+
+def settings_from_env(config_path: Optional[str], env=None, token: Optional[str] = None) -> AgentSettings:
+    """Agent settings from environment variables (:data:`ENV`; ``GAUSSLITE_AGENT_SET`` holds
+    ``;``-separated ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto
+    finish) and the YAML config file (``agent``/``mapper`` sections).
+
+    Raises:
+        FileNotFoundError / ValueError / pydantic.ValidationError: bad config.
+    """
+    env = os.environ if env is None else env
+    overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
+    kw = {k: env.get(v) or None for k, v in ENV.items()}
+    kw = {k: v for k, v in kw.items() if v is not None}
+    return AgentSettings(**kw, token=token, config=load_agent_config(config_path, overrides),
+                         auto_finish=(env.get("GAUSSLITE_AGENT_AUTO_FINISH", "1").lower() not in ("0", "false", "no")))
+
+
+def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
+    """Serve until SIGTERM/SIGINT (used by ``gausslite serve agent``). Returns the exit code.
+
+    Agent-specific settings come from the environment (:func:`settings_from_env`; the ``serve agent``
+    flags ``--agent-id --parser --fusion --dataset --task --task-id --data-dir`` set those variables).
+    """
+    from pydantic import ValidationError
+
+    try:
+        settings = settings_from_env(config_path, token=options.token)
+    except ValidationError as e:
+        raise ValueError(f"agent config: {e}") from None
+    try:
+        agent = serve(options, settings)
+    except grpc.RpcError as e:
+        raise RuntimeError(f"cannot start the mission: parser service {e.code().name}: {e.details()}") from None
+    print(f"agent {settings.agent_id} listening on {options.host}:{agent.port}", flush=True)
+    try:
+        return run_until_signalled(agent.running)
+    finally:
+        agent.servicer.close()

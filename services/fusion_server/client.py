@@ -1,0 +1,474 @@
+"""Robot-side client of the GaussLite fusion server (``gausslite.v1.Fusion``).
+
+Source: paper Sec. III-E ("Multi-Agent Refinement": agents share their ROI subset with κ and their
+keyframes), SPEC §7 (fusion) and §8 (wire format: chunked, resumable, idempotent upload by
+(agent id, map version, chunk index); deadlines on every client call; TLS and bearer token).
+
+Usage::
+
+    from services.fusion_server.client import FusionClient
+
+    with FusionClient("127.0.0.1:50053", token="secret") as fc:
+        fc.wait_ready()
+        fc.open_session("robot-1", "find the red cup on the desk", intrinsics)
+        res = fc.upload_subset("robot-1", map_version=3, gaussians=roi_subset,
+                               full_map_gaussians=len(full_map))
+        fc.upload_keyframes("robot-1", keyframes)
+        fused = fc.fuse("vote", refine=True, refine_iters=100, progress=lambda f, m: print(f, m))
+        arrays = fc.download_fused(fused.fused_version)
+
+Error handling: every call carries a deadline (``timeout_s`` unless stated otherwise). Idempotent
+calls (everything except :meth:`FusionClient.fuse`) are retried on ``UNAVAILABLE`` and
+``DEADLINE_EXCEEDED`` with exponential backoff (``backoff_s · 2^attempt``, at most ``max_retries``
+retries); :meth:`FusionClient.upload_subset` re-reads the server's upload state
+(``GetUploadStatus``) before every attempt and only sends the missing chunks. Every other failure
+surfaces as :class:`grpc.RpcError` with the server's status code (see ``proto/gausslite_rpc/fusion.proto``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterator, List, Optional, Sequence
+
+import cv2
+import grpc
+import numpy as np
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset
+from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = "gausslite.v1.Fusion"
+#: Transient status codes retried by idempotent calls.
+RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
+#: Client-side message bound (the server enforces its own, smaller one).
+CLIENT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+#: Upper bound on the chunk bytes sent in one ``UploadSubset`` call (one ack per call).
+UPLOAD_BATCH_BYTES = 8 * 1024 * 1024
+#: Keyframes sent per ``UploadKeyframes`` call.
+KEYFRAME_BATCH = 8
+#: Depth scale used for 16-bit PNG depth (metres = value / scale): 0.2 mm steps up to 13.1 m.
+DEFAULT_DEPTH_SCALE = 5000.0
+
+_METHODS = {"vote": fusion_pb2.FUSE_METHOD_VOTE, "concat": fusion_pb2.FUSE_METHOD_CONCAT}
+_METHOD_NAMES = {v: k for k, v in _METHODS.items()}
+_METHOD_NAMES[fusion_pb2.FUSE_METHOD_UNSPECIFIED] = "vote"
+
+
+@dataclass(frozen=True)
+class UploadResult:
+    """Outcome of :meth:`FusionClient.upload_subset`.
+
+    Attributes:
+        complete (bool): the server holds every chunk of this (agent, map version).
+        n_chunks (int): chunks of the subset.
+        bytes_on_wire (int): sum of the chunk sizes (bytes), i.e. the subset's wire size.
+        n_gaussians (int): Gaussians in the subset.
+        chunks_sent (int): chunks actually transmitted (0 when the server already had them all).
+        attempts (int): ``UploadSubset`` calls made.
+    """
+
+    complete: bool
+    n_chunks: int
+    bytes_on_wire: int
+    n_gaussians: int
+    chunks_sent: int = 0
+    attempts: int = 0
+
+
+@dataclass(frozen=True)
+class FuseResult:
+    """Outcome of :meth:`FusionClient.fuse` (the last ``FuseProgress`` message).
+
+    Attributes:
+        fused_version (int): the new fused map's version (download it with this number).
+        n_gaussians (int): Gaussians in the fused map.
+        seconds (float): server wall time of the fusion work.
+        kept (dict[str, int]): agent id → Gaussians kept by the vote/concat (before refinement).
+        received (dict[str, int]): agent id → Gaussians in the subset that was fused.
+        map_versions (dict[str, int]): agent id → map version that was fused.
+        method (str): "vote" or "concat". refined (bool), refine_iters (int), voxel_size (float, m),
+        keyframes_used (int), bytes (int): size of the stored fused map.
+    """
+
+    fused_version: int
+    n_gaussians: int
+    seconds: float
+    kept: Dict[str, int]
+    received: Dict[str, int] = field(default_factory=dict)
+    map_versions: Dict[str, int] = field(default_factory=dict)
+    method: str = "vote"
+    refined: bool = False
+    refine_iters: int = 0
+    voxel_size: float = 0.10
+    keyframes_used: int = 0
+    bytes: int = 0
+
+
+def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
+    """Convert the wire ``FuseResult`` to :class:`FuseResult`."""
+    return FuseResult(
+        fused_version=int(r.fused_version), n_gaussians=int(r.n_gaussians), seconds=float(r.seconds),
+        kept={a.agent_id: int(a.kept) for a in r.agents},
+        received={a.agent_id: int(a.received) for a in r.agents},
+        map_versions={a.agent_id: int(a.map_version) for a in r.agents},
+        method=_METHOD_NAMES.get(r.method, "vote"), refined=bool(r.refined),
+        refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
+        keyframes_used=int(r.keyframes_used), bytes=int(r.bytes),
+    )
+
+
+def intrinsics_to_proto(intr) -> common_pb2.Intrinsics:
+    """``gausslite.camera.Intrinsics`` (or any object with fx, fy, cx, cy, width, height) → proto."""
+    return common_pb2.Intrinsics(fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx), cy=float(intr.cy),
+                                 width=int(intr.width), height=int(intr.height))
+
+
+def encode_depth_png(depth: np.ndarray) -> tuple[bytes, float]:
+    """Encode metric depth as a 16-bit PNG.
+
+    Args:
+        depth: (H, W) float depth in metres, 0 / non-finite = invalid.
+    Returns:
+        (png bytes, depth_scale) with metres = value / depth_scale. The scale is
+        :data:`DEFAULT_DEPTH_SCALE` unless the largest depth needs a coarser one (then
+        65535 / max depth).
+    Raises:
+        ValueError: not a 2-D array, or PNG encoding failed.
+    """
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {d.shape}")
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    dmax = float(d.max()) if d.size else 0.0
+    scale = DEFAULT_DEPTH_SCALE if dmax * DEFAULT_DEPTH_SCALE <= 65535 else 65535.0 / dmax
+    q = np.clip(np.round(d * scale), 0, 65535).astype(np.uint16)
+    ok, buf = cv2.imencode(".png", q)
+    if not ok:
+        raise ValueError("PNG encoding of depth failed")
+    return buf.tobytes(), float(scale)
+
+
+def encode_color_jpeg(rgb: np.ndarray, quality: int = 95) -> bytes:
+    """Encode an (H, W, 3) uint8 RGB image as JPEG. Raises ValueError on bad input."""
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got {a.shape}")
+    if a.dtype != np.uint8:
+        a = np.clip(a * (255.0 if a.dtype.kind == "f" else 1.0), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(a, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95) -> fusion_pb2.KeyframeRequest:
+    """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG colour, 16-bit PNG depth)."""
+    png, scale = encode_depth_png(frame.depth)
+    c2w = np.asarray(frame.c2w, dtype=np.float64).reshape(-1)
+    return fusion_pb2.KeyframeRequest(
+        agent_id=agent_id, frame_id=int(frame.frame_id), color=encode_color_jpeg(frame.rgb, jpeg_quality),
+        depth_png=png, depth_scale=scale, pose=common_pb2.Pose(c2w=[float(v) for v in c2w]),
+        intrinsics=intrinsics_to_proto(frame.intrinsics), timestamp=float(getattr(frame, "timestamp", 0.0)),
+    )
+
+
+class FusionClient:
+    """Synchronous client of ``gausslite.v1.Fusion`` (thread-safe: one channel, stateless calls).
+
+    Args:
+        target (str): ``host:port`` of the fusion server.
+        token (str | None): bearer token sent as ``authorization: Bearer <token>`` on every call.
+        root_cert (bytes | None): PEM root certificate(s); set → TLS channel, else plaintext.
+        timeout_s (float): deadline of each call (seconds); :meth:`fuse` uses its own, longer one.
+        max_retries (int): retries of transient failures (UNAVAILABLE, DEADLINE_EXCEEDED).
+        backoff_s (float): first retry delay; doubles every retry.
+    Raises:
+        ValueError: non-positive timeout or negative retries/backoff.
+    """
+
+    def __init__(self, target: str, *, token: Optional[str] = None, root_cert: Optional[bytes] = None,
+                 timeout_s: float = 30.0, max_retries: int = 5, backoff_s: float = 0.2):
+        if not timeout_s > 0 or max_retries < 0 or backoff_s < 0:
+            raise ValueError("timeout_s must be > 0, max_retries and backoff_s >= 0")
+        self.target = target
+        self.timeout_s = float(timeout_s)
+        self.max_retries = int(max_retries)
+        self.backoff_s = float(backoff_s)
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else None
+        opts = [("grpc.max_receive_message_length", CLIENT_MAX_MESSAGE_BYTES),
+                ("grpc.max_send_message_length", CLIENT_MAX_MESSAGE_BYTES)]
+        if root_cert is not None:
+            self._channel = grpc.secure_channel(target, grpc.ssl_channel_credentials(root_certificates=root_cert), opts)
+        else:
+            self._channel = grpc.insecure_channel(target, opts)
+        self._stub = fusion_pb2_grpc.FusionStub(self._channel)
+        self._health = health_pb2_grpc.HealthStub(self._channel)
+
+    # ------------------------------------------------------------------ plumbing
+    def _retry(self, what: str, fn: Callable[[], object]):
+        """Call ``fn`` retrying RETRYABLE failures with exponential backoff."""
+        attempt = 0
+        while True:
+            try:
+                return fn()
+            except grpc.RpcError as e:
+                code = e.code() if hasattr(e, "code") else None
+                if code not in RETRYABLE or attempt >= self.max_retries:
+                    raise
+                delay = self.backoff_s * (2 ** attempt)
+                log.info("%s: %s (%s), retry %d/%d in %.2fs", what, code, e.details() if hasattr(e, "details") else "",
+                         attempt + 1, self.max_retries, delay)
+                time.sleep(delay)
+                attempt += 1
+
+    def _unary(self, method, request, what: str, timeout_s: Optional[float] = None):
+        t = self.timeout_s if timeout_s is None else timeout_s
+        return self._retry(what, lambda: method(request, timeout=t, metadata=self._metadata))
+
+    # ------------------------------------------------------------------ API
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        """Poll the standard health service until ``gausslite.v1.Fusion`` is SERVING.
+
+        Raises:
+            TimeoutError: not SERVING within ``timeout_s`` seconds (last error in the message).
+        """
+        deadline = time.monotonic() + timeout_s
+        last = "no answer"
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TimeoutError(f"fusion server {self.target} not ready after {timeout_s:.1f}s: {last}")
+            try:
+                r = self._health.Check(health_pb2.HealthCheckRequest(service=SERVICE_NAME),
+                                       timeout=max(0.05, min(2.0, remaining)), metadata=self._metadata)
+                if r.status == health_pb2.HealthCheckResponse.SERVING:
+                    return
+                last = health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)
+            except grpc.RpcError as e:
+                last = f"{e.code()}: {e.details()}"
+            time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
+
+    def open_session(self, agent_id: str, task_text: str, intrinsics) -> None:
+        """Open (or re-open, keeping earlier uploads) the session of ``agent_id``.
+
+        Args:
+            agent_id (str): 1..64 chars of ``[A-Za-z0-9_.-]``.
+            task_text (str): the agent's task.
+            intrinsics (gausslite.camera.Intrinsics): the agent's camera (pixels).
+        Raises:
+            grpc.RpcError: INVALID_ARGUMENT (bad id / intrinsics), UNAUTHENTICATED, ...
+        """
+        req = fusion_pb2.OpenSessionRequest(agent_id=agent_id, task_text=task_text,
+                                            intrinsics=intrinsics_to_proto(intrinsics))
+        self._unary(self._stub.OpenSession, req, "OpenSession")
+
+    def upload_status(self, agent_id: str, map_version: int) -> fusion_pb2.UploadAck:
+        """The server's ``UploadAck`` for (agent, map version) (``n_chunks == 0``: never seen)."""
+        return self._unary(self._stub.GetUploadStatus,
+                           fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
+                           "GetUploadStatus")
+
+    def upload_subset(self, agent_id: str, map_version: int, gaussians, *, full_map_gaussians: int,
+                      quant: Optional[QuantConfig] = None, chunk_gaussians: int = 20000,
+                      full_map_bytes: int = 0) -> UploadResult:
+        """Encode and upload an ROI subset, resuming whatever the server already holds.
+
+        The subset is encoded with :func:`gausslite.wire.codec.encode_subset`; before every attempt
+        the client asks ``GetUploadStatus`` and sends only missing chunks, in calls of at most
+        :data:`UPLOAD_BATCH_BYTES` (each call is acknowledged after its chunks are persisted).
+
+        Args:
+            agent_id (str): the agent (its session must be open).
+            map_version (int): version of the agent's map (newer complete versions supersede older).
+            gaussians: GaussianMap / GaussianArrays / mapping of arrays (the ROI subset, with κ).
+            full_map_gaussians (int): size of the agent's whole map (for the share %).
+            quant (QuantConfig | None): codec quantisation (default ``QuantConfig()``).
+            chunk_gaussians (int): Gaussians per chunk.
+            full_map_bytes (int): optional wire size of the whole map (for statistics).
+        Returns:
+            UploadResult.
+        Raises:
+            ValueError: the subset cannot be encoded (non-finite values, bad id).
+            grpc.RpcError: INVALID_ARGUMENT, NOT_FOUND (no session), FAILED_PRECONDITION (older than
+            the latest complete version), RESOURCE_EXHAUSTED, or a transient error after
+            ``max_retries`` retries.
+        """
+        chunks = encode_subset(gaussians, agent_id, int(map_version), chunk_gaussians=int(chunk_gaussians),
+                               quant=quant or QuantConfig())
+        n = len(GaussianArrays.from_any(gaussians))
+        header = fusion_pb2.UploadHeader(agent_id=agent_id, map_version=int(map_version), n_chunks=len(chunks),
+                                         full_map_gaussians=int(full_map_gaussians), full_map_bytes=int(full_map_bytes))
+        total_bytes = sum(len(c) for c in chunks)
+        sent = 0
+        attempts = 0
+        retry = 0
+        while True:
+            try:
+                status = self._unary(self._stub.GetUploadStatus,
+                                     fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
+                                     "GetUploadStatus")
+                if status.complete:
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                have = set(status.stored) if status.n_chunks == len(chunks) else set()
+                todo = [i for i in range(len(chunks)) if i not in have]
+                # one call per batch; an empty todo list still sends the header (refreshes share stats)
+                batches: List[List[int]] = [[]]
+                size = 0
+                for i in todo:
+                    if batches[-1] and size + len(chunks[i]) > UPLOAD_BATCH_BYTES:
+                        batches.append([])
+                        size = 0
+                    batches[-1].append(i)
+                    size += len(chunks[i])
+                ack = None
+                for batch in batches:
+                    def messages(batch=batch) -> Iterator[fusion_pb2.UploadSubsetRequest]:
+                        yield fusion_pb2.UploadSubsetRequest(header=header)
+                        for i in batch:
+                            yield fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
+                    attempts += 1
+                    ack = self._stub.UploadSubset(messages(), timeout=self.timeout_s, metadata=self._metadata)
+                    sent += len(batch)
+                if ack is not None and ack.complete:
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                if ack is not None and not ack.missing:
+                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts)
+                # missing chunks after a full pass: someone else interfered; loop once more
+                raise _Incomplete(list(ack.missing) if ack is not None else [])
+            except grpc.RpcError as e:
+                if e.code() not in RETRYABLE or retry >= self.max_retries:
+                    raise
+            except _Incomplete as e:
+                if retry >= self.max_retries:
+                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts)
+                log.info("upload %s v%d still misses chunks %s", agent_id, map_version, e.missing[:8])
+            time.sleep(self.backoff_s * (2 ** retry))
+            retry += 1
+
+    def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95) -> int:
+        """Upload keyframes (colour as JPEG, depth as 16-bit PNG, pose, intrinsics).
+
+        Args:
+            agent_id (str): the agent (session must be open).
+            keyframes (list[gausslite.datasets.base.Frame]): posed RGB-D frames; ``frame_id`` is the
+                idempotency key (re-sending a stored frame is a no-op).
+            jpeg_quality (int): 1..100.
+        Returns:
+            int: keyframes the server accepted (newly stored plus ones it already held); equals
+            ``len(keyframes)`` on success. The server keeps at most ``max_keyframes`` per agent
+            (oldest dropped).
+        Raises:
+            ValueError: a frame cannot be encoded.
+            grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session), ...
+        """
+        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality) for f in keyframes]
+        accepted = 0
+        for s in range(0, len(msgs), KEYFRAME_BATCH):
+            batch = msgs[s:s + KEYFRAME_BATCH]
+            ack = self._retry("UploadKeyframes", lambda b=batch: self._stub.UploadKeyframes(
+                iter(b), timeout=self.timeout_s, metadata=self._metadata))
+            accepted += int(ack.stored) + int(ack.duplicates)
+        return accepted
+
+    def fuse(self, method: str = "vote", *, refine: bool = False, refine_iters: int = 200,
+             voxel_size: float = 0.10, progress: Optional[Callable[[float, str], None]] = None,
+             seed: int = 0, timeout_s: Optional[float] = None) -> FuseResult:
+        """Run a fusion on the server and wait for its result (not retried: each call makes a version).
+
+        Args:
+            method (str): "vote" (κ-weighted voxel vote) or "concat" (baseline).
+            refine (bool): joint refinement over the union of the agents' keyframes.
+            refine_iters (int): refinement iterations.
+            voxel_size (float): vote voxel edge δ in metres.
+            progress (callable(fraction: float, message: str) | None): called for every progress
+                message; ``message`` starts with the stage in brackets, e.g. ``"[refine] ..."``.
+            seed (int): refinement RNG seed.
+            timeout_s (float | None): deadline of the whole call (default ``max(600, 20·timeout_s)``).
+        Returns:
+            FuseResult.
+        Raises:
+            ValueError: unknown method.
+            grpc.RpcError: FAILED_PRECONDITION (nothing uploaded / refine without keyframes),
+            INVALID_ARGUMENT, DEADLINE_EXCEEDED, ...; RuntimeError: the stream ended without a result.
+        """
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
+        req = fusion_pb2.FuseRequest(method=_METHODS[method], voxel_size=float(voxel_size), refine=bool(refine),
+                                     refine_iters=int(refine_iters), seed=int(seed))
+        t = timeout_s if timeout_s is not None else max(600.0, 20 * self.timeout_s)
+        stream = self._stub.Fuse(req, timeout=t, metadata=self._metadata)
+        try:
+            for msg in stream:
+                if progress is not None:
+                    progress(float(msg.fraction), f"[{msg.stage}] {msg.message}")
+                if msg.done:
+                    return fuse_result_from_proto(msg.result)
+        finally:
+            stream.cancel()  # no-op when finished; stops server work if the caller bailed out
+        raise RuntimeError("Fuse stream ended without a result")
+
+    def download_fused(self, fused_version: int = 0, method: Optional[str] = None) -> GaussianArrays:
+        """Download a fused map (``fused_version`` 0 = latest, optionally of ``method``).
+
+        Returns:
+            GaussianArrays (lossless copy of the server's fused map).
+        Raises:
+            grpc.RpcError: NOT_FOUND (unknown version / no fused map yet), ...
+            gausslite.wire.codec.WireError: corrupt download.
+        """
+        m = fusion_pb2.FUSE_METHOD_UNSPECIFIED if method is None else _METHODS[method]
+        req = fusion_pb2.DownloadFusedRequest(fused_version=int(fused_version), method=m)
+
+        def call():
+            return [c.chunk for c in self._stub.DownloadFused(req, timeout=self.timeout_s, metadata=self._metadata)]
+
+        arrays, _ = assemble(self._retry("DownloadFused", call))
+        return arrays
+
+    def stats(self) -> dict:
+        """Server statistics.
+
+        Returns:
+            dict: ``{"agents": {agent_id: {task_text, latest_map_version, has_complete_subset,
+            gaussians_received, bytes_on_wire, chunks, full_map_gaussians, full_map_bytes,
+            share_pct, keyframes, bytes_per_gaussian}}, "fused": [{fused_version, n_gaussians,
+            seconds, method, refined, kept: {...}, ...}], "latest_fused_version": int}``.
+        """
+        r = self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(), "GetStats")
+        agents = {}
+        for a in r.agents:
+            agents[a.agent_id] = {
+                "task_text": a.task_text, "latest_map_version": int(a.latest_map_version),
+                "has_complete_subset": bool(a.has_complete_subset), "gaussians_received": int(a.gaussians_received),
+                "bytes_on_wire": int(a.bytes_on_wire), "chunks": int(a.chunks),
+                "full_map_gaussians": int(a.full_map_gaussians), "full_map_bytes": int(a.full_map_bytes),
+                "share_pct": float(a.share_pct), "keyframes": int(a.keyframes),
+                "bytes_per_gaussian": float(a.bytes_per_gaussian),
+            }
+        fused = [fuse_result_from_proto(f).__dict__ for f in r.fused]
+        return {"agents": agents, "fused": fused, "latest_fused_version": int(r.latest_fused_version)}
+
+    def close(self) -> None:
+        """Close the channel (idempotent)."""
+        self._channel.close()
+
+    def __enter__(self) -> "FusionClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _Incomplete(Exception):
+    def __init__(self, missing: List[int]):
+        super().__init__(f"missing chunks {missing[:8]}")
+        self.missing = missing
+
+
+__all__ = ["FusionClient", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
+           "keyframe_to_proto", "intrinsics_to_proto", "fuse_result_from_proto"]

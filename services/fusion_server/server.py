@@ -1,0 +1,693 @@
+"""Fusion server: ``gausslite.v1.Fusion`` over gRPC (paper Sec. III-E, SPEC §1, §7, §8).
+
+Robots open a session, upload their ROI-Gaussian subsets (wire-codec chunks with κ, resumable and
+idempotent by (agent id, map version, chunk index)) and keyframes; ``Fuse`` voxel-votes (or
+concatenates) the latest complete subset of every agent, optionally refines the result jointly over
+the union of the keyframe buffers (:func:`gausslite.fusion.refine.refine_map`), persists it as a new
+fused version and streams progress; ``DownloadFused`` serves it as wire-codec chunks.
+
+Status codes (see also ``proto/gausslite_rpc/fusion.proto``): INVALID_ARGUMENT for bad input
+(never a crash), NOT_FOUND for an agent without a session (the session is the addressed entity) and
+unknown fused versions, FAILED_PRECONDITION for a Fuse without complete subsets / refine without
+keyframes / an upload older than the agent's latest complete version, RESOURCE_EXHAUSTED for
+oversized messages and subsets beyond the server's limits, UNAUTHENTICATED from the bearer-token
+interceptor. Every rejected call is logged (``rejected <method> from <peer>: <code>: <reason>``).
+
+Persistence: :class:`services.fusion_server.store.FusionStore` (SQLite, WAL, synchronous=FULL)
+under the data directory; everything is committed before it is acknowledged.
+
+Keyframe buffer: at most ``FusionConfig.max_keyframes_per_agent`` per agent; beyond that the oldest
+(by arrival) are dropped (the ack reports how many). Keyframes are idempotent by (agent id,
+frame_id): the first write wins, re-sends are no-ops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import logging
+import math
+import os
+import queue
+import re
+import sys
+import threading
+import time
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Dict, Optional
+
+import cv2
+import grpc
+import numpy as np
+
+from gausslite.camera import Intrinsics, check_rigid
+from gausslite.fusion.vote import concat as concat_maps
+from gausslite.fusion.vote import voxel_vote
+from gausslite.wire.codec import (LOSSLESS, GaussianArrays, LimitExceeded, WireError, WireLimits, assemble,
+                                  decode_chunk, encode_subset, peek_header)
+from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+from services.fusion_server.store import ChunkConflict, FusionStore, Session, StoredKeyframe
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = "gausslite.v1.Fusion"
+DEFAULT_PORT = 50053
+AGENT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+FUSED_AGENT_ID = "fused"
+_METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
+
+
+@dataclass
+class FusionConfig:
+    """Fusion server settings.
+
+    Attributes:
+        data_dir (str): directory of the persistent store.
+        max_keyframes_per_agent (int): keyframe buffer bound per agent (oldest dropped beyond it).
+        max_subset_gaussians (int): largest accepted subset (RESOURCE_EXHAUSTED beyond).
+        max_task_text_bytes (int): longest task text (INVALID_ARGUMENT beyond).
+        default_voxel_size (float): δ in metres when a FuseRequest leaves it 0 (paper: 0.10 m).
+        default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
+        max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
+        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``max_gaussians``).
+    """
+
+    data_dir: str = "gausslite_fusion_data"
+    max_keyframes_per_agent: int = 64
+    max_subset_gaussians: int = 4_000_000
+    max_task_text_bytes: int = 4096
+    default_voxel_size: float = 0.10
+    default_refine_iters: int = 200
+    max_refine_iters: int = 20000
+    refine_options: Dict[str, object] = field(default_factory=dict)
+
+    @classmethod
+    def from_file(cls, path: str) -> "FusionConfig":
+        """Load from a JSON or TOML file whose keys are the attribute names.
+
+        Raises:
+            ValueError: unknown keys or unparsable file. OSError: unreadable file.
+        """
+        text = Path(path).read_text(encoding="utf-8")
+        try:
+            if str(path).endswith(".toml"):
+                import tomllib
+
+                data = tomllib.loads(text)
+            else:
+                data = json.loads(text)
+        except Exception as e:  # noqa: BLE001 - any parser error is a config error
+            raise ValueError(f"cannot parse fusion config {path}: {e}") from e
+        names = {f.name for f in fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ValueError(f"unknown fusion config keys {sorted(unknown)} in {path}")
+        return cls(**data)
+
+
+class _Reject(Exception):
+    """Internal: abort the call with ``code`` and ``message``."""
+
+    def __init__(self, code: grpc.StatusCode, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+class _Cancelled(Exception):
+    """Internal: the Fuse call was cancelled (client cancel, deadline, shutdown)."""
+
+
+def _abort(context, method: str, code: grpc.StatusCode, message: str):
+    log.warning("rejected %s from %s: %s: %s", method, context.peer(), code.name, message)
+    context.abort(code, message)
+
+
+def _unary_guard(fn):
+    """Translate :class:`_Reject` and unexpected errors of a unary-response handler into statuses."""
+
+    @functools.wraps(fn)
+    def wrapper(self, request, context):
+        try:
+            return fn(self, request, context)
+        except _Reject as r:
+            err = r
+        except Exception as e:  # noqa: BLE001 - never crash, report INTERNAL with the cause logged
+            log.exception("%s failed", fn.__name__)
+            err = _Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
+        _abort(context, fn.__name__, err.code, err.message)
+
+    return wrapper
+
+
+def _stream_guard(fn):
+    """Like :func:`_unary_guard` for server-streaming handlers (generators)."""
+
+    @functools.wraps(fn)
+    def wrapper(self, request, context):
+        try:
+            yield from fn(self, request, context)
+            return
+        except _Reject as r:
+            err = r
+        except Exception as e:  # noqa: BLE001
+            log.exception("%s failed", fn.__name__)
+            err = _Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
+        _abort(context, fn.__name__, err.code, err.message)
+
+    return wrapper
+
+
+def check_agent_id(agent_id: str) -> str:
+    """Validate an agent id (1..64 chars of ``[A-Za-z0-9_.-]``). Raises _Reject(INVALID_ARGUMENT)."""
+    if not isinstance(agent_id, str) or not AGENT_ID_RE.match(agent_id):
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                      f"invalid agent_id {agent_id[:80]!r}: need 1..64 characters of [A-Za-z0-9_.-]")
+    return agent_id
+
+
+def _intrinsics(msg, what: str) -> Intrinsics:
+    try:
+        return Intrinsics(float(msg.fx), float(msg.fy), float(msg.cx), float(msg.cy), int(msg.width), int(msg.height))
+    except ValueError as e:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: {e}") from None
+
+
+_JPEG_MAGIC = b"\xff\xd8\xff"
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def decode_color(data: bytes, what: str) -> np.ndarray:
+    """Decode a JPEG/PNG colour image to (H, W, 3) uint8 RGB. Raises _Reject(INVALID_ARGUMENT)."""
+    if not (data.startswith(_JPEG_MAGIC) or data.startswith(_PNG_MAGIC)):
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: colour is neither JPEG nor PNG")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None or img.ndim != 3 or img.shape[2] != 3:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: undecodable colour image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
+    """Decode a 16-bit PNG depth image to (H, W) float32 metres. Raises _Reject(INVALID_ARGUMENT)."""
+    if not data.startswith(_PNG_MAGIC):
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth is not a PNG")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 2 or img.dtype != np.uint16:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth must be a single-channel 16-bit PNG")
+    return (img.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+class FusionServicer(fusion_pb2_grpc.FusionServicer):
+    """Implements ``gausslite.v1.Fusion`` on top of a :class:`FusionStore`.
+
+    Args:
+        store (FusionStore): persistent state.
+        config (FusionConfig): limits and defaults.
+        max_message_bytes (int): the server's message bound (chunks must fit in it).
+    """
+
+    def __init__(self, store: FusionStore, config: FusionConfig, max_message_bytes: int):
+        self.store = store
+        self.config = config
+        self.max_message_bytes = int(max_message_bytes)
+        self.limits = WireLimits(max_chunk_bytes=self.max_message_bytes,
+                                 max_total_gaussians=int(config.max_subset_gaussians),
+                                 max_chunk_gaussians=min(1 << 20, int(config.max_subset_gaussians)),
+                                 max_agent_id_bytes=64)
+        # fused chunks leave room for the FusedChunk envelope and the FuseResult of the first message
+        self.fused_chunk_bytes = max(64 * 1024, min(4 << 20, self.max_message_bytes - 64 * 1024))
+        self._cache: Dict[tuple, GaussianArrays] = {}
+        self._cache_lock = threading.Lock()
+        self._fuse_lock = threading.Lock()
+        self._shutdown = threading.Event()
+
+    def shutdown(self) -> None:
+        """Ask running Fuse work to stop (used after the gRPC grace period)."""
+        self._shutdown.set()
+
+    # ------------------------------------------------------------------ helpers
+    def _session(self, agent_id: str) -> Session:
+        check_agent_id(agent_id)
+        s = self.store.session(agent_id)
+        if s is None:
+            raise _Reject(grpc.StatusCode.NOT_FOUND, f"agent {agent_id!r} has no open session; call OpenSession first")
+        return s
+
+    def _ack(self, agent_id: str, map_version: int, newly: int = 0) -> fusion_pb2.UploadAck:
+        up = self.store.upload(agent_id, map_version)
+        latest = self.store.latest_version(agent_id)
+        ack = fusion_pb2.UploadAck(agent_id=agent_id, map_version=map_version, newly_stored=newly,
+                                   is_latest=latest is not None and latest == map_version,
+                                   superseded_by=latest if latest is not None and latest > map_version else 0)
+        if up is not None:
+            ack.n_chunks = up.n_chunks
+            ack.stored.extend(up.stored)
+            ack.missing.extend(up.missing)
+            ack.complete = up.complete
+            ack.n_gaussians = up.n_gaussians
+            ack.bytes_on_wire = up.wire_bytes
+        return ack
+
+    def _subset(self, agent_id: str, version: int) -> GaussianArrays:
+        key = (agent_id, version)
+        with self._cache_lock:
+            hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        arrays, _ = assemble(self.store.chunk_data(agent_id, version), self.limits)
+        with self._cache_lock:
+            for k in [k for k in self._cache if k[0] == agent_id and k[1] != version]:
+                del self._cache[k]
+            self._cache[key] = arrays
+        return arrays
+
+    # ------------------------------------------------------------------ RPCs
+    @_unary_guard
+    def OpenSession(self, request, context):  # noqa: N802
+        agent = check_agent_id(request.agent_id)
+        if len(request.task_text.encode("utf-8")) > self.config.max_task_text_bytes:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                          f"task_text longer than {self.config.max_task_text_bytes} UTF-8 bytes")
+        if not request.HasField("intrinsics"):
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "intrinsics are required")
+        k = _intrinsics(request.intrinsics, "intrinsics")
+        created = self.store.open_session(Session(agent, request.task_text, k.fx, k.fy, k.cx, k.cy,
+                                                  int(k.width), int(k.height)))
+        latest = self.store.latest_version(agent)
+        log.info("session %s %s", agent, "opened" if created else "re-opened")
+        return fusion_pb2.SessionInfo(agent_id=agent, created=created, latest_map_version=latest or 0,
+                                      has_complete_subset=latest is not None,
+                                      keyframes=self.store.keyframe_count(agent),
+                                      max_keyframes=self.config.max_keyframes_per_agent,
+                                      max_message_bytes=self.max_message_bytes)
+
+    @_unary_guard
+    def UploadSubset(self, request_iterator, context):  # noqa: N802
+        it = iter(request_iterator)
+        first = next(it, None)
+        if first is None or first.WhichOneof("payload") != "header":
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "the first UploadSubset message must be the header")
+        h = first.header
+        agent, version, n_chunks = h.agent_id, int(h.map_version), int(h.n_chunks)
+        self._session(agent)
+        if n_chunks < 1:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "n_chunks must be >= 1")
+        if n_chunks > self.limits.max_chunks:
+            raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"n_chunks {n_chunks} exceeds {self.limits.max_chunks}")
+        latest = self.store.latest_version(agent)
+        if latest is not None and version < latest:
+            raise _Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                          f"map_version {version} of {agent!r} is superseded by complete version {latest}")
+        try:
+            self.store.begin_upload(agent, version, n_chunks, int(h.full_map_gaussians), int(h.full_map_bytes))
+        except ValueError as e:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+        newly = 0
+        for pos, msg in enumerate(it, start=1):
+            if msg.WhichOneof("payload") != "chunk":
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"message {pos}: expected a chunk, got a second header")
+            data = msg.chunk
+            try:
+                hdr = peek_header(data, self.limits)
+            except LimitExceeded as e:
+                raise _Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                              f"chunk at stream position {pos}: LimitExceeded: {e}") from None
+            except WireError as e:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"chunk at stream position {pos}: {type(e).__name__}: {e}") from None
+            idx = hdr.chunk_index
+            if hdr.agent_id != agent or hdr.map_version != version:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"chunk {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
+                              f"header to {agent!r} v{version}")
+            if hdr.chunk_count != n_chunks:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"chunk {idx} says {hdr.chunk_count} chunks, the header {n_chunks}")
+            if h.full_map_gaussians and hdr.total_count > h.full_map_gaussians:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"chunk {idx}: subset of {hdr.total_count} Gaussians exceeds full_map_gaussians "
+                              f"{h.full_map_gaussians}")
+            try:
+                dc = decode_chunk(data, self.limits)
+            except WireError as e:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {type(e).__name__}: {e}") from None
+            try:
+                new, _ = self.store.put_chunk(agent, version, idx, bytes(data), dc.digest, hdr.count,
+                                              hdr.total_count, hdr.lossless)
+            except ChunkConflict as e:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            except ValueError as e:
+                if self.store.upload(agent, version) is None:  # superseded meanwhile
+                    raise _Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                                  f"map_version {version} of {agent!r} was superseded during the upload") from None
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            newly += int(new)
+        ack = self._ack(agent, version, newly)
+        if ack.complete and newly:
+            log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes", agent, version, ack.n_gaussians,
+                     ack.n_chunks, ack.bytes_on_wire)
+        return ack
+
+    @_unary_guard
+    def GetUploadStatus(self, request, context):  # noqa: N802
+        self._session(request.agent_id)
+        return self._ack(request.agent_id, int(request.map_version))
+
+    @_unary_guard
+    def UploadKeyframes(self, request_iterator, context):  # noqa: N802
+        received = stored = dups = evicted = 0
+        agent = ""
+        for msg in request_iterator:
+            received += 1
+            agent = msg.agent_id
+            session = self._session(agent)
+            what = f"keyframe {msg.frame_id} of {agent!r}"
+            if msg.HasField("intrinsics"):
+                k = _intrinsics(msg.intrinsics, what)
+            else:
+                k = Intrinsics(session.fx, session.fy, session.cx, session.cy, session.width, session.height)
+            if len(msg.pose.c2w) != 16:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: pose needs 16 values, got {len(msg.pose.c2w)}")
+            try:
+                c2w = check_rigid(np.asarray(msg.pose.c2w, np.float64).reshape(4, 4), what=f"{what} pose")
+            except ValueError as e:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            scale = float(msg.depth_scale)
+            if not (math.isfinite(scale) and scale > 0):
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth_scale must be finite and > 0")
+            rgb = decode_color(msg.color, what)
+            depth = decode_depth(msg.depth_png, scale, what)
+            size = (int(k.height), int(k.width))
+            if rgb.shape[:2] != size or depth.shape != size:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"{what}: colour {rgb.shape[1]}x{rgb.shape[0]} / depth {depth.shape[1]}x{depth.shape[0]}"
+                              f" do not match the intrinsics' {size[1]}x{size[0]}")
+            new, ev = self.store.put_keyframe(
+                StoredKeyframe(agent, int(msg.frame_id), bytes(msg.color), bytes(msg.depth_png), scale, c2w,
+                               k.fx, k.fy, k.cx, k.cy, int(k.width), int(k.height), float(msg.timestamp)),
+                self.config.max_keyframes_per_agent)
+            stored += int(new)
+            dups += int(not new)
+            evicted += ev
+        if received == 0:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "empty keyframe stream")
+        return fusion_pb2.KeyframeAck(agent_id=agent, received=received, stored=stored, duplicates=dups,
+                                      evicted=evicted, buffered=self.store.keyframe_count(agent))
+
+    @_stream_guard
+    def Fuse(self, request, context):  # noqa: N802
+        method = request.method or fusion_pb2.FUSE_METHOD_VOTE
+        if method not in _METHOD_NAMES:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown fuse method {request.method}")
+        voxel = float(request.voxel_size) or self.config.default_voxel_size
+        if not (math.isfinite(voxel) and voxel > 0):
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"voxel_size must be finite and > 0, got {voxel}")
+        iters = int(request.refine_iters) or self.config.default_refine_iters
+        if request.refine and iters > self.config.max_refine_iters:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                          f"refine_iters {iters} exceeds the server limit {self.config.max_refine_iters}")
+        latest = self.store.latest_complete()
+        if not latest:
+            raise _Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                          "no agent has uploaded a complete subset yet; nothing to fuse")
+        if request.refine and self.store.keyframe_count() == 0:
+            raise _Reject(grpc.StatusCode.FAILED_PRECONDITION, "refine=true but no keyframes were uploaded")
+
+        events: "queue.Queue[tuple]" = queue.Queue()
+        cancel = threading.Event()
+        context.add_callback(cancel.set)
+        worker = threading.Thread(target=self._fuse_work, name="gausslite-fuse", daemon=True,
+                                  args=(latest, method, voxel, bool(request.refine), iters, int(request.seed),
+                                        events, cancel))
+        worker.start()
+        try:
+            while True:
+                try:
+                    kind, payload = events.get(timeout=0.2)
+                except queue.Empty:
+                    if not context.is_active():
+                        cancel.set()
+                        log.info("Fuse cancelled by the client (or its deadline)")
+                        return
+                    continue
+                if kind == "progress":
+                    yield payload
+                elif kind == "done":
+                    yield payload
+                    return
+                elif kind == "cancelled":
+                    return
+                else:  # error
+                    if isinstance(payload, ValueError):
+                        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"fusion failed: {payload}")
+                    raise payload
+        finally:
+            cancel.set()  # no-op when the work finished; stops it when the stream was closed early
+
+    def _fuse_work(self, latest: Dict[str, int], method: int, voxel: float, refine: bool, iters: int,
+                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event) -> None:
+        """Fuse worker (own thread): pushes ("progress"|"done"|"cancelled"|"error", payload) events."""
+        stage = {"name": "load"}
+
+        def emit(name: str, fraction: float, message: str) -> None:
+            if cancel.is_set() or self._shutdown.is_set():
+                raise _Cancelled()
+            stage["name"] = name
+            events.put(("progress", fusion_pb2.FuseProgress(stage=name, fraction=float(fraction), message=message)))
+
+        try:
+            while not self._fuse_lock.acquire(timeout=0.2):
+                if cancel.is_set() or self._shutdown.is_set():
+                    raise _Cancelled()
+            try:
+                t0 = time.monotonic()
+                emit("load", 0.0, f"loading the subsets of {len(latest)} agent(s)")
+                maps = {a: self._subset(a, v) for a, v in latest.items()}
+                name = _METHOD_NAMES[method]
+                end = 0.3 if refine else 0.8
+                emit(name, 0.1, f"{name} of {sum(len(m) for m in maps.values())} Gaussians")
+                if method == fusion_pb2.FUSE_METHOD_VOTE:
+                    fused, report = voxel_vote(maps, voxel)
+                    kept = dict(report.kept)
+                    msg = f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
+                else:
+                    fused = concat_maps(maps)
+                    kept = {a: len(m) for a, m in maps.items()}
+                    msg = f"concatenated {len(fused)} Gaussians"
+                emit(name, end, msg)
+                n_kf = 0
+                if refine:
+                    from gausslite.fusion.refine import RefineKeyframe, refine_map
+
+                    kfs = []
+                    for k in self.store.keyframes():
+                        rgb = decode_color(k.color, f"stored keyframe {k.frame_id}")
+                        depth = decode_depth(k.depth, k.depth_scale, f"stored keyframe {k.frame_id}")
+                        K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
+                        kfs.append(RefineKeyframe(rgb=rgb, depth=depth, c2w=k.c2w, K=K, width=k.width,
+                                                  height=k.height))
+                    n_kf = len(kfs)
+                    emit("refine", end, f"refining {len(fused)} Gaussians over {n_kf} keyframes, {iters} iterations")
+                    fused = refine_map(fused, kfs, iters,
+                                       progress=lambda f, m: emit("refine", end + (0.9 - end) * float(f), m),
+                                       seed=seed, **self.config.refine_options)
+                emit("store", 0.9, f"storing {len(fused)} Gaussians")
+                seconds = time.monotonic() - t0
+                agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
+                                                       kept=int(kept.get(a, 0))) for a in sorted(maps)]
+
+                def info(version: int, nbytes: int) -> bytes:
+                    return fusion_pb2.FuseResult(
+                        fused_version=version, n_gaussians=len(fused), seconds=seconds, agents=agents,
+                        method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
+                        keyframes_used=n_kf, bytes=nbytes, created_unix=time.time()).SerializeToString()
+
+                if cancel.is_set() or self._shutdown.is_set():
+                    raise _Cancelled()
+                version = self.store.put_fused(
+                    info, method, lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
+                                                          quant=LOSSLESS))
+                result = fusion_pb2.FuseResult.FromString(self.store.fused_info(version)[1])
+                log.info("fused version %d: %s, %d Gaussians, refine=%s, %.2fs", version, _METHOD_NAMES[method],
+                         len(fused), refine, result.seconds)
+                events.put(("done", fusion_pb2.FuseProgress(stage="done", fraction=1.0, done=True, result=result,
+                                                            message=f"fused version {version}")))
+            finally:
+                self._fuse_lock.release()
+        except _Cancelled:
+            log.info("Fuse work stopped during stage %r (cancelled)", stage["name"])
+            events.put(("cancelled", None))
+        except _Reject as r:
+            events.put(("error", ValueError(r.message)))
+        except Exception as e:  # noqa: BLE001 - reported to the caller as a status
+            log.exception("Fuse work failed")
+            events.put(("error", e))
+
+    @_stream_guard
+    def DownloadFused(self, request, context):  # noqa: N802
+        method = int(request.method)
+        if method and method not in _METHOD_NAMES:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown method filter {method}")
+        found = self.store.fused_info(int(request.fused_version), method)
+        if found is None:
+            what = f"fused version {request.fused_version}" if request.fused_version else "a fused map"
+            raise _Reject(grpc.StatusCode.NOT_FOUND, f"no {what}"
+                          + (f" of method {_METHOD_NAMES[method]}" if method else ""))
+        version, info_bytes, n = found
+        info = fusion_pb2.FuseResult.FromString(info_bytes)
+        if method and request.fused_version and info.method != method:
+            raise _Reject(grpc.StatusCode.NOT_FOUND,
+                          f"fused version {version} was made by {_METHOD_NAMES.get(info.method)}, "
+                          f"not {_METHOD_NAMES[method]}")
+        for i in range(n):
+            if not context.is_active():
+                return
+            yield fusion_pb2.FusedChunk(fused_version=version, chunk_index=i, n_chunks=n,
+                                        chunk=self.store.fused_chunk(version, i), info=info if i == 0 else None)
+
+    @_unary_guard
+    def GetStats(self, request, context):  # noqa: N802
+        resp = fusion_pb2.StatsResponse()
+        for s in self.store.sessions():
+            a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
+                                      keyframes=self.store.keyframe_count(s.agent_id))
+            latest = self.store.latest_version(s.agent_id)
+            if latest is not None:
+                up = self.store.upload(s.agent_id, latest)
+                a.latest_map_version = latest
+                a.has_complete_subset = True
+                a.gaussians_received = up.n_gaussians
+                a.bytes_on_wire = up.wire_bytes
+                a.chunks = len(up.stored)
+                a.full_map_gaussians = up.full_map_gaussians
+                a.full_map_bytes = up.full_map_bytes
+                a.share_pct = 100.0 * up.n_gaussians / up.full_map_gaussians if up.full_map_gaussians else 0.0
+                a.bytes_per_gaussian = up.wire_bytes / up.n_gaussians if up.n_gaussians else 0.0
+            resp.agents.append(a)
+        for info in self.store.fused_infos():
+            resp.fused.append(fusion_pb2.FuseResult.FromString(info))
+        resp.latest_fused_version = resp.fused[-1].fused_version if resp.fused else 0
+        return resp
+
+
+@dataclass
+class FusionServer:
+    """A running fusion server: ``rpc`` (RunningServer), ``servicer``, ``store``; ``port``/``address``."""
+
+    rpc: RunningServer
+    servicer: FusionServicer
+    store: FusionStore
+
+    @property
+    def port(self) -> int:
+        return self.rpc.port
+
+    @property
+    def address(self) -> str:
+        return self.rpc.address
+
+    @property
+    def grace_s(self) -> float:
+        return self.rpc.grace_s
+
+    def stop(self, grace_s: Optional[float] = None) -> None:
+        """Graceful shutdown: NOT_SERVING, let in-flight calls finish for ``grace_s``, close the store."""
+        self.rpc.stop(grace_s)
+        self.servicer.shutdown()
+        self.store.close()
+
+
+def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
+          data_dir: Optional[str] = None) -> FusionServer:
+    """Start the fusion server (non-blocking).
+
+    Args:
+        options (ServerOptions): bind address, message bound, workers, token, TLS.
+        config (FusionConfig | None): limits/defaults (default ``FusionConfig()``).
+        data_dir (str | None): overrides ``config.data_dir``.
+    Returns:
+        FusionServer: ``.port`` is the bound port; ``.stop()`` shuts down gracefully.
+    Raises:
+        RuntimeError: the address cannot be bound. OSError / sqlite3.Error: unusable data dir.
+    """
+    config = config or FusionConfig()
+    if data_dir is not None:
+        config = replace(config, data_dir=str(data_dir))
+    store = FusionStore(config.data_dir)
+    servicer = FusionServicer(store, config, options.max_message_bytes)
+    try:
+        running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(servicer, srv),
+                               [SERVICE_NAME])
+    except BaseException:
+        store.close()
+        raise
+    log.info("fusion data dir: %s", store.path)
+    return FusionServer(running, servicer, store)
+
+
+def _write_port_file(path: str, port: int) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(f"{port}\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: Optional[str] = None,
+        port_file: Optional[str] = None) -> int:
+    """Serve until SIGTERM/SIGINT (``gausslite serve fusion`` / ``python -m services.fusion_server``).
+
+    The data directory comes from ``data_dir``, else ``$GAUSSLITE_DATA_DIR``, else the config file's
+    ``data_dir``, else ``./gausslite_fusion_data``; the port file from ``port_file`` or
+    ``$GAUSSLITE_FUSION_PORT_FILE``. Prints ``fusion listening on HOST:PORT`` once serving.
+    """
+    config = FusionConfig.from_file(config_path) if config_path else FusionConfig()
+    data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
+    server = serve(options, config, data_dir=data_dir)
+    port_file = port_file or os.environ.get("GAUSSLITE_FUSION_PORT_FILE") or None
+    if port_file:
+        _write_port_file(port_file, server.port)
+    print(f"fusion listening on {options.host}:{server.port}", flush=True)
+    return run_until_signalled(server)  # duck-typed: .stop() and .grace_s
+
+
+def main(argv=None) -> int:
+    """``python -m services.fusion_server``: CLI with environment fallbacks (see ``--help``)."""
+    env = os.environ
+    p = argparse.ArgumentParser(prog="python -m services.fusion_server",
+                                description="GaussLite fusion server (gausslite.v1.Fusion).")
+    p.add_argument("--host", default=env.get("GAUSSLITE_FUSION_HOST", "127.0.0.1"),
+                   help="bind address (env GAUSSLITE_FUSION_HOST)")
+    p.add_argument("--port", type=int, default=int(env.get("GAUSSLITE_FUSION_PORT", DEFAULT_PORT)),
+                   help=f"port, 0 = ephemeral (env GAUSSLITE_FUSION_PORT, default {DEFAULT_PORT})")
+    p.add_argument("--data-dir", default=env.get("GAUSSLITE_DATA_DIR"),
+                   help="persistent store directory (env GAUSSLITE_DATA_DIR)")
+    p.add_argument("--port-file", default=env.get("GAUSSLITE_FUSION_PORT_FILE"),
+                   help="write the bound port to this file (env GAUSSLITE_FUSION_PORT_FILE)")
+    p.add_argument("--token", default=env.get("GAUSSLITE_TOKEN"), help="bearer token (env GAUSSLITE_TOKEN)")
+    p.add_argument("--tls-cert", default=env.get("GAUSSLITE_TLS_CERT"), help="PEM cert (env GAUSSLITE_TLS_CERT)")
+    p.add_argument("--tls-key", default=env.get("GAUSSLITE_TLS_KEY"), help="PEM key (env GAUSSLITE_TLS_KEY)")
+    p.add_argument("--config", default=env.get("GAUSSLITE_FUSION_CONFIG"),
+                   help="JSON/TOML FusionConfig file (env GAUSSLITE_FUSION_CONFIG)")
+    p.add_argument("--max-workers", type=int, default=16, help="handler threads")
+    p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024, help="message size bound")
+    p.add_argument("--grace", type=float, default=10.0, help="shutdown grace period, seconds")
+    p.add_argument("--log-level", default=env.get("GAUSSLITE_LOG_LEVEL", "INFO"))
+    args = p.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    opts = ServerOptions(host=args.host, port=args.port, token=args.token or None, tls_cert=args.tls_cert or None,
+                         tls_key=args.tls_key or None, max_message_bytes=args.max_message_bytes,
+                         max_workers=args.max_workers, grace_s=args.grace)
+    try:
+        return run(opts, args.config, data_dir=args.data_dir, port_file=args.port_file)
+    except (ValueError, OSError, RuntimeError) as e:
+        print(f"fusion server: error: {e}", file=sys.stderr)
+        return 2
+
+
+__all__ = ["FusionConfig", "FusionServicer", "FusionServer", "serve", "run", "main", "SERVICE_NAME",
+           "DEFAULT_PORT", "check_agent_id"]

@@ -1,0 +1,484 @@
+"""Local multi-process two-agent simulation (SPEC §1 "deployment", §7, §9; paper Sec. III-E, IV).
+
+:func:`run_sim` starts the parser, the fusion server and two agents as separate processes on loopback
+(``gausslite serve ...`` with free 127.0.0.1 ports), configured exactly like ``deploy/docker-compose.yml``
+(same YAML file, same environment variables), gives the agents two different tasks on one scene,
+waits for their missions (each replays its frames, pushes its ROI subset every k frames and at the
+end), runs ``concat``, ``vote`` and ``vote + refine`` on the fusion server, downloads each fused map,
+evaluates it and writes ``DIR/report.json``, ``DIR/report.md`` and ``DIR/renders/*.png``.
+
+:func:`run_sim` with ``attach=...`` skips the process launch and drives already running services (the
+compose ``report`` service does this). Processes are always terminated (SIGTERM, then SIGKILL) on
+success, failure, SIGTERM or Ctrl-C; their logs are in ``DIR/logs``.
+
+Fused-map ROI PSNR of a task = mean over that task's agent's frames of the PSNR restricted to the task's
+ground-truth ROI mask (frames whose ROI is empty are skipped), rendering the fused map at those views.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import yaml
+
+from gausslite.mapping.config import apply_overrides
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = REPO / "deploy" / "gausslite.yaml"
+AGENT_NAMES = ("agent_a", "agent_b")
+FUSED_KEYS = ("concat", "vote", "refine")
+
+
+@dataclass
+class AgentPlan:
+    """One simulated agent: ``name`` (also its agent id), replayed ``dataset`` folder, ``task_id``, ``task``."""
+
+    name: str
+    dataset: str
+    task_id: str
+    task: str
+    address: str = ""
+
+
+@dataclass
+class SimResult:
+    """``report`` (the report.json dict), ``out`` folder, wall ``seconds``."""
+
+    report: dict
+    out: Path
+    seconds: float
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on ``host`` right now (bind to port 0, read it, close)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def load_sim_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> dict:
+    """The whole GaussLite YAML (``agent``, ``mapper``, ``sim`` sections) with dotted overrides applied.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: not a mapping / bad override.
+    """
+    p = Path(path) if path else DEFAULT_CONFIG
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    data = yaml.safe_load(p.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: top level must be a mapping")
+    data = apply_overrides(data, overrides)
+    from services.agent.runtime import load_agent_config
+
+    # validate agent+mapper now so that a typo fails before any process starts
+    _validate_agent_sections({k: data[k] for k in ("agent", "mapper") if data.get(k) is not None},
+                             load_agent_config)
+    return data
+
+
+def _validate_agent_sections(data: dict, loader) -> None:
+    import tempfile
+
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
+        yaml.safe_dump(data, f)
+    try:
+        loader(f.name)
+    finally:
+        os.unlink(f.name)
+
+
+def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -> List[AgentPlan]:
+    """The two agents' datasets and tasks.
+
+    Synthetic default scene (``dataset`` holds ``agent_a``/``agent_b``): each agent its own trajectory.
+    Other datasets: both agents traverse the same frames. Tasks: ``task_ids`` or the config's
+    ``sim.tasks`` pair for the scene (``synthetic`` / ``room0``), else the first two tasks of tasks.json.
+
+    Raises:
+        ValueError: the scene has no annotations or fewer than two tasks. KeyError: unknown task id.
+    """
+    from gausslite.datasets.annotations import load_annotations
+
+    root = Path(dataset)
+    split = all((root / n).is_dir() for n in AGENT_NAMES)
+    paths = [str(root / n) for n in AGENT_NAMES] if split else [str(root)] * 2
+    ann = load_annotations(paths[0])
+    if ann is None or len(ann.tasks) < 1:
+        raise ValueError(f"{dataset}: the simulation needs objects.json/tasks.json with tasks")
+    known = [t.id for t in ann.tasks]
+    tasks_cfg = ((cfg.get("sim") or {}).get("tasks") or {})
+    if not task_ids:
+        for key in ("synthetic", "room0"):
+            pair = tasks_cfg.get(key) or []
+            if len(pair) == 2 and all(t in known for t in pair):
+                task_ids = list(pair)
+                break
+    if not task_ids:
+        if len(known) < 2:
+            raise ValueError(f"{dataset}: need two tasks, tasks.json has {known}")
+        task_ids = known[:2]
+    if len(task_ids) != 2:
+        raise ValueError(f"need exactly two task ids, got {task_ids}")
+    return [AgentPlan(name, path, tid, ann.task_by_id(tid).text)
+            for name, path, tid in zip(AGENT_NAMES, paths, task_ids)]
+
+
+class ProcessGroup:
+    """Child processes started by the simulation; :meth:`stop_all` terminates every one of them
+    (SIGTERM, wait ``grace_s``, then SIGKILL). Only processes started here are touched."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.procs: Dict[str, subprocess.Popen] = {}
+        self._files = []
+
+    def start(self, name: str, argv: List[str], env: Dict[str, str]) -> subprocess.Popen:
+        """Start ``argv`` with ``env`` added to the environment; output goes to ``logs/<name>.log``."""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        f = open(self.log_dir / f"{name}.log", "w")
+        self._files.append(f)
+        full_env = {**os.environ, **env, "PYTHONUNBUFFERED": "1"}
+        full_env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=full_env, cwd=str(REPO),
+                             start_new_session=True)
+        self.procs[name] = p
+        log.info("started %s (pid %d): %s", name, p.pid, " ".join(argv[2:]))
+        return p
+
+    def check_alive(self) -> None:
+        """Raise RuntimeError naming a child that exited early (with the tail of its log)."""
+        for name, p in self.procs.items():
+            rc = p.poll()
+            if rc is not None:
+                tail = (self.log_dir / f"{name}.log").read_text(errors="replace")[-1500:]
+                raise RuntimeError(f"{name} exited with code {rc}; log tail:\n{tail}")
+
+    def stop_all(self, grace_s: float = 10.0) -> None:
+        """Terminate all children (idempotent)."""
+        for name, p in self.procs.items():
+            if p.poll() is None:
+                try:
+                    p.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + grace_s
+        for name, p in self.procs.items():
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s (pid %d) did not stop in %.0f s: killing", name, p.pid, grace_s)
+                p.kill()
+                p.wait(5)
+        for f in self._files:
+            f.close()
+        self._files.clear()
+
+
+def _cli(*args: str) -> List[str]:
+    return [sys.executable, "-m", "gausslite.cli", *args]
+
+
+def service_commands(config_path: Path, plans: List[AgentPlan], ports: Dict[str, int], data_dir: Path,
+                     host: str = "127.0.0.1") -> Dict[str, tuple]:
+    """``name → (argv, env)`` of the four services, mirroring the compose file's commands/environment."""
+    parser_addr, fusion_addr = f"{host}:{ports['parser']}", f"{host}:{ports['fusion_server']}"
+    cmds = {
+        "parser": (_cli("serve", "parser", "--host", host, "--port", str(ports["parser"])), {}),
+        "fusion_server": (_cli("serve", "fusion", "--host", host, "--port", str(ports["fusion_server"])),
+                          {"GAUSSLITE_FUSION_DATA_DIR": str(data_dir / "fusion")}),
+    }
+    for p in plans:
+        env = {"GAUSSLITE_AGENT_ID": p.name, "GAUSSLITE_PARSER_ADDR": parser_addr,
+               "GAUSSLITE_FUSION_ADDR": fusion_addr, "GAUSSLITE_AGENT_DATASET": p.dataset,
+               "GAUSSLITE_AGENT_TASK": p.task, "GAUSSLITE_AGENT_TASK_ID": p.task_id,
+               "GAUSSLITE_DATA_DIR": str(data_dir / "agents")}
+        cmds[p.name] = (_cli("serve", "agent", "--host", host, "--port", str(ports[p.name]),
+                             "--config", str(config_path)), env)
+    return cmds
+
+
+def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[ProcessGroup] = None) -> None:
+    """Poll the health service of ``target`` until ``service`` is SERVING.
+
+    Raises:
+        TimeoutError: not SERVING in time. RuntimeError: a child process died meanwhile.
+    """
+    from gausslite.cli.cmd_health import check_health
+
+    deadline = time.monotonic() + timeout_s
+    status = "?"
+    while time.monotonic() < deadline:
+        if group is not None:
+            group.check_alive()
+        status = check_health(target, service, timeout_s=1.0)
+        if status == "SERVING":
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"{service} at {target} not healthy after {timeout_s:.0f} s (last: {status})")
+
+
+def render_map(gmap, frame, backend: str = "auto"):
+    """Render a ``GaussianMap`` at a frame's view (no gradients). Returns ``RenderOutput``."""
+    import torch
+
+    from gausslite.render import rasterize
+
+    with torch.no_grad():
+        return rasterize(gmap.means, gmap.quats, gmap.log_scales, gmap.opacity_logits, gmap.colors,
+                         K=frame.intrinsics.K, width=frame.intrinsics.width, height=frame.intrinsics.height,
+                         c2w=frame.c2w, background=torch.zeros(3), backend=backend)
+
+
+def evaluate_fused(gmap, frames: list, annotations, task_id: str, backend: str = "auto") -> Optional[float]:
+    """Mean ROI PSNR (dB) of ``gmap`` over ``frames`` restricted to ``task_id``'s GT ROI (frames with an
+    empty ROI are skipped); None when no frame shows the ROI or the map is empty."""
+    from gausslite.evaluation import score_view
+
+    if len(gmap) == 0:
+        return None
+    vals = []
+    for fr in frames:
+        roi = annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
+        if not roi.any():
+            continue
+        s = score_view(render_map(gmap, fr, backend), fr, roi)
+        if not math.isnan(s.roi_psnr):
+            vals.append(s.roi_psnr)
+    return float(np.mean(vals)) if vals else None
+
+
+def _fmt(v, nd=2) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
+
+
+def write_markdown(report: dict, path: Path) -> None:
+    """Write the human-readable report (tables + render links)."""
+    tasks = [a["task"] for a in report["agents"]]
+    lines = ["# GaussLite two-agent simulation", "",
+             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time.", "",
+             "## Agents (own map, own task)", "",
+             "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian |",
+             "|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
+                     f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} |")
+    lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
+              "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
+              "|---|" + "---|" * (len(tasks) + 3)]
+    for key in FUSED_KEYS:
+        f = report["fused"][key]
+        per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) for t in tasks)
+        lines.append(f"| {key} | {per} | {_fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {_fmt(f['seconds'])} |")
+    lines += ["", "`concat` = plain concatenation of the agents' ROI subsets; `vote` = per-voxel κ vote "
+              f"(δ = {report['settings']['voxel_size']} m); `refine` = vote + joint refinement "
+              f"({report['settings']['refine_iters']} iterations over the uploaded keyframes).", "",
+              "## Renders (render | ground truth | task ROI)", ""]
+    for r in report.get("renders", []):
+        lines.append(f"**{r['fused']} — {r['task']} (frame {r['frame_id']})**  ")
+        lines.append(f"![{r['fused']} {r['task']}]({r['path']})")
+        lines.append("")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
+            overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
+            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True) -> SimResult:
+    """Run the two-agent simulation and write the report.
+
+    Args:
+        out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
+        dataset: scene folder; None → generate the synthetic default scene into ``out/scene``.
+        config: GaussLite YAML (default ``deploy/gausslite.yaml``); ``overrides``: dotted ``key=value``.
+        task_ids: the two agents' task ids (default from ``sim.tasks``).
+        attach: ``{"parser", "fusion_server", "agent_a", "agent_b"} → host:port`` of running services
+            (no processes started; the agents must already run their missions).
+        timeout_s: overall bound (default ``sim.timeout_s``).
+        token: bearer token for the services (also passed to started processes).
+    Returns:
+        SimResult.
+    Raises:
+        TimeoutError, RuntimeError (a service died or failed), ValueError/FileNotFoundError (bad input).
+    """
+    import cv2
+
+    from gausslite.datasets import load_dataset
+    from gausslite.evaluation import side_by_side
+    from gausslite_rpc import agent_pb2
+    from services.agent.client import AgentClient
+    from services.fusion_server.client import FusionClient
+
+    t0 = time.perf_counter()
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = load_sim_config(config, list(overrides))
+    sim_cfg = cfg.get("sim") or {}
+    timeout_s = float(timeout_s or sim_cfg.get("timeout_s", 1800))
+    deadline = time.monotonic() + timeout_s
+    config_path = out / "config.yaml"
+    config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    if dataset is None:
+        from gausslite.synthetic import make_scene
+
+        sc = sim_cfg.get("scene") or {}
+        log.info("generating the synthetic default scene into %s", out / "scene")
+        make_scene(out / "scene", seed=int(sc.get("seed", 0)), width=int(sc.get("width", 320)),
+                   height=int(sc.get("height", 240)), frames=int(sc.get("frames", 16)), progress=progress)
+        dataset = str(out / "scene")
+    plans = plan_agents(dataset, cfg, task_ids)
+    group = ProcessGroup(out / "logs")
+    previous = None
+    if attach is None and hasattr(signal, "SIGTERM") and _main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    clients: list = []
+    try:
+        if attach is None:
+            ports = {n: free_port() for n in ("parser", "fusion_server", *AGENT_NAMES)}
+            addrs = {n: f"127.0.0.1:{p}" for n, p in ports.items()}
+            cmds = service_commands(config_path, plans, ports, out / "data")
+            tok = {"GAUSSLITE_TOKEN": token} if token else {}
+            for name in ("parser", "fusion_server"):
+                group.start(name, cmds[name][0], {**cmds[name][1], **tok})
+            wait_healthy(addrs["parser"], "gausslite.v1.Parser", 120, group)
+            wait_healthy(addrs["fusion_server"], "gausslite.v1.Fusion", 120, group)
+            for p in plans:
+                group.start(p.name, cmds[p.name][0], {**cmds[p.name][1], **tok})
+            for p in plans:
+                wait_healthy(addrs[p.name], "gausslite.v1.Agent", 180, group)
+        else:
+            addrs = dict(attach)
+        for p in plans:
+            p.address = addrs[p.name]
+        fusion = FusionClient(addrs["fusion_server"], token=token, timeout_s=120.0)
+        clients.append(fusion)
+        fusion.wait_ready(60)
+        agents = {p.name: AgentClient(p.address, token=token) for p in plans}
+        clients.extend(agents.values())
+        # ---- wait for the missions
+        done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
+        last_print = 0.0
+        while True:
+            group.check_alive()
+            sts = {n: c.status() for n, c in agents.items()}
+            for n, st in sts.items():
+                if st.state == agent_pb2.MISSION_STATE_FAILED:
+                    raise RuntimeError(f"{n} mission failed: {st.last_error}")
+            if time.monotonic() - last_print > 5.0 or all(st.state in done for st in sts.values()):
+                last_print = time.monotonic()
+                log.info("mapping: " + ", ".join(
+                    f"{n} {st.frames_mapped}/{st.frames_received or '?'} frames, {st.n_gaussians} G, "
+                    f"{st.pushes} pushes" for n, st in sts.items()))
+            if all(st.state in done for st in sts.values()):
+                break
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"agents not done after {timeout_s:.0f} s")
+            time.sleep(1.0)
+        summaries = {}
+        for n, c in agents.items():
+            summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
+            if not summaries[n].final_push_ok:
+                raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+        stats = fusion.stats().get("agents", {})
+        # ---- fuse
+        fuse_cfg = sim_cfg.get("fuse") or {}
+        voxel = float(fuse_cfg.get("voxel_size", 0.10))
+        refine_iters = int(fuse_cfg.get("refine_iters", 100))
+        backend = (cfg.get("mapper") or {}).get("backend", "auto")
+        eval_frames = {}
+        for p in plans:
+            a = cfg.get("agent") or {}
+            ds = load_dataset(p.dataset, downscale=a.get("downscale", 1), max_frames=a.get("max_frames"),
+                              stride=a.get("stride", 1))
+            eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
+        fused: Dict[str, dict] = {}
+        renders = []
+        (out / "renders").mkdir(exist_ok=True)
+        for key in FUSED_KEYS:
+            method = "concat" if key == "concat" else "vote"
+            log.info("fusing: %s", key)
+            res = fusion.fuse(method, refine=(key == "refine"), refine_iters=refine_iters, voxel_size=voxel,
+                              progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
+            gmap = fusion.download_fused(res.fused_version).to_gaussian_map()
+            per_task = {}
+            for p in plans:
+                ds, frames = eval_frames[p.name]
+                per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
+                mid = _roi_frame(frames, ds.annotations, p.task_id)
+                if mid is not None:
+                    fr = frames[mid]
+                    roi = ds.annotations.roi_mask(p.task_id, fr.depth, fr.c2w, fr.intrinsics)
+                    img = side_by_side(render_map(gmap, fr, backend), fr, roi)
+                    rel = f"renders/{key}_{p.task_id}.png"
+                    cv2.imwrite(str(out / rel), img)
+                    renders.append({"fused": key, "task": p.task_id, "frame_id": int(fr.frame_id), "path": rel})
+            vals = [v for v in per_task.values() if v is not None]
+            fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
+                          "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
+                          "fused_version": int(res.fused_version), "kept": dict(res.kept)}
+            log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians,
+                     {k: _fmt(v) for k, v in per_task.items()})
+        agents_rep = []
+        for p in plans:
+            s = summaries[p.name]
+            st = stats.get(p.name, {})
+            agents_rep.append({
+                "id": p.name, "task": p.task_id, "task_text": p.task, "dataset": p.dataset,
+                "roi_psnr": s.roi_psnr if s.has_roi_psnr else None, "psnr": s.psnr,
+                "n_gaussians": int(s.status.n_gaussians), "n_shared": int(s.n_shared),
+                "share_pct": float(st.get("share_pct", s.share_pct)),
+                "bytes_on_wire": int(st.get("bytes_on_wire", s.bytes_on_wire)),
+                "bytes_per_gaussian": float(st.get("bytes_per_gaussian", s.bytes_per_gaussian)),
+                "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
+                "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
+            })
+        report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
+                  "renders": renders,
+                  "settings": {"voxel_size": voxel, "refine_iters": refine_iters, "config": str(config_path),
+                               "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+        (out / "report.json").write_text(json.dumps(report, indent=2))
+        write_markdown(report, out / "report.md")
+        log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])
+        return SimResult(report, out, report["seconds"])
+    finally:
+        for c in clients:
+            try:
+                c.close()
+            except Exception:
+                pass
+        group.stop_all()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:
+    """Index of the frame with the largest ROI of ``task_id`` (None when no frame shows it)."""
+    best, idx = 0, None
+    for i, fr in enumerate(frames):
+        n = int(annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics).sum())
+        if n > best:
+            best, idx = n, i
+    return idx
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
