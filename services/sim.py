@@ -61,6 +61,7 @@ class SimResult:
     report: dict
     out: Path
     seconds: float
+    pids: Dict[str, int] = field(default_factory=dict)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -199,8 +200,9 @@ def service_commands(config_path: Path, plans: List[AgentPlan], ports: Dict[str,
     parser_addr, fusion_addr = f"{host}:{ports['parser']}", f"{host}:{ports['fusion_server']}"
     cmds = {
         "parser": (_cli("serve", "parser", "--host", host, "--port", str(ports["parser"])), {}),
-        "fusion_server": (_cli("serve", "fusion", "--host", host, "--port", str(ports["fusion_server"])),
-                          {"GAUSSLITE_FUSION_DATA_DIR": str(data_dir / "fusion")}),
+        "fusion_server": ([sys.executable, "-m", "services.fusion_server", "--host", host,
+                           "--port", str(ports["fusion_server"])],
+                          {"GAUSSLITE_DATA_DIR": str(data_dir / "fusion")}),
     }
     for p in plans:
         env = {"GAUSSLITE_AGENT_ID": p.name, "GAUSSLITE_PARSER_ADDR": parser_addr,
@@ -315,6 +317,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         TimeoutError, RuntimeError (a service died or failed), ValueError/FileNotFoundError (bad input).
     """
     import cv2
+    import grpc
 
     from gausslite.datasets import load_dataset
     from gausslite.evaluation import side_by_side
@@ -373,7 +376,13 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         last_print = 0.0
         while True:
             group.check_alive()
-            sts = {n: c.status() for n, c in agents.items()}
+            try:
+                sts = {n: c.status() for n, c in agents.items()}
+            except grpc.RpcError as e:  # an attached agent that has not started its mission yet
+                if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() > deadline:
+                    raise
+                time.sleep(1.0)
+                continue
             for n, st in sts.items():
                 if st.state == agent_pb2.MISSION_STATE_FAILED:
                     raise RuntimeError(f"{n} mission failed: {st.last_error}")
@@ -452,7 +461,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         (out / "report.json").write_text(json.dumps(report, indent=2))
         write_markdown(report, out / "report.md")
         log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])
-        return SimResult(report, out, report["seconds"])
+        return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
         for c in clients:
             try:

@@ -9,7 +9,7 @@ from gausslite.mapping.config import MapperConfig, ablation_rows, load_config
 def test_paper_defaults():
     cfg = MapperConfig()
     assert (cfg.m_roi, cfg.m_bg, cfg.init_opacity) == (0.5, 0.7, 0.5)
-    assert cfg.max_gaussians == 1_000_000
+    assert cfg.max_gaussians is None and cfg.gaussians_per_pixel == 1.0  # budget scales with resolution
     assert cfg.rho == 0.4
 
 

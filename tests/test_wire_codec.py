@@ -95,23 +95,24 @@ def test_quantised_round_trip_within_documented_bounds_and_small():
     out, meta = assemble(chunks)
     check_quantised(g, out, q)
     assert not meta.lossless
-    # uniform random data is the incompressible worst case: still < 18 B/G vs 56 for PLY
-    assert sum(map(len, chunks)) / len(g) < 18.0
+    # uniform random data is the incompressible worst case: still < 19 B/G vs 56 for PLY
+    # (0.25 mm means and 9-bit log-scales, chosen by bench.quant_psnr, add 6 bits over 18 B/G)
+    assert sum(map(len, chunks)) / len(g) < 19.0
     lossless = sum(map(len, encode_subset(g, "a", 1, quant=LOSSLESS))) / len(g)
     assert lossless > 40.0
 
 
 def test_quantised_mean_width_grows_with_extent_and_precision_bounded():
     rng = np.random.default_rng(2)
-    for extent, width in ((0.1, 1), (10.0, 2), (100.0, 3), (5000.0, 3)):
+    for extent, width in ((0.05, 1), (10.0, 2), (100.0, 3), (3000.0, 3)):
         g = random_arrays(rng, 300, extent=extent)
         (chunk,) = encode_subset(g, "a", 0)
         h = peek_header(chunk)
         assert h.mean_bytes == width
-        assert h.mean_step == (5e-4,) * 3
+        assert h.mean_step == (2.5e-4,) * 3
         out = decode_chunk(chunk).arrays
         f32 = np.abs(g.means).max() * 2.0**-23
-        assert np.abs(out.means.astype(np.float64) - g.means).max() <= 2.5e-4 + 2 * f32
+        assert np.abs(out.means.astype(np.float64) - g.means).max() <= 1.25e-4 + 2 * f32
 
 
 def test_zero_quaternion_becomes_identity_and_sign_is_canonical():

@@ -49,6 +49,9 @@ def register(subparsers) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
     p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
+    p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
+                   help="drive running services instead of starting processes (parser=..,fusion_server=..,"
+                        "agent_a=..,agent_b=..; the compose 'report' service uses this)")
     p.set_defaults(func=_handle)
     _extend_serve(subparsers)
 
@@ -70,6 +73,8 @@ def _extend_serve(subparsers) -> None:
     def handle(args: argparse.Namespace) -> int:
         if getattr(args, "service", None) == "agent":
             export_agent_env(args, os.environ, serve)
+        elif getattr(args, "data_dir", None):  # --data-dir is generic (fusion store, agent results)
+            os.environ["GAUSSLITE_DATA_DIR"] = str(args.data_dir)
         return original(args)
 
     serve.set_defaults(func=handle)
@@ -97,10 +102,21 @@ def _handle(args: argparse.Namespace) -> int:
     if args.iters is not None and not any(o.startswith("mapper.warmup_iters=") for o in overrides):
         overrides.append(f"mapper.warmup_iters={max(0, args.iters // 3)}")
     tasks = [t.strip() for t in args.tasks.split(",")] if args.tasks else None
+    attach = None
+    if args.attach:
+        try:
+            attach = dict(item.split("=", 1) for item in args.attach.split(",") if item.strip())
+        except ValueError:
+            print("gausslite sim: error: --attach must look like name=host:port,...", file=sys.stderr)
+            return 2
+        missing = {"parser", "fusion_server", "agent_a", "agent_b"} - set(attach)
+        if missing - {"parser"}:
+            print(f"gausslite sim: error: --attach misses {sorted(missing)}", file=sys.stderr)
+            return 2
     try:
         from services.sim import run_sim
 
-        res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks,
+        res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks, attach=attach,
                       timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
     except KeyboardInterrupt:
         print("gausslite sim: interrupted (all services stopped)", file=sys.stderr)

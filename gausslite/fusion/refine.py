@@ -88,7 +88,7 @@ def refine_map(
     if not keyframes:
         raise ValueError("refinement needs at least one keyframe")
     base = cfg or MapperConfig()
-    cfg = base.model_copy(update={"seed": seed, "max_gaussians": max(base.max_gaussians, len(arrays)), **overrides})
+    cfg = base.model_copy(update={"seed": seed, "max_gaussians": max(base.max_gaussians or 0, len(arrays)), **overrides})
     mapper = Mapper(cfg)
     mapper.model.set_map(arrays.to_gaussian_map(cfg.device))
     mapper._reset_densify_stats()

@@ -124,6 +124,8 @@ class Mapper:
     def __init__(self, cfg: MapperConfig) -> None:
         self.cfg = cfg
         self.device = torch.device(cfg.device)
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)  # process-wide (see MapperConfig.torch_threads)
         self.model = GaussianModel(cfg.lr, self.device)
         self.rng = np.random.default_rng(cfg.seed)
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
@@ -131,6 +133,8 @@ class Mapper:
         self.keyframes: list[Keyframe] = []
         self.n_mapped = 0
         self.stats: list[FrameStats] = []
+        #: resolved Gaussian budget (``max_gaussians`` or per-pixel rule at the first frame)
+        self.budget: Optional[int] = cfg.max_gaussians
         self._reset_densify_stats()
 
     # ------------------------------------------------------------------ map access
@@ -148,17 +152,18 @@ class Mapper:
                 p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
                 K=K, width=width, height=height, c2w=c2w, subset=subset,
                 background=torch.tensor(self.cfg.background, device=self.device), backend=self.cfg.backend,
+                num_threads=self.cfg.render_threads,
             )
 
     # ------------------------------------------------------------------ seeding
     def _seed(self, frame: Frame, relevance: Optional[np.ndarray]) -> tuple[int, int]:
         cfg, sw = self.cfg, self.cfg.effective()
+        if self.budget is None:
+            self.budget = cfg.max_gaussians or max(1, round(cfg.gaussians_per_pixel * frame.depth.size))
         n = cfg.seeds_per_frame
         if self.n_mapped == 0:
             n = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
-        n = min(n, cfg.max_gaussians - len(self.model))
-        if n <= 0:
-            return 0, 0
+        n = min(n, self.budget)
         valid = frame.depth > 0
         sel = select_seeds(
             valid, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
@@ -187,6 +192,11 @@ class Mapper:
         merged = cur.append(new)
         parent = torch.cat([torch.arange(n_old, device=self.device),
                             torch.full((len(new),), -1, dtype=torch.int64, device=self.device)])
+        if len(merged) > self.budget:
+            # at the budget, new seeds replace the least opaque Gaussians (same rule in every mode;
+            # ties keep the older Gaussian)
+            merged, keep = merged.cap(self.budget)
+            parent = parent[keep]
         self.model.set_map(merged, parent)
         self._reset_densify_stats()
         return int(sel.pixels.size), int(is_roi.sum())
@@ -219,7 +229,7 @@ class Mapper:
         max_scale = gmap.log_scales.exp().max(dim=1).values
         split = high & (max_scale > dc.split_scale_m)
         clone = high & ~split
-        room = self.cfg.max_gaussians - n
+        room = (self.budget or n) - n
         n_new = int(clone.sum()) + int(split.sum())  # n_split=2: one extra row per split
         if n_new > room:
             # keep the highest-gradient candidates within the budget
@@ -263,6 +273,7 @@ class Mapper:
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
             K=kf.K, width=kf.width, height=kf.height, c2w=kf.c2w, subset=subset,
             background=torch.tensor(cfg.background, device=self.device), backend=cfg.backend,
+            num_threads=cfg.render_threads,
         )
         mask = None
         if active_phase:

@@ -1,8 +1,9 @@
 """``torch.autograd.Function`` wrapping the Warp rasterization kernels.
 
 Forward/backward launch :mod:`gausslite.render.warp_kernels` on the device of the input tensors
-(zero-copy through ``wp.from_torch``). On CPU the image is split into ``num_threads`` interleaved
-stripes of tile rows, each launched from its own Python thread (Warp releases the GIL during CPU
+(zero-copy through ``wp.from_torch``): one launch packs the per-Gaussian ``gdata`` rows, then the
+compositing kernels run (per-tile kernels on CPU, per-pixel kernels on CUDA). On CPU the image is
+split into ``num_threads`` interleaved stripes of tile rows, each launched from its own Python thread (Warp releases the GIL during CPU
 launches); in the backward pass every thread accumulates into its own gradient buffer and the
 buffers are summed afterwards, because CPU atomics are not safe across concurrent launches.
 """
@@ -48,6 +49,31 @@ def _stripe_dim(stripe: int, nstripes: int, tiles_y: int, tile_size: int, width:
     return max(n_rows, 0) * tile_size * width
 
 
+def _wp_device(dev: torch.device) -> str:
+    if dev.type == "cuda":
+        return f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
+    return "cpu"
+
+
+def _pack_gdata(means2d, conics, opacities, colors, depths) -> torch.Tensor:
+    """(M, 16) float32 ``gdata`` rows (layout in :mod:`warp_kernels`), built by one Warp launch."""
+    ins = [t.detach() for t in (means2d, conics, opacities, colors, depths)]
+    dt = ins[0].dtype
+    if dt not in (torch.float32, torch.float64) or any(t.dtype != dt for t in ins):
+        ins = [t.to(torch.float64) for t in ins]
+    ins = [t.contiguous() for t in ins]
+    M = ins[0].shape[0]
+    dev = ins[0].device
+    gdata = torch.empty(M, 16, dtype=torch.float32, device=dev)
+    if M > 0:
+        wdev = _wp_device(dev)
+        wk.ensure_loaded(wdev)
+        wp.launch(wk.pack_gdata_kernel, dim=M, inputs=[wp.from_torch(t) for t in ins],
+                  outputs=[wp.from_torch(gdata)], device=wdev,
+                  stream=wp.stream_from_torch(dev) if dev.type == "cuda" else None)
+    return gdata
+
+
 class RasterizeWarp(torch.autograd.Function):
     """Differentiable compositing of projected Gaussians with the Warp kernels.
 
@@ -63,23 +89,21 @@ class RasterizeWarp(torch.autograd.Function):
                 width, height, tile_size, tiles_x, tiles_y, num_threads):
         dev = means2d.device
         M = means2d.shape[0]
-        uv = means2d.detach()
-        uv_hi = uv.to(torch.float32)
-        uv_lo = (uv - uv_hi.to(uv.dtype)).to(torch.float32)
-        op = opacities.detach()
-        p_min = (-torch.log(255.0 * op.to(torch.float64).clamp_min(1e-30)) - 1e-3).to(torch.float32)
-        gdata = torch.cat(
-            [uv_hi, conics.detach().to(torch.float32), op.to(torch.float32)[:, None],
-             colors.detach().to(torch.float32), depths.detach().to(torch.float32)[:, None], uv_lo,
-             p_min[:, None], torch.zeros(M, 3, dtype=torch.float32, device=dev)],
-            dim=1,
-        ).contiguous()
-        # per-intersection copy of the footprint columns, in sorted tile order (see warp_kernels)
-        idata = gdata[:, _IDATA_COLS].index_select(0, gids.to(torch.int64)).contiguous()
+        gdata = _pack_gdata(means2d, conics, opacities, colors, depths)
+        cpu = dev.type != "cuda"
         HW = height * width
-        feat = torch.zeros(HW, 5, dtype=torch.float32, device=dev)
-        T = torch.ones(HW, dtype=torch.float32, device=dev)
-        last = torch.zeros(HW, dtype=torch.int32, device=dev)
+        if cpu:
+            # tile kernels: read gdata through gids and initialise every pixel themselves
+            idata = gdata.new_empty(0, 8)
+            feat = torch.empty(HW, 5, dtype=torch.float32, device=dev)
+            T = torch.empty(HW, dtype=torch.float32, device=dev)
+            last = torch.empty(HW, dtype=torch.int32, device=dev)
+        else:
+            # per-intersection copy of the footprint columns, in sorted tile order (see warp_kernels)
+            idata = gdata[:, _IDATA_COLS].index_select(0, gids.to(torch.int64)).contiguous()
+            feat = torch.zeros(HW, 5, dtype=torch.float32, device=dev)
+            T = torch.ones(HW, dtype=torch.float32, device=dev)
+            last = torch.zeros(HW, dtype=torch.int32, device=dev)
         n_isect = gids.numel()
         nstripes = 1 if dev.type == "cuda" else max(1, min(int(num_threads), tiles_y))
         if n_isect > 0 and M > 0:
@@ -98,6 +122,16 @@ class RasterizeWarp(torch.autograd.Function):
             stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
 
             def launch(s):
+                if cpu:
+                    dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
+                    if dim > 0:
+                        wp.launch(
+                            wk.rasterize_fwd_tile_kernel, dim=dim,
+                            inputs=[a_g, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s,
+                                    nstripes],
+                            outputs=[a_f, a_T, a_l], device=wdev,
+                        )
+                    return
                 dim = _stripe_dim(s, nstripes, tiles_y, tile_size, width)
                 if dim == 0:
                     return
@@ -108,6 +142,10 @@ class RasterizeWarp(torch.autograd.Function):
                 )
 
             _run_parallel([lambda s=s: launch(s) for s in range(nstripes)])
+        elif cpu:
+            feat.zero_()
+            T.fill_(1.0)
+            last.zero_()
         ctx.save_for_backward(gdata, idata, gids, tile_start, T, last)
         ctx.dims = (width, height, tile_size, tiles_x, tiles_y, nstripes)
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype, depths.dtype)
@@ -143,8 +181,21 @@ class RasterizeWarp(torch.autograd.Function):
             a_gf = wp.from_torch(gfeat)
             a_bufs = [wp.from_torch(b) for b in bufs]
             stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
+            cpu = dev.type != "cuda"
+            if cpu:
+                a_st = wp.from_torch(torch.empty(HW, 12, dtype=torch.float32, device=dev))
 
             def launch(s):
+                if cpu:
+                    dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
+                    if dim > 0:
+                        wp.launch(
+                            wk.rasterize_bwd_tile_kernel, dim=dim,
+                            inputs=[a_g, a_ids, a_ts, width, height, tile_size, tiles_x, s,
+                                    nstripes, a_T, a_l, a_gf, a_st],
+                            outputs=[a_bufs[s]], device=wdev,
+                        )
+                    return
                 dim = _stripe_dim(s, nstripes, tiles_y, tile_size, width)
                 if dim == 0:
                     return

@@ -5,7 +5,8 @@ Port of the per-pixel loops of Kerbl et al. 2023 (diff-gaussian-rasterization ``
 same source runs correctly on CPU (one thread per pixel, serial per launch) and CUDA.
 
 Per-Gaussian data is packed into one float32 row (64 bytes)
-``gdata[g] = (u_hi, v_hi, a, b, c, o, r, g, b, z, u_lo, v_lo, p_min, 0, 0, 0)``:
+``gdata[g] = (u_hi, v_hi, a, b, c, o, r, g, b, z, u_lo, v_lo, p_min, ks, k1, k0)``
+(filled by :func:`pack_gdata_kernel`):
 - pixel centre (u, v) stored as a float32 pair ``u = u_hi + u_lo`` (``u_hi - px`` is exact, so
   the pixel offset keeps ~float64 precision at no cost; plain float32 u would carry ~1e-5 px
   rounding at u ~ 300);
@@ -14,12 +15,16 @@ Per-Gaussian data is packed into one float32 row (64 bytes)
 - ``p_min = ln(1 / (255 o)) - 1e-3``: a conservative pre-test (power < p_min implies
   alpha < 1/255) that skips the exp for pairs far outside the footprint; the exact
   ``alpha < 1/255`` test still decides the remaining pairs, so semantics are unchanged.
+- ``(ks, k1, k0)``: row-span coefficients of the CPU tile kernels (see ``pack_gdata_kernel``).
 Gradients are written to (M, 10) buffers holding the first ten columns of that layout.
 
 The footprint test of each (pixel, Gaussian) pair reads a per-intersection copy
 ``idata[j] = (u_hi, v_hi, a, b, c, u_lo, v_lo, p_min)`` stored in the sorted tile order, so the
 inner loop streams through contiguous memory; ``gdata[gids[j]]`` is only read for pairs that
 pass the test.
+
+On CPU, :func:`rasterize_fwd_tile_kernel` / :func:`rasterize_bwd_tile_kernel` (one tile per
+thread, Gaussian-outer) replace the per-pixel kernels below; those remain the CUDA path.
 
 The image is processed in horizontal stripes: launch ``stripe`` of ``nstripes`` covers tile rows
 ``stripe, stripe + nstripes, ...`` so several CPU launches (one per Python thread) can run in
@@ -30,6 +35,7 @@ parallel with balanced work. Thread ``tid`` of a launch maps to pixel
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import warp as wp
 
@@ -239,51 +245,44 @@ def rasterize_bwd_kernel(
 
 
 @wp.func
-def _tile_rows(vv: wp.float64, ca: wp.float64, cb: wp.float64, cc: wp.float64, pr: wp.float64,
-               y0: int, y1: int):
-    """Rows [ya, yb] of ``[y0, y1]`` that can hold a pixel with ``power >= pr`` (conservative)."""
-    det = ca * cc - cb * cb
+def _tile_rows(vv: float, ky1: float, ky0: float, y0: int, y1: int):
+    """Rows [ya, yb] of ``[y0, y1]`` whose row offset ``dy = v - py`` satisfies
+    ``ky0 - ky1 dy^2 >= 0`` (widened by 0.5 px); empty if ya > yb."""
+    e = wp.sqrt(ky0 / ky1) + 0.5
+    lo = wp.ceil(vv - e)
+    hi = wp.floor(vv + e)
     ya = y0
     yb = y1
-    if ca > wp.float64(0.0) and det > wp.float64(0.0):
-        e = wp.sqrt(wp.max(wp.float64(-2.0) * pr * ca / det, wp.float64(0.0))) + wp.float64(0.5)
-        lo = wp.ceil(vv - e)
-        hi = wp.floor(vv + e)
-        if lo > wp.float64(y0):
-            ya = y1 + 1
-            if lo <= wp.float64(y1):
-                ya = int(lo)
-        if hi < wp.float64(y1):
-            yb = y0 - 1
-            if hi >= wp.float64(y0):
-                yb = int(hi)
+    if lo > float(y0):
+        ya = y1 + 1
+        if lo <= float(y1):
+            ya = int(lo)
+    if hi < float(y1):
+        yb = y0 - 1
+        if hi >= float(y0):
+            yb = int(hi)
     return wp.vec2i(ya, yb)
 
 
 @wp.func
-def _row_span(uu: wp.float64, dy: wp.float64, ca: wp.float64, cb: wp.float64, cc: wp.float64,
-              pr: wp.float64, x0: int, x1: int):
-    """Columns [xa, xb] of ``[x0, x1]`` on a row at offset ``dy = v - py`` that can hold a pixel
-    with ``power >= pr`` (conservative: float64 roots widened by 0.5 px); empty if xa > xb."""
-    xa = x0
+def _row_span(cx: float, half2: float, x0: int, x1: int):
+    """Columns [xa, xb] of ``[x0, x1]`` within ``sqrt(half2) + 0.5`` px of ``cx``; empty if
+    ``half2 < 0`` or xa > xb."""
+    xa = x1 + 1
     xb = x1
-    if ca > wp.float64(0.0):
-        disc = cb * cb * dy * dy - ca * (cc * dy * dy + wp.float64(2.0) * pr)
-        if disc < wp.float64(0.0):
+    if half2 >= 0.0:
+        hw = wp.sqrt(half2) + 0.5
+        lo = wp.ceil(cx - hw)
+        hi = wp.floor(cx + hw)
+        xa = x0
+        if lo > float(x0):
             xa = x1 + 1
-        else:
-            sq = wp.sqrt(disc)
-            # power(dx) >= pr  <=>  dx in [(-b dy - sq) / a, (-b dy + sq) / a], px = u - dx
-            lo = wp.ceil(uu - (sq - cb * dy) / ca - wp.float64(0.5))
-            hi = wp.floor(uu + (sq + cb * dy) / ca + wp.float64(0.5))
-            if lo > wp.float64(x0):
-                xa = x1 + 1
-                if lo <= wp.float64(x1):
-                    xa = int(lo)
-            if hi < wp.float64(x1):
-                xb = x0 - 1
-                if hi >= wp.float64(x0):
-                    xb = int(hi)
+            if lo <= float(x1):
+                xa = int(lo)
+        if hi < float(x1):
+            xb = x0 - 1
+            if hi >= float(x0):
+                xb = int(hi)
     return wp.vec2i(xa, xb)
 
 
@@ -337,19 +336,18 @@ def rasterize_fwd_tile_kernel(
         ul = gdata[g, 10]
         vl = gdata[g, 11]
         pm = gdata[g, 12]
-        uu = wp.float64(uh) + wp.float64(ul)
-        vv = wp.float64(vh) + wp.float64(vl)
-        da = wp.float64(ca)
-        db = wp.float64(cb)
-        dc = wp.float64(cc)
-        pr = wp.float64(pm) - wp.float64(0.01)
-        rows = _tile_rows(vv, da, db, dc, pr, y0, y1)
-        hit = int(0)
+        uu = uh + ul
+        vv = vh + vl
+        ks = gdata[g, 13]
+        k1 = gdata[g, 14]
+        k0 = gdata[g, 15]
+        rows = _tile_rows(vv, k1, k0, y0, y1)
         for py in range(rows[0], rows[1] + 1):
-            span = _row_span(uu, vv - wp.float64(py), da, db, dc, pr, x0, x1)
+            fy = float(py)
+            dyr = vv - fy
+            span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
             if span[0] > span[1]:
                 continue
-            fy = float(py)
             dy = (vh - fy) + vl
             for px in range(span[0], span[1] + 1):
                 pix = py * width + px
@@ -368,8 +366,6 @@ def rasterize_fwd_tile_kernel(
                     out_T[pix] = -T
                     n_active -= 1
                     continue
-                if hit == 0:
-                    hit = 1
                 w = alpha * T
                 out_feat[pix, 0] += w * gdata[g, 6]
                 out_feat[pix, 1] += w * gdata[g, 7]
@@ -406,7 +402,9 @@ def rasterize_bwd_tile_kernel(
     """Backward pass of one tile (same gradients as :func:`rasterize_bwd_kernel`, summed per
     Gaussian over the tile before being added to ``grad_gdata``).
 
-    ``state[pix] = (T, R_r, R_g, R_b, R_d)`` is the back-to-front running state of each pixel.
+    ``state[pix] = (T, R_r, R_g, R_b, R_d, dL/dR, dL/dG, dL/dB, dL/dD, dL/dA * T_final, ...)``
+    (12 columns, initialised here) is the back-to-front running state of each pixel, packed so
+    that one pixel's data shares a cache line.
     """
     tid = wp.tid()
     tr = tid // tiles_x
@@ -427,6 +425,11 @@ def rasterize_bwd_tile_kernel(
             state[pix, 2] = 0.0
             state[pix, 3] = 0.0
             state[pix, 4] = 0.0
+            state[pix, 5] = grad_feat[pix, 0]
+            state[pix, 6] = grad_feat[pix, 1]
+            state[pix, 7] = grad_feat[pix, 2]
+            state[pix, 8] = grad_feat[pix, 3]
+            state[pix, 9] = grad_feat[pix, 4] * final_T[pix]
             maxlast = wp.max(maxlast, last_idx[pix])
     for k in range(maxlast - start):
         j = maxlast - 1 - k
@@ -444,13 +447,12 @@ def rasterize_bwd_tile_kernel(
         ul = gdata[g, 10]
         vl = gdata[g, 11]
         pm = gdata[g, 12]
-        uu = wp.float64(uh) + wp.float64(ul)
-        vv = wp.float64(vh) + wp.float64(vl)
-        da = wp.float64(ca)
-        db = wp.float64(cbb)
-        dc = wp.float64(cc)
-        pr = wp.float64(pm) - wp.float64(0.01)
-        rows = _tile_rows(vv, da, db, dc, pr, y0, y1)
+        uu = uh + ul
+        vv = vh + vl
+        ks = gdata[g, 13]
+        k1 = gdata[g, 14]
+        k0 = gdata[g, 15]
+        rows = _tile_rows(vv, k1, k0, y0, y1)
         hit = int(0)
         s_u = float(0.0)
         s_v = float(0.0)
@@ -463,10 +465,11 @@ def rasterize_bwd_tile_kernel(
         s_bl = float(0.0)
         s_d = float(0.0)
         for py in range(rows[0], rows[1] + 1):
-            span = _row_span(uu, vv - wp.float64(py), da, db, dc, pr, x0, x1)
+            fy = float(py)
+            dyr = vv - fy
+            span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
             if span[0] > span[1]:
                 continue
-            fy = float(py)
             dy = (vh - fy) + vl
             for px in range(span[0], span[1] + 1):
                 pix = py * width + px
@@ -485,11 +488,11 @@ def rasterize_bwd_tile_kernel(
                 inv = 1.0 / (1.0 - alpha)
                 T = state[pix, 0] * inv
                 w = alpha * T
-                gr = grad_feat[pix, 0]
-                gg = grad_feat[pix, 1]
-                gb = grad_feat[pix, 2]
-                gd = grad_feat[pix, 3]
-                ga = grad_feat[pix, 4]
+                gr = state[pix, 5]
+                gg = state[pix, 6]
+                gb = state[pix, 7]
+                gd = state[pix, 8]
+                gaT = state[pix, 9]
                 rr = state[pix, 1]
                 rg = state[pix, 2]
                 rb = state[pix, 3]
@@ -503,7 +506,7 @@ def rasterize_bwd_tile_kernel(
                     + (fg * T - rg * inv) * gg
                     + (fb * T - rb * inv) * gb
                     + (fd * T - rd * inv) * gd
-                    + ga * final_T[pix] * inv
+                    + gaT * inv
                 )
                 state[pix, 0] = T
                 state[pix, 1] = rr + fr * w
@@ -530,6 +533,62 @@ def rasterize_bwd_tile_kernel(
             wp.atomic_add(grad_gdata, g, 8, s_bl)
             wp.atomic_add(grad_gdata, g, 9, s_d)
 
+
+
+@wp.kernel
+def pack_gdata_kernel(
+    means2d: wp.array2d(dtype=Any),
+    conics: wp.array2d(dtype=Any),
+    opacities: wp.array(dtype=Any),
+    colors: wp.array2d(dtype=Any),
+    depths: wp.array(dtype=Any),
+    gdata: wp.array2d(dtype=wp.float32),
+):
+    """Fill one row of the 16-column ``gdata`` layout (see the module docstring) from the
+    projected parameters (float32 or float64). Columns 13-15 hold the row-span coefficients
+    ``(b / a, det / a^2, -2 (p_min - 0.01) / a)`` used by the tile kernels: on the row at offset
+    ``dy = v - py`` the pixels with ``power >= p_min - 0.01`` lie within ``sqrt(k0 - k1 dy^2)`` px
+    of ``u + (b / a) dy`` (unbounded span if the conic is not positive definite)."""
+    i = wp.tid()
+    u = wp.float64(means2d[i, 0])
+    v = wp.float64(means2d[i, 1])
+    uh = wp.float32(u)
+    vh = wp.float32(v)
+    a = wp.float64(conics[i, 0])
+    b = wp.float64(conics[i, 1])
+    c = wp.float64(conics[i, 2])
+    o = wp.float64(opacities[i])
+    p_min = -wp.log(wp.float64(255.0) * wp.max(o, wp.float64(1e-30))) - wp.float64(1e-3)
+    gdata[i, 0] = uh
+    gdata[i, 1] = vh
+    gdata[i, 2] = wp.float32(a)
+    gdata[i, 3] = wp.float32(b)
+    gdata[i, 4] = wp.float32(c)
+    gdata[i, 5] = wp.float32(o)
+    gdata[i, 6] = wp.float32(colors[i, 0])
+    gdata[i, 7] = wp.float32(colors[i, 1])
+    gdata[i, 8] = wp.float32(colors[i, 2])
+    gdata[i, 9] = wp.float32(depths[i])
+    gdata[i, 10] = wp.float32(u - wp.float64(uh))
+    gdata[i, 11] = wp.float32(v - wp.float64(vh))
+    gdata[i, 12] = wp.float32(p_min)
+    det = a * c - b * b
+    ks = wp.float64(0.0)
+    k1 = wp.float64(0.0)
+    k0 = wp.float64(1e38)
+    if a > wp.float64(0.0) and det > wp.float64(0.0) and wp.isfinite(det):
+        ks = b / a
+        k1 = det / (a * a)
+        k0 = wp.float64(-2.0) * (p_min - wp.float64(0.01)) / a
+    gdata[i, 13] = wp.float32(ks)
+    gdata[i, 14] = wp.float32(k1)
+    gdata[i, 15] = wp.float32(k0)
+
+
+for _T in (wp.float32, wp.float64):
+    wp.overload(pack_gdata_kernel, [wp.array2d(dtype=_T), wp.array2d(dtype=_T), wp.array(dtype=_T),
+                                    wp.array2d(dtype=_T), wp.array(dtype=_T),
+                                    wp.array2d(dtype=wp.float32)])
 
 
 def ensure_loaded(device: str) -> None:

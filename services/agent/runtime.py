@@ -229,6 +229,7 @@ class AgentRuntime:
         self.mapper = Mapper(config.mapper)
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
+        self._finish_lock = threading.Lock()
         self._push_cv = threading.Condition(self._lock)
         self._pending: Optional[_Snapshot] = None
         self._final_done = threading.Event()
@@ -518,6 +519,14 @@ class AgentRuntime:
         Raises:
             TimeoutError: mapping or the final push did not complete within ``timeout_s``.
         """
+        if not self._finish_lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s)):
+            raise TimeoutError(f"mission {self.mission_id}: another Finish still running after {timeout_s} s")
+        try:
+            return self._finish(push, evaluate, timeout_s)
+        finally:
+            self._finish_lock.release()
+
+    def _finish(self, push: bool, evaluate: bool, timeout_s: Optional[float]) -> MissionSummaryData:
         with self._lock:
             if self.summary is not None:
                 return self.summary

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -412,6 +413,16 @@ def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
         raise RuntimeError(f"cannot start the mission: parser service {e.code().name}: {e.details()}") from None
     print(f"agent {settings.agent_id} listening on {options.host}:{agent.port}", flush=True)
     try:
-        return run_until_signalled(agent.running)
+        rc = run_until_signalled(agent.running)
     finally:
         agent.servicer.close()
+    busy = [t.name for t in threading.enumerate() if t.name.startswith("agent-") and t.is_alive()]
+    if busy:
+        # a frame still being optimised in a daemon thread: exiting the interpreter normally would tear
+        # torch/warp down under it (C++ abort); everything worth keeping is flushed already.
+        log.info("exiting with mapping threads still busy: %s", ", ".join(busy))
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc

@@ -223,10 +223,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
         self._shutdown = threading.Event()
+        self._workers: "set[threading.Thread]" = set()
 
-    def shutdown(self) -> None:
-        """Ask running Fuse work to stop (used after the gRPC grace period)."""
+    def shutdown(self, wait_s: float = 10.0) -> None:
+        """Stop running Fuse work (after the gRPC grace period) and wait up to ``wait_s`` for it.
+
+        A refinement notices the request at its next progress report (about every 1/20 of its
+        iterations).
+        """
         self._shutdown.set()
+        deadline = time.monotonic() + wait_s
+        for t in list(self._workers):
+            t.join(max(0.0, deadline - time.monotonic()))
 
     # ------------------------------------------------------------------ helpers
     def _session(self, agent_id: str) -> Session:
@@ -422,6 +430,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         worker = threading.Thread(target=self._fuse_work, name="gausslite-fuse", daemon=True,
                                   args=(latest, method, voxel, bool(request.refine), iters, int(request.seed),
                                         events, cancel))
+        self._workers.add(worker)
         worker.start()
         try:
             while True:
@@ -525,6 +534,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         except Exception as e:  # noqa: BLE001 - reported to the caller as a status
             log.exception("Fuse work failed")
             events.put(("error", e))
+        finally:
+            self._workers.discard(threading.current_thread())
 
     @_stream_guard
     def DownloadFused(self, request, context):  # noqa: N802
@@ -533,8 +544,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown method filter {method}")
         found = self.store.fused_info(int(request.fused_version), method)
         if found is None:
-            what = f"fused version {request.fused_version}" if request.fused_version else "a fused map"
-            raise _Reject(grpc.StatusCode.NOT_FOUND, f"no {what}"
+            what = f"fused version {request.fused_version}" if request.fused_version else "no fused map yet"
+            raise _Reject(grpc.StatusCode.NOT_FOUND, f"unknown {what}" if request.fused_version else what
                           + (f" of method {_METHOD_NAMES[method]}" if method else ""))
         version, info_bytes, n = found
         info = fusion_pb2.FuseResult.FromString(info_bytes)
@@ -645,6 +656,8 @@ def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: 
     ``data_dir``, else ``./gausslite_fusion_data``; the port file from ``port_file`` or
     ``$GAUSSLITE_FUSION_PORT_FILE``. Prints ``fusion listening on HOST:PORT`` once serving.
     """
+    if not logging.getLogger().handlers:  # `gausslite serve` does not configure logging itself
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = FusionConfig.from_file(config_path) if config_path else FusionConfig()
     data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
     server = serve(options, config, data_dir=data_dir)

@@ -239,7 +239,7 @@ class FusionStore:
         """Create the upload record (or refresh its full-map sizes when nonzero).
 
         Raises:
-            ValueError: the record exists with another chunk count.
+            ValueError: the record exists with another chunk count and already holds chunks.
         """
         with self._tx() as db:
             up = self._upload(db, agent_id, map_version)
@@ -247,7 +247,10 @@ class FusionStore:
                 db.execute("INSERT INTO uploads (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes) "
                            "VALUES (?,?,?,?,?)", (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes))
             else:
-                if up.n_chunks != n_chunks:
+                if up.n_chunks != n_chunks and not up.stored:  # announced, nothing stored: re-chunked
+                    db.execute("UPDATE uploads SET n_chunks=? WHERE agent_id=? AND map_version=?",
+                               (n_chunks, agent_id, map_version))
+                elif up.n_chunks != n_chunks:
                     raise ValueError(f"map_version {map_version} of {agent_id!r} was announced with "
                                      f"{up.n_chunks} chunks, header says {n_chunks}")
                 if full_map_gaussians:

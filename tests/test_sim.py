@@ -1,0 +1,58 @@
+"""``gausslite sim``: a tiny two-agent simulation with real processes (parser, fusion server, two agents)
+on loopback, fusion (concat / vote / vote+refine), evaluation and the report (SPEC §1, §7, §9)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import pytest
+
+from services.sim import plan_agents, load_sim_config, run_sim
+
+TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
+        "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=150",
+        "sim.fuse.refine_iters=3"]
+
+
+def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
+    res = run_sim(tmp_path / "sim", None, overrides=TINY, timeout_s=240, progress=False)
+    rep = json.loads((tmp_path / "sim" / "report.json").read_text())
+    assert rep == json.loads(json.dumps(res.report))
+    assert [a["id"] for a in rep["agents"]] == ["agent_a", "agent_b"]
+    assert [a["task"] for a in rep["agents"]] == ["synth-pick-object", "synth-find-chair"]
+    for a in rep["agents"]:
+        assert set(a) >= {"id", "task", "roi_psnr", "n_gaussians", "n_shared", "share_pct", "bytes_per_gaussian"}
+        assert a["roi_psnr"] is not None and 5 < a["roi_psnr"] < 80
+        assert 0 < a["n_shared"] < a["n_gaussians"]
+        assert math.isclose(a["share_pct"], 100 * a["n_shared"] / a["n_gaussians"], rel_tol=1e-3)
+        assert 0 < a["bytes_per_gaussian"] < 100
+    assert set(rep["fused"]) == {"concat", "vote", "refine"}
+    shared = sum(a["n_shared"] for a in rep["agents"])
+    assert rep["fused"]["concat"]["n_gaussians"] == shared
+    assert rep["fused"]["vote"]["n_gaussians"] <= shared
+    for k, f in rep["fused"].items():
+        assert set(f) >= {"roi_psnr_mean", "roi_psnr_per_task", "n_gaussians", "seconds"}
+        assert set(f["roi_psnr_per_task"]) == {"synth-pick-object", "synth-find-chair"}
+        assert f["roi_psnr_mean"] is not None and 5 < f["roi_psnr_mean"] < 80
+    md = (tmp_path / "sim" / "report.md").read_text()
+    assert "| agent_a | synth-pick-object |" in md and "| refine |" in md
+    assert rep["renders"] and all((tmp_path / "sim" / r["path"]).is_file() for r in rep["renders"])
+    # every child process is gone
+    assert set(res.pids) == {"parser", "fusion_server", "agent_a", "agent_b"}
+    for pid in res.pids.values():
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+def test_sim_plans_room0_tasks(room0_dir):
+    plans = plan_agents(str(room0_dir), load_sim_config())
+    assert [p.task_id for p in plans] == ["room0-pick-plant", "room0-find-ottoman"]
+    assert plans[0].dataset == plans[1].dataset == str(room0_dir)
+
+
+def test_sim_rejects_bad_settings_before_starting(tmp_path):
+    with pytest.raises(Exception) as e:
+        load_sim_config(None, ["mapper.iters_per_frame=0"])
+    assert "iters_per_frame" in str(e.value)
