@@ -178,3 +178,17 @@ def test_relevance_shape_checked():
     m = Mapper(_cfg())
     with pytest.raises(ValueError, match="relevance"):
         m.map_frame(_frame(0), np.zeros((3, 3), bool))
+
+
+def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
+    cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=2, warmup_iters=0)
+    assert cfg.max_gaussians is None
+    m = Mapper(cfg)
+    m.map_frame(_frame(0))
+    assert m.budget == H * W  # gaussians_per_pixel = 1.0
+    assert len(m.model) == H * W  # first frame asks for 3000 seeds, capped at the budget
+    # a frame looking at a new part of the plane (shifted 3 m): its seeds must enter the full map
+    m.map_frame(_frame(1, shift=3.0))
+    assert len(m.model) == H * W
+    x = m.model.params["means"].detach()[:, 0]
+    assert int((x > 1.5).sum()) == 1500  # every seed of the new view (x in [1.9, 4.1] m) entered the map

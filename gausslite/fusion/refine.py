@@ -3,7 +3,8 @@
 After the voxel vote, a short joint optimisation over keyframes drawn uniformly from the union of the
 agents' keyframe buffers smooths the seams between the agents' contributions. It uses the mapper's
 loss (Eq. 1) and adaptive density control, with every Gaussian treated as active (full-image
-rendering, all Gaussians updated). κ and the active flags are carried through unchanged (daughters
+rendering, all Gaussians updated; by default the loss covers the map's rendered footprint, since
+a fused map holds only ROI subsets). κ and the active flags are carried through unchanged (daughters
 inherit them), so a refined map can be voted again.
 """
 
@@ -61,6 +62,7 @@ def refine_map(
     progress: Optional[ProgressFn] = None,
     seed: int = 0,
     cfg: Optional[MapperConfig] = None,
+    footprint_only: bool = True,
     **overrides,
 ):
     """Jointly optimise a (fused) map over a keyframe pool.
@@ -71,6 +73,10 @@ def refine_map(
         iters: number of Adam iterations (0 returns the input unchanged).
         progress: optional callback ``(fraction in [0,1], message)``, called about 20 times.
         seed: RNG seed for view sampling and splits.
+        footprint_only: restrict the loss to pixels the map renders (alpha > ``footprint_alpha``).
+            A fused map holds only the agents' ROI subsets: a full-image loss would make those
+            Gaussians explain background they do not cover (measured on Replica room0: refine 0.2 dB
+            below vote with the full-image loss).
         cfg: mapper config supplying learning rates, loss weights and density control (default
             ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``max_gaussians=...``).
     Returns:
@@ -97,7 +103,7 @@ def refine_map(
     every = max(1, iters // 20)
     for it in range(iters):
         kf = kfs[int(rng.integers(len(kfs)))]
-        loss = mapper._iterate(kf, active_phase=False)
+        loss = mapper._iterate(kf, active_phase=False, footprint_only=footprint_only)
         if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0 and it + 1 < iters:
             mapper._densify_and_prune()
         if progress is not None and ((it + 1) % every == 0 or it + 1 == iters):

@@ -193,9 +193,11 @@ class Mapper:
         parent = torch.cat([torch.arange(n_old, device=self.device),
                             torch.full((len(new),), -1, dtype=torch.int64, device=self.device)])
         if len(merged) > self.budget:
-            # at the budget, new seeds replace the least opaque Gaussians (same rule in every mode;
-            # ties keep the older Gaussian)
-            merged, keep = merged.cap(self.budget)
+            # at the budget, the new seeds (what this frame sees) always enter and replace the least
+            # opaque existing Gaussians (same rule in every mode)
+            score = torch.cat([torch.sigmoid(cur.opacity_logits),
+                               torch.full((len(new),), 2.0, device=self.device)])
+            merged, keep = merged.cap(self.budget, score=score)
             parent = parent[keep]
         self.model.set_map(merged, parent)
         self._reset_densify_stats()
@@ -265,7 +267,13 @@ class Mapper:
             return current
         return win[int(self.rng.integers(len(win)))]
 
-    def _iterate(self, kf: Keyframe, active_phase: bool) -> float:
+    def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False) -> float:
+        """One Adam iteration on keyframe ``kf``.
+
+        ``active_phase``: render/update only active Gaussians, loss on ROI ∩ footprint (paper III-D).
+        ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
+        used to refine partial maps such as fused ROI subsets, which do not cover the background.
+        """
         cfg = self.cfg
         p = self.model.params
         subset = self.model.active if active_phase else None
@@ -279,6 +287,8 @@ class Mapper:
         if active_phase:
             roi = kf.roi if kf.roi is not None else torch.zeros_like(kf.depth, dtype=torch.bool)
             mask = roi & (out.alpha.detach() > cfg.footprint_alpha)
+        elif footprint_only:
+            mask = out.alpha.detach() > cfg.footprint_alpha
         loss = photometric_loss(out, kf, cfg.lambda_depth, cfg.lambda_ssim, mask)
         loss.backward()
         if cfg.densify.enabled:

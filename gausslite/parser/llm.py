@@ -18,6 +18,7 @@ No gRPC here.
 
 from __future__ import annotations
 
+import abc
 import json
 import os
 import re
@@ -216,18 +217,18 @@ def graph_from_llm_text(raw: str, task_text: str, backend: str) -> TaskGraph:
 # --------------------------------------------------------------------------------------------
 
 
-class LLMBackend:
+class LLMBackend(abc.ABC):
     """Base class: subclasses implement :meth:`complete`; :meth:`parse` validates the answer."""
 
     name = "llm"
 
+    @abc.abstractmethod
     def complete(self, messages: List[Dict[str, str]], timeout_s: Optional[float] = None) -> str:
         """Return the model's raw text answer to ``messages``.
 
         Raises:
             LLMBackendError: transport/runtime failure or timeout.
         """
-        raise NotImplementedError
 
     def parse(self, task_text: str, timeout_s: Optional[float] = None) -> TaskGraph:
         """Few-shot prompt the model and return the validated graph.
