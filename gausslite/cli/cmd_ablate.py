@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +87,7 @@ def write_report(rows: list[dict], out: Path, title: str) -> None:
     ax2.plot(x, [r["psnr"] for r in rows], "s--", color="tab:blue", label="full-image PSNR")
     ax2.set_ylabel("full-image PSNR [dB]", color="tab:blue")
     ax1.set_xticks(x, [r["row"] for r in rows])
-    ax1.set_title(f"Ablation trade-off: {title}")
+    ax1.set_title("Ablation trade-off: " + textwrap.fill(title, 60), fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "ablation.png", dpi=120)
     plt.close(fig)
