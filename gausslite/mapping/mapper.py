@@ -127,6 +127,7 @@ class Mapper:
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)  # process-wide (see MapperConfig.torch_threads)
         self.model = GaussianModel(cfg.lr, self.device)
+        self._background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.rng = np.random.default_rng(cfg.seed)
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.window: deque[Keyframe] = deque(maxlen=cfg.window)
@@ -146,14 +147,17 @@ class Mapper:
     def render(self, c2w: torch.Tensor | np.ndarray, K: torch.Tensor | np.ndarray, width: int, height: int,
                subset: Optional[torch.Tensor] = None) -> RenderOutput:
         """Render the current map (no gradients) from a camera-to-world pose ``c2w`` (4,4)."""
-        p = self.model.params
         with torch.no_grad():
-            return rasterize(
-                p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
-                K=K, width=width, height=height, c2w=c2w, subset=subset,
-                background=torch.tensor(self.cfg.background, device=self.device), backend=self.cfg.backend,
-                num_threads=self.cfg.render_threads,
-            )
+            return self._rasterize(c2w, K, width, height, subset)
+
+    def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor]) -> RenderOutput:
+        """Render the current parameters (differentiable) with the configured backend and threads."""
+        p = self.model.params
+        return rasterize(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+            K=K, width=width, height=height, c2w=c2w, subset=subset, background=self._background,
+            backend=self.cfg.backend, num_threads=self.cfg.render_threads,
+        )
 
     # ------------------------------------------------------------------ seeding
     def _seed(self, frame: Frame, relevance: Optional[np.ndarray]) -> tuple[int, int]:
@@ -275,14 +279,8 @@ class Mapper:
         used to refine partial maps such as fused ROI subsets, which do not cover the background.
         """
         cfg = self.cfg
-        p = self.model.params
         subset = self.model.active if active_phase else None
-        out = rasterize(
-            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
-            K=kf.K, width=kf.width, height=kf.height, c2w=kf.c2w, subset=subset,
-            background=torch.tensor(cfg.background, device=self.device), backend=cfg.backend,
-            num_threads=cfg.render_threads,
-        )
+        out = self._rasterize(kf.c2w, kf.K, kf.width, kf.height, subset)
         mask = None
         if active_phase:
             roi = kf.roi if kf.roi is not None else torch.zeros_like(kf.depth, dtype=torch.bool)

@@ -107,9 +107,7 @@ class RasterizeWarp(torch.autograd.Function):
         n_isect = gids.numel()
         nstripes = 1 if dev.type == "cuda" else max(1, min(int(num_threads), tiles_y))
         if n_isect > 0 and M > 0:
-            wdev = "cuda" if dev.type == "cuda" else "cpu"
-            if dev.type == "cuda":
-                wdev = f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
+            wdev = _wp_device(dev)
             wk.ensure_loaded(wdev)
             a_g = wp.from_torch(gdata)
             a_i = wp.from_torch(idata)
@@ -168,9 +166,7 @@ class RasterizeWarp(torch.autograd.Function):
         ).to(torch.float32).contiguous()
         bufs = [zeros(M, 10) for _ in range(nstripes)]
         if gids.numel() > 0 and M > 0:
-            wdev = "cpu"
-            if dev.type == "cuda":
-                wdev = f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
+            wdev = _wp_device(dev)
             wk.ensure_loaded(wdev)
             a_g = wp.from_torch(gdata)
             a_i = wp.from_torch(idata)
