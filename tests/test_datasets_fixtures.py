@@ -293,7 +293,11 @@ def test_tum_full_size_frame_and_undistort(tmp_path):
     seq = make_tum(tmp_path, n=1, w=640, h=480)
     ds = TUMDataset(seq, undistort=True, downscale=4)
     f = ds[0]
-    assert f.rgb.shape == (120, 160, 3) and f.intrinsics.fx == pytest.approx(517.3 / 4)
+    # undistorted onto the alpha=0 optimal camera: zoomed in (fx 546.75 at 640x480), no black border
+    assert f.rgb.shape == (120, 160, 3) and f.intrinsics.fx == pytest.approx(546.75 / 4, abs=0.01)
+    assert ds.raw_intrinsics.fx == 517.3 and ds.native_intrinsics.fx == pytest.approx(546.75, abs=0.01)
+    raw = TUMDataset(seq, downscale=4)[0]
+    assert (raw.depth > 0).all() and (f.depth > 0).all()
     assert set(np.unique(f.depth)) <= {0.0, 1.0}
 
 

@@ -101,6 +101,29 @@ def test_roi_loss_restricted_to_roi_and_footprint():
     assert not torch.isclose(l1, l_full)
 
 
+@pytest.mark.parametrize("active_stats", [False, True])
+def test_densify_statistics_come_from_full_image_iterations(active_stats):
+    """ROI-phase renders hold only the active subset: by default they do not feed clone/split."""
+    cfg = _cfg()
+    cfg.densify.enabled = True
+    cfg.densify.active_phase_stats = active_stats
+    m = Mapper(cfg)
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    m.window.append(kf)
+    m._iterate(kf, active_phase=False)
+    after_warmup = (m._grad_accum.clone(), m._grad_count.clone())
+    assert after_warmup[1].sum() > 0  # full-image iteration counted every visible Gaussian
+    m._iterate(kf, active_phase=True)
+    if active_stats:
+        act = m.model.active
+        assert torch.all(m._grad_count[act] > after_warmup[1][act])
+        assert torch.equal(m._grad_count[~act], after_warmup[1][~act])
+    else:
+        assert torch.equal(m._grad_accum, after_warmup[0]) and torch.equal(m._grad_count, after_warmup[1])
+
+
 def test_uniform_mode_never_uses_the_roi_phase(monkeypatch):
     subsets = []
     real = mapper_mod.rasterize

@@ -26,6 +26,10 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-gaussians", type=int, default=None, help="global Gaussian budget")
     p.add_argument("--backend", default=None, choices=["auto", "warp", "torch", "gsplat"])
     p.add_argument("--seed", type=int, default=None, help="random seed")
+    p.add_argument("--undistort", action="store_true",
+                   help="TUM only: undistort with the Freiburg coefficients (onto the alpha=0 optimal pinhole camera)")
+    p.add_argument("--interpolate-poses", action="store_true",
+                   help="TUM only: interpolate ground-truth poses at the colour timestamps")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -42,6 +46,14 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
             log.info("no --dataset: generating the synthetic default scene in %s", scene_dir)
             make_scene(scene_dir)
         path = scene_dir / "agent_a"
+    tum_kw = {k: True for k in ("undistort", "interpolate_poses") if getattr(args, k, False)}
+    if tum_kw:
+        from gausslite.datasets.tum import TUMDataset
+
+        ds = load_dataset(path, downscale=args.downscale, max_frames=args.max_frames)
+        if not isinstance(ds, TUMDataset):
+            raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
+        return load_dataset(path, kind="tum", downscale=args.downscale, max_frames=args.max_frames, **tum_kw)
     return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames)
 
 

@@ -20,7 +20,10 @@ Intrinsics: TUM's published pinhole values chosen from the sequence name (folder
 521.0 325.1 249.7, freiburg3/fr3 535.4 539.2 320.1 247.6, otherwise the ROS default 525 525 319.5 239.5;
 all at 640x480. **Images are not undistorted by default** (as most GS-SLAM loaders do); pass
 ``undistort=True`` to undistort colour (bilinear) and depth (nearest) with the published Freiburg
-distortion coefficients (fr3 and the default are distortion-free).
+distortion coefficients (fr3 and the default are distortion-free). Undistortion maps to a new
+pinhole camera chosen with OpenCV's ``getOptimalNewCameraMatrix(alpha=0)`` so that every output pixel
+is valid (fr1: fx 546.75, fy 543.09, cx 320.08, cy 251.85 at 640x480); ``intrinsics`` and
+``native_intrinsics`` then describe the undistorted images, ``raw_intrinsics`` the files on disk.
 """
 
 from __future__ import annotations
@@ -213,7 +216,8 @@ class TUMDataset(PosedImageDataset):
         depth_scale: raw depth units per metre (5000 for TUM).
         max_depth_dt, max_pose_dt: maximum |colour - depth| and |colour - groundtruth| gaps (seconds).
         interpolate_poses: interpolate between the bracketing groundtruth samples.
-        undistort: undistort images with ``distortion`` (default: the published Freiburg coefficients).
+        undistort: undistort images with ``distortion`` (default: the published Freiburg coefficients)
+            onto the alpha=0 optimal new pinhole camera (see the module docstring).
         distortion: override ``(k1, k2, p1, p2, k3)``.
 
     Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``freiburg`` (1/2/3/None),
@@ -276,7 +280,16 @@ class TUMDataset(PosedImageDataset):
         if len(dist) != 5 or not all(math.isfinite(v) for v in dist):
             raise ValueError(f"distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {distortion!r}")
         self.distortion = dist
-        self.undistort = bool(undistort)
+        self.undistort = bool(undistort) and any(dist)
+        #: pinhole intrinsics of the raw (distorted) image files; ``native_intrinsics`` differ from
+        #: these only when ``undistort=True``
+        self.raw_intrinsics = intr
+        if self.undistort:
+            # new camera matrix chosen so that every output pixel has a source pixel (OpenCV's
+            # getOptimalNewCameraMatrix with alpha=0): no black border enters the map or the metrics
+            new_k, _ = cv2.getOptimalNewCameraMatrix(intr.K, np.asarray(dist), (intr.width, intr.height), 0.0)
+            intr = Intrinsics(float(new_k[0, 0]), float(new_k[1, 1]), float(new_k[0, 2]), float(new_k[1, 2]),
+                              intr.width, intr.height)
 
         # association
         d_order = np.argsort(depth_ts, kind="stable")
@@ -343,13 +356,12 @@ class TUMDataset(PosedImageDataset):
 
     def _preprocess(self, rgb: np.ndarray, depth: np.ndarray, i: int):
         """Undistort colour (bilinear) and depth (nearest, keeps values) when ``undistort=True``."""
-        if not self.undistort or not any(self.distortion):
+        if not self.undistort:
             return rgb, depth
         if self._maps is None:
-            ni = self.native_intrinsics
-            K = ni.K
+            ri, ni = self.raw_intrinsics, self.native_intrinsics
             self._maps = cv2.initUndistortRectifyMap(
-                K, np.asarray(self.distortion), None, K, (ni.width, ni.height), cv2.CV_32FC1
+                ri.K, np.asarray(self.distortion), None, ni.K, (ni.width, ni.height), cv2.CV_32FC1
             )
         mx, my = self._maps
         rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -9,7 +9,8 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
 3. ROI: after ``warmup_iters`` full-image iterations, the rest render and update only active
    Gaussians with colour/depth/SSIM restricted to ROI ∩ rendered footprint; κ += 1 per active
    iteration for every active Gaussian;
-4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget.
+4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
+   view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
 The mapper does not care where w came from (ground truth or the attention front-end).
 """
@@ -289,7 +290,7 @@ class Mapper:
             mask = out.alpha.detach() > cfg.footprint_alpha
         loss = photometric_loss(out, kf, cfg.lambda_depth, cfg.lambda_ssim, mask)
         loss.backward()
-        if cfg.densify.enabled:
+        if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
             self._accumulate(out, kf.width, kf.height)
         self.model.step(update=self.model.active if active_phase else None)
         if active_phase:
