@@ -41,6 +41,9 @@ def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int 
         results.setdefault(name, {})[task] = {
             k: m[k] for k in ("roi_psnr", "psnr", "ssim", "roi_ssim", "seconds_per_frame", "n_gaussians", "n_active")
         }
+        log.info("row %s, task %s: ROI PSNR %.2f dB, PSNR %.2f dB, %.2f s/frame, %d Gaussians",
+                 name, task, m["roi_psnr"] if m["roi_psnr"] is not None else float("nan"), m["psnr"],
+                 m["seconds_per_frame"], m["n_gaussians"])
         bar.update(1)
     bar.close()
     for name, sw in ablation_rows():

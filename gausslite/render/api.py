@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .autograd import RasterizeWarp, default_num_threads
+from .autograd import RasterizeWarp, default_num_threads, project_gaussians_warp
 from .binning import bin_gaussians
 from .projection import project_gaussians
 from .reference import rasterize_reference
@@ -118,7 +118,10 @@ def rasterize(
     Pipeline: optional subset gather -> :func:`project_gaussians` (EWA splatting, Zwicker et al.
     2001) -> tile binning and depth sort -> per-pixel front-to-back alpha compositing (alpha
     clamped to 0.99, alpha < 1/255 skipped, stop before transmittance < 1e-4) -> background and
-    depth normalisation in torch.
+    depth normalisation. With backend "warp" on CPU (float32/float64 parameters) every stage runs
+    in Warp kernels (projection by :class:`~gausslite.render.autograd.ProjectWarp`, evaluated in
+    float64; sigmoid, background and depth normalisation fused into the compositing kernels);
+    otherwise projection, sigmoid and the final normalisation are torch code.
 
     Args:
         means: (N, 3) float32/float64 centres, world frame, metres.
@@ -199,6 +202,25 @@ def rasterize(
             near=near, far=far, eps2d=eps2d, tile_size=tile_size,
         )
     else:
+        if backend == "warp":
+            nt = default_num_threads() if num_threads is None else int(num_threads)
+            if nt <= 0:
+                raise ValueError(f"num_threads must be > 0, got {num_threads}")
+        if backend == "warp" and device.type == "cpu" and dtype in (torch.float32, torch.float64):
+            # CPU fast path: projection, binning, sigmoid, compositing over the background and
+            # depth normalisation all run in Warp kernels (few per-element torch ops).
+            proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
+                                          near=near, far=far, eps2d=eps2d, num_threads=nt)
+            means2d, radii = proj.means2d, proj.radii
+            if torch.is_grad_enabled() and means2d.requires_grad:
+                means2d.retain_grad()
+            bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt)
+            color, depth, alpha = RasterizeWarp.apply(
+                means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
+                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg,
+            )
+            return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii,
+                                ids=ids)
         proj = project_gaussians(m, q, ls, vm64.to(dtype), K64.to(dtype), width, height,
                                  near=near, far=far, eps2d=eps2d)
         means2d, radii = proj.means2d, proj.radii
@@ -207,9 +229,6 @@ def rasterize(
         opac = torch.sigmoid(ol)
         bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size)
         if backend == "warp":
-            nt = default_num_threads() if num_threads is None else int(num_threads)
-            if nt <= 0:
-                raise ValueError(f"num_threads must be > 0, got {num_threads}")
             color_raw, depth_sum, alpha = RasterizeWarp.apply(
                 means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,
                 bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt,

@@ -1,47 +1,36 @@
-"""``torch.autograd.Function`` wrapping the Warp rasterization kernels.
+"""``torch.autograd.Function`` wrappers of the Warp kernels (projection and rasterization).
 
 Forward/backward launch :mod:`gausslite.render.warp_kernels` on the device of the input tensors
-(zero-copy through ``wp.from_torch``): one launch packs the per-Gaussian ``gdata`` rows, then the
-compositing kernels run (per-tile kernels on CPU, per-pixel kernels on CUDA). On CPU the image is
-split into ``num_threads`` interleaved stripes of tile rows, each launched from its own Python thread (Warp releases the GIL during CPU
-launches); in the backward pass every thread accumulates into its own gradient buffer and the
-buffers are summed afterwards, because CPU atomics are not safe across concurrent launches.
+(zero-copy through ``wp.from_torch``).
+
+:class:`RasterizeWarp`: one launch packs the per-Gaussian ``gdata`` rows, then the compositing
+kernels run (per-tile kernels on CPU, per-pixel kernels on CUDA). On CPU the image is split into
+``num_threads`` interleaved stripes of tile rows, each launched from its own Python thread (Warp
+releases the GIL during CPU launches); in the backward pass every thread accumulates into its own
+gradient buffer and one launch sums the buffers into the input gradients, because CPU atomics are
+not safe across concurrent launches.
+
+:class:`ProjectWarp` (CPU): the EWA projection of
+:func:`gausslite.render.projection.project_gaussians` as one forward and one backward launch.
 """
 
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import warp as wp
 
 from . import warp_kernels as wk
+from .projection import Projection
 
 _IDATA_COLS = [0, 1, 2, 3, 4, 10, 11, 12]
-_pool: ThreadPoolExecutor | None = None
-_pool_size = 0
+_run_parallel = wk.run_parallel
 
 
 def default_num_threads() -> int:
     """Default CPU launch parallelism: ``min(2, os.cpu_count())``."""
     return max(1, min(2, os.cpu_count() or 1))
-
-
-def _run_parallel(fns):
-    """Run the callables in ``fns`` concurrently (persistent pool) and re-raise any error."""
-    global _pool, _pool_size
-    if len(fns) == 1:
-        fns[0]()
-        return
-    if _pool is None or _pool_size < len(fns):
-        if _pool is not None:
-            _pool.shutdown(wait=True)
-        _pool = ThreadPoolExecutor(max_workers=len(fns), thread_name_prefix="gausslite-raster")
-        _pool_size = len(fns)
-    futs = [_pool.submit(f) for f in fns]
-    for f in futs:
-        f.result()
 
 
 def _stripe_dim(stripe: int, nstripes: int, tiles_y: int, tile_size: int, width: int) -> int:
@@ -55,8 +44,37 @@ def _wp_device(dev: torch.device) -> str:
     return "cpu"
 
 
-def _pack_gdata(means2d, conics, opacities, colors, depths) -> torch.Tensor:
-    """(M, 16) float32 ``gdata`` rows (layout in :mod:`warp_kernels`), built by one Warp launch."""
+def _launch_rows(kernel, n: int, num_threads: int, inputs, outputs) -> None:
+    """Launch a per-row CPU kernel with a trailing-``offset`` argument (between ``inputs`` and
+    ``outputs``) over rows [0, n), split into ``num_threads`` contiguous chunks run concurrently."""
+    k = max(1, min(int(num_threads), n // 4096 + 1))
+    bounds = [n * s // k for s in range(k + 1)]
+
+    def run(s):
+        if bounds[s + 1] > bounds[s]:
+            wp.launch(kernel, dim=bounds[s + 1] - bounds[s], inputs=list(inputs) + [bounds[s]],
+                      outputs=outputs, device="cpu")
+
+    wk.run_parallel([lambda s=s: run(s) for s in range(k)])
+
+
+def _pixel_grad(g, HW: int, cols: int, dev) -> torch.Tensor:
+    """Incoming gradient of a (H, W[, 3]) output as a float32 (HW, cols) or (HW,) tensor that
+    Warp can index (zeros if None; expanded / zero-stride tensors are materialised)."""
+    shape = (HW, cols) if cols > 1 else (HW,)
+    if g is None:
+        return torch.zeros(shape, dtype=torch.float32, device=dev)
+    g = g.to(torch.float32).reshape(shape)
+    if 0 in g.stride() or g.stride()[-1] != 1:
+        g = g.contiguous()
+    return g
+
+
+def _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit: bool = False) -> torch.Tensor:
+    """(M, 16) float32 ``gdata`` rows (layout in :mod:`warp_kernels`), built by one Warp launch.
+
+    ``opacities`` are post-sigmoid opacities, or logits (sigmoid applied in the kernel) if
+    ``opacity_is_logit``."""
     ins = [t.detach() for t in (means2d, conics, opacities, colors, depths)]
     dt = ins[0].dtype
     if dt not in (torch.float32, torch.float64) or any(t.dtype != dt for t in ins):
@@ -68,10 +86,39 @@ def _pack_gdata(means2d, conics, opacities, colors, depths) -> torch.Tensor:
     if M > 0:
         wdev = _wp_device(dev)
         wk.ensure_loaded(wdev)
-        wp.launch(wk.pack_gdata_kernel, dim=M, inputs=[wp.from_torch(t) for t in ins],
+        wp.launch(wk.pack_gdata_kernel, dim=M,
+                  inputs=[wp.from_torch(t) for t in ins] + [int(bool(opacity_is_logit))],
                   outputs=[wp.from_torch(gdata)], device=wdev,
                   stream=wp.stream_from_torch(dev) if dev.type == "cuda" else None)
     return gdata
+
+
+def _unpack_grads(bufs: torch.Tensor, opacities: torch.Tensor, opacity_is_logit: bool, dtypes):
+    """Sum the (S, M, 10) float32 per-thread gradient buffers into the gradients of (means2d,
+    conics, opacities, colors, depths), each in its input dtype (opacity gradient w.r.t. the logits
+    if ``opacity_is_logit``)."""
+    M = bufs.shape[1]
+    dev = bufs.device
+    shapes = ((M, 2), (M, 3), (M,), (M, 3), (M,))
+    dt = dtypes[0]
+    if M > 0 and dt in (torch.float32, torch.float64) and all(d == dt for d in dtypes) \
+            and opacities.dtype == dt:
+        outs = [torch.empty(shp, dtype=dt, device=dev) for shp in shapes]
+        wdev = _wp_device(dev)
+        wk.ensure_loaded(wdev)
+        wp.launch(wk.unpack_grads_kernel, dim=M,
+                  inputs=[wp.from_torch(bufs), wp.from_torch(opacities.detach().contiguous()),
+                          int(bool(opacity_is_logit))],
+                  outputs=[wp.from_torch(t) for t in outs], device=wdev,
+                  stream=wp.stream_from_torch(dev) if dev.type == "cuda" else None)
+        return tuple(outs)
+    grad = bufs.sum(0)
+    g_op = grad[:, 5]
+    if opacity_is_logit:
+        o = torch.sigmoid(opacities.detach().to(torch.float64))
+        g_op = g_op.to(torch.float64) * o * (1.0 - o)
+    return (grad[:, 0:2].to(dtypes[0]), grad[:, 2:5].to(dtypes[1]), g_op.to(dtypes[2]),
+            grad[:, 6:9].to(dtypes[3]), grad[:, 9].to(dtypes[4]))
 
 
 class RasterizeWarp(torch.autograd.Function):
@@ -79,84 +126,119 @@ class RasterizeWarp(torch.autograd.Function):
 
     forward(means2d (M,2), conics (M,3), opacities (M,), colors (M,3), depths (M,), gids
     (n_isect,) int32, tile_start/tile_end (n_tiles,) int32, width, height, tile_size, tiles_x,
-    tiles_y, num_threads) -> (color (H,W,3), depth_sum (H,W), alpha (H,W)), all float32 with the
-    semantics of :func:`gausslite.render.reference.rasterize_reference`. Gradients are returned in
-    the dtype of each input.
+    tiles_y, num_threads[, opacity_is_logit=False, background=None]) -> (color (H,W,3),
+    depth_sum (H,W), alpha (H,W)), all float32 with the semantics of
+    :func:`gausslite.render.reference.rasterize_reference`. Gradients are returned in the dtype of
+    each input.
+
+    Optional (CPU only): ``opacity_is_logit=True`` takes opacity logits (sigmoid applied inside);
+    ``background`` ((3,) float32 tensor) makes the outputs the finished images of
+    :func:`gausslite.render.api.rasterize`: colour composited over the background and the
+    normalised depth (``depth_sum / alpha`` where alpha >= 1e-6, else 0) instead of depth_sum.
     """
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, gids, tile_start, tile_end,
-                width, height, tile_size, tiles_x, tiles_y, num_threads):
+                width, height, tile_size, tiles_x, tiles_y, num_threads, opacity_is_logit=False,
+                background=None):
         dev = means2d.device
         M = means2d.shape[0]
-        gdata = _pack_gdata(means2d, conics, opacities, colors, depths)
         cpu = dev.type != "cuda"
+        composite = background is not None
+        if not cpu and composite:
+            raise ValueError("RasterizeWarp: background compositing is only implemented on CPU")
+        gdata = _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit)
         HW = height * width
-        if cpu:
-            # tile kernels: read gdata through gids and initialise every pixel themselves
-            idata = gdata.new_empty(0, 8)
-            feat = torch.empty(HW, 5, dtype=torch.float32, device=dev)
-            T = torch.empty(HW, dtype=torch.float32, device=dev)
-            last = torch.empty(HW, dtype=torch.int32, device=dev)
-        else:
-            # per-intersection copy of the footprint columns, in sorted tile order (see warp_kernels)
-            idata = gdata[:, _IDATA_COLS].index_select(0, gids.to(torch.int64)).contiguous()
-            feat = torch.zeros(HW, 5, dtype=torch.float32, device=dev)
-            T = torch.ones(HW, dtype=torch.float32, device=dev)
-            last = torch.zeros(HW, dtype=torch.int32, device=dev)
         n_isect = gids.numel()
-        nstripes = 1 if dev.type == "cuda" else max(1, min(int(num_threads), tiles_y))
-        if n_isect > 0 and M > 0:
-            wdev = _wp_device(dev)
-            wk.ensure_loaded(wdev)
-            a_g = wp.from_torch(gdata)
-            a_i = wp.from_torch(idata)
-            a_ids = wp.from_torch(gids)
-            a_ts = wp.from_torch(tile_start)
-            a_te = wp.from_torch(tile_end)
-            a_f = wp.from_torch(feat)
-            a_T = wp.from_torch(T)
-            a_l = wp.from_torch(last)
-            stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
-
-            def launch(s):
-                if cpu:
-                    dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
-                    if dim > 0:
-                        wp.launch(
-                            wk.rasterize_fwd_tile_kernel, dim=dim,
-                            inputs=[a_g, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s,
-                                    nstripes],
-                            outputs=[a_f, a_T, a_l], device=wdev,
-                        )
-                    return
-                dim = _stripe_dim(s, nstripes, tiles_y, tile_size, width)
-                if dim == 0:
-                    return
-                wp.launch(
-                    wk.rasterize_fwd_kernel, dim=dim,
-                    inputs=[a_g, a_i, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s, nstripes],
-                    outputs=[a_f, a_T, a_l], device=wdev, stream=stream,
-                )
-
-            _run_parallel([lambda s=s: launch(s) for s in range(nstripes)])
-        elif cpu:
-            feat.zero_()
-            T.fill_(1.0)
-            last.zero_()
-        ctx.save_for_backward(gdata, idata, gids, tile_start, T, last)
+        nstripes = 1 if not cpu else max(1, min(int(num_threads), tiles_y))
+        wdev = _wp_device(dev)
+        wk.ensure_loaded(wdev)
         ctx.dims = (width, height, tile_size, tiles_x, tiles_y, nstripes)
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype, colors.dtype, depths.dtype)
+        ctx.opacity_is_logit = bool(opacity_is_logit)
+        if cpu:
+            # tile kernels: read gdata through gids and initialise every pixel themselves
+            c4 = torch.empty(HW, 4, dtype=torch.float32, device=dev)
+            A = torch.empty(HW, dtype=torch.float32, device=dev)
+            T = torch.empty(HW, dtype=torch.float32, device=dev)
+            last = torch.empty(HW, dtype=torch.int32, device=dev)
+            bg = wp.vec3(*(background.detach().to(torch.float32).cpu().tolist() if composite else (0.0,) * 3))
+            a_g, a_ids = wp.from_torch(gdata), wp.from_torch(gids)
+            a_ts, a_te = wp.from_torch(tile_start), wp.from_torch(tile_end)
+            outs = [wp.from_torch(c4, dtype=wp.vec4), wp.from_torch(A), wp.from_torch(T),
+                    wp.from_torch(last)]
+
+            def launch_cpu(s):
+                dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
+                if dim > 0:
+                    wp.launch(wk.rasterize_fwd_tile_kernel, dim=dim,
+                              inputs=[a_g, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s,
+                                      nstripes, int(composite), bg],
+                              outputs=outs, device=wdev)
+
+            wk.run_parallel([lambda s=s: launch_cpu(s) for s in range(nstripes)])
+            ctx.composite = composite
+            ctx.bg = bg
+            ctx.save_for_backward(gdata, gids, tile_start, T, last, c4, A, opacities)
+            c4 = c4.reshape(height, width, 4)
+            return c4[..., :3], c4[..., 3], A.reshape(height, width)
+
+        # CUDA: per-pixel kernels on a per-intersection copy of the footprint columns
+        idata = gdata[:, _IDATA_COLS].index_select(0, gids.to(torch.int64)).contiguous()
+        feat = torch.zeros(HW, 5, dtype=torch.float32, device=dev)
+        T = torch.ones(HW, dtype=torch.float32, device=dev)
+        last = torch.zeros(HW, dtype=torch.int32, device=dev)
+        if n_isect > 0 and M > 0:
+            wp.launch(
+                wk.rasterize_fwd_kernel, dim=_stripe_dim(0, 1, tiles_y, tile_size, width),
+                inputs=[wp.from_torch(gdata), wp.from_torch(idata), wp.from_torch(gids),
+                        wp.from_torch(tile_start), wp.from_torch(tile_end), width, height,
+                        tile_size, tiles_x, 0, 1],
+                outputs=[wp.from_torch(feat), wp.from_torch(T), wp.from_torch(last)], device=wdev,
+                stream=wp.stream_from_torch(dev),
+            )
+        ctx.composite = False
+        ctx.save_for_backward(gdata, gids, tile_start, T, last, idata, opacities)
         feat = feat.reshape(height, width, 5)
         return feat[..., :3], feat[..., 3], feat[..., 4]
 
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha):
-        gdata, idata, gids, tile_start, T, last = ctx.saved_tensors
         width, height, tile_size, tiles_x, tiles_y, nstripes = ctx.dims
-        dev = gdata.device
-        M = gdata.shape[0]
+        dev = ctx.saved_tensors[0].device
         HW = height * width
+        cpu = dev.type != "cuda"
+        wdev = _wp_device(dev)
+        wk.ensure_loaded(wdev)
+        tail = (None,) * 11
+        if cpu:
+            gdata, gids, tile_start, T, last, c4, A, opacities = ctx.saved_tensors
+            M = gdata.shape[0]
+            gc = _pixel_grad(g_color, HW, 3, dev)
+            gd = _pixel_grad(g_depth, HW, 1, dev)
+            ga = _pixel_grad(g_alpha, HW, 1, dev)
+            bufs = torch.zeros(nstripes, M, 10, dtype=torch.float32, device=dev)
+            a_g, a_ids, a_ts = wp.from_torch(gdata), wp.from_torch(gids), wp.from_torch(tile_start)
+            ins = [wp.from_torch(T), wp.from_torch(last), int(ctx.composite), ctx.bg,
+                   wp.from_torch(c4, dtype=wp.vec4), wp.from_torch(A), wp.from_torch(gc),
+                   wp.from_torch(gd), wp.from_torch(ga),
+                   wp.from_torch(torch.empty(HW, 4, dtype=torch.float32, device=dev), dtype=wp.vec4),
+                   wp.from_torch(torch.empty(HW, 2, dtype=torch.float32, device=dev), dtype=wp.vec2)]
+            a_bufs = [wp.from_torch(bufs[s]) for s in range(nstripes)]
+
+            def launch_cpu(s):
+                dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
+                if dim > 0:
+                    wp.launch(wk.rasterize_bwd_tile_kernel, dim=dim,
+                              inputs=[a_g, a_ids, a_ts, width, height, tile_size, tiles_x, s,
+                                      nstripes] + ins,
+                              outputs=[a_bufs[s]], device=wdev)
+
+            wk.run_parallel([lambda s=s: launch_cpu(s) for s in range(nstripes)])
+            return _unpack_grads(bufs, opacities, ctx.opacity_is_logit, ctx.in_dtypes) + tail
+
+        gdata, gids, tile_start, T, last, idata, opacities = ctx.saved_tensors
+        M = gdata.shape[0]
         zeros = lambda *s: torch.zeros(*s, dtype=torch.float32, device=dev)  # noqa: E731
         gc = g_color if g_color is not None else zeros(height, width, 3)
         gd = g_depth if g_depth is not None else zeros(height, width)
@@ -164,54 +246,85 @@ class RasterizeWarp(torch.autograd.Function):
         gfeat = torch.cat(
             [gc.reshape(HW, 3), gd.reshape(HW, 1), ga.reshape(HW, 1)], dim=1
         ).to(torch.float32).contiguous()
-        bufs = [zeros(M, 10) for _ in range(nstripes)]
+        bufs = zeros(1, M, 10)
         if gids.numel() > 0 and M > 0:
-            wdev = _wp_device(dev)
-            wk.ensure_loaded(wdev)
-            a_g = wp.from_torch(gdata)
-            a_i = wp.from_torch(idata)
-            a_ids = wp.from_torch(gids)
-            a_ts = wp.from_torch(tile_start)
-            a_T = wp.from_torch(T)
-            a_l = wp.from_torch(last)
-            a_gf = wp.from_torch(gfeat)
-            a_bufs = [wp.from_torch(b) for b in bufs]
-            stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
-            cpu = dev.type != "cuda"
-            if cpu:
-                a_st = wp.from_torch(torch.empty(HW, 12, dtype=torch.float32, device=dev))
+            wp.launch(
+                wk.rasterize_bwd_kernel, dim=_stripe_dim(0, 1, tiles_y, tile_size, width),
+                inputs=[wp.from_torch(gdata), wp.from_torch(idata), wp.from_torch(gids),
+                        wp.from_torch(tile_start), width, height, tile_size, tiles_x, 0, 1,
+                        wp.from_torch(T), wp.from_torch(last), wp.from_torch(gfeat)],
+                outputs=[wp.from_torch(bufs[0])], device=wdev, stream=wp.stream_from_torch(dev),
+            )
+        return _unpack_grads(bufs, opacities, ctx.opacity_is_logit, ctx.in_dtypes) + tail
 
-            def launch(s):
-                if cpu:
-                    dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
-                    if dim > 0:
-                        wp.launch(
-                            wk.rasterize_bwd_tile_kernel, dim=dim,
-                            inputs=[a_g, a_ids, a_ts, width, height, tile_size, tiles_x, s,
-                                    nstripes, a_T, a_l, a_gf, a_st],
-                            outputs=[a_bufs[s]], device=wdev,
-                        )
-                    return
-                dim = _stripe_dim(s, nstripes, tiles_y, tile_size, width)
-                if dim == 0:
-                    return
-                wp.launch(
-                    wk.rasterize_bwd_kernel, dim=dim,
-                    inputs=[a_g, a_i, a_ids, a_ts, width, height, tile_size, tiles_x, s, nstripes,
-                            a_T, a_l, a_gf],
-                    outputs=[a_bufs[s]], device=wdev, stream=stream,
-                )
 
-            _run_parallel([lambda s=s: launch(s) for s in range(nstripes)])
-        grad = bufs[0]
-        for b in bufs[1:]:
-            grad += b
-        dts = ctx.in_dtypes
-        return (
-            grad[:, 0:2].to(dts[0]),
-            grad[:, 2:5].to(dts[1]),
-            grad[:, 5].to(dts[2]),
-            grad[:, 6:9].to(dts[3]),
-            grad[:, 9].to(dts[4]),
-            None, None, None, None, None, None, None, None, None,
-        )
+class ProjectWarp(torch.autograd.Function):
+    """EWA projection with the Warp kernels (CPU): same outputs and gradients as
+    :func:`gausslite.render.projection.project_gaussians` (see ``project_fwd_kernel`` /
+    ``project_bwd_kernel`` in :mod:`warp_kernels`), evaluated in float64.
+
+    forward(means (N,3), quats (N,4), log_scales (N,3) -- one dtype, float32 or float64 --,
+    viewmat (4,4) world-to-camera, K (3,3) intrinsics in pixels, width, height, near, far, eps2d
+    [, num_threads=1]) -> (means2d (N,2), conics (N,3), depths (N,), radii (N,) int32), float
+    outputs in the input dtype. viewmat and K get no gradient. The rows are split into
+    ``num_threads`` contiguous chunks launched concurrently.
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, viewmat, K, width, height, near, far, eps2d,
+                num_threads=1):
+        dt = means.dtype
+        N = means.shape[0]
+        ins = [t.detach().contiguous() for t in (means, quats, log_scales)]
+        vm = viewmat.detach().to(torch.float64).cpu().tolist()
+        k = K.detach().to(torch.float64).cpu().tolist()
+        consts = (wp.mat33d(*(vm[r][c] for r in range(3) for c in range(3))),
+                  wp.vec3d(vm[0][3], vm[1][3], vm[2][3]),
+                  wp.vec4d(k[0][0], k[1][1], k[0][2], k[1][2]),
+                  int(width), int(height), wp.float64(near), wp.float64(far), wp.float64(eps2d))
+        means2d = torch.empty(N, 2, dtype=dt)
+        conics = torch.empty(N, 3, dtype=dt)
+        depths = torch.empty(N, dtype=dt)
+        radii = torch.empty(N, dtype=torch.int32)
+        if N > 0:
+            wk.ensure_loaded("cpu")
+            _launch_rows(wk.project_fwd_kernel, N, num_threads,
+                         [wp.from_torch(t) for t in ins] + list(consts),
+                         [wp.from_torch(t) for t in (means2d, conics, depths, radii)])
+        ctx.consts = consts
+        ctx.num_threads = num_threads
+        ctx.save_for_backward(*ins)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, g_radii):
+        means, quats, log_scales = ctx.saved_tensors
+        dt = means.dtype
+        N = means.shape[0]
+        tail = (None,) * 8
+        if N == 0 or not any(ctx.needs_input_grad[:3]):
+            return (torch.zeros_like(means), torch.zeros_like(quats), torch.zeros_like(log_scales)) + tail
+
+        def prep(g, shape):
+            if g is None:
+                return torch.zeros(shape, dtype=dt)
+            return g.to(dt).contiguous()
+
+        outs = [torch.empty_like(means), torch.empty_like(quats), torch.empty_like(log_scales)]
+        wk.ensure_loaded("cpu")
+        _launch_rows(wk.project_bwd_kernel, N, ctx.num_threads,
+                     [wp.from_torch(t) for t in (means, quats, log_scales)] + list(ctx.consts),
+                     [wp.from_torch(prep(g_means2d, (N, 2))), wp.from_torch(prep(g_conics, (N, 3))),
+                      wp.from_torch(prep(g_depths, (N,)))] + [wp.from_torch(t) for t in outs])
+        return tuple(outs) + tail
+
+
+def project_gaussians_warp(means, quats, log_scales, viewmat, K, width, height, near=0.01, far=1e4,
+                           eps2d=0.3, num_threads=1) -> Projection:
+    """:func:`gausslite.render.projection.project_gaussians` computed by :class:`ProjectWarp`
+    (CPU, float32/float64 inputs of one dtype; same argument conventions; ``num_threads``
+    concurrent launches)."""
+    means2d, conics, depths, radii = ProjectWarp.apply(means, quats, log_scales, viewmat, K, width,
+                                                       height, near, far, eps2d, int(num_threads))
+    return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)

@@ -5,6 +5,13 @@ bounding square ``[u - r, u + r] x [v - r, v + r]`` touches; the duplicates are 
 64-bit key ``tile_id << 32 | float32_bits(depth)`` so that each tile's list is contiguous and
 front-to-back (Kerbl et al. 2023, ``duplicateWithKeys`` + radix sort; gsplat ``isect_tiles``).
 Both backends use this exact function, so their per-pixel Gaussian lists are identical.
+
+On CPU (float32/float64 ``means2d``) the same lists are built without materialising and sorting
+the keys: serial Warp kernels list the visible rows and count their tiles, Warp's stable radix
+sort orders the visible rows by depth (ties stay in row order), and each row is appended to the
+tiles it covers in that order (:func:`gausslite.render.warp_kernels.bin_count_kernel` /
+``bin_scatter_kernel``). Elsewhere the vectorised torch version below is used; both give
+identical output.
 """
 
 from __future__ import annotations
@@ -12,6 +19,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+import warp as wp
+
+from . import warp_kernels as wk
 
 
 class TileBins(NamedTuple):
@@ -44,6 +54,7 @@ def bin_gaussians(
     width: int,
     height: int,
     tile_size: int = 16,
+    num_threads: int = 1,
 ) -> TileBins:
     """Assign projected Gaussians to screen tiles and sort each tile's list by depth.
 
@@ -57,12 +68,64 @@ def bin_gaussians(
         depths: (M,) camera z in metres (positive for non-culled rows).
         width, height: image size in pixels.
         tile_size: tile edge in pixels.
+        num_threads: CPU threads for the Warp scatter pass (no effect on the result).
 
     Returns:
         :class:`TileBins` on the same device as ``means2d``.
     """
     dev = means2d.device
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    if dev.type == "cpu" and means2d.dtype in (torch.float32, torch.float64):
+        return _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads)
+    return _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y)
+
+
+def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads=1) -> TileBins:
+    """CPU binning with Warp kernels and Warp's stable radix sort (same output as
+    :func:`_bin_torch`); no per-element torch ops. The scatter pass is split over
+    ``num_threads`` stripes of tile rows run concurrently."""
+    M = means2d.shape[0]
+    n_tiles = tiles_x * tiles_y
+    uv = means2d.detach().contiguous()
+    rad = radii if radii.dtype == torch.int32 else radii.to(torch.int32)
+    rad = rad.contiguous()
+    dep = depths.detach().to(uv.dtype).contiguous()
+    f32 = int(uv.dtype == torch.float32)
+    keys = torch.empty(2 * M, dtype=torch.float32)  # radix sort needs 2x storage
+    rows = torch.empty(2 * M, dtype=torch.int32)
+    n_rows = torch.empty(1, dtype=torch.int32)
+    tile_start = torch.empty(n_tiles, dtype=torch.int32)
+    tile_end = torch.zeros(n_tiles, dtype=torch.int32)
+    wk.ensure_loaded("cpu")
+    a_uv, a_r, a_rows = wp.from_torch(uv), wp.from_torch(rad), wp.from_torch(rows)
+    a_keys = wp.from_torch(keys)
+    wp.launch(wk.bin_count_kernel, dim=1,
+              inputs=[a_uv, a_r, wp.from_torch(dep), tile_size, tiles_x, tiles_y, f32],
+              outputs=[a_keys, a_rows, wp.from_torch(n_rows), wp.from_torch(tile_start),
+                       wp.from_torch(tile_end)], device="cpu")
+    n = int(n_rows[0])
+    n_isect = int(tile_end[-1])
+    gids = torch.empty(n_isect, dtype=torch.int32)
+    if n == 0:
+        return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)
+    # Positive depths: float order = order of the float32 bit patterns used by _bin_torch.
+    wp.utils.radix_sort_pairs(a_keys, a_rows, n)
+    cursor = tile_start.clone()
+    a_cur, a_gids = wp.from_torch(cursor), wp.from_torch(gids)
+    nstripes = max(1, min(int(num_threads), tiles_y))
+
+    def scatter(s):
+        wp.launch(wk.bin_scatter_kernel, dim=1,
+                  inputs=[a_uv, a_r, a_rows, n, tile_size, tiles_x, tiles_y, f32, s, nstripes],
+                  outputs=[a_cur, a_gids], device="cpu")
+
+    wk.run_parallel([lambda s=s: scatter(s) for s in range(nstripes)])
+    return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)
+
+
+def _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y) -> TileBins:
+    """Vectorised torch binning: one sort of all (tile, depth) keys."""
+    dev = means2d.device
     n_tiles = tiles_x * tiles_y
     vid = torch.nonzero(radii > 0).squeeze(1)
     if vid.numel() == 0:

@@ -1,8 +1,10 @@
 """EWA projection of 3D Gaussians to screen-space 2D Gaussians (vectorised PyTorch).
 
-The backward pass is left to autograd. Both rasterizer backends (Warp kernels and the pure
-PyTorch reference) consume exactly the output of :func:`project_gaussians`, so culling, radius
-and tile assignment are identical across backends by construction.
+The backward pass is left to autograd. The pure PyTorch reference backend (and the Warp backend
+on CUDA) consume the output of :func:`project_gaussians`. The Warp backend on CPU uses its
+per-Gaussian twin :class:`gausslite.render.autograd.ProjectWarp` (same formulas, culling and
+radius rule, hand-written backward; evaluated in float64, so for float64 inputs it agrees with
+this function to rounding, and for float32 inputs it is the more accurate of the two).
 
 Sources: Kerbl et al. 2023, "3D Gaussian Splatting for Real-Time Radiance Field Rendering"
 (``computeCov2D`` / ``preprocessCUDA`` in diff-gaussian-rasterization); Zwicker et al. 2001,

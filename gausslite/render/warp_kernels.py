@@ -1,4 +1,5 @@
-"""Per-pixel Warp kernels for tile-based Gaussian rasterization (forward and backward).
+"""Warp kernels of the Gaussian rasterizer: tile-based compositing (forward and backward), plus
+the CPU-side EWA projection (forward and backward), tile binning and gradient (un)packing.
 
 Port of the per-pixel loops of Kerbl et al. 2023 (diff-gaussian-rasterization ``renderCUDA`` /
 ``renderCUDA`` backward) in the gsplat data layout, written without Warp tile primitives so the
@@ -24,7 +25,17 @@ inner loop streams through contiguous memory; ``gdata[gids[j]]`` is only read fo
 pass the test.
 
 On CPU, :func:`rasterize_fwd_tile_kernel` / :func:`rasterize_bwd_tile_kernel` (one tile per
-thread, Gaussian-outer) replace the per-pixel kernels below; those remain the CUDA path.
+thread, Gaussian-outer) replace the per-pixel kernels below; those remain the CUDA path. The CPU
+tile kernels keep colour + depth sum as one ``vec4`` per pixel (and can finish the image: background
+compositing and depth normalisation), and their backward keeps two floats of running state per
+pixel (see :func:`rasterize_bwd_tile_kernel`). :func:`pack_gdata_kernel` can apply the opacity
+sigmoid and :func:`unpack_grads_kernel` sums the per-thread gradient buffers (and applies the
+sigmoid derivative), so that no per-element torch op remains around the CPU launches.
+
+:func:`project_fwd_kernel` / :func:`project_bwd_kernel` (CPU path of
+:class:`gausslite.render.autograd.ProjectWarp`) and :func:`bin_count_kernel` /
+:func:`bin_scatter_kernel` (CPU path of :func:`gausslite.render.binning.bin_gaussians`) replace
+the vectorised torch code of those stages; see their section comments.
 
 The image is processed in horizontal stripes: launch ``stripe`` of ``nstripes`` covers tile rows
 ``stripe, stripe + nstripes, ...`` so several CPU launches (one per Python thread) can run in
@@ -35,6 +46,7 @@ parallel with balanced work. Thread ``tid`` of a launch maps to pixel
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import warp as wp
@@ -42,12 +54,16 @@ import warp as wp
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
+DEPTH_ALPHA_MIN = wp.constant(1.0e-6)
 
 # Only the hand-written forward and backward kernels are used: skip generating Warp adjoints.
 wp.set_module_options({"enable_backward": False})
 
 _init_lock = threading.Lock()
 _loaded: set[str] = set()
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()
 
 
 @wp.func
@@ -298,12 +314,20 @@ def rasterize_fwd_tile_kernel(
     tiles_x: int,
     stripe: int,
     nstripes: int,
-    out_feat: wp.array2d(dtype=wp.float32),
+    composite: int,
+    bg: wp.vec3,
+    out_c: wp.array(dtype=wp.vec4),
+    out_a: wp.array(dtype=wp.float32),
     out_T: wp.array(dtype=wp.float32),
     out_last: wp.array(dtype=wp.int32),
 ):
-    """Forward pass of one tile (same outputs as :func:`rasterize_fwd_kernel`).
+    """Forward pass of one tile (same values as :func:`rasterize_fwd_kernel`, bit for bit).
 
+    Outputs per pixel: ``out_c[pix] = (R, G, B, sum w z)``, ``out_a[pix] = A = sum w``, final
+    transmittance ``out_T[pix]`` and ``out_last[pix]`` (one past the index into ``gids`` of the
+    last contributing Gaussian). With ``composite`` != 0, ``out_c[pix]`` is finished as in
+    :func:`gausslite.render.api.rasterize`: ``(RGB + (1 - A) bg, depth)`` with
+    ``depth = sum w z / A`` if ``A >= 1e-6`` else 0 (same float32 operations as the torch code).
     While the tile is processed, a pixel that has terminated is marked by a negated ``out_T``.
     """
     tid = wp.tid()
@@ -320,8 +344,8 @@ def rasterize_fwd_tile_kernel(
     for py in range(y0, y1 + 1):
         for px in range(x0, x1 + 1):
             pix = py * width + px
-            for k in range(5):
-                out_feat[pix, k] = 0.0
+            out_c[pix] = wp.vec4(0.0)
+            out_a[pix] = 0.0
             out_T[pix] = 1.0
             out_last[pix] = start
     n_active = (x1 - x0 + 1) * (y1 - y0 + 1)
@@ -333,6 +357,7 @@ def rasterize_fwd_tile_kernel(
         cb = gdata[g, 3]
         cc = gdata[g, 4]
         op = gdata[g, 5]
+        feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
         ul = gdata[g, 10]
         vl = gdata[g, 11]
         pm = gdata[g, 12]
@@ -341,6 +366,7 @@ def rasterize_fwd_tile_kernel(
         ks = gdata[g, 13]
         k1 = gdata[g, 14]
         k0 = gdata[g, 15]
+        jn = j + 1
         rows = _tile_rows(vv, k1, k0, y0, y1)
         for py in range(rows[0], rows[1] + 1):
             fy = float(py)
@@ -367,19 +393,24 @@ def rasterize_fwd_tile_kernel(
                     n_active -= 1
                     continue
                 w = alpha * T
-                out_feat[pix, 0] += w * gdata[g, 6]
-                out_feat[pix, 1] += w * gdata[g, 7]
-                out_feat[pix, 2] += w * gdata[g, 8]
-                out_feat[pix, 3] += w * gdata[g, 9]
-                out_feat[pix, 4] += w
+                out_c[pix] = out_c[pix] + w * feat
+                out_a[pix] = out_a[pix] + w
                 out_T[pix] = test_T
-                out_last[pix] = j + 1
+                out_last[pix] = jn
         if n_active == 0:
             break
     for py in range(y0, y1 + 1):
         for px in range(x0, x1 + 1):
             pix = py * width + px
             out_T[pix] = wp.abs(out_T[pix])
+            if composite != 0:
+                c = out_c[pix]
+                A = out_a[pix]
+                t = 1.0 - A
+                depth = float(0.0)
+                if A >= DEPTH_ALPHA_MIN:
+                    depth = c[3] / A
+                out_c[pix] = wp.vec4(c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2], depth)
 
 
 @wp.kernel
@@ -395,16 +426,32 @@ def rasterize_bwd_tile_kernel(
     nstripes: int,
     final_T: wp.array(dtype=wp.float32),
     last_idx: wp.array(dtype=wp.int32),
-    grad_feat: wp.array2d(dtype=wp.float32),
-    state: wp.array2d(dtype=wp.float32),
+    composite: int,
+    bg: wp.vec3,
+    out_c: wp.array(dtype=wp.vec4),
+    out_a: wp.array(dtype=wp.float32),
+    g_color: wp.array2d(dtype=wp.float32),
+    g_depth: wp.array(dtype=wp.float32),
+    g_alpha: wp.array(dtype=wp.float32),
+    grad_c: wp.array(dtype=wp.vec4),
+    state: wp.array(dtype=wp.vec2),
     grad_gdata: wp.array2d(dtype=wp.float32),
 ):
-    """Backward pass of one tile (same gradients as :func:`rasterize_bwd_kernel`, summed per
+    """Backward pass of one tile (the gradients of :func:`rasterize_bwd_kernel`, summed per
     Gaussian over the tile before being added to ``grad_gdata``).
 
-    ``state[pix] = (T, R_r, R_g, R_b, R_d, dL/dR, dL/dG, dL/dB, dL/dD, dL/dA * T_final, ...)``
-    (12 columns, initialised here) is the back-to-front running state of each pixel, packed so
-    that one pixel's data shares a cache line.
+    Inputs per pixel: the forward outputs ``out_c`` / ``out_a`` of
+    :func:`rasterize_fwd_tile_kernel` (same ``composite`` flag and ``bg``) and the gradients of
+    the loss w.r.t. them, ``g_color`` (HW, 3), ``g_depth`` (HW,) and ``g_alpha`` (HW,) (any
+    strides). The initialisation pass converts them into ``grad_c[pix]`` = dL/d(R, G, B, sum w z)
+    of the raw sums and dL/dA (A = sum w; through the background term and the depth division when
+    ``composite`` != 0). With ``g = grad_c[pix]`` and ``f_i`` = (r, g, b, z) of Gaussian i, the
+    colour terms of dL/dalpha_i only need the scalar ``S_i = sum_{k>i} (f_k . g) w_k``:
+    ``dL/dalpha_i = (f_i . g) T_i + (dL/dA T_final - S_i) / (1 - alpha_i)``.
+    ``state[pix] = (T_i, dL/dA T_final - S_i)`` is the back-to-front running state of each
+    pixel. ``grad_c`` and ``state`` are per-pixel scratch arrays written here. The geometric
+    gradients are accumulated as per-row moments of dL/dpower (sums of dl_dp, dl_dp dx,
+    dl_dp dx^2 per row, combined with the row offset dy) and expanded once per Gaussian.
     """
     tid = wp.tid()
     tr = tid // tiles_x
@@ -420,16 +467,23 @@ def rasterize_bwd_tile_kernel(
     for py in range(y0, y1 + 1):
         for px in range(x0, x1 + 1):
             pix = py * width + px
-            state[pix, 0] = final_T[pix]
-            state[pix, 1] = 0.0
-            state[pix, 2] = 0.0
-            state[pix, 3] = 0.0
-            state[pix, 4] = 0.0
-            state[pix, 5] = grad_feat[pix, 0]
-            state[pix, 6] = grad_feat[pix, 1]
-            state[pix, 7] = grad_feat[pix, 2]
-            state[pix, 8] = grad_feat[pix, 3]
-            state[pix, 9] = grad_feat[pix, 4] * final_T[pix]
+            tf = final_T[pix]
+            gr = g_color[pix, 0]
+            gg = g_color[pix, 1]
+            gb = g_color[pix, 2]
+            gd = g_depth[pix]
+            ga = g_alpha[pix]
+            if composite != 0:
+                # color = RGB + (1 - A) bg, depth = D / A (A >= 1e-6, else 0)
+                A = out_a[pix]
+                ga = ga - (gr * bg[0] + gg * bg[1] + gb * bg[2])
+                if A >= DEPTH_ALPHA_MIN:
+                    ga = ga - gd * out_c[pix][3] / A
+                    gd = gd / A
+                else:
+                    gd = 0.0
+            grad_c[pix] = wp.vec4(gr, gg, gb, gd)
+            state[pix] = wp.vec2(tf, ga * tf)
             maxlast = wp.max(maxlast, last_idx[pix])
     for k in range(maxlast - start):
         j = maxlast - 1 - k
@@ -440,10 +494,7 @@ def rasterize_bwd_tile_kernel(
         cbb = gdata[g, 3]
         cc = gdata[g, 4]
         op = gdata[g, 5]
-        fr = gdata[g, 6]
-        fg = gdata[g, 7]
-        fb = gdata[g, 8]
-        fd = gdata[g, 9]
+        feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
         ul = gdata[g, 10]
         vl = gdata[g, 11]
         pm = gdata[g, 12]
@@ -454,16 +505,14 @@ def rasterize_bwd_tile_kernel(
         k0 = gdata[g, 15]
         rows = _tile_rows(vv, k1, k0, y0, y1)
         hit = int(0)
-        s_u = float(0.0)
-        s_v = float(0.0)
-        s_a = float(0.0)
-        s_b = float(0.0)
-        s_c = float(0.0)
-        s_o = float(0.0)
-        s_r = float(0.0)
-        s_g = float(0.0)
-        s_bl = float(0.0)
-        s_d = float(0.0)
+        # sums over the tile's pixels of dl_dp, dl_dp dx, dl_dp dy, dl_dp dx^2, dl_dp dx dy, dl_dp dy^2
+        s_0 = float(0.0)
+        s_x = float(0.0)
+        s_y = float(0.0)
+        s_xx = float(0.0)
+        s_xy = float(0.0)
+        s_yy = float(0.0)
+        s_f = wp.vec4(0.0)
         for py in range(rows[0], rows[1] + 1):
             fy = float(py)
             dyr = vv - fy
@@ -471,6 +520,9 @@ def rasterize_bwd_tile_kernel(
             if span[0] > span[1]:
                 continue
             dy = (vh - fy) + vl
+            m0 = float(0.0)
+            mx = float(0.0)
+            mxx = float(0.0)
             for px in range(span[0], span[1] + 1):
                 pix = py * width + px
                 if j >= last_idx[pix]:
@@ -486,53 +538,40 @@ def rasterize_bwd_tile_kernel(
                     continue
                 hit = 1
                 inv = 1.0 / (1.0 - alpha)
-                T = state[pix, 0] * inv
+                st = state[pix]
+                T = st[0] * inv
                 w = alpha * T
-                gr = state[pix, 5]
-                gg = state[pix, 6]
-                gb = state[pix, 7]
-                gd = state[pix, 8]
-                gaT = state[pix, 9]
-                rr = state[pix, 1]
-                rg = state[pix, 2]
-                rb = state[pix, 3]
-                rd = state[pix, 4]
-                s_r += w * gr
-                s_g += w * gg
-                s_bl += w * gb
-                s_d += w * gd
-                dl_dalpha = (
-                    (fr * T - rr * inv) * gr
-                    + (fg * T - rg * inv) * gg
-                    + (fb * T - rb * inv) * gb
-                    + (fd * T - rd * inv) * gd
-                    + gaT * inv
-                )
-                state[pix, 0] = T
-                state[pix, 1] = rr + fr * w
-                state[pix, 2] = rg + fg * w
-                state[pix, 3] = rb + fb * w
-                state[pix, 4] = rd + fd * w
+                gf = grad_c[pix]
+                s_f += w * gf
+                fg = wp.dot(feat, gf)
+                dl_dalpha = fg * T + st[1] * inv
+                state[pix] = wp.vec2(T, st[1] - fg * w)
                 if raw <= ALPHA_MAX:
-                    s_o += G * dl_dalpha
+                    # dl/dpower = alpha dl/dalpha (no gradient through a clamped alpha)
                     dl_dp = alpha * dl_dalpha
-                    s_u += -dl_dp * (ca * dx + cbb * dy)
-                    s_v += -dl_dp * (cc * dy + cbb * dx)
-                    s_a += -0.5 * dl_dp * dx * dx
-                    s_b += -dl_dp * dx * dy
-                    s_c += -0.5 * dl_dp * dy * dy
+                    m0 += dl_dp
+                    t = dl_dp * dx
+                    mx += t
+                    mxx += t * dx
+            s_0 += m0
+            s_x += mx
+            s_y += m0 * dy
+            s_xx += mxx
+            s_xy += mx * dy
+            s_yy += m0 * dy * dy
         if hit != 0:
-            wp.atomic_add(grad_gdata, g, 0, s_u)
-            wp.atomic_add(grad_gdata, g, 1, s_v)
-            wp.atomic_add(grad_gdata, g, 2, s_a)
-            wp.atomic_add(grad_gdata, g, 3, s_b)
-            wp.atomic_add(grad_gdata, g, 4, s_c)
-            wp.atomic_add(grad_gdata, g, 5, s_o)
-            wp.atomic_add(grad_gdata, g, 6, s_r)
-            wp.atomic_add(grad_gdata, g, 7, s_g)
-            wp.atomic_add(grad_gdata, g, 8, s_bl)
-            wp.atomic_add(grad_gdata, g, 9, s_d)
-
+            # power = -0.5 (a dx^2 + c dy^2) - b dx dy with dx = u - px, dy = v - py;
+            # dl/do = sum G dl/dalpha = sum dl_dp / o (unclamped pairs: alpha = o G)
+            wp.atomic_add(grad_gdata, g, 0, -(ca * s_x + cbb * s_y))
+            wp.atomic_add(grad_gdata, g, 1, -(cc * s_y + cbb * s_x))
+            wp.atomic_add(grad_gdata, g, 2, -0.5 * s_xx)
+            wp.atomic_add(grad_gdata, g, 3, -s_xy)
+            wp.atomic_add(grad_gdata, g, 4, -0.5 * s_yy)
+            wp.atomic_add(grad_gdata, g, 5, s_0 / op)
+            wp.atomic_add(grad_gdata, g, 6, s_f[0])
+            wp.atomic_add(grad_gdata, g, 7, s_f[1])
+            wp.atomic_add(grad_gdata, g, 8, s_f[2])
+            wp.atomic_add(grad_gdata, g, 9, s_f[3])
 
 
 @wp.kernel
@@ -542,10 +581,12 @@ def pack_gdata_kernel(
     opacities: wp.array(dtype=Any),
     colors: wp.array2d(dtype=Any),
     depths: wp.array(dtype=Any),
+    logit: int,
     gdata: wp.array2d(dtype=wp.float32),
 ):
     """Fill one row of the 16-column ``gdata`` layout (see the module docstring) from the
-    projected parameters (float32 or float64). Columns 13-15 hold the row-span coefficients
+    projected parameters (float32 or float64); with ``logit`` != 0, ``opacities`` holds logits
+    and the opacity is their sigmoid (in float64). Columns 13-15 hold the row-span coefficients
     ``(b / a, det / a^2, -2 (p_min - 0.01) / a)`` used by the tile kernels: on the row at offset
     ``dy = v - py`` the pixels with ``power >= p_min - 0.01`` lie within ``sqrt(k0 - k1 dy^2)`` px
     of ``u + (b / a) dy`` (unbounded span if the conic is not positive definite)."""
@@ -558,6 +599,8 @@ def pack_gdata_kernel(
     b = wp.float64(conics[i, 1])
     c = wp.float64(conics[i, 2])
     o = wp.float64(opacities[i])
+    if logit != 0:
+        o = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-o))
     p_min = -wp.log(wp.float64(255.0) * wp.max(o, wp.float64(1e-30))) - wp.float64(1e-3)
     gdata[i, 0] = uh
     gdata[i, 1] = vh
@@ -587,8 +630,473 @@ def pack_gdata_kernel(
 
 for _T in (wp.float32, wp.float64):
     wp.overload(pack_gdata_kernel, [wp.array2d(dtype=_T), wp.array2d(dtype=_T), wp.array(dtype=_T),
-                                    wp.array2d(dtype=_T), wp.array(dtype=_T),
+                                    wp.array2d(dtype=_T), wp.array(dtype=_T), int,
                                     wp.array2d(dtype=wp.float32)])
+
+
+@wp.kernel
+def unpack_grads_kernel(
+    bufs: wp.array3d(dtype=wp.float32),
+    opacities: wp.array(dtype=Any),
+    logit: int,
+    g_means2d: wp.array2d(dtype=Any),
+    g_conics: wp.array2d(dtype=Any),
+    g_opacities: wp.array(dtype=Any),
+    g_colors: wp.array2d(dtype=Any),
+    g_depths: wp.array(dtype=Any),
+):
+    """Sum the per-thread (S, M, 10) float32 gradient buffers of one row (the first ten ``gdata``
+    columns) and split them into the gradients of the projected inputs, in their dtype; with
+    ``logit`` != 0 the opacity gradient is taken w.r.t. the logits ``opacities`` (times
+    ``sigmoid'(x) = o (1 - o)``, in float64)."""
+    i = wp.tid()
+    acc = wp.vector(dtype=wp.float32, length=10)
+    for s in range(bufs.shape[0]):
+        for k in range(10):
+            acc[k] += bufs[s, i, k]
+    g_means2d[i, 0] = g_means2d.dtype(acc[0])
+    g_means2d[i, 1] = g_means2d.dtype(acc[1])
+    g_conics[i, 0] = g_conics.dtype(acc[2])
+    g_conics[i, 1] = g_conics.dtype(acc[3])
+    g_conics[i, 2] = g_conics.dtype(acc[4])
+    go = wp.float64(acc[5])
+    if logit != 0:
+        o = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(opacities[i])))
+        go = go * o * (wp.float64(1.0) - o)
+    g_opacities[i] = g_opacities.dtype(go)
+    g_colors[i, 0] = g_colors.dtype(acc[6])
+    g_colors[i, 1] = g_colors.dtype(acc[7])
+    g_colors[i, 2] = g_colors.dtype(acc[8])
+    g_depths[i] = g_depths.dtype(acc[9])
+
+
+for _T in (wp.float32, wp.float64):
+    wp.overload(unpack_grads_kernel, [wp.array3d(dtype=wp.float32), wp.array(dtype=_T), int,
+                                      wp.array2d(dtype=_T), wp.array2d(dtype=_T), wp.array(dtype=_T),
+                                      wp.array2d(dtype=_T), wp.array(dtype=_T)])
+
+
+# ------------------------------------------------------------------------------------ tile binning (CPU)
+#
+# Counting-sort replacement of the torch binning (see :mod:`gausslite.render.binning`): the visible
+# rows are listed and counted per tile, sorted by float32 depth with Warp's stable radix sort, and
+# appended in that (depth, row) order to the lists of the tiles they cover, which leaves every tile
+# list sorted by depth with ties in row order -- exactly the order of the torch sort by
+# ``tile << 32 | float32_bits(depth)``. Serial kernels (launched with dim=1 on CPU).
+
+
+@wp.func
+def _bin_tile(c: wp.float64, ts: wp.float64, f32: int, n: int):
+    """``clamp(floor(c / ts), 0, n - 1)`` with the division rounded to float32 if ``f32``."""
+    q = c / ts
+    if f32 != 0:
+        q = wp.float64(wp.float32(q))
+    t = wp.floor(q)
+    if t < wp.float64(0.0):
+        t = wp.float64(0.0)
+    if t > wp.float64(n - 1):
+        t = wp.float64(n - 1)
+    return int(t)
+
+
+@wp.func
+def _bin_rect(u: wp.float64, v: wp.float64, r: wp.float64, ts: wp.float64, f32: int, tiles_x: int,
+              tiles_y: int):
+    """Tile rectangle (tx0, tx1, ty0, ty1) of the bounding square ``[u - r, u + r] x [v - r, v + r]``,
+    evaluated like the torch expression ``floor((u -+ r) / ts).clamp(0, n - 1)`` in the input dtype:
+    for float32 inputs (``f32`` != 0) each float64 operation on float32 operands is rounded back to
+    float32, which reproduces float32 arithmetic exactly (a single +, - or / in float64 followed by
+    rounding to float32 is correctly rounded)."""
+    a = u - r
+    b = u + r
+    c = v - r
+    d = v + r
+    if f32 != 0:
+        a = wp.float64(wp.float32(a))
+        b = wp.float64(wp.float32(b))
+        c = wp.float64(wp.float32(c))
+        d = wp.float64(wp.float32(d))
+    return wp.vec4i(_bin_tile(a, ts, f32, tiles_x), _bin_tile(b, ts, f32, tiles_x),
+                    _bin_tile(c, ts, f32, tiles_y), _bin_tile(d, ts, f32, tiles_y))
+
+
+@wp.kernel
+def bin_count_kernel(
+    means2d: wp.array2d(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+    depths: wp.array(dtype=Any),
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    f32: int,
+    keys: wp.array(dtype=wp.float32),
+    rows: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+):
+    """Serial (dim=1). Lists the rows with radius > 0 in increasing order in ``rows[:n]`` with
+    their float32 depth in ``keys[:n]`` (``n_rows[0] = n``), and turns their per-tile intersection
+    counts into ``tile_start`` / ``tile_end`` (exclusive / inclusive prefix sums, so the number of
+    intersections is ``tile_end[-1]``). ``tile_end`` must be zero on entry."""
+    ts = wp.float64(tile_size)
+    n = int(0)
+    for i in range(radii.shape[0]):
+        r = radii[i]
+        if r <= 0:
+            continue
+        keys[n] = wp.float32(depths[i])
+        rows[n] = i
+        n += 1
+        q = _bin_rect(wp.float64(means2d[i, 0]), wp.float64(means2d[i, 1]), wp.float64(r), ts, f32,
+                      tiles_x, tiles_y)
+        for ty in range(q[2], q[3] + 1):
+            for tx in range(q[0], q[1] + 1):
+                tile_end[ty * tiles_x + tx] += 1
+    n_rows[0] = n
+    acc = int(0)
+    for t in range(tiles_x * tiles_y):
+        tile_start[t] = acc
+        acc += tile_end[t]
+        tile_end[t] = acc
+
+
+@wp.kernel
+def bin_scatter_kernel(
+    means2d: wp.array2d(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+    rows: wp.array(dtype=wp.int32),
+    n: int,
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    f32: int,
+    stripe: int,
+    nstripes: int,
+    cursor: wp.array(dtype=wp.int32),
+    gids: wp.array(dtype=wp.int32),
+):
+    """Serial (dim=1): append the rows ``rows[:n]`` (visited in that order) to the list of each tile
+    they cover, for the tile rows ``ty`` with ``ty % nstripes == stripe`` (one launch per stripe;
+    stripes write disjoint tiles). ``cursor`` starts as a copy of ``tile_start`` and ends equal to
+    ``tile_end``."""
+    ts = wp.float64(tile_size)
+    for k in range(n):
+        i = rows[k]
+        q = _bin_rect(wp.float64(means2d[i, 0]), wp.float64(means2d[i, 1]), wp.float64(radii[i]), ts,
+                      f32, tiles_x, tiles_y)
+        ty0 = q[2] + (stripe - q[2] % nstripes + nstripes) % nstripes
+        for ty in range(ty0, q[3] + 1, nstripes):
+            for tx in range(q[0], q[1] + 1):
+                t = ty * tiles_x + tx
+                c = cursor[t]
+                gids[c] = i
+                cursor[t] = c + 1
+
+
+for _T in (wp.float32, wp.float64):
+    _i32 = wp.array(dtype=wp.int32)
+    wp.overload(bin_count_kernel, [wp.array2d(dtype=_T), _i32, wp.array(dtype=_T), int, int, int, int,
+                                   wp.array(dtype=wp.float32), _i32, _i32, _i32, _i32])
+    wp.overload(bin_scatter_kernel, [wp.array2d(dtype=_T), _i32, _i32, int, int, int, int, int, int, int,
+                                     _i32, _i32])
+
+
+# ------------------------------------------------------------------------------------ EWA projection
+#
+# Per-Gaussian forward and hand-written backward of :func:`gausslite.render.projection.project_gaussians`
+# (same formulas, culling and radius rule), evaluated in float64 whatever the input dtype.
+# Gradients follow torch's conventions for the non-smooth pieces: nothing flows through the
+# sanitised (culled) rows, the Jacobian clamp of x/z, y/z passes half the gradient on exact ties
+# (torch.maximum / torch.minimum), and the conic of a row with a non positive-definite 2D
+# covariance is (c, -b, a) (division by a constant 1).
+
+
+@wp.func
+def _quat_rotmat(w: wp.float64, x: wp.float64, y: wp.float64, z: wp.float64):
+    """Rotation matrix of the unit quaternion (w, x, y, z) (formula of ``quat_to_rotmat``)."""
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    return wp.mat33d(
+        one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
+        two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
+        two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y),
+    )
+
+
+@wp.func
+def _clamp_grad_factor(x: wp.float64, lo: wp.float64, hi: wp.float64):
+    """d/dx of ``min(max(x, lo), hi)`` with torch's tie rule (1/2 on each equality)."""
+    f = wp.float64(1.0)
+    if x < lo:
+        f = wp.float64(0.0)
+    elif x == lo:
+        f = wp.float64(0.5)
+    m = wp.max(x, lo)
+    if m > hi:
+        f = wp.float64(0.0)
+    elif m == hi:
+        f = f * wp.float64(0.5)
+    return f
+
+
+@wp.kernel
+def project_fwd_kernel(
+    means: wp.array2d(dtype=Any),
+    quats: wp.array2d(dtype=Any),
+    log_scales: wp.array2d(dtype=Any),
+    rot: wp.mat33d,
+    trans: wp.vec3d,
+    intr: wp.vec4d,
+    width: int,
+    height: int,
+    near: wp.float64,
+    far: wp.float64,
+    eps2d: wp.float64,
+    offset: int,
+    means2d: wp.array2d(dtype=Any),
+    conics: wp.array2d(dtype=Any),
+    depths: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+):
+    """EWA projection of Gaussian ``offset + tid``; outputs as
+    :class:`~gausslite.render.projection.Projection`.
+
+    ``rot``/``trans``: world-to-camera rotation and translation; ``intr = (fx, fy, cx, cy)`` in
+    pixels; ``near``/``far`` in metres; ``eps2d`` in px^2.
+    """
+    i = wp.tid() + offset
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    half = wp.float64(0.5)
+    fx = intr[0]
+    fy = intr[1]
+    cx = intr[2]
+    cy = intr[3]
+    m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
+    p = rot @ m + trans
+    q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
+                 wp.float64(quats[i, 3]))
+    ls = wp.vec3d(wp.float64(log_scales[i, 0]), wp.float64(log_scales[i, 1]),
+                  wp.float64(log_scales[i, 2]))
+    finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
+    valid = finite and p[2] > near and p[2] < far
+    xs = zero
+    ys = zero
+    zs = one
+    if valid:
+        xs = p[0]
+        ys = p[1]
+        zs = p[2]
+    else:
+        q = wp.vec4d(one, one, one, one)
+        ls = wp.vec3d(zero, zero, zero)
+    qn = q / wp.max(wp.length(q), wp.float64(1e-12))
+    rq = _quat_rotmat(qn[0], qn[1], qn[2], qn[3])
+    s = wp.vec3d(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
+    mm = rot @ (rq @ wp.diag(s))
+    cov = mm @ wp.transpose(mm)
+    w = wp.float64(width)
+    h = wp.float64(height)
+    tfx = half * w / fx
+    tfy = half * h / fy
+    lxp = (w - cx) / fx + wp.float64(0.3) * tfx
+    lxn = cx / fx + wp.float64(0.3) * tfx
+    lyp = (h - cy) / fy + wp.float64(0.3) * tfy
+    lyn = cy / fy + wp.float64(0.3) * tfy
+    rz = one / zs
+    tx = zs * wp.min(wp.max(xs * rz, -lxn), lxp)
+    ty = zs * wp.min(wp.max(ys * rz, -lyn), lyp)
+    j0 = wp.vec3d(fx * rz, zero, -fx * tx * rz * rz)
+    j1 = wp.vec3d(zero, fy * rz, -fy * ty * rz * rz)
+    w0 = cov @ j0
+    w1 = cov @ j1
+    a = wp.dot(j0, w0) + eps2d
+    b = wp.dot(j1, w0)
+    c = wp.dot(j1, w1) + eps2d
+    det = a * c - b * b
+    valid = valid and det > zero and wp.isfinite(det)
+    det_s = one
+    if valid:
+        det_s = det
+    u = fx * xs * rz + cx
+    v = fy * ys * rz + cy
+    mid = half * (a + c)
+    lam = one
+    if valid:
+        lam = mid + wp.sqrt(wp.max(mid * mid - det, wp.float64(0.1)))
+    r = wp.ceil(wp.float64(3.0) * wp.sqrt(lam))
+    inside = u + r >= zero and u - r <= w - one and v + r >= zero and v - r <= h - one
+    keep = valid and inside and wp.isfinite(r) and wp.isfinite(u) and wp.isfinite(v)
+    ri = int(0)
+    if keep:
+        ri = int(wp.min(r, wp.float64(1073741824.0)))
+    means2d[i, 0] = means2d.dtype(u)
+    means2d[i, 1] = means2d.dtype(v)
+    conics[i, 0] = conics.dtype(c / det_s)
+    conics[i, 1] = conics.dtype(-b / det_s)
+    conics[i, 2] = conics.dtype(a / det_s)
+    depths[i] = depths.dtype(zs)
+    radii[i] = ri
+
+
+@wp.kernel
+def project_bwd_kernel(
+    means: wp.array2d(dtype=Any),
+    quats: wp.array2d(dtype=Any),
+    log_scales: wp.array2d(dtype=Any),
+    rot: wp.mat33d,
+    trans: wp.vec3d,
+    intr: wp.vec4d,
+    width: int,
+    height: int,
+    near: wp.float64,
+    far: wp.float64,
+    eps2d: wp.float64,
+    offset: int,
+    g_means2d: wp.array2d(dtype=Any),
+    g_conics: wp.array2d(dtype=Any),
+    g_depths: wp.array(dtype=Any),
+    g_means: wp.array2d(dtype=Any),
+    g_quats: wp.array2d(dtype=Any),
+    g_log_scales: wp.array2d(dtype=Any),
+):
+    """Gradients of the outputs of :func:`project_fwd_kernel` (means2d, conics, depths) w.r.t.
+    means, quats and log_scales of Gaussian ``offset + tid`` (recomputes the forward
+    intermediates)."""
+    i = wp.tid() + offset
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    half = wp.float64(0.5)
+    two = wp.float64(2.0)
+    fx = intr[0]
+    fy = intr[1]
+    cx = intr[2]
+    cy = intr[3]
+    m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
+    p = rot @ m + trans
+    q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
+                 wp.float64(quats[i, 3]))
+    ls = wp.vec3d(wp.float64(log_scales[i, 0]), wp.float64(log_scales[i, 1]),
+                  wp.float64(log_scales[i, 2]))
+    finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
+    valid = finite and p[2] > near and p[2] < far
+    if not valid:
+        for k in range(3):
+            g_means[i, k] = g_means.dtype(0.0)
+            g_log_scales[i, k] = g_log_scales.dtype(0.0)
+        for k in range(4):
+            g_quats[i, k] = g_quats.dtype(0.0)
+        return
+    xs = p[0]
+    ys = p[1]
+    zs = p[2]
+    qlen = wp.length(q)
+    qden = wp.max(qlen, wp.float64(1e-12))
+    qn = q / qden
+    rq = _quat_rotmat(qn[0], qn[1], qn[2], qn[3])
+    s = wp.vec3d(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
+    mm = rot @ (rq @ wp.diag(s))
+    cov = mm @ wp.transpose(mm)
+    w = wp.float64(width)
+    h = wp.float64(height)
+    tfx = half * w / fx
+    tfy = half * h / fy
+    lxp = (w - cx) / fx + wp.float64(0.3) * tfx
+    lxn = cx / fx + wp.float64(0.3) * tfx
+    lyp = (h - cy) / fy + wp.float64(0.3) * tfy
+    lyn = cy / fy + wp.float64(0.3) * tfy
+    rz = one / zs
+    xr = xs * rz
+    yr = ys * rz
+    txc = wp.min(wp.max(xr, -lxn), lxp)
+    tyc = wp.min(wp.max(yr, -lyn), lyp)
+    tx = zs * txc
+    ty = zs * tyc
+    j0 = wp.vec3d(fx * rz, zero, -fx * tx * rz * rz)
+    j1 = wp.vec3d(zero, fy * rz, -fy * ty * rz * rz)
+    w0 = cov @ j0
+    w1 = cov @ j1
+    a = wp.dot(j0, w0) + eps2d
+    b = wp.dot(j1, w0)
+    c = wp.dot(j1, w1) + eps2d
+    det = a * c - b * b
+    valid2 = det > zero and wp.isfinite(det)
+
+    gu = wp.float64(g_means2d[i, 0])
+    gv = wp.float64(g_means2d[i, 1])
+    gA = wp.float64(g_conics[i, 0])
+    gB = wp.float64(g_conics[i, 1])
+    gC = wp.float64(g_conics[i, 2])
+    gzs = wp.float64(g_depths[i])
+    # conic = (c, -b, a) / det_s
+    ga = gC
+    gb = -gB
+    gc = gA
+    if valid2:
+        idet = one / det
+        gdet = -(gA * c - gB * b + gC * a) * idet * idet
+        ga = gC * idet + gdet * c
+        gc = gA * idet + gdet * a
+        gb = -gB * idet - two * gdet * b
+    # cov2 = J cov J^T with the symmetric upstream gradient [[ga, gb/2], [gb/2, gc]]
+    gj0 = two * ga * w0 + gb * w1
+    gj1 = gb * w0 + two * gc * w1
+    gcov = ga * wp.outer(j0, j0) + half * gb * (wp.outer(j0, j1) + wp.outer(j1, j0)) + gc * wp.outer(j1, j1)
+    gmm = two * (gcov @ mm)
+    gn = wp.transpose(rot) @ gmm  # gradient of N = Rq diag(s)
+    grq = gn @ wp.diag(s)
+    gls = wp.vec3d(zero, zero, zero)
+    for k in range(3):
+        gls[k] = (gn[0, k] * rq[0, k] + gn[1, k] * rq[1, k] + gn[2, k] * rq[2, k]) * s[k]
+    # rotation matrix of the unit quaternion -> (w, x, y, z)
+    qw = qn[0]
+    qx = qn[1]
+    qy = qn[2]
+    qz = qn[3]
+    gw = two * (-qz * grq[0, 1] + qy * grq[0, 2] + qz * grq[1, 0] - qx * grq[1, 2] - qy * grq[2, 0]
+                + qx * grq[2, 1])
+    gx = two * (qy * grq[0, 1] + qz * grq[0, 2] + qy * grq[1, 0] - two * qx * grq[1, 1] - qw * grq[1, 2]
+                + qz * grq[2, 0] + qw * grq[2, 1] - two * qx * grq[2, 2])
+    gy = two * (-two * qy * grq[0, 0] + qx * grq[0, 1] + qw * grq[0, 2] + qx * grq[1, 0] + qz * grq[1, 2]
+                - qw * grq[2, 0] + qz * grq[2, 1] - two * qy * grq[2, 2])
+    gz = two * (-two * qz * grq[0, 0] - qw * grq[0, 1] + qx * grq[0, 2] + qw * grq[1, 0]
+                - two * qz * grq[1, 1] + qy * grq[1, 2] + qx * grq[2, 0] + qy * grq[2, 1])
+    gqn = wp.vec4d(gw, gx, gy, gz)
+    gq = gqn / qden
+    if qlen >= wp.float64(1e-12):
+        gq = (gqn - qn * wp.dot(qn, gqn)) / qden
+    # Jacobian entries J00 = fx rz, J02 = -fx tx rz^2, J11 = fy rz, J12 = -fy ty rz^2
+    grz = fx * gj0[0] + fy * gj1[1] - two * fx * tx * rz * gj0[2] - two * fy * ty * rz * gj1[2]
+    gtx = -fx * rz * rz * gj0[2]
+    gty = -fy * rz * rz * gj1[2]
+    # u = fx xs rz + cx, v = fy ys rz + cy
+    gxs = gu * fx * rz
+    gys = gv * fy * rz
+    grz += gu * fx * xs + gv * fy * ys
+    # tx = zs clamp(xs rz), ty = zs clamp(ys rz)
+    gzs += gtx * txc + gty * tyc
+    gxr = gtx * zs * _clamp_grad_factor(xr, -lxn, lxp)
+    gyr = gty * zs * _clamp_grad_factor(yr, -lyn, lyp)
+    gxs += gxr * rz
+    gys += gyr * rz
+    grz += gxr * xs + gyr * ys
+    gzs += -grz * rz * rz
+    gm = wp.transpose(rot) @ wp.vec3d(gxs, gys, gzs)
+    for k in range(3):
+        g_means[i, k] = g_means.dtype(gm[k])
+        g_log_scales[i, k] = g_log_scales.dtype(gls[k])
+    for k in range(4):
+        g_quats[i, k] = g_quats.dtype(gq[k])
+
+
+for _T in (wp.float32, wp.float64):
+    _a2 = wp.array2d(dtype=_T)
+    _common = [_a2, _a2, _a2, wp.mat33d, wp.vec3d, wp.vec4d, int, int, wp.float64, wp.float64, wp.float64,
+               int]
+    wp.overload(project_fwd_kernel, _common + [_a2, _a2, wp.array(dtype=_T), wp.array(dtype=wp.int32)])
+    wp.overload(project_bwd_kernel, _common + [_a2, _a2, wp.array(dtype=_T), _a2, _a2, _a2])
+
 
 
 def ensure_loaded(device: str) -> None:
@@ -605,3 +1113,26 @@ def ensure_loaded(device: str) -> None:
         wp.init()
         wp.load_module(module=__name__, device=device)
         _loaded.add(device)
+
+
+def run_parallel(fns) -> None:
+    """Run the callables in ``fns`` concurrently and re-raise any error: the first one in the
+    calling thread, the others in a persistent thread pool (CPU Warp launches release the GIL,
+    so each callable can keep one core busy)."""
+    global _pool, _pool_size
+    if len(fns) == 1:
+        fns[0]()
+        return
+    with _pool_lock:
+        if _pool is None or _pool_size < len(fns) - 1:
+            if _pool is not None:
+                _pool.shutdown(wait=True)
+            _pool = ThreadPoolExecutor(max_workers=len(fns) - 1, thread_name_prefix="gausslite-raster")
+            _pool_size = len(fns) - 1
+        pool = _pool
+    futs = [pool.submit(f) for f in fns[1:]]
+    try:
+        fns[0]()
+    finally:
+        for f in futs:
+            f.result()
