@@ -35,7 +35,7 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
 
 def resolve_dataset(args: argparse.Namespace, out: Path):
     """Load ``--dataset``, or generate the synthetic default scene into ``out/scene`` (agent_a)."""
-    from gausslite.datasets import load_dataset
+    from gausslite.datasets import detect_layout, load_dataset
 
     path = args.dataset
     if path is None:
@@ -47,14 +47,9 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
             make_scene(scene_dir)
         path = scene_dir / "agent_a"
     tum_kw = {k: True for k in ("undistort", "interpolate_poses") if getattr(args, k, False)}
-    if tum_kw:
-        from gausslite.datasets.tum import TUMDataset
-
-        ds = load_dataset(path, downscale=args.downscale, max_frames=args.max_frames)
-        if not isinstance(ds, TUMDataset):
-            raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
-        return load_dataset(path, kind="tum", downscale=args.downscale, max_frames=args.max_frames, **tum_kw)
-    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames)
+    if tum_kw and detect_layout(path)[0] != "tum":
+        raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
+    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **tum_kw)
 
 
 def config_from_args(args: argparse.Namespace, **extra):

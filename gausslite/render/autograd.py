@@ -25,7 +25,6 @@ from . import warp_kernels as wk
 from .projection import Projection
 
 _IDATA_COLS = [0, 1, 2, 3, 4, 10, 11, 12]
-_run_parallel = wk.run_parallel
 
 
 def default_num_threads() -> int:

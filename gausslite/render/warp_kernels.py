@@ -840,6 +840,66 @@ def _clamp_grad_factor(x: wp.float64, lo: wp.float64, hi: wp.float64):
     return f
 
 
+@wp.func
+def _load_cam(
+    means: wp.array2d(dtype=Any),
+    quats: wp.array2d(dtype=Any),
+    log_scales: wp.array2d(dtype=Any),
+    i: int,
+    rot: wp.mat33d,
+    trans: wp.vec3d,
+):
+    """Row ``i`` in float64: camera-frame centre ``rot @ mean + trans`` (metres), raw quaternion
+    (w, x, y, z) and log-scales."""
+    m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
+    q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
+                 wp.float64(quats[i, 3]))
+    ls = wp.vec3d(wp.float64(log_scales[i, 0]), wp.float64(log_scales[i, 1]),
+                  wp.float64(log_scales[i, 2]))
+    return rot @ m + trans, q, ls
+
+
+@wp.func
+def _cam_cov(rot: wp.mat33d, qn: wp.vec4d, ls: wp.vec3d):
+    """Camera-frame 3D covariance ``cov = M M^T`` with ``M = rot Rq diag(exp(ls))`` for the unit
+    quaternion ``qn``; returns (Rq, exp(ls), M, cov), metres^2."""
+    rq = _quat_rotmat(qn[0], qn[1], qn[2], qn[3])
+    s = wp.vec3d(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
+    mm = rot @ (rq @ wp.diag(s))
+    return rq, s, mm, mm @ wp.transpose(mm)
+
+
+@wp.func
+def _tan_limits(width: int, height: int, intr: wp.vec4d):
+    """Clamp limits (x+, x-, y+, y-) of x/z and y/z for the EWA Jacobian: the image bounds widened by
+    30 % of the half field of view (reference implementation's ``limx``/``limy``)."""
+    fx = intr[0]
+    fy = intr[1]
+    cx = intr[2]
+    cy = intr[3]
+    w = wp.float64(width)
+    h = wp.float64(height)
+    tfx = wp.float64(0.5) * w / fx
+    tfy = wp.float64(0.5) * h / fy
+    return wp.vec4d((w - cx) / fx + wp.float64(0.3) * tfx, cx / fx + wp.float64(0.3) * tfx,
+                    (h - cy) / fy + wp.float64(0.3) * tfy, cy / fy + wp.float64(0.3) * tfy)
+
+
+@wp.func
+def _ewa_cov2d(cov: wp.mat33d, fx: wp.float64, fy: wp.float64, rz: wp.float64, tx: wp.float64,
+               ty: wp.float64, eps2d: wp.float64):
+    """Rows j0, j1 of the projection Jacobian J at the clamped point (tx, ty, 1/rz) and the
+    low-passed screen covariance J cov J^T + eps2d I as (a, b, c) = ([0,0], [0,1], [1,1]) in px^2;
+    also returns w0 = cov j0 and w1 = cov j1 (needed by the backward)."""
+    zero = wp.float64(0.0)
+    j0 = wp.vec3d(fx * rz, zero, -fx * tx * rz * rz)
+    j1 = wp.vec3d(zero, fy * rz, -fy * ty * rz * rz)
+    w0 = cov @ j0
+    w1 = cov @ j1
+    abc = wp.vec3d(wp.dot(j0, w0) + eps2d, wp.dot(j1, w0), wp.dot(j1, w1) + eps2d)
+    return j0, j1, w0, w1, abc
+
+
 @wp.kernel
 def project_fwd_kernel(
     means: wp.array2d(dtype=Any),
@@ -873,12 +933,7 @@ def project_fwd_kernel(
     fy = intr[1]
     cx = intr[2]
     cy = intr[3]
-    m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
-    p = rot @ m + trans
-    q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
-                 wp.float64(quats[i, 3]))
-    ls = wp.vec3d(wp.float64(log_scales[i, 0]), wp.float64(log_scales[i, 1]),
-                  wp.float64(log_scales[i, 2]))
+    p, q, ls = _load_cam(means, quats, log_scales, i, rot, trans)
     finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
     valid = finite and p[2] > near and p[2] < far
     xs = zero
@@ -892,28 +947,17 @@ def project_fwd_kernel(
         q = wp.vec4d(one, one, one, one)
         ls = wp.vec3d(zero, zero, zero)
     qn = q / wp.max(wp.length(q), wp.float64(1e-12))
-    rq = _quat_rotmat(qn[0], qn[1], qn[2], qn[3])
-    s = wp.vec3d(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
-    mm = rot @ (rq @ wp.diag(s))
-    cov = mm @ wp.transpose(mm)
+    rq, s, mm, cov = _cam_cov(rot, qn, ls)
     w = wp.float64(width)
     h = wp.float64(height)
-    tfx = half * w / fx
-    tfy = half * h / fy
-    lxp = (w - cx) / fx + wp.float64(0.3) * tfx
-    lxn = cx / fx + wp.float64(0.3) * tfx
-    lyp = (h - cy) / fy + wp.float64(0.3) * tfy
-    lyn = cy / fy + wp.float64(0.3) * tfy
+    lim = _tan_limits(width, height, intr)
     rz = one / zs
-    tx = zs * wp.min(wp.max(xs * rz, -lxn), lxp)
-    ty = zs * wp.min(wp.max(ys * rz, -lyn), lyp)
-    j0 = wp.vec3d(fx * rz, zero, -fx * tx * rz * rz)
-    j1 = wp.vec3d(zero, fy * rz, -fy * ty * rz * rz)
-    w0 = cov @ j0
-    w1 = cov @ j1
-    a = wp.dot(j0, w0) + eps2d
-    b = wp.dot(j1, w0)
-    c = wp.dot(j1, w1) + eps2d
+    tx = zs * wp.min(wp.max(xs * rz, -lim[1]), lim[0])
+    ty = zs * wp.min(wp.max(ys * rz, -lim[3]), lim[2])
+    j0, j1, w0, w1, abc = _ewa_cov2d(cov, fx, fy, rz, tx, ty, eps2d)
+    a = abc[0]
+    b = abc[1]
+    c = abc[2]
     det = a * c - b * b
     valid = valid and det > zero and wp.isfinite(det)
     det_s = one
@@ -971,14 +1015,7 @@ def project_bwd_kernel(
     two = wp.float64(2.0)
     fx = intr[0]
     fy = intr[1]
-    cx = intr[2]
-    cy = intr[3]
-    m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
-    p = rot @ m + trans
-    q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
-                 wp.float64(quats[i, 3]))
-    ls = wp.vec3d(wp.float64(log_scales[i, 0]), wp.float64(log_scales[i, 1]),
-                  wp.float64(log_scales[i, 2]))
+    p, q, ls = _load_cam(means, quats, log_scales, i, rot, trans)
     finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
     valid = finite and p[2] > near and p[2] < far
     if not valid:
@@ -994,18 +1031,12 @@ def project_bwd_kernel(
     qlen = wp.length(q)
     qden = wp.max(qlen, wp.float64(1e-12))
     qn = q / qden
-    rq = _quat_rotmat(qn[0], qn[1], qn[2], qn[3])
-    s = wp.vec3d(wp.exp(ls[0]), wp.exp(ls[1]), wp.exp(ls[2]))
-    mm = rot @ (rq @ wp.diag(s))
-    cov = mm @ wp.transpose(mm)
-    w = wp.float64(width)
-    h = wp.float64(height)
-    tfx = half * w / fx
-    tfy = half * h / fy
-    lxp = (w - cx) / fx + wp.float64(0.3) * tfx
-    lxn = cx / fx + wp.float64(0.3) * tfx
-    lyp = (h - cy) / fy + wp.float64(0.3) * tfy
-    lyn = cy / fy + wp.float64(0.3) * tfy
+    rq, s, mm, cov = _cam_cov(rot, qn, ls)
+    lim = _tan_limits(width, height, intr)
+    lxp = lim[0]
+    lxn = lim[1]
+    lyp = lim[2]
+    lyn = lim[3]
     rz = one / zs
     xr = xs * rz
     yr = ys * rz
@@ -1013,13 +1044,10 @@ def project_bwd_kernel(
     tyc = wp.min(wp.max(yr, -lyn), lyp)
     tx = zs * txc
     ty = zs * tyc
-    j0 = wp.vec3d(fx * rz, zero, -fx * tx * rz * rz)
-    j1 = wp.vec3d(zero, fy * rz, -fy * ty * rz * rz)
-    w0 = cov @ j0
-    w1 = cov @ j1
-    a = wp.dot(j0, w0) + eps2d
-    b = wp.dot(j1, w0)
-    c = wp.dot(j1, w1) + eps2d
+    j0, j1, w0, w1, abc = _ewa_cov2d(cov, fx, fy, rz, tx, ty, eps2d)
+    a = abc[0]
+    b = abc[1]
+    c = abc[2]
     det = a * c - b * b
     valid2 = det > zero and wp.isfinite(det)
 
