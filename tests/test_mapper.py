@@ -52,16 +52,17 @@ def test_kappa_counts_active_iterations_and_active_comes_from_w():
     assert np.array_equal(_roi()[v, u], act.numpy())
 
 
-def test_roi_phase_renders_only_active_and_updates_only_active(monkeypatch):
+@pytest.mark.parametrize("context", [False, True])
+def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, context):
     calls = []
     real = mapper_mod.rasterize
 
     def spy(*a, **kw):
-        calls.append(None if kw.get("subset") is None else kw["subset"].clone())
+        calls.append((None if kw.get("subset") is None else kw["subset"].clone(), kw["width"], kw["height"]))
         return real(*a, **kw)
 
     monkeypatch.setattr(mapper_mod, "rasterize", spy)
-    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2))
+    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_context=context, roi_crop_pad=3))
     fr = _frame(0)
     m._seed(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
@@ -69,13 +70,60 @@ def test_roi_phase_renders_only_active_and_updates_only_active(monkeypatch):
     m._iterate(kf, active_phase=False)
     before = {k: v.detach().clone() for k, v in m.model.params.items()}
     m._iterate(kf, active_phase=True)
-    assert calls[0] is None
-    assert torch.equal(calls[1], m.model.active)
+    assert calls[0] == (None, W, H)
+    subset, w, h = calls[1]
+    assert (w, h) == (34 - 14 + 2 * 3, 26 - 10 + 2 * 3)  # ROI box [14,34)×[10,26) grown by 3 px
+    if context:
+        assert subset is None  # inactive Gaussians are rendered, as occluders and background
+    else:
+        assert torch.equal(subset, m.model.active)
     act = m.model.active
     for name, p in m.model.params.items():
         # background Gaussians frozen (Adam momentum from the warm-up must not move them)
         assert torch.equal(p.detach()[~act], before[name][~act]), name
     assert not torch.equal(m.model.params["colors"].detach()[act], before["colors"][act])
+
+
+def test_roi_crop_renders_the_same_pixels_as_the_full_image():
+    m = Mapper(_cfg())
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    assert kf.roi_box == (14, 10, 34, 26)
+    crop = mapper_mod.crop_keyframe(kf, pad=4)
+    assert (crop.width, crop.height) == (28, 24) and crop.roi_box == (4, 4, 24, 20)
+    assert torch.equal(crop.rgb, kf.rgb[6:30, 10:38]) and torch.equal(crop.roi, kf.roi[6:30, 10:38])
+    full = m.render(kf.c2w, kf.K, W, H)
+    part = m.render(crop.c2w, crop.K, crop.width, crop.height)
+    for name, tol in (("color", 5e-3), ("alpha", 5e-3), ("depth", 5e-3)):
+        # equal up to the EWA Jacobian clamp, which follows the image bounds (Kerbl et al. 2023):
+        # Gaussians centred far outside the crop are clamped differently (measured ≤ 2.8e-3 here)
+        d = (getattr(part, name) - getattr(full, name)[6:30, 10:38]).abs()
+        assert float(d.max()) < tol and float(d.mean()) < tol / 10, (name, float(d.max()), float(d.mean()))
+    # the pad is clipped at the image border
+    big = mapper_mod.crop_keyframe(kf, pad=100)
+    assert (big.width, big.height) == (W, H) and big.roi_box == kf.roi_box
+    with pytest.raises(ValueError):
+        mapper_mod.crop_keyframe(mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool)), 2)
+
+
+def test_active_phase_on_a_view_without_roi_is_a_full_image_iteration(monkeypatch):
+    """Nothing to fit in the ROI: no zero-loss Adam step (its momentum would still move the
+    active Gaussians) and no κ; the iteration trains the whole map on the full image instead."""
+    sizes = []
+    real = mapper_mod.rasterize
+    monkeypatch.setattr(mapper_mod, "rasterize",
+                        lambda *a, **kw: sizes.append((kw.get("subset"), kw["width"])) or real(*a, **kw))
+    m = Mapper(_cfg())
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool))
+    assert kf.roi_box is None
+    before = m.model.params["colors"].detach().clone()
+    loss = m._iterate(kf, active_phase=True)
+    assert sizes == [(None, W)] and loss > 0
+    assert int(m.model.kappa.sum()) == 0
+    assert not torch.equal(m.model.params["colors"].detach()[~m.model.active], before[~m.model.active])
 
 
 def test_roi_loss_restricted_to_roi_and_footprint():
@@ -107,6 +155,7 @@ def test_densify_statistics_come_from_full_image_iterations(active_stats):
     cfg = _cfg()
     cfg.densify.enabled = True
     cfg.densify.active_phase_stats = active_stats
+    cfg.roi_context = False  # the active subset alone: inactive Gaussians get no gradient to count
     m = Mapper(cfg)
     fr = _frame(0)
     m._seed(fr, _roi())

@@ -3,6 +3,10 @@
 Writes ``DIR/ablation.json`` (a list of rows: the five switches, ``roi_psnr``, ``psnr``,
 ``seconds_per_frame``, ``n_gaussians``, per task and averaged), ``DIR/ablation.md`` and
 ``DIR/ablation.png`` (ROI PSNR and full-image PSNR per row, the paper's Fig. 5 trade-off).
+
+``--rows`` runs a subset of the rows; ``--merge PREV/ablation.json`` fills the rows not run from an
+earlier report (each such row keeps ``"source": PREV`` so the table says where it came from), e.g. to
+re-run only the rows a mapper change can affect.
 """
 
 from __future__ import annotations
@@ -22,16 +26,60 @@ log = logging.getLogger("gausslite.ablate")
 SWITCHES = ("sb", "mvo", "roi", "sis", "gfd")
 
 
-def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True) -> list[dict]:
-    """Run every ablation row for every task at the same budget; return the rows (mean over tasks
-    in ``roi_psnr``/``psnr``/``seconds_per_frame``/``n_gaussians``, per task in ``per_task``)."""
+def select_rows(names: str | None) -> list[tuple[str, object]]:
+    """The ablation rows named in a comma list (``none,+SB,...``; None = all), in table order.
+
+    Raises:
+        ValueError: an unknown row name.
+    """
+    from gausslite.mapping.config import ablation_rows
+
+    rows = ablation_rows()
+    if not names:
+        return rows
+    want = [n.strip() for n in names.split(",") if n.strip()]
+    known = [n for n, _ in rows]
+    bad = [n for n in want if n not in known]
+    if bad:
+        raise ValueError(f"unknown ablation rows {bad}; rows are {known}")
+    return [(n, sw) for n, sw in rows if n in want]
+
+
+def merge_rows(rows: list[dict], previous: Path, task_ids: list[str]) -> list[dict]:
+    """All table rows in order: ``rows`` (just run) plus the other rows of ``previous`` (an earlier
+    ablation.json over the same tasks), each marked with ``source``.
+
+    Raises:
+        ValueError: ``previous`` lacks a row that was not run, or covers other tasks.
+    """
+    from gausslite.mapping.config import ablation_rows
+
+    done = {r["row"]: r for r in rows}
+    old = {r["row"]: r for r in json.loads(Path(previous).read_text())}
+    merged = []
+    for name, _ in ablation_rows():
+        if name in done:
+            merged.append(done[name])
+            continue
+        if name not in old:
+            raise ValueError(f"{previous} has no row {name!r} to merge")
+        if sorted(old[name]["per_task"]) != sorted(task_ids):
+            raise ValueError(f"{previous} row {name!r} covers tasks {sorted(old[name]['per_task'])}, not {sorted(task_ids)}")
+        merged.append({**old[name], "source": str(previous)})
+    return merged
+
+
+def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True,
+                 rows_to_run: list[tuple[str, object]] | None = None) -> list[dict]:
+    """Run ablation rows (default: all) for every task at the same budget; return the rows (mean
+    over tasks in ``roi_psnr``/``psnr``/``seconds_per_frame``/``n_gaussians``, per task in ``per_task``)."""
     from tqdm import tqdm
 
-    from gausslite.mapping.config import ablation_rows
     from gausslite.pipeline import run_mapping
 
+    selected = rows_to_run if rows_to_run is not None else select_rows(None)
     rows = []
-    jobs = [(name, sw, t) for name, sw in ablation_rows() for t in task_ids]
+    jobs = [(name, sw, t) for name, sw in selected for t in task_ids]
     bar = tqdm(total=len(jobs), desc="ablation", disable=not progress, unit="run")
     results: dict[str, dict[str, dict]] = {}
     for name, sw, task in jobs:
@@ -46,7 +94,7 @@ def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int 
                  m["seconds_per_frame"], m["n_gaussians"])
         bar.update(1)
     bar.close()
-    for name, sw in ablation_rows():
+    for name, sw in selected:
         per = results[name]
         row = {s: bool(getattr(sw, s)) for s in SWITCHES}
         row["row"] = name
@@ -74,6 +122,10 @@ def write_report(rows: list[dict], out: Path, title: str) -> None:
     for r in rows:
         lines.append("| " + " | ".join(mark(r[s]) for s in SWITCHES)
                      + f" | {r['roi_psnr']:.2f} | {r['psnr']:.2f} | {r['seconds_per_frame']:.2f} | {r['n_gaussians']:.0f} |")
+    merged = [r for r in rows if r.get("source")]
+    if merged:
+        lines += ["", "Rows taken from earlier runs: "
+                  + "; ".join(f"{r['row']} from {r['source']}" for r in merged) + "."]
     tasks = sorted(rows[0]["per_task"])
     if len(tasks) > 1:
         lines += ["", "ROI PSNR per task [dB]:", "", "| row | " + " | ".join(tasks) + " |",
@@ -105,8 +157,28 @@ def _handler(args: argparse.Namespace) -> int:
         log.error("%s has no tasks.json: ablation needs ground-truth ROI", ds.path)
         return 2
     task_ids = [t.id for t in ds.annotations.tasks] if args.task_id in (None, "all") else [args.task_id]
-    base = config_from_args(args, mode="gausslite")
-    rows = run_ablation(ds, base, task_ids, out, stride=args.stride, progress=not args.no_progress)
+    try:
+        base = config_from_args(args, mode="gausslite")
+        selected = select_rows(args.rows)
+    except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
+        log.error("%s", e)
+        return 2
+    if args.merge is not None:
+        try:  # check the earlier report before hours of mapping, not after
+            merge_rows([{"row": n} for n, _ in selected], args.merge, task_ids)
+        except (OSError, ValueError, KeyError) as e:
+            log.error("--merge %s: %s", args.merge, e)
+            return 2
+    elif len(selected) < len(select_rows(None)):
+        log.info("running rows %s only (no --merge): the table holds just these", [n for n, _ in selected])
+    rows = run_ablation(ds, base, task_ids, out, stride=args.stride, progress=not args.no_progress,
+                        rows_to_run=selected)
+    if args.merge is not None:
+        try:
+            rows = merge_rows(rows, args.merge, task_ids)
+        except (OSError, ValueError, KeyError) as e:
+            log.error("--merge %s: %s", args.merge, e)
+            return 2
     write_report(rows, out, f"{ds.path.name} ({', '.join(task_ids)})")
     print((out / "ablation.md").read_text())
     return 0
@@ -116,4 +188,8 @@ def register(sub) -> None:
     p = sub.add_parser("ablate", help="component ablation at matched budget (paper Table 3)")
     add_mapping_args(p)
     p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--rows", default=None,
+                   help="comma list of rows to run (none,+SB,+MVO,+ROI,+SIS,+GFD; default all)")
+    p.add_argument("--merge", type=Path, default=None,
+                   help="earlier ablation.json whose rows fill the ones not run (marked in the table)")
     p.set_defaults(func=_handler)

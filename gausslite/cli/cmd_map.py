@@ -69,7 +69,11 @@ def _handler(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ds = resolve_dataset(args, out)
-    cfg = config_from_args(args, mode=args.mode)
+    try:
+        cfg = config_from_args(args, mode=args.mode)
+    except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
+        log.error("invalid mapper configuration: %s", e)
+        return 2
     if args.task_id is None and cfg.mode == "gausslite":
         if ds.annotations is None or not ds.annotations.tasks:
             log.error("mode gausslite needs --task-id and a tasks.json next to %s", ds.path)

@@ -6,9 +6,10 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
 2. a fixed number of Adam iterations; each iteration's view comes from a window of recent keyframes
    (MVO: uniform over the window; otherwise the current frame with probability
    ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM);
-3. ROI: after ``warmup_iters`` full-image iterations, the rest render and update only active
-   Gaussians with colour/depth/SSIM restricted to ROI ∩ rendered footprint; κ += 1 per active
-   iteration for every active Gaussian;
+3. ROI: after ``warmup_iters`` full-image iterations, the rest update only active Gaussians with
+   colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
+   (with the inactive Gaussians frozen in the render, ``roi_context``; or the active subset alone,
+   the paper's wording); κ += 1 per active iteration for every active Gaussian;
 4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
    view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
@@ -42,7 +43,8 @@ class Keyframe:
     """A training view kept in the mapper's window (tensors on the mapper's device).
 
     rgb (H,W,3) float32 [0,1]; depth (H,W) float32 metres (0 invalid); c2w (4,4) float64;
-    K (3,3) float32; roi (H,W) bool or None.
+    K (3,3) float32; roi (H,W) bool or None; roi_box (x0, y0, x1, y1) pixels, the half-open
+    bounding box of the ROI pixels, or None when the ROI is absent or empty.
     """
 
     frame_id: int
@@ -53,6 +55,7 @@ class Keyframe:
     width: int
     height: int
     roi: Optional[torch.Tensor]
+    roi_box: Optional[tuple[int, int, int, int]] = None
 
 
 @dataclass
@@ -71,6 +74,11 @@ class FrameStats:
 
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
     """Convert a dataset ``Frame`` (uint8 rgb, metres depth) into a tensor ``Keyframe``."""
+    box = None
+    if roi is not None:
+        ys, xs = np.nonzero(roi)
+        if ys.size:
+            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
     return Keyframe(
         frame_id=frame.frame_id,
         rgb=torch.from_numpy(frame.rgb).to(device, torch.float32) / 255.0,
@@ -80,6 +88,29 @@ def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.nda
         width=frame.intrinsics.width,
         height=frame.intrinsics.height,
         roi=None if roi is None else torch.from_numpy(np.asarray(roi, dtype=bool)).to(device),
+        roi_box=box,
+    )
+
+
+def crop_keyframe(kf: Keyframe, pad: int) -> Keyframe:
+    """The keyframe restricted to its ROI bounding box grown by ``pad`` pixels (clipped to the image).
+
+    The principal point moves with the crop (cx -= x0, cy -= y0), so a render with the cropped K at
+    the cropped size shows the same pixels as the full render, up to the EWA Jacobian clamp that
+    follows the image bounds (Gaussians centred far outside the crop; ≤ 3e-3 colour in the tests).
+    Raises ValueError without an ROI.
+    """
+    if kf.roi_box is None or kf.roi is None:
+        raise ValueError(f"keyframe {kf.frame_id} has no ROI to crop to")
+    bx0, by0, bx1, by1 = kf.roi_box
+    x0, y0 = max(0, bx0 - pad), max(0, by0 - pad)
+    x1, y1 = min(kf.width, bx1 + pad), min(kf.height, by1 + pad)
+    K = kf.K.clone()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Keyframe(
+        frame_id=kf.frame_id, rgb=kf.rgb[y0:y1, x0:x1], depth=kf.depth[y0:y1, x0:x1], c2w=kf.c2w, K=K,
+        width=x1 - x0, height=y1 - y0, roi=kf.roi[y0:y1, x0:x1], roi_box=(bx0 - x0, by0 - y0, bx1 - x0, by1 - y0),
     )
 
 
@@ -275,22 +306,30 @@ class Mapper:
     def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False) -> float:
         """One Adam iteration on keyframe ``kf``.
 
-        ``active_phase``: render/update only active Gaussians, loss on ROI ∩ footprint (paper III-D).
+        ``active_phase`` (paper III-D.1): update only active Gaussians, with colour, depth and SSIM on
+        ROI ∩ rendered footprint, κ += 1 for each active Gaussian. The render covers only the ROI's
+        bounding box (``roi_crop_pad``). It holds the active Gaussians alone (``roi_context=False``,
+        the paper's wording) or, by default, every Gaussian with the inactive ones frozen, so the
+        active subset is fitted to the pixels the full map will show. A view whose ROI is empty gets
+        a full-image iteration instead (no κ): with no ROI pixel there is nothing to fit.
         ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
         used to refine partial maps such as fused ROI subsets, which do not cover the background.
         """
         cfg = self.cfg
-        subset = self.model.active if active_phase else None
-        out = self._rasterize(kf.c2w, kf.K, kf.width, kf.height, subset)
+        if active_phase and kf.roi_box is None:
+            active_phase = False
+        view = crop_keyframe(kf, cfg.roi_crop_pad) if active_phase else kf
+        subset = self.model.active if active_phase and not cfg.roi_context else None
+        out = self._rasterize(view.c2w, view.K, view.width, view.height, subset)
         mask = None
         if active_phase:
-            roi = kf.roi if kf.roi is not None else torch.zeros_like(kf.depth, dtype=torch.bool)
-            mask = roi & (out.alpha.detach() > cfg.footprint_alpha)
+            mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
         elif footprint_only:
             mask = out.alpha.detach() > cfg.footprint_alpha
-        loss = photometric_loss(out, kf, cfg.lambda_depth, cfg.lambda_ssim, mask)
+        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
+            # normalised by the full image size in both cases: crops keep the pixel scale
             self._accumulate(out, kf.width, kf.height)
         self.model.step(update=self.model.active if active_phase else None)
         if active_phase:
