@@ -52,8 +52,8 @@ def test_kappa_counts_active_iterations_and_active_comes_from_w():
     assert np.array_equal(_roi()[v, u], act.numpy())
 
 
-@pytest.mark.parametrize("context", [False, True])
-def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, context):
+@pytest.mark.parametrize("mode", ["context", "active", "alternate"])
+def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode):
     calls = []
     real = mapper_mod.rasterize
 
@@ -62,7 +62,7 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, cont
         return real(*a, **kw)
 
     monkeypatch.setattr(mapper_mod, "rasterize", spy)
-    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_context=context, roi_crop_pad=3))
+    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3))
     fr = _frame(0)
     m._seed(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
@@ -73,15 +73,21 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, cont
     assert calls[0] == (None, W, H)
     subset, w, h = calls[1]
     assert (w, h) == (34 - 14 + 2 * 3, 26 - 10 + 2 * 3)  # ROI box [14,34)×[10,26) grown by 3 px
-    if context:
-        assert subset is None  # inactive Gaussians are rendered, as occluders and background
-    else:
+    if mode == "active":
         assert torch.equal(subset, m.model.active)
+    else:
+        assert subset is None  # inactive Gaussians are rendered, as occluders and background
     act = m.model.active
     for name, p in m.model.params.items():
         # background Gaussians frozen (Adam momentum from the warm-up must not move them)
         assert torch.equal(p.detach()[~act], before[name][~act]), name
     assert not torch.equal(m.model.params["colors"].detach()[act], before["colors"][act])
+    m._iterate(kf, active_phase=True)
+    m._iterate(kf, active_phase=False)  # warm-up iterations do not advance the alternation
+    m._iterate(kf, active_phase=True)
+    kinds = ["all" if c[0] is None else "active" for c in calls[1:]]  # ROI, ROI, warm-up, ROI
+    assert kinds == {"context": ["all", "all", "all", "all"], "active": ["active", "active", "all", "active"],
+                     "alternate": ["all", "active", "all", "all"]}[mode]
 
 
 def test_roi_crop_renders_the_same_pixels_as_the_full_image():
@@ -155,7 +161,7 @@ def test_densify_statistics_come_from_full_image_iterations(active_stats):
     cfg = _cfg()
     cfg.densify.enabled = True
     cfg.densify.active_phase_stats = active_stats
-    cfg.roi_context = False  # the active subset alone: inactive Gaussians get no gradient to count
+    cfg.roi_render = "active"  # the active subset alone: inactive Gaussians get no gradient to count
     m = Mapper(cfg)
     fr = _frame(0)
     m._seed(fr, _roi())

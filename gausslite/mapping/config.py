@@ -112,13 +112,12 @@ class MapperConfig(_Strict):
         0.5, ge=0, le=1, description="ROI phase: pixels with rendered alpha above this are the footprint"
     )
 
-    roi_context: bool = Field(
-        True, description="ROI phase: render the inactive Gaussians too, frozen (no update, no κ), so the "
-        "active ones are fitted to the pixels the full map shows. Off = the paper's literal 'render only "
-        "active Gaussians': there, inactive Gaussians that also cover ROI pixels are missing from the "
-        "render the active ones are fitted to, and the fit does not hold in the full render. Measured on room0 "
-        "(20 frames, 300x170, +ROI row, tasks pick-plant/find-ottoman): 31.89/35.16 dB ROI PSNR off, "
-        "35.07/39.18 dB on"
+    roi_render: Literal["context", "active", "alternate"] = Field(
+        "context", description="ROI phase render. 'active': the active Gaussians alone (the paper's wording); "
+        "'context': every Gaussian, inactive ones frozen (no update, no κ), so the active ones are fitted to "
+        "the pixels the full map shows; 'alternate': the two on successive ROI-phase iterations. Room0 "
+        "(20 frames, 300x170, +ROI row, pick-plant/find-ottoman): 31.89/35.16 dB ROI PSNR 'active', "
+        "35.07/39.18 dB 'context'"
     )
     roi_crop_pad: int = Field(
         8, ge=0, description="ROI phase: render only the ROI bounding box grown by this many pixels"

@@ -8,8 +8,8 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
    ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM);
 3. ROI: after ``warmup_iters`` full-image iterations, the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
-   (with the inactive Gaussians frozen in the render, ``roi_context``; or the active subset alone,
-   the paper's wording); κ += 1 per active iteration for every active Gaussian;
+   (``roi_render``: the active subset alone, the paper's wording; or every Gaussian with the
+   inactive ones frozen; or the two in turn); κ += 1 per active iteration for every active Gaussian;
 4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
    view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
@@ -165,6 +165,7 @@ class Mapper:
         self.window: deque[Keyframe] = deque(maxlen=cfg.window)
         self.keyframes: list[Keyframe] = []
         self.n_mapped = 0
+        self._roi_iters = 0  # ROI-phase iterations so far (roi_render="alternate")
         self.stats: list[FrameStats] = []
         #: resolved Gaussian budget (``max_gaussians`` or per-pixel rule at the first frame)
         self.budget: Optional[int] = cfg.max_gaussians
@@ -308,9 +309,9 @@ class Mapper:
 
         ``active_phase`` (paper III-D.1): update only active Gaussians, with colour, depth and SSIM on
         ROI ∩ rendered footprint, κ += 1 for each active Gaussian. The render covers only the ROI's
-        bounding box (``roi_crop_pad``). It holds the active Gaussians alone (``roi_context=False``,
-        the paper's wording) or, by default, every Gaussian with the inactive ones frozen, so the
-        active subset is fitted to the pixels the full map will show. A view whose ROI is empty gets
+        bounding box (``roi_crop_pad``). It holds the active Gaussians alone (``roi_render='active'``,
+        the paper's wording), or every Gaussian with the inactive ones frozen (``'context'``), so the
+        active subset is fitted to the pixels the full map will show, or the two in turn. A view whose ROI is empty gets
         a full-image iteration instead (no κ): with no ROI pixel there is nothing to fit.
         ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
         used to refine partial maps such as fused ROI subsets, which do not cover the background.
@@ -319,7 +320,9 @@ class Mapper:
         if active_phase and kf.roi_box is None:
             active_phase = False
         view = crop_keyframe(kf, cfg.roi_crop_pad) if active_phase else kf
-        subset = self.model.active if active_phase and not cfg.roi_context else None
+        alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self._roi_iters % 2 == 1)
+        subset = self.model.active if active_phase and alone else None
+        self._roi_iters += int(active_phase)
         out = self._rasterize(view.c2w, view.K, view.width, view.height, subset)
         mask = None
         if active_phase:
