@@ -157,7 +157,7 @@ def test_roi_loss_restricted_to_roi_and_footprint():
 
 @pytest.mark.parametrize("active_stats", [False, True])
 def test_densify_statistics_come_from_full_image_iterations(active_stats):
-    """ROI-phase renders hold only the active subset: by default they do not feed clone/split."""
+    """ROI-phase iterations (loss on the ROI only) do not feed clone/split by default."""
     cfg = _cfg()
     cfg.densify.enabled = True
     cfg.densify.active_phase_stats = active_stats

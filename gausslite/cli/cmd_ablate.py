@@ -45,28 +45,39 @@ def select_rows(names: str | None) -> list[tuple[str, object]]:
     return [(n, sw) for n, sw in rows if n in want]
 
 
-def merge_rows(rows: list[dict], previous: Path, task_ids: list[str]) -> list[dict]:
-    """All table rows in order: ``rows`` (just run) plus the other rows of ``previous`` (an earlier
-    ablation.json over the same tasks), each marked with ``source``.
+def rows_from_previous(previous: Path, run: list[str], task_ids: list[str]) -> dict[str, dict]:
+    """The rows of an earlier ablation.json (``previous``) that fill the table rows not in ``run``,
+    each marked with ``source``.
 
     Raises:
-        ValueError: ``previous`` lacks a row that was not run, or covers other tasks.
+        OSError: ``previous`` cannot be read.
+        ValueError: it is not a list of rows, lacks a row that is not run, or covers other tasks.
     """
     from gausslite.mapping.config import ablation_rows
 
-    done = {r["row"]: r for r in rows}
-    old = {r["row"]: r for r in json.loads(Path(previous).read_text())}
-    merged = []
+    try:
+        old = {r["row"]: r for r in json.loads(Path(previous).read_text())}
+    except (TypeError, KeyError, json.JSONDecodeError) as e:
+        raise ValueError(f"{previous} is not an ablation.json: {e}") from e
+    filled = {}
     for name, _ in ablation_rows():
-        if name in done:
-            merged.append(done[name])
+        if name in run:
             continue
         if name not in old:
             raise ValueError(f"{previous} has no row {name!r} to merge")
-        if sorted(old[name]["per_task"]) != sorted(task_ids):
-            raise ValueError(f"{previous} row {name!r} covers tasks {sorted(old[name]['per_task'])}, not {sorted(task_ids)}")
-        merged.append({**old[name], "source": str(previous)})
-    return merged
+        if sorted(old[name].get("per_task", {})) != sorted(task_ids):
+            raise ValueError(f"{previous} row {name!r} covers tasks {sorted(old[name].get('per_task', {}))}, "
+                             f"not {sorted(task_ids)}")
+        filled[name] = {**old[name], "source": str(previous)}
+    return filled
+
+
+def merge_rows(rows: list[dict], filled: dict[str, dict]) -> list[dict]:
+    """All table rows in order: ``rows`` (just run) and ``filled`` (from :func:`rows_from_previous`)."""
+    from gausslite.mapping.config import ablation_rows
+
+    done = {r["row"]: r for r in rows}
+    return [done[name] if name in done else filled[name] for name, _ in ablation_rows()]
 
 
 def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True,
@@ -163,10 +174,11 @@ def _handler(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
         log.error("%s", e)
         return 2
+    filled: dict[str, dict] = {}
     if args.merge is not None:
-        try:  # check the earlier report before hours of mapping, not after
-            merge_rows([{"row": n} for n, _ in selected], args.merge, task_ids)
-        except (OSError, ValueError, KeyError) as e:
+        try:  # read and check the earlier report before hours of mapping, not after
+            filled = rows_from_previous(args.merge, [n for n, _ in selected], task_ids)
+        except (OSError, ValueError) as e:
             log.error("--merge %s: %s", args.merge, e)
             return 2
     elif len(selected) < len(select_rows(None)):
@@ -174,11 +186,7 @@ def _handler(args: argparse.Namespace) -> int:
     rows = run_ablation(ds, base, task_ids, out, stride=args.stride, progress=not args.no_progress,
                         rows_to_run=selected)
     if args.merge is not None:
-        try:
-            rows = merge_rows(rows, args.merge, task_ids)
-        except (OSError, ValueError, KeyError) as e:
-            log.error("--merge %s: %s", args.merge, e)
-            return 2
+        rows = merge_rows(rows, filled)
     write_report(rows, out, f"{ds.path.name} ({', '.join(task_ids)})")
     print((out / "ablation.md").read_text())
     return 0

@@ -40,8 +40,9 @@ class DensifyConfig(_Strict):
     max_scale_m: float = Field(0.5, gt=0, description="prune Gaussians with a larger max scale")
     active_phase_stats: bool = Field(
         False, description="also accumulate the view-space gradient statistics in ROI-phase iterations. Off: "
-        "those renders hold only the active subset (no occluders, no background), so their gradients are "
-        "not comparable with grad_threshold; measured on room0 (6 frames, books+plant) 33.89 vs 30.41 dB ROI PSNR"
+        "those iterations restrict the loss to the ROI (and, with roi_render='active', render only the "
+        "active subset), so their gradients are not comparable with grad_threshold; measured on room0 "
+        "(6 frames, books+plant, active-only renders) 33.89 vs 30.41 dB ROI PSNR"
     )
 
 

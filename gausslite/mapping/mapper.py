@@ -311,8 +311,8 @@ class Mapper:
         ROI ∩ rendered footprint, κ += 1 for each active Gaussian. The render covers only the ROI's
         bounding box (``roi_crop_pad``). It holds the active Gaussians alone (``roi_render='active'``,
         the paper's wording), or every Gaussian with the inactive ones frozen (``'context'``), so the
-        active subset is fitted to the pixels the full map will show, or the two in turn. A view whose ROI is empty gets
-        a full-image iteration instead (no κ): with no ROI pixel there is nothing to fit.
+        active subset is fitted to the pixels the full map will show, or the two in turn. A view
+        whose ROI is empty gets a full-image iteration instead (no κ): no ROI pixel, nothing to fit.
         ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
         used to refine partial maps such as fused ROI subsets, which do not cover the background.
         """
