@@ -15,7 +15,8 @@ ROWS = ["none", "+SB", "+MVO", "+ROI", "+SIS", "+GFD"]
 def TINY(tmp_path_factory):
     scene = tmp_path_factory.mktemp("scene")
     make_scene(scene, seed=0, width=64, height=48, frames=2, progress=False)
-    return ["--dataset", str(scene / "agent_a"), "--iters", "4", "--set", "warmup_iters=2", "--seeds", "60",
+    return ["--dataset", str(scene / "agent_a"), "--iters", "4", "--set", "warmup_iters=2", "--seeds-per-frame", "60",
+            "--seeds", "1",
             "--task-id", "synth-pick-object", "--no-progress"]
 
 
@@ -29,6 +30,7 @@ def test_ablate_writes_every_row_then_merges_a_partial_rerun(tmp_path, TINY):
         assert [r[s] for s in SWITCHES] == [i < k for i in range(5)]
         assert r["roi_psnr"] > 5 and r["psnr"] > 5 and r["seconds_per_frame"] > 0
         assert set(r["per_task"]) == {"synth-pick-object"} and "source" not in r
+        assert r["seeds"] == [0] and r["roi_psnr_std"] == 0.0
     assert "| ROI PSNR [dB] |" in (a / "ablation.md").read_text()
     assert (a / "ablation.png").stat().st_size > 1000
 
@@ -54,3 +56,21 @@ def test_ablate_rejects_unknown_rows_and_a_bad_merge_before_mapping(tmp_path, ca
     assert main(["ablate", *bad, "--out", str(tmp_path / "e")]) == 2
     assert "warmup_iters (15) must not exceed iters_per_frame (4)" in caplog.text
     assert main(["map", *bad, "--mode", "gausslite", "--out", str(tmp_path / "f")]) == 2
+
+
+def test_ablate_seeds_give_mean_std_and_paired_gains(tmp_path, TINY):
+    args = [a for a in TINY]
+    args[args.index("--seeds") + 1] = "2"
+    out = tmp_path / "s"
+    assert main(["ablate", *args, "--rows", "none,+ROI", "--out", str(out)]) == 0
+    rows = json.loads((out / "ablation.json").read_text())
+    for r in rows:
+        assert r["seeds"] == [0, 1] and set(r["by_seed"]) == {"0", "1"}
+        vals = [r["by_seed"][k]["roi_psnr"] for k in ("0", "1")]
+        assert r["roi_psnr"] == pytest.approx(sum(vals) / 2)
+        assert r["roi_psnr_std"] == pytest.approx(abs(vals[0] - vals[1]) / 2 ** 0.5)
+        assert vals[0] != vals[1]  # the seed changes seeding and view sampling
+        t = r["per_task"]["synth-pick-object"]
+        assert t["roi_psnr"] == pytest.approx(r["roi_psnr"]) and "roi_psnr_std" in t
+    md = (out / "ablation.md").read_text()
+    assert "±" in md and "over 2 seed(s)" in md

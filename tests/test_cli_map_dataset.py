@@ -15,11 +15,17 @@ def _args(*argv: str) -> argparse.Namespace:
     return p.parse_args(list(argv))
 
 
-def test_tum_flags_reach_the_loader(tum_rpy_dir, tmp_path):
-    plain = resolve_dataset(_args("--dataset", str(tum_rpy_dir), "--max-frames", "2", "--downscale", "2"), tmp_path)
-    ds = resolve_dataset(_args("--dataset", str(tum_rpy_dir), "--max-frames", "2", "--downscale", "2",
-                               "--undistort", "--interpolate-poses"), tmp_path)
+def test_tum_flags_reach_the_loader(tum_rpy_dir, tmp_path, capsys):
+    plain = resolve_dataset(_args("--dataset", str(tum_rpy_dir), "--max-frames", "2", "--downscale", "2",
+                                  "--no-undistort", "--no-interpolate-poses"), tmp_path)
+    args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "2", "--downscale", "2")
+    ds = resolve_dataset(args, tmp_path)  # the hand-held profile: both on by default
+    assert "profile: handheld" in capsys.readouterr().out
+    assert args.profile.name == "handheld"
     assert isinstance(ds, TUMDataset) and ds.undistort and not plain.undistort
+    explicit = resolve_dataset(_args("--dataset", str(tum_rpy_dir), "--max-frames", "2", "--downscale", "2",
+                                     "--undistort", "--interpolate-poses"), tmp_path)
+    assert explicit.undistort and np.array_equal(explicit.poses, ds.poses)
     # the undistorted camera is the alpha=0 optimal pinhole: zoomed in, every pixel has a source
     assert ds.intrinsics.fx > plain.intrinsics.fx
     f = ds[0]
@@ -33,3 +39,17 @@ def test_tum_flags_reach_the_loader(tum_rpy_dir, tmp_path):
 def test_tum_flags_rejected_for_other_layouts(room0_dir, tmp_path):
     with pytest.raises(ValueError, match="TUM sequences only"):
         resolve_dataset(_args("--dataset", str(room0_dir), "--max-frames", "1", "--undistort"), tmp_path)
+
+
+def test_profile_defaults_sit_below_config_and_set(tum_rpy_dir, room0_dir, tmp_path):
+    from gausslite.cli.cmd_map import config_from_args
+
+    args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1")
+    resolve_dataset(args, tmp_path)
+    assert config_from_args(args).final_iters_per_keyframe == 5.0  # hand-held profile
+    args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1", "--set", "final_iters_per_keyframe=0")
+    resolve_dataset(args, tmp_path)
+    assert config_from_args(args).final_iters_per_keyframe == 0.0  # --set wins
+    args = _args("--dataset", str(room0_dir), "--max-frames", "1")
+    resolve_dataset(args, tmp_path)
+    assert args.profile.name == "rendered" and config_from_args(args).final_iters_per_keyframe == 0.0

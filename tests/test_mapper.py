@@ -259,7 +259,8 @@ def test_relevance_shape_checked():
 
 
 def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
-    cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=2, warmup_iters=0)
+    cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=2, warmup_iters=0, budget_mode="image",
+               evict="opacity")
     assert cfg.max_gaussians is None
     m = Mapper(cfg)
     m.map_frame(_frame(0))

@@ -80,41 +80,74 @@ def merge_rows(rows: list[dict], filled: dict[str, dict]) -> list[dict]:
     return [done[name] if name in done else filled[name] for name, _ in ablation_rows()]
 
 
+ROW_KEYS = ("roi_psnr", "psnr", "seconds_per_frame", "n_gaussians")
+TASK_KEYS = ("roi_psnr", "psnr", "ssim", "roi_ssim", "seconds_per_frame", "n_gaussians", "n_active")
+
+
 def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True,
-                 rows_to_run: list[tuple[str, object]] | None = None) -> list[dict]:
-    """Run ablation rows (default: all) for every task at the same budget; return the rows (mean
-    over tasks in ``roi_psnr``/``psnr``/``seconds_per_frame``/``n_gaussians``, per task in ``per_task``)."""
+                 rows_to_run: list[tuple[str, object]] | None = None, seeds: list[int] | None = None) -> list[dict]:
+    """Run ablation rows (default: all) for every task and seed at the same budget; return the rows.
+
+    Each row holds, for ``roi_psnr``/``psnr``/``seconds_per_frame``/``n_gaussians``, the mean over
+    seeds of the per-seed mean over tasks, with ``<key>_std`` (standard deviation over seeds) beside
+    it; ``by_seed`` (seed → task-mean figures), ``per_task`` (task → mean and std over seeds) and
+    ``seeds``. Seeds change seeding and view sampling (``MapperConfig.seed``).
+    """
     from tqdm import tqdm
 
     from gausslite.pipeline import run_mapping
+    from gausslite.stats import aggregate
 
+    seeds = list(seeds) if seeds else [base_cfg.seed]
     selected = rows_to_run if rows_to_run is not None else select_rows(None)
     rows = []
-    jobs = [(name, sw, t) for name, sw in selected for t in task_ids]
+    jobs = [(name, sw, t, sd) for name, sw in selected for sd in seeds for t in task_ids]
     bar = tqdm(total=len(jobs), desc="ablation", disable=not progress, unit="run")
-    results: dict[str, dict[str, dict]] = {}
-    for name, sw, task in jobs:
-        cfg = base_cfg.model_copy(update={"mode": "gausslite", "components": sw})
-        bar.set_postfix(row=name, task=task)
+    results: dict[str, dict[int, dict[str, dict]]] = {}
+    for name, sw, task, sd in jobs:
+        cfg = base_cfg.model_copy(update={"mode": "gausslite", "components": sw, "seed": sd})
+        bar.set_postfix(row=name, task=task, seed=sd)
         _, m = run_mapping(dataset, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
-        results.setdefault(name, {})[task] = {
-            k: m[k] for k in ("roi_psnr", "psnr", "ssim", "roi_ssim", "seconds_per_frame", "n_gaussians", "n_active")
-        }
-        log.info("row %s, task %s: ROI PSNR %.2f dB, PSNR %.2f dB, %.2f s/frame, %d Gaussians",
-                 name, task, m["roi_psnr"] if m["roi_psnr"] is not None else float("nan"), m["psnr"],
+        results.setdefault(name, {}).setdefault(sd, {})[task] = {k: m[k] for k in TASK_KEYS}
+        log.info("row %s, task %s, seed %d: ROI PSNR %.2f dB, PSNR %.2f dB, %.2f s/frame, %d Gaussians",
+                 name, task, sd, m["roi_psnr"] if m["roi_psnr"] is not None else float("nan"), m["psnr"],
                  m["seconds_per_frame"], m["n_gaussians"])
         bar.update(1)
     bar.close()
     for name, sw in selected:
-        per = results[name]
+        res = results[name]
         row = {s: bool(getattr(sw, s)) for s in SWITCHES}
         row["row"] = name
-        for k in ("roi_psnr", "psnr", "seconds_per_frame", "n_gaussians"):
-            vals = [v[k] for v in per.values() if v[k] is not None]
-            row[k] = float(np.mean(vals)) if vals else None
-        row["per_task"] = per
+        by_seed = {}
+        for sd in seeds:
+            per = res[sd]
+            by_seed[sd] = {}
+            for k in ROW_KEYS:
+                vals = [v[k] for v in per.values() if v[k] is not None]
+                by_seed[sd][k] = float(np.mean(vals)) if vals else None
+        row.update(aggregate(list(by_seed.values()), ROW_KEYS))
+        row["per_task"] = {t: aggregate([res[sd][t] for sd in seeds], TASK_KEYS) for t in task_ids}
+        row["by_seed"] = {str(sd): v for sd, v in by_seed.items()}
+        row["seeds"] = seeds
         rows.append(row)
     return rows
+
+
+def gains_vs_baseline(rows: list[dict]) -> dict[str, dict]:
+    """Paired ROI PSNR gain of every row over the ``none`` row, per seed (mean, std, significant =
+    mean > 2 std); empty when there is no ``none`` row or the rows' seeds differ."""
+    from gausslite.stats import gain
+
+    base = next((r for r in rows if r["row"] == "none"), None)
+    if base is None or "by_seed" not in base:
+        return {}
+    out = {}
+    for r in rows:
+        if r["row"] == "none" or r.get("by_seed", {}).keys() != base["by_seed"].keys():
+            continue
+        ks = sorted(base["by_seed"])
+        out[r["row"]] = gain([r["by_seed"][k]["roi_psnr"] for k in ks], [base["by_seed"][k]["roi_psnr"] for k in ks])
+    return out
 
 
 def write_report(rows: list[dict], out: Path, title: str) -> None:
@@ -127,12 +160,21 @@ def write_report(rows: list[dict], out: Path, title: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "ablation.json").write_text(json.dumps(rows, indent=2))
     mark = lambda b: "✓" if b else "✗"  # noqa: E731
+    from gausslite.stats import fmt
+
+    gains = gains_vs_baseline(rows)
+    n_seeds = len(rows[0].get("seeds", [0]))
     lines = [f"# Ablation: {title}", "",
-             "| SB | MVO | ROI | SIS | GFD | ROI PSNR [dB] | PSNR [dB] | s/frame | Gaussians |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"Mean ± standard deviation over {n_seeds} seed(s); the gain over the `none` row is paired per "
+             "seed and counts (✓) only when it exceeds twice its standard deviation.", "",
+             "| SB | MVO | ROI | SIS | GFD | ROI PSNR [dB] | gain [dB] | PSNR [dB] | s/frame | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        g = gains.get(r["row"])
+        gtxt = "–" if g is None or g["gain"] is None else f"{fmt(g['gain'], g['gain_std'])} {mark(g['significant'])}"
         lines.append("| " + " | ".join(mark(r[s]) for s in SWITCHES)
-                     + f" | {r['roi_psnr']:.2f} | {r['psnr']:.2f} | {r['seconds_per_frame']:.2f} | {r['n_gaussians']:.0f} |")
+                     + f" | {fmt(r['roi_psnr'], r.get('roi_psnr_std'))} | {gtxt} | {fmt(r['psnr'], r.get('psnr_std'))}"
+                     f" | {r['seconds_per_frame']:.2f} | {r['n_gaussians']:.0f} |")
     merged = [r for r in rows if r.get("source")]
     if merged:
         lines += ["", "Rows taken from earlier runs: "
@@ -142,12 +184,14 @@ def write_report(rows: list[dict], out: Path, title: str) -> None:
         lines += ["", "ROI PSNR per task [dB]:", "", "| row | " + " | ".join(tasks) + " |",
                   "|---|" + "---|" * len(tasks)]
         for r in rows:
-            lines.append(f"| {r['row']} | " + " | ".join(f"{r['per_task'][t]['roi_psnr']:.2f}" for t in tasks) + " |")
+            lines.append(f"| {r['row']} | " + " | ".join(
+                fmt(r['per_task'][t]['roi_psnr'], r['per_task'][t].get('roi_psnr_std')) for t in tasks) + " |")
     (out / "ablation.md").write_text("\n".join(lines) + "\n")
 
     fig, ax1 = plt.subplots(figsize=(7, 4))
     x = np.arange(len(rows))
-    ax1.plot(x, [r["roi_psnr"] for r in rows], "o-", color="tab:red", label="ROI PSNR")
+    ax1.errorbar(x, [r["roi_psnr"] for r in rows], yerr=[r.get("roi_psnr_std") or 0 for r in rows], fmt="o-",
+                 color="tab:red", capsize=3, label="ROI PSNR")
     ax1.set_ylabel("ROI PSNR [dB]", color="tab:red")
     ax2 = ax1.twinx()
     ax2.plot(x, [r["psnr"] for r in rows], "s--", color="tab:blue", label="full-image PSNR")
@@ -183,8 +227,9 @@ def _handler(args: argparse.Namespace) -> int:
             return 2
     elif len(selected) < len(select_rows(None)):
         log.info("running rows %s only (no --merge): the table holds just these", [n for n, _ in selected])
+    seeds = [base.seed + i for i in range(args.seeds)]
     rows = run_ablation(ds, base, task_ids, out, stride=args.stride, progress=not args.no_progress,
-                        rows_to_run=selected)
+                        rows_to_run=selected, seeds=seeds)
     if args.merge is not None:
         rows = merge_rows(rows, filled)
     write_report(rows, out, f"{ds.path.name} ({', '.join(task_ids)})")
@@ -200,4 +245,7 @@ def register(sub) -> None:
                    help="comma list of rows to run (none,+SB,+MVO,+ROI,+SIS,+GFD; default all)")
     p.add_argument("--merge", type=Path, default=None,
                    help="earlier ablation.json whose rows fill the ones not run (marked in the table)")
+    p.add_argument("--seeds", type=int, default=3,
+                   help="random seeds per row and task (default 3; seeds --seed, --seed+1, ...): every figure is "
+                        "the mean ± std over seeds")
     p.set_defaults(func=_handler)

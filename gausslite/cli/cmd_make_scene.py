@@ -16,7 +16,7 @@ def _handler(args: argparse.Namespace) -> int:
 
     try:
         summary = make_scene(args.out, seed=args.seed, width=args.width, height=args.height,
-                             frames=args.frames, progress=not args.quiet)
+                             frames=args.frames, progress=not args.quiet, trajectory=args.trajectory)
     except ValueError as e:
         log.error("make-scene: %s", e)
         return 2
@@ -40,5 +40,8 @@ def register(subparsers) -> None:
     p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="image height in pixels (default 240)")
     p.add_argument("--frames", type=int, default=30, help="frames per agent (default 30)")
+    p.add_argument("--trajectory", choices=["arcs", "circle"], default="arcs",
+                   help="arcs: two arcs in front of the desk (default); circle: both robots once around the "
+                        "room, for long missions (e.g. --frames 600, mapped with --stride 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_handler)

@@ -22,20 +22,29 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config field, e.g. --set iters_per_frame=60 --set lr.means=1e-4")
     p.add_argument("--iters", type=int, default=None, help="Adam iterations per mapped frame")
-    p.add_argument("--seeds", type=int, default=None, help="new Gaussians per mapped frame")
+    p.add_argument("--seeds-per-frame", dest="seeds_per_frame", type=int, default=None,
+                   help="new Gaussians per mapped frame at most (mapper.seeds_per_frame)")
     p.add_argument("--max-gaussians", type=int, default=None, help="global Gaussian budget")
     p.add_argument("--backend", default=None, choices=["auto", "warp", "torch", "gsplat"])
     p.add_argument("--seed", type=int, default=None, help="random seed")
-    p.add_argument("--undistort", action="store_true",
-                   help="TUM only: undistort with the Freiburg coefficients (onto the alpha=0 optimal pinhole camera)")
-    p.add_argument("--interpolate-poses", action="store_true",
-                   help="TUM only: interpolate ground-truth poses at the colour timestamps")
+    p.add_argument("--undistort", action=argparse.BooleanOptionalAction, default=None,
+                   help="TUM only: undistort with the Freiburg coefficients (onto the alpha=0 optimal pinhole "
+                        "camera); on by default for TUM (hand-held profile), --no-undistort to opt out")
+    p.add_argument("--interpolate-poses", action=argparse.BooleanOptionalAction, default=None,
+                   help="TUM only: interpolate ground-truth poses at the colour timestamps; on by default for "
+                        "TUM, --no-interpolate-poses to opt out")
     p.add_argument("--no-progress", action="store_true")
 
 
 def resolve_dataset(args: argparse.Namespace, out: Path):
-    """Load ``--dataset``, or generate the synthetic default scene into ``out/scene`` (agent_a)."""
+    """Load ``--dataset``, or generate the synthetic default scene into ``out/scene`` (agent_a).
+
+    The dataset's layout picks a sensor profile (:mod:`gausslite.mapping.profiles`): its loader
+    options apply unless a flag says otherwise, and it is stored in ``args.profile`` for
+    :func:`config_from_args`. The chosen profile is logged and printed.
+    """
     from gausslite.datasets import detect_layout, load_dataset
+    from gausslite.mapping.profiles import profile_for_layout
 
     path = args.dataset
     if path is None:
@@ -46,19 +55,28 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
             log.info("no --dataset: generating the synthetic default scene in %s", scene_dir)
             make_scene(scene_dir)
         path = scene_dir / "agent_a"
-    tum_kw = {k: True for k in ("undistort", "interpolate_poses") if getattr(args, k, False)}
-    if tum_kw and detect_layout(path)[0] != "tum":
+    layout = detect_layout(path)[0]
+    flags = {k: getattr(args, k, None) for k in ("undistort", "interpolate_poses")}
+    if any(v for v in flags.values()) and layout != "tum":
         raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
-    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **tum_kw)
+    profile = profile_for_layout(layout)
+    loader_kw = dict(profile.loader)
+    loader_kw.update({k: bool(v) for k, v in flags.items() if v is not None and layout == "tum"})
+    args.profile = profile
+    msg = f"profile: {profile.name} ({profile.description}); loader {loader_kw or 'defaults'}; mapper {profile.mapper or 'defaults'}"
+    log.info("%s", msg)
+    print(msg, flush=True)
+    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **loader_kw)
 
 
 def config_from_args(args: argparse.Namespace, **extra):
     """MapperConfig from --config, --set and the shortcut flags (flags win)."""
     from gausslite.mapping.config import load_config
 
+    profile = getattr(args, "profile", None)
     return load_config(
-        args.config, args.overrides,
-        iters_per_frame=args.iters, seeds_per_frame=args.seeds, max_gaussians=args.max_gaussians,
+        args.config, args.overrides, defaults=dict(profile.mapper) if profile is not None else None,
+        iters_per_frame=args.iters, seeds_per_frame=args.seeds_per_frame, max_gaussians=args.max_gaussians,
         backend=args.backend, seed=args.seed, **extra,
     )
 

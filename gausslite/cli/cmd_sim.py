@@ -44,7 +44,8 @@ def register(subparsers) -> None:
                    help="override, e.g. mapper.iters_per_frame=5 agent.max_frames=4 sim.scene.frames=6")
     p.add_argument("--tasks", default=None, help="two task ids, comma-separated (agent_a,agent_b)")
     p.add_argument("--iters", type=int, default=None, help="shortcut for mapper.iters_per_frame")
-    p.add_argument("--seeds", type=int, default=None, help="shortcut for mapper.seeds_per_frame")
+    p.add_argument("--seeds-per-frame", dest="seeds_per_frame", type=int, default=None,
+                   help="shortcut for mapper.seeds_per_frame")
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
@@ -95,7 +96,7 @@ def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
 
 def _handle(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
-    for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds", "mapper.seeds_per_frame"),
+    for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds_per_frame", "mapper.seeds_per_frame"),
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
         if getattr(args, flag) is not None:
             overrides.append(f"{key}={getattr(args, flag)}")

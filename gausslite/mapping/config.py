@@ -89,17 +89,61 @@ class MapperConfig(_Strict):
     gaussians_per_pixel: float = Field(
         1.0, gt=0, description="budget per image pixel when max_gaussians is None (paper: 1M at 1200×680 ≈ 1.2)"
     )
+    budget_mode: Literal["scene", "image"] = Field(
+        "scene", description="default budget when max_gaussians is None. 'scene': gaussians_per_voxel × "
+        "coarse voxels observed so far (grows with the mission, capped by max_gaussians_cap); 'image': "
+        "gaussians_per_pixel × the first frame's pixels (fixed)"
+    )
+    gaussians_per_voxel: float = Field(
+        4.5, gt=0, description="scene budget per observed coarse voxel (budget_voxel_m edge). Room0's first 20 "
+        "frames observe 11.6k voxels of 5 cm: 4.5 gives them 52k Gaussians, the old 1-per-pixel budget at 300x170"
+    )
+    budget_voxel_m: float = Field(0.05, gt=0, description="edge of the coarse voxels the scene budget counts (metres)")
+    max_gaussians_cap: int = Field(400_000, ge=1, description="hard cap on the scene budget")
+    evict: Literal["contribution", "opacity"] = Field(
+        "contribution", description="at the budget, new seeds replace the existing Gaussians with the lowest "
+        "'contribution' (alpha-blending weight accumulated over the keyframes that see them) or 'opacity'"
+    )
+    roi_protect: float = Field(
+        4.0, ge=1, description="eviction: active (ROI) Gaussians' contribution counts this many times "
+        "(gausslite mode only; uniform mode has no active Gaussians)"
+    )
+    coverage_seeding: bool = Field(
+        True, description="seed only where the map does not explain the new frame (SplaTAM Eq. 9 silhouette "
+        "and depth rule); the seed count is seeds_per_frame × the unexplained share of valid pixels"
+    )
+    coverage_alpha: float = Field(0.5, gt=0, le=1, description="unexplained: rendered silhouette below this")
+    coverage_depth_factor: float = Field(
+        50.0, gt=0, description="unexplained: rendered depth behind the observed one by more than this × the "
+        "median depth error (SplaTAM: 50)"
+    )
     iters_per_frame: int = Field(40, ge=1, description="Adam iterations per mapped frame")
     warmup_iters: int = Field(
         15, ge=0, description="ROI phase: full-image iterations before the active-only phase"
     )
-    window: int = Field(8, ge=1, description="keyframe window size for view sampling")
+    window: int = Field(8, ge=1, description="recent-keyframe window of view sampling")
+    recent_prob: float = Field(
+        0.5, ge=0, le=1, description="view sampling: probability of a draw from the recent window; otherwise "
+        "the draw is over the whole mission's keyframes (MonoGS-style window + random past keyframes)"
+    )
+    roi_covis_weight: float = Field(
+        2.0, ge=0, description="MVO mission-wide draws: keyframes that see the ROI weigh 1 + this (gausslite "
+        "mode with MVO), the others 1"
+    )
+    max_keyframes: int = Field(
+        600, ge=1, description="keyframes kept (compact: uint8 colour, float16 depth); beyond, the old keyframe "
+        "closest in pose to its predecessor is dropped"
+    )
     keyframe_every: int = Field(1, ge=1, description="every k-th mapped frame becomes a keyframe")
     current_frame_prob: float = Field(
         0.5, ge=0, le=1, description="without MVO: probability that an iteration uses the current frame"
     )
     final_iters: int = Field(
         0, ge=0, description="extra iterations over all keyframes after the last frame (0 = none)"
+    )
+    final_iters_per_keyframe: float = Field(
+        0.0, ge=0, description="more final iterations: this many per keyframe, added to final_iters (the "
+        "hand-held profile sets 5)"
     )
 
     rho: float = Field(0.4, ge=0, le=1, description="SB ROI seed share ρ (paper: 40 % on Replica)")
@@ -171,15 +215,16 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
     return data
 
 
-def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), **fields: Any) -> MapperConfig:
-    """Build a :class:`MapperConfig` from an optional YAML file, ``key=value`` overrides, then
-    keyword fields (highest precedence).
+def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
+                defaults: Optional[dict] = None, **fields: Any) -> MapperConfig:
+    """Build a :class:`MapperConfig` from ``defaults`` (e.g. a sensor profile's; lowest precedence),
+    an optional YAML file, ``key=value`` overrides, then keyword fields (highest precedence).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         pydantic.ValidationError: unknown keys or invalid values (the message names the field).
     """
-    data: dict = {}
+    data: dict = dict(defaults or {})
     if path is not None:
         p = Path(path)
         if not p.is_file():
@@ -187,7 +232,7 @@ def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()
         loaded = yaml.safe_load(p.read_text()) or {}
         if not isinstance(loaded, dict):
             raise ValueError(f"{p}: top level must be a mapping, got {type(loaded).__name__}")
-        data = loaded
+        data.update(loaded)
     data = apply_overrides(data, overrides)
     data.update({k: v for k, v in fields.items() if v is not None})
     return MapperConfig.model_validate(data)

@@ -1,11 +1,17 @@
 """Online mapper with known poses: uniform baseline and task-conditioned GaussLite.
 
 Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
-1. seeding: N new Gaussians from depth-valid pixels (uniform, or SB/SIS/GFD with a relevance map w),
-   initial scale log(s0·m) with s0 the local median nearest-neighbour distance;
-2. a fixed number of Adam iterations; each iteration's view comes from a window of recent keyframes
-   (MVO: uniform over the window; otherwise the current frame with probability
-   ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM);
+1. seeding: the current map is rendered at the new frame; only the pixels it does not explain
+   (SplaTAM Eq. 9: silhouette < 0.5 or new geometry in front, ``coverage_seeding``) are candidates,
+   and the seed count is N × their share of the valid pixels. Within that pool: uniform, or SB/SIS/GFD
+   with a relevance map w; initial scale log(s0·m) with s0 the local median nearest-neighbour
+   distance. The Gaussian budget follows the observed scene (``budget_mode='scene'``: Gaussians per
+   observed coarse voxel, hard-capped); at the budget new seeds replace the Gaussians with the lowest
+   accumulated alpha-blending weight over the keyframes that saw them, ROI Gaussians protected;
+2. a fixed number of Adam iterations; each iteration's view is drawn from the recent window or from
+   the whole mission's keyframes (:class:`~gausslite.mapping.memory.KeyframeStore`; MVO weights the
+   mission-wide draw towards keyframes that see the ROI; without MVO the current frame is taken with
+   probability ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM);
 3. ROI: after ``warmup_iters`` full-image iterations, the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
    (``roi_render``: the active subset alone, the paper's wording; or every Gaussian with the
@@ -19,8 +25,8 @@ The mapper does not care where w came from (ground truth or the attention front-
 from __future__ import annotations
 
 import logging
+import math
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -30,6 +36,7 @@ import torch
 from gausslite.datasets.base import Frame
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_map
@@ -70,6 +77,9 @@ class FrameStats:
     loss: float
     active_iters: int
     densify: dict = field(default_factory=dict)
+    unexplained: float = 1.0  #: share of valid pixels the map did not explain before seeding
+    budget: int = 0  #: Gaussian budget in force after this frame
+    n_evicted: int = 0  #: existing Gaussians replaced by this frame's seeds at the budget
 
 
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
@@ -162,14 +172,26 @@ class Mapper:
         self._background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.rng = np.random.default_rng(cfg.seed)
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        self.window: deque[Keyframe] = deque(maxlen=cfg.window)
-        self.keyframes: list[Keyframe] = []
+        #: every keyframe of the mission, compact and bounded (MVO draws from it)
+        self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
+        #: coarse voxels observed so far (scene-following budget)
+        self.voxels = SurfaceVoxels(cfg.budget_voxel_m)
+        #: (N,) float32 alpha-blending weight each Gaussian accumulated over the keyframes that saw it
+        self.contribution = torch.zeros(0, device=self.device)
+        self._last_unexplained = 1.0
+        self._last_evicted = 0
         self.n_mapped = 0
         self._roi_iters = 0  # ROI-phase iterations so far (roi_render="alternate")
         self.stats: list[FrameStats] = []
-        #: resolved Gaussian budget (``max_gaussians`` or per-pixel rule at the first frame)
+        #: Gaussian budget in force (``max_gaussians``, or the scene/image rule; see MapperConfig)
         self.budget: Optional[int] = cfg.max_gaussians
         self._reset_densify_stats()
+
+    @property
+    def window(self) -> list[Keyframe]:
+        """The ``cfg.window`` newest keyframes, as float tensors on the mapper's device."""
+        n = len(self.keyframes)
+        return [self.keyframes.load(i, self.device) for i in range(max(0, n - self.cfg.window), n)]
 
     # ------------------------------------------------------------------ map access
     @property
@@ -193,23 +215,70 @@ class Mapper:
         )
 
     # ------------------------------------------------------------------ seeding
+    def _update_budget(self, frame: Frame) -> int:
+        """Resolve the Gaussian budget after observing ``frame`` (see ``MapperConfig.budget_mode``)."""
+        cfg = self.cfg
+        if cfg.max_gaussians is not None:
+            self.budget = cfg.max_gaussians
+        elif cfg.budget_mode == "image":
+            if self.budget is None:
+                self.budget = max(1, round(cfg.gaussians_per_pixel * frame.depth.size))
+        else:
+            self.voxels.add_frame(frame.depth, frame.intrinsics, frame.c2w)
+            first = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
+            self.budget = int(min(cfg.max_gaussians_cap, max(first, round(cfg.gaussians_per_voxel * len(self.voxels)))))
+        return self.budget
+
+    def _candidates(self, frame: Frame) -> tuple[np.ndarray, float]:
+        """Seed candidate pixels of ``frame`` and their share of the valid pixels.
+
+        With ``coverage_seeding`` and a non-empty map: the pixels the map does not explain
+        (:func:`~gausslite.mapping.memory.unexplained_mask`, SplaTAM Eq. 9); otherwise every valid pixel.
+        """
+        cfg = self.cfg
+        valid = frame.depth > 0
+        if not cfg.coverage_seeding or len(self.model) == 0:
+            return valid, 1.0
+        intr = frame.intrinsics
+        out = self.render(frame.c2w, intr.K, intr.width, intr.height)
+        cand = unexplained_mask(frame.depth, out.alpha.cpu().numpy(), out.depth.cpu().numpy(),
+                                cfg.coverage_alpha, cfg.coverage_depth_factor)
+        return cand, float(cand.sum()) / max(1, int(valid.sum()))
+
+    def _eviction_score(self, cur: GaussianMap) -> torch.Tensor:
+        """(N,) score of the existing Gaussians at the budget: the lowest are replaced first."""
+        cfg = self.cfg
+        if cfg.evict == "opacity":
+            return torch.sigmoid(cur.opacity_logits)
+        score = self.contribution.clone()
+        if score.shape[0] != len(cur):  # map set from outside (e.g. refinement): no history
+            score = torch.zeros(len(cur), device=self.device)
+        if cfg.mode == "gausslite":
+            score[cur.active] *= cfg.roi_protect
+        return score
+
     def _seed(self, frame: Frame, relevance: Optional[np.ndarray]) -> tuple[int, int]:
         cfg, sw = self.cfg, self.cfg.effective()
-        if self.budget is None:
-            self.budget = cfg.max_gaussians or max(1, round(cfg.gaussians_per_pixel * frame.depth.size))
+        budget = self._update_budget(frame)
+        cand, share = self._candidates(frame)
+        self._last_unexplained = share
+        self._last_evicted = 0
         n = cfg.seeds_per_frame
-        if self.n_mapped == 0:
+        if self.n_mapped == 0 or len(self.model) == 0:
             n = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
-        n = min(n, self.budget)
-        valid = frame.depth > 0
+        else:
+            n = int(math.ceil(n * share))
+        n = min(n, budget)
+        if n == 0:
+            return 0, 0
         sel = select_seeds(
-            valid, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
+            cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
             sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.rho, gfd_eps=cfg.gfd_eps,
         )
         if sel.pixels.size == 0:
             return 0, 0
         if sel.n_roi_shortfall:
-            log.debug("frame %d: ROI has %d fewer valid pixels than its seed share; moved to background",
+            log.debug("frame %d: ROI has %d fewer candidate pixels than its seed share; moved to background",
                       frame.frame_id, sel.n_roi_shortfall)
         # a_i comes from w at the seed pixel, whatever the seeding strategy
         is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
@@ -229,16 +298,42 @@ class Mapper:
         merged = cur.append(new)
         parent = torch.cat([torch.arange(n_old, device=self.device),
                             torch.full((len(new),), -1, dtype=torch.int64, device=self.device)])
-        if len(merged) > self.budget:
-            # at the budget, the new seeds (what this frame sees) always enter and replace the least
-            # opaque existing Gaussians (same rule in every mode)
-            score = torch.cat([torch.sigmoid(cur.opacity_logits),
-                               torch.full((len(new),), 2.0, device=self.device)])
-            merged, keep = merged.cap(self.budget, score=score)
+        if len(merged) > budget:
+            # at the budget, the new seeds (what this frame sees and the map does not explain) always
+            # enter and replace the existing Gaussians of lowest score (same rule in every mode)
+            score = torch.cat([self._eviction_score(cur), torch.full((len(new),), float("inf"), device=self.device)])
+            merged, keep = merged.cap(budget, score=score)
             parent = parent[keep]
-        self.model.set_map(merged, parent)
-        self._reset_densify_stats()
+            self._last_evicted = len(cur) + len(new) - len(merged)
+        self._set_map(merged, parent)
         return int(sel.pixels.size), int(is_roi.sum())
+
+    def _set_map(self, gmap: GaussianMap, parent: torch.Tensor) -> None:
+        """``model.set_map`` that also carries each Gaussian's accumulated contribution along
+        ``parent`` (new rows start at 0) and resets the densification statistics."""
+        c = self.contribution
+        src = parent.clamp_min(0)
+        carried = c[src] if c.numel() == len(self.model) and c.numel() else torch.zeros(parent.shape[0], device=self.device)
+        self.contribution = torch.where(parent >= 0, carried, torch.zeros_like(carried))
+        self.model.set_map(gmap, parent)
+        self._reset_densify_stats()
+
+    def _accumulate_contribution(self, kf: Keyframe) -> None:
+        """Add each Gaussian's alpha-blending weight Σ_pixels T_i α_i in keyframe ``kf`` to
+        ``contribution``. The rendered colour is linear in the colours (c = Σ_i w_i c_i + T bg), so the
+        gradient of the image's red-channel sum with respect to the red colours is exactly Σ_p w_i."""
+        if len(self.model) == 0:
+            return
+        p = self.model.params
+        colors = p["colors"].detach().clone().requires_grad_(True)
+        out = rasterize(
+            p["means"].detach(), p["quats"].detach(), p["log_scales"].detach(), p["opacity_logits"].detach(), colors,
+            K=kf.K, width=kf.width, height=kf.height, c2w=kf.c2w, background=self._background,
+            backend=self.cfg.backend, num_threads=self.cfg.render_threads,
+        )
+        out.color[..., 0].sum().backward()
+        if colors.grad is not None:
+            self.contribution += colors.grad[:, 0].detach().clamp_min(0)
 
     # ------------------------------------------------------------------ density control
     def _reset_densify_stats(self) -> None:
@@ -291,18 +386,22 @@ class Mapper:
         if stats["prune"]:
             gmap = gmap.prune(keep)
             parent = parent[keep]
-        self.model.set_map(gmap, parent)
-        self._reset_densify_stats()
+        self._set_map(gmap, parent)
         return stats
 
     # ------------------------------------------------------------------ optimisation
     def _pick_view(self, current: Keyframe) -> Keyframe:
-        win = list(self.window)
-        if self.cfg.effective().mvo:
-            return win[int(self.rng.integers(len(win)))]
-        if len(win) == 1 or self.rng.random() < self.cfg.current_frame_prob:
+        """The view of one iteration: from the recent window or the whole mission (see
+        ``KeyframeStore.sample_index``); without MVO the current frame with ``current_frame_prob``."""
+        cfg, sw = self.cfg, self.cfg.effective()
+        n = len(self.keyframes)
+        if not sw.mvo and (n <= 1 or self.rng.random() < cfg.current_frame_prob):
             return current
-        return win[int(self.rng.integers(len(win)))]
+        roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
+        i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
+        if i == n - 1 and self.keyframes[i].frame_id == current.frame_id:
+            return current
+        return self.keyframes.load(i, self.device)
 
     def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False) -> float:
         """One Adam iteration on keyframe ``kf``.
@@ -356,9 +455,8 @@ class Mapper:
         t0 = time.perf_counter()
         n_seeds, n_roi = self._seed(frame, relevance)
         kf = keyframe_from_frame(frame, self.device, relevance)
-        self.window.append(kf)
-        if self.n_mapped % cfg.keyframe_every == 0:
-            self.keyframes.append(kf)
+        if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
+            self.keyframes.add(kf)
         loss = 0.0
         active_iters = 0
         dstats: dict = {}
@@ -372,14 +470,19 @@ class Mapper:
                 for k, v in self._densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
                 has_active = bool(self.model.active.any())
+        if cfg.evict == "contribution":
+            self._accumulate_contribution(kf)
         self.n_mapped += 1
         st = FrameStats(frame.frame_id, time.perf_counter() - t0, n_seeds, n_roi, len(self.model), loss,
-                        active_iters, dstats)
+                        active_iters, dstats, unexplained=self._last_unexplained, budget=int(self.budget or 0),
+                        n_evicted=self._last_evicted)
         self.stats.append(st)
         return st
 
     def finalize(self) -> None:
-        """Optional extra iterations over all keyframes (``final_iters``), full image, all Gaussians."""
-        for _ in range(self.cfg.final_iters):
-            kf = self.keyframes[int(self.rng.integers(len(self.keyframes)))]
-            self._iterate(kf, active_phase=False)
+        """Optional extra iterations over all keyframes (``final_iters`` + ``final_iters_per_keyframe`` ×
+        keyframes), drawn uniformly, full image, all Gaussians."""
+        n = len(self.keyframes)
+        total = self.cfg.final_iters + round(self.cfg.final_iters_per_keyframe * n)
+        for _ in range(total if n else 0):
+            self._iterate(self.keyframes.load(int(self.rng.integers(n)), self.device), active_phase=False)

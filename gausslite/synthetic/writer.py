@@ -85,7 +85,7 @@ def _dump_json(path: Path, data: dict) -> None:
 
 
 def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, height: int = 240,
-               frames: int = 30, progress: bool = True) -> Dict:
+               frames: int = 30, progress: bool = True, trajectory: str = "arcs") -> Dict:
     """Generate, render and write the default synthetic two-robot scene.
 
     Args:
@@ -94,6 +94,8 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
         width, height: image size in pixels (>= 16 x 12).
         frames: frames per agent (>= 2).
         progress: show a tqdm progress bar over the rendered frames.
+        trajectory: ``"arcs"`` (the default two-robot arcs) or ``"circle"`` (both robots once around
+            the room: the long-mission scene, e.g. ``frames=600`` mapped with stride 2).
 
     Returns:
         Summary dict: ``out_dir``, ``cam_params``, ``objects``, ``tasks``, ``scene_json`` (paths as
@@ -112,7 +114,7 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = build_default_scene(seed)
-    trajs = make_trajectories(frames, seed)
+    trajs = make_trajectories(frames, seed, trajectory)
     objects_json = scene.objects_json()
     tasks_json = scene.tasks_json()
     by_id = {o["id"]: o for o in objects_json["objects"]}
@@ -165,6 +167,7 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
         "format": "gausslite-synthetic-scene/1",
         "generator_version": GENERATOR_VERSION,
         "seed": int(seed), "width": intr.width, "height": intr.height, "frames_per_agent": int(frames),
+        "trajectory": trajectory,
         "agents": list(AGENTS), "depth_scale": DEPTH_SCALE, "jpeg_quality": JPEG_QUALITY,
         "num_objects": len(scene.objects),
         "objects": [{"id": o.id, "label": o.label} for o in scene.objects],

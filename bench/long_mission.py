@@ -1,0 +1,290 @@
+"""Retention benchmark (issue 10): does the map keep what it has seen over a long mission?
+
+    python -m bench.long_mission [--seeds 3] [--tasks 2|all] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
+
+Scenes, each mapped at matched budget (same seeding rule, budget rule and iterations in both modes):
+
+- ``tum_fr1_rpy``: TUM RGB-D fr1/rpy, all 150 frames of ``../shared`` at 320×240, default (hand-held)
+  profile: undistorted, interpolated poses. It maps every frame, so held-out PSNR is null.
+- ``synthetic_long``: the synthetic room rendered along ``make-scene --trajectory circle`` (600
+  frames at 160×120, agent_a); every 2nd frame is mapped (300 frames), the frames between them are the
+  held-out views.
+
+Uniform mapping runs once per scene and seed (its map does not depend on the task), and every task's
+ROI is scored on it; full GaussLite runs once per task and seed. For every run: PSNR and ROI PSNR
+over all mapped frames, PSNR per fifth of the sequence, held-out PSNR, s/frame, Gaussian count. Every
+figure is the mean over seeds with its standard deviation beside it (``<field>_std``); the ROI gain
+is paired per seed and counts only when it exceeds twice its standard deviation.
+
+Writes ``bench/results/long_mission.json``, ``long_mission.md`` and ``long_mission_<scene>.png`` (PSNR
+along the sequence, both modes). Runs go to ``--jobs`` worker processes (one rasterizer thread each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
+RESULTS = REPO / "bench" / "results"
+
+SCENES = {
+    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "stride": 1},
+    "synthetic_long": {"kind": "synthetic", "frames": 600, "width": 160, "height": 120, "stride": 2},
+}
+
+
+def scene_path(name: str, work: Path) -> Path:
+    """The dataset folder of a bench scene (the synthetic one is generated into ``work`` once)."""
+    spec = SCENES[name]
+    if spec["kind"] == "tum":
+        p = SHARED / "datasets" / "TUM_rgbd_dataset_freiburg1_rpy"
+        if not p.is_dir():
+            raise FileNotFoundError(f"{p} not found (set GAUSSLITE_SHARED)")
+        return p
+    from gausslite.synthetic import make_scene
+
+    out = work / f"synthetic_circle_{spec['frames']}_{spec['width']}x{spec['height']}"
+    if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
+        make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="circle")
+    return out / "agent_a"
+
+
+def load_scene(name: str, path: Path, max_frames: Optional[int] = None):
+    """The dataset with the loader options of its sensor profile."""
+    from gausslite.datasets import detect_layout, load_dataset
+    from gausslite.mapping.profiles import profile_for_layout
+
+    spec = SCENES[name]
+    profile = profile_for_layout(detect_layout(path)[0])
+    ds = load_dataset(path, downscale=spec.get("downscale", 1.0), max_frames=max_frames, **profile.loader)
+    return ds, profile
+
+
+def run_one(job: dict) -> dict:
+    """Map one (scene, mode, task, seed) and score it; runs in a worker process."""
+    import torch
+
+    from gausslite.evaluation import score_view
+    from gausslite.mapping.config import load_config
+    from gausslite.pipeline import gt_roi_fn, run_mapping
+
+    torch.set_num_threads(1)
+    ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"))
+    stride = SCENES[job["scene"]]["stride"]
+    cfg = load_config(None, job.get("overrides", []), defaults=dict(profile.mapper), mode=job["mode"],
+                      seed=job["seed"], render_threads=1)
+    task = job["task"]
+    t0 = time.perf_counter()
+    mapper, m = run_mapping(ds, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
+    wall = time.perf_counter() - t0
+    eval_tasks = job["eval_tasks"]
+    roi_fns = {t: gt_roi_fn(ds, t) for t in eval_tasks}
+    roi = {t: [] for t in eval_tasks}
+    frame_psnr = []
+    for i in range(0, len(ds), stride):
+        fr = ds[i]
+        out = mapper.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
+        frame_psnr.append(score_view(out, fr).psnr)
+        for t, fn in roi_fns.items():
+            r = score_view(out, fr, fn(fr)).roi_psnr
+            if not math.isnan(r):
+                roi[t].append(r)
+    fifths = [float(np.mean(c)) for c in np.array_split(np.array(frame_psnr), 5)]
+    secs = [s.seconds for s in mapper.stats]
+    return {
+        "scene": job["scene"], "mode": job["mode"], "task": task, "seed": job["seed"],
+        "psnr": float(np.mean(frame_psnr)),
+        "roi_psnr_per_task": {t: (float(np.mean(v)) if v else None) for t, v in roi.items()},
+        "psnr_by_fifth": fifths,
+        "heldout_psnr": m.get("heldout_psnr"),
+        "s_per_frame": float(np.mean(secs)),
+        "s_per_frame_by_fifth": [float(np.mean(c)) for c in np.array_split(np.array(secs), 5)],
+        "n_gaussians": len(mapper.model),
+        "n_keyframes": len(mapper.keyframes),
+        "keyframe_mb": mapper.keyframes.nbytes / 1e6,
+        "frame_psnr": frame_psnr,
+        "wall_s": wall,
+    }
+
+
+def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) -> dict:
+    """The JSON block of one scene: per mode, every figure as mean and std over seeds."""
+    from gausslite.stats import aggregate, gain
+
+    out: dict = {"tasks": tasks, "seeds": seeds}
+    per_seed_roi: dict[str, list] = {}
+    for mode in ("uniform", "gausslite"):
+        rs = [r for r in runs if r["scene"] == scene and r["mode"] == mode]
+        by_seed = []
+        roi_by_seed = []
+        for s in seeds:
+            rseed = [r for r in rs if r["seed"] == s]
+            if not rseed:
+                continue
+            if mode == "uniform":
+                vals = [rseed[0]["roi_psnr_per_task"][t] for t in tasks]
+            else:
+                vals = [next(r["roi_psnr_per_task"][r["task"]] for r in rseed if r["task"] == t) for t in tasks]
+            vals = [v for v in vals if v is not None]
+            roi_by_seed.append(float(np.mean(vals)) if vals else None)
+            by_seed.append({
+                "psnr": float(np.mean([r["psnr"] for r in rseed])),
+                "roi_psnr": roi_by_seed[-1],
+                "psnr_by_fifth": list(np.mean([r["psnr_by_fifth"] for r in rseed], axis=0)),
+                "heldout_psnr": (float(np.mean([r["heldout_psnr"] for r in rseed]))
+                                 if all(r["heldout_psnr"] is not None for r in rseed) else None),
+                "s_per_frame": float(np.mean([r["s_per_frame"] for r in rseed])),
+                "s_per_frame_by_fifth": list(np.mean([r["s_per_frame_by_fifth"] for r in rseed], axis=0)),
+                "n_gaussians": float(np.mean([r["n_gaussians"] for r in rseed])),
+                "keyframe_mb": float(np.mean([r["keyframe_mb"] for r in rseed])),
+            })
+        block = aggregate(by_seed, ["psnr", "roi_psnr", "psnr_by_fifth", "heldout_psnr", "s_per_frame",
+                                    "s_per_frame_by_fifth", "n_gaussians", "keyframe_mb"])
+        if block.get("heldout_psnr") is None:
+            block["heldout_psnr"] = None
+        fifth = block["psnr_by_fifth"]
+        block["retention_db"] = (fifth[0] - fifth[-1]) if by_seed else None
+        block["roi_psnr_per_task"] = {
+            t: aggregate([{"v": (next((r["roi_psnr_per_task"][t] for r in rs if r["seed"] == s
+                                        and (mode == "uniform" or r["task"] == t)), None))} for s in seeds], ["v"])
+            for t in tasks}
+        block["roi_psnr_per_task"] = {t: {"roi_psnr": v["v"], "roi_psnr_std": v["v_std"]}
+                                      for t, v in block["roi_psnr_per_task"].items()}
+        block["seeds"] = [s for s in seeds if any(r["seed"] == s for r in rs)]
+        out[mode] = block
+        per_seed_roi[mode] = roi_by_seed
+    if len(per_seed_roi["uniform"]) == len(per_seed_roi["gausslite"]):
+        out["roi_gain"] = gain(per_seed_roi["gausslite"], per_seed_roi["uniform"])
+    return out
+
+
+def plot_scene(runs: list[dict], scene: str, path: Path) -> None:
+    """PSNR along the sequence (mapped frames), both modes, mean over seeds (and tasks)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for mode, color in (("uniform", "tab:blue"), ("gausslite", "tab:red")):
+        rs = [r for r in runs if r["scene"] == scene and r["mode"] == mode]
+        if not rs:
+            continue
+        curve = np.mean([r["frame_psnr"] for r in rs], axis=0)
+        ax.plot(curve, color=color, alpha=0.35, lw=0.8)
+        k = max(1, len(curve) // 30)
+        smooth = np.convolve(curve, np.ones(k) / k, mode="same")
+        ax.plot(smooth, color=color, lw=2, label=f"{mode} (mean {curve.mean():.2f} dB, {len(rs)} runs)")
+    for q in range(1, 5):
+        ax.axvline(q * len(curve) / 5, color="grey", lw=0.5, ls=":")
+    ax.set_xlabel("mapped frame (mission order)")
+    ax.set_ylabel("PSNR of the final map [dB]")
+    ax.set_title(f"{scene}: final map scored on every mapped frame")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def table(result: dict) -> str:
+    """Markdown table of the JSON result."""
+    from gausslite.stats import fmt
+
+    lines = ["| scene | mode | PSNR | ROI PSNR | PSNR by fifth (first → last) | first − last | held-out PSNR | s/frame | Gaussians |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, sc in result["scenes"].items():
+        for mode in ("uniform", "gausslite"):
+            b = sc.get(mode)
+            if not b or b.get("psnr") is None:
+                continue
+            fifths = " / ".join(f"{v:.2f}" for v in b["psnr_by_fifth"])
+            lines.append(f"| {name} | {mode} | {fmt(b['psnr'], b['psnr_std'])} | {fmt(b['roi_psnr'], b['roi_psnr_std'])} "
+                         f"| {fifths} | {b['retention_db']:+.2f} | {fmt(b['heldout_psnr'], b.get('heldout_psnr_std'))} "
+                         f"| {fmt(b['s_per_frame'], b['s_per_frame_std'])} | {b['n_gaussians']:.0f} |")
+        g = sc.get("roi_gain")
+        if g and g["gain"] is not None:
+            lines.append(f"| {name} | ROI gain | | {fmt(g['gain'], g['gain_std'])} dB "
+                         f"({'significant' if g['significant'] else 'not significant'}: > 2σ needed) | | | | | |")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default=",".join(SCENES), help="comma list of " + ", ".join(SCENES))
+    ap.add_argument("--seeds", type=int, default=3, help="random seeds per run (default 3)")
+    ap.add_argument("--tasks", default="2", help="tasks per scene for GaussLite: a number (first N) or 'all'")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--max-frames", type=int, default=None, help="quick runs: first N frames only")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="mapper config override for both modes")
+    ap.add_argument("--work", type=Path, default=REPO / "runs" / "bench_long_mission", help="generated scenes")
+    ap.add_argument("--out", type=Path, default=RESULTS / "long_mission.json")
+    args = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    from gausslite.datasets import load_dataset
+
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    unknown = [s for s in scenes if s not in SCENES]
+    if unknown:
+        ap.error(f"unknown scenes {unknown}; known: {list(SCENES)}")
+    seeds = list(range(args.seeds))
+    jobs, scene_tasks = [], {}
+    for sc in scenes:
+        path = scene_path(sc, args.work)
+        ann = load_dataset(path, max_frames=1).annotations
+        all_tasks = [t.id for t in ann.tasks]
+        tasks = all_tasks if args.tasks == "all" else all_tasks[: int(args.tasks)]
+        scene_tasks[sc] = tasks
+        base = {"scene": sc, "path": str(path), "max_frames": args.max_frames, "overrides": args.overrides}
+        for s in seeds:
+            jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
+            for t in tasks:
+                jobs.append({**base, "mode": "gausslite", "task": t, "seed": s, "eval_tasks": [t]})
+    t0 = time.time()
+    runs = []
+    with ProcessPoolExecutor(max_workers=args.jobs) as ex:
+        futs = {ex.submit(run_one, j): j for j in jobs}
+        with tqdm(total=len(futs), desc="long_mission", unit="run") as bar:
+            for f in as_completed(futs):
+                j = futs[f]
+                r = f.result()
+                runs.append(r)
+                bar.set_postfix(scene=j["scene"], mode=j["mode"], seed=j["seed"])
+                bar.write(f"{j['scene']} {j['mode']} task={j['task']} seed={j['seed']}: PSNR {r['psnr']:.2f}, "
+                          f"fifths {' '.join(f'{v:.1f}' for v in r['psnr_by_fifth'])}, "
+                          f"{r['s_per_frame']:.2f} s/frame, {r['n_gaussians']} Gaussians")
+                bar.update(1)
+    result = {
+        "scenes": {sc: summarise(runs, sc, scene_tasks[sc], seeds) for sc in scenes},
+        "settings": {"seeds": seeds, "tasks": args.tasks, "max_frames": args.max_frames, "overrides": args.overrides,
+                     "scenes": {sc: SCENES[sc] for sc in scenes}, "jobs": args.jobs},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},
+        "wall_s": time.time() - t0,
+        "runs": [{k: v for k, v in r.items() if k != "frame_psnr"} for r in runs],
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2))
+    md = table(result)
+    args.out.with_suffix(".md").write_text("# Long-mission retention\n\n" + md + "\n")
+    for sc in scenes:
+        plot_scene(runs, sc, args.out.parent / f"{args.out.stem}_{sc}.png")
+    print(md)
+    print(f"wrote {args.out} ({result['wall_s'] / 60:.1f} min)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

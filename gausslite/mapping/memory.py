@@ -1,0 +1,245 @@
+"""What a long mission's mapper remembers: its keyframes, the surface it has observed, and which
+pixels of a new frame its map does not yet explain.
+
+- :class:`KeyframeStore`: every keyframe of the mission, stored compactly (uint8 colour, float16
+  depth, bool ROI: 3.0 B/pixel + ROI instead of 16 B/pixel as float32 tensors), bounded by
+  ``max_keyframes`` (the most redundant old keyframe is dropped), with the view sampler of
+  multi-view optimisation: a draw from the recent window or from the whole mission, weighted towards
+  keyframes that see the ROI. This follows MonoGS (Matsuki et al., CVPR 2024, Sec. 3.3.1: a window
+  of recent keyframes plus randomly drawn past keyframes each iteration, against forgetting) and
+  SplaTAM's covisibility-driven keyframe choice (Keetha et al., CVPR 2024, Sec. 3.5), with "sees the
+  ROI" as the covisibility test.
+- :class:`SurfaceVoxels`: the set of coarse voxels that valid depth has hit, in world metres. The
+  scene-following Gaussian budget (issue 10) is ``gaussians_per_voxel × len(voxels)``.
+- :func:`unexplained_mask`: SplaTAM's densification mask (Sec. 3.4, Eq. 9): pixels whose rendered
+  silhouette is below 0.5, or where the rendered surface lies behind the observed depth by more than
+  50 × the median depth error. New Gaussians are seeded only there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from gausslite.camera import Intrinsics
+
+
+@dataclass
+class StoredKeyframe:
+    """One keyframe in compact form (CPU tensors).
+
+    rgb (H,W,3) uint8; depth (H,W) float16 metres (0 invalid; ≈1 mm resolution at 2 m);
+    c2w (4,4) float64 camera-to-world (OpenCV camera axes, metres); K (3,3) float32 pixels;
+    roi (H,W) bool or None; roi_box (x0,y0,x1,y1) half-open pixel box of the ROI or None.
+    """
+
+    frame_id: int
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    c2w: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+    roi: Optional[torch.Tensor]
+    roi_box: Optional[tuple[int, int, int, int]]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the image tensors."""
+        n = self.rgb.numel() + 2 * self.depth.numel()
+        return n + (self.roi.numel() if self.roi is not None else 0)
+
+    @property
+    def sees_roi(self) -> bool:
+        """True when the keyframe has at least one ROI pixel."""
+        return self.roi_box is not None
+
+
+class KeyframeStore:
+    """The mission's keyframes, compact and bounded, with MVO's view sampler.
+
+    Args:
+        max_keyframes: bound on stored keyframes; when exceeded, the old keyframe (outside the
+            recent ``protect_recent``) whose pose is closest to its predecessor's is dropped
+            (translation in metres + rotation angle in radians × ``rot_weight_m``).
+        protect_recent: this many newest keyframes are never dropped (the MVO window).
+    """
+
+    def __init__(self, max_keyframes: int = 500, protect_recent: int = 8, rot_weight_m: float = 0.5) -> None:
+        if max_keyframes < 1:
+            raise ValueError(f"max_keyframes must be >= 1, got {max_keyframes}")
+        self.max_keyframes = int(max_keyframes)
+        self.protect_recent = int(protect_recent)
+        self.rot_weight_m = float(rot_weight_m)
+        self._items: list[StoredKeyframe] = []
+        self.n_dropped = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: int) -> StoredKeyframe:
+        return self._items[i]
+
+    def __iter__(self):
+        return iter(self._items)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by all stored keyframe images."""
+        return sum(k.nbytes for k in self._items)
+
+    def add(self, kf) -> StoredKeyframe:
+        """Store a :class:`~gausslite.mapping.mapper.Keyframe` (float tensors) compactly; returns it.
+
+        Drops the most redundant old keyframe when the store is over ``max_keyframes``.
+        """
+        rgb = (kf.rgb.detach().clamp(0, 1) * 255.0 + 0.5).to("cpu", torch.uint8)
+        st = StoredKeyframe(
+            frame_id=int(kf.frame_id), rgb=rgb, depth=kf.depth.detach().to("cpu", torch.float16),
+            c2w=kf.c2w.detach().to("cpu", torch.float64), K=kf.K.detach().to("cpu", torch.float32),
+            width=int(kf.width), height=int(kf.height),
+            roi=None if kf.roi is None else kf.roi.detach().to("cpu", torch.bool), roi_box=kf.roi_box,
+        )
+        self._items.append(st)
+        if len(self._items) > self.max_keyframes:
+            self._drop_redundant()
+        return st
+
+    def _drop_redundant(self) -> None:
+        n_old = len(self._items) - self.protect_recent
+        if n_old < 2:  # nothing but the window: drop the oldest
+            self._items.pop(0)
+            self.n_dropped += 1
+            return
+        c2w = torch.stack([k.c2w for k in self._items[: n_old + 1]]).numpy()
+        dt = np.linalg.norm(c2w[1:, :3, 3] - c2w[:-1, :3, 3], axis=1)
+        rel = np.einsum("nji,njk->nik", c2w[:-1, :3, :3], c2w[1:, :3, :3])
+        ang = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        cost = dt + self.rot_weight_m * ang  # distance of keyframe j+1 to keyframe j, j+1 ∈ [1, n_old]
+        j = int(np.argmin(cost[: n_old - 1])) + 1  # never the first keyframe, never the window
+        self._items.pop(j)
+        self.n_dropped += 1
+
+    def load(self, i: int, device: torch.device):
+        """Keyframe ``i`` as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device``."""
+        from gausslite.mapping.mapper import Keyframe
+
+        k = self._items[i]
+        return Keyframe(
+            frame_id=k.frame_id, rgb=k.rgb.to(device, torch.float32) / 255.0, depth=k.depth.to(device, torch.float32),
+            c2w=k.c2w.to(device), K=k.K.to(device), width=k.width, height=k.height,
+            roi=None if k.roi is None else k.roi.to(device), roi_box=k.roi_box,
+        )
+
+    def sample_index(self, rng: np.random.Generator, window: int, recent_prob: float,
+                     roi_weight: float = 0.0) -> int:
+        """Index of a training view for one iteration.
+
+        With probability ``recent_prob`` (or when the store holds no more than ``window``
+        keyframes) a uniform draw from the ``window`` newest keyframes; otherwise a draw over the
+        whole mission with weight ``1 + roi_weight`` for keyframes that see the ROI and 1 for the
+        others (``roi_weight=0``: uniform over the mission).
+
+        Raises:
+            ValueError: the store is empty.
+        """
+        n = len(self._items)
+        if n == 0:
+            raise ValueError("no keyframes to sample from")
+        if n <= window or rng.random() < recent_prob:
+            w = min(window, n)
+            return n - w + int(rng.integers(w))
+        if roi_weight <= 0:
+            return int(rng.integers(n))
+        wts = np.array([1.0 + roi_weight * k.sees_roi for k in self._items])
+        return int(rng.choice(n, p=wts / wts.sum()))
+
+
+def backproject(depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, stride: int = 1) -> np.ndarray:
+    """World points of every ``stride``-th valid depth pixel.
+
+    Args:
+        depth: (H, W) metres, 0 = invalid. intr: pinhole intrinsics (pixels). c2w: (4, 4)
+            camera-to-world, OpenCV camera axes (x right, y down, z forward).
+    Returns:
+        (P, 3) float64 world points in metres.
+    """
+    d = depth[::stride, ::stride]
+    v, u = np.nonzero(d > 0)
+    z = d[v, u].astype(np.float64)
+    u = u * stride
+    v = v * stride
+    pc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
+    return pc @ np.asarray(c2w, np.float64)[:3, :3].T + np.asarray(c2w, np.float64)[:3, 3]
+
+
+class SurfaceVoxels:
+    """The set of coarse world voxels (edge ``voxel_m`` metres) that valid depth has observed.
+
+    The scene-following budget counts them: it grows with the observed surface, not with the
+    image size. Keys are packed into int64 (21 bits per axis, ±1 km at 1 cm voxels).
+    """
+
+    _OFF = 1 << 20
+
+    def __init__(self, voxel_m: float = 0.05, pixel_stride: int = 4) -> None:
+        if voxel_m <= 0:
+            raise ValueError(f"voxel_m must be > 0, got {voxel_m}")
+        self.voxel_m = float(voxel_m)
+        self.pixel_stride = int(pixel_stride)
+        self._keys = np.zeros(0, np.int64)
+
+    def __len__(self) -> int:
+        return int(self._keys.size)
+
+    def add_frame(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> int:
+        """Add the voxels hit by a frame's valid depth; returns the number of new voxels."""
+        pts = backproject(depth, intr, c2w, self.pixel_stride)
+        if pts.size == 0:
+            return 0
+        ijk = np.floor(pts / self.voxel_m).astype(np.int64) + self._OFF
+        ijk = np.clip(ijk, 0, (1 << 21) - 1)
+        keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])
+        n0 = self._keys.size
+        self._keys = np.union1d(self._keys, keys)
+        return int(self._keys.size - n0)
+
+    @property
+    def area_m2(self) -> float:
+        """Rough observed surface area: one voxel face per occupied voxel (m²)."""
+        return len(self) * self.voxel_m ** 2
+
+
+def unexplained_mask(
+    depth_gt: np.ndarray,
+    alpha: np.ndarray,
+    depth_render: np.ndarray,
+    alpha_threshold: float = 0.5,
+    depth_error_factor: float = 50.0,
+) -> np.ndarray:
+    """Pixels of a new frame that the current map does not explain (SplaTAM Eq. 9).
+
+    A valid-depth pixel is unexplained when the rendered silhouette (accumulated alpha) is below
+    ``alpha_threshold``, or when the rendered depth lies *behind* the observed depth by more than
+    ``depth_error_factor`` × the median absolute depth error over the silhouette (new geometry in
+    front of the map).
+
+    Args:
+        depth_gt: (H, W) observed depth, metres, 0 = invalid.
+        alpha: (H, W) rendered accumulated opacity in [0, 1].
+        depth_render: (H, W) rendered expected depth, metres.
+    Returns:
+        (H, W) bool mask, always within ``depth_gt > 0``.
+    """
+    valid = depth_gt > 0
+    sil = alpha >= alpha_threshold
+    mask = valid & ~sil
+    both = valid & sil
+    if both.any():
+        err = np.abs(depth_render - depth_gt)
+        med = float(np.median(err[both]))
+        mask |= both & (depth_render > depth_gt) & (err > depth_error_factor * med)
+    return mask
