@@ -61,14 +61,14 @@ def scene_path(name: str, work: Path) -> Path:
     return out / "agent_a"
 
 
-def load_scene(name: str, path: Path, max_frames: Optional[int] = None):
+def load_scene(name: str, path: Path, max_frames: Optional[int] = None, downscale: Optional[float] = None):
     """The dataset with the loader options of its sensor profile."""
     from gausslite.datasets import detect_layout, load_dataset
     from gausslite.mapping.profiles import profile_for_layout
 
     spec = SCENES[name]
     profile = profile_for_layout(detect_layout(path)[0])
-    ds = load_dataset(path, downscale=spec.get("downscale", 1.0), max_frames=max_frames, **profile.loader)
+    ds = load_dataset(path, downscale=downscale or spec.get("downscale", 1.0), max_frames=max_frames, **profile.loader)
     return ds, profile
 
 
@@ -81,7 +81,7 @@ def run_one(job: dict) -> dict:
     from gausslite.pipeline import gt_roi_fn, run_mapping
 
     torch.set_num_threads(1)
-    ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"))
+    ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"), job.get("downscale"))
     stride = SCENES[job["scene"]]["stride"]
     cfg = load_config(None, job.get("overrides", []), defaults=dict(profile.mapper), mode=job["mode"],
                       seed=job["seed"], render_threads=1)
@@ -229,6 +229,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--max-frames", type=int, default=None, help="quick runs: first N frames only")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="mapper config override for both modes")
+    ap.add_argument("--tum-downscale", type=float, default=None,
+                    help="TUM image downscale (default 2: 320×240); 4 gives 160×120 for quick runs")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "bench_long_mission", help="generated scenes")
     ap.add_argument("--out", type=Path, default=RESULTS / "long_mission.json")
     args = ap.parse_args(argv)
@@ -236,6 +238,8 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     from gausslite.datasets import load_dataset
 
+    if args.tum_downscale is not None:
+        SCENES["tum_fr1_rpy"]["downscale"] = float(args.tum_downscale)
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     unknown = [s for s in scenes if s not in SCENES]
     if unknown:
@@ -248,7 +252,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         all_tasks = [t.id for t in ann.tasks]
         tasks = all_tasks if args.tasks == "all" else all_tasks[: int(args.tasks)]
         scene_tasks[sc] = tasks
-        base = {"scene": sc, "path": str(path), "max_frames": args.max_frames, "overrides": args.overrides}
+        base = {"scene": sc, "path": str(path), "max_frames": args.max_frames, "overrides": args.overrides,
+                "downscale": SCENES[sc].get("downscale", 1.0)}
         for s in seeds:
             jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
             for t in tasks:

@@ -1,0 +1,54 @@
+"""bench.long_mission's aggregation: the JSON schema of issue 10 (mean, ``_std`` and seeds per field,
+uniform scored on every task's ROI, paired gains) and gausslite.stats."""
+
+import math
+
+import pytest
+
+from bench.long_mission import summarise, table
+from gausslite.stats import aggregate, gain, mean_std
+
+
+def _run(mode, seed, task, roi, psnr, fifths):
+    return {"scene": "s", "mode": mode, "task": task, "seed": seed, "psnr": psnr, "roi_psnr_per_task": roi,
+            "psnr_by_fifth": fifths, "heldout_psnr": psnr - 1, "s_per_frame": 2.0,
+            "s_per_frame_by_fifth": [2.0] * 5, "n_gaussians": 1000, "keyframe_mb": 3.0}
+
+
+def test_summarise_follows_the_issue_schema():
+    runs = []
+    for s, off in ((0, 0.0), (1, 1.0)):
+        runs.append(_run("uniform", s, None, {"a": 20 + off, "b": 22 + off}, 21 + off, [18, 19, 20, 21, 22]))
+        runs.append(_run("gausslite", s, "a", {"a": 25 + off}, 20 + off, [20, 20, 20, 20, 20]))
+        runs.append(_run("gausslite", s, "b", {"b": 26 + off}, 22 + off, [20, 20, 20, 20, 20]))
+    out = summarise(runs, "s", ["a", "b"], [0, 1])
+    u, g = out["uniform"], out["gausslite"]
+    assert out["tasks"] == ["a", "b"]
+    for b in (u, g):
+        for k in ("psnr", "roi_psnr", "psnr_by_fifth", "heldout_psnr", "s_per_frame", "n_gaussians"):
+            assert k in b and k + "_std" in b
+        assert b["seeds"] == [0, 1]
+        assert len(b["psnr_by_fifth"]) == 5
+    assert u["roi_psnr"] == pytest.approx(21.5)  # mean over tasks a, b on the uniform map, then seeds
+    assert u["roi_psnr_std"] == pytest.approx(math.sqrt(0.5))
+    assert g["roi_psnr"] == pytest.approx(26.0)
+    assert u["retention_db"] == pytest.approx(18 - 22)
+    assert out["roi_gain"]["gain"] == pytest.approx(4.5) and out["roi_gain"]["gain_std"] == pytest.approx(0.0)
+    assert out["roi_gain"]["significant"]
+    md = table({"scenes": {"s": out}})
+    assert "| s | uniform |" in md and "ROI gain" in md and "significant" in md
+
+
+def test_stats_helpers():
+    assert mean_std([1.0, 3.0]) == (2.0, pytest.approx(math.sqrt(2)))
+    assert mean_std([5.0]) == (5.0, 0.0)
+    assert mean_std([None, float("nan")]) == (None, None)
+    agg = aggregate([{"x": 1.0, "l": [1, 2]}, {"x": 3.0, "l": [3, 4]}], ["x", "l"])
+    assert agg["x"] == 2.0 and agg["l"] == [2.0, 3.0] and agg["l_std"][0] == pytest.approx(math.sqrt(2))
+    g = gain([3.0, 3.2, 2.8], [1.0, 1.0, 1.0])
+    assert g["significant"] and g["n"] == 3
+    noisy = gain([3.0, -1.0], [1.0, 1.0])  # mean 0 ± 2.8: not a gain
+    assert not noisy["significant"]
+    assert not gain([2.0], [1.0])["significant"]  # one seed can never show significance
+    with pytest.raises(ValueError):
+        gain([1.0], [1.0, 2.0])
