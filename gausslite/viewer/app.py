@@ -227,11 +227,22 @@ class MapViewer:
         return np.asarray(UP_AXES["+z"], np.float64)
 
     def _set_initial_camera(self, centers: np.ndarray) -> None:
-        centre, radius = scene_bounds(centers)
+        """Look at the map's robust centre: from behind the keyframe cameras (their mean centre moved
+        back along their mean viewing direction and up) when there are keyframes, else from the side."""
+        kf_pos = np.array([kf.c2w[:3, 3] for kfs in self._keyframes.values() for kf in kfs]).reshape(-1, 3)
+        centre, radius = scene_bounds(np.concatenate([centers, kf_pos]) if len(kf_pos) else centers)
         up = self._up_vector()
-        side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-        side /= np.linalg.norm(side)
-        eye = centre + radius * (1.6 * side + 0.9 * up)
+        if len(kf_pos):
+            fwd = np.mean([kf.c2w[:3, 2] for kfs in self._keyframes.values() for kf in kfs], axis=0)
+            fwd = fwd - up * float(fwd @ up)
+            if np.linalg.norm(fwd) < 1e-6:
+                fwd = centre - kf_pos.mean(axis=0)
+            fwd /= max(np.linalg.norm(fwd), 1e-9)
+            eye = kf_pos.mean(axis=0) - 0.6 * radius * fwd + 0.6 * radius * up
+        else:
+            side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+            side /= np.linalg.norm(side)
+            eye = centre + radius * (1.6 * side + 0.9 * up)
         cam = self.server.initial_camera
         cam.up = tuple(float(x) for x in up)
         cam.look_at = tuple(float(x) for x in centre)

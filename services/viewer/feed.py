@@ -92,17 +92,17 @@ class FusionFeed:
         try:
             stats = self.client.stats()
             latest = int(stats.get("latest_fused_version", 0))
+            poses = self.client.keyframe_poses()
+            sig = tuple((p["agent_id"], p["frame_id"]) for p in poses)
+            if sig != self._kf_signature:
+                self.viewer.set_keyframes(keyframes_by_agent(poses))
+                self._kf_signature = sig
             loaded = False
             if latest and latest != self.shown_version:
                 fused = self.client.download_fused(latest)
                 self.viewer.set_map(fused, label=f"fused v{latest}")
                 self.shown_version = latest
                 loaded = True
-            poses = self.client.keyframe_poses()
-            sig = tuple((p["agent_id"], p["frame_id"]) for p in poses)
-            if sig != self._kf_signature:
-                self.viewer.set_keyframes(keyframes_by_agent(poses))
-                self._kf_signature = sig
             self.last_error = ""
             self.viewer.set_panel(stats_markdown(stats, self.shown_version))
             self.polls += 1
