@@ -209,3 +209,50 @@ def test_fusion_module_cli_metrics_port(tmp_path, monkeypatch):
 
     monkeypatch.setenv("GAUSSLITE_METRICS_PORT", "not-a-port")
     assert main(["--port", "0", "--data-dir", str(tmp_path / "f")]) == 2
+
+
+def _wait_scrape(url: str, proc, timeout_s: float = 60.0) -> dict:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return scrape(url)
+        except (urllib.error.URLError, ConnectionError, OSError):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"no metrics at {url}: {proc.stdout.read() if proc.poll() is not None else ''}")
+            time.sleep(0.2)
+
+
+@pytest.mark.parametrize("service", ["parser", "fusion_server"])
+def test_compose_metrics_setting_serves_metrics(service, tmp_path):
+    """deploy/docker-compose.yml passes GAUSSLITE_METRICS_PORT to every server; the service's own compose
+    command, started locally with that variable set, serves /metrics over HTTP."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    from services.sim import free_port
+
+    repo = Path(__file__).resolve().parents[1]
+    compose = yaml.safe_load((repo / "deploy" / "docker-compose.yml").read_text())["services"]
+    for name in ("parser", "fusion_server", "agent_a", "agent_b"):
+        assert compose[name]["environment"]["GAUSSLITE_METRICS_PORT"] == "${GAUSSLITE_METRICS_PORT:-0}"
+    cmd = list(compose[service]["command"])
+    cmd[cmd.index("--port") + 1] = str(free_port())
+    cmd = [sys.executable, "-m", "gausslite.cli", *cmd[1:]] if cmd[0] == "gausslite" else [sys.executable, *cmd[1:]]
+    mport = free_port()
+    env = {**os.environ, "PYTHONPATH": str(repo), "GAUSSLITE_METRICS_PORT": str(mport), "OMP_NUM_THREADS": "1",
+           "GAUSSLITE_DATA_DIR": str(tmp_path / "data"), "GAUSSLITE_TOKEN": ""}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        samples = _wait_scrape(f"http://127.0.0.1:{mport}/metrics", proc)
+        family = {"parser": "gausslite_parser_request_seconds_count",
+                  "fusion_server": "gausslite_fusion_upload_errors_total"}[service]
+        assert val(samples, family) == 0 and (family, frozenset()) in samples
+    finally:
+        proc.terminate()
+        proc.wait(30)
