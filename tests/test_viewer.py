@@ -277,6 +277,31 @@ def test_fusion_feed_follows_versions(fusion_with_two_agents):
         viewer.stop()
 
 
+def test_cli_view_follows_fusion(fusion_with_two_agents):
+    from services.sim import free_port
+
+    _, fc = fusion_with_two_agents
+    r = fc.fuse("concat")
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite.cli", "view", "--fusion", fc.target, "--port", str(port),
+                             "--poll", "0.3", "--timeout", "60"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        seen = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            seen.append(proc.stderr.readline())
+            if "showing fused version" in seen[-1]:
+                break
+        assert f"showing fused version 1 ({r.n_gaussians} Gaussians)" in seen[-1], "".join(seen)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as page:
+            assert page.status == 200
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
 # ---------------------------------------------------------------- real browser
 def test_browser_renders_splats(tmp_path):
     """Headless Chromium opens the viser page: the empty scene, then the map; ≥ 5 % of pixels change."""

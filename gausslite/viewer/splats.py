@@ -92,10 +92,8 @@ def covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     Returns:
         (N, 3, 3) float32, symmetric positive semi-definite, square metres.
     """
-    rot = quat_to_rotmat(quats)
-    var = np.exp(2.0 * np.asarray(log_scales, np.float64))
-    cov = np.einsum("nij,nj,nkj->nik", rot, var, rot)
-    return cov.astype(np.float32)
+    m = quat_to_rotmat(quats) * np.exp(np.asarray(log_scales, np.float64))[:, None, :]  # R diag(s)
+    return np.matmul(m, m.transpose(0, 2, 1)).astype(np.float32)
 
 
 def kappa_colors(kappa: np.ndarray, kappa_max: Optional[int] = None) -> np.ndarray:

@@ -77,6 +77,22 @@ def start_metrics_endpoint(registry: CollectorRegistry, host: str, port: Optiona
     return MetricsEndpoint(host, bound, httpd, thread)
 
 
+class ServicerProxy:
+    """Base of metered servicer proxies: every attribute not defined by the subclass is the wrapped
+    servicer's, so RPCs without metrics (and RPCs added later) pass through unchanged.
+
+    Args:
+        inner: the real servicer. metrics: the service's metrics object (``.registry``).
+    """
+
+    def __init__(self, inner, metrics):
+        self._inner = inner
+        self.metrics = metrics
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
+
+
 def metrics_port_from(value, env_value: Optional[str] = None) -> Optional[int]:
     """CLI/env metrics port → ``ServerOptions.metrics_port``: 0 or unset → None (off), else the port.
 
@@ -95,5 +111,5 @@ def metrics_port_from(value, env_value: Optional[str] = None) -> Optional[int]:
     return port or None
 
 
-__all__ = ["LATENCY_BUCKETS", "JOB_BUCKETS", "MetricsEndpoint", "start_metrics_endpoint", "metrics_port_from",
+__all__ = ["LATENCY_BUCKETS", "JOB_BUCKETS", "MetricsEndpoint", "ServicerProxy", "start_metrics_endpoint", "metrics_port_from",
            "CollectorRegistry"]

@@ -20,7 +20,7 @@ import time
 import grpc
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
-from services.common.metrics import JOB_BUCKETS, LATENCY_BUCKETS
+from services.common.metrics import JOB_BUCKETS, LATENCY_BUCKETS, ServicerProxy
 
 _METHODS = {1: "vote", 2: "concat"}
 
@@ -72,20 +72,13 @@ class FusionMetrics:
                                      registry=r)
 
 
-class MeteredFusion:
+class MeteredFusion(ServicerProxy):
     """A ``gausslite.v1.Fusion`` servicer proxy recording :class:`FusionMetrics` (see the module docstring).
 
     Args:
         inner: the real servicer (``FusionServicer``); every attribute not overridden here is its own.
         metrics: where to record.
     """
-
-    def __init__(self, inner, metrics: FusionMetrics):
-        self._inner = inner
-        self.metrics = metrics
-
-    def __getattr__(self, name):
-        return getattr(self._inner, name)
 
     def UploadSubset(self, request_iterator, context):  # noqa: N802
         m = self.metrics

@@ -14,7 +14,7 @@ import time
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 
-from services.common.metrics import LATENCY_BUCKETS
+from services.common.metrics import LATENCY_BUCKETS, ServicerProxy
 
 
 class ParserMetrics:
@@ -28,15 +28,8 @@ class ParserMetrics:
                                  registry=self.registry)
 
 
-class MeteredParser:
+class MeteredParser(ServicerProxy):
     """Servicer proxy recording :class:`ParserMetrics` around ``Parse``; other attributes pass through."""
-
-    def __init__(self, inner, metrics: ParserMetrics):
-        self._inner = inner
-        self.metrics = metrics
-
-    def __getattr__(self, name):
-        return getattr(self._inner, name)
 
     def Parse(self, request, context):  # noqa: N802
         t0 = time.perf_counter()

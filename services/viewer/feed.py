@@ -102,6 +102,7 @@ class FusionFeed:
                 fused = self.client.download_fused(latest)
                 self.viewer.set_map(fused, label=f"fused v{latest}")
                 self.shown_version = latest
+                log.info("showing fused version %d (%d Gaussians)", latest, len(fused))
                 loaded = True
             self.last_error = ""
             self.viewer.set_panel(stats_markdown(stats, self.shown_version))
