@@ -157,6 +157,9 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
                                                             timeout=10)
             assert e.value.code() == grpc.StatusCode.NOT_FOUND  # no session: rejected, counted unlabelled
             res = fc.fuse("vote")
+            with pytest.raises(grpc.RpcError) as e:
+                fc.fuse("vote", voxel_size=-1.0)
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
         f1 = scrape(fusion_url)
         assert val(f1, "gausslite_fusion_uploads_total", agent="robot_x") == 1
         assert val(f1, "gausslite_fusion_chunks_received_total", agent="robot_x") == 3
@@ -169,6 +172,7 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
         assert val(f1, "gausslite_fusion_upload_ack_seconds_count", agent="robot_x") == 1
         assert val(f1, "gausslite_fusion_upload_ack_seconds_bucket", agent="robot_x", le="+Inf") == 1
         assert val(f1, "gausslite_fusion_fuse_runs_total", method="vote", outcome="ok") == 1
+        assert val(f1, "gausslite_fusion_fuse_runs_total", method="vote", outcome="error") == 1
         assert val(f1, "gausslite_fusion_fuse_duration_seconds_count", method="vote") == 1
         assert val(f1, "gausslite_fusion_fuse_duration_seconds_sum", method="vote") == pytest.approx(res.seconds)
         assert val(f1, "gausslite_fusion_fused_gaussians") == res.n_gaussians

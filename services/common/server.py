@@ -7,6 +7,9 @@
   wrong token → ``UNAUTHENTICATED``; every rejected call is logged.
 * :func:`run_until_signalled` — blocks until SIGTERM/SIGINT, then marks health NOT_SERVING and stops
   the server with a grace period so in-flight calls finish.
+* Prometheus: with ``ServerOptions.metrics_port`` set, :func:`build_server` also serves the service's
+  own registry at ``http://host:metrics_port/metrics`` (:mod:`services.common.metrics`); it stops
+  with the server.
 """
 
 from __future__ import annotations
