@@ -266,3 +266,29 @@ class StatsResponse(_message.Message):
     fused: _containers.RepeatedCompositeFieldContainer[FuseResult]
     latest_fused_version: int
     def __init__(self, agents: _Optional[_Iterable[_Union[AgentStats, _Mapping]]] = ..., fused: _Optional[_Iterable[_Union[FuseResult, _Mapping]]] = ..., latest_fused_version: _Optional[int] = ...) -> None: ...
+
+class KeyframePosesRequest(_message.Message):
+    __slots__ = ("agent_id",)
+    AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    agent_id: str
+    def __init__(self, agent_id: _Optional[str] = ...) -> None: ...
+
+class KeyframePose(_message.Message):
+    __slots__ = ("agent_id", "frame_id", "pose", "intrinsics", "timestamp")
+    AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
+    agent_id: str
+    frame_id: int
+    pose: _common_pb2.Pose
+    intrinsics: _common_pb2.Intrinsics
+    timestamp: float
+    def __init__(self, agent_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., pose: _Optional[_Union[_common_pb2.Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[_common_pb2.Intrinsics, _Mapping]] = ..., timestamp: _Optional[float] = ...) -> None: ...
+
+class KeyframePosesResponse(_message.Message):
+    __slots__ = ("keyframes",)
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    keyframes: _containers.RepeatedCompositeFieldContainer[KeyframePose]
+    def __init__(self, keyframes: _Optional[_Iterable[_Union[KeyframePose, _Mapping]]] = ...) -> None: ...

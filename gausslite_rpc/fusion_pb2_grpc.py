@@ -69,6 +69,11 @@ class FusionStub:
                 request_serializer=gausslite__rpc_dot_fusion__pb2.StatsRequest.SerializeToString,
                 response_deserializer=gausslite__rpc_dot_fusion__pb2.StatsResponse.FromString,
                 _registered_method=True)
+        self.GetKeyframePoses = channel.unary_unary(
+                '/gausslite.v1.Fusion/GetKeyframePoses',
+                request_serializer=gausslite__rpc_dot_fusion__pb2.KeyframePosesRequest.SerializeToString,
+                response_deserializer=gausslite__rpc_dot_fusion__pb2.KeyframePosesResponse.FromString,
+                _registered_method=True)
 
 
 class FusionServicer:
@@ -123,6 +128,13 @@ class FusionServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetKeyframePoses(self, request, context):
+        """Poses and intrinsics of the buffered keyframes (no images); NOT_FOUND for an unknown agent_id.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_FusionServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -160,6 +172,11 @@ def add_FusionServicer_to_server(servicer, server):
                     servicer.GetStats,
                     request_deserializer=gausslite__rpc_dot_fusion__pb2.StatsRequest.FromString,
                     response_serializer=gausslite__rpc_dot_fusion__pb2.StatsResponse.SerializeToString,
+            ),
+            'GetKeyframePoses': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetKeyframePoses,
+                    request_deserializer=gausslite__rpc_dot_fusion__pb2.KeyframePosesRequest.FromString,
+                    response_serializer=gausslite__rpc_dot_fusion__pb2.KeyframePosesResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -351,6 +368,33 @@ class Fusion:
             '/gausslite.v1.Fusion/GetStats',
             gausslite__rpc_dot_fusion__pb2.StatsRequest.SerializeToString,
             gausslite__rpc_dot_fusion__pb2.StatsResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetKeyframePoses(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gausslite.v1.Fusion/GetKeyframePoses',
+            gausslite__rpc_dot_fusion__pb2.KeyframePosesRequest.SerializeToString,
+            gausslite__rpc_dot_fusion__pb2.KeyframePosesResponse.FromString,
             options,
             channel_credentials,
             insecure,

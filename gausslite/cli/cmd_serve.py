@@ -6,7 +6,8 @@ imported lazily inside the handler, so the core ``gausslite`` package never impo
 
 Every option falls back to an environment variable: ``GAUSSLITE_<SERVICE>_HOST``,
 ``GAUSSLITE_<SERVICE>_PORT``, ``GAUSSLITE_<SERVICE>_CONFIG``, ``GAUSSLITE_TOKEN``,
-``GAUSSLITE_TLS_CERT``, ``GAUSSLITE_TLS_KEY``.
+``GAUSSLITE_TLS_CERT``, ``GAUSSLITE_TLS_KEY``, ``GAUSSLITE_<SERVICE>_METRICS_PORT`` /
+``GAUSSLITE_METRICS_PORT`` (Prometheus ``/metrics`` port; 0 or unset = off).
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ def register(subparsers) -> None:
     p.add_argument("--config", default=None, help="service config file (env GAUSSLITE_<SERVICE>_CONFIG)")
     p.add_argument("--max-workers", type=int, default=8, help="handler threads")
     p.add_argument("--grace", type=float, default=5.0, help="shutdown grace period, seconds")
+    p.add_argument("--metrics-port", type=int, default=None,
+                   help="Prometheus /metrics HTTP port, 0 = off (env GAUSSLITE_<SERVICE>_METRICS_PORT, "
+                        "GAUSSLITE_METRICS_PORT; default off)")
     p.set_defaults(func=_handle)
 
 
@@ -56,6 +60,7 @@ def resolve_options(args: argparse.Namespace, env=None):
     Raises:
         ValueError: a port from the environment is not an integer.
     """
+    from services.common.metrics import metrics_port_from
     from services.common.server import ServerOptions
 
     env = os.environ if env is None else env
@@ -70,6 +75,8 @@ def resolve_options(args: argparse.Namespace, env=None):
         tls_key=args.tls_key or env.get("GAUSSLITE_TLS_KEY") or None,
         max_workers=args.max_workers,
         grace_s=args.grace,
+        metrics_port=metrics_port_from(getattr(args, "metrics_port", None),
+                                       env.get(prefix + "METRICS_PORT") or env.get("GAUSSLITE_METRICS_PORT")),
     )
     return opts, args.config or env.get(prefix + "CONFIG") or None
 

@@ -32,6 +32,7 @@ import grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame
+from services.agent.metrics import agent_registry
 from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
 
@@ -354,7 +355,7 @@ def serve(options: ServerOptions, settings: Optional[AgentSettings] = None) -> R
     opts = ServerOptions(**{**options.__dict__, "max_message_bytes": min(max(options.max_message_bytes, 16 << 20),
                                                                          MAX_MESSAGE_BYTES)})
     running = build_server(opts, lambda srv: agent_pb2_grpc.add_AgentServicer_to_server(servicer, srv),
-                           [SERVICE_NAME])
+                           [SERVICE_NAME], agent_registry(servicer))
     agent = RunningAgent(running, servicer)
     if settings.dataset and settings.task:
         try:

@@ -7,6 +7,9 @@
   wrong token → ``UNAUTHENTICATED``; every rejected call is logged.
 * :func:`run_until_signalled` — blocks until SIGTERM/SIGINT, then marks health NOT_SERVING and stops
   the server with a grace period so in-flight calls finish.
+* Prometheus: with ``ServerOptions.metrics_port`` set, :func:`build_server` also serves the service's
+  own registry at ``http://host:metrics_port/metrics`` (:mod:`services.common.metrics`); it stops
+  with the server.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from typing import Callable, Iterable, List, Optional, Sequence, Tuple
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
+
+from services.common.metrics import CollectorRegistry, MetricsEndpoint, start_metrics_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +49,8 @@ class ServerOptions:
         max_workers (int): handler threads.
         grace_s (float): shutdown grace period for in-flight calls.
         auth_exempt (tuple[str, ...]): method-name prefixes that need no token.
+        metrics_port (int | None): Prometheus ``/metrics`` HTTP port on ``host``; None = off, 0 = an
+            ephemeral port (see :attr:`RunningServer.metrics`). The CLI maps ``--metrics-port 0`` to None.
     """
 
     host: str = "127.0.0.1"
@@ -55,6 +62,7 @@ class ServerOptions:
     max_workers: int = 8
     grace_s: float = 5.0
     auth_exempt: Tuple[str, ...] = (f"/{HEALTH_SERVICE}/",) + tuple(f"/{s}/" for s in REFLECTION_SERVICES)
+    metrics_port: Optional[int] = None
 
 
 def _deny_handler(handler: grpc.RpcMethodHandler, method: str, reason: str) -> grpc.RpcMethodHandler:
@@ -125,7 +133,8 @@ def server_credentials(tls_cert: Optional[str], tls_key: Optional[str]) -> Optio
 
 @dataclass
 class RunningServer:
-    """A started server: ``server`` (grpc.Server), bound ``port``, ``health`` servicer, ``address``."""
+    """A started server: ``server`` (grpc.Server), bound ``port``, ``health`` servicer, ``address``;
+    ``metrics``: the Prometheus endpoint (``.port``, ``.url``) or None."""
 
     server: grpc.Server
     port: int
@@ -133,17 +142,21 @@ class RunningServer:
     address: str
     service_names: List[str] = field(default_factory=list)
     grace_s: float = 5.0
+    metrics: Optional[MetricsEndpoint] = None
 
     def stop(self, grace_s: Optional[float] = None) -> None:
         """Mark NOT_SERVING, stop accepting calls and wait up to ``grace_s`` for in-flight ones."""
         self.health.enter_graceful_shutdown()
         self.server.stop(self.grace_s if grace_s is None else grace_s).wait()
+        if self.metrics is not None:
+            self.metrics.stop()
 
 
 def build_server(
     options: ServerOptions,
     register: Callable[[grpc.Server], None],
     service_names: Iterable[str],
+    registry: Optional[CollectorRegistry] = None,
 ) -> RunningServer:
     """Create, configure, bind and start a gRPC server.
 
@@ -152,12 +165,16 @@ def build_server(
         register (Callable[[grpc.Server], None]): adds the service servicers to the server.
         service_names (Iterable[str]): full names (``gausslite.v1.Parser``) reported SERVING by the
             health service and listed by reflection.
+        registry (CollectorRegistry | None): the service's Prometheus registry, served at
+            ``options.metrics_port`` (an empty registry when None).
     Returns:
         RunningServer: started; ``port`` is the bound port.
     Raises:
-        RuntimeError: the address could not be bound. ValueError / FileNotFoundError: bad TLS options.
+        RuntimeError: the address (or the metrics port) could not be bound. ValueError /
+            FileNotFoundError: bad TLS options.
     """
     names = list(service_names)
+    metrics = start_metrics_endpoint(registry or CollectorRegistry(), options.host, options.metrics_port)
     interceptors = []
     if options.token:
         interceptors.append(BearerTokenInterceptor(options.token, options.auth_exempt))
@@ -179,15 +196,19 @@ def build_server(
     try:
         port = server.add_secure_port(address, creds) if creds else server.add_insecure_port(address)
     except RuntimeError as e:
+        if metrics is not None:
+            metrics.stop()
         raise RuntimeError(f"cannot bind {address}: {e}") from e
     if port == 0:
+        if metrics is not None:
+            metrics.stop()
         raise RuntimeError(f"cannot bind {address}")
     server.start()
     for name in names + [""]:
         health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
     log.info("serving %s on %s:%d (%s%s)", ", ".join(names), options.host, port, "TLS" if creds else "plaintext",
              ", token required" if options.token else "")
-    return RunningServer(server, port, health_servicer, f"{options.host}:{port}", names, options.grace_s)
+    return RunningServer(server, port, health_servicer, f"{options.host}:{port}", names, options.grace_s, metrics)
 
 
 def run_until_signalled(running: RunningServer, stop_event: Optional[threading.Event] = None) -> int:

@@ -453,6 +453,25 @@ class FusionClient:
         fused = [fuse_result_from_proto(f).__dict__ for f in r.fused]
         return {"agents": agents, "fused": fused, "latest_fused_version": int(r.latest_fused_version)}
 
+    def keyframe_poses(self, agent_id: str = "") -> List[dict]:
+        """Poses of the keyframes the server buffers (no images), for viewers.
+
+        Args:
+            agent_id (str): one agent, or "" for every agent.
+        Returns:
+            list of dict ``{agent_id, frame_id, c2w: (4, 4) float64 camera-to-world (OpenCV axes, m),
+            fx, fy, cx, cy (pixels), width, height, timestamp (s)}``, ordered by agent then arrival.
+        Raises:
+            grpc.RpcError: NOT_FOUND (agent without a session), INVALID_ARGUMENT (bad agent id), ...
+        """
+        r = self._unary(self._stub.GetKeyframePoses, fusion_pb2.KeyframePosesRequest(agent_id=agent_id),
+                        "GetKeyframePoses")
+        return [{"agent_id": k.agent_id, "frame_id": int(k.frame_id),
+                 "c2w": np.asarray(k.pose.c2w, np.float64).reshape(4, 4), "fx": k.intrinsics.fx,
+                 "fy": k.intrinsics.fy, "cx": k.intrinsics.cx, "cy": k.intrinsics.cy,
+                 "width": int(k.intrinsics.width), "height": int(k.intrinsics.height), "timestamp": k.timestamp}
+                for k in r.keyframes]
+
     def close(self) -> None:
         """Close the channel (idempotent)."""
         self._channel.close()

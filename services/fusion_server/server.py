@@ -47,8 +47,10 @@ from gausslite.fusion.vote import concat as concat_maps
 from gausslite.fusion.vote import voxel_vote
 from gausslite.wire.codec import (LOSSLESS, GaussianArrays, LimitExceeded, WireError, WireLimits, assemble,
                                   decode_chunk, encode_subset, peek_header)
-from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from services.common.metrics import metrics_port_from
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+from services.fusion_server.metrics import FusionMetrics, MeteredFusion
 from services.fusion_server.store import ChunkConflict, FusionStore, Session, StoredKeyframe
 
 log = logging.getLogger(__name__)
@@ -583,6 +585,19 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         resp.latest_fused_version = resp.fused[-1].fused_version if resp.fused else 0
         return resp
 
+    @_unary_guard
+    def GetKeyframePoses(self, request, context):  # noqa: N802
+        agent = request.agent_id or None
+        if agent is not None:
+            self._session(agent)
+        resp = fusion_pb2.KeyframePosesResponse()
+        for k in self.store.keyframe_poses(agent):
+            resp.keyframes.add(agent_id=k.agent_id, frame_id=k.frame_id, timestamp=k.timestamp,
+                               pose=common_pb2.Pose(c2w=np.asarray(k.c2w, np.float64).reshape(-1).tolist()),
+                               intrinsics=common_pb2.Intrinsics(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width,
+                                                                height=k.height))
+        return resp
+
 
 @dataclass
 class FusionServer:
@@ -629,9 +644,10 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
         config = replace(config, data_dir=str(data_dir))
     store = FusionStore(config.data_dir)
     servicer = FusionServicer(store, config, options.max_message_bytes)
+    metered = MeteredFusion(servicer, FusionMetrics())
     try:
-        running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(servicer, srv),
-                               [SERVICE_NAME])
+        running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(metered, srv),
+                               [SERVICE_NAME], metered.metrics.registry)
     except BaseException:
         store.close()
         raise
@@ -689,6 +705,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-workers", type=int, default=16, help="handler threads")
     p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024, help="message size bound")
     p.add_argument("--grace", type=float, default=10.0, help="shutdown grace period, seconds")
+    p.add_argument("--metrics-port", type=int, default=None,
+                   help="Prometheus /metrics port, 0 = off (env GAUSSLITE_FUSION_METRICS_PORT, GAUSSLITE_METRICS_PORT)")
     p.add_argument("--log-level", default=env.get("GAUSSLITE_LOG_LEVEL", "INFO"))
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -696,6 +714,8 @@ def main(argv=None) -> int:
                          tls_key=args.tls_key or None, max_message_bytes=args.max_message_bytes,
                          max_workers=args.max_workers, grace_s=args.grace)
     try:
+        opts.metrics_port = metrics_port_from(args.metrics_port, env.get("GAUSSLITE_FUSION_METRICS_PORT")
+                                              or env.get("GAUSSLITE_METRICS_PORT"))
         return run(opts, args.config, data_dir=args.data_dir, port_file=args.port_file)
     except (ValueError, OSError, RuntimeError) as e:
         print(f"fusion server: error: {e}", file=sys.stderr)

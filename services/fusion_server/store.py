@@ -372,6 +372,17 @@ class FusionStore:
                                       float(r[7]), float(r[8]), float(r[9]), int(r[10]), int(r[11]), float(r[12])))
         return out
 
+    def keyframe_poses(self, agent_id: Optional[str] = None) -> List[StoredKeyframe]:
+        """Like :meth:`keyframes` without reading the images (``color``/``depth`` are empty bytes)."""
+        sql = ("SELECT agent_id, frame_id, depth_scale, c2w, fx, fy, cx, cy, width, height, timestamp "
+               "FROM keyframes" + (" WHERE agent_id = ?" if agent_id is not None else "") + " ORDER BY agent_id, seq")
+        with self._lock:
+            rows = self._conn().execute(sql, (agent_id,) if agent_id is not None else ()).fetchall()
+        return [StoredKeyframe(r[0], int(r[1]), b"", b"", float(r[2]),
+                               np.frombuffer(bytes(r[3]), "<f8").reshape(4, 4).copy(), float(r[4]), float(r[5]),
+                               float(r[6]), float(r[7]), int(r[8]), int(r[9]), float(r[10]))
+                for r in rows]
+
     # ------------------------------------------------------------------ fused maps
     def put_fused(self, info_fn, method: int, chunks_fn) -> int:
         """Persist a fused map atomically (one transaction) and return its new version (1, 2, ...).

@@ -15,6 +15,7 @@ import grpc
 from gausslite.parser import InvalidTaskTextError, ParserConfig, TaskGraph, TaskParser
 from gausslite_rpc import common_pb2, parser_pb2_grpc
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+from services.parser.metrics import MeteredParser, ParserMetrics
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +80,10 @@ def serve(options: ServerOptions, config: Optional[ParserConfig] = None,
         RuntimeError: the address cannot be bound.
     """
     parser = parser or TaskParser(config or ParserConfig())
-    servicer = ParserServicer(parser)
+    servicer = MeteredParser(ParserServicer(parser), ParserMetrics())
     opts = ServerOptions(**{**options.__dict__, "max_message_bytes": min(options.max_message_bytes, MAX_MESSAGE_BYTES)})
     running = build_server(opts, lambda srv: parser_pb2_grpc.add_ParserServicer_to_server(servicer, srv),
-                           [SERVICE_NAME])
+                           [SERVICE_NAME], servicer.metrics.registry)
     log.info("parser backend: %s", parser.backend_name)
     return running
 

@@ -1,0 +1,96 @@
+"""``gausslite view``: show a Gaussian map in the browser (viser), or follow a fusion server live.
+
+    gausslite view MAP.ply [--port 8080] [--color rgb|kappa|roi]     # also .splat / .spz
+    gausslite view --fusion HOST:PORT [--poll 1.0] [--token T]       # new fused versions appear live
+
+Open the printed URL (``http://127.0.0.1:8080/``). The GUI panel switches the colouring (RGB, κ,
+ROI), shows only the ROI (active) Gaussians, toggles keyframe trajectories and frusta and, with
+``--fusion``, lists agents, shares, bytes and versions. ``--host 0.0.0.0`` serves the page to other
+machines. Environment fallbacks: ``GAUSSLITE_VIEW_PORT``, ``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``,
+``GAUSSLITE_TLS_CA``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+
+def register(subparsers) -> None:
+    """Add the ``view`` subcommand to ``subparsers``."""
+    from gausslite.viewer.app import UP_AXES
+    from gausslite.viewer.splats import COLOR_MODES
+
+    p = subparsers.add_parser("view", help="show a map (or a live fusion server) in the browser",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("map", nargs="?", default=None, help="map file (.ply, .splat, .spz)")
+    p.add_argument("--fusion", default=None, metavar="HOST:PORT",
+                   help="follow this fusion server live instead of a file (env GAUSSLITE_FUSION_ADDR)")
+    p.add_argument("--host", default="127.0.0.1", help="bind address of the web page (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="web page port (env GAUSSLITE_VIEW_PORT, default 8080)")
+    p.add_argument("--color", choices=COLOR_MODES, default="rgb", help="initial colouring (default rgb)")
+    p.add_argument("--roi-only", action="store_true", help="start showing only ROI (active) Gaussians")
+    p.add_argument("--up", default="auto", choices=["auto", *UP_AXES],
+                   help="world up axis of the initial camera (auto: from keyframes, else +z)")
+    p.add_argument("--poll", type=float, default=1.0, help="seconds between fusion-server polls (default 1)")
+    p.add_argument("--token", default=None, help="bearer token of the fusion server (env GAUSSLITE_TOKEN)")
+    p.add_argument("--tls-ca", default=None, help="PEM CA for TLS to the fusion server (env GAUSSLITE_TLS_CA)")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="stop after this many seconds (default: run until Ctrl-C)")
+    p.set_defaults(func=_handle)
+
+
+def _handle(args: argparse.Namespace) -> int:
+    env = os.environ
+    fusion = args.fusion or (None if args.map else env.get("GAUSSLITE_FUSION_ADDR"))
+    if bool(args.map) == bool(fusion):
+        print("gausslite view: error: give either a map file or --fusion HOST:PORT", file=sys.stderr)
+        return 2
+    try:
+        port = args.port if args.port is not None else int(env.get("GAUSSLITE_VIEW_PORT", 8080))
+        if not args.poll > 0:
+            raise ValueError(f"--poll must be > 0, got {args.poll}")
+        from gausslite.viewer.app import MapViewer
+
+        viewer = MapViewer(args.host, port, up=args.up)
+    except (ValueError, OSError) as e:
+        print(f"gausslite view: error: {e}", file=sys.stderr)
+        return 2
+    viewer.color_mode.value = args.color
+    viewer.roi_only.value = bool(args.roi_only)
+    feed = client = None
+    try:
+        if args.map:
+            from gausslite.viewer.export import load_map
+
+            try:
+                g = load_map(args.map)
+                viewer.set_map(g, label=os.path.basename(args.map))
+            except (FileNotFoundError, ValueError) as e:
+                print(f"gausslite view: error: {e}", file=sys.stderr)
+                return 2
+            print(f"showing {args.map} ({len(g):,} Gaussians) at {viewer.url}", flush=True)
+        else:
+            from services.fusion_server.client import FusionClient
+            from services.viewer.feed import FusionFeed
+
+            ca = args.tls_ca or env.get("GAUSSLITE_TLS_CA")
+            root = open(ca, "rb").read() if ca else None
+            client = FusionClient(fusion, token=args.token or env.get("GAUSSLITE_TOKEN") or None, root_cert=root)
+            feed = FusionFeed(viewer, client, poll_s=args.poll).start()
+            print(f"following fusion server {fusion} at {viewer.url}", flush=True)
+        deadline = None if args.timeout is None else time.monotonic() + args.timeout
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        return 0
+    finally:
+        if feed is not None:
+            feed.stop()
+        if client is not None:
+            client.close()
+        viewer.stop()

@@ -1,0 +1,360 @@
+"""Viewer and splat formats: map → splat arrays, ``.splat`` / ``.spz`` round trips, ``gausslite export``
+and ``gausslite view``, the live fusion feed (in-process fusion server), and headless Chromium
+screenshots of the viser page (see tests/_browser.py; artifacts in tests/artifacts/)."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gausslite.camera import Intrinsics
+from gausslite.datasets.base import Frame
+from gausslite.viewer.export import (export_map, from_splat_bytes, load_map, read_splat, read_spz, to_splat_bytes,
+                                     write_map, write_splat, write_spz)
+from gausslite.viewer.splats import covariances, kappa_colors, sigmoid, splat_arrays
+from gausslite.wire.codec import GaussianArrays
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shell_map(n: int = 4000, seed: int = 0, radius: float = 1.0) -> GaussianArrays:
+    """n Gaussians on a sphere shell (colour = direction), active on the upper half, κ in [0, 200)."""
+    r = np.random.default_rng(seed)
+    d = r.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return GaussianArrays(means=(d * radius).astype(np.float32), quats=r.normal(size=(n, 4)).astype(np.float32),
+                          log_scales=np.log(r.uniform(0.02, 0.06, (n, 3))).astype(np.float32),
+                          opacity_logits=r.uniform(1.0, 4.0, n).astype(np.float32),
+                          colors=(0.5 + 0.5 * d).astype(np.float32), kappa=r.integers(0, 200, n),
+                          active=d[:, 2] > 0)
+
+
+# ---------------------------------------------------------------- conversion
+def test_covariances_match_scipy_rotation():
+    g = shell_map(500)
+    cov = covariances(g.quats, g.log_scales)
+    q = g.quats.astype(np.float64)
+    rot = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy: (x, y, z, w)
+    s2 = np.exp(2 * g.log_scales.astype(np.float64))
+    ref = rot @ (s2[:, :, None] * np.transpose(rot, (0, 2, 1)))
+    np.testing.assert_allclose(cov, ref, rtol=1e-4, atol=1e-9)
+    assert np.allclose(cov, np.transpose(cov, (0, 2, 1)))
+    assert (np.linalg.eigvalsh(cov.astype(np.float64)) > 0).all()
+
+
+def test_splat_arrays_modes_and_progress():
+    g = shell_map(1000)
+    calls = []
+    s = splat_arrays(g, "rgb", chunk=300, progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(300, 1000), (600, 1000), (900, 1000), (1000, 1000)]
+    assert s.centers.shape == (1000, 3) and s.covariances.shape == (1000, 3, 3)
+    assert s.rgbs.dtype == np.float32 and s.opacities.shape == (1000, 1)
+    np.testing.assert_allclose(s.opacities[:, 0], 1 / (1 + np.exp(-g.opacity_logits.astype(np.float64))), rtol=1e-6)
+    np.testing.assert_allclose(s.rgbs, g.colors, atol=1e-7)
+    k = splat_arrays(g, "kappa").rgbs
+    assert not np.allclose(k, s.rgbs)
+    lo, hi = np.argmin(g.kappa), np.argmax(g.kappa)
+    np.testing.assert_allclose(k[hi], kappa_colors(np.array([1, 1]), 1)[0], atol=1e-6)  # top of the scale
+    assert k[lo].sum() < k[hi].sum()  # viridis: dark purple → yellow
+    roi = splat_arrays(g, "roi").rgbs
+    a = g.active
+    np.testing.assert_allclose(roi[a], 0.6 * g.colors[a] + 0.4 * np.float32([1.0, 0.1, 0.1]), atol=1e-6)  # red tint
+    assert np.allclose(roi[~a, 0], roi[~a, 1]) and np.allclose(roi[~a, 1], roi[~a, 2])  # grey
+    assert roi[~a].max() <= 0.5 + 1e-6  # dim
+    with pytest.raises(ValueError, match="colour mode"):
+        splat_arrays(g, "depth")
+    bad = GaussianArrays(**{**{k: getattr(g, k) for k in GaussianArrays._SPEC}, "means": g.means.copy()})
+    bad.means[3, 1] = np.nan
+    with pytest.raises(ValueError, match="1 Gaussian.*non-finite means"):
+        splat_arrays(bad)
+
+
+def test_sigmoid_is_stable():
+    x = np.array([-1000, -20, 0, 20, 1000], np.float32)
+    y = sigmoid(x)
+    assert np.isfinite(y).all() and y[0] == 0 and y[2] == 0.5 and y[-1] == 1
+
+
+# ---------------------------------------------------------------- formats
+def _match(a: GaussianArrays, b: GaussianArrays, tol: float):
+    """Pair rows of b with rows of a by nearest position (formats may reorder)."""
+    from scipy.spatial import cKDTree
+
+    d, idx = cKDTree(a.means).query(b.means)
+    assert d.max() <= tol, d.max()
+    assert len(set(idx.tolist())) == len(a)
+    return idx
+
+
+def test_splat_roundtrip(tmp_path):
+    g = shell_map(3000, seed=1)
+    size = write_splat(tmp_path / "m.splat", g)
+    assert size == 32 * len(g) == (tmp_path / "m.splat").stat().st_size
+    back = read_splat(tmp_path / "m.splat")
+    assert len(back) == len(g)
+    idx = _match(g, back, 0.0)  # float32 positions are exact
+    np.testing.assert_array_equal(back.means, g.means[idx])
+    np.testing.assert_allclose(back.log_scales, g.log_scales[idx], atol=1e-6)
+    np.testing.assert_allclose(back.colors, g.colors[idx], atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(sigmoid(back.opacity_logits), sigmoid(g.opacity_logits[idx]), atol=0.5 / 255 + 1e-5)
+    qa = g.quats[idx] / np.linalg.norm(g.quats[idx], axis=1, keepdims=True)
+    dots = np.abs((back.quats * qa).sum(1))
+    assert dots.min() > 0.995, dots.min()  # components quantised to 1/128
+    # records are sorted by size × opacity, largest first (what web viewers expect)
+    imp = np.exp(g.log_scales[idx].astype(np.float64).sum(1)) * sigmoid(g.opacity_logits[idx])
+    assert (np.diff(imp) <= 0).all()
+    with pytest.raises(ValueError, match="32-byte"):
+        from_splat_bytes(b"\0" * 33)
+
+
+def test_spz_roundtrip(tmp_path):
+    g = shell_map(3000, seed=2)
+    size = write_spz(tmp_path / "m.spz", g)
+    assert 0 < size < 32 * len(g)  # compressed below .splat
+    back = read_spz(tmp_path / "m.spz")
+    assert len(back) == len(g)
+    idx = _match(g, back, 2.0 ** -12)
+    np.testing.assert_allclose(back.means, g.means[idx], atol=2.0 ** -12)
+    np.testing.assert_allclose(back.log_scales, g.log_scales[idx], atol=1 / 16 + 1e-6)
+    np.testing.assert_allclose(back.colors, g.colors[idx], atol=0.02)
+    np.testing.assert_allclose(sigmoid(back.opacity_logits), sigmoid(g.opacity_logits[idx]), atol=0.01)
+    qa = g.quats[idx] / np.linalg.norm(g.quats[idx], axis=1, keepdims=True)
+    assert np.abs((back.quats * qa).sum(1)).min() > 0.999
+    (tmp_path / "bad.spz").write_bytes(b"not an spz file")
+    with pytest.raises(ValueError, match="SPZ"):
+        read_spz(tmp_path / "bad.spz")
+
+
+def test_ply_roundtrip_keeps_kappa_and_active(tmp_path):
+    g = shell_map(500, seed=3)
+    write_map(g, tmp_path / "m.ply")
+    back = load_map(tmp_path / "m.ply")
+    assert back.equals(g)
+    with pytest.raises(ValueError, match="unsupported splat format"):
+        export_map(tmp_path / "m.ply", tmp_path / "m.obj")
+    with pytest.raises(FileNotFoundError):
+        load_map(tmp_path / "missing.ply")
+
+
+def _cli(*args, timeout=120, **kw):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "gausslite.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env, **kw)
+
+
+def test_cli_export(tmp_path):
+    g = shell_map(800, seed=4)
+    write_map(g, tmp_path / "m.ply")
+    r = _cli("export", str(tmp_path / "m.ply"), "--out", str(tmp_path / "m.splat"))
+    assert r.returncode == 0, r.stderr
+    assert "800 Gaussians" in r.stdout and (tmp_path / "m.splat").stat().st_size == 32 * 800
+    r = _cli("export", str(tmp_path / "m.splat"), "--out", str(tmp_path / "x.bin"), "--format", "spz")
+    assert r.returncode == 0, r.stderr
+    assert len(read_spz(tmp_path / "x.bin")) == 800
+    r = _cli("export", str(tmp_path / "nope.ply"), "--out", str(tmp_path / "o.splat"))
+    assert r.returncode == 2 and "not found" in r.stderr
+
+
+def test_cli_view_serves_page(tmp_path):
+    from services.sim import free_port
+
+    write_map(shell_map(2000), tmp_path / "m.ply")
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite.cli", "view", str(tmp_path / "m.ply"), "--port",
+                             str(port), "--timeout", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        lines = []
+        for _ in range(40):  # viser prints a banner first
+            lines.append(proc.stdout.readline())
+            if lines[-1].startswith("showing") or not lines[-1]:
+                break
+        assert f"showing {tmp_path / 'm.ply'} (2,000 Gaussians) at http://127.0.0.1:{port}/" in lines[-1], \
+            "".join(lines) + (proc.stderr.read() if proc.poll() is not None else "")
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
+            assert r.status == 200 and b"<html" in r.read().lower()
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    r = _cli("view", "--port", "0")
+    assert r.returncode == 2 and "either a map file or --fusion" in r.stderr
+    r = _cli("view", str(tmp_path / "missing.ply"), "--port", "0", "--timeout", "1")
+    assert r.returncode == 2 and "not found" in r.stderr
+
+
+# ---------------------------------------------------------------- live fusion feed
+H, W = 24, 32
+INTR = Intrinsics(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, W, H)
+
+
+def _kf(i: int, x: float) -> Frame:
+    c2w = np.eye(4)
+    c2w[:3, 3] = [x, -3.0 + 0.2 * i, 0.0]
+    c2w[:3, :3] = Rotation.from_euler("x", -90, degrees=True).as_matrix()  # look along +y, z up
+    return Frame(i, i / 30.0, np.full((H, W, 3), 60 + 20 * i, np.uint8), np.full((H, W), 2.0, np.float32), c2w, INTR)
+
+
+@pytest.fixture()
+def fusion_with_two_agents(tmp_path):
+    from services.common.server import ServerOptions
+    from services.fusion_server.client import FusionClient
+    from services.fusion_server.server import serve
+
+    srv = serve(ServerOptions(port=0, max_workers=8), data_dir=str(tmp_path / "fusion"))
+    fc = FusionClient(srv.address, timeout_s=20, backoff_s=0.05)
+    fc.wait_ready(10)
+    for j, agent in enumerate(("robot_a", "robot_b")):
+        fc.open_session(agent, f"task {agent}", INTR)
+        sub = shell_map(1500, seed=10 + j)
+        sub = GaussianArrays(**{**{k: getattr(sub, k) for k in GaussianArrays._SPEC},
+                                "means": sub.means + np.float32([0.8 * (2 * j - 1), 0, 0])})
+        fc.upload_subset(agent, 1, sub, full_map_gaussians=6000)
+        fc.upload_keyframes(agent, [_kf(i, 0.8 * (2 * j - 1)) for i in range(4)])
+    yield srv, fc
+    fc.close()
+    srv.stop(0)
+
+
+def test_keyframe_poses_rpc(fusion_with_two_agents):
+    import grpc
+
+    _, fc = fusion_with_two_agents
+    poses = fc.keyframe_poses()
+    assert [(p["agent_id"], p["frame_id"]) for p in poses] == [(a, i) for a in ("robot_a", "robot_b") for i in range(4)]
+    np.testing.assert_allclose(poses[5]["c2w"], _kf(1, 0.8).c2w, atol=1e-12)
+    assert (poses[0]["fx"], poses[0]["width"], poses[0]["height"]) == (30.0, W, H)
+    assert len(fc.keyframe_poses("robot_b")) == 4
+    with pytest.raises(grpc.RpcError) as e:
+        fc.keyframe_poses("ghost")
+    assert e.value.code() == grpc.StatusCode.NOT_FOUND
+    with pytest.raises(grpc.RpcError) as e:
+        fc.keyframe_poses("bad id!")
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_fusion_feed_follows_versions(fusion_with_two_agents):
+    from gausslite.viewer.app import MapViewer
+    from services.viewer.feed import FusionFeed
+
+    srv, fc = fusion_with_two_agents
+    viewer = MapViewer("127.0.0.1", 0)
+    try:
+        feed = FusionFeed(viewer, fc, poll_s=0.2)
+        assert feed.poll_once() is False and feed.shown_version == 0  # nothing fused yet
+        assert "robot_a" in viewer.panel.content and "(none yet)" in viewer.panel.content
+        assert sorted(viewer._keyframes) == ["robot_a", "robot_b"]
+        assert all(len(v) == 4 for v in viewer._keyframes.values())
+        r1 = fc.fuse("concat")
+        assert feed.poll_once() is True and feed.shown_version == r1.fused_version == 1
+        assert viewer.n_displayed == r1.n_gaussians == 3000
+        assert "25.0 %" in viewer.panel.content and "showing v1" in viewer.panel.content
+        assert feed.poll_once() is False  # same version: not downloaded again
+        viewer.roi_only.value = True  # GUI toggle → redraw with the active subset only
+        n_active = int(fc.download_fused(1).active.sum())
+        assert viewer.n_displayed == n_active < 3000
+        viewer.roi_only.value = False
+        r2 = fc.fuse("vote", voxel_size=0.05)
+        feed.start()
+        deadline = time.monotonic() + 20
+        while feed.shown_version != r2.fused_version and time.monotonic() < deadline:
+            time.sleep(0.05)
+        feed.stop()
+        assert feed.shown_version == 2 and viewer.n_displayed == r2.n_gaussians
+        assert re.search(r"\| 2 \| vote \|", viewer.panel.content)
+        srv.stop(0)  # server gone: the feed reports it and keeps going
+        assert feed.poll_once() is False and "UNAVAILABLE" in feed.last_error
+    finally:
+        viewer.stop()
+
+
+def test_cli_view_follows_fusion(fusion_with_two_agents):
+    from services.sim import free_port
+
+    _, fc = fusion_with_two_agents
+    r = fc.fuse("concat")
+    port = free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite.cli", "view", "--fusion", fc.target, "--port", str(port),
+                             "--poll", "0.3", "--timeout", "60"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        seen = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None:
+            seen.append(proc.stderr.readline())
+            if "showing fused version" in seen[-1]:
+                break
+        assert f"showing fused version 1 ({r.n_gaussians} Gaussians)" in seen[-1], "".join(seen)
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as page:
+            assert page.status == 200
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+# ---------------------------------------------------------------- real browser
+def test_browser_renders_splats(tmp_path):
+    """Headless Chromium opens the viser page: the empty scene, then the map; ≥ 5 % of pixels change."""
+    from _browser import changed_fraction, headless_chromium, keep_artifact, require_chromium, screenshot, \
+        wait_for_change
+    from gausslite.viewer.app import MapViewer
+
+    require_chromium()
+    viewer = MapViewer("127.0.0.1", 0, up="+z")
+    try:
+        with headless_chromium() as driver:
+            driver.get(viewer.url)
+            assert viewer.wait_for_client(30), "the page never connected to the viser server"
+            time.sleep(3.0)  # empty scene rendered
+            empty = screenshot(driver)
+            n = viewer.set_map(shell_map(6000), label="sphere")
+            assert n == 6000
+            img, frac = wait_for_change(driver, empty, min_fraction=0.05)
+            keep_artifact(empty, tmp_path, "viewer_empty.png")
+            kept = keep_artifact(img, tmp_path, "viewer_splats.png")
+            print(f"changed pixels: {100 * frac:.1f} %")
+            assert frac >= 0.05, f"only {100 * frac:.2f} % of pixels changed; see {kept}"
+            # colour toggle reaches the browser too: κ colouring repaints the splats
+            viewer.color_mode.value = "kappa"
+            img_k, frac_k = wait_for_change(driver, img, min_fraction=0.02)
+            keep_artifact(img_k, tmp_path, "viewer_kappa.png")
+            assert frac_k >= 0.02, f"κ colouring changed only {100 * frac_k:.2f} % of pixels"
+            assert changed_fraction(img_k, empty) >= 0.05
+    finally:
+        viewer.stop()
+
+
+def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
+    """`view --fusion` path in the browser: fused splats plus both agents' trajectories and frusta."""
+    from _browser import headless_chromium, keep_artifact, require_chromium, screenshot, wait_for_change
+    from gausslite.viewer.app import MapViewer
+    from services.viewer.feed import FusionFeed
+
+    require_chromium()
+    _, fc = fusion_with_two_agents
+    viewer = MapViewer("127.0.0.1", 0, up="+z")
+    try:
+        with headless_chromium() as driver:
+            driver.get(viewer.url)
+            assert viewer.wait_for_client(30)
+            time.sleep(3.0)
+            empty = screenshot(driver)
+            fc.fuse("vote", voxel_size=0.05)
+            feed = FusionFeed(viewer, fc, poll_s=0.5)
+            assert feed.poll_once() is True
+            img, frac = wait_for_change(driver, empty, min_fraction=0.05)
+            kept = keep_artifact(img, tmp_path, "viewer_fusion.png")
+            print(f"changed pixels: {100 * frac:.1f} %")
+            assert frac >= 0.05, f"only {100 * frac:.2f} % of pixels changed; see {kept}"
+    finally:
+        viewer.stop()
