@@ -493,8 +493,8 @@ class SqliteFusionStore(SqlFusionStore):
     """Thread-safe SQLite store under ``data_dir`` (created when missing): the embedded default.
 
     One connection guarded by a lock; writes are ``BEGIN IMMEDIATE ... COMMIT`` with WAL and
-    ``synchronous=FULL`` (durable at commit). :meth:`fuse_lock` is a process-local lock (one server
-    per SQLite file).
+    ``synchronous=FULL`` (durable at commit). :meth:`fuse_lock` is an ``flock`` on a file beside the
+    database.
 
     Args:
         data_dir (str | Path): directory of the database.
@@ -511,7 +511,6 @@ class SqliteFusionStore(SqlFusionStore):
         self.path = self.data_dir / DB_NAME
         self.location = str(self.path)
         self._lock = threading.RLock()
-        self._fuse = threading.Lock()
         self._db: Optional[sqlite3.Connection] = sqlite3.connect(
             str(self.path), check_same_thread=False, isolation_level=None, timeout=30.0)
         try:
@@ -548,13 +547,22 @@ class SqliteFusionStore(SqlFusionStore):
 
     @contextlib.contextmanager
     def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
-        while not self._fuse.acquire(timeout=poll_s):
-            if should_stop():
-                raise InterruptedError("stopped while waiting for the fuse lock")
-        try:
-            yield
-        finally:
-            self._fuse.release()
+        """``flock`` on ``<data_dir>/fuse.lock``: excludes every store (thread or process) on this file."""
+        import fcntl
+
+        with open(self.data_dir / "fuse.lock", "a+b") as f:
+            while True:
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if should_stop():
+                        raise InterruptedError("stopped while waiting for the fuse lock") from None
+                    time.sleep(poll_s)
+            try:
+                yield
+            finally:
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
     def close(self) -> None:
         """Checkpoint and close (idempotent)."""
