@@ -79,9 +79,9 @@ def source_map(args) -> "object":
     for i in range(len(ds)):
         mapper.map_frame(ds[i], None)
     mapper.finalize()
-    print(f"mapped {len(ds)} frames of {ds.path} in {time.perf_counter() - t0:.1f}s: {len(mapper.model)} Gaussians",
+    print(f"mapped {len(ds)} frames of {ds.path} in {time.perf_counter() - t0:.1f}s: {len(mapper.gmap)} Gaussians",
           flush=True)
-    mapper.model.save_ply(cache)
+    mapper.gmap.save_ply(cache)
     return GaussianArrays.from_any(GaussianMap.load_ply(cache))
 
 
