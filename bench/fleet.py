@@ -105,11 +105,31 @@ def keyframes(args) -> list:
     return [ds[i] for i in range(len(ds))]
 
 
-class SubsetMaker:
-    """Agent i's ROI subset for map version v: the ``share`` of the source map nearest to a point
-    drifting ``drift`` metres per version, κ scaled by a per-agent factor and grown by v."""
+def tile_site(src, rooms: int, gap_m: float = 1.0):
+    """A site of ``rooms`` copies of the mapped room on a square grid (``gap_m`` apart), so that a
+    fleet spreads over more space than one robot's ROI, as on a real site. rooms=1: the map itself."""
+    from gausslite.wire.codec import GaussianArrays
 
-    def __init__(self, src, n_agents: int, share: float, drift: float, seed: int):
+    if rooms <= 1:
+        return src
+    side = int(np.ceil(np.sqrt(rooms)))
+    ext = src.means.max(0) - src.means.min(0) + gap_m
+    parts = []
+    for r in range(rooms):
+        p = src.take(np.arange(len(src)))
+        p.means[:, 0] += np.float32(ext[0] * (r % side))
+        p.means[:, 1] += np.float32(ext[1] * (r // side))
+        parts.append(p)
+    return GaussianArrays.concat(parts)
+
+
+class SubsetMaker:
+    """Agent i's ROI subset for map version v: the ``share`` of the site map nearest to a point
+    drifting ``drift`` metres per version. κ (active-optimisation count) grows towards the ROI
+    centre (the robot optimised its task region most): ``round(kappa_peak · exp(-d²/2r²))`` with r
+    the subset radius, times a per-agent factor, plus the map's own κ and the version number."""
+
+    def __init__(self, src, n_agents: int, share: float, drift: float, seed: int, kappa_peak: float = 40.0):
         self.src = src
         rng = np.random.default_rng(seed)
         self.k = max(1, int(round(share * len(src))))
@@ -118,13 +138,16 @@ class SubsetMaker:
         self.dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
         self.factor = rng.uniform(0.5, 1.5, n_agents)
         self.drift = float(drift)
+        self.kappa_peak = float(kappa_peak)
 
     def __call__(self, i: int, v: int):
         c = self.centres[i] + self.dirs[i] * self.drift * (v - 1)
         d2 = ((self.src.means.astype(np.float64) - c) ** 2).sum(1)
         idx = np.sort(np.argpartition(d2, self.k - 1)[:self.k])
         sub = self.src.take(idx)
-        sub.kappa[:] = np.round(sub.kappa * self.factor[i]).astype(np.int64) + v
+        r2 = max(float(d2[idx].max()), 1e-6)
+        w = self.kappa_peak * self.factor[i] * np.exp(-d2[idx] / (2 * r2 / 4))
+        sub.kappa[:] = sub.kappa + np.round(w).astype(np.int64) + v
         return sub
 
 
@@ -296,7 +319,8 @@ def parse_args(argv=None):
     p.add_argument("--kill-at", type=float, default=0.5, help="fraction of --duration when a replica is SIGKILLed")
     p.add_argument("--interval", type=float, default=2.0, help="seconds between an agent's map versions")
     p.add_argument("--keyframe-every", type=int, default=2, help="a keyframe every k versions (0 = none)")
-    p.add_argument("--share", type=float, default=0.08, help="fraction of the source map in one agent's subset")
+    p.add_argument("--rooms", type=int, default=4, help="copies of the mapped room making up the site (1 = one room)")
+    p.add_argument("--share", type=float, default=0.04, help="fraction of the site map in one agent's subset")
     p.add_argument("--drift", type=float, default=0.05, help="metres the ROI centre moves per version")
     p.add_argument("--chunk-gaussians", type=int, default=1000)
     p.add_argument("--chunks-per-call", type=int, default=1)
@@ -334,8 +358,11 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     src = source_map(args)
     frames = keyframes(args)
+    n_map = len(src)
+    src = tile_site(src, args.rooms)
     make = SubsetMaker(src, args.agents, args.share, args.drift, args.seed)
-    print(f"source map: {len(src)} Gaussians; {args.agents} agents x {make.k} Gaussians per subset", flush=True)
+    print(f"source map: {n_map} Gaussians, site of {args.rooms} room(s): {len(src)}; {args.agents} agents x "
+          f"{make.k} Gaussians per subset", flush=True)
 
     schema = f"fleet_{uuid.uuid4().hex[:10]}"
     with psycopg.connect(args.store, autocommit=True) as conn:
@@ -404,20 +431,30 @@ def main(argv=None) -> int:
                 last = [m for m in call][-1].result
                 return last, time.monotonic() - t
 
-        full_res, full_rpc = fuse_on(victim)
-        upd = len(logs) - 1
-        aid = f"robot-{upd:02d}"
-        v_new = max(logs[upd].complete or [0]) + 1
-        sub = make(upd, v_new)
-        with FusionClient(target, timeout_s=30) as c:
-            c.upload_subset(aid, v_new, sub, full_map_gaussians=len(src), chunk_gaussians=args.chunk_gaussians,
-                            quant=QuantConfig())
-        sent_subsets[aid] = assemble(encode_subset(sub, aid, v_new, chunk_gaussians=args.chunk_gaussians,
-                                                   quant=QuantConfig()))[0]
-        inc_res, inc_rpc = fuse_on(victim)
+        # full votes: each replica's first Fuse (no voted map yet: every agent is voted)
+        fulls = [fuse_on(victim), fuse_on(reps[0])]
+        # incremental: after one agent's update, the next Fuse on the same replica re-votes that agent
+        incs = []
+        for upd in (len(logs) - 1, len(logs) // 2, 0):
+            aid = f"robot-{upd:02d}"
+            v_new = max(logs[upd].complete or [0]) + 1
+            sub = make(upd, v_new)
+            with FusionClient(target, timeout_s=30) as c:
+                c.upload_subset(aid, v_new, sub, full_map_gaussians=len(src), chunk_gaussians=args.chunk_gaussians,
+                                quant=QuantConfig())
+            sent_subsets[aid] = assemble(encode_subset(sub, aid, v_new, chunk_gaussians=args.chunk_gaussians,
+                                                       quant=QuantConfig()))[0]
+            incs.append(fuse_on(victim))
+        full_res, full_rpc = fulls[0]
+        inc_res, inc_rpc = incs[-1]
         with FusionClient(f"127.0.0.1:{reps[0].port}", timeout_s=60) as c:  # download from another replica
             fused = c.download_fused(inc_res.fused_version)
         local, _ = voxel_vote(sent_subsets, float(inc_res.voxel_size))
+        local_s = []
+        for _ in range(3):
+            t = time.perf_counter()
+            voxel_vote(sent_subsets, float(inc_res.voxel_size))
+            local_s.append(time.perf_counter() - t)
         for ch, _ in stubs:
             ch.close()
         for r in reps:
@@ -437,22 +474,28 @@ def main(argv=None) -> int:
             "keyframes": int(sum(lg.keyframes for lg in logs)),
             "client_retries": int(sum(lg.retries for lg in logs)),
             "agent_errors": [e for lg in logs for e in lg.errors][:20],
-            "fuse_full_s": round(float(full_res.vote_seconds), 4),
-            "fuse_incremental_s": round(float(inc_res.vote_seconds), 4),
-            "fuse_full_agents_revoted": int(full_res.agents_revoted),
-            "fuse_incremental_agents_revoted": int(inc_res.agents_revoted),
-            "fuse_incremental_was_incremental": bool(inc_res.incremental),
-            "fuse_full_total_s": round(float(full_res.seconds), 4),
-            "fuse_incremental_total_s": round(float(inc_res.seconds), 4),
-            "fuse_full_rpc_s": round(full_rpc, 4), "fuse_incremental_rpc_s": round(inc_rpc, 4),
+            "fuse_full_s": round(float(np.median([r.vote_seconds for r, _ in fulls])), 4),
+            "fuse_incremental_s": round(float(np.median([r.vote_seconds for r, _ in incs])), 4),
+            "fuse_full_s_each": [round(float(r.vote_seconds), 4) for r, _ in fulls],
+            "fuse_incremental_s_each": [round(float(r.vote_seconds), 4) for r, _ in incs],
+            "fuse_full_agents_revoted": [int(r.agents_revoted) for r, _ in fulls],
+            "fuse_incremental_agents_revoted": [int(r.agents_revoted) for r, _ in incs],
+            "fuse_incremental_was_incremental": all(bool(r.incremental) for r, _ in incs),
+            "fuse_full_total_s": round(float(np.median([r.seconds for r, _ in fulls])), 4),
+            "fuse_incremental_total_s": round(float(np.median([r.seconds for r, _ in incs])), 4),
+            "fuse_full_rpc_s": round(float(np.median([t for _, t in fulls])), 4),
+            "fuse_incremental_rpc_s": round(float(np.median([t for _, t in incs])), 4),
+            "voxel_vote_local_s": round(float(np.median(local_s)), 4),
             "fused_gaussians": int(inc_res.n_gaussians),
             "fused_equals_local_vote": bool(fused.equals(local)),
             "replicas_agree_getstats": bool(same_stats),
             "killed_replica": victim.name, "restart_s": round(restart_s, 2),
             "peak_rss_mb": {r.name: round(max(r.peak_rss_mb), 1) for r in reps},
             "peak_rss_mb_per_incarnation": {r.name: [round(x, 1) for x in r.peak_rss_mb] for r in reps},
-            "source_gaussians": len(src), "subset_gaussians": make.k,
-            "source": args.ply or f"synthetic scene, {args.map_frames} frames x {args.map_iters} iters",
+            "source_gaussians": n_map, "site_gaussians": len(src), "rooms": args.rooms, "subset_gaussians": make.k,
+            "source": (args.ply or f"synthetic scene, {args.map_frames} frames x {args.map_iters} iters")
+                      + f", site of {args.rooms} room copies",
+            "chunks_per_call": args.chunks_per_call,
             "interval_s": args.interval, "chunk_gaussians": args.chunk_gaussians,
             "machine": f"{os.cpu_count()} CPUs, shared with other jobs (load average "
                        f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the end)",

@@ -230,6 +230,15 @@ def _packed_voxels(means: np.ndarray, voxel_size: float) -> np.ndarray:
     return (u[:, 0] << (2 * _PACK_BITS)) | (u[:, 1] << _PACK_BITS) | u[:, 2]
 
 
+def _voxel_box(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis min and max of packed voxel ids (empty → an empty box: lo > hi)."""
+    if len(packed) == 0:
+        return np.full(3, 1 << 62, np.int64), np.full(3, -1, np.int64)
+    mask = (1 << _PACK_BITS) - 1
+    ijk = np.stack([packed >> (2 * _PACK_BITS), (packed >> _PACK_BITS) & mask, packed & mask], axis=1)
+    return ijk.min(axis=0), ijk.max(axis=0)
+
+
 def _expand(lo: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Concatenated ranges ``[lo[i], lo[i] + counts[i])`` (vectorised)."""
     total = int(counts.sum())
@@ -241,7 +250,7 @@ def _expand(lo: np.ndarray, counts: np.ndarray) -> np.ndarray:
 class _AgentState:
     """One agent's subset with its voxel index: rows sorted by voxel, per-voxel κ sums and counts."""
 
-    __slots__ = ("arrays", "vox_order", "svox", "uvox", "usum", "ucnt", "ksum", "keep", "part", "rows")
+    __slots__ = ("arrays", "vox_order", "svox", "uvox", "usum", "ucnt", "ksum", "keep", "part", "rows", "lo", "hi")
 
     def __init__(self, arrays: GaussianArrays, voxel_size: float):
         n = len(arrays)
@@ -260,6 +269,7 @@ class _AgentState:
             self.ksum = int(arrays.kappa.astype(object).sum())
         else:
             self.ksum = int(arrays.kappa.sum()) if n else 0
+        self.lo, self.hi = _voxel_box(self.uvox)
         self.keep = np.zeros(n, dtype=bool)
         self.part: Optional[GaussianArrays] = None  # cached kept rows (None = recompute)
         self.rows: Optional[np.ndarray] = None
@@ -321,18 +331,28 @@ class IncrementalVote:
             overflowing int64.  VoxelRangeError: means beyond ±2^20 voxels.  On error the state is
             unchanged.
         """
-        if not isinstance(agent, str):
+        return self.update_many({agent: (gaussians, revision)})
+
+    def update_many(self, updates: Mapping[str, tuple]) -> int:
+        """Replace (or add) several agents' subsets (agent → (gaussians, revision)) with one re-vote
+        of the union of the voxels they touch (a full vote when the state was empty).
+
+        Returns / Raises: as :meth:`update` (on error the state is unchanged).
+        """
+        if not all(isinstance(a, str) for a in updates):
             raise TypeError("agent ids must be str")
-        state = _AgentState(GaussianArrays.from_any(gaussians), self.voxel_size)
-        others = sum(s.ksum for a, s in self._agents.items() if a != agent)
-        if others + state.ksum >= 2**63:
+        states = {a: _AgentState(GaussianArrays.from_any(g), self.voxel_size) for a, (g, _) in updates.items()}
+        ksum = sum(s.ksum for a, s in self._agents.items() if a not in states) + sum(s.ksum for s in states.values())
+        if ksum >= 2**63:
             raise ValueError("summed kappa overflows int64")
-        old = self._agents.get(agent)
-        touched = np.union1d(old.uvox, state.uvox) if old is not None else state.uvox
-        if agent not in self._code:
-            self._code[agent] = len(self._code)
-        self._agents[agent] = state
-        self._revision[agent] = revision
+        parts = [s.uvox for s in states.values()]
+        parts += [self._agents[a].uvox for a in states if a in self._agents]
+        touched = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+        for a in sorted(states):
+            if a not in self._code:
+                self._code[a] = len(self._code)
+            self._agents[a] = states[a]
+            self._revision[a] = updates[a][1]
         self._revote(touched)
         return int(len(touched))
 
@@ -357,11 +377,11 @@ class IncrementalVote:
         changed = [a for a in sorted(self._agents) if a not in revisions]
         for a in changed:
             self.remove(a)
-        for a in sorted(revisions):
-            if a not in self._agents or self._revision.get(a) != revisions[a]:
-                self.update(a, load(a), revisions[a])
-                changed.append(a)
-        return sorted(changed)
+        todo = [a for a in sorted(revisions)
+                if a not in self._agents or self._revision.get(a) != revisions[a]]
+        if todo:
+            self.update_many({a: (load(a), revisions[a]) for a in todo})
+        return sorted(changed + todo)
 
     def _revote(self, touched: np.ndarray) -> None:
         """Re-vote the sorted unique voxels ``touched`` and splice the outcome into the tables."""
@@ -372,9 +392,10 @@ class IncrementalVote:
         # (voxel position in touched, κ sum, count, id rank, code) of every agent present there
         t_idx, psum, pcnt, prank, pcode = [], [], [], [], []
         hits = {}
+        tlo, thi = _voxel_box(touched)
         for a in ids:
             s = self._agents[a]
-            if len(s.uvox) == 0:
+            if len(s.uvox) == 0 or (s.lo > thi).any() or (s.hi < tlo).any():  # boxes disjoint: no voxel shared
                 continue
             pos = np.searchsorted(s.uvox, touched)
             ok = pos < len(s.uvox)

@@ -56,7 +56,7 @@ import logging
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
@@ -314,6 +314,9 @@ class SqlFusionStore:
             if up is None:
                 db.execute("INSERT INTO uploads (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes) "
                            "VALUES (?,?,?,?,?)", (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes))
+            elif up.n_chunks == n_chunks and full_map_gaussians in (0, up.full_map_gaussians) and \
+                    full_map_bytes in (0, up.full_map_bytes):
+                return up  # a resumed upload: nothing to change
             else:
                 if up.n_chunks != n_chunks and not up.stored:  # announced, nothing stored: re-chunked
                     db.execute("UPDATE uploads SET n_chunks=? WHERE agent_id=? AND map_version=?",
@@ -377,7 +380,9 @@ class SqlFusionStore:
                                "latest_version=excluded.latest_version", (agent_id, map_version))
                     db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version<?", (agent_id, map_version))
                     db.execute("DELETE FROM uploads WHERE agent_id=? AND map_version<?", (agent_id, map_version))
-            return True, self._upload(db, agent_id, map_version)
+            return True, replace(up, total_count=total_count, lossless=bool(lossless), complete=up.complete or last,
+                                 stored=sorted(up.stored + [idx]), n_gaussians=up.n_gaussians + n_gaussians,
+                                 wire_bytes=up.wire_bytes + len(data))
 
     def chunk_data(self, agent_id: str, map_version: int) -> List[bytes]:
         """Raw chunks of (agent, version) in index order."""
