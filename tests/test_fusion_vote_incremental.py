@@ -136,3 +136,26 @@ def test_errors_leave_state_unchanged():
     assert_same(inc, {"a": g}, 0.1)
     empty, rep = IncrementalVote(0.1).result()
     assert len(empty) == 0 and rep.voxels == 0 and rep.agents == ()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), rounds=st.integers(1, 4), batch=st.integers(1, 4),
+       grid=st.sampled_from([None, 0.1]))
+def test_batched_updates_equal_full_vote(seed, rounds, batch, grid):
+    """update_many (one re-vote of the union of touched voxels, what a Fuse after several agents'
+    pushes does) equals the full vote, also across site-scale offsets (far-apart groups)."""
+    rng = np.random.default_rng(seed)
+    ids = [f"r{i}" for i in range(6)]
+    maps: dict[str, GaussianArrays] = {}
+    inc = IncrementalVote(0.1)
+    for _ in range(rounds):
+        picked = list(rng.choice(ids, size=batch, replace=False))
+        upd = {}
+        for a in picked:
+            g = moved(rng, maps[a], 0.5) if a in maps else make(rng, int(rng.integers(0, 40)), grid=grid)
+            if rng.random() < 0.3:
+                g.means[:, 0] += np.float32(25.0)  # another room of the site
+            upd[a] = (g, len(maps))
+            maps[a] = g
+        inc.update_many(upd)
+        assert_same(inc, maps, 0.1)
