@@ -119,3 +119,25 @@ def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "cannot connect to the PostgreSQL fusion store" in err
     assert "secret" not in err  # the password is never logged
+
+
+def test_client_balances_round_robin_over_every_listed_replica(tmp_path):
+    """The channel spreads calls over all replicas of an ``ipv4:`` list (gRPC round_robin): with
+    separate SQLite stores each replica records the sessions it served."""
+    from services.fusion_server.client import RETRIED_METHODS, service_config
+
+    cfg = service_config()
+    assert cfg["loadBalancingConfig"] == [{"round_robin": {}}]
+    policy = cfg["methodConfig"][0]["retryPolicy"]
+    assert policy["retryableStatusCodes"] == ["UNAVAILABLE"] and "Fuse" not in RETRIED_METHODS
+    reps = [serve(ServerOptions(port=0), data_dir=str(tmp_path / n)) for n in ("a", "b")]
+    try:
+        with FusionClient("ipv4:" + ",".join(f"127.0.0.1:{r.port}" for r in reps), timeout_s=10) as c:
+            c.wait_ready(10)
+            for i in range(12):
+                c.open_session(f"r{i}", "t", INTR)
+        served = [len(r.store.sessions()) for r in reps]
+        assert sum(served) == 12 and min(served) >= 3, served
+    finally:
+        for r in reps:
+            r.stop(0.5)
