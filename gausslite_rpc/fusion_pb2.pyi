@@ -164,7 +164,7 @@ class AgentContribution(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., received: _Optional[int] = ..., kept: _Optional[int] = ...) -> None: ...
 
 class FuseResult(_message.Message):
-    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix")
+    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental")
     FUSED_VERSION_FIELD_NUMBER: _ClassVar[int]
     N_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
     SECONDS_FIELD_NUMBER: _ClassVar[int]
@@ -176,6 +176,9 @@ class FuseResult(_message.Message):
     KEYFRAMES_USED_FIELD_NUMBER: _ClassVar[int]
     BYTES_FIELD_NUMBER: _ClassVar[int]
     CREATED_UNIX_FIELD_NUMBER: _ClassVar[int]
+    VOTE_SECONDS_FIELD_NUMBER: _ClassVar[int]
+    AGENTS_REVOTED_FIELD_NUMBER: _ClassVar[int]
+    INCREMENTAL_FIELD_NUMBER: _ClassVar[int]
     fused_version: int
     n_gaussians: int
     seconds: float
@@ -187,7 +190,10 @@ class FuseResult(_message.Message):
     keyframes_used: int
     bytes: int
     created_unix: float
-    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ...) -> None: ...
+    vote_seconds: float
+    agents_revoted: int
+    incremental: bool
+    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ..., vote_seconds: _Optional[float] = ..., agents_revoted: _Optional[int] = ..., incremental: _Optional[bool] = ...) -> None: ...
 
 class FuseProgress(_message.Message):
     __slots__ = ("stage", "fraction", "message", "done", "result")

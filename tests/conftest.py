@@ -52,3 +52,54 @@ def tum_rpy_dir() -> Path:
 def tasks_dir() -> Path:
     """``../shared/tasks`` with phrasings.jsonl."""
     return _require(SHARED / "tasks")
+
+
+# ---------------------------------------------------------------------------------------------
+# PostgreSQL (fusion store backend): $GAUSSLITE_TEST_PG_DSN, set up by .ci/run
+# ---------------------------------------------------------------------------------------------
+PG_DSN_ENV = "GAUSSLITE_TEST_PG_DSN"
+
+
+def _pg_unavailable(reason: str):
+    msg = f"PostgreSQL not available: {reason}"
+    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        pytest.fail(msg + " (required under CI=true; .ci/run starts it and exports " + PG_DSN_ENV + ")")
+    pytest.skip(msg + f" (start PostgreSQL and set {PG_DSN_ENV}=postgresql://user:pw@127.0.0.1:5432/db)")
+
+
+@pytest.fixture(scope="session")
+def pg_dsn() -> str:
+    """DSN of a reachable PostgreSQL test database (skips / fails under CI when there is none)."""
+    dsn = os.environ.get(PG_DSN_ENV, "")
+    if not dsn:
+        _pg_unavailable(f"${PG_DSN_ENV} is not set")
+    try:
+        import psycopg
+
+        with psycopg.connect(dsn, connect_timeout=5) as conn:
+            conn.execute("SELECT 1")
+    except Exception as e:  # noqa: BLE001 - any connection failure means "not reachable"
+        _pg_unavailable(f"cannot connect to ${PG_DSN_ENV}: {type(e).__name__}: {e}")
+    return dsn
+
+
+def dsn_with_schema(dsn: str, schema: str) -> str:
+    """``dsn`` (URL form) with ``search_path`` set to ``schema`` (libpq ``options``)."""
+    return dsn + ("&" if "?" in dsn else "?") + f"options=-csearch_path%3D{schema}"
+
+
+@pytest.fixture()
+def pg_schema_dsn(pg_dsn):
+    """A DSN whose search_path is a fresh, empty schema (dropped after the test)."""
+    import uuid
+
+    import psycopg
+
+    schema = "gl_test_" + uuid.uuid4().hex[:12]
+    with psycopg.connect(pg_dsn, autocommit=True) as conn:
+        conn.execute(f"CREATE SCHEMA {schema}")
+    try:
+        yield dsn_with_schema(pg_dsn, schema)
+    finally:
+        with psycopg.connect(pg_dsn, autocommit=True) as conn:
+            conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")

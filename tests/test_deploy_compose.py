@@ -1,6 +1,8 @@
 """deploy/: compose-file schema, ``docker-compose config -q``, and every compose service's own command and
 environment started locally (service host names → 127.0.0.1, container ports → free local ports,
-volumes → temp/bind folders) until its healthcheck passes (SPEC §1 deployment, §8)."""
+volumes → temp/bind folders, the ``postgres`` service → the test PostgreSQL, the replicas' network
+alias ``dns:///fusion:PORT`` → ``ipv4:`` of both local replicas) until its healthcheck passes (SPEC §1
+deployment, §8; issue 14: two fusion replicas on one PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -20,7 +22,8 @@ from services.sim import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
-SERVERS = ("parser", "fusion_server", "agent_a", "agent_b")
+SERVERS = ("parser", "fusion_server", "fusion_server_2", "agent_a", "agent_b")
+FUSION = ("fusion_server", "fusion_server_2")
 CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
@@ -45,21 +48,32 @@ def test_compose_schema(compose):
         assert svc["image"] == "gausslite:latest"
         test = svc["healthcheck"]["test"]
         assert test[0] == "CMD" and "health" in test and "--target" in test
-        assert any(v.startswith("gausslite-data:") for v in svc.get("volumes", [])) or name == "parser"
+        assert any(v.startswith("gausslite-data:") for v in svc.get("volumes", [])) or name in ("parser",) + FUSION
+    # PostgreSQL shared by the fusion replicas, which the agents reach through one DNS name
+    pg = services["postgres"]
+    assert pg["image"].startswith("postgres:") and "pg_isready" in pg["healthcheck"]["test"]
+    assert any(v.startswith("gausslite-pg:") for v in pg["volumes"]) and "gausslite-pg" in compose["volumes"]
+    for name in FUSION:
+        svc = services[name]
+        assert _env(svc)["GAUSSLITE_FUSION_STORE"].startswith("postgresql://") and "@postgres:5432/" in \
+            _env(svc)["GAUSSLITE_FUSION_STORE"]
+        assert svc["depends_on"]["postgres"]["condition"] == "service_healthy"
+        assert "fusion" in svc["networks"]["default"]["aliases"]
     for name in ("agent_a", "agent_b"):
         dep = services[name]["depends_on"]
         assert dep["parser"]["condition"] == "service_healthy"
-        assert dep["fusion_server"]["condition"] == "service_healthy"
+        assert all(dep[f]["condition"] == "service_healthy" for f in FUSION)
         assert dep["scene"]["condition"] == "service_completed_successfully"
         assert _env(services[name])["GAUSSLITE_PARSER_ADDR"].startswith("parser:")
-        assert _env(services[name])["GAUSSLITE_FUSION_ADDR"].startswith("fusion_server:")
+        assert _env(services[name])["GAUSSLITE_FUSION_ADDR"] == "dns:///fusion:50052"
     ta, tb = (_env(services[n])["GAUSSLITE_AGENT_TASK_ID"] for n in ("agent_a", "agent_b"))
     assert ta != tb
     assert services["report"]["depends_on"]["agent_a"]["condition"] == "service_healthy"
     # the report job's command is a valid CLI invocation attached to the four services
     cmd = services["report"]["command"]
     args = build_parser().parse_args(cmd[1:])
-    assert args.command == "sim" and {kv.split("=")[0] for kv in args.attach.split(",")} == set(SERVERS)
+    assert args.command == "sim" and {kv.split("=")[0] for kv in args.attach.split(",")} == \
+        {"parser", "fusion_server", "agent_a", "agent_b"}
     df = (DEPLOY / "Dockerfile").read_text()
     assert "FROM python:3.11-slim" in df
     assert "torch==2.13.0" in df and "download.pytorch.org/whl/cpu" in df
@@ -77,7 +91,7 @@ def test_docker_compose_config_validates():
     assert r.returncode == 0, r.stderr
 
 
-def _local_command(name: str, svc: dict, local_port: dict, paths: dict):
+def _local_command(name: str, svc: dict, local_port: dict, paths: dict, pg_dsn: str = ""):
     hosts = {n: local_port[n] for n in local_port}
     argv = list(svc["command"])
     container_port = None
@@ -93,7 +107,7 @@ def _local_command(name: str, svc: dict, local_port: dict, paths: dict):
         else:
             a = _map(a, hosts, paths)
         res.append(a)
-    env = {k: _map(v, hosts, paths) for k, v in _env(svc).items()}
+    env = {k: (pg_dsn if k == "GAUSSLITE_FUSION_STORE" else _map(v, hosts, paths)) for k, v in _env(svc).items()}
     if res[0] == "gausslite":
         res = [sys.executable, "-m", "gausslite.cli", *res[1:]]
     elif res[0] == "python":
@@ -114,6 +128,8 @@ def _interpolate(value: str) -> str:
 
 def _map(value: str, hosts: dict, paths: dict) -> str:
     value = _interpolate(value)
+    if value.startswith("dns:///fusion:"):  # the replicas' network alias → both local replicas
+        return "ipv4:" + ",".join(f"127.0.0.1:{hosts[n]}" for n in FUSION)
     for host, port in hosts.items():
         if ":" in value and value.split(":")[0] == host and value.split(":")[1].isdigit():
             return f"127.0.0.1:{port}"
@@ -123,7 +139,7 @@ def _map(value: str, hosts: dict, paths: dict) -> str:
     return value
 
 
-def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path):
+def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path, pg_schema_dsn):
     services = compose["services"]
     local_port = {n: free_port() for n in SERVERS}
     paths = {}
@@ -143,10 +159,10 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path)
         r = subprocess.run(cmd, env={**base_env, **env}, cwd=str(REPO), capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr[-2000:]
         assert (Path(paths["/data"]) / "scene" / "agent_a" / "traj.txt").is_file()
-        for group in (("parser", "fusion_server"), ("agent_a", "agent_b")):  # depends_on order
+        for group in (("parser",) + FUSION, ("agent_a", "agent_b")):  # depends_on order (postgres: the test's)
             checks = {}
             for name in group:
-                cmd, env, health = _local_command(name, services[name], local_port, paths)
+                cmd, env, health = _local_command(name, services[name], local_port, paths, pg_schema_dsn)
                 assert health is not None and str(local_port[name]) in " ".join(health)
                 log = open(tmp_path / f"{name}.log", "w")
                 procs[name] = subprocess.Popen(cmd, env={**base_env, **env}, cwd=str(REPO), stdout=log,

@@ -1,5 +1,5 @@
 """Multi-agent fusion (paper Sec. III-E, SPEC §7): κ-weighted voxel vote and the concat baseline."""
 
-from gausslite.fusion.vote import VoteReport, concat, voxel_keys, voxel_vote
+from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_keys, voxel_vote
 
-__all__ = ["VoteReport", "concat", "voxel_keys", "voxel_vote"]
+__all__ = ["IncrementalVote", "VoxelRangeError", "VoteReport", "concat", "voxel_keys", "voxel_vote"]

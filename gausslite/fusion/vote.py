@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
 from gausslite.wire.codec import GaussianArrays
 
-__all__ = ["VoteReport", "voxel_vote", "concat", "voxel_keys"]
+__all__ = ["VoteReport", "voxel_vote", "concat", "voxel_keys", "IncrementalVote", "VoxelRangeError"]
 
 
 @dataclass(frozen=True)
@@ -206,3 +206,284 @@ def voxel_vote(maps: Mapping[str, Any], voxel_size: float = 0.10
         voxel_size=float(voxel_size),
     )
     return fused, report
+
+
+# ---------------------------------------------------------------------------------------------
+# Incremental vote
+# ---------------------------------------------------------------------------------------------
+
+_PACK_BITS = 21
+_PACK_OFF = 1 << (_PACK_BITS - 1)
+
+
+class VoxelRangeError(ValueError):
+    """Means too far from the origin for :class:`IncrementalVote`'s packed voxel keys
+    (|floor(μ/δ)| ≥ 2^20 voxels, i.e. beyond ±104 km at δ = 0.1 m); use :func:`voxel_vote`."""
+
+
+def _packed_voxels(means: np.ndarray, voxel_size: float) -> np.ndarray:
+    """(N,) int64 voxel ids: the three ``floor(μ/δ)`` coordinates biased by 2^20, 21 bits each."""
+    ijk = voxel_keys(means, voxel_size)
+    if ijk.size and int(np.abs(ijk).max()) >= _PACK_OFF:
+        raise VoxelRangeError(f"means beyond ±{_PACK_OFF} voxels of {voxel_size} m from the origin")
+    u = ijk + _PACK_OFF
+    return (u[:, 0] << (2 * _PACK_BITS)) | (u[:, 1] << _PACK_BITS) | u[:, 2]
+
+
+def _voxel_box(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis min and max of packed voxel ids (empty → an empty box: lo > hi)."""
+    if len(packed) == 0:
+        return np.full(3, 1 << 62, np.int64), np.full(3, -1, np.int64)
+    mask = (1 << _PACK_BITS) - 1
+    ijk = np.stack([packed >> (2 * _PACK_BITS), (packed >> _PACK_BITS) & mask, packed & mask], axis=1)
+    return ijk.min(axis=0), ijk.max(axis=0)
+
+
+def _expand(lo: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenated ranges ``[lo[i], lo[i] + counts[i])`` (vectorised)."""
+    total = int(counts.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    return np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(total, dtype=np.int64)
+
+
+class _AgentState:
+    """One agent's subset with its voxel index: rows sorted by voxel, per-voxel κ sums and counts."""
+
+    __slots__ = ("arrays", "vox_order", "svox", "uvox", "usum", "ucnt", "ksum", "keep", "part", "rows", "lo", "hi")
+
+    def __init__(self, arrays: GaussianArrays, voxel_size: float):
+        n = len(arrays)
+        if n and int(arrays.kappa.min()) < 0:
+            raise ValueError("kappa must be >= 0")
+        vox = _packed_voxels(arrays.means, voxel_size)
+        self.arrays = arrays
+        self.vox_order = np.argsort(vox, kind="stable")
+        self.svox = vox[self.vox_order]
+        starts = np.flatnonzero(np.concatenate(([True], self.svox[1:] != self.svox[:-1]))) if n else \
+            np.zeros(0, np.int64)
+        self.uvox = self.svox[starts]
+        self.ucnt = np.diff(np.append(starts, n)).astype(np.int64)
+        self.usum = np.add.reduceat(arrays.kappa[self.vox_order], starts) if n else np.zeros(0, np.int64)
+        if n and int(arrays.kappa.max()) > (2**63 - 1) // n:
+            self.ksum = int(arrays.kappa.astype(object).sum())
+        else:
+            self.ksum = int(arrays.kappa.sum()) if n else 0
+        self.lo, self.hi = _voxel_box(self.uvox)
+        self.keep = np.zeros(n, dtype=bool)
+        self.part: Optional[GaussianArrays] = None  # cached kept rows (None = recompute)
+        self.rows: Optional[np.ndarray] = None
+
+
+class IncrementalVote:
+    """κ-weighted voxel vote kept current as agents' subsets change (paper Sec. III-E, SPEC §7).
+
+    Holds every agent's subset with a per-voxel index and the winner of every occupied voxel.
+    :meth:`update` of one agent re-votes only the voxels that agent's old or new subset touches
+    (gathering the other agents' per-voxel κ sums there by binary search) and re-evaluates only the
+    rows of other agents in those voxels, so its cost grows with the size of the change, not with the
+    fleet. :meth:`result` returns exactly what :func:`voxel_vote` returns for the current subsets
+    (same rule, same tie-breaks, same canonical row order; property-tested).
+
+    Args:
+        voxel_size: δ in metres (> 0).
+    Raises:
+        ValueError: voxel_size not positive and finite.
+
+    Not thread-safe: one fusion at a time (the fusion server holds its fuse lock).
+    """
+
+    def __init__(self, voxel_size: float = 0.10):
+        if not (isinstance(voxel_size, (int, float, np.floating)) and math.isfinite(voxel_size)
+                and voxel_size > 0):
+            raise ValueError("voxel_size must be a positive finite number")
+        self.voxel_size = float(voxel_size)
+        self._agents: dict[str, _AgentState] = {}
+        self._revision: dict[str, Any] = {}
+        self._code: dict[str, int] = {}  # stable small integer per agent id (never reused)
+        self._vox = np.zeros(0, np.int64)  # occupied voxels, sorted
+        self._npair = np.zeros(0, np.int64)  # agents present per voxel
+        self._win = np.zeros(0, np.int64)  # winner's code per voxel
+        self._contested = 0
+        self._won: dict[int, int] = {}  # code -> contested voxels won
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def agents(self) -> tuple[str, ...]:
+        """Agent ids held, sorted."""
+        return tuple(sorted(self._agents))
+
+    def revision(self, agent: str) -> Any:
+        """The revision tag given with the agent's last :meth:`update` (None when absent)."""
+        return self._revision.get(agent)
+
+    # ------------------------------------------------------------------ updates
+    def update(self, agent: str, gaussians: Any, revision: Any = None) -> int:
+        """Replace (or add) ``agent``'s subset and re-vote the voxels it touches.
+
+        Args:
+            agent: agent id (str).  gaussians: the agent's subset (see :meth:`GaussianArrays.from_any`).
+            revision: opaque tag remembered for :meth:`sync` (e.g. the map version).
+        Returns:
+            int: voxels re-voted.
+        Raises:
+            TypeError: agent id not a str.  ValueError: negative κ, non-finite means, summed κ
+            overflowing int64.  VoxelRangeError: means beyond ±2^20 voxels.  On error the state is
+            unchanged.
+        """
+        return self.update_many({agent: (gaussians, revision)})
+
+    def update_many(self, updates: Mapping[str, tuple]) -> int:
+        """Replace (or add) several agents' subsets (agent → (gaussians, revision)) with one re-vote
+        of the union of the voxels they touch (a full vote when the state was empty).
+
+        Returns / Raises: as :meth:`update` (on error the state is unchanged).
+        """
+        if not all(isinstance(a, str) for a in updates):
+            raise TypeError("agent ids must be str")
+        states = {a: _AgentState(GaussianArrays.from_any(g), self.voxel_size) for a, (g, _) in updates.items()}
+        ksum = sum(s.ksum for a, s in self._agents.items() if a not in states) + sum(s.ksum for s in states.values())
+        if ksum >= 2**63:
+            raise ValueError("summed kappa overflows int64")
+        parts = [s.uvox for s in states.values()]
+        parts += [self._agents[a].uvox for a in states if a in self._agents]
+        touched = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+        for a in sorted(states):
+            if a not in self._code:
+                self._code[a] = len(self._code)
+            self._agents[a] = states[a]
+            self._revision[a] = updates[a][1]
+        self._revote(touched)
+        return int(len(touched))
+
+    def remove(self, agent: str) -> int:
+        """Drop ``agent`` (no-op when absent); returns the voxels re-voted."""
+        old = self._agents.pop(agent, None)
+        self._revision.pop(agent, None)
+        if old is None:
+            return 0
+        self._revote(old.uvox)
+        return int(len(old.uvox))
+
+    def sync(self, revisions: Mapping[str, Any], load) -> list[str]:
+        """Make the held subsets those of ``revisions`` (agent id → revision tag).
+
+        Agents whose tag differs from the held one are re-loaded with ``load(agent)`` and updated;
+        agents not in ``revisions`` are removed.
+
+        Returns:
+            list[str]: the agents updated or removed (sorted).
+        """
+        changed = [a for a in sorted(self._agents) if a not in revisions]
+        for a in changed:
+            self.remove(a)
+        todo = [a for a in sorted(revisions)
+                if a not in self._agents or self._revision.get(a) != revisions[a]]
+        if todo:
+            self.update_many({a: (load(a), revisions[a]) for a in todo})
+        return sorted(changed + todo)
+
+    def _revote(self, touched: np.ndarray) -> None:
+        """Re-vote the sorted unique voxels ``touched`` and splice the outcome into the tables."""
+        if len(touched) == 0:
+            return
+        ids = sorted(self._agents)
+        rank = {a: i for i, a in enumerate(ids)}
+        # (voxel position in touched, κ sum, count, id rank, code) of every agent present there
+        t_idx, psum, pcnt, prank, pcode = [], [], [], [], []
+        hits = {}
+        tlo, thi = _voxel_box(touched)
+        for a in ids:
+            s = self._agents[a]
+            if len(s.uvox) == 0 or (s.lo > thi).any() or (s.hi < tlo).any():  # boxes disjoint: no voxel shared
+                continue
+            pos = np.searchsorted(s.uvox, touched)
+            ok = pos < len(s.uvox)
+            ok[ok] = s.uvox[pos[ok]] == touched[ok]
+            ti = np.flatnonzero(ok)
+            if len(ti) == 0:
+                continue
+            hits[a] = ti
+            t_idx.append(ti)
+            psum.append(s.usum[pos[ti]])
+            pcnt.append(s.ucnt[pos[ti]])
+            prank.append(np.full(len(ti), rank[a], np.int64))
+            pcode.append(np.full(len(ti), self._code[a], np.int64))
+        m = len(touched)
+        if t_idx:
+            t_idx_a, psum_a, pcnt_a = np.concatenate(t_idx), np.concatenate(psum), np.concatenate(pcnt)
+            prank_a, pcode_a = np.concatenate(prank), np.concatenate(pcode)
+            # winner: max κ sum, then max count, then smallest id (rank)
+            order = np.lexsort((prank_a, -pcnt_a, -psum_a, t_idx_a))
+            first = order[np.concatenate(([True], t_idx_a[order][1:] != t_idx_a[order][:-1]))]
+            npair = np.bincount(t_idx_a, minlength=m).astype(np.int64)
+            win = np.full(m, -1, np.int64)
+            win[t_idx_a[first]] = pcode_a[first]
+        else:
+            npair = np.zeros(m, np.int64)
+            win = np.full(m, -1, np.int64)
+
+        # statistics: remove the old contribution of the touched voxels, add the new one
+        pos = np.searchsorted(self._vox, touched)
+        present = pos < len(self._vox)
+        present[present] = self._vox[pos[present]] == touched[present]
+        ppos = pos[present]
+        old_contested = self._npair[ppos] >= 2
+        self._contested += int((npair >= 2).sum()) - int(old_contested.sum())
+        for c, k in zip(*np.unique(self._win[ppos][old_contested], return_counts=True)):
+            self._won[int(c)] = self._won.get(int(c), 0) - int(k)
+        for c, k in zip(*np.unique(win[npair >= 2], return_counts=True)):
+            self._won[int(c)] = self._won.get(int(c), 0) + int(k)
+        # splice: update present voxels, drop emptied ones, insert new ones
+        self._npair[ppos] = npair[present]
+        self._win[ppos] = win[present]
+        gone = ppos[npair[present] == 0]
+        if len(gone):
+            self._vox, self._npair, self._win = (np.delete(x, gone) for x in (self._vox, self._npair, self._win))
+        new = ~present & (npair > 0)
+        if new.any():
+            at = np.searchsorted(self._vox, touched[new])
+            self._vox = np.insert(self._vox, at, touched[new])
+            self._npair = np.insert(self._npair, at, npair[new])
+            self._win = np.insert(self._win, at, win[new])
+
+        # rows of every agent in the touched voxels: keep iff the agent won the voxel
+        for a, ti in hits.items():
+            s = self._agents[a]
+            tv = touched[ti]
+            lo = np.searchsorted(s.svox, tv, "left")
+            cnt = np.searchsorted(s.svox, tv, "right") - lo
+            rows = s.vox_order[_expand(lo, cnt)]
+            keep = np.repeat(win[ti] == self._code[a], cnt)
+            if not np.array_equal(s.keep[rows], keep):
+                s.keep[rows] = keep
+                s.part = s.rows = None
+
+    # ------------------------------------------------------------------ result
+    def result(self) -> tuple[GaussianArrays, VoteReport]:
+        """The fused map and report, identical to ``voxel_vote(current subsets, voxel_size)``."""
+        agents = self.agents
+        parts, rows = [], []
+        for a in agents:
+            s = self._agents[a]
+            if s.part is None:
+                s.rows = np.flatnonzero(s.keep)
+                s.part = s.arrays.take(s.rows)
+            parts.append(s.part)
+            rows.append(s.rows)
+        kept = {a: len(p) for a, p in zip(agents, parts)}
+        fused = GaussianArrays.concat(parts) if parts else GaussianArrays.empty()
+        code_to_id = {c: a for a, c in self._code.items()}
+        won = {a: 0 for a in agents}
+        for c, k in self._won.items():
+            if k and code_to_id[c] in won:
+                won[code_to_id[c]] = int(k)
+        report = VoteReport(
+            agents=agents, kept=kept,
+            dropped={a: len(self._agents[a].arrays) - kept[a] for a in agents},
+            voxels=int(len(self._vox)), contested_voxels=int(self._contested), won_voxels=won,
+            source_agent=np.repeat(np.arange(len(agents), dtype=np.int32),
+                                   [kept[a] for a in agents]).astype(np.int32),
+            source_row=np.concatenate(rows).astype(np.int64) if rows else np.zeros(0, np.int64),
+            voxel_size=self.voxel_size)
+        return fused, report

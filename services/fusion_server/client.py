@@ -17,6 +17,14 @@ Usage::
         fused = fc.fuse("vote", refine=True, refine_iters=100, progress=lambda f, m: print(f, m))
         arrays = fc.download_fused(fused.fused_version)
 
+Replicas: ``target`` may name several fusion replicas sharing one PostgreSQL store —
+``dns:///fusion.example:50053`` (every address the name resolves to, e.g. a Kubernetes headless
+service) or ``ipv4:10.0.0.5:50053,10.0.0.6:50053``. The channel uses gRPC's own client-side load
+balancing (``round_robin`` over the resolved addresses, re-resolved when connections drop) and
+gRPC's retry policy re-sends calls that fail with ``UNAVAILABLE`` before the server saw them
+(:func:`channel_options`); any replica accepts any agent's chunks, and an upload interrupted on one
+replica resumes on another.
+
 Error handling: every call carries a deadline (``timeout_s`` unless stated otherwise). Idempotent
 calls (everything except :meth:`FusionClient.fuse`) are retried on ``UNAVAILABLE`` and
 ``DEADLINE_EXCEEDED`` with exponential backoff (``backoff_s · 2^attempt``, at most ``max_retries``
@@ -53,6 +61,38 @@ UPLOAD_BATCH_BYTES = 8 * 1024 * 1024
 KEYFRAME_BATCH = 8
 #: Depth scale used for 16-bit PNG depth (metres = value / scale): 0.2 mm steps up to 13.1 m.
 DEFAULT_DEPTH_SCALE = 5000.0
+
+#: Methods that gRPC's retry policy may re-send on UNAVAILABLE (all but the non-idempotent Fuse).
+RETRIED_METHODS = ("OpenSession", "UploadSubset", "GetUploadStatus", "UploadKeyframes", "DownloadFused", "GetStats")
+
+
+def service_config(max_attempts: int = 5) -> dict:
+    """gRPC service config: ``round_robin`` load balancing and a retry policy for UNAVAILABLE.
+
+    Args:
+        max_attempts (int): attempts per call including the first (gRPC caps this at 5).
+    Returns:
+        dict: the JSON service config (see gRPC's service_config.proto).
+    """
+    return {
+        "loadBalancingConfig": [{"round_robin": {}}],
+        "methodConfig": [{
+            "name": [{"service": SERVICE_NAME, "method": m} for m in RETRIED_METHODS],
+            "retryPolicy": {"maxAttempts": int(max(2, min(5, max_attempts))), "initialBackoff": "0.1s",
+                            "maxBackoff": "2s", "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE"]},
+        }],
+    }
+
+
+def channel_options(max_message_bytes: int = 64 * 1024 * 1024) -> list:
+    """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config."""
+    import json
+
+    return [("grpc.max_receive_message_length", max_message_bytes),
+            ("grpc.max_send_message_length", max_message_bytes),
+            ("grpc.enable_retries", 1),
+            ("grpc.service_config", json.dumps(service_config()))]
+
 
 _METHODS = {"vote": fusion_pb2.FUSE_METHOD_VOTE, "concat": fusion_pb2.FUSE_METHOD_CONCAT}
 _METHOD_NAMES = {v: k for k, v in _METHODS.items()}
@@ -181,7 +221,8 @@ class FusionClient:
     """Synchronous client of ``gausslite.v1.Fusion`` (thread-safe: one channel, stateless calls).
 
     Args:
-        target (str): ``host:port`` of the fusion server.
+        target (str): ``host:port`` of the fusion server, or several replicas as
+            ``dns:///name:port`` / ``ipv4:addr1:port,addr2:port`` (round-robin load balancing).
         token (str | None): bearer token sent as ``authorization: Bearer <token>`` on every call.
         root_cert (bytes | None): PEM root certificate(s); set → TLS channel, else plaintext.
         timeout_s (float): deadline of each call (seconds); :meth:`fuse` uses its own, longer one.
@@ -200,8 +241,7 @@ class FusionClient:
         self.max_retries = int(max_retries)
         self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
-        opts = [("grpc.max_receive_message_length", CLIENT_MAX_MESSAGE_BYTES),
-                ("grpc.max_send_message_length", CLIENT_MAX_MESSAGE_BYTES)]
+        opts = channel_options(CLIENT_MAX_MESSAGE_BYTES)
         if root_cert is not None:
             self._channel = grpc.secure_channel(target, grpc.ssl_channel_credentials(root_certificates=root_cert), opts)
         else:
@@ -489,5 +529,5 @@ class _Incomplete(Exception):
         self.missing = missing
 
 
-__all__ = ["FusionClient", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
+__all__ = ["FusionClient", "service_config", "channel_options", "RETRIED_METHODS", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
            "keyframe_to_proto", "intrinsics_to_proto", "fuse_result_from_proto"]

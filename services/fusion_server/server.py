@@ -13,8 +13,15 @@ keyframes / an upload older than the agent's latest complete version, RESOURCE_E
 oversized messages and subsets beyond the server's limits, UNAUTHENTICATED from the bearer-token
 interceptor. Every rejected call is logged (``rejected <method> from <peer>: <code>: <reason>``).
 
-Persistence: :class:`services.fusion_server.store.FusionStore` (SQLite, WAL, synchronous=FULL)
-under the data directory; everything is committed before it is acknowledged.
+Persistence: a :class:`services.fusion_server.store.SqlFusionStore` — SQLite (WAL,
+synchronous=FULL) under the data directory by default, or PostgreSQL selected by a
+``postgresql://`` DSN (``--store`` / ``$GAUSSLITE_FUSION_STORE``), which several replicas of this
+server share; everything is committed before it is acknowledged. ``Fuse`` runs under the store's
+fuse lock (a PostgreSQL advisory lock across replicas); fused versions are allocated by the database.
+
+Incremental fusion: the servicer keeps an :class:`gausslite.fusion.vote.IncrementalVote` of the
+subsets it last voted; a vote re-loads only agents whose latest complete version changed and
+re-votes only the voxels they touch (the result equals a full :func:`voxel_vote`).
 
 Keyframe buffer: at most ``FusionConfig.max_keyframes_per_agent`` per agent; beyond that the oldest
 (by arrival) are dropped (the ack reports how many). Keyframes are idempotent by (agent id,
@@ -44,14 +51,14 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.fusion.vote import concat as concat_maps
-from gausslite.fusion.vote import voxel_vote
+from gausslite.fusion.vote import IncrementalVote, VoxelRangeError, voxel_vote
 from gausslite.wire.codec import (LOSSLESS, GaussianArrays, LimitExceeded, WireError, WireLimits, assemble,
                                   decode_chunk, encode_subset, peek_header)
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.metrics import metrics_port_from
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
 from services.fusion_server.metrics import FusionMetrics, MeteredFusion
-from services.fusion_server.store import ChunkConflict, FusionStore, Session, StoredKeyframe
+from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe, open_store
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +74,10 @@ class FusionConfig:
     """Fusion server settings.
 
     Attributes:
-        data_dir (str): directory of the persistent store.
+        data_dir (str): directory of the embedded SQLite store (used when ``store`` is empty).
+        store (str): ``postgresql://user:pw@host:port/db`` DSN of a PostgreSQL store shared by
+            replicas; empty = SQLite in ``data_dir``.
+        store_pool_size (int): PostgreSQL connections per server process.
         max_keyframes_per_agent (int): keyframe buffer bound per agent (oldest dropped beyond it).
         max_subset_gaussians (int): largest accepted subset (RESOURCE_EXHAUSTED beyond).
         max_task_text_bytes (int): longest task text (INVALID_ARGUMENT beyond).
@@ -78,6 +88,8 @@ class FusionConfig:
     """
 
     data_dir: str = "gausslite_fusion_data"
+    store: str = ""
+    store_pool_size: int = 12
     max_keyframes_per_agent: int = 64
     max_subset_gaussians: int = 4_000_000
     max_task_text_bytes: int = 4096
@@ -203,15 +215,15 @@ def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
 
 
 class FusionServicer(fusion_pb2_grpc.FusionServicer):
-    """Implements ``gausslite.v1.Fusion`` on top of a :class:`FusionStore`.
+    """Implements ``gausslite.v1.Fusion`` on top of a :class:`SqlFusionStore`.
 
     Args:
-        store (FusionStore): persistent state.
+        store (SqlFusionStore): persistent state (SQLite or PostgreSQL).
         config (FusionConfig): limits and defaults.
         max_message_bytes (int): the server's message bound (chunks must fit in it).
     """
 
-    def __init__(self, store: FusionStore, config: FusionConfig, max_message_bytes: int):
+    def __init__(self, store: SqlFusionStore, config: FusionConfig, max_message_bytes: int):
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)
@@ -224,6 +236,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
+        self._voter: Optional[IncrementalVote] = None  # voted map kept current (under the fuse locks)
         self._shutdown = threading.Event()
         self._workers: "set[threading.Thread]" = set()
 
@@ -469,21 +482,35 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             stage["name"] = name
             events.put(("progress", fusion_pb2.FuseProgress(stage=name, fraction=float(fraction), message=message)))
 
+        def stopped() -> bool:
+            return cancel.is_set() or self._shutdown.is_set()
+
         try:
             while not self._fuse_lock.acquire(timeout=0.2):
-                if cancel.is_set() or self._shutdown.is_set():
+                if stopped():
                     raise _Cancelled()
+            db_lock = None
             try:
+                cm = self.store.fuse_lock(stopped)  # serialises Fuse across every replica on the store
+                try:
+                    cm.__enter__()
+                except InterruptedError:
+                    raise _Cancelled() from None
+                db_lock = cm
                 t0 = time.monotonic()
                 emit("load", 0.0, f"loading the subsets of {len(latest)} agent(s)")
                 maps = {a: self._subset(a, v) for a, v in latest.items()}
                 name = _METHOD_NAMES[method]
                 end = 0.3 if refine else 0.8
                 emit(name, 0.1, f"{name} of {sum(len(m) for m in maps.values())} Gaussians")
+                vote_s, revoted, incremental = 0.0, 0, False
                 if method == fusion_pb2.FUSE_METHOD_VOTE:
-                    fused, report = voxel_vote(maps, voxel)
+                    tv = time.monotonic()
+                    fused, report, revoted, incremental = self._vote(latest, maps, voxel)
+                    vote_s = time.monotonic() - tv
                     kept = dict(report.kept)
-                    msg = f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
+                    msg = (f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
+                           + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
                 else:
                     fused = concat_maps(maps)
                     kept = {a: len(m) for a, m in maps.items()}
@@ -514,7 +541,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                     return fusion_pb2.FuseResult(
                         fused_version=version, n_gaussians=len(fused), seconds=seconds, agents=agents,
                         method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
-                        keyframes_used=n_kf, bytes=nbytes, created_unix=time.time()).SerializeToString()
+                        keyframes_used=n_kf, bytes=nbytes, created_unix=time.time(), vote_seconds=vote_s,
+                        agents_revoted=revoted, incremental=incremental).SerializeToString()
 
                 if cancel.is_set() or self._shutdown.is_set():
                     raise _Cancelled()
@@ -527,6 +555,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 events.put(("done", fusion_pb2.FuseProgress(stage="done", fraction=1.0, done=True, result=result,
                                                             message=f"fused version {version}")))
             finally:
+                if db_lock is not None:
+                    db_lock.__exit__(None, None, None)
                 self._fuse_lock.release()
         except _Cancelled:
             log.info("Fuse work stopped during stage %r (cancelled)", stage["name"])
@@ -538,6 +568,23 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             events.put(("error", e))
         finally:
             self._workers.discard(threading.current_thread())
+
+    def _vote(self, latest: Dict[str, int], maps: Dict[str, GaussianArrays], voxel: float):
+        """Voxel vote of ``maps`` through the kept :class:`IncrementalVote` (full vote when it cannot
+        hold the extent). Returns (fused, report, agents re-voted, incremental?)."""
+        voter = self._voter if self._voter is not None and self._voter.voxel_size == voxel else None
+        incremental = voter is not None
+        voter = voter or IncrementalVote(voxel)
+        self._voter = None  # re-installed only after a successful sync
+        try:
+            changed = voter.sync(latest, maps.__getitem__)
+        except VoxelRangeError as e:
+            log.info("incremental vote unavailable (%s); full vote", e)
+            fused, report = voxel_vote(maps, voxel)
+            return fused, report, len(maps), False
+        fused, report = voter.result()
+        self._voter = voter
+        return fused, report, len(changed), incremental
 
     @_stream_guard
     def DownloadFused(self, request, context):  # noqa: N802
@@ -605,7 +652,7 @@ class FusionServer:
 
     rpc: RunningServer
     servicer: FusionServicer
-    store: FusionStore
+    store: SqlFusionStore
 
     @property
     def port(self) -> int:
@@ -627,22 +674,27 @@ class FusionServer:
 
 
 def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
-          data_dir: Optional[str] = None) -> FusionServer:
+          data_dir: Optional[str] = None, store: Optional[str] = None) -> FusionServer:
     """Start the fusion server (non-blocking).
 
     Args:
         options (ServerOptions): bind address, message bound, workers, token, TLS.
         config (FusionConfig | None): limits/defaults (default ``FusionConfig()``).
         data_dir (str | None): overrides ``config.data_dir``.
+        store (str | None): overrides ``config.store`` (a ``postgresql://`` DSN, or "" for SQLite).
     Returns:
         FusionServer: ``.port`` is the bound port; ``.stop()`` shuts down gracefully.
     Raises:
         RuntimeError: the address cannot be bound. OSError / sqlite3.Error: unusable data dir.
+        StoreError: unreachable PostgreSQL; SchemaTooNew: a store written by a newer GaussLite.
     """
     config = config or FusionConfig()
     if data_dir is not None:
         config = replace(config, data_dir=str(data_dir))
-    store = FusionStore(config.data_dir)
+    if store is not None:
+        config = replace(config, store=str(store))
+    store = (open_store(config.store, pool_size=config.store_pool_size) if config.store
+             else open_store(config.data_dir))
     servicer = FusionServicer(store, config, options.max_message_bytes)
     metered = MeteredFusion(servicer, FusionMetrics())
     try:
@@ -651,7 +703,7 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     except BaseException:
         store.close()
         raise
-    log.info("fusion data dir: %s", store.path)
+    log.info("fusion store: %s (%s, schema %d)", store.location, store.dialect, store.schema_version())
     return FusionServer(running, servicer, store)
 
 
@@ -665,18 +717,21 @@ def _write_port_file(path: str, port: int) -> None:
 
 
 def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: Optional[str] = None,
-        port_file: Optional[str] = None) -> int:
+        port_file: Optional[str] = None, store: Optional[str] = None) -> int:
     """Serve until SIGTERM/SIGINT (``gausslite serve fusion`` / ``python -m services.fusion_server``).
 
     The data directory comes from ``data_dir``, else ``$GAUSSLITE_DATA_DIR``, else the config file's
-    ``data_dir``, else ``./gausslite_fusion_data``; the port file from ``port_file`` or
-    ``$GAUSSLITE_FUSION_PORT_FILE``. Prints ``fusion listening on HOST:PORT`` once serving.
+    ``data_dir``, else ``./gausslite_fusion_data``; the store from ``store`` (a ``postgresql://``
+    DSN), else ``$GAUSSLITE_FUSION_STORE``, else the config file's ``store``, else SQLite in the
+    data directory; the port file from ``port_file`` or ``$GAUSSLITE_FUSION_PORT_FILE``. Prints
+    ``fusion listening on HOST:PORT`` once serving.
     """
     if not logging.getLogger().handlers:  # `gausslite serve` does not configure logging itself
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = FusionConfig.from_file(config_path) if config_path else FusionConfig()
     data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
-    server = serve(options, config, data_dir=data_dir)
+    store = store or os.environ.get("GAUSSLITE_FUSION_STORE") or None
+    server = serve(options, config, data_dir=data_dir, store=store)
     port_file = port_file or os.environ.get("GAUSSLITE_FUSION_PORT_FILE") or None
     if port_file:
         _write_port_file(port_file, server.port)
@@ -695,6 +750,9 @@ def main(argv=None) -> int:
                    help=f"port, 0 = ephemeral (env GAUSSLITE_FUSION_PORT, default {DEFAULT_PORT})")
     p.add_argument("--data-dir", default=env.get("GAUSSLITE_DATA_DIR"),
                    help="persistent store directory (env GAUSSLITE_DATA_DIR)")
+    p.add_argument("--store", default=env.get("GAUSSLITE_FUSION_STORE"),
+                   help="postgresql://user:pw@host:port/db to share a PostgreSQL store between replicas "
+                        "(env GAUSSLITE_FUSION_STORE; default: SQLite in --data-dir)")
     p.add_argument("--port-file", default=env.get("GAUSSLITE_FUSION_PORT_FILE"),
                    help="write the bound port to this file (env GAUSSLITE_FUSION_PORT_FILE)")
     p.add_argument("--token", default=env.get("GAUSSLITE_TOKEN"), help="bearer token (env GAUSSLITE_TOKEN)")
@@ -716,7 +774,7 @@ def main(argv=None) -> int:
     try:
         opts.metrics_port = metrics_port_from(args.metrics_port, env.get("GAUSSLITE_FUSION_METRICS_PORT")
                                               or env.get("GAUSSLITE_METRICS_PORT"))
-        return run(opts, args.config, data_dir=args.data_dir, port_file=args.port_file)
+        return run(opts, args.config, data_dir=args.data_dir, port_file=args.port_file, store=args.store)
     except (ValueError, OSError, RuntimeError) as e:
         print(f"fusion server: error: {e}", file=sys.stderr)
         return 2

@@ -3,14 +3,32 @@
 Source: SPEC §8 ("The fusion server persists what it accepted, so a restart loses nothing it
 acknowledged"), paper Sec. III-E.
 
-Design
-------
-One SQLite database ``<data_dir>/fusion.sqlite3`` (stdlib :mod:`sqlite3`), journal mode WAL with
-``synchronous=FULL``: every write is its own committed transaction, made durable (fsync of the WAL)
-before the method returns, so the server only acknowledges what is on disk; a SIGKILL or power cut
-after the commit loses nothing, one before it loses only the un-acknowledged write (SQLite's atomic
-commit: no torn rows). One connection guarded by a lock serialises access (writes are small: one
-chunk, one keyframe; the heavy work — decoding, fusing — happens outside the lock).
+Backends (one contract, one SQL implementation)
+-----------------------------------------------
+* :class:`SqliteFusionStore` — the embedded default: ``<data_dir>/fusion.sqlite3`` (stdlib
+  :mod:`sqlite3`), WAL with ``synchronous=FULL``, one connection guarded by a lock. Right for one
+  fusion process (a team of a few robots, the compose simulation).
+* :class:`PostgresFusionStore` — PostgreSQL through psycopg 3 and a ``psycopg_pool`` connection
+  pool, selected by a ``postgresql://`` DSN (:func:`open_store`). Several fusion replicas share one
+  database: every write is one transaction serialised per agent by a transaction-level advisory
+  lock, fused versions come from an identity column allocated under a database lock, and
+  :meth:`SqlFusionStore.fuse_lock` is a session-level advisory lock, so concurrent ``Fuse`` calls on
+  different replicas run one after the other.
+
+The contract (``tests/test_fusion_store_contract.py`` runs the same tests against both):
+
+* every write is committed (durable) before the method returns, so the server only acknowledges
+  what is stored; a fresh store on the same database sees it;
+* uploads are idempotent (an identical chunk re-delivery is a no-op, a different one a
+  :class:`ChunkConflict`) and resumable (``upload().missing``);
+* completing a newer map version of an agent supersedes (deletes) its older uploads;
+* keyframes are bounded per agent (oldest by arrival evicted), idempotent by (agent, frame id);
+* fused versions are allocated by the database and strictly increase.
+
+Schema migrations are versioned (:data:`MIGRATIONS`, table ``schema_meta``); opening a database
+whose schema is newer than :data:`SCHEMA_VERSION` raises :class:`SchemaTooNew` (a server never
+writes into a schema it does not know). A SQLite database of the pre-migration layout is upgraded
+in place (its tables are the version-1 tables).
 
 Tables::
 
@@ -19,11 +37,12 @@ Tables::
             lossless, complete, completed_unix, PK(agent_id, map_version))
     chunks(agent_id, map_version, idx, data BLOB, digest BLOB, n_gaussians, wire_bytes,
            PK(agent_id, map_version, idx))
-    agents(agent_id PK, latest_version, superseded_below)   -- latest complete subset
+    agents(agent_id PK, latest_version)   -- latest complete subset
     keyframes(agent_id, frame_id, seq, color BLOB, depth BLOB, depth_scale, c2w BLOB (16 f64),
               fx, fy, cx, cy, width, height, timestamp, PK(agent_id, frame_id))
-    fused(version INTEGER PK AUTOINCREMENT, info BLOB (serialized FuseResult), method, n_chunks)
+    fused(version PK (allocated by the database), info BLOB (serialized FuseResult), method, n_chunks)
     fused_chunks(version, idx, data BLOB, PK(version, idx))
+    schema_meta(id = 1, version)
 
 Raw wire chunks are stored verbatim (bytes on the wire are reproducible and the assembled subset
 after a restart is bit-identical to the one before). When a newer map version of an agent becomes
@@ -32,50 +51,73 @@ complete, the agent's older uploads and their chunks are deleted in the same tra
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Tuple
+from typing import Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
 import numpy as np
 
-DB_NAME = "fusion.sqlite3"
+log = logging.getLogger(__name__)
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS sessions (
-    agent_id TEXT PRIMARY KEY, task_text TEXT NOT NULL,
-    fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
-    width INTEGER NOT NULL, height INTEGER NOT NULL, opened_unix REAL NOT NULL);
-CREATE TABLE IF NOT EXISTS uploads (
-    agent_id TEXT NOT NULL, map_version INTEGER NOT NULL, n_chunks INTEGER NOT NULL,
-    full_map_gaussians INTEGER NOT NULL DEFAULT 0, full_map_bytes INTEGER NOT NULL DEFAULT 0,
-    total_count INTEGER, lossless INTEGER, complete INTEGER NOT NULL DEFAULT 0, completed_unix REAL,
-    PRIMARY KEY (agent_id, map_version));
-CREATE TABLE IF NOT EXISTS chunks (
-    agent_id TEXT NOT NULL, map_version INTEGER NOT NULL, idx INTEGER NOT NULL,
-    data BLOB NOT NULL, digest BLOB NOT NULL, n_gaussians INTEGER NOT NULL, wire_bytes INTEGER NOT NULL,
-    PRIMARY KEY (agent_id, map_version, idx));
-CREATE TABLE IF NOT EXISTS agents (
-    agent_id TEXT PRIMARY KEY, latest_version INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS keyframes (
-    agent_id TEXT NOT NULL, frame_id INTEGER NOT NULL, seq INTEGER NOT NULL,
-    color BLOB NOT NULL, depth BLOB NOT NULL, depth_scale REAL NOT NULL, c2w BLOB NOT NULL,
-    fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
-    width INTEGER NOT NULL, height INTEGER NOT NULL, timestamp REAL NOT NULL,
-    PRIMARY KEY (agent_id, frame_id));
-CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes (agent_id, seq);
-CREATE TABLE IF NOT EXISTS fused (
-    version INTEGER PRIMARY KEY AUTOINCREMENT, info BLOB NOT NULL, method INTEGER NOT NULL,
-    n_chunks INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS fused_chunks (
-    version INTEGER NOT NULL, idx INTEGER NOT NULL, data BLOB NOT NULL, PRIMARY KEY (version, idx));
-"""
+DB_NAME = "fusion.sqlite3"
+#: Schema version this code reads and writes.
+SCHEMA_VERSION = 2
+#: DSN prefixes that select :class:`PostgresFusionStore`.
+PG_PREFIXES = ("postgresql://", "postgres://")
+
+# Column types per dialect: {REAL} float64, {INT} 64-bit integer, {BLOB} bytes, {SERIAL} an integer
+# primary key allocated by the database.
+_TYPES = {
+    "sqlite": {"REAL": "REAL", "INT": "INTEGER", "BLOB": "BLOB", "SERIAL": "INTEGER PRIMARY KEY AUTOINCREMENT"},
+    "postgresql": {"REAL": "DOUBLE PRECISION", "INT": "BIGINT", "BLOB": "BYTEA",
+                   "SERIAL": "BIGINT GENERATED BY DEFAULT AS IDENTITY PRIMARY KEY"},
+}
+
+#: (version, DDL statements) applied in order to bring a database up to :data:`SCHEMA_VERSION`.
+MIGRATIONS: List[Tuple[int, List[str]]] = [
+    (1, [
+        "CREATE TABLE IF NOT EXISTS sessions (agent_id TEXT PRIMARY KEY, task_text TEXT NOT NULL, "
+        "fx {REAL} NOT NULL, fy {REAL} NOT NULL, cx {REAL} NOT NULL, cy {REAL} NOT NULL, "
+        "width {INT} NOT NULL, height {INT} NOT NULL, opened_unix {REAL} NOT NULL)",
+        "CREATE TABLE IF NOT EXISTS uploads (agent_id TEXT NOT NULL, map_version {INT} NOT NULL, "
+        "n_chunks {INT} NOT NULL, full_map_gaussians {INT} NOT NULL DEFAULT 0, "
+        "full_map_bytes {INT} NOT NULL DEFAULT 0, total_count {INT}, lossless {INT}, "
+        "complete {INT} NOT NULL DEFAULT 0, completed_unix {REAL}, PRIMARY KEY (agent_id, map_version))",
+        "CREATE TABLE IF NOT EXISTS chunks (agent_id TEXT NOT NULL, map_version {INT} NOT NULL, "
+        "idx {INT} NOT NULL, data {BLOB} NOT NULL, digest {BLOB} NOT NULL, n_gaussians {INT} NOT NULL, "
+        "wire_bytes {INT} NOT NULL, PRIMARY KEY (agent_id, map_version, idx))",
+        "CREATE TABLE IF NOT EXISTS agents (agent_id TEXT PRIMARY KEY, latest_version {INT} NOT NULL)",
+        "CREATE TABLE IF NOT EXISTS keyframes (agent_id TEXT NOT NULL, frame_id {INT} NOT NULL, "
+        "seq {INT} NOT NULL, color {BLOB} NOT NULL, depth {BLOB} NOT NULL, depth_scale {REAL} NOT NULL, "
+        "c2w {BLOB} NOT NULL, fx {REAL} NOT NULL, fy {REAL} NOT NULL, cx {REAL} NOT NULL, cy {REAL} NOT NULL, "
+        "width {INT} NOT NULL, height {INT} NOT NULL, timestamp {REAL} NOT NULL, "
+        "PRIMARY KEY (agent_id, frame_id))",
+        "CREATE INDEX IF NOT EXISTS keyframes_seq ON keyframes (agent_id, seq)",
+        "CREATE TABLE IF NOT EXISTS fused (version {SERIAL}, info {BLOB} NOT NULL, method {INT} NOT NULL, "
+        "n_chunks {INT} NOT NULL)",
+        "CREATE TABLE IF NOT EXISTS fused_chunks (version {INT} NOT NULL, idx {INT} NOT NULL, "
+        "data {BLOB} NOT NULL, PRIMARY KEY (version, idx))",
+    ]),
+    # 2: DownloadFused(version=0, method=M) / Fuse look up "latest of a method" by index, not by scan
+    (2, ["CREATE INDEX IF NOT EXISTS fused_method_version ON fused (method, version)"]),
+]
+assert MIGRATIONS[-1][0] == SCHEMA_VERSION
+
+# advisory-lock class ids (PostgreSQL two-int form): per-agent writes, fused versions, fuse, migration
+_LOCK_AGENT, _LOCK_FUSED, _LOCK_FUSE, _LOCK_MIGRATE = 0x474C01, 0x474C02, 0x474C03, 0x474C04
 
 
 class StoreError(RuntimeError):
-    """The store is closed or its database is unusable."""
+    """The store is closed, its database is unreachable or unusable."""
+
+
+class SchemaTooNew(StoreError):
+    """The database was written by a newer GaussLite (schema version above :data:`SCHEMA_VERSION`)."""
 
 
 @dataclass(frozen=True)
@@ -144,50 +186,76 @@ class ChunkConflict(ValueError):
     """A chunk index is already stored with different content."""
 
 
-class FusionStore:
-    """Thread-safe SQLite store under ``data_dir`` (created when missing).
+class SqlFusionStore:
+    """The store contract, written once in portable SQL (``?`` placeholders); subclasses supply a
+    connection per transaction (:meth:`_tx`, :meth:`_read`), the dialect name and the locks.
 
-    Args:
-        data_dir (str | Path): directory of the database.
-    Raises:
-        OSError: the directory cannot be created. sqlite3.DatabaseError: not a database.
+    All methods are thread-safe. Write methods commit before they return.
     """
 
-    def __init__(self, data_dir):
-        self.data_dir = Path(data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.path = self.data_dir / DB_NAME
-        self._lock = threading.RLock()
-        self._db: Optional[sqlite3.Connection] = sqlite3.connect(
-            str(self.path), check_same_thread=False, isolation_level=None, timeout=30.0)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute("PRAGMA foreign_keys=OFF")
-        self._db.executescript(_SCHEMA)
+    dialect = ""
+    #: human-readable location (path or redacted DSN) for logs
+    location = ""
 
-    # ------------------------------------------------------------------ plumbing
-    def _conn(self) -> sqlite3.Connection:
-        if self._db is None:
-            raise StoreError("store is closed")
-        return self._db
+    # ------------------------------------------------------------------ backend hooks
+    def _tx(self, agent: Optional[str] = None, lock: Optional[int] = None) -> "contextlib.AbstractContextManager":
+        """A write transaction (committed on success, rolled back on error), serialised with other
+        writers of ``agent`` (or of the lock class ``lock``)."""
+        raise NotImplementedError
 
-    def _tx(self):
-        return _Tx(self)
+    def _read(self) -> "contextlib.AbstractContextManager":
+        """A read-only connection (consistent within the block)."""
+        raise NotImplementedError
+
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
+        """Context manager serialising ``Fuse`` work across every server on this database.
+
+        Waits (polling every ``poll_s`` seconds) until the lock is free; raises
+        :class:`InterruptedError` when ``should_stop()`` turns true while waiting.
+        """
+        raise NotImplementedError
 
     def close(self) -> None:
-        """Checkpoint and close (idempotent)."""
-        with self._lock:
-            if self._db is not None:
-                try:
-                    self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-                finally:
-                    self._db.close()
-                    self._db = None
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ migrations
+    def _migrate(self) -> int:
+        """Bring the schema to :data:`SCHEMA_VERSION` (one transaction). Returns the version found.
+
+        Raises:
+            SchemaTooNew: the database's schema is newer than this code.
+        """
+        types = _TYPES[self.dialect]
+        with self._tx(lock=_LOCK_MIGRATE) as db:
+            db.execute("CREATE TABLE IF NOT EXISTS schema_meta (id INTEGER PRIMARY KEY CHECK (id = 1), "
+                       "version INTEGER NOT NULL)")
+            row = db.execute("SELECT version FROM schema_meta WHERE id = 1").fetchone()
+            found = int(row[0]) if row else 0
+            if found > SCHEMA_VERSION:
+                raise SchemaTooNew(
+                    f"the fusion store at {self.location} has schema version {found}, newer than this server "
+                    f"supports ({SCHEMA_VERSION}); upgrade GaussLite on this server (every replica on one database "
+                    "must run the same or a newer release) or point it at another store")
+            for version, statements in MIGRATIONS:
+                if version > found:
+                    for st in statements:
+                        db.execute(st.format(**types))
+            if found < SCHEMA_VERSION:
+                db.execute("INSERT INTO schema_meta (id, version) VALUES (1, ?) ON CONFLICT (id) DO UPDATE SET "
+                           "version = excluded.version", (SCHEMA_VERSION,))
+                log.info("fusion store %s: schema migrated from version %d to %d", self.location, found,
+                         SCHEMA_VERSION)
+            return found
+
+    def schema_version(self) -> int:
+        """The schema version recorded in the database."""
+        with self._read() as db:
+            return int(db.execute("SELECT version FROM schema_meta WHERE id = 1").fetchone()[0])
 
     # ------------------------------------------------------------------ sessions
     def open_session(self, s: Session) -> bool:
         """Insert or update a session; returns True when it was new."""
-        with self._tx() as db:
+        with self._tx(s.agent_id) as db:
             new = db.execute("SELECT 1 FROM sessions WHERE agent_id=?", (s.agent_id,)).fetchone() is None
             db.execute("INSERT INTO sessions VALUES (?,?,?,?,?,?,?,?,?) ON CONFLICT(agent_id) DO UPDATE SET "
                        "task_text=excluded.task_text, fx=excluded.fx, fy=excluded.fy, cx=excluded.cx, "
@@ -197,32 +265,32 @@ class FusionStore:
 
     def session(self, agent_id: str) -> Optional[Session]:
         """The agent's session or None."""
-        with self._lock:
-            row = self._conn().execute("SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions "
-                                       "WHERE agent_id=?", (agent_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions "
+                             "WHERE agent_id=?", (agent_id,)).fetchone()
         return Session(*row) if row else None
 
     def sessions(self) -> List[Session]:
         """All sessions, sorted by agent id."""
-        with self._lock:
-            rows = self._conn().execute("SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions "
-                                        "ORDER BY agent_id").fetchall()
+        with self._read() as db:
+            rows = db.execute("SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions "
+                              "ORDER BY agent_id").fetchall()
         return [Session(*r) for r in rows]
 
     # ------------------------------------------------------------------ uploads
     def latest_version(self, agent_id: str) -> Optional[int]:
         """The agent's latest complete map version, or None."""
-        with self._lock:
-            row = self._conn().execute("SELECT latest_version FROM agents WHERE agent_id=?", (agent_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT latest_version FROM agents WHERE agent_id=?", (agent_id,)).fetchone()
         return int(row[0]) if row else None
 
     def upload(self, agent_id: str, map_version: int) -> Optional[Upload]:
         """Upload state of (agent, version), or None when never announced."""
-        with self._lock:
-            return self._upload(self._conn(), agent_id, map_version)
+        with self._read() as db:
+            return self._upload(db, agent_id, map_version)
 
     @staticmethod
-    def _upload(db: sqlite3.Connection, agent_id: str, map_version: int) -> Optional[Upload]:
+    def _upload(db, agent_id: str, map_version: int) -> Optional[Upload]:
         row = db.execute("SELECT n_chunks, full_map_gaussians, full_map_bytes, total_count, lossless, complete "
                          "FROM uploads WHERE agent_id=? AND map_version=?", (agent_id, map_version)).fetchone()
         if row is None:
@@ -241,11 +309,14 @@ class FusionStore:
         Raises:
             ValueError: the record exists with another chunk count and already holds chunks.
         """
-        with self._tx() as db:
+        with self._tx(agent_id) as db:
             up = self._upload(db, agent_id, map_version)
             if up is None:
                 db.execute("INSERT INTO uploads (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes) "
                            "VALUES (?,?,?,?,?)", (agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes))
+            elif up.n_chunks == n_chunks and full_map_gaussians in (0, up.full_map_gaussians) and \
+                    full_map_bytes in (0, up.full_map_bytes):
+                return up  # a resumed upload: nothing to change
             else:
                 if up.n_chunks != n_chunks and not up.stored:  # announced, nothing stored: re-chunked
                     db.execute("UPDATE uploads SET n_chunks=? WHERE agent_id=? AND map_version=?",
@@ -275,7 +346,7 @@ class FusionStore:
             ValueError: unknown upload, total/lossless disagreeing with earlier chunks, or Gaussian
             counts that exceed / do not add up to the subset total.
         """
-        with self._tx() as db:
+        with self._tx(agent_id) as db:
             up = self._upload(db, agent_id, map_version)
             if up is None:
                 raise ValueError(f"no upload announced for {agent_id!r} v{map_version}")
@@ -296,7 +367,7 @@ class FusionStore:
                 raise ValueError(f"chunk {idx}: all chunks received but Gaussian counts add up to "
                                  f"{up.n_gaussians + n_gaussians}, not {total_count}")
             db.execute("INSERT INTO chunks VALUES (?,?,?,?,?,?,?)",
-                       (agent_id, map_version, idx, data, digest, n_gaussians, len(data)))
+                       (agent_id, map_version, idx, bytes(data), bytes(digest), n_gaussians, len(data)))
             if up.total_count is None:
                 db.execute("UPDATE uploads SET total_count=?, lossless=? WHERE agent_id=? AND map_version=?",
                            (total_count, int(lossless), agent_id, map_version))
@@ -309,19 +380,21 @@ class FusionStore:
                                "latest_version=excluded.latest_version", (agent_id, map_version))
                     db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version<?", (agent_id, map_version))
                     db.execute("DELETE FROM uploads WHERE agent_id=? AND map_version<?", (agent_id, map_version))
-            return True, self._upload(db, agent_id, map_version)
+            return True, replace(up, total_count=total_count, lossless=bool(lossless), complete=up.complete or last,
+                                 stored=sorted(up.stored + [idx]), n_gaussians=up.n_gaussians + n_gaussians,
+                                 wire_bytes=up.wire_bytes + len(data))
 
     def chunk_data(self, agent_id: str, map_version: int) -> List[bytes]:
         """Raw chunks of (agent, version) in index order."""
-        with self._lock:
-            rows = self._conn().execute("SELECT data FROM chunks WHERE agent_id=? AND map_version=? ORDER BY idx",
-                                        (agent_id, map_version)).fetchall()
+        with self._read() as db:
+            rows = db.execute("SELECT data FROM chunks WHERE agent_id=? AND map_version=? ORDER BY idx",
+                              (agent_id, map_version)).fetchall()
         return [bytes(r[0]) for r in rows]
 
     def latest_complete(self) -> Dict[str, int]:
         """agent id → latest complete map version (agents with one)."""
-        with self._lock:
-            rows = self._conn().execute("SELECT agent_id, latest_version FROM agents ORDER BY agent_id").fetchall()
+        with self._read() as db:
+            rows = db.execute("SELECT agent_id, latest_version FROM agents ORDER BY agent_id").fetchall()
         return {r[0]: int(r[1]) for r in rows}
 
     # ------------------------------------------------------------------ keyframes
@@ -331,14 +404,14 @@ class FusionStore:
         Returns:
             (new, evicted): ``new`` False for a re-sent frame id (first write wins).
         """
-        with self._tx() as db:
+        with self._tx(kf.agent_id) as db:
             if db.execute("SELECT 1 FROM keyframes WHERE agent_id=? AND frame_id=?",
                           (kf.agent_id, kf.frame_id)).fetchone():
                 return False, 0
             seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM keyframes WHERE agent_id=?",
                              (kf.agent_id,)).fetchone()[0]
             db.execute("INSERT INTO keyframes VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
-                       (kf.agent_id, kf.frame_id, seq, kf.color, kf.depth, kf.depth_scale,
+                       (kf.agent_id, kf.frame_id, int(seq), bytes(kf.color), bytes(kf.depth), kf.depth_scale,
                         np.asarray(kf.c2w, "<f8").tobytes(), kf.fx, kf.fy, kf.cx, kf.cy, kf.width, kf.height,
                         kf.timestamp))
             n = db.execute("SELECT COUNT(*) FROM keyframes WHERE agent_id=?", (kf.agent_id,)).fetchone()[0]
@@ -350,16 +423,15 @@ class FusionStore:
 
     def keyframe_count(self, agent_id: Optional[str] = None) -> int:
         """Keyframes buffered for ``agent_id`` (all agents when None)."""
-        with self._lock:
+        with self._read() as db:
             if agent_id is None:
-                return int(self._conn().execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
-            return int(self._conn().execute("SELECT COUNT(*) FROM keyframes WHERE agent_id=?",
-                                            (agent_id,)).fetchone()[0])
+                return int(db.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
+            return int(db.execute("SELECT COUNT(*) FROM keyframes WHERE agent_id=?", (agent_id,)).fetchone()[0])
 
     def keyframes(self, agents: Optional[Iterable[str]] = None) -> List[StoredKeyframe]:
         """Stored keyframes (of ``agents`` when given), ordered by agent then arrival."""
-        with self._lock:
-            rows = self._conn().execute(
+        with self._read() as db:
+            rows = db.execute(
                 "SELECT agent_id, frame_id, color, depth, depth_scale, c2w, fx, fy, cx, cy, width, height, timestamp "
                 "FROM keyframes ORDER BY agent_id, seq").fetchall()
         want = None if agents is None else set(agents)
@@ -376,8 +448,8 @@ class FusionStore:
         """Like :meth:`keyframes` without reading the images (``color``/``depth`` are empty bytes)."""
         sql = ("SELECT agent_id, frame_id, depth_scale, c2w, fx, fy, cx, cy, width, height, timestamp "
                "FROM keyframes" + (" WHERE agent_id = ?" if agent_id is not None else "") + " ORDER BY agent_id, seq")
-        with self._lock:
-            rows = self._conn().execute(sql, (agent_id,) if agent_id is not None else ()).fetchall()
+        with self._read() as db:
+            rows = db.execute(sql, (agent_id,) if agent_id is not None else ()).fetchall()
         return [StoredKeyframe(r[0], int(r[1]), b"", b"", float(r[2]),
                                np.frombuffer(bytes(r[3]), "<f8").reshape(4, 4).copy(), float(r[4]), float(r[5]),
                                float(r[6]), float(r[7]), int(r[8]), int(r[9]), float(r[10]))
@@ -387,26 +459,29 @@ class FusionStore:
     def put_fused(self, info_fn, method: int, chunks_fn) -> int:
         """Persist a fused map atomically (one transaction) and return its new version (1, 2, ...).
 
+        The version is allocated by the database (AUTOINCREMENT / identity column) under a
+        database-wide lock held to the commit, so versions become visible in increasing order on
+        every server sharing the database.
+
         Args:
             info_fn (callable(version: int, nbytes: int) -> bytes): serialized result for the
                 assigned version and the total chunk bytes.
             method (int): FuseMethod value (for filtering downloads).
             chunks_fn (callable(version: int) -> list[bytes]): wire chunks encoded for that version.
         """
-        with self._tx() as db:
-            version = int(db.execute("INSERT INTO fused (info, method, n_chunks) VALUES (x'', ?, 0)",
-                                     (method,)).lastrowid)
+        with self._tx(lock=_LOCK_FUSED) as db:
+            version = int(db.execute("INSERT INTO fused (info, method, n_chunks) VALUES (?, ?, 0) RETURNING version",
+                                     (b"", method)).fetchone()[0])
             chunks = chunks_fn(version)
             db.execute("UPDATE fused SET info=?, n_chunks=? WHERE version=?",
                        (info_fn(version, sum(len(c) for c in chunks)), len(chunks), version))
             db.executemany("INSERT INTO fused_chunks VALUES (?,?,?)",
-                           [(version, i, c) for i, c in enumerate(chunks)])
+                           [(version, i, bytes(c)) for i, c in enumerate(chunks)])
             return version
 
     def fused_info(self, version: int = 0, method: int = 0) -> Optional[Tuple[int, bytes, int]]:
         """(version, info bytes, n_chunks) of ``version`` (0 = latest, of ``method`` when nonzero)."""
-        with self._lock:
-            db = self._conn()
+        with self._read() as db:
             if version:
                 row = db.execute("SELECT version, info, n_chunks FROM fused WHERE version=?", (version,)).fetchone()
             elif method:
@@ -418,44 +493,242 @@ class FusionStore:
 
     def fused_chunk(self, version: int, idx: int) -> bytes:
         """One stored chunk of a fused map. Raises KeyError when missing."""
-        with self._lock:
-            row = self._conn().execute("SELECT data FROM fused_chunks WHERE version=? AND idx=?",
-                                       (version, idx)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT data FROM fused_chunks WHERE version=? AND idx=?", (version, idx)).fetchone()
         if row is None:
             raise KeyError((version, idx))
         return bytes(row[0])
 
     def fused_infos(self) -> List[bytes]:
         """Serialized results of every fused version, ascending."""
-        with self._lock:
-            return [bytes(r[0]) for r in self._conn().execute("SELECT info FROM fused ORDER BY version").fetchall()]
+        with self._read() as db:
+            return [bytes(r[0]) for r in db.execute("SELECT info FROM fused ORDER BY version").fetchall()]
 
 
-class _Tx:
-    """``with store._tx() as db``: lock + BEGIN IMMEDIATE ... COMMIT (ROLLBACK on error)."""
+class SqliteFusionStore(SqlFusionStore):
+    """Thread-safe SQLite store under ``data_dir`` (created when missing): the embedded default.
 
-    def __init__(self, store: FusionStore):
-        self.store = store
+    One connection guarded by a lock; writes are ``BEGIN IMMEDIATE ... COMMIT`` with WAL and
+    ``synchronous=FULL`` (durable at commit). :meth:`fuse_lock` is an ``flock`` on a file beside the
+    database.
 
-    def __enter__(self) -> sqlite3.Connection:
-        self.store._lock.acquire()
+    Args:
+        data_dir (str | Path): directory of the database.
+    Raises:
+        OSError: the directory cannot be created. sqlite3.DatabaseError: not a database.
+        SchemaTooNew: written by a newer GaussLite.
+    """
+
+    dialect = "sqlite"
+
+    def __init__(self, data_dir):
+        self.data_dir = Path(data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.data_dir / DB_NAME
+        self.location = str(self.path)
+        self._lock = threading.RLock()
+        self._db: Optional[sqlite3.Connection] = sqlite3.connect(
+            str(self.path), check_same_thread=False, isolation_level=None, timeout=30.0)
         try:
-            db = self.store._conn()
-            db.execute("BEGIN IMMEDIATE")
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=OFF")
+            self._migrate()
         except BaseException:
-            self.store._lock.release()
+            self._db.close()
+            self._db = None
             raise
-        self.db = db
-        return db
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def _conn(self) -> sqlite3.Connection:
+        if self._db is None:
+            raise StoreError("store is closed")
+        return self._db
+
+    @contextlib.contextmanager
+    def _tx(self, agent=None, lock=None) -> Iterator[sqlite3.Connection]:
+        with self._lock:  # BEGIN IMMEDIATE already serialises every writer of the file
+            db = self._conn()
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                yield db
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+
+    @contextlib.contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            yield self._conn()
+
+    @contextlib.contextmanager
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
+        """``flock`` on ``<data_dir>/fuse.lock``: excludes every store (thread or process) on this file."""
+        import fcntl
+
+        with open(self.data_dir / "fuse.lock", "a+b") as f:
+            while True:
+                try:
+                    fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if should_stop():
+                        raise InterruptedError("stopped while waiting for the fuse lock") from None
+                    time.sleep(poll_s)
+            try:
+                yield
+            finally:
+                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        """Checkpoint and close (idempotent)."""
+        with self._lock:
+            if self._db is not None:
+                try:
+                    self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                finally:
+                    self._db.close()
+                    self._db = None
+
+
+#: Backwards-compatible name of the embedded store.
+FusionStore = SqliteFusionStore
+
+
+def redact_dsn(dsn: str) -> str:
+    """The DSN without its password (for logs and error messages)."""
+    try:
+        from psycopg.conninfo import conninfo_to_dict, make_conninfo
+
+        params = conninfo_to_dict(dsn)
+        if "password" in params:
+            params["password"] = "***"
+        return make_conninfo("", **params)
+    except Exception:  # noqa: BLE001 - unparsable: show only the scheme
+        return dsn.split("://", 1)[0] + "://…"
+
+
+class _PgConn:
+    """Adapts a psycopg connection to the sqlite3-style ``execute(sql, params)`` used above
+    (``?`` placeholders → ``%s``)."""
+
+    _cache: Dict[str, str] = {}
+
+    def __init__(self, conn):
+        self.conn = conn
+
+    @classmethod
+    def _sql(cls, sql: str) -> str:
+        out = cls._cache.get(sql)
+        if out is None:
+            out = cls._cache[sql] = sql.replace("?", "%s")
+        return out
+
+    def execute(self, sql: str, params=()):
+        return self.conn.execute(self._sql(sql), params)
+
+    def executemany(self, sql: str, rows) -> None:
+        with self.conn.cursor() as cur:
+            cur.executemany(self._sql(sql), rows)
+
+
+class PostgresFusionStore(SqlFusionStore):
+    """PostgreSQL store shared by any number of fusion replicas (psycopg 3 + psycopg_pool).
+
+    Args:
+        dsn (str): ``postgresql://user:password@host:port/dbname[?options]`` (libpq syntax; e.g.
+            ``?options=-csearch_path%3Dmyschema`` to use a schema).
+        pool_size (int): most connections held by this process (one per concurrent store call).
+        connect_timeout_s (float): how long to wait for the first connection.
+    Raises:
+        StoreError: psycopg missing, or the database cannot be reached within ``connect_timeout_s``.
+        SchemaTooNew: the schema was written by a newer GaussLite.
+    """
+
+    dialect = "postgresql"
+
+    def __init__(self, dsn: str, pool_size: int = 12, connect_timeout_s: float = 10.0):
         try:
-            if exc_type is None:
-                self.db.execute("COMMIT")
-            else:
-                self.db.execute("ROLLBACK")
-        finally:
-            self.store._lock.release()
+            import psycopg  # noqa: F401
+            from psycopg_pool import ConnectionPool
+        except ImportError as e:  # pragma: no cover - dependencies of the package
+            raise StoreError(f"PostgreSQL store needs psycopg 3 and psycopg_pool: {e}") from e
+        self.dsn = dsn
+        self.location = redact_dsn(dsn)
+        self._pool = ConnectionPool(dsn, min_size=1, max_size=max(2, int(pool_size)), open=False,
+                                    kwargs={"autocommit": False}, name="gausslite-fusion")
+        try:
+            self._pool.open(wait=True, timeout=connect_timeout_s)
+        except Exception as e:  # noqa: BLE001 - PoolTimeout and friends
+            self._pool.close()
+            raise StoreError(f"cannot connect to the PostgreSQL fusion store {self.location} within "
+                             f"{connect_timeout_s:.0f}s: {e}") from e
+        self._closed = False
+        try:
+            self._migrate()
+        except BaseException:
+            self._pool.close()
+            raise
+
+    def _connection(self):
+        if self._closed:
+            raise StoreError("store is closed")
+        return self._pool.connection()
+
+    @contextlib.contextmanager
+    def _tx(self, agent=None, lock=None) -> Iterator[_PgConn]:
+        with self._connection() as conn:  # one transaction: committed on exit, rolled back on error
+            if agent is not None:
+                conn.execute("SELECT pg_advisory_xact_lock(%s, hashtext(%s))", (_LOCK_AGENT, agent))
+            if lock is not None:
+                conn.execute("SELECT pg_advisory_xact_lock(%s, 0)", (lock,))
+            yield _PgConn(conn)
+
+    @contextlib.contextmanager
+    def _read(self) -> Iterator[_PgConn]:
+        with self._connection() as conn:
+            yield _PgConn(conn)
+
+    @contextlib.contextmanager
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
+        """Session-level advisory lock on a dedicated connection; released when the block ends or
+        the connection drops (a SIGKILLed replica never blocks the others)."""
+        import psycopg
+
+        with psycopg.connect(self.dsn, autocommit=True) as conn:
+            while not conn.execute("SELECT pg_try_advisory_lock(%s, 0)", (_LOCK_FUSE,)).fetchone()[0]:
+                if should_stop():
+                    raise InterruptedError("stopped while waiting for the fuse lock")
+                time.sleep(poll_s)
+            try:
+                yield
+            finally:
+                conn.execute("SELECT pg_advisory_unlock(%s, 0)", (_LOCK_FUSE,))
+
+    def close(self) -> None:
+        """Close the pool (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            self._pool.close()
 
 
-__all__ = ["FusionStore", "Session", "Upload", "StoredKeyframe", "ChunkConflict", "StoreError", "DB_NAME"]
+def is_postgres_dsn(spec: Optional[str]) -> bool:
+    """True when ``spec`` selects the PostgreSQL backend."""
+    return bool(spec) and str(spec).startswith(PG_PREFIXES)
+
+
+def open_store(spec: str, **pg_options) -> SqlFusionStore:
+    """Open the store named by ``spec``: a ``postgresql://`` DSN → :class:`PostgresFusionStore`,
+    anything else is a directory → :class:`SqliteFusionStore`.
+
+    Raises:
+        StoreError, SchemaTooNew, OSError, sqlite3.DatabaseError: see the classes.
+    """
+    if is_postgres_dsn(spec):
+        return PostgresFusionStore(spec, **pg_options)
+    return SqliteFusionStore(spec)
+
+
+__all__ = ["SqlFusionStore", "SqliteFusionStore", "PostgresFusionStore", "FusionStore", "open_store",
+           "is_postgres_dsn", "redact_dsn", "Session", "Upload", "StoredKeyframe", "ChunkConflict", "StoreError",
+           "SchemaTooNew", "SCHEMA_VERSION", "MIGRATIONS", "DB_NAME"]

@@ -1,0 +1,531 @@
+"""Fleet benchmark with faults: N replay agents push real ROI subsets and keyframes to R fusion
+replicas sharing one PostgreSQL store; one replica is SIGKILLed mid-run and restarted.
+
+    python -m bench.fleet --agents 32 --replicas 2
+
+Loopback only (every server binds 127.0.0.1), bounded in time (``--duration``) and count. Needs a
+reachable PostgreSQL: ``--store postgresql://…`` or ``$GAUSSLITE_FUSION_STORE`` or
+``$GAUSSLITE_TEST_PG_DSN`` (``.ci/run`` sets the latter up); the run uses a fresh schema and drops it.
+
+Source map (real Gaussians, not random arrays): ``--ply map.ply`` (written by ``gausslite map``),
+or — by default — the first ``--map-frames`` frames of the synthetic default scene mapped once with
+``--map-iters`` Adam iterations per frame and cached in ``--work`` (``source_map.ply``). Agent i's
+subset for map version v is the ``--share`` fraction of that map nearest to a point that moves
+with v (the robot's region of interest drifting), its κ scaled per agent and growing with v; the
+keyframes are the scene's posed RGB-D frames (downscaled by ``--keyframe-downscale``).
+
+Replay clients are threads of this process, one gRPC channel each, addressing every replica as
+``ipv4:127.0.0.1:p1,127.0.0.1:p2`` (round_robin, UNAVAILABLE retried — the same channel options as
+:class:`services.fusion_server.client.FusionClient`); chunks are pre-encoded per version and sent one
+``UploadSubset`` call per ``--chunks-per-call`` chunks; a failed call is resumed from
+``GetUploadStatus``. An ack's latency runs from the first send attempt of its chunks to the ack
+(retries included).
+
+Measured (``bench/results/fleet.json``): ``acks`` (chunks acknowledged), ``lost`` (acknowledged chunks
+of each agent's final version that the store does not hold at the end, plus acknowledged-complete
+versions that are not the agent's latest; must be 0), ``ack_latency_ms_p50/p99``,
+``gaussians_per_s`` (acknowledged Gaussians per second of run), ``fuse_full_s`` (vote stage of a
+``Fuse`` on the restarted replica, whose voted map is empty: a full vote over every agent) and
+``fuse_incremental_s`` (vote stage of the next ``Fuse`` after one agent pushed a new version: only
+that agent is re-voted; median of three such updates), ``voxel_vote_local_s`` (a one-off
+:func:`voxel_vote` of the same subsets in this process, for reference: building the incremental
+index costs more than a one-off vote), the whole-``Fuse`` times beside them, each server's ``peak_rss_mb``
+(VmHWM), and checks that the fused map equals a local :func:`voxel_vote` of the subsets the agents
+sent and that every replica answers ``GetStats`` identically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+
+
+# ------------------------------------------------------------------------------------ source data
+def source_map(args) -> "object":
+    """The fleet's source map as GaussianArrays (loaded from --ply, or mapped once and cached)."""
+    from gausslite.gaussians import GaussianMap
+    from gausslite.wire.codec import GaussianArrays
+
+    if args.ply:
+        return GaussianArrays.from_any(GaussianMap.load_ply(args.ply))
+    work = Path(args.work)
+    cache = work / f"source_map_f{args.map_frames}_i{args.map_iters}.ply"
+    if cache.is_file():
+        return GaussianArrays.from_any(GaussianMap.load_ply(cache))
+    import torch
+
+    from gausslite.datasets import load_dataset
+    from gausslite.mapping.config import load_config
+    from gausslite.mapping.mapper import Mapper
+
+    ds = load_dataset(scene_dir(args), max_frames=args.map_frames)
+    cfg = load_config(None, [], iters_per_frame=args.map_iters, warmup_iters=min(args.map_iters, 15))
+    torch.manual_seed(cfg.seed)
+    t0 = time.perf_counter()
+    mapper = Mapper(cfg)
+    for i in range(len(ds)):
+        mapper.map_frame(ds[i], None)
+    mapper.finalize()
+    print(f"mapped {len(ds)} frames of {ds.path} in {time.perf_counter() - t0:.1f}s: {len(mapper.gmap)} Gaussians",
+          flush=True)
+    mapper.gmap.save_ply(cache)
+    return GaussianArrays.from_any(GaussianMap.load_ply(cache))
+
+
+def scene_dir(args) -> Path:
+    """The posed RGB-D sequence of the keyframes (and of the mapped source map)."""
+    if args.dataset:
+        return Path(args.dataset)
+    d = Path(args.work) / "scene"
+    if not (d / "agent_a" / "traj.txt").is_file():
+        from gausslite.synthetic import make_scene
+
+        make_scene(d, frames=max(args.map_frames, 4), progress=False)
+    return d / "agent_a"
+
+
+def keyframes(args) -> list:
+    """Posed RGB-D frames, downscaled (``gausslite.datasets.base.Frame``)."""
+    from gausslite.datasets import load_dataset
+
+    ds = load_dataset(scene_dir(args), downscale=args.keyframe_downscale, max_frames=8)
+    return [ds[i] for i in range(len(ds))]
+
+
+def tile_site(src, rooms: int, gap_m: float = 1.0):
+    """A site of ``rooms`` copies of the mapped room on a square grid (``gap_m`` apart), so that a
+    fleet spreads over more space than one robot's ROI, as on a real site. rooms=1: the map itself."""
+    from gausslite.wire.codec import GaussianArrays
+
+    if rooms <= 1:
+        return src
+    side = int(np.ceil(np.sqrt(rooms)))
+    ext = src.means.max(0) - src.means.min(0) + gap_m
+    parts = []
+    for r in range(rooms):
+        p = src.take(np.arange(len(src)))
+        p.means[:, 0] += np.float32(ext[0] * (r % side))
+        p.means[:, 1] += np.float32(ext[1] * (r // side))
+        parts.append(p)
+    return GaussianArrays.concat(parts)
+
+
+class SubsetMaker:
+    """Agent i's ROI subset for map version v: the ``share`` of the site map nearest to a point
+    drifting ``drift`` metres per version. κ (active-optimisation count) grows towards the ROI
+    centre (the robot optimised its task region most): ``round(kappa_peak · exp(-d²/2r²))`` with r
+    the subset radius, times a per-agent factor, plus the map's own κ and the version number."""
+
+    def __init__(self, src, n_agents: int, share: float, drift: float, seed: int, kappa_peak: float = 40.0):
+        self.src = src
+        rng = np.random.default_rng(seed)
+        self.k = max(1, int(round(share * len(src))))
+        self.centres = src.means[rng.choice(len(src), n_agents, replace=False)].astype(np.float64)
+        d = rng.normal(size=(n_agents, 3))
+        self.dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+        self.factor = rng.uniform(0.5, 1.5, n_agents)
+        self.drift = float(drift)
+        self.kappa_peak = float(kappa_peak)
+
+    def __call__(self, i: int, v: int):
+        c = self.centres[i] + self.dirs[i] * self.drift * (v - 1)
+        d2 = ((self.src.means.astype(np.float64) - c) ** 2).sum(1)
+        idx = np.sort(np.argpartition(d2, self.k - 1)[:self.k])
+        sub = self.src.take(idx)
+        r2 = max(float(d2[idx].max()), 1e-6)
+        w = self.kappa_peak * self.factor[i] * np.exp(-d2[idx] / (2 * r2 / 4))
+        sub.kappa[:] = sub.kappa + np.round(w).astype(np.int64) + v
+        return sub
+
+
+# ------------------------------------------------------------------------------------ replicas
+@dataclass
+class Replica:
+    """One fusion-server subprocess (restartable on the same port)."""
+
+    name: str
+    dsn: str
+    work: Path
+    port: int = 0
+    proc: Optional[subprocess.Popen] = None
+    peak_rss_mb: List[float] = field(default_factory=list)  # per incarnation
+    log: Optional[object] = None
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        port_file = self.work / f"{self.name}.port"
+        if port_file.exists():
+            port_file.unlink()
+        env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+        env.pop("GAUSSLITE_FUSION_STORE", None)
+        self.log = open(self.work / f"{self.name}.log", "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "services.fusion_server", "--host", "127.0.0.1", "--port", str(self.port),
+             "--store", self.dsn, "--port-file", str(port_file), "--max-workers", "48", "--log-level", "WARNING",
+             "--data-dir", str(self.work / f"{self.name}-unused")],
+            cwd=str(REPO), env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout_s
+        while not port_file.exists():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"replica {self.name} exited {self.proc.returncode}; see {self.log.name}")
+            if time.monotonic() > deadline:
+                self.kill()
+                raise RuntimeError(f"replica {self.name} did not start within {timeout_s:.0f}s")
+            time.sleep(0.05)
+        self.port = int(port_file.read_text().strip())
+
+    def rss_hwm_mb(self) -> float:
+        try:
+            for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+        except OSError:
+            pass
+        return float("nan")
+
+    def kill(self, sig=signal.SIGKILL) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.peak_rss_mb.append(self.rss_hwm_mb())
+            self.proc.send_signal(sig)
+            self.proc.wait(30)
+        if self.log is not None:
+            self.log.close()
+            self.log = None
+
+
+# ------------------------------------------------------------------------------------ agents
+@dataclass
+class AgentLog:
+    """What one replay agent sent and had acknowledged."""
+
+    acked: Dict[int, set] = field(default_factory=dict)  # version -> acknowledged chunk indices
+    complete: List[int] = field(default_factory=list)  # versions acknowledged complete
+    latencies_ms: List[float] = field(default_factory=list)
+    gaussians_acked: int = 0
+    retries: int = 0
+    keyframes: int = 0
+    errors: List[str] = field(default_factory=list)
+
+
+def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], counts: List[int],
+                 full: int, per_call: int, log: AgentLog, timeout_s: float, give_up: float) -> bool:
+    """Upload one version, resuming from GetUploadStatus after failures. True when complete."""
+    header = fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
+        agent_id=aid, map_version=v, n_chunks=len(chunks), full_map_gaussians=full))
+    first_sent: Dict[int, float] = {}
+    acked = log.acked.setdefault(v, set())
+    while time.monotonic() < give_up:
+        try:
+            st = stub.GetUploadStatus(fusion_pb2.UploadStatusRequest(agent_id=aid, map_version=v), timeout=timeout_s)
+            if st.complete:
+                log.complete.append(v)
+                return True
+            have = set(st.stored) if st.n_chunks == len(chunks) else set()
+            todo = [i for i in range(len(chunks)) if i not in have]
+            for s in range(0, max(1, len(todo)), per_call):
+                batch = todo[s:s + per_call]
+                now = time.monotonic()
+                for i in batch:
+                    first_sent.setdefault(i, now)
+                ack = stub.UploadSubset(iter([header] + [fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
+                                                         for i in batch]), timeout=timeout_s)
+                t = time.monotonic()
+                stored = set(ack.stored)
+                for i in batch:
+                    if i in stored and i not in acked:
+                        acked.add(i)
+                        log.gaussians_acked += counts[i]
+                        log.latencies_ms.append(1000.0 * (t - first_sent[i]))
+                if ack.complete:
+                    log.complete.append(v)
+                    return True
+        except grpc.RpcError as e:
+            if e.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                log.errors.append(f"v{v}: {e.code().name}: {e.details()}")
+                return False
+            log.retries += 1
+            time.sleep(0.05)
+    log.errors.append(f"v{v}: gave up")
+    return False
+
+
+def agent_main(i: int, target: str, make, args, frames: list, stop: threading.Event, log: AgentLog,
+               barrier: threading.Barrier) -> None:
+    import grpc
+
+    from gausslite.wire.codec import QuantConfig, encode_subset, peek_header
+    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+    from services.fusion_server.client import channel_options, intrinsics_to_proto, keyframe_to_proto
+
+    aid = f"robot-{i:02d}"
+    ch = grpc.insecure_channel(target, channel_options())
+    stub = fusion_pb2_grpc.FusionStub(ch)
+    try:
+        stub.OpenSession(fusion_pb2.OpenSessionRequest(agent_id=aid, task_text=f"inspect zone {i}",
+                                                       intrinsics=intrinsics_to_proto(frames[0].intrinsics)),
+                         timeout=30, wait_for_ready=True)
+        barrier.wait(120)
+        rng = np.random.default_rng(i)
+        time.sleep(rng.uniform(0, args.interval))  # agents start out of phase
+        v = 0
+        full = len(make.src)
+        while not stop.is_set():
+            v += 1
+            t_next = time.monotonic() + args.interval
+            chunks = encode_subset(make(i, v), aid, v, chunk_gaussians=args.chunk_gaussians, quant=QuantConfig())
+            counts = [peek_header(c).count for c in chunks]
+            if not push_version(stub, grpc, fusion_pb2, aid, v, chunks, counts, full, args.chunks_per_call, log,
+                                10.0, time.monotonic() + 60):
+                break
+            if args.keyframe_every and v % args.keyframe_every == 0:
+                f = frames[(v // args.keyframe_every + i) % len(frames)]
+                msg = keyframe_to_proto(aid, f)
+                msg.frame_id = v
+                for _ in range(20):
+                    try:
+                        stub.UploadKeyframes(iter([msg]), timeout=10)
+                        log.keyframes += 1
+                        break
+                    except grpc.RpcError as e:
+                        if e.code() != grpc.StatusCode.UNAVAILABLE:
+                            raise
+                        log.retries += 1
+                        time.sleep(0.05)
+            stop.wait(max(0.0, t_next - time.monotonic()))
+    except Exception as e:  # noqa: BLE001 - reported in the results
+        log.errors.append(f"{type(e).__name__}: {e}")
+    finally:
+        ch.close()
+
+
+# ------------------------------------------------------------------------------------ main
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(prog="python -m bench.fleet", description=__doc__.split("\n\n")[0])
+    p.add_argument("--agents", type=int, default=32)
+    p.add_argument("--replicas", type=int, default=2)
+    p.add_argument("--duration", type=float, default=40.0, help="seconds of pushing (bounded run)")
+    p.add_argument("--kill-at", type=float, default=0.5, help="fraction of --duration when a replica is SIGKILLed")
+    p.add_argument("--interval", type=float, default=2.0, help="seconds between an agent's map versions")
+    p.add_argument("--keyframe-every", type=int, default=2, help="a keyframe every k versions (0 = none)")
+    p.add_argument("--rooms", type=int, default=1, help="copies of the mapped room making up the site (1 = one room)")
+    p.add_argument("--share", type=float, default=0.04, help="fraction of the site map in one agent's subset")
+    p.add_argument("--drift", type=float, default=0.05, help="metres the ROI centre moves per version")
+    p.add_argument("--chunk-gaussians", type=int, default=1000)
+    p.add_argument("--chunks-per-call", type=int, default=1)
+    p.add_argument("--store", default=os.environ.get("GAUSSLITE_FUSION_STORE") or os.environ.get("GAUSSLITE_TEST_PG_DSN"),
+                   help="postgresql:// DSN (env GAUSSLITE_FUSION_STORE or GAUSSLITE_TEST_PG_DSN)")
+    p.add_argument("--ply", default=None, help="source map PLY (from `gausslite map`); default: map the synthetic scene")
+    p.add_argument("--dataset", default=None, help="posed RGB-D sequence for mapping and keyframes (default: synthetic)")
+    p.add_argument("--map-frames", type=int, default=6)
+    p.add_argument("--map-iters", type=int, default=6)
+    p.add_argument("--keyframe-downscale", type=float, default=4.0)
+    p.add_argument("--work", default=str(REPO / "runs" / "fleet"), help="scratch folder (scene, cached map, logs)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=str(RESULTS / "fleet.json"))
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if not args.store or not args.store.startswith(("postgresql://", "postgres://")):
+        print("bench.fleet: needs a PostgreSQL DSN: --store postgresql://user:pw@127.0.0.1:5432/db "
+              "(or $GAUSSLITE_FUSION_STORE / $GAUSSLITE_TEST_PG_DSN)", file=sys.stderr)
+        return 2
+    if args.agents < 1 or args.replicas < 2:
+        print("bench.fleet: needs --agents >= 1 and --replicas >= 2", file=sys.stderr)
+        return 2
+    import grpc
+    import psycopg
+
+    from gausslite.fusion.vote import voxel_vote
+    from gausslite.wire.codec import QuantConfig, assemble, encode_subset
+    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+    from services.fusion_server.client import FusionClient
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    src = source_map(args)
+    frames = keyframes(args)
+    n_map = len(src)
+    src = tile_site(src, args.rooms)
+    make = SubsetMaker(src, args.agents, args.share, args.drift, args.seed)
+    print(f"source map: {n_map} Gaussians, site of {args.rooms} room(s): {len(src)}; {args.agents} agents x "
+          f"{make.k} Gaussians per subset", flush=True)
+
+    schema = f"fleet_{uuid.uuid4().hex[:10]}"
+    with psycopg.connect(args.store, autocommit=True) as conn:
+        conn.execute(f"CREATE SCHEMA {schema}")
+    dsn = args.store + ("&" if "?" in args.store else "?") + f"options=-csearch_path%3D{schema}"
+    reps = [Replica(f"replica{r}", dsn, work) for r in range(args.replicas)]
+    logs = [AgentLog() for _ in range(args.agents)]
+    res: dict = {}
+    try:
+        for r in reps:
+            r.start()
+        target = "ipv4:" + ",".join(f"127.0.0.1:{r.port}" for r in reps)
+        stop = threading.Event()
+        barrier = threading.Barrier(args.agents + 1)
+        threads = [threading.Thread(target=agent_main, args=(i, target, make, args, frames, stop, logs[i], barrier),
+                                    daemon=True) for i in range(args.agents)]
+        for t in threads:
+            t.start()
+        barrier.wait(300)
+        t0 = time.monotonic()
+        print(f"{args.agents} agents pushing to {args.replicas} replicas for {args.duration:.0f}s", flush=True)
+        time.sleep(args.duration * args.kill_at)
+        victim = reps[-1]
+        victim.kill()
+        t_kill = time.monotonic()
+        victim.start()
+        restart_s = time.monotonic() - t_kill
+        print(f"SIGKILLed {victim.name} at {t_kill - t0:.1f}s; restarted on port {victim.port} in {restart_s:.1f}s",
+              flush=True)
+        time.sleep(max(0.0, args.duration - (time.monotonic() - t0)))
+        stop.set()
+        for t in threads:
+            t.join(120)
+        run_s = time.monotonic() - t0
+
+        # ---- verification: everything acknowledged is stored, replicas agree
+        lost = 0
+        sent_subsets = {}
+        with FusionClient(f"127.0.0.1:{reps[0].port}", timeout_s=30) as c0:
+            stats = c0.stats()
+            for i, lg in enumerate(logs):
+                aid = f"robot-{i:02d}"
+                if not lg.complete:
+                    lost += sum(len(s) for s in lg.acked.values())
+                    continue
+                vf = max(lg.complete)
+                st = c0.upload_status(aid, vf)
+                lost += len(lg.acked.get(vf, set()) - set(st.stored))
+                if stats["agents"].get(aid, {}).get("latest_map_version") != vf:
+                    lost += len(lg.acked.get(vf, set()))
+                # the subset exactly as the agent sent it (same deterministic encoding)
+                sent_subsets[aid] = assemble(encode_subset(make(i, vf), aid, vf, chunk_gaussians=args.chunk_gaussians,
+                                                           quant=QuantConfig()))[0]
+        stubs = []
+        for r in reps:
+            ch = grpc.insecure_channel(f"127.0.0.1:{r.port}")
+            stubs.append((ch, fusion_pb2_grpc.FusionStub(ch)))
+        same_stats = len({s.GetStats(fusion_pb2.StatsRequest(), timeout=30).SerializeToString(deterministic=True)
+                          for _, s in stubs}) == 1
+
+        # ---- fusion: full vote on the restarted replica (empty voted map), then one agent's update
+        def fuse_on(rep):
+            with FusionClient(f"127.0.0.1:{rep.port}", timeout_s=60) as c:
+                t = time.monotonic()
+                call = c._stub.Fuse(fusion_pb2.FuseRequest(method=fusion_pb2.FUSE_METHOD_VOTE), timeout=600)
+                last = [m for m in call][-1].result
+                return last, time.monotonic() - t
+
+        # full votes: each replica's first Fuse (no voted map yet: every agent is voted)
+        fulls = [fuse_on(victim), fuse_on(reps[0])]
+        # incremental: after one agent's update, the next Fuse on the same replica re-votes that agent
+        incs = []
+        for upd in (len(logs) - 1, len(logs) // 2, 0):
+            aid = f"robot-{upd:02d}"
+            v_new = max(logs[upd].complete or [0]) + 1
+            sub = make(upd, v_new)
+            with FusionClient(target, timeout_s=30) as c:
+                c.upload_subset(aid, v_new, sub, full_map_gaussians=len(src), chunk_gaussians=args.chunk_gaussians,
+                                quant=QuantConfig())
+            sent_subsets[aid] = assemble(encode_subset(sub, aid, v_new, chunk_gaussians=args.chunk_gaussians,
+                                                       quant=QuantConfig()))[0]
+            incs.append(fuse_on(victim))
+        full_res, full_rpc = fulls[0]
+        inc_res, inc_rpc = incs[-1]
+        with FusionClient(f"127.0.0.1:{reps[0].port}", timeout_s=60) as c:  # download from another replica
+            fused = c.download_fused(inc_res.fused_version)
+        local, _ = voxel_vote(sent_subsets, float(inc_res.voxel_size))
+        local_s = []
+        for _ in range(3):
+            t = time.perf_counter()
+            voxel_vote(sent_subsets, float(inc_res.voxel_size))
+            local_s.append(time.perf_counter() - t)
+        for ch, _ in stubs:
+            ch.close()
+        for r in reps:
+            r.kill(signal.SIGTERM)
+
+        lat = np.array([x for lg in logs for x in lg.latencies_ms]) if any(lg.latencies_ms for lg in logs) \
+            else np.array([float("nan")])
+        acks = int(sum(len(s) for lg in logs for s in lg.acked.values()))
+        res = {
+            "agents": args.agents, "replicas": args.replicas, "duration_s": round(run_s, 2),
+            "acks": acks, "lost": int(lost),
+            "ack_latency_ms_p50": round(float(np.percentile(lat, 50)), 2),
+            "ack_latency_ms_p99": round(float(np.percentile(lat, 99)), 2),
+            "ack_latency_ms_max": round(float(lat.max()), 2),
+            "gaussians_per_s": round(sum(lg.gaussians_acked for lg in logs) / run_s, 1),
+            "versions_complete": int(sum(len(lg.complete) for lg in logs)),
+            "keyframes": int(sum(lg.keyframes for lg in logs)),
+            "client_retries": int(sum(lg.retries for lg in logs)),
+            "agent_errors": [e for lg in logs for e in lg.errors][:20],
+            "fuse_full_s": round(float(np.median([r.vote_seconds for r, _ in fulls])), 4),
+            "fuse_incremental_s": round(float(np.median([r.vote_seconds for r, _ in incs])), 4),
+            "fuse_full_s_each": [round(float(r.vote_seconds), 4) for r, _ in fulls],
+            "fuse_incremental_s_each": [round(float(r.vote_seconds), 4) for r, _ in incs],
+            "fuse_full_agents_revoted": [int(r.agents_revoted) for r, _ in fulls],
+            "fuse_incremental_agents_revoted": [int(r.agents_revoted) for r, _ in incs],
+            "fuse_incremental_was_incremental": all(bool(r.incremental) for r, _ in incs),
+            "fuse_full_total_s": round(float(np.median([r.seconds for r, _ in fulls])), 4),
+            "fuse_incremental_total_s": round(float(np.median([r.seconds for r, _ in incs])), 4),
+            "fuse_full_rpc_s": round(float(np.median([t for _, t in fulls])), 4),
+            "fuse_incremental_rpc_s": round(float(np.median([t for _, t in incs])), 4),
+            "voxel_vote_local_s": round(float(np.median(local_s)), 4),
+            "fused_gaussians": int(inc_res.n_gaussians),
+            "fused_equals_local_vote": bool(fused.equals(local)),
+            "replicas_agree_getstats": bool(same_stats),
+            "killed_replica": victim.name, "restart_s": round(restart_s, 2),
+            "peak_rss_mb": {r.name: round(max(r.peak_rss_mb), 1) for r in reps},
+            "peak_rss_mb_per_incarnation": {r.name: [round(x, 1) for x in r.peak_rss_mb] for r in reps},
+            "source_gaussians": n_map, "site_gaussians": len(src), "rooms": args.rooms, "subset_gaussians": make.k,
+            "source": (args.ply or f"synthetic scene, {args.map_frames} frames x {args.map_iters} iters")
+                      + f", site of {args.rooms} room copies",
+            "chunks_per_call": args.chunks_per_call,
+            "interval_s": args.interval, "chunk_gaussians": args.chunk_gaussians,
+            "machine": f"{os.cpu_count()} CPUs, shared with other jobs (load average "
+                       f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the end)",
+        }
+        res["incremental_over_full"] = round(res["fuse_incremental_s"] / max(res["fuse_full_s"], 1e-9), 4)
+        res["incremental_over_local_voxel_vote"] = round(res["fuse_incremental_s"] / max(res["voxel_vote_local_s"],
+                                                                                           1e-9), 4)
+        res["goals"] = {
+            "agents>=32": res["agents"] >= 32, "lost==0": res["lost"] == 0,
+            "p99<=250ms": res["ack_latency_ms_p99"] <= 250.0,
+            "incremental<=0.1*full": res["fuse_incremental_s"] <= 0.1 * res["fuse_full_s"],
+        }
+    finally:
+        for r in reps:
+            r.kill()
+        with psycopg.connect(args.store, autocommit=True) as conn:
+            conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2) + "\n")
+    keys = ["agents", "replicas", "acks", "lost", "ack_latency_ms_p50", "ack_latency_ms_p99", "gaussians_per_s",
+            "fuse_full_s", "fuse_incremental_s", "voxel_vote_local_s", "incremental_over_full", "fuse_full_rpc_s", "fuse_incremental_rpc_s", "peak_rss_mb",
+            "fused_equals_local_vote", "replicas_agree_getstats", "goals"]
+    w = max(len(k) for k in keys)
+    print("\n".join(f"{k:<{w}}  {res[k]}" for k in keys))
+    print(f"wrote {out}")
+    return 0 if res["lost"] == 0 and res["fused_equals_local_vote"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
