@@ -39,6 +39,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.loader import PosedImageDataset, select_indices
 
 log = logging.getLogger(__name__)
@@ -219,6 +220,8 @@ class TUMDataset(PosedImageDataset):
         undistort: undistort images with ``distortion`` (default: the published Freiburg coefficients)
             onto the alpha=0 optimal new pinhole camera (see the module docstring).
         distortion: override ``(k1, k2, p1, p2, k3)``.
+        depth_camera: ``DepthCamera`` when the depth files are not registered to colour (registered into
+            the raw colour camera, with its distortion, before undistortion).
 
     Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``freiburg`` (1/2/3/None),
     ``distortion`` (5-tuple), ``n_dropped`` (colour frames without depth or pose match);
@@ -244,6 +247,7 @@ class TUMDataset(PosedImageDataset):
         interpolate_poses: bool = False,
         undistort: bool = False,
         distortion: Optional[Sequence[float]] = None,
+        depth_camera: Optional[DepthCamera] = None,
     ) -> None:
         seq = Path(path)
         if not seq.is_dir():
@@ -342,6 +346,7 @@ class TUMDataset(PosedImageDataset):
             depth_scale=depth_scale,
             downscale=downscale,
             annotations=load_annotations(seq),
+            depth_camera=depth_camera,
         )
         self._maps = None
 
@@ -353,6 +358,10 @@ class TUMDataset(PosedImageDataset):
             return gt_t[g], gt_q[g]
         a = (t_q - gt_ts[j - 1]) / (gt_ts[j] - gt_ts[j - 1])
         return (1 - a) * gt_t[j - 1] + a * gt_t[j], _slerp(gt_q[j - 1], gt_q[j], a)
+
+    def _color_camera(self):
+        """The colour files are distorted: register unregistered depth into the raw camera with its distortion."""
+        return self.raw_intrinsics, (self.distortion if any(self.distortion) else None)
 
     def _preprocess(self, rgb: np.ndarray, depth: np.ndarray, i: int):
         """Undistort colour (bilinear) and depth (nearest, keeps values) when ``undistort=True``."""
