@@ -335,6 +335,7 @@ class PosedImageDataset(RGBDDataset):
                 depth = register_depth(depth, self.depth_camera, ci, cdist)
             except ValueError as e:
                 raise ValueError(f"{dp}: {e}") from None
+        if rgb.shape[:2] != depth.shape:
             raise ValueError(
                 f"colour/depth size mismatch: {rp} is {rgb.shape[1]}x{rgb.shape[0]}, "
                 f"{dp} is {depth.shape[1]}x{depth.shape[0]}"
