@@ -33,7 +33,8 @@ REP 103):
   ``T_world_msgframe`` comes from TF.
 - otherwise TF (``/tf`` composed with ``/tf_static`` along the tree): ``world_frame``, by default ``map``
   if it is connected to the camera frame, else ``odom`` (REP 105), else the root of the camera's tree.
-  Without usable TF, the only pose-type topic is used.
+  When the camera frame is not in TF, or TF holds only static transforms above it (the mounting),
+  the bag's only pose-type topic is used.
 
 Poses are interpolated at the colour stamps (translation lerp, rotation slerp); a frame whose stamp is
 further than ``max_pose_dt`` from the nearest sample of any dynamic transform it needs is dropped with a
@@ -298,7 +299,7 @@ class BagDataset(RGBDDataset):
             self.topics[c.topic] = (ty, n + int(c.msgcount or 0))
         # TF first: error messages list the frames
         tf_conns = [c for c in reader.connections if c.msgtype == TF_TYPE and c.topic in ("/tf", "/tf_static")]
-        for c, _ts, raw in reader.messages(connections=tf_conns):
+        for c, _ts, raw in (reader.messages(connections=tf_conns) if tf_conns else ()):  # [] would mean "all"
             msg = reader.deserialize(raw, c.msgtype)
             for tr in msg.transforms:
                 T = make_transform((tr.transform.translation.x, tr.transform.translation.y, tr.transform.translation.z),
@@ -431,14 +432,16 @@ class BagDataset(RGBDDataset):
         """``(source, sample_fn)``: sample_fn(t) -> (T_world_camera or None, problem)."""
         pose_topics = [t for t, (ty, _n) in self.topics.items() if ty in POSE_TYPES]
         topic = opt.pose_topic
-        if not topic and self.camera_frame not in self.tf.frames:
-            if len(pose_topics) != 1:
-                raise self._fail(
-                    f"no poses: the camera frame {self.camera_frame!r} is not in the TF tree and "
-                    + ("there is no PoseStamped/Odometry topic" if not pose_topics else
-                       f"there are several pose topics ({', '.join(pose_topics)}); choose one with --pose-topic")
-                    + " (see --camera-frame, --pose-topic)")
-            topic = pose_topics[0]
+        in_tf = self.camera_frame in self.tf.frames
+        moving = in_tf and not all(self.tf.is_static(f) for f in self.tf.ancestors(self.camera_frame))
+        if not topic and not moving and len(pose_topics) == 1:
+            topic = pose_topics[0]  # TF holds at most the static mounting: the pose topic moves the camera
+        if not topic and not in_tf:
+            raise self._fail(
+                f"no poses: the camera frame {self.camera_frame!r} is not in the TF tree and "
+                + ("there is no PoseStamped/Odometry topic" if not pose_topics else
+                   f"there are several pose topics ({', '.join(pose_topics)}); choose one with --pose-topic")
+                + " (see --camera-frame, --pose-topic)")
         if topic:
             return topic, self._topic_poses(reader, opt, topic)
         world = self._world_frame(opt)
@@ -457,10 +460,11 @@ class BagDataset(RGBDDataset):
         return "tf", at
 
     def _world_frame(self, opt: BagOptions) -> str:
+        """``world_frame``, else REP 105's ``map``, else ``odom``, else the root of the camera's TF tree."""
         if opt.world_frame:
             return normalize_frame(opt.world_frame)
         for f in ("map", "odom"):
-            if f in self.tf.frames and self.tf.can_transform(f, self.camera_frame):
+            if f in self.tf.frames:
                 return f
         return self.tf.root(self.camera_frame)
 
