@@ -161,8 +161,6 @@ def config_from_args(args: argparse.Namespace, **extra):
 
 
 def _handler(args: argparse.Namespace) -> int:
-    from gausslite.pipeline import run_mapping
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -181,6 +179,8 @@ def _handler(args: argparse.Namespace) -> int:
             return 2
         args.task_id = ds.annotations.tasks[0].id
         log.info("no --task-id given: using the first task, %s", args.task_id)
+    from gausslite.pipeline import run_mapping  # torch + warp: imported once the inputs are valid
+
     log.info("mapping %s (%d frames, %dx%d) mode=%s task=%s", ds.path, len(ds),
              ds.intrinsics.width, ds.intrinsics.height, cfg.mode, args.task_id)
     _, metrics = run_mapping(ds, cfg, task_id=args.task_id, stride=args.stride, out_dir=out,
