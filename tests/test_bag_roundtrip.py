@@ -77,6 +77,18 @@ def test_export_bag_cli_and_mapping_gives_the_same_psnr(tmp_path, tum_rpy_dir):
         assert rc == 0
         metrics[name] = json.loads((tmp_path / name / "metrics.json").read_text())
     assert metrics["bag"]["n_frames"] == metrics["folder"]["n_frames"] == 3
-    # poses differ by ~1e-16 (quaternion round trip), which the optimiser amplifies to ~1e-5 dB
+    # The bag's poses differ from the folder's by ~1e-16 (quaternion round trip). The mapper is chaotic in
+    # them (a 1e-15 pose perturbation moves PSNR by ~0.1 dB after 20 iterations/frame, bench/bag.py), so
+    # the direct comparison is close but not exact at these few iterations ...
     assert metrics["bag"]["psnr"] == pytest.approx(metrics["folder"]["psnr"], abs=1e-3)
     assert metrics["bag"]["depth_l1"] == pytest.approx(metrics["folder"]["depth_l1"], rel=1e-3)
+    # ... and exact once the folder carries the bag's poses: images, depths and intrinsics map identically
+    from gausslite.mapping.config import load_config
+    from gausslite.pipeline import run_mapping
+
+    bag = load_dataset(out)
+    tum.poses = np.stack([bag[i].c2w for i in range(len(bag))])
+    cfg = load_config(None, ["final_iters=0", "warmup_iters=1"], iters_per_frame=4, seeds_per_frame=300,
+                      backend="warp", mode="uniform")
+    _, m = run_mapping(tum, cfg, progress=False)
+    assert m["psnr"] == metrics["bag"]["psnr"] and m["n_gaussians"] == metrics["bag"]["n_gaussians"]

@@ -54,8 +54,8 @@ def _to_rgb(arr: np.ndarray, order: str) -> np.ndarray:
         g = arr if arr.ndim == 2 else arr[..., 0]
         return np.repeat(g[..., None], 3, axis=2)
     if order in ("bgr", "bgra"):
-        return np.ascontiguousarray(arr[..., 2::-1])
-    return np.ascontiguousarray(arr[..., :3])
+        return np.array(arr[..., 2::-1], order="C")  # a writable copy, never a view of the message buffer
+    return np.array(arr[..., :3], order="C")
 
 
 def _clean_depth(d: np.ndarray) -> np.ndarray:
