@@ -100,7 +100,7 @@ def test_sim_cli_bag_flags_become_agent_overrides(bag_scene, capsys):
 def test_ablate_rejects_a_bad_bag_with_one_error(bag_scene, tmp_path, caplog):
     _src, out = bag_scene
     with caplog.at_level(logging.ERROR):
-        rc = main(["ablate", "--dataset", str(out / "agent_a"), "--camera-frame", "nowhere", "--out", str(tmp_path)])
+        rc = main(["ablate", "--dataset", str(out / "agent_a"), "--world-frame", "nowhere", "--out", str(tmp_path)])
     assert rc == 2
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
-    assert len(errors) == 1 and "'nowhere' is not in the TF tree" in errors[0]
+    assert len(errors) == 1 and "TF chain 'nowhere' <- 'camera_color_optical_frame' does not connect" in errors[0]

@@ -279,7 +279,10 @@ class BagDataset(RGBDDataset):
             return decode_compressed(msg.format, msg.data)
         return decode_image(msg.encoding, msg.height, msg.width, msg.step, msg.data, bool(msg.is_bigendian))
 
-    def _pick_topic(self, given: Optional[str], what: str, candidates: List[str], types: Sequence[str]) -> str:
+    def _pick_topic(self, given: Optional[str], what: str, candidates: List[str], types: Sequence[str],
+                    hint: str = "") -> str:
+        """``given`` (checked to exist with one of ``types``), else the only candidate; ``hint`` is added when
+        there is none."""
         if given:
             if given not in self.topics:
                 raise self._fail(f"{what} topic {given!r} is not in the bag")
@@ -289,7 +292,7 @@ class BagDataset(RGBDDataset):
         if len(candidates) == 1:
             return candidates[0]
         if not candidates:
-            raise self._fail(f"no {what} topic found")
+            raise self._fail(f"no {what} topic found{hint}")
         flag = "--" + what.replace(" ", "-") + "-topic"
         raise self._fail(f"several {what} topics ({', '.join(candidates)}); choose one with {flag}")
 
@@ -323,24 +326,15 @@ class BagDataset(RGBDDataset):
         colors = [t for t, k in kinds.items() if k[0] == "color"]
         depths = [t for t, k in kinds.items() if k[0] == "depth"]
         bad = [f"{t} ({k[2]})" for t, k in kinds.items() if k[0] is None]
-        try:
-            self.rgb_topic = self._pick_topic(opt.rgb_topic, "rgb", colors, (IMAGE, COMPRESSED))
-        except BagError as e:
-            if bad and not colors:
-                raise BagError(f"{e}\n  unusable image topics: {'; '.join(bad)}") from None
-            raise
+        hint = f" (unusable image topics: {'; '.join(bad)})" if bad else ""
+        self.rgb_topic = self._pick_topic(opt.rgb_topic, "rgb", colors, (IMAGE, COMPRESSED), hint)
         color_frame = kinds[self.rgb_topic][1]
         if not opt.depth_topic and len(depths) > 1:
             same = [t for t in depths if kinds[t][1] == color_frame]
             if len(same) == 1:
                 log.info("%s: several depth topics; using %s (in the colour frame %s)", self.path, same[0], color_frame)
                 depths = same
-        try:
-            self.depth_topic = self._pick_topic(opt.depth_topic, "depth", depths, (IMAGE, COMPRESSED))
-        except BagError as e:
-            if bad and not depths:
-                raise BagError(f"{e}\n  unusable image topics: {'; '.join(bad)}") from None
-            raise
+        self.depth_topic = self._pick_topic(opt.depth_topic, "depth", depths, (IMAGE, COMPRESSED), hint)
         depth_frame = kinds[self.depth_topic][1]
         self.camera_frame = normalize_frame(opt.camera_frame) if opt.camera_frame else color_frame
 

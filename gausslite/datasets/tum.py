@@ -41,6 +41,7 @@ from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.loader import PosedImageDataset, select_indices
+from gausslite.ros.transforms import quat_to_rot, slerp
 
 log = logging.getLogger(__name__)
 
@@ -117,22 +118,6 @@ def read_file_list(path: Path) -> Tuple[np.ndarray, List[str]]:
     return np.asarray(ts, dtype=np.float64), names
 
 
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit Hamilton quaternion ``(qx, qy, qz, qw)`` (scalar last).
-
-    Returns:
-        (3, 3) float64 (the input is normalised first).
-    """
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def read_groundtruth(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray, List[int]]:
     """Parse ``groundtruth.txt`` ("timestamp tx ty tz qx qy qz qw", '#' comments).
 
@@ -190,18 +175,6 @@ def associate_nearest(query: np.ndarray, ref_sorted: np.ndarray) -> Tuple[np.nda
     use_left = np.abs(query - left) <= np.abs(right - query)
     idx = np.where(use_left, j - 1, j).astype(np.int64)
     return idx, np.abs(ref_sorted[idx] - query)
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + t * (q1 - q0)
-    else:
-        th = math.acos(d)
-        q = (math.sin((1 - t) * th) * q0 + math.sin(t * th) * q1) / math.sin(th)
-    return q / np.linalg.norm(q)
 
 
 class TUMDataset(PosedImageDataset):
@@ -357,7 +330,7 @@ class TUMDataset(PosedImageDataset):
         if j <= 0 or j >= len(gt_ts) or gt_ts[j] == gt_ts[j - 1]:
             return gt_t[g], gt_q[g]
         a = (t_q - gt_ts[j - 1]) / (gt_ts[j] - gt_ts[j - 1])
-        return (1 - a) * gt_t[j - 1] + a * gt_t[j], _slerp(gt_q[j - 1], gt_q[j], a)
+        return (1 - a) * gt_t[j - 1] + a * gt_t[j], slerp(gt_q[j - 1], gt_q[j], a)
 
     def _color_camera(self):
         """The colour files are distorted: register unregistered depth into the raw camera with its distortion."""
