@@ -351,12 +351,15 @@ class BagDataset(RGBDDataset):
             ns = _namespace(img_topic) + "/camera_info"
             if ns in info_frames:
                 return ns
-            return None if flag is None else (list(info_frames)[0] if len(info_frames) == 1 else
-                                              self._raise_info(what, flag))
+            if len(info_frames) == 1:
+                return next(iter(info_frames))
+            raise self._fail(f"no {what} topic found for {img_topic!r}; choose one with {flag}")
 
         self.camera_info_topic = pick_info(opt.camera_info_topic, "camera info", color_frame, self.rgb_topic,
                                            "--camera-info-topic")
         color_info = infos[self.camera_info_topic]
+        if color_info is None:
+            raise self._fail(f"camera info topic {self.camera_info_topic!r} has no messages")
         self.registered = depth_frame == color_frame and not opt.depth_camera_info_topic
         self.depth_camera_info_topic = None
         if not self.registered:
@@ -380,6 +383,8 @@ class BagDataset(RGBDDataset):
         # depth camera (unregistered)
         if not self.registered:
             dinfo = infos[self.depth_camera_info_topic]
+            if dinfo is None:
+                raise self._fail(f"depth camera info topic {self.depth_camera_info_topic!r} has no messages")
             d_intr, d_dist = self._intrinsics(dinfo, self.depth_topic)
             self._depth_intr, self._depth_dist = d_intr, d_dist
             if depth_frame != color_frame and not self.tf.can_transform(color_frame, depth_frame):
@@ -389,9 +394,6 @@ class BagDataset(RGBDDataset):
 
         self.native_intrinsics, self._maps = self._undistortion(opt)
         self._pairs = self._associate(reader, opt, colour_msgs, depth_msgs)
-
-    def _raise_info(self, what: str, flag: str):
-        raise self._fail(f"no {what} topic found for the images; choose one with {flag}")
 
     def _intrinsics(self, info, topic: str) -> Tuple[Intrinsics, Tuple[float, ...]]:
         K = np.asarray(_field(info, "k"), dtype=np.float64).reshape(3, 3)
