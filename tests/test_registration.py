@@ -116,3 +116,28 @@ def test_folder_loader_registers_unregistered_depth(tmp_path):
     assert not np.array_equal(g0.depth, f0.depth) and (g0.depth > 0).mean() > 0.5
     with pytest.raises(ValueError, match="must be a DepthCamera"):
         load_dataset(seq, intrinsics=intr, depth_camera="585")
+
+
+def test_cli_depth_camera_flags(tmp_path):
+    import argparse
+
+    from gausslite.cli.cmd_map import add_mapping_args, dataset_kwargs
+    from tests.test_datasets_fixtures import make_seven
+
+    p = argparse.ArgumentParser()
+    add_mapping_args(p)
+    seq = make_seven(tmp_path)  # 40x30 frames
+    kw = dataset_kwargs(p.parse_args(["--color-intrinsics", "35,35,19.5,14.5", "--depth-intrinsics", "39,39,19.5,14.5",
+                                      "--depth-extrinsic", "0.025,0,0,0,0,0,1"]), seq)
+    assert kw["intrinsics"] == [35.0, 35.0, 19.5, 14.5]
+    dc = kw["depth_camera"]
+    assert dc.intrinsics == Intrinsics(39, 39, 19.5, 14.5, 640, 480)  # size of the loader's (default) colour camera
+    assert np.allclose(dc.T_color_depth[:3, 3], [0.025, 0, 0])
+    with pytest.raises(ValueError, match="--depth-extrinsic needs --depth-intrinsics"):
+        dataset_kwargs(p.parse_args(["--depth-extrinsic", "0,0,0,0,0,0,1"]), seq)
+    with pytest.raises(ValueError, match="--color-intrinsics needs fx,fy,cx,cy"):
+        dataset_kwargs(p.parse_args(["--color-intrinsics", "1,2"]), seq)
+    with pytest.raises(ValueError, match="comma-separated numbers"):
+        dataset_kwargs(p.parse_args(["--depth-intrinsics", "a,b,c,d"]), seq)
+    with pytest.raises(ValueError, match="--undistort/--interpolate-poses apply to TUM"):
+        dataset_kwargs(p.parse_args(["--undistort"]), seq)
