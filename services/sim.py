@@ -139,6 +139,18 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
             for name, path, tid in zip(AGENT_NAMES, paths, task_ids)]
 
 
+def _check_bags(plans: List[AgentPlan], cfg: dict) -> None:
+    """Open every ROS bag the agents will replay, so a bad bag fails with its one clear error before any
+    process starts (``BagError`` lists the bag's topics and TF frames)."""
+    from gausslite.datasets import detect_layout, load_dataset
+
+    a = cfg.get("agent") or {}
+    for path in sorted({p.dataset for p in plans}):
+        if detect_layout(path)[0] == "bag":
+            ds = load_dataset(path, max_frames=a.get("max_frames"), bag=a.get("bag"))
+            ds.close()
+
+
 class ProcessGroup:
     """Child processes started by the simulation; :meth:`stop_all` terminates every one of them
     (SIGTERM, wait ``grace_s``, then SIGKILL). Only processes started here are touched."""
@@ -343,6 +355,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                    height=int(sc.get("height", 240)), frames=int(sc.get("frames", 16)), progress=progress)
         dataset = str(out / "scene")
     plans = plan_agents(dataset, cfg, task_ids)
+    _check_bags(plans, cfg)
     group = ProcessGroup(out / "logs")
     previous = None
     if attach is None and hasattr(signal, "SIGTERM") and _main_thread():
@@ -411,7 +424,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         for p in plans:
             a = cfg.get("agent") or {}
             ds = load_dataset(p.dataset, downscale=a.get("downscale", 1), max_frames=a.get("max_frames"),
-                              stride=a.get("stride", 1))
+                              stride=a.get("stride", 1), bag=a.get("bag"))
             eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
         fused: Dict[str, dict] = {}
         renders = []

@@ -207,7 +207,11 @@ def _handler(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     args.mode = "gausslite"
-    ds = resolve_dataset(args, out)
+    try:
+        ds = resolve_dataset(args, out)
+    except (ValueError, FileNotFoundError) as e:  # bad dataset / bag: one clear error, no traceback
+        log.error("cannot load the dataset: %s", e)
+        return 2
     if ds.annotations is None:
         log.error("%s has no tasks.json: ablation needs ground-truth ROI", ds.path)
         return 2

@@ -13,7 +13,8 @@ log = logging.getLogger("gausslite.map")
 def add_mapping_args(p: argparse.ArgumentParser) -> None:
     """Arguments shared by ``map`` and ``ablate``: dataset selection and config overrides."""
     p.add_argument("--dataset", type=Path, default=None,
-                   help="sequence folder (Replica/TUM/7-Scenes layout); default: generate the synthetic scene")
+                   help="sequence folder (Replica/TUM/7-Scenes layout) or ROS bag (rosbag2 folder, .mcap, .db3, "
+                        ".bag); default: generate the synthetic scene")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (intrinsics scale too)")
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--stride", type=int, default=1, help="map every k-th frame; the others are held-out views")
@@ -34,17 +35,119 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
                    help="TUM only: interpolate ground-truth poses at the colour timestamps; on by default for "
                         "TUM, --no-interpolate-poses to opt out")
     p.add_argument("--no-progress", action="store_true")
+    add_bag_args(p)
+    add_depth_camera_args(p)
+
+
+#: ``--flag`` → BagOptions field
+BAG_FLAGS = {
+    "--rgb-topic": ("rgb_topic", str, "colour Image/CompressedImage topic (default: the bag's only colour topic)"),
+    "--depth-topic": ("depth_topic", str, "depth Image/CompressedImage topic (default: the only depth topic)"),
+    "--camera-info-topic": ("camera_info_topic", str, "colour CameraInfo topic (default: the one in the colour frame)"),
+    "--depth-camera-info-topic": ("depth_camera_info_topic", str,
+                                  "CameraInfo of an unregistered depth camera (depth is then registered to colour)"),
+    "--pose-topic": ("pose_topic", str, "PoseStamped/Odometry topic for poses (default: TF)"),
+    "--pose-child-frame": ("pose_child_frame", str, "frame whose pose a PoseStamped topic gives (default: the camera frame)"),
+    "--world-frame": ("world_frame", str, "world frame (default: map, else odom, else the TF root)"),
+    "--camera-frame": ("camera_frame", str, "camera optical frame (default: the colour image's frame_id)"),
+    "--max-depth-dt": ("max_depth_dt", float, "colour/depth association tolerance, seconds (default 0.02)"),
+    "--max-pose-dt": ("max_pose_dt", float, "pose tolerance at image stamps, seconds (default 0.05)"),
+}
+
+
+def add_bag_args(p: argparse.ArgumentParser) -> None:
+    """ROS bag options (``BagOptions``): used when ``--dataset`` is a bag."""
+    g = p.add_argument_group("ROS bag input (rosbag2 folder, .mcap, .db3 or ROS 1 .bag as --dataset)")
+    for flag, (dest, typ, help_) in BAG_FLAGS.items():
+        g.add_argument(flag, dest=dest, type=typ, default=None, help=help_)
+    g.add_argument("--no-bag-undistort", dest="bag_undistort", action="store_false", default=True,
+                   help="do not undistort bag images whose CameraInfo has distortion")
+
+
+def add_depth_camera_args(p: argparse.ArgumentParser) -> None:
+    """Unregistered depth for folder datasets: depth intrinsics + depth→colour extrinsic."""
+    g = p.add_argument_group("unregistered depth (folder datasets)")
+    g.add_argument("--color-intrinsics", default=None, metavar="FX,FY,CX,CY",
+                   help="override the colour intrinsics (TUM, 7-Scenes), e.g. 525,525,320,240 for 7-Scenes")
+    g.add_argument("--depth-intrinsics", default=None, metavar="FX,FY,CX,CY[,W,H]",
+                   help="depth files are not registered: their intrinsics (7-Scenes: 585,585,320,240)")
+    g.add_argument("--depth-extrinsic", default=None, metavar="TX,TY,TZ,QX,QY,QZ,QW",
+                   help="pose of the depth optical frame in the colour optical frame (m, quaternion xyzw); default identity")
+
+
+def _numbers(text: str, flag: str) -> list:
+    try:
+        return [float(v) for v in str(text).replace(" ", ",").split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+
+
+def bag_options_from_args(args: argparse.Namespace) -> dict:
+    """The BagOptions fields given on the command line (only those set)."""
+    out = {dest: getattr(args, dest) for dest, _t, _h in BAG_FLAGS.values() if getattr(args, dest, None) is not None}
+    if getattr(args, "bag_undistort", True) is False:
+        out["undistort"] = False
+    return out
+
+
+def dataset_kwargs(args: argparse.Namespace, path: Path) -> dict:
+    """Loader keyword arguments from the dataset's sensor profile (:mod:`gausslite.mapping.profiles`,
+    stored in ``args.profile`` for :func:`config_from_args`) and the dataset flags, checked against
+    the dataset layout. Flags win over the profile (``--no-undistort`` …).
+
+    Raises:
+        ValueError: a flag that does not apply to this layout, or malformed numbers.
+    """
+    from gausslite.datasets import detect_layout
+    from gausslite.datasets.registration import parse_depth_camera
+    from gausslite.mapping.profiles import profile_for_layout
+
+    kind = detect_layout(path)[0]
+    flags = {k: getattr(args, k, None) for k in ("undistort", "interpolate_poses")}
+    if any(v for v in flags.values()) and kind != "tum":
+        raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
+    profile = profile_for_layout(kind)
+    args.profile = profile  # read by config_from_args
+    kw: dict = dict(profile.loader)
+    kw.update({k: bool(v) for k, v in flags.items() if v is not None and kind == "tum"})
+    bag = bag_options_from_args(args)
+    if bag and kind != "bag":
+        raise ValueError(f"bag options ({', '.join('--' + k.replace('_', '-') for k in sorted(bag))}) apply to ROS "
+                         f"bags only, not the {kind} dataset {path}")
+    if bag:
+        kw["bag"] = bag
+    ci, di, de = (getattr(args, k, None) for k in ("color_intrinsics", "depth_intrinsics", "depth_extrinsic"))
+    if (ci or di or de) and kind not in ("tum", "7scenes", "replica"):
+        raise ValueError(f"--color-intrinsics/--depth-intrinsics/--depth-extrinsic apply to folder datasets; a bag "
+                         f"takes them from its CameraInfo topics and TF ({path})")
+    if ci:
+        if kind == "replica":
+            raise ValueError("--color-intrinsics: Replica intrinsics come from cam_params.json")
+        vals = _numbers(ci, "--color-intrinsics")
+        if len(vals) != 4:
+            raise ValueError(f"--color-intrinsics needs fx,fy,cx,cy, got {ci!r}")
+        kw["intrinsics"] = vals
+    if de and not di:
+        raise ValueError("--depth-extrinsic needs --depth-intrinsics")
+    if di:
+        dvals = _numbers(di, "--depth-intrinsics")
+        size = None
+        if len(dvals) == 4:  # same size as the colour images
+            from gausslite.datasets import load_dataset
+
+            probe = load_dataset(path, max_frames=1, **{k: v for k, v in kw.items() if k != "bag"})
+            size = (probe.native_intrinsics.width, probe.native_intrinsics.height)
+        kw["depth_camera"] = parse_depth_camera(dvals, _numbers(de, "--depth-extrinsic") if de else None, size)
+    return kw
 
 
 def resolve_dataset(args: argparse.Namespace, out: Path):
     """Load ``--dataset``, or generate the synthetic default scene into ``out/scene`` (agent_a).
 
-    The dataset's layout picks a sensor profile (:mod:`gausslite.mapping.profiles`): its loader
-    options apply unless a flag says otherwise, and it is stored in ``args.profile`` for
-    :func:`config_from_args`. The chosen profile is logged and printed.
+    The dataset's layout picks a sensor profile (see :func:`dataset_kwargs`); the chosen profile is
+    logged and printed.
     """
-    from gausslite.datasets import detect_layout, load_dataset
-    from gausslite.mapping.profiles import profile_for_layout
+    from gausslite.datasets import load_dataset
 
     path = args.dataset
     if path is None:
@@ -55,18 +158,13 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
             log.info("no --dataset: generating the synthetic default scene in %s", scene_dir)
             make_scene(scene_dir)
         path = scene_dir / "agent_a"
-    layout = detect_layout(path)[0]
-    flags = {k: getattr(args, k, None) for k in ("undistort", "interpolate_poses")}
-    if any(v for v in flags.values()) and layout != "tum":
-        raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
-    profile = profile_for_layout(layout)
-    loader_kw = dict(profile.loader)
-    loader_kw.update({k: bool(v) for k, v in flags.items() if v is not None and layout == "tum"})
-    args.profile = profile
-    msg = f"profile: {profile.name} ({profile.description}); loader {loader_kw or 'defaults'}; mapper {profile.mapper or 'defaults'}"
+    kw = dataset_kwargs(args, path)
+    profile = args.profile
+    msg = (f"profile: {profile.name} ({profile.description}); loader "
+           f"{ {k: v for k, v in kw.items() if k != 'bag'} or 'defaults'}; mapper {profile.mapper or 'defaults'}")
     log.info("%s", msg)
     print(msg, flush=True)
-    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **loader_kw)
+    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **kw)
 
 
 def config_from_args(args: argparse.Namespace, **extra):
@@ -82,11 +180,13 @@ def config_from_args(args: argparse.Namespace, **extra):
 
 
 def _handler(args: argparse.Namespace) -> int:
-    from gausslite.pipeline import run_mapping
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ds = resolve_dataset(args, out)
+    try:
+        ds = resolve_dataset(args, out)
+    except (ValueError, FileNotFoundError) as e:  # bad dataset / bag: one clear error, no traceback
+        log.error("cannot load the dataset: %s", e)
+        return 2
     try:
         cfg = config_from_args(args, mode=args.mode)
     except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
@@ -98,6 +198,8 @@ def _handler(args: argparse.Namespace) -> int:
             return 2
         args.task_id = ds.annotations.tasks[0].id
         log.info("no --task-id given: using the first task, %s", args.task_id)
+    from gausslite.pipeline import run_mapping  # torch + warp: imported once the inputs are valid
+
     log.info("mapping %s (%d frames, %dx%d) mode=%s task=%s", ds.path, len(ds),
              ds.intrinsics.width, ds.intrinsics.height, cfg.mode, args.task_id)
     _, metrics = run_mapping(ds, cfg, task_id=args.task_id, stride=args.stride, out_dir=out,

@@ -37,7 +37,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("sim", help="local two-agent simulation with fusion and a report",
                               description=__doc__.split("\n\n")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--dataset", default=None, help="scene folder (default: generate the synthetic scene)")
+    p.add_argument("--dataset", default=None,
+                   help="scene folder or ROS bag with objects.json/tasks.json beside it (default: generate the "
+                        "synthetic scene)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", default=None, help="GaussLite YAML (default deploy/gausslite.yaml)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -53,6 +55,9 @@ def register(subparsers) -> None:
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
                    help="drive running services instead of starting processes (parser=..,fusion_server=..,"
                         "agent_a=..,agent_b=..; the compose 'report' service uses this)")
+    from gausslite.cli.cmd_map import add_bag_args
+
+    add_bag_args(p)  # shortcuts for agent.bag.<field>
     p.set_defaults(func=_handle)
     _extend_serve(subparsers)
 
@@ -100,6 +105,9 @@ def _handle(args: argparse.Namespace) -> int:
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
         if getattr(args, flag) is not None:
             overrides.append(f"{key}={getattr(args, flag)}")
+    from gausslite.cli.cmd_map import bag_options_from_args
+
+    overrides += [f"agent.bag.{k}={v}" for k, v in bag_options_from_args(args).items()]
     if args.iters is not None and not any(o.startswith("mapper.warmup_iters=") for o in overrides):
         overrides.append(f"mapper.warmup_iters={max(0, args.iters // 3)}")
     tasks = [t.strip() for t in args.tasks.split(",")] if args.tasks else None

@@ -1,4 +1,4 @@
-"""RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes) and scene annotations.
+"""RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes, ROS bags) and scene annotations.
 
 Every loader is an :class:`RGBDDataset` yielding :class:`Frame` objects lazily; ``load_dataset`` picks
 the loader from the folder layout. ``dataset.annotations`` is a :class:`SceneAnnotations` or None.
@@ -22,6 +22,8 @@ from gausslite.datasets.loader import (
     read_depth,
     read_rgb,
 )
+from gausslite.datasets.bag import BagDataset, BagError, BagOptions
+from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.datasets.replica import ReplicaDataset
 from gausslite.datasets.sevenscenes import SevenScenesDataset
 from gausslite.datasets.tum import TUMDataset
@@ -33,6 +35,11 @@ __all__ = [
     "ReplicaDataset",
     "TUMDataset",
     "SevenScenesDataset",
+    "BagDataset",
+    "BagOptions",
+    "BagError",
+    "DepthCamera",
+    "register_depth",
     "load_dataset",
     "detect_layout",
     "downscale_rgb",

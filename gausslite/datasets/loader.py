@@ -1,6 +1,6 @@
 """Dataset factory plus the image I/O, validation and downscaling shared by every loader.
 
-``load_dataset`` detects the on-disk layout (Replica / NICE-SLAM, TUM RGB-D, 7-Scenes) and builds the
+``load_dataset`` detects the on-disk layout (Replica / NICE-SLAM, TUM RGB-D, 7-Scenes, ROS bags) and builds the
 matching :class:`~gausslite.datasets.base.RGBDDataset`. The helpers here (``read_rgb``, ``read_depth``,
 ``downscale_rgb``, ``downscale_depth``, ``PosedImageDataset``) are used by the per-format modules.
 
@@ -32,6 +32,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame, RGBDDataset
+from gausslite.datasets.registration import DepthCamera, register_depth
 
 
 PathLike = Union[str, Path]
@@ -276,6 +277,7 @@ class PosedImageDataset(RGBDDataset):
         downscale: Union[int, float] = 1,
         invalid_depth_values: Sequence[int] = (),
         annotations: Optional[object] = None,
+        depth_camera: Optional["DepthCamera"] = None,
     ) -> None:
         n = len(rgb_paths)
         if not (len(depth_paths) == len(poses) == len(timestamps) == len(frame_ids) == len(frame_names) == n):
@@ -296,6 +298,14 @@ class PosedImageDataset(RGBDDataset):
         self.depth_scale = float(depth_scale)
         self.invalid_depth_values = tuple(invalid_depth_values)
         self.annotations = annotations
+        if depth_camera is not None and not isinstance(depth_camera, DepthCamera):
+            raise ValueError(f"depth_camera must be a DepthCamera, got {type(depth_camera).__name__}")
+        #: unregistered depth camera (intrinsics + extrinsic); depth is registered to colour on load
+        self.depth_camera = depth_camera
+
+    def _color_camera(self) -> Tuple[Intrinsics, Optional[Sequence[float]]]:
+        """Intrinsics and distortion of the colour files on disk (the registration target)."""
+        return self.native_intrinsics, None
 
     def __len__(self) -> int:
         """Number of (selected) frames."""
@@ -319,6 +329,12 @@ class PosedImageDataset(RGBDDataset):
         rp, dp = self.rgb_paths[i], self.depth_paths[i]
         rgb = read_rgb(rp)
         depth = read_depth(dp, self.depth_scale, self.invalid_depth_values)
+        if self.depth_camera is not None:
+            ci, cdist = self._color_camera()
+            try:
+                depth = register_depth(depth, self.depth_camera, ci, cdist)
+            except ValueError as e:
+                raise ValueError(f"{dp}: {e}") from None
         if rgb.shape[:2] != depth.shape:
             raise ValueError(
                 f"colour/depth size mismatch: {rp} is {rgb.shape[1]}x{rgb.shape[0]}, "
@@ -368,7 +384,8 @@ def _is_seven(p: Path) -> bool:
 def detect_layout(path: PathLike) -> Tuple[str, Path]:
     """Detect the dataset layout of a folder.
 
-    Rules, in order: ``results/frameNNNNNN.*`` + ``traj.txt`` -> ``"replica"``; ``rgb.txt`` +
+    Rules, in order: a ROS bag (rosbag2 folder with ``metadata.yaml``, ``.mcap``, ``.db3`` or ``.bag``
+    file) -> ``"bag"``; ``results/frameNNNNNN.*`` + ``traj.txt`` -> ``"replica"``; ``rgb.txt`` +
     ``depth.txt`` + ``groundtruth.txt`` -> ``"tum"``; ``frame-NNNNNN.color.*`` -> ``"7scenes"``. A folder
     holding ``cam_params.json`` and exactly one Replica sequence sub-folder (e.g. ``Replica_room0``)
     resolves to that sub-folder.
@@ -380,7 +397,11 @@ def detect_layout(path: PathLike) -> Tuple[str, Path]:
         FileNotFoundError: ``path`` is not a folder.
         ValueError: no known layout (the message lists what was looked for).
     """
+    from gausslite.ros.bagio import is_bag_path
+
     p = Path(path)
+    if is_bag_path(p):
+        return "bag", p
     if not p.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {p}")
     if _is_replica(p):
@@ -394,7 +415,8 @@ def detect_layout(path: PathLike) -> Tuple[str, Path]:
         return "replica", subs[0]
     raise ValueError(
         f"{p}: unknown dataset layout; expected Replica (results/frameNNNNNN.jpg + traj.txt), "
-        f"TUM RGB-D (rgb.txt, depth.txt, groundtruth.txt) or 7-Scenes (frame-NNNNNN.color.png)"
+        f"TUM RGB-D (rgb.txt, depth.txt, groundtruth.txt), 7-Scenes (frame-NNNNNN.color.png) or a ROS bag "
+        f"(rosbag2 folder with metadata.yaml, .mcap, .db3, .bag)"
     )
 
 
@@ -406,6 +428,9 @@ _KINDS = {
     "7scenes": "7scenes",
     "7-scenes": "7scenes",
     "sevenscenes": "7scenes",
+    "bag": "bag",
+    "rosbag": "bag",
+    "rosbag2": "bag",
 }
 
 
@@ -415,6 +440,7 @@ def load_dataset(
     downscale: Union[int, float] = 1,
     max_frames: Optional[int] = None,
     stride: int = 1,
+    bag: Optional[object] = None,
     **kw,
 ) -> RGBDDataset:
     """Open an RGB-D sequence, detecting its layout when ``kind == "auto"``.
@@ -422,12 +448,15 @@ def load_dataset(
     Args:
         path: sequence folder (for Replica, the parent holding ``cam_params.json`` and a single
             sequence folder is accepted too).
-        kind: ``"auto"``, ``"replica"``, ``"tum"`` or ``"7scenes"`` (aliases ``"sevenscenes"``,
+        kind: ``"auto"``, ``"replica"``, ``"tum"``, ``"7scenes"`` or ``"bag"`` (aliases ``"rosbag"``, ``"rosbag2"``, ``"sevenscenes"``,
             ``"7-scenes"``, ``"tum-rgbd"``, ``"nice-slam"``).
         downscale: factor >= 1 applied to images and intrinsics.
         max_frames: keep at most this many frames (after ``stride``).
         stride: keep every ``stride``-th frame.
-        **kw: passed to the loader (``ReplicaDataset``, ``TUMDataset``, ``SevenScenesDataset``).
+        bag: ``BagOptions`` or dict (topics, frames, tolerances) used when the path is a ROS bag; a
+            non-empty value for another layout is an error.
+        **kw: passed to the loader (``ReplicaDataset``, ``TUMDataset``, ``SevenScenesDataset``,
+            ``BagDataset``); ``depth_camera`` (a ``DepthCamera``) registers unregistered depth files.
 
     Returns:
         The dataset, with ``.annotations`` set (None when the folder has no annotation files).
@@ -436,6 +465,7 @@ def load_dataset(
         FileNotFoundError: missing folder or files. ValueError: unknown ``kind``, unknown layout, or
         invalid content (see each loader).
     """
+    from gausslite.datasets.bag import BagDataset
     from gausslite.datasets.replica import ReplicaDataset
     from gausslite.datasets.sevenscenes import SevenScenesDataset
     from gausslite.datasets.tum import TUMDataset
@@ -447,5 +477,10 @@ def load_dataset(
         k = _KINDS.get(str(kind).lower())
         if k is None:
             raise ValueError(f"unknown dataset kind {kind!r}; use 'auto' or one of {sorted(set(_KINDS))}")
+    if k == "bag":
+        return BagDataset(p, downscale=downscale, max_frames=max_frames, stride=stride, options=bag, **kw)
+    bag_opts = bag.model_dump(exclude_defaults=True) if hasattr(bag, "model_dump") else dict(bag or {})
+    if bag_opts:
+        raise ValueError(f"{p}: bag options ({', '.join(sorted(bag_opts))}) apply to ROS bags only, not a {k} dataset")
     cls = {"replica": ReplicaDataset, "tum": TUMDataset, "7scenes": SevenScenesDataset}[k]
     return cls(p, downscale=downscale, max_frames=max_frames, stride=stride, **kw)

@@ -26,6 +26,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.loader import PosedImageDataset, select_indices
 
 __all__ = ["ReplicaDataset", "read_cam_params", "read_traj"]
@@ -118,6 +119,8 @@ class ReplicaDataset(PosedImageDataset):
         cam_params: explicit ``cam_params.json`` path (default: sequence folder, then parent).
         depth_scale: override for the ``scale`` of ``cam_params.json`` (raw units per metre).
         fps: frame rate used to make timestamps (``frame_id / fps``); Replica has no clock.
+        depth_camera: ``DepthCamera`` when the depth files are not registered to colour; depth is
+            registered on load.
 
     Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``annotations`` is loaded
     from ``objects.json``/``tasks.json`` in the sequence folder or its parent (None when absent).
@@ -138,6 +141,7 @@ class ReplicaDataset(PosedImageDataset):
         cam_params: Optional[Union[str, Path]] = None,
         depth_scale: Optional[float] = None,
         fps: float = 30.0,
+        depth_camera: Optional[DepthCamera] = None,
     ) -> None:
         seq = Path(path)
         if not seq.is_dir():
@@ -196,5 +200,6 @@ class ReplicaDataset(PosedImageDataset):
             depth_scale=scale,
             downscale=downscale,
             annotations=load_annotations(seq),
+            depth_camera=depth_camera,
         )
         self.cam_params_path = Path(cam_params)

@@ -25,6 +25,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.loader import PosedImageDataset, select_indices
 
 __all__ = ["SevenScenesDataset", "SEVEN_SCENES_INTRINSICS", "read_matrix_file"]
@@ -83,6 +84,8 @@ class SevenScenesDataset(PosedImageDataset):
         image_size: ``(width, height)`` of the images, used with a 3x3 ``K`` file or a tuple override.
         depth_scale: raw depth units per metre (1000: millimetres).
         fps: frame rate for timestamps (``frame_id / fps``).
+        depth_camera: ``DepthCamera`` when the depth files are not registered to colour (e.g. 7-Scenes'
+            Kinect depth at fx = fy = 585 with colour taken at 525); depth is registered on load.
 
     Raises:
         FileNotFoundError: missing folder, no colour frames, or a frame without depth/pose file.
@@ -101,6 +104,7 @@ class SevenScenesDataset(PosedImageDataset):
         image_size: Tuple[int, int] = (640, 480),
         depth_scale: float = 1000.0,
         fps: float = 30.0,
+        depth_camera: Optional[DepthCamera] = None,
     ) -> None:
         seq = Path(path)
         if not seq.is_dir():
@@ -172,4 +176,5 @@ class SevenScenesDataset(PosedImageDataset):
             downscale=downscale,
             invalid_depth_values=(65535,),
             annotations=load_annotations(seq),
+            depth_camera=depth_camera,
         )

@@ -39,7 +39,9 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.loader import PosedImageDataset, select_indices
+from gausslite.ros.transforms import quat_to_rot, slerp
 
 log = logging.getLogger(__name__)
 
@@ -116,22 +118,6 @@ def read_file_list(path: Path) -> Tuple[np.ndarray, List[str]]:
     return np.asarray(ts, dtype=np.float64), names
 
 
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit Hamilton quaternion ``(qx, qy, qz, qw)`` (scalar last).
-
-    Returns:
-        (3, 3) float64 (the input is normalised first).
-    """
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def read_groundtruth(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray, List[int]]:
     """Parse ``groundtruth.txt`` ("timestamp tx ty tz qx qy qz qw", '#' comments).
 
@@ -191,18 +177,6 @@ def associate_nearest(query: np.ndarray, ref_sorted: np.ndarray) -> Tuple[np.nda
     return idx, np.abs(ref_sorted[idx] - query)
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + t * (q1 - q0)
-    else:
-        th = math.acos(d)
-        q = (math.sin((1 - t) * th) * q0 + math.sin(t * th) * q1) / math.sin(th)
-    return q / np.linalg.norm(q)
-
-
 class TUMDataset(PosedImageDataset):
     """TUM RGB-D sequence (see the module docstring for association, intrinsics and distortion).
 
@@ -219,6 +193,8 @@ class TUMDataset(PosedImageDataset):
         undistort: undistort images with ``distortion`` (default: the published Freiburg coefficients)
             onto the alpha=0 optimal new pinhole camera (see the module docstring).
         distortion: override ``(k1, k2, p1, p2, k3)``.
+        depth_camera: ``DepthCamera`` when the depth files are not registered to colour (registered into
+            the raw colour camera, with its distortion, before undistortion).
 
     Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``freiburg`` (1/2/3/None),
     ``distortion`` (5-tuple), ``n_dropped`` (colour frames without depth or pose match);
@@ -244,6 +220,7 @@ class TUMDataset(PosedImageDataset):
         interpolate_poses: bool = False,
         undistort: bool = False,
         distortion: Optional[Sequence[float]] = None,
+        depth_camera: Optional[DepthCamera] = None,
     ) -> None:
         seq = Path(path)
         if not seq.is_dir():
@@ -342,6 +319,7 @@ class TUMDataset(PosedImageDataset):
             depth_scale=depth_scale,
             downscale=downscale,
             annotations=load_annotations(seq),
+            depth_camera=depth_camera,
         )
         self._maps = None
 
@@ -352,7 +330,11 @@ class TUMDataset(PosedImageDataset):
         if j <= 0 or j >= len(gt_ts) or gt_ts[j] == gt_ts[j - 1]:
             return gt_t[g], gt_q[g]
         a = (t_q - gt_ts[j - 1]) / (gt_ts[j] - gt_ts[j - 1])
-        return (1 - a) * gt_t[j - 1] + a * gt_t[j], _slerp(gt_q[j - 1], gt_q[j], a)
+        return (1 - a) * gt_t[j - 1] + a * gt_t[j], slerp(gt_q[j - 1], gt_q[j], a)
+
+    def _color_camera(self):
+        """The colour files are distorted: register unregistered depth into the raw camera with its distortion."""
+        return self.raw_intrinsics, (self.distortion if any(self.distortion) else None)
 
     def _preprocess(self, rgb: np.ndarray, depth: np.ndarray, i: int):
         """Undistort colour (bilinear) and depth (nearest, keeps values) when ``undistort=True``."""

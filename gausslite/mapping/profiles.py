@@ -39,11 +39,12 @@ HANDHELD = SensorProfile(
 )
 HANDHELD_PINHOLE = SensorProfile(
     "handheld",
-    "hand-held RGB-D without published distortion (7-Scenes): a final pass over every keyframe",
+    "hand-held RGB-D without published distortion (7-Scenes) or undistorted by its loader from CameraInfo "
+    "(ROS bags): a final pass over every keyframe",
     mapper={"final_iters_per_keyframe": 5.0},
 )
 
-_BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE}
+_BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE, "bag": HANDHELD_PINHOLE}
 
 
 def profile_for_layout(layout: str) -> SensorProfile:

@@ -35,6 +35,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
+from gausslite.datasets.bag import BagOptions
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig, apply_overrides
 
@@ -51,6 +52,8 @@ class AgentConfig(BaseModel):
         kappa_threshold: κ threshold for ``share: kappa``.
         push_every: push a subset every this many mapped frames (and always at the end).
         downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
+        bag: ROS bag options (topics, frames, tolerances; ``gausslite.datasets.bag.BagOptions``) for a
+            replayed bag, e.g. ``agent.bag.rgb_topic=/camera/color/image_raw``; ignored for folders.
         queue_size: frames buffered between the stream and the mapping worker.
         keyframe_every: every k-th mapped frame is uploaded as a keyframe for the fusion refinement.
         max_keyframes: keep at most this many keyframes for upload (older ones dropped first).
@@ -74,6 +77,7 @@ class AgentConfig(BaseModel):
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
     stride: int = Field(1, ge=1)
+    bag: BagOptions = BagOptions()
     queue_size: int = Field(4, ge=1)
     keyframe_every: int = Field(2, ge=1)
     max_keyframes: int = Field(64, ge=1)

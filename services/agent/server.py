@@ -187,7 +187,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
             dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
-                                   stride=cfg.stride)
+                                   stride=cfg.stride, bag=cfg.bag)
             annotations = dataset.annotations
         ann_path = annotations_path or (s.annotations_path if not dataset_path else "")
         if ann_path:
