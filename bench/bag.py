@@ -168,7 +168,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
     ap.add_argument("--reg-frames", type=int, default=8)
     ap.add_argument("--reg-downscale", type=float, default=2.0)
     ap.add_argument("--iters", type=int, default=20)
-    ap.add_argument("--seeds", type=int, default=1000)
+    ap.add_argument("--seeds-per-frame", dest="seeds", type=int, default=1000, help="new Gaussians per frame")
     ap.add_argument("--out", type=Path, default=RESULTS / "bag.json")
     a = ap.parse_args(argv)
     if a.quick:
