@@ -169,6 +169,7 @@ class Mapper:
         self.stats: list[FrameStats] = []
         #: resolved Gaussian budget (``max_gaussians`` or per-pixel rule at the first frame)
         self.budget: Optional[int] = cfg.max_gaussians
+        self.n_idle_iters = 0  # iterations of optimize() between keyframes
         self._reset_densify_stats()
 
     # ------------------------------------------------------------------ map access
@@ -339,12 +340,17 @@ class Mapper:
             self.model.kappa[self.model.active] += 1
         return float(loss.detach())
 
-    def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None) -> FrameStats:
+    def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None,
+                  time_budget_s: Optional[float] = None) -> FrameStats:
         """Seed and optimise for one posed RGB-D frame.
 
         Args:
             frame: the frame (its pose is trusted).
             relevance: (H, W) bool relevance map w for this frame, or None (no ROI).
+            time_budget_s: wall-clock budget of this call in seconds (seeding included); None →
+                ``cfg.keyframe_budget_s``; both None → ``cfg.iters_per_frame`` iterations (offline
+                ``map``/``ablate``). With a budget, iterations run until it is spent (at least one; the
+                last one may overrun by one iteration's time); the first ``warmup_iters`` are full-image.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
@@ -363,7 +369,7 @@ class Mapper:
         active_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
-        for it in range(cfg.iters_per_frame):
+        for it in self._iterations(t0, time_budget_s):
             view = self._pick_view(kf)
             active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
             loss = self._iterate(view, active_phase)
@@ -378,8 +384,107 @@ class Mapper:
         self.stats.append(st)
         return st
 
+    def _iterations(self, t0: float, time_budget_s: Optional[float]):
+        """Iteration indices of one ``map_frame`` call: a fixed count, or as many as fit the budget."""
+        budget = self.cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
+        if budget is None:
+            yield from range(self.cfg.iters_per_frame)
+            return
+        it = 0
+        while it == 0 or time.perf_counter() - t0 < budget:
+            yield it
+            it += 1
+
+    def optimize(self, max_seconds: Optional[float] = None, n_iters: Optional[int] = None) -> int:
+        """Keep optimising between keyframes (MVO over the stored keyframes; paper III-D.2).
+
+        Views are drawn uniformly from all keyframes. The phase schedule continues across calls like
+        ``map_frame``'s: in every run of ``iters_per_frame`` idle iterations the first ``warmup_iters`` are
+        full-image, the rest ROI-phase (GaussLite with ROI and an active subset); density control runs
+        every ``densify.every`` idle iterations.
+
+        Args:
+            max_seconds: stop once this much wall time passed (at least one iteration runs).
+            n_iters: stop after this many iterations. At least one of the two must be given.
+        Returns:
+            number of iterations done (0 when there is no keyframe yet).
+        Raises:
+            ValueError: neither bound given, or a bound that is not > 0.
+        """
+        if max_seconds is None and n_iters is None:
+            raise ValueError("optimize needs max_seconds or n_iters")
+        if (max_seconds is not None and not max_seconds > 0) or (n_iters is not None and n_iters < 1):
+            raise ValueError(f"optimize bounds must be > 0, got max_seconds={max_seconds}, n_iters={n_iters}")
+        views = self.keyframes or list(self.window)
+        if not views or len(self.model) == 0:
+            return 0
+        cfg, sw = self.cfg, self.cfg.effective()
+        t0 = time.perf_counter()
+        done = 0
+        while (n_iters is None or done < n_iters) and (done == 0 or max_seconds is None
+                                                         or time.perf_counter() - t0 < max_seconds):
+            view = views[int(self.rng.integers(len(views)))]
+            phase = self.n_idle_iters % cfg.iters_per_frame
+            active_phase = (sw.roi and phase >= cfg.warmup_iters and view.roi is not None
+                            and bool(self.model.active.any()))
+            self._iterate(view, active_phase)
+            self.n_idle_iters += 1
+            done += 1
+            if cfg.densify.enabled and self.n_idle_iters % cfg.densify.every == 0:
+                self._densify_and_prune()
+        return done
+
     def finalize(self) -> None:
         """Optional extra iterations over all keyframes (``final_iters``), full image, all Gaussians."""
         for _ in range(self.cfg.final_iters):
             kf = self.keyframes[int(self.rng.integers(len(self.keyframes)))]
             self._iterate(kf, active_phase=False)
+
+    # ------------------------------------------------------------------ checkpoint / resume
+    def checkpoint_state(self) -> dict:
+        """CPU copy of what a restarted online mapper needs: the Gaussians (with κ and active flags), the
+        keyframe window and stored keyframes, counters, budget and RNG state (not the Adam moments: a
+        resumed mapper restarts them at zero, as for newly seeded Gaussians). ``torch.save``-able.
+        """
+        import dataclasses
+
+        def kf_state(kf: Keyframe) -> dict:
+            d = {f.name: getattr(kf, f.name) for f in dataclasses.fields(kf)}
+            return {k: (v.detach().cpu().clone() if torch.is_tensor(v) else v) for k, v in d.items()}
+
+        g = self.model.to_map().to("cpu")
+        win_ids = {id(k) for k in self.window}
+        kfs = [kf_state(k) for k in self.keyframes]
+        extra = [kf_state(k) for k in self.window if all(k is not s for s in self.keyframes)]
+        return {
+            "gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
+                                                             "colors", "active", "kappa")},
+            "keyframes": kfs, "window_extra": extra,
+            "window_index": [i for i, k in enumerate(self.keyframes) if id(k) in win_ids],
+            "window_order": [k.frame_id for k in self.window],
+            "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
+            "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
+        }
+
+    def restore_state(self, state: dict) -> None:
+        """Load a :meth:`checkpoint_state` dict (replaces the map, keyframes and counters).
+
+        Raises:
+            KeyError / ValueError: a state dict that lacks fields or holds inconsistent shapes.
+        """
+        g = GaussianMap(**{k: v.to(self.device) for k, v in state["gaussians"].items()})
+        self.model.set_map(g)
+
+        def kf(d: dict) -> Keyframe:
+            return Keyframe(**{k: (v.to(self.device) if torch.is_tensor(v) else v) for k, v in d.items()})
+
+        self.keyframes = [kf(d) for d in state["keyframes"]]
+        pool = {k.frame_id: k for k in [kf(d) for d in state["window_extra"]]}
+        pool.update({self.keyframes[i].frame_id: self.keyframes[i] for i in state["window_index"]})
+        self.window = deque((pool[f] for f in state["window_order"] if f in pool), maxlen=self.cfg.window)
+        self.n_mapped = int(state["n_mapped"])
+        self.n_idle_iters = int(state["n_idle_iters"])
+        self.budget = state["budget"]
+        self._roi_iters = int(state["roi_iters"])
+        self.rng.bit_generator.state = state["rng"]
+        self._reset_densify_stats()
