@@ -196,8 +196,14 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if dataset_path:
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
+            kw = {}
+            if cfg.fps is not None:  # replay clock of datasets without timestamps (TUM keeps its own)
+                from gausslite.datasets.loader import detect_layout
+
+                if detect_layout(dataset_path)[0] in ("replica", "7scenes"):
+                    kw["fps"] = cfg.fps
             dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
-                                   stride=cfg.stride)
+                                   stride=cfg.stride, **kw)
             annotations = dataset.annotations
         ann_path = annotations_path or (s.annotations_path if not dataset_path else "")
         if ann_path:
