@@ -374,3 +374,43 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
                 proc.wait(30)
         log.close()
         fusion.stop(0)
+
+
+def test_validate_frame_reads_headers_and_defers_decoding(scene):
+    import cv2
+
+    from services.agent.frames import FrameError, validate_frame
+
+    fr = load_dataset(scene / "agent_a")[0]
+    for fmt in (".png", ".jpg"):
+        msg = encode_frame(fr, "m", color_format=fmt)
+        pf = validate_frame(msg)
+        assert (pf.frame_id, pf.intrinsics.width, pf.intrinsics.height) == (fr.frame_id, 64, 48)
+        np.testing.assert_allclose(pf.c2w, fr.c2w)
+        assert pf.materialize().rgb.shape == (48, 64, 3)
+    msg = encode_frame(fr, "m", color_format=".jpg")
+    cases = {
+        "8-bit RGB": cv2.imencode(".jpg", np.zeros((48, 64), np.uint8))[1].tobytes(),  # grey JPEG
+        "colour is 32x48": cv2.imencode(".png", np.zeros((48, 32, 3), np.uint8))[1].tobytes(),
+        "not a decodable": b"GIF89a....",
+    }
+    for want, data in cases.items():
+        bad = agent_pb2.FrameMsg(); bad.CopyFrom(msg); bad.color = data
+        with pytest.raises(FrameError, match=want):
+            validate_frame(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(msg); bad.depth = cv2.imencode(".png", np.zeros((48, 64), np.uint8))[1].tobytes()
+    with pytest.raises(FrameError, match="16-bit"):
+        validate_frame(bad)
+    # a valid header in front of corrupt data passes the accept path and fails at decoding
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(msg); bad.color = msg.color[:200]
+    pf = validate_frame(bad)
+    with pytest.raises(FrameError):
+        pf.materialize()
+    cfg = load_agent_config(None, TINY)
+    rt = AgentRuntime("r", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
+                      relevance_fn=lambda f: None)
+    assert rt.submit(pf) is True
+    rt.wait_mapped(30)
+    st = rt.status()
+    assert st["frames_rejected"] == 1 and st["frames_mapped"] == 0 and "rejected frame" in st["last_error"]
+    rt.close()

@@ -352,6 +352,7 @@ class AgentRuntime:
         self._online = config.ingest == "keyframes"  # replay() sets it from config.realtime
         self.frames_keyframed = 0
         self.frames_skipped = 0
+        self.frames_rejected = 0
         self.idle_iterations = 0
         self.checkpoints = 0
         self.resumed_keyframes = 0
@@ -427,7 +428,10 @@ class AgentRuntime:
         skipped. Every-frame ingest queues the frame and blocks while the queue is full.
 
         Args:
-            frame: the decoded frame. timeout: every-frame ingest only: how long to wait for queue space.
+            frame: the decoded frame, or a validated not yet decoded one (an object with ``frame_id``,
+                ``c2w``, ``intrinsics`` and ``materialize() -> Frame``, e.g.
+                :class:`services.agent.frames.PendingFrame`; decoded by the worker if it becomes a keyframe).
+                timeout: every-frame ingest only: how long to wait for queue space.
             arrival: ``time.perf_counter()`` when the frame arrived (before decoding); the accept latency
                 (arrival → accepted, ``accept_latency_ms_p99``) and keyframe latency (arrival → mapped)
                 are measured from it (default: now).
@@ -573,9 +577,19 @@ class AgentRuntime:
                 self._queue.task_done()
 
     def _map_one(self, item: Frame, t_arrival: float) -> None:
-        """Map one keyframe (worker thread): relevance, mapper, counters, pushes, checkpoint."""
+        """Map one keyframe (worker thread): decode (a ``PendingFrame`` of a live stream), relevance, mapper,
+        counters, pushes, checkpoint. Corrupt image data found only now is logged and counted as rejected."""
         cfg = self.config
         t0 = time.perf_counter()
+        if hasattr(item, "materialize"):
+            try:
+                item = item.materialize()
+            except ValueError as e:
+                log.warning("agent %s mission %s: frame rejected at decoding: %s", self.agent_id, self.mission_id, e)
+                with self._lock:
+                    self.frames_rejected += 1
+                    self.last_error = f"rejected frame: {e}"
+                return
         try:
             w = self._relevance_fn(item)
             st = self.mapper.map_frame(item, w)
@@ -773,7 +787,7 @@ class AgentRuntime:
                 "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
-                "resumed_keyframes": self.resumed_keyframes,
+                "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
             }
 
     def wait_mapped(self, timeout_s: Optional[float] = None) -> bool:

@@ -33,7 +33,7 @@ from typing import Dict, List, Optional
 import grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
-from services.agent.frames import FrameError, decode_frame
+from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
 
@@ -283,7 +283,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                               f"{rt.mission_id!r}")
             t_arrival = time.perf_counter()
             try:
-                frame = decode_frame(msg)
+                # keyframe ingest decodes a frame's images only if it becomes a keyframe (worker thread)
+                frame = validate_frame(msg) if rt.config.ingest == "keyframes" else decode_frame(msg)
             except FrameError as e:
                 log.warning("agent %s mission %s: rejected frame: %s", rt.agent_id, rt.mission_id, e)
                 context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
