@@ -77,16 +77,9 @@ def encode_frame(frame: Frame, mission_id: str = "", color_format: str = ".png",
         intrinsics=intrinsics_to_proto(frame.intrinsics))
 
 
-def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
-    """Validate and decode one ``FrameMsg``.
-
-    Returns:
-        Frame with rgb (H,W,3) uint8, depth (H,W) float32 metres, c2w (4,4) float64.
-    Raises:
-        FrameError: missing/undecodable colour or depth, shapes that disagree with the intrinsics or each
-            other, a depth PNG that is not 16-bit single-channel, a non-positive/non-finite depth scale,
-            a pose that is not 16 finite numbers forming a rigid transform.
-    """
+def _check_meta(msg: agent_pb2.FrameMsg):
+    """(frame id, Intrinsics, rigid c2w (4, 4) float64) of a message whose intrinsics, pose, depth scale
+    and image presence are valid. Raises FrameError naming the problem."""
     fid = int(msg.frame_id)
     if not msg.HasField("intrinsics"):
         raise FrameError(f"frame {fid}: intrinsics missing")
@@ -107,6 +100,21 @@ def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
         raise FrameError(f"frame {fid}: colour image missing")
     if not msg.depth:
         raise FrameError(f"frame {fid}: depth image missing")
+    return fid, intr, c2w
+
+
+def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
+    """Validate and decode one ``FrameMsg``.
+
+    Returns:
+        Frame with rgb (H,W,3) uint8, depth (H,W) float32 metres, c2w (4,4) float64.
+    Raises:
+        FrameError: missing/undecodable colour or depth, shapes that disagree with the intrinsics or each
+            other, a depth PNG that is not 16-bit single-channel, a non-positive/non-finite depth scale,
+            a pose that is not 16 finite numbers forming a rigid transform.
+    """
+    fid, intr, c2w = _check_meta(msg)
+    W, H = intr.width, intr.height
     bgr = cv2.imdecode(np.frombuffer(msg.color, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None:
         raise FrameError(f"frame {fid}: colour bytes are not a decodable JPEG/PNG image")
@@ -199,26 +207,8 @@ def validate_frame(msg: agent_pb2.FrameMsg) -> PendingFrame:
     Raises:
         FrameError: the same problems as :func:`decode_frame` reports from headers alone.
     """
-    fid = int(msg.frame_id)
-    if not msg.HasField("intrinsics"):
-        raise FrameError(f"frame {fid}: intrinsics missing")
-    intr = intrinsics_from_proto(msg.intrinsics)
+    fid, intr, c2w = _check_meta(msg)
     W, H = intr.width, intr.height
-    if len(msg.c2w) != 16:
-        raise FrameError(f"frame {fid}: c2w must have 16 numbers (row-major 4x4), got {len(msg.c2w)}")
-    c2w = np.asarray(msg.c2w, dtype=np.float64).reshape(4, 4)
-    if not np.all(np.isfinite(c2w)):
-        raise FrameError(f"frame {fid}: c2w has NaN or infinite entries")
-    try:
-        c2w = check_rigid(c2w, atol=1e-3, what=f"frame {fid} c2w")
-    except ValueError as e:
-        raise FrameError(str(e)) from None
-    if not (math.isfinite(msg.depth_scale) and msg.depth_scale > 0):
-        raise FrameError(f"frame {fid}: depth_scale must be finite and > 0 (metres per unit), got {msg.depth_scale}")
-    if not msg.color:
-        raise FrameError(f"frame {fid}: colour image missing")
-    if not msg.depth:
-        raise FrameError(f"frame {fid}: depth image missing")
     png = _png_header(msg.color)
     if png is not None:
         cw, ch, bits, ctype = png
