@@ -58,8 +58,6 @@ def _frames(n_max: int):
 
 
 def run(seconds: float, fps: float, color: str, budget: float) -> dict:
-    import grpc
-
     from services.agent.client import AgentClient
     from services.agent.frames import encode_frame
     from services.sim import free_port
@@ -98,11 +96,8 @@ def run(seconds: float, fps: float, color: str, budget: float) -> dict:
             t_start = time.perf_counter()
             r = c.stream_messages(gen(), timeout_s=seconds * 4 + 120)
             wall = time.perf_counter() - t_start
-            st = c.status(m.mission_id)
-            try:
-                c.finish(m.mission_id, skip_push=True, skip_eval=True, timeout_s=600)
-            except grpc.RpcError:
-                pass
+            # Finish maps the pending candidate, so received = keyframed + skipped afterwards
+            st = c.finish(m.mission_id, skip_push=True, skip_eval=True, timeout_s=600).status
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         try:

@@ -488,6 +488,30 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             signal.signal(signal.SIGTERM, previous)
 
 
+def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:
+    """Put the every-frame ROI PSNR of ``offline_report`` next to the realtime figures of the finished
+    realtime simulation in ``out`` (rewrites ``out/report.json`` and ``out/report.md``; nothing is re-run).
+
+    Raises:
+        FileNotFoundError: missing reports. ValueError: ``out`` is not a realtime run, or ``offline_report``
+            is one.
+    """
+    out = Path(out)
+    p = out / "report.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"no report.json in {out}")
+    report = json.loads(p.read_text())
+    if not report.get("realtime"):
+        raise ValueError(f"{p} is not a realtime run (gausslite sim --realtime)")
+    offline = _load_offline(offline_report)
+    for a in report["agents"]:
+        a["offline_roi_psnr_all_frames"] = offline.get(a["id"])
+    report["offline_report"] = str(offline_report)
+    p.write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    return report
+
+
 def _load_offline(path: str | Path) -> Dict[str, Optional[float]]:
     """Agent id → every-frame ROI PSNR of an earlier non-realtime ``report.json`` (or its folder): its
     ``roi_psnr_all_frames`` when present, else its ``roi_psnr`` (mean over the mapped frames, which are all

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 #: serve-agent flag → (argparse dest, environment variable, help)
 AGENT_FLAGS = {
@@ -60,6 +61,9 @@ def register(subparsers) -> None:
     p.add_argument("--offline-report", default=None, metavar="DIR",
                    help="an earlier `gausslite sim` (every frame, same dataset) whose agents' ROI PSNR goes next to "
                         "the realtime figures in report.md")
+    p.add_argument("--report-only", action="store_true",
+                   help="with --offline-report: add the offline column to the finished realtime run in --out "
+                        "(rewrites its report.json/report.md, runs nothing)")
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
     p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
@@ -107,6 +111,19 @@ def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    if args.report_only:
+        if not args.offline_report:
+            print("gausslite sim: error: --report-only needs --offline-report", file=sys.stderr)
+            return 2
+        from services.sim import attach_offline_report
+
+        try:
+            attach_offline_report(args.out, args.offline_report)
+        except (ValueError, OSError) as e:
+            print(f"gausslite sim: error: {e}", file=sys.stderr)
+            return 1
+        print((Path(args.out) / "report.md").read_text())
+        return 0
     overrides = list(args.overrides)
     for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds", "mapper.seeds_per_frame"),
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
