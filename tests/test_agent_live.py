@@ -414,3 +414,32 @@ def test_validate_frame_reads_headers_and_defers_decoding(scene):
     st = rt.status()
     assert st["frames_rejected"] == 1 and st["frames_mapped"] == 0 and "rejected frame" in st["last_error"]
     rt.close()
+
+
+def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
+    from gausslite.parser import TaskParser
+
+    ds = load_dataset(scene / "agent_a")
+    text = ds.annotations.task_by_id("synth-pick-object").text
+    cfg = load_agent_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5"])
+    rt = AgentRuntime("rt", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
+                      task_id="synth-pick-object")
+    t0 = time.perf_counter()
+    rt.replay(ds)
+    rt._replay_thread.join(60)
+    # 6 frames at 30 Hz, clock slowed to half speed: the last frame is sent 5/30/0.5 s after the first
+    assert time.perf_counter() - t0 >= 5 / 30 / 0.5
+    s = rt.finish(push=False, timeout_s=120)
+    st = s.status
+    assert st["frames_received"] == len(ds) == st["frames_keyframed"] + st["frames_skipped"]
+    assert st["frames_keyframed"] >= 1
+    assert s.frames_all == len(ds) and s.roi_psnr_all_frames is not None and 0 < s.roi_psnr_all_frames < 80
+    rt.close()
+
+
+def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
+    from gausslite.cli import main
+
+    assert main(["sim", "--out", str(tmp_path / "x"), "--rate", "2"]) == 2
+    assert "--realtime" in capsys.readouterr().err
+    assert main(["sim", "--out", str(tmp_path / "x"), "--report-only"]) == 2
