@@ -8,9 +8,14 @@ paper Sec. III-E "Multi-Agent Fusion").
 
 Threads per mission:
 
-* mapping worker — takes frames from a bounded queue (``submit`` blocks when it is full, which gives
-  gRPC flow control back-pressure), computes the relevance map (attention front-end or GT ROI), maps
-  the frame, and every ``push_every`` mapped frames hands a snapshot of the ROI subset to the pusher;
+* mapping worker — takes keyframes and computes the relevance map (attention front-end over the
+  annotation or ONNX backend, or GT ROI), maps them (``mapper.keyframe_budget_s`` per keyframe or fixed
+  iterations), optimises over its keyframes while none is pending (live ingest), every ``push_every``
+  mapped frames hands a snapshot of the ROI subset to the pusher and every ``checkpoint_every`` writes a
+  checkpoint. Live ingest (``ingest: keyframes``, realtime replays): ``submit`` never blocks; the keyframe
+  selector (:mod:`gausslite.mapping.keyframes`) keeps only the newest pending candidate. Every-frame ingest
+  (offline replays, ``ingest: every_frame``): a bounded queue, ``submit`` blocks when it is full (gRPC flow
+  control back-pressure);
 * pusher — uploads the newest pending snapshot (older pending ones are superseded; keyframes not yet
   uploaded accumulate) with retries and exponential backoff, so a fusion-server outage never stalls
   mapping; the client resumes a half-uploaded subset of the same ``map_version``.

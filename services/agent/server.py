@@ -6,7 +6,11 @@ paper Sec. III-E).
 * ``StartMission`` — parses the task with the parser service (``parser_address``; empty → the
   in-process rule parser), opens a mission, and either replays ``dataset_path`` or waits for frames.
 * ``StreamFrames`` — a client stream of posed RGB-D frames (:mod:`services.agent.frames` validates
-  each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses).
+  each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses). With keyframe ingest (default)
+  the call never blocks the sender: headers are validated on arrival, keyframe selection keeps the
+  newest candidate, and only keyframes are decoded (by the mapping worker).
+* ``StartMission`` with a ``mission_id`` whose checkpoint is in ``<data_dir>/<agent_id>/<mission_id>``
+  resumes that mission (README "Live operation").
 * ``GetStatus`` / ``Finish`` — progress; final push + summary (ROI PSNR on its own task when the scene
   has annotations).
 
