@@ -597,7 +597,10 @@ class AgentRuntime:
                 return
         try:
             w = self._relevance_fn(item)
-            st = self.mapper.map_frame(item, w)
+            # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
+            b = cfg.mapper.keyframe_budget_s
+            left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
+            st = self.mapper.map_frame(item, w, time_budget_s=left)
         except Exception as e:
             self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
             return
