@@ -134,6 +134,10 @@ def test_mapper_checkpoint_round_trip(scene):
     assert m2.n_mapped == 3 and m2.budget == m.budget
     m2.map_frame(ds[3])  # and it keeps mapping
     assert m2.n_mapped == 4
+    m3 = _mapper()  # a bounded checkpoint keeps the newest keyframes and the whole window
+    m3.restore_state(m.checkpoint_state(max_keyframes=1))
+    assert [k.frame_id for k in m3.keyframes] == [m.keyframes[-1].frame_id]
+    assert [k.frame_id for k in m3.window] == [k.frame_id for k in m.window]
 
 
 # ---------------------------------------------------------------------------------------------- ingest

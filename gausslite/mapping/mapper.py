@@ -441,10 +441,11 @@ class Mapper:
             self._iterate(kf, active_phase=False)
 
     # ------------------------------------------------------------------ checkpoint / resume
-    def checkpoint_state(self) -> dict:
+    def checkpoint_state(self, max_keyframes: Optional[int] = 32) -> dict:
         """CPU copy of what a restarted online mapper needs: the Gaussians (with κ and active flags), the
-        keyframe window and stored keyframes, counters, budget and RNG state (not the Adam moments: a
-        resumed mapper restarts them at zero, as for newly seeded Gaussians). ``torch.save``-able.
+        keyframe window, the newest ``max_keyframes`` stored keyframes (None: all; they bound the file
+        size of a long mission), counters, budget and RNG state (not the Adam moments: a resumed mapper
+        restarts them at zero, as for newly seeded Gaussians). ``torch.save``-able.
         """
         import dataclasses
 
@@ -454,13 +455,14 @@ class Mapper:
 
         g = self.model.to_map().to("cpu")
         win_ids = {id(k) for k in self.window}
-        kfs = [kf_state(k) for k in self.keyframes]
-        extra = [kf_state(k) for k in self.window if all(k is not s for s in self.keyframes)]
+        kept = self.keyframes if max_keyframes is None else self.keyframes[len(self.keyframes) - max_keyframes:]
+        kfs = [kf_state(k) for k in kept]
+        extra = [kf_state(k) for k in self.window if all(k is not s for s in kept)]
         return {
             "gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
                                                              "colors", "active", "kappa")},
             "keyframes": kfs, "window_extra": extra,
-            "window_index": [i for i, k in enumerate(self.keyframes) if id(k) in win_ids],
+            "window_index": [i for i, k in enumerate(kept) if id(k) in win_ids],
             "window_order": [k.frame_id for k in self.window],
             "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
             "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
