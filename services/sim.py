@@ -463,6 +463,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "accept_latency_ms_p99": float(s.status.accept_latency_ms_p99),
                 "keyframe_latency_s_p95": float(s.status.keyframe_latency_s_p95),
                 "idle_iterations": int(s.status.idle_iterations),
+                "keyframe_iterations": int(s.status.keyframe_iterations),
                 "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
                 "frames_all": int(s.frames_all),
                 "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
@@ -540,12 +541,13 @@ def _live_lines(report: dict) -> List[str]:
         return []
     src = report.get("offline_report")
     lines = ["", "## Live operation (realtime replay at the dataset clock)", "",
-             "| agent | received | keyframed | skipped | accept p99 (ms) | keyframe latency p95 (s) | idle iters | "
-             "ROI PSNR all frames, realtime (dB) | same, offline every-frame (dB) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| agent | received | keyframed | skipped | accept p99 (ms) | keyframe latency p95 (s) | iters / keyframe | "
+             "idle iters | ROI PSNR all frames, realtime (dB) | same, offline every-frame (dB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for a in report["agents"]:
         lines.append(f"| {a['id']} | {a['frames_received']} | {a['frames_keyframed']} | {a['frames_skipped']} | "
                      f"{_fmt(a['accept_latency_ms_p99'])} | {_fmt(a['keyframe_latency_s_p95'])} | "
+                     f"{_fmt(a.get('keyframe_iterations', 0) / max(a['frames_keyframed'], 1), 1)} | "
                      f"{a['idle_iterations']} | {_fmt(a['roi_psnr_all_frames'])} | "
                      f"{_fmt(a['offline_roi_psnr_all_frames'])} |")
     lines += ["", f"ROI PSNR over all {report['agents'][0]['frames_all']} frames of the sequence (skipped ones "

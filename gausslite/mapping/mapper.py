@@ -70,6 +70,7 @@ class FrameStats:
     loss: float
     active_iters: int
     densify: dict = field(default_factory=dict)
+    iters: int = 0  # Adam iterations of this call (iters_per_frame, or what fit the time budget)
 
 
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
@@ -367,6 +368,7 @@ class Mapper:
             self.keyframes.append(kf)
         loss = 0.0
         active_iters = 0
+        n_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
         for it in self._iterations(t0, time_budget_s):
@@ -374,13 +376,14 @@ class Mapper:
             active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
             loss = self._iterate(view, active_phase)
             active_iters += int(active_phase)
+            n_iters += 1
             if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0:
                 for k, v in self._densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
                 has_active = bool(self.model.active.any())
         self.n_mapped += 1
         st = FrameStats(frame.frame_id, time.perf_counter() - t0, n_seeds, n_roi, len(self.model), loss,
-                        active_iters, dstats)
+                        active_iters, dstats, n_iters)
         self.stats.append(st)
         return st
 

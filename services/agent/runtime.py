@@ -229,7 +229,7 @@ _FINISH = object()
 _DRAIN = object()  # Finish without a push: everything before it is mapped
 _SLOT = object()  # "the keyframe selector holds a pending candidate"
 _CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frames_skipped", "seconds_mapping",
-                  "idle_iterations")
+                  "idle_iterations", "keyframe_iterations")
 CHECKPOINT_FILE = "checkpoint.pt"
 VERSION_FILE = "pushed_version.json"
 
@@ -358,6 +358,7 @@ class AgentRuntime:
         self.frames_keyframed = 0
         self.frames_skipped = 0
         self.frames_rejected = 0
+        self.keyframe_iterations = 0
         self.idle_iterations = 0
         self.checkpoints = 0
         self.resumed_keyframes = 0
@@ -607,6 +608,7 @@ class AgentRuntime:
         with self._lock:
             self.frames_mapped += 1
             self.frames_keyframed += 1
+            self.keyframe_iterations += st.iters
             self.seconds_mapping += time.perf_counter() - t0
             self._kf_latency_s.append(time.perf_counter() - t_arrival)
             self.n_gaussians = st.n_gaussians
@@ -796,6 +798,7 @@ class AgentRuntime:
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
+                "keyframe_iterations": self.keyframe_iterations,
             }
 
     def wait_mapped(self, timeout_s: Optional[float] = None) -> bool:
