@@ -447,3 +447,27 @@ def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
     assert main(["sim", "--out", str(tmp_path / "x"), "--rate", "2"]) == 2
     assert "--realtime" in capsys.readouterr().err
     assert main(["sim", "--out", str(tmp_path / "x"), "--report-only"]) == 2
+
+
+def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_one(tmp_path):
+    import json
+
+    from services.sim import attach_offline_report
+
+    agent = {"id": "agent_a", "task": "t", "roi_psnr": 20.0, "n_gaussians": 10, "n_shared": 5, "share_pct": 50.0,
+             "bytes_per_gaussian": 14.0, "frames_received": 16, "frames_keyframed": 4, "frames_skipped": 12,
+             "accept_latency_ms_p99": 0.5, "keyframe_latency_s_p95": 2.0, "keyframe_iterations": 40,
+             "idle_iterations": 7, "roi_psnr_all_frames": 21.25, "frames_all": 16, "offline_roi_psnr_all_frames": None}
+    rt = {"scene": "s", "seconds": 1.0, "agents": [agent], "fused": {k: {"roi_psnr_per_task": {}, "roi_psnr_mean": None,
+          "n_gaussians": 0, "seconds": 0.0} for k in ("concat", "vote", "refine")}, "realtime": True,
+          "offline_report": None, "settings": {"voxel_size": 0.1, "refine_iters": 100}}
+    (tmp_path / "rt").mkdir()
+    (tmp_path / "rt" / "report.json").write_text(json.dumps(rt))
+    (tmp_path / "off").mkdir()
+    (tmp_path / "off" / "report.json").write_text(json.dumps({"agents": [{"id": "agent_a", "roi_psnr": 27.5}]}))
+    rep = attach_offline_report(tmp_path / "rt", tmp_path / "off")
+    assert rep["agents"][0]["offline_roi_psnr_all_frames"] == 27.5
+    md = (tmp_path / "rt" / "report.md").read_text()
+    assert "| agent_a | 16 | 4 | 12 | 0.50 | 2.00 | 10.0 | 7 | 21.25 | 27.50 |" in md
+    with pytest.raises(ValueError, match="realtime"):
+        attach_offline_report(tmp_path / "rt", tmp_path / "rt")
