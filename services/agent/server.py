@@ -28,8 +28,8 @@ import logging
 import os
 import re
 import sys
-import time
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
