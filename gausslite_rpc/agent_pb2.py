@@ -25,33 +25,33 @@ _sym_db = _symbol_database.Default()
 from gausslite_rpc import common_pb2 as gausslite__rpc_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19gausslite_rpc/agent.proto\x12\x0cgausslite.v1\x1a\x1agausslite_rpc/common.proto\"a\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\"\x93\x01\n\x13StartMissionRequest\x12\x11\n\ttask_text\x18\x01 \x01(\t\x12\x0f\n\x07task_id\x18\x02 \x01(\t\x12\x14\n\x0c\x64\x61taset_path\x18\x03 \x01(\t\x12\x18\n\x10\x61nnotations_path\x18\x04 \x01(\t\x12\x16\n\x0e\x66usion_address\x18\x05 \x01(\t\x12\x10\n\x08\x61gent_id\x18\x06 \x01(\t\"{\n\x14StartMissionResponse\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12&\n\x05graph\x18\x02 \x01(\x0b\x32\x17.gausslite.v1.TaskGraph\x12\x10\n\x08\x61gent_id\x18\x03 \x01(\t\x12\x15\n\rreplay_frames\x18\x04 \x01(\r\"\xb7\x01\n\x08\x46rameMsg\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x11\n\ttimestamp\x18\x03 \x01(\x01\x12\r\n\x05\x63olor\x18\x04 \x01(\x0c\x12\r\n\x05\x64\x65pth\x18\x05 \x01(\x0c\x12\x13\n\x0b\x64\x65pth_scale\x18\x06 \x01(\x01\x12\x0b\n\x03\x63\x32w\x18\x07 \x03(\x01\x12\x32\n\nintrinsics\x18\x08 \x01(\x0b\x32\x1e.gausslite.v1.CameraIntrinsics\"Z\n\x14StreamFramesResponse\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x17\n\x0f\x66rames_received\x18\x02 \x01(\r\x12\x15\n\rframes_mapped\x18\x03 \x01(\r\"$\n\x0eMissionRequest\x12\x12\n\nmission_id\x18\x01 \x01(\t\"I\n\rFinishRequest\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x11\n\tskip_push\x18\x02 \x01(\x08\x12\x11\n\tskip_eval\x18\x03 \x01(\x08\"\xff\x02\n\rMissionStatus\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x10\n\x08\x61gent_id\x18\x02 \x01(\t\x12)\n\x05state\x18\x03 \x01(\x0e\x32\x1a.gausslite.v1.MissionState\x12\x11\n\ttask_text\x18\x04 \x01(\t\x12\x0f\n\x07task_id\x18\x05 \x01(\t\x12\x17\n\x0f\x66rames_received\x18\x06 \x01(\r\x12\x15\n\rframes_mapped\x18\x07 \x01(\r\x12\x15\n\rframes_queued\x18\x08 \x01(\r\x12\x13\n\x0bn_gaussians\x18\t \x01(\x04\x12\x10\n\x08n_active\x18\n \x01(\x04\x12\x0e\n\x06pushes\x18\x0b \x01(\r\x12\x15\n\rpush_failures\x18\x0c \x01(\r\x12\x1b\n\x13last_pushed_version\x18\r \x01(\x04\x12\x12\n\nlast_error\x18\x0e \x01(\t\x12\x17\n\x0fseconds_mapping\x18\x0f \x01(\x01\x12\x1a\n\x12keyframes_uploaded\x18\x10 \x01(\r\"\xfd\x01\n\x0eMissionSummary\x12+\n\x06status\x18\x01 \x01(\x0b\x32\x1b.gausslite.v1.MissionStatus\x12\x15\n\rfinal_push_ok\x18\x02 \x01(\x08\x12\x10\n\x08n_shared\x18\x03 \x01(\x04\x12\x11\n\tshare_pct\x18\x04 \x01(\x01\x12\x15\n\rbytes_on_wire\x18\x05 \x01(\x04\x12\x1a\n\x12\x62ytes_per_gaussian\x18\x06 \x01(\x01\x12\x14\n\x0chas_roi_psnr\x18\x07 \x01(\x08\x12\x10\n\x08roi_psnr\x18\x08 \x01(\x01\x12\x0c\n\x04psnr\x18\t \x01(\x01\x12\x19\n\x11seconds_per_frame\x18\n \x01(\x01*\xba\x01\n\x0cMissionState\x12\x1d\n\x19MISSION_STATE_UNSPECIFIED\x10\x00\x12\x19\n\x15MISSION_STATE_MAPPING\x10\x01\x12\x1d\n\x19MISSION_STATE_REPLAY_DONE\x10\x02\x12\x1b\n\x17MISSION_STATE_FINISHING\x10\x03\x12\x1a\n\x16MISSION_STATE_FINISHED\x10\x04\x12\x18\n\x14MISSION_STATE_FAILED\x10\x05\x32\xb9\x02\n\x05\x41gent\x12U\n\x0cStartMission\x12!.gausslite.v1.StartMissionRequest\x1a\".gausslite.v1.StartMissionResponse\x12L\n\x0cStreamFrames\x12\x16.gausslite.v1.FrameMsg\x1a\".gausslite.v1.StreamFramesResponse(\x01\x12\x46\n\tGetStatus\x12\x1c.gausslite.v1.MissionRequest\x1a\x1b.gausslite.v1.MissionStatus\x12\x43\n\x06\x46inish\x12\x1b.gausslite.v1.FinishRequest\x1a\x1c.gausslite.v1.MissionSummaryb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19gausslite_rpc/agent.proto\x12\x0cgausslite.v1\x1a\x1agausslite_rpc/common.proto\"a\n\x10\x43\x61meraIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\"\xa7\x01\n\x13StartMissionRequest\x12\x11\n\ttask_text\x18\x01 \x01(\t\x12\x0f\n\x07task_id\x18\x02 \x01(\t\x12\x14\n\x0c\x64\x61taset_path\x18\x03 \x01(\t\x12\x18\n\x10\x61nnotations_path\x18\x04 \x01(\t\x12\x16\n\x0e\x66usion_address\x18\x05 \x01(\t\x12\x10\n\x08\x61gent_id\x18\x06 \x01(\t\x12\x12\n\nmission_id\x18\x07 \x01(\t\"\xa7\x01\n\x14StartMissionResponse\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12&\n\x05graph\x18\x02 \x01(\x0b\x32\x17.gausslite.v1.TaskGraph\x12\x10\n\x08\x61gent_id\x18\x03 \x01(\t\x12\x15\n\rreplay_frames\x18\x04 \x01(\r\x12\x0f\n\x07resumed\x18\x05 \x01(\x08\x12\x19\n\x11resumed_keyframes\x18\x06 \x01(\r\"\xb7\x01\n\x08\x46rameMsg\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x11\n\ttimestamp\x18\x03 \x01(\x01\x12\r\n\x05\x63olor\x18\x04 \x01(\x0c\x12\r\n\x05\x64\x65pth\x18\x05 \x01(\x0c\x12\x13\n\x0b\x64\x65pth_scale\x18\x06 \x01(\x01\x12\x0b\n\x03\x63\x32w\x18\x07 \x03(\x01\x12\x32\n\nintrinsics\x18\x08 \x01(\x0b\x32\x1e.gausslite.v1.CameraIntrinsics\"Z\n\x14StreamFramesResponse\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x17\n\x0f\x66rames_received\x18\x02 \x01(\r\x12\x15\n\rframes_mapped\x18\x03 \x01(\r\"$\n\x0eMissionRequest\x12\x12\n\nmission_id\x18\x01 \x01(\t\"I\n\rFinishRequest\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x11\n\tskip_push\x18\x02 \x01(\x08\x12\x11\n\tskip_eval\x18\x03 \x01(\x08\"\xef\x04\n\rMissionStatus\x12\x12\n\nmission_id\x18\x01 \x01(\t\x12\x10\n\x08\x61gent_id\x18\x02 \x01(\t\x12)\n\x05state\x18\x03 \x01(\x0e\x32\x1a.gausslite.v1.MissionState\x12\x11\n\ttask_text\x18\x04 \x01(\t\x12\x0f\n\x07task_id\x18\x05 \x01(\t\x12\x17\n\x0f\x66rames_received\x18\x06 \x01(\r\x12\x15\n\rframes_mapped\x18\x07 \x01(\r\x12\x15\n\rframes_queued\x18\x08 \x01(\r\x12\x13\n\x0bn_gaussians\x18\t \x01(\x04\x12\x10\n\x08n_active\x18\n \x01(\x04\x12\x0e\n\x06pushes\x18\x0b \x01(\r\x12\x15\n\rpush_failures\x18\x0c \x01(\r\x12\x1b\n\x13last_pushed_version\x18\r \x01(\x04\x12\x12\n\nlast_error\x18\x0e \x01(\t\x12\x17\n\x0fseconds_mapping\x18\x0f \x01(\x01\x12\x1a\n\x12keyframes_uploaded\x18\x10 \x01(\r\x12\x18\n\x10\x66rames_keyframed\x18\x11 \x01(\r\x12\x16\n\x0e\x66rames_skipped\x18\x12 \x01(\r\x12\x1d\n\x15\x61\x63\x63\x65pt_latency_ms_p99\x18\x13 \x01(\x01\x12\x1e\n\x16keyframe_latency_s_p95\x18\x14 \x01(\x01\x12\x17\n\x0fidle_iterations\x18\x15 \x01(\x04\x12\x13\n\x0b\x63heckpoints\x18\x16 \x01(\r\x12\x19\n\x11resumed_keyframes\x18\x17 \x01(\r\x12\x17\n\x0f\x66rames_rejected\x18\x18 \x01(\r\x12\x1b\n\x13keyframe_iterations\x18\x19 \x01(\x04\"\xcf\x02\n\x0eMissionSummary\x12+\n\x06status\x18\x01 \x01(\x0b\x32\x1b.gausslite.v1.MissionStatus\x12\x15\n\rfinal_push_ok\x18\x02 \x01(\x08\x12\x10\n\x08n_shared\x18\x03 \x01(\x04\x12\x11\n\tshare_pct\x18\x04 \x01(\x01\x12\x15\n\rbytes_on_wire\x18\x05 \x01(\x04\x12\x1a\n\x12\x62ytes_per_gaussian\x18\x06 \x01(\x01\x12\x14\n\x0chas_roi_psnr\x18\x07 \x01(\x08\x12\x10\n\x08roi_psnr\x18\x08 \x01(\x01\x12\x0c\n\x04psnr\x18\t \x01(\x01\x12\x19\n\x11seconds_per_frame\x18\n \x01(\x01\x12\x1f\n\x17has_roi_psnr_all_frames\x18\x0b \x01(\x08\x12\x1b\n\x13roi_psnr_all_frames\x18\x0c \x01(\x01\x12\x12\n\nframes_all\x18\r \x01(\r*\xba\x01\n\x0cMissionState\x12\x1d\n\x19MISSION_STATE_UNSPECIFIED\x10\x00\x12\x19\n\x15MISSION_STATE_MAPPING\x10\x01\x12\x1d\n\x19MISSION_STATE_REPLAY_DONE\x10\x02\x12\x1b\n\x17MISSION_STATE_FINISHING\x10\x03\x12\x1a\n\x16MISSION_STATE_FINISHED\x10\x04\x12\x18\n\x14MISSION_STATE_FAILED\x10\x05\x32\xb9\x02\n\x05\x41gent\x12U\n\x0cStartMission\x12!.gausslite.v1.StartMissionRequest\x1a\".gausslite.v1.StartMissionResponse\x12L\n\x0cStreamFrames\x12\x16.gausslite.v1.FrameMsg\x1a\".gausslite.v1.StreamFramesResponse(\x01\x12\x46\n\tGetStatus\x12\x1c.gausslite.v1.MissionRequest\x1a\x1b.gausslite.v1.MissionStatus\x12\x43\n\x06\x46inish\x12\x1b.gausslite.v1.FinishRequest\x1a\x1c.gausslite.v1.MissionSummaryb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'gausslite_rpc.agent_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_MISSIONSTATE']._serialized_start=1479
-  _globals['_MISSIONSTATE']._serialized_end=1665
+  _globals['_MISSIONSTATE']._serialized_start=1866
+  _globals['_MISSIONSTATE']._serialized_end=2052
   _globals['_CAMERAINTRINSICS']._serialized_start=71
   _globals['_CAMERAINTRINSICS']._serialized_end=168
   _globals['_STARTMISSIONREQUEST']._serialized_start=171
-  _globals['_STARTMISSIONREQUEST']._serialized_end=318
-  _globals['_STARTMISSIONRESPONSE']._serialized_start=320
-  _globals['_STARTMISSIONRESPONSE']._serialized_end=443
-  _globals['_FRAMEMSG']._serialized_start=446
-  _globals['_FRAMEMSG']._serialized_end=629
-  _globals['_STREAMFRAMESRESPONSE']._serialized_start=631
-  _globals['_STREAMFRAMESRESPONSE']._serialized_end=721
-  _globals['_MISSIONREQUEST']._serialized_start=723
-  _globals['_MISSIONREQUEST']._serialized_end=759
-  _globals['_FINISHREQUEST']._serialized_start=761
-  _globals['_FINISHREQUEST']._serialized_end=834
-  _globals['_MISSIONSTATUS']._serialized_start=837
-  _globals['_MISSIONSTATUS']._serialized_end=1220
-  _globals['_MISSIONSUMMARY']._serialized_start=1223
-  _globals['_MISSIONSUMMARY']._serialized_end=1476
-  _globals['_AGENT']._serialized_start=1668
-  _globals['_AGENT']._serialized_end=1981
+  _globals['_STARTMISSIONREQUEST']._serialized_end=338
+  _globals['_STARTMISSIONRESPONSE']._serialized_start=341
+  _globals['_STARTMISSIONRESPONSE']._serialized_end=508
+  _globals['_FRAMEMSG']._serialized_start=511
+  _globals['_FRAMEMSG']._serialized_end=694
+  _globals['_STREAMFRAMESRESPONSE']._serialized_start=696
+  _globals['_STREAMFRAMESRESPONSE']._serialized_end=786
+  _globals['_MISSIONREQUEST']._serialized_start=788
+  _globals['_MISSIONREQUEST']._serialized_end=824
+  _globals['_FINISHREQUEST']._serialized_start=826
+  _globals['_FINISHREQUEST']._serialized_end=899
+  _globals['_MISSIONSTATUS']._serialized_start=902
+  _globals['_MISSIONSTATUS']._serialized_end=1525
+  _globals['_MISSIONSUMMARY']._serialized_start=1528
+  _globals['_MISSIONSUMMARY']._serialized_end=1863
+  _globals['_AGENT']._serialized_start=2055
+  _globals['_AGENT']._serialized_end=2368
 # @@protoc_insertion_point(module_scope)

@@ -40,32 +40,38 @@ class CameraIntrinsics(_message.Message):
     def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
 
 class StartMissionRequest(_message.Message):
-    __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id")
+    __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id", "mission_id")
     TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
     TASK_ID_FIELD_NUMBER: _ClassVar[int]
     DATASET_PATH_FIELD_NUMBER: _ClassVar[int]
     ANNOTATIONS_PATH_FIELD_NUMBER: _ClassVar[int]
     FUSION_ADDRESS_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     task_text: str
     task_id: str
     dataset_path: str
     annotations_path: str
     fusion_address: str
     agent_id: str
-    def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ...) -> None: ...
+    mission_id: str
+    def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ..., mission_id: _Optional[str] = ...) -> None: ...
 
 class StartMissionResponse(_message.Message):
-    __slots__ = ("mission_id", "graph", "agent_id", "replay_frames")
+    __slots__ = ("mission_id", "graph", "agent_id", "replay_frames", "resumed", "resumed_keyframes")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     GRAPH_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     REPLAY_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    RESUMED_FIELD_NUMBER: _ClassVar[int]
+    RESUMED_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     mission_id: str
     graph: _common_pb2.TaskGraph
     agent_id: str
     replay_frames: int
-    def __init__(self, mission_id: _Optional[str] = ..., graph: _Optional[_Union[_common_pb2.TaskGraph, _Mapping]] = ..., agent_id: _Optional[str] = ..., replay_frames: _Optional[int] = ...) -> None: ...
+    resumed: bool
+    resumed_keyframes: int
+    def __init__(self, mission_id: _Optional[str] = ..., graph: _Optional[_Union[_common_pb2.TaskGraph, _Mapping]] = ..., agent_id: _Optional[str] = ..., replay_frames: _Optional[int] = ..., resumed: _Optional[bool] = ..., resumed_keyframes: _Optional[int] = ...) -> None: ...
 
 class FrameMsg(_message.Message):
     __slots__ = ("mission_id", "frame_id", "timestamp", "color", "depth", "depth_scale", "c2w", "intrinsics")
@@ -114,7 +120,7 @@ class FinishRequest(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., skip_push: _Optional[bool] = ..., skip_eval: _Optional[bool] = ...) -> None: ...
 
 class MissionStatus(_message.Message):
-    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded")
+    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -131,6 +137,15 @@ class MissionStatus(_message.Message):
     LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
     SECONDS_MAPPING_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_UPLOADED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_KEYFRAMED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_SKIPPED_FIELD_NUMBER: _ClassVar[int]
+    ACCEPT_LATENCY_MS_P99_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAME_LATENCY_S_P95_FIELD_NUMBER: _ClassVar[int]
+    IDLE_ITERATIONS_FIELD_NUMBER: _ClassVar[int]
+    CHECKPOINTS_FIELD_NUMBER: _ClassVar[int]
+    RESUMED_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_REJECTED_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAME_ITERATIONS_FIELD_NUMBER: _ClassVar[int]
     mission_id: str
     agent_id: str
     state: MissionState
@@ -147,10 +162,19 @@ class MissionStatus(_message.Message):
     last_error: str
     seconds_mapping: float
     keyframes_uploaded: int
-    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ...) -> None: ...
+    frames_keyframed: int
+    frames_skipped: int
+    accept_latency_ms_p99: float
+    keyframe_latency_s_p95: float
+    idle_iterations: int
+    checkpoints: int
+    resumed_keyframes: int
+    frames_rejected: int
+    keyframe_iterations: int
+    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
-    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame")
+    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all")
     STATUS_FIELD_NUMBER: _ClassVar[int]
     FINAL_PUSH_OK_FIELD_NUMBER: _ClassVar[int]
     N_SHARED_FIELD_NUMBER: _ClassVar[int]
@@ -161,6 +185,9 @@ class MissionSummary(_message.Message):
     ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
     PSNR_FIELD_NUMBER: _ClassVar[int]
     SECONDS_PER_FRAME_FIELD_NUMBER: _ClassVar[int]
+    HAS_ROI_PSNR_ALL_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    ROI_PSNR_ALL_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_ALL_FIELD_NUMBER: _ClassVar[int]
     status: MissionStatus
     final_push_ok: bool
     n_shared: int
@@ -171,4 +198,7 @@ class MissionSummary(_message.Message):
     roi_psnr: float
     psnr: float
     seconds_per_frame: float
-    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ...) -> None: ...
+    has_roi_psnr_all_frames: bool
+    roi_psnr_all_frames: float
+    frames_all: int
+    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ...) -> None: ...

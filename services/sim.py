@@ -291,6 +291,7 @@ def write_markdown(report: dict, path: Path) -> None:
     for a in report["agents"]:
         lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
                      f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} |")
+    lines += _live_lines(report)
     lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
               "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
               "|---|" + "---|" * (len(tasks) + 3)]
@@ -311,7 +312,8 @@ def write_markdown(report: dict, path: Path) -> None:
 
 def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
             overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
-            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True) -> SimResult:
+            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True,
+            offline_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
 
     Args:
@@ -323,6 +325,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             (no processes started; the agents must already run their missions).
         timeout_s: overall bound (default ``sim.timeout_s``).
         token: bearer token for the services (also passed to started processes).
+        offline_report: folder or ``report.json`` of an earlier every-frame run on the same dataset; its
+            agents' ROI PSNR is reported next to ``roi_psnr_all_frames`` (``agent.realtime`` runs).
     Returns:
         SimResult.
     Raises:
@@ -338,6 +342,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     from services.fusion_server.client import FusionClient
 
     t0 = time.perf_counter()
+    offline = _load_offline(offline_report) if offline_report else None
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_sim_config(config, list(overrides))
@@ -466,9 +471,20 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "bytes_per_gaussian": float(st.get("bytes_per_gaussian", s.bytes_per_gaussian)),
                 "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
                 "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
+                "frames_received": int(s.status.frames_received), "frames_keyframed": int(s.status.frames_keyframed),
+                "frames_skipped": int(s.status.frames_skipped),
+                "accept_latency_ms_p99": float(s.status.accept_latency_ms_p99),
+                "keyframe_latency_s_p95": float(s.status.keyframe_latency_s_p95),
+                "idle_iterations": int(s.status.idle_iterations),
+                "keyframe_iterations": int(s.status.keyframe_iterations),
+                "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
+                "frames_all": int(s.frames_all),
+                "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
             })
         report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
                   "renders": renders,
+                  "realtime": bool((cfg.get("agent") or {}).get("realtime", False)),
+                  "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": voxel, "refine_iters": refine_iters, "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
         (out / "report.json").write_text(json.dumps(report, indent=2))
@@ -484,6 +500,74 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         group.stop_all()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:
+    """Put the every-frame ROI PSNR of ``offline_report`` next to the realtime figures of the finished
+    realtime simulation in ``out`` (rewrites ``out/report.json`` and ``out/report.md``; nothing is re-run).
+
+    Raises:
+        FileNotFoundError: missing reports. ValueError: ``out`` is not a realtime run, or ``offline_report``
+            is one.
+    """
+    out = Path(out)
+    p = out / "report.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"no report.json in {out}")
+    report = json.loads(p.read_text())
+    if not report.get("realtime"):
+        raise ValueError(f"{p} is not a realtime run (gausslite sim --realtime)")
+    offline = _load_offline(offline_report)
+    for a in report["agents"]:
+        a["offline_roi_psnr_all_frames"] = offline.get(a["id"])
+    report["offline_report"] = str(offline_report)
+    p.write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    return report
+
+
+def _load_offline(path: str | Path) -> Dict[str, Optional[float]]:
+    """Agent id → every-frame ROI PSNR of an earlier non-realtime ``report.json`` (or its folder): its
+    ``roi_psnr_all_frames`` when present, else its ``roi_psnr`` (mean over the mapped frames, which are all
+    frames in an every-frame run).
+
+    Raises:
+        FileNotFoundError: no report. ValueError: not a simulation report, or a realtime one.
+    """
+    p = Path(path)
+    p = p / "report.json" if p.is_dir() else p
+    if not p.is_file():
+        raise FileNotFoundError(f"offline report not found: {p}")
+    try:
+        rep = json.loads(p.read_text())
+        agents = rep["agents"]
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{p} is not a simulation report.json: {e}") from None
+    if rep.get("realtime"):
+        raise ValueError(f"{p} is a realtime run; give an every-frame run (gausslite sim without --realtime)")
+    return {a["id"]: a.get("roi_psnr_all_frames", a.get("roi_psnr")) for a in agents}
+
+
+def _live_lines(report: dict) -> List[str]:
+    """Markdown of the live-ingest figures (realtime runs only)."""
+    if not report.get("realtime"):
+        return []
+    src = report.get("offline_report")
+    lines = ["", "## Live operation (realtime replay at the dataset clock)", "",
+             "| agent | received | keyframed | skipped | accept p99 (ms) | keyframe latency p95 (s) | iters / keyframe | "
+             "idle iters | ROI PSNR all frames, realtime (dB) | same, offline every-frame (dB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        lines.append(f"| {a['id']} | {a['frames_received']} | {a['frames_keyframed']} | {a['frames_skipped']} | "
+                     f"{_fmt(a['accept_latency_ms_p99'])} | {_fmt(a['keyframe_latency_s_p95'])} | "
+                     f"{_fmt(a.get('keyframe_iterations', 0) / max(a['frames_keyframed'], 1), 1)} | "
+                     f"{a['idle_iterations']} | {_fmt(a['roi_psnr_all_frames'])} | "
+                     f"{_fmt(a['offline_roi_psnr_all_frames'])} |")
+    lines += ["", f"ROI PSNR over all {report['agents'][0]['frames_all']} frames of the sequence (skipped ones "
+              "included) of each agent's final map on its own task. Offline column: "
+              + (f"`{src}`." if src else "not given (pass `--offline-report DIR` of an every-frame `gausslite sim` "
+                 "on the same dataset).")]
+    return lines
 
 
 def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:

@@ -21,7 +21,8 @@ from services.agent.runtime import AgentRuntime, load_agent_config
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
 
-TINY = ["agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+# every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
+TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
 
 

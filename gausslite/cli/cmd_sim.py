@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 #: serve-agent flag → (argparse dest, environment variable, help)
 AGENT_FLAGS = {
@@ -50,6 +51,22 @@ def register(subparsers) -> None:
                    help="shortcut for mapper.seeds_per_frame")
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
+    p.add_argument("--realtime", action="store_true",
+                   help="agents replay at the dataset's clock through keyframe ingest (agent.realtime=true), as a "
+                        "robot streams; the report adds frames received/keyframed/skipped, latencies and the ROI "
+                        "PSNR over every frame")
+    p.add_argument("--rate", type=float, default=None, help="with --realtime: clock speed-up (agent.rate, default 1)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="with --realtime: clock of Replica / 7-Scenes replays, frame index / fps (agent.fps; default 30)")
+    p.add_argument("--budget", type=float, default=None,
+                   help="seconds per mapped keyframe (mapper.keyframe_budget_s; --realtime default 1.0, otherwise "
+                        "the fixed iterations of mapper.iters_per_frame)")
+    p.add_argument("--offline-report", default=None, metavar="DIR",
+                   help="an earlier `gausslite sim` (every frame, same dataset) whose agents' ROI PSNR goes next to "
+                        "the realtime figures in report.md")
+    p.add_argument("--report-only", action="store_true",
+                   help="with --offline-report: add the offline column to the finished realtime run in --out "
+                        "(rewrites its report.json/report.md, runs nothing)")
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
     p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
@@ -100,6 +117,19 @@ def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    if args.report_only:
+        if not args.offline_report:
+            print("gausslite sim: error: --report-only needs --offline-report", file=sys.stderr)
+            return 2
+        from services.sim import attach_offline_report
+
+        try:
+            attach_offline_report(args.out, args.offline_report)
+        except (ValueError, OSError) as e:
+            print(f"gausslite sim: error: {e}", file=sys.stderr)
+            return 1
+        print((Path(args.out) / "report.md").read_text())
+        return 0
     overrides = list(args.overrides)
     for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds_per_frame", "mapper.seeds_per_frame"),
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
@@ -110,6 +140,18 @@ def _handle(args: argparse.Namespace) -> int:
     overrides += [f"agent.bag.{k}={v}" for k, v in bag_options_from_args(args).items()]
     if args.iters is not None and not any(o.startswith("mapper.warmup_iters=") for o in overrides):
         overrides.append(f"mapper.warmup_iters={max(0, args.iters // 3)}")
+    if (args.rate is not None or args.fps is not None) and not args.realtime:
+        print("gausslite sim: error: --rate and --fps need --realtime", file=sys.stderr)
+        return 2
+    if args.realtime:
+        overrides.append("agent.realtime=true")
+        for flag, key in (("rate", "agent.rate"), ("fps", "agent.fps")):
+            if getattr(args, flag) is not None:
+                overrides.append(f"{key}={getattr(args, flag)}")
+        if args.budget is None and not any(o.startswith("mapper.keyframe_budget_s=") for o in overrides):
+            overrides.append("mapper.keyframe_budget_s=1.0")
+    if args.budget is not None:
+        overrides.append(f"mapper.keyframe_budget_s={args.budget}")
     tasks = [t.strip() for t in args.tasks.split(",")] if args.tasks else None
     attach = None
     if args.attach:
@@ -126,6 +168,7 @@ def _handle(args: argparse.Namespace) -> int:
         from services.sim import run_sim
 
         res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks, attach=attach,
+                      offline_report=args.offline_report,
                       timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
     except KeyboardInterrupt:
         print("gausslite sim: interrupted (all services stopped)", file=sys.stderr)

@@ -118,6 +118,11 @@ class MapperConfig(_Strict):
         "median depth error (SplaTAM: 50)"
     )
     iters_per_frame: int = Field(40, ge=1, description="Adam iterations per mapped frame")
+    keyframe_budget_s: Optional[float] = Field(
+        None, gt=0, description="online agent: wall-clock seconds per mapped keyframe (seeding included); "
+        "iterations run until it is spent instead of iters_per_frame. None = iters_per_frame (offline map/ablate "
+        "keep this for matched-budget comparisons)"
+    )
     warmup_iters: int = Field(
         15, ge=0, description="ROI phase: full-image iterations before the active-only phase"
     )

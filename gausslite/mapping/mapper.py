@@ -77,6 +77,7 @@ class FrameStats:
     loss: float
     active_iters: int
     densify: dict = field(default_factory=dict)
+    iters: int = 0  #: Adam iterations of this call (iters_per_frame, or what fit the time budget)
     unexplained: float = 1.0  #: share of valid pixels the map did not explain before seeding
     budget: int = 0  #: Gaussian budget in force after this frame
     n_evicted: int = 0  #: existing Gaussians replaced by this frame's seeds at the budget
@@ -185,6 +186,7 @@ class Mapper:
         self.stats: list[FrameStats] = []
         #: Gaussian budget in force (``max_gaussians``, or the scene/image rule; see MapperConfig)
         self.budget: Optional[int] = cfg.max_gaussians
+        self.n_idle_iters = 0  # iterations of optimize() between keyframes
         self._reset_densify_stats()
 
     @property
@@ -438,12 +440,17 @@ class Mapper:
             self.model.kappa[self.model.active] += 1
         return float(loss.detach())
 
-    def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None) -> FrameStats:
+    def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None,
+                  time_budget_s: Optional[float] = None) -> FrameStats:
         """Seed and optimise for one posed RGB-D frame.
 
         Args:
             frame: the frame (its pose is trusted).
             relevance: (H, W) bool relevance map w for this frame, or None (no ROI).
+            time_budget_s: wall-clock budget of this call in seconds (seeding included); None →
+                ``cfg.keyframe_budget_s``; both None → ``cfg.iters_per_frame`` iterations (offline
+                ``map``/``ablate``). With a budget, iterations run until it is spent (at least one; the
+                last one may overrun by one iteration's time); the first ``warmup_iters`` are full-image.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
@@ -459,13 +466,15 @@ class Mapper:
             self.keyframes.add(kf)
         loss = 0.0
         active_iters = 0
+        n_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
-        for it in range(cfg.iters_per_frame):
+        for it in self._iterations(t0, time_budget_s):
             view = self._pick_view(kf)
             active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
             loss = self._iterate(view, active_phase)
             active_iters += int(active_phase)
+            n_iters += 1
             if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0:
                 for k, v in self._densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
@@ -474,10 +483,62 @@ class Mapper:
             self._accumulate_contribution(kf)
         self.n_mapped += 1
         st = FrameStats(frame.frame_id, time.perf_counter() - t0, n_seeds, n_roi, len(self.model), loss,
-                        active_iters, dstats, unexplained=self._last_unexplained, budget=int(self.budget or 0),
-                        n_evicted=self._last_evicted)
+                        active_iters, dstats, n_iters, unexplained=self._last_unexplained,
+                        budget=int(self.budget or 0), n_evicted=self._last_evicted)
         self.stats.append(st)
         return st
+
+    def _iterations(self, t0: float, time_budget_s: Optional[float]):
+        """Iteration indices of one ``map_frame`` call: a fixed count, or as many as fit the budget."""
+        budget = self.cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
+        if budget is None:
+            yield from range(self.cfg.iters_per_frame)
+            return
+        it = 0
+        while it == 0 or time.perf_counter() - t0 < budget:
+            yield it
+            it += 1
+
+    def optimize(self, max_seconds: Optional[float] = None, n_iters: Optional[int] = None) -> int:
+        """Keep optimising between keyframes (MVO over the stored keyframes; paper III-D.2).
+
+        Views are drawn like ``map_frame``'s (recent window or the whole mission, ROI-weighted with MVO:
+        :meth:`KeyframeStore.sample_index`). The phase schedule continues across calls like
+        ``map_frame``'s: in every run of ``iters_per_frame`` idle iterations the first ``warmup_iters`` are
+        full-image, the rest ROI-phase (GaussLite with ROI and an active subset); density control runs
+        every ``densify.every`` idle iterations.
+
+        Args:
+            max_seconds: stop once this much wall time passed (at least one iteration runs).
+            n_iters: stop after this many iterations. At least one of the two must be given.
+        Returns:
+            number of iterations done (0 when there is no keyframe yet).
+        Raises:
+            ValueError: neither bound given, or a bound that is not > 0.
+        """
+        if max_seconds is None and n_iters is None:
+            raise ValueError("optimize needs max_seconds or n_iters")
+        if (max_seconds is not None and not max_seconds > 0) or (n_iters is not None and n_iters < 1):
+            raise ValueError(f"optimize bounds must be > 0, got max_seconds={max_seconds}, n_iters={n_iters}")
+        if len(self.keyframes) == 0 or len(self.model) == 0:
+            return 0
+        cfg, sw = self.cfg, self.cfg.effective()
+        roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
+        t0 = time.perf_counter()
+        done = 0
+        while (n_iters is None or done < n_iters) and (done == 0 or max_seconds is None
+                                                         or time.perf_counter() - t0 < max_seconds):
+            i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
+            view = self.keyframes.load(i, self.device)
+            phase = self.n_idle_iters % cfg.iters_per_frame
+            active_phase = (sw.roi and phase >= cfg.warmup_iters and view.roi is not None
+                            and bool(self.model.active.any()))
+            self._iterate(view, active_phase)
+            self.n_idle_iters += 1
+            done += 1
+            if cfg.densify.enabled and self.n_idle_iters % cfg.densify.every == 0:
+                self._densify_and_prune()
+        return done
 
     def finalize(self) -> None:
         """Optional extra iterations over all keyframes (``final_iters`` + ``final_iters_per_keyframe`` ×
@@ -486,3 +547,51 @@ class Mapper:
         total = self.cfg.final_iters + round(self.cfg.final_iters_per_keyframe * n)
         for _ in range(total if n else 0):
             self._iterate(self.keyframes.load(int(self.rng.integers(n)), self.device), active_phase=False)
+
+    # ------------------------------------------------------------------ checkpoint / resume
+    def checkpoint_state(self, max_keyframes: Optional[int] = 32) -> dict:
+        """CPU copy of what a restarted online mapper needs: the Gaussians (with κ, active flags and
+        accumulated contribution), the newest ``max_keyframes`` stored keyframes in their compact form
+        (None: all; they bound the file size of a long mission; the MVO window is the newest of them),
+        the observed voxels, counters, budget and RNG state (not the Adam moments: a resumed mapper
+        restarts them at zero, as for newly seeded Gaussians). ``torch.save``-able.
+        """
+        import dataclasses
+
+        g = self.model.to_map().to("cpu")
+        n = len(self.keyframes)
+        first = 0 if max_keyframes is None else max(0, n - max(max_keyframes, self.cfg.window))
+        kfs = [{f.name: getattr(self.keyframes[i], f.name) for f in dataclasses.fields(self.keyframes[i])}
+               for i in range(first, n)]
+        return {
+            "gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
+                                                             "colors", "active", "kappa")},
+            "contribution": self.contribution.detach().cpu().clone(),
+            "keyframes": kfs, "voxel_keys": self.voxels._keys.copy(),
+            "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
+            "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
+        }
+
+    def restore_state(self, state: dict) -> None:
+        """Load a :meth:`checkpoint_state` dict (replaces the map, keyframes and counters).
+
+        Raises:
+            KeyError / ValueError: a state dict that lacks fields or holds inconsistent shapes.
+        """
+        from gausslite.mapping.memory import StoredKeyframe
+
+        g = GaussianMap(**{k: v.to(self.device) for k, v in state["gaussians"].items()})
+        self.model.set_map(g)
+        contrib = state.get("contribution")
+        self.contribution = (contrib.to(self.device) if contrib is not None and contrib.shape[0] == len(g)
+                             else torch.zeros(len(g), device=self.device))
+        self.keyframes = KeyframeStore(self.cfg.max_keyframes, protect_recent=self.cfg.window)
+        self.keyframes._items = [StoredKeyframe(**d) for d in state["keyframes"]]
+        self.voxels = SurfaceVoxels(self.cfg.budget_voxel_m)
+        self.voxels._keys = np.asarray(state.get("voxel_keys", np.zeros(0, np.int64)), np.int64)
+        self.n_mapped = int(state["n_mapped"])
+        self.n_idle_iters = int(state["n_idle_iters"])
+        self.budget = state["budget"]
+        self._roi_iters = int(state["roi_iters"])
+        self.rng.bit_generator.state = state["rng"]
+        self._reset_densify_stats()

@@ -70,11 +70,12 @@ class AgentClient:
 
     def start_mission(self, task_text: str, *, task_id: str = "", dataset_path: str = "",
                       annotations_path: str = "", fusion_address: str = "", agent_id: str = "",
-                      timeout_s: Optional[float] = None) -> agent_pb2.StartMissionResponse:
-        """Start a mission. Raises grpc.RpcError (INVALID_ARGUMENT, FAILED_PRECONDITION, UNAVAILABLE)."""
+                      mission_id: str = "", timeout_s: Optional[float] = None) -> agent_pb2.StartMissionResponse:
+        """Start a mission; a ``mission_id`` with a checkpoint in the agent's data dir resumes it
+        (``response.resumed``). Raises grpc.RpcError (INVALID_ARGUMENT, FAILED_PRECONDITION, UNAVAILABLE)."""
         req = agent_pb2.StartMissionRequest(task_text=task_text, task_id=task_id, dataset_path=dataset_path,
                                             annotations_path=annotations_path, fusion_address=fusion_address,
-                                            agent_id=agent_id)
+                                            agent_id=agent_id, mission_id=mission_id)
         return self.stub.StartMission(req, timeout=timeout_s or max(self.timeout_s, 60.0), metadata=self._md)
 
     def stream_frames(self, mission_id: str, frames: Iterable, *, color_format: str = ".png",

@@ -9,6 +9,8 @@ message naming the problem; the server maps it to ``INVALID_ARGUMENT``.
 from __future__ import annotations
 
 import math
+import struct
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -75,16 +77,9 @@ def encode_frame(frame: Frame, mission_id: str = "", color_format: str = ".png",
         intrinsics=intrinsics_to_proto(frame.intrinsics))
 
 
-def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
-    """Validate and decode one ``FrameMsg``.
-
-    Returns:
-        Frame with rgb (H,W,3) uint8, depth (H,W) float32 metres, c2w (4,4) float64.
-    Raises:
-        FrameError: missing/undecodable colour or depth, shapes that disagree with the intrinsics or each
-            other, a depth PNG that is not 16-bit single-channel, a non-positive/non-finite depth scale,
-            a pose that is not 16 finite numbers forming a rigid transform.
-    """
+def _check_meta(msg: agent_pb2.FrameMsg):
+    """(frame id, Intrinsics, rigid c2w (4, 4) float64) of a message whose intrinsics, pose, depth scale
+    and image presence are valid. Raises FrameError naming the problem."""
     fid = int(msg.frame_id)
     if not msg.HasField("intrinsics"):
         raise FrameError(f"frame {fid}: intrinsics missing")
@@ -105,6 +100,21 @@ def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
         raise FrameError(f"frame {fid}: colour image missing")
     if not msg.depth:
         raise FrameError(f"frame {fid}: depth image missing")
+    return fid, intr, c2w
+
+
+def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
+    """Validate and decode one ``FrameMsg``.
+
+    Returns:
+        Frame with rgb (H,W,3) uint8, depth (H,W) float32 metres, c2w (4,4) float64.
+    Raises:
+        FrameError: missing/undecodable colour or depth, shapes that disagree with the intrinsics or each
+            other, a depth PNG that is not 16-bit single-channel, a non-positive/non-finite depth scale,
+            a pose that is not 16 finite numbers forming a rigid transform.
+    """
+    fid, intr, c2w = _check_meta(msg)
+    W, H = intr.width, intr.height
     bgr = cv2.imdecode(np.frombuffer(msg.color, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None:
         raise FrameError(f"frame {fid}: colour bytes are not a decodable JPEG/PNG image")
@@ -128,3 +138,98 @@ def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
         raise FrameError(f"frame {fid}: depth has no valid (non-zero) pixel")
     return Frame(frame_id=fid, timestamp=float(msg.timestamp), rgb=np.ascontiguousarray(rgb), depth=depth,
                  c2w=c2w, intrinsics=intr, name=f"frame{fid:06d}")
+
+
+def _png_header(data: bytes):
+    """(width, height, bit depth, colour type) of a PNG from its IHDR chunk, or None if not a PNG."""
+    if len(data) < 26 or data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
+        return None
+    w, h = struct.unpack(">II", data[16:24])
+    return w, h, data[24], data[25]
+
+
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_header(data: bytes):
+    """(width, height, precision, components) from a JPEG's start-of-frame segment, or None."""
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return None
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if marker in _SOF:
+            if i + 10 > n:
+                return None
+            prec, h, w, nc = struct.unpack(">BHHB", data[i + 4:i + 10])
+            return w, h, prec, nc
+        if marker == 0xDA or seg < 2:  # scan data before any frame header
+            return None
+        i += 2 + seg
+    return None
+
+
+@dataclass
+class PendingFrame:
+    """A validated, not yet decoded ``FrameMsg``: what keyframe selection needs (pose, intrinsics,
+    timestamp, id) now, the images only if the frame becomes a keyframe (:meth:`materialize`).
+
+    Attributes: frame_id (int), timestamp (float, s), c2w ((4, 4) float64), intrinsics (Intrinsics), msg.
+    """
+
+    frame_id: int
+    timestamp: float
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    msg: agent_pb2.FrameMsg
+
+    def materialize(self) -> Frame:
+        """Decode the images (:func:`decode_frame`). Raises FrameError for corrupt image data."""
+        return decode_frame(self.msg)
+
+
+def validate_frame(msg: agent_pb2.FrameMsg) -> PendingFrame:
+    """Validate a ``FrameMsg`` without decoding its images: intrinsics, a finite rigid pose, the depth scale,
+    and the image headers (colour: 8-bit JPEG with 3 components or 8-bit RGB/RGBA/palette PNG; depth:
+    16-bit single-channel PNG; both of the intrinsics' size). Costs microseconds, so the accept path of a
+    live stream stays far below a frame period; corrupt data behind a valid header is found by
+    :meth:`PendingFrame.materialize`.
+
+    Raises:
+        FrameError: the same problems as :func:`decode_frame` reports from headers alone.
+    """
+    fid, intr, c2w = _check_meta(msg)
+    W, H = intr.width, intr.height
+    png = _png_header(msg.color)
+    if png is not None:
+        cw, ch, bits, ctype = png
+        if bits != 8 or ctype not in (2, 3, 6):
+            raise FrameError(f"frame {fid}: colour must be 8-bit RGB, got a PNG of bit depth {bits} colour type {ctype}")
+    else:
+        jpg = _jpeg_header(msg.color)
+        if jpg is None:
+            raise FrameError(f"frame {fid}: colour bytes are not a decodable JPEG/PNG image")
+        cw, ch, bits, nc = jpg
+        if bits != 8 or nc != 3:
+            raise FrameError(f"frame {fid}: colour must be 8-bit RGB, got a JPEG of {bits} bits x {nc} components")
+    if (cw, ch) != (W, H):
+        raise FrameError(f"frame {fid}: colour is {cw}x{ch}, intrinsics say {W}x{H}")
+    dh = _png_header(msg.depth)
+    if dh is None:
+        raise FrameError(f"frame {fid}: depth bytes are not a decodable PNG image")
+    dw, dhh, dbits, dtype = dh
+    if dbits != 16 or dtype != 0:
+        raise FrameError(f"frame {fid}: depth must be a single-channel 16-bit PNG, got bit depth {dbits} "
+                         f"colour type {dtype}")
+    if (dw, dhh) != (W, H):
+        raise FrameError(f"frame {fid}: depth is {dw}x{dhh}, colour/intrinsics are {W}x{H}")
+    return PendingFrame(fid, float(msg.timestamp), c2w, intr, msg)

@@ -8,9 +8,14 @@ paper Sec. III-E "Multi-Agent Fusion").
 
 Threads per mission:
 
-* mapping worker — takes frames from a bounded queue (``submit`` blocks when it is full, which gives
-  gRPC flow control back-pressure), computes the relevance map (attention front-end or GT ROI), maps
-  the frame, and every ``push_every`` mapped frames hands a snapshot of the ROI subset to the pusher;
+* mapping worker — takes keyframes and computes the relevance map (attention front-end over the
+  annotation or ONNX backend, or GT ROI), maps them (``mapper.keyframe_budget_s`` per keyframe or fixed
+  iterations), optimises over its keyframes while none is pending (live ingest), every ``push_every``
+  mapped frames hands a snapshot of the ROI subset to the pusher and every ``checkpoint_every`` writes a
+  checkpoint. Live ingest (``ingest: keyframes``, realtime replays): ``submit`` never blocks; the keyframe
+  selector (:mod:`gausslite.mapping.keyframes`) keeps only the newest pending candidate. Every-frame ingest
+  (offline replays, ``ingest: every_frame``): a bounded queue, ``submit`` blocks when it is full (gRPC flow
+  control back-pressure);
 * pusher — uploads the newest pending snapshot (older pending ones are superseded; keyframes not yet
   uploaded accumulate) with retries and exponential backoff, so a fusion-server outage never stalls
   mapping; the client resumes a half-uploaded subset of the same ``map_version``.
@@ -27,6 +32,7 @@ import queue
 import threading
 import time
 import uuid
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, List, Literal, Optional
@@ -40,6 +46,39 @@ from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig, apply_overrides
 
 log = logging.getLogger(__name__)
+
+
+class OnnxRelevanceConfig(BaseModel):
+    """ONNX attention backends of the agent (``agent.onnx`` in YAML; SPEC §4, paper Sec. III-B).
+
+    Attributes:
+        detector_path: Grounding-DINO-style ``.onnx`` (:class:`gausslite.attention.OnnxGroundingDetector`).
+        vocab_path: its BERT WordPiece ``vocab.txt``.
+        segmenter_path: FastSAM / YOLOv8-seg ``.onnx`` (:class:`gausslite.attention.OnnxFastSAMSegmenter`).
+        box_threshold, text_threshold: detector thresholds (paper 0.20 / 0.25).
+        seg_conf, seg_iou: segmenter candidate score and NMS IoU thresholds (paper 0.4 / 0.9).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    detector_path: Optional[str] = None
+    vocab_path: Optional[str] = None
+    segmenter_path: Optional[str] = None
+    box_threshold: float = Field(0.20, ge=0, le=1)
+    text_threshold: float = Field(0.25, ge=0, le=1)
+    seg_conf: float = Field(0.4, ge=0, le=1)
+    seg_iou: float = Field(0.9, ge=0, le=1)
+
+    def missing(self) -> List[str]:
+        """What is missing for the ONNX backend: unset options and files that do not exist."""
+        out = []
+        for name in ("detector_path", "vocab_path", "segmenter_path"):
+            v = getattr(self, name)
+            if not v:
+                out.append(f"agent.onnx.{name} is not set")
+            elif not Path(v).is_file():
+                out.append(f"agent.onnx.{name} {v} does not exist")
+        return out
 
 
 class AgentConfig(BaseModel):
@@ -65,6 +104,22 @@ class AgentConfig(BaseModel):
         backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds).
         attention_rendered_depth: give the attention front-end the depth rendered from the current map.
         eval_max_frames: frames kept for the ROI PSNR of the Finish summary.
+        ingest: streamed frames go through keyframe selection with a one-frame pending slot and never
+            block the sender (``keyframes``, :mod:`gausslite.mapping.keyframes`), or are all queued and
+            mapped with back-pressure (``every_frame``, the offline behaviour; non-realtime replays always
+            map every frame).
+        keyframe_translation_m, keyframe_rotation_deg, keyframe_max_interval_s: keyframe rule
+            (:class:`gausslite.mapping.keyframes.KeyframeRule`; None interval = never).
+        idle_optimize: with keyframe ingest, keep optimising over the stored keyframes (MVO) while no
+            keyframe is pending, in chunks of ``idle_chunk_s`` seconds (a new keyframe waits at most one chunk).
+        realtime: replays send frames at the dataset's clock (frame timestamps scaled by ``1 / rate``)
+            through keyframe ingest instead of mapping every frame; ``fps``: clock of Replica / 7-Scenes
+            replays (frame index / fps; default the loader's 30 Hz).
+        checkpoint_every: with a data dir, write the mission checkpoint every this many mapped keyframes
+            (0 = never).
+        relevance_backend: where the attention front-end's detector/segmenter come from: ``annotation``
+            (the scene's ``objects.json``) or ``onnx`` (models in ``onnx``).
+        onnx: ONNX detector/segmenter paths and thresholds (``relevance_backend: onnx``).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 
@@ -89,6 +144,18 @@ class AgentConfig(BaseModel):
     max_backoff_s: float = Field(5.0, gt=0)
     attention_rendered_depth: bool = True
     eval_max_frames: int = Field(200, ge=1)
+    ingest: Literal["keyframes", "every_frame"] = "keyframes"
+    keyframe_translation_m: float = Field(0.05, gt=0)
+    keyframe_rotation_deg: float = Field(5.0, gt=0)
+    keyframe_max_interval_s: Optional[float] = Field(1.0, gt=0)
+    idle_optimize: bool = True
+    idle_chunk_s: float = Field(0.25, gt=0)
+    realtime: bool = False
+    rate: float = Field(1.0, gt=0)
+    fps: Optional[float] = Field(None, gt=0)
+    checkpoint_every: int = Field(5, ge=0)
+    relevance_backend: Literal["annotation", "onnx"] = "annotation"
+    onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 
@@ -146,6 +213,8 @@ class MissionSummaryData:
     roi_psnr: Optional[float]
     psnr: Optional[float]
     seconds_per_frame: float
+    roi_psnr_all_frames: Optional[float] = None
+    frames_all: int = 0
 
     def as_dict(self) -> dict:
         """JSON-ready dict."""
@@ -161,6 +230,28 @@ class _Snapshot:
 
 
 _FINISH = object()
+_DRAIN = object()  # Finish without a push: everything before it is mapped
+_SLOT = object()  # "the keyframe selector holds a pending candidate"
+_CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frames_skipped", "seconds_mapping",
+                  "idle_iterations", "keyframe_iterations")
+CHECKPOINT_FILE = "checkpoint.pt"
+VERSION_FILE = "pushed_version.json"
+
+
+def _percentile(vals, q: float) -> float:
+    return float(np.percentile(np.asarray(vals, dtype=np.float64), q)) if len(vals) else 0.0
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Write ``path`` through a temporary file in the same folder and ``os.replace`` (atomic on POSIX)."""
+    import os
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    write(tmp)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.ndarray:
@@ -197,6 +288,9 @@ class AgentRuntime:
         relevance_fn: optional override ``frame -> (H, W) bool``.
         mission_id (str | None): id (default: random).
         on_finished: optional callback ``(runtime) -> None`` after the final push (e.g. save files).
+        checkpoint_dir (str | Path | None): folder of this mission's checkpoint (``checkpoint.pt``, written
+            every ``checkpoint_every`` keyframes); when it already holds one, the mission resumes from it
+            (map, keyframes, counters, pushed version) and keeps pushing newer versions.
 
     Raises:
         ValueError: empty agent id; ``relevance: gt`` without annotations/task id; ``relevance:
@@ -206,7 +300,8 @@ class AgentRuntime:
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
                  task_id: Optional[str] = None, fusion=None, relevance_fn: Optional[Callable] = None,
                  mission_id: Optional[str] = None,
-                 on_finished: Optional[Callable[["AgentRuntime"], None]] = None) -> None:
+                 on_finished: Optional[Callable[["AgentRuntime"], None]] = None,
+                 checkpoint_dir: Optional[str | Path] = None) -> None:
         if not agent_id:
             raise ValueError("agent_id must be non-empty")
         self.agent_id = agent_id
@@ -258,6 +353,25 @@ class AgentRuntime:
         self._replay_thread: Optional[threading.Thread] = None
         self.replay_frames = 0
         self._closed_for_input = False
+        # ---- live ingest (keyframe selection), latencies, checkpoints
+        from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
+
+        self.selector = KeyframeSelector(KeyframeRule(config.keyframe_translation_m, config.keyframe_rotation_deg,
+                                                      config.keyframe_max_interval_s))
+        self._online = config.ingest == "keyframes"  # replay() sets it from config.realtime
+        self.frames_keyframed = 0
+        self.frames_skipped = 0
+        self.frames_rejected = 0
+        self.keyframe_iterations = 0
+        self.idle_iterations = 0
+        self.checkpoints = 0
+        self.resumed_keyframes = 0
+        self._accept_ms: "deque[float]" = deque(maxlen=100_000)
+        self._kf_latency_s: List[float] = []
+        self._dataset = None
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
+        if self.checkpoint_dir is not None and (self.checkpoint_dir / CHECKPOINT_FILE).is_file():
+            self._resume()
         self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
         self._pusher = threading.Thread(target=self._push_loop, name=f"agent-{agent_id}-push", daemon=True)
         self._worker.start()
@@ -272,12 +386,16 @@ class AgentRuntime:
                 raise ValueError("relevance 'gt' needs scene annotations and a task id from tasks.json")
             tid = self.task_id
             return lambda fr: ann.roi_mask(tid, fr.depth, fr.c2w, fr.intrinsics)
-        if ann is None:
-            raise ValueError("relevance 'attention' needs scene annotations (objects.json) for the offline "
-                             "annotation detector/segmenter; give a dataset or annotations path")
         from gausslite.attention import AttentionFrontEnd
 
-        fe = AttentionFrontEnd.from_annotations(self.graph, ann)
+        if cfg.relevance_backend == "onnx":
+            fe = self._onnx_frontend()
+        elif ann is None:
+            raise ValueError("relevance 'attention' with backend 'annotation' needs scene annotations (objects.json) "
+                             "for the offline annotation detector/segmenter; give a dataset or annotations path, or "
+                             "set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/segmenter_path")
+        else:
+            fe = AttentionFrontEnd.from_annotations(self.graph, ann)
         self.frontend = fe
 
         def fn(fr: Frame) -> np.ndarray:
@@ -291,15 +409,50 @@ class AgentRuntime:
 
         return fn
 
-    # ------------------------------------------------------------------ input
-    def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False) -> None:
-        """Queue one frame for mapping (blocks while the queue is full).
+    def _onnx_frontend(self):
+        """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B)."""
+        from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
 
+        o = self.config.onnx
+        missing = o.missing()
+        if missing:
+            raise ValueError("relevance 'attention' with backend 'onnx': " + "; ".join(missing))
+        try:
+            det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
+                                        text_threshold=o.text_threshold)
+            seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou)
+        except Exception as e:  # onnxruntime load errors, export-contract violations
+            raise ValueError(f"relevance 'attention' with backend 'onnx': cannot load the models: "
+                             f"{type(e).__name__}: {e}") from None
+        up = getattr(self.annotations, "up_axis", (0.0, 0.0, 1.0)) if self.annotations is not None else (0.0, 0.0, 1.0)
+        return AttentionFrontEnd(self.graph, AttentionConfig(detector=det, segmenter=seg), up_axis=up)
+
+    # ------------------------------------------------------------------ input
+    def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
+               arrival: Optional[float] = None) -> bool:
+        """Hand one frame to the mission.
+
+        Keyframe ingest (``ingest: keyframes``, and realtime replays) never blocks: the frame is offered to
+        the keyframe selector (:mod:`gausslite.mapping.keyframes`), which keeps only the newest pending
+        candidate; frames that are not candidates, or are replaced before the mapper takes them, count as
+        skipped. Every-frame ingest queues the frame and blocks while the queue is full.
+
+        Args:
+            frame: the decoded frame, or a validated not yet decoded one (an object with ``frame_id``,
+                ``c2w``, ``intrinsics`` and ``materialize() -> Frame``, e.g.
+                :class:`services.agent.frames.PendingFrame`; decoded by the worker if it becomes a keyframe).
+                timeout: every-frame ingest only: how long to wait for queue space.
+            arrival: ``time.perf_counter()`` when the frame arrived (before decoding); the accept latency
+                (arrival → accepted, ``accept_latency_ms_p99``) and keyframe latency (arrival → mapped)
+                are measured from it (default: now).
+        Returns:
+            True when the frame was queued or became the pending keyframe candidate, False when skipped.
         Raises:
             MissionError: the mission no longer accepts frames (finishing, finished, failed) or the
                 frame's image size differs from the mission's first frame.
-            queue.Full: ``timeout`` expired.
+            queue.Full: ``timeout`` expired (every-frame ingest).
         """
+        t_arr = time.perf_counter() if arrival is None else arrival
         with self._lock:
             closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
                       or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
@@ -313,23 +466,49 @@ class AgentRuntime:
                                    f"from the mission's {self.intrinsics.width}x{self.intrinsics.height}")
             if self.intrinsics is None:
                 self.intrinsics = intr
-        self._queue.put(frame, timeout=timeout)
+            if self._online:
+                pending, replaced = self.selector.offer((frame, t_arr), frame.c2w, t_arr)
+                self.frames_received += 1
+                self.frames_skipped += int(not pending) + int(replaced is not None)
+                if pending and replaced is None:
+                    self._queue.put_nowait(_SLOT)  # at most one _SLOT is queued at a time
+                self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
+                return pending
+        self._queue.put((frame, t_arr), timeout=timeout)
         with self._lock:
             self.frames_received += 1
+            self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
+        return True
 
     def replay(self, dataset, progress: Optional[Callable[[int, int], None]] = None) -> threading.Thread:
         """Feed every frame of ``dataset`` from a background thread; the state becomes ``REPLAY_DONE``
-        once all its frames are mapped. Streaming (``submit`` from outside) is refused meanwhile."""
+        once all its frames are mapped. Streaming (``submit`` from outside) is refused meanwhile.
+
+        With ``config.realtime`` the frames are sent at the dataset's clock (``frame.timestamp`` relative
+        to the first frame, divided by ``config.rate``) through keyframe ingest, as a robot would stream
+        them; otherwise every frame is mapped (offline behaviour). The final map is evaluated over every
+        frame of the dataset at Finish (``roi_psnr_all_frames``)."""
 
         self.replay_frames = len(dataset)
+        self._dataset = dataset
+        realtime = self.config.realtime
+        with self._lock:
+            self._online = bool(realtime)
 
         def run():
             n = len(dataset)
+            t_start, ts0 = time.perf_counter(), None
             try:
                 for i in range(n):
                     if self._stop.is_set():
                         return
-                    self.submit(dataset[i], _replay=True)
+                    fr = dataset[i]
+                    if realtime:
+                        ts0 = fr.timestamp if ts0 is None else ts0
+                        wait = t_start + (fr.timestamp - ts0) / self.config.rate - time.perf_counter()
+                        if wait > 0 and self._stop.wait(wait):
+                            return
+                    self.submit(fr, _replay=True)
                     if progress:
                         progress(i + 1, n)
                 self._queue.join()
@@ -359,10 +538,28 @@ class AgentRuntime:
             self._push_cv.notify_all()
         self._final_done.set()
 
+    def _idle_work(self) -> bool:
+        """Whether the worker should optimise between keyframes instead of blocking on the queue."""
+        return (self._online and self.config.idle_optimize and self.frames_mapped > 0 and self.state == "MAPPING"
+                and not self._closed_for_input and not self._stop.is_set())
+
     def _work(self) -> None:
         cfg = self.config
         while True:
-            item = self._queue.get()
+            idle = self._idle_work()
+            try:
+                item = self._queue.get(block=not idle)
+            except queue.Empty:
+                try:
+                    n = self.mapper.optimize(max_seconds=cfg.idle_chunk_s)
+                except Exception as e:
+                    self._fail(f"optimising between keyframes failed: {type(e).__name__}: {e}")
+                    continue
+                with self._lock:
+                    self.idle_iterations += n
+                if n == 0:
+                    time.sleep(0.01)
+                continue
             try:
                 if item is None:
                     return
@@ -371,34 +568,138 @@ class AgentRuntime:
                         if self.frames_mapped:
                             self.mapper.finalize()
                         self._offer_snapshot(final=True)
+                        self._record_version()
                     else:
                         self._final_done.set()
                     continue
+                if item is _DRAIN:
+                    self._final_done.set()
+                    continue
+                if item is _SLOT:
+                    with self._lock:
+                        item = self.selector.take()
+                    if item is None:
+                        continue
                 if self.state == "FAILED":
                     continue
-                t0 = time.perf_counter()
-                try:
-                    w = self._relevance_fn(item)
-                    st = self.mapper.map_frame(item, w)
-                except Exception as e:
-                    self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
-                    continue
-                with self._lock:
-                    self.frames_mapped += 1
-                    self.seconds_mapping += time.perf_counter() - t0
-                    self.n_gaussians = st.n_gaussians
-                    self.n_active = int(self.mapper.model.active.sum())
-                    if (self.frames_mapped - 1) % cfg.keyframe_every == 0:
-                        self._kf_pending.append(item)
-                        del self._kf_pending[:-cfg.max_keyframes]
-                    if len(self._eval_frames) < cfg.eval_max_frames:
-                        self._eval_frames.append(item)
-                log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
-                          item.frame_id, st.n_gaussians, self.n_active, st.seconds)
-                if self.frames_mapped % cfg.push_every == 0:
-                    self._offer_snapshot(final=False)
+                self._map_one(*item)
             finally:
                 self._queue.task_done()
+
+    def _map_one(self, item: Frame, t_arrival: float) -> None:
+        """Map one keyframe (worker thread): decode (a ``PendingFrame`` of a live stream), relevance, mapper,
+        counters, pushes, checkpoint. Corrupt image data found only now is logged and counted as rejected."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        if hasattr(item, "materialize"):
+            try:
+                item = item.materialize()
+            except ValueError as e:
+                log.warning("agent %s mission %s: frame rejected at decoding: %s", self.agent_id, self.mission_id, e)
+                with self._lock:
+                    self.frames_rejected += 1
+                    self.last_error = f"rejected frame: {e}"
+                return
+        try:
+            w = self._relevance_fn(item)
+            # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
+            b = cfg.mapper.keyframe_budget_s
+            left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
+            st = self.mapper.map_frame(item, w, time_budget_s=left)
+        except Exception as e:
+            self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
+            return
+        with self._lock:
+            self.frames_mapped += 1
+            self.frames_keyframed += 1
+            self.keyframe_iterations += st.iters
+            self.seconds_mapping += time.perf_counter() - t0
+            self._kf_latency_s.append(time.perf_counter() - t_arrival)
+            self.n_gaussians = st.n_gaussians
+            self.n_active = int(self.mapper.model.active.sum())
+            if (self.frames_mapped - 1) % cfg.keyframe_every == 0:
+                self._kf_pending.append(item)
+                del self._kf_pending[:-cfg.max_keyframes]
+            if len(self._eval_frames) < cfg.eval_max_frames:
+                self._eval_frames.append(item)
+        log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
+                  item.frame_id, st.n_gaussians, self.n_active, st.seconds)
+        if self.frames_mapped % cfg.push_every == 0:
+            self._offer_snapshot(final=False)
+            self._record_version()
+        if self.checkpoint_dir is not None and cfg.checkpoint_every and self.frames_mapped % cfg.checkpoint_every == 0:
+            try:
+                self.save_checkpoint()
+            except Exception as e:  # a full disk must not stop mapping
+                log.warning("agent %s: checkpoint failed: %s: %s", self.agent_id, type(e).__name__, e)
+
+    # ------------------------------------------------------------------ checkpoint / resume
+    def save_checkpoint(self) -> Path:
+        """Write ``checkpoint.pt`` (map with κ and active flags, keyframe window, counters, pushed version,
+        keyframe-selector reference) atomically into ``checkpoint_dir``. Call from the worker thread (or
+        while it is idle). Returns the path. Raises OSError on write failure, ValueError without a folder."""
+        import torch
+
+        if self.checkpoint_dir is None:
+            raise ValueError("no checkpoint_dir configured")
+        with self._lock:
+            counters = {k: getattr(self, k) for k in _CKPT_COUNTERS}
+            sel = self.selector.state()
+            version = self._version
+        state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
+                 "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
+                 "mapper": self.mapper.checkpoint_state(), "saved_unix": time.time()}
+        path = self.checkpoint_dir / CHECKPOINT_FILE
+        _atomic_write(path, lambda p: torch.save(state, p))
+        with self._lock:
+            self.checkpoints += 1
+        log.info("agent %s: checkpoint of mission %s after %d keyframes (v%d) in %s", self.agent_id,
+                 self.mission_id, counters["frames_keyframed"], version, path)
+        return path
+
+    def _record_version(self) -> None:
+        """Persist the newest map version handed to the pusher (a resumed mission continues above it)."""
+        if self.checkpoint_dir is None:
+            return
+        import json
+
+        with self._lock:
+            v = self._version
+        try:
+            _atomic_write(self.checkpoint_dir / VERSION_FILE, lambda p: p.write_text(json.dumps({"version": v})))
+        except OSError as e:
+            log.warning("agent %s: cannot record the pushed version: %s", self.agent_id, e)
+
+    def _resume(self) -> None:
+        import json
+
+        import torch
+
+        path = self.checkpoint_dir / CHECKPOINT_FILE
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:
+            raise ValueError(f"cannot read the checkpoint {path}: {type(e).__name__}: {e}") from None
+        if state.get("agent_id") != self.agent_id or state.get("mission_id") != self.mission_id:
+            raise ValueError(f"checkpoint {path} belongs to agent {state.get('agent_id')!r} mission "
+                             f"{state.get('mission_id')!r}, not {self.agent_id!r} {self.mission_id!r}")
+        if state.get("task_text") != self.task_text:
+            raise ValueError(f"checkpoint {path}: mission {self.mission_id} was started with the task "
+                             f"{state.get('task_text')!r}, not {self.task_text!r}")
+        self.mapper.restore_state(state["mapper"])
+        for k, v in state["counters"].items():
+            setattr(self, k, v)
+        self.selector.load_state(state["selector"])
+        version = int(state["version"])
+        vpath = self.checkpoint_dir / VERSION_FILE
+        if vpath.is_file():  # pushes after the checkpoint: never reuse a version the fusion server holds
+            version = max(version, int(json.loads(vpath.read_text()).get("version", 0)))
+        self._version = version
+        self.resumed_keyframes = self.frames_keyframed
+        self.n_gaussians = len(self.mapper.model)
+        self.n_active = int(self.mapper.model.active.sum())
+        log.info("agent %s: mission %s resumed from %s: %d keyframes, %d Gaussians, next version v%d",
+                 self.agent_id, self.mission_id, path, self.frames_keyframed, self.n_gaussians, version + 1)
 
     def _offer_snapshot(self, final: bool) -> None:
         from gausslite.wire.codec import GaussianArrays
@@ -496,6 +797,12 @@ class AgentRuntime:
                 "last_pushed_version": self.pushes[-1].version if self.pushes else 0,
                 "last_error": self.last_error, "seconds_mapping": self.seconds_mapping,
                 "keyframes_uploaded": self.keyframes_uploaded,
+                "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
+                "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
+                "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
+                "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
+                "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
+                "keyframe_iterations": self.keyframe_iterations,
             }
 
     def wait_mapped(self, timeout_s: Optional[float] = None) -> bool:
@@ -542,15 +849,15 @@ class AgentRuntime:
         if first:
             if self._replay_thread is not None:
                 self._stop_replay_wait(deadline)
-            if push:
-                self._queue.put(_FINISH)
-            else:
-                self._final_done.set()
+            # both markers queue behind the pending keyframe; the worker stops optimising between keyframes
+            self._queue.put(_FINISH if push else _DRAIN)
         remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
         if not self._final_done.wait(remaining):
             raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
         self.wait_mapped(None if deadline is None else max(0.0, deadline - time.monotonic()))
         psnr, roi_psnr = (self.evaluate() if evaluate and self.frames_mapped else (None, None))
+        roi_all = (self.evaluate_all_frames() if evaluate and self.frames_mapped and self._dataset is not None
+                   else None)
         last = self.pushes[-1] if self.pushes else None
         with self._lock:
             if self.state != "FAILED":
@@ -564,7 +871,8 @@ class AgentRuntime:
             bytes_on_wire=last.bytes_on_wire if last else 0,
             bytes_per_gaussian=(last.bytes_on_wire / last.n_shared) if last and last.n_shared else 0.0,
             roi_psnr=roi_psnr, psnr=psnr,
-            seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1))
+            seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1),
+            roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0)
         if self.on_finished is not None:
             try:
                 self.on_finished(self)
@@ -596,6 +904,26 @@ class AgentRuntime:
             if not math.isnan(s.roi_psnr):
                 rps.append(s.roi_psnr)
         return (float(np.mean(ps)) if ps else None, float(np.mean(rps)) if rps else None)
+
+    def evaluate_all_frames(self) -> Optional[float]:
+        """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset, skipped ones included
+        (mean over frames that show the ROI): the honest score of an online map. None without a replayed
+        dataset, annotations or task id, or when no frame shows the ROI. Call only while the worker is idle."""
+        from gausslite.evaluation import score_view
+
+        if self._dataset is None or self.annotations is None or self.task_id is None:
+            return None
+        vals = []
+        for i in range(len(self._dataset)):
+            fr = self._dataset[i]
+            roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
+            if not roi.any():
+                continue
+            out = self.mapper.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
+            s = score_view(out, fr, roi)
+            if not math.isnan(s.roi_psnr):
+                vals.append(s.roi_psnr)
+        return float(np.mean(vals)) if vals else None
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

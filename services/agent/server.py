@@ -6,7 +6,11 @@ paper Sec. III-E).
 * ``StartMission`` — parses the task with the parser service (``parser_address``; empty → the
   in-process rule parser), opens a mission, and either replays ``dataset_path`` or waits for frames.
 * ``StreamFrames`` — a client stream of posed RGB-D frames (:mod:`services.agent.frames` validates
-  each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses).
+  each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses). With keyframe ingest (default)
+  the call never blocks the sender: headers are validated on arrival, keyframe selection keeps the
+  newest candidate, and only keyframes are decoded (by the mapping worker).
+* ``StartMission`` with a ``mission_id`` whose checkpoint is in ``<data_dir>/<agent_id>/<mission_id>``
+  resumes that mission (README "Live operation").
 * ``GetStatus`` / ``Finish`` — progress; final push + summary (ROI PSNR on its own task when the scene
   has annotations).
 
@@ -22,8 +26,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -31,7 +37,7 @@ from typing import Dict, List, Optional
 import grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
-from services.agent.frames import FrameError, decode_frame
+from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
 from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
@@ -42,6 +48,7 @@ SERVICE_NAME = "gausslite.v1.Agent"
 #: Frames of up to ~4K RGB-D (PNG colour + 16-bit depth) fit; larger ones → RESOURCE_EXHAUSTED.
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_TASK_BYTES = 2048
+_MISSION_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 
 _STATES = {
     "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
@@ -160,12 +167,15 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
     def start_mission(self, task_text: str, *, task_id: str = "", dataset_path: str = "",
                       annotations_path: str = "", fusion_address: str = "", agent_id: str = "",
-                      auto_finish: bool = False) -> AgentRuntime:
+                      auto_finish: bool = False, mission_id: str = "") -> AgentRuntime:
         """Create and start a mission (used by ``StartMission`` and by the boot-time auto start).
+
+        With a data dir, the mission checkpoints into ``<data_dir>/<agent_id>/<mission_id>/``; a
+        ``mission_id`` whose folder holds a checkpoint resumes from it.
 
         Raises:
             ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
-            MissionError: another mission is still mapping.
+            MissionError: another mission is still mapping; ``mission_id`` already used in this process.
             FileNotFoundError: dataset/annotations path missing.
             grpc.RpcError: the parser service failed.
         """
@@ -177,7 +187,12 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             raise ValueError("task_text is empty")
         if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
             raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
+        if mission_id and not _MISSION_ID.fullmatch(mission_id):
+            raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-]")
         with self._lock:
+            if mission_id and mission_id in self.missions:
+                raise MissionError(f"mission {mission_id} already exists in this agent process "
+                                   f"({self.missions[mission_id].state.lower()})")
             cur = self.missions.get(self.current) if self.current else None
             if cur is not None and cur.state in ("MAPPING", "REPLAY_DONE", "FINISHING"):
                 raise MissionError(f"mission {cur.mission_id} is still {cur.state.lower()}; Finish it first")
@@ -186,8 +201,15 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if dataset_path:
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
+            from gausslite.datasets.loader import detect_layout
+            from gausslite.mapping.profiles import profile_for_layout
+
+            layout = detect_layout(dataset_path)[0]
+            kw = dict(profile_for_layout(layout).loader)  # e.g. TUM: undistorted, interpolated poses
+            if cfg.fps is not None and layout in ("replica", "7scenes"):
+                kw["fps"] = cfg.fps  # replay clock of datasets without timestamps (TUM keeps its own)
             dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
-                                   stride=cfg.stride, bag=cfg.bag)
+                                   stride=cfg.stride, bag=cfg.bag, **kw)
             annotations = dataset.annotations
         ann_path = annotations_path or (s.annotations_path if not dataset_path else "")
         if ann_path:
@@ -196,8 +218,15 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             annotations = load_annotations(ann_path)
         graph = self._parse(task_text)
         fusion = self._fusion_client(fusion_address or s.fusion_address)
-        rt = AgentRuntime(agent_id or s.agent_id, task_text, graph, cfg, annotations=annotations,
-                          task_id=task_id or None, fusion=fusion, on_finished=self._save)
+        aid = agent_id or s.agent_id
+        mid = mission_id or None
+        if mid is None and s.data_dir:
+            import uuid
+
+            mid = uuid.uuid4().hex[:12]
+        ckpt = Path(s.data_dir) / aid / mid if s.data_dir else None
+        rt = AgentRuntime(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
+                          fusion=fusion, on_finished=self._save, mission_id=mid, checkpoint_dir=ckpt)
         with self._lock:
             self.missions[rt.mission_id] = rt
             self.current = rt.mission_id
@@ -224,7 +253,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         try:
             rt = self.start_mission(request.task_text, task_id=request.task_id, dataset_path=request.dataset_path,
                                     annotations_path=request.annotations_path,
-                                    fusion_address=request.fusion_address, agent_id=request.agent_id)
+                                    fusion_address=request.fusion_address, agent_id=request.agent_id,
+                                    mission_id=request.mission_id)
         except (FileNotFoundError, KeyError) as e:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0] if isinstance(e, KeyError) else e))
         except MissionError as e:
@@ -241,7 +271,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         g = rt.graph
         gp = g if hasattr(g, "SerializeToString") else graph_to_proto(g)
         return agent_pb2.StartMissionResponse(mission_id=rt.mission_id, graph=gp, agent_id=rt.agent_id,
-                                              replay_frames=rt.replay_frames)
+                                              replay_frames=rt.replay_frames, resumed=rt.resumed_keyframes > 0,
+                                              resumed_keyframes=rt.resumed_keyframes)
 
     def StreamFrames(self, request_iterator, context):  # noqa: N802
         rt: Optional[AgentRuntime] = None
@@ -256,14 +287,17 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                 context.abort(grpc.StatusCode.INVALID_ARGUMENT,
                               f"frame {msg.frame_id}: mission_id {msg.mission_id!r} differs from the stream's "
                               f"{rt.mission_id!r}")
+            t_arrival = time.perf_counter()
             try:
-                frame = decode_frame(msg)
+                # keyframe ingest decodes a frame's images only if it becomes a keyframe (worker thread)
+                frame = validate_frame(msg) if rt.config.ingest == "keyframes" else decode_frame(msg)
             except FrameError as e:
+                log.warning("agent %s mission %s: rejected frame: %s", rt.agent_id, rt.mission_id, e)
                 context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
             try:
                 while True:
                     try:
-                        rt.submit(frame, timeout=1.0)
+                        rt.submit(frame, timeout=1.0, arrival=t_arrival)  # never blocks with keyframe ingest
                         break
                     except Exception as e:  # queue.Full: re-check that the client is still there
                         if isinstance(e, MissionError):
@@ -273,6 +307,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             except MissionError as e:
                 code = (grpc.StatusCode.INVALID_ARGUMENT if "image size" in str(e)
                         else grpc.StatusCode.FAILED_PRECONDITION)
+                log.warning("agent %s: StreamFrames %s: %s", rt.agent_id, code.name, e)
                 context.abort(code, str(e))
             n += 1
         if rt is None:
@@ -302,7 +337,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             status=self._status_proto(s.status), final_push_ok=s.final_push_ok, n_shared=s.n_shared,
             share_pct=s.share_pct, bytes_on_wire=s.bytes_on_wire, bytes_per_gaussian=s.bytes_per_gaussian,
             has_roi_psnr=s.roi_psnr is not None, roi_psnr=s.roi_psnr or 0.0, psnr=s.psnr or 0.0,
-            seconds_per_frame=s.seconds_per_frame)
+            seconds_per_frame=s.seconds_per_frame, has_roi_psnr_all_frames=s.roi_psnr_all_frames is not None,
+            roi_psnr_all_frames=s.roi_psnr_all_frames or 0.0, frames_all=s.frames_all)
 
     def close(self) -> None:
         """Close every mission and fusion client (after the server stopped)."""
