@@ -265,7 +265,7 @@ def test_round_trip_property(n, seed, per, extent, shuffle, kappa_max):
 
 
 def test_header_size_is_documented():
-    assert HEADER_SIZE == 118
+    assert HEADER_SIZE == 142
     chunk = encode_subset(random_arrays(np.random.default_rng(10), 5), "abc", 1)[0]
     h = peek_header(chunk)
     assert h.wire_len == len(chunk) == HEADER_SIZE + 3 + h.payload_len + 4

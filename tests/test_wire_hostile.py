@@ -27,6 +27,10 @@ from gausslite.wire import (
     WireError,
     WireLimits,
     decode_chunk,
+    encode_delta,
+    pack_sections,
+    raw_payload,
+    section_lengths,
     encode_subset,
     peek_header,
 )
@@ -46,7 +50,9 @@ def _arrays(n: int, seed: int = 0) -> GaussianArrays:
 
 QUANT_CHUNK = encode_subset(_arrays(40), "agent-a", 3, chunk_gaussians=25)[0]
 LOSSLESS_CHUNK = encode_subset(_arrays(40, 1), "agent-b", 4, chunk_gaussians=25, quant=LOSSLESS)[0]
-VALID = [QUANT_CHUNK, LOSSLESS_CHUNK]
+DELTA_CHUNK = encode_delta(_arrays(6, 2), [1, 4, 9, 10, 11, 12], [0, 2, 7], "agent-c", 9, 5, 9,
+                           chunk_gaussians=25)[0]
+VALID = [QUANT_CHUNK, LOSSLESS_CHUNK, DELTA_CHUNK]
 
 # header field offsets (see the layout table in gausslite/wire/codec.py)
 FIELDS = {
@@ -56,6 +62,8 @@ FIELDS = {
     "opacity_bits": (41, "<B"), "color_bits": (42, "<B"), "kappa_bytes": (43, "<B"),
     "reserved": (44, "<H"), "origin_x": (46, "<d"), "step_x": (70, "<d"), "scale_lo": (94, "<f"),
     "color_hi": (106, "<f"), "raw_len": (110, "<I"), "payload_len": (114, "<I"),
+    "base_version": (118, "<Q"), "base_count": (126, "<Q"), "removed": (134, "<I"),
+    "predict_mask": (138, "<I"),
 }
 
 
@@ -98,8 +106,9 @@ def test_specific_failures_raise_the_right_type():
         decode_chunk(c[:-1])
     with pytest.raises(BadMagic):
         decode_chunk(b"PLY\n" + c[4:])
-    with pytest.raises(UnsupportedVersion):
-        decode_chunk(forge(c, version=2))
+    for v in (1, 3):  # format 1 (before delta records) is not accepted by a format-2 decoder
+        with pytest.raises(UnsupportedVersion):
+            decode_chunk(forge(c, version=v))
     bad = bytearray(c)
     bad[HEADER_SIZE + 10] ^= 0x40
     with pytest.raises(ChecksumMismatch):
@@ -139,19 +148,34 @@ def test_absurd_counts_are_rejected_before_allocation():
 
 def test_zstd_bomb_and_garbage_payloads_are_rejected():
     h = peek_header(QUANT_CHUNK)
-    # a frame that declares a much larger content size than the header's raw length
+    lengths = section_lengths(h)
+    ok = pack_sections(b"\0" * h.raw_len, lengths)
+    assert len(decode_chunk(with_payload(QUANT_CHUNK, ok)).arrays) == h.count
+    first = struct.unpack_from("<I", ok)[0]
+    rest = ok[4 + first:]
+
+    def section(frame: bytes) -> bytes:
+        return struct.pack("<I", len(frame)) + frame
+
+    # a first-section frame that declares a much larger content size than the section
     bomb = zstandard.ZstdCompressor(write_content_size=True).compress(b"\0" * (64 << 20))
     with pytest.raises(MalformedChunk):
-        decode_chunk(with_payload(QUANT_CHUNK, bomb))
+        decode_chunk(with_payload(QUANT_CHUNK, section(bomb) + rest))
     # a frame without content size
-    nosize = zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * h.raw_len)
+    nosize = zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * lengths[0])
     with pytest.raises(MalformedChunk):
-        decode_chunk(with_payload(QUANT_CHUNK, nosize))
-    # right content size, plus a trailing second frame
-    ok = zstandard.ZstdCompressor(write_content_size=True).compress(b"\0" * h.raw_len)
-    assert len(decode_chunk(with_payload(QUANT_CHUNK, ok)).arrays) == h.count
+        decode_chunk(with_payload(QUANT_CHUNK, section(nosize) + rest))
+    # a section whose frame is followed by a second frame inside its declared length
+    fr = zstandard.ZstdCompressor(write_content_size=True).compress(b"\0" * lengths[0])
     with pytest.raises(MalformedChunk):
-        decode_chunk(with_payload(QUANT_CHUNK, ok + ok))
+        decode_chunk(with_payload(QUANT_CHUNK, section(fr + fr) + rest))
+    # one single frame of the whole raw payload (format 1 style), trailing bytes, overrun length
+    with pytest.raises(MalformedChunk):
+        decode_chunk(with_payload(QUANT_CHUNK, zstandard.ZstdCompressor().compress(b"\0" * h.raw_len)))
+    with pytest.raises(MalformedChunk):
+        decode_chunk(with_payload(QUANT_CHUNK, ok + b"\0"))
+    with pytest.raises(MalformedChunk):
+        decode_chunk(with_payload(QUANT_CHUNK, struct.pack("<I", 1 << 30) + ok[4:]))
     with pytest.raises(MalformedChunk):
         decode_chunk(with_payload(QUANT_CHUNK, b"\x28\xb5\x2f\xfd garbage garbage"))
     with pytest.raises(MalformedChunk):
@@ -162,7 +186,7 @@ def test_non_finite_values_and_bad_parameters():
     h = peek_header(LOSSLESS_CHUNK)
     raw = bytearray(b"\0" * h.raw_len)
     raw[0:4] = np.float32(np.nan).tobytes()  # shuffled planes: breaks means[0].x
-    nan_chunk = with_payload(LOSSLESS_CHUNK, zstandard.ZstdCompressor().compress(bytes(raw)),
+    nan_chunk = with_payload(LOSSLESS_CHUNK, pack_sections(bytes(raw), section_lengths(h)),
                              flags=1)  # lossless, unshuffled
     with pytest.raises(NonFiniteValues):
         decode_chunk(nan_chunk)
@@ -184,30 +208,29 @@ def test_non_finite_values_and_bad_parameters():
 def test_out_of_range_codes_are_rejected():
     # quat_bits 4 → 14-bit codes in 2 bytes: the top 2 bits (index > 3) are invalid
     g = _arrays(16)
-    (c,) = encode_subset(g, "a", 0, quant=QuantConfig(quat_bits=4, scale_bits=4, shuffle=False))
+    (c,) = encode_subset(g, "a", 0, quant=QuantConfig(quat_bits=4, scale_bits=4, shuffle=False,
+                                                      predict=False))
     h = peek_header(c)
-    raw = bytearray(zstandard.ZstdDecompressor().decompress(
-        c[HEADER_SIZE + 1:HEADER_SIZE + 1 + h.payload_len]))
+    raw = bytearray(raw_payload(c))
     q_off = 3 * h.mean_bytes * h.count
     raw[q_off + 1] = 0xFF
     with pytest.raises(MalformedChunk):
-        decode_chunk(with_payload(c, zstandard.ZstdCompressor().compress(bytes(raw))))
-    raw2 = bytearray(zstandard.ZstdDecompressor().decompress(
-        c[HEADER_SIZE + 1:HEADER_SIZE + 1 + h.payload_len]))
+        decode_chunk(with_payload(c, pack_sections(bytes(raw), section_lengths(h))))
+    raw2 = bytearray(raw_payload(c))
     raw2[q_off + 2 * h.count] = 0xFF  # log-scale code 255 with 4 bits
     with pytest.raises(MalformedChunk):
-        decode_chunk(with_payload(c, zstandard.ZstdCompressor().compress(bytes(raw2))))
+        decode_chunk(with_payload(c, pack_sections(bytes(raw2), section_lengths(h))))
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.binary(max_size=400))
 def test_fuzz_random_bytes(data):
     decode_only_wire_errors(data)
-    decode_only_wire_errors(b"GLWC\x01\x00" + data)
+    decode_only_wire_errors(b"GLWC\x02\x00" + data)
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(which=st.integers(0, 1), data=st.data())
+@given(which=st.integers(0, len(VALID) - 1), data=st.data())
 def test_fuzz_mutations_of_valid_chunks(which, data):
     c = bytearray(VALID[which])
     kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "splice"]))
@@ -232,7 +255,7 @@ def test_fuzz_mutations_of_valid_chunks(which, data):
 
 
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(which=st.integers(0, 1), field=st.sampled_from(sorted(FIELDS)),
+@given(which=st.integers(0, len(VALID) - 1), field=st.sampled_from(sorted(FIELDS)),
        value=st.integers(0, 2**64 - 1))
 def test_fuzz_forged_header_fields(which, field, value):
     off, fmt = FIELDS[field]
@@ -244,14 +267,14 @@ def test_fuzz_forged_header_fields(which, field, value):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(payload=st.binary(max_size=300), which=st.integers(0, 1))
+@given(payload=st.binary(max_size=300), which=st.integers(0, len(VALID) - 1))
 def test_fuzz_forged_payloads(payload, which):
     h = peek_header(VALID[which])
     decode_only_wire_errors(with_payload(VALID[which], payload))
     # a well-formed zstd frame of the right length but arbitrary content
     raw = (payload * (h.raw_len // max(1, len(payload)) + 1))[: h.raw_len] if payload else b""
     if len(raw) == h.raw_len:
-        decode_only_wire_errors(with_payload(VALID[which], zstandard.ZstdCompressor().compress(raw)))
+        decode_only_wire_errors(with_payload(VALID[which], pack_sections(raw, section_lengths(h))))
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
