@@ -8,18 +8,19 @@ idempotent by (agent id, map version, chunk index)").
 Everything here is numpy; torch is only touched when converting from/to
 :class:`gausslite.gaussians.GaussianMap`.
 
-Chunk layout (format version 1, all integers little-endian)
+Chunk layout (format version 2, all integers little-endian)
 -----------------------------------------------------------
-::
+The normative, language-neutral specification is ``docs/wire-format.md`` (with golden vectors in
+``tests/data/wire``); summary::
 
     off  size  field
       0     4  magic b"GLWC"
-      4     2  u16 format version (= 1)
-      6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle; other bits must be 0
+      4     2  u16 format version (= 2)
+      6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle, bit2 delta; other bits must be 0
       8     8  u64 map version
      16     4  u32 chunk index (0-based)
      20     4  u32 chunk count (>= 1)
-     24     8  u64 total Gaussian count of the subset
+     24     8  u64 total Gaussian (record) count of the subset / delta
      32     4  u32 Gaussian count n of this chunk
      36     2  u16 agent id length L (1..limits.max_agent_id_bytes)
      38     1  u8  mean bytes per axis (quantised: 1..4; lossless: 0)
@@ -33,14 +34,18 @@ Chunk layout (format version 1, all integers little-endian)
      70    24  3 x f64 mean step (metres per code; quantised only, else 0)
      94     8  2 x f32 log-scale range lo, hi (quantised only)
     102     8  2 x f32 colour range lo, hi (quantised only)
-    110     4  u32 raw (decompressed) payload length; must equal the length implied by n and the
-               parameters above
+    110     4  u32 raw (decompressed) payload length; must equal the sum of the section lengths
     114     4  u32 compressed payload length P
-    118     L  agent id, UTF-8
-    118+L   P  payload: one zstd frame (with content size) of the raw payload
-    118+L+P 4  u32 CRC-32 (zlib.crc32) of every preceding byte of the chunk
+    118     8  u64 delta base version (delta only, < map version; else 0)
+    126     8  u64 delta base row count (delta only; else 0)
+    134     4  u32 removed rows in this chunk r (delta only; else 0)
+    138     4  u32 predict mask: bit i = field i (means, quats, log_scales, opacity, colors, kappa)
+               is coded as zigzagged wrapped row-to-row differences (quantised only, bits 0..5)
+    142     L  agent id, UTF-8
+    142+L   P  payload: per section, u32 compressed length then one zstd frame (with content size)
+    142+L+P 4  u32 CRC-32 (zlib.crc32) of every preceding byte of the chunk
 
-Raw payload = the following fields in order; each field is a (C, n) array of unsigned integers
+Raw payload = the following sections in order; each field is a (C, n) array of unsigned integers
 (C components) written with ``w`` bytes per value; with the shuffle flag the bytes are written as
 byte planes (component-major, then byte significance, then Gaussian), otherwise component-major with
 each value's ``w`` bytes contiguous:
@@ -57,8 +62,14 @@ log_scales      3  affine over [lo, hi], w = ceil(bits / 8)    float32 bits
 opacity         1  ``round(sigmoid(logit) * (2^bits - 1))``    float32 bits of the logit
 colors          3  affine over [lo, hi]                        float32 bits
 kappa           1  zigzag(κ), w = κ bytes                      same
+targets         1  delta only: 4-byte gaps of the ascending record targets (g0 = t0, gi = ti-t(i-1)-1)
+removed         1  delta only: r values, 4-byte gaps of the ascending removed base rows
 active          -  ``np.packbits`` (big bit order), ceil(n/8) bytes, in both modes
 =============  ==  =========================================  ======================================
+
+A field whose predict-mask bit is set stores, per component, ``zigzag(wrap(c[i] - c[i-1]))`` with
+``c[-1] = 0`` and ``wrap`` to a signed 8w-bit integer; the decoder takes the running sum modulo
+2^(8w).  Rows sorted along a Morton curve (:func:`spatial_order`) make the differences small.
 
 Precision of the quantised mode (defaults of :class:`QuantConfig`)
 ------------------------------------------------------------------
@@ -73,11 +84,12 @@ Precision of the quantised mode (defaults of :class:`QuantConfig`)
   so that the largest component is positive (q and -q are the same rotation).  Error per stored
   component e <= (1/sqrt(2)) / (2^b - 1), hence |Δq| <= sqrt(12)·e and rotation error
   <= 4·asin(sqrt(3)·e) (about 7e rad): 0.55 degree bound / 0.42 degree measured on random rotations
-  at the default b = 9 (29 bits in a 4-byte code whose constant top 3 bits zstd removes after
-  byte-plane shuffling); 0.27 degree bound at b = 10.
+  at b = 9; the default b = 8 (26 bits in a 4-byte code) doubles that and costs no measurable
+  ROI PSNR on room0 (+0.004 dB with 7-bit opacity, bench.quant_psnr); 0.27 degree bound at b = 10.
 * log_scales / colours: affine over the chunk's [min, max], clamped to ``scale_clamp`` /
   ``color_clamp``; error <= (hi - lo) / (2 (2^bits - 1)) for values inside the clamp.
-* opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.00196 at 8
+* opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.0039 at the
+  default 7 bits, 0.00196 at 8
   bit); decoded logits are finite (|logit| <= log(2 (2^bits - 1) - 1), 6.23 at 8 bit).
 * κ and the active flag are lossless in both modes.
 
@@ -363,9 +375,9 @@ class QuantConfig:
 
     lossless: bool = False
     mean_step: float = 2.5e-4  # 0.25 mm (with 9-bit scales: -0.027 dB ROI PSNR on room0, bench.quant_psnr)
-    quat_bits: int = 9
-    scale_bits: int = 9  # 8 bits cost 0.025 dB more ROI PSNR on room0 (bench.quant_psnr)
-    opacity_bits: int = 8
+    quat_bits: int = 8  # 9 → 8 with 7-bit opacity: 12.51 → 11.55 B per active Gaussian, +0.004 dB (room0)
+    scale_bits: int = 9  # 8 bits cost 0.02 dB more ROI PSNR on room0 (bench.quant_psnr)
+    opacity_bits: int = 7
     color_bits: int = 8
     scale_clamp: tuple[float, float] = (-16.0, 4.0)
     color_clamp: tuple[float, float] = (-1.0, 2.0)

@@ -70,6 +70,7 @@ class UploadResult:
         n_gaussians (int): Gaussians in the subset.
         chunks_sent (int): chunks actually transmitted (0 when the server already had them all).
         attempts (int): ``UploadSubset`` calls made.
+        bytes_sent (int): bytes of the chunks actually transmitted (re-sent chunks count again).
     """
 
     complete: bool
@@ -78,6 +79,7 @@ class UploadResult:
     n_gaussians: int
     chunks_sent: int = 0
     attempts: int = 0
+    bytes_sent: int = 0
 
 
 @dataclass(frozen=True)
@@ -300,11 +302,30 @@ class FusionClient:
         """
         chunks = encode_subset(gaussians, agent_id, int(map_version), chunk_gaussians=int(chunk_gaussians),
                                quant=quant or QuantConfig())
-        n = len(GaussianArrays.from_any(gaussians))
+        return self.upload_chunks(agent_id, map_version, chunks, n_gaussians=len(GaussianArrays.from_any(gaussians)),
+                                  full_map_gaussians=full_map_gaussians, full_map_bytes=full_map_bytes)
+
+    def upload_chunks(self, agent_id: str, map_version: int, chunks: Sequence[bytes], *, n_gaussians: int,
+                      full_map_gaussians: int, full_map_bytes: int = 0) -> UploadResult:
+        """Upload already encoded chunks of (agent, map version) — a full subset or a delta
+        (:func:`gausslite.wire.codec.encode_delta`) — resuming whatever the server already holds.
+
+        Args:
+            chunks: the version's wire chunks (chunk i has index i).
+            n_gaussians: Gaussians (records) the chunks carry (reported back only).
+            full_map_gaussians, full_map_bytes: as :meth:`upload_subset`.
+        Returns:
+            UploadResult (``bytes_sent`` counts the bytes transmitted by this call).
+        Raises:
+            grpc.RpcError: as :meth:`upload_subset`; FAILED_PRECONDITION also when a delta's base
+            version is not on the server (upload the full subset then).
+        """
+        n = int(n_gaussians)
         header = fusion_pb2.UploadHeader(agent_id=agent_id, map_version=int(map_version), n_chunks=len(chunks),
                                          full_map_gaussians=int(full_map_gaussians), full_map_bytes=int(full_map_bytes))
         total_bytes = sum(len(c) for c in chunks)
         sent = 0
+        sent_bytes = 0
         attempts = 0
         retry = 0
         while True:
@@ -313,7 +334,7 @@ class FusionClient:
                                      fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
                                      "GetUploadStatus")
                 if status.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 have = set(status.stored) if status.n_chunks == len(chunks) else set()
                 todo = [i for i in range(len(chunks)) if i not in have]
                 # one call per batch; an empty todo list still sends the header (refreshes share stats)
@@ -334,10 +355,11 @@ class FusionClient:
                     attempts += 1
                     ack = self._stub.UploadSubset(messages(), timeout=self.timeout_s, metadata=self._metadata)
                     sent += len(batch)
+                    sent_bytes += sum(len(chunks[i]) for i in batch)
                 if ack is not None and ack.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 if ack is not None and not ack.missing:
-                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 # missing chunks after a full pass: someone else interfered; loop once more
                 raise _Incomplete(list(ack.missing) if ack is not None else [])
             except grpc.RpcError as e:
@@ -345,7 +367,7 @@ class FusionClient:
                     raise
             except _Incomplete as e:
                 if retry >= self.max_retries:
-                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 log.info("upload %s v%d still misses chunks %s", agent_id, map_version, e.missing[:8])
             time.sleep(self.backoff_s * (2 ** retry))
             retry += 1
