@@ -153,6 +153,7 @@ class PushPlanner:
         self.base_version: Optional[int] = None
         self.base: Optional[GaussianArrays] = None
         self.base_ids: Optional[np.ndarray] = None
+        self.last_stats: dict = {}  # row counts of the last delta plan (diagnostics)
 
     def forget(self) -> None:
         """Drop the mirror (the next push is a full upload)."""
@@ -204,6 +205,11 @@ class PushPlanner:
         changed = changed_rows(arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant,
                                self.tolerance, self.kappa_rel)
         upd_idx = cur_idx[changed]
+        self.last_stats = {"base_rows": m, "kept": len(cur_idx), "changed": int(changed.sum()),
+                           "new": int((~in_base).sum()),
+                           "changed_at_tolerance": {t: int(changed_rows(
+                               arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant, t,
+                               self.kappa_rel).sum()) for t in (2.0, 4.0, 8.0)}}
         new_idx = np.nonzero(~in_base)[0]
         new_idx = new_idx[spatial_order(arrays.means[new_idx])]
         keep = np.zeros(m, bool)

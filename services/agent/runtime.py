@@ -47,7 +47,10 @@ class AgentConfig(BaseModel):
     Attributes:
         relevance: ``attention`` (task graph grounded by the attention front-end with the scene's offline
             annotation backend, SPEC §4) or ``gt`` (ground-truth ROI of ``task_id``, for ablations).
-        share: ``active`` (a = 1) or ``kappa`` (κ >= ``kappa_threshold``): which Gaussians are pushed.
+        share: ``active`` (a = 1), ``kappa`` (κ >= ``kappa_threshold``) or ``task`` (a = 1 and
+            κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
+            :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
+        share_coverage: ``share: task``: fraction of the ROI blending weight the shared subset keeps.
         kappa_threshold: κ threshold for ``share: kappa``.
         push_every: push a subset every this many mapped frames (and always at the end).
         downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
@@ -72,8 +75,9 @@ class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     relevance: Literal["attention", "gt"] = "attention"
-    share: Literal["active", "kappa"] = "active"
+    share: Literal["active", "kappa", "task"] = "active"
     kappa_threshold: int = Field(1, ge=0)
+    share_coverage: float = Field(0.99, gt=0, le=1)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -191,7 +195,9 @@ def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.n
         return active
     if share == "kappa":
         return kappa >= int(kappa_threshold)
-    raise ValueError(f"unknown share rule {share!r} (use 'active' or 'kappa')")
+    if share == "task":  # without views: a = 1 and κ (AgentRuntime applies region and compaction)
+        return active & (kappa >= int(kappa_threshold))
+    raise ValueError(f"unknown share rule {share!r} (use 'active', 'kappa' or 'task')")
 
 
 class AgentRuntime:
@@ -420,7 +426,17 @@ class AgentRuntime:
         from gausslite.wire.codec import GaussianArrays
 
         gmap = self.mapper.gmap
-        mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
+        if self.config.share == "task":
+            from gausslite.sharing import ShareConfig, ShareView, select_task_subset
+
+            views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy(), kf.K.cpu().numpy())
+                     for kf in self.mapper.keyframes if kf.roi is not None]
+            mask, st = select_task_subset(gmap, views, ShareConfig(kappa_threshold=self.config.kappa_threshold,
+                                                                   coverage=self.config.share_coverage),
+                                          backend=self.config.mapper.backend)
+            log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
+        else:
+            mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = self.mapper.model.ids.numpy()[mask]
         with self._lock:
@@ -505,6 +521,9 @@ class AgentRuntime:
         if not getattr(r, "complete", True):
             raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
         self._planner.acknowledge(plan)
+        if self._planner.last_stats:
+            log.info("agent %s delta plan v%d: %s (sent %s)", self.agent_id, plan.version, self._planner.last_stats,
+                     "delta" if plan.is_delta else "full")
         self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
         with self._lock:
             kfs = list(self._kf_pending)
