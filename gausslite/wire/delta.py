@@ -207,9 +207,9 @@ class PushPlanner:
         upd_idx = cur_idx[changed]
         self.last_stats = {"base_rows": m, "kept": len(cur_idx), "changed": int(changed.sum()),
                            "new": int((~in_base).sum()),
-                           "changed_at_tolerance": {t: int(changed_rows(
-                               arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant, t,
-                               self.kappa_rel).sum()) for t in (2.0, 4.0, 8.0)}}
+                           "changed_at_tolerance": {f"{t}/{k}": int(changed_rows(
+                               arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant, t, k).sum())
+                               for t in (1.0, 4.0) for k in (1.0, 1e9)}}
         new_idx = np.nonzero(~in_base)[0]
         new_idx = new_idx[spatial_order(arrays.means[new_idx])]
         keep = np.zeros(m, bool)
