@@ -57,7 +57,9 @@ class AgentConfig(BaseModel):
         queue_size: frames buffered between the stream and the mapping worker.
         keyframe_every: every k-th mapped frame is uploaded as a keyframe for the fusion refinement.
         max_keyframes: keep at most this many keyframes for upload (older ones dropped first).
-        jpeg_quality: keyframe JPEG quality on the wire.
+        jpeg_quality: keyframe JPEG quality on the wire (``keyframe_format: jpeg``).
+        keyframe_format: ``png`` (lossless colour, default: JPEG q95 keyframes cost the fusion
+            refinement 2 dB ROI PSNR on room0) or ``jpeg``.
         chunk_gaussians: Gaussians per wire chunk.
         delta_push: push only the Gaussians new or changed beyond quantisation since the version the
             server acknowledged, plus the removed rows (wire delta chunks); a full upload when the
@@ -86,6 +88,7 @@ class AgentConfig(BaseModel):
     keyframe_every: int = Field(2, ge=1)
     max_keyframes: int = Field(64, ge=1)
     jpeg_quality: int = Field(95, ge=1, le=100)
+    keyframe_format: Literal["png", "jpeg"] = "png"
     chunk_gaussians: int = Field(20000, ge=1)
     delta_push: bool = True
     delta_tolerance: float = Field(1.0, ge=0)
@@ -529,7 +532,8 @@ class AgentRuntime:
             kfs = list(self._kf_pending)
         n_kf = 0
         if kfs:
-            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality) or 0)
+            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
+                                          color_format=self.config.keyframe_format) or 0)
             with self._lock:
                 sent = {id(f) for f in kfs}
                 self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]

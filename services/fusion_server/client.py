@@ -168,12 +168,29 @@ def encode_color_jpeg(rgb: np.ndarray, quality: int = 95) -> bytes:
     return buf.tobytes()
 
 
-def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95) -> fusion_pb2.KeyframeRequest:
-    """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG colour, 16-bit PNG depth)."""
+def encode_color_png(rgb: np.ndarray) -> bytes:
+    """Encode an (H, W, 3) uint8 RGB image as lossless PNG. Raises ValueError on bad input."""
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ValueError(f"rgb must be (H, W, 3) uint8, got {a.shape} {a.dtype}")
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
+                      color_format: str = "jpeg") -> fusion_pb2.KeyframeRequest:
+    """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG or lossless PNG colour,
+    16-bit PNG depth).  PNG keyframes: the joint refinement fits the uploaded colours, and JPEG q95
+    (41 dB against the original on room0, 4:2:0 chroma) cost it 2 dB ROI PSNR on room0."""
     png, scale = encode_depth_png(frame.depth)
     c2w = np.asarray(frame.c2w, dtype=np.float64).reshape(-1)
+    if color_format not in ("jpeg", "png"):
+        raise ValueError(f"color_format must be 'jpeg' or 'png', got {color_format!r}")
+    color = encode_color_png(frame.rgb) if color_format == "png" else encode_color_jpeg(frame.rgb, jpeg_quality)
     return fusion_pb2.KeyframeRequest(
-        agent_id=agent_id, frame_id=int(frame.frame_id), color=encode_color_jpeg(frame.rgb, jpeg_quality),
+        agent_id=agent_id, frame_id=int(frame.frame_id), color=color,
         depth_png=png, depth_scale=scale, pose=common_pb2.Pose(c2w=[float(v) for v in c2w]),
         intrinsics=intrinsics_to_proto(frame.intrinsics), timestamp=float(getattr(frame, "timestamp", 0.0)),
     )
@@ -372,7 +389,8 @@ class FusionClient:
             time.sleep(self.backoff_s * (2 ** retry))
             retry += 1
 
-    def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95) -> int:
+    def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95,
+                         color_format: str = "jpeg") -> int:
         """Upload keyframes (colour as JPEG, depth as 16-bit PNG, pose, intrinsics).
 
         Args:
@@ -388,7 +406,7 @@ class FusionClient:
             ValueError: a frame cannot be encoded.
             grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session), ...
         """
-        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality) for f in keyframes]
+        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality, color_format) for f in keyframes]
         accepted = 0
         for s in range(0, len(msgs), KEYFRAME_BATCH):
             batch = msgs[s:s + KEYFRAME_BATCH]
