@@ -94,12 +94,12 @@ def forge(chunk: bytes, **values) -> bytes:
     return bytes(b)
 
 
-def with_payload(chunk: bytes, payload: bytes) -> bytes:
-    """Replace the payload (fixing payload_len and the CRC)."""
+def with_payload(chunk: bytes, payload: bytes, **values) -> bytes:
+    """Replace the payload (fixing payload_len and the CRC), optionally forging header fields."""
     alen = struct.unpack_from("<H", chunk, 36)[0]
     body = bytearray(chunk[:142 + alen] + payload + b"\0\0\0\0")
     struct.pack_into("<I", body, 114, len(payload))
-    return forge(bytes(body))
+    return forge(bytes(body), **values)
 
 
 # ------------------------------------------------------------------------------ properties

@@ -12,4 +12,4 @@ PROPS = properties()
 
 @pytest.mark.parametrize("name", sorted(PROPS))
 def test_wire_fuzz_property(name):
-    PROPS[name](30 if "round_trip" not in name else 15)()
+    PROPS[name](40 if "round_trip" not in name else 15)()
