@@ -264,6 +264,29 @@ def evaluate_fused(gmap, frames: list, annotations, task_id: str, backend: str =
     return float(np.mean(vals)) if vals else None
 
 
+def attach_context_baseline(report: dict, context_report: dict) -> dict:
+    """Copy each agent's own-map ROI PSNR of a run mapped with ``mapper.roi_render: context`` (same
+    scene and tasks, e.g. ``gausslite sim ... --set mapper.roi_render=context``) into ``report`` as
+    ``own_roi_psnr_context``, and per task ``vote_minus_own_context`` (fused vote ROI PSNR minus it).
+
+    Raises:
+        ValueError: the context run used another roi_render mode, or its agents/tasks differ.
+    """
+    mode = ((context_report.get("settings") or {}).get("mapper") or {}).get("roi_render", "context")
+    if mode != "context":
+        raise ValueError(f"the context report was mapped with roi_render={mode!r}, not 'context'")
+    ctx = {(a["id"], a["task"]): a.get("roi_psnr") for a in context_report.get("agents", [])}
+    vote = (report.get("fused") or {}).get("vote", {}).get("roi_psnr_per_task", {})
+    for a in report["agents"]:
+        if (a["id"], a["task"]) not in ctx:
+            raise ValueError(f"the context report has no agent {a['id']} on task {a['task']}")
+        a["own_roi_psnr_context"] = ctx[(a["id"], a["task"])]
+        v = vote.get(a["task"])
+        a["vote_minus_own_context"] = (v - a["own_roi_psnr_context"]) if v is not None and a[
+            "own_roi_psnr_context"] is not None else None
+    return report
+
+
 def plot_pushes(report: dict, path: Path) -> bool:
     """Plot bytes per push and share of the map over time (frames mapped) for every agent into
     ``path`` (PNG). Returns False when no agent logged a push."""
@@ -313,6 +336,14 @@ def write_markdown(report: dict, path: Path) -> None:
                      f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
                      f"{a.get('total_upload_bytes', '–')} | {a.get('final_subset_bytes', '–')} | "
                      f"{_fmt(a.get('upload_ratio'))} |")
+    if any("own_roi_psnr_context" in a for a in report["agents"]):
+        lines += ["", "Own map with `roi_render: context` (a run of the same sim) against the fused vote map:", "",
+                  "| agent | task | own ROI PSNR, deployed | own ROI PSNR, context | fused vote | vote − own context |",
+                  "|---|---|---|---|---|---|"]
+        vote = report["fused"]["vote"]["roi_psnr_per_task"]
+        for a in report["agents"]:
+            lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {_fmt(a.get('own_roi_psnr_context'))} | "
+                         f"{_fmt(vote.get(a['task']))} | {_fmt(a.get('vote_minus_own_context'))} |")
     lines += ["", "Pushes (bytes sent per push, `Δ` = delta push; share of the map when pushed):", ""]
     for a in report["agents"]:
         cells = ", ".join(f"{q['bytes_sent']} B{' Δ' if q['delta'] else ''} @ {q['share_pct']:.1f} %"
@@ -340,7 +371,8 @@ def write_markdown(report: dict, path: Path) -> None:
 
 def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
             overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
-            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True) -> SimResult:
+            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True,
+            context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
 
     Args:
@@ -352,6 +384,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             (no processes started; the agents must already run their missions).
         timeout_s: overall bound (default ``sim.timeout_s``).
         token: bearer token for the services (also passed to started processes).
+        context_report: ``report.json`` of the same sim mapped with ``mapper.roi_render=context``:
+            adds ``own_roi_psnr_context`` per agent (:func:`attach_context_baseline`).
     Returns:
         SimResult.
     Raises:
@@ -508,6 +542,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                   "renders": renders,
                   "settings": {"voxel_size": voxel, "refine_iters": refine_iters, "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+        if context_report is not None:
+            attach_context_baseline(report, json.loads(Path(context_report).read_text()))
         if plot_pushes(report, out / "pushes.png"):
             report["pushes_plot"] = "pushes.png"
         (out / "report.json").write_text(json.dumps(report, indent=2))
