@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from bench.wire_fuzz import random_arrays
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import LearningRates
 from gausslite.mapping.model import GaussianModel
@@ -57,15 +58,7 @@ def test_ids_survive_clone_split_prune_and_budget_replacement():
 
 
 def _arrays(n: int, seed: int = 0) -> GaussianArrays:
-    rng = np.random.default_rng(seed)
-    return GaussianArrays(
-        means=rng.uniform(-1, 1, (n, 3)).astype(np.float32),
-        quats=rng.normal(size=(n, 4)).astype(np.float32),
-        log_scales=rng.uniform(-6, -3, (n, 3)).astype(np.float32),
-        opacity_logits=rng.normal(0, 2, n).astype(np.float32),
-        colors=rng.uniform(0, 1, (n, 3)).astype(np.float32),
-        kappa=rng.integers(1, 50, n), active=np.ones(n, bool),
-    )
+    return random_arrays(n, seed, extent=1.0)
 
 
 def test_delta_push_rebuilds_the_server_subset_exactly():
