@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Write the golden wire-format test vectors into ``tests/data/wire`` (docs/wire-format.md §9).
+"""Write the golden wire-format test vectors into ``tests/data/wire`` (docs/wire-format.md §10).
 
 Each vector is one chunk file ``<name>.glwc`` plus an entry in ``vectors.json`` holding the parsed
 header, the SHA-256 of the decompressed raw payload and the decoded arrays (float32 values written

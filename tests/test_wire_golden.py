@@ -1,4 +1,4 @@
-"""Golden wire-format vectors (tests/data/wire, docs/wire-format.md §9): the checked-in chunks must
+"""Golden wire-format vectors (tests/data/wire, docs/wire-format.md §10): the checked-in chunks must
 decode to the checked-in arrays, and an independent reading of the documented byte layout (header
 offsets, CRC, section framing) must agree with the codec."""
 
