@@ -44,12 +44,26 @@ def _render_scores(gmap, dataset, roi_fn) -> tuple[float, float]:
     return float(np.mean(full)), (float(np.mean(roi)) if roi else math.nan)
 
 
+def _parse_variant(text: str):
+    """``name:key=value,key=value`` → (name, QuantConfig) (values: int, float or bool)."""
+    from gausslite.wire.codec import QuantConfig
+
+    name, _, body = text.partition(":")
+    kw = {}
+    for item in filter(None, body.split(",")):
+        k, _, v = item.partition("=")
+        kw[k] = (v.lower() == "true") if v.lower() in ("true", "false") else (
+            int(v) if v.lstrip("-").isdigit() else float(v))
+    return name, QuantConfig(**kw)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run the comparison; returns 0, or 1 when the quantised ROI PSNR loss exceeds ``--budget-db``."""
+    """Run the comparison; returns 0, or 1 when the default quantised codec's ROI PSNR loss exceeds
+    ``--budget-db``."""
     from gausslite.datasets import load_dataset
     from gausslite.gaussians import GaussianMap
     from gausslite.pipeline import gt_roi_fn
-    from gausslite.wire.codec import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset
+    from gausslite.wire.codec import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset, spatial_order
 
     ap = argparse.ArgumentParser(prog="python -m bench.quant_psnr", description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", required=True, type=Path)
@@ -58,6 +72,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--map", required=True, type=Path, help="map.ply written by `gausslite map`")
     ap.add_argument("--task-id", default=None)
     ap.add_argument("--budget-db", type=float, default=0.05)
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
+                    help="extra QuantConfig variants to compare (e.g. q8:quat_bits=8)")
     ap.add_argument("--out", type=Path, default=RESULTS / "quant_psnr.json")
     args = ap.parse_args(argv)
 
@@ -65,24 +81,33 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     roi_fn = gt_roi_fn(ds, args.task_id) if args.task_id else None
     gmap = GaussianMap.load_ply(args.map)
     arrays = GaussianArrays.from_any(gmap)
+    # the agents send rows in Morton order (previous-row prediction); so does the bench
+    arrays = arrays.take(spatial_order(arrays.means))
+    active = arrays.take(arrays.active)
     rows = []
-    for name, quant in (("lossless", LOSSLESS), ("quantised", QuantConfig())):
+    variants = [("lossless", LOSSLESS), ("quantised", QuantConfig())] + [_parse_variant(v) for v in args.variant]
+    for name, quant in variants:
         chunks = encode_subset(arrays, "bench", 1, quant=quant)
         decoded, _ = assemble(chunks)
         full, roi = _render_scores(decoded.to_gaussian_map(), ds, roi_fn)
-        rows.append({"codec": name, "bytes_per_gaussian": sum(map(len, chunks)) / len(arrays),
-                     "psnr": full, "roi_psnr": roi})
-    d_full = rows[1]["psnr"] - rows[0]["psnr"]
-    d_roi = rows[1]["roi_psnr"] - rows[0]["roi_psnr"]
-    print(f"map: {args.map} ({len(arrays)} Gaussians), {len(ds)} views, task {args.task_id}")
-    print(f"{'codec':<10} {'B/Gaussian':>10} {'PSNR':>8} {'ROI PSNR':>9}")
+        sub = sum(map(len, encode_subset(active, "bench", 1, quant=quant))) / max(1, len(active))
+        rows.append({"codec": name, "quant": {k: getattr(quant, k) for k in quant.__dataclass_fields__},
+                     "bytes_per_gaussian": sum(map(len, chunks)) / len(arrays),
+                     "active_subset_bytes_per_gaussian": sub, "psnr": full, "roi_psnr": roi})
     for r in rows:
-        print(f"{r['codec']:<10} {r['bytes_per_gaussian']:>10.2f} {r['psnr']:>8.3f} {r['roi_psnr']:>9.3f}")
+        r["delta_psnr_db"] = r["psnr"] - rows[0]["psnr"]
+        r["delta_roi_psnr_db"] = r["roi_psnr"] - rows[0]["roi_psnr"]
+    print(f"map: {args.map} ({len(arrays)} Gaussians, {len(active)} active), {len(ds)} views, task {args.task_id}")
+    print(f"{'codec':<12} {'B/Gaussian':>10} {'B/G active':>10} {'PSNR':>8} {'ROI PSNR':>9} {'ΔROI dB':>8}")
+    for r in rows:
+        print(f"{r['codec']:<12} {r['bytes_per_gaussian']:>10.2f} {r['active_subset_bytes_per_gaussian']:>10.2f} "
+              f"{r['psnr']:>8.3f} {r['roi_psnr']:>9.3f} {r['delta_roi_psnr_db']:>+8.4f}")
+    d_full, d_roi = rows[1]["delta_psnr_db"], rows[1]["delta_roi_psnr_db"]
     print(f"quantised − lossless: PSNR {d_full:+.4f} dB, ROI PSNR {d_roi:+.4f} dB (budget −{args.budget_db} dB)")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"map": str(args.map), "task_id": args.task_id, "n_gaussians": len(arrays),
-                                    "rows": rows, "delta_psnr_db": d_full, "delta_roi_psnr_db": d_roi},
-                                   indent=2))
+                                    "n_active": len(active), "rows": rows, "delta_psnr_db": d_full,
+                                    "delta_roi_psnr_db": d_roi}, indent=2))
     return 0 if (math.isnan(d_roi) or d_roi >= -args.budget_db) else 1
 
 

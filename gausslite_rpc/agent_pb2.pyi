@@ -174,7 +174,7 @@ class MissionStatus(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
-    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all")
+    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes")
     STATUS_FIELD_NUMBER: _ClassVar[int]
     FINAL_PUSH_OK_FIELD_NUMBER: _ClassVar[int]
     N_SHARED_FIELD_NUMBER: _ClassVar[int]
@@ -188,6 +188,9 @@ class MissionSummary(_message.Message):
     HAS_ROI_PSNR_ALL_FRAMES_FIELD_NUMBER: _ClassVar[int]
     ROI_PSNR_ALL_FRAMES_FIELD_NUMBER: _ClassVar[int]
     FRAMES_ALL_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_UPLOAD_BYTES_FIELD_NUMBER: _ClassVar[int]
+    FINAL_SUBSET_BYTES_FIELD_NUMBER: _ClassVar[int]
+    PUSHES_FIELD_NUMBER: _ClassVar[int]
     status: MissionStatus
     final_push_ok: bool
     n_shared: int
@@ -201,4 +204,27 @@ class MissionSummary(_message.Message):
     has_roi_psnr_all_frames: bool
     roi_psnr_all_frames: float
     frames_all: int
-    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ...) -> None: ...
+    total_upload_bytes: int
+    final_subset_bytes: int
+    pushes: _containers.RepeatedCompositeFieldContainer[PushInfo]
+    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ...) -> None: ...
+
+class PushInfo(_message.Message):
+    __slots__ = ("version", "n_shared", "n_total", "bytes_sent", "delta", "records", "removed", "frames_mapped")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    N_SHARED_FIELD_NUMBER: _ClassVar[int]
+    N_TOTAL_FIELD_NUMBER: _ClassVar[int]
+    BYTES_SENT_FIELD_NUMBER: _ClassVar[int]
+    DELTA_FIELD_NUMBER: _ClassVar[int]
+    RECORDS_FIELD_NUMBER: _ClassVar[int]
+    REMOVED_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_MAPPED_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    n_shared: int
+    n_total: int
+    bytes_sent: int
+    delta: bool
+    records: int
+    removed: int
+    frames_mapped: int
+    def __init__(self, version: _Optional[int] = ..., n_shared: _Optional[int] = ..., n_total: _Optional[int] = ..., bytes_sent: _Optional[int] = ..., delta: _Optional[bool] = ..., records: _Optional[int] = ..., removed: _Optional[int] = ..., frames_mapped: _Optional[int] = ...) -> None: ...

@@ -276,6 +276,60 @@ def evaluate_fused(gmap, frames: list, annotations, task_id: str, backend: str =
     return float(np.mean(vals)) if vals else None
 
 
+def attach_context_baseline(report: dict, context_report: dict) -> dict:
+    """Copy each agent's own-map ROI PSNR of a run mapped with ``mapper.roi_render: context`` (same
+    scene and tasks, e.g. ``gausslite sim ... --set mapper.roi_render=context``) into ``report`` as
+    ``own_roi_psnr_context``, and per task ``vote_minus_own_context`` (fused vote ROI PSNR minus it).
+
+    Raises:
+        ValueError: the context run used another roi_render mode, or its agents/tasks differ.
+    """
+    mode = ((context_report.get("settings") or {}).get("mapper") or {}).get("roi_render", "context")
+    if mode != "context":
+        raise ValueError(f"the context report was mapped with roi_render={mode!r}, not 'context'")
+    ctx = {(a["id"], a["task"]): a.get("roi_psnr") for a in context_report.get("agents", [])}
+    vote = (report.get("fused") or {}).get("vote", {}).get("roi_psnr_per_task", {})
+    for a in report["agents"]:
+        if (a["id"], a["task"]) not in ctx:
+            raise ValueError(f"the context report has no agent {a['id']} on task {a['task']}")
+        a["own_roi_psnr_context"] = ctx[(a["id"], a["task"])]
+        v = vote.get(a["task"])
+        a["vote_minus_own_context"] = (v - a["own_roi_psnr_context"]) if v is not None and a[
+            "own_roi_psnr_context"] is not None else None
+    return report
+
+
+def plot_pushes(report: dict, path: Path) -> bool:
+    """Plot bytes per push and share of the map over time (frames mapped) for every agent into
+    ``path`` (PNG). Returns False when no agent logged a push."""
+    agents = [a for a in report["agents"] if a.get("push_log")]
+    if not agents:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for a in agents:
+        log_ = a["push_log"]
+        x = [q["frames_mapped"] for q in log_]
+        ax1.plot(x, [q["bytes_sent"] / 1024 for q in log_], "o-", label=a["id"])
+        for q, xi in zip(log_, x):
+            ax1.annotate("Δ" if q["delta"] else "full", (xi, q["bytes_sent"] / 1024), fontsize=7,
+                         textcoords="offset points", xytext=(0, 4), ha="center")
+        ax2.plot(x, [q["share_pct"] for q in log_], "o-", label=a["id"])
+    ax1.set(xlabel="frames mapped", ylabel="KiB sent", title="bytes per push")
+    ax2.set(xlabel="frames mapped", ylabel="% of the agent's map", title="shared subset")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
 def _fmt(v, nd=2) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
 
@@ -286,11 +340,29 @@ def write_markdown(report: dict, path: Path) -> None:
     lines = ["# GaussLite two-agent simulation", "",
              f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time.", "",
              "## Agents (own map, own task)", "",
-             "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian |",
-             "|---|---|---|---|---|---|---|"]
+             "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian | pushes | "
+             "total upload bytes | final subset bytes | upload / final |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for a in report["agents"]:
         lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
-                     f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} |")
+                     f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
+                     f"{a.get('total_upload_bytes', '–')} | {a.get('final_subset_bytes', '–')} | "
+                     f"{_fmt(a.get('upload_ratio'))} |")
+    if any("own_roi_psnr_context" in a for a in report["agents"]):
+        lines += ["", "Own map with `roi_render: context` (a run of the same sim) against the fused vote map:", "",
+                  "| agent | task | own ROI PSNR, deployed | own ROI PSNR, context | fused vote | vote − own context |",
+                  "|---|---|---|---|---|---|"]
+        vote = report["fused"]["vote"]["roi_psnr_per_task"]
+        for a in report["agents"]:
+            lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {_fmt(a.get('own_roi_psnr_context'))} | "
+                         f"{_fmt(vote.get(a['task']))} | {_fmt(a.get('vote_minus_own_context'))} |")
+    lines += ["", "Pushes (bytes sent per push, `Δ` = delta push; share of the map when pushed):", ""]
+    for a in report["agents"]:
+        cells = ", ".join(f"{q['bytes_sent']} B{' Δ' if q['delta'] else ''} @ {q['share_pct']:.1f} %"
+                          for q in a.get("push_log", []))
+        lines.append(f"- {a['id']}: {cells or '–'}")
+    if report.get("pushes_plot"):
+        lines += ["", f"![bytes per push and share over time]({report['pushes_plot']})"]
     lines += _live_lines(report)
     lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
               "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
@@ -313,7 +385,8 @@ def write_markdown(report: dict, path: Path) -> None:
 def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
             overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
             timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True,
-            offline_report: Optional[str | Path] = None) -> SimResult:
+            offline_report: Optional[str | Path] = None,
+            context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
 
     Args:
@@ -327,6 +400,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         token: bearer token for the services (also passed to started processes).
         offline_report: folder or ``report.json`` of an earlier every-frame run on the same dataset; its
             agents' ROI PSNR is reported next to ``roi_psnr_all_frames`` (``agent.realtime`` runs).
+        context_report: ``report.json`` of the same sim mapped with ``mapper.roi_render=context``:
+            adds ``own_roi_psnr_context`` per agent (:func:`attach_context_baseline`).
     Returns:
         SimResult.
     Raises:
@@ -467,8 +542,17 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "roi_psnr": s.roi_psnr if s.has_roi_psnr else None, "psnr": s.psnr,
                 "n_gaussians": int(s.status.n_gaussians), "n_shared": int(s.n_shared),
                 "share_pct": float(st.get("share_pct", s.share_pct)),
-                "bytes_on_wire": int(st.get("bytes_on_wire", s.bytes_on_wire)),
-                "bytes_per_gaussian": float(st.get("bytes_per_gaussian", s.bytes_per_gaussian)),
+                # agent-side figures: the server stores delta-rebuilt subsets losslessly
+                "bytes_on_wire": int(s.bytes_on_wire),
+                "bytes_per_gaussian": float(s.bytes_per_gaussian),
+                "total_upload_bytes": int(s.total_upload_bytes),
+                "final_subset_bytes": int(s.final_subset_bytes),
+                "upload_ratio": (s.total_upload_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
+                "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
+                              "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
+                              "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
+                              "share_pct": 100.0 * q.n_shared / q.n_total if q.n_total else 0.0}
+                             for q in s.pushes],
                 "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
                 "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
                 "frames_received": int(s.status.frames_received), "frames_keyframed": int(s.status.frames_keyframed),
@@ -487,6 +571,10 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": voxel, "refine_iters": refine_iters, "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+        if context_report is not None:
+            attach_context_baseline(report, json.loads(Path(context_report).read_text()))
+        if plot_pushes(report, out / "pushes.png"):
+            report["pushes_plot"] = "pushes.png"
         (out / "report.json").write_text(json.dumps(report, indent=2))
         write_markdown(report, out / "report.md")
         log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])

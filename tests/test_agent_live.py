@@ -133,6 +133,7 @@ def test_mapper_checkpoint_round_trip(scene):
     assert [k.frame_id for k in m2.window] == [k.frame_id for k in m.window]
     assert m2.n_mapped == 3 and m2.budget == m.budget
     assert torch.equal(m2.contribution, m.contribution) and len(m2.voxels) == len(m.voxels)
+    assert torch.equal(m2.model.ids, m.model.ids) and m2.model._next_id == m.model._next_id
     m2.map_frame(ds[3])  # and it keeps mapping
     assert m2.n_mapped == 4
     m3 = _mapper()  # a bounded checkpoint keeps the newest keyframes, never fewer than the window

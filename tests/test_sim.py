@@ -39,6 +39,27 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     md = (tmp_path / "sim" / "report.md").read_text()
     assert "| agent_a | synth-pick-object |" in md and "| refine |" in md
     assert rep["renders"] and all((tmp_path / "sim" / r["path"]).is_file() for r in rep["renders"])
+    # bandwidth fields (issue 12): every push logged, the total is their sum, the plot exists
+    for a in rep["agents"]:
+        assert a["push_log"] and a["final_subset_bytes"] > 0
+        assert a["total_upload_bytes"] == sum(q["bytes_sent"] for q in a["push_log"]) >= a["final_subset_bytes"]
+        assert not a["push_log"][0]["delta"]  # the first push has no base
+    assert rep["pushes_plot"] == "pushes.png" and (tmp_path / "sim" / "pushes.png").is_file()
+    assert "total upload bytes" in md and "![bytes per push" in md
+    # own-map figure of a roi_render=context run of the same sim
+    from services.sim import attach_context_baseline
+
+    ctx = json.loads(json.dumps(rep))
+    ctx["settings"]["mapper"]["roi_render"] = "context"
+    for a in ctx["agents"]:
+        a["roi_psnr"] = 20.0
+    merged = attach_context_baseline(json.loads(json.dumps(rep)), ctx)
+    for a in merged["agents"]:
+        assert a["own_roi_psnr_context"] == 20.0
+        assert math.isclose(a["vote_minus_own_context"], rep["fused"]["vote"]["roi_psnr_per_task"][a["task"]] - 20)
+    ctx["settings"]["mapper"]["roi_render"] = "active"
+    with pytest.raises(ValueError):
+        attach_context_baseline(rep, ctx)
     # every child process is gone
     assert set(res.pids) == {"parser", "fusion_server", "agent_a", "agent_b"}
     for pid in res.pids.values():

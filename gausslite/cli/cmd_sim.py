@@ -75,6 +75,10 @@ def register(subparsers) -> None:
     from gausslite.cli.cmd_map import add_bag_args
 
     add_bag_args(p)  # shortcuts for agent.bag.<field>
+    p.add_argument("--context-report", default=None, metavar="REPORT_JSON",
+                   help="report.json of the same sim run with --set mapper.roi_render=context: adds each agent's "
+                        "own_roi_psnr_context (with --merge-only: into the existing DIR/report.json, no new run)")
+    p.add_argument("--merge-only", action="store_true", help="with --context-report: rewrite DIR/report.* only")
     p.set_defaults(func=_handle)
     _extend_serve(subparsers)
 
@@ -164,12 +168,15 @@ def _handle(args: argparse.Namespace) -> int:
         if missing - {"parser"}:
             print(f"gausslite sim: error: --attach misses {sorted(missing)}", file=sys.stderr)
             return 2
+    if args.merge_only:
+        return _merge_context(args)
     try:
         from services.sim import run_sim
 
         res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks, attach=attach,
                       offline_report=args.offline_report,
-                      timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
+                      timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None,
+                      context_report=args.context_report)
     except KeyboardInterrupt:
         print("gausslite sim: interrupted (all services stopped)", file=sys.stderr)
         return 130
@@ -178,4 +185,29 @@ def _handle(args: argparse.Namespace) -> int:
         return 1
     print((res.out / "report.md").read_text())
     print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} in {res.seconds:.0f} s")
+    return 0
+
+
+def _merge_context(args: argparse.Namespace) -> int:
+    """``--merge-only``: add the context run's figures to an existing report (no processes)."""
+    import json
+    from pathlib import Path
+
+    from services.sim import attach_context_baseline, plot_pushes, write_markdown
+
+    out = Path(args.out)
+    if not args.context_report:
+        print("gausslite sim: error: --merge-only needs --context-report", file=sys.stderr)
+        return 2
+    try:
+        report = json.loads((out / "report.json").read_text())
+        attach_context_baseline(report, json.loads(Path(args.context_report).read_text()))
+    except (OSError, ValueError, KeyError) as e:
+        print(f"gausslite sim: error: {e}", file=sys.stderr)
+        return 1
+    if plot_pushes(report, out / "pushes.png"):
+        report["pushes_plot"] = "pushes.png"
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    print((out / "report.md").read_text())
     return 0

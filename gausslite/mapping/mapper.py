@@ -567,6 +567,7 @@ class Mapper:
             "gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
                                                              "colors", "active", "kappa")},
             "contribution": self.contribution.detach().cpu().clone(),
+            "ids": self.model.ids.clone(), "next_id": int(self.model._next_id),
             "keyframes": kfs, "voxel_keys": self.voxels._keys.copy(),
             "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
             "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
@@ -582,6 +583,9 @@ class Mapper:
 
         g = GaussianMap(**{k: v.to(self.device) for k, v in state["gaussians"].items()})
         self.model.set_map(g)
+        if "ids" in state and int(state["ids"].shape[0]) == len(g):  # stable ids survive a restart (delta pushes)
+            self.model.ids = state["ids"].clone()
+            self.model._next_id = int(state["next_id"])
         contrib = state.get("contribution")
         self.contribution = (contrib.to(self.device) if contrib is not None and contrib.shape[0] == len(g)
                              else torch.zeros(len(g), device=self.device))

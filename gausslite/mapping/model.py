@@ -24,6 +24,11 @@ class GaussianModel:
     Attributes:
         params: dict name → ``nn.Parameter`` for the five learnable fields (shapes as GaussianMap).
         active: (N,) bool task flag a_i. kappa: (N,) int64 κ_i.
+        ids: (N,) int64 stable per-agent Gaussian ids (CPU), carried along ``parent_index`` by
+            :meth:`set_map`: the first row deriving from a parent keeps the parent's id (a kept
+            original, or the first daughter of a split), every further child (clones, the other
+            daughters) and every new seed (parent −1) gets a fresh id; ids of removed rows (prune,
+            budget replacement) are never reused.  Delta pushes key on them.
         optimizer: ``torch.optim.Adam`` with one parameter group per field.
     """
 
@@ -32,6 +37,8 @@ class GaussianModel:
         self.device = torch.device(device)
         self.params: dict[str, torch.nn.Parameter] = {}
         self.optimizer: Optional[torch.optim.Adam] = None
+        self.ids = torch.zeros(0, dtype=torch.int64)
+        self._next_id = 0
         self.set_map(GaussianMap.empty(device=self.device))
 
     def __len__(self) -> int:
@@ -59,6 +66,7 @@ class GaussianModel:
                     old_state[name] = st
         if parent_index is not None and int(parent_index.shape[0]) != len(gmap.means):
             raise ValueError(f"parent_index has {parent_index.shape[0]} rows, map has {len(gmap.means)}")
+        self.ids = self._carry_ids(parent_index, len(gmap.means))
         new_params = {
             name: torch.nn.Parameter(getattr(gmap, name).detach().to(self.device, torch.float32).clone().contiguous())
             for name in PARAM_NAMES
@@ -83,6 +91,32 @@ class GaussianModel:
                 opt.state[new_params[name]] = new_st
         self.params = new_params
         self.optimizer = opt
+
+    def _carry_ids(self, parent_index: Optional[torch.Tensor], n_new: int) -> torch.Tensor:
+        """(n_new,) int64 ids of the rows of a new map (see the ``ids`` attribute)."""
+        ids = torch.empty(n_new, dtype=torch.int64)
+        if parent_index is None:
+            fresh = torch.ones(n_new, dtype=torch.bool)
+        else:
+            pi = parent_index.detach().to("cpu", torch.int64)
+            if pi.numel() and int(pi.max()) >= len(self.ids):
+                raise ValueError(f"parent_index refers to row {int(pi.max())} of a {len(self.ids)}-row map")
+            fresh = pi < 0
+            rows = torch.nonzero(~fresh).squeeze(1)
+            par = pi[rows]
+            # first occurrence of each parent (rows are in order): stable sort by parent
+            order = torch.sort(par, stable=True).indices
+            sp = par[order]
+            first = torch.ones_like(sp, dtype=torch.bool)
+            first[1:] = sp[1:] != sp[:-1]
+            inherit = torch.zeros(len(par), dtype=torch.bool)
+            inherit[order[first]] = True
+            ids[rows[inherit]] = self.ids[par[inherit]]
+            fresh[rows[~inherit]] = True
+        k = int(fresh.sum())
+        ids[fresh] = torch.arange(self._next_id, self._next_id + k, dtype=torch.int64)
+        self._next_id += k
+        return ids
 
     def step(self, update: Optional[torch.Tensor] = None) -> None:
         """One Adam step, then clear gradients.

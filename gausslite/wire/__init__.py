@@ -1,7 +1,8 @@
 """Wire format for Gaussian subsets exchanged between agents and the fusion server.
 
-Paper Sec. III-E, SPEC §7–8.  See :mod:`gausslite.wire.codec` for the byte layout, precision and
-error hierarchy.  Pure library code (numpy + zstandard); the gRPC services call these functions.
+Paper Sec. III-E, SPEC §7–8.  See :mod:`gausslite.wire.codec` and ``docs/wire-format.md`` for the
+byte layout, precision and error hierarchy.  Pure library code (numpy + zstandard); the gRPC
+services call these functions.
 """
 
 from gausslite.wire.codec import (
@@ -15,6 +16,7 @@ from gausslite.wire.codec import (
     ChunkHeader,
     ConflictingDuplicate,
     DecodedChunk,
+    DeltaMismatch,
     GaussianArrays,
     IncompleteSubset,
     InconsistentChunks,
@@ -28,18 +30,25 @@ from gausslite.wire.codec import (
     UnsupportedVersion,
     WireError,
     WireLimits,
+    apply_delta,
     assemble,
     decode_chunk,
+    encode_delta,
     encode_subset,
+    pack_sections,
     peek_header,
     raw_bytes_per_gaussian,
+    raw_payload,
+    section_lengths,
+    spatial_order,
 )
 
 __all__ = [
     "DEFAULT_LIMITS", "FORMAT_VERSION", "HEADER_SIZE", "LOSSLESS", "MAGIC", "BadMagic",
-    "ChecksumMismatch", "ChunkHeader", "ConflictingDuplicate", "DecodedChunk", "GaussianArrays",
-    "IncompleteSubset", "InconsistentChunks", "LimitExceeded", "MalformedChunk", "NonFiniteValues",
-    "QuantConfig", "SubsetAssembler", "SubsetMeta", "TruncatedChunk", "UnsupportedVersion",
-    "WireError", "WireLimits", "assemble", "decode_chunk", "encode_subset", "peek_header",
-    "raw_bytes_per_gaussian",
+    "ChecksumMismatch", "ChunkHeader", "ConflictingDuplicate", "DecodedChunk", "DeltaMismatch",
+    "GaussianArrays", "IncompleteSubset", "InconsistentChunks", "LimitExceeded", "MalformedChunk",
+    "NonFiniteValues", "QuantConfig", "SubsetAssembler", "SubsetMeta", "TruncatedChunk",
+    "UnsupportedVersion", "WireError", "WireLimits", "apply_delta", "assemble", "decode_chunk",
+    "encode_delta", "encode_subset", "pack_sections", "peek_header", "raw_bytes_per_gaussian",
+    "raw_payload", "section_lengths", "spatial_order",
 ]

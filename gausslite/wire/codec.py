@@ -8,18 +8,19 @@ idempotent by (agent id, map version, chunk index)").
 Everything here is numpy; torch is only touched when converting from/to
 :class:`gausslite.gaussians.GaussianMap`.
 
-Chunk layout (format version 1, all integers little-endian)
+Chunk layout (format version 2, all integers little-endian)
 -----------------------------------------------------------
-::
+The normative, language-neutral specification is ``docs/wire-format.md`` (with golden vectors in
+``tests/data/wire``); summary::
 
     off  size  field
       0     4  magic b"GLWC"
-      4     2  u16 format version (= 1)
-      6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle; other bits must be 0
+      4     2  u16 format version (= 2)
+      6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle, bit2 delta; other bits must be 0
       8     8  u64 map version
      16     4  u32 chunk index (0-based)
      20     4  u32 chunk count (>= 1)
-     24     8  u64 total Gaussian count of the subset
+     24     8  u64 total Gaussian (record) count of the subset / delta
      32     4  u32 Gaussian count n of this chunk
      36     2  u16 agent id length L (1..limits.max_agent_id_bytes)
      38     1  u8  mean bytes per axis (quantised: 1..4; lossless: 0)
@@ -33,14 +34,18 @@ Chunk layout (format version 1, all integers little-endian)
      70    24  3 x f64 mean step (metres per code; quantised only, else 0)
      94     8  2 x f32 log-scale range lo, hi (quantised only)
     102     8  2 x f32 colour range lo, hi (quantised only)
-    110     4  u32 raw (decompressed) payload length; must equal the length implied by n and the
-               parameters above
+    110     4  u32 raw (decompressed) payload length; must equal the sum of the section lengths
     114     4  u32 compressed payload length P
-    118     L  agent id, UTF-8
-    118+L   P  payload: one zstd frame (with content size) of the raw payload
-    118+L+P 4  u32 CRC-32 (zlib.crc32) of every preceding byte of the chunk
+    118     8  u64 delta base version (delta only, < map version; else 0)
+    126     8  u64 delta base row count (delta only; else 0)
+    134     4  u32 removed rows in this chunk r (delta only; else 0)
+    138     4  u32 predict mask: bit i = field i (means, quats, log_scales, opacity, colors, kappa)
+               is coded as zigzagged wrapped row-to-row differences (quantised only, bits 0..5)
+    142     L  agent id, UTF-8
+    142+L   P  payload: per section, u32 compressed length then one zstd frame (with content size)
+    142+L+P 4  u32 CRC-32 (zlib.crc32) of every preceding byte of the chunk
 
-Raw payload = the following fields in order; each field is a (C, n) array of unsigned integers
+Raw payload = the following sections in order; each field is a (C, n) array of unsigned integers
 (C components) written with ``w`` bytes per value; with the shuffle flag the bytes are written as
 byte planes (component-major, then byte significance, then Gaussian), otherwise component-major with
 each value's ``w`` bytes contiguous:
@@ -57,8 +62,14 @@ log_scales      3  affine over [lo, hi], w = ceil(bits / 8)    float32 bits
 opacity         1  ``round(sigmoid(logit) * (2^bits - 1))``    float32 bits of the logit
 colors          3  affine over [lo, hi]                        float32 bits
 kappa           1  zigzag(κ), w = κ bytes                      same
+targets         1  delta only: 4-byte gaps of the ascending record targets (g0 = t0, gi = ti-t(i-1)-1)
+removed         1  delta only: r values, 4-byte gaps of the ascending removed base rows
 active          -  ``np.packbits`` (big bit order), ceil(n/8) bytes, in both modes
 =============  ==  =========================================  ======================================
+
+A field whose predict-mask bit is set stores, per component, ``zigzag(wrap(c[i] - c[i-1]))`` with
+``c[-1] = 0`` and ``wrap`` to a signed 8w-bit integer; the decoder takes the running sum modulo
+2^(8w).  Rows sorted along a Morton curve (:func:`spatial_order`) make the differences small.
 
 Precision of the quantised mode (defaults of :class:`QuantConfig`)
 ------------------------------------------------------------------
@@ -73,11 +84,12 @@ Precision of the quantised mode (defaults of :class:`QuantConfig`)
   so that the largest component is positive (q and -q are the same rotation).  Error per stored
   component e <= (1/sqrt(2)) / (2^b - 1), hence |Δq| <= sqrt(12)·e and rotation error
   <= 4·asin(sqrt(3)·e) (about 7e rad): 0.55 degree bound / 0.42 degree measured on random rotations
-  at the default b = 9 (29 bits in a 4-byte code whose constant top 3 bits zstd removes after
-  byte-plane shuffling); 0.27 degree bound at b = 10.
+  at b = 9; the default b = 8 (26 bits in a 4-byte code) doubles that and costs no measurable
+  ROI PSNR on room0 (+0.004 dB with 7-bit opacity, bench.quant_psnr); 0.27 degree bound at b = 10.
 * log_scales / colours: affine over the chunk's [min, max], clamped to ``scale_clamp`` /
   ``color_clamp``; error <= (hi - lo) / (2 (2^bits - 1)) for values inside the clamp.
-* opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.00196 at 8
+* opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.0039 at the
+  default 7 bits, 0.00196 at 8
   bit); decoded logits are finite (|logit| <= log(2 (2^bits - 1) - 1), 6.23 at 8 bit).
 * κ and the active flag are lossless in both modes.
 
@@ -115,6 +127,13 @@ __all__ = [
     "decode_chunk",
     "peek_header",
     "assemble",
+    "section_lengths",
+    "pack_sections",
+    "raw_payload",
+    "apply_delta",
+    "encode_delta",
+    "spatial_order",
+    "DeltaMismatch",
     "raw_bytes_per_gaussian",
     "WireError",
     "TruncatedChunk",
@@ -130,15 +149,17 @@ __all__ = [
 ]
 
 MAGIC = b"GLWC"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 FLAG_LOSSLESS = 1
 FLAG_SHUFFLE = 2
-_KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_SHUFFLE
+FLAG_DELTA = 4
+_KNOWN_FLAGS = FLAG_LOSSLESS | FLAG_SHUFFLE | FLAG_DELTA
 
-_HEADER = struct.Struct("<4sHHQIIQIHBBBBBBH3d3d2f2fII")
-HEADER_SIZE = _HEADER.size  # 118
+_HEADER = struct.Struct("<4sHHQIIQIHBBBBBBH3d3d2f2fIIQQII")
+HEADER_SIZE = _HEADER.size  # 142
 _CRC = struct.Struct("<I")
+_SECTION = struct.Struct("<I")
 _PREFIX = struct.Struct("<4sH")
 
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
@@ -348,18 +369,24 @@ class QuantConfig:
         color_clamp: (lo, hi) clamp of colours before per-chunk range fitting.
         zstd_level: zstd compression level (1..22).
         shuffle: byte-plane shuffle before zstd.
+        predict: allow previous-row prediction of quantised fields (header predict mask); the
+            encoder uses it per chunk and field only when that field compresses smaller.
     """
 
     lossless: bool = False
-    mean_step: float = 2.5e-4  # 0.25 mm (with 9-bit scales: -0.027 dB ROI PSNR on room0, bench.quant_psnr)
-    quat_bits: int = 9
-    scale_bits: int = 9  # 8 bits cost 0.025 dB more ROI PSNR on room0 (bench.quant_psnr)
-    opacity_bits: int = 8
+    mean_step: float = 2.5e-4  # 0.25 mm; 0.35 mm cost a further 0.013 dB ROI PSNR on room0 (bench.quant_psnr)
+    # bench.quant_psnr on a room0 map, B per active Gaussian / ROI PSNR vs lossless: quat 9, scale 9,
+    # opacity 8 bits 12.51 B / +0.001 dB; quat 8, opacity 7: 11.55 B / +0.004 dB; and scale 8:
+    # 11.10 B / -0.020 dB (the sim's room0 subsets compress about 0.5 B worse than this map's)
+    quat_bits: int = 8
+    scale_bits: int = 8
+    opacity_bits: int = 7
     color_bits: int = 8
     scale_clamp: tuple[float, float] = (-16.0, 4.0)
     color_clamp: tuple[float, float] = (-1.0, 2.0)
     zstd_level: int = 3
     shuffle: bool = True
+    predict: bool = True
 
     def __post_init__(self) -> None:
         if not (self.mean_step > 0 and math.isfinite(self.mean_step)):
@@ -428,6 +455,11 @@ class ChunkHeader:
     raw_len: int
     payload_len: int
     wire_len: int
+    delta: bool = False
+    predict_mask: int = 0
+    base_version: int = 0
+    base_count: int = 0
+    removed_count: int = 0
 
 
 @dataclass(frozen=True)
@@ -439,11 +471,16 @@ class DecodedChunk:
         arrays: the chunk's ``header.count`` Gaussians.
         digest: 32-byte BLAKE2b of the semantic header fields and the raw payload: equal digests
             mean identical content regardless of zstd level (used for idempotent re-delivery).
+        targets: delta chunks only, (count,) int64 strictly increasing record targets (a target
+            below ``header.base_count`` replaces that base row, one at or above it is a new row).
+        removed: delta chunks only, (removed_count,) int64 strictly increasing base rows removed.
     """
 
     header: ChunkHeader
     arrays: GaussianArrays
     digest: bytes
+    targets: Optional[np.ndarray] = None
+    removed: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -453,6 +490,8 @@ class SubsetMeta:
     Attributes:
         agent_id, map_version, total_count, chunk_count, lossless: from the (consistent) headers.
         wire_bytes: sum of the chunks' lengths on the wire.
+        delta, base_version, base_count: a delta subset (``total_count`` counts its records) and
+            the base it applies to.
     """
 
     agent_id: str
@@ -461,6 +500,9 @@ class SubsetMeta:
     chunk_count: int
     lossless: bool
     wire_bytes: int
+    delta: bool = False
+    base_version: int = 0
+    base_count: int = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -499,10 +541,13 @@ def _read_field(buf: memoryview, n: int, c: int, width: int, shuffle: bool) -> n
 
 
 def _field_widths(h_lossless: bool, mean_bytes: int, quat_bits: int, scale_bits: int,
-                  opacity_bits: int, color_bits: int, kappa_bytes: int) -> list[tuple[int, int]]:
-    """[(components, bytes per value)] of means, quats, log_scales, opacity, colors, kappa."""
+                  opacity_bits: int, color_bits: int, kappa_bytes: int,
+                  delta: bool = False) -> list[tuple[int, int]]:
+    """[(components, bytes per value)] of means, quats, log_scales, opacity, colors, kappa, targets
+    (targets: 4-byte gap codes in delta chunks, absent otherwise)."""
+    t = (1, 4 if delta else 0)
     if h_lossless:
-        return [(3, 4), (4, 4), (3, 4), (1, 4), (3, 4), (1, kappa_bytes)]
+        return [(3, 4), (4, 4), (3, 4), (1, 4), (3, 4), (1, kappa_bytes), t]
     return [
         (3, mean_bytes),
         (1, _nbytes(2 + 3 * quat_bits)),
@@ -510,11 +555,62 @@ def _field_widths(h_lossless: bool, mean_bytes: int, quat_bits: int, scale_bits:
         (1, _nbytes(opacity_bits)),
         (3, _nbytes(color_bits)),
         (1, kappa_bytes),
+        t,
     ]
 
 
-def _raw_len(n: int, widths: list[tuple[int, int]]) -> int:
-    return n * sum(c * w for c, w in widths) + (n + 7) // 8
+def _raw_len(n: int, widths: list[tuple[int, int]], removed: int = 0) -> int:
+    return sum(_section_lengths(n, widths, removed))
+
+
+def _section_lengths(n: int, widths: list[tuple[int, int]], removed: int = 0) -> list[int]:
+    """Raw byte length of each payload section: the six attribute fields, in delta chunks the
+    targets and removed fields, then the packed active bits."""
+    out = [n * c * w for c, w in widths[:6]]
+    if widths[6][1]:
+        out += [n * 4, removed * 4]
+    return out + [(n + 7) // 8]
+
+
+#: header predict-mask bits: bit i set = field i of :func:`_field_widths` (means, quats,
+#: log_scales, opacity, colors, kappa) is coded as zigzagged wrapped differences from the previous row
+_PREDICTABLE = 6
+
+
+def _predict_encode(codes: np.ndarray, width: int) -> np.ndarray:
+    """(n, C) codes < 2^(8 width) → zigzag of the row-to-row difference wrapped to a signed
+    8·width-bit integer (first row: difference from 0); same shape, same width."""
+    if codes.size == 0:
+        return codes
+    bits = 8 * width
+    mod = 1 << bits
+    c = codes.astype(np.int64)
+    d = np.diff(c, axis=0, prepend=np.zeros((1,) + c.shape[1:], np.int64)) % mod
+    sgn = np.where(d >= mod >> 1, d - mod, d)
+    return ((sgn << 1) ^ (sgn >> 63)).astype(np.uint64) & np.uint64(mod - 1)
+
+
+def _predict_decode(z: np.ndarray, width: int) -> np.ndarray:
+    """Inverse of :func:`_predict_encode` (uint64 in, uint64 out, values < 2^(8 width))."""
+    if z.size == 0:
+        return z
+    mod = 1 << (8 * width)
+    zz = z.astype(np.int64)
+    sgn = (zz >> 1) ^ -(zz & 1)
+    return (np.cumsum(sgn, axis=0) % mod).astype(np.uint64)
+
+
+def _gaps_encode(sorted_vals: np.ndarray) -> np.ndarray:
+    """Strictly increasing non-negative ints → gaps g0 = v0, gi = vi − v(i−1) − 1."""
+    v = np.asarray(sorted_vals, np.int64)
+    if v.size == 0:
+        return v.astype(np.uint64)
+    return np.diff(v, prepend=np.int64(-1)).astype(np.uint64) - np.uint64(1)
+
+
+def _gaps_decode(g: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_gaps_encode` (int64; every value < 2^32 · (n + 1))."""
+    return np.cumsum(g.astype(np.int64) + 1) - 1
 
 
 def raw_bytes_per_gaussian(quant: QuantConfig = QuantConfig(), kappa_bytes: int = 2,
@@ -644,7 +740,9 @@ def _zstd_bound(n: int) -> int:
 
 
 def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: int, count: int,
-                  total: int, quant: QuantConfig, cctx: zstandard.ZstdCompressor) -> bytes:
+                  total: int, quant: QuantConfig, cctx: zstandard.ZstdCompressor,
+                  delta: Optional[tuple[int, int, np.ndarray, np.ndarray]] = None) -> bytes:
+    """One chunk. ``delta`` = (base_version, base_count, targets (n,), removed (r,)), both sorted."""
     n = len(arr)
     sh = quant.shuffle
     kz = _zigzag(arr.kappa)
@@ -653,13 +751,8 @@ def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: in
     srange = crange = (0.0, 0.0)
     if quant.lossless:
         mb = qb = sb = ob = cb = 0
-        parts = [
-            _write_field(arr.means.view(np.uint32), 4, sh),
-            _write_field(arr.quats.view(np.uint32), 4, sh),
-            _write_field(arr.log_scales.view(np.uint32), 4, sh),
-            _write_field(arr.opacity_logits.view(np.uint32), 4, sh),
-            _write_field(arr.colors.view(np.uint32), 4, sh),
-        ]
+        codes = [arr.means.view(np.uint32), arr.quats.view(np.uint32), arr.log_scales.view(np.uint32),
+                 arr.opacity_logits.view(np.uint32), arr.colors.view(np.uint32)]
     else:
         qb, sb, ob, cb = quant.quat_bits, quant.scale_bits, quant.opacity_bits, quant.color_bits
         origin, step, mb = _mean_params(arr.means, quant)
@@ -669,23 +762,42 @@ def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: in
         mq = np.clip(mq, 0, mmax).astype(np.uint64)
         srange = _affine_range(arr.log_scales, quant.scale_clamp)
         crange = _affine_range(arr.colors, quant.color_clamp)
-        parts = [
-            _write_field(mq, mb, sh),
-            _write_field(_quat_encode(arr.quats, qb), _nbytes(2 + 3 * qb), sh),
-            _write_field(_affine_encode(arr.log_scales, *srange, sb), _nbytes(sb), sh),
-            _write_field(_opacity_encode(arr.opacity_logits, ob), _nbytes(ob), sh),
-            _write_field(_affine_encode(arr.colors, *crange, cb), _nbytes(cb), sh),
-        ]
-    parts.append(_write_field(kz, kb, sh))
-    parts.append(np.packbits(arr.active).tobytes())
-    raw = b"".join(parts)
-    assert len(raw) == _raw_len(n, _field_widths(quant.lossless, mb, qb, sb, ob, cb, kb))
-    payload = cctx.compress(raw)
-    flags = (FLAG_LOSSLESS if quant.lossless else 0) | (FLAG_SHUFFLE if sh else 0)
+        codes = [mq, _quat_encode(arr.quats, qb), _affine_encode(arr.log_scales, *srange, sb),
+                 _opacity_encode(arr.opacity_logits, ob), _affine_encode(arr.colors, *crange, cb)]
+    is_delta = delta is not None
+    base_version, base_count, targets, removed = delta if is_delta else (0, 0, None, None)
+    widths = _field_widths(quant.lossless, mb, qb, sb, ob, cb, kb, is_delta)
+    tail = []
+    if is_delta:
+        tail.append(_write_field(_gaps_encode(targets), 4, sh))
+        tail.append(_write_field(_gaps_encode(removed), 4, sh))
+    tail.append(np.packbits(arr.active).tobytes())
+    codes.append(kz)
+    # previous-row prediction pays off when rows are spatially ordered (see spatial_order); the
+    # encoder keeps, field by field, whichever coding zstd compresses smaller on its own
+    fields = []
+    predict = 0
+    for i, (c, w) in enumerate(widths[:_PREDICTABLE]):
+        plain = _write_field(codes[i], w, sh)
+        if quant.predict and not quant.lossless and n > 1 and 0 < w <= 4:
+            pred = _write_field(_predict_encode(np.asarray(codes[i]).reshape(n, c), w), w, sh)
+            if len(cctx.compress(pred)) < len(cctx.compress(plain)):
+                plain = pred
+                predict |= 1 << i
+        fields.append(plain)
+    sections = fields + tail
+    raw = b"".join(sections)
+    # one zstd frame per section (u32 compressed length first): each field gets its own entropy
+    # tables, 0.8 B per Gaussian smaller than one frame over the whole payload (room0 subset)
+    payload = b"".join(_SECTION.pack(len(z)) + z for z in map(cctx.compress, sections))
+    r = 0 if removed is None else len(removed)
+    assert len(raw) == _raw_len(n, widths, r)
+    flags = ((FLAG_LOSSLESS if quant.lossless else 0) | (FLAG_SHUFFLE if sh else 0)
+             | (FLAG_DELTA if is_delta else 0))
     head = _HEADER.pack(
         MAGIC, FORMAT_VERSION, flags, map_version, index, count, total, n, len(agent),
         mb, qb, sb, ob, cb, kb, 0, *map(float, origin), *map(float, step), *srange, *crange,
-        len(raw), len(payload),
+        len(raw), len(payload), int(base_version), int(base_count), r, predict,
     )
     body = head + agent + payload
     return body + _CRC.pack(zlib.crc32(body))
@@ -725,7 +837,78 @@ def encode_subset(
             it is zigzag-coded).
         TypeError: unsupported input container.
     """
-    arr = GaussianArrays.from_any(gaussians)
+    return _encode(GaussianArrays.from_any(gaussians), agent_id, map_version, None,
+                   chunk_gaussians=chunk_gaussians, max_chunk_bytes=max_chunk_bytes, quant=quant,
+                   limits=limits)
+
+
+def encode_delta(
+    records: Any,
+    targets: Any,
+    removed: Any,
+    agent_id: str,
+    map_version: int,
+    base_version: int,
+    base_count: int,
+    *,
+    chunk_gaussians: Optional[int] = None,
+    max_chunk_bytes: Optional[int] = None,
+    quant: QuantConfig = QuantConfig(),
+    limits: WireLimits = DEFAULT_LIMITS,
+) -> list[bytes]:
+    """Encode a delta against an earlier subset version of the same agent (FLAG_DELTA chunks).
+
+    The receiver rebuilds the new subset with :func:`apply_delta`: the base subset (``base_count``
+    rows, version ``base_version``) without the ``removed`` rows, with rows replaced by the records
+    whose target is below ``base_count``, followed by the records whose target is at or above
+    ``base_count`` (new rows) in ascending target order.
+
+    Args:
+        records: the changed and new Gaussians (GaussianArrays-like, R rows).
+        targets: (R,) ints, distinct: a base row index (< base_count) to replace, or
+            ``base_count + k`` for the k-th new row.  Records are sorted by target before encoding.
+        removed: (D,) distinct base row indices (< base_count) that the new version drops; not in
+            ``targets``.
+        agent_id, map_version, chunk_gaussians, max_chunk_bytes, quant, limits: as
+            :func:`encode_subset`.
+        base_version: the version the delta applies to (< map_version).
+        base_count: row count of the base subset.
+
+    Returns:
+        list of chunks (at least one; removed indices are spread over the chunks).
+
+    Raises:
+        ValueError: bad targets/removed (duplicates, out of range, overlap, sizes), base_version not
+            below map_version, and everything :func:`encode_subset` raises.
+    """
+    arr = GaussianArrays.from_any(records)
+    t = np.asarray(targets, dtype=np.int64).reshape(-1)
+    rm = np.unique(np.asarray(removed, dtype=np.int64).reshape(-1))
+    if len(rm) != np.asarray(removed).size:
+        raise ValueError("removed holds duplicates")
+    if t.shape[0] != len(arr):
+        raise ValueError(f"{t.shape[0]} targets for {len(arr)} records")
+    if not 0 <= int(base_count) <= limits.max_total_gaussians:
+        raise ValueError("base_count out of range")
+    if not isinstance(base_version, (int, np.integer)) or not 0 <= int(base_version) < int(map_version):
+        raise ValueError("base_version must be an int in [0, map_version)")
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    if t.size and (t[0] < 0 or np.any(np.diff(t) <= 0) or t[-1] > 0xFFFFFFFF):
+        raise ValueError("targets must be distinct, non-negative and < 2^32")
+    if rm.size and (rm[0] < 0 or rm[-1] >= base_count):
+        raise ValueError("removed rows must lie in [0, base_count)")
+    if np.intersect1d(rm, t).size:
+        raise ValueError("a removed row is also a target")
+    return _encode(arr.take(order), agent_id, map_version,
+                   (int(base_version), int(base_count), t, rm), chunk_gaussians=chunk_gaussians,
+                   max_chunk_bytes=max_chunk_bytes, quant=quant, limits=limits)
+
+
+def _encode(arr: GaussianArrays, agent_id: str, map_version: int,
+            delta: Optional[tuple[int, int, np.ndarray, np.ndarray]], *,
+            chunk_gaussians: Optional[int], max_chunk_bytes: Optional[int], quant: QuantConfig,
+            limits: WireLimits) -> list[bytes]:
     if not isinstance(agent_id, str) or not agent_id:
         raise ValueError("agent_id must be a non-empty str")
     agent = agent_id.encode("utf-8")
@@ -750,8 +933,11 @@ def encode_subset(
         kb = _width_for(int(_zigzag(arr.kappa).max())) if n else 0
         mb = 4 if quant.lossless else _mean_params(arr.means, quant)[2]
         widths = _field_widths(quant.lossless, mb, quant.quat_bits, quant.scale_bits,
-                               quant.opacity_bits, quant.color_bits, kb)
-        fits = lambda k: overhead + _zstd_bound(_raw_len(k, widths)) <= max_chunk_bytes  # noqa
+                               quant.opacity_bits, quant.color_bits, kb, delta is not None)
+        n_rm = 0 if delta is None else len(delta[3])
+        # worst case: every removed index lands in one chunk
+        fits = lambda k: overhead + sum(  # noqa: E731
+            _SECTION.size + _zstd_bound(x) for x in _section_lengths(k, widths, n_rm)) <= max_chunk_bytes
         if not fits(1):
             raise ValueError(f"max_chunk_bytes={max_chunk_bytes} cannot hold one Gaussian")
         lo, hi = 1, max(1, min(n, limits.max_chunk_gaussians))
@@ -771,9 +957,16 @@ def encode_subset(
     cctx = zstandard.ZstdCompressor(level=quant.zstd_level, write_content_size=True,
                                     write_checksum=False)
     out = []
+    if delta is not None:
+        rm = delta[3]
+        r_per = -(-len(rm) // count)
     for i in range(count):
-        part = arr.take(slice(i * per, min(n, (i + 1) * per)))
-        chunk = _encode_chunk(part, agent, map_version, i, count, n, quant, cctx)
+        sl = slice(i * per, min(n, (i + 1) * per))
+        part = arr.take(sl)
+        d = None
+        if delta is not None:
+            d = (delta[0], delta[1], delta[2][sl], rm[i * r_per:(i + 1) * r_per])
+        chunk = _encode_chunk(part, agent, map_version, i, count, n, quant, cctx, d)
         if len(chunk) > limits.max_chunk_bytes or (
                 max_chunk_bytes is not None and len(chunk) > max_chunk_bytes):
             raise ValueError("a chunk exceeds the byte limit; use smaller chunks")
@@ -818,7 +1011,8 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     if size < HEADER_SIZE:
         raise TruncatedChunk(f"{size} bytes, shorter than the {HEADER_SIZE}-byte header")
     (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
-     reserved, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen) = _HEADER.unpack_from(buf)
+     reserved, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
+     n_removed, predict_mask) = _HEADER.unpack_from(buf)
     if alen > limits.max_agent_id_bytes:
         raise LimitExceeded(f"agent id of {alen} bytes")
     if plen > limits.max_chunk_bytes:
@@ -835,6 +1029,18 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     if flags & ~_KNOWN_FLAGS or reserved:
         raise MalformedChunk(f"unknown flags {flags:#x} / reserved {reserved}")
     lossless = bool(flags & FLAG_LOSSLESS)
+    delta = bool(flags & FLAG_DELTA)
+    if predict_mask >> _PREDICTABLE or (predict_mask and lossless):
+        raise MalformedChunk(f"predict mask {predict_mask:#x} (lossless: {lossless})")
+    if delta:
+        if base_version >= map_version:
+            raise MalformedChunk(f"delta base version {base_version} >= map version {map_version}")
+        if base_count > limits.max_total_gaussians or n_removed > limits.max_total_gaussians:
+            raise LimitExceeded(f"delta base of {base_count} rows / {n_removed} removed rows")
+        if n_removed > base_count:
+            raise MalformedChunk(f"{n_removed} removed rows of a {base_count}-row base")
+    elif base_version or base_count or n_removed:
+        raise MalformedChunk("delta fields set on a full chunk")
     if alen == 0:
         raise MalformedChunk("empty agent id")
     try:
@@ -866,7 +1072,7 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
             raise MalformedChunk("non-finite quantisation parameters")
         if min(sx, sy, sz) < 0 or slo > shi or clo > chi:
             raise MalformedChunk("negative mean step or inverted range")
-    want = _raw_len(n, _field_widths(lossless, mb, qb, sb, ob, cb, kb))
+    want = _raw_len(n, _field_widths(lossless, mb, qb, sb, ob, cb, kb, delta), n_removed)
     if raw_len != want:
         raise MalformedChunk(f"raw length {raw_len}, expected {want} for {n} Gaussians")
     return ChunkHeader(
@@ -874,8 +1080,60 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
         map_version=map_version, chunk_index=index, chunk_count=count_chunks, total_count=total,
         count=n, mean_bytes=mb, quat_bits=qb, scale_bits=sb, opacity_bits=ob, color_bits=cb,
         kappa_bytes=kb, mean_origin=(ox, oy, oz), mean_step=(sx, sy, sz), scale_range=(slo, shi),
-        color_range=(clo, chi), raw_len=raw_len, payload_len=plen, wire_len=size,
+        color_range=(clo, chi), raw_len=raw_len, payload_len=plen, wire_len=size, delta=delta,
+        predict_mask=predict_mask, base_version=base_version, base_count=base_count, removed_count=n_removed,
     )
+
+
+def section_lengths(h: ChunkHeader) -> list[int]:
+    """Raw byte length of each payload section of a chunk with header ``h`` (see the layout)."""
+    return _section_lengths(h.count, _field_widths(
+        h.lossless, h.mean_bytes, h.quat_bits, h.scale_bits, h.opacity_bits, h.color_bits,
+        h.kappa_bytes, h.delta), h.removed_count)
+
+
+def pack_sections(raw: bytes, lengths: Sequence[int], level: int = 3) -> bytes:
+    """Split ``raw`` at ``lengths`` and build a payload: per section u32 length + zstd frame.
+
+    Raises:
+        ValueError: ``lengths`` do not add up to ``len(raw)``.
+    """
+    if sum(lengths) != len(raw):
+        raise ValueError(f"sections of {sum(lengths)} bytes for a {len(raw)}-byte raw payload")
+    cctx = zstandard.ZstdCompressor(level=level, write_content_size=True, write_checksum=False)
+    out, off = [], 0
+    for k in lengths:
+        z = cctx.compress(raw[off:off + k])
+        out.append(_SECTION.pack(len(z)) + z)
+        off += k
+    return b"".join(out)
+
+
+def raw_payload(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> bytes:
+    """The validated chunk's decompressed raw payload (sections concatenated), for debugging and
+    conformance tests.  Raises what :func:`peek_header` raises and MalformedChunk."""
+    h = peek_header(data, limits)
+    start = HEADER_SIZE + len(h.agent_id.encode("utf-8"))
+    return _decompress_sections(_as_view(data)[start:start + h.payload_len], section_lengths(h))
+
+
+def _decompress_sections(payload: memoryview, lengths: list[int]) -> bytes:
+    """Payload = for each section: u32 compressed length L, then a zstd frame of L bytes whose
+    declared content size equals the section's raw length."""
+    out = []
+    off = 0
+    for want in lengths:
+        if off + _SECTION.size > len(payload):
+            raise MalformedChunk("payload ends before a section length")
+        (clen,) = _SECTION.unpack_from(payload, off)
+        off += _SECTION.size
+        if clen > len(payload) - off:
+            raise MalformedChunk(f"section of {clen} bytes overruns the payload")
+        out.append(_decompress(payload[off:off + clen], want))
+        off += clen
+    if off != len(payload):
+        raise MalformedChunk(f"{len(payload) - off} bytes after the last payload section")
+    return b"".join(out)
 
 
 def _decompress(payload: memoryview, raw_len: int) -> bytes:
@@ -899,7 +1157,8 @@ def _digest(h: ChunkHeader, raw: bytes) -> bytes:
     ident = (h.version, h.lossless, h.shuffle, h.agent_id, h.map_version, h.chunk_index,
              h.chunk_count, h.total_count, h.count, h.mean_bytes, h.quat_bits, h.scale_bits,
              h.opacity_bits, h.color_bits, h.kappa_bytes, h.mean_origin, h.mean_step,
-             h.scale_range, h.color_range)
+             h.scale_range, h.color_range, h.delta, h.predict_mask, h.base_version, h.base_count,
+             h.removed_count)
     d = hashlib.blake2b(repr(ident).encode(), digest_size=32)
     d.update(raw)
     return d.digest()
@@ -923,16 +1182,30 @@ def decode_chunk(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> DecodedChunk
     h = peek_header(data, limits)
     buf = _as_view(data)
     start = HEADER_SIZE + len(h.agent_id.encode("utf-8"))
-    raw = _decompress(buf[start:start + h.payload_len], h.raw_len)
+    raw = _decompress_sections(buf[start:start + h.payload_len], section_lengths(h))
     mv = memoryview(raw)
     n, sh = h.count, h.shuffle
     widths = _field_widths(h.lossless, h.mean_bytes, h.quat_bits, h.scale_bits, h.opacity_bits,
-                           h.color_bits, h.kappa_bytes)
+                           h.color_bits, h.kappa_bytes, h.delta)
     cols = []
     off = 0
-    for c, w in widths:
-        cols.append(_read_field(mv[off:], n, c, w, sh))
+    for i, (c, w) in enumerate(widths):
+        v = _read_field(mv[off:], n, c, w, sh)
+        if h.predict_mask >> i & 1:
+            v = _predict_decode(v, w)
+        cols.append(v)
         off += c * w * n
+    targets = removed = None
+    if h.delta:
+        targets = _gaps_decode(cols[6][:, 0])
+        removed = _gaps_decode(_read_field(mv[off:], h.removed_count, 1, 4, sh)[:, 0])
+        off += 4 * h.removed_count
+        if targets.size and int(targets[-1]) > 0xFFFFFFFF:
+            raise MalformedChunk("delta target beyond 2^32 - 1")
+        if removed.size and int(removed[-1]) >= h.base_count:
+            raise MalformedChunk("removed row beyond the base subset")
+        if np.intersect1d(targets, removed).size:
+            raise MalformedChunk("a removed row is also a delta target")
     active = np.unpackbits(np.frombuffer(raw, np.uint8, offset=off), count=n).astype(bool)
     kappa = _unzigzag(cols[5][:, 0])
     if h.lossless:
@@ -961,7 +1234,8 @@ def decode_chunk(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> DecodedChunk
             raise NonFiniteValues(f"non-finite {name}")
     arrays = GaussianArrays(means=means, quats=quats, log_scales=scales, opacity_logits=opac,
                             colors=colors, kappa=kappa, active=active)
-    return DecodedChunk(header=h, arrays=arrays, digest=_digest(h, raw))
+    return DecodedChunk(header=h, arrays=arrays, digest=_digest(h, raw), targets=targets,
+                        removed=removed)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1038,7 +1312,8 @@ class SubsetAssembler:
         """
         dc = chunk if isinstance(chunk, DecodedChunk) else decode_chunk(chunk, self.limits)
         h = dc.header
-        key = (h.agent_id, h.map_version, h.chunk_count, h.total_count, h.lossless)
+        key = (h.agent_id, h.map_version, h.chunk_count, h.total_count, h.lossless, h.delta,
+               h.base_version, h.base_count)
         if self._expect_agent is not None and h.agent_id != self._expect_agent:
             raise InconsistentChunks(f"agent {h.agent_id!r}, expected {self._expect_agent!r}")
         if self._expect_version is not None and h.map_version != self._expect_version:
@@ -1070,11 +1345,95 @@ class SubsetAssembler:
         if not self.complete:
             raise IncompleteSubset(f"missing chunks {self.missing()[:16]}"
                                    if self._key else "no chunk received")
-        agent, version, count, total, lossless = self._key
+        agent, version, count, total, lossless, delta, base_version, base_count = self._key
         arrays = GaussianArrays.concat([self._chunks[i].arrays for i in range(count)])
         return arrays, SubsetMeta(agent_id=agent, map_version=version, total_count=total,
                                   chunk_count=count, lossless=lossless,
-                                  wire_bytes=self._wire_bytes)
+                                  wire_bytes=self._wire_bytes, delta=delta,
+                                  base_version=base_version, base_count=base_count)
+
+    def delta_parts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(targets, removed) of a complete delta subset, int64, in record order / sorted.
+
+        Raises:
+            IncompleteSubset: chunks are missing.  MalformedChunk: not a delta subset.
+        """
+        if not self.complete:
+            raise IncompleteSubset(f"missing chunks {self.missing()[:16]}"
+                                   if self._key else "no chunk received")
+        if not self._key[5]:
+            raise MalformedChunk("not a delta subset")
+        ch = [self._chunks[i] for i in range(self._key[2])]
+        return (np.concatenate([c.targets for c in ch]),
+                np.sort(np.concatenate([c.removed for c in ch])))
+
+
+class DeltaMismatch(WireError):
+    """A delta does not fit its base: wrong base row count, repeated or overlapping targets and
+    removals across chunks, or new-row targets that are not base_count, base_count + 1, ..."""
+
+
+def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarray,
+                removed: np.ndarray, base_count: int) -> GaussianArrays:
+    """Rebuild a subset from its base and a delta (see :func:`encode_delta`).
+
+    Args:
+        base: the base subset (must have ``base_count`` rows).
+        records: (R,) changed/new Gaussians; targets: (R,) int64 ascending; removed: (D,) int64.
+        base_count: the base row count the delta declares.
+
+    Returns:
+        [base rows not removed (replaced by their record when targeted), in base order] followed by
+        the new rows in target order.
+
+    Raises:
+        DeltaMismatch: see its docstring.
+    """
+    if len(base) != base_count:
+        raise DeltaMismatch(f"delta declares a {base_count}-row base, the stored base has {len(base)}")
+    t = np.asarray(targets, np.int64)
+    rm = np.asarray(removed, np.int64)
+    if len(t) != len(records):
+        raise DeltaMismatch(f"{len(t)} targets for {len(records)} records")
+    if (t.size and np.any(np.diff(t) <= 0)) or (rm.size and np.any(np.diff(np.sort(rm)) <= 0)):
+        raise DeltaMismatch("repeated delta targets or removed rows across chunks")
+    upd = t < base_count
+    new = ~upd
+    if np.intersect1d(t[upd], rm).size:
+        raise DeltaMismatch("a removed row is also replaced")
+    if not np.array_equal(t[new], base_count + np.arange(int(new.sum()))):
+        raise DeltaMismatch("new-row targets are not consecutive from base_count")
+    out = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    for k in out:
+        out[k][t[upd]] = getattr(records, k)[upd]
+    keep = np.ones(base_count, bool)
+    keep[rm] = False
+    kept = GaussianArrays(**{k: v[keep] for k, v in out.items()})
+    return GaussianArrays.concat([kept, records.take(new)])
+
+
+def spatial_order(means: Any, cell: float = 2.5e-4) -> np.ndarray:
+    """Row permutation sorting points along a 3D Morton (Z-order) curve.
+
+    Rows in this order make previous-row prediction (the predict mask) effective; encoders may send
+    rows in any order, this is only a compression aid.
+
+    Args:
+        means: (N, 3) positions (metres); cell: quantisation cell of the curve (metres, > 0).
+
+    Returns:
+        (N,) int64 permutation (stable for ties).
+    """
+    m = np.asarray(_to_numpy(means), np.float64).reshape(-1, 3)
+    if len(m) == 0:
+        return np.zeros(0, np.int64)
+    q = np.floor((m - m.min(axis=0)) / cell).astype(np.int64)
+    q = np.clip(q, 0, (1 << 21) - 1).astype(np.uint64)
+    code = np.zeros(len(m), np.uint64)
+    for b in range(21):
+        for a in range(3):
+            code |= ((q[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
+    return np.argsort(code, kind="stable")
 
 
 def assemble(chunks: Iterable[Any], limits: WireLimits = DEFAULT_LIMITS

@@ -338,7 +338,13 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             share_pct=s.share_pct, bytes_on_wire=s.bytes_on_wire, bytes_per_gaussian=s.bytes_per_gaussian,
             has_roi_psnr=s.roi_psnr is not None, roi_psnr=s.roi_psnr or 0.0, psnr=s.psnr or 0.0,
             seconds_per_frame=s.seconds_per_frame, has_roi_psnr_all_frames=s.roi_psnr_all_frames is not None,
-            roi_psnr_all_frames=s.roi_psnr_all_frames or 0.0, frames_all=s.frames_all)
+            roi_psnr_all_frames=s.roi_psnr_all_frames or 0.0, frames_all=s.frames_all,
+            total_upload_bytes=s.total_upload_bytes,
+            final_subset_bytes=s.final_subset_bytes,
+            pushes=[agent_pb2.PushInfo(version=p["version"], n_shared=p["n_shared"], n_total=p["n_total"],
+                                       bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
+                                       removed=p["removed"], frames_mapped=p["frames_mapped"])
+                    for p in s.pushes])
 
     def close(self) -> None:
         """Close every mission and fusion client (after the server stopped)."""

@@ -110,6 +110,7 @@ class UploadResult:
         n_gaussians (int): Gaussians in the subset.
         chunks_sent (int): chunks actually transmitted (0 when the server already had them all).
         attempts (int): ``UploadSubset`` calls made.
+        bytes_sent (int): bytes of the chunks actually transmitted (re-sent chunks count again).
     """
 
     complete: bool
@@ -118,6 +119,7 @@ class UploadResult:
     n_gaussians: int
     chunks_sent: int = 0
     attempts: int = 0
+    bytes_sent: int = 0
 
 
 @dataclass(frozen=True)
@@ -206,12 +208,29 @@ def encode_color_jpeg(rgb: np.ndarray, quality: int = 95) -> bytes:
     return buf.tobytes()
 
 
-def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95) -> fusion_pb2.KeyframeRequest:
-    """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG colour, 16-bit PNG depth)."""
+def encode_color_png(rgb: np.ndarray) -> bytes:
+    """Encode an (H, W, 3) uint8 RGB image as lossless PNG. Raises ValueError on bad input."""
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ValueError(f"rgb must be (H, W, 3) uint8, got {a.shape} {a.dtype}")
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
+                      color_format: str = "jpeg") -> fusion_pb2.KeyframeRequest:
+    """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG or lossless PNG colour,
+    16-bit PNG depth).  PNG keyframes: the joint refinement fits the uploaded colours, and JPEG q95
+    (41 dB against the original on room0, 4:2:0 chroma) cost it 2 dB ROI PSNR on room0."""
     png, scale = encode_depth_png(frame.depth)
     c2w = np.asarray(frame.c2w, dtype=np.float64).reshape(-1)
+    if color_format not in ("jpeg", "png"):
+        raise ValueError(f"color_format must be 'jpeg' or 'png', got {color_format!r}")
+    color = encode_color_png(frame.rgb) if color_format == "png" else encode_color_jpeg(frame.rgb, jpeg_quality)
     return fusion_pb2.KeyframeRequest(
-        agent_id=agent_id, frame_id=int(frame.frame_id), color=encode_color_jpeg(frame.rgb, jpeg_quality),
+        agent_id=agent_id, frame_id=int(frame.frame_id), color=color,
         depth_png=png, depth_scale=scale, pose=common_pb2.Pose(c2w=[float(v) for v in c2w]),
         intrinsics=intrinsics_to_proto(frame.intrinsics), timestamp=float(getattr(frame, "timestamp", 0.0)),
     )
@@ -340,11 +359,30 @@ class FusionClient:
         """
         chunks = encode_subset(gaussians, agent_id, int(map_version), chunk_gaussians=int(chunk_gaussians),
                                quant=quant or QuantConfig())
-        n = len(GaussianArrays.from_any(gaussians))
+        return self.upload_chunks(agent_id, map_version, chunks, n_gaussians=len(GaussianArrays.from_any(gaussians)),
+                                  full_map_gaussians=full_map_gaussians, full_map_bytes=full_map_bytes)
+
+    def upload_chunks(self, agent_id: str, map_version: int, chunks: Sequence[bytes], *, n_gaussians: int,
+                      full_map_gaussians: int, full_map_bytes: int = 0) -> UploadResult:
+        """Upload already encoded chunks of (agent, map version) — a full subset or a delta
+        (:func:`gausslite.wire.codec.encode_delta`) — resuming whatever the server already holds.
+
+        Args:
+            chunks: the version's wire chunks (chunk i has index i).
+            n_gaussians: Gaussians (records) the chunks carry (reported back only).
+            full_map_gaussians, full_map_bytes: as :meth:`upload_subset`.
+        Returns:
+            UploadResult (``bytes_sent`` counts the bytes transmitted by this call).
+        Raises:
+            grpc.RpcError: as :meth:`upload_subset`; FAILED_PRECONDITION also when a delta's base
+            version is not on the server (upload the full subset then).
+        """
+        n = int(n_gaussians)
         header = fusion_pb2.UploadHeader(agent_id=agent_id, map_version=int(map_version), n_chunks=len(chunks),
                                          full_map_gaussians=int(full_map_gaussians), full_map_bytes=int(full_map_bytes))
         total_bytes = sum(len(c) for c in chunks)
         sent = 0
+        sent_bytes = 0
         attempts = 0
         retry = 0
         while True:
@@ -353,7 +391,7 @@ class FusionClient:
                                      fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
                                      "GetUploadStatus")
                 if status.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 have = set(status.stored) if status.n_chunks == len(chunks) else set()
                 todo = [i for i in range(len(chunks)) if i not in have]
                 # one call per batch; an empty todo list still sends the header (refreshes share stats)
@@ -374,10 +412,11 @@ class FusionClient:
                     attempts += 1
                     ack = self._stub.UploadSubset(messages(), timeout=self.timeout_s, metadata=self._metadata)
                     sent += len(batch)
+                    sent_bytes += sum(len(chunks[i]) for i in batch)
                 if ack is not None and ack.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 if ack is not None and not ack.missing:
-                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 # missing chunks after a full pass: someone else interfered; loop once more
                 raise _Incomplete(list(ack.missing) if ack is not None else [])
             except grpc.RpcError as e:
@@ -385,12 +424,13 @@ class FusionClient:
                     raise
             except _Incomplete as e:
                 if retry >= self.max_retries:
-                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts)
+                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
                 log.info("upload %s v%d still misses chunks %s", agent_id, map_version, e.missing[:8])
             time.sleep(self.backoff_s * (2 ** retry))
             retry += 1
 
-    def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95) -> int:
+    def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95,
+                         color_format: str = "jpeg") -> int:
         """Upload keyframes (colour as JPEG, depth as 16-bit PNG, pose, intrinsics).
 
         Args:
@@ -406,7 +446,7 @@ class FusionClient:
             ValueError: a frame cannot be encoded.
             grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session), ...
         """
-        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality) for f in keyframes]
+        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality, color_format) for f in keyframes]
         accepted = 0
         for s in range(0, len(msgs), KEYFRAME_BATCH):
             batch = msgs[s:s + KEYFRAME_BATCH]

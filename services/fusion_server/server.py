@@ -52,8 +52,9 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.fusion.vote import concat as concat_maps
 from gausslite.fusion.vote import IncrementalVote, VoxelRangeError, voxel_vote
-from gausslite.wire.codec import (LOSSLESS, GaussianArrays, LimitExceeded, WireError, WireLimits, assemble,
-                                  decode_chunk, encode_subset, peek_header)
+from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler,
+                                  WireError, WireLimits, apply_delta, assemble, decode_chunk, encode_subset,
+                                  peek_header)
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.metrics import metrics_port_from
 from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
@@ -287,6 +288,47 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self._cache[key] = arrays
         return arrays
 
+    def _check_delta_base(self, agent: str, version: int, base_version: int) -> None:
+        """FAILED_PRECONDITION (and the delta upload discarded) when the base is not stored."""
+        base = self.store.upload(agent, base_version)
+        if base is None or not base.complete:
+            self.store.discard_upload(agent, version)
+            latest = self.store.latest_version(agent)
+            raise _Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                          f"delta v{version} of {agent!r} needs base version {base_version}, which this server "
+                          f"does not hold (latest complete: {latest if latest is not None else 'none'}); "
+                          "upload the full subset")
+
+    def _rebuild_delta(self, agent: str, version: int) -> None:
+        """When every chunk of a delta upload is stored: rebuild the full subset from its base and
+        store it (lossless chunks) as the complete version.  Idempotent and crash-safe: the delta
+        chunks stay until the rebuilt subset is committed, and a resumed upload redoes this."""
+        up = self.store.upload(agent, version)
+        if up is None or up.complete or up.missing:
+            return
+        asm = SubsetAssembler(self.limits, agent_id=agent, map_version=version)
+        for c in self.store.chunk_data(agent, version):
+            asm.add(c)
+        records, meta = asm.result()
+        if not meta.delta:
+            return
+        self._check_delta_base(agent, version, meta.base_version)
+        targets, removed = asm.delta_parts()
+        try:
+            full = apply_delta(self._subset(agent, meta.base_version), records, targets, removed,
+                               meta.base_count)
+        except DeltaMismatch as e:
+            self.store.discard_upload(agent, version)
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"delta v{version} of {agent!r}: {e}") from None
+        chunks = encode_subset(full, agent, version, quant=LOSSLESS, max_chunk_bytes=self.limits.max_chunk_bytes,
+                               limits=self.limits)
+        stored = [(c, decode_chunk(c, self.limits).digest, peek_header(c, self.limits).count) for c in chunks]
+        self.store.complete_rebuilt(agent, version, stored, len(full), True)
+        with self._cache_lock:
+            self._cache[(agent, version)] = full
+        log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed): %d Gaussians", agent,
+                 version, meta.base_version, len(records), len(removed), len(full))
+
     # ------------------------------------------------------------------ RPCs
     @_unary_guard
     def OpenSession(self, request, context):  # noqa: N802
@@ -342,6 +384,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                               f"chunk at stream position {pos}: {type(e).__name__}: {e}") from None
             idx = hdr.chunk_index
+            if hdr.delta:
+                self._check_delta_base(agent, version, hdr.base_version)
             if hdr.agent_id != agent or hdr.map_version != version:
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                               f"chunk {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
@@ -359,7 +403,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {type(e).__name__}: {e}") from None
             try:
                 new, _ = self.store.put_chunk(agent, version, idx, bytes(data), dc.digest, hdr.count,
-                                              hdr.total_count, hdr.lossless)
+                                              hdr.total_count, hdr.lossless, defer_complete=hdr.delta)
             except ChunkConflict as e:
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
             except ValueError as e:
@@ -368,6 +412,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                                   f"map_version {version} of {agent!r} was superseded during the upload") from None
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
             newly += int(new)
+        self._rebuild_delta(agent, version)
         ack = self._ack(agent, version, newly)
         if ack.complete and newly:
             log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes", agent, version, ack.n_gaussians,

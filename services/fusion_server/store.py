@@ -333,8 +333,12 @@ class SqlFusionStore:
             return self._upload(db, agent_id, map_version)
 
     def put_chunk(self, agent_id: str, map_version: int, idx: int, data: bytes, digest: bytes,
-                  n_gaussians: int, total_count: int, lossless: bool) -> Tuple[bool, Upload]:
+                  n_gaussians: int, total_count: int, lossless: bool,
+                  defer_complete: bool = False) -> Tuple[bool, Upload]:
         """Store one decoded-and-validated chunk; completes the upload when it is the last one.
+
+        With ``defer_complete`` (delta uploads) the last chunk leaves the upload incomplete: the
+        server rebuilds the full subset and completes it with :meth:`complete_rebuilt`.
 
         Completion of a version newer than the agent's latest complete one makes it the latest and
         deletes the agent's older uploads and chunks (same transaction).
@@ -371,18 +375,56 @@ class SqlFusionStore:
             if up.total_count is None:
                 db.execute("UPDATE uploads SET total_count=?, lossless=? WHERE agent_id=? AND map_version=?",
                            (total_count, int(lossless), agent_id, map_version))
-            if last:
-                db.execute("UPDATE uploads SET complete=1, completed_unix=? WHERE agent_id=? AND map_version=?",
-                           (time.time(), agent_id, map_version))
-                row = db.execute("SELECT latest_version FROM agents WHERE agent_id=?", (agent_id,)).fetchone()
-                if row is None or int(row[0]) < map_version:
-                    db.execute("INSERT INTO agents VALUES (?,?) ON CONFLICT(agent_id) DO UPDATE SET "
-                               "latest_version=excluded.latest_version", (agent_id, map_version))
-                    db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version<?", (agent_id, map_version))
-                    db.execute("DELETE FROM uploads WHERE agent_id=? AND map_version<?", (agent_id, map_version))
-            return True, replace(up, total_count=total_count, lossless=bool(lossless), complete=up.complete or last,
+            done = last and not defer_complete
+            if done:
+                self._complete(db, agent_id, map_version)
+            return True, replace(up, total_count=total_count, lossless=bool(lossless), complete=up.complete or done,
                                  stored=sorted(up.stored + [idx]), n_gaussians=up.n_gaussians + n_gaussians,
                                  wire_bytes=up.wire_bytes + len(data))
+
+    @staticmethod
+    def _complete(db, agent_id: str, map_version: int) -> None:
+        """Mark an upload complete; a version newer than the agent's latest becomes the latest and the
+        agent's older uploads and chunks go (inside the caller's transaction)."""
+        db.execute("UPDATE uploads SET complete=1, completed_unix=? WHERE agent_id=? AND map_version=?",
+                   (time.time(), agent_id, map_version))
+        row = db.execute("SELECT latest_version FROM agents WHERE agent_id=?", (agent_id,)).fetchone()
+        if row is None or int(row[0]) < map_version:
+            db.execute("INSERT INTO agents VALUES (?,?) ON CONFLICT(agent_id) DO UPDATE SET "
+                       "latest_version=excluded.latest_version", (agent_id, map_version))
+            db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version<?", (agent_id, map_version))
+            db.execute("DELETE FROM uploads WHERE agent_id=? AND map_version<?", (agent_id, map_version))
+
+    def complete_rebuilt(self, agent_id: str, map_version: int, chunks: List[Tuple[bytes, bytes, int]],
+                         total_count: int, lossless: bool) -> Upload:
+        """Replace a fully received delta upload by its rebuilt full subset and complete it, in one
+        transaction (a crash before the commit leaves the delta chunks, and the rebuild is redone).
+
+        Args:
+            chunks: (data, digest, n_gaussians) of the rebuilt subset's wire chunks, index order.
+        Raises:
+            ValueError: unknown upload, or already complete.
+        """
+        with self._tx(agent_id) as db:
+            up = self._upload(db, agent_id, map_version)
+            if up is None or up.complete:
+                raise ValueError(f"{agent_id!r} v{map_version}: no incomplete upload to complete")
+            db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version=?", (agent_id, map_version))
+            for idx, (data, digest, n) in enumerate(chunks):
+                db.execute("INSERT INTO chunks VALUES (?,?,?,?,?,?,?)",
+                           (agent_id, map_version, idx, data, digest, n, len(data)))
+            db.execute("UPDATE uploads SET n_chunks=?, total_count=?, lossless=? WHERE agent_id=? AND map_version=?",
+                       (len(chunks), total_count, int(lossless), agent_id, map_version))
+            self._complete(db, agent_id, map_version)
+            return self._upload(db, agent_id, map_version)
+
+    def discard_upload(self, agent_id: str, map_version: int) -> None:
+        """Delete an incomplete upload and its chunks (no-op when absent or complete)."""
+        with self._tx(agent_id) as db:
+            up = self._upload(db, agent_id, map_version)
+            if up is not None and not up.complete:
+                db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version=?", (agent_id, map_version))
+                db.execute("DELETE FROM uploads WHERE agent_id=? AND map_version=?", (agent_id, map_version))
 
     def chunk_data(self, agent_id: str, map_version: int) -> List[bytes]:
         """Raw chunks of (agent, version) in index order."""

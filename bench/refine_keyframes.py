@@ -1,0 +1,72 @@
+"""Why refinement ended below the vote on room0: refine one fused vote map over the keyframes as the
+agents uploaded them (JPEG) and over the original frames (lossless), and compare ROI PSNR.
+
+    gausslite sim --dataset ../shared/datasets/Replica_room0/room0 --downscale 4 --out runs/sim_room0 \\
+        --set agent.keyframe_format=jpeg
+    python -m bench.refine_keyframes --fusion-dir runs/sim_room0/data/fusion \\
+        --dataset ../shared/datasets/Replica_room0/room0 --downscale 4
+
+Prints a table and writes ``bench/results/issue12/refine_jpeg_vs_png_room0.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results" / "issue12"
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the comparison (exit 0)."""
+    from gausslite.datasets import load_dataset
+    from gausslite.fusion.refine import RefineKeyframe, refine_map
+    from gausslite.wire.codec import assemble
+    from gausslite_rpc import fusion_pb2
+    from services.fusion_server.server import decode_color, decode_depth
+    from services.fusion_server.store import FusionStore
+    from services.sim import evaluate_fused
+
+    ap = argparse.ArgumentParser(prog="python -m bench.refine_keyframes", description=__doc__.splitlines()[0])
+    ap.add_argument("--fusion-dir", required=True, type=Path, help="DIR/data/fusion of a sim run")
+    ap.add_argument("--dataset", required=True, type=Path)
+    ap.add_argument("--downscale", type=float, default=4.0)
+    ap.add_argument("--iters", type=int, default=100)
+    ap.add_argument("--tasks", default="room0-pick-plant,room0-find-ottoman", help="task ids, comma-separated")
+    ap.add_argument("--out", type=Path, default=RESULTS / "refine_jpeg_vs_png_room0.json")
+    args = ap.parse_args(argv)
+
+    st = FusionStore(args.fusion_dir)
+    infos = [fusion_pb2.FuseResult.FromString(b) for b in st.fused_infos()]
+    vote = [i for i in infos if i.method == fusion_pb2.FUSE_METHOD_VOTE and not i.refined][-1]
+    _, _, n_chunks = st.fused_info(vote.fused_version)
+    fused, _ = assemble([st.fused_chunk(vote.fused_version, i) for i in range(n_chunks)])
+    ds = load_dataset(args.dataset, downscale=args.downscale)
+    frames = [ds[i] for i in range(len(ds))]
+    by_id = {int(f.frame_id): f for f in frames}
+    uploaded, original = [], []
+    for k in st.keyframes():
+        K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]])
+        depth = decode_depth(k.depth, k.depth_scale, "keyframe")
+        uploaded.append(RefineKeyframe(decode_color(k.color, "keyframe"), depth, k.c2w, K, k.width, k.height))
+        f = by_id[int(k.frame_id)]
+        original.append(RefineKeyframe(f.rgb, f.depth, f.c2w, K, k.width, k.height))
+    tasks = [t.id for t in ds.annotations.tasks][:2] if args.tasks is None else args.tasks.split(",")
+    rows = {}
+    for name, arr in (("vote", fused), ("refine, uploaded keyframes", refine_map(fused, uploaded, args.iters)),
+                      ("refine, original frames", refine_map(fused, original, args.iters))):
+        g = arr.to_gaussian_map()
+        rows[name] = {t: evaluate_fused(g, frames, ds.annotations, t) for t in tasks}
+        print(f"{name:<28} " + "  ".join(f"{t} {v:.2f}" for t, v in rows[name].items()), flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"fusion_dir": str(args.fusion_dir), "keyframes": len(uploaded),
+                                    "roi_psnr": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,70 @@
+"""Task-region and compaction rules of the shared subset (gausslite.sharing, issue 12 part 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gausslite.gaussians import GaussianMap
+from gausslite.sharing import ShareConfig, ShareView, in_region, roi_contribution, select_task_subset, task_region
+
+K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+
+
+def _view(roi_box=(24, 16, 40, 32), depth=2.0) -> ShareView:
+    roi = np.zeros((48, 64), bool)
+    x0, y0, x1, y1 = roi_box
+    roi[y0:y1, x0:x1] = True
+    return ShareView(roi, np.full((48, 64), depth, np.float32), np.eye(4), K)
+
+
+def _map(means, opacity, scales, active=True) -> GaussianMap:
+    n = len(means)
+    g = GaussianMap.from_points(torch.tensor(means, dtype=torch.float32), torch.full((n, 3), 0.5),
+                                torch.tensor(scales, dtype=torch.float32), opacity=0.5,
+                                active=torch.full((n,), active))
+    g.opacity_logits[:] = torch.logit(torch.tensor(opacity, dtype=torch.float32))
+    g.kappa[:] = 5
+    return g
+
+
+def test_task_region_back_projects_roi_depth_and_dilates():
+    v = _view()
+    r0 = task_region([v], voxel_m=0.05, dilate=0)
+    # ROI pixels at 2 m span x in [-8/60·2, 8/60·2) = ±0.27 m: about 11 x 11 voxels in one z slab
+    inside = in_region(np.array([[0.0, 0.0, 2.01], [0.2, 0.2, 2.01]]), r0, 0.05)
+    outside = in_region(np.array([[0.6, 0.0, 2.01], [0.0, 0.0, 2.2], [0.0, 0.0, 1.9]]), r0, 0.05)
+    assert inside.all() and not outside.any()
+    r1 = task_region([v], voxel_m=0.05, dilate=1)
+    assert in_region(np.array([[0.0, 0.0, 2.06], [0.0, 0.0, 1.96]]), r1, 0.05).all()
+    assert not in_region(np.array([[0.0, 0.0, 2.2]]), r1, 0.05).any()
+    assert len(task_region([_view(roi_box=(0, 0, 0, 0))])) == 0
+    with pytest.raises(ValueError):
+        task_region([v], voxel_m=0)
+
+
+def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_and_transparent():
+    # 0: opaque, in front, in the ROI; 1: right behind 0 (occluded); 2: near-transparent in the ROI;
+    # 3: outside the task region (seen outside the ROI); 4: inactive
+    g = _map([[0, 0, 1.98], [0, 0, 2.02], [0.1, 0.05, 2.0], [0.8, 0.5, 2.0], [-0.1, 0, 2.0]],
+             [0.99, 0.99, 0.01, 0.99, 0.99], [0.08, 0.02, 0.04, 0.04, 0.04])
+    g.active[4] = False
+    v = _view()
+    c = roi_contribution(g, [v])
+    assert c.shape == (5,) and c[0] > 5 * c[1] > 0 and c[3] == pytest.approx(0.0, abs=1e-6)
+    # the weights add up to the rendered ROI alpha
+    from gausslite.render import rasterize
+
+    out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors, K=K, width=64, height=48,
+                    c2w=np.eye(4), background=torch.zeros(3))
+    assert c.sum() == pytest.approx(float(out.alpha[torch.from_numpy(v.roi)].sum()), rel=1e-3)
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0))
+    assert mask.tolist() == [True, True, False, False, False]  # region, opacity, active rules
+    assert st == {"active_kappa": 4, "in_region": 3, "opaque": 2, "shared": 2}
+    assert c[0] / (c[0] + c[1]) > 0.8
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=0.8))
+    assert mask.tolist() == [True, False, False, False, False]  # the occluded one is redundant
+    # no ROI pixels at all: the task flag and κ rule alone
+    mask, _ = select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))])
+    assert mask.tolist() == [True, True, True, True, False]
