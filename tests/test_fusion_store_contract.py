@@ -245,3 +245,26 @@ def test_sqlite_store_of_the_pre_migration_layout_is_upgraded(tmp_path):
 def test_unreachable_postgres_is_a_clear_store_error():
     with pytest.raises(StoreError, match="cannot connect to the PostgreSQL fusion store .*\\*\\*\\*"):
         PostgresFusionStore("postgresql://nobody:secret@127.0.0.1:1/none", connect_timeout_s=1)
+
+
+def test_delta_upload_completes_only_with_its_rebuilt_subset(backend):
+    """Delta pushes (issue 12): the last delta chunk leaves the upload incomplete; the rebuilt full
+    subset replaces the delta chunks and completes it in one transaction; an abandoned delta is
+    discarded. Same contract on both backends."""
+    _, opener, _ = backend
+    a, b = opener(), opener()
+    delta = chunks_of("r1", 2, n=300, per=300, seed=1)
+    a.begin_upload("r1", 2, len(delta), 0, 0)
+    new, up = a.put_chunk("r1", 2, 0, delta[0][0], delta[0][1], delta[0][2], delta[0][3], delta[0][4],
+                          defer_complete=True)
+    assert new and not up.complete and b.latest_complete() == {}
+    full = chunks_of("r1", 2, n=900, per=300, seed=2)
+    done = b.complete_rebuilt("r1", 2, [(c[0], c[1], c[2]) for c in full], 900, True)
+    assert done.complete and done.n_gaussians == 900 and a.latest_version("r1") == 2
+    assert a.chunk_data("r1", 2) == [c[0] for c in full]
+    with pytest.raises(ValueError, match="no incomplete upload"):
+        a.complete_rebuilt("r1", 2, [(c[0], c[1], c[2]) for c in full], 900, True)
+    a.begin_upload("r1", 3, 1, 0, 0)
+    a.put_chunk("r1", 3, 0, delta[0][0], delta[0][1], delta[0][2], delta[0][3], delta[0][4], defer_complete=True)
+    b.discard_upload("r1", 3)
+    assert a.upload("r1", 3) is None and a.latest_version("r1") == 2
