@@ -21,7 +21,8 @@ from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from services.common.metrics import metrics_port_from
 from services.common.server import ServerOptions
 
-TINY = ["agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+# every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
+TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
 
 
