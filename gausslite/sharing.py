@@ -36,9 +36,12 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from gausslite.mapping.memory import VOXEL_KEY_OFFSET, pack_voxel_keys
+
 __all__ = ["ShareConfig", "ShareView", "task_region", "in_region", "roi_contribution", "select_task_subset"]
 
-_OFF = 1 << 20  # voxel index offset: indices in [-2^20, 2^20) pack into 21 bits per axis
+_OFF = VOXEL_KEY_OFFSET  # voxel keys as in the scene budget (gausslite.mapping.memory)
+_pack = pack_voxel_keys
 
 
 @dataclass(frozen=True)
@@ -80,9 +83,6 @@ class ShareView:
         return int(self.roi.shape[0])
 
 
-def _pack(ijk: np.ndarray) -> np.ndarray:
-    q = np.clip(ijk + _OFF, 0, 2 * _OFF - 1).astype(np.int64)
-    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
 
 
 def task_region(views: Sequence[ShareView], voxel_m: float = 0.05, dilate: int = 1) -> np.ndarray:
@@ -133,12 +133,21 @@ def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
     Exact: the rendered colour is ``Σ_i T_ip α_ip c_i + T_p · background``, so the gradient of the
     ROI-summed red channel with respect to ``c_i`` is the weight.
     """
-    from gausslite.render import rasterize
+    from gausslite.render import blend_weights
 
     n = len(gmap)
     out = np.zeros(n, np.float64)
     if n == 0:
         return out
+    for v in views:
+        roi = torch.as_tensor(np.asarray(v.roi, bool))
+        if not bool(roi.any()):
+            continue
+        w = blend_weights(gmap.means, gmap.quats, gmap.log_scales, gmap.opacity_logits, gmap.colors,
+                          K=np.asarray(v.K), width=v.width, height=v.height, c2w=np.asarray(v.c2w),
+                          pixel_mask=roi, subset=subset, background=torch.zeros(3), backend=backend)
+        out += w.cpu().double().numpy()
+    return out
     cols = gmap.colors.detach().clone().requires_grad_(True)
     for v in views:
         roi = torch.as_tensor(np.asarray(v.roi, bool))

@@ -8,7 +8,8 @@ import torch
 from gausslite.camera import Intrinsics
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper, keyframe_from_frame
-from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, backproject, unexplained_mask
+from gausslite.camera import backproject
+from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, pack_voxel_keys, unexplained_mask
 from _scenes import plane_frame
 
 H, W = 40, 56
@@ -88,8 +89,10 @@ def test_surface_voxels_count_a_plane():
     # the plane spans 2.24 m × 1.6 m at z = 2 m: about 23 × 17 voxels of 10 cm (one layer)
     assert 300 < len(sv) < 500
     assert sv.add_frame(depth, intr, np.eye(4)) == 0  # the same view adds nothing
-    pts = backproject(depth, intr, np.eye(4), stride=1)
-    assert pts.shape == (40 * 56, 3) and np.allclose(pts[:, 2], 2.0)
+    pts = backproject(depth, intr, np.eye(4)).reshape(-1, 3)
+    keys = np.unique(pack_voxel_keys(np.floor(pts / 0.1).astype(np.int64)))
+    assert len(keys) == len(sv)  # every pixel counted once at stride 1
+    assert len(np.unique(pack_voxel_keys(np.array([[-3, 5, 7], [-3, 5, 7], [3, -5, 7]])))) == 2
 
 
 def test_contribution_is_the_alpha_blending_weight():
@@ -231,3 +234,22 @@ def test_mapper_keyframe_memory_stays_bounded():
         m.map_frame(plane_frame(i, 0.03 * i))
     assert len(m.keyframes) == 5
     assert m.keyframes.nbytes <= 5 * H * W * 5
+
+
+def test_blend_weights_agree_between_warp_and_the_torch_reference():
+    from gausslite.render import blend_weights
+
+    m = Mapper(_cfg(iters_per_frame=3))
+    fr = plane_frame(0)
+    m.map_frame(fr)
+    p = {k: v.detach() for k, v in m.model.params.items()}
+    args = (p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"])
+    kw = dict(K=fr.intrinsics.K, width=W, height=H, c2w=fr.c2w)
+    w_warp = blend_weights(*args, backend="warp", **kw)
+    w_ref = blend_weights(*args, backend="torch", **kw)
+    assert torch.allclose(w_warp, w_ref.float(), atol=1e-3, rtol=1e-3)
+    mask = torch.zeros(H, W, dtype=torch.bool)
+    mask[:, : W // 2] = True
+    left = blend_weights(*args, backend="warp", pixel_mask=mask, **kw)
+    right = blend_weights(*args, backend="warp", pixel_mask=~mask, **kw)
+    assert torch.allclose(left + right, w_warp, atol=1e-3)

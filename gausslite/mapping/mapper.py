@@ -40,7 +40,7 @@ from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_m
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_map
-from gausslite.render import RenderOutput, rasterize
+from gausslite.render import RenderOutput, blend_weights, rasterize
 
 log = logging.getLogger(__name__)
 
@@ -322,20 +322,14 @@ class Mapper:
 
     def _accumulate_contribution(self, kf: Keyframe) -> None:
         """Add each Gaussian's alpha-blending weight Σ_pixels T_i α_i in keyframe ``kf`` to
-        ``contribution``. The rendered colour is linear in the colours (c = Σ_i w_i c_i + T bg), so the
-        gradient of the image's red-channel sum with respect to the red colours is exactly Σ_p w_i."""
+        ``contribution`` (:func:`gausslite.render.blend_weights`)."""
         if len(self.model) == 0:
             return
         p = self.model.params
-        colors = p["colors"].detach().clone().requires_grad_(True)
-        out = rasterize(
-            p["means"].detach(), p["quats"].detach(), p["log_scales"].detach(), p["opacity_logits"].detach(), colors,
-            K=kf.K, width=kf.width, height=kf.height, c2w=kf.c2w, background=self._background,
-            backend=self.cfg.backend, num_threads=self.cfg.render_threads,
-        )
-        out.color[..., 0].sum().backward()
-        if colors.grad is not None:
-            self.contribution += colors.grad[:, 0].detach().clamp_min(0)
+        self.contribution += blend_weights(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=kf.K, width=kf.width,
+            height=kf.height, c2w=kf.c2w, background=self._background, backend=self.cfg.backend,
+            num_threads=self.cfg.render_threads)
 
     # ------------------------------------------------------------------ density control
     def _reset_densify_stats(self) -> None:

@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from gausslite.camera import Intrinsics
+from gausslite.camera import Intrinsics, backproject
 
 
 @dataclass
@@ -158,32 +158,23 @@ class KeyframeStore:
         return int(rng.choice(n, p=wts / wts.sum()))
 
 
-def backproject(depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray, stride: int = 1) -> np.ndarray:
-    """World points of every ``stride``-th valid depth pixel.
+#: offset of packed voxel keys: integer voxel indices in [-2^20, 2^20) pack into 21 bits per axis
+VOXEL_KEY_OFFSET = 1 << 20
 
-    Args:
-        depth: (H, W) metres, 0 = invalid. intr: pinhole intrinsics (pixels). c2w: (4, 4)
-            camera-to-world, OpenCV camera axes (x right, y down, z forward).
-    Returns:
-        (P, 3) float64 world points in metres.
-    """
-    d = depth[::stride, ::stride]
-    v, u = np.nonzero(d > 0)
-    z = d[v, u].astype(np.float64)
-    u = u * stride
-    v = v * stride
-    pc = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=1)
-    return pc @ np.asarray(c2w, np.float64)[:3, :3].T + np.asarray(c2w, np.float64)[:3, 3]
+
+def pack_voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """(M,) int64 keys of integer voxel indices ``ijk`` (M, 3), clipped to ±2^20 per axis (±52 km at
+    5 cm voxels); shared by the scene budget and the task region (:mod:`gausslite.sharing`)."""
+    q = np.clip(np.asarray(ijk, np.int64) + VOXEL_KEY_OFFSET, 0, 2 * VOXEL_KEY_OFFSET - 1)
+    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
 
 
 class SurfaceVoxels:
     """The set of coarse world voxels (edge ``voxel_m`` metres) that valid depth has observed.
 
     The scene-following budget counts them: it grows with the observed surface, not with the
-    image size. Keys are packed into int64 (21 bits per axis, ±1 km at 1 cm voxels).
+    image size. Keys: :func:`pack_voxel_keys`.
     """
-
-    _OFF = 1 << 20
 
     def __init__(self, voxel_m: float = 0.05, pixel_stride: int = 4) -> None:
         if voxel_m <= 0:
@@ -197,12 +188,11 @@ class SurfaceVoxels:
 
     def add_frame(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> int:
         """Add the voxels hit by a frame's valid depth; returns the number of new voxels."""
-        pts = backproject(depth, intr, c2w, self.pixel_stride)
+        s = self.pixel_stride
+        pts = backproject(depth, intr, np.asarray(c2w, np.float64))[::s, ::s][depth[::s, ::s] > 0]
         if pts.size == 0:
             return 0
-        ijk = np.floor(pts / self.voxel_m).astype(np.int64) + self._OFF
-        ijk = np.clip(ijk, 0, (1 << 21) - 1)
-        keys = np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])
+        keys = np.unique(pack_voxel_keys(np.floor(pts / self.voxel_m).astype(np.int64)))
         n0 = self._keys.size
         self._keys = np.union1d(self._keys, keys)
         return int(self._keys.size - n0)

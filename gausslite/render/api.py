@@ -253,3 +253,49 @@ def rasterize(
                         torch.zeros_like(depth_sum))
     return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d,
                         radii=radii.to(torch.int32), ids=ids)
+
+
+def blend_weights(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    *,
+    K,
+    width: int,
+    height: int,
+    c2w,
+    pixel_mask: torch.Tensor | None = None,
+    subset: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+    num_threads: int | None = None,
+) -> torch.Tensor:
+    """Per-Gaussian alpha-blending weight of one view: ``w_i = Σ_p T_ip α_ip`` over the image's pixels
+    (or those of ``pixel_mask``).
+
+    Exact and backend-independent: the rendered colour is linear in the colours,
+    ``c_p = Σ_i T_ip α_ip c_i + T_p · background``, so the gradient of the (masked) red-channel sum
+    with respect to ``colors[:, 0]`` is the weight. One forward and one backward pass; the map's
+    parameters get no gradient.
+
+    Args:
+        means … colors: the map, shapes as in :func:`rasterize` (N, ...); detached here.
+        K, width, height, c2w: the view (pixels; camera-to-world, OpenCV camera axes).
+        pixel_mask: (height, width) bool pixels to sum over, or None for all.
+        subset, background, backend, num_threads: as in :func:`rasterize`.
+    Returns:
+        (N,) float32 weights ≥ 0 (0 for Gaussians outside the view or the subset), on ``means.device``.
+    """
+    cols = colors.detach().clone().requires_grad_(True)
+    out = rasterize(means.detach(), quats.detach(), log_scales.detach(), opacity_logits.detach(), cols,
+                    K=K, width=width, height=height, c2w=c2w, subset=subset, background=background,
+                    backend=backend, num_threads=num_threads)
+    red = out.color[..., 0]
+    if pixel_mask is not None:
+        red = red[pixel_mask.to(red.device)]
+    red.sum().backward()
+    if cols.grad is None:
+        return torch.zeros(means.shape[0], device=means.device)
+    return cols.grad[:, 0].detach().float().clamp_min(0)
