@@ -21,7 +21,7 @@ import pytest
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
 CHROMIUM_FLAGS = ["--headless=new", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                   "--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--no-first-run", "--disable-dev-shm-usage", "--window-size=960,720", "--hide-scrollbars"]
+                  "--no-first-run", "--disable-dev-shm-usage", "--window-size=640,480", "--hide-scrollbars"]
 
 
 def _ci() -> bool:
@@ -83,7 +83,7 @@ def changed_fraction(a: np.ndarray, b: np.ndarray, threshold: int = 24) -> float
     return float((diff > threshold).mean())
 
 
-def wait_for_change(driver, reference: np.ndarray, min_fraction: float, timeout_s: float = 90.0) -> tuple:
+def wait_for_change(driver, reference: np.ndarray, min_fraction: float, timeout_s: float = 240.0) -> tuple:
     """Take screenshots until the changed fraction vs ``reference`` exceeds ``min_fraction`` and is stable
     (two shots within 0.5 percentage points), or ``timeout_s`` passes. Returns (image, fraction)."""
     deadline = time.monotonic() + timeout_s
