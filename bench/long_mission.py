@@ -123,21 +123,26 @@ def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) 
     """The JSON block of one scene: per mode, every figure as mean and std over seeds."""
     from gausslite.stats import aggregate, gain
 
+    from gausslite.stats import mean_std
+
+    def roi(rseed: list[dict], task: str) -> Optional[float]:
+        """ROI PSNR of ``task`` in one seed's runs: the uniform map serves every task, GaussLite maps per task."""
+        return next((r["roi_psnr_per_task"][task] for r in rseed if r["task"] in (None, task)), None)
+
     out: dict = {"tasks": tasks, "seeds": seeds}
     per_seed_roi: dict[str, list] = {}
     for mode in ("uniform", "gausslite"):
         rs = [r for r in runs if r["scene"] == scene and r["mode"] == mode]
         by_seed = []
         roi_by_seed = []
+        per_task: dict[str, list] = {t: [] for t in tasks}
         for s in seeds:
             rseed = [r for r in rs if r["seed"] == s]
             if not rseed:
                 continue
-            if mode == "uniform":
-                vals = [rseed[0]["roi_psnr_per_task"][t] for t in tasks]
-            else:
-                vals = [next(r["roi_psnr_per_task"][r["task"]] for r in rseed if r["task"] == t) for t in tasks]
-            vals = [v for v in vals if v is not None]
+            for t in tasks:
+                per_task[t].append(roi(rseed, t))
+            vals = [per_task[t][-1] for t in tasks if per_task[t][-1] is not None]
             roi_by_seed.append(float(np.mean(vals)) if vals else None)
             by_seed.append({
                 "psnr": float(np.mean([r["psnr"] for r in rseed])),
@@ -152,16 +157,10 @@ def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) 
             })
         block = aggregate(by_seed, ["psnr", "roi_psnr", "psnr_by_fifth", "heldout_psnr", "s_per_frame",
                                     "s_per_frame_by_fifth", "n_gaussians", "keyframe_mb"])
-        if block.get("heldout_psnr") is None:
-            block["heldout_psnr"] = None
         fifth = block["psnr_by_fifth"]
         block["retention_db"] = (fifth[0] - fifth[-1]) if by_seed else None
-        block["roi_psnr_per_task"] = {
-            t: aggregate([{"v": (next((r["roi_psnr_per_task"][t] for r in rs if r["seed"] == s
-                                        and (mode == "uniform" or r["task"] == t)), None))} for s in seeds], ["v"])
-            for t in tasks}
-        block["roi_psnr_per_task"] = {t: {"roi_psnr": v["v"], "roi_psnr_std": v["v_std"]}
-                                      for t, v in block["roi_psnr_per_task"].items()}
+        block["roi_psnr_per_task"] = {t: dict(zip(("roi_psnr", "roi_psnr_std"), mean_std(v)))
+                                      for t, v in per_task.items()}
         block["seeds"] = [s for s in seeds if any(r["seed"] == s for r in rs)]
         out[mode] = block
         per_seed_roi[mode] = roi_by_seed

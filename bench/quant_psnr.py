@@ -30,7 +30,7 @@ def _render_scores(gmap, dataset, roi_fn) -> tuple[float, float]:
     from gausslite.metrics import psnr
 
     m = Mapper(MapperConfig())
-    m.model.set_map(gmap)
+    m.load_map(gmap)
     full, roi = [], []
     for fr in dataset:
         out = m.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)

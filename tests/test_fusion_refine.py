@@ -19,7 +19,7 @@ def _kf(fr):
 
 def _score(arrays, frames):
     m = Mapper(MapperConfig(backend="warp"))
-    m.model.set_map(arrays.to_gaussian_map())
+    m.load_map(arrays.to_gaussian_map())
     vals = []
     for fr in frames:
         out = m.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)

@@ -96,8 +96,7 @@ def refine_map(
     base = cfg or MapperConfig()
     cfg = base.model_copy(update={"seed": seed, "max_gaussians": max(base.max_gaussians or 0, len(arrays)), **overrides})
     mapper = Mapper(cfg)
-    mapper.model.set_map(arrays.to_gaussian_map(cfg.device))
-    mapper._reset_densify_stats()
+    mapper.load_map(arrays.to_gaussian_map(cfg.device))
     kfs = [keyframe_from_frame(k.to_frame(i), mapper.device) for i, k in enumerate(keyframes)]
     rng = np.random.default_rng(seed)
     every = max(1, iters // 20)

@@ -253,8 +253,6 @@ class Mapper:
         if cfg.evict == "opacity":
             return torch.sigmoid(cur.opacity_logits)
         score = self.contribution.clone()
-        if score.shape[0] != len(cur):  # map set from outside (e.g. refinement): no history
-            score = torch.zeros(len(cur), device=self.device)
         if cfg.mode == "gausslite":
             score[cur.active] *= cfg.roi_protect
         return score
@@ -313,11 +311,26 @@ class Mapper:
     def _set_map(self, gmap: GaussianMap, parent: torch.Tensor) -> None:
         """``model.set_map`` that also carries each Gaussian's accumulated contribution along
         ``parent`` (new rows start at 0) and resets the densification statistics."""
-        c = self.contribution
-        src = parent.clamp_min(0)
-        carried = c[src] if c.numel() == len(self.model) and c.numel() else torch.zeros(parent.shape[0], device=self.device)
-        self.contribution = torch.where(parent >= 0, carried, torch.zeros_like(carried))
+        new = torch.zeros(parent.shape[0], device=self.device)
+        has = parent >= 0  # rows of the current map: len(contribution) == len(model) always holds
+        new[has] = self.contribution[parent[has]]
+        self.contribution = new
         self.model.set_map(gmap, parent)
+        self._reset_densify_stats()
+
+    def load_map(self, gmap: GaussianMap, contribution: Optional[torch.Tensor] = None) -> None:
+        """Replace the whole map from outside the mapping loop (refinement of a fused map, a checkpoint):
+        no Adam state is carried; ``contribution`` (N,) float32, default zeros (no history). Keeps
+        ``contribution`` aligned with the map, which eviction relies on.
+
+        Raises:
+            ValueError: ``contribution`` of another length than the map.
+        """
+        if contribution is not None and int(contribution.shape[0]) != len(gmap):
+            raise ValueError(f"contribution has {contribution.shape[0]} rows, map has {len(gmap)}")
+        self.model.set_map(gmap)
+        self.contribution = (contribution.to(self.device, torch.float32).clone() if contribution is not None
+                             else torch.zeros(len(gmap), device=self.device))
         self._reset_densify_stats()
 
     def _accumulate_contribution(self, kf: Keyframe) -> None:
@@ -576,13 +589,10 @@ class Mapper:
         from gausslite.mapping.memory import StoredKeyframe
 
         g = GaussianMap(**{k: v.to(self.device) for k, v in state["gaussians"].items()})
-        self.model.set_map(g)
+        self.load_map(g, state.get("contribution"))
         if "ids" in state and int(state["ids"].shape[0]) == len(g):  # stable ids survive a restart (delta pushes)
             self.model.ids = state["ids"].clone()
             self.model._next_id = int(state["next_id"])
-        contrib = state.get("contribution")
-        self.contribution = (contrib.to(self.device) if contrib is not None and contrib.shape[0] == len(g)
-                             else torch.zeros(len(g), device=self.device))
         self.keyframes = KeyframeStore(self.cfg.max_keyframes, protect_recent=self.cfg.window)
         self.keyframes._items = [StoredKeyframe(**d) for d in state["keyframes"]]
         self.voxels = SurfaceVoxels(self.cfg.budget_voxel_m)
@@ -592,4 +602,3 @@ class Mapper:
         self.budget = state["budget"]
         self._roi_iters = int(state["roi_iters"])
         self.rng.bit_generator.state = state["rng"]
-        self._reset_densify_stats()

@@ -189,7 +189,9 @@ class SurfaceVoxels:
     def add_frame(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> int:
         """Add the voxels hit by a frame's valid depth; returns the number of new voxels."""
         s = self.pixel_stride
-        pts = backproject(depth, intr, np.asarray(c2w, np.float64))[::s, ::s][depth[::s, ::s] > 0]
+        d = depth[::s, ::s]  # pixel (u', v') of the strided image is pixel (s u', s v'): K / s
+        sub = Intrinsics(intr.fx / s, intr.fy / s, intr.cx / s, intr.cy / s, d.shape[1], d.shape[0])
+        pts = backproject(d, sub, np.asarray(c2w, np.float64))[d > 0]
         if pts.size == 0:
             return 0
         keys = np.unique(pack_voxel_keys(np.floor(pts / self.voxel_m).astype(np.int64)))
