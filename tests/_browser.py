@@ -76,6 +76,20 @@ def screenshot(driver) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+HIDE_OVERLAYS_JS = """
+const s = document.createElement('style');
+s.textContent = '* { visibility: hidden !important; } canvas { visibility: visible !important; }';
+document.head.appendChild(s);
+"""
+
+
+def hide_overlays(driver) -> None:
+    """Hide every page element except the WebGL canvas (viser's control panel, notifications, logo), so
+    a screenshot shows only the 3D scene and pixel-change measures are not moved by GUI toasts that come
+    and go. Visibility, not display: layout and the canvas size stay as they are."""
+    driver.execute_script(HIDE_OVERLAYS_JS)
+
+
 def changed_fraction(a: np.ndarray, b: np.ndarray, threshold: int = 24) -> float:
     """Fraction of pixels whose largest channel difference exceeds ``threshold`` (0..255)."""
     assert a.shape == b.shape, (a.shape, b.shape)

@@ -305,8 +305,8 @@ def test_cli_view_follows_fusion(fusion_with_two_agents):
 # ---------------------------------------------------------------- real browser
 def test_browser_renders_splats(tmp_path):
     """Headless Chromium opens the viser page: the empty scene, then the map; ≥ 5 % of pixels change."""
-    from _browser import changed_fraction, headless_chromium, keep_artifact, require_chromium, screenshot, \
-        wait_for_change
+    from _browser import changed_fraction, headless_chromium, hide_overlays, keep_artifact, require_chromium, \
+        screenshot, wait_for_change
     from gausslite.viewer.app import MapViewer
 
     require_chromium()
@@ -315,6 +315,7 @@ def test_browser_renders_splats(tmp_path):
         with headless_chromium() as driver:
             driver.get(viewer.url)
             assert viewer.wait_for_client(30), "the page never connected to the viser server"
+            hide_overlays(driver)  # measure the 3D scene, not the GUI panel and its toasts
             time.sleep(3.0)  # empty scene rendered
             empty = screenshot(driver)
             n = viewer.set_map(shell_map(6000), label="sphere")
@@ -336,7 +337,8 @@ def test_browser_renders_splats(tmp_path):
 
 def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
     """`view --fusion` path in the browser: fused splats plus both agents' trajectories and frusta."""
-    from _browser import headless_chromium, keep_artifact, require_chromium, screenshot, wait_for_change
+    from _browser import headless_chromium, hide_overlays, keep_artifact, require_chromium, screenshot, \
+        wait_for_change
     from gausslite.viewer.app import MapViewer
     from services.viewer.feed import FusionFeed
 
@@ -347,11 +349,18 @@ def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
         with headless_chromium() as driver:
             driver.get(viewer.url)
             assert viewer.wait_for_client(30)
+            hide_overlays(driver)
             time.sleep(3.0)
             empty = screenshot(driver)
             fc.fuse("vote", voxel_size=0.05)
             feed = FusionFeed(viewer, fc, poll_s=0.5)
             assert feed.poll_once() is True
+            # the browser's camera looks at the fused map (regression: viser's position setter moves
+            # look_at along, which once aimed the view away from the map)
+            init = viewer.server.initial_camera
+            for client in viewer.server.get_clients().values():
+                np.testing.assert_allclose(client.camera.look_at, init.look_at, atol=1e-6)
+                np.testing.assert_allclose(client.camera.position, init.position, atol=1e-6)
             img, frac = wait_for_change(driver, empty, min_fraction=0.05)
             kept = keep_artifact(img, tmp_path, "viewer_fusion.png")
             print(f"changed pixels: {100 * frac:.1f} %")

@@ -248,9 +248,12 @@ class MapViewer:
         cam.look_at = tuple(float(x) for x in centre)
         cam.position = tuple(float(x) for x in eye)
         for client in self.server.get_clients().values():
+            # viser's position setter translates look_at along with the camera, so position goes first
+            # and look_at after it; the other order aimed the view away from the map whenever the
+            # client's camera was not already at `cam.position`.
             client.camera.up_direction = cam.up
-            client.camera.look_at = cam.look_at
             client.camera.position = cam.position
+            client.camera.look_at = cam.look_at
         self._camera_set = True
 
     # ------------------------------------------------------------------ keyframes
