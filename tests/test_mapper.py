@@ -113,6 +113,36 @@ def test_roi_crop_renders_the_same_pixels_as_the_full_image():
         mapper_mod.crop_keyframe(mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool)), 2)
 
 
+def test_random_window_shows_the_full_render_pixels():
+    """A full-image iteration's random window (full_crop_fraction < 1): fraction of the area at the image's
+    aspect, clipped to the image, every pixel covered about equally often, and its render equals the full
+    render's pixels up to the EWA clamp."""
+    m = Mapper(_cfg())
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    full = m.render(kf.c2w, kf.K, W, H)
+    rng = np.random.default_rng(0)
+    seen = np.zeros((H, W))
+    for i in range(2000):
+        v = mapper_mod.random_window(kf, 0.5, rng)
+        x0, y0 = int(round(float(kf.K[0, 2] - v.K[0, 2]))), int(round(float(kf.K[1, 2] - v.K[1, 2])))
+        assert v.width * v.height <= 0.6 * W * H and min(v.width, v.height) >= 8
+        assert 0 <= x0 and x0 + v.width <= W and 0 <= y0 and y0 + v.height <= H
+        assert torch.equal(v.rgb, kf.rgb[y0:y0 + v.height, x0:x0 + v.width])
+        seen[y0:y0 + v.height, x0:x0 + v.width] += 1
+        if i < 10:
+            part = m.render(v.c2w, v.K, v.width, v.height)
+            d = (part.color - full.color[y0:y0 + v.height, x0:x0 + v.width]).abs()
+            assert float(d.max()) < 5e-3
+    # about equally often everywhere: corners are not starved (a window kept inside the image would cover
+    # a corner pixel 1/221 as often as the centre here)
+    corner, centre = seen[:4, :4].mean(), seen[H // 2 - 2:H // 2 + 2, W // 2 - 2:W // 2 + 2].mean()
+    assert corner > 0.5 * centre, (corner, centre)
+    with pytest.raises(ValueError):
+        mapper_mod.window_keyframe(kf, 5, 5, 5, 9)
+
+
 def test_active_phase_on_a_view_without_roi_is_a_full_image_iteration(monkeypatch):
     """Nothing to fit in the ROI: no zero-loss Adam step (its momentum would still move the
     active Gaussians) and no κ; the iteration trains the whole map on the full image instead."""
@@ -191,7 +221,7 @@ def test_uniform_mode_never_uses_the_roi_phase(monkeypatch):
 
 def test_mvo_draws_views_uniformly_from_the_window(monkeypatch):
     picked = []
-    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase: picked.append(kf.frame_id) or 0.0)
+    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0)
     m = Mapper(_cfg(iters_per_frame=400, warmup_iters=0, window=4))
     for i in range(4):
         picked.clear()

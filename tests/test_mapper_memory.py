@@ -199,7 +199,7 @@ def test_sampler_reaches_the_whole_mission_and_weights_roi_views():
 
 def test_mapper_views_come_from_old_keyframes(monkeypatch):
     picked = []
-    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase: picked.append(kf.frame_id) or 0.0)
+    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0)
     m = Mapper(_cfg(iters_per_frame=200, window=2, recent_prob=0.5, components={"mvo": True}, mode="gausslite"))
     for i in range(12):
         picked.clear()

@@ -103,6 +103,81 @@ def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.nda
     )
 
 
+def downscale_keyframe(kf: Keyframe, factor: int) -> Keyframe:
+    """The keyframe at 1/``factor`` resolution, for coarse full-image iterations (a two-level image
+    pyramid, as Photo-SLAM's Gaussian-pyramid training; cost of an iteration ∝ pixels).
+
+    Colour is the ``factor`` × ``factor`` area mean; depth the mean of the valid (> 0) depths of a block
+    (0 where none is valid); the ROI a block's any. Intrinsics follow the pixel-centre convention of
+    :mod:`gausslite.camera`: fx' = fx / f, cx' = (cx + 0.5) / f − 0.5 (same for y). Trailing rows and
+    columns that do not fill a block are dropped. ``factor`` 1 returns ``kf`` itself.
+    Raises ValueError for a factor < 1 or one that leaves no pixel.
+    """
+    f = int(factor)
+    if f < 1 or kf.width < f or kf.height < f:
+        raise ValueError(f"cannot downscale a {kf.width}x{kf.height} keyframe by {factor}")
+    if f == 1:
+        return kf
+    h, w = kf.height // f, kf.width // f
+    rgb = kf.rgb[: h * f, : w * f].reshape(h, f, w, f, 3).mean(dim=(1, 3))
+    d = kf.depth[: h * f, : w * f].reshape(h, f, w, f)
+    valid = (d > 0).sum(dim=(1, 3))
+    depth = torch.where(valid > 0, d.sum(dim=(1, 3)) / valid.clamp_min(1), torch.zeros((), dtype=d.dtype))
+    K = kf.K.clone()
+    K[0, 0] /= f
+    K[1, 1] /= f
+    K[0, 2] = (K[0, 2] + 0.5) / f - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) / f - 0.5
+    roi, box = None, None
+    if kf.roi is not None:
+        roi = kf.roi[: h * f, : w * f].reshape(h, f, w, f).any(dim=3).any(dim=1)
+        ys, xs = torch.nonzero(roi, as_tuple=True)
+        if len(ys):
+            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    return Keyframe(frame_id=kf.frame_id, rgb=rgb.contiguous(), depth=depth.contiguous(), c2w=kf.c2w, K=K,
+                    width=w, height=h, roi=roi, roi_box=box)
+
+
+def window_keyframe(kf: Keyframe, x0: int, y0: int, x1: int, y1: int) -> Keyframe:
+    """The keyframe restricted to pixels [x0, x1) × [y0, y1) (clipped to the image): the principal
+    point moves with the window (cx -= x0, cy -= y0), so the window's render shows the same pixels as the
+    full render (see :func:`crop_keyframe`). The ROI, if any, is cropped along."""
+    x0, y0 = max(0, int(x0)), max(0, int(y0))
+    x1, y1 = min(kf.width, int(x1)), min(kf.height, int(y1))
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"empty window [{x0}, {x1}) x [{y0}, {y1}) of keyframe {kf.frame_id}")
+    K = kf.K.clone()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    roi, box = None, None
+    if kf.roi is not None:
+        roi = kf.roi[y0:y1, x0:x1]
+        if kf.roi_box is not None:
+            bx0, by0, bx1, by1 = kf.roi_box
+            cx0, cy0, cx1, cy1 = max(bx0, x0), max(by0, y0), min(bx1, x1), min(by1, y1)
+            box = (cx0 - x0, cy0 - y0, cx1 - x0, cy1 - y0) if cx1 > cx0 and cy1 > cy0 else None
+    return Keyframe(frame_id=kf.frame_id, rgb=kf.rgb[y0:y1, x0:x1], depth=kf.depth[y0:y1, x0:x1], c2w=kf.c2w,
+                    K=K, width=x1 - x0, height=y1 - y0, roi=roi, roi_box=box)
+
+
+def random_window(kf: Keyframe, fraction: float, rng: np.random.Generator) -> Keyframe:
+    """A window of up to ``fraction`` of the keyframe's area (the image's aspect ratio) for a full-image
+    iteration: stochastic pixel subsampling at full resolution (no aliasing, unlike a downscaled view).
+
+    The window's corner is drawn uniformly from positions that let it hang over the image border by up to
+    its size less 8 pixels, and it is clipped to the image: every pixel is then covered about equally
+    often (a window kept inside the image would cover a corner pixel 1/((W−w+1)(H−h+1)) as often as the
+    centre). Windows at the border are smaller, hence cheaper.
+    """
+    s = float(np.sqrt(fraction))
+    w = min(kf.width, max(16, int(round(kf.width * s))))
+    h = min(kf.height, max(16, int(round(kf.height * s))))
+    mx, my = min(8, w), min(8, h)
+    x0 = int(rng.integers(-(w - mx), kf.width - mx + 1))
+    y0 = int(rng.integers(-(h - my), kf.height - my + 1))
+    return window_keyframe(kf, x0, y0, x0 + w, y0 + h)
+
+
 def crop_keyframe(kf: Keyframe, pad: int) -> Keyframe:
     """The keyframe restricted to its ROI bounding box grown by ``pad`` pixels (clipped to the image).
 
@@ -350,12 +425,14 @@ class Mapper:
         self._grad_accum = torch.zeros(n, device=self.device)
         self._grad_count = torch.zeros(n, device=self.device)
 
-    def _accumulate(self, out: RenderOutput, width: int, height: int) -> None:
+    def _accumulate(self, out: RenderOutput, width: int, height: int, weight: float = 1.0) -> None:
+        """Add each visible Gaussian's view-space gradient norm (pixels × half the image size, times
+        ``weight``) to the density-control statistics."""
         g = out.means2d.grad
         if g is None:
             return
         vis = out.radii > 0
-        scale = torch.tensor([width / 2.0, height / 2.0], device=g.device)
+        scale = torch.tensor([weight * width / 2.0, weight * height / 2.0], device=g.device)
         norm = (g * scale).norm(dim=1)
         ids = out.ids[vis]
         self._grad_accum.index_add_(0, ids, norm[vis])
@@ -412,7 +489,8 @@ class Mapper:
             return current
         return self.keyframes.load(i, self.device)
 
-    def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False) -> float:
+    def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False,
+                 coarse: bool = False) -> float:
         """One Adam iteration on keyframe ``kf``.
 
         ``active_phase`` (paper III-D.1): update only active Gaussians, with colour, depth and SSIM on
@@ -423,11 +501,20 @@ class Mapper:
         whose ROI is empty gets a full-image iteration instead (no κ): no ROI pixel, nothing to fit.
         ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
         used to refine partial maps such as fused ROI subsets, which do not cover the background.
+        ``coarse``: a full-image iteration renders the view at 1/``coarse_downscale`` resolution
+        (:func:`downscale_keyframe`).
         """
         cfg = self.cfg
         if active_phase and kf.roi_box is None:
             active_phase = False
-        view = crop_keyframe(kf, cfg.roi_crop_pad) if active_phase else kf
+        if active_phase:
+            view = crop_keyframe(kf, cfg.roi_crop_pad)
+        elif coarse and not footprint_only:
+            view = downscale_keyframe(kf, cfg.coarse_downscale)
+        elif cfg.full_crop_fraction < 1.0 and not footprint_only:
+            view = random_window(kf, cfg.full_crop_fraction, self.rng)
+        else:
+            view = kf
         alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self._roi_iters % 2 == 1)
         subset = self.model.active if active_phase and alone else None
         self._roi_iters += int(active_phase)
@@ -440,8 +527,15 @@ class Mapper:
         loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
-            # normalised by the full image size in both cases: crops keep the pixel scale
-            self._accumulate(out, kf.width, kf.height)
+            # normalised by the full image size: crops and windows keep the pixel scale; a downscaled view
+            # has its own
+            scaled = coarse and not active_phase and not footprint_only
+            # a random window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
+            # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
+            weight = 1.0
+            if view is not kf and not active_phase and not scaled:
+                weight = view.width * view.height / float(kf.width * kf.height)
+            self._accumulate(out, view.width if scaled else kf.width, view.height if scaled else kf.height, weight)
         self.model.step(update=self.model.active if active_phase else None)
         if active_phase:
             self.model.kappa[self.model.active] += 1
@@ -479,7 +573,7 @@ class Mapper:
         for it in self._iterations(t0, time_budget_s):
             view = self._pick_view(kf)
             active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
-            loss = self._iterate(view, active_phase)
+            loss = self._iterate(view, active_phase, coarse=it < cfg.coarse_iters)
             active_iters += int(active_phase)
             n_iters += 1
             if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0:

@@ -124,25 +124,60 @@ class GaussianModel:
         Args:
             update: optional (N,) bool; rows outside it keep their values and Adam moments exactly
                 (the ROI phase updates only active Gaussians: a zero gradient alone would still move
-                them through Adam's momentum).
+                them through Adam's momentum). The masked step runs Adam on the selected rows only
+                (:meth:`_masked_adam`): the same update as a full step followed by restoring the other
+                rows (:func:`masked_step_reference`, the parity test), at the cost of the selected rows.
         """
         assert self.optimizer is not None
-        frozen = None
         if update is not None and not bool(update.all()):
-            keep = ~update
-            frozen = {}
-            for name, p in self.params.items():
-                st = self.optimizer.state.get(p, {})
-                frozen[name] = (
-                    p.detach()[keep].clone(),
-                    {k: v[keep].clone() for k, v in st.items() if torch.is_tensor(v) and v.dim() > 0},
-                )
-        self.optimizer.step()
+            self._masked_adam(torch.nonzero(update.to(self.device)).squeeze(1))
+        else:
+            self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if frozen is not None:
-            with torch.no_grad():
-                for name, (vals, st) in frozen.items():
-                    p = self.params[name]
-                    p[keep] = vals
-                    for k, v in st.items():
-                        self.optimizer.state[p][k][keep] = v
+
+    @torch.no_grad()
+    def _masked_adam(self, rows: torch.Tensor) -> None:
+        """Adam (Kingma & Ba 2015, as ``torch.optim.Adam`` without weight decay or amsgrad) on ``rows``
+        (K,) int64 of every parameter that has a gradient; the step count advances as in a full step."""
+        opt = self.optimizer
+        for group in opt.param_groups:
+            b1, b2 = group["betas"]
+            lr, eps = float(group["lr"]), float(group["eps"])
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = opt.state[p]
+                if len(st) == 0:
+                    st["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
+                    st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                st["step"] += 1
+                t = float(st["step"])
+                g = p.grad.index_select(0, rows)
+                m = st["exp_avg"].index_select(0, rows).lerp_(g, 1.0 - b1)
+                v = st["exp_avg_sq"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
+                st["exp_avg"].index_copy_(0, rows, m)
+                st["exp_avg_sq"].index_copy_(0, rows, v)
+                denom = (v.sqrt() / ((1.0 - b2 ** t) ** 0.5)).add_(eps)
+                p.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** t))
+
+
+def masked_step_reference(model: GaussianModel, update: torch.Tensor) -> None:
+    """Reference for :meth:`GaussianModel.step` with a mask: a full ``optimizer.step()`` on every row,
+    then the rows outside ``update`` (and their Adam moments, zero before the first step) restored.
+    Slow (copies every tensor twice); kept for the parity test."""
+    opt = model.optimizer
+    keep = ~update
+    frozen = {}
+    for name, p in model.params.items():
+        st = opt.state.get(p) or {"exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
+        frozen[name] = (p.detach()[keep].clone(),
+                        {k: v[keep].clone() for k, v in st.items() if torch.is_tensor(v) and v.dim() > 0})
+    opt.step()
+    opt.zero_grad(set_to_none=True)
+    with torch.no_grad():
+        for name, (vals, st) in frozen.items():
+            p = model.params[name]
+            p[keep] = vals
+            for k, v in st.items():
+                opt.state[p][k][keep] = v

@@ -50,3 +50,12 @@ _BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE,
 def profile_for_layout(layout: str) -> SensorProfile:
     """The profile of a dataset layout (``detect_layout``'s kind); rendered data for unknown kinds."""
     return _BY_LAYOUT.get(layout, RENDERED)
+
+
+#: Mapper speed presets (issue 11, ``python -m bench.mapper``): MapperConfig overrides applied on top of
+#: the sensor profile. ``baseline`` is the mapper as configured; ``fast`` is tuned below. The masked
+#: ROI-phase Adam step is on in both: it changes no result (parity test), only cost.
+SPEED_PRESETS: dict[str, dict] = {
+    "baseline": {},
+    "fast": {"coarse_iters": 10},
+}

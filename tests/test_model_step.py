@@ -1,0 +1,123 @@
+"""Masked Adam step of the ROI phase (``GaussianModel.step(update=...)``) against its slow reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gausslite.gaussians import GaussianMap
+from gausslite.mapping.config import LearningRates
+from gausslite.mapping.model import GaussianModel, masked_step_reference
+
+
+def _model(n: int, seed: int) -> GaussianModel:
+    g = torch.Generator().manual_seed(seed)
+    gmap = GaussianMap(
+        means=torch.randn(n, 3, generator=g), quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+        log_scales=torch.randn(n, 3, generator=g) - 3, opacity_logits=torch.randn(n, generator=g),
+        colors=torch.rand(n, 3, generator=g), active=torch.rand(n, generator=g) < 0.3,
+        kappa=torch.zeros(n, dtype=torch.int64))
+    m = GaussianModel(LearningRates())
+    m.set_map(gmap)
+    return m
+
+
+def _grads(model: GaussianModel, seed: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    for p in model.params.values():
+        p.grad = torch.randn(p.shape, generator=g) * 1e-2
+
+
+@pytest.mark.parametrize("schedule", ["FMMFM", "MMMF", "MFMF"])
+def test_masked_step_matches_full_step_with_restore(schedule):
+    """F = full step, M = masked step: values, both Adam moments and the step count agree with the
+    reference (full step, then the unselected rows restored) after every step; unselected rows never move."""
+    fast, ref = _model(500, 0), _model(500, 0)
+    rng = np.random.default_rng(1)
+    for i, kind in enumerate(schedule):
+        mask = torch.from_numpy(rng.random(500) < 0.2) if kind == "M" else None
+        before = {k: v.detach().clone() for k, v in fast.params.items()}
+        _grads(fast, i)
+        _grads(ref, i)
+        fast.step(update=mask)
+        if mask is None:
+            ref.step()
+        else:
+            masked_step_reference(ref, mask)
+        for name in fast.params:
+            a, b = fast.params[name].detach(), ref.params[name].detach()
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+            sa, sb = fast.optimizer.state[fast.params[name]], ref.optimizer.state[ref.params[name]]
+            assert float(sa["step"]) == float(sb["step"]) == i + 1
+            for k in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(sa[k], sb[k], rtol=1e-5, atol=1e-12)
+            if mask is not None:
+                assert torch.equal(a[~mask], before[name][~mask])
+                assert not torch.equal(a[mask], before[name][mask])
+        assert all(p.grad is None for p in fast.params.values())
+
+
+def test_masked_step_with_empty_selection_moves_nothing():
+    m = _model(50, 3)
+    before = {k: v.detach().clone() for k, v in m.params.items()}
+    _grads(m, 0)
+    m.step(update=torch.zeros(50, dtype=torch.bool))
+    for k, v in m.params.items():
+        assert torch.equal(v.detach(), before[k])
+
+
+# ---------------------------------------------------------------- coarse (downscaled) views
+def test_downscale_keyframe_pixel_centres_and_depth():
+    """fx' = fx/f, cx' = (cx + 0.5)/f − 0.5: a 3-D point lands on the same place of the image in both
+    pixel grids; colour is the block mean, depth the mean of the valid depths of a block."""
+    from gausslite.mapping.mapper import Keyframe, downscale_keyframe
+
+    H, W, f = 6, 8, 2
+    rgb = torch.arange(H * W * 3, dtype=torch.float32).reshape(H, W, 3) / (H * W * 3)
+    depth = torch.full((H, W), 2.0)
+    depth[0, 0] = 0.0  # invalid: the block's depth is the mean of the other three
+    depth[0, 1] = 3.0
+    K = torch.tensor([[10.0, 0, 3.5], [0, 12.0, 2.5], [0, 0, 1]])
+    roi = torch.zeros(H, W, dtype=torch.bool)
+    roi[5, 7] = True
+    kf = Keyframe(frame_id=0, rgb=rgb, depth=depth, c2w=torch.eye(4, dtype=torch.float64), K=K, width=W, height=H,
+                  roi=roi, roi_box=(7, 5, 8, 6))
+    d = downscale_keyframe(kf, f)
+    assert (d.width, d.height) == (4, 3)
+    torch.testing.assert_close(d.rgb[0, 0], rgb[:2, :2].reshape(-1, 3).mean(0))
+    assert float(d.depth[0, 0]) == pytest.approx((3.0 + 2.0 + 2.0) / 3)
+    assert float(d.depth[1, 1]) == pytest.approx(2.0)
+    p = torch.tensor([0.3, -0.2, 2.0])
+    u, v = (K @ p / p[2])[:2]
+    u2, v2 = (d.K @ p / p[2])[:2]
+    assert float(u2) == pytest.approx((float(u) + 0.5) / f - 0.5)
+    assert float(v2) == pytest.approx((float(v) + 0.5) / f - 0.5)
+    assert d.roi_box == (3, 2, 4, 3) and bool(d.roi[2, 3]) and int(d.roi.sum()) == 1
+    assert downscale_keyframe(kf, 1) is kf
+    with pytest.raises(ValueError):
+        downscale_keyframe(kf, 0)
+
+
+def test_coarse_iterations_render_downscaled_views(monkeypatch):
+    """With coarse_iters = k, the first k iterations of a frame render at 1/coarse_downscale, the rest at
+    full resolution; coarse_iters = 0 never renders a downscaled view."""
+    from gausslite.datasets.base import Frame
+    from gausslite.camera import Intrinsics
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.mapping.mapper import Mapper
+
+    H, W = 24, 32
+    intr = Intrinsics(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, W, H)
+    rng = np.random.default_rng(0)
+    frame = Frame(0, 0.0, rng.integers(0, 255, (H, W, 3), dtype=np.uint8), np.full((H, W), 2.0, np.float32),
+                  np.eye(4), intr)
+    for coarse, want in ((3, [16] * 3 + [32] * 5), (0, [32] * 8)):
+        m = Mapper(MapperConfig(iters_per_frame=8, warmup_iters=8, seeds_per_frame=300, coarse_iters=coarse,
+                                backend="torch"))
+        widths = []
+        orig = m._rasterize
+        monkeypatch.setattr(m, "_rasterize", lambda c2w, K, w, h, subset: (widths.append(w), orig(c2w, K, w, h, subset))[1])
+        st = m.map_frame(frame)
+        assert st.iters == 8
+        assert [w for w in widths if w in (16, 32)][-8:] == want
