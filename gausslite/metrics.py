@@ -92,8 +92,34 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = No
     return 10.0 * torch.log10(1.0 / mse)
 
 
+def _blur(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """(1, C, H, W) → the same filtered with the separable window ``g`` (row then column), zero padding."""
+    c, window = t.shape[1], g.numel()
+    pad = window // 2
+    kx = g.view(1, 1, 1, window).expand(c, 1, 1, window).contiguous()
+    ky = g.view(1, 1, window, 1).expand(c, 1, window, 1).contiguous()
+    return F.conv2d(F.conv2d(t, kx, padding=(0, pad), groups=c), ky, padding=(pad, 0), groups=c)
+
+
+def ssim_gt_stats(gt: torch.Tensor, window: int = 11, sigma: float = 1.5, dtype=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Local mean and variance of a fixed image for :func:`ssim_map` (``gt_stats``), without gradients.
+
+    Args:
+        gt: (H, W, C) float image in [0, 1]; dtype: the dtype of the predictions (default gt's).
+    Returns:
+        (mu, var), each (1, C, H, W): the Gaussian-window mean and E[y²] − mu² with zero padding.
+    """
+    dt = dtype or gt.dtype
+    with torch.no_grad():
+        y = gt.to(dt).permute(2, 0, 1).unsqueeze(0)
+        mu, e_yy = _blur(torch.cat([y, y * y], dim=1), gaussian_window(window, sigma, dtype=dt, device=gt.device)) \
+            .split(gt.shape[2], dim=1)
+        return mu, e_yy - mu * mu
+
+
 def ssim_map(
-    pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5
+    pred: torch.Tensor, gt: torch.Tensor, window: int = 11, sigma: float = 1.5,
+    gt_stats: Optional[tuple[torch.Tensor, torch.Tensor]] = None, reference: bool = False,
 ) -> torch.Tensor:
     """Per-pixel SSIM (Wang et al. 2004), averaged over channels; differentiable.
 
@@ -101,26 +127,34 @@ def ssim_map(
     per channel with zero padding ("same" output size; border pixels therefore see zeros, as in the
     3DGS reference code). Statistics are computed in the input dtype.
 
+    When ``gt`` needs no gradient (training against data), its statistics are computed without a graph
+    (or taken from ``gt_stats``, :func:`ssim_gt_stats` of the same image, e.g. cached per keyframe), and
+    only x, x² and x·y are filtered with a graph: 9 instead of 15 filtered channels, and no backward pass
+    through the ground truth's (2.5–3× faster fwd+bwd at 300×170 on a CPU core, same values).
+
     Args:
         pred, gt: (H, W, C) float images in [0, 1].
+        gt_stats: optional precomputed (mu, var) of ``gt`` (ignored when gt requires grad).
+        reference: always take the 15-channel path (the slow reference; bench baseline).
     Returns:
         (H, W) tensor of SSIM values in [-1, 1] (the mean over C channels of the per-channel map).
     """
     _check_images(pred, gt, None)
     c = pred.shape[2]
     g = gaussian_window(window, sigma, dtype=pred.dtype, device=pred.device)
-    pad = window // 2
     x = pred.permute(2, 0, 1).unsqueeze(0)
     y = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
-    # One grouped, separable (row then column) convolution over the 5 statistics' inputs.
-    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    kx = g.view(1, 1, 1, window).expand(5 * c, 1, 1, window).contiguous()
-    ky = g.view(1, 1, window, 1).expand(5 * c, 1, window, 1).contiguous()
-    filt = F.conv2d(stacked, kx, padding=(0, pad), groups=5 * c)
-    filt = F.conv2d(filt, ky, padding=(pad, 0), groups=5 * c)
-    mu_x, mu_y, e_xx, e_yy, e_xy = filt.split(c, dim=1)
-    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
-    var_x, var_y, cov = e_xx - mu_xx, e_yy - mu_yy, e_xy - mu_xy
+    if gt.requires_grad or reference:
+        # One grouped, separable convolution over the 5 statistics' inputs.
+        mu_x, mu_y, e_xx, e_yy, e_xy = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), g).split(c, dim=1)
+        mu_yy = mu_y * mu_y
+        var_y = e_yy - mu_yy
+    else:
+        mu_y, var_y = gt_stats if gt_stats is not None else ssim_gt_stats(gt, window, sigma, pred.dtype)
+        mu_yy = mu_y * mu_y
+        mu_x, e_xx, e_xy = _blur(torch.cat([x, x * x, x * y], dim=1), g).split(c, dim=1)
+    mu_xx, mu_xy = mu_x * mu_x, mu_x * mu_y
+    var_x, cov = e_xx - mu_xx, e_xy - mu_xy
     num = (2 * mu_xy + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_xx + mu_yy + SSIM_C1) * (var_x + var_y + SSIM_C2)
     return (num / den)[0].mean(dim=0)

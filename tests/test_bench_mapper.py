@@ -33,7 +33,7 @@ def test_summarise_pairs_seeds():
 
 def test_bench_mapper_smoke(tmp_path, monkeypatch):
     """Two frames, one task, one seed, both settings: the JSON has the issue's fields and the fast
-    setting really ran its coarse iterations (no timing assertion: speed is a benchmark figure)."""
+    baseline ran the reference paths (no timing assertion: speed is a benchmark figure)."""
     import bench.mapper as bm
 
     monkeypatch.setattr(bm, "WORK", tmp_path / "work")
@@ -47,6 +47,6 @@ def test_bench_mapper_smoke(tmp_path, monkeypatch):
             assert isinstance(blk[st][k], float)
     assert blk["frames"] == 2 and (blk["width"], blk["height"]) == (160, 120)
     assert {r["setting"] for r in blk["runs"]} == {"baseline", "fast"}
-    assert res["presets"]["fast"]["coarse_iters"] > 0
+    assert res["presets"]["baseline"] == {"reference_paths": True} and res["presets"]["fast"] == {}
     assert "speedup" in blk and "roi_psnr_loss" in blk
     assert out.with_suffix(".md").read_text().count("| synthetic |") >= 2

@@ -190,3 +190,23 @@ def test_evaluate_frame_keys_and_values():
     assert out2["roi_ssim"] < out2["ssim"] <= 1.0
     out3 = evaluate_frame(pred, gt, roi_mask=torch.zeros(32, 32, dtype=torch.bool))
     assert "depth_l1" not in out3 and math.isnan(out3["roi_psnr"]) and math.isnan(out3["roi_ssim"])
+
+
+def test_ssim_map_fast_path_matches_full_filtering():
+    """Ground truth without gradients (the mapper's case): its statistics are filtered without a graph
+    (or passed cached) and only x, x², x·y with one; values and gradients equal the 15-channel path."""
+    from gausslite.metrics import ssim_gt_stats
+
+    g = torch.Generator().manual_seed(0)
+    pred0, gt = torch.rand(23, 31, 3, generator=g), torch.rand(23, 31, 3, generator=g)
+    a = pred0.clone().requires_grad_(True)
+    fast = ssim_map(a, gt)
+    fast.sum().backward()
+    b = pred0.clone().requires_grad_(True)
+    full = ssim_map(b, gt.clone().requires_grad_(True))  # gt with a graph: the 15-channel path
+    full.sum().backward()
+    torch.testing.assert_close(fast, full.detach(), rtol=0, atol=1e-6)
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-5, atol=1e-7)
+    c = pred0.clone().requires_grad_(True)
+    cached = ssim_map(c, gt, gt_stats=ssim_gt_stats(gt))
+    torch.testing.assert_close(cached, fast.detach(), rtol=0, atol=0)

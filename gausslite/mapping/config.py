@@ -182,6 +182,11 @@ class MapperConfig(_Strict):
         "area (same aspect, uniform position; stochastic pixel subsampling at full resolution). 1 = the whole "
         "image (matched-budget comparisons)"
     )
+    reference_paths: bool = Field(
+        False, description="use the slow reference implementations of the ROI-phase Adam step (full step, "
+        "then frozen rows restored) and of SSIM (15 filtered channels, no cached ground-truth statistics): "
+        "the same results to float rounding, for parity checks and as bench.mapper's baseline"
+    )
     roi_crop_pad: int = Field(
         8, ge=0, description="ROI phase: render only the ROI bounding box grown by this many pixels"
     )

@@ -39,7 +39,7 @@ from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
-from gausslite.metrics import ssim_map
+from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,8 @@ class Keyframe:
     height: int
     roi: Optional[torch.Tensor]
     roi_box: Optional[tuple[int, int, int, int]] = None
+    #: cached :func:`gausslite.metrics.ssim_gt_stats` of ``rgb`` (filled by the first full-image loss)
+    ssim_stats: Optional[tuple] = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -206,6 +208,7 @@ def photometric_loss(
     lambda_depth: float,
     lambda_ssim: float,
     mask: Optional[torch.Tensor] = None,
+    reference: bool = False,
 ) -> torch.Tensor:
     """L = L1_colour + λ_d · L1_depth + λ_s · (1 − SSIM) (paper Eq. 1).
 
@@ -214,6 +217,8 @@ def photometric_loss(
         kf: the keyframe (ground truth).
         mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
             None = full image. The depth term also requires valid ground-truth depth.
+        reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
+            ground-truth statistics (``MapperConfig.reference_paths``).
     Returns:
         scalar tensor (0 with a zero-gradient graph when the mask is empty).
     """
@@ -221,13 +226,18 @@ def photometric_loss(
     if mask is None:
         l1c = (out.color - kf.rgb).abs().mean()
         dmask = valid_d
-        s = ssim_map(out.color, kf.rgb).mean()
+        if reference:
+            s = ssim_map(out.color, kf.rgb, reference=True).mean()
+        else:
+            if kf.ssim_stats is None or kf.ssim_stats[0].dtype != out.color.dtype:
+                kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=out.color.dtype)
+            s = ssim_map(out.color, kf.rgb, gt_stats=kf.ssim_stats).mean()
     else:
         if not bool(mask.any()):
             return out.color.sum() * 0.0
         l1c = (out.color - kf.rgb).abs()[mask].mean()
         dmask = valid_d & mask
-        s = ssim_map(out.color, kf.rgb)[mask].mean()
+        s = ssim_map(out.color, kf.rgb, reference=reference)[mask].mean()
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
@@ -524,7 +534,7 @@ class Mapper:
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
         elif footprint_only:
             mask = out.alpha.detach() > cfg.footprint_alpha
-        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask)
+        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.reference_paths)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
             # normalised by the full image size: crops and windows keep the pixel scale; a downscaled view
@@ -536,7 +546,7 @@ class Mapper:
             if view is not kf and not active_phase and not scaled:
                 weight = view.width * view.height / float(kf.width * kf.height)
             self._accumulate(out, view.width if scaled else kf.width, view.height if scaled else kf.height, weight)
-        self.model.step(update=self.model.active if active_phase else None)
+        self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
         return float(loss.detach())

@@ -118,7 +118,7 @@ class GaussianModel:
         self._next_id += k
         return ids
 
-    def step(self, update: Optional[torch.Tensor] = None) -> None:
+    def step(self, update: Optional[torch.Tensor] = None, reference: bool = False) -> None:
         """One Adam step, then clear gradients.
 
         Args:
@@ -127,8 +127,12 @@ class GaussianModel:
                 them through Adam's momentum). The masked step runs Adam on the selected rows only
                 (:meth:`_masked_adam`): the same update as a full step followed by restoring the other
                 rows (:func:`masked_step_reference`, the parity test), at the cost of the selected rows.
+            reference: take the masked step by :func:`masked_step_reference` (bench baseline).
         """
         assert self.optimizer is not None
+        if update is not None and not bool(update.all()) and reference:
+            masked_step_reference(self, update.to(self.device))
+            return
         if update is not None and not bool(update.all()):
             self._masked_adam(torch.nonzero(update.to(self.device)).squeeze(1))
         else:

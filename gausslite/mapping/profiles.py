@@ -53,9 +53,13 @@ def profile_for_layout(layout: str) -> SensorProfile:
 
 
 #: Mapper speed presets (issue 11, ``python -m bench.mapper``): MapperConfig overrides applied on top of
-#: the sensor profile. ``baseline`` is the mapper as configured; ``fast`` is tuned below. The masked
-#: ROI-phase Adam step is on in both: it changes no result (parity test), only cost.
+#: the sensor profile. ``baseline`` is the mapper before the issue-11 speed work: the reference paths
+#: of the ROI-phase Adam step and of SSIM. ``fast`` is today's default (the same results to float
+#: rounding). ``coarse`` and ``window`` cut full-image work (half-resolution first iterations; random
+#: half-area windows) and are measured, not recommended: both cost far more than 0.5 dB on room0.
 SPEED_PRESETS: dict[str, dict] = {
-    "baseline": {},
-    "fast": {"coarse_iters": 10},
+    "baseline": {"reference_paths": True},
+    "fast": {},
+    "coarse": {"coarse_iters": 10},
+    "window": {"full_crop_fraction": 0.5},
 }
