@@ -1,16 +1,19 @@
 """Delta pushes: bytes on the link against the fidelity of the server's copy, per change tolerance
 (issue 12, goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``push_every: 5``).
 
-    python -m bench.delta_tolerance [--tolerances 1,2,4,8,16] [--seeds 3] [--task-id room0-pick-plant]
+    python -m bench.delta_tolerance [--tolerances 1,4,16] [--kappa-rel 0.25,1e9] [--seeds 3] [--task-id room0-pick-plant]
 
 One agent maps Replica room0 (20 frames, 300×170) with the deployed agent settings of
 ``deploy/gausslite.yaml`` (full GaussLite, 30 iterations and 1,500 seeds per frame, ``roi_render:
 active``, ground-truth ROI, every 2nd frame a keyframe). Every ``--push-every`` frames and after the
 last one it selects the task subset (``gausslite.sharing.select_task_subset``, coverage 0.99) and plans
-a push with one :class:`gausslite.wire.delta.PushPlanner` per tolerance, all fed the same snapshots, so
-the tolerances differ in nothing else. A planner's acknowledged subset is the server's copy.
+a push with one :class:`gausslite.wire.delta.PushPlanner` per (tolerance, κ re-send threshold) pair, all
+fed the same snapshots, so the pairs differ in nothing else. A planner's acknowledged subset is the server's
+copy. ``--kappa-rel``: relative κ change that forces a re-send (the agent's default 0.25; κ of an active
+Gaussian grows by one per ROI-phase iteration, so 0.25 re-sends every active Gaussian at every push; 1e9
+never re-sends for κ alone, leaving the server's κ stale until the Gaussian moves).
 
-Per tolerance: ``total_upload_bytes`` (all pushes), ``final_subset_bytes`` (the final subset encoded
+Per pair: ``total_upload_bytes`` (all pushes), ``final_subset_bytes`` (the final subset encoded
 whole), their ratio, rows re-sent, and the ROI PSNR of the server's copy rendered alone (as fusion sees an
 agent's subset) over the ROI of every mapped frame, next to the exact final subset's (``roi_psnr_exact``;
 the difference is what the tolerance costs). Mean ± std over seeds.
@@ -56,7 +59,7 @@ def _roi_psnr(arrays, frames, rois) -> float:
     return float(np.mean(vals))
 
 
-def run_seed(args, seed: int, tolerances: list[float]) -> dict:
+def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
     """Map once, plan every push with every tolerance; per tolerance bytes, rows and server-copy PSNR."""
     import torch
 
@@ -73,7 +76,7 @@ def run_seed(args, seed: int, tolerances: list[float]) -> dict:
     roi_fn = gt_roi_fn(ds, args.task_id)
     cfg = load_config(None, [], defaults=dict(AGENT_MAPPER), seed=seed)
     mapper = Mapper(cfg)
-    planners = {t: PushPlanner("agent_a", tolerance=t) for t in tolerances}
+    planners = {t: PushPlanner("agent_a", tolerance=t[0], kappa_rel=t[1]) for t in tolerances}
     log = {t: [] for t in tolerances}
     frames, rois = [], []
     version = 0
@@ -107,10 +110,14 @@ def run_seed(args, seed: int, tolerances: list[float]) -> dict:
     for t in tolerances:
         total = sum(p["bytes"] for p in log[t])
         server = _roi_psnr(planners[t].base, frames, rois)
-        out["by_tolerance"][str(t)] = {"total_upload_bytes": total, "upload_ratio": total / final_bytes,
+        out["by_tolerance"][_key(t)] = {"total_upload_bytes": total, "upload_ratio": total / final_bytes,
                                        "records": sum(p["records"] for p in log[t]), "roi_psnr_server": server,
                                        "roi_psnr_cost": exact - server, "pushes": log[t]}
     return out
+
+
+def _key(t: tuple[float, float]) -> str:
+    return f"{t[0]:g}/{t[1]:g}"
 
 
 def main(argv=None) -> int:
@@ -120,7 +127,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=20)
     ap.add_argument("--task-id", default="room0-pick-plant")
     ap.add_argument("--push-every", type=int, default=5)
-    ap.add_argument("--tolerances", default="1,2,4,8,16")
+    ap.add_argument("--tolerances", default="1,4,16", help="multiples of one code step")
+    ap.add_argument("--kappa-rel", default="0.25,1e9", help="relative κ changes that force a re-send")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=RESULTS / "delta_tolerance.json")
     args = ap.parse_args(argv)
@@ -129,16 +137,17 @@ def main(argv=None) -> int:
 
     from gausslite.stats import fmt, mean_std
 
-    tolerances = [float(x) for x in args.tolerances.split(",") if x]
+    tolerances = [(float(x), float(k)) for k in args.kappa_rel.split(",") if k
+                  for x in args.tolerances.split(",") if x]
     t0 = time.perf_counter()
     runs = [run_seed(args, s, tolerances) for s in tqdm(range(args.seeds), desc="bench.delta_tolerance", unit="seed")]
     summary = {}
     for t in tolerances:
-        rows = [r["by_tolerance"][str(t)] for r in runs]
+        rows = [r["by_tolerance"][_key(t)] for r in runs]
         blk = {}
         for k in ("total_upload_bytes", "upload_ratio", "records", "roi_psnr_server", "roi_psnr_cost"):
             blk[k], blk[k + "_std"] = mean_std([x[k] for x in rows])
-        summary[str(t)] = blk
+        summary[_key(t)] = blk
     fb = mean_std([r["final_subset_bytes"] for r in runs])
     ex = mean_std([r["roi_psnr_exact"] for r in runs])
     result = {"dataset": args.dataset, "downscale": args.downscale, "max_frames": args.max_frames,
@@ -146,12 +155,12 @@ def main(argv=None) -> int:
               "seeds": list(range(args.seeds)), "final_subset_bytes": fb[0], "final_subset_bytes_std": fb[1],
               "roi_psnr_exact": ex[0], "roi_psnr_exact_std": ex[1], "tolerances": summary, "runs": runs,
               "wall_s": time.perf_counter() - t0}
-    lines = ["| tolerance (code steps) | total upload [B] | total / final subset | Gaussians sent | server copy ROI PSNR [dB] | cost vs exact [dB] |",
+    lines = ["| tolerance (code steps) / κ re-send | total upload [B] | total / final subset | Gaussians sent | server copy ROI PSNR [dB] | cost vs exact [dB] |",
              "|---|---|---|---|---|---|"]
     for t in tolerances:
-        b = summary[str(t)]
+        b = summary[_key(t)]
         f = lambda k, d=2: fmt(b[k], b[k + "_std"], d)  # noqa: E731
-        lines.append(f"| {t:g} | {f('total_upload_bytes', 0)} | {f('upload_ratio')} | {f('records', 0)} | "
+        lines.append(f"| {_key(t)} | {f('total_upload_bytes', 0)} | {f('upload_ratio')} | {f('records', 0)} | "
                      f"{f('roi_psnr_server')} | {f('roi_psnr_cost')} |")
     md = "\n".join(lines)
     args.out.parent.mkdir(parents=True, exist_ok=True)

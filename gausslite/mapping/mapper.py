@@ -191,15 +191,7 @@ def crop_keyframe(kf: Keyframe, pad: int) -> Keyframe:
     if kf.roi_box is None or kf.roi is None:
         raise ValueError(f"keyframe {kf.frame_id} has no ROI to crop to")
     bx0, by0, bx1, by1 = kf.roi_box
-    x0, y0 = max(0, bx0 - pad), max(0, by0 - pad)
-    x1, y1 = min(kf.width, bx1 + pad), min(kf.height, by1 + pad)
-    K = kf.K.clone()
-    K[0, 2] -= x0
-    K[1, 2] -= y0
-    return Keyframe(
-        frame_id=kf.frame_id, rgb=kf.rgb[y0:y1, x0:x1], depth=kf.depth[y0:y1, x0:x1], c2w=kf.c2w, K=K,
-        width=x1 - x0, height=y1 - y0, roi=kf.roi[y0:y1, x0:x1], roi_box=(bx0 - x0, by0 - y0, bx1 - x0, by1 - y0),
-    )
+    return window_keyframe(kf, bx0 - pad, by0 - pad, bx1 + pad, by1 + pad)
 
 
 def photometric_loss(
