@@ -28,6 +28,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -42,8 +43,8 @@ SCENES = {
 }
 
 
-def scene_dataset(name: str):
-    """(dataset, sensor profile, task ids) of a bench scene."""
+def scene_dataset(name: str, max_frames: Optional[int] = None):
+    """(dataset, sensor profile, task ids) of a bench scene (``max_frames`` overrides the scene's count)."""
     from gausslite.datasets import detect_layout, load_dataset
     from gausslite.mapping.profiles import profile_for_layout
 
@@ -60,7 +61,8 @@ def scene_dataset(name: str):
             make_scene(out, width=spec["width"], height=spec["height"], progress=False)
         path = out / "agent_a"
     profile = profile_for_layout(detect_layout(path)[0])
-    ds = load_dataset(path, downscale=spec["downscale"], max_frames=spec["max_frames"], **profile.loader)
+    ds = load_dataset(path, downscale=spec["downscale"], max_frames=max_frames or spec["max_frames"],
+                      **profile.loader)
     return ds, profile, task_ids(path)
 
 
@@ -173,9 +175,7 @@ def main(argv=None) -> int:
     for scene in [s for s in args.scenes.split(",") if s]:
         if scene not in SCENES:
             ap.error(f"unknown scene {scene!r}; known: {', '.join(SCENES)}")
-        if args.max_frames:
-            SCENES[scene]["max_frames"] = args.max_frames
-        ds, profile, tasks = scene_dataset(scene)
+        ds, profile, tasks = scene_dataset(scene, args.max_frames)
         if args.tasks != "all":
             tasks = tasks[: int(args.tasks)]
         jobs = [(st, t, s) for s in seeds for t in tasks for st in settings]

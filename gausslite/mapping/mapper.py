@@ -509,12 +509,19 @@ class Mapper:
         cfg = self.cfg
         if active_phase and kf.roi_box is None:
             active_phase = False
+        # density statistics: view-space gradients normalised by the full image size (crops and windows
+        # keep its pixel scale; a downscaled view has its own), times a weight (below)
+        stat_w, stat_h, stat_weight = kf.width, kf.height, 1.0
         if active_phase:
             view = crop_keyframe(kf, cfg.roi_crop_pad)
         elif coarse and not footprint_only:
             view = downscale_keyframe(kf, cfg.coarse_downscale)
+            stat_w, stat_h = view.width, view.height
         elif cfg.full_crop_fraction < 1.0 and not footprint_only:
             view = random_window(kf, cfg.full_crop_fraction, self.rng)
+            # the window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
+            # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
+            stat_weight = view.width * view.height / float(kf.width * kf.height)
         else:
             view = kf
         alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self._roi_iters % 2 == 1)
@@ -529,15 +536,7 @@ class Mapper:
         loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.reference_paths)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
-            # normalised by the full image size: crops and windows keep the pixel scale; a downscaled view
-            # has its own
-            scaled = coarse and not active_phase and not footprint_only
-            # a random window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
-            # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
-            weight = 1.0
-            if view is not kf and not active_phase and not scaled:
-                weight = view.width * view.height / float(kf.width * kf.height)
-            self._accumulate(out, view.width if scaled else kf.width, view.height if scaled else kf.height, weight)
+            self._accumulate(out, stat_w, stat_h, stat_weight)
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
