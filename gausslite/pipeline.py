@@ -96,7 +96,9 @@ def run_mapping(
     map_seconds = time.perf_counter() - t0
 
     def render(fr: Frame):
-        return mapper.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
+        # at the refined pose under pose_refine (held-out views: the nearest keyframe's correction)
+        return mapper.render(mapper.pose_of(fr.frame_id, fr.c2w), fr.intrinsics.K, fr.intrinsics.width,
+                             fr.intrinsics.height)
 
     img_dir = out_dir / "renders" if out_dir is not None else None
     pick = [train_idx[j] for j in np.linspace(0, len(train_idx) - 1, min(n_images, len(train_idx))).round().astype(int)]

@@ -139,5 +139,55 @@ def test_cli_depth_camera_flags(tmp_path):
         dataset_kwargs(p.parse_args(["--color-intrinsics", "1,2"]), seq)
     with pytest.raises(ValueError, match="comma-separated numbers"):
         dataset_kwargs(p.parse_args(["--depth-intrinsics", "a,b,c,d"]), seq)
-    with pytest.raises(ValueError, match="--undistort/--interpolate-poses apply to TUM"):
+    with pytest.raises(ValueError, match="--undistort/--interpolate-poses/--align-depth-time apply to TUM"):
         dataset_kwargs(p.parse_args(["--undistort"]), seq)
+
+
+def test_tum_depth_time_alignment_reprojects_depth_to_the_colour_instant(tmp_path):
+    """Each depth image is re-projected from the pose at its own timestamp (colour + 4 ms in the fixture)
+    to the colour frame's; the fixture's camera turns about its optical axis at 10 rad/s and moves at
+    1 m/s along world x, so T_color_depth = [Rz(0.04), Rz(-a)·(0.004, 0, 0)] exactly (linear motion)."""
+    import math
+
+    import cv2
+
+    from tests.test_datasets_fixtures import make_tum
+
+    seq = make_tum(tmp_path, n=4, w=40, h=30)
+    intr = Intrinsics(30, 30, 19.5, 14.5, 40, 30)
+    plain = TUMDataset(seq, intrinsics=intr, interpolate_poses=True)
+    # a depth step (1 m left, 2 m right) so the re-projection moves visible structure
+    dname = plain.depth_paths[2]
+    step = np.full((30, 40), 5000, np.uint16)
+    step[:, 20:] = 10000
+    assert cv2.imwrite(str(dname), step)
+    plain = TUMDataset(seq, intrinsics=intr, interpolate_poses=True)
+    aligned = TUMDataset(seq, intrinsics=intr, interpolate_poses=True, align_depth_time=True)
+    np.testing.assert_array_equal(plain[2].depth, step / 5000.0)  # off: the file as stored
+    a = 10.0 * (plain.timestamps[2] - 999.953)  # colour-frame yaw
+    T = np.eye(4)
+    c, s = math.cos(0.04), math.sin(0.04)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [math.cos(a) * 0.004, -math.sin(a) * 0.004, 0.0]
+    np.testing.assert_allclose(aligned._time_extrinsics[2], T, atol=1e-6)
+    # the files are in the raw fr1 camera (plumb_bob distortion): re-projected within it
+    expected = register_depth(step / 5000.0, DepthCamera(intr, T, aligned.distortion), intr, aligned.distortion)
+    got = aligned[2].depth
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    assert np.count_nonzero(got != plain[2].depth) > 20  # the step edge moved
+    assert aligned.poses[2] == pytest.approx(plain.poses[2])  # colour poses are untouched
+
+
+def test_cli_align_depth_time_flag(tmp_path):
+    import argparse
+
+    from gausslite.cli.cmd_map import add_mapping_args, dataset_kwargs
+    from tests.test_datasets_fixtures import make_seven, make_tum
+
+    p = argparse.ArgumentParser()
+    add_mapping_args(p)
+    tum = make_tum(tmp_path / "t")
+    assert dataset_kwargs(p.parse_args([]), tum)["align_depth_time"] is True  # hand-held profile default
+    assert dataset_kwargs(p.parse_args(["--no-align-depth-time"]), tum)["align_depth_time"] is False
+    with pytest.raises(ValueError, match="--align-depth-time apply to TUM"):
+        dataset_kwargs(p.parse_args(["--align-depth-time"]), make_seven(tmp_path / "s"))

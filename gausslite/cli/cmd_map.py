@@ -34,6 +34,10 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interpolate-poses", action=argparse.BooleanOptionalAction, default=None,
                    help="TUM only: interpolate ground-truth poses at the colour timestamps; on by default for "
                         "TUM, --no-interpolate-poses to opt out")
+    p.add_argument("--align-depth-time", action=argparse.BooleanOptionalAction, default=None,
+                   help="TUM only: re-project each depth image from the pose at its own timestamp to the colour "
+                        "frame's (the Kinect streams are not synchronised); on by default for TUM, "
+                        "--no-align-depth-time to opt out")
     p.add_argument("--no-progress", action="store_true")
     add_bag_args(p)
     add_depth_camera_args(p)
@@ -103,9 +107,9 @@ def dataset_kwargs(args: argparse.Namespace, path: Path) -> dict:
     from gausslite.mapping.profiles import profile_for_layout
 
     kind = detect_layout(path)[0]
-    flags = {k: getattr(args, k, None) for k in ("undistort", "interpolate_poses")}
+    flags = {k: getattr(args, k, None) for k in ("undistort", "interpolate_poses", "align_depth_time")}
     if any(v for v in flags.values()) and kind != "tum":
-        raise ValueError(f"--undistort/--interpolate-poses apply to TUM sequences only, not {path}")
+        raise ValueError(f"--undistort/--interpolate-poses/--align-depth-time apply to TUM sequences only, not {path}")
     profile = profile_for_layout(kind)
     args.profile = profile  # read by config_from_args
     kw: dict = dict(profile.loader)

@@ -315,6 +315,11 @@ class PosedImageDataset(RGBDDataset):
         i = self.intrinsics
         return f"{type(self).__name__}({str(self.path)!r}, frames={len(self)}, size={i.width}x{i.height})"
 
+    def _depth_camera_for(self, i: int) -> Optional["DepthCamera"]:
+        """The depth camera frame ``i``'s depth is registered from (None: already registered). Hook for
+        per-frame extrinsics, e.g. TUM's depth/colour time offset; ``depth_camera`` here."""
+        return self.depth_camera
+
     def _preprocess(self, rgb: np.ndarray, depth: np.ndarray, i: int) -> Tuple[np.ndarray, np.ndarray]:
         """Hook for full-resolution per-frame processing (e.g. undistortion); identity here."""
         return rgb, depth
@@ -329,10 +334,11 @@ class PosedImageDataset(RGBDDataset):
         rp, dp = self.rgb_paths[i], self.depth_paths[i]
         rgb = read_rgb(rp)
         depth = read_depth(dp, self.depth_scale, self.invalid_depth_values)
-        if self.depth_camera is not None:
+        depth_camera = self._depth_camera_for(i)
+        if depth_camera is not None:
             ci, cdist = self._color_camera()
             try:
-                depth = register_depth(depth, self.depth_camera, ci, cdist)
+                depth = register_depth(depth, depth_camera, ci, cdist)
             except ValueError as e:
                 raise ValueError(f"{dp}: {e}") from None
         if rgb.shape[:2] != depth.shape:

@@ -151,6 +151,19 @@ class MapperConfig(_Strict):
         "hand-held profile sets 5)"
     )
 
+    pose_refine: bool = Field(
+        False, description="refine every keyframe's pose jointly with the map in full-image iterations (MonoGS "
+        "Sec. 3.3; gausslite.mapping.poses): for sensors whose poses are not exact (the hand-held profile); "
+        "scores are then taken at the refined poses, as SLAM systems score at their estimated poses"
+    )
+    pose_track_iters: int = Field(
+        0, ge=0, description="pose refinement: Adam steps on a new frame's pose alone, against the current map, "
+        "before it is seeded (SplaTAM-style tracking from the sensor's pose); 0 = none"
+    )
+    pose_track_alpha: float = Field(0.9, gt=0, lt=1, description="tracking: pixels with rendered silhouette above this")
+    pose_lr_rot: float = Field(1e-3, gt=0, description="pose refinement: Adam step of the rotation (radians)")
+    pose_lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
+
     rho: float = Field(0.4, ge=0, le=1, description="SB ROI seed share ρ (paper: 40 % on Replica)")
     m_roi: float = Field(0.5, gt=0, description="SIS scale multiplier for ROI seeds")
     m_bg: float = Field(0.7, gt=0, description="SIS scale multiplier for background seeds")
@@ -182,6 +195,11 @@ class MapperConfig(_Strict):
         "area (same aspect, uniform position; stochastic pixel subsampling at full resolution). 1 = the whole "
         "image (matched-budget comparisons)"
     )
+    frustum_cull: bool = Field(
+        True, description="render only the Gaussians whose 3σ sphere reaches the (padded) view frustum "
+        "(gausslite.render.culling; the same image): a long mission's map is mostly out of view"
+    )
+    frustum_cull_min: int = Field(20_000, ge=0, description="cull only maps of at least this many Gaussians")
     reference_paths: bool = Field(
         False, description="use the slow reference implementations of the ROI-phase Adam step (full step, "
         "then frozen rows restored) and of SSIM (15 filtered channels, no cached ground-truth statistics): "

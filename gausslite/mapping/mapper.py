@@ -24,6 +24,7 @@ The mapper does not care where w came from (ground truth or the attention front-
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -38,9 +39,11 @@ from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
+from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
+from gausslite.render.culling import frustum_cull_mask
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +215,8 @@ def photometric_loss(
         reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
             ground-truth statistics (``MapperConfig.reference_paths``).
     Returns:
-        scalar tensor (0 with a zero-gradient graph when the mask is empty).
+        scalar tensor (0 with a zero-gradient graph when the mask is empty). With a mask and λ_s = 0
+        SSIM is not computed.
     """
     valid_d = kf.depth > 0
     if mask is None:
@@ -229,7 +233,7 @@ def photometric_loss(
             return out.color.sum() * 0.0
         l1c = (out.color - kf.rgb).abs()[mask].mean()
         dmask = valid_d & mask
-        s = ssim_map(out.color, kf.rgb, reference=reference)[mask].mean()
+        s = ssim_map(out.color, kf.rgb, reference=reference)[mask].mean() if lambda_ssim else 1.0
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
@@ -264,6 +268,9 @@ class Mapper:
         #: Gaussian budget in force (``max_gaussians``, or the scene/image rule; see MapperConfig)
         self.budget: Optional[int] = cfg.max_gaussians
         self.n_idle_iters = 0  # iterations of optimize() between keyframes
+        #: keyframe pose refinement (``cfg.pose_refine``), None when off
+        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose_lr_rot, cfg.pose_lr_trans)
+                                             if cfg.pose_refine else None)
         self._reset_densify_stats()
 
     @property
@@ -284,11 +291,32 @@ class Mapper:
         with torch.no_grad():
             return self._rasterize(c2w, K, width, height, subset)
 
-    def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor]) -> RenderOutput:
-        """Render the current parameters (differentiable) with the configured backend and threads."""
+    def pose_of(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
+        """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction
+        (or the nearest keyframe's for a frame that is not one) under ``pose_refine``; ``c2w`` otherwise."""
+        return self.poses.corrected(frame_id, c2w) if self.poses is not None else np.asarray(c2w, np.float64)
+
+    def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
+                   pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False) -> RenderOutput:
+        """Render the current parameters (differentiable) with the configured backend and threads.
+        ``pose_xi`` (6,) float64: render from ``c2w · E(ξ)`` with gradients reaching ξ
+        (:func:`~gausslite.mapping.poses.move_gaussians_for_pose_delta`); ``detach_map``: no gradient
+        reaches the Gaussians (pose tracking)."""
         p = self.model.params
+        if detach_map:
+            p = {k: v.detach() for k, v in p.items()}
+        means, quats = p["means"], p["quats"]
+        if pose_xi is not None:
+            c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+            means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
+        if self.cfg.frustum_cull and len(means) >= self.cfg.frustum_cull_min:
+            vm = torch.linalg.inv(torch.as_tensor(c2w, dtype=torch.float64, device=means.device))
+            vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
+            if subset is not None:
+                vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
+            subset = vis
         return rasterize(
-            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+            means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, c2w=c2w, subset=subset, background=self._background,
             backend=self.cfg.backend, num_threads=self.cfg.render_threads,
         )
@@ -527,7 +555,11 @@ class Mapper:
         alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self._roi_iters % 2 == 1)
         subset = self.model.active if active_phase and alone else None
         self._roi_iters += int(active_phase)
-        out = self._rasterize(view.c2w, view.K, view.width, view.height, subset)
+        # pose refinement: full-image iterations only (ROI-phase and footprint losses see part of the view)
+        refine = (self.poses is not None and not active_phase and not footprint_only
+                  and kf.frame_id in self.poses.corrections and kf.frame_id not in self.poses.fixed)
+        xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
+        out = self._rasterize(view.c2w, view.K, view.width, view.height, subset, pose_xi=xi)
         mask = None
         if active_phase:
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
@@ -540,6 +572,11 @@ class Mapper:
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
+        if refine:
+            new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
+            if new is not None:
+                kf.c2w.copy_(new)  # crops/windows of kf share this tensor
+                self.keyframes.set_pose(kf.frame_id, new)
         return float(loss.detach())
 
     def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None,
@@ -562,6 +599,13 @@ class Mapper:
             raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
         cfg, sw = self.cfg, self.cfg.effective()
         t0 = time.perf_counter()
+        if self.poses is not None:
+            # start from the latest keyframe's correction; the mission's first keyframe fixes the gauge
+            E0 = self.poses.initial_correction(frame.frame_id)
+            frame = dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E0)
+            self.poses.register(frame.frame_id, E0, fixed=self.n_mapped == 0)
+            if cfg.pose_track_iters and self.n_mapped > 0 and len(self.model):
+                frame = self._track(frame)
         n_seeds, n_roi = self._seed(frame, relevance)
         kf = keyframe_from_frame(frame, self.device, relevance)
         if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
@@ -589,6 +633,28 @@ class Mapper:
                         budget=int(self.budget or 0), n_evicted=self._last_evicted)
         self.stats.append(st)
         return st
+
+    def _track(self, frame: Frame) -> Frame:
+        """Refine a new frame's pose against the current map before seeding (``pose_track_iters`` Adam
+        steps on ξ alone, Gaussians fixed): colour and depth L1 on the pixels the map explains (rendered
+        silhouette > ``pose_track_alpha``), SplaTAM's tracking loss (Keetha et al., CVPR 2024, Sec. 3.3)
+        started from the sensor's pose instead of a motion model. Returns the frame at the tracked pose."""
+        cfg = self.cfg
+        kf = keyframe_from_frame(frame, self.device, None)
+        kf.c2w = kf.c2w.clone()
+        for _ in range(cfg.pose_track_iters):
+            xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
+            out = self._rasterize(kf.c2w, kf.K, kf.width, kf.height, None, pose_xi=xi, detach_map=True)
+            mask = out.alpha.detach() > cfg.pose_track_alpha
+            if int(mask.sum()) < 0.05 * mask.numel():
+                break  # the map hardly covers the frame: nothing to track against
+            loss = photometric_loss(out, kf, cfg.lambda_depth, 0.0, mask)
+            loss.backward()
+            new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
+            if new is None:
+                break
+            kf.c2w = new
+        return dataclasses.replace(frame, c2w=kf.c2w.cpu().numpy().copy())
 
     def _iterations(self, t0: float, time_budget_s: Optional[float]):
         """Iteration indices of one ``map_frame`` call: a fixed count, or as many as fit the budget."""
@@ -673,6 +739,9 @@ class Mapper:
             "keyframes": kfs, "voxel_keys": self.voxels._keys.copy(),
             "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
             "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
+            "pose_corrections": (None if self.poses is None else
+                                 {"corrections": {k: v.copy() for k, v in self.poses.corrections.items()},
+                                  "fixed": sorted(self.poses.fixed)}),
         }
 
     def restore_state(self, state: dict) -> None:
@@ -697,3 +766,8 @@ class Mapper:
         self.budget = state["budget"]
         self._roi_iters = int(state["roi_iters"])
         self.rng.bit_generator.state = state["rng"]
+        pc = state.get("pose_corrections")
+        if self.poses is not None and pc:
+            self.poses = PoseRefiner(self.cfg.pose_lr_rot, self.cfg.pose_lr_trans)
+            for fid, E in pc["corrections"].items():
+                self.poses.register(int(fid), E, fixed=int(fid) in set(pc["fixed"]))

@@ -123,6 +123,15 @@ class KeyframeStore:
         self._items.pop(j)
         self.n_dropped += 1
 
+    def set_pose(self, frame_id: int, c2w: torch.Tensor) -> bool:
+        """Replace the stored pose of keyframe ``frame_id`` by ``c2w`` (4, 4) (pose refinement);
+        False when that keyframe is not (or no longer) stored."""
+        for k in reversed(self._items):
+            if k.frame_id == int(frame_id):
+                k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
+                return True
+        return False
+
     def load(self, i: int, device: torch.device):
         """Keyframe ``i`` as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device``."""
         from gausslite.mapping.mapper import Keyframe

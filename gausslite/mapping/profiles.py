@@ -33,8 +33,8 @@ RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): p
 HANDHELD = SensorProfile(
     "handheld",
     "hand-held RGB-D (TUM RGB-D): undistortion with the published calibration, poses interpolated at "
-    "the colour timestamps, a final pass over every keyframe",
-    loader={"undistort": True, "interpolate_poses": True},
+    "the colour timestamps, depth re-projected from its own timestamp, a final pass over every keyframe",
+    loader={"undistort": True, "interpolate_poses": True, "align_depth_time": True},
     mapper={"final_iters_per_keyframe": 5.0},
 )
 HANDHELD_PINHOLE = SensorProfile(

@@ -1,0 +1,55 @@
+"""Frustum culling before rasterization (gausslite.render.culling): the image never changes."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from gausslite.render import rasterize
+from gausslite.render.culling import frustum_cull_mask
+
+
+def _scene(seed: int, n: int = 6000):
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([12.0, 12.0, 12.0])  # all around the camera
+    quats = torch.randn(n, 4, generator=g)
+    log_scales = torch.log(torch.rand(n, 3, generator=g) * 0.3 + 0.005)  # 5 mm .. 30 cm, some huge below
+    log_scales[:50] = np.log(2.0)
+    opac = torch.randn(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    return [t.requires_grad_(True) for t in (means, quats, log_scales, opac, colors)]
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_culled_render_is_identical_and_culls_most_of_a_surrounding_map(seed):
+    W, H = 64, 48
+    K = torch.tensor([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.2 * seed, -0.4, 0.1]).as_matrix())
+    params = _scene(seed)
+    vm = torch.linalg.inv(c2w)
+    keep = frustum_cull_mask(params[0], params[2], vm, K, W, H)
+    full = rasterize(*params, K=K, width=W, height=H, c2w=c2w, backend="warp", num_threads=1)
+    assert int((full.radii > 0).sum()) > 200  # something is in view
+    visible = full.ids[full.radii > 0]
+    assert bool(keep[visible].all())  # nothing the rasterizer draws is culled
+    assert float(keep.float().mean()) < 0.5  # most of a map around the camera is culled
+    culled = rasterize(*params, K=K, width=W, height=H, c2w=c2w, subset=keep, backend="warp", num_threads=1)
+    for a, b in ((full.color, culled.color), (full.depth, culled.depth), (full.alpha, culled.alpha)):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    # gradients of the kept rows are the same; culled rows get none
+    g_full = torch.autograd.grad(full.color.sum() + full.depth.sum(), params)
+    g_cull = torch.autograd.grad(culled.color.sum() + culled.depth.sum(), params)
+    for a, b in zip(g_full, g_cull):
+        torch.testing.assert_close(a[keep], b[keep], atol=1e-6, rtol=1e-5)
+        assert float(b[~keep].abs().sum()) == 0.0
+
+
+def test_sphere_radius_and_near_plane():
+    K = torch.tensor([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    vm = torch.eye(4, dtype=torch.float64)
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -1.0], [0.0, 0.0, -0.5], [20.0, 0.0, 2.0], [20.0, 0.0, 2.0]])
+    log_scales = torch.log(torch.tensor([[0.01] * 3, [0.01] * 3, [1.0] * 3, [0.01] * 3, [8.0] * 3]))
+    keep = frustum_cull_mask(means, log_scales, vm, K, 64, 48)
+    # in view; behind; behind but its 3σ sphere crosses the near plane; far aside; far aside but huge
+    assert keep.tolist() == [True, False, True, False, True]
