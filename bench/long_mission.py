@@ -1,6 +1,12 @@
 """Retention benchmark (issue 10): does the map keep what it has seen over a long mission?
 
     python -m bench.long_mission [--seeds 3] [--tasks 2|all] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
+                                 [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...]
+
+On this 2-core machine the full default bench takes longer than a session; the run reported in the
+README used ``--tasks 1 --tum-downscale 4 --synthetic-frames 300`` (TUM at 160×120, the synthetic circle
+with 300 frames, 150 of them mapped), which the issue allows and the README says. After every run the
+runs so far are written to ``<out>.partial.json``.
 
 Scenes, each mapped at matched budget (same seeding rule, budget rule and iterations in both modes):
 
@@ -163,7 +169,7 @@ def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) 
         block = aggregate(by_seed, ["psnr", "roi_psnr", "psnr_by_fifth", "heldout_psnr", "s_per_frame",
                                     "s_per_frame_by_fifth", "n_gaussians", "keyframe_mb"])
         fifth = block["psnr_by_fifth"]
-        block["retention_db"] = (fifth[0] - fifth[-1]) if by_seed else None
+        block["retention_db"] = (fifth[0] - fifth[-1]) if by_seed and None not in (fifth[0], fifth[-1]) else None
         block["roi_psnr_per_task"] = {t: dict(zip(("roi_psnr", "roi_psnr_std"), mean_std(v)))
                                       for t, v in per_task.items()}
         block["seeds"] = [s for s in seeds if any(r["seed"] == s for r in rs)]
@@ -214,9 +220,9 @@ def table(result: dict) -> str:
             b = sc.get(mode)
             if not b or b.get("psnr") is None:
                 continue
-            fifths = " / ".join(f"{v:.2f}" for v in b["psnr_by_fifth"])
+            fifths = " / ".join("–" if v is None else f"{v:.2f}" for v in b["psnr_by_fifth"])
             lines.append(f"| {name} | {mode} | {fmt(b['psnr'], b['psnr_std'])} | {fmt(b['roi_psnr'], b['roi_psnr_std'])} "
-                         f"| {fifths} | {b['retention_db']:+.2f} | {fmt(b['heldout_psnr'], b.get('heldout_psnr_std'))} "
+                         f"| {fifths} | {'–' if b['retention_db'] is None else format(b['retention_db'], '+.2f')} | {fmt(b['heldout_psnr'], b.get('heldout_psnr_std'))} "
                          f"| {fmt(b['s_per_frame'], b['s_per_frame_std'])} | {b['n_gaussians']:.0f} |")
         g = sc.get("roi_gain")
         if g and g["gain"] is not None:

@@ -52,3 +52,26 @@ def test_stats_helpers():
     assert not gain([2.0], [1.0])["significant"]  # one seed can never show significance
     with pytest.raises(ValueError):
         gain([1.0], [1.0, 2.0])
+
+
+def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
+    """``python -m bench.long_mission`` on a 24-frame synthetic circle (first 20 frames, 10 mapped, 3 iterations each):
+    JSON in the issue's schema, the table, the plot, and no partial file left behind."""
+    import json
+
+    from bench.long_mission import main
+
+    out = tmp_path / "lm.json"
+    rc = main(["--scenes", "synthetic_long", "--seeds", "1", "--tasks", "1", "--jobs", "1", "--synthetic-frames", "24",
+               "--max-frames", "20", "--set", "iters_per_frame=3", "--set", "warmup_iters=1",
+               "--work", str(tmp_path / "work"), "--out", str(out)])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    sc = res["scenes"]["synthetic_long"]
+    for mode in ("uniform", "gausslite"):
+        assert sc[mode]["psnr"] > 5 and len(sc[mode]["psnr_by_fifth"]) == 5 and sc[mode]["heldout_psnr"] is not None
+    assert res["settings"]["scenes"]["synthetic_long"]["frames"] == 24
+    assert all(r["pose_correction_deg"] is None for r in res["runs"])  # rendered profile: poses are exact
+    assert (tmp_path / "lm_synthetic_long.png").stat().st_size > 1000
+    assert out.with_suffix(".md").read_text().count("| synthetic_long |") >= 2
+    assert not out.with_suffix(".partial.json").exists()
