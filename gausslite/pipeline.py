@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.evaluation import evaluate
+from gausslite.evaluation import EvalSummary, evaluate, score_view
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 
@@ -57,6 +57,7 @@ def run_mapping(
     n_images: int = 3,
     progress: bool = True,
     desc: str = "mapping",
+    eval_task_ids: Optional[list[str]] = None,
 ) -> tuple[Mapper, dict]:
     """Map ``dataset`` (every ``stride``-th frame) and evaluate.
 
@@ -68,10 +69,14 @@ def run_mapping(
         relevance_fn: frame → (H, W) bool relevance map w (e.g. from the attention front-end).
         stride: map every ``stride``-th frame; the others are held-out views.
         out_dir: where ``map.ply``, ``metrics.json`` and PNGs go (None: write nothing).
+        eval_task_ids: also score the mapped views on each of these tasks' ground-truth ROIs:
+            ``metrics["per_task"][task]`` holds psnr, ssim, depth_l1, roi_psnr, roi_ssim, roi_fraction
+            (for a map that does not depend on the task, such as uniform mapping).
     Returns:
         (mapper, metrics dict).
     Raises:
         ValueError: ``gausslite`` mode without task or relevance source; empty dataset.
+        KeyError: an unknown task id in ``eval_task_ids``.
     """
     if len(dataset) == 0:
         raise ValueError(f"{dataset.path}: no frames")
@@ -119,6 +124,17 @@ def run_mapping(
         test_pick = [dataset[test_idx[len(test_idx) // 2]].frame_id] if img_dir is not None else []
         test = evaluate(render, (dataset[i] for i in test_idx), roi_fn, img_dir, test_pick, tag="heldout_")
         metrics.update(test.as_dict(prefix="heldout_"))
+    if eval_task_ids:
+        # one map scored on several tasks' ROIs (a map that does not depend on the task: uniform)
+        fns = {t: gt_roi_fn(dataset, t) for t in eval_task_ids}
+        sums = {t: EvalSummary() for t in eval_task_ids}
+        for i in train_idx:
+            fr = dataset[i]
+            out = render(fr)
+            for t, fn in fns.items():
+                sums[t].scores.append(score_view(out, fr, fn(fr)))
+        metrics["per_task"] = {t: {k: (None if isinstance(v, float) and math.isnan(v) else v)
+                                   for k, v in sm.as_dict().items()} for t, sm in sums.items()}
     metrics["per_frame"] = [asdict(s) for s in train.scores]
     metrics = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in metrics.items()}
     if out_dir is not None:

@@ -74,3 +74,29 @@ def test_ablate_seeds_give_mean_std_and_paired_gains(tmp_path, TINY):
         assert t["roi_psnr"] == pytest.approx(r["roi_psnr"]) and "roi_psnr_std" in t
     md = (out / "ablation.md").read_text()
     assert "±" in md and "over 2 seed(s)" in md
+
+
+def test_uniform_row_is_mapped_once_per_seed_and_scored_on_every_task(tmp_path, TINY, monkeypatch):
+    """The ``none`` row (uniform mapping) does not depend on the task: one map per seed, every task's ROI
+    scored on it; the task rows still map once per task."""
+    import gausslite.pipeline as pipeline
+
+    calls = []
+    real = pipeline.run_mapping
+
+    def counting(ds, cfg, **kw):
+        calls.append((cfg.mode, kw.get("task_id")))
+        return real(ds, cfg, **kw)
+
+    monkeypatch.setattr(pipeline, "run_mapping", counting)
+    args = [a for a in TINY]
+    args[args.index("--task-id") + 1] = "all"
+    out = tmp_path / "all"
+    assert main(["ablate", *args, "--rows", "none,+ROI", "--out", str(out)]) == 0
+    rows = {r["row"]: r for r in json.loads((out / "ablation.json").read_text())}
+    tasks = sorted(rows["+ROI"]["per_task"])
+    assert len(tasks) >= 3 and sorted(rows["none"]["per_task"]) == tasks
+    assert calls.count(("uniform", None)) == 1 and len(calls) == 1 + len(tasks)
+    none = rows["none"]["per_task"]
+    assert len({none[t]["psnr"] for t in tasks}) == 1  # one map …
+    assert len({none[t]["roi_psnr"] for t in tasks}) > 1  # … scored on each task's ROI

@@ -101,17 +101,29 @@ def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int 
     seeds = list(seeds) if seeds else [base_cfg.seed]
     selected = rows_to_run if rows_to_run is not None else select_rows(None)
     rows = []
-    jobs = [(name, sw, t, sd) for name, sw in selected for sd in seeds for t in task_ids]
+    # the "none" row is the uniform baseline: its map does not depend on the task, so it is mapped once
+    # per seed (uniform mode, no relevance) and scored on every task's ROI
+    jobs = [(name, sw, (None if name == "none" else t), sd) for name, sw in selected for sd in seeds
+            for t in (task_ids[:1] if name == "none" else task_ids)]
     bar = tqdm(total=len(jobs), desc="ablation", disable=not progress, unit="run")
     results: dict[str, dict[int, dict[str, dict]]] = {}
     for name, sw, task, sd in jobs:
-        cfg = base_cfg.model_copy(update={"mode": "gausslite", "components": sw, "seed": sd})
-        bar.set_postfix(row=name, task=task, seed=sd)
-        _, m = run_mapping(dataset, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
-        results.setdefault(name, {}).setdefault(sd, {})[task] = {k: m[k] for k in TASK_KEYS}
-        log.info("row %s, task %s, seed %d: ROI PSNR %.2f dB, PSNR %.2f dB, %.2f s/frame, %d Gaussians",
-                 name, task, sd, m["roi_psnr"] if m["roi_psnr"] is not None else float("nan"), m["psnr"],
-                 m["seconds_per_frame"], m["n_gaussians"])
+        bar.set_postfix(row=name, task=task or "all", seed=sd)
+        if task is None:
+            cfg = base_cfg.model_copy(update={"mode": "uniform", "components": sw, "seed": sd})
+            _, m = run_mapping(dataset, cfg, task_id=None, stride=stride, out_dir=None, progress=False,
+                               eval_task_ids=task_ids)
+            scored = {t: {**{k: m.get(k) for k in TASK_KEYS}, **{k: m["per_task"][t][k] for k in ("roi_psnr", "roi_ssim")},
+                          "n_active": 0} for t in task_ids}
+        else:
+            cfg = base_cfg.model_copy(update={"mode": "gausslite", "components": sw, "seed": sd})
+            _, m = run_mapping(dataset, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
+            scored = {task: {k: m[k] for k in TASK_KEYS}}
+        for t, v in scored.items():
+            results.setdefault(name, {}).setdefault(sd, {})[t] = v
+            log.info("row %s, task %s, seed %d: ROI PSNR %.2f dB, PSNR %.2f dB, %.2f s/frame, %d Gaussians",
+                     name, t, sd, v["roi_psnr"] if v["roi_psnr"] is not None else float("nan"), v["psnr"],
+                     v["seconds_per_frame"], v["n_gaussians"])
         bar.update(1)
     bar.close()
     for name, sw in selected:
