@@ -74,16 +74,22 @@ def _cfg(**kw) -> MapperConfig:
     return cfg
 
 
-def test_refinement_pulls_a_wrong_pose_towards_the_truth():
-    """Frames 0–2 of a textured plane at their true poses; frame 3's given pose is 12 cm off along x.
-    Joint optimisation moves frame 3's pose towards the truth; the first keyframe stays fixed."""
-    m = Mapper(_cfg())
+def _mapped_with_a_wrong_fourth_pose(cfg: MapperConfig):
+    """Frames 0–2 of the plane at their true poses, then frame 3 (true x 0.12 m) given 12 cm off along x."""
+    m = Mapper(cfg)
     for i in range(3):
         m.map_frame(plane_frame(i, 0.04 * i, H, W))
     true_x = 0.12
     fr = plane_frame(3, true_x, H, W)
     fr.c2w[0, 3] = true_x + 0.12
     m.map_frame(fr)
+    return m, fr, true_x
+
+
+def test_refinement_pulls_a_wrong_pose_towards_the_truth():
+    """Frames 0–2 of a textured plane at their true poses; frame 3's given pose is 12 cm off along x.
+    Joint optimisation moves frame 3's pose towards the truth; the first keyframe stays fixed."""
+    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg())
     m.optimize(n_iters=120)
     err_after = abs(m.pose_of(3, fr.c2w)[0, 3] - true_x)
     assert err_after < 0.06, err_after  # from 0.12 m
@@ -121,11 +127,5 @@ def test_corrections_reach_held_out_frames_and_survive_a_checkpoint():
 def test_tracking_corrects_a_new_frame_before_it_is_seeded():
     """With pose_track_iters, frame 3's 12 cm pose error shrinks before its seeds are placed, so its
     seeds land on the plane where the earlier frames put it (not 12 cm aside)."""
-    m = Mapper(_cfg(pose_track_iters=40, iters_per_frame=20, warmup_iters=15))
-    for i in range(3):
-        m.map_frame(plane_frame(i, 0.04 * i, H, W))
-    true_x = 0.12
-    fr = plane_frame(3, true_x, H, W)
-    fr.c2w[0, 3] = true_x + 0.12
-    m.map_frame(fr)
+    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg(pose_track_iters=40, iters_per_frame=20, warmup_iters=15))
     assert abs(m.pose_of(3, fr.c2w)[0, 3] - true_x) < 0.05
