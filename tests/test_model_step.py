@@ -117,7 +117,7 @@ def test_coarse_iterations_render_downscaled_views(monkeypatch):
                                 backend="torch"))
         widths = []
         orig = m._rasterize
-        monkeypatch.setattr(m, "_rasterize", lambda c2w, K, w, h, subset: (widths.append(w), orig(c2w, K, w, h, subset))[1])
+        monkeypatch.setattr(m, "_rasterize", lambda c2w, K, w, h, subset, **kw: (widths.append(w), orig(c2w, K, w, h, subset, **kw))[1])
         st = m.map_frame(frame)
         assert st.iters == 8
         assert [w for w in widths if w in (16, 32)][-8:] == want
