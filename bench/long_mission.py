@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import sys
@@ -82,9 +81,8 @@ def run_one(job: dict) -> dict:
     """Map one (scene, mode, task, seed) and score it; runs in a worker process."""
     import torch
 
-    from gausslite.evaluation import score_view
     from gausslite.mapping.config import load_config
-    from gausslite.pipeline import gt_roi_fn, run_mapping
+    from gausslite.pipeline import run_mapping
 
     torch.set_num_threads(1)
     ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"), job.get("downscale"))
@@ -93,28 +91,18 @@ def run_one(job: dict) -> dict:
                       seed=job["seed"], render_threads=1)
     task = job["task"]
     t0 = time.perf_counter()
-    mapper, m = run_mapping(ds, cfg, task_id=task, stride=stride, out_dir=None, progress=False)
+    # run_mapping scores every mapped frame (at the mapper's refined pose under pose_refine, as SLAM
+    # systems score at their own poses) and, in the same render pass, each task's ROI
+    mapper, m = run_mapping(ds, cfg, task_id=task, stride=stride, out_dir=None, progress=False,
+                            eval_task_ids=job["eval_tasks"])
     wall = time.perf_counter() - t0
-    eval_tasks = job["eval_tasks"]
-    roi_fns = {t: gt_roi_fn(ds, t) for t in eval_tasks}
-    roi = {t: [] for t in eval_tasks}
-    frame_psnr = []
-    for i in range(0, len(ds), stride):
-        fr = ds[i]
-        # scored at the mapper's refined pose under pose_refine (as SLAM systems score at their own poses)
-        out = mapper.render(mapper.pose_of(fr.frame_id, fr.c2w), fr.intrinsics.K, fr.intrinsics.width,
-                            fr.intrinsics.height)
-        frame_psnr.append(score_view(out, fr).psnr)
-        for t, fn in roi_fns.items():
-            r = score_view(out, fr, fn(fr)).roi_psnr
-            if not math.isnan(r):
-                roi[t].append(r)
+    frame_psnr = [f["psnr"] for f in m["per_frame"]]
     fifths = [float(np.mean(c)) for c in np.array_split(np.array(frame_psnr), 5)]
     secs = [s.seconds for s in mapper.stats]
     return {
         "scene": job["scene"], "mode": job["mode"], "task": task, "seed": job["seed"],
         "psnr": float(np.mean(frame_psnr)),
-        "roi_psnr_per_task": {t: (float(np.mean(v)) if v else None) for t, v in roi.items()},
+        "roi_psnr_per_task": {t: v["roi_psnr"] for t, v in m["per_task"].items()},
         "psnr_by_fifth": fifths,
         "heldout_psnr": m.get("heldout_psnr"),
         "s_per_frame": float(np.mean(secs)),

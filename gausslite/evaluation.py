@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Optional, Sequence
+from typing import Callable, Iterable, Mapping, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -40,6 +40,8 @@ class EvalSummary:
     """Means over views (ROI means over views whose ROI is non-empty)."""
 
     scores: list[FrameScore] = field(default_factory=list)
+    #: name → summary of the same renders scored on another ROI (``evaluate(extra_rois=...)``)
+    per_roi: dict = field(default_factory=dict)
 
     def mean(self, key: str) -> float:
         vals = [getattr(s, key) for s in self.scores]
@@ -98,6 +100,7 @@ def evaluate(
     image_dir: Optional[Path] = None,
     image_ids: Sequence[int] = (),
     tag: str = "",
+    extra_rois: Optional[Mapping[str, Callable[[Frame], np.ndarray]]] = None,
 ) -> EvalSummary:
     """Render and score each frame; write side-by-side PNGs for ``image_ids``.
 
@@ -106,13 +109,19 @@ def evaluate(
         frames: views to score.
         roi_fn: frame → (H, W) bool ground-truth ROI mask, or None.
         image_dir: where PNGs go (``{tag}frame_{id:06d}.png``).
+        extra_rois: name → ROI function; each render is also scored on these ROIs, into
+            ``summary.per_roi[name]`` (one map, several tasks, one render per view).
     """
     summary = EvalSummary()
+    extra = dict(extra_rois or {})
+    summary.per_roi = {name: EvalSummary() for name in extra}
     wanted = set(int(i) for i in image_ids)
     for fr in frames:
         out = render(fr)
         roi = roi_fn(fr) if roi_fn is not None else None
         summary.scores.append(score_view(out, fr, roi))
+        for name, fn in extra.items():
+            summary.per_roi[name].scores.append(score_view(out, fr, fn(fr)))
         if image_dir is not None and fr.frame_id in wanted:
             image_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(image_dir / f"{tag}frame_{fr.frame_id:06d}.png"), side_by_side(out, fr, roi))

@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.evaluation import EvalSummary, evaluate, score_view
+from gausslite.evaluation import evaluate
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 
@@ -108,7 +108,9 @@ def run_mapping(
     img_dir = out_dir / "renders" if out_dir is not None else None
     pick = [train_idx[j] for j in np.linspace(0, len(train_idx) - 1, min(n_images, len(train_idx))).round().astype(int)]
     pick_ids = [dataset[i].frame_id for i in pick] if img_dir is not None else []
-    train = evaluate(render, (dataset[i] for i in train_idx), roi_fn, img_dir, pick_ids, tag="train_")
+    task_rois = {t: gt_roi_fn(dataset, t) for t in (eval_task_ids or [])}
+    train = evaluate(render, (dataset[i] for i in train_idx), roi_fn, img_dir, pick_ids, tag="train_",
+                     extra_rois=task_rois)
     metrics: dict = {
         "mode": cfg.mode,
         "task_id": task_id,
@@ -126,15 +128,8 @@ def run_mapping(
         metrics.update(test.as_dict(prefix="heldout_"))
     if eval_task_ids:
         # one map scored on several tasks' ROIs (a map that does not depend on the task: uniform)
-        fns = {t: gt_roi_fn(dataset, t) for t in eval_task_ids}
-        sums = {t: EvalSummary() for t in eval_task_ids}
-        for i in train_idx:
-            fr = dataset[i]
-            out = render(fr)
-            for t, fn in fns.items():
-                sums[t].scores.append(score_view(out, fr, fn(fr)))
         metrics["per_task"] = {t: {k: (None if isinstance(v, float) and math.isnan(v) else v)
-                                   for k, v in sm.as_dict().items()} for t, sm in sums.items()}
+                                   for k, v in sm.as_dict().items()} for t, sm in train.per_roi.items()}
     metrics["per_frame"] = [asdict(s) for s in train.scores]
     metrics = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in metrics.items()}
     if out_dir is not None:

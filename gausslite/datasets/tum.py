@@ -315,12 +315,12 @@ class TUMDataset(PosedImageDataset):
         self._time_extrinsics: Optional[List[np.ndarray]] = None
         self.align_depth_time = bool(align_depth_time)
         if self.align_depth_time:
+            td = depth_ts[d_idx[sel]]
+            gd, _ = associate_nearest(td, gt_ts)
             ext = []
             for k, i in enumerate(sel):
-                td = float(depth_ts[int(d_idx[i])])
-                gd, _ = associate_nearest(np.array([td]), gt_ts)
-                T_wd = pose_at(td, int(gd[0]), True)
-                T_wc = pose_at(rgb_ts[i], int(g_idx[i]), True)
+                T_wd = pose_at(float(td[k]), int(gd[k]), True)
+                T_wc = poses[k] if interpolate_poses else pose_at(rgb_ts[i], int(g_idx[i]), True)
                 T = np.linalg.inv(T_wc) @ T_wd
                 T[3] = (0.0, 0.0, 0.0, 1.0)
                 ext.append(T)

@@ -309,15 +309,15 @@ class Mapper:
         if pose_xi is not None:
             c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
             means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
+        vm = torch.linalg.inv(torch.as_tensor(c2w, dtype=torch.float64, device=means.device))
         if self.cfg.frustum_cull and len(means) >= self.cfg.frustum_cull_min:
-            vm = torch.linalg.inv(torch.as_tensor(c2w, dtype=torch.float64, device=means.device))
             vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
             if subset is not None:
                 vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
             subset = vis
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
-            K=K, width=width, height=height, c2w=c2w, subset=subset, background=self._background,
+            K=K, width=width, height=height, viewmat=vm, subset=subset, background=self._background,
             backend=self.cfg.backend, num_threads=self.cfg.render_threads,
         )
 
