@@ -212,7 +212,8 @@ def _per_pixel_kernel_render(gdata, bins, width, height, ts):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cpu_tile_kernels_bitwise_match_per_pixel_kernel(dtype):
     """The CPU tile kernels visit only the pixels inside each Gaussian's row spans; the result must
-    be bit-identical to the per-pixel kernel that tests every (pixel, Gaussian) pair."""
+    be bit-identical to the per-pixel kernel that tests every (pixel, Gaussian) pair (Warp tile kernels),
+    and equal to float32 rounding for the SIMD kernels (same spans as lane masks, polynomial exp)."""
     from gausslite.render.autograd import RasterizeWarp, _pack_gdata
     from gausslite.render.binning import bin_gaussians
 
@@ -228,9 +229,16 @@ def test_cpu_tile_kernels_bitwise_match_per_pixel_kernel(dtype):
     for nt in (1, 2):
         c, d, a = RasterizeWarp.apply(pr.means2d, pr.conics, op, col, pr.depths, bins.gids,
                                       bins.tile_start, bins.tile_end, w, h, 16, bins.tiles_x,
-                                      bins.tiles_y, nt)
+                                      bins.tiles_y, nt, False, None, "tile")
         assert torch.equal(c.reshape(-1, 3), feat[:, :3])
         assert torch.equal(d.reshape(-1), feat[:, 3]) and torch.equal(a.reshape(-1), feat[:, 4])
+        # the SIMD kernels visit the same pixels; only their polynomial exp rounds differently
+        c, d, a = RasterizeWarp.apply(pr.means2d, pr.conics, op, col, pr.depths, bins.gids,
+                                      bins.tile_start, bins.tile_end, w, h, 16, bins.tiles_x,
+                                      bins.tiles_y, nt, False, None, "simd")
+        assert (c.reshape(-1, 3) - feat[:, :3]).abs().max() <= 2e-6
+        assert (a.reshape(-1) - feat[:, 4]).abs().max() <= 2e-6
+        assert (d.reshape(-1) - feat[:, 3]).abs().max() <= 2e-6 * max(1.0, float(feat[:, 3].abs().max()))
     assert (feat[:, 4] > 0).float().mean() > 0.5
 
 

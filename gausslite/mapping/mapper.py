@@ -318,7 +318,7 @@ class Mapper:
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self._background,
-            backend=self.cfg.backend, num_threads=self.cfg.render_threads,
+            backend=self.cfg.backend, num_threads=self.cfg.render_threads, cpu_kernel=self.cfg.cpu_kernel,
         )
 
     # ------------------------------------------------------------------ seeding

@@ -112,6 +112,7 @@ def rasterize(
     eps2d: float = 0.3,
     tile_size: int = 16,
     num_threads: int | None = None,
+    cpu_kernel: str = "simd",
 ) -> RenderOutput:
     """Render 3D Gaussians into a pinhole camera, differentiably (Kerbl et al. 2023 3DGS).
 
@@ -142,13 +143,16 @@ def rasterize(
         eps2d: low-pass variance added to the 2D covariance diagonal (px^2).
         tile_size: tile edge in pixels (binning and CPU work split).
         num_threads: CPU launch threads for the warp backend (default min(2, os.cpu_count())).
+        cpu_kernel: compositing kernels of the warp backend on CPU: "simd" (vectorised,
+            :mod:`gausslite.render.simd_kernels`; tiles up to 16 px) or "tile" (the Warp tile kernels;
+            the same images to float32 rounding, about 1.6x slower).
 
     Returns:
         :class:`RenderOutput`.
 
     Raises:
         ValueError: bad shapes/dtypes, NaN/Inf in K or pose, both or neither pose given,
-            width/height <= 0, unknown backend, out-of-range subset indices.
+            width/height <= 0, unknown backend or cpu_kernel, out-of-range subset indices.
     """
     N = _check_params(means, quats, log_scales, opacity_logits, colors)
     device, dtype = means.device, means.dtype
@@ -157,6 +161,8 @@ def rasterize(
     width, height = int(width), int(height)
     if tile_size <= 0:
         raise ValueError(f"tile_size must be > 0, got {tile_size}")
+    if cpu_kernel not in ("simd", "tile"):
+        raise ValueError(f"cpu_kernel must be 'simd' or 'tile', got {cpu_kernel!r}")
     if (c2w is None) == (viewmat is None):
         raise ValueError("give exactly one of c2w (camera-to-world) or viewmat (world-to-camera)")
     K64 = _as_tensor(K, "K", (3, 3), device, dtype)
@@ -217,7 +223,7 @@ def rasterize(
             bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt)
             color, depth, alpha = RasterizeWarp.apply(
                 means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
-                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg,
+                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
             )
             return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii,
                                 ids=ids)
@@ -231,7 +237,8 @@ def rasterize(
         if backend == "warp":
             color_raw, depth_sum, alpha = RasterizeWarp.apply(
                 means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,
-                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt,
+                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, False, None,
+                cpu_kernel,
             )
         else:
             color_raw, depth_sum, alpha = rasterize_reference(

@@ -21,6 +21,7 @@ import os
 import torch
 import warp as wp
 
+from . import simd_kernels as sk
 from . import warp_kernels as wk
 from .projection import Projection
 
@@ -134,12 +135,17 @@ class RasterizeWarp(torch.autograd.Function):
     ``background`` ((3,) float32 tensor) makes the outputs the finished images of
     :func:`gausslite.render.api.rasterize`: colour composited over the background and the
     normalised depth (``depth_sum / alpha`` where alpha >= 1e-6, else 0) instead of depth_sum.
+    ``cpu_kernel`` (CPU only): ``"simd"`` (default) runs the vectorised tile kernels of
+    :mod:`gausslite.render.simd_kernels` when ``tile_size`` <= 16, ``"tile"`` the Warp tile kernels
+    (the slower path they replace, kept for comparison and for wider tiles).
     """
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, gids, tile_start, tile_end,
                 width, height, tile_size, tiles_x, tiles_y, num_threads, opacity_is_logit=False,
-                background=None):
+                background=None, cpu_kernel="simd"):
+        if cpu_kernel not in ("simd", "tile"):
+            raise ValueError(f"cpu_kernel must be 'simd' or 'tile', got {cpu_kernel!r}")
         dev = means2d.device
         M = means2d.shape[0]
         cpu = dev.type != "cuda"
@@ -157,6 +163,9 @@ class RasterizeWarp(torch.autograd.Function):
         ctx.opacity_is_logit = bool(opacity_is_logit)
         if cpu:
             # tile kernels: read gdata through gids and initialise every pixel themselves
+            simd = cpu_kernel == "simd" and tile_size <= sk.MAX_TILE
+            ctx.simd = simd
+            fwd_kernel = sk.rasterize_fwd_tile_simd_kernel if simd else wk.rasterize_fwd_tile_kernel
             c4 = torch.empty(HW, 4, dtype=torch.float32, device=dev)
             A = torch.empty(HW, dtype=torch.float32, device=dev)
             T = torch.empty(HW, dtype=torch.float32, device=dev)
@@ -170,7 +179,7 @@ class RasterizeWarp(torch.autograd.Function):
             def launch_cpu(s):
                 dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
                 if dim > 0:
-                    wp.launch(wk.rasterize_fwd_tile_kernel, dim=dim,
+                    wp.launch(fwd_kernel, dim=dim,
                               inputs=[a_g, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s,
                                       nstripes, int(composite), bg],
                               outputs=outs, device=wdev)
@@ -209,7 +218,7 @@ class RasterizeWarp(torch.autograd.Function):
         cpu = dev.type != "cuda"
         wdev = _wp_device(dev)
         wk.ensure_loaded(wdev)
-        tail = (None,) * 11
+        tail = (None,) * 12
         if cpu:
             gdata, gids, tile_start, T, last, c4, A, opacities = ctx.saved_tensors
             M = gdata.shape[0]
@@ -224,11 +233,12 @@ class RasterizeWarp(torch.autograd.Function):
                    wp.from_torch(torch.empty(HW, 4, dtype=torch.float32, device=dev), dtype=wp.vec4),
                    wp.from_torch(torch.empty(HW, 2, dtype=torch.float32, device=dev), dtype=wp.vec2)]
             a_bufs = [wp.from_torch(bufs[s]) for s in range(nstripes)]
+            bwd_kernel = sk.rasterize_bwd_tile_simd_kernel if ctx.simd else wk.rasterize_bwd_tile_kernel
 
             def launch_cpu(s):
                 dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
                 if dim > 0:
-                    wp.launch(wk.rasterize_bwd_tile_kernel, dim=dim,
+                    wp.launch(bwd_kernel, dim=dim,
                               inputs=[a_g, a_ids, a_ts, width, height, tile_size, tiles_x, s,
                                       nstripes] + ins,
                               outputs=[a_bufs[s]], device=wdev)

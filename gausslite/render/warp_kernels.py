@@ -1128,7 +1128,8 @@ for _T in (wp.float32, wp.float64):
 
 
 def ensure_loaded(device: str) -> None:
-    """Initialise Warp and compile/load this module for ``device`` once per process.
+    """Initialise Warp and compile/load this module (and, on CPU, :mod:`gausslite.render.simd_kernels`)
+    for ``device`` once per process.
 
     Must run before concurrent launches so that two threads never compile the module at the same
     time. Compiled binaries are cached on disk by Warp (``~/.cache/warp``) across processes.
@@ -1140,6 +1141,8 @@ def ensure_loaded(device: str) -> None:
             return
         wp.init()
         wp.load_module(module=__name__, device=device)
+        if device == "cpu":
+            wp.load_module(module="gausslite.render.simd_kernels", device=device)
         _loaded.add(device)
 
 
