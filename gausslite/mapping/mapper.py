@@ -41,6 +41,7 @@ from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_m
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
+from gausslite.fused_ssim import ssim_mean
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
 from gausslite.render.culling import frustum_cull_mask
@@ -213,7 +214,9 @@ def photometric_loss(
         mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
             None = full image. The depth term also requires valid ground-truth depth.
         reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
-            ground-truth statistics (``MapperConfig.reference_paths``).
+            ground-truth statistics (``MapperConfig.reference_paths``); otherwise
+            :func:`gausslite.fused_ssim.ssim_mean` (fused native SSIM on CPU, 20 -> 4 ms forward and
+            backward at 300x170).
     Returns:
         scalar tensor (0 with a zero-gradient graph when the mask is empty). With a mask and λ_s = 0
         SSIM is not computed.
@@ -227,13 +230,18 @@ def photometric_loss(
         else:
             if kf.ssim_stats is None or kf.ssim_stats[0].dtype != out.color.dtype:
                 kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=out.color.dtype)
-            s = ssim_map(out.color, kf.rgb, gt_stats=kf.ssim_stats).mean()
+            s = ssim_mean(out.color, kf.rgb, kf.ssim_stats)
     else:
         if not bool(mask.any()):
             return out.color.sum() * 0.0
         l1c = (out.color - kf.rgb).abs()[mask].mean()
         dmask = valid_d & mask
-        s = ssim_map(out.color, kf.rgb, reference=reference)[mask].mean() if lambda_ssim else 1.0
+        if not lambda_ssim:
+            s = 1.0
+        elif reference:
+            s = ssim_map(out.color, kf.rgb, reference=True)[mask].mean()
+        else:
+            s = ssim_mean(out.color, kf.rgb, mask=mask)
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 

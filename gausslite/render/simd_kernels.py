@@ -9,9 +9,10 @@ changes that let clang emit 8-wide AVX2 code:
 - **Tile-local SoA state.** Each tile (edge ``tile_size`` <= 16) keeps its pixels' colour sums, alpha,
   transmittance and last index (forward) or gradient and back-to-front state (backward) in 16 x 16
   stack arrays, one array per quantity, written back once per tile.
-- **Fixed 16-lane rows.** For each (Gaussian, row) the row span of :func:`_row_span` becomes a lane
-  mask over the tile's 16 columns, and the per-pixel branches (terminated pixel, footprint pre-test,
-  alpha threshold, termination) become selects; every lane of a row runs the same instructions.
+- **Fixed 8-lane row blocks.** For each (Gaussian, row) the row span of :func:`_row_span` becomes a
+  lane mask over the 8-column halves of the tile row it touches, and the per-pixel branches (terminated
+  pixel, footprint pre-test, alpha threshold, termination) become selects; every lane of a block runs
+  the same instructions.
 - **Polynomial exp.** ``exp(power)`` for ``power`` in ``[p_min, 0]`` is the Cephes ``expf`` polynomial
   (range reduction by ln 2, degree-6 polynomial, exponent bits); within 2 ulp of libm ``expf``, whose
   scalar call would keep the loop from vectorising. The backward pass's per-row sums are vectorised
@@ -82,8 +83,10 @@ for (int j = start; j < end; ++j) {
         float* Tr = T + o; float* Ar = A + o; float* C0 = c0 + o; float* C1 = c1 + o; float* C2 = c2 + o; float* C3 = c3 + o;
         int* Lr = L + o;
         int nterm = 0;
+        for (int kb = la & ~7; kb <= lb; kb += 8) {  // the 8-lane halves the span touches
         #pragma clang loop vectorize(enable)
-        for (int k = 0; k < 16; ++k) {
+        for (int kk = 0; kk < 8; ++kk) {
+            const int k = kb + kk;
             const float Tk = Tr[k];
             const float dx = (uh - (float)(x0 + k)) + ul;
             const float power = -0.5f * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
@@ -113,6 +116,7 @@ for (int j = start; j < end; ++j) {
             Tr[k] = term ? -Tk : (upd ? test_T : Tk);
             Lr[k] = upd ? jn : Lr[k];
             nterm += term ? 1 : 0;
+        }
         }
         n_active -= nterm;
     }
@@ -199,10 +203,11 @@ for (int j = maxlast - 1; j >= start; --j) {
         const int* Lr = L + o;
         float m0 = 0.0f, mx = 0.0f, mxx = 0.0f, a0 = 0.0f, a1 = 0.0f, a2 = 0.0f, a3 = 0.0f;
         int h = 0;
-        {
+        for (int kb = la & ~7; kb <= lb; kb += 8) {  // the 8-lane halves the span touches
         #pragma clang fp reassociate(on)
         #pragma clang loop vectorize(enable)
-        for (int k = 0; k < 16; ++k) {
+        for (int kk = 0; kk < 8; ++kk) {
+            const int k = kb + kk;
             const float dx = (uh - (float)(x0 + k)) + ul;
             const float power = -0.5f * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
             const bool in = (k >= la) & (k <= lb) & (j < Lr[k]) & (power <= 0.0f) & (power >= pm);
