@@ -1,4 +1,5 @@
-"""Benchmark: fwd+bwd time and peak RSS of the Warp rasterizer vs the pure-PyTorch reference.
+"""Benchmark: fwd+bwd time and peak RSS of the Warp rasterizer (SIMD compositing kernels, and the Warp
+tile kernels they replace) vs the pure-PyTorch reference.
 
 Usage::
 
@@ -66,11 +67,13 @@ def worker(backend: str, n: int, width: int, height: int, repeats: int) -> dict:
         torch.randn(height, width, generator=g)
     fwd, tot = [], []
     out = None
+    kw = {"cpu_kernel": "tile"} if backend == "warp-tile" else {}
+    backend = "warp" if backend == "warp-tile" else backend
     for it in range(repeats + 1):
         for p in params:
             p.grad = None
         t0 = time.perf_counter()
-        out = rasterize(*params, K=K, width=width, height=height, viewmat=np.eye(4), backend=backend)
+        out = rasterize(*params, K=K, width=width, height=height, viewmat=np.eye(4), backend=backend, **kw)
         t1 = time.perf_counter()
         loss = (out.color * wc).sum() + (out.depth * wd).sum() + (out.alpha * wa).sum()
         loss.backward()
@@ -79,7 +82,7 @@ def worker(backend: str, n: int, width: int, height: int, repeats: int) -> dict:
             fwd.append(t1 - t0)
             tot.append(t2 - t0)
     return {
-        "backend": backend, "n": n, "width": width, "height": height, "repeats": repeats,
+        "backend": backend + ("-tile" if kw else ""), "n": n, "width": width, "height": height, "repeats": repeats,
         "fwd_bwd_median_s": statistics.median(tot), "fwd_median_s": statistics.median(fwd),
         "fwd_bwd_all_s": tot,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -111,7 +114,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeats", type=int, default=5, help="timed iterations for the warp kernel")
     ap.add_argument("--ref-repeats", type=int, default=2, help="timed iterations for the reference")
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} in full mode)")
-    ap.add_argument("--worker", choices=["warp", "torch"], help=argparse.SUPPRESS)
+    ap.add_argument("--worker", choices=["warp", "warp-tile", "torch"], help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--width", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--height", type=int, help=argparse.SUPPRESS)
@@ -128,25 +131,29 @@ def main(argv=None) -> dict:
     rows = []
     for n, w, h in sizes:
         ours = _run_sub("warp", n, w, h, args.repeats)
+        tile = _run_sub("warp-tile", n, w, h, args.repeats)
         ref = _run_sub("torch", n, w, h, args.ref_repeats)
         k = _key(n, w, h)
+        out[f"tile_s_{k}"] = tile["fwd_bwd_median_s"]
+        out[f"simd_vs_tile_{k}"] = tile["fwd_bwd_median_s"] / ours["fwd_bwd_median_s"]
         out[f"ours_s_{k}"] = ours["fwd_bwd_median_s"]
         out[f"ref_s_{k}"] = ref["fwd_bwd_median_s"]
         out[f"speedup_{k}"] = ref["fwd_bwd_median_s"] / ours["fwd_bwd_median_s"]
         out[f"peak_rss_mb_{k}"] = ours["peak_rss_mb"]
         out[f"ref_peak_rss_mb_{k}"] = ref["peak_rss_mb"]
-        out["runs"] += [ours, ref]
-        rows.append((k, ours, ref))
+        out["runs"] += [ours, tile, ref]
+        rows.append((k, ours, tile, ref))
     out["machine"]["loadavg_after"] = list(os.getloadavg())
 
-    hdr = f"{'size':<16}{'backend':<8}{'fwd+bwd s':>11}{'fwd s':>9}{'peak RSS MB':>13}{'visible':>9}"
+    hdr = f"{'size':<16}{'backend':<10}{'fwd+bwd s':>11}{'fwd s':>9}{'peak RSS MB':>13}{'visible':>9}"
     print(hdr)
     print("-" * len(hdr))
-    for k, ours, ref in rows:
-        for r in (ours, ref):
-            print(f"{k:<16}{r['backend']:<8}{r['fwd_bwd_median_s']:>11.3f}{r['fwd_median_s']:>9.3f}"
+    for k, ours, tile, ref in rows:
+        for r in (ours, tile, ref):
+            print(f"{k:<16}{r['backend']:<10}{r['fwd_bwd_median_s']:>11.3f}{r['fwd_median_s']:>9.3f}"
                   f"{r['peak_rss_mb']:>13.0f}{r['visible']:>9d}")
-        print(f"{k:<16}{'speedup':<8}{ref['fwd_bwd_median_s'] / ours['fwd_bwd_median_s']:>11.1f}x")
+        print(f"{k:<16}{'vs torch':<10}{ref['fwd_bwd_median_s'] / ours['fwd_bwd_median_s']:>11.1f}x")
+        print(f"{k:<16}{'vs tile':<10}{tile['fwd_bwd_median_s'] / ours['fwd_bwd_median_s']:>11.2f}x")
     print(f"load average before/after: {out['machine']['loadavg_before']} / {out['machine']['loadavg_after']}")
 
     dest = args.out if args.out is not None else (None if args.quick else RESULTS)

@@ -121,3 +121,44 @@ def test_coarse_iterations_render_downscaled_views(monkeypatch):
         st = m.map_frame(frame)
         assert st.iters == 8
         assert [w for w in widths if w in (16, 32)][-8:] == want
+
+
+def _render_loss(model: GaussianModel, target: torch.Tensor) -> torch.Tensor:
+    from gausslite.render import rasterize
+
+    p = model.params
+    K = np.array([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    out = rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=32,
+                    height=32, c2w=np.eye(4))
+    return (out.color - target).abs().mean()
+
+
+def test_clones_start_from_zero_moments_and_separate_from_their_parent():
+    """A clone is an exact copy; if it inherited its parent's Adam moments, the two co-located copies would
+    get proportional gradients and identical Adam steps forever (they never separate, and are cloned again
+    at every density step). Clones start from zero moments (3DGS, gsplat), the original keeps its own."""
+    gmap = GaussianMap(
+        means=torch.tensor([[0.02, -0.01, 1.0]]), quats=torch.tensor([[1.0, 0, 0, 0]]),
+        log_scales=torch.full((1, 3), np.log(0.05)), opacity_logits=torch.tensor([-1.0]),
+        colors=torch.tensor([[0.8, 0.6, 0.4]]), active=torch.tensor([False]), kappa=torch.zeros(1, dtype=torch.int64))
+    model = GaussianModel(LearningRates())
+    model.set_map(gmap)
+    yy, xx = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
+    target = torch.stack([xx / 31, yy / 31, 0.5 * torch.ones_like(xx)], -1)
+    for _ in range(5):
+        _render_loss(model, target).backward()
+        model.step()
+    parent_m = model.optimizer.state[model.params["means"]]["exp_avg"].clone()
+    assert parent_m.abs().sum() > 0
+    cur = model.to_map()
+    new, parent = cur.densify(torch.tensor([True]), torch.tensor([False]))
+    model.set_map(new, parent)
+    st = model.optimizer.state[model.params["means"]]
+    assert torch.equal(st["exp_avg"][0], parent_m[0])  # the original keeps its moments
+    assert st["exp_avg"][1].abs().sum() == 0 and st["exp_avg_sq"][1].abs().sum() == 0  # the clone starts fresh
+    assert model.ids[0] != model.ids[1]
+    for _ in range(5):
+        _render_loss(model, target).backward()
+        model.step()
+    m = model.params["means"].detach()
+    assert (m[0] - m[1]).norm() > 1e-5, "clone moved in lockstep with its parent"

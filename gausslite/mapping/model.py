@@ -55,7 +55,9 @@ class GaussianModel:
         Args:
             gmap: the new map (its tensors are copied into fresh parameters).
             parent_index: (M,) int64, for each row of ``gmap`` the row of the current parameters it
-                derives from, or −1 for a brand-new Gaussian. None drops all optimiser state.
+                derives from, or −1 for a brand-new Gaussian. The first row of each parent carries its Adam
+                moments; other rows of the same parent (clones, second split daughters) and brand-new rows
+                start from zero moments. None drops all optimiser state.
         """
         old_state = {}
         old_n = len(self) if self.params else 0
@@ -77,7 +79,12 @@ class GaussianModel:
         opt = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
         if parent_index is not None and old_state:
             pi = parent_index.to(self.device)
-            has_parent = pi >= 0
+            # only the first child of a parent keeps its Adam moments; clones and further daughters start
+            # from zero moments (3DGS ``densification_postfix``, gsplat's strategy). A clone that inherited
+            # them would take exactly its parent's steps (co-located copies get proportional gradients,
+            # which Adam normalises away), never separate, and be cloned again at every density step:
+            # stacks of up to 11 identical Gaussians formed bright specks (room0 map-ottomans, 8 dB ROI PSNR)
+            has_parent = self._first_children(pi).to(self.device)
             src = pi.clamp_min(0)
             for name, st in old_state.items():
                 new_st = {}
@@ -92,6 +99,22 @@ class GaussianModel:
         self.params = new_params
         self.optimizer = opt
 
+    @staticmethod
+    def _first_children(parent_index: torch.Tensor) -> torch.Tensor:
+        """(M,) bool on CPU: rows that are the first (in row order) of their parent's children. The
+        original of a clone comes first in :meth:`GaussianMap.densify`'s row order, so it is the one."""
+        pi = parent_index.detach().to("cpu", torch.int64)
+        rows = torch.nonzero(pi >= 0).squeeze(1)
+        par = pi[rows]
+        # first occurrence of each parent (rows are in order): stable sort by parent
+        order = torch.sort(par, stable=True).indices
+        sp = par[order]
+        first = torch.ones_like(sp, dtype=torch.bool)
+        first[1:] = sp[1:] != sp[:-1]
+        out = torch.zeros(len(pi), dtype=torch.bool)
+        out[rows[order[first]]] = True
+        return out
+
     def _carry_ids(self, parent_index: Optional[torch.Tensor], n_new: int) -> torch.Tensor:
         """(n_new,) int64 ids of the rows of a new map (see the ``ids`` attribute)."""
         ids = torch.empty(n_new, dtype=torch.int64)
@@ -101,18 +124,9 @@ class GaussianModel:
             pi = parent_index.detach().to("cpu", torch.int64)
             if pi.numel() and int(pi.max()) >= len(self.ids):
                 raise ValueError(f"parent_index refers to row {int(pi.max())} of a {len(self.ids)}-row map")
-            fresh = pi < 0
-            rows = torch.nonzero(~fresh).squeeze(1)
-            par = pi[rows]
-            # first occurrence of each parent (rows are in order): stable sort by parent
-            order = torch.sort(par, stable=True).indices
-            sp = par[order]
-            first = torch.ones_like(sp, dtype=torch.bool)
-            first[1:] = sp[1:] != sp[:-1]
-            inherit = torch.zeros(len(par), dtype=torch.bool)
-            inherit[order[first]] = True
-            ids[rows[inherit]] = self.ids[par[inherit]]
-            fresh[rows[~inherit]] = True
+            inherit = self._first_children(pi)
+            ids[inherit] = self.ids[pi[inherit]]
+            fresh = ~inherit
         k = int(fresh.sum())
         ids[fresh] = torch.arange(self._next_id, self._next_id + k, dtype=torch.int64)
         self._next_id += k
