@@ -301,3 +301,22 @@ def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
     assert len(m.model) == H * W
     x = m.model.params["means"].detach()[:, 0]
     assert int((x > 1.5).sum()) == 1500  # every seed of the new view (x in [1.9, 4.1] m) entered the map
+
+
+@pytest.mark.parametrize("clone", [False, True])
+def test_density_control_clones_only_when_enabled(clone):
+    """``densify.clone`` (off by default): high-gradient Gaussians below ``split_scale_m`` are cloned only
+    when it is on; large ones split either way."""
+    cfg = _cfg(densify={"clone": clone}, max_gaussians=100_000)  # room for every candidate
+    m = Mapper(cfg)
+    m.map_frame(_frame(0))
+    n = len(m.model)
+    smax = m.model.to_map().log_scales.exp().max(dim=1).values
+    cfg.densify.split_scale_m = float(smax.median())
+    big = smax > cfg.densify.split_scale_m
+    assert 0 < int(big.sum()) < n  # both kinds present
+    m._grad_accum.fill_(1.0)
+    m._grad_count.fill_(1.0)
+    st = m._densify_and_prune()
+    assert st["split"] == int(big.sum())
+    assert st["clone"] == (n - int(big.sum()) if clone else 0)

@@ -486,7 +486,7 @@ class Mapper:
         high = avg >= dc.grad_threshold
         max_scale = gmap.log_scales.exp().max(dim=1).values
         split = high & (max_scale > dc.split_scale_m)
-        clone = high & ~split
+        clone = high & ~split & dc.clone
         room = (self.budget or n) - n
         n_new = int(clone.sum()) + int(split.sum())  # n_split=2: one extra row per split
         if n_new > room:
