@@ -62,26 +62,31 @@ _BLUR = r"""
 } while (0)
 """
 
-_FWD = _BLUR + r"""
+# per channel c: the images, the window and this channel's scratch (three planar maps q0..q2, the
+# row-pass buffer and the padded row)
+_COMMON = _BLUR + r"""
 const float* X = (const float*)pred.data;
 const float* Y = (const float*)gt.data;
-const float* MY = (const float*)mu_y.data + (long)c * H * W;
-const float* VY = (const float*)sig_y.data + (long)c * H * W;
 const float* g = (const float*)win.data;
-const float* WT = (const float*)weight.data;
 const long HW = (long)H * W;
 float* base = (float*)scratch.data + (long)c * 8 * (HW + W + 16);
-float* p0 = base; float* p1 = base + HW; float* p2 = base + 2 * HW; float* tmp = base + 3 * HW;
+float* q0 = base; float* q1 = base + HW; float* q2 = base + 2 * HW; float* tmp = base + 3 * HW;
 float* pad = base + 4 * HW;
+"""
+
+_FWD = _COMMON + r"""
+const float* MY = (const float*)mu_y.data + (long)c * H * W;
+const float* VY = (const float*)sig_y.data + (long)c * H * W;
+const float* WT = (const float*)weight.data;
 float* D = (float*)deriv.data + (long)c * 3 * HW;   // ds/dmu_x, ds/de_xx, ds/de_xy
 for (long i = 0; i < HW; ++i) {
     const float x = X[3 * i + c], y = Y[3 * i + c];
-    p0[i] = x; p1[i] = x * x; p2[i] = x * y;
+    q0[i] = x; q1[i] = x * x; q2[i] = x * y;
 }
 float* mux = D; float* exx = D + HW; float* exy = D + 2 * HW;
-GL_BLUR(p0, mux);
-GL_BLUR(p1, exx);
-GL_BLUR(p2, exy);
+GL_BLUR(q0, mux);
+GL_BLUR(q1, exx);
+GL_BLUR(q2, exy);
 double total = 0.0;
 const float C1 = c1, C2 = c2;
 for (int yy = 0; yy < H; ++yy) {
@@ -108,23 +113,16 @@ for (int yy = 0; yy < H; ++yy) {
 ((double*)ssum.data)[c] = total;
 """
 
-_BWD = _BLUR + r"""
-const float* X = (const float*)pred.data;
-const float* Y = (const float*)gt.data;
-const float* g = (const float*)win.data;
-const long HW = (long)H * W;
-float* base = (float*)scratch.data + (long)c * 8 * (HW + W + 16);
-float* b0 = base; float* b1 = base + HW; float* b2 = base + 2 * HW; float* tmp = base + 3 * HW;
-float* pad = base + 4 * HW;
+_BWD = _COMMON + r"""
 const float* D = (const float*)deriv.data + (long)c * 3 * HW;
-GL_BLUR(D, b0);
-GL_BLUR(D + HW, b1);
-GL_BLUR(D + 2 * HW, b2);
+GL_BLUR(D, q0);
+GL_BLUR(D + HW, q1);
+GL_BLUR(D + 2 * HW, q2);
 float* G = (float*)grad.data;
 const float sc = scale;
 for (long i = 0; i < HW; ++i) {
     const float x = X[3 * i + c], y = Y[3 * i + c];
-    G[3 * i + c] = sc * (b0[i] + 2.0f * x * b1[i] + y * b2[i]);
+    G[3 * i + c] = sc * (q0[i] + 2.0f * x * q1[i] + y * q2[i]);
 }
 """
 

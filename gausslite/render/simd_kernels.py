@@ -29,12 +29,70 @@ from __future__ import annotations
 
 import warp as wp
 
-from .warp_kernels import DEPTH_ALPHA_MIN
+from .warp_kernels import bwd_tile_init
 
 wp.set_module_options({"enable_backward": False})
 
 #: widest tile the SIMD kernels handle (lanes per row); wider tiles use the Warp tile kernels
 MAX_TILE = 16
+
+# Pieces shared by both snippets (substituted below): the Gaussian's gdata row, its tile rows
+# (:func:`~gausslite.render.warp_kernels._tile_rows`), the row span as lanes [la, lb] with the row
+# offsets (:func:`~gausslite.render.warp_kernels._row_span`), and the polynomial exp of ``x``
+# (Cephes expf: x = n ln2 + r, e^r by a degree-6 polynomial, 2^n through the exponent bits) as
+# ``p * sc.f``.
+_LOAD = r"""
+    const float uh = r[0], vh = r[1], ca = r[2], cb = r[3], cc = r[4], op = r[5];
+    const float f0 = r[6], f1 = r[7], f2 = r[8], f3 = r[9];
+    const float ul = r[10], vl = r[11], pm = r[12], ks = r[13], k1 = r[14], k0 = r[15];
+    const float uu = uh + ul, vv = vh + vl;
+"""
+_ROWS = r"""
+    float e = sqrtf(k0 / k1) + 0.5f;
+    float lo = ceilf(vv - e), hi = floorf(vv + e);
+    int ya = y0, yb = y1;
+    if (lo > (float)y0) { ya = y1 + 1; if (lo <= (float)y1) ya = (int)lo; }
+    if (hi < (float)y1) { yb = y0 - 1; if (hi >= (float)y0) yb = (int)hi; }
+"""
+_SPAN = r"""
+        const float fy = (float)py;
+        const float dyr = vv - fy;
+        const float cx = uu + ks * dyr;
+        const float half2 = k0 - k1 * dyr * dyr;
+        int xa = x1 + 1, xb = x1;
+        if (half2 >= 0.0f) {
+            float hw = sqrtf(half2) + 0.5f;
+            float l2 = ceilf(cx - hw), h2 = floorf(cx + hw);
+            xa = x0;
+            if (l2 > (float)x0) { xa = x1 + 1; if (l2 <= (float)x1) xa = (int)l2; }
+            if (h2 < (float)x1) { xb = x0 - 1; if (h2 >= (float)x0) xb = (int)h2; }
+        }
+        if (xa > xb) continue;
+        const int la = xa - x0, lb = xb - x0;
+        const float dy = (vh - fy) + vl;
+        const int o = (py - y0) * 16;
+"""
+_EXP = r"""
+            const float n = floorf(x * 1.44269504088896341f + 0.5f);
+            float rr = x - n * 0.693359375f;
+            rr = rr - n * -2.12194440e-4f;
+            float p = 1.9875691500E-4f;
+            p = p * rr + 1.3981999507E-3f;
+            p = p * rr + 8.3334519073E-3f;
+            p = p * rr + 4.1665795894E-2f;
+            p = p * rr + 1.6666665459E-1f;
+            p = p * rr + 5.0000001201E-1f;
+            p = p * rr * rr + rr + 1.0f;
+            union { int i; float f; } sc;
+            sc.i = ((int)n + 127) << 23;
+"""
+
+
+def _fill(snippet: str) -> str:
+    for key, code in (("@LOAD@", _LOAD), ("@ROWS@", _ROWS), ("@SPAN@", _SPAN), ("@EXP@", _EXP)):
+        snippet = snippet.replace(key + "\n", code.lstrip("\n"))
+    return snippet
+
 
 # forward: one tile, Gaussian-outer, 16-lane rows
 _FWD = r"""
@@ -53,33 +111,11 @@ for (int ly = 0; ly < 16; ++ly) for (int lx = 0; lx < 16; ++lx) if (lx >= nw || 
 int n_active = nw * nh;
 for (int j = start; j < end; ++j) {
     const float* r = gd + 16 * (long)ids[j];
-    const float uh = r[0], vh = r[1], ca = r[2], cb = r[3], cc = r[4], op = r[5];
-    const float f0 = r[6], f1 = r[7], f2 = r[8], f3 = r[9];
-    const float ul = r[10], vl = r[11], pm = r[12], ks = r[13], k1 = r[14], k0 = r[15];
-    const float uu = uh + ul, vv = vh + vl;
+@LOAD@
     const int jn = j + 1;
-    float e = sqrtf(k0 / k1) + 0.5f;
-    float lo = ceilf(vv - e), hi = floorf(vv + e);
-    int ya = y0, yb = y1;
-    if (lo > (float)y0) { ya = y1 + 1; if (lo <= (float)y1) ya = (int)lo; }
-    if (hi < (float)y1) { yb = y0 - 1; if (hi >= (float)y0) yb = (int)hi; }
+@ROWS@
     for (int py = ya; py <= yb; ++py) {
-        const float fy = (float)py;
-        const float dyr = vv - fy;
-        const float cx = uu + ks * dyr;
-        const float half2 = k0 - k1 * dyr * dyr;
-        int xa = x1 + 1, xb = x1;
-        if (half2 >= 0.0f) {
-            float hw = sqrtf(half2) + 0.5f;
-            float l2 = ceilf(cx - hw), h2 = floorf(cx + hw);
-            xa = x0;
-            if (l2 > (float)x0) { xa = x1 + 1; if (l2 <= (float)x1) xa = (int)l2; }
-            if (h2 < (float)x1) { xb = x0 - 1; if (h2 >= (float)x0) xb = (int)h2; }
-        }
-        if (xa > xb) continue;
-        const int la = xa - x0, lb = xb - x0;
-        const float dy = (vh - fy) + vl;
-        const int o = (py - y0) * 16;
+@SPAN@
         float* Tr = T + o; float* Ar = A + o; float* C0 = c0 + o; float* C1 = c1 + o; float* C2 = c2 + o; float* C3 = c3 + o;
         int* Lr = L + o;
         int nterm = 0;
@@ -92,18 +128,7 @@ for (int j = start; j < end; ++j) {
             const float power = -0.5f * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
             const bool in = (k >= la) & (k <= lb) & (Tk >= 0.0f) & (power <= 0.0f) & (power >= pm);
             float x = in ? power : -1.0f;
-            const float n = floorf(x * 1.44269504088896341f + 0.5f);
-            float rr = x - n * 0.693359375f;
-            rr = rr - n * -2.12194440e-4f;
-            float p = 1.9875691500E-4f;
-            p = p * rr + 1.3981999507E-3f;
-            p = p * rr + 8.3334519073E-3f;
-            p = p * rr + 4.1665795894E-2f;
-            p = p * rr + 1.6666665459E-1f;
-            p = p * rr + 5.0000001201E-1f;
-            p = p * rr * rr + rr + 1.0f;
-            union { int i; float f; } sc;
-            sc.i = ((int)n + 127) << 23;
+@EXP@
             float alpha = op * (p * sc.f);
             alpha = 0.99f < alpha ? 0.99f : alpha;
             const bool ok = in & (alpha >= (1.0f / 255.0f));
@@ -169,35 +194,13 @@ for (int ly = 0; ly < nh; ++ly) {
 for (int j = maxlast - 1; j >= start; --j) {
     const int g = ids[j];
     const float* r = gd + 16 * (long)g;
-    const float uh = r[0], vh = r[1], ca = r[2], cb = r[3], cc = r[4], op = r[5];
-    const float f0 = r[6], f1 = r[7], f2 = r[8], f3 = r[9];
-    const float ul = r[10], vl = r[11], pm = r[12], ks = r[13], k1 = r[14], k0 = r[15];
-    const float uu = uh + ul, vv = vh + vl;
-    float e = sqrtf(k0 / k1) + 0.5f;
-    float lo = ceilf(vv - e), hi = floorf(vv + e);
-    int ya = y0, yb = y1;
-    if (lo > (float)y0) { ya = y1 + 1; if (lo <= (float)y1) ya = (int)lo; }
-    if (hi < (float)y1) { yb = y0 - 1; if (hi >= (float)y0) yb = (int)hi; }
+@LOAD@
+@ROWS@
     int hit = 0;
     float S0 = 0.0f, SX = 0.0f, SY = 0.0f, SXX = 0.0f, SXY = 0.0f, SYY = 0.0f;
     float F0 = 0.0f, F1 = 0.0f, F2 = 0.0f, F3 = 0.0f;
     for (int py = ya; py <= yb; ++py) {
-        const float fy = (float)py;
-        const float dyr = vv - fy;
-        const float cx = uu + ks * dyr;
-        const float half2 = k0 - k1 * dyr * dyr;
-        int xa = x1 + 1, xb = x1;
-        if (half2 >= 0.0f) {
-            float hw = sqrtf(half2) + 0.5f;
-            float l2 = ceilf(cx - hw), h2 = floorf(cx + hw);
-            xa = x0;
-            if (l2 > (float)x0) { xa = x1 + 1; if (l2 <= (float)x1) xa = (int)l2; }
-            if (h2 < (float)x1) { xb = x0 - 1; if (h2 >= (float)x0) xb = (int)h2; }
-        }
-        if (xa > xb) continue;
-        const int la = xa - x0, lb = xb - x0;
-        const float dy = (vh - fy) + vl;
-        const int o = (py - y0) * 16;
+@SPAN@
         float* S0r = s0 + o; float* S1r = s1 + o;
         const float* G0 = g0 + o; const float* G1 = g1 + o; const float* G2 = g2 + o; const float* G3 = g3 + o;
         const int* Lr = L + o;
@@ -212,18 +215,7 @@ for (int j = maxlast - 1; j >= start; --j) {
             const float power = -0.5f * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
             const bool in = (k >= la) & (k <= lb) & (j < Lr[k]) & (power <= 0.0f) & (power >= pm);
             const float x = in ? power : -1.0f;
-            const float n = floorf(x * 1.44269504088896341f + 0.5f);
-            float rr = x - n * 0.693359375f;
-            rr = rr - n * -2.12194440e-4f;
-            float p = 1.9875691500E-4f;
-            p = p * rr + 1.3981999507E-3f;
-            p = p * rr + 8.3334519073E-3f;
-            p = p * rr + 4.1665795894E-2f;
-            p = p * rr + 1.6666665459E-1f;
-            p = p * rr + 5.0000001201E-1f;
-            p = p * rr * rr + rr + 1.0f;
-            union { int i; float f; } sc;
-            sc.i = ((int)n + 127) << 23;
+@EXP@
             const float raw = op * (p * sc.f);
             const float alpha = 0.99f < raw ? 0.99f : raw;
             const bool ok = in & (alpha >= (1.0f / 255.0f));
@@ -264,14 +256,14 @@ for (int j = maxlast - 1; j >= start; --j) {
 
 
 
-@wp.func_native(_FWD)
+@wp.func_native(_fill(_FWD))
 def _fwd_tile_native(gdata: wp.array2d(dtype=wp.float32), gids: wp.array(dtype=wp.int32), start: int, end: int,
                      x0: int, y0: int, x1: int, y1: int, width: int, composite: int, bgr: float, bgg: float,
                      bgb: float, out_c: wp.array(dtype=wp.vec4), out_a: wp.array(dtype=wp.float32),
                      out_T: wp.array(dtype=wp.float32), out_last: wp.array(dtype=wp.int32)): ...
 
 
-@wp.func_native(_BWD)
+@wp.func_native(_fill(_BWD))
 def _bwd_tile_native(gdata: wp.array2d(dtype=wp.float32), gids: wp.array(dtype=wp.int32), start: int,
                      maxlast: int, x0: int, y0: int, x1: int, y1: int, width: int,
                      last_idx: wp.array(dtype=wp.int32), grad_c: wp.array(dtype=wp.vec4),
@@ -354,25 +346,6 @@ def rasterize_bwd_tile_simd_kernel(
     x1 = wp.min(x0 + tile_size, width) - 1
     y1 = wp.min(y0 + tile_size, height) - 1
     start = tile_start[tile]
-    maxlast = start
-    for py in range(y0, y1 + 1):
-        for px in range(x0, x1 + 1):
-            pix = py * width + px
-            tf = final_T[pix]
-            gr = g_color[pix, 0]
-            gg = g_color[pix, 1]
-            gb = g_color[pix, 2]
-            gd = g_depth[pix]
-            ga = g_alpha[pix]
-            if composite != 0:
-                A = out_a[pix]
-                ga = ga - (gr * bg[0] + gg * bg[1] + gb * bg[2])
-                if A >= DEPTH_ALPHA_MIN:
-                    ga = ga - gd * out_c[pix][3] / A
-                    gd = gd / A
-                else:
-                    gd = 0.0
-            grad_c[pix] = wp.vec4(gr, gg, gb, gd)
-            state[pix] = wp.vec2(tf, ga * tf)
-            maxlast = wp.max(maxlast, last_idx[pix])
+    maxlast = bwd_tile_init(x0, y0, x1, y1, width, start, final_T, last_idx, composite, bg, out_c, out_a,
+                            g_color, g_depth, g_alpha, grad_c, state)
     _bwd_tile_native(gdata, gids, start, maxlast, x0, y0, x1, y1, width, last_idx, grad_c, state, grad_gdata)

@@ -413,6 +413,50 @@ def rasterize_fwd_tile_kernel(
                 out_c[pix] = wp.vec4(c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2], depth)
 
 
+@wp.func
+def bwd_tile_init(
+    x0: int, y0: int, x1: int, y1: int, width: int, start: int,
+    final_T: wp.array(dtype=wp.float32),
+    last_idx: wp.array(dtype=wp.int32),
+    composite: int,
+    bg: wp.vec3,
+    out_c: wp.array(dtype=wp.vec4),
+    out_a: wp.array(dtype=wp.float32),
+    g_color: wp.array2d(dtype=wp.float32),
+    g_depth: wp.array(dtype=wp.float32),
+    g_alpha: wp.array(dtype=wp.float32),
+    grad_c: wp.array(dtype=wp.vec4),
+    state: wp.array(dtype=wp.vec2),
+):
+    """Initialisation pass of a backward tile (pixels [x0, x1] x [y0, y1]), shared by
+    :func:`rasterize_bwd_tile_kernel` and the SIMD kernel: writes ``grad_c[pix]`` and ``state[pix]``
+    (see :func:`rasterize_bwd_tile_kernel`) and returns the largest ``last_idx`` of the tile (at least
+    ``start``)."""
+    maxlast = start
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            tf = final_T[pix]
+            gr = g_color[pix, 0]
+            gg = g_color[pix, 1]
+            gb = g_color[pix, 2]
+            gd = g_depth[pix]
+            ga = g_alpha[pix]
+            if composite != 0:
+                # color = RGB + (1 - A) bg, depth = D / A (A >= 1e-6, else 0)
+                A = out_a[pix]
+                ga = ga - (gr * bg[0] + gg * bg[1] + gb * bg[2])
+                if A >= DEPTH_ALPHA_MIN:
+                    ga = ga - gd * out_c[pix][3] / A
+                    gd = gd / A
+                else:
+                    gd = 0.0
+            grad_c[pix] = wp.vec4(gr, gg, gb, gd)
+            state[pix] = wp.vec2(tf, ga * tf)
+            maxlast = wp.max(maxlast, last_idx[pix])
+    return maxlast
+
+
 @wp.kernel
 def rasterize_bwd_tile_kernel(
     gdata: wp.array2d(dtype=wp.float32),
@@ -463,28 +507,8 @@ def rasterize_bwd_tile_kernel(
     x1 = wp.min(x0 + tile_size, width) - 1
     y1 = wp.min(y0 + tile_size, height) - 1
     start = tile_start[tile]
-    maxlast = start
-    for py in range(y0, y1 + 1):
-        for px in range(x0, x1 + 1):
-            pix = py * width + px
-            tf = final_T[pix]
-            gr = g_color[pix, 0]
-            gg = g_color[pix, 1]
-            gb = g_color[pix, 2]
-            gd = g_depth[pix]
-            ga = g_alpha[pix]
-            if composite != 0:
-                # color = RGB + (1 - A) bg, depth = D / A (A >= 1e-6, else 0)
-                A = out_a[pix]
-                ga = ga - (gr * bg[0] + gg * bg[1] + gb * bg[2])
-                if A >= DEPTH_ALPHA_MIN:
-                    ga = ga - gd * out_c[pix][3] / A
-                    gd = gd / A
-                else:
-                    gd = 0.0
-            grad_c[pix] = wp.vec4(gr, gg, gb, gd)
-            state[pix] = wp.vec2(tf, ga * tf)
-            maxlast = wp.max(maxlast, last_idx[pix])
+    maxlast = bwd_tile_init(x0, y0, x1, y1, width, start, final_T, last_idx, composite, bg, out_c, out_a,
+                            g_color, g_depth, g_alpha, grad_c, state)
     for k in range(maxlast - start):
         j = maxlast - 1 - k
         g = gids[j]
