@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .warp_kernels import bwd_tile_init
+from .warp_kernels import bwd_tile_init, tile_box
 
 wp.set_module_options({"enable_backward": False})
 
@@ -294,15 +294,12 @@ def rasterize_fwd_tile_simd_kernel(
     all arrays contiguous). ``gdata`` (M, 16) float32 rows, ``out_c`` (H*W,) vec4 (R, G, B, Σ w z) or the
     finished (colour over ``bg``, depth) with ``composite`` != 0, ``out_a`` / ``out_T`` (H*W,) float32
     alpha and final transmittance, ``out_last`` (H*W,) int32 one past the last contributing entry."""
-    tid = wp.tid()
-    tr = tid // tiles_x
-    tx = tid - tr * tiles_x
-    ty = tr * nstripes + stripe
-    tile = ty * tiles_x + tx
-    x0 = tx * tile_size
-    y0 = ty * tile_size
-    x1 = wp.min(x0 + tile_size, width) - 1
-    y1 = wp.min(y0 + tile_size, height) - 1
+    box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
+    tile = box[0]
+    x0 = box[1]
+    y0 = box[2]
+    x1 = box[3]
+    y1 = box[4]
     _fwd_tile_native(gdata, gids, tile_start[tile], tile_end[tile], x0, y0, x1, y1, width, composite,
                      bg[0], bg[1], bg[2], out_c, out_a, out_T, out_last)
 
@@ -336,15 +333,12 @@ def rasterize_bwd_tile_simd_kernel(
     ``grad_c``, ``state``, ``last_idx``, ``gdata`` and ``grad_gdata`` contiguous). The per-pixel
     initialisation is the Warp kernel's; the back-to-front loop is native. ``grad_gdata`` (M, 10) float32
     is this launch's own buffer (no other launch writes it concurrently), so it is updated with plain adds."""
-    tid = wp.tid()
-    tr = tid // tiles_x
-    tx = tid - tr * tiles_x
-    ty = tr * nstripes + stripe
-    tile = ty * tiles_x + tx
-    x0 = tx * tile_size
-    y0 = ty * tile_size
-    x1 = wp.min(x0 + tile_size, width) - 1
-    y1 = wp.min(y0 + tile_size, height) - 1
+    box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
+    tile = box[0]
+    x0 = box[1]
+    y0 = box[2]
+    x1 = box[3]
+    y1 = box[4]
     start = tile_start[tile]
     maxlast = bwd_tile_init(x0, y0, x1, y1, width, start, final_T, last_idx, composite, bg, out_c, out_a,
                             g_color, g_depth, g_alpha, grad_c, state)

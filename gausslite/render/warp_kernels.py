@@ -302,6 +302,21 @@ def _row_span(cx: float, half2: float, x0: int, x1: int):
     return wp.vec2i(xa, xb)
 
 
+vec5i = wp.types.vector(length=5, dtype=wp.int32)
+
+
+@wp.func
+def tile_box(tid: int, tiles_x: int, stripe: int, nstripes: int, tile_size: int, width: int, height: int):
+    """Tile of launch thread ``tid`` in stripe ``stripe`` of ``nstripes`` (tile rows ``stripe``,
+    ``stripe + nstripes``, ...): ``(tile index, x0, y0, x1, y1)`` with the inclusive pixel bounds."""
+    tr = tid // tiles_x
+    tx = tid - tr * tiles_x
+    ty = tr * nstripes + stripe
+    x0 = tx * tile_size
+    y0 = ty * tile_size
+    return vec5i(ty * tiles_x + tx, x0, y0, wp.min(x0 + tile_size, width) - 1, wp.min(y0 + tile_size, height) - 1)
+
+
 @wp.kernel
 def rasterize_fwd_tile_kernel(
     gdata: wp.array2d(dtype=wp.float32),
@@ -330,15 +345,12 @@ def rasterize_fwd_tile_kernel(
     ``depth = sum w z / A`` if ``A >= 1e-6`` else 0 (same float32 operations as the torch code).
     While the tile is processed, a pixel that has terminated is marked by a negated ``out_T``.
     """
-    tid = wp.tid()
-    tr = tid // tiles_x
-    tx = tid - tr * tiles_x
-    ty = tr * nstripes + stripe
-    tile = ty * tiles_x + tx
-    x0 = tx * tile_size
-    y0 = ty * tile_size
-    x1 = wp.min(x0 + tile_size, width) - 1
-    y1 = wp.min(y0 + tile_size, height) - 1
+    box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
+    tile = box[0]
+    x0 = box[1]
+    y0 = box[2]
+    x1 = box[3]
+    y1 = box[4]
     start = tile_start[tile]
     end = tile_end[tile]
     for py in range(y0, y1 + 1):
@@ -497,15 +509,12 @@ def rasterize_bwd_tile_kernel(
     gradients are accumulated as per-row moments of dL/dpower (sums of dl_dp, dl_dp dx,
     dl_dp dx^2 per row, combined with the row offset dy) and expanded once per Gaussian.
     """
-    tid = wp.tid()
-    tr = tid // tiles_x
-    tx = tid - tr * tiles_x
-    ty = tr * nstripes + stripe
-    tile = ty * tiles_x + tx
-    x0 = tx * tile_size
-    y0 = ty * tile_size
-    x1 = wp.min(x0 + tile_size, width) - 1
-    y1 = wp.min(y0 + tile_size, height) - 1
+    box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
+    tile = box[0]
+    x0 = box[1]
+    y0 = box[2]
+    x1 = box[3]
+    y1 = box[4]
     start = tile_start[tile]
     maxlast = bwd_tile_init(x0, y0, x1, y1, width, start, final_T, last_idx, composite, bg, out_c, out_a,
                             g_color, g_depth, g_alpha, grad_c, state)
