@@ -3,7 +3,8 @@
 The map's structure changes every mapped frame (new seeds, clone/split, prune, budget cap). This
 class owns the ``torch.nn.Parameter`` tensors and the Adam state, and rebuilds both from a
 ``GaussianMap`` plus a ``parent_index`` that says which old row each new row derives from, so Adam
-moments survive density control (rows with parent −1 start with zero moments), as in 3DGS.
+moments survive density control for the first row of each parent; brand-new rows (parent −1), clones
+and further split daughters start from zero moments, as in 3DGS (``densification_postfix``) and gsplat.
 """
 
 from __future__ import annotations
