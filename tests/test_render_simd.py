@@ -86,3 +86,25 @@ def test_bad_cpu_kernel():
     params, _ = make_scene(seed=36, n=10)
     with pytest.raises(ValueError, match="cpu_kernel"):
         rasterize(*params, K=K, width=W, height=H, c2w=C2W, cpu_kernel="avx512")
+
+
+def test_render_in_forked_child_after_parent_used_the_thread_pool():
+    """A forked worker (ProcessPoolExecutor's default on Linux, as in bench.long_mission) inherits the
+    parent's launch thread pool without its threads; rendering there must not wait on it forever."""
+    import multiprocessing as mp
+
+    params, _ = make_scene(seed=37, n=100, dtype=torch.float32)
+    kw = dict(K=K, width=W, height=H, c2w=C2W, num_threads=2)
+    with torch.no_grad():
+        ref = rasterize(*params, **kw).color  # the parent's pool now exists
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        res = pool.apply_async(_child_render, (37,))
+        color = res.get(timeout=120)
+    assert torch.equal(torch.as_tensor(color), ref)
+
+
+def _child_render(seed):
+    params, _ = make_scene(seed=seed, n=100, dtype=torch.float32)
+    with torch.no_grad():
+        return rasterize(*params, K=K, width=W, height=H, c2w=C2W, num_threads=2).color.numpy()

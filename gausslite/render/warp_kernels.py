@@ -45,6 +45,7 @@ parallel with balanced work. Thread ``tid`` of a launch maps to pixel
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -1179,10 +1180,21 @@ def ensure_loaded(device: str) -> None:
         _loaded.add(device)
 
 
+def _forget_pool_in_child() -> None:
+    # a forked child (multiprocessing's default start method on Linux) inherits the pool object but not
+    # its threads: work submitted to it would never run. Start a fresh pool on first use instead.
+    global _pool, _pool_size, _pool_lock
+    _pool, _pool_size, _pool_lock = None, 0, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_in_child)
+
+
 def run_parallel(fns) -> None:
     """Run the callables in ``fns`` concurrently and re-raise any error: the first one in the
     calling thread, the others in a persistent thread pool (CPU Warp launches release the GIL,
-    so each callable can keep one core busy)."""
+    so each callable can keep one core busy). Fork-safe: a forked child starts its own pool."""
     global _pool, _pool_size
     if len(fns) == 1:
         fns[0]()
