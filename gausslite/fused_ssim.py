@@ -23,7 +23,8 @@ from typing import Optional
 import torch
 import warp as wp
 
-from .metrics import SSIM_C1, SSIM_C2, gaussian_window
+from .metrics import SSIM_C1, SSIM_C2, gaussian_window, ssim_gt_stats, ssim_map
+from .render.warp_kernels import ensure_module_loaded, run_parallel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -165,25 +166,6 @@ def ssim_bwd_kernel(pred: wp.array(dtype=wp.float32), gt: wp.array(dtype=wp.floa
     _ssim_bwd_native(pred, gt, win, H, W, c, scale, scratch, deriv, grad)
 
 
-_loaded = False
-
-
-def _ensure_loaded() -> None:
-    global _loaded
-    if not _loaded:
-        from .render import warp_kernels as wk
-
-        wk.ensure_loaded("cpu")  # wp.init() under the module's lock
-        wp.load_module(module=__name__, device="cpu")
-        _loaded = True
-
-
-def _channels(fns) -> None:
-    from .render.warp_kernels import run_parallel
-
-    run_parallel(fns)
-
-
 class FusedSSIM(torch.autograd.Function):
     """Mean SSIM of ``pred`` against a fixed ``gt`` (no gradient to gt), CPU float32.
 
@@ -206,7 +188,7 @@ class FusedSSIM(torch.autograd.Function):
         scratch = torch.empty(C * 8 * (H * W + W + 16), dtype=torch.float32)
         deriv = torch.empty(C * 3 * H * W, dtype=torch.float32)
         ssum = torch.zeros(C, dtype=torch.float64)
-        _ensure_loaded()
+        ensure_module_loaded(__name__, "cpu")
         a = [wp.from_torch(t) for t in (p, y, my, vy, win, wt)]
         a_s, a_d, a_sum = wp.from_torch(scratch), wp.from_torch(deriv), wp.from_torch(ssum, dtype=wp.float64)
 
@@ -214,7 +196,7 @@ class FusedSSIM(torch.autograd.Function):
             wp.launch(ssim_fwd_kernel, dim=1,
                       inputs=a + [int(use_w), H, W, c, SSIM_C1, SSIM_C2, a_s, a_d, a_sum], device="cpu")
 
-        _channels([lambda c=c: run(c) for c in range(C)])
+        run_parallel([lambda c=c: run(c) for c in range(C)])
         ctx.save_for_backward(p, y, win, scratch, deriv)
         ctx.shape = (H, W, C)
         ctx.norm = C if use_w else C * H * W
@@ -232,7 +214,7 @@ class FusedSSIM(torch.autograd.Function):
         def run(c):
             wp.launch(ssim_bwd_kernel, dim=1, inputs=a + [H, W, c, scale, a_s, a_d, a_g], device="cpu")
 
-        _channels([lambda c=c: run(c) for c in range(C)])
+        run_parallel([lambda c=c: run(c) for c in range(C)])
         return grad.reshape(H, W, C), None, None, None, None
 
 
@@ -257,8 +239,6 @@ def ssim_mean(pred: torch.Tensor, gt: torch.Tensor, gt_stats: Optional[tuple[tor
         0-dim tensor (NaN for an empty mask): the fused CPU path when :func:`fused_ssim_available`, else
         ``ssim_map(pred, gt, gt_stats=gt_stats)`` averaged (over ``mask``).
     """
-    from .metrics import ssim_gt_stats, ssim_map
-
     if gt_stats is None:
         gt_stats = ssim_gt_stats(gt, dtype=pred.dtype)
     if fused_ssim_available(pred) and tuple(gt.shape) == tuple(pred.shape):

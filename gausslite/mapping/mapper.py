@@ -35,13 +35,13 @@ import numpy as np
 import torch
 
 from gausslite.datasets.base import Frame
+from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
-from gausslite.fused_ssim import ssim_mean
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
 from gausslite.render.culling import frustum_cull_mask

@@ -55,8 +55,9 @@ def profile_for_layout(layout: str) -> SensorProfile:
 #: Mapper speed presets (issue 11, ``python -m bench.mapper``): MapperConfig overrides applied on top of
 #: the sensor profile. ``baseline`` is the mapper before the issue-11 speed work: the reference paths
 #: of the ROI-phase Adam step and of SSIM, and the Warp tile compositing kernels. ``fast`` is today's
-#: default (the same results to float rounding; SIMD compositing kernels). ``coarse`` and ``window`` cut full-image work (half-resolution first iterations; random
-#: half-area windows) and are measured, not recommended: both cost far more than 0.5 dB on room0.
+#: default (the same results to float rounding; SIMD compositing kernels). ``coarse`` and ``window`` cut
+#: full-image work (half-resolution first iterations; random half-area windows) and are measured, not
+#: recommended: both cost far more than 0.5 dB on room0.
 SPEED_PRESETS: dict[str, dict] = {
     "baseline": {"reference_paths": True, "cpu_kernel": "tile"},
     "fast": {},

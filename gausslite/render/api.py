@@ -11,6 +11,7 @@ from .autograd import RasterizeWarp, default_num_threads, project_gaussians_warp
 from .binning import bin_gaussians
 from .projection import project_gaussians
 from .reference import rasterize_reference
+from .simd_kernels import check_cpu_kernel
 
 BACKENDS = ("auto", "warp", "torch", "gsplat")
 
@@ -161,8 +162,7 @@ def rasterize(
     width, height = int(width), int(height)
     if tile_size <= 0:
         raise ValueError(f"tile_size must be > 0, got {tile_size}")
-    if cpu_kernel not in ("simd", "tile"):
-        raise ValueError(f"cpu_kernel must be 'simd' or 'tile', got {cpu_kernel!r}")
+    check_cpu_kernel(cpu_kernel)
     if (c2w is None) == (viewmat is None):
         raise ValueError("give exactly one of c2w (camera-to-world) or viewmat (world-to-camera)")
     K64 = _as_tensor(K, "K", (3, 3), device, dtype)

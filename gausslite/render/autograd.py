@@ -144,8 +144,7 @@ class RasterizeWarp(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, gids, tile_start, tile_end,
                 width, height, tile_size, tiles_x, tiles_y, num_threads, opacity_is_logit=False,
                 background=None, cpu_kernel="simd"):
-        if cpu_kernel not in ("simd", "tile"):
-            raise ValueError(f"cpu_kernel must be 'simd' or 'tile', got {cpu_kernel!r}")
+        sk.check_cpu_kernel(cpu_kernel)
         dev = means2d.device
         M = means2d.shape[0]
         cpu = dev.type != "cuda"

@@ -19,9 +19,10 @@ changes that let clang emit 8-wide AVX2 code:
   with ``#pragma clang fp reassociate(on)``, so they add in another order than the Warp kernel.
 
 Results match the Warp tile kernels to float32 rounding (tests/test_render_simd.py: colours and alpha
-within 1e-6, gradients within 1e-5 relative) and the pure-PyTorch reference as the Warp kernels do
-(tests/test_render_rasterizer.py parity tests run through this path). Measured on room0 at 300x170,
-18k Gaussians, 2 threads: forward 20.1 -> 11.1 ms, backward 25.1 -> 16.0 ms (``python -m bench.rasterizer``).
+within 2e-6, gradients within 1e-5 relative) and the pure-PyTorch reference as the Warp kernels do
+(tests/test_render_rasterizer.py parity tests run through this path). Measured on a room0 map at 300x170,
+18k Gaussians, 2 threads: forward 20.1 -> 11.1 ms, backward 25.1 -> 16.0 ms; ``python -m bench.rasterizer``
+times both kernel sets on random scenes (forward + backward 1.8-2.2x).
 CPU only; the CUDA path keeps the per-pixel kernels of :mod:`~gausslite.render.warp_kernels`.
 """
 
@@ -35,6 +36,14 @@ wp.set_module_options({"enable_backward": False})
 
 #: widest tile the SIMD kernels handle (lanes per row); wider tiles use the Warp tile kernels
 MAX_TILE = 16
+#: CPU compositing kernel choices: these SIMD kernels, or the Warp tile kernels
+CPU_KERNELS = ("simd", "tile")
+
+
+def check_cpu_kernel(cpu_kernel: str) -> None:
+    """Raise ValueError unless ``cpu_kernel`` is one of :data:`CPU_KERNELS`."""
+    if cpu_kernel not in CPU_KERNELS:
+        raise ValueError(f"cpu_kernel must be one of {CPU_KERNELS}, got {cpu_kernel!r}")
 
 # Pieces shared by both snippets (substituted below): the Gaussian's gdata row, its tile rows
 # (:func:`~gausslite.render.warp_kernels._tile_rows`), the row span as lanes [la, lb] with the row

@@ -1168,16 +1168,23 @@ def ensure_loaded(device: str) -> None:
     Must run before concurrent launches so that two threads never compile the module at the same
     time. Compiled binaries are cached on disk by Warp (``~/.cache/warp``) across processes.
     """
-    if device in _loaded:
+    ensure_module_loaded(__name__, device)
+    if device == "cpu":
+        ensure_module_loaded("gausslite.render.simd_kernels", device)
+
+
+def ensure_module_loaded(module: str, device: str) -> None:
+    """Initialise Warp and compile/load the Warp module named ``module`` (imported) for ``device`` once
+    per process, under one lock for every module (see :func:`ensure_loaded`)."""
+    key = f"{module}@{device}"
+    if key in _loaded:
         return
     with _init_lock:
-        if device in _loaded:
+        if key in _loaded:
             return
         wp.init()
-        wp.load_module(module=__name__, device=device)
-        if device == "cpu":
-            wp.load_module(module="gausslite.render.simd_kernels", device=device)
-        _loaded.add(device)
+        wp.load_module(module=module, device=device)
+        _loaded.add(key)
 
 
 def _forget_pool_in_child() -> None:
