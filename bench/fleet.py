@@ -451,11 +451,11 @@ def main(argv=None) -> int:
         inc_res, inc_rpc = incs[-1]
         with FusionClient(f"127.0.0.1:{reps[0].port}", timeout_s=60) as c:  # download from another replica
             fused = c.download_fused(inc_res.fused_version)
-        local, _ = voxel_vote(sent_subsets, float(inc_res.voxel_size))
+        local, _ = voxel_vote(sent_subsets, float(inc_res.voxel_size), contest_radius=int(inc_res.contest_radius))
         local_s = []
         for _ in range(3):
             t = time.perf_counter()
-            voxel_vote(sent_subsets, float(inc_res.voxel_size))
+            voxel_vote(sent_subsets, float(inc_res.voxel_size), contest_radius=int(inc_res.contest_radius))
             local_s.append(time.perf_counter() - t)
         for ch, _ in stubs:
             ch.close()

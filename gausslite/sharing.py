@@ -38,7 +38,8 @@ import torch
 
 from gausslite.mapping.memory import VOXEL_KEY_OFFSET, pack_voxel_keys
 
-__all__ = ["ShareConfig", "ShareView", "task_region", "in_region", "roi_contribution", "select_task_subset"]
+__all__ = ["ShareConfig", "ShareView", "task_region", "in_region", "roi_contribution", "select_task_subset",
+           "finetune_subset"]
 
 _OFF = VOXEL_KEY_OFFSET  # voxel keys as in the scene budget (gausslite.mapping.memory)
 _pack = pack_voxel_keys
@@ -81,8 +82,6 @@ class ShareView:
     @property
     def height(self) -> int:
         return int(self.roi.shape[0])
-
-
 
 
 def task_region(views: Sequence[ShareView], voxel_m: float = 0.05, dilate: int = 1) -> np.ndarray:
@@ -148,18 +147,6 @@ def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
                           pixel_mask=roi, subset=subset, background=torch.zeros(3), backend=backend)
         out += w.cpu().double().numpy()
     return out
-    cols = gmap.colors.detach().clone().requires_grad_(True)
-    for v in views:
-        roi = torch.as_tensor(np.asarray(v.roi, bool))
-        if not bool(roi.any()):
-            continue
-        r = rasterize(gmap.means.detach(), gmap.quats.detach(), gmap.log_scales.detach(),
-                      gmap.opacity_logits.detach(), cols, K=np.asarray(v.K), width=v.width, height=v.height,
-                      c2w=np.asarray(v.c2w), background=torch.zeros(3), backend=backend, subset=subset)
-        r.color[..., 0][roi.to(r.color.device)].sum().backward()
-        out += cols.grad[:, 0].detach().cpu().double().numpy()
-        cols.grad = None
-    return out
 
 
 def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = ShareConfig(),
@@ -203,3 +190,94 @@ def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = Shar
         cand[idx[keep]] = True
     stats["shared"] = int(cand.sum())
     return cand, stats
+
+
+def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int = 0, footprint_alpha: float = 0.0,
+                    final_lr: float = 0.05):
+    """Fit a copy of the shared subset, rendered alone, to the ROI of the agent's keyframes.
+
+    An agent that maps with ``roi_render: context`` fits its active Gaussians to the pixels the *full*
+    map shows: in its own map, background Gaussians fill the ROI's gaps and sit behind translucent
+    ROI Gaussians. The shared subset leaves those behind, so rendered alone (as the fusion server
+    renders it) it shows holes and dark fringes. Before a push the agent fine-tunes a copy of the
+    subset on its ROI keyframes with the subset rendered alone (issue 12 item 4: "agents map with
+    ``context`` and, before each push, fine-tune a copy of the shared subset rendered alone on the
+    ROI keyframes"). The agent's own map is left untouched.
+
+    Each iteration draws one ROI keyframe uniformly and takes one ROI-phase step of the mapper's loss
+    (paper Eq. 1: L1 colour + depth + SSIM, on the ROI box crop) with every Gaussian of the copy
+    treated as active and rendered alone. The learning rates follow a cosine from the mapper's down to
+    ``final_lr`` × them, so the copy settles instead of ending on an Adam step. No density control, no
+    pose refinement; rows keep their order, so the agent's stable ids stay aligned. κ and the task
+    flags of the result are those of the input (the fine-tune steps are not active-optimisation
+    counts of the agent's map).
+
+    Measured (room0 pick-plant / find-ottoman, deployed agent settings with ``roi_render: context``,
+    3 seeds): the subset alone renders its ROI at 29.6 / 25.5 dB before, and 37.40 / 38.88,
+    37.62 / 38.63, 37.91 / 39.16 dB after 200 iterations with ``final_lr`` 0.05, against the agent's
+    own full map 36.70 / 35.67, 37.47 / 38.54, 32.77 / 38.75 dB. 60 iterations at a constant rate gave
+    35.92 / 37.68 and 36.94 / 37.88 dB (seeds 0, 1). About 2 s per push on one core at 300×170.
+
+    Args:
+        subset: ``GaussianMap`` (or any container ``GaussianArrays.from_any`` takes) of N Gaussians,
+            world frame, metres.
+        keyframes: the agent's keyframes (``gausslite.mapping.mapper.Keyframe``, on any device);
+            those without ROI pixels are skipped.
+        iters: Adam iterations (>= 0; 0 or no ROI keyframe returns a copy of the input).
+        cfg: ``MapperConfig`` giving the learning rates and loss weights (default ``MapperConfig()``).
+        seed: RNG seed of the view draws.
+        footprint_alpha: the loss covers ROI pixels whose rendered alpha exceeds this; the default 0
+            covers the whole ROI, so Gaussians grow over the gaps the background used to fill.
+        final_lr: learning-rate factor reached at the last iteration (cosine schedule; 1 = constant).
+
+    Returns:
+        ``GaussianMap`` with N rows in the input's order.
+
+    Raises:
+        ValueError: ``iters < 0`` or ``final_lr`` outside (0, 1].
+    """
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.mapping.mapper import Mapper, crop_keyframe, photometric_loss
+    from gausslite.mapping.model import cosine_lr_factor
+    from gausslite.wire.codec import GaussianArrays
+
+    if iters < 0:
+        raise ValueError(f"iters must be >= 0, got {iters}")
+    if not 0 < final_lr <= 1:
+        raise ValueError(f"final_lr must be in (0, 1], got {final_lr}")
+    base = cfg or MapperConfig()
+    gmap = GaussianArrays.from_any(subset).to_gaussian_map(base.device)
+    kfs = [kf for kf in keyframes if kf.roi_box is not None]
+    if iters == 0 or len(gmap) == 0 or not kfs:
+        return gmap
+    active, kappa = gmap.active.clone(), gmap.kappa.clone()
+    fcfg = base.model_copy(update={
+        "seed": seed, "roi_render": "active", "footprint_alpha": float(footprint_alpha),
+        "max_gaussians": max(base.max_gaussians or 0, len(gmap)),
+        "densify": base.densify.model_copy(update={"enabled": False})})
+    mapper = Mapper(fcfg)
+    gmap.active = torch.ones_like(gmap.active)
+    mapper.load_map(gmap)
+    kfs = [kf if kf.rgb.device == mapper.device else _keyframe_to(kf, mapper.device) for kf in kfs]
+    rng = np.random.default_rng(seed)
+    for it in range(int(iters)):
+        mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))
+        view = crop_keyframe(kfs[int(rng.integers(len(kfs)))], fcfg.roi_crop_pad)
+        out = mapper._rasterize(view.c2w, view.K, view.width, view.height, None)
+        mask = view.roi & (out.alpha.detach() > fcfg.footprint_alpha)
+        loss = photometric_loss(out, view, fcfg.lambda_depth, fcfg.lambda_ssim, mask, fcfg.reference_paths)
+        loss.backward()
+        mapper.model.step()
+    out = mapper.gmap
+    out.active, out.kappa = active.to(out.means.device), kappa.to(out.means.device)
+    return out
+
+
+def _keyframe_to(kf, device):
+    """``kf`` with its tensors on ``device`` (a shallow copy)."""
+    import dataclasses
+
+    move = {k: getattr(kf, k).to(device) for k in ("rgb", "depth", "c2w", "K")}
+    if kf.roi is not None:
+        move["roi"] = kf.roi.to(device)
+    return dataclasses.replace(kf, ssim_stats=None, **move)

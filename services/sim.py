@@ -349,7 +349,8 @@ def write_markdown(report: dict, path: Path) -> None:
                      f"{a.get('total_upload_bytes', '–')} | {a.get('final_subset_bytes', '–')} | "
                      f"{_fmt(a.get('upload_ratio'))} |")
     if any("own_roi_psnr_context" in a for a in report["agents"]):
-        lines += ["", "Own map with `roi_render: context` (a run of the same sim) against the fused vote map:", "",
+        lines += ["", "Own map with `roi_render: context` (this run's agents, or a run of the same sim mapped that "
+                  "way) against the fused vote map:", "",
                   "| agent | task | own ROI PSNR, deployed | own ROI PSNR, context | fused vote | vote − own context |",
                   "|---|---|---|---|---|---|"]
         vote = report["fused"]["vote"]["roi_psnr_per_task"]
@@ -372,7 +373,8 @@ def write_markdown(report: dict, path: Path) -> None:
         per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) for t in tasks)
         lines.append(f"| {key} | {per} | {_fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {_fmt(f['seconds'])} |")
     lines += ["", "`concat` = plain concatenation of the agents' ROI subsets; `vote` = per-voxel κ vote "
-              f"(δ = {report['settings']['voxel_size']} m); `refine` = vote + joint refinement "
+              f"(δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood of radius "
+              f"{report['settings'].get('contest_radius', 0)} voxels); `refine` = vote + joint refinement "
               f"({report['settings']['refine_iters']} iterations over the uploaded keyframes).", "",
               "## Renders (render | ground truth | task ROI)", ""]
     for r in report.get("renders", []):
@@ -401,7 +403,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         offline_report: folder or ``report.json`` of an earlier every-frame run on the same dataset; its
             agents' ROI PSNR is reported next to ``roi_psnr_all_frames`` (``agent.realtime`` runs).
         context_report: ``report.json`` of the same sim mapped with ``mapper.roi_render=context``:
-            adds ``own_roi_psnr_context`` per agent (:func:`attach_context_baseline`).
+            adds ``own_roi_psnr_context`` per agent (:func:`attach_context_baseline`). Without it, a run
+            whose agents map with ``roi_render: context`` (the deployed setting) reports its own figures
+            there.
     Returns:
         SimResult.
     Raises:
@@ -499,6 +503,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         fuse_cfg = sim_cfg.get("fuse") or {}
         voxel = float(fuse_cfg.get("voxel_size", 0.10))
         refine_iters = int(fuse_cfg.get("refine_iters", 100))
+        radius = int(fuse_cfg.get("contest_radius", 1))
         backend = (cfg.get("mapper") or {}).get("backend", "auto")
         eval_frames = {}
         for p in plans:
@@ -513,6 +518,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             method = "concat" if key == "concat" else "vote"
             log.info("fusing: %s", key)
             res = fusion.fuse(method, refine=(key == "refine"), refine_iters=refine_iters, voxel_size=voxel,
+                              contest_radius=radius if method == "vote" else None,
                               progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
             gmap = fusion.download_fused(res.fused_version).to_gaussian_map()
             per_task = {}
@@ -569,10 +575,12 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                   "renders": renders,
                   "realtime": bool((cfg.get("agent") or {}).get("realtime", False)),
                   "offline_report": str(offline_report) if offline_report else None,
-                  "settings": {"voxel_size": voxel, "refine_iters": refine_iters, "config": str(config_path),
+                  "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters, "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
         if context_report is not None:
             attach_context_baseline(report, json.loads(Path(context_report).read_text()))
+        elif ((cfg.get("mapper") or {}).get("roi_render") or "context") == "context":
+            attach_context_baseline(report, report)  # the agents themselves mapped with roi_render: context
         if plot_pushes(report, out / "pushes.png"):
             report["pushes_plot"] = "pushes.png"
         (out / "report.json").write_text(json.dumps(report, indent=2))

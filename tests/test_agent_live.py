@@ -480,3 +480,73 @@ def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_o
     assert "| agent_a | 16 | 4 | 12 | 0.50 | 2.00 | 10.0 | 7 | 21.25 | 27.50 |" in md
     with pytest.raises(ValueError, match="realtime"):
         attach_offline_report(tmp_path / "rt", tmp_path / "rt")
+
+
+# ---------------------------------------------------------------------------------------------- sharing
+class _RecordingFusion:
+    """A FusionClient stand-in that keeps the uploaded chunks."""
+
+    def __init__(self):
+        self.uploads = []
+
+    def open_session(self, agent_id, task_text, intrinsics):
+        return None
+
+    def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
+        self.uploads.append((version, list(chunks)))
+        return type("R", (), {"complete": True, "bytes_sent": sum(len(c) for c in chunks), "n_chunks": len(chunks)})()
+
+    def upload_keyframes(self, agent_id, kfs, jpeg_quality=95, color_format="png"):
+        return len(kfs)
+
+
+@pytest.mark.parametrize("iters", [0, 7])
+def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters):
+    """``share: task`` with ``share_finetune_iters``: each push carries the output of
+    ``finetune_subset`` on the agent's keyframes (the map itself is not modified); 0 turns it off."""
+    import gausslite.sharing as sharing
+    from gausslite.wire.codec import GaussianArrays, assemble
+
+    calls = []
+    real = sharing.finetune_subset
+
+    def spy(subset, keyframes, n, cfg=None, seed=0, **kw):
+        out = real(subset, keyframes, n, cfg, seed=seed, **kw)
+        calls.append((n, len(keyframes), GaussianArrays.from_any(subset), GaussianArrays.from_any(out)))
+        return out
+
+    monkeypatch.setattr(sharing, "finetune_subset", spy)
+    ds = load_dataset(scene / "agent_a")
+    cfg = load_agent_config(None, TINY + ["agent.share=task", f"agent.share_finetune_iters={iters}",
+                                          "agent.ingest=every_frame", "agent.delta_push=false",
+                                          "mapper.roi_render=context"])
+    roi = np.zeros((48, 64), bool)
+    roi[12:36, 16:48] = True
+    fusion = _RecordingFusion()
+    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
+                      relevance_fn=lambda fr: roi, fusion=fusion)
+    try:
+        for i in range(4):
+            rt.submit(ds[i])
+        rt.finish(push=True, evaluate=False, timeout_s=120)
+    finally:
+        rt.close()
+    assert fusion.uploads
+    if iters == 0:
+        assert calls == []
+        return
+    assert 1 <= len(calls) <= len(fusion.uploads) and all(c[0] == iters and c[1] >= 1 for c in calls)
+    # an unchanged subset (and keyframes) is not fine-tuned again: the same result, so the delta is empty
+    n = len(calls)
+    again = rt._finetuned(calls[-1][2])
+    assert len(calls) == n and again is rt._finetune_cache[1]
+    # the final push is the fine-tuned copy of the final subset, not the map's rows
+    pushed, _ = assemble(fusion.uploads[-1][1])
+    _, _, before, after = calls[-1]
+    assert len(pushed) == len(after) == len(before) > 0
+    from scipy.spatial import cKDTree
+
+    dist, match = cKDTree(after.means).query(pushed.means)  # the wire reorders rows spatially
+    assert dist.max() < 1e-3 and len(set(match.tolist())) == len(after)
+    np.testing.assert_allclose(pushed.colors, after.colors[match], atol=0.02)
+    assert np.abs(after.colors - before.colors).max() > 0.02  # fine-tuning changed the subset

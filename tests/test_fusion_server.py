@@ -113,10 +113,17 @@ def test_two_agents_full_path(server, client):
     assert rc.n_gaussians == 5000 and rc.kept == {"robot-a": 3000, "robot_b.2": 2000} and rc.method == "concat"
     assert seen[-1][0] == 1.0 and all(0.0 <= f <= 1.0 for f, _ in seen)
     assert [f for f, _ in seen] == sorted(f for f, _ in seen)
+    # the 3x3x3 neighbourhood contest (contest_radius 1, what the sim requests), then the server default:
+    # the paper's per-voxel rule
+    r1 = client.fuse("vote", voxel_size=0.1, contest_radius=1)
+    expected1, report1 = voxel_vote(maps, 0.1, contest_radius=1)
+    assert r1.contest_radius == 1 and r1.kept == dict(report1.kept)
+    assert client.download_fused(r1.fused_version).equals(expected1)
     rv = client.fuse("vote", voxel_size=0.1, progress=None)
     expected, report = voxel_vote(maps, 0.1)
-    assert report.contested_voxels > 0 and rv.n_gaussians == len(expected) < 5000
-    assert rv.kept == dict(report.kept) and rv.fused_version == rc.fused_version + 1
+    assert rv.contest_radius == 0 and rc.contest_radius == 0
+    assert report1.contested_voxels > report.contested_voxels > 0 and rv.n_gaussians == len(expected) < 5000
+    assert rv.kept == dict(report.kept) and rv.fused_version == r1.fused_version + 1 == rc.fused_version + 2
     assert client.download_fused(rv.fused_version).equals(expected)
     assert client.download_fused(0).equals(expected)  # latest
     assert client.download_fused(0, method="concat").equals(concat(maps))
@@ -129,7 +136,7 @@ def test_two_agents_full_path(server, client):
     assert sa["gaussians_received"] == 3000 and sa["chunks"] == 5 and sa["latest_map_version"] == 1
     assert sb["latest_map_version"] == 4 and sa["keyframes"] == 3 and sb["keyframes"] == 2
     assert sa["task_text"] == "find the cup"
-    assert [f["fused_version"] for f in st["fused"]] == [rc.fused_version, rv.fused_version]
+    assert [f["fused_version"] for f in st["fused"]] == [rc.fused_version, r1.fused_version, rv.fused_version]
     assert st["latest_fused_version"] == rv.fused_version
 
 
@@ -290,6 +297,8 @@ def test_bad_input_precise_codes(server, client, caplog):
         # fuse option checks and refine without keyframes
         code, _ = code_of(lambda: list(stub.Fuse(fusion_pb2.FuseRequest(voxel_size=-1.0), timeout=10)))
         assert code == grpc.StatusCode.INVALID_ARGUMENT
+        code, msg = code_of(lambda: list(stub.Fuse(fusion_pb2.FuseRequest(contest_radius=9), timeout=10)))
+        assert code == grpc.StatusCode.INVALID_ARGUMENT and "contest_radius" in msg
         code, msg = code_of(lambda: client.fuse("vote", refine=True, refine_iters=5))
         assert code == grpc.StatusCode.FAILED_PRECONDITION and "keyframes" in msg
         with pytest.raises(ValueError):

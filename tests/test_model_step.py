@@ -162,3 +162,33 @@ def test_clones_start_from_zero_moments_and_separate_from_their_parent():
         model.step()
     m = model.params["means"].detach()
     assert (m[0] - m[1]).norm() > 1e-5, "clone moved in lockstep with its parent"
+
+
+def test_lr_scale_and_cosine_factor():
+    from gausslite.gaussians import GaussianMap
+    from gausslite.mapping.config import LearningRates
+    from gausslite.mapping.model import GaussianModel, cosine_lr_factor
+
+    m = GaussianModel(LearningRates())
+    m.set_map(GaussianMap.from_points(torch.zeros(3, 3), torch.full((3, 3), 0.5), torch.full((3, 3), 0.1)))
+    m.set_lr_scale(0.25)
+    for g in m.optimizer.param_groups:
+        assert g["lr"] == pytest.approx(0.25 * getattr(LearningRates(), g["name"]))
+    m.set_map(m.to_map(), torch.arange(3))  # a rebuild restores the configured rates
+    assert m.optimizer.param_groups[0]["lr"] == LearningRates().means
+    f = [cosine_lr_factor(i, 5, 0.1) for i in range(5)]
+    assert f[0] == 1.0 and f[-1] == pytest.approx(0.1) and f == sorted(f, reverse=True)
+    assert cosine_lr_factor(0, 1, 0.1) == 1.0
+
+
+def test_finetune_and_refine_reject_a_bad_final_lr():
+    from gausslite.fusion.refine import refine_map
+    from gausslite.gaussians import GaussianMap
+    from gausslite.sharing import finetune_subset
+
+    g = GaussianMap.from_points(torch.zeros(3, 3), torch.full((3, 3), 0.5), torch.full((3, 3), 0.1))
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="final_lr"):
+            finetune_subset(g, [], 5, final_lr=bad)
+        with pytest.raises(ValueError, match="final_lr"):
+            refine_map(g, [], 5, final_lr=bad)

@@ -68,3 +68,57 @@ def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_
     # no ROI pixels at all: the task flag and κ rule alone
     mask, _ = select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))])
     assert mask.tolist() == [True, True, True, True, False]
+
+
+def _roi_keyframe(color=(200, 30, 30), box=(20, 12, 44, 36)):
+    """A 64×48 keyframe at the origin looking down +z at a plane 2 m away; ``box`` of it is the ROI
+    and shows ``color`` (uint8 RGB), the rest grey."""
+    from gausslite.camera import Intrinsics
+    from gausslite.datasets.base import Frame
+    from gausslite.mapping.mapper import keyframe_from_frame
+
+    rgb = np.full((48, 64, 3), 90, np.uint8)
+    x0, y0, x1, y1 = box
+    rgb[y0:y1, x0:x1] = color
+    roi = np.zeros((48, 64), bool)
+    roi[y0:y1, x0:x1] = True
+    fr = Frame(0, 0.0, rgb, np.full((48, 64), 2.0, np.float32), np.eye(4), Intrinsics.from_K(K, 64, 48))
+    return keyframe_from_frame(fr, torch.device("cpu"), roi), roi
+
+
+def _roi_l1(g, kf, roi):
+    from gausslite.render import rasterize
+
+    out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors, K=K, width=64, height=48,
+                    c2w=np.eye(4), background=torch.zeros(3))
+    return float((out.color - kf.rgb).abs()[torch.from_numpy(roi)].mean())
+
+
+def test_finetune_subset_fits_the_subset_alone_to_the_roi_and_keeps_rows_kappa_and_flags():
+    from gausslite.sharing import finetune_subset
+
+    kf, roi = _roi_keyframe()
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, 4), np.linspace(-0.3, 0.3, 4))  # the ROI spans ±0.4 m
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(16, 2.0)], 1)
+    sub = _map(means, [0.4] * 16, [0.1] * 16)  # grey, translucent: in the map, the background filled it
+    sub.kappa[:] = torch.arange(16) + 3
+    sub.active[5] = False  # flags come back as they were, even though every row is optimised
+    before = {k: getattr(sub, k).clone() for k in ("means", "colors", "kappa", "active")}
+    l1_0 = _roi_l1(sub, kf, roi)
+    out = finetune_subset(sub, [kf], iters=120, seed=0)
+    l1_1 = _roi_l1(out, kf, roi)
+    assert l1_1 < 0.4 * l1_0, (l1_0, l1_1)
+    assert len(out) == 16
+    # row order kept (ids stay aligned): every Gaussian stays near where it was
+    assert float((out.means - before["means"]).norm(dim=1).max()) < 0.05
+    assert torch.equal(out.kappa, before["kappa"]) and torch.equal(out.active, before["active"])
+    # the input is not modified
+    assert torch.equal(sub.means, before["means"]) and torch.equal(sub.colors, before["colors"])
+    # the colour moved towards the ROI's red
+    assert float(out.colors[:, 0].mean()) > float(before["colors"][:, 0].mean()) + 0.1
+    # no iterations / no ROI keyframe: values unchanged
+    for same in (finetune_subset(sub, [kf], iters=0),
+                 finetune_subset(sub, [_roi_keyframe(box=(0, 0, 0, 0))[0]], iters=10)):
+        assert torch.equal(same.means, sub.means) and torch.equal(same.colors, sub.colors)
+    with pytest.raises(ValueError):
+        finetune_subset(sub, [kf], iters=-1)

@@ -13,7 +13,7 @@ from services.sim import plan_agents, load_sim_config, run_sim
 
 TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
         "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=150",
-        "sim.fuse.refine_iters=3"]
+        "sim.fuse.refine_iters=3", "agent.share_finetune_iters=20"]
 
 
 def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
@@ -46,6 +46,14 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert not a["push_log"][0]["delta"]  # the first push has no base
     assert rep["pushes_plot"] == "pushes.png" and (tmp_path / "sim" / "pushes.png").is_file()
     assert "total upload bytes" in md and "![bytes per push" in md
+    # the deployed agents map with roi_render: context, so their own maps are the context figure
+    assert rep["settings"]["mapper"]["roi_render"] == "context"
+    assert rep["settings"]["contest_radius"] == 1 and "neighbourhood of radius 1" in md
+    for a in rep["agents"]:
+        assert a["own_roi_psnr_context"] == a["roi_psnr"]
+        assert math.isclose(a["vote_minus_own_context"],
+                            rep["fused"]["vote"]["roi_psnr_per_task"][a["task"]] - a["roi_psnr"])
+    assert "vote − own context" in md
     # own-map figure of a roi_render=context run of the same sim
     from services.sim import attach_context_baseline
 

@@ -21,6 +21,7 @@ from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper, keyframe_from_frame
+from gausslite.mapping.model import cosine_lr_factor
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,7 @@ def refine_map(
     seed: int = 0,
     cfg: Optional[MapperConfig] = None,
     footprint_only: bool = True,
+    final_lr: float = 0.05,
     **overrides,
 ):
     """Jointly optimise a (fused) map over a keyframe pool.
@@ -79,15 +81,22 @@ def refine_map(
             below vote with the full-image loss).
         cfg: mapper config supplying learning rates, loss weights and density control (default
             ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``max_gaussians=...``).
+        final_lr: the learning rates follow a cosine from the mapper's down to ``final_lr`` × them (1 =
+            constant). Measured on room0 (fused vote of two fine-tuned subsets, 100 iterations, seeds
+            0/1/2): pick-plant 35.39/35.92/35.49 dB constant, 35.95/36.62/36.40 with 0.05; find-ottoman
+            37.62/37.75/37.98 against 38.36/39.14/39.02.
     Returns:
         ``GaussianArrays`` of the refined map.
     Raises:
-        ValueError: ``iters`` < 0, no keyframes while ``iters`` > 0, or a malformed keyframe.
+        ValueError: ``iters`` < 0, no keyframes while ``iters`` > 0, ``final_lr`` outside (0, 1], or a
+            malformed keyframe.
     """
     from gausslite.wire.codec import GaussianArrays
 
     if iters < 0:
         raise ValueError(f"iters must be >= 0, got {iters}")
+    if not 0 < final_lr <= 1:
+        raise ValueError(f"final_lr must be in (0, 1], got {final_lr}")
     arrays = GaussianArrays.from_any(gaussians)
     if iters == 0 or len(arrays) == 0:
         return arrays
@@ -101,6 +110,7 @@ def refine_map(
     rng = np.random.default_rng(seed)
     every = max(1, iters // 20)
     for it in range(iters):
+        mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))  # density control resets the rates
         kf = kfs[int(rng.integers(len(kfs)))]
         loss = mapper._iterate(kf, active_phase=False, footprint_only=footprint_only)
         if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0 and it + 1 < iters:

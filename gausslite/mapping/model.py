@@ -9,6 +9,7 @@ and further split daughters start from zero moments, as in 3DGS (``densification
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
@@ -17,6 +18,12 @@ from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import LearningRates
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+def cosine_lr_factor(it: int, iters: int, final: float) -> float:
+    """Learning-rate factor of iteration ``it`` (0-based) of ``iters``: a cosine from 1 at the first
+    iteration down to ``final`` at the last (SGDR without restarts, Loshchilov & Hutter 2017)."""
+    return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * it / max(int(iters) - 1, 1)))
 
 
 class GaussianModel:
@@ -132,6 +139,12 @@ class GaussianModel:
         ids[fresh] = torch.arange(self._next_id, self._next_id + k, dtype=torch.int64)
         self._next_id += k
         return ids
+
+    def set_lr_scale(self, factor: float) -> None:
+        """Set every parameter group's learning rate to ``factor`` × its configured rate (``self.lr``).
+        A rebuild of the optimiser by :meth:`set_map` restores the configured rates."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = getattr(self.lr, group["name"]) * float(factor)
 
     def step(self, update: Optional[torch.Tensor] = None, reference: bool = False) -> None:
         """One Adam step, then clear gradients.

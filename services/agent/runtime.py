@@ -91,6 +91,11 @@ class AgentConfig(BaseModel):
             κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
             :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
         share_coverage: ``share: task``: fraction of the ROI blending weight the shared subset keeps.
+        share_finetune_iters: ``share: task``: before each push, fine-tune a copy of the shared subset
+            rendered alone on the ROI keyframes for this many iterations
+            (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
+            own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
+            share a subset that renders the ROI on its own.
         kappa_threshold: κ threshold for ``share: kappa``.
         push_every: push a subset every this many mapped frames (and always at the end).
         downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
@@ -138,6 +143,7 @@ class AgentConfig(BaseModel):
     share: Literal["active", "kappa", "task"] = "active"
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
+    share_finetune_iters: int = Field(200, ge=0)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -376,6 +382,7 @@ class AgentRuntime:
         self.summary: Optional[MissionSummaryData] = None
         self._version = 0
         self._planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
+        self._finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset) of the last push
         self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
         self.final_subset_bytes = 0  # the last pushed subset encoded whole
         self._session_open = False
@@ -746,11 +753,41 @@ class AgentRuntime:
         else:
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
         arrays = GaussianArrays.from_any(gmap).take(mask)
+        if self.config.share == "task" and self.config.share_finetune_iters > 0 and len(arrays):
+            arrays = self._finetuned(arrays)
         ids = self.mapper.model.ids.numpy()[mask]
         with self._lock:
             self._version += 1
             self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped)
             self._push_cv.notify_all()
+
+    def _finetuned(self, arrays):
+        """The shared subset fine-tuned alone on the ROI keyframes (:func:`gausslite.sharing.finetune_subset`,
+        seeded by the mapper's seed). The same subset and keyframes as at the last push give the last
+        result again without work, so an unchanged map (e.g. the final push right after a periodic one)
+        stays unchanged on the wire and its delta is empty."""
+        import hashlib
+
+        from gausslite.sharing import finetune_subset
+        from gausslite.wire.codec import GaussianArrays
+
+        kfs = [self.mapper.keyframes.load(i, self.mapper.device) for i in range(len(self.mapper.keyframes))]
+        h = hashlib.blake2b(digest_size=16)
+        for name in GaussianArrays._SPEC:
+            h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
+        for kf in kfs:
+            h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
+        key = h.digest()
+        if self._finetune_cache is not None and self._finetune_cache[0] == key:
+            return self._finetune_cache[1]
+        t0 = time.perf_counter()
+        out = GaussianArrays.from_any(finetune_subset(arrays, kfs, self.config.share_finetune_iters, self.mapper.cfg,
+                                                      seed=self.mapper.cfg.seed))
+        log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, %.2f s",
+                 self.agent_id, len(arrays), sum(kf.roi_box is not None for kf in kfs),
+                 self.config.share_finetune_iters, time.perf_counter() - t0)
+        self._finetune_cache = (key, out)
+        return out
 
     # ------------------------------------------------------------------ pusher
     def _push_loop(self) -> None:

@@ -135,6 +135,7 @@ class FuseResult:
         map_versions (dict[str, int]): agent id → map version that was fused.
         method (str): "vote" or "concat". refined (bool), refine_iters (int), voxel_size (float, m),
         keyframes_used (int), bytes (int): size of the stored fused map.
+        contest_radius (int): the vote's neighbourhood radius in voxels (0 for concat).
     """
 
     fused_version: int
@@ -149,6 +150,7 @@ class FuseResult:
     voxel_size: float = 0.10
     keyframes_used: int = 0
     bytes: int = 0
+    contest_radius: int = 0
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -160,7 +162,7 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         map_versions={a.agent_id: int(a.map_version) for a in r.agents},
         method=_METHOD_NAMES.get(r.method, "vote"), refined=bool(r.refined),
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
-        keyframes_used=int(r.keyframes_used), bytes=int(r.bytes),
+        keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
     )
 
 
@@ -457,7 +459,7 @@ class FusionClient:
 
     def fuse(self, method: str = "vote", *, refine: bool = False, refine_iters: int = 200,
              voxel_size: float = 0.10, progress: Optional[Callable[[float, str], None]] = None,
-             seed: int = 0, timeout_s: Optional[float] = None) -> FuseResult:
+             seed: int = 0, timeout_s: Optional[float] = None, contest_radius: Optional[int] = None) -> FuseResult:
         """Run a fusion on the server and wait for its result (not retried: each call makes a version).
 
         Args:
@@ -469,6 +471,8 @@ class FusionClient:
                 message; ``message`` starts with the stage in brackets, e.g. ``"[refine] ..."``.
             seed (int): refinement RNG seed.
             timeout_s (float | None): deadline of the whole call (default ``max(600, 20·timeout_s)``).
+            contest_radius (int | None): vote neighbourhood radius in voxels (0 = the paper's per-voxel
+                rule, :func:`gausslite.fusion.vote.voxel_vote`); None = the server's default.
         Returns:
             FuseResult.
         Raises:
@@ -480,6 +484,8 @@ class FusionClient:
             raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}")
         req = fusion_pb2.FuseRequest(method=_METHODS[method], voxel_size=float(voxel_size), refine=bool(refine),
                                      refine_iters=int(refine_iters), seed=int(seed))
+        if contest_radius is not None:
+            req.contest_radius = int(contest_radius)
         t = timeout_s if timeout_s is not None else max(600.0, 20 * self.timeout_s)
         stream = self._stub.Fuse(req, timeout=t, metadata=self._metadata)
         try:

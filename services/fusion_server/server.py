@@ -83,6 +83,10 @@ class FusionConfig:
         max_subset_gaussians (int): largest accepted subset (RESOURCE_EXHAUSTED beyond).
         max_task_text_bytes (int): longest task text (INVALID_ARGUMENT beyond).
         default_voxel_size (float): δ in metres when a FuseRequest leaves it 0 (paper: 0.10 m).
+        default_contest_radius (int): vote neighbourhood radius in voxels when a FuseRequest leaves it
+            unset (0 = the paper's per-voxel rule; 1 = each voxel contested over its 3×3×3 block, what
+            ``gausslite sim`` and the compose deployment request: :func:`gausslite.fusion.vote.voxel_vote`).
+            An incremental update with r = 1 re-votes the 27-fold neighbourhood of what it touches.
         default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
         max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
         refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``max_gaussians``).
@@ -95,6 +99,7 @@ class FusionConfig:
     max_subset_gaussians: int = 4_000_000
     max_task_text_bytes: int = 4096
     default_voxel_size: float = 0.10
+    default_contest_radius: int = 0
     default_refine_iters: int = 200
     max_refine_iters: int = 20000
     refine_options: Dict[str, object] = field(default_factory=dict)
@@ -473,6 +478,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         voxel = float(request.voxel_size) or self.config.default_voxel_size
         if not (math.isfinite(voxel) and voxel > 0):
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"voxel_size must be finite and > 0, got {voxel}")
+        radius = (int(request.contest_radius) if request.HasField("contest_radius")
+                  else int(self.config.default_contest_radius))
+        if radius > 8:
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"contest_radius must be in 0..8, got {radius}")
         iters = int(request.refine_iters) or self.config.default_refine_iters
         if request.refine and iters > self.config.max_refine_iters:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
@@ -489,7 +498,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         context.add_callback(cancel.set)
         worker = threading.Thread(target=self._fuse_work, name="gausslite-fuse", daemon=True,
                                   args=(latest, method, voxel, bool(request.refine), iters, int(request.seed),
-                                        events, cancel))
+                                        events, cancel, radius))
         self._workers.add(worker)
         worker.start()
         try:
@@ -517,7 +526,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             cancel.set()  # no-op when the work finished; stops it when the stream was closed early
 
     def _fuse_work(self, latest: Dict[str, int], method: int, voxel: float, refine: bool, iters: int,
-                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event) -> None:
+                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event, radius: int = 0) -> None:
         """Fuse worker (own thread): pushes ("progress"|"done"|"cancelled"|"error", payload) events."""
         stage = {"name": "load"}
 
@@ -551,7 +560,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 vote_s, revoted, incremental = 0.0, 0, False
                 if method == fusion_pb2.FUSE_METHOD_VOTE:
                     tv = time.monotonic()
-                    fused, report, revoted, incremental = self._vote(latest, maps, voxel)
+                    fused, report, revoted, incremental = self._vote(latest, maps, voxel, radius)
                     vote_s = time.monotonic() - tv
                     kept = dict(report.kept)
                     msg = (f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
@@ -587,7 +596,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                         fused_version=version, n_gaussians=len(fused), seconds=seconds, agents=agents,
                         method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
                         keyframes_used=n_kf, bytes=nbytes, created_unix=time.time(), vote_seconds=vote_s,
-                        agents_revoted=revoted, incremental=incremental).SerializeToString()
+                        agents_revoted=revoted, incremental=incremental,
+                        contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0).SerializeToString()
 
                 if cancel.is_set() or self._shutdown.is_set():
                     raise _Cancelled()
@@ -614,16 +624,22 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         finally:
             self._workers.discard(threading.current_thread())
 
-    def _vote(self, latest: Dict[str, int], maps: Dict[str, GaussianArrays], voxel: float):
-        """Voxel vote of ``maps`` through the kept :class:`IncrementalVote` (full vote when it cannot
-        hold the extent). Returns (fused, report, agents re-voted, incremental?)."""
-        voter = self._voter if self._voter is not None and self._voter.voxel_size == voxel else None
+    def _vote(self, latest: Dict[str, int], maps: Dict[str, GaussianArrays], voxel: float, radius: int = 0):
+        """Voxel vote of ``maps`` (δ = ``voxel`` m, neighbourhood ``radius`` voxels) through the kept
+        :class:`IncrementalVote` (full vote when it cannot hold the extent). Returns (fused, report,
+        agents re-voted, incremental?)."""
+        voter = self._voter
+        if voter is not None and (voter.voxel_size != voxel or voter.contest_radius != radius):
+            voter = None
         incremental = voter is not None
-        voter = voter or IncrementalVote(voxel)
+        voter = voter or IncrementalVote(voxel, contest_radius=radius)
         self._voter = None  # re-installed only after a successful sync
         try:
             changed = voter.sync(latest, maps.__getitem__)
         except VoxelRangeError as e:
+            if radius:
+                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                              f"the neighbourhood vote cannot hold these maps ({e}); fuse with contest_radius=0")
             log.info("incremental vote unavailable (%s); full vote", e)
             fused, report = voxel_vote(maps, voxel)
             return fused, report, len(maps), False
