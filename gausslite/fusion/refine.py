@@ -64,7 +64,7 @@ def refine_map(
     seed: int = 0,
     cfg: Optional[MapperConfig] = None,
     footprint_only: bool = True,
-    final_lr: float = 0.05,
+    final_lr: float = 1.0,
     **overrides,
 ):
     """Jointly optimise a (fused) map over a keyframe pool.
@@ -82,9 +82,11 @@ def refine_map(
         cfg: mapper config supplying learning rates, loss weights and density control (default
             ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``max_gaussians=...``).
         final_lr: the learning rates follow a cosine from the mapper's down to ``final_lr`` × them (1 =
-            constant). Measured on room0 (fused vote of two fine-tuned subsets, 100 iterations, seeds
-            0/1/2): pick-plant 35.39/35.92/35.49 dB constant, 35.95/36.62/36.40 with 0.05; find-ottoman
-            37.62/37.75/37.98 against 38.36/39.14/39.02.
+            constant, the default). Measured with 100 iterations on the vote of two fine-tuned subsets
+            (``bench.share_finetune``): on room0 0.05 gains (seeds 0/1/2, pick-plant 35.39/35.92/35.49 dB
+            constant against 35.95/36.62/36.40; find-ottoman 37.62/37.75/37.98 against 38.36/39.14/39.02),
+            on the synthetic sim scene it loses (seed 0: 25.95/26.31 against 25.04/25.92), so the default
+            stays constant.
     Returns:
         ``GaussianArrays`` of the refined map.
     Raises:
