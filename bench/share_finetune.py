@@ -14,8 +14,10 @@ attention front-end; this bench isolates the sharing and fusion steps). Each age
 - ``alone_raw`` / ``alone_ft``: the shared subset rendered alone, before / after fine-tuning;
 - ``vote_r0`` / ``vote_r1``: the voxel vote (δ = 0.10 m) of the two fine-tuned subsets, per-voxel (the
   paper's rule) / contested over each voxel's 3×3×3 neighbourhood;
-- ``refine_const`` / ``refine_cos``: ``vote_r1`` jointly refined (``refine_map``, footprint loss, every
-  2nd keyframe of both agents) at a constant learning rate / on a cosine down to 5 %.
+- ``refine_foot`` / ``refine_roi``: ``vote_r1`` jointly refined (``refine_map``, 100 iterations over every
+  2nd keyframe of both agents) with the loss on the rendered footprint / on the footprint within each
+  keyframe's ROI (the agents send their ROI with their keyframes);
+- ``refine_roi_cos``: as ``refine_roi`` with the learning rate on a cosine down to 5 %.
 
 Mean ± std over seeds. Writes ``bench/results/share_finetune.json`` and ``.md``.
 """
@@ -35,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
 TASKS = ("room0-pick-plant", "room0-find-ottoman")
-FIELDS = ("own", "alone_raw", "alone_ft", "vote_r0", "vote_r1", "refine_const", "refine_cos")
+FIELDS = ("own", "alone_raw", "alone_ft", "vote_r0", "vote_r1", "refine_foot", "refine_roi", "refine_roi_cos")
 
 
 def run_seed(args, seed: int) -> dict:
@@ -81,12 +83,14 @@ def run_seed(args, seed: int) -> dict:
         out[task]["alone_ft"] = score(subs[task], task)
         refine_kfs += [RefineKeyframe((k.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8), k.depth.cpu().numpy(),
                                       k.c2w.cpu().numpy().astype(np.float64), k.K.cpu().numpy().astype(np.float64),
-                                      k.width, k.height) for k in kfs[::2]]
+                                      k.width, k.height, None if k.roi is None else k.roi.cpu().numpy())
+                       for k in kfs[::2]]
     fused = {}
     for r in (0, 1):
         fused[r], _ = voxel_vote(dict(zip(("agent_a", "agent_b"), (subs[t] for t in TASKS))), 0.10, contest_radius=r)
-    refined = {name: refine_map(fused[1], refine_kfs, args.refine_iters, seed=seed, final_lr=fl)
-               for name, fl in (("refine_const", 1.0), ("refine_cos", 0.05))}
+    refined = {name: refine_map(fused[1], refine_kfs, args.refine_iters, seed=seed, final_lr=fl, roi_loss=roi)
+               for name, fl, roi in (("refine_foot", 1.0, False), ("refine_roi", 1.0, True),
+                                     ("refine_roi_cos", 0.05, True))}
     for task in TASKS:
         out[task]["vote_r0"] = score(fused[0], task)
         out[task]["vote_r1"] = score(fused[1], task)
@@ -119,7 +123,7 @@ def main(argv=None) -> int:
         blk = {}
         for k in FIELDS + ("n_shared", "finetune_s"):
             blk[k], blk[k + "_std"] = mean_std([r["tasks"][task][k] for r in runs])
-        for k in ("alone_ft", "vote_r0", "vote_r1", "refine_cos"):
+        for k in ("alone_ft", "vote_r0", "vote_r1", "refine_roi"):
             blk[f"{k}_minus_own"], blk[f"{k}_minus_own_std"] = mean_std(
                 [r["tasks"][task][k] - r["tasks"][task]["own"] for r in runs])
         blk["vote_r1_ge_own_every_seed"] = all(r["tasks"][task]["vote_r1"] >= r["tasks"][task]["own"] for r in runs)
@@ -127,8 +131,8 @@ def main(argv=None) -> int:
     result = {"dataset": args.dataset, "downscale": args.downscale, "max_frames": args.max_frames,
               "finetune_iters": args.finetune_iters, "refine_iters": args.refine_iters,
               "seeds": list(range(args.seeds)), "tasks": summary, "runs": runs, "wall_s": time.perf_counter() - t0}
-    lines = ["| task | own map | subset alone | fine-tuned alone | vote r=0 | vote r=1 | refine (constant lr) | refine (cosine) | vote r=1 − own |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| task | own map | subset alone | fine-tuned alone | vote r=0 | vote r=1 | refine, footprint | refine, ROI | refine, ROI, cosine lr | vote r=1 − own |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for task, b in summary.items():
         f = lambda k: fmt(b[k], b[k + "_std"], 2)  # noqa: E731
         lines.append(f"| {task} | " + " | ".join(f(k) for k in FIELDS) + f" | {f('vote_r1_minus_own')} |")

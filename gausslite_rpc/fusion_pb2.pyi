@@ -102,7 +102,7 @@ class UploadAck(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., n_chunks: _Optional[int] = ..., stored: _Optional[_Iterable[int]] = ..., missing: _Optional[_Iterable[int]] = ..., complete: _Optional[bool] = ..., newly_stored: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., is_latest: _Optional[bool] = ..., superseded_by: _Optional[int] = ...) -> None: ...
 
 class KeyframeRequest(_message.Message):
-    __slots__ = ("agent_id", "frame_id", "color", "depth_png", "depth_scale", "pose", "intrinsics", "timestamp")
+    __slots__ = ("agent_id", "frame_id", "color", "depth_png", "depth_scale", "pose", "intrinsics", "timestamp", "roi_png")
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     COLOR_FIELD_NUMBER: _ClassVar[int]
@@ -111,6 +111,7 @@ class KeyframeRequest(_message.Message):
     POSE_FIELD_NUMBER: _ClassVar[int]
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
+    ROI_PNG_FIELD_NUMBER: _ClassVar[int]
     agent_id: str
     frame_id: int
     color: bytes
@@ -119,7 +120,8 @@ class KeyframeRequest(_message.Message):
     pose: _common_pb2.Pose
     intrinsics: _common_pb2.Intrinsics
     timestamp: float
-    def __init__(self, agent_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., color: _Optional[bytes] = ..., depth_png: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., pose: _Optional[_Union[_common_pb2.Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[_common_pb2.Intrinsics, _Mapping]] = ..., timestamp: _Optional[float] = ...) -> None: ...
+    roi_png: bytes
+    def __init__(self, agent_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., color: _Optional[bytes] = ..., depth_png: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., pose: _Optional[_Union[_common_pb2.Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[_common_pb2.Intrinsics, _Mapping]] = ..., timestamp: _Optional[float] = ..., roi_png: _Optional[bytes] = ...) -> None: ...
 
 class KeyframeAck(_message.Message):
     __slots__ = ("agent_id", "received", "stored", "duplicates", "evicted", "buffered")

@@ -488,6 +488,7 @@ class _RecordingFusion:
 
     def __init__(self):
         self.uploads = []
+        self.keyframe_rois = []
 
     def open_session(self, agent_id, task_text, intrinsics):
         return None
@@ -496,7 +497,8 @@ class _RecordingFusion:
         self.uploads.append((version, list(chunks)))
         return type("R", (), {"complete": True, "bytes_sent": sum(len(c) for c in chunks), "n_chunks": len(chunks)})()
 
-    def upload_keyframes(self, agent_id, kfs, jpeg_quality=95, color_format="png"):
+    def upload_keyframes(self, agent_id, kfs, jpeg_quality=95, color_format="png", rois=None):
+        self.keyframe_rois += list(rois or [None] * len(kfs))
         return len(kfs)
 
 
@@ -532,6 +534,9 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     finally:
         rt.close()
     assert fusion.uploads
+    # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
+    assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
+    assert rt._kf_roi == {}  # nothing kept once sent
     if iters == 0:
         assert calls == []
         return

@@ -457,3 +457,32 @@ def test_client_retries_transient_failures(tmp_path):
     finally:
         starter.join()
         box["srv"].stop(0.5)
+
+
+def test_keyframe_roi_is_validated_and_stored(server, client):
+    """Keyframes may carry the agent's task ROI (8-bit PNG); a wrong size or format is INVALID_ARGUMENT."""
+    import cv2
+
+    from services.fusion_server.client import keyframe_to_proto
+
+    _, stub, _ = stub_of(server)
+    client.open_session("roi-agent", "find the cup", INTR)
+    f = frame(0)
+    roi = np.zeros(np.shape(f.depth), bool)
+    roi[2:10, 3:12] = True
+    assert client.upload_keyframes("roi-agent", [f], rois=[roi]) == 1
+    stored = [k for k in server.store.keyframes(["roi-agent"])]
+    dec = cv2.imdecode(np.frombuffer(stored[0].roi, np.uint8), cv2.IMREAD_UNCHANGED) > 0
+    assert np.array_equal(dec, roi)
+    with pytest.raises(ValueError, match="roi"):
+        keyframe_to_proto("roi-agent", f, roi=roi[:-1])
+    bad_size = keyframe_to_proto("roi-agent", frame(1))
+    bad_size.roi_png = cv2.imencode(".png", np.zeros((3, 3), np.uint8))[1].tobytes()
+    not_png = keyframe_to_proto("roi-agent", frame(2))
+    not_png.roi_png = b"\xff\xd8\xff\xe0nope"
+    rgb_roi = keyframe_to_proto("roi-agent", frame(3))
+    rgb_roi.roi_png = cv2.imencode(".png", np.zeros((*np.shape(f.depth), 3), np.uint8))[1].tobytes()
+    for what, m in {"size": bad_size, "format": not_png, "channels": rgb_roi}.items():
+        code, msg = code_of(lambda m=m: stub.UploadKeyframes(iter([m]), timeout=5))
+        assert code == grpc.StatusCode.INVALID_ARGUMENT and "roi_png" in msg, what
+    assert server.store.keyframe_count("roi-agent") == 1

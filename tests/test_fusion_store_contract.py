@@ -6,6 +6,7 @@ on the same database (another connection, or another replica)."""
 
 from __future__ import annotations
 
+import dataclasses
 import sqlite3
 import threading
 import time
@@ -148,6 +149,10 @@ def test_keyframes_are_bounded_and_idempotent(backend):
     assert [k.frame_id for k in kept] == [3, 4, 5, 6]  # oldest by arrival evicted
     assert kept[-1].c2w[0, 3] == pytest.approx(0.6) and kept[-1].timestamp == 9.0
     assert kept[0].color == _kf("r1", 3).color and kept[0].depth_scale == 5000.0
+    assert kept[0].roi == b""  # no ROI sent
+    # a keyframe's task ROI (schema 3) round-trips
+    a.put_keyframe(dataclasses.replace(_kf("r3", 1), roi=b"\x89PNG-roi"), 4)
+    assert [k.roi for k in b.keyframes(["r3"])] == [b"\x89PNG-roi"]
 
 
 def test_fused_versions_are_allocated_by_the_database_and_monotonic(backend):
@@ -238,6 +243,9 @@ def test_sqlite_store_of_the_pre_migration_layout_is_upgraded(tmp_path):
         with sqlite3.connect(str(d / "fusion.sqlite3")) as db:
             names = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='index'")}
         assert "fused_method_version" in names  # migration 2 ran
+        with sqlite3.connect(str(d / "fusion.sqlite3")) as db:
+            cols = {r[1] for r in db.execute("PRAGMA table_info(keyframes)")}
+        assert "roi" in cols  # migration 3 ran
     finally:
         s.close()
 

@@ -528,7 +528,7 @@ class Mapper:
         return self.keyframes.load(i, self.device)
 
     def _iterate(self, kf: Keyframe, active_phase: bool, footprint_only: bool = False,
-                 coarse: bool = False) -> float:
+                 coarse: bool = False, footprint_roi: bool = False) -> float:
         """One Adam iteration on keyframe ``kf``.
 
         ``active_phase`` (paper III-D.1): update only active Gaussians, with colour, depth and SSIM on
@@ -538,7 +538,8 @@ class Mapper:
         active subset is fitted to the pixels the full map will show, or the two in turn. A view
         whose ROI is empty gets a full-image iteration instead (no κ): no ROI pixel, nothing to fit.
         ``footprint_only``: all Gaussians, loss on the rendered footprint (alpha > footprint_alpha);
-        used to refine partial maps such as fused ROI subsets, which do not cover the background.
+        used to refine partial maps such as fused ROI subsets, which do not cover the background;
+        with ``footprint_roi`` the loss is further restricted to the keyframe's ROI when it has a non-empty one.
         ``coarse``: a full-image iteration renders the view at 1/``coarse_downscale`` resolution
         (:func:`downscale_keyframe`).
         """
@@ -573,6 +574,8 @@ class Mapper:
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
         elif footprint_only:
             mask = out.alpha.detach() > cfg.footprint_alpha
+            if footprint_roi and view.roi is not None and view.roi_box is not None:  # empty ROI: the footprint
+                mask = mask & view.roi
         loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.reference_paths)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):

@@ -367,6 +367,7 @@ class AgentRuntime:
         self._stop = threading.Event()
         self._eval_frames: List[Frame] = []
         self._kf_pending: List[Frame] = []
+        self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
         self.intrinsics = None
         self.state = "MAPPING"
         self.frames_received = 0
@@ -655,6 +656,10 @@ class AgentRuntime:
             self.n_active = int(self.mapper.model.active.sum())
             if (self.frames_mapped - 1) % cfg.keyframe_every == 0:
                 self._kf_pending.append(item)
+                if w is not None:
+                    self._kf_roi[id(item)] = np.asarray(w, bool)
+                for old in self._kf_pending[:-cfg.max_keyframes]:
+                    self._kf_roi.pop(id(old), None)
                 del self._kf_pending[:-cfg.max_keyframes]
             if len(self._eval_frames) < cfg.eval_max_frames:
                 self._eval_frames.append(item)
@@ -872,13 +877,16 @@ class AgentRuntime:
         self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
         with self._lock:
             kfs = list(self._kf_pending)
+            rois = [self._kf_roi.get(id(f)) for f in kfs]
         n_kf = 0
         if kfs:
             n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
-                                          color_format=self.config.keyframe_format) or 0)
+                                          color_format=self.config.keyframe_format, rois=rois) or 0)
             with self._lock:
                 sent = {id(f) for f in kfs}
                 self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
+                for i in sent:
+                    self._kf_roi.pop(i, None)
         rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
                          int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
                          plan.n_records, plan.n_removed, snap.frames_mapped)

@@ -222,19 +222,34 @@ def encode_color_png(rgb: np.ndarray) -> bytes:
 
 
 def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
-                      color_format: str = "jpeg") -> fusion_pb2.KeyframeRequest:
+                      color_format: str = "jpeg", roi=None) -> fusion_pb2.KeyframeRequest:
     """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG or lossless PNG colour,
-    16-bit PNG depth).  PNG keyframes: the joint refinement fits the uploaded colours, and JPEG q95
-    (41 dB against the original on room0, 4:2:0 chroma) cost it 2 dB ROI PSNR on room0."""
+    16-bit PNG depth, optional ROI).  PNG keyframes: the joint refinement fits the uploaded colours, and
+    JPEG q95 (41 dB against the original on room0, 4:2:0 chroma) cost it 2 dB ROI PSNR on room0.
+    ``roi``: optional (H, W) bool task ROI of the frame, sent as an 8-bit PNG (0 / 255) that the
+    refinement restricts its loss to.
+
+    Raises:
+        ValueError: bad ``color_format`` or an ROI of another size than the frame."""
     png, scale = encode_depth_png(frame.depth)
     c2w = np.asarray(frame.c2w, dtype=np.float64).reshape(-1)
     if color_format not in ("jpeg", "png"):
         raise ValueError(f"color_format must be 'jpeg' or 'png', got {color_format!r}")
     color = encode_color_png(frame.rgb) if color_format == "png" else encode_color_jpeg(frame.rgb, jpeg_quality)
+    roi_png = b""
+    if roi is not None:
+        roi = np.asarray(roi, bool)
+        if roi.shape != np.asarray(frame.depth).shape:
+            raise ValueError(f"frame {frame.frame_id}: roi {roi.shape} does not match depth {np.shape(frame.depth)}")
+        ok, buf = cv2.imencode(".png", roi.astype(np.uint8) * 255)
+        if not ok:
+            raise ValueError(f"frame {frame.frame_id}: cannot encode the ROI")
+        roi_png = buf.tobytes()
     return fusion_pb2.KeyframeRequest(
         agent_id=agent_id, frame_id=int(frame.frame_id), color=color,
         depth_png=png, depth_scale=scale, pose=common_pb2.Pose(c2w=[float(v) for v in c2w]),
         intrinsics=intrinsics_to_proto(frame.intrinsics), timestamp=float(getattr(frame, "timestamp", 0.0)),
+        roi_png=roi_png,
     )
 
 
@@ -432,7 +447,7 @@ class FusionClient:
             retry += 1
 
     def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95,
-                         color_format: str = "jpeg") -> int:
+                         color_format: str = "jpeg", rois: Optional[Sequence] = None) -> int:
         """Upload keyframes (colour as JPEG, depth as 16-bit PNG, pose, intrinsics).
 
         Args:
@@ -440,6 +455,8 @@ class FusionClient:
             keyframes (list[gausslite.datasets.base.Frame]): posed RGB-D frames; ``frame_id`` is the
                 idempotency key (re-sending a stored frame is a no-op).
             jpeg_quality (int): 1..100.
+            rois (list[np.ndarray | None] | None): per keyframe, the (H, W) bool task ROI (None: none);
+                the fusion refinement restricts its loss to it.
         Returns:
             int: keyframes the server accepted (newly stored plus ones it already held); equals
             ``len(keyframes)`` on success. The server keeps at most ``max_keyframes`` per agent
@@ -448,7 +465,10 @@ class FusionClient:
             ValueError: a frame cannot be encoded.
             grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session), ...
         """
-        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality, color_format) for f in keyframes]
+        if rois is not None and len(rois) != len(keyframes):
+            raise ValueError(f"{len(rois)} ROIs for {len(keyframes)} keyframes")
+        rois = list(rois) if rois is not None else [None] * len(keyframes)
+        msgs = [keyframe_to_proto(agent_id, f, jpeg_quality, color_format, r) for f, r in zip(keyframes, rois)]
         accepted = 0
         for s in range(0, len(msgs), KEYFRAME_BATCH):
             batch = msgs[s:s + KEYFRAME_BATCH]

@@ -210,6 +210,20 @@ def decode_color(data: bytes, what: str) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
+    """Decode an 8-bit single-channel PNG ROI mask to (H, W) bool (nonzero = ROI) and check its size
+    ``(H, W)``. Raises _Reject(INVALID_ARGUMENT)."""
+    if not data.startswith(_PNG_MAGIC):
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: roi_png is not a PNG")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.ndim != 2 or img.dtype != np.uint8:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: roi_png must be a single-channel 8-bit PNG")
+    if img.shape != tuple(size):
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                      f"{what}: roi_png is {img.shape[1]}x{img.shape[0]}, the keyframe {size[1]}x{size[0]}")
+    return img > 0
+
+
 def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
     """Decode a 16-bit PNG depth image to (H, W) float32 metres. Raises _Reject(INVALID_ARGUMENT)."""
     if not data.startswith(_PNG_MAGIC):
@@ -458,9 +472,12 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                               f"{what}: colour {rgb.shape[1]}x{rgb.shape[0]} / depth {depth.shape[1]}x{depth.shape[0]}"
                               f" do not match the intrinsics' {size[1]}x{size[0]}")
+            if msg.roi_png:
+                decode_roi(msg.roi_png, size, what)
             new, ev = self.store.put_keyframe(
                 StoredKeyframe(agent, int(msg.frame_id), bytes(msg.color), bytes(msg.depth_png), scale, c2w,
-                               k.fx, k.fy, k.cx, k.cy, int(k.width), int(k.height), float(msg.timestamp)),
+                               k.fx, k.fy, k.cx, k.cy, int(k.width), int(k.height), float(msg.timestamp),
+                               bytes(msg.roi_png)),
                 self.config.max_keyframes_per_agent)
             stored += int(new)
             dups += int(not new)
@@ -579,8 +596,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                         rgb = decode_color(k.color, f"stored keyframe {k.frame_id}")
                         depth = decode_depth(k.depth, k.depth_scale, f"stored keyframe {k.frame_id}")
                         K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
+                        roi = (decode_roi(k.roi, (k.height, k.width), f"stored keyframe {k.frame_id}")
+                               if k.roi else None)
                         kfs.append(RefineKeyframe(rgb=rgb, depth=depth, c2w=k.c2w, K=K, width=k.width,
-                                                  height=k.height))
+                                                  height=k.height, roi=roi))
                     n_kf = len(kfs)
                     emit("refine", end, f"refining {len(fused)} Gaussians over {n_kf} keyframes, {iters} iterations")
                     fused = refine_map(fused, kfs, iters,

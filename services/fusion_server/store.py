@@ -66,7 +66,7 @@ log = logging.getLogger(__name__)
 
 DB_NAME = "fusion.sqlite3"
 #: Schema version this code reads and writes.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: DSN prefixes that select :class:`PostgresFusionStore`.
 PG_PREFIXES = ("postgresql://", "postgres://")
 
@@ -105,6 +105,8 @@ MIGRATIONS: List[Tuple[int, List[str]]] = [
     ]),
     # 2: DownloadFused(version=0, method=M) / Fuse look up "latest of a method" by index, not by scan
     (2, ["CREATE INDEX IF NOT EXISTS fused_method_version ON fused (method, version)"]),
+    # 3: keyframes carry the agent's task ROI (PNG, may be empty) for ROI-restricted refinement
+    (3, ["ALTER TABLE keyframes ADD COLUMN roi {BLOB}"]),
 ]
 assert MIGRATIONS[-1][0] == SCHEMA_VERSION
 
@@ -165,7 +167,8 @@ class Upload:
 
 @dataclass(frozen=True)
 class StoredKeyframe:
-    """A keyframe as stored (encoded images, metadata). ``c2w``: (4, 4) float64."""
+    """A keyframe as stored (encoded images, metadata). ``c2w``: (4, 4) float64. ``roi``: the agent's
+    task ROI as an 8-bit PNG (empty bytes: none sent)."""
 
     agent_id: str
     frame_id: int
@@ -180,6 +183,7 @@ class StoredKeyframe:
     width: int
     height: int
     timestamp: float
+    roi: bytes = b""
 
 
 class ChunkConflict(ValueError):
@@ -452,10 +456,11 @@ class SqlFusionStore:
                 return False, 0
             seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM keyframes WHERE agent_id=?",
                              (kf.agent_id,)).fetchone()[0]
-            db.execute("INSERT INTO keyframes VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+            db.execute("INSERT INTO keyframes (agent_id, frame_id, seq, color, depth, depth_scale, c2w, fx, fy, cx, "
+                       "cy, width, height, timestamp, roi) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                        (kf.agent_id, kf.frame_id, int(seq), bytes(kf.color), bytes(kf.depth), kf.depth_scale,
                         np.asarray(kf.c2w, "<f8").tobytes(), kf.fx, kf.fy, kf.cx, kf.cy, kf.width, kf.height,
-                        kf.timestamp))
+                        kf.timestamp, bytes(kf.roi)))
             n = db.execute("SELECT COUNT(*) FROM keyframes WHERE agent_id=?", (kf.agent_id,)).fetchone()[0]
             evicted = max(0, int(n) - max_per_agent)
             if evicted:
@@ -474,8 +479,8 @@ class SqlFusionStore:
         """Stored keyframes (of ``agents`` when given), ordered by agent then arrival."""
         with self._read() as db:
             rows = db.execute(
-                "SELECT agent_id, frame_id, color, depth, depth_scale, c2w, fx, fy, cx, cy, width, height, timestamp "
-                "FROM keyframes ORDER BY agent_id, seq").fetchall()
+                "SELECT agent_id, frame_id, color, depth, depth_scale, c2w, fx, fy, cx, cy, width, height, timestamp, "
+                "roi FROM keyframes ORDER BY agent_id, seq").fetchall()
         want = None if agents is None else set(agents)
         out = []
         for r in rows:
@@ -483,7 +488,8 @@ class SqlFusionStore:
                 continue
             out.append(StoredKeyframe(r[0], int(r[1]), bytes(r[2]), bytes(r[3]), float(r[4]),
                                       np.frombuffer(bytes(r[5]), "<f8").reshape(4, 4).copy(), float(r[6]),
-                                      float(r[7]), float(r[8]), float(r[9]), int(r[10]), int(r[11]), float(r[12])))
+                                      float(r[7]), float(r[8]), float(r[9]), int(r[10]), int(r[11]), float(r[12]),
+                                      bytes(r[13]) if r[13] is not None else b""))
         return out
 
     def keyframe_poses(self, agent_id: Optional[str] = None) -> List[StoredKeyframe]:
