@@ -213,10 +213,11 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     counts of the agent's map).
 
     Measured (``bench.share_finetune``; room0 pick-plant / find-ottoman, deployed agent settings with
-    ``roi_render: context``, 3 seeds): the subset alone renders its ROI at 29.6 / 25.5 dB before, and 37.40 / 38.88,
-    37.62 / 38.63, 37.91 / 39.16 dB after 200 iterations with ``final_lr`` 0.05, against the agent's
-    own full map 36.70 / 35.67, 37.47 / 38.54, 32.77 / 38.75 dB. 60 iterations at a constant rate gave
-    35.92 / 37.68 and 36.94 / 37.88 dB (seeds 0, 1). About 2 s per push on one core at 300×170.
+    ``roi_render: context``, 3 seeds): the subset alone renders its ROI at 28.17 / 27.71 dB on average
+    before, and 37.40 / 38.88, 37.62 / 38.63, 37.91 / 39.16 dB after 200 iterations with ``final_lr``
+    0.05, against the agent's own full map 36.70 / 35.67, 37.47 / 38.54, 32.77 / 38.75 dB. 60
+    iterations at a constant rate gave 35.92 / 37.68 and 36.94 / 37.88 dB (seeds 0, 1). About 2 s per
+    push on one core at 300×170.
 
     Args:
         subset: ``GaussianMap`` (or any container ``GaussianArrays.from_any`` takes) of N Gaussians,

@@ -3,11 +3,12 @@
 After the voxel vote, a short joint optimisation over keyframes drawn uniformly from the union of the
 agents' keyframe buffers smooths the seams between the agents' contributions. It uses the mapper's
 loss (Eq. 1) and adaptive density control, with every Gaussian treated as active (full-image
-rendering, all Gaussians updated; by default the loss covers the map's rendered footprint, since
-a fused map holds only ROI subsets, and within it the keyframe's ROI when the agent sent one: the
-footprint alone also covers the fringes of the subsets outside the ROI, and fitting those cost the
-ROI 0.8-1.6 dB on room0 and the synthetic sim scene). κ and the active flags are carried through unchanged (daughters
-inherit them), so a refined map can be voted again.
+rendering, all Gaussians updated). By default the loss covers the map's rendered footprint, since a
+fused map holds only ROI subsets, and within it the keyframe's ROI when the agent sent one: the
+footprint alone also covers the fringes of the subsets outside the ROI, and fitting those cost the ROI
+1.6-1.7 dB on room0 (``bench.share_finetune``) and 0.8-0.9 dB on the synthetic sim scene. κ and the
+active flags are carried through unchanged (daughters inherit them), so a refined map can be voted
+again.
 """
 
 from __future__ import annotations
