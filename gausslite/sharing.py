@@ -238,7 +238,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
         ValueError: ``iters < 0`` or ``final_lr`` outside (0, 1].
     """
     from gausslite.mapping.config import MapperConfig
-    from gausslite.mapping.mapper import Mapper, crop_keyframe, photometric_loss
+    from gausslite.mapping.mapper import Mapper
     from gausslite.mapping.model import cosine_lr_factor
     from gausslite.wire.codec import GaussianArrays
 
@@ -263,12 +263,8 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     rng = np.random.default_rng(seed)
     for it in range(int(iters)):
         mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))
-        view = crop_keyframe(kfs[int(rng.integers(len(kfs)))], fcfg.roi_crop_pad)
-        out = mapper._rasterize(view.c2w, view.K, view.width, view.height, None)
-        mask = view.roi & (out.alpha.detach() > fcfg.footprint_alpha)
-        loss = photometric_loss(out, view, fcfg.lambda_depth, fcfg.lambda_ssim, mask, fcfg.reference_paths)
-        loss.backward()
-        mapper.model.step()
+        # the mapper's ROI-phase step: every row is active, so it renders and updates the whole copy
+        mapper._iterate(kfs[int(rng.integers(len(kfs)))], active_phase=True)
     out = mapper.gmap
     out.active, out.kappa = active.to(out.means.device), kappa.to(out.means.device)
     return out
