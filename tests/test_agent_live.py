@@ -543,7 +543,7 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     assert 1 <= len(calls) <= len(fusion.uploads) and all(c[0] == iters and c[1] >= 1 for c in calls)
     # an unchanged subset (and keyframes) is not fine-tuned again: the same result, so the delta is empty
     n = len(calls)
-    again = rt._finetuned(calls[-1][2])
+    again = rt._finetuned(calls[-1][2], rt._finetune_cache[2])
     assert len(calls) == n and again is rt._finetune_cache[1]
     # the final push is the fine-tuned copy of the final subset, not the map's rows
     pushed, _ = assemble(fusion.uploads[-1][1])
@@ -555,3 +555,45 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     assert dist.max() < 1e-3 and len(set(match.tolist())) == len(after)
     np.testing.assert_allclose(pushed.colors, after.colors[match], atol=0.02)
     assert np.abs(after.colors - before.colors).max() > 0.02  # fine-tuning changed the subset
+
+
+def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(scene, monkeypatch):
+    """With delta pushes, every push after the first fine-tunes against the copy the server acknowledged
+    (``update_shared_subset`` gets the planner's base), and the delta carries at most the new rows plus
+    ``share_refresh`` of the held ones."""
+    import gausslite.sharing as sharing
+    from gausslite.wire.codec import peek_header
+
+    calls = []
+    real = sharing.update_shared_subset
+
+    def spy(arrays, ids, base, base_ids, keyframes, iters, refresh=0.1, *a, **kw):
+        out, st = real(arrays, ids, base, base_ids, keyframes, iters, refresh, *a, **kw)
+        calls.append((None if base is None else len(base), refresh, dict(st)))
+        return out, st
+
+    monkeypatch.setattr(sharing, "update_shared_subset", spy)
+    ds = load_dataset(scene / "agent_a")
+    cfg = load_agent_config(None, TINY + ["agent.share=task", "agent.share_finetune_iters=5", "agent.share_refresh=0.2",
+                                          "agent.ingest=every_frame", "mapper.roi_render=context"])
+    roi = np.zeros((48, 64), bool)
+    roi[12:36, 16:48] = True
+    fusion = _RecordingFusion()
+    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
+                      relevance_fn=lambda fr: roi, fusion=fusion)
+    try:
+        for i in range(6):
+            rt.submit(ds[i])
+        rt.finish(push=True, evaluate=False, timeout_s=120)
+    finally:
+        rt.close()
+    assert len(calls) >= 2 and calls[0][0] is None and calls[0][2]["base"] == 0
+    later = [c for c in calls[1:] if c[0] is not None]
+    assert later, calls
+    for n_base, refresh, st in later:
+        assert refresh == 0.2 and st["refreshed"] == int(0.2 * st["base"]) and st["base"] <= n_base
+    deltas = [[peek_header(c) for c in ch] for _, ch in fusion.uploads[1:]]
+    assert deltas and all(h.delta for d in deltas for h in d)
+    # rows carried by the first delta: the new rows and the refreshed rows at most, never the frozen ones
+    st = later[0][2]
+    assert sum(h.count for h in deltas[0]) <= st["new"] + st["refreshed"] < st["new"] + st["base"]

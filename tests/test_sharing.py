@@ -122,3 +122,79 @@ def test_finetune_subset_fits_the_subset_alone_to_the_roi_and_keeps_rows_kappa_a
         assert torch.equal(same.means, sub.means) and torch.equal(same.colors, sub.colors)
     with pytest.raises(ValueError):
         finetune_subset(sub, [kf], iters=-1)
+
+
+def _grid_subset(n_side=4, z=2.0):
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, n_side), np.linspace(-0.3, 0.3, n_side))
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n_side * n_side, z)], 1)
+    sub = _map(means, [0.4] * len(means), [0.1] * len(means))
+    sub.kappa[:] = torch.arange(len(means)) + 3
+    return sub
+
+
+def test_finetune_subset_keeps_frozen_rows_and_fits_the_free_ones_around_them():
+    from gausslite.sharing import finetune_subset
+
+    kf, roi = _roi_keyframe()
+    sub = _grid_subset()
+    frozen = np.zeros(16, bool)
+    frozen[::2] = True
+    out = finetune_subset(sub, [kf], iters=120, seed=0, frozen=frozen)
+    fz = torch.from_numpy(frozen)
+    for k in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        assert torch.equal(getattr(out, k)[fz], getattr(sub, k)[fz]), k
+        assert not torch.equal(getattr(out, k)[~fz], getattr(sub, k)[~fz]), k
+    assert _roi_l1(out, kf, roi) < 0.8 * _roi_l1(sub, kf, roi)
+    # all frozen: nothing to fit
+    same = finetune_subset(sub, [kf], iters=20, frozen=np.ones(16, bool))
+    assert torch.equal(same.colors, sub.colors)
+    with pytest.raises(ValueError, match="frozen"):
+        finetune_subset(sub, [kf], iters=5, frozen=np.ones(15, bool))
+
+
+def test_update_shared_subset_changes_only_new_and_refreshed_rows_of_the_servers_copy():
+    """The server holds rows 0..11 (ids 100..111) at known values; the agent's subset drops id 100 and
+    adds ids 200..204. Only the new rows and ⌊refresh × held⌋ held rows may differ from the server's
+    copy, and a delta push of the result carries exactly those."""
+    from gausslite.sharing import update_shared_subset
+    from gausslite.wire.codec import GaussianArrays
+    from gausslite.wire.delta import PushPlanner
+
+    kf, roi = _roi_keyframe()
+    server = GaussianArrays.from_any(_grid_subset())  # 16 rows
+    planner = PushPlanner("a")
+    first = planner.plan(np.arange(100, 116), server, version=1)
+    planner.acknowledge(first)
+    base, base_ids = first.subset, first.ids
+    # the agent's current values: every held row has drifted (as the mapper moves them), 5 new rows
+    agent_ids = np.concatenate([np.arange(101, 116), np.arange(200, 205)])
+    order = np.argsort(base_ids)
+    held = base.take(order[np.searchsorted(base_ids, np.arange(101, 116), sorter=order)])
+    drift = GaussianArrays(**{k: getattr(held, k) for k in GaussianArrays._SPEC})
+    drift.colors[:] = np.clip(drift.colors + 0.05, 0, 1)
+    drift.kappa[:] += 40
+    new = GaussianArrays.from_any(_grid_subset(n_side=3, z=1.95)).take(np.arange(5))
+    agent = GaussianArrays(**{k: np.concatenate([getattr(drift, k), getattr(new, k)]) for k in GaussianArrays._SPEC})
+    for refresh, n_refresh in ((0.0, 0), (0.2, 3), (1.0, 15)):
+        out, st = update_shared_subset(agent, agent_ids, base, base_ids, [kf], iters=40, refresh=refresh, seed=0)
+        assert st == {"base": 15, "new": 5, "refreshed": n_refresh}
+        assert len(out) == 20
+        srv = base.take(order[np.searchsorted(base_ids, agent_ids[:15], sorter=order)])
+        same = np.all([np.all(getattr(out, k)[:15].reshape(15, -1) == getattr(srv, k).reshape(15, -1), axis=1)
+                       for k in GaussianArrays._SPEC], axis=0)
+        assert int((~same).sum()) <= n_refresh and int(same.sum()) >= 15 - n_refresh
+        if refresh < 1.0:
+            assert int((~same).sum()) == n_refresh
+        # refreshed rows carry the agent's κ; frozen rows the server's
+        assert np.all(out.kappa[:15][same] == srv.kappa[same]) and np.all(out.kappa[:15][~same] == drift.kappa[~same])
+        p = PushPlanner("a")
+        p.acknowledge(first)
+        plan = p.plan(agent_ids, out, version=2, measure_full=False)
+        assert plan.is_delta and plan.n_removed == 1 and plan.n_records == 5 + int((~same).sum())
+    # no base: the plain fine-tune of the agent's values
+    out, st = update_shared_subset(agent, agent_ids, None, None, [kf], iters=10, refresh=0.1, seed=0)
+    assert st == {"base": 0, "new": 20, "refreshed": 0} and len(out) == 20
+    with pytest.raises(ValueError):
+        update_shared_subset(agent, agent_ids, base, base_ids, [kf], iters=10, refresh=1.5)
+    with pytest.raises(ValueError):
+        update_shared_subset(agent, agent_ids[:-1], base, base_ids, [kf], iters=10)

@@ -44,7 +44,7 @@ from gausslite.wire.codec import (
     spatial_order,
 )
 
-__all__ = ["PlannedPush", "PushPlanner", "changed_rows"]
+__all__ = ["PlannedPush", "PushPlanner", "change_steps", "changed_rows"]
 
 
 def _canonical_quats(q: np.ndarray) -> np.ndarray:
@@ -55,10 +55,48 @@ def _canonical_quats(q: np.ndarray) -> np.ndarray:
     return q * np.where(big < 0, -1.0, 1.0)
 
 
+def change_steps(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig = QuantConfig()) -> np.ndarray:
+    """(N,) float64: how far each row of ``cur`` moved from the row-aligned ``base``, in code steps of
+    the codec: the largest over mean, log-scales, colours, opacity and rotation of the attribute's
+    change divided by its code step (rule and steps in the module docstring; κ and the task flag are
+    not counted). A row with a value > t is "changed" at tolerance t (:func:`changed_rows`).
+
+    Args:
+        cur, base: N row-aligned Gaussians (current values / what the server holds, decoded).
+        quant: the codec configuration (lossy; a lossless codec has no code step).
+
+    Raises:
+        ValueError: different lengths, or a lossless ``quant``.
+    """
+    if len(cur) != len(base):
+        raise ValueError(f"{len(cur)} current rows vs {len(base)} base rows")
+    if quant.lossless:
+        raise ValueError("a lossless codec has no code step")
+    n = len(cur)
+    if n == 0:
+        return np.zeros(0)
+
+    def step(x: np.ndarray, bits: int, clamp) -> float:
+        lo, hi = np.clip([x.min(), x.max()], *clamp)
+        return max(float(hi - lo) / ((1 << bits) - 1), 1e-30)
+
+    sig = lambda x: 1.0 / (1.0 + np.exp(-x.astype(np.float64)))  # noqa: E731
+    s = np.abs(cur.means.astype(np.float64) - base.means).max(axis=1) / quant.mean_step
+    s = np.maximum(s, np.abs(cur.log_scales - base.log_scales).max(axis=1)
+                   / step(base.log_scales, quant.scale_bits, quant.scale_clamp))
+    s = np.maximum(s, np.abs(cur.colors - base.colors).max(axis=1)
+                   / step(base.colors, quant.color_bits, quant.color_clamp))
+    s = np.maximum(s, np.abs(sig(cur.opacity_logits) - sig(base.opacity_logits)) * ((1 << quant.opacity_bits) - 1))
+    s = np.maximum(s, np.abs(_canonical_quats(cur.quats) - _canonical_quats(base.quats)).max(axis=1)
+                   / (5.0 * (1.0 / math.sqrt(2.0)) / ((1 << quant.quat_bits) - 1)))
+    return s
+
+
 def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig = QuantConfig(),
                  tolerance: float = 1.0, kappa_rel: float = 0.25) -> np.ndarray:
     """(N,) bool: rows of ``cur`` that differ from the row-aligned ``base`` beyond the codec's
-    quantisation error (rule in the module docstring).
+    quantisation error (rule in the module docstring; :func:`change_steps` > ``tolerance``, a relative
+    κ change above ``kappa_rel``, or a changed task flag).
 
     Args:
         cur, base: N row-aligned Gaussians (current values / what the server holds, decoded).
@@ -77,21 +115,7 @@ def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig =
     if quant.lossless:
         return np.any([np.any(getattr(cur, k).reshape(n, -1) != getattr(base, k).reshape(n, -1), axis=1)
                        for k in GaussianArrays._SPEC], axis=0)
-    t = float(tolerance)
-
-    def step(x: np.ndarray, bits: int, clamp) -> float:
-        lo, hi = np.clip([x.min(), x.max()], *clamp)
-        return float(hi - lo) / ((1 << bits) - 1)
-
-    ch = np.abs(cur.means.astype(np.float64) - base.means).max(axis=1) > t * quant.mean_step
-    ch |= np.abs(cur.log_scales - base.log_scales).max(axis=1) > t * step(
-        base.log_scales, quant.scale_bits, quant.scale_clamp)
-    ch |= np.abs(cur.colors - base.colors).max(axis=1) > t * step(
-        base.colors, quant.color_bits, quant.color_clamp)
-    sig = lambda x: 1.0 / (1.0 + np.exp(-x.astype(np.float64)))  # noqa: E731
-    ch |= np.abs(sig(cur.opacity_logits) - sig(base.opacity_logits)) > t / ((1 << quant.opacity_bits) - 1)
-    ch |= np.abs(_canonical_quats(cur.quats) - _canonical_quats(base.quats)).max(axis=1) > (
-        t * 5.0 * (1.0 / math.sqrt(2.0)) / ((1 << quant.quat_bits) - 1))
+    ch = change_steps(cur, base, quant) > float(tolerance)
     kb = base.kappa.astype(np.float64)
     ch |= np.abs(cur.kappa - kb) > kappa_rel * np.maximum(kb, 1.0)
     ch |= cur.active != base.active

@@ -96,6 +96,10 @@ class AgentConfig(BaseModel):
             (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
             own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
             share a subset that renders the ROI on its own.
+        share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
+            already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
+            others stay as the server has them, so a delta carries the new rows and this share of the
+            old ones. 1 = every row may move at every push (each delta re-sends about the whole subset).
         kappa_threshold: κ threshold for ``share: kappa``.
         push_every: push a subset every this many mapped frames (and always at the end).
         downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
@@ -144,6 +148,7 @@ class AgentConfig(BaseModel):
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
     share_finetune_iters: int = Field(200, ge=0)
+    share_refresh: float = Field(0.08, ge=0, le=1)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -383,7 +388,8 @@ class AgentRuntime:
         self.summary: Optional[MissionSummaryData] = None
         self._version = 0
         self._planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
-        self._finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset) of the last push
+        self._finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset, ids) of the last push
+        self._acked = None  # (version, subset, ids) the server acknowledged last (the planner's base)
         self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
         self.final_subset_bytes = 0  # the last pushed subset encoded whole
         self._session_open = False
@@ -758,22 +764,24 @@ class AgentRuntime:
         else:
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
         arrays = GaussianArrays.from_any(gmap).take(mask)
-        if self.config.share == "task" and self.config.share_finetune_iters > 0 and len(arrays):
-            arrays = self._finetuned(arrays)
         ids = self.mapper.model.ids.numpy()[mask]
+        if self.config.share == "task" and self.config.share_finetune_iters > 0 and len(arrays):
+            arrays = self._finetuned(arrays, ids)
         with self._lock:
             self._version += 1
             self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped)
             self._push_cv.notify_all()
 
-    def _finetuned(self, arrays):
-        """The shared subset fine-tuned alone on the ROI keyframes (:func:`gausslite.sharing.finetune_subset`,
-        seeded by the mapper's seed). The same subset and keyframes as at the last push give the last
-        result again without work, so an unchanged map (e.g. the final push right after a periodic one)
-        stays unchanged on the wire and its delta is empty."""
+    def _finetuned(self, arrays, ids):
+        """The shared subset fine-tuned alone on the ROI keyframes, against the copy the server acknowledged
+        (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by the mapper's seed).
+        Without delta pushes every push is fine-tuned from the agent's values alone. The same subset and
+        keyframes as at the last push give the last result again without work (whatever the server
+        acknowledged since), so an unchanged map (e.g. the final push right after a periodic one) stays
+        unchanged on the wire and its delta is empty."""
         import hashlib
 
-        from gausslite.sharing import finetune_subset
+        from gausslite.sharing import update_shared_subset
         from gausslite.wire.codec import GaussianArrays
 
         kfs = [self.mapper.keyframes.load(i, self.mapper.device) for i in range(len(self.mapper.keyframes))]
@@ -782,16 +790,20 @@ class AgentRuntime:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
         for kf in kfs:
             h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
+        h.update(ids.tobytes())
         key = h.digest()
         if self._finetune_cache is not None and self._finetune_cache[0] == key:
             return self._finetune_cache[1]
+        with self._lock:
+            acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
+        base_version, base, base_ids = acked
         t0 = time.perf_counter()
-        out = GaussianArrays.from_any(finetune_subset(arrays, kfs, self.config.share_finetune_iters, self.mapper.cfg,
-                                                      seed=self.mapper.cfg.seed))
-        log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, %.2f s",
-                 self.agent_id, len(arrays), sum(kf.roi_box is not None for kf in kfs),
-                 self.config.share_finetune_iters, time.perf_counter() - t0)
-        self._finetune_cache = (key, out)
+        out, st = update_shared_subset(arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
+                                       self.config.share_refresh, self.mapper.cfg, seed=self.mapper.cfg.seed)
+        log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
+                 "server v%s (%s), %.2f s", self.agent_id, len(arrays), sum(kf.roi_box is not None for kf in kfs),
+                 self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
+        self._finetune_cache = (key, out, ids)
         return out
 
     # ------------------------------------------------------------------ pusher
@@ -863,6 +875,7 @@ class AgentRuntime:
                         plan.version, _short(e))
             self._planner.forget()
             with self._lock:
+                self._acked = None
                 self._version += 1
                 version = self._version
             plan = self._planner.plan(snap.ids, snap.gaussians, version)
@@ -871,6 +884,8 @@ class AgentRuntime:
         if not getattr(r, "complete", True):
             raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
         self._planner.acknowledge(plan)
+        with self._lock:
+            self._acked = (plan.version, plan.subset, plan.ids)
         if self._planner.last_stats:
             log.info("agent %s delta plan v%d: %s (sent %s)", self.agent_id, plan.version, self._planner.last_stats,
                      "delta" if plan.is_delta else "full")
