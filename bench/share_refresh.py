@@ -1,7 +1,7 @@
 """Delta pushes of fine-tuned subsets: bytes on the link against the fused map, per refresh share (issue 12
 item 2, goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``push_every: 5``).
 
-    python -m bench.share_refresh [--scene room0|synthetic] [--seeds 3] [--refresh 1,0.25,0.08]
+    python -m bench.share_refresh [--scene room0|synthetic] [--seeds 3] [--refresh 1,0.25,0.07]
                                   [--finetune-iters 200]
 
 Two agents map with the deployed agent settings and ``roi_render: context`` (as ``bench.share_finetune``),
@@ -154,7 +154,7 @@ def main(argv=None) -> int:
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--max-frames", type=int, default=20)
     ap.add_argument("--push-every", type=int, default=5)
-    ap.add_argument("--refresh", default="1,0.25,0.08", help="comma list of refresh shares in [0, 1]")
+    ap.add_argument("--refresh", default="1,0.25,0.07", help="comma list of refresh shares in [0, 1]")
     ap.add_argument("--finetune-iters", type=int, default=200)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="default bench/results/share_refresh_<scene>.json")

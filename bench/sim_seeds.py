@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -107,6 +108,7 @@ def main(argv=None) -> int:
     reports: dict = {sc: [] for sc in scenes}
     for sc, s in tqdm(jobs, desc="bench.sim_seeds", unit="sim"):
         out = args.work / f"{sc}_seed{s}"
+        shutil.rmtree(out, ignore_errors=True)  # a fresh fusion store and agent data per run
         cmd = [sys.executable, "-m", "gausslite.cli", "sim", *scene_args(sc), "--set", f"mapper.seed={s}",
                *[x for kv in args.set for x in ("--set", kv)], "--out", str(out)]
         r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)

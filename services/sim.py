@@ -502,7 +502,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         # ---- fuse
         fuse_cfg = sim_cfg.get("fuse") or {}
         voxel = float(fuse_cfg.get("voxel_size", 0.10))
-        refine_iters = int(fuse_cfg.get("refine_iters", 200))
+        refine_iters = int(fuse_cfg.get("refine_iters", 300))
         radius = int(fuse_cfg.get("contest_radius", 1))
         backend = (cfg.get("mapper") or {}).get("backend", "auto")
         eval_frames = {}

@@ -502,6 +502,26 @@ class _RecordingFusion:
         return len(kfs)
 
 
+def _run_task_agent(scene, overrides: list, n_frames: int):
+    """An agent with ``share: task`` and a fixed ROI box maps ``n_frames`` of the scene's agent_a and pushes
+    to a recording fusion stand-in; returns (runtime, fusion, roi)."""
+    ds = load_dataset(scene / "agent_a")
+    cfg = load_agent_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
+                                          *overrides])
+    roi = np.zeros((48, 64), bool)
+    roi[12:36, 16:48] = True
+    fusion = _RecordingFusion()
+    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
+                      relevance_fn=lambda fr: roi, fusion=fusion)
+    try:
+        for i in range(n_frames):
+            rt.submit(ds[i])
+        rt.finish(push=True, evaluate=False, timeout_s=120)
+    finally:
+        rt.close()
+    return rt, fusion, roi
+
+
 @pytest.mark.parametrize("iters", [0, 7])
 def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters):
     """``share: task`` with ``share_finetune_iters``: each push carries the output of
@@ -518,21 +538,7 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
         return out
 
     monkeypatch.setattr(sharing, "finetune_subset", spy)
-    ds = load_dataset(scene / "agent_a")
-    cfg = load_agent_config(None, TINY + ["agent.share=task", f"agent.share_finetune_iters={iters}",
-                                          "agent.ingest=every_frame", "agent.delta_push=false",
-                                          "mapper.roi_render=context"])
-    roi = np.zeros((48, 64), bool)
-    roi[12:36, 16:48] = True
-    fusion = _RecordingFusion()
-    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
-                      relevance_fn=lambda fr: roi, fusion=fusion)
-    try:
-        for i in range(4):
-            rt.submit(ds[i])
-        rt.finish(push=True, evaluate=False, timeout_s=120)
-    finally:
-        rt.close()
+    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false"], 4)
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
@@ -573,20 +579,7 @@ def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(s
         return out, st
 
     monkeypatch.setattr(sharing, "update_shared_subset", spy)
-    ds = load_dataset(scene / "agent_a")
-    cfg = load_agent_config(None, TINY + ["agent.share=task", "agent.share_finetune_iters=5", "agent.share_refresh=0.2",
-                                          "agent.ingest=every_frame", "mapper.roi_render=context"])
-    roi = np.zeros((48, 64), bool)
-    roi[12:36, 16:48] = True
-    fusion = _RecordingFusion()
-    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
-                      relevance_fn=lambda fr: roi, fusion=fusion)
-    try:
-        for i in range(6):
-            rt.submit(ds[i])
-        rt.finish(push=True, evaluate=False, timeout_s=120)
-    finally:
-        rt.close()
+    _, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=5", "agent.share_refresh=0.2"], 6)
     assert len(calls) >= 2 and calls[0][0] is None and calls[0][2]["base"] == 0
     later = [c for c in calls[1:] if c[0] is not None]
     assert later, calls
@@ -597,3 +590,40 @@ def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(s
     # rows carried by the first delta: the new rows and the refreshed rows at most, never the frozen ones
     st = later[0][2]
     assert sum(h.count for h in deltas[0]) <= st["new"] + st["refreshed"] < st["new"] + st["base"]
+
+
+def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_path):
+    """A fusion server that kept this agent's subset from an earlier mission (same agent id, a re-run into the
+    same data dir): the new mission pushes above that version. Both missions push once, at the end, as v1 of
+    their own count: without the rule the resumable upload would find v1 complete on the server and take the
+    old mission's chunks for the new ones."""
+    from gausslite.wire.codec import assemble
+    from services.fusion_server.client import FusionClient
+    from services.fusion_server.server import serve as serve_fusion
+
+    ds = load_dataset(scene / "agent_a")
+    srv = serve_fusion(ServerOptions(port=0, max_workers=8), None, data_dir=str(tmp_path / "fusion"))
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+            c.wait_ready(10)
+            runs = []
+            for n_frames in (2, 5):
+                cfg = load_agent_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
+                                                      "agent.push_every=100"])
+                rt = AgentRuntime("robot", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []},
+                                  cfg, relevance_fn=lambda fr: np.ones((48, 64), bool), fusion=c)
+                try:
+                    for i in range(n_frames):
+                        rt.submit(ds[i])
+                    rt.finish(push=True, evaluate=False, timeout_s=120)
+                finally:
+                    rt.close()
+                assert rt.final_push_ok and len(rt.pushes) == 1
+                runs.append(rt.pushes[0])
+            first, second = runs
+            assert first.version == 1 and second.version == 2 and second.bytes_on_wire > 0
+            assert srv.store.latest_version("robot") == 2
+            held, _ = assemble(srv.store.chunk_data("robot", 2))
+            assert len(held) == second.n_shared != first.n_shared
+    finally:
+        srv.stop(0.5)

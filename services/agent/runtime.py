@@ -26,6 +26,7 @@ The shared subset (SPEC §7) is the Gaussians with ``active = 1`` (``share: acti
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import queue
@@ -148,7 +149,7 @@ class AgentConfig(BaseModel):
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
     share_finetune_iters: int = Field(200, ge=0)
-    share_refresh: float = Field(0.08, ge=0, le=1)
+    share_refresh: float = Field(0.07, ge=0, le=1)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -855,8 +856,17 @@ class AgentRuntime:
         t0 = time.perf_counter()
         c = self.fusion
         if not self._session_open:
-            c.open_session(self.agent_id, self.task_text, self.intrinsics)
+            info = c.open_session(self.agent_id, self.task_text, self.intrinsics)
             self._session_open = True
+            latest = int(getattr(info, "latest_map_version", 0) or 0)
+            if latest >= snap.version and (self._planner is None or self._planner.base is None):
+                # the server holds this agent's versions from an earlier mission (or from before a crash that lost
+                # the version file): never reuse one, or the resumable upload would take the old chunks for ours
+                with self._lock:
+                    self._version = max(self._version, latest) + 1
+                    snap = dataclasses.replace(snap, version=self._version)
+                log.warning("agent %s: the fusion server holds v%d of this agent; pushing as v%d", self.agent_id,
+                            latest, snap.version)
         if self._planner is None:
             from gausslite.wire.delta import PushPlanner
 

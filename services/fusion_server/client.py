@@ -329,8 +329,9 @@ class FusionClient:
                 last = f"{e.code()}: {e.details()}"
             time.sleep(min(0.1, max(0.0, deadline - time.monotonic())))
 
-    def open_session(self, agent_id: str, task_text: str, intrinsics) -> None:
-        """Open (or re-open, keeping earlier uploads) the session of ``agent_id``.
+    def open_session(self, agent_id: str, task_text: str, intrinsics) -> fusion_pb2.SessionInfo:
+        """Open (or re-open, keeping earlier uploads) the session of ``agent_id``; returns the server's
+        ``SessionInfo`` (``latest_map_version``: the agent's latest complete subset there, 0 = none).
 
         Args:
             agent_id (str): 1..64 chars of ``[A-Za-z0-9_.-]``.
@@ -341,7 +342,7 @@ class FusionClient:
         """
         req = fusion_pb2.OpenSessionRequest(agent_id=agent_id, task_text=task_text,
                                             intrinsics=intrinsics_to_proto(intrinsics))
-        self._unary(self._stub.OpenSession, req, "OpenSession")
+        return self._unary(self._stub.OpenSession, req, "OpenSession")
 
     def upload_status(self, agent_id: str, map_version: int) -> fusion_pb2.UploadAck:
         """The server's ``UploadAck`` for (agent, map version) (``n_chunks == 0``: never seen)."""
