@@ -300,10 +300,11 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
     4. the new and refreshed rows are fine-tuned for ``iters`` iterations, from the ranking pass's values,
        around the frozen rows (``frozen``), so they fit the copy the server will hold.
 
-    Measured (``bench.share_refresh``, room0, two agents, 3 seeds): the ranking by movement beat a ranking
-    weighted by ROI contribution (−0.5 dB) and one by loss gradient (−0.1 to −0.4 dB), and a full-length
-    final pass beat one of ``iters // 4`` by 0.3–0.6 dB (seeds 0, 1). Starting the held rows from the
-    server's values is by itself worth +1.2 dB over fine-tuning the agent's values afresh at every push.
+    Measured on room0 (both tasks, seeds 0 and 1, ground-truth ROI, refresh 0.1, the copy alone): ranking
+    by movement beat ranking by ROI contribution × movement (−0.5 dB) and by loss gradient (−0.1 to −0.4
+    dB), and a final pass of ``iters`` beat one of ``iters // 4`` by 0.3–0.6 dB. ``bench.share_refresh``
+    (3 seeds): starting the held rows from the server's values is by itself worth +0.8 to +1.6 dB over
+    fine-tuning the agent's values afresh at every push (refresh 1).
 
     The frozen rows are then bit-identical to the server's, and the push planner
     (:class:`gausslite.wire.delta.PushPlanner`) sends exactly the new and refreshed rows plus the removed
