@@ -511,15 +511,20 @@ def _run_task_agent(scene, overrides: list, n_frames: int):
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
-    rt = AgentRuntime("a1", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
-                      relevance_fn=lambda fr: roi, fusion=fusion)
+    return _mission("a1", cfg, lambda fr: roi, fusion, ds, n_frames), fusion, roi
+
+
+def _mission(agent_id, cfg, relevance_fn, fusion, ds, n_frames: int) -> AgentRuntime:
+    """One mission of an in-process agent: map ``n_frames`` of ``ds``, finish with a push, close."""
+    rt = AgentRuntime(agent_id, "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
+                      relevance_fn=relevance_fn, fusion=fusion)
     try:
         for i in range(n_frames):
             rt.submit(ds[i])
         rt.finish(push=True, evaluate=False, timeout_s=120)
     finally:
         rt.close()
-    return rt, fusion, roi
+    return rt
 
 
 @pytest.mark.parametrize("iters", [0, 7])
@@ -610,14 +615,7 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
             for n_frames in (2, 5):
                 cfg = load_agent_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
                                                       "agent.push_every=100"])
-                rt = AgentRuntime("robot", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []},
-                                  cfg, relevance_fn=lambda fr: np.ones((48, 64), bool), fusion=c)
-                try:
-                    for i in range(n_frames):
-                        rt.submit(ds[i])
-                    rt.finish(push=True, evaluate=False, timeout_s=120)
-                finally:
-                    rt.close()
+                rt = _mission("robot", cfg, lambda fr: np.ones((48, 64), bool), c, ds, n_frames)
                 assert rt.final_push_ok and len(rt.pushes) == 1
                 runs.append(rt.pushes[0])
             first, second = runs
