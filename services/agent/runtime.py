@@ -785,16 +785,18 @@ class AgentRuntime:
         from gausslite.sharing import update_shared_subset
         from gausslite.wire.codec import GaussianArrays
 
-        kfs = [self.mapper.keyframes.load(i, self.mapper.device) for i in range(len(self.mapper.keyframes))]
+        store = self.mapper.keyframes
         h = hashlib.blake2b(digest_size=16)
         for name in GaussianArrays._SPEC:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
-        for kf in kfs:
+        for kf in store:  # the compact stored keyframes: nothing is loaded for a cache hit
             h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
         h.update(ids.tobytes())
         key = h.digest()
         if self._finetune_cache is not None and self._finetune_cache[0] == key:
             return self._finetune_cache[1]
+        # only the keyframes that see the ROI take part in the fine-tune
+        kfs = [store.load(i, self.mapper.device) for i in range(len(store)) if store[i].sees_roi]
         with self._lock:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
@@ -802,7 +804,7 @@ class AgentRuntime:
         out, st = update_shared_subset(arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
                                        self.config.share_refresh, self.mapper.cfg, seed=self.mapper.cfg.seed)
         log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
-                 "server v%s (%s), %.2f s", self.agent_id, len(arrays), sum(kf.roi_box is not None for kf in kfs),
+                 "server v%s (%s), %.2f s", self.agent_id, len(arrays), len(kfs),
                  self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
         self._finetune_cache = (key, out, ids)
         return out
