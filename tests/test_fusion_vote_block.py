@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from gausslite.fusion import IncrementalVote, voxel_vote
 from gausslite.wire import GaussianArrays
 from tests.test_fusion_vote import make, reference_vote, rows
-from tests.test_fusion_vote_incremental import moved
+from tests.test_fusion_vote_incremental import replay
 
 
 def reference_block_vote(maps: dict[str, GaussianArrays], delta: float, r: int):
@@ -80,18 +80,8 @@ ops = st.lists(st.tuples(st.integers(0, 3), st.sampled_from(["update", "update",
 @given(seed=st.integers(0, 2**32 - 1), ops=ops, delta=st.sampled_from([0.05, 0.1]), r=st.sampled_from([1, 2]))
 def test_incremental_block_vote_equals_a_fresh_vote_after_every_step(seed, ops, delta, r):
     rng = np.random.default_rng(seed)
-    ids = ["a", "b", "c0", "x"]
-    maps: dict[str, GaussianArrays] = {}
     inc = IncrementalVote(delta, contest_radius=r)
-    for who, op, frac in ops:
-        agent = ids[who]
-        if op == "remove":
-            maps.pop(agent, None)
-            inc.remove(agent)
-        else:
-            g = moved(rng, maps[agent], frac) if agent in maps else make(rng, int(rng.integers(0, 40)), grid=0.1)
-            maps[agent] = g
-            inc.update(agent, g)
+    for maps in replay(inc, rng, ops, ["a", "b", "c0", "x"], lambda g: make(g, int(g.integers(0, 40)), grid=0.1)):
         fused, rep = inc.result()
         ref_rows, contested, won = reference_block_vote(maps, delta, r)
         assert rows(fused) == ref_rows

@@ -37,6 +37,22 @@ def moved(rng: np.random.Generator, g: GaussianArrays, frac: float) -> GaussianA
     return GaussianArrays.concat([out, extra])
 
 
+def replay(inc: IncrementalVote, rng: np.random.Generator, ops, ids: list, new):
+    """Apply hypothesis ``ops`` ((agent index, "update"/"remove", move fraction) triples) to ``inc`` and to a
+    dict of the current maps; yields that dict after every step. ``new(rng)`` makes an agent's first map."""
+    maps: dict[str, GaussianArrays] = {}
+    for who, op, frac in ops:
+        agent = ids[who]
+        if op == "remove":
+            maps.pop(agent, None)
+            inc.remove(agent)
+        else:
+            g = moved(rng, maps[agent], frac) if agent in maps else new(rng)
+            maps[agent] = g
+            inc.update(agent, g)
+        yield maps
+
+
 ops = st.lists(st.tuples(st.integers(0, 5), st.sampled_from(["update", "update", "update", "remove"]),
                          st.floats(0.0, 1.0)), min_size=1, max_size=12)
 
@@ -46,19 +62,9 @@ ops = st.lists(st.tuples(st.integers(0, 5), st.sampled_from(["update", "update",
        grid=st.sampled_from([None, 0.1]), kappa_max=st.sampled_from([0, 1, 5]))
 def test_incremental_equals_full_vote_after_every_step(seed, ops, delta, grid, kappa_max):
     rng = np.random.default_rng(seed)
-    ids = ["a", "b", "ab", "c0", "x", "zz"]
-    maps: dict[str, GaussianArrays] = {}
     inc = IncrementalVote(delta)
-    for who, op, frac in ops:
-        agent = ids[who]
-        if op == "remove":
-            maps.pop(agent, None)
-            inc.remove(agent)
-        else:
-            g = moved(rng, maps[agent], frac) if agent in maps else \
-                make(rng, int(rng.integers(0, 40)), kappa_max=kappa_max, grid=grid)
-            maps[agent] = g
-            inc.update(agent, g)
+    for maps in replay(inc, rng, ops, ["a", "b", "ab", "c0", "x", "zz"],
+                       lambda r: make(r, int(r.integers(0, 40)), kappa_max=kappa_max, grid=grid)):
         assert inc.agents == tuple(sorted(maps))
         assert_same(inc, maps, delta)
 
