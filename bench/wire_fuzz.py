@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 
 from gausslite.wire import (
     LOSSLESS,
+    MAX_KAPPA_SHIFT,
     GaussianArrays,
     QuantConfig,
     SubsetAssembler,
@@ -45,7 +46,7 @@ FIELDS = {
     "version": (4, "<H"), "flags": (6, "<H"), "map_version": (8, "<Q"), "index": (16, "<I"),
     "chunk_count": (20, "<I"), "total": (24, "<Q"), "count": (32, "<I"), "agent_len": (36, "<H"),
     "mean_bytes": (38, "<B"), "quat_bits": (39, "<B"), "scale_bits": (40, "<B"), "opacity_bits": (41, "<B"),
-    "color_bits": (42, "<B"), "kappa_bytes": (43, "<B"), "reserved": (44, "<H"), "origin_x": (46, "<d"),
+    "color_bits": (42, "<B"), "kappa_bytes": (43, "<B"), "kappa_shift": (44, "<H"), "origin_x": (46, "<d"),
     "step_x": (70, "<d"), "scale_lo": (94, "<f"), "color_hi": (106, "<f"), "raw_len": (110, "<I"),
     "payload_len": (114, "<I"), "base_version": (118, "<Q"), "base_count": (126, "<Q"), "removed": (134, "<I"),
     "predict_mask": (138, "<I"),
@@ -190,17 +191,20 @@ def prop_delta_round_trip(m: int, seed: int, per: int) -> None:
     n_new = int(rng.integers(0, 20))
     targets = np.concatenate([upd, m + np.arange(n_new)])
     recs = random_arrays(len(targets), seed + 1)
-    chunks = encode_delta(recs, targets, removed, "fuzz", 2, 1, m, chunk_gaussians=per, quant=LOSSLESS)
+    shift = int(rng.integers(0, MAX_KAPPA_SHIFT + 1)) if rng.integers(0, 3) else 0  # 0 in a third of the cases
+    chunks = encode_delta(recs, targets, removed, "fuzz", 2, 1, m, chunk_gaussians=per, quant=LOSSLESS,
+                          kappa_shift=shift)
     asm = SubsetAssembler()
     for c in reversed(chunks):
         asm.add(c)
     dec, meta = asm.result()
     t, rm = asm.delta_parts()
-    assert meta.delta and np.array_equal(t, targets) and np.array_equal(rm, removed)
-    out = apply_delta(base, dec, t, rm, m)
+    assert meta.delta and np.array_equal(t, targets) and np.array_equal(rm, removed) and meta.kappa_shift == shift
+    out = apply_delta(base, dec, t, rm, m, meta.kappa_shift)
     assert len(out) == m - n_rm + n_new
     keep = np.setdiff1d(np.arange(m), removed)
     expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    expect["kappa"] += shift
     for k in expect:
         expect[k][upd] = getattr(recs, k)[: len(upd)]
     want = GaussianArrays.concat([GaussianArrays(**{k: v[keep] for k, v in expect.items()}),

@@ -295,8 +295,9 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
     2. ranking pass: all rows are fine-tuned alone (:func:`finetune_subset`, ``iters // 2``); the base
        rows that moved most, in code steps of the codec (:func:`gausslite.wire.delta.change_steps`), up to
        ``refresh`` × the number of base rows, are the refreshed rows;
-    3. every other base row keeps the server's values, κ and task flag included (the server's κ of a row is
-       the one sent with it; a refreshed row carries the agent's current κ);
+    3. every other base row keeps the server's values and task flag; every held row carries the agent's
+       current κ (the push planner sends the κ growth of the rows it does not re-send as the delta's κ
+       shift, wire format 3, so the server's κ stays current at no per-row cost);
     4. the new and refreshed rows are fine-tuned for ``iters`` iterations, from the ranking pass's values,
        around the frozen rows (``frozen``), so they fit the copy the server will hold.
 
@@ -306,7 +307,7 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
     (3 seeds): starting the held rows from the server's values is by itself worth +0.8 to +1.6 dB over
     fine-tuning the agent's values afresh at every push (refresh 1).
 
-    The frozen rows are then bit-identical to the server's, and the push planner
+    The frozen rows are then bit-identical to the server's but for κ, and the push planner
     (:class:`gausslite.wire.delta.PushPlanner`) sends exactly the new and refreshed rows plus the removed
     ids. Without a base (first push, or after the server lost it) this is :func:`finetune_subset`.
 
@@ -370,13 +371,14 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
     stats["refreshed"] = int(keep.sum())
     frozen = held & ~keep
     out = _rows_replaced(free_all, np.nonzero(frozen)[0], start.take(np.nonzero(frozen)[0]))
-    out.kappa[keep], out.active[keep] = cur.kappa[keep], cur.active[keep]  # a re-sent row carries today's κ
-    if frozen.all():
-        return out, stats
-    out = GaussianArrays.from_any(finetune_subset(out, keyframes, iters, cfg, seed + 1, final_lr=final_lr,
-                                                  frozen=frozen))
-    # exact server values on the frozen rows (the map round trip may touch the last float bit)
-    return _rows_replaced(out, np.nonzero(frozen)[0], start.take(np.nonzero(frozen)[0])), stats
+    out.active[keep] = cur.active[keep]
+    if not frozen.all():
+        out = GaussianArrays.from_any(finetune_subset(out, keyframes, iters, cfg, seed + 1, final_lr=final_lr,
+                                                      frozen=frozen))
+        # exact server values on the frozen rows (the map round trip may touch the last float bit)
+        out = _rows_replaced(out, np.nonzero(frozen)[0], start.take(np.nonzero(frozen)[0]))
+    out.kappa[held] = cur.kappa[held]  # today's κ on every held row (see step 3)
+    return out, stats
 
 
 def _rows_replaced(arrays, rows: np.ndarray, values):

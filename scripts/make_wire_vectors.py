@@ -4,7 +4,8 @@
 Each vector is one chunk file ``<name>.glwc`` plus an entry in ``vectors.json`` holding the parsed
 header, the SHA-256 of the decompressed raw payload and the decoded arrays (float32 values written
 as JSON numbers, exact).  ``tests/test_wire_golden.py`` decodes every chunk and compares.  Run this
-only when the format version changes (the vectors pin format 2):
+only when the format version changes (the vectors pin format 3; ``tests/data/wire/v2`` keeps the
+format-2 vectors, which decoders still read):
 
     .venv/bin/python scripts/make_wire_vectors.py
 """
@@ -22,8 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gausslite.wire.codec import (  # noqa: E402
-    LOSSLESS, GaussianArrays, QuantConfig, decode_chunk, encode_delta, encode_subset, peek_header, raw_payload,
-    spatial_order,
+    FORMAT_VERSION, LOSSLESS, GaussianArrays, QuantConfig, decode_chunk, encode_delta, encode_subset, peek_header,
+    raw_payload, spatial_order,
 )
 
 OUT = ROOT / "tests" / "data" / "wire"
@@ -56,7 +57,7 @@ def main() -> int:
                                                quant=QuantConfig(shuffle=False, predict=False))),
         ("lossless", encode_subset(_arrays(3, 3), "robot-b", 1, quant=LOSSLESS)),
         ("two_chunks", encode_subset(_arrays(5, 4), "robot-c", 2, chunk_gaussians=3)),
-        ("delta", encode_delta(_arrays(3, 5), [1, 5, 6], [0, 3], "robot-a", 9, 7, 5)),
+        ("delta", encode_delta(_arrays(3, 5), [1, 5, 6], [0, 3], "robot-a", 9, 7, 5, kappa_shift=12)),
     ]
     for name, chunks in cases:
         for i, c in enumerate(chunks):
@@ -71,7 +72,7 @@ def main() -> int:
                 entry["targets"] = dc.targets.tolist()
                 entry["removed"] = dc.removed.tolist()
             vectors.append(entry)
-    (OUT / "vectors.json").write_text(json.dumps({"format_version": 2, "vectors": vectors}, indent=1))
+    (OUT / "vectors.json").write_text(json.dumps({"format_version": FORMAT_VERSION, "vectors": vectors}, indent=1))
     print(f"wrote {len(vectors)} vectors to {OUT}")
     return 0
 

@@ -19,7 +19,7 @@ from gausslite.wire import (
     assemble,
     encode_delta,
 )
-from gausslite.wire.delta import PushPlanner, changed_rows
+from gausslite.wire.delta import PushPlanner, changed_rows, kappa_shift_of
 
 
 def _map(n: int, seed: int = 0) -> GaussianMap:
@@ -134,3 +134,40 @@ def test_changed_rows_rule_and_delta_validation():
         kw.update(bad)
         with pytest.raises(ValueError):
             encode_delta(**kw)
+
+
+def test_kappa_growth_travels_as_one_shift_not_as_rows():
+    """Between pushes every active row's κ grows by the ROI-phase iterations run (paper III-D.1): the
+    delta carries that growth as its κ shift (no record), rows that grew otherwise beyond ``kappa_rel``
+    are re-sent, and the rebuilt copy holds the agent's κ on every row up to that tolerance."""
+    planner = PushPlanner("a", chunk_gaussians=64)
+    ids = np.arange(200)
+    cur = _arrays(200)
+    cur.kappa[:] = np.random.default_rng(1).integers(100, 200, 200)
+    p1 = planner.plan(ids, cur, 1)
+    planner.acknowledge(p1)
+    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays._SPEC})
+    nxt.kappa += 125  # 5 frames × 25 ROI-phase iterations
+    nxt.kappa[:6] += 200  # six rows grew far more (e.g. active in extra iterations): beyond kappa_rel
+    nxt.kappa[6:9] += 3  # within kappa_rel of base + shift: not re-sent
+    p2 = planner.plan(ids, nxt, 2, measure_full=False)
+    assert p2.is_delta and p2.n_records == 6 and planner.last_stats["kappa_shift"] == 125
+    recs, meta = assemble(p2.chunks)
+    assert meta.kappa_shift == 125
+    by_id = dict(zip(p2.ids.tolist(), p2.subset.kappa.tolist()))
+    got = np.array([by_id[i] for i in ids.tolist()])
+    assert np.array_equal(got[:6], nxt.kappa[:6]) and np.array_equal(got[9:], nxt.kappa[9:])
+    assert np.array_equal(got[6:9], nxt.kappa[6:9] - 3)
+    # without the shift this push would have re-sent every row (κ +125 on 100..200 is > 25 %)
+    assert changed_rows(nxt, p1.subset).all()
+
+
+def test_kappa_shift_of_rule():
+    assert kappa_shift_of(np.array([5, 7, 7, 9]), np.array([0, 2, 2, 0])) == 5  # growths 5,5,5,9
+    assert kappa_shift_of(np.array([3, 3]), np.array([3, 4])) == 0  # nothing grew
+    assert kappa_shift_of(np.zeros(0, np.int64), np.zeros(0, np.int64)) == 0
+    assert kappa_shift_of(np.array([10**6]), np.array([0])) == 0xFFFF  # clipped to the u16 field
+    with pytest.raises(ValueError, match="kappa_shift"):
+        encode_delta(_arrays(1), [0], [], "a", 2, 1, 1, kappa_shift=1 << 16)
+    with pytest.raises(DeltaMismatch):
+        apply_delta(_arrays(1), _arrays(0), np.zeros(0, np.int64), np.zeros(0, np.int64), 1, kappa_shift=-1)

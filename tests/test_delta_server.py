@@ -36,9 +36,10 @@ class Agent:
         self.arr = _arrays(n, 0)
         self.next_id = n
 
-    def evolve(self, seed: int, n_move=30, n_remove=20, n_new=50):
+    def evolve(self, seed: int, n_move=30, n_remove=20, n_new=50, kappa_growth=0):
         r = np.random.default_rng(seed)
         a = {k: np.array(getattr(self.arr, k), copy=True) for k in GaussianArrays._SPEC}
+        a["kappa"] += kappa_growth  # ROI-phase iterations since the last push: every active row grows
         mv = r.choice(len(self.ids), n_move, replace=False)
         a["means"][mv] += 0.01
         keep = np.ones(len(self.ids), bool)
@@ -82,15 +83,19 @@ def test_delta_round_trips_restart_and_lost_base(tmp_path):
         p1, r1 = _push(c, planner, agent, 1)
         assert not p1.is_delta and r1.bytes_sent == p1.nbytes
         assert _held(srv, "robot").equals(p1.subset)
-        agent.evolve(1)
+        agent.evolve(1, kappa_growth=25)
         p2, r2 = _push(c, planner, agent, 2)
         assert p2.is_delta and p2.n_records == 30 + 50 and p2.n_removed == 20
+        assert planner.last_stats["kappa_shift"] == 25
         assert r2.bytes_sent == p2.nbytes < p1.nbytes / 2
-        assert _held(srv, "robot").equals(p2.subset)  # rebuilt from base + delta, stored whole
+        held = _held(srv, "robot")
+        assert held.equals(p2.subset)  # rebuilt from base + delta (κ shift applied), stored whole
+        row = {int(i): k for i, k in zip(p2.ids, held.kappa)}
+        assert [row[int(i)] for i in agent.ids] == agent.arr.kappa.tolist()  # the server's κ is the agent's
         assert srv.store.latest_version("robot") == 2 and srv.store.upload("robot", 1) is None
     # restart on the same data dir between pushes: the base survives, deltas keep working
     with _server(tmp_path / "data") as (srv, c):
-        agent.evolve(2)
+        agent.evolve(2, kappa_growth=7)
         p3, _ = _push(c, planner, agent, 3)
         assert p3.is_delta and p3.base_version == 2
         assert _held(srv, "robot").equals(p3.subset)

@@ -155,7 +155,8 @@ def test_finetune_subset_keeps_frozen_rows_and_fits_the_free_ones_around_them():
 def test_update_shared_subset_changes_only_new_and_refreshed_rows_of_the_servers_copy():
     """The server holds rows 0..11 (ids 100..111) at known values; the agent's subset drops id 100 and
     adds ids 200..204. Only the new rows and ⌊refresh × held⌋ held rows may differ from the server's
-    copy, and a delta push of the result carries exactly those."""
+    copy (κ aside: every held row carries the agent's κ), and a delta push of the result carries exactly
+    those, with the κ growth of the others as the delta's κ shift, so the server's κ is the agent's."""
     from gausslite.sharing import update_shared_subset
     from gausslite.wire.codec import GaussianArrays
     from gausslite.wire.delta import PushPlanner
@@ -181,16 +182,21 @@ def test_update_shared_subset_changes_only_new_and_refreshed_rows_of_the_servers
         assert len(out) == 20
         srv = base.take(order[np.searchsorted(base_ids, agent_ids[:15], sorter=order)])
         same = np.all([np.all(getattr(out, k)[:15].reshape(15, -1) == getattr(srv, k).reshape(15, -1), axis=1)
-                       for k in GaussianArrays._SPEC], axis=0)
+                       for k in GaussianArrays._SPEC if k != "kappa"], axis=0)
         assert int((~same).sum()) <= n_refresh and int(same.sum()) >= 15 - n_refresh
         if refresh < 1.0:
             assert int((~same).sum()) == n_refresh
-        # refreshed rows carry the agent's κ; frozen rows the server's
-        assert np.all(out.kappa[:15][same] == srv.kappa[same]) and np.all(out.kappa[:15][~same] == drift.kappa[~same])
+        # every held row carries the agent's κ
+        assert np.array_equal(out.kappa[:15], drift.kappa)
         p = PushPlanner("a")
         p.acknowledge(first)
         plan = p.plan(agent_ids, out, version=2, measure_full=False)
         assert plan.is_delta and plan.n_removed == 1 and plan.n_records == 5 + int((~same).sum())
+        if refresh < 1.0:
+            assert p.last_stats["kappa_shift"] == 40
+        # the server's rebuilt copy (the planner mirrors it) holds the agent's κ on every row
+        ix = np.argsort(plan.ids)
+        assert np.array_equal(plan.subset.kappa[ix][np.searchsorted(plan.ids[ix], agent_ids)], out.kappa)
     # no base: the plain fine-tune of the agent's values
     out, st = update_shared_subset(agent, agent_ids, None, None, [kf], iters=10, refresh=0.1, seed=0)
     assert st == {"base": 0, "new": 20, "refreshed": 0} and len(out) == 20

@@ -65,7 +65,7 @@ def test_specific_failures_raise_the_right_type():
         decode_chunk(c[:-1])
     with pytest.raises(BadMagic):
         decode_chunk(b"PLY\n" + c[4:])
-    for v in (1, 3):  # format 1 (before delta records) is not accepted by a format-2 decoder
+    for v in (1, 4):  # format 1 (before delta records) and unknown formats are rejected
         with pytest.raises(UnsupportedVersion):
             decode_chunk(forge(c, version=v))
     bad = bytearray(c)
@@ -161,7 +161,7 @@ def test_non_finite_values_and_bad_parameters():
     c = QUANT_CHUNK
     for kw in ({"step_x": float("inf")}, {"step_x": -1.0}, {"origin_x": float("nan")},
                {"step_x": 1e308}, {"scale_lo": 5.0}, {"mean_bytes": 9}, {"quat_bits": 2},
-               {"scale_bits": 0}, {"kappa_bytes": 9}, {"flags": 0x80}, {"reserved": 1},
+               {"scale_bits": 0}, {"kappa_bytes": 9}, {"flags": 0x80}, {"kappa_shift": 1},
                {"agent_len": 0}, {"color_hi": float("inf")}):
         with pytest.raises(WireError):
             decode_chunk(forge(c, **kw))

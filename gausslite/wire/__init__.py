@@ -11,6 +11,8 @@ from gausslite.wire.codec import (
     HEADER_SIZE,
     LOSSLESS,
     MAGIC,
+    MAX_KAPPA_SHIFT,
+    SUPPORTED_VERSIONS,
     BadMagic,
     ChecksumMismatch,
     ChunkHeader,
@@ -44,7 +46,8 @@ from gausslite.wire.codec import (
 )
 
 __all__ = [
-    "DEFAULT_LIMITS", "FORMAT_VERSION", "HEADER_SIZE", "LOSSLESS", "MAGIC", "BadMagic",
+    "DEFAULT_LIMITS", "FORMAT_VERSION", "HEADER_SIZE", "LOSSLESS", "MAGIC", "MAX_KAPPA_SHIFT",
+    "SUPPORTED_VERSIONS", "BadMagic",
     "ChecksumMismatch", "ChunkHeader", "ConflictingDuplicate", "DecodedChunk", "DeltaMismatch",
     "GaussianArrays", "IncompleteSubset", "InconsistentChunks", "LimitExceeded", "MalformedChunk",
     "NonFiniteValues", "QuantConfig", "SubsetAssembler", "SubsetMeta", "TruncatedChunk",

@@ -8,14 +8,14 @@ idempotent by (agent id, map version, chunk index)").
 Everything here is numpy; torch is only touched when converting from/to
 :class:`gausslite.gaussians.GaussianMap`.
 
-Chunk layout (format version 2, all integers little-endian)
+Chunk layout (format version 3, all integers little-endian)
 -----------------------------------------------------------
 The normative, language-neutral specification is ``docs/wire-format.md`` (with golden vectors in
 ``tests/data/wire``); summary::
 
     off  size  field
       0     4  magic b"GLWC"
-      4     2  u16 format version (= 2)
+      4     2  u16 format version (= 3; format 2 chunks are still decoded, κ shift 0)
       6     2  u16 flags: bit0 lossless, bit1 byte-plane shuffle, bit2 delta; other bits must be 0
       8     8  u64 map version
      16     4  u32 chunk index (0-based)
@@ -29,7 +29,8 @@ The normative, language-neutral specification is ``docs/wire-format.md`` (with g
      41     1  u8  opacity bits (quantised: 1..16; lossless: 0)
      42     1  u8  colour bits (quantised: 1..16; lossless: 0)
      43     1  u8  κ bytes (zigzag, 0..8; 0 means all κ are 0)
-     44     2  reserved, must be 0
+     44     2  u16 κ shift s (delta only, else 0; format 2: reserved, 0): every kept, unreplaced
+               base row gets κ + s when the delta is applied
      46    24  3 x f64 mean origin (metres; quantised only, else 0)
      70    24  3 x f64 mean step (metres per code; quantised only, else 0)
      94     8  2 x f32 log-scale range lo, hi (quantised only)
@@ -115,6 +116,8 @@ import zstandard
 
 __all__ = [
     "FORMAT_VERSION",
+    "SUPPORTED_VERSIONS",
+    "MAX_KAPPA_SHIFT",
     "MAGIC",
     "GaussianArrays",
     "QuantConfig",
@@ -149,7 +152,11 @@ __all__ = [
 ]
 
 MAGIC = b"GLWC"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: format versions this decoder reads (2: the same layout with the κ shift reserved as 0)
+SUPPORTED_VERSIONS = (2, 3)
+#: largest κ shift a delta can carry (u16 header field)
+MAX_KAPPA_SHIFT = 0xFFFF
 
 FLAG_LOSSLESS = 1
 FLAG_SHUFFLE = 2
@@ -183,7 +190,7 @@ class BadMagic(WireError):
 
 
 class UnsupportedVersion(WireError):
-    """The chunk's format version is not :data:`FORMAT_VERSION`."""
+    """The chunk's format version is not one of :data:`SUPPORTED_VERSIONS`."""
 
 
 class ChecksumMismatch(WireError):
@@ -460,6 +467,7 @@ class ChunkHeader:
     base_version: int = 0
     base_count: int = 0
     removed_count: int = 0
+    kappa_shift: int = 0
 
 
 @dataclass(frozen=True)
@@ -492,6 +500,7 @@ class SubsetMeta:
         wire_bytes: sum of the chunks' lengths on the wire.
         delta, base_version, base_count: a delta subset (``total_count`` counts its records) and
             the base it applies to.
+        kappa_shift: a delta's κ shift (added to the κ of every kept, unreplaced base row).
     """
 
     agent_id: str
@@ -503,6 +512,7 @@ class SubsetMeta:
     delta: bool = False
     base_version: int = 0
     base_count: int = 0
+    kappa_shift: int = 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -741,8 +751,8 @@ def _zstd_bound(n: int) -> int:
 
 def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: int, count: int,
                   total: int, quant: QuantConfig, cctx: zstandard.ZstdCompressor,
-                  delta: Optional[tuple[int, int, np.ndarray, np.ndarray]] = None) -> bytes:
-    """One chunk. ``delta`` = (base_version, base_count, targets (n,), removed (r,)), both sorted."""
+                  delta: Optional[tuple[int, int, np.ndarray, np.ndarray, int]] = None) -> bytes:
+    """One chunk. ``delta`` = (base_version, base_count, targets (n,), removed (r,), κ shift), both sorted."""
     n = len(arr)
     sh = quant.shuffle
     kz = _zigzag(arr.kappa)
@@ -765,7 +775,7 @@ def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: in
         codes = [mq, _quat_encode(arr.quats, qb), _affine_encode(arr.log_scales, *srange, sb),
                  _opacity_encode(arr.opacity_logits, ob), _affine_encode(arr.colors, *crange, cb)]
     is_delta = delta is not None
-    base_version, base_count, targets, removed = delta if is_delta else (0, 0, None, None)
+    base_version, base_count, targets, removed, kappa_shift = delta if is_delta else (0, 0, None, None, 0)
     widths = _field_widths(quant.lossless, mb, qb, sb, ob, cb, kb, is_delta)
     tail = []
     if is_delta:
@@ -796,7 +806,7 @@ def _encode_chunk(arr: GaussianArrays, agent: bytes, map_version: int, index: in
              | (FLAG_DELTA if is_delta else 0))
     head = _HEADER.pack(
         MAGIC, FORMAT_VERSION, flags, map_version, index, count, total, n, len(agent),
-        mb, qb, sb, ob, cb, kb, 0, *map(float, origin), *map(float, step), *srange, *crange,
+        mb, qb, sb, ob, cb, kb, int(kappa_shift), *map(float, origin), *map(float, step), *srange, *crange,
         len(raw), len(payload), int(base_version), int(base_count), r, predict,
     )
     body = head + agent + payload
@@ -855,6 +865,7 @@ def encode_delta(
     max_chunk_bytes: Optional[int] = None,
     quant: QuantConfig = QuantConfig(),
     limits: WireLimits = DEFAULT_LIMITS,
+    kappa_shift: int = 0,
 ) -> list[bytes]:
     """Encode a delta against an earlier subset version of the same agent (FLAG_DELTA chunks).
 
@@ -873,14 +884,21 @@ def encode_delta(
             :func:`encode_subset`.
         base_version: the version the delta applies to (< map_version).
         base_count: row count of the base subset.
+        kappa_shift: κ added to every base row the delta keeps without replacing it, in
+            ``[0, MAX_KAPPA_SHIFT]`` (an agent's κ grows by one per ROI-phase iteration for all its
+            active Gaussians, so one shift brings the unchanged rows' κ up to date; written in every
+            chunk's header).
 
     Returns:
         list of chunks (at least one; removed indices are spread over the chunks).
 
     Raises:
         ValueError: bad targets/removed (duplicates, out of range, overlap, sizes), base_version not
-            below map_version, and everything :func:`encode_subset` raises.
+            below map_version, a κ shift outside ``[0, MAX_KAPPA_SHIFT]``, and everything
+            :func:`encode_subset` raises.
     """
+    if not isinstance(kappa_shift, (int, np.integer)) or not 0 <= int(kappa_shift) <= MAX_KAPPA_SHIFT:
+        raise ValueError(f"kappa_shift must be an int in [0, {MAX_KAPPA_SHIFT}], got {kappa_shift!r}")
     arr = GaussianArrays.from_any(records)
     t = np.asarray(targets, dtype=np.int64).reshape(-1)
     rm = np.unique(np.asarray(removed, dtype=np.int64).reshape(-1))
@@ -901,12 +919,12 @@ def encode_delta(
     if np.intersect1d(rm, t).size:
         raise ValueError("a removed row is also a target")
     return _encode(arr.take(order), agent_id, map_version,
-                   (int(base_version), int(base_count), t, rm), chunk_gaussians=chunk_gaussians,
+                   (int(base_version), int(base_count), t, rm, int(kappa_shift)), chunk_gaussians=chunk_gaussians,
                    max_chunk_bytes=max_chunk_bytes, quant=quant, limits=limits)
 
 
 def _encode(arr: GaussianArrays, agent_id: str, map_version: int,
-            delta: Optional[tuple[int, int, np.ndarray, np.ndarray]], *,
+            delta: Optional[tuple[int, int, np.ndarray, np.ndarray, int]], *,
             chunk_gaussians: Optional[int], max_chunk_bytes: Optional[int], quant: QuantConfig,
             limits: WireLimits) -> list[bytes]:
     if not isinstance(agent_id, str) or not agent_id:
@@ -965,7 +983,7 @@ def _encode(arr: GaussianArrays, agent_id: str, map_version: int,
         part = arr.take(sl)
         d = None
         if delta is not None:
-            d = (delta[0], delta[1], delta[2][sl], rm[i * r_per:(i + 1) * r_per])
+            d = (delta[0], delta[1], delta[2][sl], rm[i * r_per:(i + 1) * r_per], delta[4])
         chunk = _encode_chunk(part, agent, map_version, i, count, n, quant, cctx, d)
         if len(chunk) > limits.max_chunk_bytes or (
                 max_chunk_bytes is not None and len(chunk) > max_chunk_bytes):
@@ -1006,12 +1024,13 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     if size < _PREFIX.size:
         raise TruncatedChunk("no version field")
     version = _PREFIX.unpack_from(buf)[1]
-    if version != FORMAT_VERSION:
-        raise UnsupportedVersion(f"format version {version}, supported: {FORMAT_VERSION}")
+    if version not in SUPPORTED_VERSIONS:
+        raise UnsupportedVersion(f"format version {version}, supported: "
+                                 f"{', '.join(map(str, SUPPORTED_VERSIONS))}")
     if size < HEADER_SIZE:
         raise TruncatedChunk(f"{size} bytes, shorter than the {HEADER_SIZE}-byte header")
     (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
-     reserved, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
+     kappa_shift, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
      n_removed, predict_mask) = _HEADER.unpack_from(buf)
     if alen > limits.max_agent_id_bytes:
         raise LimitExceeded(f"agent id of {alen} bytes")
@@ -1026,8 +1045,11 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     if zlib.crc32(buf[: size - _CRC.size]) != crc:
         raise ChecksumMismatch("CRC-32 mismatch")
     # ---- semantic validation (a valid CRC says nothing about intent)
-    if flags & ~_KNOWN_FLAGS or reserved:
-        raise MalformedChunk(f"unknown flags {flags:#x} / reserved {reserved}")
+    if flags & ~_KNOWN_FLAGS:
+        raise MalformedChunk(f"unknown flags {flags:#x}")
+    if kappa_shift and (version < 3 or not flags & FLAG_DELTA):
+        raise MalformedChunk(f"κ shift {kappa_shift} in a {'format 2' if version < 3 else 'full'} chunk "
+                             "(reserved, must be 0)")
     lossless = bool(flags & FLAG_LOSSLESS)
     delta = bool(flags & FLAG_DELTA)
     if predict_mask >> _PREDICTABLE or (predict_mask and lossless):
@@ -1082,6 +1104,7 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
         kappa_bytes=kb, mean_origin=(ox, oy, oz), mean_step=(sx, sy, sz), scale_range=(slo, shi),
         color_range=(clo, chi), raw_len=raw_len, payload_len=plen, wire_len=size, delta=delta,
         predict_mask=predict_mask, base_version=base_version, base_count=base_count, removed_count=n_removed,
+        kappa_shift=kappa_shift,
     )
 
 
@@ -1158,7 +1181,7 @@ def _digest(h: ChunkHeader, raw: bytes) -> bytes:
              h.chunk_count, h.total_count, h.count, h.mean_bytes, h.quat_bits, h.scale_bits,
              h.opacity_bits, h.color_bits, h.kappa_bytes, h.mean_origin, h.mean_step,
              h.scale_range, h.color_range, h.delta, h.predict_mask, h.base_version, h.base_count,
-             h.removed_count)
+             h.removed_count) + ((h.kappa_shift,) if h.kappa_shift else ())  # digests of shift-0 chunks unchanged
     d = hashlib.blake2b(repr(ident).encode(), digest_size=32)
     d.update(raw)
     return d.digest()
@@ -1313,7 +1336,7 @@ class SubsetAssembler:
         dc = chunk if isinstance(chunk, DecodedChunk) else decode_chunk(chunk, self.limits)
         h = dc.header
         key = (h.agent_id, h.map_version, h.chunk_count, h.total_count, h.lossless, h.delta,
-               h.base_version, h.base_count)
+               h.base_version, h.base_count, h.kappa_shift)
         if self._expect_agent is not None and h.agent_id != self._expect_agent:
             raise InconsistentChunks(f"agent {h.agent_id!r}, expected {self._expect_agent!r}")
         if self._expect_version is not None and h.map_version != self._expect_version:
@@ -1345,12 +1368,12 @@ class SubsetAssembler:
         if not self.complete:
             raise IncompleteSubset(f"missing chunks {self.missing()[:16]}"
                                    if self._key else "no chunk received")
-        agent, version, count, total, lossless, delta, base_version, base_count = self._key
+        agent, version, count, total, lossless, delta, base_version, base_count, shift = self._key
         arrays = GaussianArrays.concat([self._chunks[i].arrays for i in range(count)])
         return arrays, SubsetMeta(agent_id=agent, map_version=version, total_count=total,
                                   chunk_count=count, lossless=lossless,
                                   wire_bytes=self._wire_bytes, delta=delta,
-                                  base_version=base_version, base_count=base_count)
+                                  base_version=base_version, base_count=base_count, kappa_shift=shift)
 
     def delta_parts(self) -> tuple[np.ndarray, np.ndarray]:
         """(targets, removed) of a complete delta subset, int64, in record order / sorted.
@@ -1374,17 +1397,18 @@ class DeltaMismatch(WireError):
 
 
 def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarray,
-                removed: np.ndarray, base_count: int) -> GaussianArrays:
+                removed: np.ndarray, base_count: int, kappa_shift: int = 0) -> GaussianArrays:
     """Rebuild a subset from its base and a delta (see :func:`encode_delta`).
 
     Args:
         base: the base subset (must have ``base_count`` rows).
         records: (R,) changed/new Gaussians; targets: (R,) int64 ascending; removed: (D,) int64.
         base_count: the base row count the delta declares.
+        kappa_shift: the delta's κ shift (``SubsetMeta.kappa_shift``), >= 0.
 
     Returns:
-        [base rows not removed (replaced by their record when targeted), in base order] followed by
-        the new rows in target order.
+        [base rows not removed (replaced by their record when targeted; κ + ``kappa_shift`` when
+        not), in base order] followed by the new rows in target order.
 
     Raises:
         DeltaMismatch: see its docstring.
@@ -1404,6 +1428,12 @@ def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarr
     if not np.array_equal(t[new], base_count + np.arange(int(new.sum()))):
         raise DeltaMismatch("new-row targets are not consecutive from base_count")
     out = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    if kappa_shift:
+        if int(kappa_shift) < 0:
+            raise DeltaMismatch(f"negative κ shift {kappa_shift}")
+        if out["kappa"].size and int(out["kappa"].max()) > np.iinfo(np.int64).max - int(kappa_shift):
+            raise DeltaMismatch("κ shift overflows int64")
+        out["kappa"] += int(kappa_shift)
     for k in out:
         out[k][t[upd]] = getattr(records, k)[upd]
     keep = np.ones(base_count, bool)

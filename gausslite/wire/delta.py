@@ -19,9 +19,16 @@ optimiser did not move are never re-sent, and a re-sent row moved by at least ha
 * rotation: any component of the sign-canonical unit quaternion differs by more than
   ``5 · (1/√2) / (2^bits − 1)`` (the largest component is reconstructed from the other three and
   carries up to about 4.2× their error);
-* κ: relative change above ``kappa_rel`` (κ is lossless on the wire, but a re-send for every
-  +1 would re-send every active Gaussian at every push);
+* κ: relative change above ``kappa_rel`` against the base κ plus the delta's κ shift (κ is lossless
+  on the wire, but a re-send for every +1 would re-send every active Gaussian at every push);
 * the active flag changed.
+
+κ shift (wire format 3): an agent's κ grows by one per ROI-phase iteration for every active Gaussian
+(paper III-D.1), so between two pushes the rows the delta does not carry have all grown by about the
+same amount. The planner sends that growth once, as the delta's κ shift: the most common κ growth of
+the rows it keeps (:func:`kappa_shift_of`). The server adds it to every row the delta keeps without
+replacing, so its κ, which the voxel vote compares between agents, is as current as the agent's;
+rows whose κ grew otherwise are compared against base κ + shift by the rule above.
 
 Pure numpy; no gRPC.
 """
@@ -43,8 +50,25 @@ from gausslite.wire.codec import (
     encode_subset,
     spatial_order,
 )
+from gausslite.wire.codec import MAX_KAPPA_SHIFT
 
-__all__ = ["PlannedPush", "PushPlanner", "change_steps", "changed_rows"]
+__all__ = ["PlannedPush", "PushPlanner", "change_steps", "changed_rows", "kappa_shift_of"]
+
+
+def kappa_shift_of(cur_kappa: np.ndarray, base_kappa: np.ndarray) -> int:
+    """The κ shift of a delta: the most common growth ``cur − base`` (ties: the smaller) over the rows
+    the delta keeps, clipped to ``[0, MAX_KAPPA_SHIFT]``; 0 for no rows or when no row grew.
+
+    Args:
+        cur_kappa, base_kappa: (K,) int64 κ of the kept rows, the agent's now / the server's.
+    """
+    d = np.asarray(cur_kappa, np.int64) - np.asarray(base_kappa, np.int64)
+    d = d[d > 0]
+    if d.size == 0:
+        return 0
+    d = np.minimum(d, MAX_KAPPA_SHIFT)
+    vals, counts = np.unique(d, return_counts=True)
+    return int(vals[np.argmax(counts)])
 
 
 def _canonical_quats(q: np.ndarray) -> np.ndarray:
@@ -226,13 +250,15 @@ class PushPlanner:
             base_row = np.where(bids[pos] == ids, pos, -1)
         in_base = base_row >= 0
         cur_idx = np.nonzero(in_base)[0]
-        changed = changed_rows(arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant,
-                               self.tolerance, self.kappa_rel)
+        kept_base = base.take(base_row[cur_idx])
+        shift = kappa_shift_of(arrays.kappa[cur_idx], kept_base.kappa)
+        kept_base.kappa = kept_base.kappa + shift  # what the server will hold for an unreplaced row
+        changed = changed_rows(arrays.take(cur_idx), kept_base, self.quant, self.tolerance, self.kappa_rel)
         upd_idx = cur_idx[changed]
         self.last_stats = {"base_rows": m, "kept": len(cur_idx), "changed": int(changed.sum()),
-                           "new": int((~in_base).sum()),
+                           "new": int((~in_base).sum()), "kappa_shift": shift,
                            "changed_at_tolerance": {f"{t}/{k}": int(changed_rows(
-                               arrays.take(cur_idx), base.take(base_row[cur_idx]), self.quant, t, k).sum())
+                               arrays.take(cur_idx), kept_base, self.quant, t, k).sum())
                                for t in (1.0, 4.0) for k in (1.0, 1e9)}}
         new_idx = np.nonzero(~in_base)[0]
         new_idx = new_idx[spatial_order(arrays.means[new_idx])]
@@ -245,9 +271,9 @@ class PushPlanner:
         order = np.argsort(targets, kind="stable")  # encode_delta sorts; keep ids aligned
         targets, records, rec_idx = targets[order], records.take(order), rec_idx[order]
         chunks = encode_delta(records, targets, removed, self.agent_id, version, self.base_version, m,
-                              chunk_gaussians=self.chunk_gaussians, quant=self.quant)
+                              chunk_gaussians=self.chunk_gaussians, quant=self.quant, kappa_shift=shift)
         dec, meta = assemble(chunks)
-        subset = apply_delta(base, dec, targets, removed, m)
+        subset = apply_delta(base, dec, targets, removed, m, meta.kappa_shift)
         n_new = len(new_idx)
         new_ids = np.concatenate([bids[keep], ids[rec_idx[len(rec_idx) - n_new:]] if n_new else
                                   np.zeros(0, np.int64)])

@@ -335,7 +335,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         targets, removed = asm.delta_parts()
         try:
             full = apply_delta(self._subset(agent, meta.base_version), records, targets, removed,
-                               meta.base_count)
+                               meta.base_count, meta.kappa_shift)
         except DeltaMismatch as e:
             self.store.discard_upload(agent, version)
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"delta v{version} of {agent!r}: {e}") from None
@@ -345,8 +345,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self.store.complete_rebuilt(agent, version, stored, len(full), True)
         with self._cache_lock:
             self._cache[(agent, version)] = full
-        log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed): %d Gaussians", agent,
-                 version, meta.base_version, len(records), len(removed), len(full))
+        log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed, κ shift %d): %d Gaussians",
+                 agent, version, meta.base_version, len(records), len(removed), meta.kappa_shift, len(full))
 
     # ------------------------------------------------------------------ RPCs
     @_unary_guard
