@@ -204,7 +204,7 @@ def prop_delta_round_trip(m: int, seed: int, per: int) -> None:
     assert len(out) == m - n_rm + n_new
     keep = np.setdiff1d(np.arange(m), removed)
     expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
-    expect["kappa"] += shift
+    expect["kappa"][expect["active"]] += shift  # active rows only
     for k in expect:
         expect[k][upd] = getattr(recs, k)[: len(upd)]
     want = GaussianArrays.concat([GaussianArrays(**{k: v[keep] for k, v in expect.items()}),

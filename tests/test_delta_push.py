@@ -138,16 +138,19 @@ def test_changed_rows_rule_and_delta_validation():
 
 def test_kappa_growth_travels_as_one_shift_not_as_rows():
     """Between pushes every active row's κ grows by the ROI-phase iterations run (paper III-D.1): the
-    delta carries that growth as its κ shift (no record), rows that grew otherwise beyond ``kappa_rel``
-    are re-sent, and the rebuilt copy holds the agent's κ on every row up to that tolerance."""
+    delta carries that growth as its κ shift (no record), inactive rows keep their κ, rows that grew
+    otherwise beyond ``kappa_rel`` are re-sent, and the rebuilt copy holds the agent's κ on every row up
+    to that tolerance."""
     planner = PushPlanner("a", chunk_gaussians=64)
     ids = np.arange(200)
     cur = _arrays(200)
     cur.kappa[:] = np.random.default_rng(1).integers(100, 200, 200)
+    cur.active[:] = True
+    cur.active[190:] = False  # context rows of the ROI render: their κ does not grow
     p1 = planner.plan(ids, cur, 1)
     planner.acknowledge(p1)
     nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays._SPEC})
-    nxt.kappa += 125  # 5 frames × 25 ROI-phase iterations
+    nxt.kappa[nxt.active] += 125  # 5 frames × 25 ROI-phase iterations
     nxt.kappa[:6] += 200  # six rows grew far more (e.g. active in extra iterations): beyond kappa_rel
     nxt.kappa[6:9] += 3  # within kappa_rel of base + shift: not re-sent
     p2 = planner.plan(ids, nxt, 2, measure_full=False)

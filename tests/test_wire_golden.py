@@ -102,16 +102,18 @@ def test_documented_layout_read_independently(vec):
 
 
 def test_golden_delta_kappa_shift_applies_to_kept_unreplaced_base_rows():
-    """§6: the rebuilt subset's kept, unreplaced base rows carry base κ + the header's κ shift."""
+    """§6: the rebuilt subset's kept, unreplaced active base rows carry base κ + the header's κ shift;
+    inactive ones keep their κ."""
     vec = next(v for v in VECTORS if v["format"] == 3 and v["header"]["delta"])
     dc = decode_chunk((Path(vec["dir"]) / vec["file"]).read_bytes())
     n = dc.header.base_count
     base = GaussianArrays(means=np.zeros((n, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
                           log_scales=np.zeros((n, 3), np.float32), opacity_logits=np.zeros(n, np.float32),
-                          colors=np.zeros((n, 3), np.float32), kappa=np.arange(n) * 10, active=np.ones(n, bool))
+                          colors=np.zeros((n, 3), np.float32), kappa=np.arange(n) * 10,
+                          active=np.array([True, True, False, True, True]))
     out = apply_delta(base, dc.arrays, dc.targets, dc.removed, n, dc.header.kappa_shift)
-    # base rows 0 and 3 removed, row 1 replaced, rows 2 and 4 kept: κ 20 + 12, 40 + 12; then the new rows
-    assert out.kappa.tolist() == [int(dc.arrays.kappa[0]), 32, 52] + dc.arrays.kappa[1:].tolist()
+    # base rows 0 and 3 removed, row 1 replaced, rows 2 (inactive) and 4 kept: κ 20, 40 + 12; then the new rows
+    assert out.kappa.tolist() == [int(dc.arrays.kappa[0]), 20, 52] + dc.arrays.kappa[1:].tolist()
 
 
 @pytest.mark.parametrize("fmt,delta", [(2, True), (3, False)])

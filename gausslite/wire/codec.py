@@ -30,7 +30,7 @@ The normative, language-neutral specification is ``docs/wire-format.md`` (with g
      42     1  u8  colour bits (quantised: 1..16; lossless: 0)
      43     1  u8  κ bytes (zigzag, 0..8; 0 means all κ are 0)
      44     2  u16 κ shift s (delta only, else 0; format 2: reserved, 0): every kept, unreplaced
-               base row gets κ + s when the delta is applied
+               base row with the task flag set gets κ + s when the delta is applied
      46    24  3 x f64 mean origin (metres; quantised only, else 0)
      70    24  3 x f64 mean step (metres per code; quantised only, else 0)
      94     8  2 x f32 log-scale range lo, hi (quantised only)
@@ -500,7 +500,7 @@ class SubsetMeta:
         wire_bytes: sum of the chunks' lengths on the wire.
         delta, base_version, base_count: a delta subset (``total_count`` counts its records) and
             the base it applies to.
-        kappa_shift: a delta's κ shift (added to the κ of every kept, unreplaced base row).
+        kappa_shift: a delta's κ shift (added to the κ of every kept, unreplaced active base row).
     """
 
     agent_id: str
@@ -884,10 +884,10 @@ def encode_delta(
             :func:`encode_subset`.
         base_version: the version the delta applies to (< map_version).
         base_count: row count of the base subset.
-        kappa_shift: κ added to every base row the delta keeps without replacing it, in
-            ``[0, MAX_KAPPA_SHIFT]`` (an agent's κ grows by one per ROI-phase iteration for all its
-            active Gaussians, so one shift brings the unchanged rows' κ up to date; written in every
-            chunk's header).
+        kappa_shift: κ added to every base row the delta keeps without replacing it whose task flag
+            (``active``) is set, in ``[0, MAX_KAPPA_SHIFT]`` (an agent's κ grows by one per ROI-phase
+            iteration for all its active Gaussians, so one shift brings the unchanged rows' κ up to
+            date; written in every chunk's header).
 
     Returns:
         list of chunks (at least one; removed indices are spread over the chunks).
@@ -1407,8 +1407,8 @@ def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarr
         kappa_shift: the delta's κ shift (``SubsetMeta.kappa_shift``), >= 0.
 
     Returns:
-        [base rows not removed (replaced by their record when targeted; κ + ``kappa_shift`` when
-        not), in base order] followed by the new rows in target order.
+        [base rows not removed (replaced by their record when targeted; otherwise κ + ``kappa_shift``
+        when active), in base order] followed by the new rows in target order.
 
     Raises:
         DeltaMismatch: see its docstring.
@@ -1433,7 +1433,7 @@ def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarr
             raise DeltaMismatch(f"negative κ shift {kappa_shift}")
         if out["kappa"].size and int(out["kappa"].max()) > np.iinfo(np.int64).max - int(kappa_shift):
             raise DeltaMismatch("κ shift overflows int64")
-        out["kappa"] += int(kappa_shift)
+        out["kappa"][out["active"]] += int(kappa_shift)
     for k in out:
         out[k][t[upd]] = getattr(records, k)[upd]
     keep = np.ones(base_count, bool)

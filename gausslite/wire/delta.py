@@ -26,9 +26,10 @@ optimiser did not move are never re-sent, and a re-sent row moved by at least ha
 κ shift (wire format 3): an agent's κ grows by one per ROI-phase iteration for every active Gaussian
 (paper III-D.1), so between two pushes the rows the delta does not carry have all grown by about the
 same amount. The planner sends that growth once, as the delta's κ shift: the most common κ growth of
-the rows it keeps (:func:`kappa_shift_of`). The server adds it to every row the delta keeps without
-replacing, so its κ, which the voxel vote compares between agents, is as current as the agent's;
-rows whose κ grew otherwise are compared against base κ + shift by the rule above.
+the active rows it keeps (:func:`kappa_shift_of`). The server adds it to every active row the delta
+keeps without replacing (inactive rows, which a subset may hold for the ROI render, do not grow), so
+its κ, which the voxel vote compares between agents, is as current as the agent's; rows whose κ grew
+otherwise are compared against base κ (+ shift when active) by the rule above.
 
 Pure numpy; no gRPC.
 """
@@ -251,8 +252,9 @@ class PushPlanner:
         in_base = base_row >= 0
         cur_idx = np.nonzero(in_base)[0]
         kept_base = base.take(base_row[cur_idx])
-        shift = kappa_shift_of(arrays.kappa[cur_idx], kept_base.kappa)
-        kept_base.kappa = kept_base.kappa + shift  # what the server will hold for an unreplaced row
+        act = kept_base.active
+        shift = kappa_shift_of(arrays.kappa[cur_idx][act], kept_base.kappa[act])
+        kept_base.kappa = kept_base.kappa + shift * act  # what the server will hold for an unreplaced row
         changed = changed_rows(arrays.take(cur_idx), kept_base, self.quant, self.tolerance, self.kappa_rel)
         upd_idx = cur_idx[changed]
         self.last_stats = {"base_rows": m, "kept": len(cur_idx), "changed": int(changed.sum()),
