@@ -320,3 +320,33 @@ def test_density_control_clones_only_when_enabled(clone):
     st = m._densify_and_prune()
     assert st["split"] == int(big.sum())
     assert st["clone"] == (n - int(big.sum()) if clone else 0)
+
+
+def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monkeypatch):
+    """Keyframes loaded from the store and ROI crops are new objects at every draw: the mapper keeps their
+    ground-truth SSIM statistics (``ssim_cache_views``), computing each view's once, and maps exactly as
+    without the cache."""
+    calls = []
+    orig = mapper_mod.ssim_gt_stats
+
+    def counting(gt, *a, **k):
+        calls.append(tuple(gt.shape))
+        return orig(gt, *a, **k)
+
+    monkeypatch.setattr(mapper_mod, "ssim_gt_stats", counting)
+    maps, counts = [], []
+    for n in (0, 32):
+        calls.clear()
+        m = Mapper(_cfg(ssim_cache_views=n, iters_per_frame=12, render_threads=1))
+        for i in range(4):
+            m.map_frame(_frame(i, 0.02 * i), _roi())
+        maps.append(m.gmap)
+        counts.append(len(calls))
+    assert counts[1] <= 4 * 2  # at most one full view and one ROI crop per keyframe
+    assert counts[0] >= 4 * counts[1]  # without the cache: recomputed at most iterations
+    for k in ("means", "quats", "log_scales", "opacity_logits", "colors", "kappa"):
+        assert torch.equal(getattr(maps[0], k), getattr(maps[1], k)), k
+    small = Mapper(_cfg(ssim_cache_views=1, render_threads=1))
+    for i in range(3):
+        small.map_frame(_frame(i), _roi())
+    assert len(small._ssim_cache) == 1  # bounded

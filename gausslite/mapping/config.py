@@ -222,6 +222,11 @@ class MapperConfig(_Strict):
     roi_crop_pad: int = Field(
         8, ge=0, description="ROI phase: render only the ROI bounding box grown by this many pixels"
     )
+    ssim_cache_views: int = Field(
+        32, ge=0, description="keep the ground-truth SSIM statistics of this many recently used views (full "
+        "images and ROI crops; 1.2 MB each at 300x170); 0 = recompute at every iteration. The same losses: "
+        "room0 spent 0.1 s per keyframe recomputing them"
+    )
 
     lambda_depth: float = Field(1.0, ge=0, description="λ_d in L = L1_c + λ_d L1_d + λ_s (1-SSIM)")
     lambda_ssim: float = Field(0.2, ge=0, description="λ_s")

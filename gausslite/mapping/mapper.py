@@ -28,6 +28,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -67,7 +68,8 @@ class Keyframe:
     height: int
     roi: Optional[torch.Tensor]
     roi_box: Optional[tuple[int, int, int, int]] = None
-    #: cached :func:`gausslite.metrics.ssim_gt_stats` of ``rgb`` (filled by the first full-image loss)
+    #: cached :func:`gausslite.metrics.ssim_gt_stats` of ``rgb`` (filled by the first loss on this view;
+    #: the mapper also keeps recent views' statistics, see ``MapperConfig.ssim_cache_views``)
     ssim_stats: Optional[tuple] = field(default=None, repr=False, compare=False)
 
 
@@ -241,7 +243,9 @@ def photometric_loss(
         elif reference:
             s = ssim_map(out.color, kf.rgb, reference=True)[mask].mean()
         else:
-            s = ssim_mean(out.color, kf.rgb, mask=mask)
+            if kf.ssim_stats is None or kf.ssim_stats[0].dtype != out.color.dtype:
+                kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=out.color.dtype)
+            s = ssim_mean(out.color, kf.rgb, kf.ssim_stats, mask=mask)
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
@@ -279,6 +283,10 @@ class Mapper:
         #: keyframe pose refinement (``cfg.pose_refine``), None when off
         self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose_lr_rot, cfg.pose_lr_trans)
                                              if cfg.pose_refine else None)
+        #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
+        #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
+        #: ROI crops are new objects at every draw, so their own ``ssim_stats`` would not survive
+        self._ssim_cache: "OrderedDict[tuple, tuple]" = OrderedDict()
         self._reset_densify_stats()
 
     @property
@@ -576,7 +584,17 @@ class Mapper:
             mask = out.alpha.detach() > cfg.footprint_alpha
             if footprint_roi and view.roi is not None and view.roi_box is not None:  # empty ROI: the footprint
                 mask = mask & view.roi
+        cache_key = None
+        if cfg.ssim_cache_views and not cfg.reference_paths:
+            cache_key = (view.frame_id, view.width, view.height, float(view.K[0, 2]), float(view.K[1, 2]))
+            if view.ssim_stats is None:
+                view.ssim_stats = self._ssim_cache.get(cache_key)
         loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.reference_paths)
+        if cache_key is not None and view.ssim_stats is not None:
+            self._ssim_cache[cache_key] = view.ssim_stats
+            self._ssim_cache.move_to_end(cache_key)
+            while len(self._ssim_cache) > cfg.ssim_cache_views:
+                self._ssim_cache.popitem(last=False)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
             self._accumulate(out, stat_w, stat_h, stat_weight)
