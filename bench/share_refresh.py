@@ -22,7 +22,9 @@ Per arm and task: ``total_upload_bytes`` (all pushes), ``final_subset_bytes`` (t
 and their ratio; the ROI PSNR over the agent's frames of the server's copy rendered alone (``alone``), and of
 the voxel vote (δ = 0.10 m, neighbourhood radius 1, as the sim) of the two agents' server copies
 (``vote``), and the same vote with every row's κ replaced by the agent's current κ of that Gaussian
-(``vote_fresh_kappa``: what the vote would pick if κ were never stale on the server); ``own``: the agent's
+(``vote_fresh_kappa``: what the vote would pick if κ were never stale on the server; since wire format 3's κ
+shift keeps the server's κ current, it equals ``vote`` up to the planner's 25 % κ tolerance, where stale κ cost
+the vote 0.2–0.9 dB before); ``own``: the agent's
 whole map. Each task is scored over the frames its agent mapped. Mean ± std over seeds.
 
 Writes ``bench/results/share_refresh.json`` and ``.md``.

@@ -210,7 +210,7 @@ class MissionSummary(_message.Message):
     def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ...) -> None: ...
 
 class PushInfo(_message.Message):
-    __slots__ = ("version", "n_shared", "n_total", "bytes_sent", "delta", "records", "removed", "frames_mapped")
+    __slots__ = ("version", "n_shared", "n_total", "bytes_sent", "delta", "records", "removed", "frames_mapped", "unchanged")
     VERSION_FIELD_NUMBER: _ClassVar[int]
     N_SHARED_FIELD_NUMBER: _ClassVar[int]
     N_TOTAL_FIELD_NUMBER: _ClassVar[int]
@@ -219,6 +219,7 @@ class PushInfo(_message.Message):
     RECORDS_FIELD_NUMBER: _ClassVar[int]
     REMOVED_FIELD_NUMBER: _ClassVar[int]
     FRAMES_MAPPED_FIELD_NUMBER: _ClassVar[int]
+    UNCHANGED_FIELD_NUMBER: _ClassVar[int]
     version: int
     n_shared: int
     n_total: int
@@ -227,4 +228,5 @@ class PushInfo(_message.Message):
     records: int
     removed: int
     frames_mapped: int
-    def __init__(self, version: _Optional[int] = ..., n_shared: _Optional[int] = ..., n_total: _Optional[int] = ..., bytes_sent: _Optional[int] = ..., delta: _Optional[bool] = ..., records: _Optional[int] = ..., removed: _Optional[int] = ..., frames_mapped: _Optional[int] = ...) -> None: ...
+    unchanged: bool
+    def __init__(self, version: _Optional[int] = ..., n_shared: _Optional[int] = ..., n_total: _Optional[int] = ..., bytes_sent: _Optional[int] = ..., delta: _Optional[bool] = ..., records: _Optional[int] = ..., removed: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., unchanged: _Optional[bool] = ...) -> None: ...

@@ -557,6 +557,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
                               "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
                               "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
+                              "unchanged": bool(getattr(q, "unchanged", False)),
                               "share_pct": 100.0 * q.n_shared / q.n_total if q.n_total else 0.0}
                              for q in s.pushes],
                 "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),

@@ -625,3 +625,28 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
             assert len(held) == second.n_shared != first.n_shared
     finally:
         srv.stop(0.5)
+
+
+def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
+    """A push whose delta would change nothing (no record, no removal, κ shift 0), e.g. the final push
+    right after a periodic one, uploads nothing (an empty delta is still 270 B of headers) and is logged
+    as ``unchanged`` at the version the server holds; κ growth alone is a real push (the κ shift)."""
+    from gausslite.wire.codec import GaussianArrays, peek_header
+    from services.agent.runtime import _Snapshot
+
+    rt, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=0"], 2)
+    n_up, n_push = len(fusion.uploads), len(rt.pushes)
+    base = rt._planner.base
+    ids = rt._planner.base_ids
+    held = rt.pushes[-1].version
+    rt._push_once(_Snapshot(held + 1, base, 1000, True, ids, 2))
+    assert len(fusion.uploads) == n_up and len(rt.pushes) == n_push + 1
+    rec = rt.pushes[-1]
+    assert rec.unchanged and rec.bytes_on_wire == 0 and rec.version == held == rt._planner.base_version
+    assert rt.total_upload_bytes == sum(p.bytes_on_wire for p in rt.pushes)
+    grown = GaussianArrays(**{k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC})
+    grown.kappa[grown.active] += 25
+    rt._push_once(_Snapshot(held + 2, grown, 1000, True, ids, 2))
+    assert len(fusion.uploads) == n_up + 1 and not rt.pushes[-1].unchanged
+    hdr = [peek_header(c) for c in fusion.uploads[-1][1]]
+    assert all(h.delta and h.kappa_shift == 25 for h in hdr) and sum(h.count for h in hdr) == 0

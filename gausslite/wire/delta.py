@@ -157,6 +157,7 @@ class PlannedPush:
         n_removed: base rows the delta removes.  subset: the rebuilt subset as the server will hold
             it (decoded values).  ids: (len(subset),) int64 ids of its rows.
         full_bytes: bytes of the same subset encoded whole (measured only when ``measure_full``).
+        kappa_shift: a delta's κ shift (0 for a full upload).
     """
 
     version: int
@@ -167,6 +168,7 @@ class PlannedPush:
     subset: GaussianArrays
     ids: np.ndarray
     full_bytes: Optional[int] = None
+    kappa_shift: int = 0
 
     @property
     def nbytes(self) -> int:
@@ -175,6 +177,12 @@ class PlannedPush:
     @property
     def is_delta(self) -> bool:
         return self.base_version is not None
+
+    @property
+    def is_noop(self) -> bool:
+        """A delta that changes nothing (no record, no removal, κ shift 0): the server already holds this
+        subset as its base version, so the upload can be skipped."""
+        return self.is_delta and self.n_records == 0 and self.n_removed == 0 and self.kappa_shift == 0
 
 
 class PushPlanner:
@@ -279,7 +287,8 @@ class PushPlanner:
         n_new = len(new_idx)
         new_ids = np.concatenate([bids[keep], ids[rec_idx[len(rec_idx) - n_new:]] if n_new else
                                   np.zeros(0, np.int64)])
-        push = PlannedPush(version, self.base_version, chunks, len(records), len(removed), subset, new_ids)
+        push = PlannedPush(version, self.base_version, chunks, len(records), len(removed), subset, new_ids,
+                           kappa_shift=shift)
         if measure_full:
             full = self._full(ids, arrays, version)
             push.full_bytes = full.nbytes

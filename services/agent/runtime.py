@@ -229,6 +229,7 @@ class PushRecord:
     records: int = 0
     removed: int = 0
     frames_mapped: int = 0
+    unchanged: bool = False  #: nothing changed since ``version`` (acknowledged before): no subset upload
 
 
 @dataclass
@@ -854,6 +855,22 @@ class AgentRuntime:
             time.sleep(delay)
             delay = min(delay * 2.0, self.config.max_backoff_s)
 
+    def _upload_pending_keyframes(self, c) -> tuple[list, int]:
+        """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
+        with self._lock:
+            kfs = list(self._kf_pending)
+            rois = [self._kf_roi.get(id(f)) for f in kfs]
+        n_kf = 0
+        if kfs:
+            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
+                                          color_format=self.config.keyframe_format, rois=rois) or 0)
+            with self._lock:
+                sent = {id(f) for f in kfs}
+                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
+                for i in sent:
+                    self._kf_roi.pop(i, None)
+        return kfs, n_kf
+
     def _push_once(self, snap: _Snapshot) -> None:
         t0 = time.perf_counter()
         c = self.fusion
@@ -875,6 +892,19 @@ class AgentRuntime:
             self._planner = PushPlanner(self.agent_id, chunk_gaussians=self.config.chunk_gaussians,
                                         tolerance=self.config.delta_tolerance, delta=self.config.delta_push)
         plan = self._planner.plan(snap.ids, snap.gaussians, snap.version)
+        if plan.is_noop:
+            # the server holds exactly this subset already (e.g. the final push right after a periodic one):
+            # no upload (an empty delta is still 270 B of headers); pending keyframes still go
+            self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else self.final_subset_bytes
+            kfs, _ = self._upload_pending_keyframes(c)
+            rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
+                             time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
+            with self._lock:
+                self.pushes.append(rec)
+                self.keyframes_uploaded += len(kfs)
+                self.last_error = ""
+            log.info("agent %s: subset unchanged since v%d; no upload", self.agent_id, plan.base_version)
+            return
         try:
             r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
                                 full_map_gaussians=snap.n_total)
@@ -902,18 +932,7 @@ class AgentRuntime:
             log.info("agent %s delta plan v%d: %s (sent %s)", self.agent_id, plan.version, self._planner.last_stats,
                      "delta" if plan.is_delta else "full")
         self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
-        with self._lock:
-            kfs = list(self._kf_pending)
-            rois = [self._kf_roi.get(id(f)) for f in kfs]
-        n_kf = 0
-        if kfs:
-            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
-                                          color_format=self.config.keyframe_format, rois=rois) or 0)
-            with self._lock:
-                sent = {id(f) for f in kfs}
-                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
-                for i in sent:
-                    self._kf_roi.pop(i, None)
+        kfs, n_kf = self._upload_pending_keyframes(c)
         rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
                          int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
                          plan.n_records, plan.n_removed, snap.frames_mapped)

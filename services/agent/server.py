@@ -343,7 +343,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             final_subset_bytes=s.final_subset_bytes,
             pushes=[agent_pb2.PushInfo(version=p["version"], n_shared=p["n_shared"], n_total=p["n_total"],
                                        bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
-                                       removed=p["removed"], frames_mapped=p["frames_mapped"])
+                                       removed=p["removed"], frames_mapped=p["frames_mapped"],
+                                       unchanged=p.get("unchanged", False))
                     for p in s.pushes])
 
     def close(self) -> None:
