@@ -280,7 +280,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     return out
 
 
-def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.07,
+def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.05,
                          cfg=None, seed: int = 0, quant=None, final_lr: float = 0.05):
     """Fine-tune the subset to share next against the copy the fusion server already holds, so that a
     delta push carries the new Gaussians and only a bounded share of the old ones (issue 12 item 2:

@@ -149,7 +149,7 @@ class AgentConfig(BaseModel):
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
     share_finetune_iters: int = Field(200, ge=0)
-    share_refresh: float = Field(0.07, ge=0, le=1)
+    share_refresh: float = Field(0.05, ge=0, le=1)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
