@@ -129,3 +129,16 @@ def test_tracking_corrects_a_new_frame_before_it_is_seeded():
     seeds land on the plane where the earlier frames put it (not 12 cm aside)."""
     m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg(pose_track_iters=40, iters_per_frame=20, warmup_iters=15))
     assert abs(m.pose_of(3, fr.c2w)[0, 3] - true_x) < 0.05
+
+
+@pytest.mark.parametrize("init", ["inherit", "identity"])
+def test_a_new_keyframe_starts_from_the_latest_correction_or_from_the_sensor_pose(init):
+    """``pose_init``: after frame 3's pose was pulled 6+ cm, frame 4 starts from that correction ('inherit')
+    or from its given pose ('identity')."""
+    m, fr, _ = _mapped_with_a_wrong_fourth_pose(_cfg(pose_init=init))
+    m.optimize(n_iters=120)
+    E3 = m.poses.corrections[3]
+    assert np.linalg.norm(E3[:3, 3]) > 0.05
+    m.poses.lr[:] = 0.0  # freeze the refinement: frame 4 keeps the correction it started from
+    m.map_frame(plane_frame(4, 0.16, H, W))
+    np.testing.assert_allclose(m.poses.corrections[4], E3 if init == "inherit" else np.eye(4), atol=1e-12)

@@ -629,8 +629,8 @@ class Mapper:
         cfg, sw = self.cfg, self.cfg.effective()
         t0 = time.perf_counter()
         if self.poses is not None:
-            # start from the latest keyframe's correction; the mission's first keyframe fixes the gauge
-            E0 = self.poses.initial_correction(frame.frame_id)
+            # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
+            E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose_init == "inherit" else np.eye(4)
             frame = dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E0)
             self.poses.register(frame.frame_id, E0, fixed=self.n_mapped == 0)
             if cfg.pose_track_iters and self.n_mapped > 0 and len(self.model):
