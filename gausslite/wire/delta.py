@@ -118,7 +118,7 @@ def change_steps(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig =
 
 
 def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig = QuantConfig(),
-                 tolerance: float = 1.0, kappa_rel: float = 0.25) -> np.ndarray:
+                 tolerance: float = 1.0, kappa_rel: float = 0.25, steps: Optional[np.ndarray] = None) -> np.ndarray:
     """(N,) bool: rows of ``cur`` that differ from the row-aligned ``base`` beyond the codec's
     quantisation error (rule in the module docstring; :func:`change_steps` > ``tolerance``, a relative
     κ change above ``kappa_rel``, or a changed task flag).
@@ -128,6 +128,8 @@ def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig =
         quant: the codec configuration whose error bounds define "changed".
         tolerance: multiplier of the error bounds (>= 0; 0 re-sends any change at all).
         kappa_rel: relative κ change that forces a re-send.
+        steps: ``change_steps(cur, base, quant)`` when the caller already has it (lossy codec only), so
+            that several tolerances cost one evaluation.
 
     Raises:
         ValueError: different lengths.
@@ -140,7 +142,7 @@ def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig =
     if quant.lossless:
         return np.any([np.any(getattr(cur, k).reshape(n, -1) != getattr(base, k).reshape(n, -1), axis=1)
                        for k in GaussianArrays._SPEC], axis=0)
-    ch = change_steps(cur, base, quant) > float(tolerance)
+    ch = (change_steps(cur, base, quant) if steps is None else steps) > float(tolerance)
     kb = base.kappa.astype(np.float64)
     ch |= np.abs(cur.kappa - kb) > kappa_rel * np.maximum(kb, 1.0)
     ch |= cur.active != base.active
@@ -259,16 +261,18 @@ class PushPlanner:
             base_row = np.where(bids[pos] == ids, pos, -1)
         in_base = base_row >= 0
         cur_idx = np.nonzero(in_base)[0]
-        kept_base = base.take(base_row[cur_idx])
+        kept_cur, kept_base = arrays.take(cur_idx), base.take(base_row[cur_idx])
         act = kept_base.active
-        shift = kappa_shift_of(arrays.kappa[cur_idx][act], kept_base.kappa[act])
+        shift = kappa_shift_of(kept_cur.kappa[act], kept_base.kappa[act])
         kept_base.kappa = kept_base.kappa + shift * act  # what the server will hold for an unreplaced row
-        changed = changed_rows(arrays.take(cur_idx), kept_base, self.quant, self.tolerance, self.kappa_rel)
+        # the code-step moves once, for the rule and for the diagnostic tolerances below
+        steps = None if self.quant.lossless else change_steps(kept_cur, kept_base, self.quant)
+        changed = changed_rows(kept_cur, kept_base, self.quant, self.tolerance, self.kappa_rel, steps=steps)
         upd_idx = cur_idx[changed]
         self.last_stats = {"base_rows": m, "kept": len(cur_idx), "changed": int(changed.sum()),
                            "new": int((~in_base).sum()), "kappa_shift": shift,
                            "changed_at_tolerance": {f"{t}/{k}": int(changed_rows(
-                               arrays.take(cur_idx), kept_base, self.quant, t, k).sum())
+                               kept_cur, kept_base, self.quant, t, k, steps=steps).sum())
                                for t in (1.0, 4.0) for k in (1.0, 1e9)}}
         new_idx = np.nonzero(~in_base)[0]
         new_idx = new_idx[spatial_order(arrays.means[new_idx])]
