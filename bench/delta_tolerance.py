@@ -24,13 +24,14 @@ Writes ``bench/results/delta_tolerance.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench._results import write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -162,14 +163,9 @@ def main(argv=None) -> int:
         f = lambda k, d=2: fmt(b[k], b[k + "_std"], d)  # noqa: E731
         lines.append(f"| {_key(t)} | {f('total_upload_bytes', 0)} | {f('upload_ratio')} | {f('records', 0)} | "
                      f"{f('roi_psnr_server')} | {f('roi_psnr_cost')} |")
-    md = "\n".join(lines)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    args.out.with_suffix(".md").write_text(
-        f"# bench.delta_tolerance\n\n`python -m bench.delta_tolerance {' '.join(argv if argv is not None else sys.argv[1:])}`: "
-        f"{args.task_id}, final subset {fmt(fb[0], fb[1], 0)} B, exact subset ROI PSNR {fmt(*ex)} dB, "
-        f"{len(runs)} seeds, {result['wall_s'] / 60:.1f} min\n\n{md}\n")
-    print(md)
+    write_results(args.out, "delta_tolerance", argv,
+                  f": {args.task_id}, final subset {fmt(fb[0], fb[1], 0)} B, exact subset ROI PSNR {fmt(*ex)} dB, "
+                  f"{len(runs)} seeds, {result['wall_s'] / 60:.1f} min", "\n".join(lines), result)
     print(f"wrote {args.out}")
     return 0
 

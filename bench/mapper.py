@@ -32,6 +32,8 @@ from typing import Optional
 
 import numpy as np
 
+from bench._results import write_results
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
@@ -193,12 +195,9 @@ def main(argv=None) -> int:
         result["wall_s"] = time.perf_counter() - t_start
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(result, indent=2))  # after every scene: a long run keeps what it measured
-    md = table(result)
-    args.out.with_suffix(".md").write_text(
-        f"# bench.mapper\n\n`python -m bench.mapper {' '.join(argv if argv is not None else sys.argv[1:])}` "
-        f"({len(seeds)} seeds, {result['wall_s'] / 60:.0f} min)\n\n{md}\n")
-    print(md)
-    print(f"wrote {args.out} and {args.out.with_suffix('.md')}")
+    md_path = write_results(args.out, "mapper", argv, f" ({len(seeds)} seeds, {result['wall_s'] / 60:.0f} min)",
+                            table(result))  # the JSON was written after every scene
+    print(f"wrote {args.out} and {md_path}")
     return 0
 
 

@@ -33,13 +33,14 @@ Writes ``bench/results/share_refresh.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench._results import write_results
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -193,14 +194,8 @@ def main(argv=None) -> int:
             f = lambda k, d=2: fmt(b[k], b[k + "_std"], d)  # noqa: E731
             lines.append(f"| {t} | {a} | {f('upload_ratio')} | {f('total_upload_bytes', 0)} | {f('alone')} | "
                          f"{f('vote')} | {f('vote_fresh_kappa')} | {f('own')} | {f('vote_minus_own')} |")
-    md = "\n".join(lines)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    args.out.with_suffix(".md").write_text(
-        f"# bench.share_refresh\n\n`python -m bench.share_refresh "
-        f"{' '.join(argv if argv is not None else sys.argv[1:])}`: {len(runs)} seeds, {result['wall_s'] / 60:.1f} min"
-        f"\n\n{md}\n")
-    print(md)
+    write_results(args.out, "share_refresh", argv, f": {len(runs)} seeds, {result['wall_s'] / 60:.1f} min",
+                  "\n".join(lines), result)
     print(f"wrote {args.out}")
     return 0
 

@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench._results import write_results
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
@@ -120,13 +122,8 @@ def main(argv=None) -> int:
               "reports": {sc: [str(args.work / f"{sc}_seed{s}" / "report.json") for s in range(args.seeds)]
                           for sc in scenes},
               "wall_s": time.perf_counter() - t0}
-    md = table(summary)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    args.out.with_suffix(".md").write_text(
-        f"# bench.sim_seeds\n\n`python -m bench.sim_seeds {' '.join(argv if argv is not None else sys.argv[1:])}`: "
-        f"{args.seeds} seeds, {result['wall_s'] / 60:.1f} min\n\n{md}\n")
-    print(md)
+    write_results(args.out, "sim_seeds", argv, f": {args.seeds} seeds, {result['wall_s'] / 60:.1f} min",
+                  table(summary), result)
     print(f"wrote {args.out}")
     return 0
 
