@@ -200,6 +200,14 @@ def crop_keyframe(kf: Keyframe, pad: int) -> Keyframe:
     return window_keyframe(kf, bx0 - pad, by0 - pad, bx1 + pad, by1 + pad)
 
 
+def _gt_ssim_stats(kf: Keyframe, dtype: torch.dtype) -> tuple:
+    """``kf.ssim_stats`` in ``dtype``, computed (:func:`gausslite.metrics.ssim_gt_stats`) and kept on ``kf``
+    when missing or of another dtype."""
+    if kf.ssim_stats is None or kf.ssim_stats[0].dtype != dtype:
+        kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=dtype)
+    return kf.ssim_stats
+
+
 def photometric_loss(
     out: RenderOutput,
     kf: Keyframe,
@@ -230,9 +238,7 @@ def photometric_loss(
         if reference:
             s = ssim_map(out.color, kf.rgb, reference=True).mean()
         else:
-            if kf.ssim_stats is None or kf.ssim_stats[0].dtype != out.color.dtype:
-                kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=out.color.dtype)
-            s = ssim_mean(out.color, kf.rgb, kf.ssim_stats)
+            s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype))
     else:
         if not bool(mask.any()):
             return out.color.sum() * 0.0
@@ -243,9 +249,7 @@ def photometric_loss(
         elif reference:
             s = ssim_map(out.color, kf.rgb, reference=True)[mask].mean()
         else:
-            if kf.ssim_stats is None or kf.ssim_stats[0].dtype != out.color.dtype:
-                kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=out.color.dtype)
-            s = ssim_mean(out.color, kf.rgb, kf.ssim_stats, mask=mask)
+            s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype), mask=mask)
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
