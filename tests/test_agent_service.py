@@ -242,3 +242,23 @@ def test_fusion_restart_during_mission(scene, tmp_path):
         client.close()
         if f2 is not None:
             f2.stop(0)
+
+
+def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scene, tmp_path):
+    """A replayed TUM sequence gets the hand-held profile's mapper defaults (pose refinement, final pass),
+    as `gausslite map` gives them; a field the agent's YAML/overrides set keeps its value."""
+    from tests.test_datasets_fixtures import make_tum
+
+    seq = make_tum(tmp_path / "tum", n=3)
+    for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose_refine=false"], False)):
+        ag = serve_agent(ServerOptions(port=0), AgentSettings(
+            agent_id="tum", annotations_path=str(scene), config=load_agent_config(None, overrides)))
+        try:
+            rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
+            assert rt.config.mapper.pose_refine is want_refine
+            assert rt.config.mapper.final_iters_per_keyframe == 5.0
+            assert rt.config.mapper.iters_per_frame == 3  # from TINY
+            assert ag.servicer.settings.config.mapper.pose_refine is False  # the agent's own config untouched
+            rt.close()
+        finally:
+            ag.stop(0)

@@ -10,6 +10,10 @@ motion blur and exposure changes. A profile bundles what such data needs by defa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .config import MapperConfig
 
 
 @dataclass(frozen=True)
@@ -33,15 +37,16 @@ RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): p
 HANDHELD = SensorProfile(
     "handheld",
     "hand-held RGB-D (TUM RGB-D): undistortion with the published calibration, poses interpolated at "
-    "the colour timestamps, depth re-projected from its own timestamp, a final pass over every keyframe",
+    "the colour timestamps, depth re-projected from its own timestamp, keyframe poses refined from the "
+    "sensor's, a final pass over every keyframe",
     loader={"undistort": True, "interpolate_poses": True, "align_depth_time": True},
-    mapper={"final_iters_per_keyframe": 5.0},
+    mapper={"final_iters_per_keyframe": 5.0, "pose_refine": True},
 )
 HANDHELD_PINHOLE = SensorProfile(
     "handheld",
     "hand-held RGB-D without published distortion (7-Scenes) or undistorted by its loader from CameraInfo "
-    "(ROS bags): a final pass over every keyframe",
-    mapper={"final_iters_per_keyframe": 5.0},
+    "(ROS bags): keyframe poses refined from the sensor's, a final pass over every keyframe",
+    mapper={"final_iters_per_keyframe": 5.0, "pose_refine": True},
 )
 
 _BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE, "bag": HANDHELD_PINHOLE}
@@ -50,6 +55,28 @@ _BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE,
 def profile_for_layout(layout: str) -> SensorProfile:
     """The profile of a dataset layout (``detect_layout``'s kind); rendered data for unknown kinds."""
     return _BY_LAYOUT.get(layout, RENDERED)
+
+
+def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
+    """``cfg`` with the profile's mapper defaults for every field ``cfg`` did not set explicitly
+    (pydantic ``model_fields_set``: the keys given in YAML, ``--set`` or keyword arguments), as
+    ``gausslite map`` layers them (profile below ``--config``/``--set``). Used by the agent for replayed
+    datasets, whose mapper settings come from the agent's YAML rather than from ``map``'s flags.
+
+    Args:
+        cfg: the configured mapper settings.
+        profile: the dataset's sensor profile (:func:`profile_for_layout`).
+    Returns:
+        A new MapperConfig (``cfg`` itself when the profile sets nothing or ``cfg`` sets all of it).
+    Raises:
+        pydantic.ValidationError: the combination is invalid (e.g. a profile value out of range).
+    """
+    from .config import MapperConfig
+
+    todo = {k: v for k, v in profile.mapper.items() if k not in cfg.model_fields_set}
+    if not todo:
+        return cfg
+    return MapperConfig.model_validate({**todo, **cfg.model_dump(include=cfg.model_fields_set)})
 
 
 #: Mapper speed presets (issue 11, ``python -m bench.mapper``): MapperConfig overrides applied on top of

@@ -202,10 +202,16 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
             from gausslite.datasets.loader import detect_layout
-            from gausslite.mapping.profiles import profile_for_layout
+            from gausslite.mapping.profiles import profile_for_layout, with_profile
 
             layout = detect_layout(dataset_path)[0]
-            kw = dict(profile_for_layout(layout).loader)  # e.g. TUM: undistorted, interpolated poses
+            profile = profile_for_layout(layout)
+            kw = dict(profile.loader)  # e.g. TUM: undistorted, interpolated poses
+            # mapper defaults of the sensor profile (e.g. hand-held: pose refinement, a final pass) under
+            # whatever the agent's YAML / overrides set, as `gausslite map` layers them
+            cfg = cfg.model_copy(update={"mapper": with_profile(cfg.mapper, profile)})
+            log.info("agent %s: dataset profile %s (%s); mapper %s", agent_id or s.agent_id, profile.name,
+                     profile.description, {k: getattr(cfg.mapper, k) for k in profile.mapper} or "defaults")
             if cfg.fps is not None and layout in ("replica", "7scenes"):
                 kw["fps"] = cfg.fps  # replay clock of datasets without timestamps (TUM keeps its own)
             dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
