@@ -46,7 +46,7 @@ def test_profile_defaults_sit_below_config_and_set(tum_rpy_dir, room0_dir, tmp_p
 
     args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1")
     resolve_dataset(args, tmp_path)
-    assert config_from_args(args).final_iters_per_keyframe == 5.0  # hand-held profile
+    assert config_from_args(args).final_iters_per_keyframe == 20.0  # hand-held profile
     args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1", "--set", "final_iters_per_keyframe=0")
     resolve_dataset(args, tmp_path)
     assert config_from_args(args).final_iters_per_keyframe == 0.0  # --set wins
@@ -78,7 +78,7 @@ def test_with_profile_fills_only_the_fields_the_config_left_unset():
 
     cfg = load_config(None, ["iters_per_frame=17"], mode="gausslite")
     out = with_profile(cfg, HANDHELD)
-    assert out.pose_refine is True and out.final_iters_per_keyframe == 5.0
+    assert out.pose_refine is True and out.final_iters_per_keyframe == 20.0 and out.lambda_depth == 0.3
     assert out.iters_per_frame == 17 and out.mode == "gausslite"  # what the config set survives
     assert with_profile(cfg, RENDERED) is cfg  # nothing to add
     explicit = load_config(None, ["pose_refine=false", "final_iters_per_keyframe=0"])

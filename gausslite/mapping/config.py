@@ -157,7 +157,7 @@ class MapperConfig(_Strict):
     )
     final_iters_per_keyframe: float = Field(
         0.0, ge=0, description="more final iterations: this many per keyframe, added to final_iters (the "
-        "hand-held profile sets 5)"
+        "hand-held profile sets 20)"
     )
 
     pose_refine: bool = Field(
