@@ -253,3 +253,14 @@ def test_blend_weights_agree_between_warp_and_the_torch_reference():
     left = blend_weights(*args, backend="warp", pixel_mask=mask, **kw)
     right = blend_weights(*args, backend="warp", pixel_mask=~mask, **kw)
     assert torch.allclose(left + right, w_warp, atol=1e-3)
+
+
+def test_final_pass_runs_every_iteration_offline_and_stops_at_a_time_bound():
+    m = Mapper(_cfg(iters_per_frame=2, final_iters=3, final_iters_per_keyframe=2.0))
+    for i in range(3):
+        m.map_frame(plane_frame(i, 0.02 * i))
+    assert m.finalize() == 3 + 2 * 3  # offline: all of them
+    m.cfg.final_iters = 100_000
+    assert 1 <= m.finalize(max_seconds=0.2) < 100_000  # the agent's Finish bound (final_pass_s)
+    with pytest.raises(ValueError, match="max_seconds"):
+        m.finalize(max_seconds=0)

@@ -741,13 +741,30 @@ class Mapper:
                 self._densify_and_prune()
         return done
 
-    def finalize(self) -> None:
+    def finalize(self, max_seconds: Optional[float] = None) -> int:
         """Optional extra iterations over all keyframes (``final_iters`` + ``final_iters_per_keyframe`` ×
-        keyframes), drawn uniformly, full image, all Gaussians."""
+        keyframes), drawn uniformly, full image, all Gaussians.
+
+        Args:
+            max_seconds: stop early once this much wall time (seconds) has passed (the online agent's
+                Finish bound); None = all of them (offline ``map``/``ablate``, deterministic).
+        Returns:
+            iterations done.
+        Raises:
+            ValueError: ``max_seconds`` not > 0.
+        """
+        if max_seconds is not None and not max_seconds > 0:
+            raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
         n = len(self.keyframes)
         total = self.cfg.final_iters + round(self.cfg.final_iters_per_keyframe * n)
+        t0 = time.perf_counter()
+        done = 0
         for _ in range(total if n else 0):
+            if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
+                break
             self._iterate(self.keyframes.load(int(self.rng.integers(n)), self.device), active_phase=False)
+            done += 1
+        return done
 
     # ------------------------------------------------------------------ checkpoint / resume
     def checkpoint_state(self, max_keyframes: Optional[int] = 32) -> dict:

@@ -136,6 +136,9 @@ class AgentConfig(BaseModel):
             replays (frame index / fps; default the loader's 30 Hz).
         checkpoint_every: with a data dir, write the mission checkpoint every this many mapped keyframes
             (0 = never).
+        final_pass_s: at Finish, the mapper's final pass over every keyframe (``mapper.final_iters`` +
+            ``mapper.final_iters_per_keyframe`` × keyframes; the hand-held profile sets 20 per keyframe) stops
+            after this many seconds, so a long mission's Finish stays bounded.
         relevance_backend: where the attention front-end's detector/segmenter come from: ``annotation``
             (the scene's ``objects.json``) or ``onnx`` (models in ``onnx``).
         onnx: ONNX detector/segmenter paths and thresholds (``relevance_backend: onnx``).
@@ -179,6 +182,7 @@ class AgentConfig(BaseModel):
     rate: float = Field(1.0, gt=0)
     fps: Optional[float] = Field(None, gt=0)
     checkpoint_every: int = Field(5, ge=0)
+    final_pass_s: float = Field(60.0, gt=0)
     relevance_backend: Literal["annotation", "onnx"] = "annotation"
     onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
@@ -611,7 +615,8 @@ class AgentRuntime:
                 if item is _FINISH:
                     if self.state != "FAILED":
                         if self.frames_mapped:
-                            self.mapper.finalize()
+                            n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
+                            log.info("agent %s: final pass, %d iterations", self.agent_id, n)
                         self._offer_snapshot(final=True)
                         self._record_version()
                     else:
