@@ -100,17 +100,13 @@ def run_mapping(
     mapper.finalize()
     map_seconds = time.perf_counter() - t0
 
-    def render(fr: Frame):
-        # at the refined pose under pose_refine (held-out views: the nearest keyframe's correction)
-        return mapper.render(mapper.pose_of(fr.frame_id, fr.c2w), fr.intrinsics.K, fr.intrinsics.width,
-                             fr.intrinsics.height)
-
     img_dir = out_dir / "renders" if out_dir is not None else None
     pick = [train_idx[j] for j in np.linspace(0, len(train_idx) - 1, min(n_images, len(train_idx))).round().astype(int)]
     pick_ids = [dataset[i].frame_id for i in pick] if img_dir is not None else []
     task_rois = {t: gt_roi_fn(dataset, t) for t in (eval_task_ids or [])}
-    train = evaluate(render, (dataset[i] for i in train_idx), roi_fn, img_dir, pick_ids, tag="train_",
-                     extra_rois=task_rois)
+    # every view at the mapper's refined pose under pose_refine (held-out views: the nearest keyframe's correction)
+    train = evaluate(mapper.render_frame, (dataset[i] for i in train_idx), roi_fn, img_dir, pick_ids,
+                     tag="train_", extra_rois=task_rois)
     metrics: dict = {
         "mode": cfg.mode,
         "task_id": task_id,
@@ -124,7 +120,7 @@ def run_mapping(
     }
     if test_idx:
         test_pick = [dataset[test_idx[len(test_idx) // 2]].frame_id] if img_dir is not None else []
-        test = evaluate(render, (dataset[i] for i in test_idx), roi_fn, img_dir, test_pick, tag="heldout_")
+        test = evaluate(mapper.render_frame, (dataset[i] for i in test_idx), roi_fn, img_dir, test_pick, tag="heldout_")
         metrics.update(test.as_dict(prefix="heldout_"))
     if eval_task_ids:
         # one map scored on several tasks' ROIs (a map that does not depend on the task: uniform)

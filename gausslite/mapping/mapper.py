@@ -311,6 +311,13 @@ class Mapper:
         with torch.no_grad():
             return self._rasterize(c2w, K, width, height, subset)
 
+    def render_frame(self, frame: Frame) -> RenderOutput:
+        """Render the current map (no gradients) from a dataset frame's view: its intrinsics, and its pose
+        with the keyframe's refined correction under ``pose_refine`` (:meth:`pose_of`), the pose every score
+        of the map is taken at (SLAM systems score at their estimated poses)."""
+        intr = frame.intrinsics
+        return self.render(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height)
+
     def pose_of(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction
         (or the nearest keyframe's for a frame that is not one) under ``pose_refine``; ``c2w`` otherwise."""

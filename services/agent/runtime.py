@@ -1061,9 +1061,8 @@ class AgentRuntime:
         from gausslite.evaluation import score_view
 
         ps, rps = [], []
-        for fr in self._eval_frames:  # at the refined pose under pose_refine, as `map` scores
-            out = self.mapper.render(self.mapper.pose_of(fr.frame_id, fr.c2w), fr.intrinsics.K,
-                                     fr.intrinsics.width, fr.intrinsics.height)
+        for fr in self._eval_frames:
+            out = self.mapper.render_frame(fr)  # at the refined pose under pose_refine, as `map` scores
             roi = None
             if self.annotations is not None and self.task_id is not None:
                 roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
@@ -1087,8 +1086,7 @@ class AgentRuntime:
             roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
             if not roi.any():
                 continue
-            out = self.mapper.render(self.mapper.pose_of(fr.frame_id, fr.c2w), fr.intrinsics.K,
-                                     fr.intrinsics.width, fr.intrinsics.height)
+            out = self.mapper.render_frame(fr)
             s = score_view(out, fr, roi)
             if not math.isnan(s.roi_psnr):
                 vals.append(s.roi_psnr)
