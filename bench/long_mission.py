@@ -1,12 +1,14 @@
 """Retention benchmark (issue 10): does the map keep what it has seen over a long mission?
 
-    python -m bench.long_mission [--seeds 3] [--tasks 2|all] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
-                                 [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...]
+    python -m bench.long_mission [--seeds 3] [--tasks 2|all|ID,ID] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
+                                 [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...] [--resume]
 
 On this 2-core machine the full default bench takes longer than a session; the run reported in the
 README used ``--tasks 1 --tum-downscale 4 --synthetic-frames 300`` (TUM at 160×120, the synthetic circle
 with 300 frames, 150 of them mapped), which the issue allows and the README says. After every run the
-runs so far are written to ``<out>.partial.json``.
+runs so far are written to ``<out>.partial.json`` with the settings; ``--resume`` reads it back and runs
+only the missing (scene, mode, task, seed) runs, so a bench longer than a session finishes over several
+(runs are deterministic per seed: a resumed bench gives the figures of an uninterrupted one).
 
 Scenes, each mapped at matched budget (same seeding rule, budget rule and iterations in both modes):
 
@@ -219,11 +221,54 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def select_tasks(spec: str, all_tasks: list[str]) -> list[str]:
+    """The tasks of ``--tasks``: a number (the first N), ``all``, or a comma list of task ids.
+
+    Raises:
+        ValueError: a count < 1 or an unknown task id (the message lists the scene's tasks).
+    """
+    spec = spec.strip()
+    if spec == "all":
+        return list(all_tasks)
+    if spec.isdigit():
+        if int(spec) < 1:
+            raise ValueError("--tasks must be >= 1")
+        return list(all_tasks[: int(spec)])
+    ids = [t.strip() for t in spec.split(",") if t.strip()]
+    unknown = [t for t in ids if t not in all_tasks]
+    if unknown or not ids:
+        raise ValueError(f"unknown tasks {unknown or spec!r}; this scene has {all_tasks}")
+    return ids
+
+
+def _run_key(r: dict) -> tuple:
+    return (r["scene"], r["mode"], r["task"], r["seed"])
+
+
+def load_partial(path: Path, settings: dict) -> tuple[list[dict], float]:
+    """Runs and wall seconds of an interrupted bench (``<out>.partial.json``) made with ``settings``.
+
+    Returns:
+        ([], 0.0) when there is no partial file.
+    Raises:
+        ValueError: the partial file was made with other settings (scenes, tasks, frames, resolution,
+            overrides): its runs would not be comparable.
+    """
+    if not path.exists():
+        return [], 0.0
+    part = json.loads(path.read_text())
+    if part.get("settings") != settings:
+        raise ValueError(f"{path} was made with other settings ({part.get('settings')}, now {settings}): "
+                         "rerun with the same options or delete it")
+    return list(part["runs"]), float(part.get("wall_s", 0.0))
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma list of " + ", ".join(SCENES))
     ap.add_argument("--seeds", type=int, default=3, help="random seeds per run (default 3)")
-    ap.add_argument("--tasks", default="2", help="tasks per scene for GaussLite: a number (first N) or 'all'")
+    ap.add_argument("--tasks", default="2",
+                    help="tasks per scene for GaussLite: a number (first N), 'all', or a comma list of task ids")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     ap.add_argument("--max-frames", type=int, default=None, help="quick runs: first N frames only")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -234,6 +279,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="frames of the synthetic circle (default 600; every 2nd is mapped)")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "bench_long_mission", help="generated scenes")
     ap.add_argument("--out", type=Path, default=RESULTS / "long_mission.json")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the runs of <out>.partial.json (same settings) and run only the missing ones")
     args = ap.parse_args(argv)
     from tqdm import tqdm
 
@@ -255,7 +302,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         path = scene_path(sc, args.work)
         ann = load_dataset(path, max_frames=1).annotations
         all_tasks = [t.id for t in ann.tasks]
-        tasks = all_tasks if args.tasks == "all" else all_tasks[: int(args.tasks)]
+        try:
+            tasks = select_tasks(args.tasks, all_tasks)
+        except ValueError as e:
+            ap.error(f"{sc}: {e}")
         scene_tasks[sc] = tasks
         base = {"scene": sc, "path": str(path), "max_frames": args.max_frames, "overrides": args.overrides,
                 "downscale": SCENES[sc].get("downscale", 1.0)}
@@ -263,8 +313,19 @@ def main(argv: Optional[list[str]] = None) -> int:
             jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
             for t in tasks:
                 jobs.append({**base, "mode": "gausslite", "task": t, "seed": s, "eval_tasks": [t]})
-    t0 = time.time()
-    runs = []
+    settings = {"tasks": scene_tasks, "max_frames": args.max_frames, "overrides": args.overrides,
+                "scenes": {sc: SCENES[sc] for sc in scenes}}
+    partial_path = args.out.with_suffix(".partial.json")
+    runs, wall_before = [], 0.0
+    if args.resume:
+        try:
+            runs, wall_before = load_partial(partial_path, json.loads(json.dumps(settings)))
+        except ValueError as e:
+            ap.error(str(e))
+        done = {_run_key(r) for r in runs}
+        jobs = [j for j in jobs if _run_key(j) not in done]
+        print(f"resuming: kept {len(runs)} run(s) from {partial_path}, {len(jobs)} to run")
+    t0 = time.time() - wall_before
     with ProcessPoolExecutor(max_workers=args.jobs) as ex:
         futs = {ex.submit(run_one, j): j for j in jobs}
         with tqdm(total=len(futs), desc="long_mission", unit="run") as bar:
@@ -277,14 +338,15 @@ def main(argv: Optional[list[str]] = None) -> int:
                           f"fifths {' '.join(f'{v:.1f}' for v in r['psnr_by_fifth'])}, "
                           f"{r['s_per_frame']:.2f} s/frame, {r['n_gaussians']} Gaussians")
                 bar.update(1)
-                partial = {"partial": True, "runs": runs, "wall_s": time.time() - t0}
+                partial = {"partial": True, "settings": settings, "runs": runs, "wall_s": time.time() - t0}
                 args.out.parent.mkdir(parents=True, exist_ok=True)
-                args.out.with_suffix(".partial.json").write_text(json.dumps(partial))  # survives an interrupted bench
-    args.out.with_suffix(".partial.json").unlink(missing_ok=True)
+                partial_path.write_text(json.dumps(partial))  # survives an interrupted bench (--resume)
+    partial_path.unlink(missing_ok=True)
     result = {
         "scenes": {sc: summarise(runs, sc, scene_tasks[sc], seeds) for sc in scenes},
         "settings": {"seeds": seeds, "tasks": args.tasks, "max_frames": args.max_frames, "overrides": args.overrides,
-                     "scenes": {sc: SCENES[sc] for sc in scenes}, "jobs": args.jobs},
+                     "scenes": {sc: SCENES[sc] for sc in scenes}, "jobs": args.jobs, "resumed": bool(args.resume),
+                     "run_settings": settings},  # what --resume requires of a partial file
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},
         "wall_s": time.time() - t0,
         "runs": runs,  # with frame_psnr: the plot can be redrawn from the JSON

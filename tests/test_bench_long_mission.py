@@ -75,3 +75,47 @@ def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
     assert (tmp_path / "lm_synthetic_long.png").stat().st_size > 1000
     assert out.with_suffix(".md").read_text().count("| synthetic_long |") >= 2
     assert not out.with_suffix(".partial.json").exists()
+
+
+def test_select_tasks():
+    from bench.long_mission import select_tasks
+
+    ts = ["a", "b", "c"]
+    assert select_tasks("2", ts) == ["a", "b"] and select_tasks("all", ts) == ts and select_tasks("c,a", ts) == ["c", "a"]
+    with pytest.raises(ValueError, match="this scene has"):
+        select_tasks("a,zz", ts)
+    with pytest.raises(ValueError):
+        select_tasks("0", ts)
+
+
+def test_resume_keeps_the_partial_runs_and_runs_only_the_missing_ones(tmp_path, capsys):
+    """An interrupted bench (its ``.partial.json``) resumed with one more seed: the kept runs are not redone
+    (their figures are carried over as written), the missing seed runs, and other settings are refused."""
+    import json
+
+    from bench.long_mission import main
+
+    common = ["--scenes", "synthetic_long", "--tasks", "synth-pick-object", "--jobs", "1", "--synthetic-frames", "24",
+              "--max-frames", "8", "--set", "iters_per_frame=2", "--set", "warmup_iters=1",
+              "--work", str(tmp_path / "work")]
+    first = tmp_path / "a.json"
+    assert main(common + ["--seeds", "1", "--out", str(first)]) == 0
+    res1 = json.loads(first.read_text())
+    kept = res1["runs"][:1]  # as if the bench stopped after its first run
+    kept[0]["psnr"] = 99.0  # a marker: a kept run is carried over, not recomputed
+    out = tmp_path / "b.json"
+    out.with_suffix(".partial.json").write_text(json.dumps(
+        {"partial": True, "settings": res1["settings"]["run_settings"], "runs": kept, "wall_s": 1.0}))
+    assert main(common + ["--seeds", "2", "--resume", "--out", str(out)]) == 0
+    assert "kept 1 run(s)" in capsys.readouterr().out
+    res2 = json.loads(out.read_text())
+    keys = sorted((r["mode"], r["seed"]) for r in res2["runs"])
+    assert keys == [("gausslite", 0), ("gausslite", 1), ("uniform", 0), ("uniform", 1)]
+    assert sum(r["psnr"] == 99.0 for r in res2["runs"]) == 1 and res2["settings"]["resumed"]
+    assert not out.with_suffix(".partial.json").exists()
+    # a partial made with other settings is refused with the reason
+    out.with_suffix(".partial.json").write_text(json.dumps(
+        {"partial": True, "settings": {**res1["settings"]["run_settings"], "overrides": []}, "runs": kept}))
+    with pytest.raises(SystemExit):
+        main(common + ["--seeds", "2", "--resume", "--out", str(out)])
+    assert "other settings" in capsys.readouterr().err
