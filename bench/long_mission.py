@@ -257,6 +257,7 @@ def load_partial(path: Path, settings: dict) -> tuple[list[dict], float]:
     if not path.exists():
         return [], 0.0
     part = json.loads(path.read_text())
+    settings = json.loads(json.dumps(settings))  # as written to the file (tuples become lists, ...)
     if part.get("settings") != settings:
         raise ValueError(f"{path} was made with other settings ({part.get('settings')}, now {settings}): "
                          "rerun with the same options or delete it")
@@ -319,7 +320,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     runs, wall_before = [], 0.0
     if args.resume:
         try:
-            runs, wall_before = load_partial(partial_path, json.loads(json.dumps(settings)))
+            runs, wall_before = load_partial(partial_path, settings)
         except ValueError as e:
             ap.error(str(e))
         done = {_run_key(r) for r in runs}
