@@ -139,6 +139,6 @@ def test_a_new_keyframe_starts_from_the_latest_correction_or_from_the_sensor_pos
     m.optimize(n_iters=120)
     E3 = m.poses.corrections[3]
     assert np.linalg.norm(E3[:3, 3]) > 0.05
-    m.poses.lr[:] = 0.0  # freeze the refinement: frame 4 keeps the correction it started from
+    m.poses._adam.lr[:] = 0.0  # freeze the refinement: frame 4 keeps the correction it started from
     m.map_frame(plane_frame(4, 0.16, H, W))
     np.testing.assert_allclose(m.poses.corrections[4], E3 if init == "inherit" else np.eye(4), atol=1e-12)

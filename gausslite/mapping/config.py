@@ -180,6 +180,14 @@ class MapperConfig(_Strict):
         "drifted at the end (last fifth -3.9 dB, 21.04 overall)"
     )
 
+    exposure_comp: bool = Field(
+        False, description="per-keyframe exposure compensation (gausslite.mapping.exposure; MonoGS): every "
+        "keyframe gets an affine colour response exp(a)·I + b per channel, optimised with the map in full-image "
+        "iterations; the first keyframe fixes the map's exposure; scores are taken with each frame's response "
+        "(the nearest keyframe's for a held-out view), as they are at its refined pose"
+    )
+    exposure_lr: float = Field(0.01, gt=0, description="exposure compensation: Adam step of a and b (MonoGS: 0.01)")
+
     rho: float = Field(0.4, ge=0, le=1, description="SB ROI seed share ρ (paper: 40 % on Replica)")
     m_roi: float = Field(0.5, gt=0, description="SIS scale multiplier for ROI seeds")
     m_bg: float = Field(0.7, gt=0, description="SIS scale multiplier for background seeds")

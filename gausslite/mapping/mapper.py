@@ -39,6 +39,7 @@ from gausslite.datasets.base import Frame
 from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta
@@ -287,6 +288,8 @@ class Mapper:
         #: keyframe pose refinement (``cfg.pose_refine``), None when off
         self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose_lr_rot, cfg.pose_lr_trans)
                                              if cfg.pose_refine else None)
+        #: per-keyframe exposure compensation (``cfg.exposure_comp``), None when off
+        self.exposure: Optional[ExposureModel] = ExposureModel(cfg.exposure_lr) if cfg.exposure_comp else None
         #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
         #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
         #: ROI crops are new objects at every draw, so their own ``ssim_stats`` would not survive
@@ -314,9 +317,14 @@ class Mapper:
     def render_frame(self, frame: Frame) -> RenderOutput:
         """Render the current map (no gradients) from a dataset frame's view: its intrinsics, and its pose
         with the keyframe's refined correction under ``pose_refine`` (:meth:`pose_of`), the pose every score
-        of the map is taken at (SLAM systems score at their estimated poses)."""
+        of the map is taken at (SLAM systems score at their estimated poses), and under ``exposure_comp``
+        the frame's exposure response (its keyframe's, or the nearest keyframe's; colour clamped to [0, 1])."""
         intr = frame.intrinsics
-        return self.render(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height)
+        out = self.render(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height)
+        if self.exposure is not None and self.exposure.params:
+            theta = self.exposure.tensor(frame.frame_id, self.device)
+            out = dataclasses.replace(out, color=apply_exposure(out.color, theta).clamp(0.0, 1.0))
+        return out
 
     def pose_of(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction
@@ -415,6 +423,8 @@ class Mapper:
         # a_i comes from w at the seed pixel, whatever the seeding strategy
         is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
         pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
+        if self.exposure is not None:
+            cols = invert_exposure(cols, self.exposure.of(frame.frame_id))  # into the map's exposure
         s0 = local_median_nn_distance(pts, k=cfg.knn)
         if sw.sis:
             mult = np.where(is_roi, cfg.m_roi, cfg.m_bg)
@@ -588,6 +598,12 @@ class Mapper:
                   and kf.frame_id in self.poses.corrections and kf.frame_id not in self.poses.fixed)
         xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
         out = self._rasterize(view.c2w, view.K, view.width, view.height, subset, pose_xi=xi)
+        theta = None
+        if self.exposure is not None and kf.frame_id in self.exposure.params:
+            # the keyframe's exposure response; optimised where its pose is (full-image iterations)
+            train_exposure = not active_phase and not footprint_only and self.exposure.trainable(kf.frame_id)
+            theta = self.exposure.tensor(kf.frame_id, self.device, requires_grad=train_exposure)
+            out = dataclasses.replace(out, color=apply_exposure(out.color, theta))
         mask = None
         if active_phase:
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
@@ -612,6 +628,8 @@ class Mapper:
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
+        if theta is not None and theta.requires_grad:
+            self.exposure.step(kf.frame_id, theta.grad)
         if refine:
             new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
             if new is not None:
@@ -646,6 +664,9 @@ class Mapper:
             self.poses.register(frame.frame_id, E0, fixed=self.n_mapped == 0)
             if cfg.pose_track_iters and self.n_mapped > 0 and len(self.model):
                 frame = self._track(frame)
+        if self.exposure is not None:
+            # start from the latest keyframe's response; the first keyframe fixes the map's exposure
+            self.exposure.register(frame.frame_id, self.exposure.initial(frame.frame_id), fixed=self.n_mapped == 0)
         n_seeds, n_roi = self._seed(frame, relevance)
         kf = keyframe_from_frame(frame, self.device, relevance)
         if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
@@ -688,6 +709,9 @@ class Mapper:
             mask = out.alpha.detach() > cfg.pose_track_alpha
             if int(mask.sum()) < 0.05 * mask.numel():
                 break  # the map hardly covers the frame: nothing to track against
+            if self.exposure is not None and self.exposure.params:
+                out = dataclasses.replace(out, color=apply_exposure(out.color, self.exposure.tensor(kf.frame_id,
+                                                                                                   self.device)))
             loss = photometric_loss(out, kf, cfg.lambda_depth, 0.0, mask)
             loss.backward()
             new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
@@ -799,6 +823,7 @@ class Mapper:
             "pose_corrections": (None if self.poses is None else
                                  {"corrections": {k: v.copy() for k, v in self.poses.corrections.items()},
                                   "fixed": sorted(self.poses.fixed)}),
+            "exposure": None if self.exposure is None else self.exposure.state(),
         }
 
     def restore_state(self, state: dict) -> None:
@@ -828,3 +853,5 @@ class Mapper:
             self.poses = PoseRefiner(self.cfg.pose_lr_rot, self.cfg.pose_lr_trans)
             for fid, E in pc["corrections"].items():
                 self.poses.register(int(fid), E, fixed=int(fid) in set(pc["fixed"]))
+        if self.exposure is not None and state.get("exposure"):
+            self.exposure.load_state(state["exposure"])

@@ -17,13 +17,13 @@ Gaussians instead of the camera (equivalent): rendering ``(means, quats)`` from 
 rendering ``(M means, q_M ⊗ quats)`` from ``c2w``, with the world-frame rigid transform
 ``M = c2w · E⁻¹ · c2w⁻¹`` (:func:`move_gaussians_for_pose_delta`).
 
-Each keyframe's ξ has its own Adam moments (:class:`PoseRefiner`). The first keyframe stays fixed
+Each keyframe's ξ has its own Adam moments (:class:`PoseRefiner`, :class:`VectorAdam`). The first keyframe stays fixed
 (the gauge: the whole map and every pose could otherwise drift together).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -102,10 +102,39 @@ def move_gaussians_for_pose_delta(means: torch.Tensor, quats: torch.Tensor, c2w:
 
 
 @dataclass
-class _PoseState:
-    m: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    v: np.ndarray = field(default_factory=lambda: np.zeros(6))
+class _AdamState:
+    m: np.ndarray
+    v: np.ndarray
     t: int = 0
+
+
+class VectorAdam:
+    """Adam on small per-key parameter vectors (a keyframe's pose delta ξ or exposure θ), in float64 on
+    the host: one set of moments per key, so every keyframe's parameters keep their own step history.
+
+    Args:
+        lr: (D,) step size per component.
+    """
+
+    def __init__(self, lr: np.ndarray, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-12) -> None:
+        self.lr = np.asarray(lr, np.float64)
+        self.b1, self.b2, self.eps = b1, b2, eps
+        self._state: dict[int, _AdamState] = {}
+
+    def delta(self, key: int, grad: np.ndarray) -> Optional[np.ndarray]:
+        """The (D,) Adam update of ``key`` for gradient ``grad`` (D,) (to be added to its parameters), or
+        None when ``grad`` is not finite (no state changes then)."""
+        g = np.asarray(grad, np.float64)
+        if not np.all(np.isfinite(g)):
+            return None
+        d = self.lr.shape[0]
+        st = self._state.setdefault(int(key), _AdamState(np.zeros(d), np.zeros(d)))
+        st.t += 1
+        st.m = self.b1 * st.m + (1 - self.b1) * g
+        st.v = self.b2 * st.v + (1 - self.b2) * g * g
+        mhat = st.m / (1 - self.b1 ** st.t)
+        vhat = st.v / (1 - self.b2 ** st.t)
+        return -self.lr * mhat / (np.sqrt(vhat) + self.eps)
 
 
 class PoseRefiner:
@@ -119,8 +148,7 @@ class PoseRefiner:
     """
 
     def __init__(self, lr_rot: float = 1e-3, lr_trans: float = 5e-4) -> None:
-        self.lr = np.array([lr_rot] * 3 + [lr_trans] * 3)
-        self._state: dict[int, _PoseState] = {}
+        self._adam = VectorAdam(np.array([lr_rot] * 3 + [lr_trans] * 3))
         self.corrections: dict[int, np.ndarray] = {}
         self.fixed: set[int] = set()
 
@@ -149,17 +177,9 @@ class PoseRefiner:
         fid = int(frame_id)
         if fid in self.fixed or fid not in self.corrections or grad is None:
             return None
-        g = grad.detach().cpu().double().numpy()
-        if not np.all(np.isfinite(g)):
+        dxi = self._adam.delta(fid, grad.detach().cpu().double().numpy())
+        if dxi is None:
             return None
-        st = self._state.setdefault(fid, _PoseState())
-        st.t += 1
-        b1, b2 = 0.9, 0.999
-        st.m = b1 * st.m + (1 - b1) * g
-        st.v = b2 * st.v + (1 - b2) * g * g
-        mhat = st.m / (1 - b1 ** st.t)
-        vhat = st.v / (1 - b2 ** st.t)
-        dxi = -self.lr * mhat / (np.sqrt(vhat) + 1e-12)
         E = pose_delta(torch.from_numpy(dxi)).to(c2w.device)
         new = c2w @ E
         self.corrections[fid] = self.corrections[fid] @ E.cpu().numpy()
@@ -184,4 +204,5 @@ class PoseRefiner:
         return ang, np.linalg.norm(E[:, :3, 3], axis=1)
 
 
-__all__ = ["so3_exp", "quat_of_rotvec", "quat_mul", "pose_delta", "move_gaussians_for_pose_delta", "PoseRefiner"]
+__all__ = ["so3_exp", "quat_of_rotvec", "quat_mul", "pose_delta", "move_gaussians_for_pose_delta", "PoseRefiner",
+           "VectorAdam"]
