@@ -1,14 +1,15 @@
 """Retention benchmark (issue 10): does the map keep what it has seen over a long mission?
 
     python -m bench.long_mission [--seeds 3] [--tasks 2|all|ID,ID] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
-                                 [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...] [--resume]
+                                 [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...] [--resume|--fresh]
 
 On this 2-core machine the full default bench takes longer than a session; the run reported in the
 README used ``--tasks 1 --tum-downscale 4 --synthetic-frames 300`` (TUM at 160×120, the synthetic circle
 with 300 frames, 150 of them mapped), which the issue allows and the README says. After every run the
 runs so far are written to ``<out>.partial.json`` with the settings; ``--resume`` reads it back and runs
 only the missing (scene, mode, task, seed) runs, so a bench longer than a session finishes over several
-(runs are deterministic per seed: a resumed bench gives the figures of an uninterrupted one).
+(runs are deterministic per seed: a resumed bench gives the figures of an uninterrupted one). An existing
+partial file stops a bench started without ``--resume`` (its runs would be lost); ``--fresh`` discards it.
 
 Scenes, each mapped at matched budget (same seeding rule, budget rule and iterations in both modes):
 
@@ -282,6 +283,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS / "long_mission.json")
     ap.add_argument("--resume", action="store_true",
                     help="keep the runs of <out>.partial.json (same settings) and run only the missing ones")
+    ap.add_argument("--fresh", action="store_true",
+                    help="discard the runs of an existing <out>.partial.json and start over (without --resume or "
+                    "--fresh, an existing partial file stops the bench, so that its runs are not lost)")
     args = ap.parse_args(argv)
     from tqdm import tqdm
 
@@ -318,6 +322,11 @@ def main(argv: Optional[list[str]] = None) -> int:
                 "scenes": {sc: SCENES[sc] for sc in scenes}}
     partial_path = args.out.with_suffix(".partial.json")
     runs, wall_before = [], 0.0
+    if args.resume and args.fresh:
+        ap.error("--resume and --fresh exclude each other")
+    if not args.resume and not args.fresh and partial_path.exists():
+        ap.error(f"{partial_path} holds the runs of an unfinished bench: pass --resume to keep them (same settings) "
+                 "or --fresh to discard them")
     if args.resume:
         try:
             runs, wall_before = load_partial(partial_path, settings)

@@ -119,3 +119,12 @@ def test_resume_keeps_the_partial_runs_and_runs_only_the_missing_ones(tmp_path, 
     with pytest.raises(SystemExit):
         main(common + ["--seeds", "2", "--resume", "--out", str(out)])
     assert "other settings" in capsys.readouterr().err
+    # without --resume an existing partial file stops the bench instead of being overwritten
+    before = out.with_suffix(".partial.json").read_text()
+    with pytest.raises(SystemExit):
+        main(common + ["--seeds", "2", "--out", str(out)])
+    assert "--resume" in capsys.readouterr().err and out.with_suffix(".partial.json").read_text() == before
+    with pytest.raises(SystemExit):
+        main(common + ["--seeds", "2", "--resume", "--fresh", "--out", str(out)])
+    assert main(common + ["--seeds", "1", "--fresh", "--out", str(out)]) == 0  # --fresh starts over
+    assert len(json.loads(out.read_text())["runs"]) == 2 and not out.with_suffix(".partial.json").exists()

@@ -105,7 +105,8 @@ class ExposureModel:
 
     def load_state(self, state: dict) -> None:
         """Replace θ and the fixed ids by a :meth:`state` dict (Adam moments restart at zero)."""
-        self.__init__(float(self._adam.lr[0]))
+        self._adam = VectorAdam(self._adam.lr)
+        self.params, self.fixed = {}, set()
         for fid, th in state["params"].items():
             self.register(int(fid), th, fixed=int(fid) in set(state["fixed"]))
 
