@@ -38,6 +38,7 @@ import torch
 from gausslite.datasets.base import Frame
 from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
+from gausslite.mapping.blur import blur_deltas, blur_samples, exposure_twist
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
@@ -290,6 +291,9 @@ class Mapper:
                                              if cfg.pose_refine else None)
         #: per-keyframe exposure compensation (``cfg.exposure_comp``), None when off
         self.exposure: Optional[ExposureModel] = ExposureModel(cfg.exposure_lr) if cfg.exposure_comp else None
+        #: motion over the exposure of every mapped frame, frame id → (6,) ξ_b (``cfg.motion_blur``)
+        self.blur: dict[int, np.ndarray] = {}
+        self._last_sensor: Optional[tuple[float, np.ndarray]] = None  # (timestamp, c2w) of the last mapped frame
         #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
         #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
         #: ROI crops are new objects at every draw, so their own ``ssim_stats`` would not survive
@@ -320,7 +324,9 @@ class Mapper:
         of the map is taken at (SLAM systems score at their estimated poses), and under ``exposure_comp``
         the frame's exposure response (its keyframe's, or the nearest keyframe's; colour clamped to [0, 1])."""
         intr = frame.intrinsics
-        out = self.render(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height)
+        with torch.no_grad():
+            out = self._render_view(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height,
+                                    frame.frame_id, None)
         if self.exposure is not None and self.exposure.params:
             theta = self.exposure.tensor(frame.frame_id, self.device)
             out = dataclasses.replace(out, color=apply_exposure(out.color, theta).clamp(0.0, 1.0))
@@ -331,12 +337,43 @@ class Mapper:
         (or the nearest keyframe's for a frame that is not one) under ``pose_refine``; ``c2w`` otherwise."""
         return self.poses.corrected(frame_id, c2w) if self.poses is not None else np.asarray(c2w, np.float64)
 
+    def _render_view(self, c2w, K, width: int, height: int, frame_id: int, subset: Optional[torch.Tensor],
+                     pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
+                     parts: Optional[list] = None) -> RenderOutput:
+        """:meth:`_rasterize` of frame ``frame_id``'s view, blurred by its motion under ``cfg.motion_blur``
+        (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at ``c2w · E(s_k ξ_b)``
+        (the nearest mapped frame's ξ_b for a frame that was not mapped); the screen-space data (means2d,
+        radii, ids) are the middle render's. ``parts``: a list that receives the K renders (none when the
+        view is rendered sharp), for density statistics."""
+        cfg = self.cfg
+        deltas: list = []
+        if cfg.motion_blur and self.blur:
+            fid = int(frame_id)
+            if fid not in self.blur:
+                fid = min(self.blur, key=lambda k: abs(k - int(frame_id)))
+            xi_b = self.blur[fid]
+            fx = float(K[0, 0])
+            deltas = blur_deltas(xi_b, blur_samples(xi_b, fx, width, height, cfg.blur_px_per_sample,
+                                                    cfg.blur_max_samples), self.device)
+        if not deltas:
+            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
+        outs = [self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, view_delta=d)
+                for d in deltas]
+        if parts is not None:
+            parts.extend(outs)
+        mid = outs[len(outs) // 2]
+        return dataclasses.replace(mid, color=torch.stack([o.color for o in outs]).mean(0),
+                                   depth=torch.stack([o.depth for o in outs]).mean(0),
+                                   alpha=torch.stack([o.alpha for o in outs]).mean(0))
+
     def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
-                   pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False) -> RenderOutput:
+                   pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
+                   view_delta: Optional[torch.Tensor] = None) -> RenderOutput:
         """Render the current parameters (differentiable) with the configured backend and threads.
         ``pose_xi`` (6,) float64: render from ``c2w · E(ξ)`` with gradients reaching ξ
         (:func:`~gausslite.mapping.poses.move_gaussians_for_pose_delta`); ``detach_map``: no gradient
-        reaches the Gaussians (pose tracking)."""
+        reaches the Gaussians (pose tracking); ``view_delta`` (4, 4) float64: render from
+        ``c2w · E(ξ) · view_delta`` (a virtual pose within the exposure, :meth:`_render_view`)."""
         p = self.model.params
         if detach_map:
             p = {k: v.detach() for k, v in p.items()}
@@ -344,7 +381,10 @@ class Mapper:
         if pose_xi is not None:
             c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
             means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
-        vm = torch.linalg.inv(torch.as_tensor(c2w, dtype=torch.float64, device=means.device))
+        cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+        if view_delta is not None:
+            cam = cam @ view_delta.to(cam.device)
+        vm = torch.linalg.inv(cam)
         if self.cfg.frustum_cull and len(means) >= self.cfg.frustum_cull_min:
             vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
             if subset is not None:
@@ -597,7 +637,9 @@ class Mapper:
         refine = (self.poses is not None and not active_phase and not footprint_only
                   and kf.frame_id in self.poses.corrections and kf.frame_id not in self.poses.fixed)
         xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
-        out = self._rasterize(view.c2w, view.K, view.width, view.height, subset, pose_xi=xi)
+        parts: list = []
+        out = self._render_view(view.c2w, view.K, view.width, view.height, view.frame_id, subset, pose_xi=xi,
+                                parts=parts)
         theta = None
         if self.exposure is not None and kf.frame_id in self.exposure.params:
             # the keyframe's exposure response; optimised where its pose is (full-image iterations)
@@ -624,7 +666,9 @@ class Mapper:
                 self._ssim_cache.popitem(last=False)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
-            self._accumulate(out, stat_w, stat_h, stat_weight)
+            # a blurred view: each of its K renders carries 1/K of the loss, so its gradients count K times
+            for o in parts or [out]:
+                self._accumulate(o, stat_w, stat_h, stat_weight * max(1, len(parts)))
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
@@ -657,6 +701,13 @@ class Mapper:
             raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
         cfg, sw = self.cfg, self.cfg.effective()
         t0 = time.perf_counter()
+        if cfg.motion_blur:
+            # the camera's motion over this frame's exposure, from the sensor's poses (before refinement)
+            prev = self._last_sensor
+            self.blur[frame.frame_id] = (np.zeros(6) if prev is None else
+                                         exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp,
+                                                        cfg.blur_exposure_s, cfg.blur_max_dt))
+            self._last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy())
         if self.poses is not None:
             # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
             E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose_init == "inherit" else np.eye(4)
@@ -705,7 +756,8 @@ class Mapper:
         kf.c2w = kf.c2w.clone()
         for _ in range(cfg.pose_track_iters):
             xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
-            out = self._rasterize(kf.c2w, kf.K, kf.width, kf.height, None, pose_xi=xi, detach_map=True)
+            out = self._render_view(kf.c2w, kf.K, kf.width, kf.height, kf.frame_id, None, pose_xi=xi,
+                                    detach_map=True)
             mask = out.alpha.detach() > cfg.pose_track_alpha
             if int(mask.sum()) < 0.05 * mask.numel():
                 break  # the map hardly covers the frame: nothing to track against
@@ -824,6 +876,7 @@ class Mapper:
                                  {"corrections": {k: v.copy() for k, v in self.poses.corrections.items()},
                                   "fixed": sorted(self.poses.fixed)}),
             "exposure": None if self.exposure is None else self.exposure.state(),
+            "blur": {k: v.copy() for k, v in self.blur.items()}, "last_sensor": self._last_sensor,
         }
 
     def restore_state(self, state: dict) -> None:
@@ -855,3 +908,5 @@ class Mapper:
                 self.poses.register(int(fid), E, fixed=int(fid) in set(pc["fixed"]))
         if self.exposure is not None and state.get("exposure"):
             self.exposure.load_state(state["exposure"])
+        self.blur = {int(k): np.asarray(v, np.float64) for k, v in (state.get("blur") or {}).items()}
+        self._last_sensor = state.get("last_sensor")
