@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .poses import VectorAdam
+from .poses import VectorAdam, nearest_key
 
 
 def apply_exposure(color: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -75,12 +75,7 @@ class ExposureModel:
 
     def of(self, frame_id: int) -> np.ndarray:
         """θ (6,) of ``frame_id``, or of the nearest keyframe by frame id; zeros without any keyframe."""
-        if not self.params:
-            return np.zeros(6)
-        fid = int(frame_id)
-        if fid not in self.params:
-            fid = min(self.params, key=lambda k: abs(k - int(frame_id)))
-        return self.params[fid]
+        return self.params[nearest_key(self.params, frame_id)] if self.params else np.zeros(6)
 
     def trainable(self, frame_id: int) -> bool:
         """Whether ``frame_id`` is a registered keyframe whose θ is optimised."""

@@ -46,7 +46,7 @@ from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
-from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta
+from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta, nearest_key
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
@@ -330,10 +330,18 @@ class Mapper:
         with torch.no_grad():
             out = self._render_view(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height,
                                     frame.frame_id, None)
-        if self.exposure is not None and self.exposure.params:
-            theta = self.exposure.tensor(frame.frame_id, self.device)
-            out = dataclasses.replace(out, color=apply_exposure(out.color, theta).clamp(0.0, 1.0))
-        return out
+        out, theta = self._exposed(out, frame.frame_id)
+        return out if theta is None else dataclasses.replace(out, color=out.color.clamp(0.0, 1.0))
+
+    def _exposed(self, out: RenderOutput, frame_id: int,
+                 requires_grad: bool = False) -> tuple[RenderOutput, Optional[torch.Tensor]]:
+        """``out`` with frame ``frame_id``'s exposure response applied to its colour (its keyframe's θ, or
+        the nearest keyframe's), and that θ (6,) as a leaf tensor, with gradients if ``requires_grad``;
+        ``(out, None)`` without exposure compensation or before the first keyframe."""
+        if self.exposure is None or not self.exposure.params:
+            return out, None
+        theta = self.exposure.tensor(frame_id, self.device, requires_grad=requires_grad)
+        return dataclasses.replace(out, color=apply_exposure(out.color, theta)), theta
 
     def pose_of(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction
@@ -351,10 +359,7 @@ class Mapper:
         cfg = self.cfg
         deltas: list = []
         if cfg.motion_blur and self.blur:
-            fid = int(frame_id)
-            if fid not in self.blur:
-                fid = min(self.blur, key=lambda k: abs(k - int(frame_id)))
-            xi_b = self.blur[fid]
+            xi_b = self.blur[nearest_key(self.blur, frame_id)]
             fx = float(K[0, 0])
             deltas = blur_deltas(xi_b, blur_samples(xi_b, fx, width, height, cfg.blur_px_per_sample,
                                                     cfg.blur_max_samples), self.device)
@@ -647,8 +652,7 @@ class Mapper:
         if self.exposure is not None and kf.frame_id in self.exposure.params:
             # the keyframe's exposure response; optimised where its pose is (full-image iterations)
             train_exposure = not active_phase and not footprint_only and self.exposure.trainable(kf.frame_id)
-            theta = self.exposure.tensor(kf.frame_id, self.device, requires_grad=train_exposure)
-            out = dataclasses.replace(out, color=apply_exposure(out.color, theta))
+            out, theta = self._exposed(out, kf.frame_id, requires_grad=train_exposure)
         mask = None
         if active_phase:
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
@@ -764,9 +768,7 @@ class Mapper:
             mask = out.alpha.detach() > cfg.pose_track_alpha
             if int(mask.sum()) < 0.05 * mask.numel():
                 break  # the map hardly covers the frame: nothing to track against
-            if self.exposure is not None and self.exposure.params:
-                out = dataclasses.replace(out, color=apply_exposure(out.color, self.exposure.tensor(kf.frame_id,
-                                                                                                   self.device)))
+            out, _ = self._exposed(out, kf.frame_id)
             loss = photometric_loss(out, kf, cfg.lambda_depth, 0.0, mask)
             loss.backward()
             new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)

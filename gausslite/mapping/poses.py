@@ -101,6 +101,14 @@ def move_gaussians_for_pose_delta(means: torch.Tensor, quats: torch.Tensor, c2w:
     return moved, quat_mul(qM, quats)
 
 
+def nearest_key(keyed: dict, frame_id: int) -> int:
+    """The key of ``keyed`` (frame id → per-keyframe value) for frame ``frame_id``: itself when present,
+    otherwise the nearest keyframe by frame id (a held-out view between keyframes). ``keyed`` must not be
+    empty. Used for pose corrections, exposure responses and motion-blur twists alike."""
+    fid = int(frame_id)
+    return fid if fid in keyed else min(keyed, key=lambda k: abs(k - fid))
+
+
 @dataclass
 class _AdamState:
     m: np.ndarray
@@ -190,10 +198,7 @@ class PoseRefiner:
         frame id (a held-out view between keyframes); unchanged without any keyframe."""
         if not self.corrections:
             return np.asarray(c2w, np.float64)
-        fid = int(frame_id)
-        if fid not in self.corrections:
-            fid = min(self.corrections, key=lambda k: abs(k - int(frame_id)))
-        return np.asarray(c2w, np.float64) @ self.corrections[fid]
+        return np.asarray(c2w, np.float64) @ self.corrections[nearest_key(self.corrections, frame_id)]
 
     def magnitudes(self) -> tuple[np.ndarray, np.ndarray]:
         """Per keyframe, the correction's rotation (degrees) and translation (metres) (for reports)."""
@@ -205,4 +210,4 @@ class PoseRefiner:
 
 
 __all__ = ["so3_exp", "quat_of_rotvec", "quat_mul", "pose_delta", "move_gaussians_for_pose_delta", "PoseRefiner",
-           "VectorAdam"]
+           "VectorAdam", "nearest_key"]
