@@ -191,7 +191,7 @@ class MapperConfig(_Strict):
     motion_blur: bool = Field(
         False, description="model camera motion blur (gausslite.mapping.blur; BAD-Gaussians, MBA-SLAM): a view is "
         "the mean of renders at virtual poses along the camera's motion during the exposure, known from the sensor's "
-        "poses of consecutive mapped frames; its scores are taken the same way"
+        "poses of consecutive mapped frames; its scores are taken the same way. On in the hand-held profile"
     )
     blur_exposure_s: float = Field(
         0.01, gt=0, le=0.2, description="motion blur: exposure time τ, seconds (TUM fr1/rpy, first 40 frames, "

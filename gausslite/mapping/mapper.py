@@ -13,7 +13,7 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
    mission-wide draw towards keyframes that see the ROI; without MVO the current frame is taken with
    probability ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM); for hand-held
    sensors the rendered view carries the keyframe's exposure response (``exposure_comp``,
-   :mod:`~gausslite.mapping.exposure`) and, opt-in, the camera's motion blur (``motion_blur``,
+   :mod:`~gausslite.mapping.exposure`) and the camera's motion blur (``motion_blur``,
    :mod:`~gausslite.mapping.blur`);
 3. ROI: after ``warmup_iters`` full-image iterations, the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
