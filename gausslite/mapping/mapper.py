@@ -324,8 +324,9 @@ class Mapper:
     def render_frame(self, frame: Frame) -> RenderOutput:
         """Render the current map (no gradients) from a dataset frame's view: its intrinsics, and its pose
         with the keyframe's refined correction under ``pose_refine`` (:meth:`pose_of`), the pose every score
-        of the map is taken at (SLAM systems score at their estimated poses), and under ``exposure_comp``
-        the frame's exposure response (its keyframe's, or the nearest keyframe's; colour clamped to [0, 1])."""
+        of the map is taken at (SLAM systems score at their estimated poses), under ``motion_blur`` blurred by
+        the frame's motion (:meth:`_render_view`), and under ``exposure_comp`` the frame's exposure response
+        (its keyframe's, or the nearest keyframe's; colour clamped to [0, 1])."""
         intr = frame.intrinsics
         with torch.no_grad():
             out = self._render_view(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height,
