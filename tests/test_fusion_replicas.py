@@ -1,7 +1,7 @@
 """Fusion replicas on one PostgreSQL store (issue 14): any replica accepts any agent's chunks, an
 upload interrupted by a SIGKILLed replica resumes on another through the round-robin client, fused
 versions are allocated in the database with concurrent ``Fuse`` calls serialised, and
-``DownloadFused`` / ``GetStats`` answer the same on every replica."""
+``DownloadFused`` / ``GetStats`` answer the same on every replica; a ``dns:///`` target reaches a replica."""
 
 from __future__ import annotations
 
@@ -138,6 +138,30 @@ def test_client_balances_round_robin_over_every_listed_replica(tmp_path):
                 c.open_session(f"r{i}", "t", INTR)
         served = [len(r.store.sessions()) for r in reps]
         assert sum(served) == 12 and min(served) >= 3, served
+    finally:
+        for r in reps:
+            r.stop(0.5)
+
+
+def test_dns_target_reaches_a_replica(tmp_path, pg_schema_dsn):
+    """``dns:///name:port`` (the agent's target for the headless Service in deploy/k8s) goes through
+    gRPC's DNS resolver and reaches a replica: health SERVING, a session and a subset through it,
+    visible on another replica of the store; a name that does not resolve never becomes ready."""
+    reps = [_replica(tmp_path, pg_schema_dsn, n) for n in ("a", "b")]
+    g = rand_subset(800, 0.0, 5)
+    try:
+        with FusionClient(f"dns:///localhost:{reps[0].port}", timeout_s=10, backoff_s=0.05) as c:
+            c.wait_ready(20)
+            assert c.open_session("dns-agent", "inspect the valve", INTR).latest_map_version == 0
+            assert c.upload_subset("dns-agent", 1, g, full_map_gaussians=8000, quant=LOSSLESS).complete
+            mine = c.stats()["agents"]["dns-agent"]
+            assert mine["latest_map_version"] == 1 and mine["gaussians_received"] == 800
+        assert reps[0].store.latest_version("dns-agent") == 1
+        with FusionClient(f"127.0.0.1:{reps[1].port}", timeout_s=10) as c:
+            assert c.stats()["agents"]["dns-agent"]["latest_map_version"] == 1
+        with FusionClient(f"dns:///no-such-fusion-host.invalid:{reps[0].port}", timeout_s=2, max_retries=0) as c:
+            with pytest.raises(TimeoutError, match="no-such-fusion-host"):
+                c.wait_ready(2)
     finally:
         for r in reps:
             r.stop(0.5)
