@@ -350,3 +350,71 @@ def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monk
     for i in range(3):
         small.map_frame(_frame(i), _roi())
     assert len(small._ssim_cache) == 1  # bounded
+
+
+class _FakeClock:
+    """``time`` stand-in for the mapper module: perf_counter advances only when told (deterministic budgets)."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def perf_counter(self):
+        return self.t
+
+
+def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
+    """A keyframe budget shorter than ``warmup_iters`` iterations still gets ROI-phase iterations (κ, and so
+    the shared subset): the warm-up is the first warmup_iters / iters_per_frame of the time, the first
+    iteration full-image; density control counts budgeted iterations across calls (issue 11, live agent)."""
+    clock = _FakeClock()
+    monkeypatch.setattr(mapper_mod, "time", clock)
+    cfg = _cfg(iters_per_frame=30, warmup_iters=10)  # the deployed agent's schedule
+    cfg.densify.enabled = True
+    cfg.densify.every = 20
+    m = Mapper(cfg)
+    phases, dc = [], []
+    real_iterate, real_dc = m._iterate, m._densify_and_prune
+
+    def iterate(view, active_phase, **kw):
+        phases.append(active_phase)
+        clock.t += 0.01  # every iteration costs 10 ms of the budget
+        return real_iterate(view, active_phase, **kw)
+
+    def densify():
+        dc.append(m.n_budget_iters)
+        return real_dc()
+
+    m._iterate, m._densify_and_prune = iterate, densify
+    st = m.map_frame(_frame(0), _roi(), time_budget_s=0.1)
+    # 10 iterations fit: the fixed rule (it >= warmup_iters = 10) would have given none in the ROI phase
+    assert st.iters == len(phases) == 10
+    assert phases[:4] == [False] * 4 and all(phases[4:])  # warm-up: the first 1/3 of 0.1 s
+    assert st.active_iters == 6
+    act = m.model.active
+    assert act.any() and torch.all(m.model.kappa[act] == 6) and torch.all(m.model.kappa[~act] == 0)
+    assert dc == []  # 10 budgeted iterations so far: no density control yet
+    for i in (1, 2):
+        m.map_frame(_frame(i), _roi(), time_budget_s=0.1)
+    assert dc == [20] and m.n_budget_iters == 30  # once every 20 budgeted iterations, across calls
+    # a budget already spent by seeding: one full-image iteration for the new seeds
+    phases.clear()
+    st = m.map_frame(_frame(3), _roi(), time_budget_s=1e-9)
+    assert phases == [False] and st.active_iters == 0
+    # without warm-up (warmup_iters = 0) every budgeted iteration is in the ROI phase once Gaussians are active
+    m0 = Mapper(_cfg(iters_per_frame=30, warmup_iters=0))
+    m0.map_frame(_frame(0), _roi())
+    seen = []
+    real0 = m0._iterate
+
+    def iterate0(view, active_phase, **kw):
+        seen.append(active_phase)
+        clock.t += 0.01
+        return real0(view, active_phase, **kw)
+
+    m0._iterate = iterate0
+    m0.map_frame(_frame(1), _roi(), time_budget_s=0.05)
+    assert seen and all(seen)
+    # the counter survives a checkpoint
+    m2 = Mapper(cfg)
+    m2.restore_state(m.checkpoint_state())
+    assert m2.n_budget_iters == m.n_budget_iters

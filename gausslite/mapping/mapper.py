@@ -289,6 +289,8 @@ class Mapper:
         #: Gaussian budget in force (``max_gaussians``, or the scene/image rule; see MapperConfig)
         self.budget: Optional[int] = cfg.max_gaussians
         self.n_idle_iters = 0  # iterations of optimize() between keyframes
+        #: iterations of time-budgeted map_frame calls (their density-control schedule spans calls)
+        self.n_budget_iters = 0
         #: keyframe pose refinement (``cfg.pose_refine``), None when off
         self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose_lr_rot, cfg.pose_lr_trans)
                                              if cfg.pose_refine else None)
@@ -699,7 +701,11 @@ class Mapper:
             time_budget_s: wall-clock budget of this call in seconds (seeding included); None →
                 ``cfg.keyframe_budget_s``; both None → ``cfg.iters_per_frame`` iterations (offline
                 ``map``/``ablate``). With a budget, iterations run until it is spent (at least one; the
-                last one may overrun by one iteration's time); the first ``warmup_iters`` are full-image.
+                last one may overrun by one iteration's time). Phases (paper III-D.1): without a budget
+                the first ``warmup_iters`` iterations are full-image, the rest ROI-phase; with a budget
+                the first ``warmup_iters / iters_per_frame`` of the time left after seeding is full-image
+                (at least one iteration when ``warmup_iters`` > 0), the rest ROI-phase, and density
+                control runs every ``densify.every`` budgeted iterations counted across calls.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
@@ -735,13 +741,30 @@ class Mapper:
         n_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
+        budget = self.cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
+        warm_until = None
+        if budget is not None:
+            # the paper's warm-up → ROI-phase schedule in time: the first warmup_iters / iters_per_frame of
+            # the time left after seeding is full-image, the rest ROI-phase (a fixed warm-up count would
+            # outlast a short budget and leave the ROI phase, κ and the shared subset empty)
+            t_it = time.perf_counter()
+            warm_until = t_it + max(0.0, budget - (t_it - t0)) * cfg.warmup_iters / cfg.iters_per_frame
         for it in self._iterations(t0, time_budget_s):
             view = self._pick_view(kf)
-            active_phase = sw.roi and it >= cfg.warmup_iters and has_active and view.roi is not None
+            if warm_until is None:
+                warm = it < cfg.warmup_iters
+            else:  # at least one full-image iteration for the new seeds (unless warm-up is off)
+                warm = cfg.warmup_iters > 0 and (it == 0 or time.perf_counter() < warm_until)
+            active_phase = sw.roi and not warm and has_active and view.roi is not None
             loss = self._iterate(view, active_phase, coarse=it < cfg.coarse_iters)
             active_iters += int(active_phase)
             n_iters += 1
-            if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0:
+            if warm_until is not None:  # a budget may give fewer than densify.every iterations per call
+                self.n_budget_iters += 1
+                dc_due = self.n_budget_iters % cfg.densify.every == 0
+            else:
+                dc_due = (it + 1) % cfg.densify.every == 0
+            if cfg.densify.enabled and dc_due:
                 for k, v in self._densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
                 has_active = bool(self.model.active.any())
@@ -876,7 +899,8 @@ class Mapper:
             "contribution": self.contribution.detach().cpu().clone(),
             "ids": self.model.ids.clone(), "next_id": int(self.model._next_id),
             "keyframes": kfs, "voxel_keys": self.voxels._keys.copy(),
-            "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "budget": self.budget,
+            "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "n_budget_iters": self.n_budget_iters,
+            "budget": self.budget,
             "roi_iters": self._roi_iters, "rng": self.rng.bit_generator.state,
             "pose_corrections": (None if self.poses is None else
                                  {"corrections": {k: v.copy() for k, v in self.poses.corrections.items()},
@@ -904,6 +928,7 @@ class Mapper:
         self.voxels._keys = np.asarray(state.get("voxel_keys", np.zeros(0, np.int64)), np.int64)
         self.n_mapped = int(state["n_mapped"])
         self.n_idle_iters = int(state["n_idle_iters"])
+        self.n_budget_iters = int(state.get("n_budget_iters", 0))  # absent in checkpoints before stop 25
         self.budget = state["budget"]
         self._roi_iters = int(state["roi_iters"])
         self.rng.bit_generator.state = state["rng"]
