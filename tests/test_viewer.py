@@ -181,6 +181,8 @@ def test_cli_view_serves_page(tmp_path):
                 break
         assert f"showing {tmp_path / 'm.ply'} (2,000 Gaussians) at http://127.0.0.1:{port}/" in lines[-1], \
             "".join(lines) + (proc.stderr.read() if proc.poll() is not None else "")
+        # the URL was printed before the map was loaded
+        assert any(line.startswith(f"serving http://127.0.0.1:{port}/ (loading ") for line in lines[:-1]), lines
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
             assert r.status == 200 and b"<html" in r.read().lower()
     finally:
@@ -189,7 +191,233 @@ def test_cli_view_serves_page(tmp_path):
     r = _cli("view", "--port", "0")
     assert r.returncode == 2 and "either a map file or --fusion" in r.stderr
     r = _cli("view", str(tmp_path / "missing.ply"), "--port", "0", "--timeout", "1")
-    assert r.returncode == 2 and "not found" in r.stderr
+    assert r.returncode == 2 and "not found" in r.stderr and "serving" not in r.stdout  # no page for no file
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nend_header\n1 2\n")
+    r = _cli("view", str(tmp_path / "bad.ply"), "--port", "0", "--timeout", "1")
+    assert r.returncode == 2 and "bad.ply" in r.stderr and "error" in r.stderr, r.stderr
+
+
+class PageClient:
+    """A minimal viser page over the real websocket: connects with the server's protocol, sends the first
+    camera message (which is when viser registers a client, as the browser's page does) and decodes
+    every message the server sends (zstd-compressed msgpack windows) into ``self.messages``."""
+
+    def __init__(self, port: int):
+        import threading
+
+        import msgspec
+        import viser
+        from websockets.sync.client import connect
+
+        self._msgspec = msgspec
+        self.messages: list = []
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10)
+        self.ws.send(msgspec.msgpack.encode({
+            "type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, 0.0, 3.0], "fov": 1.0,
+            "near": 0.01, "far": 100.0, "image_height": 480, "image_width": 640, "look_at": [0.0, 0.0, 0.0],
+            "up_direction": [0.0, 0.0, 1.0]}))
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        import zstandard
+
+        dec = zstandard.ZstdDecompressor()
+        try:
+            for frame in self.ws:
+                n, c = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+                inner = self._msgspec.msgpack.decode(dec.decompress(frame[16:16 + c], max_output_size=n))
+                self.messages.extend(inner["messages"])
+        except Exception:  # closed
+            pass
+
+    def of_type(self, kind: str) -> list:
+        return [m for m in list(self.messages) if m["type"] == kind]
+
+    def notifications(self) -> list:
+        """(title, body, loading) of every notification shown or updated on this page, in order."""
+        return [(m["props"]["title"], m["props"]["body"], m["props"]["loading"]) for m in list(self.messages)
+                if m["type"] in ("NotificationShowMessage", "NotificationUpdateMessage")]
+
+    def gui_updates(self, uuid: str) -> list:
+        """The property updates of GUI element ``uuid`` this page received, in order."""
+        return [m["updates"] for m in list(self.messages) if m["type"] == "GuiUpdateMessage" and m["uuid"] == uuid]
+
+    def wait_for(self, predicate, timeout_s: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            time.sleep(0.02)
+        return bool(predicate())
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def test_load_progress_drives_page_progress_and_notifications():
+    """LoadProgress on a real viser server: the progress bar handle goes 0 → 40 → 100 and hides; every
+    page (connected before the load or during it) gets a "Loading …" notification that turns into
+    "Loaded …"; both the server-side handles and the messages the pages receive say so."""
+    from gausslite.viewer.app import LoadProgress, MapViewer
+
+    viewer = MapViewer("127.0.0.1", 0)
+    early = late = None
+    try:
+        early = PageClient(viewer.port)
+        assert viewer.wait_for_client(10)
+        bar = viewer.progress._impl.uuid
+        assert viewer.progress.visible is False
+        with LoadProgress(viewer, "sphere", 1000) as prog:
+            assert viewer.progress.visible is True and viewer.progress.value == 0.0
+            assert list(prog.notes) == list(viewer.server.get_clients())  # the page connected before the load
+            note = next(iter(prog.notes.values()))
+            assert (note.title, note.body, note.loading) == ("Loading sphere", "1,000 Gaussians", True)
+            prog(400, 1000)
+            assert viewer.progress.value == 40.0
+            late = PageClient(viewer.port)  # a page opened while loading gets the notification too
+            assert late.wait_for(lambda: len(prog.notes) == 2), prog.notes
+            assert late.wait_for(lambda: ("Loading sphere", "1,000 Gaussians", True) in late.notifications())
+            # it was sent the progress bar as it is now: visible at 40 %
+            made = [m for m in late.of_type("GuiProgressBarMessage") if m["uuid"] == bar]
+            assert made and made[-1]["props"]["visible"] and (
+                [u["value"] for u in late.gui_updates(bar) if "value" in u] or [made[-1]["value"]])[-1] == 40.0
+            time.sleep(0.12)  # past the 0.1 s GUI throttle
+            prog(700, 1000)
+            assert viewer.progress.value == 70.0
+            prog(1000, 1000)  # the last step is never throttled
+            assert viewer.progress.value == 100.0
+        assert viewer.progress.visible is False and viewer.progress.value == 100.0
+        assert prog.closed and viewer._loading is None
+        for note in prog.notes.values():
+            assert (note.title, note.loading, note.with_close_button, note.auto_close_seconds) == \
+                ("Loaded sphere", False, True, 3.0)
+        for page in (early, late):
+            assert page.wait_for(lambda: page.notifications()[-1:] == [("Loaded sphere", "1,000 Gaussians", False)])
+        # the page saw the bar move (viser sends only the latest of quick successive updates)
+        values = [u["value"] for u in early.gui_updates(bar) if "value" in u]
+        assert values == sorted(values) and values[-1] == 100.0 and 40.0 in values, values
+        assert [u["visible"] for u in early.gui_updates(bar) if "visible" in u] == [True, False]
+        # a page that connects after the load gets no stale "Loading" notification
+        after = PageClient(viewer.port)
+        assert after.wait_for(lambda: len(viewer.server.get_clients()) == 3)
+        time.sleep(0.3)
+        assert after.notifications() == [] and len(prog.notes) == 2
+        after.close()
+        # a failed load says so on the page instead of "Loaded"
+        with pytest.raises(RuntimeError):
+            with LoadProgress(viewer, "broken", 10):
+                raise RuntimeError("bad bytes")
+        assert early.wait_for(lambda: early.notifications()[-1:] == [("Failed to load broken", "bad bytes", False)])
+        assert viewer.progress.visible is False
+        # set_map drives the same progress and notification, then the splats reach the page
+        n = viewer.set_map(shell_map(3000), label="shell")
+        assert n == 3000
+        assert early.wait_for(lambda: early.notifications()[-1:] == [("Loaded shell", "3,000 Gaussians", False)])
+        assert early.wait_for(lambda: early.of_type("GaussianSplatsMessage"))
+    finally:
+        for page in (early, late):
+            if page is not None:
+                page.close()
+        viewer.stop()
+
+
+def _run_view_in_thread(args):
+    """``gausslite view ARGS`` in-process on a thread; returns (thread, result dict with "rc")."""
+    import threading
+
+    from gausslite.cli import main
+
+    result = {}
+    t = threading.Thread(target=lambda: result.update(rc=main(["view", *args])), daemon=True)
+    t.start()
+    return t, result
+
+
+def test_cli_view_prints_url_before_loading_and_page_sees_progress(tmp_path, monkeypatch, capsys):
+    """File mode serves the page and prints its URL first, then loads: a page opened while the file is
+    still being read sees "reading …" and the progress bar, then the load notification and the map."""
+    import threading
+
+    import gausslite.viewer.app as app
+    import gausslite.viewer.export as export
+    from services.sim import free_port
+
+    write_map(shell_map(2500, seed=5), tmp_path / "m.ply")
+    entered, release = threading.Event(), threading.Event()
+    real_load = export.load_map
+
+    def slow_load(path):  # a "large" file: reading takes until the test says so
+        entered.set()
+        assert release.wait(20), "test never released the loader"
+        return real_load(path)
+
+    viewers = []
+
+    class SpyViewer(app.MapViewer):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            viewers.append(self)
+
+    converting, release_conv = threading.Event(), threading.Event()
+    real_splats = app.splat_arrays
+
+    def slow_splats(g, mode="rgb", progress=None):  # and converting it, too: stop after the first chunk
+        def prog(done, total):
+            progress(done, total)
+            if done < total and not converting.is_set():
+                converting.set()
+                assert release_conv.wait(20), "test never released the conversion"
+        return real_splats(g, mode, chunk=1000, progress=prog)
+
+    monkeypatch.setattr(export, "load_map", slow_load)
+    monkeypatch.setattr(app, "splat_arrays", slow_splats)
+    monkeypatch.setattr(app, "MapViewer", SpyViewer)
+    port = free_port()
+    t, result = _run_view_in_thread([str(tmp_path / "m.ply"), "--port", str(port), "--timeout", "0.5"])
+    page = None
+    try:
+        assert entered.wait(20), "the map was never loaded"
+        out = capsys.readouterr().out
+        url = f"http://127.0.0.1:{port}/"
+        assert f"serving {url} (loading {tmp_path / 'm.ply'}" in out, out
+        assert "showing" not in out  # the URL is out while the map is still loading
+        with urllib.request.urlopen(url, timeout=10) as r:  # the page is served meanwhile
+            assert r.status == 200 and b"<html" in r.read().lower()
+        page = PageClient(port)
+        viewer = viewers[0]
+        assert viewer.wait_for_client(10)
+        info, bar = viewer.info._impl.uuid, viewer.progress._impl.uuid
+        # the page learns that the file is being read: panel text and the visible progress bar
+        def panel_text():
+            made = [m["props"]["_markdown"] for m in page.of_type("GuiMarkdownMessage") if m["uuid"] == info]
+            return (made + [u["_markdown"] for u in page.gui_updates(info) if "_markdown" in u])[-1:]
+
+        assert page.wait_for(lambda: panel_text() and panel_text()[0].startswith("reading **m.ply** (")), \
+            panel_text()
+        made = [m for m in page.of_type("GuiProgressBarMessage") if m["uuid"] == bar]
+        assert made and made[-1]["props"]["visible"] is True
+        release.set()
+        assert converting.wait(20)
+        # mid-conversion: the page shows the "Loading" notification and the bar at 40 % (1,000 of 2,500)
+        assert page.wait_for(lambda: page.notifications()[-1:] == [("Loading m.ply", "2,500 Gaussians", True)]), \
+            page.notifications()
+        assert page.wait_for(lambda: [u["value"] for u in page.gui_updates(bar) if "value" in u][-1:] == [40.0])
+        assert "showing" not in capsys.readouterr().out
+        release_conv.set()
+        assert page.wait_for(lambda: page.notifications()[-1:] == [("Loaded m.ply", "2,500 Gaussians", False)])
+        assert page.wait_for(lambda: page.of_type("GaussianSplatsMessage"))
+        t.join(30)
+        assert not t.is_alive() and result["rc"] == 0
+        out = capsys.readouterr().out
+        assert f"showing {tmp_path / 'm.ply'} (2,500 Gaussians) at {url}" in out, out
+        assert viewer.n_displayed == 2500
+    finally:
+        release.set()
+        release_conv.set()
+        if page is not None:
+            page.close()
+        t.join(30)
 
 
 # ---------------------------------------------------------------- live fusion feed
@@ -367,3 +595,58 @@ def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
             assert frac >= 0.05, f"only {100 * frac:.2f} % of pixels changed; see {kept}"
     finally:
         viewer.stop()
+
+
+def test_browser_opened_during_load_shows_progress(tmp_path, monkeypatch):
+    """`gausslite view MAP` as a user sees it: open the printed URL in headless Chromium while the map
+    is still loading; the page shows the "Loading" notification and the progress bar, then "Loaded"."""
+    import threading
+
+    from _browser import headless_chromium, require_chromium
+    from selenium.webdriver.common.by import By
+
+    import gausslite.viewer.app as app
+    from services.sim import free_port
+
+    require_chromium()
+    write_map(shell_map(3000, seed=6), tmp_path / "m.ply")
+    converting, release = threading.Event(), threading.Event()
+    real_splats = app.splat_arrays
+
+    def slow_splats(g, mode="rgb", progress=None):  # hold the load after the first chunk (50 %)
+        def prog(done, total):
+            progress(done, total)
+            if done < total and not converting.is_set():
+                converting.set()
+                assert release.wait(30), "test never released the conversion"
+        return real_splats(g, mode, chunk=1500, progress=prog)
+
+    monkeypatch.setattr(app, "splat_arrays", slow_splats)
+    port = free_port()
+    t, result = _run_view_in_thread([str(tmp_path / "m.ply"), "--port", str(port), "--timeout", "1"])
+    try:
+        assert converting.wait(20)
+        with headless_chromium() as driver:
+            driver.get(f"http://127.0.0.1:{port}/")
+
+            def page_has(xpath, timeout_s=30.0):
+                deadline = time.monotonic() + timeout_s
+                while time.monotonic() < deadline:
+                    if driver.find_elements(By.XPATH, xpath):
+                        return True
+                    time.sleep(0.2)
+                return False
+
+            assert page_has("//*[contains(text(), 'Loading m.ply')]"), "no loading notification on the page"
+            assert page_has("//*[contains(text(), '3,000 Gaussians')]")
+            bars = driver.find_elements(By.XPATH, "//*[@role='progressbar']")
+            assert bars and any(b.get_attribute("aria-valuenow") == "50" for b in bars), \
+                [(b.get_attribute("aria-valuenow"), b.is_displayed()) for b in bars]
+            release.set()
+            assert page_has("//*[contains(text(), 'Loaded m.ply')]"), "the notification never said Loaded"
+            t.join(30)
+            assert result.get("rc") == 0
+    finally:
+        release.set()
+        t.join(30)
+

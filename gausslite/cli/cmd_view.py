@@ -3,11 +3,12 @@
     gausslite view MAP.ply [--port 8080] [--color rgb|kappa|roi]     # also .splat / .spz
     gausslite view --fusion HOST:PORT [--poll 1.0] [--token T]       # new fused versions appear live
 
-Open the printed URL (``http://127.0.0.1:8080/``). The GUI panel switches the colouring (RGB, κ,
-ROI), shows only the ROI (active) Gaussians, toggles keyframe trajectories and frusta and, with
-``--fusion``, lists agents, shares, bytes and versions. ``--host 0.0.0.0`` serves the page to other
-machines. Environment fallbacks: ``GAUSSLITE_VIEW_PORT``, ``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``,
-``GAUSSLITE_TLS_CA``.
+Open the printed URL (``http://127.0.0.1:8080/``). A map file is loaded after the URL is printed: a
+page opened meanwhile shows the loading progress (progress bar and notification), as does the console.
+The GUI panel switches the colouring (RGB, κ, ROI), shows only the ROI (active) Gaussians, toggles
+keyframe trajectories and frusta and, with ``--fusion``, lists agents, shares, bytes and versions.
+``--host 0.0.0.0`` serves the page to other machines. Environment fallbacks: ``GAUSSLITE_VIEW_PORT``,
+``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``, ``GAUSSLITE_TLS_CA``.
 """
 
 from __future__ import annotations
@@ -49,6 +50,12 @@ def _handle(args: argparse.Namespace) -> int:
         print("gausslite view: error: give either a map file or --fusion HOST:PORT", file=sys.stderr)
         return 2
     try:
+        if args.map:  # a missing or unsupported file fails before a page is served
+            from gausslite.viewer.export import format_of
+
+            format_of(args.map)
+            if not os.path.isfile(args.map):
+                raise FileNotFoundError(f"map file not found: {args.map}")
         port = args.port if args.port is not None else int(env.get("GAUSSLITE_VIEW_PORT", 8080))
         if not args.poll > 0:
             raise ValueError(f"--poll must be > 0, got {args.poll}")
@@ -65,12 +72,20 @@ def _handle(args: argparse.Namespace) -> int:
         if args.map:
             from gausslite.viewer.export import load_map
 
+            # The page is served from here on: print its URL first, then read and convert the map, so
+            # a browser opened now sees the progress (panel text, progress bar and a notification).
+            label, nbytes = os.path.basename(args.map), os.path.getsize(args.map)
+            print(f"serving {viewer.url} (loading {args.map}, {nbytes / 1e6:,.1f} MB; open the page to watch "
+                  "the progress)", flush=True)
+            viewer.show_reading(label, nbytes)
             try:
                 g = load_map(args.map)
-                viewer.set_map(g, label=os.path.basename(args.map))
-            except (FileNotFoundError, ValueError) as e:
+                viewer.set_map(g, label=label)
+            except (OSError, ValueError) as e:
                 print(f"gausslite view: error: {e}", file=sys.stderr)
                 return 2
+            except KeyboardInterrupt:
+                return 130
             print(f"showing {args.map} ({len(g):,} Gaussians) at {viewer.url}", flush=True)
         else:
             from services.fusion_server.client import FusionClient

@@ -73,8 +73,14 @@ def rotmat_to_wxyz(r: np.ndarray) -> np.ndarray:
 
 class LoadProgress:
     """Progress of a map load, shown on the console (tqdm) and in the browser (GUI progress bar and a
-    notification on every connected client). Use as ``with LoadProgress(viewer, "fused v3", n) as p:
-    p(done, total)``."""
+    notification on every client: those connected when the load starts and those that connect while
+    it runs, e.g. a page opened from the URL ``gausslite view`` prints before it loads). Use as
+    ``with LoadProgress(viewer, "fused v3", n) as p: p(done, total)``.
+
+    Attributes:
+        notes: client id → that client's viser ``NotificationHandle`` ("Loading …", then "Loaded …").
+        closed: True once the ``with`` block has exited.
+    """
 
     def __init__(self, viewer: "MapViewer", what: str, total: int):
         from tqdm import tqdm
@@ -82,15 +88,28 @@ class LoadProgress:
         self.viewer, self.what, self.total = viewer, what, max(int(total), 0)
         self.bar = tqdm(total=self.total, desc=f"loading {what}", unit="G", unit_scale=True, leave=False)
         self._last = 0.0
-        self.notes = []
-        for client in viewer.server.get_clients().values():
-            try:
-                self.notes.append(client.add_notification(f"Loading {what}", f"{self.total:,} Gaussians",
-                                                          loading=True, with_close_button=False))
-            except Exception:  # a client that disconnects meanwhile
-                pass
+        self._lock = threading.Lock()
+        self.notes: Dict[int, object] = {}
+        self.closed = False
         viewer.progress.visible = True
         viewer.progress.value = 0.0
+        # Register first, then notify the clients connected now: viser adds a client to get_clients()
+        # before it runs the connect callbacks, so each client is caught here or by
+        # MapViewer._on_client_connect (or both: add_client is idempotent per client).
+        viewer._loading = self
+        for client in list(viewer.server.get_clients().values()):
+            self.add_client(client)
+
+    def add_client(self, client) -> None:
+        """Show the "Loading …" notification on ``client`` (once per client, only while loading)."""
+        with self._lock:
+            if self.closed or client.client_id in self.notes:
+                return
+            try:
+                self.notes[client.client_id] = client.add_notification(
+                    f"Loading {self.what}", f"{self.total:,} Gaussians", loading=True, with_close_button=False)
+            except Exception:  # a client that disconnects meanwhile
+                pass
 
     def __call__(self, done: int, total: int) -> None:
         self.bar.update(done - self.bar.n)
@@ -104,15 +123,21 @@ class LoadProgress:
 
     def __exit__(self, *exc) -> None:
         self.bar.close()
+        with self._lock:
+            self.closed = True
+            notes = list(self.notes.values())
+        if self.viewer._loading is self:
+            self.viewer._loading = None
         self.viewer.progress.value = 100.0
         self.viewer.progress.visible = False
-        for note in self.notes:
+        failed = exc and exc[0] is not None
+        for note in notes:
             try:
-                note.title = f"Loaded {self.what}"
-                note.body = f"{self.total:,} Gaussians"
+                note.title = f"{'Failed to load' if failed else 'Loaded'} {self.what}"
+                note.body = str(exc[1]) if failed else f"{self.total:,} Gaussians"
                 note.loading = False
                 note.with_close_button = True
-                note.auto_close_seconds = 3.0
+                note.auto_close_seconds = None if failed else 3.0
             except Exception:
                 pass
 
@@ -144,6 +169,7 @@ class MapViewer:
         self._map_label = ""
         self._keyframes: Dict[str, List[KeyframePose]] = {}
         self._camera_set = False
+        self._loading: Optional[LoadProgress] = None  # the load in progress (late clients get its notification)
         self.n_displayed = 0
 
         gui = self.server.gui
@@ -162,6 +188,12 @@ class MapViewer:
         self.show_traj.on_update(lambda _: self._redraw_keyframes())
         self.show_frusta.on_update(lambda _: self._redraw_keyframes())
         self.frustum_scale.on_update(lambda _: self._redraw_keyframes())
+        self.server.on_client_connect(self._on_client_connect)
+
+    def _on_client_connect(self, client) -> None:
+        loading = self._loading
+        if loading is not None:
+            loading.add_client(client)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -176,6 +208,14 @@ class MapViewer:
         return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}/"
 
     # ------------------------------------------------------------------ map
+    def show_reading(self, label: str, nbytes: Optional[int] = None) -> None:
+        """Tell the page a map file is being read (before :meth:`set_map` can show progress): the panel
+        says so and the (animated) progress bar appears at 0 %."""
+        size = f" ({nbytes / 1e6:,.1f} MB)" if nbytes is not None else ""
+        self.info.content = f"reading **{label}**{size} …"
+        self.progress.value = 0.0
+        self.progress.visible = True
+
     def set_map(self, gaussians, label: str = "map") -> int:
         """Show ``gaussians`` (replacing the previous map) with the current colour/ROI settings.
 
