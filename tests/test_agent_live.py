@@ -537,7 +537,10 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     calls = []
     real = sharing.finetune_subset
 
+    threads = []
+
     def spy(subset, keyframes, n, cfg=None, seed=0, **kw):
+        threads.append(threading.current_thread().name)
         out = real(subset, keyframes, n, cfg, seed=seed, **kw)
         calls.append((n, len(keyframes), GaussianArrays.from_any(subset), GaussianArrays.from_any(out)))
         return out
@@ -552,9 +555,13 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
         assert calls == []
         return
     assert 1 <= len(calls) <= len(fusion.uploads) and all(c[0] == iters and c[1] >= 1 for c in calls)
+    # the fine-tune runs in the pusher thread: the mapping thread never waits for it (live agents)
+    assert threads and all(t == "agent-a1-push" for t in threads), threads
     # an unchanged subset (and keyframes) is not fine-tuned again: the same result, so the delta is empty
     n = len(calls)
-    again = rt._finetuned(calls[-1][2], rt._finetune_cache[2])
+    key, kfs = rt._finetune_inputs(calls[-1][2], rt._finetune_cache[2])
+    assert key == rt._finetune_cache[0] and kfs
+    again = rt._finetuned(calls[-1][2], rt._finetune_cache[2], key, kfs)
     assert len(calls) == n and again is rt._finetune_cache[1]
     # the final push is the fine-tuned copy of the final subset, not the map's rows
     pushed, _ = assemble(fusion.uploads[-1][1])

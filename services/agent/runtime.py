@@ -268,6 +268,9 @@ class _Snapshot:
     final: bool = False
     ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
     frames_mapped: int = 0
+    #: (cache key, ROI keyframes) captured with the subset: the pusher thread fine-tunes it before the
+    #: push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
+    finetune: Any = None
 
 
 _FINISH = object()
@@ -772,37 +775,48 @@ class AgentRuntime:
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = self.mapper.model.ids.numpy()[mask]
+        finetune = None
         if self.config.share == "task" and self.config.share_finetune_iters > 0 and len(arrays):
-            arrays = self._finetuned(arrays, ids)
+            finetune = self._finetune_inputs(arrays, ids)
         with self._lock:
             self._version += 1
-            self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped)
+            self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped, finetune)
             self._push_cv.notify_all()
 
-    def _finetuned(self, arrays, ids):
-        """The shared subset fine-tuned alone on the ROI keyframes, against the copy the server acknowledged
-        (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by the mapper's seed).
-        Without delta pushes every push is fine-tuned from the agent's values alone. The same subset and
-        keyframes as at the last push give the last result again without work (whatever the server
-        acknowledged since), so an unchanged map (e.g. the final push right after a periodic one) stays
-        unchanged on the wire and its delta is empty."""
+    def _finetune_inputs(self, arrays, ids) -> tuple:
+        """What the fine-tune of a snapshot needs, taken in the mapping thread (the store changes as it maps):
+        the cache key of (subset, ids, keyframe ids and poses) and the keyframes that see the ROI, loaded
+        with poses of their own (pose refinement updates the stored ones in place)."""
         import hashlib
 
-        from gausslite.sharing import update_shared_subset
         from gausslite.wire.codec import GaussianArrays
 
         store = self.mapper.keyframes
         h = hashlib.blake2b(digest_size=16)
         for name in GaussianArrays._SPEC:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
-        for kf in store:  # the compact stored keyframes: nothing is loaded for a cache hit
+        for kf in store:
             h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
         h.update(ids.tobytes())
-        key = h.digest()
+        kfs = []
+        for i in range(len(store)):  # only the keyframes that see the ROI take part in the fine-tune
+            if store[i].sees_roi:
+                kf = store.load(i, self.mapper.device)
+                kfs.append(dataclasses.replace(kf, c2w=kf.c2w.clone()))
+        return h.digest(), kfs
+
+    def _finetuned(self, arrays, ids, key, kfs):
+        """The shared subset fine-tuned alone on the ROI keyframes ``kfs``, against the copy the server
+        acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by the
+        mapper's seed). Runs in the pusher thread, beside the mapping. Without delta pushes every push is
+        fine-tuned from the agent's values alone. The same subset and keyframes as at the last push
+        (``key``, :meth:`_finetune_inputs`) give the last result again without work (whatever the server
+        acknowledged since), so an unchanged map (e.g. the final push right after a periodic one) stays
+        unchanged on the wire and its delta is empty."""
+        from gausslite.sharing import update_shared_subset
+
         if self._finetune_cache is not None and self._finetune_cache[0] == key:
             return self._finetune_cache[1]
-        # only the keyframes that see the ROI take part in the fine-tune
-        kfs = [store.load(i, self.mapper.device) for i in range(len(store)) if store[i].sees_roi]
         with self._lock:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
@@ -829,6 +843,16 @@ class AgentRuntime:
                     self.final_push_ok = False
                     self._final_done.set()
                 continue
+            if snap.finetune is not None:
+                if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
+                    continue
+                try:
+                    out = self._finetuned(snap.gaussians, snap.ids, *snap.finetune)
+                except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
+                    log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
+                                  self.agent_id, snap.version, e)
+                    out = snap.gaussians
+                snap = dataclasses.replace(snap, gaussians=out, finetune=None)
             budget = self.config.final_push_timeout_s if snap.final else self.config.push_attempt_s
             ok = self._push_with_retries(snap, budget)
             if snap.final:
