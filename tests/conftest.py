@@ -11,16 +11,15 @@ from pathlib import Path
 
 import pytest
 
+from _ci import missing
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")).resolve()
 
 
 def _require(path: Path) -> Path:
     if not path.exists():
-        msg = f"shared data not found: {path}"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-            pytest.fail(msg + " (required under CI=true)")
-        pytest.skip(msg)
+        missing(f"shared data not found: {path}")
     return path
 
 
@@ -61,10 +60,8 @@ PG_DSN_ENV = "GAUSSLITE_TEST_PG_DSN"
 
 
 def _pg_unavailable(reason: str):
-    msg = f"PostgreSQL not available: {reason}"
-    if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-        pytest.fail(msg + " (required under CI=true; .ci/run starts it and exports " + PG_DSN_ENV + ")")
-    pytest.skip(msg + f" (start PostgreSQL and set {PG_DSN_ENV}=postgresql://user:pw@127.0.0.1:5432/db)")
+    missing(f"PostgreSQL not available: {reason}", ci_hint=f"; .ci/run starts it and exports {PG_DSN_ENV}",
+            user_hint=f" (start PostgreSQL and set {PG_DSN_ENV}=postgresql://user:pw@127.0.0.1:5432/db)")
 
 
 @pytest.fixture(scope="session")

@@ -334,6 +334,24 @@ def _run_view_in_thread(args):
     return t, result
 
 
+def _held_conversion(real_splats, chunk: int, timeout: float = 20):
+    """A stand-in for ``splat_arrays`` that converts in chunks of ``chunk`` Gaussians and holds after the
+    first one until released: returns (function, event set when it holds, event that releases it)."""
+    import threading
+
+    converting, release = threading.Event(), threading.Event()
+
+    def slow_splats(g, mode="rgb", progress=None):
+        def prog(done, total):
+            progress(done, total)
+            if done < total and not converting.is_set():
+                converting.set()
+                assert release.wait(timeout), "test never released the conversion"
+        return real_splats(g, mode, chunk=chunk, progress=prog)
+
+    return slow_splats, converting, release
+
+
 def test_cli_view_prints_url_before_loading_and_page_sees_progress(tmp_path, monkeypatch, capsys):
     """File mode serves the page and prints its URL first, then loads: a page opened while the file is
     still being read sees "reading …" and the progress bar, then the load notification and the map."""
@@ -359,16 +377,8 @@ def test_cli_view_prints_url_before_loading_and_page_sees_progress(tmp_path, mon
             super().__init__(*a, **kw)
             viewers.append(self)
 
-    converting, release_conv = threading.Event(), threading.Event()
-    real_splats = app.splat_arrays
-
-    def slow_splats(g, mode="rgb", progress=None):  # and converting it, too: stop after the first chunk
-        def prog(done, total):
-            progress(done, total)
-            if done < total and not converting.is_set():
-                converting.set()
-                assert release_conv.wait(20), "test never released the conversion"
-        return real_splats(g, mode, chunk=1000, progress=prog)
+    # and converting it, too: stop after the first chunk
+    slow_splats, converting, release_conv = _held_conversion(app.splat_arrays, chunk=1000)
 
     monkeypatch.setattr(export, "load_map", slow_load)
     monkeypatch.setattr(app, "splat_arrays", slow_splats)
@@ -600,8 +610,6 @@ def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
 def test_browser_opened_during_load_shows_progress(tmp_path, monkeypatch):
     """`gausslite view MAP` as a user sees it: open the printed URL in headless Chromium while the map
     is still loading; the page shows the "Loading" notification and the progress bar, then "Loaded"."""
-    import threading
-
     from _browser import headless_chromium, require_chromium
     from selenium.webdriver.common.by import By
 
@@ -610,16 +618,8 @@ def test_browser_opened_during_load_shows_progress(tmp_path, monkeypatch):
 
     require_chromium()
     write_map(shell_map(3000, seed=6), tmp_path / "m.ply")
-    converting, release = threading.Event(), threading.Event()
-    real_splats = app.splat_arrays
-
-    def slow_splats(g, mode="rgb", progress=None):  # hold the load after the first chunk (50 %)
-        def prog(done, total):
-            progress(done, total)
-            if done < total and not converting.is_set():
-                converting.set()
-                assert release.wait(30), "test never released the conversion"
-        return real_splats(g, mode, chunk=1500, progress=prog)
+    # hold the load after the first chunk (50 %)
+    slow_splats, converting, release = _held_conversion(app.splat_arrays, chunk=1500, timeout=30)
 
     monkeypatch.setattr(app, "splat_arrays", slow_splats)
     port = free_port()
