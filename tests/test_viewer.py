@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
-from gausslite.viewer.export import (export_map, from_splat_bytes, load_map, read_splat, read_spz, to_splat_bytes,
+from gausslite.viewer.export import (export_map, from_splat_bytes, load_map, read_splat, read_spz,
                                      write_map, write_splat, write_spz)
 from gausslite.viewer.splats import covariances, kappa_colors, sigmoid, splat_arrays
 from gausslite.wire.codec import GaussianArrays
