@@ -15,7 +15,8 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
    sensors the rendered view carries the keyframe's exposure response (``exposure_comp``,
    :mod:`~gausslite.mapping.exposure`) and the camera's motion blur (``motion_blur``,
    :mod:`~gausslite.mapping.blur`);
-3. ROI: after ``warmup_iters`` full-image iterations, the rest update only active Gaussians with
+3. ROI: after ``warmup_iters`` full-image iterations (under a keyframe time budget: the first
+   ``warmup_iters / iters_per_frame`` of the time), the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
    (``roi_render``: the active subset alone, the paper's wording; or every Gaussian with the
    inactive ones frozen; or the two in turn); κ += 1 per active iteration for every active Gaussian;
@@ -749,7 +750,7 @@ class Mapper:
             # outlast a short budget and leave the ROI phase, κ and the shared subset empty)
             t_it = time.perf_counter()
             warm_until = t_it + max(0.0, budget - (t_it - t0)) * cfg.warmup_iters / cfg.iters_per_frame
-        for it in self._iterations(t0, time_budget_s):
+        for it in self._iterations(t0, budget):
             view = self._pick_view(kf)
             if warm_until is None:
                 warm = it < cfg.warmup_iters
@@ -801,9 +802,9 @@ class Mapper:
             kf.c2w = new
         return dataclasses.replace(frame, c2w=kf.c2w.cpu().numpy().copy())
 
-    def _iterations(self, t0: float, time_budget_s: Optional[float]):
-        """Iteration indices of one ``map_frame`` call: a fixed count, or as many as fit the budget."""
-        budget = self.cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
+    def _iterations(self, t0: float, budget: Optional[float]):
+        """Iteration indices of one ``map_frame`` call: ``iters_per_frame`` (``budget`` None), or as many as
+        fit ``budget`` seconds after ``t0``."""
         if budget is None:
             yield from range(self.cfg.iters_per_frame)
             return

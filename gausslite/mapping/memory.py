@@ -57,6 +57,18 @@ class StoredKeyframe:
         """True when the keyframe has at least one ROI pixel."""
         return self.roi_box is not None
 
+    def to_keyframe(self, device: torch.device):
+        """This keyframe as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device`` (rgb (H,W,3)
+        float32 in [0, 1], depth (H,W) float32 metres; c2w, K and roi shared with this object on CPU)."""
+        from gausslite.mapping.mapper import Keyframe
+
+        return Keyframe(
+            frame_id=self.frame_id, rgb=self.rgb.to(device, torch.float32) / 255.0,
+            depth=self.depth.to(device, torch.float32), c2w=self.c2w.to(device), K=self.K.to(device),
+            width=self.width, height=self.height, roi=None if self.roi is None else self.roi.to(device),
+            roi_box=self.roi_box,
+        )
+
 
 class KeyframeStore:
     """The mission's keyframes, compact and bounded, with MVO's view sampler.
@@ -133,15 +145,9 @@ class KeyframeStore:
         return False
 
     def load(self, i: int, device: torch.device):
-        """Keyframe ``i`` as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device``."""
-        from gausslite.mapping.mapper import Keyframe
-
-        k = self._items[i]
-        return Keyframe(
-            frame_id=k.frame_id, rgb=k.rgb.to(device, torch.float32) / 255.0, depth=k.depth.to(device, torch.float32),
-            c2w=k.c2w.to(device), K=k.K.to(device), width=k.width, height=k.height,
-            roi=None if k.roi is None else k.roi.to(device), roi_box=k.roi_box,
-        )
+        """Keyframe ``i`` as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device``
+        (:meth:`StoredKeyframe.to_keyframe`)."""
+        return self._items[i].to_keyframe(device)
 
     def sample_index(self, rng: np.random.Generator, window: int, recent_prob: float,
                      roi_weight: float = 0.0) -> int:

@@ -268,8 +268,8 @@ class _Snapshot:
     final: bool = False
     ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
     frames_mapped: int = 0
-    #: (cache key, ROI keyframes) captured with the subset: the pusher thread fine-tunes it before the
-    #: push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
+    #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
+    #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
     finetune: Any = None
 
 
@@ -785,8 +785,9 @@ class AgentRuntime:
 
     def _finetune_inputs(self, arrays, ids) -> tuple:
         """What the fine-tune of a snapshot needs, taken in the mapping thread (the store changes as it maps):
-        the cache key of (subset, ids, keyframe ids and poses) and the keyframes that see the ROI, loaded
-        with poses of their own (pose refinement updates the stored ones in place)."""
+        the cache key of (subset, ids, keyframe ids and poses) and the compact stored keyframes that see the
+        ROI, with poses of their own (pose refinement updates the stored ones in place; images are never
+        changed). Nothing is decoded here: :meth:`_finetuned` decodes them in the pusher on a cache miss."""
         import hashlib
 
         from gausslite.wire.codec import GaussianArrays
@@ -798,15 +799,12 @@ class AgentRuntime:
         for kf in store:
             h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
         h.update(ids.tobytes())
-        kfs = []
-        for i in range(len(store)):  # only the keyframes that see the ROI take part in the fine-tune
-            if store[i].sees_roi:
-                kf = store.load(i, self.mapper.device)
-                kfs.append(dataclasses.replace(kf, c2w=kf.c2w.clone()))
+        # only the keyframes that see the ROI take part in the fine-tune
+        kfs = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
         return h.digest(), kfs
 
     def _finetuned(self, arrays, ids, key, kfs):
-        """The shared subset fine-tuned alone on the ROI keyframes ``kfs``, against the copy the server
+        """The shared subset fine-tuned alone on the ROI keyframes ``kfs`` (compact), against the copy the server
         acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by the
         mapper's seed). Runs in the pusher thread, beside the mapping. Without delta pushes every push is
         fine-tuned from the agent's values alone. The same subset and keyframes as at the last push
@@ -817,6 +815,7 @@ class AgentRuntime:
 
         if self._finetune_cache is not None and self._finetune_cache[0] == key:
             return self._finetune_cache[1]
+        kfs = [kf.to_keyframe(self.mapper.device) for kf in kfs]
         with self._lock:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
