@@ -199,6 +199,15 @@ class MapperConfig(_Strict):
     )
     blur_px_per_sample: float = Field(4.0, gt=0, description="motion blur: one virtual pose per this many pixels of streak")
     blur_max_samples: int = Field(5, ge=1, description="motion blur: at most this many virtual poses per view")
+    rolling_shutter_s: float = Field(
+        0.0, ge=0, le=0.1, description="rolling shutter (gausslite.mapping.shutter; Kerl et al. ICCV 2015, Seiskari et al. "
+        "ECCV 2024): readout time of the colour image, first row to last, seconds (0: global shutter). Rows are "
+        "rendered in bands, each from the pose at its readout time along the camera's motion (the sensor's poses of "
+        "consecutive mapped frames, as for motion_blur); scores are taken the same way"
+    )
+    rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
+                                  "between a view's first and last row")
+    rs_max_bands: int = Field(6, ge=1, description="rolling shutter: at most this many row bands per view")
     blur_max_dt: float = Field(
         0.5, gt=0, description="motion blur: consecutive mapped frames further apart than this (seconds) give no "
         "motion estimate (the view is rendered sharp)"

@@ -13,8 +13,9 @@ Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
    mission-wide draw towards keyframes that see the ROI; without MVO the current frame is taken with
    probability ``current_frame_prob``); loss L1_colour + λ_d L1_depth + λ_s (1 − SSIM); for hand-held
    sensors the rendered view carries the keyframe's exposure response (``exposure_comp``,
-   :mod:`~gausslite.mapping.exposure`) and the camera's motion blur (``motion_blur``,
-   :mod:`~gausslite.mapping.blur`);
+   :mod:`~gausslite.mapping.exposure`), the camera's motion blur (``motion_blur``,
+   :mod:`~gausslite.mapping.blur`) and its rolling shutter (``rolling_shutter_s``,
+   :mod:`~gausslite.mapping.shutter`);
 3. ROI: after ``warmup_iters`` full-image iterations (under a keyframe time budget: the first
    ``warmup_iters / iters_per_frame`` of the time), the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
@@ -42,12 +43,13 @@ import torch
 from gausslite.datasets.base import Frame
 from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
-from gausslite.mapping.blur import blur_deltas, blur_samples, exposure_twist
+from gausslite.mapping.blur import blur_samples, exposure_twist
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
-from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta, nearest_key
+from gausslite.mapping.shutter import readout_norm, shutter_bands
+from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta, nearest_key, pose_delta
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
@@ -297,8 +299,13 @@ class Mapper:
                                              if cfg.pose_refine else None)
         #: per-keyframe exposure compensation (``cfg.exposure_comp``), None when off
         self.exposure: Optional[ExposureModel] = ExposureModel(cfg.exposure_lr) if cfg.exposure_comp else None
-        #: motion over the exposure of every mapped frame, frame id → (6,) ξ_b (``cfg.motion_blur``)
+        #: motion over the exposure of every mapped frame, frame id → (6,) ξ_b = τ · (ω, v) with τ =
+        #: ``cfg.blur_exposure_s`` (``cfg.motion_blur``; the camera's velocity ξ_b / τ also gives the rolling
+        #: shutter's row poses, ``cfg.rolling_shutter_s``)
         self.blur: dict[int, np.ndarray] = {}
+        #: rolling shutter: readout time per unit of normalised image y of the full image (seconds;
+        #: :func:`gausslite.mapping.shutter.readout_norm`), set from the first mapped frame
+        self._rs_norm = 0.0
         self._last_sensor: Optional[tuple[float, np.ndarray]] = None  # (timestamp, c2w) of the last mapped frame
         #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
         #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
@@ -355,28 +362,49 @@ class Mapper:
     def _render_view(self, c2w, K, width: int, height: int, frame_id: int, subset: Optional[torch.Tensor],
                      pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
                      parts: Optional[list] = None) -> RenderOutput:
-        """:meth:`_rasterize` of frame ``frame_id``'s view, blurred by its motion under ``cfg.motion_blur``
-        (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at ``c2w · E(s_k ξ_b)``
-        (the nearest mapped frame's ξ_b for a frame that was not mapped); the screen-space data (means2d,
-        radii, ids) are the middle render's. ``parts``: a list that receives the K renders (none when the
-        view is rendered sharp), for density statistics."""
+        """:meth:`_rasterize` of frame ``frame_id``'s view as the camera took it while moving (the nearest
+        mapped frame's motion for a frame that was not mapped):
+
+        - ``cfg.motion_blur`` (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at
+          ``c2w · E(s_k ξ_b)``;
+        - ``cfg.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b rendered alone (its
+          rows only) from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom.
+
+        The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
+        the renders as groups, one group per blur sample holding its bands (nothing when the view is rendered
+        as one sharp image), for density statistics (:meth:`_accumulate`).
+        """
         cfg = self.cfg
-        deltas: list = []
-        if cfg.motion_blur and self.blur:
-            xi_b = self.blur[nearest_key(self.blur, frame_id)]
-            fx = float(K[0, 0])
-            deltas = blur_deltas(xi_b, blur_samples(xi_b, fx, width, height, cfg.blur_px_per_sample,
-                                                    cfg.blur_max_samples), self.device)
-        if not deltas:
+        rs = cfg.rolling_shutter_s > 0 and self._rs_norm > 0
+        if not ((cfg.motion_blur or rs) and self.blur):
             return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
-        outs = [self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, view_delta=d)
-                for d in deltas]
+        xi_b = self.blur[nearest_key(self.blur, frame_id)]
+        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.blur_px_per_sample, cfg.blur_max_samples)
+                  if cfg.motion_blur else 1)
+        bands = (shutter_bands(K, width, height, xi_b / cfg.blur_exposure_s, self._rs_norm, cfg.rs_px_per_band,
+                               cfg.rs_max_bands) if rs else [(0, height, 0.0)])
+        if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
+            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
+        offsets = np.linspace(-0.5, 0.5, n_blur) if n_blur > 1 else np.zeros(1)
+        groups: list[list[RenderOutput]] = [[] for _ in offsets]
+        for y0, y1, t in bands:
+            Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
+            Kb[1, 2] -= y0
+            for g, s in zip(groups, offsets):
+                # E(t·ω) E(s·τ·ω) = E((t/τ + s) ξ_b): one twist, so the band's time and the blur offset add
+                delta = pose_delta(float(t / cfg.blur_exposure_s + s) * torch.as_tensor(xi_b, dtype=torch.float64))
+                g.append(self._rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
+                                         view_delta=delta.to(self.device)))
         if parts is not None:
-            parts.extend(outs)
-        mid = outs[len(outs) // 2]
-        return dataclasses.replace(mid, color=torch.stack([o.color for o in outs]).mean(0),
-                                   depth=torch.stack([o.depth for o in outs]).mean(0),
-                                   alpha=torch.stack([o.alpha for o in outs]).mean(0))
+            parts.extend(groups)
+
+        def stacked(field: str) -> torch.Tensor:
+            per_sample = [torch.cat([getattr(o, field) for o in g], 0) if len(g) > 1 else getattr(g[0], field)
+                          for g in groups]
+            return per_sample[0] if len(per_sample) == 1 else torch.stack(per_sample).mean(0)
+
+        mid = groups[len(groups) // 2][len(bands) // 2]
+        return dataclasses.replace(mid, color=stacked("color"), depth=stacked("depth"), alpha=stacked("alpha"))
 
     def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
                    pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
@@ -544,18 +572,33 @@ class Mapper:
         self._grad_accum = torch.zeros(n, device=self.device)
         self._grad_count = torch.zeros(n, device=self.device)
 
-    def _accumulate(self, out: RenderOutput, width: int, height: int, weight: float = 1.0) -> None:
+    def _accumulate(self, outs: list[RenderOutput], width: int, height: int, weight: float = 1.0) -> None:
         """Add each visible Gaussian's view-space gradient norm (pixels × half the image size, times
-        ``weight``) to the density-control statistics."""
-        g = out.means2d.grad
-        if g is None:
-            return
-        vis = out.radii > 0
+        ``weight``) to the density-control statistics. ``outs``: the renders of one image (one, or the row
+        bands of a rolling-shutter view, whose gradients of a Gaussian are summed before the norm, so a
+        Gaussian cut by a band edge counts as in one render)."""
+        if len(outs) == 1:
+            g, vis = outs[0].means2d.grad, outs[0].radii > 0
+            if g is None:
+                return
+            ids, g = outs[0].ids[vis], g[vis]
+        else:
+            total = torch.zeros(len(self._grad_accum), 2, device=self._grad_accum.device)
+            seen = torch.zeros(len(self._grad_accum), dtype=torch.bool, device=self._grad_accum.device)
+            for o in outs:
+                if o.means2d.grad is None:
+                    continue
+                v = o.radii > 0
+                total.index_add_(0, o.ids[v], o.means2d.grad[v].to(total.dtype))
+                seen[o.ids[v]] = True
+            ids = torch.nonzero(seen).squeeze(1)
+            if len(ids) == 0:
+                return
+            g = total[ids]
         scale = torch.tensor([weight * width / 2.0, weight * height / 2.0], device=g.device)
         norm = (g * scale).norm(dim=1)
-        ids = out.ids[vis]
-        self._grad_accum.index_add_(0, ids, norm[vis])
-        self._grad_count.index_add_(0, ids, torch.ones_like(norm[vis]))
+        self._grad_accum.index_add_(0, ids, norm)
+        self._grad_count.index_add_(0, ids, torch.ones_like(norm))
 
     def _densify_and_prune(self) -> dict:
         dc = self.cfg.densify
@@ -678,8 +721,8 @@ class Mapper:
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
             # a blurred view: each of its K renders carries 1/K of the loss, so its gradients count K times
-            for o in parts or [out]:
-                self._accumulate(o, stat_w, stat_h, stat_weight * max(1, len(parts)))
+            for group in parts or [[out]]:
+                self._accumulate(group, stat_w, stat_h, stat_weight * max(1, len(parts)))
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
         if active_phase:
             self.model.kappa[self.model.active] += 1
@@ -716,13 +759,14 @@ class Mapper:
             raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
         cfg, sw = self.cfg, self.cfg.effective()
         t0 = time.perf_counter()
-        if cfg.motion_blur:
+        if cfg.motion_blur or cfg.rolling_shutter_s > 0:
             # the camera's motion over this frame's exposure, from the sensor's poses (before refinement)
             prev = self._last_sensor
             self.blur[frame.frame_id] = (np.zeros(6) if prev is None else
                                          exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp,
                                                         cfg.blur_exposure_s, cfg.blur_max_dt))
             self._last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy())
+            self._rs_norm = readout_norm(cfg.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
         if self.poses is not None:
             # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
             E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose_init == "inherit" else np.eye(4)
@@ -908,6 +952,7 @@ class Mapper:
                                   "fixed": sorted(self.poses.fixed)}),
             "exposure": None if self.exposure is None else self.exposure.state(),
             "blur": {k: v.copy() for k, v in self.blur.items()}, "last_sensor": self._last_sensor,
+            "rs_norm": self._rs_norm,
         }
 
     def restore_state(self, state: dict) -> None:
@@ -942,3 +987,4 @@ class Mapper:
             self.exposure.load_state(state["exposure"])
         self.blur = {int(k): np.asarray(v, np.float64) for k, v in (state.get("blur") or {}).items()}
         self._last_sensor = state.get("last_sensor")
+        self._rs_norm = float(state.get("rs_norm", 0.0))  # absent in checkpoints before stop 26
