@@ -258,6 +258,7 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
             assert rt.config.mapper.pose_refine is want_refine
             assert rt.config.mapper.final_iters_per_keyframe == 20.0 and rt.config.mapper.lambda_depth == 0.3
             assert rt.config.mapper.exposure_comp is True and rt.config.mapper.motion_blur is True
+            assert rt.config.mapper.rolling_shutter_s == 0.02
             assert rt.config.mapper.iters_per_frame == 3  # from TINY
             assert ag.servicer.settings.config.mapper.pose_refine is False  # the agent's own config untouched
             rt.close()

@@ -71,6 +71,7 @@ def test_handheld_profile_refines_poses_from_the_sensor_pose(tum_rpy_dir, room0_
     resolve_dataset(args, tmp_path)
     assert config_from_args(args).pose_refine is False and config_from_args(args).exposure_comp is False
     assert config_from_args(args).motion_blur is False  # rendered data: no blur model
+    assert config_from_args(args).rolling_shutter_s == 0.0  # nor a rolling shutter
 
 
 def test_with_profile_fills_only_the_fields_the_config_left_unset():
@@ -80,7 +81,7 @@ def test_with_profile_fills_only_the_fields_the_config_left_unset():
     cfg = load_config(None, ["iters_per_frame=17"], mode="gausslite")
     out = with_profile(cfg, HANDHELD)
     assert out.pose_refine is True and out.final_iters_per_keyframe == 20.0 and out.lambda_depth == 0.3
-    assert out.exposure_comp is True and out.motion_blur is True
+    assert out.exposure_comp is True and out.motion_blur is True and out.rolling_shutter_s == 0.02
     assert out.iters_per_frame == 17 and out.mode == "gausslite"  # what the config set survives
     assert with_profile(cfg, RENDERED) is cfg  # nothing to add
     explicit = load_config(None, ["pose_refine=false", "final_iters_per_keyframe=0"])
