@@ -152,3 +152,25 @@ def test_bench_warp_psnr_peaks_at_the_true_readout():
     v = velocities(frames)
     np.testing.assert_allclose(v[1], [0, 0, 0, 3.0, 0, 0], atol=1e-9)
     np.testing.assert_allclose(v[0], v[1], atol=1e-9)  # one-sided at the ends
+
+
+def test_central_motion_estimate_gives_each_frame_the_motion_around_it():
+    """``motion_estimate: central``: once frame i+1 arrives, frame i's twist is the mean of its backward and
+    forward estimates, and the first frame gets the forward one (it had none); ``backward`` keeps each
+    frame's own."""
+    frames = [dataclasses.replace(plane_frame(i, x, H, W), timestamp=0.1 * i) for i, x in enumerate((0.0, 0.01, 0.03))]
+    got = {}
+    for est in ("backward", "central"):
+        cfg = MapperConfig(mode="uniform", seeds_per_frame=200, iters_per_frame=1, warmup_iters=1, backend="warp", seed=0,
+                           rolling_shutter_s=READOUT, motion_estimate=est)
+        m = Mapper(cfg)
+        for fr in frames:
+            m.map_frame(fr)
+        got[est] = m.blur
+    tau = MapperConfig().blur_exposure_s
+    fwd01, fwd12 = 0.1 * tau, 0.2 * tau  # 1 cm and 2 cm in 0.1 s, over the exposure τ
+    np.testing.assert_allclose(got["backward"][0][3], 0.0)
+    np.testing.assert_allclose(got["backward"][1][3], fwd01, rtol=1e-9)
+    np.testing.assert_allclose(got["central"][0][3], fwd01, rtol=1e-9)
+    np.testing.assert_allclose(got["central"][1][3], 0.5 * (fwd01 + fwd12), rtol=1e-9)
+    np.testing.assert_allclose(got["central"][2][3], fwd12, rtol=1e-9)  # the newest frame: backward until the next

@@ -205,6 +205,12 @@ class MapperConfig(_Strict):
         "rendered in bands, each from the pose at its readout time along the camera's motion (the sensor's poses of "
         "consecutive mapped frames, as for motion_blur); scores are taken the same way"
     )
+    motion_estimate: Literal["backward", "central"] = Field(
+        "backward", description="the camera's motion for motion_blur and the rolling shutter: 'backward' from the "
+        "previous mapped frame to this one (the velocity 1/2 frame earlier); 'central' also replaces the previous "
+        "frame's estimate by the mean of its backward and forward ones once this frame arrives (the first frame "
+        "gets the forward one), so stored keyframes carry the velocity at their own time"
+    )
     rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
                                   "between a view's first and last row")
     rs_max_bands: int = Field(6, ge=1, description="rolling shutter: at most this many row bands per view")

@@ -306,7 +306,7 @@ class Mapper:
         #: rolling shutter: readout time per unit of normalised image y of the full image (seconds;
         #: :func:`gausslite.mapping.shutter.readout_norm`), set from the first mapped frame
         self._rs_norm = 0.0
-        self._last_sensor: Optional[tuple[float, np.ndarray]] = None  # (timestamp, c2w) of the last mapped frame
+        self._last_sensor: Optional[tuple] = None  # (timestamp, c2w, frame id) of the last mapped frame
         #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
         #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
         #: ROI crops are new objects at every draw, so their own ``ssim_stats`` would not survive
@@ -762,10 +762,16 @@ class Mapper:
         if cfg.motion_blur or cfg.rolling_shutter_s > 0:
             # the camera's motion over this frame's exposure, from the sensor's poses (before refinement)
             prev = self._last_sensor
-            self.blur[frame.frame_id] = (np.zeros(6) if prev is None else
-                                         exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp,
-                                                        cfg.blur_exposure_s, cfg.blur_max_dt))
-            self._last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy())
+            xi_b = (np.zeros(6) if prev is None else
+                    exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.blur_exposure_s, cfg.blur_max_dt))
+            self.blur[frame.frame_id] = xi_b
+            if cfg.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
+                    and xi_b.any():
+                # the previous frame's motion is now known on both sides: the mean of its backward and forward
+                # estimates (the forward one alone for the first frame, which had none)
+                back = self.blur[prev[2]]
+                self.blur[prev[2]] = 0.5 * (back + xi_b) if back.any() else xi_b.copy()
+            self._last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy(), int(frame.frame_id))
             self._rs_norm = readout_norm(cfg.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
         if self.poses is not None:
             # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
