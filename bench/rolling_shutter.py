@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -29,6 +30,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gausslite.mapping.blur import exposure_twist
 from gausslite.mapping.shutter import readout_norm, row_time
 
 REPO = Path(__file__).resolve().parents[1]
@@ -37,18 +39,11 @@ SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 
 def velocities(frames) -> list[np.ndarray]:
     """(6,) twist per second (ω rad/s, v m/s, in the frame's own camera frame) of every frame: the central
-    difference of the sensor's poses of its neighbours (one-sided at the ends)."""
-    out = []
+    difference of the sensor's poses of its neighbours (one-sided at the ends; :func:`exposure_twist` over
+    one second)."""
     n = len(frames)
-    for i in range(n):
-        a, b = max(i - 1, 0), min(i + 1, n - 1)
-        dt = float(frames[b].timestamp - frames[a].timestamp)
-        if dt <= 0:
-            out.append(np.zeros(6))
-            continue
-        rel = np.linalg.inv(frames[a].c2w) @ frames[b].c2w
-        out.append(np.concatenate([Rotation.from_matrix(rel[:3, :3]).as_rotvec(), rel[:3, 3]]) / dt)
-    return out
+    return [exposure_twist(frames[a].c2w, frames[a].timestamp, frames[b].c2w, frames[b].timestamp, 1.0, math.inf)
+            for a, b in ((max(i - 1, 0), min(i + 1, n - 1)) for i in range(n))]
 
 
 def _row_pose_apply(X: np.ndarray, t: np.ndarray, vel: np.ndarray, inverse: bool) -> np.ndarray:
@@ -71,13 +66,13 @@ def warp_psnr(fi, fj, vel_i: np.ndarray, vel_j: np.ndarray, readout_s: float, of
     vv, uu = np.nonzero(fi.depth > 0)
     z = fi.depth[vv, uu].astype(np.float64)
     X = np.stack([(uu - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z], 1)
-    ti = np.array([row_time(v + 0.5, K[1, 2] + 0.5, K[1, 1], rn) for v in range(H)])[vv] + offset_s
+    ti = row_time(vv.astype(np.float64), K[1, 2], K[1, 1], rn) + offset_s
     Pw = _row_pose_apply(X, ti, vel_i, False) @ fi.c2w[:3, :3].T + fi.c2w[:3, 3]
     w2c = np.linalg.inv(fj.c2w)
     Pj = Pw @ w2c[:3, :3].T + w2c[:3, 3]
     Q, vj = Pj, K[1, 1] * Pj[:, 1] / Pj[:, 2] + K[1, 2]
     for _ in range(3):  # the row a point lands in sets the pose it is seen from
-        tj = (vj + 0.5 - (K[1, 2] + 0.5)) / K[1, 1] * rn + offset_s
+        tj = row_time(vj, K[1, 2], K[1, 1], rn) + offset_s
         Q = _row_pose_apply(Pj, tj, vel_j, True)
         vj = K[1, 1] * Q[:, 1] / Q[:, 2] + K[1, 2]
     uj = K[0, 0] * Q[:, 0] / Q[:, 2] + K[0, 2]

@@ -66,12 +66,21 @@ def blur_samples(xi_b: np.ndarray, fx: float, width: int, height: int, px_per_sa
     return int(min(max(n, 1), max_samples))
 
 
-def blur_deltas(xi_b: np.ndarray, k: int, device: Optional[torch.device] = None) -> list[torch.Tensor]:
-    """The K (4, 4) float64 right corrections ``E(s_k · ξ_b)``, ``s_k = linspace(−½, ½, K)``; [] for K ≤ 1."""
-    if k <= 1:
-        return []
+def motion_deltas(xi_b: np.ndarray, k: int, centre: float = 0.0,
+                  device: Optional[torch.device] = None) -> list[torch.Tensor]:
+    """The (4, 4) float64 right corrections ``E((c + s_k) · ξ_b)`` of K ≥ 1 virtual poses, ``s_k =
+    linspace(−½, ½, K)`` (``s = 0`` for K = 1) around ``c`` = ``centre`` exposures from the frame's pose (a
+    rolling-shutter band's readout time over τ, :mod:`gausslite.mapping.shutter`; 0 for the whole frame). One
+    twist, so ``E(c ξ_b) E(s ξ_b) = E((c + s) ξ_b)``."""
     xi = torch.as_tensor(np.asarray(xi_b, np.float64))
-    return [pose_delta(float(s) * xi).to(device) for s in np.linspace(-0.5, 0.5, k)]
+    offsets = np.linspace(-0.5, 0.5, k) if k > 1 else np.zeros(1)
+    return [pose_delta(float(centre + s) * xi).to(device) for s in offsets]
 
 
-__all__ = ["exposure_twist", "blur_length_px", "blur_samples", "blur_deltas"]
+def blur_deltas(xi_b: np.ndarray, k: int, device: Optional[torch.device] = None) -> list[torch.Tensor]:
+    """The K (4, 4) float64 right corrections ``E(s_k · ξ_b)``, ``s_k = linspace(−½, ½, K)``; [] for K ≤ 1
+    (:func:`motion_deltas` around the frame's pose)."""
+    return motion_deltas(xi_b, k, 0.0, device) if k > 1 else []
+
+
+__all__ = ["exposure_twist", "blur_length_px", "blur_samples", "motion_deltas", "blur_deltas"]

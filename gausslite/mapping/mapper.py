@@ -43,13 +43,13 @@ import torch
 from gausslite.datasets.base import Frame
 from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
-from gausslite.mapping.blur import blur_samples, exposure_twist
+from gausslite.mapping.blur import blur_samples, exposure_twist, motion_deltas
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.shutter import readout_norm, shutter_bands
-from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta, nearest_key, pose_delta
+from gausslite.mapping.poses import PoseRefiner, move_gaussians_for_pose_delta, nearest_key
 from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput, blend_weights, rasterize
@@ -385,16 +385,14 @@ class Mapper:
                                cfg.rs_max_bands) if rs else [(0, height, 0.0)])
         if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
             return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
-        offsets = np.linspace(-0.5, 0.5, n_blur) if n_blur > 1 else np.zeros(1)
-        groups: list[list[RenderOutput]] = [[] for _ in offsets]
+        groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
         for y0, y1, t in bands:
             Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
             Kb[1, 2] -= y0
-            for g, s in zip(groups, offsets):
-                # E(t·ω) E(s·τ·ω) = E((t/τ + s) ξ_b): one twist, so the band's time and the blur offset add
-                delta = pose_delta(float(t / cfg.blur_exposure_s + s) * torch.as_tensor(xi_b, dtype=torch.float64))
+            # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
+            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.blur_exposure_s, self.device)):
                 g.append(self._rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
-                                         view_delta=delta.to(self.device)))
+                                         view_delta=delta))
         if parts is not None:
             parts.extend(groups)
 

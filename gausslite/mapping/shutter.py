@@ -34,14 +34,15 @@ import numpy as np
 from .blur import blur_length_px
 
 
-def row_time(v: float, cy: float, fy: float, readout_norm: float) -> float:
+def row_time(v, cy: float, fy: float, readout_norm: float):
     """Readout time (seconds, relative to the frame's timestamp) of image row ``v`` (pixels, may be
-    fractional) of a view with principal point row ``cy`` and focal length ``fy`` (pixels).
+    fractional; a float or an array of rows, giving the same shape) of a view with principal point row ``cy``
+    and focal length ``fy`` (pixels).
 
     ``readout_norm`` = ``t_r · f_y⁰ / H⁰`` (seconds per unit of normalised image y, from the full image:
     :func:`readout_norm`), so the time of a scene ray does not depend on how the view was cropped or scaled.
     """
-    return (float(v) - float(cy)) / float(fy) * float(readout_norm)
+    return (v - float(cy)) / float(fy) * float(readout_norm)
 
 
 def readout_norm(readout_s: float, fy_full: float, height_full: int) -> float:
