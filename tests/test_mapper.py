@@ -418,3 +418,30 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     m2 = Mapper(cfg)
     m2.restore_state(m.checkpoint_state())
     assert m2.n_budget_iters == m.n_budget_iters
+
+
+@pytest.mark.parametrize("mode", ["gausslite", "uniform"])
+def test_roi_grad_factor_densifies_active_gaussians_at_a_lower_threshold(mode):
+    """``densify.roi_grad_factor`` (gausslite mode): an active Gaussian splits once its mean view-space gradient
+    reaches grad_threshold × the factor, a background one only at grad_threshold; uniform mode ignores it."""
+    cfg = _cfg(mode=mode, iters_per_frame=2, warmup_iters=0)
+    cfg.densify.prune_opacity = 0.0
+    cfg.densify.split_scale_m = 1e-6  # every Gaussian is large enough to split
+    cfg.densify.roi_grad_factor = 0.25
+    m = Mapper(cfg)
+    m.map_frame(_frame(0), _roi() if mode == "gausslite" else None)
+    n = len(m.model)
+    act = m.model.active.clone()
+    if mode == "uniform":
+        act[: n // 2] = True  # uniform maps have no active Gaussians; mark some to show the factor is ignored
+        m.model.active[:] = act
+    assert 0 < int(act.sum()) < n
+    m._reset_densify_stats()
+    m.budget = 10 * n
+    thr = cfg.densify.grad_threshold
+    m._grad_accum[:] = 0.5 * thr  # between the ROI threshold (0.25 thr) and the background one
+    m._grad_count[:] = 1.0
+    stats = m._densify_and_prune()
+    expect = int(act.sum()) if mode == "gausslite" else 0
+    assert stats["split"] == expect
+    assert len(m.model) == n + expect

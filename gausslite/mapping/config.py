@@ -42,6 +42,10 @@ class DensifyConfig(_Strict):
         "it (clones from zero Adam moments). Until this was found, clones inherited their parent's moments "
         "and stayed stacked on it (see GaussianModel.set_map), which largely disabled cloning"
     )
+    roi_grad_factor: float = Field(
+        1.0, gt=0, le=1, description="gausslite mode: active (ROI) Gaussians densify at grad_threshold × this "
+        "(densification allocated by relevance, paper Sec. III); 1 = the same threshold as the background"
+    )
     split_scale_m: float = Field(
         0.02, gt=0, description="high-gradient Gaussians larger than this (metres) split, smaller clone"
     )

@@ -605,7 +605,10 @@ class Mapper:
         if n == 0:
             return {}
         avg = self._grad_accum / self._grad_count.clamp_min(1)
-        high = avg >= dc.grad_threshold
+        thr = torch.full_like(avg, dc.grad_threshold)
+        if self.cfg.mode == "gausslite" and dc.roi_grad_factor < 1.0:
+            thr[gmap.active] *= dc.roi_grad_factor  # densification allocated by relevance
+        high = avg >= thr
         max_scale = gmap.log_scales.exp().max(dim=1).values
         split = high & (max_scale > dc.split_scale_m)
         clone = high & ~split & dc.clone
@@ -614,7 +617,7 @@ class Mapper:
         if n_new > room:
             # keep the highest-gradient candidates within the budget
             cand = torch.nonzero(clone | split).squeeze(1)
-            order = torch.argsort(avg[cand], descending=True)
+            order = torch.argsort(avg[cand] / thr[cand], descending=True)
             keep = cand[order[: max(room, 0)]]
             sel = torch.zeros(n, dtype=torch.bool, device=self.device)
             sel[keep] = True
