@@ -44,7 +44,9 @@ class DensifyConfig(_Strict):
     )
     roi_grad_factor: float = Field(
         1.0, gt=0, le=1, description="gausslite mode: active (ROI) Gaussians densify at grad_threshold × this "
-        "(densification allocated by relevance, paper Sec. III); 1 = the same threshold as the background"
+        "(densification allocated by relevance, paper Sec. III); 1 = the same threshold as the background. Synthetic "
+        "circle, 160 frames, seed 0: 0.25 gave 27.27 dB ROI PSNR against 27.40 (PSNR 26.11 against 25.65, 75.6k "
+        "Gaussians against 70.5k), so it stays off"
     )
     split_scale_m: float = Field(
         0.02, gt=0, description="high-gradient Gaussians larger than this (metres) split, smaller clone"
