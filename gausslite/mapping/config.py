@@ -214,9 +214,8 @@ class MapperConfig(_Strict):
     motion_estimate: Literal["backward", "central"] = Field(
         "backward", description="the camera's motion for motion_blur and the rolling shutter: 'backward' from the "
         "previous mapped frame to this one (the velocity 1/2 frame earlier); 'central' also replaces the previous "
-        "frame's estimate by the mean of its backward and forward ones once this frame arrives, so stored keyframes "
-        "carry the velocity at their own time. In both, a frame without a backward estimate (the first, or the first "
-        "after a gap longer than blur_max_dt) takes the forward one once the next frame arrives"
+        "frame's estimate by the mean of its backward and forward ones once this frame arrives (the first frame "
+        "gets the forward one), so stored keyframes carry the velocity at their own time"
     )
     rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
                                   "between a view's first and last row")

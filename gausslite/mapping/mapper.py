@@ -766,16 +766,12 @@ class Mapper:
             xi_b = (np.zeros(6) if prev is None else
                     exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.blur_exposure_s, cfg.blur_max_dt))
             self.blur[frame.frame_id] = xi_b
-            if prev is not None and len(prev) > 2 and prev[2] in self.blur and xi_b.any():
+            if cfg.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
+                    and xi_b.any():
+                # the previous frame's motion is now known on both sides: the mean of its backward and forward
+                # estimates (the forward one alone for the first frame, which had none)
                 back = self.blur[prev[2]]
-                if not back.any():
-                    # the previous frame had no motion estimate (the mission's first frame, or the first after a
-                    # gap longer than blur_max_dt): it takes the forward one. TUM fr1/rpy starts turning at 90°/s,
-                    # and its first frame, rendered sharp with a global shutter, scored 9 dB below its neighbours
-                    self.blur[prev[2]] = xi_b.copy()
-                elif cfg.motion_estimate == "central":
-                    # the previous frame's motion is now known on both sides: the mean of its two estimates
-                    self.blur[prev[2]] = 0.5 * (back + xi_b)
+                self.blur[prev[2]] = 0.5 * (back + xi_b) if back.any() else xi_b.copy()
             self._last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy(), int(frame.frame_id))
             self._rs_norm = readout_norm(cfg.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
         if self.poses is not None:
