@@ -45,7 +45,14 @@ class SensorProfile:
 _HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose_refine": True, "lambda_depth": 0.3, "exposure_comp": True,
                     "motion_blur": True, "rolling_shutter_s": 0.02}
 
-RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): pinhole, exact poses")
+#: Mapper defaults of rendered sequences: a final pass of 5 iterations per keyframe, drawn uniformly over the
+#: mission (MonoGS's final colour refinement, Matsuki et al., CVPR 2024, Sec. 4). Measured on the synthetic circle
+#: (300 frames, 150 mapped, seed 0, from the same maps): uniform 26.19 -> 28.21 dB, GaussLite 26.74 -> 28.19; the
+#: views mapped early are revisited as often as the late ones (README "Long missions")
+_RENDERED_MAPPER = {"final_iters_per_keyframe": 5.0}
+
+RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): pinhole, exact poses, a short final "
+                         "pass over every keyframe", mapper=_RENDERED_MAPPER)
 HANDHELD = SensorProfile(
     "handheld",
     "hand-held RGB-D (TUM RGB-D): undistortion with the published calibration, poses interpolated at "
