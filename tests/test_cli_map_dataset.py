@@ -52,7 +52,10 @@ def test_profile_defaults_sit_below_config_and_set(tum_rpy_dir, room0_dir, tmp_p
     assert config_from_args(args).final_iters_per_keyframe == 0.0  # --set wins
     args = _args("--dataset", str(room0_dir), "--max-frames", "1")
     resolve_dataset(args, tmp_path)
-    assert args.profile.name == "rendered" and config_from_args(args).final_iters_per_keyframe == 0.0
+    assert args.profile.name == "rendered" and config_from_args(args).final_iters_per_keyframe == 5.0  # short pass
+    args = _args("--dataset", str(room0_dir), "--max-frames", "1", "--set", "final_iters_per_keyframe=0")
+    resolve_dataset(args, tmp_path)
+    assert config_from_args(args).final_iters_per_keyframe == 0.0  # opt out
 
 
 def test_handheld_profile_refines_poses_from_the_sensor_pose(tum_rpy_dir, room0_dir, tmp_path):
@@ -83,7 +86,9 @@ def test_with_profile_fills_only_the_fields_the_config_left_unset():
     assert out.pose_refine is True and out.final_iters_per_keyframe == 20.0 and out.lambda_depth == 0.3
     assert out.exposure_comp is True and out.motion_blur is True and out.rolling_shutter_s == 0.02
     assert out.iters_per_frame == 17 and out.mode == "gausslite"  # what the config set survives
-    assert with_profile(cfg, RENDERED) is cfg  # nothing to add
+    rendered = with_profile(cfg, RENDERED)
+    assert rendered.final_iters_per_keyframe == 5.0 and rendered.pose_refine is False  # a short final pass only
+    assert rendered.iters_per_frame == 17 and rendered.mode == "gausslite"
     explicit = load_config(None, ["pose_refine=false", "final_iters_per_keyframe=0"])
     kept = with_profile(explicit, HANDHELD)
     assert kept.pose_refine is False and kept.final_iters_per_keyframe == 0.0  # set explicitly: kept

@@ -264,3 +264,28 @@ def test_final_pass_runs_every_iteration_offline_and_stops_at_a_time_bound():
     assert 1 <= m.finalize(max_seconds=0.2) < 100_000  # the agent's Finish bound (final_pass_s)
     with pytest.raises(ValueError, match="max_seconds"):
         m.finalize(max_seconds=0)
+
+
+def test_final_schedule_mapping_gives_gausslite_roi_phase_iterations_and_uniform_full_ones():
+    """``final_schedule: mapping``: in gausslite mode the final pass follows the mapping schedule (warm-up
+    full-image, then ROI-phase iterations that raise κ of the active Gaussians only); ``full`` (default) and
+    uniform mode leave κ alone. The default draws the same views as before (same map from the same seed)."""
+    def mapped(**kw):
+        m = Mapper(_cfg(mode="gausslite", iters_per_frame=4, warmup_iters=2, final_iters=8, **kw))
+        for i in range(3):
+            m.map_frame(plane_frame(i, 0.02 * i), _roi())
+        return m
+
+    full, sched = mapped(), mapped(final_schedule="mapping")
+    assert torch.equal(full.model.kappa, sched.model.kappa)  # same mapping up to the final pass
+    k0 = full.model.kappa.clone()
+    assert full.finalize() == 8 and sched.finalize() == 8
+    assert torch.equal(full.model.kappa, k0)  # full-image final pass: no κ
+    active = sched.model.active
+    assert bool(active.any()) and bool((sched.model.kappa[active] == k0[active] + 4).all())  # 2 per 4, twice
+    assert torch.equal(sched.model.kappa[~active], k0[~active])
+    u = Mapper(_cfg(mode="uniform", iters_per_frame=4, warmup_iters=2, final_iters=8, final_schedule="mapping"))
+    for i in range(3):
+        u.map_frame(plane_frame(i, 0.02 * i))
+    ku = u.model.kappa.clone()
+    assert u.finalize() == 8 and torch.equal(u.model.kappa, ku)

@@ -163,7 +163,12 @@ class MapperConfig(_Strict):
     )
     final_iters_per_keyframe: float = Field(
         0.0, ge=0, description="more final iterations: this many per keyframe, added to final_iters (the "
-        "hand-held profile sets 20)"
+        "hand-held profile sets 20, the rendered one 5)"
+    )
+    final_schedule: Literal["full", "mapping"] = Field(
+        "full", description="final pass iterations: 'full' = full-image, all Gaussians (both modes); 'mapping' = "
+        "the mapping schedule in gausslite mode (per iters_per_frame final iterations, warmup_iters full-image, the "
+        "rest ROI-phase on keyframes that see the ROI; uniform mode stays full-image)"
     )
 
     pose_refine: bool = Field(

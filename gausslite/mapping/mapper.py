@@ -907,7 +907,9 @@ class Mapper:
 
     def finalize(self, max_seconds: Optional[float] = None) -> int:
         """Optional extra iterations over all keyframes (``final_iters`` + ``final_iters_per_keyframe`` ×
-        keyframes), drawn uniformly, full image, all Gaussians.
+        keyframes), drawn uniformly; full image, all Gaussians (``final_schedule: full``), or in gausslite mode
+        the mapping schedule (``final_schedule: mapping``: of every ``iters_per_frame`` iterations, the first
+        ``warmup_iters`` full-image, the rest ROI-phase where the drawn keyframe sees the ROI).
 
         Args:
             max_seconds: stop early once this much wall time (seconds) has passed (the online agent's
@@ -919,14 +921,18 @@ class Mapper:
         """
         if max_seconds is not None and not max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
+        cfg = self.cfg
         n = len(self.keyframes)
-        total = self.cfg.final_iters + round(self.cfg.final_iters_per_keyframe * n)
+        total = cfg.final_iters + round(cfg.final_iters_per_keyframe * n)
+        roi_schedule = cfg.final_schedule == "mapping" and cfg.effective().roi and bool(self.model.active.any())
         t0 = time.perf_counter()
         done = 0
-        for _ in range(total if n else 0):
+        for it in range(total if n else 0):
             if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
                 break
-            self._iterate(self.keyframes.load(int(self.rng.integers(n)), self.device), active_phase=False)
+            view = self.keyframes.load(int(self.rng.integers(n)), self.device)
+            active_phase = roi_schedule and it % cfg.iters_per_frame >= cfg.warmup_iters and view.roi is not None
+            self._iterate(view, active_phase=active_phase)
             done += 1
         return done
 
