@@ -80,8 +80,12 @@ def load_scene(name: str, path: Path, max_frames: Optional[int] = None, downscal
     return ds, profile
 
 
-def run_one(job: dict) -> dict:
-    """Map one (scene, mode, task, seed) and score it; runs in a worker process."""
+def map_job(job: dict):
+    """Map one (scene, mode, task, seed) job with the scene's profile, one rasterizer thread.
+
+    Returns:
+        (dataset, mapper, metrics of ``run_mapping``, wall seconds).
+    """
     import torch
 
     from gausslite.mapping.config import load_config
@@ -92,13 +96,18 @@ def run_one(job: dict) -> dict:
     stride = SCENES[job["scene"]]["stride"]
     cfg = load_config(None, job.get("overrides", []), defaults=dict(profile.mapper), mode=job["mode"],
                       seed=job["seed"], render_threads=1)
-    task = job["task"]
     t0 = time.perf_counter()
     # run_mapping scores every mapped frame (at the mapper's refined pose under pose_refine, as SLAM
     # systems score at their own poses) and, in the same render pass, each task's ROI
-    mapper, m = run_mapping(ds, cfg, task_id=task, stride=stride, out_dir=None, progress=False,
+    mapper, m = run_mapping(ds, cfg, task_id=job["task"], stride=stride, out_dir=None, progress=False,
                             eval_task_ids=job["eval_tasks"])
-    wall = time.perf_counter() - t0
+    return ds, mapper, m, time.perf_counter() - t0
+
+
+def run_one(job: dict) -> dict:
+    """Map one (scene, mode, task, seed) and score it; runs in a worker process."""
+    _, mapper, m, wall = map_job(job)
+    task = job["task"]
     frame_psnr = [f["psnr"] for f in m["per_frame"]]
     fifths = [float(np.mean(c)) for c in np.array_split(np.array(frame_psnr), 5)]
     secs = [s.seconds for s in mapper.stats]
