@@ -46,9 +46,10 @@ _HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose_refine": True, "lamb
                     "motion_blur": True, "rolling_shutter_s": 0.02}
 
 #: Mapper defaults of rendered sequences: a final pass of 5 iterations per keyframe, drawn uniformly over the
-#: mission (MonoGS's final colour refinement, Matsuki et al., CVPR 2024, Sec. 4). Measured on the synthetic circle
-#: (300 frames, 150 mapped, seed 0, from the same maps): uniform 26.19 -> 28.21 dB, GaussLite 26.74 -> 28.19; the
-#: views mapped early are revisited as often as the late ones (README "Long missions")
+#: mission (MonoGS ends with a colour refinement over all keyframes, Matsuki et al., CVPR 2024). Synthetic circle,
+#: 150 mapped frames, 3 seeds: uniform 26.13 -> 28.29 dB, GaussLite 26.51 -> 28.27, first - last fifth -1.54 / -0.78
+#: -> +0.01 / +0.35; room0 (20 frames, 5 tasks, 3 seeds): GaussLite ROI 40.65 -> 40.61 dB with its PSNR 34.41 ->
+#: 40.12, uniform ROI 36.80 -> 39.19 (README "How far ROI effort goes")
 _RENDERED_MAPPER = {"final_iters_per_keyframe": 5.0}
 
 RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): pinhole, exact poses, a short final "
