@@ -41,18 +41,18 @@ def roi_views(mapper, ds, stride: int, roi_fn, pad: int = 8) -> list:
     """The mapper's stored keyframes that see the ROI of ``roi_fn``, each cropped to its ROI box grown by ``pad``."""
     import torch
 
-    from gausslite.mapping.mapper import crop_keyframe
+    from gausslite.mapping.mapper import crop_keyframe, roi_box
 
-    index = {ds[i].frame_id: i for i in range(0, len(ds), stride)}
+    # one load per mapped frame: its ROI by frame id
+    rois = {fr.frame_id: np.asarray(roi_fn(fr), bool) for fr in (ds[i] for i in range(0, len(ds), stride))}
     views = []
     for j in range(len(mapper.keyframes)):
         kf = mapper.keyframes.load(j, mapper.device)
-        roi = np.asarray(roi_fn(ds[index[kf.frame_id]]), bool)
-        if not roi.any():
+        roi = rois[kf.frame_id]
+        kf.roi_box = roi_box(roi)
+        if kf.roi_box is None:
             continue
-        ys, xs = np.nonzero(roi)
         kf.roi = torch.from_numpy(roi).to(mapper.device)
-        kf.roi_box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
         views.append(crop_keyframe(kf, pad))
     return views
 

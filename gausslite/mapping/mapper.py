@@ -99,13 +99,20 @@ class FrameStats:
     n_evicted: int = 0  #: existing Gaussians replaced by this frame's seeds at the budget
 
 
+def roi_box(roi: Optional[np.ndarray]) -> Optional[tuple[int, int, int, int]]:
+    """Bounding box ``(x0, y0, x1, y1)`` in pixels (x1, y1 exclusive) of an (H, W) bool ROI; None when the ROI is
+    None or empty (``Keyframe.roi_box``)."""
+    if roi is None:
+        return None
+    ys, xs = np.nonzero(roi)
+    if not ys.size:
+        return None
+    return (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+
+
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
     """Convert a dataset ``Frame`` (uint8 rgb, metres depth) into a tensor ``Keyframe``."""
-    box = None
-    if roi is not None:
-        ys, xs = np.nonzero(roi)
-        if ys.size:
-            box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
+    box = roi_box(roi)
     return Keyframe(
         frame_id=frame.frame_id,
         rgb=torch.from_numpy(frame.rgb).to(device, torch.float32) / 255.0,
@@ -931,8 +938,8 @@ class Mapper:
             if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
                 break
             view = self.keyframes.load(int(self.rng.integers(n)), self.device)
-            active_phase = roi_schedule and it % cfg.iters_per_frame >= cfg.warmup_iters and view.roi is not None
-            self._iterate(view, active_phase=active_phase)
+            # a keyframe without ROI pixels gets a full-image iteration (_iterate)
+            self._iterate(view, active_phase=roi_schedule and it % cfg.iters_per_frame >= cfg.warmup_iters)
             done += 1
         return done
 
