@@ -361,6 +361,14 @@ class _FakeClock:
     def perf_counter(self):
         return self.t
 
+    now = perf_counter  # the mapper's budget clock interface (gausslite.mapping.budget)
+
+    def charge_render(self, pixels, gaussians, grad=True):
+        pass
+
+    def charge_step(self, gaussians):
+        pass
+
 
 def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     """A keyframe budget shorter than ``warmup_iters`` iterations still gets ROI-phase iterations (κ, and so
@@ -372,6 +380,7 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     cfg.densify.enabled = True
     cfg.densify.every = 20
     m = Mapper(cfg)
+    m.clock = clock
     phases, dc = [], []
     real_iterate, real_dc = m._iterate, m._densify_and_prune
 
@@ -403,6 +412,7 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     # without warm-up (warmup_iters = 0) every budgeted iteration is in the ROI phase once Gaussians are active
     m0 = Mapper(_cfg(iters_per_frame=30, warmup_iters=0))
     m0.map_frame(_frame(0), _roi())
+    m0.clock = clock
     seen = []
     real0 = m0._iterate
 

@@ -61,6 +61,17 @@ class DensifyConfig(_Strict):
     )
 
 
+class WorkCostConfig(_Strict):
+    """Cost model of the deterministic budget clock (:class:`gausslite.mapping.budget.WorkCost`; seconds)."""
+
+    render_s: float = Field(1.9e-3, ge=0, description="per differentiable render (forward + backward)")
+    pixel_s: float = Field(2.2e-7, ge=0, description="per rendered pixel")
+    gaussian_s: float = Field(9.3e-7, ge=0, description="per Gaussian a render projects")
+    step_s: float = Field(2.0e-3, ge=0, description="per Adam step")
+    step_gaussian_s: float = Field(1.4e-6, ge=0, description="per Gaussian an Adam step updates")
+    no_grad_factor: float = Field(0.4, ge=0, description="a render without gradients costs this share")
+
+
 class ComponentSwitches(_Strict):
     """The paper's ablation switches (Table 3): SB, MVO, ROI, SIS, GFD."""
 
@@ -138,6 +149,12 @@ class MapperConfig(_Strict):
         "iterations run until it is spent instead of iters_per_frame. None = iters_per_frame (offline map/ablate "
         "keep this for matched-budget comparisons)"
     )
+    budget_clock: Literal["wall", "work"] = Field(
+        "wall", description="clock of keyframe_budget_s and of optimize/finalize time bounds: 'wall' = wall time "
+        "(a live robot); 'work' = the deterministic twin, modelled seconds of the work done (work_cost; "
+        "gausslite.mapping.budget), for tests and reproducible budget studies"
+    )
+    work_cost: WorkCostConfig = WorkCostConfig()
     warmup_iters: int = Field(
         15, ge=0, description="ROI phase: full-image iterations before the active-only phase"
     )

@@ -43,6 +43,7 @@ import torch
 from gausslite.datasets.base import Frame
 from gausslite.fused_ssim import ssim_mean
 from gausslite.gaussians import GaussianMap
+from gausslite.mapping.budget import WallClock, WorkClock, WorkCost
 from gausslite.mapping.blur import blur_samples, exposure_twist, motion_deltas
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
@@ -284,6 +285,9 @@ class Mapper:
         self.model = GaussianModel(cfg.lr, self.device)
         self._background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.rng = np.random.default_rng(cfg.seed)
+        #: clock of the keyframe budget and the idle/final time bounds (wall time, or its deterministic twin)
+        self.clock = (WorkClock(WorkCost(**cfg.work_cost.model_dump())) if cfg.budget_clock == "work"
+                      else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         #: every keyframe of the mission, compact and bounded (MVO draws from it)
         self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
@@ -435,6 +439,9 @@ class Mapper:
             if subset is not None:
                 vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
             subset = vis
+        n_render = len(means) if subset is None else (
+            int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
+        self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self._background,
@@ -566,6 +573,7 @@ class Mapper:
         if len(self.model) == 0:
             return
         p = self.model.params
+        self.clock.charge_render(kf.width * kf.height, len(self.model), grad=False)
         self.contribution += blend_weights(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=kf.K, width=kf.width,
             height=kf.height, c2w=kf.c2w, background=self._background, backend=self.cfg.backend,
@@ -732,6 +740,7 @@ class Mapper:
             for group in parts or [[out]]:
                 self._accumulate(group, stat_w, stat_h, stat_weight * max(1, len(parts)))
         self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
+        self.clock.charge_step(int(self.model.active.sum()) if active_phase else len(self.model))
         if active_phase:
             self.model.kappa[self.model.active] += 1
         if theta is not None and theta.requires_grad:
@@ -766,7 +775,8 @@ class Mapper:
         if relevance is not None and relevance.shape != frame.depth.shape:
             raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
         cfg, sw = self.cfg, self.cfg.effective()
-        t0 = time.perf_counter()
+        t_wall = time.perf_counter()
+        t0 = self.clock.now()
         if cfg.motion_blur or cfg.rolling_shutter_s > 0:
             # the camera's motion over this frame's exposure, from the sensor's poses (before refinement)
             prev = self._last_sensor
@@ -806,14 +816,14 @@ class Mapper:
             # the paper's warm-up → ROI-phase schedule in time: the first warmup_iters / iters_per_frame of
             # the time left after seeding is full-image, the rest ROI-phase (a fixed warm-up count would
             # outlast a short budget and leave the ROI phase, κ and the shared subset empty)
-            t_it = time.perf_counter()
+            t_it = self.clock.now()
             warm_until = t_it + max(0.0, budget - (t_it - t0)) * cfg.warmup_iters / cfg.iters_per_frame
         for it in self._iterations(t0, budget):
             view = self._pick_view(kf)
             if warm_until is None:
                 warm = it < cfg.warmup_iters
             else:  # at least one full-image iteration for the new seeds (unless warm-up is off)
-                warm = cfg.warmup_iters > 0 and (it == 0 or time.perf_counter() < warm_until)
+                warm = cfg.warmup_iters > 0 and (it == 0 or self.clock.now() < warm_until)
             active_phase = sw.roi and not warm and has_active and view.roi is not None
             loss = self._iterate(view, active_phase, coarse=it < cfg.coarse_iters)
             active_iters += int(active_phase)
@@ -830,7 +840,7 @@ class Mapper:
         if cfg.evict == "contribution":
             self._accumulate_contribution(kf)
         self.n_mapped += 1
-        st = FrameStats(frame.frame_id, time.perf_counter() - t0, n_seeds, n_roi, len(self.model), loss,
+        st = FrameStats(frame.frame_id, time.perf_counter() - t_wall, n_seeds, n_roi, len(self.model), loss,
                         active_iters, dstats, n_iters, unexplained=self._last_unexplained,
                         budget=int(self.budget or 0), n_evicted=self._last_evicted)
         self.stats.append(st)
@@ -867,7 +877,7 @@ class Mapper:
             yield from range(self.cfg.iters_per_frame)
             return
         it = 0
-        while it == 0 or time.perf_counter() - t0 < budget:
+        while it == 0 or self.clock.now() - t0 < budget:
             yield it
             it += 1
 
@@ -896,10 +906,10 @@ class Mapper:
             return 0
         cfg, sw = self.cfg, self.cfg.effective()
         roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
-        t0 = time.perf_counter()
+        t0 = self.clock.now()
         done = 0
         while (n_iters is None or done < n_iters) and (done == 0 or max_seconds is None
-                                                         or time.perf_counter() - t0 < max_seconds):
+                                                         or self.clock.now() - t0 < max_seconds):
             i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
             view = self.keyframes.load(i, self.device)
             phase = self.n_idle_iters % cfg.iters_per_frame
@@ -932,10 +942,10 @@ class Mapper:
         n = len(self.keyframes)
         total = cfg.final_iters + round(cfg.final_iters_per_keyframe * n)
         roi_schedule = cfg.final_schedule == "mapping" and cfg.effective().roi and bool(self.model.active.any())
-        t0 = time.perf_counter()
+        t0 = self.clock.now()
         done = 0
         for it in range(total if n else 0):
-            if max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
+            if max_seconds is not None and self.clock.now() - t0 >= max_seconds:
                 break
             view = self.keyframes.load(int(self.rng.integers(n)), self.device)
             # a keyframe without ROI pixels gets a full-image iteration (_iterate)

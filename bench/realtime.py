@@ -1,0 +1,511 @@
+"""The paper's real-time protocol as a benchmark: live single agents, a per-keyframe time budget, a matched
+Gaussian cap, no final pass (paper Sec. IV-A, Baselines). See ``docs/realtime.md``.
+
+    python -m bench.realtime [--scenes tum_fr1_rpy,synthetic_circle,room0] [--budgets 0.25,0.5,1,2]
+                             [--runs 3] [--modes uniform,gausslite] [--clock scaled|dataset]
+                             [--final-pass-budgets 0.5] [--set KEY=VALUE ...] [--out bench/results/realtime.json]
+
+Each run is one agent mission (:class:`services.agent.runtime.AgentRuntime`, in process, no fusion server)
+that replays the scene through the agent's keyframe ingest as a robot streams it: frames arrive at the
+scene's clock, the keyframe selector keeps the newest candidate while the mapper is busy, and every mapped
+keyframe gets ``budget`` seconds of wall time (decoding, relevance and seeding included). Both modes map with
+the agent's deployed settings (``deploy/gausslite.yaml``) and the scene's sensor profile, at the same
+**binding** Gaussian cap (``mapper.max_gaussians``; each run's final count is reported), the same keyframe
+rule, no sharing and **no final pass**. At the end of the mission the map is scored over **every** frame of
+the sequence (skipped ones included): ROI PSNR, PSNR, SSIM. With ``--final-pass-budgets`` the same map then
+gets the profile's final pass and is scored again (a separate column).
+
+Clock. ``--clock scaled`` (default) replays at ``rate = 0.5 / budget``: every budget covers the same 0.5 s of
+the sequence per keyframe, so 2 s per keyframe is 4× the compute of 0.5 s, as a robot whose computer is 4×
+faster (the paper adjusts the frame step to the budget). The 0.5 s budget is the dataset clock itself.
+``--clock dataset`` replays every budget at the dataset clock (the same total compute; the budget only trades
+keyframes against iterations).
+
+Runs are wall-clock measurements: they run one at a time in this process, and nothing else should run
+beside the bench. Writes ``bench/results/realtime.json`` (``{"scenes": {scene: {"cap", "budgets": {b:
+{"uniform": {...}, "gausslite": {...}, "gain", "gain_std"}}}}}``), ``realtime.md`` and ``realtime_<scene>.png``
+(ROI PSNR against budget, both modes). After each run the runs so far go to ``<out>.partial.json``;
+``--resume`` continues from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
+RESULTS = REPO / "bench" / "results"
+
+#: bench scenes: dataset, task, resolution, clock and the matched Gaussian cap (a cap uniform reaches at every
+#: budget: measured counts below it, docs/realtime.md)
+SCENES = {
+    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000},
+    "synthetic_circle": {"kind": "synthetic", "frames": 300, "width": 320, "height": 240,
+                         "task": "synth-pick-object", "cap": 6000},
+    "room0": {"kind": "replica", "downscale": 4.0, "fps": 2.0, "task": "room0-pick-plant", "cap": 6000},
+}
+MODES = ("uniform", "gausslite")
+#: data seconds per keyframe that every budget covers under ``--clock scaled`` (the paper's 0.5 s/frame)
+REFERENCE_BUDGET_S = 0.5
+
+
+def scene_path(name: str, work: Path) -> Path:
+    """The dataset folder of a bench scene (the synthetic circle is generated into ``work`` once).
+
+    Raises:
+        FileNotFoundError: a shared dataset that is absent (set ``GAUSSLITE_SHARED``).
+    """
+    spec = SCENES[name]
+    if spec["kind"] == "tum":
+        p = SHARED / "datasets" / "TUM_rgbd_dataset_freiburg1_rpy"
+    elif spec["kind"] == "replica":
+        p = SHARED / "datasets" / "Replica_room0"
+    else:
+        from gausslite.synthetic import make_scene
+
+        out = work / f"synthetic_circle_{spec['frames']}_{spec['width']}x{spec['height']}"
+        if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
+            make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="circle")
+        p = out / "agent_a"
+    if not p.exists():
+        raise FileNotFoundError(f"{p} not found (set GAUSSLITE_SHARED)")
+    return p
+
+
+def load_scene(name: str, path: Path):
+    """(dataset, sensor profile) with the profile's loader options and the scene's clock."""
+    from gausslite.datasets import detect_layout, load_dataset
+    from gausslite.mapping.profiles import profile_for_layout
+
+    spec = SCENES[name]
+    layout = detect_layout(path)[0]
+    profile = profile_for_layout(layout)
+    kw = dict(profile.loader)
+    if spec.get("fps") and layout in ("replica", "7scenes"):
+        kw["fps"] = spec["fps"]
+    return load_dataset(path, downscale=spec.get("downscale", 1.0), **kw), profile
+
+
+class Preloaded:
+    """A dataset's frames decoded into memory: a replay then sends frames as a sensor driver delivers them,
+    without the loader's decoding, undistortion and depth registration competing with the mapper."""
+
+    def __init__(self, ds) -> None:
+        self.frames = [ds[i] for i in range(len(ds))]
+        self.annotations = ds.annotations
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int):
+        return self.frames[i]
+
+
+def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
+    """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
+    budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
+    from gausslite.mapping.profiles import with_profile
+    from services.agent.runtime import load_agent_config
+
+    cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
+        f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
+        f"mapper.max_gaussians={cap}", "mapper.render_threads=2", "agent.realtime=true", f"agent.rate={rate}",
+        "agent.downscale=1", *overrides])
+    m = with_profile(cfg.mapper, profile)
+    # no offline refinement: the final pass is scored in its own column
+    m = m.model_copy(update={"final_iters": 0, "final_iters_per_keyframe": 0.0})
+    return cfg.model_copy(update={"mapper": m}), float(with_profile(cfg.mapper, profile).final_iters_per_keyframe)
+
+
+def score(mapper, ds, ann, task: str) -> dict:
+    """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map over every frame."""
+    from gausslite.evaluation import score_view
+
+    ps, ss, rps = [], [], []
+    for i in range(len(ds)):
+        fr = ds[i]
+        roi = ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics)
+        s = score_view(mapper.render_frame(fr), fr, roi)
+        ps.append(s.psnr)
+        ss.append(s.ssim)
+        if not math.isnan(s.roi_psnr):
+            rps.append(s.roi_psnr)
+    return {"roi_psnr": float(np.mean(rps)) if rps else None, "psnr": float(np.mean(ps)),
+            "ssim": float(np.mean(ss)), "frames_scored": len(ps)}
+
+
+def run_one(job: dict) -> dict:
+    """One live mission of one (scene, mode, budget, run): replay, finish without a push, score."""
+    import torch
+
+    from gausslite.parser import parse_task
+    from services.agent.runtime import AgentRuntime
+
+    ds, profile = load_scene(job["scene"], Path(job["path"]))
+    ds = Preloaded(ds)
+    ann = ds.annotations
+    task = ann.task_by_id(job["task"])
+    rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
+    cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
+                                  job.get("overrides", ()))
+    torch.manual_seed(job["run"])
+    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id)
+    t0 = time.perf_counter()
+    try:
+        rt.replay(ds)
+        rt._replay_thread.join()
+        rt.finish(push=False, evaluate=False)
+        wall = time.perf_counter() - t0
+        st = rt.status()
+        mapper = rt.mapper
+        res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"],
+               "cap": job["cap"], "rate": rate, "wall_s": wall, "n_gaussians": len(mapper.model),
+               "n_active": int(mapper.model.active.sum()),
+               "keyframes": int(rt.frames_keyframed), "frames": len(ds),
+               "keyframe_iters": int(rt.keyframe_iterations), "idle_iters": int(rt.idle_iterations),
+               "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
+               "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
+               "kappa_mean_active": float(mapper.model.kappa[mapper.model.active].float().mean())
+               if bool(mapper.model.active.any()) else 0.0,
+               "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st}}
+        res.update(score(mapper, ds, ann, task.id))
+        if job.get("final_pass") and fp_per_kf:
+            mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
+            n = mapper.finalize()
+            fp = score(mapper, ds, ann, task.id)
+            res.update({f"final_{k}": v for k, v in fp.items() if k != "frames_scored"})
+            res["final_iters"] = n
+    finally:
+        rt.close()
+    return res
+
+
+def keyframe_schedule(ds, spacing_s: float) -> list[int]:
+    """Frame indices of the twin's keyframes: the first frame, then the first frame at or after every further
+    ``spacing_s`` seconds of the sequence clock (what the live selector takes when the mapper is always busy)."""
+    out, next_t = [], None
+    t0 = ds[0].timestamp
+    for i in range(len(ds)):
+        t = ds[i].timestamp - t0
+        if next_t is None or t >= next_t - 1e-9:
+            out.append(i)
+            next_t = (0.0 if next_t is None else next_t) + spacing_s
+            while t >= next_t - 1e-9:
+                next_t += spacing_s
+    return out
+
+
+def twin_one(job: dict) -> dict:
+    """The deterministic twin of :func:`run_one`: the same agent (relevance front-end, mapper settings), keyframes
+    at a fixed spacing of the sequence clock (``keyframe_schedule``), each mapped with ``budget`` modelled seconds
+    of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load."""
+    from gausslite.parser import parse_task
+    from services.agent.runtime import AgentRuntime
+
+    ds, profile = load_scene(job["scene"], Path(job["path"]))
+    ds = Preloaded(ds)
+    ann = ds.annotations
+    task = ann.task_by_id(job["task"])
+    spacing = REFERENCE_BUDGET_S if job["clock"] == "scaled" else job["budget"]
+    cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], 1.0, profile,
+                                  ["mapper.budget_clock=work", *job.get("overrides", ())])
+    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id)
+    try:
+        mapper = rt.mapper
+        kfs = keyframe_schedule(ds, spacing)
+        iters = 0
+        for i in kfs:
+            fr = ds[i]
+            st = mapper.map_frame(fr, rt._relevance_fn(fr), time_budget_s=job["budget"])
+            iters += st.iters
+        res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"],
+               "cap": job["cap"], "twin": True, "n_gaussians": len(mapper.model),
+               "n_active": int(mapper.model.active.sum()), "keyframes": len(kfs), "frames": len(ds),
+               "keyframe_iters": iters, "idle_iters": 0, "iters_per_keyframe": iters / max(1, len(kfs)),
+               "roi_iters": int(sum(s.active_iters for s in mapper.stats)), "wall_s": 0.0}
+        res.update(score(mapper, ds, ann, task.id))
+        if job.get("final_pass") and fp_per_kf:
+            mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
+            res["final_iters"] = mapper.finalize()
+            res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items() if k != "frames_scored"})
+    finally:
+        rt.close()
+    return res
+
+
+def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> dict:
+    """The JSON block of one scene: per budget and mode the means and stds over runs, and the paired gain."""
+    from gausslite.stats import aggregate, gain
+
+    keys = ["roi_psnr", "psnr", "ssim", "n_gaussians", "iters_per_keyframe", "keyframes", "idle_iters",
+            "roi_iters", "final_roi_psnr", "final_psnr", "final_ssim"]
+    out = {"cap": cap, "budgets": {}}
+    for b in budgets:
+        blk: dict = {}
+        by_mode = {}
+        for mode in MODES:
+            rs = sorted([r for r in runs if r["scene"] == scene and r["mode"] == mode and r["budget"] == b],
+                        key=lambda r: r["run"])
+            if not rs:
+                continue
+            by_mode[mode] = rs
+            agg = aggregate(rs, [k for k in keys if any(r.get(k) is not None for r in rs)])
+            agg["runs"] = len(rs)
+            agg["n_gaussians_runs"] = [r["n_gaussians"] for r in rs]
+            blk[mode] = agg
+        if len(by_mode) == 2:
+            u = {r["run"]: r for r in by_mode["uniform"]}
+            g = {r["run"]: r for r in by_mode["gausslite"]}
+            common = sorted(set(u) & set(g))
+            gg = gain([g[i]["roi_psnr"] for i in common], [u[i]["roi_psnr"] for i in common])
+            blk["gain"], blk["gain_std"], blk["gain_significant"] = gg["gain"], gg["gain_std"], gg["significant"]
+            pg = gain([g[i]["psnr"] for i in common], [u[i]["psnr"] for i in common])
+            blk["psnr_gain"], blk["psnr_gain_std"] = pg["gain"], pg["gain_std"]
+        if blk:
+            out["budgets"][_bkey(b)] = blk
+    out["uniform_budget_matching_gausslite_0.5"] = _matching_budget(out)
+    return out
+
+
+def _bkey(b: float) -> str:
+    return f"{b:g}"
+
+
+def _matching_budget(block: dict) -> Optional[float]:
+    """The smallest budget at which uniform's ROI PSNR reaches GaussLite's at 0.5 s (linear interpolation
+    between measured budgets on a log axis); None when uniform never reaches it or 0.5 s was not run."""
+    g = block["budgets"].get("0.5", {}).get("gausslite", {}).get("roi_psnr")
+    if g is None:
+        return None
+    pts = sorted((float(b), v["uniform"]["roi_psnr"]) for b, v in block["budgets"].items()
+                 if v.get("uniform", {}).get("roi_psnr") is not None)
+    for (b0, r0), (b1, r1) in zip([(None, None)] + pts[:-1], pts):
+        if r1 >= g:
+            if b0 is None or r1 == r0:
+                return b1
+            t = (g - r0) / (r1 - r0)
+            return float(math.exp(math.log(b0) + t * (math.log(b1) - math.log(b0))))
+    return None
+
+
+def table(result: dict) -> str:
+    """Markdown table of a result."""
+    from gausslite.stats import fmt
+
+    lines = ["| scene | cap | budget (s) | mode | ROI PSNR | PSNR | SSIM | Gaussians | iters/kf | keyframes | "
+             "ROI gain | final pass: ROI PSNR / PSNR |", "|" + "---|" * 12]
+    for scene, blk in result["scenes"].items():
+        for b, v in blk["budgets"].items():
+            for mode in MODES:
+                m = v.get(mode)
+                if not m:
+                    continue
+                g = fmt(v.get("gain"), v.get("gain_std")) if mode == "gausslite" and "gain" in v else ""
+                fp = (f"{fmt(m.get('final_roi_psnr'), m.get('final_roi_psnr_std'))} / "
+                      f"{fmt(m.get('final_psnr'), m.get('final_psnr_std'))}" if m.get("final_roi_psnr") is not None
+                      else "")
+                lines.append(f"| {scene} | {blk['cap']} | {b} | {mode} | {fmt(m['roi_psnr'], m['roi_psnr_std'])} | "
+                             f"{fmt(m['psnr'], m['psnr_std'])} | {fmt(m['ssim'], m['ssim_std'], 3)} | "
+                             f"{m['n_gaussians']:.0f} | {m['iters_per_keyframe']:.1f} | {m['keyframes']:.1f} | {g} | {fp} |")
+    return "\n".join(lines)
+
+
+def plot_scene(block: dict, scene: str, path: Path) -> None:
+    """ROI PSNR against the per-keyframe budget, both modes (mean ± std), with the budget at which uniform
+    reaches GaussLite's 0.5 s ROI PSNR marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    for mode, colour in (("uniform", "tab:gray"), ("gausslite", "tab:red")):
+        pts = sorted((float(b), v[mode]["roi_psnr"], v[mode]["roi_psnr_std"] or 0.0)
+                     for b, v in block["budgets"].items() if v.get(mode, {}).get("roi_psnr") is not None)
+        if pts:
+            x, y, e = zip(*pts)
+            ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=mode, color=colour)
+    mb = block.get("uniform_budget_matching_gausslite_0.5")
+    g05 = block["budgets"].get("0.5", {}).get("gausslite", {}).get("roi_psnr")
+    if g05 is not None:
+        ax.axhline(g05, ls=":", color="tab:red", lw=1)
+        if mb is not None:
+            ax.axvline(mb, ls="--", color="tab:gray", lw=1, label=f"uniform reaches it at {mb:.2g} s")
+    ax.set_xscale("log")
+    ax.set_xlabel("keyframe budget (s)")
+    ax.set_ylabel("ROI PSNR over every frame (dB)")
+    ax.set_title(f"{scene}: cap {block['cap']} Gaussians, no final pass")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+class _CountingClock:
+    """Wall clock that also counts the work charged to it (the features of :func:`fit_work_cost`)."""
+
+    deterministic = False
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.renders = self.pixels = self.gaussian_renders = self.stepped = 0
+
+    def now(self) -> float:
+        return time.perf_counter()
+
+    def charge_render(self, pixels: int, gaussians: int, grad: bool = True) -> None:
+        if grad:
+            self.renders += 1
+            self.pixels += pixels
+            self.gaussian_renders += gaussians
+
+    def charge_step(self, gaussians: int) -> None:
+        self.stepped += gaussians
+
+
+def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24, iters: int = 12) -> dict:
+    """Fit the deterministic clock's :class:`~gausslite.mapping.budget.WorkCost` on this machine: map the first
+    ``frames`` frames of ``scene`` with ``iters`` iterations each, then time ``8 × frames`` single idle
+    iterations (full-image and ROI-phase, the scene's sensor profile) and fit the linear model."""
+    from gausslite.mapping.budget import fit_work_cost
+
+    ds, profile = load_scene(scene, scene_path(scene, work))
+    ann = ds.annotations
+    cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile)
+    m = cfg.mapper.model_copy(update={"keyframe_budget_s": None, "iters_per_frame": iters,
+                                      "warmup_iters": min(cfg.mapper.warmup_iters, iters)})
+    from gausslite.mapping.mapper import Mapper
+
+    mapper = Mapper(m)
+    clock = _CountingClock()
+    mapper.clock = clock
+    task = SCENES[scene]["task"]
+    step = max(1, len(ds) // frames)
+    samples = []
+    for i in range(0, min(len(ds), step * frames), step):
+        fr = ds[i]
+        mapper.map_frame(fr, ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics))
+        for _ in range(8):
+            clock.reset()
+            t = time.perf_counter()
+            mapper.optimize(n_iters=1)
+            samples.append((clock.renders, clock.pixels, clock.gaussian_renders, clock.stepped,
+                            time.perf_counter() - t))
+    cost = fit_work_cost(samples)
+    pred = [cost.render_s * r + cost.pixel_s * p + cost.gaussian_s * g + cost.step(s) for r, p, g, s, _ in samples]
+    meas = [s[-1] for s in samples]
+    return {"scene": scene, "samples": len(samples), "work_cost": cost.__dict__,
+            "mean_measured_s": float(np.mean(meas)), "mean_abs_error_s": float(np.mean(np.abs(np.subtract(pred, meas))))}
+
+
+def _key(r: dict) -> tuple:
+    return (r["scene"], r["mode"], _bkey(r["budget"]), r["run"])
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--budgets", default="0.25,0.5,1,2", help="seconds per keyframe, comma-separated")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--clock", choices=("scaled", "dataset"), default="scaled")
+    ap.add_argument("--task", default=None, help="task id of every scene (default: the scene's)")
+    ap.add_argument("--cap", type=int, default=None, help="Gaussian cap of every scene (default: the scene's)")
+    ap.add_argument("--final-pass-budgets", default="0.5",
+                    help="budgets whose maps also get the profile's final pass, scored in a separate column ('' = none)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="agent config override for both modes, e.g. mapper.rho=0.5")
+    ap.add_argument("--out", default=str(RESULTS / "realtime.json"))
+    ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--twin", action="store_true",
+                    help="the deterministic twin: fixed keyframe spacing, budgets on the work clock (mapper.work_cost), "
+                         "not wall time; runs may go to --jobs processes")
+    ap.add_argument("--jobs", type=int, default=1, help="--twin only: worker processes")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="fit the deterministic budget clock's cost model (mapper.work_cost) on this machine and "
+                         "print it (first scene)")
+    args = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    if args.calibrate:
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
+        res = calibrate(args.scenes.split(",")[0], work)
+        print(json.dumps(res, indent=1))
+        return 0
+
+    scenes = [s for s in args.scenes.split(",") if s]
+    for s in scenes:
+        if s not in SCENES:
+            ap.error(f"unknown scene {s!r} (known: {', '.join(SCENES)})")
+    budgets = [float(b) for b in args.budgets.split(",") if b]
+    fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
+    modes = [m for m in args.modes.split(",") if m]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_suffix(".partial.json")
+    runs: list[dict] = []
+    if args.resume and partial.is_file():
+        runs = json.loads(partial.read_text())["runs"]
+    done = {_key(r) for r in runs}
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for scene in scenes:
+        path = scene_path(scene, work)
+        cap = args.cap or SCENES[scene]["cap"]
+        for run in range(args.runs):
+            for b in budgets:
+                for mode in modes:
+                    job = {"scene": scene, "path": str(path), "task": args.task or SCENES[scene]["task"], "mode": mode,
+                           "budget": b, "run": run, "cap": cap, "clock": args.clock,
+                           "final_pass": b in fp_budgets, "overrides": list(args.overrides)}
+                    if _key(job) not in done:
+                        jobs.append(job)
+    t0 = time.time()
+    if args.twin:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            results = pool.map(twin_one, jobs)
+            results = list(tqdm(results, total=len(jobs), desc="twin runs", unit="run"))
+    else:
+        results = (run_one(job) for job in jobs)
+    for r in tqdm(results, total=len(jobs), desc="realtime runs", unit="run", disable=args.twin):
+        runs.append(r)
+        tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI {r['roi_psnr']:.2f} dB, "
+                   f"PSNR {r['psnr']:.2f}, {r['n_gaussians']} G, {r['keyframes']} kf x {r['iters_per_keyframe']:.1f} "
+                   f"it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
+        partial.write_text(json.dumps({"runs": runs}, indent=1))
+    result = {"settings": {"budgets": budgets, "runs": args.runs, "clock": args.clock, "overrides": args.overrides,
+                           "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
+                           "cpus": os.cpu_count(), "wall_s": time.time() - t0},
+              "scenes": {}, "runs": runs}
+    for scene in scenes:
+        blk = summarise(runs, scene, budgets, args.cap or SCENES[scene]["cap"])
+        result["scenes"][scene] = blk
+        if len(blk["budgets"]) > 1:
+            plot_scene(blk, scene, out.with_name(f"{out.stem}_{scene}.png"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    md = table(result)
+    out.with_suffix(".md").write_text(md + "\n")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
