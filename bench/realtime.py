@@ -111,6 +111,33 @@ class Preloaded:
         return self.frames[i]
 
 
+class SinkFusion:
+    """An in-process stand-in for the fusion client that accepts every upload (``--share``): the agent selects,
+    fine-tunes, plans and encodes its pushes as it would for a server, so the push work competes with mapping
+    as it does on a robot, without a network in the measurement."""
+
+    def __init__(self) -> None:
+        self.bytes = 0
+        self.uploads = 0
+
+    def open_session(self, agent_id, task_text, intrinsics):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(latest_map_version=0)
+
+    def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
+        from types import SimpleNamespace
+
+        chunks = list(chunks)
+        n = sum(len(c.SerializeToString()) if hasattr(c, "SerializeToString") else len(c) for c in chunks)
+        self.bytes += n
+        self.uploads += 1
+        return SimpleNamespace(complete=True, bytes_sent=n, n_chunks=len(chunks))
+
+    def upload_keyframes(self, agent_id, frames, **kw):
+        return len(frames)
+
+
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
     """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
     budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
@@ -159,12 +186,13 @@ def run_one(job: dict) -> dict:
     cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
                                   job.get("overrides", ()))
     torch.manual_seed(job["run"])
-    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id)
+    sink = SinkFusion() if job.get("share") else None
+    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id, fusion=sink)
     t0 = time.perf_counter()
     try:
         rt.replay(ds)
         rt._replay_thread.join()
-        rt.finish(push=False, evaluate=False)
+        rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
         st = rt.status()
         mapper = rt.mapper
@@ -177,7 +205,9 @@ def run_one(job: dict) -> dict:
                "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
                "kappa_mean_active": float(mapper.model.kappa[mapper.model.active].float().mean())
                if bool(mapper.model.active.any()) else 0.0,
-               "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st}}
+               "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
+               "share": bool(sink), "pushes": len(rt.pushes), "share_pct": (100.0 * rt.pushes[-1].n_shared /
+                                                                          max(1, rt.pushes[-1].n_total)) if rt.pushes else None}
         res.update(score(mapper, ds, ann, task.id))
         if job.get("final_pass") and fp_per_kf:
             mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
@@ -430,6 +460,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--out", default=str(RESULTS / "realtime.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--share", action="store_true",
+                    help="agents also share (select, fine-tune, encode and push their subset to an in-process sink), "
+                         "as on a robot: measures what sharing costs the agent's own map")
     ap.add_argument("--twin", action="store_true",
                     help="the deterministic twin: fixed keyframe spacing, budgets on the work clock (mapper.work_cost), "
                          "not wall time; runs may go to --jobs processes")
@@ -472,7 +505,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                 for mode in modes:
                     job = {"scene": scene, "path": str(path), "task": args.task or SCENES[scene]["task"], "mode": mode,
                            "budget": b, "run": run, "cap": cap, "clock": args.clock,
-                           "final_pass": b in fp_budgets, "overrides": list(args.overrides)}
+                           "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share}
                     if _key(job) not in done:
                         jobs.append(job)
     t0 = time.time()

@@ -265,6 +265,15 @@ class MapperConfig(_Strict):
         "(20 frames, 300x170, +ROI row, pick-plant/find-ottoman): 31.89/35.16 dB ROI PSNR 'active', "
         "35.07/39.18 dB 'context'"
     )
+    roi_update: Literal["active", "visible", "all"] = Field(
+        "active", description="ROI phase: which Gaussians the Adam step updates: 'active' (a = 1, the paper's rule); "
+        "'visible' (every Gaussian the ROI render draws, so inactive ones covering ROI pixels are fitted too; "
+        "the others keep their values and moments); 'all' (a full Adam step). κ counts active Gaussians only"
+    )
+    roi_cull: bool = Field(
+        True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
+        "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"
+    )
     coarse_iters: int = Field(
         0, ge=0, description="coarse-to-fine: the first coarse_iters iterations of each mapped frame render "
         "full-image views at 1/coarse_downscale resolution (k×k colour mean, valid-depth mean, intrinsics "

@@ -372,7 +372,7 @@ class Mapper:
 
     def _render_view(self, c2w, K, width: int, height: int, frame_id: int, subset: Optional[torch.Tensor],
                      pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
-                     parts: Optional[list] = None) -> RenderOutput:
+                     parts: Optional[list] = None, cull: bool = False) -> RenderOutput:
         """:meth:`_rasterize` of frame ``frame_id``'s view as the camera took it while moving (the nearest
         mapped frame's motion for a frame that was not mapped):
 
@@ -388,14 +388,14 @@ class Mapper:
         cfg = self.cfg
         rs = cfg.rolling_shutter_s > 0 and self._rs_norm > 0
         if not ((cfg.motion_blur or rs) and self.blur):
-            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
+            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         xi_b = self.blur[nearest_key(self.blur, frame_id)]
         n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.blur_px_per_sample, cfg.blur_max_samples)
                   if cfg.motion_blur else 1)
         bands = (shutter_bands(K, width, height, xi_b / cfg.blur_exposure_s, self._rs_norm, cfg.rs_px_per_band,
                                cfg.rs_max_bands) if rs else [(0, height, 0.0)])
         if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
-            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map)
+            return self._rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
         for y0, y1, t in bands:
             Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
@@ -403,7 +403,7 @@ class Mapper:
             # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
             for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.blur_exposure_s, self.device)):
                 g.append(self._rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
-                                         view_delta=delta))
+                                         view_delta=delta, cull=cull))
         if parts is not None:
             parts.extend(groups)
 
@@ -417,12 +417,13 @@ class Mapper:
 
     def _rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
                    pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
-                   view_delta: Optional[torch.Tensor] = None) -> RenderOutput:
+                   view_delta: Optional[torch.Tensor] = None, cull: bool = False) -> RenderOutput:
         """Render the current parameters (differentiable) with the configured backend and threads.
         ``pose_xi`` (6,) float64: render from ``c2w · E(ξ)`` with gradients reaching ξ
         (:func:`~gausslite.mapping.poses.move_gaussians_for_pose_delta`); ``detach_map``: no gradient
         reaches the Gaussians (pose tracking); ``view_delta`` (4, 4) float64: render from
-        ``c2w · E(ξ) · view_delta`` (a virtual pose within the exposure, :meth:`_render_view`)."""
+        ``c2w · E(ξ) · view_delta`` (a virtual pose within the exposure, :meth:`_render_view`); ``cull``: frustum
+        culling whatever the map size (``frustum_cull_min``; ROI crops, ``roi_cull``)."""
         p = self.model.params
         if detach_map:
             p = {k: v.detach() for k, v in p.items()}
@@ -434,7 +435,7 @@ class Mapper:
         if view_delta is not None:
             cam = cam @ view_delta.to(cam.device)
         vm = torch.linalg.inv(cam)
-        if self.cfg.frustum_cull and len(means) >= self.cfg.frustum_cull_min:
+        if self.cfg.frustum_cull and (len(means) >= self.cfg.frustum_cull_min or cull):
             vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
             if subset is not None:
                 vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
@@ -710,7 +711,7 @@ class Mapper:
         xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
         parts: list = []
         out = self._render_view(view.c2w, view.K, view.width, view.height, view.frame_id, subset, pose_xi=xi,
-                                parts=parts)
+                                parts=parts, cull=active_phase and cfg.roi_cull)
         theta = None
         if self.exposure is not None and kf.frame_id in self.exposure.params:
             # the keyframe's exposure response; optimised where its pose is (full-image iterations)
@@ -739,8 +740,15 @@ class Mapper:
             # a blurred view: each of its K renders carries 1/K of the loss, so its gradients count K times
             for group in parts or [[out]]:
                 self._accumulate(group, stat_w, stat_h, stat_weight * max(1, len(parts)))
-        self.model.step(update=self.model.active if active_phase else None, reference=cfg.reference_paths)
-        self.clock.charge_step(int(self.model.active.sum()) if active_phase else len(self.model))
+        upd = None
+        if active_phase and cfg.roi_update == "active":
+            upd = self.model.active
+        elif active_phase and cfg.roi_update == "visible":
+            upd = torch.zeros(len(self.model), dtype=torch.bool, device=self.device)
+            for o in [o for g in (parts or [[out]]) for o in g]:
+                upd[o.ids[o.radii > 0]] = True
+        self.model.step(update=upd, reference=cfg.reference_paths)
+        self.clock.charge_step(int(upd.sum()) if upd is not None else len(self.model))
         if active_phase:
             self.model.kappa[self.model.active] += 1
         if theta is not None and theta.requires_grad:

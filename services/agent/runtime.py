@@ -97,6 +97,9 @@ class AgentConfig(BaseModel):
             (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
             own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
             share a subset that renders the ROI on its own.
+        pusher_nice: scheduling niceness of the pusher thread (Linux; 0 = the mapper's own priority). The share
+            fine-tune runs in that thread beside mapping: at 19 the kernel gives the mapping thread the cores
+            whenever both want them, so a push never takes a live keyframe's budget (docs/realtime.md).
         share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
             already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
             others stay as the server has them, so a delta carries the new rows and this share of the
@@ -153,6 +156,7 @@ class AgentConfig(BaseModel):
     share_coverage: float = Field(0.99, gt=0, le=1)
     share_finetune_iters: int = Field(200, ge=0)
     share_refresh: float = Field(0.05, ge=0, le=1)
+    pusher_nice: int = Field(19, ge=0, le=19)
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -829,7 +833,20 @@ class AgentRuntime:
         return out
 
     # ------------------------------------------------------------------ pusher
+    def _lower_priority(self) -> None:
+        """Give the calling (pusher) thread ``pusher_nice`` niceness; threads it starts inherit it."""
+        import os
+
+        nice = self.config.pusher_nice
+        if not nice or not hasattr(os, "setpriority"):
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        except OSError as e:  # not permitted in some containers: the pusher keeps the mapper's priority
+            log.warning("agent %s: cannot lower the pusher's priority: %s", self.agent_id, e)
+
     def _push_loop(self) -> None:
+        self._lower_priority()
         while True:
             with self._lock:
                 while self._pending is None and not self._stop.is_set():
