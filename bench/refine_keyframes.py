@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results" / "issue12"
+RESULTS = Path(__file__).resolve().parent / "results" / "share_sim_seeds"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
