@@ -2,8 +2,7 @@
 
 Compares the quantised and lossless modes of :mod:`gausslite.wire` (and a few variants) on a
 synthetic room-scale map against the 56-byte-per-Gaussian standard 3DGS PLY (14 float32: xyz,
-f_dc×3, opacity, scale×3, rot×4).  SPEC §8: "report bytes on the wire per Gaussian and as % of the
-full map".
+f_dc×3, opacity, scale×3, rot×4): bytes on the wire per Gaussian and as % of the full map.
 
 Usage::
 

@@ -31,7 +31,7 @@ that agent is re-voted; median of three such updates), ``voxel_vote_local_s`` (a
 :func:`voxel_vote` of the same subsets in this process, for reference: building the incremental
 index costs more than a one-off vote), the whole-``Fuse`` times beside them, each server's ``peak_rss_mb``
 (VmHWM), and checks that the fused map equals a local :func:`voxel_vote` of the subsets the agents
-sent and that every replica answers ``GetStats`` identically. ``goals`` records the issue's goals
+sent and that every replica answers ``GetStats`` identically. ``goals`` records the fleet goals
 (≥ 32 agents, 0 lost, p99 ack ≤ 250 ms, incremental vote ≤ 0.1 × full); the exit code is 1 when one
 is missed or the fused map differs from the local vote (each printed), 0 otherwise.
 """

@@ -1,4 +1,4 @@
-"""Live ingest benchmark: per-frame accept latency of ``StreamFrames`` while the mapper is busy (issue 11).
+"""Live ingest benchmark: per-frame accept latency of ``StreamFrames`` while the mapper is busy.
 
 Starts a real agent process (``gausslite serve agent``, keyframe ingest, the deploy config's mapper with a
 per-keyframe budget), opens a streaming mission and streams 640×480 RGB-D frames at 30 Hz (TUM fr1_rpy at

@@ -1,11 +1,11 @@
-"""Retention benchmark (issue 10): does the map keep what it has seen over a long mission?
+"""Retention benchmark: does the map keep what it has seen over a long mission?
 
     python -m bench.long_mission [--seeds 3] [--tasks 2|all|ID,ID] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
                                  [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...] [--resume|--fresh]
 
-On this 2-core machine the full default bench takes longer than a session; the run reported in the
-README used ``--tasks 1 --tum-downscale 4 --synthetic-frames 300`` (TUM at 160×120, the synthetic circle
-with 300 frames, 150 of them mapped), which the issue allows and the README says. After every run the
+On this 2-core machine the full default bench takes longer than a session; the run reported in
+``docs/results.md`` used ``--tasks 1 --tum-downscale 4 --synthetic-frames 300`` (TUM at 160×120, the synthetic
+circle with 300 frames, 150 of them mapped), and says so. After every run the
 runs so far are written to ``<out>.partial.json`` with the settings; ``--resume`` reads it back and runs
 only the missing (scene, mode, task, seed) runs, so a bench longer than a session finishes over several
 (runs are deterministic per seed: a resumed bench gives the figures of an uninterrupted one). An existing
@@ -13,7 +13,7 @@ partial file stops a bench started without ``--resume`` (its runs would be lost)
 
 Scenes, each mapped at matched budget (same seeding rule, budget rule and iterations in both modes):
 
-- ``tum_fr1_rpy``: TUM RGB-D fr1/rpy, all 150 frames of ``../shared`` at 320×240, default (hand-held)
+- ``tum_fr1_rpy``: TUM RGB-D fr1/rpy, all 150 frames (``$GAUSSLITE_SHARED/datasets``) at 320×240, default (hand-held)
   profile: undistorted, interpolated poses. It maps every frame, so held-out PSNR is null.
 - ``synthetic_long``: the synthetic room rendered along ``make-scene --trajectory circle`` (600
   frames at 160×120, agent_a); every 2nd frame is mapped (300 frames), the frames between them are the

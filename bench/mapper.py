@@ -1,10 +1,10 @@
-"""Mapper speed benchmark (issue 11): seconds per keyframe and map quality, today's settings vs fast.
+"""Mapper speed benchmark: seconds per keyframe and map quality, today's settings vs fast.
 
     python -m bench.mapper [--seeds 3] [--scenes room0,synthetic] [--tasks all|N] [--settings baseline,fast]
 
 Scenes, each mapped with full GaussLite once per task and seed (offline, fixed iterations per frame):
 
-- ``room0``: Replica room0 of ``../shared``, first 20 frames at 300×170 (downscale 4), every task.
+- ``room0``: Replica room0 (``$GAUSSLITE_SHARED/datasets``), first 20 frames at 300×170 (downscale 4), every task.
 - ``synthetic``: the default synthetic scene (``make-scene`` arcs, agent_a, 30 frames) at 160×120,
   generated once into ``runs/bench_mapper``; every task of agent_a.
 

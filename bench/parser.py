@@ -1,4 +1,4 @@
-"""Rule-parser latency benchmark (SPEC §3: parsing happens once per task; target p99 < 5 ms).
+"""Rule-parser latency benchmark (paper Sec. III-B: parsing happens once per task; target p99 < 5 ms).
 
 Run: ``.venv/bin/python -m bench.parser [--repeats N]``. Parses every shared phrasing (and the
 dataset ``tasks.json`` texts) ``N`` times with the uncached rule parser and with the cached
@@ -23,7 +23,7 @@ SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 
 
 def load_texts() -> list:
-    """Task texts from ``shared/tasks/phrasings.jsonl`` and the dataset ``tasks.json`` files.
+    """Task texts from ``$GAUSSLITE_SHARED/tasks/phrasings.jsonl`` and the dataset ``tasks.json`` files.
 
     Raises:
         FileNotFoundError: the shared phrasings file is missing.

@@ -1,10 +1,10 @@
-"""What wire quantisation costs in rendering quality (SPEC §8: quantise where it costs no measurable
-ROI PSNR; target ≤ 0.05 dB against lossless).
+"""What wire quantisation costs in rendering quality (quantise where it costs no measurable ROI PSNR;
+target ≤ 0.05 dB against lossless).
 
 Maps a sequence (or loads a mapped ``map.ply``), encodes it with the quantised and lossless wire
 codecs, decodes both, renders every frame and compares ROI PSNR and full-image PSNR.
 
-    python -m bench.quant_psnr --dataset ../shared/datasets/Replica_room0/room0 --downscale 4 \
+    python -m bench.quant_psnr --dataset DATA/Replica_room0/room0 --downscale 4 \
         --map runs/room0/map.ply --task-id room0-pick-plant
 
 Prints a table and writes ``bench/results/quant_psnr.json``.

@@ -1,12 +1,12 @@
 """Why refinement ended below the vote on room0: refine one fused vote map over the keyframes as the
 agents uploaded them (JPEG) and over the original frames (lossless), and compare ROI PSNR.
 
-    gausslite sim --dataset ../shared/datasets/Replica_room0/room0 --downscale 4 --out runs/sim_room0 \\
+    gausslite sim --dataset DATA/Replica_room0/room0 --downscale 4 --out runs/sim_room0 \\
         --set agent.keyframe_format=jpeg
     python -m bench.refine_keyframes --fusion-dir runs/sim_room0/data/fusion \\
-        --dataset ../shared/datasets/Replica_room0/room0 --downscale 4
+        --dataset DATA/Replica_room0/room0 --downscale 4
 
-Prints a table and writes ``bench/results/issue12/refine_jpeg_vs_png_room0.json``.
+Prints a table and writes ``bench/results/share_sim_seeds/refine_jpeg_vs_png_room0.json``.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results" / "issue12"
+RESULTS = Path(__file__).resolve().parent / "results" / "share_sim_seeds"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

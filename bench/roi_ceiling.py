@@ -1,4 +1,4 @@
-"""How much can ROI effort give? The ROI ceiling of a long mission (issue 10, stop 28).
+"""How much can ROI effort give? The ROI ceiling of a long mission.
 
     python -m bench.roi_ceiling [--scene tum_fr1_rpy|synthetic_long] [--mode uniform] [--seed 0]
                                 [--tasks 2|all|ID,ID] [--iters 750,1500,3000] [--fresh-moments]

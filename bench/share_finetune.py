@@ -1,4 +1,4 @@
-"""Fused map against the agents' own maps (issue 12 item 4): fine-tuned subsets, the neighbourhood vote and
+"""Fused map against the agents' own maps: fine-tuned subsets, the neighbourhood vote and
 the refinement schedule, on two agents mapping Replica room0.
 
     python -m bench.share_finetune [--seeds 3] [--finetune-iters 200] [--refine-iters 100]

@@ -1,4 +1,4 @@
-"""The two-agent sim over several seeds: the issue 12 table (share, bytes, own vs fused per task), mean ± std.
+"""The two-agent sim over several seeds: the sharing table (share, bytes, own vs fused per task), mean ± std.
 
     python -m bench.sim_seeds [--scenes room0,synthetic] [--seeds 3] [--set agent.share_refresh=0.1 ...]
 
@@ -10,7 +10,7 @@ Runs ``gausslite sim`` once per scene and seed (``--set mapper.seed=S``; the dep
 ``vote`` and ``refine``, and ``vote − own``, ``refine − own``. Every field is the mean over seeds with its
 standard deviation and the per-seed values.
 
-Scenes: ``room0`` = ``--dataset ../shared/datasets/Replica_room0/room0 --downscale 4``; ``synthetic`` = the
+Scenes: ``room0`` = ``--dataset $GAUSSLITE_SHARED/datasets/Replica_room0/room0 --downscale 4``; ``synthetic`` = the
 embedded default scene. Writes ``bench/results/sim_seeds.json`` and ``.md`` (``--out``).
 """
 

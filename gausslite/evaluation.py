@@ -1,4 +1,4 @@
-"""Evaluator: renders a map at dataset views and scores it (SPEC §9).
+"""Evaluator: renders a map at dataset views and scores it (paper Sec. IV, metrics).
 
 Full-image PSNR/SSIM/depth L1, and PSNR/SSIM restricted to the ground-truth ROI mask of a task
 (pixels whose depth point lies inside a task-relevant box, from ``objects.json``/``tasks.json``).

@@ -1,5 +1,5 @@
 """Fused SSIM loss on CPU: mean SSIM of a rendered image against a fixed ground truth, forward and
-backward in native loops that the compiler vectorises (issue 11, item 3).
+backward in native loops that the compiler vectorises.
 
 The value is :func:`gausslite.metrics.ssim_map` ``(pred, gt, gt_stats=...).mean()`` (Wang et al. 2004;
 11 x 11 Gaussian window, σ = 1.5, zero padding, C1 = 0.01², C2 = 0.03², mean over pixels and channels),

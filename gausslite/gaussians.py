@@ -1,4 +1,4 @@
-"""GaussianMap: the structure-of-arrays Gaussian map (paper Sec. III-A, SPEC §2).
+"""GaussianMap: the structure-of-arrays Gaussian map (paper Sec. III-A).
 
 A :class:`GaussianMap` holds N anisotropic 3D Gaussians as seven parallel tensors on one device.
 Structural operations (``append``, ``prune``, ``subset``, ``cap``, ``densify``) never modify a map in
@@ -339,7 +339,7 @@ class GaussianMap:
           from the parent's distribution N(μ, R S Sᵀ Rᵀ) and whose log-scales are the parent's minus
           log(0.8 · n_split) (i.e. scale / (0.8 n)).
         * Every new row inherits the parent's quaternion, opacity logit, colour, ``active`` flag and
-          κ (SPEC §2: daughters start with the parent's κ).
+          κ (daughters start with the parent's κ).
         * A Gaussian in both masks is only split (split takes precedence; the clone flag is ignored),
           which matches the reference implementation where the two criteria are disjoint by size.
 

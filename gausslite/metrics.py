@@ -1,4 +1,4 @@
-"""Image and depth metrics for evaluation and for the mapping loss (SPEC §9, paper Eq. loss).
+"""Image and depth metrics for evaluation and for the mapping loss (paper Sec. IV metrics; Eq. 1, the loss).
 
 Conventions (every function here):
     * colour images are (H, W, C) float tensors with values in [0, 1] (C = 3 for RGB; any C >= 1

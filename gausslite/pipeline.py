@@ -30,7 +30,7 @@ RelevanceFn = Callable[[Frame], np.ndarray]
 
 
 def gt_roi_fn(dataset: RGBDDataset, task_id: str) -> RelevanceFn:
-    """Ground-truth relevance: pixels whose depth point lies in one of the task's boxes (SPEC §9).
+    """Ground-truth relevance: pixels whose depth point lies in one of the task's boxes (paper Sec. IV).
 
     Raises:
         ValueError: the dataset has no annotations. KeyError: unknown task id (lists the known ones).

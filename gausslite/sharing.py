@@ -1,4 +1,4 @@
-"""Which Gaussians an agent shares for its task (issue 12 part 1; paper Sec. III-E, SPEC §7).
+"""Which Gaussians an agent shares for its task (paper Sec. III-E; ``docs/sharing.md``).
 
 The shared subset is the intersection of three rules, applied to a map and the agent's ROI
 keyframes (views with their relevance mask):
@@ -200,9 +200,8 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     map shows: in its own map, background Gaussians fill the ROI's gaps and sit behind translucent
     ROI Gaussians. The shared subset leaves those behind, so rendered alone (as the fusion server
     renders it) it shows holes and dark fringes. Before a push the agent fine-tunes a copy of the
-    subset on its ROI keyframes with the subset rendered alone (issue 12 item 4: "agents map with
-    ``context`` and, before each push, fine-tune a copy of the shared subset rendered alone on the
-    ROI keyframes"). The agent's own map is left untouched.
+    subset on its ROI keyframes with the subset rendered alone (``docs/sharing.md``). The agent's
+    own map is left untouched.
 
     Each iteration draws one ROI keyframe uniformly and takes one ROI-phase step of the mapper's loss
     (paper Eq. 1: L1 colour + depth + SSIM, on the ROI box crop) with every Gaussian of the copy
@@ -283,7 +282,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
 def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.05,
                          cfg=None, seed: int = 0, quant=None, final_lr: float = 0.05):
     """Fine-tune the subset to share next against the copy the fusion server already holds, so that a
-    delta push carries the new Gaussians and only a bounded share of the old ones (issue 12 item 2:
+    delta push carries the new Gaussians and only a bounded share of the old ones (target:
     ``total_upload_bytes ≤ 1.5 × final_subset_bytes``).
 
     :func:`finetune_subset` alone moves every row at every push, so every delta re-sends the whole

@@ -8,7 +8,7 @@ Usage (from anywhere)::
                                                     # committed files differ (stale), 0 when current
 
 Runs ``python -m grpc_tools.protoc -I proto --python_out=. --grpc_python_out=. --pyi_out=.
-proto/gausslite_rpc/*.proto`` and writes ``gausslite_rpc/__init__.py`` (SPEC §1, §8).
+proto/gausslite_rpc/*.proto`` and writes ``gausslite_rpc/__init__.py``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Local multi-process two-agent simulation (SPEC §1 "deployment", §7, §9; paper Sec. III-E, IV).
+"""Local multi-process two-agent simulation (paper Sec. III-E, IV).
 
 :func:`run_sim` starts the parser, the fusion server and two agents as separate processes on loopback
 (``gausslite serve ...`` with free 127.0.0.1 ports), configured exactly like ``deploy/docker-compose.yml``

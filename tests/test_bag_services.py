@@ -122,7 +122,7 @@ def _serve_agent_as_documented(argv, data_dir):
 
 
 def test_bag_to_fused_map_as_documented(bag_scene, tmp_path):
-    """README "From a bag to a fused map": two robots' rosbag2 recordings (no objects.json in them, as a
+    """docs/ros.md "From bags to a fused map": two robots' rosbag2 recordings (no objects.json in them, as a
     robot records them), the parser, fusion server and two agents, the robot-side calls
     ``start_mission(task, dataset_path=BAG, annotations_path=SCENE)`` → ``wait_state`` → ``finish``,
     then ``fuse`` → ``download_fused`` → a PLY: the fused map has both agents' subsets."""

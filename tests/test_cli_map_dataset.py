@@ -60,7 +60,7 @@ def test_profile_defaults_sit_below_config_and_set(tum_rpy_dir, room0_dir, tmp_p
 
 def test_handheld_profile_refines_poses_from_the_sensor_pose(tum_rpy_dir, room0_dir, tmp_path):
     """Hand-held data maps with pose refinement started from the sensor's pose (TUM fr1/rpy: +1.4 dB over
-    3 seeds, README "Pose refinement"); rendered data keeps exact poses; ``--set`` still wins."""
+    3 seeds, docs/results.md "Pose refinement"); rendered data keeps exact poses; ``--set`` still wins."""
     from gausslite.cli.cmd_map import config_from_args
 
     args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1")

@@ -1,4 +1,4 @@
-"""Task-conditioned attention front-end (SPEC §4, paper Sec. III-B): task graph + posed RGB-D frames ->
+"""Task-conditioned attention front-end (paper Sec. III-B): task graph + posed RGB-D frames ->
 per-pixel boolean relevance maps for the mapper.
 
 Main entry points: :class:`AttentionFrontEnd` / :class:`AttentionConfig`; backends

@@ -1,4 +1,4 @@
-"""Offline annotation backend: detector + segmenter from a scene's ``objects.json`` (SPEC §4).
+"""Offline annotation backend: detector + segmenter from a scene's ``objects.json`` (format: ``docs/mapper.md``).
 
 Detector: every annotated object whose names (label + synonyms) match a query phrase
 (:class:`~gausslite.attention.phrases.PhraseMatcher`, open-vocabulary: synonyms, singular/plural,

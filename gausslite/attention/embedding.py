@@ -1,4 +1,4 @@
-"""Offline sentence embeddings for open-vocabulary phrase matching (SPEC §4, annotation backend).
+"""Offline sentence embeddings for open-vocabulary phrase matching (annotation backend).
 
 :class:`MiniLMEmbedder` runs ``sentence-transformers/all-MiniLM-L6-v2`` (6-layer BERT, 384-d, mean
 pooling, L2 normalisation) with plain PyTorch from a local model folder holding ``config.json``,

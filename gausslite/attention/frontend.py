@@ -1,5 +1,5 @@
-"""Task-conditioned attention front-end: task graph + RGB-D frame -> per-pixel relevance map (SPEC §4,
-paper Sec. III-B "Task-Conditioned Attention Front-End").
+"""Task-conditioned attention front-end: task graph + RGB-D frame -> per-pixel relevance map
+(paper Sec. III-B "Task-Conditioned Attention Front-End").
 
 Per frame (:meth:`AttentionFrontEnd.process`):
 

@@ -1,4 +1,4 @@
-"""Weight-free promptable segmenter: OpenCV GrabCut initialised with each prompt box (SPEC §4 fallback).
+"""Weight-free promptable segmenter: OpenCV GrabCut initialised with each prompt box (a fallback).
 
 GrabCut fits foreground/background colour GMMs, starting from "everything inside the box is probably
 foreground, everything outside is background", and refines the labelling with graph cuts.

@@ -1,4 +1,4 @@
-"""Detector / segmenter plug-in interfaces and box/mask utilities (SPEC §4 steps 2–3, paper Sec. III-B).
+"""Detector / segmenter plug-in interfaces and box/mask utilities (paper Sec. III-B, grounding and segmentation).
 
 Conventions: images are (H, W, 3) uint8 RGB; boxes are (K, 4) float32 ``x0, y0, x1, y1`` in pixels of
 that image (continuous coordinates, pixel (u, v) covers [u-0.5, u+0.5), so a box covering pixels

@@ -1,4 +1,4 @@
-"""Detection keyframe trigger (SPEC §4 step 1, paper Sec. III-B).
+"""Detection keyframe trigger (paper Sec. III-B).
 
 A frame is a detection keyframe when the camera moved more than ``translation_m`` or rotated more than
 ``rotation_deg`` since the last keyframe, or when ``every_k`` frames have passed since it. The first

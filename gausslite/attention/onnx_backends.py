@@ -1,5 +1,5 @@
 """ONNX Runtime backends: Grounding-DINO-style open-vocabulary detector and FastSAM-style segmenter
-(SPEC §4, paper Sec. III-B: Grounding DINO box_threshold 0.20 / text_threshold 0.25; FastSAM conf 0.4,
+(paper Sec. III-B: Grounding DINO box_threshold 0.20 / text_threshold 0.25; FastSAM conf 0.4,
 iou 0.9). Models are loaded from user-given paths; nothing is downloaded.
 
 Detector export contract (:class:`OnnxGroundingDetector`):

@@ -1,4 +1,4 @@
-"""Open-vocabulary matching of query phrases to object names (labels + synonyms), SPEC §4.
+"""Open-vocabulary matching of query phrases to object names (labels + synonyms), paper Sec. III-B.
 
 A phrase matches an object with a score in [0, 1]:
 

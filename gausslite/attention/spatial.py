@@ -1,4 +1,4 @@
-"""3D lifting, spatial-relation predicates and box re-projection (SPEC §4 steps 4–5, paper Sec. III-B).
+"""3D lifting, spatial-relation predicates and box re-projection (paper Sec. III-B, 3D spatial filtering).
 
 Frames: camera axes are OpenCV (x right, y down, z forward); poses are camera-to-world 4x4 (metres).
 

@@ -1,7 +1,7 @@
 """A small BERT WordPiece tokenizer (uncased), pure Python, reading a standard ``vocab.txt``.
 
 Used for the text side of ONNX open-vocabulary detectors (Grounding-DINO exports take BERT
-``input_ids``) and for the offline MiniLM phrase embedder (SPEC §4, paper Sec. III-B). It follows
+``input_ids``) and for the offline MiniLM phrase embedder (paper Sec. III-B). It follows
 BERT's ``BasicTokenizer`` (lower-casing, accent stripping, whitespace/punctuation splitting, CJK
 characters as single tokens) followed by greedy longest-match-first WordPiece with ``##`` continuation
 pieces. Every token keeps its character span in the input text so phrase spans can be mapped to token

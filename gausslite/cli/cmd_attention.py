@@ -1,5 +1,5 @@
 """``gausslite attention``: ground a scene's tasks with the attention front-end and score the relevance
-maps against the ground-truth ROI masks (SPEC §4).
+maps against the ground-truth ROI masks (paper Sec. III-B).
 
 Each task text is parsed by the task parser (rules backend by default; the graph stored in tasks.json is
 NOT used) and grounded with the offline annotation backend (objects.json). Output: ``DIR/attention.json``

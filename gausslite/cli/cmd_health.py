@@ -1,6 +1,6 @@
 """``gausslite health --target HOST:PORT [--service NAME]``: query the standard gRPC health service
 (``grpc.health.v1.Health/Check``) of a GaussLite server; exit 0 when SERVING, 1 otherwise (also on
-connection errors or when the deadline passes). Used by the docker-compose healthchecks (SPEC §8).
+connection errors or when the deadline passes). Used by the docker-compose healthchecks.
 
 Environment fallbacks: ``GAUSSLITE_HEALTH_TARGET``, ``GAUSSLITE_TLS_CA`` (PEM CA → TLS).
 """

@@ -1,4 +1,4 @@
-"""``gausslite parse "task text"``: print the task graph as JSON (local library, no server; SPEC §3)."""
+"""``gausslite parse "task text"``: print the task graph as JSON (local library, no server; paper Sec. III-B)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import sys
 def register(subparsers) -> None:
     """Add the ``parse`` subcommand to ``subparsers``."""
     p = subparsers.add_parser("parse", help="parse a task text into an object-relation graph (JSON)",
-                              description="Parse a task text into {targets, anchors, relations} (SPEC §3).")
+                              description="Parse a task text into {targets, anchors, relations} (paper Sec. III-B).")
     p.add_argument("text", help="task text, e.g. \"Pick up the cup on the desk\"")
     p.add_argument("--backend", choices=["rules", "openai", "onnx"], default=None,
                    help="parser backend (default: from --config, else rules)")

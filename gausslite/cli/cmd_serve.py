@@ -1,4 +1,4 @@
-"""``gausslite serve SERVICE``: run one GaussLite gRPC service until SIGTERM/SIGINT (SPEC §1, §8).
+"""``gausslite serve SERVICE``: run one GaussLite gRPC service until SIGTERM/SIGINT (``docs/fusion-and-deploy.md``).
 
 Adding a service is one entry in :data:`SERVICES`: the module must define
 ``run(options: services.common.ServerOptions, config_path: str | None) -> int``. The module is

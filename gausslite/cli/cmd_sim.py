@@ -1,6 +1,6 @@
 """``gausslite sim [--dataset PATH] --out DIR``: local two-agent simulation (parser + fusion server + two
 agents as separate processes on 127.0.0.1, configured like ``deploy/docker-compose.yml``), then concat /
-vote / vote+refine fusion, evaluation and ``DIR/report.json`` + ``DIR/report.md`` (SPEC §1, §7, §9).
+vote / vote+refine fusion, evaluation and ``DIR/report.json`` + ``DIR/report.md`` (paper Sec. III-E, IV).
 Without ``--dataset`` the synthetic default scene is generated into ``DIR/scene``.
 
 Also registers the agent options of ``gausslite serve agent`` (``--agent-id --parser --fusion --dataset

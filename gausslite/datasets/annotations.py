@@ -1,6 +1,6 @@
 """Scene annotations: labelled 3D boxes (``objects.json``) and tasks with ROI objects (``tasks.json``).
 
-File format: ``shared/datasets/README.md`` ("Scene annotations"). Boxes are oriented boxes in the
+File format: ``docs/mapper.md`` ("Scene annotations"). Boxes are oriented boxes in the
 world frame of the dataset poses, in metres: ``center`` (3,), full extents ``size`` (3,) along the box
 axes, and ``rotation`` (3, 3) whose columns are the box axes in world coordinates (box-local -> world).
 A world point ``p`` lies in a box when ``|R^T (p - c)| <= size / 2 + margin`` on all three axes.
@@ -92,7 +92,7 @@ class Task:
         id: task id, e.g. ``"room0-pick-plant"``.
         text: the task sentence.
         graph: expected parser output ``{"targets": [...], "anchors": [...], "relations": [...]}``
-            (rules in ``shared/tasks/README.md``), kept as parsed JSON.
+            (rules in ``docs/mapper.md``, "Task graphs"), kept as parsed JSON.
         roi_object_ids: ids of the objects whose mask union is the task's ground-truth ROI.
     """
 

@@ -1,6 +1,6 @@
 """Replica RGB-D renders in the NICE-SLAM / SplaTAM / Gaussian-SLAM layout.
 
-Layout (``shared/datasets/Replica_room0/README.md``)::
+Layout::
 
     <parent>/cam_params.json           {"camera": {"w","h","fx","fy","cx","cy","scale"}}
     <parent>/<seq>/traj.txt            one row-major 4x4 camera-to-world matrix (16 floats) per line

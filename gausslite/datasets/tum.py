@@ -1,6 +1,6 @@
 """TUM RGB-D benchmark sequences (Sturm et al., IROS 2012) in their original layout.
 
-Layout (``shared/datasets/TUM_rgbd_dataset_freiburg1_rpy/README.md`` and the TUM RGB-D file-format page)::
+Layout (the TUM RGB-D file-format page)::
 
     rgb.txt          "timestamp filename" per line, '#' header lines
     depth.txt        "timestamp filename" per line, 16-bit PNG, depth_m = value / 5000, 0 = no measurement

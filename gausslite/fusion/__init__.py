@@ -1,4 +1,4 @@
-"""Multi-agent fusion (paper Sec. III-E, SPEC §7): κ-weighted voxel vote and the concat baseline."""
+"""Multi-agent fusion (paper Sec. III-E): κ-weighted voxel vote and the concat baseline."""
 
 from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_keys, voxel_vote
 

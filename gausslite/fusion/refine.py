@@ -1,4 +1,4 @@
-"""Optional joint refinement of a fused map (paper Sec. III-E, SPEC §7).
+"""Optional joint refinement of a fused map (paper Sec. III-E).
 
 After the voxel vote, a short joint optimisation over keyframes drawn uniformly from the union of the
 agents' keyframe buffers smooths the seams between the agents' contributions. It uses the mapper's

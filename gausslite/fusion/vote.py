@@ -1,6 +1,6 @@
 """κ-weighted voxel vote and plain concatenation of multi-agent Gaussian maps.
 
-Source: paper Sec. III-E ("Multi-Agent Refinement", count-weighted voxel vote) and SPEC §7.
+Source: paper Sec. III-E ("Multi-Agent Refinement", count-weighted voxel vote).
 
 Rule (``voxel_vote``): world space is cut into cubes of edge δ; a Gaussian with mean μ lies in voxel
 ``floor(μ / δ)`` (computed in float64 from the float32 means).  In every voxel where two or more
@@ -124,7 +124,7 @@ def _bits(n: int) -> int:
 
 def voxel_vote(maps: Mapping[str, Any], voxel_size: float = 0.10, contest_radius: int = 0
                ) -> tuple[GaussianArrays, VoteReport]:
-    """κ-weighted per-voxel selection between agents (paper Sec. III-E, SPEC §7).
+    """κ-weighted per-voxel selection between agents (paper Sec. III-E).
 
     Args:
         maps: agent id (str) → Gaussians (GaussianMap with torch tensors, GaussianArrays, or a
@@ -310,7 +310,7 @@ class _AgentState:
 
 
 class IncrementalVote:
-    """κ-weighted voxel vote kept current as agents' subsets change (paper Sec. III-E, SPEC §7).
+    """κ-weighted voxel vote kept current as agents' subsets change (paper Sec. III-E).
 
     Holds every agent's subset with a per-voxel index and the winner of every occupied voxel.
     :meth:`update` of one agent re-votes only the voxels that agent's old or new subset touches

@@ -1,4 +1,4 @@
-"""Typed mapper configuration with defaults from the paper (Sec. III-C/III-D, SPEC §5–6).
+"""Typed mapper configuration with defaults from the paper (Sec. III-C/III-D).
 
 Load from YAML with :func:`load_config`; override single fields from the command line with
 ``key=value`` strings (dotted keys reach nested sections, e.g. ``lr.means=2e-4``).
@@ -36,17 +36,12 @@ class DensifyConfig(_Strict):
     clone: bool = Field(
         False, description="clone high-gradient Gaussians smaller than split_scale_m (3DGS). Off: the mapper "
         "seeds new Gaussians where the map does not explain a keyframe, and cloning on top of that cost ROI "
-        "and full PSNR. Room0, 20 frames, fast settings, seed 0, pick-plant/find-books/find-ottoman/"
-        "map-ottomans: ROI 38.55/36.04/41.12/45.11 dB and PSNR 34.5/34.8/34.4/33.3 dB with 18.8-20.0k "
-        "Gaussians without cloning; 33.13/27.49/29.94/42.92 and 33.6/32.6/32.3/33.8 dB with 26.8-28.8k with "
-        "it (clones from zero Adam moments). Until this was found, clones inherited their parent's moments "
-        "and stayed stacked on it (see GaussianModel.set_map), which largely disabled cloning"
+        "and full PSNR (measured: docs/results.md). Clones start from zero Adam moments (GaussianModel.set_map)"
     )
     roi_grad_factor: float = Field(
         1.0, gt=0, le=1, description="gausslite mode: active (ROI) Gaussians densify at grad_threshold × this "
-        "(densification allocated by relevance, paper Sec. III); 1 = the same threshold as the background. Synthetic "
-        "circle, 160 frames, seed 0: 0.25 gave 27.27 dB ROI PSNR against 27.40 (PSNR 26.11 against 25.65, 75.6k "
-        "Gaussians against 70.5k), so it stays off"
+        "(densification allocated by relevance, paper Sec. III); 1 = the same threshold as the background "
+        "(measured: docs/results.md)"
     )
     split_scale_m: float = Field(
         0.02, gt=0, description="high-gradient Gaussians larger than this (metres) split, smaller clone"
@@ -56,8 +51,7 @@ class DensifyConfig(_Strict):
     active_phase_stats: bool = Field(
         False, description="also accumulate the view-space gradient statistics in ROI-phase iterations. Off: "
         "those iterations restrict the loss to the ROI (and, with roi_render='active', render only the "
-        "active subset), so their gradients are not comparable with grad_threshold; measured on room0 "
-        "(6 frames, books+plant, active-only renders) 33.89 vs 30.41 dB ROI PSNR"
+        "active subset), so their gradients are not comparable with grad_threshold (measured: docs/results.md)"
     )
 
 
@@ -89,7 +83,7 @@ class MapperConfig(_Strict):
     component switch is treated as off). ``mode='gausslite'`` applies the switches in
     ``components``. Both modes share the Gaussian budget (``max_gaussians``), seeds per frame
     (``seeds_per_frame``) and iterations per frame (``iters_per_frame``): the matched-budget
-    comparison of SPEC §6.
+    comparison of paper Sec. IV.
     """
 
     mode: Literal["uniform", "gausslite"] = "uniform"
@@ -202,10 +196,8 @@ class MapperConfig(_Strict):
     pose_lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
     pose_init: Literal["inherit", "identity"] = Field(
         "identity", description="pose refinement: a new keyframe starts from the latest keyframe's correction "
-        "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'). "
-        "TUM fr1/rpy, 160x120, uniform: 'identity' 22.89 +- 0.03 dB over 3 seeds against 21.48 +- 0.07 without "
-        "pose refinement (every fifth of the sequence higher); 'inherit' (one seed) gave the opening fifth back but "
-        "drifted at the end (last fifth -3.9 dB, 21.04 overall)"
+        "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "
+        "'inherit' drifts on TUM fr1/rpy, measured: docs/results.md)"
     )
 
     exposure_comp: bool = Field(
@@ -222,8 +214,7 @@ class MapperConfig(_Strict):
         "poses of consecutive mapped frames; its scores are taken the same way. On in the hand-held profile"
     )
     blur_exposure_s: float = Field(
-        0.01, gt=0, le=0.2, description="motion blur: exposure time τ, seconds (TUM fr1/rpy, first 40 frames, "
-        "seed 0: 24.14 dB without the model, 24.58 with 10 ms, 23.90 with 20 ms)"
+        0.01, gt=0, le=0.2, description="motion blur: exposure time τ, seconds (measured: docs/results.md)"
     )
     blur_px_per_sample: float = Field(4.0, gt=0, description="motion blur: one virtual pose per this many pixels of streak")
     blur_max_samples: int = Field(5, ge=1, description="motion blur: at most this many virtual poses per view")
@@ -261,9 +252,8 @@ class MapperConfig(_Strict):
     roi_render: Literal["context", "active", "alternate"] = Field(
         "context", description="ROI phase render. 'active': the active Gaussians alone (the paper's wording); "
         "'context': every Gaussian, inactive ones frozen (no update, no κ), so the active ones are fitted to "
-        "the pixels the full map shows; 'alternate': the two on successive ROI-phase iterations. Room0 "
-        "(20 frames, 300x170, +ROI row, pick-plant/find-ottoman): 31.89/35.16 dB ROI PSNR 'active', "
-        "35.07/39.18 dB 'context'"
+        "the pixels the full map shows; 'alternate': the two on successive ROI-phase iterations (measured: "
+        "docs/results.md)"
     )
     roi_update: Literal["active", "visible", "all"] = Field(
         "active", description="ROI phase: which Gaussians the Adam step updates: 'active' (a = 1, the paper's rule); "
@@ -278,8 +268,8 @@ class MapperConfig(_Strict):
         0, ge=0, description="coarse-to-fine: the first coarse_iters iterations of each mapped frame render "
         "full-image views at 1/coarse_downscale resolution (k×k colour mean, valid-depth mean, intrinsics "
         "scaled); later iterations, ROI-phase crops and footprint refinement stay at full resolution. 0 = "
-        "off (matched-budget comparisons). All-coarse full-image iterations left sub-pixel speckle on room0 "
-        "(PSNR 31.7 → 23.5 dB): keep full-resolution iterations after them"
+        "off (matched-budget comparisons). All-coarse full-image iterations leave sub-pixel speckle: keep "
+        "full-resolution iterations after them"
     )
     coarse_downscale: int = Field(2, ge=2, le=8, description="resolution divisor of coarse iterations")
     full_crop_fraction: float = Field(

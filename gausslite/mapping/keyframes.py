@@ -1,4 +1,4 @@
-"""Mapping keyframe selection for a live RGB-D stream (online agent, issue 11).
+"""Mapping keyframe selection for a live RGB-D stream (online agent; ``docs/live.md``).
 
 A robot streams frames faster than a CPU mapper maps them. Each arriving frame is *offered* to a
 :class:`KeyframeSelector`; the mapper *takes* the pending candidate when it is free. A frame becomes the

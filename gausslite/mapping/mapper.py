@@ -1,6 +1,6 @@
 """Online mapper with known poses: uniform baseline and task-conditioned GaussLite.
 
-Per mapped frame (paper Sec. III-C/III-D, SPEC §5–6):
+Per mapped frame (paper Sec. III-C/III-D):
 1. seeding: the current map is rendered at the new frame; only the pixels it does not explain
    (SplaTAM Eq. 9: silhouette < 0.5 or new geometry in front, ``coverage_seeding``) are candidates,
    and the seed count is N × their share of the valid pixels. Within that pool: uniform, or SB/SIS/GFD
@@ -1012,7 +1012,7 @@ class Mapper:
         self.voxels._keys = np.asarray(state.get("voxel_keys", np.zeros(0, np.int64)), np.int64)
         self.n_mapped = int(state["n_mapped"])
         self.n_idle_iters = int(state["n_idle_iters"])
-        self.n_budget_iters = int(state.get("n_budget_iters", 0))  # absent in checkpoints before stop 25
+        self.n_budget_iters = int(state.get("n_budget_iters", 0))  # absent in older checkpoints
         self.budget = state["budget"]
         self._roi_iters = int(state["roi_iters"])
         self.rng.bit_generator.state = state["rng"]
@@ -1025,4 +1025,4 @@ class Mapper:
             self.exposure.load_state(state["exposure"])
         self.blur = {int(k): np.asarray(v, np.float64) for k, v in (state.get("blur") or {}).items()}
         self._last_sensor = state.get("last_sensor")
-        self._rs_norm = float(state.get("rs_norm", 0.0))  # absent in checkpoints before stop 26
+        self._rs_norm = float(state.get("rs_norm", 0.0))  # absent in older checkpoints

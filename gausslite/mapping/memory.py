@@ -10,7 +10,7 @@ pixels of a new frame its map does not yet explain.
   SplaTAM's covisibility-driven keyframe choice (Keetha et al., CVPR 2024, Sec. 3.5), with "sees the
   ROI" as the covisibility test.
 - :class:`SurfaceVoxels`: the set of coarse voxels that valid depth has hit, in world metres. The
-  scene-following Gaussian budget (issue 10) is ``gaussians_per_voxel × len(voxels)``.
+  scene-following Gaussian budget is ``gaussians_per_voxel × len(voxels)``.
 - :func:`unexplained_mask`: SplaTAM's densification mask (Sec. 3.4, Eq. 9): pixels whose rendered
   silhouette is below 0.5, or where the rendered surface lies behind the observed depth by more than
   50 × the median depth error. New Gaussians are seeded only there.

@@ -33,23 +33,17 @@ class SensorProfile:
     mapper: dict = field(default_factory=dict)
 
 
-#: Mapper defaults of hand-held RGB-D (measured on TUM fr1/rpy, 150 frames, 320x240, uniform, seed 0; README
-#: "Sensor profiles"): pose refinement from the sensor's pose (21.86 dB with it, final pass 5), a depth loss
-#: weight of 0.3 instead of 1 (Kinect depth is noisy and not exactly registered: 23.03), and 20 final iterations
-#: per keyframe instead of 5 (23.60, first fifth 20.84 -> 22.24: the final pass draws every keyframe alike), and
-#: per-keyframe exposure compensation (the Kinect's auto-exposure and white balance; seed 0: 23.49 -> 24.76 dB), and
-#: the camera's motion blur (seeds 0-2, paired: uniform +0.13 +- 0.10 dB, GaussLite +0.13 +- 0.05; first - last
-#: fifth -2.69 -> -2.11 and -2.36 -> -2.21), and the colour camera's rolling shutter, 20 ms readout (warp PSNR of
-#: 60 overlapping frame pairs +1.02 dB, bench.rolling_shutter; first 40 frames, uniform, seed 0: 24.42 -> 27.43 dB;
-#: README "Rolling shutter")
+#: Mapper defaults of hand-held RGB-D (docs/mapper.md "Sensor profiles"; measured on TUM fr1/rpy: docs/results.md):
+#: pose refinement from the sensor's pose, a depth loss weight of 0.3 instead of 1 (Kinect depth is noisy and not
+#: exactly registered), 20 final iterations per keyframe instead of 5 (the final pass draws every keyframe alike),
+#: per-keyframe exposure compensation (the Kinect's auto-exposure and white balance), the camera's motion blur, and
+#: the colour camera's rolling shutter with a 20 ms readout (calibrated by bench.rolling_shutter)
 _HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose_refine": True, "lambda_depth": 0.3, "exposure_comp": True,
                     "motion_blur": True, "rolling_shutter_s": 0.02}
 
 #: Mapper defaults of rendered sequences: a final pass of 5 iterations per keyframe, drawn uniformly over the
-#: mission (MonoGS ends with a colour refinement over all keyframes, Matsuki et al., CVPR 2024). Synthetic circle,
-#: 150 mapped frames, 3 seeds: uniform 26.13 -> 28.29 dB, GaussLite 26.51 -> 28.27, first - last fifth -1.54 / -0.78
-#: -> +0.01 / +0.35; room0 (20 frames, 5 tasks, 3 seeds): GaussLite ROI 40.65 -> 40.61 dB with its PSNR 34.41 ->
-#: 40.12, uniform ROI 36.80 -> 39.19 (README "How far ROI effort goes")
+#: mission (MonoGS ends with a colour refinement over all keyframes, Matsuki et al., CVPR 2024); measured on the
+#: synthetic circle and room0: docs/results.md "How far ROI effort goes"
 _RENDERED_MAPPER = {"final_iters_per_keyframe": 5.0}
 
 RENDERED = SensorProfile("rendered", "rendered sequences (Replica, synthetic): pinhole, exact poses, a short final "
@@ -102,8 +96,8 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
     return MapperConfig.model_validate({**todo, **cfg.model_dump(include=cfg.model_fields_set)})
 
 
-#: Mapper speed presets (issue 11, ``python -m bench.mapper``): MapperConfig overrides applied on top of
-#: the sensor profile. ``baseline`` is the mapper before the issue-11 speed work: the reference paths
+#: Mapper speed presets (``python -m bench.mapper``): MapperConfig overrides applied on top of
+#: the sensor profile. ``baseline`` is the mapper before the CPU speed work: the reference paths
 #: of the ROI-phase Adam step and of SSIM, and the Warp tile compositing kernels. ``fast`` is today's
 #: default (the same results to float rounding; SIMD compositing kernels). ``coarse`` and ``window`` cut
 #: full-image work (half-resolution first iterations; random half-area windows) and are measured, not

@@ -1,6 +1,6 @@
 """Relevance-driven seeding: which pixels become new Gaussians, and their initial scale.
 
-Paper Sec. III-C (SPEC §5):
+Paper Sec. III-C:
 - SB (ROI seed budgeting): N_roi = ⌊ρN⌋ seeds from ROI pixels, N_bg = N − N_roi from the rest.
 - SIS (stratified initial scaling): background seeds on a √N_bg × √N_bg jittered grid, one per
   cell; initial scale log(s0·m) with m = 0.5 (ROI) / 0.7 (background).
@@ -131,7 +131,7 @@ def select_seeds(
     rho: float = 0.4,
     gfd_eps: float = 0.05,
 ) -> SeedSelection:
-    """Choose up to ``n`` seed pixels of one frame (paper III-C, SPEC §5).
+    """Choose up to ``n`` seed pixels of one frame (paper Sec. III-C).
 
     - Without SB: ``n`` pixels uniformly at random from all valid pixels (the uniform baseline;
       ρ is then effectively the ROI's pixel share).

@@ -1,4 +1,4 @@
-"""Task parsing: free-form task text → object–relation graph (paper Sec. III-B, SPEC §3).
+"""Task parsing: free-form task text → object–relation graph (paper Sec. III-B).
 
 Public API::
 

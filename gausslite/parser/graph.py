@@ -1,4 +1,4 @@
-"""Task graph data model (paper Sec. III-B, SPEC §3).
+"""Task graph data model (paper Sec. III-B).
 
 A task graph ``G_task = {O_target, O_anchor, R}`` holds the target noun phrases (what the task is
 about), the anchor noun phrases (spatial reference objects that only constrain where a target is),
@@ -51,7 +51,7 @@ class Relation:
 
 @dataclass
 class TaskGraph:
-    """Object–relation graph of one task (paper Sec. III-B; SPEC §3).
+    """Object–relation graph of one task (paper Sec. III-B).
 
     Attributes:
         targets (list[str]): target noun phrases, lower case, singular, no determiners.

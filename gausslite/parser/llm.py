@@ -1,4 +1,4 @@
-"""LLM task-parsing backends (paper Sec. III-B: few-shot prompted Phi-3-mini; SPEC §3).
+"""LLM task-parsing backends (paper Sec. III-B: few-shot prompted Phi-3-mini).
 
 Two backends produce the same JSON task graph:
 

@@ -1,4 +1,4 @@
-"""``TaskParser``: the parser facade used by the CLI and the parser service (SPEC §3).
+"""``TaskParser``: the parser facade used by the CLI and the parser service (paper Sec. III-B).
 
 The configuration picks a backend (``rules`` — default, offline; ``openai``; ``onnx``). LLM answers
 that are malformed, invalid, hallucinated, time out or error fall back to the rule parser, with a
@@ -143,7 +143,7 @@ def check_task_text(text: Any, max_bytes: int = DEFAULT_MAX_TEXT_BYTES) -> str:
 
 
 class TaskParser:
-    """Backend selection, LRU cache and fallback to the rule parser (SPEC §3). Thread safe."""
+    """Backend selection, LRU cache and fallback to the rule parser. Thread safe."""
 
     def __init__(self, config: Optional[ParserConfig] = None, llm: Optional[LLMBackend] = None):
         """Args:

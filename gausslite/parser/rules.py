@@ -1,8 +1,8 @@
-"""Deterministic rule/grammar task parser — the default, offline backend (paper Sec. III-B, SPEC §3).
+"""Deterministic rule/grammar task parser — the default, offline backend (paper Sec. III-B).
 
 The paper extracts ``{targets, anchors, relations}`` with a few-shot prompted LLM; this module does
 the same job with a small hand-written grammar so that nothing has to be downloaded. It follows the
-normalisation rules of ``shared/tasks/README.md``.
+normalisation rules in ``docs/mapper.md`` ("Task graphs").
 
 Grammar (over lower-case word tokens, see :func:`normalize_text`)::
 
@@ -583,7 +583,7 @@ def _finalize(acc: _Acc) -> TaskGraph:
 
 
 class RuleParser:
-    """Deterministic grammar parser (the default backend; SPEC §3).
+    """Deterministic grammar parser (the default backend; paper Sec. III-B).
 
     Thread safe and stateless. ``parse`` never raises on any ``str`` input.
     """

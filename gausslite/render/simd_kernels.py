@@ -1,5 +1,5 @@
 """SIMD CPU compositing kernels: the tile kernels of :mod:`gausslite.render.warp_kernels` with their
-inner loops in native C++ (``wp.func_native``) that the compiler vectorises (issue 11, item 3).
+inner loops in native C++ (``wp.func_native``) that the compiler vectorises.
 
 Same algorithm and data layout as :func:`~gausslite.render.warp_kernels.rasterize_fwd_tile_kernel` /
 :func:`~gausslite.render.warp_kernels.rasterize_bwd_tile_kernel` (Kerbl et al. 2023 front-to-back

@@ -45,7 +45,7 @@ TRAJECTORIES = ("arcs", "circle")
 
 
 def _circle_trajectories(n_frames: int, ph: np.ndarray) -> Dict[str, np.ndarray]:
-    """Both robots circle the desk once on an ellipse through the room (issue 10's long mission).
+    """Both robots circle the desk once on an ellipse through the room (the long mission of ``bench.long_mission``).
 
     ``agent_a`` goes counter-clockwise at about 1.4 m height, ``agent_b`` clockwise at about 1.2 m,
     half a lap apart. Both look at the desk with a slow sideways sweep of the look-at point, so the

@@ -1,4 +1,4 @@
-"""Map → splat arrays for viewers (SPEC §2 Gaussian parameters; 3DGS, Kerbl et al. 2023, Sec. 4).
+"""Map → splat arrays for viewers (paper Sec. III-A Gaussian parameters; 3DGS, Kerbl et al. 2023, Sec. 4).
 
 A viewer needs, per Gaussian, a centre, a 3×3 world covariance Σ = R S Sᵀ Rᵀ, an RGB colour and an
 opacity. :func:`splat_arrays` computes them from a :class:`gausslite.wire.codec.GaussianArrays` (or

@@ -1,6 +1,6 @@
 """Wire format for Gaussian subsets exchanged between agents and the fusion server.
 
-Paper Sec. III-E, SPEC §7–8.  See :mod:`gausslite.wire.codec` and ``docs/wire-format.md`` for the
+Paper Sec. III-E.  See :mod:`gausslite.wire.codec` and ``docs/wire-format.md`` for the
 byte layout, precision and error hierarchy.  Pure library code (numpy + zstandard); the gRPC
 services call these functions.
 """

@@ -1,9 +1,9 @@
 """Wire codec for Gaussian subsets: versioned, chunked, quantised, zstd-compressed, checksummed.
 
 Source: paper Sec. III-E ("Multi-Agent Refinement": agents exchange only their ROI subset with the
-per-Gaussian active-optimisation count κ) and SPEC §7–8 ("subsets travel as chunked,
-zstd-compressed, versioned binary blocks ... with per-chunk checksums; upload is resumable and
-idempotent by (agent id, map version, chunk index)").
+per-Gaussian active-optimisation count κ). Subsets travel as chunked, zstd-compressed, versioned binary blocks
+with per-chunk checksums; upload is resumable and idempotent by (agent id, map version, chunk index).
+Byte layout: ``docs/wire-format.md``.
 
 Everything here is numpy; torch is only touched when converting from/to
 :class:`gausslite.gaussians.GaussianMap`.
@@ -235,7 +235,7 @@ def _to_numpy(x: Any) -> np.ndarray:
 class GaussianArrays:
     """A set of N Gaussians as numpy arrays (structure of arrays), the codec/fusion container.
 
-    Mirrors :class:`gausslite.gaussians.GaussianMap` (paper Sec. III-A, SPEC §2):
+    Mirrors :class:`gausslite.gaussians.GaussianMap` (paper Sec. III-A):
 
     Attributes:
         means: (N, 3) float32, world frame, metres.
@@ -416,7 +416,7 @@ LOSSLESS = QuantConfig(lossless=True)
 
 @dataclass(frozen=True)
 class WireLimits:
-    """Decoder limits, enforced before allocation (SPEC §8: bounded message sizes).
+    """Decoder limits, enforced before allocation (bounded message sizes; ``docs/wire-format.md`` §8).
 
     Attributes:
         max_chunk_bytes: largest accepted chunk (bytes on the wire).
@@ -823,7 +823,7 @@ def encode_subset(
     quant: QuantConfig = QuantConfig(),
     limits: WireLimits = DEFAULT_LIMITS,
 ) -> list[bytes]:
-    """Encode a Gaussian subset into self-describing wire chunks (SPEC §8).
+    """Encode a Gaussian subset into self-describing wire chunks (``docs/wire-format.md``).
 
     Args:
         gaussians: a GaussianMap, GaussianArrays or mapping of arrays (see
@@ -1266,7 +1266,7 @@ def decode_chunk(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> DecodedChunk
 
 
 class SubsetAssembler:
-    """Streaming, order-independent, idempotent assembly of one subset's chunks (SPEC §8).
+    """Streaming, order-independent, idempotent assembly of one subset's chunks (``docs/wire-format.md``).
 
     Chunks may arrive in any order; re-delivering a chunk with identical content (same digest,
     see :class:`DecodedChunk`) is a no-op, a different chunk under the same index raises

@@ -1,5 +1,5 @@
 """Delta pushes: an agent-side mirror of the subset the fusion server holds, and the rule that
-decides which Gaussians a push must carry (issue 12, SPEC §8 "resumable, idempotent uploads").
+decides which Gaussians a push must carry (``docs/sharing.md``; delta records: ``docs/wire-format.md`` §6).
 
 An agent identifies its Gaussians by the stable per-agent ids of
 :attr:`gausslite.mapping.model.GaussianModel.ids`.  Ids never travel on the wire: a delta names

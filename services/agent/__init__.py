@@ -1,6 +1,6 @@
 """Agent service (one per robot): task → parser service → graph; posed RGB-D stream (client stream or
 dataset replay) → attention front-end → task-conditioned mapper → periodic ROI-subset + keyframe pushes to
-the fusion server (SPEC §1, §7, §8; paper Sec. III-E).
+the fusion server (paper Sec. III-E).
 
 Modules: :mod:`~services.agent.runtime` (mission loop, no gRPC needed), :mod:`~services.agent.frames`
 (FrameMsg codec and validation), :mod:`~services.agent.server` (gRPC service), :mod:`~services.agent.client`.

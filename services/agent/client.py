@@ -1,4 +1,4 @@
-"""Robot-/operator-side client of ``gausslite.v1.Agent`` (SPEC §8: deadlines on every call).
+"""Robot-/operator-side client of ``gausslite.v1.Agent`` (deadlines on every call).
 
 Example::
 

@@ -1,4 +1,4 @@
-"""``FrameMsg`` ⇄ :class:`gausslite.datasets.Frame` (SPEC §8: clear INVALID_ARGUMENT for bad input).
+"""``FrameMsg`` ⇄ :class:`gausslite.datasets.Frame` (clear INVALID_ARGUMENT for bad input).
 
 Wire form of one posed RGB-D frame: colour as JPEG or PNG (8-bit RGB), depth as a single-channel
 16-bit PNG with ``depth_scale`` metres per unit, ``c2w`` as 16 row-major doubles, pinhole intrinsics.

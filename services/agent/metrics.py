@@ -1,4 +1,4 @@
-"""Prometheus metrics of the agent service (see README "Metrics").
+"""Prometheus metrics of the agent service (see ``docs/fusion-and-deploy.md``, "Metrics").
 
 :class:`AgentCollector` is a custom collector: at every scrape it reads the missions of an
 :class:`services.agent.server.AgentServicer` through their public state (``AgentRuntime.status()`` and

@@ -1,5 +1,5 @@
-"""The agent's mission loop: frames → attention → mapper → periodic ROI-subset pushes (SPEC §4–§8,
-paper Sec. III-E "Multi-Agent Fusion").
+"""The agent's mission loop: frames → attention → mapper → periodic ROI-subset pushes (paper
+Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``).
 
 :class:`AgentRuntime` is usable without gRPC: it needs a task graph (any object with ``targets``,
 ``anchors``, ``relations``), scene annotations for the offline relevance sources, and optionally a
@@ -20,7 +20,7 @@ Threads per mission:
   uploaded accumulate) with retries and exponential backoff, so a fusion-server outage never stalls
   mapping; the client resumes a half-uploaded subset of the same ``map_version``.
 
-The shared subset (SPEC §7) is the Gaussians with ``active = 1`` (``share: active``) or with
+The shared subset (paper Sec. III-E) is the Gaussians with ``active = 1`` (``share: active``) or with
 ``κ >= kappa_threshold`` (``share: kappa``), with their κ counts.
 """
 
@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 
 
 class OnnxRelevanceConfig(BaseModel):
-    """ONNX attention backends of the agent (``agent.onnx`` in YAML; SPEC §4, paper Sec. III-B).
+    """ONNX attention backends of the agent (``agent.onnx`` in YAML; paper Sec. III-B).
 
     Attributes:
         detector_path: Grounding-DINO-style ``.onnx`` (:class:`gausslite.attention.OnnxGroundingDetector`).
@@ -87,7 +87,7 @@ class AgentConfig(BaseModel):
 
     Attributes:
         relevance: ``attention`` (task graph grounded by the attention front-end with the scene's offline
-            annotation backend, SPEC §4) or ``gt`` (ground-truth ROI of ``task_id``, for ablations).
+            annotation backend, paper Sec. III-B) or ``gt`` (ground-truth ROI of ``task_id``, for ablations).
         share: ``active`` (a = 1), ``kappa`` (κ >= ``kappa_threshold``) or ``task`` (a = 1 and
             κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
             :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
@@ -113,8 +113,8 @@ class AgentConfig(BaseModel):
         keyframe_every: every k-th mapped frame is uploaded as a keyframe for the fusion refinement.
         max_keyframes: keep at most this many keyframes for upload (older ones dropped first).
         jpeg_quality: keyframe JPEG quality on the wire (``keyframe_format: jpeg``).
-        keyframe_format: ``png`` (lossless colour, default: JPEG q95 keyframes cost the fusion
-            refinement 2 dB ROI PSNR on room0) or ``jpeg``.
+        keyframe_format: ``png`` (lossless colour, the default: the fusion refinement fits the uploaded
+            colours; measured: docs/results.md) or ``jpeg``.
         chunk_gaussians: Gaussians per wire chunk.
         delta_push: push only the Gaussians new or changed beyond quantisation since the version the
             server acknowledged, plus the removed rows (wire delta chunks); a full upload when the
@@ -303,7 +303,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 
 def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.ndarray:
-    """Boolean mask (N,) of the Gaussians an agent shares (SPEC §7).
+    """Boolean mask (N,) of the Gaussians an agent shares (paper Sec. III-E).
 
     Args:
         gmap: ``GaussianMap`` (or anything with ``active`` and ``kappa`` arrays/tensors).

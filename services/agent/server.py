@@ -1,5 +1,5 @@
-"""Agent service: a thin gRPC server over :class:`services.agent.runtime.AgentRuntime` (SPEC §1, §7, §8;
-paper Sec. III-E).
+"""Agent service: a thin gRPC server over :class:`services.agent.runtime.AgentRuntime` (paper
+Sec. III-E).
 
 ``gausslite.v1.Agent``:
 
@@ -10,7 +10,7 @@ paper Sec. III-E).
   the call never blocks the sender: headers are validated on arrival, keyframe selection keeps the
   newest candidate, and only keyframes are decoded (by the mapping worker).
 * ``StartMission`` with a ``mission_id`` whose checkpoint is in ``<data_dir>/<agent_id>/<mission_id>``
-  resumes that mission (README "Live operation").
+  resumes that mission (``docs/live.md``).
 * ``GetStatus`` / ``Finish`` — progress; final push + summary (ROI PSNR on its own task when the scene
   has annotations).
 

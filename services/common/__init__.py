@@ -1,4 +1,4 @@
-"""Shared gRPC server helpers for the GaussLite services (SPEC §8): bounded message sizes, health +
+"""Shared gRPC server helpers for the GaussLite services: bounded message sizes, health +
 reflection, optional bearer token, optional TLS, graceful shutdown. See :mod:`services.common.server`."""
 
 from .server import (

@@ -1,4 +1,4 @@
-"""gRPC server plumbing shared by the parser, agent and fusion services (SPEC §8).
+"""gRPC server plumbing shared by the parser, agent and fusion services.
 
 * :func:`build_server` — a ``grpc.server`` with bounded message sizes, the standard health service
   (``grpc.health.v1.Health``) and server reflection, an optional bearer-token interceptor, bound to

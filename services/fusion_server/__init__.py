@@ -1,4 +1,4 @@
-"""Fusion server (paper Sec. III-E, SPEC §1, §7, §8): receives ROI-Gaussian subsets and keyframes from
+"""Fusion server (paper Sec. III-E): receives ROI-Gaussian subsets and keyframes from
 many agents, voxel-votes them into one map (optional joint refinement), persists and serves it.
 
 * :mod:`services.fusion_server.server` — the ``gausslite.v1.Fusion`` gRPC service and CLI.

@@ -1,8 +1,8 @@
 """Robot-side client of the GaussLite fusion server (``gausslite.v1.Fusion``).
 
 Source: paper Sec. III-E ("Multi-Agent Refinement": agents share their ROI subset with κ and their
-keyframes), SPEC §7 (fusion) and §8 (wire format: chunked, resumable, idempotent upload by
-(agent id, map version, chunk index); deadlines on every client call; TLS and bearer token).
+keyframes); wire format (``docs/wire-format.md``): chunked, resumable, idempotent upload by
+(agent id, map version, chunk index); deadlines on every client call; TLS and bearer token.
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""Prometheus metrics of the fusion server (see README "Metrics").
+"""Prometheus metrics of the fusion server (see ``docs/fusion-and-deploy.md``, "Metrics").
 
 :class:`FusionMetrics` holds the metric families in the server's own registry; :class:`MeteredFusion`
 wraps a servicer and records them around the RPC handlers without touching their logic:

@@ -1,4 +1,4 @@
-"""Fusion server: ``gausslite.v1.Fusion`` over gRPC (paper Sec. III-E, SPEC §1, §7, §8).
+"""Fusion server: ``gausslite.v1.Fusion`` over gRPC (paper Sec. III-E).
 
 Robots open a session, upload their ROI-Gaussian subsets (wire-codec chunks with κ, resumable and
 idempotent by (agent id, map version, chunk index)) and keyframes; ``Fuse`` voxel-votes (or

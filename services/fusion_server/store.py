@@ -1,7 +1,7 @@
 """Durable store of the fusion server: sessions, subset chunks, keyframes and fused maps.
 
-Source: SPEC §8 ("The fusion server persists what it accepted, so a restart loses nothing it
-acknowledged"), paper Sec. III-E.
+The fusion server persists what it accepted, so a restart loses nothing it acknowledged (paper
+Sec. III-E; ``docs/fusion-and-deploy.md``).
 
 Backends (one contract, one SQL implementation)
 -----------------------------------------------

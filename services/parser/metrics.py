@@ -1,4 +1,4 @@
-"""Prometheus metrics of the parser service (see README "Metrics").
+"""Prometheus metrics of the parser service (see ``docs/fusion-and-deploy.md``, "Metrics").
 
 :class:`MeteredParser` wraps the ``gausslite.v1.Parser`` servicer and records, per ``Parse`` call:
 

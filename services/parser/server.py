@@ -1,4 +1,4 @@
-"""Parser service: a thin gRPC server over :class:`gausslite.parser.TaskParser` (SPEC §3, §8).
+"""Parser service: a thin gRPC server over :class:`gausslite.parser.TaskParser` (paper Sec. III-B).
 
 ``gausslite.v1.Parser/Parse``: INVALID_ARGUMENT for empty or oversized task text (the limit is in
 the message), the remaining client deadline bounds LLM backends, the standard health service and
