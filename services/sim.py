@@ -299,6 +299,53 @@ def attach_context_baseline(report: dict, context_report: dict) -> dict:
     return report
 
 
+def attach_uniform_baseline(report: dict, baseline: dict) -> dict:
+    """Put the own-map figures of a matched uniform run (the same sim with ``mapper.mode=uniform``: same scene,
+    tasks, keyframe budget and Gaussian budget) beside each agent of ``report``: ``uniform_roi_psnr``,
+    ``uniform_roi_psnr_all_frames`` (realtime runs), ``uniform_psnr``, ``uniform_n_gaussians`` and
+    ``task_gain_db`` (this agent's ROI PSNR minus uniform's, over every frame for realtime runs).
+
+    Raises:
+        ValueError: the baseline was not mapped in uniform mode, or its agents/tasks differ.
+    """
+    mode = ((baseline.get("settings") or {}).get("mapper") or {}).get("mode")
+    if mode != "uniform":
+        raise ValueError(f"the baseline report was mapped with mapper.mode={mode!r}, not 'uniform'")
+    base = {(a["id"], a["task"]): a for a in baseline.get("agents", [])}
+    for a in report["agents"]:
+        b = base.get((a["id"], a["task"]))
+        if b is None:
+            raise ValueError(f"the baseline report has no agent {a['id']} on task {a['task']}")
+        a["uniform_roi_psnr"] = b.get("roi_psnr")
+        a["uniform_roi_psnr_all_frames"] = b.get("roi_psnr_all_frames")
+        a["uniform_psnr"] = b.get("psnr")
+        a["uniform_n_gaussians"] = b.get("n_gaussians")
+        own, uni = ((a.get("roi_psnr_all_frames"), b.get("roi_psnr_all_frames")) if report.get("realtime")
+                    else (a.get("roi_psnr"), b.get("roi_psnr")))
+        a["task_gain_db"] = (own - uni) if own is not None and uni is not None else None
+    report["uniform_baseline"] = True
+    return report
+
+
+def _baseline_lines(report: dict) -> List[str]:
+    """Markdown of the matched uniform baseline (``gausslite sim --baseline uniform``)."""
+    if not report.get("uniform_baseline"):
+        return []
+    col = "ROI PSNR, all frames" if report.get("realtime") else "ROI PSNR, mapped frames"
+    lines = ["", "## What the task buys: GaussLite against matched uniform agents", "",
+             f"| agent | task | GaussLite {col} | uniform {col} | gain (dB) | GaussLite PSNR | uniform PSNR | "
+             "Gaussians (GaussLite / uniform) |", "|---|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
+        uni = a.get("uniform_roi_psnr_all_frames") if report.get("realtime") else a.get("uniform_roi_psnr")
+        lines.append(f"| {a['id']} | {a['task']} | {_fmt(own)} | {_fmt(uni)} | {_fmt(a.get('task_gain_db'))} | "
+                     f"{_fmt(a.get('psnr'))} | {_fmt(a.get('uniform_psnr'))} | {a['n_gaussians']} / "
+                     f"{a.get('uniform_n_gaussians', '–')} |")
+    lines += ["", "The uniform agents ran the same sim with `mapper.mode=uniform` (same scene, keyframe rule, keyframe "
+              "budget and Gaussian budget; they share nothing). `docs/realtime.md` has the budget sweep."]
+    return lines
+
+
 def plot_pushes(report: dict, path: Path) -> bool:
     """Plot bytes per push and share of the map over time (frames mapped) for every agent into
     ``path`` (PNG). Returns False when no agent logged a push."""
@@ -365,6 +412,7 @@ def write_markdown(report: dict, path: Path) -> None:
     if report.get("pushes_plot"):
         lines += ["", f"![bytes per push and share over time]({report['pushes_plot']})"]
     lines += _live_lines(report)
+    lines += _baseline_lines(report)
     lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
               "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
               "|---|" + "---|" * (len(tasks) + 3)]

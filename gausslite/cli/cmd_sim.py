@@ -61,6 +61,9 @@ def register(subparsers) -> None:
     p.add_argument("--budget", type=float, default=None,
                    help="seconds per mapped keyframe (mapper.keyframe_budget_s; --realtime default 1.0, otherwise "
                         "the fixed iterations of mapper.iters_per_frame)")
+    p.add_argument("--baseline", choices=("uniform",), default=None,
+                   help="also run matched uniform agents (the same sim with mapper.mode=uniform, into OUT/baseline_uniform) "
+                        "and put their own-map ROI PSNR beside GaussLite's in report.md (what the task buys)")
     p.add_argument("--offline-report", default=None, metavar="DIR",
                    help="an earlier `gausslite sim` (every frame, same dataset) whose agents' ROI PSNR goes next to "
                         "the realtime figures in report.md")
@@ -168,6 +171,10 @@ def _handle(args: argparse.Namespace) -> int:
         if missing - {"parser"}:
             print(f"gausslite sim: error: --attach misses {sorted(missing)}", file=sys.stderr)
             return 2
+    if args.baseline and args.attach:
+        print("gausslite sim: error: --baseline starts its own uniform agents; it cannot drive --attach services",
+              file=sys.stderr)
+        return 2
     if args.merge_only:
         return _merge_context(args)
     try:
@@ -177,6 +184,8 @@ def _handle(args: argparse.Namespace) -> int:
                       offline_report=args.offline_report,
                       timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None,
                       context_report=args.context_report)
+        if args.baseline:
+            res = _run_baseline(args, res, overrides, tasks, attach)
     except KeyboardInterrupt:
         print("gausslite sim: interrupted (all services stopped)", file=sys.stderr)
         return 130
@@ -186,6 +195,22 @@ def _handle(args: argparse.Namespace) -> int:
     print((res.out / "report.md").read_text())
     print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} in {res.seconds:.0f} s")
     return 0
+
+
+def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach):
+    """``--baseline uniform``: the same sim with ``mapper.mode=uniform`` into ``OUT/baseline_uniform`` (run after the
+    GaussLite one, never beside it: live budgets are wall time), then its agents' figures into the main report."""
+    import json
+
+    from services.sim import attach_uniform_baseline, run_sim, write_markdown
+
+    base = run_sim(res.out / "baseline_uniform", args.dataset, config=args.config,
+                   overrides=[*overrides, "mapper.mode=uniform"], task_ids=tasks, attach=attach,
+                   timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
+    attach_uniform_baseline(res.report, base.report)
+    (res.out / "report.json").write_text(json.dumps(res.report, indent=2))
+    write_markdown(res.report, res.out / "report.md")
+    return res
 
 
 def _merge_context(args: argparse.Namespace) -> int:

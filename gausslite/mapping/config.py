@@ -260,6 +260,11 @@ class MapperConfig(_Strict):
         "'visible' (every Gaussian the ROI render draws, so inactive ones covering ROI pixels are fitted too; "
         "the others keep their values and moments); 'all' (a full Adam step). κ counts active Gaussians only"
     )
+    roi_phase_views: Literal["any", "roi"] = Field(
+        "any", description="ROI phase: the view is drawn as in the warm-up ('any'; a drawn view without ROI pixels "
+        "gets a full-image iteration) or among the keyframes that see the ROI ('roi'; same recent-window / mission "
+        "split, MVO)"
+    )
     roi_cull: bool = Field(
         True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
         "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"

@@ -655,15 +655,17 @@ class Mapper:
         return stats
 
     # ------------------------------------------------------------------ optimisation
-    def _pick_view(self, current: Keyframe) -> Keyframe:
+    def _pick_view(self, current: Keyframe, roi_phase: bool = False) -> Keyframe:
         """The view of one iteration: from the recent window or the whole mission (see
-        ``KeyframeStore.sample_index``); without MVO the current frame with ``current_frame_prob``."""
+        ``KeyframeStore.sample_index``); without MVO the current frame with ``current_frame_prob``. ``roi_phase``
+        with ``roi_phase_views='roi'`` and MVO: among the keyframes that see the ROI."""
         cfg, sw = self.cfg, self.cfg.effective()
         n = len(self.keyframes)
         if not sw.mvo and (n <= 1 or self.rng.random() < cfg.current_frame_prob):
             return current
         roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
-        i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
+        i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w,
+                                        roi_only=roi_phase and cfg.roi_phase_views == "roi")
         if i == n - 1 and self.keyframes[i].frame_id == current.frame_id:
             return current
         return self.keyframes.load(i, self.device)
@@ -827,11 +829,11 @@ class Mapper:
             t_it = self.clock.now()
             warm_until = t_it + max(0.0, budget - (t_it - t0)) * cfg.warmup_iters / cfg.iters_per_frame
         for it in self._iterations(t0, budget):
-            view = self._pick_view(kf)
             if warm_until is None:
                 warm = it < cfg.warmup_iters
             else:  # at least one full-image iteration for the new seeds (unless warm-up is off)
                 warm = cfg.warmup_iters > 0 and (it == 0 or self.clock.now() < warm_until)
+            view = self._pick_view(kf, roi_phase=sw.roi and not warm and has_active)
             active_phase = sw.roi and not warm and has_active and view.roi is not None
             loss = self._iterate(view, active_phase, coarse=it < cfg.coarse_iters)
             active_iters += int(active_phase)

@@ -150,13 +150,14 @@ class KeyframeStore:
         return self._items[i].to_keyframe(device)
 
     def sample_index(self, rng: np.random.Generator, window: int, recent_prob: float,
-                     roi_weight: float = 0.0) -> int:
+                     roi_weight: float = 0.0, roi_only: bool = False) -> int:
         """Index of a training view for one iteration.
 
         With probability ``recent_prob`` (or when the store holds no more than ``window``
         keyframes) a uniform draw from the ``window`` newest keyframes; otherwise a draw over the
         whole mission with weight ``1 + roi_weight`` for keyframes that see the ROI and 1 for the
-        others (``roi_weight=0``: uniform over the mission).
+        others (``roi_weight=0``: uniform over the mission). ``roi_only``: the same draw among the
+        keyframes that see the ROI alone (an ROI-phase iteration; all keyframes when none does).
 
         Raises:
             ValueError: the store is empty.
@@ -164,6 +165,14 @@ class KeyframeStore:
         n = len(self._items)
         if n == 0:
             raise ValueError("no keyframes to sample from")
+        if roi_only:
+            idx = [i for i, k in enumerate(self._items) if k.sees_roi]
+            if idx:
+                m = len(idx)
+                if m <= window or rng.random() < recent_prob:
+                    w = min(window, m)
+                    return idx[m - w + int(rng.integers(w))]
+                return idx[int(rng.integers(m))]
         if n <= window or rng.random() < recent_prob:
             w = min(window, n)
             return n - w + int(rng.integers(w))
