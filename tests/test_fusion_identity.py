@@ -332,6 +332,14 @@ def test_the_agent_sends_its_own_token(tmp_path, tokens):
             assert code_of(lambda: fc.open_session("robot-b", "x", INTR))[0] == DENIED
         finally:
             fc.close()
+        # a token file gone since start-up: the mission cannot connect, with a precise error
+        from services.agent.runtime import MissionError
+
+        moved = tmp_path / "moved.token"
+        secret.rename(moved)
+        with pytest.raises(MissionError, match="fusion credentials unusable"):
+            servicer._fusion_client(f"127.0.0.1:{srv.port}")
+        moved.rename(secret)
         # the same from the environment helper used by the viewer and the report job
         creds = client_credentials_from_env({"GAUSSLITE_FUSION_TOKEN_FILE": str(secret), "GAUSSLITE_TOKEN": "fleet"})
         assert creds == {"token": tok["robot-a"], "root_cert": None, "client_cert": None, "client_key": None}
@@ -409,3 +417,26 @@ def test_tokens_command(tmp_path, capsys):
     assert cli_main(["tokens", "revoke", "robot-9", "--tokens-file", str(d / "fusion_tokens.json")]) == 1
     assert cli_main(["tokens", "issue", "bad id", "--tokens-file", str(d / "fusion_tokens.json")]) == 2
     assert "invalid agent id" in capsys.readouterr().err
+
+
+def test_serve_cli_credentials_options(tmp_path, tokens):
+    from gausslite.cli import build_parser
+    from gausslite.cli.cmd_serve import resolve_options
+
+    path, _ = tokens
+    args = build_parser().parse_args(["serve", "fusion", "--agent-tokens", str(path), "--tls-client-ca", "ca.pem"])
+    opts, _ = resolve_options(args, env={})
+    assert (opts.agent_tokens_file, opts.tls_client_ca, opts.fleet_token_writes) == (str(path), "ca.pem", None)
+    env = {"GAUSSLITE_AGENT_TOKENS_FILE": str(path), "GAUSSLITE_FLEET_TOKEN_WRITES": "1"}
+    opts, _ = resolve_options(build_parser().parse_args(["serve", "fusion"]), env=env)
+    assert opts.agent_tokens_file == str(path) and opts.fleet_token_writes is True
+    # the other services ignore the fusion token file from the environment and refuse the flag
+    assert resolve_options(build_parser().parse_args(["serve", "parser"]), env=env)[0].agent_tokens_file is None
+    with pytest.raises(ValueError, match="fusion server only"):
+        resolve_options(build_parser().parse_args(["serve", "agent", "--agent-tokens", str(path)]), env={})
+    # the fusion module's own CLI: a broken token file is a precise start-up error (exit 2)
+    from services.fusion_server.server import main as fusion_main
+
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    assert fusion_main(["--port", "0", "--data-dir", str(tmp_path / "d"), "--agent-tokens", str(bad)]) == 2

@@ -50,7 +50,8 @@ def register(subparsers) -> None:
     p.add_argument("--tls-client-ca", default=None,
                    help="PEM CA of client certificates: mutual TLS, certificate CN = agent id (env GAUSSLITE_TLS_CLIENT_CA)")
     p.add_argument("--agent-tokens", default=None,
-                   help="JSON/YAML file of per-agent token hashes (env GAUSSLITE_AGENT_TOKENS_FILE; `gausslite tokens`)")
+                   help="fusion only: JSON/YAML file of per-agent token hashes (env GAUSSLITE_AGENT_TOKENS_FILE; "
+                        "`gausslite tokens`)")
     p.add_argument("--fleet-token-writes", action="store_true", default=None,
                    help="the fleet token keeps write access to every agent next to per-agent credentials "
                         "(migration; env GAUSSLITE_FLEET_TOKEN_WRITES=1)")
@@ -67,7 +68,8 @@ def resolve_options(args: argparse.Namespace, env=None):
     """Merge CLI arguments with environment fallbacks into (ServerOptions, config_path).
 
     Raises:
-        ValueError: a port from the environment is not an integer.
+        ValueError: a port from the environment is not an integer; ``--agent-tokens`` for another
+            service than fusion (the only one that checks who writes what).
     """
     from services.common.metrics import metrics_port_from
     from services.common.server import ServerOptions
@@ -75,6 +77,12 @@ def resolve_options(args: argparse.Namespace, env=None):
     env = os.environ if env is None else env
     entry = SERVICES[args.service]
     prefix = f"GAUSSLITE_{args.service.upper()}_"
+    agent_tokens = getattr(args, "agent_tokens", None)
+    if agent_tokens and args.service != "fusion":
+        raise ValueError("--agent-tokens applies to the fusion server only (the service that checks which agent "
+                         "writes what); the parser and agent services take the fleet token or client certificates")
+    if args.service == "fusion":
+        agent_tokens = agent_tokens or env.get("GAUSSLITE_AGENT_TOKENS_FILE") or None
     port = args.port if args.port is not None else int(env.get(prefix + "PORT", entry.default_port))
     opts = ServerOptions(
         host=args.host or env.get(prefix + "HOST", "127.0.0.1"),
@@ -83,7 +91,7 @@ def resolve_options(args: argparse.Namespace, env=None):
         tls_cert=args.tls_cert or env.get("GAUSSLITE_TLS_CERT") or None,
         tls_key=args.tls_key or env.get("GAUSSLITE_TLS_KEY") or None,
         tls_client_ca=getattr(args, "tls_client_ca", None) or env.get("GAUSSLITE_TLS_CLIENT_CA") or None,
-        agent_tokens_file=getattr(args, "agent_tokens", None) or env.get("GAUSSLITE_AGENT_TOKENS_FILE") or None,
+        agent_tokens_file=agent_tokens or None,
         fleet_token_writes=(True if getattr(args, "fleet_token_writes", None)
                             or env.get("GAUSSLITE_FLEET_TOKEN_WRITES", "").lower() in ("1", "true", "yes") else None),
         max_workers=args.max_workers,

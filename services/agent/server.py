@@ -154,10 +154,14 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         from services.fusion_server.client import FusionClient
 
         s = self.settings
-        token = s.fusion_token or (read_secret(s.fusion_token_file) if s.fusion_token_file else None) or s.token
-        read = lambda path: Path(path).read_bytes() if path else None  # noqa: E731
-        c = FusionClient(address, token=token, root_cert=read(s.root_cert), client_cert=read(s.tls_client_cert),
-                         client_key=read(s.tls_client_key))
+        try:
+            token = s.fusion_token or (read_secret(s.fusion_token_file) if s.fusion_token_file else None) or s.token
+            read = lambda path: Path(path).read_bytes() if path else None  # noqa: E731
+            c = FusionClient(address, token=token, root_cert=read(s.root_cert), client_cert=read(s.tls_client_cert),
+                             client_key=read(s.tls_client_key))
+        except (OSError, ValueError) as e:  # a credential file gone or broken since start-up
+            log.error("agent %s: fusion credentials unusable: %s", s.agent_id, e)
+            raise MissionError(f"fusion credentials unusable: {e}") from None
         self._clients.append(c)
         return c
 
@@ -190,7 +194,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
         Raises:
             ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
-            MissionError: another mission is still mapping; ``mission_id`` already used in this process.
+            MissionError: another mission is still mapping; ``mission_id`` already used in this process;
+                the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
             grpc.RpcError: the parser service failed.
         """
