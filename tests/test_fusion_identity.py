@@ -24,7 +24,7 @@ from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from services.common import auth
 from services.common.server import ServerOptions, run_until_signalled
-from services.fusion_server.client import FusionClient, client_credentials_from_env, intrinsics_to_proto
+from services.fusion_server.client import FusionClient, client_credentials_from_env
 from services.fusion_server.server import serve
 
 H, W = 24, 32
