@@ -434,7 +434,8 @@ def write_markdown(report: dict, path: Path) -> None:
 
 def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
             overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
-            timeout_s: Optional[float] = None, token: Optional[str] = None, progress: bool = True,
+            timeout_s: Optional[float] = None, token: Optional[str] = None, fusion_token: Optional[str] = None,
+            progress: bool = True,
             offline_report: Optional[str | Path] = None,
             context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
@@ -448,6 +449,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             (no processes started; the agents must already run their missions).
         timeout_s: overall bound (default ``sim.timeout_s``).
         token: bearer token for the services (also passed to started processes).
+        fusion_token: this client's own token for the fusion server when it checks per-agent tokens
+            (default ``token``; ``docs/security.md``).
         offline_report: folder or ``report.json`` of an earlier every-frame run on the same dataset; its
             agents' ROI PSNR is reported next to ``roi_psnr_all_frames`` (``agent.realtime`` runs).
         context_report: ``report.json`` of the same sim mapped with ``mapper.roi_render=context``:
@@ -511,7 +514,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             addrs = dict(attach)
         for p in plans:
             p.address = addrs[p.name]
-        fusion = FusionClient(addrs["fusion_server"], token=token, timeout_s=120.0)
+        fusion = FusionClient(addrs["fusion_server"], token=fusion_token or token, timeout_s=120.0)
         clients.append(fusion)
         fusion.wait_ready(60)
         agents = {p.name: AgentClient(p.address, token=token) for p in plans}

@@ -2,7 +2,11 @@
 environment started locally (service host names → 127.0.0.1, container ports → free local ports,
 volumes → temp/bind folders, the ``postgres`` service → the test PostgreSQL, the replicas' network
 alias ``dns:///fusion:PORT`` → ``ipv4:`` of both local replicas) until its healthcheck passes (SPEC §1
-deployment, §8; issue 14: two fusion replicas on one PostgreSQL)."""
+deployment, §8; issue 14: two fusion replicas on one PostgreSQL).
+
+Per-robot credentials: compose secrets (``/run/secrets/<name>`` → the secret's file when started
+locally); each agent gets only its own fusion token, the replicas the token hashes, and each token
+identifies its own agent."""
 
 from __future__ import annotations
 
@@ -81,6 +85,45 @@ def test_compose_schema(compose):
     assert (DEPLOY / "gausslite.yaml").is_file()
 
 
+def _secret_file(compose: dict, name: str) -> Path:
+    """Local path of a compose secret's ``file`` (compose variable substitution, relative to deploy/)."""
+    return (DEPLOY / _interpolate(compose["secrets"][name]["file"])).resolve()
+
+
+def _secret_names(svc: dict) -> list:
+    return [s if isinstance(s, str) else s["source"] for s in svc.get("secrets", [])]
+
+
+def test_compose_provisions_per_robot_credentials(compose):
+    from services.common.auth import AgentTokens, read_secret
+
+    services = compose["services"]
+
+    def secret_of(name: str, var: str) -> str:
+        path = _env(services[name])[var]
+        assert path.startswith("/run/secrets/"), (name, var, path)
+        secret = path[len("/run/secrets/"):]
+        assert secret in _secret_names(services[name]) and secret in compose["secrets"]
+        return secret
+
+    hashes = {secret_of(n, "GAUSSLITE_AGENT_TOKENS_FILE") for n in FUSION}
+    assert len(hashes) == 1
+    hashes = hashes.pop()
+    store = AgentTokens(_secret_file(compose, hashes))  # a valid token file: only hashes
+    identity = {}
+    for name in ("agent_a", "agent_b", "report"):
+        secret = secret_of(name, "GAUSSLITE_FUSION_TOKEN_FILE")
+        assert _secret_names(services[name]) == [secret]  # its own token, nothing else
+        token = read_secret(_secret_file(compose, secret))
+        assert token not in _secret_file(compose, hashes).read_text()
+        identity[name] = store.identify(token)
+    assert identity == {"agent_a": "agent_a", "agent_b": "agent_b", "report": "report"}
+    for name in ("agent_a", "agent_b"):  # each agent pushes under the id its token names
+        assert _env(services[name])["GAUSSLITE_AGENT_ID"] == identity[name]
+    for name, svc in services.items():  # only the fusion replicas see the token hashes
+        assert (hashes in _secret_names(svc)) == (name in FUSION), name
+
+
 def test_docker_compose_config_validates():
     exe = shutil.which("docker-compose")
     if exe is None:
@@ -150,6 +193,10 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
             else:
                 (tmp_path / src).mkdir(exist_ok=True)
                 paths[dst] = str(tmp_path / src)
+        for secret in svc.get("secrets", []):  # compose mounts secrets at /run/secrets/<target>
+            src = secret if isinstance(secret, str) else secret["source"]
+            target = secret if isinstance(secret, str) else secret.get("target", src)
+            paths[f"/run/secrets/{target}"] = str(_secret_file(compose, src))
     base_env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
     procs = {}
     try:
@@ -193,6 +240,19 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
                         time.sleep(0.5)
                 assert st.agent_id == name
                 assert st.task_id == _env(services[name])["GAUSSLITE_AGENT_TASK_ID"]
+        # the replicas know each robot by its own token: agent_a reads, but may not write agent_b
+        import grpc
+
+        from gausslite.camera import Intrinsics
+        from services.common.auth import read_secret
+        from services.fusion_server.client import FusionClient
+
+        token_a = read_secret(paths[_env(services["agent_a"])["GAUSSLITE_FUSION_TOKEN_FILE"]])
+        with FusionClient(f"127.0.0.1:{local_port['fusion_server']}", token=token_a, max_retries=0) as fc:
+            fc.stats()
+            with pytest.raises(grpc.RpcError) as ei:
+                fc.open_session("agent_b", "probe", Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48))
+            assert ei.value.code() == grpc.StatusCode.PERMISSION_DENIED
     finally:
         for p in procs.values():
             if p.poll() is None:

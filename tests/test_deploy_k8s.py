@@ -122,3 +122,29 @@ def test_parser_and_agent_example_are_wired_to_the_services():
     for c in (parser, agent):  # the commands are valid CLI invocations
         args = build_parser().parse_args(c["command"][1:])
         assert args.command == "serve"
+
+
+def _secret_mount(deploy: dict, path: str) -> tuple:
+    """(volume mount, Secret name) that provide the file ``path`` in ``deploy``'s first container."""
+    c = _container(deploy)
+    mounts = [m for m in c.get("volumeMounts", []) if path.startswith(m["mountPath"].rstrip("/") + "/")]
+    assert len(mounts) == 1, path
+    volumes = {v["name"]: v for v in deploy["spec"]["template"]["spec"]["volumes"]}
+    return mounts[0], volumes[mounts[0]["name"]]["secret"]["secretName"]
+
+
+def test_per_robot_credentials_come_from_their_own_secrets():
+    fusion, agent = by_kind("Deployment", "fusion"), by_kind("Deployment", "agent-example")
+    tokens_path = _env(_container(fusion))["GAUSSLITE_AGENT_TOKENS_FILE"]["value"]
+    mount, tokens_secret = _secret_mount(fusion, tokens_path)
+    # a whole-volume mount (no subPath): the kubelet's Secret updates reach the pod, revocations apply live
+    assert "subPath" not in mount and mount.get("readOnly") is True
+    token_path = _env(_container(agent))["GAUSSLITE_FUSION_TOKEN_FILE"]["value"]
+    amount, agent_secret = _secret_mount(agent, token_path)
+    assert "subPath" not in amount and agent_secret != tokens_secret
+    # the token file's key is the file name the server reads; the robot sees only its own token
+    assert tokens_path.rsplit("/", 1)[1] == "fusion_tokens.json" and token_path.rsplit("/", 1)[1] == "token"
+    names = {v.get("secret", {}).get("secretName") for v in agent["spec"]["template"]["spec"]["volumes"]}
+    assert tokens_secret not in names
+    readme = (K8S / "README.md").read_text()
+    assert tokens_secret in readme and agent_secret in readme and "gausslite tokens" in readme

@@ -2,7 +2,9 @@
 (``grpc.health.v1.Health/Check``) of a GaussLite server; exit 0 when SERVING, 1 otherwise (also on
 connection errors or when the deadline passes). Used by the docker-compose healthchecks.
 
-Environment fallbacks: ``GAUSSLITE_HEALTH_TARGET``, ``GAUSSLITE_TLS_CA`` (PEM CA → TLS).
+Environment fallbacks: ``GAUSSLITE_HEALTH_TARGET``, ``GAUSSLITE_TLS_CA`` (PEM CA → TLS),
+``GAUSSLITE_TLS_CLIENT_CERT`` / ``GAUSSLITE_TLS_CLIENT_KEY`` (client certificate for a server that
+requires mutual TLS).
 """
 
 from __future__ import annotations
@@ -20,18 +22,32 @@ def register(subparsers) -> None:
     p.add_argument("--service", default="", help="service name, e.g. gausslite.v1.Agent ('' = whole server)")
     p.add_argument("--timeout", type=float, default=3.0, help="deadline in seconds (default 3)")
     p.add_argument("--tls-ca", default=None, help="PEM CA certificate for TLS (env GAUSSLITE_TLS_CA)")
+    p.add_argument("--tls-client-cert", default=None,
+                   help="PEM client certificate for mutual TLS (env GAUSSLITE_TLS_CLIENT_CERT)")
+    p.add_argument("--tls-client-key", default=None, help="its PEM key (env GAUSSLITE_TLS_CLIENT_KEY)")
     p.set_defaults(func=_handle)
 
 
-def check_health(target: str, service: str = "", timeout_s: float = 3.0, tls_ca: str | None = None) -> str:
+def check_health(target: str, service: str = "", timeout_s: float = 3.0, tls_ca: str | None = None,
+                 client_cert: str | None = None, client_key: str | None = None) -> str:
     """Health status name of ``service`` at ``target`` (``SERVING``, ``NOT_SERVING``, ``SERVICE_UNKNOWN``...),
-    or ``UNREACHABLE: <code>`` when the call fails."""
+    or ``UNREACHABLE: <code>`` when the call fails.
+
+    Args:
+        tls_ca (str | None): PEM CA file → TLS. client_cert, client_key (str | None): PEM files of a
+            client certificate (mutual TLS).
+    Raises:
+        OSError: a PEM file is unreadable. ValueError: only one of client certificate and key.
+    """
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-    if tls_ca:
-        with open(tls_ca, "rb") as f:
-            ch = grpc.secure_channel(target, grpc.ssl_channel_credentials(f.read()))
+    if bool(client_cert) != bool(client_key):
+        raise ValueError("a client certificate needs its key (--tls-client-cert and --tls-client-key)")
+    if tls_ca or client_cert:
+        read = lambda p: open(p, "rb").read() if p else None  # noqa: E731
+        creds = grpc.ssl_channel_credentials(read(tls_ca), read(client_key), read(client_cert))
+        ch = grpc.secure_channel(target, creds)
     else:
         ch = grpc.insecure_channel(target)
     with ch:
@@ -48,6 +64,13 @@ def _handle(args: argparse.Namespace) -> int:
     if not target:
         print("gausslite health: error: --target HOST:PORT is required", file=sys.stderr)
         return 2
-    status = check_health(target, args.service, args.timeout, args.tls_ca or os.environ.get("GAUSSLITE_TLS_CA"))
+    env = os.environ
+    try:
+        status = check_health(target, args.service, args.timeout, args.tls_ca or env.get("GAUSSLITE_TLS_CA"),
+                              args.tls_client_cert or env.get("GAUSSLITE_TLS_CLIENT_CERT"),
+                              args.tls_client_key or env.get("GAUSSLITE_TLS_CLIENT_KEY"))
+    except (ValueError, OSError) as e:
+        print(f"gausslite health: error: {e}", file=sys.stderr)
+        return 2
     print(f"{target} {args.service or '(server)'}: {status}")
     return 0 if status == "SERVING" else 1

@@ -6,8 +6,10 @@ imported lazily inside the handler, so the core ``gausslite`` package never impo
 
 Every option falls back to an environment variable: ``GAUSSLITE_<SERVICE>_HOST``,
 ``GAUSSLITE_<SERVICE>_PORT``, ``GAUSSLITE_<SERVICE>_CONFIG``, ``GAUSSLITE_TOKEN``,
-``GAUSSLITE_TLS_CERT``, ``GAUSSLITE_TLS_KEY``, ``GAUSSLITE_<SERVICE>_METRICS_PORT`` /
-``GAUSSLITE_METRICS_PORT`` (Prometheus ``/metrics`` port; 0 or unset = off).
+``GAUSSLITE_TLS_CERT``, ``GAUSSLITE_TLS_KEY``, ``GAUSSLITE_TLS_CLIENT_CA`` (mutual TLS),
+``GAUSSLITE_AGENT_TOKENS_FILE`` (per-agent token hashes), ``GAUSSLITE_FLEET_TOKEN_WRITES``,
+``GAUSSLITE_<SERVICE>_METRICS_PORT`` / ``GAUSSLITE_METRICS_PORT`` (Prometheus ``/metrics`` port; 0 or
+unset = off). Credentials and who may write what: ``docs/security.md``.
 """
 
 from __future__ import annotations
@@ -45,6 +47,14 @@ def register(subparsers) -> None:
     p.add_argument("--token", default=None, help="require 'authorization: Bearer TOKEN' (env GAUSSLITE_TOKEN)")
     p.add_argument("--tls-cert", default=None, help="PEM certificate (env GAUSSLITE_TLS_CERT)")
     p.add_argument("--tls-key", default=None, help="PEM private key (env GAUSSLITE_TLS_KEY)")
+    p.add_argument("--tls-client-ca", default=None,
+                   help="PEM CA of client certificates: mutual TLS, certificate CN = agent id (env GAUSSLITE_TLS_CLIENT_CA)")
+    p.add_argument("--agent-tokens", default=None,
+                   help="fusion only: JSON/YAML file of per-agent token hashes (env GAUSSLITE_AGENT_TOKENS_FILE; "
+                        "`gausslite tokens`)")
+    p.add_argument("--fleet-token-writes", action="store_true", default=None,
+                   help="the fleet token keeps write access to every agent next to per-agent credentials "
+                        "(migration; env GAUSSLITE_FLEET_TOKEN_WRITES=1)")
     p.add_argument("--config", default=None, help="service config file (env GAUSSLITE_<SERVICE>_CONFIG)")
     p.add_argument("--max-workers", type=int, default=8, help="handler threads")
     p.add_argument("--grace", type=float, default=5.0, help="shutdown grace period, seconds")
@@ -58,7 +68,8 @@ def resolve_options(args: argparse.Namespace, env=None):
     """Merge CLI arguments with environment fallbacks into (ServerOptions, config_path).
 
     Raises:
-        ValueError: a port from the environment is not an integer.
+        ValueError: a port from the environment is not an integer; ``--agent-tokens`` for another
+            service than fusion (the only one that checks who writes what).
     """
     from services.common.metrics import metrics_port_from
     from services.common.server import ServerOptions
@@ -66,6 +77,12 @@ def resolve_options(args: argparse.Namespace, env=None):
     env = os.environ if env is None else env
     entry = SERVICES[args.service]
     prefix = f"GAUSSLITE_{args.service.upper()}_"
+    agent_tokens = getattr(args, "agent_tokens", None)
+    if agent_tokens and args.service != "fusion":
+        raise ValueError("--agent-tokens applies to the fusion server only (the service that checks which agent "
+                         "writes what); the parser and agent services take the fleet token or client certificates")
+    if args.service == "fusion":
+        agent_tokens = agent_tokens or env.get("GAUSSLITE_AGENT_TOKENS_FILE") or None
     port = args.port if args.port is not None else int(env.get(prefix + "PORT", entry.default_port))
     opts = ServerOptions(
         host=args.host or env.get(prefix + "HOST", "127.0.0.1"),
@@ -73,6 +90,10 @@ def resolve_options(args: argparse.Namespace, env=None):
         token=args.token or env.get("GAUSSLITE_TOKEN") or None,
         tls_cert=args.tls_cert or env.get("GAUSSLITE_TLS_CERT") or None,
         tls_key=args.tls_key or env.get("GAUSSLITE_TLS_KEY") or None,
+        tls_client_ca=getattr(args, "tls_client_ca", None) or env.get("GAUSSLITE_TLS_CLIENT_CA") or None,
+        agent_tokens_file=agent_tokens or None,
+        fleet_token_writes=(True if getattr(args, "fleet_token_writes", None)
+                            or env.get("GAUSSLITE_FLEET_TOKEN_WRITES", "").lower() in ("1", "true", "yes") else None),
         max_workers=args.max_workers,
         grace_s=args.grace,
         metrics_port=metrics_port_from(getattr(args, "metrics_port", None),

@@ -72,6 +72,9 @@ def register(subparsers) -> None:
                         "(rewrites its report.json/report.md, runs nothing)")
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
     p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
+    p.add_argument("--fusion-token", default=None,
+                   help="this client's own token for the fusion server when it checks per-agent tokens "
+                        "(env GAUSSLITE_FUSION_TOKEN, or the file GAUSSLITE_FUSION_TOKEN_FILE; default --token)")
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
                    help="drive running services instead of starting processes (parser=..,fusion_server=..,"
                         "agent_a=..,agent_b=..; the compose 'report' service uses this)")
@@ -178,12 +181,16 @@ def _handle(args: argparse.Namespace) -> int:
     if args.merge_only:
         return _merge_context(args)
     try:
+        from services.common.auth import read_secret
         from services.sim import run_sim
 
+        fusion_token = args.fusion_token or os.environ.get("GAUSSLITE_FUSION_TOKEN") or (
+            read_secret(os.environ["GAUSSLITE_FUSION_TOKEN_FILE"]) if os.environ.get("GAUSSLITE_FUSION_TOKEN_FILE")
+            else None)
         res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks, attach=attach,
                       offline_report=args.offline_report,
                       timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None,
-                      context_report=args.context_report)
+                      fusion_token=fusion_token, context_report=args.context_report)
         if args.baseline:
             res = _run_baseline(args, res, overrides, tasks, attach)
     except KeyboardInterrupt:

@@ -8,7 +8,9 @@ page opened meanwhile shows the loading progress (progress bar and notification)
 The GUI panel switches the colouring (RGB, κ, ROI), shows only the ROI (active) Gaussians, toggles
 keyframe trajectories and frusta and, with ``--fusion``, lists agents, shares, bytes and versions.
 ``--host 0.0.0.0`` serves the page to other machines. Environment fallbacks: ``GAUSSLITE_VIEW_PORT``,
-``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``, ``GAUSSLITE_TLS_CA``.
+``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``, ``GAUSSLITE_TLS_CA``; a per-agent fusion token
+(``GAUSSLITE_FUSION_TOKEN`` / ``GAUSSLITE_FUSION_TOKEN_FILE``) and a client certificate
+(``GAUSSLITE_TLS_CLIENT_CERT`` / ``GAUSSLITE_TLS_CLIENT_KEY``) as for the agents (``docs/security.md``).
 """
 
 from __future__ import annotations
@@ -91,9 +93,16 @@ def _handle(args: argparse.Namespace) -> int:
             from services.fusion_server.client import FusionClient
             from services.viewer.feed import FusionFeed
 
-            ca = args.tls_ca or env.get("GAUSSLITE_TLS_CA")
-            root = open(ca, "rb").read() if ca else None
-            client = FusionClient(fusion, token=args.token or env.get("GAUSSLITE_TOKEN") or None, root_cert=root)
+            from services.fusion_server.client import client_credentials_from_env
+
+            try:
+                creds = client_credentials_from_env({**env, **({"GAUSSLITE_TLS_CA": args.tls_ca} if args.tls_ca else {})})
+            except (ValueError, OSError) as e:
+                print(f"gausslite view: error: {e}", file=sys.stderr)
+                return 2
+            if args.token:
+                creds["token"] = args.token
+            client = FusionClient(fusion, **creds)
             feed = FusionFeed(viewer, client, poll_s=args.poll).start()
             print(f"following fusion server {fusion} at {viewer.url}", flush=True)
         deadline = None if args.timeout is None else time.monotonic() + args.timeout

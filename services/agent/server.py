@@ -67,8 +67,15 @@ class AgentSettings:
         agent_id (str): id on the fusion server.
         parser_address (str): parser service ``host:port``; empty → in-process rule parser.
         fusion_address (str): fusion server ``host:port``; empty → no pushes (local mapping only).
-        token (str | None): bearer token sent to the parser and fusion services.
+        token (str | None): bearer token sent to the parser service, and to the fusion server unless
+            a per-agent fusion token is set (the fleet token: team-wide mode).
+        fusion_token (str | None): this robot's own token for the fusion server (per-robot identity:
+            it may write only ``agent_id``'s data there; ``docs/security.md``).
+        fusion_token_file (str | None): file holding that token (a docker secret / mounted Kubernetes
+            Secret); read whenever a mission connects, so a rotated token is picked up by the next one.
         root_cert (str | None): PEM file of the CA for TLS to parser/fusion (None: plaintext).
+        tls_client_cert (str | None), tls_client_key (str | None): PEM client certificate and key
+            presented to the fusion server (mutual TLS; the certificate's CN must be ``agent_id``).
         data_dir (str | None): where finished missions write ``<agent_id>/<mission>/map.ply`` and
             ``summary.json``.
         dataset (str | None), task (str | None), task_id (str | None): auto-start a replay mission at boot.
@@ -83,7 +90,11 @@ class AgentSettings:
     parser_address: str = ""
     fusion_address: str = ""
     token: Optional[str] = None
+    fusion_token: Optional[str] = None
+    fusion_token_file: Optional[str] = None
     root_cert: Optional[str] = None
+    tls_client_cert: Optional[str] = None
+    tls_client_key: Optional[str] = None
     data_dir: Optional[str] = None
     dataset: Optional[str] = None
     task: Optional[str] = None
@@ -139,10 +150,18 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
     def _fusion_client(self, address: str):
         if not address:
             return None
+        from services.common.auth import read_secret
         from services.fusion_server.client import FusionClient
 
-        root = Path(self.settings.root_cert).read_bytes() if self.settings.root_cert else None
-        c = FusionClient(address, token=self.settings.token, root_cert=root)
+        s = self.settings
+        try:
+            token = s.fusion_token or (read_secret(s.fusion_token_file) if s.fusion_token_file else None) or s.token
+            read = lambda path: Path(path).read_bytes() if path else None  # noqa: E731
+            c = FusionClient(address, token=token, root_cert=read(s.root_cert), client_cert=read(s.tls_client_cert),
+                             client_key=read(s.tls_client_key))
+        except (OSError, ValueError) as e:  # a credential file gone or broken since start-up
+            log.error("agent %s: fusion credentials unusable: %s", s.agent_id, e)
+            raise MissionError(f"fusion credentials unusable: {e}") from None
         self._clients.append(c)
         return c
 
@@ -175,7 +194,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
         Raises:
             ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
-            MissionError: another mission is still mapping; ``mission_id`` already used in this process.
+            MissionError: another mission is still mapping; ``mission_id`` already used in this process;
+                the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
             grpc.RpcError: the parser service failed.
         """
@@ -426,6 +446,10 @@ ENV = {
     "task_id": "GAUSSLITE_AGENT_TASK_ID",
     "annotations_path": "GAUSSLITE_AGENT_ANNOTATIONS",
     "root_cert": "GAUSSLITE_TLS_CA",
+    "fusion_token": "GAUSSLITE_FUSION_TOKEN",
+    "fusion_token_file": "GAUSSLITE_FUSION_TOKEN_FILE",
+    "tls_client_cert": "GAUSSLITE_TLS_CLIENT_CERT",
+    "tls_client_key": "GAUSSLITE_TLS_CLIENT_KEY",
 }
 
 
@@ -435,12 +459,19 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
     finish) and the YAML config file (``agent``/``mapper`` sections).
 
     Raises:
-        FileNotFoundError / ValueError / pydantic.ValidationError: bad config.
+        FileNotFoundError / ValueError / pydantic.ValidationError: bad config; an unreadable or empty
+            ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate and key.
     """
+    from services.common.auth import read_secret
+
     env = os.environ if env is None else env
     overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
     kw = {k: env.get(v) or None for k, v in ENV.items()}
     kw = {k: v for k, v in kw.items() if v is not None}
+    if kw.get("fusion_token_file"):
+        read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
+    if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):
+        raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
     return AgentSettings(**kw, token=token, config=load_agent_config(config_path, overrides),
                          auto_finish=(env.get("GAUSSLITE_AGENT_AUTO_FINISH", "1").lower() not in ("0", "false", "no")))
 

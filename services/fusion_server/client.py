@@ -2,7 +2,7 @@
 
 Source: paper Sec. III-E ("Multi-Agent Refinement": agents share their ROI subset with κ and their
 keyframes); wire format (``docs/wire-format.md``): chunked, resumable, idempotent upload by
-(agent id, map version, chunk index); deadlines on every client call; TLS and bearer token.
+(agent id, map version, chunk index); deadlines on every client call; TLS, mutual TLS and bearer token.
 
 Usage::
 
@@ -24,6 +24,11 @@ balancing (``round_robin`` over the resolved addresses, re-resolved when connect
 gRPC's retry policy re-sends calls that fail with ``UNAVAILABLE`` before the server saw them
 (:func:`channel_options`); any replica accepts any agent's chunks, and an upload interrupted on one
 replica resumes on another.
+
+Credentials (``docs/security.md``): a robot sends its own per-agent token (``token=``) and/or presents
+a client certificate whose CN is its agent id (``client_cert=``, ``client_key=``); the server lets it
+write only its own agent id (``PERMISSION_DENIED`` otherwise). :func:`client_credentials_from_env`
+reads them the way the agent service and the CLI do.
 
 Error handling: every call carries a deadline (``timeout_s`` unless stated otherwise). Idempotent
 calls (everything except :meth:`FusionClient.fuse`) are retried on ``UNAVAILABLE`` and
@@ -64,6 +69,60 @@ DEFAULT_DEPTH_SCALE = 5000.0
 
 #: Methods that gRPC's retry policy may re-send on UNAVAILABLE (all but the non-idempotent Fuse).
 RETRIED_METHODS = ("OpenSession", "UploadSubset", "GetUploadStatus", "UploadKeyframes", "DownloadFused", "GetStats")
+
+
+def client_credentials_from_env(env=None) -> dict:
+    """Fusion-client credentials from the environment, as keyword arguments of :class:`FusionClient`.
+
+    * ``token``: ``GAUSSLITE_FUSION_TOKEN``, else the file ``GAUSSLITE_FUSION_TOKEN_FILE`` (a docker
+      secret / mounted Kubernetes Secret), else the fleet token ``GAUSSLITE_TOKEN``, else None.
+    * ``root_cert``: the PEM file ``GAUSSLITE_TLS_CA`` (set → TLS).
+    * ``client_cert``, ``client_key``: the PEM files ``GAUSSLITE_TLS_CLIENT_CERT`` and
+      ``GAUSSLITE_TLS_CLIENT_KEY`` (mutual TLS).
+
+    Args:
+        env (Mapping | None): environment (default ``os.environ``).
+    Returns:
+        dict with keys ``token``, ``root_cert``, ``client_cert``, ``client_key`` (None when unset).
+    Raises:
+        OSError: a named file is unreadable. ValueError: an empty/invalid token file, or only one of
+            client certificate and key.
+    """
+    import os
+    from pathlib import Path
+
+    from services.common.auth import read_secret
+
+    env = os.environ if env is None else env
+    token = env.get("GAUSSLITE_FUSION_TOKEN") or None
+    if token is None and env.get("GAUSSLITE_FUSION_TOKEN_FILE"):
+        token = read_secret(env["GAUSSLITE_FUSION_TOKEN_FILE"])
+    token = token or env.get("GAUSSLITE_TOKEN") or None
+    read = lambda var: Path(env[var]).read_bytes() if env.get(var) else None  # noqa: E731
+    cert, key = read("GAUSSLITE_TLS_CLIENT_CERT"), read("GAUSSLITE_TLS_CLIENT_KEY")
+    if (cert is None) != (key is None):
+        raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
+    return {"token": token, "root_cert": read("GAUSSLITE_TLS_CA"), "client_cert": cert, "client_key": key}
+
+
+def channel_credentials(root_cert: Optional[bytes] = None, client_cert: Optional[bytes] = None,
+                        client_key: Optional[bytes] = None) -> Optional[grpc.ChannelCredentials]:
+    """TLS channel credentials, or None for plaintext (no CA and no client certificate).
+
+    Args:
+        root_cert (bytes | None): PEM CA certificate(s) the server's certificate must chain to (None
+            with a client certificate: the system's roots).
+        client_cert (bytes | None), client_key (bytes | None): PEM client certificate chain and key
+            (mutual TLS; the certificate's CN is the agent id).
+    Raises:
+        ValueError: only one of client certificate and key.
+    """
+    if (client_cert is None) != (client_key is None):
+        raise ValueError("mutual TLS needs both a client certificate and its key")
+    if root_cert is None and client_cert is None:
+        return None
+    return grpc.ssl_channel_credentials(root_certificates=root_cert, private_key=client_key,
+                                        certificate_chain=client_cert)
 
 
 def service_config(max_attempts: int = 5) -> dict:
@@ -259,17 +318,21 @@ class FusionClient:
     Args:
         target (str): ``host:port`` of the fusion server, or several replicas as
             ``dns:///name:port`` / ``ipv4:addr1:port,addr2:port`` (round-robin load balancing).
-        token (str | None): bearer token sent as ``authorization: Bearer <token>`` on every call.
+        token (str | None): bearer token sent as ``authorization: Bearer <token>`` on every call: the
+            robot's own per-agent token, or the fleet token (team-wide mode).
         root_cert (bytes | None): PEM root certificate(s); set → TLS channel, else plaintext.
+        client_cert (bytes | None), client_key (bytes | None): PEM client certificate and key for
+            mutual TLS (TLS even without ``root_cert``: the system's roots then); the CN is the agent id.
         timeout_s (float): deadline of each call (seconds); :meth:`fuse` uses its own, longer one.
         max_retries (int): retries of transient failures (UNAVAILABLE, DEADLINE_EXCEEDED).
         backoff_s (float): first retry delay; doubles every retry.
     Raises:
-        ValueError: non-positive timeout or negative retries/backoff.
+        ValueError: non-positive timeout or negative retries/backoff; only one of client cert/key.
     """
 
     def __init__(self, target: str, *, token: Optional[str] = None, root_cert: Optional[bytes] = None,
-                 timeout_s: float = 30.0, max_retries: int = 5, backoff_s: float = 0.2):
+                 timeout_s: float = 30.0, max_retries: int = 5, backoff_s: float = 0.2,
+                 client_cert: Optional[bytes] = None, client_key: Optional[bytes] = None):
         if not timeout_s > 0 or max_retries < 0 or backoff_s < 0:
             raise ValueError("timeout_s must be > 0, max_retries and backoff_s >= 0")
         self.target = target
@@ -278,8 +341,9 @@ class FusionClient:
         self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         opts = channel_options(CLIENT_MAX_MESSAGE_BYTES)
-        if root_cert is not None:
-            self._channel = grpc.secure_channel(target, grpc.ssl_channel_credentials(root_certificates=root_cert), opts)
+        creds = channel_credentials(root_cert, client_cert, client_key)
+        if creds is not None:
+            self._channel = grpc.secure_channel(target, creds, opts)
         else:
             self._channel = grpc.insecure_channel(target, opts)
         self._stub = fusion_pb2_grpc.FusionStub(self._channel)
@@ -338,7 +402,8 @@ class FusionClient:
             task_text (str): the agent's task.
             intrinsics (gausslite.camera.Intrinsics): the agent's camera (pixels).
         Raises:
-            grpc.RpcError: INVALID_ARGUMENT (bad id / intrinsics), UNAUTHENTICATED, ...
+            grpc.RpcError: INVALID_ARGUMENT (bad id / intrinsics), UNAUTHENTICATED, PERMISSION_DENIED
+            (``agent_id`` is not the caller's own), ...
         """
         req = fusion_pb2.OpenSessionRequest(agent_id=agent_id, task_text=task_text,
                                             intrinsics=intrinsics_to_proto(intrinsics))
@@ -372,7 +437,8 @@ class FusionClient:
         Raises:
             ValueError: the subset cannot be encoded (non-finite values, bad id).
             grpc.RpcError: INVALID_ARGUMENT, NOT_FOUND (no session), FAILED_PRECONDITION (older than
-            the latest complete version), RESOURCE_EXHAUSTED, or a transient error after
+            the latest complete version), RESOURCE_EXHAUSTED, PERMISSION_DENIED (``agent_id`` is not
+            the caller's own), or a transient error after
             ``max_retries`` retries.
         """
         chunks = encode_subset(gaussians, agent_id, int(map_version), chunk_gaussians=int(chunk_gaussians),
@@ -464,7 +530,8 @@ class FusionClient:
             (oldest dropped).
         Raises:
             ValueError: a frame cannot be encoded.
-            grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session), ...
+            grpc.RpcError: INVALID_ARGUMENT (bad pose / image), NOT_FOUND (no session),
+            PERMISSION_DENIED (``agent_id`` is not the caller's own), ...
         """
         if rois is not None and len(rois) != len(keyframes):
             raise ValueError(f"{len(rois)} ROIs for {len(keyframes)} keyframes")
@@ -596,5 +663,5 @@ class _Incomplete(Exception):
         self.missing = missing
 
 
-__all__ = ["FusionClient", "service_config", "channel_options", "RETRIED_METHODS", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
+__all__ = ["FusionClient", "client_credentials_from_env", "channel_credentials", "service_config", "channel_options", "RETRIED_METHODS", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
            "keyframe_to_proto", "intrinsics_to_proto", "fuse_result_from_proto"]

@@ -10,8 +10,16 @@ Status codes (see also ``proto/gausslite_rpc/fusion.proto``): INVALID_ARGUMENT f
 (never a crash), NOT_FOUND for an agent without a session (the session is the addressed entity) and
 unknown fused versions, FAILED_PRECONDITION for a Fuse without complete subsets / refine without
 keyframes / an upload older than the agent's latest complete version, RESOURCE_EXHAUSTED for
-oversized messages and subsets beyond the server's limits, UNAUTHENTICATED from the bearer-token
-interceptor. Every rejected call is logged (``rejected <method> from <peer>: <code>: <reason>``).
+oversized messages and subsets beyond the server's limits, UNAUTHENTICATED for missing, wrong or
+revoked credentials, PERMISSION_DENIED for a write to another agent's data. Every rejected call is
+logged (``rejected <method> from <peer>: <code>: <reason>``).
+
+Who may do what (``docs/security.md``): every call except health/reflection needs a credential when
+the server has any (:mod:`services.common.auth`: the fleet token, per-agent tokens from a hashed
+token file, client certificates whose CN is the agent id). The writes — ``OpenSession`` (open or
+resume a session), ``UploadSubset`` and ``UploadKeyframes`` — are allowed only for the caller's own
+agent id (any id in the team-wide fleet-token mode); reads (``GetStats``, ``GetUploadStatus``,
+``GetKeyframePoses``, ``DownloadFused``) and ``Fuse`` are open to every authenticated caller.
 
 Persistence: a :class:`services.fusion_server.store.SqlFusionStore` — SQLite (WAL,
 synchronous=FULL) under the data directory by default, or PostgreSQL selected by a
@@ -37,7 +45,6 @@ import logging
 import math
 import os
 import queue
-import re
 import sys
 import threading
 import time
@@ -56,8 +63,10 @@ from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, Limit
                                   WireError, WireLimits, apply_delta, assemble, decode_chunk, encode_subset,
                                   peek_header)
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from services.common.auth import AGENT_ID_RE, Authenticator, AuthError
 from services.common.metrics import metrics_port_from
-from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+from services.common.server import (RunningServer, ServerOptions, authenticator_from_options, build_server,
+                                    run_until_signalled)
 from services.fusion_server.metrics import FusionMetrics, MeteredFusion
 from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe, open_store
 
@@ -65,7 +74,6 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = "gausslite.v1.Fusion"
 DEFAULT_PORT = 50053
-AGENT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 FUSED_AGENT_ID = "fused"
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
 
@@ -241,9 +249,13 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         store (SqlFusionStore): persistent state (SQLite or PostgreSQL).
         config (FusionConfig): limits and defaults.
         max_message_bytes (int): the server's message bound (chunks must fit in it).
+        auth (Authenticator | None): identifies callers for the write checks (None: every caller may
+            write every agent's data, as on a server without credentials).
     """
 
-    def __init__(self, store: SqlFusionStore, config: FusionConfig, max_message_bytes: int):
+    def __init__(self, store: SqlFusionStore, config: FusionConfig, max_message_bytes: int,
+                 auth: Optional[Authenticator] = None):
+        self.auth = auth
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)
@@ -272,6 +284,16 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             t.join(max(0.0, deadline - time.monotonic()))
 
     # ------------------------------------------------------------------ helpers
+    def _check_writer(self, context, agent_id: str) -> None:
+        """Raise _Reject(PERMISSION_DENIED) unless the caller may write ``agent_id``'s data
+        (UNAUTHENTICATED when its credential was revoked since the call began)."""
+        if self.auth is None or not self.auth.enabled:
+            return
+        try:
+            self.auth.identify_context(context).check_write(agent_id)
+        except AuthError as e:
+            raise _Reject(e.code, e.message) from None
+
     def _session(self, agent_id: str) -> Session:
         check_agent_id(agent_id)
         s = self.store.session(agent_id)
@@ -352,6 +374,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
     @_unary_guard
     def OpenSession(self, request, context):  # noqa: N802
         agent = check_agent_id(request.agent_id)
+        self._check_writer(context, agent)
         if len(request.task_text.encode("utf-8")) > self.config.max_task_text_bytes:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                           f"task_text longer than {self.config.max_task_text_bytes} UTF-8 bytes")
@@ -376,6 +399,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "the first UploadSubset message must be the header")
         h = first.header
         agent, version, n_chunks = h.agent_id, int(h.map_version), int(h.n_chunks)
+        self._check_writer(context, check_agent_id(agent))
         self._session(agent)
         if n_chunks < 1:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "n_chunks must be >= 1")
@@ -447,9 +471,13 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
     def UploadKeyframes(self, request_iterator, context):  # noqa: N802
         received = stored = dups = evicted = 0
         agent = ""
+        allowed = set()
         for msg in request_iterator:
             received += 1
             agent = msg.agent_id
+            if agent not in allowed:
+                self._check_writer(context, check_agent_id(agent))
+                allowed.add(agent)
             session = self._session(agent)
             what = f"keyframe {msg.frame_id} of {agent!r}"
             if msg.HasField("intrinsics"):
@@ -746,6 +774,10 @@ class FusionServer:
     def grace_s(self) -> float:
         return self.rpc.grace_s
 
+    def reload(self) -> None:
+        """Re-read the per-agent token file now and the TLS files at the next handshake (SIGHUP)."""
+        self.rpc.reload()
+
     def stop(self, grace_s: Optional[float] = None) -> None:
         """Graceful shutdown: NOT_SERVING, let in-flight calls finish for ``grace_s``, close the store."""
         self.rpc.stop(grace_s)
@@ -758,7 +790,8 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     """Start the fusion server (non-blocking).
 
     Args:
-        options (ServerOptions): bind address, message bound, workers, token, TLS.
+        options (ServerOptions): bind address, message bound, workers, credentials (fleet token,
+            per-agent token file, client CA), TLS.
         config (FusionConfig | None): limits/defaults (default ``FusionConfig()``).
         data_dir (str | None): overrides ``config.data_dir``.
         store (str | None): overrides ``config.store`` (a ``postgresql://`` DSN, or "" for SQLite).
@@ -767,7 +800,9 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     Raises:
         RuntimeError: the address cannot be bound. OSError / sqlite3.Error: unusable data dir.
         StoreError: unreachable PostgreSQL; SchemaTooNew: a store written by a newer GaussLite.
+        ValueError / FileNotFoundError: bad credentials options (token, token file, TLS files).
     """
+    auth = authenticator_from_options(options)
     config = config or FusionConfig()
     if data_dir is not None:
         config = replace(config, data_dir=str(data_dir))
@@ -775,11 +810,11 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
         config = replace(config, store=str(store))
     store = (open_store(config.store, pool_size=config.store_pool_size) if config.store
              else open_store(config.data_dir))
-    servicer = FusionServicer(store, config, options.max_message_bytes)
+    servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
     metered = MeteredFusion(servicer, FusionMetrics())
     try:
         running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(metered, srv),
-                               [SERVICE_NAME], metered.metrics.registry)
+                               [SERVICE_NAME], metered.metrics.registry, authenticator=auth)
     except BaseException:
         store.close()
         raise
@@ -835,9 +870,20 @@ def main(argv=None) -> int:
                         "(env GAUSSLITE_FUSION_STORE; default: SQLite in --data-dir)")
     p.add_argument("--port-file", default=env.get("GAUSSLITE_FUSION_PORT_FILE"),
                    help="write the bound port to this file (env GAUSSLITE_FUSION_PORT_FILE)")
-    p.add_argument("--token", default=env.get("GAUSSLITE_TOKEN"), help="bearer token (env GAUSSLITE_TOKEN)")
+    p.add_argument("--token", default=env.get("GAUSSLITE_TOKEN"),
+                   help="fleet bearer token, team-wide mode (env GAUSSLITE_TOKEN)")
+    p.add_argument("--agent-tokens", default=env.get("GAUSSLITE_AGENT_TOKENS_FILE"),
+                   help="JSON/YAML file of per-agent token hashes, re-read when it changes or on SIGHUP "
+                        "(env GAUSSLITE_AGENT_TOKENS_FILE; `gausslite tokens` makes it)")
+    p.add_argument("--fleet-token-writes", action="store_true",
+                   default=env.get("GAUSSLITE_FLEET_TOKEN_WRITES", "").lower() in ("1", "true", "yes"),
+                   help="the fleet token keeps write access to every agent next to per-agent credentials "
+                        "(migration; env GAUSSLITE_FLEET_TOKEN_WRITES=1)")
     p.add_argument("--tls-cert", default=env.get("GAUSSLITE_TLS_CERT"), help="PEM cert (env GAUSSLITE_TLS_CERT)")
     p.add_argument("--tls-key", default=env.get("GAUSSLITE_TLS_KEY"), help="PEM key (env GAUSSLITE_TLS_KEY)")
+    p.add_argument("--tls-client-ca", default=env.get("GAUSSLITE_TLS_CLIENT_CA"),
+                   help="PEM CA of client certificates: mutual TLS, the certificate CN is the agent id "
+                        "(env GAUSSLITE_TLS_CLIENT_CA)")
     p.add_argument("--config", default=env.get("GAUSSLITE_FUSION_CONFIG"),
                    help="JSON/TOML FusionConfig file (env GAUSSLITE_FUSION_CONFIG)")
     p.add_argument("--max-workers", type=int, default=16, help="handler threads")
@@ -849,7 +895,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     opts = ServerOptions(host=args.host, port=args.port, token=args.token or None, tls_cert=args.tls_cert or None,
-                         tls_key=args.tls_key or None, max_message_bytes=args.max_message_bytes,
+                         tls_key=args.tls_key or None, agent_tokens_file=args.agent_tokens or None,
+                         tls_client_ca=args.tls_client_ca or None,
+                         fleet_token_writes=True if args.fleet_token_writes else None,
+                         max_message_bytes=args.max_message_bytes,
                          max_workers=args.max_workers, grace_s=args.grace)
     try:
         opts.metrics_port = metrics_port_from(args.metrics_port, env.get("GAUSSLITE_FUSION_METRICS_PORT")
