@@ -405,7 +405,8 @@ class _CountingClock:
         self.stepped += gaussians
 
 
-def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24, iters: int = 12) -> dict:
+def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24, iters: int = 12,
+              overrides=()) -> dict:
     """Fit the deterministic clock's :class:`~gausslite.mapping.budget.WorkCost` on this machine: map the first
     ``frames`` frames of ``scene`` with ``iters`` iterations each, then time ``8 × frames`` single idle
     iterations (full-image and ROI-phase, the scene's sensor profile) and fit the linear model."""
@@ -413,7 +414,7 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
 
     ds, profile = load_scene(scene, scene_path(scene, work))
     ann = ds.annotations
-    cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile)
+    cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile, overrides)
     m = cfg.mapper.model_copy(update={"keyframe_budget_s": None, "iters_per_frame": iters,
                                       "warmup_iters": min(cfg.mapper.warmup_iters, iters)})
     from gausslite.mapping.mapper import Mapper
@@ -433,10 +434,14 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
             mapper.optimize(n_iters=1)
             samples.append((clock.renders, clock.pixels, clock.gaussian_renders, clock.stepped,
                             time.perf_counter() - t))
+    full_px = ds[0].intrinsics.width * ds[0].intrinsics.height
+    roi = [s[-1] for s in samples if s[0] and s[1] / s[0] < full_px]
+    full = [s[-1] for s in samples if s[0] and s[1] / s[0] >= full_px]
     cost = fit_work_cost(samples)
     pred = [cost.render_s * r + cost.pixel_s * p + cost.gaussian_s * g + cost.step(s) for r, p, g, s, _ in samples]
     meas = [s[-1] for s in samples]
-    return {"scene": scene, "samples": len(samples), "work_cost": cost.__dict__,
+    return {"scene": scene, "samples": len(samples), "work_cost": cost.__dict__, "roi_cull": m.roi_cull,
+            "full_iter_s": float(np.mean(full)) if full else None, "roi_iter_s": float(np.mean(roi)) if roi else None,
             "mean_measured_s": float(np.mean(meas)), "mean_abs_error_s": float(np.mean(np.abs(np.subtract(pred, meas))))}
 
 
@@ -476,7 +481,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.calibrate:
         work = Path(args.work)
         work.mkdir(parents=True, exist_ok=True)
-        res = calibrate(args.scenes.split(",")[0], work)
+        res = calibrate(args.scenes.split(",")[0], work, overrides=args.overrides)
         print(json.dumps(res, indent=1))
         return 0
 

@@ -62,7 +62,8 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
         return real(*a, **kw)
 
     monkeypatch.setattr(mapper_mod, "rasterize", spy)
-    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3))
+    # roi_cull off: which Gaussians a render draws is the point here (the crop's culling: test below)
+    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, roi_cull=False))
     fr = _frame(0)
     m._seed(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
@@ -88,6 +89,58 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
     kinds = ["all" if c[0] is None else "active" for c in calls[1:]]  # ROI, ROI, warm-up, ROI
     assert kinds == {"context": ["all", "all", "all", "all"], "active": ["active", "active", "all", "active"],
                      "alternate": ["all", "active", "all", "all"]}[mode]
+
+
+def test_roi_update_visible_fits_every_gaussian_the_crop_draws_and_counts_kappa_on_active_ones():
+    """``roi_update='visible'``: an ROI-phase step updates the Gaussians the crop's render draws, inactive ones
+    covering ROI pixels included; Gaussians outside the crop keep their values (no drift from Adam momentum);
+    κ still counts active Gaussians only."""
+    m = Mapper(_cfg(roi_update="visible", roi_crop_pad=0))
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    m._iterate(kf, active_phase=False)  # Adam moments everywhere
+    before = {k: v.detach().clone() for k, v in m.model.params.items()}
+    crop = mapper_mod.crop_keyframe(kf, 0)
+    drawn = torch.zeros(len(m.model), dtype=torch.bool)
+    out = m.render(crop.c2w, crop.K, crop.width, crop.height)
+    drawn[out.ids[out.radii > 0]] = True
+    m._iterate(kf, active_phase=True)
+    act = m.model.active
+    moved = ~torch.isclose(m.model.params["colors"].detach(), before["colors"]).all(dim=1)
+    assert bool((moved & ~act).any())  # inactive Gaussians inside the crop are fitted too
+    assert not bool((moved & ~drawn).any())  # nothing outside the crop moves
+    for name, p in m.model.params.items():
+        assert torch.equal(p.detach()[~drawn], before[name][~drawn]), name
+    assert torch.all(m.model.kappa[act] == 1) and torch.all(m.model.kappa[~act] == 0)
+
+
+def test_roi_cull_renders_the_same_crop():
+    """``roi_cull``: an ROI-phase crop renders only the Gaussians that reach its frustum, whatever the map size,
+    and the crop's render is the same."""
+    fr = _frame(0)
+    outs = []
+    for cull in (False, True):
+        m = Mapper(_cfg(roi_cull=cull, frustum_cull_min=10**9))
+        m._seed(fr, _roi())
+        kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+        crop = mapper_mod.crop_keyframe(kf, 2)
+        outs.append(m._render_view(crop.c2w, crop.K, crop.width, crop.height, crop.frame_id, None, cull=cull))
+    assert len(outs[1].ids) < len(outs[0].ids)
+    assert torch.allclose(outs[0].color, outs[1].color, atol=1e-5)
+    assert torch.allclose(outs[0].alpha, outs[1].alpha, atol=1e-5)
+
+
+def test_roi_phase_views_roi_draws_roi_keyframes_only():
+    """``roi_phase_views='roi'``: ROI-phase iterations draw among the keyframes that see the ROI."""
+    m = Mapper(_cfg(roi_phase_views="roi", window=2, recent_prob=0.5))
+    empty = np.zeros((H, W), bool)
+    for i in range(6):
+        m.map_frame(_frame(i), _roi() if i in (0, 3) else empty)
+    picks = {m._pick_view(m.keyframes.load(5, m.device), roi_phase=True).frame_id for _ in range(60)}
+    assert picks == {0, 3}
+    anyp = {m._pick_view(m.keyframes.load(5, m.device), roi_phase=False).frame_id for _ in range(200)}
+    assert len(anyp) > 2
 
 
 def test_roi_crop_renders_the_same_pixels_as_the_full_image():
