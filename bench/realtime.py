@@ -49,10 +49,11 @@ RESULTS = REPO / "bench" / "results"
 #: bench scenes: dataset, task, resolution, clock and the matched Gaussian cap (a cap uniform reaches at every
 #: budget: measured counts below it, docs/realtime.md)
 SCENES = {
-    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000},
+    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "task": "tum-find-mouse", "cap": 6000},
     "synthetic_circle": {"kind": "synthetic", "frames": 300, "width": 320, "height": 240,
                          "task": "synth-pick-object", "cap": 6000},
     "room0": {"kind": "replica", "downscale": 4.0, "fps": 2.0, "task": "room0-pick-plant", "cap": 6000},
+    "tum_fr1_rpy_cup": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000},
 }
 MODES = ("uniform", "gausslite")
 #: data seconds per keyframe that every budget covers under ``--clock scaled`` (the paper's 0.5 s/frame)
@@ -171,6 +172,24 @@ def score(mapper, ds, ann, task: str) -> dict:
             "ssim": float(np.mean(ss)), "frames_scored": len(ps)}
 
 
+def save_render(mapper, ds, ann, task: str, path: Path) -> None:
+    """A side-by-side PNG (render | ground truth | ROI overlay) of the frame whose ROI is largest."""
+    import cv2
+
+    from gausslite.evaluation import side_by_side
+
+    best, best_n = 0, -1
+    for i in range(0, len(ds), max(1, len(ds) // 30)):
+        fr = ds[i]
+        n = int(ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics).sum())
+        if n > best_n:
+            best, best_n = i, n
+    fr = ds[best]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), side_by_side(mapper.render_frame(fr), fr, ann.roi_mask(task, fr.depth, fr.c2w,
+                                                                                  fr.intrinsics)))
+
+
 def run_one(job: dict) -> dict:
     """One live mission of one (scene, mode, budget, run): replay, finish without a push, score."""
     import torch
@@ -203,12 +222,15 @@ def run_one(job: dict) -> dict:
                "keyframe_iters": int(rt.keyframe_iterations), "idle_iters": int(rt.idle_iterations),
                "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
                "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
+               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
                "kappa_mean_active": float(mapper.model.kappa[mapper.model.active].float().mean())
                if bool(mapper.model.active.any()) else 0.0,
                "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
                "share": bool(sink), "pushes": len(rt.pushes), "share_pct": (100.0 * rt.pushes[-1].n_shared /
                                                                           max(1, rt.pushes[-1].n_total)) if rt.pushes else None}
         res.update(score(mapper, ds, ann, task.id))
+        if job.get("render_dir"):
+            save_render(mapper, ds, ann, task.id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
         if job.get("final_pass") and fp_per_kf:
             mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
             n = mapper.finalize()
@@ -262,7 +284,8 @@ def twin_one(job: dict) -> dict:
                "cap": job["cap"], "twin": True, "n_gaussians": len(mapper.model),
                "n_active": int(mapper.model.active.sum()), "keyframes": len(kfs), "frames": len(ds),
                "keyframe_iters": iters, "idle_iters": 0, "iters_per_keyframe": iters / max(1, len(kfs)),
-               "roi_iters": int(sum(s.active_iters for s in mapper.stats)), "wall_s": 0.0}
+               "roi_iters": int(sum(s.active_iters for s in mapper.stats)), "wall_s": 0.0,
+               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"]}
         res.update(score(mapper, ds, ann, task.id))
         if job.get("final_pass") and fp_per_kf:
             mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
@@ -292,6 +315,7 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
             agg = aggregate(rs, [k for k in keys if any(r.get(k) is not None for r in rs)])
             agg["runs"] = len(rs)
             agg["n_gaussians_runs"] = [r["n_gaussians"] for r in rs]
+            agg["cap_reached_runs"] = sum(bool(r.get("cap_reached")) for r in rs)
             blk[mode] = agg
         if len(by_mode) == 2:
             u = {r["run"]: r for r in by_mode["uniform"]}
@@ -446,12 +470,12 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
 
 
 def _key(r: dict) -> tuple:
-    return (r["scene"], r["mode"], _bkey(r["budget"]), r["run"])
+    return (r["scene"], r["mode"], _bkey(r["budget"]), r["run"], bool(r.get("share")))
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--scenes", default="tum_fr1_rpy,synthetic_circle,tum_fr1_rpy_cup,room0")
     ap.add_argument("--budgets", default="0.25,0.5,1,2", help="seconds per keyframe, comma-separated")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--modes", default=",".join(MODES))
@@ -510,7 +534,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                 for mode in modes:
                     job = {"scene": scene, "path": str(path), "task": args.task or SCENES[scene]["task"], "mode": mode,
                            "budget": b, "run": run, "cap": cap, "clock": args.clock,
-                           "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share}
+                           "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
+                           "render_dir": (str(out.with_name(out.stem + "_renders"))
+                                          if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
                         jobs.append(job)
     t0 = time.time()
