@@ -115,6 +115,30 @@ def test_roi_update_visible_fits_every_gaussian_the_crop_draws_and_counts_kappa_
     assert torch.all(m.model.kappa[act] == 1) and torch.all(m.model.kappa[~act] == 0)
 
 
+@pytest.mark.parametrize("roi_loss", ["roi", "crop"])
+def test_roi_loss_restricts_the_roi_phase_loss_to_roi_pixels_or_the_whole_crop(monkeypatch, roi_loss):
+    seen = []
+    real = mapper_mod.photometric_loss
+
+    def spy(out, kf, *a, **kw):
+        mask = a[2] if len(a) > 2 else kw.get("mask")
+        seen.append((kf.width, kf.height, None if mask is None else int(mask.sum())))
+        return real(out, kf, *a, **kw)
+
+    monkeypatch.setattr(mapper_mod, "photometric_loss", spy)
+    m = Mapper(_cfg(roi_loss=roi_loss, roi_crop_pad=3))
+    fr = _frame(0)
+    m._seed(fr, _roi())
+    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    m._iterate(kf, active_phase=True)
+    w, h, n = seen[-1]
+    assert (w, h) == (20 + 6, 16 + 6)  # the crop: ROI box grown by 3 px
+    if roi_loss == "crop":
+        assert n is None  # every crop pixel
+    else:
+        assert 0 < n <= 20 * 16  # ROI pixels inside the footprint
+
+
 def test_roi_cull_renders_the_same_crop():
     """``roi_cull``: an ROI-phase crop renders only the Gaussians that reach its frustum, whatever the map size,
     and the crop's render is the same."""

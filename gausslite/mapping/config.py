@@ -265,6 +265,11 @@ class MapperConfig(_Strict):
         "gets a full-image iteration) or among the keyframes that see the ROI ('roi'; same recent-window / mission "
         "split, MVO)"
     )
+    roi_loss: Literal["roi", "crop"] = Field(
+        "roi", description="ROI phase loss: on ROI pixels inside the rendered footprint ('roi', the paper's Eq. 1 "
+        "restriction) or on every pixel of the ROI crop ('crop': the ROI's box and roi_crop_pad around it, so "
+        "Gaussians fitted to ROI pixels cannot spread over their neighbours unpenalised)"
+    )
     roi_cull: bool = Field(
         True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
         "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"

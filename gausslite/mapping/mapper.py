@@ -720,7 +720,7 @@ class Mapper:
             train_exposure = not active_phase and not footprint_only and self.exposure.trainable(kf.frame_id)
             out, theta = self._exposed(out, kf.frame_id, requires_grad=train_exposure)
         mask = None
-        if active_phase:
+        if active_phase and cfg.roi_loss == "roi":
             mask = view.roi & (out.alpha.detach() > cfg.footprint_alpha)
         elif footprint_only:
             mask = out.alpha.detach() > cfg.footprint_alpha
