@@ -223,6 +223,7 @@ def run_one(job: dict) -> dict:
                "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
                "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
                "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
+               "evicted": int(sum(s.n_evicted for s in mapper.stats)),
                "kappa_mean_active": float(mapper.model.kappa[mapper.model.active].float().mean())
                if bool(mapper.model.active.any()) else 0.0,
                "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
@@ -285,7 +286,8 @@ def twin_one(job: dict) -> dict:
                "n_active": int(mapper.model.active.sum()), "keyframes": len(kfs), "frames": len(ds),
                "keyframe_iters": iters, "idle_iters": 0, "iters_per_keyframe": iters / max(1, len(kfs)),
                "roi_iters": int(sum(s.active_iters for s in mapper.stats)), "wall_s": 0.0,
-               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"]}
+               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
+               "evicted": int(sum(s.n_evicted for s in mapper.stats))}
         res.update(score(mapper, ds, ann, task.id))
         if job.get("final_pass") and fp_per_kf:
             mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
@@ -395,7 +397,13 @@ def plot_scene(block: dict, scene: str, path: Path) -> None:
         ax.axhline(g05, ls=":", color="tab:red", lw=1)
         if mb is not None:
             ax.axvline(mb, ls="--", color="tab:gray", lw=1, label=f"uniform reaches it at {mb:.2g} s")
+        else:
+            ax.plot([], [], ls=":", color="tab:red", label="GaussLite at 0.5 s (uniform never reaches it)")
     ax.set_xscale("log")
+    ticks = sorted(float(b) for b in block["budgets"])
+    ax.set_xticks(ticks)
+    ax.set_xticklabels([f"{b:g}" for b in ticks])
+    ax.minorticks_off()
     ax.set_xlabel("keyframe budget (s)")
     ax.set_ylabel("ROI PSNR over every frame (dB)")
     ax.set_title(f"{scene}: cap {block['cap']} Gaussians, no final pass")

@@ -657,3 +657,40 @@ def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
     assert len(fusion.uploads) == n_up + 1 and not rt.pushes[-1].unchanged
     hdr = [peek_header(c) for c in fusion.uploads[-1][1]]
     assert all(h.delta and h.kappa_shift == 25 for h in hdr) and sum(h.count for h in hdr) == 0
+
+
+def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own(monkeypatch):
+    """The share fine-tune competes with mapping on a robot's few cores: the pusher thread takes
+    ``agent.pusher_nice`` niceness, and its fine-tune renders with a single rasterizer thread (the band pool is
+    shared with the mapper and runs at the mapper's priority)."""
+    import os
+
+    import services.agent.runtime as runtime_mod
+    from services.agent.runtime import AgentConfig
+
+    graph = {"targets": ["object"], "anchors": [], "relations": []}
+    cfg = AgentConfig(share="task", mapper=MapperConfig(mode="gausslite", render_threads=2))
+    rt = AgentRuntime("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
+    try:
+        deadline = time.time() + 5
+        nice = None
+        while time.time() < deadline:
+            nice = os.getpriority(os.PRIO_PROCESS, rt._pusher.native_id)
+            if nice >= 19:
+                break
+            time.sleep(0.02)
+        assert nice == 19
+        seen = {}
+
+        def fake_update(arrays, ids, base, base_ids, kfs, iters, refresh, fcfg, seed=0):
+            seen["threads"] = fcfg.render_threads
+            return arrays, {}
+
+        monkeypatch.setattr("gausslite.sharing.update_shared_subset", fake_update)
+        rt._finetuned(np.zeros(0), np.zeros(0, np.int64), b"key", [])
+        assert seen["threads"] == 1 and rt.mapper.cfg.render_threads == 2
+    finally:
+        rt.close()
+    with pytest.raises(Exception):
+        AgentConfig(pusher_nice=20)
+    assert runtime_mod.AgentConfig().pusher_nice == 19

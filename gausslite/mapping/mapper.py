@@ -20,7 +20,9 @@ Per mapped frame (paper Sec. III-C/III-D):
    ``warmup_iters / iters_per_frame`` of the time), the rest update only active Gaussians with
    colour/depth/SSIM restricted to ROI ∩ rendered footprint, rendering only the ROI's bounding box
    (``roi_render``: the active subset alone, the paper's wording; or every Gaussian with the
-   inactive ones frozen; or the two in turn); κ += 1 per active iteration for every active Gaussian;
+   inactive ones frozen; or the two in turn); κ += 1 per active iteration for every active Gaussian. Live agents
+   fit every Gaussian the ROI crop draws instead (``roi_update='visible'``, docs/realtime.md), and under a time
+   budget the clock is wall time or its deterministic twin (``budget_clock``, :mod:`gausslite.mapping.budget`);
 4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
    view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
@@ -674,8 +676,10 @@ class Mapper:
                  coarse: bool = False, footprint_roi: bool = False) -> float:
         """One Adam iteration on keyframe ``kf``.
 
-        ``active_phase`` (paper III-D.1): update only active Gaussians, with colour, depth and SSIM on
-        ROI ∩ rendered footprint, κ += 1 for each active Gaussian. The render covers only the ROI's
+        ``active_phase`` (paper III-D.1): update only active Gaussians (``roi_update='active'``; ``'visible'``:
+        every Gaussian the ROI render draws, ``'all'``: a full step), with colour, depth and SSIM on
+        ROI ∩ rendered footprint (``roi_loss='roi'``; ``'crop'``: every pixel of the crop), κ += 1 for each
+        active Gaussian. The render covers only the ROI's
         bounding box (``roi_crop_pad``). It holds the active Gaussians alone (``roi_render='active'``,
         the paper's wording), or every Gaussian with the inactive ones frozen (``'context'``), so the
         active subset is fitted to the pixels the full map will show, or the two in turn. A view

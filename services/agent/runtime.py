@@ -824,8 +824,11 @@ class AgentRuntime:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
         t0 = time.perf_counter()
+        # one rasterizer thread of its own: the rasterizer's band pool is shared with the mapper and runs at the
+        # mapper's priority, so a multi-threaded fine-tune would queue ahead of mapping work whatever pusher_nice says
+        fcfg = self.mapper.cfg.model_copy(update={"render_threads": 1})
         out, st = update_shared_subset(arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
-                                       self.config.share_refresh, self.mapper.cfg, seed=self.mapper.cfg.seed)
+                                       self.config.share_refresh, fcfg, seed=self.mapper.cfg.seed)
         log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
                  "server v%s (%s), %.2f s", self.agent_id, len(arrays), len(kfs),
                  self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
