@@ -456,19 +456,20 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
     mapper.clock = clock
     task = SCENES[scene]["task"]
     step = max(1, len(ds) // frames)
-    samples = []
+    samples, roi_phase = [], []
     for i in range(0, min(len(ds), step * frames), step):
         fr = ds[i]
         mapper.map_frame(fr, ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics))
         for _ in range(8):
             clock.reset()
+            k0 = int(mapper.model.kappa.sum())
             t = time.perf_counter()
             mapper.optimize(n_iters=1)
             samples.append((clock.renders, clock.pixels, clock.gaussian_renders, clock.stepped,
                             time.perf_counter() - t))
-    full_px = ds[0].intrinsics.width * ds[0].intrinsics.height
-    roi = [s[-1] for s in samples if s[0] and s[1] / s[0] < full_px]
-    full = [s[-1] for s in samples if s[0] and s[1] / s[0] >= full_px]
+            roi_phase.append(int(mapper.model.kappa.sum()) > k0)  # κ grows in ROI-phase iterations only
+    roi = [s[-1] for s, r in zip(samples, roi_phase) if r]
+    full = [s[-1] for s, r in zip(samples, roi_phase) if not r]
     cost = fit_work_cost(samples)
     pred = [cost.render_s * r + cost.pixel_s * p + cost.gaussian_s * g + cost.step(s) for r, p, g, s, _ in samples]
     meas = [s[-1] for s in samples]

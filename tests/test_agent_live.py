@@ -506,8 +506,9 @@ def _run_task_agent(scene, overrides: list, n_frames: int):
     """An agent with ``share: task`` and a fixed ROI box maps ``n_frames`` of the scene's agent_a and pushes
     to a recording fusion stand-in; returns (runtime, fusion, roi)."""
     ds = load_dataset(scene / "agent_a")
+    # the share work in the pusher thread, so spies in this process see it (the worker process: its own test)
     cfg = load_agent_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
-                                          *overrides])
+                                          "agent.share_worker=thread", *overrides])
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
@@ -669,7 +670,7 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     from services.agent.runtime import AgentConfig
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", mapper=MapperConfig(mode="gausslite", render_threads=2))
+    cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite", render_threads=2))
     rt = AgentRuntime("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
     try:
         deadline = time.time() + 5
@@ -694,3 +695,23 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     with pytest.raises(Exception):
         AgentConfig(pusher_nice=20)
     assert runtime_mod.AgentConfig().pusher_nice == 19
+
+
+def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monkeypatch):
+    """``share_worker: process`` (the default): selection and fine-tune run in a worker process of their own (no
+    interpreter lock shared with mapping); the pushes carry a fine-tuned task subset, and close() stops the worker."""
+    import gausslite.sharing as sharing
+    from gausslite.wire.codec import assemble
+
+    here = []
+    for name in ("select_task_subset", "update_shared_subset"):
+        real = getattr(sharing, name)
+        monkeypatch.setattr(sharing, name, lambda *a, _real=real, _n=name, **kw: here.append(_n) or _real(*a, **kw))
+    rt, fusion, _ = _run_task_agent(scene, ["agent.share_worker=process", "agent.share_finetune_iters=5",
+                                            "agent.delta_push=false"], 4)
+    assert fusion.uploads and rt.final_push_ok
+    pushed, _ = assemble(fusion.uploads[-1][1])
+    assert 0 < len(pushed) <= rt.n_gaussians
+    assert rt._finetune_cache is not None  # the last push was fine-tuned...
+    assert here == []  # ...and neither the selection nor the fine-tune ran in the agent's process
+    assert rt._share_pool is None  # close() stopped the worker

@@ -97,9 +97,11 @@ class AgentConfig(BaseModel):
             (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
             own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
             share a subset that renders the ROI on its own.
-        pusher_nice: scheduling niceness of the pusher thread (Linux; 0 = the mapper's own priority). The share
-            fine-tune runs in that thread beside mapping: at 19 the kernel gives the mapping thread the cores
-            whenever both want them, so a push never takes a live keyframe's budget (docs/realtime.md).
+        pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
+            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md).
+        share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
+            own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
+            would hold against the mapping thread) or ``thread`` (the pusher thread itself).
         share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
             already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
             others stay as the server has them, so a delta carries the new rows and this share of the
@@ -157,6 +159,7 @@ class AgentConfig(BaseModel):
     share_finetune_iters: int = Field(200, ge=0)
     share_refresh: float = Field(0.05, ge=0, le=1)
     pusher_nice: int = Field(19, ge=0, le=19)
+    share_worker: Literal["process", "thread"] = "process"
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
@@ -275,6 +278,9 @@ class _Snapshot:
     #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
     #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
     finetune: Any = None
+    #: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
+    #: selects the subset (``gaussians`` None and ``ids`` every row's until then)
+    select: Any = None
 
 
 _FINISH = object()
@@ -320,6 +326,37 @@ def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.n
     if share == "task":  # without views: a = 1 and κ (AgentRuntime applies region and compaction)
         return active & (kappa >= int(kappa_threshold))
     raise ValueError(f"unknown share rule {share!r} (use 'active', 'kappa' or 'task')")
+
+
+def _share_worker_init(nice: int) -> None:
+    """Initialiser of the share worker process: lower its priority, one torch thread."""
+    import os
+
+    import torch
+
+    if nice and hasattr(os, "nice"):
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    torch.set_num_threads(1)
+
+
+def _share_select(gmap, views, kappa_threshold: int, coverage: float, backend: str):
+    """``share: task`` selection (:func:`gausslite.sharing.select_task_subset`); runs in the share worker."""
+    from gausslite.sharing import ShareConfig, select_task_subset
+
+    return select_task_subset(gmap, views, ShareConfig(kappa_threshold=kappa_threshold, coverage=coverage),
+                              backend=backend)
+
+
+def _share_finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg, seed: int):
+    """The shared subset fine-tuned alone on the compact ROI keyframes ``kfs``
+    (:func:`gausslite.sharing.update_shared_subset`); runs in the share worker."""
+    from gausslite.sharing import update_shared_subset
+
+    kfs = [kf.to_keyframe(cfg.device) for kf in kfs]
+    return update_shared_subset(arrays, ids, base, base_ids, kfs, iters, refresh, cfg, seed=seed)
 
 
 class AgentRuntime:
@@ -401,6 +438,7 @@ class AgentRuntime:
         self.summary: Optional[MissionSummaryData] = None
         self._version = 0
         self._planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
+        self._share_pool = None  # the share worker process (share_worker: process), started on first use
         self._finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset, ids) of the last push
         self._acked = None  # (version, subset, ids) the server acknowledged last (the planner's base)
         self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
@@ -763,48 +801,73 @@ class AgentRuntime:
                  self.agent_id, self.mission_id, path, self.frames_keyframed, self.n_gaussians, version + 1)
 
     def _offer_snapshot(self, final: bool) -> None:
+        """Hand the pusher what the next push needs (mapping thread). With ``share: task`` that is a copy of the
+        map, the ROI keyframes and their poses: the task selection (which renders every ROI keyframe) and the
+        fine-tune run in the pusher thread, at ``pusher_nice``, so a push takes no time from the keyframe budget."""
         from gausslite.wire.codec import GaussianArrays
 
         gmap = self.mapper.gmap
+        select = None
         if self.config.share == "task":
-            from gausslite.sharing import ShareConfig, ShareView, select_task_subset
+            from gausslite.gaussians import GaussianMap
+            from gausslite.sharing import ShareView
 
-            views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy(), kf.K.cpu().numpy())
-                     for kf in self.mapper.keyframes if kf.roi is not None]
-            mask, st = select_task_subset(gmap, views, ShareConfig(kappa_threshold=self.config.kappa_threshold,
-                                                                   coverage=self.config.share_coverage),
-                                          backend=self.config.mapper.backend)
-            log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
+            copy = GaussianMap(**{f: getattr(gmap, f).detach().clone()
+                                  for f in ("means", "quats", "log_scales", "opacity_logits", "colors", "active",
+                                            "kappa")})
+            store = self.mapper.keyframes
+            views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy().copy(),
+                               kf.K.cpu().numpy()) for kf in store if kf.roi is not None]
+            poses = [(int(kf.frame_id), kf.c2w.cpu().numpy().copy()) for kf in store]
+            # only the keyframes that see the ROI take part in the fine-tune (compact; poses of their own)
+            kfs = ([dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
+                   if self.config.share_finetune_iters > 0 else None)
+            select = (copy, views, poses, kfs)
+            arrays, ids = None, self.mapper.model.ids.numpy().copy()
         else:
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
-        arrays = GaussianArrays.from_any(gmap).take(mask)
-        ids = self.mapper.model.ids.numpy()[mask]
-        finetune = None
-        if self.config.share == "task" and self.config.share_finetune_iters > 0 and len(arrays):
-            finetune = self._finetune_inputs(arrays, ids)
+            arrays = GaussianArrays.from_any(gmap).take(mask)
+            ids = self.mapper.model.ids.numpy()[mask]
         with self._lock:
             self._version += 1
-            self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped, finetune)
+            self._pending = _Snapshot(self._version, arrays, len(gmap), final, ids, self.frames_mapped, None, select)
             self._push_cv.notify_all()
 
-    def _finetune_inputs(self, arrays, ids) -> tuple:
-        """What the fine-tune of a snapshot needs, taken in the mapping thread (the store changes as it maps):
-        the cache key of (subset, ids, keyframe ids and poses) and the compact stored keyframes that see the
-        ROI, with poses of their own (pose refinement updates the stored ones in place; images are never
-        changed). Nothing is decoded here: :meth:`_finetuned` decodes them in the pusher on a cache miss."""
+    def _selected(self, snap: "_Snapshot") -> "_Snapshot":
+        """``share: task`` (pusher thread): the snapshot with its task subset selected
+        (:func:`gausslite.sharing.select_task_subset`) and, with fine-tuning, its fine-tune inputs."""
+        from gausslite.wire.codec import GaussianArrays
+
+        gmap, views, poses, kfs = snap.select
+        mask, st = self._share_call(_share_select, gmap, views, self.config.kappa_threshold,
+                                    self.config.share_coverage, self.config.mapper.backend)
+        log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
+        arrays = GaussianArrays.from_any(gmap).take(mask)
+        ids = snap.ids[mask]
+        finetune = self._finetune_inputs(arrays, ids, poses, kfs) if kfs is not None and len(arrays) else None
+        return dataclasses.replace(snap, gaussians=arrays, ids=ids, finetune=finetune, select=None)
+
+    def _finetune_inputs(self, arrays, ids, poses=None, kfs=None) -> tuple:
+        """What the fine-tune of a snapshot needs: the cache key of (subset, ids, keyframe ids and poses) and the
+        compact stored keyframes that see the ROI, with poses of their own (pose refinement updates the stored
+        ones in place; images are never changed). ``poses`` ((frame id, c2w) of every stored keyframe) and
+        ``kfs`` as captured by the mapping thread; None: taken from the store now. Nothing is decoded here:
+        :meth:`_finetuned` decodes them on a cache miss."""
         import hashlib
 
         from gausslite.wire.codec import GaussianArrays
 
         store = self.mapper.keyframes
+        if poses is None:
+            poses = [(int(kf.frame_id), kf.c2w.cpu().numpy()) for kf in store]
+        if kfs is None:
+            kfs = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
         h = hashlib.blake2b(digest_size=16)
         for name in GaussianArrays._SPEC:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
-        for kf in store:
-            h.update(np.asarray([kf.frame_id], np.int64).tobytes() + kf.c2w.cpu().numpy().tobytes())
+        for fid, c2w in poses:
+            h.update(np.asarray([fid], np.int64).tobytes() + np.ascontiguousarray(c2w).tobytes())
         h.update(ids.tobytes())
-        # only the keyframes that see the ROI take part in the fine-tune
-        kfs = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
         return h.digest(), kfs
 
     def _finetuned(self, arrays, ids, key, kfs):
@@ -815,11 +878,8 @@ class AgentRuntime:
         (``key``, :meth:`_finetune_inputs`) give the last result again without work (whatever the server
         acknowledged since), so an unchanged map (e.g. the final push right after a periodic one) stays
         unchanged on the wire and its delta is empty."""
-        from gausslite.sharing import update_shared_subset
-
         if self._finetune_cache is not None and self._finetune_cache[0] == key:
             return self._finetune_cache[1]
-        kfs = [kf.to_keyframe(self.mapper.device) for kf in kfs]
         with self._lock:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
@@ -827,8 +887,9 @@ class AgentRuntime:
         # one rasterizer thread of its own: the rasterizer's band pool is shared with the mapper and runs at the
         # mapper's priority, so a multi-threaded fine-tune would queue ahead of mapping work whatever pusher_nice says
         fcfg = self.mapper.cfg.model_copy(update={"render_threads": 1})
-        out, st = update_shared_subset(arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
-                                       self.config.share_refresh, fcfg, seed=self.mapper.cfg.seed)
+        out, st = self._share_call(_share_finetune, arrays, ids, base, base_ids, kfs,
+                                   self.config.share_finetune_iters, self.config.share_refresh, fcfg,
+                                   self.mapper.cfg.seed)
         log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
                  "server v%s (%s), %.2f s", self.agent_id, len(arrays), len(kfs),
                  self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
@@ -848,6 +909,20 @@ class AgentRuntime:
         except OSError as e:  # not permitted in some containers: the pusher keeps the mapper's priority
             log.warning("agent %s: cannot lower the pusher's priority: %s", self.agent_id, e)
 
+    def _share_call(self, fn, *args):
+        """Run ``fn(*args)`` in the share worker process (``share_worker: process``, started on first use with the
+        ``spawn`` method: forking a process that runs rasterizer threads is unsafe), or here (``thread``)."""
+        if self.config.share_worker != "process":
+            return fn(*args)
+        if self._share_pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._share_pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                   initializer=_share_worker_init,
+                                                   initargs=(self.config.pusher_nice,))
+        return self._share_pool.submit(fn, *args).result()
+
     def _push_loop(self) -> None:
         self._lower_priority()
         while True:
@@ -862,6 +937,19 @@ class AgentRuntime:
                     self.final_push_ok = False
                     self._final_done.set()
                 continue
+            if snap.select is not None:
+                if self._superseded(snap):  # a newer snapshot waits: select that one
+                    continue
+                try:
+                    snap = self._selected(snap)
+                except Exception as e:  # keep pushing later snapshots; a failed final one is reported
+                    log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
+                    with self._lock:
+                        self.last_error = f"share selection failed: {type(e).__name__}: {e}"
+                    if snap.final:
+                        self.final_push_ok = False
+                        self._final_done.set()
+                    continue
             if snap.finetune is not None:
                 if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
                     continue
@@ -1151,6 +1239,9 @@ class AgentRuntime:
         self._queue.put(None)
         self._worker.join(5.0)
         self._pusher.join(5.0)
+        if self._share_pool is not None:
+            self._share_pool.shutdown(wait=False, cancel_futures=True)
+            self._share_pool = None
 
 
 def _short(e: BaseException) -> str:
