@@ -42,6 +42,8 @@ from typing import Optional
 
 import numpy as np
 
+from gausslite.mapping.budget import WallClock, fit_work_cost
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
@@ -190,10 +192,9 @@ def save_render(mapper, ds, ann, task: str, path: Path) -> None:
                                                                                   fr.intrinsics)))
 
 
-def run_one(job: dict) -> dict:
-    """One live mission of one (scene, mode, budget, run): replay, finish without a push, score."""
-    import torch
-
+def _mission(job: dict, rate: float, extra_overrides=(), fusion=None):
+    """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
+    final-pass iterations per keyframe)."""
     from gausslite.parser import parse_task
     from services.agent.runtime import AgentRuntime
 
@@ -201,12 +202,36 @@ def run_one(job: dict) -> dict:
     ds = Preloaded(ds)
     ann = ds.annotations
     task = ann.task_by_id(job["task"])
-    rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
-                                  job.get("overrides", ()))
-    torch.manual_seed(job["run"])
+                                  [*extra_overrides, *job.get("overrides", ())])
+    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id, fusion=fusion)
+    return ds, ann, task, rt, fp_per_kf
+
+
+def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dict:
+    """The figures of one finished mission: ``fields``, the map's counts, the scores over every frame, the render
+    (``job["render_dir"]``) and, with ``job["final_pass"]``, the scores after the profile's final pass."""
+    res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"], "cap": job["cap"],
+           **fields, "n_gaussians": len(mapper.model), "n_active": int(mapper.model.active.sum()), "frames": len(ds),
+           "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
+           "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
+           "evicted": int(sum(s.n_evicted for s in mapper.stats))}
+    res.update(score(mapper, ds, ann, task.id))
+    if job.get("render_dir"):
+        save_render(mapper, ds, ann, task.id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
+    if job.get("final_pass") and fp_per_kf:
+        mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
+        res["final_iters"] = mapper.finalize()
+        res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items() if k != "frames_scored"})
+    return res
+
+
+def run_one(job: dict) -> dict:
+    """One live mission of one (scene, mode, budget, run): replay, finish (with ``job["share"]`` after a final push
+    to the in-process sink, otherwise without a push), score."""
+    rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
-    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id, fusion=sink)
+    ds, ann, task, rt, fp_per_kf = _mission(job, rate, fusion=sink)
     t0 = time.perf_counter()
     try:
         rt.replay(ds)
@@ -215,32 +240,18 @@ def run_one(job: dict) -> dict:
         wall = time.perf_counter() - t0
         st = rt.status()
         mapper = rt.mapper
-        res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"],
-               "cap": job["cap"], "rate": rate, "wall_s": wall, "n_gaussians": len(mapper.model),
-               "n_active": int(mapper.model.active.sum()),
-               "keyframes": int(rt.frames_keyframed), "frames": len(ds),
-               "keyframe_iters": int(rt.keyframe_iterations), "idle_iters": int(rt.idle_iterations),
-               "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
-               "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
-               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
-               "evicted": int(sum(s.n_evicted for s in mapper.stats)),
-               "kappa_mean_active": float(mapper.model.kappa[mapper.model.active].float().mean())
-               if bool(mapper.model.active.any()) else 0.0,
-               "status": {k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
-               "share": bool(sink), "pushes": len(rt.pushes), "share_pct": (100.0 * rt.pushes[-1].n_shared /
-                                                                          max(1, rt.pushes[-1].n_total)) if rt.pushes else None}
-        res.update(score(mapper, ds, ann, task.id))
-        if job.get("render_dir"):
-            save_render(mapper, ds, ann, task.id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
-        if job.get("final_pass") and fp_per_kf:
-            mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
-            n = mapper.finalize()
-            fp = score(mapper, ds, ann, task.id)
-            res.update({f"final_{k}": v for k, v in fp.items() if k != "frames_scored"})
-            res["final_iters"] = n
+        last = rt.pushes[-1] if rt.pushes else None
+        return _result(
+            job, mapper, ds, ann, task, fp_per_kf, rate=rate, wall_s=wall, keyframes=int(rt.frames_keyframed),
+            keyframe_iters=int(rt.keyframe_iterations), idle_iters=int(rt.idle_iterations),
+            iters_per_keyframe=rt.keyframe_iterations / max(1, rt.frames_keyframed),
+            kappa_mean_active=(float(mapper.model.kappa[mapper.model.active].float().mean())
+                               if bool(mapper.model.active.any()) else 0.0),
+            status={k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
+            share=bool(sink), pushes=len(rt.pushes),
+            share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None)
     finally:
         rt.close()
-    return res
 
 
 def keyframe_schedule(ds, spacing_s: float) -> list[int]:
@@ -262,40 +273,19 @@ def twin_one(job: dict) -> dict:
     """The deterministic twin of :func:`run_one`: the same agent (relevance front-end, mapper settings), keyframes
     at a fixed spacing of the sequence clock (``keyframe_schedule``), each mapped with ``budget`` modelled seconds
     of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load."""
-    from gausslite.parser import parse_task
-    from services.agent.runtime import AgentRuntime
-
-    ds, profile = load_scene(job["scene"], Path(job["path"]))
-    ds = Preloaded(ds)
-    ann = ds.annotations
-    task = ann.task_by_id(job["task"])
     spacing = REFERENCE_BUDGET_S if job["clock"] == "scaled" else job["budget"]
-    cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], 1.0, profile,
-                                  ["mapper.budget_clock=work", *job.get("overrides", ())])
-    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id)
+    ds, ann, task, rt, fp_per_kf = _mission(job, 1.0, ["mapper.budget_clock=work"])
     try:
         mapper = rt.mapper
         kfs = keyframe_schedule(ds, spacing)
         iters = 0
         for i in kfs:
             fr = ds[i]
-            st = mapper.map_frame(fr, rt._relevance_fn(fr), time_budget_s=job["budget"])
-            iters += st.iters
-        res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"],
-               "cap": job["cap"], "twin": True, "n_gaussians": len(mapper.model),
-               "n_active": int(mapper.model.active.sum()), "keyframes": len(kfs), "frames": len(ds),
-               "keyframe_iters": iters, "idle_iters": 0, "iters_per_keyframe": iters / max(1, len(kfs)),
-               "roi_iters": int(sum(s.active_iters for s in mapper.stats)), "wall_s": 0.0,
-               "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
-               "evicted": int(sum(s.n_evicted for s in mapper.stats))}
-        res.update(score(mapper, ds, ann, task.id))
-        if job.get("final_pass") and fp_per_kf:
-            mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
-            res["final_iters"] = mapper.finalize()
-            res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items() if k != "frames_scored"})
+            iters += mapper.map_frame(fr, rt._relevance_fn(fr), time_budget_s=job["budget"]).iters
+        return _result(job, mapper, ds, ann, task, fp_per_kf, twin=True, keyframes=len(kfs), keyframe_iters=iters,
+                       idle_iters=0, iters_per_keyframe=iters / max(1, len(kfs)), wall_s=0.0)
     finally:
         rt.close()
-    return res
 
 
 def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> dict:
@@ -413,19 +403,16 @@ def plot_scene(block: dict, scene: str, path: Path) -> None:
     plt.close(fig)
 
 
-class _CountingClock:
-    """Wall clock that also counts the work charged to it (the features of :func:`fit_work_cost`)."""
+class _CountingClock(WallClock):
+    """A wall clock that also counts the work charged to it (the features of :func:`fit_work_cost`)."""
 
-    deterministic = False
+    charges = True
 
     def __init__(self) -> None:
         self.reset()
 
     def reset(self) -> None:
         self.renders = self.pixels = self.gaussian_renders = self.stepped = 0
-
-    def now(self) -> float:
-        return time.perf_counter()
 
     def charge_render(self, pixels: int, gaussians: int, grad: bool = True) -> None:
         if grad:
@@ -442,8 +429,6 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
     """Fit the deterministic clock's :class:`~gausslite.mapping.budget.WorkCost` on this machine: map the first
     ``frames`` frames of ``scene`` with ``iters`` iterations each, then time ``8 × frames`` single idle
     iterations (full-image and ROI-phase, the scene's sensor profile) and fit the linear model."""
-    from gausslite.mapping.budget import fit_work_cost
-
     ds, profile = load_scene(scene, scene_path(scene, work))
     ann = ds.annotations
     cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile, overrides)

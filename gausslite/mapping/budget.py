@@ -55,18 +55,13 @@ class WorkCost:
 
 
 class WallClock:
-    """The live clock: ``now()`` is ``time.perf_counter()`` (seconds); ``charge_*`` do nothing."""
+    """The live clock: ``now()`` is ``time.perf_counter()`` (seconds). ``charges`` False: the mapper reports no work
+    to it (clocks that count work set it and provide ``charge_render`` / ``charge_step``)."""
 
-    deterministic = False
+    charges = False
 
     def now(self) -> float:
         return time.perf_counter()
-
-    def charge_render(self, pixels: int, gaussians: int, grad: bool = True) -> None:
-        pass
-
-    def charge_step(self, gaussians: int) -> None:
-        pass
 
 
 class WorkClock:
@@ -76,7 +71,7 @@ class WorkClock:
         cost: the machine's cost model.
     """
 
-    deterministic = True
+    charges = True
 
     def __init__(self, cost: WorkCost) -> None:
         self.cost = cost

@@ -442,9 +442,10 @@ class Mapper:
             if subset is not None:
                 vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
             subset = vis
-        n_render = len(means) if subset is None else (
-            int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
-        self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
+        if self.clock.charges:
+            n_render = len(means) if subset is None else (
+                int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
+            self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self._background,
@@ -576,7 +577,8 @@ class Mapper:
         if len(self.model) == 0:
             return
         p = self.model.params
-        self.clock.charge_render(kf.width * kf.height, len(self.model), grad=False)
+        if self.clock.charges:
+            self.clock.charge_render(kf.width * kf.height, len(self.model), grad=False)
         self.contribution += blend_weights(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=kf.K, width=kf.width,
             height=kf.height, c2w=kf.c2w, background=self._background, backend=self.cfg.backend,
@@ -754,7 +756,8 @@ class Mapper:
             for o in [o for g in (parts or [[out]]) for o in g]:
                 upd[o.ids[o.radii > 0]] = True
         self.model.step(update=upd, reference=cfg.reference_paths)
-        self.clock.charge_step(int(upd.sum()) if upd is not None else len(self.model))
+        if self.clock.charges:
+            self.clock.charge_step(int(upd.sum()) if upd is not None else len(self.model))
         if active_phase:
             self.model.kappa[self.model.active] += 1
         if theta is not None and theta.requires_grad:

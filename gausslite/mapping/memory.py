@@ -165,17 +165,15 @@ class KeyframeStore:
         n = len(self._items)
         if n == 0:
             raise ValueError("no keyframes to sample from")
-        if roi_only:
-            idx = [i for i, k in enumerate(self._items) if k.sees_roi]
-            if idx:
-                m = len(idx)
-                if m <= window or rng.random() < recent_prob:
-                    w = min(window, m)
-                    return idx[m - w + int(rng.integers(w))]
-                return idx[int(rng.integers(m))]
-        if n <= window or rng.random() < recent_prob:
-            w = min(window, n)
-            return n - w + int(rng.integers(w))
+        # the draw's pool: every keyframe, or (roi_only) the ROI keyframes in store order
+        pool = [i for i, k in enumerate(self._items) if k.sees_roi] if roi_only else []
+        m = len(pool) or n
+        if m <= window or rng.random() < recent_prob:
+            w = min(window, m)
+            j = m - w + int(rng.integers(w))
+            return pool[j] if pool else j
+        if pool:
+            return pool[int(rng.integers(m))]
         if roi_weight <= 0:
             return int(rng.integers(n))
         wts = np.array([1.0 + roi_weight * k.sees_roi for k in self._items])

@@ -803,18 +803,16 @@ class AgentRuntime:
     def _offer_snapshot(self, final: bool) -> None:
         """Hand the pusher what the next push needs (mapping thread). With ``share: task`` that is a copy of the
         map, the ROI keyframes and their poses: the task selection (which renders every ROI keyframe) and the
-        fine-tune run in the pusher thread, at ``pusher_nice``, so a push takes no time from the keyframe budget."""
+        fine-tune run in the share worker (``share_worker``, at ``pusher_nice``), so a push takes no time from the
+        keyframe budget."""
         from gausslite.wire.codec import GaussianArrays
 
         gmap = self.mapper.gmap
         select = None
         if self.config.share == "task":
-            from gausslite.gaussians import GaussianMap
             from gausslite.sharing import ShareView
 
-            copy = GaussianMap(**{f: getattr(gmap, f).detach().clone()
-                                  for f in ("means", "quats", "log_scales", "opacity_logits", "colors", "active",
-                                            "kappa")})
+            copy = gmap.clone()
             store = self.mapper.keyframes
             views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy().copy(),
                                kf.K.cpu().numpy()) for kf in store if kf.roi is not None]
@@ -884,8 +882,9 @@ class AgentRuntime:
             acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
         base_version, base, base_ids = acked
         t0 = time.perf_counter()
-        # one rasterizer thread of its own: the rasterizer's band pool is shared with the mapper and runs at the
-        # mapper's priority, so a multi-threaded fine-tune would queue ahead of mapping work whatever pusher_nice says
+        # one rasterizer thread: in the pusher thread (share_worker: thread) the rasterizer's band pool is shared with
+        # the mapper and runs at its priority, so a multi-threaded fine-tune would queue ahead of mapping work; the
+        # worker process, at low priority, takes at most the one core mapping leaves idle
         fcfg = self.mapper.cfg.model_copy(update={"render_threads": 1})
         out, st = self._share_call(_share_finetune, arrays, ids, base, base_ids, kfs,
                                    self.config.share_finetune_iters, self.config.share_refresh, fcfg,
