@@ -154,8 +154,9 @@ def verify_token(token: str, record: str) -> bool:
 
 
 def new_token() -> str:
-    """A fresh random token (256 bits, URL-safe base64, 43 characters)."""
-    return secrets.token_urlsafe(32)
+    """A fresh random token (256 bits, 64 hex digits). Hex, not URL-safe base64: a base64 token starts with ``-``
+    one time in 64, and a command line (``gausslite tokens hash --token T``) then reads it as an option."""
+    return secrets.token_hex(32)
 
 
 def _check_token(token: str) -> None:
