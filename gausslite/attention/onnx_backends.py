@@ -5,19 +5,29 @@ iou 0.9). Models are loaded from user-given paths; nothing is downloaded.
 Detector export contract (:class:`OnnxGroundingDetector`):
     inputs  image (1, 3, H, W) float32 normalised RGB (names: image, images, pixel_values, samples, img),
             input_ids (1, L) int64, and optionally attention_mask (1, L), token_type_ids (1, L),
-            position_ids (1, L), text_self_attention_masks (1, L, L) bool (Grounding DINO's sub-sentence mask);
+            position_ids (1, L), text_self_attention_masks (1, L, L) bool (Grounding DINO's sub-sentence mask),
+            pixel_mask (1, H, W) int64 (transformers' exports; fed with ones);
     outputs logits (1, Q, L') pre-sigmoid token logits (names: logits, pred_logits; L' >= number of text
-            tokens) and boxes (1, Q, 4) normalised cx, cy, w, h (names: boxes, pred_boxes).
+            tokens) and boxes (1, Q, 4) normalised cx, cy, w, h (names: boxes, pred_boxes). Outputs named
+            otherwise are recognised by shape when exactly one rank-3 output ends in 4 (boxes) and exactly
+            one other rank-3 output shares its query axis (logits).
+This covers the original Grounding DINO export (img, input_ids, attention_mask, position_ids,
+token_type_ids, text_token_mask) and transformers' ``GroundingDinoForObjectDetection`` exported with
+``torch.onnx.export`` (pixel_values, input_ids, attention_mask, token_type_ids; the sub-sentence mask is
+computed inside the graph; :mod:`gausslite.attention.export`).
 The caption is the phrases joined as ``"phrase a . phrase b ."`` (Grounding DINO convention) and tokenised
 with a BERT WordPiece vocab (:class:`WordPieceTokenizer`). Post-processing: sigmoid; a query survives when
 its best token probability > ``box_threshold``; its phrase is the one whose token span has the highest
 probability, which must exceed ``text_threshold``; boxes are scaled to image pixels (xyxy) and
 per-phrase NMS is applied.
 
-Segmenter export contract (:class:`OnnxFastSAMSegmenter`, YOLOv8-seg/FastSAM layout):
-    input   images (1, 3, S, S) float32 RGB in [0, 1], letterboxed (grey 114 padding);
+Segmenter export contract (:class:`OnnxFastSAMSegmenter`, YOLOv8-seg/FastSAM layout, ultralytics'
+``model.export(format="onnx")``):
+    input   images (1, 3, h, w) float32 RGB in [0, 1], letterboxed (grey 114 padding, centred); square or
+            rectangular; a dynamic input takes ultralytics' ``imgsz`` metadata, else 1024;
     outputs predictions (1, 4 + nc + nm, N) (cx, cy, w, h in input pixels, nc class scores, nm mask
-            coefficients) and prototypes (1, nm, S/4, S/4).
+            coefficients) and prototypes (1, nm, h/4, w/4). Exports with NMS inside (``nms=True``,
+            end-to-end heads: predictions (1, max_det, 6 + nm)) are refused with the reason.
 Post-processing: score > ``conf``, NMS at ``iou``, masks = sigmoid(coefficients · prototypes) upsampled,
 cropped to their box, un-letterboxed, thresholded at ``mask_threshold``. Box prompts select, per box, the
 candidate mask with the highest mask-vs-box IoU (FastSAM's box prompt).
@@ -42,7 +52,12 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 _IMAGE_NAMES = ("image", "images", "pixel_values", "samples", "img", "input")
 
 
-def _session(path: Union[str, Path], providers: Optional[Sequence[str]]):
+def _session(path: Union[str, Path], providers: Optional[Sequence[str]], threads: Optional[int] = None):
+    """ONNX Runtime session of ``path``; ``threads``: intra-op threads (None: ONNX Runtime's default).
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: ONNX Runtime cannot load it (message names the file).
+    """
     import onnxruntime as ort
 
     p = Path(path)
@@ -50,7 +65,14 @@ def _session(path: Union[str, Path], providers: Optional[Sequence[str]]):
         raise FileNotFoundError(f"ONNX model not found: {p}")
     so = ort.SessionOptions()
     so.log_severity_level = 3
-    return ort.InferenceSession(str(p), so, providers=list(providers or ["CPUExecutionProvider"]))
+    if threads is not None:
+        so.intra_op_num_threads = int(threads)
+        so.inter_op_num_threads = 1
+    try:
+        return ort.InferenceSession(str(p), so, providers=list(providers or ["CPUExecutionProvider"]))
+    except Exception as e:  # onnxruntime raises its own exception types (InvalidProtobuf, Fail, ...)
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{p} is not a loadable ONNX model: {reason}") from None
 
 
 def _static(dim) -> Optional[int]:
@@ -106,17 +128,19 @@ def grounding_text_masks(tokens: Sequence[str], length: int) -> Tuple[np.ndarray
     return mask[None], pos[None]
 
 
-def letterbox(image: np.ndarray, size: int, pad_value: int = 114) -> Tuple[np.ndarray, float, Tuple[int, int]]:
-    """Resize (keeping aspect) and pad to ``size`` x ``size``.
+def letterbox(image: np.ndarray, size: Union[int, Tuple[int, int]], pad_value: int = 114
+              ) -> Tuple[np.ndarray, float, Tuple[int, int]]:
+    """Resize (keeping aspect) and pad, centred, to ``size`` x ``size`` or to (h, w) = ``size``.
 
     Returns:
-        (padded (size, size, 3) uint8, scale, (pad_x, pad_y) pixels of left/top padding).
+        (padded (h, w, 3) uint8, scale, (pad_x, pad_y) pixels of left/top padding).
     """
+    sh, sw = (int(size), int(size)) if np.isscalar(size) else (int(size[0]), int(size[1]))
     H, W = image.shape[:2]
-    s = min(size / H, size / W)
+    s = min(sh / H, sw / W)
     nw, nh = max(1, int(round(W * s))), max(1, int(round(H * s)))
-    out = np.full((size, size, 3), pad_value, dtype=np.uint8)
-    px, py = (size - nw) // 2, (size - nh) // 2
+    out = np.full((sh, sw, 3), pad_value, dtype=np.uint8)
+    px, py = (sw - nw) // 2, (sh - nh) // 2
     out[py : py + nh, px : px + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_LINEAR) if (nw, nh) != (W, H) else image
     return out, s, (px, py)
 
@@ -134,22 +158,36 @@ class OnnxGroundingDetector:
         max_text_len: token limit (Grounding DINO: 256); a static text length of the model overrides it.
         mean, std: RGB normalisation (ImageNet).
         providers: ONNX Runtime execution providers (default CPU).
+        threads: ONNX Runtime intra-op threads (None: its default, one per core).
 
     Raises:
-        FileNotFoundError: model or vocab missing. ValueError: the model's inputs/outputs do not follow
-        the export contract.
+        FileNotFoundError: model or vocab missing. ValueError: the file does not load, or the model's
+        inputs/outputs do not follow the export contract (the message names the file).
     """
 
     def __init__(self, model_path, vocab_path, box_threshold: float = 0.20, text_threshold: float = 0.25,
                  nms_iou: float = 0.5, input_size: Optional[Tuple[int, int]] = None, max_text_len: int = 256,
-                 mean=IMAGENET_MEAN, std=IMAGENET_STD, providers: Optional[Sequence[str]] = None) -> None:
-        self.session = _session(model_path, providers)
+                 mean=IMAGENET_MEAN, std=IMAGENET_STD, providers: Optional[Sequence[str]] = None,
+                 threads: Optional[int] = None) -> None:
+        self.model_path = Path(model_path)
+        self.session = _session(model_path, providers, threads)
+        try:
+            self._check_contract()
+        except ValueError as e:
+            raise ValueError(f"{self.model_path}: {e}") from None
         self.tokenizer = WordPieceTokenizer(vocab_path)
         self.box_threshold = float(box_threshold)
         self.text_threshold = float(text_threshold)
         self.nms_iou = float(nms_iou)
         self.mean = np.asarray(mean, dtype=np.float32)
         self.std = np.asarray(std, dtype=np.float32)
+        if input_size is None:
+            h, w = self._image_hw
+            input_size = (h, w) if h and w else (800, 800)
+        self.input_size = (int(input_size[0]), int(input_size[1]))
+        self.max_text_len = self.text_len or int(max_text_len)
+
+    def _check_contract(self) -> None:
         ins = {i.name: i for i in self.session.get_inputs()}
         img = [n for n in ins if n in _IMAGE_NAMES] or [n for n, i in ins.items() if len(i.shape) == 4]
         if len(img) != 1:
@@ -158,24 +196,31 @@ class OnnxGroundingDetector:
         if "input_ids" not in ins:
             raise ValueError(f"the model has no 'input_ids' input (inputs: {list(ins)})")
         known = {self.image_name, "input_ids", "attention_mask", "token_type_ids", "position_ids",
-                 "text_self_attention_masks", "text_token_mask"}
+                 "text_self_attention_masks", "text_token_mask", "pixel_mask"}
         unknown = [n for n in ins if n not in known]
         if unknown:
             raise ValueError(f"unsupported model inputs {unknown}")
         self.input_names = list(ins)
         self.input_types = {n: i.type for n, i in ins.items()}
         shp = ins[self.image_name].shape
-        if input_size is None:
-            h, w = _static(shp[2]), _static(shp[3])
-            input_size = (h, w) if h and w else (800, 800)
-        self.input_size = (int(input_size[0]), int(input_size[1]))
+        if len(shp) != 4:
+            raise ValueError(f"image input {self.image_name!r} must be (1, 3, H, W), got {shp}")
+        self._image_hw = (_static(shp[2]), _static(shp[3]))
+        if len(ins["input_ids"].shape) != 2:
+            raise ValueError(f"input_ids must be (1, L), got {ins['input_ids'].shape}")
         self.text_len = _static(ins["input_ids"].shape[1])
-        self.max_text_len = self.text_len or int(max_text_len)
-        outs = [o.name for o in self.session.get_outputs()]
+        outputs = self.session.get_outputs()
+        outs = [o.name for o in outputs]
         lg = [n for n in outs if n in ("logits", "pred_logits")]
         bx = [n for n in outs if n in ("boxes", "pred_boxes")]
         if len(lg) != 1 or len(bx) != 1:
-            raise ValueError(f"expected outputs 'logits'/'pred_logits' and 'boxes'/'pred_boxes', got {outs}")
+            r3 = [o for o in outputs if len(o.shape) == 3]
+            bx = [o.name for o in r3 if _static(o.shape[2]) == 4]
+            lg = [o.name for o in r3 if o.name not in bx and (len(bx) != 1 or o.shape[1] == next(
+                p.shape[1] for p in r3 if p.name == bx[0]))]
+            if len(lg) != 1 or len(bx) != 1:
+                raise ValueError(f"expected outputs 'logits'/'pred_logits' (1, Q, L) and 'boxes'/'pred_boxes' "
+                                 f"(1, Q, 4), got {[(o.name, o.shape) for o in outputs]}")
         self.logits_name, self.boxes_name = lg[0], bx[0]
 
     def preprocess(self, image: np.ndarray) -> np.ndarray:
@@ -205,7 +250,8 @@ class OnnxGroundingDetector:
         tokens = enc.tokens + ["[PAD]"] * (L - n)
         tmask, pos = grounding_text_masks(tokens, L)
         feeds = {"input_ids": ids, "attention_mask": att, "token_type_ids": np.zeros((1, L), dtype=np.int64),
-                 "position_ids": pos, "text_self_attention_masks": tmask, "text_token_mask": att.astype(bool)}
+                 "position_ids": pos, "text_self_attention_masks": tmask, "text_token_mask": att.astype(bool),
+                 "pixel_mask": np.ones((1,) + self.input_size, dtype=np.int64)}
         spans = phrase_token_spans(enc.offsets, cspans)
         return feeds, spans, n
 
@@ -262,29 +308,56 @@ class OnnxFastSAMSegmenter:
         model_path: the ``.onnx`` file.
         conf: candidate score threshold (paper 0.4).
         iou: NMS IoU threshold among candidates (paper 0.9).
-        imgsz: square input size; default: the model's static size, else 1024.
+        imgsz: input size, int (square) or (h, w); default: the model's static size, else ultralytics'
+            ``imgsz`` metadata, else 1024.
         mask_threshold: probability threshold of the upsampled masks.
         providers: ONNX Runtime execution providers.
+        threads: ONNX Runtime intra-op threads (None: its default, one per core).
+
+    Attributes:
+        input_hw: (h, w) network input, pixels. imgsz: h (kept for square models).
 
     Raises:
-        FileNotFoundError: model missing. ValueError: outputs not in the YOLOv8-seg layout.
+        FileNotFoundError: model missing. ValueError: the file does not load, or its outputs are not in
+        the YOLOv8-seg layout (the message names the file and the reason).
     """
 
-    def __init__(self, model_path, conf: float = 0.4, iou: float = 0.9, imgsz: Optional[int] = None,
-                 mask_threshold: float = 0.5, providers: Optional[Sequence[str]] = None) -> None:
-        self.session = _session(model_path, providers)
+    def __init__(self, model_path, conf: float = 0.4, iou: float = 0.9,
+                 imgsz: Optional[Union[int, Tuple[int, int]]] = None, mask_threshold: float = 0.5,
+                 providers: Optional[Sequence[str]] = None, threads: Optional[int] = None) -> None:
+        self.model_path = Path(model_path)
+        self.session = _session(model_path, providers, threads)
         self.conf, self.iou, self.mask_threshold = float(conf), float(iou), float(mask_threshold)
+        try:
+            self._check_contract(imgsz)
+        except ValueError as e:
+            raise ValueError(f"{self.model_path}: {e}") from None
+
+    def _check_contract(self, imgsz) -> None:
         ins = self.session.get_inputs()
         if len(ins) != 1 or len(ins[0].shape) != 4:
-            raise ValueError(f"expected one (1, 3, S, S) image input, got {[(i.name, i.shape) for i in ins]}")
+            raise ValueError(f"expected one (1, 3, h, w) image input, got {[(i.name, i.shape) for i in ins]}")
         self.input_name = ins[0].name
-        self.imgsz = int(imgsz or _static(ins[0].shape[2]) or 1024)
+        meta = self.session.get_modelmeta().custom_metadata_map or {}
+        args = str(meta.get("args", ""))
+        if "'nms': True" in args or str(meta.get("end2end", "")).lower() == "true":
+            raise ValueError("the export has NMS / an end-to-end head inside (predictions (1, max_det, 6 + nm)); "
+                             "export with nms=False from a YOLOv8-seg or FastSAM model")
+        if imgsz is None:
+            h, w = _static(ins[0].shape[2]), _static(ins[0].shape[3])
+            if not (h and w):
+                nums = [int(v) for v in str(meta.get("imgsz", "")).strip("[]() ").replace(",", " ").split() if v.isdigit()]
+                h, w = (nums[0], nums[-1]) if nums else (1024, 1024)
+            imgsz = (h, w)
+        self.input_hw = (int(imgsz), int(imgsz)) if np.isscalar(imgsz) else (int(imgsz[0]), int(imgsz[1]))
+        self.imgsz = self.input_hw[0]
         outs = self.session.get_outputs()
         ranks = {o.name: len(o.shape) for o in outs}
         pr = [n for n, r in ranks.items() if r == 3]
         pt = [n for n, r in ranks.items() if r == 4]
         if len(pr) != 1 or len(pt) != 1:
-            raise ValueError(f"expected a 3-D prediction output and a 4-D prototype output, got {ranks}")
+            raise ValueError(f"expected a 3-D prediction output and a 4-D prototype output, got "
+                             f"{[(o.name, o.shape) for o in outs]}")
         self.pred_name, self.proto_name = pr[0], pt[0]
 
     def preprocess(self, image: np.ndarray) -> Tuple[np.ndarray, float, Tuple[int, int]]:
@@ -292,7 +365,7 @@ class OnnxFastSAMSegmenter:
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise ValueError(f"image must be (H, W, 3) uint8, got {img.shape} {img.dtype}")
-        lb, s, pad = letterbox(img, self.imgsz)
+        lb, s, pad = letterbox(img, self.input_hw)
         return np.ascontiguousarray(lb.astype(np.float32).transpose(2, 0, 1)[None] / 255.0), s, pad
 
     def postprocess(self, pred: np.ndarray, protos: np.ndarray, scale: float, pad: Tuple[int, int],
@@ -309,7 +382,7 @@ class OnnxFastSAMSegmenter:
         if nc < 1:
             raise ValueError(f"prediction has {C} channels, too few for 4 + classes + {nm} coefficients")
         H, W = image_hw
-        S = self.imgsz
+        Sh, Sw = self.input_hw
         scores = pred[4 : 4 + nc].max(axis=0)
         sel = np.flatnonzero(scores > self.conf)
         if len(sel) == 0:
@@ -324,9 +397,9 @@ class OnnxFastSAMSegmenter:
         nw, nh = int(round(W * scale)), int(round(H * scale))
         masks = np.zeros((len(sel), H, W), dtype=bool)
         boxes = np.zeros((len(sel), 4), dtype=np.float32)
-        yy, xx = np.mgrid[0:S, 0:S]
+        yy, xx = np.mgrid[0:Sh, 0:Sw]
         for k in range(len(sel)):
-            up = cv2.resize(m[k].astype(np.float32), (S, S), interpolation=cv2.INTER_LINEAR)
+            up = cv2.resize(m[k].astype(np.float32), (Sw, Sh), interpolation=cv2.INTER_LINEAR)
             x0, y0, x1, y1 = bx[k]
             up = np.where((xx >= x0) & (xx < x1) & (yy >= y0) & (yy < y1), up, 0.0).astype(np.float32)
             crop = up[py : py + nh, px : px + nw]
