@@ -317,6 +317,30 @@ def test_onnx_relevance_backend_with_tiny_models(scene, tmp_path):
     rt.close()
 
 
+
+def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
+    from test_attention_onnx import _fastsam_model
+
+    (tmp_path / "vocab.txt").write_text("\n".join(["[PAD]", "[UNK]", "[CLS]", "[SEP]", ".", "chair"]) + "\n")
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"\x00 not a model")
+    seg = _fastsam_model(tmp_path / "fs.onnx", np.zeros((1, 7, 1)), np.zeros((1, 2, 16, 16)), 64)
+    cases = [(junk, seg, "junk.onnx is not a loadable ONNX model"),
+             (seg, seg, "fs.onnx: the model has no 'input_ids' input")]  # a segmenter given as the detector
+    for det_path, seg_path, why in cases:
+        cfg = load_agent_config(None, TINY + ["agent.relevance_backend=onnx", f"agent.onnx.detector_path={det_path}",
+                                              f"agent.onnx.segmenter_path={seg_path}",
+                                              f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"])
+        ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", config=cfg))
+        try:
+            with AgentClient(ag.address) as c:
+                with pytest.raises(grpc.RpcError) as e:
+                    c.start_mission("Find the chair")
+                assert e.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+                assert why in e.value.details(), e.value.details()
+        finally:
+            ag.stop(0)
+
 # ---------------------------------------------------------------------------------------------- SIGKILL
 def _start_agent(port, data_dir, cfg_path, log):
     env = {**os.environ, "GAUSSLITE_AGENT_ID": "robot1", "GAUSSLITE_DATA_DIR": str(data_dir),
