@@ -286,8 +286,9 @@ class OnnxGroundingDetector:
         keep = np.asarray(sorted(keep, key=lambda i: -det.scores[i]), dtype=np.int64)
         return det.select(keep)
 
-    def detect(self, image: np.ndarray, phrases: Sequence[str], context: Optional[FrameContext] = None) -> Detections:
-        """Detect ``phrases`` in an (H, W, 3) uint8 RGB image; boxes in that image's pixels."""
+    def session_feeds(self, image: np.ndarray, phrases: Sequence[str]) -> Tuple[Dict[str, np.ndarray], List[List[int]], int]:
+        """The ONNX Runtime feeds for ``image`` and ``phrases`` (every model input, in its dtype), each phrase's
+        token indices and the number of real tokens."""
         x = self.preprocess(image)
         text, spans, n = self.encode_text(phrases)
         feeds = {self.image_name: x}
@@ -297,6 +298,11 @@ class OnnxGroundingDetector:
             v = text[name]
             t = self.input_types[name]
             feeds[name] = v.astype(bool) if "bool" in t else v.astype(np.int32) if "int32" in t else v.astype(np.int64) if "int64" in t else v.astype(np.float32)
+        return feeds, spans, n
+
+    def detect(self, image: np.ndarray, phrases: Sequence[str], context: Optional[FrameContext] = None) -> Detections:
+        """Detect ``phrases`` in an (H, W, 3) uint8 RGB image; boxes in that image's pixels."""
+        feeds, spans, n = self.session_feeds(image, phrases)
         logits, boxes = self.session.run([self.logits_name, self.boxes_name], feeds)
         return self.postprocess(np.asarray(logits)[0], np.asarray(boxes)[0], spans, n, np.asarray(image).shape[:2])
 
