@@ -58,6 +58,7 @@ class OnnxRelevanceConfig(BaseModel):
         segmenter_path: FastSAM / YOLOv8-seg ``.onnx`` (:class:`gausslite.attention.OnnxFastSAMSegmenter`).
         box_threshold, text_threshold: detector thresholds (paper 0.20 / 0.25).
         seg_conf, seg_iou: segmenter candidate score and NMS IoU thresholds (paper 0.4 / 0.9).
+        threads: ONNX Runtime intra-op threads of each model (None: one per core; docs/perception.md).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -69,6 +70,7 @@ class OnnxRelevanceConfig(BaseModel):
     text_threshold: float = Field(0.25, ge=0, le=1)
     seg_conf: float = Field(0.4, ge=0, le=1)
     seg_iou: float = Field(0.9, ge=0, le=1)
+    threads: Optional[int] = Field(None, ge=1)
 
     def missing(self) -> List[str]:
         """What is missing for the ONNX backend: unset options and files that do not exist."""
@@ -513,8 +515,8 @@ class AgentRuntime:
             raise ValueError("relevance 'attention' with backend 'onnx': " + "; ".join(missing))
         try:
             det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
-                                        text_threshold=o.text_threshold)
-            seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou)
+                                        text_threshold=o.text_threshold, threads=o.threads)
+            seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou, threads=o.threads)
         except Exception as e:  # onnxruntime load errors, export-contract violations
             raise ValueError(f"relevance 'attention' with backend 'onnx': cannot load the models: "
                              f"{type(e).__name__}: {e}") from None
