@@ -28,9 +28,11 @@ def gdino(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def yolo(tmp_path_factory):
+    torch = need("torch")
     need("ultralytics")
     from gausslite.attention.export import export_yolo_seg
 
+    torch.manual_seed(0)  # the random weights
     d = tmp_path_factory.mktemp("yolo")
     return {"rect": export_yolo_seg("yolov8n-seg.yaml", d / "rect.onnx", imgsz=(128, 160)),
             "square": export_yolo_seg("yolov8n-seg.yaml", d / "square.onnx", imgsz=160)}
@@ -144,9 +146,17 @@ def test_yolov8_seg_export_loads(yolo):
         ys, xs = np.nonzero(m)
         if len(xs):
             assert xs.min() >= b[0] - 1.5 and xs.max() <= b[2] + 1.5 and ys.min() >= b[1] - 1.5 and ys.max() <= b[3] + 1.5
-    # box prompts: one mask per box, image-sized
-    out = seg.segment(img, boxes[:3])
-    assert out.shape == (min(3, len(boxes)), 240, 320)
+    # box prompts: per box, the candidate with the highest mask-vs-box IoU; only candidates near the prompts
+    # are turned into masks, which must not change the answer
+    from gausslite.attention.interfaces import mask_box_iou
+
+    prompts = np.concatenate([boxes[:3], [[0, 0, 40, 30], [150, 100, 250, 200], [300, 220, 319, 239]]]).astype(np.float32)
+    out = seg.segment(img, prompts)
+    assert out.shape == (len(prompts), 240, 320)
+    iou = mask_box_iou(masks, prompts)
+    for k in range(len(prompts)):
+        j = int(np.argmax(iou[:, k]))
+        np.testing.assert_array_equal(out[k], masks[j] if iou[j, k] > 0 else np.zeros((240, 320), bool))
 
 
 def test_bad_model_files_name_the_file(tmp_path, gdino):

@@ -375,9 +375,14 @@ class OnnxFastSAMSegmenter:
         return np.ascontiguousarray(lb.astype(np.float32).transpose(2, 0, 1)[None] / 255.0), s, pad
 
     def postprocess(self, pred: np.ndarray, protos: np.ndarray, scale: float, pad: Tuple[int, int],
-                    image_hw: Tuple[int, int]) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    image_hw: Tuple[int, int], near: Optional[np.ndarray] = None
+                    ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predictions (C, N) and prototypes (nm, mh, mw) -> (masks (M, H, W) bool, boxes (M, 4) xyxy pixels
-        of the original image, scores (M,)), sorted by score."""
+        of the original image, scores (M,)), sorted by score.
+
+        ``near``: optional (K, 4) xyxy boxes of the original image; only candidates whose box (grown by 2 px)
+        overlaps one of them are turned into masks (the others' masks, cropped to their boxes, cannot
+        overlap these boxes)."""
         pred = np.asarray(pred, dtype=np.float64)
         protos = np.asarray(protos, dtype=np.float64)
         nm, mh, mw = protos.shape
@@ -397,6 +402,14 @@ class OnnxFastSAMSegmenter:
         bx = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1)
         keep = nms(bx, scores[sel], self.iou)
         sel, bx = sel[keep], bx[keep]
+        if near is not None:
+            nb = np.asarray(near, dtype=np.float64).reshape(-1, 4)
+            ob = (bx - np.array([pad[0], pad[1], pad[0], pad[1]])) / scale - 0.5 + np.array([-2.0, -2.0, 2.0, 2.0])
+            hit = ((ob[:, None, 0] < nb[None, :, 2]) & (ob[:, None, 2] > nb[None, :, 0])
+                   & (ob[:, None, 1] < nb[None, :, 3]) & (ob[:, None, 3] > nb[None, :, 1])).any(axis=1)
+            sel, bx = sel[hit], bx[hit]
+            if len(sel) == 0:
+                return np.zeros((0, H, W), dtype=bool), np.zeros((0, 4), np.float32), np.zeros(0, np.float32)
         coef = pred[4 + nc :, sel].T  # (M, nm)
         m = 1.0 / (1.0 + np.exp(-(coef @ protos.reshape(nm, -1)))).reshape(-1, mh, mw)
         px, py = pad
@@ -413,11 +426,14 @@ class OnnxFastSAMSegmenter:
             boxes[k] = [(x0 - px) / scale - 0.5, (y0 - py) / scale - 0.5, (x1 - px) / scale - 0.5, (y1 - py) / scale - 0.5]
         return masks, boxes, scores[sel].astype(np.float32)
 
-    def segment_everything(self, image: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All candidate masks of an image: (masks (M, H, W) bool, boxes (M, 4), scores (M,))."""
+    def segment_everything(self, image: np.ndarray, near: Optional[np.ndarray] = None
+                           ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All candidate masks of an image: (masks (M, H, W) bool, boxes (M, 4), scores (M,)); with ``near``
+        (K, 4) xyxy, only the candidates whose box overlaps one of those boxes."""
         x, s, pad = self.preprocess(image)
         outs = dict(zip([o.name for o in self.session.get_outputs()], self.session.run(None, {self.input_name: x})))
-        return self.postprocess(outs[self.pred_name][0], outs[self.proto_name][0], s, pad, np.asarray(image).shape[:2])
+        return self.postprocess(outs[self.pred_name][0], outs[self.proto_name][0], s, pad, np.asarray(image).shape[:2],
+                                near=near)
 
     def segment(self, image: np.ndarray, boxes: np.ndarray, context: Optional[FrameContext] = None) -> np.ndarray:
         """(K, H, W) bool: per prompt box (K, 4) xyxy, the candidate mask with the highest mask-vs-box IoU
@@ -427,7 +443,7 @@ class OnnxFastSAMSegmenter:
         out = np.zeros((len(boxes), H, W), dtype=bool)
         if len(boxes) == 0:
             return out
-        masks, _, _ = self.segment_everything(image)
+        masks, _, _ = self.segment_everything(image, near=boxes)
         if len(masks) == 0:
             return out
         iou = mask_box_iou(masks, boxes)  # (M, K)
