@@ -109,33 +109,6 @@ def ensure_models(cache: Path, size: Tuple[int, int], quick: bool, words: Sequen
 
 
 # ------------------------------------------------------------------------------------------ timing
-class _Timed:
-    """Runs the ONNX backend for its cost, returns the annotation backend's answer."""
-
-    def __init__(self, onnx_backend, reference, kind: str) -> None:
-        self.onnx, self.ref, self.kind = onnx_backend, reference, kind
-        self.seconds: List[float] = []
-        self.ref_seconds = 0.0  # the annotation backend's own time, not part of a robot's cost
-
-    def detect(self, image, phrases, context=None):
-        t = time.perf_counter()
-        self.onnx.detect(image, phrases)
-        t1 = time.perf_counter()
-        self.seconds.append(t1 - t)
-        out = self.ref.detect(image, phrases, context)
-        self.ref_seconds += time.perf_counter() - t1
-        return out
-
-    def segment(self, image, boxes, context=None):
-        t = time.perf_counter()
-        self.onnx.segment(image, boxes)
-        t1 = time.perf_counter()
-        self.seconds.append(t1 - t)
-        out = self.ref.segment(image, boxes, context)
-        self.ref_seconds += time.perf_counter() - t1
-        return out
-
-
 def per_call(det, seg, frame, phrases: Sequence[str], repeats: int) -> Dict[str, float]:
     """Median seconds of detect/segment (and of their networks alone) on one frame, after a warm-up."""
     img = frame.rgb
@@ -180,10 +153,11 @@ def schedule(ds, kf: Sequence[int], graph, det, seg, progress=None) -> Dict[str,
     """Run the front-end over the mapping keyframes ``kf`` with timed backends; totals in seconds."""
     from gausslite.attention import AttentionConfig, AttentionFrontEnd
     from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
+    from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
 
     backend = AnnotationBackend(ds.annotations)
-    tdet = _Timed(det, AnnotationDetector(backend), "detector")
-    tseg = _Timed(seg, AnnotationSegmenter(backend), "segmenter")
+    tdet = CostOnlyDetector(det, AnnotationDetector(backend))
+    tseg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))
     fe = AttentionFrontEnd(graph, AttentionConfig(detector=tdet, segmenter=tseg), up_axis=ds.annotations.up_axis)
     total, relevant = 0.0, 0
     for i in kf:
@@ -195,7 +169,7 @@ def schedule(ds, kf: Sequence[int], graph, det, seg, progress=None) -> Dict[str,
         if progress is not None:
             progress.update(1)
     n = len(kf)
-    ann = tdet.ref_seconds + tseg.ref_seconds
+    ann = tdet.answer_seconds + tseg.answer_seconds
     return {"mapping_keyframes": n, "detector_calls": len(tdet.seconds), "segmenter_calls": len(tseg.seconds),
             "frames_with_relevance": relevant, "total_s": total - ann, "annotation_backend_s": ann,
             "detector_s": float(sum(tdet.seconds)), "segmenter_s": float(sum(tseg.seconds)),
@@ -256,7 +230,9 @@ def main(argv=None) -> dict:
         task_id, graph = _task(ds, args.task_id)
         targets, anchors, _ = _graph_parts(graph)
         phrases = list(dict.fromkeys(targets + anchors))
-        words = [w for p in phrases for w in p.lower().split()]
+        all_tasks = json.loads((Path(ds.path) / "tasks.json").read_text())["tasks"]
+        words = [w for t in all_tasks for key in ("targets", "anchors") for p in t["graph"].get(key, [])
+                 for w in str(p).lower().split()]  # every task's words: the vocab also serves bench.realtime
         print(f"[{W}x{H}] exporting/loading models in {args.cache} ...", flush=True)
         models = ensure_models(args.cache, (W, H), args.quick, words)
         kf = mapping_keyframes(ds)

@@ -318,6 +318,34 @@ def test_onnx_relevance_backend_with_tiny_models(scene, tmp_path):
 
 
 
+def test_onnx_cost_backend_runs_the_models_and_answers_from_annotations(scene, tmp_path):
+    from test_attention_onnx import _detector_model, _fastsam_model
+
+    (tmp_path / "vocab.txt").write_text("\n".join(["[PAD]", "[UNK]", "[CLS]", "[SEP]", ".", "chair"]) + "\n")
+    det = _detector_model(tmp_path / "gd.onnx", np.full((1, 2, 16), -10.0), np.full((1, 2, 4), 0.5))  # detects nothing
+    seg = _fastsam_model(tmp_path / "fs.onnx", np.zeros((1, 7, 1)), np.zeros((1, 2, 16, 16)), 64)
+    ds = load_dataset(scene / "agent_a")
+    graph = {"targets": ["chair"], "anchors": [], "relations": []}
+    onnx = [f"agent.onnx.detector_path={det}", f"agent.onnx.segmenter_path={seg}",
+            f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"]
+    ref = AgentRuntime("ann", "Find the chair", graph, load_agent_config(None, TINY), annotations=ds.annotations)
+    cost = AgentRuntime("cost", "Find the chair", graph,
+                        load_agent_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx),
+                        annotations=ds.annotations)
+    try:
+        for i in range(3):
+            want, got = ref._relevance_fn(ds[i]), cost._relevance_fn(ds[i])
+            np.testing.assert_array_equal(got, want)
+        assert want.any()  # the chair is in view: the masks come from the annotations, not the models
+        d, s = cost.frontend.config.detector, cost.frontend.config.segmenter
+        assert len(d.seconds) == cost.frontend.detector_calls >= 1 and len(s.seconds) == 3  # the models ran
+    finally:
+        ref.close()
+        cost.close()
+    with pytest.raises(ValueError, match="backend 'onnx_cost' needs scene annotations"):
+        AgentRuntime("cost", "Find the chair", graph,
+                     load_agent_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx))
+
 def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
     from test_attention_onnx import _fastsam_model
 

@@ -147,7 +147,9 @@ class AgentConfig(BaseModel):
             ``mapper.final_iters_per_keyframe`` × keyframes; the hand-held profile sets 20 per keyframe) stops
             after this many seconds, so a long mission's Finish stays bounded.
         relevance_backend: where the attention front-end's detector/segmenter come from: ``annotation``
-            (the scene's ``objects.json``) or ``onnx`` (models in ``onnx``).
+            (the scene's ``objects.json``), ``onnx`` (models in ``onnx``) or ``onnx_cost`` (timing experiments:
+            the models in ``onnx`` run on every call for their compute time, the relevance comes from
+            ``objects.json``; :mod:`gausslite.attention.timing`).
         onnx: ONNX detector/segmenter paths and thresholds (``relevance_backend: onnx``).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
@@ -192,7 +194,7 @@ class AgentConfig(BaseModel):
     fps: Optional[float] = Field(None, gt=0)
     checkpoint_every: int = Field(5, ge=0)
     final_pass_s: float = Field(60.0, gt=0)
-    relevance_backend: Literal["annotation", "onnx"] = "annotation"
+    relevance_backend: Literal["annotation", "onnx", "onnx_cost"] = "annotation"
     onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
@@ -487,9 +489,12 @@ class AgentRuntime:
         if cfg.relevance_backend == "onnx":
             fe = self._onnx_frontend()
         elif ann is None:
-            raise ValueError("relevance 'attention' with backend 'annotation' needs scene annotations (objects.json) "
-                             "for the offline annotation detector/segmenter; give a dataset or annotations path, or "
-                             "set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/segmenter_path")
+            raise ValueError(f"relevance 'attention' with backend '{cfg.relevance_backend}' needs scene annotations "
+                             "(objects.json) for the offline annotation detector/segmenter; give a dataset or annotations "
+                             "path, or set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/"
+                             "segmenter_path")
+        elif cfg.relevance_backend == "onnx_cost":
+            fe = self._onnx_frontend(answer_from=ann)
         else:
             fe = AttentionFrontEnd.from_annotations(self.graph, ann)
         self.frontend = fe
@@ -505,21 +510,31 @@ class AgentRuntime:
 
         return fn
 
-    def _onnx_frontend(self):
-        """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B)."""
+    def _onnx_frontend(self, answer_from=None):
+        """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B). With
+        ``answer_from`` (scene annotations) the models run for their cost only and the annotation backend
+        answers (``relevance_backend: onnx_cost``)."""
         from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
 
         o = self.config.onnx
+        name = self.config.relevance_backend
         missing = o.missing()
         if missing:
-            raise ValueError("relevance 'attention' with backend 'onnx': " + "; ".join(missing))
+            raise ValueError(f"relevance 'attention' with backend '{name}': " + "; ".join(missing))
         try:
             det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
                                         text_threshold=o.text_threshold, threads=o.threads)
             seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou, threads=o.threads)
         except Exception as e:  # onnxruntime load errors, export-contract violations
-            raise ValueError(f"relevance 'attention' with backend 'onnx': cannot load the models: "
+            raise ValueError(f"relevance 'attention' with backend '{name}': cannot load the models: "
                              f"{type(e).__name__}: {e}") from None
+        if answer_from is not None:
+            from gausslite.attention import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
+            from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
+
+            backend = AnnotationBackend(answer_from)
+            det = CostOnlyDetector(det, AnnotationDetector(backend))
+            seg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))
         up = getattr(self.annotations, "up_axis", (0.0, 0.0, 1.0)) if self.annotations is not None else (0.0, 0.0, 1.0)
         return AttentionFrontEnd(self.graph, AttentionConfig(detector=det, segmenter=seg), up_axis=up)
 
