@@ -29,7 +29,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from gausslite_rpc import fusion_pb2
     from services.fusion_server.server import decode_color, decode_depth
     from services.fusion_server.store import FusionStore
-    from services.sim import evaluate_fused
+    from gausslite.evaluation import evaluate_fused
 
     ap = argparse.ArgumentParser(prog="python -m bench.refine_keyframes", description=__doc__.splitlines()[0])
     ap.add_argument("--fusion-dir", required=True, type=Path, help="DIR/data/fusion of a sim run")

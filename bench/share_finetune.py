@@ -53,7 +53,7 @@ def run_seed(args, seed: int) -> dict:
     from gausslite.pipeline import gt_roi_fn
     from gausslite.sharing import ShareConfig, ShareView, finetune_subset, select_task_subset
     from gausslite.wire.codec import GaussianArrays
-    from services.sim import evaluate_fused
+    from gausslite.evaluation import evaluate_fused
 
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset, downscale=args.downscale, max_frames=args.max_frames)

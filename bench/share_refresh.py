@@ -81,7 +81,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
     from gausslite.sharing import ShareConfig, ShareView, finetune_subset, select_task_subset, update_shared_subset
     from gausslite.wire.codec import GaussianArrays
     from gausslite.wire.delta import PushPlanner
-    from services.sim import evaluate_fused
+    from gausslite.evaluation import evaluate_fused
 
     torch.set_num_threads(1)
     tasks = SCENES[args.scene]

@@ -56,6 +56,17 @@ class ShareConfig:
         min_opacity: prune Gaussians below this opacity (near-transparent).
         coverage: keep the fewest Gaussians (by decreasing contribution) carrying this fraction of
             the total ROI blending weight; 1.0 keeps every Gaussian with a positive contribution.
+        candidates: ``active`` — rules 1 and 2 (the paper's ``a = 1`` and κ, inside the task region);
+            ``rendered`` — every Gaussian that draws the ROI pixels of the ROI keyframes competes in rule 3,
+            whatever its flag (for maps whose ROI phase fits every Gaussian the ROI crop draws,
+            ``mapper.roi_update: visible``: there inactive Gaussians render the task region too, and a subset
+            of active ones alone leaves it half drawn; ``docs/sharing.md``).
+        max_fraction: at most this fraction of the map is shared (the Gaussians with the largest
+            contribution); None = no bound. A bandwidth bound for maps still being trained, where a coverage
+            rule alone keeps many small, overlapping Gaussians (``docs/sharing.md``).
+
+    Raises:
+        ValueError: unknown ``candidates`` or ``max_fraction`` outside (0, 1].
     """
 
     region_voxel_m: float = 0.05
@@ -63,6 +74,14 @@ class ShareConfig:
     kappa_threshold: int = 1
     min_opacity: float = 0.02
     coverage: float = 0.99
+    candidates: str = "active"
+    max_fraction: Optional[float] = None
+
+    def __post_init__(self) -> None:
+        if self.candidates not in ("active", "rendered"):
+            raise ValueError(f"candidates must be 'active' or 'rendered', got {self.candidates!r}")
+        if self.max_fraction is not None and not 0 < self.max_fraction <= 1:
+            raise ValueError(f"max_fraction must be in (0, 1] or None, got {self.max_fraction}")
 
 
 @dataclass
@@ -159,23 +178,30 @@ def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = Shar
         cfg: rule parameters.  backend: renderer backend.
 
     Returns:
-        (mask, stats) with stats = {"active_kappa", "in_region", "opaque", "shared"} counts.
+        (mask, stats) with stats = {"active_kappa", "in_region", "opaque", "shared"} counts
+        (``candidates: rendered``: ``in_region`` counts every Gaussian; no region rule).
     """
     active = gmap.active.detach().cpu().numpy().astype(bool)
     kappa = gmap.kappa.detach().cpu().numpy()
-    cand = active & (kappa >= cfg.kappa_threshold)
-    stats = {"active_kappa": int(cand.sum())}
+    rendered = cfg.candidates == "rendered"
+    cand = np.ones(len(active), bool) if rendered else active & (kappa >= cfg.kappa_threshold)
+    stats = {"active_kappa": int((active & (kappa >= cfg.kappa_threshold)).sum())}
     views = [v for v in views if np.asarray(v.roi).any()]
     if not views or not cand.any():
-        stats.update(in_region=stats["active_kappa"], opaque=stats["active_kappa"], shared=stats["active_kappa"])
+        if rendered:  # no ROI seen yet: nothing draws the task region
+            cand = np.zeros_like(cand)
+        n = int(cand.sum())
+        stats.update(in_region=n, opaque=n, shared=n)
         return cand, stats
-    region = task_region(views, cfg.region_voxel_m, cfg.region_dilate)
-    cand &= in_region(gmap.means, region, cfg.region_voxel_m)
+    if not rendered:
+        region = task_region(views, cfg.region_voxel_m, cfg.region_dilate)
+        cand &= in_region(gmap.means, region, cfg.region_voxel_m)
     stats["in_region"] = int(cand.sum())
     opac = torch.sigmoid(gmap.opacity_logits.detach()).cpu().numpy()
     cand &= opac >= cfg.min_opacity
     stats["opaque"] = int(cand.sum())
-    if cfg.coverage < 1.0 and cand.any():
+    limit = None if cfg.max_fraction is None else int(np.floor(cfg.max_fraction * len(active)))
+    if (cfg.coverage < 1.0 or rendered or limit is not None) and cand.any():
         # contribution of the candidates rendered with the rest of the map (occlusion by context)
         c = roi_contribution(gmap, views, backend)
         idx = np.nonzero(cand)[0]
@@ -185,6 +211,7 @@ def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = Shar
         keep = np.zeros(len(idx), bool)
         if total > 0:
             k = int(np.searchsorted(np.cumsum(ci[order]) / total, cfg.coverage) + 1)
+            k = min(k, int((ci > 0).sum()), len(idx) if limit is None else limit)
             keep[order[:k]] = True
         cand = np.zeros_like(cand)
         cand[idx[keep]] = True

@@ -246,36 +246,6 @@ def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[Pr
     raise TimeoutError(f"{service} at {target} not healthy after {timeout_s:.0f} s (last: {status})")
 
 
-def render_map(gmap, frame, backend: str = "auto"):
-    """Render a ``GaussianMap`` at a frame's view (no gradients). Returns ``RenderOutput``."""
-    import torch
-
-    from gausslite.render import rasterize
-
-    with torch.no_grad():
-        return rasterize(gmap.means, gmap.quats, gmap.log_scales, gmap.opacity_logits, gmap.colors,
-                         K=frame.intrinsics.K, width=frame.intrinsics.width, height=frame.intrinsics.height,
-                         c2w=frame.c2w, background=torch.zeros(3), backend=backend)
-
-
-def evaluate_fused(gmap, frames: list, annotations, task_id: str, backend: str = "auto") -> Optional[float]:
-    """Mean ROI PSNR (dB) of ``gmap`` over ``frames`` restricted to ``task_id``'s GT ROI (frames with an
-    empty ROI are skipped); None when no frame shows the ROI or the map is empty."""
-    from gausslite.evaluation import score_view
-
-    if len(gmap) == 0:
-        return None
-    vals = []
-    for fr in frames:
-        roi = annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
-        if not roi.any():
-            continue
-        s = score_view(render_map(gmap, fr, backend), fr, roi)
-        if not math.isnan(s.roi_psnr):
-            vals.append(s.roi_psnr)
-    return float(np.mean(vals)) if vals else None
-
-
 def attach_context_baseline(report: dict, context_report: dict) -> dict:
     """Copy each agent's own-map ROI PSNR of a run mapped with ``mapper.roi_render: context`` (same
     scene and tasks, e.g. ``gausslite sim ... --set mapper.roi_render=context``) into ``report`` as
@@ -377,6 +347,98 @@ def plot_pushes(report: dict, path: Path) -> bool:
     return True
 
 
+class FusedTimeline:
+    """The fused map while the robots map: whenever an agent's latest complete subset changes on the fusion server,
+    a vote fuse (no refinement) is run and the fused map downloaded; :meth:`scores` scores them afterwards, so the
+    scoring takes nothing from the missions.
+
+    Args:
+        fusion: a ``FusionClient``. voxel_size: δ (m). contest_radius: vote neighbourhood (voxels).
+    """
+
+    def __init__(self, fusion, voxel_size: float, contest_radius: int) -> None:
+        self.fusion, self.voxel_size, self.contest_radius = fusion, voxel_size, contest_radius
+        self.versions: Dict[str, int] = {}
+        self.maps: list = []  # (seconds since the start, {agent: version}, GaussianArrays)
+
+    def poll(self, t: float) -> bool:
+        """Fuse and download when a subset changed since the last call (``t``: seconds since the sim started).
+        Returns True when it fused. A fusion error is logged and skipped (the timeline is a diagnostic)."""
+        try:
+            agents = self.fusion.stats().get("agents", {})
+            latest = {a: int(v["latest_map_version"]) for a, v in agents.items() if v.get("has_complete_subset")}
+            if not latest or latest == self.versions:
+                return False
+            res = self.fusion.fuse("vote", voxel_size=self.voxel_size, contest_radius=self.contest_radius)
+            self.maps.append((t, dict(latest), self.fusion.download_fused(res.fused_version)))
+            self.versions = latest
+            return True
+        except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
+            log.warning("fused timeline: fuse at %.0f s failed: %s", t, e)
+            return False
+
+    def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: int = 5) -> List[dict]:
+        """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}}]``: every fused map scored on
+        each task's ROI (every ``stride``-th frame of ``frames_by_task[task] = (dataset, frames)``)."""
+        from gausslite.evaluation import evaluate_fused
+
+        out = []
+        for t, versions, arrays in self.maps:
+            g = arrays.to_gaussian_map()
+            out.append({"t": t, "versions": versions, "n_gaussians": len(arrays),
+                        "roi_psnr": {k: evaluate_fused(g, fr[::stride], ds.annotations, k, backend)
+                                     for k, (ds, fr) in frames_by_task.items()}})
+        return out
+
+
+def plot_fused_timeline(report: dict, path: Path) -> bool:
+    """PNG of the vote-fused map's ROI PSNR per task over the simulation's time, with each agent's own final ROI
+    PSNR as a dashed line. Returns False when there is nothing to plot."""
+    tl = report.get("fused_timeline") or []
+    if not tl:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    for a in report["agents"]:
+        pts = [(e["t"], e["roi_psnr"].get(a["task"])) for e in tl if e["roi_psnr"].get(a["task"]) is not None]
+        if not pts:
+            continue
+        line, = ax.plot(*zip(*pts), "o-", ms=3, label=f"fused vote, {a['task']}")
+        own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
+        if own is not None:
+            ax.axhline(own, ls="--", lw=1, color=line.get_color(), label=f"{a['id']} own map (end)")
+    ax.set_xlabel("simulation time (s)")
+    ax.set_ylabel("ROI PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def _timeline_lines(report: dict) -> List[str]:
+    """Markdown of the fused map over time (one vote after each new subset)."""
+    tl = report.get("fused_timeline") or []
+    if not tl:
+        return []
+    tasks = [a["task"] for a in report["agents"]]
+    lines = ["", "## The fused map while mapping", "",
+             "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame:", "",
+             "| time (s) | subset versions | Gaussians | " + " | ".join(tasks) + " |", "|---|---|---|" + "---|" * len(tasks)]
+    for e in tl:
+        vs = ", ".join(f"{a} v{v}" for a, v in sorted(e["versions"].items()))
+        lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | "
+                     + " | ".join(_fmt(e["roi_psnr"].get(t)) for t in tasks) + " |")
+    if report.get("fused_timeline_plot"):
+        lines += ["", f"![fused ROI PSNR over time]({report['fused_timeline_plot']})"]
+    return lines
+
+
 def _fmt(v, nd=2) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
 
@@ -411,6 +473,7 @@ def write_markdown(report: dict, path: Path) -> None:
         lines.append(f"- {a['id']}: {cells or '–'}")
     if report.get("pushes_plot"):
         lines += ["", f"![bytes per push and share over time]({report['pushes_plot']})"]
+    lines += _timeline_lines(report)
     lines += _live_lines(report)
     lines += _baseline_lines(report)
     lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
@@ -466,7 +529,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     import grpc
 
     from gausslite.datasets import load_dataset
-    from gausslite.evaluation import side_by_side
+    from gausslite.evaluation import evaluate_fused, render_map, side_by_side
     from gausslite_rpc import agent_pb2
     from services.agent.client import AgentClient
     from services.fusion_server.client import FusionClient
@@ -519,11 +582,14 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         fusion.wait_ready(60)
         agents = {p.name: AgentClient(p.address, token=token) for p in plans}
         clients.extend(agents.values())
-        # ---- wait for the missions
+        # ---- wait for the missions; vote-fuse whenever a new subset arrived (the fused map over time)
         done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
         last_print = 0.0
+        fuse_cfg = sim_cfg.get("fuse") or {}
+        tracker = FusedTimeline(fusion, float(fuse_cfg.get("voxel_size", 0.10)), int(fuse_cfg.get("contest_radius", 1)))
         while True:
             group.check_alive()
+            tracker.poll(time.perf_counter() - t0)
             try:
                 sts = {n: c.status() for n, c in agents.items()}
             except grpc.RpcError as e:  # an attached agent that has not started its mission yet
@@ -549,9 +615,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
             if not summaries[n].final_push_ok:
                 raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+        tracker.poll(time.perf_counter() - t0)
         stats = fusion.stats().get("agents", {})
         # ---- fuse
-        fuse_cfg = sim_cfg.get("fuse") or {}
         voxel = float(fuse_cfg.get("voxel_size", 0.10))
         refine_iters = int(fuse_cfg.get("refine_iters", 300))
         radius = int(fuse_cfg.get("contest_radius", 1))
@@ -590,6 +656,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                           "fused_version": int(res.fused_version), "kept": dict(res.kept)}
             log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians,
                      {k: _fmt(v) for k, v in per_task.items()})
+        timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend)
         agents_rep = []
         for p in plans:
             s = summaries[p.name]
@@ -624,7 +691,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
             })
         report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
-                  "renders": renders,
+                  "renders": renders, "fused_timeline": timeline,
                   "realtime": bool((cfg.get("agent") or {}).get("realtime", False)),
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters, "config": str(config_path),
@@ -635,6 +702,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             attach_context_baseline(report, report)  # the agents themselves mapped with roi_render: context
         if plot_pushes(report, out / "pushes.png"):
             report["pushes_plot"] = "pushes.png"
+        if plot_fused_timeline(report, out / "fused_over_time.png"):
+            report["fused_timeline_plot"] = "fused_over_time.png"
         (out / "report.json").write_text(json.dumps(report, indent=2))
         write_markdown(report, out / "report.md")
         log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])

@@ -1,4 +1,4 @@
-"""Task-region and compaction rules of the shared subset (gausslite.sharing, issue 12 part 1)."""
+"""Task-region and compaction rules of the shared subset (gausslite.sharing; docs/sharing.md)."""
 
 from __future__ import annotations
 
@@ -68,6 +68,37 @@ def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_
     # no ROI pixels at all: the task flag and κ rule alone
     mask, _ = select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))])
     assert mask.tolist() == [True, True, True, True, False]
+
+
+def test_rendered_candidates_rank_every_gaussian_that_draws_the_roi_and_max_fraction_bounds_the_share():
+    """The live share rule (``candidates: rendered``, ``max_fraction``): flags, κ and the task region do not
+    decide; the ROI blending weight does, and the bound keeps the largest contributions."""
+    # 0: opaque, in front, in the ROI; 1: behind 0 (occluded); 2: near-transparent; 3: outside the ROI's view;
+    # 4: inactive, κ 0, in the ROI (a Gaussian the ROI phase fitted under roi_update: visible)
+    g = _map([[0, 0, 1.98], [0, 0, 2.02], [0.1, 0.05, 2.0], [0.8, 0.5, 2.0], [-0.1, 0, 2.0]],
+             [0.99, 0.99, 0.01, 0.99, 0.99], [0.08, 0.02, 0.04, 0.04, 0.04])
+    g.active[4] = False
+    g.kappa[4] = 0
+    v = _view()
+    c = roi_contribution(g, [v])
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="rendered"))
+    # every opaque Gaussian with a positive ROI weight, the inactive one included; not the one outside the ROI
+    assert mask.tolist() == [True, True, False, False, True]
+    assert st["shared"] == 3 and st["active_kappa"] == 4
+    # the paper's rule on the same map leaves the inactive one out
+    assert select_task_subset(g, [v], ShareConfig(coverage=1.0))[0].tolist() == [True, True, False, False, False]
+    # at most floor(0.4 * 5) = 2 Gaussians: the two largest contributions
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="rendered", max_fraction=0.4))
+    top2 = set(np.argsort(-c)[:2].tolist())
+    assert set(np.nonzero(mask)[0].tolist()) == top2 and st["shared"] == 2
+    # the bound applies to the paper's rule as well
+    assert select_task_subset(g, [v], ShareConfig(coverage=1.0, max_fraction=0.2))[0].sum() == 1
+    # no ROI seen yet: nothing draws the task region, nothing is shared
+    assert not select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))], ShareConfig(candidates="rendered"))[0].any()
+    with pytest.raises(ValueError):
+        ShareConfig(candidates="everything")
+    with pytest.raises(ValueError):
+        ShareConfig(max_fraction=0.0)
 
 
 def _roi_keyframe(color=(200, 30, 30), box=(20, 12, 44, 36)):

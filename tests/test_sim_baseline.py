@@ -42,3 +42,62 @@ def test_uniform_baseline_refuses_a_mismatched_report():
     other["agents"][1]["task"] = "t-c"
     with pytest.raises(ValueError, match="no agent agent_b"):
         attach_uniform_baseline(rep, other)
+
+
+class _FakeFusion:
+    """Fusion client double: two agents whose versions advance as the test says; every vote fuse returns a map
+    of as many Gaussians as the sum of the versions."""
+
+    def __init__(self):
+        self.versions = {}
+        self.fuses = []
+
+    def stats(self):
+        return {"agents": {a: {"latest_map_version": v, "has_complete_subset": v > 0} for a, v in self.versions.items()}}
+
+    def fuse(self, method, voxel_size, contest_radius):
+        from types import SimpleNamespace
+
+        self.fuses.append((method, voxel_size, contest_radius))
+        return SimpleNamespace(fused_version=len(self.fuses))
+
+    def download_fused(self, version):
+        from bench.wire_fuzz import random_arrays
+
+        return random_arrays(sum(self.versions.values()), version, extent=1.0)
+
+
+def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_path, monkeypatch):
+    from services import sim
+
+    fusion = _FakeFusion()
+    tl = sim.FusedTimeline(fusion, 0.1, 1)
+    assert not tl.poll(0.0)  # nothing uploaded yet
+    fusion.versions = {"agent_a": 1, "agent_b": 0}
+    assert tl.poll(1.0) and not tl.poll(2.0)  # fused once; nothing new since
+    fusion.versions = {"agent_a": 1, "agent_b": 1}
+    assert tl.poll(3.0)
+    assert fusion.fuses == [("vote", 0.1, 1), ("vote", 0.1, 1)]
+    assert [(t, v) for t, v, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
+    scored = []
+    monkeypatch.setattr("gausslite.evaluation.evaluate_fused",
+                        lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames))) or 20.0 + len(g))
+
+    class _DS:
+        annotations = None
+
+    out = tl.scores({"t-a": (_DS, list(range(12))), "t-b": (_DS, list(range(12)))}, stride=5)
+    assert [e["n_gaussians"] for e in out] == [1, 2] and out[1]["roi_psnr"] == {"t-a": 22.0, "t-b": 22.0}
+    assert scored[0] == (1, 3)  # every fifth frame
+    rep = _report("gausslite", True, own=25.0, all_frames=23.0)
+    rep["fused_timeline"] = out
+    assert sim.plot_fused_timeline(rep, tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
+    rep["fused_timeline_plot"] = "t.png"
+    write_markdown(rep, tmp_path / "report.md")
+    md = (tmp_path / "report.md").read_text()
+    assert "The fused map while mapping" in md and "| 3 | agent_a v1, agent_b v1 | 2 | 22.00 | 22.00 |" in md
+    assert "![fused ROI PSNR over time](t.png)" in md
+    # a failing fuse is logged and skipped, not raised
+    fusion.versions = {"agent_a": 2, "agent_b": 1}
+    fusion.fuse = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("server gone"))
+    assert not tl.poll(4.0) and len(tl.maps) == 2

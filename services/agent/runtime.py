@@ -94,6 +94,11 @@ class AgentConfig(BaseModel):
             κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
             :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
         share_coverage: ``share: task``: fraction of the ROI blending weight the shared subset keeps.
+        share_candidates: ``share: task``: ``active`` (the paper's a = 1 and κ inside the task region, then
+            compaction) or ``rendered`` (every Gaussian that draws the ROI competes in the compaction: what a map
+            fitted with ``mapper.roi_update: visible`` needs; :class:`gausslite.sharing.ShareConfig`).
+        share_max_fraction: ``share: task``: at most this fraction of the map is shared (largest ROI contribution
+            first); null = no bound (``docs/sharing.md``).
         share_finetune_iters: ``share: task``: before each push, fine-tune a copy of the shared subset
             rendered alone on the ROI keyframes for this many iterations
             (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
@@ -160,6 +165,8 @@ class AgentConfig(BaseModel):
     share: Literal["active", "kappa", "task"] = "active"
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
+    share_candidates: Literal["active", "rendered"] = "active"
+    share_max_fraction: Optional[float] = Field(None, gt=0, le=1)
     share_finetune_iters: int = Field(200, ge=0)
     share_refresh: float = Field(0.05, ge=0, le=1)
     pusher_nice: int = Field(19, ge=0, le=19)
@@ -346,12 +353,12 @@ def _share_worker_init(nice: int) -> None:
     torch.set_num_threads(1)
 
 
-def _share_select(gmap, views, kappa_threshold: int, coverage: float, backend: str):
-    """``share: task`` selection (:func:`gausslite.sharing.select_task_subset`); runs in the share worker."""
-    from gausslite.sharing import ShareConfig, select_task_subset
+def _share_select(gmap, views, share_cfg, backend: str):
+    """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
+    :class:`gausslite.sharing.ShareConfig`); runs in the share worker."""
+    from gausslite.sharing import select_task_subset
 
-    return select_task_subset(gmap, views, ShareConfig(kappa_threshold=kappa_threshold, coverage=coverage),
-                              backend=backend)
+    return select_task_subset(gmap, views, share_cfg, backend=backend)
 
 
 def _share_finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg, seed: int):
@@ -854,8 +861,12 @@ class AgentRuntime:
         from gausslite.wire.codec import GaussianArrays
 
         gmap, views, poses, kfs = snap.select
-        mask, st = self._share_call(_share_select, gmap, views, self.config.kappa_threshold,
-                                    self.config.share_coverage, self.config.mapper.backend)
+        from gausslite.sharing import ShareConfig
+
+        c = self.config
+        share_cfg = ShareConfig(kappa_threshold=c.kappa_threshold, coverage=c.share_coverage,
+                                candidates=c.share_candidates, max_fraction=c.share_max_fraction)
+        mask, st = self._share_call(_share_select, gmap, views, share_cfg, c.mapper.backend)
         log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = snap.ids[mask]

@@ -1,0 +1,356 @@
+"""Live robot teams under the real-time protocol: what two agents share, and how good the team's fused map is.
+
+    python -m bench.team                                # every team, keyframe budget 0.5 s, 3 runs
+    python -m bench.team --teams tum_halves --runs 1    # one team, one run
+
+Each run maps every agent of a team live (``bench.realtime``'s protocol: the agent's deployed settings, the
+scene's sensor profile, keyframe ingest at the scene's clock, ``budget`` s of wall time per keyframe, the Gaussian
+cap, **no final pass**), one agent after the other, so that each has the machine to itself as a robot has its own
+computer. Agents share as deployed (task selection, fine-tune, delta pushes) to an in-process stand-in of the
+fusion server's store (:class:`RecordingFusion`): it rebuilds every push (deltas on their base) as the server
+holds it and keeps the uploaded keyframes (the server's per-agent bound), with the push's time on the mission
+clock. After the missions:
+
+* **fused over time** — the pushes of all agents are merged by mission time; after each one the vote map of the
+  subsets held at that moment is scored on every task's ROI (every ``--eval-stride``-th frame);
+* **final** — concat, vote and vote + refine of the final subsets (``sim.fuse`` settings of
+  ``deploy/gausslite.yaml``), scored on every frame of the team's sequence, against each agent's own map scored
+  on the same frames (``own``: ROI PSNR of the owner's task over all frames);
+* **bandwidth** — share of the map (final subset / map), bytes per pushed Gaussian, total upload / final subset.
+
+Teams (``TEAMS``): ``tum`` and ``synthetic`` are the live sims of ``gausslite sim --realtime`` (two tasks, both
+robots over the whole sequence); ``tum_halves`` is the overlapping-view team (each robot maps half of the TUM
+sequence; their tasks share the keyboard), where vote ≥ each owner's own map is the goal.
+
+Writes ``bench/results/team.json`` / ``.md`` and ``team_<team>.png`` (fused ROI PSNR over mission time, with each
+owner's final own figure). Wall-clock: run it alone on the machine (``docs/realtime.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, _mission, scene_path, score
+
+#: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
+#: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
+TEAMS = {
+    "tum": {"scene": "tum_fr1_rpy", "overlap": False,
+            "agents": [{"id": "agent_a", "task": "tum-pick-cup"}, {"id": "agent_b", "task": "tum-find-mouse"}]},
+    "synthetic": {"scene": "synthetic_circle", "overlap": False,
+                  "agents": [{"id": "agent_a", "task": "synth-pick-object", "dir": "agent_a"},
+                             {"id": "agent_b", "task": "synth-find-chair", "dir": "agent_b"}]},
+    "tum_halves": {"scene": "tum_fr1_rpy", "overlap": True,
+                   "agents": [{"id": "agent_a", "task": "tum-find-mouse", "frames": [0, 75]},
+                              {"id": "agent_b", "task": "tum-reach-keyboard", "frames": [75, 150]}]},
+}
+FUSED_KEYS = ("concat", "vote", "refine")
+
+
+class RecordingFusion(SinkFusion):
+    """In-process stand-in of the fusion server's store for one agent: every upload is decoded and, for a delta,
+    rebuilt on the subset it names as base (:func:`gausslite.wire.codec.apply_delta`), exactly as the server
+    stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
+    holds (seconds since ``start()``, version, subset) of every push."""
+
+    def __init__(self, max_keyframes: int = 64) -> None:
+        super().__init__()
+        self.max_keyframes = int(max_keyframes)
+        self.t0 = time.perf_counter()
+        self.history: list = []
+        self.subsets: dict = {}
+        self.keyframes: dict = {}  # frame_id -> RefineKeyframe
+
+    def start(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
+        from gausslite.wire.codec import SubsetAssembler, apply_delta
+
+        chunks = list(chunks)
+        asm = SubsetAssembler(agent_id=agent_id, map_version=version)
+        for c in chunks:
+            asm.add(c.SerializeToString() if hasattr(c, "SerializeToString") else c)
+        records, meta = asm.result()
+        if meta.delta:
+            targets, removed = asm.delta_parts()
+            records = apply_delta(self.subsets[meta.base_version], records, targets, removed, meta.base_count,
+                                  meta.kappa_shift)
+        self.subsets[int(version)] = records
+        self.history.append((time.perf_counter() - self.t0, int(version), records))
+        return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
+
+    def upload_keyframes(self, agent_id, frames, *, rois=None, **kw):
+        from gausslite.fusion.refine import RefineKeyframe
+
+        for i, fr in enumerate(frames):
+            roi = None if rois is None or rois[i] is None else np.asarray(rois[i], bool)
+            self.keyframes.setdefault(int(fr.frame_id), RefineKeyframe(
+                rgb=np.asarray(fr.rgb), depth=np.asarray(fr.depth, np.float32), c2w=np.asarray(fr.c2w, np.float64),
+                K=np.asarray(fr.intrinsics.K, np.float64), width=fr.intrinsics.width, height=fr.intrinsics.height,
+                roi=roi))
+        while len(self.keyframes) > self.max_keyframes:
+            self.keyframes.pop(next(iter(self.keyframes)))
+        return len(frames)
+
+
+class _Frames:
+    """Frames ``[start, stop)`` of a preloaded sequence, as a dataset."""
+
+    def __init__(self, ds, start: int, stop: int) -> None:
+        self.frames = ds.frames[start:stop]
+        self.annotations = ds.annotations
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int):
+        return self.frames[i]
+
+
+def fuse_settings() -> dict:
+    """The sim's fusion settings (``sim.fuse`` of ``deploy/gausslite.yaml``)."""
+    from services.sim import load_sim_config
+
+    f = (load_sim_config(None).get("sim") or {}).get("fuse") or {}
+    return {"voxel_size": float(f.get("voxel_size", 0.10)), "contest_radius": int(f.get("contest_radius", 1)),
+            "refine_iters": int(f.get("refine_iters", 300))}
+
+
+def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Path, overrides=(),
+              keep_state: bool = False) -> dict:
+    """One agent's live mission (``bench.realtime`` protocol) sharing to a :class:`RecordingFusion`: its figures,
+    its own map's scores over every frame of the team's sequence, its push history and uploaded keyframes
+    (``keep_state``: also its final map, ROI keyframes and mapper settings, to study share rules offline)."""
+    scene = TEAMS[team]["scene"]
+    path = scene_path(scene, work)
+    if spec.get("dir"):
+        path = path.parent / spec["dir"]
+    job = {"scene": scene, "path": str(path), "task": spec["task"], "mode": "gausslite", "budget": budget,
+           "run": run, "cap": cap, "clock": "scaled", "overrides": list(overrides)}
+    rate = REFERENCE_BUDGET_S / budget
+    sink = RecordingFusion()
+    ds, ann, task, rt, _ = _mission(job, rate, fusion=sink)
+    lo, hi = spec.get("frames") or (0, len(ds))
+    try:
+        sink.start()
+        rt.replay(_Frames(ds, lo, hi))
+        rt._replay_thread.join()
+        rt.finish(push=True, evaluate=False)
+        wall = time.perf_counter() - sink.t0
+        last = rt.pushes[-1] if rt.pushes else None
+        own = score(rt.mapper, ds, ann, task.id)
+        state = {}
+        if keep_state:
+            from gausslite.wire.codec import GaussianArrays
+
+            state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
+                     "_kfs": [kf for kf in rt.mapper.keyframes if kf.roi is not None], "_cfg": rt.mapper.cfg}
+        return {**state, "id": spec["id"], "task": task.id, "frames": [lo, hi], "wall_s": wall, "rate": rate,
+                "keyframes": int(rt.frames_keyframed), "n_gaussians": len(rt.mapper.model),
+                "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
+                "n_shared": int(last.n_shared) if last else 0,
+                "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
+                "pushes": len(rt.pushes), "last_error": rt.last_error, "total_upload_bytes": int(rt.total_upload_bytes),
+                "final_subset_bytes": int(rt.final_subset_bytes),
+                "upload_ratio": rt.total_upload_bytes / rt.final_subset_bytes if rt.final_subset_bytes else None,
+                "bytes_per_gaussian": (rt.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
+                "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
+                "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"],
+                "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
+                "_frames": ds.frames, "_annotations": ann}
+    finally:
+        rt.close()
+
+
+def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int) -> dict:
+    """Fused figures of one team run: ROI PSNR per task (on its owner's whole sequence) after each push (vote,
+    every ``eval_stride``-th frame, time on the mission clock in s) and of the final concat / vote / refine maps
+    over every frame."""
+    from gausslite.evaluation import evaluate_fused
+    from gausslite.fusion.refine import refine_map
+    from gausslite.fusion.vote import concat, voxel_vote
+
+    def scores(g, stride: int = 1) -> dict:
+        return {a["task"]: evaluate_fused(g, a["_frames"][::stride], a["_annotations"], a["task"]) for a in agents}
+
+    events = sorted((t, a["id"], s) for a in agents for t, s in a["_history"])
+    held, timeline = {}, []
+    for t, aid, s in events:
+        held[aid] = s
+        fused, _ = voxel_vote(held, fuse["voxel_size"], contest_radius=fuse["contest_radius"])
+        g = fused.to_gaussian_map()
+        timeline.append({"t": t, "agent": aid, "n": len(fused),
+                         "roi_psnr": scores(g, eval_stride)})
+    final = {a["id"]: a["_history"][-1][1] for a in agents if a["_history"]}
+    out = {"timeline": timeline}
+    vote, report = voxel_vote(final, fuse["voxel_size"], contest_radius=fuse["contest_radius"])
+    kfs = [k for a in agents for k in a["_keyframes"]]
+    maps = {"concat": concat(final), "vote": vote,
+            "refine": refine_map(vote, kfs, fuse["refine_iters"], seed=seed) if kfs else vote}
+    for key in FUSED_KEYS:
+        g = maps[key].to_gaussian_map()
+        out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}
+    out["vote_report"] = report.to_dict()
+    return out
+
+
+def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=()) -> dict:
+    """One run of a team: every agent live (one after the other), then the fused figures."""
+    spec = TEAMS[team]
+    cap = SCENES[spec["scene"]]["cap"]
+    agents = [run_agent(team, a, budget, run, cap, work, overrides) for a in spec["agents"]]
+    fused = fused_scores(agents, fuse_settings(), run, eval_stride)
+    for a in agents:
+        for k in [k for k in a if k.startswith("_")]:
+            a.pop(k)
+        for key in FUSED_KEYS:
+            a[f"{key}_roi_psnr"] = fused[key]["roi_psnr"][a["task"]]
+    return {"team": team, "budget": budget, "run": run, "agents": agents, "fused": fused}
+
+
+def summarise(runs: list[dict]) -> dict:
+    """Per team: per agent the mean ± std over runs of share %, upload ratio, bytes per Gaussian, own and fused
+    ROI PSNR, and the goals' checks (share ≤ 10 %, upload ≤ 1.5×, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
+    out = {}
+    for team in sorted({r["team"] for r in runs}):
+        rs = [r for r in runs if r["team"] == team]
+        ids = [a["id"] for a in rs[0]["agents"]]
+        blk = {"runs": len(rs), "overlap": TEAMS[team]["overlap"], "agents": {}}
+        for aid in ids:
+            per = [next(a for a in r["agents"] if a["id"] == aid) for r in rs]
+            row = {"task": per[0]["task"]}
+            for k in ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "concat_roi_psnr",
+                      "vote_roi_psnr", "refine_roi_psnr", "keyframes", "iters_per_keyframe", "pushes", "n_gaussians"):
+                v = [a[k] for a in per if a.get(k) is not None]
+                row[k] = float(np.mean(v)) if v else None
+                row[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+            for k in ("vote_minus_own", "refine_minus_own", "vote_minus_concat"):
+                a_, b_ = k.split("_minus_")
+                d = [a[f"{a_}_roi_psnr"] - a[f"{b_}_roi_psnr"] for a in per
+                     if a.get(f"{a_}_roi_psnr") is not None and a.get(f"{b_}_roi_psnr") is not None]
+                row[k] = float(np.mean(d)) if d else None
+                row[k + "_std"] = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+            blk["agents"][aid] = row
+        ag = blk["agents"].values()
+        blk["goals"] = {
+            "share_le_10pct": all(a["share_pct"] is not None and a["share_pct"] <= 10.0 for a in ag),
+            "upload_le_1.5x": all(a["upload_ratio"] is not None and a["upload_ratio"] <= 1.5 for a in ag),
+            "refine_ge_own": all(a["refine_minus_own"] is not None and a["refine_minus_own"] >= 0 for a in ag),
+            "vote_ge_concat": all(a["vote_minus_concat"] is not None and a["vote_minus_concat"] >= 0 for a in ag),
+        }
+        if blk["overlap"]:
+            blk["goals"]["vote_ge_own"] = all(a["vote_minus_own"] is not None and a["vote_minus_own"] >= 0 for a in ag)
+        out[team] = blk
+    return out
+
+
+def _pm(v, s, nd=2) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f} ± {s:.{nd}f}"
+
+
+def table(result: dict) -> str:
+    """Markdown tables of :func:`summarise`'s output."""
+    lines = [f"Keyframe budget {result['settings']['budget']} s, {result['settings']['runs']} run(s); "
+             "mean ± std over runs.", "",
+             "| team | agent, task | share % | upload / final | B / Gaussian | own ROI PSNR | concat | vote | refine | "
+             "vote − concat | vote − own | refine − own |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for team, blk in result["teams"].items():
+        for aid, a in blk["agents"].items():
+            lines.append(
+                f"| {team} | {aid}, {a['task']} | {_pm(a['share_pct'], a['share_pct_std'], 1)} | "
+                f"{_pm(a['upload_ratio'], a['upload_ratio_std'])} | {_pm(a['bytes_per_gaussian'], a['bytes_per_gaussian_std'], 1)} | "
+                f"{_pm(a['own_roi_psnr'], a['own_roi_psnr_std'])} | {_pm(a['concat_roi_psnr'], a['concat_roi_psnr_std'])} | "
+                f"{_pm(a['vote_roi_psnr'], a['vote_roi_psnr_std'])} | {_pm(a['refine_roi_psnr'], a['refine_roi_psnr_std'])} | "
+                f"{_pm(a['vote_minus_concat'], a['vote_minus_concat_std'])} | {_pm(a['vote_minus_own'], a['vote_minus_own_std'])} | "
+                f"{_pm(a['refine_minus_own'], a['refine_minus_own_std'])} |")
+    lines += ["", "| team | " + " | ".join(next(iter(result["teams"].values()))["goals"]) + " |"]
+    for team, blk in result["teams"].items():
+        lines.append(f"| {team} | " + " | ".join("yes" if v else "**no**" for v in blk["goals"].values()) + " |")
+    return "\n".join(lines)
+
+
+def plot_team(runs: list[dict], team: str, path: Path) -> None:
+    """Fused (vote) ROI PSNR per task over mission time, one line per run, with each owner's final own figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rs = [r for r in runs if r["team"] == team]
+    tasks = [a["task"] for a in rs[0]["agents"]]
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.6), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        for r in rs:
+            tl = r["fused"]["timeline"]
+            ax.plot([e["t"] for e in tl], [e["roi_psnr"][task] for e in tl], "o-", ms=3, alpha=0.8,
+                    label=f"vote, run {r['run']}")
+            own = next(a for a in r["agents"] if a["task"] == task)["own_roi_psnr"]
+            ax.axhline(own, ls="--", lw=1, color=ax.lines[-1].get_color())
+        ax.set_title(f"{team}: {task}")
+        ax.set_xlabel("mission time (s, sequence clock)")
+        ax.set_ylabel("fused ROI PSNR (dB)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, title="dashed: owner's own map, end", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--teams", default=",".join(TEAMS))
+    ap.add_argument("--budget", type=float, default=REFERENCE_BUDGET_S, help="seconds per keyframe")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--eval-stride", type=int, default=5, help="frame stride of the fused-over-time scores")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="agent config override, e.g. agent.share_coverage=0.9")
+    ap.add_argument("--out", default=str(RESULTS / "team.json"))
+    ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
+    args = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    teams = [t for t in args.teams.split(",") if t]
+    for t in teams:
+        if t not in TEAMS:
+            ap.error(f"unknown team {t!r} (known: {', '.join(TEAMS)})")
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    runs = []
+    for team, run in tqdm([(t, r) for t in teams for r in range(args.runs)], desc="team runs", unit="run"):
+        r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides)
+        runs.append(r)
+        tqdm.write(f"{team} run {run}: " + "; ".join(
+            f"{a['id']} {a['task']} share {a['share_pct']:.1f} % upload {a['upload_ratio'] or 0:.2f}x own "
+            f"{a['own_roi_psnr']:.2f} concat {a['concat_roi_psnr']:.2f} vote {a['vote_roi_psnr']:.2f} "
+            f"refine {a['refine_roi_psnr']:.2f}" for a in r["agents"]))
+        out.with_suffix(".partial.json").write_text(json.dumps({"runs": runs}, indent=1))
+    result = {"settings": {"budget": args.budget, "runs": args.runs, "eval_stride": args.eval_stride,
+                           "overrides": args.overrides, "fuse": fuse_settings(), "machine": platform.machine(),
+                           "cpus": os.cpu_count(), "wall_s": time.time() - t0},
+              "teams": summarise(runs), "runs": runs}
+    for team in teams:
+        plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
+    out.write_text(json.dumps(result, indent=1))
+    md = table(result)
+    out.with_suffix(".md").write_text(md + "\n")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
