@@ -747,9 +747,13 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         for s in self.store.sessions():
             a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
                                       keyframes=self.store.keyframe_count(s.agent_id))
-            latest = self.store.latest_version(s.agent_id)
-            if latest is not None:
-                up = self.store.upload(s.agent_id, latest)
+            latest, up = None, None
+            for _ in range(5):  # a newer version may complete (and delete this one) between the two reads
+                latest = self.store.latest_version(s.agent_id)
+                up = self.store.upload(s.agent_id, latest) if latest is not None else None
+                if latest is None or up is not None:
+                    break
+            if up is not None:
                 a.latest_map_version = latest
                 a.has_complete_subset = True
                 a.gaussians_received = up.n_gaussians

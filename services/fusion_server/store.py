@@ -686,6 +686,9 @@ class _PgConn:
             cur.executemany(self._sql(sql), rows)
 
 
+_RECONNECT_TIMEOUT_S = 5.0  # one background reconnection series of the pool (see PostgresFusionStore)
+
+
 class PostgresFusionStore(SqlFusionStore):
     """PostgreSQL store shared by any number of fusion replicas (psycopg 3 + psycopg_pool).
 
@@ -718,11 +721,14 @@ class PostgresFusionStore(SqlFusionStore):
         self._connect_timeout = max(1, int(acquire_timeout_s))
         self._degraded = False  # the pool found no usable connection at the last attempt
         # check: a pooled connection is tested before use, so connections broken by a database restart are
-        # replaced instead of failing one call each; the pool keeps reconnecting in the background
+        # replaced instead of failing one call each. The pool reconnects in the background with a backoff that
+        # doubles from 1 s; a short reconnect_timeout ends each such series early and the next call waiting for
+        # a connection starts a fresh one (first attempt at once), so the pool refills within seconds of the
+        # database's return even after a long outage
         self._pool = ConnectionPool(dsn, min_size=1, max_size=max(2, int(pool_size)), open=False,
                                     kwargs={"autocommit": False, "connect_timeout": self._connect_timeout},
                                     check=ConnectionPool.check_connection, timeout=float(acquire_timeout_s),
-                                    reconnect_timeout=24 * 3600.0, name="gausslite-fusion")
+                                    reconnect_timeout=_RECONNECT_TIMEOUT_S, name="gausslite-fusion")
         try:
             self._pool.open(wait=True, timeout=connect_timeout_s)
         except Exception as e:  # noqa: BLE001 - PoolTimeout and friends
@@ -758,7 +764,7 @@ class PostgresFusionStore(SqlFusionStore):
             raise StoreError("store is closed")
         pooled = True
         try:
-            conn = self._pool.getconn(timeout=0.2 if self._degraded else None)
+            conn = self._pool.getconn(timeout=0.05 if self._degraded else None)
             self._degraded = False
         except self._pool_timeout:
             if not self._degraded:
