@@ -762,12 +762,12 @@ class PostgresFusionStore(SqlFusionStore):
         resumes as soon as the database accepts connections again."""
         if self._closed:
             raise StoreError("store is closed")
-        pooled = True
+        pooled, degraded = True, self._degraded
         try:
-            conn = self._pool.getconn(timeout=0.05 if self._degraded else None)
+            conn = self._pool.getconn(timeout=0.05 if degraded else None)
             self._degraded = False
         except self._pool_timeout:
-            if not self._degraded:
+            if not degraded:
                 self._degraded = True
                 raise
             import psycopg
