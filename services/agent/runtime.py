@@ -293,6 +293,7 @@ _SLOT = object()  # "the keyframe selector holds a pending candidate"
 _CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frames_skipped", "seconds_mapping",
                   "idle_iterations", "keyframe_iterations")
 CHECKPOINT_FILE = "checkpoint.pt"
+RECENT_FRAMES = 1800  #: frames of ``accept_latency_ms_p99_recent`` (a minute at 30 Hz)
 VERSION_FILE = "pushed_version.json"
 
 
@@ -468,7 +469,7 @@ class AgentRuntime:
         self.checkpoints = 0
         self.resumed_keyframes = 0
         self._accept_ms: "deque[float]" = deque(maxlen=100_000)
-        self._kf_latency_s: List[float] = []
+        self._kf_latency_s: "deque[float]" = deque(maxlen=100_000)  # bounded over a long mission
         self._dataset = None
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         if self.checkpoint_dir is not None and (self.checkpoint_dir / CHECKPOINT_FILE).is_file():
@@ -1130,6 +1131,7 @@ class AgentRuntime:
                 "keyframes_uploaded": self.keyframes_uploaded,
                 "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
                 "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
+                "accept_latency_ms_p99_recent": _percentile(list(self._accept_ms)[-RECENT_FRAMES:], 99),
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
