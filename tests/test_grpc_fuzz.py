@@ -2,7 +2,8 @@
 messages (seeded, bounded) go through a generic channel with raw-bytes (de)serializers to each method
 enumerated from the proto descriptors. Every call must end with a gRPC status within its deadline —
 never UNKNOWN (an unhandled exception in a handler) nor INTERNAL (a crash reported as such) — and every
-server must still answer its health check afterwards.
+server must still answer its health check afterwards. The fusion server runs once on SQLite and once on
+PostgreSQL (``$GAUSSLITE_TEST_PG_DSN``; skipped without it, except under CI).
 
 ``GAUSSLITE_FUZZ_SEED`` (default 0) and ``GAUSSLITE_FUZZ_CASES`` (cases per method, default 60) vary the run.
 """
@@ -31,22 +32,25 @@ CALL_TIMEOUT_S = 10.0
 FORBIDDEN = {grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
 
 
-@pytest.fixture(scope="module")
-def services(tmp_path_factory):
+@pytest.fixture(params=["sqlite", "postgresql"])
+def services(request, tmp_path):
+    """Parser, fusion server (SQLite store, or PostgreSQL: a fresh schema of the test database) and agent."""
     from services.fusion_server.server import serve as serve_fusion
     from services.parser.server import serve as serve_parser
 
-    tmp = tmp_path_factory.mktemp("fuzz")
-    make_scene(tmp / "scene", seed=0, width=32, height=24, frames=2, progress=False)
+    store = request.getfixturevalue("pg_schema_dsn") if request.param == "postgresql" else None
+    make_scene(tmp_path / "scene", seed=0, width=32, height=24, frames=2, progress=False)
     parser = serve_parser(ServerOptions(port=0))
-    fusion = serve_fusion(ServerOptions(port=0, max_message_bytes=1 << 20), data_dir=str(tmp / "fusion"))
+    fusion = serve_fusion(ServerOptions(port=0, max_message_bytes=1 << 20), data_dir=str(tmp_path / "fusion"),
+                          store=store)
+    # a final push that fails (the fuzzer may have opened the agent's session) ends Finish well within its deadline
     cfg = load_agent_config(None, ["mapper.iters_per_frame=1", "mapper.warmup_iters=1", "mapper.seeds_per_frame=50",
-                                  "agent.share=active"])
+                                   "agent.share=active", "agent.final_push_timeout_s=2", "agent.final_pass_s=1"])
     agent = serve_agent(ServerOptions(port=0, max_message_bytes=1 << 20), AgentSettings(
         agent_id="fuzzbot", parser_address=parser.address, fusion_address=fusion.address, parser_timeout_s=5,
-        annotations_path=str(tmp / "scene"), config=cfg))
+        annotations_path=str(tmp_path / "scene"), config=cfg))
     servers = {"gausslite.v1.Parser": parser, "gausslite.v1.Fusion": fusion, "gausslite.v1.Agent": agent}
-    ds = load_dataset(tmp / "scene" / "agent_a")
+    ds = load_dataset(tmp_path / "scene" / "agent_a")
     yield servers, (ds, ds.annotations.tasks[0].text)
     for srv in servers.values():
         srv.stop(0)
@@ -65,7 +69,7 @@ def _value(f: FieldDescriptor, rng: random.Random):
     t = f.type
     if t == FieldDescriptor.TYPE_STRING:
         return rng.choice(["", "robot1", "fuzzbot", "pick up the red mug", "../../etc", "x" * rng.randint(0, 300),
-                           "\u00e9\u4e2d", "a/b", "-1"])
+                           "\u00e9\u4e2d", "a/b", "-1", "nul\x00inside", ".."])
     if t == FieldDescriptor.TYPE_BYTES:
         return bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64)))
     if t == FieldDescriptor.TYPE_BOOL:
@@ -150,7 +154,7 @@ def _templates(m, rng: random.Random, scene) -> list | None:
     if m.name == "StreamFrames":
         return [encode_frame(ds[i % len(ds)]) for i in range(rng.randint(1, 3))]
     if m.name == "OpenSession":
-        return [fusion_pb2.OpenSessionRequest(agent_id="fuzzbot", task_text=text,
+        return [fusion_pb2.OpenSessionRequest(agent_id="fuzzbot", task_text=rng.choice([text, text + "\x00"]),
                                               intrinsics=intrinsics_to_proto(ds[0].intrinsics))]
     if m.name == "UploadSubset":
         version = rng.randint(1, 4)

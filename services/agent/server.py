@@ -205,7 +205,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         ``mission_id`` whose folder holds a checkpoint resumes from it.
 
         Raises:
-            ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
+            ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id.
             MissionError: another mission is still mapping; ``mission_id`` already used in this process;
                 the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
@@ -219,6 +219,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             raise ValueError("task_text is empty")
         if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
             raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
+        if "\x00" in task_text:  # the fusion server (and PostgreSQL) refuse it: the mission could never push
+            raise ValueError("task_text contains a NUL character")
         if mission_id and not _valid_id(mission_id):
             raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         if agent_id and not _valid_id(agent_id):

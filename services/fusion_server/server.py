@@ -402,6 +402,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if len(request.task_text.encode("utf-8")) > self.config.max_task_text_bytes:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                           f"task_text longer than {self.config.max_task_text_bytes} UTF-8 bytes")
+        if "\x00" in request.task_text:  # PostgreSQL text cannot hold NUL; refused by every store alike
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "task_text contains a NUL character")
         if not request.HasField("intrinsics"):
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "intrinsics are required")
         k = _intrinsics(request.intrinsics, "intrinsics")
