@@ -25,7 +25,6 @@ in every sample, and no error (stream error, failed push, rejected frame, failed
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import subprocess
