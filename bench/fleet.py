@@ -34,6 +34,17 @@ index costs more than a one-off vote), the whole-``Fuse`` times beside them, eac
 sent and that every replica answers ``GetStats`` identically. ``goals`` records the fleet goals
 (≥ 32 agents, 0 lost, p99 ack ≤ 250 ms, incremental vote ≤ 0.1 × full); the exit code is 1 when one
 is missed or the fused map differs from the local vote (each printed), 0 otherwise.
+
+``--db-outage S`` makes PostgreSQL unreachable for S seconds under the replicas at ``--db-outage-at`` of the
+run (before the replica kill): by default the replicas reach the database through a TCP relay of this process
+that is cut (connections dropped, new ones refused — what a stopped server looks like to a client, without
+stopping a cluster others share); ``--db-stop-cmd`` / ``--db-start-cmd`` stop and start the real server instead
+(e.g. ``pg_ctlcluster 15 main stop``). Clients retry UNAVAILABLE and DEADLINE_EXCEEDED with exponential backoff
+(0.05 s doubling to 2 s). Added to the results: ``failed_call_codes`` (status codes of the calls that failed
+after the channel's own retries), ``acks_during_outage``, ``replicas_serving_after_s`` (from the database's
+return until every replica answers ``GetStats``), ``replicas_not_restarted`` (same processes) and
+``acks_in_2s_after_recovery``; goals: no INTERNAL/UNKNOWN status, no agent error, replicas recovered without a
+restart (and ``lost`` = 0 as always).
 """
 
 from __future__ import annotations
@@ -221,6 +232,20 @@ class AgentLog:
     retries: int = 0
     keyframes: int = 0
     errors: List[str] = field(default_factory=list)
+    codes: Dict[str, int] = field(default_factory=dict)  # status codes of failed calls (retried or not)
+
+    def failed(self, e) -> None:
+        """Count a failed call's status code."""
+        name = e.code().name if hasattr(e, "code") else type(e).__name__
+        self.codes[name] = self.codes.get(name, 0) + 1
+
+
+RETRYABLE_CODES = ("UNAVAILABLE", "DEADLINE_EXCEEDED")
+
+
+def backoff(attempt: int, first_s: float = 0.05, max_s: float = 2.0) -> float:
+    """Delay before retry ``attempt`` (1, 2, ...): ``first_s`` doubling up to ``max_s`` seconds."""
+    return min(max_s, first_s * 2 ** (attempt - 1))
 
 
 def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], counts: List[int],
@@ -230,6 +255,7 @@ def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], 
         agent_id=aid, map_version=v, n_chunks=len(chunks), full_map_gaussians=full))
     first_sent: Dict[int, float] = {}
     acked = log.acked.setdefault(v, set())
+    attempts = 0  # consecutive failed calls: exponential backoff (a database outage lasts seconds)
     while time.monotonic() < give_up:
         try:
             st = stub.GetUploadStatus(fusion_pb2.UploadStatusRequest(agent_id=aid, map_version=v), timeout=timeout_s)
@@ -246,6 +272,7 @@ def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], 
                 ack = stub.UploadSubset(iter([header] + [fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
                                                          for i in batch]), timeout=timeout_s)
                 t = time.monotonic()
+                attempts = 0
                 stored = set(ack.stored)
                 for i in batch:
                     if i in stored and i not in acked:
@@ -256,11 +283,13 @@ def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], 
                     log.complete.append(v)
                     return True
         except grpc.RpcError as e:
-            if e.code() not in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+            log.failed(e)
+            if e.code().name not in RETRYABLE_CODES:
                 log.errors.append(f"v{v}: {e.code().name}: {e.details()}")
                 return False
             log.retries += 1
-            time.sleep(0.05)
+            attempts += 1
+            time.sleep(backoff(attempts))
     log.errors.append(f"v{v}: gave up")
     return False
 
@@ -297,21 +326,99 @@ def agent_main(i: int, target: str, make, args, frames: list, stop: threading.Ev
                 f = frames[(v // args.keyframe_every + i) % len(frames)]
                 msg = keyframe_to_proto(aid, f)
                 msg.frame_id = v
-                for _ in range(20):
+                give_up, attempt = time.monotonic() + 60, 0
+                while True:
                     try:
                         stub.UploadKeyframes(iter([msg]), timeout=10)
                         log.keyframes += 1
                         break
                     except grpc.RpcError as e:
-                        if e.code() != grpc.StatusCode.UNAVAILABLE:
+                        log.failed(e)
+                        if e.code().name not in RETRYABLE_CODES or time.monotonic() > give_up:
                             raise
                         log.retries += 1
-                        time.sleep(0.05)
+                        attempt += 1
+                        time.sleep(backoff(attempt))
             stop.wait(max(0.0, t_next - time.monotonic()))
     except Exception as e:  # noqa: BLE001 - reported in the results
         log.errors.append(f"{type(e).__name__}: {e}")
     finally:
         ch.close()
+
+
+# ------------------------------------------------------------------------------------ database outage
+class DbOutage:
+    """Makes the PostgreSQL store unreachable for the replicas and brings it back: cuts a TCP relay of this
+    process that the replicas connect through (:class:`bench._relay.TcpRelay`; the default, safe on a
+    shared cluster), or runs ``stop_cmd`` / ``start_cmd`` (e.g. ``pg_ctlcluster 15 main stop|start``)."""
+
+    def __init__(self, store_dsn: str, stop_cmd: Optional[str] = None, start_cmd: Optional[str] = None):
+        self.stop_cmd, self.start_cmd = stop_cmd, start_cmd
+        self.relay = None
+        if not (stop_cmd and start_cmd):
+            from urllib.parse import urlsplit
+
+            from bench._relay import TcpRelay
+
+            u = urlsplit(store_dsn)
+            self.relay = TcpRelay((u.hostname or "127.0.0.1", u.port or 5432))
+        self.mode = "relay cut" if self.relay is not None else f"{stop_cmd!r} / {start_cmd!r}"
+
+    def dsn(self, dsn: str) -> str:
+        """``dsn`` as the replicas use it (through the relay, if any)."""
+        if self.relay is None:
+            return dsn
+        from urllib.parse import urlsplit, urlunsplit
+
+        u = urlsplit(dsn)
+        auth = u.netloc.rpartition("@")[0]
+        return urlunsplit(u._replace(netloc=(auth + "@" if auth else "") + f"127.0.0.1:{self.relay.port}"))
+
+    def begin(self) -> None:
+        """The database goes away. Raises subprocess.CalledProcessError when the stop command fails."""
+        if self.relay is not None:
+            self.relay.cut()
+        else:
+            subprocess.run(self.stop_cmd, shell=True, check=True)
+
+    def end(self) -> None:
+        """The database comes back. Raises subprocess.CalledProcessError when the start command fails."""
+        if self.relay is not None:
+            self.relay.restore()
+        else:
+            subprocess.run(self.start_cmd, shell=True, check=True)
+
+    def close(self) -> None:
+        """Stop relaying (the relay mode); the command mode leaves the database as ``end`` left it."""
+        if self.relay is not None:
+            self.relay.cut()
+
+
+def wait_serving(reps: List["Replica"], timeout_s: float) -> Optional[float]:
+    """Seconds until every replica answers ``GetStats`` (which reads the store), or None after ``timeout_s``."""
+    import grpc
+
+    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+
+    t0 = time.monotonic()
+    chans = [grpc.insecure_channel(f"127.0.0.1:{r.port}") for r in reps]
+    try:
+        todo = list(range(len(reps)))
+        while todo:
+            for k in list(todo):
+                try:
+                    fusion_pb2_grpc.FusionStub(chans[k]).GetStats(fusion_pb2.StatsRequest(), timeout=5)
+                    todo.remove(k)
+                except grpc.RpcError:
+                    pass
+            if todo:
+                if time.monotonic() - t0 > timeout_s:
+                    return None
+                time.sleep(0.1)
+        return time.monotonic() - t0
+    finally:
+        for ch in chans:
+            ch.close()
 
 
 # ------------------------------------------------------------------------------------ main
@@ -320,7 +427,18 @@ def parse_args(argv=None):
     p.add_argument("--agents", type=int, default=32)
     p.add_argument("--replicas", type=int, default=2)
     p.add_argument("--duration", type=float, default=40.0, help="seconds of pushing (bounded run)")
-    p.add_argument("--kill-at", type=float, default=0.5, help="fraction of --duration when a replica is SIGKILLed")
+    p.add_argument("--kill-at", type=float, default=0.5, help="fraction of --duration when a replica is SIGKILLed "
+                   "(after the database outage, if any)")
+    p.add_argument("--db-outage", type=float, default=0.0, metavar="S",
+                   help="make PostgreSQL unreachable for S seconds under the replicas (0 = no outage); --duration "
+                        "grows to cover it")
+    p.add_argument("--db-outage-at", type=float, default=0.25, help="fraction of --duration when the outage starts")
+    p.add_argument("--db-stop-cmd", default=None,
+                   help="shell command stopping PostgreSQL for the outage, e.g. 'pg_ctlcluster 15 main stop' (with "
+                        "--db-start-cmd); default: the replicas reach the database through a TCP relay of this "
+                        "process that the bench cuts (connections dropped, new ones refused), so a shared cluster "
+                        "keeps serving its other users")
+    p.add_argument("--db-start-cmd", default=None, help="shell command starting PostgreSQL again after the outage")
     p.add_argument("--interval", type=float, default=2.0, help="seconds between an agent's map versions")
     p.add_argument("--keyframe-every", type=int, default=2, help="a keyframe every k versions (0 = none)")
     p.add_argument("--rooms", type=int, default=1, help="copies of the mapped room making up the site (1 = one room)")
@@ -353,6 +471,11 @@ def main(argv=None) -> int:
     if args.agents < 1 or args.replicas < 2:
         print("bench.fleet: needs --agents >= 1 and --replicas >= 2", file=sys.stderr)
         return 2
+    if bool(args.db_stop_cmd) != bool(args.db_start_cmd):
+        print("bench.fleet: --db-stop-cmd and --db-start-cmd go together", file=sys.stderr)
+        return 2
+    if args.db_outage > 0:  # room for the outage, the recovery and the replica kill after it
+        args.duration = max(args.duration, args.duration * args.db_outage_at + args.db_outage + 20.0)
     import grpc
     import psycopg
 
@@ -375,7 +498,10 @@ def main(argv=None) -> int:
     with psycopg.connect(args.store, autocommit=True) as conn:
         conn.execute(f"CREATE SCHEMA {schema}")
     dsn = args.store + ("&" if "?" in args.store else "?") + f"options=-csearch_path%3D{schema}"
-    reps = [Replica(f"replica{r}", dsn, work) for r in range(args.replicas)]
+    outage = DbOutage(args.store, args.db_stop_cmd, args.db_start_cmd) if args.db_outage > 0 else None
+    rep_dsn = outage.dsn(dsn) if outage is not None else dsn
+    reps = [Replica(f"replica{r}", rep_dsn, work) for r in range(args.replicas)]
+    out_res: dict = {}
     logs = [AgentLog() for _ in range(args.agents)]
     res: dict = {}
     try:
@@ -391,7 +517,30 @@ def main(argv=None) -> int:
         barrier.wait(300)
         t0 = time.monotonic()
         print(f"{args.agents} agents pushing to {args.replicas} replicas for {args.duration:.0f}s", flush=True)
-        time.sleep(args.duration * args.kill_at)
+        if outage is not None:
+            time.sleep(max(0.0, t0 + args.duration * args.db_outage_at - time.monotonic()))
+            pids = [r.proc.pid for r in reps]
+            acks_before = sum(len(x) for lg in logs for x in lg.acked.values())
+            outage.begin()
+            t_cut = time.monotonic()
+            print(f"database unreachable ({outage.mode}) at {t_cut - t0:.1f}s for {args.db_outage:.0f}s", flush=True)
+            time.sleep(args.db_outage)
+            outage.end()
+            t_back = time.monotonic()
+            acks_during = sum(len(x) for lg in logs for x in lg.acked.values()) - acks_before
+            recovered = wait_serving(reps, 120.0)
+            acks_mark = sum(len(x) for lg in logs for x in lg.acked.values())
+            time.sleep(2.0)
+            out_res = {"db_outage_s": round(t_back - t_cut, 2), "db_outage_mode": outage.mode,
+                       "db_outage_at_s": round(t_cut - t0, 2), "acks_during_outage": int(acks_during),
+                       "replicas_serving_after_s": None if recovered is None else round(recovered, 2),
+                       "replicas_not_restarted": [r.proc.pid for r in reps] == pids
+                                                 and all(r.proc.poll() is None for r in reps),
+                       "acks_in_2s_after_recovery": int(sum(len(x) for lg in logs for x in lg.acked.values())
+                                                        - acks_mark)}
+            print(f"database back at {t_back - t0:.1f}s; replicas serving after "
+                  f"{out_res['replicas_serving_after_s']}s", flush=True)
+        time.sleep(max(0.0, t0 + args.duration * args.kill_at - time.monotonic()))
         victim = reps[-1]
         victim.kill()
         t_kill = time.monotonic()
@@ -481,6 +630,8 @@ def main(argv=None) -> int:
             "keyframes": int(sum(lg.keyframes for lg in logs)),
             "client_retries": int(sum(lg.retries for lg in logs)),
             "agent_errors": [e for lg in logs for e in lg.errors][:20],
+            "failed_call_codes": {k: sum(lg.codes.get(k, 0) for lg in logs)
+                                  for k in sorted({c for lg in logs for c in lg.codes})},
             "fuse_full_s": round(float(np.median([r.vote_seconds for r, _ in fulls])), 4),
             "fuse_incremental_s": round(float(np.median([r.vote_seconds for r, _ in incs])), 4),
             "fuse_full_s_each": [round(float(r.vote_seconds), 4) for r, _ in fulls],
@@ -510,14 +661,26 @@ def main(argv=None) -> int:
         res["incremental_over_full"] = round(res["fuse_incremental_s"] / max(res["fuse_full_s"], 1e-9), 4)
         res["incremental_over_local_voxel_vote"] = round(res["fuse_incremental_s"] / max(res["voxel_vote_local_s"],
                                                                                            1e-9), 4)
+        res.update(out_res)
         res["goals"] = {
             "agents>=32": res["agents"] >= 32, "lost==0": res["lost"] == 0,
             "p99<=250ms": res["ack_latency_ms_p99"] <= 250.0,
             "incremental<=0.1*full": res["fuse_incremental_s"] <= 0.1 * res["fuse_full_s"],
         }
+        if outage is not None:
+            codes = res["failed_call_codes"]
+            res["goals"].update({
+                "db_outage:no_INTERNAL_or_UNKNOWN": not (codes.get("INTERNAL") or codes.get("UNKNOWN")),
+                "db_outage:no_agent_errors": not res["agent_errors"],
+                "db_outage:replicas_recovered_without_restart": bool(
+                    res["replicas_serving_after_s"] is not None and res["replicas_not_restarted"]
+                    and res["acks_in_2s_after_recovery"] > 0),
+            })
     finally:
         for r in reps:
             r.kill()
+        if outage is not None:
+            outage.close()
         with psycopg.connect(args.store, autocommit=True) as conn:
             conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
     out = Path(args.out)
@@ -525,7 +688,10 @@ def main(argv=None) -> int:
     out.write_text(json.dumps(res, indent=2) + "\n")
     keys = ["agents", "replicas", "acks", "lost", "ack_latency_ms_p50", "ack_latency_ms_p99", "gaussians_per_s",
             "fuse_full_s", "fuse_incremental_s", "voxel_vote_local_s", "incremental_over_full", "fuse_full_rpc_s", "fuse_incremental_rpc_s", "peak_rss_mb",
-            "fused_equals_local_vote", "replicas_agree_getstats", "goals"]
+            "fused_equals_local_vote", "replicas_agree_getstats", "failed_call_codes"]
+    keys += [k for k in ("db_outage_s", "db_outage_mode", "acks_during_outage", "replicas_serving_after_s",
+                         "replicas_not_restarted", "acks_in_2s_after_recovery") if k in res]
+    keys += ["goals"]
     w = max(len(k) for k in keys)
     print("\n".join(f"{k:<{w}}  {res[k]}" for k in keys))
     print(f"wrote {out}")

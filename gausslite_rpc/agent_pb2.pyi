@@ -120,7 +120,7 @@ class FinishRequest(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., skip_push: _Optional[bool] = ..., skip_eval: _Optional[bool] = ...) -> None: ...
 
 class MissionStatus(_message.Message):
-    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations")
+    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations", "newest_map_version", "push_backlog", "keyframes_backlog", "link_down_s", "accept_latency_ms_p99_recent")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -146,6 +146,11 @@ class MissionStatus(_message.Message):
     RESUMED_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     FRAMES_REJECTED_FIELD_NUMBER: _ClassVar[int]
     KEYFRAME_ITERATIONS_FIELD_NUMBER: _ClassVar[int]
+    NEWEST_MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
+    PUSH_BACKLOG_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_BACKLOG_FIELD_NUMBER: _ClassVar[int]
+    LINK_DOWN_S_FIELD_NUMBER: _ClassVar[int]
+    ACCEPT_LATENCY_MS_P99_RECENT_FIELD_NUMBER: _ClassVar[int]
     mission_id: str
     agent_id: str
     state: MissionState
@@ -171,7 +176,12 @@ class MissionStatus(_message.Message):
     resumed_keyframes: int
     frames_rejected: int
     keyframe_iterations: int
-    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ...) -> None: ...
+    newest_map_version: int
+    push_backlog: int
+    keyframes_backlog: int
+    link_down_s: float
+    accept_latency_ms_p99_recent: float
+    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
     __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes")

@@ -201,7 +201,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     data = tmp_path / "fusion"
     f1 = _fusion(data)
     port = f1.port
-    cfg = load_agent_config(None, TINY + ["agent.push_attempt_s=1.0", "agent.final_push_timeout_s=60"])
+    cfg = load_agent_config(None, TINY + ["agent.final_push_timeout_s=60"])
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     client = FusionClient(f1.address, timeout_s=5, max_retries=1, backoff_s=0.05)

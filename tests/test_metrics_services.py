@@ -196,6 +196,8 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
         assert val(a1, "gausslite_agent_bytes_pushed_total", agent="robot_m") >= s.bytes_on_wire > 0
         assert val(a1, "gausslite_agent_keyframes_uploaded_total", agent="robot_m") >= 4
         assert val(a1, "gausslite_agent_gaussians", agent="robot_m") == s.status.n_gaussians
+        assert val(a1, "gausslite_agent_push_backlog", agent="robot_m") == 0  # final push acknowledged
+        assert val(a1, "gausslite_agent_link_down_seconds", agent="robot_m") == 0
         assert val(a1, "gausslite_agent_missions", state="finished") == 1
         f2 = scrape(fusion_url)
         assert val(f2, "gausslite_fusion_uploads_total", agent="robot_m") >= 1

@@ -38,7 +38,7 @@ DEFAULT_MAX_TEXT_BYTES = 2048
 
 
 class InvalidTaskTextError(ValueError):
-    """The task text is not acceptable (not a string, or longer than the byte limit)."""
+    """The task text is not acceptable (not a string, longer than the byte limit, or holding a NUL)."""
 
 
 @dataclass
@@ -131,14 +131,16 @@ def check_task_text(text: Any, max_bytes: int = DEFAULT_MAX_TEXT_BYTES) -> str:
     """Validate a task text and return it.
 
     Raises:
-        InvalidTaskTextError: not a ``str``, or longer than ``max_bytes`` UTF-8 bytes (the message
-            states the limit).
+        InvalidTaskTextError: not a ``str``, longer than ``max_bytes`` UTF-8 bytes (the message
+            states the limit), or holding a NUL character (no store can keep it as text).
     """
     if not isinstance(text, str):
         raise InvalidTaskTextError(f"task text must be a string, got {type(text).__name__}")
     n = len(text.encode("utf-8", errors="surrogatepass"))
     if n > max_bytes:
         raise InvalidTaskTextError(f"task text is {n} bytes; the limit is {max_bytes} UTF-8 bytes")
+    if "\x00" in text:
+        raise InvalidTaskTextError("task text contains a NUL character")
     return text
 
 

@@ -69,6 +69,10 @@ class AgentCollector:
                                       labels=["agent"])
         active = GaugeMetricFamily("gausslite_agent_active_gaussians", "Active (ROI) Gaussians, current mission",
                                    labels=["agent"])
+        backlog = GaugeMetricFamily("gausslite_agent_push_backlog", "Subset snapshots held for pushing (current "
+                                    "mission; 0..2: only the newest is kept while the link is down)", labels=["agent"])
+        link_down = GaugeMetricFamily("gausslite_agent_link_down_seconds", "Seconds since the first failed push "
+                                      "attempt without an acknowledgement since (0 = link up)", labels=["agent"])
         states = GaugeMetricFamily("gausslite_agent_missions", "Missions by state", labels=["state"])
         push_s = HistogramMetricFamily("gausslite_agent_push_seconds", "Duration of successful pushes",
                                        labels=["agent"])
@@ -94,6 +98,8 @@ class AgentCollector:
                 queue.add_metric([agent], st["frames_queued"])
                 gaussians.add_metric([agent], st["n_gaussians"])
                 active.add_metric([agent], st["n_active"])
+                backlog.add_metric([agent], st["push_backlog"])
+                link_down.add_metric([agent], st["link_down_s"])
         for agent, s in sorted(sums.items()):
             for key, f in fam.items():
                 f.add_metric([agent], s[key])
@@ -102,7 +108,7 @@ class AgentCollector:
         for state, n in sorted(tally.items()):
             states.add_metric([state.lower()], n)
         yield from fam.values()
-        yield from (queue, gaussians, active, states, push_s)
+        yield from (queue, gaussians, active, backlog, link_down, states, push_s)
 
 
 def agent_registry(servicer) -> CollectorRegistry:

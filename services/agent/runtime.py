@@ -17,8 +17,13 @@ Threads per mission:
   (offline replays, ``ingest: every_frame``): a bounded queue, ``submit`` blocks when it is full (gRPC flow
   control back-pressure);
 * pusher — uploads the newest pending snapshot (older pending ones are superseded; keyframes not yet
-  uploaded accumulate) with retries and exponential backoff, so a fusion-server outage never stalls
-  mapping; the client resumes a half-uploaded subset of the same ``map_version``.
+  uploaded accumulate, at most ``max_keyframes``) with retries and exponential backoff, so a fusion-server
+  outage or a lost link never stalls mapping. A periodic push is retried until it is acknowledged or a newer
+  snapshot replaces it, so at most two subsets are held (the one being retried and the pending one) however
+  long the link is down, and the newest one goes out when it returns; the client resumes a half-uploaded
+  subset of the same ``map_version``. ``status()`` reports the backlog (``push_backlog``,
+  ``keyframes_backlog``, ``newest_map_version``, ``link_down_s``) and the last acknowledged version
+  (``last_pushed_version``).
 
 The shared subset (paper Sec. III-E) is the Gaussians with ``active = 1`` (``share: active``) or with
 ``κ >= kappa_threshold`` (``share: kappa``), with their κ counts.
@@ -129,10 +134,10 @@ class AgentConfig(BaseModel):
             server acknowledged, plus the removed rows (wire delta chunks); a full upload when the
             server lacks the base (FAILED_PRECONDITION) or the delta would not be smaller.
         delta_tolerance: multiple of one code step that counts as "changed" (gausslite.wire.delta).
-        push_attempt_s: give up one periodic push after this many seconds of retries (the next push
-            carries the newer map anyway).
         final_push_timeout_s: retry the final push for up to this many seconds (fusion-server restart).
-        backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds).
+        backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds); a periodic push is
+            retried until acknowledged or replaced by a newer snapshot (no give-up: the link may be down for
+            minutes), the final one up to ``final_push_timeout_s``.
         attention_rendered_depth: give the attention front-end the depth rendered from the current map.
         eval_max_frames: frames kept for the ROI PSNR of the Finish summary.
         ingest: streamed frames go through keyframe selection with a one-frame pending slot and never
@@ -184,7 +189,6 @@ class AgentConfig(BaseModel):
     chunk_gaussians: int = Field(20000, ge=1)
     delta_push: bool = True
     delta_tolerance: float = Field(1.0, ge=0)
-    push_attempt_s: float = Field(20.0, gt=0)
     final_push_timeout_s: float = Field(120.0, gt=0)
     backoff_s: float = Field(0.2, gt=0)
     max_backoff_s: float = Field(5.0, gt=0)
@@ -300,6 +304,7 @@ _SLOT = object()  # "the keyframe selector holds a pending candidate"
 _CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frames_skipped", "seconds_mapping",
                   "idle_iterations", "keyframe_iterations")
 CHECKPOINT_FILE = "checkpoint.pt"
+RECENT_FRAMES = 1800  #: frames of ``accept_latency_ms_p99_recent`` (a minute at 30 Hz)
 VERSION_FILE = "pushed_version.json"
 
 
@@ -455,6 +460,9 @@ class AgentRuntime:
         self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
         self.final_subset_bytes = 0  # the last pushed subset encoded whole
         self._session_open = False
+        self._inflight: Optional[int] = None  # version of the snapshot the pusher is working on
+        self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
+        self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
         self._replay_thread: Optional[threading.Thread] = None
         self.replay_frames = 0
         self._closed_for_input = False
@@ -472,7 +480,7 @@ class AgentRuntime:
         self.checkpoints = 0
         self.resumed_keyframes = 0
         self._accept_ms: "deque[float]" = deque(maxlen=100_000)
-        self._kf_latency_s: List[float] = []
+        self._kf_latency_s: "deque[float]" = deque(maxlen=100_000)  # bounded over a long mission
         self._dataset = None
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
         if self.checkpoint_dir is not None and (self.checkpoint_dir / CHECKPOINT_FILE).is_file():
@@ -959,52 +967,69 @@ class AgentRuntime:
                 if self._stop.is_set() and self._pending is None:
                     return
                 snap, self._pending = self._pending, None
-            if self.fusion is None:
+                self._inflight = snap.version
+            try:
+                self._push_snapshot(snap)
+            finally:
+                with self._lock:
+                    self._inflight = None
+
+    def _push_snapshot(self, snap: _Snapshot) -> None:
+        """Select, fine-tune and push one snapshot (pusher thread); sets ``_final_done`` for the final one."""
+        if self.fusion is None:
+            if snap.final:
+                self.final_push_ok = False
+                self._final_done.set()
+            return
+        if snap.select is not None:
+            if self._superseded(snap):  # a newer snapshot waits: select that one
+                return
+            try:
+                snap = self._selected(snap)
+            except Exception as e:  # keep pushing later snapshots; a failed final one is reported
+                log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
+                with self._lock:
+                    self.last_error = f"share selection failed: {type(e).__name__}: {e}"
                 if snap.final:
                     self.final_push_ok = False
                     self._final_done.set()
-                continue
-            if snap.select is not None:
-                if self._superseded(snap):  # a newer snapshot waits: select that one
-                    continue
-                try:
-                    snap = self._selected(snap)
-                except Exception as e:  # keep pushing later snapshots; a failed final one is reported
-                    log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
-                    with self._lock:
-                        self.last_error = f"share selection failed: {type(e).__name__}: {e}"
-                    if snap.final:
-                        self.final_push_ok = False
-                        self._final_done.set()
-                    continue
-            if snap.finetune is not None:
-                if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
-                    continue
-                try:
-                    out = self._finetuned(snap.gaussians, snap.ids, *snap.finetune)
-                except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
-                    log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
-                                  self.agent_id, snap.version, e)
-                    out = snap.gaussians
-                snap = dataclasses.replace(snap, gaussians=out, finetune=None)
-            budget = self.config.final_push_timeout_s if snap.final else self.config.push_attempt_s
-            ok = self._push_with_retries(snap, budget)
-            if snap.final:
-                self.final_push_ok = ok
-                self._final_done.set()
+                return
+        if snap.finetune is not None:
+            if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
+                return
+            try:
+                out = self._finetuned(snap.gaussians, snap.ids, *snap.finetune)
+            except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
+                log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
+                              self.agent_id, snap.version, e)
+                out = snap.gaussians
+            snap = dataclasses.replace(snap, gaussians=out, finetune=None)
+        ok = self._push_with_retries(snap, self.config.final_push_timeout_s if snap.final else None)
+        if snap.final:
+            self.final_push_ok = ok
+            self._final_done.set()
 
     def _superseded(self, snap: _Snapshot) -> bool:
         with self._lock:
             return (not snap.final) and self._pending is not None
 
-    def _push_with_retries(self, snap: _Snapshot, budget_s: float) -> bool:
-        deadline = time.monotonic() + budget_s
-        delay = self.config.backoff_s
+    def _push_with_retries(self, snap: _Snapshot, budget_s: Optional[float]) -> bool:
+        """Push ``snap`` until acknowledged (True). Gives up (False) when the mission stops, when a newer
+        snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
+        the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
+        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``."""
+        deadline = None if budget_s is None else time.monotonic() + budget_s
         attempt = 0
         while True:
             attempt += 1
             try:
                 self._push_once(snap)
+                with self._lock:
+                    if self._link_down_since is not None:
+                        log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
+                                 time.monotonic() - self._link_down_since, snap.version)
+                    self._retry_delay = self.config.backoff_s
+                    self._link_down_since = None
                 return True
             except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
                 msg = f"push v{snap.version} attempt {attempt} failed: {type(e).__name__}: {_short(e)}"
@@ -1012,11 +1037,18 @@ class AgentRuntime:
                     self.push_failures += 1
                     self.last_error = msg
                     self._session_open = False  # re-open after a server restart
-                log.warning("agent %s: %s", self.agent_id, msg)
-            if self._stop.is_set() or self._superseded(snap) or time.monotonic() + delay > deadline:
+                    if self._link_down_since is None:
+                        self._link_down_since = time.monotonic()
+                    delay = self._retry_delay
+                    self._retry_delay = min(delay * 2.0, self.config.max_backoff_s)
+                log.warning("agent %s: %s (next attempt in %.1f s)", self.agent_id, msg, delay)
+            if self._stop.is_set() or self._superseded(snap):
                 return False
-            time.sleep(delay)
-            delay = min(delay * 2.0, self.config.max_backoff_s)
+            if deadline is not None and time.monotonic() + delay > deadline:
+                return False
+            with self._lock:  # a newer snapshot or close() ends the wait early
+                self._push_cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
+                                       timeout=delay)
 
     def _upload_pending_keyframes(self, c) -> tuple[list, int]:
         """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
@@ -1118,15 +1150,27 @@ class AgentRuntime:
                 "frames_queued": self._queue.qsize(), "n_gaussians": self.n_gaussians, "n_active": self.n_active,
                 "pushes": len(self.pushes), "push_failures": self.push_failures,
                 "last_pushed_version": self.pushes[-1].version if self.pushes else 0,
+                "newest_map_version": self._version,
+                "push_backlog": int(self._pending is not None) + int(self._inflight is not None),
+                "keyframes_backlog": len(self._kf_pending),
+                "link_down_s": (0.0 if self._link_down_since is None
+                                else time.monotonic() - self._link_down_since),
                 "last_error": self.last_error, "seconds_mapping": self.seconds_mapping,
                 "keyframes_uploaded": self.keyframes_uploaded,
                 "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
                 "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
+                "accept_latency_ms_p99_recent": _percentile(list(self._accept_ms)[-RECENT_FRAMES:], 99),
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
                 "keyframe_iterations": self.keyframe_iterations,
             }
+
+    def acknowledged_subset(self):
+        """The subset the fusion server acknowledged last, as the server holds it (decoded wire values):
+        ``(version, GaussianArrays, ids)``, or None before the first acknowledged push."""
+        with self._lock:
+            return self._acked
 
     def wait_mapped(self, timeout_s: Optional[float] = None) -> bool:
         """Wait until every queued frame is mapped (True) or ``timeout_s`` passes (False)."""

@@ -40,7 +40,7 @@ from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
 from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
-from services.common.server import RunningServer, ServerOptions, build_server, run_until_signalled
+from services.common.server import MalformedMessage, RunningServer, ServerOptions, build_server, run_until_signalled
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,18 @@ SERVICE_NAME = "gausslite.v1.Agent"
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_TASK_BYTES = 2048
 _MISSION_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+def _valid_id(value: str) -> bool:
+    """An agent or mission id: 1..64 characters of ``[A-Za-z0-9_.-]``, not only dots (it names a folder of the
+    data dir)."""
+    return bool(_MISSION_ID.fullmatch(value)) and value.strip(".") != ""
+
+
+def _abort(context, method: str, code: grpc.StatusCode, message: str) -> None:
+    """Log a rejected call and abort it with ``code`` (raises, as ``context.abort`` does)."""
+    log.warning("rejected %s from %s: %s: %s", method, context.peer(), code.name, message)
+    context.abort(code, message)
 
 _STATES = {
     "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
@@ -193,7 +205,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         ``mission_id`` whose folder holds a checkpoint resumes from it.
 
         Raises:
-            ValueError: empty/oversized task, bad dataset, missing relevance source, unknown task id.
+            ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id.
             MissionError: another mission is still mapping; ``mission_id`` already used in this process;
                 the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
@@ -207,8 +219,12 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             raise ValueError("task_text is empty")
         if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
             raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
-        if mission_id and not _MISSION_ID.fullmatch(mission_id):
-            raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-]")
+        if "\x00" in task_text:  # the fusion server (and PostgreSQL) refuse it: the mission could never push
+            raise ValueError("task_text contains a NUL character")
+        if mission_id and not _valid_id(mission_id):
+            raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
+        if agent_id and not _valid_id(agent_id):
+            raise ValueError(f"agent_id {agent_id[:80]!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         with self._lock:
             if mission_id and mission_id in self.missions:
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
@@ -282,16 +298,25 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                                     fusion_address=request.fusion_address, agent_id=request.agent_id,
                                     mission_id=request.mission_id)
         except (FileNotFoundError, KeyError) as e:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0] if isinstance(e, KeyError) else e))
+            _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
+                   str(e.args[0] if isinstance(e, KeyError) else e))
         except MissionError as e:
-            context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(e))
+            _abort(context, "StartMission", grpc.StatusCode.FAILED_PRECONDITION, str(e))
         except ValueError as e:
             msg = str(e)
             code = (grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT)
-            context.abort(code, msg)
+            _abort(context, "StartMission", code, msg)
+        except OSError as e:  # a path the agent cannot read (too long, a directory, no permission)
+            _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
+                   f"cannot read a path of the request: {type(e).__name__}: {str(e)[:300]}")
         except grpc.RpcError as e:
             code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
-            context.abort(code, f"parser service: {e.code().name}: {e.details()}")
+            _abort(context, "StartMission", code, f"parser service: {e.code().name}: {e.details()}")
+        except MalformedMessage:
+            raise
+        except Exception as e:  # noqa: BLE001 - never crash: INTERNAL with the cause logged
+            log.exception("StartMission failed")
+            _abort(context, "StartMission", grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
         from services.parser.server import graph_to_proto
 
         g = rt.graph

@@ -8,6 +8,8 @@
   hashed token file, client certificates. Missing or wrong credentials → ``UNAUTHENTICATED``; every
   rejected call is logged. Which calls a caller may make is the service's decision
   (:meth:`services.common.auth.Principal.check_write`). See ``docs/security.md``.
+* :class:`DecodeInterceptor` — parses request messages inside the call, so bytes that are not a valid
+  message end the call with ``INVALID_ARGUMENT`` and a log line (gRPC's own deserializer says ``INTERNAL``).
 * :class:`TlsFiles` — server certificate, key and (mTLS) client CA from PEM files, re-read at the next
   TLS handshake after any of them changes, so certificates rotate without a restart.
 * :func:`run_until_signalled` — blocks until SIGTERM/SIGINT, then marks health NOT_SERVING and stops
@@ -180,6 +182,93 @@ class AuthInterceptor(grpc.ServerInterceptor):
 
         return make(guarded, request_deserializer=handler.request_deserializer,
                     response_serializer=handler.response_serializer)
+
+
+class MalformedMessage(Exception):
+    """Raised into a client-streaming handler by its request iterator when a message is not valid protobuf of
+    the method's request type (:class:`DecodeInterceptor`; the call then ends with INVALID_ARGUMENT and the
+    rejection is already logged): handlers re-raise it without logging a failure of their own."""
+
+
+class DecodeInterceptor(grpc.ServerInterceptor):
+    """Parses request messages in the handler instead of gRPC's own deserializer, so bytes that are not a
+    valid message of the method's request type end the call with ``INVALID_ARGUMENT`` and a log line
+    (gRPC reports a failed deserialization as ``INTERNAL``). Client streams are parsed lazily, message by
+    message: a malformed message stops the handler's iteration, and the call ends with INVALID_ARGUMENT
+    whatever the handler made of it. Place it after the authentication interceptor, so an unauthenticated
+    caller learns nothing about its bytes."""
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None or handler.request_deserializer is None:
+            return handler
+        return _decoding_handler(handler, handler_call_details.method or "")
+
+
+def _decoding_handler(handler: grpc.RpcMethodHandler, method: str) -> grpc.RpcMethodHandler:
+    """``handler`` with raw-bytes requests parsed by its own deserializer inside the call (DecodeInterceptor)."""
+    parse = handler.request_deserializer
+    kw = dict(request_deserializer=None, response_serializer=handler.response_serializer)
+
+    def reject(context, err: BaseException) -> str:
+        msg = f"malformed request message: {type(err).__name__}: {str(err)[:200]}"
+        log.warning("rejected call %s from %s: INVALID_ARGUMENT: %s", method, context.peer(), msg)
+        return msg
+
+    def decode(raw, context):
+        try:
+            return parse(raw)
+        except Exception as e:  # noqa: BLE001 - DecodeError and whatever a deserializer raises
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, reject(context, e))
+
+    if not handler.request_streaming:
+        if handler.response_streaming:
+            def unary_stream(raw, context):
+                yield from handler.unary_stream(decode(raw, context), context)
+
+            return grpc.unary_stream_rpc_method_handler(unary_stream, **kw)
+
+        def unary_unary(raw, context):
+            return handler.unary_unary(decode(raw, context), context)
+
+        return grpc.unary_unary_rpc_method_handler(unary_unary, **kw)
+
+    def parsed(raw_iterator, context, bad: list):
+        for raw in raw_iterator:
+            try:
+                msg = parse(raw)
+            except Exception as e:  # noqa: BLE001
+                bad.append(reject(context, e))
+                raise MalformedMessage(bad[0]) from None
+            yield msg
+
+    if handler.response_streaming:
+        def stream_stream(raw_iterator, context):
+            bad: list = []
+            try:
+                yield from handler.stream_stream(parsed(raw_iterator, context, bad), context)
+            except Exception:
+                if bad:
+                    context.abort(grpc.StatusCode.INVALID_ARGUMENT, bad[0])
+                raise
+            if bad:
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT, bad[0])
+
+        return grpc.stream_stream_rpc_method_handler(stream_stream, **kw)
+
+    def stream_unary(raw_iterator, context):
+        bad: list = []
+        try:
+            out = handler.stream_unary(parsed(raw_iterator, context, bad), context)
+        except Exception:
+            if bad:  # the handler's own status (often INTERNAL for an unexpected exception) is replaced
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT, bad[0])
+            raise
+        if bad:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, bad[0])
+        return out
+
+    return grpc.stream_unary_rpc_method_handler(stream_unary, **kw)
 
 
 def _no_password(*_):
@@ -370,7 +459,8 @@ def build_server(
     auth = authenticator if authenticator is not None else authenticator_from_options(options)
     tls = tls_files(options.tls_cert, options.tls_key, options.tls_client_ca)
     metrics = start_metrics_endpoint(registry or CollectorRegistry(), options.host, options.metrics_port)
-    interceptors = [AuthInterceptor(auth, options.auth_exempt)] if auth.enabled else []
+    # authentication first, then request parsing (malformed messages: INVALID_ARGUMENT, not INTERNAL)
+    interceptors = ([AuthInterceptor(auth, options.auth_exempt)] if auth.enabled else []) + [DecodeInterceptor()]
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=options.max_workers, thread_name_prefix="gausslite-rpc"),
         interceptors=interceptors,

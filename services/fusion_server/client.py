@@ -143,13 +143,17 @@ def service_config(max_attempts: int = 5) -> dict:
     }
 
 
-def channel_options(max_message_bytes: int = 64 * 1024 * 1024) -> list:
-    """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config."""
+def channel_options(max_message_bytes: int = 64 * 1024 * 1024, max_reconnect_backoff_ms: int = 5000) -> list:
+    """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config, and a bound on
+    gRPC's reconnection backoff (ms; gRPC's default grows to 120 s, so after a long outage the channel would keep
+    failing calls for up to two minutes after the server is back)."""
     import json
 
     return [("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
             ("grpc.enable_retries", 1),
+            ("grpc.initial_reconnect_backoff_ms", min(1000, int(max_reconnect_backoff_ms))),
+            ("grpc.max_reconnect_backoff_ms", int(max_reconnect_backoff_ms)),
             ("grpc.service_config", json.dumps(service_config()))]
 
 

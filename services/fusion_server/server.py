@@ -65,10 +65,11 @@ from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, Limit
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import AGENT_ID_RE, Authenticator, AuthError
 from services.common.metrics import metrics_port_from
-from services.common.server import (RunningServer, ServerOptions, authenticator_from_options, build_server,
-                                    run_until_signalled)
+from services.common.server import (MalformedMessage, RunningServer, ServerOptions, authenticator_from_options,
+                                    build_server, run_until_signalled)
 from services.fusion_server.metrics import FusionMetrics, MeteredFusion
-from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe, open_store
+from services.fusion_server.store import (ChunkConflict, Session, SqlFusionStore, StoredKeyframe, StoreUnavailable,
+                                         open_store)
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,8 @@ class FusionConfig:
         store (str): ``postgresql://user:pw@host:port/db`` DSN of a PostgreSQL store shared by
             replicas; empty = SQLite in ``data_dir``.
         store_pool_size (int): PostgreSQL connections per server process.
+        store_acquire_timeout_s (float): PostgreSQL: how long a call waits for a database connection before
+            it fails with UNAVAILABLE (the database is down or restarting; clients retry with backoff).
         max_keyframes_per_agent (int): keyframe buffer bound per agent (oldest dropped beyond it).
         max_subset_gaussians (int): largest accepted subset (RESOURCE_EXHAUSTED beyond).
         max_task_text_bytes (int): longest task text (INVALID_ARGUMENT beyond).
@@ -103,6 +106,7 @@ class FusionConfig:
     data_dir: str = "gausslite_fusion_data"
     store: str = ""
     store_pool_size: int = 12
+    store_acquire_timeout_s: float = 5.0
     max_keyframes_per_agent: int = 64
     max_subset_gaussians: int = 4_000_000
     max_task_text_bytes: int = 4096
@@ -163,6 +167,10 @@ def _unary_guard(fn):
             return fn(self, request, context)
         except _Reject as r:
             err = r
+        except MalformedMessage:  # already logged; DecodeInterceptor ends the call with INVALID_ARGUMENT
+            raise
+        except StoreUnavailable as e:  # the database is down or restarting: transient, the client retries
+            err = _Reject(grpc.StatusCode.UNAVAILABLE, str(e))
         except Exception as e:  # noqa: BLE001 - never crash, report INTERNAL with the cause logged
             log.exception("%s failed", fn.__name__)
             err = _Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
@@ -181,12 +189,28 @@ def _stream_guard(fn):
             return
         except _Reject as r:
             err = r
+        except MalformedMessage:  # already logged; DecodeInterceptor ends the call with INVALID_ARGUMENT
+            raise
+        except StoreUnavailable as e:  # the database is down or restarting: transient, the client retries
+            err = _Reject(grpc.StatusCode.UNAVAILABLE, str(e))
         except Exception as e:  # noqa: BLE001
             log.exception("%s failed", fn.__name__)
             err = _Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
         _abort(context, fn.__name__, err.code, err.message)
 
     return wrapper
+
+
+MAX_VERSION = 2**63 - 1  #: versions are stored as signed 64-bit integers (SQLite, PostgreSQL BIGINT)
+
+
+def check_int64(value: int, what: str) -> int:
+    """A uint64 field of a request (versions, counts) as an int. Raises _Reject(INVALID_ARGUMENT) above
+    :data:`MAX_VERSION` (the database stores signed 64-bit integers)."""
+    v = int(value)
+    if v > MAX_VERSION:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what} {v} exceeds {MAX_VERSION}")
+    return v
 
 
 def check_agent_id(agent_id: str) -> str:
@@ -378,6 +402,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if len(request.task_text.encode("utf-8")) > self.config.max_task_text_bytes:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                           f"task_text longer than {self.config.max_task_text_bytes} UTF-8 bytes")
+        if "\x00" in request.task_text:  # PostgreSQL text cannot hold NUL; refused by every store alike
+            raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "task_text contains a NUL character")
         if not request.HasField("intrinsics"):
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "intrinsics are required")
         k = _intrinsics(request.intrinsics, "intrinsics")
@@ -398,7 +424,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if first is None or first.WhichOneof("payload") != "header":
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, "the first UploadSubset message must be the header")
         h = first.header
-        agent, version, n_chunks = h.agent_id, int(h.map_version), int(h.n_chunks)
+        agent, version, n_chunks = h.agent_id, check_int64(h.map_version, "map_version"), int(h.n_chunks)
         self._check_writer(context, check_agent_id(agent))
         self._session(agent)
         if n_chunks < 1:
@@ -410,7 +436,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             raise _Reject(grpc.StatusCode.FAILED_PRECONDITION,
                           f"map_version {version} of {agent!r} is superseded by complete version {latest}")
         try:
-            self.store.begin_upload(agent, version, n_chunks, int(h.full_map_gaussians), int(h.full_map_bytes))
+            self.store.begin_upload(agent, version, n_chunks, check_int64(h.full_map_gaussians, "full_map_gaussians"),
+                                    check_int64(h.full_map_bytes, "full_map_bytes"))
         except ValueError as e:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
         newly = 0
@@ -428,7 +455,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                               f"chunk at stream position {pos}: {type(e).__name__}: {e}") from None
             idx = hdr.chunk_index
             if hdr.delta:
-                self._check_delta_base(agent, version, hdr.base_version)
+                self._check_delta_base(agent, version, check_int64(hdr.base_version, "delta base_version"))
             if hdr.agent_id != agent or hdr.map_version != version:
                 raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
                               f"chunk {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
@@ -465,7 +492,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
     @_unary_guard
     def GetUploadStatus(self, request, context):  # noqa: N802
         self._session(request.agent_id)
-        return self._ack(request.agent_id, int(request.map_version))
+        return self._ack(request.agent_id, check_int64(request.map_version, "map_version"))
 
     @_unary_guard
     def UploadKeyframes(self, request_iterator, context):  # noqa: N802
@@ -699,7 +726,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         method = int(request.method)
         if method and method not in _METHOD_NAMES:
             raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown method filter {method}")
-        found = self.store.fused_info(int(request.fused_version), method)
+        found = self.store.fused_info(check_int64(request.fused_version, "fused_version"), method)
         if found is None:
             what = f"fused version {request.fused_version}" if request.fused_version else "no fused map yet"
             raise _Reject(grpc.StatusCode.NOT_FOUND, f"unknown {what}" if request.fused_version else what
@@ -722,9 +749,13 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         for s in self.store.sessions():
             a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
                                       keyframes=self.store.keyframe_count(s.agent_id))
-            latest = self.store.latest_version(s.agent_id)
-            if latest is not None:
-                up = self.store.upload(s.agent_id, latest)
+            latest, up = None, None
+            for _ in range(5):  # a newer version may complete (and delete this one) between the two reads
+                latest = self.store.latest_version(s.agent_id)
+                up = self.store.upload(s.agent_id, latest) if latest is not None else None
+                if latest is None or up is not None:
+                    break
+            if up is not None:
                 a.latest_map_version = latest
                 a.has_complete_subset = True
                 a.gaussians_received = up.n_gaussians
@@ -808,7 +839,8 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
         config = replace(config, data_dir=str(data_dir))
     if store is not None:
         config = replace(config, store=str(store))
-    store = (open_store(config.store, pool_size=config.store_pool_size) if config.store
+    store = (open_store(config.store, pool_size=config.store_pool_size,
+                        acquire_timeout_s=config.store_acquire_timeout_s) if config.store
              else open_store(config.data_dir))
     servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
     metered = MeteredFusion(servicer, FusionMetrics())

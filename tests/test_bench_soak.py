@@ -1,0 +1,46 @@
+"""bench.soak's bookkeeping (the timed run itself is not part of the suite): growth over the last half, the
+process-tree RSS and folder size readers, the table and the plot."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from bench.soak import dir_mb, growth_last_half, parse_args, plot, table, tree_rss_mb
+
+
+def _samples(values):
+    return [{"t_s": 10.0 * (i + 1), "v": v} for i, v in enumerate(values)]
+
+
+def test_growth_over_the_last_half():
+    # 6 samples to t = 60 s: the last half starts at the sample at t = 30 s (value 100)
+    assert growth_last_half(_samples([50, 80, 100, 101, 103, 102]), "v") == pytest.approx(0.03)
+    assert growth_last_half(_samples([50, 80, 100, 90, 95, 99]), "v") == pytest.approx(0.0)
+    assert growth_last_half(_samples([10]), "v") is None
+    assert growth_last_half([], "v") is None
+
+
+def test_readers(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "x.bin").write_bytes(b"\0" * 2**20)
+    (tmp_path / "y.bin").write_bytes(b"\0" * 2**19)
+    assert dir_mb(tmp_path) == pytest.approx(1.5)
+    assert tree_rss_mb(os.getpid()) > 10.0
+
+
+def test_table_and_plot(tmp_path):
+    keys = ["rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion", "accept_p99_ms",
+            "keyframe_latency_s_p95", "n_gaussians", "fusion_subset_gaussians", "frames_keyframed", "pushes"]
+    samples = [dict({k: 1.0 + i for k in keys}, t_s=10.0 * (i + 1)) for i in range(4)]
+    res = {"samples": samples, "minutes": 0.7, "fps": 30.0, "scene": "test", "errors": [],
+           "accept_p99_ms_max": 4.0, "growth_last_half": {"rss_mb_agent": 0.5, "disk_mb_agent": None},
+           "goals": {"rss_mb_agent growth<=5%": False, "no errors": True}}
+    md = table(res)
+    assert md.count("\n| ") == 4 and "rss_mb_agent +50.0 %" in md and "disk_mb_agent n/a" in md
+    assert "rss_mb_agent growth<=5% MISSED" in md
+    plot(res, tmp_path / "soak.png")
+    assert (tmp_path / "soak.png").stat().st_size > 10_000
+    a = parse_args(["--minutes", "1", "--sample-s", "10"])
+    assert (a.minutes, a.sample_s, a.fps) == (1.0, 10.0, 30.0)
