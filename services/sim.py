@@ -347,6 +347,19 @@ def plot_pushes(report: dict, path: Path) -> bool:
     return True
 
 
+def fuse_settings(cfg: dict, realtime: bool = False) -> dict:
+    """The simulation's fusion settings from ``cfg["sim"]["fuse"]``: ``{"voxel_size": δ m, "contest_radius": voxels,
+    "refine_iters": n}``. Live runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's
+    per-voxel rule): measured live, the neighbourhood contest empties an owner's voxels next to another robot's
+    denser task region (``docs/sharing.md``)."""
+    f = (cfg.get("sim") or {}).get("fuse") or {}
+    radius = int(f.get("contest_radius", 1))
+    if realtime:
+        radius = int(f.get("live_contest_radius", 0))
+    return {"voxel_size": float(f.get("voxel_size", 0.10)), "contest_radius": radius,
+            "refine_iters": int(f.get("refine_iters", 300))}
+
+
 class FusedTimeline:
     """The fused map while the robots map: whenever an agent's latest complete subset changes on the fusion server,
     a vote fuse (no refinement) is run and the fused map downloaded; :meth:`scores` scores them afterwards, so the
@@ -585,8 +598,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         # ---- wait for the missions; vote-fuse whenever a new subset arrived (the fused map over time)
         done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
         last_print = 0.0
-        fuse_cfg = sim_cfg.get("fuse") or {}
-        tracker = FusedTimeline(fusion, float(fuse_cfg.get("voxel_size", 0.10)), int(fuse_cfg.get("contest_radius", 1)))
+        fz = fuse_settings(cfg, realtime=bool((cfg.get("agent") or {}).get("realtime", False)))
+        tracker = FusedTimeline(fusion, fz["voxel_size"], fz["contest_radius"])
         while True:
             group.check_alive()
             tracker.poll(time.perf_counter() - t0)
@@ -618,9 +631,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         tracker.poll(time.perf_counter() - t0)
         stats = fusion.stats().get("agents", {})
         # ---- fuse
-        voxel = float(fuse_cfg.get("voxel_size", 0.10))
-        refine_iters = int(fuse_cfg.get("refine_iters", 300))
-        radius = int(fuse_cfg.get("contest_radius", 1))
+        voxel, refine_iters, radius = fz["voxel_size"], fz["refine_iters"], fz["contest_radius"]
         backend = (cfg.get("mapper") or {}).get("backend", "auto")
         eval_frames = {}
         for p in plans:

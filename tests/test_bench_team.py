@@ -77,7 +77,8 @@ def test_teams_and_the_overlapping_view_team():
 def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2):
     agents = [{"id": f"agent_{c}", "task": f"t{c}", "share_pct": share, "upload_ratio": upload,
                "bytes_per_gaussian": 12.0, "own_roi_psnr": own[i], "concat_roi_psnr": concat[i],
-               "vote_roi_psnr": vote[i], "refine_roi_psnr": refine[i], "keyframes": 20, "iters_per_keyframe": 20.0,
+               "vote_roi_psnr": vote[i], "vote_r1_roi_psnr": vote[i] - 1, "refine_roi_psnr": refine[i],
+               "refine_long_roi_psnr": refine[i] + 0.5, "keyframes": 20, "iters_per_keyframe": 20.0,
                "pushes": 2, "n_gaussians": 6000} for i, c in enumerate("ab")]
     return {"team": team, "run": run, "agents": agents}
 
@@ -89,8 +90,9 @@ def test_summary_checks_the_goals_per_team():
     s = summarise(runs)
     h, t = s["tum_halves"], s["tum"]
     assert h["goals"] == {"share_le_10pct": True, "upload_le_1.5x": True, "refine_ge_own": True,
-                          "vote_ge_concat": True, "vote_ge_own": True}
+                          "refine_long_ge_own": True, "vote_ge_concat": True, "vote_ge_own": True}
     assert h["agents"]["agent_a"]["vote_minus_own"] == pytest.approx(0.5)
     assert t["goals"]["share_le_10pct"] is False and t["goals"]["vote_ge_concat"] is False
     assert t["goals"]["refine_ge_own"] is False and "vote_ge_own" not in t["goals"]
+    assert t["goals"]["refine_long_ge_own"] is True  # 21.5 / 22.4 against 20 / 22
     assert t["agents"]["agent_b"]["refine_minus_own"] == pytest.approx(-0.1)
