@@ -5,7 +5,7 @@ Gaussian cap, no final pass (paper Sec. IV-A, Baselines). See ``docs/realtime.md
                              [--runs 3] [--modes uniform,gausslite] [--clock scaled|dataset]
                              [--final-pass-budgets 0.5] [--set KEY=VALUE ...] [--out bench/results/realtime.json]
 
-Each run is one agent mission (:class:`services.agent.runtime.AgentRuntime`, in process, no fusion server)
+Each run is one agent mission (:class:`gausslite.mission.AgentRuntime`, in process, no fusion server)
 that replays the scene through the agent's keyframe ingest as a robot streams it: frames arrive at the
 scene's clock, the keyframe selector keeps the newest candidate while the mapper is busy, and every mapped
 keyframe gets ``budget`` seconds of wall time (decoding, relevance and seeding included). Both modes map with
@@ -145,7 +145,7 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
     """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
     budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
     from gausslite.mapping.profiles import with_profile
-    from services.agent.runtime import load_agent_config
+    from gausslite.mission import load_agent_config
 
     cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
@@ -196,7 +196,7 @@ def _mission(job: dict, rate: float, extra_overrides=(), fusion=None):
     """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
     final-pass iterations per keyframe)."""
     from gausslite.parser import parse_task
-    from services.agent.runtime import AgentRuntime
+    from gausslite.mission import AgentRuntime
 
     ds, profile = load_scene(job["scene"], Path(job["path"]))
     ds = Preloaded(ds)

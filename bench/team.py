@@ -122,9 +122,9 @@ class _Frames:
 
 def fuse_settings() -> dict:
     """The live sim's fusion settings (``sim.fuse`` of ``deploy/gausslite.yaml``, with its ``live_contest_radius``)."""
-    from services.sim import fuse_settings as sim_fuse, load_sim_config
+    from gausslite.config import load_config
 
-    return sim_fuse(load_sim_config(None), realtime=True)
+    return load_config().sim.fuse.settings(realtime=True)
 
 
 def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Path, overrides=(),

@@ -4,7 +4,7 @@ subclasses, valid subsets and deltas round-trip within the documented precision.
     python -m bench.wire_fuzz --examples 100000
 
 Splits ``--examples`` over the properties below, prints a table (examples, failures, seconds per
-property) and writes ``bench/results/wire_fuzz.json``.  ``tests/test_wire_fuzz.py`` runs the same
+property) and writes ``bench/results/wire_fuzz.json``.  ``tests/wire/test_wire_fuzz.py`` runs the same
 properties with a few dozen examples each in the normal suite.
 """
 

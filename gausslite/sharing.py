@@ -64,9 +64,12 @@ class ShareConfig:
         max_fraction: at most this fraction of the map is shared (the Gaussians with the largest
             contribution); None = no bound. A bandwidth bound for maps still being trained, where a coverage
             rule alone keeps many small, overlapping Gaussians (``docs/sharing.md``).
+        held_weight: the Gaussians the fusion server already holds (``held`` of :func:`select_task_subset`) rank
+            with their contribution times this (>= 1): hysteresis, so that a bounded subset does not trade rows of
+            nearly equal contribution at every push, each of which a delta push must carry (``docs/sharing.md``).
 
     Raises:
-        ValueError: unknown ``candidates`` or ``max_fraction`` outside (0, 1].
+        ValueError: unknown ``candidates``, ``max_fraction`` outside (0, 1] or ``held_weight`` < 1.
     """
 
     region_voxel_m: float = 0.05
@@ -76,12 +79,15 @@ class ShareConfig:
     coverage: float = 0.99
     candidates: str = "active"
     max_fraction: Optional[float] = None
+    held_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if self.candidates not in ("active", "rendered"):
             raise ValueError(f"candidates must be 'active' or 'rendered', got {self.candidates!r}")
         if self.max_fraction is not None and not 0 < self.max_fraction <= 1:
             raise ValueError(f"max_fraction must be in (0, 1] or None, got {self.max_fraction}")
+        if not self.held_weight >= 1.0:
+            raise ValueError(f"held_weight must be >= 1, got {self.held_weight}")
 
 
 @dataclass
@@ -169,13 +175,14 @@ def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
 
 
 def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = ShareConfig(),
-                       backend: str = "auto") -> tuple[np.ndarray, dict]:
+                       backend: str = "auto", held: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
     """Boolean mask (N,) of the Gaussians to share, and counts per rule (module docstring).
 
     Args:
         gmap: the agent's map (GaussianMap: means, opacity_logits, active, kappa, ...).
         views: ROI keyframes.  With no ROI pixel at all, the task flag and κ rule alone decide.
         cfg: rule parameters.  backend: renderer backend.
+        held: optional (N,) bool, the Gaussians the fusion server holds from the last push (``cfg.held_weight``).
 
     Returns:
         (mask, stats) with stats = {"active_kappa", "in_region", "opaque", "shared"} counts
@@ -206,7 +213,10 @@ def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = Shar
         c = roi_contribution(gmap, views, backend)
         idx = np.nonzero(cand)[0]
         ci = np.maximum(c[idx], 0.0)
-        order = np.argsort(-ci, kind="stable")
+        rank = ci
+        if held is not None and cfg.held_weight != 1.0:
+            rank = ci * np.where(np.asarray(held, bool)[idx], cfg.held_weight, 1.0)
+        order = np.argsort(-rank, kind="stable")
         total = ci.sum()
         keep = np.zeros(len(idx), bool)
         if total > 0:

@@ -3,7 +3,7 @@
 
 Each vector is one chunk file ``<name>.glwc`` plus an entry in ``vectors.json`` holding the parsed
 header, the SHA-256 of the decompressed raw payload and the decoded arrays (float32 values written
-as JSON numbers, exact).  ``tests/test_wire_golden.py`` decodes every chunk and compares.  Run this
+as JSON numbers, exact).  ``tests/wire/test_wire_golden.py`` decodes every chunk and compares.  Run this
 only when the format version changes (the vectors pin format 3; ``tests/data/wire/v2`` keeps the
 format-2 vectors, which decoders still read):
 

@@ -72,35 +72,18 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 
 def load_sim_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> dict:
-    """The whole GaussLite YAML (``agent``, ``mapper``, ``sim`` sections) with dotted overrides applied.
+    """The whole GaussLite YAML (``agent``, ``mapper``, ``sim`` sections) with dotted overrides applied, validated
+    as a :class:`gausslite.config.GaussLiteConfig` (so that a typo fails before any process starts).
 
     Raises:
-        FileNotFoundError: missing file. ValueError: not a mapping / bad override.
+        FileNotFoundError: missing file. ValueError: not a mapping / bad override. pydantic.ValidationError: bad
+        keys or values.
     """
-    p = Path(path) if path else DEFAULT_CONFIG
-    if not p.is_file():
-        raise FileNotFoundError(f"config file not found: {p}")
-    data = yaml.safe_load(p.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{p}: top level must be a mapping")
-    data = apply_overrides(data, overrides)
-    from services.agent.runtime import load_agent_config
+    from gausslite.config import GaussLiteConfig, read_yaml
 
-    # validate agent+mapper now so that a typo fails before any process starts
-    _validate_agent_sections({k: data[k] for k in ("agent", "mapper") if data.get(k) is not None},
-                             load_agent_config)
+    data = apply_overrides(read_yaml(path or DEFAULT_CONFIG), list(overrides))
+    GaussLiteConfig.model_validate(data)
     return data
-
-
-def _validate_agent_sections(data: dict, loader) -> None:
-    import tempfile
-
-    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
-        yaml.safe_dump(data, f)
-    try:
-        loader(f.name)
-    finally:
-        os.unlink(f.name)
 
 
 def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -> List[AgentPlan]:
@@ -232,7 +215,7 @@ def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[Pr
     Raises:
         TimeoutError: not SERVING in time. RuntimeError: a child process died meanwhile.
     """
-    from gausslite.cli.cmd_health import check_health
+    from services.cli.cmd_health import check_health
 
     deadline = time.monotonic() + timeout_s
     status = "?"
@@ -348,16 +331,13 @@ def plot_pushes(report: dict, path: Path) -> bool:
 
 
 def fuse_settings(cfg: dict, realtime: bool = False) -> dict:
-    """The simulation's fusion settings from ``cfg["sim"]["fuse"]``: ``{"voxel_size": δ m, "contest_radius": voxels,
-    "refine_iters": n}``. Live runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's
-    per-voxel rule): measured live, the neighbourhood contest empties an owner's voxels next to another robot's
-    denser task region (``docs/sharing.md``)."""
-    f = (cfg.get("sim") or {}).get("fuse") or {}
-    radius = int(f.get("contest_radius", 1))
-    if realtime:
-        radius = int(f.get("live_contest_radius", 0))
-    return {"voxel_size": float(f.get("voxel_size", 0.10)), "contest_radius": radius,
-            "refine_iters": int(f.get("refine_iters", 300))}
+    """The simulation's fusion settings (:meth:`gausslite.config.SimFuse.settings` of ``cfg["sim"]["fuse"]``): live
+    runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's per-voxel rule): measured
+    live, the neighbourhood contest empties an owner's voxels next to another robot's denser task region
+    (``docs/sharing.md``)."""
+    from gausslite.config import SimFuse
+
+    return SimFuse.model_validate((cfg.get("sim") or {}).get("fuse") or {}).settings(realtime)
 
 
 class FusedTimeline:

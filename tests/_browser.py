@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _ci import missing
+from tests._ci import missing
 
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
 CHROMIUM_FLAGS = ["--headless=new", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",

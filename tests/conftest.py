@@ -1,4 +1,7 @@
-"""Shared test fixtures.
+"""Shared test fixtures, and the ``integration`` marker.
+
+``integration``: the tests that start processes or gRPC servers (``INTEGRATION``; the rest are unit tests):
+``pytest -m "not integration"`` runs the unit tests alone.
 
 ``shared_datasets``: the research datasets in ``../shared/datasets``. They are never copied into the
 repo. When absent, tests that need them skip on a user's machine but fail under CI (``CI=true``).
@@ -11,9 +14,34 @@ from pathlib import Path
 
 import pytest
 
-from _ci import missing
+from tests._ci import missing
 
 REPO = Path(__file__).resolve().parents[1]
+
+#: test files (relative to tests/) that start processes or gRPC servers
+INTEGRATION = {
+    "bench/test_bench_fleet.py", "bench/test_bench_soak.py", "bench/test_bench_realtime.py",
+    "deploy/test_deploy_compose.py", "parser/test_parser_facade.py",
+    "services/test_agent_live.py", "services/test_agent_service.py", "services/test_bag_services.py",
+    "services/test_client_errors.py", "services/test_delta_server.py", "services/test_fusion_db_outage.py",
+    "services/test_fusion_identity.py", "services/test_fusion_replicas.py", "services/test_fusion_server.py",
+    "services/test_fusion_server_cli.py", "services/test_fusion_server_restart.py",
+    "services/test_fusion_store_contract.py", "services/test_grpc_fuzz.py", "services/test_link_outage.py",
+    "services/test_metrics_services.py", "services/test_proto_parser_service.py", "services/test_sim.py",
+    "services/test_tls.py", "services/test_viewer.py",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of the ``INTEGRATION`` files."""
+    here = Path(__file__).resolve().parent
+    for item in items:
+        try:
+            rel = Path(str(item.fspath)).resolve().relative_to(here).as_posix()
+        except ValueError:
+            continue
+        if rel in INTEGRATION:
+            item.add_marker(pytest.mark.integration)
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")).resolve()
 
 

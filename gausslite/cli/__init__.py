@@ -1,6 +1,7 @@
-"""``gausslite`` command line. Each subcommand lives in a module ``gausslite/cli/cmd_<name>.py``
-that defines ``register(subparsers)``; modules are discovered automatically. Subcommands that need
-gRPC import ``services`` lazily inside their handler, so the core library never imports gRPC."""
+"""``gausslite`` command line. Each subcommand lives in a module ``cmd_<name>.py`` that defines
+``register(subparsers)``: the library's own in ``gausslite/cli/``, and those of every package named by a
+``gausslite.commands`` entry point (the services' in ``services/cli/``, which run or call the gRPC services), so
+the core library never imports the services or gRPC."""
 
 from __future__ import annotations
 
@@ -18,11 +19,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    pkg = importlib.import_module(__name__)
-    for mod in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
-        if mod.name.startswith("cmd_"):
-            importlib.import_module(f"{__name__}.{mod.name}").register(sub)
+    modules = {}
+    for pkg_name in [__name__, *command_packages()]:
+        pkg = importlib.import_module(pkg_name)
+        for mod in pkgutil.iter_modules(pkg.__path__):
+            if mod.name.startswith("cmd_"):
+                modules.setdefault(mod.name, f"{pkg_name}.{mod.name}")
+    for name in sorted(modules):
+        importlib.import_module(modules[name]).register(sub)
     return parser
+
+
+def command_packages() -> list:
+    """Packages of further subcommands: the values of the ``gausslite.commands`` entry points (``pyproject.toml``)."""
+    from importlib.metadata import entry_points
+
+    return sorted({ep.value for ep in entry_points(group="gausslite.commands")})
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -18,9 +18,9 @@ changes that let clang emit 8-wide AVX2 code:
   scalar call would keep the loop from vectorising. The backward pass's per-row sums are vectorised
   with ``#pragma clang fp reassociate(on)``, so they add in another order than the Warp kernel.
 
-Results match the Warp tile kernels to float32 rounding (tests/test_render_simd.py: colours and alpha
+Results match the Warp tile kernels to float32 rounding (tests/render/test_render_simd.py: colours and alpha
 within 2e-6, gradients within 1e-5 relative) and the pure-PyTorch reference as the Warp kernels do
-(tests/test_render_rasterizer.py parity tests run through this path). Measured on a room0 map at 300x170,
+(tests/render/test_render_rasterizer.py parity tests run through this path). Measured on a room0 map at 300x170,
 18k Gaussians, 2 threads: forward 20.1 -> 11.1 ms, backward 25.1 -> 16.0 ms; ``python -m bench.rasterizer``
 times both kernel sets on random scenes (forward + backward 1.8-2.2x).
 CPU only; the CUDA path keeps the per-pixel kernels of :mod:`~gausslite.render.warp_kernels`.

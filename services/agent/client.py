@@ -21,11 +21,13 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc
 from services.agent.frames import encode_frame
+from services.common.errors import raises_typed_errors
 
 SERVICE_NAME = "gausslite.v1.Agent"
 CLIENT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 
 
+@raises_typed_errors
 class AgentClient:
     """Synchronous client (thread-safe: one channel).
 

@@ -1,4 +1,4 @@
-"""Agent service: a thin gRPC server over :class:`services.agent.runtime.AgentRuntime` (paper
+"""Agent service: a thin gRPC server over :class:`gausslite.mission.AgentRuntime` (paper
 Sec. III-E).
 
 ``gausslite.v1.Agent``:
@@ -39,7 +39,7 @@ import grpc
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
-from services.agent.runtime import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, load_agent_config
 from services.common.server import MalformedMessage, RunningServer, ServerOptions, build_server, run_until_signalled
 
 log = logging.getLogger(__name__)

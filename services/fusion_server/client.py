@@ -45,13 +45,14 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
-import cv2
 import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
+from services.common.errors import raises_typed_errors
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +65,6 @@ CLIENT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 UPLOAD_BATCH_BYTES = 8 * 1024 * 1024
 #: Keyframes sent per ``UploadKeyframes`` call.
 KEYFRAME_BATCH = 8
-#: Depth scale used for 16-bit PNG depth (metres = value / scale): 0.2 mm steps up to 13.1 m.
-DEFAULT_DEPTH_SCALE = 5000.0
-
 #: Methods that gRPC's retry policy may re-send on UNAVAILABLE (all but the non-idempotent Fuse).
 RETRIED_METHODS = ("OpenSession", "UploadSubset", "GetUploadStatus", "UploadKeyframes", "DownloadFused", "GetStats")
 
@@ -235,55 +233,6 @@ def intrinsics_to_proto(intr) -> common_pb2.Intrinsics:
                                  width=int(intr.width), height=int(intr.height))
 
 
-def encode_depth_png(depth: np.ndarray) -> tuple[bytes, float]:
-    """Encode metric depth as a 16-bit PNG.
-
-    Args:
-        depth: (H, W) float depth in metres, 0 / non-finite = invalid.
-    Returns:
-        (png bytes, depth_scale) with metres = value / depth_scale. The scale is
-        :data:`DEFAULT_DEPTH_SCALE` unless the largest depth needs a coarser one (then
-        65535 / max depth).
-    Raises:
-        ValueError: not a 2-D array, or PNG encoding failed.
-    """
-    d = np.asarray(depth, dtype=np.float64)
-    if d.ndim != 2:
-        raise ValueError(f"depth must be (H, W), got {d.shape}")
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
-    dmax = float(d.max()) if d.size else 0.0
-    scale = DEFAULT_DEPTH_SCALE if dmax * DEFAULT_DEPTH_SCALE <= 65535 else 65535.0 / dmax
-    q = np.clip(np.round(d * scale), 0, 65535).astype(np.uint16)
-    ok, buf = cv2.imencode(".png", q)
-    if not ok:
-        raise ValueError("PNG encoding of depth failed")
-    return buf.tobytes(), float(scale)
-
-
-def encode_color_jpeg(rgb: np.ndarray, quality: int = 95) -> bytes:
-    """Encode an (H, W, 3) uint8 RGB image as JPEG. Raises ValueError on bad input."""
-    a = np.asarray(rgb)
-    if a.ndim != 3 or a.shape[2] != 3:
-        raise ValueError(f"rgb must be (H, W, 3), got {a.shape}")
-    if a.dtype != np.uint8:
-        a = np.clip(a * (255.0 if a.dtype.kind == "f" else 1.0), 0, 255).astype(np.uint8)
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(a, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise ValueError("JPEG encoding failed")
-    return buf.tobytes()
-
-
-def encode_color_png(rgb: np.ndarray) -> bytes:
-    """Encode an (H, W, 3) uint8 RGB image as lossless PNG. Raises ValueError on bad input."""
-    a = np.asarray(rgb)
-    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
-        raise ValueError(f"rgb must be (H, W, 3) uint8, got {a.shape} {a.dtype}")
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
-
-
 def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
                       color_format: str = "jpeg", roi=None) -> fusion_pb2.KeyframeRequest:
     """A ``gausslite.datasets.base.Frame`` → ``KeyframeRequest`` (JPEG or lossless PNG colour,
@@ -304,10 +253,7 @@ def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
         roi = np.asarray(roi, bool)
         if roi.shape != np.asarray(frame.depth).shape:
             raise ValueError(f"frame {frame.frame_id}: roi {roi.shape} does not match depth {np.shape(frame.depth)}")
-        ok, buf = cv2.imencode(".png", roi.astype(np.uint8) * 255)
-        if not ok:
-            raise ValueError(f"frame {frame.frame_id}: cannot encode the ROI")
-        roi_png = buf.tobytes()
+        roi_png = encode_roi_png(roi)
     return fusion_pb2.KeyframeRequest(
         agent_id=agent_id, frame_id=int(frame.frame_id), color=color,
         depth_png=png, depth_scale=scale, pose=common_pb2.Pose(c2w=[float(v) for v in c2w]),
@@ -316,6 +262,7 @@ def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
     )
 
 
+@raises_typed_errors
 class FusionClient:
     """Synchronous client of ``gausslite.v1.Fusion`` (thread-safe: one channel, stateless calls).
 

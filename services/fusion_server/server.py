@@ -27,7 +27,8 @@ synchronous=FULL) under the data directory by default, or PostgreSQL selected by
 server share; everything is committed before it is acknowledged. ``Fuse`` runs under the store's
 fuse lock (a PostgreSQL advisory lock across replicas); fused versions are allocated by the database.
 
-Incremental fusion: the servicer keeps an :class:`gausslite.fusion.vote.IncrementalVote` of the
+Incremental fusion: the servicer's :class:`gausslite.fusion.engine.FuseEngine` keeps an
+:class:`gausslite.fusion.vote.IncrementalVote` of the
 subsets it last voted; a vote re-loads only agents whose latest complete version changed and
 re-votes only the voxels they touch (the result equals a full :func:`voxel_vote`).
 
@@ -48,17 +49,16 @@ import queue
 import sys
 import threading
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Dict, Optional
 
-import cv2
 import grpc
 import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
-from gausslite.fusion.vote import concat as concat_maps
-from gausslite.fusion.vote import IncrementalVote, VoxelRangeError, voxel_vote
+from gausslite.fusion.engine import FuseEngine
+from gausslite.wire import images
 from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler,
                                   WireError, WireLimits, apply_delta, assemble, decode_chunk, encode_subset,
                                   peek_header)
@@ -118,26 +118,34 @@ class FusionConfig:
 
     @classmethod
     def from_file(cls, path: str) -> "FusionConfig":
-        """Load from a JSON or TOML file whose keys are the attribute names.
+        """Load from a GaussLite YAML (its ``fusion`` section, :class:`gausslite.config.FusionSettings`), or a JSON
+        or TOML file whose keys are the attribute names.
 
         Raises:
             ValueError: unknown keys or unparsable file. OSError: unreadable file.
         """
-        text = Path(path).read_text(encoding="utf-8")
+        from pydantic import ValidationError
+
+        from gausslite.config import FusionSettings, load_config
+
+        p = str(path)
         try:
-            if str(path).endswith(".toml"):
+            if p.endswith((".yaml", ".yml")):
+                return cls(**load_config(p).fusion.model_dump())
+            text = Path(p).read_text(encoding="utf-8")
+            if p.endswith(".toml"):
                 import tomllib
 
                 data = tomllib.loads(text)
             else:
                 data = json.loads(text)
-        except Exception as e:  # noqa: BLE001 - any parser error is a config error
+            return cls(**FusionSettings.model_validate(data).model_dump())
+        except FileNotFoundError:
+            raise
+        except (ValidationError, ValueError) as e:  # parser errors, unknown keys, bad values
+            raise ValueError(f"bad fusion config {path}: {e}") from e
+        except Exception as e:  # noqa: BLE001 - any other parser error is a config error
             raise ValueError(f"cannot parse fusion config {path}: {e}") from e
-        names = {f.name for f in fields(cls)}
-        unknown = set(data) - names
-        if unknown:
-            raise ValueError(f"unknown fusion config keys {sorted(unknown)} in {path}")
-        return cls(**data)
 
 
 class _Reject(Exception):
@@ -228,42 +236,26 @@ def _intrinsics(msg, what: str) -> Intrinsics:
         raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: {e}") from None
 
 
-_JPEG_MAGIC = b"\xff\xd8\xff"
-_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
 def decode_color(data: bytes, what: str) -> np.ndarray:
-    """Decode a JPEG/PNG colour image to (H, W, 3) uint8 RGB. Raises _Reject(INVALID_ARGUMENT)."""
-    if not (data.startswith(_JPEG_MAGIC) or data.startswith(_PNG_MAGIC)):
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: colour is neither JPEG nor PNG")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None or img.ndim != 3 or img.shape[2] != 3:
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: undecodable colour image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    """:func:`gausslite.wire.images.decode_color`; raises _Reject(INVALID_ARGUMENT)."""
+    return _image(images.decode_color, data, what)
 
 
 def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
-    """Decode an 8-bit single-channel PNG ROI mask to (H, W) bool (nonzero = ROI) and check its size
-    ``(H, W)``. Raises _Reject(INVALID_ARGUMENT)."""
-    if not data.startswith(_PNG_MAGIC):
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: roi_png is not a PNG")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None or img.ndim != 2 or img.dtype != np.uint8:
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: roi_png must be a single-channel 8-bit PNG")
-    if img.shape != tuple(size):
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                      f"{what}: roi_png is {img.shape[1]}x{img.shape[0]}, the keyframe {size[1]}x{size[0]}")
-    return img > 0
+    """:func:`gausslite.wire.images.decode_roi`; raises _Reject(INVALID_ARGUMENT)."""
+    return _image(images.decode_roi, data, size, what)
 
 
 def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
-    """Decode a 16-bit PNG depth image to (H, W) float32 metres. Raises _Reject(INVALID_ARGUMENT)."""
-    if not data.startswith(_PNG_MAGIC):
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth is not a PNG")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None or img.ndim != 2 or img.dtype != np.uint16:
-        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth must be a single-channel 16-bit PNG")
-    return (img.astype(np.float32) / np.float32(scale)).astype(np.float32)
+    """:func:`gausslite.wire.images.decode_depth`; raises _Reject(INVALID_ARGUMENT)."""
+    return _image(images.decode_depth, data, scale, what)
+
+
+def _image(fn, *args):
+    try:
+        return fn(*args)
+    except ValueError as e:
+        raise _Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
 
 
 class FusionServicer(fusion_pb2_grpc.FusionServicer):
@@ -292,7 +284,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
-        self._voter: Optional[IncrementalVote] = None  # voted map kept current (under the fuse locks)
+        self._engine = FuseEngine(config.refine_options)  # keeps the voted map current (under the fuse locks)
         self._shutdown = threading.Event()
         self._workers: "set[threading.Thread]" = set()
 
@@ -623,54 +615,22 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 except InterruptedError:
                     raise _Cancelled() from None
                 db_lock = cm
-                t0 = time.monotonic()
                 emit("load", 0.0, f"loading the subsets of {len(latest)} agent(s)")
                 maps = {a: self._subset(a, v) for a, v in latest.items()}
-                name = _METHOD_NAMES[method]
-                end = 0.3 if refine else 0.8
-                emit(name, 0.1, f"{name} of {sum(len(m) for m in maps.values())} Gaussians")
-                vote_s, revoted, incremental = 0.0, 0, False
-                if method == fusion_pb2.FUSE_METHOD_VOTE:
-                    tv = time.monotonic()
-                    fused, report, revoted, incremental = self._vote(latest, maps, voxel, radius)
-                    vote_s = time.monotonic() - tv
-                    kept = dict(report.kept)
-                    msg = (f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
-                           + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
-                else:
-                    fused = concat_maps(maps)
-                    kept = {a: len(m) for a, m in maps.items()}
-                    msg = f"concatenated {len(fused)} Gaussians"
-                emit(name, end, msg)
-                n_kf = 0
-                if refine:
-                    from gausslite.fusion.refine import RefineKeyframe, refine_map
-
-                    kfs = []
-                    for k in self.store.keyframes():
-                        rgb = decode_color(k.color, f"stored keyframe {k.frame_id}")
-                        depth = decode_depth(k.depth, k.depth_scale, f"stored keyframe {k.frame_id}")
-                        K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
-                        roi = (decode_roi(k.roi, (k.height, k.width), f"stored keyframe {k.frame_id}")
-                               if k.roi else None)
-                        kfs.append(RefineKeyframe(rgb=rgb, depth=depth, c2w=k.c2w, K=K, width=k.width,
-                                                  height=k.height, roi=roi))
-                    n_kf = len(kfs)
-                    emit("refine", end, f"refining {len(fused)} Gaussians over {n_kf} keyframes, {iters} iterations")
-                    fused = refine_map(fused, kfs, iters,
-                                       progress=lambda f, m: emit("refine", end + (0.9 - end) * float(f), m),
-                                       seed=seed, **self.config.refine_options)
+                out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel, contest_radius=radius,
+                                        refine_iters=iters if refine else 0, keyframes=self._refine_keyframes,
+                                        seed=seed, progress=emit)
+                fused = out.fused
                 emit("store", 0.9, f"storing {len(fused)} Gaussians")
-                seconds = time.monotonic() - t0
                 agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
-                                                       kept=int(kept.get(a, 0))) for a in sorted(maps)]
+                                                       kept=int(out.kept.get(a, 0))) for a in sorted(maps)]
 
                 def info(version: int, nbytes: int) -> bytes:
                     return fusion_pb2.FuseResult(
-                        fused_version=version, n_gaussians=len(fused), seconds=seconds, agents=agents,
+                        fused_version=version, n_gaussians=len(fused), seconds=out.seconds, agents=agents,
                         method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
-                        keyframes_used=n_kf, bytes=nbytes, created_unix=time.time(), vote_seconds=vote_s,
-                        agents_revoted=revoted, incremental=incremental,
+                        keyframes_used=out.keyframes_used, bytes=nbytes, created_unix=time.time(),
+                        vote_seconds=out.vote_seconds, agents_revoted=out.agents_revoted, incremental=out.incremental,
                         contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0).SerializeToString()
 
                 if cancel.is_set() or self._shutdown.is_set():
@@ -698,28 +658,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         finally:
             self._workers.discard(threading.current_thread())
 
-    def _vote(self, latest: Dict[str, int], maps: Dict[str, GaussianArrays], voxel: float, radius: int = 0):
-        """Voxel vote of ``maps`` (δ = ``voxel`` m, neighbourhood ``radius`` voxels) through the kept
-        :class:`IncrementalVote` (full vote when it cannot hold the extent). Returns (fused, report,
-        agents re-voted, incremental?)."""
-        voter = self._voter
-        if voter is not None and (voter.voxel_size != voxel or voter.contest_radius != radius):
-            voter = None
-        incremental = voter is not None
-        voter = voter or IncrementalVote(voxel, contest_radius=radius)
-        self._voter = None  # re-installed only after a successful sync
-        try:
-            changed = voter.sync(latest, maps.__getitem__)
-        except VoxelRangeError as e:
-            if radius:
-                raise _Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                              f"the neighbourhood vote cannot hold these maps ({e}); fuse with contest_radius=0")
-            log.info("incremental vote unavailable (%s); full vote", e)
-            fused, report = voxel_vote(maps, voxel)
-            return fused, report, len(maps), False
-        fused, report = voter.result()
-        self._voter = voter
-        return fused, report, len(changed), incremental
+    def _refine_keyframes(self) -> list:
+        """The stored keyframes of every agent, decoded for the refinement (``RefineKeyframe``)."""
+        from gausslite.fusion.refine import RefineKeyframe
+
+        kfs = []
+        for k in self.store.keyframes():
+            what = f"stored keyframe {k.frame_id}"
+            K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
+            kfs.append(RefineKeyframe(rgb=decode_color(k.color, what), depth=decode_depth(k.depth, k.depth_scale, what),
+                                      c2w=k.c2w, K=K, width=k.width, height=k.height,
+                                      roi=decode_roi(k.roi, (k.height, k.width), what) if k.roi else None))
+        return kfs
 
     @_stream_guard
     def DownloadFused(self, request, context):  # noqa: N802

@@ -15,7 +15,7 @@ Backends (one contract, one SQL implementation)
   :meth:`SqlFusionStore.fuse_lock` is a session-level advisory lock, so concurrent ``Fuse`` calls on
   different replicas run one after the other.
 
-The contract (``tests/test_fusion_store_contract.py`` runs the same tests against both):
+The contract (``tests/services/test_fusion_store_contract.py`` runs the same tests against both):
 
 * every write is committed (durable) before the method returns, so the server only acknowledges
   what is stored; a fresh store on the same database sees it;

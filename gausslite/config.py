@@ -1,0 +1,159 @@
+"""One typed configuration tree for everything a GaussLite YAML file sets (``deploy/gausslite.yaml``).
+
+``GaussLiteConfig{mapper, agent, sim, fusion}``: the mapper (:class:`gausslite.mapping.config.MapperConfig`, its
+knobs grouped by prefix), the agent's mission (:class:`gausslite.mission.config.AgentConfig`), the local
+two-agent simulation (:class:`SimConfig`) and the fusion server (:class:`FusionSettings`). :func:`load_config`
+is the one loader: YAML, then dotted ``key=value`` overrides, then validation, so a typo fails before anything
+starts. ``gausslite config --show`` prints the effective tree, ``--schema`` its JSON schema.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from gausslite.mapping.config import MapperConfig, apply_overrides
+from gausslite.mission.config import AgentConfig
+
+__all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config", "read_yaml",
+           "DEFAULT_CONFIG_PATH"]
+
+#: the deployed settings shipped with the repository
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "deploy" / "gausslite.yaml"
+
+
+class SimScene(BaseModel):
+    """The synthetic default scene of ``gausslite sim`` without ``--dataset`` (:func:`gausslite.synthetic.make_scene`).
+
+    Attributes: seed; width, height (pixels); frames (per robot)."""
+
+    model_config = ConfigDict(extra="forbid")
+    seed: int = 0
+    width: int = Field(320, ge=16)
+    height: int = Field(240, ge=12)
+    frames: int = Field(16, ge=2)
+
+
+class SimFuse(BaseModel):
+    """How the simulation fuses (paper Sec. III-E; ``docs/sharing.md``).
+
+    Attributes:
+        voxel_size: δ of the vote (m; paper 0.10).
+        contest_radius: vote neighbourhood in voxels for offline sims (0 = the paper's per-voxel rule).
+        live_contest_radius: the same for live sims (``sim --realtime``).
+        refine_iters: joint refinement iterations.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    voxel_size: float = Field(0.10, gt=0)
+    contest_radius: int = Field(1, ge=0, le=8)
+    live_contest_radius: int = Field(0, ge=0, le=8)
+    refine_iters: int = Field(300, ge=0)
+
+    def settings(self, realtime: bool = False) -> dict:
+        """``{"voxel_size", "contest_radius", "refine_iters"}`` of an offline or a live (``realtime``) run."""
+        return {"voxel_size": self.voxel_size,
+                "contest_radius": self.live_contest_radius if realtime else self.contest_radius,
+                "refine_iters": self.refine_iters}
+
+
+class SimConfig(BaseModel):
+    """``gausslite sim``: the default scene, the two agents' task ids per scene kind, fusion, the overall bound (s)."""
+
+    model_config = ConfigDict(extra="forbid")
+    scene: SimScene = SimScene()
+    tasks: Dict[str, List[str]] = Field(default_factory=dict)
+    fuse: SimFuse = SimFuse()
+    timeout_s: float = Field(1800.0, gt=0)
+
+
+class FusionSettings(BaseModel):
+    """The fusion server's settings (``services.fusion_server.server.FusionConfig`` takes them; its docstring has the
+    meaning of each)."""
+
+    model_config = ConfigDict(extra="forbid")
+    data_dir: str = "gausslite_fusion_data"
+    store: str = ""
+    store_pool_size: int = Field(12, ge=1)
+    store_acquire_timeout_s: float = Field(5.0, gt=0)
+    max_keyframes_per_agent: int = Field(64, ge=1)
+    max_subset_gaussians: int = Field(4_000_000, ge=1)
+    max_task_text_bytes: int = Field(4096, ge=1)
+    default_voxel_size: float = Field(0.10, gt=0)
+    default_contest_radius: int = Field(0, ge=0, le=8)
+    default_refine_iters: int = Field(200, ge=0)
+    max_refine_iters: int = Field(20000, ge=0)
+    refine_options: dict = Field(default_factory=dict)
+
+
+class GaussLiteConfig(BaseModel):
+    """The whole configuration (module docstring). In YAML the mapper is a top-level section; here it is also
+    ``agent.mapper``, the agent's copy, which the YAML's ``mapper`` section sets."""
+
+    model_config = ConfigDict(extra="forbid")
+    agent: AgentConfig = AgentConfig()
+    sim: SimConfig = SimConfig()
+    fusion: FusionSettings = FusionSettings()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _mapper_into_agent(cls, data):
+        if isinstance(data, dict) and "mapper" in data:
+            data = dict(data)
+            mapper = data.pop("mapper")
+            agent = dict(data.get("agent") or {})
+            if mapper is not None:
+                if not isinstance(mapper, MapperConfig):
+                    mapper = MapperConfig.model_validate({"mode": "gausslite", **dict(mapper)})
+                agent["mapper"] = mapper
+            data["agent"] = agent
+        return data
+
+    @property
+    def mapper(self) -> MapperConfig:
+        """The mapper section."""
+        return self.agent.mapper
+
+    def to_yaml_dict(self) -> dict:
+        """The effective configuration in the YAML's layout (``mapper`` as its own section)."""
+        agent = self.agent.model_dump(mode="json", exclude={"mapper"})
+        return {"agent": agent, "mapper": self.agent.mapper.model_dump(mode="json"),
+                "sim": self.sim.model_dump(mode="json"), "fusion": self.fusion.model_dump(mode="json")}
+
+    @classmethod
+    def json_schema(cls) -> dict:
+        """JSON schema of the YAML layout."""
+        schema = cls.model_json_schema()
+        schema.setdefault("properties", {})["mapper"] = {"$ref": "#/$defs/MapperConfig"}
+        schema.setdefault("$defs", {}).setdefault("MapperConfig", MapperConfig.model_json_schema())
+        return schema
+
+
+def read_yaml(path: str | Path) -> dict:
+    """The mapping at the top of a YAML file (the one reader of GaussLite configuration files).
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: the top level is not a mapping.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    data = yaml.safe_load(p.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: top level must be a mapping")
+    return data
+
+
+def load_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> GaussLiteConfig:
+    """Read a GaussLite YAML file (default ``deploy/gausslite.yaml``), apply dotted ``key=value`` overrides
+    (``agent.push_every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate.
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: not a mapping, or a bad override.
+        pydantic.ValidationError: unknown keys or bad values (the message names them).
+    """
+    data = read_yaml(path or DEFAULT_CONFIG_PATH)
+    return GaussLiteConfig.model_validate(apply_overrides(data, list(overrides)))

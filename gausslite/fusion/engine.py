@@ -1,0 +1,144 @@
+"""One fuse job: from the agents' latest subsets (and keyframes) to a fused map (paper Sec. III-E).
+
+The fusion server runs this for every ``Fuse`` call; the benches run it in process. Steps: the κ voxel vote
+(:func:`gausslite.fusion.vote.voxel_vote`, through a kept :class:`IncrementalVote` so that only agents whose subset
+changed are re-voted) or plain concatenation, then optionally the joint refinement over the union of the agents'
+keyframes (:func:`gausslite.fusion.refine.refine_map`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Mapping, Optional, Sequence
+
+from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_vote
+from gausslite.wire.codec import GaussianArrays
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FuseOutcome", "FuseEngine"]
+
+#: ``progress(stage, fraction in [0, 1], message)``
+StageFn = Callable[[str, float, str], None]
+
+
+@dataclass
+class FuseOutcome:
+    """What one fuse job produced.
+
+    Attributes:
+        fused: the fused map (``GaussianArrays``, world frame, metres).
+        kept: agent id → Gaussians of that agent in the fused map (before refinement).
+        report: the vote's :class:`VoteReport` (None for concat).
+        vote_seconds: wall time of the vote (0 for concat).
+        agents_revoted: agents whose subsets were (re-)voted; incremental: whether the kept vote was updated
+            rather than rebuilt.
+        keyframes_used: keyframes of the refinement (0 without).
+        seconds: wall time of the whole job.
+    """
+
+    fused: GaussianArrays
+    kept: Dict[str, int]
+    report: Optional[VoteReport] = None
+    vote_seconds: float = 0.0
+    agents_revoted: int = 0
+    incremental: bool = False
+    keyframes_used: int = 0
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+class FuseEngine:
+    """Runs fuse jobs and keeps the incremental vote between them (one engine per fusion server).
+
+    Args:
+        refine_options: extra keyword arguments of :func:`gausslite.fusion.refine.refine_map`.
+    """
+
+    def __init__(self, refine_options: Optional[dict] = None) -> None:
+        self.refine_options = dict(refine_options or {})
+        self._voter: Optional[IncrementalVote] = None
+
+    def vote(self, versions: Mapping[str, int], maps: Mapping[str, GaussianArrays], voxel_size: float,
+             contest_radius: int = 0):
+        """Voxel vote of ``maps`` (agent id → subset, at ``versions``) with δ = ``voxel_size`` m and a neighbourhood
+        of ``contest_radius`` voxels, through the kept :class:`IncrementalVote` (a full vote when it cannot hold the
+        maps' extent at radius 0). Returns (fused, report, agents re-voted, incremental?).
+
+        Raises:
+            ValueError: the neighbourhood vote cannot hold these maps (``contest_radius`` > 0 and means beyond its
+                range; fuse with radius 0).
+        """
+        voter = self._voter
+        if voter is not None and (voter.voxel_size != voxel_size or voter.contest_radius != contest_radius):
+            voter = None
+        incremental = voter is not None
+        voter = voter or IncrementalVote(voxel_size, contest_radius=contest_radius)
+        self._voter = None  # re-installed only after a successful sync
+        try:
+            changed = voter.sync(dict(versions), maps.__getitem__)
+        except VoxelRangeError as e:
+            if contest_radius:
+                raise ValueError(f"the neighbourhood vote cannot hold these maps ({e}); fuse with contest_radius=0") \
+                    from None
+            log.info("incremental vote unavailable (%s); full vote", e)
+            fused, report = voxel_vote(maps, voxel_size)
+            return fused, report, len(maps), False
+        fused, report = voter.result()
+        self._voter = voter
+        return fused, report, len(changed), incremental
+
+    def fuse(self, versions: Mapping[str, int], maps: Mapping[str, GaussianArrays], method: str = "vote", *,
+             voxel_size: float = 0.10, contest_radius: int = 0, refine_iters: int = 0,
+             keyframes: Callable[[], Sequence] = lambda: (), seed: int = 0,
+             progress: Optional[StageFn] = None) -> FuseOutcome:
+        """One fuse job.
+
+        Args:
+            versions: agent id → subset version of ``maps`` (the incremental vote's key).
+            maps: agent id → subset (``GaussianArrays``).
+            method: ``vote`` or ``concat``.
+            voxel_size, contest_radius: the vote's δ (m) and neighbourhood (voxels).
+            refine_iters: 0 = no refinement; otherwise the joint refinement's iterations.
+            keyframes: returns the refinement's keyframes (``RefineKeyframe``; called only when refining).
+            seed: refinement RNG seed.
+            progress: ``(stage, fraction, message)`` callback; it may raise to stop the job.
+
+        Returns:
+            :class:`FuseOutcome`.
+
+        Raises:
+            ValueError: unknown method, a refinement without keyframes, or a vote that cannot hold the maps.
+        """
+        emit = progress or (lambda stage, fraction, message: None)
+        t0 = time.monotonic()
+        end = 0.3 if refine_iters else 0.8
+        emit(method, 0.1, f"{method} of {sum(len(m) for m in maps.values())} Gaussians")
+        if method == "vote":
+            tv = time.monotonic()
+            fused, report, revoted, incremental = self.vote(versions, maps, voxel_size, contest_radius)
+            out = FuseOutcome(fused, dict(report.kept), report, time.monotonic() - tv, revoted, incremental)
+            emit(method, end, f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
+                 + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
+        elif method == "concat":
+            fused = concat(maps)
+            out = FuseOutcome(fused, {a: len(m) for a, m in maps.items()})
+            emit(method, end, f"concatenated {len(fused)} Gaussians")
+        else:
+            raise ValueError(f"unknown fuse method {method!r} (use 'vote' or 'concat')")
+        if refine_iters:
+            from gausslite.fusion.refine import refine_map
+
+            kfs = list(keyframes())
+            if not kfs:
+                raise ValueError("refinement needs at least one keyframe")
+            out.keyframes_used = len(kfs)
+            emit("refine", end, f"refining {len(out.fused)} Gaussians over {len(kfs)} keyframes, {refine_iters} "
+                 "iterations")
+            out.fused = refine_map(out.fused, kfs, refine_iters,
+                                   progress=lambda f, m: emit("refine", end + (0.9 - end) * float(f), m),
+                                   seed=seed, **self.refine_options)
+        out.seconds = time.monotonic() - t0
+        return out

@@ -1,0 +1,194 @@
+"""Settings of an agent's mission (YAML section ``agent`` of ``deploy/gausslite.yaml`` plus its ``mapper`` section;
+``docs/live.md``, ``docs/sharing.md``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from gausslite.datasets.bag import BagOptions
+from gausslite.mapping.config import MapperConfig, apply_overrides
+
+__all__ = ["OnnxRelevanceConfig", "AgentConfig", "load_agent_config"]
+
+
+class OnnxRelevanceConfig(BaseModel):
+    """ONNX attention backends of the agent (``agent.onnx`` in YAML; paper Sec. III-B).
+
+    Attributes:
+        detector_path: Grounding-DINO-style ``.onnx`` (:class:`gausslite.attention.OnnxGroundingDetector`).
+        vocab_path: its BERT WordPiece ``vocab.txt``.
+        segmenter_path: FastSAM / YOLOv8-seg ``.onnx`` (:class:`gausslite.attention.OnnxFastSAMSegmenter`).
+        box_threshold, text_threshold: detector thresholds (paper 0.20 / 0.25).
+        seg_conf, seg_iou: segmenter candidate score and NMS IoU thresholds (paper 0.4 / 0.9).
+        threads: ONNX Runtime intra-op threads of each model (None: one per core; docs/perception.md).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    detector_path: Optional[str] = None
+    vocab_path: Optional[str] = None
+    segmenter_path: Optional[str] = None
+    box_threshold: float = Field(0.20, ge=0, le=1)
+    text_threshold: float = Field(0.25, ge=0, le=1)
+    seg_conf: float = Field(0.4, ge=0, le=1)
+    seg_iou: float = Field(0.9, ge=0, le=1)
+    threads: Optional[int] = Field(None, ge=1)
+
+    def missing(self) -> List[str]:
+        """What is missing for the ONNX backend: unset options and files that do not exist."""
+        out = []
+        for name in ("detector_path", "vocab_path", "segmenter_path"):
+            v = getattr(self, name)
+            if not v:
+                out.append(f"agent.onnx.{name} is not set")
+            elif not Path(v).is_file():
+                out.append(f"agent.onnx.{name} {v} does not exist")
+        return out
+
+
+class AgentConfig(BaseModel):
+    """Agent mission settings (YAML section ``agent`` plus the mapper section ``mapper``).
+
+    Attributes:
+        relevance: ``attention`` (task graph grounded by the attention front-end with the scene's offline
+            annotation backend, paper Sec. III-B) or ``gt`` (ground-truth ROI of ``task_id``, for ablations).
+        share: ``active`` (a = 1), ``kappa`` (κ >= ``kappa_threshold``) or ``task`` (a = 1 and
+            κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
+            :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
+        share_coverage: ``share: task``: fraction of the ROI blending weight the shared subset keeps.
+        share_candidates: ``share: task``: ``active`` (the paper's a = 1 and κ inside the task region, then
+            compaction) or ``rendered`` (every Gaussian that draws the ROI competes in the compaction: what a map
+            fitted with ``mapper.roi_update: visible`` needs; :class:`gausslite.sharing.ShareConfig`).
+        share_max_fraction: ``share: task``: at most this fraction of the map is shared (largest ROI contribution
+            first); null = no bound (``docs/sharing.md``).
+        share_held_weight: ``share: task``: the rows the fusion server holds rank with their ROI contribution times
+            this (>= 1), so a bounded subset keeps them rather than trading near-equal rows at every push
+            (:class:`gausslite.sharing.ShareConfig`).
+        share_finetune_iters: ``share: task``: before each push, fine-tune a copy of the shared subset
+            rendered alone on the ROI keyframes for this many iterations
+            (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
+            own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
+            share a subset that renders the ROI on its own.
+        pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
+            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md).
+        share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
+            own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
+            would hold against the mapping thread) or ``thread`` (the pusher thread itself).
+        share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
+            already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
+            others stay as the server has them, so a delta carries the new rows and this share of the
+            old ones. 1 = every row may move at every push (each delta re-sends about the whole subset).
+        kappa_threshold: κ threshold for ``share: kappa``.
+        push_every: push a subset every this many mapped frames (and always at the end).
+        downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
+        bag: ROS bag options (topics, frames, tolerances; ``gausslite.datasets.bag.BagOptions``) for a
+            replayed bag, e.g. ``agent.bag.rgb_topic=/camera/color/image_raw``; ignored for folders.
+        queue_size: frames buffered between the stream and the mapping worker.
+        keyframe_every: every k-th mapped frame is uploaded as a keyframe for the fusion refinement.
+        max_keyframes: keep at most this many keyframes for upload (older ones dropped first).
+        jpeg_quality: keyframe JPEG quality on the wire (``keyframe_format: jpeg``).
+        keyframe_format: ``png`` (lossless colour, the default: the fusion refinement fits the uploaded
+            colours; measured: docs/results.md) or ``jpeg``.
+        chunk_gaussians: Gaussians per wire chunk.
+        delta_push: push only the Gaussians new or changed beyond quantisation since the version the
+            server acknowledged, plus the removed rows (wire delta chunks); a full upload when the
+            server lacks the base (FAILED_PRECONDITION) or the delta would not be smaller.
+        delta_tolerance: multiple of one code step that counts as "changed" (gausslite.wire.delta).
+        final_push_timeout_s: retry the final push for up to this many seconds (fusion-server restart).
+        backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds); a periodic push is
+            retried until acknowledged or replaced by a newer snapshot (no give-up: the link may be down for
+            minutes), the final one up to ``final_push_timeout_s``.
+        attention_rendered_depth: give the attention front-end the depth rendered from the current map.
+        eval_max_frames: frames kept for the ROI PSNR of the Finish summary.
+        ingest: streamed frames go through keyframe selection with a one-frame pending slot and never
+            block the sender (``keyframes``, :mod:`gausslite.mapping.keyframes`), or are all queued and
+            mapped with back-pressure (``every_frame``, the offline behaviour; non-realtime replays always
+            map every frame).
+        keyframe_translation_m, keyframe_rotation_deg, keyframe_max_interval_s: keyframe rule
+            (:class:`gausslite.mapping.keyframes.KeyframeRule`; None interval = never).
+        idle_optimize: with keyframe ingest, keep optimising over the stored keyframes (MVO) while no
+            keyframe is pending, in chunks of ``idle_chunk_s`` seconds (a new keyframe waits at most one chunk).
+        realtime: replays send frames at the dataset's clock (frame timestamps scaled by ``1 / rate``)
+            through keyframe ingest instead of mapping every frame; ``fps``: clock of Replica / 7-Scenes
+            replays (frame index / fps; default the loader's 30 Hz).
+        checkpoint_every: with a data dir, write the mission checkpoint every this many mapped keyframes
+            (0 = never).
+        final_pass_s: at Finish, the mapper's final pass over every keyframe (``mapper.final_iters`` +
+            ``mapper.final_iters_per_keyframe`` × keyframes; the hand-held profile sets 20 per keyframe) stops
+            after this many seconds, so a long mission's Finish stays bounded.
+        relevance_backend: where the attention front-end's detector/segmenter come from: ``annotation``
+            (the scene's ``objects.json``), ``onnx`` (models in ``onnx``) or ``onnx_cost`` (timing experiments:
+            the models in ``onnx`` run on every call for their compute time, the relevance comes from
+            ``objects.json``; :mod:`gausslite.attention.timing`).
+        onnx: ONNX detector/segmenter paths and thresholds (``relevance_backend: onnx``).
+        relevance_max_wait_s: null = relevance runs in the mapping thread before each keyframe (its whole latency
+            counts in the keyframe budget); a number = relevance runs in a thread of its own and a keyframe waits at
+            most this many seconds for its mask, then maps with the newest earlier mask re-projected into it
+            (:class:`gausslite.attention.worker.RelevanceWorker`; the front-end then uses the sensor depth, not the
+            map's rendered depth, since the map is being optimised meanwhile).
+        mapper: the mapper configuration (default mode ``gausslite``).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    relevance: Literal["attention", "gt"] = "attention"
+    share: Literal["active", "kappa", "task"] = "active"
+    kappa_threshold: int = Field(1, ge=0)
+    share_coverage: float = Field(0.99, gt=0, le=1)
+    share_candidates: Literal["active", "rendered"] = "active"
+    share_max_fraction: Optional[float] = Field(None, gt=0, le=1)
+    share_held_weight: float = Field(1.0, ge=1)
+    share_finetune_iters: int = Field(200, ge=0)
+    share_refresh: float = Field(0.05, ge=0, le=1)
+    pusher_nice: int = Field(19, ge=0, le=19)
+    share_worker: Literal["process", "thread"] = "process"
+    push_every: int = Field(5, ge=1)
+    downscale: float = Field(1.0, ge=1.0)
+    max_frames: Optional[int] = Field(None, ge=1)
+    stride: int = Field(1, ge=1)
+    bag: BagOptions = BagOptions()
+    queue_size: int = Field(4, ge=1)
+    keyframe_every: int = Field(2, ge=1)
+    max_keyframes: int = Field(64, ge=1)
+    jpeg_quality: int = Field(95, ge=1, le=100)
+    keyframe_format: Literal["png", "jpeg"] = "png"
+    chunk_gaussians: int = Field(20000, ge=1)
+    delta_push: bool = True
+    delta_tolerance: float = Field(1.0, ge=0)
+    final_push_timeout_s: float = Field(120.0, gt=0)
+    backoff_s: float = Field(0.2, gt=0)
+    max_backoff_s: float = Field(5.0, gt=0)
+    attention_rendered_depth: bool = True
+    eval_max_frames: int = Field(200, ge=1)
+    ingest: Literal["keyframes", "every_frame"] = "keyframes"
+    keyframe_translation_m: float = Field(0.05, gt=0)
+    keyframe_rotation_deg: float = Field(5.0, gt=0)
+    keyframe_max_interval_s: Optional[float] = Field(1.0, gt=0)
+    idle_optimize: bool = True
+    idle_chunk_s: float = Field(0.25, gt=0)
+    realtime: bool = False
+    rate: float = Field(1.0, gt=0)
+    fps: Optional[float] = Field(None, gt=0)
+    checkpoint_every: int = Field(5, ge=0)
+    final_pass_s: float = Field(60.0, gt=0)
+    relevance_backend: Literal["annotation", "onnx", "onnx_cost"] = "annotation"
+    onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
+    relevance_max_wait_s: Optional[float] = Field(None, ge=0)
+    mapper: MapperConfig = MapperConfig(mode="gausslite")
+
+
+def load_agent_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> AgentConfig:
+    """Read the ``agent`` and ``mapper`` sections of a GaussLite YAML file (other sections, e.g. ``sim``,
+    are ignored) and apply dotted ``key=value`` overrides (``agent.push_every=3``,
+    ``mapper.iters_per_frame=5``).
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: not a mapping. pydantic.ValidationError: bad values.
+    """
+    from gausslite.config import GaussLiteConfig, read_yaml
+
+    data = apply_overrides(read_yaml(path) if path else {}, list(overrides))
+    return GaussLiteConfig.model_validate({k: data[k] for k in ("agent", "mapper") if k in data}).agent

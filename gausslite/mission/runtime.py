@@ -1,0 +1,985 @@
+"""The agent's mission loop: frames → attention → mapper → periodic ROI-subset pushes (paper
+Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``).
+
+:class:`AgentRuntime` is usable without gRPC: it needs a task graph (any object with ``targets``,
+``anchors``, ``relations``), scene annotations for the offline relevance sources, and optionally a
+*fusion client*: any object with the methods of ``services.fusion_server.client.FusionClient``
+(``open_session``, ``upload_chunks``, ``upload_keyframes``), or None to map locally only. The fusion client
+signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
+
+Threads per mission:
+
+* mapping worker — takes keyframes and computes the relevance map (attention front-end over the
+  annotation or ONNX backend, or GT ROI), maps them (``mapper.keyframe_budget_s`` per keyframe or fixed
+  iterations), optimises over its keyframes while none is pending (live ingest), every ``push_every``
+  mapped frames hands a snapshot of the ROI subset to the pusher and every ``checkpoint_every`` writes a
+  checkpoint. Live ingest (``ingest: keyframes``, realtime replays): ``submit`` never blocks; the keyframe
+  selector (:mod:`gausslite.mapping.keyframes`) keeps only the newest pending candidate. Every-frame ingest
+  (offline replays, ``ingest: every_frame``): a bounded queue, ``submit`` blocks when it is full (gRPC flow
+  control back-pressure);
+* pusher — uploads the newest pending snapshot (older pending ones are superseded; keyframes not yet
+  uploaded accumulate, at most ``max_keyframes``) with retries and exponential backoff, so a fusion-server
+  outage or a lost link never stalls mapping. A periodic push is retried until it is acknowledged or a newer
+  snapshot replaces it, so at most two subsets are held (the one being retried and the pending one) however
+  long the link is down, and the newest one goes out when it returns; the client resumes a half-uploaded
+  subset of the same ``map_version``. ``status()`` reports the backlog (``push_backlog``,
+  ``keyframes_backlog``, ``newest_map_version``, ``link_down_s``) and the last acknowledged version
+  (``last_pushed_version``).
+
+What is shared, the share worker, the fine-tune cache and the delta planning live in
+:class:`gausslite.mission.share.ShareSession`; the settings in :mod:`gausslite.mission.config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import queue
+import threading
+import time
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, List, Optional
+
+import numpy as np
+
+from gausslite.datasets.base import Frame
+from gausslite.mission.config import AgentConfig
+from gausslite.mission.errors import PreconditionFailed
+from gausslite.mission.share import Captured, ShareSession, select_shared
+
+log = logging.getLogger(__name__)
+
+
+class MissionError(RuntimeError):
+    """The mission cannot accept the request (finished, failed, or replaying)."""
+
+
+@dataclass
+class PushRecord:
+    """One successful push: ``version``, ``n_shared`` Gaussians of ``n_total``, wire bytes sent, chunk
+    count; ``delta`` (a delta push carrying ``records`` Gaussians and ``removed`` row removals),
+    ``frames_mapped`` when the snapshot was taken."""
+
+    version: int
+    n_shared: int
+    n_total: int
+    bytes_on_wire: int
+    n_chunks: int
+    keyframes: int
+    seconds: float
+    delta: bool = False
+    records: int = 0
+    removed: int = 0
+    frames_mapped: int = 0
+    unchanged: bool = False  #: nothing changed since ``version`` (acknowledged before): no subset upload
+
+
+@dataclass
+class MissionSummaryData:
+    """What :meth:`AgentRuntime.finish` returns (mirrors the ``MissionSummary`` message)."""
+
+    status: dict
+    final_push_ok: bool
+    n_shared: int
+    share_pct: float
+    bytes_on_wire: int
+    bytes_per_gaussian: float
+    roi_psnr: Optional[float]
+    psnr: Optional[float]
+    seconds_per_frame: float
+    roi_psnr_all_frames: Optional[float] = None
+    frames_all: int = 0
+    total_upload_bytes: int = 0
+    final_subset_bytes: int = 0
+    pushes: List[dict] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        """JSON-ready dict."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass
+class _Snapshot:
+    version: int
+    gaussians: Any  # GaussianArrays
+    n_total: int
+    final: bool = False
+    ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
+    frames_mapped: int = 0
+    #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
+    #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
+    finetune: Any = None
+    #: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
+    #: selects the subset (``gaussians`` None and ``ids`` every row's until then)
+    select: Any = None
+
+
+_FINISH = object()
+_DRAIN = object()  # Finish without a push: everything before it is mapped
+_SLOT = object()  # "the keyframe selector holds a pending candidate"
+_CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frames_skipped", "seconds_mapping",
+                  "idle_iterations", "keyframe_iterations")
+CHECKPOINT_FILE = "checkpoint.pt"
+RECENT_FRAMES = 1800  #: frames of ``accept_latency_ms_p99_recent`` (a minute at 30 Hz)
+VERSION_FILE = "pushed_version.json"
+
+
+def _percentile(vals, q: float) -> float:
+    return float(np.percentile(np.asarray(vals, dtype=np.float64), q)) if len(vals) else 0.0
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Write ``path`` through a temporary file in the same folder and ``os.replace`` (atomic on POSIX)."""
+    import os
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    write(tmp)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class AgentRuntime:
+    """One mission of one agent: task-conditioned mapping of a frame stream plus fusion pushes.
+
+    Args:
+        agent_id (str): the agent's id on the fusion server (non-empty).
+        task_text (str): the task.
+        graph: parsed task graph (``targets``, ``anchors``, ``relations``).
+        config (AgentConfig): settings.
+        annotations: ``SceneAnnotations`` of the scene (``objects.json``/``tasks.json``), needed by both
+            relevance sources and by the ROI PSNR of the summary; None only works with a custom
+            ``relevance_fn``.
+        task_id (str | None): the task's id in ``tasks.json`` (GT relevance, evaluation).
+        fusion: a FusionClient-like object, or None (no pushes).
+        relevance_fn: optional override ``frame -> (H, W) bool``.
+        mission_id (str | None): id (default: random).
+        on_finished: optional callback ``(runtime) -> None`` after the final push (e.g. save files).
+        checkpoint_dir (str | Path | None): folder of this mission's checkpoint (``checkpoint.pt``, written
+            every ``checkpoint_every`` keyframes); when it already holds one, the mission resumes from it
+            (map, keyframes, counters, pushed version) and keeps pushing newer versions.
+
+    Raises:
+        ValueError: empty agent id; ``relevance: gt`` without annotations/task id; ``relevance:
+            attention`` without annotations (and without ``relevance_fn``); a graph with no phrases.
+    """
+
+    def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
+                 task_id: Optional[str] = None, fusion=None, relevance_fn: Optional[Callable] = None,
+                 mission_id: Optional[str] = None,
+                 on_finished: Optional[Callable[["AgentRuntime"], None]] = None,
+                 checkpoint_dir: Optional[str | Path] = None) -> None:
+        if not agent_id:
+            raise ValueError("agent_id must be non-empty")
+        self.agent_id = agent_id
+        self.task_text = task_text
+        self.graph = graph
+        self.config = config
+        self.annotations = annotations
+        self.fusion = fusion
+        self.mission_id = mission_id or uuid.uuid4().hex[:12]
+        self.on_finished = on_finished
+        if task_id is None and annotations is not None:
+            task_id = next((t.id for t in getattr(annotations, "tasks", []) or []
+                            if t.text.strip().lower() == task_text.strip().lower()), None)
+        if task_id is not None and annotations is not None:
+            annotations.task_by_id(task_id)  # KeyError with the known ids
+        self.task_id = task_id
+        self._relevance_fn = relevance_fn or self._build_relevance()
+        self._relevance_worker = None
+        if config.relevance_max_wait_s is not None:
+            from gausslite.attention.worker import RelevanceWorker
+
+            self._relevance_worker = RelevanceWorker(self._relevance_fn, config.relevance_max_wait_s)
+
+        import torch
+
+        from gausslite.mapping.mapper import Mapper
+
+        torch.manual_seed(config.mapper.seed)
+        self.mapper = Mapper(config.mapper)
+        self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
+        self._lock = threading.Lock()
+        self._finish_lock = threading.Lock()
+        self._push_cv = threading.Condition(self._lock)
+        self._pending: Optional[_Snapshot] = None
+        self._final_done = threading.Event()
+        self._stop = threading.Event()
+        self._eval_frames: List[Frame] = []
+        self._kf_pending: List[Frame] = []
+        self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
+        self.intrinsics = None
+        self.state = "MAPPING"
+        self.frames_received = 0
+        self.frames_mapped = 0
+        self.n_gaussians = 0
+        self.n_active = 0
+        self.pushes: List[PushRecord] = []
+        self.push_failures = 0
+        self.keyframes_uploaded = 0
+        self.last_error = ""
+        self.seconds_mapping = 0.0
+        self.final_push_ok = False
+        self.summary: Optional[MissionSummaryData] = None
+        self._version = 0
+        self.share = ShareSession(agent_id, config)  # selection, fine-tune cache, delta planning
+        self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
+        self.final_subset_bytes = 0  # the last pushed subset encoded whole
+        self._session_open = False
+        self._inflight: Optional[int] = None  # version of the snapshot the pusher is working on
+        self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
+        self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
+        self._replay_thread: Optional[threading.Thread] = None
+        self.replay_frames = 0
+        self._closed_for_input = False
+        # ---- live ingest (keyframe selection), latencies, checkpoints
+        from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
+
+        self.selector = KeyframeSelector(KeyframeRule(config.keyframe_translation_m, config.keyframe_rotation_deg,
+                                                      config.keyframe_max_interval_s))
+        self._online = config.ingest == "keyframes"  # replay() sets it from config.realtime
+        self.frames_keyframed = 0
+        self.frames_skipped = 0
+        self.frames_rejected = 0
+        self.keyframe_iterations = 0
+        self.idle_iterations = 0
+        self.checkpoints = 0
+        self.resumed_keyframes = 0
+        self._accept_ms: "deque[float]" = deque(maxlen=100_000)
+        self._kf_latency_s: "deque[float]" = deque(maxlen=100_000)  # bounded over a long mission
+        self._dataset = None
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir else None
+        if self.checkpoint_dir is not None and (self.checkpoint_dir / CHECKPOINT_FILE).is_file():
+            self._resume()
+        self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
+        self._pusher = threading.Thread(target=self._push_loop, name=f"agent-{agent_id}-push", daemon=True)
+        self._worker.start()
+        self._pusher.start()
+
+    # ------------------------------------------------------------------ relevance
+    def _build_relevance(self) -> Callable:
+        cfg = self.config
+        ann = self.annotations
+        if cfg.relevance == "gt":
+            if ann is None or self.task_id is None:
+                raise ValueError("relevance 'gt' needs scene annotations and a task id from tasks.json")
+            tid = self.task_id
+            return lambda fr: ann.roi_mask(tid, fr.depth, fr.c2w, fr.intrinsics)
+        from gausslite.attention import AttentionFrontEnd
+
+        if cfg.relevance_backend == "onnx":
+            fe = self._onnx_frontend()
+        elif ann is None:
+            raise ValueError(f"relevance 'attention' with backend '{cfg.relevance_backend}' needs scene annotations "
+                             "(objects.json) for the offline annotation detector/segmenter; give a dataset or annotations "
+                             "path, or set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/"
+                             "segmenter_path")
+        elif cfg.relevance_backend == "onnx_cost":
+            fe = self._onnx_frontend(answer_from=ann)
+        else:
+            fe = AttentionFrontEnd.from_annotations(self.graph, ann)
+        self.frontend = fe
+
+        def fn(fr: Frame) -> np.ndarray:
+            rd = None
+            # in the relevance thread (relevance_max_wait_s) the map is being optimised meanwhile: sensor depth
+            if cfg.attention_rendered_depth and cfg.relevance_max_wait_s is None and len(self.mapper.model) > 0:
+                out = self.mapper.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
+                d = out.depth.detach().cpu().numpy().astype(np.float32)
+                rd = np.where(out.alpha.detach().cpu().numpy() > 0.5, d, 0.0).astype(np.float32)
+            rel, _ = fe.process(fr, rd)
+            return rel
+
+        return fn
+
+    def _onnx_frontend(self, answer_from=None):
+        """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B). With
+        ``answer_from`` (scene annotations) the models run for their cost only and the annotation backend
+        answers (``relevance_backend: onnx_cost``)."""
+        from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
+
+        o = self.config.onnx
+        name = self.config.relevance_backend
+        missing = o.missing()
+        if missing:
+            raise ValueError(f"relevance 'attention' with backend '{name}': " + "; ".join(missing))
+        try:
+            det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
+                                        text_threshold=o.text_threshold, threads=o.threads)
+            seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou, threads=o.threads)
+        except Exception as e:  # onnxruntime load errors, export-contract violations
+            raise ValueError(f"relevance 'attention' with backend '{name}': cannot load the models: "
+                             f"{type(e).__name__}: {e}") from None
+        if answer_from is not None:
+            from gausslite.attention import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
+            from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
+
+            backend = AnnotationBackend(answer_from)
+            det = CostOnlyDetector(det, AnnotationDetector(backend))
+            seg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))
+        up = getattr(self.annotations, "up_axis", (0.0, 0.0, 1.0)) if self.annotations is not None else (0.0, 0.0, 1.0)
+        return AttentionFrontEnd(self.graph, AttentionConfig(detector=det, segmenter=seg), up_axis=up)
+
+    # ------------------------------------------------------------------ input
+    def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
+               arrival: Optional[float] = None) -> bool:
+        """Hand one frame to the mission.
+
+        Keyframe ingest (``ingest: keyframes``, and realtime replays) never blocks: the frame is offered to
+        the keyframe selector (:mod:`gausslite.mapping.keyframes`), which keeps only the newest pending
+        candidate; frames that are not candidates, or are replaced before the mapper takes them, count as
+        skipped. Every-frame ingest queues the frame and blocks while the queue is full.
+
+        Args:
+            frame: the decoded frame, or a validated not yet decoded one (an object with ``frame_id``,
+                ``c2w``, ``intrinsics`` and ``materialize() -> Frame``, e.g.
+                :class:`services.agent.frames.PendingFrame`; decoded by the worker if it becomes a keyframe).
+                timeout: every-frame ingest only: how long to wait for queue space.
+            arrival: ``time.perf_counter()`` when the frame arrived (before decoding); the accept latency
+                (arrival → accepted, ``accept_latency_ms_p99``) and keyframe latency (arrival → mapped)
+                are measured from it (default: now).
+        Returns:
+            True when the frame was queued or became the pending keyframe candidate, False when skipped.
+        Raises:
+            MissionError: the mission no longer accepts frames (finishing, finished, failed) or the
+                frame's image size differs from the mission's first frame.
+            queue.Full: ``timeout`` expired (every-frame ingest).
+        """
+        t_arr = time.perf_counter() if arrival is None else arrival
+        with self._lock:
+            closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
+                      or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
+            if closed:
+                raise MissionError(f"mission {self.mission_id} is {self.state.lower()}: no more frames accepted"
+                                   + (f" ({self.last_error})" if self.state == "FAILED" else ""))
+            intr = frame.intrinsics
+            if self.intrinsics is not None and (intr.width, intr.height) != (self.intrinsics.width,
+                                                                               self.intrinsics.height):
+                raise MissionError(f"frame {frame.frame_id}: image size {intr.width}x{intr.height} differs "
+                                   f"from the mission's {self.intrinsics.width}x{self.intrinsics.height}")
+            if self.intrinsics is None:
+                self.intrinsics = intr
+            if self._online:
+                pending, replaced = self.selector.offer((frame, t_arr), frame.c2w, t_arr)
+                self.frames_received += 1
+                self.frames_skipped += int(not pending) + int(replaced is not None)
+                if pending and replaced is None:
+                    self._queue.put_nowait(_SLOT)  # at most one _SLOT is queued at a time
+                self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
+                return pending
+        self._queue.put((frame, t_arr), timeout=timeout)
+        with self._lock:
+            self.frames_received += 1
+            self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
+        return True
+
+    def replay(self, dataset, progress: Optional[Callable[[int, int], None]] = None) -> threading.Thread:
+        """Feed every frame of ``dataset`` from a background thread; the state becomes ``REPLAY_DONE``
+        once all its frames are mapped. Streaming (``submit`` from outside) is refused meanwhile.
+
+        With ``config.realtime`` the frames are sent at the dataset's clock (``frame.timestamp`` relative
+        to the first frame, divided by ``config.rate``) through keyframe ingest, as a robot would stream
+        them; otherwise every frame is mapped (offline behaviour). The final map is evaluated over every
+        frame of the dataset at Finish (``roi_psnr_all_frames``)."""
+
+        self.replay_frames = len(dataset)
+        self._dataset = dataset
+        realtime = self.config.realtime
+        with self._lock:
+            self._online = bool(realtime)
+
+        def run():
+            n = len(dataset)
+            t_start, ts0 = time.perf_counter(), None
+            try:
+                for i in range(n):
+                    if self._stop.is_set():
+                        return
+                    fr = dataset[i]
+                    if realtime:
+                        ts0 = fr.timestamp if ts0 is None else ts0
+                        wait = t_start + (fr.timestamp - ts0) / self.config.rate - time.perf_counter()
+                        if wait > 0 and self._stop.wait(wait):
+                            return
+                    self.submit(fr, _replay=True)
+                    if progress:
+                        progress(i + 1, n)
+                self._queue.join()
+                with self._lock:
+                    if self.state == "MAPPING":
+                        self.state = "REPLAY_DONE"
+            except MissionError:
+                return
+            except Exception as e:  # unreadable frame etc.
+                self._fail(f"replay failed: {type(e).__name__}: {e}")
+
+        self._replay_thread = threading.Thread(target=run, name=f"agent-{self.agent_id}-replay", daemon=True)
+        self._replay_thread.start()
+        return self._replay_thread
+
+    @property
+    def replaying(self) -> bool:
+        """True while a replay thread is feeding frames."""
+        return self._replay_thread is not None and self._replay_thread.is_alive()
+
+    # ------------------------------------------------------------------ mapping worker
+    def _fail(self, msg: str) -> None:
+        log.error("agent %s mission %s: %s", self.agent_id, self.mission_id, msg)
+        with self._lock:
+            self.state = "FAILED"
+            self.last_error = msg
+            self._push_cv.notify_all()
+        self._final_done.set()
+
+    def _idle_work(self) -> bool:
+        """Whether the worker should optimise between keyframes instead of blocking on the queue."""
+        return (self._online and self.config.idle_optimize and self.frames_mapped > 0 and self.state == "MAPPING"
+                and not self._closed_for_input and not self._stop.is_set())
+
+    def _work(self) -> None:
+        cfg = self.config
+        while True:
+            idle = self._idle_work()
+            try:
+                item = self._queue.get(block=not idle)
+            except queue.Empty:
+                try:
+                    n = self.mapper.optimize(max_seconds=cfg.idle_chunk_s)
+                except Exception as e:
+                    self._fail(f"optimising between keyframes failed: {type(e).__name__}: {e}")
+                    continue
+                with self._lock:
+                    self.idle_iterations += n
+                if n == 0:
+                    time.sleep(0.01)
+                continue
+            try:
+                if item is None:
+                    return
+                if item is _FINISH:
+                    if self.state != "FAILED":
+                        if self.frames_mapped:
+                            n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
+                            log.info("agent %s: final pass, %d iterations", self.agent_id, n)
+                        self._offer_snapshot(final=True)
+                        self._record_version()
+                    else:
+                        self._final_done.set()
+                    continue
+                if item is _DRAIN:
+                    self._final_done.set()
+                    continue
+                if item is _SLOT:
+                    with self._lock:
+                        item = self.selector.take()
+                    if item is None:
+                        continue
+                if self.state == "FAILED":
+                    continue
+                self._map_one(*item)
+            finally:
+                self._queue.task_done()
+
+    def _map_one(self, item: Frame, t_arrival: float) -> None:
+        """Map one keyframe (worker thread): decode (a ``PendingFrame`` of a live stream), relevance, mapper,
+        counters, pushes, checkpoint. Corrupt image data found only now is logged and counted as rejected."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        if hasattr(item, "materialize"):
+            try:
+                item = item.materialize()
+            except ValueError as e:
+                log.warning("agent %s mission %s: frame rejected at decoding: %s", self.agent_id, self.mission_id, e)
+                with self._lock:
+                    self.frames_rejected += 1
+                    self.last_error = f"rejected frame: {e}"
+                return
+        try:
+            w = (self._relevance_worker.relevance(item) if self._relevance_worker is not None
+                 else self._relevance_fn(item))
+            # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
+            b = cfg.mapper.keyframe_budget_s
+            left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
+            st = self.mapper.map_frame(item, w, time_budget_s=left)
+        except Exception as e:
+            self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
+            return
+        with self._lock:
+            self.frames_mapped += 1
+            self.frames_keyframed += 1
+            self.keyframe_iterations += st.iters
+            self.seconds_mapping += time.perf_counter() - t0
+            self._kf_latency_s.append(time.perf_counter() - t_arrival)
+            self.n_gaussians = st.n_gaussians
+            self.n_active = int(self.mapper.model.active.sum())
+            if (self.frames_mapped - 1) % cfg.keyframe_every == 0:
+                self._kf_pending.append(item)
+                if w is not None:
+                    self._kf_roi[id(item)] = np.asarray(w, bool)
+                for old in self._kf_pending[:-cfg.max_keyframes]:
+                    self._kf_roi.pop(id(old), None)
+                del self._kf_pending[:-cfg.max_keyframes]
+            if len(self._eval_frames) < cfg.eval_max_frames:
+                self._eval_frames.append(item)
+        log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
+                  item.frame_id, st.n_gaussians, self.n_active, st.seconds)
+        if self.frames_mapped % cfg.push_every == 0:
+            self._offer_snapshot(final=False)
+            self._record_version()
+        if self.checkpoint_dir is not None and cfg.checkpoint_every and self.frames_mapped % cfg.checkpoint_every == 0:
+            try:
+                self.save_checkpoint()
+            except Exception as e:  # a full disk must not stop mapping
+                log.warning("agent %s: checkpoint failed: %s: %s", self.agent_id, type(e).__name__, e)
+
+    # ------------------------------------------------------------------ checkpoint / resume
+    def save_checkpoint(self) -> Path:
+        """Write ``checkpoint.pt`` (map with κ and active flags, keyframe window, counters, pushed version,
+        keyframe-selector reference) atomically into ``checkpoint_dir``. Call from the worker thread (or
+        while it is idle). Returns the path. Raises OSError on write failure, ValueError without a folder."""
+        import torch
+
+        if self.checkpoint_dir is None:
+            raise ValueError("no checkpoint_dir configured")
+        with self._lock:
+            counters = {k: getattr(self, k) for k in _CKPT_COUNTERS}
+            sel = self.selector.state()
+            version = self._version
+        state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
+                 "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
+                 "mapper": self.mapper.checkpoint_state(), "saved_unix": time.time()}
+        path = self.checkpoint_dir / CHECKPOINT_FILE
+        _atomic_write(path, lambda p: torch.save(state, p))
+        with self._lock:
+            self.checkpoints += 1
+        log.info("agent %s: checkpoint of mission %s after %d keyframes (v%d) in %s", self.agent_id,
+                 self.mission_id, counters["frames_keyframed"], version, path)
+        return path
+
+    def _record_version(self) -> None:
+        """Persist the newest map version handed to the pusher (a resumed mission continues above it)."""
+        if self.checkpoint_dir is None:
+            return
+        import json
+
+        with self._lock:
+            v = self._version
+        try:
+            _atomic_write(self.checkpoint_dir / VERSION_FILE, lambda p: p.write_text(json.dumps({"version": v})))
+        except OSError as e:
+            log.warning("agent %s: cannot record the pushed version: %s", self.agent_id, e)
+
+    def _resume(self) -> None:
+        import json
+
+        import torch
+
+        path = self.checkpoint_dir / CHECKPOINT_FILE
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:
+            raise ValueError(f"cannot read the checkpoint {path}: {type(e).__name__}: {e}") from None
+        if state.get("agent_id") != self.agent_id or state.get("mission_id") != self.mission_id:
+            raise ValueError(f"checkpoint {path} belongs to agent {state.get('agent_id')!r} mission "
+                             f"{state.get('mission_id')!r}, not {self.agent_id!r} {self.mission_id!r}")
+        if state.get("task_text") != self.task_text:
+            raise ValueError(f"checkpoint {path}: mission {self.mission_id} was started with the task "
+                             f"{state.get('task_text')!r}, not {self.task_text!r}")
+        self.mapper.restore_state(state["mapper"])
+        for k, v in state["counters"].items():
+            setattr(self, k, v)
+        self.selector.load_state(state["selector"])
+        version = int(state["version"])
+        vpath = self.checkpoint_dir / VERSION_FILE
+        if vpath.is_file():  # pushes after the checkpoint: never reuse a version the fusion server holds
+            version = max(version, int(json.loads(vpath.read_text()).get("version", 0)))
+        self._version = version
+        self.resumed_keyframes = self.frames_keyframed
+        self.n_gaussians = len(self.mapper.model)
+        self.n_active = int(self.mapper.model.active.sum())
+        log.info("agent %s: mission %s resumed from %s: %d keyframes, %d Gaussians, next version v%d",
+                 self.agent_id, self.mission_id, path, self.frames_keyframed, self.n_gaussians, version + 1)
+
+    def _offer_snapshot(self, final: bool) -> None:
+        """Hand the pusher what the next push needs (mapping thread; :meth:`ShareSession.capture`)."""
+        cap = self.share.capture(self.mapper)
+        with self._lock:
+            self._version += 1
+            self._pending = _Snapshot(self._version, cap.gaussians, cap.n_total, final, cap.ids, self.frames_mapped,
+                                      None, cap.select)
+            self._push_cv.notify_all()
+
+    # ------------------------------------------------------------------ pusher
+    def _lower_priority(self) -> None:
+        """Give the calling (pusher) thread ``pusher_nice`` niceness; threads it starts inherit it."""
+        import os
+
+        nice = self.config.pusher_nice
+        if not nice or not hasattr(os, "setpriority"):
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        except OSError as e:  # not permitted in some containers: the pusher keeps the mapper's priority
+            log.warning("agent %s: cannot lower the pusher's priority: %s", self.agent_id, e)
+
+    def _push_loop(self) -> None:
+        self._lower_priority()
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stop.is_set():
+                    self._push_cv.wait(0.5)
+                if self._stop.is_set() and self._pending is None:
+                    return
+                snap, self._pending = self._pending, None
+                self._inflight = snap.version
+            try:
+                self._push_snapshot(snap)
+            finally:
+                with self._lock:
+                    self._inflight = None
+
+    def _push_snapshot(self, snap: _Snapshot) -> None:
+        """Select, fine-tune and push one snapshot (pusher thread); sets ``_final_done`` for the final one."""
+        if self.fusion is None:
+            if snap.final:
+                self.final_push_ok = False
+                self._final_done.set()
+            return
+        if snap.select is not None:
+            if self._superseded(snap):  # a newer snapshot waits: select that one
+                return
+            try:
+                cap = self.share.select(Captured(snap.gaussians, snap.ids, snap.n_total, snap.select),
+                                        self.config.mapper.backend)
+                snap = dataclasses.replace(snap, gaussians=cap.gaussians, ids=cap.ids, finetune=cap.finetune,
+                                           select=None)
+            except Exception as e:  # keep pushing later snapshots; a failed final one is reported
+                log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
+                with self._lock:
+                    self.last_error = f"share selection failed: {type(e).__name__}: {e}"
+                if snap.final:
+                    self.final_push_ok = False
+                    self._final_done.set()
+                return
+        if snap.finetune is not None:
+            if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
+                return
+            try:
+                out = self.share.finetuned(snap.gaussians, snap.ids, *snap.finetune, self.mapper.cfg)
+            except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
+                log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
+                              self.agent_id, snap.version, e)
+                out = snap.gaussians
+            snap = dataclasses.replace(snap, gaussians=out, finetune=None)
+        ok = self._push_with_retries(snap, self.config.final_push_timeout_s if snap.final else None)
+        if snap.final:
+            self.final_push_ok = ok
+            self._final_done.set()
+
+    def _superseded(self, snap: _Snapshot) -> bool:
+        with self._lock:
+            return (not snap.final) and self._pending is not None
+
+    def _push_with_retries(self, snap: _Snapshot, budget_s: Optional[float]) -> bool:
+        """Push ``snap`` until acknowledged (True). Gives up (False) when the mission stops, when a newer
+        snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
+        the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
+        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``."""
+        deadline = None if budget_s is None else time.monotonic() + budget_s
+        attempt = 0
+        while True:
+            attempt += 1
+            try:
+                self._push_once(snap)
+                with self._lock:
+                    if self._link_down_since is not None:
+                        log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
+                                 time.monotonic() - self._link_down_since, snap.version)
+                    self._retry_delay = self.config.backoff_s
+                    self._link_down_since = None
+                return True
+            except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
+                msg = f"push v{snap.version} attempt {attempt} failed: {type(e).__name__}: {_short(e)}"
+                with self._lock:
+                    self.push_failures += 1
+                    self.last_error = msg
+                    self._session_open = False  # re-open after a server restart
+                    if self._link_down_since is None:
+                        self._link_down_since = time.monotonic()
+                    delay = self._retry_delay
+                    self._retry_delay = min(delay * 2.0, self.config.max_backoff_s)
+                log.warning("agent %s: %s (next attempt in %.1f s)", self.agent_id, msg, delay)
+            if self._stop.is_set() or self._superseded(snap):
+                return False
+            if deadline is not None and time.monotonic() + delay > deadline:
+                return False
+            with self._lock:  # a newer snapshot or close() ends the wait early
+                self._push_cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
+                                       timeout=delay)
+
+    def _upload_pending_keyframes(self, c) -> tuple[list, int]:
+        """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
+        with self._lock:
+            kfs = list(self._kf_pending)
+            rois = [self._kf_roi.get(id(f)) for f in kfs]
+        n_kf = 0
+        if kfs:
+            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
+                                          color_format=self.config.keyframe_format, rois=rois) or 0)
+            with self._lock:
+                sent = {id(f) for f in kfs}
+                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
+                for i in sent:
+                    self._kf_roi.pop(i, None)
+        return kfs, n_kf
+
+    def _push_once(self, snap: _Snapshot) -> None:
+        t0 = time.perf_counter()
+        c = self.fusion
+        if not self._session_open:
+            info = c.open_session(self.agent_id, self.task_text, self.intrinsics)
+            self._session_open = True
+            latest = int(getattr(info, "latest_map_version", 0) or 0)
+            if latest >= snap.version and not self.share.holds_base:
+                # the server holds this agent's versions from an earlier mission (or from before a crash that lost
+                # the version file): never reuse one, or the resumable upload would take the old chunks for ours
+                with self._lock:
+                    self._version = max(self._version, latest) + 1
+                    snap = dataclasses.replace(snap, version=self._version)
+                log.warning("agent %s: the fusion server holds v%d of this agent; pushing as v%d", self.agent_id,
+                            latest, snap.version)
+        plan = self.share.plan(snap.ids, snap.gaussians, snap.version)
+        if plan.is_noop:
+            # the server holds exactly this subset already (e.g. the final push right after a periodic one):
+            # no upload (an empty delta is still 270 B of headers); pending keyframes still go
+            self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else self.final_subset_bytes
+            kfs, _ = self._upload_pending_keyframes(c)
+            rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
+                             time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
+            with self._lock:
+                self.pushes.append(rec)
+                self.keyframes_uploaded += len(kfs)
+                self.last_error = ""
+            log.info("agent %s: subset unchanged since v%d; no upload", self.agent_id, plan.base_version)
+            return
+        try:
+            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
+                                full_map_gaussians=snap.n_total)
+        except PreconditionFailed as e:
+            if not plan.is_delta:
+                raise
+            # the server lacks the delta's base (restarted without its data, or superseded): full upload
+            log.warning("agent %s: delta v%d rejected (%s); uploading the full subset", self.agent_id,
+                        plan.version, _short(e))
+            self.share.forget()
+            with self._lock:
+                self._version += 1
+                version = self._version
+            plan = self.share.plan(snap.ids, snap.gaussians, version)
+            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
+                                full_map_gaussians=snap.n_total)
+        if not getattr(r, "complete", True):
+            raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
+        self.share.acknowledge(plan)
+        self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
+        kfs, n_kf = self._upload_pending_keyframes(c)
+        rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
+                         int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
+                         plan.n_records, plan.n_removed, snap.frames_mapped)
+        with self._lock:
+            self.total_upload_bytes += rec.bytes_on_wire
+            self.pushes.append(rec)
+            self.keyframes_uploaded += len(kfs)
+            self.last_error = ""
+        log.info("agent %s pushed v%d: %d/%d Gaussians, %d B, %d keyframes (%d acknowledged)", self.agent_id,
+                 rec.version, rec.n_shared, rec.n_total, rec.bytes_on_wire, len(kfs), n_kf)
+
+    # ------------------------------------------------------------------ status / finish
+    def status(self) -> dict:
+        """Snapshot of the mission's progress (keys of the ``MissionStatus`` message)."""
+        with self._lock:
+            return {
+                "mission_id": self.mission_id, "agent_id": self.agent_id, "state": self.state,
+                "task_text": self.task_text, "task_id": self.task_id or "",
+                "frames_received": self.frames_received, "frames_mapped": self.frames_mapped,
+                "frames_queued": self._queue.qsize(), "n_gaussians": self.n_gaussians, "n_active": self.n_active,
+                "pushes": len(self.pushes), "push_failures": self.push_failures,
+                "last_pushed_version": self.pushes[-1].version if self.pushes else 0,
+                "newest_map_version": self._version,
+                "push_backlog": int(self._pending is not None) + int(self._inflight is not None),
+                "keyframes_backlog": len(self._kf_pending),
+                "link_down_s": (0.0 if self._link_down_since is None
+                                else time.monotonic() - self._link_down_since),
+                "last_error": self.last_error, "seconds_mapping": self.seconds_mapping,
+                "keyframes_uploaded": self.keyframes_uploaded,
+                "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
+                "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
+                "accept_latency_ms_p99_recent": _percentile(list(self._accept_ms)[-RECENT_FRAMES:], 99),
+                "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
+                "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
+                "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
+                "keyframe_iterations": self.keyframe_iterations,
+            }
+
+    def acknowledged_subset(self):
+        """The subset the fusion server acknowledged last, as the server holds it (decoded wire values):
+        ``(version, GaussianArrays, ids)``, or None before the first acknowledged push."""
+        return self.share.acknowledged()
+
+    def wait_mapped(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until every queued frame is mapped (True) or ``timeout_s`` passes (False)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                idle = self._queue.unfinished_tasks == 0 and not self.replaying
+            if idle or self.state == "FAILED":
+                return True
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+
+    def finish(self, push: bool = True, evaluate: bool = True, timeout_s: Optional[float] = None) -> MissionSummaryData:
+        """Stop accepting frames, map what is queued, do the final push, evaluate; idempotent.
+
+        Args:
+            push: do the final push (retried up to ``final_push_timeout_s``).
+            evaluate: compute full-image and ROI PSNR over the kept mapped frames (ROI needs annotations
+                and a task id).
+            timeout_s: overall bound on waiting for mapping and the final push (None: unbounded).
+        Returns:
+            MissionSummaryData.
+        Raises:
+            TimeoutError: mapping or the final push did not complete within ``timeout_s``.
+        """
+        if not self._finish_lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s)):
+            raise TimeoutError(f"mission {self.mission_id}: another Finish still running after {timeout_s} s")
+        try:
+            return self._finish(push, evaluate, timeout_s)
+        finally:
+            self._finish_lock.release()
+
+    def _finish(self, push: bool, evaluate: bool, timeout_s: Optional[float]) -> MissionSummaryData:
+        with self._lock:
+            if self.summary is not None:
+                return self.summary
+            first = not self._closed_for_input
+            self._closed_for_input = True
+            if self.state in ("MAPPING", "REPLAY_DONE"):
+                self.state = "FINISHING"
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        if first:
+            if self._replay_thread is not None:
+                self._stop_replay_wait(deadline)
+            # both markers queue behind the pending keyframe; the worker stops optimising between keyframes
+            self._queue.put(_FINISH if push else _DRAIN)
+        remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+        if not self._final_done.wait(remaining):
+            raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
+        self.wait_mapped(None if deadline is None else max(0.0, deadline - time.monotonic()))
+        psnr, roi_psnr = (self.evaluate() if evaluate and self.frames_mapped else (None, None))
+        roi_all = (self.evaluate_all_frames() if evaluate and self.frames_mapped and self._dataset is not None
+                   else None)
+        last = self.pushes[-1] if self.pushes else None
+        with self._lock:
+            if self.state != "FAILED":
+                self.state = "FINISHED"
+        n_total = max(self.n_gaussians, 1)
+        n_shared = last.n_shared if last else int(select_shared(self.mapper.gmap, self.config.share,
+                                                                self.config.kappa_threshold).sum())
+        self.summary = MissionSummaryData(
+            status=self.status(), final_push_ok=bool(self.final_push_ok and push),
+            n_shared=int(n_shared), share_pct=100.0 * n_shared / n_total if self.n_gaussians else 0.0,
+            bytes_on_wire=self.final_subset_bytes,
+            bytes_per_gaussian=(self.final_subset_bytes / last.n_shared) if last and last.n_shared else 0.0,
+            roi_psnr=roi_psnr, psnr=psnr,
+            seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1),
+            roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0,
+            total_upload_bytes=self.total_upload_bytes, final_subset_bytes=self.final_subset_bytes,
+            pushes=[dict(p.__dict__) for p in self.pushes])
+        if self.on_finished is not None:
+            try:
+                self.on_finished(self)
+            except Exception as e:  # saving results must not lose the summary
+                log.warning("agent %s: on_finished hook failed: %s", self.agent_id, e)
+        return self.summary
+
+    def _stop_replay_wait(self, deadline: Optional[float]) -> None:
+        # A replay that is still running is allowed to complete (Finish = "map the rest, then push").
+        t = self._replay_thread
+        while t is not None and t.is_alive():
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError("replay still running at the Finish deadline")
+            t.join(0.1)
+
+    def evaluate(self) -> tuple[Optional[float], Optional[float]]:
+        """(full-image PSNR, ROI PSNR) in dB of the current map, mean over the kept mapped frames; ROI PSNR is
+        None without annotations/task id or when no frame shows the ROI. Call only while the worker is idle."""
+        from gausslite.evaluation import score_view
+
+        ps, rps = [], []
+        for fr in self._eval_frames:
+            out = self.mapper.render_frame(fr)  # at the refined pose under pose_refine, as `map` scores
+            roi = None
+            if self.annotations is not None and self.task_id is not None:
+                roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
+            s = score_view(out, fr, roi)
+            ps.append(s.psnr)
+            if not math.isnan(s.roi_psnr):
+                rps.append(s.roi_psnr)
+        return (float(np.mean(ps)) if ps else None, float(np.mean(rps)) if rps else None)
+
+    def evaluate_all_frames(self) -> Optional[float]:
+        """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset, skipped ones included
+        (mean over frames that show the ROI): the honest score of an online map. None without a replayed
+        dataset, annotations or task id, or when no frame shows the ROI. Call only while the worker is idle."""
+        from gausslite.evaluation import score_view
+
+        if self._dataset is None or self.annotations is None or self.task_id is None:
+            return None
+        vals = []
+        for i in range(len(self._dataset)):
+            fr = self._dataset[i]
+            roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
+            if not roi.any():
+                continue
+            out = self.mapper.render_frame(fr)
+            s = score_view(out, fr, roi)
+            if not math.isnan(s.roi_psnr):
+                vals.append(s.roi_psnr)
+        return float(np.mean(vals)) if vals else None
+
+    def close(self) -> None:
+        """Stop the threads (pending frames are dropped). Safe to call more than once."""
+        with self._lock:
+            self._closed_for_input = True
+        self._stop.set()
+        with self._lock:
+            self._push_cv.notify_all()
+        try:
+            while True:
+                self._queue.get_nowait()
+                self._queue.task_done()
+        except queue.Empty:
+            pass
+        self._queue.put(None)
+        self._worker.join(5.0)
+        self._pusher.join(5.0)
+        if self._relevance_worker is not None:
+            self._relevance_worker.close()
+        self.share.close()
+
+
+def _short(e: BaseException) -> str:
+    details = getattr(e, "details", None)
+    if callable(details):
+        try:
+            code = e.code()  # type: ignore[attr-defined]
+            return f"{getattr(code, 'name', code)}: {details()}"
+        except Exception:
+            pass
+    return str(e)[:300]

@@ -1,0 +1,254 @@
+"""What an agent shares, and the state behind its pushes (paper Sec. III-E; ``docs/sharing.md``).
+
+:class:`ShareSession` owns, for one mission: the share rule (``agent.share``), the share worker process that runs
+the task selection and the fine-tune at low priority, the fine-tune cache, the delta push planner and the copy of
+the subset the fusion server acknowledged last. The mission loop (:class:`gausslite.mission.runtime.AgentRuntime`)
+calls :meth:`ShareSession.capture` from its mapping thread, and the other methods from its pusher thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["select_shared", "ShareSession", "Captured"]
+
+
+def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.ndarray:
+    """Boolean mask (N,) of the Gaussians an agent shares (paper Sec. III-E).
+
+    Args:
+        gmap: ``GaussianMap`` (or anything with ``active`` and ``kappa`` arrays/tensors).
+        share: ``active`` (a = 1) or ``kappa`` (κ >= ``kappa_threshold``); ``task`` without views is a = 1 and κ
+            (:class:`ShareSession` adds the task region and the compaction).
+    Raises:
+        ValueError: unknown ``share`` rule.
+    """
+    active = np.asarray(gmap.active.cpu().numpy() if hasattr(gmap.active, "cpu") else gmap.active, dtype=bool)
+    kappa = np.asarray(gmap.kappa.cpu().numpy() if hasattr(gmap.kappa, "cpu") else gmap.kappa)
+    if share == "active":
+        return active
+    if share == "kappa":
+        return kappa >= int(kappa_threshold)
+    if share == "task":
+        return active & (kappa >= int(kappa_threshold))
+    raise ValueError(f"unknown share rule {share!r} (use 'active', 'kappa' or 'task')")
+
+
+def _worker_init(nice: int) -> None:
+    """Initialiser of the share worker process: lower its priority, one torch thread."""
+    import os
+
+    import torch
+
+    if nice and hasattr(os, "nice"):
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    torch.set_num_threads(1)
+
+
+def _select(gmap, views, share_cfg, backend: str, held=None):
+    """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
+    :class:`gausslite.sharing.ShareConfig`, and the rows the server holds); runs in the share worker."""
+    from gausslite.sharing import select_task_subset
+
+    return select_task_subset(gmap, views, share_cfg, backend=backend, held=held)
+
+
+def _finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg, seed: int):
+    """The shared subset fine-tuned alone on the compact ROI keyframes ``kfs``
+    (:func:`gausslite.sharing.update_shared_subset`); runs in the share worker."""
+    from gausslite.sharing import update_shared_subset
+
+    kfs = [kf.to_keyframe(cfg.device) for kf in kfs]
+    return update_shared_subset(arrays, ids, base, base_ids, kfs, iters, refresh, cfg, seed=seed)
+
+
+@dataclasses.dataclass
+class Captured:
+    """What the mapping thread captured for one push.
+
+    Attributes:
+        gaussians: the subset to push (``GaussianArrays``), or None until :meth:`ShareSession.select` ran.
+        ids: (N,) int64 stable ids of its rows (of every map row until selected).
+        n_total: Gaussians in the map.
+        select: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None).
+        finetune: (cache key, compact ROI keyframes) once selected, when the subset is fine-tuned before the push.
+    """
+
+    gaussians: object
+    ids: np.ndarray
+    n_total: int
+    select: object = None
+    finetune: object = None
+
+
+class ShareSession:
+    """The share side of one mission (module docstring).
+
+    Args:
+        agent_id: the agent's id (logs, the push planner's chunk headers).
+        config: the mission's ``AgentConfig`` (``share*``, ``kappa_threshold``, ``pusher_nice``, ``delta_push``,
+            ``delta_tolerance``, ``chunk_gaussians``).
+    """
+
+    def __init__(self, agent_id: str, config) -> None:
+        self.agent_id, self.config = agent_id, config
+        self.planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
+        self.pool = None  # the share worker process (share_worker: process), started on first use
+        self.finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset, ids) of the last push
+        self._acked = None  # (version, subset, ids) the server acknowledged last (the planner's base)
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ mapping thread
+    def capture(self, mapper) -> Captured:
+        """What the next push needs, taken from the mapper (mapping thread). With ``share: task`` that is a copy of
+        the map, the ROI keyframes and their poses: the selection (which renders every ROI keyframe) and the
+        fine-tune then run in the share worker (:meth:`select`, :meth:`finetuned`), so a push takes no time from
+        the keyframe budget."""
+        from gausslite.wire.codec import GaussianArrays
+
+        gmap = mapper.gmap
+        if self.config.share != "task":
+            mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
+            return Captured(GaussianArrays.from_any(gmap).take(mask), mapper.model.ids.numpy()[mask], len(gmap))
+        from gausslite.sharing import ShareView
+
+        store = mapper.keyframes
+        views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy().copy(),
+                           kf.K.cpu().numpy()) for kf in store if kf.roi is not None]
+        poses = [(int(kf.frame_id), kf.c2w.cpu().numpy().copy()) for kf in store]
+        # only the keyframes that see the ROI take part in the fine-tune (compact; poses of their own)
+        kfs = ([dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
+               if self.config.share_finetune_iters > 0 else None)
+        return Captured(None, mapper.model.ids.numpy().copy(), len(gmap), (gmap.clone(), views, poses, kfs))
+
+    # ------------------------------------------------------------------ pusher thread
+    def select(self, cap: Captured, backend: str = "auto") -> Captured:
+        """``share: task``: ``cap`` with its task subset selected (:func:`gausslite.sharing.select_task_subset`)
+        and, with fine-tuning, its fine-tune inputs."""
+        from gausslite.sharing import ShareConfig
+        from gausslite.wire.codec import GaussianArrays
+
+        gmap, views, poses, kfs = cap.select
+        c = self.config
+        share_cfg = ShareConfig(kappa_threshold=c.kappa_threshold, coverage=c.share_coverage,
+                                candidates=c.share_candidates, max_fraction=c.share_max_fraction,
+                                held_weight=c.share_held_weight)
+        acked = self.acknowledged()
+        held = np.isin(cap.ids, acked[2]) if acked is not None and c.share_held_weight != 1.0 else None
+        mask, st = self.call(_select, gmap, views, share_cfg, backend, held)
+        log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
+        arrays = GaussianArrays.from_any(gmap).take(mask)
+        ids = cap.ids[mask]
+        finetune = self.finetune_inputs(arrays, ids, poses, kfs) if kfs is not None and len(arrays) else None
+        return dataclasses.replace(cap, gaussians=arrays, ids=ids, finetune=finetune, select=None)
+
+    @staticmethod
+    def finetune_inputs(arrays, ids, poses, kfs) -> tuple:
+        """What the fine-tune of a subset needs: the cache key of (subset, ids, keyframe ids and poses) and the
+        compact stored keyframes that see the ROI, with poses of their own (``poses``: (frame id, c2w) of every
+        stored keyframe, ``kfs`` the ROI keyframes, as captured by the mapping thread). Nothing is decoded here:
+        :meth:`finetuned` decodes them on a cache miss."""
+        import hashlib
+
+        from gausslite.wire.codec import GaussianArrays
+
+        h = hashlib.blake2b(digest_size=16)
+        for name in GaussianArrays._SPEC:
+            h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
+        for fid, c2w in poses:
+            h.update(np.asarray([fid], np.int64).tobytes() + np.ascontiguousarray(c2w).tobytes())
+        h.update(ids.tobytes())
+        return h.digest(), kfs
+
+    def finetuned(self, arrays, ids, key, kfs, mapper_cfg):
+        """The shared subset fine-tuned alone on the ROI keyframes ``kfs`` (compact), against the copy the server
+        acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by
+        ``mapper_cfg.seed``). Without delta pushes every push is fine-tuned from the agent's values alone. The same
+        subset and keyframes as at the last push (``key``, :meth:`finetune_inputs`) give the last result again
+        without work (whatever the server acknowledged since), so an unchanged map (e.g. the final push right after
+        a periodic one) stays unchanged on the wire and its delta is empty."""
+        if self.finetune_cache is not None and self.finetune_cache[0] == key:
+            return self.finetune_cache[1]
+        with self._lock:
+            acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
+        base_version, base, base_ids = acked
+        t0 = time.perf_counter()
+        # one rasterizer thread: in the pusher thread (share_worker: thread) the rasterizer's band pool is shared with
+        # the mapper and runs at its priority, so a multi-threaded fine-tune would queue ahead of mapping work; the
+        # worker process, at low priority, takes at most the one core mapping leaves idle
+        fcfg = mapper_cfg.model_copy(update={"render_threads": 1})
+        out, st = self.call(_finetune, arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
+                            self.config.share_refresh, fcfg, mapper_cfg.seed)
+        log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
+                 "server v%s (%s), %.2f s", self.agent_id, len(arrays), len(kfs),
+                 self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
+        self.finetune_cache = (key, out, ids)
+        return out
+
+    def call(self, fn, *args):
+        """Run ``fn(*args)`` in the share worker process (``share_worker: process``, started on first use with the
+        ``spawn`` method: forking a process that runs rasterizer threads is unsafe), or here (``thread``)."""
+        if self.config.share_worker != "process":
+            return fn(*args)
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_worker_init, initargs=(self.config.pusher_nice,))
+        return self.pool.submit(fn, *args).result()
+
+    # ------------------------------------------------------------------ delta planning
+    @property
+    def holds_base(self) -> bool:
+        """Whether a subset was acknowledged in this mission (the planner's base)."""
+        return self.planner is not None and self.planner.base is not None
+
+    def plan(self, ids, gaussians, version: int):
+        """The push of ``gaussians`` (rows ``ids``) as ``version``: a delta against the acknowledged base when there
+        is one (:class:`gausslite.wire.delta.PushPlanner`)."""
+        if self.planner is None:
+            from gausslite.wire.delta import PushPlanner
+
+            c = self.config
+            self.planner = PushPlanner(self.agent_id, chunk_gaussians=c.chunk_gaussians, tolerance=c.delta_tolerance,
+                                       delta=c.delta_push)
+        return self.planner.plan(ids, gaussians, version)
+
+    def acknowledge(self, plan) -> None:
+        """The server holds ``plan``'s subset: it is the next delta's base and the next fine-tune's start."""
+        self.planner.acknowledge(plan)
+        with self._lock:
+            self._acked = (plan.version, plan.subset, plan.ids)
+        if self.planner.last_stats:
+            log.info("agent %s delta plan v%d: %s (sent %s)", self.agent_id, plan.version, self.planner.last_stats,
+                     "delta" if plan.is_delta else "full")
+
+    def forget(self) -> None:
+        """The server lost the base (a rejected delta): the next push is full."""
+        if self.planner is not None:
+            self.planner.forget()
+        with self._lock:
+            self._acked = None
+
+    def acknowledged(self) -> Optional[tuple]:
+        """(version, subset ``GaussianArrays``, ids) the server acknowledged last, or None."""
+        with self._lock:
+            return self._acked
+
+    def close(self) -> None:
+        """Stop the share worker process."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            self.pool = None

@@ -1,0 +1,62 @@
+"""One typed configuration tree (gausslite.config) and ``gausslite config``."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+from pydantic import ValidationError
+
+from gausslite.cli import main
+from gausslite.config import GaussLiteConfig, load_config
+from gausslite.mission import load_agent_config
+
+
+def test_the_deployed_file_loads_into_one_tree_and_overrides_reach_every_section():
+    cfg = load_config()
+    assert cfg.mapper is cfg.agent.mapper and cfg.mapper.mode == "gausslite"
+    assert cfg.agent.share == "task" and cfg.sim.fuse.voxel_size == 0.10
+    cfg = load_config(None, ["mapper.iters_per_frame=12", "agent.push_every=3", "sim.fuse.refine_iters=100",
+                             "fusion.max_keyframes_per_agent=8"])
+    assert (cfg.mapper.iters_per_frame, cfg.agent.push_every, cfg.sim.fuse.refine_iters,
+            cfg.fusion.max_keyframes_per_agent) == (12, 3, 100, 8)
+    # the agent's loader is the same tree, agent and mapper sections only
+    assert load_agent_config(None, ["mapper.iters_per_frame=40"]).mapper.iters_per_frame == 40
+
+
+def test_typos_fail_before_anything_starts(tmp_path):
+    with pytest.raises(ValidationError, match="pushevery"):
+        load_config(None, ["agent.pushevery=3"])
+    with pytest.raises(ValidationError):
+        load_config(None, ["sim.fuse.contest_radius=-1"])
+    f = tmp_path / "bad.yaml"
+    f.write_text(yaml.safe_dump({"agent": {}, "mappper": {}}))
+    with pytest.raises(ValidationError, match="mappper"):
+        load_config(f)
+
+
+def test_show_prints_the_effective_tree_and_schema_its_json_schema(capsys, tmp_path):
+    assert main(["config", "--show", "--set", "mapper.iters_per_frame=11"]) == 0
+    shown = yaml.safe_load(capsys.readouterr().out)
+    assert set(shown) == {"agent", "mapper", "sim", "fusion"} and shown["mapper"]["iters_per_frame"] == 11
+    f = tmp_path / "again.yaml"
+    f.write_text(yaml.safe_dump(shown))
+    assert load_config(f).to_yaml_dict() == shown  # the printed tree loads back to itself
+    assert main(["config", "--schema"]) == 0
+    schema = json.loads(capsys.readouterr().out)
+    assert {"agent", "mapper", "sim", "fusion"} <= set(schema["properties"])
+    assert main(["config", "--show", "--set", "agent.nope=1"]) == 2
+
+
+def test_fusion_server_reads_the_fusion_section(tmp_path):
+    from services.fusion_server.server import FusionConfig
+
+    f = tmp_path / "g.yaml"
+    f.write_text(yaml.safe_dump({"fusion": {"max_keyframes_per_agent": 9}}))
+    assert FusionConfig.from_file(str(f)).max_keyframes_per_agent == 9
+    j = tmp_path / "f.json"
+    j.write_text(json.dumps({"max_keyframs_per_agent": 9}))
+    with pytest.raises(ValueError, match="max_keyframs_per_agent"):
+        FusionConfig.from_file(str(j))
+    assert isinstance(GaussLiteConfig().fusion.refine_options, dict)

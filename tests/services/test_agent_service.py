@@ -1,0 +1,266 @@
+"""Agent service (SPEC §7, §8): full in-process path parser + fusion + two agents with streamed frames,
+bad-input status codes, and a fusion-server restart during a mission."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import cv2
+import grpc
+import numpy as np
+import pytest
+
+from gausslite.datasets import load_dataset
+from gausslite.synthetic import make_scene
+from gausslite_rpc import agent_pb2, agent_pb2_grpc
+from services.agent.client import AgentClient
+from services.agent.frames import encode_frame
+from gausslite.mission import AgentRuntime, load_agent_config
+from services.agent.server import AgentSettings, serve as serve_agent
+from services.common.server import ServerOptions
+
+# every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
+TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene")
+    make_scene(out, seed=0, width=64, height=48, frames=4, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def parser_server():
+    from services.parser.server import serve
+
+    srv = serve(ServerOptions(port=0))
+    yield srv
+    srv.stop(0)
+
+
+def _fusion(data_dir, port=0):
+    from services.fusion_server.server import serve
+
+    return serve(ServerOptions(port=port), data_dir=str(data_dir))
+
+
+def _code(excinfo) -> grpc.StatusCode:
+    return excinfo.value.code()
+
+
+def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
+    from services.fusion_server.client import FusionClient
+
+    fusion = _fusion(tmp_path / "fusion")
+    cfg = load_agent_config(None, TINY)
+    agents = [serve_agent(ServerOptions(port=0), AgentSettings(
+        agent_id=name, parser_address=parser_server.address, fusion_address=fusion.address,
+        annotations_path=str(scene), data_dir=str(tmp_path / "agents"), config=cfg)) for name in ("agent_a", "agent_b")]
+    plans = [("agent_a", "synth-pick-object"), ("agent_b", "synth-find-chair")]
+    try:
+        summaries = {}
+        clients = []
+        for (name, tid), ag in zip(plans, agents):
+            c = AgentClient(ag.address)
+            clients.append(c)
+            c.wait_ready(10)
+            ds = load_dataset(scene / name)
+            text = ds.annotations.task_by_id(tid).text
+            m = c.start_mission(text)  # task id found from the text in tasks.json
+            assert m.agent_id == name and m.mission_id and list(m.graph.targets)
+            r = c.stream_frames(m.mission_id, list(ds), timeout_s=60)
+            assert r.frames_received == len(ds) == 4
+        for (name, tid), c in zip(plans, clients):
+            s = c.finish(timeout_s=90)
+            summaries[name] = s
+            assert s.status.state == agent_pb2.MISSION_STATE_FINISHED
+            assert s.status.task_id == tid
+            assert s.final_push_ok, s.status.last_error
+            assert s.status.frames_mapped == 4
+            # snapshots after frame 2, frame 4 and the final one (versions 1..3); a snapshot not yet
+            # sent when a newer one arrives is superseded, so at least the first and the final push; a final
+            # snapshot equal to the last push uploads nothing and reports the version the server holds (2)
+            assert s.status.last_pushed_version in (2, 3)
+            assert 2 <= s.status.pushes <= 3
+            assert 0 < s.n_shared < s.status.n_gaussians
+            assert math.isclose(s.share_pct, 100.0 * s.n_shared / s.status.n_gaussians, rel_tol=1e-6)
+            assert s.has_roi_psnr and 5.0 < s.roi_psnr < 80.0
+            assert s.bytes_per_gaussian > 0
+            # Finish is idempotent
+            assert c.finish(timeout_s=30).n_shared == s.n_shared
+            assert list((tmp_path / "agents" / name).glob("*/map.ply"))
+        fc = FusionClient(fusion.address, timeout_s=30)
+        st = fc.stats()["agents"]
+        for name, s in summaries.items():
+            assert st[name]["gaussians_received"] == s.n_shared
+            assert st[name]["latest_map_version"] == s.status.last_pushed_version
+            assert st[name]["keyframes"] >= 4
+        concat = fc.fuse("concat")
+        assert concat.n_gaussians == sum(s.n_shared for s in summaries.values())
+        vote = fc.fuse("vote", voxel_size=0.10)
+        assert 0 < vote.n_gaussians <= concat.n_gaussians
+        g = fc.download_fused(vote.fused_version)
+        assert len(g) == vote.n_gaussians
+        assert np.isfinite(g.means).all()
+        fc.close()
+        for c in clients:
+            c.close()
+    finally:
+        for ag in agents:
+            ag.stop(0)
+        fusion.stop(0)
+
+
+@pytest.fixture()
+def local_agent(scene):
+    cfg = load_agent_config(None, TINY)
+    ag = serve_agent(ServerOptions(port=0, token="s3cret"),
+                     AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg))
+    c = AgentClient(ag.address, token="s3cret")
+    yield ag, c
+    c.close()
+    ag.stop(0)
+
+
+def test_bad_inputs_give_precise_codes(local_agent, scene):
+    ag, c = local_agent
+    ds = load_dataset(scene / "agent_a")
+    fr = ds[0]
+    # token enforced
+    with pytest.raises(grpc.RpcError) as e:
+        AgentClient(ag.address).status("x")
+    assert _code(e) == grpc.StatusCode.UNAUTHENTICATED
+    # unknown mission
+    with pytest.raises(grpc.RpcError) as e:
+        c.status("nope")
+    assert _code(e) == grpc.StatusCode.NOT_FOUND
+    with pytest.raises(grpc.RpcError) as e:
+        c.finish("nope", timeout_s=5)
+    assert _code(e) == grpc.StatusCode.NOT_FOUND
+    with pytest.raises(grpc.RpcError) as e:
+        c.stream_frames("nope", [fr], timeout_s=10)
+    assert _code(e) == grpc.StatusCode.NOT_FOUND
+    # bad mission requests
+    with pytest.raises(grpc.RpcError) as e:
+        c.start_mission("   ")
+    assert _code(e) == grpc.StatusCode.INVALID_ARGUMENT
+    with pytest.raises(grpc.RpcError) as e:
+        c.start_mission("Find the chair", dataset_path="/definitely/not/here")
+    assert _code(e) == grpc.StatusCode.INVALID_ARGUMENT
+    m = c.start_mission("Identify the chair closest to the table")
+    good = encode_frame(fr, m.mission_id)
+
+    def send(msg):
+        with pytest.raises(grpc.RpcError) as e:
+            c.stream_messages([msg], timeout_s=10)
+        assert _code(e) == grpc.StatusCode.INVALID_ARGUMENT, e.value.details()
+        return e.value.details()
+
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good); bad.color = b"not an image"
+    assert "colour" in send(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good); bad.c2w[5] = float("nan")
+    assert "NaN" in send(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good); del bad.c2w[:]; bad.c2w.extend([1.0] * 12)
+    assert "16" in send(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good)
+    bad.depth = cv2.imencode(".png", np.ones((10, 10), np.uint16))[1].tobytes()
+    assert "depth is 10x10" in send(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good); bad.depth_scale = 0.0
+    assert "depth_scale" in send(bad)
+    bad = agent_pb2.FrameMsg(); bad.CopyFrom(good); bad.intrinsics.fx = -1
+    assert "fx" in send(bad)
+    # nothing malformed got in; a good frame still works
+    assert c.stream_messages([good], timeout_s=30).frames_received == 1
+    st = c.status(m.mission_id)
+    assert st.frames_received == 1
+    # a second mission while the first one runs → FAILED_PRECONDITION
+    with pytest.raises(grpc.RpcError) as e:
+        c.start_mission("Map the chairs")
+    assert _code(e) == grpc.StatusCode.FAILED_PRECONDITION
+    s = c.finish(m.mission_id, timeout_s=60)
+    assert s.status.frames_mapped == 1 and not s.final_push_ok  # no fusion server configured
+    with pytest.raises(grpc.RpcError) as e:
+        c.stream_messages([good], timeout_s=10)
+    assert _code(e) == grpc.StatusCode.FAILED_PRECONDITION
+    # server is still healthy after all that
+    from services.cli.cmd_health import check_health
+
+    assert check_health(ag.address, "gausslite.v1.Agent") == "SERVING"
+
+
+def test_fusion_restart_during_mission(scene, tmp_path):
+    """The fusion server goes down mid-mission and comes back on the same port and data dir: the agent
+    keeps mapping, retries with backoff and completes its final push (SPEC §8)."""
+    from gausslite.parser import TaskParser
+    from services.fusion_server.client import FusionClient
+
+    data = tmp_path / "fusion"
+    f1 = _fusion(data)
+    port = f1.port
+    cfg = load_agent_config(None, TINY + ["agent.final_push_timeout_s=60"])
+    ds = load_dataset(scene / "agent_a")
+    text = ds.annotations.task_by_id("synth-pick-object").text
+    client = FusionClient(f1.address, timeout_s=5, max_retries=1, backoff_s=0.05)
+    rt = AgentRuntime("robot1", text, TaskParser().parse(text), cfg, annotations=ds.annotations, fusion=client)
+    f2 = None
+    try:
+        rt.submit(ds[0]); rt.submit(ds[1])
+        t0 = time.monotonic()
+        while len(rt.pushes) < 1 and time.monotonic() - t0 < 60:
+            time.sleep(0.05)
+        assert len(rt.pushes) == 1
+        f1.stop(0)
+        rt.submit(ds[2]); rt.submit(ds[3])
+        assert rt.wait_mapped(60)
+        t0 = time.monotonic()
+        while rt.push_failures == 0 and time.monotonic() - t0 < 30:
+            time.sleep(0.05)
+        assert rt.push_failures > 0 and rt.last_error
+        holder = {}
+
+        def restart():
+            time.sleep(1.0)
+            holder["srv"] = _fusion(data, port=port)
+
+        th = threading.Thread(target=restart)
+        th.start()
+        s = rt.finish(timeout_s=90)
+        th.join()
+        f2 = holder["srv"]
+        assert s.final_push_ok, rt.last_error
+        assert s.status["frames_mapped"] == 4
+        st = FusionClient(f2.address, timeout_s=10).stats()["agents"]["robot1"]
+        assert st["latest_map_version"] == rt.pushes[-1].version
+        assert st["gaussians_received"] == s.n_shared > 0
+        assert st["has_complete_subset"]
+    finally:
+        rt.close()
+        client.close()
+        if f2 is not None:
+            f2.stop(0)
+
+
+def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scene, tmp_path):
+    """A replayed TUM sequence gets the hand-held profile's mapper defaults (pose refinement, final pass),
+    as `gausslite map` gives them; a field the agent's YAML/overrides set keeps its value."""
+    from tests.datasets.test_datasets_fixtures import make_tum
+
+    seq = make_tum(tmp_path / "tum", n=3)
+    for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose_refine=false"], False)):
+        ag = serve_agent(ServerOptions(port=0), AgentSettings(
+            agent_id="tum", annotations_path=str(scene), config=load_agent_config(None, overrides)))
+        try:
+            rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
+            assert rt.config.mapper.pose_refine is want_refine
+            assert rt.config.mapper.final_iters_per_keyframe == 20.0 and rt.config.mapper.lambda_depth == 0.3
+            assert rt.config.mapper.exposure_comp is True and rt.config.mapper.motion_blur is True
+            assert rt.config.mapper.rolling_shutter_s == 0.02
+            assert rt.config.mapper.iters_per_frame == 3  # from TINY
+            assert ag.servicer.settings.config.mapper.pose_refine is False  # the agent's own config untouched
+            rt.close()
+        finally:
+            ag.stop(0)

@@ -1,0 +1,121 @@
+"""A fusion link that comes and goes: a real fusion-server process is stopped mid-mission and started
+again on the same port and data dir after ``GAUSSLITE_TEST_OUTAGE_S`` seconds (default 3). The agent
+keeps mapping, holds only the newest subset (bounded backlog, reported by ``GetStatus``), pushes it when
+the link returns, and the subset the server stores at the end is exactly the agent's final one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from gausslite.datasets import load_dataset
+from gausslite.parser import TaskParser
+from gausslite.synthetic import make_scene
+from gausslite.mission import AgentRuntime, load_agent_config
+from services.agent.server import AgentServicer
+from services.fusion_server.client import FusionClient
+
+REPO = Path(__file__).resolve().parents[2]
+OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
+CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1",
+       "agent.max_backoff_s=0.5", "agent.max_keyframes=3", "agent.final_push_timeout_s=60",
+       "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
+
+
+def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subprocess.Popen, int]:
+    if port_file.exists():
+        port_file.unlink()
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, "-m", "services.fusion_server", "--port", str(port), "--data-dir",
+                             str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 30
+    while not port_file.exists() or not port_file.read_text().strip():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"fusion server did not start (exit {proc.poll()})")
+        time.sleep(0.05)
+    return proc, int(port_file.read_text().strip())
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+
+
+def _wait(cond, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_link_outage_mid_mission(tmp_path):
+    scene = tmp_path / "scene"
+    make_scene(scene, seed=0, width=64, height=48, frames=12, progress=False)
+    ds = load_dataset(scene / "agent_a")
+    text = ds.annotations.task_by_id("synth-pick-object").text
+    data, port_file = tmp_path / "fusion", tmp_path / "port"
+    proc, port = _start_fusion(data, port_file)
+    client = FusionClient(f"127.0.0.1:{port}", timeout_s=3, max_retries=1, backoff_s=0.05)
+    rt = AgentRuntime("robot1", text, TaskParser().parse(text), load_agent_config(None, CFG),
+                      annotations=ds.annotations, fusion=client)
+    try:
+        for i in range(4):
+            rt.submit(ds[i])
+        assert rt.wait_mapped(60)
+        assert _wait(lambda: rt.status()["last_pushed_version"] >= 2, 60), rt.last_error
+        acked_before = rt.status()["last_pushed_version"]
+
+        _stop(proc)  # the link drops
+        t_down = time.monotonic()
+        for i in range(4, len(ds)):  # the agent keeps mapping
+            rt.submit(ds[i])
+        assert rt.wait_mapped(120)
+        assert _wait(lambda: rt.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
+        st = rt.status()
+        assert st["frames_mapped"] == len(ds) == 12
+        assert st["last_pushed_version"] == acked_before  # nothing acknowledged while the link is down
+        assert st["newest_map_version"] == 6 > acked_before  # 12 frames, a snapshot every 2
+        assert 1 <= st["push_backlog"] <= 2  # only the newest subset is held, not one per version
+        assert 1 <= st["keyframes_backlog"] <= 3  # bounded by agent.max_keyframes
+        msg = AgentServicer._status_proto(st)  # what GetStatus sends
+        assert msg.push_backlog == st["push_backlog"] and msg.newest_map_version == 6
+        assert msg.last_pushed_version == acked_before and msg.link_down_s > 0
+
+        time.sleep(max(0.0, OUTAGE_S - (time.monotonic() - t_down)))
+        proc, port2 = _start_fusion(data, port_file, port)  # the link returns
+        assert port2 == port
+        # the held subset goes out without any new frame or Finish
+        assert _wait(lambda: rt.status()["last_pushed_version"] == 6, 60), rt.last_error
+        st = rt.status()
+        assert st["push_backlog"] == 0 and st["link_down_s"] == 0.0 and st["keyframes_backlog"] == 0
+
+        s = rt.finish(timeout_s=120, evaluate=False)
+        assert s.final_push_ok, rt.last_error
+        version, subset, _ = rt.acknowledged_subset()
+        with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:
+            stats = c.stats()["agents"]["robot1"]
+            assert stats["latest_map_version"] == version == s.status["last_pushed_version"]
+            assert stats["has_complete_subset"]
+            fused = c.fuse("concat")  # concat keeps the rows verbatim: the stored subset itself
+            stored = c.download_fused(fused.fused_version)
+        assert len(stored) == len(subset) == s.n_shared > 0
+        assert stored.equals(subset)
+    finally:
+        rt.close()
+        client.close()
+        _stop(proc)

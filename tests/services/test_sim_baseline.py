@@ -1,0 +1,115 @@
+"""``gausslite sim --baseline uniform``: matched uniform agents beside GaussLite's in the report."""
+
+import pytest
+
+from services.sim import attach_uniform_baseline, write_markdown
+
+
+LIVE = {"frames_received": 150, "frames_keyframed": 20, "frames_skipped": 130, "accept_latency_ms_p99": 0.1,
+        "keyframe_latency_s_p95": 0.6, "idle_iterations": 5, "keyframe_iterations": 200, "frames_all": 150,
+        "offline_roi_psnr_all_frames": None}
+
+
+def _report(mode: str, realtime: bool, own: float, all_frames: float) -> dict:
+    agents = [{"id": "agent_a", "task": "t-a", "roi_psnr": own, "roi_psnr_all_frames": all_frames, "psnr": 20.0,
+               "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0, **LIVE},
+              {"id": "agent_b", "task": "t-b", "roi_psnr": own + 1, "roi_psnr_all_frames": all_frames + 1,
+               "psnr": 21.0, "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0, **LIVE}]
+    return {"scene": "s", "seconds": 1.0, "agents": agents, "realtime": realtime,
+            "fused": {k: {"roi_psnr_per_task": {}, "roi_psnr_mean": None, "n_gaussians": 0, "seconds": 0.0}
+                      for k in ("concat", "vote", "refine")},
+            "settings": {"mapper": {"mode": mode}, "voxel_size": 0.1, "refine_iters": 0}}
+
+
+@pytest.mark.parametrize("realtime", [True, False])
+def test_uniform_baseline_gives_each_agent_its_task_gain(tmp_path, realtime):
+    rep = _report("gausslite", realtime, own=25.0, all_frames=23.0)
+    base = _report("uniform", realtime, own=24.0, all_frames=21.5)
+    attach_uniform_baseline(rep, base)
+    a = rep["agents"][0]
+    assert a["uniform_roi_psnr_all_frames"] == 21.5 and a["uniform_roi_psnr"] == 24.0
+    assert a["task_gain_db"] == pytest.approx(1.5 if realtime else 1.0)
+    write_markdown(rep, tmp_path / "report.md")
+    md = (tmp_path / "report.md").read_text()
+    assert "What the task buys" in md and ("| 1.50 |" if realtime else "| 1.00 |") in md
+
+
+def test_uniform_baseline_refuses_a_mismatched_report():
+    rep = _report("gausslite", True, 25.0, 23.0)
+    with pytest.raises(ValueError, match="not 'uniform'"):
+        attach_uniform_baseline(rep, _report("gausslite", True, 24.0, 21.0))
+    other = _report("uniform", True, 24.0, 21.0)
+    other["agents"][1]["task"] = "t-c"
+    with pytest.raises(ValueError, match="no agent agent_b"):
+        attach_uniform_baseline(rep, other)
+
+
+class _FakeFusion:
+    """Fusion client double: two agents whose versions advance as the test says; every vote fuse returns a map
+    of as many Gaussians as the sum of the versions."""
+
+    def __init__(self):
+        self.versions = {}
+        self.fuses = []
+
+    def stats(self):
+        return {"agents": {a: {"latest_map_version": v, "has_complete_subset": v > 0} for a, v in self.versions.items()}}
+
+    def fuse(self, method, voxel_size, contest_radius):
+        from types import SimpleNamespace
+
+        self.fuses.append((method, voxel_size, contest_radius))
+        return SimpleNamespace(fused_version=len(self.fuses))
+
+    def download_fused(self, version):
+        from bench.wire_fuzz import random_arrays
+
+        return random_arrays(sum(self.versions.values()), version, extent=1.0)
+
+
+def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_path, monkeypatch):
+    from services import sim
+
+    fusion = _FakeFusion()
+    tl = sim.FusedTimeline(fusion, 0.1, 1)
+    assert not tl.poll(0.0)  # nothing uploaded yet
+    fusion.versions = {"agent_a": 1, "agent_b": 0}
+    assert tl.poll(1.0) and not tl.poll(2.0)  # fused once; nothing new since
+    fusion.versions = {"agent_a": 1, "agent_b": 1}
+    assert tl.poll(3.0)
+    assert fusion.fuses == [("vote", 0.1, 1), ("vote", 0.1, 1)]
+    assert [(t, v) for t, v, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
+    scored = []
+    monkeypatch.setattr("gausslite.evaluation.evaluate_fused",
+                        lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames))) or 20.0 + len(g))
+
+    class _DS:
+        annotations = None
+
+    out = tl.scores({"t-a": (_DS, list(range(12))), "t-b": (_DS, list(range(12)))}, stride=5)
+    assert [e["n_gaussians"] for e in out] == [1, 2] and out[1]["roi_psnr"] == {"t-a": 22.0, "t-b": 22.0}
+    assert scored[0] == (1, 3)  # every fifth frame
+    rep = _report("gausslite", True, own=25.0, all_frames=23.0)
+    rep["fused_timeline"] = out
+    assert sim.plot_fused_timeline(rep, tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
+    rep["fused_timeline_plot"] = "t.png"
+    write_markdown(rep, tmp_path / "report.md")
+    md = (tmp_path / "report.md").read_text()
+    assert "The fused map while mapping" in md and "| 3 | agent_a v1, agent_b v1 | 2 | 22.00 | 22.00 |" in md
+    assert "![fused ROI PSNR over time](t.png)" in md
+    # a failing fuse is logged and skipped, not raised
+    fusion.versions = {"agent_a": 2, "agent_b": 1}
+    fusion.fuse = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("server gone"))
+    assert not tl.poll(4.0) and len(tl.maps) == 2
+
+
+def test_live_sims_fuse_with_the_paper_per_voxel_rule_and_offline_sims_with_the_neighbourhood():
+    from services.sim import fuse_settings, load_sim_config
+
+    cfg = load_sim_config(None)  # deploy/gausslite.yaml
+    assert fuse_settings(cfg) == {"voxel_size": 0.10, "contest_radius": 1, "refine_iters": 300}
+    assert fuse_settings(cfg, realtime=True)["contest_radius"] == 0
+    assert fuse_settings({"sim": {"fuse": {"contest_radius": 2}}}, realtime=True)["contest_radius"] == 0
+    # the deployed agents share with the live rule
+    agent = cfg["agent"]
+    assert agent["share"] == "task" and agent["share_candidates"] == "rendered" and agent["share_max_fraction"] == 0.08
