@@ -260,6 +260,10 @@ def summarise(runs: list[dict]) -> dict:
     return out
 
 
+def _f(v, nd=2) -> str:
+    return "–" if v is None else f"{v:.{nd}f}"
+
+
 def _pm(v, s, nd=2) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f} ± {s:.{nd}f}"
 
@@ -347,9 +351,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides)
         runs.append(r)
         tqdm.write(f"{team} run {run}: " + "; ".join(
-            f"{a['id']} {a['task']} share {a['share_pct']:.1f} % upload {a['upload_ratio'] or 0:.2f}x own "
-            f"{a['own_roi_psnr']:.2f} concat {a['concat_roi_psnr']:.2f} vote {a['vote_roi_psnr']:.2f} "
-            f"refine {a['refine_roi_psnr']:.2f}" for a in r["agents"]))
+            f"{a['id']} {a['task']} share {_f(a['share_pct'], 1)} % upload {_f(a['upload_ratio'])}x own "
+            f"{_f(a['own_roi_psnr'])} concat {_f(a['concat_roi_psnr'])} vote {_f(a['vote_roi_psnr'])} "
+            f"refine {_f(a['refine_roi_psnr'])}" + (f" ({a['last_error']})" if a.get("last_error") else "")
+            for a in r["agents"]))
         out.with_suffix(".partial.json").write_text(json.dumps({"runs": runs}, indent=1))
     result = {"settings": {"budget": args.budget, "runs": args.runs, "eval_stride": args.eval_stride,
                            "overrides": args.overrides, "fuse": fuse_settings(), "machine": platform.machine(),
