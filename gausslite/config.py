@@ -71,8 +71,27 @@ class SimConfig(BaseModel):
 
 
 class FusionSettings(BaseModel):
-    """The fusion server's settings (``services.fusion_server.server.FusionConfig`` takes them; its docstring has the
-    meaning of each)."""
+    """The fusion server's settings (the ``fusion`` section; ``services.fusion_server`` serves with them).
+
+    Attributes:
+        data_dir (str): directory of the embedded SQLite store (used when ``store`` is empty).
+        store (str): ``postgresql://user:pw@host:port/db`` DSN of a PostgreSQL store shared by
+            replicas; empty = SQLite in ``data_dir``.
+        store_pool_size (int): PostgreSQL connections per server process.
+        store_acquire_timeout_s (float): PostgreSQL: how long a call waits for a database connection before
+            it fails with UNAVAILABLE (the database is down or restarting; clients retry with backoff).
+        max_keyframes_per_agent (int): keyframe buffer bound per agent (oldest dropped beyond it).
+        max_subset_gaussians (int): largest accepted subset (RESOURCE_EXHAUSTED beyond).
+        max_task_text_bytes (int): longest task text (INVALID_ARGUMENT beyond).
+        default_voxel_size (float): δ in metres when a FuseRequest leaves it 0 (paper: 0.10 m).
+        default_contest_radius (int): vote neighbourhood radius in voxels when a FuseRequest leaves it
+            unset (0 = the paper's per-voxel rule; 1 = each voxel contested over its 3×3×3 block, what
+            ``gausslite sim`` and the compose deployment request: :func:`gausslite.fusion.vote.voxel_vote`).
+            An incremental update with r = 1 re-votes the 27-fold neighbourhood of what it touches.
+        default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
+        max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
+        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``max_gaussians``).
+    """
 
     model_config = ConfigDict(extra="forbid")
     data_dir: str = "gausslite_fusion_data"
@@ -87,6 +106,34 @@ class FusionSettings(BaseModel):
     default_refine_iters: int = Field(200, ge=0)
     max_refine_iters: int = Field(20000, ge=0)
     refine_options: dict = Field(default_factory=dict)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "FusionSettings":
+        """Load from a GaussLite YAML (its ``fusion`` section), or a JSON or TOML file whose keys are the fields.
+
+        Raises:
+            FileNotFoundError: missing file. ValueError: unknown keys, bad values or an unparsable file.
+        """
+        import json
+
+        from pydantic import ValidationError
+
+        p = str(path)
+        try:
+            if p.endswith((".yaml", ".yml")):
+                return load_config(p).fusion
+            text = Path(p).read_text(encoding="utf-8")
+            if p.endswith(".toml"):
+                import tomllib
+
+                return cls.model_validate(tomllib.loads(text))
+            return cls.model_validate(json.loads(text))
+        except FileNotFoundError:
+            raise
+        except (ValidationError, ValueError) as e:  # parser errors, unknown keys, bad values
+            raise ValueError(f"bad fusion config {path}: {e}") from e
+        except Exception as e:  # noqa: BLE001 - any other parser error is a config error
+            raise ValueError(f"cannot parse fusion config {path}: {e}") from e
 
 
 class GaussLiteConfig(BaseModel):

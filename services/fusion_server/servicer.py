@@ -1,0 +1,509 @@
+"""The ``gausslite.v1.Fusion`` servicer: sessions, resumable subset and keyframe uploads, fuse jobs
+(:class:`gausslite.fusion.engine.FuseEngine`), downloads and statistics over the store (module docstring of
+:mod:`services.fusion_server.server`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from typing import Dict, Optional
+
+import grpc
+import numpy as np
+
+from gausslite.camera import Intrinsics, check_rigid
+from gausslite.config import FusionSettings
+from gausslite.fusion.engine import FuseEngine
+from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler, WireError,
+                                  WireLimits, apply_delta, assemble, decode_chunk, encode_subset, peek_header)
+from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from services.common.auth import Authenticator, AuthError
+from services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard, unary_guard,
+                                           check_agent_id, check_int64, decode_color, decode_depth, decode_roi)
+from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
+
+log = logging.getLogger("services.fusion_server.server")  # one logger for the whole service
+
+SERVICE_NAME = "gausslite.v1.Fusion"
+FUSED_AGENT_ID = "fused"
+_METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
+
+
+class FusionServicer(fusion_pb2_grpc.FusionServicer):
+    """Implements ``gausslite.v1.Fusion`` on top of a :class:`SqlFusionStore`.
+
+    Args:
+        store (SqlFusionStore): persistent state (SQLite or PostgreSQL).
+        config (FusionSettings): limits and defaults (the ``fusion`` section, :mod:`gausslite.config`).
+        max_message_bytes (int): the server's message bound (chunks must fit in it).
+        auth (Authenticator | None): identifies callers for the write checks (None: every caller may
+            write every agent's data, as on a server without credentials).
+    """
+
+    def __init__(self, store: SqlFusionStore, config: FusionSettings, max_message_bytes: int,
+                 auth: Optional[Authenticator] = None):
+        self.auth = auth
+        self.store = store
+        self.config = config
+        self.max_message_bytes = int(max_message_bytes)
+        self.limits = WireLimits(max_chunk_bytes=self.max_message_bytes,
+                                 max_total_gaussians=int(config.max_subset_gaussians),
+                                 max_chunk_gaussians=min(1 << 20, int(config.max_subset_gaussians)),
+                                 max_agent_id_bytes=64)
+        # fused chunks leave room for the FusedChunk envelope and the FuseResult of the first message
+        self.fused_chunk_bytes = max(64 * 1024, min(4 << 20, self.max_message_bytes - 64 * 1024))
+        self._cache: Dict[tuple, GaussianArrays] = {}
+        self._cache_lock = threading.Lock()
+        self._fuse_lock = threading.Lock()
+        self._engine = FuseEngine(config.refine_options)  # keeps the voted map current (under the fuse locks)
+        self._shutdown = threading.Event()
+        self._workers: "set[threading.Thread]" = set()
+
+    def shutdown(self, wait_s: float = 10.0) -> None:
+        """Stop running Fuse work (after the gRPC grace period) and wait up to ``wait_s`` for it.
+
+        A refinement notices the request at its next progress report (about every 1/20 of its
+        iterations).
+        """
+        self._shutdown.set()
+        deadline = time.monotonic() + wait_s
+        for t in list(self._workers):
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    # ------------------------------------------------------------------ helpers
+    def _check_writer(self, context, agent_id: str) -> None:
+        """Raise Reject(PERMISSION_DENIED) unless the caller may write ``agent_id``'s data
+        (UNAUTHENTICATED when its credential was revoked since the call began)."""
+        if self.auth is None or not self.auth.enabled:
+            return
+        try:
+            self.auth.identify_context(context).check_write(agent_id)
+        except AuthError as e:
+            raise Reject(e.code, e.message) from None
+
+    def _session(self, agent_id: str) -> Session:
+        check_agent_id(agent_id)
+        s = self.store.session(agent_id)
+        if s is None:
+            raise Reject(grpc.StatusCode.NOT_FOUND, f"agent {agent_id!r} has no open session; call OpenSession first")
+        return s
+
+    def _ack(self, agent_id: str, map_version: int, newly: int = 0) -> fusion_pb2.UploadAck:
+        up = self.store.upload(agent_id, map_version)
+        latest = self.store.latest_version(agent_id)
+        ack = fusion_pb2.UploadAck(agent_id=agent_id, map_version=map_version, newly_stored=newly,
+                                   is_latest=latest is not None and latest == map_version,
+                                   superseded_by=latest if latest is not None and latest > map_version else 0)
+        if up is not None:
+            ack.n_chunks = up.n_chunks
+            ack.stored.extend(up.stored)
+            ack.missing.extend(up.missing)
+            ack.complete = up.complete
+            ack.n_gaussians = up.n_gaussians
+            ack.bytes_on_wire = up.wire_bytes
+        return ack
+
+    def _subset(self, agent_id: str, version: int) -> GaussianArrays:
+        key = (agent_id, version)
+        with self._cache_lock:
+            hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        arrays, _ = assemble(self.store.chunk_data(agent_id, version), self.limits)
+        with self._cache_lock:
+            for k in [k for k in self._cache if k[0] == agent_id and k[1] != version]:
+                del self._cache[k]
+            self._cache[key] = arrays
+        return arrays
+
+    def _check_delta_base(self, agent: str, version: int, base_version: int) -> None:
+        """FAILED_PRECONDITION (and the delta upload discarded) when the base is not stored."""
+        base = self.store.upload(agent, base_version)
+        if base is None or not base.complete:
+            self.store.discard_upload(agent, version)
+            latest = self.store.latest_version(agent)
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                         f"delta v{version} of {agent!r} needs base version {base_version}, which this server "
+                         f"does not hold (latest complete: {latest if latest is not None else 'none'}); "
+                         "upload the full subset")
+
+    def _rebuild_delta(self, agent: str, version: int) -> None:
+        """When every chunk of a delta upload is stored: rebuild the full subset from its base and
+        store it (lossless chunks) as the complete version.  Idempotent and crash-safe: the delta
+        chunks stay until the rebuilt subset is committed, and a resumed upload redoes this."""
+        up = self.store.upload(agent, version)
+        if up is None or up.complete or up.missing:
+            return
+        asm = SubsetAssembler(self.limits, agent_id=agent, map_version=version)
+        for c in self.store.chunk_data(agent, version):
+            asm.add(c)
+        records, meta = asm.result()
+        if not meta.delta:
+            return
+        self._check_delta_base(agent, version, meta.base_version)
+        targets, removed = asm.delta_parts()
+        try:
+            full = apply_delta(self._subset(agent, meta.base_version), records, targets, removed,
+                               meta.base_count, meta.kappa_shift)
+        except DeltaMismatch as e:
+            self.store.discard_upload(agent, version)
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"delta v{version} of {agent!r}: {e}") from None
+        chunks = encode_subset(full, agent, version, quant=LOSSLESS, max_chunk_bytes=self.limits.max_chunk_bytes,
+                               limits=self.limits)
+        stored = [(c, decode_chunk(c, self.limits).digest, peek_header(c, self.limits).count) for c in chunks]
+        self.store.complete_rebuilt(agent, version, stored, len(full), True)
+        with self._cache_lock:
+            self._cache[(agent, version)] = full
+        log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed, κ shift %d): %d Gaussians",
+                 agent, version, meta.base_version, len(records), len(removed), meta.kappa_shift, len(full))
+
+    # ------------------------------------------------------------------ RPCs
+    @unary_guard
+    def OpenSession(self, request, context):  # noqa: N802
+        agent = check_agent_id(request.agent_id)
+        self._check_writer(context, agent)
+        if len(request.task_text.encode("utf-8")) > self.config.max_task_text_bytes:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                         f"task_text longer than {self.config.max_task_text_bytes} UTF-8 bytes")
+        if "\x00" in request.task_text:  # PostgreSQL text cannot hold NUL; refused by every store alike
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "task_text contains a NUL character")
+        if not request.HasField("intrinsics"):
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "intrinsics are required")
+        k = intrinsics_from_proto(request.intrinsics, "intrinsics")
+        created = self.store.open_session(Session(agent, request.task_text, k.fx, k.fy, k.cx, k.cy,
+                                                  int(k.width), int(k.height)))
+        latest = self.store.latest_version(agent)
+        log.info("session %s %s", agent, "opened" if created else "re-opened")
+        return fusion_pb2.SessionInfo(agent_id=agent, created=created, latest_map_version=latest or 0,
+                                      has_complete_subset=latest is not None,
+                                      keyframes=self.store.keyframe_count(agent),
+                                      max_keyframes=self.config.max_keyframes_per_agent,
+                                      max_message_bytes=self.max_message_bytes)
+
+    @unary_guard
+    def UploadSubset(self, request_iterator, context):  # noqa: N802
+        it = iter(request_iterator)
+        first = next(it, None)
+        if first is None or first.WhichOneof("payload") != "header":
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "the first UploadSubset message must be the header")
+        h = first.header
+        agent, version, n_chunks = h.agent_id, check_int64(h.map_version, "map_version"), int(h.n_chunks)
+        self._check_writer(context, check_agent_id(agent))
+        self._session(agent)
+        if n_chunks < 1:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "n_chunks must be >= 1")
+        if n_chunks > self.limits.max_chunks:
+            raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"n_chunks {n_chunks} exceeds {self.limits.max_chunks}")
+        latest = self.store.latest_version(agent)
+        if latest is not None and version < latest:
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                         f"map_version {version} of {agent!r} is superseded by complete version {latest}")
+        try:
+            self.store.begin_upload(agent, version, n_chunks, check_int64(h.full_map_gaussians, "full_map_gaussians"),
+                                    check_int64(h.full_map_bytes, "full_map_bytes"))
+        except ValueError as e:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+        newly = 0
+        for pos, msg in enumerate(it, start=1):
+            if msg.WhichOneof("payload") != "chunk":
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"message {pos}: expected a chunk, got a second header")
+            data = msg.chunk
+            try:
+                hdr = peek_header(data, self.limits)
+            except LimitExceeded as e:
+                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                             f"chunk at stream position {pos}: LimitExceeded: {e}") from None
+            except WireError as e:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"chunk at stream position {pos}: {type(e).__name__}: {e}") from None
+            idx = hdr.chunk_index
+            if hdr.delta:
+                self._check_delta_base(agent, version, check_int64(hdr.base_version, "delta base_version"))
+            if hdr.agent_id != agent or hdr.map_version != version:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"chunk {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
+                             f"header to {agent!r} v{version}")
+            if hdr.chunk_count != n_chunks:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"chunk {idx} says {hdr.chunk_count} chunks, the header {n_chunks}")
+            if h.full_map_gaussians and hdr.total_count > h.full_map_gaussians:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"chunk {idx}: subset of {hdr.total_count} Gaussians exceeds full_map_gaussians "
+                             f"{h.full_map_gaussians}")
+            try:
+                dc = decode_chunk(data, self.limits)
+            except WireError as e:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {type(e).__name__}: {e}") from None
+            try:
+                new, _ = self.store.put_chunk(agent, version, idx, bytes(data), dc.digest, hdr.count,
+                                              hdr.total_count, hdr.lossless, defer_complete=hdr.delta)
+            except ChunkConflict as e:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            except ValueError as e:
+                if self.store.upload(agent, version) is None:  # superseded meanwhile
+                    raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                                 f"map_version {version} of {agent!r} was superseded during the upload") from None
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            newly += int(new)
+        self._rebuild_delta(agent, version)
+        ack = self._ack(agent, version, newly)
+        if ack.complete and newly:
+            log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes", agent, version, ack.n_gaussians,
+                     ack.n_chunks, ack.bytes_on_wire)
+        return ack
+
+    @unary_guard
+    def GetUploadStatus(self, request, context):  # noqa: N802
+        self._session(request.agent_id)
+        return self._ack(request.agent_id, check_int64(request.map_version, "map_version"))
+
+    @unary_guard
+    def UploadKeyframes(self, request_iterator, context):  # noqa: N802
+        received = stored = dups = evicted = 0
+        agent = ""
+        allowed = set()
+        for msg in request_iterator:
+            received += 1
+            agent = msg.agent_id
+            if agent not in allowed:
+                self._check_writer(context, check_agent_id(agent))
+                allowed.add(agent)
+            session = self._session(agent)
+            what = f"keyframe {msg.frame_id} of {agent!r}"
+            if msg.HasField("intrinsics"):
+                k = intrinsics_from_proto(msg.intrinsics, what)
+            else:
+                k = Intrinsics(session.fx, session.fy, session.cx, session.cy, session.width, session.height)
+            if len(msg.pose.c2w) != 16:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: pose needs 16 values, got {len(msg.pose.c2w)}")
+            try:
+                c2w = check_rigid(np.asarray(msg.pose.c2w, np.float64).reshape(4, 4), what=f"{what} pose")
+            except ValueError as e:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+            scale = float(msg.depth_scale)
+            if not (math.isfinite(scale) and scale > 0):
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth_scale must be finite and > 0")
+            rgb = decode_color(msg.color, what)
+            depth = decode_depth(msg.depth_png, scale, what)
+            size = (int(k.height), int(k.width))
+            if rgb.shape[:2] != size or depth.shape != size:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"{what}: colour {rgb.shape[1]}x{rgb.shape[0]} / depth {depth.shape[1]}x{depth.shape[0]}"
+                             f" do not match the intrinsics' {size[1]}x{size[0]}")
+            if msg.roi_png:
+                decode_roi(msg.roi_png, size, what)
+            new, ev = self.store.put_keyframe(
+                StoredKeyframe(agent, int(msg.frame_id), bytes(msg.color), bytes(msg.depth_png), scale, c2w,
+                               k.fx, k.fy, k.cx, k.cy, int(k.width), int(k.height), float(msg.timestamp),
+                               bytes(msg.roi_png)),
+                self.config.max_keyframes_per_agent)
+            stored += int(new)
+            dups += int(not new)
+            evicted += ev
+        if received == 0:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "empty keyframe stream")
+        return fusion_pb2.KeyframeAck(agent_id=agent, received=received, stored=stored, duplicates=dups,
+                                      evicted=evicted, buffered=self.store.keyframe_count(agent))
+
+    @stream_guard
+    def Fuse(self, request, context):  # noqa: N802
+        method = request.method or fusion_pb2.FUSE_METHOD_VOTE
+        if method not in _METHOD_NAMES:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown fuse method {request.method}")
+        voxel = float(request.voxel_size) or self.config.default_voxel_size
+        if not (math.isfinite(voxel) and voxel > 0):
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"voxel_size must be finite and > 0, got {voxel}")
+        radius = (int(request.contest_radius) if request.HasField("contest_radius")
+                  else int(self.config.default_contest_radius))
+        if radius > 8:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"contest_radius must be in 0..8, got {radius}")
+        iters = int(request.refine_iters) or self.config.default_refine_iters
+        if request.refine and iters > self.config.max_refine_iters:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                         f"refine_iters {iters} exceeds the server limit {self.config.max_refine_iters}")
+        latest = self.store.latest_complete()
+        if not latest:
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
+                         "no agent has uploaded a complete subset yet; nothing to fuse")
+        if request.refine and self.store.keyframe_count() == 0:
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION, "refine=true but no keyframes were uploaded")
+
+        events: "queue.Queue[tuple]" = queue.Queue()
+        cancel = threading.Event()
+        context.add_callback(cancel.set)
+        worker = threading.Thread(target=self._fuse_work, name="gausslite-fuse", daemon=True,
+                                  args=(latest, method, voxel, bool(request.refine), iters, int(request.seed),
+                                        events, cancel, radius))
+        self._workers.add(worker)
+        worker.start()
+        try:
+            while True:
+                try:
+                    kind, payload = events.get(timeout=0.2)
+                except queue.Empty:
+                    if not context.is_active():
+                        cancel.set()
+                        log.info("Fuse cancelled by the client (or its deadline)")
+                        return
+                    continue
+                if kind == "progress":
+                    yield payload
+                elif kind == "done":
+                    yield payload
+                    return
+                elif kind == "cancelled":
+                    return
+                else:  # error
+                    if isinstance(payload, ValueError):
+                        raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"fusion failed: {payload}")
+                    raise payload
+        finally:
+            cancel.set()  # no-op when the work finished; stops it when the stream was closed early
+
+    def _fuse_work(self, latest: Dict[str, int], method: int, voxel: float, refine: bool, iters: int,
+                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event, radius: int = 0) -> None:
+        """Fuse worker (own thread): pushes ("progress"|"done"|"cancelled"|"error", payload) events."""
+        stage = {"name": "load"}
+
+        def emit(name: str, fraction: float, message: str) -> None:
+            if cancel.is_set() or self._shutdown.is_set():
+                raise Cancelled()
+            stage["name"] = name
+            events.put(("progress", fusion_pb2.FuseProgress(stage=name, fraction=float(fraction), message=message)))
+
+        def stopped() -> bool:
+            return cancel.is_set() or self._shutdown.is_set()
+
+        try:
+            while not self._fuse_lock.acquire(timeout=0.2):
+                if stopped():
+                    raise Cancelled()
+            db_lock = None
+            try:
+                cm = self.store.fuse_lock(stopped)  # serialises Fuse across every replica on the store
+                try:
+                    cm.__enter__()
+                except InterruptedError:
+                    raise Cancelled() from None
+                db_lock = cm
+                emit("load", 0.0, f"loading the subsets of {len(latest)} agent(s)")
+                maps = {a: self._subset(a, v) for a, v in latest.items()}
+                out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel, contest_radius=radius,
+                                        refine_iters=iters if refine else 0, keyframes=self._refine_keyframes,
+                                        seed=seed, progress=emit)
+                fused = out.fused
+                emit("store", 0.9, f"storing {len(fused)} Gaussians")
+                agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
+                                                       kept=int(out.kept.get(a, 0))) for a in sorted(maps)]
+
+                def info(version: int, nbytes: int) -> bytes:
+                    return fusion_pb2.FuseResult(
+                        fused_version=version, n_gaussians=len(fused), seconds=out.seconds, agents=agents,
+                        method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
+                        keyframes_used=out.keyframes_used, bytes=nbytes, created_unix=time.time(),
+                        vote_seconds=out.vote_seconds, agents_revoted=out.agents_revoted, incremental=out.incremental,
+                        contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0).SerializeToString()
+
+                if cancel.is_set() or self._shutdown.is_set():
+                    raise Cancelled()
+                version = self.store.put_fused(
+                    info, method, lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
+                                                          quant=LOSSLESS))
+                result = fusion_pb2.FuseResult.FromString(self.store.fused_info(version)[1])
+                log.info("fused version %d: %s, %d Gaussians, refine=%s, %.2fs", version, _METHOD_NAMES[method],
+                         len(fused), refine, result.seconds)
+                events.put(("done", fusion_pb2.FuseProgress(stage="done", fraction=1.0, done=True, result=result,
+                                                            message=f"fused version {version}")))
+            finally:
+                if db_lock is not None:
+                    db_lock.__exit__(None, None, None)
+                self._fuse_lock.release()
+        except Cancelled:
+            log.info("Fuse work stopped during stage %r (cancelled)", stage["name"])
+            events.put(("cancelled", None))
+        except Reject as r:
+            events.put(("error", ValueError(r.message)))
+        except Exception as e:  # noqa: BLE001 - reported to the caller as a status
+            log.exception("Fuse work failed")
+            events.put(("error", e))
+        finally:
+            self._workers.discard(threading.current_thread())
+
+    def _refine_keyframes(self) -> list:
+        """The stored keyframes of every agent, decoded for the refinement (``RefineKeyframe``)."""
+        from gausslite.fusion.refine import RefineKeyframe
+
+        kfs = []
+        for k in self.store.keyframes():
+            what = f"stored keyframe {k.frame_id}"
+            K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
+            kfs.append(RefineKeyframe(rgb=decode_color(k.color, what), depth=decode_depth(k.depth, k.depth_scale, what),
+                                      c2w=k.c2w, K=K, width=k.width, height=k.height,
+                                      roi=decode_roi(k.roi, (k.height, k.width), what) if k.roi else None))
+        return kfs
+
+    @stream_guard
+    def DownloadFused(self, request, context):  # noqa: N802
+        method = int(request.method)
+        if method and method not in _METHOD_NAMES:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown method filter {method}")
+        found = self.store.fused_info(check_int64(request.fused_version, "fused_version"), method)
+        if found is None:
+            what = f"fused version {request.fused_version}" if request.fused_version else "no fused map yet"
+            raise Reject(grpc.StatusCode.NOT_FOUND, f"unknown {what}" if request.fused_version else what
+                          + (f" of method {_METHOD_NAMES[method]}" if method else ""))
+        version, info_bytes, n = found
+        info = fusion_pb2.FuseResult.FromString(info_bytes)
+        if method and request.fused_version and info.method != method:
+            raise Reject(grpc.StatusCode.NOT_FOUND,
+                         f"fused version {version} was made by {_METHOD_NAMES.get(info.method)}, "
+                         f"not {_METHOD_NAMES[method]}")
+        for i in range(n):
+            if not context.is_active():
+                return
+            yield fusion_pb2.FusedChunk(fused_version=version, chunk_index=i, n_chunks=n,
+                                        chunk=self.store.fused_chunk(version, i), info=info if i == 0 else None)
+
+    @unary_guard
+    def GetStats(self, request, context):  # noqa: N802
+        resp = fusion_pb2.StatsResponse()
+        for s in self.store.sessions():
+            a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
+                                      keyframes=self.store.keyframe_count(s.agent_id))
+            latest, up = None, None
+            for _ in range(5):  # a newer version may complete (and delete this one) between the two reads
+                latest = self.store.latest_version(s.agent_id)
+                up = self.store.upload(s.agent_id, latest) if latest is not None else None
+                if latest is None or up is not None:
+                    break
+            if up is not None:
+                a.latest_map_version = latest
+                a.has_complete_subset = True
+                a.gaussians_received = up.n_gaussians
+                a.bytes_on_wire = up.wire_bytes
+                a.chunks = len(up.stored)
+                a.full_map_gaussians = up.full_map_gaussians
+                a.full_map_bytes = up.full_map_bytes
+                a.share_pct = 100.0 * up.n_gaussians / up.full_map_gaussians if up.full_map_gaussians else 0.0
+                a.bytes_per_gaussian = up.wire_bytes / up.n_gaussians if up.n_gaussians else 0.0
+            resp.agents.append(a)
+        for info in self.store.fused_infos():
+            resp.fused.append(fusion_pb2.FuseResult.FromString(info))
+        resp.latest_fused_version = resp.fused[-1].fused_version if resp.fused else 0
+        return resp
+
+    @unary_guard
+    def GetKeyframePoses(self, request, context):  # noqa: N802
+        agent = request.agent_id or None
+        if agent is not None:
+            self._session(agent)
+        resp = fusion_pb2.KeyframePosesResponse()
+        for k in self.store.keyframe_poses(agent):
+            resp.keyframes.add(agent_id=k.agent_id, frame_id=k.frame_id, timestamp=k.timestamp,
+                               pose=common_pb2.Pose(c2w=np.asarray(k.c2w, np.float64).reshape(-1).tolist()),
+                               intrinsics=common_pb2.Intrinsics(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width,
+                                                                height=k.height))
+        return resp
