@@ -228,6 +228,7 @@ class AgentRuntime:
         self.summary: Optional[MissionSummaryData] = None
         self._version = 0
         self.share = ShareSession(agent_id, config)  # selection, fine-tune cache, delta planning
+        self._abandoned = False  # the last selected snapshot was superseded before its fine-tune (pusher thread)
         self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
         self.final_subset_bytes = 0  # the last pushed subset encoded whole
         self._session_open = False
@@ -667,8 +668,15 @@ class AgentRuntime:
                     self._final_done.set()
                 return
         if snap.finetune is not None:
-            if self._superseded(snap):  # a newer snapshot waits: spend the fine-tune on that one
+            # a newer snapshot waits: spend the fine-tune on that one, but never twice in a row (when a selection
+            # takes longer than the keyframes between pushes, every selected snapshot would be superseded and a
+            # long live mission would stop pushing)
+            if self._superseded(snap) and not self._abandoned:
+                self._abandoned = True
+                log.info("agent %s: v%d superseded after its selection; the next one is pushed", self.agent_id,
+                         snap.version)
                 return
+            self._abandoned = False
             try:
                 out = self.share.finetuned(snap.gaussians, snap.ids, *snap.finetune, self.mapper.cfg)
             except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped

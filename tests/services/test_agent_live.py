@@ -769,3 +769,33 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
     assert rt.share.finetune_cache is not None  # the last push was fine-tuned...
     assert here == []  # ...and neither the selection nor the fine-tune ran in the agent's process
     assert rt.share.pool is None  # close() stopped the worker
+
+
+def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
+    """When the selection takes longer than the keyframes between pushes, a newer snapshot is always waiting by the
+    time it ends; the pusher skips the older one once, then pushes, so a long live mission keeps pushing."""
+    from gausslite.mission import AgentConfig
+    from gausslite.mission.runtime import _Snapshot
+
+    graph = {"targets": ["object"], "anchors": [], "relations": []}
+    cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite"))
+    rt = AgentRuntime("s1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=object())
+    pushed = []
+    try:
+        def select(cap, backend="auto"):
+            with rt._lock:  # a newer snapshot arrives while this one is being selected
+                rt._pending = _Snapshot(99, None, 1, False, np.zeros(1, np.int64), 0, None, "later")
+            return dataclasses.replace(cap, gaussians="subset", finetune=("key", []), select=None)
+
+        monkeypatch.setattr(rt.share, "select", select)
+        monkeypatch.setattr(rt.share, "finetuned", lambda arrays, ids, key, kfs, cfg: arrays)
+        monkeypatch.setattr(rt, "_push_with_retries", lambda snap, budget: pushed.append(snap.version) or True)
+        for v in (1, 2, 3):
+            with rt._lock:  # the pusher loop has taken the pending snapshot
+                rt._pending = None
+            rt._push_snapshot(_Snapshot(v, None, 1, False, np.zeros(1, np.int64), 0, None, "select"))
+        assert pushed == [2]  # v1 superseded, v2 pushed although v99 waited, v3 superseded again
+    finally:
+        with rt._lock:
+            rt._pending = None
+        rt.close()
