@@ -40,6 +40,7 @@ from typing import Optional
 
 import numpy as np
 
+from bench._results import write_results
 from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, _mission, scene_path, score
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
@@ -362,10 +363,7 @@ def main(argv: Optional[list[str]] = None) -> int:
               "teams": summarise(runs), "runs": runs}
     for team in teams:
         plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
-    out.write_text(json.dumps(result, indent=1))
-    md = table(result)
-    out.with_suffix(".md").write_text(md + "\n")
-    print(md)
+    write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min", table(result), result)
     return 0
 
 

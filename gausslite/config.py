@@ -12,10 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Dict, List, Optional
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gausslite.mapping.config import MapperConfig, apply_overrides
+from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
 from gausslite.mission.config import AgentConfig
 
 __all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config", "read_yaml",
@@ -177,21 +176,6 @@ class GaussLiteConfig(BaseModel):
         schema.setdefault("properties", {})["mapper"] = {"$ref": "#/$defs/MapperConfig"}
         schema.setdefault("$defs", {}).setdefault("MapperConfig", MapperConfig.model_json_schema())
         return schema
-
-
-def read_yaml(path: str | Path) -> dict:
-    """The mapping at the top of a YAML file (the one reader of GaussLite configuration files).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: the top level is not a mapping.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"config file not found: {p}")
-    data = yaml.safe_load(p.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{p}: top level must be a mapping")
-    return data
 
 
 def load_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> GaussLiteConfig:

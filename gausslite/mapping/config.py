@@ -358,6 +358,21 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
     return data
 
 
+def read_yaml(path: str | Path) -> dict:
+    """The mapping at the top of a YAML file (the one reader of GaussLite configuration files).
+
+    Raises:
+        FileNotFoundError: missing file. ValueError: the top level is not a mapping.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    data = yaml.safe_load(p.read_text()) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: top level must be a mapping, got {type(data).__name__}")
+    return data
+
+
 def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
                 defaults: Optional[dict] = None, **fields: Any) -> MapperConfig:
     """Build a :class:`MapperConfig` from ``defaults`` (e.g. a sensor profile's; lowest precedence),
@@ -369,13 +384,7 @@ def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()
     """
     data: dict = dict(defaults or {})
     if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"config file not found: {p}")
-        loaded = yaml.safe_load(p.read_text()) or {}
-        if not isinstance(loaded, dict):
-            raise ValueError(f"{p}: top level must be a mapping, got {type(loaded).__name__}")
-        data.update(loaded)
+        data.update(read_yaml(path))
     data = apply_overrides(data, overrides)
     data.update({k: v for k, v in fields.items() if v is not None})
     return MapperConfig.model_validate(data)
