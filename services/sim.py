@@ -105,7 +105,9 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
     if ann is None or len(ann.tasks) < 1:
         raise ValueError(f"{dataset}: the simulation needs objects.json/tasks.json with tasks")
     known = [t.id for t in ann.tasks]
-    tasks_cfg = ((cfg.get("sim") or {}).get("tasks") or {})
+    from gausslite.config import SimConfig
+
+    tasks_cfg = SimConfig.model_validate(cfg.get("sim") or {}).tasks
     if not task_ids:
         for key in ("synthetic", "room0"):
             pair = tasks_cfg.get(key) or []
@@ -532,18 +534,19 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_sim_config(config, list(overrides))
-    sim_cfg = cfg.get("sim") or {}
-    timeout_s = float(timeout_s or sim_cfg.get("timeout_s", 1800))
+    from gausslite.config import SimConfig
+
+    sim_cfg = SimConfig.model_validate(cfg.get("sim") or {})  # typed: its defaults are the only ones
+    timeout_s = float(timeout_s or sim_cfg.timeout_s)
     deadline = time.monotonic() + timeout_s
     config_path = out / "config.yaml"
     config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     if dataset is None:
         from gausslite.synthetic import make_scene
 
-        sc = sim_cfg.get("scene") or {}
+        sc = sim_cfg.scene
         log.info("generating the synthetic default scene into %s", out / "scene")
-        make_scene(out / "scene", seed=int(sc.get("seed", 0)), width=int(sc.get("width", 320)),
-                   height=int(sc.get("height", 240)), frames=int(sc.get("frames", 16)), progress=progress)
+        make_scene(out / "scene", seed=sc.seed, width=sc.width, height=sc.height, frames=sc.frames, progress=progress)
         dataset = str(out / "scene")
     plans = plan_agents(dataset, cfg, task_ids)
     _check_bags(plans, cfg)

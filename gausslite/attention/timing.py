@@ -15,47 +15,45 @@ from gausslite.attention.interfaces import Detections, Detector, FrameContext, S
 __all__ = ["CostOnlyDetector", "CostOnlySegmenter"]
 
 
-class CostOnlyDetector:
-    """Runs ``cost.detect`` (its result is dropped), then returns ``answer.detect``.
+class _CostOnly:
+    """Runs the ``cost`` backend's method (its result is dropped), then returns the ``answer`` backend's.
 
     Attributes:
         seconds: wall time of each ``cost`` call, seconds. answer_seconds: total time of ``answer``, seconds.
     """
 
-    def __init__(self, cost: Detector, answer: Detector) -> None:
+    def __init__(self, cost, answer) -> None:
         self.cost, self.answer = cost, answer
         self.seconds: List[float] = []
         self.answer_seconds = 0.0
+
+    def _call(self, method: str, *args):
+        t = time.perf_counter()
+        getattr(self.cost, method)(*args)
+        t1 = time.perf_counter()
+        self.seconds.append(t1 - t)
+        out = getattr(self.answer, method)(*args)
+        self.answer_seconds += time.perf_counter() - t1
+        return out
+
+
+class CostOnlyDetector(_CostOnly):
+    """Runs ``cost.detect`` (its result is dropped), then returns ``answer.detect`` (:class:`_CostOnly`)."""
+
+    def __init__(self, cost: Detector, answer: Detector) -> None:
+        super().__init__(cost, answer)
 
     def detect(self, image: np.ndarray, phrases: Sequence[str], context: Optional[FrameContext] = None) -> Detections:
         """``answer``'s detections of ``phrases`` in the (H, W, 3) uint8 image, after running ``cost`` on it."""
-        t = time.perf_counter()
-        self.cost.detect(image, phrases, context)
-        t1 = time.perf_counter()
-        self.seconds.append(t1 - t)
-        out = self.answer.detect(image, phrases, context)
-        self.answer_seconds += time.perf_counter() - t1
-        return out
+        return self._call("detect", image, phrases, context)
 
 
-class CostOnlySegmenter:
-    """Runs ``cost.segment`` (its result is dropped), then returns ``answer.segment``.
-
-    Attributes:
-        seconds: wall time of each ``cost`` call, seconds. answer_seconds: total time of ``answer``, seconds.
-    """
+class CostOnlySegmenter(_CostOnly):
+    """Runs ``cost.segment`` (its result is dropped), then returns ``answer.segment`` (:class:`_CostOnly`)."""
 
     def __init__(self, cost: Segmenter, answer: Segmenter) -> None:
-        self.cost, self.answer = cost, answer
-        self.seconds: List[float] = []
-        self.answer_seconds = 0.0
+        super().__init__(cost, answer)
 
     def segment(self, image: np.ndarray, boxes: np.ndarray, context: Optional[FrameContext] = None) -> np.ndarray:
         """``answer``'s (K, H, W) bool masks for the (K, 4) xyxy boxes, after running ``cost`` on them."""
-        t = time.perf_counter()
-        self.cost.segment(image, boxes, context)
-        t1 = time.perf_counter()
-        self.seconds.append(t1 - t)
-        out = self.answer.segment(image, boxes, context)
-        self.answer_seconds += time.perf_counter() - t1
-        return out
+        return self._call("segment", image, boxes, context)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
 from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_vote
@@ -47,7 +47,6 @@ class FuseOutcome:
     incremental: bool = False
     keyframes_used: int = 0
     seconds: float = 0.0
-    extra: dict = field(default_factory=dict)
 
 
 class FuseEngine:

@@ -40,6 +40,17 @@ def abort_call(context, method: str, code: grpc.StatusCode, message: str):
     context.abort(code, message)
 
 
+def _as_reject(e: Exception, method: str) -> Reject:
+    """The status a handler's exception ends its call with: its own (:class:`Reject`), UNAVAILABLE for a database
+    that is down or restarting (transient: the client retries), otherwise INTERNAL with the cause logged."""
+    if isinstance(e, Reject):
+        return e
+    if isinstance(e, StoreUnavailable):
+        return Reject(grpc.StatusCode.UNAVAILABLE, str(e))
+    log.exception("%s failed", method)
+    return Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
+
+
 def unary_guard(fn):
     """Translate :class:`Reject` and unexpected errors of a unary-response handler into statuses."""
 
@@ -47,15 +58,10 @@ def unary_guard(fn):
     def wrapper(self, request, context):
         try:
             return fn(self, request, context)
-        except Reject as r:
-            err = r
         except MalformedMessage:  # already logged; DecodeInterceptor ends the call with INVALID_ARGUMENT
             raise
-        except StoreUnavailable as e:  # the database is down or restarting: transient, the client retries
-            err = Reject(grpc.StatusCode.UNAVAILABLE, str(e))
-        except Exception as e:  # noqa: BLE001 - never crash, report INTERNAL with the cause logged
-            log.exception("%s failed", fn.__name__)
-            err = Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
+        except Exception as e:  # noqa: BLE001 - never crash: a precise status, or INTERNAL with the cause logged
+            err = _as_reject(e, fn.__name__)
         abort_call(context, fn.__name__, err.code, err.message)
 
     return wrapper
@@ -69,15 +75,10 @@ def stream_guard(fn):
         try:
             yield from fn(self, request, context)
             return
-        except Reject as r:
-            err = r
         except MalformedMessage:  # already logged; DecodeInterceptor ends the call with INVALID_ARGUMENT
             raise
-        except StoreUnavailable as e:  # the database is down or restarting: transient, the client retries
-            err = Reject(grpc.StatusCode.UNAVAILABLE, str(e))
-        except Exception as e:  # noqa: BLE001
-            log.exception("%s failed", fn.__name__)
-            err = Reject(grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
+        except Exception as e:  # noqa: BLE001 - never crash: a precise status, or INTERNAL with the cause logged
+            err = _as_reject(e, fn.__name__)
         abort_call(context, fn.__name__, err.code, err.message)
 
     return wrapper
