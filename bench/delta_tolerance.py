@@ -68,7 +68,7 @@ def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
     from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, ShareView, select_task_subset
+    from gausslite.sharing import ShareConfig, select_task_subset
     from gausslite.wire.codec import GaussianArrays
     from gausslite.wire.delta import PushPlanner
 
@@ -92,9 +92,7 @@ def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
         if (i + 1) % args.push_every and not last:
             continue
         gmap = mapper.gmap
-        views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy(), kf.K.cpu().numpy())
-                 for kf in mapper.keyframes if kf.roi is not None]
-        mask, _ = select_task_subset(gmap, views, ShareConfig(coverage=0.99))
+        mask, _ = select_task_subset(gmap, list(mapper.keyframes), ShareConfig(coverage=0.99))
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = mapper.model.ids.numpy()[mask]
         version += 1

@@ -107,6 +107,12 @@ class Preloaded:
         self.frames = [ds[i] for i in range(len(ds))]
         self.annotations = ds.annotations
 
+    def slice(self, start: int, stop: int) -> "Preloaded":
+        """Frames ``[start, stop)`` as a preloaded dataset of their own (no copy of the frames)."""
+        out = Preloaded.__new__(Preloaded)
+        out.frames, out.annotations = self.frames[start:stop], self.annotations
+        return out
+
     def __len__(self) -> int:
         return len(self.frames)
 

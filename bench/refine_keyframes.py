@@ -12,6 +12,7 @@ Prints a table and writes ``bench/results/share_sim_seeds/refine_jpeg_vs_png_roo
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import Optional, Sequence
@@ -25,7 +26,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the comparison (exit 0)."""
     from gausslite.datasets import load_dataset
     from gausslite.evaluation import evaluate_fused
-    from gausslite.fusion.refine import RefineKeyframe, refine_map
+    from gausslite.camera import Intrinsics
+    from gausslite.datasets.base import Frame
+    from gausslite.fusion.refine import refine_map
+    from gausslite.mapping.views import keyframe_from_frame
     from gausslite.wire.codec import assemble
     from gausslite.wire.images import decode_color, decode_depth
     from gausslite_rpc import fusion_pb2
@@ -50,11 +54,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     by_id = {int(f.frame_id): f for f in frames}
     uploaded, original = [], []
     for k in st.keyframes():
-        K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]])
-        depth = decode_depth(k.depth, k.depth_scale, "keyframe")
-        uploaded.append(RefineKeyframe(decode_color(k.color, "keyframe"), depth, k.c2w, K, k.width, k.height))
         f = by_id[int(k.frame_id)]
-        original.append(RefineKeyframe(f.rgb, f.depth, f.c2w, K, k.width, k.height))
+        intr = Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        up = Frame(k.frame_id, k.timestamp, decode_color(k.color, "keyframe"),
+                   decode_depth(k.depth, k.depth_scale, "keyframe"), np.asarray(k.c2w, np.float64), intr)
+        uploaded.append(keyframe_from_frame(up, "cpu"))
+        original.append(keyframe_from_frame(dataclasses.replace(f, intrinsics=intr), "cpu"))
     tasks = [t.id for t in ds.annotations.tasks][:2] if args.tasks is None else args.tasks.split(",")
     rows = {}
     for name, arr in (("vote", fused), ("refine, uploaded keyframes", refine_map(fused, uploaded, args.iters)),

@@ -94,7 +94,7 @@ def run(job: dict, iters: list[int], fresh_moments: bool = False, seed: int = 0)
     t0 = time.perf_counter()
     n = len(mapper.keyframes)
     for _ in range(iters[0]):
-        mapper._iterate(mapper.keyframes.load(int(rng.integers(n)), mapper.device), active_phase=False)
+        mapper.step(mapper.keyframes.load(int(rng.integers(n)), mapper.device), active_phase=False)
     out["full_pass"] = {"iters": iters[0], "seconds": time.perf_counter() - t0, **score(mapper, ds, stride, rois)}
     for t, fn in rois.items():
         mapper.model = _fresh(base, fresh_moments)
@@ -103,8 +103,8 @@ def run(job: dict, iters: list[int], fresh_moments: bool = False, seed: int = 0)
         curve, done, t0 = [], 0, time.perf_counter()
         for stop in iters:
             while done < stop and views:
-                mapper._iterate(views[int(rng.integers(len(views)))], active_phase=False, footprint_only=True,
-                                footprint_roi=True)
+                mapper.step(views[int(rng.integers(len(views)))], active_phase=False, footprint_only=True,
+                            footprint_roi=True)
                 done += 1
             sc = score(mapper, ds, stride, {t: fn})
             curve.append({"iters": stop, "roi_psnr": sc["roi_psnr"][t], "psnr": sc["psnr"],

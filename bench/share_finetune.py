@@ -25,6 +25,7 @@ Mean ± std over seeds. Writes ``bench/results/share_finetune.json`` and ``.md``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -46,12 +47,12 @@ def run_seed(args, seed: int) -> dict:
 
     from bench.delta_tolerance import AGENT_MAPPER
     from gausslite.datasets import load_dataset
-    from gausslite.fusion.refine import RefineKeyframe, refine_map
+    from gausslite.fusion.refine import refine_map
     from gausslite.fusion.vote import voxel_vote
     from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, ShareView, finetune_subset, select_task_subset
+    from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset
     from gausslite.wire.codec import GaussianArrays
     from gausslite.evaluation import evaluate_fused
 
@@ -71,9 +72,7 @@ def run_seed(args, seed: int) -> dict:
             mapper.map_frame(fr, roi_fn(fr))
         out[task]["own"] = score(mapper.gmap, task)
         kfs = [mapper.keyframes.load(i, mapper.device) for i in range(len(mapper.keyframes))]
-        views = [ShareView(k.roi.cpu().numpy(), k.depth.cpu().numpy(), k.c2w.cpu().numpy(), k.K.cpu().numpy())
-                 for k in kfs if k.roi is not None]
-        mask, _ = select_task_subset(mapper.gmap, views, ShareConfig(coverage=0.99))
+        mask, _ = select_task_subset(mapper.gmap, kfs, ShareConfig(coverage=0.99))
         raw = GaussianArrays.from_any(mapper.gmap).take(mask)
         t0 = time.perf_counter()
         subs[task] = GaussianArrays.from_any(finetune_subset(raw, kfs, args.finetune_iters, mapper.cfg, seed=seed))
@@ -81,10 +80,8 @@ def run_seed(args, seed: int) -> dict:
         out[task]["n_shared"] = len(raw)
         out[task]["alone_raw"] = score(raw, task)
         out[task]["alone_ft"] = score(subs[task], task)
-        refine_kfs += [RefineKeyframe((k.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8), k.depth.cpu().numpy(),
-                                      k.c2w.cpu().numpy().astype(np.float64), k.K.cpu().numpy().astype(np.float64),
-                                      k.width, k.height, None if k.roi is None else k.roi.cpu().numpy())
-                       for k in kfs[::2]]
+        # the keyframes as uploaded: colour rounded to 8 bits
+        refine_kfs += [dataclasses.replace(k, rgb=(k.rgb * 255 + 0.5).floor() / 255.0) for k in kfs[::2]]
     fused = {}
     for r in (0, 1):
         fused[r], _ = voxel_vote(dict(zip(("agent_a", "agent_b"), (subs[t] for t in TASKS))), 0.10, contest_radius=r)

@@ -78,7 +78,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
     from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, ShareView, finetune_subset, select_task_subset, update_shared_subset
+    from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset, update_shared_subset
     from gausslite.wire.codec import GaussianArrays
     from gausslite.wire.delta import PushPlanner
     from gausslite.evaluation import evaluate_fused
@@ -107,9 +107,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
                 continue
             version += 1
             kfs = [mapper.keyframes.load(k, mapper.device) for k in range(len(mapper.keyframes))]
-            views = [ShareView(k.roi.cpu().numpy(), k.depth.cpu().numpy(), k.c2w.cpu().numpy(), k.K.cpu().numpy())
-                     for k in kfs if k.roi is not None]
-            mask, _ = select_task_subset(mapper.gmap, views, ShareConfig(coverage=0.99))
+            mask, _ = select_task_subset(mapper.gmap, kfs, ShareConfig(coverage=0.99))
             raw = GaussianArrays.from_any(mapper.gmap).take(mask)
             ids = mapper.model.ids.numpy()[mask]
             for a, r in zip(arms, [None] + refresh):

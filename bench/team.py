@@ -72,7 +72,7 @@ class RecordingFusion(SinkFusion):
         self.t0 = time.perf_counter()
         self.history: list = []
         self.subsets: dict = {}
-        self.keyframes: dict = {}  # frame_id -> RefineKeyframe
+        self.keyframes: dict = {}  # frame_id -> gausslite.mapping.views.Keyframe
 
     def start(self) -> None:
         self.t0 = time.perf_counter()
@@ -94,31 +94,14 @@ class RecordingFusion(SinkFusion):
         return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
 
     def upload_keyframes(self, agent_id, frames, *, rois=None, **kw):
-        from gausslite.fusion.refine import RefineKeyframe
+        from gausslite.mapping.views import keyframe_from_frame
 
         for i, fr in enumerate(frames):
             roi = None if rois is None or rois[i] is None else np.asarray(rois[i], bool)
-            self.keyframes.setdefault(int(fr.frame_id), RefineKeyframe(
-                rgb=np.asarray(fr.rgb), depth=np.asarray(fr.depth, np.float32), c2w=np.asarray(fr.c2w, np.float64),
-                K=np.asarray(fr.intrinsics.K, np.float64), width=fr.intrinsics.width, height=fr.intrinsics.height,
-                roi=roi))
+            self.keyframes.setdefault(int(fr.frame_id), keyframe_from_frame(fr, "cpu", roi))
         while len(self.keyframes) > self.max_keyframes:
             self.keyframes.pop(next(iter(self.keyframes)))
         return len(frames)
-
-
-class _Frames:
-    """Frames ``[start, stop)`` of a preloaded sequence, as a dataset."""
-
-    def __init__(self, ds, start: int, stop: int) -> None:
-        self.frames = ds.frames[start:stop]
-        self.annotations = ds.annotations
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def __getitem__(self, i: int):
-        return self.frames[i]
 
 
 def fuse_settings() -> dict:
@@ -145,7 +128,7 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
     lo, hi = spec.get("frames") or (0, len(ds))
     try:
         sink.start()
-        rt.replay(_Frames(ds, lo, hi))
+        rt.replay(ds.slice(lo, hi))
         rt._replay_thread.join()
         rt.finish(push=True, evaluate=False)
         wall = time.perf_counter() - sink.t0

@@ -11,7 +11,7 @@ respect to the three statistics are formed per pixel, and the backward pass blur
 with the same (symmetric, zero-padded, hence self-adjoint) window:
 ``∂L/∂x = g · (G * ∂s/∂μ_x + 2 x · G * ∂s/∂E[x²] + y · G * ∂s/∂E[xy])`` with ``g = 1 / (3 H W)``.
 
-Used by :func:`gausslite.mapping.mapper.photometric_loss` for full-image views on CPU (float32);
+Used by :func:`gausslite.mapping.loss.photometric_loss` for full-image views on CPU (float32);
 :func:`gausslite.metrics.ssim_map` stays the reference (tests/render/test_fused_ssim.py: value within 1e-6,
 gradient within 1e-5 relative).
 """

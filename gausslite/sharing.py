@@ -1,7 +1,8 @@
 """Which Gaussians an agent shares for its task (paper Sec. III-E; ``docs/sharing.md``).
 
 The shared subset is the intersection of three rules, applied to a map and the agent's ROI
-keyframes (views with their relevance mask):
+keyframes (:class:`~gausslite.mapping.views.Keyframe`, or their compact stored form, with their relevance
+mask ``roi``; keyframes without one are ignored):
 
 1. **Task region.** Every ROI pixel with valid depth of every ROI keyframe is back-projected into
    the world frame and voxelised (``region_voxel_m``), and the voxel set is dilated by
@@ -38,7 +39,7 @@ import torch
 
 from gausslite.mapping.memory import VOXEL_KEY_OFFSET, pack_voxel_keys
 
-__all__ = ["ShareConfig", "ShareView", "task_region", "in_region", "roi_contribution", "select_task_subset",
+__all__ = ["ShareConfig", "task_region", "in_region", "roi_contribution", "select_task_subset",
            "finetune_subset", "update_shared_subset"]
 
 _OFF = VOXEL_KEY_OFFSET  # voxel keys as in the scene budget (gausslite.mapping.memory)
@@ -90,27 +91,10 @@ class ShareConfig:
             raise ValueError(f"held_weight must be >= 1, got {self.held_weight}")
 
 
-@dataclass
-class ShareView:
-    """One ROI keyframe: ``roi`` (H, W) bool relevance mask, ``depth`` (H, W) metres (0 = invalid),
-    ``c2w`` (4, 4) camera-to-world (OpenCV camera: x right, y down, z forward), ``K`` (3, 3) pixels."""
-
-    roi: np.ndarray
-    depth: np.ndarray
-    c2w: np.ndarray
-    K: np.ndarray
-
-    @property
-    def width(self) -> int:
-        return int(self.roi.shape[1])
-
-    @property
-    def height(self) -> int:
-        return int(self.roi.shape[0])
-
-
-def task_region(views: Sequence[ShareView], voxel_m: float = 0.05, dilate: int = 1) -> np.ndarray:
-    """Sorted unique packed voxel keys of the dilated task region (see the module docstring).
+def task_region(views: Sequence, voxel_m: float = 0.05, dilate: int = 1) -> np.ndarray:
+    """Sorted unique packed voxel keys of the dilated task region (see the module docstring) of the ROI keyframes
+    ``views`` (each with ``roi`` (H, W) bool, ``depth`` (H, W) metres, ``c2w`` (4, 4) camera-to-world, OpenCV axes,
+    and ``K`` (3, 3) pixels; arrays or CPU tensors).
 
     Raises:
         ValueError: ``voxel_m <= 0`` or ``dilate < 0``.
@@ -119,6 +103,8 @@ def task_region(views: Sequence[ShareView], voxel_m: float = 0.05, dilate: int =
         raise ValueError("voxel_m must be > 0 and dilate >= 0")
     keys = []
     for v in views:
+        if v.roi is None:
+            continue
         m = np.asarray(v.roi, bool) & (np.asarray(v.depth) > 0)
         if not m.any():
             continue
@@ -149,10 +135,11 @@ def in_region(means, region: np.ndarray, voxel_m: float = 0.05) -> np.ndarray:
     return np.isin(_pack(np.floor(m.astype(np.float64) / voxel_m).astype(np.int64)), region)
 
 
-def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
+def roi_contribution(gmap, views: Sequence, backend: str = "auto",
                      subset: Optional[torch.Tensor] = None) -> np.ndarray:
     """(N,) float64 accumulated alpha-blending weight of each Gaussian over the ROI pixels of
-    ``views`` (``Σ_views Σ_{p∈ROI} T_ip α_ip``), rendering ``gmap`` (or its ``subset`` rows).
+    ``views`` (``Σ_views Σ_{p∈ROI} T_ip α_ip``; ROI keyframes as in :func:`task_region`), rendering ``gmap``
+    (or its ``subset`` rows).
 
     Exact: the rendered colour is ``Σ_i T_ip α_ip c_i + T_p · background``, so the gradient of the
     ROI-summed red channel with respect to ``c_i`` is the weight.
@@ -164,6 +151,8 @@ def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
     if n == 0:
         return out
     for v in views:
+        if v.roi is None:
+            continue
         roi = torch.as_tensor(np.asarray(v.roi, bool))
         if not bool(roi.any()):
             continue
@@ -174,13 +163,14 @@ def roi_contribution(gmap, views: Sequence[ShareView], backend: str = "auto",
     return out
 
 
-def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = ShareConfig(),
+def select_task_subset(gmap, views: Sequence, cfg: ShareConfig = ShareConfig(),
                        backend: str = "auto", held: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
     """Boolean mask (N,) of the Gaussians to share, and counts per rule (module docstring).
 
     Args:
         gmap: the agent's map (GaussianMap: means, opacity_logits, active, kappa, ...).
-        views: ROI keyframes.  With no ROI pixel at all, the task flag and κ rule alone decide.
+        views: the ROI keyframes (as in :func:`task_region`).  With no ROI pixel at all, the task flag and κ rule
+            alone decide.
         cfg: rule parameters.  backend: renderer backend.
         held: optional (N,) bool, the Gaussians the fusion server holds from the last push (``cfg.held_weight``).
 
@@ -193,7 +183,7 @@ def select_task_subset(gmap, views: Sequence[ShareView], cfg: ShareConfig = Shar
     rendered = cfg.candidates == "rendered"
     cand = np.ones(len(active), bool) if rendered else active & (kappa >= cfg.kappa_threshold)
     stats = {"active_kappa": int((active & (kappa >= cfg.kappa_threshold)).sum())}
-    views = [v for v in views if np.asarray(v.roi).any()]
+    views = [v for v in views if v.roi is not None and np.asarray(v.roi).any()]
     if not views or not cand.any():
         if rendered:  # no ROI seen yet: nothing draws the task region
             cand = np.zeros_like(cand)
@@ -258,7 +248,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     Args:
         subset: ``GaussianMap`` (or any container ``GaussianArrays.from_any`` takes) of N Gaussians,
             world frame, metres.
-        keyframes: the agent's keyframes (``gausslite.mapping.mapper.Keyframe``, on any device);
+        keyframes: the agent's keyframes (``gausslite.mapping.views.Keyframe``, on any device);
             those without ROI pixels are skipped.
         iters: Adam iterations (>= 0; 0 or no ROI keyframe returns a copy of the input).
         cfg: ``MapperConfig`` giving the learning rates and loss weights (default ``MapperConfig()``).
@@ -305,12 +295,12 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     mapper = Mapper(fcfg)
     gmap.active = torch.from_numpy(free).to(gmap.active.device)
     mapper.load_map(gmap)
-    kfs = [kf if kf.rgb.device == mapper.device else _keyframe_to(kf, mapper.device) for kf in kfs]
+    kfs = [kf if kf.rgb.device == mapper.device else kf.to(mapper.device) for kf in kfs]
     rng = np.random.default_rng(seed)
     for it in range(int(iters)):
         mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))
         # the mapper's ROI-phase step: renders the whole copy and updates its free (active) rows
-        mapper._iterate(kfs[int(rng.integers(len(kfs)))], active_phase=True)
+        mapper.step(kfs[int(rng.integers(len(kfs)))], active_phase=True)
     out = mapper.gmap
     out.active, out.kappa = active.to(out.means.device), kappa.to(out.means.device)
     return out
@@ -428,13 +418,3 @@ def _rows_replaced(arrays, rows: np.ndarray, values):
             a[rows] = getattr(values, name)
         cols[name] = a
     return GaussianArrays(**cols)
-
-
-def _keyframe_to(kf, device):
-    """``kf`` with its tensors on ``device`` (a shallow copy)."""
-    import dataclasses
-
-    move = {k: getattr(kf, k).to(device) for k in ("rgb", "depth", "c2w", "K")}
-    if kf.roi is not None:
-        move["roi"] = kf.roi.to(device)
-    return dataclasses.replace(kf, ssim_stats=None, **move)

@@ -23,22 +23,6 @@ MISSION_STATE_FINISHING: MissionState
 MISSION_STATE_FINISHED: MissionState
 MISSION_STATE_FAILED: MissionState
 
-class CameraIntrinsics(_message.Message):
-    __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
-    FX_FIELD_NUMBER: _ClassVar[int]
-    FY_FIELD_NUMBER: _ClassVar[int]
-    CX_FIELD_NUMBER: _ClassVar[int]
-    CY_FIELD_NUMBER: _ClassVar[int]
-    WIDTH_FIELD_NUMBER: _ClassVar[int]
-    HEIGHT_FIELD_NUMBER: _ClassVar[int]
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
-
 class StartMissionRequest(_message.Message):
     __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id", "mission_id")
     TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
@@ -90,8 +74,8 @@ class FrameMsg(_message.Message):
     depth: bytes
     depth_scale: float
     c2w: _containers.RepeatedScalarFieldContainer[float]
-    intrinsics: CameraIntrinsics
-    def __init__(self, mission_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., timestamp: _Optional[float] = ..., color: _Optional[bytes] = ..., depth: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., c2w: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[CameraIntrinsics, _Mapping]] = ...) -> None: ...
+    intrinsics: _common_pb2.Intrinsics
+    def __init__(self, mission_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., timestamp: _Optional[float] = ..., color: _Optional[bytes] = ..., depth: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., c2w: _Optional[_Iterable[float]] = ..., intrinsics: _Optional[_Union[_common_pb2.Intrinsics, _Mapping]] = ...) -> None: ...
 
 class StreamFramesResponse(_message.Message):
     __slots__ = ("mission_id", "frames_received", "frames_mapped")

@@ -101,7 +101,8 @@ class FuseEngine:
             method: ``vote`` or ``concat``.
             voxel_size, contest_radius: the vote's δ (m) and neighbourhood (voxels).
             refine_iters: 0 = no refinement; otherwise the joint refinement's iterations.
-            keyframes: returns the refinement's keyframes (``RefineKeyframe``; called only when refining).
+            keyframes: returns the refinement's keyframes (:class:`~gausslite.mapping.views.Keyframe`; called only when
+                refining).
             seed: refinement RNG seed.
             progress: ``(stage, fraction, message)`` callback; it may raise to stop the job.
 

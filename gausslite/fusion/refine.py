@@ -13,59 +13,25 @@ again.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
 import numpy as np
-import torch
 
-from gausslite.camera import Intrinsics
-from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
-from gausslite.mapping.mapper import Mapper, keyframe_from_frame
+from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.model import cosine_lr_factor
+from gausslite.mapping.views import Keyframe
 
 log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[float, str], None]
 
 
-@dataclass
-class RefineKeyframe:
-    """One keyframe of an agent's buffer.
-
-    Attributes:
-        rgb: (H, W, 3) uint8 RGB. depth: (H, W) float32 metres (0 = invalid).
-        c2w: (4, 4) float64 camera-to-world (OpenCV axes). K: (3, 3) float64 intrinsics (pixels).
-        width, height: image size in pixels (must match rgb/depth).
-        roi: optional (H, W) bool, the agent's task ROI in this view.
-    """
-
-    rgb: np.ndarray
-    depth: np.ndarray
-    c2w: np.ndarray
-    K: np.ndarray
-    width: int
-    height: int
-    roi: Optional[np.ndarray] = None
-
-    def to_frame(self, frame_id: int) -> Frame:
-        """As a dataset ``Frame`` (validates sizes)."""
-        if self.rgb.shape != (self.height, self.width, 3) or self.depth.shape != (self.height, self.width):
-            raise ValueError(
-                f"keyframe {frame_id}: rgb {self.rgb.shape} / depth {self.depth.shape} do not match "
-                f"{self.width}x{self.height}"
-            )
-        if self.roi is not None and np.shape(self.roi) != (self.height, self.width):
-            raise ValueError(f"keyframe {frame_id}: roi {np.shape(self.roi)} does not match {self.width}x{self.height}")
-        intr = Intrinsics.from_K(self.K, self.width, self.height)
-        return Frame(frame_id, float(frame_id), self.rgb, self.depth.astype(np.float32), np.asarray(self.c2w, np.float64), intr)
-
-
 def refine_map(
     gaussians,
-    keyframes: Sequence[RefineKeyframe],
+    keyframes: Sequence[Keyframe],
     iters: int,
     progress: Optional[ProgressFn] = None,
     seed: int = 0,
@@ -79,7 +45,9 @@ def refine_map(
 
     Args:
         gaussians: ``GaussianArrays`` or ``GaussianMap`` (any container ``GaussianArrays.from_any`` takes).
-        keyframes: the union of the agents' keyframes; each iteration draws one uniformly.
+        keyframes: the union of the agents' keyframes (:class:`~gausslite.mapping.views.Keyframe`, e.g. from
+            :func:`~gausslite.mapping.views.keyframe_from_frame` with the agent's ROI); each iteration draws one
+            uniformly. Their frame ids need not be unique (each agent counts its own).
         iters: number of Adam iterations (0 returns the input unchanged).
         progress: optional callback ``(fraction in [0,1], message)``, called about 20 times.
         seed: RNG seed for view sampling and splits.
@@ -119,16 +87,18 @@ def refine_map(
     cfg = base.model_copy(update={"seed": seed, "max_gaussians": max(base.max_gaussians or 0, len(arrays)), **overrides})
     mapper = Mapper(cfg)
     mapper.load_map(arrays.to_gaussian_map(cfg.device))
-    kfs = [keyframe_from_frame(k.to_frame(i), mapper.device, k.roi if roi_loss else None)
+    # the pool's own numbering (two agents' frame ids may coincide: the mapper caches SSIM statistics by view)
+    kfs = [dataclasses.replace(k.to(mapper.device), frame_id=i,
+                               **({} if roi_loss else {"roi": None, "roi_box": None}))
            for i, k in enumerate(keyframes)]
     rng = np.random.default_rng(seed)
     every = max(1, iters // 20)
     for it in range(iters):
         mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))  # density control resets the rates
         kf = kfs[int(rng.integers(len(kfs)))]
-        loss = mapper._iterate(kf, active_phase=False, footprint_only=footprint_only, footprint_roi=roi_loss)
+        loss = mapper.step(kf, active_phase=False, footprint_only=footprint_only, footprint_roi=roi_loss)
         if cfg.densify.enabled and (it + 1) % cfg.densify.every == 0 and it + 1 < iters:
-            mapper._densify_and_prune()
+            mapper.strategy.densify_and_prune()
         if progress is not None and ((it + 1) % every == 0 or it + 1 == iters):
             progress((it + 1) / iters, f"refine {it + 1}/{iters} loss {loss:.4f} gaussians {len(mapper.model)}")
     return GaussianArrays.from_any(mapper.gmap)

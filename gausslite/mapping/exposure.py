@@ -94,12 +94,12 @@ class ExposureModel:
         if d is not None:
             self.params[int(frame_id)] = self.params[int(frame_id)] + d
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         """Plain-data copy for checkpoints (θ per keyframe and the fixed ids; not the Adam moments)."""
         return {"params": {k: v.copy() for k, v in self.params.items()}, "fixed": sorted(self.fixed)}
 
-    def load_state(self, state: dict) -> None:
-        """Replace θ and the fixed ids by a :meth:`state` dict (Adam moments restart at zero)."""
+    def load_state_dict(self, state: dict) -> None:
+        """Replace θ and the fixed ids by a :meth:`state_dict` (Adam moments restart at zero)."""
         self._adam = VectorAdam(self._adam.lr)
         self.params, self.fixed = {}, set()
         for fid, th in state["params"].items():

@@ -122,11 +122,11 @@ class KeyframeSelector:
         self._pending = None
         return item
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         """Reference keyframe (for checkpoints): ``{"ref_pose": list | None, "ref_time": float | None}``."""
         return {"ref_pose": None if self.ref_pose is None else self.ref_pose.tolist(), "ref_time": self.ref_time}
 
-    def load_state(self, state: dict) -> None:
+    def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state` (the pending slot starts empty)."""
         rp = state.get("ref_pose")
         self.ref_pose = None if rp is None else np.asarray(rp, dtype=np.float64).reshape(4, 4)

@@ -18,56 +18,14 @@ pixels of a new frame its map does not yet explain.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import fields
 from typing import Optional
 
 import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-
-
-@dataclass
-class StoredKeyframe:
-    """One keyframe in compact form (CPU tensors).
-
-    rgb (H,W,3) uint8; depth (H,W) float16 metres (0 invalid; ≈1 mm resolution at 2 m);
-    c2w (4,4) float64 camera-to-world (OpenCV camera axes, metres); K (3,3) float32 pixels;
-    roi (H,W) bool or None; roi_box (x0,y0,x1,y1) half-open pixel box of the ROI or None.
-    """
-
-    frame_id: int
-    rgb: torch.Tensor
-    depth: torch.Tensor
-    c2w: torch.Tensor
-    K: torch.Tensor
-    width: int
-    height: int
-    roi: Optional[torch.Tensor]
-    roi_box: Optional[tuple[int, int, int, int]]
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the image tensors."""
-        n = self.rgb.numel() + 2 * self.depth.numel()
-        return n + (self.roi.numel() if self.roi is not None else 0)
-
-    @property
-    def sees_roi(self) -> bool:
-        """True when the keyframe has at least one ROI pixel."""
-        return self.roi_box is not None
-
-    def to_keyframe(self, device: torch.device):
-        """This keyframe as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device`` (rgb (H,W,3)
-        float32 in [0, 1], depth (H,W) float32 metres; c2w, K and roi shared with this object on CPU)."""
-        from gausslite.mapping.mapper import Keyframe
-
-        return Keyframe(
-            frame_id=self.frame_id, rgb=self.rgb.to(device, torch.float32) / 255.0,
-            depth=self.depth.to(device, torch.float32), c2w=self.c2w.to(device), K=self.K.to(device),
-            width=self.width, height=self.height, roi=None if self.roi is None else self.roi.to(device),
-            roi_box=self.roi_box,
-        )
+from gausslite.mapping.views import StoredKeyframe
 
 
 class KeyframeStore:
@@ -103,18 +61,26 @@ class KeyframeStore:
         """Bytes held by all stored keyframe images."""
         return sum(k.nbytes for k in self._items)
 
+    def state_dict(self, newest: Optional[int] = None) -> dict:
+        """``{"keyframes": [...]}``: the newest ``newest`` stored keyframes (None: all) as plain dicts of their
+        compact fields (CPU tensors; ``torch.save``-able)."""
+        first = 0 if newest is None else max(0, len(self._items) - newest)
+        return {"keyframes": [{f.name: getattr(k, f.name) for f in fields(k)} for k in self._items[first:]]}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace the stored keyframes by those of a :meth:`state_dict`.
+
+        Raises:
+            KeyError / TypeError: a dict without ``keyframes`` or with keyframes of other fields.
+        """
+        self._items = [StoredKeyframe(**d) for d in state["keyframes"]]
+
     def add(self, kf) -> StoredKeyframe:
-        """Store a :class:`~gausslite.mapping.mapper.Keyframe` (float tensors) compactly; returns it.
+        """Store a :class:`~gausslite.mapping.views.Keyframe` (float tensors) compactly; returns it.
 
         Drops the most redundant old keyframe when the store is over ``max_keyframes``.
         """
-        rgb = (kf.rgb.detach().clamp(0, 1) * 255.0 + 0.5).to("cpu", torch.uint8)
-        st = StoredKeyframe(
-            frame_id=int(kf.frame_id), rgb=rgb, depth=kf.depth.detach().to("cpu", torch.float16),
-            c2w=kf.c2w.detach().to("cpu", torch.float64), K=kf.K.detach().to("cpu", torch.float32),
-            width=int(kf.width), height=int(kf.height),
-            roi=None if kf.roi is None else kf.roi.detach().to("cpu", torch.bool), roi_box=kf.roi_box,
-        )
+        st = kf.compact()
         self._items.append(st)
         if len(self._items) > self.max_keyframes:
             self._drop_redundant()
@@ -145,7 +111,7 @@ class KeyframeStore:
         return False
 
     def load(self, i: int, device: torch.device):
-        """Keyframe ``i`` as a float :class:`~gausslite.mapping.mapper.Keyframe` on ``device``
+        """Keyframe ``i`` as a float :class:`~gausslite.mapping.views.Keyframe` on ``device``
         (:meth:`StoredKeyframe.to_keyframe`)."""
         return self._items[i].to_keyframe(device)
 
@@ -207,6 +173,14 @@ class SurfaceVoxels:
 
     def __len__(self) -> int:
         return int(self._keys.size)
+
+    def state_dict(self) -> dict:
+        """``{"voxel_keys": (V,) int64}``: the observed voxels' packed keys (:func:`pack_voxel_keys`)."""
+        return {"voxel_keys": self._keys.copy()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace the observed voxels by those of a :meth:`state_dict` (none when the key is absent)."""
+        self._keys = np.asarray(state.get("voxel_keys", np.zeros(0, np.int64)), np.int64)
 
     def add_frame(self, depth: np.ndarray, intr: Intrinsics, c2w: np.ndarray) -> int:
         """Add the voxels hit by a frame's valid depth; returns the number of new voxels."""

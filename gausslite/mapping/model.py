@@ -107,6 +107,27 @@ class GaussianModel:
         self.params = new_params
         self.optimizer = opt
 
+    def state_dict(self) -> dict:
+        """CPU copy of the map for checkpoints: ``gaussians`` (the :class:`GaussianMap` fields, κ and task flags
+        included), ``ids`` (N,) int64 and ``next_id``; not the Adam moments (a loaded model restarts them at
+        zero, as for new seeds)."""
+        g = self.to_map().to("cpu")
+        return {"gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
+                                                                 "colors", "active", "kappa")},
+                "ids": self.ids.clone(), "next_id": int(self._next_id)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace the map by a :meth:`state_dict`'s; its stable ids are kept when present and of the map's length
+        (otherwise the rows get fresh ids).
+
+        Raises:
+            KeyError / TypeError / ValueError: no ``gaussians``, or fields of inconsistent shapes.
+        """
+        self.set_map(GaussianMap(**{k: v.to(self.device) for k, v in state["gaussians"].items()}))
+        if "ids" in state and int(state["ids"].shape[0]) == len(self):
+            self.ids = state["ids"].clone()
+            self._next_id = int(state["next_id"])
+
     @staticmethod
     def _first_children(parent_index: torch.Tensor) -> torch.Tensor:
         """(M,) bool on CPU: rows that are the first (in row order) of their parent's children. The

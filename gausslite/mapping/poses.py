@@ -193,6 +193,18 @@ class PoseRefiner:
         self.corrections[fid] = self.corrections[fid] @ E.cpu().numpy()
         return new
 
+    def state_dict(self) -> dict:
+        """Plain-data copy for checkpoints: ``{"corrections": {frame id: (4, 4) float64}, "fixed": [ids]}`` (not
+        the Adam moments)."""
+        return {"corrections": {k: v.copy() for k, v in self.corrections.items()}, "fixed": sorted(self.fixed)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace the corrections and fixed ids by a :meth:`state_dict`'s (Adam moments restart at zero)."""
+        self._adam = VectorAdam(self._adam.lr)
+        self.corrections, self.fixed = {}, set()
+        for fid, E in state["corrections"].items():
+            self.register(int(fid), E, fixed=int(fid) in set(state["fixed"]))
+
     def corrected(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """``c2w`` (4, 4) of a frame with its keyframe's correction, or that of the nearest keyframe by
         frame id (a held-out view between keyframes); unchanged without any keyframe."""

@@ -49,6 +49,7 @@ import numpy as np
 from gausslite.datasets.base import Frame
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import PreconditionFailed
+from gausslite.mission.heap import trim_heap
 from gausslite.mission.share import Captured, ShareSession, select_shared
 
 log = logging.getLogger(__name__)
@@ -549,11 +550,11 @@ class AgentRuntime:
             raise ValueError("no checkpoint_dir configured")
         with self._lock:
             counters = {k: getattr(self, k) for k in _CKPT_COUNTERS}
-            sel = self.selector.state()
+            sel = self.selector.state_dict()
             version = self._version
         state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
                  "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
-                 "mapper": self.mapper.checkpoint_state(), "saved_unix": time.time()}
+                 "mapper": self.mapper.state_dict(), "saved_unix": time.time()}
         path = self.checkpoint_dir / CHECKPOINT_FILE
         _atomic_write(path, lambda p: torch.save(state, p))
         with self._lock:
@@ -591,10 +592,10 @@ class AgentRuntime:
         if state.get("task_text") != self.task_text:
             raise ValueError(f"checkpoint {path}: mission {self.mission_id} was started with the task "
                              f"{state.get('task_text')!r}, not {self.task_text!r}")
-        self.mapper.restore_state(state["mapper"])
+        self.mapper.load_state_dict(state["mapper"])
         for k, v in state["counters"].items():
             setattr(self, k, v)
-        self.selector.load_state(state["selector"])
+        self.selector.load_state_dict(state["selector"])
         version = int(state["version"])
         vpath = self.checkpoint_dir / VERSION_FILE
         if vpath.is_file():  # pushes after the checkpoint: never reuse a version the fusion server holds
@@ -643,6 +644,7 @@ class AgentRuntime:
             finally:
                 with self._lock:
                     self._inflight = None
+                trim_heap()  # the push's temporary copies back to the OS (gausslite.mission.heap)
 
     def _push_snapshot(self, snap: _Snapshot) -> None:
         """Select, fine-tune and push one snapshot (pusher thread); sets ``_final_done`` for the final one."""

@@ -56,6 +56,18 @@ def _worker_init(nice: int) -> None:
     torch.set_num_threads(1)
 
 
+def _trimmed(fn, *args):
+    """``fn(*args)`` in the share worker, then its freed memory back to the OS (:func:`~gausslite.mission.heap.trim_heap`):
+    each job unpickles a map copy and the ROI keyframes, and without this the worker's resident memory creeps up
+    over a long mission."""
+    from gausslite.mission.heap import trim_heap
+
+    try:
+        return fn(*args)
+    finally:
+        trim_heap()
+
+
 def _select(gmap, views, share_cfg, backend: str, held=None):
     """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
     :class:`gausslite.sharing.ShareConfig`, and the rows the server holds); runs in the share worker."""
@@ -121,11 +133,8 @@ class ShareSession:
         if self.config.share != "task":
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
             return Captured(GaussianArrays.from_any(gmap).take(mask), mapper.model.ids.numpy()[mask], len(gmap))
-        from gausslite.sharing import ShareView
-
         store = mapper.keyframes
-        views = [ShareView(kf.roi.cpu().numpy(), kf.depth.cpu().numpy(), kf.c2w.cpu().numpy().copy(),
-                           kf.K.cpu().numpy()) for kf in store if kf.roi is not None]
+        views = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.roi is not None]
         poses = [(int(kf.frame_id), kf.c2w.cpu().numpy().copy()) for kf in store]
         # only the keyframes that see the ROI take part in the fine-tune (compact; poses of their own)
         kfs = ([dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
@@ -207,7 +216,7 @@ class ShareSession:
 
             self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                             initializer=_worker_init, initargs=(self.config.pusher_nice,))
-        return self.pool.submit(fn, *args).result()
+        return self.pool.submit(_trimmed, fn, *args).result()
 
     # ------------------------------------------------------------------ delta planning
     @property

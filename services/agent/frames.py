@@ -17,7 +17,8 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.base import Frame
-from gausslite_rpc import agent_pb2
+from gausslite_rpc import agent_pb2, common_pb2
+from services.common.convert import intrinsics_to_proto
 
 #: Largest accepted image side (pixels).
 MAX_SIDE = 8192
@@ -29,13 +30,7 @@ class FrameError(ValueError):
     """A malformed ``FrameMsg`` (undecodable image, wrong shape, NaN pose, bad intrinsics...)."""
 
 
-def intrinsics_to_proto(intr: Intrinsics) -> agent_pb2.CameraIntrinsics:
-    """Library intrinsics → wire message."""
-    return agent_pb2.CameraIntrinsics(fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
-                                      width=int(intr.width), height=int(intr.height))
-
-
-def intrinsics_from_proto(m: agent_pb2.CameraIntrinsics) -> Intrinsics:
+def intrinsics_from_proto(m: common_pb2.Intrinsics) -> Intrinsics:
     """Wire message → library intrinsics.
 
     Raises:

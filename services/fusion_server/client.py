@@ -53,6 +53,7 @@ from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_s
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
 from services.common.errors import raises_typed_errors
+from services.common.convert import intrinsics_to_proto
 
 log = logging.getLogger(__name__)
 
@@ -225,12 +226,6 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
         keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
     )
-
-
-def intrinsics_to_proto(intr) -> common_pb2.Intrinsics:
-    """``gausslite.camera.Intrinsics`` (or any object with fx, fy, cx, cy, width, height) → proto."""
-    return common_pb2.Intrinsics(fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx), cy=float(intr.cy),
-                                 width=int(intr.width), height=int(intr.height))
 
 
 def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,

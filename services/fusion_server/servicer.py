@@ -433,16 +433,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self._workers.discard(threading.current_thread())
 
     def _refine_keyframes(self) -> list:
-        """The stored keyframes of every agent, decoded for the refinement (``RefineKeyframe``)."""
-        from gausslite.fusion.refine import RefineKeyframe
+        """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
+        from gausslite.camera import Intrinsics
+        from gausslite.datasets.base import Frame
+        from gausslite.mapping.views import keyframe_from_frame
 
         kfs = []
         for k in self.store.keyframes():
             what = f"stored keyframe {k.frame_id}"
-            K = np.array([[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], np.float64)
-            kfs.append(RefineKeyframe(rgb=decode_color(k.color, what), depth=decode_depth(k.depth, k.depth_scale, what),
-                                      c2w=k.c2w, K=K, width=k.width, height=k.height,
-                                      roi=decode_roi(k.roi, (k.height, k.width), what) if k.roi else None))
+            frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what), decode_depth(k.depth, k.depth_scale, what),
+                          np.asarray(k.c2w, np.float64), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+            roi = decode_roi(k.roi, (k.height, k.width), what) if k.roi else None
+            kfs.append(keyframe_from_frame(frame, "cpu", roi))
         return kfs
 
     @stream_guard

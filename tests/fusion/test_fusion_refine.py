@@ -1,11 +1,14 @@
 """Joint refinement of a fused map (paper III-E): improves the fit over the keyframe pool, keeps
 κ/active inheritance, validates its inputs."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
-from gausslite.fusion.refine import RefineKeyframe, refine_map
+from gausslite.fusion.refine import refine_map
+from gausslite.mapping.views import keyframe_from_frame
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.metrics import psnr
@@ -13,8 +16,8 @@ from gausslite.wire.codec import GaussianArrays
 from tests._scenes import plane_frame
 
 
-def _kf(fr):
-    return RefineKeyframe(fr.rgb, fr.depth, fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
+def _kf(fr, roi=None):
+    return keyframe_from_frame(fr, "cpu", roi)
 
 
 def _score(arrays, frames):
@@ -63,17 +66,13 @@ def test_refine_zero_iters_is_identity_and_inputs_validated():
         refine_map(g, [], iters=5)
     with pytest.raises(ValueError, match="iters"):
         refine_map(g, [_kf(fr)], iters=-1)
-    bad = _kf(fr)
-    bad.width = 99
-    with pytest.raises(ValueError, match="do not match"):
-        refine_map(g, [bad], iters=2)
+    with pytest.raises(ValueError, match="do not match"):  # a malformed keyframe never reaches the refinement
+        _kf(dataclasses.replace(fr, intrinsics=dataclasses.replace(fr.intrinsics, width=99)))
 
 
 def test_refine_fits_only_the_roi_of_keyframes_that_carry_one():
     """With ``roi_loss`` (default), pixels outside a keyframe's ROI do not steer the refinement: changing
     them leaves the result unchanged; without it they do. An empty ROI falls back to the footprint."""
-    import dataclasses
-
     frames = [plane_frame(i, 0.04 * i) for i in range(2)]
     cfg = MapperConfig(seeds_per_frame=600, iters_per_frame=5, warmup_iters=0, backend="warp",
                        densify={"enabled": False})
@@ -84,18 +83,19 @@ def test_refine_fits_only_the_roi_of_keyframes_that_carry_one():
     h, w = frames[0].depth.shape
     roi = np.zeros((h, w), bool)
     roi[: h // 2] = True
-    kfs = [dataclasses.replace(_kf(f), roi=roi) for f in frames]
+    kfs = [_kf(f, roi) for f in frames]
     far = np.zeros((h, w), bool)  # outside the ROI and beyond the SSIM window (11 px) of its border
     far[h // 2 + 8:] = True
-    other = [dataclasses.replace(k, rgb=np.where(far[..., None], 255 - k.rgb, k.rgb).astype(np.uint8)) for k in kfs]
+    far_t = torch.from_numpy(far)[..., None]
+    other = [dataclasses.replace(k, rgb=torch.where(far_t, 1.0 - k.rgb, k.rgb)) for k in kfs]
     a = refine_map(g, kfs, iters=15, seed=3, cfg=cfg)
     b = refine_map(g, other, iters=15, seed=3, cfg=cfg)
     assert np.array_equal(a.colors, b.colors) and np.array_equal(a.means, b.means)
     c = refine_map(g, other, iters=15, seed=3, cfg=cfg, roi_loss=False)
     assert not np.array_equal(a.colors, c.colors)
     # an empty ROI: the keyframe is fitted on its footprint (no empty loss)
-    empty = [dataclasses.replace(k, roi=np.zeros((h, w), bool)) for k in kfs]
+    empty = [_kf(f, np.zeros((h, w), bool)) for f in frames]
     d = refine_map(g, empty, iters=15, seed=3, cfg=cfg)
     assert np.isfinite(d.colors).all() and not np.array_equal(d.colors, g.colors)
     with pytest.raises(ValueError, match="roi"):
-        refine_map(g, [dataclasses.replace(kfs[0], roi=roi[:-1])], iters=2, cfg=cfg)
+        _kf(frames[0], roi[:-1])

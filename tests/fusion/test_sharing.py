@@ -7,16 +7,18 @@ import pytest
 import torch
 
 from gausslite.gaussians import GaussianMap
-from gausslite.sharing import ShareConfig, ShareView, in_region, roi_contribution, select_task_subset, task_region
+from gausslite.mapping.views import Keyframe, roi_box
+from gausslite.sharing import ShareConfig, in_region, roi_contribution, select_task_subset, task_region
 
 K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
 
 
-def _view(roi_box=(24, 16, 40, 32), depth=2.0) -> ShareView:
+def _view(box=(24, 16, 40, 32), depth=2.0) -> Keyframe:
     roi = np.zeros((48, 64), bool)
-    x0, y0, x1, y1 = roi_box
+    x0, y0, x1, y1 = box
     roi[y0:y1, x0:x1] = True
-    return ShareView(roi, np.full((48, 64), depth, np.float32), np.eye(4), K)
+    return Keyframe(0, torch.zeros(48, 64, 3), torch.full((48, 64), depth), torch.eye(4, dtype=torch.float64),
+                    torch.tensor(K, dtype=torch.float32), 64, 48, torch.from_numpy(roi), roi_box(roi))
 
 
 def _map(means, opacity, scales, active=True) -> GaussianMap:
@@ -39,7 +41,7 @@ def test_task_region_back_projects_roi_depth_and_dilates():
     r1 = task_region([v], voxel_m=0.05, dilate=1)
     assert in_region(np.array([[0.0, 0.0, 2.06], [0.0, 0.0, 1.96]]), r1, 0.05).all()
     assert not in_region(np.array([[0.0, 0.0, 2.2]]), r1, 0.05).any()
-    assert len(task_region([_view(roi_box=(0, 0, 0, 0))])) == 0
+    assert len(task_region([_view(box=(0, 0, 0, 0))])) == 0
     with pytest.raises(ValueError):
         task_region([v], voxel_m=0)
 
@@ -58,7 +60,7 @@ def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_
 
     out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors, K=K, width=64, height=48,
                     c2w=np.eye(4), background=torch.zeros(3))
-    assert c.sum() == pytest.approx(float(out.alpha[torch.from_numpy(v.roi)].sum()), rel=1e-3)
+    assert c.sum() == pytest.approx(float(out.alpha[v.roi].sum()), rel=1e-3)
     mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0))
     assert mask.tolist() == [True, True, False, False, False]  # region, opacity, active rules
     assert st == {"active_kappa": 4, "in_region": 3, "opaque": 2, "shared": 2}
@@ -66,7 +68,7 @@ def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_
     mask, st = select_task_subset(g, [v], ShareConfig(coverage=0.8))
     assert mask.tolist() == [True, False, False, False, False]  # the occluded one is redundant
     # no ROI pixels at all: the task flag and κ rule alone
-    mask, _ = select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))])
+    mask, _ = select_task_subset(g, [_view(box=(0, 0, 0, 0))])
     assert mask.tolist() == [True, True, True, True, False]
 
 
@@ -103,7 +105,7 @@ def test_rendered_candidates_rank_every_gaussian_that_draws_the_roi_and_max_frac
     with pytest.raises(ValueError):
         ShareConfig(held_weight=0.5)
     # no ROI seen yet: nothing draws the task region, nothing is shared
-    assert not select_task_subset(g, [_view(roi_box=(0, 0, 0, 0))], ShareConfig(candidates="rendered"))[0].any()
+    assert not select_task_subset(g, [_view(box=(0, 0, 0, 0))], ShareConfig(candidates="rendered"))[0].any()
     with pytest.raises(ValueError):
         ShareConfig(candidates="everything")
     with pytest.raises(ValueError):

@@ -91,7 +91,7 @@ def test_budget_split_warm_up_then_roi_phase_on_the_work_clock():
     m = Mapper(cfg)
     m.map_frame(plane_frame(0, 0.0, H, W), _roi())
     phases = []
-    real = m._iterate
+    real = m.step
     times = []
 
     def spy(view, active_phase, **kw):
@@ -101,7 +101,7 @@ def test_budget_split_warm_up_then_roi_phase_on_the_work_clock():
         times.append(m.clock.now() - t)
         return out
 
-    m._iterate = spy
+    m.step = spy
     st = m.map_frame(plane_frame(1, 0.0, H, W), _roi(), time_budget_s=0.2)
     n_warm = phases.index(True)
     assert n_warm >= 1 and all(phases[n_warm:]) and st.active_iters == len(phases) - n_warm

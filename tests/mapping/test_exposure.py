@@ -44,7 +44,7 @@ def test_model_gauge_inheritance_nearest_and_state():
     ex.step(99, torch.ones(6))  # unknown keyframe: nothing
     assert 99 not in ex.params
     other = ExposureModel(lr=0.1)
-    other.load_state(ex.state())
+    other.load_state_dict(ex.state_dict())
     assert other.fixed == {0} and set(other.params) == {0, 2, 5}
     np.testing.assert_array_equal(other.params[2], ex.params[2])
 
@@ -86,11 +86,11 @@ def test_mapper_learns_a_darker_keyframe_and_keeps_the_first_exposure():
     pulled between the two exposures, and both the bright and the dark frames score worse."""
     m_on, frames = _map(True)
     m_off, _ = _map(False)
-    assert m_on.exposure.fixed == {0}
-    np.testing.assert_array_equal(m_on.exposure.params[0], np.zeros(6))
-    gain3 = np.exp(m_on.exposure.params[3][:3])
+    assert m_on.sensor.exposure.fixed == {0}
+    np.testing.assert_array_equal(m_on.sensor.exposure.params[0], np.zeros(6))
+    gain3 = np.exp(m_on.sensor.exposure.params[3][:3])
     assert np.all(np.abs(gain3 - 0.6) < 0.12), gain3
-    assert np.all(np.abs(np.exp(m_on.exposure.params[1][:3]) - 1.0) < 0.12)
+    assert np.all(np.abs(np.exp(m_on.sensor.exposure.params[1][:3]) - 1.0) < 0.12)
     psnr_on = [score_view(m_on.render_frame(fr), fr).psnr for fr in frames]
     psnr_off = [score_view(m_off.render_frame(fr), fr).psnr for fr in frames]
     assert np.mean(psnr_on) > np.mean(psnr_off) + 3.0, (psnr_on, psnr_off)
@@ -101,12 +101,12 @@ def test_mapper_learns_a_darker_keyframe_and_keeps_the_first_exposure():
 
 def test_exposure_survives_checkpoint_restore():
     m, frames = _map(True)
-    state = m.checkpoint_state()
+    state = m.state_dict()
     m2 = Mapper(m.cfg)
-    m2.restore_state(state)
-    assert m2.exposure.fixed == {0}
-    for fid, th in m.exposure.params.items():
-        np.testing.assert_array_equal(m2.exposure.params[fid], th)
+    m2.load_state_dict(state)
+    assert m2.sensor.exposure.fixed == {0}
+    for fid, th in m.sensor.exposure.params.items():
+        np.testing.assert_array_equal(m2.sensor.exposure.params[fid], th)
     a = m.render_frame(frames[3]).color
     b = m2.render_frame(frames[3]).color
     torch.testing.assert_close(a, b)

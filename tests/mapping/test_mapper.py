@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 import torch
 
+import gausslite.mapping.loss as loss_mod
 import gausslite.mapping.mapper as mapper_mod
+import gausslite.mapping.sensor as sensor_mod
+import gausslite.mapping.step as step_mod
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
@@ -55,22 +58,22 @@ def test_kappa_counts_active_iterations_and_active_comes_from_w():
 @pytest.mark.parametrize("mode", ["context", "active", "alternate"])
 def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode):
     calls = []
-    real = mapper_mod.rasterize
+    real = sensor_mod.rasterize
 
     def spy(*a, **kw):
         calls.append((None if kw.get("subset") is None else kw["subset"].clone(), kw["width"], kw["height"]))
         return real(*a, **kw)
 
-    monkeypatch.setattr(mapper_mod, "rasterize", spy)
+    monkeypatch.setattr(sensor_mod, "rasterize", spy)
     # roi_cull off: which Gaussians a render draws is the point here (the crop's culling: test below)
     m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, roi_cull=False))
     fr = _frame(0)
-    m._seed(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
+    m.seed_frame(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     m.window.append(kf)
-    m._iterate(kf, active_phase=False)
+    m.step(kf, active_phase=False)
     before = {k: v.detach().clone() for k, v in m.model.params.items()}
-    m._iterate(kf, active_phase=True)
+    m.step(kf, active_phase=True)
     assert calls[0] == (None, W, H)
     subset, w, h = calls[1]
     assert (w, h) == (34 - 14 + 2 * 3, 26 - 10 + 2 * 3)  # ROI box [14,34)×[10,26) grown by 3 px
@@ -83,9 +86,9 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
         # background Gaussians frozen (Adam momentum from the warm-up must not move them)
         assert torch.equal(p.detach()[~act], before[name][~act]), name
     assert not torch.equal(m.model.params["colors"].detach()[act], before["colors"][act])
-    m._iterate(kf, active_phase=True)
-    m._iterate(kf, active_phase=False)  # warm-up iterations do not advance the alternation
-    m._iterate(kf, active_phase=True)
+    m.step(kf, active_phase=True)
+    m.step(kf, active_phase=False)  # warm-up iterations do not advance the alternation
+    m.step(kf, active_phase=True)
     kinds = ["all" if c[0] is None else "active" for c in calls[1:]]  # ROI, ROI, warm-up, ROI
     assert kinds == {"context": ["all", "all", "all", "all"], "active": ["active", "active", "all", "active"],
                      "alternate": ["all", "active", "all", "all"]}[mode]
@@ -97,15 +100,15 @@ def test_roi_update_visible_fits_every_gaussian_the_crop_draws_and_counts_kappa_
     κ still counts active Gaussians only."""
     m = Mapper(_cfg(roi_update="visible", roi_crop_pad=0))
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
-    m._iterate(kf, active_phase=False)  # Adam moments everywhere
+    m.step(kf, active_phase=False)  # Adam moments everywhere
     before = {k: v.detach().clone() for k, v in m.model.params.items()}
     crop = mapper_mod.crop_keyframe(kf, 0)
     drawn = torch.zeros(len(m.model), dtype=torch.bool)
     out = m.render(crop.c2w, crop.K, crop.width, crop.height)
     drawn[out.ids[out.radii > 0]] = True
-    m._iterate(kf, active_phase=True)
+    m.step(kf, active_phase=True)
     act = m.model.active
     moved = ~torch.isclose(m.model.params["colors"].detach(), before["colors"]).all(dim=1)
     assert bool((moved & ~act).any())  # inactive Gaussians inside the crop are fitted too
@@ -118,19 +121,19 @@ def test_roi_update_visible_fits_every_gaussian_the_crop_draws_and_counts_kappa_
 @pytest.mark.parametrize("roi_loss", ["roi", "crop"])
 def test_roi_loss_restricts_the_roi_phase_loss_to_roi_pixels_or_the_whole_crop(monkeypatch, roi_loss):
     seen = []
-    real = mapper_mod.photometric_loss
+    real = step_mod.photometric_loss
 
     def spy(out, kf, *a, **kw):
         mask = a[2] if len(a) > 2 else kw.get("mask")
         seen.append((kf.width, kf.height, None if mask is None else int(mask.sum())))
         return real(out, kf, *a, **kw)
 
-    monkeypatch.setattr(mapper_mod, "photometric_loss", spy)
+    monkeypatch.setattr(step_mod, "photometric_loss", spy)
     m = Mapper(_cfg(roi_loss=roi_loss, roi_crop_pad=3))
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
-    m._iterate(kf, active_phase=True)
+    m.step(kf, active_phase=True)
     w, h, n = seen[-1]
     assert (w, h) == (20 + 6, 16 + 6)  # the crop: ROI box grown by 3 px
     if roi_loss == "crop":
@@ -146,10 +149,10 @@ def test_roi_cull_renders_the_same_crop():
     outs = []
     for cull in (False, True):
         m = Mapper(_cfg(roi_cull=cull, frustum_cull_min=10**9))
-        m._seed(fr, _roi())
+        m.seed_frame(fr, _roi())
         kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
         crop = mapper_mod.crop_keyframe(kf, 2)
-        outs.append(m._render_view(crop.c2w, crop.K, crop.width, crop.height, crop.frame_id, None, cull=cull))
+        outs.append(m.sensor.render_view(crop.c2w, crop.K, crop.width, crop.height, crop.frame_id, None, cull=cull))
     assert len(outs[1].ids) < len(outs[0].ids)
     assert torch.allclose(outs[0].color, outs[1].color, atol=1e-5)
     assert torch.allclose(outs[0].alpha, outs[1].alpha, atol=1e-5)
@@ -170,7 +173,7 @@ def test_roi_phase_views_roi_draws_roi_keyframes_only():
 def test_roi_crop_renders_the_same_pixels_as_the_full_image():
     m = Mapper(_cfg())
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     assert kf.roi_box == (14, 10, 34, 26)
     crop = mapper_mod.crop_keyframe(kf, pad=4)
@@ -196,7 +199,7 @@ def test_random_window_shows_the_full_render_pixels():
     render's pixels up to the EWA clamp."""
     m = Mapper(_cfg())
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     full = m.render(kf.c2w, kf.K, W, H)
     rng = np.random.default_rng(0)
@@ -224,16 +227,16 @@ def test_active_phase_on_a_view_without_roi_is_a_full_image_iteration(monkeypatc
     """Nothing to fit in the ROI: no zero-loss Adam step (its momentum would still move the
     active Gaussians) and no κ; the iteration trains the whole map on the full image instead."""
     sizes = []
-    real = mapper_mod.rasterize
-    monkeypatch.setattr(mapper_mod, "rasterize",
+    real = sensor_mod.rasterize
+    monkeypatch.setattr(sensor_mod, "rasterize",
                         lambda *a, **kw: sizes.append((kw.get("subset"), kw["width"])) or real(*a, **kw))
     m = Mapper(_cfg())
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool))
     assert kf.roi_box is None
     before = m.model.params["colors"].detach().clone()
-    loss = m._iterate(kf, active_phase=True)
+    loss = m.step(kf, active_phase=True)
     assert sizes == [(None, W)] and loss > 0
     assert int(m.model.kappa.sum()) == 0
     assert not torch.equal(m.model.params["colors"].detach()[~m.model.active], before[~m.model.active])
@@ -243,22 +246,22 @@ def test_roi_loss_restricted_to_roi_and_footprint():
     """Changing the ground truth outside the ROI does not change the active-phase loss."""
     m = Mapper(_cfg())
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     p = m.model.params
-    out = mapper_mod.rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+    out = sensor_mod.rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
                                K=kf.K, width=W, height=H, c2w=kf.c2w, subset=m.model.active, backend="warp")
     mask = kf.roi & (out.alpha.detach() > m.cfg.footprint_alpha)
     assert mask.any() and (~kf.roi & (out.alpha > 0.5)).sum() < mask.sum()
-    l1 = mapper_mod.photometric_loss(out, kf, 1.0, 0.2, mask)
+    l1 = loss_mod.photometric_loss(out, kf, 1.0, 0.2, mask)
     kf2 = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     far = torch.ones_like(kf2.roi)
     far[5:31, 9:39] = False  # beyond the SSIM window (5 px) around the ROI
     kf2.rgb[far] = 0.0
     kf2.depth[far] = 7.0
-    l2 = mapper_mod.photometric_loss(out, kf2, 1.0, 0.2, mask)
+    l2 = loss_mod.photometric_loss(out, kf2, 1.0, 0.2, mask)
     assert torch.isclose(l1, l2)
-    l_full = mapper_mod.photometric_loss(out, kf2, 1.0, 0.2, None)
+    l_full = loss_mod.photometric_loss(out, kf2, 1.0, 0.2, None)
     assert not torch.isclose(l1, l_full)
 
 
@@ -271,25 +274,25 @@ def test_densify_statistics_come_from_full_image_iterations(active_stats):
     cfg.roi_render = "active"  # the active subset alone: inactive Gaussians get no gradient to count
     m = Mapper(cfg)
     fr = _frame(0)
-    m._seed(fr, _roi())
+    m.seed_frame(fr, _roi())
     kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
     m.window.append(kf)
-    m._iterate(kf, active_phase=False)
-    after_warmup = (m._grad_accum.clone(), m._grad_count.clone())
+    m.step(kf, active_phase=False)
+    after_warmup = (m.strategy.grad_accum.clone(), m.strategy.grad_count.clone())
     assert after_warmup[1].sum() > 0  # full-image iteration counted every visible Gaussian
-    m._iterate(kf, active_phase=True)
+    m.step(kf, active_phase=True)
     if active_stats:
         act = m.model.active
-        assert torch.all(m._grad_count[act] > after_warmup[1][act])
-        assert torch.equal(m._grad_count[~act], after_warmup[1][~act])
+        assert torch.all(m.strategy.grad_count[act] > after_warmup[1][act])
+        assert torch.equal(m.strategy.grad_count[~act], after_warmup[1][~act])
     else:
-        assert torch.equal(m._grad_accum, after_warmup[0]) and torch.equal(m._grad_count, after_warmup[1])
+        assert torch.equal(m.strategy.grad_accum, after_warmup[0]) and torch.equal(m.strategy.grad_count, after_warmup[1])
 
 
 def test_uniform_mode_never_uses_the_roi_phase(monkeypatch):
     subsets = []
-    real = mapper_mod.rasterize
-    monkeypatch.setattr(mapper_mod, "rasterize", lambda *a, **kw: subsets.append(kw.get("subset")) or real(*a, **kw))
+    real = sensor_mod.rasterize
+    monkeypatch.setattr(sensor_mod, "rasterize", lambda *a, **kw: subsets.append(kw.get("subset")) or real(*a, **kw))
     m = Mapper(_cfg(mode="uniform"))
     st = m.map_frame(_frame(0), _roi())
     assert st.active_iters == 0 and all(s is None for s in subsets)
@@ -298,8 +301,8 @@ def test_uniform_mode_never_uses_the_roi_phase(monkeypatch):
 
 def test_mvo_draws_views_uniformly_from_the_window(monkeypatch):
     picked = []
-    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0)
     m = Mapper(_cfg(iters_per_frame=400, warmup_iters=0, window=4))
+    m.step = lambda kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0
     for i in range(4):
         picked.clear()
         m.map_frame(_frame(i, 0.02 * i), _roi())
@@ -307,6 +310,7 @@ def test_mvo_draws_views_uniformly_from_the_window(monkeypatch):
     assert np.all(np.abs(counts / 400 - 0.25) < 0.07)
     # without MVO the current frame dominates (current_frame_prob = 0.5 plus its window share)
     m2 = Mapper(_cfg(iters_per_frame=400, warmup_iters=0, window=4, components={"mvo": False}))
+    m2.step = m.step
     for i in range(4):
         picked.clear()
         m2.map_frame(_frame(i, 0.02 * i), _roi())
@@ -392,9 +396,9 @@ def test_density_control_clones_only_when_enabled(clone):
     cfg.densify.split_scale_m = float(smax.median())
     big = smax > cfg.densify.split_scale_m
     assert 0 < int(big.sum()) < n  # both kinds present
-    m._grad_accum.fill_(1.0)
-    m._grad_count.fill_(1.0)
-    st = m._densify_and_prune()
+    m.strategy.grad_accum.fill_(1.0)
+    m.strategy.grad_count.fill_(1.0)
+    st = m.strategy.densify_and_prune()
     assert st["split"] == int(big.sum())
     assert st["clone"] == (n - int(big.sum()) if clone else 0)
 
@@ -404,13 +408,13 @@ def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monk
     ground-truth SSIM statistics (``ssim_cache_views``), computing each view's once, and maps exactly as
     without the cache."""
     calls = []
-    orig = mapper_mod.ssim_gt_stats
+    orig = loss_mod.ssim_gt_stats
 
     def counting(gt, *a, **k):
         calls.append(tuple(gt.shape))
         return orig(gt, *a, **k)
 
-    monkeypatch.setattr(mapper_mod, "ssim_gt_stats", counting)
+    monkeypatch.setattr(loss_mod, "ssim_gt_stats", counting)
     maps, counts = [], []
     for n in (0, 32):
         calls.clear()
@@ -426,7 +430,7 @@ def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monk
     small = Mapper(_cfg(ssim_cache_views=1, render_threads=1))
     for i in range(3):
         small.map_frame(_frame(i), _roi())
-    assert len(small._ssim_cache) == 1  # bounded
+    assert len(small.step.ssim_cache) == 1  # bounded
 
 
 class _FakeClock:
@@ -454,7 +458,7 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     m = Mapper(cfg)
     m.clock = clock
     phases, dc = [], []
-    real_iterate, real_dc = m._iterate, m._densify_and_prune
+    real_iterate, real_dc = m.step, m.strategy.densify_and_prune
 
     def iterate(view, active_phase, **kw):
         phases.append(active_phase)
@@ -465,7 +469,7 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
         dc.append(m.n_budget_iters)
         return real_dc()
 
-    m._iterate, m._densify_and_prune = iterate, densify
+    m.step, m.strategy.densify_and_prune = iterate, densify
     st = m.map_frame(_frame(0), _roi(), time_budget_s=0.1)
     # 10 iterations fit: the fixed rule (it >= warmup_iters = 10) would have given none in the ROI phase
     assert st.iters == len(phases) == 10
@@ -486,19 +490,20 @@ def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     m0.map_frame(_frame(0), _roi())
     m0.clock = clock
     seen = []
-    real0 = m0._iterate
+    real0 = m0.step
 
     def iterate0(view, active_phase, **kw):
         seen.append(active_phase)
         clock.t += 0.01
         return real0(view, active_phase, **kw)
 
-    m0._iterate = iterate0
+    m0.step = iterate0
     m0.map_frame(_frame(1), _roi(), time_budget_s=0.05)
     assert seen and all(seen)
     # the counter survives a checkpoint
+    m.step = real_iterate
     m2 = Mapper(cfg)
-    m2.restore_state(m.checkpoint_state())
+    m2.load_state_dict(m.state_dict())
     assert m2.n_budget_iters == m.n_budget_iters
 
 
@@ -518,12 +523,12 @@ def test_roi_grad_factor_densifies_active_gaussians_at_a_lower_threshold(mode):
         act[: n // 2] = True  # uniform maps have no active Gaussians; mark some to show the factor is ignored
         m.model.active[:] = act
     assert 0 < int(act.sum()) < n
-    m._reset_densify_stats()
-    m.budget = 10 * n
+    m.strategy.reset_stats()
+    m.strategy.budget = 10 * n
     thr = cfg.densify.grad_threshold
-    m._grad_accum[:] = 0.5 * thr  # between the ROI threshold (0.25 thr) and the background one
-    m._grad_count[:] = 1.0
-    stats = m._densify_and_prune()
+    m.strategy.grad_accum[:] = 0.5 * thr  # between the ROI threshold (0.25 thr) and the background one
+    m.strategy.grad_count[:] = 1.0
+    stats = m.strategy.densify_and_prune()
     expect = int(act.sum()) if mode == "gausslite" else 0
     assert stats["split"] == expect
     assert len(m.model) == n + expect

@@ -54,11 +54,11 @@ def test_no_seeds_where_the_map_already_explains_the_frame():
     assert st1.n_seeds <= int(np.ceil(300 * st1.unexplained))
     # half of the next view is new plane (shifted 1.12 m = half the 2.24 m field of view)
     n0 = len(m.model)
-    n_seeds, _ = m._seed(plane_frame(2, shift=1.12), None)
-    assert 0.4 < m._last_unexplained < 0.65
-    assert n_seeds == int(np.ceil(300 * m._last_unexplained))
+    seeded = m.seed_frame(plane_frame(2, shift=1.12), None)
+    assert 0.4 < seeded.unexplained < 0.65
+    assert seeded.n_seeds == int(np.ceil(300 * seeded.unexplained))
     means = m.model.params["means"].detach()[n0:]  # new rows are appended after the old ones
-    assert means.shape[0] == n_seeds
+    assert means.shape[0] == seeded.n_seeds
     assert float((means[:, 0] > 1.12 - 0.1).float().mean()) > 0.95  # seeds sit on the new half
 
 
@@ -72,10 +72,10 @@ def test_coverage_seeding_off_seeds_every_frame_fully():
 def test_scene_budget_grows_with_observed_voxels_and_is_capped():
     m = Mapper(_cfg(gaussians_per_voxel=10.0, budget_voxel_m=0.1, max_gaussians_cap=10_000, iters_per_frame=2))
     m.map_frame(plane_frame(0))
-    b0, v0 = m.budget, len(m.voxels)
+    b0, v0 = m.budget, len(m.strategy.voxels)
     assert v0 >= 100 and b0 == round(10.0 * v0)
     m.map_frame(plane_frame(1, shift=2.0))  # a new stretch of wall
-    assert len(m.voxels) > 1.5 * v0 and m.budget > b0
+    assert len(m.strategy.voxels) > 1.5 * v0 and m.budget > b0
     m2 = Mapper(_cfg(gaussians_per_voxel=100.0, budget_voxel_m=0.1, max_gaussians_cap=700, iters_per_frame=2))
     m2.map_frame(plane_frame(0))
     assert m2.budget == 700
@@ -100,19 +100,19 @@ def test_contribution_is_the_alpha_blending_weight():
     m = Mapper(_cfg(evict="contribution", iters_per_frame=5))
     fr = plane_frame(0)
     m.map_frame(fr)
-    c_before = m.contribution.clone()
+    c_before = m.strategy.contribution.clone()
     kf = keyframe_from_frame(fr, m.device)
-    m._accumulate_contribution(kf)
-    added = m.contribution - c_before
+    m.accumulate_contribution(kf)
+    added = m.strategy.contribution - c_before
     out = m.render(fr.c2w, fr.intrinsics.K, W, H)
     assert float(added.sum()) == pytest.approx(float(out.alpha.sum()), rel=1e-3)
     assert torch.all(added >= 0)
     # Gaussians outside the view get nothing
     far = Mapper(_cfg(iters_per_frame=1))
     far.map_frame(fr)
-    far.contribution.zero_()
-    far._accumulate_contribution(keyframe_from_frame(plane_frame(1, shift=50.0), far.device))
-    assert float(far.contribution.abs().sum()) == 0.0
+    far.strategy.contribution.zero_()
+    far.accumulate_contribution(keyframe_from_frame(plane_frame(1, shift=50.0), far.device))
+    assert float(far.strategy.contribution.abs().sum()) == 0.0
 
 
 def test_eviction_by_contribution_and_roi_protection():
@@ -129,10 +129,10 @@ def test_eviction_by_contribution_and_roi_protection():
     contrib = torch.empty(n)
     contrib[~act] = torch.arange(1, n_bg + 1, dtype=torch.float32)  # background: 1 … n_bg
     contrib[act] = 50.25  # low, but ×4 = 201 ranks above every background row that goes
-    m.contribution = contrib.clone()
+    m.strategy.contribution = contrib.clone()
     means_before = m.model.params["means"].detach().clone()
-    m._seed(plane_frame(1, shift=3.0), None)  # 300 new seeds must enter: n - 400 evicted
-    assert len(m.model) == 700 and m._last_evicted == n - 400
+    seeded = m.seed_frame(plane_frame(1, shift=3.0), None)  # 300 new seeds must enter: n - 400 evicted
+    assert len(m.model) == 700 and seeded.n_evicted == n - 400
     kept = means_before[:n]
     now = m.model.params["means"].detach()
     survived = torch.tensor([bool((now == row).all(dim=1).any()) for row in kept])
@@ -145,8 +145,8 @@ def test_eviction_by_contribution_and_roi_protection():
     # the same contributions without protection: the active ones (score 10) go first
     m2 = Mapper(cfg.model_copy(update={"roi_protect": 1.0}))
     m2.map_frame(plane_frame(0), _roi())
-    m2.contribution = contrib.clone()
-    m2._seed(plane_frame(1, shift=3.0), None)
+    m2.strategy.contribution = contrib.clone()
+    m2.seed_frame(plane_frame(1, shift=3.0), None)
     assert int(m2.model.active.sum()) < int(act.sum())
 
 
@@ -158,16 +158,16 @@ def test_contribution_follows_densification_parents():
     cfg.densify.prune_opacity = 0.0
     m = Mapper(cfg)
     m.map_frame(plane_frame(0))
-    assert m.contribution.shape[0] == len(m.model)
-    m.contribution = torch.arange(len(m.model), dtype=torch.float32)
-    before = m.contribution.clone()
-    m._iterate(keyframe_from_frame(plane_frame(0), m.device), active_phase=False)  # gradient statistics
-    m._densify_and_prune()
-    assert m.contribution.shape[0] == len(m.model) > before.shape[0]
+    assert m.strategy.contribution.shape[0] == len(m.model)
+    m.strategy.contribution = torch.arange(len(m.model), dtype=torch.float32)
+    before = m.strategy.contribution.clone()
+    m.step(keyframe_from_frame(plane_frame(0), m.device), active_phase=False)  # gradient statistics
+    m.strategy.densify_and_prune()
+    assert m.strategy.contribution.shape[0] == len(m.model) > before.shape[0]
     # the first rows keep their own contribution; daughters copy their parent's
     n_old = before.shape[0]
-    assert m.contribution.shape[0] == len(m.model)
-    assert set(m.contribution.tolist()) <= set(before.tolist())  # every row carries a parent's value
+    assert m.strategy.contribution.shape[0] == len(m.model)
+    assert set(m.strategy.contribution.tolist()) <= set(before.tolist())  # every row carries a parent's value
     assert len(m.model) > n_old
 
 
@@ -199,8 +199,8 @@ def test_sampler_reaches_the_whole_mission_and_weights_roi_views():
 
 def test_mapper_views_come_from_old_keyframes(monkeypatch):
     picked = []
-    monkeypatch.setattr(Mapper, "_iterate", lambda self, kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0)
     m = Mapper(_cfg(iters_per_frame=200, window=2, recent_prob=0.5, components={"mvo": True}, mode="gausslite"))
+    m.step = lambda kf, active_phase, **kw: picked.append(kf.frame_id) or 0.0
     for i in range(12):
         picked.clear()
         m.map_frame(plane_frame(i, 0.02 * i), _roi())

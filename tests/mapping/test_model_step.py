@@ -116,8 +116,8 @@ def test_coarse_iterations_render_downscaled_views(monkeypatch):
         m = Mapper(MapperConfig(iters_per_frame=8, warmup_iters=8, seeds_per_frame=300, coarse_iters=coarse,
                                 backend="torch"))
         widths = []
-        orig = m._rasterize
-        monkeypatch.setattr(m, "_rasterize", lambda c2w, K, w, h, subset, **kw: (widths.append(w), orig(c2w, K, w, h, subset, **kw))[1])
+        orig = m.sensor.rasterize
+        monkeypatch.setattr(m.sensor, "rasterize", lambda c2w, K, w, h, subset, **kw: (widths.append(w), orig(c2w, K, w, h, subset, **kw))[1])
         st = m.map_frame(frame)
         assert st.iters == 8
         assert [w for w in widths if w in (16, 32)][-8:] == want

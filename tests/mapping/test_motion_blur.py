@@ -70,13 +70,13 @@ def test_a_sharp_map_rendered_with_the_frame_motion_matches_its_blurred_image():
     (3 virtual poses) the map matches the blurred image far better than its sharp render does."""
     frames = [_blurred(i, 0.01, 0.1) for i in range(4)]
     m = _map(True, frames)
-    assert all(blur_samples(m.blur[i], 50.0, W, H, 1.5, 7) == 1 for i in range(4))
+    assert all(blur_samples(m.sensor.blur[i], 50.0, W, H, 1.5, 7) == 1 for i in range(4))
     # frame 4 at x = 2 cm, the camera coming from x = −8 cm 0.1 s before (1 m/s; image averaged over ±5 cm)
     subs = [plane_frame(4, 0.02 + 0.1 * t, H, W).rgb.astype(np.float32) for t in np.linspace(-0.5, 0.5, 9)]
     fast = dataclasses.replace(plane_frame(4, 0.02, H, W), rgb=np.mean(subs, 0).round().astype(np.uint8), timestamp=0.4)
     sharp = score_view(m.render_frame(fast), fast).psnr  # frame 4 was not mapped: frame 3's (zero) motion
-    m.blur[4] = exposure_twist(plane_frame(3, -0.08, H, W).c2w, 0.3, fast.c2w, 0.4, 0.1)
-    assert blur_samples(m.blur[4], 50.0, W, H, 1.5, 7) == 3  # 3.3 px estimated at the 1.5 m reference
+    m.sensor.blur[4] = exposure_twist(plane_frame(3, -0.08, H, W).c2w, 0.3, fast.c2w, 0.4, 0.1)
+    assert blur_samples(m.sensor.blur[4], 50.0, W, H, 1.5, 7) == 3  # 3.3 px estimated at the 1.5 m reference
     blurred = score_view(m.render_frame(fast), fast).psnr
     assert blurred > sharp + 2.0, (blurred, sharp)
 
@@ -88,15 +88,15 @@ def test_render_view_is_the_mean_of_the_virtual_pose_renders():
     K = torch.from_numpy(fr.intrinsics.K).float()
     c2w = torch.from_numpy(fr.c2w)
     with torch.no_grad():
-        got = m._render_view(c2w, K, W, H, fr.frame_id, None)
-        deltas = blur_deltas(m.blur[1], blur_samples(m.blur[1], 50.0, W, H, 1.5, 7))
+        got = m.sensor.render_view(c2w, K, W, H, fr.frame_id, None)
+        deltas = blur_deltas(m.sensor.blur[1], blur_samples(m.sensor.blur[1], 50.0, W, H, 1.5, 7))
         assert len(deltas) == 3
-        outs = [m._rasterize(c2w, K, W, H, None, view_delta=d) for d in deltas]
+        outs = [m.sensor.rasterize(c2w, K, W, H, None, view_delta=d) for d in deltas]
     torch.testing.assert_close(got.color, sum(o.color for o in outs) / 3)
     torch.testing.assert_close(got.alpha, sum(o.alpha for o in outs) / 3)
     assert (outs[0].color - outs[2].color).abs().max() > 0.1  # the virtual poses see different pixels
-    state = m.checkpoint_state()
+    state = m.state_dict()
     m2 = Mapper(m.cfg)
-    m2.restore_state(state)
-    np.testing.assert_array_equal(m2.blur[1], m.blur[1])
+    m2.load_state_dict(state)
+    np.testing.assert_array_equal(m2.sensor.blur[1], m.sensor.blur[1])
     torch.testing.assert_close(m2.render_frame(fr).color, m.render_frame(fr).color)

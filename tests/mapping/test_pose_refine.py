@@ -117,9 +117,9 @@ def test_corrections_reach_held_out_frames_and_survive_a_checkpoint():
     m = Mapper(_cfg(iters_per_frame=5, warmup_iters=5))
     for i in range(2):
         m.map_frame(plane_frame(i, 0.04 * i, H, W))
-    st = m.checkpoint_state()
+    st = m.state_dict()
     m2 = Mapper(_cfg(iters_per_frame=5, warmup_iters=5))
-    m2.restore_state(st)
+    m2.load_state_dict(st)
     np.testing.assert_allclose(m2.pose_of(1, np.eye(4)), m.pose_of(1, np.eye(4)))
     assert m2.poses.fixed == {0}
 

@@ -67,34 +67,34 @@ def test_render_view_stacks_bands_rendered_from_their_readout_poses():
     slow = [_rs_frame(i, 0.005 * i, 0.05, i * 0.1) for i in range(3)]
     for fr in slow:
         m.map_frame(fr)
-    assert m._rs_norm == pytest.approx(readout_norm(READOUT, 50.0, H))
+    assert m.sensor.rs_norm == pytest.approx(readout_norm(READOUT, 50.0, H))
     # a fast frame: 2 m/s sideways, measured from the previous sensor pose 0.1 s before
-    m.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, plane_frame(3, 0.01, H, W).c2w, 0.3,
+    m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, plane_frame(3, 0.01, H, W).c2w, 0.3,
                                m.cfg.blur_exposure_s)
     fr = plane_frame(3, 0.01, H, W)
     K = torch.from_numpy(fr.intrinsics.K).float()
     c2w = torch.from_numpy(fr.c2w)
-    vel = m.blur[3] / m.cfg.blur_exposure_s
-    bands = shutter_bands(fr.intrinsics.K, W, H, vel, m._rs_norm, 0.5, 8)
+    vel = m.sensor.blur[3] / m.cfg.blur_exposure_s
+    bands = shutter_bands(fr.intrinsics.K, W, H, vel, m.sensor.rs_norm, 0.5, 8)
     assert len(bands) == 7  # 10 cm over the readout: 3.3 px at blur_length_px's 1.5 m reference, 0.5 px per band
     with torch.no_grad():
         parts: list = []
-        got = m._render_view(c2w, K, W, H, 3, None, parts=parts)
+        got = m.sensor.render_view(c2w, K, W, H, 3, None, parts=parts)
         assert len(parts) == 1 and len(parts[0]) == 7  # one image (no blur) in 7 bands
         # equal to the full render's rows up to the projection's EWA Jacobian, which is clamped to 1.3× the
         # rendered field of view (Kerbl et al. 2023), here a band's: Gaussians just above or below a band
         # get a slightly different footprint in it (≤ 7e-3 of colour measured, on a few edge pixels)
         for y0, y1, t in bands:
-            full = m._rasterize(c2w, K, W, H, None, view_delta=pose_delta(torch.as_tensor(t * vel)))
+            full = m.sensor.rasterize(c2w, K, W, H, None, view_delta=pose_delta(torch.as_tensor(t * vel)))
             torch.testing.assert_close(got.color[y0:y1], full.color[y0:y1], atol=2e-2, rtol=0)
             torch.testing.assert_close(got.depth[y0:y1], full.depth[y0:y1], atol=2e-2, rtol=0)
             assert float((got.color[y0:y1] - full.color[y0:y1]).abs().mean()) < 2e-4
-        sharp = m._rasterize(c2w, K, W, H, None)
+        sharp = m.sensor.rasterize(c2w, K, W, H, None)
         assert (got.color - sharp.color).abs().max() > 0.1  # the bottom rows see the plane 5 mm further on
-    state = m.checkpoint_state()
+    state = m.state_dict()
     m2 = Mapper(m.cfg)
-    m2.restore_state(state)
-    assert m2._rs_norm == m._rs_norm
+    m2.load_state_dict(state)
+    assert m2.sensor.rs_norm == m.sensor.rs_norm
     torch.testing.assert_close(m2.render_frame(fr).color, m.render_frame(fr).color)
 
 
@@ -108,7 +108,7 @@ def test_a_map_rendered_with_the_rolling_shutter_matches_a_fast_frame_taken_with
     m.optimize(n_iters=120)
     fast = _rs_frame(3, 0.01, 2.0, 0.3)
     sharp = score_view(m.render_frame(fast), fast).psnr  # frame 3 was not mapped: frame 2's (slow) motion
-    m.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, fast.c2w, 0.3, m.cfg.blur_exposure_s)
+    m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, fast.c2w, 0.3, m.cfg.blur_exposure_s)
     rs = score_view(m.render_frame(fast), fast).psnr
     assert rs > sharp + 2.0, (rs, sharp)
 
@@ -123,15 +123,15 @@ def test_density_statistics_count_a_banded_view_once_per_gaussian():
         m.cfg.densify.every = 1000  # accumulate, never act
         for fr in frames:
             m.map_frame(fr)
-    torch.testing.assert_close(a._grad_accum, b._grad_accum)
-    torch.testing.assert_close(a._grad_count, b._grad_count)
+    torch.testing.assert_close(a.strategy.grad_accum, b.strategy.grad_accum)
+    torch.testing.assert_close(a.strategy.grad_count, b.strategy.grad_count)
     # one banded view: counts rise by at most one per Gaussian
     m = b
-    m._reset_densify_stats()
-    m.blur[1] = np.array([0.0, 0.0, 0.0, 0.02, 0.0, 0.0])  # 2 m/s over 10 ms
+    m.strategy.reset_stats()
+    m.sensor.blur[1] = np.array([0.0, 0.0, 0.0, 0.02, 0.0, 0.0])  # 2 m/s over 10 ms
     kf = m.keyframes.load(1, m.device)
-    m._iterate(kf, active_phase=False)
-    assert m._grad_count.max() == 1 and m._grad_count.sum() > 0
+    m.step(kf, active_phase=False)
+    assert m.strategy.grad_count.max() == 1 and m.strategy.grad_count.sum() > 0
 
 
 def test_bench_warp_psnr_peaks_at_the_true_readout():
@@ -166,7 +166,7 @@ def test_central_motion_estimate_gives_each_frame_the_motion_around_it():
         m = Mapper(cfg)
         for fr in frames:
             m.map_frame(fr)
-        got[est] = m.blur
+        got[est] = m.sensor.blur
     tau = MapperConfig().blur_exposure_s
     fwd01, fwd12 = 0.1 * tau, 0.2 * tau  # 1 cm and 2 cm in 0.1 s, over the exposure τ
     np.testing.assert_allclose(got["backward"][0][3], 0.0)

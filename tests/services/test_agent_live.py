@@ -69,7 +69,7 @@ def test_keyframe_rule_translation_rotation_interval_and_newest_pending():
     with pytest.raises(ValueError):
         KeyframeRule(translation_m=0.0)
     s2 = KeyframeSelector(sel.rule)
-    s2.load_state(sel.state())
+    s2.load_state_dict(sel.state_dict())
     assert s2.offer("g", _pose(yaw_deg=12.0), 1.0) == (False, None)  # reference f4 (t=0.4) restored
 
 
@@ -80,13 +80,13 @@ def _mapper(**kw):
 
 def _count_iters(m):
     n = {"i": 0}
-    orig = m._iterate
+    orig = m.step
 
     def wrapped(*a, **k):
         n["i"] += 1
         return orig(*a, **k)
 
-    m._iterate = wrapped
+    m.step = wrapped
     return n
 
 
@@ -122,9 +122,9 @@ def test_mapper_checkpoint_round_trip(scene):
     m = _mapper()
     for i in range(3):
         m.map_frame(ds[i])
-    st = m.checkpoint_state()
+    st = m.state_dict()
     m2 = _mapper()
-    m2.restore_state(st)
+    m2.load_state_dict(st)
     fr = ds[3]
     a = m.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
     b = m2.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
@@ -132,12 +132,12 @@ def test_mapper_checkpoint_round_trip(scene):
     assert torch.equal(m.model.kappa, m2.model.kappa) and torch.equal(m.model.active, m2.model.active)
     assert [k.frame_id for k in m2.window] == [k.frame_id for k in m.window]
     assert m2.n_mapped == 3 and m2.budget == m.budget
-    assert torch.equal(m2.contribution, m.contribution) and len(m2.voxels) == len(m.voxels)
+    assert torch.equal(m2.strategy.contribution, m.strategy.contribution) and len(m2.strategy.voxels) == len(m.strategy.voxels)
     assert torch.equal(m2.model.ids, m.model.ids) and m2.model._next_id == m.model._next_id
     m2.map_frame(ds[3])  # and it keeps mapping
     assert m2.n_mapped == 4
     m3 = _mapper()  # a bounded checkpoint keeps the newest keyframes, never fewer than the window
-    m3.restore_state(m.checkpoint_state(max_keyframes=1))
+    m3.load_state_dict(m.state_dict(max_keyframes=1))
     keep = max(1, m.cfg.window)
     assert [k.frame_id for k in m3.keyframes] == [k.frame_id for k in m.keyframes][-keep:]
     assert [k.frame_id for k in m3.window] == [k.frame_id for k in m.window]
@@ -145,7 +145,7 @@ def test_mapper_checkpoint_round_trip(scene):
     for i in range(4):
         m4.map_frame(ds[i])
     m5 = _mapper(window=2)
-    m5.restore_state(m4.checkpoint_state(max_keyframes=1))
+    m5.load_state_dict(m4.state_dict(max_keyframes=1))
     assert [k.frame_id for k in m5.keyframes] == [k.frame_id for k in m4.keyframes][-2:]
 
 

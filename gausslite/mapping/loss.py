@@ -1,0 +1,66 @@
+"""The mapping loss (paper Eq. 1): L1 colour + λ_d L1 depth + λ_s (1 − SSIM), on the whole view or a mask."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from gausslite.fused_ssim import ssim_mean
+from gausslite.mapping.views import Keyframe
+from gausslite.metrics import ssim_gt_stats, ssim_map
+from gausslite.render import RenderOutput
+
+
+def _gt_ssim_stats(kf: Keyframe, dtype: torch.dtype) -> tuple:
+    """``kf.ssim_stats`` in ``dtype``, computed (:func:`gausslite.metrics.ssim_gt_stats`) and kept on ``kf``
+    when missing or of another dtype."""
+    if kf.ssim_stats is None or kf.ssim_stats[0].dtype != dtype:
+        kf.ssim_stats = ssim_gt_stats(kf.rgb, dtype=dtype)
+    return kf.ssim_stats
+
+
+def photometric_loss(
+    out: RenderOutput,
+    kf: Keyframe,
+    lambda_depth: float,
+    lambda_ssim: float,
+    mask: Optional[torch.Tensor] = None,
+    reference: bool = False,
+) -> torch.Tensor:
+    """L = L1_colour + λ_d · L1_depth + λ_s · (1 − SSIM) (paper Eq. 1).
+
+    Args:
+        out: render of the keyframe's view.
+        kf: the keyframe (ground truth).
+        mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
+            None = full image. The depth term also requires valid ground-truth depth.
+        reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
+            ground-truth statistics (``MapperConfig.reference_paths``); otherwise
+            :func:`gausslite.fused_ssim.ssim_mean` (fused native SSIM on CPU, 20 -> 4 ms forward and
+            backward at 300x170).
+    Returns:
+        scalar tensor (0 with a zero-gradient graph when the mask is empty). With a mask and λ_s = 0
+        SSIM is not computed.
+    """
+    valid_d = kf.depth > 0
+    if mask is None:
+        l1c = (out.color - kf.rgb).abs().mean()
+        dmask = valid_d
+        if reference:
+            s = ssim_map(out.color, kf.rgb, reference=True).mean()
+        else:
+            s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype))
+    else:
+        if not bool(mask.any()):
+            return out.color.sum() * 0.0
+        l1c = (out.color - kf.rgb).abs()[mask].mean()
+        dmask = valid_d & mask
+        if not lambda_ssim:
+            s = 1.0
+        elif reference:
+            s = ssim_map(out.color, kf.rgb, reference=True)[mask].mean()
+        else:
+            s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype), mask=mask)
+    l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
+    return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)

@@ -1,0 +1,203 @@
+"""The sensor renderer: the map rendered as the camera took a view (paper Sec. III-D, hand-held sensors).
+
+A view is rendered with the configured rasterizer (:func:`gausslite.render.rasterize`) and, when the
+sensor calls for it:
+
+- its exposure response (``exposure_comp``, :mod:`gausslite.mapping.exposure`; MonoGS);
+- the camera's motion blur (``motion_blur``, :mod:`gausslite.mapping.blur`; BAD-Gaussians, MBA-SLAM): the mean
+  of renders at virtual poses along the motion during the exposure;
+- its rolling shutter (``rolling_shutter_s``, :mod:`gausslite.mapping.shutter`; Kerl et al. ICCV 2015):
+  row bands, each rendered from the pose at its readout time.
+
+The camera's motion comes from the sensor's poses of consecutive mapped frames (:meth:`SensorRenderer.observe`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+import torch
+
+from gausslite.datasets.base import Frame
+from gausslite.mapping.blur import blur_samples, exposure_twist, motion_deltas
+from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.exposure import ExposureModel, apply_exposure
+from gausslite.mapping.model import GaussianModel
+from gausslite.mapping.poses import move_gaussians_for_pose_delta, nearest_key
+from gausslite.mapping.shutter import readout_norm, shutter_bands
+from gausslite.render import RenderOutput, blend_weights, rasterize
+from gausslite.render.culling import frustum_cull_mask
+
+
+class SensorRenderer:
+    """Renders a :class:`~gausslite.mapping.model.GaussianModel` as the sensor saw each view.
+
+    Args:
+        cfg: mapper configuration (backend, threads, culling and the sensor switches above).
+        model: the Gaussians being optimised (read at every render; never modified here).
+        clock: the mapper's budget clock; a deterministic clock (``charges``) is charged for every render.
+    Attributes:
+        exposure: per-keyframe exposure response (``cfg.exposure_comp``), None when off.
+        blur: frame id → (6,) float64 ξ_b = τ · (ω, v), the camera's motion over the exposure of every mapped
+            frame (``cfg.motion_blur`` / ``cfg.rolling_shutter_s``; τ = ``cfg.blur_exposure_s``).
+        rs_norm: rolling-shutter readout time per unit of normalised image y of the full image (seconds;
+            :func:`gausslite.mapping.shutter.readout_norm`), set by the first observed frame.
+        last_sensor: (timestamp s, c2w (4, 4) float64, frame id) of the last observed frame, or None.
+    """
+
+    def __init__(self, cfg: MapperConfig, model: GaussianModel, clock) -> None:
+        self.cfg = cfg
+        self.model = model
+        self.clock = clock
+        self.device = model.device
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
+        self.exposure: Optional[ExposureModel] = ExposureModel(cfg.exposure_lr) if cfg.exposure_comp else None
+        self.blur: dict[int, np.ndarray] = {}
+        self.rs_norm = 0.0
+        self.last_sensor: Optional[tuple] = None
+
+    # ------------------------------------------------------------------ sensor state
+    def observe(self, frame: Frame) -> None:
+        """Record the camera's motion over ``frame``'s exposure from the sensor's poses (before refinement):
+        backward from the previous observed frame, and under ``motion_estimate: central`` the previous frame's
+        estimate becomes the mean of its backward and forward ones. No-op without motion blur or rolling
+        shutter."""
+        cfg = self.cfg
+        if not (cfg.motion_blur or cfg.rolling_shutter_s > 0):
+            return
+        prev = self.last_sensor
+        xi_b = (np.zeros(6) if prev is None else
+                exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.blur_exposure_s, cfg.blur_max_dt))
+        self.blur[frame.frame_id] = xi_b
+        if cfg.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
+                and xi_b.any():
+            # the previous frame's motion is now known on both sides: the mean of its backward and forward
+            # estimates (the forward one alone for the first frame, which had none)
+            back = self.blur[prev[2]]
+            self.blur[prev[2]] = 0.5 * (back + xi_b) if back.any() else xi_b.copy()
+        self.last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy(), int(frame.frame_id))
+        self.rs_norm = readout_norm(cfg.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
+
+    def state_dict(self) -> dict:
+        """Plain-data copy for checkpoints: ``exposure`` (None when off), ``blur``, ``last_sensor``, ``rs_norm``."""
+        return {"exposure": None if self.exposure is None else self.exposure.state_dict(),
+                "blur": {k: v.copy() for k, v in self.blur.items()}, "last_sensor": self.last_sensor,
+                "rs_norm": self.rs_norm}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a :meth:`state_dict` (absent keys: the defaults of a new renderer)."""
+        if self.exposure is not None and state.get("exposure"):
+            self.exposure.load_state_dict(state["exposure"])
+        self.blur = {int(k): np.asarray(v, np.float64) for k, v in (state.get("blur") or {}).items()}
+        self.last_sensor = state.get("last_sensor")
+        self.rs_norm = float(state.get("rs_norm", 0.0))
+
+    # ------------------------------------------------------------------ renders
+    def exposed(self, out: RenderOutput, frame_id: int,
+                requires_grad: bool = False) -> tuple[RenderOutput, Optional[torch.Tensor]]:
+        """``out`` with frame ``frame_id``'s exposure response applied to its colour (its keyframe's θ, or
+        the nearest keyframe's), and that θ (6,) as a leaf tensor, with gradients if ``requires_grad``;
+        ``(out, None)`` without exposure compensation or before the first keyframe."""
+        if self.exposure is None or not self.exposure.params:
+            return out, None
+        theta = self.exposure.tensor(frame_id, self.device, requires_grad=requires_grad)
+        return dataclasses.replace(out, color=apply_exposure(out.color, theta)), theta
+
+    def render_view(self, c2w, K, width: int, height: int, frame_id: int, subset: Optional[torch.Tensor],
+                    pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
+                    parts: Optional[list] = None, cull: bool = False) -> RenderOutput:
+        """:meth:`rasterize` of frame ``frame_id``'s view as the camera took it while moving (the nearest
+        mapped frame's motion for a frame that was not mapped):
+
+        - ``cfg.motion_blur`` (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at
+          ``c2w · E(s_k ξ_b)``;
+        - ``cfg.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b rendered alone (its
+          rows only) from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom.
+
+        The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
+        the renders as groups, one group per blur sample holding its bands (nothing when the view is rendered
+        as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
+        <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
+        """
+        cfg = self.cfg
+        rs = cfg.rolling_shutter_s > 0 and self.rs_norm > 0
+        if not ((cfg.motion_blur or rs) and self.blur):
+            return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
+        xi_b = self.blur[nearest_key(self.blur, frame_id)]
+        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.blur_px_per_sample, cfg.blur_max_samples)
+                  if cfg.motion_blur else 1)
+        bands = (shutter_bands(K, width, height, xi_b / cfg.blur_exposure_s, self.rs_norm, cfg.rs_px_per_band,
+                               cfg.rs_max_bands) if rs else [(0, height, 0.0)])
+        if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
+            return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
+        groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
+        for y0, y1, t in bands:
+            Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
+            Kb[1, 2] -= y0
+            # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
+            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.blur_exposure_s, self.device)):
+                g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
+                                        view_delta=delta, cull=cull))
+        if parts is not None:
+            parts.extend(groups)
+
+        def stacked(field: str) -> torch.Tensor:
+            per_sample = [torch.cat([getattr(o, field) for o in g], 0) if len(g) > 1 else getattr(g[0], field)
+                          for g in groups]
+            return per_sample[0] if len(per_sample) == 1 else torch.stack(per_sample).mean(0)
+
+        mid = groups[len(groups) // 2][len(bands) // 2]
+        return dataclasses.replace(mid, color=stacked("color"), depth=stacked("depth"), alpha=stacked("alpha"))
+
+    def rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
+                  pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
+                  view_delta: Optional[torch.Tensor] = None, cull: bool = False) -> RenderOutput:
+        """Render the current parameters (differentiable) with the configured backend and threads, from
+        camera-to-world ``c2w`` (4, 4) with intrinsics ``K`` (3, 3) at ``width`` × ``height`` pixels.
+
+        ``subset``: (N,) bool or int64 rows to render (None: all). ``pose_xi`` (6,) float64: render from
+        ``c2w · E(ξ)`` with gradients reaching ξ (:func:`~gausslite.mapping.poses.move_gaussians_for_pose_delta`);
+        ``detach_map``: no gradient reaches the Gaussians (pose tracking); ``view_delta`` (4, 4) float64: render
+        from ``c2w · E(ξ) · view_delta`` (a virtual pose within the exposure, :meth:`render_view`); ``cull``:
+        frustum culling whatever the map size (``frustum_cull_min``; ROI crops, ``roi_cull``)."""
+        p = self.model.params
+        if detach_map:
+            p = {k: v.detach() for k, v in p.items()}
+        means, quats = p["means"], p["quats"]
+        if pose_xi is not None:
+            c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+            means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
+        cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+        if view_delta is not None:
+            cam = cam @ view_delta.to(cam.device)
+        vm = torch.linalg.inv(cam)
+        if self.cfg.frustum_cull and (len(means) >= self.cfg.frustum_cull_min or cull):
+            vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
+            if subset is not None:
+                vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
+            subset = vis
+        if self.clock.charges:
+            n_render = len(means) if subset is None else (
+                int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
+            self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
+        return rasterize(
+            means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
+            K=K, width=width, height=height, viewmat=vm, subset=subset, background=self.background,
+            backend=self.cfg.backend, num_threads=self.cfg.render_threads, cpu_kernel=self.cfg.cpu_kernel,
+        )
+
+    def blend_weights(self, K: torch.Tensor, width: int, height: int, c2w: torch.Tensor) -> torch.Tensor:
+        """(N,) float32 alpha-blending weight Σ_pixels T_i α_i of every Gaussian in the (sharp) view
+        (:func:`gausslite.render.blend_weights`); a deterministic clock is charged for the render."""
+        p = self.model.params
+        if self.clock.charges:
+            self.clock.charge_render(width * height, len(self.model), grad=False)
+        return blend_weights(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width,
+            height=height, c2w=c2w, background=self.background, backend=self.cfg.backend,
+            num_threads=self.cfg.render_threads)
+
+
+__all__ = ["SensorRenderer"]
