@@ -3,9 +3,10 @@
 
     python -m bench.delta_tolerance [--tolerances 1,4,16] [--kappa-rel 0.25,1e9] [--seeds 3] [--task-id room0-pick-plant]
 
-One agent maps Replica room0 (20 frames, 300×170) with the deployed agent settings of
-``deploy/gausslite.yaml`` (full GaussLite, 30 iterations and 1,500 seeds per frame, ``roi_render:
-active``, ground-truth ROI, every 2nd frame a keyframe). Every ``--push-every`` frames and after the
+One agent maps Replica room0 (20 frames, 300×170) with the deployed mapper settings of
+``deploy/gausslite.yaml`` (full GaussLite, 30 iterations and 1,500 seeds per frame) and the differences the
+committed figures were measured with (:data:`MAPPER_OVERRIDES`: ``roi_render: active``, ``roi_update:
+active``, every 2nd frame a keyframe), with the ground-truth ROI. Every ``--push-every`` frames and after the
 last one it selects the task subset (``gausslite.sharing.select_task_subset``, coverage 0.99) and plans
 a push with one :class:`gausslite.wire.delta.PushPlanner` per (tolerance, κ re-send threshold) pair, all
 fed the same snapshots, so the pairs differ in nothing else. A planner's acknowledged subset is the server's
@@ -37,8 +38,17 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
 
-AGENT_MAPPER = {"mode": "gausslite", "iters_per_frame": 30, "warmup_iters": 10, "seeds_per_frame": 1500,
-                "roi_render": "active", "keyframe_every": 2, "torch_threads": 1}
+#: the committed figures' mapper: ``deploy/gausslite.yaml``'s with these overrides
+MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "mapper.keyframe_every=2",
+                    "mapper.performance.render_threads=null"]
+
+
+def agent_mapper(seed: int, extra=()):
+    """The deployed mapper settings with :data:`MAPPER_OVERRIDES`, then ``extra`` overrides (``mapper.<key>=<value>``)
+    and ``seed`` (``bench.share_finetune`` and ``bench.share_refresh`` use it with ``roi_render: context``)."""
+    from gausslite.config import load_config
+
+    return load_config(None, MAPPER_OVERRIDES + list(extra) + [f"mapper.seed={seed}"]).agent.mapper
 
 
 def _roi_psnr(arrays, frames, rois) -> float:
@@ -65,7 +75,6 @@ def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
     import torch
 
     from gausslite.datasets import load_dataset
-    from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
     from gausslite.sharing import ShareConfig, select_task_subset
@@ -75,7 +84,7 @@ def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset, downscale=args.downscale, max_frames=args.max_frames)
     roi_fn = gt_roi_fn(ds, args.task_id)
-    cfg = load_config(None, [], defaults=dict(AGENT_MAPPER), seed=seed)
+    cfg = agent_mapper(seed)
     mapper = Mapper(cfg)
     planners = {t: PushPlanner("agent_a", tolerance=t[0], kappa_rel=t[1]) for t in tolerances}
     log = {t: [] for t in tolerances}
@@ -150,7 +159,7 @@ def main(argv=None) -> int:
     fb = mean_std([r["final_subset_bytes"] for r in runs])
     ex = mean_std([r["roi_psnr_exact"] for r in runs])
     result = {"dataset": args.dataset, "downscale": args.downscale, "max_frames": args.max_frames,
-              "task_id": args.task_id, "push_every": args.push_every, "mapper": AGENT_MAPPER,
+              "task_id": args.task_id, "push_every": args.push_every, "mapper_overrides": MAPPER_OVERRIDES,
               "seeds": list(range(args.seeds)), "final_subset_bytes": fb[0], "final_subset_bytes_std": fb[1],
               "roi_psnr_exact": ex[0], "roi_psnr_exact_std": ex[1], "tolerances": summary, "runs": runs,
               "wall_s": time.perf_counter() - t0}

@@ -10,7 +10,7 @@ that replays the scene through the agent's keyframe ingest as a robot streams it
 scene's clock, the keyframe selector keeps the newest candidate while the mapper is busy, and every mapped
 keyframe gets ``budget`` seconds of wall time (decoding, relevance and seeding included). Both modes map with
 the agent's deployed settings (``deploy/gausslite.yaml``) and the scene's sensor profile, at the same
-**binding** Gaussian cap (``mapper.max_gaussians``; each run's final count is reported), the same keyframe
+**binding** Gaussian cap (``mapper.budget.max_gaussians``; each run's final count is reported), the same keyframe
 rule, no sharing and **no final pass**. At the end of the mission the map is scored over **every** frame of
 the sequence (skipped ones included): ROI PSNR, PSNR, SSIM. With ``--final-pass-budgets`` the same map then
 gets the profile's final pass and is scored again (a separate column).
@@ -155,7 +155,7 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
 
     cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
-        f"mapper.max_gaussians={cap}", "mapper.render_threads=2", "agent.realtime=true", f"agent.rate={rate}",
+        f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true", f"agent.rate={rate}",
         "agent.downscale=1", *overrides])
     m = with_profile(cfg.mapper, profile)
     # no offline refinement: the final pass is scored in its own column
@@ -464,7 +464,7 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
     cost = fit_work_cost(samples)
     pred = [cost.render_s * r + cost.pixel_s * p + cost.gaussian_s * g + cost.step(s) for r, p, g, s, _ in samples]
     meas = [s[-1] for s in samples]
-    return {"scene": scene, "samples": len(samples), "work_cost": cost.__dict__, "roi_cull": m.roi_cull,
+    return {"scene": scene, "samples": len(samples), "work_cost": cost.__dict__, "roi_cull": m.performance.roi_cull,
             "full_iter_s": float(np.mean(full)) if full else None, "roi_iter_s": float(np.mean(roi)) if roi else None,
             "mean_measured_s": float(np.mean(meas)), "mean_abs_error_s": float(np.mean(np.abs(np.subtract(pred, meas))))}
 
@@ -485,7 +485,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--final-pass-budgets", default="0.5",
                     help="budgets whose maps also get the profile's final pass, scored in a separate column ('' = none)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="agent config override for both modes, e.g. mapper.rho=0.5")
+                    help="agent config override for both modes, e.g. mapper.seeding.rho=0.5")
     ap.add_argument("--out", default=str(RESULTS / "realtime.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
     ap.add_argument("--resume", action="store_true")

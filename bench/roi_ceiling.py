@@ -41,7 +41,7 @@ def roi_views(mapper, ds, stride: int, roi_fn, pad: int = 8) -> list:
     """The mapper's stored keyframes that see the ROI of ``roi_fn``, each cropped to its ROI box grown by ``pad``."""
     import torch
 
-    from gausslite.mapping.mapper import crop_keyframe, roi_box
+    from gausslite.mapping.views import crop_keyframe, roi_box
 
     # one load per mapped frame: its ROI by frame id
     rois = {fr.frame_id: np.asarray(roi_fn(fr), bool) for fr in (ds[i] for i in range(0, len(ds), stride))}

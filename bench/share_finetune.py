@@ -45,11 +45,10 @@ def run_seed(args, seed: int) -> dict:
     """One seed: map both agents, fine-tune, vote, refine; ROI PSNR per task and variant."""
     import torch
 
-    from bench.delta_tolerance import AGENT_MAPPER
+    from bench.delta_tolerance import agent_mapper
     from gausslite.datasets import load_dataset
     from gausslite.fusion.refine import refine_map
     from gausslite.fusion.vote import voxel_vote
-    from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
     from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset
@@ -67,7 +66,7 @@ def run_seed(args, seed: int) -> dict:
     subs, refine_kfs = {}, []
     for task in TASKS:
         roi_fn = gt_roi_fn(ds, task)
-        mapper = Mapper(load_config(None, [], defaults={**AGENT_MAPPER, "roi_render": "context"}, seed=seed))
+        mapper = Mapper(agent_mapper(seed, ["mapper.roi_render=context"]))
         for fr in frames:
             mapper.map_frame(fr, roi_fn(fr))
         out[task]["own"] = score(mapper.gmap, task)

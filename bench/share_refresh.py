@@ -73,9 +73,8 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
     """One seed: map both agents with periodic pushes per arm; bytes and ROI PSNR per arm and task."""
     import torch
 
-    from bench.delta_tolerance import AGENT_MAPPER
+    from bench.delta_tolerance import agent_mapper
     from gausslite.fusion.vote import voxel_vote
-    from gausslite.mapping.config import load_config
     from gausslite.mapping.mapper import Mapper
     from gausslite.pipeline import gt_roi_fn
     from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset, update_shared_subset
@@ -97,7 +96,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
     for task, ds in zip(tasks, datasets):
         frames = [ds[i] for i in range(len(ds))]
         roi_fn = gt_roi_fn(ds, task)
-        mapper = Mapper(load_config(None, [], defaults={**AGENT_MAPPER, "roi_render": "context"}, seed=seed))
+        mapper = Mapper(agent_mapper(seed, ["mapper.roi_render=context"]))
         planners = {a: PushPlanner(task) for a in arms}
         sent = {a: [] for a in arms}
         version = 0

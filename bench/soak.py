@@ -11,7 +11,8 @@ synthetic scene's circle trajectory (``make_scene(trajectory="circle")``, ``--fr
 
 * ``rss_mb_agent`` / ``rss_mb_fusion``: resident memory of each server process and its children (the agent's
   share worker), MB;
-* ``disk_mb_agent`` (checkpoints, pushed-version file) / ``disk_mb_fusion`` (SQLite store: subsets, keyframes);
+* ``disk_mb_agent`` (checkpoints, pushed-version file) / ``disk_mb_fusion`` (SQLite store: subsets, keyframes), MB,
+  and ``disk_tmp_mb_*``: atomic-write temporaries in flight at the sample (a checkpoint being replaced), apart;
 * ``accept_p99_ms``: the agent's accept latency p99 over its last 1800 frames (``GetStatus``
   ``accept_latency_ms_p99_recent``), and ``keyframe_latency_s_p95`` (arrival → mapped, whole mission);
 * map size (``n_gaussians``, ``n_active``), the subset the fusion server holds, frames, pushes, failures.
@@ -81,16 +82,28 @@ def tree_rss_mb(pid: int) -> float:
     return total
 
 
-def dir_mb(path: Path) -> float:
-    """Bytes of the files under ``path`` (recursively), MB."""
-    n = 0
+def dir_mb(path: Path) -> tuple[float, float]:
+    """MB of the files under ``path`` (recursively): (settled files, atomic-write temporaries in flight). The agent
+    writes a checkpoint through ``.<name>.<pid>.tmp`` and renames it (``gausslite.mission.runtime``): a sample taken
+    during that write sees the old and the new checkpoint at once, which is not growth."""
+    n = tmp = 0
     for root, _, files in os.walk(path):
         for f in files:
             try:
-                n += os.stat(os.path.join(root, f)).st_size
+                size = os.stat(os.path.join(root, f)).st_size
             except OSError:
-                pass
-    return n / 2**20
+                continue
+            if f.startswith(".") and f.endswith(".tmp"):
+                tmp += size
+            else:
+                n += size
+    return n / 2**20, tmp / 2**20
+
+
+def _disk(name: str, path: Path) -> dict:
+    """``disk_mb_<name>`` (settled files) and ``disk_tmp_mb_<name>`` (temporaries in flight) of :func:`dir_mb`."""
+    settled, tmp = dir_mb(path)
+    return {f"disk_mb_{name}": round(settled, 2), f"disk_tmp_mb_{name}": round(tmp, 2)}
 
 
 def growth_last_half(samples: List[dict], key: str) -> Optional[float]:
@@ -103,6 +116,23 @@ def growth_last_half(samples: List[dict], key: str) -> Optional[float]:
     if len(half) < 2 or half[0] <= 0:
         return None
     return (max(half) - half[0]) / half[0]
+
+
+def trend_last_half(samples: List[dict], key: str) -> Optional[float]:
+    """Least-squares slope of ``key`` over the last half of the run, as a fraction of its median there per 30
+    minutes: a leak shows as a steady positive trend, a transient peak (which :func:`growth_last_half` counts) does
+    not. None with fewer than 3 samples there."""
+    import numpy as np
+
+    if not samples:
+        return None
+    mid = samples[-1]["t_s"] / 2.0
+    half = [(s["t_s"], s[key]) for s in samples if s["t_s"] >= mid]
+    if len(half) < 3:
+        return None
+    t, y = np.array(half, float).T
+    med = float(np.median(y))
+    return None if med <= 0 else float(np.polyfit(t, y, 1)[0]) * 1800.0 / med
 
 
 # ------------------------------------------------------------------------------------ processes
@@ -230,7 +260,7 @@ def run(args) -> dict:
                 s = {"t_s": round(time.monotonic() - t_start, 1),
                      "rss_mb_agent": round(tree_rss_mb(agent.pid), 1),
                      "rss_mb_fusion": round(tree_rss_mb(fusion.pid), 1),
-                     "disk_mb_agent": round(dir_mb(agent_dir), 2), "disk_mb_fusion": round(dir_mb(fusion_dir), 2),
+                     **_disk("agent", agent_dir), **_disk("fusion", fusion_dir),
                      "accept_p99_ms": round(float(st.accept_latency_ms_p99_recent), 3),
                      "keyframe_latency_s_p95": round(float(st.keyframe_latency_s_p95), 3),
                      "n_gaussians": int(st.n_gaussians), "n_active": int(st.n_active),
@@ -268,6 +298,8 @@ def run(args) -> dict:
            "machine": f"{os.cpu_count()} CPUs, load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}"}
     res["growth_last_half"] = {k: (None if (g := growth_last_half(samples, k)) is None else round(g, 4))
                                for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
+    res["trend_last_half_per_30min"] = {k: (None if (g := trend_last_half(samples, k)) is None else round(g, 4))
+                                        for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
     res["accept_p99_ms_max"] = max((s["accept_p99_ms"] for s in samples), default=None)
     res["goals"] = {
         **{f"{k} growth<=5%": g is not None and g <= GROWTH_LIMIT for k, g in res["growth_last_half"].items()},
@@ -298,6 +330,9 @@ def table(res: dict) -> str:
     g = res["growth_last_half"]
     lines += ["", "Growth over the last half: " + ", ".join(
         f"{k} {'n/a' if v is None else f'{100 * v:+.1f} %'}" for k, v in g.items()),
+        "Trend over the last half (least-squares slope, per 30 minutes): " + ", ".join(
+            f"{k} {'n/a' if v is None else f'{100 * v:+.1f} %'}"
+            for k, v in (res.get("trend_last_half_per_30min") or {}).items()),
         f"Accept p99 (last 1800 frames), largest sample: {res['accept_p99_ms_max']} ms",
         f"Errors: {res['errors'] or 'none'}",
         "Goals: " + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in res["goals"].items())]

@@ -290,7 +290,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     # 'context' render inside the copy = the whole copy (the subset alone), with only the free rows updated
     fcfg = base.model_copy(update={
         "seed": seed, "roi_render": "context", "footprint_alpha": float(footprint_alpha),
-        "max_gaussians": max(base.max_gaussians or 0, len(gmap)),
+        "budget": base.budget.model_copy(update={"max_gaussians": max(base.budget.max_gaussians or 0, len(gmap))}),
         "densify": base.densify.model_copy(update={"enabled": False})})
     mapper = Mapper(fcfg)
     gmap.active = torch.from_numpy(free).to(gmap.active.device)

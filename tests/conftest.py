@@ -1,7 +1,8 @@
 """Shared test fixtures, and the ``integration`` marker.
 
-``integration``: the tests that start processes or gRPC servers (``INTEGRATION``; the rest are unit tests):
-``pytest -m "not integration"`` runs the unit tests alone.
+``integration``: end-to-end tests (``INTEGRATION``): they start processes or gRPC servers, build and export the real
+detector / segmenter architectures, or run a benchmark end to end on a tiny input. The rest are unit tests:
+``pytest -m "not integration"`` runs them alone (in about a minute).
 
 ``shared_datasets``: the research datasets in ``../shared/datasets``. They are never copied into the
 repo. When absent, tests that need them skip on a user's machine but fail under CI (``CI=true``).
@@ -18,8 +19,12 @@ from tests._ci import missing
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: test files (relative to tests/) that start processes or gRPC servers
+#: test files (relative to tests/) that start processes or gRPC servers, export real model architectures, or run a
+#: benchmark end to end
 INTEGRATION = {
+    "attention/test_onnx_real_models.py", "cli/test_cli_export_models.py",
+    "bench/test_bench_long_mission.py", "bench/test_bench_mapper.py", "bench/test_bench_roi_ceiling.py",
+    "bench/test_bench_share_finetune.py", "bench/test_bench_share_refresh.py",
     "bench/test_bench_fleet.py", "bench/test_bench_soak.py", "bench/test_bench_realtime.py",
     "deploy/test_deploy_compose.py", "parser/test_parser_facade.py",
     "services/test_agent_live.py", "services/test_agent_service.py", "services/test_bag_services.py",

@@ -24,7 +24,7 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
                    help="override a config field, e.g. --set iters_per_frame=60 --set lr.means=1e-4")
     p.add_argument("--iters", type=int, default=None, help="Adam iterations per mapped frame")
     p.add_argument("--seeds-per-frame", dest="seeds_per_frame", type=int, default=None,
-                   help="new Gaussians per mapped frame at most (mapper.seeds_per_frame)")
+                   help="new Gaussians per mapped frame at most (mapper.seeding.seeds_per_frame)")
     p.add_argument("--max-gaussians", type=int, default=None, help="global Gaussian budget")
     p.add_argument("--backend", default=None, choices=["auto", "warp", "torch", "gsplat"])
     p.add_argument("--seed", type=int, default=None, help="random seed")

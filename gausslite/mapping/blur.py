@@ -12,7 +12,7 @@ known from the sensor's poses instead of estimating it:
     Ĩ = (1/K) Σ_k I(c2w · E(s_k · ξ_b)),   s_k evenly spaced in [−½, ½],   ξ_b = τ · (ω, v)
 
 with (ω, v) the camera's twist between the previous mapped frame and this one (rad/s, m/s, this camera's
-frame; :func:`exposure_twist`), τ the exposure time (``MapperConfig.blur_exposure_s``) and K chosen from
+frame; :func:`exposure_twist`), τ the exposure time (``MapperConfig.sensor.blur_exposure_s``) and K chosen from
 the blur length in pixels (:func:`blur_samples`). ``E`` is :func:`gausslite.mapping.poses.pose_delta`.
 """
 

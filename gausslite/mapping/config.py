@@ -76,59 +76,15 @@ class ComponentSwitches(_Strict):
     gfd: bool = Field(True, description="gradient-focused densification (III-C.3)")
 
 
-class MapperConfig(_Strict):
-    """Mapper configuration. Defaults: paper values where it gives them, tuned otherwise.
-
-    ``mode='uniform'`` is the baseline: relevance is ignored for seeding and optimisation (every
-    component switch is treated as off). ``mode='gausslite'`` applies the switches in
-    ``components``. Both modes share the Gaussian budget (``max_gaussians``), seeds per frame
-    (``seeds_per_frame``) and iterations per frame (``iters_per_frame``): the matched-budget
-    comparison of paper Sec. IV.
-    """
-
-    mode: Literal["uniform", "gausslite"] = "uniform"
-    seed: int = 0
-    device: str = "cpu"
-    backend: Literal["auto", "warp", "torch", "gsplat"] = "auto"
-    torch_threads: int = Field(
-        1, ge=0, description="torch intra-op threads (0 = leave torch's setting); 1 avoids OpenMP "
-        "threads competing with the rasterizer's band threads (measured 4× faster under load)"
-    )
-    render_threads: Optional[int] = Field(
-        None, ge=1, description="rasterizer CPU band threads (None = min(2, cores)); 1 per agent when "
-        "two agents share two cores"
-    )
+class SeedingConfig(_Strict):
+    """Relevance-driven seeding (paper Sec. III-C): how many Gaussians a frame seeds, where (SB, SIS, GFD), and
+    their initial scale and opacity."""
 
     seeds_per_frame: int = Field(4000, ge=1, description="N new Gaussians per mapped frame")
     first_frame_seeds: Optional[int] = Field(
         None, ge=1, description="seeds on the first mapped frame (default 2×seeds_per_frame)"
     )
-    max_gaussians: Optional[int] = Field(
-        None, ge=1, description="global Gaussian budget; None = gaussians_per_pixel × image pixels"
-    )
-    gaussians_per_pixel: float = Field(
-        1.0, gt=0, description="budget per image pixel when max_gaussians is None (paper: 1M at 1200×680 ≈ 1.2)"
-    )
-    budget_mode: Literal["scene", "image"] = Field(
-        "scene", description="default budget when max_gaussians is None. 'scene': gaussians_per_voxel × "
-        "coarse voxels observed so far (grows with the mission, capped by max_gaussians_cap); 'image': "
-        "gaussians_per_pixel × the first frame's pixels (fixed)"
-    )
-    gaussians_per_voxel: float = Field(
-        4.5, gt=0, description="scene budget per observed coarse voxel (budget_voxel_m edge). Room0's first 20 "
-        "frames observe 11.6k voxels of 5 cm: 4.5 gives them 52k Gaussians, the old 1-per-pixel budget at 300x170"
-    )
-    budget_voxel_m: float = Field(0.05, gt=0, description="edge of the coarse voxels the scene budget counts (metres)")
-    max_gaussians_cap: int = Field(400_000, ge=1, description="hard cap on the scene budget")
-    evict: Literal["contribution", "opacity"] = Field(
-        "contribution", description="at the budget, new seeds replace the existing Gaussians with the lowest "
-        "'contribution' (alpha-blending weight accumulated over the keyframes that see them) or 'opacity'"
-    )
-    roi_protect: float = Field(
-        4.0, ge=1, description="eviction: active (ROI) Gaussians' contribution counts this many times "
-        "(gausslite mode only; uniform mode has no active Gaussians)"
-    )
-    coverage_seeding: bool = Field(
+    coverage: bool = Field(
         True, description="seed only where the map does not explain the new frame (SplaTAM Eq. 9 silhouette "
         "and depth rule); the seed count is seeds_per_frame × the unexplained share of valid pixels"
     )
@@ -137,6 +93,231 @@ class MapperConfig(_Strict):
         50.0, gt=0, description="unexplained: rendered depth behind the observed one by more than this × the "
         "median depth error (SplaTAM: 50)"
     )
+    rho: float = Field(0.4, ge=0, le=1, description="SB ROI seed share ρ (paper: 40 % on Replica)")
+    m_roi: float = Field(0.5, gt=0, description="SIS scale multiplier for ROI seeds")
+    m_bg: float = Field(0.7, gt=0, description="SIS scale multiplier for background seeds")
+    m_uniform: float = Field(1.0, gt=0, description="scale multiplier without SIS")
+    gfd_eps: float = Field(0.05, gt=0, description="GFD smoothing ε added to the Sobel magnitude")
+    knn: int = Field(3, ge=1, description="neighbours for the local median NN distance s0")
+    init_opacity: float = Field(0.5, gt=0, lt=1)
+
+
+class BudgetConfig(_Strict):
+    """The Gaussian budget and eviction at the budget (:class:`gausslite.mapping.strategy.DensityStrategy`)."""
+
+    max_gaussians: Optional[int] = Field(
+        None, ge=1, description="global Gaussian budget; None = gaussians_per_pixel × image pixels"
+    )
+    gaussians_per_pixel: float = Field(
+        1.0, gt=0, description="budget per image pixel when max_gaussians is None (paper: 1M at 1200×680 ≈ 1.2)"
+    )
+    mode: Literal["scene", "image"] = Field(
+        "scene", description="default budget when max_gaussians is None. 'scene': gaussians_per_voxel × "
+        "coarse voxels observed so far (grows with the mission, capped by max_gaussians_cap); 'image': "
+        "gaussians_per_pixel × the first frame's pixels (fixed)"
+    )
+    gaussians_per_voxel: float = Field(
+        4.5, gt=0, description="scene budget per observed coarse voxel (budget_voxel_m edge). Room0's first 20 "
+        "frames observe 11.6k voxels of 5 cm: 4.5 gives them 52k Gaussians, the old 1-per-pixel budget at 300x170"
+    )
+    voxel_m: float = Field(0.05, gt=0, description="edge of the coarse voxels the scene budget counts (metres)")
+    cap: int = Field(400_000, ge=1, description="hard cap on the scene budget")
+    evict: Literal["contribution", "opacity"] = Field(
+        "contribution", description="at the budget, new seeds replace the existing Gaussians with the lowest "
+        "'contribution' (alpha-blending weight accumulated over the keyframes that see them) or 'opacity'"
+    )
+    roi_protect: float = Field(
+        4.0, ge=1, description="eviction: active (ROI) Gaussians' contribution counts this many times "
+        "(gausslite mode only; uniform mode has no active Gaussians)"
+    )
+
+
+class PoseConfig(_Strict):
+    """Keyframe pose refinement and tracking (MonoGS Sec. 3.3; SplaTAM Sec. 3.3; :mod:`gausslite.mapping.poses`)."""
+
+    refine: bool = Field(
+        False, description="refine every keyframe's pose jointly with the map in full-image iterations (MonoGS "
+        "Sec. 3.3; gausslite.mapping.poses): for sensors whose poses are not exact (the hand-held profile); "
+        "scores are then taken at the refined poses, as SLAM systems score at their estimated poses"
+    )
+    track_iters: int = Field(
+        0, ge=0, description="pose refinement: Adam steps on a new frame's pose alone, against the current map, "
+        "before it is seeded (SplaTAM-style tracking from the sensor's pose); 0 = none"
+    )
+    track_alpha: float = Field(0.9, gt=0, lt=1, description="tracking: pixels with rendered silhouette above this")
+    lr_rot: float = Field(1e-3, gt=0, description="pose refinement: Adam step of the rotation (radians)")
+    lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
+    init: Literal["inherit", "identity"] = Field(
+        "identity", description="pose refinement: a new keyframe starts from the latest keyframe's correction "
+        "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "
+        "'inherit' drifts on TUM fr1/rpy, measured: docs/results.md)"
+    )
+
+
+class SensorConfig(_Strict):
+    """The sensor model a view is rendered with (:class:`gausslite.mapping.sensor.SensorRenderer`): exposure
+    compensation, motion blur, rolling shutter."""
+
+    exposure_comp: bool = Field(
+        False, description="per-keyframe exposure compensation (gausslite.mapping.exposure; MonoGS): every "
+        "keyframe gets an affine colour response exp(a)·I + b per channel, optimised with the map in full-image "
+        "iterations; the first keyframe fixes the map's exposure; scores are taken with each frame's response "
+        "(the nearest keyframe's for a held-out view), as they are at its refined pose"
+    )
+    exposure_lr: float = Field(0.01, gt=0, description="exposure compensation: Adam step of a and b (MonoGS: 0.01)")
+    motion_blur: bool = Field(
+        False, description="model camera motion blur (gausslite.mapping.blur; BAD-Gaussians, MBA-SLAM): a view is "
+        "the mean of renders at virtual poses along the camera's motion during the exposure, known from the sensor's "
+        "poses of consecutive mapped frames; its scores are taken the same way. On in the hand-held profile"
+    )
+    blur_exposure_s: float = Field(
+        0.01, gt=0, le=0.2, description="motion blur: exposure time τ, seconds (measured: docs/results.md)"
+    )
+    blur_px_per_sample: float = Field(4.0, gt=0, description="motion blur: one virtual pose per this many pixels of streak")
+    blur_max_samples: int = Field(5, ge=1, description="motion blur: at most this many virtual poses per view")
+    rolling_shutter_s: float = Field(
+        0.0, ge=0, le=0.1, description="rolling shutter (gausslite.mapping.shutter; Kerl et al. ICCV 2015, Seiskari et al. "
+        "ECCV 2024): readout time of the colour image, first row to last, seconds (0: global shutter). Rows are "
+        "rendered in bands, each from the pose at its readout time along the camera's motion (the sensor's poses of "
+        "consecutive mapped frames, as for motion_blur); scores are taken the same way"
+    )
+    motion_estimate: Literal["backward", "central"] = Field(
+        "backward", description="the camera's motion for motion_blur and the rolling shutter: 'backward' from the "
+        "previous mapped frame to this one (the velocity 1/2 frame earlier); 'central' also replaces the previous "
+        "frame's estimate by the mean of its backward and forward ones once this frame arrives (the first frame "
+        "gets the forward one), so stored keyframes carry the velocity at their own time"
+    )
+    rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
+                                  "between a view's first and last row")
+    rs_max_bands: int = Field(6, ge=1, description="rolling shutter: at most this many row bands per view")
+    blur_max_dt: float = Field(
+        0.5, gt=0, description="motion blur: consecutive mapped frames further apart than this (seconds) give no "
+        "motion estimate (the view is rendered sharp)"
+    )
+
+
+class PerformanceConfig(_Strict):
+    """Speed settings: threads, kernels, culling, caches and the cheaper iteration variants. Except for
+    ``coarse_iters`` and ``full_crop_fraction`` they do not change the map beyond float rounding."""
+
+    torch_threads: int = Field(
+        1, ge=0, description="torch intra-op threads (0 = leave torch's setting); 1 avoids OpenMP "
+        "threads competing with the rasterizer's band threads (measured 4× faster under load)"
+    )
+    render_threads: Optional[int] = Field(
+        None, ge=1, description="rasterizer CPU band threads (None = min(2, cores)); 1 per agent when "
+        "two agents share two cores"
+    )
+    cpu_kernel: Literal["simd", "tile"] = Field(
+        "simd", description="CPU compositing kernels (gausslite.render.simd_kernels): 'simd' = vectorised "
+        "native tile loops (default; room0 300x170: forward 20 -> 11 ms, backward 25 -> 16 ms), 'tile' = the "
+        "Warp tile kernels they replace (bench.mapper baseline); the same renders to float32 rounding"
+    )
+    frustum_cull: bool = Field(
+        True, description="render only the Gaussians whose 3σ sphere reaches the (padded) view frustum "
+        "(gausslite.render.culling; the same image): a long mission's map is mostly out of view"
+    )
+    frustum_cull_min: int = Field(20_000, ge=0, description="cull only maps of at least this many Gaussians")
+    reference_paths: bool = Field(
+        False, description="use the slow reference implementations of the ROI-phase Adam step (full step, "
+        "then frozen rows restored) and of SSIM (15 filtered channels, no cached ground-truth statistics): "
+        "the same results to float rounding, for parity checks and as bench.mapper's baseline"
+    )
+    ssim_cache_views: int = Field(
+        32, ge=0, description="keep the ground-truth SSIM statistics of this many recently used views (full "
+        "images and ROI crops; 1.2 MB each at 300x170); 0 = recompute at every iteration. The same losses: "
+        "room0 spent 0.1 s per keyframe recomputing them"
+    )
+    coarse_iters: int = Field(
+        0, ge=0, description="coarse-to-fine: the first coarse_iters iterations of each mapped frame render "
+        "full-image views at 1/coarse_downscale resolution (k×k colour mean, valid-depth mean, intrinsics "
+        "scaled); later iterations, ROI-phase crops and footprint refinement stay at full resolution. 0 = "
+        "off (matched-budget comparisons). All-coarse full-image iterations leave sub-pixel speckle: keep "
+        "full-resolution iterations after them"
+    )
+    coarse_downscale: int = Field(2, ge=2, le=8, description="resolution divisor of coarse iterations")
+    full_crop_fraction: float = Field(
+        1.0, gt=0, le=1, description="full-image iterations render a random window of this share of the image "
+        "area (same aspect, uniform position; stochastic pixel subsampling at full resolution). 1 = the whole "
+        "image (matched-budget comparisons)"
+    )
+    roi_cull: bool = Field(
+        True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
+        "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"
+    )
+
+
+#: flat setting name → (group, name in the group): accepted in input (YAML, ``--set``, keyword arguments)
+FLAT_NAMES: dict[str, tuple[str, str]] = {
+    "seeds_per_frame": ("seeding", "seeds_per_frame"),
+    "first_frame_seeds": ("seeding", "first_frame_seeds"),
+    "coverage_seeding": ("seeding", "coverage"),
+    "coverage_alpha": ("seeding", "coverage_alpha"),
+    "coverage_depth_factor": ("seeding", "coverage_depth_factor"),
+    "rho": ("seeding", "rho"),
+    "m_roi": ("seeding", "m_roi"),
+    "m_bg": ("seeding", "m_bg"),
+    "m_uniform": ("seeding", "m_uniform"),
+    "gfd_eps": ("seeding", "gfd_eps"),
+    "knn": ("seeding", "knn"),
+    "init_opacity": ("seeding", "init_opacity"),
+    "max_gaussians": ("budget", "max_gaussians"),
+    "gaussians_per_pixel": ("budget", "gaussians_per_pixel"),
+    "budget_mode": ("budget", "mode"),
+    "gaussians_per_voxel": ("budget", "gaussians_per_voxel"),
+    "budget_voxel_m": ("budget", "voxel_m"),
+    "max_gaussians_cap": ("budget", "cap"),
+    "evict": ("budget", "evict"),
+    "roi_protect": ("budget", "roi_protect"),
+    "pose_refine": ("pose", "refine"),
+    "pose_track_iters": ("pose", "track_iters"),
+    "pose_track_alpha": ("pose", "track_alpha"),
+    "pose_lr_rot": ("pose", "lr_rot"),
+    "pose_lr_trans": ("pose", "lr_trans"),
+    "pose_init": ("pose", "init"),
+    "exposure_comp": ("sensor", "exposure_comp"),
+    "exposure_lr": ("sensor", "exposure_lr"),
+    "motion_blur": ("sensor", "motion_blur"),
+    "blur_exposure_s": ("sensor", "blur_exposure_s"),
+    "blur_px_per_sample": ("sensor", "blur_px_per_sample"),
+    "blur_max_samples": ("sensor", "blur_max_samples"),
+    "rolling_shutter_s": ("sensor", "rolling_shutter_s"),
+    "motion_estimate": ("sensor", "motion_estimate"),
+    "rs_px_per_band": ("sensor", "rs_px_per_band"),
+    "rs_max_bands": ("sensor", "rs_max_bands"),
+    "blur_max_dt": ("sensor", "blur_max_dt"),
+    "torch_threads": ("performance", "torch_threads"),
+    "render_threads": ("performance", "render_threads"),
+    "cpu_kernel": ("performance", "cpu_kernel"),
+    "frustum_cull": ("performance", "frustum_cull"),
+    "frustum_cull_min": ("performance", "frustum_cull_min"),
+    "reference_paths": ("performance", "reference_paths"),
+    "ssim_cache_views": ("performance", "ssim_cache_views"),
+    "coarse_iters": ("performance", "coarse_iters"),
+    "coarse_downscale": ("performance", "coarse_downscale"),
+    "full_crop_fraction": ("performance", "full_crop_fraction"),
+    "roi_cull": ("performance", "roi_cull"),
+}
+
+
+class MapperConfig(_Strict):
+    """Mapper configuration. Defaults: paper values where it gives them, tuned otherwise.
+
+    ``mode='uniform'`` is the baseline: relevance is ignored for seeding and optimisation (every
+    component switch is treated as off). ``mode='gausslite'`` applies the switches in
+    ``components``. Both modes share the Gaussian budget (``budget.max_gaussians``), seeds per frame
+    (``seeding.seeds_per_frame``) and iterations per frame (``iters_per_frame``): the matched-budget
+    comparison of paper Sec. IV.
+
+    The settings of one concern are grouped: ``seeding``, ``budget``, ``pose``, ``sensor``, ``performance``,
+    ``densify``, ``lr``, ``components``. Input may also name a grouped setting by its flat name (``max_gaussians``,
+    ``pose_refine``, …: :data:`FLAT_NAMES`), as YAML files and ``--set`` overrides written before the groups do.
+    """
+
+    mode: Literal["uniform", "gausslite"] = "uniform"
+    seed: int = 0
+    device: str = "cpu"
+    backend: Literal["auto", "warp", "torch", "gsplat"] = "auto"
     iters_per_frame: int = Field(40, ge=1, description="Adam iterations per mapped frame")
     keyframe_budget_s: Optional[float] = Field(
         None, gt=0, description="online agent: wall-clock seconds per mapped keyframe (seeding included); "
@@ -181,74 +362,9 @@ class MapperConfig(_Strict):
         "the mapping schedule in gausslite mode (per iters_per_frame final iterations, warmup_iters full-image, the "
         "rest ROI-phase on keyframes that see the ROI; uniform mode stays full-image)"
     )
-
-    pose_refine: bool = Field(
-        False, description="refine every keyframe's pose jointly with the map in full-image iterations (MonoGS "
-        "Sec. 3.3; gausslite.mapping.poses): for sensors whose poses are not exact (the hand-held profile); "
-        "scores are then taken at the refined poses, as SLAM systems score at their estimated poses"
-    )
-    pose_track_iters: int = Field(
-        0, ge=0, description="pose refinement: Adam steps on a new frame's pose alone, against the current map, "
-        "before it is seeded (SplaTAM-style tracking from the sensor's pose); 0 = none"
-    )
-    pose_track_alpha: float = Field(0.9, gt=0, lt=1, description="tracking: pixels with rendered silhouette above this")
-    pose_lr_rot: float = Field(1e-3, gt=0, description="pose refinement: Adam step of the rotation (radians)")
-    pose_lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
-    pose_init: Literal["inherit", "identity"] = Field(
-        "identity", description="pose refinement: a new keyframe starts from the latest keyframe's correction "
-        "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "
-        "'inherit' drifts on TUM fr1/rpy, measured: docs/results.md)"
-    )
-
-    exposure_comp: bool = Field(
-        False, description="per-keyframe exposure compensation (gausslite.mapping.exposure; MonoGS): every "
-        "keyframe gets an affine colour response exp(a)·I + b per channel, optimised with the map in full-image "
-        "iterations; the first keyframe fixes the map's exposure; scores are taken with each frame's response "
-        "(the nearest keyframe's for a held-out view), as they are at its refined pose"
-    )
-    exposure_lr: float = Field(0.01, gt=0, description="exposure compensation: Adam step of a and b (MonoGS: 0.01)")
-
-    motion_blur: bool = Field(
-        False, description="model camera motion blur (gausslite.mapping.blur; BAD-Gaussians, MBA-SLAM): a view is "
-        "the mean of renders at virtual poses along the camera's motion during the exposure, known from the sensor's "
-        "poses of consecutive mapped frames; its scores are taken the same way. On in the hand-held profile"
-    )
-    blur_exposure_s: float = Field(
-        0.01, gt=0, le=0.2, description="motion blur: exposure time τ, seconds (measured: docs/results.md)"
-    )
-    blur_px_per_sample: float = Field(4.0, gt=0, description="motion blur: one virtual pose per this many pixels of streak")
-    blur_max_samples: int = Field(5, ge=1, description="motion blur: at most this many virtual poses per view")
-    rolling_shutter_s: float = Field(
-        0.0, ge=0, le=0.1, description="rolling shutter (gausslite.mapping.shutter; Kerl et al. ICCV 2015, Seiskari et al. "
-        "ECCV 2024): readout time of the colour image, first row to last, seconds (0: global shutter). Rows are "
-        "rendered in bands, each from the pose at its readout time along the camera's motion (the sensor's poses of "
-        "consecutive mapped frames, as for motion_blur); scores are taken the same way"
-    )
-    motion_estimate: Literal["backward", "central"] = Field(
-        "backward", description="the camera's motion for motion_blur and the rolling shutter: 'backward' from the "
-        "previous mapped frame to this one (the velocity 1/2 frame earlier); 'central' also replaces the previous "
-        "frame's estimate by the mean of its backward and forward ones once this frame arrives (the first frame "
-        "gets the forward one), so stored keyframes carry the velocity at their own time"
-    )
-    rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
-                                  "between a view's first and last row")
-    rs_max_bands: int = Field(6, ge=1, description="rolling shutter: at most this many row bands per view")
-    blur_max_dt: float = Field(
-        0.5, gt=0, description="motion blur: consecutive mapped frames further apart than this (seconds) give no "
-        "motion estimate (the view is rendered sharp)"
-    )
-
-    rho: float = Field(0.4, ge=0, le=1, description="SB ROI seed share ρ (paper: 40 % on Replica)")
-    m_roi: float = Field(0.5, gt=0, description="SIS scale multiplier for ROI seeds")
-    m_bg: float = Field(0.7, gt=0, description="SIS scale multiplier for background seeds")
-    m_uniform: float = Field(1.0, gt=0, description="scale multiplier without SIS")
-    gfd_eps: float = Field(0.05, gt=0, description="GFD smoothing ε added to the Sobel magnitude")
-    knn: int = Field(3, ge=1, description="neighbours for the local median NN distance s0")
-    init_opacity: float = Field(0.5, gt=0, lt=1)
     footprint_alpha: float = Field(
         0.5, ge=0, le=1, description="ROI phase: pixels with rendered alpha above this are the footprint"
     )
-
     roi_render: Literal["context", "active", "alternate"] = Field(
         "context", description="ROI phase render. 'active': the active Gaussians alone (the paper's wording); "
         "'context': every Gaussian, inactive ones frozen (no update, no κ), so the active ones are fitted to "
@@ -270,47 +386,9 @@ class MapperConfig(_Strict):
         "restriction) or on every pixel of the ROI crop ('crop': the ROI's box and roi_crop_pad around it, so "
         "Gaussians fitted to ROI pixels cannot spread over their neighbours unpenalised)"
     )
-    roi_cull: bool = Field(
-        True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
-        "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"
-    )
-    coarse_iters: int = Field(
-        0, ge=0, description="coarse-to-fine: the first coarse_iters iterations of each mapped frame render "
-        "full-image views at 1/coarse_downscale resolution (k×k colour mean, valid-depth mean, intrinsics "
-        "scaled); later iterations, ROI-phase crops and footprint refinement stay at full resolution. 0 = "
-        "off (matched-budget comparisons). All-coarse full-image iterations leave sub-pixel speckle: keep "
-        "full-resolution iterations after them"
-    )
-    coarse_downscale: int = Field(2, ge=2, le=8, description="resolution divisor of coarse iterations")
-    full_crop_fraction: float = Field(
-        1.0, gt=0, le=1, description="full-image iterations render a random window of this share of the image "
-        "area (same aspect, uniform position; stochastic pixel subsampling at full resolution). 1 = the whole "
-        "image (matched-budget comparisons)"
-    )
-    cpu_kernel: Literal["simd", "tile"] = Field(
-        "simd", description="CPU compositing kernels (gausslite.render.simd_kernels): 'simd' = vectorised "
-        "native tile loops (default; room0 300x170: forward 20 -> 11 ms, backward 25 -> 16 ms), 'tile' = the "
-        "Warp tile kernels they replace (bench.mapper baseline); the same renders to float32 rounding"
-    )
-    frustum_cull: bool = Field(
-        True, description="render only the Gaussians whose 3σ sphere reaches the (padded) view frustum "
-        "(gausslite.render.culling; the same image): a long mission's map is mostly out of view"
-    )
-    frustum_cull_min: int = Field(20_000, ge=0, description="cull only maps of at least this many Gaussians")
-    reference_paths: bool = Field(
-        False, description="use the slow reference implementations of the ROI-phase Adam step (full step, "
-        "then frozen rows restored) and of SSIM (15 filtered channels, no cached ground-truth statistics): "
-        "the same results to float rounding, for parity checks and as bench.mapper's baseline"
-    )
     roi_crop_pad: int = Field(
         8, ge=0, description="ROI phase: render only the ROI bounding box grown by this many pixels"
     )
-    ssim_cache_views: int = Field(
-        32, ge=0, description="keep the ground-truth SSIM statistics of this many recently used views (full "
-        "images and ROI crops; 1.2 MB each at 300x170); 0 = recompute at every iteration. The same losses: "
-        "room0 spent 0.1 s per keyframe recomputing them"
-    )
-
     lambda_depth: float = Field(1.0, ge=0, description="λ_d in L = L1_c + λ_d L1_d + λ_s (1-SSIM)")
     lambda_ssim: float = Field(0.2, ge=0, description="λ_s")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -318,6 +396,28 @@ class MapperConfig(_Strict):
     lr: LearningRates = LearningRates()
     densify: DensifyConfig = DensifyConfig()
     components: ComponentSwitches = ComponentSwitches()
+    seeding: SeedingConfig = SeedingConfig()
+    budget: BudgetConfig = BudgetConfig()
+    pose: PoseConfig = PoseConfig()
+    sensor: SensorConfig = SensorConfig()
+    performance: PerformanceConfig = PerformanceConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _group_flat_names(cls, data: Any) -> Any:
+        """Move settings given by their flat name (:data:`FLAT_NAMES`) into their group. A flat name wins over the
+        same setting in its group: it comes from a later layer (a ``--set`` override or a keyword argument over a
+        YAML file's group)."""
+        if not isinstance(data, dict) or not any(k in FLAT_NAMES for k in data):
+            return data
+        data = dict(data)
+        for flat in [k for k in data if k in FLAT_NAMES]:
+            group, name = FLAT_NAMES[flat]
+            sub = data.get(group) or {}
+            sub = sub.model_dump(exclude_unset=True) if isinstance(sub, BaseModel) else dict(sub)
+            sub[name] = data.pop(flat)
+            data[group] = sub
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> "MapperConfig":
@@ -382,12 +482,21 @@ def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()
         FileNotFoundError: ``path`` does not exist.
         pydantic.ValidationError: unknown keys or invalid values (the message names the field).
     """
-    data: dict = dict(defaults or {})
+    data: dict = deep_merge({}, defaults or {})
     if path is not None:
-        data.update(read_yaml(path))
+        data = deep_merge(data, read_yaml(path))
     data = apply_overrides(data, overrides)
     data.update({k: v for k, v in fields.items() if v is not None})
     return MapperConfig.model_validate(data)
+
+
+def deep_merge(base: dict, top: dict) -> dict:
+    """``base`` updated by ``top`` section by section (nested dicts merged, other values replaced); a new dict.
+    Neither input is modified."""
+    out = dict(base)
+    for k, v in top.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def ablation_rows() -> list[tuple[str, ComponentSwitches]]:

@@ -48,7 +48,7 @@ def invert_exposure(rgb: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 
 class ExposureModel:
-    """Per-keyframe affine exposure θ (``MapperConfig.exposure_comp``; module docstring).
+    """Per-keyframe affine exposure θ (``MapperConfig.sensor.exposure_comp``; module docstring).
 
     Args:
         lr: Adam step size of θ (log gain and offset alike; MonoGS uses 0.01).

@@ -36,7 +36,7 @@ def photometric_loss(
         mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
             None = full image. The depth term also requires valid ground-truth depth.
         reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
-            ground-truth statistics (``MapperConfig.reference_paths``); otherwise
+            ground-truth statistics (``MapperConfig.performance.reference_paths``); otherwise
             :func:`gausslite.fused_ssim.ssim_mean` (fused native SSIM on CPU, 20 -> 4 ms forward and
             backward at 300x170).
     Returns:

@@ -43,9 +43,6 @@ time budget), :meth:`~Mapper.optimize` (between keyframes) and :meth:`~Mapper.fi
 
 from __future__ import annotations
 
-
-from __future__ import annotations
-
 import dataclasses
 import logging
 import math
@@ -69,8 +66,7 @@ from gausslite.mapping.seeding import local_median_nn_distance, seed_points, sel
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
 from gausslite.mapping.strategy import DensityStrategy
-from gausslite.mapping.views import (Keyframe, crop_keyframe, downscale_keyframe, keyframe_from_frame,  # noqa: F401
-                                     random_window, roi_box, window_keyframe)
+from gausslite.mapping.views import Keyframe, keyframe_from_frame
 from gausslite.render import RenderOutput
 
 log = logging.getLogger(__name__)
@@ -116,7 +112,7 @@ class Mapper:
         step: one Adam iteration on one view, ``mapper.step(view, active_phase=...)``
             (:class:`~gausslite.mapping.step.TrainStep`).
         keyframes: every keyframe of the mission, compact and bounded (MVO draws from it).
-        poses: keyframe pose refinement (``cfg.pose_refine``), None when off.
+        poses: keyframe pose refinement (``cfg.pose.refine``), None when off.
         clock: clock of the keyframe budget and the idle/final time bounds (wall time, or its deterministic twin).
         stats: one :class:`FrameStats` per :meth:`map_frame` call.
     """
@@ -124,16 +120,16 @@ class Mapper:
     def __init__(self, cfg: MapperConfig) -> None:
         self.cfg = cfg
         self.device = torch.device(cfg.device)
-        if cfg.torch_threads:
-            torch.set_num_threads(cfg.torch_threads)  # process-wide (see MapperConfig.torch_threads)
+        if cfg.performance.torch_threads:
+            torch.set_num_threads(cfg.performance.torch_threads)  # process-wide (see MapperConfig.performance.torch_threads)
         self.model = GaussianModel(cfg.lr, self.device)
         self.rng = np.random.default_rng(cfg.seed)
         self.clock = (WorkClock(WorkCost(**cfg.work_cost.model_dump())) if cfg.budget_clock == "work"
                       else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
-        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose_lr_rot, cfg.pose_lr_trans)
-                                             if cfg.pose_refine else None)
+        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose.lr_rot, cfg.pose.lr_trans)
+                                             if cfg.pose.refine else None)
         self.strategy = DensityStrategy(cfg, self.model, self.torch_gen)
         self.sensor = SensorRenderer(cfg, self.model, self.clock)
         self.step = TrainStep(cfg, self.model, self.sensor, self.strategy, self.keyframes, self.poses, self.clock,
@@ -208,12 +204,12 @@ class Mapper:
         """
         cfg = self.cfg
         valid = frame.depth > 0
-        if not cfg.coverage_seeding or len(self.model) == 0:
+        if not cfg.seeding.coverage or len(self.model) == 0:
             return valid, 1.0
         intr = frame.intrinsics
         out = self.render(frame.c2w, intr.K, intr.width, intr.height)
         cand = unexplained_mask(frame.depth, out.alpha.cpu().numpy(), out.depth.cpu().numpy(),
-                                cfg.coverage_alpha, cfg.coverage_depth_factor)
+                                cfg.seeding.coverage_alpha, cfg.seeding.coverage_depth_factor)
         return cand, float(cand.sum()) / max(1, int(valid.sum()))
 
     def seed_frame(self, frame: Frame, relevance: Optional[np.ndarray]) -> SeedStats:
@@ -234,9 +230,9 @@ class Mapper:
         budget = self.strategy.update_budget(frame)
         cand, share = self._candidates(frame)
         stats = SeedStats(unexplained=share)
-        n = cfg.seeds_per_frame
+        n = cfg.seeding.seeds_per_frame
         if self.n_mapped == 0 or len(self.model) == 0:
-            n = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
+            n = cfg.seeding.first_frame_seeds or 2 * cfg.seeding.seeds_per_frame
         else:
             n = int(math.ceil(n * share))
         n = min(n, budget)
@@ -244,7 +240,7 @@ class Mapper:
             return stats
         sel = select_seeds(
             cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
-            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.rho, gfd_eps=cfg.gfd_eps,
+            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.seeding.rho, gfd_eps=cfg.seeding.gfd_eps,
         )
         if sel.pixels.size == 0:
             return stats
@@ -256,14 +252,14 @@ class Mapper:
         pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
         if self.sensor.exposure is not None:
             cols = invert_exposure(cols, self.sensor.exposure.of(frame.frame_id))  # into the map's exposure
-        s0 = local_median_nn_distance(pts, k=cfg.knn)
+        s0 = local_median_nn_distance(pts, k=cfg.seeding.knn)
         if sw.sis:
-            mult = np.where(is_roi, cfg.m_roi, cfg.m_bg)
+            mult = np.where(is_roi, cfg.seeding.m_roi, cfg.seeding.m_bg)
         else:
-            mult = np.full(pts.shape[0], cfg.m_uniform)
+            mult = np.full(pts.shape[0], cfg.seeding.m_uniform)
         new = GaussianMap.from_points(
             torch.from_numpy(pts).float(), torch.from_numpy(cols).float(),
-            torch.from_numpy(s0 * mult).float(), opacity=cfg.init_opacity,
+            torch.from_numpy(s0 * mult).float(), opacity=cfg.seeding.init_opacity,
             active=torch.from_numpy(is_roi),
         ).to(self.device)
         cur = self.model.to_map()
@@ -333,10 +329,10 @@ class Mapper:
         self.sensor.observe(frame)  # the camera's motion over this frame's exposure (motion blur, rolling shutter)
         if self.poses is not None:
             # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
-            E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose_init == "inherit" else np.eye(4)
+            E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose.init == "inherit" else np.eye(4)
             frame = dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E0)
             self.poses.register(frame.frame_id, E0, fixed=self.n_mapped == 0)
-            if cfg.pose_track_iters and self.n_mapped > 0 and len(self.model):
+            if cfg.pose.track_iters and self.n_mapped > 0 and len(self.model):
                 frame = self._track(frame)
         exposure = self.sensor.exposure
         if exposure is not None:
@@ -366,7 +362,7 @@ class Mapper:
                 warm = cfg.warmup_iters > 0 and (it == 0 or self.clock.now() < warm_until)
             view = self._pick_view(kf, roi_phase=sw.roi and not warm and has_active)
             active_phase = sw.roi and not warm and has_active and view.roi is not None
-            loss = self.step(view, active_phase, coarse=it < cfg.coarse_iters)
+            loss = self.step(view, active_phase, coarse=it < cfg.performance.coarse_iters)
             active_iters += int(active_phase)
             n_iters += 1
             if warm_until is not None:  # a budget may give fewer than densify.every iterations per call
@@ -378,7 +374,7 @@ class Mapper:
                 for k, v in self.strategy.densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
                 has_active = bool(self.model.active.any())
-        if cfg.evict == "contribution":
+        if cfg.budget.evict == "contribution":
             self.accumulate_contribution(kf)
         self.n_mapped += 1
         st = FrameStats(frame.frame_id, time.perf_counter() - t_wall, seeded.n_seeds, seeded.n_roi, len(self.model),
@@ -395,11 +391,11 @@ class Mapper:
         cfg = self.cfg
         kf = keyframe_from_frame(frame, self.device, None)
         kf.c2w = kf.c2w.clone()
-        for _ in range(cfg.pose_track_iters):
+        for _ in range(cfg.pose.track_iters):
             xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
             out = self.sensor.render_view(kf.c2w, kf.K, kf.width, kf.height, kf.frame_id, None, pose_xi=xi,
                                           detach_map=True)
-            mask = out.alpha.detach() > cfg.pose_track_alpha
+            mask = out.alpha.detach() > cfg.pose.track_alpha
             if int(mask.sum()) < 0.05 * mask.numel():
                 break  # the map hardly covers the frame: nothing to track against
             out, _ = self.sensor.exposed(out, kf.frame_id)

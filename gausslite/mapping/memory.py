@@ -63,17 +63,20 @@ class KeyframeStore:
 
     def state_dict(self, newest: Optional[int] = None) -> dict:
         """``{"keyframes": [...]}``: the newest ``newest`` stored keyframes (None: all) as plain dicts of their
-        compact fields (CPU tensors; ``torch.save``-able)."""
+        compact fields (copies: CPU tensors; ``torch.save``-able). Copies, because training refines a stored
+        keyframe's pose in place."""
         first = 0 if newest is None else max(0, len(self._items) - newest)
-        return {"keyframes": [{f.name: getattr(k, f.name) for f in fields(k)} for k in self._items[first:]]}
+        return {"keyframes": [{f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v) for f in fields(k)}
+                              for k in self._items[first:]]}
 
     def load_state_dict(self, state: dict) -> None:
-        """Replace the stored keyframes by those of a :meth:`state_dict`.
+        """Replace the stored keyframes by copies of those of a :meth:`state_dict`.
 
         Raises:
             KeyError / TypeError: a dict without ``keyframes`` or with keyframes of other fields.
         """
-        self._items = [StoredKeyframe(**d) for d in state["keyframes"]]
+        self._items = [StoredKeyframe(**{k: v.clone() if torch.is_tensor(v) else v for k, v in d.items()})
+                       for d in state["keyframes"]]
 
     def add(self, kf) -> StoredKeyframe:
         """Store a :class:`~gausslite.mapping.views.Keyframe` (float tensors) compactly; returns it.

@@ -146,7 +146,7 @@ class VectorAdam:
 
 
 class PoseRefiner:
-    """Per-keyframe Adam on the pose delta ξ (``MapperConfig.pose_refine``).
+    """Per-keyframe Adam on the pose delta ξ (``MapperConfig.pose.refine``).
 
     Args:
         lr_rot: step size of ω (radians). lr_trans: step size of v (metres).

@@ -38,8 +38,8 @@ class SensorProfile:
 #: exactly registered), 20 final iterations per keyframe instead of 5 (the final pass draws every keyframe alike),
 #: per-keyframe exposure compensation (the Kinect's auto-exposure and white balance), the camera's motion blur, and
 #: the colour camera's rolling shutter with a 20 ms readout (calibrated by bench.rolling_shutter)
-_HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose_refine": True, "lambda_depth": 0.3, "exposure_comp": True,
-                    "motion_blur": True, "rolling_shutter_s": 0.02}
+_HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose": {"refine": True}, "lambda_depth": 0.3,
+                    "sensor": {"exposure_comp": True, "motion_blur": True, "rolling_shutter_s": 0.02}}
 
 #: Mapper defaults of rendered sequences: a final pass of 5 iterations per keyframe, drawn uniformly over the
 #: mission (MonoGS ends with a colour refinement over all keyframes, Matsuki et al., CVPR 2024); measured on the
@@ -88,12 +88,37 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
     Raises:
         pydantic.ValidationError: the combination is invalid (e.g. a profile value out of range).
     """
-    from .config import MapperConfig
+    from .config import MapperConfig, deep_merge
 
-    todo = {k: v for k, v in profile.mapper.items() if k not in cfg.model_fields_set}
+    explicit = _explicit(cfg)
+    todo = _unset(profile.mapper, explicit)
     if not todo:
         return cfg
-    return MapperConfig.model_validate({**todo, **cfg.model_dump(include=cfg.model_fields_set)})
+    return MapperConfig.model_validate(deep_merge(todo, explicit))
+
+
+def _explicit(model) -> dict:
+    """The settings of a pydantic model given explicitly (``model_fields_set``), groups recursed into."""
+    from pydantic import BaseModel
+
+    out = {}
+    for k in model.model_fields_set:
+        v = getattr(model, k)
+        out[k] = _explicit(v) if isinstance(v, BaseModel) else v
+    return out
+
+
+def _unset(defaults: dict, explicit: dict) -> dict:
+    """The entries of ``defaults`` (nested dicts) that ``explicit`` does not set."""
+    out = {}
+    for k, v in defaults.items():
+        if isinstance(v, dict):
+            sub = _unset(v, explicit.get(k) or {}) if isinstance(explicit.get(k, {}), dict) else {}
+            if sub:
+                out[k] = sub
+        elif k not in explicit:
+            out[k] = v
+    return out
 
 
 #: Mapper speed presets (``python -m bench.mapper``): MapperConfig overrides applied on top of
@@ -103,8 +128,8 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
 #: full-image work (half-resolution first iterations; random half-area windows) and are measured, not
 #: recommended: both cost far more than 0.5 dB on room0.
 SPEED_PRESETS: dict[str, dict] = {
-    "baseline": {"reference_paths": True, "cpu_kernel": "tile"},
+    "baseline": {"performance": {"reference_paths": True, "cpu_kernel": "tile"}},
     "fast": {},
-    "coarse": {"coarse_iters": 10},
-    "window": {"full_crop_fraction": 0.5},
+    "coarse": {"performance": {"coarse_iters": 10}},
+    "window": {"performance": {"full_crop_fraction": 0.5}},
 }

@@ -39,9 +39,9 @@ class SensorRenderer:
         model: the Gaussians being optimised (read at every render; never modified here).
         clock: the mapper's budget clock; a deterministic clock (``charges``) is charged for every render.
     Attributes:
-        exposure: per-keyframe exposure response (``cfg.exposure_comp``), None when off.
+        exposure: per-keyframe exposure response (``cfg.sensor.exposure_comp``), None when off.
         blur: frame id → (6,) float64 ξ_b = τ · (ω, v), the camera's motion over the exposure of every mapped
-            frame (``cfg.motion_blur`` / ``cfg.rolling_shutter_s``; τ = ``cfg.blur_exposure_s``).
+            frame (``cfg.sensor.motion_blur`` / ``cfg.sensor.rolling_shutter_s``; τ = ``cfg.sensor.blur_exposure_s``).
         rs_norm: rolling-shutter readout time per unit of normalised image y of the full image (seconds;
             :func:`gausslite.mapping.shutter.readout_norm`), set by the first observed frame.
         last_sensor: (timestamp s, c2w (4, 4) float64, frame id) of the last observed frame, or None.
@@ -53,7 +53,7 @@ class SensorRenderer:
         self.clock = clock
         self.device = model.device
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.exposure: Optional[ExposureModel] = ExposureModel(cfg.exposure_lr) if cfg.exposure_comp else None
+        self.exposure: Optional[ExposureModel] = ExposureModel(cfg.sensor.exposure_lr) if cfg.sensor.exposure_comp else None
         self.blur: dict[int, np.ndarray] = {}
         self.rs_norm = 0.0
         self.last_sensor: Optional[tuple] = None
@@ -65,20 +65,20 @@ class SensorRenderer:
         estimate becomes the mean of its backward and forward ones. No-op without motion blur or rolling
         shutter."""
         cfg = self.cfg
-        if not (cfg.motion_blur or cfg.rolling_shutter_s > 0):
+        if not (cfg.sensor.motion_blur or cfg.sensor.rolling_shutter_s > 0):
             return
         prev = self.last_sensor
         xi_b = (np.zeros(6) if prev is None else
-                exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.blur_exposure_s, cfg.blur_max_dt))
+                exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.sensor.blur_exposure_s, cfg.sensor.blur_max_dt))
         self.blur[frame.frame_id] = xi_b
-        if cfg.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
+        if cfg.sensor.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
                 and xi_b.any():
             # the previous frame's motion is now known on both sides: the mean of its backward and forward
             # estimates (the forward one alone for the first frame, which had none)
             back = self.blur[prev[2]]
             self.blur[prev[2]] = 0.5 * (back + xi_b) if back.any() else xi_b.copy()
         self.last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy(), int(frame.frame_id))
-        self.rs_norm = readout_norm(cfg.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
+        self.rs_norm = readout_norm(cfg.sensor.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
 
     def state_dict(self) -> dict:
         """Plain-data copy for checkpoints: ``exposure`` (None when off), ``blur``, ``last_sensor``, ``rs_norm``."""
@@ -111,9 +111,9 @@ class SensorRenderer:
         """:meth:`rasterize` of frame ``frame_id``'s view as the camera took it while moving (the nearest
         mapped frame's motion for a frame that was not mapped):
 
-        - ``cfg.motion_blur`` (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at
+        - ``cfg.sensor.motion_blur`` (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at
           ``c2w · E(s_k ξ_b)``;
-        - ``cfg.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b rendered alone (its
+        - ``cfg.sensor.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b rendered alone (its
           rows only) from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom.
 
         The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
@@ -122,14 +122,14 @@ class SensorRenderer:
         <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
         """
         cfg = self.cfg
-        rs = cfg.rolling_shutter_s > 0 and self.rs_norm > 0
-        if not ((cfg.motion_blur or rs) and self.blur):
+        rs = cfg.sensor.rolling_shutter_s > 0 and self.rs_norm > 0
+        if not ((cfg.sensor.motion_blur or rs) and self.blur):
             return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         xi_b = self.blur[nearest_key(self.blur, frame_id)]
-        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.blur_px_per_sample, cfg.blur_max_samples)
-                  if cfg.motion_blur else 1)
-        bands = (shutter_bands(K, width, height, xi_b / cfg.blur_exposure_s, self.rs_norm, cfg.rs_px_per_band,
-                               cfg.rs_max_bands) if rs else [(0, height, 0.0)])
+        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.sensor.blur_px_per_sample, cfg.sensor.blur_max_samples)
+                  if cfg.sensor.motion_blur else 1)
+        bands = (shutter_bands(K, width, height, xi_b / cfg.sensor.blur_exposure_s, self.rs_norm, cfg.sensor.rs_px_per_band,
+                               cfg.sensor.rs_max_bands) if rs else [(0, height, 0.0)])
         if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
             return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
@@ -137,7 +137,7 @@ class SensorRenderer:
             Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
             Kb[1, 2] -= y0
             # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
-            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.blur_exposure_s, self.device)):
+            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.sensor.blur_exposure_s, self.device)):
                 g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
                                         view_delta=delta, cull=cull))
         if parts is not None:
@@ -173,7 +173,7 @@ class SensorRenderer:
         if view_delta is not None:
             cam = cam @ view_delta.to(cam.device)
         vm = torch.linalg.inv(cam)
-        if self.cfg.frustum_cull and (len(means) >= self.cfg.frustum_cull_min or cull):
+        if self.cfg.performance.frustum_cull and (len(means) >= self.cfg.performance.frustum_cull_min or cull):
             vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
             if subset is not None:
                 vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
@@ -185,7 +185,7 @@ class SensorRenderer:
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self.background,
-            backend=self.cfg.backend, num_threads=self.cfg.render_threads, cpu_kernel=self.cfg.cpu_kernel,
+            backend=self.cfg.backend, num_threads=self.cfg.performance.render_threads, cpu_kernel=self.cfg.performance.cpu_kernel,
         )
 
     def blend_weights(self, K: torch.Tensor, width: int, height: int, c2w: torch.Tensor) -> torch.Tensor:
@@ -197,7 +197,7 @@ class SensorRenderer:
         return blend_weights(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width,
             height=height, c2w=c2w, background=self.background, backend=self.cfg.backend,
-            num_threads=self.cfg.render_threads)
+            num_threads=self.cfg.performance.render_threads)
 
 
 __all__ = ["SensorRenderer"]

@@ -44,7 +44,7 @@ class TrainStep:
         self.keyframes, self.poses, self.clock, self.rng = keyframes, poses, clock, rng
         self.device = model.device
         self.roi_iters = 0
-        #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.ssim_cache_views`` entries),
+        #: ground-truth SSIM statistics of recently used views (LRU, ``cfg.performance.ssim_cache_views`` entries),
         #: keyed by (frame id, view size, principal point): keyframes loaded from the compact store and
         #: ROI crops are new objects at every draw, so their own ``ssim_stats`` would not survive
         self.ssim_cache: "OrderedDict[tuple, tuple]" = OrderedDict()
@@ -84,10 +84,10 @@ class TrainStep:
         if active_phase:
             view = crop_keyframe(kf, cfg.roi_crop_pad)
         elif coarse and not footprint_only:
-            view = downscale_keyframe(kf, cfg.coarse_downscale)
+            view = downscale_keyframe(kf, cfg.performance.coarse_downscale)
             stat_w, stat_h = view.width, view.height
-        elif cfg.full_crop_fraction < 1.0 and not footprint_only:
-            view = random_window(kf, cfg.full_crop_fraction, self.rng)
+        elif cfg.performance.full_crop_fraction < 1.0 and not footprint_only:
+            view = random_window(kf, cfg.performance.full_crop_fraction, self.rng)
             # the window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
             # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
             stat_weight = view.width * view.height / float(kf.width * kf.height)
@@ -102,7 +102,7 @@ class TrainStep:
         xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
         parts: list = []
         out = self.sensor.render_view(view.c2w, view.K, view.width, view.height, view.frame_id, subset, pose_xi=xi,
-                                      parts=parts, cull=active_phase and cfg.roi_cull)
+                                      parts=parts, cull=active_phase and cfg.performance.roi_cull)
         theta = None
         exposure = self.sensor.exposure
         if exposure is not None and kf.frame_id in exposure.params:
@@ -117,15 +117,15 @@ class TrainStep:
             if footprint_roi and view.roi is not None and view.roi_box is not None:  # empty ROI: the footprint
                 mask = mask & view.roi
         cache_key = None
-        if cfg.ssim_cache_views and not cfg.reference_paths:
+        if cfg.performance.ssim_cache_views and not cfg.performance.reference_paths:
             cache_key = (view.frame_id, view.width, view.height, float(view.K[0, 2]), float(view.K[1, 2]))
             if view.ssim_stats is None:
                 view.ssim_stats = self.ssim_cache.get(cache_key)
-        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.reference_paths)
+        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
         if cache_key is not None and view.ssim_stats is not None:
             self.ssim_cache[cache_key] = view.ssim_stats
             self.ssim_cache.move_to_end(cache_key)
-            while len(self.ssim_cache) > cfg.ssim_cache_views:
+            while len(self.ssim_cache) > cfg.performance.ssim_cache_views:
                 self.ssim_cache.popitem(last=False)
         loss.backward()
         if cfg.densify.enabled and (not active_phase or cfg.densify.active_phase_stats):
@@ -139,7 +139,7 @@ class TrainStep:
             upd = torch.zeros(len(self.model), dtype=torch.bool, device=self.device)
             for o in [o for g in (parts or [[out]]) for o in g]:
                 upd[o.ids[o.radii > 0]] = True
-        self.model.step(update=upd, reference=cfg.reference_paths)
+        self.model.step(update=upd, reference=cfg.performance.reference_paths)
         if self.clock.charges:
             self.clock.charge_step(int(upd.sum()) if upd is not None else len(self.model))
         if active_phase:

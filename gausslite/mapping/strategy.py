@@ -46,34 +46,34 @@ class DensityStrategy:
         self.model = model
         self.generator = generator
         self.device = model.device
-        self.budget: Optional[int] = cfg.max_gaussians
-        self.voxels = SurfaceVoxels(cfg.budget_voxel_m)
+        self.budget: Optional[int] = cfg.budget.max_gaussians
+        self.voxels = SurfaceVoxels(cfg.budget.voxel_m)
         self.contribution = torch.zeros(0, device=self.device)
         self.reset_stats()
 
     # ------------------------------------------------------------------ budget and eviction
     def update_budget(self, frame: Frame) -> int:
-        """Resolve the Gaussian budget after observing ``frame`` (``MapperConfig.budget_mode``) and return it."""
+        """Resolve the Gaussian budget after observing ``frame`` (``MapperConfig.budget.mode``) and return it."""
         cfg = self.cfg
-        if cfg.max_gaussians is not None:
-            self.budget = cfg.max_gaussians
-        elif cfg.budget_mode == "image":
+        if cfg.budget.max_gaussians is not None:
+            self.budget = cfg.budget.max_gaussians
+        elif cfg.budget.mode == "image":
             if self.budget is None:
-                self.budget = max(1, round(cfg.gaussians_per_pixel * frame.depth.size))
+                self.budget = max(1, round(cfg.budget.gaussians_per_pixel * frame.depth.size))
         else:
             self.voxels.add_frame(frame.depth, frame.intrinsics, frame.c2w)
-            first = cfg.first_frame_seeds or 2 * cfg.seeds_per_frame
-            self.budget = int(min(cfg.max_gaussians_cap, max(first, round(cfg.gaussians_per_voxel * len(self.voxels)))))
+            first = cfg.seeding.first_frame_seeds or 2 * cfg.seeding.seeds_per_frame
+            self.budget = int(min(cfg.budget.cap, max(first, round(cfg.budget.gaussians_per_voxel * len(self.voxels)))))
         return self.budget
 
     def eviction_score(self, cur: GaussianMap) -> torch.Tensor:
         """(N,) score of the existing Gaussians ``cur`` at the budget: the lowest are replaced first."""
         cfg = self.cfg
-        if cfg.evict == "opacity":
+        if cfg.budget.evict == "opacity":
             return torch.sigmoid(cur.opacity_logits)
         score = self.contribution.clone()
         if cfg.mode == "gausslite":
-            score[cur.active] *= cfg.roi_protect
+            score[cur.active] *= cfg.budget.roi_protect
         return score
 
     def add_contribution(self, weights: torch.Tensor) -> None:

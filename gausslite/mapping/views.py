@@ -37,7 +37,7 @@ class Keyframe:
     roi: Optional[torch.Tensor]
     roi_box: Optional[tuple[int, int, int, int]] = None
     #: cached :func:`gausslite.metrics.ssim_gt_stats` of ``rgb`` (filled by the first loss on this view;
-    #: the mapper also keeps recent views' statistics, see ``MapperConfig.ssim_cache_views``)
+    #: the mapper also keeps recent views' statistics, see ``MapperConfig.performance.ssim_cache_views``)
     ssim_stats: Optional[tuple] = field(default=None, repr=False, compare=False)
 
     def to(self, device: torch.device | str) -> "Keyframe":

@@ -50,6 +50,7 @@ from gausslite.datasets.base import Frame
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import PreconditionFailed
 from gausslite.mission.heap import trim_heap
+from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import Captured, ShareSession, select_shared
 
 log = logging.getLogger(__name__)
@@ -191,7 +192,10 @@ class AgentRuntime:
         if task_id is not None and annotations is not None:
             annotations.task_by_id(task_id)  # KeyError with the known ids
         self.task_id = task_id
-        self._relevance_fn = relevance_fn or self._build_relevance()
+        self.frontend = None  # the attention front-end (relevance: attention), gausslite.mission.relevance
+        if relevance_fn is None:
+            relevance_fn, self.frontend = build_relevance(config, graph, annotations, task_id, lambda: self.mapper)
+        self._relevance_fn = relevance_fn
         self._relevance_worker = None
         if config.relevance_max_wait_s is not None:
             from gausslite.attention.worker import RelevanceWorker
@@ -262,70 +266,6 @@ class AgentRuntime:
         self._pusher = threading.Thread(target=self._push_loop, name=f"agent-{agent_id}-push", daemon=True)
         self._worker.start()
         self._pusher.start()
-
-    # ------------------------------------------------------------------ relevance
-    def _build_relevance(self) -> Callable:
-        cfg = self.config
-        ann = self.annotations
-        if cfg.relevance == "gt":
-            if ann is None or self.task_id is None:
-                raise ValueError("relevance 'gt' needs scene annotations and a task id from tasks.json")
-            tid = self.task_id
-            return lambda fr: ann.roi_mask(tid, fr.depth, fr.c2w, fr.intrinsics)
-        from gausslite.attention import AttentionFrontEnd
-
-        if cfg.relevance_backend == "onnx":
-            fe = self._onnx_frontend()
-        elif ann is None:
-            raise ValueError(f"relevance 'attention' with backend '{cfg.relevance_backend}' needs scene annotations "
-                             "(objects.json) for the offline annotation detector/segmenter; give a dataset or annotations "
-                             "path, or set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/"
-                             "segmenter_path")
-        elif cfg.relevance_backend == "onnx_cost":
-            fe = self._onnx_frontend(answer_from=ann)
-        else:
-            fe = AttentionFrontEnd.from_annotations(self.graph, ann)
-        self.frontend = fe
-
-        def fn(fr: Frame) -> np.ndarray:
-            rd = None
-            # in the relevance thread (relevance_max_wait_s) the map is being optimised meanwhile: sensor depth
-            if cfg.attention_rendered_depth and cfg.relevance_max_wait_s is None and len(self.mapper.model) > 0:
-                out = self.mapper.render(fr.c2w, fr.intrinsics.K, fr.intrinsics.width, fr.intrinsics.height)
-                d = out.depth.detach().cpu().numpy().astype(np.float32)
-                rd = np.where(out.alpha.detach().cpu().numpy() > 0.5, d, 0.0).astype(np.float32)
-            rel, _ = fe.process(fr, rd)
-            return rel
-
-        return fn
-
-    def _onnx_frontend(self, answer_from=None):
-        """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B). With
-        ``answer_from`` (scene annotations) the models run for their cost only and the annotation backend
-        answers (``relevance_backend: onnx_cost``)."""
-        from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
-
-        o = self.config.onnx
-        name = self.config.relevance_backend
-        missing = o.missing()
-        if missing:
-            raise ValueError(f"relevance 'attention' with backend '{name}': " + "; ".join(missing))
-        try:
-            det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
-                                        text_threshold=o.text_threshold, threads=o.threads)
-            seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou, threads=o.threads)
-        except Exception as e:  # onnxruntime load errors, export-contract violations
-            raise ValueError(f"relevance 'attention' with backend '{name}': cannot load the models: "
-                             f"{type(e).__name__}: {e}") from None
-        if answer_from is not None:
-            from gausslite.attention import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-            from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
-
-            backend = AnnotationBackend(answer_from)
-            det = CostOnlyDetector(det, AnnotationDetector(backend))
-            seg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))
-        up = getattr(self.annotations, "up_axis", (0.0, 0.0, 1.0)) if self.annotations is not None else (0.0, 0.0, 1.0)
-        return AttentionFrontEnd(self.graph, AttentionConfig(detector=det, segmenter=seg), up_axis=up)
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,

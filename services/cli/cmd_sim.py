@@ -48,7 +48,7 @@ def register(subparsers) -> None:
     p.add_argument("--tasks", default=None, help="two task ids, comma-separated (agent_a,agent_b)")
     p.add_argument("--iters", type=int, default=None, help="shortcut for mapper.iters_per_frame")
     p.add_argument("--seeds-per-frame", dest="seeds_per_frame", type=int, default=None,
-                   help="shortcut for mapper.seeds_per_frame")
+                   help="shortcut for mapper.seeding.seeds_per_frame")
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
     p.add_argument("--realtime", action="store_true",
@@ -141,7 +141,7 @@ def _handle(args: argparse.Namespace) -> int:
         print((Path(args.out) / "report.md").read_text())
         return 0
     overrides = list(args.overrides)
-    for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds_per_frame", "mapper.seeds_per_frame"),
+    for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds_per_frame", "mapper.seeding.seeds_per_frame"),
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
         if getattr(args, flag) is not None:
             overrides.append(f"{key}={getattr(args, flag)}")

@@ -113,11 +113,16 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if hit is not None:
             return hit
         arrays, _ = assemble(self.store.chunk_data(agent_id, version), self.limits)
+        self._cache_put(agent_id, version, arrays)
+        return arrays
+
+    def _cache_put(self, agent_id: str, version: int, arrays: GaussianArrays) -> None:
+        """Keep ``arrays`` as the decoded subset of ``agent_id``, one version per agent (the newest a delta is
+        built on): a long mission pushes a new version every few keyframes."""
         with self._cache_lock:
             for k in [k for k in self._cache if k[0] == agent_id and k[1] != version]:
                 del self._cache[k]
-            self._cache[key] = arrays
-        return arrays
+            self._cache[(agent_id, version)] = arrays
 
     def _check_delta_base(self, agent: str, version: int, base_version: int) -> None:
         """FAILED_PRECONDITION (and the delta upload discarded) when the base is not stored."""
@@ -155,8 +160,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                                limits=self.limits)
         stored = [(c, decode_chunk(c, self.limits).digest, peek_header(c, self.limits).count) for c in chunks]
         self.store.complete_rebuilt(agent, version, stored, len(full), True)
-        with self._cache_lock:
-            self._cache[(agent, version)] = full
+        self._cache_put(agent, version, full)
         log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed, κ shift %d): %d Gaussians",
                  agent, version, meta.base_version, len(records), len(removed), meta.kappa_shift, len(full))
 

@@ -47,6 +47,6 @@ def test_bench_mapper_smoke(tmp_path, monkeypatch):
             assert isinstance(blk[st][k], float)
     assert blk["frames"] == 2 and (blk["width"], blk["height"]) == (160, 120)
     assert {r["setting"] for r in blk["runs"]} == {"baseline", "fast"}
-    assert res["presets"]["baseline"] == {"reference_paths": True, "cpu_kernel": "tile"} and res["presets"]["fast"] == {}
+    assert res["presets"]["baseline"] == {"performance": {"reference_paths": True, "cpu_kernel": "tile"}} and res["presets"]["fast"] == {}
     assert "speedup" in blk and "roi_psnr_loss" in blk
     assert out.with_suffix(".md").read_text().count("| synthetic |") >= 2

@@ -35,11 +35,11 @@ def test_agent_config_matches_the_cap_and_drops_the_final_pass():
     for mode in ("uniform", "gausslite"):
         cfg, fp = rt.agent_config(mode, 0.5, 6000, 1, 2.0, HANDHELD)
         m = cfg.mapper
-        assert (m.mode, m.max_gaussians, m.keyframe_budget_s, m.seed) == (mode, 6000, 0.5, 1)
+        assert (m.mode, m.budget.max_gaussians, m.keyframe_budget_s, m.seed) == (mode, 6000, 0.5, 1)
         assert m.final_iters == 0 and m.final_iters_per_keyframe == 0.0
         assert fp == HANDHELD.mapper["final_iters_per_keyframe"]  # the final-pass column uses the profile's
         assert cfg.realtime and cfg.rate == 2.0
-        assert m.pose_refine and m.rolling_shutter_s > 0  # the sensor profile applies to both modes
+        assert m.pose.refine and m.sensor.rolling_shutter_s > 0  # the sensor profile applies to both modes
 
 
 def test_twin_reaches_the_same_binding_cap_in_both_modes_and_is_deterministic(tmp_path):

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from bench.soak import dir_mb, growth_last_half, parse_args, plot, table, tree_rss_mb
+from bench.soak import dir_mb, growth_last_half, parse_args, plot, table, tree_rss_mb, trend_last_half
 
 
 def _samples(values):
@@ -22,11 +22,25 @@ def test_growth_over_the_last_half():
     assert growth_last_half([], "v") is None
 
 
+def test_trend_over_the_last_half_sees_a_leak_and_not_a_transient():
+    def minutes(values):  # one sample every 10 minutes
+        return [{"t_s": 600.0 * (i + 1), "v": v} for i, v in enumerate(values)]
+
+    flat_with_peak = minutes([50, 80, 100, 100, 130, 100, 100])  # a one-sample peak: growth counts it, trend hardly
+    assert growth_last_half(flat_with_peak, "v") == pytest.approx(0.3)
+    assert abs(trend_last_half(flat_with_peak, "v")) < 0.1
+    leak = minutes([100, 101, 102, 103, 104, 105, 106])  # +1 per 10 min: +3 per 30 min, median 104.5 there
+    assert trend_last_half(leak, "v") == pytest.approx(3 / 104.5)
+    assert trend_last_half(minutes([1, 2]), "v") is None
+
+
 def test_readers(tmp_path):
     (tmp_path / "a").mkdir()
     (tmp_path / "a" / "x.bin").write_bytes(b"\0" * 2**20)
     (tmp_path / "y.bin").write_bytes(b"\0" * 2**19)
-    assert dir_mb(tmp_path) == pytest.approx(1.5)
+    assert dir_mb(tmp_path) == pytest.approx((1.5, 0.0))
+    (tmp_path / "a" / ".checkpoint.pt.123.tmp").write_bytes(b"\0" * 2**20)  # an atomic write in flight: apart
+    assert dir_mb(tmp_path) == pytest.approx((1.5, 1.0))
     assert tree_rss_mb(os.getpid()) > 10.0
 
 

@@ -117,7 +117,7 @@ def _roi_keyframe(color=(200, 30, 30), box=(20, 12, 44, 36)):
     and shows ``color`` (uint8 RGB), the rest grey."""
     from gausslite.camera import Intrinsics
     from gausslite.datasets.base import Frame
-    from gausslite.mapping.mapper import keyframe_from_frame
+    from gausslite.mapping.views import keyframe_from_frame
 
     rgb = np.full((48, 64, 3), 90, np.uint8)
     x0, y0, x1, y1 = box

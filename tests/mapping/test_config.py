@@ -8,9 +8,9 @@ from gausslite.mapping.config import MapperConfig, ablation_rows, load_config
 
 def test_paper_defaults():
     cfg = MapperConfig()
-    assert (cfg.m_roi, cfg.m_bg, cfg.init_opacity) == (0.5, 0.7, 0.5)
-    assert cfg.max_gaussians is None and cfg.gaussians_per_pixel == 1.0  # budget scales with resolution
-    assert cfg.rho == 0.4
+    assert (cfg.seeding.m_roi, cfg.seeding.m_bg, cfg.seeding.init_opacity) == (0.5, 0.7, 0.5)
+    assert cfg.budget.max_gaussians is None and cfg.budget.gaussians_per_pixel == 1.0  # budget scales with resolution
+    assert cfg.seeding.rho == 0.4
 
 
 def test_uniform_mode_turns_every_component_off():

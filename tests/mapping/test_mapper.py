@@ -9,6 +9,7 @@ import gausslite.mapping.loss as loss_mod
 import gausslite.mapping.mapper as mapper_mod
 import gausslite.mapping.sensor as sensor_mod
 import gausslite.mapping.step as step_mod
+import gausslite.mapping.views as views_mod
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
@@ -69,7 +70,7 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
     m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, roi_cull=False))
     fr = _frame(0)
     m.seed_frame(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     m.window.append(kf)
     m.step(kf, active_phase=False)
     before = {k: v.detach().clone() for k, v in m.model.params.items()}
@@ -101,10 +102,10 @@ def test_roi_update_visible_fits_every_gaussian_the_crop_draws_and_counts_kappa_
     m = Mapper(_cfg(roi_update="visible", roi_crop_pad=0))
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     m.step(kf, active_phase=False)  # Adam moments everywhere
     before = {k: v.detach().clone() for k, v in m.model.params.items()}
-    crop = mapper_mod.crop_keyframe(kf, 0)
+    crop = views_mod.crop_keyframe(kf, 0)
     drawn = torch.zeros(len(m.model), dtype=torch.bool)
     out = m.render(crop.c2w, crop.K, crop.width, crop.height)
     drawn[out.ids[out.radii > 0]] = True
@@ -132,7 +133,7 @@ def test_roi_loss_restricts_the_roi_phase_loss_to_roi_pixels_or_the_whole_crop(m
     m = Mapper(_cfg(roi_loss=roi_loss, roi_crop_pad=3))
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     m.step(kf, active_phase=True)
     w, h, n = seen[-1]
     assert (w, h) == (20 + 6, 16 + 6)  # the crop: ROI box grown by 3 px
@@ -150,8 +151,8 @@ def test_roi_cull_renders_the_same_crop():
     for cull in (False, True):
         m = Mapper(_cfg(roi_cull=cull, frustum_cull_min=10**9))
         m.seed_frame(fr, _roi())
-        kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
-        crop = mapper_mod.crop_keyframe(kf, 2)
+        kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
+        crop = views_mod.crop_keyframe(kf, 2)
         outs.append(m.sensor.render_view(crop.c2w, crop.K, crop.width, crop.height, crop.frame_id, None, cull=cull))
     assert len(outs[1].ids) < len(outs[0].ids)
     assert torch.allclose(outs[0].color, outs[1].color, atol=1e-5)
@@ -174,9 +175,9 @@ def test_roi_crop_renders_the_same_pixels_as_the_full_image():
     m = Mapper(_cfg())
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     assert kf.roi_box == (14, 10, 34, 26)
-    crop = mapper_mod.crop_keyframe(kf, pad=4)
+    crop = views_mod.crop_keyframe(kf, pad=4)
     assert (crop.width, crop.height) == (28, 24) and crop.roi_box == (4, 4, 24, 20)
     assert torch.equal(crop.rgb, kf.rgb[6:30, 10:38]) and torch.equal(crop.roi, kf.roi[6:30, 10:38])
     full = m.render(kf.c2w, kf.K, W, H)
@@ -187,10 +188,10 @@ def test_roi_crop_renders_the_same_pixels_as_the_full_image():
         d = (getattr(part, name) - getattr(full, name)[6:30, 10:38]).abs()
         assert float(d.max()) < tol and float(d.mean()) < tol / 10, (name, float(d.max()), float(d.mean()))
     # the pad is clipped at the image border
-    big = mapper_mod.crop_keyframe(kf, pad=100)
+    big = views_mod.crop_keyframe(kf, pad=100)
     assert (big.width, big.height) == (W, H) and big.roi_box == kf.roi_box
     with pytest.raises(ValueError):
-        mapper_mod.crop_keyframe(mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool)), 2)
+        views_mod.crop_keyframe(views_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool)), 2)
 
 
 def test_random_window_shows_the_full_render_pixels():
@@ -200,12 +201,12 @@ def test_random_window_shows_the_full_render_pixels():
     m = Mapper(_cfg())
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     full = m.render(kf.c2w, kf.K, W, H)
     rng = np.random.default_rng(0)
     seen = np.zeros((H, W))
     for i in range(2000):
-        v = mapper_mod.random_window(kf, 0.5, rng)
+        v = views_mod.random_window(kf, 0.5, rng)
         x0, y0 = int(round(float(kf.K[0, 2] - v.K[0, 2]))), int(round(float(kf.K[1, 2] - v.K[1, 2])))
         assert v.width * v.height <= 0.6 * W * H and min(v.width, v.height) >= 8
         assert 0 <= x0 and x0 + v.width <= W and 0 <= y0 and y0 + v.height <= H
@@ -220,7 +221,7 @@ def test_random_window_shows_the_full_render_pixels():
     corner, centre = seen[:4, :4].mean(), seen[H // 2 - 2:H // 2 + 2, W // 2 - 2:W // 2 + 2].mean()
     assert corner > 0.5 * centre, (corner, centre)
     with pytest.raises(ValueError):
-        mapper_mod.window_keyframe(kf, 5, 5, 5, 9)
+        views_mod.window_keyframe(kf, 5, 5, 5, 9)
 
 
 def test_active_phase_on_a_view_without_roi_is_a_full_image_iteration(monkeypatch):
@@ -233,7 +234,7 @@ def test_active_phase_on_a_view_without_roi_is_a_full_image_iteration(monkeypatc
     m = Mapper(_cfg())
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool))
+    kf = views_mod.keyframe_from_frame(fr, m.device, np.zeros((H, W), bool))
     assert kf.roi_box is None
     before = m.model.params["colors"].detach().clone()
     loss = m.step(kf, active_phase=True)
@@ -247,14 +248,14 @@ def test_roi_loss_restricted_to_roi_and_footprint():
     m = Mapper(_cfg())
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     p = m.model.params
     out = sensor_mod.rasterize(p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
                                K=kf.K, width=W, height=H, c2w=kf.c2w, subset=m.model.active, backend="warp")
     mask = kf.roi & (out.alpha.detach() > m.cfg.footprint_alpha)
     assert mask.any() and (~kf.roi & (out.alpha > 0.5)).sum() < mask.sum()
     l1 = loss_mod.photometric_loss(out, kf, 1.0, 0.2, mask)
-    kf2 = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf2 = views_mod.keyframe_from_frame(fr, m.device, _roi())
     far = torch.ones_like(kf2.roi)
     far[5:31, 9:39] = False  # beyond the SSIM window (5 px) around the ROI
     kf2.rgb[far] = 0.0
@@ -275,7 +276,7 @@ def test_densify_statistics_come_from_full_image_iterations(active_stats):
     m = Mapper(cfg)
     fr = _frame(0)
     m.seed_frame(fr, _roi())
-    kf = mapper_mod.keyframe_from_frame(fr, m.device, _roi())
+    kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
     m.window.append(kf)
     m.step(kf, active_phase=False)
     after_warmup = (m.strategy.grad_accum.clone(), m.strategy.grad_count.clone())
@@ -372,7 +373,7 @@ def test_relevance_shape_checked():
 def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
     cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=2, warmup_iters=0, budget_mode="image",
                evict="opacity")
-    assert cfg.max_gaussians is None
+    assert cfg.budget.max_gaussians is None
     m = Mapper(cfg)
     m.map_frame(_frame(0))
     assert m.budget == H * W  # gaussians_per_pixel = 1.0

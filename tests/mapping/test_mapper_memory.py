@@ -7,7 +7,8 @@ import torch
 
 from gausslite.camera import Intrinsics
 from gausslite.mapping.config import MapperConfig
-from gausslite.mapping.mapper import Mapper, keyframe_from_frame
+from gausslite.mapping.mapper import Mapper
+from gausslite.mapping.views import keyframe_from_frame
 from gausslite.camera import backproject
 from gausslite.mapping.memory import KeyframeStore, SurfaceVoxels, pack_voxel_keys, unexplained_mask
 from tests._scenes import plane_frame
@@ -143,7 +144,7 @@ def test_eviction_by_contribution_and_roi_protection():
     assert torch.equal(survived, expected)
     assert bool(survived[act].all())  # protected active Gaussians all survived
     # the same contributions without protection: the active ones (score 10) go first
-    m2 = Mapper(cfg.model_copy(update={"roi_protect": 1.0}))
+    m2 = Mapper(cfg.model_copy(update={"budget": cfg.budget.model_copy(update={"roi_protect": 1.0})}))
     m2.map_frame(plane_frame(0), _roi())
     m2.strategy.contribution = contrib.clone()
     m2.seed_frame(plane_frame(1, shift=3.0), None)

@@ -71,7 +71,7 @@ def test_masked_step_with_empty_selection_moves_nothing():
 def test_downscale_keyframe_pixel_centres_and_depth():
     """fx' = fx/f, cx' = (cx + 0.5)/f − 0.5: a 3-D point lands on the same place of the image in both
     pixel grids; colour is the block mean, depth the mean of the valid depths of a block."""
-    from gausslite.mapping.mapper import Keyframe, downscale_keyframe
+    from gausslite.mapping.views import Keyframe, downscale_keyframe
 
     H, W, f = 6, 8, 2
     rgb = torch.arange(H * W * 3, dtype=torch.float32).reshape(H, W, 3) / (H * W * 3)

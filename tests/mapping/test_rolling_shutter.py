@@ -70,11 +70,11 @@ def test_render_view_stacks_bands_rendered_from_their_readout_poses():
     assert m.sensor.rs_norm == pytest.approx(readout_norm(READOUT, 50.0, H))
     # a fast frame: 2 m/s sideways, measured from the previous sensor pose 0.1 s before
     m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, plane_frame(3, 0.01, H, W).c2w, 0.3,
-                               m.cfg.blur_exposure_s)
+                               m.cfg.sensor.blur_exposure_s)
     fr = plane_frame(3, 0.01, H, W)
     K = torch.from_numpy(fr.intrinsics.K).float()
     c2w = torch.from_numpy(fr.c2w)
-    vel = m.sensor.blur[3] / m.cfg.blur_exposure_s
+    vel = m.sensor.blur[3] / m.cfg.sensor.blur_exposure_s
     bands = shutter_bands(fr.intrinsics.K, W, H, vel, m.sensor.rs_norm, 0.5, 8)
     assert len(bands) == 7  # 10 cm over the readout: 3.3 px at blur_length_px's 1.5 m reference, 0.5 px per band
     with torch.no_grad():
@@ -108,7 +108,7 @@ def test_a_map_rendered_with_the_rolling_shutter_matches_a_fast_frame_taken_with
     m.optimize(n_iters=120)
     fast = _rs_frame(3, 0.01, 2.0, 0.3)
     sharp = score_view(m.render_frame(fast), fast).psnr  # frame 3 was not mapped: frame 2's (slow) motion
-    m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, fast.c2w, 0.3, m.cfg.blur_exposure_s)
+    m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, fast.c2w, 0.3, m.cfg.sensor.blur_exposure_s)
     rs = score_view(m.render_frame(fast), fast).psnr
     assert rs > sharp + 2.0, (rs, sharp)
 
@@ -167,7 +167,7 @@ def test_central_motion_estimate_gives_each_frame_the_motion_around_it():
         for fr in frames:
             m.map_frame(fr)
         got[est] = m.sensor.blur
-    tau = MapperConfig().blur_exposure_s
+    tau = MapperConfig().sensor.blur_exposure_s
     fwd01, fwd12 = 0.1 * tau, 0.2 * tau  # 1 cm and 2 cm in 0.1 s, over the exposure τ
     np.testing.assert_allclose(got["backward"][0][3], 0.0)
     np.testing.assert_allclose(got["backward"][1][3], fwd01, rtol=1e-9)

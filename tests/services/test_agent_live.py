@@ -738,12 +738,12 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
         seen = {}
 
         def fake_update(arrays, ids, base, base_ids, kfs, iters, refresh, fcfg, seed=0):
-            seen["threads"] = fcfg.render_threads
+            seen["threads"] = fcfg.performance.render_threads
             return arrays, {}
 
         monkeypatch.setattr("gausslite.sharing.update_shared_subset", fake_update)
         rt.share.finetuned(np.zeros(0), np.zeros(0, np.int64), b"key", [], rt.mapper.cfg)
-        assert seen["threads"] == 1 and rt.mapper.cfg.render_threads == 2
+        assert seen["threads"] == 1 and rt.mapper.cfg.performance.render_threads == 2
     finally:
         rt.close()
     with pytest.raises(Exception):

@@ -255,12 +255,12 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
             agent_id="tum", annotations_path=str(scene), config=load_agent_config(None, overrides)))
         try:
             rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
-            assert rt.config.mapper.pose_refine is want_refine
+            assert rt.config.mapper.pose.refine is want_refine
             assert rt.config.mapper.final_iters_per_keyframe == 20.0 and rt.config.mapper.lambda_depth == 0.3
-            assert rt.config.mapper.exposure_comp is True and rt.config.mapper.motion_blur is True
-            assert rt.config.mapper.rolling_shutter_s == 0.02
+            assert rt.config.mapper.sensor.exposure_comp is True and rt.config.mapper.sensor.motion_blur is True
+            assert rt.config.mapper.sensor.rolling_shutter_s == 0.02
             assert rt.config.mapper.iters_per_frame == 3  # from TINY
-            assert ag.servicer.settings.config.mapper.pose_refine is False  # the agent's own config untouched
+            assert ag.servicer.settings.config.mapper.pose.refine is False  # the agent's own config untouched
             rt.close()
         finally:
             ag.stop(0)

@@ -93,24 +93,28 @@ def test_delta_round_trips_restart_and_lost_base(tmp_path):
         row = {int(i): k for i, k in zip(p2.ids, held.kappa)}
         assert [row[int(i)] for i in agent.ids] == agent.arr.kappa.tolist()  # the server's κ is the agent's
         assert srv.store.latest_version("robot") == 2 and srv.store.upload("robot", 1) is None
+        for v in range(3, 8):  # a long mission: the server keeps one decoded subset per agent, not one per version
+            agent.evolve(10 + v)
+            assert _push(c, planner, agent, v)[0].is_delta
+        assert list(srv.servicer._cache) == [("robot", 7)] and _held(srv, "robot").equals(planner.base)
     # restart on the same data dir between pushes: the base survives, deltas keep working
     with _server(tmp_path / "data") as (srv, c):
         agent.evolve(2, kappa_growth=7)
-        p3, _ = _push(c, planner, agent, 3)
-        assert p3.is_delta and p3.base_version == 2
+        p3, _ = _push(c, planner, agent, 8)
+        assert p3.is_delta and p3.base_version == 7
         assert _held(srv, "robot").equals(p3.subset)
     # a server that lost its data: the delta is refused precisely, a full upload recovers
     with _server(tmp_path / "fresh") as (srv, c):
         agent.evolve(3)
-        p4 = planner.plan(agent.ids, agent.arr, 4, measure_full=False)
+        p4 = planner.plan(agent.ids, agent.arr, 9, measure_full=False)
         assert p4.is_delta
         with pytest.raises(grpc.RpcError) as ei:
-            c.upload_chunks("robot", 4, p4.chunks, n_gaussians=p4.n_records, full_map_gaussians=9000)
+            c.upload_chunks("robot", 9, p4.chunks, n_gaussians=p4.n_records, full_map_gaussians=9000)
         assert ei.value.code() == grpc.StatusCode.FAILED_PRECONDITION
-        assert "base version 3" in ei.value.details()
-        assert srv.store.upload("robot", 4) is None  # the refused delta left nothing behind
+        assert "base version 8" in ei.value.details()
+        assert srv.store.upload("robot", 9) is None  # the refused delta left nothing behind
         planner.forget()
-        p5, _ = _push(c, planner, agent, 5)
+        p5, _ = _push(c, planner, agent, 10)
         assert not p5.is_delta and _held(srv, "robot").equals(p5.subset)
 
 
