@@ -134,11 +134,11 @@ class ShareSession:
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
             return Captured(GaussianArrays.from_any(gmap).take(mask), mapper.model.ids.numpy()[mask], len(gmap))
         store = mapper.keyframes
+        # the ROI keyframes with poses of their own (mapping refines the store's in place), compact
         views = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.roi is not None]
         poses = [(int(kf.frame_id), kf.c2w.cpu().numpy().copy()) for kf in store]
-        # only the keyframes that see the ROI take part in the fine-tune (compact; poses of their own)
-        kfs = ([dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.sees_roi]
-               if self.config.share_finetune_iters > 0 else None)
+        # only the keyframes that see the ROI take part in the fine-tune: the same copies (neither step changes them)
+        kfs = [kf for kf in views if kf.sees_roi] if self.config.share_finetune_iters > 0 else None
         return Captured(None, mapper.model.ids.numpy().copy(), len(gmap), (gmap.clone(), views, poses, kfs))
 
     # ------------------------------------------------------------------ pusher thread
