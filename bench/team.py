@@ -347,6 +347,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     for team in teams:
         plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
     write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min", table(result), result)
+    out.with_suffix(".partial.json").unlink(missing_ok=True)  # the runs are in the result now
     return 0
 
 
