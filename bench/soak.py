@@ -10,7 +10,9 @@ synthetic scene's circle trajectory (``make_scene(trajectory="circle")``, ``--fr
 ``--minutes``. Every ``--sample-s`` seconds it records:
 
 * ``rss_mb_agent`` / ``rss_mb_fusion``: resident memory of each server process and its children (the agent's
-  share worker), MB;
+  share worker), MB (the goal's figure); beside it ``pss_mb_*`` (shared library pages split between the
+  processes, the tree's true footprint), ``anon_mb_*`` (heap and tensors: what a leak grows) and ``procs_*``
+  (each process's RSS and anonymous memory, to tell the mapping process from the share worker);
 * ``disk_mb_agent`` (checkpoints, pushed-version file) / ``disk_mb_fusion`` (SQLite store: subsets, keyframes), MB,
   and ``disk_tmp_mb_*``: atomic-write temporaries in flight at the sample (a checkpoint being replaced), apart;
 * ``accept_p99_ms``: the agent's accept latency p99 over its last 1800 frames (``GetStatus``
@@ -59,8 +61,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 # ------------------------------------------------------------------------------------ measurements
-def tree_rss_mb(pid: int) -> float:
-    """Resident memory (VmRSS) of process ``pid`` and all its descendants, MB (0 when it is gone)."""
+def process_tree(pid: int) -> List[int]:
+    """``pid`` and all its descendants (from ``/proc/*/stat``), parents first."""
     children: Dict[int, List[int]] = {}
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
@@ -69,17 +71,49 @@ def tree_rss_mb(pid: int) -> float:
             except (OSError, IndexError, ValueError):
                 continue
             children.setdefault(ppid, []).append(int(d.name))
-    total, todo = 0.0, [pid]
+    out, todo = [], [pid]
     while todo:
-        p = todo.pop()
-        todo += children.get(p, [])
+        p = todo.pop(0)
+        out.append(p)
+        todo += sorted(children.get(p, []))
+    return out
+
+
+def _kb_fields(path: Path, keys: tuple) -> Dict[str, float]:
+    """``key: value kB`` lines of a ``/proc`` file → {key: MB} for ``keys`` (missing keys are absent)."""
+    out = {}
+    for line in path.read_text().splitlines():
+        k, _, v = line.partition(":")
+        if k in keys:
+            out[k] = int(v.split()[0]) / 1024.0
+    return out
+
+
+def tree_memory_mb(pid: int) -> dict:
+    """Memory of process ``pid`` and its descendants, MB: ``rss`` (sum of VmRSS: shared library pages count once per
+    process), ``pss`` (proportional set size: shared pages split between the processes that map them, so the tree's
+    true footprint), ``anon`` (sum of RssAnon: heap and tensors, what a leak grows) and ``procs`` (per process:
+    pid, short command, rss, anon). Zeros when the process is gone."""
+    tot = {"rss": 0.0, "pss": 0.0, "anon": 0.0, "procs": []}
+    for p in process_tree(pid):
         try:
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024.0
+            st = _kb_fields(Path(f"/proc/{p}/status"), ("VmRSS", "RssAnon"))
+            pss = _kb_fields(Path(f"/proc/{p}/smaps_rollup"), ("Pss",)).get("Pss", 0.0)
+            cmd = Path(f"/proc/{p}/cmdline").read_bytes().split(b"\0")
         except OSError:
-            pass
-    return total
+            continue
+        rss, anon = st.get("VmRSS", 0.0), st.get("RssAnon", 0.0)
+        tot["rss"] += rss
+        tot["pss"] += pss
+        tot["anon"] += anon
+        short = " ".join(c.decode(errors="replace") for c in cmd[:3] if c)[-60:]
+        tot["procs"].append({"pid": p, "cmd": short, "rss": round(rss, 1), "anon": round(anon, 1)})
+    return tot
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory (VmRSS) of process ``pid`` and all its descendants, MB (0 when it is gone)."""
+    return tree_memory_mb(pid)["rss"]
 
 
 def dir_mb(path: Path) -> tuple[float, float]:
@@ -104,6 +138,13 @@ def _disk(name: str, path: Path) -> dict:
     """``disk_mb_<name>`` (settled files) and ``disk_tmp_mb_<name>`` (temporaries in flight) of :func:`dir_mb`."""
     settled, tmp = dir_mb(path)
     return {f"disk_mb_{name}": round(settled, 2), f"disk_tmp_mb_{name}": round(tmp, 2)}
+
+
+def _memory(name: str, pid: int) -> dict:
+    """``rss_mb_<name>``, ``pss_mb_<name>``, ``anon_mb_<name>`` and ``procs_<name>`` of :func:`tree_memory_mb`."""
+    m = tree_memory_mb(pid)
+    return {f"rss_mb_{name}": round(m["rss"], 1), f"pss_mb_{name}": round(m["pss"], 1),
+            f"anon_mb_{name}": round(m["anon"], 1), f"procs_{name}": m["procs"]}
 
 
 def growth_last_half(samples: List[dict], key: str) -> Optional[float]:
@@ -258,8 +299,7 @@ def run(args) -> dict:
                     errors.append(f"GetStats: {e.code().name}: {e.details()}")
                     held = {}
                 s = {"t_s": round(time.monotonic() - t_start, 1),
-                     "rss_mb_agent": round(tree_rss_mb(agent.pid), 1),
-                     "rss_mb_fusion": round(tree_rss_mb(fusion.pid), 1),
+                     **_memory("agent", agent.pid), **_memory("fusion", fusion.pid),
                      **_disk("agent", agent_dir), **_disk("fusion", fusion_dir),
                      "accept_p99_ms": round(float(st.accept_latency_ms_p99_recent), 3),
                      "keyframe_latency_s_p95": round(float(st.keyframe_latency_s_p95), 3),
@@ -271,7 +311,7 @@ def run(args) -> dict:
                      "push_failures": int(st.push_failures), "frames_rejected": int(st.frames_rejected),
                      "checkpoints": int(st.checkpoints), "state": agent_state_name(st.state)}
                 samples.append(s)
-                print(" ".join(f"{k2}={v}" for k2, v in s.items()), flush=True)
+                print(" ".join(f"{k2}={v}" for k2, v in s.items() if not k2.startswith("procs_")), flush=True)
                 if st.state == 5:  # MISSION_STATE_FAILED
                     errors.append(f"mission failed: {st.last_error}")
                     break
@@ -319,14 +359,15 @@ def agent_state_name(state: int) -> str:
 # ------------------------------------------------------------------------------------ output
 def table(res: dict) -> str:
     """Markdown table of the samples, then the growth figures and goals."""
-    cols = [("t_s", "t (s)"), ("rss_mb_agent", "agent RSS MB"), ("rss_mb_fusion", "fusion RSS MB"),
+    cols = [("t_s", "t (s)"), ("rss_mb_agent", "agent RSS MB"), ("anon_mb_agent", "agent anon MB"),
+            ("rss_mb_fusion", "fusion RSS MB"),
             ("disk_mb_agent", "agent disk MB"), ("disk_mb_fusion", "fusion disk MB"),
             ("accept_p99_ms", "accept p99 ms"), ("keyframe_latency_s_p95", "keyframe p95 s"),
             ("n_gaussians", "Gaussians"), ("fusion_subset_gaussians", "fused subset"),
             ("frames_keyframed", "keyframes"), ("pushes", "pushes")]
     lines = ["| " + " | ".join(h for _, h in cols) + " |", "|" + "---|" * len(cols)]
     for s in res["samples"]:
-        lines.append("| " + " | ".join(str(s[k]) for k, _ in cols) + " |")
+        lines.append("| " + " | ".join(str(s.get(k, "–")) for k, _ in cols) + " |")
     g = res["growth_last_half"]
     lines += ["", "Growth over the last half: " + ", ".join(
         f"{k} {'n/a' if v is None else f'{100 * v:+.1f} %'}" for k, v in g.items()),
@@ -351,6 +392,8 @@ def plot(res: dict, path: Path) -> None:
     fig, ax = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
     for key, label in (("rss_mb_agent", "agent"), ("rss_mb_fusion", "fusion")):
         ax[0, 0].plot(t, [x[key] for x in s], marker="o", label=label)
+        if all(f"anon_mb_{label}" in x for x in s):
+            ax[0, 0].plot(t, [x[f"anon_mb_{label}"] for x in s], ls="--", label=f"{label}, anonymous")
     ax[0, 0].set_ylabel("RSS (MB)")
     for key, label in (("disk_mb_agent", "agent (checkpoints)"), ("disk_mb_fusion", "fusion (store)")):
         ax[0, 1].plot(t, [x[key] for x in s], marker="o", label=label)

@@ -248,8 +248,10 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     Args:
         subset: ``GaussianMap`` (or any container ``GaussianArrays.from_any`` takes) of N Gaussians,
             world frame, metres.
-        keyframes: the agent's keyframes (``gausslite.mapping.views.Keyframe``, on any device);
-            those without ROI pixels are skipped.
+        keyframes: the agent's keyframes: float ``gausslite.mapping.views.Keyframe`` on any device, or compact
+            ``StoredKeyframe`` (the store's form), decoded one at a time as they are drawn, so the fine-tune
+            holds a single float keyframe however many there are (200 ROI keyframes of 320×240 in float
+            are 245 MB); those without ROI pixels are skipped.
         iters: Adam iterations (>= 0; 0 or no ROI keyframe returns a copy of the input).
         cfg: ``MapperConfig`` giving the learning rates and loss weights (default ``MapperConfig()``).
         seed: RNG seed of the view draws.
@@ -295,15 +297,24 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     mapper = Mapper(fcfg)
     gmap.active = torch.from_numpy(free).to(gmap.active.device)
     mapper.load_map(gmap)
-    kfs = [kf if kf.rgb.device == mapper.device else kf.to(mapper.device) for kf in kfs]
     rng = np.random.default_rng(seed)
     for it in range(int(iters)):
         mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))
         # the mapper's ROI-phase step: renders the whole copy and updates its free (active) rows
-        mapper.step(kfs[int(rng.integers(len(kfs)))], active_phase=True)
+        mapper.step(_drawn(kfs[int(rng.integers(len(kfs)))], mapper.device), active_phase=True)
     out = mapper.gmap
     out.active, out.kappa = active.to(out.means.device), kappa.to(out.means.device)
     return out
+
+
+def _drawn(kf, device):
+    """The keyframe ``kf`` (float ``Keyframe`` or compact ``StoredKeyframe``) as a float ``Keyframe`` on
+    ``device``."""
+    from gausslite.mapping.views import StoredKeyframe
+
+    if isinstance(kf, StoredKeyframe):
+        return kf.to_keyframe(device)
+    return kf if kf.rgb.device == device else kf.to(device)
 
 
 def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.05,
@@ -343,7 +354,7 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
         ids: (N,) int64 stable ids of ``arrays``' rows (``GaussianModel.ids``).
         base, base_ids: the server's copy (decoded ``GaussianArrays``, M rows) and its (M,) ids; None
             for none.
-        keyframes: the agent's keyframes (ROI keyframes are used).
+        keyframes: the agent's keyframes, float or compact (as :func:`finetune_subset`; ROI keyframes are used).
         iters: fine-tune iterations (>= 0).
         refresh: share of the base rows that may change at this push, in [0, 1] (1 = all, which is
             :func:`finetune_subset` started from the server's values).

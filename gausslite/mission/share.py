@@ -78,10 +78,10 @@ def _select(gmap, views, share_cfg, backend: str, held=None):
 
 def _finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg, seed: int):
     """The shared subset fine-tuned alone on the compact ROI keyframes ``kfs``
-    (:func:`gausslite.sharing.update_shared_subset`); runs in the share worker."""
+    (:func:`gausslite.sharing.update_shared_subset`, which decodes each keyframe when it draws it); runs in the
+    share worker."""
     from gausslite.sharing import update_shared_subset
 
-    kfs = [kf.to_keyframe(cfg.device) for kf in kfs]
     return update_shared_subset(arrays, ids, base, base_ids, kfs, iters, refresh, cfg, seed=seed)
 
 

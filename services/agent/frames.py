@@ -18,10 +18,8 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.base import Frame
 from gausslite_rpc import agent_pb2, common_pb2
-from services.common.convert import intrinsics_to_proto
-
-#: Largest accepted image side (pixels).
-MAX_SIDE = 8192
+from services.common import convert
+from services.common.convert import MAX_SIDE, intrinsics_to_proto
 #: Largest depth of a valid pixel after scaling (metres); larger values are rejected as a bad scale.
 MAX_DEPTH_M = 1000.0
 
@@ -31,17 +29,15 @@ class FrameError(ValueError):
 
 
 def intrinsics_from_proto(m: common_pb2.Intrinsics) -> Intrinsics:
-    """Wire message → library intrinsics.
+    """Wire message → library intrinsics (:func:`services.common.convert.intrinsics_from_proto`).
 
     Raises:
         FrameError: non-finite or non-positive focal lengths, a size of 0 or above :data:`MAX_SIDE`.
     """
-    if not (0 < m.width <= MAX_SIDE and 0 < m.height <= MAX_SIDE):
-        raise FrameError(f"intrinsics: image size {m.width}x{m.height} outside 1..{MAX_SIDE}")
-    vals = [m.fx, m.fy, m.cx, m.cy]
-    if not all(math.isfinite(v) for v in vals) or m.fx <= 0 or m.fy <= 0:
-        raise FrameError(f"intrinsics: fx, fy must be finite and > 0, cx, cy finite (got {vals})")
-    return Intrinsics(m.fx, m.fy, m.cx, m.cy, int(m.width), int(m.height))
+    try:
+        return convert.intrinsics_from_proto(m)
+    except ValueError as e:
+        raise FrameError(f"intrinsics: {e}") from None
 
 
 def encode_frame(frame: Frame, mission_id: str = "", color_format: str = ".png", jpeg_quality: int = 95,

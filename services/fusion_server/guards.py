@@ -11,6 +11,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics
 from gausslite.wire import images
+from services.common import convert
 from services.common.auth import AGENT_ID_RE
 from services.common.server import MalformedMessage
 from services.fusion_server.store import StoreUnavailable
@@ -105,9 +106,10 @@ def check_agent_id(agent_id: str) -> str:
 
 
 def intrinsics_from_proto(msg, what: str) -> Intrinsics:
-    """``common.Intrinsics`` (pixels) as :class:`gausslite.camera.Intrinsics`. Raises Reject(INVALID_ARGUMENT)."""
+    """``common.Intrinsics`` (pixels) as :class:`gausslite.camera.Intrinsics`
+    (:func:`services.common.convert.intrinsics_from_proto`). Raises Reject(INVALID_ARGUMENT)."""
     try:
-        return Intrinsics(float(msg.fx), float(msg.fy), float(msg.cx), float(msg.cy), int(msg.width), int(msg.height))
+        return convert.intrinsics_from_proto(msg)
     except ValueError as e:
         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: {e}") from None
 

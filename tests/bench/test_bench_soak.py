@@ -7,7 +7,8 @@ import os
 
 import pytest
 
-from bench.soak import dir_mb, growth_last_half, parse_args, plot, table, tree_rss_mb, trend_last_half
+from bench.soak import (dir_mb, growth_last_half, parse_args, plot, table, tree_memory_mb, tree_rss_mb,
+                        trend_last_half)
 
 
 def _samples(values):
@@ -42,6 +43,31 @@ def test_readers(tmp_path):
     (tmp_path / "a" / ".checkpoint.pt.123.tmp").write_bytes(b"\0" * 2**20)  # an atomic write in flight: apart
     assert dir_mb(tmp_path) == pytest.approx((1.5, 1.0))
     assert tree_rss_mb(os.getpid()) > 10.0
+
+
+def test_tree_memory_counts_children_apart():
+    """A child holding 64 MB of written heap shows in the tree's anonymous memory and in its own entry; PSS (shared
+    pages split) is at most the summed RSS."""
+    import subprocess
+    import sys
+    import time
+
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time; b = bytearray(64 * 2**20); b[::4096] = "
+                              "b'x' * len(b[::4096]); print('ok', flush=True); time.sleep(60)"],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ok"
+        me = tree_memory_mb(os.getpid())
+        kid = [p for p in me["procs"] if p["pid"] == child.pid]
+        assert len(kid) == 1 and kid[0]["anon"] >= 60.0, me["procs"]
+        assert me["anon"] >= kid[0]["anon"] + 1.0
+        assert 0.0 < me["pss"] <= me["rss"] + 1e-6
+        assert me["rss"] == pytest.approx(sum(p["rss"] for p in me["procs"]), abs=0.1 * len(me["procs"]))
+    finally:
+        child.kill()
+        child.wait()
+    time.sleep(0.05)
+    assert tree_memory_mb(2**22 + 12345)["procs"] == []  # no such process
 
 
 def test_table_and_plot(tmp_path):

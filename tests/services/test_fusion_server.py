@@ -425,10 +425,11 @@ def test_intrinsics_and_session_reopen(server, client):
                                                               intrinsics=intrinsics_to_proto(INTR)), timeout=5)
         assert not info.created and info.has_complete_subset and info.latest_map_version == 2
         assert info.max_message_bytes == 1 << 20
-        bad = common_pb2.Intrinsics(fx=-1, fy=30, cx=1, cy=1, width=W, height=H)
-        code, _ = code_of(lambda: stub.OpenSession(fusion_pb2.OpenSessionRequest(agent_id="re", intrinsics=bad),
-                                                   timeout=5))
-        assert code == grpc.StatusCode.INVALID_ARGUMENT
+        huge = common_pb2.Intrinsics(fx=30, fy=30, cx=1, cy=1, width=10**6, height=H)  # above the side cap
+        for bad in (common_pb2.Intrinsics(fx=-1, fy=30, cx=1, cy=1, width=W, height=H), huge):
+            code, detail = code_of(lambda: stub.OpenSession(
+                fusion_pb2.OpenSessionRequest(agent_id="re", intrinsics=bad), timeout=5))
+            assert code == grpc.StatusCode.INVALID_ARGUMENT and "intrinsics" in detail, detail
     finally:
         ch.close()
     assert client.stats()["agents"]["re"]["task_text"] == "second"
