@@ -246,7 +246,7 @@ def run_one(job: dict) -> dict:
         wall = time.perf_counter() - t0
         st = rt.status()
         mapper = rt.mapper
-        last = rt.pushes[-1] if rt.pushes else None
+        last = rt.pusher.pushes[-1] if rt.pusher.pushes else None
         return _result(
             job, mapper, ds, ann, task, fp_per_kf, rate=rate, wall_s=wall, keyframes=int(rt.frames_keyframed),
             keyframe_iters=int(rt.keyframe_iterations), idle_iters=int(rt.idle_iterations),
@@ -254,7 +254,7 @@ def run_one(job: dict) -> dict:
             kappa_mean_active=(float(mapper.model.kappa[mapper.model.active].float().mean())
                                if bool(mapper.model.active.any()) else 0.0),
             status={k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
-            share=bool(sink), pushes=len(rt.pushes),
+            share=bool(sink), pushes=len(rt.pusher.pushes),
             share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None)
     finally:
         rt.close()

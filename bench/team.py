@@ -132,7 +132,8 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
         rt._replay_thread.join()
         rt.finish(push=True, evaluate=False)
         wall = time.perf_counter() - sink.t0
-        last = rt.pushes[-1] if rt.pushes else None
+        pu = rt.pusher
+        last = pu.pushes[-1] if pu.pushes else None
         own = score(rt.mapper, ds, ann, task.id)
         state = {}
         if keep_state:
@@ -145,10 +146,10 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
                 "n_shared": int(last.n_shared) if last else 0,
                 "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
-                "pushes": len(rt.pushes), "last_error": rt.last_error, "total_upload_bytes": int(rt.total_upload_bytes),
-                "final_subset_bytes": int(rt.final_subset_bytes),
-                "upload_ratio": rt.total_upload_bytes / rt.final_subset_bytes if rt.final_subset_bytes else None,
-                "bytes_per_gaussian": (rt.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
+                "pushes": len(pu.pushes), "last_error": rt.last_error, "total_upload_bytes": int(pu.total_upload_bytes),
+                "final_subset_bytes": int(pu.final_subset_bytes),
+                "upload_ratio": pu.total_upload_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
+                "bytes_per_gaussian": (pu.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
                 "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),

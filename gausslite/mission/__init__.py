@@ -1,11 +1,12 @@
-"""An agent's mission as a library: settings, the mission loop (frames → relevance → mapper → pushes) and what it
-shares (paper Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``). No gRPC here: the agent service
+"""An agent's mission as a library: settings, the mission loop (frames → relevance → mapper), its pusher and what
+it shares (paper Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``). No gRPC here: the agent service
 (``services/agent``) adapts it to the wire, and any object with the fusion client's methods can receive its pushes."""
 
 from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig, load_agent_config
 from gausslite.mission.errors import PreconditionFailed
-from gausslite.mission.runtime import AgentRuntime, MissionError, MissionSummaryData, PushRecord
+from gausslite.mission.pusher import Pusher, PushRecord
+from gausslite.mission.runtime import AgentRuntime, MissionError, MissionSummaryData
 from gausslite.mission.share import ShareSession, select_shared
 
 __all__ = ["AgentConfig", "OnnxRelevanceConfig", "load_agent_config", "PreconditionFailed", "AgentRuntime",
-           "MissionError", "MissionSummaryData", "PushRecord", "ShareSession", "select_shared"]
+           "MissionError", "MissionSummaryData", "Pusher", "PushRecord", "ShareSession", "select_shared"]

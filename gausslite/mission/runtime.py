@@ -17,14 +17,9 @@ Threads per mission:
   selector (:mod:`gausslite.mapping.keyframes`) keeps only the newest pending candidate. Every-frame ingest
   (offline replays, ``ingest: every_frame``): a bounded queue, ``submit`` blocks when it is full (gRPC flow
   control back-pressure);
-* pusher — uploads the newest pending snapshot (older pending ones are superseded; keyframes not yet
-  uploaded accumulate, at most ``max_keyframes``) with retries and exponential backoff, so a fusion-server
-  outage or a lost link never stalls mapping. A periodic push is retried until it is acknowledged or a newer
-  snapshot replaces it, so at most two subsets are held (the one being retried and the pending one) however
-  long the link is down, and the newest one goes out when it returns; the client resumes a half-uploaded
-  subset of the same ``map_version``. ``status()`` reports the backlog (``push_backlog``,
-  ``keyframes_backlog``, ``newest_map_version``, ``link_down_s``) and the last acknowledged version
-  (``last_pushed_version``).
+* pusher (:class:`gausslite.mission.pusher.Pusher`) — sends the newest snapshot with retries and exponential
+  backoff, so a fusion-server outage or a lost link never stalls mapping; at most two subsets are held however
+  long the link is down. ``status()`` reports its backlog and the last acknowledged version.
 
 What is shared, the share worker, the fine-tune cache and the delta planning live in
 :class:`gausslite.mission.share.ShareSession`; the settings in :mod:`gausslite.mission.config`.
@@ -32,7 +27,6 @@ What is shared, the share worker, the fine-tune cache and the delta planning liv
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import queue
@@ -42,42 +36,21 @@ import uuid
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 
 from gausslite.datasets.base import Frame
 from gausslite.mission.config import AgentConfig
-from gausslite.mission.errors import PreconditionFailed
-from gausslite.mission.heap import trim_heap
 from gausslite.mission.relevance import build_relevance
-from gausslite.mission.share import Captured, ShareSession, select_shared
+from gausslite.mission.pusher import Pusher
+from gausslite.mission.share import ShareSession, select_shared
 
 log = logging.getLogger(__name__)
 
 
 class MissionError(RuntimeError):
     """The mission cannot accept the request (finished, failed, or replaying)."""
-
-
-@dataclass
-class PushRecord:
-    """One successful push: ``version``, ``n_shared`` Gaussians of ``n_total``, wire bytes sent, chunk
-    count; ``delta`` (a delta push carrying ``records`` Gaussians and ``removed`` row removals),
-    ``frames_mapped`` when the snapshot was taken."""
-
-    version: int
-    n_shared: int
-    n_total: int
-    bytes_on_wire: int
-    n_chunks: int
-    keyframes: int
-    seconds: float
-    delta: bool = False
-    records: int = 0
-    removed: int = 0
-    frames_mapped: int = 0
-    unchanged: bool = False  #: nothing changed since ``version`` (acknowledged before): no subset upload
 
 
 @dataclass
@@ -102,22 +75,6 @@ class MissionSummaryData:
     def as_dict(self) -> dict:
         """JSON-ready dict."""
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-
-@dataclass
-class _Snapshot:
-    version: int
-    gaussians: Any  # GaussianArrays
-    n_total: int
-    final: bool = False
-    ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
-    frames_mapped: int = 0
-    #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
-    #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
-    finetune: Any = None
-    #: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
-    #: selects the subset (``gaussians`` None and ``ids`` every row's until then)
-    select: Any = None
 
 
 _FINISH = object()
@@ -211,35 +168,21 @@ class AgentRuntime:
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
         self._finish_lock = threading.Lock()
-        self._push_cv = threading.Condition(self._lock)
-        self._pending: Optional[_Snapshot] = None
-        self._final_done = threading.Event()
         self._stop = threading.Event()
         self._eval_frames: List[Frame] = []
-        self._kf_pending: List[Frame] = []
-        self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
         self.intrinsics = None
         self.state = "MAPPING"
         self.frames_received = 0
         self.frames_mapped = 0
         self.n_gaussians = 0
         self.n_active = 0
-        self.pushes: List[PushRecord] = []
-        self.push_failures = 0
-        self.keyframes_uploaded = 0
         self.last_error = ""
         self.seconds_mapping = 0.0
-        self.final_push_ok = False
         self.summary: Optional[MissionSummaryData] = None
-        self._version = 0
         self.share = ShareSession(agent_id, config)  # selection, fine-tune cache, delta planning
-        self._abandoned = False  # the last selected snapshot was superseded before its fine-tune (pusher thread)
-        self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
-        self.final_subset_bytes = 0  # the last pushed subset encoded whole
-        self._session_open = False
-        self._inflight: Optional[int] = None  # version of the snapshot the pusher is working on
-        self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
-        self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
+        #: the pushes: versions, backlog, retries, keyframe uploads (gausslite.mission.pusher)
+        self.pusher = Pusher(agent_id, task_text, config, fusion, self.share, self.mapper, lambda: self.intrinsics,
+                             self._set_error)
         self._replay_thread: Optional[threading.Thread] = None
         self.replay_frames = 0
         self._closed_for_input = False
@@ -263,9 +206,8 @@ class AgentRuntime:
         if self.checkpoint_dir is not None and (self.checkpoint_dir / CHECKPOINT_FILE).is_file():
             self._resume()
         self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
-        self._pusher = threading.Thread(target=self._push_loop, name=f"agent-{agent_id}-push", daemon=True)
         self._worker.start()
-        self._pusher.start()
+        self.pusher.start()
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
@@ -375,8 +317,7 @@ class AgentRuntime:
         with self._lock:
             self.state = "FAILED"
             self.last_error = msg
-            self._push_cv.notify_all()
-        self._final_done.set()
+        self.pusher.final_done.set()
 
     def _idle_work(self) -> bool:
         """Whether the worker should optimise between keyframes instead of blocking on the queue."""
@@ -411,10 +352,10 @@ class AgentRuntime:
                         self._offer_snapshot(final=True)
                         self._record_version()
                     else:
-                        self._final_done.set()
+                        self.pusher.final_done.set()
                     continue
                 if item is _DRAIN:
-                    self._final_done.set()
+                    self.pusher.final_done.set()
                     continue
                 if item is _SLOT:
                     with self._lock:
@@ -459,15 +400,11 @@ class AgentRuntime:
             self._kf_latency_s.append(time.perf_counter() - t_arrival)
             self.n_gaussians = st.n_gaussians
             self.n_active = int(self.mapper.model.active.sum())
-            if (self.frames_mapped - 1) % cfg.keyframe_every == 0:
-                self._kf_pending.append(item)
-                if w is not None:
-                    self._kf_roi[id(item)] = np.asarray(w, bool)
-                for old in self._kf_pending[:-cfg.max_keyframes]:
-                    self._kf_roi.pop(id(old), None)
-                del self._kf_pending[:-cfg.max_keyframes]
+            upload = (self.frames_mapped - 1) % cfg.keyframe_every == 0
             if len(self._eval_frames) < cfg.eval_max_frames:
                 self._eval_frames.append(item)
+        if upload:
+            self.pusher.add_keyframe(item, w)
         log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
                   item.frame_id, st.n_gaussians, self.n_active, st.seconds)
         if self.frames_mapped % cfg.push_every == 0:
@@ -491,7 +428,7 @@ class AgentRuntime:
         with self._lock:
             counters = {k: getattr(self, k) for k in _CKPT_COUNTERS}
             sel = self.selector.state_dict()
-            version = self._version
+        version = self.pusher.version
         state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
                  "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
                  "mapper": self.mapper.state_dict(), "saved_unix": time.time()}
@@ -509,8 +446,7 @@ class AgentRuntime:
             return
         import json
 
-        with self._lock:
-            v = self._version
+        v = self.pusher.version
         try:
             _atomic_write(self.checkpoint_dir / VERSION_FILE, lambda p: p.write_text(json.dumps({"version": v})))
         except OSError as e:
@@ -540,7 +476,7 @@ class AgentRuntime:
         vpath = self.checkpoint_dir / VERSION_FILE
         if vpath.is_file():  # pushes after the checkpoint: never reuse a version the fusion server holds
             version = max(version, int(json.loads(vpath.read_text()).get("version", 0)))
-        self._version = version
+        self.pusher.resume(version)
         self.resumed_keyframes = self.frames_keyframed
         self.n_gaussians = len(self.mapper.model)
         self.n_active = int(self.mapper.model.active.sum())
@@ -549,224 +485,24 @@ class AgentRuntime:
 
     def _offer_snapshot(self, final: bool) -> None:
         """Hand the pusher what the next push needs (mapping thread; :meth:`ShareSession.capture`)."""
-        cap = self.share.capture(self.mapper)
+        self.pusher.offer(self.share.capture(self.mapper), self.frames_mapped, final)
+
+    def _set_error(self, msg: str) -> None:
+        """The mission's ``last_error`` (the pusher reports "" after each acknowledged push)."""
         with self._lock:
-            self._version += 1
-            self._pending = _Snapshot(self._version, cap.gaussians, cap.n_total, final, cap.ids, self.frames_mapped,
-                                      None, cap.select)
-            self._push_cv.notify_all()
-
-    # ------------------------------------------------------------------ pusher
-    def _lower_priority(self) -> None:
-        """Give the calling (pusher) thread ``pusher_nice`` niceness; threads it starts inherit it."""
-        import os
-
-        nice = self.config.pusher_nice
-        if not nice or not hasattr(os, "setpriority"):
-            return
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
-        except OSError as e:  # not permitted in some containers: the pusher keeps the mapper's priority
-            log.warning("agent %s: cannot lower the pusher's priority: %s", self.agent_id, e)
-
-    def _push_loop(self) -> None:
-        self._lower_priority()
-        while True:
-            with self._lock:
-                while self._pending is None and not self._stop.is_set():
-                    self._push_cv.wait(0.5)
-                if self._stop.is_set() and self._pending is None:
-                    return
-                snap, self._pending = self._pending, None
-                self._inflight = snap.version
-            try:
-                self._push_snapshot(snap)
-            finally:
-                with self._lock:
-                    self._inflight = None
-                trim_heap()  # the push's temporary copies back to the OS (gausslite.mission.heap)
-
-    def _push_snapshot(self, snap: _Snapshot) -> None:
-        """Select, fine-tune and push one snapshot (pusher thread); sets ``_final_done`` for the final one."""
-        if self.fusion is None:
-            if snap.final:
-                self.final_push_ok = False
-                self._final_done.set()
-            return
-        if snap.select is not None:
-            if self._superseded(snap):  # a newer snapshot waits: select that one
-                return
-            try:
-                cap = self.share.select(Captured(snap.gaussians, snap.ids, snap.n_total, snap.select),
-                                        self.config.mapper.backend)
-                snap = dataclasses.replace(snap, gaussians=cap.gaussians, ids=cap.ids, finetune=cap.finetune,
-                                           select=None)
-            except Exception as e:  # keep pushing later snapshots; a failed final one is reported
-                log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
-                with self._lock:
-                    self.last_error = f"share selection failed: {type(e).__name__}: {e}"
-                if snap.final:
-                    self.final_push_ok = False
-                    self._final_done.set()
-                return
-        if snap.finetune is not None:
-            # a newer snapshot waits: spend the fine-tune on that one, but never twice in a row (when a selection
-            # takes longer than the keyframes between pushes, every selected snapshot would be superseded and a
-            # long live mission would stop pushing)
-            if self._superseded(snap) and not self._abandoned:
-                self._abandoned = True
-                log.info("agent %s: v%d superseded after its selection; the next one is pushed", self.agent_id,
-                         snap.version)
-                return
-            self._abandoned = False
-            try:
-                out = self.share.finetuned(snap.gaussians, snap.ids, *snap.finetune, self.mapper.cfg)
-            except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
-                log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
-                              self.agent_id, snap.version, e)
-                out = snap.gaussians
-            snap = dataclasses.replace(snap, gaussians=out, finetune=None)
-        ok = self._push_with_retries(snap, self.config.final_push_timeout_s if snap.final else None)
-        if snap.final:
-            self.final_push_ok = ok
-            self._final_done.set()
-
-    def _superseded(self, snap: _Snapshot) -> bool:
-        with self._lock:
-            return (not snap.final) and self._pending is not None
-
-    def _push_with_retries(self, snap: _Snapshot, budget_s: Optional[float]) -> bool:
-        """Push ``snap`` until acknowledged (True). Gives up (False) when the mission stops, when a newer
-        snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
-        the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
-        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``."""
-        deadline = None if budget_s is None else time.monotonic() + budget_s
-        attempt = 0
-        while True:
-            attempt += 1
-            try:
-                self._push_once(snap)
-                with self._lock:
-                    if self._link_down_since is not None:
-                        log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
-                                 time.monotonic() - self._link_down_since, snap.version)
-                    self._retry_delay = self.config.backoff_s
-                    self._link_down_since = None
-                return True
-            except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
-                msg = f"push v{snap.version} attempt {attempt} failed: {type(e).__name__}: {_short(e)}"
-                with self._lock:
-                    self.push_failures += 1
-                    self.last_error = msg
-                    self._session_open = False  # re-open after a server restart
-                    if self._link_down_since is None:
-                        self._link_down_since = time.monotonic()
-                    delay = self._retry_delay
-                    self._retry_delay = min(delay * 2.0, self.config.max_backoff_s)
-                log.warning("agent %s: %s (next attempt in %.1f s)", self.agent_id, msg, delay)
-            if self._stop.is_set() or self._superseded(snap):
-                return False
-            if deadline is not None and time.monotonic() + delay > deadline:
-                return False
-            with self._lock:  # a newer snapshot or close() ends the wait early
-                self._push_cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
-                                       timeout=delay)
-
-    def _upload_pending_keyframes(self, c) -> tuple[list, int]:
-        """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
-        with self._lock:
-            kfs = list(self._kf_pending)
-            rois = [self._kf_roi.get(id(f)) for f in kfs]
-        n_kf = 0
-        if kfs:
-            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
-                                          color_format=self.config.keyframe_format, rois=rois) or 0)
-            with self._lock:
-                sent = {id(f) for f in kfs}
-                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
-                for i in sent:
-                    self._kf_roi.pop(i, None)
-        return kfs, n_kf
-
-    def _push_once(self, snap: _Snapshot) -> None:
-        t0 = time.perf_counter()
-        c = self.fusion
-        if not self._session_open:
-            info = c.open_session(self.agent_id, self.task_text, self.intrinsics)
-            self._session_open = True
-            latest = int(getattr(info, "latest_map_version", 0) or 0)
-            if latest >= snap.version and not self.share.holds_base:
-                # the server holds this agent's versions from an earlier mission (or from before a crash that lost
-                # the version file): never reuse one, or the resumable upload would take the old chunks for ours
-                with self._lock:
-                    self._version = max(self._version, latest) + 1
-                    snap = dataclasses.replace(snap, version=self._version)
-                log.warning("agent %s: the fusion server holds v%d of this agent; pushing as v%d", self.agent_id,
-                            latest, snap.version)
-        plan = self.share.plan(snap.ids, snap.gaussians, snap.version)
-        if plan.is_noop:
-            # the server holds exactly this subset already (e.g. the final push right after a periodic one):
-            # no upload (an empty delta is still 270 B of headers); pending keyframes still go
-            self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else self.final_subset_bytes
-            kfs, _ = self._upload_pending_keyframes(c)
-            rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
-                             time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
-            with self._lock:
-                self.pushes.append(rec)
-                self.keyframes_uploaded += len(kfs)
-                self.last_error = ""
-            log.info("agent %s: subset unchanged since v%d; no upload", self.agent_id, plan.base_version)
-            return
-        try:
-            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
-                                full_map_gaussians=snap.n_total)
-        except PreconditionFailed as e:
-            if not plan.is_delta:
-                raise
-            # the server lacks the delta's base (restarted without its data, or superseded): full upload
-            log.warning("agent %s: delta v%d rejected (%s); uploading the full subset", self.agent_id,
-                        plan.version, _short(e))
-            self.share.forget()
-            with self._lock:
-                self._version += 1
-                version = self._version
-            plan = self.share.plan(snap.ids, snap.gaussians, version)
-            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
-                                full_map_gaussians=snap.n_total)
-        if not getattr(r, "complete", True):
-            raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
-        self.share.acknowledge(plan)
-        self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
-        kfs, n_kf = self._upload_pending_keyframes(c)
-        rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
-                         int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
-                         plan.n_records, plan.n_removed, snap.frames_mapped)
-        with self._lock:
-            self.total_upload_bytes += rec.bytes_on_wire
-            self.pushes.append(rec)
-            self.keyframes_uploaded += len(kfs)
-            self.last_error = ""
-        log.info("agent %s pushed v%d: %d/%d Gaussians, %d B, %d keyframes (%d acknowledged)", self.agent_id,
-                 rec.version, rec.n_shared, rec.n_total, rec.bytes_on_wire, len(kfs), n_kf)
+            self.last_error = msg
 
     # ------------------------------------------------------------------ status / finish
     def status(self) -> dict:
         """Snapshot of the mission's progress (keys of the ``MissionStatus`` message)."""
+        pushes = self.pusher.status()
         with self._lock:
             return {
                 "mission_id": self.mission_id, "agent_id": self.agent_id, "state": self.state,
                 "task_text": self.task_text, "task_id": self.task_id or "",
                 "frames_received": self.frames_received, "frames_mapped": self.frames_mapped,
                 "frames_queued": self._queue.qsize(), "n_gaussians": self.n_gaussians, "n_active": self.n_active,
-                "pushes": len(self.pushes), "push_failures": self.push_failures,
-                "last_pushed_version": self.pushes[-1].version if self.pushes else 0,
-                "newest_map_version": self._version,
-                "push_backlog": int(self._pending is not None) + int(self._inflight is not None),
-                "keyframes_backlog": len(self._kf_pending),
-                "link_down_s": (0.0 if self._link_down_since is None
-                                else time.monotonic() - self._link_down_since),
-                "last_error": self.last_error, "seconds_mapping": self.seconds_mapping,
-                "keyframes_uploaded": self.keyframes_uploaded,
+                **pushes, "last_error": self.last_error, "seconds_mapping": self.seconds_mapping,
                 "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
                 "accept_latency_ms_p99": _percentile(self._accept_ms, 99),
                 "accept_latency_ms_p99_recent": _percentile(list(self._accept_ms)[-RECENT_FRAMES:], 99),
@@ -828,13 +564,14 @@ class AgentRuntime:
             # both markers queue behind the pending keyframe; the worker stops optimising between keyframes
             self._queue.put(_FINISH if push else _DRAIN)
         remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-        if not self._final_done.wait(remaining):
+        if not self.pusher.final_done.wait(remaining):
             raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
         self.wait_mapped(None if deadline is None else max(0.0, deadline - time.monotonic()))
         psnr, roi_psnr = (self.evaluate() if evaluate and self.frames_mapped else (None, None))
         roi_all = (self.evaluate_all_frames() if evaluate and self.frames_mapped and self._dataset is not None
                    else None)
-        last = self.pushes[-1] if self.pushes else None
+        pusher = self.pusher
+        last = pusher.pushes[-1] if pusher.pushes else None
         with self._lock:
             if self.state != "FAILED":
                 self.state = "FINISHED"
@@ -842,15 +579,15 @@ class AgentRuntime:
         n_shared = last.n_shared if last else int(select_shared(self.mapper.gmap, self.config.share,
                                                                 self.config.kappa_threshold).sum())
         self.summary = MissionSummaryData(
-            status=self.status(), final_push_ok=bool(self.final_push_ok and push),
+            status=self.status(), final_push_ok=bool(pusher.final_push_ok and push),
             n_shared=int(n_shared), share_pct=100.0 * n_shared / n_total if self.n_gaussians else 0.0,
-            bytes_on_wire=self.final_subset_bytes,
-            bytes_per_gaussian=(self.final_subset_bytes / last.n_shared) if last and last.n_shared else 0.0,
+            bytes_on_wire=pusher.final_subset_bytes,
+            bytes_per_gaussian=(pusher.final_subset_bytes / last.n_shared) if last and last.n_shared else 0.0,
             roi_psnr=roi_psnr, psnr=psnr,
             seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1),
             roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0,
-            total_upload_bytes=self.total_upload_bytes, final_subset_bytes=self.final_subset_bytes,
-            pushes=[dict(p.__dict__) for p in self.pushes])
+            total_upload_bytes=pusher.total_upload_bytes, final_subset_bytes=pusher.final_subset_bytes,
+            pushes=[dict(p.__dict__) for p in pusher.pushes])
         if self.on_finished is not None:
             try:
                 self.on_finished(self)
@@ -908,8 +645,7 @@ class AgentRuntime:
         with self._lock:
             self._closed_for_input = True
         self._stop.set()
-        with self._lock:
-            self._push_cv.notify_all()
+        self.pusher.stop()  # a push waiting to retry ends now
         try:
             while True:
                 self._queue.get_nowait()
@@ -918,18 +654,7 @@ class AgentRuntime:
             pass
         self._queue.put(None)
         self._worker.join(5.0)
-        self._pusher.join(5.0)
+        self.pusher.close(5.0)
         if self._relevance_worker is not None:
             self._relevance_worker.close()
         self.share.close()
-
-
-def _short(e: BaseException) -> str:
-    details = getattr(e, "details", None)
-    if callable(details):
-        try:
-            code = e.code()  # type: ignore[attr-defined]
-            return f"{getattr(code, 'name', code)}: {details()}"
-        except Exception:
-            pass
-    return str(e)[:300]

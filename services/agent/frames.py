@@ -19,7 +19,7 @@ from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.base import Frame
 from gausslite_rpc import agent_pb2, common_pb2
 from services.common import convert
-from services.common.convert import MAX_SIDE, intrinsics_to_proto
+from services.common.convert import intrinsics_to_proto
 #: Largest depth of a valid pixel after scaling (metres); larger values are rejected as a bad scale.
 MAX_DEPTH_M = 1000.0
 
@@ -32,7 +32,8 @@ def intrinsics_from_proto(m: common_pb2.Intrinsics) -> Intrinsics:
     """Wire message → library intrinsics (:func:`services.common.convert.intrinsics_from_proto`).
 
     Raises:
-        FrameError: non-finite or non-positive focal lengths, a size of 0 or above :data:`MAX_SIDE`.
+        FrameError: non-finite or non-positive focal lengths, an image side of 0 or above
+            :data:`services.common.convert.MAX_SIDE`.
     """
     try:
         return convert.intrinsics_from_proto(m)

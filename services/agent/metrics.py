@@ -90,7 +90,7 @@ class AgentCollector:
             s["mapped"] += st["frames_mapped"]
             s["failures"] += st["push_failures"]
             s["keyframes"] += st["keyframes_uploaded"]
-            pushes = list(rt.pushes)
+            pushes = list(rt.pusher.pushes)
             s["pushes"] += len(pushes)
             s["bytes"] += sum(int(p.bytes_on_wire) for p in pushes)
             seconds.setdefault(agent, []).extend(float(p.seconds) for p in pushes if math.isfinite(p.seconds))

@@ -213,14 +213,14 @@ def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
     st = rt.status()
     assert st["idle_iterations"] > 0  # the map keeps improving between keyframes
     assert st["checkpoints"] >= 1 and (tmp_path / "m1" / "checkpoint.pt").is_file()
-    keyframed, n_g, version = st["frames_keyframed"], st["n_gaussians"], rt._version
+    keyframed, n_g, version = st["frames_keyframed"], st["n_gaussians"], rt.pusher.version
     rt.close()
     # a second runtime with the same mission id resumes
     rt2 = AgentRuntime("a1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
                        checkpoint_dir=tmp_path / "m1")
     st2 = rt2.status()
     assert st2["resumed_keyframes"] == keyframed == st2["frames_keyframed"] >= 1
-    assert st2["n_gaussians"] > 0 and rt2._version >= version >= 1
+    assert st2["n_gaussians"] > 0 and rt2.pusher.version >= version >= 1
     rt2.close()
     with pytest.raises(ValueError, match="task"):
         AgentRuntime("a1", "Find the chair", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
@@ -603,7 +603,7 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
-    assert rt._kf_roi == {}  # nothing kept once sent
+    assert rt.pusher._kf_roi == {}  # nothing kept once sent
     if iters == 0:
         assert calls == []
         return
@@ -679,8 +679,8 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
                 cfg = load_agent_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
                                                       "agent.push_every=100"])
                 rt = _mission("robot", cfg, lambda fr: np.ones((48, 64), bool), c, ds, n_frames)
-                assert rt.final_push_ok and len(rt.pushes) == 1
-                runs.append(rt.pushes[0])
+                assert rt.pusher.final_push_ok and len(rt.pusher.pushes) == 1
+                runs.append(rt.pusher.pushes[0])
             first, second = runs
             assert first.version == 1 and second.version == 2 and second.bytes_on_wire > 0
             assert srv.store.latest_version("robot") == 2
@@ -695,22 +695,22 @@ def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
     right after a periodic one, uploads nothing (an empty delta is still 270 B of headers) and is logged
     as ``unchanged`` at the version the server holds; κ growth alone is a real push (the κ shift)."""
     from gausslite.wire.codec import GaussianArrays, peek_header
-    from gausslite.mission.runtime import _Snapshot
+    from gausslite.mission.pusher import Snapshot
 
     rt, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=0"], 2)
-    n_up, n_push = len(fusion.uploads), len(rt.pushes)
+    n_up, n_push = len(fusion.uploads), len(rt.pusher.pushes)
     base = rt.share.planner.base
     ids = rt.share.planner.base_ids
-    held = rt.pushes[-1].version
-    rt._push_once(_Snapshot(held + 1, base, 1000, True, ids, 2))
-    assert len(fusion.uploads) == n_up and len(rt.pushes) == n_push + 1
-    rec = rt.pushes[-1]
+    held = rt.pusher.pushes[-1].version
+    rt.pusher.push_once(Snapshot(held + 1, base, 1000, True, ids, 2))
+    assert len(fusion.uploads) == n_up and len(rt.pusher.pushes) == n_push + 1
+    rec = rt.pusher.pushes[-1]
     assert rec.unchanged and rec.bytes_on_wire == 0 and rec.version == held == rt.share.planner.base_version
-    assert rt.total_upload_bytes == sum(p.bytes_on_wire for p in rt.pushes)
+    assert rt.pusher.total_upload_bytes == sum(p.bytes_on_wire for p in rt.pusher.pushes)
     grown = GaussianArrays(**{k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC})
     grown.kappa[grown.active] += 25
-    rt._push_once(_Snapshot(held + 2, grown, 1000, True, ids, 2))
-    assert len(fusion.uploads) == n_up + 1 and not rt.pushes[-1].unchanged
+    rt.pusher.push_once(Snapshot(held + 2, grown, 1000, True, ids, 2))
+    assert len(fusion.uploads) == n_up + 1 and not rt.pusher.pushes[-1].unchanged
     hdr = [peek_header(c) for c in fusion.uploads[-1][1]]
     assert all(h.delta and h.kappa_shift == 25 for h in hdr) and sum(h.count for h in hdr) == 0
 
@@ -730,7 +730,7 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
         deadline = time.time() + 5
         nice = None
         while time.time() < deadline:
-            nice = os.getpriority(os.PRIO_PROCESS, rt._pusher.native_id)
+            nice = os.getpriority(os.PRIO_PROCESS, rt.pusher.thread.native_id)
             if nice >= 19:
                 break
             time.sleep(0.02)
@@ -763,7 +763,7 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
         monkeypatch.setattr(sharing, name, lambda *a, _real=real, _n=name, **kw: here.append(_n) or _real(*a, **kw))
     rt, fusion, _ = _run_task_agent(scene, ["agent.share_worker=process", "agent.share_finetune_iters=5",
                                             "agent.delta_push=false"], 4)
-    assert fusion.uploads and rt.final_push_ok
+    assert fusion.uploads and rt.pusher.final_push_ok
     pushed, _ = assemble(fusion.uploads[-1][1])
     assert 0 < len(pushed) <= rt.n_gaussians
     assert rt.share.finetune_cache is not None  # the last push was fine-tuned...
@@ -775,7 +775,7 @@ def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
     """When the selection takes longer than the keyframes between pushes, a newer snapshot is always waiting by the
     time it ends; the pusher skips the older one once, then pushes, so a long live mission keeps pushing."""
     from gausslite.mission import AgentConfig
-    from gausslite.mission.runtime import _Snapshot
+    from gausslite.mission.pusher import Snapshot
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite"))
@@ -783,19 +783,19 @@ def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
     pushed = []
     try:
         def select(cap, backend="auto"):
-            with rt._lock:  # a newer snapshot arrives while this one is being selected
-                rt._pending = _Snapshot(99, None, 1, False, np.zeros(1, np.int64), 0, None, "later")
+            with rt.pusher._lock:  # a newer snapshot arrives while this one is being selected
+                rt.pusher._pending = Snapshot(99, None, 1, False, np.zeros(1, np.int64), 0, None, "later")
             return dataclasses.replace(cap, gaussians="subset", finetune=("key", []), select=None)
 
         monkeypatch.setattr(rt.share, "select", select)
         monkeypatch.setattr(rt.share, "finetuned", lambda arrays, ids, key, kfs, cfg: arrays)
-        monkeypatch.setattr(rt, "_push_with_retries", lambda snap, budget: pushed.append(snap.version) or True)
+        monkeypatch.setattr(rt.pusher, "_push_with_retries", lambda snap, budget: pushed.append(snap.version) or True)
         for v in (1, 2, 3):
-            with rt._lock:  # the pusher loop has taken the pending snapshot
-                rt._pending = None
-            rt._push_snapshot(_Snapshot(v, None, 1, False, np.zeros(1, np.int64), 0, None, "select"))
+            with rt.pusher._lock:  # the pusher loop has taken the pending snapshot
+                rt.pusher._pending = None
+            rt.pusher.push_snapshot(Snapshot(v, None, 1, False, np.zeros(1, np.int64), 0, None, "select"))
         assert pushed == [2]  # v1 superseded, v2 pushed although v99 waited, v3 superseded again
     finally:
-        with rt._lock:
-            rt._pending = None
+        with rt.pusher._lock:
+            rt.pusher._pending = None
         rt.close()

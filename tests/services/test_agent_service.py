@@ -210,16 +210,16 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     try:
         rt.submit(ds[0]); rt.submit(ds[1])
         t0 = time.monotonic()
-        while len(rt.pushes) < 1 and time.monotonic() - t0 < 60:
+        while len(rt.pusher.pushes) < 1 and time.monotonic() - t0 < 60:
             time.sleep(0.05)
-        assert len(rt.pushes) == 1
+        assert len(rt.pusher.pushes) == 1
         f1.stop(0)
         rt.submit(ds[2]); rt.submit(ds[3])
         assert rt.wait_mapped(60)
         t0 = time.monotonic()
-        while rt.push_failures == 0 and time.monotonic() - t0 < 30:
+        while rt.pusher.push_failures == 0 and time.monotonic() - t0 < 30:
             time.sleep(0.05)
-        assert rt.push_failures > 0 and rt.last_error
+        assert rt.pusher.push_failures > 0 and rt.last_error
         holder = {}
 
         def restart():
@@ -234,7 +234,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
         assert s.final_push_ok, rt.last_error
         assert s.status["frames_mapped"] == 4
         st = FusionClient(f2.address, timeout_s=10).stats()["agents"]["robot1"]
-        assert st["latest_map_version"] == rt.pushes[-1].version
+        assert st["latest_map_version"] == rt.pusher.pushes[-1].version
         assert st["gaussians_received"] == s.n_shared > 0
         assert st["has_complete_subset"]
     finally:

@@ -85,7 +85,7 @@ def test_link_outage_mid_mission(tmp_path):
         for i in range(4, len(ds)):  # the agent keeps mapping
             rt.submit(ds[i])
         assert rt.wait_mapped(120)
-        assert _wait(lambda: rt.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
+        assert _wait(lambda: rt.pusher.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
         st = rt.status()
         assert st["frames_mapped"] == len(ds) == 12
         assert st["last_pushed_version"] == acked_before  # nothing acknowledged while the link is down

@@ -1,0 +1,389 @@
+"""The agent's pusher: the thread that sends each map version's shared subset to the fusion server (paper
+Sec. III-E; ``docs/live.md``, ``docs/sharing.md``).
+
+The mapping thread hands it what a push needs (:meth:`Pusher.offer`, a :class:`gausslite.mission.share.Captured`)
+and the keyframes to upload with it (:meth:`Pusher.add_keyframe`); neither call waits for the network. The
+pusher thread then, for the newest offer only (an older pending one is superseded):
+
+1. selects the task subset and fine-tunes it in the share worker (:class:`gausslite.mission.share.ShareSession`);
+2. plans a delta against the subset the server acknowledged last, or a full upload, and sends it in chunks;
+3. uploads the keyframes not yet sent (at most ``max_keyframes`` wait);
+4. on failure retries with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, kept across
+   offers while the link is down). A periodic push is retried until it is acknowledged or a newer offer
+   replaces it, so at most two subsets are held however long the link is down, and the newest goes out when
+   it returns; the final one is retried for ``final_push_timeout_s``.
+
+:meth:`Pusher.status` gives the backlog and the last acknowledged version (``GetStatus``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, List, Optional
+
+import numpy as np
+
+from gausslite.mission.errors import PreconditionFailed
+from gausslite.mission.heap import trim_heap
+from gausslite.mission.share import Captured
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Pusher", "PushRecord", "Snapshot"]
+
+
+@dataclass
+class PushRecord:
+    """One successful push: ``version``, ``n_shared`` Gaussians of ``n_total``, wire bytes sent, chunk
+    count; ``delta`` (a delta push carrying ``records`` Gaussians and ``removed`` row removals),
+    ``frames_mapped`` when the snapshot was taken."""
+
+    version: int
+    n_shared: int
+    n_total: int
+    bytes_on_wire: int
+    n_chunks: int
+    keyframes: int
+    seconds: float
+    delta: bool = False
+    records: int = 0
+    removed: int = 0
+    frames_mapped: int = 0
+    unchanged: bool = False  #: nothing changed since ``version`` (acknowledged before): no subset upload
+
+
+@dataclass
+class Snapshot:
+    """One map version on its way to the fusion server."""
+
+    version: int
+    gaussians: Any  # GaussianArrays
+    n_total: int
+    final: bool = False
+    ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
+    frames_mapped: int = 0
+    #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
+    #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
+    finetune: Any = None
+    #: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
+    #: selects the subset (``gaussians`` None and ``ids`` every row's until then)
+    select: Any = None
+
+
+class Pusher:
+    """The push side of one mission (module docstring); :meth:`start` starts its thread.
+
+    Args:
+        agent_id: the agent's id on the fusion server.
+        task_text: the mission's task (sent when a fusion session opens).
+        config: the mission's ``AgentConfig`` (``max_keyframes``, ``backoff_s``, ``max_backoff_s``,
+            ``final_push_timeout_s``, ``pusher_nice``, ``jpeg_quality``, ``keyframe_format``).
+        fusion: a FusionClient-like object (``open_session``, ``upload_chunks``, ``upload_keyframes``; a rejected
+            delta base raises :class:`gausslite.mission.errors.PreconditionFailed`), or None: offers are dropped.
+        share: the mission's :class:`gausslite.mission.share.ShareSession`.
+        mapper: the mission's mapper (its config drives the fine-tune).
+        intrinsics: ``() -> Intrinsics`` of the mission's frames (sent when a fusion session opens).
+        report: ``(message) -> None``, called with each push failure and with "" after each acknowledged push
+            (the mission's ``last_error``).
+    """
+
+    def __init__(self, agent_id: str, task_text: str, config, fusion, share, mapper,
+                 intrinsics: Callable[[], Any], report: Callable[[str], None]) -> None:
+        self.agent_id, self.task_text, self.config = agent_id, task_text, config
+        self.fusion, self.share, self.mapper = fusion, share, mapper
+        self._intrinsics, self._report = intrinsics, report
+        self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        #: set once the final push ended (acknowledged or not; ``final_push_ok`` tells) or the mission gave up
+        self.final_done = threading.Event()
+        self.final_push_ok = False
+        self.pushes: List[PushRecord] = []
+        self.push_failures = 0
+        self.keyframes_uploaded = 0
+        self.total_upload_bytes = 0  # bytes of subset chunks sent over the mission (all pushes)
+        self.final_subset_bytes = 0  # the last pushed subset encoded whole
+        self._version = 0  # newest map version offered (or resumed)
+        self._pending: Optional[Snapshot] = None
+        self._inflight: Optional[int] = None  # version of the snapshot being worked on
+        self._abandoned = False  # the last selected snapshot was superseded before its fine-tune
+        self._session_open = False
+        self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
+        self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
+        self._kf_pending: list = []  # frames to upload with the next push
+        self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
+        self.thread = threading.Thread(target=self._loop, name=f"agent-{agent_id}-push", daemon=True)
+
+    def start(self) -> None:
+        """Start the pusher thread (once)."""
+        self.thread.start()
+
+    # ------------------------------------------------------------------ mapping thread
+    @property
+    def version(self) -> int:
+        """The newest map version offered (what a checkpoint records; the next offer is one above)."""
+        with self._lock:
+            return self._version
+
+    def resume(self, version: int) -> None:
+        """Continue a resumed mission above ``version`` (never reuse a version the fusion server may hold)."""
+        with self._lock:
+            self._version = max(self._version, int(version))
+
+    def offer(self, cap: Captured, frames_mapped: int, final: bool) -> int:
+        """Hand the pusher map version ``version + 1`` (``cap`` from :meth:`ShareSession.capture`); a pending
+        older one is dropped. Returns the new version. Does not wait."""
+        with self._lock:
+            self._version += 1
+            self._pending = Snapshot(self._version, cap.gaussians, cap.n_total, final, cap.ids, frames_mapped,
+                                     None, cap.select)
+            self._cv.notify_all()
+            return self._version
+
+    def add_keyframe(self, frame, roi: Optional[np.ndarray]) -> None:
+        """Upload ``frame`` (with its (H, W) bool relevance ``roi``, or None) with the next push; only the newest
+        ``max_keyframes`` wait."""
+        keep = self.config.max_keyframes
+        with self._lock:
+            self._kf_pending.append(frame)
+            if roi is not None:
+                self._kf_roi[id(frame)] = np.asarray(roi, bool)
+            for old in self._kf_pending[:-keep]:
+                self._kf_roi.pop(id(old), None)
+            del self._kf_pending[:-keep]
+
+    def status(self) -> dict:
+        """The push keys of ``MissionStatus``: pushes, failures, last acknowledged and newest versions, backlog,
+        keyframes waiting and uploaded, seconds the link has been down."""
+        with self._lock:
+            return {"pushes": len(self.pushes), "push_failures": self.push_failures,
+                    "last_pushed_version": self.pushes[-1].version if self.pushes else 0,
+                    "newest_map_version": self._version,
+                    "push_backlog": int(self._pending is not None) + int(self._inflight is not None),
+                    "keyframes_backlog": len(self._kf_pending),
+                    "link_down_s": (0.0 if self._link_down_since is None
+                                    else time.monotonic() - self._link_down_since),
+                    "keyframes_uploaded": self.keyframes_uploaded}
+
+    def stop(self) -> None:
+        """Ask the thread to stop: a push waiting to retry ends now, one in flight at its next check."""
+        self._stop.set()
+        with self._lock:
+            self._cv.notify_all()
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """:meth:`stop`, then wait up to ``timeout_s`` for the thread. Safe to call more than once."""
+        self.stop()
+        if self.thread.is_alive() and self.thread is not threading.current_thread():
+            self.thread.join(timeout_s)
+
+    # ------------------------------------------------------------------ pusher thread
+    def _lower_priority(self) -> None:
+        """Give the pusher thread ``pusher_nice`` niceness; threads it starts inherit it."""
+        import os
+
+        nice = self.config.pusher_nice
+        if not nice or not hasattr(os, "setpriority"):
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        except OSError as e:  # not permitted in some containers: the pusher keeps the mapper's priority
+            log.warning("agent %s: cannot lower the pusher's priority: %s", self.agent_id, e)
+
+    def _loop(self) -> None:
+        self._lower_priority()
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stop.is_set():
+                    self._cv.wait(0.5)
+                if self._stop.is_set() and self._pending is None:
+                    return
+                snap, self._pending = self._pending, None
+                self._inflight = snap.version
+            try:
+                self.push_snapshot(snap)
+            finally:
+                with self._lock:
+                    self._inflight = None
+                trim_heap()  # the push's temporary copies back to the OS (gausslite.mission.heap)
+
+    def _final(self, ok: bool) -> None:
+        self.final_push_ok = ok
+        self.final_done.set()
+
+    def push_snapshot(self, snap: Snapshot) -> None:
+        """Select, fine-tune and push one snapshot (pusher thread); ends the final one (``final_done``)."""
+        if self.fusion is None:
+            if snap.final:
+                self._final(False)
+            return
+        if snap.select is not None:
+            if self._superseded(snap):  # a newer snapshot waits: select that one
+                return
+            try:
+                cap = self.share.select(Captured(snap.gaussians, snap.ids, snap.n_total, snap.select),
+                                        self.config.mapper.backend)
+                snap = dataclasses.replace(snap, gaussians=cap.gaussians, ids=cap.ids, finetune=cap.finetune,
+                                           select=None)
+            except Exception as e:  # keep pushing later snapshots; a failed final one is reported
+                log.exception("agent %s: task selection of v%d failed: %s", self.agent_id, snap.version, e)
+                self._report(f"share selection failed: {type(e).__name__}: {e}")
+                if snap.final:
+                    self._final(False)
+                return
+        if snap.finetune is not None:
+            # a newer snapshot waits: spend the fine-tune on that one, but never twice in a row (when a selection
+            # takes longer than the keyframes between pushes, every selected snapshot would be superseded and a
+            # long live mission would stop pushing)
+            if self._superseded(snap) and not self._abandoned:
+                self._abandoned = True
+                log.info("agent %s: v%d superseded after its selection; the next one is pushed", self.agent_id,
+                         snap.version)
+                return
+            self._abandoned = False
+            try:
+                out = self.share.finetuned(snap.gaussians, snap.ids, *snap.finetune, self.mapper.cfg)
+            except Exception as e:  # a fine-tune failure must not lose the push: send the rows as mapped
+                log.exception("agent %s: fine-tune of v%d failed, pushing the subset as mapped: %s",
+                              self.agent_id, snap.version, e)
+                out = snap.gaussians
+            snap = dataclasses.replace(snap, gaussians=out, finetune=None)
+        ok = self._push_with_retries(snap, self.config.final_push_timeout_s if snap.final else None)
+        if snap.final:
+            self._final(ok)
+
+    def _superseded(self, snap: Snapshot) -> bool:
+        with self._lock:
+            return (not snap.final) and self._pending is not None
+
+    def _push_with_retries(self, snap: Snapshot, budget_s: Optional[float]) -> bool:
+        """Push ``snap`` until acknowledged (True). Gives up (False) when the pusher stops, when a newer
+        snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
+        the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
+        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``."""
+        deadline = None if budget_s is None else time.monotonic() + budget_s
+        attempt = 0
+        while True:
+            attempt += 1
+            try:
+                self.push_once(snap)
+                with self._lock:
+                    if self._link_down_since is not None:
+                        log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
+                                 time.monotonic() - self._link_down_since, snap.version)
+                    self._retry_delay = self.config.backoff_s
+                    self._link_down_since = None
+                return True
+            except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
+                msg = f"push v{snap.version} attempt {attempt} failed: {type(e).__name__}: {_short(e)}"
+                with self._lock:
+                    self.push_failures += 1
+                    self._session_open = False  # re-open after a server restart
+                    if self._link_down_since is None:
+                        self._link_down_since = time.monotonic()
+                    delay = self._retry_delay
+                    self._retry_delay = min(delay * 2.0, self.config.max_backoff_s)
+                self._report(msg)
+                log.warning("agent %s: %s (next attempt in %.1f s)", self.agent_id, msg, delay)
+            if self._stop.is_set() or self._superseded(snap):
+                return False
+            if deadline is not None and time.monotonic() + delay > deadline:
+                return False
+            with self._lock:  # a newer snapshot or close() ends the wait early
+                self._cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
+                                  timeout=delay)
+
+    def _upload_pending_keyframes(self, c) -> tuple[list, int]:
+        """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
+        with self._lock:
+            kfs = list(self._kf_pending)
+            rois = [self._kf_roi.get(id(f)) for f in kfs]
+        n_kf = 0
+        if kfs:
+            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
+                                          color_format=self.config.keyframe_format, rois=rois) or 0)
+            with self._lock:
+                sent = {id(f) for f in kfs}
+                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
+                for i in sent:
+                    self._kf_roi.pop(i, None)
+        return kfs, n_kf
+
+    def push_once(self, snap: Snapshot) -> None:
+        """One attempt at pushing the selected (and fine-tuned) ``snap``: open the fusion session if needed,
+        upload the delta or full subset, then the pending keyframes. Raises what the fusion client raises."""
+        t0 = time.perf_counter()
+        c = self.fusion
+        if not self._session_open:
+            info = c.open_session(self.agent_id, self.task_text, self._intrinsics())
+            self._session_open = True
+            latest = int(getattr(info, "latest_map_version", 0) or 0)
+            if latest >= snap.version and not self.share.holds_base:
+                # the server holds this agent's versions from an earlier mission (or from before a crash that lost
+                # the version file): never reuse one, or the resumable upload would take the old chunks for ours
+                with self._lock:
+                    self._version = max(self._version, latest) + 1
+                    snap = dataclasses.replace(snap, version=self._version)
+                log.warning("agent %s: the fusion server holds v%d of this agent; pushing as v%d", self.agent_id,
+                            latest, snap.version)
+        plan = self.share.plan(snap.ids, snap.gaussians, snap.version)
+        if plan.is_noop:
+            # the server holds exactly this subset already (e.g. the final push right after a periodic one):
+            # no upload (an empty delta is still 270 B of headers); pending keyframes still go
+            self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else self.final_subset_bytes
+            kfs, _ = self._upload_pending_keyframes(c)
+            rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
+                             time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
+            with self._lock:
+                self.pushes.append(rec)
+                self.keyframes_uploaded += len(kfs)
+            self._report("")
+            log.info("agent %s: subset unchanged since v%d; no upload", self.agent_id, plan.base_version)
+            return
+        try:
+            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
+                                full_map_gaussians=snap.n_total)
+        except PreconditionFailed as e:
+            if not plan.is_delta:
+                raise
+            # the server lacks the delta's base (restarted without its data, or superseded): full upload
+            log.warning("agent %s: delta v%d rejected (%s); uploading the full subset", self.agent_id,
+                        plan.version, _short(e))
+            self.share.forget()
+            with self._lock:
+                self._version += 1
+                version = self._version
+            plan = self.share.plan(snap.ids, snap.gaussians, version)
+            r = c.upload_chunks(self.agent_id, plan.version, plan.chunks, n_gaussians=plan.n_records,
+                                full_map_gaussians=snap.n_total)
+        if not getattr(r, "complete", True):
+            raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
+        self.share.acknowledge(plan)
+        self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
+        kfs, n_kf = self._upload_pending_keyframes(c)
+        rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
+                         int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
+                         plan.n_records, plan.n_removed, snap.frames_mapped)
+        with self._lock:
+            self.total_upload_bytes += rec.bytes_on_wire
+            self.pushes.append(rec)
+            self.keyframes_uploaded += len(kfs)
+        self._report("")
+        log.info("agent %s pushed v%d: %d/%d Gaussians, %d B, %d keyframes (%d acknowledged)", self.agent_id,
+                 rec.version, rec.n_shared, rec.n_total, rec.bytes_on_wire, len(kfs), n_kf)
+
+
+def _short(e: BaseException) -> str:
+    """A short message for an exception: ``CODE: details`` of a gRPC error, else its text (300 characters)."""
+    details = getattr(e, "details", None)
+    if callable(details):
+        try:
+            code = e.code()  # type: ignore[attr-defined]
+            return f"{getattr(code, 'name', code)}: {details()}"
+        except Exception:
+            pass
+    return str(e)[:300]
