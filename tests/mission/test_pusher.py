@@ -1,0 +1,113 @@
+"""The pusher on its own (gausslite.mission.pusher): superseded offers, retries with backoff while the link is down,
+the keyframe bound, and the final push's outcome. A fake fusion client stands in for the server."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from gausslite.mission import AgentConfig
+from gausslite.mission.pusher import Pusher, Snapshot
+from gausslite.mission.share import Captured, ShareSession
+
+
+class _DownLink:
+    """A fusion client whose link is down: every call raises ConnectionError."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def open_session(self, *a, **k):
+        self.calls += 1
+        raise ConnectionError("link down")
+
+
+def _wait(pred, timeout_s=10.0):
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout_s:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def _pusher(fusion, **cfg):
+    config = AgentConfig(**cfg)
+    errors = []
+    p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=None,
+               intrinsics=lambda: None, report=errors.append)
+    return p, errors
+
+
+def test_retries_with_backoff_while_the_link_is_down_and_a_newer_offer_replaces_the_retried_one():
+    link = _DownLink()
+    p, errors = _pusher(link, backoff_s=0.05, max_backoff_s=0.2)
+    p.start()
+    try:
+        v1 = p.offer(Captured(None, np.zeros(0, np.int64), 10), frames_mapped=5, final=False)
+        assert _wait(lambda: p.status()["push_failures"] >= 3)
+        st = p.status()
+        assert st["link_down_s"] > 0 and st["push_backlog"] == 1 and st["newest_map_version"] == v1 == 1
+        assert st["pushes"] == 0 and st["last_pushed_version"] == 0
+        assert errors and errors[-1].startswith("push v1 attempt") and "ConnectionError" in errors[-1]
+        # the backoff doubles up to max_backoff_s: attempts slow down instead of spinning
+        n, t0 = link.calls, time.monotonic()
+        time.sleep(0.5)
+        assert link.calls - n <= int(0.5 / 0.2) + 2, (link.calls - n, time.monotonic() - t0)
+        v2 = p.offer(Captured(None, np.zeros(0, np.int64), 10), frames_mapped=9, final=False)
+        assert v2 == 2
+        assert _wait(lambda: any(e.startswith("push v2") for e in errors))  # the newer one is tried, v1 dropped
+        assert p.status()["push_backlog"] <= 2
+    finally:
+        p.close()
+    assert not p.thread.is_alive()
+
+
+def test_the_final_push_gives_up_after_its_budget_and_reports_it():
+    p, _ = _pusher(_DownLink(), backoff_s=0.05, max_backoff_s=0.1, final_push_timeout_s=0.3)
+    p.start()
+    try:
+        t0 = time.monotonic()
+        p.offer(Captured(None, np.zeros(0, np.int64), 10), frames_mapped=5, final=True)
+        assert p.final_done.wait(5.0)
+        assert not p.final_push_ok and time.monotonic() - t0 < 2.0
+    finally:
+        p.close()
+
+
+def test_without_a_fusion_client_offers_are_dropped_and_the_final_one_ends_unacknowledged():
+    p, errors = _pusher(None)
+    p.start()
+    try:
+        p.offer(Captured(None, np.zeros(0, np.int64), 1), frames_mapped=1, final=False)
+        p.offer(Captured(None, np.zeros(0, np.int64), 1), frames_mapped=2, final=True)
+        assert p.final_done.wait(5.0) and not p.final_push_ok
+        assert p.status()["pushes"] == 0 and errors == []
+    finally:
+        p.close()
+
+
+def test_only_the_newest_max_keyframes_wait_for_upload_and_a_resumed_mission_continues_above_its_version():
+    p, _ = _pusher(None, max_keyframes=3)  # never started: nothing is sent
+    frames = [object() for _ in range(5)]
+    for i, f in enumerate(frames):
+        p.add_keyframe(f, np.full((2, 2), i % 2 == 0))
+    assert p.status()["keyframes_backlog"] == 3
+    assert p._kf_pending == frames[2:] and set(p._kf_roi) == {id(f) for f in frames[2:]}
+    p.resume(41)
+    p.resume(7)  # never goes back
+    assert p.version == 41
+    assert p.offer(Captured(None, np.zeros(0, np.int64), 1), frames_mapped=1, final=False) == 42
+    p.close()
+
+
+def test_a_periodic_snapshot_without_a_fusion_client_leaves_the_final_open_and_close_is_idempotent():
+    p, _ = _pusher(None)
+    p.push_snapshot(Snapshot(1, None, 0, final=False))
+    assert not p.final_done.is_set()  # only the final snapshot (or the mission) ends it
+    p.close()  # never started
+    p.start()
+    p.close()
+    p.close()
+    assert not p.thread.is_alive()
