@@ -271,6 +271,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     from gausslite.mapping.config import MapperConfig
     from gausslite.mapping.mapper import Mapper
     from gausslite.mapping.model import cosine_lr_factor
+    from gausslite.mapping.views import StoredKeyframe
     from gausslite.wire.codec import GaussianArrays
 
     if iters < 0:
@@ -297,24 +298,20 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     mapper = Mapper(fcfg)
     gmap.active = torch.from_numpy(free).to(gmap.active.device)
     mapper.load_map(gmap)
+    # float keyframes move to the mapper's device once; compact ones are decoded when drawn
+    kfs = [kf if isinstance(kf, StoredKeyframe) or kf.rgb.device == mapper.device else kf.to(mapper.device)
+           for kf in kfs]
     rng = np.random.default_rng(seed)
     for it in range(int(iters)):
         mapper.model.set_lr_scale(cosine_lr_factor(it, iters, final_lr))
+        kf = kfs[int(rng.integers(len(kfs)))]
+        if isinstance(kf, StoredKeyframe):
+            kf = kf.to_keyframe(mapper.device)
         # the mapper's ROI-phase step: renders the whole copy and updates its free (active) rows
-        mapper.step(_drawn(kfs[int(rng.integers(len(kfs)))], mapper.device), active_phase=True)
+        mapper.step(kf, active_phase=True)
     out = mapper.gmap
     out.active, out.kappa = active.to(out.means.device), kappa.to(out.means.device)
     return out
-
-
-def _drawn(kf, device):
-    """The keyframe ``kf`` (float ``Keyframe`` or compact ``StoredKeyframe``) as a float ``Keyframe`` on
-    ``device``."""
-    from gausslite.mapping.views import StoredKeyframe
-
-    if isinstance(kf, StoredKeyframe):
-        return kf.to_keyframe(device)
-    return kf if kf.rgb.device == device else kf.to(device)
 
 
 def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.05,
