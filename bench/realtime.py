@@ -155,12 +155,13 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
 
     cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
-        f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true", f"agent.rate={rate}",
-        "agent.downscale=1", *overrides])
+        f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true",
+        f"agent.rate={rate}", "agent.downscale=1", *overrides])
     m = with_profile(cfg.mapper, profile)
+    final_per_kf = float(m.final_iters_per_keyframe)
     # no offline refinement: the final pass is scored in its own column
     m = m.model_copy(update={"final_iters": 0, "final_iters_per_keyframe": 0.0})
-    return cfg.model_copy(update={"mapper": m}), float(with_profile(cfg.mapper, profile).final_iters_per_keyframe)
+    return cfg.model_copy(update={"mapper": m}), final_per_kf
 
 
 def score(mapper, ds, ann, task: str) -> dict:

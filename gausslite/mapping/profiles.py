@@ -91,10 +91,10 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
     from .config import MapperConfig, deep_merge
 
     explicit = _explicit(cfg)
-    todo = _unset(profile.mapper, explicit)
-    if not todo:
+    merged = deep_merge(profile.mapper, explicit)  # what cfg set explicitly wins
+    if merged == explicit:  # the profile adds nothing cfg left unset
         return cfg
-    return MapperConfig.model_validate(deep_merge(todo, explicit))
+    return MapperConfig.model_validate(merged)
 
 
 def _explicit(model) -> dict:
@@ -105,19 +105,6 @@ def _explicit(model) -> dict:
     for k in model.model_fields_set:
         v = getattr(model, k)
         out[k] = _explicit(v) if isinstance(v, BaseModel) else v
-    return out
-
-
-def _unset(defaults: dict, explicit: dict) -> dict:
-    """The entries of ``defaults`` (nested dicts) that ``explicit`` does not set."""
-    out = {}
-    for k, v in defaults.items():
-        if isinstance(v, dict):
-            sub = _unset(v, explicit.get(k) or {}) if isinstance(explicit.get(k, {}), dict) else {}
-            if sub:
-                out[k] = sub
-        elif k not in explicit:
-            out[k] = v
     return out
 
 

@@ -21,6 +21,7 @@ from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, Limit
                                   WireLimits, apply_delta, assemble, decode_chunk, encode_subset, peek_header)
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import Authenticator, AuthError
+from services.common.convert import intrinsics_to_proto
 from services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard, unary_guard,
                                            check_agent_id, check_int64, decode_color, decode_depth, decode_roi)
 from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
@@ -510,6 +511,5 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         for k in self.store.keyframe_poses(agent):
             resp.keyframes.add(agent_id=k.agent_id, frame_id=k.frame_id, timestamp=k.timestamp,
                                pose=common_pb2.Pose(c2w=np.asarray(k.c2w, np.float64).reshape(-1).tolist()),
-                               intrinsics=common_pb2.Intrinsics(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width,
-                                                                height=k.height))
+                               intrinsics=intrinsics_to_proto(k))
         return resp
