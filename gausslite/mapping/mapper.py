@@ -121,7 +121,7 @@ class Mapper:
         self.cfg = cfg
         self.device = torch.device(cfg.device)
         if cfg.performance.torch_threads:
-            torch.set_num_threads(cfg.performance.torch_threads)  # process-wide (see MapperConfig.performance.torch_threads)
+            torch.set_num_threads(cfg.performance.torch_threads)  # process-wide (PerformanceConfig.torch_threads)
         self.model = GaussianModel(cfg.lr, self.device)
         self.rng = np.random.default_rng(cfg.seed)
         self.clock = (WorkClock(WorkCost(**cfg.work_cost.model_dump())) if cfg.budget_clock == "work"

@@ -53,7 +53,8 @@ class SensorRenderer:
         self.clock = clock
         self.device = model.device
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.exposure: Optional[ExposureModel] = ExposureModel(cfg.sensor.exposure_lr) if cfg.sensor.exposure_comp else None
+        self.exposure: Optional[ExposureModel] = (ExposureModel(cfg.sensor.exposure_lr) if cfg.sensor.exposure_comp
+                                                  else None)
         self.blur: dict[int, np.ndarray] = {}
         self.rs_norm = 0.0
         self.last_sensor: Optional[tuple] = None
@@ -64,21 +65,21 @@ class SensorRenderer:
         backward from the previous observed frame, and under ``motion_estimate: central`` the previous frame's
         estimate becomes the mean of its backward and forward ones. No-op without motion blur or rolling
         shutter."""
-        cfg = self.cfg
-        if not (cfg.sensor.motion_blur or cfg.sensor.rolling_shutter_s > 0):
+        sc = self.cfg.sensor
+        if not (sc.motion_blur or sc.rolling_shutter_s > 0):
             return
         prev = self.last_sensor
         xi_b = (np.zeros(6) if prev is None else
-                exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, cfg.sensor.blur_exposure_s, cfg.sensor.blur_max_dt))
+                exposure_twist(prev[1], prev[0], frame.c2w, frame.timestamp, sc.blur_exposure_s, sc.blur_max_dt))
         self.blur[frame.frame_id] = xi_b
-        if cfg.sensor.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
+        if sc.motion_estimate == "central" and prev is not None and len(prev) > 2 and prev[2] in self.blur \
                 and xi_b.any():
             # the previous frame's motion is now known on both sides: the mean of its backward and forward
             # estimates (the forward one alone for the first frame, which had none)
             back = self.blur[prev[2]]
             self.blur[prev[2]] = 0.5 * (back + xi_b) if back.any() else xi_b.copy()
         self.last_sensor = (float(frame.timestamp), np.asarray(frame.c2w, np.float64).copy(), int(frame.frame_id))
-        self.rs_norm = readout_norm(cfg.sensor.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
+        self.rs_norm = readout_norm(sc.rolling_shutter_s, frame.intrinsics.fy, frame.intrinsics.height)
 
     def state_dict(self) -> dict:
         """Plain-data copy for checkpoints: ``exposure`` (None when off), ``blur``, ``last_sensor``, ``rs_norm``."""
@@ -121,15 +122,15 @@ class SensorRenderer:
         as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
         <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
         """
-        cfg = self.cfg
-        rs = cfg.sensor.rolling_shutter_s > 0 and self.rs_norm > 0
-        if not ((cfg.sensor.motion_blur or rs) and self.blur):
+        sc = self.cfg.sensor
+        rs = sc.rolling_shutter_s > 0 and self.rs_norm > 0
+        if not ((sc.motion_blur or rs) and self.blur):
             return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         xi_b = self.blur[nearest_key(self.blur, frame_id)]
-        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, cfg.sensor.blur_px_per_sample, cfg.sensor.blur_max_samples)
-                  if cfg.sensor.motion_blur else 1)
-        bands = (shutter_bands(K, width, height, xi_b / cfg.sensor.blur_exposure_s, self.rs_norm, cfg.sensor.rs_px_per_band,
-                               cfg.sensor.rs_max_bands) if rs else [(0, height, 0.0)])
+        n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, sc.blur_px_per_sample, sc.blur_max_samples)
+                  if sc.motion_blur else 1)
+        bands = (shutter_bands(K, width, height, xi_b / sc.blur_exposure_s, self.rs_norm, sc.rs_px_per_band,
+                               sc.rs_max_bands) if rs else [(0, height, 0.0)])
         if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
             return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
         groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
@@ -137,7 +138,7 @@ class SensorRenderer:
             Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
             Kb[1, 2] -= y0
             # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
-            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / cfg.sensor.blur_exposure_s, self.device)):
+            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / sc.blur_exposure_s, self.device)):
                 g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
                                         view_delta=delta, cull=cull))
         if parts is not None:
@@ -185,7 +186,8 @@ class SensorRenderer:
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self.background,
-            backend=self.cfg.backend, num_threads=self.cfg.performance.render_threads, cpu_kernel=self.cfg.performance.cpu_kernel,
+            backend=self.cfg.backend, num_threads=self.cfg.performance.render_threads,
+            cpu_kernel=self.cfg.performance.cpu_kernel,
         )
 
     def blend_weights(self, K: torch.Tensor, width: int, height: int, c2w: torch.Tensor) -> torch.Tensor:
