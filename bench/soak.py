@@ -111,11 +111,6 @@ def tree_memory_mb(pid: int) -> dict:
     return tot
 
 
-def tree_rss_mb(pid: int) -> float:
-    """Resident memory (VmRSS) of process ``pid`` and all its descendants, MB (0 when it is gone)."""
-    return tree_memory_mb(pid)["rss"]
-
-
 def dir_mb(path: Path) -> tuple[float, float]:
     """MB of the files under ``path`` (recursively): (settled files, atomic-write temporaries in flight). The agent
     writes a checkpoint through ``.<name>.<pid>.tmp`` and renames it (``gausslite.mission.runtime``): a sample taken

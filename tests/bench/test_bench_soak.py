@@ -7,8 +7,7 @@ import os
 
 import pytest
 
-from bench.soak import (dir_mb, growth_last_half, parse_args, plot, table, tree_memory_mb, tree_rss_mb,
-                        trend_last_half)
+from bench.soak import dir_mb, growth_last_half, parse_args, plot, table, tree_memory_mb, trend_last_half
 
 
 def _samples(values):
@@ -42,7 +41,7 @@ def test_readers(tmp_path):
     assert dir_mb(tmp_path) == pytest.approx((1.5, 0.0))
     (tmp_path / "a" / ".checkpoint.pt.123.tmp").write_bytes(b"\0" * 2**20)  # an atomic write in flight: apart
     assert dir_mb(tmp_path) == pytest.approx((1.5, 1.0))
-    assert tree_rss_mb(os.getpid()) > 10.0
+    assert tree_memory_mb(os.getpid())["rss"] > 10.0
 
 
 def test_tree_memory_counts_children_apart():
