@@ -58,6 +58,9 @@ SCENES = {
     "tum_fr1_rpy_cup": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000},
 }
 MODES = ("uniform", "gausslite")
+#: the tracked protocol: Adam steps per frame, and every how many frames of the sequence it scores
+TRACK_ITERS = 30
+TRACK_STRIDE = 5
 #: data seconds per keyframe that every budget covers under ``--clock scaled`` (the paper's 0.5 s/frame)
 REFERENCE_BUDGET_S = 0.5
 
@@ -85,12 +88,44 @@ def scene_path(name: str, work: Path) -> Path:
     return p
 
 
-def load_scene(name: str, path: Path):
-    """(dataset, sensor profile) with the profile's loader options and the scene's clock."""
+def dataset_scenes(path: Path, task_ids: list[str], cap: int, downscale: float = 1.0,
+                   fps: Optional[float] = None) -> dict:
+    """Bench scenes of a user's own sequence (``--dataset``): one per task id, named after it.
+
+    Args:
+        path: a folder the loaders read (:func:`gausslite.datasets.load_dataset`) whose annotations
+            (``objects.json`` / ``tasks.json``) name the tasks.
+        task_ids: ids in its ``tasks.json``. cap: the matched Gaussian cap. downscale: image downscale factor.
+        fps: replay clock of sequences without timestamps (Replica, 7-Scenes).
+    Returns:
+        ``{task id: scene spec}`` (the layout of :data:`SCENES`, with ``"path"``).
+    Raises:
+        FileNotFoundError: no such folder. ValueError: no task ids, a sequence without annotations, or a task id
+            its ``tasks.json`` lacks.
+    """
+    from gausslite.datasets import load_dataset
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found")
+    if not task_ids:
+        raise ValueError("--dataset needs --tasks ID[,ID...]")
+    ann = load_dataset(path, max_frames=1).annotations
+    if ann is None:
+        raise ValueError(f"{path} has no objects.json / tasks.json (docs/mapper.md#scene-annotations)")
+    known = [t.id for t in ann.tasks]
+    missing = [t for t in task_ids if t not in known]
+    if missing:
+        raise ValueError(f"tasks {missing} are not in {path}'s tasks.json (known: {known})")
+    return {t: {"kind": "dataset", "path": str(path), "task": t, "cap": cap, "downscale": downscale,
+                **({"fps": fps} if fps else {})} for t in task_ids}
+
+
+def load_scene(spec: dict, path: Path):
+    """(dataset, sensor profile) of a scene spec with the profile's loader options and the scene's clock."""
     from gausslite.datasets import detect_layout, load_dataset
     from gausslite.mapping.profiles import profile_for_layout
 
-    spec = SCENES[name]
     layout = detect_layout(path)[0]
     profile = profile_for_layout(layout)
     kw = dict(profile.loader)
@@ -164,21 +199,21 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
     return cfg.model_copy(update={"mapper": m}), final_per_kf
 
 
-def score(mapper, ds, ann, task: str) -> dict:
-    """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map over every frame."""
-    from gausslite.evaluation import score_view
+def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = TRACK_ITERS,
+          track_stride: int = TRACK_STRIDE) -> dict:
+    """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map under each scoring protocol
+    (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``), the same for every mode.
+    The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds
+    each protocol's."""
+    from gausslite.evaluation import score_live_map
 
-    ps, ss, rps = [], [], []
-    for i in range(len(ds)):
-        fr = ds[i]
-        roi = ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics)
-        s = score_view(mapper.render_frame(fr), fr, roi)
-        ps.append(s.psnr)
-        ss.append(s.ssim)
-        if not math.isnan(s.roi_psnr):
-            rps.append(s.roi_psnr)
-    return {"roi_psnr": float(np.mean(rps)) if rps else None, "psnr": float(np.mean(ps)),
-            "ssim": float(np.mean(ss)), "frames_scored": len(ps)}
+    protocols = tuple(dict.fromkeys(("sensor", *protocols)))
+    frames = [ds[i] for i in range(len(ds))]
+    res = score_live_map(mapper, frames, lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), protocols,
+                         track_iters=track_iters, track_stride=track_stride)
+    sensor = res["sensor"]
+    return {"roi_psnr": sensor["roi_psnr"], "psnr": sensor["psnr"], "ssim": sensor["ssim"],
+            "frames_scored": sensor["frames_scored"], "protocols": res}
 
 
 def save_render(mapper, ds, ann, task: str, path: Path) -> None:
@@ -202,16 +237,31 @@ def save_render(mapper, ds, ann, task: str, path: Path) -> None:
 def _mission(job: dict, rate: float, extra_overrides=(), fusion=None):
     """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
     final-pass iterations per keyframe)."""
-    from gausslite.parser import parse_task
     from gausslite.mission import AgentRuntime
+    from gausslite.mission.relevance import build_relevance
+    from gausslite.parser import parse_task
 
-    ds, profile = load_scene(job["scene"], Path(job["path"]))
+    ds, profile = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
     ds = Preloaded(ds)
     ann = ds.annotations
     task = ann.task_by_id(job["task"])
     cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
                                   [*extra_overrides, *job.get("overrides", ())])
-    rt = AgentRuntime("bench", task.text, parse_task(task.text), cfg, annotations=ann, task_id=task.id, fusion=fusion)
+    graph = parse_task(task.text)
+    relevance_fn = None
+    if job.get("late"):
+        # the task's relevance starts after the first ``late`` share of the sequence (a task that arrives late)
+        start_id = ds[min(len(ds) - 1, int(job["late"] * len(ds)))].frame_id
+        rt_box: list = []
+        fn, _ = build_relevance(cfg, graph, ann, task.id, lambda: rt_box[0].mapper if rt_box else None)
+
+        def relevance_fn(fr):
+            return fn(fr) if fr.frame_id >= start_id else np.zeros(fr.depth.shape, bool)
+
+    rt = AgentRuntime("bench", task.text, graph, cfg, annotations=ann, task_id=task.id, fusion=fusion,
+                      relevance_fn=relevance_fn)
+    if relevance_fn is not None:
+        rt_box.append(rt)
     return ds, ann, task, rt, fp_per_kf
 
 
@@ -223,13 +273,15 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
            "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
            "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
            "evicted": int(sum(s.n_evicted for s in mapper.stats))}
-    res.update(score(mapper, ds, ann, task.id))
+    res.update(score(mapper, ds, ann, task.id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
+                     job.get("track_stride", TRACK_STRIDE)))
     if job.get("render_dir"):
         save_render(mapper, ds, ann, task.id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
         mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
         res["final_iters"] = mapper.finalize()
-        res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items() if k != "frames_scored"})
+        res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items()
+                    if k not in ("frames_scored", "protocols")})
     return res
 
 
@@ -241,8 +293,7 @@ def run_one(job: dict) -> dict:
     ds, ann, task, rt, fp_per_kf = _mission(job, rate, fusion=sink)
     t0 = time.perf_counter()
     try:
-        rt.replay(ds)
-        rt._replay_thread.join()
+        rt.replay(ds).join()
         rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
         st = rt.status()
@@ -288,7 +339,7 @@ def twin_one(job: dict) -> dict:
         iters = 0
         for i in kfs:
             fr = ds[i]
-            iters += mapper.map_frame(fr, rt._relevance_fn(fr), time_budget_s=job["budget"]).iters
+            iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"]).iters
         return _result(job, mapper, ds, ann, task, fp_per_kf, twin=True, keyframes=len(kfs), keyframe_iters=iters,
                        idle_iters=0, iters_per_keyframe=iters / max(1, len(kfs)), wall_s=0.0)
     finally:
@@ -324,9 +375,47 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
             blk["gain"], blk["gain_std"], blk["gain_significant"] = gg["gain"], gg["gain_std"], gg["significant"]
             pg = gain([g[i]["psnr"] for i in common], [u[i]["psnr"] for i in common])
             blk["psnr_gain"], blk["psnr_gain_std"] = pg["gain"], pg["gain_std"]
+        protos = _summarise_protocols(by_mode)
+        if protos:
+            blk["protocols"] = protos
         if blk:
             out["budgets"][_bkey(b)] = blk
     out["uniform_budget_matching_gausslite_0.5"] = _matching_budget(out)
+    protos = sorted({p for v in out["budgets"].values() for p in v.get("protocols", {})})
+    if protos:
+        out["uniform_budget_matching_gausslite_0.5_by_protocol"] = {p: _matching_budget(out, p) for p in protos}
+    return out
+
+
+def _summarise_protocols(by_mode: dict) -> dict:
+    """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_std", "gain_significant", "psnr_gain",
+    "runs"}}`` of one budget: per mode the means and stds over runs of each protocol's figures, and the paired
+    gain (runs of both modes with the same seed)."""
+    from gausslite.stats import aggregate, gain
+
+    names = sorted({p for rs in by_mode.values() for r in rs for p in r.get("protocols", {})})
+    out = {}
+    for p in names:
+        blk: dict = {}
+        per_mode = {}
+        for mode, rs in by_mode.items():
+            rows = [{"run": r["run"], **r["protocols"][p]} for r in rs if p in r.get("protocols", {})]
+            if not rows:
+                continue
+            per_mode[mode] = {r["run"]: r for r in rows}
+            agg = aggregate(rows, [k for k in ("roi_psnr", "psnr", "ssim", "frames_scored")
+                                   if any(r.get(k) is not None for r in rows)])
+            agg["runs"] = len(rows)
+            blk[mode] = agg
+        if len(per_mode) == 2:
+            u, g = per_mode["uniform"], per_mode["gausslite"]
+            common = sorted(i for i in set(u) & set(g) if u[i]["roi_psnr"] is not None and g[i]["roi_psnr"] is not None)
+            if common:
+                gg = gain([g[i]["roi_psnr"] for i in common], [u[i]["roi_psnr"] for i in common])
+                pg = gain([g[i]["psnr"] for i in common], [u[i]["psnr"] for i in common])
+                blk.update(gain=gg["gain"], gain_std=gg["gain_std"], gain_significant=gg["significant"],
+                           psnr_gain=pg["gain"], psnr_gain_std=pg["gain_std"], runs=len(common))
+        out[p] = blk
     return out
 
 
@@ -334,14 +423,18 @@ def _bkey(b: float) -> str:
     return f"{b:g}"
 
 
-def _matching_budget(block: dict) -> Optional[float]:
+def _matching_budget(block: dict, protocol: Optional[str] = None) -> Optional[float]:
     """The smallest budget at which uniform's ROI PSNR reaches GaussLite's at 0.5 s (linear interpolation
-    between measured budgets on a log axis); None when uniform never reaches it or 0.5 s was not run."""
-    g = block["budgets"].get("0.5", {}).get("gausslite", {}).get("roi_psnr")
+    between measured budgets on a log axis), under ``protocol`` (None: the top-level ``sensor`` figures); None
+    when uniform never reaches it or 0.5 s was not run."""
+    def fig(v: dict, mode: str):
+        v = v.get("protocols", {}).get(protocol, {}) if protocol else v
+        return v.get(mode, {}).get("roi_psnr")
+
+    g = fig(block["budgets"].get("0.5", {}), "gausslite")
     if g is None:
         return None
-    pts = sorted((float(b), v["uniform"]["roi_psnr"]) for b, v in block["budgets"].items()
-                 if v.get("uniform", {}).get("roi_psnr") is not None)
+    pts = sorted((float(b), fig(v, "uniform")) for b, v in block["budgets"].items() if fig(v, "uniform") is not None)
     for (b0, r0), (b1, r1) in zip([(None, None)] + pts[:-1], pts):
         if r1 >= g:
             if b0 is None or r1 == r0:
@@ -370,6 +463,25 @@ def table(result: dict) -> str:
                 lines.append(f"| {scene} | {blk['cap']} | {b} | {mode} | {fmt(m['roi_psnr'], m['roi_psnr_std'])} | "
                              f"{fmt(m['psnr'], m['psnr_std'])} | {fmt(m['ssim'], m['ssim_std'], 3)} | "
                              f"{m['n_gaussians']:.0f} | {m['iters_per_keyframe']:.1f} | {m['keyframes']:.1f} | {g} | {fp} |")
+    return "\n".join(lines)
+
+
+def protocol_table(result: dict) -> str:
+    """Markdown table of every scoring protocol: per scene, budget and protocol, both modes' ROI PSNR and PSNR and
+    the paired ROI gain (docs/realtime.md#scoring-protocols)."""
+    from gausslite.stats import fmt
+
+    lines = ["| scene | budget (s) | protocol | uniform ROI PSNR | GaussLite ROI PSNR | ROI gain | uniform PSNR | "
+             "GaussLite PSNR | runs |", "|" + "---|" * 9]
+    for scene, blk in result["scenes"].items():
+        for b, v in blk["budgets"].items():
+            for p, pv in v.get("protocols", {}).items():
+                u, g = pv.get("uniform", {}), pv.get("gausslite", {})
+                lines.append(
+                    f"| {scene} | {b} | {p} | {fmt(u.get('roi_psnr'), u.get('roi_psnr_std'))} | "
+                    f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {fmt(pv.get('gain'), pv.get('gain_std'))}"
+                    f"{' (> 2σ)' if pv.get('gain_significant') else ''} | {fmt(u.get('psnr'), u.get('psnr_std'))} | "
+                    f"{fmt(g.get('psnr'), g.get('psnr_std'))} | {pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))} |")
     return "\n".join(lines)
 
 
@@ -436,7 +548,7 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
     """Fit the deterministic clock's :class:`~gausslite.mapping.budget.WorkCost` on this machine: map the first
     ``frames`` frames of ``scene`` with ``iters`` iterations each, then time ``8 × frames`` single idle
     iterations (full-image and ROI-phase, the scene's sensor profile) and fit the linear model."""
-    ds, profile = load_scene(scene, scene_path(scene, work))
+    ds, profile = load_scene(SCENES[scene], scene_path(scene, work))
     ann = ds.annotations
     cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile, overrides)
     m = cfg.mapper.model_copy(update={"keyframe_budget_s": None, "iters_per_frame": iters,
@@ -477,6 +589,20 @@ def _key(r: dict) -> tuple:
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="tum_fr1_rpy,synthetic_circle,tum_fr1_rpy_cup,room0")
+    ap.add_argument("--dataset", default=None, metavar="PATH",
+                    help="a sequence of your own (any folder the loaders read, with objects.json / tasks.json) "
+                         "instead of the built-in scenes: one scene per --tasks id, named after it")
+    ap.add_argument("--tasks", default="", help="--dataset: task ids of its tasks.json, comma-separated")
+    ap.add_argument("--fps", type=float, default=None, help="--dataset: replay clock of sequences without timestamps")
+    ap.add_argument("--downscale", type=float, default=1.0, help="--dataset: image downscale factor")
+    ap.add_argument("--protocols", default="sensor,keyframes,tracked",
+                    help="scoring protocols (docs/realtime.md#scoring-protocols), comma-separated")
+    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
+    ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
+                    help="tracked protocol: score every k-th frame of the sequence (MonoGS: every 5th)")
+    ap.add_argument("--late", type=float, default=None, metavar="F",
+                    help="the 'late' scenario: the task's relevance starts after this share of the sequence "
+                         "(scenes named <scene>_late)")
     ap.add_argument("--budgets", default="0.25,0.5,1,2", help="seconds per keyframe, comma-separated")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--modes", default=",".join(MODES))
@@ -510,10 +636,26 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(json.dumps(res, indent=1))
         return 0
 
-    scenes = [s for s in args.scenes.split(",") if s]
-    for s in scenes:
-        if s not in SCENES:
-            ap.error(f"unknown scene {s!r} (known: {', '.join(SCENES)})")
+    protocols = tuple(p for p in args.protocols.split(",") if p)
+    from gausslite.evaluation import PROTOCOLS
+
+    if any(p not in PROTOCOLS for p in protocols):
+        ap.error(f"unknown protocol in {args.protocols!r} (known: {', '.join(PROTOCOLS)})")
+    if args.late is not None and not 0 < args.late < 1:
+        ap.error("--late must be in (0, 1)")
+    if args.dataset:
+        try:
+            specs = dataset_scenes(Path(args.dataset), [t for t in args.tasks.split(",") if t],
+                                   args.cap or 6000, args.downscale, args.fps)
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(str(e))
+        scenes = list(specs)
+    else:
+        scenes = [s for s in args.scenes.split(",") if s]
+        for s in scenes:
+            if s not in SCENES:
+                ap.error(f"unknown scene {s!r} (known: {', '.join(SCENES)})")
+        specs = {s: SCENES[s] for s in scenes}
     budgets = [float(b) for b in args.budgets.split(",") if b]
     fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
     modes = [m for m in args.modes.split(",") if m]
@@ -527,15 +669,21 @@ def main(argv: Optional[list[str]] = None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     jobs = []
+    names = {}
     for scene in scenes:
-        path = scene_path(scene, work)
-        cap = args.cap or SCENES[scene]["cap"]
+        spec = specs[scene]
+        path = Path(spec["path"]) if "path" in spec else scene_path(scene, work)
+        cap = args.cap or spec["cap"]
+        name = f"{scene}_late" if args.late else scene
+        names[name] = cap
         for run in range(args.runs):
             for b in budgets:
                 for mode in modes:
-                    job = {"scene": scene, "path": str(path), "task": args.task or SCENES[scene]["task"], "mode": mode,
-                           "budget": b, "run": run, "cap": cap, "clock": args.clock,
+                    job = {"scene": name, "spec": spec, "path": str(path), "task": args.task or spec["task"],
+                           "mode": mode, "budget": b, "run": run, "cap": cap, "clock": args.clock,
                            "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
+                           "late": args.late, "protocols": protocols, "track_iters": args.track_iters,
+                           "track_stride": args.track_stride,
                            "render_dir": (str(out.with_name(out.stem + "_renders"))
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
@@ -551,22 +699,26 @@ def main(argv: Optional[list[str]] = None) -> int:
         results = (run_one(job) for job in jobs)
     for r in tqdm(results, total=len(jobs), desc="realtime runs", unit="run", disable=args.twin):
         runs.append(r)
-        tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI {r['roi_psnr']:.2f} dB, "
-                   f"PSNR {r['psnr']:.2f}, {r['n_gaussians']} G, {r['keyframes']} kf x {r['iters_per_keyframe']:.1f} "
-                   f"it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
+        per = " ".join(f"{p} {v['roi_psnr']:.2f}" for p, v in r.get("protocols", {}).items()
+                       if v.get("roi_psnr") is not None)
+        tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI {r['roi_psnr']:.2f} dB "
+                   f"({per}), PSNR {r['psnr']:.2f}, {r['n_gaussians']} G, {r['keyframes']} kf x "
+                   f"{r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
         partial.write_text(json.dumps({"runs": runs}, indent=1))
     result = {"settings": {"budgets": budgets, "runs": args.runs, "clock": args.clock, "overrides": args.overrides,
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
-                           "cpus": os.cpu_count(), "wall_s": time.time() - t0},
+                           "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
+                           "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
+                           "dataset": args.dataset},
               "scenes": {}, "runs": runs}
-    for scene in scenes:
-        blk = summarise(runs, scene, budgets, args.cap or SCENES[scene]["cap"])
+    for scene, cap in names.items():
+        blk = summarise(runs, scene, budgets, cap)
         result["scenes"][scene] = blk
         if len(blk["budgets"]) > 1:
             plot_scene(blk, scene, out.with_name(f"{out.stem}_{scene}.png"))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
-    md = table(result)
+    md = table(result) + "\n\n" + protocol_table(result)
     out.with_suffix(".md").write_text(md + "\n")
     print(md)
     return 0

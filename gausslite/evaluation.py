@@ -169,3 +169,158 @@ def evaluate(
             image_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(image_dir / f"{tag}frame_{fr.frame_id:06d}.png"), side_by_side(out, fr, roi))
     return summary
+
+
+# ---------------------------------------------------------------------------------------------------- live-map scoring
+#: the scoring protocols of a live map (docs/realtime.md#scoring-protocols)
+PROTOCOLS = ("sensor", "keyframes", "tracked")
+
+
+@dataclass
+class TrackedView:
+    """A frame's view fitted to a frozen map by :func:`track_view`.
+
+    Attributes:
+        c2w: (4, 4) float64 fitted camera-to-world pose (OpenCV camera axes, metres).
+        theta: (6,) float64 fitted affine exposure (log gains, offsets; :func:`gausslite.mapping.exposure.apply_exposure`).
+        loss: the full-image tracking loss at the last step.
+        rot_deg / trans_m: the fitted pose's rotation (degrees) and translation (metres) away from the start.
+        iters: Adam steps taken.
+    """
+
+    c2w: np.ndarray
+    theta: np.ndarray
+    loss: float
+    rot_deg: float
+    trans_m: float
+    iters: int
+
+
+def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarray] = None, iters: int = 30,
+               lr_rot: float = 2e-3, lr_trans: float = 2e-3, lr_exposure: float = 0.01, lambda_depth: float = 0.5,
+               alpha_min: float = 0.5) -> TrackedView:
+    """Fit a frame's pose and affine exposure to a frozen map, for scoring (the ``tracked`` protocol; MonoGS's
+    evaluation renders every frame at the pose its tracker fitted, Matsuki et al. CVPR 2024).
+
+    The map is never changed. Starting from ``c2w0`` (the sensor's pose) and ``theta0``, ``iters`` Adam steps
+    minimise L1 colour (after the exposure ``exp(a)·I + b``) + ``lambda_depth`` · L1 depth over the pixels the
+    map covers (rendered alpha > ``alpha_min``; depth where the frame's depth is valid) — the whole image, never
+    a task's region, so every map is tracked the same way whatever it was trained for. The pose is corrected on
+    the right, ``c2w0 · E(ξ)`` (:mod:`gausslite.mapping.poses`), folded in after every step.
+
+    Args:
+        sensor: the map's :class:`~gausslite.mapping.sensor.SensorRenderer` (the sensor model the map was trained
+            with: motion blur and rolling shutter render the same way).
+        frame: the view (uint8 rgb (H, W, 3), float32 depth (H, W) metres, pinhole intrinsics in pixels).
+        c2w0: (4, 4) starting pose. theta0: (6,) starting exposure (None: the identity response).
+        iters: Adam steps (fixed, the same for every map). lr_rot (radians), lr_trans (metres), lr_exposure: steps.
+        lambda_depth: weight of the depth term. alpha_min: silhouette threshold of the pixels that count.
+    Returns:
+        :class:`TrackedView`. A map that covers under 5 % of the view is not tracked (the start is returned).
+    Raises:
+        ValueError: ``iters`` < 0 or a frame whose images do not match its intrinsics.
+    """
+    from gausslite.mapping.exposure import apply_exposure
+    from gausslite.mapping.poses import VectorAdam, pose_delta
+    from gausslite.mapping.views import keyframe_from_frame
+
+    if iters < 0:
+        raise ValueError(f"iters must be >= 0, got {iters}")
+    dev = sensor.device
+    kf = keyframe_from_frame(frame, dev, None)
+    c2w = torch.as_tensor(np.asarray(c2w0, np.float64), device=dev).clone()
+    theta = np.zeros(6) if theta0 is None else np.asarray(theta0, np.float64).reshape(6).copy()
+    pose_adam = VectorAdam(np.array([lr_rot] * 3 + [lr_trans] * 3))
+    expo_adam = VectorAdam(np.full(6, float(lr_exposure)))
+    valid_d = kf.depth > 0
+    loss_v, done = math.nan, 0
+    for _ in range(iters):
+        xi = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
+        th = torch.tensor(theta, dtype=torch.float32, device=dev, requires_grad=True)
+        out = sensor.render_view(c2w, kf.K, kf.width, kf.height, frame.frame_id, None, pose_xi=xi, detach_map=True)
+        mask = out.alpha.detach() > alpha_min
+        if int(mask.sum()) < 0.05 * mask.numel():
+            break
+        color = apply_exposure(out.color, th)
+        l1c = ((color - kf.rgb).abs().sum(-1) * mask).sum() / (3.0 * mask.sum())
+        dm = mask & valid_d
+        l1d = ((out.depth - kf.depth).abs() * dm).sum() / dm.sum().clamp_min(1)
+        loss = l1c + lambda_depth * l1d
+        loss.backward()
+        dxi = pose_adam.delta(0, xi.grad.detach().cpu().double().numpy())
+        dth = expo_adam.delta(0, th.grad.detach().cpu().double().numpy())
+        if dxi is None or dth is None:
+            break
+        c2w = c2w @ pose_delta(torch.from_numpy(dxi)).to(dev)
+        theta = theta + dth
+        loss_v, done = float(loss.detach()), done + 1
+    E = np.linalg.inv(np.asarray(c2w0, np.float64)) @ c2w.cpu().numpy()
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+    return TrackedView(c2w.cpu().numpy(), theta, loss_v, ang, float(np.linalg.norm(E[:3, 3])), done)
+
+
+def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int) -> RenderOutput:
+    """The render a protocol scores a frame by (:func:`score_live_map`)."""
+    import dataclasses
+
+    from gausslite.mapping.exposure import apply_exposure
+
+    if protocol in ("sensor", "keyframes"):
+        return mapper.render_frame(frame)
+    exposure = mapper.sensor.exposure
+    theta0 = exposure.of(frame.frame_id) if exposure is not None else None
+    tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
+    intr = frame.intrinsics
+    with torch.no_grad():
+        out = mapper.sensor.render_view(tv.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
+        th = torch.tensor(tv.theta, dtype=torch.float32, device=out.color.device)
+        return dataclasses.replace(out, color=apply_exposure(out.color, th).clamp(0.0, 1.0))
+
+
+def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
+                   protocols: Sequence[str] = PROTOCOLS, track_iters: int = 30, track_stride: int = 1,
+                   keyframe_ids: Optional[Iterable[int]] = None) -> dict:
+    """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
+    every mode (docs/realtime.md#scoring-protocols):
+
+    - ``sensor``: every frame at the sensor's pose with its keyframe's (or the nearest keyframe's) refined
+      correction and exposure response (:meth:`Mapper.render_frame`);
+    - ``keyframes``: the trained views only (``keyframe_ids``; default the mapped frames), each at its own refined
+      pose and exposure response;
+    - ``tracked``: every ``track_stride``-th frame at a pose and affine exposure fitted to that frame against the
+      frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol.
+
+    Args:
+        mapper: the map to score (not modified). frames: the sequence's frames (ground truth).
+        roi_fn: frame → (H, W) bool ground-truth ROI mask (the scores' ROI; tracking never sees it).
+        protocols: which of :data:`PROTOCOLS` to score.
+    Returns:
+        ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``: means over the scored frames
+        (ROI PSNR over those that show the ROI; None when none does).
+    Raises:
+        ValueError: an unknown protocol or ``track_stride`` < 1.
+    """
+    bad = [p for p in protocols if p not in PROTOCOLS]
+    if bad or track_stride < 1:
+        raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
+                         f"track_stride must be >= 1, got {track_stride}")
+    kf_ids = ({int(s.frame_id) for s in mapper.stats} if keyframe_ids is None else {int(i) for i in keyframe_ids})
+    res = {}
+    for protocol in protocols:
+        if protocol == "keyframes":
+            chosen = [fr for fr in frames if int(fr.frame_id) in kf_ids]
+        elif protocol == "tracked":
+            chosen = list(frames)[::track_stride]
+        else:
+            chosen = list(frames)
+        ps, ss, rps = [], [], []
+        for fr in chosen:
+            s = score_view(_protocol_render(mapper, fr, protocol, track_iters), fr, roi_fn(fr))
+            ps.append(s.psnr)
+            ss.append(s.ssim)
+            if not math.isnan(s.roi_psnr):
+                rps.append(s.roi_psnr)
+        res[protocol] = {"roi_psnr": float(np.mean(rps)) if rps else None,
+                         "psnr": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
+                         "frames_scored": len(ps), "roi_frames": len(rps)}
+    return res

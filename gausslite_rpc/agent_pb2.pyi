@@ -41,6 +41,24 @@ class StartMissionRequest(_message.Message):
     mission_id: str
     def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ..., mission_id: _Optional[str] = ...) -> None: ...
 
+class UpdateTaskRequest(_message.Message):
+    __slots__ = ("mission_id", "task_text", "task_id")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
+    TASK_ID_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    task_text: str
+    task_id: str
+    def __init__(self, mission_id: _Optional[str] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ...) -> None: ...
+
+class UpdateTaskResponse(_message.Message):
+    __slots__ = ("mission_id", "graph")
+    MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    GRAPH_FIELD_NUMBER: _ClassVar[int]
+    mission_id: str
+    graph: _common_pb2.TaskGraph
+    def __init__(self, mission_id: _Optional[str] = ..., graph: _Optional[_Union[_common_pb2.TaskGraph, _Mapping]] = ...) -> None: ...
+
 class StartMissionResponse(_message.Message):
     __slots__ = ("mission_id", "graph", "agent_id", "replay_frames", "resumed", "resumed_keyframes")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]

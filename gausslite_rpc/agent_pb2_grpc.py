@@ -49,6 +49,11 @@ class AgentStub:
                 request_serializer=gausslite__rpc_dot_agent__pb2.MissionRequest.SerializeToString,
                 response_deserializer=gausslite__rpc_dot_agent__pb2.MissionStatus.FromString,
                 _registered_method=True)
+        self.UpdateTask = channel.unary_unary(
+                '/gausslite.v1.Agent/UpdateTask',
+                request_serializer=gausslite__rpc_dot_agent__pb2.UpdateTaskRequest.SerializeToString,
+                response_deserializer=gausslite__rpc_dot_agent__pb2.UpdateTaskResponse.FromString,
+                _registered_method=True)
         self.Finish = channel.unary_unary(
                 '/gausslite.v1.Agent/Finish',
                 request_serializer=gausslite__rpc_dot_agent__pb2.FinishRequest.SerializeToString,
@@ -83,6 +88,15 @@ class AgentServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def UpdateTask(self, request, context):
+        """A new task for a running mission. NOT_FOUND for an unknown mission, INVALID_ARGUMENT for an empty,
+        oversized or NUL-carrying task or an unknown task id, FAILED_PRECONDITION for a finishing, finished
+        or failed mission or a task without a relevance source, UNAVAILABLE when the parser is unreachable.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Finish(self, request, context):
         """Waits for queued frames to be mapped, does the final push, evaluates, ends the mission.
         NOT_FOUND for an unknown mission; repeated Finish returns the same summary.
@@ -108,6 +122,11 @@ def add_AgentServicer_to_server(servicer, server):
                     servicer.GetStatus,
                     request_deserializer=gausslite__rpc_dot_agent__pb2.MissionRequest.FromString,
                     response_serializer=gausslite__rpc_dot_agent__pb2.MissionStatus.SerializeToString,
+            ),
+            'UpdateTask': grpc.unary_unary_rpc_method_handler(
+                    servicer.UpdateTask,
+                    request_deserializer=gausslite__rpc_dot_agent__pb2.UpdateTaskRequest.FromString,
+                    response_serializer=gausslite__rpc_dot_agent__pb2.UpdateTaskResponse.SerializeToString,
             ),
             'Finish': grpc.unary_unary_rpc_method_handler(
                     servicer.Finish,
@@ -196,6 +215,33 @@ class Agent:
             '/gausslite.v1.Agent/GetStatus',
             gausslite__rpc_dot_agent__pb2.MissionRequest.SerializeToString,
             gausslite__rpc_dot_agent__pb2.MissionStatus.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def UpdateTask(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gausslite.v1.Agent/UpdateTask',
+            gausslite__rpc_dot_agent__pb2.UpdateTaskRequest.SerializeToString,
+            gausslite__rpc_dot_agent__pb2.UpdateTaskResponse.FromString,
             options,
             channel_credentials,
             insecure,

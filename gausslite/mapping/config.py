@@ -100,6 +100,21 @@ class SeedingConfig(_Strict):
     gfd_eps: float = Field(0.05, gt=0, description="GFD smoothing ε added to the Sobel magnitude")
     knn: int = Field(3, ge=1, description="neighbours for the local median NN distance s0")
     init_opacity: float = Field(0.5, gt=0, lt=1)
+    adopt: bool = Field(
+        True, description="a task that reaches a region the map already covers (an object first seen late, a task "
+        "given mid-mission, a map at its cap): when the task's own Gaussians leave more than roi_gap of a frame's "
+        "relevant pixels uncovered, the Gaussians that already draw those pixels join the task (a = 1; κ counts "
+        "from then on) and the uncovered pixels get ρ × seeds_per_frame × their share of the ROI in new ROI seeds, "
+        "which at the budget replace background (docs/mapper.md#tasks-that-arrive-late). GaussLite mode only"
+    )
+    adopt_fraction: float = Field(
+        0.5, gt=0, le=1, description="adopt: a Gaussian joins when at least this share of its blending weight in "
+        "the frame falls on relevant pixels (a large background splat that only grazes the ROI stays out)"
+    )
+    roi_gap: float = Field(
+        0.1, ge=0, le=1, description="adopt: share of the frame's valid relevant pixels left uncovered (silhouette "
+        "below coverage_alpha) by the task's Gaussians that triggers adoption and ROI seeds (at least 32 pixels)"
+    )
 
 
 class BudgetConfig(_Strict):
@@ -147,6 +162,16 @@ class PoseConfig(_Strict):
     track_alpha: float = Field(0.9, gt=0, lt=1, description="tracking: pixels with rendered silhouette above this")
     lr_rot: float = Field(1e-3, gt=0, description="pose refinement: Adam step of the rotation (radians)")
     lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
+    roi_phase: bool = Field(
+        True, description="ROI-phase iterations also step their view's pose (and, with sensor.exposure_comp, its "
+        "exposure response) from the ROI loss, so the task region is fitted against aligned views (a GaussLite map "
+        "spends most of its iterations there); False: full-image iterations only. The first keyframe stays fixed "
+        "either way (measured: docs/realtime.md)"
+    )
+    roi_lr_scale: float = Field(
+        1.0, gt=0, le=1, description="pose refinement: step size of ROI-phase pose steps relative to lr_rot / "
+        "lr_trans (< 1 regularises the alignment the ROI alone can see)"
+    )
     init: Literal["inherit", "identity"] = Field(
         "identity", description="pose refinement: a new keyframe starts from the latest keyframe's correction "
         "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "

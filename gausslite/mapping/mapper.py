@@ -62,7 +62,7 @@ from gausslite.mapping.loss import photometric_loss
 from gausslite.mapping.memory import KeyframeStore, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner
-from gausslite.mapping.seeding import local_median_nn_distance, seed_points, select_seeds
+from gausslite.mapping.seeding import SeedSelection, local_median_nn_distance, seed_points, select_seeds
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
 from gausslite.mapping.strategy import DensityStrategy
@@ -88,6 +88,8 @@ class FrameStats:
     unexplained: float = 1.0  #: share of valid pixels the map did not explain before seeding
     budget: int = 0  #: Gaussian budget in force after this frame
     n_evicted: int = 0  #: existing Gaussians replaced by this frame's seeds at the budget
+    n_adopted: int = 0  #: existing Gaussians that joined the task in this frame (``seeding.adopt``)
+    n_gap_seeds: int = 0  #: ROI seeds on relevant pixels the task's Gaussians left uncovered
 
 
 @dataclass
@@ -98,6 +100,8 @@ class SeedStats:
     n_roi: int = 0  #: of them active (a = 1: their seed pixel is in the relevance map)
     unexplained: float = 1.0  #: share of valid pixels the map did not explain before seeding
     n_evicted: int = 0  #: existing Gaussians the new seeds replaced at the budget
+    n_adopted: int = 0  #: existing Gaussians that joined the task (``seeding.adopt``)
+    n_gap_seeds: int = 0  #: of the new seeds, those on relevant pixels the task's Gaussians left uncovered
 
 
 class Mapper:
@@ -230,19 +234,28 @@ class Mapper:
         budget = self.strategy.update_budget(frame)
         cand, share = self._candidates(frame)
         stats = SeedStats(unexplained=share)
+        gap = self._adopt_task_region(frame, relevance, cand, stats)
         n = cfg.seeding.seeds_per_frame
         if self.n_mapped == 0 or len(self.model) == 0:
             n = cfg.seeding.first_frame_seeds or 2 * cfg.seeding.seeds_per_frame
         else:
             n = int(math.ceil(n * share))
         n = min(n, budget)
-        if n == 0:
-            return stats
         sel = select_seeds(
             cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
             sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.seeding.rho, gfd_eps=cfg.seeding.gfd_eps,
-        )
-        if sel.pixels.size == 0:
+        ) if n > 0 else None
+        if gap is not None:
+            # ROI seeds where the task's Gaussians leave relevant pixels uncovered (gap ∩ cand = ∅: no duplicates)
+            pool = np.flatnonzero(gap.ravel())
+            roi_valid = int((relevance & (frame.depth > 0)).sum())
+            n_gap = min(pool.size, budget, int(math.ceil(cfg.seeding.rho * cfg.seeding.seeds_per_frame
+                                                          * pool.size / max(1, roi_valid))))
+            extra = self.rng.choice(pool, size=n_gap, replace=False).astype(np.int64)
+            stats.n_gap_seeds = int(extra.size)
+            sel = SeedSelection(extra, np.ones(extra.size, bool)) if sel is None else dataclasses.replace(
+                sel, pixels=np.concatenate([sel.pixels, extra]), is_roi=np.concatenate([sel.is_roi, np.ones(extra.size, bool)]))
+        if sel is None or sel.pixels.size == 0:
             return stats
         if sel.n_roi_shortfall:
             log.debug("frame %d: ROI has %d fewer candidate pixels than its seed share; moved to background",
@@ -278,6 +291,55 @@ class Mapper:
         self.strategy.set_map(merged, parent)
         stats.n_seeds, stats.n_roi = int(sel.pixels.size), int(is_roi.sum())
         return stats
+
+    def _adopt_task_region(self, frame: Frame, relevance: Optional[np.ndarray], cand: np.ndarray,
+                           stats: SeedStats) -> Optional[np.ndarray]:
+        """Task adoption (``seeding.adopt``; docs/mapper.md#tasks-that-arrive-late): when the task's Gaussians
+        (a = 1) leave more than ``roi_gap`` of ``frame``'s valid relevant pixels uncovered, the Gaussians that draw
+        those pixels with at least ``adopt_fraction`` of their blending weight in the frame join the task (a = 1;
+        their κ counts from the next ROI-phase iteration on).
+
+        Args:
+            frame: the new frame (world ``c2w``, metres). relevance: (H, W) bool relevance map w, or None.
+            cand: (H, W) bool seed candidates (pixels the whole map does not explain). stats: receives
+                ``n_adopted``.
+        Returns:
+            (H, W) bool relevant pixels that the map explains but the task's Gaussians did not (they get ROI
+            seeds), or None when adoption is off, not GaussLite, or the gap is below the trigger.
+        """
+        cfg, sw = self.cfg, self.cfg.effective()
+        if not (cfg.seeding.adopt and sw.roi and sw.sb) or relevance is None or len(self.model) == 0:
+            return None
+        roi_valid = relevance & (frame.depth > 0)
+        n_roi = int(roi_valid.sum())
+        if n_roi == 0:
+            return None
+        intr = frame.intrinsics
+        active = self.model.active
+        if bool(active.any()):
+            alpha = self.render(frame.c2w, intr.K, intr.width, intr.height, subset=active).alpha.cpu().numpy()
+        else:
+            alpha = np.zeros(roi_valid.shape, np.float32)
+        gap = roi_valid & (alpha < cfg.seeding.coverage_alpha) & ~cand
+        if int(gap.sum()) < max(32, cfg.seeding.roi_gap * n_roi):
+            return None
+        c2w = torch.as_tensor(np.asarray(frame.c2w, np.float64))
+        inside, total = self.sensor.blend_weights_inside(torch.as_tensor(intr.K), intr.width, intr.height, c2w,
+                                                         torch.from_numpy(roi_valid))
+        join = (~active) & (inside >= 1.0) & (inside >= cfg.seeding.adopt_fraction * total)
+        stats.n_adopted = int(join.sum())
+        if stats.n_adopted:
+            self.model.active = active | join
+        return gap
+
+    def retarget(self) -> None:
+        """Forget the current task (a new one follows, :meth:`AgentRuntime.update_task
+        <gausslite.mission.runtime.AgentRuntime.update_task>`): every task flag and κ restart at zero and the
+        stored keyframes lose their ROI; the map, its keyframes, poses and exposure stay. The new task's relevance
+        maps then re-target the map through seeding and adoption (``seeding.adopt``)."""
+        self.model.active = torch.zeros_like(self.model.active)
+        self.model.kappa = torch.zeros_like(self.model.kappa)
+        self.keyframes.clear_roi()
 
     def accumulate_contribution(self, kf: Keyframe) -> None:
         """Add each Gaussian's alpha-blending weight Σ_pixels T_i α_i in keyframe ``kf`` (sharp view) to the
@@ -379,7 +441,8 @@ class Mapper:
         self.n_mapped += 1
         st = FrameStats(frame.frame_id, time.perf_counter() - t_wall, seeded.n_seeds, seeded.n_roi, len(self.model),
                         loss, active_iters, dstats, n_iters, unexplained=seeded.unexplained,
-                        budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted)
+                        budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted,
+                        n_adopted=seeded.n_adopted, n_gap_seeds=seeded.n_gap_seeds)
         self.stats.append(st)
         return st
 

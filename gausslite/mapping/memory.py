@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.mapping.views import StoredKeyframe
+from gausslite.mapping.views import StoredKeyframe, roi_box
 
 
 class KeyframeStore:
@@ -112,6 +112,24 @@ class KeyframeStore:
                 k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
                 return True
         return False
+
+    def set_roi(self, i: int, roi: Optional[np.ndarray]) -> None:
+        """Replace keyframe ``i``'s ROI by ``roi`` ((H, W) bool, or None: no ROI), with its box (a new task).
+
+        Raises:
+            ValueError: a mask of another size than the keyframe.
+        """
+        k = self._items[i]
+        if roi is not None and tuple(np.shape(roi)) != (k.height, k.width):
+            raise ValueError(f"keyframe {k.frame_id}: roi {np.shape(roi)} does not match {k.width}x{k.height}")
+        box = roi_box(roi)
+        k.roi = None if box is None else torch.from_numpy(np.asarray(roi, bool).copy())
+        k.roi_box = box
+
+    def clear_roi(self) -> None:
+        """Every stored keyframe loses its ROI (the task changed)."""
+        for i in range(len(self._items)):
+            self.set_roi(i, None)
 
     def load(self, i: int, device: torch.device):
         """Keyframe ``i`` as a float :class:`~gausslite.mapping.views.Keyframe` on ``device``

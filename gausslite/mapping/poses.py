@@ -174,11 +174,13 @@ class PoseRefiner:
         if fixed:
             self.fixed.add(int(frame_id))
 
-    def step(self, frame_id: int, grad: torch.Tensor, c2w: torch.Tensor) -> Optional[torch.Tensor]:
+    def step(self, frame_id: int, grad: torch.Tensor, c2w: torch.Tensor, scale: float = 1.0) -> Optional[torch.Tensor]:
         """One Adam step of keyframe ``frame_id`` from ``grad`` (6,) = ∂L/∂ξ at ξ = 0.
 
         Args:
             c2w: (4, 4) float64 the keyframe's current (refined) pose.
+            scale: the step's size relative to the refiner's learning rates (``pose.roi_lr_scale`` in ROI-phase
+                iterations).
         Returns:
             the new (4, 4) float64 pose ``c2w · E(Δξ)``, or None (fixed or unknown keyframe, no gradient).
         """
@@ -188,6 +190,7 @@ class PoseRefiner:
         dxi = self._adam.delta(fid, grad.detach().cpu().double().numpy())
         if dxi is None:
             return None
+        dxi = dxi * float(scale)
         E = pose_delta(torch.from_numpy(dxi)).to(c2w.device)
         new = c2w @ E
         self.corrections[fid] = self.corrections[fid] @ E.cpu().numpy()

@@ -27,7 +27,7 @@ from gausslite.mapping.exposure import ExposureModel, apply_exposure
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import move_gaussians_for_pose_delta, nearest_key
 from gausslite.mapping.shutter import readout_norm, shutter_bands
-from gausslite.render import RenderOutput, blend_weights, rasterize
+from gausslite.render import RenderOutput, blend_weights, blend_weights_inside, rasterize
 from gausslite.render.culling import frustum_cull_mask
 
 
@@ -199,6 +199,20 @@ class SensorRenderer:
         return blend_weights(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width,
             height=height, c2w=c2w, background=self.background, backend=self.cfg.backend,
+            num_threads=self.cfg.performance.render_threads)
+
+
+    def blend_weights_inside(self, K: torch.Tensor, width: int, height: int, c2w: torch.Tensor,
+                             pixel_mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(inside, total)``: (N,) float32 alpha-blending weights of every Gaussian in the (sharp) view inside
+        ``pixel_mask`` (H, W) bool and over the whole view, from one render
+        (:func:`gausslite.render.blend_weights_inside`); a deterministic clock is charged for it."""
+        p = self.model.params
+        if self.clock.charges:
+            self.clock.charge_render(width * height, len(self.model), grad=False)
+        return blend_weights_inside(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width,
+            height=height, c2w=c2w, pixel_mask=pixel_mask, background=self.background, backend=self.cfg.backend,
             num_threads=self.cfg.performance.render_threads)
 
 

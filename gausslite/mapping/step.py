@@ -96,8 +96,10 @@ class TrainStep:
         alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self.roi_iters % 2 == 1)
         subset = self.model.active if active_phase and alone else None
         self.roi_iters += int(active_phase)
-        # pose refinement: full-image iterations only (ROI-phase and footprint losses see part of the view)
-        refine = (self.poses is not None and not active_phase and not footprint_only
+        # the view's own alignment (pose and exposure): full-image iterations, and ROI-phase ones under
+        # pose.roi_phase (the ROI is fitted against aligned views); never footprint losses (partial maps)
+        align = not footprint_only and (not active_phase or cfg.pose.roi_phase)
+        refine = (self.poses is not None and align
                   and kf.frame_id in self.poses.corrections and kf.frame_id not in self.poses.fixed)
         xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True) if refine else None
         parts: list = []
@@ -106,8 +108,8 @@ class TrainStep:
         theta = None
         exposure = self.sensor.exposure
         if exposure is not None and kf.frame_id in exposure.params:
-            # the keyframe's exposure response; optimised where its pose is (full-image iterations)
-            train_exposure = not active_phase and not footprint_only and exposure.trainable(kf.frame_id)
+            # the keyframe's exposure response; optimised where its pose is
+            train_exposure = align and exposure.trainable(kf.frame_id)
             out, theta = self.sensor.exposed(out, kf.frame_id, requires_grad=train_exposure)
         mask = None
         if active_phase and cfg.roi_loss == "roi":
@@ -147,7 +149,7 @@ class TrainStep:
         if theta is not None and theta.requires_grad:
             exposure.step(kf.frame_id, theta.grad)
         if refine:
-            new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
+            new = self.poses.step(kf.frame_id, xi.grad, kf.c2w, cfg.pose.roi_lr_scale if active_phase else 1.0)
             if new is not None:
                 kf.c2w.copy_(new)  # crops/windows of kf share this tensor
                 self.keyframes.set_pose(kf.frame_id, new)

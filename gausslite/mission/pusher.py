@@ -313,6 +313,12 @@ class Pusher:
                     self._kf_roi.pop(i, None)
         return kfs, n_kf
 
+    def set_task(self, task_text: str) -> None:
+        """The mission's task changed: the next push re-opens the fusion session under ``task_text``."""
+        with self._lock:
+            self.task_text = task_text
+            self._session_open = False
+
     def push_once(self, snap: Snapshot) -> None:
         """One attempt at pushing the selected (and fine-tuned) ``snap``: open the fusion session if needed,
         upload the delta or full subset, then the pending keyframes. Raises what the fusion client raises."""

@@ -40,6 +40,7 @@ from typing import Callable, List, Optional
 
 import numpy as np
 
+from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.relevance import build_relevance
@@ -153,6 +154,7 @@ class AgentRuntime:
         if relevance_fn is None:
             relevance_fn, self.frontend = build_relevance(config, graph, annotations, task_id, lambda: self.mapper)
         self._relevance_fn = relevance_fn
+        self._pending_task = None  # (text, graph, task id, relevance fn, front-end) left by update_task
         self._relevance_worker = None
         if config.relevance_max_wait_s is not None:
             from gausslite.attention.worker import RelevanceWorker
@@ -319,6 +321,73 @@ class AgentRuntime:
             self.last_error = msg
         self.pusher.final_done.set()
 
+    def relevance(self, frame: Frame) -> np.ndarray:
+        """The mission's relevance map w of ``frame`` for its current task: (H, W) bool (paper Sec. III-B), from the
+        relevance worker when there is one (``relevance_max_wait_s``), otherwise computed here."""
+        if self._relevance_worker is not None:
+            return self._relevance_worker.relevance(frame)
+        return self._relevance_fn(frame)
+
+    def update_task(self, task_text: str, graph, task_id: Optional[str] = None) -> None:
+        """Give the running mission a new task; the map re-targets to it and keeps what it has mapped.
+
+        The new task's relevance source is built here (so a task the scene cannot answer fails now, with nothing
+        changed); the mapping thread applies it before its next keyframe or idle iteration: every task flag and κ
+        restart at zero (:meth:`Mapper.retarget <gausslite.mapping.mapper.Mapper.retarget>`), the stored
+        keyframes get the new task's relevance maps, and from then on the new task's relevance re-targets the map
+        through seeding and adoption (``mapper.seeding.adopt``; docs/live.md#changing-the-task). The next push
+        opens the fusion session under the new task.
+
+        Args:
+            task_text: the new task. graph: its parsed graph (``targets``, ``anchors``, ``relations``).
+            task_id: its id in the scene's ``tasks.json`` (``relevance: gt``), or None (looked up by text).
+        Raises:
+            MissionError: the mission is finishing, finished or failed.
+            ValueError: a relevance source that cannot be built for the task (as at :class:`AgentRuntime`), or an
+                unknown task id.
+        """
+        with self._lock:
+            if self.state not in ("MAPPING", "REPLAY_DONE"):
+                raise MissionError(f"mission {self.mission_id} is {self.state}: it cannot take a new task")
+        ann = self.annotations
+        if task_id is None and ann is not None:
+            task_id = next((t.id for t in getattr(ann, "tasks", []) or []
+                            if t.text.strip().lower() == task_text.strip().lower()), None)
+        if task_id is not None and ann is not None:
+            ann.task_by_id(task_id)  # KeyError with the known ids
+        fn, frontend = build_relevance(self.config, graph, ann, task_id, lambda: self.mapper)
+        with self._lock:
+            self._pending_task = (task_text, graph, task_id, fn, frontend)
+        log.info("agent %s mission %s: new task %r (applied before the next keyframe)", self.agent_id,
+                 self.mission_id, task_text)
+
+    def _apply_pending_task(self) -> None:
+        """Mapping thread: switch to the task :meth:`update_task` left, if any."""
+        with self._lock:
+            pending, self._pending_task = self._pending_task, None
+        if pending is None:
+            return
+        task_text, graph, task_id, fn, frontend = pending
+        if self._relevance_worker is not None:
+            self._relevance_worker.close()
+            from gausslite.attention.worker import RelevanceWorker
+
+            self._relevance_worker = RelevanceWorker(fn, self.config.relevance_max_wait_s)
+        self._relevance_fn, self.frontend = fn, frontend
+        self.mapper.retarget()
+        store = self.mapper.keyframes
+        for i in range(len(store)):
+            st = store[i]
+            frame = Frame(st.frame_id, 0.0, st.rgb.numpy(), st.depth.float().numpy(), st.c2w.numpy(),
+                          Intrinsics.from_K(st.K.numpy(), st.width, st.height))
+            store.set_roi(i, fn(frame))
+        with self._lock:
+            self.task_text, self.graph, self.task_id = task_text, graph, task_id
+            self.n_active = 0
+        self.pusher.set_task(task_text)
+        log.info("agent %s mission %s: now mapping for task %r (%d stored keyframes re-targeted)", self.agent_id,
+                 self.mission_id, task_text, len(store))
+
     def _idle_work(self) -> bool:
         """Whether the worker should optimise between keyframes instead of blocking on the queue."""
         return (self._online and self.config.idle_optimize and self.frames_mapped > 0 and self.state == "MAPPING"
@@ -327,10 +396,17 @@ class AgentRuntime:
     def _work(self) -> None:
         cfg = self.config
         while True:
+            try:
+                self._apply_pending_task()
+            except Exception as e:
+                self._fail(f"switching to the new task failed: {type(e).__name__}: {e}")
             idle = self._idle_work()
             try:
-                item = self._queue.get(block=not idle)
+                # a blocking wait wakes up now and then to apply a new task (update_task)
+                item = self._queue.get(block=False) if idle else self._queue.get(timeout=0.5)
             except queue.Empty:
+                if not idle:
+                    continue
                 try:
                     n = self.mapper.optimize(max_seconds=cfg.idle_chunk_s)
                 except Exception as e:
@@ -383,8 +459,7 @@ class AgentRuntime:
                     self.last_error = f"rejected frame: {e}"
                 return
         try:
-            w = (self._relevance_worker.relevance(item) if self._relevance_worker is not None
-                 else self._relevance_fn(item))
+            w = self.relevance(item)
             # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
             b = cfg.mapper.keyframe_budget_s
             left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))

@@ -295,6 +295,42 @@ def blend_weights(
     Returns:
         (N,) float32 weights ≥ 0 (0 for Gaussians outside the view or the subset), on ``means.device``.
     """
+    return _blend_weight_channels(means, quats, log_scales, opacity_logits, colors, K, width, height, c2w,
+                                  pixel_mask, False, subset, background, backend, num_threads)[0]
+
+
+def blend_weights_inside(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    *,
+    K,
+    width: int,
+    height: int,
+    c2w,
+    pixel_mask: torch.Tensor,
+    subset: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,
+    backend: str = "auto",
+    num_threads: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-Gaussian alpha-blending weight of one view inside ``pixel_mask`` and over the whole image, from one
+    forward and one backward pass (:func:`blend_weights`: the red channel summed over the mask, the green channel
+    over every pixel; the colour channels blend independently).
+
+    Args: as :func:`blend_weights`; ``pixel_mask`` (height, width) bool is required.
+    Returns:
+        ``(inside, total)``: two (N,) float32 tensors ≥ 0 on ``means.device`` (``inside ≤ total``).
+    """
+    return _blend_weight_channels(means, quats, log_scales, opacity_logits, colors, K, width, height, c2w,
+                                  pixel_mask, True, subset, background, backend, num_threads)
+
+
+def _blend_weight_channels(means, quats, log_scales, opacity_logits, colors, K, width, height, c2w, pixel_mask,
+                           with_total: bool, subset, background, backend, num_threads) -> tuple:
+    """(weights in ``pixel_mask`` (or all pixels), and with ``with_total`` the weights over all pixels)."""
     cols = colors.detach().clone().requires_grad_(True)
     out = rasterize(means.detach(), quats.detach(), log_scales.detach(), opacity_logits.detach(), cols,
                     K=K, width=width, height=height, c2w=c2w, subset=subset, background=background,
@@ -302,7 +338,12 @@ def blend_weights(
     red = out.color[..., 0]
     if pixel_mask is not None:
         red = red[pixel_mask.to(red.device)]
-    red.sum().backward()
+    total = red.sum()
+    if with_total:
+        total = total + out.color[..., 1].sum()
+    total.backward()
     if cols.grad is None:
-        return torch.zeros(means.shape[0], device=means.device)
-    return cols.grad[:, 0].detach().float().clamp_min(0)
+        zero = torch.zeros(means.shape[0], device=means.device)
+        return zero, zero.clone()
+    g = cols.grad.detach().float().clamp_min(0)
+    return g[:, 0], g[:, 1]

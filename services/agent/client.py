@@ -123,6 +123,13 @@ class AgentClient:
                                    f"{timeout_s:.0f}s ({st.frames_mapped} frames mapped)")
             time.sleep(poll_s)
 
+    def update_task(self, mission_id: str, task_text: str, task_id: str = "",
+                    timeout_s: Optional[float] = None) -> agent_pb2.UpdateTaskResponse:
+        """Give a running mission a new task (the map re-targets and keeps what it mapped). Raises grpc.RpcError
+        (NOT_FOUND, INVALID_ARGUMENT, FAILED_PRECONDITION, UNAVAILABLE)."""
+        req = agent_pb2.UpdateTaskRequest(mission_id=mission_id, task_text=task_text, task_id=task_id)
+        return self.stub.UpdateTask(req, timeout=timeout_s or max(self.timeout_s, 60.0), metadata=self._md)
+
     def finish(self, mission_id: str = "", *, skip_push: bool = False, skip_eval: bool = False,
                timeout_s: float = 600.0) -> agent_pb2.MissionSummary:
         """Final push and summary. Raises grpc.RpcError (NOT_FOUND, DEADLINE_EXCEEDED)."""

@@ -57,6 +57,17 @@ def _valid_id(value: str) -> bool:
     return bool(_MISSION_ID.fullmatch(value)) and value.strip(".") != ""
 
 
+def _check_task_text(task_text: str) -> None:
+    """Raises ValueError for an empty or oversized task text or one with a NUL character (the fusion server and
+    PostgreSQL refuse it: the mission could never push)."""
+    if not task_text.strip():
+        raise ValueError("task_text is empty")
+    if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
+        raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
+    if "\x00" in task_text:
+        raise ValueError("task_text contains a NUL character")
+
+
 def _abort(context, method: str, code: grpc.StatusCode, message: str) -> None:
     """Log a rejected call and abort it with ``code`` (raises, as ``context.abort`` does)."""
     log.warning("rejected %s from %s: %s: %s", method, context.peer(), code.name, message)
@@ -215,12 +226,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         from gausslite.datasets.annotations import load_annotations
 
         s, cfg = self.settings, self.settings.config
-        if not task_text.strip():
-            raise ValueError("task_text is empty")
-        if len(task_text.encode("utf-8")) > MAX_TASK_BYTES:
-            raise ValueError(f"task_text longer than {MAX_TASK_BYTES} bytes")
-        if "\x00" in task_text:  # the fusion server (and PostgreSQL) refuse it: the mission could never push
-            raise ValueError("task_text contains a NUL character")
+        _check_task_text(task_text)
         if mission_id and not _valid_id(mission_id):
             raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         if agent_id and not _valid_id(agent_id):
@@ -324,6 +330,28 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         return agent_pb2.StartMissionResponse(mission_id=rt.mission_id, graph=gp, agent_id=rt.agent_id,
                                               replay_frames=rt.replay_frames, resumed=rt.resumed_keyframes > 0,
                                               resumed_keyframes=rt.resumed_keyframes)
+
+    def UpdateTask(self, request, context):  # noqa: N802
+        rt = self._mission(request.mission_id, context)
+        try:
+            _check_task_text(request.task_text)
+            graph = self._parse(request.task_text)
+            rt.update_task(request.task_text, graph, request.task_id or None)
+        except KeyError as e:
+            _abort(context, "UpdateTask", grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0]))
+        except MissionError as e:
+            _abort(context, "UpdateTask", grpc.StatusCode.FAILED_PRECONDITION, str(e))
+        except ValueError as e:
+            msg = str(e)
+            code = grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT
+            _abort(context, "UpdateTask", code, msg)
+        except grpc.RpcError as e:
+            code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
+            _abort(context, "UpdateTask", code, f"parser service: {e.code().name}: {e.details()}")
+        from services.parser.server import graph_to_proto
+
+        gp = graph if hasattr(graph, "SerializeToString") else graph_to_proto(graph)
+        return agent_pb2.UpdateTaskResponse(mission_id=rt.mission_id, graph=gp)
 
     def StreamFrames(self, request_iterator, context):  # noqa: N802
         rt: Optional[AgentRuntime] = None

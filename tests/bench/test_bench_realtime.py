@@ -52,7 +52,7 @@ def test_twin_reaches_the_same_binding_cap_in_both_modes_and_is_deterministic(tm
     runs = {mode: rt.twin_one({**job, "mode": mode}) for mode in ("uniform", "gausslite")}
     for mode, r in runs.items():
         assert r["cap_reached"] and 0.9 * 300 <= r["n_gaussians"] <= 300, mode  # the cap binds (less what pruning took)
-        assert r["keyframes"] == len(rt.keyframe_schedule(rt.Preloaded(rt.load_scene("synthetic_circle", path)[0]),
+        assert r["keyframes"] == len(rt.keyframe_schedule(rt.Preloaded(rt.load_scene(rt.SCENES["synthetic_circle"], path)[0]),
                                                            0.08))
         assert r["frames_scored"] == 8 and r["roi_psnr"] is not None
     assert runs["gausslite"]["roi_iters"] > 0 and runs["uniform"]["roi_iters"] == 0
@@ -80,3 +80,64 @@ def test_summary_pairs_runs_and_finds_the_budget_uniform_needs():
     assert s["uniform_budget_matching_gausslite_0.5"] == pytest.approx(math.sqrt(2.0), rel=1e-6)
     md = rt.table({"scenes": {"s": s}})
     assert "| s | 100 | 0.5 | gausslite |" in md
+
+
+def _proto_run(mode, b, run, roi, protos):
+    r = _run(mode, b, run, roi)
+    r["protocols"] = {p: {"roi_psnr": v, "psnr": 20.0 + 0.1 * run, "ssim": 0.7, "frames_scored": 30}
+                      for p, v in protos.items()}
+    return r
+
+
+def test_summary_reports_every_protocol_with_its_paired_gain_and_matching_budget():
+    runs = []
+    for run in range(3):
+        for b, u in ((0.5, 21.0), (1.0, 22.0), (2.0, 23.0)):
+            runs.append(_proto_run("uniform", b, run, u, {"sensor": u, "tracked": u + 1.0, "keyframes": u + 2.0}))
+            runs.append(_proto_run("gausslite", b, run, u + 0.5,
+                                   {"sensor": u + 0.5, "tracked": u + 3.0 + 0.1 * run, "keyframes": u + 5.0}))
+    s = rt.summarise(runs, "s", [0.5, 1.0, 2.0], 100)
+    p = s["budgets"]["0.5"]["protocols"]
+    assert set(p) == {"sensor", "tracked", "keyframes"}
+    assert p["tracked"]["gain"] == pytest.approx(2.1) and p["tracked"]["runs"] == 3
+    assert p["tracked"]["gain_std"] == pytest.approx(0.1) and p["tracked"]["gain_significant"]
+    assert p["tracked"]["uniform"]["roi_psnr"] == pytest.approx(22.0)
+    assert p["keyframes"]["gausslite"]["roi_psnr"] == pytest.approx(26.0)
+    assert p["sensor"]["gain"] == pytest.approx(s["budgets"]["0.5"]["gain"])  # top level = sensor
+    # GaussLite tracked at 0.5 s: 24.1 dB; uniform tracked reaches it between 1 s (23) and 2 s (24.0): beyond 2 s
+    by = s["uniform_budget_matching_gausslite_0.5_by_protocol"]
+    assert by["tracked"] is None and by["sensor"] == pytest.approx(0.5 ** 0.5, rel=1e-6)  # 21.5 dB: halfway
+    md = rt.protocol_table({"scenes": {"s": s}})
+    assert "| s | 0.5 | tracked | 22.00 ± 0.00 | 24.10 ± 0.10 | 2.10 ± 0.10 (> 2σ) |" in md
+
+
+def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp_path):
+    """``--dataset PATH --tasks ID`` on a folder the loaders read: one scene per task, named after it, with the
+    protocols in the same layout as the built-in scenes; ``--late`` names it ``<task>_late``."""
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=8, width=64, height=48, trajectory="circle")
+    path = tmp_path / "scene" / "agent_a"
+    with pytest.raises(ValueError, match="not in"):
+        rt.dataset_scenes(path, ["no-such-task"], 300)
+    with pytest.raises(FileNotFoundError):
+        rt.dataset_scenes(tmp_path / "nowhere", ["synth-pick-object"], 300)
+    out = tmp_path / "own.json"
+    for late in (None, 0.4):
+        argv = ["--dataset", str(path), "--tasks", "synth-pick-object", "--budgets", "0.08", "--runs", "1",
+                "--twin", "--cap", "300", "--fps", "2", "--final-pass-budgets", "", "--track-iters", "3",
+                "--track-stride", "4", "--set", "mapper.seeding.seeds_per_frame=600", "--out", str(out)]
+        if late:
+            argv += ["--late", str(late)]
+        assert rt.main(argv) == 0
+        res = __import__("json").loads(out.read_text())
+        name = "synth-pick-object" + ("_late" if late else "")
+        blk = res["scenes"][name]["budgets"]["0.08"]
+        assert set(blk["protocols"]) == {"sensor", "keyframes", "tracked"}
+        for p, v in blk["protocols"].items():
+            assert v["uniform"]["runs"] == v["gausslite"]["runs"] == 1 and v["gain"] is not None, p
+        assert blk["protocols"]["tracked"]["gausslite"]["frames_scored"] == 2  # every 4th of 8 frames
+        assert blk["protocols"]["sensor"]["gausslite"]["roi_psnr"] == blk["gausslite"]["roi_psnr"]
+        assert res["settings"]["late"] == late
+    g = [r for r in res["runs"] if r["mode"] == "gausslite"][0]
+    assert g["roi_iters"] > 0  # the late task engaged
