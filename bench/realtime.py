@@ -200,7 +200,7 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
 
 
 def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = TRACK_ITERS,
-          track_stride: int = TRACK_STRIDE) -> dict:
+          track_stride: int = TRACK_STRIDE, keyframe_ids=None) -> dict:
     """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map under each scoring protocol
     (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``), the same for every mode.
     The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds
@@ -210,7 +210,7 @@ def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = 
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
     frames = [ds[i] for i in range(len(ds))]
     res = score_live_map(mapper, frames, lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), protocols,
-                         track_iters=track_iters, track_stride=track_stride)
+                         track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids)
     sensor = res["sensor"]
     return {"roi_psnr": sensor["roi_psnr"], "psnr": sensor["psnr"], "ssim": sensor["ssim"],
             "frames_scored": sensor["frames_scored"], "protocols": res}
@@ -273,16 +273,61 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
            "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
            "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
            "evicted": int(sum(s.n_evicted for s in mapper.stats))}
-    res.update(score(mapper, ds, ann, task.id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
-                     job.get("track_stride", TRACK_STRIDE)))
+    kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
+    if job.get("defer_dir"):
+        # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
+        import torch
+
+        path = Path(job["defer_dir"]) / f"{_key_name(job)}.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"state": mapper.state_dict(max_keyframes=None), "cfg": mapper.cfg.model_dump(),
+                    "keyframe_ids": kf_ids}, path)
+        res.update(state_path=str(path), fp_per_kf=fp_per_kf,
+                   score_job={k: job.get(k) for k in ("scene", "mode", "spec", "path", "task", "protocols",
+                                                       "track_iters", "track_stride", "render_dir", "final_pass")})
+        return res
+    res.update(_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
+    return res
+
+
+def _key_name(job: dict) -> str:
+    return "_".join(str(x) for x in _key(job)).replace("/", "-")
+
+
+def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe_ids) -> dict:
+    """The scores of a finished map under ``job["protocols"]``, its render (``job["render_dir"]``) and, with
+    ``job["final_pass"]``, the scores after the profile's final pass (which changes ``mapper``)."""
+    res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
+                job.get("track_stride", TRACK_STRIDE), keyframe_ids)
     if job.get("render_dir"):
-        save_render(mapper, ds, ann, task.id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
+        save_render(mapper, ds, ann, task_id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
         mapper.cfg = mapper.cfg.model_copy(update={"final_iters_per_keyframe": fp_per_kf})
         res["final_iters"] = mapper.finalize()
-        res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task.id).items()
+        res.update({f"final_{k}": v for k, v in score(mapper, ds, ann, task_id).items()
                     if k not in ("frames_scored", "protocols")})
     return res
+
+
+def score_deferred(res: dict) -> dict:
+    """Score a mission whose map :func:`run_one` saved (its run result, with ``state_path`` and ``score_job``):
+    rebuild the mapper from its state and configuration and add the scores to the result (the state file is
+    removed)."""
+    import torch
+
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.mapping.mapper import Mapper
+
+    job = res["score_job"]
+    saved = torch.load(res["state_path"], weights_only=False)
+    mapper = Mapper(MapperConfig.model_validate(saved["cfg"]))
+    mapper.load_state_dict(saved["state"])
+    ds, _ = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
+    ds = Preloaded(ds)
+    out = {k: v for k, v in res.items() if k not in ("state_path", "fp_per_kf", "score_job")}
+    out.update(_scores(job, mapper, ds, ds.annotations, job["task"], res["fp_per_kf"], saved["keyframe_ids"]))
+    Path(res["state_path"]).unlink(missing_ok=True)
+    return out
 
 
 def run_one(job: dict) -> dict:
@@ -622,7 +667,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--twin", action="store_true",
                     help="the deterministic twin: fixed keyframe spacing, budgets on the work clock (mapper.work_cost), "
                          "not wall time; runs may go to --jobs processes")
-    ap.add_argument("--jobs", type=int, default=1, help="--twin only: worker processes")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="worker processes of --twin runs, and of the scoring that follows the live missions")
+    ap.add_argument("--score-inline", action="store_true",
+                    help="score each live map right after its mission (default: every mission first, alone on the "
+                         "machine, then the saved maps are scored, --jobs at a time)")
     ap.add_argument("--calibrate", action="store_true",
                     help="fit the deterministic budget clock's cost model (mapper.work_cost) on this machine and "
                          "print it (first scene)")
@@ -688,6 +737,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
                         jobs.append(job)
+    defer = None if args.twin or args.score_inline else Path(args.work) / "maps"
+    for job in jobs:
+        job["defer_dir"] = str(defer) if defer else None
     t0 = time.time()
     if args.twin:
         from concurrent.futures import ProcessPoolExecutor
@@ -699,12 +751,32 @@ def main(argv: Optional[list[str]] = None) -> int:
         results = (run_one(job) for job in jobs)
     for r in tqdm(results, total=len(jobs), desc="realtime runs", unit="run", disable=args.twin):
         runs.append(r)
+        if "state_path" in r:  # scored below, once every mission ran
+            tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: {r['n_gaussians']} G, "
+                       f"{r['keyframes']} kf x {r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), "
+                       f"{r['wall_s']:.0f} s")
+            partial.write_text(json.dumps({"runs": runs}, indent=1))
+            continue
         per = " ".join(f"{p} {v['roi_psnr']:.2f}" for p, v in r.get("protocols", {}).items()
                        if v.get("roi_psnr") is not None)
         tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI {r['roi_psnr']:.2f} dB "
                    f"({per}), PSNR {r['psnr']:.2f}, {r['n_gaussians']} G, {r['keyframes']} kf x "
                    f"{r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
         partial.write_text(json.dumps({"runs": runs}, indent=1))
+    pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
+    if pending:
+        from concurrent.futures import ProcessPoolExecutor
+
+        items = [runs[i] for i in pending]
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            for i, r in zip(pending, tqdm(pool.map(score_deferred, items), total=len(items), desc="scoring",
+                                          unit="map")):
+                runs[i] = r
+                per = " ".join(f"{p} {v['roi_psnr']:.2f}" for p, v in r["protocols"].items()
+                               if v.get("roi_psnr") is not None)
+                tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI ({per}), "
+                           f"PSNR {r['psnr']:.2f}")
+                partial.write_text(json.dumps({"runs": runs}, indent=1))
     result = {"settings": {"budgets": budgets, "runs": args.runs, "clock": args.clock, "overrides": args.overrides,
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),

@@ -151,8 +151,9 @@ class PoseConfig(_Strict):
     """Keyframe pose refinement and tracking (MonoGS Sec. 3.3; SplaTAM Sec. 3.3; :mod:`gausslite.mapping.poses`)."""
 
     refine: bool = Field(
-        False, description="refine every keyframe's pose jointly with the map in full-image iterations (MonoGS "
-        "Sec. 3.3; gausslite.mapping.poses): for sensors whose poses are not exact (the hand-held profile); "
+        False, description="refine every keyframe's pose jointly with the map (MonoGS Sec. 3.3; "
+        "gausslite.mapping.poses) in full-image iterations and, with roi_phase, ROI-phase ones: for sensors whose "
+        "poses are not exact (the hand-held profile); "
         "scores are then taken at the refined poses, as SLAM systems score at their estimated poses"
     )
     track_iters: int = Field(
@@ -172,6 +173,11 @@ class PoseConfig(_Strict):
         1.0, gt=0, le=1, description="pose refinement: step size of ROI-phase pose steps relative to lr_rot / "
         "lr_trans (< 1 regularises the alignment the ROI alone can see)"
     )
+    between_keyframes: Literal["nearest", "interpolate"] = Field(
+        "nearest", description="a frame between keyframes (a held-out view, the sensor protocol's score) is "
+        "rendered with the pose correction and exposure response of the nearest keyframe, or interpolated in "
+        "frame id between the keyframes on both sides (measured: docs/realtime.md)"
+    )
     init: Literal["inherit", "identity"] = Field(
         "identity", description="pose refinement: a new keyframe starts from the latest keyframe's correction "
         "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "
@@ -185,8 +191,8 @@ class SensorConfig(_Strict):
 
     exposure_comp: bool = Field(
         False, description="per-keyframe exposure compensation (gausslite.mapping.exposure; MonoGS): every "
-        "keyframe gets an affine colour response exp(a)·I + b per channel, optimised with the map in full-image "
-        "iterations; the first keyframe fixes the map's exposure; scores are taken with each frame's response "
+        "keyframe gets an affine colour response exp(a)·I + b per channel, optimised with the map where its pose is "
+        "(full-image iterations, and ROI-phase ones under pose.roi_phase); the first keyframe fixes the map's exposure; scores are taken with each frame's response "
         "(the nearest keyframe's for a held-out view), as they are at its refined pose"
     )
     exposure_lr: float = Field(0.01, gt=0, description="exposure compensation: Adam step of a and b (MonoGS: 0.01)")

@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .poses import VectorAdam, nearest_key
+from .poses import VectorAdam, nearest_key, neighbour_keys
 
 
 def apply_exposure(color: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -57,10 +57,11 @@ class ExposureModel:
         fixed: frame ids whose θ is not optimised (the mission's first keyframe).
     """
 
-    def __init__(self, lr: float = 0.01) -> None:
+    def __init__(self, lr: float = 0.01, interpolate: bool = False) -> None:
         self._adam = VectorAdam(np.full(6, float(lr)))
         self.params: dict[int, np.ndarray] = {}
         self.fixed: set[int] = set()
+        self.interpolate = interpolate
 
     def initial(self, frame_id: int) -> np.ndarray:
         """θ a new keyframe starts from: the latest earlier keyframe's, zeros for the first."""
@@ -74,8 +75,15 @@ class ExposureModel:
             self.fixed.add(int(frame_id))
 
     def of(self, frame_id: int) -> np.ndarray:
-        """θ (6,) of ``frame_id``, or of the nearest keyframe by frame id; zeros without any keyframe."""
-        return self.params[nearest_key(self.params, frame_id)] if self.params else np.zeros(6)
+        """θ (6,) of ``frame_id``; for a frame between keyframes θ interpolated linearly in frame id between the
+        keyframes on both sides (``interpolate``) or the nearest keyframe's; zeros without any keyframe."""
+        if not self.params:
+            return np.zeros(6)
+        nb = neighbour_keys(self.params, frame_id) if self.interpolate else None
+        if nb is not None:
+            k0, k1, t = nb
+            return (1.0 - t) * self.params[k0] + t * self.params[k1]
+        return self.params[nearest_key(self.params, frame_id)]
 
     def trainable(self, frame_id: int) -> bool:
         """Whether ``frame_id`` is a registered keyframe whose θ is optimised."""

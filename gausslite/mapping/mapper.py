@@ -132,7 +132,8 @@ class Mapper:
                       else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
-        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose.lr_rot, cfg.pose.lr_trans)
+        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose.lr_rot, cfg.pose.lr_trans,
+                                                         cfg.pose.between_keyframes == "interpolate")
                                              if cfg.pose.refine else None)
         self.strategy = DensityStrategy(cfg, self.model, self.torch_gen)
         self.sensor = SensorRenderer(cfg, self.model, self.clock)

@@ -101,6 +101,34 @@ def move_gaussians_for_pose_delta(means: torch.Tensor, quats: torch.Tensor, c2w:
     return moved, quat_mul(qM, quats)
 
 
+def neighbour_keys(keyed: dict, frame_id: int) -> Optional[tuple[int, int, float]]:
+    """The keyframes on both sides of frame ``frame_id`` in ``keyed`` (frame id → per-keyframe value) and the
+    frame's position between them: ``(k0, k1, t)`` with ``k0 < frame_id < k1`` the nearest ones and
+    ``t = (frame_id − k0) / (k1 − k0)``; None when ``frame_id`` is a key itself or lies outside the keys (before
+    the first or after the last keyframe)."""
+    fid = int(frame_id)
+    if fid in keyed:
+        return None
+    below = [k for k in keyed if k < fid]
+    above = [k for k in keyed if k > fid]
+    if not below or not above:
+        return None
+    k0, k1 = max(below), min(above)
+    return k0, k1, (fid - k0) / float(k1 - k0)
+
+
+def interpolate_pose(E0: np.ndarray, E1: np.ndarray, t: float) -> np.ndarray:
+    """(4, 4) float64 rigid transform a share ``t`` ∈ [0, 1] of the way from ``E0`` to ``E1`` (4, 4): rotation by
+    spherical linear interpolation, translation linearly."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    rots = Rotation.from_matrix(np.stack([E0[:3, :3], E1[:3, :3]]))
+    out = np.eye(4)
+    out[:3, :3] = Slerp([0.0, 1.0], rots)([float(t)]).as_matrix()[0]
+    out[:3, 3] = (1.0 - t) * E0[:3, 3] + t * E1[:3, 3]
+    return out
+
+
 def nearest_key(keyed: dict, frame_id: int) -> int:
     """The key of ``keyed`` (frame id → per-keyframe value) for frame ``frame_id``: itself when present,
     otherwise the nearest keyframe by frame id (a held-out view between keyframes). ``keyed`` must not be
@@ -155,10 +183,11 @@ class PoseRefiner:
         fixed: frame ids whose pose is not refined (the mission's first keyframe).
     """
 
-    def __init__(self, lr_rot: float = 1e-3, lr_trans: float = 5e-4) -> None:
+    def __init__(self, lr_rot: float = 1e-3, lr_trans: float = 5e-4, interpolate: bool = False) -> None:
         self._adam = VectorAdam(np.array([lr_rot] * 3 + [lr_trans] * 3))
         self.corrections: dict[int, np.ndarray] = {}
         self.fixed: set[int] = set()
+        self.interpolate = interpolate
 
     def initial_correction(self, frame_id: int) -> np.ndarray:
         """The correction a new keyframe starts from: the latest keyframe's (pose errors of a hand-held
@@ -209,10 +238,15 @@ class PoseRefiner:
             self.register(int(fid), E, fixed=int(fid) in set(state["fixed"]))
 
     def corrected(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
-        """``c2w`` (4, 4) of a frame with its keyframe's correction, or that of the nearest keyframe by
-        frame id (a held-out view between keyframes); unchanged without any keyframe."""
+        """``c2w`` (4, 4) of a frame with its keyframe's correction; for a frame between keyframes (a held-out view)
+        the correction interpolated in frame id between the keyframes on both sides (``interpolate``,
+        :func:`interpolate_pose`) or the nearest keyframe's; unchanged without any keyframe."""
         if not self.corrections:
             return np.asarray(c2w, np.float64)
+        nb = neighbour_keys(self.corrections, frame_id) if self.interpolate else None
+        if nb is not None:
+            k0, k1, t = nb
+            return np.asarray(c2w, np.float64) @ interpolate_pose(self.corrections[k0], self.corrections[k1], t)
         return np.asarray(c2w, np.float64) @ self.corrections[nearest_key(self.corrections, frame_id)]
 
     def magnitudes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -225,4 +259,4 @@ class PoseRefiner:
 
 
 __all__ = ["so3_exp", "quat_of_rotvec", "quat_mul", "pose_delta", "move_gaussians_for_pose_delta", "PoseRefiner",
-           "VectorAdam", "nearest_key"]
+           "VectorAdam", "nearest_key", "neighbour_keys", "interpolate_pose"]

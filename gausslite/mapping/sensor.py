@@ -53,7 +53,9 @@ class SensorRenderer:
         self.clock = clock
         self.device = model.device
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.exposure: Optional[ExposureModel] = (ExposureModel(cfg.sensor.exposure_lr) if cfg.sensor.exposure_comp
+        self.exposure: Optional[ExposureModel] = (ExposureModel(cfg.sensor.exposure_lr,
+                                                                cfg.pose.between_keyframes == "interpolate")
+                                                  if cfg.sensor.exposure_comp
                                                   else None)
         self.blur: dict[int, np.ndarray] = {}
         self.rs_norm = 0.0

@@ -2,6 +2,7 @@
 the budget twin, the summary's paired gain and the budget at which uniform catches up)."""
 
 import math
+from pathlib import Path
 
 import pytest
 
@@ -141,3 +142,31 @@ def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp
         assert res["settings"]["late"] == late
     g = [r for r in res["runs"] if r["mode"] == "gausslite"][0]
     assert g["roi_iters"] > 0  # the late task engaged
+
+
+def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path):
+    """Live missions save their maps and are scored once every mission ran (no scoring beside a live mission): the
+    rebuilt map scores exactly as the map itself."""
+    import torch
+
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=6, width=64, height=48, trajectory="circle")
+    job = {"scene": "synthetic_circle", "spec": rt.SCENES["synthetic_circle"], "path": str(tmp_path / "scene" / "agent_a"),
+           "task": "synth-pick-object", "mode": "gausslite", "budget": 0.08, "run": 0, "cap": 300, "clock": "dataset",
+           "overrides": ["mapper.seeding.seeds_per_frame=600", "mapper.budget_clock=work"],
+           "protocols": ("sensor", "keyframes", "tracked"), "track_iters": 3, "track_stride": 2,
+           "defer_dir": str(tmp_path / "maps")}
+    ds, ann, task, agent, fp = rt._mission(job, 1.0)
+    try:
+        for i in rt.keyframe_schedule(ds, 0.5):
+            agent.mapper.map_frame(ds[i], agent.relevance(ds[i]), time_budget_s=0.08)
+        saved = rt._result(job, agent.mapper, ds, ann, task, fp)
+        assert "protocols" not in saved and Path(saved["state_path"]).is_file()
+        inline = rt._scores(job, agent.mapper, ds, ann, task.id, fp, sorted(s.frame_id for s in agent.mapper.stats))
+    finally:
+        agent.close()
+    scored = rt.score_deferred(saved)
+    assert not Path(saved["state_path"]).exists() and "score_job" not in scored
+    for p in ("sensor", "keyframes", "tracked"):
+        assert scored["protocols"][p]["roi_psnr"] == pytest.approx(inline["protocols"][p]["roi_psnr"], abs=1e-4), p
