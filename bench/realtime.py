@@ -669,6 +669,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                          "not wall time; runs may go to --jobs processes")
     ap.add_argument("--jobs", type=int, default=1,
                     help="worker processes of --twin runs, and of the scoring that follows the live missions")
+    ap.add_argument("--missions-only", action="store_true",
+                    help="run the live missions and save their maps, without scoring (score later with --resume): "
+                         "several invocations' missions can then run back to back, alone, before any scoring")
     ap.add_argument("--score-inline", action="store_true",
                     help="score each live map right after its mission (default: every mission first, alone on the "
                          "machine, then the saved maps are scored, --jobs at a time)")
@@ -764,6 +767,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                    f"{r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
         partial.write_text(json.dumps({"runs": runs}, indent=1))
     pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
+    if args.missions_only:
+        print(f"{len(pending)} maps saved for scoring: run the same command with --resume to score them")
+        return 0
     if pending:
         from concurrent.futures import ProcessPoolExecutor
 

@@ -297,6 +297,13 @@ class Pusher:
                 self._cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
                                   timeout=delay)
 
+    def _refined(self, frame):
+        """``frame`` at its refined pose (the mapper's keyframe correction, ``pose.refine``; full-image and ROI-phase
+        iterations align it) as the fusion refinement should see it; unchanged without a correction."""
+        poses = getattr(self.mapper, "poses", None)
+        E = poses.corrections.get(int(frame.frame_id)) if poses is not None else None
+        return frame if E is None else dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E)
+
     def _upload_pending_keyframes(self, c) -> tuple[list, int]:
         """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
         with self._lock:
@@ -304,7 +311,8 @@ class Pusher:
             rois = [self._kf_roi.get(id(f)) for f in kfs]
         n_kf = 0
         if kfs:
-            n_kf = int(c.upload_keyframes(self.agent_id, kfs, jpeg_quality=self.config.jpeg_quality,
+            n_kf = int(c.upload_keyframes(self.agent_id, [self._refined(f) for f in kfs],
+                                          jpeg_quality=self.config.jpeg_quality,
                                           color_format=self.config.keyframe_format, rois=rois) or 0)
             with self._lock:
                 sent = {id(f) for f in kfs}

@@ -111,3 +111,32 @@ def test_a_periodic_snapshot_without_a_fusion_client_leaves_the_final_open_and_c
     p.close()
     p.close()
     assert not p.thread.is_alive()
+
+
+def test_uploaded_keyframes_carry_their_refined_pose_and_leave_the_backlog():
+    """The fusion refinement sees each keyframe at the pose mapping refined (full-image and ROI-phase alignment),
+    not the sensor's; a keyframe without a correction goes as it is."""
+    from types import SimpleNamespace
+
+    from gausslite.datasets.base import Frame
+    from gausslite.camera import Intrinsics
+
+    E = np.eye(4)
+    E[0, 3] = 0.02
+    sent = []
+    fusion = SimpleNamespace(upload_keyframes=lambda agent_id, frames, **kw: sent.extend(frames) or len(frames))
+    config = AgentConfig()
+    mapper = SimpleNamespace(poses=SimpleNamespace(corrections={3: E}))
+    p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=mapper,
+               intrinsics=lambda: None, report=lambda m: None)
+    intr = Intrinsics(50.0, 50.0, 3.5, 2.5, 8, 6)
+    frames = [Frame(i, 0.0, np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32), np.eye(4), intr)
+              for i in (3, 4)]
+    for f in frames:
+        p.add_keyframe(f, None)
+    kfs, n = p._upload_pending_keyframes(fusion)
+    assert n == 2 and p.status()["keyframes_backlog"] == 0 and kfs == frames
+    np.testing.assert_allclose(sent[0].c2w, E)  # frame 3 at its refined pose
+    np.testing.assert_array_equal(sent[1].c2w, np.eye(4))  # frame 4 has no correction
+    np.testing.assert_array_equal(frames[0].c2w, np.eye(4))  # the mission's own frame is unchanged
+    p.close()
