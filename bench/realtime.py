@@ -670,8 +670,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--jobs", type=int, default=1,
                     help="worker processes of --twin runs, and of the scoring that follows the live missions")
     ap.add_argument("--missions-only", action="store_true",
-                    help="run the live missions and save their maps, without scoring (score later with --resume): "
+                    help="run the live missions and save their maps, without scoring (score later with --score-only): "
                          "several invocations' missions can then run back to back, alone, before any scoring")
+    ap.add_argument("--score-only", action="store_true",
+                    help="start no mission: score the maps earlier --missions-only runs saved to the same --out "
+                         "(its partial file) and write the result over every budget they ran")
     ap.add_argument("--score-inline", action="store_true",
                     help="score each live map right after its mission (default: every mission first, alone on the "
                          "machine, then the saved maps are scored, --jobs at a time)")
@@ -715,7 +718,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_suffix(".partial.json")
     runs: list[dict] = []
-    if args.resume and partial.is_file():
+    if (args.resume or args.score_only) and partial.is_file():
         runs = json.loads(partial.read_text())["runs"]
     done = {_key(r) for r in runs}
     work = Path(args.work)
@@ -740,6 +743,10 @@ def main(argv: Optional[list[str]] = None) -> int:
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
                         jobs.append(job)
+    if args.score_only:
+        # score what earlier --missions-only invocations saved (every budget they ran), start no mission
+        jobs = []
+        budgets = sorted({float(r["budget"]) for r in runs if r["scene"] in names} | set(budgets))
     defer = None if args.twin or args.score_inline else Path(args.work) / "maps"
     for job in jobs:
         job["defer_dir"] = str(defer) if defer else None
@@ -768,7 +775,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         partial.write_text(json.dumps({"runs": runs}, indent=1))
     pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
     if args.missions_only:
-        print(f"{len(pending)} maps saved for scoring: run the same command with --resume to score them")
+        print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
         return 0
     if pending:
         from concurrent.futures import ProcessPoolExecutor

@@ -170,3 +170,29 @@ def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path
     assert not Path(saved["state_path"]).exists() and "score_job" not in scored
     for p in ("sensor", "keyframes", "tracked"):
         assert scored["protocols"][p]["roi_psnr"] == pytest.approx(inline["protocols"][p]["roi_psnr"], abs=1e-4), p
+
+
+def test_live_missions_back_to_back_then_scored_apart(tmp_path):
+    """``--missions-only`` runs the live missions and saves their maps unscored; ``--score-only`` scores them (no
+    new mission) and writes the usual layout over every budget run."""
+    import json
+
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=6, width=64, height=48, trajectory="circle")
+    out = tmp_path / "live.json"
+    base = ["--dataset", str(tmp_path / "scene" / "agent_a"), "--tasks", "synth-pick-object", "--runs", "1",
+            "--cap", "300", "--fps", "4", "--final-pass-budgets", "", "--track-iters", "2", "--track-stride", "3",
+            "--set", "mapper.seeding.seeds_per_frame=300", "--out", str(out), "--work", str(tmp_path / "work")]
+    assert rt.main(base + ["--budgets", "0.2", "--missions-only"]) == 0
+    assert rt.main(base + ["--budgets", "0.4", "--modes", "uniform", "--missions-only", "--resume"]) == 0
+    saved = json.loads(out.with_suffix(".partial.json").read_text())["runs"]
+    assert len(saved) == 3 and all("state_path" in r and "protocols" not in r for r in saved)
+    assert not out.exists()
+    assert rt.main(base + ["--budgets", "0.2", "--score-only"]) == 0
+    res = json.loads(out.read_text())
+    blk = res["scenes"]["synth-pick-object"]["budgets"]
+    assert set(blk) == {"0.2", "0.4"} and blk["0.2"]["protocols"]["tracked"]["runs"] == 1
+    assert "gausslite" not in blk["0.4"] and blk["0.4"]["uniform"]["runs"] == 1
+    assert all("protocols" in r and "state_path" not in r for r in res["runs"])
+    assert not list((tmp_path / "work" / "maps").glob("*.pt"))
