@@ -169,6 +169,10 @@ class PoseConfig(_Strict):
         "spends most of its iterations there); False: full-image iterations only. The first keyframe stays fixed "
         "either way (measured: docs/realtime.md)"
     )
+    roi_phase_exposure: bool = Field(
+        True, description="with roi_phase and sensor.exposure_comp: ROI-phase iterations also step their view's "
+        "exposure response (False: pose only; the response is then fitted on full images alone)"
+    )
     roi_lr_scale: float = Field(
         1.0, gt=0, le=1, description="pose refinement: step size of ROI-phase pose steps relative to lr_rot / "
         "lr_trans (< 1 regularises the alignment the ROI alone can see)"

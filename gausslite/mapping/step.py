@@ -109,7 +109,8 @@ class TrainStep:
         exposure = self.sensor.exposure
         if exposure is not None and kf.frame_id in exposure.params:
             # the keyframe's exposure response; optimised where its pose is
-            train_exposure = align and exposure.trainable(kf.frame_id)
+            train_exposure = (align and exposure.trainable(kf.frame_id)
+                              and (not active_phase or cfg.pose.roi_phase_exposure))
             out, theta = self.sensor.exposed(out, kf.frame_id, requires_grad=train_exposure)
         mask = None
         if active_phase and cfg.roi_loss == "roi":

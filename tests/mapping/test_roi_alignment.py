@@ -166,3 +166,16 @@ def test_keyframe_store_roi_replacement_checks_the_size():
         m.keyframes.set_roi(0, np.ones((H + 1, W), bool))
     m.keyframes.set_roi(0, np.zeros((H, W), bool))
     assert m.keyframes[0].roi is None and not m.keyframes[0].sees_roi
+
+
+def test_roi_phase_exposure_can_stay_with_full_image_iterations():
+    """``pose.roi_phase_exposure: false``: ROI-phase steps move the pose but leave the exposure response alone."""
+    cfg = _cfg()
+    cfg.pose.roi_phase_exposure = False
+    m, fr = _mapped_with_a_wrong_pose_and_exposure(cfg)
+    i3 = [k.frame_id for k in m.keyframes].index(3)
+    pose0, theta0 = m.pose_of(3, fr.c2w).copy(), m.sensor.exposure.of(3).copy()
+    for _ in range(10):
+        m.step(m.keyframes.load(i3, m.device), active_phase=True)
+    assert not np.array_equal(m.pose_of(3, fr.c2w), pose0)
+    assert np.array_equal(m.sensor.exposure.of(3), theta0)
