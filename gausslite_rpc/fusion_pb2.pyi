@@ -140,20 +140,22 @@ class KeyframeAck(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., received: _Optional[int] = ..., stored: _Optional[int] = ..., duplicates: _Optional[int] = ..., evicted: _Optional[int] = ..., buffered: _Optional[int] = ...) -> None: ...
 
 class FuseRequest(_message.Message):
-    __slots__ = ("method", "voxel_size", "refine", "refine_iters", "seed", "contest_radius")
+    __slots__ = ("method", "voxel_size", "refine", "refine_iters", "seed", "contest_radius", "for_agent")
     METHOD_FIELD_NUMBER: _ClassVar[int]
     VOXEL_SIZE_FIELD_NUMBER: _ClassVar[int]
     REFINE_FIELD_NUMBER: _ClassVar[int]
     REFINE_ITERS_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     CONTEST_RADIUS_FIELD_NUMBER: _ClassVar[int]
+    FOR_AGENT_FIELD_NUMBER: _ClassVar[int]
     method: FuseMethod
     voxel_size: float
     refine: bool
     refine_iters: int
     seed: int
     contest_radius: int
-    def __init__(self, method: _Optional[_Union[FuseMethod, str]] = ..., voxel_size: _Optional[float] = ..., refine: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., seed: _Optional[int] = ..., contest_radius: _Optional[int] = ...) -> None: ...
+    for_agent: str
+    def __init__(self, method: _Optional[_Union[FuseMethod, str]] = ..., voxel_size: _Optional[float] = ..., refine: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., seed: _Optional[int] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ...) -> None: ...
 
 class AgentContribution(_message.Message):
     __slots__ = ("agent_id", "map_version", "received", "kept")
@@ -168,7 +170,7 @@ class AgentContribution(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., received: _Optional[int] = ..., kept: _Optional[int] = ...) -> None: ...
 
 class FuseResult(_message.Message):
-    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental", "contest_radius")
+    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental", "contest_radius", "for_agent")
     FUSED_VERSION_FIELD_NUMBER: _ClassVar[int]
     N_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
     SECONDS_FIELD_NUMBER: _ClassVar[int]
@@ -184,6 +186,7 @@ class FuseResult(_message.Message):
     AGENTS_REVOTED_FIELD_NUMBER: _ClassVar[int]
     INCREMENTAL_FIELD_NUMBER: _ClassVar[int]
     CONTEST_RADIUS_FIELD_NUMBER: _ClassVar[int]
+    FOR_AGENT_FIELD_NUMBER: _ClassVar[int]
     fused_version: int
     n_gaussians: int
     seconds: float
@@ -199,7 +202,8 @@ class FuseResult(_message.Message):
     agents_revoted: int
     incremental: bool
     contest_radius: int
-    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ..., vote_seconds: _Optional[float] = ..., agents_revoted: _Optional[int] = ..., incremental: _Optional[bool] = ..., contest_radius: _Optional[int] = ...) -> None: ...
+    for_agent: str
+    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ..., vote_seconds: _Optional[float] = ..., agents_revoted: _Optional[int] = ..., incremental: _Optional[bool] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ...) -> None: ...
 
 class FuseProgress(_message.Message):
     __slots__ = ("stage", "fraction", "message", "done", "result")

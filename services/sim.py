@@ -40,7 +40,15 @@ log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = REPO / "deploy" / "gausslite.yaml"
 AGENT_NAMES = ("agent_a", "agent_b")
-FUSED_KEYS = ("concat", "vote", "refine")
+FUSED_KEYS = ("concat", "vote", "for_robot", "refine")
+#: what each fused key is, for the report
+FUSED_HELP = {
+    "concat": "plain concatenation of the agents' ROI subsets",
+    "vote": "the team map: per-voxel κ vote (paper Sec. III-E)",
+    "for_robot": "the team map as each robot uses it (`Fuse(for_agent=…)`): its own subset whole, and the others' "
+                 "voted rows except those over its ROI; each task scored on the map made for its robot",
+    "refine": "vote + joint refinement over the uploaded keyframes",
+}
 
 
 @dataclass
@@ -365,30 +373,85 @@ class FusedTimeline:
             if not latest or latest == self.versions:
                 return False
             res = self.fusion.fuse("vote", voxel_size=self.voxel_size, contest_radius=self.contest_radius)
-            self.maps.append((t, dict(latest), self.fusion.download_fused(res.fused_version)))
+            maps = {"": self.fusion.download_fused(res.fused_version)}
+            for a in sorted(latest):  # the team map as each robot uses it
+                r = self.fusion.fuse("vote", voxel_size=self.voxel_size, contest_radius=self.contest_radius, for_agent=a)
+                maps[a] = self.fusion.download_fused(r.fused_version)
+            self.maps.append((t, dict(latest), maps))
             self.versions = latest
             return True
         except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
             log.warning("fused timeline: fuse at %.0f s failed: %s", t, e)
             return False
 
-    def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: int = 5) -> List[dict]:
-        """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}}]``: every fused map scored on
-        each task's ROI (every ``stride``-th frame of ``frames_by_task[task] = (dataset, frames)``)."""
+    def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: int = 5,
+               task_of: Optional[Dict[str, str]] = None) -> List[dict]:
+        """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}, "roi_psnr_for_robot": {task:
+        dB}}]``: every fused team map scored on each task's ROI (every ``stride``-th frame of ``frames_by_task[task] =
+        (dataset, frames)``), and each task on the map made for its robot (``task_of``: agent id → task id)."""
         from gausslite.evaluation import evaluate_fused
 
         out = []
-        for t, versions, arrays in self.maps:
-            g = arrays.to_gaussian_map()
-            out.append({"t": t, "versions": versions, "n_gaussians": len(arrays),
-                        "roi_psnr": {k: evaluate_fused(g, fr[::stride], ds.annotations, k, backend)
-                                     for k, (ds, fr) in frames_by_task.items()}})
+        for t, versions, maps in self.maps:
+            g = maps[""].to_gaussian_map()
+            row = {"t": t, "versions": versions, "n_gaussians": len(maps[""]),
+                   "roi_psnr": {k: evaluate_fused(g, fr[::stride], ds.annotations, k, backend)
+                                for k, (ds, fr) in frames_by_task.items()}, "roi_psnr_for_robot": {}}
+            for a, task in (task_of or {}).items():
+                if a in maps and task in frames_by_task:
+                    ds, fr = frames_by_task[task]
+                    row["roi_psnr_for_robot"][task] = evaluate_fused(maps[a].to_gaussian_map(), fr[::stride],
+                                                                     ds.annotations, task, backend)
+            out.append(row)
         return out
 
 
+def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict,
+                     backend: str = "auto", stride: int = 2) -> dict:
+    """What covers each robot's ROI in the team (vote) map (:func:`gausslite.fusion.diagnose.roi_cover`): the final
+    subsets are read from the fusion server's store in ``out/data/fusion`` and voted again with the sim's settings
+    (the same vote as the server's), and scored on every ``stride``-th frame of each robot's sequence with its task's
+    ground-truth ROI. Writes ``renders/cover_<task>.png`` (the others' blending weight in red, the ROI in green).
+
+    Returns:
+        agent id → the diagnosis (``mass``, ``foreign``, ``top_foreign`` (5), ``own_missing``) plus ``image``.
+    """
+    import cv2
+
+    from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
+    from gausslite.fusion.vote import voxel_vote
+    from gausslite.wire.codec import WireLimits, assemble
+    from services.fusion_server.store import SqliteFusionStore
+
+    store = SqliteFusionStore(out / "data" / "fusion")
+    try:
+        subsets = {a: assemble(store.chunk_data(a, v), WireLimits())[0] for a, v in store.latest_complete().items()}
+    finally:
+        store.close()
+    fused, rep = voxel_vote(subsets, fz["voxel_size"], contest_radius=fz["contest_radius"])
+    views = {}
+    for p in plans:
+        ds, frames = eval_frames[p.name]
+        vs = []
+        for fr in frames[::stride]:
+            roi = ds.annotations.roi_mask(p.task_id, fr.depth, fr.c2w, fr.intrinsics)
+            if roi.any():
+                vs.append(RoiView.from_frame(fr, roi))
+        views[p.name] = vs
+    cov = roi_cover(subsets, fused, rep.source_agent, rep.source_row, views, top=5, backend=backend)
+    agents = list(rep.agents)
+    for p in plans:
+        if p.name in cov and views[p.name]:
+            rel = f"renders/cover_{p.task_id}.png"
+            view = views[p.name][len(views[p.name]) // 2]
+            cv2.imwrite(str(out / rel), cover_image(fused, rep.source_agent != agents.index(p.name), view, backend))
+            cov[p.name]["image"] = rel
+    return cov
+
+
 def plot_fused_timeline(report: dict, path: Path) -> bool:
-    """PNG of the vote-fused map's ROI PSNR per task over the simulation's time, with each agent's own final ROI
-    PSNR as a dashed line. Returns False when there is nothing to plot."""
+    """PNG of the vote-fused team map's ROI PSNR per task over the simulation's time (dotted: on the team map as the
+    task's robot uses it), with each agent's own final ROI PSNR as a dashed line. Returns False when there is nothing to plot."""
     tl = report.get("fused_timeline") or []
     if not tl:
         return False
@@ -402,7 +465,11 @@ def plot_fused_timeline(report: dict, path: Path) -> bool:
         pts = [(e["t"], e["roi_psnr"].get(a["task"])) for e in tl if e["roi_psnr"].get(a["task"]) is not None]
         if not pts:
             continue
-        line, = ax.plot(*zip(*pts), "o-", ms=3, label=f"fused vote, {a['task']}")
+        line, = ax.plot(*zip(*pts), "o-", ms=3, label=f"team map, {a['task']}")
+        rp = [(e["t"], (e.get("roi_psnr_for_robot") or {}).get(a["task"])) for e in tl]
+        rp = [q for q in rp if q[1] is not None]
+        if rp:
+            ax.plot(*zip(*rp), "s:", ms=3, color=line.get_color(), label=f"team map for {a['id']}")
         own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
         if own is not None:
             ax.axhline(own, ls="--", lw=1, color=line.get_color(), label=f"{a['id']} own map (end)")
@@ -422,15 +489,47 @@ def _timeline_lines(report: dict) -> List[str]:
     if not tl:
         return []
     tasks = [a["task"] for a in report["agents"]]
+    robot = any(e.get("roi_psnr_for_robot") for e in tl)
     lines = ["", "## The fused map while mapping", "",
-             "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame:", "",
-             "| time (s) | subset versions | Gaussians | " + " | ".join(tasks) + " |", "|---|---|---|" + "---|" * len(tasks)]
+             "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame: the team "
+             "map" + (", and (→ robot) each task on the team map as its robot uses it (`Fuse(for_agent=…)`)" if robot
+                      else "") + ":", "",
+             "| time (s) | subset versions | Gaussians | " + " | ".join(tasks)
+             + ("".join(f" | {t} → robot" for t in tasks) if robot else "") + " |",
+             "|---|---|---|" + "---|" * (len(tasks) * (2 if robot else 1))]
     for e in tl:
         vs = ", ".join(f"{a} v{v}" for a, v in sorted(e["versions"].items()))
-        lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | "
-                     + " | ".join(_fmt(e["roi_psnr"].get(t)) for t in tasks) + " |")
+        cells = [_fmt(e["roi_psnr"].get(t)) for t in tasks]
+        if robot:
+            cells += [_fmt((e.get("roi_psnr_for_robot") or {}).get(t)) for t in tasks]
+        lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | " + " | ".join(cells) + " |")
     if report.get("fused_timeline_plot"):
         lines += ["", f"![fused ROI PSNR over time]({report['fused_timeline_plot']})"]
+    return lines
+
+
+def _cover_lines(report: dict) -> List[str]:
+    """Markdown of what covers each robot's ROI in the team map (:func:`roi_cover_report`)."""
+    cov = (report.get("fused") or {}).get("vote", {}).get("cover") or {}
+    if not cov:
+        return []
+    lines = ["", "## What covers each robot's ROI in the team map", "",
+             "Share of the ROI pixels' blending weight in the vote map drawn by the robot's own Gaussians, by the "
+             "other robots' Gaussians whose centre lies in their own task region or only in their context, and left "
+             "uncovered; the other robots' Gaussians over the ROI (weighted mean extent, share of their weight in front "
+             "of the ROI surface); and the robot's own rows the vote dropped, with the share of its subset's ROI "
+             "weight they carried (docs/sharing.md).", "",
+             "| robot | own | others, in their task region | others, context | uncovered | others' extent (m) | "
+             "others in front | own rows dropped | their ROI weight |", "|---|---|---|---|---|---|---|---|---|"]
+    for a, c in cov.items():
+        m, f, om = c["mass"], c["foreign"], c["own_missing"]
+        lines.append(f"| {a} | {m['own']:.2f} | {m['foreign_task']:.2f} | {m['foreign_context']:.2f} | "
+                     f"{m['uncovered']:.2f} | {_fmt(f.get('weighted_extent_m'))} | {_fmt(f.get('weight_in_front'))} | "
+                     f"{om['rows']} of {om['of']} | {_fmt(om.get('weight_share'))} |")
+    for a, c in cov.items():
+        if c.get("image"):
+            lines += ["", f"**{a}: the other robots' Gaussians over its ROI (red), ROI outline (green)**  ",
+                      f"![cover {a}]({c['image']})"]
     return lines
 
 
@@ -472,17 +571,23 @@ def write_markdown(report: dict, path: Path) -> None:
     lines += _live_lines(report)
     lines += _baseline_lines(report)
     lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
+              "Each cell: the fused map's ROI PSNR, and in brackets its difference to the robot's own map.", "",
               "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
               "|---|" + "---|" * (len(tasks) + 3)]
     for key in FUSED_KEYS:
-        f = report["fused"][key]
-        per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) for t in tasks)
+        f = report["fused"].get(key)
+        if f is None:
+            continue
+        mo = f.get("minus_own") or {}
+        per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) + (f" ({mo[t]:+.2f})" if mo.get(t) is not None else "")
+                         for t in tasks)
         lines.append(f"| {key} | {per} | {_fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {_fmt(f['seconds'])} |")
-    lines += ["", "`concat` = plain concatenation of the agents' ROI subsets; `vote` = per-voxel κ vote "
-              f"(δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood of radius "
-              f"{report['settings'].get('contest_radius', 0)} voxels); `refine` = vote + joint refinement "
-              f"({report['settings']['refine_iters']} iterations over the uploaded keyframes).", "",
-              "## Renders (render | ground truth | task ROI)", ""]
+    lines += [""] + [f"- `{k}`: {FUSED_HELP[k]}" for k in FUSED_KEYS if k in report["fused"]]
+    lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
+              f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
+              f"{report['settings']['refine_iters']} iterations."]
+    lines += _cover_lines(report)
+    lines += ["", "## Renders (render | ground truth | task ROI)", ""]
     for r in report.get("renders", []):
         lines.append(f"**{r['fused']} — {r['task']} (frame {r['frame_id']})**  ")
         lines.append(f"![{r['fused']} {r['task']}]({r['path']})")
@@ -628,12 +733,17 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         for key in FUSED_KEYS:
             method = "concat" if key == "concat" else "vote"
             log.info("fusing: %s", key)
-            res = fusion.fuse(method, refine=(key == "refine"), refine_iters=refine_iters, voxel_size=voxel,
-                              contest_radius=radius if method == "vote" else None,
-                              progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
-            gmap = fusion.download_fused(res.fused_version).to_gaussian_map()
-            per_task = {}
+            per_task, gmaps, res = {}, {}, None
+            for p in (plans if key == "for_robot" else [None]):
+                res = fusion.fuse(method, refine=(key == "refine"), refine_iters=refine_iters, voxel_size=voxel,
+                                  contest_radius=radius if method == "vote" else None,
+                                  for_agent=p.name if p is not None else None,
+                                  progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
+                g = fusion.download_fused(res.fused_version).to_gaussian_map()
+                for q in ([p] if p is not None else plans):
+                    gmaps[q.name] = g
             for p in plans:
+                gmap = gmaps[p.name]
                 ds, frames = eval_frames[p.name]
                 per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
                 mid = _roi_frame(frames, ds.annotations, p.task_id)
@@ -650,7 +760,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                           "fused_version": int(res.fused_version), "kept": dict(res.kept)}
             log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians,
                      {k: _fmt(v) for k, v in per_task.items()})
-        timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend)
+        timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
+                                  task_of={p.name: p.task_id for p in plans})
         agents_rep = []
         for p in plans:
             s = summaries[p.name]
@@ -690,6 +801,15 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters, "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+        own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr") for a in agents_rep}
+        for f in fused.values():
+            f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
+                              for t, v in f["roi_psnr_per_task"].items()}
+        if attach is None:
+            try:
+                fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
+            except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
+                log.warning("ROI cover diagnosis failed: %s", e)
         if context_report is not None:
             attach_context_baseline(report, json.loads(Path(context_report).read_text()))
         elif ((cfg.get("mapper") or {}).get("roi_render") or "context") == "context":

@@ -92,7 +92,8 @@ class FuseEngine:
     def fuse(self, versions: Mapping[str, int], maps: Mapping[str, GaussianArrays], method: str = "vote", *,
              voxel_size: float = 0.10, contest_radius: int = 0, refine_iters: int = 0,
              keyframes: Callable[[], Sequence] = lambda: (), seed: int = 0,
-             progress: Optional[StageFn] = None) -> FuseOutcome:
+             progress: Optional[StageFn] = None, for_agent: Optional[str] = None,
+             roi_views: Callable[[str], Sequence] = lambda agent: ()) -> FuseOutcome:
         """One fuse job.
 
         Args:
@@ -105,13 +106,21 @@ class FuseEngine:
                 refining).
             seed: refinement RNG seed.
             progress: ``(stage, fraction, message)`` callback; it may raise to stop the job.
+            for_agent: vote only: the team map as this agent uses it (:func:`gausslite.fusion.guard.for_robot`:
+                its whole subset, the others' voted rows except those drawing its ROI in ``roi_views(for_agent)``).
+            roi_views: agent id → its ROI views (the uploaded keyframes with their ROI; called only with
+                ``for_agent``).
 
         Returns:
             :class:`FuseOutcome`.
 
         Raises:
-            ValueError: unknown method, a refinement without keyframes, or a vote that cannot hold the maps.
+            ValueError: unknown method, a refinement without keyframes, a vote that cannot hold the maps, or
+                ``for_agent`` with concat or not among ``maps``.
         """
+        if for_agent is not None and (method != "vote" or for_agent not in maps):
+            raise ValueError(f"for_agent needs method 'vote' and an agent with a subset, got {method!r} / "
+                             f"{for_agent!r}")
         emit = progress or (lambda stage, fraction, message: None)
         t0 = time.monotonic()
         end = 0.3 if refine_iters else 0.8
@@ -122,6 +131,14 @@ class FuseEngine:
             out = FuseOutcome(fused, dict(report.kept), report, time.monotonic() - tv, revoted, incremental)
             emit(method, end, f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
                  + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
+            if for_agent is not None:
+                from gausslite.fusion.guard import for_robot
+
+                out.fused, st = for_robot(fused, report.source_agent, report.agents, for_agent, maps[for_agent],
+                                          list(roi_views(for_agent)))
+                out.kept = dict(st["kept"])
+                emit(method, end, f"for {for_agent}: its {st['own']} Gaussians, the others' {st['others_kept']} "
+                     f"kept and {st['others_dropped']} dropped over its ROI ({st['views']} ROI views)")
         elif method == "concat":
             fused = concat(maps)
             out = FuseOutcome(fused, {a: len(m) for a, m in maps.items()})

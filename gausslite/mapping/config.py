@@ -424,6 +424,16 @@ class MapperConfig(_Strict):
     roi_crop_pad: int = Field(
         8, ge=0, description="ROI phase: render only the ROI bounding box grown by this many pixels"
     )
+    roi_outside_alpha: float = Field(
+        0.0, ge=0, description="ROI phase: weight of a penalty on the rendered alpha of the crop's pixels outside the "
+        "ROI (grown by roi_outside_margin_px), added to Eq. 1, so that what the step fits draws its ROI and nothing "
+        "beside it. 0 = off (the mapper's own map: the background there is the map's). The share fine-tune "
+        "(gausslite.sharing.finetune_subset) sets it: a subset rendered alone must not spread over its neighbours in a "
+        "fused map (docs/sharing.md)"
+    )
+    roi_outside_margin_px: int = Field(
+        2, ge=0, description="roi_outside_alpha: pixels around the ROI left out of the penalty (its anti-aliased edge)"
+    )
     lambda_depth: float = Field(1.0, ge=0, description="λ_d in L = L1_c + λ_d L1_d + λ_s (1-SSIM)")
     lambda_ssim: float = Field(0.2, ge=0, description="λ_s")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)

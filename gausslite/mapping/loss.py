@@ -64,3 +64,34 @@ def photometric_loss(
             s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype), mask=mask)
     l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
+
+
+def outside_alpha(alpha: torch.Tensor, roi: torch.Tensor, margin_px: int = 2) -> torch.Tensor:
+    """Mean rendered alpha over the pixels outside the ROI grown by ``margin_px`` (a transparency penalty).
+
+    A Gaussian fitted on ROI pixels alone (paper Eq. 1 restricted to the ROI) is free to spread over the pixels
+    beside it; in a fused team map those belong to other robots' regions. This term makes what is fitted draw its
+    ROI and nothing around it (``MapperConfig.roi_outside_alpha``; ``docs/sharing.md``).
+
+    Args:
+        alpha: (H, W) float rendered alpha (``RenderOutput.alpha``), in [0, 1].
+        roi: (H, W) bool ROI pixels of the same view.
+        margin_px: pixels around the ROI that are not penalised (>= 0; its anti-aliased edge).
+
+    Returns:
+        scalar tensor; 0 (with a graph) when no pixel lies outside.
+
+    Raises:
+        ValueError: shapes differ or ``margin_px`` < 0.
+    """
+    if alpha.shape != roi.shape:
+        raise ValueError(f"alpha {tuple(alpha.shape)} and roi {tuple(roi.shape)} differ")
+    if margin_px < 0:
+        raise ValueError(f"margin_px must be >= 0, got {margin_px}")
+    grown = roi.to(alpha.device, torch.float32)[None, None]
+    if margin_px:
+        grown = torch.nn.functional.max_pool2d(grown, 2 * margin_px + 1, stride=1, padding=margin_px)
+    outside = grown[0, 0] < 0.5
+    if not bool(outside.any()):
+        return alpha.sum() * 0.0
+    return alpha[outside].mean()

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from gausslite.mapping.config import MapperConfig
-from gausslite.mapping.loss import photometric_loss
+from gausslite.mapping.loss import outside_alpha, photometric_loss
 from gausslite.mapping.memory import KeyframeStore
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner
@@ -125,6 +125,8 @@ class TrainStep:
             if view.ssim_stats is None:
                 view.ssim_stats = self.ssim_cache.get(cache_key)
         loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
+        if active_phase and cfg.roi_outside_alpha > 0 and view.roi is not None:
+            loss = loss + cfg.roi_outside_alpha * outside_alpha(out.alpha, view.roi, cfg.roi_outside_margin_px)
         if cache_key is not None and view.ssim_stats is not None:
             self.ssim_cache[cache_key] = view.ssim_stats
             self.ssim_cache.move_to_end(cache_key)

@@ -72,6 +72,10 @@ class AgentConfig(BaseModel):
             (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
             own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
             share a subset that renders the ROI on its own.
+        share_outside_alpha: ``share: task`` with fine-tuning: weight of the fine-tune's penalty on the subset's
+            alpha outside the ROI of each keyframe (``mapper.roi_outside_alpha`` of the fine-tune), so the subset draws
+            its ROI and nothing beside it, where other robots' regions lie in a fused map (0 = off;
+            ``docs/sharing.md``).
         pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
             priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md).
         share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
@@ -143,6 +147,7 @@ class AgentConfig(BaseModel):
     share_held_weight: float = Field(1.0, ge=1)
     share_finetune_iters: int = Field(200, ge=0)
     share_refresh: float = Field(0.05, ge=0, le=1)
+    share_outside_alpha: float = Field(0.0, ge=0)
     pusher_nice: int = Field(19, ge=0, le=19)
     share_worker: Literal["process", "thread"] = "process"
     push_every: int = Field(5, ge=1)

@@ -197,7 +197,8 @@ class ShareSession:
         # the mapper and runs at its priority, so a multi-threaded fine-tune would queue ahead of mapping work; the
         # worker process, at low priority, takes at most the one core mapping leaves idle
         fcfg = mapper_cfg.model_copy(
-            update={"performance": mapper_cfg.performance.model_copy(update={"render_threads": 1})})
+            update={"performance": mapper_cfg.performance.model_copy(update={"render_threads": 1}),
+                    "roi_outside_alpha": self.config.share_outside_alpha})
         out, st = self.call(_finetune, arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
                             self.config.share_refresh, fcfg, mapper_cfg.seed)
         log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "

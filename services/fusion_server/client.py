@@ -198,6 +198,7 @@ class FuseResult:
         method (str): "vote" or "concat". refined (bool), refine_iters (int), voxel_size (float, m),
         keyframes_used (int), bytes (int): size of the stored fused map.
         contest_radius (int): the vote's neighbourhood radius in voxels (0 for concat).
+        for_agent (str): the agent the map was made for (``fuse(for_agent=...)``; "" = the team map).
     """
 
     fused_version: int
@@ -213,6 +214,7 @@ class FuseResult:
     keyframes_used: int = 0
     bytes: int = 0
     contest_radius: int = 0
+    for_agent: str = ""
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -225,6 +227,7 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         method=_METHOD_NAMES.get(r.method, "vote"), refined=bool(r.refined),
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
         keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
+        for_agent=str(r.for_agent),
     )
 
 
@@ -493,7 +496,8 @@ class FusionClient:
 
     def fuse(self, method: str = "vote", *, refine: bool = False, refine_iters: int = 200,
              voxel_size: float = 0.10, progress: Optional[Callable[[float, str], None]] = None,
-             seed: int = 0, timeout_s: Optional[float] = None, contest_radius: Optional[int] = None) -> FuseResult:
+             seed: int = 0, timeout_s: Optional[float] = None, contest_radius: Optional[int] = None,
+             for_agent: Optional[str] = None) -> FuseResult:
         """Run a fusion on the server and wait for its result (not retried: each call makes a version).
 
         Args:
@@ -507,11 +511,15 @@ class FusionClient:
             timeout_s (float | None): deadline of the whole call (default ``max(600, 20·timeout_s)``).
             contest_radius (int | None): vote neighbourhood radius in voxels (0 = the paper's per-voxel
                 rule, :func:`gausslite.fusion.vote.voxel_vote`); None = the server's default.
+            for_agent (str | None): vote only: the team map as this agent uses it, its whole subset and the others'
+                voted rows except those that draw its ROI in its uploaded ROI keyframes
+                (:func:`gausslite.fusion.guard.for_robot`, ``docs/sharing.md``); None = the team map.
         Returns:
             FuseResult.
         Raises:
             ValueError: unknown method.
-            grpc.RpcError: FAILED_PRECONDITION (nothing uploaded / refine without keyframes),
+            grpc.RpcError: FAILED_PRECONDITION (nothing uploaded / refine without keyframes / ``for_agent`` without a
+            complete subset), NOT_FOUND (``for_agent`` unknown),
             INVALID_ARGUMENT, DEADLINE_EXCEEDED, ...; RuntimeError: the stream ended without a result.
         """
         if method not in _METHODS:
@@ -520,6 +528,8 @@ class FusionClient:
                                      refine_iters=int(refine_iters), seed=int(seed))
         if contest_radius is not None:
             req.contest_radius = int(contest_radius)
+        if for_agent:
+            req.for_agent = str(for_agent)
         t = timeout_s if timeout_s is not None else max(600.0, 20 * self.timeout_s)
         stream = self._stub.Fuse(req, timeout=t, metadata=self._metadata)
         try:

@@ -9,7 +9,7 @@ import math
 import queue
 import threading
 import time
-from typing import Dict, Optional
+from typing import Dict, List, Optional
 
 import grpc
 import numpy as np
@@ -333,6 +333,15 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if not latest:
             raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
                          "no agent has uploaded a complete subset yet; nothing to fuse")
+        for_agent = None
+        if request.for_agent:
+            for_agent = check_agent_id(request.for_agent)
+            if method != fusion_pb2.FUSE_METHOD_VOTE:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "for_agent needs method VOTE")
+            if for_agent not in latest:
+                raise Reject(grpc.StatusCode.NOT_FOUND if self.store.session(for_agent) is None
+                             else grpc.StatusCode.FAILED_PRECONDITION,
+                             f"agent {for_agent!r} has no complete subset on this server")
         if request.refine and self.store.keyframe_count() == 0:
             raise Reject(grpc.StatusCode.FAILED_PRECONDITION, "refine=true but no keyframes were uploaded")
 
@@ -341,7 +350,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         context.add_callback(cancel.set)
         worker = threading.Thread(target=self._fuse_work, name="gausslite-fuse", daemon=True,
                                   args=(latest, method, voxel, bool(request.refine), iters, int(request.seed),
-                                        events, cancel, radius))
+                                        events, cancel, radius, for_agent))
         self._workers.add(worker)
         worker.start()
         try:
@@ -369,7 +378,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             cancel.set()  # no-op when the work finished; stops it when the stream was closed early
 
     def _fuse_work(self, latest: Dict[str, int], method: int, voxel: float, refine: bool, iters: int,
-                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event, radius: int = 0) -> None:
+                   seed: int, events: "queue.Queue[tuple]", cancel: threading.Event, radius: int = 0,
+                   for_agent: Optional[str] = None) -> None:
         """Fuse worker (own thread): pushes ("progress"|"done"|"cancelled"|"error", payload) events."""
         stage = {"name": "load"}
 
@@ -398,7 +408,9 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 maps = {a: self._subset(a, v) for a, v in latest.items()}
                 out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel, contest_radius=radius,
                                         refine_iters=iters if refine else 0, keyframes=self._refine_keyframes,
-                                        seed=seed, progress=emit)
+                                        seed=seed, progress=emit, for_agent=for_agent,
+                                        roi_views=lambda a: [k for k in self._refine_keyframes([a])
+                                                             if k.roi is not None])
                 fused = out.fused
                 emit("store", 0.9, f"storing {len(fused)} Gaussians")
                 agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
@@ -410,7 +422,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                         method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
                         keyframes_used=out.keyframes_used, bytes=nbytes, created_unix=time.time(),
                         vote_seconds=out.vote_seconds, agents_revoted=out.agents_revoted, incremental=out.incremental,
-                        contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0).SerializeToString()
+                        contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0,
+                        for_agent=for_agent or "").SerializeToString()
 
                 if cancel.is_set() or self._shutdown.is_set():
                     raise Cancelled()
@@ -437,14 +450,15 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         finally:
             self._workers.discard(threading.current_thread())
 
-    def _refine_keyframes(self) -> list:
-        """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
+    def _refine_keyframes(self, agents: Optional[List[str]] = None) -> list:
+        """The stored keyframes of every agent (or of ``agents``), decoded for the refinement
+        (:class:`gausslite.mapping.views.Keyframe`)."""
         from gausslite.camera import Intrinsics
         from gausslite.datasets.base import Frame
         from gausslite.mapping.views import keyframe_from_frame
 
         kfs = []
-        for k in self.store.keyframes():
+        for k in self.store.keyframes(agents):
             what = f"stored keyframe {k.frame_id}"
             frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what), decode_depth(k.depth, k.depth_scale, what),
                           np.asarray(k.c2w, np.float64), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))

@@ -74,25 +74,28 @@ def test_teams_and_the_overlapping_view_team():
     assert shared
 
 
-def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2):
+def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.2, -0.2)):
     agents = [{"id": f"agent_{c}", "task": f"t{c}", "share_pct": share, "upload_ratio": upload,
                "bytes_per_gaussian": 12.0, "own_roi_psnr": own[i], "concat_roi_psnr": concat[i],
                "vote_roi_psnr": vote[i], "vote_r1_roi_psnr": vote[i] - 1, "refine_roi_psnr": refine[i],
-               "refine_long_roi_psnr": refine[i] + 0.5, "keyframes": 20, "iters_per_keyframe": 20.0,
+               "refine_long_roi_psnr": refine[i] + 0.5, "for_robot_roi_psnr": own[i] + robot[i], "keyframes": 20, "iters_per_keyframe": 20.0,
                "pushes": 2, "n_gaussians": 6000} for i, c in enumerate("ab")]
     return {"team": team, "run": run, "agents": agents}
 
 
 def test_summary_checks_the_goals_per_team():
     runs = [_run("tum_halves", r, own=(20, 22), concat=(19, 21), vote=(20.5, 22.5), refine=(21, 23)) for r in range(3)]
-    runs += [_run("tum", r, own=(20, 22), concat=(19, 21), vote=(18, 21.5), refine=(21, 21.9), share=12.0)
-             for r in range(3)]
+    runs += [_run("tum", r, own=(20, 22), concat=(19, 21), vote=(18, 21.5), refine=(21, 21.9), share=30.0,
+                  robot=(0.3, -1.0)) for r in range(3)]
     s = summarise(runs)
     h, t = s["tum_halves"], s["tum"]
-    assert h["goals"] == {"share_le_10pct": True, "upload_le_1.5x": True, "refine_ge_own": True,
-                          "refine_long_ge_own": True, "vote_ge_concat": True, "vote_ge_own": True}
+    assert h["goals"] == {"share_le_25pct": True, "upload_le_1.5x": True, "refine_ge_own": True,
+                          "refine_long_ge_own": True, "vote_ge_concat": True, "vote_ge_own": True,
+                          "for_robot_ge_own_minus_0.5": True}
+    assert h["agents"]["agent_b"]["for_robot_minus_own"] == pytest.approx(-0.2)
+    assert t["goals"]["for_robot_ge_own_minus_0.5"] is False  # agent_b: 1 dB below its own map
     assert h["agents"]["agent_a"]["vote_minus_own"] == pytest.approx(0.5)
-    assert t["goals"]["share_le_10pct"] is False and t["goals"]["vote_ge_concat"] is False
+    assert t["goals"]["share_le_25pct"] is False and t["goals"]["vote_ge_concat"] is False
     assert t["goals"]["refine_ge_own"] is False and "vote_ge_own" not in t["goals"]
     assert t["goals"]["refine_long_ge_own"] is True  # 21.5 / 22.4 against 20 / 22
     assert t["agents"]["agent_b"]["refine_minus_own"] == pytest.approx(-0.1)

@@ -166,6 +166,29 @@ def test_finetune_subset_fits_the_subset_alone_to_the_roi_and_keeps_rows_kappa_a
         finetune_subset(sub, [kf], iters=-1)
 
 
+def test_finetune_with_the_outside_penalty_keeps_the_subset_off_the_pixels_beside_its_roi():
+    """A subset fitted alone on its ROI spreads over the pixels beside it (nothing there is in its loss); with
+    ``roi_outside_alpha`` (the share fine-tune's ``agent.share_outside_alpha``) it draws the ROI and little else."""
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.render import rasterize
+    from gausslite.sharing import finetune_subset
+
+    kf, roi = _roi_keyframe(box=(24, 16, 40, 32))
+    xs, ys = np.meshgrid(np.linspace(-0.4, 0.4, 4), np.linspace(-0.4, 0.4, 4))  # wider than the ROI (±0.27 m)
+    sub = _map(np.stack([xs.ravel(), ys.ravel(), np.full(16, 2.0)], 1), [0.6] * 16, [0.12] * 16)
+    grown = torch.nn.functional.max_pool2d(torch.from_numpy(roi).float()[None, None], 5, 1, 2)[0, 0] > 0
+
+    def scores(g):
+        out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors, K=K, width=64, height=48,
+                        c2w=np.eye(4), background=torch.zeros(3))
+        return float(out.alpha[~grown].mean()), float((out.color - kf.rgb).abs()[torch.from_numpy(roi)].mean())
+
+    free = scores(finetune_subset(sub, [kf], iters=120, seed=0))
+    clipped = scores(finetune_subset(sub, [kf], iters=120, seed=0, cfg=MapperConfig(roi_outside_alpha=1.0)))
+    assert clipped[0] < 0.5 * free[0], (free, clipped)
+    assert clipped[1] < free[1] + 0.05, (free, clipped)  # the ROI itself is fitted as well
+
+
 def test_finetune_subset_decodes_compact_keyframes_one_draw_at_a_time(monkeypatch):
     """Compact (stored) keyframes give the same fit as their float forms, and each is decoded only when drawn:
     the fine-tune holds one float keyframe, not all of them (a share worker fine-tuning on 200 ROI keyframes

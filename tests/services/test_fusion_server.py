@@ -487,3 +487,49 @@ def test_keyframe_roi_is_validated_and_stored(server, client):
         code, msg = code_of(lambda m=m: stub.UploadKeyframes(iter([m]), timeout=5))
         assert code == grpc.StatusCode.INVALID_ARGUMENT and "roi_png" in msg, what
     assert server.store.keyframe_count("roi-agent") == 1
+
+
+def _splats(means, scale, kappa=5):
+    n = len(means)
+    return GaussianArrays(means=np.asarray(means, np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), np.log(scale), np.float32),
+                          opacity_logits=np.full(n, 3.0, np.float32), colors=np.full((n, 3), 0.5, np.float32),
+                          kappa=np.full(n, kappa, np.int64), active=np.ones(n, bool))
+
+
+def test_fuse_for_agent_keeps_its_whole_subset_and_drops_what_lies_over_its_roi(server, client):
+    """The team map as one robot uses it (docs/sharing.md): its subset whole, the others' voted rows except those
+    that draw its ROI in its uploaded ROI keyframes; and the errors of a bad ``for_agent``."""
+    xs = np.linspace(-0.5, -0.05, 6)
+    a = _splats([[x, y, 1.5] for x in xs for y in (-0.2, 0.0, 0.2)], 0.04)
+    # robot_b: its own region on the right, and one large splat in front of robot_a's region
+    b = GaussianArrays.concat([_splats([[x, 0.0, 1.5] for x in (0.3, 0.4, 0.5)], 0.04),
+                               _splats([[-0.3, 0.0, 1.2]], 0.3, kappa=50)])
+    client.open_session("robot_a", "find the cup", INTR)
+    client.open_session("robot_b", "find the desk", INTR)
+    client.open_session("robot_c", "idle", INTR)
+    client.upload_subset("robot_a", 1, a, full_map_gaussians=1000, quant=LOSSLESS)
+    client.upload_subset("robot_b", 1, b, full_map_gaussians=1000, quant=LOSSLESS)
+    roi_a = np.zeros((H, W), bool)
+    roi_a[:, : W // 2] = True
+    roi_b = ~roi_a
+    assert client.upload_keyframes("robot_a", [frame(i) for i in range(2)], rois=[roi_a, roi_a]) == 2
+    assert client.upload_keyframes("robot_b", [frame(5)], rois=[roi_b]) == 1
+    team = client.fuse("vote", voxel_size=0.1)
+    assert team.for_agent == "" and team.kept == {"robot_a": len(a), "robot_b": len(b)}  # nothing contested
+    ra = client.fuse("vote", voxel_size=0.1, for_agent="robot_a")
+    assert ra.for_agent == "robot_a" and ra.kept == {"robot_a": len(a), "robot_b": 3}
+    got = client.download_fused(ra.fused_version)
+    assert len(got) == len(a) + 3 and got.take(np.arange(len(a))).equals(a)
+    assert not np.isclose(got.means[:, 2], 1.2).any()  # the large splat over robot_a's ROI is gone
+    rb = client.fuse("vote", voxel_size=0.1, for_agent="robot_b")
+    assert rb.kept["robot_b"] == len(b)
+    # errors: unknown agent, an agent without a subset, concat, a malformed id
+    code, _ = code_of(lambda: client.fuse("vote", for_agent="robot_z"))
+    assert code == grpc.StatusCode.NOT_FOUND
+    code, msg = code_of(lambda: client.fuse("vote", for_agent="robot_c"))
+    assert code == grpc.StatusCode.FAILED_PRECONDITION and "robot_c" in msg
+    code, msg = code_of(lambda: client.fuse("concat", for_agent="robot_a"))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "VOTE" in msg
+    code, _ = code_of(lambda: client.fuse("vote", for_agent="bad id!"))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT

@@ -28,7 +28,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert 0 < a["n_shared"] < a["n_gaussians"]
         assert math.isclose(a["share_pct"], 100 * a["n_shared"] / a["n_gaussians"], rel_tol=1e-3)
         assert 0 < a["bytes_per_gaussian"] < 100
-    assert set(rep["fused"]) == {"concat", "vote", "refine"}
+    assert set(rep["fused"]) == {"concat", "vote", "for_robot", "refine"}
     shared = sum(a["n_shared"] for a in rep["agents"])
     assert rep["fused"]["concat"]["n_gaussians"] == shared
     assert rep["fused"]["vote"]["n_gaussians"] <= shared
@@ -54,6 +54,23 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert math.isclose(a["vote_minus_own_context"],
                             rep["fused"]["vote"]["roi_psnr_per_task"][a["task"]] - a["roi_psnr"])
     assert "vote − own context" in md
+    # each fused map's difference to the robot's own map; the team map made for each robot holds its whole subset
+    for k, f in rep["fused"].items():
+        for a in rep["agents"]:
+            assert math.isclose(f["minus_own"][a["task"]], f["roi_psnr_per_task"][a["task"]] - a["roi_psnr"])
+    assert set(rep["fused"]["for_robot"]["kept"]) == {"agent_a", "agent_b"}
+    # what covers each ROI in the team map: shares of the ROI weight that add up, and a picture per robot
+    cov = rep["fused"]["vote"]["cover"]
+    assert set(cov) == {"agent_a", "agent_b"}
+    for a, c in cov.items():
+        assert math.isclose(sum(c["mass"].values()), 1.0, abs_tol=1e-6)
+        assert 0 <= c["own_missing"]["rows"] <= c["own_missing"]["of"]
+        assert (tmp_path / "sim" / c["image"]).is_file()
+    assert "What covers each robot's ROI" in md
+    # the timeline scores each task on the team map made for its robot as well
+    assert rep["fused_timeline"] and all(set(e["roi_psnr_for_robot"]) <= {"synth-pick-object", "synth-find-chair"}
+                                         for e in rep["fused_timeline"])
+    assert any(e["roi_psnr_for_robot"] for e in rep["fused_timeline"])
     # own-map figure of a roi_render=context run of the same sim
     from services.sim import attach_context_baseline
 

@@ -1,0 +1,176 @@
+"""ROI guard: after the vote, no robot's Gaussian lies over another robot's task region in that robot's own views.
+
+The paper's vote (Sec. III-E) settles each voxel by κ, by where each Gaussian's *mean* lies. A Gaussian is not a
+point: one whose mean sits in a voxel no other agent holds can still extend, or project, over another agent's ROI,
+and then no contest ever removes it. Agents fine-tune their subsets to render their own ROI alone
+(:func:`gausslite.sharing.finetune_subset`), which leaves them free to spread over the pixels beside it; in a team
+whose task regions lie side by side those pixels are the neighbour's ROI (``docs/sharing.md``, "What spoils a
+robot's ROI").
+
+The guard uses what the fusion server already holds: each agent's uploaded keyframes with the ROI it mapped them
+with (``KeyframeRequest.roi_png``). In every agent's ROI views it renders the vote's map and takes each Gaussian's
+alpha-blending weight over that agent's ROI pixels (:func:`gausslite.render.blend_weights`), averaged per view:
+``W_a(i)``. A Gaussian i of agent b is dropped when, for some other agent a,
+
+    W_a(i) > max(W_b(i), min_weight)
+
+that is, when it draws another robot's task region in that robot's views more than it draws its own robot's task
+region in its own views. What it draws there, the owner's own subset draws: each subset is fine-tuned to render its
+ROI alone. A Gaussian shared by both tasks (regions that overlap, such as a keyboard both tasks include) stays with
+the robot it serves most, as in the vote. Agents without ROI keyframes on the server are not guarded, and their
+Gaussians have ``W_b = 0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from gausslite.wire.codec import GaussianArrays
+
+__all__ = ["GuardReport", "roi_weights", "roi_guard", "for_robot"]
+
+
+@dataclass(frozen=True)
+class GuardReport:
+    """Outcome of :func:`roi_guard`.
+
+    Attributes:
+        dropped: agent id → its Gaussians dropped (they lay over another agent's ROI).
+        views: agent id → ROI views used.
+        seconds: wall time.
+    """
+
+    dropped: dict
+    views: dict
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return {"dropped": dict(self.dropped), "views": dict(self.views), "seconds": self.seconds}
+
+
+def roi_weights(gaussians: GaussianArrays, views: Sequence, backend: str = "auto") -> np.ndarray:
+    """(N,) float64 alpha-blending weight of each Gaussian over the ROI pixels of ``views``, averaged per view.
+
+    Args:
+        gaussians: the map (world frame, metres).
+        views: ROI views, each with ``K`` (3, 3) pixels, ``width``, ``height``, ``c2w`` (4, 4) camera-to-world (OpenCV
+            axes) and ``roi`` (height, width) bool (arrays or CPU tensors, e.g. ``gausslite.mapping.views.Keyframe``);
+            views without ROI pixels are skipped.
+        backend: rasterizer backend.
+    """
+    from gausslite.render import blend_weights
+
+    out = np.zeros(len(gaussians), np.float64)
+    vs = [v for v in views if v.roi is not None and bool(np.asarray(v.roi).any())]
+    if not vs or len(gaussians) == 0:
+        return out
+    g = (torch.from_numpy(gaussians.means), torch.from_numpy(gaussians.quats), torch.from_numpy(gaussians.log_scales),
+         torch.from_numpy(gaussians.opacity_logits), torch.from_numpy(gaussians.colors))
+    for v in vs:
+        K = v.K.cpu().numpy() if hasattr(v.K, "cpu") else np.asarray(v.K)
+        c2w = v.c2w.cpu().numpy() if hasattr(v.c2w, "cpu") else np.asarray(v.c2w)
+        roi = torch.as_tensor(np.asarray(v.roi.cpu() if hasattr(v.roi, "cpu") else v.roi, bool))
+        out += blend_weights(*g, K=K, width=int(v.width), height=int(v.height), c2w=c2w, pixel_mask=roi,
+                             background=torch.zeros(3), backend=backend).double().numpy()
+    return out / len(vs)
+
+
+def roi_guard(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[str],
+              views: Mapping[str, Sequence], *, min_weight: float = 0.05, max_views: int = 16,
+              backend: str = "auto") -> tuple[np.ndarray, GuardReport]:
+    """Which rows of a vote's map to keep (module docstring).
+
+    Args:
+        fused: the vote's map (M rows).
+        source_agent: (M,) int, index into ``agents`` of each row's agent (``VoteReport.source_agent``).
+        agents: agent ids (``VoteReport.agents``).
+        views: agent id → its ROI views (as :func:`roi_weights`; the server's uploaded keyframes with their ROI).
+        min_weight: a Gaussian drawing less than this (pixels of blending weight per view) of another agent's ROI
+            is left alone (>= 0).
+        max_views: at most this many ROI views per agent, evenly spaced over its views (>= 1).
+        backend: rasterizer backend.
+
+    Returns:
+        (keep, report): (M,) bool rows to keep, and a :class:`GuardReport`.
+
+    Raises:
+        ValueError: ``source_agent`` of the wrong length or out of range, ``min_weight`` < 0 or ``max_views`` < 1.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    src = np.asarray(source_agent, np.int64).reshape(-1)
+    if len(src) != len(fused):
+        raise ValueError(f"source_agent has {len(src)} rows for a map of {len(fused)}")
+    if len(src) and (src.min() < 0 or src.max() >= len(agents)):
+        raise ValueError("source_agent points outside agents")
+    if min_weight < 0 or max_views < 1:
+        raise ValueError("min_weight must be >= 0 and max_views >= 1")
+    W = np.zeros((len(agents), len(fused)), np.float64)
+    used = {}
+    for i, a in enumerate(agents):
+        vs = [v for v in views.get(a, ()) if v.roi is not None and bool(np.asarray(v.roi).any())]
+        if len(vs) > max_views:
+            vs = [vs[int(k)] for k in np.linspace(0, len(vs) - 1, max_views).round()]
+        used[a] = len(vs)
+        if vs:
+            W[i] = roi_weights(fused, vs, backend)
+    own = W[src, np.arange(len(fused))] if len(fused) else np.zeros(0)
+    other = W.copy()
+    if len(fused):
+        other[src, np.arange(len(fused))] = 0.0
+    intrude = other.max(axis=0) if len(agents) else np.zeros(len(fused))
+    keep = ~(intrude > np.maximum(own, min_weight))
+    dropped = {a: int((~keep & (src == i)).sum()) for i, a in enumerate(agents)}
+    return keep, GuardReport(dropped, used, time.perf_counter() - t0)
+
+
+def for_robot(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[str], robot: str,
+              subset: GaussianArrays, views: Sequence, *, min_weight: float = 0.05, max_views: int = 16,
+              backend: str = "auto") -> tuple[GaussianArrays, dict]:
+    """The team map as one robot uses it: its own subset whole, and the team's vote wherever its ROI views do not
+    look (``docs/sharing.md``, "The team map for one robot").
+
+    Where task regions overlap in 3D (a desk that two tasks include), each robot's subset is fitted from its own
+    views only, and renders the overlap well from those views alone; any one selection of rows then serves one
+    robot's views and not the other's (measured in ``docs/sharing.md``). A robot that works on its task with the
+    team map needs its region as it mapped it, plus what the others add elsewhere: this map keeps every row of
+    ``subset`` (also those the vote dropped) and drops the other agents' rows that draw the robot's ROI pixels in its
+    views (per-view blending weight above ``min_weight``, :func:`roi_weights`).
+
+    Args:
+        fused, source_agent, agents: the vote's map and provenance (``VoteReport.source_agent`` / ``agents``).
+        robot: the robot's agent id (in ``agents``).
+        subset: that robot's shared subset as the server holds it (the vote's input).
+        views: its ROI views (as :func:`roi_weights`; the server's uploaded keyframes with their ROI), at most
+            ``max_views`` of them evenly spaced.
+        min_weight, backend: as :func:`roi_guard`.
+
+    Returns:
+        (map, stats): the robot's own rows first, then the others' kept rows in the vote's order; stats
+        ``{"own": rows, "others_kept", "others_dropped", "views", "kept": {agent id: rows in the map}}``.
+
+    Raises:
+        ValueError: ``robot`` not in ``agents``, or provenance of the wrong length.
+    """
+    if robot not in agents:
+        raise ValueError(f"unknown robot {robot!r}")
+    src = np.asarray(source_agent, np.int64).reshape(-1)
+    if len(src) != len(fused):
+        raise ValueError(f"source_agent has {len(src)} rows for a map of {len(fused)}")
+    i = list(agents).index(robot)
+    others = fused.take(src != i)
+    vs = [v for v in views if v.roi is not None and bool(np.asarray(v.roi).any())]
+    if len(vs) > max_views:
+        vs = [vs[int(k)] for k in np.linspace(0, len(vs) - 1, max_views).round()]
+    w = roi_weights(GaussianArrays.concat([subset, others]), vs, backend)[len(subset):]
+    keep = ~(w > min_weight)
+    out = GaussianArrays.concat([subset, others.take(keep)])
+    src_o = src[src != i]
+    kept = {a: (len(subset) if j == i else int((keep & (src_o == j)).sum())) for j, a in enumerate(agents)}
+    return out, {"own": len(subset), "others_kept": int(keep.sum()), "others_dropped": int((~keep).sum()),
+                 "views": len(vs), "kept": kept}

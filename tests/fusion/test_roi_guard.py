@@ -1,0 +1,106 @@
+"""ROI guard after the vote and the ROI cover diagnosis (gausslite.fusion.guard, gausslite.fusion.diagnose;
+docs/sharing.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
+from gausslite.fusion.guard import roi_guard, roi_weights
+from gausslite.fusion.vote import voxel_vote
+from gausslite.wire.codec import GaussianArrays
+
+K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+
+
+def _arrays(means, scales, opacity=0.95, kappa=5) -> GaussianArrays:
+    n = len(means)
+    return GaussianArrays(
+        means=np.asarray(means, np.float32), quats=np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1)),
+        log_scales=np.log(np.repeat(np.asarray(scales, np.float32)[:, None], 3, 1)),
+        opacity_logits=np.full(n, np.log(opacity / (1 - opacity)), np.float32),
+        colors=np.full((n, 3), 0.5, np.float32), kappa=np.full(n, kappa, np.int64), active=np.ones(n, bool))
+
+
+def _view(box, tx=0.0) -> RoiView:
+    """A 64x48 view from (tx, 0, 0) looking down +z; ROI = box (x0, y0, x1, y1); depth 2 m everywhere."""
+    roi = np.zeros((48, 64), bool)
+    x0, y0, x1, y1 = box
+    roi[y0:y1, x0:x1] = True
+    c2w = np.eye(4)
+    c2w[0, 3] = tx
+    return RoiView(K, 64, 48, c2w, roi, np.full((48, 64), 2.0, np.float32))
+
+
+def _team():
+    """agent_a: small Gaussians on its ROI (the image's left part at 2 m). agent_b: small Gaussians on its own ROI
+    (right part), plus one large splat centred beside a's region, in front of it, that spreads over a's ROI."""
+    a = _arrays([[-0.4, 0.0, 2.0], [-0.3, 0.0, 2.0], [-0.4, 0.1, 2.0]], [0.05, 0.05, 0.05])
+    b = _arrays([[0.4, 0.0, 2.0], [0.3, 0.0, 2.0], [-0.05, 0.0, 1.6]], [0.05, 0.05, 0.25])
+    views = {"agent_a": [_view((2, 10, 26, 38))], "agent_b": [_view((40, 10, 62, 38))]}
+    return {"agent_a": a, "agent_b": b}, views
+
+
+def test_guard_drops_a_foreign_splat_over_an_roi_and_keeps_every_owner_row():
+    subsets, views = _team()
+    fused, rep = voxel_vote(subsets, 0.10)
+    assert len(fused) == 6  # nothing contested: the vote keeps the large splat
+    w_a = roi_weights(fused, views["agent_a"])
+    big = int(np.nonzero((rep.source_agent == 1) & (rep.source_row == 2))[0][0])
+    assert w_a[big] > 1.0  # it draws more than a pixel of a's ROI
+    keep, gr = roi_guard(fused, rep.source_agent, rep.agents, views)
+    assert not keep[big] and keep.sum() == 5
+    assert gr.dropped == {"agent_a": 0, "agent_b": 1} and gr.views == {"agent_a": 1, "agent_b": 1}
+
+
+def test_guard_keeps_a_gaussian_that_serves_its_own_robot_more():
+    subsets, views = _team()
+    # agent_b's ROI now also covers the splat's centre: it draws b's ROI more than a's
+    views["agent_b"] = [_view((28, 10, 62, 38))]
+    fused, rep = voxel_vote(subsets, 0.10)
+    keep, gr = roi_guard(fused, rep.source_agent, rep.agents, views)
+    assert keep.all() and gr.dropped == {"agent_a": 0, "agent_b": 0}
+    # an agent without ROI views is not guarded and its rows serve nothing: b's splat goes again
+    keep, _ = roi_guard(fused, rep.source_agent, rep.agents, {"agent_a": views["agent_a"]})
+    assert keep.sum() == 5
+
+
+def test_guard_rejects_bad_inputs():
+    subsets, views = _team()
+    fused, rep = voxel_vote(subsets, 0.10)
+    with pytest.raises(ValueError):
+        roi_guard(fused, rep.source_agent[:-1], rep.agents, views)
+    with pytest.raises(ValueError):
+        roi_guard(fused, rep.source_agent + 5, rep.agents, views)
+    with pytest.raises(ValueError):
+        roi_guard(fused, rep.source_agent, rep.agents, views, max_views=0)
+
+
+def test_roi_cover_lists_the_foreign_splat_and_the_missing_own_rows():
+    subsets, views = _team()
+    fused, rep = voxel_vote(subsets, 0.10)
+    cov = roi_cover(subsets, fused, rep.source_agent, rep.source_row, views)
+    ca = cov["agent_a"]
+    m = ca["mass"]
+    assert m["foreign_task"] + m["foreign_context"] > 0.05 and m["own"] > 0.01
+    assert sum(m.values()) == pytest.approx(1.0, abs=1e-6)
+    top = ca["top_foreign"][0]
+    assert top["agent"] == "agent_b" and top["row"] == 2 and top["extent_m"] == pytest.approx(0.75, rel=1e-4)
+    assert top["depth_vs_roi_m"] < -0.3  # 40 cm in front of a's ROI surface
+    assert ca["foreign"]["weight_in_front"] > 0.9
+    assert ca["own_missing"] == {"rows": 0, "of": 3, "weight_share": 0.0}
+    # after the guard a's ROI is its own; rows the vote dropped are listed as missing with their weight
+    keep, _ = roi_guard(fused, rep.source_agent, rep.agents, views)
+    clean = roi_cover(subsets, fused.take(keep), rep.source_agent[keep], rep.source_row[keep], views)["agent_a"]
+    assert clean["mass"]["foreign_task"] + clean["mass"]["foreign_context"] < 1e-6
+    drop_a = (rep.source_agent == 0) & (rep.source_row == 0)
+    gone = roi_cover(subsets, fused.take(~drop_a), rep.source_agent[~drop_a], rep.source_row[~drop_a], views)
+    assert gone["agent_a"]["own_missing"]["rows"] == 1 and gone["agent_a"]["own_missing"]["weight_share"] > 0.1
+    img = cover_image(fused, rep.source_agent != 0, views["agent_a"][0])
+    assert img.shape == (48, 64, 3) and img.dtype == np.uint8
+    # the foreign splat shows in red over a's ROI
+    assert (img[24, 14, 2] > img[24, 14, 1])
+    with pytest.raises(ValueError):
+        roi_cover(subsets, fused, rep.source_agent[:-1], rep.source_row, views)
