@@ -104,3 +104,32 @@ def test_roi_cover_lists_the_foreign_splat_and_the_missing_own_rows():
     assert (img[24, 14, 2] > img[24, 14, 1])
     with pytest.raises(ValueError):
         roi_cover(subsets, fused, rep.source_agent[:-1], rep.source_row, views)
+
+
+def test_team_map_for_a_robot_keeps_its_roi_whatever_another_robot_shares():
+    """The timeline check: another robot's subset arriving leaves the robot's ROI, in the team map made for it, as it
+    was (its whole subset, nothing of the other's over its ROI), while the team vote map changes."""
+    from gausslite.fusion.guard import for_robot
+    from gausslite.render import rasterize
+
+    subsets, views = _team()
+    # agent_b also holds a row in a voxel of agent_a's (κ 50: it wins that voxel in the team vote)
+    b = GaussianArrays.concat([subsets["agent_b"], _arrays([[-0.4, 0.0, 2.02]], [0.05], kappa=50)])
+    v = views["agent_a"][0]
+    roi = torch.from_numpy(v.roi)
+
+    def roi_render(g):
+        out = rasterize(*(torch.from_numpy(x) for x in (g.means, g.quats, g.log_scales, g.opacity_logits, g.colors)),
+                        K=v.K, width=v.width, height=v.height, c2w=v.c2w, background=torch.zeros(3))
+        return out.color[roi]
+
+    alone, rep1 = voxel_vote({"agent_a": subsets["agent_a"]}, 0.10, contest_radius=1)
+    before, _ = for_robot(alone, rep1.source_agent, rep1.agents, "agent_a", subsets["agent_a"], views["agent_a"])
+    team, rep2 = voxel_vote({"agent_a": subsets["agent_a"], "agent_b": b}, 0.10, contest_radius=1)
+    assert rep2.dropped["agent_a"] > 0  # the team vote took rows of agent_a's region
+    after, st = for_robot(team, rep2.source_agent, rep2.agents, "agent_a", subsets["agent_a"], views["agent_a"])
+    assert st["own"] == len(subsets["agent_a"]) and st["others_dropped"] >= 2
+    assert float((roi_render(after) - roi_render(before)).abs().max()) < 1e-3
+    assert float((roi_render(team) - roi_render(before)).abs().max()) > 0.05
+    with pytest.raises(ValueError):
+        for_robot(team, rep2.source_agent, rep2.agents, "agent_z", subsets["agent_a"], views["agent_a"])
