@@ -5,11 +5,14 @@ and task ROI masks (8-bit PNG), encoded by the agents' clients and decoded by th
 
 from __future__ import annotations
 
+import struct
+from typing import Optional
+
 import cv2
 import numpy as np
 
 __all__ = ["DEFAULT_DEPTH_SCALE", "encode_depth_png", "encode_color_jpeg", "encode_color_png", "encode_roi_png",
-           "decode_color", "decode_roi", "decode_depth"]
+           "decode_color", "decode_roi", "decode_depth", "png_header", "jpeg_header", "image_size"]
 
 #: depth PNG units per metre (0.2 mm steps, up to 13.1 m); deeper frames get a coarser scale
 DEFAULT_DEPTH_SCALE = 5000.0
@@ -79,10 +82,68 @@ _JPEG_MAGIC = b"\xff\xd8\xff"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def decode_color(data: bytes, what: str) -> np.ndarray:
-    """Decode a JPEG/PNG colour image to (H, W, 3) uint8 RGB. Raises ValueError naming ``what``."""
+def png_header(data: bytes) -> Optional[tuple[int, int, int, int]]:
+    """(width, height, bit depth, colour type) of a PNG from its IHDR chunk, or None if not a PNG."""
+    if len(data) < 26 or data[:8] != _PNG_MAGIC or data[12:16] != b"IHDR":
+        return None
+    w, h = struct.unpack(">II", data[16:24])
+    return w, h, data[24], data[25]
+
+
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def jpeg_header(data: bytes) -> Optional[tuple[int, int, int, int]]:
+    """(width, height, precision, components) from a JPEG's start-of-frame segment, or None."""
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return None
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if marker in _SOF:
+            if i + 10 > n:
+                return None
+            prec, h, w, nc = struct.unpack(">BHHB", data[i + 4:i + 10])
+            return w, h, prec, nc
+        if marker == 0xDA or seg < 2:  # scan data before any frame header
+            return None
+        i += 2 + seg
+    return None
+
+
+def image_size(data: bytes) -> Optional[tuple[int, int]]:
+    """(height, width) a PNG or JPEG declares in its header, read without decoding; None without a readable one."""
+    h = png_header(data) or jpeg_header(data)
+    return None if h is None else (int(h[1]), int(h[0]))
+
+
+def _check_size(data: bytes, size: Optional[tuple], what: str, name: str) -> None:
+    """Compare the header's size with ``size`` (H, W) *before* decoding: a small file can declare a huge image
+    (a decompression bomb: a 1 MB PNG of 20000x20000 pixels decodes to 1.2 GB)."""
+    if size is None:
+        return
+    got = image_size(data)
+    if got is None:
+        raise ValueError(f"{what}: {name} has no readable image header")
+    if got != tuple(int(x) for x in size):
+        raise ValueError(f"{what}: {name} is {got[1]}x{got[0]}, expected {size[1]}x{size[0]}")
+
+
+def decode_color(data: bytes, what: str, size: Optional[tuple] = None) -> np.ndarray:
+    """Decode a JPEG/PNG colour image to (H, W, 3) uint8 RGB; with ``size`` (H, W) the header's size is checked
+    first, before anything is decoded. Raises ValueError naming ``what``."""
     if not (data.startswith(_JPEG_MAGIC) or data.startswith(_PNG_MAGIC)):
         raise ValueError(f"{what}: colour is neither JPEG nor PNG")
+    _check_size(data, size, what, "colour")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{what}: undecodable colour image")
@@ -94,6 +155,7 @@ def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
     ``(H, W)``. Raises ValueError naming ``what``."""
     if not data.startswith(_PNG_MAGIC):
         raise ValueError(f"{what}: roi_png is not a PNG")
+    _check_size(data, size, what, "roi_png")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.ndim != 2 or img.dtype != np.uint8:
         raise ValueError(f"{what}: roi_png must be a single-channel 8-bit PNG")
@@ -102,10 +164,12 @@ def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
     return img > 0
 
 
-def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
-    """Decode a 16-bit PNG depth image to (H, W) float32 metres. Raises ValueError naming ``what``."""
+def decode_depth(data: bytes, scale: float, what: str, size: Optional[tuple] = None) -> np.ndarray:
+    """Decode a 16-bit PNG depth image to (H, W) float32 metres; with ``size`` (H, W) the header's size is checked
+    first, before anything is decoded. Raises ValueError naming ``what``."""
     if not data.startswith(_PNG_MAGIC):
         raise ValueError(f"{what}: depth is not a PNG")
+    _check_size(data, size, what, "depth")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.ndim != 2 or img.dtype != np.uint16:
         raise ValueError(f"{what}: depth must be a single-channel 16-bit PNG")

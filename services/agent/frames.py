@@ -9,7 +9,6 @@ message naming the problem; the server maps it to ``INVALID_ARGUMENT``.
 from __future__ import annotations
 
 import math
-import struct
 from dataclasses import dataclass
 
 import cv2
@@ -17,6 +16,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.base import Frame
+from gausslite.wire.images import jpeg_header, png_header
 from gausslite_rpc import agent_pb2, common_pb2
 from services.common import convert
 from services.common.convert import intrinsics_to_proto
@@ -132,44 +132,6 @@ def decode_frame(msg: agent_pb2.FrameMsg) -> Frame:
                  c2w=c2w, intrinsics=intr, name=f"frame{fid:06d}")
 
 
-def _png_header(data: bytes):
-    """(width, height, bit depth, colour type) of a PNG from its IHDR chunk, or None if not a PNG."""
-    if len(data) < 26 or data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR":
-        return None
-    w, h = struct.unpack(">II", data[16:24])
-    return w, h, data[24], data[25]
-
-
-_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-
-
-def _jpeg_header(data: bytes):
-    """(width, height, precision, components) from a JPEG's start-of-frame segment, or None."""
-    if len(data) < 4 or data[:2] != b"\xff\xd8":
-        return None
-    i, n = 2, len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-            i += 2
-            continue
-        seg = struct.unpack(">H", data[i + 2:i + 4])[0]
-        if marker in _SOF:
-            if i + 10 > n:
-                return None
-            prec, h, w, nc = struct.unpack(">BHHB", data[i + 4:i + 10])
-            return w, h, prec, nc
-        if marker == 0xDA or seg < 2:  # scan data before any frame header
-            return None
-        i += 2 + seg
-    return None
-
-
 @dataclass
 class PendingFrame:
     """A validated, not yet decoded ``FrameMsg``: what keyframe selection needs (pose, intrinsics,
@@ -201,13 +163,13 @@ def validate_frame(msg: agent_pb2.FrameMsg) -> PendingFrame:
     """
     fid, intr, c2w = _check_meta(msg)
     W, H = intr.width, intr.height
-    png = _png_header(msg.color)
+    png = png_header(msg.color)
     if png is not None:
         cw, ch, bits, ctype = png
         if bits != 8 or ctype not in (2, 3, 6):
             raise FrameError(f"frame {fid}: colour must be 8-bit RGB, got a PNG of bit depth {bits} colour type {ctype}")
     else:
-        jpg = _jpeg_header(msg.color)
+        jpg = jpeg_header(msg.color)
         if jpg is None:
             raise FrameError(f"frame {fid}: colour bytes are not a decodable JPEG/PNG image")
         cw, ch, bits, nc = jpg
@@ -215,7 +177,7 @@ def validate_frame(msg: agent_pb2.FrameMsg) -> PendingFrame:
             raise FrameError(f"frame {fid}: colour must be 8-bit RGB, got a JPEG of {bits} bits x {nc} components")
     if (cw, ch) != (W, H):
         raise FrameError(f"frame {fid}: colour is {cw}x{ch}, intrinsics say {W}x{H}")
-    dh = _png_header(msg.depth)
+    dh = png_header(msg.depth)
     if dh is None:
         raise FrameError(f"frame {fid}: depth bytes are not a decodable PNG image")
     dw, dhh, dbits, dtype = dh

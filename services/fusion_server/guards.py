@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from typing import Optional
 
 import grpc
 import numpy as np
@@ -114,9 +115,10 @@ def intrinsics_from_proto(msg, what: str) -> Intrinsics:
         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: {e}") from None
 
 
-def decode_color(data: bytes, what: str) -> np.ndarray:
-    """:func:`gausslite.wire.images.decode_color`; raises Reject(INVALID_ARGUMENT)."""
-    return _image(images.decode_color, data, what)
+def decode_color(data: bytes, what: str, size: Optional[tuple] = None) -> np.ndarray:
+    """:func:`gausslite.wire.images.decode_color` (``size`` (H, W): checked from the header before decoding); raises
+    Reject(INVALID_ARGUMENT)."""
+    return _image(images.decode_color, data, what, size)
 
 
 def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
@@ -124,9 +126,10 @@ def decode_roi(data: bytes, size: tuple, what: str) -> np.ndarray:
     return _image(images.decode_roi, data, size, what)
 
 
-def decode_depth(data: bytes, scale: float, what: str) -> np.ndarray:
-    """:func:`gausslite.wire.images.decode_depth`; raises Reject(INVALID_ARGUMENT)."""
-    return _image(images.decode_depth, data, scale, what)
+def decode_depth(data: bytes, scale: float, what: str, size: Optional[tuple] = None) -> np.ndarray:
+    """:func:`gausslite.wire.images.decode_depth` (``size`` (H, W): checked from the header before decoding); raises
+    Reject(INVALID_ARGUMENT)."""
+    return _image(images.decode_depth, data, scale, what, size)
 
 
 def _image(fn, *args):

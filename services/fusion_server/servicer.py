@@ -291,13 +291,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             scale = float(msg.depth_scale)
             if not (math.isfinite(scale) and scale > 0):
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth_scale must be finite and > 0")
-            rgb = decode_color(msg.color, what)
-            depth = decode_depth(msg.depth_png, scale, what)
             size = (int(k.height), int(k.width))
-            if rgb.shape[:2] != size or depth.shape != size:
-                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                             f"{what}: colour {rgb.shape[1]}x{rgb.shape[0]} / depth {depth.shape[1]}x{depth.shape[0]}"
-                             f" do not match the intrinsics' {size[1]}x{size[0]}")
+            # sizes from the headers first: a small file may declare a huge image (decompression bomb)
+            decode_color(msg.color, what, size)
+            decode_depth(msg.depth_png, scale, what, size)
             if msg.roi_png:
                 decode_roi(msg.roi_png, size, what)
             new, ev = self.store.put_keyframe(

@@ -489,6 +489,48 @@ def test_keyframe_roi_is_validated_and_stored(server, client):
     assert server.store.keyframe_count("roi-agent") == 1
 
 
+def _png_bomb(width: int, height: int, color_type: int = 2, bits: int = 8) -> bytes:
+    """A PNG whose header declares ``width`` x ``height`` (its data is a stub): what a decompression bomb shows
+    before it is decoded."""
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", width, height, bits, color_type, 0, 0, 0)
+    chunk = lambda t, d: struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))  # noqa: E731
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+
+
+def test_keyframe_images_are_checked_against_the_intrinsics_before_they_are_decoded(server, client, monkeypatch):
+    """A small file can declare a huge image: a 1.17 MB PNG of 20000x20000 pixels decodes to 1.2 GB. The server reads
+    the sizes from the headers and rejects a mismatch without decoding anything (INVALID_ARGUMENT)."""
+    import cv2
+
+    from gausslite.wire import images
+
+    _, stub, _ = stub_of(server)
+    client.open_session("bomb-agent", "find the cup", INTR)
+    decoded = []
+    real = cv2.imdecode
+    monkeypatch.setattr(images.cv2, "imdecode", lambda *a: decoded.append(1) or real(*a))
+    colour = keyframe_to_proto("bomb-agent", frame(0))
+    colour.color = _png_bomb(20000, 20000)
+    depth = keyframe_to_proto("bomb-agent", frame(1))
+    depth.depth_png = _png_bomb(20000, 20000, color_type=0, bits=16)
+    roi = keyframe_to_proto("bomb-agent", frame(2))
+    roi.roi_png = _png_bomb(20000, 20000, color_type=0)
+    headless = keyframe_to_proto("bomb-agent", frame(3))
+    headless.color = b"\xff\xd8\xff\xd9"  # a JPEG without a frame header
+    for what, m in {"colour": colour, "depth": depth, "roi_png": roi, "headless": headless}.items():
+        n = len(decoded)
+        code, msg = code_of(lambda m=m: stub.UploadKeyframes(iter([m]), timeout=5))
+        assert code == grpc.StatusCode.INVALID_ARGUMENT, what
+        assert ("20000x20000" in msg) or ("header" in msg), (what, msg)
+        # the oversized image is never decoded: only the valid images before it (colour, then depth, then roi)
+        assert len(decoded) - n == {"colour": 0, "depth": 1, "roi_png": 2, "headless": 0}[what], what
+    assert server.store.keyframe_count("bomb-agent") == 0
+    assert client.upload_keyframes("bomb-agent", [frame(4)]) == 1  # a valid one still goes in
+
+
 def _splats(means, scale, kappa=5):
     n = len(means)
     return GaussianArrays(means=np.asarray(means, np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
