@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import grpc
 
@@ -73,6 +73,11 @@ def _abort(context, method: str, code: grpc.StatusCode, message: str) -> None:
     log.warning("rejected %s from %s: %s: %s", method, context.peer(), code.name, message)
     context.abort(code, message)
 
+
+class CallerNotAllowed(Exception):
+    """A ``StartMission`` asked for what only the agent's configuration decides (PERMISSION_DENIED)."""
+
+
 _STATES = {
     "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
     "REPLAY_DONE": agent_pb2.MISSION_STATE_REPLAY_DONE,
@@ -90,6 +95,10 @@ class AgentSettings:
         agent_id (str): id on the fusion server.
         parser_address (str): parser service ``host:port``; empty → in-process rule parser.
         fusion_address (str): fusion server ``host:port``; empty → no pushes (local mapping only).
+        fusion_allow (tuple[str, ...]): other fusion servers a ``StartMission`` may name (``fusion_address`` of the
+            request). The agent sends its fusion token and client certificate to the server it pushes to, so it
+            never pushes to an address a caller picks: one not configured here is PERMISSION_DENIED
+            (``docs/security.md``).
         token (str | None): bearer token sent to the parser service, and to the fusion server unless
             a per-agent fusion token is set (the fleet token: team-wide mode).
         fusion_token (str | None): this robot's own token for the fusion server (per-robot identity:
@@ -112,6 +121,7 @@ class AgentSettings:
     agent_id: str = "agent"
     parser_address: str = ""
     fusion_address: str = ""
+    fusion_allow: Tuple[str, ...] = ()
     token: Optional[str] = None
     fusion_token: Optional[str] = None
     fusion_token_file: Optional[str] = None
@@ -217,6 +227,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
         Raises:
             ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id.
+            CallerNotAllowed: a ``fusion_address`` or ``agent_id`` other than the configured ones
+                (:meth:`_check_caller_choices`).
             MissionError: another mission is still mapping; ``mission_id`` already used in this process;
                 the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
@@ -231,6 +243,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         if agent_id and not _valid_id(agent_id):
             raise ValueError(f"agent_id {agent_id[:80]!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
+        self._check_caller_choices(fusion_address, agent_id)
         with self._lock:
             if mission_id and mission_id in self.missions:
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
@@ -296,6 +309,22 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             except Exception as e:
                 log.error("agent %s: auto finish failed: %s", rt.agent_id, e)
 
+    def _check_caller_choices(self, fusion_address: str, agent_id: str) -> None:
+        """A caller of ``StartMission`` picks neither where the agent's credentials go nor whose they are.
+
+        Raises:
+            CallerNotAllowed: ``fusion_address`` is neither the configured fusion server nor in
+                ``AgentSettings.fusion_allow``; ``agent_id`` differs from the configured one (the identity its fusion
+                token and certificate stand for).
+        """
+        s = self.settings
+        if fusion_address and fusion_address != s.fusion_address and fusion_address not in s.fusion_allow:
+            raise CallerNotAllowed(f"fusion_address {fusion_address[:200]!r} is not a fusion server this agent is "
+                                   "configured for (GAUSSLITE_FUSION_ADDR, or GAUSSLITE_FUSION_ALLOW)")
+        if agent_id and agent_id != s.agent_id:
+            raise CallerNotAllowed(f"agent_id {agent_id[:80]!r}: this agent is {s.agent_id!r} (its fusion identity "
+                                   "is configured, not chosen per mission)")
+
     # ------------------------------------------------------------------ RPCs
     def StartMission(self, request, context):  # noqa: N802
         try:
@@ -303,6 +332,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                                     annotations_path=request.annotations_path,
                                     fusion_address=request.fusion_address, agent_id=request.agent_id,
                                     mission_id=request.mission_id)
+        except CallerNotAllowed as e:
+            _abort(context, "StartMission", grpc.StatusCode.PERMISSION_DENIED, str(e))
         except (FileNotFoundError, KeyError) as e:
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    str(e.args[0] if isinstance(e, KeyError) else e))
@@ -493,6 +524,7 @@ ENV = {
     "agent_id": "GAUSSLITE_AGENT_ID",
     "parser_address": "GAUSSLITE_PARSER_ADDR",
     "fusion_address": "GAUSSLITE_FUSION_ADDR",
+    "fusion_allow": "GAUSSLITE_FUSION_ALLOW",
     "data_dir": "GAUSSLITE_DATA_DIR",
     "dataset": "GAUSSLITE_AGENT_DATASET",
     "task": "GAUSSLITE_AGENT_TASK",
@@ -521,6 +553,8 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
     overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
     kw = {k: env.get(v) or None for k, v in ENV.items()}
     kw = {k: v for k, v in kw.items() if v is not None}
+    if "fusion_allow" in kw:  # comma-separated host:port list
+        kw["fusion_allow"] = tuple(a.strip() for a in kw["fusion_allow"].split(",") if a.strip())
     if kw.get("fusion_token_file"):
         read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
     if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):

@@ -264,3 +264,67 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
             rt.close()
         finally:
             ag.stop(0)
+
+
+class _Recorder(grpc.GenericRpcHandler):
+    """A stand-in fusion server that records the metadata of every call it gets (and answers UNIMPLEMENTED)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def service(self, handler_call_details):
+        self.calls.append((handler_call_details.method, dict(handler_call_details.invocation_metadata)))
+        return None
+
+
+def test_a_caller_cannot_send_the_agents_fusion_credentials_elsewhere(scene, parser_server, tmp_path):
+    """StartMission names neither the fusion server the agent's token and certificate go to, nor whose they are:
+    anything but the configured server (or one in ``fusion_allow``) and the configured id is PERMISSION_DENIED, and
+    the address a caller named never hears from the agent."""
+    from concurrent import futures
+
+    rec = _Recorder()
+    rec_srv = grpc.server(futures.ThreadPoolExecutor(max_workers=2), handlers=[rec])
+    rec_port = rec_srv.add_insecure_port("127.0.0.1:0")
+    rec_srv.start()
+    recorder = f"127.0.0.1:{rec_port}"
+    fusion = _fusion(tmp_path / "fusion")
+    settings = dict(agent_id="robot1", parser_address=parser_server.address, fusion_address=fusion.address,
+                    fusion_token="robot1-secret", annotations_path=str(scene), config=load_agent_config(None, TINY))
+    agent = serve_agent(ServerOptions(port=0), AgentSettings(**settings))
+    try:
+        c = AgentClient(agent.address)
+        c.wait_ready(10)
+        for kw in ({"fusion_address": recorder}, {"agent_id": "robot2"}, {"fusion_address": recorder, "agent_id": "x"}):
+            with pytest.raises(grpc.RpcError) as e:
+                c.start_mission("Prepare to pick up the object on the desk", **kw)
+            assert _code(e) == grpc.StatusCode.PERMISSION_DENIED, kw
+        time.sleep(0.5)
+        assert rec.calls == []  # not a single call, so no token and no certificate
+        # the configured server (named or not) and the configured id are accepted
+        m = c.start_mission("Prepare to pick up the object on the desk", fusion_address=fusion.address,
+                            agent_id="robot1")
+        assert m.agent_id == "robot1"
+        c.close()
+    finally:
+        agent.stop(0)
+    # an address in the allow-list is accepted (and gets the agent's credentials, as configured)
+    agent = serve_agent(ServerOptions(port=0), AgentSettings(**settings, fusion_allow=(recorder,)))
+    try:
+        c = AgentClient(agent.address)
+        c.wait_ready(10)
+        m = c.start_mission("Prepare to pick up the object on the desk", fusion_address=recorder)
+        assert m.mission_id
+        c.close()
+    finally:
+        agent.stop(0)
+        fusion.stop(0)
+        rec_srv.stop(0)
+
+
+def test_fusion_allow_list_from_the_environment():
+    from services.agent.server import settings_from_env
+
+    s = settings_from_env(None, env={"GAUSSLITE_FUSION_ADDR": "h:1", "GAUSSLITE_FUSION_ALLOW": "h:2, h:3,"})
+    assert s.fusion_address == "h:1" and s.fusion_allow == ("h:2", "h:3")
+    assert settings_from_env(None, env={}).fusion_allow == ()
