@@ -452,7 +452,8 @@ class Authenticator:
             Principal: the caller.
         Raises:
             AuthError: ``UNAUTHENTICATED``: no credential although one is required, a malformed or
-                unknown (or revoked) token, or a token and a client certificate naming different agents.
+                unknown (or revoked) token, a token and a client certificate naming different agents, or (with
+                per-agent tokens) a client certificate of an agent absent from the token file (revoked).
         """
         if not self.enabled:
             return OPEN
@@ -479,6 +480,12 @@ class Authenticator:
                                 f"the bearer token names agent {token_principal.agent_id!r}, the client "
                                 f"certificate {cert_agent!r}")
             if cert_agent is not None:
+                # with per-agent tokens the token file is the roster: an agent revoked there (absent from it) is
+                # refused with its certificate too, so a revocation holds for either credential
+                if self.agent_tokens is not None and cert_agent not in self.agent_tokens.agents():
+                    raise AuthError(grpc.StatusCode.UNAUTHENTICATED,
+                                    f"agent {cert_agent!r} is revoked (not in the token file); its client "
+                                    "certificate is refused too")
                 return Principal(cert_agent, "mtls")
             if token_principal is not None:
                 return token_principal

@@ -142,6 +142,12 @@ def test_mtls_together_with_per_agent_tokens(tmp_path, pki):
         # a certificate that names no agent plus robot-b's token: robot-b
         with fusion_client(srv.port, ca, pki["viewer"], token=tok["robot-b"]) as c:
             c.open_session("robot-b", "find the desk", INTR)
+        # revoking robot-a in the token file refuses it with either credential: token, certificate, or both
+        assert auth.revoke_token(path, "robot-a")
+        for t in (None, tok["robot-a"]):
+            assert stats_code(srv.port, ca, a_cert, t) == grpc.StatusCode.UNAUTHENTICATED, t
+        assert stats_code(srv.port, ca, pki["viewer"], tok["robot-a"]) == grpc.StatusCode.UNAUTHENTICATED
+        assert stats_code(srv.port, ca, pki["viewer"], tok["robot-b"]) == grpc.StatusCode.OK  # the others still work
     finally:
         srv.stop(0.5)
 
