@@ -17,6 +17,7 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.config import FusionSettings
 from gausslite.fusion.engine import FuseEngine
+from gausslite.fusion.plausible import check_plausible
 from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler, WireError,
                                   WireLimits, apply_delta, assemble, decode_chunk, encode_subset, peek_header)
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
@@ -242,6 +243,11 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 dc = decode_chunk(data, self.limits)
             except WireError as e:
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {type(e).__name__}: {e}") from None
+            try:
+                c = self.config
+                check_plausible(dc.arrays, c.max_abs_mean_m, c.max_scale_m, c.max_abs_opacity_logit)
+            except ValueError as e:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {e}") from None
             try:
                 new, _ = self.store.put_chunk(agent, version, idx, bytes(data), dc.digest, hdr.count,
                                               hdr.total_count, hdr.lossless, defer_complete=hdr.delta)

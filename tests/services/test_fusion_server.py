@@ -575,3 +575,38 @@ def test_fuse_for_agent_keeps_its_whole_subset_and_drops_what_lies_over_its_roi(
     assert code == grpc.StatusCode.INVALID_ARGUMENT and "VOTE" in msg
     code, _ = code_of(lambda: client.fuse("vote", for_agent="bad id!"))
     assert code == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_absurd_gaussians_are_refused_and_the_bounds_are_configurable(tmp_path):
+    """Finite but absurd values (a 1 km splat, a mean 100 km away, an opacity logit of 1e6) would spoil every fused
+    map: the server refuses them with INVALID_ARGUMENT and keeps nothing of the upload."""
+    from gausslite.config import FusionSettings
+
+    srv = start(tmp_path)
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+            c.wait_ready(10)
+            c.open_session("robot_p", "find the cup", INTR)
+            good = _splats([[0.0, 0.0, 1.5], [0.1, 0.0, 1.5]], 0.05)
+            for what, bad in {"scale": _splats([[0.0, 0.0, 1.5]], 1000.0),
+                              "mean": _splats([[1.0e5, 0.0, 1.5]], 0.05)}.items():
+                code, msg = code_of(lambda bad=bad: c.upload_subset("robot_p", 1, GaussianArrays.concat([good, bad]),
+                                                                   full_map_gaussians=10, quant=LOSSLESS))
+                assert code == grpc.StatusCode.INVALID_ARGUMENT and what in msg and "bound" in msg, (what, msg)
+            logit = _splats([[0.0, 0.0, 1.5]], 0.05)
+            logit.opacity_logits[:] = 1e6
+            code, msg = code_of(lambda: c.upload_subset("robot_p", 1, logit, full_map_gaussians=10, quant=LOSSLESS))
+            assert code == grpc.StatusCode.INVALID_ARGUMENT and "opacity" in msg
+            assert c.stats()["agents"]["robot_p"]["latest_map_version"] in (0, None)
+            assert c.upload_subset("robot_p", 1, good, full_map_gaussians=10, quant=LOSSLESS).complete
+    finally:
+        srv.stop(0.5)
+    srv = start(tmp_path, name="wide", config=FusionSettings(max_scale_m=2000.0))
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+            c.wait_ready(10)
+            c.open_session("robot_p", "find the cup", INTR)
+            assert c.upload_subset("robot_p", 1, _splats([[0.0, 0.0, 1.5]], 1000.0), full_map_gaussians=10,
+                                   quant=LOSSLESS).complete
+    finally:
+        srv.stop(0.5)
