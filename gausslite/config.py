@@ -90,6 +90,9 @@ class FusionSettings(BaseModel):
         default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
         max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
         refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``max_gaussians``).
+        fused_keep_per_method (int): fused maps kept per fuse method (vote, concat), newest first: every ``Fuse``
+            stores a map, so older ones are deleted (``DownloadFused`` of one is NOT_FOUND) and ``GetStats``, which
+            lists the fused maps held, stays bounded.
         max_abs_mean_m (float), max_scale_m (float), max_abs_opacity_logit (float): plausibility bounds of pushed
             Gaussians (:func:`gausslite.fusion.check_plausible`): a mean farther than this from the map origin on any
             axis, a standard deviation above this on any axis, an opacity logit beyond ± this; an upload carrying one
@@ -110,6 +113,7 @@ class FusionSettings(BaseModel):
     default_refine_iters: int = Field(200, ge=0)
     max_refine_iters: int = Field(20000, ge=0)
     refine_options: dict = Field(default_factory=dict)
+    fused_keep_per_method: int = Field(32, ge=1)
     max_abs_mean_m: float = Field(1.0e4, gt=0)
     max_scale_m: float = Field(10.0, gt=0)
     max_abs_opacity_logit: float = Field(30.0, gt=0)

@@ -431,7 +431,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 if cancel.is_set() or self._shutdown.is_set():
                     raise Cancelled()
                 version = self.store.put_fused(
-                    info, method, lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
+                    info, method, keep=self.config.fused_keep_per_method,
+                    chunks_fn=lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
                                                           quant=LOSSLESS))
                 result = fusion_pb2.FuseResult.FromString(self.store.fused_info(version)[1])
                 log.info("fused version %d: %s, %d Gaussians, refine=%s, %.2fs", version, _METHOD_NAMES[method],

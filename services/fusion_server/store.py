@@ -510,8 +510,10 @@ class SqlFusionStore:
                 for r in rows]
 
     # ------------------------------------------------------------------ fused maps
-    def put_fused(self, info_fn, method: int, chunks_fn) -> int:
-        """Persist a fused map atomically (one transaction) and return its new version (1, 2, ...).
+    def put_fused(self, info_fn, method: int, chunks_fn, keep: int = 0) -> int:
+        """Persist a fused map atomically (one transaction) and return its new version (1, 2, ...); with ``keep``
+        > 0, only the newest ``keep`` fused maps of ``method`` are kept (older ones are deleted in the same
+        transaction: a retention bound, so repeated Fuse calls cannot fill the disk).
 
         The version is allocated by the database (AUTOINCREMENT / identity column) under a
         database-wide lock held to the commit, so versions become visible in increasing order on
@@ -531,6 +533,12 @@ class SqlFusionStore:
                        (info_fn(version, sum(len(c) for c in chunks)), len(chunks), version))
             db.executemany("INSERT INTO fused_chunks VALUES (?,?,?)",
                            [(version, i, bytes(c)) for i, c in enumerate(chunks)])
+            if keep > 0:
+                old = [(int(r[0]),) for r in db.execute(
+                    "SELECT version FROM fused WHERE method=? ORDER BY version DESC", (method,)).fetchall()[keep:]]
+                if old:
+                    db.executemany("DELETE FROM fused_chunks WHERE version=?", old)
+                    db.executemany("DELETE FROM fused WHERE version=?", old)
             return version
 
     def fused_info(self, version: int = 0, method: int = 0) -> Optional[Tuple[int, bytes, int]]:

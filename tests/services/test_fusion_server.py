@@ -610,3 +610,29 @@ def test_absurd_gaussians_are_refused_and_the_bounds_are_configurable(tmp_path):
                                    quant=LOSSLESS).complete
     finally:
         srv.stop(0.5)
+
+
+def test_fused_maps_are_kept_up_to_the_retention_bound(tmp_path):
+    """Every Fuse stores a map; a read-only caller fusing in a loop must not fill the disk or grow GetStats without
+    bound: only the newest ``fused_keep_per_method`` maps of each method are kept."""
+    from gausslite.config import FusionSettings
+
+    srv = start(tmp_path, config=FusionSettings(fused_keep_per_method=3))
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+            c.wait_ready(10)
+            c.open_session("robot_r", "find the cup", INTR)
+            c.upload_subset("robot_r", 1, rand_subset(200, 0.0, 3), full_map_gaussians=1000)
+            versions = [c.fuse("concat").fused_version for _ in range(8)]
+            vote = c.fuse("vote").fused_version
+            st = c.stats()
+            held = sorted(f["fused_version"] for f in st["fused"])
+            assert held == versions[-3:] + [vote]
+            code, _ = code_of(lambda: c.download_fused(versions[0]))
+            assert code == grpc.StatusCode.NOT_FOUND
+            assert len(c.download_fused(versions[-1])) == 200
+            assert len(c.download_fused(0, method="concat")) == 200
+        rows = srv.store._conn().execute("SELECT COUNT(DISTINCT version) FROM fused_chunks").fetchone()[0]
+        assert rows == 4
+    finally:
+        srv.stop(0.5)
