@@ -69,6 +69,11 @@ class ServerOptions:
         auth_exempt (tuple[str, ...]): method-name prefixes that need no token.
         metrics_port (int | None): Prometheus ``/metrics`` HTTP port on ``host``; None = off, 0 = an
             ephemeral port (see :attr:`RunningServer.metrics`). The CLI maps ``--metrics-port 0`` to None.
+        max_concurrent_rpcs (int | None): calls in progress or queued at once; beyond it a new call gets
+            RESOURCE_EXHAUSTED at once instead of queueing without bound behind a client that holds the handler
+            threads (None = 4 × ``max_workers``).
+        keepalive_s (float): the server pings an idle connection after this many seconds, and closes it when the
+            ping is not answered within ``keepalive_timeout_s``: a vanished peer's stream frees its handler thread.
     """
 
     host: str = "127.0.0.1"
@@ -84,6 +89,9 @@ class ServerOptions:
     grace_s: float = 5.0
     auth_exempt: Tuple[str, ...] = (f"/{HEALTH_SERVICE}/",) + tuple(f"/{s}/" for s in REFLECTION_SERVICES)
     metrics_port: Optional[int] = None
+    max_concurrent_rpcs: Optional[int] = None
+    keepalive_s: float = 60.0
+    keepalive_timeout_s: float = 20.0
 
 
 def _deny_handler(handler: grpc.RpcMethodHandler, method: str, reason: str) -> grpc.RpcMethodHandler:
@@ -468,7 +476,11 @@ def build_server(
             ("grpc.max_receive_message_length", options.max_message_bytes),
             ("grpc.max_send_message_length", options.max_message_bytes),
             ("grpc.so_reuseport", 0),
+            ("grpc.keepalive_time_ms", int(options.keepalive_s * 1000)),
+            ("grpc.keepalive_timeout_ms", int(options.keepalive_timeout_s * 1000)),
+            ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
         ],
+        maximum_concurrent_rpcs=options.max_concurrent_rpcs or 4 * options.max_workers,
     )
     register(server)
     health_servicer = health.HealthServicer(experimental_non_blocking=True)

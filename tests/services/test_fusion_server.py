@@ -636,3 +636,31 @@ def test_fused_maps_are_kept_up_to_the_retention_bound(tmp_path):
         assert rows == 4
     finally:
         srv.stop(0.5)
+
+
+def test_stalled_streams_cannot_queue_calls_without_bound(tmp_path):
+    """Two clients that open uploads and stall hold the server's two call slots: a third call is RESOURCE_EXHAUSTED
+    at once (not queued behind them), and the server answers again when they go."""
+    srv = start(tmp_path, max_workers=2, max_concurrent_rpcs=2)
+    release = threading.Event()
+    try:
+        _, stub, _ = stub_of(srv)
+        stub.OpenSession(fusion_pb2.OpenSessionRequest(agent_id="robot_s", task_text="find the cup",
+                                                       intrinsics=intrinsics_to_proto(INTR)), timeout=5)
+
+        def stalled():
+            yield header("robot_s", 1, 1)
+            release.wait(30)
+
+        calls = [stub.UploadSubset.future(stalled(), timeout=30) for _ in range(2)]
+        time.sleep(1.0)
+        code, _ = code_of(lambda: stub.GetStats(fusion_pb2.StatsRequest(), timeout=5))
+        assert code == grpc.StatusCode.RESOURCE_EXHAUSTED
+        release.set()
+        for f in calls:
+            f.exception(timeout=30)  # both end once their clients go on
+            assert f.done()
+        stub.GetStats(fusion_pb2.StatsRequest(), timeout=5)
+    finally:
+        release.set()
+        srv.stop(0.5)
