@@ -115,6 +115,8 @@ class AgentSettings:
             streamed missions.
         auto_finish (bool): finish an auto-started replay mission (final push) when it is mapped.
         parser_timeout_s (float): deadline of the Parse call (waits for the parser to become ready).
+        shutdown_s (float): on SIGTERM, how long the agent may take to push the final subset of a mission still
+            mapping and write its checkpoint before it exits (:meth:`AgentServicer.shutdown`).
         config (AgentConfig): mission/mapper settings.
     """
 
@@ -135,6 +137,7 @@ class AgentSettings:
     annotations_path: Optional[str] = None
     auto_finish: bool = True
     parser_timeout_s: float = 30.0
+    shutdown_s: float = 30.0
     config: AgentConfig = field(default_factory=lambda: AgentConfig())
 
 
@@ -457,6 +460,36 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                                        unchanged=p.get("unchanged", False))
                     for p in s.pushes])
 
+    def shutdown(self, timeout_s: float) -> List[str]:
+        """What SIGTERM does before the process exits: every mission still mapping stops ingest, maps what it holds,
+        pushes its final subset (while the link is up: the pusher's retries are bounded by what is left of
+        ``timeout_s``), then writes its checkpoint and map to the data dir, so a robot being shut down loses nothing
+        it mapped and a restart with the same mission id resumes. Bounded by ``timeout_s`` overall; never raises.
+
+        Returns:
+            the mission ids whose final push the fusion server acknowledged.
+        """
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        pushed = []
+        for rt in list(self.missions.values()):
+            if rt.state not in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+                continue
+            log.info("agent %s: shutting down mission %s: final push and checkpoint", rt.agent_id, rt.mission_id)
+            try:
+                summary = rt.finish(push=True, evaluate=False, timeout_s=max(0.1, deadline - time.monotonic()))
+            except Exception as e:  # noqa: BLE001 - a shutdown step must not stop the others
+                log.error("agent %s: mission %s: final push at shutdown failed: %s", rt.agent_id, rt.mission_id, e)
+                continue
+            if summary.final_push_ok:
+                pushed.append(rt.mission_id)
+            try:
+                if rt.checkpoint_dir is not None:
+                    rt.save_checkpoint()
+                self._save(rt)
+            except Exception as e:  # noqa: BLE001
+                log.error("agent %s: mission %s: checkpoint at shutdown failed: %s", rt.agent_id, rt.mission_id, e)
+        return pushed
+
     def close(self) -> None:
         """Close every mission and fusion client (after the server stopped)."""
         for rt in list(self.missions.values()):
@@ -582,6 +615,7 @@ def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
     print(f"agent {settings.agent_id} listening on {options.host}:{agent.port}", flush=True)
     try:
         rc = run_until_signalled(agent.running)
+        agent.servicer.shutdown(settings.shutdown_s)
     finally:
         agent.servicer.close()
     busy = [t.name for t in threading.enumerate() if t.name.startswith("agent-") and t.is_alive()]

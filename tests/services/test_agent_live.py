@@ -441,6 +441,60 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
         fusion.stop(0)
 
 
+def test_sigterm_pushes_the_final_subset_and_checkpoints(scene, tmp_path, monkeypatch):
+    """A robot being shut down (SIGTERM) mid-mission, with no periodic push or checkpoint due yet: the agent stops
+    ingest, pushes its final subset, writes its checkpoint and exits; a restart resumes the mission."""
+    import yaml
+
+    from services.fusion_server.client import FusionClient
+    from services.fusion_server.server import serve as serve_fusion
+    from services.sim import free_port
+
+    fusion = serve_fusion(ServerOptions(port=0), data_dir=str(tmp_path / "fusion"))
+    monkeypatch.setenv("_TEST_FUSION", fusion.address)
+    cfg_path = tmp_path / "agent.yaml"
+    cfg_path.write_text(yaml.safe_dump({
+        "agent": {"push_every": 1000, "checkpoint_every": 1000, "keyframe_translation_m": 1e-6,
+                  "idle_chunk_s": 0.05, "backoff_s": 0.1, "share_worker": "thread"},
+        "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeds_per_frame": 200}}))
+    ds = load_dataset(scene / "agent_a")
+    port = free_port()
+    log = open(tmp_path / "agent.log", "w")
+    p = _start_agent(port, tmp_path / "agents", cfg_path, log)
+    p2 = None
+    fc = FusionClient(fusion.address, timeout_s=30)
+    try:
+        with AgentClient(f"127.0.0.1:{port}") as c:
+            c.wait_ready(120)
+            c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-8")
+            for i in range(3):
+                c.stream_frames("run-8", [ds[i]], timeout_s=60)
+                deadline = time.monotonic() + 120
+                while c.status("run-8").frames_keyframed < i + 1 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+            st = c.status("run-8")
+            assert st.frames_keyframed == 3 and st.pushes == 0 and st.checkpoints == 0, st
+        assert "robot1" not in fc.stats()["agents"]
+        os.killpg(p.pid, signal.SIGTERM)
+        assert p.wait(90) == 0
+        held = fc.stats()["agents"]["robot1"]
+        assert held["has_complete_subset"] and held["latest_map_version"] >= 1
+        assert (tmp_path / "agents" / "robot1" / "run-8" / "checkpoint.pt").is_file()
+        p2 = _start_agent(port, tmp_path / "agents", cfg_path, log)
+        with AgentClient(f"127.0.0.1:{port}") as c:
+            c.wait_ready(120)
+            m = c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-8")
+            assert m.resumed and m.resumed_keyframes == 3
+    finally:
+        fc.close()
+        for proc in (p, p2):
+            if proc is not None and proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(30)
+        log.close()
+        fusion.stop(0)
+
+
 def test_validate_frame_reads_headers_and_defers_decoding(scene):
     import cv2
 
