@@ -93,6 +93,8 @@ class FusionSettings(BaseModel):
         fused_keep_per_method (int): fused maps kept per fuse method (vote, concat), newest first: every ``Fuse``
             stores a map, so older ones are deleted (``DownloadFused`` of one is NOT_FOUND) and ``GetStats``, which
             lists the fused maps held, stays bounded.
+        health_probe_s (float): period of the store probe behind the health service: NOT_SERVING while the store
+            cannot be reached (``services.fusion_server.server.StoreHealth``).
         max_abs_mean_m (float), max_scale_m (float), max_abs_opacity_logit (float): plausibility bounds of pushed
             Gaussians (:func:`gausslite.fusion.check_plausible`): a mean farther than this from the map origin on any
             axis, a standard deviation above this on any axis, an opacity logit beyond ± this; an upload carrying one
@@ -114,6 +116,7 @@ class FusionSettings(BaseModel):
     max_refine_iters: int = Field(20000, ge=0)
     refine_options: dict = Field(default_factory=dict)
     fused_keep_per_method: int = Field(32, ge=1)
+    health_probe_s: float = Field(2.0, gt=0)
     max_abs_mean_m: float = Field(1.0e4, gt=0)
     max_scale_m: float = Field(10.0, gt=0)
     max_abs_opacity_logit: float = Field(30.0, gt=0)

@@ -43,6 +43,7 @@ import argparse
 import logging
 import os
 import sys
+import threading
 from dataclasses import dataclass
 from typing import Optional
 
@@ -54,7 +55,7 @@ from services.common.server import (RunningServer, ServerOptions, authenticator_
 from services.fusion_server.metrics import FusionMetrics, MeteredFusion
 from services.fusion_server.guards import check_agent_id  # noqa: F401 - re-exported
 from services.fusion_server.servicer import FUSED_AGENT_ID, SERVICE_NAME, FusionServicer  # noqa: F401 - re-exported
-from services.fusion_server.store import SqlFusionStore, open_store
+from services.fusion_server.store import SqlFusionStore, StoreUnavailable, open_store
 
 log = logging.getLogger(__name__)
 
@@ -64,13 +65,65 @@ DEFAULT_PORT = 50053
 FusionConfig = FusionSettings
 
 
+class StoreHealth:
+    """Health that tells the truth about the store: every ``interval_s`` a cheap read of the store; while the
+    database cannot be reached (:class:`StoreUnavailable`, e.g. PostgreSQL down) the fusion service and the server
+    as a whole report NOT_SERVING, so an orchestrator or load balancer takes the replica out of rotation, and
+    SERVING again once the read succeeds.
+
+    Args:
+        store: the fusion store. running: the RunningServer whose health servicer is set. interval_s: probe period.
+    """
+
+    def __init__(self, store: SqlFusionStore, running: RunningServer, interval_s: float) -> None:
+        self.store, self.running, self.interval_s = store, running, float(interval_s)
+        self.serving = True
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="gausslite-store-health", daemon=True)
+        self._thread.start()
+
+    def probe(self) -> bool:
+        """One probe; updates health on a change. Returns whether the store answered."""
+        from grpc_health.v1 import health_pb2
+
+        try:
+            self.store.latest_complete()
+            ok = True
+        except StoreUnavailable as e:
+            ok = False
+            why = str(e)
+        except Exception as e:  # noqa: BLE001 - a closed or broken store is not serving either
+            ok = False
+            why = f"{type(e).__name__}: {e}"
+        if ok != self.serving and not self._stop.is_set():
+            self.serving = ok
+            status = health_pb2.HealthCheckResponse.SERVING if ok else health_pb2.HealthCheckResponse.NOT_SERVING
+            for name in list(self.running.service_names) + [""]:
+                self.running.health.set(name, status)
+            if ok:
+                log.info("fusion store reachable again: SERVING")
+            else:
+                log.error("fusion store unreachable, health NOT_SERVING: %s", why)
+        return ok
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self.probe()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=self.interval_s + 5)
+
+
 @dataclass
 class FusionServer:
-    """A running fusion server: ``rpc`` (RunningServer), ``servicer``, ``store``; ``port``/``address``."""
+    """A running fusion server: ``rpc`` (RunningServer), ``servicer``, ``store``; ``port``/``address``;
+    ``store_health`` (:class:`StoreHealth`)."""
 
     rpc: RunningServer
     servicer: FusionServicer
     store: SqlFusionStore
+    store_health: Optional[StoreHealth] = None
 
     @property
     def port(self) -> int:
@@ -90,6 +143,8 @@ class FusionServer:
 
     def stop(self, grace_s: Optional[float] = None) -> None:
         """Graceful shutdown: NOT_SERVING, let in-flight calls finish for ``grace_s``, close the store."""
+        if self.store_health is not None:
+            self.store_health.stop()
         self.rpc.stop(grace_s)
         self.servicer.shutdown()
         self.store.close()
@@ -130,7 +185,7 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
         store.close()
         raise
     log.info("fusion store: %s (%s, schema %d)", store.location, store.dialect, store.schema_version())
-    return FusionServer(running, servicer, store)
+    return FusionServer(running, servicer, store, StoreHealth(store, running, config.health_probe_s))
 
 
 def _write_port_file(path: str, port: int) -> None:

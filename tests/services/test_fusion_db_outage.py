@@ -116,3 +116,38 @@ def test_two_replicas_answer_unavailable_and_recover_without_restart(tmp_path, r
             ch.close()
         for r in reps:
             r.stop(0.5)
+
+
+def test_health_is_not_serving_while_the_database_is_unreachable(tmp_path, relayed):
+    """Health tells the truth about the store: NOT_SERVING while PostgreSQL cannot be reached (an orchestrator takes
+    the replica out of rotation), SERVING again once it can, without a restart."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    from services.fusion_server.servicer import SERVICE_NAME
+
+    relay, dsn = relayed
+    rep = serve(ServerOptions(port=0), FusionConfig(store_acquire_timeout_s=1.0, health_probe_s=0.3),
+                data_dir=str(tmp_path / "h"), store=dsn)
+    ch = grpc.insecure_channel(rep.address)
+    hs = health_pb2_grpc.HealthStub(ch)
+
+    def status(name: str):
+        return hs.Check(health_pb2.HealthCheckRequest(service=name), timeout=5).status
+
+    def until(want, timeout_s=20.0):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if status(SERVICE_NAME) == want and status("") == want:
+                return True
+            time.sleep(0.1)
+        return False
+
+    try:
+        assert until(health_pb2.HealthCheckResponse.SERVING)
+        relay.cut()
+        assert until(health_pb2.HealthCheckResponse.NOT_SERVING)
+        relay.restore()
+        assert until(health_pb2.HealthCheckResponse.SERVING, 60)
+    finally:
+        ch.close()
+        rep.stop(0.5)
