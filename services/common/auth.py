@@ -342,17 +342,18 @@ class AgentTokens:
         if self.watch and _signature(self.path) != self._sig:
             self.reload(force=False)
 
-    def identify(self, token: str) -> Optional[str]:
+    def identify(self, token: str, cheap_only: bool = False) -> Optional[str]:
         """The agent id whose record matches ``token``, or None.
 
         sha256 records are one dictionary lookup; pbkdf2 records cost one key derivation each for a
-        token not seen before (matches are remembered until the next reload).
+        token not seen before (matches are remembered until the next reload). ``cheap_only``: no key derivation
+        (a token not seen before matches no pbkdf2 record).
         """
         self._maybe_reload()
         digest = hashlib.sha256(token.encode("utf-8")).hexdigest()
         by_sha, verified, records = self._by_sha, self._verified, self._records
         agent = by_sha.get(digest) or verified.get(digest)
-        if agent is not None:
+        if agent is not None or cheap_only:
             return agent
         for a, recs in records.items():
             for r in recs:
@@ -442,12 +443,14 @@ class Authenticator:
         if self.agent_tokens is not None:
             self.agent_tokens.reload(force=True)
 
-    def identify(self, metadata=None, auth_context=None) -> Principal:
+    def identify(self, metadata=None, auth_context=None, cheap_only: bool = False) -> Principal:
         """Authenticate one call.
 
         Args:
             metadata: the call's invocation metadata (key, value) pairs.
             auth_context (dict | None): the call's ``context.auth_context()``.
+            cheap_only (bool): no key derivation for a token not verified before (a peer over its failure budget,
+                :class:`services.common.server.FailureLimiter`).
         Returns:
             Principal: the caller.
         Raises:
@@ -469,7 +472,7 @@ class Authenticator:
             if self._fleet is not None and hmac.compare_digest(token.encode("ascii"), self._fleet):
                 token_principal = Principal(None, "fleet-token", self.fleet_writes)
             else:
-                agent = self.agent_tokens.identify(token) if self.agent_tokens is not None else None
+                agent = self.agent_tokens.identify(token, cheap_only) if self.agent_tokens is not None else None
                 if agent is None:
                     raise AuthError(grpc.StatusCode.UNAUTHENTICATED, "invalid or revoked bearer token")
                 token_principal = Principal(agent, "agent-token")
@@ -494,11 +497,11 @@ class Authenticator:
             raise AuthError(grpc.StatusCode.UNAUTHENTICATED, "missing 'authorization: Bearer <token>' metadata")
         return token_principal
 
-    def identify_context(self, context) -> Principal:
+    def identify_context(self, context, cheap_only: bool = False) -> Principal:
         """:meth:`identify` for a gRPC servicer ``context``. Raises AuthError."""
         if not self.enabled:
             return OPEN
-        return self.identify(context.invocation_metadata(), context.auth_context())
+        return self.identify(context.invocation_metadata(), context.auth_context(), cheap_only)
 
 
 # ---------------------------------------------------------------------------------------------- provisioning

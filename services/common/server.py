@@ -28,6 +28,7 @@ import os
 import signal
 import ssl
 import threading
+import time
 from concurrent import futures
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -149,6 +150,58 @@ class BearerTokenInterceptor(grpc.ServerInterceptor):
         return handler
 
 
+def peer_host(peer: str) -> str:
+    """The host part of a gRPC peer string (``ipv4:10.0.0.7:51234`` → ``ipv4:10.0.0.7``; ``ipv6:[::1]:5`` →
+    ``ipv6:[::1]``; anything else unchanged)."""
+    head, sep, tail = (peer or "").rpartition(":")
+    return head if sep and tail.isdigit() and head not in ("ipv4", "ipv6", "unix") else (peer or "")
+
+
+class FailureLimiter:
+    """Failed authentications per peer host in a sliding window. A wrong token costs a PBKDF2 derivation per token
+    record (about 65 ms each): a client sending wrong tokens could keep the handler threads busy and starve the robots
+    with valid ones. A host with ``max_failures`` failures in the last ``window_s`` seconds therefore gets only the
+    cheap checks until the window has passed: tokens already verified, sha256 records and certificates still work (a
+    robot behind the same address keeps working), an unknown token is refused without a key derivation.
+    Thread-safe; memory bounded by ``max_hosts`` (oldest hosts forgotten first).
+    """
+
+    def __init__(self, max_failures: int = 20, window_s: float = 10.0, max_hosts: int = 4096) -> None:
+        import collections
+
+        self.max_failures, self.window_s, self.max_hosts = int(max_failures), float(window_s), int(max_hosts)
+        self._lock = threading.Lock()
+        self._hosts: "collections.OrderedDict[str, collections.deque]" = collections.OrderedDict()
+
+    def _recent(self, host: str, now: float):
+        q = self._hosts.get(host)
+        if q is None:
+            return None
+        while q and now - q[0] > self.window_s:
+            q.popleft()
+        return q
+
+    def blocked(self, host: str) -> bool:
+        """Whether ``host`` has used up its failures in the current window."""
+        with self._lock:
+            q = self._recent(host, time.monotonic())
+            return q is not None and len(q) >= self.max_failures
+
+    def failed(self, host: str) -> None:
+        """Record one failed authentication of ``host``."""
+        import collections
+
+        now = time.monotonic()
+        with self._lock:
+            q = self._recent(host, now)
+            if q is None:
+                q = self._hosts[host] = collections.deque(maxlen=self.max_failures)
+            self._hosts.move_to_end(host)
+            q.append(now)
+            while len(self._hosts) > self.max_hosts:
+                self._hosts.popitem(last=False)
+
+
 class AuthInterceptor(grpc.ServerInterceptor):
     """Authenticates every call with an :class:`~services.common.auth.Authenticator`.
 
@@ -161,9 +214,11 @@ class AuthInterceptor(grpc.ServerInterceptor):
         exempt_prefixes (Sequence[str]): method prefixes let through unauthenticated (health, reflection).
     """
 
-    def __init__(self, authenticator: Authenticator, exempt_prefixes: Sequence[str] = ()):
+    def __init__(self, authenticator: Authenticator, exempt_prefixes: Sequence[str] = (),
+                 failures: Optional["FailureLimiter"] = None):
         self._auth = authenticator
         self._exempt = tuple(exempt_prefixes)
+        self._failures = failures or FailureLimiter()
 
     def intercept_service(self, continuation, handler_call_details):
         method = handler_call_details.method or ""
@@ -179,13 +234,20 @@ class AuthInterceptor(grpc.ServerInterceptor):
         else:
             inner, make = handler.unary_unary, grpc.unary_unary_rpc_method_handler
         auth = self._auth
+        failures = self._failures
 
         def guarded(request_or_iterator, context):
+            host = peer_host(context.peer())
+            # a host over its failure budget gets only the cheap checks (no key derivation for an unknown token)
+            limited = failures.blocked(host)
             try:
-                auth.identify_context(context)
+                auth.identify_context(context, cheap_only=limited)
             except AuthError as e:
-                log.warning("rejected call %s from %s: %s: %s", method, context.peer(), e.code.name, e.message)
-                context.abort(e.code, e.message)
+                failures.failed(host)
+                msg = e.message + (f" (too many failed authentications from this peer: only known credentials are "
+                                   f"checked for {failures.window_s:.0f} s)" if limited else "")
+                log.warning("rejected call %s from %s: %s: %s", method, context.peer(), e.code.name, msg)
+                context.abort(e.code, msg)
             return inner(request_or_iterator, context)
 
         return make(guarded, request_deserializer=handler.request_deserializer,

@@ -440,3 +440,48 @@ def test_serve_cli_credentials_options(tmp_path, tokens):
     bad = tmp_path / "bad.json"
     bad.write_text("{")
     assert fusion_main(["--port", "0", "--data-dir", str(tmp_path / "d"), "--agent-tokens", str(bad)]) == 2
+
+
+def test_wrong_tokens_from_one_peer_cannot_starve_the_robots(tmp_path):
+    """A peer over its budget of failed authentications gets only the cheap checks: its unknown tokens are refused
+    without a key derivation (PBKDF2, about 65 ms per record), while a robot's token verified before, from the same
+    address, still works."""
+    from services.common.server import FailureLimiter, peer_host
+
+    assert peer_host("ipv4:10.0.0.7:51234") == "ipv4:10.0.0.7" and peer_host("ipv6:[::1]:5") == "ipv6:[::1]"
+    lim = FailureLimiter(max_failures=3, window_s=0.3)
+    for _ in range(3):
+        lim.failed("ipv4:10.0.0.7")
+    assert lim.blocked("ipv4:10.0.0.7") and not lim.blocked("ipv4:10.0.0.8")
+    time.sleep(0.35)
+    assert not lim.blocked("ipv4:10.0.0.7")
+
+    good = auth.new_token()
+    path = tmp_path / "tokens.json"
+    path.write_text(json.dumps({"agents": {"robot-a": auth.hash_token(good, "pbkdf2", iterations=10_000)}}))
+    store = auth.AgentTokens(path)
+    assert store.identify(good, cheap_only=True) is None  # never verified: no derivation allowed
+    assert store.identify(good) == "robot-a"
+    assert store.identify(good, cheap_only=True) == "robot-a"  # verified once: a dictionary lookup
+
+    srv = serve(ServerOptions(port=0, agent_tokens_file=str(path)), data_dir=str(tmp_path / "data"))
+    try:
+        with FusionClient(srv.address, token=good, timeout_s=10) as robot:
+            robot.stats()  # the robot's token is verified once
+            ch = grpc.insecure_channel(srv.address)
+            stub = fusion_pb2_grpc.FusionStub(ch)
+            codes, msgs = [], []
+            for i in range(25):
+                try:
+                    stub.GetStats(fusion_pb2.StatsRequest(), timeout=10,
+                                  metadata=(("authorization", f"Bearer wrong-{i}"),))
+                except grpc.RpcError as e:
+                    codes.append(e.code())
+                    msgs.append(e.details())
+            ch.close()
+            assert set(codes) == {grpc.StatusCode.UNAUTHENTICATED} and len(codes) == 25
+            assert "only known credentials" in msgs[-1] and "only known credentials" not in msgs[0]
+            assert "robot-a" not in json.dumps(msgs)
+            robot.stats()  # same address, still served
+    finally:
+        srv.stop(0.5)
