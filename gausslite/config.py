@@ -93,6 +93,9 @@ class FusionSettings(BaseModel):
         fused_keep_per_method (int): fused maps kept per fuse method (vote, concat), newest first: every ``Fuse``
             stores a map, so older ones are deleted (``DownloadFused`` of one is NOT_FOUND) and ``GetStats``, which
             lists the fused maps held, stays bounded.
+        max_keyframe_pixels (int): largest keyframe (width × height) the server decodes; a larger one is
+            INVALID_ARGUMENT before any image is decoded (default: a 4K frame; each decoded keyframe holds about
+            7 bytes per pixel).
         health_probe_s (float): period of the store probe behind the health service: NOT_SERVING while the store
             cannot be reached (``services.fusion_server.server.StoreHealth``).
         max_abs_mean_m (float), max_scale_m (float), max_abs_opacity_logit (float): plausibility bounds of pushed
@@ -116,6 +119,7 @@ class FusionSettings(BaseModel):
     max_refine_iters: int = Field(20000, ge=0)
     refine_options: dict = Field(default_factory=dict)
     fused_keep_per_method: int = Field(32, ge=1)
+    max_keyframe_pixels: int = Field(3840 * 2160, ge=1)
     health_probe_s: float = Field(2.0, gt=0)
     max_abs_mean_m: float = Field(1.0e4, gt=0)
     max_scale_m: float = Field(10.0, gt=0)

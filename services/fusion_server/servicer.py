@@ -298,6 +298,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             if not (math.isfinite(scale) and scale > 0):
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{what}: depth_scale must be finite and > 0")
             size = (int(k.height), int(k.width))
+            if size[0] * size[1] > self.config.max_keyframe_pixels:
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"{what}: {size[1]}x{size[0]} pixels exceed the server's keyframe limit of "
+                             f"{self.config.max_keyframe_pixels} pixels")
             # sizes from the headers first: a small file may declare a huge image (decompression bomb)
             decode_color(msg.color, what, size)
             decode_depth(msg.depth_png, scale, what, size)

@@ -529,6 +529,12 @@ def test_keyframe_images_are_checked_against_the_intrinsics_before_they_are_deco
         assert len(decoded) - n == {"colour": 0, "depth": 1, "roi_png": 2, "headless": 0}[what], what
     assert server.store.keyframe_count("bomb-agent") == 0
     assert client.upload_keyframes("bomb-agent", [frame(4)]) == 1  # a valid one still goes in
+    # decoded pixels have a cap: a keyframe whose intrinsics declare more is refused before decoding
+    n = len(decoded)
+    big = keyframe_to_proto("bomb-agent", frame(5))
+    big.intrinsics.CopyFrom(intrinsics_to_proto(Intrinsics(3000.0, 3000.0, 2000.0, 2000.0, 4000, 4000)))
+    code, msg = code_of(lambda: stub.UploadKeyframes(iter([big]), timeout=5))
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and "pixels" in msg and len(decoded) == n
 
 
 def _splats(means, scale, kappa=5):
