@@ -55,10 +55,10 @@ class _FakeFusion:
     def stats(self):
         return {"agents": {a: {"latest_map_version": v, "has_complete_subset": v > 0} for a, v in self.versions.items()}}
 
-    def fuse(self, method, voxel_size, contest_radius):
+    def fuse(self, method, voxel_size, contest_radius, for_agent=None):
         from types import SimpleNamespace
 
-        self.fuses.append((method, voxel_size, contest_radius))
+        self.fuses.append((method, voxel_size, contest_radius, for_agent))
         return SimpleNamespace(fused_version=len(self.fuses))
 
     def download_fused(self, version):
@@ -77,7 +77,9 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     assert tl.poll(1.0) and not tl.poll(2.0)  # fused once; nothing new since
     fusion.versions = {"agent_a": 1, "agent_b": 1}
     assert tl.poll(3.0)
-    assert fusion.fuses == [("vote", 0.1, 1), ("vote", 0.1, 1)]
+    # the team map, then the map for each robot with a subset
+    assert fusion.fuses == [("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"),
+                            ("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"), ("vote", 0.1, 1, "agent_b")]
     assert [(t, v) for t, v, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
     scored = []
     monkeypatch.setattr("gausslite.evaluation.evaluate_fused",
@@ -86,8 +88,10 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     class _DS:
         annotations = None
 
-    out = tl.scores({"t-a": (_DS, list(range(12))), "t-b": (_DS, list(range(12)))}, stride=5)
+    out = tl.scores({"t-a": (_DS, list(range(12))), "t-b": (_DS, list(range(12)))}, stride=5,
+                    task_of={"agent_a": "t-a", "agent_b": "t-b"})
     assert [e["n_gaussians"] for e in out] == [1, 2] and out[1]["roi_psnr"] == {"t-a": 22.0, "t-b": 22.0}
+    assert out[0]["roi_psnr_for_robot"] == {"t-a": 21.0} and out[1]["roi_psnr_for_robot"] == {"t-a": 22.0, "t-b": 22.0}
     assert scored[0] == (1, 3)  # every fifth frame
     rep = _report("gausslite", True, own=25.0, all_frames=23.0)
     rep["fused_timeline"] = out
@@ -95,7 +99,8 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     rep["fused_timeline_plot"] = "t.png"
     write_markdown(rep, tmp_path / "report.md")
     md = (tmp_path / "report.md").read_text()
-    assert "The fused map while mapping" in md and "| 3 | agent_a v1, agent_b v1 | 2 | 22.00 | 22.00 |" in md
+    assert "The fused map while mapping" in md and "| 3 | agent_a v1, agent_b v1 | 2 | 22.00 | 22.00 | 22.00 | 22.00 |" in md
+    assert "| 1 | agent_a v1 | 1 | 21.00 | 21.00 | 21.00 | – |" in md
     assert "![fused ROI PSNR over time](t.png)" in md
     # a failing fuse is logged and skipped, not raised
     fusion.versions = {"agent_a": 2, "agent_b": 1}
