@@ -35,19 +35,31 @@ class AgentClient:
         target (str): ``host:port``.
         token (str | None): bearer token.
         root_cert (bytes | None): PEM CA certificate(s) → TLS; None → plaintext.
+        client_cert (bytes | None), client_key (bytes | None): PEM client certificate and key, for an agent
+            that requires client certificates (mutual TLS). With none of the three TLS arguments: the process
+            defaults (:mod:`services.common.client_tls`), else plaintext.
         timeout_s (float): deadline of unary calls (seconds); :meth:`finish` and
             :meth:`stream_frames` take their own.
+    Raises:
+        ValueError: only one of the client certificate and key.
     """
 
     def __init__(self, target: str, *, token: Optional[str] = None, root_cert: Optional[bytes] = None,
-                 timeout_s: float = 30.0):
+                 timeout_s: float = 30.0, client_cert: Optional[bytes] = None, client_key: Optional[bytes] = None):
         self.target = target
         self.timeout_s = float(timeout_s)
         self._md = (("authorization", f"Bearer {token}"),) if token else None
+        if root_cert is None and client_cert is None and client_key is None:
+            from services.common.client_tls import default_client_tls
+
+            root_cert, client_cert, client_key = default_client_tls()
+        if (client_cert is None) != (client_key is None):
+            raise ValueError("mutual TLS needs both the client certificate and its key")
         opts = [("grpc.max_send_message_length", CLIENT_MAX_MESSAGE_BYTES),
                 ("grpc.max_receive_message_length", CLIENT_MAX_MESSAGE_BYTES)]
-        self._channel = (grpc.secure_channel(target, grpc.ssl_channel_credentials(root_cert), opts)
-                         if root_cert is not None else grpc.insecure_channel(target, opts))
+        tls = root_cert is not None or client_cert is not None
+        self._channel = (grpc.secure_channel(target, grpc.ssl_channel_credentials(root_cert, client_key, client_cert),
+                                             opts) if tls else grpc.insecure_channel(target, opts))
         self.stub = agent_pb2_grpc.AgentStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
 

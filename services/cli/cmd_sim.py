@@ -78,6 +78,11 @@ def register(subparsers) -> None:
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
                    help="drive running services instead of starting processes (parser=..,fusion_server=..,"
                         "agent_a=..,agent_b=..; the compose 'report' service uses this)")
+    p.add_argument("--tls-ca", default=None,
+                   help="with --attach: PEM CA the services' certificates chain to (env GAUSSLITE_TLS_CA)")
+    p.add_argument("--tls-client-cert", default=None,
+                   help="with --attach: this client's PEM certificate for mutual TLS (env GAUSSLITE_TLS_CLIENT_CERT)")
+    p.add_argument("--tls-client-key", default=None, help="its PEM key (env GAUSSLITE_TLS_CLIENT_KEY)")
     from gausslite.cli.cmd_map import add_bag_args
 
     add_bag_args(p)  # shortcuts for agent.bag.<field>
@@ -174,6 +179,20 @@ def _handle(args: argparse.Namespace) -> int:
         if missing - {"parser"}:
             print(f"gausslite sim: error: --attach misses {sorted(missing)}", file=sys.stderr)
             return 2
+        env = os.environ
+        tls = [args.tls_ca or env.get("GAUSSLITE_TLS_CA"), args.tls_client_cert or env.get("GAUSSLITE_TLS_CLIENT_CERT"),
+               args.tls_client_key or env.get("GAUSSLITE_TLS_CLIENT_KEY")]
+        if any(tls):  # the attached services run TLS: every client of this run uses it
+            from services.common.client_tls import client_tls_from_files, set_default_client_tls
+
+            try:
+                set_default_client_tls(*client_tls_from_files(*tls))
+            except (OSError, ValueError) as e:
+                print(f"gausslite sim: error: TLS options: {e}", file=sys.stderr)
+                return 2
+    elif args.tls_ca or args.tls_client_cert or args.tls_client_key:
+        print("gausslite sim: error: --tls-* apply to --attach (the local services run on loopback)", file=sys.stderr)
+        return 2
     if args.baseline and args.attach:
         print("gausslite sim: error: --baseline starts its own uniform agents; it cannot drive --attach services",
               file=sys.stderr)

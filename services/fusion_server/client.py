@@ -272,6 +272,7 @@ class FusionClient:
         root_cert (bytes | None): PEM root certificate(s); set → TLS channel, else plaintext.
         client_cert (bytes | None), client_key (bytes | None): PEM client certificate and key for
             mutual TLS (TLS even without ``root_cert``: the system's roots then); the CN is the agent id.
+            With none of the three: the process defaults (:mod:`services.common.client_tls`), else plaintext.
         timeout_s (float): deadline of each call (seconds); :meth:`fuse` uses its own, longer one.
         max_retries (int): retries of transient failures (UNAVAILABLE, DEADLINE_EXCEEDED).
         backoff_s (float): first retry delay; doubles every retry.
@@ -289,6 +290,10 @@ class FusionClient:
         self.max_retries = int(max_retries)
         self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
+        if root_cert is None and client_cert is None and client_key is None:
+            from services.common.client_tls import default_client_tls
+
+            root_cert, client_cert, client_key = default_client_tls()
         opts = channel_options(CLIENT_MAX_MESSAGE_BYTES)
         creds = channel_credentials(root_cert, client_cert, client_key)
         if creds is not None:

@@ -5,8 +5,10 @@ alias ``dns:///fusion:PORT`` → ``ipv4:`` of both local replicas) until its hea
 deployment, §8; issue 14: two fusion replicas on one PostgreSQL).
 
 Per-robot credentials: compose secrets (``/run/secrets/<name>`` → the secret's file when started
-locally); each agent gets only its own fusion token, the replicas the token hashes, and each token
-identifies its own agent."""
+locally), made for the test by the documented one command (``gausslite certs provision``); each agent gets
+only its own fusion token, certificate and key, the replicas the token hashes and the server certificate, and
+each token identifies its own agent. Every server runs TLS (the fusion replicas with client certificates), and
+no container runs as root."""
 
 from __future__ import annotations
 
@@ -30,6 +32,19 @@ REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
 SERVERS = ("parser", "fusion_server", "fusion_server_2", "agent_a", "agent_b")
 FUSION = ("fusion_server", "fusion_server_2")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def secrets_dir(tmp_path_factory):
+    """The compose secrets, made as the compose file says (``gausslite certs provision``), in a temp dir that
+    ``GAUSSLITE_SECRETS_DIR`` points at for this module."""
+    from gausslite.cli import main
+
+    d = tmp_path_factory.mktemp("secrets")
+    assert main(["certs", "provision", "--dir", str(d), "agent_a", "agent_b", "report"]) == 0
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GAUSSLITE_SECRETS_DIR", str(d))
+        yield d
 
 
 @pytest.fixture(scope="module")
@@ -111,9 +126,14 @@ def test_compose_provisions_per_robot_credentials(compose):
     hashes = hashes.pop()
     store = AgentTokens(_secret_file(compose, hashes))  # a valid token file: only hashes
     identity = {}
+    from services.common.pki import certificate_info
+
     for name in ("agent_a", "agent_b", "report"):
         secret = secret_of(name, "GAUSSLITE_FUSION_TOKEN_FILE")
-        assert _secret_names(services[name]) == [secret]  # its own token, nothing else
+        cert, key = secret_of(name, "GAUSSLITE_TLS_CLIENT_CERT"), secret_of(name, "GAUSSLITE_TLS_CLIENT_KEY")
+        # its own token, certificate and key, and the CA's certificate: nothing else
+        assert sorted(_secret_names(services[name])) == sorted([secret, "tls_ca", cert, key])
+        assert certificate_info(_secret_file(compose, cert))["subject_cn"] == name
         token = read_secret(_secret_file(compose, secret))
         assert token not in _secret_file(compose, hashes).read_text()
         identity[name] = store.identify(token)
@@ -122,6 +142,34 @@ def test_compose_provisions_per_robot_credentials(compose):
         assert _env(services[name])["GAUSSLITE_AGENT_ID"] == identity[name]
     for name, svc in services.items():  # only the fusion replicas see the token hashes
         assert (hashes in _secret_names(svc)) == (name in FUSION), name
+        # the server key only on the parser and the replicas, a robot's key only on that robot
+        assert ("server_key" in _secret_names(svc)) == (name in ("parser",) + FUSION), name
+        for robot in ("agent_a", "agent_b", "report"):
+            assert (f"{robot}_key" in _secret_names(svc)) == (name == robot), (name, robot)
+    assert "ca.key" not in " ".join(str(s.get("file")) for s in compose["secrets"].values())
+
+
+def test_compose_runs_tls_and_per_robot_identity_and_no_root(compose):
+    """The fusion replicas never listen without TLS, client certificates and per-agent tokens; parser and agents
+    serve TLS; the image and every service run as a non-root user."""
+    import copy
+
+    from tests.deploy._policy import compose_problems
+
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    assert compose_problems(compose, dockerfile) == []
+    # the check fails a manifest that exposes the fusion server in plaintext, or a root container
+    plain = copy.deepcopy(compose)
+    del plain["services"]["fusion_server"]["environment"]["GAUSSLITE_TLS_CERT"]
+    assert any("fusion_server: the fusion server runs without GAUSSLITE_TLS_CERT" in p
+               for p in compose_problems(plain, dockerfile))
+    no_mtls = copy.deepcopy(compose)
+    del no_mtls["services"]["fusion_server"]["environment"]["GAUSSLITE_TLS_CLIENT_CA"]
+    assert compose_problems(no_mtls, dockerfile)
+    unmounted = copy.deepcopy(compose)
+    unmounted["services"]["agent_a"]["secrets"].remove("agent_a_key")
+    assert any("not provided by a mounted secret" in p for p in compose_problems(unmounted, dockerfile))
+    assert any("root" in p for p in compose_problems(compose, dockerfile + "\nUSER root\n"))
 
 
 def test_docker_compose_config_validates():
@@ -227,9 +275,18 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
         # the agents really started their missions with the compose settings
         from services.agent.client import AgentClient
 
+        def secret_bytes(service: str, var: str) -> bytes:
+            return Path(paths[_env(services[service])[var]]).read_bytes()
+
+        report_tls = {"root_cert": secret_bytes("report", "GAUSSLITE_TLS_CA"),
+                      "client_cert": secret_bytes("report", "GAUSSLITE_TLS_CLIENT_CERT"),
+                      "client_key": secret_bytes("report", "GAUSSLITE_TLS_CLIENT_KEY")}
         for name in ("agent_a", "agent_b"):
             token = _interpolate(_env(services[name]).get("GAUSSLITE_TOKEN", "")) or None
-            with AgentClient(f"127.0.0.1:{local_port[name]}", token=token) as c:
+            with AgentClient(f"127.0.0.1:{local_port[name]}", token=None) as plain:  # TLS only
+                with pytest.raises(Exception):
+                    plain.wait_ready(2)
+            with AgentClient(f"127.0.0.1:{local_port[name]}", token=token, **report_tls) as c:
                 deadline = time.monotonic() + 60
                 while True:
                     try:
@@ -248,11 +305,21 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
         from services.fusion_server.client import FusionClient
 
         token_a = read_secret(paths[_env(services["agent_a"])["GAUSSLITE_FUSION_TOKEN_FILE"]])
-        with FusionClient(f"127.0.0.1:{local_port['fusion_server']}", token=token_a, max_retries=0) as fc:
+        tls_a = {"root_cert": secret_bytes("agent_a", "GAUSSLITE_TLS_CA"),
+                 "client_cert": secret_bytes("agent_a", "GAUSSLITE_TLS_CLIENT_CERT"),
+                 "client_key": secret_bytes("agent_a", "GAUSSLITE_TLS_CLIENT_KEY")}
+        fusion_addr = f"127.0.0.1:{local_port['fusion_server']}"
+        with FusionClient(fusion_addr, token=token_a, max_retries=0, **tls_a) as fc:
             fc.stats()
             with pytest.raises(grpc.RpcError) as ei:
                 fc.open_session("agent_b", "probe", Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48))
             assert ei.value.code() == grpc.StatusCode.PERMISSION_DENIED
+        # without a client certificate, or in plaintext, the replicas take nothing
+        for kw in ({"root_cert": tls_a["root_cert"]}, {}):
+            with FusionClient(fusion_addr, token=token_a, max_retries=0, timeout_s=3, **kw) as fc:
+                with pytest.raises(grpc.RpcError) as ei:
+                    fc.stats()
+                assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
         for p in procs.values():
             if p.poll() is None:

@@ -62,7 +62,7 @@ def test_validator_rejects_broken_manifests(kubernetes_validate):
     with pytest.raises(kubernetes_validate.ValidationError):
         kubernetes_validate.validate(d, K8S_VERSION, strict=True)
     d = copy.deepcopy(by_kind("Deployment", "fusion"))
-    d["spec"]["template"]["spec"]["containers"][0]["readinessProbe"]["grpc"]["servce"] = "typo"
+    d["spec"]["template"]["spec"]["containers"][0]["readinessProbe"]["exec"]["comand"] = ["typo"]
     with pytest.raises(kubernetes_validate.ValidationError):
         kubernetes_validate.validate(d, K8S_VERSION, strict=True)
 
@@ -92,8 +92,11 @@ def test_fusion_replicas_share_the_store_and_probe_grpc_health():
     port = c["ports"][0]["containerPort"]
     assert c["command"][:3] == ["python", "-m", "services.fusion_server"]
     assert c["command"][c["command"].index("--port") + 1] == str(port)
-    assert c["readinessProbe"]["grpc"] == {"port": port, "service": "gausslite.v1.Fusion"}
-    assert c["livenessProbe"]["grpc"]["port"] == port
+    ready, live = c["readinessProbe"]["exec"]["command"], c["livenessProbe"]["exec"]["command"]
+    for probe in (ready, live):  # gausslite health over (mutual) TLS: the kubelet's gRPC probe cannot
+        assert probe[:4] == ["gausslite", "health", "--target", f"127.0.0.1:{port}"] and "--tls-ca" in probe
+        assert "--tls-client-cert" in probe
+    assert ready[ready.index("--service") + 1] == "gausslite.v1.Fusion" and "--service" not in live
     ref = _env(c)["GAUSSLITE_FUSION_STORE"]["valueFrom"]["secretKeyRef"]
     secret = by_kind("Secret", ref["name"])
     assert secret["stringData"][ref["key"]].startswith("postgresql://")
@@ -109,19 +112,21 @@ def test_fusion_replicas_share_the_store_and_probe_grpc_health():
 
 def test_parser_and_agent_example_are_wired_to_the_services():
     parser = _container(by_kind("Deployment", "parser"))
-    assert parser["readinessProbe"]["grpc"]["service"] == "gausslite.v1.Parser"
+    assert "gausslite.v1.Parser" in parser["readinessProbe"]["exec"]["command"]
     agent = _container(by_kind("Deployment", "agent-example"))
     env = _env(agent)
     fport = by_kind("Service", "fusion")["spec"]["ports"][0]["port"]
     pport = by_kind("Service", "parser")["spec"]["ports"][0]["port"]
     assert env["GAUSSLITE_FUSION_ADDR"]["value"] == f"dns:///fusion:{fport}"
     assert env["GAUSSLITE_PARSER_ADDR"]["value"] == f"parser:{pport}"
-    assert agent["readinessProbe"]["grpc"]["service"] == "gausslite.v1.Agent"
+    assert "gausslite.v1.Agent" in agent["readinessProbe"]["exec"]["command"]
     from gausslite.cli import build_parser
 
-    for c in (parser, agent):  # the commands are valid CLI invocations
+    for c in (parser, agent):  # the commands and probes are valid CLI invocations
         args = build_parser().parse_args(c["command"][1:])
         assert args.command == "serve"
+        for probe in ("readinessProbe", "livenessProbe"):
+            assert build_parser().parse_args(c[probe]["exec"]["command"][1:]).command == "health"
 
 
 def _secret_mount(deploy: dict, path: str) -> tuple:
@@ -148,3 +153,55 @@ def test_per_robot_credentials_come_from_their_own_secrets():
     assert tokens_secret not in names
     readme = (K8S / "README.md").read_text()
     assert tokens_secret in readme and agent_secret in readme and "gausslite tokens" in readme
+
+
+def test_every_server_runs_tls_and_per_robot_identity_and_no_pod_runs_as_root():
+    """A manifest that exposes the fusion server without TLS (or without client certificates and per-agent
+    tokens), a GaussLite server without TLS, or a pod that may run as root fails here."""
+    from tests.deploy._policy import k8s_problems
+
+    assert k8s_problems([d for _, d in docs()]) == []
+    fusion = _container(by_kind("Deployment", "fusion"))
+    env = {e["name"]: e["value"] for e in fusion["env"] if "value" in e}
+    mount, secret = _secret_mount(by_kind("Deployment", "fusion"), env["GAUSSLITE_TLS_CERT"])
+    assert secret == "gausslite-server-tls" and mount["readOnly"] is True
+    assert env["GAUSSLITE_TLS_CLIENT_CA"].startswith(mount["mountPath"])
+    readme = (K8S / "README.md").read_text()
+    assert "gausslite certs provision" in readme and "gausslite-server-tls" in readme
+    assert "gausslite-agent-example-tls" in readme
+
+
+def test_the_policy_check_catches_plaintext_and_root():
+    from tests.deploy._policy import k8s_problems
+
+    def problems(mutate):
+        found = copy.deepcopy([d for _, d in docs()])
+        mutate({(d["kind"], d["metadata"]["name"]): d for d in found})
+        return k8s_problems(found)
+
+    def fusion_env(ds):
+        return ds[("Deployment", "fusion")]["spec"]["template"]["spec"]["containers"][0]["env"]
+
+    def drop(var):
+        return lambda ds: fusion_env(ds).remove(next(e for e in fusion_env(ds) if e["name"] == var))
+
+    assert any("without GAUSSLITE_TLS_CERT" in p for p in problems(drop("GAUSSLITE_TLS_CERT")))
+    assert any("without GAUSSLITE_TLS_CLIENT_CA" in p for p in problems(drop("GAUSSLITE_TLS_CLIENT_CA")))
+    assert any("without GAUSSLITE_AGENT_TOKENS_FILE" in p for p in problems(drop("GAUSSLITE_AGENT_TOKENS_FILE")))
+
+    def unmount(ds):
+        c = ds[("Deployment", "fusion")]["spec"]["template"]["spec"]["containers"][0]
+        c["volumeMounts"] = [m for m in c["volumeMounts"] if m["name"] != "tls"]
+
+    assert any("not provided by a mounted secret" in p for p in problems(unmount))
+
+    def root(ds):
+        ds[("Deployment", "parser")]["spec"]["template"]["spec"]["securityContext"]["runAsNonRoot"] = False
+
+    assert any("parser" in p and "root" in p for p in problems(root))
+
+    def grpc_probe(ds):
+        c = ds[("Deployment", "agent-example")]["spec"]["template"]["spec"]["containers"][0]
+        c["readinessProbe"] = {"grpc": {"port": 50061}}
+
+    assert any("cannot speak TLS" in p for p in problems(grpc_probe))
