@@ -205,8 +205,8 @@ def _local_command(name: str, svc: dict, local_port: dict, paths: dict, pg_dsn: 
     health = None
     if "healthcheck" in svc:
         t = [str(x) for x in svc["healthcheck"]["test"][1:]]
-        t = [f"127.0.0.1:{local_port[name]}" if container_port and x == f"127.0.0.1:{container_port}" else x
-             for x in t]
+        t = [f"127.0.0.1:{local_port[name]}" if container_port and x == f"127.0.0.1:{container_port}"
+             else _map(x, hosts, paths) for x in t]  # the probe's secrets (TLS files) too
         health = [sys.executable, "-m", "gausslite.cli", *t[1:]] if t[0] == "gausslite" else t
     return res, env, health
 
