@@ -19,8 +19,8 @@ import sys
 
 
 def register(subparsers) -> None:
-    """Add the ``certs`` subcommand to ``subparsers``."""
-    from services.common.pki import DEFAULT_SERVER_NAMES
+    """Add the ``certs`` subcommand to ``subparsers`` (imports nothing of the services: the library's CLI registers
+    it without gRPC)."""
 
     p = subparsers.add_parser("certs", help="CA, certificates and tokens for the services and robots (TLS)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -30,8 +30,8 @@ def register(subparsers) -> None:
     v.add_argument("agent_ids", nargs="+", help="agent ids (robots, and clients such as a report job)")
     v.add_argument("--dir", required=True, help="output folder (keep it out of the repository and the images)")
     v.add_argument("--server-name", action="append", default=None, metavar="NAME",
-                   help="DNS name or IP the parser/fusion servers are dialled by (repeatable; default: "
-                        + ", ".join(DEFAULT_SERVER_NAMES) + ")")
+                   help="DNS name or IP the parser/fusion servers are dialled by (repeatable; default: the service "
+                        "names of deploy/, localhost and 127.0.0.1: services.common.pki.DEFAULT_SERVER_NAMES)")
     v.add_argument("--days", type=int, default=90, help="validity of the robots' certificates (default 90)")
     v.add_argument("--server-days", type=int, default=365, help="validity of the server certificate (default 365)")
     v.add_argument("--no-tokens", action="store_true", help="certificates only (no bearer tokens)")

@@ -24,7 +24,7 @@ def test_outside_alpha_is_the_mean_alpha_outside_the_grown_roi():
     assert (g[:, :4] > 0).all() and (g[:, 4:] == 0).all()
     full = torch.ones(10, 10, dtype=torch.bool)
     z = outside_alpha(alpha2, full, 2)
-    assert float(z) == 0.0 and z.requires_grad
+    assert float(z.detach()) == 0.0 and z.requires_grad
     with pytest.raises(ValueError):
         outside_alpha(alpha, roi[:5], 1)
     with pytest.raises(ValueError):
