@@ -61,16 +61,6 @@ def _torch(g: GaussianArrays):
             torch.from_numpy(g.opacity_logits), torch.from_numpy(g.colors))
 
 
-def _weights(g: GaussianArrays, v: RoiView, backend: str) -> np.ndarray:
-    from gausslite.render import blend_weights
-
-    if len(g) == 0:
-        return np.zeros(0, np.float64)
-    return blend_weights(*_torch(g), K=v.K, width=v.width, height=v.height, c2w=v.c2w,
-                         pixel_mask=torch.from_numpy(v.roi), background=torch.zeros(3),
-                         backend=backend).double().numpy()
-
-
 def _depth_offset(means: np.ndarray, v: RoiView) -> np.ndarray:
     """(N,) camera-z of each mean minus the median sensor depth of the ROI (NaN without depth)."""
     if v.depth is None:
@@ -113,7 +103,7 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
     Raises:
         ValueError: provenance arrays of the wrong length or pointing outside the subsets.
     """
-    from gausslite.sharing import in_region, task_region
+    from gausslite.sharing import in_region, roi_contribution, task_region
 
     agents = sorted(subsets)
     src_a = np.asarray(source_agent, np.int64).reshape(-1)
@@ -134,6 +124,7 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
         in_task[sel] = in_region(fused.means[sel], region, region_voxel_m)
     extent = 3.0 * np.exp(fused.log_scales.astype(np.float64)).max(axis=1) if len(fused) else np.zeros(0)
     opacity = 1.0 / (1.0 + np.exp(-fused.opacity_logits.astype(np.float64)))
+    fused_map = fused.to_gaussian_map()
     out = {}
     for i, a in enumerate(agents):
         vs = [v for v in views.get(a, ()) if np.asarray(v.roi).any()]
@@ -143,16 +134,17 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
         wdz = np.zeros(len(fused))
         wdz_w = np.zeros(len(fused))
         own_w = np.zeros(len(subsets[a]))
+        own_map = subsets[a].to_gaussian_map()
         pixels = 0
         for v in vs:
             pixels += int(v.roi.sum())
-            wv = _weights(fused, v, backend)
+            wv = roi_contribution(fused_map, [v], backend)
             w += wv
             dz = _depth_offset(fused.means, v)
             ok = np.isfinite(dz) & (wv > 0)
             wdz[ok] += wv[ok] * dz[ok]
             wdz_w[ok] += wv[ok]
-            own_w += _weights(subsets[a], v, backend)
+            own_w += roi_contribution(own_map, [v], backend)
         own = src_a == i
         foreign = ~own
         mass = {"own": float(w[own].sum() / pixels), "foreign_task": float(w[foreign & in_task].sum() / pixels),

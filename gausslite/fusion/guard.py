@@ -24,10 +24,9 @@ Gaussians have ``W_b = 0``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
-import torch
 
 from gausslite.wire.codec import GaussianArrays
 
@@ -53,30 +52,30 @@ class GuardReport:
 
 
 def roi_weights(gaussians: GaussianArrays, views: Sequence, backend: str = "auto") -> np.ndarray:
-    """(N,) float64 alpha-blending weight of each Gaussian over the ROI pixels of ``views``, averaged per view.
+    """(N,) float64 alpha-blending weight of each Gaussian over the ROI pixels of ``views``, averaged per view
+    (:func:`gausslite.sharing.roi_contribution` divided by the number of views with ROI pixels).
 
     Args:
         gaussians: the map (world frame, metres).
         views: ROI views, each with ``K`` (3, 3) pixels, ``width``, ``height``, ``c2w`` (4, 4) camera-to-world (OpenCV
-            axes) and ``roi`` (height, width) bool (arrays or CPU tensors, e.g. ``gausslite.mapping.views.Keyframe``);
-            views without ROI pixels are skipped.
+            axes) and ``roi`` (height, width) bool (arrays or CPU tensors, e.g. ``gausslite.mapping.views.Keyframe``
+            or :class:`gausslite.fusion.diagnose.RoiView`); views without ROI pixels are skipped.
         backend: rasterizer backend.
     """
-    from gausslite.render import blend_weights
+    from gausslite.sharing import roi_contribution
 
-    out = np.zeros(len(gaussians), np.float64)
-    vs = [v for v in views if v.roi is not None and bool(np.asarray(v.roi).any())]
+    vs = _roi_views(views)
     if not vs or len(gaussians) == 0:
-        return out
-    g = (torch.from_numpy(gaussians.means), torch.from_numpy(gaussians.quats), torch.from_numpy(gaussians.log_scales),
-         torch.from_numpy(gaussians.opacity_logits), torch.from_numpy(gaussians.colors))
-    for v in vs:
-        K = v.K.cpu().numpy() if hasattr(v.K, "cpu") else np.asarray(v.K)
-        c2w = v.c2w.cpu().numpy() if hasattr(v.c2w, "cpu") else np.asarray(v.c2w)
-        roi = torch.as_tensor(np.asarray(v.roi.cpu() if hasattr(v.roi, "cpu") else v.roi, bool))
-        out += blend_weights(*g, K=K, width=int(v.width), height=int(v.height), c2w=c2w, pixel_mask=roi,
-                             background=torch.zeros(3), backend=backend).double().numpy()
-    return out / len(vs)
+        return np.zeros(len(gaussians), np.float64)
+    return roi_contribution(gaussians.to_gaussian_map(), vs, backend) / len(vs)
+
+
+def _roi_views(views: Sequence, max_views: Optional[int] = None) -> list:
+    """The views with ROI pixels, at most ``max_views`` of them evenly spaced."""
+    vs = [v for v in views if v.roi is not None and bool(np.asarray(v.roi).any())]
+    if max_views is not None and len(vs) > max_views:
+        vs = [vs[int(k)] for k in np.linspace(0, len(vs) - 1, max_views).round()]
+    return vs
 
 
 def roi_guard(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[str],
@@ -113,9 +112,7 @@ def roi_guard(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
     W = np.zeros((len(agents), len(fused)), np.float64)
     used = {}
     for i, a in enumerate(agents):
-        vs = [v for v in views.get(a, ()) if v.roi is not None and bool(np.asarray(v.roi).any())]
-        if len(vs) > max_views:
-            vs = [vs[int(k)] for k in np.linspace(0, len(vs) - 1, max_views).round()]
+        vs = _roi_views(views.get(a, ()), max_views)
         used[a] = len(vs)
         if vs:
             W[i] = roi_weights(fused, vs, backend)
@@ -167,9 +164,7 @@ def for_robot(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
         raise ValueError(f"source_agent has {len(src)} rows for a map of {len(fused)}")
     i = list(agents).index(robot)
     others = fused.take(src != i)
-    vs = [v for v in views if v.roi is not None and bool(np.asarray(v.roi).any())]
-    if len(vs) > max_views:
-        vs = [vs[int(k)] for k in np.linspace(0, len(vs) - 1, max_views).round()]
+    vs = _roi_views(views, max_views)
     w = roi_weights(GaussianArrays.concat([subset, others]), vs, backend)[len(subset):]
     keep = ~(w > min_weight)
     out = GaussianArrays.concat([subset, others.take(keep)])

@@ -9,7 +9,7 @@ import math
 import queue
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import grpc
 import numpy as np
@@ -416,8 +416,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel, contest_radius=radius,
                                         refine_iters=iters if refine else 0, keyframes=self._refine_keyframes,
                                         seed=seed, progress=emit, for_agent=for_agent,
-                                        roi_views=lambda a: [k for k in self._refine_keyframes([a])
-                                                             if k.roi is not None])
+                                        roi_views=self._roi_views)
                 fused = out.fused
                 emit("store", 0.9, f"storing {len(fused)} Gaussians")
                 agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
@@ -458,15 +457,28 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         finally:
             self._workers.discard(threading.current_thread())
 
-    def _refine_keyframes(self, agents: Optional[List[str]] = None) -> list:
-        """The stored keyframes of every agent (or of ``agents``), decoded for the refinement
-        (:class:`gausslite.mapping.views.Keyframe`)."""
+    def _roi_views(self, agent: str) -> list:
+        """``agent``'s stored keyframes that carry an ROI, as :class:`gausslite.fusion.diagnose.RoiView` (pose,
+        intrinsics and the decoded ROI mask only: the colour and depth images stay encoded)."""
+        from gausslite.fusion.diagnose import RoiView
+
+        out = []
+        for k in self.store.keyframes([agent]):
+            if not k.roi:
+                continue
+            K = np.array([[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
+            roi = decode_roi(k.roi, (k.height, k.width), f"stored keyframe {k.frame_id}")
+            out.append(RoiView(K, int(k.width), int(k.height), np.asarray(k.c2w, np.float64), roi))
+        return out
+
+    def _refine_keyframes(self) -> list:
+        """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
         from gausslite.camera import Intrinsics
         from gausslite.datasets.base import Frame
         from gausslite.mapping.views import keyframe_from_frame
 
         kfs = []
-        for k in self.store.keyframes(agents):
+        for k in self.store.keyframes():
             what = f"stored keyframe {k.frame_id}"
             frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what), decode_depth(k.depth, k.depth_scale, what),
                           np.asarray(k.c2w, np.float64), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
