@@ -4,6 +4,8 @@ process), the ONNX relevance backend and its FAILED_PRECONDITION path."""
 
 from __future__ import annotations
 
+import contextlib
+
 import dataclasses
 import os
 import signal
@@ -379,7 +381,11 @@ def _start_agent(port, data_dir, cfg_path, log):
                             env=env, cwd=str(REPO), start_new_session=True)
 
 
-def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
+@contextlib.contextmanager
+def _agent_processes(scene, tmp_path, monkeypatch, agent_cfg: dict):
+    """An in-process fusion server and a ``start()`` that runs ``gausslite serve agent`` processes (agent id robot1,
+    on one port, with ``agent_cfg`` as its ``agent`` section); yields (start, fusion client, frames, port) and stops
+    everything afterwards."""
     import yaml
 
     from services.fusion_server.client import FusionClient
@@ -390,25 +396,47 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
     monkeypatch.setenv("_TEST_FUSION", fusion.address)
     cfg_path = tmp_path / "agent.yaml"
     cfg_path.write_text(yaml.safe_dump({
-        "agent": {"push_every": 1, "checkpoint_every": 1, "keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05,
-                  "backoff_s": 0.1},
+        "agent": {"keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05, "backoff_s": 0.1, **agent_cfg},
         "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeds_per_frame": 200}}))
-    ds = load_dataset(scene / "agent_a")
     port = free_port()
     log = open(tmp_path / "agent.log", "w")
-    p = _start_agent(port, tmp_path / "agents", cfg_path, log)
-    p2 = None
+    procs = []
+
+    def start():
+        procs.append(_start_agent(port, tmp_path / "agents", cfg_path, log))
+        return procs[-1]
+
     fc = FusionClient(fusion.address, timeout_s=30)
     try:
+        yield start, fc, load_dataset(scene / "agent_a"), port
+    finally:
+        fc.close()
+        for proc in procs:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(30)
+        log.close()
+        fusion.stop(0)
+
+
+def _stream_keyframes(c, mission_id: str, frames) -> None:
+    """Stream ``frames`` one per call, each waited for until it is a keyframe (once the mapper is free)."""
+    for i, fr in enumerate(frames):
+        c.stream_frames(mission_id, [fr], timeout_s=60)
+        deadline = time.monotonic() + 120
+        while c.status(mission_id).frames_keyframed < i + 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+
+
+def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
+    with _agent_processes(scene, tmp_path, monkeypatch, {"push_every": 1, "checkpoint_every": 1}) as (start, fc, ds,
+                                                                                                      port):
+        p = start()
         with AgentClient(f"127.0.0.1:{port}") as c:
             c.wait_ready(120)
             m = c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-7")
             assert m.mission_id == "run-7" and not m.resumed
-            for i in range(3):  # one frame per call: each becomes a keyframe once the mapper is free
-                c.stream_frames("run-7", [ds[i]], timeout_s=60)
-                deadline = time.monotonic() + 120
-                while c.status("run-7").frames_keyframed < i + 1 and time.monotonic() < deadline:
-                    time.sleep(0.1)
+            _stream_keyframes(c, "run-7", [ds[i] for i in range(3)])
             deadline = time.monotonic() + 120
             while (c.status("run-7").checkpoints < 3 or c.status("run-7").pushes < 1) and time.monotonic() < deadline:
                 time.sleep(0.1)
@@ -418,7 +446,7 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
         assert v_before >= 1
         os.killpg(p.pid, signal.SIGKILL)  # no graceful shutdown, no final push
         p.wait(30)
-        p2 = _start_agent(port, tmp_path / "agents", cfg_path, log)
+        start()
         with AgentClient(f"127.0.0.1:{port}") as c:
             c.wait_ready(120)
             m = c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-7")
@@ -431,47 +459,18 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
             assert s.status.frames_keyframed == 4
             assert s.status.last_pushed_version > v_before  # same agent, newer versions
         assert fc.stats()["agents"]["robot1"]["latest_map_version"] == s.status.last_pushed_version
-    finally:
-        fc.close()
-        for proc in (p, p2):
-            if proc is not None and proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(30)
-        log.close()
-        fusion.stop(0)
 
 
 def test_sigterm_pushes_the_final_subset_and_checkpoints(scene, tmp_path, monkeypatch):
     """A robot being shut down (SIGTERM) mid-mission, with no periodic push or checkpoint due yet: the agent stops
     ingest, pushes its final subset, writes its checkpoint and exits; a restart resumes the mission."""
-    import yaml
-
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve as serve_fusion
-    from services.sim import free_port
-
-    fusion = serve_fusion(ServerOptions(port=0), data_dir=str(tmp_path / "fusion"))
-    monkeypatch.setenv("_TEST_FUSION", fusion.address)
-    cfg_path = tmp_path / "agent.yaml"
-    cfg_path.write_text(yaml.safe_dump({
-        "agent": {"push_every": 1000, "checkpoint_every": 1000, "keyframe_translation_m": 1e-6,
-                  "idle_chunk_s": 0.05, "backoff_s": 0.1, "share_worker": "thread"},
-        "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeds_per_frame": 200}}))
-    ds = load_dataset(scene / "agent_a")
-    port = free_port()
-    log = open(tmp_path / "agent.log", "w")
-    p = _start_agent(port, tmp_path / "agents", cfg_path, log)
-    p2 = None
-    fc = FusionClient(fusion.address, timeout_s=30)
-    try:
+    cfg = {"push_every": 1000, "checkpoint_every": 1000, "share_worker": "thread"}
+    with _agent_processes(scene, tmp_path, monkeypatch, cfg) as (start, fc, ds, port):
+        p = start()
         with AgentClient(f"127.0.0.1:{port}") as c:
             c.wait_ready(120)
             c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-8")
-            for i in range(3):
-                c.stream_frames("run-8", [ds[i]], timeout_s=60)
-                deadline = time.monotonic() + 120
-                while c.status("run-8").frames_keyframed < i + 1 and time.monotonic() < deadline:
-                    time.sleep(0.1)
+            _stream_keyframes(c, "run-8", [ds[i] for i in range(3)])
             st = c.status("run-8")
             assert st.frames_keyframed == 3 and st.pushes == 0 and st.checkpoints == 0, st
         assert "robot1" not in fc.stats()["agents"]
@@ -480,19 +479,11 @@ def test_sigterm_pushes_the_final_subset_and_checkpoints(scene, tmp_path, monkey
         held = fc.stats()["agents"]["robot1"]
         assert held["has_complete_subset"] and held["latest_map_version"] >= 1
         assert (tmp_path / "agents" / "robot1" / "run-8" / "checkpoint.pt").is_file()
-        p2 = _start_agent(port, tmp_path / "agents", cfg_path, log)
+        start()
         with AgentClient(f"127.0.0.1:{port}") as c:
             c.wait_ready(120)
             m = c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-8")
             assert m.resumed and m.resumed_keyframes == 3
-    finally:
-        fc.close()
-        for proc in (p, p2):
-            if proc is not None and proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(30)
-        log.close()
-        fusion.stop(0)
 
 
 def test_validate_frame_reads_headers_and_defers_decoding(scene):
