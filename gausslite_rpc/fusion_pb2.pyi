@@ -28,7 +28,7 @@ class OpenSessionRequest(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., task_text: _Optional[str] = ..., intrinsics: _Optional[_Union[_common_pb2.Intrinsics, _Mapping]] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("agent_id", "created", "latest_map_version", "has_complete_subset", "keyframes", "max_keyframes", "max_message_bytes")
+    __slots__ = ("agent_id", "created", "latest_map_version", "has_complete_subset", "keyframes", "max_keyframes", "max_message_bytes", "max_chunk_bytes", "max_chunk_gaussians", "max_subset_gaussians", "max_chunks")
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     CREATED_FIELD_NUMBER: _ClassVar[int]
     LATEST_MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -36,6 +36,10 @@ class SessionInfo(_message.Message):
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     MAX_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_CHUNK_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_CHUNK_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    MAX_SUBSET_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    MAX_CHUNKS_FIELD_NUMBER: _ClassVar[int]
     agent_id: str
     created: bool
     latest_map_version: int
@@ -43,7 +47,11 @@ class SessionInfo(_message.Message):
     keyframes: int
     max_keyframes: int
     max_message_bytes: int
-    def __init__(self, agent_id: _Optional[str] = ..., created: _Optional[bool] = ..., latest_map_version: _Optional[int] = ..., has_complete_subset: _Optional[bool] = ..., keyframes: _Optional[int] = ..., max_keyframes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ...) -> None: ...
+    max_chunk_bytes: int
+    max_chunk_gaussians: int
+    max_subset_gaussians: int
+    max_chunks: int
+    def __init__(self, agent_id: _Optional[str] = ..., created: _Optional[bool] = ..., latest_map_version: _Optional[int] = ..., has_complete_subset: _Optional[bool] = ..., keyframes: _Optional[int] = ..., max_keyframes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., max_chunk_bytes: _Optional[int] = ..., max_chunk_gaussians: _Optional[int] = ..., max_subset_gaussians: _Optional[int] = ..., max_chunks: _Optional[int] = ...) -> None: ...
 
 class UploadHeader(_message.Message):
     __slots__ = ("agent_id", "map_version", "n_chunks", "full_map_gaussians", "full_map_bytes")
@@ -76,7 +84,7 @@ class UploadStatusRequest(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ...) -> None: ...
 
 class UploadAck(_message.Message):
-    __slots__ = ("agent_id", "map_version", "n_chunks", "stored", "missing", "complete", "newly_stored", "n_gaussians", "bytes_on_wire", "is_latest", "superseded_by")
+    __slots__ = ("agent_id", "map_version", "n_chunks", "stored", "missing", "complete", "newly_stored", "n_gaussians", "bytes_on_wire", "is_latest", "superseded_by", "stored_bytes")
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
     N_CHUNKS_FIELD_NUMBER: _ClassVar[int]
@@ -88,6 +96,7 @@ class UploadAck(_message.Message):
     BYTES_ON_WIRE_FIELD_NUMBER: _ClassVar[int]
     IS_LATEST_FIELD_NUMBER: _ClassVar[int]
     SUPERSEDED_BY_FIELD_NUMBER: _ClassVar[int]
+    STORED_BYTES_FIELD_NUMBER: _ClassVar[int]
     agent_id: str
     map_version: int
     n_chunks: int
@@ -99,7 +108,8 @@ class UploadAck(_message.Message):
     bytes_on_wire: int
     is_latest: bool
     superseded_by: int
-    def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., n_chunks: _Optional[int] = ..., stored: _Optional[_Iterable[int]] = ..., missing: _Optional[_Iterable[int]] = ..., complete: _Optional[bool] = ..., newly_stored: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., is_latest: _Optional[bool] = ..., superseded_by: _Optional[int] = ...) -> None: ...
+    stored_bytes: int
+    def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., n_chunks: _Optional[int] = ..., stored: _Optional[_Iterable[int]] = ..., missing: _Optional[_Iterable[int]] = ..., complete: _Optional[bool] = ..., newly_stored: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., is_latest: _Optional[bool] = ..., superseded_by: _Optional[int] = ..., stored_bytes: _Optional[int] = ...) -> None: ...
 
 class KeyframeRequest(_message.Message):
     __slots__ = ("agent_id", "frame_id", "color", "depth_png", "depth_scale", "pose", "intrinsics", "timestamp", "roi_png")
@@ -158,16 +168,18 @@ class FuseRequest(_message.Message):
     def __init__(self, method: _Optional[_Union[FuseMethod, str]] = ..., voxel_size: _Optional[float] = ..., refine: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., seed: _Optional[int] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ...) -> None: ...
 
 class AgentContribution(_message.Message):
-    __slots__ = ("agent_id", "map_version", "received", "kept")
+    __slots__ = ("agent_id", "map_version", "received", "kept", "first_row")
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
     RECEIVED_FIELD_NUMBER: _ClassVar[int]
     KEPT_FIELD_NUMBER: _ClassVar[int]
+    FIRST_ROW_FIELD_NUMBER: _ClassVar[int]
     agent_id: str
     map_version: int
     received: int
     kept: int
-    def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., received: _Optional[int] = ..., kept: _Optional[int] = ...) -> None: ...
+    first_row: int
+    def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., received: _Optional[int] = ..., kept: _Optional[int] = ..., first_row: _Optional[int] = ...) -> None: ...
 
 class FuseResult(_message.Message):
     __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental", "contest_radius", "for_agent")
@@ -246,7 +258,7 @@ class StatsRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class AgentStats(_message.Message):
-    __slots__ = ("agent_id", "task_text", "latest_map_version", "has_complete_subset", "gaussians_received", "bytes_on_wire", "chunks", "full_map_gaussians", "full_map_bytes", "share_pct", "keyframes", "bytes_per_gaussian")
+    __slots__ = ("agent_id", "task_text", "latest_map_version", "has_complete_subset", "gaussians_received", "bytes_on_wire", "chunks", "full_map_gaussians", "full_map_bytes", "share_pct", "keyframes", "bytes_per_gaussian", "stored_bytes")
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
     LATEST_MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -259,6 +271,7 @@ class AgentStats(_message.Message):
     SHARE_PCT_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
     BYTES_PER_GAUSSIAN_FIELD_NUMBER: _ClassVar[int]
+    STORED_BYTES_FIELD_NUMBER: _ClassVar[int]
     agent_id: str
     task_text: str
     latest_map_version: int
@@ -271,7 +284,8 @@ class AgentStats(_message.Message):
     share_pct: float
     keyframes: int
     bytes_per_gaussian: float
-    def __init__(self, agent_id: _Optional[str] = ..., task_text: _Optional[str] = ..., latest_map_version: _Optional[int] = ..., has_complete_subset: _Optional[bool] = ..., gaussians_received: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., chunks: _Optional[int] = ..., full_map_gaussians: _Optional[int] = ..., full_map_bytes: _Optional[int] = ..., share_pct: _Optional[float] = ..., keyframes: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ...) -> None: ...
+    stored_bytes: int
+    def __init__(self, agent_id: _Optional[str] = ..., task_text: _Optional[str] = ..., latest_map_version: _Optional[int] = ..., has_complete_subset: _Optional[bool] = ..., gaussians_received: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., chunks: _Optional[int] = ..., full_map_gaussians: _Optional[int] = ..., full_map_bytes: _Optional[int] = ..., share_pct: _Optional[float] = ..., keyframes: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., stored_bytes: _Optional[int] = ...) -> None: ...
 
 class StatsResponse(_message.Message):
     __slots__ = ("agents", "fused", "latest_fused_version")

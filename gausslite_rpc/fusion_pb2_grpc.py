@@ -116,7 +116,7 @@ class FusionServicer:
         raise NotImplementedError('Method not implemented!')
 
     def DownloadFused(self, request, context):
-        """Streams a fused map as wire-codec chunks.
+        """Streams a fused map as lossless wire-codec chunks (FusedChunk), not one message: a client assembles them.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

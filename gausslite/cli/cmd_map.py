@@ -183,6 +183,23 @@ def config_from_args(args: argparse.Namespace, **extra):
     )
 
 
+#: what task-conditioned mapping of one's own recording needs (``docs/ros.md``, "Task-conditioned mapping of your bag")
+TASK_HELP = ("task-conditioned mapping needs --mode gausslite and a task: --task-id ID of a tasks.json (task text and its "
+             "roi_object_ids) with an objects.json (labelled 3D boxes in the poses' world frame) in the dataset's folder "
+             "or its parent; to map from task text alone with an ONNX detector, replay the recording through "
+             "`gausslite serve agent` (docs/ros.md)")
+
+
+def warn_uniform(task_id) -> None:
+    """Log that ``gausslite map`` maps uniformly (mode ``uniform``): with no task at all, or with a task that then only
+    scores the map."""
+    if task_id is None:
+        log.warning("no task given: mapping uniformly (every region alike); %s", TASK_HELP)
+    else:
+        log.warning("mode uniform: task %s only scores the map (ROI metrics), it does not steer the mapping; "
+                    "add --mode gausslite to map for it", task_id)
+
+
 def _handler(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -196,6 +213,8 @@ def _handler(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
         log.error("invalid mapper configuration: %s", e)
         return 2
+    if cfg.mode == "uniform":
+        warn_uniform(args.task_id)
     if args.task_id is None and cfg.mode == "gausslite":
         if ds.annotations is None or not ds.annotations.tasks:
             log.error("mode gausslite needs --task-id and a tasks.json next to %s", ds.path)
@@ -217,6 +236,8 @@ def register(sub) -> None:
     p = sub.add_parser("map", help="map a posed RGB-D sequence and evaluate it",
                        description="Map a sequence with known poses; writes map.ply, metrics.json and PNGs.")
     add_mapping_args(p)
-    p.add_argument("--mode", choices=["uniform", "gausslite"], default="uniform")
+    p.add_argument("--mode", choices=["uniform", "gausslite"], default="uniform",
+                   help="uniform (default: every region alike, a warning says so) or gausslite (task-conditioned: "
+                        "needs --task-id or a tasks.json beside the dataset, with objects.json)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=_handler)

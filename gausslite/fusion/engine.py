@@ -37,6 +37,9 @@ class FuseOutcome:
             rather than rebuilt.
         keyframes_used: keyframes of the refinement (0 without).
         seconds: wall time of the whole job.
+        first_row: provenance, agent id → index of its first row in ``fused``: rows ``[first_row[a], first_row[a] +
+            kept[a])`` came from agent ``a`` (vote and concat group the rows by agent); None after a refinement,
+            which splits, clones and prunes rows.
     """
 
     fused: GaussianArrays
@@ -47,6 +50,16 @@ class FuseOutcome:
     incremental: bool = False
     keyframes_used: int = 0
     seconds: float = 0.0
+    first_row: Optional[Dict[str, int]] = None
+
+
+def _first_rows(order: Sequence[str], kept: Mapping[str, int]) -> Dict[str, int]:
+    """agent id → first row of its block, for a map made of ``kept[a]`` rows of each agent in ``order``."""
+    out, at = {}, 0
+    for a in order:
+        out[a] = at
+        at += int(kept.get(a, 0))
+    return out
 
 
 class FuseEngine:
@@ -129,6 +142,7 @@ class FuseEngine:
             tv = time.monotonic()
             fused, report, revoted, incremental = self.vote(versions, maps, voxel_size, contest_radius)
             out = FuseOutcome(fused, dict(report.kept), report, time.monotonic() - tv, revoted, incremental)
+            out.first_row = _first_rows(report.agents, out.kept)  # the vote's canonical order: sorted agent ids
             emit(method, end, f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
                  + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
             if for_agent is not None:
@@ -137,11 +151,13 @@ class FuseEngine:
                 out.fused, st = for_robot(fused, report.source_agent, report.agents, for_agent, maps[for_agent],
                                           list(roi_views(for_agent)))
                 out.kept = dict(st["kept"])
+                out.first_row = _first_rows([for_agent] + [a for a in report.agents if a != for_agent], out.kept)
                 emit(method, end, f"for {for_agent}: its {st['own']} Gaussians, the others' {st['others_kept']} "
                      f"kept and {st['others_dropped']} dropped over its ROI ({st['views']} ROI views)")
         elif method == "concat":
             fused = concat(maps)
             out = FuseOutcome(fused, {a: len(m) for a, m in maps.items()})
+            out.first_row = _first_rows(sorted(maps), out.kept)
             emit(method, end, f"concatenated {len(fused)} Gaussians")
         else:
             raise ValueError(f"unknown fuse method {method!r} (use 'vote' or 'concat')")
@@ -154,6 +170,7 @@ class FuseEngine:
             out.keyframes_used = len(kfs)
             emit("refine", end, f"refining {len(out.fused)} Gaussians over {len(kfs)} keyframes, {refine_iters} "
                  "iterations")
+            out.first_row = None
             out.fused = refine_map(out.fused, kfs, refine_iters,
                                    progress=lambda f, m: emit("refine", end + (0.9 - end) * float(f), m),
                                    seed=seed, **self.refine_options)

@@ -1016,7 +1016,7 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     buf = _as_view(data)
     size = len(buf)
     if size > limits.max_chunk_bytes:
-        raise LimitExceeded(f"chunk of {size} bytes exceeds {limits.max_chunk_bytes}")
+        raise LimitExceeded(f"chunk of {size} bytes, above the limit of {limits.max_chunk_bytes} bytes")
     if size < len(MAGIC):
         raise TruncatedChunk(f"{size} bytes, shorter than the magic")
     if bytes(buf[:4]) != MAGIC:
@@ -1070,15 +1070,15 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     except UnicodeDecodeError as e:
         raise MalformedChunk(f"agent id is not UTF-8: {e}") from None
     if n > limits.max_chunk_gaussians:
-        raise LimitExceeded(f"chunk claims {n} Gaussians (limit {limits.max_chunk_gaussians})")
+        raise LimitExceeded(f"chunk claims {n} Gaussians, above the limit of {limits.max_chunk_gaussians} per chunk")
     if total > limits.max_total_gaussians:
-        raise LimitExceeded(f"subset claims {total} Gaussians (limit {limits.max_total_gaussians})")
+        raise LimitExceeded(f"subset claims {total} Gaussians, above the limit of {limits.max_total_gaussians}")
     if count_chunks > limits.max_chunks:
-        raise LimitExceeded(f"subset claims {count_chunks} chunks (limit {limits.max_chunks})")
+        raise LimitExceeded(f"subset claims {count_chunks} chunks, above the limit of {limits.max_chunks}")
     if count_chunks == 0 or index >= count_chunks:
-        raise MalformedChunk(f"chunk index {index} of {count_chunks}")
+        raise MalformedChunk(f"chunk index {index} is not below the chunk count {count_chunks} (indices are 0-based)")
     if n > total or (n == 0 and total != 0):
-        raise MalformedChunk(f"chunk count {n} vs subset total {total}")
+        raise MalformedChunk(f"chunk holds {n} rows, its subset {total} (a chunk holds 1..total rows, 0 only when total is 0)")
     if count_chunks > max(1, total):
         raise MalformedChunk(f"{count_chunks} chunks for {total} Gaussians")
     if kb > 8:
@@ -1140,39 +1140,50 @@ def raw_payload(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> bytes:
     return _decompress_sections(_as_view(data)[start:start + h.payload_len], section_lengths(h))
 
 
+#: payload section names in order (docs/wire-format.md §4): a full chunk's, and a delta chunk's
+_SECTION_NAMES = ("means", "quats", "log_scales", "opacity", "colors", "kappa", "active")
+_DELTA_SECTION_NAMES = _SECTION_NAMES[:6] + ("targets", "removed", "active")
+
+
 def _decompress_sections(payload: memoryview, lengths: list[int]) -> bytes:
     """Payload = for each section: u32 compressed length L, then a zstd frame of L bytes whose
     declared content size equals the section's raw length."""
+    names = _DELTA_SECTION_NAMES if len(lengths) == len(_DELTA_SECTION_NAMES) else _SECTION_NAMES
     out = []
     off = 0
-    for want in lengths:
+    for i, want in enumerate(lengths):
+        what = f"section {i} ({names[i]})"
         if off + _SECTION.size > len(payload):
-            raise MalformedChunk("payload ends before a section length")
+            raise MalformedChunk(f"payload ends before the length of {what}")
         (clen,) = _SECTION.unpack_from(payload, off)
         off += _SECTION.size
         if clen > len(payload) - off:
-            raise MalformedChunk(f"section of {clen} bytes overruns the payload")
-        out.append(_decompress(payload[off:off + clen], want))
+            raise MalformedChunk(f"{what}: {clen} compressed bytes overrun the payload")
+        out.append(_decompress(payload[off:off + clen], want, what))
         off += clen
     if off != len(payload):
         raise MalformedChunk(f"{len(payload) - off} bytes after the last payload section")
     return b"".join(out)
 
 
-def _decompress(payload: memoryview, raw_len: int) -> bytes:
+def _decompress(payload: memoryview, raw_len: int, what: str = "section") -> bytes:
     try:
         declared = zstandard.frame_content_size(payload)
     except zstandard.ZstdError as e:
-        raise MalformedChunk(f"bad zstd frame header: {e}") from None
+        raise MalformedChunk(f"{what}: bad zstd frame header: {e}") from None
+    if declared < 0:  # zstandard reports an absent content size as -1
+        raise MalformedChunk(f"{what}: the zstd frame does not declare its content size, which the format requires "
+                             f"({raw_len} bytes here)")
     if declared != raw_len:
-        raise MalformedChunk(f"zstd frame declares {declared} bytes, header {raw_len}")
+        raise MalformedChunk(f"{what}: the zstd frame declares {declared} bytes of content, the chunk header "
+                             f"implies {raw_len}")
     dobj = zstandard.ZstdDecompressor().decompressobj()
     try:
         raw = dobj.decompress(payload)
     except zstandard.ZstdError as e:
-        raise MalformedChunk(f"zstd: {e}") from None
+        raise MalformedChunk(f"{what}: zstd: {e}") from None
     if not dobj.eof or dobj.unused_data or len(raw) != raw_len:
-        raise MalformedChunk("zstd payload incomplete, oversized or with trailing data")
+        raise MalformedChunk(f"{what}: zstd payload incomplete, oversized or with trailing data")
     return raw
 
 
@@ -1347,7 +1358,7 @@ class SubsetAssembler:
         old = self._chunks.get(h.chunk_index)
         if old is not None:
             if old.digest != dc.digest:
-                raise ConflictingDuplicate(f"chunk {h.chunk_index} re-sent with different content")
+                raise ConflictingDuplicate(f"chunk index {h.chunk_index} re-sent with different content")
             return False
         if self._received + h.count > h.total_count:
             raise InconsistentChunks("chunks hold more Gaussians than the subset total")

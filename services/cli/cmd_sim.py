@@ -27,7 +27,10 @@ AGENT_FLAGS = {
     "--dataset": ("agent_dataset", "GAUSSLITE_AGENT_DATASET", "auto-start a replay mission of this dataset (agent)"),
     "--task": ("agent_task", "GAUSSLITE_AGENT_TASK", "task text of the auto-started mission (agent)"),
     "--task-id": ("agent_task_id", "GAUSSLITE_AGENT_TASK_ID", "task id in tasks.json (GT relevance/eval) (agent)"),
-    "--data-dir": ("data_dir", "GAUSSLITE_DATA_DIR", "folder for results (agent: map.ply + summary.json)"),
+    "--data-dir": ("data_dir", "GAUSSLITE_DATA_DIR",
+                   "persistent data folder: fusion, its store (the SQLite database fusion.sqlite3 with every subset, "
+                   "keyframe and fused map it acknowledged; default ./gausslite_fusion_data; not used when "
+                   "GAUSSLITE_FUSION_STORE names PostgreSQL); agent, its results (map.ply + summary.json)"),
     "--annotations": ("agent_annotations", "GAUSSLITE_AGENT_ANNOTATIONS",
                       "scene folder with objects.json/tasks.json for streamed missions (agent)"),
 }
@@ -98,7 +101,7 @@ def _extend_serve(subparsers) -> None:
     serve = getattr(subparsers, "choices", {}).get("serve")
     if serve is None:
         return
-    group = serve.add_argument_group("agent options (gausslite serve agent)")
+    group = serve.add_argument_group("agent options (gausslite serve agent; --data-dir also fusion)")
     existing = serve._option_string_actions  # options another module already added are reused
     for flag, (dest, _env, help_) in AGENT_FLAGS.items():
         if flag not in existing:

@@ -168,7 +168,8 @@ class UploadResult:
     Attributes:
         complete (bool): the server holds every chunk of this (agent, map version).
         n_chunks (int): chunks of the subset.
-        bytes_on_wire (int): sum of the chunk sizes (bytes), i.e. the subset's wire size.
+        bytes_on_wire (int): sum of the chunk sizes (bytes): the version's wire size (a delta: the delta's chunks,
+            as ``UploadAck.bytes_on_wire``).
         n_gaussians (int): Gaussians in the subset.
         chunks_sent (int): chunks actually transmitted (0 when the server already had them all).
         attempts (int): ``UploadSubset`` calls made.
@@ -199,6 +200,9 @@ class FuseResult:
         keyframes_used (int), bytes (int): size of the stored fused map.
         contest_radius (int): the vote's neighbourhood radius in voxels (0 for concat).
         for_agent (str): the agent the map was made for (``fuse(for_agent=...)``; "" = the team map).
+        first_row (dict[str, int]): provenance, agent id → its first row in the fused map: rows
+            ``[first_row[a], first_row[a] + kept[a])`` of :meth:`FusionClient.download_fused` came from agent ``a``;
+            empty for a refined map (the refinement splits, clones and prunes rows).
     """
 
     fused_version: int
@@ -215,6 +219,7 @@ class FuseResult:
     bytes: int = 0
     contest_radius: int = 0
     for_agent: str = ""
+    first_row: Dict[str, int] = field(default_factory=dict)
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -228,6 +233,7 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
         keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
         for_agent=str(r.for_agent),
+        first_row={a.agent_id: int(a.first_row) for a in r.agents if a.HasField("first_row")},
     )
 
 
@@ -410,7 +416,8 @@ class FusionClient:
             n_gaussians: Gaussians (records) the chunks carry (reported back only).
             full_map_gaussians, full_map_bytes: as :meth:`upload_subset`.
         Returns:
-            UploadResult (``bytes_sent`` counts the bytes transmitted by this call).
+            UploadResult (``bytes_on_wire``: the sizes of ``chunks``, what the server's ack reports as received;
+            ``bytes_sent`` counts the bytes transmitted by this call).
         Raises:
             grpc.RpcError: as :meth:`upload_subset`; FAILED_PRECONDITION also when a delta's base
             version is not on the server (upload the full subset then).
@@ -570,8 +577,8 @@ class FusionClient:
 
         Returns:
             dict: ``{"agents": {agent_id: {task_text, latest_map_version, has_complete_subset,
-            gaussians_received, bytes_on_wire, chunks, full_map_gaussians, full_map_bytes,
-            share_pct, keyframes, bytes_per_gaussian}}, "fused": [{fused_version, n_gaussians,
+            gaussians_received, bytes_on_wire (received for that version: a delta as sent), stored_bytes, chunks,
+            full_map_gaussians, full_map_bytes, share_pct, keyframes, bytes_per_gaussian (stored)}}, "fused": [{fused_version, n_gaussians,
             seconds, method, refined, kept: {...}, ...}], "latest_fused_version": int}``.
         """
         r = self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(), "GetStats")
@@ -580,7 +587,7 @@ class FusionClient:
             agents[a.agent_id] = {
                 "task_text": a.task_text, "latest_map_version": int(a.latest_map_version),
                 "has_complete_subset": bool(a.has_complete_subset), "gaussians_received": int(a.gaussians_received),
-                "bytes_on_wire": int(a.bytes_on_wire), "chunks": int(a.chunks),
+                "bytes_on_wire": int(a.bytes_on_wire), "stored_bytes": int(a.stored_bytes), "chunks": int(a.chunks),
                 "full_map_gaussians": int(a.full_map_gaussians), "full_map_bytes": int(a.full_map_bytes),
                 "share_pct": float(a.share_pct), "keyframes": int(a.keyframes),
                 "bytes_per_gaussian": float(a.bytes_per_gaussian),

@@ -165,7 +165,8 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     Raises:
         RuntimeError: the address cannot be bound. OSError / sqlite3.Error: unusable data dir.
         StoreError: unreachable PostgreSQL; SchemaTooNew: a store written by a newer GaussLite.
-        ValueError / FileNotFoundError: bad credentials options (token, token file, TLS files).
+        ValueError / FileNotFoundError: bad credentials options (token, token file, TLS files), or a message bound
+            below :data:`services.fusion_server.servicer.MIN_MESSAGE_BYTES`.
     """
     auth = authenticator_from_options(options)
     config = config or FusionConfig()
@@ -176,7 +177,11 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     store = (open_store(config.store, pool_size=config.store_pool_size,
                         acquire_timeout_s=config.store_acquire_timeout_s) if config.store
              else open_store(config.data_dir))
-    servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
+    try:
+        servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
+    except BaseException:
+        store.close()
+        raise
     metered = MeteredFusion(servicer, FusionMetrics())
     try:
         running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(metered, srv),
@@ -230,7 +235,9 @@ def main(argv=None) -> int:
     p.add_argument("--port", type=int, default=int(env.get("GAUSSLITE_FUSION_PORT", DEFAULT_PORT)),
                    help=f"port, 0 = ephemeral (env GAUSSLITE_FUSION_PORT, default {DEFAULT_PORT})")
     p.add_argument("--data-dir", default=env.get("GAUSSLITE_DATA_DIR"),
-                   help="persistent store directory (env GAUSSLITE_DATA_DIR)")
+                   help="folder of the fusion store, the SQLite database fusion.sqlite3 with every subset, keyframe "
+                        "and fused map the server acknowledged (env GAUSSLITE_DATA_DIR; default ./gausslite_fusion_data; "
+                        "not used with --store)")
     p.add_argument("--store", default=env.get("GAUSSLITE_FUSION_STORE"),
                    help="postgresql://user:pw@host:port/db to share a PostgreSQL store between replicas "
                         "(env GAUSSLITE_FUSION_STORE; default: SQLite in --data-dir)")
@@ -253,7 +260,8 @@ def main(argv=None) -> int:
     p.add_argument("--config", default=env.get("GAUSSLITE_FUSION_CONFIG"),
                    help="JSON/TOML FusionConfig file (env GAUSSLITE_FUSION_CONFIG)")
     p.add_argument("--max-workers", type=int, default=16, help="handler threads")
-    p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024, help="message size bound")
+    p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024, help="gRPC message bound in bytes (default 4 MiB, at least 128 KiB); a wire chunk may take it minus 16 "
+                        "bytes (SessionInfo.max_chunk_bytes)")
     p.add_argument("--grace", type=float, default=10.0, help="shutdown grace period, seconds")
     p.add_argument("--metrics-port", type=int, default=None,
                    help="Prometheus /metrics port, 0 = off (env GAUSSLITE_FUSION_METRICS_PORT, GAUSSLITE_METRICS_PORT)")

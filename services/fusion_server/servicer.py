@@ -32,6 +32,19 @@ log = logging.getLogger("services.fusion_server.server")  # one logger for the w
 SERVICE_NAME = "gausslite.v1.Fusion"
 FUSED_AGENT_ID = "fused"
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
+#: bytes an ``UploadSubsetRequest`` adds around its chunk (field tag and length, 6 at most, with margin): a chunk fits
+#: in one message when it is at most ``max_message_bytes - CHUNK_ENVELOPE_BYTES`` (``SessionInfo.max_chunk_bytes``)
+CHUNK_ENVELOPE_BYTES = 16
+#: largest row count of one chunk the server accepts (the wire format's own bound, ``docs/wire-format.md`` §8)
+MAX_CHUNK_GAUSSIANS = 1 << 20
+#: smallest message bound the server runs with: a fused chunk (64 KiB at least) and its ``FuseResult`` must fit
+MIN_MESSAGE_BYTES = 128 * 1024
+
+
+def _ordinal(n: int) -> str:
+    """1 → "1st", 2 → "2nd", 11 → "11th", 23 → "23rd" (a count in client-facing messages, never an index)."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
 
 
 class FusionServicer(fusion_pb2_grpc.FusionServicer):
@@ -40,9 +53,12 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
     Args:
         store (SqlFusionStore): persistent state (SQLite or PostgreSQL).
         config (FusionSettings): limits and defaults (the ``fusion`` section, :mod:`gausslite.config`).
-        max_message_bytes (int): the server's message bound (chunks must fit in it).
+        max_message_bytes (int): the server's gRPC message bound in bytes (>= :data:`MIN_MESSAGE_BYTES`); a chunk may
+            take it minus :data:`CHUNK_ENVELOPE_BYTES`.
         auth (Authenticator | None): identifies callers for the write checks (None: every caller may
             write every agent's data, as on a server without credentials).
+    Raises:
+        ValueError: ``max_message_bytes`` below :data:`MIN_MESSAGE_BYTES`.
     """
 
     def __init__(self, store: SqlFusionStore, config: FusionSettings, max_message_bytes: int,
@@ -51,9 +67,13 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)
-        self.limits = WireLimits(max_chunk_bytes=self.max_message_bytes,
+        if self.max_message_bytes < MIN_MESSAGE_BYTES:
+            raise ValueError(f"the fusion server's max_message_bytes must be >= {MIN_MESSAGE_BYTES}, "
+                             f"got {self.max_message_bytes}")
+        # the limits a client sees in SessionInfo (docs/robot-integration.md, "Limits")
+        self.limits = WireLimits(max_chunk_bytes=self.max_message_bytes - CHUNK_ENVELOPE_BYTES,
                                  max_total_gaussians=int(config.max_subset_gaussians),
-                                 max_chunk_gaussians=min(1 << 20, int(config.max_subset_gaussians)),
+                                 max_chunk_gaussians=min(MAX_CHUNK_GAUSSIANS, int(config.max_subset_gaussians)),
                                  max_agent_id_bytes=64)
         # fused chunks leave room for the FusedChunk envelope and the FuseResult of the first message
         self.fused_chunk_bytes = max(64 * 1024, min(4 << 20, self.max_message_bytes - 64 * 1024))
@@ -106,6 +126,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             ack.complete = up.complete
             ack.n_gaussians = up.n_gaussians
             ack.bytes_on_wire = up.wire_bytes
+            ack.stored_bytes = up.stored_bytes
         return ack
 
     def _subset(self, agent_id: str, version: int) -> GaussianArrays:
@@ -158,6 +179,11 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         except DeltaMismatch as e:
             self.store.discard_upload(agent, version)
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"delta v{version} of {agent!r}: {e}") from None
+        if len(full) > self.limits.max_total_gaussians:
+            self.store.discard_upload(agent, version)
+            raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                         f"delta v{version} of {agent!r} rebuilds a subset of {len(full)} Gaussians, above the "
+                         f"server's limit of {self.limits.max_total_gaussians}")
         chunks = encode_subset(full, agent, version, quant=LOSSLESS, max_chunk_bytes=self.limits.max_chunk_bytes,
                                limits=self.limits)
         stored = [(c, decode_chunk(c, self.limits).digest, peek_header(c, self.limits).count) for c in chunks]
@@ -187,7 +213,11 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                                       has_complete_subset=latest is not None,
                                       keyframes=self.store.keyframe_count(agent),
                                       max_keyframes=self.config.max_keyframes_per_agent,
-                                      max_message_bytes=self.max_message_bytes)
+                                      max_message_bytes=self.max_message_bytes,
+                                      max_chunk_bytes=self.limits.max_chunk_bytes,
+                                      max_chunk_gaussians=self.limits.max_chunk_gaussians,
+                                      max_subset_gaussians=self.limits.max_total_gaussians,
+                                      max_chunks=self.limits.max_chunks)
 
     @unary_guard
     def UploadSubset(self, request_iterator, context):  # noqa: N802
@@ -215,39 +245,42 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         newly = 0
         for pos, msg in enumerate(it, start=1):
             if msg.WhichOneof("payload") != "chunk":
-                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"message {pos}: expected a chunk, got a second header")
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
+                             f"the {_ordinal(pos)} message after the header is a second header; send the header "
+                             "once, first, then only chunks")
             data = msg.chunk
+            # chunks are named by their 0-based chunk index (as in UploadAck.stored / missing) once their header is
+            # read; before that, by their place in this call's stream
+            unread = f"the {_ordinal(pos)} chunk of this call (chunk index unreadable)"
             try:
                 hdr = peek_header(data, self.limits)
             except LimitExceeded as e:
-                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                             f"chunk at stream position {pos}: LimitExceeded: {e}") from None
+                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"{unread}: LimitExceeded: {e}") from None
             except WireError as e:
-                raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                             f"chunk at stream position {pos}: {type(e).__name__}: {e}") from None
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{unread}: {type(e).__name__}: {e}") from None
             idx = hdr.chunk_index
             if hdr.delta:
                 self._check_delta_base(agent, version, check_int64(hdr.base_version, "delta base_version"))
             if hdr.agent_id != agent or hdr.map_version != version:
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                             f"chunk {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
+                             f"chunk index {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "
                              f"header to {agent!r} v{version}")
             if hdr.chunk_count != n_chunks:
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                             f"chunk {idx} says {hdr.chunk_count} chunks, the header {n_chunks}")
+                             f"chunk index {idx} says its version has {hdr.chunk_count} chunks, the upload header {n_chunks}")
             if h.full_map_gaussians and hdr.total_count > h.full_map_gaussians:
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
-                             f"chunk {idx}: subset of {hdr.total_count} Gaussians exceeds full_map_gaussians "
+                             f"chunk index {idx}: subset of {hdr.total_count} Gaussians exceeds full_map_gaussians "
                              f"{h.full_map_gaussians}")
             try:
                 dc = decode_chunk(data, self.limits)
             except WireError as e:
-                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {type(e).__name__}: {e}") from None
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk index {idx}: {type(e).__name__}: {e}") from None
             try:
                 c = self.config
                 check_plausible(dc.arrays, c.max_abs_mean_m, c.max_scale_m, c.max_abs_opacity_logit)
             except ValueError as e:
-                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk {idx}: {e}") from None
+                raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"chunk index {idx}: {e}") from None
             try:
                 new, _ = self.store.put_chunk(agent, version, idx, bytes(data), dc.digest, hdr.count,
                                               hdr.total_count, hdr.lossless, defer_complete=hdr.delta)
@@ -262,8 +295,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._rebuild_delta(agent, version)
         ack = self._ack(agent, version, newly)
         if ack.complete and newly:
-            log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes", agent, version, ack.n_gaussians,
-                     ack.n_chunks, ack.bytes_on_wire)
+            log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes received, %d bytes stored", agent,
+                     version, ack.n_gaussians, ack.n_chunks, ack.bytes_on_wire, ack.stored_bytes)
         return ack
 
     @unary_guard
@@ -420,7 +453,9 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 fused = out.fused
                 emit("store", 0.9, f"storing {len(fused)} Gaussians")
                 agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
-                                                       kept=int(out.kept.get(a, 0))) for a in sorted(maps)]
+                                                       kept=int(out.kept.get(a, 0)),
+                                                       first_row=None if out.first_row is None else out.first_row[a])
+                          for a in sorted(maps)]
 
                 def info(version: int, nbytes: int) -> bytes:
                     return fusion_pb2.FuseResult(
@@ -525,11 +560,12 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 a.has_complete_subset = True
                 a.gaussians_received = up.n_gaussians
                 a.bytes_on_wire = up.wire_bytes
+                a.stored_bytes = up.stored_bytes
                 a.chunks = len(up.stored)
                 a.full_map_gaussians = up.full_map_gaussians
                 a.full_map_bytes = up.full_map_bytes
                 a.share_pct = 100.0 * up.n_gaussians / up.full_map_gaussians if up.full_map_gaussians else 0.0
-                a.bytes_per_gaussian = up.wire_bytes / up.n_gaussians if up.n_gaussians else 0.0
+                a.bytes_per_gaussian = up.stored_bytes / up.n_gaussians if up.n_gaussians else 0.0
             resp.agents.append(a)
         for info in self.store.fused_infos():
             resp.fused.append(fusion_pb2.FuseResult.FromString(info))

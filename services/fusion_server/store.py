@@ -34,7 +34,7 @@ Tables::
 
     sessions(agent_id PK, task_text, fx, fy, cx, cy, width, height, opened_unix)
     uploads(agent_id, map_version, n_chunks, full_map_gaussians, full_map_bytes, total_count,
-            lossless, complete, completed_unix, PK(agent_id, map_version))
+            lossless, complete, completed_unix, received_bytes, PK(agent_id, map_version))
     chunks(agent_id, map_version, idx, data BLOB, digest BLOB, n_gaussians, wire_bytes,
            PK(agent_id, map_version, idx))
     agents(agent_id PK, latest_version)   -- latest complete subset
@@ -66,7 +66,7 @@ log = logging.getLogger(__name__)
 
 DB_NAME = "fusion.sqlite3"
 #: Schema version this code reads and writes.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: DSN prefixes that select :class:`PostgresFusionStore`.
 PG_PREFIXES = ("postgresql://", "postgres://")
 
@@ -107,6 +107,9 @@ MIGRATIONS: List[Tuple[int, List[str]]] = [
     (2, ["CREATE INDEX IF NOT EXISTS fused_method_version ON fused (method, version)"]),
     # 3: keyframes carry the agent's task ROI (PNG, may be empty) for ROI-restricted refinement
     (3, ["ALTER TABLE keyframes ADD COLUMN roi {BLOB}"]),
+    # 4: a delta upload's received bytes survive the rebuild that replaces its chunks (NULL: the stored chunks are
+    # the received ones)
+    (4, ["ALTER TABLE uploads ADD COLUMN received_bytes {INT}"]),
 ]
 assert MIGRATIONS[-1][0] == SCHEMA_VERSION
 
@@ -149,8 +152,10 @@ class Upload:
     Attributes:
         n_chunks (int): declared chunk count. full_map_gaussians / full_map_bytes (int): from the
         latest header. total_count (int | None), lossless (bool | None): fixed by the first stored
-        chunk. complete (bool). stored (list[int]): sorted stored chunk indices. n_gaussians (int),
-        wire_bytes (int): sums over the stored chunks.
+        chunk. complete (bool). stored (list[int]): sorted stored chunk indices. n_gaussians (int): sum over the
+        stored chunks. wire_bytes (int): bytes received on the wire for this version (its distinct chunks as sent;
+        for a completed delta upload, the delta's chunks). stored_bytes (int): bytes of the chunks held now (equal
+        to ``wire_bytes`` except for a completed delta, whose chunks are the lossless rebuilt subset).
     """
 
     agent_id: str
@@ -164,6 +169,7 @@ class Upload:
     stored: List[int]
     n_gaussians: int
     wire_bytes: int
+    stored_bytes: int
 
     @property
     def missing(self) -> List[int]:
@@ -301,16 +307,18 @@ class SqlFusionStore:
 
     @staticmethod
     def _upload(db, agent_id: str, map_version: int) -> Optional[Upload]:
-        row = db.execute("SELECT n_chunks, full_map_gaussians, full_map_bytes, total_count, lossless, complete "
-                         "FROM uploads WHERE agent_id=? AND map_version=?", (agent_id, map_version)).fetchone()
+        row = db.execute("SELECT n_chunks, full_map_gaussians, full_map_bytes, total_count, lossless, complete, "
+                         "received_bytes FROM uploads WHERE agent_id=? AND map_version=?",
+                         (agent_id, map_version)).fetchone()
         if row is None:
             return None
         stats = db.execute("SELECT idx, n_gaussians, wire_bytes FROM chunks WHERE agent_id=? AND map_version=? "
                            "ORDER BY idx", (agent_id, map_version)).fetchall()
+        stored_bytes = sum(int(r[2]) for r in stats)
         return Upload(agent_id, map_version, int(row[0]), int(row[1]), int(row[2]),
                       None if row[3] is None else int(row[3]), None if row[4] is None else bool(row[4]),
                       bool(row[5]), [int(r[0]) for r in stats], sum(int(r[1]) for r in stats),
-                      sum(int(r[2]) for r in stats))
+                      stored_bytes if row[6] is None else int(row[6]), stored_bytes)
 
     def begin_upload(self, agent_id: str, map_version: int, n_chunks: int, full_map_gaussians: int,
                      full_map_bytes: int) -> Upload:
@@ -368,17 +376,17 @@ class SqlFusionStore:
                              (agent_id, map_version, idx)).fetchone()
             if old is not None:
                 if bytes(old[0]) != digest:
-                    raise ChunkConflict(f"chunk {idx} of {agent_id!r} v{map_version} is already stored with "
+                    raise ChunkConflict(f"chunk index {idx} of {agent_id!r} v{map_version} is already stored with "
                                         "different content")
                 return False, up
             if up.total_count is not None and (up.total_count != total_count or up.lossless != lossless):
-                raise ValueError(f"chunk {idx}: subset total {total_count} / lossless {lossless} disagree with "
+                raise ValueError(f"chunk index {idx}: subset total {total_count} / lossless {lossless} disagree with "
                                  f"the stored chunks ({up.total_count} / {up.lossless})")
             if up.n_gaussians + n_gaussians > total_count:
-                raise ValueError(f"chunk {idx}: chunks hold more Gaussians than the subset total {total_count}")
+                raise ValueError(f"chunk index {idx}: chunks hold more Gaussians than the subset total {total_count}")
             last = len(up.stored) + 1 == up.n_chunks
             if last and up.n_gaussians + n_gaussians != total_count:
-                raise ValueError(f"chunk {idx}: all chunks received but Gaussian counts add up to "
+                raise ValueError(f"chunk index {idx}: all chunks received but Gaussian counts add up to "
                                  f"{up.n_gaussians + n_gaussians}, not {total_count}")
             db.execute("INSERT INTO chunks VALUES (?,?,?,?,?,?,?)",
                        (agent_id, map_version, idx, bytes(data), bytes(digest), n_gaussians, len(data)))
@@ -390,7 +398,7 @@ class SqlFusionStore:
                 self._complete(db, agent_id, map_version)
             return True, replace(up, total_count=total_count, lossless=bool(lossless), complete=up.complete or done,
                                  stored=sorted(up.stored + [idx]), n_gaussians=up.n_gaussians + n_gaussians,
-                                 wire_bytes=up.wire_bytes + len(data))
+                                 wire_bytes=up.wire_bytes + len(data), stored_bytes=up.stored_bytes + len(data))
 
     @staticmethod
     def _complete(db, agent_id: str, map_version: int) -> None:
@@ -408,7 +416,8 @@ class SqlFusionStore:
     def complete_rebuilt(self, agent_id: str, map_version: int, chunks: List[Tuple[bytes, bytes, int]],
                          total_count: int, lossless: bool) -> Upload:
         """Replace a fully received delta upload by its rebuilt full subset and complete it, in one
-        transaction (a crash before the commit leaves the delta chunks, and the rebuild is redone).
+        transaction (a crash before the commit leaves the delta chunks, and the rebuild is redone). The bytes
+        received for the delta (its chunks' sizes) stay the upload's ``wire_bytes``.
 
         Args:
             chunks: (data, digest, n_gaussians) of the rebuilt subset's wire chunks, index order.
@@ -419,12 +428,13 @@ class SqlFusionStore:
             up = self._upload(db, agent_id, map_version)
             if up is None or up.complete:
                 raise ValueError(f"{agent_id!r} v{map_version}: no incomplete upload to complete")
+            received = up.wire_bytes
             db.execute("DELETE FROM chunks WHERE agent_id=? AND map_version=?", (agent_id, map_version))
             for idx, (data, digest, n) in enumerate(chunks):
                 db.execute("INSERT INTO chunks VALUES (?,?,?,?,?,?,?)",
                            (agent_id, map_version, idx, data, digest, n, len(data)))
-            db.execute("UPDATE uploads SET n_chunks=?, total_count=?, lossless=? WHERE agent_id=? AND map_version=?",
-                       (len(chunks), total_count, int(lossless), agent_id, map_version))
+            db.execute("UPDATE uploads SET n_chunks=?, total_count=?, lossless=?, received_bytes=? WHERE agent_id=? AND "
+                       "map_version=?", (len(chunks), total_count, int(lossless), received, agent_id, map_version))
             self._complete(db, agent_id, map_version)
             return self._upload(db, agent_id, map_version)
 

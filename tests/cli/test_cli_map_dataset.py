@@ -93,3 +93,42 @@ def test_with_profile_fills_only_the_fields_the_config_left_unset():
     kept = with_profile(explicit, HANDHELD)
     assert kept.pose.refine is False and kept.final_iters_per_keyframe == 0.0  # set explicitly: kept
     assert with_profile(MapperConfig(), HANDHELD).pose.refine is True
+
+
+def _run_map(argv, monkeypatch, tmp_path):
+    """``gausslite map ARGV`` up to the mapping itself (stubbed): returns (exit code, the task it mapped for)."""
+    import gausslite.pipeline
+    from gausslite.cli.cmd_map import register
+
+    seen = {}
+
+    def fake_run_mapping(ds, cfg, *, task_id=None, **kw):
+        seen.update(mode=cfg.mode, task_id=task_id)
+        return None, {}
+
+    monkeypatch.setattr(gausslite.pipeline, "run_mapping", fake_run_mapping)
+    p = argparse.ArgumentParser()
+    register(p.add_subparsers())
+    args = p.parse_args(["map", *argv, "--out", str(tmp_path / "out"), "--no-progress"])
+    return args.func(args), seen
+
+
+def test_map_warns_when_it_maps_uniformly(room0_dir, tmp_path, monkeypatch, caplog):
+    import logging
+
+    caplog.set_level(logging.WARNING, logger="gausslite.map")
+    rc, seen = _run_map(["--dataset", str(room0_dir), "--max-frames", "1"], monkeypatch, tmp_path)
+    assert rc == 0 and seen == {"mode": "uniform", "task_id": None}
+    msg = " ".join(r.getMessage() for r in caplog.records)
+    assert "no task given: mapping uniformly" in msg
+    assert "--mode gausslite" in msg and "--task-id" in msg and "objects.json" in msg and "serve agent" in msg
+    caplog.clear()
+    rc, seen = _run_map(["--dataset", str(room0_dir), "--max-frames", "1", "--task-id", "room0-pick-plant"],
+                        monkeypatch, tmp_path)
+    assert rc == 0 and seen["mode"] == "uniform"
+    assert "only scores the map" in " ".join(r.getMessage() for r in caplog.records)
+    caplog.clear()  # task-conditioned: no warning
+    rc, seen = _run_map(["--dataset", str(room0_dir), "--max-frames", "1", "--mode", "gausslite"], monkeypatch,
+                        tmp_path)
+    assert rc == 0 and seen["mode"] == "gausslite" and seen["task_id"]
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]

@@ -127,12 +127,15 @@ def test_zstd_bomb_and_garbage_payloads_are_rejected():
 
     # a first-section frame that declares a much larger content size than the section
     bomb = zstandard.ZstdCompressor(write_content_size=True).compress(b"\0" * (64 << 20))
-    with pytest.raises(MalformedChunk):
+    with pytest.raises(MalformedChunk, match=rf"section 0 \(means\): the zstd frame declares {64 << 20} bytes of "
+                                             rf"content, the chunk header implies {lengths[0]}$"):
         decode_chunk(with_payload(QUANT_CHUNK, section(bomb) + rest))
-    # a frame without content size
+    # a frame without content size: named as such (zstandard's -1 for "unknown" never reaches the message)
     nosize = zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * lengths[0])
-    with pytest.raises(MalformedChunk):
+    with pytest.raises(MalformedChunk, match=r"section 0 \(means\): the zstd frame does not declare its content "
+                                             r"size") as err:
         decode_chunk(with_payload(QUANT_CHUNK, section(nosize) + rest))
+    assert "-1" not in str(err.value)
     # a section whose frame is followed by a second frame inside its declared length
     fr = zstandard.ZstdCompressor(write_content_size=True).compress(b"\0" * lengths[0])
     with pytest.raises(MalformedChunk):
