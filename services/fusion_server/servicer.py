@@ -75,8 +75,9 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                                  max_total_gaussians=int(config.max_subset_gaussians),
                                  max_chunk_gaussians=min(MAX_CHUNK_GAUSSIANS, int(config.max_subset_gaussians)),
                                  max_agent_id_bytes=64)
-        # fused chunks leave room for the FusedChunk envelope and the FuseResult of the first message
-        self.fused_chunk_bytes = max(64 * 1024, min(4 << 20, self.max_message_bytes - 64 * 1024))
+        # fused chunks leave 64 KiB for the FusedChunk envelope and the FuseResult of the first message, so every
+        # DownloadFused message fits the server's bound and gRPC's default 4 MiB receive limit of a client
+        self.fused_chunk_bytes = min(4 << 20, self.max_message_bytes) - 64 * 1024
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()

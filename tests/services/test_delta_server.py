@@ -14,6 +14,7 @@ import pytest
 from gausslite.camera import Intrinsics
 from gausslite.wire.codec import GaussianArrays, assemble, decode_chunk, peek_header
 from gausslite.wire.delta import PushPlanner
+from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from services.common.server import ServerOptions
 from services.fusion_server.client import FusionClient
 from services.fusion_server.server import serve
@@ -140,3 +141,36 @@ def test_interrupted_delta_rebuild_is_completed_by_the_resumed_upload(tmp_path):
         # re-sending the completed version is an idempotent no-op
         assert c.upload_chunks("robot", 2, p2.chunks, n_gaussians=p2.n_records,
                                full_map_gaussians=5000).complete
+
+
+def test_ack_and_stats_report_the_bytes_received_for_a_delta(tmp_path):
+    """``bytes_on_wire`` of a delta version is what crossed the link (its delta chunks), not the lossless rebuilt
+    subset the server stores (``stored_bytes``), in the ack, in GetUploadStatus, in GetStats and after a restart."""
+    agent = Agent(600)
+    planner = PushPlanner("robot", chunk_gaussians=128)
+    with _server(tmp_path / "data") as (srv, c):
+        p1, _ = _push(c, planner, agent, 1)
+        st1 = c.upload_status("robot", 1)
+        assert st1.bytes_on_wire == st1.stored_bytes == p1.nbytes  # a full upload is stored as sent
+        agent.evolve(1, n_move=10, n_remove=5, n_new=10)
+        p2 = planner.plan(agent.ids, agent.arr, 2, measure_full=False)
+        assert p2.is_delta
+        msgs = [fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
+            agent_id="robot", map_version=2, n_chunks=len(p2.chunks), full_map_gaussians=6000))]
+        msgs += [fusion_pb2.UploadSubsetRequest(chunk=x) for x in p2.chunks]
+        with grpc.insecure_channel(f"127.0.0.1:{srv.port}") as ch:  # the raw ack of the call that completes it
+            ack = fusion_pb2_grpc.FusionStub(ch).UploadSubset(iter(msgs), timeout=20)
+        planner.acknowledge(p2)
+        delta_bytes = sum(len(x) for x in p2.chunks)
+        stored = sum(len(x) for x in srv.store.chunk_data("robot", 2))
+        assert ack.complete and ack.bytes_on_wire == delta_bytes
+        assert ack.stored_bytes == stored > 5 * delta_bytes  # the lossless rebuild, kept apart
+        assert ack.n_gaussians == len(agent.arr) == len(_held(srv, "robot"))
+        st2 = c.upload_status("robot", 2)
+        assert (st2.bytes_on_wire, st2.stored_bytes) == (delta_bytes, stored)
+        a = c.stats()["agents"]["robot"]
+        assert (a["bytes_on_wire"], a["stored_bytes"]) == (delta_bytes, stored)
+        assert a["bytes_per_gaussian"] == pytest.approx(stored / len(agent.arr))
+    with _server(tmp_path / "data") as (srv, c):  # persisted with the upload
+        st2 = c.upload_status("robot", 2)
+        assert (st2.bytes_on_wire, st2.stored_bytes) == (delta_bytes, stored)
