@@ -24,9 +24,17 @@ def check_plausible(arrays, max_abs_mean_m: float = 1.0e4, max_scale_m: float = 
         max_scale_m: largest per-axis standard deviation (metres, > 0).
         max_abs_opacity_logit: largest |opacity logit| (> 0).
 
+    A negative κ (``arrays.kappa``, an optimisation count) is refused too: the vote sums κ per voxel and rejects
+    negative counts, so one robot's negative κ would fail every later ``Fuse`` of the team.
+
     Raises:
         ValueError: the first bound broken, with the row and its value.
     """
+    kappa = np.asarray(arrays.kappa).reshape(-1)
+    if len(kappa) and kappa.min() < 0:
+        i = int(np.argmin(kappa))
+        raise ValueError(f"Gaussian {i}: kappa {int(kappa[i])} is negative (an optimisation count is >= 0; "
+                         f"{int((kappa < 0).sum())} such rows)")
     checks = (("mean", np.abs(np.asarray(arrays.means, np.float64)).max(axis=1), max_abs_mean_m, "m from the origin"),
               ("scale", np.exp(np.asarray(arrays.log_scales, np.float64)).max(axis=1), max_scale_m,
                "m standard deviation"),

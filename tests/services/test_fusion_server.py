@@ -125,6 +125,12 @@ def test_two_agents_full_path(server, client):
     assert report1.contested_voxels > report.contested_voxels > 0 and rv.n_gaussians == len(expected) < 5000
     assert rv.kept == dict(report.kept) and rv.fused_version == r1.fused_version + 1 == rc.fused_version + 2
     assert client.download_fused(rv.fused_version).equals(expected)
+    # provenance: each agent's rows are one block of the downloaded map, where FuseResult.agents says
+    assert rv.first_row == {"robot-a": 0, "robot_b.2": rv.kept["robot-a"]}
+    assert rc.first_row == {"robot-a": 0, "robot_b.2": 3000}
+    for name, first in rv.first_row.items():
+        rows = np.flatnonzero(np.array(report.agents)[report.source_agent] == name)
+        assert rows.tolist() == list(range(first, first + rv.kept[name]))
     assert client.download_fused(0).equals(expected)  # latest
     assert client.download_fused(0, method="concat").equals(concat(maps))
     assert client.download_fused(rc.fused_version).equals(concat(maps))
@@ -156,6 +162,7 @@ def test_fuse_with_refinement(server, client):
     msgs = []
     r = client.fuse("vote", refine=True, refine_iters=4, progress=lambda f, m: msgs.append(m))
     assert r.refined and r.refine_iters == 4 and r.keyframes_used == 3
+    assert r.first_row == {}  # the refinement re-made the rows: no per-agent row ranges
     assert any(m.startswith("[refine]") for m in msgs)
     fused = client.download_fused(r.fused_version)
     assert len(fused) == r.n_gaussians > 0 and np.isfinite(fused.means).all()
@@ -570,8 +577,11 @@ def test_fuse_for_agent_keeps_its_whole_subset_and_drops_what_lies_over_its_roi(
     got = client.download_fused(ra.fused_version)
     assert len(got) == len(a) + 3 and got.take(np.arange(len(a))).equals(a)
     assert not np.isclose(got.means[:, 2], 1.2).any()  # the large splat over robot_a's ROI is gone
+    assert ra.first_row == {"robot_a": 0, "robot_b": len(a)}  # the robot's own rows first
     rb = client.fuse("vote", voxel_size=0.1, for_agent="robot_b")
     assert rb.kept["robot_b"] == len(b)
+    assert rb.first_row == {"robot_b": 0, "robot_a": len(b)}
+    assert client.download_fused(rb.fused_version).take(np.arange(len(b))).equals(b)
     # errors: unknown agent, an agent without a subset, concat, a malformed id
     code, _ = code_of(lambda: client.fuse("vote", for_agent="robot_z"))
     assert code == grpc.StatusCode.NOT_FOUND
@@ -603,6 +613,11 @@ def test_absurd_gaussians_are_refused_and_the_bounds_are_configurable(tmp_path):
             logit.opacity_logits[:] = 1e6
             code, msg = code_of(lambda: c.upload_subset("robot_p", 1, logit, full_map_gaussians=10, quant=LOSSLESS))
             assert code == grpc.StatusCode.INVALID_ARGUMENT and "opacity" in msg
+            negative = _splats([[0.0, 0.0, 1.5]], 0.05)  # κ < 0 would fail every later Fuse of the team
+            negative.kappa[:] = -3
+            code, msg = code_of(lambda: c.upload_subset("robot_p", 1, GaussianArrays.concat([good, negative]),
+                                                        full_map_gaussians=10, quant=LOSSLESS))
+            assert code == grpc.StatusCode.INVALID_ARGUMENT and "kappa -3 is negative" in msg, msg
             assert c.stats()["agents"]["robot_p"]["latest_map_version"] in (0, None)
             assert c.upload_subset("robot_p", 1, good, full_map_gaussians=10, quant=LOSSLESS).complete
     finally:
