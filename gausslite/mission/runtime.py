@@ -210,6 +210,8 @@ class AgentRuntime:
         self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
         self._worker.start()
         self.pusher.start()
+        if fusion is not None:
+            self.share.start()  # the share worker starts with the mission, not at its first push
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,

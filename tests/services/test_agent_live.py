@@ -816,6 +816,34 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
     assert rt.share.pool is None  # close() stopped the worker
 
 
+def test_the_share_worker_starts_with_the_mission_not_at_its_first_push():
+    """A sharing mission starts (and warms up) its share worker process when it starts: before any frame is mapped
+    the worker is running, and the first push's selection runs in that same process. Started at the first push
+    instead, a short mission maps its next subsets while the worker is still starting, and they are superseded."""
+    from gausslite.mission import AgentConfig
+    from gausslite.mission.share import _warm
+
+    graph = {"targets": ["object"], "anchors": [], "relations": []}
+    cfg = AgentConfig(share="task", share_worker="process", mapper=MapperConfig(mode="gausslite"))
+    rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
+    try:
+        assert rt.frames_mapped == 0 and rt.share.pool is not None and rt.share.warm is not None
+        pid = rt.share.warm.result(timeout=300)  # the warm-up job ran in the worker process...
+        assert pid != os.getpid()
+        assert rt.share.call(_warm) == pid  # ...which is the one the pushes use
+    finally:
+        rt.close()
+    assert rt.share.pool is None
+    # a mission that does not share (no fusion client) or shares without the worker starts no process
+    for kw in ({"fusion": None}, {"fusion": _RecordingFusion(), "share": "active"}):
+        c = AgentConfig(share=kw.get("share", "task"), share_worker="process", mapper=MapperConfig(mode="gausslite"))
+        r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
+        try:
+            assert r.share.pool is None
+        finally:
+            r.close()
+
+
 def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
     """When the selection takes longer than the keyframes between pushes, a newer snapshot is always waiting by the
     time it ends; the pusher skips the older one once, then pushes, so a long live mission keeps pushing."""
