@@ -69,6 +69,9 @@ class MissionSummaryData:
     seconds_per_frame: float
     roi_psnr_all_frames: Optional[float] = None
     frames_all: int = 0
+    #: replays: the final map over the sequence under each scoring protocol (``agent.scoring``; docs/realtime.md):
+    #: ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``
+    protocols: dict = field(default_factory=dict)
     total_upload_bytes: int = 0
     final_subset_bytes: int = 0
     pushes: List[dict] = field(default_factory=list)
@@ -645,8 +648,9 @@ class AgentRuntime:
             raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
         self.wait_mapped(None if deadline is None else max(0.0, deadline - time.monotonic()))
         psnr, roi_psnr = (self.evaluate() if evaluate and self.frames_mapped else (None, None))
-        roi_all = (self.evaluate_all_frames() if evaluate and self.frames_mapped and self._dataset is not None
-                   else None)
+        protocols = (self.evaluate_protocols() if evaluate and self.frames_mapped and self._dataset is not None
+                     else {})
+        roi_all = protocols["sensor"]["roi_psnr"] if protocols else None
         pusher = self.pusher
         last = pusher.pushes[-1] if pusher.pushes else None
         with self._lock:
@@ -663,6 +667,7 @@ class AgentRuntime:
             roi_psnr=roi_psnr, psnr=psnr,
             seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1),
             roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0,
+            protocols=protocols,
             total_upload_bytes=pusher.total_upload_bytes, final_subset_bytes=pusher.final_subset_bytes,
             pushes=[dict(p.__dict__) for p in pusher.pushes])
         if self.on_finished is not None:
@@ -701,21 +706,29 @@ class AgentRuntime:
         """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset, skipped ones included
         (mean over frames that show the ROI): the honest score of an online map. None without a replayed
         dataset, annotations or task id, or when no frame shows the ROI. Call only while the worker is idle."""
-        from gausslite.evaluation import score_view
+        res = self.evaluate_protocols(("sensor",))
+        return res["sensor"]["roi_psnr"] if res else None
+
+    def evaluate_protocols(self, protocols: Optional[tuple] = None) -> dict:
+        """The current map over every frame of the replayed dataset under the scoring protocols of
+        ``config.scoring`` (:func:`gausslite.evaluation.score_live_map`; ``sensor`` always, whose ROI PSNR is
+        :meth:`evaluate_all_frames`'s figure; ``keyframes``: the mapped keyframes at their refined pose and exposure;
+        ``tracked``: every ``track_stride``-th frame at a pose and exposure fitted against the frozen map), or of
+        ``protocols``.
+
+        Returns:
+            ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (dB; ROI PSNR over the
+            frames that show the ROI, None when none does); ``{}`` without a replayed dataset, annotations or task
+            id. Call only while the worker is idle."""
+        from gausslite.evaluation import score_live_map
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
-            return None
-        vals = []
-        for i in range(len(self._dataset)):
-            fr = self._dataset[i]
-            roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
-            if not roi.any():
-                continue
-            out = self.mapper.render_frame(fr)
-            s = score_view(out, fr, roi)
-            if not math.isnan(s.roi_psnr):
-                vals.append(s.roi_psnr)
-        return float(np.mean(vals)) if vals else None
+            return {}
+        sc, ann, task = self.config.scoring, self.annotations, self.task_id
+        return score_live_map(self.mapper, self._dataset,
+                              lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics),
+                              sc.chosen() if protocols is None else protocols, track_iters=sc.track_iters,
+                              track_stride=sc.track_stride)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

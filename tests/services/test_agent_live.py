@@ -544,7 +544,26 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
     assert st["frames_received"] == len(ds) == st["frames_keyframed"] + st["frames_skipped"]
     assert st["frames_keyframed"] >= 1
     assert s.frames_all == len(ds) and s.roi_psnr_all_frames is not None and 0 < s.roi_psnr_all_frames < 80
+    # every scoring protocol (agent.scoring): sensor is the every-frame figure, keyframes the mapped ones,
+    # tracked every 5th frame
+    p = s.protocols
+    assert set(p) == {"sensor", "keyframes", "tracked"}
+    assert p["sensor"]["roi_psnr"] == s.roi_psnr_all_frames and p["sensor"]["frames_scored"] == len(ds)
+    assert p["keyframes"]["frames_scored"] == st["frames_keyframed"]
+    assert p["tracked"]["frames_scored"] == len(range(0, len(ds), 5))
+    assert all(v["roi_psnr"] is not None and 0 < v["roi_psnr"] < 80 for v in p.values())
     rt.close()
+    # sensor alone when told so
+    cfg = load_agent_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"])
+    rt = AgentRuntime("rt2", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
+                      task_id="synth-pick-object")
+    try:
+        rt.replay(ds)
+        s = rt.finish(push=False, timeout_s=120)
+        assert set(s.protocols) == {"sensor", "tracked"}
+        assert s.protocols["tracked"]["frames_scored"] == len(range(0, len(ds), 2))
+    finally:
+        rt.close()
 
 
 def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
@@ -553,6 +572,8 @@ def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
     assert main(["sim", "--out", str(tmp_path / "x"), "--rate", "2"]) == 2
     assert "--realtime" in capsys.readouterr().err
     assert main(["sim", "--out", str(tmp_path / "x"), "--report-only"]) == 2
+    assert main(["sim", "--out", str(tmp_path / "x"), "--protocols", "sensor,oracle"]) == 2
+    assert "--protocols" in capsys.readouterr().err
 
 
 def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_one(tmp_path):
