@@ -551,13 +551,13 @@ def _protocol_lines(report: dict) -> List[str]:
     if not names:
         return []
     tasks = [a["task"] for a in agents]
+    stride = int(((report.get("settings") or {}).get("scoring") or {}).get("track_stride", 5))
     lines = ["", "## Own and fused maps under each scoring protocol", "",
              "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its difference to the robot's own map under "
              "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
              "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
-             "at the refined poses they carry; `tracked`: every "
-             f"{(report.get('settings') or {}).get('scoring', {}).get('track_stride', 5)}th frame at a pose and "
-             "exposure fitted against the map (docs/realtime.md#scoring-protocols).", "",
+             f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
+             "map (docs/realtime.md#scoring-protocols).", "",
              "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
     for q in names:
         own = {a["task"]: (a.get("protocols") or {}).get(q, {}) for a in agents}
@@ -574,6 +574,14 @@ def _protocol_lines(report: dict) -> List[str]:
                 cells.append(_fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
             lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _every(n: int) -> str:
+    """"every frame", "every 2nd frame", …, "every 5th frame"."""
+    if n <= 1:
+        return "every frame"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every {n}{suffix} frame"
 
 
 def _cover_lines(report: dict) -> List[str]:
