@@ -213,8 +213,7 @@ class AgentRuntime:
         self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
         self._worker.start()
         self.pusher.start()
-        if fusion is not None:
-            self.share.start()  # the share worker starts with the mission, not at its first push
+        self._share_started = False
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
@@ -242,6 +241,8 @@ class AgentRuntime:
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
+        if not self._share_started and not _replay:
+            self._start_share(self._online)  # a streamed mission starts with its first frame
         with self._lock:
             closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
                       or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
@@ -283,6 +284,7 @@ class AgentRuntime:
         realtime = self.config.realtime
         with self._lock:
             self._online = bool(realtime)
+        self._start_share(bool(realtime))
 
         def run():
             n = len(dataset)
@@ -312,6 +314,19 @@ class AgentRuntime:
         self._replay_thread = threading.Thread(target=run, name=f"agent-{self.agent_id}-replay", daemon=True)
         self._replay_thread.start()
         return self._replay_thread
+
+    def _start_share(self, live: bool) -> None:
+        """Start the share worker as the mission starts, not at its first push (:meth:`ShareSession.start`): a
+        live mission's at ``pusher_nice``, so it takes no time from a keyframe's budget; an every-frame mission's
+        (an offline replay, or ``ingest: every_frame``) at the mapper's priority, since it has no keyframe budget to
+        protect and maps as fast as it can, so a worker below it would get no processor until mapping ends and
+        every periodic push would wait for the end of the mission."""
+        with self._lock:
+            if self._share_started:
+                return
+            self._share_started = True
+        if self.fusion is not None:
+            self.share.start(self.config.pusher_nice if live else 0)
 
     @property
     def replaying(self) -> bool:

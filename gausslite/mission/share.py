@@ -220,25 +220,30 @@ class ShareSession:
         self.finetune_cache = (key, out, ids)
         return out
 
-    def start(self) -> None:
+    def start(self, nice: Optional[int] = None) -> None:
         """Start the share worker process now and warm it up (imports, rasterizer kernels) without waiting: a mission
         that shares calls this when it starts, so its first push finds the worker ready. Starting a process and
         importing torch and the rasterizer takes seconds to tens of seconds on a loaded robot computer; started at
         the first push instead, the worker would still be starting while the next subsets are mapped, and those
         would be superseded before any reached the fusion server. No-op under ``share_worker: thread``, for a share
-        rule other than ``task``, or when the worker runs already."""
+        rule other than ``task``, or when the worker runs already.
+
+        Args:
+            nice: the worker's niceness above the agent's (default ``pusher_nice``; 0: the mapper's priority).
+        """
         if self.config.share_worker != "process" or self.config.share != "task" or self.pool is not None:
             return  # only ``share: task`` selects and fine-tunes in the worker
-        self._pool()
+        self._pool(nice)
         self.warm = self.pool.submit(_warm)
 
-    def _pool(self):
+    def _pool(self, nice: Optional[int] = None):
         if self.pool is None:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(self.config.pusher_nice,))
+                                            initializer=_worker_init,
+                                            initargs=(self.config.pusher_nice if nice is None else int(nice),))
         return self.pool
 
     def call(self, fn, *args):

@@ -837,21 +837,28 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
     assert rt.share.pool is None  # close() stopped the worker
 
 
-def test_the_share_worker_starts_with_the_mission_not_at_its_first_push():
-    """A sharing mission starts (and warms up) its share worker process when it starts: before any frame is mapped
-    the worker is running, and the first push's selection runs in that same process. Started at the first push
-    instead, a short mission maps its next subsets while the worker is still starting, and they are superseded."""
+@pytest.mark.parametrize("realtime", [False, True])
+def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime):
+    """A sharing mission starts (and warms up) its share worker process when it starts: when its replay starts,
+    before any frame is mapped, the worker is running, and the pushes use that same process. A live mission's worker
+    runs at ``pusher_nice``; an every-frame replay's at the mapper's priority (no keyframe budget to protect: below
+    a mapper that maps as fast as it can, the worker would get no processor until the mission ends)."""
     from gausslite.mission import AgentConfig
     from gausslite.mission.share import _warm
 
+    ds = load_dataset(scene / "agent_a")
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="process", mapper=MapperConfig(mode="gausslite"))
+    cfg = AgentConfig(share="task", share_worker="process", realtime=realtime, rate=0.2,
+                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
     rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
-        assert rt.frames_mapped == 0 and rt.share.pool is not None and rt.share.warm is not None
+        assert rt.share.pool is None  # nothing runs before the mission starts
+        rt.replay(ds)
+        assert rt.share.pool is not None and rt.share.warm is not None and rt.frames_mapped < len(ds)
         pid = rt.share.warm.result(timeout=300)  # the warm-up job ran in the worker process...
-        assert pid != os.getpid()
-        assert rt.share.call(_warm) == pid  # ...which is the one the pushes use
+        assert pid != os.getpid() and rt.share.call(_warm) == pid  # ...which is the one the pushes use
+        expected = min(19, os.getpriority(os.PRIO_PROCESS, 0) + (19 if realtime else 0))
+        assert os.getpriority(os.PRIO_PROCESS, pid) == expected
     finally:
         rt.close()
     assert rt.share.pool is None
@@ -860,6 +867,7 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push():
         c = AgentConfig(share=kw.get("share", "task"), share_worker="process", mapper=MapperConfig(mode="gausslite"))
         r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
         try:
+            r._start_share(True)
             assert r.share.pool is None
         finally:
             r.close()
