@@ -101,7 +101,8 @@ class AgentConfig(BaseModel):
             its ROI and nothing beside it, where other robots' regions lie in a fused map (0 = off;
             ``docs/sharing.md``).
         pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
-            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md).
+            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md). Live
+            missions only: an every-frame mission's share worker runs at the mapper's priority (docs/sharing.md).
         share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
             own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
             would hold against the mapping thread) or ``thread`` (the pusher thread itself).
