@@ -547,7 +547,7 @@ def _timeline_lines(report: dict) -> List[str]:
 def _protocol_lines(report: dict) -> List[str]:
     """Markdown of the own and fused maps under each scoring protocol (docs/realtime.md#scoring-protocols)."""
     agents = report["agents"]
-    names = list(dict.fromkeys(q for a in agents for q in (a.get("protocols") or {})))
+    names = sorted(dict.fromkeys(q for a in agents for q in (a.get("protocols") or {})), key=_protocol_order)
     if not names:
         return []
     tasks = [a["task"] for a in agents]
@@ -574,6 +574,13 @@ def _protocol_lines(report: dict) -> List[str]:
                 cells.append(_fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
             lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _protocol_order(name: str) -> int:
+    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``)."""
+    from gausslite.evaluation import PROTOCOLS
+
+    return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
 
 
 def _every(n: int) -> str:
@@ -885,7 +892,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
                 "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
                                   "ssim": v.ssim, "frames_scored": int(v.frames_scored),
-                                  "roi_frames": int(v.roi_frames)} for q, v in s.protocols.items()},
+                                  "roi_frames": int(v.roi_frames)}
+                              for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
             })
         report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
                   "renders": renders, "fused_timeline": timeline,

@@ -110,6 +110,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
                                                                   v["roi_psnr"] - a["protocols"][q]["roi_psnr"])
     assert "## Own and fused maps under each scoring protocol" in md
     assert "| tracked | own |" in md and "| keyframes | vote |" in md and "| sensor | for_robot |" in md
+    assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| tracked | own |")
     # every child process is gone
     assert set(res.pids) == {"parser", "fusion_server", "agent_a", "agent_b"}
     for pid in res.pids.values():
