@@ -17,6 +17,11 @@ clock. After the missions:
   :func:`gausslite.fusion.guard.for_robot`) of the final subsets (``sim.fuse`` settings of
   ``deploy/gausslite.yaml``), scored on every frame of the team's sequence, against each agent's own map scored
   on the same frames (``own``: ROI PSNR of the owner's task over all frames);
+* **scoring protocols** — the own and final fused maps also under ``keyframes`` and ``tracked``
+  (docs/realtime.md#scoring-protocols; ``--protocols``, ``--track-stride``): the own map on its keyframes at their
+  refined pose and exposure, a fused map on the owner's uploaded keyframes at the refined poses they carry, and
+  both on every 5th frame at a pose fitted against that map; each agent row's ``protocols`` block, the top-level
+  figures being ``sensor``'s;
 * **bandwidth** — share of the map (final subset / map), bytes per pushed Gaussian, total upload / final subset.
 
 Teams (``TEAMS``): ``tum`` and ``synthetic`` are the live sims of ``gausslite sim --realtime`` (two tasks, both
@@ -42,7 +47,9 @@ from typing import Optional
 import numpy as np
 
 from bench._results import write_results
-from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, _mission, scene_path, score
+from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion, _mission,
+                            scene_path, score)
+from gausslite.evaluation import PROTOCOLS
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
 #: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
@@ -113,10 +120,13 @@ def fuse_settings() -> dict:
 
 
 def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Path, overrides=(),
-              keep_state: bool = False) -> dict:
+              keep_state: bool = False, protocols=PROTOCOLS, track_iters: int = TRACK_ITERS,
+              track_stride: int = TRACK_STRIDE) -> dict:
     """One agent's live mission (``bench.realtime`` protocol) sharing to a :class:`RecordingFusion`: its figures,
-    its own map's scores over every frame of the team's sequence, its push history and uploaded keyframes
-    (``keep_state``: also its final map, ROI keyframes and mapper settings, to study share rules offline)."""
+    its own map's scores over every frame of the team's sequence under each scoring protocol (``protocols``,
+    :func:`bench.realtime.score`: ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push
+    history and uploaded keyframes (``keep_state``: also its final map, ROI keyframes and mapper settings, to study
+    share rules offline)."""
     scene = TEAMS[team]["scene"]
     path = scene_path(scene, work)
     if spec.get("dir"):
@@ -135,7 +145,8 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
         wall = time.perf_counter() - sink.t0
         pu = rt.pusher
         last = pu.pushes[-1] if pu.pushes else None
-        own = score(rt.mapper, ds, ann, task.id)
+        own = score(rt.mapper, ds, ann, task.id, protocols, track_iters, track_stride,
+                    sorted(int(st.frame_id) for st in rt.mapper.stats))
         state = {}
         if keep_state:
             from gausslite.wire.codec import GaussianArrays
@@ -152,23 +163,37 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "upload_ratio": pu.total_upload_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
                 "bytes_per_gaussian": (pu.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
-                "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"],
+                "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
 
 
-def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int) -> dict:
+def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, protocols=PROTOCOLS,
+                 track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE) -> dict:
     """Fused figures of one team run: ROI PSNR per task (on its owner's whole sequence) after each push (vote,
     every ``eval_stride``-th frame, time on the mission clock in s) and of the final concat / vote / refine maps
-    over every frame."""
-    from gausslite.evaluation import evaluate_fused
+    over every frame, each final map also under the scoring protocols (``protocols``: ``{protocol: {task: dB}}``;
+    ``keyframes``: the owner's uploaded keyframes at the refined poses they carry, ``tracked``: every
+    ``track_stride``-th frame at a pose fitted against the fused map; :func:`gausslite.evaluation.score_map`)."""
+    from gausslite.evaluation import evaluate_fused, score_map
     from gausslite.fusion.refine import refine_map
     from gausslite.fusion.vote import concat, voxel_vote
 
     def scores(g, stride: int = 1) -> dict:
         return {a["task"]: evaluate_fused(g, a["_frames"][::stride], a["_annotations"], a["task"]) for a in agents}
+
+    rest = [q for q in dict.fromkeys(("sensor", *protocols)) if q != "sensor"]
+
+    def by_protocol(g, a: dict, sensor: Optional[float]) -> dict:
+        """``{protocol: dB}`` of map ``g`` on agent ``a``'s task (``sensor``: the figure already scored)."""
+        ann, task = a["_annotations"], a["task"]
+        res = score_map(g, a["_frames"], lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), rest,
+                        track_iters=track_iters, track_stride=track_stride,
+                        keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]}) if rest \
+            else {}
+        return {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
 
     events = sorted((t, a["id"], s) for a in agents for t, s in a["_history"])
     held, timeline = {}, []
@@ -189,33 +214,52 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int) ->
     for key in FUSED_KEYS:
         g = maps[key].to_gaussian_map()
         out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}
+        out[key]["protocols"] = _by_task({a["task"]: by_protocol(g, a, out[key]["roi_psnr"][a["task"]])
+                                          for a in agents})
     # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot
     from gausslite.fusion.guard import for_robot
 
     out["for_robot"] = {"n": {}, "roi_psnr": {}}
+    robot = {}
     for a in agents:
         if a["id"] not in final:
             continue
         m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], final[a["id"]],
                          [k for k in a["_keyframes"] if k.roi is not None])
+        g = m.to_gaussian_map()
         out["for_robot"]["n"][a["id"]] = len(m)
-        out["for_robot"]["roi_psnr"][a["task"]] = evaluate_fused(m.to_gaussian_map(), a["_frames"], a["_annotations"],
-                                                                a["task"])
+        out["for_robot"]["roi_psnr"][a["task"]] = evaluate_fused(g, a["_frames"], a["_annotations"], a["task"])
+        robot[a["task"]] = by_protocol(g, a, out["for_robot"]["roi_psnr"][a["task"]])
+    out["for_robot"]["protocols"] = _by_task(robot)
     out["vote_report"] = report.to_dict()
     return out
 
 
-def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=()) -> dict:
-    """One run of a team: every agent live (one after the other), then the fused figures."""
+def _by_task(per_task: dict) -> dict:
+    """``{task: {protocol: v}}`` → ``{protocol: {task: v}}``."""
+    return {q: {t: v[q] for t, v in per_task.items() if q in v}
+            for q in dict.fromkeys(q for v in per_task.values() for q in v)}
+
+
+def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=(),
+             protocols=PROTOCOLS, track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE) -> dict:
+    """One run of a team: every agent live (one after the other), then the fused figures. Each agent's row gains
+    ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
+    own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s)."""
     spec = TEAMS[team]
     cap = SCENES[spec["scene"]]["cap"]
-    agents = [run_agent(team, a, budget, run, cap, work, overrides) for a in spec["agents"]]
-    fused = fused_scores(agents, fuse_settings(), run, eval_stride)
+    agents = [run_agent(team, a, budget, run, cap, work, overrides, protocols=protocols, track_iters=track_iters,
+                        track_stride=track_stride) for a in spec["agents"]]
+    fused = fused_scores(agents, fuse_settings(), run, eval_stride, protocols, track_iters, track_stride)
     for a in agents:
         for k in [k for k in a if k.startswith("_")]:
             a.pop(k)
         for key in (*FUSED_KEYS, "for_robot"):
             a[f"{key}_roi_psnr"] = fused[key]["roi_psnr"].get(a["task"])
+        own = a.pop("own_protocols")
+        a["protocols"] = {q: {"own_roi_psnr": v["roi_psnr"], "own_frames": v["frames_scored"],
+                              **{f"{key}_roi_psnr": fused[key]["protocols"].get(q, {}).get(a["task"])
+                                 for key in (*FUSED_KEYS, "for_robot")}} for q, v in own.items()}
     return {"team": team, "budget": budget, "run": run, "agents": agents, "fused": fused}
 
 
@@ -244,6 +288,7 @@ def summarise(runs: list[dict]) -> dict:
                      if a.get(f"{a_}_roi_psnr") is not None and a.get(f"{b_}_roi_psnr") is not None]
                 row[k] = float(np.mean(d)) if d else None
                 row[k + "_std"] = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+            row["protocols"] = _summarise_protocols(per)
             blk["agents"][aid] = row
         ag = blk["agents"].values()
         blk["goals"] = {
@@ -260,6 +305,47 @@ def summarise(runs: list[dict]) -> dict:
             blk["goals"]["vote_ge_own"] = all(a["vote_minus_own"] is not None and a["vote_minus_own"] >= 0 for a in ag)
         out[team] = blk
     return out
+
+
+def _summarise_protocols(per: list[dict]) -> dict:
+    """One agent's rows over runs → ``{protocol: {"own_roi_psnr", …, "for_robot_roi_psnr" (means), their "_std",
+    "vote_minus_own", "for_robot_minus_own", "refine_minus_own" (paired means over runs) and their "_std",
+    "runs"}}``."""
+    names = list(dict.fromkeys(q for a in per for q in a.get("protocols", {})))
+    out = {}
+    for q in names:
+        rows = [a["protocols"][q] for a in per if q in a.get("protocols", {})]
+        blk = {"runs": len(rows)}
+        for k in ("own_roi_psnr", *(f"{key}_roi_psnr" for key in (*FUSED_KEYS, "for_robot"))):
+            v = [r[k] for r in rows if r.get(k) is not None]
+            blk[k] = float(np.mean(v)) if v else None
+            blk[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+        for key in ("vote", "refine", "for_robot"):
+            d = [r[f"{key}_roi_psnr"] - r["own_roi_psnr"] for r in rows
+                 if r.get(f"{key}_roi_psnr") is not None and r.get("own_roi_psnr") is not None]
+            blk[f"{key}_minus_own"] = float(np.mean(d)) if d else None
+            blk[f"{key}_minus_own_std"] = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+        out[q] = blk
+    return out
+
+
+def protocol_table(result: dict) -> str:
+    """Markdown table of every team agent's own and fused maps under each scoring protocol (mean ± std over runs;
+    docs/realtime.md#scoring-protocols)."""
+    lines = ["| team | agent, task | protocol | own ROI PSNR | concat | vote | refine | for robot | vote − own | "
+             "refine − own | for robot − own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for team, blk in result["teams"].items():
+        for aid, a in blk["agents"].items():
+            for q, v in (a.get("protocols") or {}).items():
+                lines.append(
+                    f"| {team} | {aid}, {a['task']} | {q} | {_pm(v['own_roi_psnr'], v['own_roi_psnr_std'])} | "
+                    f"{_pm(v['concat_roi_psnr'], v['concat_roi_psnr_std'])} | {_pm(v['vote_roi_psnr'], v['vote_roi_psnr_std'])} | "
+                    f"{_pm(v['refine_roi_psnr'], v['refine_roi_psnr_std'])} | "
+                    f"{_pm(v['for_robot_roi_psnr'], v['for_robot_roi_psnr_std'])} | "
+                    f"{_pm(v['vote_minus_own'], v['vote_minus_own_std'])} | "
+                    f"{_pm(v['refine_minus_own'], v['refine_minus_own_std'])} | "
+                    f"{_pm(v['for_robot_minus_own'], v['for_robot_minus_own_std'])} |")
+    return "\n".join(lines)
 
 
 def _f(v, nd=2) -> str:
@@ -335,6 +421,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--budget", type=float, default=REFERENCE_BUDGET_S, help="seconds per keyframe")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--eval-stride", type=int, default=5, help="frame stride of the fused-over-time scores")
+    ap.add_argument("--protocols", default=",".join(PROTOCOLS),
+                    help="scoring protocols of the own and final fused maps (sensor always; "
+                         "docs/realtime.md#scoring-protocols)")
+    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
+    ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE, help="tracked protocol: every this many frames")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="agent config override, e.g. agent.share_coverage=0.9")
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
@@ -346,6 +437,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     for t in teams:
         if t not in TEAMS:
             ap.error(f"unknown team {t!r} (known: {', '.join(TEAMS)})")
+    protocols = tuple(dict.fromkeys(("sensor", *(q.strip() for q in args.protocols.split(",") if q.strip()))))
+    if any(q not in PROTOCOLS for q in protocols):
+        ap.error(f"unknown protocol in {args.protocols!r} (known: {', '.join(PROTOCOLS)})")
+    if args.track_stride < 1 or args.track_iters < 0:
+        ap.error("--track-stride must be >= 1 and --track-iters >= 0")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     out = Path(args.out)
@@ -353,7 +449,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     t0 = time.time()
     runs = []
     for team, run in tqdm([(t, r) for t in teams for r in range(args.runs)], desc="team runs", unit="run"):
-        r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides)
+        r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides, protocols, args.track_iters,
+                     args.track_stride)
         runs.append(r)
         tqdm.write(f"{team} run {run}: " + "; ".join(
             f"{a['id']} {a['task']} share {_f(a['share_pct'], 1)} % upload {_f(a['upload_ratio'])}x own "
@@ -362,12 +459,15 @@ def main(argv: Optional[list[str]] = None) -> int:
             for a in r["agents"]))
         out.with_suffix(".partial.json").write_text(json.dumps({"runs": runs}, indent=1))
     result = {"settings": {"budget": args.budget, "runs": args.runs, "eval_stride": args.eval_stride,
+                           "protocols": list(protocols), "track_iters": args.track_iters,
+                           "track_stride": args.track_stride,
                            "overrides": args.overrides, "fuse": fuse_settings(), "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0},
               "teams": summarise(runs), "runs": runs}
     for team in teams:
         plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
-    write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min", table(result), result)
+    write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min",
+                  table(result) + "\n\n" + protocol_table(result), result)
     out.with_suffix(".partial.json").unlink(missing_ok=True)  # the runs are in the result now
     return 0
 

@@ -259,18 +259,24 @@ def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarr
     return TrackedView(c2w.cpu().numpy(), theta, loss_v, ang, float(np.linalg.norm(E[:3, 3])), done)
 
 
-def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int) -> RenderOutput:
-    """The render a protocol scores a frame by (:func:`score_live_map`)."""
+def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
+                     pose: Optional[np.ndarray] = None) -> RenderOutput:
+    """The render a protocol scores a frame by (:func:`score_live_map`); ``pose``: a ``keyframes`` view's own pose
+    (rendered as is, identity exposure) instead of the mapper's refined one."""
     import dataclasses
 
     from gausslite.mapping.exposure import apply_exposure
 
+    intr = frame.intrinsics
+    if protocol == "keyframes" and pose is not None:
+        with torch.no_grad():
+            return mapper.sensor.render_view(np.asarray(pose, np.float64), intr.K, intr.width, intr.height,
+                                             frame.frame_id, None)
     if protocol in ("sensor", "keyframes"):
         return mapper.render_frame(frame)
     exposure = mapper.sensor.exposure
     theta0 = exposure.of(frame.frame_id) if exposure is not None else None
     tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
-    intr = frame.intrinsics
     with torch.no_grad():
         out = mapper.sensor.render_view(tv.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
         th = torch.tensor(tv.theta, dtype=torch.float32, device=out.color.device)
@@ -279,21 +285,25 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int) -> R
 
 def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
                    protocols: Sequence[str] = PROTOCOLS, track_iters: int = 30, track_stride: int = 1,
-                   keyframe_ids: Optional[Iterable[int]] = None) -> dict:
+                   keyframe_ids: Optional[Iterable[int]] = None,
+                   keyframe_poses: Optional[Mapping[int, np.ndarray]] = None) -> dict:
     """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
     every mode (docs/realtime.md#scoring-protocols):
 
     - ``sensor``: every frame at the sensor's pose with its keyframe's (or the nearest keyframe's) refined
       correction and exposure response (:meth:`Mapper.render_frame`);
     - ``keyframes``: the trained views only (``keyframe_ids``; default the mapped frames), each at its own refined
-      pose and exposure response;
+      pose and exposure response; with ``keyframe_poses`` (frame id → (4, 4) camera-to-world, e.g. the keyframes a
+      robot uploaded at their refined poses) those frames at those poses, identity exposure;
     - ``tracked``: every ``track_stride``-th frame at a pose and affine exposure fitted to that frame against the
       frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol.
 
     Args:
-        mapper: the map to score (not modified). frames: the sequence's frames (ground truth).
+        mapper: the map to score (not modified). frames: the sequence's frames (ground truth): a list, or a dataset
+            (``len`` and indexing; read one frame at a time).
         roi_fn: frame → (H, W) bool ground-truth ROI mask (the scores' ROI; tracking never sees it).
-        protocols: which of :data:`PROTOCOLS` to score.
+        protocols: which of :data:`PROTOCOLS` to score. track_iters: the tracker's Adam steps per frame.
+        track_stride: ``tracked`` scores every this many frames. keyframe_ids / keyframe_poses: see ``keyframes``.
     Returns:
         ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``: means over the scored frames
         (ROI PSNR over those that show the ROI; None when none does).
@@ -304,18 +314,21 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
     if bad or track_stride < 1:
         raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
                          f"track_stride must be >= 1, got {track_stride}")
-    kf_ids = ({int(s.frame_id) for s in mapper.stats} if keyframe_ids is None else {int(i) for i in keyframe_ids})
+    poses = {int(k): v for k, v in keyframe_poses.items()} if keyframe_poses is not None else {}
+    kf_ids = (set(poses) if keyframe_poses is not None else {int(s.frame_id) for s in mapper.stats}
+              if keyframe_ids is None else {int(i) for i in keyframe_ids})
     res = {}
+    n = len(frames)
     for protocol in protocols:
+        # one frame in memory at a time (``frames`` may be a dataset that loads each on access)
         if protocol == "keyframes":
-            chosen = [fr for fr in frames if int(fr.frame_id) in kf_ids]
-        elif protocol == "tracked":
-            chosen = list(frames)[::track_stride]
+            chosen = (fr for fr in (frames[i] for i in range(n)) if int(fr.frame_id) in kf_ids)
         else:
-            chosen = list(frames)
+            chosen = (frames[i] for i in range(0, n, track_stride if protocol == "tracked" else 1))
         ps, ss, rps = [], [], []
         for fr in chosen:
-            s = score_view(_protocol_render(mapper, fr, protocol, track_iters), fr, roi_fn(fr))
+            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, poses.get(int(fr.frame_id))), fr,
+                           roi_fn(fr))
             ps.append(s.psnr)
             ss.append(s.ssim)
             if not math.isnan(s.roi_psnr):
@@ -324,3 +337,50 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
                          "psnr": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
                          "frames_scored": len(ps), "roi_frames": len(rps)}
     return res
+
+
+def frozen_mapper(gmap, backend: str = "auto"):
+    """A :class:`~gausslite.mapping.mapper.Mapper` that holds ``gmap`` and nothing else, to score a map that has no
+    mission of its own (a fused team map) with :func:`score_live_map`: no pose corrections, no exposure responses,
+    no sensor effects (a fused map has no per-view record of them), black background.
+
+    Args:
+        gmap: ``GaussianMap`` (means (N, 3) metres world frame, …; torch, CPU). backend: rasterizer backend.
+    """
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.mapping.mapper import Mapper
+
+    m = Mapper(MapperConfig(backend=backend))
+    m.load_map(gmap)
+    return m
+
+
+def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
+              protocols: Sequence[str] = PROTOCOLS, track_iters: int = 30, track_stride: int = 1,
+              keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto") -> dict:
+    """Score a frozen map that has no mission of its own (a fused team map) under the scoring protocols, as
+    :func:`score_live_map` scores a robot's own map (docs/realtime.md#scoring-protocols):
+
+    - ``sensor``: every frame at the sensor's pose (:func:`evaluate_fused`'s figure);
+    - ``keyframes``: the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the keyframes the owner
+      robot uploaded, at the refined poses they carry), identity exposure; none scored without it;
+    - ``tracked``: every ``track_stride``-th frame at the pose and affine exposure :func:`track_view` fits against
+      ``gmap`` from the sensor's pose.
+
+    Args:
+        gmap: ``GaussianMap`` (torch, CPU). frames: ground-truth frames. roi_fn: frame → (H, W) bool ROI mask.
+        protocols, track_iters, track_stride: as :func:`score_live_map`. backend: rasterizer backend.
+    Returns:
+        ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (None figures for an empty map).
+    Raises:
+        ValueError: an unknown protocol or ``track_stride`` < 1.
+    """
+    if len(gmap) == 0:
+        bad = [p for p in protocols if p not in PROTOCOLS]
+        if bad or track_stride < 1:
+            raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
+                             f"track_stride must be >= 1, got {track_stride}")
+        return {p: {"roi_psnr": None, "psnr": None, "ssim": None, "frames_scored": 0, "roi_frames": 0}
+                for p in protocols}
+    return score_live_map(frozen_mapper(gmap, backend), frames, roi_fn, protocols, track_iters=track_iters,
+                          track_stride=track_stride, keyframe_poses=keyframe_poses or {})

@@ -186,7 +186,14 @@ class MissionStatus(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
-    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes")
+    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes", "protocols")
+    class ProtocolsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: ProtocolScore
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[ProtocolScore, _Mapping]] = ...) -> None: ...
     STATUS_FIELD_NUMBER: _ClassVar[int]
     FINAL_PUSH_OK_FIELD_NUMBER: _ClassVar[int]
     N_SHARED_FIELD_NUMBER: _ClassVar[int]
@@ -203,6 +210,7 @@ class MissionSummary(_message.Message):
     TOTAL_UPLOAD_BYTES_FIELD_NUMBER: _ClassVar[int]
     FINAL_SUBSET_BYTES_FIELD_NUMBER: _ClassVar[int]
     PUSHES_FIELD_NUMBER: _ClassVar[int]
+    PROTOCOLS_FIELD_NUMBER: _ClassVar[int]
     status: MissionStatus
     final_push_ok: bool
     n_shared: int
@@ -219,7 +227,24 @@ class MissionSummary(_message.Message):
     total_upload_bytes: int
     final_subset_bytes: int
     pushes: _containers.RepeatedCompositeFieldContainer[PushInfo]
-    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ...) -> None: ...
+    protocols: _containers.MessageMap[str, ProtocolScore]
+    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ..., protocols: _Optional[_Mapping[str, ProtocolScore]] = ...) -> None: ...
+
+class ProtocolScore(_message.Message):
+    __slots__ = ("has_roi_psnr", "roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames")
+    HAS_ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
+    ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
+    PSNR_FIELD_NUMBER: _ClassVar[int]
+    SSIM_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_SCORED_FIELD_NUMBER: _ClassVar[int]
+    ROI_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    has_roi_psnr: bool
+    roi_psnr: float
+    psnr: float
+    ssim: float
+    frames_scored: int
+    roi_frames: int
+    def __init__(self, has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., ssim: _Optional[float] = ..., frames_scored: _Optional[int] = ..., roi_frames: _Optional[int] = ...) -> None: ...
 
 class PushInfo(_message.Message):
     __slots__ = ("version", "n_shared", "n_total", "bytes_sent", "delta", "records", "removed", "frames_mapped", "unchanged")

@@ -406,6 +406,42 @@ class FusedTimeline:
         return out
 
 
+def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_psnr: Optional[float], scoring,
+                    keyframe_poses: Dict[int, np.ndarray], backend: str = "auto") -> dict:
+    """One fused map's figures on one task under the scoring protocols of ``scoring`` (a
+    :class:`gausslite.mission.config.ScoringConfig`), as its robot's own map is scored
+    (docs/realtime.md#scoring-protocols): ``sensor`` is ``sensor_roi_psnr`` (:func:`evaluate_fused` over every frame
+    at the sensor's pose); ``keyframes`` the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the
+    keyframes the task's robot uploaded, at the refined poses they carry), ``tracked`` every ``track_stride``-th
+    frame at a pose and exposure fitted against the fused map from the sensor's pose
+    (:func:`gausslite.evaluation.score_map`).
+
+    Returns:
+        ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
+    """
+    from gausslite.evaluation import score_map
+
+    rest = [q for q in scoring.chosen() if q != "sensor"]
+    out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
+    if rest:
+        res = score_map(gmap, frames, lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics),
+                        rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
+                        keyframe_poses=keyframe_poses, backend=backend)
+        out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
+    return out
+
+
+def _protocol_minus_own(report: dict) -> None:
+    """Each fused map's ``protocols[q][task]["minus_own"]``: its ROI PSNR minus the task's robot's own map under the
+    same protocol (the agent's ``protocols[q]``)."""
+    own = {a["task"]: a.get("protocols") or {} for a in report["agents"]}
+    for f in (report.get("fused") or {}).values():
+        for q, per_task in (f.get("protocols") or {}).items():
+            for t, v in per_task.items():
+                o = (own.get(t, {}).get(q) or {}).get("roi_psnr")
+                v["minus_own"] = (v["roi_psnr"] - o) if v.get("roi_psnr") is not None and o is not None else None
+
+
 def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict,
                      backend: str = "auto", stride: int = 2) -> dict:
     """What covers each robot's ROI in the team (vote) map (:func:`gausslite.fusion.diagnose.roi_cover`): the final
@@ -508,6 +544,53 @@ def _timeline_lines(report: dict) -> List[str]:
     return lines
 
 
+def _protocol_lines(report: dict) -> List[str]:
+    """Markdown of the own and fused maps under each scoring protocol (docs/realtime.md#scoring-protocols)."""
+    agents = report["agents"]
+    names = sorted(dict.fromkeys(q for a in agents for q in (a.get("protocols") or {})), key=_protocol_order)
+    if not names:
+        return []
+    tasks = [a["task"] for a in agents]
+    stride = int(((report.get("settings") or {}).get("scoring") or {}).get("track_stride", 5))
+    lines = ["", "## Own and fused maps under each scoring protocol", "",
+             "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its difference to the robot's own map under "
+             "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
+             "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
+             f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
+             "map (docs/realtime.md#scoring-protocols).", "",
+             "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
+    for q in names:
+        own = {a["task"]: (a.get("protocols") or {}).get(q, {}) for a in agents}
+        lines.append(f"| {q} | own | " + " | ".join(
+            f"{_fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
+        for key in FUSED_KEYS:
+            per = ((report["fused"].get(key) or {}).get("protocols") or {}).get(q)
+            if not per:
+                continue
+            cells = []
+            for t in tasks:
+                v = per.get(t) or {}
+                mo = v.get("minus_own")
+                cells.append(_fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
+            lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _protocol_order(name: str) -> int:
+    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``)."""
+    from gausslite.evaluation import PROTOCOLS
+
+    return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
+
+
+def _every(n: int) -> str:
+    """"every frame", "every 2nd frame", …, "every 5th frame"."""
+    if n <= 1:
+        return "every frame"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every {n}{suffix} frame"
+
+
 def _cover_lines(report: dict) -> List[str]:
     """Markdown of what covers each robot's ROI in the team map (:func:`roi_cover_report`)."""
     cov = (report.get("fused") or {}).get("vote", {}).get("cover") or {}
@@ -586,6 +669,7 @@ def write_markdown(report: dict, path: Path) -> None:
     lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
               f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
               f"{report['settings']['refine_iters']} iterations."]
+    lines += _protocol_lines(report)
     lines += _cover_lines(report)
     lines += ["", "## Renders (render | ground truth | task ROI)", ""]
     for r in report.get("renders", []):
@@ -630,6 +714,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
 
     from gausslite.datasets import load_dataset
     from gausslite.evaluation import evaluate_fused, render_map, side_by_side
+    from gausslite.mission.config import ScoringConfig
     from gausslite_rpc import agent_pb2
     from services.agent.client import AgentClient
     from services.fusion_server.client import FusionClient
@@ -727,6 +812,13 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             ds = load_dataset(p.dataset, downscale=a.get("downscale", 1), max_frames=a.get("max_frames"),
                               stride=a.get("stride", 1), bag=a.get("bag"))
             eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
+        scoring = ScoringConfig.model_validate((cfg.get("agent") or {}).get("scoring") or {})
+        kf_poses = {}  # the keyframes each robot uploaded, at the refined poses they carry (the `keyframes` protocol)
+        for p in plans:
+            try:
+                kf_poses[p.name] = {int(k["frame_id"]): k["c2w"] for k in fusion.keyframe_poses(p.name)}
+            except grpc.RpcError as e:
+                log.warning("no keyframe poses of %s: %s", p.name, e.details())
         fused: Dict[str, dict] = {}
         renders = []
         (out / "renders").mkdir(exist_ok=True)
@@ -742,10 +834,13 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 g = fusion.download_fused(res.fused_version).to_gaussian_map()
                 for q in ([p] if p is not None else plans):
                     gmaps[q.name] = g
+            protos: Dict[str, dict] = {}
             for p in plans:
                 gmap = gmaps[p.name]
                 ds, frames = eval_frames[p.name]
                 per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
+                protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
+                                                    scoring, kf_poses.get(p.name, {}), backend)
                 mid = _roi_frame(frames, ds.annotations, p.task_id)
                 if mid is not None:
                     fr = frames[mid]
@@ -757,7 +852,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             vals = [v for v in per_task.values() if v is not None]
             fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
                           "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
-                          "fused_version": int(res.fused_version), "kept": dict(res.kept)}
+                          "fused_version": int(res.fused_version), "kept": dict(res.kept),
+                          "protocols": {q: {t: protos[t][q] for t in protos} for q in scoring.chosen()}}
             log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians,
                      {k: _fmt(v) for k, v in per_task.items()})
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
@@ -794,17 +890,23 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
                 "frames_all": int(s.frames_all),
                 "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
+                "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
+                                  "ssim": v.ssim, "frames_scored": int(v.frames_scored),
+                                  "roi_frames": int(v.roi_frames)}
+                              for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
             })
         report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
                   "renders": renders, "fused_timeline": timeline,
                   "realtime": bool((cfg.get("agent") or {}).get("realtime", False)),
                   "offline_report": str(offline_report) if offline_report else None,
-                  "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters, "config": str(config_path),
+                  "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters,
+                               "scoring": scoring.model_dump(), "config": str(config_path),
                                "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
         own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr") for a in agents_rep}
         for f in fused.values():
             f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
                               for t, v in f["roi_psnr_per_task"].items()}
+        _protocol_minus_own(report)
         if attach is None:
             try:
                 fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)

@@ -11,7 +11,31 @@ from pydantic import BaseModel, ConfigDict, Field
 from gausslite.datasets.bag import BagOptions
 from gausslite.mapping.config import MapperConfig, apply_overrides
 
-__all__ = ["OnnxRelevanceConfig", "AgentConfig", "load_agent_config"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "load_agent_config"]
+
+
+class ScoringConfig(BaseModel):
+    """How a replayed mission's final map is scored over every frame of its sequence at Finish, and how the
+    simulation scores the team's fused maps (``agent.scoring`` in YAML; docs/realtime.md#scoring-protocols).
+
+    Attributes:
+        protocols: which of ``sensor`` (every frame at the sensor's pose with its keyframe's refined correction and
+            exposure response), ``keyframes`` (the mapped keyframes at their refined pose and exposure) and
+            ``tracked`` (every ``track_stride``-th frame at a pose and affine exposure fitted against the frozen map,
+            MonoGS's protocol) to score; ``sensor`` is always scored (the summary's ``roi_psnr_all_frames``).
+        track_iters: Adam steps of the ``tracked`` protocol's tracker per frame (fixed, the same for every map).
+        track_stride: the ``tracked`` protocol scores every this many frames (MonoGS: every 5th).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    protocols: List[Literal["sensor", "keyframes", "tracked"]] = ["sensor", "keyframes", "tracked"]
+    track_iters: int = Field(30, ge=0)
+    track_stride: int = Field(5, ge=1)
+
+    def chosen(self) -> tuple:
+        """The protocols to score, ``sensor`` first and always."""
+        return tuple(dict.fromkeys(["sensor", *self.protocols]))
 
 
 class OnnxRelevanceConfig(BaseModel):
@@ -77,7 +101,8 @@ class AgentConfig(BaseModel):
             its ROI and nothing beside it, where other robots' regions lie in a fused map (0 = off;
             ``docs/sharing.md``).
         pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
-            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md).
+            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md). Live
+            missions only: an every-frame mission's share worker runs at the mapper's priority (docs/sharing.md).
         share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
             own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
             would hold against the mapping thread) or ``thread`` (the pusher thread itself).
@@ -133,6 +158,8 @@ class AgentConfig(BaseModel):
             most this many seconds for its mask, then maps with the newest earlier mask re-projected into it
             (:class:`gausslite.attention.worker.RelevanceWorker`; the front-end then uses the sensor depth, not the
             map's rendered depth, since the map is being optimised meanwhile).
+        scoring: how Finish scores a replayed mission's final map over every frame (:class:`ScoringConfig`; also
+            the protocols the simulation scores the fused maps under).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 
@@ -182,6 +209,7 @@ class AgentConfig(BaseModel):
     relevance_backend: Literal["annotation", "onnx", "onnx_cost"] = "annotation"
     onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
     relevance_max_wait_s: Optional[float] = Field(None, ge=0)
+    scoring: ScoringConfig = ScoringConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 

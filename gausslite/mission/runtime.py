@@ -69,6 +69,9 @@ class MissionSummaryData:
     seconds_per_frame: float
     roi_psnr_all_frames: Optional[float] = None
     frames_all: int = 0
+    #: replays: the final map over the sequence under each scoring protocol (``agent.scoring``; docs/realtime.md):
+    #: ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``
+    protocols: dict = field(default_factory=dict)
     total_upload_bytes: int = 0
     final_subset_bytes: int = 0
     pushes: List[dict] = field(default_factory=list)
@@ -210,6 +213,7 @@ class AgentRuntime:
         self._worker = threading.Thread(target=self._work, name=f"agent-{agent_id}-map", daemon=True)
         self._worker.start()
         self.pusher.start()
+        self._share_started = False
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
@@ -237,6 +241,8 @@ class AgentRuntime:
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
+        if not self._share_started and not _replay:
+            self._start_share(self._online)  # a streamed mission starts with its first frame
         with self._lock:
             closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
                       or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
@@ -278,6 +284,7 @@ class AgentRuntime:
         realtime = self.config.realtime
         with self._lock:
             self._online = bool(realtime)
+        self._start_share(bool(realtime))
 
         def run():
             n = len(dataset)
@@ -307,6 +314,19 @@ class AgentRuntime:
         self._replay_thread = threading.Thread(target=run, name=f"agent-{self.agent_id}-replay", daemon=True)
         self._replay_thread.start()
         return self._replay_thread
+
+    def _start_share(self, live: bool) -> None:
+        """Start the share worker as the mission starts, not at its first push (:meth:`ShareSession.start`): a
+        live mission's at ``pusher_nice``, so it takes no time from a keyframe's budget; an every-frame mission's
+        (an offline replay, or ``ingest: every_frame``) at the mapper's priority, since it has no keyframe budget to
+        protect and maps as fast as it can, so a worker below it would get no processor until mapping ends and
+        every periodic push would wait for the end of the mission."""
+        with self._lock:
+            if self._share_started:
+                return
+            self._share_started = True
+        if self.fusion is not None:
+            self.share.start(self.config.pusher_nice if live else 0)
 
     @property
     def replaying(self) -> bool:
@@ -643,8 +663,9 @@ class AgentRuntime:
             raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
         self.wait_mapped(None if deadline is None else max(0.0, deadline - time.monotonic()))
         psnr, roi_psnr = (self.evaluate() if evaluate and self.frames_mapped else (None, None))
-        roi_all = (self.evaluate_all_frames() if evaluate and self.frames_mapped and self._dataset is not None
-                   else None)
+        protocols = (self.evaluate_protocols() if evaluate and self.frames_mapped and self._dataset is not None
+                     else {})
+        roi_all = protocols["sensor"]["roi_psnr"] if protocols else None
         pusher = self.pusher
         last = pusher.pushes[-1] if pusher.pushes else None
         with self._lock:
@@ -661,6 +682,7 @@ class AgentRuntime:
             roi_psnr=roi_psnr, psnr=psnr,
             seconds_per_frame=self.seconds_mapping / max(self.frames_mapped, 1),
             roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0,
+            protocols=protocols,
             total_upload_bytes=pusher.total_upload_bytes, final_subset_bytes=pusher.final_subset_bytes,
             pushes=[dict(p.__dict__) for p in pusher.pushes])
         if self.on_finished is not None:
@@ -699,21 +721,29 @@ class AgentRuntime:
         """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset, skipped ones included
         (mean over frames that show the ROI): the honest score of an online map. None without a replayed
         dataset, annotations or task id, or when no frame shows the ROI. Call only while the worker is idle."""
-        from gausslite.evaluation import score_view
+        res = self.evaluate_protocols(("sensor",))
+        return res["sensor"]["roi_psnr"] if res else None
+
+    def evaluate_protocols(self, protocols: Optional[tuple] = None) -> dict:
+        """The current map over every frame of the replayed dataset under the scoring protocols of
+        ``config.scoring`` (:func:`gausslite.evaluation.score_live_map`; ``sensor`` always, whose ROI PSNR is
+        :meth:`evaluate_all_frames`'s figure; ``keyframes``: the mapped keyframes at their refined pose and exposure;
+        ``tracked``: every ``track_stride``-th frame at a pose and exposure fitted against the frozen map), or of
+        ``protocols``.
+
+        Returns:
+            ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (dB; ROI PSNR over the
+            frames that show the ROI, None when none does); ``{}`` without a replayed dataset, annotations or task
+            id. Call only while the worker is idle."""
+        from gausslite.evaluation import score_live_map
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
-            return None
-        vals = []
-        for i in range(len(self._dataset)):
-            fr = self._dataset[i]
-            roi = self.annotations.roi_mask(self.task_id, fr.depth, fr.c2w, fr.intrinsics)
-            if not roi.any():
-                continue
-            out = self.mapper.render_frame(fr)
-            s = score_view(out, fr, roi)
-            if not math.isnan(s.roi_psnr):
-                vals.append(s.roi_psnr)
-        return float(np.mean(vals)) if vals else None
+            return {}
+        sc, ann, task = self.config.scoring, self.annotations, self.task_id
+        return score_live_map(self.mapper, self._dataset,
+                              lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics),
+                              sc.chosen() if protocols is None else protocols, track_iters=sc.track_iters,
+                              track_stride=sc.track_stride)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

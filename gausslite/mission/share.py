@@ -56,6 +56,18 @@ def _worker_init(nice: int) -> None:
     torch.set_num_threads(1)
 
 
+def _warm() -> int:
+    """The share worker's first job, sent at mission start (:meth:`ShareSession.start`): import what selection and
+    fine-tuning run (torch, the rasterizer's kernels, :mod:`gausslite.sharing`), so the first push does not wait for a
+    process start. Returns the worker's pid."""
+    import os
+
+    import gausslite.render  # noqa: F401 - loads the rasterizer's compiled kernels
+    import gausslite.sharing  # noqa: F401
+
+    return os.getpid()
+
+
 def _trimmed(fn, *args):
     """``fn(*args)`` in the share worker, then its freed memory back to the OS (:func:`~gausslite.mission.heap.trim_heap`):
     each job unpickles a map copy and the ROI keyframes, and without this the worker's resident memory creeps up
@@ -116,7 +128,8 @@ class ShareSession:
     def __init__(self, agent_id: str, config) -> None:
         self.agent_id, self.config = agent_id, config
         self.planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
-        self.pool = None  # the share worker process (share_worker: process), started on first use
+        self.pool = None  # the share worker process (share_worker: process), started by start() or on first use
+        self.warm = None  # Future of the worker's warm-up job (its pid), once start() ran
         self.finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset, ids) of the last push
         self._acked = None  # (version, subset, ids) the server acknowledged last (the planner's base)
         self._lock = threading.Lock()
@@ -207,18 +220,39 @@ class ShareSession:
         self.finetune_cache = (key, out, ids)
         return out
 
-    def call(self, fn, *args):
-        """Run ``fn(*args)`` in the share worker process (``share_worker: process``, started on first use with the
-        ``spawn`` method: forking a process that runs rasterizer threads is unsafe), or here (``thread``)."""
-        if self.config.share_worker != "process":
-            return fn(*args)
+    def start(self, nice: Optional[int] = None) -> None:
+        """Start the share worker process now and warm it up (imports, rasterizer kernels) without waiting: a mission
+        that shares calls this when it starts, so its first push finds the worker ready. Starting a process and
+        importing torch and the rasterizer takes seconds to tens of seconds on a loaded robot computer; started at
+        the first push instead, the worker would still be starting while the next subsets are mapped, and those
+        would be superseded before any reached the fusion server. No-op under ``share_worker: thread``, for a share
+        rule other than ``task``, or when the worker runs already.
+
+        Args:
+            nice: the worker's niceness above the agent's (default ``pusher_nice``; 0: the mapper's priority).
+        """
+        if self.config.share_worker != "process" or self.config.share != "task" or self.pool is not None:
+            return  # only ``share: task`` selects and fine-tunes in the worker
+        self._pool(nice)
+        self.warm = self.pool.submit(_warm)
+
+    def _pool(self, nice: Optional[int] = None):
         if self.pool is None:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
             self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(self.config.pusher_nice,))
-        return self.pool.submit(_trimmed, fn, *args).result()
+                                            initializer=_worker_init,
+                                            initargs=(self.config.pusher_nice if nice is None else int(nice),))
+        return self.pool
+
+    def call(self, fn, *args):
+        """Run ``fn(*args)`` in the share worker process (``share_worker: process``, started by :meth:`start` or on
+        first use, with the ``spawn`` method: forking a process that runs rasterizer threads is unsafe), or here
+        (``thread``)."""
+        if self.config.share_worker != "process":
+            return fn(*args)
+        return self._pool().submit(_trimmed, fn, *args).result()
 
     # ------------------------------------------------------------------ delta planning
     @property

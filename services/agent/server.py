@@ -458,7 +458,11 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                                        bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
                                        removed=p["removed"], frames_mapped=p["frames_mapped"],
                                        unchanged=p.get("unchanged", False))
-                    for p in s.pushes])
+                    for p in s.pushes],
+            protocols={name: agent_pb2.ProtocolScore(
+                has_roi_psnr=v.get("roi_psnr") is not None, roi_psnr=v.get("roi_psnr") or 0.0,
+                psnr=v.get("psnr") or 0.0, ssim=v.get("ssim") or 0.0, frames_scored=int(v.get("frames_scored", 0)),
+                roi_frames=int(v.get("roi_frames", 0))) for name, v in s.protocols.items()})
 
     def shutdown(self, timeout_s: float) -> List[str]:
         """What SIGTERM does before the process exits: every mission still mapping stops ingest, maps what it holds,

@@ -54,6 +54,9 @@ def register(subparsers) -> None:
                    help="shortcut for mapper.seeding.seeds_per_frame")
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
+    p.add_argument("--protocols", default=None, metavar="P[,P...]",
+                   help="scoring protocols of the own and fused maps: sensor (always), keyframes, tracked "
+                        "(agent.scoring.protocols; default all three, docs/realtime.md#scoring-protocols)")
     p.add_argument("--realtime", action="store_true",
                    help="agents replay at the dataset's clock through keyframe ingest (agent.realtime=true), as a "
                         "robot streams; the report adds frames received/keyframed/skipped, latencies and the ROI "
@@ -153,6 +156,14 @@ def _handle(args: argparse.Namespace) -> int:
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):
         if getattr(args, flag) is not None:
             overrides.append(f"{key}={getattr(args, flag)}")
+    if args.protocols is not None:
+        protos = [q.strip() for q in args.protocols.split(",") if q.strip()]
+        known = ("sensor", "keyframes", "tracked")
+        if not protos or any(q not in known for q in protos):
+            print(f"gausslite sim: error: --protocols {args.protocols!r}: choose among {', '.join(known)}",
+                  file=sys.stderr)
+            return 2
+        overrides.append(f"agent.scoring.protocols=[{', '.join(protos)}]")
     from gausslite.cli.cmd_map import bag_options_from_args
 
     overrides += [f"agent.bag.{k}={v}" for k, v in bag_options_from_args(args).items()]

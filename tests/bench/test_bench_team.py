@@ -99,3 +99,64 @@ def test_summary_checks_the_goals_per_team():
     assert t["goals"]["refine_ge_own"] is False and "vote_ge_own" not in t["goals"]
     assert t["goals"]["refine_long_ge_own"] is True  # 21.5 / 22.4 against 20 / 22
     assert t["agents"]["agent_b"]["refine_minus_own"] == pytest.approx(-0.1)
+
+
+def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(monkeypatch):
+    """``fused_scores``: every final fused map (and the map made for each robot) on each task under ``sensor`` (the
+    top-level figure), ``keyframes`` (the owner's uploaded keyframes at the poses they carry) and ``tracked`` (every
+    stride-th frame); ``run_team``'s per-agent ``protocols`` rows and ``summarise`` carry them, with vote − own per
+    protocol, and the markdown has a protocol table."""
+    import bench.team as team
+    from gausslite.mapping.config import MapperConfig
+    from gausslite.mapping.mapper import Mapper
+    from gausslite.mapping.views import keyframe_from_frame
+    from tests._scenes import plane_frame
+
+    monkeypatch.setattr(team, "LONG_REFINE_ITERS", 2)
+    H, W = 40, 56
+    roi = np.zeros((H, W), bool)
+    roi[10:30, 14:42] = True
+
+    class _Ann:
+        def roi_mask(self, task, depth, c2w, intr):
+            return roi
+
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(6)]
+    agents = []
+    for n, (aid, lo) in enumerate((("agent_a", 0), ("agent_b", 3))):
+        cfg = MapperConfig(mode="gausslite", seeds_per_frame=300, iters_per_frame=5, warmup_iters=2, backend="warp")
+        m = Mapper(cfg)
+        for fr in frames[lo:lo + 3]:
+            m.map_frame(fr, roi)
+        g = GaussianArrays.from_any(m.gmap)
+        kfs = [keyframe_from_frame(fr, "cpu", roi) for fr in frames[lo:lo + 3:2]]  # 2 uploaded keyframes
+        agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
+                       "_annotations": _Ann()})
+    fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
+    out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4)
+    for key in (*team.FUSED_KEYS, "for_robot"):
+        p = out[key]["protocols"]
+        assert set(p) == {"sensor", "keyframes", "tracked"}, key
+        for a in agents:
+            assert p["sensor"][a["task"]] == out[key]["roi_psnr"][a["task"]]
+            assert p["keyframes"][a["task"]] is not None and p["tracked"][a["task"]] is not None
+    # sensor alone: no other protocol is scored
+    only = team.fused_scores(agents, fuse, 0, 3, protocols=("sensor",))
+    assert set(only["vote"]["protocols"]) == {"sensor"}
+    # the per-agent rows of a run and their summary over runs
+    runs = []
+    for r in range(2):
+        run = _run("synthetic", r, own=(20, 22), concat=(19, 21), vote=(20.5, 22.5), refine=(21, 23))
+        for i, a in enumerate(run["agents"]):
+            a["protocols"] = {q: {"own_roi_psnr": 20.0 + i + d, "own_frames": 6,
+                                  **{f"{k}_roi_psnr": 19.0 + i + d + 0.5 * r for k in (*team.FUSED_KEYS, "for_robot")}}
+                              for q, d in (("sensor", 0.0), ("keyframes", 2.0), ("tracked", 1.0))}
+        runs.append(run)
+    s = summarise(runs)
+    pa = s["synthetic"]["agents"]["agent_b"]["protocols"]
+    assert set(pa) == {"sensor", "keyframes", "tracked"} and pa["keyframes"]["runs"] == 2
+    assert pa["keyframes"]["own_roi_psnr"] == pytest.approx(23.0)
+    assert pa["keyframes"]["vote_minus_own"] == pytest.approx(-0.75)
+    assert pa["tracked"]["for_robot_minus_own_std"] == pytest.approx(np.std([-1.0, -0.5], ddof=1))
+    md = team.protocol_table({"teams": s})
+    assert "| synthetic | agent_b, tb | keyframes | 23.00 ± 0.00 |" in md and md.count("\n") == 1 + 6

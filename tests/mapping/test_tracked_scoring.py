@@ -81,3 +81,39 @@ def test_protocols_score_both_modes_alike_and_tracking_never_sees_the_roi():
         assert a[p]["psnr"] == b[p]["psnr"] and b[p]["roi_psnr"] is None and a[p]["roi_psnr"] is not None
     with pytest.raises(ValueError, match="unknown"):
         score_live_map(m, frames, lambda fr: roi, protocols=("sensor", "oracle"))
+
+
+def test_a_frozen_map_is_scored_under_every_protocol_at_the_poses_given_for_its_keyframes():
+    """A map with no mission of its own (a fused team map, ``score_map``): ``sensor`` is the plain render at the
+    sensor's pose (``evaluate_fused``'s figure), ``keyframes`` the frames whose poses are given, at those poses (a
+    pose 3 cm and 1° off scores lower), none without them; ``tracked`` every stride-th frame, its pose fitted from the
+    sensor's."""
+    from gausslite.evaluation import evaluate_fused, score_map
+
+    roi = np.zeros((H, W), bool)
+    roi[10:30, 14:42] = True
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(6)]
+    gmap = _plane_map().gmap
+
+    class _Ann:
+        def roi_mask(self, task, depth, c2w, intr):
+            return roi
+
+    off = _perturbed(frames[2].c2w, [0.0, 0.0, np.radians(1.0), 0.03, 0.0, 0.0])
+    true = score_map(gmap, frames, lambda fr: roi, track_iters=5, track_stride=3, backend="warp",
+                     keyframe_poses={0: frames[0].c2w, 2: frames[2].c2w})
+    moved = score_map(gmap, frames, lambda fr: roi, protocols=("keyframes",), backend="warp",
+                      keyframe_poses={0: frames[0].c2w, 2: off})
+    at = score_map(gmap, frames, lambda fr: roi, protocols=("keyframes",), backend="warp", keyframe_poses={2: off})
+    assert at["keyframes"]["frames_scored"] == 1
+    assert true["sensor"]["frames_scored"] == 6 and true["tracked"]["frames_scored"] == 2
+    assert true["sensor"]["roi_psnr"] == pytest.approx(evaluate_fused(gmap, frames, _Ann(), "t", "warp"))
+    assert true["keyframes"]["frames_scored"] == moved["keyframes"]["frames_scored"] == 2
+    assert moved["keyframes"]["roi_psnr"] < true["keyframes"]["roi_psnr"] - 1.0, (moved, true)
+    none = score_map(gmap, frames, lambda fr: roi, protocols=("keyframes",), backend="warp")
+    assert none["keyframes"]["frames_scored"] == 0 and none["keyframes"]["roi_psnr"] is None
+    import torch
+
+    empty = score_map(gmap.subset(torch.zeros(len(gmap), dtype=torch.bool)), frames, lambda fr: roi)
+    assert set(empty) == {"sensor", "keyframes", "tracked"}
+    assert all(v["roi_psnr"] is None and v["frames_scored"] == 0 for v in empty.values())

@@ -544,7 +544,26 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
     assert st["frames_received"] == len(ds) == st["frames_keyframed"] + st["frames_skipped"]
     assert st["frames_keyframed"] >= 1
     assert s.frames_all == len(ds) and s.roi_psnr_all_frames is not None and 0 < s.roi_psnr_all_frames < 80
+    # every scoring protocol (agent.scoring): sensor is the every-frame figure, keyframes the mapped ones,
+    # tracked every 5th frame
+    p = s.protocols
+    assert set(p) == {"sensor", "keyframes", "tracked"}
+    assert p["sensor"]["roi_psnr"] == s.roi_psnr_all_frames and p["sensor"]["frames_scored"] == len(ds)
+    assert p["keyframes"]["frames_scored"] == st["frames_keyframed"]
+    assert p["tracked"]["frames_scored"] == len(range(0, len(ds), 5))
+    assert all(v["roi_psnr"] is not None and 0 < v["roi_psnr"] < 80 for v in p.values())
     rt.close()
+    # sensor alone when told so
+    cfg = load_agent_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"])
+    rt = AgentRuntime("rt2", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
+                      task_id="synth-pick-object")
+    try:
+        rt.replay(ds)
+        s = rt.finish(push=False, timeout_s=120)
+        assert set(s.protocols) == {"sensor", "tracked"}
+        assert s.protocols["tracked"]["frames_scored"] == len(range(0, len(ds), 2))
+    finally:
+        rt.close()
 
 
 def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
@@ -553,6 +572,8 @@ def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
     assert main(["sim", "--out", str(tmp_path / "x"), "--rate", "2"]) == 2
     assert "--realtime" in capsys.readouterr().err
     assert main(["sim", "--out", str(tmp_path / "x"), "--report-only"]) == 2
+    assert main(["sim", "--out", str(tmp_path / "x"), "--protocols", "sensor,oracle"]) == 2
+    assert "--protocols" in capsys.readouterr().err
 
 
 def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_one(tmp_path):
@@ -814,6 +835,42 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
     assert rt.share.finetune_cache is not None  # the last push was fine-tuned...
     assert here == []  # ...and neither the selection nor the fine-tune ran in the agent's process
     assert rt.share.pool is None  # close() stopped the worker
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime):
+    """A sharing mission starts (and warms up) its share worker process when it starts: when its replay starts,
+    before any frame is mapped, the worker is running, and the pushes use that same process. A live mission's worker
+    runs at ``pusher_nice``; an every-frame replay's at the mapper's priority (no keyframe budget to protect: below
+    a mapper that maps as fast as it can, the worker would get no processor until the mission ends)."""
+    from gausslite.mission import AgentConfig
+    from gausslite.mission.share import _warm
+
+    ds = load_dataset(scene / "agent_a")
+    graph = {"targets": ["object"], "anchors": [], "relations": []}
+    cfg = AgentConfig(share="task", share_worker="process", realtime=realtime, rate=0.2,
+                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
+    rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
+    try:
+        assert rt.share.pool is None  # nothing runs before the mission starts
+        rt.replay(ds)
+        assert rt.share.pool is not None and rt.share.warm is not None and rt.frames_mapped < len(ds)
+        pid = rt.share.warm.result(timeout=300)  # the warm-up job ran in the worker process...
+        assert pid != os.getpid() and rt.share.call(_warm) == pid  # ...which is the one the pushes use
+        expected = min(19, os.getpriority(os.PRIO_PROCESS, 0) + (19 if realtime else 0))
+        assert os.getpriority(os.PRIO_PROCESS, pid) == expected
+    finally:
+        rt.close()
+    assert rt.share.pool is None
+    # a mission that does not share (no fusion client) or shares without the worker starts no process
+    for kw in ({"fusion": None}, {"fusion": _RecordingFusion(), "share": "active"}):
+        c = AgentConfig(share=kw.get("share", "task"), share_worker="process", mapper=MapperConfig(mode="gausslite"))
+        r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
+        try:
+            r._start_share(True)
+            assert r.share.pool is None
+        finally:
+            r.close()
 
 
 def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):

@@ -85,6 +85,32 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     ctx["settings"]["mapper"]["roi_render"] = "active"
     with pytest.raises(ValueError):
         attach_context_baseline(rep, ctx)
+    # every map under each scoring protocol (agent.scoring): the own maps scored by their agents, the fused maps
+    # by the sim, each fused figure beside the own one under the same protocol; sensor is the top-level figure
+    protos = {"sensor", "keyframes", "tracked"}
+    assert rep["settings"]["scoring"]["protocols"] == ["sensor", "keyframes", "tracked"]
+    for a in rep["agents"]:
+        p = a["protocols"]
+        assert set(p) == protos
+        assert p["sensor"]["roi_psnr"] == pytest.approx(a["roi_psnr_all_frames"]) and p["sensor"]["frames_scored"] == 3
+        assert p["keyframes"]["frames_scored"] == a["frames_mapped"] == 3  # an every-frame replay
+        assert p["tracked"]["frames_scored"] == 1  # every 5th of 3 frames
+        assert all(v["roi_psnr"] is not None for v in p.values())
+    for k, f in rep["fused"].items():
+        assert set(f["protocols"]) == protos, k
+        for a in rep["agents"]:
+            t = a["task"]
+            assert f["protocols"]["sensor"][t]["roi_psnr"] == f["roi_psnr_per_task"][t]
+            # the keyframes the robot uploaded (every 2nd mapped frame: 0 and 2)
+            assert f["protocols"]["keyframes"][t]["frames_scored"] == 2, (k, t)
+            assert f["protocols"]["tracked"][t]["frames_scored"] == 1
+            for q in protos:
+                v = f["protocols"][q][t]
+                assert v["roi_psnr"] is not None and math.isclose(v["minus_own"],
+                                                                  v["roi_psnr"] - a["protocols"][q]["roi_psnr"])
+    assert "## Own and fused maps under each scoring protocol" in md
+    assert "| tracked | own |" in md and "| keyframes | vote |" in md and "| sensor | for_robot |" in md
+    assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| tracked | own |")
     # every child process is gone
     assert set(res.pids) == {"parser", "fusion_server", "agent_a", "agent_b"}
     for pid in res.pids.values():
