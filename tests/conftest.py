@@ -29,7 +29,7 @@ INTEGRATION = {
     "deploy/test_deploy_compose.py", "parser/test_parser_facade.py",
     "services/test_agent_live.py", "services/test_agent_service.py", "services/test_agent_update_task.py", "services/test_bag_services.py",
     "services/test_client_errors.py", "services/test_delta_server.py", "services/test_fusion_db_outage.py",
-    "services/test_fusion_identity.py", "services/test_fusion_replicas.py", "services/test_fusion_server.py",
+    "services/test_fusion_hostile.py", "services/test_fusion_identity.py", "services/test_fusion_replicas.py", "services/test_fusion_server.py",
     "services/test_fusion_server_cli.py", "services/test_fusion_server_restart.py",
     "services/test_fusion_store_contract.py", "services/test_grpc_fuzz.py", "services/test_link_outage.py",
     "services/test_metrics_services.py", "services/test_proto_parser_service.py", "services/test_sim.py",

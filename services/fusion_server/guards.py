@@ -3,9 +3,13 @@ and a log line (``rejected <method> from <peer>: <code>: <reason>``), never a cr
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
-from typing import Optional
+import queue
+import threading
+import time
+from typing import Dict, Iterator, Optional
 
 import grpc
 import numpy as np
@@ -19,7 +23,7 @@ from services.fusion_server.store import StoreUnavailable
 
 log = logging.getLogger("services.fusion_server.server")  # one logger for the whole service
 
-__all__ = ["Reject", "Cancelled", "abort_call", "unary_guard", "stream_guard", "check_int64", "check_agent_id",
+__all__ = ["Reject", "Cancelled", "UploadStreams", "abort_call", "unary_guard", "stream_guard", "check_int64", "check_agent_id",
            "intrinsics_from_proto", "decode_color", "decode_roi", "decode_depth", "MAX_VERSION"]
 
 
@@ -137,3 +141,117 @@ def _image(fn, *args):
         return fn(*args)
     except ValueError as e:
         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+
+
+class UploadStreams:
+    """Bounds on the client streams of uploads (``UploadSubset``, ``UploadKeyframes``), so a client that opens
+    streams and stops sending cannot hold the server's handler threads.
+
+    * **Idle deadline**: the stream's messages are read by a small reader thread into a queue of two; the handler
+      waits for each at most ``idle_s`` seconds. When none arrives in time the call ends with DEADLINE_EXCEEDED
+      (``no message of the UploadSubset stream for 15 s``), the handler thread is free again, and gRPC, having sent
+      the status, ends the reader's wait. What was stored before the stall stays as after a dropped link: complete
+      keyframes, and the chunks of an incomplete upload (invisible to ``Fuse``, resumable); never part of a message.
+    * **Concurrency**: at most ``max_streams`` upload streams at once on the server, and ``per_caller`` per caller
+      (the authenticated agent id; the peer host of a caller that may write nothing; callers that may write every
+      agent's data, on an open server or with the team-wide fleet token, only count server-wide); beyond either a new upload is RESOURCE_EXHAUSTED at once, so
+      stalled streams leave handler threads for the unary calls (acks, status, reads) and for other robots.
+
+    Args:
+        max_streams (int): server-wide bound (keep it below the handler threads).
+        per_caller (int): bound per caller.
+        idle_s (float): longest wait for the next message of a stream, seconds.
+    """
+
+    def __init__(self, max_streams: int, per_caller: int, idle_s: float):
+        self.max_streams, self.per_caller, self.idle_s = int(max_streams), int(per_caller), float(idle_s)
+        self._lock = threading.Lock()
+        self._open: Dict[str, int] = {}
+        self.deadline_exceeded = 0  #: streams ended by the idle deadline (for tests and metrics)
+
+    @property
+    def active(self) -> int:
+        """Upload streams open now."""
+        with self._lock:
+            return sum(self._open.values())
+
+    @contextlib.contextmanager
+    def open(self, request_iterator, context, method: str, caller: Optional[str]) -> Iterator[Iterator]:
+        """Take a slot for ``caller`` (None: only the server-wide bound applies) and yield the stream's messages, each waited for at most ``idle_s``.
+
+        Raises (into the handler, as :class:`Reject`): RESOURCE_EXHAUSTED when no slot is free; DEADLINE_EXCEEDED
+        when the client sent nothing for ``idle_s``; CANCELLED when the client cancelled the call or its deadline
+        passed. A malformed message re-raises :class:`MalformedMessage` (the decode interceptor's status).
+        """
+        with self._lock:
+            total, mine = sum(self._open.values()), self._open.get(caller, 0)
+            if caller is None:
+                mine = 0
+            if total >= self.max_streams or mine >= self.per_caller:
+                which = (f"{self.per_caller} from this caller" if mine >= self.per_caller
+                         else f"{self.max_streams} on this server")
+                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                             f"too many upload streams in progress ({which}); retry when one has finished")
+            self._open[caller] = self._open.get(caller, 0) + 1
+        stop = threading.Event()
+        items: "queue.Queue[tuple]" = queue.Queue(maxsize=2)  # bounded: gRPC's flow control still applies
+
+        def put(item) -> bool:
+            while not stop.is_set():
+                try:
+                    items.put(item, timeout=0.5)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def read() -> None:
+            try:
+                for msg in request_iterator:
+                    if not put(("msg", msg)):
+                        return
+                put(("end", None))
+            except BaseException as e:  # noqa: BLE001 - handed to the handler thread
+                put(("error", e))
+
+        reader = threading.Thread(target=read, name=f"gausslite-{method}-reader", daemon=True)
+        reader.start()
+
+        def messages():
+            while True:
+                deadline = time.monotonic() + self.idle_s
+                while True:
+                    left = deadline - time.monotonic()
+                    try:
+                        kind, payload = items.get(timeout=max(0.0, min(0.5, left)))
+                        break
+                    except queue.Empty:
+                        if not context.is_active():
+                            raise Reject(grpc.StatusCode.CANCELLED, "the client cancelled the stream") from None
+                        if time.monotonic() >= deadline:
+                            with self._lock:
+                                self.deadline_exceeded += 1
+                            raise Reject(grpc.StatusCode.DEADLINE_EXCEEDED,
+                                         f"no message of the {method} stream for {self.idle_s:g} s "
+                                         "(the server's fusion.stream_idle_s)") from None
+                if kind == "msg":
+                    yield payload
+                elif kind == "end":
+                    return
+                elif isinstance(payload, MalformedMessage):
+                    raise payload
+                elif isinstance(payload, grpc.RpcError):  # the client cancelled, or its own deadline passed
+                    raise Reject(grpc.StatusCode.CANCELLED, "the client cancelled the stream") from None
+                else:
+                    raise payload
+
+        try:
+            yield messages()
+        finally:
+            stop.set()
+            with self._lock:
+                n = self._open.get(caller, 1) - 1
+                if n > 0:
+                    self._open[caller] = n
+                else:
+                    self._open.pop(caller, None)

@@ -176,7 +176,7 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
     store = (open_store(config.store, pool_size=config.store_pool_size,
                         acquire_timeout_s=config.store_acquire_timeout_s) if config.store
              else open_store(config.data_dir))
-    servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
+    servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth, handler_threads=options.max_workers)
     metered = MeteredFusion(servicer, FusionMetrics())
     try:
         running = build_server(options, lambda srv: fusion_pb2_grpc.add_FusionServicer_to_server(metered, srv),

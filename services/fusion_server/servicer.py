@@ -23,8 +23,10 @@ from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, Limit
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import Authenticator, AuthError
 from services.common.convert import intrinsics_to_proto
+from services.common.server import peer_host
 from services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard, unary_guard,
-                                           check_agent_id, check_int64, decode_color, decode_depth, decode_roi)
+                                           check_agent_id, check_int64, decode_color, decode_depth, decode_roi,
+                                           UploadStreams)
 from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
 
 log = logging.getLogger("services.fusion_server.server")  # one logger for the whole service
@@ -43,11 +45,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         max_message_bytes (int): the server's message bound (chunks must fit in it).
         auth (Authenticator | None): identifies callers for the write checks (None: every caller may
             write every agent's data, as on a server without credentials).
+        handler_threads (int | None): the gRPC server's handler threads; upload streams are capped at half of them
+            (and at ``config.max_upload_streams``) so stalled uploads leave threads for everything else.
     """
 
     def __init__(self, store: SqlFusionStore, config: FusionSettings, max_message_bytes: int,
-                 auth: Optional[Authenticator] = None):
+                 auth: Optional[Authenticator] = None, handler_threads: Optional[int] = None):
         self.auth = auth
+        cap = int(config.max_upload_streams)
+        if handler_threads is not None:
+            cap = min(cap, max(1, int(handler_threads) // 2))
+        self.uploads = UploadStreams(cap, min(cap, int(config.max_upload_streams_per_caller)),
+                                     float(config.stream_idle_s))
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)
@@ -85,6 +94,24 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self.auth.identify_context(context).check_write(agent_id)
         except AuthError as e:
             raise Reject(e.code, e.message) from None
+
+    def _caller(self, context) -> Optional[str]:
+        """Who holds an upload stream, for the per-caller bound: the authenticated agent id; the peer host for a
+        team member that may write nothing (a viewer opening uploads that can only be refused); None (no per-caller
+        bound) for a caller that may write every agent's data (an open server, the team-wide fleet token)."""
+        principal = None
+        if self.auth is not None and self.auth.enabled:
+            try:
+                principal = self.auth.identify_context(context)
+            except AuthError:
+                pass
+        if principal is not None and principal.agent_id:
+            return f"agent {principal.agent_id}"
+        if principal is None and (self.auth is None or not self.auth.enabled):
+            return None
+        if principal is not None and principal.may_write_any:
+            return None
+        return f"peer {peer_host(context.peer())}"
 
     def _session(self, agent_id: str) -> Session:
         check_agent_id(agent_id)
@@ -191,6 +218,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def UploadSubset(self, request_iterator, context):  # noqa: N802
+        with self.uploads.open(request_iterator, context, "UploadSubset", self._caller(context)) as messages:
+            return self._upload_subset(messages, context)
+
+    def _upload_subset(self, request_iterator, context) -> fusion_pb2.UploadAck:
         it = iter(request_iterator)
         first = next(it, None)
         if first is None or first.WhichOneof("payload") != "header":
@@ -273,6 +304,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def UploadKeyframes(self, request_iterator, context):  # noqa: N802
+        with self.uploads.open(request_iterator, context, "UploadKeyframes", self._caller(context)) as messages:
+            return self._upload_keyframes(messages, context)
+
+    def _upload_keyframes(self, request_iterator, context) -> fusion_pb2.KeyframeAck:
         received = stored = dups = evicted = 0
         agent = ""
         allowed = set()
