@@ -33,6 +33,9 @@ log = logging.getLogger("services.fusion_server.server")  # one logger for the w
 
 SERVICE_NAME = "gausslite.v1.Fusion"
 FUSED_AGENT_ID = "fused"
+#: agents per GetStats page when the request leaves page_size 0, and the largest page_size accepted
+STATS_PAGE_SIZE = 100
+MAX_STATS_PAGE_SIZE = 1000
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
 
 
@@ -545,8 +548,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def GetStats(self, request, context):  # noqa: N802
+        size = int(request.page_size) or STATS_PAGE_SIZE
+        if size > MAX_STATS_PAGE_SIZE:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"page_size {size} exceeds {MAX_STATS_PAGE_SIZE}")
+        after = request.page_token
+        if after:
+            check_agent_id(after)  # the token is the last agent id of the previous page
         resp = fusion_pb2.StatsResponse()
-        for s in self.store.sessions():
+        sessions = self.store.sessions(after=after, limit=size + 1)
+        if len(sessions) > size:
+            sessions = sessions[:size]
+            resp.next_page_token = sessions[-1].agent_id
+        for s in sessions:
             a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
                                       keyframes=self.store.keyframe_count(s.agent_id))
             latest, up = None, None
@@ -566,9 +579,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 a.share_pct = 100.0 * up.n_gaussians / up.full_map_gaussians if up.full_map_gaussians else 0.0
                 a.bytes_per_gaussian = up.wire_bytes / up.n_gaussians if up.n_gaussians else 0.0
             resp.agents.append(a)
-        for info in self.store.fused_infos():
-            resp.fused.append(fusion_pb2.FuseResult.FromString(info))
-        resp.latest_fused_version = resp.fused[-1].fused_version if resp.fused else 0
+        infos = [fusion_pb2.FuseResult.FromString(info) for info in self.store.fused_infos()]
+        if not after:  # bounded by the retention (fusion.fused_keep_per_method per method)
+            resp.fused.extend(infos)
+        resp.latest_fused_version = infos[-1].fused_version if infos else 0
         return resp
 
     @unary_guard

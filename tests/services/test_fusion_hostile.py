@@ -172,3 +172,146 @@ def test_upload_streams_are_bounded_server_wide_and_per_caller(tmp_path):
             s.release()
         ch.close()
         srv.stop(0)
+
+
+def test_get_stats_pages_its_agents(tmp_path):
+    """GetStats returns at most page_size agents (100 by default, 1000 at most) in agent-id order with a token for the
+    next page; the fused maps come with the first page; the client's stats() joins every page."""
+    srv = serve(ServerOptions(port=0, max_workers=8, grace_s=0.5), data_dir=str(tmp_path / "data"))
+    ch = grpc.insecure_channel(srv.address)
+    st = fusion_pb2_grpc.FusionStub(ch)
+    try:
+        with FusionClient(srv.address, timeout_s=10, max_retries=0) as c:
+            ids = [f"robot-{i:03d}" for i in range(103)]
+            for a in ids:
+                c.open_session(a, "find the chair", INTR)
+            c.upload_subset("robot-000", 1, rand_subset(100, 4), full_map_gaussians=100)
+            c.fuse("concat")
+            first = st.GetStats(fusion_pb2.StatsRequest(), timeout=10)
+            assert [a.agent_id for a in first.agents] == ids[:100] and first.next_page_token == "robot-099"
+            assert len(first.fused) == 1 and first.latest_fused_version == first.fused[0].fused_version
+            rest = st.GetStats(fusion_pb2.StatsRequest(page_token=first.next_page_token), timeout=10)
+            assert [a.agent_id for a in rest.agents] == ids[100:] and rest.next_page_token == ""
+            assert len(rest.fused) == 0 and rest.latest_fused_version == first.latest_fused_version
+            seen, token = [], ""
+            while True:
+                page = st.GetStats(fusion_pb2.StatsRequest(page_size=40, page_token=token), timeout=10)
+                assert len(page.agents) <= 40
+                seen += [a.agent_id for a in page.agents]
+                token = page.next_page_token
+                if not token:
+                    break
+            assert seen == ids
+            stats = c.stats()
+            assert sorted(stats["agents"]) == ids and len(stats["fused"]) == 1
+            assert stats["agents"]["robot-000"]["has_complete_subset"]
+            for req in (fusion_pb2.StatsRequest(page_size=1001), fusion_pb2.StatsRequest(page_token="../x")):
+                with pytest.raises(grpc.RpcError) as e:
+                    st.GetStats(req, timeout=10)
+                assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    finally:
+        ch.close()
+        srv.stop(0)
+
+
+# ------------------------------------------------------------------------------------------ decompression bomb
+BOMB_SIDE = 20000
+
+
+def black_png(side: int, level: int = 9) -> bytes:
+    """A valid all-black RGB PNG of ``side`` × ``side`` pixels, written row block by row block (the pixels are never
+    held): 20000 × 20000 is 1.2 GB decoded, about 1.17 MB encoded."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    co, rows, parts = zlib.compressobj(level), 100, []
+    block = (b"\0" * (1 + 3 * side)) * rows  # filter byte 0 + RGB zeros, per row
+    for start in range(0, side, rows):
+        parts.append(co.compress(block if start + rows <= side else block[:(side - start) * (1 + 3 * side)]))
+    parts.append(co.flush())
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", b"".join(parts)) + chunk(b"IEND", b""))
+
+
+@pytest.fixture(scope="session")
+def bomb_png() -> bytes:
+    """The 20000 × 20000 black PNG, built once and cached in the temp dir (about 4 s to compress)."""
+    import tempfile
+
+    path = Path(tempfile.gettempdir()) / f"gausslite_black_{BOMB_SIDE}.png"
+    if not path.exists() or path.stat().st_size < 1_000_000:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(black_png(BOMB_SIDE))
+        os.replace(tmp, path)
+    return path.read_bytes()
+
+
+def test_black_png_builder_makes_valid_pngs():
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(black_png(123, level=1), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (123, 123, 3) and not img.any()
+
+
+def _vm_kb(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    raise KeyError(key)
+
+
+def test_a_decompression_bomb_leaves_a_server_process_small_and_serving(tmp_path, bomb_png):
+    """A valid all-black 20000 × 20000 PNG (1.2 GB of pixels in 1.2 MB) as a keyframe of a 32 × 24 session, sent to a
+    real fusion server process: INVALID_ARGUMENT, its peak RSS (VmHWM) grows by less than 100 MB, health SERVING, and
+    a valid keyframe is stored afterwards."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    from gausslite.datasets.base import Frame
+    from services.fusion_server.client import keyframe_to_proto
+
+    assert 1_000_000 < len(bomb_png) < 1_400_000
+    port_file = tmp_path / "port"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    log = open(tmp_path / "fusion.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "services.fusion_server", "--port", "0", "--port-file",
+                             str(port_file), "--data-dir", str(tmp_path / "data")], cwd=str(REPO), env=env,
+                            stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while not port_file.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "fusion.log").read_text()
+            time.sleep(0.05)
+        address = f"127.0.0.1:{int(port_file.read_text())}"
+        r = np.random.default_rng(0)
+        good = Frame(1, 0.0, r.integers(0, 255, (H, W, 3), dtype=np.uint8), np.full((H, W), 1.5, np.float32),
+                     np.eye(4), INTR)
+        with FusionClient(address, timeout_s=30, max_retries=0) as c:
+            c.wait_ready(30)
+            c.open_session("robot-1", "find the chair", INTR)
+            c.upload_keyframes("robot-1", [good])  # warm: the decoding path has run once
+            before = _vm_kb(proc.pid, "VmHWM")
+            bomb = keyframe_to_proto("robot-1", Frame(2, 0.1, good.rgb, good.depth, np.eye(4), INTR))
+            bomb.color = bomb_png
+            st = fusion_pb2_grpc.FusionStub(c._channel)
+            for _ in range(3):
+                with pytest.raises(grpc.RpcError) as e:
+                    st.UploadKeyframes(iter([bomb]), timeout=30)
+                assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, e.value.details()
+                assert "20000" in e.value.details()
+            grown_mb = (_vm_kb(proc.pid, "VmHWM") - before) / 1024.0
+            assert grown_mb < 100.0, f"peak RSS grew by {grown_mb:.0f} MB"
+            h = health_pb2_grpc.HealthStub(c._channel).Check(health_pb2.HealthCheckRequest(service=""), timeout=5)
+            assert h.status == health_pb2.HealthCheckResponse.SERVING
+            assert c.upload_keyframes("robot-1", [Frame(3, 0.2, good.rgb, good.depth, np.eye(4), INTR)]) == 1
+            assert proc.poll() is None
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
