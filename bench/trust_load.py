@@ -8,14 +8,15 @@ threads, per-robot tokens stored as salted PBKDF2 records, the costly kind for a
 * ``--stalled`` upload streams (16) from ``--stalled-robots`` misbehaving robots with valid tokens: each sends an
   ``UploadSubset`` header and one chunk, then nothing; when the server ends it, the stream is opened again. The
   server's ``fusion.stream_idle_s`` (``--idle-s``; the server's default when not given) ends a stalled stream with
-  DEADLINE_EXCEEDED, and its upload-stream caps refuse the ones beyond them with RESOURCE_EXHAUSTED;
+  DEADLINE_EXCEEDED, its upload-stream caps refuse the ones beyond them with RESOURCE_EXHAUSTED, and a new upload
+  that finds every slot taken evicts one (ABORTED);
 * ``--bad-rate`` calls per second (50) carrying wrong tokens (``GetStats``, each a fresh random token);
 * one valid robot that pushes its ROI subset (``--gaussians`` 2,000 Gaussians, the size of an agent's share, a
   new map version every push) back to back, ``--pause-s`` apart, and times each ``UploadSubset`` call from its
   start to the ack; a refused attempt (any status but OK) is counted and sent again.
 
-Reports the valid robot's ack latency p50/p95/p99/max (goal: p99 ≤ 250 ms, and no failed push), how many stalled
-streams the deadline ended and how many were refused, what the wrong-token calls got, and the server's peak RSS.
+Reports the valid robot's ack latency p50/p95/p99/max (goal: p99 ≤ 250 ms, and no refused push), how many stalled
+streams the deadline ended, how many were refused and how many evicted, what the wrong-token calls got, and the server's peak RSS.
 Writes ``bench/results/trust_load.json`` (``--out``) and the table beside it (``.md``). Exit code 1 when the goal
 is missed. The figure depends on the machine's load: run it alone.
 """
@@ -283,6 +284,7 @@ def run(args: argparse.Namespace) -> dict:
                              for i in sorted(np.argsort(acks_ms)[::-1][:10].tolist())],
             "stalled_ended_by_deadline": int(stalled_codes.get("DEADLINE_EXCEEDED", 0)),
             "stalled_refused": int(stalled_codes.get("RESOURCE_EXHAUSTED", 0)),
+            "stalled_evicted": int(stalled_codes.get("ABORTED", 0)),
             "stalled_codes": dict(stalled_codes),
             "stalled_s_median": float(np.median(stalled_durations)) if stalled_durations else None,
             "bad_calls": int(sum(bad_codes.values())), "bad_codes": dict(bad_codes),
@@ -298,6 +300,7 @@ def table(res: dict) -> str:
             ("stalled streams ended by the deadline", f"{res['stalled_ended_by_deadline']} (after {f(res['stalled_s_median'])} s "
                                                       f"median; stream_idle_s {res['stream_idle_s']:g})"),
             ("stalled streams refused (RESOURCE_EXHAUSTED)", str(res["stalled_refused"])),
+            ("stalled streams evicted for another upload (ABORTED)", str(res.get("stalled_evicted", 0))),
             ("wrong-token calls", f"{res['bad_calls']}: " + ", ".join(f"{k} {v}" for k, v in sorted(res["bad_codes"].items()))),
             ("server RSS start / peak (MB)", f"{f(res['rss_mb_start'])} / {f(res['rss_mb_peak'])}"),
             ("health after", str(res["health_after"]))]

@@ -108,8 +108,12 @@ class FusionSettings(BaseModel):
             thread. What it delivered before stays as after a dropped link (an incomplete upload is resumable and
             invisible to ``Fuse``).
         max_upload_streams (int): upload streams in progress at once on one server (capped at half its handler
-            threads); beyond it a new upload is RESOURCE_EXHAUSTED at once, so stalled uploads cannot take the
-            threads the acks, status calls and reads need.
+            threads), so stalled uploads cannot take the threads the acks, status calls and reads need. When all are
+            taken, a new upload takes the slot of a stream waiting longer than ``stream_evict_idle_s`` for its next
+            message (that call ends ABORTED); with none, the new upload is RESOURCE_EXHAUSTED at once.
+        stream_evict_idle_s (float): how long, seconds, an upload stream must have waited for its next message
+            before a new upload may take its slot when every slot is taken (a client sending its upload waits
+            milliseconds between messages).
         max_upload_streams_per_caller (int): upload streams in progress at once per caller (authenticated agent id,
             else peer host); beyond it RESOURCE_EXHAUSTED, so one client cannot take every upload slot.
     """
@@ -135,6 +139,7 @@ class FusionSettings(BaseModel):
     max_abs_opacity_logit: float = Field(30.0, gt=0)
     stream_idle_s: float = Field(15.0, gt=0)
     max_upload_streams: int = Field(8, ge=1)
+    stream_evict_idle_s: float = Field(1.0, gt=0)
     max_upload_streams_per_caller: int = Field(2, ge=1)
 
     @classmethod

@@ -143,9 +143,21 @@ def _image(fn, *args):
         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
 
 
+class _Stream:
+    """One open upload stream: its caller, since when it has waited for its next message (None while its handler
+    works on one), and whether it was evicted."""
+
+    __slots__ = ("caller", "waiting_since", "evict")
+
+    def __init__(self, caller: Optional[str]):
+        self.caller = caller
+        self.waiting_since: Optional[float] = time.monotonic()
+        self.evict = threading.Event()
+
+
 class UploadStreams:
     """Bounds on the client streams of uploads (``UploadSubset``, ``UploadKeyframes``), so a client that opens
-    streams and stops sending cannot hold the server's handler threads.
+    streams and stops sending cannot hold the server's handler threads, nor the upload slots other robots need.
 
     * **Idle deadline**: the stream's messages are read by a small reader thread into a queue of two; the handler
       waits for each at most ``idle_s`` seconds. When none arrives in time the call ends with DEADLINE_EXCEEDED
@@ -154,45 +166,76 @@ class UploadStreams:
       keyframes, and the chunks of an incomplete upload (invisible to ``Fuse``, resumable); never part of a message.
     * **Concurrency**: at most ``max_streams`` upload streams at once on the server, and ``per_caller`` per caller
       (the authenticated agent id; the peer host of a caller that may write nothing; callers that may write every
-      agent's data, on an open server or with the team-wide fleet token, only count server-wide); beyond either a new upload is RESOURCE_EXHAUSTED at once, so
-      stalled streams leave handler threads for the unary calls (acks, status, reads) and for other robots.
+      agent's data, on an open server or with the team-wide fleet token, only count server-wide); beyond the
+      per-caller bound a new upload is RESOURCE_EXHAUSTED at once. So stalled streams leave handler threads for the
+      unary calls (acks, status, reads).
+    * **Eviction**: when every server-wide slot is taken, a new upload takes the slot of the stream that has waited
+      longest for its next message among those that have waited longer than ``evict_idle_s`` or belong to a caller
+      holding at least two slots more than the new upload's caller (its fair share); the evicted call ends with
+      ABORTED (its handler notices within a quarter second). A client sending its upload waits milliseconds between
+      messages, so stalled streams are the ones evicted, and streams stalled by several identities cannot keep
+      other robots from uploading. With no such stream the new upload is RESOURCE_EXHAUSTED.
 
     Args:
         max_streams (int): server-wide bound (keep it below the handler threads).
         per_caller (int): bound per caller.
         idle_s (float): longest wait for the next message of a stream, seconds.
+        evict_idle_s (float): a stream waiting longer than this for its next message gives its slot to a new upload
+            when the server-wide bound is reached, seconds.
     """
 
-    def __init__(self, max_streams: int, per_caller: int, idle_s: float):
+    def __init__(self, max_streams: int, per_caller: int, idle_s: float, evict_idle_s: float = 1.0):
         self.max_streams, self.per_caller, self.idle_s = int(max_streams), int(per_caller), float(idle_s)
+        self.evict_idle_s = float(evict_idle_s)
         self._lock = threading.Lock()
-        self._open: Dict[str, int] = {}
+        self._streams: "set[_Stream]" = set()
         self.deadline_exceeded = 0  #: streams ended by the idle deadline (for tests and metrics)
+        self.evicted = 0  #: streams evicted for a new upload
 
     @property
     def active(self) -> int:
-        """Upload streams open now."""
+        """Upload streams holding a slot now."""
         with self._lock:
-            return sum(self._open.values())
+            return len(self._streams)
+
+    def _take_slot(self, caller: Optional[str]) -> _Stream:
+        """A slot for ``caller`` (under the lock): Reject(RESOURCE_EXHAUSTED) when none can be had."""
+        mine = sum(1 for st in self._streams if st.caller == caller) if caller is not None else 0
+        if mine >= self.per_caller:
+            raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"too many upload streams in progress ({self.per_caller} "
+                         "from this caller); retry when one has finished")
+        if len(self._streams) >= self.max_streams:
+            now = time.monotonic()
+            held: Dict[Optional[str], int] = {}
+            for st in self._streams:
+                held[st.caller] = held.get(st.caller, 0) + 1
+            # waiting for a message, and either long enough, or of a caller holding more slots than its fair share
+            idle = [st for st in self._streams if st.waiting_since is not None and (
+                now - st.waiting_since >= self.evict_idle_s
+                or (st.caller is not None and held[st.caller] >= mine + 2))]
+            if not idle:
+                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"too many upload streams in progress "
+                             f"({self.max_streams} on this server); retry when one has finished")
+            victim = min(idle, key=lambda st: st.waiting_since)
+            victim.evict.set()
+            self._streams.discard(victim)
+            self.evicted += 1
+        st = _Stream(caller)
+        self._streams.add(st)
+        return st
 
     @contextlib.contextmanager
     def open(self, request_iterator, context, method: str, caller: Optional[str]) -> Iterator[Iterator]:
-        """Take a slot for ``caller`` (None: only the server-wide bound applies) and yield the stream's messages, each waited for at most ``idle_s``.
+        """Take a slot for ``caller`` (None: only the server-wide bound applies) and yield the stream's messages,
+        each waited for at most ``idle_s``.
 
         Raises (into the handler, as :class:`Reject`): RESOURCE_EXHAUSTED when no slot is free; DEADLINE_EXCEEDED
-        when the client sent nothing for ``idle_s``; CANCELLED when the client cancelled the call or its deadline
-        passed. A malformed message re-raises :class:`MalformedMessage` (the decode interceptor's status).
+        when the client sent nothing for ``idle_s``; ABORTED when a new upload took the slot of this stalled one;
+        CANCELLED when the client cancelled the call or its deadline passed. A malformed message re-raises
+        :class:`MalformedMessage` (the decode interceptor's status).
         """
         with self._lock:
-            total, mine = sum(self._open.values()), self._open.get(caller, 0)
-            if caller is None:
-                mine = 0
-            if total >= self.max_streams or mine >= self.per_caller:
-                which = (f"{self.per_caller} from this caller" if mine >= self.per_caller
-                         else f"{self.max_streams} on this server")
-                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                             f"too many upload streams in progress ({which}); retry when one has finished")
-            self._open[caller] = self._open.get(caller, 0) + 1
+            me = self._take_slot(caller)
         stop = threading.Event()
         items: "queue.Queue[tuple]" = queue.Queue(maxsize=2)  # bounded: gRPC's flow control still applies
 
@@ -219,13 +262,18 @@ class UploadStreams:
 
         def messages():
             while True:
-                deadline = time.monotonic() + self.idle_s
+                me.waiting_since = time.monotonic()
+                deadline = me.waiting_since + self.idle_s
                 while True:
                     left = deadline - time.monotonic()
                     try:
-                        kind, payload = items.get(timeout=max(0.0, min(0.5, left)))
+                        kind, payload = items.get(timeout=max(0.0, min(0.25, left)))
                         break
                     except queue.Empty:
+                        if me.evict.is_set():
+                            raise Reject(grpc.StatusCode.ABORTED,
+                                         f"no message of the {method} stream for {self.evict_idle_s:g} s while every "
+                                         "upload slot of the server was taken: its slot went to another upload") from None
                         if not context.is_active():
                             raise Reject(grpc.StatusCode.CANCELLED, "the client cancelled the stream") from None
                         if time.monotonic() >= deadline:
@@ -234,6 +282,7 @@ class UploadStreams:
                             raise Reject(grpc.StatusCode.DEADLINE_EXCEEDED,
                                          f"no message of the {method} stream for {self.idle_s:g} s "
                                          "(the server's fusion.stream_idle_s)") from None
+                me.waiting_since = None  # the handler works on a message: not idle
                 if kind == "msg":
                     yield payload
                 elif kind == "end":
@@ -250,8 +299,4 @@ class UploadStreams:
         finally:
             stop.set()
             with self._lock:
-                n = self._open.get(caller, 1) - 1
-                if n > 0:
-                    self._open[caller] = n
-                else:
-                    self._open.pop(caller, None)
+                self._streams.discard(me)

@@ -59,7 +59,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if handler_threads is not None:
             cap = min(cap, max(1, int(handler_threads) // 2))
         self.uploads = UploadStreams(cap, min(cap, int(config.max_upload_streams_per_caller)),
-                                     float(config.stream_idle_s))
+                                     float(config.stream_idle_s), float(config.stream_evict_idle_s))
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)

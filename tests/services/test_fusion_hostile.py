@@ -127,7 +127,8 @@ def test_a_stalled_upload_ends_after_the_idle_deadline_and_keeps_nothing_visible
 def test_upload_streams_are_bounded_server_wide_and_per_caller(tmp_path):
     path = tmp_path / "tokens.yaml"
     tok = {a: auth.issue_token(path, a) for a in ("robot-a", "robot-b", "robot-c", "viewer")}
-    cfg = FusionSettings(stream_idle_s=30.0, max_upload_streams=16, max_upload_streams_per_caller=2)
+    cfg = FusionSettings(stream_idle_s=30.0, max_upload_streams=16, max_upload_streams_per_caller=2,
+                         stream_evict_idle_s=60.0)  # no eviction for waiting long (test below)
     # 6 handler threads: upload streams are capped at 3, leaving 3 for everything else
     srv = serve(ServerOptions(port=0, max_workers=6, grace_s=0.5, agent_tokens_file=str(path)), cfg,
                 data_dir=str(tmp_path / "data"))
@@ -136,42 +137,116 @@ def test_upload_streams_are_bounded_server_wide_and_per_caller(tmp_path):
     st = fusion_pb2_grpc.FusionStub(ch)
     md = {a: (("authorization", f"Bearer {t}"),) for a, t in tok.items()}
     held = []
+
+    def wait_active(n):
+        deadline = time.monotonic() + 5
+        while srv.servicer.uploads.active != n and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert srv.servicer.uploads.active == n
+
     try:
         for _ in range(2):
             held.append(Stalled(st.UploadKeyframes, [], md["robot-a"]))
-        deadline = time.monotonic() + 5
-        while srv.servicer.uploads.active < 2 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_active(2)
         # robot-a's third stream: per caller
         with pytest.raises(grpc.RpcError) as e:
             st.UploadKeyframes(iter([]), timeout=5, metadata=md["robot-a"])
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "from this caller" in e.value.details()
-        # robot-b takes the last server-wide slot
-        held.append(Stalled(st.UploadKeyframes, [], md["robot-b"]))
-        while srv.servicer.uploads.active < 3 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        held.append(Stalled(st.UploadKeyframes, [], md["robot-b"]))  # the last server-wide slot
+        wait_active(3)
+        # robot-c holds none and robot-a two: one of robot-a's slots goes to robot-c (its fair share)
+        held.append(Stalled(st.UploadKeyframes, [], md["robot-c"]))
+        deadline = time.monotonic() + 5
+        while not (held[0].wait(0.05) or held[1].wait(0.05)) and time.monotonic() < deadline:
+            pass
+        gone = [s for s in held[:2] if not s.thread.is_alive()]
+        assert len(gone) == 1 and gone[0].error.code() == grpc.StatusCode.ABORTED
+        wait_active(3)
+        # robot-a, robot-b and robot-c hold one each: the viewer (may write nothing) gets none
         with pytest.raises(grpc.RpcError) as e:
-            st.UploadKeyframes(iter([]), timeout=5, metadata=md["robot-c"])
+            st.UploadKeyframes(iter([]), timeout=5, metadata=md["viewer"])
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "3 on this server" in e.value.details()
         # unary calls are still answered at once: the stalled streams hold only half the threads
         t0 = time.monotonic()
         for _ in range(20):
-            st.GetStats(fusion_pb2.StatsRequest(), timeout=5, metadata=md["robot-c"])
+            st.GetStats(fusion_pb2.StatsRequest(), timeout=5, metadata=md["viewer"])
         assert time.monotonic() - t0 < 5.0
-        # a slot freed (the client gave up) is free again for another robot
-        for s in held[:1]:
-            s.release()
-        held[0].wait(10)
-        while srv.servicer.uploads.active > 2 and time.monotonic() < deadline + 5:
-            time.sleep(0.02)
-        with FusionClient(srv.address, token=tok["robot-c"], timeout_s=10, max_retries=0) as c:
-            c.open_session("robot-c", "find the chair", INTR)
-            assert c.upload_subset("robot-c", 1, rand_subset(200, 3), full_map_gaussians=500).complete
+        # a slot freed (robot-b's client gave up) is free again
+        held[2].release()
+        held[2].wait(10)
+        wait_active(2)
+        with FusionClient(srv.address, token=tok["robot-b"], timeout_s=10, max_retries=0) as c:
+            c.open_session("robot-b", "find the chair", INTR)
+            assert c.upload_subset("robot-b", 1, rand_subset(200, 3), full_map_gaussians=500).complete
     finally:
         for s in held:
             s.release()
         ch.close()
         srv.stop(0)
+
+
+def test_a_new_upload_takes_the_slot_of_a_stalled_stream_when_all_are_taken(tmp_path):
+    """Streams stalled by several identities fill every upload slot: a valid robot's upload evicts the one that has
+    waited longest for its next message (longer than fusion.stream_evict_idle_s), which ends ABORTED; a stream that
+    is still sending is never evicted, so with no stalled stream the new upload is RESOURCE_EXHAUSTED."""
+    path = tmp_path / "tokens.yaml"
+    tok = {a: auth.issue_token(path, a) for a in ("bad-1", "bad-2", "good")}
+    cfg = FusionSettings(stream_idle_s=30.0, max_upload_streams_per_caller=1, stream_evict_idle_s=0.5)
+    srv = serve(ServerOptions(port=0, max_workers=4, grace_s=0.5, agent_tokens_file=str(path)), cfg,
+                data_dir=str(tmp_path / "data"))
+    assert srv.servicer.uploads.max_streams == 2
+    ch = grpc.insecure_channel(srv.address)
+    st = fusion_pb2_grpc.FusionStub(ch)
+    md = {a: (("authorization", f"Bearer {t}"),) for a, t in tok.items()}
+    held = []
+    try:
+        held.append(Stalled(st.UploadKeyframes, [], md["bad-1"]))
+        time.sleep(0.1)
+        held.append(Stalled(st.UploadKeyframes, [], md["bad-2"]))
+        deadline = time.monotonic() + 5
+        while srv.servicer.uploads.active < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        # both slots taken by streams that waited less than 0.5 s: refused
+        with pytest.raises(grpc.RpcError) as e:
+            st.UploadKeyframes(iter([]), timeout=5, metadata=md["good"])
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "2 on this server" in e.value.details()
+        time.sleep(0.6)
+        with FusionClient(srv.address, token=tok["good"], timeout_s=10, max_retries=0) as c:
+            c.open_session("good", "find the chair", INTR)
+            assert c.upload_subset("good", 1, rand_subset(300, 5), full_map_gaussians=500).complete
+        assert held[0].wait(5) and not held[1].wait(0.5)  # the longest-waiting stream (bad-1) gave its slot
+        assert held[0].error.code() == grpc.StatusCode.ABORTED and "slot" in held[0].error.details()
+        assert srv.servicer.uploads.evicted >= 1
+    finally:
+        for s in held:
+            s.release()
+        ch.close()
+        srv.stop(0)
+
+
+def test_upload_slots_go_to_a_caller_below_its_fair_share():
+    """With every slot taken, a caller holding none takes a waiting stream's slot from a caller holding two (even
+    one that waited only briefly); between callers holding one slot each, only a stream waiting longer than
+    evict_idle_s gives way."""
+    from services.fusion_server.guards import Reject, UploadStreams
+
+    class Ctx:
+        def is_active(self):
+            return True
+
+    ups = UploadStreams(max_streams=2, per_caller=2, idle_s=30.0, evict_idle_s=60.0)
+    opened = [ups.open(iter(()), Ctx(), "UploadKeyframes", "agent a") for _ in range(2)]
+    for cm in opened:
+        cm.__enter__()
+    opened.append(ups.open(iter(()), Ctx(), "UploadKeyframes", "agent b"))
+    opened[-1].__enter__()  # a holds two: one of its slots goes to b
+    assert ups.evicted == 1 and ups.active == 2
+    with pytest.raises(Reject) as e:  # a and b hold one each: c waits its turn
+        ups.open(iter(()), Ctx(), "UploadKeyframes", "agent c").__enter__()
+    assert e.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+    for cm in opened:
+        cm.__exit__(None, None, None)
+    assert ups.active == 0
 
 
 def test_get_stats_pages_its_agents(tmp_path):
