@@ -16,7 +16,8 @@ threads, per-robot tokens stored as salted PBKDF2 records, the costly kind for a
   start to the ack; a refused attempt (any status but OK) is counted and sent again.
 
 Reports the valid robot's ack latency p50/p95/p99/max (goal: p99 ≤ 250 ms, and no refused push), how many stalled
-streams the deadline ended, how many were refused and how many evicted, what the wrong-token calls got, and the server's peak RSS.
+streams the deadline ended, how many were refused and how many evicted, what the wrong-token calls got, and the
+server's peak RSS.
 Writes ``bench/results/trust_load.json`` (``--out``) and the table beside it (``.md``). Exit code 1 when the goal
 is missed. The figure depends on the machine's load: run it alone.
 """
