@@ -63,7 +63,7 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
         assert s.status.frames_received == 4 and s.status.frames_mapped == 4
         # a bad bag is refused with the bag's one clear error
         bad_cfg = load_agent_config(None, TINY + ["agent.bag.rgb_topic=/nope"])
-        ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", config=bad_cfg))
+        ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", data_roots=(str(out),), config=bad_cfg))
         c2 = AgentClient(ag2.address)
         try:
             with pytest.raises(grpc.RpcError) as e:
