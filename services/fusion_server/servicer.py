@@ -102,19 +102,15 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         """Who holds an upload stream, for the per-caller bound: the authenticated agent id; the peer host for a
         team member that may write nothing (a viewer opening uploads that can only be refused); None (no per-caller
         bound) for a caller that may write every agent's data (an open server, the team-wide fleet token)."""
-        principal = None
-        if self.auth is not None and self.auth.enabled:
-            try:
-                principal = self.auth.identify_context(context)
-            except AuthError:
-                pass
-        if principal is not None and principal.agent_id:
+        if self.auth is None or not self.auth.enabled:
+            return None
+        try:
+            principal = self.auth.identify_context(context)
+        except AuthError:  # revoked since the call began: its writes will be refused
+            return f"peer {peer_host(context.peer())}"
+        if principal.agent_id:
             return f"agent {principal.agent_id}"
-        if principal is None and (self.auth is None or not self.auth.enabled):
-            return None
-        if principal is not None and principal.may_write_any:
-            return None
-        return f"peer {peer_host(context.peer())}"
+        return None if principal.may_write_any else f"peer {peer_host(context.peer())}"
 
     def _session(self, agent_id: str) -> Session:
         check_agent_id(agent_id)
