@@ -65,7 +65,7 @@ def run(seconds: float, fps: float, color: str, budget: float) -> dict:
     frames, scene, name = _frames(60)
     port = free_port()
     env = {**os.environ, "GAUSSLITE_AGENT_ID": "bench", "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",
-           "GAUSSLITE_AGENT_SET": f"mapper.keyframe_budget_s={budget}"}
+           "GAUSSLITE_AGENT_SET": f"mapper.keyframe_budget_s={budget}", "GAUSSLITE_AGENT_DATA_ROOTS": str(scene)}
     log_path = Path(tempfile.gettempdir()) / f"bench_ingest_agent_{port}.log"
     log = open(log_path, "w")  # the agent's log (not a result)
     proc = subprocess.Popen([sys.executable, "-m", "gausslite.cli", "serve", "agent", "--host", "127.0.0.1",

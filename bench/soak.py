@@ -242,7 +242,8 @@ def run(args) -> dict:
         agent = _start([sys.executable, "-m", "gausslite.cli", "serve", "agent", "--host", "127.0.0.1", "--port",
                         str(agent_port), "--config", str(REPO / "deploy" / "gausslite.yaml")],
                        dict(env, GAUSSLITE_AGENT_ID="soak", GAUSSLITE_FUSION_ADDR=fusion_addr,
-                            GAUSSLITE_DATA_DIR=str(agent_dir), GAUSSLITE_AGENT_SET=";".join(overrides)),
+                            GAUSSLITE_DATA_DIR=str(agent_dir), GAUSSLITE_AGENT_SET=";".join(overrides),
+                            GAUSSLITE_AGENT_DATA_ROOTS=str(scene)),
                        work / f"agent-{tag}.log")
         with AgentClient(f"127.0.0.1:{agent_port}") as c, FusionClient(fusion_addr, timeout_s=30) as fc:
             c.wait_ready(180)

@@ -103,6 +103,19 @@ class FusionSettings(BaseModel):
             axis, a standard deviation above this on any axis, an opacity logit beyond ± this; an upload carrying one
             is INVALID_ARGUMENT, so one robot's absurd splat (a 1 km Gaussian) cannot spoil every fused map
             (``docs/security.md``).
+        stream_idle_s (float): longest wait, seconds, for the next message of an upload stream (``UploadSubset``,
+            ``UploadKeyframes``); a client that sends nothing for longer gets DEADLINE_EXCEEDED and frees its handler
+            thread. What it delivered before stays as after a dropped link (an incomplete upload is resumable and
+            invisible to ``Fuse``).
+        max_upload_streams (int): upload streams in progress at once on one server (capped at half its handler
+            threads), so stalled uploads cannot take the threads the acks, status calls and reads need. When all are
+            taken, a new upload takes the slot of a stream waiting longer than ``stream_evict_idle_s`` for its next
+            message (that call ends ABORTED); with none, the new upload is RESOURCE_EXHAUSTED at once.
+        stream_evict_idle_s (float): how long, seconds, an upload stream must have waited for its next message
+            before a new upload may take its slot when every slot is taken (a client sending its upload waits
+            milliseconds between messages).
+        max_upload_streams_per_caller (int): upload streams in progress at once per caller (authenticated agent id,
+            else peer host); beyond it RESOURCE_EXHAUSTED, so one client cannot take every upload slot.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -124,6 +137,10 @@ class FusionSettings(BaseModel):
     max_abs_mean_m: float = Field(1.0e4, gt=0)
     max_scale_m: float = Field(10.0, gt=0)
     max_abs_opacity_logit: float = Field(30.0, gt=0)
+    stream_idle_s: float = Field(15.0, gt=0)
+    max_upload_streams: int = Field(8, ge=1)
+    stream_evict_idle_s: float = Field(1.0, gt=0)
+    max_upload_streams_per_caller: int = Field(2, ge=1)
 
     @classmethod
     def from_file(cls, path: str | Path) -> "FusionSettings":

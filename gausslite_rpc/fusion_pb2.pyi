@@ -254,8 +254,12 @@ class FusedChunk(_message.Message):
     def __init__(self, fused_version: _Optional[int] = ..., chunk_index: _Optional[int] = ..., n_chunks: _Optional[int] = ..., chunk: _Optional[bytes] = ..., info: _Optional[_Union[FuseResult, _Mapping]] = ...) -> None: ...
 
 class StatsRequest(_message.Message):
-    __slots__ = ()
-    def __init__(self) -> None: ...
+    __slots__ = ("page_size", "page_token")
+    PAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    page_size: int
+    page_token: str
+    def __init__(self, page_size: _Optional[int] = ..., page_token: _Optional[str] = ...) -> None: ...
 
 class AgentStats(_message.Message):
     __slots__ = ("agent_id", "task_text", "latest_map_version", "has_complete_subset", "gaussians_received", "bytes_on_wire", "chunks", "full_map_gaussians", "full_map_bytes", "share_pct", "keyframes", "bytes_per_gaussian", "stored_bytes")
@@ -288,14 +292,16 @@ class AgentStats(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., task_text: _Optional[str] = ..., latest_map_version: _Optional[int] = ..., has_complete_subset: _Optional[bool] = ..., gaussians_received: _Optional[int] = ..., bytes_on_wire: _Optional[int] = ..., chunks: _Optional[int] = ..., full_map_gaussians: _Optional[int] = ..., full_map_bytes: _Optional[int] = ..., share_pct: _Optional[float] = ..., keyframes: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., stored_bytes: _Optional[int] = ...) -> None: ...
 
 class StatsResponse(_message.Message):
-    __slots__ = ("agents", "fused", "latest_fused_version")
+    __slots__ = ("agents", "fused", "latest_fused_version", "next_page_token")
     AGENTS_FIELD_NUMBER: _ClassVar[int]
     FUSED_FIELD_NUMBER: _ClassVar[int]
     LATEST_FUSED_VERSION_FIELD_NUMBER: _ClassVar[int]
+    NEXT_PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
     agents: _containers.RepeatedCompositeFieldContainer[AgentStats]
     fused: _containers.RepeatedCompositeFieldContainer[FuseResult]
     latest_fused_version: int
-    def __init__(self, agents: _Optional[_Iterable[_Union[AgentStats, _Mapping]]] = ..., fused: _Optional[_Iterable[_Union[FuseResult, _Mapping]]] = ..., latest_fused_version: _Optional[int] = ...) -> None: ...
+    next_page_token: str
+    def __init__(self, agents: _Optional[_Iterable[_Union[AgentStats, _Mapping]]] = ..., fused: _Optional[_Iterable[_Union[FuseResult, _Mapping]]] = ..., latest_fused_version: _Optional[int] = ..., next_page_token: _Optional[str] = ...) -> None: ...
 
 class KeyframePosesRequest(_message.Message):
     __slots__ = ("agent_id",)

@@ -16,7 +16,8 @@ Sec. III-E).
 
 Status codes: INVALID_ARGUMENT (bad input), NOT_FOUND (unknown mission), FAILED_PRECONDITION (mission
 finished/replaying, no relevance source), UNAVAILABLE (parser unreachable), DEADLINE_EXCEEDED (Finish
-did not complete within the client's deadline). Health, reflection, bounded message sizes, bearer
+did not complete within the client's deadline), PERMISSION_DENIED (a ``StartMission`` naming a fusion server, an
+agent id or a path outside what the agent is configured for: ``docs/security.md``). Health, reflection, bounded message sizes, bearer
 token and TLS come from :mod:`services.common.server`; on shutdown the health service goes
 NOT_SERVING, in-flight calls get the grace period and running missions are closed.
 """
@@ -99,6 +100,10 @@ class AgentSettings:
             request). The agent sends its fusion token and client certificate to the server it pushes to, so it
             never pushes to an address a caller picks: one not configured here is PERMISSION_DENIED
             (``docs/security.md``).
+        data_roots (tuple[str, ...]): folders under which a ``StartMission``'s ``dataset_path`` and
+            ``annotations_path`` must lie (after following symlinks and ``..``); any other path is PERMISSION_DENIED.
+            The configured ``dataset`` and ``annotations_path`` always count as roots (a folder itself, a file its
+            folder). Env ``GAUSSLITE_AGENT_DATA_ROOTS`` (comma-separated), CLI ``--data-root``.
         token (str | None): bearer token sent to the parser service, and to the fusion server unless
             a per-agent fusion token is set (the fleet token: team-wide mode).
         fusion_token (str | None): this robot's own token for the fusion server (per-robot identity:
@@ -124,6 +129,7 @@ class AgentSettings:
     parser_address: str = ""
     fusion_address: str = ""
     fusion_allow: Tuple[str, ...] = ()
+    data_roots: Tuple[str, ...] = ()
     token: Optional[str] = None
     fusion_token: Optional[str] = None
     fusion_token_file: Optional[str] = None
@@ -230,8 +236,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
         Raises:
             ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id.
-            CallerNotAllowed: a ``fusion_address`` or ``agent_id`` other than the configured ones
-                (:meth:`_check_caller_choices`).
+            CallerNotAllowed: a ``fusion_address`` or ``agent_id`` other than the configured ones, a
+                ``dataset_path`` or ``annotations_path`` outside the data roots (:meth:`_check_caller_choices`).
             MissionError: another mission is still mapping; ``mission_id`` already used in this process;
                 the fusion credential files became unreadable.
             FileNotFoundError: dataset/annotations path missing.
@@ -246,7 +252,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             raise ValueError(f"mission_id {mission_id!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         if agent_id and not _valid_id(agent_id):
             raise ValueError(f"agent_id {agent_id[:80]!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
-        self._check_caller_choices(fusion_address, agent_id)
+        self._check_caller_choices(fusion_address, agent_id, dataset_path, annotations_path)
         with self._lock:
             if mission_id and mission_id in self.missions:
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
@@ -312,13 +318,41 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             except Exception as e:
                 log.error("agent %s: auto finish failed: %s", rt.agent_id, e)
 
-    def _check_caller_choices(self, fusion_address: str, agent_id: str) -> None:
-        """A caller of ``StartMission`` picks neither where the agent's credentials go nor whose they are.
+    def data_roots(self) -> List[str]:
+        """The folders a caller's ``dataset_path`` / ``annotations_path`` may name (real paths, symlinks
+        resolved): ``AgentSettings.data_roots``, and the configured ``dataset`` and ``annotations_path`` (a folder
+        itself, a file its parent folder)."""
+        s = self.settings
+        roots = [os.path.realpath(r) for r in s.data_roots if r]
+        for p in (s.dataset, s.annotations_path):
+            if p:
+                rp = os.path.realpath(p)
+                roots.append(rp if os.path.isdir(rp) or not os.path.exists(rp) else os.path.dirname(rp))
+        return roots
+
+    def _check_path(self, what: str, path: str) -> None:
+        """Raise CallerNotAllowed unless ``path`` resolves (``os.path.realpath``: symlinks followed, ``..``
+        removed) to a data root or a path inside one (:meth:`data_roots`). ValueError for a NUL character."""
+        if "\x00" in path:
+            raise ValueError(f"{what} contains a NUL character")
+        real = os.path.realpath(path)
+        for root in self.data_roots():
+            if os.path.commonpath([real, root]) == root:
+                return
+        raise CallerNotAllowed(f"{what} {path[:200]!r} is outside the agent's data roots (GAUSSLITE_AGENT_DATA_ROOTS, "
+                               "or the configured dataset / annotations folder)")
+
+    def _check_caller_choices(self, fusion_address: str, agent_id: str, dataset_path: str = "",
+                              annotations_path: str = "") -> None:
+        """A caller of ``StartMission`` picks neither where the agent's credentials go nor whose they are, nor
+        which files of the robot it reads.
 
         Raises:
             CallerNotAllowed: ``fusion_address`` is neither the configured fusion server nor in
                 ``AgentSettings.fusion_allow``; ``agent_id`` differs from the configured one (the identity its fusion
-                token and certificate stand for).
+                token and certificate stand for); ``dataset_path`` or ``annotations_path`` lies outside the data
+                roots (:meth:`data_roots`).
+            ValueError: a path with a NUL character.
         """
         s = self.settings
         if fusion_address and fusion_address != s.fusion_address and fusion_address not in s.fusion_allow:
@@ -327,6 +361,10 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if agent_id and agent_id != s.agent_id:
             raise CallerNotAllowed(f"agent_id {agent_id[:80]!r}: this agent is {s.agent_id!r} (its fusion identity "
                                    "is configured, not chosen per mission)")
+        if dataset_path:
+            self._check_path("dataset_path", dataset_path)
+        if annotations_path:
+            self._check_path("annotations_path", annotations_path)
 
     # ------------------------------------------------------------------ RPCs
     def StartMission(self, request, context):  # noqa: N802
@@ -562,6 +600,7 @@ ENV = {
     "parser_address": "GAUSSLITE_PARSER_ADDR",
     "fusion_address": "GAUSSLITE_FUSION_ADDR",
     "fusion_allow": "GAUSSLITE_FUSION_ALLOW",
+    "data_roots": "GAUSSLITE_AGENT_DATA_ROOTS",
     "data_dir": "GAUSSLITE_DATA_DIR",
     "dataset": "GAUSSLITE_AGENT_DATASET",
     "task": "GAUSSLITE_AGENT_TASK",
@@ -592,6 +631,8 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
     kw = {k: v for k, v in kw.items() if v is not None}
     if "fusion_allow" in kw:  # comma-separated host:port list
         kw["fusion_allow"] = tuple(a.strip() for a in kw["fusion_allow"].split(",") if a.strip())
+    if "data_roots" in kw:  # comma-separated folders
+        kw["data_roots"] = tuple(r.strip() for r in kw["data_roots"].split(",") if r.strip())
     if kw.get("fusion_token_file"):
         read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
     if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):

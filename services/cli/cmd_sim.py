@@ -33,6 +33,8 @@ AGENT_FLAGS = {
                    "GAUSSLITE_FUSION_STORE names PostgreSQL); agent, its results (map.ply + summary.json)"),
     "--annotations": ("agent_annotations", "GAUSSLITE_AGENT_ANNOTATIONS",
                       "scene folder with objects.json/tasks.json for streamed missions (agent)"),
+    "--data-roots": ("agent_data_roots", "GAUSSLITE_AGENT_DATA_ROOTS",
+                     "comma-separated folders a StartMission's dataset/annotations path may lie in (agent)"),
 }
 
 

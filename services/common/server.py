@@ -163,15 +163,40 @@ class FailureLimiter:
     with valid ones. A host with ``max_failures`` failures in the last ``window_s`` seconds therefore gets only the
     cheap checks until the window has passed: tokens already verified, sha256 records and certificates still work (a
     robot behind the same address keeps working), an unknown token is refused without a key derivation.
+    Failures count only once a check has ended, so a burst of wrong tokens sent at once would all be derived before
+    the first failure counts: a host also gets at most ``max_in_flight`` costly checks at a time (:meth:`begin_costly`),
+    and only the cheap checks beyond them.
     Thread-safe; memory bounded by ``max_hosts`` (oldest hosts forgotten first).
     """
 
-    def __init__(self, max_failures: int = 20, window_s: float = 10.0, max_hosts: int = 4096) -> None:
+    def __init__(self, max_failures: int = 20, window_s: float = 10.0, max_hosts: int = 4096,
+                 max_in_flight: int = 4) -> None:
         import collections
 
         self.max_failures, self.window_s, self.max_hosts = int(max_failures), float(window_s), int(max_hosts)
+        self.max_in_flight = int(max_in_flight)
         self._lock = threading.Lock()
         self._hosts: "collections.OrderedDict[str, collections.deque]" = collections.OrderedDict()
+        self._in_flight: dict = {}
+
+    def begin_costly(self, host: str) -> bool:
+        """Take one of ``host``'s slots for a check that may derive keys; False when all are taken (then only the
+        cheap checks). Pair a True with :meth:`end_costly`."""
+        with self._lock:
+            n = self._in_flight.get(host, 0)
+            if n >= self.max_in_flight:
+                return False
+            self._in_flight[host] = n + 1
+            return True
+
+    def end_costly(self, host: str) -> None:
+        """Give back a slot taken by :meth:`begin_costly`."""
+        with self._lock:
+            n = self._in_flight.get(host, 1) - 1
+            if n > 0:
+                self._in_flight[host] = n
+            else:
+                self._in_flight.pop(host, None)
 
     def _recent(self, host: str, now: float):
         q = self._hosts.get(host)
@@ -240,14 +265,24 @@ class AuthInterceptor(grpc.ServerInterceptor):
             host = peer_host(context.peer())
             # a host over its failure budget gets only the cheap checks (no key derivation for an unknown token)
             limited = failures.blocked(host)
+            # ... and at most max_in_flight checks of one host may derive keys at a time
+            costly = not limited and failures.begin_costly(host)
             try:
-                auth.identify_context(context, cheap_only=limited)
+                auth.identify_context(context, cheap_only=not costly)
             except AuthError as e:
                 failures.failed(host)
-                msg = e.message + (f" (too many failed authentications from this peer: only known credentials are "
-                                   f"checked for {failures.window_s:.0f} s)" if limited else "")
+                msg = e.message
+                if limited:
+                    msg += (f" (too many failed authentications from this peer: only known credentials are "
+                            f"checked for {failures.window_s:.0f} s)")
+                elif not costly:
+                    msg += (f" (more than {failures.max_in_flight} authentications from this peer in progress: "
+                            "only known credentials are checked)")
                 log.warning("rejected call %s from %s: %s: %s", method, context.peer(), e.code.name, msg)
                 context.abort(e.code, msg)
+            finally:
+                if costly:
+                    failures.end_costly(host)
             return inner(request_or_iterator, context)
 
         return make(guarded, request_deserializer=handler.request_deserializer,

@@ -573,7 +573,7 @@ class FusionClient:
         return arrays
 
     def stats(self) -> dict:
-        """Server statistics.
+        """Server statistics (every page of ``GetStats``).
 
         Returns:
             dict: ``{"agents": {agent_id: {task_text, latest_map_version, has_complete_subset,
@@ -581,9 +581,13 @@ class FusionClient:
             full_map_gaussians, full_map_bytes, share_pct, keyframes, bytes_per_gaussian (stored)}}, "fused": [{fused_version, n_gaussians,
             seconds, method, refined, kept: {...}, ...}], "latest_fused_version": int}``.
         """
-        r = self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(), "GetStats")
+        pages = [self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(), "GetStats")]
+        while pages[-1].next_page_token:  # every page of agents; the fused maps come with the first
+            pages.append(self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(page_token=pages[-1].next_page_token),
+                                     "GetStats"))
+        r = pages[0]
         agents = {}
-        for a in r.agents:
+        for a in (a for p in pages for a in p.agents):
             agents[a.agent_id] = {
                 "task_text": a.task_text, "latest_map_version": int(a.latest_map_version),
                 "has_complete_subset": bool(a.has_complete_subset), "gaussians_received": int(a.gaussians_received),

@@ -3,9 +3,13 @@ and a log line (``rejected <method> from <peer>: <code>: <reason>``), never a cr
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
-from typing import Optional
+import queue
+import threading
+import time
+from typing import Dict, Iterator, Optional
 
 import grpc
 import numpy as np
@@ -19,7 +23,7 @@ from services.fusion_server.store import StoreUnavailable
 
 log = logging.getLogger("services.fusion_server.server")  # one logger for the whole service
 
-__all__ = ["Reject", "Cancelled", "abort_call", "unary_guard", "stream_guard", "check_int64", "check_agent_id",
+__all__ = ["Reject", "Cancelled", "UploadStreams", "abort_call", "unary_guard", "stream_guard", "check_int64", "check_agent_id",
            "intrinsics_from_proto", "decode_color", "decode_roi", "decode_depth", "MAX_VERSION"]
 
 
@@ -137,3 +141,162 @@ def _image(fn, *args):
         return fn(*args)
     except ValueError as e:
         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, str(e)) from None
+
+
+class _Stream:
+    """One open upload stream: its caller, since when it has waited for its next message (None while its handler
+    works on one), and whether it was evicted."""
+
+    __slots__ = ("caller", "waiting_since", "evict")
+
+    def __init__(self, caller: Optional[str]):
+        self.caller = caller
+        self.waiting_since: Optional[float] = time.monotonic()
+        self.evict = threading.Event()
+
+
+class UploadStreams:
+    """Bounds on the client streams of uploads (``UploadSubset``, ``UploadKeyframes``), so a client that opens
+    streams and stops sending cannot hold the server's handler threads, nor the upload slots other robots need.
+
+    * **Idle deadline**: the stream's messages are read by a small reader thread into a queue of two; the handler
+      waits for each at most ``idle_s`` seconds. When none arrives in time the call ends with DEADLINE_EXCEEDED
+      (``no message of the UploadSubset stream for 15 s``), the handler thread is free again, and gRPC, having sent
+      the status, ends the reader's wait. What was stored before the stall stays as after a dropped link: complete
+      keyframes, and the chunks of an incomplete upload (invisible to ``Fuse``, resumable); never part of a message.
+    * **Concurrency**: at most ``max_streams`` upload streams at once on the server, and ``per_caller`` per caller
+      (the authenticated agent id; the peer host of a caller that may write nothing; callers that may write every
+      agent's data, on an open server or with the team-wide fleet token, only count server-wide); beyond the
+      per-caller bound a new upload is RESOURCE_EXHAUSTED at once. So stalled streams leave handler threads for the
+      unary calls (acks, status, reads).
+    * **Eviction**: when every server-wide slot is taken, a new upload takes the slot of the stream that has waited
+      longest for its next message among those that have waited longer than ``evict_idle_s`` or belong to a caller
+      holding at least two slots more than the new upload's caller (its fair share); the evicted call ends with
+      ABORTED (its handler notices within a quarter second). A client sending its upload waits milliseconds between
+      messages, so stalled streams are the ones evicted, and streams stalled by several identities cannot keep
+      other robots from uploading. With no such stream the new upload is RESOURCE_EXHAUSTED.
+
+    Args:
+        max_streams (int): server-wide bound (keep it below the handler threads).
+        per_caller (int): bound per caller.
+        idle_s (float): longest wait for the next message of a stream, seconds.
+        evict_idle_s (float): a stream waiting longer than this for its next message gives its slot to a new upload
+            when the server-wide bound is reached, seconds.
+    """
+
+    def __init__(self, max_streams: int, per_caller: int, idle_s: float, evict_idle_s: float = 1.0):
+        self.max_streams, self.per_caller, self.idle_s = int(max_streams), int(per_caller), float(idle_s)
+        self.evict_idle_s = float(evict_idle_s)
+        self._lock = threading.Lock()
+        self._streams: "set[_Stream]" = set()
+        self.deadline_exceeded = 0  #: streams ended by the idle deadline (for tests and metrics)
+        self.evicted = 0  #: streams evicted for a new upload
+
+    @property
+    def active(self) -> int:
+        """Upload streams holding a slot now."""
+        with self._lock:
+            return len(self._streams)
+
+    def _take_slot(self, caller: Optional[str]) -> _Stream:
+        """A slot for ``caller`` (under the lock): Reject(RESOURCE_EXHAUSTED) when none can be had."""
+        mine = sum(1 for st in self._streams if st.caller == caller) if caller is not None else 0
+        if mine >= self.per_caller:
+            raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"too many upload streams in progress ({self.per_caller} "
+                         "from this caller); retry when one has finished")
+        if len(self._streams) >= self.max_streams:
+            now = time.monotonic()
+            held: Dict[Optional[str], int] = {}
+            for st in self._streams:
+                held[st.caller] = held.get(st.caller, 0) + 1
+            # waiting for a message, and either long enough, or of a caller holding more slots than its fair share
+            idle = [st for st in self._streams if st.waiting_since is not None and (
+                now - st.waiting_since >= self.evict_idle_s
+                or (st.caller is not None and held[st.caller] >= mine + 2))]
+            if not idle:
+                raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"too many upload streams in progress "
+                             f"({self.max_streams} on this server); retry when one has finished")
+            victim = min(idle, key=lambda st: st.waiting_since)
+            victim.evict.set()
+            self._streams.discard(victim)
+            self.evicted += 1
+        st = _Stream(caller)
+        self._streams.add(st)
+        return st
+
+    @contextlib.contextmanager
+    def open(self, request_iterator, context, method: str, caller: Optional[str]) -> Iterator[Iterator]:
+        """Take a slot for ``caller`` (None: only the server-wide bound applies) and yield the stream's messages,
+        each waited for at most ``idle_s``.
+
+        Raises (into the handler, as :class:`Reject`): RESOURCE_EXHAUSTED when no slot is free; DEADLINE_EXCEEDED
+        when the client sent nothing for ``idle_s``; ABORTED when a new upload took the slot of this stalled one;
+        CANCELLED when the client cancelled the call or its deadline passed. A malformed message re-raises
+        :class:`MalformedMessage` (the decode interceptor's status).
+        """
+        with self._lock:
+            me = self._take_slot(caller)
+        stop = threading.Event()
+        items: "queue.Queue[tuple]" = queue.Queue(maxsize=2)  # bounded: gRPC's flow control still applies
+
+        def put(item) -> bool:
+            while not stop.is_set():
+                try:
+                    items.put(item, timeout=0.5)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def read() -> None:
+            try:
+                for msg in request_iterator:
+                    if not put(("msg", msg)):
+                        return
+                put(("end", None))
+            except BaseException as e:  # noqa: BLE001 - handed to the handler thread
+                put(("error", e))
+
+        reader = threading.Thread(target=read, name=f"gausslite-{method}-reader", daemon=True)
+        reader.start()
+
+        def messages():
+            while True:
+                me.waiting_since = time.monotonic()
+                deadline = me.waiting_since + self.idle_s
+                while True:
+                    left = deadline - time.monotonic()
+                    try:
+                        kind, payload = items.get(timeout=max(0.0, min(0.25, left)))
+                        break
+                    except queue.Empty:
+                        if me.evict.is_set():
+                            raise Reject(grpc.StatusCode.ABORTED,
+                                         f"no message of the {method} stream for {self.evict_idle_s:g} s while every "
+                                         "upload slot of the server was taken: its slot went to another upload") from None
+                        if not context.is_active():
+                            raise Reject(grpc.StatusCode.CANCELLED, "the client cancelled the stream") from None
+                        if time.monotonic() >= deadline:
+                            with self._lock:
+                                self.deadline_exceeded += 1
+                            raise Reject(grpc.StatusCode.DEADLINE_EXCEEDED,
+                                         f"no message of the {method} stream for {self.idle_s:g} s "
+                                         "(the server's fusion.stream_idle_s)") from None
+                me.waiting_since = None  # the handler works on a message: not idle
+                if kind == "msg":
+                    yield payload
+                elif kind == "end":
+                    return
+                elif isinstance(payload, MalformedMessage):
+                    raise payload
+                elif isinstance(payload, grpc.RpcError):  # the client cancelled, or its own deadline passed
+                    raise Reject(grpc.StatusCode.CANCELLED, "the client cancelled the stream") from None
+                else:
+                    raise payload
+
+        try:
+            yield messages()
+        finally:
+            stop.set()
+            with self._lock:
+                self._streams.discard(me)

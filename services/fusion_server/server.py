@@ -10,8 +10,10 @@ Status codes (see also ``proto/gausslite_rpc/fusion.proto``): INVALID_ARGUMENT f
 (never a crash), NOT_FOUND for an agent without a session (the session is the addressed entity) and
 unknown fused versions, FAILED_PRECONDITION for a Fuse without complete subsets / refine without
 keyframes / an upload older than the agent's latest complete version, RESOURCE_EXHAUSTED for
-oversized messages and subsets beyond the server's limits, UNAUTHENTICATED for missing, wrong or
-revoked credentials, PERMISSION_DENIED for a write to another agent's data. Every rejected call is
+oversized messages and subsets beyond the server's limits and for upload streams beyond its caps,
+DEADLINE_EXCEEDED for an upload stream that sent nothing for ``fusion.stream_idle_s``, ABORTED for a stalled upload
+stream whose slot went to another upload (:class:`services.fusion_server.guards.UploadStreams`), UNAUTHENTICATED for
+missing, wrong or revoked credentials, PERMISSION_DENIED for a write to another agent's data. Every rejected call is
 logged (``rejected <method> from <peer>: <code>: <reason>``).
 
 Who may do what (``docs/security.md``): every call except health/reflection needs a credential when
@@ -178,7 +180,8 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
                         acquire_timeout_s=config.store_acquire_timeout_s) if config.store
              else open_store(config.data_dir))
     try:
-        servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth)
+        servicer = FusionServicer(store, config, options.max_message_bytes, auth=auth,
+                                  handler_threads=options.max_workers)
     except BaseException:
         store.close()
         raise

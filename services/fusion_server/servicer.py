@@ -23,14 +23,19 @@ from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, Limit
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import Authenticator, AuthError
 from services.common.convert import intrinsics_to_proto
+from services.common.server import peer_host
 from services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard, unary_guard,
-                                           check_agent_id, check_int64, decode_color, decode_depth, decode_roi)
+                                           check_agent_id, check_int64, decode_color, decode_depth, decode_roi,
+                                           UploadStreams)
 from services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
 
 log = logging.getLogger("services.fusion_server.server")  # one logger for the whole service
 
 SERVICE_NAME = "gausslite.v1.Fusion"
 FUSED_AGENT_ID = "fused"
+#: agents per GetStats page when the request leaves page_size 0, and the largest page_size accepted
+STATS_PAGE_SIZE = 100
+MAX_STATS_PAGE_SIZE = 1000
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
 #: bytes an ``UploadSubsetRequest`` adds around its chunk (field tag and length, 6 at most, with margin): a chunk fits
 #: in one message when it is at most ``max_message_bytes - CHUNK_ENVELOPE_BYTES`` (``SessionInfo.max_chunk_bytes``)
@@ -57,13 +62,20 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             take it minus :data:`CHUNK_ENVELOPE_BYTES`.
         auth (Authenticator | None): identifies callers for the write checks (None: every caller may
             write every agent's data, as on a server without credentials).
+        handler_threads (int | None): the gRPC server's handler threads; upload streams are capped at half of them
+            (and at ``config.max_upload_streams``) so stalled uploads leave threads for everything else.
     Raises:
         ValueError: ``max_message_bytes`` below :data:`MIN_MESSAGE_BYTES`.
     """
 
     def __init__(self, store: SqlFusionStore, config: FusionSettings, max_message_bytes: int,
-                 auth: Optional[Authenticator] = None):
+                 auth: Optional[Authenticator] = None, handler_threads: Optional[int] = None):
         self.auth = auth
+        cap = int(config.max_upload_streams)
+        if handler_threads is not None:
+            cap = min(cap, max(1, int(handler_threads) // 2))
+        self.uploads = UploadStreams(cap, min(cap, int(config.max_upload_streams_per_caller)),
+                                     float(config.stream_idle_s), float(config.stream_evict_idle_s))
         self.store = store
         self.config = config
         self.max_message_bytes = int(max_message_bytes)
@@ -106,6 +118,20 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self.auth.identify_context(context).check_write(agent_id)
         except AuthError as e:
             raise Reject(e.code, e.message) from None
+
+    def _caller(self, context) -> Optional[str]:
+        """Who holds an upload stream, for the per-caller bound: the authenticated agent id; the peer host for a
+        team member that may write nothing (a viewer opening uploads that can only be refused); None (no per-caller
+        bound) for a caller that may write every agent's data (an open server, the team-wide fleet token)."""
+        if self.auth is None or not self.auth.enabled:
+            return None
+        try:
+            principal = self.auth.identify_context(context)
+        except AuthError:  # revoked since the call began: its writes will be refused
+            return f"peer {peer_host(context.peer())}"
+        if principal.agent_id:
+            return f"agent {principal.agent_id}"
+        return None if principal.may_write_any else f"peer {peer_host(context.peer())}"
 
     def _session(self, agent_id: str) -> Session:
         check_agent_id(agent_id)
@@ -222,6 +248,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def UploadSubset(self, request_iterator, context):  # noqa: N802
+        with self.uploads.open(request_iterator, context, "UploadSubset", self._caller(context)) as messages:
+            return self._upload_subset(messages, context)
+
+    def _upload_subset(self, request_iterator, context) -> fusion_pb2.UploadAck:
         it = iter(request_iterator)
         first = next(it, None)
         if first is None or first.WhichOneof("payload") != "header":
@@ -307,6 +337,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def UploadKeyframes(self, request_iterator, context):  # noqa: N802
+        with self.uploads.open(request_iterator, context, "UploadKeyframes", self._caller(context)) as messages:
+            return self._upload_keyframes(messages, context)
+
+    def _upload_keyframes(self, request_iterator, context) -> fusion_pb2.KeyframeAck:
         received = stored = dups = evicted = 0
         agent = ""
         allowed = set()
@@ -546,8 +580,18 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     @unary_guard
     def GetStats(self, request, context):  # noqa: N802
+        size = int(request.page_size) or STATS_PAGE_SIZE
+        if size > MAX_STATS_PAGE_SIZE:
+            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"page_size {size} exceeds {MAX_STATS_PAGE_SIZE}")
+        after = request.page_token
+        if after:
+            check_agent_id(after)  # the token is the last agent id of the previous page
         resp = fusion_pb2.StatsResponse()
-        for s in self.store.sessions():
+        sessions = self.store.sessions(after=after, limit=size + 1)
+        if len(sessions) > size:
+            sessions = sessions[:size]
+            resp.next_page_token = sessions[-1].agent_id
+        for s in sessions:
             a = fusion_pb2.AgentStats(agent_id=s.agent_id, task_text=s.task_text,
                                       keyframes=self.store.keyframe_count(s.agent_id))
             latest, up = None, None
@@ -568,9 +612,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 a.share_pct = 100.0 * up.n_gaussians / up.full_map_gaussians if up.full_map_gaussians else 0.0
                 a.bytes_per_gaussian = up.stored_bytes / up.n_gaussians if up.n_gaussians else 0.0
             resp.agents.append(a)
-        for info in self.store.fused_infos():
-            resp.fused.append(fusion_pb2.FuseResult.FromString(info))
-        resp.latest_fused_version = resp.fused[-1].fused_version if resp.fused else 0
+        infos = [fusion_pb2.FuseResult.FromString(info) for info in self.store.fused_infos()]
+        if not after:  # bounded by the retention (fusion.fused_keep_per_method per method)
+            resp.fused.extend(infos)
+        resp.latest_fused_version = infos[-1].fused_version if infos else 0
         return resp
 
     @unary_guard

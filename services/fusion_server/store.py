@@ -286,11 +286,20 @@ class SqlFusionStore:
                              "WHERE agent_id=?", (agent_id,)).fetchone()
         return Session(*row) if row else None
 
-    def sessions(self) -> List[Session]:
-        """All sessions, sorted by agent id."""
+    def sessions(self, after: str = "", limit: Optional[int] = None) -> List[Session]:
+        """Sessions sorted by agent id: all of them, or (paging) at most ``limit`` whose agent id sorts after
+        ``after``."""
+        sql = "SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions"
+        args: tuple = ()
+        if after:
+            sql += " WHERE agent_id > ?"
+            args += (after,)
+        sql += " ORDER BY agent_id"
+        if limit is not None:
+            sql += " LIMIT ?"
+            args += (int(limit),)
         with self._read() as db:
-            rows = db.execute("SELECT agent_id, task_text, fx, fy, cx, cy, width, height FROM sessions "
-                              "ORDER BY agent_id").fetchall()
+            rows = db.execute(sql, args).fetchall()
         return [Session(*r) for r in rows]
 
     # ------------------------------------------------------------------ uploads

@@ -394,6 +394,7 @@ def _agent_processes(scene, tmp_path, monkeypatch, agent_cfg: dict):
 
     fusion = serve_fusion(ServerOptions(port=0), data_dir=str(tmp_path / "fusion"))
     monkeypatch.setenv("_TEST_FUSION", fusion.address)
+    monkeypatch.setenv("GAUSSLITE_AGENT_DATA_ROOTS", str(scene))  # the missions name scene/agent_a
     cfg_path = tmp_path / "agent.yaml"
     cfg_path.write_text(yaml.safe_dump({
         "agent": {"keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05, "backoff_s": 0.1, **agent_cfg},

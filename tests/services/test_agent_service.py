@@ -149,8 +149,11 @@ def test_bad_inputs_give_precise_codes(local_agent, scene):
         c.start_mission("   ")
     assert _code(e) == grpc.StatusCode.INVALID_ARGUMENT
     with pytest.raises(grpc.RpcError) as e:
-        c.start_mission("Find the chair", dataset_path="/definitely/not/here")
+        c.start_mission("Find the chair", dataset_path=str(scene / "definitely-not-here"))  # inside a data root
     assert _code(e) == grpc.StatusCode.INVALID_ARGUMENT
+    with pytest.raises(grpc.RpcError) as e:
+        c.start_mission("Find the chair", dataset_path="/definitely/not/here")  # outside: refused before the lookup
+    assert _code(e) == grpc.StatusCode.PERMISSION_DENIED
     m = c.start_mission("Identify the chair closest to the table")
     good = encode_frame(fr, m.mission_id)
 
@@ -252,7 +255,8 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
     seq = make_tum(tmp_path / "tum", n=3)
     for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose_refine=false"], False)):
         ag = serve_agent(ServerOptions(port=0), AgentSettings(
-            agent_id="tum", annotations_path=str(scene), config=load_agent_config(None, overrides)))
+            agent_id="tum", annotations_path=str(scene), data_roots=(str(tmp_path / "tum"),),
+            config=load_agent_config(None, overrides)))
         try:
             rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
             assert rt.config.mapper.pose.refine is want_refine
@@ -328,3 +332,65 @@ def test_fusion_allow_list_from_the_environment():
     s = settings_from_env(None, env={"GAUSSLITE_FUSION_ADDR": "h:1", "GAUSSLITE_FUSION_ALLOW": "h:2, h:3,"})
     assert s.fusion_address == "h:1" and s.fusion_allow == ("h:2", "h:3")
     assert settings_from_env(None, env={}).fusion_allow == ()
+
+
+def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
+    """``dataset_path`` / ``annotations_path`` of a StartMission must resolve (symlinks followed, ``..`` removed)
+    inside a data root or the configured annotations folder: outside, through a symlink leaving a root, by ``..``,
+    or in a sibling folder sharing a root's prefix, the call is PERMISSION_DENIED with a log line; inside it runs."""
+    import logging
+    import os
+    import shutil
+
+    def scene_copy(dst):  # the annotations of the scene (objects.json, tasks.json)
+        dst.mkdir(parents=True)
+        for f in ("objects.json", "tasks.json"):
+            shutil.copy(scene / f, dst / f)
+
+    root = tmp_path / "missions"
+    scene_copy(root / "site" / "agent_a")
+    secret = tmp_path / "secret"
+    scene_copy(secret)
+    scene_copy(tmp_path / "missions-evil")  # shares the root's prefix
+    os.symlink(secret, root / "escape")  # a link inside the root to a folder outside it
+    cfg = load_agent_config(None, TINY)
+    ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg,
+                                                          data_roots=(str(root),)))
+    c = AgentClient(ag.address)
+    task = "Pick up the object on the desk"
+    try:
+        c.wait_ready(10)
+        denied = [{"annotations_path": str(secret)}, {"annotations_path": str(root / "escape")},
+                  {"annotations_path": f"{root}/site/../../secret"}, {"annotations_path": str(tmp_path / "missions-evil")},
+                  {"dataset_path": str(secret)}, {"dataset_path": "/etc"}, {"annotations_path": "/"}]
+        with caplog.at_level(logging.WARNING, logger="services.agent.server"):
+            for kw in denied:
+                with pytest.raises(grpc.RpcError) as e:
+                    c.start_mission(task, **kw)
+                assert _code(e) == grpc.StatusCode.PERMISSION_DENIED, kw
+                assert "outside the agent's data roots" in e.value.details()
+        assert sum("rejected StartMission" in r.getMessage() and "PERMISSION_DENIED" in r.getMessage()
+                   for r in caplog.records) == len(denied)
+        assert ag.servicer.missions == {}
+        # inside a root (also through `..` that stays inside), and the configured annotations folder itself
+        m = c.start_mission(task, annotations_path=f"{root}/site/../site/agent_a")
+        assert ag.servicer.missions[m.mission_id].annotations is not None
+        c.finish(m.mission_id, timeout_s=60)
+        m = c.start_mission(task, annotations_path=str(scene))
+        c.finish(m.mission_id, timeout_s=60)
+    finally:
+        c.close()
+        ag.stop(0)
+
+
+def test_data_roots_from_the_environment_and_the_command_line():
+    from gausslite.cli import build_parser
+    from services.agent.server import settings_from_env
+    from services.cli.cmd_sim import export_agent_env
+
+    s = settings_from_env(None, env={"GAUSSLITE_AGENT_DATA_ROOTS": "/data/scene, /mnt/bags,"})
+    assert s.data_roots == ("/data/scene", "/mnt/bags")
+    assert settings_from_env(None, env={}).data_roots == ()
+    env: dict = {}
+    export_agent_env(build_parser().parse_args(["serve", "agent", "--data-roots", "/a,/b"]), env)
+    assert settings_from_env(None, env=env).data_roots == ("/a", "/b")

@@ -48,7 +48,8 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
     _src, out = bag_scene
     cfg = load_agent_config(None, TINY + ["agent.bag.max_pose_dt=0.01"])
     assert cfg.bag.max_pose_dt == 0.01
-    ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", data_dir=str(tmp_path / "a"), config=cfg))
+    ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", data_dir=str(tmp_path / "a"),
+                                                          data_roots=(str(out),), config=cfg))
     c = AgentClient(ag.address)
     try:
         c.wait_ready(10)
@@ -62,7 +63,7 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
         assert s.status.frames_received == 4 and s.status.frames_mapped == 4
         # a bad bag is refused with the bag's one clear error
         bad_cfg = load_agent_config(None, TINY + ["agent.bag.rgb_topic=/nope"])
-        ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", config=bad_cfg))
+        ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", data_roots=(str(out),), config=bad_cfg))
         c2 = AgentClient(ag2.address)
         try:
             with pytest.raises(grpc.RpcError) as e:
@@ -150,7 +151,8 @@ def test_bag_to_fused_map_as_documented(bag_scene, tmp_path):
     fusion_srv = serve_fusion(ServerOptions(port=0), data_dir=str(tmp_path / "fusion"))
     fast = [a for kv in TINY for a in ("--set", kv)]
     agents = {rid: _serve_agent_as_documented(["--port", "0", "--agent-id", rid, "--parser", parser.address,
-                                               "--fusion", fusion_srv.address, *fast], tmp_path / "agents")
+                                               "--fusion", fusion_srv.address, "--data-roots", f"{bags},{scene}",
+                                               *fast], tmp_path / "agents")
               for rid in ("robot1", "robot2")}
     clients = {rid: AgentClient(ag.address) for rid, ag in agents.items()}
     try:

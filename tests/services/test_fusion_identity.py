@@ -455,6 +455,12 @@ def test_wrong_tokens_from_one_peer_cannot_starve_the_robots(tmp_path):
     assert lim.blocked("ipv4:10.0.0.7") and not lim.blocked("ipv4:10.0.0.8")
     time.sleep(0.35)
     assert not lim.blocked("ipv4:10.0.0.7")
+    # a burst of checks at once: at most max_in_flight of one host may derive keys, the others only the cheap checks
+    lim = FailureLimiter(max_in_flight=2)
+    assert lim.begin_costly("h1") and lim.begin_costly("h1") and not lim.begin_costly("h1")
+    assert lim.begin_costly("h2")  # another host has its own
+    lim.end_costly("h1")
+    assert lim.begin_costly("h1") and not lim.begin_costly("h1")
 
     good = auth.new_token()
     path = tmp_path / "tokens.json"

@@ -660,9 +660,9 @@ def test_fused_maps_are_kept_up_to_the_retention_bound(tmp_path):
 
 
 def test_stalled_streams_cannot_queue_calls_without_bound(tmp_path):
-    """Two clients that open uploads and stall hold the server's two call slots: a third call is RESOURCE_EXHAUSTED
-    at once (not queued behind them), and the server answers again when they go."""
-    srv = start(tmp_path, max_workers=2, max_concurrent_rpcs=2)
+    """Two clients that open uploads and stall hold the server's two call slots (4 handler threads: 2 upload slots):
+    a third call is RESOURCE_EXHAUSTED at once (not queued behind them), and the server answers again when they go."""
+    srv = start(tmp_path, max_workers=4, max_concurrent_rpcs=2)
     release = threading.Event()
     try:
         _, stub, _ = stub_of(srv)

@@ -276,3 +276,17 @@ def test_delta_upload_completes_only_with_its_rebuilt_subset(backend):
     a.put_chunk("r1", 3, 0, delta[0][0], delta[0][1], delta[0][2], delta[0][3], delta[0][4], defer_complete=True)
     b.discard_upload("r1", 3)
     assert a.upload("r1", 3) is None and a.latest_version("r1") == 2
+
+
+def test_sessions_are_listed_in_pages(backend):
+    """``sessions(after, limit)``: agent-id order, at most ``limit``, strictly after ``after`` (GetStats paging)."""
+    _, opener, _ = backend
+    s = opener()
+    ids = ["r-b", "r-a", "r-d", "r-c", "r-e"]
+    for a in ids:
+        s.open_session(Session(a, "find the cup", 30.0, 31.0, 15.5, 11.5, 32, 24))
+    assert [x.agent_id for x in s.sessions()] == sorted(ids)
+    assert [x.agent_id for x in s.sessions(limit=2)] == ["r-a", "r-b"]
+    assert [x.agent_id for x in s.sessions(after="r-b", limit=2)] == ["r-c", "r-d"]
+    assert [x.agent_id for x in s.sessions(after="r-d", limit=2)] == ["r-e"]
+    assert s.sessions(after="r-e") == []
