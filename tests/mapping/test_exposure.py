@@ -49,6 +49,17 @@ def test_model_gauge_inheritance_nearest_and_state():
     np.testing.assert_array_equal(other.params[2], ex.params[2])
 
 
+def test_a_frame_between_keyframes_takes_the_interpolated_response():
+    ex = ExposureModel(interpolate=True)
+    ex.register(0, np.zeros(6), fixed=True)
+    ex.register(4, np.array([0.4, 0.0, -0.4, 0.1, 0.0, 0.0]))
+    np.testing.assert_allclose(ex.of(1), [0.1, 0.0, -0.1, 0.025, 0.0, 0.0])  # a quarter of the way
+    np.testing.assert_array_equal(ex.of(4), ex.params[4])
+    np.testing.assert_array_equal(ex.of(9), ex.params[4])  # after the last keyframe: the last one's
+    ex.interpolate = False
+    np.testing.assert_array_equal(ex.of(1), ex.params[0])
+
+
 def test_vector_adam_matches_torch_adam():
     adam = VectorAdam(np.full(3, 0.05))
     p = torch.zeros(3, requires_grad=True)

@@ -124,6 +124,27 @@ def test_corrections_reach_held_out_frames_and_survive_a_checkpoint():
     assert m2.poses.fixed == {0}
 
 
+def test_a_frame_between_keyframes_takes_the_interpolated_correction():
+    """``pose.between_keyframes: interpolate`` (the default): half-way between two keyframes the correction is
+    the half-way rigid transform (slerp of the rotation, linear translation); at and outside the keyframes it is
+    theirs; ``nearest`` takes the nearest keyframe's."""
+    E0 = pose_delta(torch.tensor([0.0, 0.0, 0.02, 0.01, 0.0, 0.0], dtype=torch.float64)).numpy()
+    E1 = pose_delta(torch.tensor([0.0, 0.0, 0.06, 0.03, 0.0, 0.0], dtype=torch.float64)).numpy()
+    r = PoseRefiner(interpolate=True)
+    r.register(10, E0)
+    r.register(20, E1)
+    mid = r.corrected(15, np.eye(4))
+    angle = lambda E: Rotation.from_matrix(E[:3, :3]).as_rotvec()  # noqa: E731
+    np.testing.assert_allclose(angle(mid), (angle(E0) + angle(E1)) / 2, atol=1e-9)
+    np.testing.assert_allclose(mid[:3, 3], (E0[:3, 3] + E1[:3, 3]) / 2, atol=1e-9)
+    np.testing.assert_allclose(r.corrected(10, np.eye(4)), E0)
+    np.testing.assert_allclose(r.corrected(25, np.eye(4)), E1)  # after the last keyframe: the last one's
+    r.interpolate = False
+    np.testing.assert_allclose(r.corrected(14, np.eye(4)), E0)
+    np.testing.assert_allclose(r.corrected(16, np.eye(4)), E1)
+    assert MapperConfig().pose.between_keyframes == "interpolate"
+
+
 def test_tracking_corrects_a_new_frame_before_it_is_seeded():
     """With pose_track_iters, frame 3's 12 cm pose error shrinks before its seeds are placed, so its
     seeds land on the plane where the earlier frames put it (not 12 cm aside)."""
