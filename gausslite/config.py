@@ -12,10 +12,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
-from gausslite.mission.config import AgentConfig
+from gausslite.mission.config import AgentSections
 
 __all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config", "read_yaml",
            "DEFAULT_CONFIG_PATH"]
@@ -154,33 +154,13 @@ class FusionSettings(BaseModel):
             raise ValueError(f"cannot parse fusion config {path}: {e}") from e
 
 
-class GaussLiteConfig(BaseModel):
+class GaussLiteConfig(AgentSections):
     """The whole configuration (module docstring). In YAML the mapper is a top-level section; here it is also
     ``agent.mapper``, the agent's copy, which the YAML's ``mapper`` section sets."""
 
     model_config = ConfigDict(extra="forbid")
-    agent: AgentConfig = AgentConfig()
     sim: SimConfig = SimConfig()
     fusion: FusionSettings = FusionSettings()
-
-    @model_validator(mode="before")
-    @classmethod
-    def _mapper_into_agent(cls, data):
-        if isinstance(data, dict) and "mapper" in data:
-            data = dict(data)
-            mapper = data.pop("mapper")
-            agent = dict(data.get("agent") or {})
-            if mapper is not None:
-                if not isinstance(mapper, MapperConfig):
-                    mapper = MapperConfig.model_validate({"mode": "gausslite", **dict(mapper)})
-                agent["mapper"] = mapper
-            data["agent"] = agent
-        return data
-
-    @property
-    def mapper(self) -> MapperConfig:
-        """The mapper section."""
-        return self.agent.mapper
 
     def to_yaml_dict(self) -> dict:
         """The effective configuration in the YAML's layout (``mapper`` as its own section)."""

@@ -61,7 +61,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.datasets.loader import check_downscale, downscale_depth, downscale_rgb, select_indices
+from gausslite.datasets.common import check_downscale, downscale_depth, downscale_rgb, select_indices
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.ros.bagio import is_bag_path
 from gausslite.ros.images import ImageDecodeError, decode_compressed, decode_image
