@@ -40,9 +40,17 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from tqdm import tqdm
 
 from bench._results import write_results
 from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, _mission, scene_path, score
+from gausslite.config import load_config
+from gausslite.evaluation import evaluate_fused
+from gausslite.fusion.guard import for_robot
+from gausslite.fusion.refine import refine_map
+from gausslite.fusion.vote import concat, voxel_vote
+from gausslite.mapping.views import keyframe_from_frame
+from gausslite.wire.codec import GaussianArrays, SubsetAssembler, apply_delta
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
 #: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
@@ -79,8 +87,6 @@ class RecordingFusion(SinkFusion):
         self.t0 = time.perf_counter()
 
     def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
-        from gausslite.wire.codec import SubsetAssembler, apply_delta
-
         chunks = list(chunks)
         asm = SubsetAssembler(agent_id=agent_id, map_version=version)
         for c in chunks:
@@ -95,8 +101,6 @@ class RecordingFusion(SinkFusion):
         return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
 
     def upload_keyframes(self, agent_id, frames, *, rois=None, **kw):
-        from gausslite.mapping.views import keyframe_from_frame
-
         for i, fr in enumerate(frames):
             roi = None if rois is None or rois[i] is None else np.asarray(rois[i], bool)
             self.keyframes.setdefault(int(fr.frame_id), keyframe_from_frame(fr, "cpu", roi))
@@ -107,8 +111,6 @@ class RecordingFusion(SinkFusion):
 
 def fuse_settings() -> dict:
     """The live sim's fusion settings (``sim.fuse`` of ``deploy/gausslite.yaml``, with its ``live_contest_radius``)."""
-    from gausslite.config import load_config
-
     return load_config().sim.fuse.settings(realtime=True)
 
 
@@ -138,8 +140,6 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
         own = score(rt.mapper, ds, ann, task.id)
         state = {}
         if keep_state:
-            from gausslite.wire.codec import GaussianArrays
-
             state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
                      "_kfs": [kf for kf in rt.mapper.keyframes if kf.roi is not None], "_cfg": rt.mapper.cfg}
         return {**state, "id": spec["id"], "task": task.id, "frames": [lo, hi], "wall_s": wall, "rate": rate,
@@ -163,10 +163,6 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int) ->
     """Fused figures of one team run: ROI PSNR per task (on its owner's whole sequence) after each push (vote,
     every ``eval_stride``-th frame, time on the mission clock in s) and of the final concat / vote / refine maps
     over every frame."""
-    from gausslite.evaluation import evaluate_fused
-    from gausslite.fusion.refine import refine_map
-    from gausslite.fusion.vote import concat, voxel_vote
-
     def scores(g, stride: int = 1) -> dict:
         return {a["task"]: evaluate_fused(g, a["_frames"][::stride], a["_annotations"], a["task"]) for a in agents}
 
@@ -190,7 +186,6 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int) ->
         g = maps[key].to_gaussian_map()
         out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}
     # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot
-    from gausslite.fusion.guard import for_robot
 
     out["for_robot"] = {"n": {}, "roi_psnr": {}}
     for a in agents:
@@ -304,9 +299,11 @@ def table(result: dict) -> str:
 
 def plot_team(runs: list[dict], team: str, path: Path) -> None:
     """Fused (vote) ROI PSNR per task over mission time, one line per run, with each owner's final own figure."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     rs = [r for r in runs if r["team"] == team]
@@ -340,7 +337,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
     args = ap.parse_args(argv)
-    from tqdm import tqdm
 
     teams = [t for t in args.teams.split(",") if t]
     for t in teams:

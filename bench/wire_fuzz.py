@@ -23,9 +23,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gausslite.wire import (
+    GaussianArrays,
     LOSSLESS,
     MAX_KAPPA_SHIFT,
-    GaussianArrays,
     QuantConfig,
     SubsetAssembler,
     WireError,
@@ -37,6 +37,7 @@ from gausslite.wire import (
     pack_sections,
     peek_header,
     section_lengths,
+    spatial_order,
 )
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -167,8 +168,6 @@ def prop_assembler(chunks) -> None:
 def prop_round_trip(n: int, seed: int, per: int, extent: float, shuffle: bool, sort: bool) -> None:
     g = random_arrays(n, seed, extent)
     if sort:
-        from gausslite.wire import spatial_order
-
         g = g.take(spatial_order(g.means))
     q = QuantConfig(shuffle=shuffle)
     out, meta = assemble(encode_subset(g, "fuzz", seed, chunk_gaussians=per, quant=q))

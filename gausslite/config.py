@@ -9,10 +9,12 @@ starts. ``gausslite config --show`` prints the effective tree, ``--schema`` its 
 
 from __future__ import annotations
 
+import json
+import tomllib
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
 from gausslite.mission.config import AgentSections
@@ -132,18 +134,12 @@ class FusionSettings(BaseModel):
         Raises:
             FileNotFoundError: missing file. ValueError: unknown keys, bad values or an unparsable file.
         """
-        import json
-
-        from pydantic import ValidationError
-
         p = str(path)
         try:
             if p.endswith((".yaml", ".yml")):
                 return load_config(p).fusion
             text = Path(p).read_text(encoding="utf-8")
             if p.endswith(".toml"):
-                import tomllib
-
                 return cls.model_validate(tomllib.loads(text))
             return cls.model_validate(json.loads(text))
         except FileNotFoundError:

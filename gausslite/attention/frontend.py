@@ -22,6 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
 from gausslite.attention.interfaces import (
     Detections,
     Detector,
@@ -310,8 +311,6 @@ class AttentionFrontEnd:
         ``config`` supplies thresholds; its detector/segmenter are replaced by the annotation backend.
         The up axis is ``annotations.up_axis``.
         """
-        from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-
         cfg = config or AttentionConfig()
         backend = AnnotationBackend(annotations, matcher=matcher)
         cfg = AttentionConfig(**{**cfg.__dict__, "detector": AnnotationDetector(backend),

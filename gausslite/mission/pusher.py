@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -184,8 +185,6 @@ class Pusher:
     # ------------------------------------------------------------------ pusher thread
     def _lower_priority(self) -> None:
         """Give the pusher thread ``pusher_nice`` niceness; threads it starts inherit it."""
-        import os
-
         nice = self.config.pusher_nice
         if not nice or not hasattr(os, "setpriority"):
             return

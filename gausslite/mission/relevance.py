@@ -13,6 +13,16 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from gausslite.attention import (
+    AnnotationBackend,
+    AnnotationDetector,
+    AnnotationSegmenter,
+    AttentionConfig,
+    AttentionFrontEnd,
+    OnnxFastSAMSegmenter,
+    OnnxGroundingDetector,
+)
+from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
 from gausslite.datasets.base import Frame
 
 RelevanceFn = Callable[[Frame], np.ndarray]
@@ -38,7 +48,6 @@ def build_relevance(config, graph, annotations=None, task_id: Optional[str] = No
         if annotations is None or task_id is None:
             raise ValueError("relevance 'gt' needs scene annotations and a task id from tasks.json")
         return (lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)), None
-    from gausslite.attention import AttentionFrontEnd
 
     if config.relevance_backend == "onnx":
         fe = onnx_frontend(config, graph, annotations)
@@ -75,8 +84,6 @@ def onnx_frontend(config, graph, annotations=None, answer_from=None):
     Raises:
         ValueError: model paths missing, or models that do not load (the message names the backend and the cause).
     """
-    from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
-
     o = config.onnx
     name = config.relevance_backend
     missing = o.missing()
@@ -90,9 +97,6 @@ def onnx_frontend(config, graph, annotations=None, answer_from=None):
         raise ValueError(f"relevance 'attention' with backend '{name}': cannot load the models: "
                          f"{type(e).__name__}: {e}") from None
     if answer_from is not None:
-        from gausslite.attention import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-        from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
-
         backend = AnnotationBackend(answer_from)
         det = CostOnlyDetector(det, AnnotationDetector(backend))
         seg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))

@@ -27,8 +27,10 @@ What is shared, the share worker, the fine-tune cache and the delta planning liv
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -40,11 +42,13 @@ from typing import Callable, List, Optional
 
 import numpy as np
 
+from gausslite.attention.worker import RelevanceWorker
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
+from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
-from gausslite.mission.relevance import build_relevance
 from gausslite.mission.pusher import Pusher
+from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
 
 log = logging.getLogger(__name__)
@@ -94,8 +98,6 @@ def _percentile(vals, q: float) -> float:
 
 def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Write ``path`` through a temporary file in the same folder and ``os.replace`` (atomic on POSIX)."""
-    import os
-
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     write(tmp)
@@ -157,12 +159,12 @@ class AgentRuntime:
         self._pending_task = None  # (text, graph, task id, relevance fn, front-end) left by update_task
         self._relevance_worker = None
         if config.relevance_max_wait_s is not None:
-            from gausslite.attention.worker import RelevanceWorker
-
             self._relevance_worker = RelevanceWorker(self._relevance_fn, config.relevance_max_wait_s)
 
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
+        # lazy: keeps gausslite.mission.runtime importable without SciPy, Warp, torch
         from gausslite.mapping.mapper import Mapper
 
         torch.manual_seed(config.mapper.seed)
@@ -189,7 +191,6 @@ class AgentRuntime:
         self.replay_frames = 0
         self._closed_for_input = False
         # ---- live ingest (keyframe selection), latencies, checkpoints
-        from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 
         self.selector = KeyframeSelector(KeyframeRule(config.keyframe_translation_m, config.keyframe_rotation_deg,
                                                       config.keyframe_max_interval_s))
@@ -370,7 +371,6 @@ class AgentRuntime:
         task_text, graph, task_id, fn, frontend = pending
         if self._relevance_worker is not None:
             self._relevance_worker.close()
-            from gausslite.attention.worker import RelevanceWorker
 
             self._relevance_worker = RelevanceWorker(fn, self.config.relevance_max_wait_s)
         self._relevance_fn, self.frontend = fn, frontend
@@ -496,6 +496,7 @@ class AgentRuntime:
         """Write ``checkpoint.pt`` (map with κ and active flags, keyframe window, counters, pushed version,
         keyframe-selector reference) atomically into ``checkpoint_dir``. Call from the worker thread (or
         while it is idle). Returns the path. Raises OSError on write failure, ValueError without a folder."""
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
         if self.checkpoint_dir is None:
@@ -519,7 +520,6 @@ class AgentRuntime:
         """Persist the newest map version handed to the pusher (a resumed mission continues above it)."""
         if self.checkpoint_dir is None:
             return
-        import json
 
         v = self.pusher.version
         try:
@@ -528,8 +528,7 @@ class AgentRuntime:
             log.warning("agent %s: cannot record the pushed version: %s", self.agent_id, e)
 
     def _resume(self) -> None:
-        import json
-
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
         path = self.checkpoint_dir / CHECKPOINT_FILE
@@ -681,6 +680,7 @@ class AgentRuntime:
     def evaluate(self) -> tuple[Optional[float], Optional[float]]:
         """(full-image PSNR, ROI PSNR) in dB of the current map, mean over the kept mapped frames; ROI PSNR is
         None without annotations/task id or when no frame shows the ROI. Call only while the worker is idle."""
+        # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.evaluation import score_view
 
         ps, rps = [], []
@@ -699,6 +699,7 @@ class AgentRuntime:
         """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset, skipped ones included
         (mean over frames that show the ROI): the honest score of an online map. None without a replayed
         dataset, annotations or task id, or when no frame shows the ROI. Call only while the worker is idle."""
+        # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.evaluation import score_view
 
         if self._dataset is None or self.annotations is None or self.task_id is None:

@@ -352,6 +352,7 @@ class GaussianArrays:
 
     def to_gaussian_map(self, device: str = "cpu"):
         """Convert to :class:`gausslite.gaussians.GaussianMap` (torch tensors, copies)."""
+        # lazy: keeps gausslite.wire.codec importable without torch
         import torch
 
         from gausslite.gaussians import GaussianMap

@@ -30,17 +30,27 @@ import re
 import sys
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import grpc
+from pydantic import ValidationError
 
+from gausslite.datasets import load_dataset
+from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.loader import detect_layout
+from gausslite.mapping.profiles import profile_for_layout, with_profile
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from gausslite.parser import TaskParser
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from services.common.auth import read_secret
 from services.common.server import MalformedMessage, RunningServer, ServerOptions, build_server, run_until_signalled
+from services.fusion_server.client import FusionClient
+from services.parser.server import graph_to_proto
 
 log = logging.getLogger(__name__)
 
@@ -179,15 +189,12 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         s = self.settings
         if s.parser_address:
             return parse_task_remote(s.parser_address, text, s.token, s.root_cert, s.parser_timeout_s)
-        from gausslite.parser import TaskParser
 
         return TaskParser().parse(text)
 
     def _fusion_client(self, address: str):
         if not address:
             return None
-        from services.common.auth import read_secret
-        from services.fusion_server.client import FusionClient
 
         s = self.settings
         try:
@@ -237,9 +244,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             FileNotFoundError: dataset/annotations path missing.
             grpc.RpcError: the parser service failed.
         """
-        from gausslite.datasets import load_dataset
-        from gausslite.datasets.annotations import load_annotations
-
         s, cfg = self.settings, self.settings.config
         _check_task_text(task_text)
         if mission_id and not _valid_id(mission_id):
@@ -259,8 +263,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if dataset_path:
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
-            from gausslite.datasets.loader import detect_layout
-            from gausslite.mapping.profiles import profile_for_layout, with_profile
 
             layout = detect_layout(dataset_path)[0]
             profile = profile_for_layout(layout)
@@ -285,8 +287,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         aid = agent_id or s.agent_id
         mid = mission_id or None
         if mid is None and s.data_dir:
-            import uuid
-
             mid = uuid.uuid4().hex[:12]
         ckpt = Path(s.data_dir) / aid / mid if s.data_dir else None
         rt = AgentRuntime(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
@@ -357,7 +357,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except Exception as e:  # noqa: BLE001 - never crash: INTERNAL with the cause logged
             log.exception("StartMission failed")
             _abort(context, "StartMission", grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
-        from services.parser.server import graph_to_proto
 
         g = rt.graph
         gp = g if hasattr(g, "SerializeToString") else graph_to_proto(g)
@@ -382,7 +381,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except grpc.RpcError as e:
             code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
             _abort(context, "UpdateTask", code, f"parser service: {e.code().name}: {e.details()}")
-        from services.parser.server import graph_to_proto
 
         gp = graph if hasattr(graph, "SerializeToString") else graph_to_proto(graph)
         return agent_pb2.UpdateTaskResponse(mission_id=rt.mission_id, graph=gp)
@@ -580,8 +578,6 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
         FileNotFoundError / ValueError / pydantic.ValidationError: bad config; an unreadable or empty
             ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate and key.
     """
-    from services.common.auth import read_secret
-
     env = os.environ if env is None else env
     overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
     kw = {k: env.get(v) or None for k, v in ENV.items()}
@@ -602,8 +598,6 @@ def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
     Agent-specific settings come from the environment (:func:`settings_from_env`; the ``serve agent``
     flags ``--agent-id --parser --fusion --dataset --task --task-id --data-dir`` set those variables).
     """
-    from pydantic import ValidationError
-
     try:
         settings = settings_from_env(config_path, token=options.token)
     except ValidationError as e:

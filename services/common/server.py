@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import collections
 import hmac
 import logging
 import os
@@ -167,8 +168,6 @@ class FailureLimiter:
     """
 
     def __init__(self, max_failures: int = 20, window_s: float = 10.0, max_hosts: int = 4096) -> None:
-        import collections
-
         self.max_failures, self.window_s, self.max_hosts = int(max_failures), float(window_s), int(max_hosts)
         self._lock = threading.Lock()
         self._hosts: "collections.OrderedDict[str, collections.deque]" = collections.OrderedDict()
@@ -189,8 +188,6 @@ class FailureLimiter:
 
     def failed(self, host: str) -> None:
         """Record one failed authentication of ``host``."""
-        import collections
-
         now = time.monotonic()
         with self._lock:
             q = self._recent(host, now)

@@ -40,9 +40,12 @@ surfaces as :class:`grpc.RpcError` with the server's status code (see ``proto/ga
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
 import grpc
@@ -50,10 +53,12 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset
-from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
-from services.common.errors import raises_typed_errors
+from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from services.common.auth import read_secret
+from services.common.client_tls import default_client_tls
 from services.common.convert import intrinsics_to_proto
+from services.common.errors import raises_typed_errors
 
 log = logging.getLogger(__name__)
 
@@ -87,11 +92,6 @@ def client_credentials_from_env(env=None) -> dict:
         OSError: a named file is unreadable. ValueError: an empty/invalid token file, or only one of
             client certificate and key.
     """
-    import os
-    from pathlib import Path
-
-    from services.common.auth import read_secret
-
     env = os.environ if env is None else env
     token = env.get("GAUSSLITE_FUSION_TOKEN") or None
     if token is None and env.get("GAUSSLITE_FUSION_TOKEN_FILE"):
@@ -146,8 +146,6 @@ def channel_options(max_message_bytes: int = 64 * 1024 * 1024, max_reconnect_bac
     """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config, and a bound on
     gRPC's reconnection backoff (ms; gRPC's default grows to 120 s, so after a long outage the channel would keep
     failing calls for up to two minutes after the server is back)."""
-    import json
-
     return [("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
             ("grpc.enable_retries", 1),
@@ -291,8 +289,6 @@ class FusionClient:
         self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         if root_cert is None and client_cert is None and client_key is None:
-            from services.common.client_tls import default_client_tls
-
             root_cert, client_cert, client_key = default_client_tls()
         opts = channel_options(CLIENT_MAX_MESSAGE_BYTES)
         creds = channel_credentials(root_cert, client_cert, client_key)
