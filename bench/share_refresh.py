@@ -136,7 +136,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
         for n, t in zip(("agent_a", "agent_b"), tasks):
             g, gids = server[a][t]
             k = np.array([kappa_now[t].get(int(i), int(kk)) for i, kk in zip(gids, g.kappa)], np.int64)
-            fresh[n] = GaussianArrays(**{**{f: getattr(g, f) for f in GaussianArrays._SPEC}, "kappa": k})
+            fresh[n] = GaussianArrays(**{**{f: getattr(g, f) for f in GaussianArrays.FIELDS}, "kappa": k})
         fused, _ = voxel_vote(subs, 0.10, contest_radius=1)
         fused_fresh, _ = voxel_vote(fresh, 0.10, contest_radius=1)
         for task, ds in zip(tasks, datasets):

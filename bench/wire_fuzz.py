@@ -202,7 +202,7 @@ def prop_delta_round_trip(m: int, seed: int, per: int) -> None:
     out = apply_delta(base, dec, t, rm, m, meta.kappa_shift)
     assert len(out) == m - n_rm + n_new
     keep = np.setdiff1d(np.arange(m), removed)
-    expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays.FIELDS}
     expect["kappa"][expect["active"]] += shift  # active rows only
     for k in expect:
         expect[k][upd] = getattr(recs, k)[: len(upd)]

@@ -418,7 +418,7 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
 def _rows_replaced(arrays, rows: np.ndarray, values):
     """A copy of ``arrays`` (GaussianArrays) with ``rows`` set to the rows of ``values``."""
     cols = {}
-    for name in GaussianArrays._SPEC:
+    for name in GaussianArrays.FIELDS:
         a = np.array(getattr(arrays, name), copy=True)
         if len(rows):
             a[rows] = getattr(values, name)

@@ -174,7 +174,7 @@ class ShareSession:
         stored keyframe, ``kfs`` the ROI keyframes, as captured by the mapping thread). Nothing is decoded here:
         :meth:`finetuned` decodes them on a cache miss."""
         h = hashlib.blake2b(digest_size=16)
-        for name in GaussianArrays._SPEC:
+        for name in GaussianArrays.FIELDS:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
         for fid, c2w in poses:
             h.update(np.asarray([fid], np.int64).tobytes() + np.ascontiguousarray(c2w).tobytes())
