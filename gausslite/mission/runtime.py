@@ -47,15 +47,12 @@ from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
+from gausslite.mission.errors import FrameSizeMismatch, MissionError
 from gausslite.mission.pusher import Pusher
 from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
 
 log = logging.getLogger(__name__)
-
-
-class MissionError(RuntimeError):
-    """The mission cannot accept the request (finished, failed, or replaying)."""
 
 
 @dataclass
@@ -233,8 +230,8 @@ class AgentRuntime:
         Returns:
             True when the frame was queued or became the pending keyframe candidate, False when skipped.
         Raises:
-            MissionError: the mission no longer accepts frames (finishing, finished, failed) or the
-                frame's image size differs from the mission's first frame.
+            MissionError: the mission no longer accepts frames (finishing, finished, failed).
+            FrameSizeMismatch (a MissionError): the frame's image size differs from the mission's first frame.
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
@@ -247,7 +244,7 @@ class AgentRuntime:
             intr = frame.intrinsics
             if self.intrinsics is not None and (intr.width, intr.height) != (self.intrinsics.width,
                                                                                self.intrinsics.height):
-                raise MissionError(f"frame {frame.frame_id}: image size {intr.width}x{intr.height} differs "
+                raise FrameSizeMismatch(f"frame {frame.frame_id}: image size {intr.width}x{intr.height} differs "
                                    f"from the mission's {self.intrinsics.width}x{self.intrinsics.height}")
             if self.intrinsics is None:
                 self.intrinsics = intr

@@ -48,6 +48,7 @@ from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
 from services.common.auth import read_secret
+from services.common.errors import status_for
 from services.common.server import MalformedMessage, RunningServer, ServerOptions, build_server, run_until_signalled
 from services.fusion_server.client import FusionClient
 from services.parser.server import graph_to_proto
@@ -340,12 +341,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except (FileNotFoundError, KeyError) as e:
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    str(e.args[0] if isinstance(e, KeyError) else e))
-        except MissionError as e:
-            _abort(context, "StartMission", grpc.StatusCode.FAILED_PRECONDITION, str(e))
-        except ValueError as e:
-            msg = str(e)
-            code = (grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT)
-            _abort(context, "StartMission", code, msg)
+        except (MissionError, ValueError) as e:
+            _abort(context, "StartMission", status_for(e), str(e))
         except OSError as e:  # a path the agent cannot read (too long, a directory, no permission)
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    f"cannot read a path of the request: {type(e).__name__}: {str(e)[:300]}")
@@ -372,12 +369,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             rt.update_task(request.task_text, graph, request.task_id or None)
         except KeyError as e:
             _abort(context, "UpdateTask", grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0]))
-        except MissionError as e:
-            _abort(context, "UpdateTask", grpc.StatusCode.FAILED_PRECONDITION, str(e))
-        except ValueError as e:
-            msg = str(e)
-            code = grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT
-            _abort(context, "UpdateTask", code, msg)
+        except (MissionError, ValueError) as e:
+            _abort(context, "UpdateTask", status_for(e), str(e))
         except grpc.RpcError as e:
             code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
             _abort(context, "UpdateTask", code, f"parser service: {e.code().name}: {e.details()}")
@@ -416,8 +409,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                         if not context.is_active():
                             return agent_pb2.StreamFramesResponse()
             except MissionError as e:
-                code = (grpc.StatusCode.INVALID_ARGUMENT if "image size" in str(e)
-                        else grpc.StatusCode.FAILED_PRECONDITION)
+                code = status_for(e)
                 log.warning("agent %s: StreamFrames %s: %s", rt.agent_id, code.name, e)
                 context.abort(code, str(e))
             n += 1
