@@ -7,6 +7,8 @@ from gausslite.mission.errors import FrameSizeMismatch, MissionError, Preconditi
 from gausslite.mission.pusher import Pusher, PushRecord
 from gausslite.mission.runtime import AgentRuntime, MissionSummaryData
 from gausslite.mission.share import ShareSession, select_shared
+from gausslite.mission.state import MissionState
 
 __all__ = ["AgentConfig", "OnnxRelevanceConfig", "load_agent_config", "PreconditionFailed", "AgentRuntime",
-           "MissionError", "FrameSizeMismatch", "MissionSummaryData", "Pusher", "PushRecord", "ShareSession", "select_shared"]
+           "MissionError", "FrameSizeMismatch", "MissionState", "MissionSummaryData", "Pusher", "PushRecord",
+           "ShareSession", "select_shared"]

@@ -51,6 +51,7 @@ from gausslite.mission.errors import FrameSizeMismatch, MissionError
 from gausslite.mission.pusher import Pusher
 from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
+from gausslite.mission.state import ACCEPTS_TASK, MissionState
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +173,7 @@ class AgentRuntime:
         self._stop = threading.Event()
         self._eval_frames: List[Frame] = []
         self.intrinsics = None
-        self.state = "MAPPING"
+        self.state = MissionState.MAPPING
         self.frames_received = 0
         self.frames_mapped = 0
         self.n_gaussians = 0
@@ -236,11 +237,11 @@ class AgentRuntime:
         """
         t_arr = time.perf_counter() if arrival is None else arrival
         with self._lock:
-            closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
-                      or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
+            closed = (self.state in (MissionState.FINISHED, MissionState.FAILED) or self._stop.is_set()
+                      or (not _replay and (self._closed_for_input or self.state == MissionState.FINISHING)))
             if closed:
                 raise MissionError(f"mission {self.mission_id} is {self.state.lower()}: no more frames accepted"
-                                   + (f" ({self.last_error})" if self.state == "FAILED" else ""))
+                                   + (f" ({self.last_error})" if self.state == MissionState.FAILED else ""))
             intr = frame.intrinsics
             if self.intrinsics is not None and (intr.width, intr.height) != (self.intrinsics.width,
                                                                                self.intrinsics.height):
@@ -295,8 +296,8 @@ class AgentRuntime:
                         progress(i + 1, n)
                 self._queue.join()
                 with self._lock:
-                    if self.state == "MAPPING":
-                        self.state = "REPLAY_DONE"
+                    if self.state == MissionState.MAPPING:
+                        self.state = MissionState.REPLAY_DONE
             except MissionError:
                 return
             except Exception as e:  # unreadable frame etc.
@@ -315,7 +316,7 @@ class AgentRuntime:
     def _fail(self, msg: str) -> None:
         log.error("agent %s mission %s: %s", self.agent_id, self.mission_id, msg)
         with self._lock:
-            self.state = "FAILED"
+            self.state = MissionState.FAILED
             self.last_error = msg
         self.pusher.final_done.set()
 
@@ -345,7 +346,7 @@ class AgentRuntime:
                 unknown task id.
         """
         with self._lock:
-            if self.state not in ("MAPPING", "REPLAY_DONE"):
+            if self.state not in ACCEPTS_TASK:
                 raise MissionError(f"mission {self.mission_id} is {self.state}: it cannot take a new task")
         ann = self.annotations
         if task_id is None and ann is not None:
@@ -387,8 +388,8 @@ class AgentRuntime:
 
     def _idle_work(self) -> bool:
         """Whether the worker should optimise between keyframes instead of blocking on the queue."""
-        return (self._online and self.config.idle_optimize and self.frames_mapped > 0 and self.state == "MAPPING"
-                and not self._closed_for_input and not self._stop.is_set())
+        return (self._online and self.config.idle_optimize and self.frames_mapped > 0
+                and self.state == MissionState.MAPPING and not self._closed_for_input and not self._stop.is_set())
 
     def _work(self) -> None:
         cfg = self.config
@@ -418,7 +419,7 @@ class AgentRuntime:
                 if item is None:
                     return
                 if item is _FINISH:
-                    if self.state != "FAILED":
+                    if self.state != MissionState.FAILED:
                         if self.frames_mapped:
                             n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
                             log.info("agent %s: final pass, %d iterations", self.agent_id, n)
@@ -435,7 +436,7 @@ class AgentRuntime:
                         item = self.selector.take()
                     if item is None:
                         continue
-                if self.state == "FAILED":
+                if self.state == MissionState.FAILED:
                     continue
                 self._map_one(*item)
             finally:
@@ -594,7 +595,7 @@ class AgentRuntime:
         while True:
             with self._lock:
                 idle = self._queue.unfinished_tasks == 0 and not self.replaying
-            if idle or self.state == "FAILED":
+            if idle or self.state == MissionState.FAILED:
                 return True
             if deadline is not None and time.monotonic() > deadline:
                 return False
@@ -626,8 +627,8 @@ class AgentRuntime:
                 return self.summary
             first = not self._closed_for_input
             self._closed_for_input = True
-            if self.state in ("MAPPING", "REPLAY_DONE"):
-                self.state = "FINISHING"
+            if self.state in (MissionState.MAPPING, MissionState.REPLAY_DONE):
+                self.state = MissionState.FINISHING
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         if first:
             if self._replay_thread is not None:
@@ -644,8 +645,8 @@ class AgentRuntime:
         pusher = self.pusher
         last = pusher.pushes[-1] if pusher.pushes else None
         with self._lock:
-            if self.state != "FAILED":
-                self.state = "FINISHED"
+            if self.state != MissionState.FAILED:
+                self.state = MissionState.FINISHED
         n_total = max(self.n_gaussians, 1)
         n_shared = last.n_shared if last else int(select_shared(self.mapper.gmap, self.config.share,
                                                                 self.config.kappa_threshold).sum())

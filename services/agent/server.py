@@ -42,7 +42,8 @@ from gausslite.datasets import load_dataset
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.loader import detect_layout
 from gausslite.mapping.profiles import profile_for_layout, with_profile
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, load_agent_config
+from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.parser import TaskParser
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
@@ -90,11 +91,11 @@ class CallerNotAllowed(Exception):
 
 
 _STATES = {
-    "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
-    "REPLAY_DONE": agent_pb2.MISSION_STATE_REPLAY_DONE,
-    "FINISHING": agent_pb2.MISSION_STATE_FINISHING,
-    "FINISHED": agent_pb2.MISSION_STATE_FINISHED,
-    "FAILED": agent_pb2.MISSION_STATE_FAILED,
+    MissionState.MAPPING: agent_pb2.MISSION_STATE_MAPPING,
+    MissionState.REPLAY_DONE: agent_pb2.MISSION_STATE_REPLAY_DONE,
+    MissionState.FINISHING: agent_pb2.MISSION_STATE_FINISHING,
+    MissionState.FINISHED: agent_pb2.MISSION_STATE_FINISHED,
+    MissionState.FAILED: agent_pb2.MISSION_STATE_FAILED,
 }
 
 
@@ -257,7 +258,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
                                    f"({self.missions[mission_id].state.lower()})")
             cur = self.missions.get(self.current) if self.current else None
-            if cur is not None and cur.state in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+            if cur is not None and cur.state in ACTIVE_STATES:
                 raise MissionError(f"mission {cur.mission_id} is still {cur.state.lower()}; Finish it first")
         dataset = None
         annotations = None
@@ -307,7 +308,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
     def _auto_finish(self, rt: AgentRuntime) -> None:
         rt.wait_mapped()
-        if rt.state != "FAILED":
+        if rt.state != MissionState.FAILED:
             try:
                 rt.finish()
             except Exception as e:
@@ -462,7 +463,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         deadline = time.monotonic() + max(0.0, timeout_s)
         pushed = []
         for rt in list(self.missions.values()):
-            if rt.state not in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+            if rt.state not in ACTIVE_STATES:
                 continue
             log.info("agent %s: shutting down mission %s: final push and checkpoint", rt.agent_id, rt.mission_id)
             try:

@@ -22,8 +22,8 @@ def intrinsics_from_proto(m: common_pb2.Intrinsics) -> Intrinsics:
 
     Raises:
         ValueError: non-finite or non-positive focal lengths, a non-finite principal point, or (an
-            :class:`gausslite.errors.ImageSizeError`) an image side of 0 or above :data:`MAX_SIDE`. The agent answers it as a rejected frame, the fusion server as
-            INVALID_ARGUMENT.
+            :class:`gausslite.errors.ImageSizeError`) an image side of 0 or above :data:`MAX_SIDE`. The agent
+            answers it as a rejected frame, the fusion server as INVALID_ARGUMENT.
     """
     if not (0 < m.width <= MAX_SIDE and 0 < m.height <= MAX_SIDE):
         raise ImageSizeError(f"image size {m.width}x{m.height} outside 1..{MAX_SIDE}")

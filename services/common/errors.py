@@ -18,7 +18,8 @@ import grpc
 from gausslite.errors import ImageSizeError, RelevanceUnavailable
 from gausslite.mission.errors import MissionError, PreconditionFailed
 
-__all__ = ["status_for", "LIBRARY_STATUSES", "RpcStatusError", "InvalidArgument", "NotFound", "AlreadyExists", "FailedPrecondition",
+__all__ = ["status_for", "LIBRARY_STATUSES",
+           "RpcStatusError", "InvalidArgument", "NotFound", "AlreadyExists", "FailedPrecondition",
            "PermissionDenied", "Unauthenticated", "ResourceExhausted", "Unavailable", "DeadlineExceeded",
            "Cancelled", "Internal", "typed_error", "raises_typed_errors"]
 

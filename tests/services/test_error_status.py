@@ -26,7 +26,8 @@ def test_status_by_type():
 def test_message_text_does_not_decide():
     # the words the servers used to look for, under other types
     assert status_for(MissionError("image size 64x48 differs")) == grpc.StatusCode.FAILED_PRECONDITION
-    assert status_for(ValueError("relevance map shape (4, 4) != depth shape (2, 2)")) == grpc.StatusCode.INVALID_ARGUMENT
+    text = "relevance map shape (4, 4) != depth shape (2, 2)"
+    assert status_for(ValueError(text)) == grpc.StatusCode.INVALID_ARGUMENT
 
 
 def test_library_raises_the_typed_errors():
@@ -36,3 +37,4 @@ def test_library_raises_the_typed_errors():
         build_relevance(AgentConfig(relevance="gt"), graph=None, annotations=None, task_id=None)
     e = FrameSizeMismatch("frame 1")
     assert isinstance(e, MissionError) and isinstance(e, ValueError)
+
