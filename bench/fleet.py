@@ -563,9 +563,8 @@ def main(argv=None) -> int:
         def fuse_on(rep):
             with FusionClient(f"127.0.0.1:{rep.port}", timeout_s=60) as c:
                 t = time.monotonic()
-                call = c._stub.Fuse(fusion_pb2.FuseRequest(method=fusion_pb2.FUSE_METHOD_VOTE), timeout=600)
-                last = [m for m in call][-1].result
-                return last, time.monotonic() - t
+                res = c.fuse("vote", timeout_s=600)
+                return res, time.monotonic() - t
 
         # full votes: each replica's first Fuse (no voted map yet: every agent is voted)
         fulls = [fuse_on(victim), fuse_on(reps[0])]

@@ -56,7 +56,7 @@ from gausslite.attention import (
 )
 from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
 from gausslite.attention.export import export_grounding_dino, export_yolo_seg
-from gausslite.attention.frontend import _graph_parts
+from gausslite.attention.frontend import graph_parts
 from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
 from gausslite.datasets import load_dataset
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
@@ -230,7 +230,7 @@ def main(argv=None) -> dict:
         if ds.annotations is None:
             raise SystemExit(f"{args.dataset} has no objects.json: the schedule needs the annotation backend")
         task_id, graph = _task(ds, args.task_id)
-        targets, anchors, _ = _graph_parts(graph)
+        targets, anchors, _ = graph_parts(graph)
         phrases = list(dict.fromkeys(targets + anchors))
         all_tasks = json.loads((Path(ds.path) / "tasks.json").read_text())["tasks"]
         words = [w for t in all_tasks for key in ("targets", "anchors") for p in t["graph"].get(key, [])

@@ -53,7 +53,7 @@ from gausslite.mapping.budget import WallClock, fit_work_cost
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
-from gausslite.mission import AgentRuntime, load_agent_config
+from gausslite.mission import AgentRuntime, FusionPort, load_agent_config
 from gausslite.mission.relevance import build_relevance
 from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, gain
@@ -164,7 +164,7 @@ class Preloaded:
 
 
 class SinkFusion:
-    """An in-process stand-in for the fusion client that accepts every upload (``--share``): the agent selects,
+    """An in-process :class:`gausslite.mission.ports.FusionPort` that accepts every upload (``--share``): the agent selects,
     fine-tunes, plans and encodes its pushes as it would for a server, so the push work competes with mapping
     as it does on a robot, without a network in the measurement."""
 
@@ -229,7 +229,7 @@ def save_render(mapper, ds, ann, task: str, path: Path) -> None:
                                                                                   fr.intrinsics)))
 
 
-def _mission(job: dict, rate: float, extra_overrides=(), fusion=None):
+def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None):
     """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
     final-pass iterations per keyframe)."""
     ds, profile = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
@@ -320,7 +320,7 @@ def run_one(job: dict) -> dict:
     to the in-process sink, otherwise without a push), score."""
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
-    ds, ann, task, rt, fp_per_kf = _mission(job, rate, fusion=sink)
+    ds, ann, task, rt, fp_per_kf = start_mission(job, rate, fusion=sink)
     t0 = time.perf_counter()
     try:
         rt.replay(ds).join()
@@ -362,7 +362,7 @@ def twin_one(job: dict) -> dict:
     at a fixed spacing of the sequence clock (``keyframe_schedule``), each mapped with ``budget`` modelled seconds
     of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load."""
     spacing = REFERENCE_BUDGET_S if job["clock"] == "scaled" else job["budget"]
-    ds, ann, task, rt, fp_per_kf = _mission(job, 1.0, ["mapper.budget_clock=work"])
+    ds, ann, task, rt, fp_per_kf = start_mission(job, 1.0, ["mapper.budget_clock=work"])
     try:
         mapper = rt.mapper
         kfs = keyframe_schedule(ds, spacing)

@@ -43,7 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bench._results import write_results
-from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, _mission, scene_path, score
+from bench.realtime import REFERENCE_BUDGET_S, RESULTS, SCENES, SinkFusion, scene_path, score, start_mission
 from gausslite.config import load_config
 from gausslite.evaluation import evaluate_fused
 from gausslite.fusion.guard import for_robot
@@ -70,9 +70,9 @@ LONG_REFINE_ITERS = 1000
 
 
 class RecordingFusion(SinkFusion):
-    """In-process stand-in of the fusion server's store for one agent: every upload is decoded and, for a delta,
-    rebuilt on the subset it names as base (:func:`gausslite.wire.codec.apply_delta`), exactly as the server
-    stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
+    """In-process stand-in of the fusion server's store for one agent (a :class:`gausslite.mission.ports.FusionPort`):
+    every upload is decoded and, for a delta, rebuilt on the subset it names as base
+    (:func:`gausslite.wire.codec.apply_delta`), exactly as the server stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
     holds (seconds since ``start()``, version, subset) of every push."""
 
     def __init__(self, max_keyframes: int = 64) -> None:
@@ -127,12 +127,11 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
            "run": run, "cap": cap, "clock": "scaled", "overrides": list(overrides)}
     rate = REFERENCE_BUDGET_S / budget
     sink = RecordingFusion()
-    ds, ann, task, rt, _ = _mission(job, rate, fusion=sink)
+    ds, ann, task, rt, _ = start_mission(job, rate, fusion=sink)
     lo, hi = spec.get("frames") or (0, len(ds))
     try:
         sink.start()
-        rt.replay(ds.slice(lo, hi))
-        rt._replay_thread.join()
+        rt.replay(ds.slice(lo, hi)).join()
         rt.finish(push=True, evaluate=False)
         wall = time.perf_counter() - sink.t0
         pu = rt.pusher

@@ -3,9 +3,9 @@ Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``).
 
 :class:`AgentRuntime` is usable without gRPC: it needs a task graph (any object with ``targets``,
 ``anchors``, ``relations``), scene annotations for the offline relevance sources, and optionally a
-*fusion client*: any object with the methods of ``services.fusion_server.client.FusionClient``
-(``open_session``, ``upload_chunks``, ``upload_keyframes``), or None to map locally only. The fusion client
-signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
+*fusion client*: a :class:`gausslite.mission.ports.FusionPort` (``open_session``, ``upload_chunks``,
+``upload_keyframes``; the gRPC ``services.fusion_server.client.FusionClient`` is one), or None to map locally
+only. The fusion client signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
 
 Threads per mission:
 
@@ -48,6 +48,7 @@ from gausslite.datasets.base import Frame
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import FrameSizeMismatch, MissionError
+from gausslite.mission.ports import FusionPort
 from gausslite.mission.pusher import Pusher
 from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
@@ -130,7 +131,7 @@ class AgentRuntime:
     """
 
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
-                 task_id: Optional[str] = None, fusion=None, relevance_fn: Optional[Callable] = None,
+                 task_id: Optional[str] = None, fusion: Optional[FusionPort] = None, relevance_fn: Optional[Callable] = None,
                  mission_id: Optional[str] = None,
                  on_finished: Optional[Callable[["AgentRuntime"], None]] = None,
                  checkpoint_dir: Optional[str | Path] = None) -> None:

@@ -20,6 +20,7 @@ from typing import Optional
 
 import numpy as np
 
+from gausslite.mission.config import AgentConfig
 from gausslite.mission.heap import trim_heap
 from gausslite.wire.codec import GaussianArrays
 from gausslite.wire.delta import PushPlanner
@@ -120,7 +121,7 @@ class ShareSession:
             ``delta_tolerance``, ``chunk_gaussians``).
     """
 
-    def __init__(self, agent_id: str, config) -> None:
+    def __init__(self, agent_id: str, config: AgentConfig) -> None:
         self.agent_id, self.config = agent_id, config
         self.planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
         self.pool = None  # the share worker process (share_worker: process), started on first use

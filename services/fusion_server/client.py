@@ -197,6 +197,8 @@ class FuseResult:
         keyframes_used (int), bytes (int): size of the stored fused map.
         contest_radius (int): the vote's neighbourhood radius in voxels (0 for concat).
         for_agent (str): the agent the map was made for (``fuse(for_agent=...)``; "" = the team map).
+        vote_seconds (float): wall time of the vote stage alone (s; 0 for concat). agents_revoted (int): agents whose
+        subset changed since the server's last vote. incremental (bool): the vote re-used the server's voted map.
     """
 
     fused_version: int
@@ -213,6 +215,9 @@ class FuseResult:
     bytes: int = 0
     contest_radius: int = 0
     for_agent: str = ""
+    vote_seconds: float = 0.0
+    agents_revoted: int = 0
+    incremental: bool = False
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -225,7 +230,8 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         method=_METHOD_NAMES.get(r.method, "vote"), refined=bool(r.refined),
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
         keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
-        for_agent=str(r.for_agent),
+        for_agent=str(r.for_agent), vote_seconds=float(r.vote_seconds), agents_revoted=int(r.agents_revoted),
+        incremental=bool(r.incremental),
     )
 
 
