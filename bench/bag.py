@@ -31,6 +31,17 @@ from typing import Optional
 
 import numpy as np
 
+from gausslite.camera import Intrinsics
+from gausslite.datasets import load_dataset
+from gausslite.mapping.config import load_config
+from gausslite.pipeline import run_mapping
+from gausslite.ros.bagio import BagWriter
+from gausslite.ros.export import T_BASE_OPTICAL, export_bag
+from gausslite.ros.transforms import make_transform
+from gausslite.synthetic.raycast import render
+from gausslite.synthetic.scene import build_default_scene
+from gausslite.synthetic.trajectories import make_trajectories
+
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "TUM_rgbd_dataset_freiburg1_rpy"
 
@@ -40,9 +51,6 @@ def _dir_size(p: Path) -> int:
 
 
 def _map(ds, iters: int, seeds: int) -> dict:
-    from gausslite.mapping.config import load_config
-    from gausslite.pipeline import run_mapping
-
     cfg = load_config(None, [f"iters_per_frame={iters}", f"seeds_per_frame={seeds}", "final_iters=0",
                              f"warmup_iters={max(1, iters // 3)}"], backend="warp")
     _, m = run_mapping(ds, cfg, progress=False)
@@ -50,9 +58,6 @@ def _map(ds, iters: int, seeds: int) -> dict:
 
 
 def round_trip(tum: Path, frames: int, downscale: float, iters: int, seeds: int, work: Path) -> dict:
-    from gausslite.datasets import load_dataset
-    from gausslite.ros.export import export_bag
-
     src = load_dataset(tum, downscale=downscale, max_frames=frames, undistort=True, interpolate_poses=True)
     ref = [src[i] for i in range(len(src))]
     out = {"frames": len(src), "size": [src.intrinsics.width, src.intrinsics.height], "storages": {}}
@@ -90,15 +95,6 @@ def round_trip(tum: Path, frames: int, downscale: float, iters: int, seeds: int,
 
 
 def registration(frames: int, s: float, iters: int, seeds: int, work: Path, do_map: bool) -> dict:
-    from gausslite.camera import Intrinsics
-    from gausslite.datasets import load_dataset
-    from gausslite.ros.bagio import BagWriter
-    from gausslite.ros.export import T_BASE_OPTICAL
-    from gausslite.ros.transforms import make_transform
-    from gausslite.synthetic.raycast import render
-    from gausslite.synthetic.scene import build_default_scene
-    from gausslite.synthetic.trajectories import make_trajectories
-
     ci = Intrinsics(525 / s, 525 / s, (319.5 + 0.5) / s - 0.5, (239.5 + 0.5) / s - 0.5, int(640 // s), int(480 // s))
     di = Intrinsics(585 / s, 585 / s, ci.cx, ci.cy, ci.width, ci.height)
     T_cd = make_transform([-0.025, 0.0, 0.0], [0.0, np.sin(np.radians(0.5)), 0.0, np.cos(np.radians(0.5))])

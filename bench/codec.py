@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
 from gausslite.wire import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset
 
@@ -167,11 +168,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
     args = ap.parse_args(argv)
     n = 20_000 if args.quick else args.n
     reps = 1 if args.quick else args.repeats
-    try:
-        import torch
-        torch.set_num_threads(1)
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
+    torch.set_num_threads(1)
 
     full = synthetic_room(n, seed=0)
     full_rand = synthetic_room(n, seed=0, order="random")

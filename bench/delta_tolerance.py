@@ -31,8 +31,20 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from bench._results import write_results
+from gausslite.config import load_config
+from gausslite.datasets import load_dataset
+from gausslite.evaluation import score_view
+from gausslite.mapping.mapper import Mapper
+from gausslite.pipeline import gt_roi_fn
+from gausslite.render import rasterize
+from gausslite.sharing import ShareConfig, select_task_subset
+from gausslite.stats import fmt, mean_std
+from gausslite.wire.codec import GaussianArrays
+from gausslite.wire.delta import PushPlanner
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -46,18 +58,11 @@ MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "map
 def agent_mapper(seed: int, extra=()):
     """The deployed mapper settings with :data:`MAPPER_OVERRIDES`, then ``extra`` overrides (``mapper.<key>=<value>``)
     and ``seed`` (``bench.share_finetune`` and ``bench.share_refresh`` use it with ``roi_render: context``)."""
-    from gausslite.config import load_config
-
     return load_config(None, MAPPER_OVERRIDES + list(extra) + [f"mapper.seed={seed}"]).agent.mapper
 
 
 def _roi_psnr(arrays, frames, rois) -> float:
     """Mean over frames of the ROI PSNR of ``arrays`` rendered alone (black background)."""
-    import torch
-
-    from gausslite.evaluation import score_view
-    from gausslite.render import rasterize
-
     g = arrays.to_gaussian_map()
     vals = []
     with torch.no_grad():
@@ -72,15 +77,6 @@ def _roi_psnr(arrays, frames, rois) -> float:
 
 def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
     """Map once, plan every push with every tolerance; per tolerance bytes, rows and server-copy PSNR."""
-    import torch
-
-    from gausslite.datasets import load_dataset
-    from gausslite.mapping.mapper import Mapper
-    from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, select_task_subset
-    from gausslite.wire.codec import GaussianArrays
-    from gausslite.wire.delta import PushPlanner
-
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset, downscale=args.downscale, max_frames=args.max_frames)
     roi_fn = gt_roi_fn(ds, args.task_id)
@@ -140,10 +136,6 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=RESULTS / "delta_tolerance.json")
     args = ap.parse_args(argv)
-
-    from tqdm import tqdm
-
-    from gausslite.stats import fmt, mean_std
 
     tolerances = [(float(x), float(k)) for k in args.kappa_rel.split(",") if k
                   for x in args.tolerances.split(",") if x]

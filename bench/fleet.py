@@ -61,8 +61,22 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
+from urllib.parse import urlsplit, urlunsplit
 
+import grpc
 import numpy as np
+import torch
+
+from bench._relay import TcpRelay
+from gausslite.datasets import load_dataset
+from gausslite.fusion.vote import voxel_vote
+from gausslite.gaussians import GaussianMap
+from gausslite.mapping.config import load_config
+from gausslite.mapping.mapper import Mapper
+from gausslite.synthetic import make_scene
+from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset, peek_header
+from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+from services.fusion_server.client import FusionClient, channel_options, intrinsics_to_proto, keyframe_to_proto
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -71,20 +85,12 @@ RESULTS = REPO / "bench" / "results"
 # ------------------------------------------------------------------------------------ source data
 def source_map(args) -> "object":
     """The fleet's source map as GaussianArrays (loaded from --ply, or mapped once and cached)."""
-    from gausslite.gaussians import GaussianMap
-    from gausslite.wire.codec import GaussianArrays
-
     if args.ply:
         return GaussianArrays.from_any(GaussianMap.load_ply(args.ply))
     work = Path(args.work)
     cache = work / f"source_map_f{args.map_frames}_i{args.map_iters}.ply"
     if cache.is_file():
         return GaussianArrays.from_any(GaussianMap.load_ply(cache))
-    import torch
-
-    from gausslite.datasets import load_dataset
-    from gausslite.mapping.config import load_config
-    from gausslite.mapping.mapper import Mapper
 
     ds = load_dataset(scene_dir(args), max_frames=args.map_frames)
     cfg = load_config(None, [], iters_per_frame=args.map_iters, warmup_iters=min(args.map_iters, 15))
@@ -106,16 +112,12 @@ def scene_dir(args) -> Path:
         return Path(args.dataset)
     d = Path(args.work) / "scene"
     if not (d / "agent_a" / "traj.txt").is_file():
-        from gausslite.synthetic import make_scene
-
         make_scene(d, frames=max(args.map_frames, 4), progress=False)
     return d / "agent_a"
 
 
 def keyframes(args) -> list:
     """Posed RGB-D frames, downscaled (``gausslite.datasets.base.Frame``)."""
-    from gausslite.datasets import load_dataset
-
     ds = load_dataset(scene_dir(args), downscale=args.keyframe_downscale, max_frames=8)
     return [ds[i] for i in range(len(ds))]
 
@@ -123,8 +125,6 @@ def keyframes(args) -> list:
 def tile_site(src, rooms: int, gap_m: float = 1.0):
     """A site of ``rooms`` copies of the mapped room on a square grid (``gap_m`` apart), so that a
     fleet spreads over more space than one robot's ROI, as on a real site. rooms=1: the map itself."""
-    from gausslite.wire.codec import GaussianArrays
-
     if rooms <= 1:
         return src
     side = int(np.ceil(np.sqrt(rooms)))
@@ -296,12 +296,6 @@ def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], 
 
 def agent_main(i: int, target: str, make, args, frames: list, stop: threading.Event, log: AgentLog,
                barrier: threading.Barrier) -> None:
-    import grpc
-
-    from gausslite.wire.codec import QuantConfig, encode_subset, peek_header
-    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-    from services.fusion_server.client import channel_options, intrinsics_to_proto, keyframe_to_proto
-
     aid = f"robot-{i:02d}"
     ch = grpc.insecure_channel(target, channel_options())
     stub = fusion_pb2_grpc.FusionStub(ch)
@@ -356,10 +350,6 @@ class DbOutage:
         self.stop_cmd, self.start_cmd = stop_cmd, start_cmd
         self.relay = None
         if not (stop_cmd and start_cmd):
-            from urllib.parse import urlsplit
-
-            from bench._relay import TcpRelay
-
             u = urlsplit(store_dsn)
             self.relay = TcpRelay((u.hostname or "127.0.0.1", u.port or 5432))
         self.mode = "relay cut" if self.relay is not None else f"{stop_cmd!r} / {start_cmd!r}"
@@ -368,7 +358,6 @@ class DbOutage:
         """``dsn`` as the replicas use it (through the relay, if any)."""
         if self.relay is None:
             return dsn
-        from urllib.parse import urlsplit, urlunsplit
 
         u = urlsplit(dsn)
         auth = u.netloc.rpartition("@")[0]
@@ -396,10 +385,6 @@ class DbOutage:
 
 def wait_serving(reps: List["Replica"], timeout_s: float) -> Optional[float]:
     """Seconds until every replica answers ``GetStats`` (which reads the store), or None after ``timeout_s``."""
-    import grpc
-
-    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-
     t0 = time.monotonic()
     chans = [grpc.insecure_channel(f"127.0.0.1:{r.port}") for r in reps]
     try:
@@ -476,13 +461,8 @@ def main(argv=None) -> int:
         return 2
     if args.db_outage > 0:  # room for the outage, the recovery and the replica kill after it
         args.duration = max(args.duration, args.duration * args.db_outage_at + args.db_outage + 20.0)
-    import grpc
+    # lazy: heavy optional dependency, loaded only on this path
     import psycopg
-
-    from gausslite.fusion.vote import voxel_vote
-    from gausslite.wire.codec import QuantConfig, assemble, encode_subset
-    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-    from services.fusion_server.client import FusionClient
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -583,9 +563,8 @@ def main(argv=None) -> int:
         def fuse_on(rep):
             with FusionClient(f"127.0.0.1:{rep.port}", timeout_s=60) as c:
                 t = time.monotonic()
-                call = c._stub.Fuse(fusion_pb2.FuseRequest(method=fusion_pb2.FUSE_METHOD_VOTE), timeout=600)
-                last = [m for m in call][-1].result
-                return last, time.monotonic() - t
+                res = c.fuse("vote", timeout_s=600)
+                return res, time.monotonic() - t
 
         # full votes: each replica's first Fuse (no voted map yet: every agent is voted)
         fulls = [fuse_on(victim), fuse_on(reps[0])]

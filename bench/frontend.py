@@ -43,6 +43,23 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+import torch
+from tqdm import tqdm
+
+from bench._results import write_results
+from gausslite.attention import (
+    AttentionConfig,
+    AttentionFrontEnd,
+    KeyframeConfig,
+    OnnxFastSAMSegmenter,
+    OnnxGroundingDetector,
+)
+from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
+from gausslite.attention.export import export_grounding_dino, export_yolo_seg
+from gausslite.attention.frontend import graph_parts
+from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
+from gausslite.datasets import load_dataset
+from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results" / "frontend.json"
@@ -66,9 +83,8 @@ def _bert_vocab(path: Path, words: Sequence[str]) -> Path:
 
 
 def _gdino(quick: bool):
+    # lazy: heavy optional dependency, loaded only on this path
     from transformers import BertConfig, GroundingDinoConfig, GroundingDinoForObjectDetection, SwinConfig
-
-    import torch
 
     torch.manual_seed(0)
     if not quick:
@@ -88,8 +104,6 @@ def ensure_models(cache: Path, size: Tuple[int, int], quick: bool, words: Sequen
     Returns:
         dict with ``detector``, ``vocab``, ``segmenter`` paths, model names and ``seg_imgsz`` (h, w).
     """
-    from gausslite.attention.export import export_grounding_dino, export_yolo_seg
-
     W, H = size
     cache.mkdir(parents=True, exist_ok=True)
     det_name = "grounding-dino-reduced" if quick else "grounding-dino-t"
@@ -137,8 +151,6 @@ def per_call(det, seg, frame, phrases: Sequence[str], repeats: int) -> Dict[str,
 
 def mapping_keyframes(ds) -> List[int]:
     """Indices of the frames the mapper would take (keyframe selector defaults, mapper always free)."""
-    from gausslite.mapping.keyframes import KeyframeSelector
-
     sel = KeyframeSelector()
     out = []
     for i in range(len(ds)):
@@ -151,10 +163,6 @@ def mapping_keyframes(ds) -> List[int]:
 
 def schedule(ds, kf: Sequence[int], graph, det, seg, progress=None) -> Dict[str, float]:
     """Run the front-end over the mapping keyframes ``kf`` with timed backends; totals in seconds."""
-    from gausslite.attention import AttentionConfig, AttentionFrontEnd
-    from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-    from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
-
     backend = AnnotationBackend(ds.annotations)
     tdet = CostOnlyDetector(det, AnnotationDetector(backend))
     tseg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))
@@ -199,13 +207,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} in full mode)")
     args = ap.parse_args(argv)
 
-    from tqdm import tqdm
-
-    from gausslite.attention import KeyframeConfig, OnnxFastSAMSegmenter, OnnxGroundingDetector
-    from gausslite.attention.frontend import _graph_parts
-    from gausslite.mapping.keyframes import KeyframeRule
-    from gausslite.datasets import load_dataset
-
     if not (args.dataset / "rgb.txt").is_file():
         raise SystemExit(f"TUM sequence not found at {args.dataset} (set GAUSSLITE_SHARED or --dataset)")
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes] if args.sizes else (
@@ -219,6 +220,7 @@ def main(argv=None) -> dict:
                  "quick": bool(args.quick), "runs": [],
                  "schedule": {"mapping_keyframes": dataclasses.asdict(KeyframeRule()),
                               "detection_keyframes": dataclasses.asdict(KeyframeConfig())}}
+    # lazy: heavy optional dependency, loaded only on this path
     import onnxruntime
 
     out["machine"]["onnxruntime"] = onnxruntime.__version__
@@ -228,7 +230,7 @@ def main(argv=None) -> dict:
         if ds.annotations is None:
             raise SystemExit(f"{args.dataset} has no objects.json: the schedule needs the annotation backend")
         task_id, graph = _task(ds, args.task_id)
-        targets, anchors, _ = _graph_parts(graph)
+        targets, anchors, _ = graph_parts(graph)
         phrases = list(dict.fromkeys(targets + anchors))
         all_tasks = json.loads((Path(ds.path) / "tasks.json").read_text())["tasks"]
         words = [w for t in all_tasks for key in ("targets", "anchors") for p in t["graph"].get(key, [])
@@ -274,8 +276,6 @@ def main(argv=None) -> dict:
     table = "\n".join(md)
     dest = args.out if args.out is not None else (None if args.quick else RESULTS)
     if dest is not None:
-        from bench._results import write_results
-
         write_results(dest, "frontend", argv, details, table, out)
         print(f"wrote {dest} and {dest.with_suffix('.md')}")
     else:

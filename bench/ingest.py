@@ -36,6 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
+from gausslite.datasets import load_dataset
+from gausslite.synthetic import make_scene
+from services.agent.client import AgentClient
+from services.agent.frames import encode_frame
+from services.sim import free_port
+
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 TUM = REPO.parent / "shared" / "datasets" / "TUM_rgbd_dataset_freiburg1_rpy"
@@ -44,12 +50,9 @@ TARGET_P99_MS = 20.0
 
 def _frames(n_max: int):
     """Up to ``n_max`` 640×480 frames and the scene folder with annotations."""
-    from gausslite.datasets import load_dataset
-
     if TUM.is_dir():
         ds = load_dataset(TUM, max_frames=n_max)
         return [ds[i] for i in range(len(ds))], str(TUM), "TUM fr1_rpy 640x480"
-    from gausslite.synthetic import make_scene
 
     out = Path(tempfile.mkdtemp(prefix="ingest_scene_"))
     make_scene(out, seed=0, width=640, height=480, frames=min(n_max, 12), progress=False)
@@ -58,10 +61,6 @@ def _frames(n_max: int):
 
 
 def run(seconds: float, fps: float, color: str, budget: float) -> dict:
-    from services.agent.client import AgentClient
-    from services.agent.frames import encode_frame
-    from services.sim import free_port
-
     frames, scene, name = _frames(60)
     port = free_port()
     env = {**os.environ, "GAUSSLITE_AGENT_ID": "bench", "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",

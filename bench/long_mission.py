@@ -42,6 +42,15 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
+from tqdm import tqdm
+
+from gausslite.datasets import detect_layout, load_dataset
+from gausslite.mapping.config import load_config
+from gausslite.mapping.profiles import profile_for_layout
+from gausslite.pipeline import run_mapping
+from gausslite.stats import aggregate, fmt, gain, mean_std
+from gausslite.synthetic import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -61,7 +70,6 @@ def scene_path(name: str, work: Path) -> Path:
         if not p.is_dir():
             raise FileNotFoundError(f"{p} not found (set GAUSSLITE_SHARED)")
         return p
-    from gausslite.synthetic import make_scene
 
     out = work / f"synthetic_circle_{spec['frames']}_{spec['width']}x{spec['height']}"
     if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
@@ -71,9 +79,6 @@ def scene_path(name: str, work: Path) -> Path:
 
 def load_scene(name: str, path: Path, max_frames: Optional[int] = None, downscale: Optional[float] = None):
     """The dataset with the loader options of its sensor profile."""
-    from gausslite.datasets import detect_layout, load_dataset
-    from gausslite.mapping.profiles import profile_for_layout
-
     spec = SCENES[name]
     profile = profile_for_layout(detect_layout(path)[0])
     ds = load_dataset(path, downscale=downscale or spec.get("downscale", 1.0), max_frames=max_frames, **profile.loader)
@@ -86,11 +91,6 @@ def map_job(job: dict):
     Returns:
         (dataset, mapper, metrics of ``run_mapping``, wall seconds).
     """
-    import torch
-
-    from gausslite.mapping.config import load_config
-    from gausslite.pipeline import run_mapping
-
     torch.set_num_threads(1)
     ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"), job.get("downscale"))
     stride = SCENES[job["scene"]]["stride"]
@@ -132,10 +132,6 @@ def run_one(job: dict) -> dict:
 
 def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) -> dict:
     """The JSON block of one scene: per mode, every figure as mean and std over seeds."""
-    from gausslite.stats import aggregate, gain
-
-    from gausslite.stats import mean_std
-
     def roi(rseed: list[dict], task: str) -> Optional[float]:
         """ROI PSNR of ``task`` in one seed's runs: the uniform map serves every task, GaussLite maps per task."""
         return next((r["roi_psnr_per_task"][task] for r in rseed if r["task"] in (None, task)), None)
@@ -182,9 +178,11 @@ def summarise(runs: list[dict], scene: str, tasks: list[str], seeds: list[int]) 
 
 def plot_scene(runs: list[dict], scene: str, path: Path) -> None:
     """PSNR along the sequence (mapped frames), both modes, mean over seeds (and tasks)."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 3.6))
@@ -211,8 +209,6 @@ def plot_scene(runs: list[dict], scene: str, path: Path) -> None:
 
 def table(result: dict) -> str:
     """Markdown table of the JSON result."""
-    from gausslite.stats import fmt
-
     lines = ["| scene | mode | PSNR | ROI PSNR | PSNR by fifth (first → last) | first − last | held-out PSNR | s/frame | Gaussians |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, sc in result["scenes"].items():
@@ -296,9 +292,6 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="discard the runs of an existing <out>.partial.json and start over (without --resume or "
                     "--fresh, an existing partial file stops the bench, so that its runs are not lost)")
     args = ap.parse_args(argv)
-    from tqdm import tqdm
-
-    from gausslite.datasets import load_dataset
 
     if args.tum_downscale is not None:
         SCENES["tum_fr1_rpy"]["downscale"] = float(args.tum_downscale)

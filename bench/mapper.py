@@ -31,8 +31,16 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from bench._results import write_results
+from gausslite.datasets import detect_layout, load_dataset
+from gausslite.mapping.config import load_config
+from gausslite.mapping.profiles import SPEED_PRESETS, profile_for_layout
+from gausslite.pipeline import run_mapping
+from gausslite.stats import aggregate, fmt, mean_std
+from gausslite.synthetic import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -47,17 +55,12 @@ SCENES = {
 
 def scene_dataset(name: str, max_frames: Optional[int] = None):
     """(dataset, sensor profile, task ids) of a bench scene (``max_frames`` overrides the scene's count)."""
-    from gausslite.datasets import detect_layout, load_dataset
-    from gausslite.mapping.profiles import profile_for_layout
-
     spec = SCENES[name]
     if name == "room0":
         path = SHARED / "datasets" / "Replica_room0"
         if not path.is_dir():
             raise FileNotFoundError(f"{path} not found (set GAUSSLITE_SHARED)")
     else:
-        from gausslite.synthetic import make_scene
-
         out = WORK / f"synthetic_{spec['width']}x{spec['height']}"
         if not (out / "agent_a").is_dir():
             make_scene(out, width=spec["width"], height=spec["height"], progress=False)
@@ -80,10 +83,6 @@ def task_ids(path: Path) -> list[str]:
 
 def run_one(ds, profile, setting: str, task: str, seed: int) -> dict:
     """Map ``ds`` with full GaussLite for one task, seed and speed setting; times and scores."""
-    from gausslite.mapping.config import load_config
-    from gausslite.mapping.profiles import SPEED_PRESETS
-    from gausslite.pipeline import run_mapping
-
     defaults = {**profile.mapper, **SPEED_PRESETS[setting]}
     cfg = load_config(None, [], defaults=defaults, mode="gausslite", seed=seed)
     t0 = time.perf_counter()
@@ -98,8 +97,6 @@ def run_one(ds, profile, setting: str, task: str, seed: int) -> dict:
 def summarise(runs: list[dict], settings: list[str], seeds: list[int]) -> dict:
     """Per setting: each field averaged over tasks within a seed, then mean ± std over seeds; and the
     speed-up and ROI PSNR loss of every non-baseline setting against ``baseline`` (paired per seed)."""
-    from gausslite.stats import aggregate, mean_std
-
     fields = ["s_per_keyframe", "roi_psnr", "psnr", "n_gaussians", "iters_per_keyframe"]
     out: dict = {}
     per_seed: dict[str, list[dict]] = {}
@@ -131,8 +128,6 @@ def summarise(runs: list[dict], settings: list[str], seeds: list[int]) -> dict:
 
 def table(result: dict) -> str:
     """Markdown table of a result."""
-    from gausslite.stats import fmt
-
     lines = ["| scene | setting | s / keyframe | iters / keyframe | ROI PSNR [dB] | PSNR [dB] | Gaussians |",
              "|---|---|---|---|---|---|---|"]
     for scene, blk in result["scenes"].items():
@@ -159,11 +154,6 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=None, help="override the scenes' frame counts (smoke runs)")
     ap.add_argument("--out", type=Path, default=RESULTS / "mapper.json")
     args = ap.parse_args(argv)
-
-    import torch
-    from tqdm import tqdm
-
-    from gausslite.mapping.profiles import SPEED_PRESETS
 
     torch.set_num_threads(1)
     settings = [s for s in args.settings.split(",") if s]

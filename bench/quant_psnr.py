@@ -21,14 +21,18 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from gausslite.datasets import load_dataset
+from gausslite.gaussians import GaussianMap
+from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.mapper import Mapper
+from gausslite.metrics import psnr
+from gausslite.pipeline import gt_roi_fn
+from gausslite.wire.codec import GaussianArrays, LOSSLESS, QuantConfig, assemble, encode_subset, spatial_order
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def _render_scores(gmap, dataset, roi_fn) -> tuple[float, float]:
-    from gausslite.mapping.config import MapperConfig
-    from gausslite.mapping.mapper import Mapper
-    from gausslite.metrics import psnr
-
     m = Mapper(MapperConfig())
     m.load_map(gmap)
     full, roi = [], []
@@ -46,8 +50,6 @@ def _render_scores(gmap, dataset, roi_fn) -> tuple[float, float]:
 
 def _parse_variant(text: str):
     """``name:key=value,key=value`` → (name, QuantConfig) (values: int, float or bool)."""
-    from gausslite.wire.codec import QuantConfig
-
     name, _, body = text.partition(":")
     kw = {}
     for item in filter(None, body.split(",")):
@@ -60,11 +62,6 @@ def _parse_variant(text: str):
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the comparison; returns 0, or 1 when the default quantised codec's ROI PSNR loss exceeds
     ``--budget-db``."""
-    from gausslite.datasets import load_dataset
-    from gausslite.gaussians import GaussianMap
-    from gausslite.pipeline import gt_roi_fn
-    from gausslite.wire.codec import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset, spatial_order
-
     ap = argparse.ArgumentParser(prog="python -m bench.quant_psnr", description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", required=True, type=Path)
     ap.add_argument("--downscale", type=float, default=4.0)

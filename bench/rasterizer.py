@@ -28,6 +28,11 @@ import sys
 import time
 from pathlib import Path
 
+from gausslite.render import rasterize
+
+import numpy as np
+import torch
+
 RESULTS = Path(__file__).resolve().parent / "results" / "rasterizer.json"
 FULL_SIZES = [(20000, 320, 240), (100000, 640, 480)]
 QUICK_SIZES = [(2000, 160, 120), (5000, 320, 240)]
@@ -35,9 +40,6 @@ QUICK_SIZES = [(2000, 160, 120), (5000, 320, 240)]
 
 def make_scene(n: int, width: int, height: int, seed: int = 0):
     """Random plausible scene: returns (params list requiring grad, K (3,3) float64 numpy)."""
-    import numpy as np
-    import torch
-
     g = torch.Generator().manual_seed(seed)
     f = 0.82 * width
     z = torch.rand(n, generator=g) * 4 + 1
@@ -56,11 +58,6 @@ def make_scene(n: int, width: int, height: int, seed: int = 0):
 
 def worker(backend: str, n: int, width: int, height: int, repeats: int) -> dict:
     """Time fwd+bwd in this process; returns timings (s) and peak RSS (MB)."""
-    import numpy as np
-    import torch
-
-    from gausslite.render import rasterize
-
     params, K = make_scene(n, width, height)
     g = torch.Generator().manual_seed(1)
     wc, wd, wa = torch.randn(height, width, 3, generator=g), torch.randn(height, width, generator=g), \

@@ -37,12 +37,27 @@ import os
 import platform
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Optional
 
+import cv2
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from gausslite.datasets import detect_layout, load_dataset
+from gausslite.evaluation import PROTOCOLS, score_live_map, side_by_side
 from gausslite.mapping.budget import WallClock, fit_work_cost
+from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.mapper import Mapper
+from gausslite.mapping.profiles import profile_for_layout, with_profile
+from gausslite.mission import AgentRuntime, FusionPort, load_agent_config
+from gausslite.mission.relevance import build_relevance
+from gausslite.parser import parse_task
+from gausslite.stats import aggregate, fmt, gain
+from gausslite.synthetic import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -77,8 +92,6 @@ def scene_path(name: str, work: Path) -> Path:
     elif spec["kind"] == "replica":
         p = SHARED / "datasets" / "Replica_room0"
     else:
-        from gausslite.synthetic import make_scene
-
         out = work / f"synthetic_circle_{spec['frames']}_{spec['width']}x{spec['height']}"
         if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
             make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="circle")
@@ -103,8 +116,6 @@ def dataset_scenes(path: Path, task_ids: list[str], cap: int, downscale: float =
         FileNotFoundError: no such folder. ValueError: no task ids, a sequence without annotations, or a task id
             its ``tasks.json`` lacks.
     """
-    from gausslite.datasets import load_dataset
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path} not found")
@@ -123,9 +134,6 @@ def dataset_scenes(path: Path, task_ids: list[str], cap: int, downscale: float =
 
 def load_scene(spec: dict, path: Path):
     """(dataset, sensor profile) of a scene spec with the profile's loader options and the scene's clock."""
-    from gausslite.datasets import detect_layout, load_dataset
-    from gausslite.mapping.profiles import profile_for_layout
-
     layout = detect_layout(path)[0]
     profile = profile_for_layout(layout)
     kw = dict(profile.loader)
@@ -156,7 +164,7 @@ class Preloaded:
 
 
 class SinkFusion:
-    """An in-process stand-in for the fusion client that accepts every upload (``--share``): the agent selects,
+    """An in-process :class:`gausslite.mission.ports.FusionPort` that accepts every upload (``--share``): the agent selects,
     fine-tunes, plans and encodes its pushes as it would for a server, so the push work competes with mapping
     as it does on a robot, without a network in the measurement."""
 
@@ -165,13 +173,9 @@ class SinkFusion:
         self.uploads = 0
 
     def open_session(self, agent_id, task_text, intrinsics):
-        from types import SimpleNamespace
-
         return SimpleNamespace(latest_map_version=0)
 
     def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
-        from types import SimpleNamespace
-
         chunks = list(chunks)
         n = sum(len(c.SerializeToString()) if hasattr(c, "SerializeToString") else len(c) for c in chunks)
         self.bytes += n
@@ -185,9 +189,6 @@ class SinkFusion:
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
     """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
     budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
-    from gausslite.mapping.profiles import with_profile
-    from gausslite.mission import load_agent_config
-
     cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
         f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true",
@@ -205,8 +206,6 @@ def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = 
     (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``), the same for every mode.
     The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds
     each protocol's."""
-    from gausslite.evaluation import score_live_map
-
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
     frames = [ds[i] for i in range(len(ds))]
     res = score_live_map(mapper, frames, lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), protocols,
@@ -218,10 +217,6 @@ def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = 
 
 def save_render(mapper, ds, ann, task: str, path: Path) -> None:
     """A side-by-side PNG (render | ground truth | ROI overlay) of the frame whose ROI is largest."""
-    import cv2
-
-    from gausslite.evaluation import side_by_side
-
     best, best_n = 0, -1
     for i in range(0, len(ds), max(1, len(ds) // 30)):
         fr = ds[i]
@@ -234,13 +229,9 @@ def save_render(mapper, ds, ann, task: str, path: Path) -> None:
                                                                                   fr.intrinsics)))
 
 
-def _mission(job: dict, rate: float, extra_overrides=(), fusion=None):
+def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None):
     """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
     final-pass iterations per keyframe)."""
-    from gausslite.mission import AgentRuntime
-    from gausslite.mission.relevance import build_relevance
-    from gausslite.parser import parse_task
-
     ds, profile = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
     ds = Preloaded(ds)
     ann = ds.annotations
@@ -276,7 +267,6 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
     if job.get("defer_dir"):
         # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
-        import torch
 
         path = Path(job["defer_dir"]) / f"{_key_name(job)}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -313,11 +303,6 @@ def score_deferred(res: dict) -> dict:
     """Score a mission whose map :func:`run_one` saved (its run result, with ``state_path`` and ``score_job``):
     rebuild the mapper from its state and configuration and add the scores to the result (the state file is
     removed)."""
-    import torch
-
-    from gausslite.mapping.config import MapperConfig
-    from gausslite.mapping.mapper import Mapper
-
     job = res["score_job"]
     saved = torch.load(res["state_path"], weights_only=False)
     mapper = Mapper(MapperConfig.model_validate(saved["cfg"]))
@@ -335,7 +320,7 @@ def run_one(job: dict) -> dict:
     to the in-process sink, otherwise without a push), score."""
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
-    ds, ann, task, rt, fp_per_kf = _mission(job, rate, fusion=sink)
+    ds, ann, task, rt, fp_per_kf = start_mission(job, rate, fusion=sink)
     t0 = time.perf_counter()
     try:
         rt.replay(ds).join()
@@ -377,7 +362,7 @@ def twin_one(job: dict) -> dict:
     at a fixed spacing of the sequence clock (``keyframe_schedule``), each mapped with ``budget`` modelled seconds
     of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load."""
     spacing = REFERENCE_BUDGET_S if job["clock"] == "scaled" else job["budget"]
-    ds, ann, task, rt, fp_per_kf = _mission(job, 1.0, ["mapper.budget_clock=work"])
+    ds, ann, task, rt, fp_per_kf = start_mission(job, 1.0, ["mapper.budget_clock=work"])
     try:
         mapper = rt.mapper
         kfs = keyframe_schedule(ds, spacing)
@@ -393,8 +378,6 @@ def twin_one(job: dict) -> dict:
 
 def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> dict:
     """The JSON block of one scene: per budget and mode the means and stds over runs, and the paired gain."""
-    from gausslite.stats import aggregate, gain
-
     keys = ["roi_psnr", "psnr", "ssim", "n_gaussians", "iters_per_keyframe", "keyframes", "idle_iters",
             "roi_iters", "final_roi_psnr", "final_psnr", "final_ssim"]
     out = {"cap": cap, "budgets": {}}
@@ -436,8 +419,6 @@ def _summarise_protocols(by_mode: dict) -> dict:
     """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_std", "gain_significant", "psnr_gain",
     "runs"}}`` of one budget: per mode the means and stds over runs of each protocol's figures, and the paired
     gain (runs of both modes with the same seed)."""
-    from gausslite.stats import aggregate, gain
-
     names = sorted({p for rs in by_mode.values() for r in rs for p in r.get("protocols", {})})
     out = {}
     for p in names:
@@ -491,8 +472,6 @@ def _matching_budget(block: dict, protocol: Optional[str] = None) -> Optional[fl
 
 def table(result: dict) -> str:
     """Markdown table of a result."""
-    from gausslite.stats import fmt
-
     lines = ["| scene | cap | budget (s) | mode | ROI PSNR | PSNR | SSIM | Gaussians | iters/kf | keyframes | "
              "ROI gain | final pass: ROI PSNR / PSNR |", "|" + "---|" * 12]
     for scene, blk in result["scenes"].items():
@@ -514,8 +493,6 @@ def table(result: dict) -> str:
 def protocol_table(result: dict) -> str:
     """Markdown table of every scoring protocol: per scene, budget and protocol, both modes' ROI PSNR and PSNR and
     the paired ROI gain (docs/realtime.md#scoring-protocols)."""
-    from gausslite.stats import fmt
-
     lines = ["| scene | budget (s) | protocol | uniform ROI PSNR | GaussLite ROI PSNR | ROI gain | uniform PSNR | "
              "GaussLite PSNR | runs |", "|" + "---|" * 9]
     for scene, blk in result["scenes"].items():
@@ -533,9 +510,11 @@ def protocol_table(result: dict) -> str:
 def plot_scene(block: dict, scene: str, path: Path) -> None:
     """ROI PSNR against the per-keyframe budget, both modes (mean ± std), with the budget at which uniform
     reaches GaussLite's 0.5 s ROI PSNR marked."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
@@ -598,7 +577,6 @@ def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24,
     cfg, _ = agent_config(mode, 1.0, SCENES[scene]["cap"], 0, 1.0, profile, overrides)
     m = cfg.mapper.model_copy(update={"keyframe_budget_s": None, "iters_per_frame": iters,
                                       "warmup_iters": min(cfg.mapper.warmup_iters, iters)})
-    from gausslite.mapping.mapper import Mapper
 
     mapper = Mapper(m)
     clock = _CountingClock()
@@ -682,7 +660,6 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="fit the deterministic budget clock's cost model (mapper.work_cost) on this machine and "
                          "print it (first scene)")
     args = ap.parse_args(argv)
-    from tqdm import tqdm
 
     if args.calibrate:
         work = Path(args.work)
@@ -692,7 +669,6 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 0
 
     protocols = tuple(p for p in args.protocols.split(",") if p)
-    from gausslite.evaluation import PROTOCOLS
 
     if any(p not in PROTOCOLS for p in protocols):
         ap.error(f"unknown protocol in {args.protocols!r} (known: {', '.join(PROTOCOLS)})")
@@ -752,8 +728,6 @@ def main(argv: Optional[list[str]] = None) -> int:
         job["defer_dir"] = str(defer) if defer else None
     t0 = time.time()
     if args.twin:
-        from concurrent.futures import ProcessPoolExecutor
-
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             results = pool.map(twin_one, jobs)
             results = list(tqdm(results, total=len(jobs), desc="twin runs", unit="run"))
@@ -778,8 +752,6 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
         return 0
     if pending:
-        from concurrent.futures import ProcessPoolExecutor
-
         items = [runs[i] for i in pending]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             for i, r in zip(pending, tqdm(pool.map(score_deferred, items), total=len(items), desc="scoring",

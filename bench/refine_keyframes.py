@@ -19,22 +19,22 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from gausslite.camera import Intrinsics
+from gausslite.datasets import load_dataset
+from gausslite.datasets.base import Frame
+from gausslite.evaluation import evaluate_fused
+from gausslite.fusion.refine import refine_map
+from gausslite.mapping.views import keyframe_from_frame
+from gausslite.wire.codec import assemble
+from gausslite.wire.images import decode_color, decode_depth
+from gausslite_rpc import fusion_pb2
+from services.fusion_server.store import FusionStore
+
 RESULTS = Path(__file__).resolve().parent / "results" / "share_sim_seeds"
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the comparison (exit 0)."""
-    from gausslite.datasets import load_dataset
-    from gausslite.evaluation import evaluate_fused
-    from gausslite.camera import Intrinsics
-    from gausslite.datasets.base import Frame
-    from gausslite.fusion.refine import refine_map
-    from gausslite.mapping.views import keyframe_from_frame
-    from gausslite.wire.codec import assemble
-    from gausslite.wire.images import decode_color, decode_depth
-    from gausslite_rpc import fusion_pb2
-    from services.fusion_server.store import FusionStore
-
     ap = argparse.ArgumentParser(prog="python -m bench.refine_keyframes", description=__doc__.splitlines()[0])
     ap.add_argument("--fusion-dir", required=True, type=Path, help="DIR/data/fusion of a sim run")
     ap.add_argument("--dataset", required=True, type=Path)

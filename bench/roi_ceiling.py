@@ -32,17 +32,18 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
 from bench import long_mission as lm
 from bench._results import write_results
+from gausslite.datasets import load_dataset
+from gausslite.evaluation import evaluate
+from gausslite.mapping.views import crop_keyframe, roi_box
+from gausslite.pipeline import gt_roi_fn
 
 
 def roi_views(mapper, ds, stride: int, roi_fn, pad: int = 8) -> list:
     """The mapper's stored keyframes that see the ROI of ``roi_fn``, each cropped to its ROI box grown by ``pad``."""
-    import torch
-
-    from gausslite.mapping.views import crop_keyframe, roi_box
-
     # one load per mapped frame: its ROI by frame id
     rois = {fr.frame_id: np.asarray(roi_fn(fr), bool) for fr in (ds[i] for i in range(0, len(ds), stride))}
     views = []
@@ -59,8 +60,6 @@ def roi_views(mapper, ds, stride: int, roi_fn, pad: int = 8) -> list:
 
 def score(mapper, ds, stride: int, rois: dict) -> dict:
     """PSNR over the mapped views and each ROI's PSNR (``rois``: task id → ROI function)."""
-    from gausslite.evaluation import evaluate
-
     ev = evaluate(mapper.render_frame, (ds[i] for i in range(0, len(ds), stride)), None, extra_rois=rois)
     return {"psnr": float(np.mean([s.psnr for s in ev.scores])),
             "roi_psnr": {t: ev.per_roi[t].as_dict()["roi_psnr"] for t in rois}}
@@ -81,8 +80,6 @@ def run(job: dict, iters: list[int], fresh_moments: bool = False, seed: int = 0)
         ``{"before": {psnr, roi_psnr}, "full_pass": {iters, psnr, roi_psnr, seconds},
         "roi_only": {task: [{iters, roi_psnr, psnr, seconds}, ...]}, "n_roi_views": {task: n}, "map_wall_s"}``.
     """
-    from gausslite.pipeline import gt_roi_fn
-
     ds, mapper, m, wall = lm.map_job(job)
     stride = lm.SCENES[job["scene"]]["stride"]
     rois = {t: gt_roi_fn(ds, t) for t in job["eval_tasks"]}
@@ -156,7 +153,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.tum_downscale is not None:
         lm.SCENES["tum_fr1_rpy"]["downscale"] = float(args.tum_downscale)
     lm.SCENES["synthetic_long"]["frames"] = int(args.synthetic_frames)
-    from gausslite.datasets import load_dataset
 
     path = lm.scene_path(args.scene, args.work)
     try:

@@ -29,8 +29,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
+from gausslite.datasets import detect_layout, load_dataset
 from gausslite.mapping.blur import exposure_twist
+from gausslite.mapping.profiles import profile_for_layout
 from gausslite.mapping.shutter import readout_norm, row_time
 
 REPO = Path(__file__).resolve().parents[1]
@@ -119,10 +122,6 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "rolling_shutter.json")
     args = ap.parse_args(argv)
-    from tqdm import tqdm
-
-    from gausslite.datasets import detect_layout, load_dataset
-    from gausslite.mapping.profiles import profile_for_layout
 
     if not args.dataset.exists():
         print(f"dataset not found: {args.dataset}", file=sys.stderr)

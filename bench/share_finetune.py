@@ -33,6 +33,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
+
+from bench.delta_tolerance import agent_mapper
+from gausslite.datasets import load_dataset
+from gausslite.evaluation import evaluate_fused
+from gausslite.fusion.refine import refine_map
+from gausslite.fusion.vote import voxel_vote
+from gausslite.mapping.mapper import Mapper
+from gausslite.pipeline import gt_roi_fn
+from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset
+from gausslite.stats import fmt, mean_std
+from gausslite.wire.codec import GaussianArrays
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -43,18 +56,6 @@ FIELDS = ("own", "alone_raw", "alone_ft", "vote_r0", "vote_r1", "refine_foot", "
 
 def run_seed(args, seed: int) -> dict:
     """One seed: map both agents, fine-tune, vote, refine; ROI PSNR per task and variant."""
-    import torch
-
-    from bench.delta_tolerance import agent_mapper
-    from gausslite.datasets import load_dataset
-    from gausslite.fusion.refine import refine_map
-    from gausslite.fusion.vote import voxel_vote
-    from gausslite.mapping.mapper import Mapper
-    from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset
-    from gausslite.wire.codec import GaussianArrays
-    from gausslite.evaluation import evaluate_fused
-
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset, downscale=args.downscale, max_frames=args.max_frames)
     frames = [ds[i] for i in range(len(ds))]
@@ -107,10 +108,6 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not Path(args.dataset).is_dir():
         ap.error(f"{args.dataset} not found (set GAUSSLITE_SHARED)")
-
-    from tqdm import tqdm
-
-    from gausslite.stats import fmt, mean_std
 
     t0 = time.perf_counter()
     runs = [run_seed(args, s) for s in tqdm(range(args.seeds), desc="bench.share_finetune", unit="seed")]

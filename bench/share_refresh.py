@@ -39,8 +39,21 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from bench._results import write_results
+from bench.delta_tolerance import agent_mapper
+from gausslite.datasets import load_dataset
+from gausslite.evaluation import evaluate_fused
+from gausslite.fusion.vote import voxel_vote
+from gausslite.mapping.mapper import Mapper
+from gausslite.pipeline import gt_roi_fn
+from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset, update_shared_subset
+from gausslite.stats import fmt, mean_std
+from gausslite.synthetic import make_scene
+from gausslite.wire.codec import GaussianArrays
+from gausslite.wire.delta import PushPlanner
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -51,12 +64,9 @@ FIELDS = ("upload_ratio", "total_upload_bytes", "final_subset_bytes", "alone", "
 
 def scene_datasets(args) -> list:
     """The two agents' datasets of ``args.scene`` (room0: the same frames twice)."""
-    from gausslite.datasets import load_dataset
-
     if args.scene == "room0":
         ds = load_dataset(args.dataset, downscale=args.downscale, max_frames=args.max_frames)
         return [ds, ds]
-    from gausslite.synthetic import make_scene
 
     out = REPO / "runs" / "bench_share_refresh" / "scene"
     if not (out / "agent_b").is_dir():
@@ -71,17 +81,6 @@ def arm_names(refresh: list[float]) -> list[str]:
 
 def run_seed(args, seed: int, refresh: list[float]) -> dict:
     """One seed: map both agents with periodic pushes per arm; bytes and ROI PSNR per arm and task."""
-    import torch
-
-    from bench.delta_tolerance import agent_mapper
-    from gausslite.fusion.vote import voxel_vote
-    from gausslite.mapping.mapper import Mapper
-    from gausslite.pipeline import gt_roi_fn
-    from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset, update_shared_subset
-    from gausslite.wire.codec import GaussianArrays
-    from gausslite.wire.delta import PushPlanner
-    from gausslite.evaluation import evaluate_fused
-
     torch.set_num_threads(1)
     tasks = SCENES[args.scene]
     datasets = scene_datasets(args)
@@ -137,7 +136,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
         for n, t in zip(("agent_a", "agent_b"), tasks):
             g, gids = server[a][t]
             k = np.array([kappa_now[t].get(int(i), int(kk)) for i, kk in zip(gids, g.kappa)], np.int64)
-            fresh[n] = GaussianArrays(**{**{f: getattr(g, f) for f in GaussianArrays._SPEC}, "kappa": k})
+            fresh[n] = GaussianArrays(**{**{f: getattr(g, f) for f in GaussianArrays.FIELDS}, "kappa": k})
         fused, _ = voxel_vote(subs, 0.10, contest_radius=1)
         fused_fresh, _ = voxel_vote(fresh, 0.10, contest_radius=1)
         for task, ds in zip(tasks, datasets):
@@ -159,10 +158,6 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="default bench/results/share_refresh_<scene>.json")
     args = ap.parse_args(argv)
-
-    from tqdm import tqdm
-
-    from gausslite.stats import fmt, mean_std
 
     refresh = [float(x) for x in args.refresh.split(",") if x]
     arms = arm_names(refresh)

@@ -25,7 +25,10 @@ import sys
 import time
 from pathlib import Path
 
+from tqdm import tqdm
+
 from bench._results import write_results
+from gausslite.stats import fmt, mean_std
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -63,8 +66,6 @@ def agent_rows(report: dict) -> dict:
 
 def summarise(per_seed: list[dict]) -> dict:
     """Mean, std and per-seed values of every field, per agent."""
-    from gausslite.stats import mean_std
-
     out = {}
     for key in per_seed[0]:
         blk = {}
@@ -78,8 +79,6 @@ def summarise(per_seed: list[dict]) -> dict:
 
 def table(summary: dict) -> str:
     """Markdown table of a summary ({scene: {agent: block}})."""
-    from gausslite.stats import fmt
-
     lines = ["| scene | agent, task | share of map [%] | B / shared Gaussian | total upload / final subset | own map "
              "(context) | fused concat → vote → refine | vote − own | refine − own |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -101,8 +100,6 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "sim_seeds")
     ap.add_argument("--out", type=Path, default=RESULTS / "sim_seeds.json")
     args = ap.parse_args(argv)
-
-    from tqdm import tqdm
 
     t0 = time.perf_counter()
     scenes = [s for s in args.scenes.split(",") if s]

@@ -37,6 +37,18 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from bench._results import write_results
+from gausslite.datasets import load_dataset
+from gausslite.synthetic import make_scene
+from gausslite_rpc import agent_pb2
+from services.agent.client import AgentClient
+from services.agent.frames import encode_frame
+from services.fusion_server.client import FusionClient
+from services.sim import free_port
+
+import grpc
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 GROWTH_LIMIT = 0.05
@@ -158,8 +170,6 @@ def trend_last_half(samples: List[dict], key: str) -> Optional[float]:
     """Least-squares slope of ``key`` over the last half of the run, as a fraction of its median there per 30
     minutes: a leak shows as a steady positive trend, a transient peak (which :func:`growth_last_half` counts) does
     not. None with fewer than 3 samples there."""
-    import numpy as np
-
     if not samples:
         return None
     mid = samples[-1]["t_s"] / 2.0
@@ -194,9 +204,6 @@ def _stop(proc: Optional[subprocess.Popen]) -> None:
 
 def _scene(args, work: Path):
     """The circle's frames and the scene folder (annotations)."""
-    from gausslite.datasets import load_dataset
-    from gausslite.synthetic import make_scene
-
     d = work / f"scene_circle_{args.frames}_{args.width}x{args.height}"
     if not (d / "agent_a" / "traj.txt").is_file():
         print(f"rendering the circle scene ({args.frames} frames) into {d} ...", flush=True)
@@ -208,13 +215,6 @@ def _scene(args, work: Path):
 
 def run(args) -> dict:
     """Run the soak (see the module docstring); returns the results dict (``samples``, ``goals``, ...)."""
-    import grpc
-
-    from services.agent.client import AgentClient
-    from services.agent.frames import encode_frame
-    from services.fusion_server.client import FusionClient
-    from services.sim import free_port
-
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     frames, scene, ann = _scene(args, work)
@@ -347,8 +347,6 @@ def run(args) -> dict:
 
 def agent_state_name(state: int) -> str:
     """``MissionState`` number → its short name (``MAPPING``)."""
-    from gausslite_rpc import agent_pb2
-
     return agent_pb2.MissionState.Name(state).replace("MISSION_STATE_", "")
 
 
@@ -378,9 +376,11 @@ def table(res: dict) -> str:
 
 def plot(res: dict, path: Path) -> None:
     """PNG of RSS, disk, accept p99 and map size against time."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     s = res["samples"]
@@ -420,7 +420,6 @@ def main(argv=None) -> int:
     if args.minutes <= 0 or args.sample_s <= 0 or args.fps <= 0:
         print("bench.soak: --minutes, --sample-s and --fps must be > 0", file=sys.stderr)
         return 2
-    from bench._results import write_results
 
     res = run(args)
     out = Path(args.out)

@@ -45,11 +45,18 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from tqdm import tqdm
 
 from bench._results import write_results
-from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion, _mission,
-                            scene_path, score)
-from gausslite.evaluation import PROTOCOLS
+from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion,
+                            scene_path, score, start_mission)
+from gausslite.config import load_config
+from gausslite.evaluation import PROTOCOLS, evaluate_fused, score_map
+from gausslite.fusion.guard import for_robot
+from gausslite.fusion.refine import refine_map
+from gausslite.fusion.vote import concat, voxel_vote
+from gausslite.mapping.views import keyframe_from_frame
+from gausslite.wire.codec import GaussianArrays, SubsetAssembler, apply_delta
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
 #: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
@@ -69,9 +76,9 @@ LONG_REFINE_ITERS = 1000
 
 
 class RecordingFusion(SinkFusion):
-    """In-process stand-in of the fusion server's store for one agent: every upload is decoded and, for a delta,
-    rebuilt on the subset it names as base (:func:`gausslite.wire.codec.apply_delta`), exactly as the server
-    stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
+    """In-process stand-in of the fusion server's store for one agent (a :class:`gausslite.mission.ports.FusionPort`):
+    every upload is decoded and, for a delta, rebuilt on the subset it names as base
+    (:func:`gausslite.wire.codec.apply_delta`), exactly as the server stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
     holds (seconds since ``start()``, version, subset) of every push."""
 
     def __init__(self, max_keyframes: int = 64) -> None:
@@ -86,8 +93,6 @@ class RecordingFusion(SinkFusion):
         self.t0 = time.perf_counter()
 
     def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
-        from gausslite.wire.codec import SubsetAssembler, apply_delta
-
         chunks = list(chunks)
         asm = SubsetAssembler(agent_id=agent_id, map_version=version)
         for c in chunks:
@@ -102,8 +107,6 @@ class RecordingFusion(SinkFusion):
         return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
 
     def upload_keyframes(self, agent_id, frames, *, rois=None, **kw):
-        from gausslite.mapping.views import keyframe_from_frame
-
         for i, fr in enumerate(frames):
             roi = None if rois is None or rois[i] is None else np.asarray(rois[i], bool)
             self.keyframes.setdefault(int(fr.frame_id), keyframe_from_frame(fr, "cpu", roi))
@@ -114,8 +117,6 @@ class RecordingFusion(SinkFusion):
 
 def fuse_settings() -> dict:
     """The live sim's fusion settings (``sim.fuse`` of ``deploy/gausslite.yaml``, with its ``live_contest_radius``)."""
-    from gausslite.config import load_config
-
     return load_config().sim.fuse.settings(realtime=True)
 
 
@@ -135,12 +136,11 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
            "run": run, "cap": cap, "clock": "scaled", "overrides": list(overrides)}
     rate = REFERENCE_BUDGET_S / budget
     sink = RecordingFusion()
-    ds, ann, task, rt, _ = _mission(job, rate, fusion=sink)
+    ds, ann, task, rt, _ = start_mission(job, rate, fusion=sink)
     lo, hi = spec.get("frames") or (0, len(ds))
     try:
         sink.start()
-        rt.replay(ds.slice(lo, hi))
-        rt._replay_thread.join()
+        rt.replay(ds.slice(lo, hi)).join()
         rt.finish(push=True, evaluate=False)
         wall = time.perf_counter() - sink.t0
         pu = rt.pusher
@@ -149,8 +149,6 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                     sorted(int(st.frame_id) for st in rt.mapper.stats))
         state = {}
         if keep_state:
-            from gausslite.wire.codec import GaussianArrays
-
             state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
                      "_kfs": [kf for kf in rt.mapper.keyframes if kf.roi is not None], "_cfg": rt.mapper.cfg}
         return {**state, "id": spec["id"], "task": task.id, "frames": [lo, hi], "wall_s": wall, "rate": rate,
@@ -177,10 +175,6 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
     over every frame, each final map also under the scoring protocols (``protocols``: ``{protocol: {task: dB}}``;
     ``keyframes``: the owner's uploaded keyframes at the refined poses they carry, ``tracked``: every
     ``track_stride``-th frame at a pose fitted against the fused map; :func:`gausslite.evaluation.score_map`)."""
-    from gausslite.evaluation import evaluate_fused, score_map
-    from gausslite.fusion.refine import refine_map
-    from gausslite.fusion.vote import concat, voxel_vote
-
     def scores(g, stride: int = 1) -> dict:
         return {a["task"]: evaluate_fused(g, a["_frames"][::stride], a["_annotations"], a["task"]) for a in agents}
 
@@ -217,7 +211,6 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
         out[key]["protocols"] = _by_task({a["task"]: by_protocol(g, a, out[key]["roi_psnr"][a["task"]])
                                           for a in agents})
     # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot
-    from gausslite.fusion.guard import for_robot
 
     out["for_robot"] = {"n": {}, "roi_psnr": {}}
     robot = {}
@@ -390,9 +383,11 @@ def table(result: dict) -> str:
 
 def plot_team(runs: list[dict], team: str, path: Path) -> None:
     """Fused (vote) ROI PSNR per task over mission time, one line per run, with each owner's final own figure."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     rs = [r for r in runs if r["team"] == team]
@@ -431,7 +426,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
     args = ap.parse_args(argv)
-    from tqdm import tqdm
 
     teams = [t for t in args.teams.split(",") if t]
     for t in teams:

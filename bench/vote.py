@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
 from bench.codec import synthetic_room
 from gausslite.fusion import concat, voxel_vote
@@ -47,7 +48,6 @@ def main(argv: Optional[list[str]] = None) -> dict:
     args = ap.parse_args(argv)
     n = 100_000 if args.quick else args.n
     reps = 2 if args.quick else args.repeats
-    import torch
 
     torch.set_num_threads(1)
     os.environ.setdefault("OMP_NUM_THREADS", "1")

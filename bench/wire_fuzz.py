@@ -23,9 +23,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gausslite.wire import (
+    GaussianArrays,
     LOSSLESS,
     MAX_KAPPA_SHIFT,
-    GaussianArrays,
     QuantConfig,
     SubsetAssembler,
     WireError,
@@ -37,6 +37,7 @@ from gausslite.wire import (
     pack_sections,
     peek_header,
     section_lengths,
+    spatial_order,
 )
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -167,8 +168,6 @@ def prop_assembler(chunks) -> None:
 def prop_round_trip(n: int, seed: int, per: int, extent: float, shuffle: bool, sort: bool) -> None:
     g = random_arrays(n, seed, extent)
     if sort:
-        from gausslite.wire import spatial_order
-
         g = g.take(spatial_order(g.means))
     q = QuantConfig(shuffle=shuffle)
     out, meta = assemble(encode_subset(g, "fuzz", seed, chunk_gaussians=per, quant=q))
@@ -203,7 +202,7 @@ def prop_delta_round_trip(m: int, seed: int, per: int) -> None:
     out = apply_delta(base, dec, t, rm, m, meta.kappa_shift)
     assert len(out) == m - n_rm + n_new
     keep = np.setdiff1d(np.arange(m), removed)
-    expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    expect = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays.FIELDS}
     expect["kappa"][expect["active"]] += shift  # active rows only
     for k in expect:
         expect[k][upd] = getattr(recs, k)[: len(upd)]

@@ -9,13 +9,15 @@ starts. ``gausslite config --show`` prints the effective tree, ``--schema`` its 
 
 from __future__ import annotations
 
+import json
+import tomllib
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
-from gausslite.mission.config import AgentConfig
+from gausslite.mission.config import AgentSections
 
 __all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config", "read_yaml",
            "DEFAULT_CONFIG_PATH"]
@@ -149,18 +151,12 @@ class FusionSettings(BaseModel):
         Raises:
             FileNotFoundError: missing file. ValueError: unknown keys, bad values or an unparsable file.
         """
-        import json
-
-        from pydantic import ValidationError
-
         p = str(path)
         try:
             if p.endswith((".yaml", ".yml")):
                 return load_config(p).fusion
             text = Path(p).read_text(encoding="utf-8")
             if p.endswith(".toml"):
-                import tomllib
-
                 return cls.model_validate(tomllib.loads(text))
             return cls.model_validate(json.loads(text))
         except FileNotFoundError:
@@ -171,33 +167,13 @@ class FusionSettings(BaseModel):
             raise ValueError(f"cannot parse fusion config {path}: {e}") from e
 
 
-class GaussLiteConfig(BaseModel):
+class GaussLiteConfig(AgentSections):
     """The whole configuration (module docstring). In YAML the mapper is a top-level section; here it is also
     ``agent.mapper``, the agent's copy, which the YAML's ``mapper`` section sets."""
 
     model_config = ConfigDict(extra="forbid")
-    agent: AgentConfig = AgentConfig()
     sim: SimConfig = SimConfig()
     fusion: FusionSettings = FusionSettings()
-
-    @model_validator(mode="before")
-    @classmethod
-    def _mapper_into_agent(cls, data):
-        if isinstance(data, dict) and "mapper" in data:
-            data = dict(data)
-            mapper = data.pop("mapper")
-            agent = dict(data.get("agent") or {})
-            if mapper is not None:
-                if not isinstance(mapper, MapperConfig):
-                    mapper = MapperConfig.model_validate({"mode": "gausslite", **dict(mapper)})
-                agent["mapper"] = mapper
-            data["agent"] = agent
-        return data
-
-    @property
-    def mapper(self) -> MapperConfig:
-        """The mapper section."""
-        return self.agent.mapper
 
     def to_yaml_dict(self) -> dict:
         """The effective configuration in the YAML's layout (``mapper`` as its own section)."""

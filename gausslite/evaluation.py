@@ -6,6 +6,7 @@ Full-image PSNR/SSIM/depth L1, and PSNR/SSIM restricted to the ground-truth ROI 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,8 +17,11 @@ import numpy as np
 import torch
 
 from gausslite.datasets.base import Frame
+from gausslite.mapping.exposure import apply_exposure
+from gausslite.mapping.poses import VectorAdam, pose_delta
+from gausslite.mapping.views import keyframe_from_frame
 from gausslite.metrics import depth_l1, psnr, ssim
-from gausslite.render import RenderOutput
+from gausslite.render import RenderOutput, rasterize
 
 RenderFn = Callable[[Frame], RenderOutput]
 
@@ -104,8 +108,6 @@ def render_map(gmap, frame: Frame, backend: str = "auto") -> RenderOutput:
     Returns:
         ``RenderOutput`` at the frame's resolution, on a black background.
     """
-    from gausslite.render import rasterize
-
     with torch.no_grad():
         return rasterize(gmap.means, gmap.quats, gmap.log_scales, gmap.opacity_logits, gmap.colors,
                          K=frame.intrinsics.K, width=frame.intrinsics.width, height=frame.intrinsics.height,
@@ -220,10 +222,6 @@ def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarr
     Raises:
         ValueError: ``iters`` < 0 or a frame whose images do not match its intrinsics.
     """
-    from gausslite.mapping.exposure import apply_exposure
-    from gausslite.mapping.poses import VectorAdam, pose_delta
-    from gausslite.mapping.views import keyframe_from_frame
-
     if iters < 0:
         raise ValueError(f"iters must be >= 0, got {iters}")
     dev = sensor.device
@@ -263,10 +261,6 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
                      pose: Optional[np.ndarray] = None) -> RenderOutput:
     """The render a protocol scores a frame by (:func:`score_live_map`); ``pose``: a ``keyframes`` view's own pose
     (rendered as is, identity exposure) instead of the mapper's refined one."""
-    import dataclasses
-
-    from gausslite.mapping.exposure import apply_exposure
-
     intr = frame.intrinsics
     if protocol == "keyframes" and pose is not None:
         with torch.no_grad():

@@ -22,6 +22,7 @@ from typing import Optional, Tuple, Union
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement
 
 logger = logging.getLogger(__name__)
 
@@ -417,8 +418,6 @@ class GaussianMap:
             ValueError: if any κ is negative.
             OSError: if the file cannot be written (e.g. missing parent directory).
         """
-        from plyfile import PlyData, PlyElement
-
         t = self.detach().to("cpu")
         n = len(t)
         kappa = t.kappa.numpy()
@@ -465,8 +464,6 @@ class GaussianMap:
             FileNotFoundError: ``path`` does not exist.
             ValueError: not a PLY, no ``vertex`` element, missing required properties, or negative κ.
         """
-        from plyfile import PlyData
-
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"PLY file not found: {p}")

@@ -37,7 +37,12 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.memory import VOXEL_KEY_OFFSET, pack_voxel_keys
+from gausslite.mapping.model import cosine_lr_factor
+from gausslite.mapping.views import StoredKeyframe
+from gausslite.wire.codec import GaussianArrays, QuantConfig
+from gausslite.wire.delta import change_steps
 
 __all__ = ["ShareConfig", "task_region", "in_region", "roi_contribution", "select_task_subset",
            "finetune_subset", "update_shared_subset"]
@@ -144,6 +149,7 @@ def roi_contribution(gmap, views: Sequence, backend: str = "auto",
     Exact: the rendered colour is ``Σ_i T_ip α_ip c_i + T_p · background``, so the gradient of the
     ROI-summed red channel with respect to ``c_i`` is the weight.
     """
+    # lazy: keeps gausslite.sharing importable without Warp
     from gausslite.render import blend_weights
 
     n = len(gmap)
@@ -268,11 +274,8 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
     Raises:
         ValueError: ``iters < 0``, ``final_lr`` outside (0, 1], or ``frozen`` of the wrong shape.
     """
-    from gausslite.mapping.config import MapperConfig
+    # lazy: keeps gausslite.sharing importable without SciPy, Warp
     from gausslite.mapping.mapper import Mapper
-    from gausslite.mapping.model import cosine_lr_factor
-    from gausslite.mapping.views import StoredKeyframe
-    from gausslite.wire.codec import GaussianArrays
 
     if iters < 0:
         raise ValueError(f"iters must be >= 0, got {iters}")
@@ -366,9 +369,6 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
         ValueError: ``refresh`` outside [0, 1], ``ids`` of the wrong length, ``base`` and ``base_ids``
             of different lengths.
     """
-    from gausslite.wire.codec import GaussianArrays, QuantConfig
-    from gausslite.wire.delta import change_steps
-
     if not 0.0 <= refresh <= 1.0:
         raise ValueError(f"refresh must be in [0, 1], got {refresh}")
     cur = GaussianArrays.from_any(arrays)
@@ -417,10 +417,8 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
 
 def _rows_replaced(arrays, rows: np.ndarray, values):
     """A copy of ``arrays`` (GaussianArrays) with ``rows`` set to the rows of ``values``."""
-    from gausslite.wire.codec import GaussianArrays
-
     cols = {}
-    for name in GaussianArrays._SPEC:
+    for name in GaussianArrays.FIELDS:
         a = np.array(getattr(arrays, name), copy=True)
         if len(rows):
             a[rows] = getattr(values, name)

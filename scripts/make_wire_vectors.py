@@ -44,7 +44,7 @@ def _arrays(n: int, seed: int, line: bool = False) -> GaussianArrays:
 
 def _jsonable(a: GaussianArrays) -> dict:
     return {k: np.asarray(getattr(a, k)).astype(float if getattr(a, k).dtype.kind == "f" else int).tolist()
-            if getattr(a, k).dtype != bool else getattr(a, k).astype(int).tolist() for k in GaussianArrays._SPEC}
+            if getattr(a, k).dtype != bool else getattr(a, k).astype(int).tolist() for k in GaussianArrays.FIELDS}
 
 
 def main() -> int:

@@ -25,15 +25,32 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
+import cv2
+import grpc
 import numpy as np
 import yaml
 
+from gausslite.config import GaussLiteConfig, SimConfig, SimFuse, read_yaml
+from gausslite.datasets import detect_layout, load_dataset
+from gausslite.datasets.annotations import load_annotations
+from gausslite.evaluation import PROTOCOLS, evaluate_fused, render_map, score_map, side_by_side
+from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
+from gausslite.fusion.vote import voxel_vote
 from gausslite.mapping.config import apply_overrides
+from gausslite.mission.config import ScoringConfig
+from gausslite.synthetic import make_scene
+from gausslite.wire.codec import WireLimits, assemble
+from gausslite_rpc import agent_pb2
+from services.agent.client import AgentClient
+from services.cli.cmd_health import check_health
+from services.fusion_server.client import FusionClient
+from services.fusion_server.store import SqliteFusionStore
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +104,6 @@ def load_sim_config(path: Optional[str | Path] = None, overrides: List[str] = ()
         FileNotFoundError: missing file. ValueError: not a mapping / bad override. pydantic.ValidationError: bad
         keys or values.
     """
-    from gausslite.config import GaussLiteConfig, read_yaml
-
     data = apply_overrides(read_yaml(path or DEFAULT_CONFIG), list(overrides))
     GaussLiteConfig.model_validate(data)
     return data
@@ -104,8 +119,6 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
     Raises:
         ValueError: the scene has no annotations or fewer than two tasks. KeyError: unknown task id.
     """
-    from gausslite.datasets.annotations import load_annotations
-
     root = Path(dataset)
     split = all((root / n).is_dir() for n in AGENT_NAMES)
     paths = [str(root / n) for n in AGENT_NAMES] if split else [str(root)] * 2
@@ -113,7 +126,6 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
     if ann is None or len(ann.tasks) < 1:
         raise ValueError(f"{dataset}: the simulation needs objects.json/tasks.json with tasks")
     known = [t.id for t in ann.tasks]
-    from gausslite.config import SimConfig
 
     tasks_cfg = SimConfig.model_validate(cfg.get("sim") or {}).tasks
     if not task_ids:
@@ -135,8 +147,6 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
 def _check_bags(plans: List[AgentPlan], cfg: dict) -> None:
     """Open every ROS bag the agents will replay, so a bad bag fails with its one clear error before any
     process starts (``BagError`` lists the bag's topics and TF frames)."""
-    from gausslite.datasets import detect_layout, load_dataset
-
     a = cfg.get("agent") or {}
     for path in sorted({p.dataset for p in plans}):
         if detect_layout(path)[0] == "bag":
@@ -225,8 +235,6 @@ def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[Pr
     Raises:
         TimeoutError: not SERVING in time. RuntimeError: a child process died meanwhile.
     """
-    from services.cli.cmd_health import check_health
-
     deadline = time.monotonic() + timeout_s
     status = "?"
     while time.monotonic() < deadline:
@@ -315,9 +323,11 @@ def plot_pushes(report: dict, path: Path) -> bool:
     agents = [a for a in report["agents"] if a.get("push_log")]
     if not agents:
         return False
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
@@ -345,8 +355,6 @@ def fuse_settings(cfg: dict, realtime: bool = False) -> dict:
     runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's per-voxel rule): measured
     live, the neighbourhood contest empties an owner's voxels next to another robot's denser task region
     (``docs/sharing.md``)."""
-    from gausslite.config import SimFuse
-
     return SimFuse.model_validate((cfg.get("sim") or {}).get("fuse") or {}).settings(realtime)
 
 
@@ -389,8 +397,6 @@ class FusedTimeline:
         """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}, "roi_psnr_for_robot": {task:
         dB}}]``: every fused team map scored on each task's ROI (every ``stride``-th frame of ``frames_by_task[task] =
         (dataset, frames)``), and each task on the map made for its robot (``task_of``: agent id → task id)."""
-        from gausslite.evaluation import evaluate_fused
-
         out = []
         for t, versions, maps in self.maps:
             g = maps[""].to_gaussian_map()
@@ -419,8 +425,6 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_ps
     Returns:
         ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
     """
-    from gausslite.evaluation import score_map
-
     rest = [q for q in scoring.chosen() if q != "sensor"]
     out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
     if rest:
@@ -452,13 +456,6 @@ def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, t
     Returns:
         agent id → the diagnosis (``mass``, ``foreign``, ``top_foreign`` (5), ``own_missing``) plus ``image``.
     """
-    import cv2
-
-    from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
-    from gausslite.fusion.vote import voxel_vote
-    from gausslite.wire.codec import WireLimits, assemble
-    from services.fusion_server.store import SqliteFusionStore
-
     store = SqliteFusionStore(out / "data" / "fusion")
     try:
         subsets = {a: assemble(store.chunk_data(a, v), WireLimits())[0] for a, v in store.latest_complete().items()}
@@ -491,9 +488,11 @@ def plot_fused_timeline(report: dict, path: Path) -> bool:
     tl = report.get("fused_timeline") or []
     if not tl:
         return False
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 3.6))
@@ -578,8 +577,6 @@ def _protocol_lines(report: dict) -> List[str]:
 
 def _protocol_order(name: str) -> int:
     """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``)."""
-    from gausslite.evaluation import PROTOCOLS
-
     return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
 
 
@@ -709,22 +706,11 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     Raises:
         TimeoutError, RuntimeError (a service died or failed), ValueError/FileNotFoundError (bad input).
     """
-    import cv2
-    import grpc
-
-    from gausslite.datasets import load_dataset
-    from gausslite.evaluation import evaluate_fused, render_map, side_by_side
-    from gausslite.mission.config import ScoringConfig
-    from gausslite_rpc import agent_pb2
-    from services.agent.client import AgentClient
-    from services.fusion_server.client import FusionClient
-
     t0 = time.perf_counter()
     offline = _load_offline(offline_report) if offline_report else None
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_sim_config(config, list(overrides))
-    from gausslite.config import SimConfig
 
     sim_cfg = SimConfig.model_validate(cfg.get("sim") or {})  # typed: its defaults are the only ones
     timeout_s = float(timeout_s or sim_cfg.timeout_s)
@@ -732,8 +718,6 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     config_path = out / "config.yaml"
     config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     if dataset is None:
-        from gausslite.synthetic import make_scene
-
         sc = sim_cfg.scene
         log.info("generating the synthetic default scene into %s", out / "scene")
         make_scene(out / "scene", seed=sc.seed, width=sc.width, height=sc.height, frames=sc.frames, progress=progress)
@@ -1014,8 +998,6 @@ def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:
 
 
 def _main_thread() -> bool:
-    import threading
-
     return threading.current_thread() is threading.main_thread()
 
 

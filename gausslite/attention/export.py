@@ -79,9 +79,11 @@ def import_ultralytics():
     except importlib.metadata.PackageNotFoundError:
         patch = True
     if not patch:
+        # lazy: heavy optional dependency, loaded only on this path
         import ultralytics
 
         return ultralytics
+    # lazy: keeps gausslite.attention.export importable without torch
     import torch
 
     major, minor = (int(v) for v in torch.__version__.split("+")[0].split(".")[:2])
@@ -93,6 +95,7 @@ def import_ultralytics():
 
     importlib.metadata.version = version
     try:
+        # lazy: heavy optional dependency, loaded only on this path
         import ultralytics
         import ultralytics.utils  # noqa: F401  (reads the version at import)
         import ultralytics.utils.checks  # noqa: F401
@@ -132,6 +135,7 @@ def export_yolo_seg(source: Union[str, Path], out_path: Union[str, Path],
     if suffix != ".pt" and os.sep in src and not Path(src).is_file():
         raise MissingModelFiles(src, [Path(src).name])
     import_ultralytics()
+    # lazy: heavy optional dependency, loaded only on this path
     from ultralytics import YOLO
 
     out = Path(out_path)
@@ -180,6 +184,7 @@ def grounding_text_mask_exportable(input_ids, special_tokens=None):
     Returns:
         (attention mask (B, L, L) bool, position ids (B, L) int64).
     """
+    # lazy: keeps gausslite.attention.export importable without torch
     import torch
 
     if special_tokens is None:
@@ -211,6 +216,7 @@ def exportable_grounding_dino() -> Iterator[None]:
     Raises:
         ImportError: transformers is not installed.
     """
+    # lazy: heavy optional dependency, loaded only on this path
     from transformers.models.grounding_dino import modeling_grounding_dino as mg
 
     name = "generate_masks_with_special_tokens_and_transfer_map"
@@ -255,6 +261,7 @@ def load_grounding_dino(source: Union[str, Path], local_files_only: bool = True)
         MissingModelFiles: a folder lacks files, or a hub id is not available (offline, not cached).
         ImportError: transformers is not installed.
     """
+    # lazy: heavy optional dependency, loaded only on this path
     from transformers import GroundingDinoForObjectDetection
 
     p = Path(source)
@@ -290,6 +297,7 @@ def write_vocab(source: Union[str, Path], out_path: Union[str, Path], local_file
             shutil.copyfile(p / "vocab.txt", out)
         return out
     try:
+        # lazy: heavy optional dependency, loaded only on this path
         from transformers import AutoTokenizer
 
         tok = AutoTokenizer.from_pretrained(str(source), local_files_only=local_files_only)
@@ -322,6 +330,7 @@ def export_grounding_dino(model, out_path: Union[str, Path], image_size: Tuple[i
     Raises:
         torch.onnx errors when the export fails.
     """
+    # lazy: keeps gausslite.attention.export importable without torch
     import torch
 
     class _Wrapped(torch.nn.Module):
@@ -351,6 +360,7 @@ def export_grounding_dino(model, out_path: Union[str, Path], image_size: Tuple[i
                           output_names=["logits", "pred_boxes"], dynamic_shapes=dyn, verbose=False)
     data = out.with_name(out.name + ".data")
     if data.exists():  # small models: fold external data back into one file
+        # lazy: heavy optional dependency, loaded only on this path
         import onnx
 
         m = onnx.load(str(out))

@@ -22,6 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
 from gausslite.attention.interfaces import (
     Detections,
     Detector,
@@ -34,7 +35,7 @@ from gausslite.attention.keyframes import KeyframeConfig, KeyframeTrigger
 from gausslite.attention.phrases import normalize_phrase
 from gausslite.attention.spatial import LiftedMask, SpatialConfig, lift_mask, merge_depth, relation_holds, reproject_box
 
-__all__ = ["AttentionConfig", "AttentionFrontEnd", "max_box_fraction_for", "LARGE_OBJECT_WORDS",
+__all__ = ["AttentionConfig", "AttentionFrontEnd", "graph_parts", "max_box_fraction_for", "LARGE_OBJECT_WORDS",
            "BOX_FRACTION_SMALL", "BOX_FRACTION_LARGE", "BOX_FRACTION_MULTI"]
 
 BOX_FRACTION_SMALL = 0.20
@@ -122,7 +123,7 @@ class AttentionFrontEnd:
         if config.max_box_fraction is not None and not 0 < config.max_box_fraction <= 1:
             raise ValueError(f"max_box_fraction must be in (0, 1], got {config.max_box_fraction}")
         self.config = config
-        targets, anchors, relations = _graph_parts(graph)
+        targets, anchors, relations = graph_parts(graph)
         self.targets = list(dict.fromkeys(targets))
         self.anchors = [a for a in dict.fromkeys(anchors)]
         self.phrases: List[str] = list(dict.fromkeys(self.targets + self.anchors))
@@ -310,8 +311,6 @@ class AttentionFrontEnd:
         ``config`` supplies thresholds; its detector/segmenter are replaced by the annotation backend.
         The up axis is ``annotations.up_axis``.
         """
-        from gausslite.attention.annotation_backend import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-
         cfg = config or AttentionConfig()
         backend = AnnotationBackend(annotations, matcher=matcher)
         cfg = AttentionConfig(**{**cfg.__dict__, "detector": AnnotationDetector(backend),
@@ -319,7 +318,10 @@ class AttentionFrontEnd:
         return cls(graph, cfg, up_axis=annotations.up_axis)
 
 
-def _graph_parts(graph) -> Tuple[List[str], List[str], List[Tuple[str, str, str]]]:
+def graph_parts(graph) -> Tuple[List[str], List[str], List[Tuple[str, str, str]]]:
+    """``(targets, anchors, relations)`` of a task graph: a ``TaskGraph``-like object or a dict with those keys;
+    each relation as ``(predicate, target, anchor)`` strings."""
+
     def get(name):
         return graph.get(name, []) if isinstance(graph, dict) else getattr(graph, name, [])
 

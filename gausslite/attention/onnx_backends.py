@@ -58,6 +58,7 @@ def _session(path: Union[str, Path], providers: Optional[Sequence[str]], threads
     Raises:
         FileNotFoundError: no such file. ValueError: ONNX Runtime cannot load it (message names the file).
     """
+    # lazy: heavy optional dependency, loaded only on this path
     import onnxruntime as ort
 
     p = Path(path)

@@ -175,6 +175,7 @@ _EMBEDDER_CACHE: Dict[str, object] = {}
 def _default_embedder():
     """Shared MiniLM embedder (loaded once per process), or None when the model package is absent."""
     if "minilm" not in _EMBEDDER_CACHE:
+        # lazy: keeps gausslite.attention.phrases importable without torch
         from gausslite.attention.embedding import MiniLMEmbedder, find_minilm_dir
 
         _EMBEDDER_CACHE["minilm"] = MiniLMEmbedder() if find_minilm_dir() is not None else None

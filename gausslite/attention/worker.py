@@ -16,6 +16,7 @@ import threading
 import time
 from typing import Callable, Optional
 
+import cv2
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -43,8 +44,6 @@ def reproject_mask(mask: np.ndarray, depth: np.ndarray, c2w_src: np.ndarray, K_s
     Raises:
         ValueError: mask and depth of different shapes.
     """
-    import cv2
-
     m = np.asarray(mask, bool)
     d = np.asarray(depth, np.float64)
     if m.shape != d.shape:

@@ -32,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def command_packages() -> list:
     """Packages of further subcommands: the values of the ``gausslite.commands`` entry points (``pyproject.toml``)."""
+    # lazy: the command line starts without loading the library
     from importlib.metadata import entry_points
 
     return sorted({ep.value for ep in entry_points(group="gausslite.commands")})

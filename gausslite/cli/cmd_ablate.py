@@ -32,6 +32,7 @@ def select_rows(names: str | None) -> list[tuple[str, object]]:
     Raises:
         ValueError: an unknown row name.
     """
+    # lazy: the command line starts without loading the library
     from gausslite.mapping.config import ablation_rows
 
     rows = ablation_rows()
@@ -53,6 +54,7 @@ def rows_from_previous(previous: Path, run: list[str], task_ids: list[str]) -> d
         OSError: ``previous`` cannot be read.
         ValueError: it is not a list of rows, lacks a row that is not run, or covers other tasks.
     """
+    # lazy: the command line starts without loading the library
     from gausslite.mapping.config import ablation_rows
 
     try:
@@ -74,6 +76,7 @@ def rows_from_previous(previous: Path, run: list[str], task_ids: list[str]) -> d
 
 def merge_rows(rows: list[dict], filled: dict[str, dict]) -> list[dict]:
     """All table rows in order: ``rows`` (just run) and ``filled`` (from :func:`rows_from_previous`)."""
+    # lazy: the command line starts without loading the library
     from gausslite.mapping.config import ablation_rows
 
     done = {r["row"]: r for r in rows}
@@ -93,6 +96,7 @@ def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int 
     it; ``by_seed`` (seed → task-mean figures), ``per_task`` (task → mean and std over seeds) and
     ``seeds``. Seeds change seeding and view sampling (``MapperConfig.seed``).
     """
+    # lazy: the command line starts without loading the library
     from tqdm import tqdm
 
     from gausslite.pipeline import run_mapping
@@ -148,6 +152,7 @@ def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int 
 def gains_vs_baseline(rows: list[dict]) -> dict[str, dict]:
     """Paired ROI PSNR gain of every row over the ``none`` row, per seed (mean, std, significant =
     mean > 2 std); empty when there is no ``none`` row or the rows' seeds differ."""
+    # lazy: the command line starts without loading the library
     from gausslite.stats import gain
 
     base = next((r for r in rows if r["row"] == "none"), None)
@@ -164,14 +169,17 @@ def gains_vs_baseline(rows: list[dict]) -> dict[str, dict]:
 
 def write_report(rows: list[dict], out: Path, title: str) -> None:
     """Write ablation.json, ablation.md and ablation.png."""
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
     matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
     import matplotlib.pyplot as plt
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "ablation.json").write_text(json.dumps(rows, indent=2))
     mark = lambda b: "✓" if b else "✗"  # noqa: E731
+    # lazy: the command line starts without loading the library
     from gausslite.stats import fmt
 
     gains = gains_vs_baseline(rows)

@@ -37,6 +37,7 @@ def frame_iou(pred, gt) -> float:
 
 
 def _overlay(rgb, pred, gt):
+    # lazy: the command line starts without loading the library
     import cv2
     import numpy as np
 
@@ -49,6 +50,7 @@ def _overlay(rgb, pred, gt):
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the library
     import cv2
     import numpy as np
     from tqdm import tqdm

@@ -23,6 +23,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the library
     import yaml
     from pydantic import ValidationError
 

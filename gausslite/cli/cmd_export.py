@@ -12,6 +12,7 @@ import sys
 
 def register(subparsers) -> None:
     """Add the ``export`` subcommand to ``subparsers``."""
+    # lazy: the command line starts without loading the library
     from gausslite.viewer.export import FORMATS
 
     p = subparsers.add_parser("export", help="convert a map to .splat / .spz (standard splat viewers)",
@@ -23,6 +24,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the library
     from gausslite.viewer.export import format_of, load_map, write_map
 
     try:

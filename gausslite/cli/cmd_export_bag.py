@@ -16,6 +16,7 @@ log = logging.getLogger("gausslite.export_bag")
 
 
 def register(sub) -> None:
+    # lazy: the command line starts without loading the library
     from gausslite.cli.cmd_map import add_bag_args, add_depth_camera_args
 
     p = sub.add_parser("export-bag", help="write a dataset as a rosbag2 MCAP (or SQLite3 / ROS 1) bag",
@@ -38,6 +39,7 @@ def register(sub) -> None:
 
 
 def _handler(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the library
     from tqdm import tqdm
 
     from gausslite.cli.cmd_map import dataset_kwargs

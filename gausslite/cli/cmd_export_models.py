@@ -33,6 +33,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args) -> int:
+    # lazy: the command line starts without loading the library
     from gausslite.attention.export import MissingModelFiles, export_models
 
     if args.detector is None and args.segmenter is None:

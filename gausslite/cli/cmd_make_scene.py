@@ -12,6 +12,7 @@ log = logging.getLogger(__name__)
 def _handler(args: argparse.Namespace) -> int:
     """Run :func:`gausslite.synthetic.make_scene` with the parsed arguments; returns the exit code
     (0 = written, 2 = invalid arguments, 1 = I/O error)."""
+    # lazy: the command line starts without loading the library
     from gausslite.synthetic import make_scene
 
     try:

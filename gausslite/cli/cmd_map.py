@@ -102,6 +102,7 @@ def dataset_kwargs(args: argparse.Namespace, path: Path) -> dict:
     Raises:
         ValueError: a flag that does not apply to this layout, or malformed numbers.
     """
+    # lazy: the command line starts without loading the library
     from gausslite.datasets import detect_layout
     from gausslite.datasets.registration import parse_depth_camera
     from gausslite.mapping.profiles import profile_for_layout
@@ -137,6 +138,7 @@ def dataset_kwargs(args: argparse.Namespace, path: Path) -> dict:
         dvals = _numbers(di, "--depth-intrinsics")
         size = None
         if len(dvals) == 4:  # same size as the colour images
+            # lazy: the command line starts without loading the library
             from gausslite.datasets import load_dataset
 
             probe = load_dataset(path, max_frames=1, **{k: v for k, v in kw.items() if k != "bag"})
@@ -151,10 +153,12 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
     The dataset's layout picks a sensor profile (see :func:`dataset_kwargs`); the chosen profile is
     logged and printed.
     """
+    # lazy: the command line starts without loading the library
     from gausslite.datasets import load_dataset
 
     path = args.dataset
     if path is None:
+        # lazy: the command line starts without loading the library
         from gausslite.synthetic import make_scene
 
         scene_dir = out / "scene"
@@ -173,6 +177,7 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
 
 def config_from_args(args: argparse.Namespace, **extra):
     """MapperConfig from --config, --set and the shortcut flags (flags win)."""
+    # lazy: the command line starts without loading the library
     from gausslite.mapping.config import load_config
 
     profile = getattr(args, "profile", None)
@@ -221,6 +226,7 @@ def _handler(args: argparse.Namespace) -> int:
             return 2
         args.task_id = ds.annotations.tasks[0].id
         log.info("no --task-id given: using the first task, %s", args.task_id)
+    # lazy: the command line starts without loading the library
     from gausslite.pipeline import run_mapping  # torch + warp: imported once the inputs are valid
 
     log.info("mapping %s (%d frames, %dx%d) mode=%s task=%s", ds.path, len(ds),

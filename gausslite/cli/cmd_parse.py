@@ -20,6 +20,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the library
     from gausslite.parser import BackendUnavailableError, InvalidTaskTextError, ParserConfig, TaskParser
 
     try:

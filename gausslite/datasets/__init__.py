@@ -13,16 +13,9 @@ from gausslite.datasets.annotations import (
     parse_up_axis,
 )
 from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.datasets.loader import (
-    PosedImageDataset,
-    detect_layout,
-    downscale_depth,
-    downscale_rgb,
-    load_dataset,
-    read_depth,
-    read_rgb,
-)
+from gausslite.datasets.common import PosedImageDataset, downscale_depth, downscale_rgb, read_depth, read_rgb
 from gausslite.datasets.bag import BagDataset, BagError, BagOptions
+from gausslite.datasets.loader import detect_layout, load_dataset
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.datasets.replica import ReplicaDataset
 from gausslite.datasets.sevenscenes import SevenScenesDataset

@@ -61,8 +61,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.datasets.loader import check_downscale, downscale_depth, downscale_rgb, select_indices
+from gausslite.datasets.common import check_downscale, downscale_depth, downscale_rgb, select_indices
 from gausslite.datasets.registration import DepthCamera, register_depth
+from gausslite.datasets.tum import associate_nearest
 from gausslite.ros.bagio import is_bag_path
 from gausslite.ros.images import ImageDecodeError, decode_compressed, decode_image
 from gausslite.ros.transforms import TFBuffer, TFError, interpolate_transform, make_transform, normalize_frame
@@ -214,6 +215,7 @@ class BagDataset(RGBDDataset):
 
     # ------------------------------------------------------------------ reading
     def _open(self):
+        # lazy: heavy optional dependency, loaded only on this path
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -530,8 +532,6 @@ class BagDataset(RGBDDataset):
 
     # ------------------------------------------------------------------ association
     def _associate(self, reader, opt: BagOptions, colour: List[_Img], depth: List[_Img]):
-        from gausslite.datasets.tum import associate_nearest
-
         if not colour:
             raise self._fail(f"colour topic {self.rgb_topic!r} has no messages")
         if not depth:

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from gausslite.camera import Intrinsics
+from gausslite.ros.transforms import make_transform
 
 __all__ = ["DepthCamera", "register_depth", "project_plumb_bob", "parse_depth_camera"]
 
@@ -161,8 +162,6 @@ def parse_depth_camera(intrinsics: Sequence[float], extrinsic: Optional[Sequence
     Raises:
         ValueError: wrong counts or invalid values.
     """
-    from gausslite.ros.transforms import make_transform
-
     vals = [float(v) for v in intrinsics]
     if len(vals) == 6:
         size = (int(vals[4]), int(vals[5]))

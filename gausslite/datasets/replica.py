@@ -27,7 +27,7 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.registration import DepthCamera
-from gausslite.datasets.loader import PosedImageDataset, select_indices
+from gausslite.datasets.common import PosedImageDataset, select_indices
 
 __all__ = ["ReplicaDataset", "read_cam_params", "read_traj"]
 
@@ -122,7 +122,7 @@ class ReplicaDataset(PosedImageDataset):
         depth_camera: ``DepthCamera`` when the depth files are not registered to colour; depth is
             registered on load.
 
-    Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``annotations`` is loaded
+    Attributes: see :class:`~gausslite.datasets.common.PosedImageDataset`; ``annotations`` is loaded
     from ``objects.json``/``tasks.json`` in the sequence folder or its parent (None when absent).
 
     Raises:

@@ -26,7 +26,7 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.registration import DepthCamera
-from gausslite.datasets.loader import PosedImageDataset, select_indices
+from gausslite.datasets.common import PosedImageDataset, select_indices
 
 __all__ = ["SevenScenesDataset", "SEVEN_SCENES_INTRINSICS", "read_matrix_file"]
 

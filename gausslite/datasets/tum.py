@@ -48,7 +48,7 @@ import numpy as np
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.registration import DepthCamera
-from gausslite.datasets.loader import PosedImageDataset, select_indices
+from gausslite.datasets.common import PosedImageDataset, select_indices
 from gausslite.ros.transforms import quat_to_rot, slerp
 
 log = logging.getLogger(__name__)
@@ -206,7 +206,7 @@ class TUMDataset(PosedImageDataset):
         depth_camera: ``DepthCamera`` when the depth files are not registered to colour (registered into
             the raw colour camera, with its distortion, before undistortion).
 
-    Attributes: see :class:`~gausslite.datasets.loader.PosedImageDataset`; ``freiburg`` (1/2/3/None),
+    Attributes: see :class:`~gausslite.datasets.common.PosedImageDataset`; ``freiburg`` (1/2/3/None),
     ``distortion`` (5-tuple), ``n_dropped`` (colour frames without depth or pose match);
     ``frame_ids`` are indices into ``rgb.txt``; timestamps are the colour timestamps.
 

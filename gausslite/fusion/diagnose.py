@@ -103,6 +103,7 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
     Raises:
         ValueError: provenance arrays of the wrong length or pointing outside the subsets.
     """
+    # lazy: keeps gausslite.fusion.diagnose importable without OpenCV
     from gausslite.sharing import in_region, roi_contribution, task_region
 
     agents = sorted(subsets)
@@ -184,8 +185,10 @@ def cover_image(fused: GaussianArrays, foreign: np.ndarray, view: RoiView, backe
     """(H, W, 3) uint8 BGR picture of one ROI view: the fused render, with the per-pixel blending weight of the
     ``foreign`` rows ((M,) bool) shown in red and the ROI outlined in green (for reports).
     """
+    # lazy: keeps gausslite.fusion.diagnose importable without OpenCV
     import cv2
 
+    # lazy: keeps gausslite.fusion.diagnose importable without Warp
     from gausslite.render import rasterize
 
     with torch.no_grad():

@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
+from gausslite.fusion.guard import for_robot
 from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_vote
 from gausslite.wire.codec import GaussianArrays
 
@@ -146,8 +147,6 @@ class FuseEngine:
             emit(method, end, f"kept {len(fused)} Gaussians, {report.contested_voxels} contested voxels"
                  + (f" (incremental: {revoted} agent(s) re-voted)" if incremental else ""))
             if for_agent is not None:
-                from gausslite.fusion.guard import for_robot
-
                 out.fused, st = for_robot(fused, report.source_agent, report.agents, for_agent, maps[for_agent],
                                           list(roi_views(for_agent)))
                 out.kept = dict(st["kept"])
@@ -162,6 +161,7 @@ class FuseEngine:
         else:
             raise ValueError(f"unknown fuse method {method!r} (use 'vote' or 'concat')")
         if refine_iters:
+            # lazy: keeps gausslite.fusion.engine importable without OpenCV, SciPy, Warp, torch
             from gausslite.fusion.refine import refine_map
 
             kfs = list(keyframes())

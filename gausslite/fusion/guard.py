@@ -23,6 +23,7 @@ Gaussians have ``W_b = 0``.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
@@ -62,6 +63,7 @@ def roi_weights(gaussians: GaussianArrays, views: Sequence, backend: str = "auto
             or :class:`gausslite.fusion.diagnose.RoiView`); views without ROI pixels are skipped.
         backend: rasterizer backend.
     """
+    # lazy: keeps gausslite.fusion.guard importable without OpenCV, torch
     from gausslite.sharing import roi_contribution
 
     vs = _roi_views(views)
@@ -99,8 +101,6 @@ def roi_guard(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
     Raises:
         ValueError: ``source_agent`` of the wrong length or out of range, ``min_weight`` < 0 or ``max_views`` < 1.
     """
-    import time
-
     t0 = time.perf_counter()
     src = np.asarray(source_agent, np.int64).reshape(-1)
     if len(src) != len(fused):

@@ -23,6 +23,7 @@ from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.model import cosine_lr_factor
 from gausslite.mapping.views import Keyframe
+from gausslite.wire.codec import GaussianArrays
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +74,6 @@ def refine_map(
         ValueError: ``iters`` < 0, no keyframes while ``iters`` > 0, ``final_lr`` outside (0, 1], or a
             malformed keyframe.
     """
-    from gausslite.wire.codec import GaussianArrays
-
     if iters < 0:
         raise ValueError(f"iters must be >= 0, got {iters}")
     if not 0 < final_lr <= 1:

@@ -120,6 +120,7 @@ def neighbour_keys(keyed: dict, frame_id: int) -> Optional[tuple[int, int, float
 def interpolate_pose(E0: np.ndarray, E1: np.ndarray, t: float) -> np.ndarray:
     """(4, 4) float64 rigid transform a share ``t`` ∈ [0, 1] of the way from ``E0`` to ``E1`` (4, 4): rotation by
     spherical linear interpolation, translation linearly."""
+    # lazy: keeps gausslite.mapping.poses importable without SciPy
     from scipy.spatial.transform import Rotation, Slerp
 
     rots = Rotation.from_matrix(np.stack([E0[:3, :3], E1[:3, :3]]))

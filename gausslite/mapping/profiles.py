@@ -10,10 +10,10 @@ motion blur and exposure changes. A profile bundles what such data needs by defa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .config import MapperConfig
+from pydantic import BaseModel
+
+from .config import MapperConfig, deep_merge
 
 
 @dataclass(frozen=True)
@@ -88,8 +88,6 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
     Raises:
         pydantic.ValidationError: the combination is invalid (e.g. a profile value out of range).
     """
-    from .config import MapperConfig, deep_merge
-
     explicit = _explicit(cfg)
     merged = deep_merge(profile.mapper, explicit)  # what cfg set explicitly wins
     if merged == explicit:  # the profile adds nothing cfg left unset
@@ -99,8 +97,6 @@ def with_profile(cfg: "MapperConfig", profile: SensorProfile) -> "MapperConfig":
 
 def _explicit(model) -> dict:
     """The settings of a pydantic model given explicitly (``model_fields_set``), groups recursed into."""
-    from pydantic import BaseModel
-
     out = {}
     for k in model.model_fields_set:
         v = getattr(model, k)

@@ -3,10 +3,13 @@ it shares (paper Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``). No
 (``services/agent``) adapts it to the wire, and any object with the fusion client's methods can receive its pushes."""
 
 from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig, load_agent_config
-from gausslite.mission.errors import PreconditionFailed
+from gausslite.mission.errors import FrameSizeMismatch, MissionError, PreconditionFailed
+from gausslite.mission.ports import FusionPort
 from gausslite.mission.pusher import Pusher, PushRecord
-from gausslite.mission.runtime import AgentRuntime, MissionError, MissionSummaryData
+from gausslite.mission.runtime import AgentRuntime, MissionSummaryData
 from gausslite.mission.share import ShareSession, select_shared
+from gausslite.mission.state import MissionState
 
 __all__ = ["AgentConfig", "OnnxRelevanceConfig", "load_agent_config", "PreconditionFailed", "AgentRuntime",
-           "MissionError", "MissionSummaryData", "Pusher", "PushRecord", "ShareSession", "select_shared"]
+           "MissionError", "FrameSizeMismatch", "MissionState", "FusionPort", "MissionSummaryData", "Pusher", "PushRecord",
+           "ShareSession", "select_shared"]

@@ -6,12 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gausslite.datasets.bag import BagOptions
-from gausslite.mapping.config import MapperConfig, apply_overrides
+from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
 
-__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "load_agent_config"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "AgentSections", "load_agent_config"]
 
 
 class ScoringConfig(BaseModel):
@@ -213,6 +213,34 @@ class AgentConfig(BaseModel):
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 
+class AgentSections(BaseModel):
+    """The ``agent`` and ``mapper`` sections of a GaussLite YAML file. In YAML the mapper is a top-level section;
+    here it is ``agent.mapper``, the agent's copy, which the YAML's ``mapper`` section sets. The whole file's
+    tree, :class:`gausslite.config.GaussLiteConfig`, extends this with its other sections."""
+
+    model_config = ConfigDict(extra="forbid")
+    agent: AgentConfig = AgentConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _mapper_into_agent(cls, data):
+        if isinstance(data, dict) and "mapper" in data:
+            data = dict(data)
+            mapper = data.pop("mapper")
+            agent = dict(data.get("agent") or {})
+            if mapper is not None:
+                if not isinstance(mapper, MapperConfig):
+                    mapper = MapperConfig.model_validate({"mode": "gausslite", **dict(mapper)})
+                agent["mapper"] = mapper
+            data["agent"] = agent
+        return data
+
+    @property
+    def mapper(self) -> MapperConfig:
+        """The mapper section."""
+        return self.agent.mapper
+
+
 def load_agent_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> AgentConfig:
     """Read the ``agent`` and ``mapper`` sections of a GaussLite YAML file (other sections, e.g. ``sim``,
     are ignored) and apply dotted ``key=value`` overrides (``agent.push_every=3``,
@@ -221,7 +249,5 @@ def load_agent_config(path: Optional[str | Path] = None, overrides: List[str] = 
     Raises:
         FileNotFoundError: missing file. ValueError: not a mapping. pydantic.ValidationError: bad values.
     """
-    from gausslite.config import GaussLiteConfig, read_yaml
-
     data = apply_overrides(read_yaml(path) if path else {}, list(overrides))
-    return GaussLiteConfig.model_validate({k: data[k] for k in ("agent", "mapper") if k in data}).agent
+    return AgentSections.model_validate({k: data[k] for k in ("agent", "mapper") if k in data}).agent

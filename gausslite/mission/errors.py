@@ -1,8 +1,20 @@
-"""Errors a mission's fusion client raises for the mission loop to act on."""
+"""Errors of a mission: what its fusion client raises for the mission loop to act on, and what the mission raises
+to its caller."""
 
 from __future__ import annotations
 
-__all__ = ["PreconditionFailed"]
+from gausslite.errors import ImageSizeError
+
+__all__ = ["PreconditionFailed", "MissionError", "FrameSizeMismatch"]
+
+
+class MissionError(RuntimeError):
+    """The mission cannot accept the request (finished, failed, or replaying)."""
+
+
+class FrameSizeMismatch(MissionError, ImageSizeError):
+    """A frame's image size differs from the mission's first frame (a :class:`MissionError` and an
+    :class:`gausslite.errors.ImageSizeError`: a bad argument, not a mission state)."""
 
 
 class PreconditionFailed(Exception):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -28,8 +29,10 @@ from typing import Any, Callable, List, Optional
 import numpy as np
 
 from gausslite.mission.errors import PreconditionFailed
+from gausslite.mission.config import AgentConfig
 from gausslite.mission.heap import trim_heap
-from gausslite.mission.share import Captured
+from gausslite.mission.ports import FusionPort
+from gausslite.mission.share import Captured, ShareSession
 
 log = logging.getLogger(__name__)
 
@@ -82,8 +85,9 @@ class Pusher:
         task_text: the mission's task (sent when a fusion session opens).
         config: the mission's ``AgentConfig`` (``max_keyframes``, ``backoff_s``, ``max_backoff_s``,
             ``final_push_timeout_s``, ``pusher_nice``, ``jpeg_quality``, ``keyframe_format``).
-        fusion: a FusionClient-like object (``open_session``, ``upload_chunks``, ``upload_keyframes``; a rejected
-            delta base raises :class:`gausslite.mission.errors.PreconditionFailed`), or None: offers are dropped.
+        fusion: the fusion side (:class:`gausslite.mission.ports.FusionPort`: the gRPC client or an in-process
+            stand-in; a rejected delta base raises :class:`gausslite.mission.errors.PreconditionFailed`), or None:
+            offers are dropped.
         share: the mission's :class:`gausslite.mission.share.ShareSession`.
         mapper: the mission's mapper (its config drives the fine-tune).
         intrinsics: ``() -> Intrinsics`` of the mission's frames (sent when a fusion session opens).
@@ -91,8 +95,8 @@ class Pusher:
             (the mission's ``last_error``).
     """
 
-    def __init__(self, agent_id: str, task_text: str, config, fusion, share, mapper,
-                 intrinsics: Callable[[], Any], report: Callable[[str], None]) -> None:
+    def __init__(self, agent_id: str, task_text: str, config: AgentConfig, fusion: Optional[FusionPort],
+                 share: ShareSession, mapper, intrinsics: Callable[[], Any], report: Callable[[str], None]) -> None:
         self.agent_id, self.task_text, self.config = agent_id, task_text, config
         self.fusion, self.share, self.mapper = fusion, share, mapper
         self._intrinsics, self._report = intrinsics, report
@@ -184,8 +188,6 @@ class Pusher:
     # ------------------------------------------------------------------ pusher thread
     def _lower_priority(self) -> None:
         """Give the pusher thread ``pusher_nice`` niceness; threads it starts inherit it."""
-        import os
-
         nice = self.config.pusher_nice
         if not nice or not hasattr(os, "setpriority"):
             return
@@ -304,7 +306,7 @@ class Pusher:
         E = poses.corrections.get(int(frame.frame_id)) if poses is not None else None
         return frame if E is None else dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E)
 
-    def _upload_pending_keyframes(self, c) -> tuple[list, int]:
+    def _upload_pending_keyframes(self, c: FusionPort) -> tuple[list, int]:
         """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
         with self._lock:
             kfs = list(self._kf_pending)

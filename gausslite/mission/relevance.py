@@ -13,7 +13,18 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from gausslite.attention import (
+    AnnotationBackend,
+    AnnotationDetector,
+    AnnotationSegmenter,
+    AttentionConfig,
+    AttentionFrontEnd,
+    OnnxFastSAMSegmenter,
+    OnnxGroundingDetector,
+)
+from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
 from gausslite.datasets.base import Frame
+from gausslite.errors import RelevanceUnavailable
 
 RelevanceFn = Callable[[Frame], np.ndarray]
 
@@ -31,22 +42,21 @@ def build_relevance(config, graph, annotations=None, task_id: Optional[str] = No
         mapper_of: returns the mission's mapper at call time; with ``attention_rendered_depth`` (and relevance in
             the mapping thread) the front-end filters in 3D with the map's rendered depth instead of the sensor's.
     Raises:
-        ValueError: ``gt`` without annotations or task id; ``attention`` with the annotation backends and no
-            annotations; ``onnx`` with model paths missing or models that do not load.
+        RelevanceUnavailable (a ValueError): ``gt`` without annotations or task id; ``attention`` with the
+            annotation backends and no annotations; ``onnx`` with model paths missing or models that do not load.
     """
     if config.relevance == "gt":
         if annotations is None or task_id is None:
-            raise ValueError("relevance 'gt' needs scene annotations and a task id from tasks.json")
+            raise RelevanceUnavailable("relevance 'gt' needs scene annotations and a task id from tasks.json")
         return (lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)), None
-    from gausslite.attention import AttentionFrontEnd
 
     if config.relevance_backend == "onnx":
         fe = onnx_frontend(config, graph, annotations)
     elif annotations is None:
-        raise ValueError(f"relevance 'attention' with backend '{config.relevance_backend}' needs scene annotations "
-                         "(objects.json) for the offline annotation detector/segmenter; give a dataset or annotations "
-                         "path, or set agent.relevance_backend=onnx with agent.onnx.detector_path/vocab_path/"
-                         "segmenter_path")
+        raise RelevanceUnavailable(f"relevance 'attention' with backend '{config.relevance_backend}' needs scene "
+                                   "annotations (objects.json) for the offline annotation detector/segmenter; give a "
+                                   "dataset or annotations path, or set agent.relevance_backend=onnx with "
+                                   "agent.onnx.detector_path/vocab_path/segmenter_path")
     elif config.relevance_backend == "onnx_cost":
         fe = onnx_frontend(config, graph, annotations, answer_from=annotations)
     else:
@@ -73,26 +83,22 @@ def onnx_frontend(config, graph, annotations=None, answer_from=None):
     (``relevance_backend: onnx_cost``).
 
     Raises:
-        ValueError: model paths missing, or models that do not load (the message names the backend and the cause).
+        RelevanceUnavailable (a ValueError): model paths missing, or models that do not load (the message names
+            the backend and the cause).
     """
-    from gausslite.attention import AttentionConfig, AttentionFrontEnd, OnnxFastSAMSegmenter, OnnxGroundingDetector
-
     o = config.onnx
     name = config.relevance_backend
     missing = o.missing()
     if missing:
-        raise ValueError(f"relevance 'attention' with backend '{name}': " + "; ".join(missing))
+        raise RelevanceUnavailable(f"relevance 'attention' with backend '{name}': " + "; ".join(missing))
     try:
         det = OnnxGroundingDetector(o.detector_path, o.vocab_path, box_threshold=o.box_threshold,
                                     text_threshold=o.text_threshold, threads=o.threads)
         seg = OnnxFastSAMSegmenter(o.segmenter_path, conf=o.seg_conf, iou=o.seg_iou, threads=o.threads)
     except Exception as e:  # onnxruntime load errors, export-contract violations
-        raise ValueError(f"relevance 'attention' with backend '{name}': cannot load the models: "
-                         f"{type(e).__name__}: {e}") from None
+        raise RelevanceUnavailable(f"relevance 'attention' with backend '{name}': cannot load the models: "
+                                   f"{type(e).__name__}: {e}") from None
     if answer_from is not None:
-        from gausslite.attention import AnnotationBackend, AnnotationDetector, AnnotationSegmenter
-        from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
-
         backend = AnnotationBackend(answer_from)
         det = CostOnlyDetector(det, AnnotationDetector(backend))
         seg = CostOnlySegmenter(seg, AnnotationSegmenter(backend))

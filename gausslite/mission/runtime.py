@@ -3,9 +3,9 @@ Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``).
 
 :class:`AgentRuntime` is usable without gRPC: it needs a task graph (any object with ``targets``,
 ``anchors``, ``relations``), scene annotations for the offline relevance sources, and optionally a
-*fusion client*: any object with the methods of ``services.fusion_server.client.FusionClient``
-(``open_session``, ``upload_chunks``, ``upload_keyframes``), or None to map locally only. The fusion client
-signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
+*fusion client*: a :class:`gausslite.mission.ports.FusionPort` (``open_session``, ``upload_chunks``,
+``upload_keyframes``; the gRPC ``services.fusion_server.client.FusionClient`` is one), or None to map locally
+only. The fusion client signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
 
 Threads per mission:
 
@@ -27,8 +27,10 @@ What is shared, the share worker, the fine-tune cache and the delta planning liv
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -40,18 +42,19 @@ from typing import Callable, List, Optional
 
 import numpy as np
 
+from gausslite.attention.worker import RelevanceWorker
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
+from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
-from gausslite.mission.relevance import build_relevance
+from gausslite.mission.errors import FrameSizeMismatch, MissionError
+from gausslite.mission.ports import FusionPort
 from gausslite.mission.pusher import Pusher
+from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
+from gausslite.mission.state import ACCEPTS_TASK, MissionState
 
 log = logging.getLogger(__name__)
-
-
-class MissionError(RuntimeError):
-    """The mission cannot accept the request (finished, failed, or replaying)."""
 
 
 @dataclass
@@ -97,8 +100,6 @@ def _percentile(vals, q: float) -> float:
 
 def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Write ``path`` through a temporary file in the same folder and ``os.replace`` (atomic on POSIX)."""
-    import os
-
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     write(tmp)
@@ -133,7 +134,7 @@ class AgentRuntime:
     """
 
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
-                 task_id: Optional[str] = None, fusion=None, relevance_fn: Optional[Callable] = None,
+                 task_id: Optional[str] = None, fusion: Optional[FusionPort] = None, relevance_fn: Optional[Callable] = None,
                  mission_id: Optional[str] = None,
                  on_finished: Optional[Callable[["AgentRuntime"], None]] = None,
                  checkpoint_dir: Optional[str | Path] = None) -> None:
@@ -160,12 +161,12 @@ class AgentRuntime:
         self._pending_task = None  # (text, graph, task id, relevance fn, front-end) left by update_task
         self._relevance_worker = None
         if config.relevance_max_wait_s is not None:
-            from gausslite.attention.worker import RelevanceWorker
-
             self._relevance_worker = RelevanceWorker(self._relevance_fn, config.relevance_max_wait_s)
 
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
+        # lazy: keeps gausslite.mission.runtime importable without SciPy, Warp, torch
         from gausslite.mapping.mapper import Mapper
 
         torch.manual_seed(config.mapper.seed)
@@ -176,7 +177,7 @@ class AgentRuntime:
         self._stop = threading.Event()
         self._eval_frames: List[Frame] = []
         self.intrinsics = None
-        self.state = "MAPPING"
+        self.state = MissionState.MAPPING
         self.frames_received = 0
         self.frames_mapped = 0
         self.n_gaussians = 0
@@ -192,7 +193,6 @@ class AgentRuntime:
         self.replay_frames = 0
         self._closed_for_input = False
         # ---- live ingest (keyframe selection), latencies, checkpoints
-        from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 
         self.selector = KeyframeSelector(KeyframeRule(config.keyframe_translation_m, config.keyframe_rotation_deg,
                                                       config.keyframe_max_interval_s))
@@ -236,23 +236,23 @@ class AgentRuntime:
         Returns:
             True when the frame was queued or became the pending keyframe candidate, False when skipped.
         Raises:
-            MissionError: the mission no longer accepts frames (finishing, finished, failed) or the
-                frame's image size differs from the mission's first frame.
+            MissionError: the mission no longer accepts frames (finishing, finished, failed).
+            FrameSizeMismatch (a MissionError): the frame's image size differs from the mission's first frame.
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
         if not self._share_started and not _replay:
             self._start_share(self._online)  # a streamed mission starts with its first frame
         with self._lock:
-            closed = (self.state in ("FINISHED", "FAILED") or self._stop.is_set()
-                      or (not _replay and (self._closed_for_input or self.state == "FINISHING")))
+            closed = (self.state in (MissionState.FINISHED, MissionState.FAILED) or self._stop.is_set()
+                      or (not _replay and (self._closed_for_input or self.state == MissionState.FINISHING)))
             if closed:
                 raise MissionError(f"mission {self.mission_id} is {self.state.lower()}: no more frames accepted"
-                                   + (f" ({self.last_error})" if self.state == "FAILED" else ""))
+                                   + (f" ({self.last_error})" if self.state == MissionState.FAILED else ""))
             intr = frame.intrinsics
             if self.intrinsics is not None and (intr.width, intr.height) != (self.intrinsics.width,
                                                                                self.intrinsics.height):
-                raise MissionError(f"frame {frame.frame_id}: image size {intr.width}x{intr.height} differs "
+                raise FrameSizeMismatch(f"frame {frame.frame_id}: image size {intr.width}x{intr.height} differs "
                                    f"from the mission's {self.intrinsics.width}x{self.intrinsics.height}")
             if self.intrinsics is None:
                 self.intrinsics = intr
@@ -304,8 +304,8 @@ class AgentRuntime:
                         progress(i + 1, n)
                 self._queue.join()
                 with self._lock:
-                    if self.state == "MAPPING":
-                        self.state = "REPLAY_DONE"
+                    if self.state == MissionState.MAPPING:
+                        self.state = MissionState.REPLAY_DONE
             except MissionError:
                 return
             except Exception as e:  # unreadable frame etc.
@@ -337,7 +337,7 @@ class AgentRuntime:
     def _fail(self, msg: str) -> None:
         log.error("agent %s mission %s: %s", self.agent_id, self.mission_id, msg)
         with self._lock:
-            self.state = "FAILED"
+            self.state = MissionState.FAILED
             self.last_error = msg
         self.pusher.final_done.set()
 
@@ -367,7 +367,7 @@ class AgentRuntime:
                 unknown task id.
         """
         with self._lock:
-            if self.state not in ("MAPPING", "REPLAY_DONE"):
+            if self.state not in ACCEPTS_TASK:
                 raise MissionError(f"mission {self.mission_id} is {self.state}: it cannot take a new task")
         ann = self.annotations
         if task_id is None and ann is not None:
@@ -390,7 +390,6 @@ class AgentRuntime:
         task_text, graph, task_id, fn, frontend = pending
         if self._relevance_worker is not None:
             self._relevance_worker.close()
-            from gausslite.attention.worker import RelevanceWorker
 
             self._relevance_worker = RelevanceWorker(fn, self.config.relevance_max_wait_s)
         self._relevance_fn, self.frontend = fn, frontend
@@ -410,8 +409,8 @@ class AgentRuntime:
 
     def _idle_work(self) -> bool:
         """Whether the worker should optimise between keyframes instead of blocking on the queue."""
-        return (self._online and self.config.idle_optimize and self.frames_mapped > 0 and self.state == "MAPPING"
-                and not self._closed_for_input and not self._stop.is_set())
+        return (self._online and self.config.idle_optimize and self.frames_mapped > 0
+                and self.state == MissionState.MAPPING and not self._closed_for_input and not self._stop.is_set())
 
     def _work(self) -> None:
         cfg = self.config
@@ -441,7 +440,7 @@ class AgentRuntime:
                 if item is None:
                     return
                 if item is _FINISH:
-                    if self.state != "FAILED":
+                    if self.state != MissionState.FAILED:
                         if self.frames_mapped:
                             n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
                             log.info("agent %s: final pass, %d iterations", self.agent_id, n)
@@ -458,7 +457,7 @@ class AgentRuntime:
                         item = self.selector.take()
                     if item is None:
                         continue
-                if self.state == "FAILED":
+                if self.state == MissionState.FAILED:
                     continue
                 self._map_one(*item)
             finally:
@@ -516,6 +515,7 @@ class AgentRuntime:
         """Write ``checkpoint.pt`` (map with κ and active flags, keyframe window, counters, pushed version,
         keyframe-selector reference) atomically into ``checkpoint_dir``. Call from the worker thread (or
         while it is idle). Returns the path. Raises OSError on write failure, ValueError without a folder."""
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
         if self.checkpoint_dir is None:
@@ -539,7 +539,6 @@ class AgentRuntime:
         """Persist the newest map version handed to the pusher (a resumed mission continues above it)."""
         if self.checkpoint_dir is None:
             return
-        import json
 
         v = self.pusher.version
         try:
@@ -548,8 +547,7 @@ class AgentRuntime:
             log.warning("agent %s: cannot record the pushed version: %s", self.agent_id, e)
 
     def _resume(self) -> None:
-        import json
-
+        # lazy: keeps gausslite.mission.runtime importable without torch
         import torch
 
         path = self.checkpoint_dir / CHECKPOINT_FILE
@@ -618,7 +616,7 @@ class AgentRuntime:
         while True:
             with self._lock:
                 idle = self._queue.unfinished_tasks == 0 and not self.replaying
-            if idle or self.state == "FAILED":
+            if idle or self.state == MissionState.FAILED:
                 return True
             if deadline is not None and time.monotonic() > deadline:
                 return False
@@ -650,8 +648,8 @@ class AgentRuntime:
                 return self.summary
             first = not self._closed_for_input
             self._closed_for_input = True
-            if self.state in ("MAPPING", "REPLAY_DONE"):
-                self.state = "FINISHING"
+            if self.state in (MissionState.MAPPING, MissionState.REPLAY_DONE):
+                self.state = MissionState.FINISHING
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         if first:
             if self._replay_thread is not None:
@@ -669,8 +667,8 @@ class AgentRuntime:
         pusher = self.pusher
         last = pusher.pushes[-1] if pusher.pushes else None
         with self._lock:
-            if self.state != "FAILED":
-                self.state = "FINISHED"
+            if self.state != MissionState.FAILED:
+                self.state = MissionState.FINISHED
         n_total = max(self.n_gaussians, 1)
         n_shared = last.n_shared if last else int(select_shared(self.mapper.gmap, self.config.share,
                                                                 self.config.kappa_threshold).sum())
@@ -703,6 +701,7 @@ class AgentRuntime:
     def evaluate(self) -> tuple[Optional[float], Optional[float]]:
         """(full-image PSNR, ROI PSNR) in dB of the current map, mean over the kept mapped frames; ROI PSNR is
         None without annotations/task id or when no frame shows the ROI. Call only while the worker is idle."""
+        # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.evaluation import score_view
 
         ps, rps = [], []
@@ -735,6 +734,7 @@ class AgentRuntime:
             ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (dB; ROI PSNR over the
             frames that show the ROI, None when none does); ``{}`` without a replayed dataset, annotations or task
             id. Call only while the worker is idle."""
+        # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.evaluation import score_live_map
 
         if self._dataset is None or self.annotations is None or self.task_id is None:

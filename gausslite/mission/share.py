@@ -9,12 +9,21 @@ calls :meth:`ShareSession.capture` from its mapping thread, and the other method
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
+import multiprocessing
+import os
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from typing import Optional
 
 import numpy as np
+
+from gausslite.mission.config import AgentConfig
+from gausslite.mission.heap import trim_heap
+from gausslite.wire.codec import GaussianArrays
+from gausslite.wire.delta import PushPlanner
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +53,7 @@ def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.n
 
 def _worker_init(nice: int) -> None:
     """Initialiser of the share worker process: lower its priority, one torch thread."""
-    import os
-
+    # lazy: keeps gausslite.mission.share importable without torch
     import torch
 
     if nice and hasattr(os, "nice"):
@@ -72,8 +80,6 @@ def _trimmed(fn, *args):
     """``fn(*args)`` in the share worker, then its freed memory back to the OS (:func:`~gausslite.mission.heap.trim_heap`):
     each job unpickles a map copy and the ROI keyframes, and without this the worker's resident memory creeps up
     over a long mission."""
-    from gausslite.mission.heap import trim_heap
-
     try:
         return fn(*args)
     finally:
@@ -83,6 +89,7 @@ def _trimmed(fn, *args):
 def _select(gmap, views, share_cfg, backend: str, held=None):
     """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
     :class:`gausslite.sharing.ShareConfig`, and the rows the server holds); runs in the share worker."""
+    # lazy: keeps gausslite.mission.share importable without torch
     from gausslite.sharing import select_task_subset
 
     return select_task_subset(gmap, views, share_cfg, backend=backend, held=held)
@@ -92,6 +99,7 @@ def _finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg,
     """The shared subset fine-tuned alone on the compact ROI keyframes ``kfs``
     (:func:`gausslite.sharing.update_shared_subset`, which decodes each keyframe when it draws it); runs in the
     share worker."""
+    # lazy: keeps gausslite.mission.share importable without torch
     from gausslite.sharing import update_shared_subset
 
     return update_shared_subset(arrays, ids, base, base_ids, kfs, iters, refresh, cfg, seed=seed)
@@ -125,7 +133,7 @@ class ShareSession:
             ``delta_tolerance``, ``chunk_gaussians``).
     """
 
-    def __init__(self, agent_id: str, config) -> None:
+    def __init__(self, agent_id: str, config: AgentConfig) -> None:
         self.agent_id, self.config = agent_id, config
         self.planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
         self.pool = None  # the share worker process (share_worker: process), started by start() or on first use
@@ -140,8 +148,6 @@ class ShareSession:
         the map, the ROI keyframes and their poses: the selection (which renders every ROI keyframe) and the
         fine-tune then run in the share worker (:meth:`select`, :meth:`finetuned`), so a push takes no time from
         the keyframe budget."""
-        from gausslite.wire.codec import GaussianArrays
-
         gmap = mapper.gmap
         if self.config.share != "task":
             mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
@@ -158,8 +164,8 @@ class ShareSession:
     def select(self, cap: Captured, backend: str = "auto") -> Captured:
         """``share: task``: ``cap`` with its task subset selected (:func:`gausslite.sharing.select_task_subset`)
         and, with fine-tuning, its fine-tune inputs."""
+        # lazy: keeps gausslite.mission.share importable without torch
         from gausslite.sharing import ShareConfig
-        from gausslite.wire.codec import GaussianArrays
 
         gmap, views, poses, kfs = cap.select
         c = self.config
@@ -181,12 +187,8 @@ class ShareSession:
         compact stored keyframes that see the ROI, with poses of their own (``poses``: (frame id, c2w) of every
         stored keyframe, ``kfs`` the ROI keyframes, as captured by the mapping thread). Nothing is decoded here:
         :meth:`finetuned` decodes them on a cache miss."""
-        import hashlib
-
-        from gausslite.wire.codec import GaussianArrays
-
         h = hashlib.blake2b(digest_size=16)
-        for name in GaussianArrays._SPEC:
+        for name in GaussianArrays.FIELDS:
             h.update(np.ascontiguousarray(getattr(arrays, name)).tobytes())
         for fid, c2w in poses:
             h.update(np.asarray([fid], np.int64).tobytes() + np.ascontiguousarray(c2w).tobytes())
@@ -238,9 +240,6 @@ class ShareSession:
 
     def _pool(self, nice: Optional[int] = None):
         if self.pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
             self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                             initializer=_worker_init,
                                             initargs=(self.config.pusher_nice if nice is None else int(nice),))
@@ -264,8 +263,6 @@ class ShareSession:
         """The push of ``gaussians`` (rows ``ids``) as ``version``: a delta against the acknowledged base when there
         is one (:class:`gausslite.wire.delta.PushPlanner`)."""
         if self.planner is None:
-            from gausslite.wire.delta import PushPlanner
-
             c = self.config
             self.planner = PushPlanner(self.agent_id, chunk_gaussians=c.chunk_gaussians, tolerance=c.delta_tolerance,
                                        delta=c.delta_push)

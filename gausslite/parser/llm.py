@@ -24,6 +24,7 @@ import os
 import re
 import socket
 import threading
+import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
@@ -380,6 +381,7 @@ class OnnxGenAIBackend(LLMBackend):
                 a folder containing ``genai_config.json``.
         """
         try:
+            # lazy: heavy optional dependency, loaded only on this path
             import onnxruntime_genai as og  # noqa: PLC0415 - optional dependency, imported lazily
         except ImportError as e:
             raise BackendUnavailableError(
@@ -427,8 +429,6 @@ class OnnxGenAIBackend(LLMBackend):
         Raises:
             LLMBackendError: model loading or generation failed, or the timeout passed.
         """
-        import time
-
         og = self._og
         t0 = time.monotonic()
         with self._lock:

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Union
 
+import yaml
+
 from .graph import TaskGraph
 from .llm import (
     BackendUnavailableError,
@@ -101,8 +103,6 @@ class ParserConfig:
         p = Path(path)
         text = p.read_text(encoding="utf-8")
         if p.suffix.lower() in (".yaml", ".yml"):
-            import yaml  # noqa: PLC0415 - only needed for YAML configs
-
             data = yaml.safe_load(text) or {}
         else:
             data = json.loads(text)

@@ -9,6 +9,7 @@ import torch
 
 from .autograd import RasterizeWarp, default_num_threads, project_gaussians_warp
 from .binning import bin_gaussians
+from .gsplat_backend import gsplat_available, rasterize_gsplat
 from .projection import project_gaussians
 from .reference import rasterize_reference
 from .simd_kernels import check_cpu_kernel
@@ -81,13 +82,9 @@ def _resolve_backend(backend: str, device: torch.device) -> str:
         raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
     if backend == "auto":
         if device.type == "cuda":
-            from .gsplat_backend import gsplat_available
-
             return "gsplat" if gsplat_available() else "warp"
         return "warp"
     if backend == "gsplat":
-        from .gsplat_backend import gsplat_available
-
         if device.type != "cuda" or not gsplat_available():
             raise ValueError("backend='gsplat' needs CUDA tensors and an importable gsplat package")
     return backend
@@ -201,8 +198,6 @@ def rasterize(
     m, q, ls, ol, col = sel
 
     if backend == "gsplat":
-        from .gsplat_backend import rasterize_gsplat
-
         color_raw, depth_sum, alpha, means2d, radii = rasterize_gsplat(
             m, q, ls, ol, col, viewmat=vm64.to(dtype), K=K64.to(dtype), width=width, height=height,
             near=near, far=far, eps2d=eps2d, tile_size=tile_size,

@@ -15,6 +15,7 @@ def gsplat_available() -> bool:
     if not torch.cuda.is_available():
         return False
     try:
+        # lazy: heavy optional dependency, loaded only on this path
         import gsplat  # noqa: F401
     except Exception:  # noqa: BLE001 - any import failure means "not available"
         return False
@@ -37,6 +38,7 @@ def rasterize_gsplat(means, quats, log_scales, opacity_logits, colors, *, viewma
         ``.grad`` is filled by a hook during backward), radii (M,)
         int32 (max over x/y radii for gsplat >= 1.5, which returns (C,N,2)).
     """
+    # lazy: heavy optional dependency, loaded only on this path
     from gsplat import rasterization
 
     render, alphas, meta = rasterization(

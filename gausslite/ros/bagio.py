@@ -39,6 +39,7 @@ def is_bag_path(path: Union[str, Path]) -> bool:
 
 def ros_typestore(ros1: bool):
     """The rosbags typestore for writing: ROS 1 Noetic (+ ``tf2_msgs/TFMessage``) or ROS 2 Humble."""
+    # lazy: heavy optional dependency, loaded only on this path
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     if not ros1:
@@ -78,10 +79,12 @@ class BagWriter:
         self.ros1 = storage == "ros1"
         self.ts = ros_typestore(self.ros1)
         if self.ros1:
+            # lazy: heavy optional dependency, loaded only on this path
             from rosbags.rosbag1 import Writer as W1
 
             self._w = W1(self.path)
         else:
+            # lazy: heavy optional dependency, loaded only on this path
             from rosbags.rosbag2 import StoragePlugin
             from rosbags.rosbag2 import Writer as W2
 

@@ -27,17 +27,32 @@ from __future__ import annotations
 import logging
 import shutil
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Optional, Protocol, Union
 
 import numpy as np
 
-from gausslite.datasets.base import RGBDDataset
 from gausslite.ros.bagio import BagWriter
 from gausslite.ros.transforms import R_BODY_OPTICAL, invert
 
 log = logging.getLogger(__name__)
 
-__all__ = ["export_bag", "TOPICS", "FRAMES", "T_BASE_OPTICAL"]
+__all__ = ["export_bag", "PosedFrames", "TOPICS", "FRAMES", "T_BASE_OPTICAL"]
+
+
+class PosedFrames(Protocol):
+    """What :func:`export_bag` reads: a sized, indexable sequence of posed RGB-D frames with a ``path``.
+
+    Any :class:`gausslite.datasets.base.RGBDDataset` conforms. ``self[i]`` has the fields of
+    :class:`gausslite.datasets.base.Frame`: ``timestamp`` (s), ``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float32
+    metres, ``c2w`` (4, 4) OpenCV camera-to-world, ``intrinsics``. An optional ``annotations`` attribute with
+    ``objects_path`` / ``tasks_path`` is copied beside a rosbag2 output.
+    """
+
+    path: Path
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> Any: ...
 
 TOPICS = {
     "rgb": "/camera/color/image_raw",
@@ -53,7 +68,7 @@ _T_LINK_OPTICAL[:3, :3] = R_BODY_OPTICAL
 T_BASE_OPTICAL = _T_LINK_OPTICAL
 
 
-def export_bag(dataset: RGBDDataset, out: Union[str, Path], storage: str = "mcap", depth_encoding: str = "32FC1",
+def export_bag(dataset: PosedFrames, out: Union[str, Path], storage: str = "mcap", depth_encoding: str = "32FC1",
                progress: Optional[callable] = None) -> dict:
     """Write ``dataset`` as a bag (see the module docstring for topics and frames).
 

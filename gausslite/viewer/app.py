@@ -13,12 +13,14 @@ OpenCV camera axes (x right, y down, z forward), which is also viser's camera-fr
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
 from gausslite.viewer.splats import COLOR_MODES, scene_bounds, splat_arrays
 from gausslite.wire.codec import GaussianArrays
@@ -83,8 +85,6 @@ class LoadProgress:
     """
 
     def __init__(self, viewer: "MapViewer", what: str, total: int):
-        from tqdm import tqdm
-
         self.viewer, self.what, self.total = viewer, what, max(int(total), 0)
         self.bar = tqdm(total=self.total, desc=f"loading {what}", unit="G", unit_scale=True, leave=False)
         self._last = 0.0
@@ -156,6 +156,7 @@ class MapViewer:
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, *, up: str = "+z", title: str = "GaussLite"):
+        # lazy: heavy optional dependency, loaded only on this path
         import viser
 
         if up != "auto" and up not in UP_AXES:
@@ -350,8 +351,6 @@ def _node_name(text: str) -> str:
 
 
 def _free_port(host: str) -> int:
-    import socket
-
     with socket.socket() as s:
         s.bind((host if host not in ("", "0.0.0.0") else "127.0.0.1", 0))
         return int(s.getsockname()[1])

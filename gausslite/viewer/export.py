@@ -104,6 +104,7 @@ def write_spz(path: PathLike, gaussians) -> int:
     Raises:
         ValueError: non-finite parameters. OSError: unwritable path.
     """
+    # lazy: keeps gausslite.viewer.export importable without gsply
     import gsply
 
     g = GaussianArrays.from_any(gaussians)
@@ -125,6 +126,7 @@ def read_spz(path: PathLike) -> GaussianArrays:
     Raises:
         FileNotFoundError: missing file. ValueError: not an SPZ file.
     """
+    # lazy: keeps gausslite.viewer.export importable without gsply
     import gsply
 
     p = Path(path)
@@ -161,6 +163,7 @@ def load_map(path: PathLike) -> GaussianArrays:
         raise FileNotFoundError(f"map file not found: {p}")
     fmt = format_of(p)
     if fmt == "ply":
+        # lazy: keeps gausslite.viewer.export importable without torch
         from gausslite.gaussians import GaussianMap
 
         return GaussianArrays.from_any(GaussianMap.load_ply(p))

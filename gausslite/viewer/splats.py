@@ -103,6 +103,7 @@ def kappa_colors(kappa: np.ndarray, kappa_max: Optional[int] = None) -> np.ndarr
         kappa: (N,) non-negative counts.
         kappa_max: count mapped to the top of the scale (default: the largest κ, at least 1).
     """
+    # lazy: heavy optional dependency, loaded only on this path
     from matplotlib import colormaps
 
     k = np.asarray(kappa, np.float64)

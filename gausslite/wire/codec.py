@@ -109,10 +109,12 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping, Optional, Sequence
+from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 import zstandard
+
+from gausslite.core.arrays import GAUSSIAN_FIELDS, GaussianArrays, as_numpy
 
 __all__ = [
     "FORMAT_VERSION",
@@ -120,6 +122,7 @@ __all__ = [
     "MAX_KAPPA_SHIFT",
     "MAGIC",
     "GaussianArrays",
+    "GAUSSIAN_FIELDS",
     "QuantConfig",
     "WireLimits",
     "ChunkHeader",
@@ -219,146 +222,6 @@ class ConflictingDuplicate(InconsistentChunks):
 
 class IncompleteSubset(WireError):
     """Assembly was requested while chunks are missing."""
-
-
-# --------------------------------------------------------------------------------------------
-# containers
-
-
-def _to_numpy(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):  # torch.Tensor, without importing torch here
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
-@dataclass
-class GaussianArrays:
-    """A set of N Gaussians as numpy arrays (structure of arrays), the codec/fusion container.
-
-    Mirrors :class:`gausslite.gaussians.GaussianMap` (paper Sec. III-A):
-
-    Attributes:
-        means: (N, 3) float32, world frame, metres.
-        quats: (N, 4) float32, rotation quaternion (w, x, y, z), not necessarily normalised.
-        log_scales: (N, 3) float32, natural log of per-axis standard deviation (metres).
-        opacity_logits: (N,) float32, opacity = sigmoid(logit).
-        colors: (N, 3) float32, RGB (nominally in [0, 1]).
-        kappa: (N,) int64, active-optimisation count κ.
-        active: (N,) bool, task flag a.
-
-    Raises:
-        ValueError: on inconsistent shapes (checked in ``__post_init__``).
-    """
-
-    means: np.ndarray
-    quats: np.ndarray
-    log_scales: np.ndarray
-    opacity_logits: np.ndarray
-    colors: np.ndarray
-    kappa: np.ndarray
-    active: np.ndarray
-
-    _SPEC = {
-        "means": (np.float32, (3,)),
-        "quats": (np.float32, (4,)),
-        "log_scales": (np.float32, (3,)),
-        "opacity_logits": (np.float32, ()),
-        "colors": (np.float32, (3,)),
-        "kappa": (np.int64, ()),
-        "active": (np.bool_, ()),
-    }
-
-    def __post_init__(self) -> None:
-        n = None
-        for name, (dtype, tail) in self._SPEC.items():
-            arr = np.asarray(getattr(self, name))
-            if arr.dtype != dtype:
-                if name == "active" and arr.dtype != np.bool_:
-                    arr = arr != 0
-                else:
-                    arr = arr.astype(dtype)
-            if arr.ndim != 1 + len(tail) or tuple(arr.shape[1:]) != tail:
-                raise ValueError(f"{name}: expected shape (N, {tail}) got {arr.shape}")
-            if n is None:
-                n = arr.shape[0]
-            elif arr.shape[0] != n:
-                raise ValueError(f"{name}: {arr.shape[0]} rows, expected {n}")
-            object.__setattr__(self, name, arr)
-
-    def __len__(self) -> int:
-        return int(self.means.shape[0])
-
-    @classmethod
-    def from_any(cls, obj: Any) -> "GaussianArrays":
-        """Convert a GaussianMap (torch tensors), a GaussianArrays, or a mapping of arrays.
-
-        A mapping needs keys ``means, quats, log_scales, opacity_logits, colors, kappa``; ``active``
-        is optional (default all False).  Values may be numpy arrays or torch tensors (moved to CPU).
-        Conversion of float32/int64/bool CPU inputs is zero-copy.
-
-        Raises:
-            TypeError: unsupported object.  ValueError: bad shapes.
-        """
-        if isinstance(obj, GaussianArrays):
-            return obj
-        if isinstance(obj, Mapping):
-            get = obj.__getitem__
-            has = obj.__contains__
-        elif all(hasattr(obj, k) for k in ("means", "quats", "log_scales", "kappa")):
-            get = lambda k: getattr(obj, k)  # noqa: E731
-            has = lambda k: hasattr(obj, k)  # noqa: E731
-        else:
-            raise TypeError(f"cannot convert {type(obj).__name__} to GaussianArrays")
-        kw = {}
-        for name in cls._SPEC:
-            if name == "active" and not has("active"):
-                continue
-            kw[name] = _to_numpy(get(name))
-        if "active" not in kw:
-            kw["active"] = np.zeros(len(kw["means"]), dtype=bool)
-        return cls(**kw)
-
-    @classmethod
-    def empty(cls) -> "GaussianArrays":
-        """An empty set (N = 0)."""
-        return cls(
-            means=np.zeros((0, 3), np.float32), quats=np.zeros((0, 4), np.float32),
-            log_scales=np.zeros((0, 3), np.float32), opacity_logits=np.zeros(0, np.float32),
-            colors=np.zeros((0, 3), np.float32), kappa=np.zeros(0, np.int64),
-            active=np.zeros(0, bool),
-        )
-
-    def take(self, idx: Any) -> "GaussianArrays":
-        """Rows selected by an index array, boolean mask or slice."""
-        return GaussianArrays(**{k: getattr(self, k)[idx] for k in self._SPEC})
-
-    @classmethod
-    def concat(cls, parts: Sequence["GaussianArrays"]) -> "GaussianArrays":
-        """Row-wise concatenation (empty input gives :meth:`empty`)."""
-        parts = list(parts)
-        if not parts:
-            return cls.empty()
-        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in cls._SPEC})
-
-    def equals(self, other: "GaussianArrays") -> bool:
-        """Exact, bitwise equality of all fields (NaN-safe)."""
-        return len(self) == len(other) and all(
-            np.array_equal(
-                np.ascontiguousarray(getattr(self, k)).view(np.uint8),
-                np.ascontiguousarray(getattr(other, k)).view(np.uint8),
-            )
-            for k in self._SPEC
-        )
-
-    def to_gaussian_map(self, device: str = "cpu"):
-        """Convert to :class:`gausslite.gaussians.GaussianMap` (torch tensors, copies)."""
-        import torch
-
-        from gausslite.gaussians import GaussianMap
-
-        return GaussianMap(**{
-            k: torch.as_tensor(np.array(getattr(self, k)), device=device) for k in self._SPEC
-        })
 
 
 @dataclass(frozen=True)
@@ -1438,7 +1301,7 @@ def apply_delta(base: GaussianArrays, records: GaussianArrays, targets: np.ndarr
         raise DeltaMismatch("a removed row is also replaced")
     if not np.array_equal(t[new], base_count + np.arange(int(new.sum()))):
         raise DeltaMismatch("new-row targets are not consecutive from base_count")
-    out = {k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC}
+    out = {k: np.array(getattr(base, k), copy=True) for k in GAUSSIAN_FIELDS}
     if kappa_shift:
         if int(kappa_shift) < 0:
             raise DeltaMismatch(f"negative κ shift {kappa_shift}")
@@ -1465,7 +1328,7 @@ def spatial_order(means: Any, cell: float = 2.5e-4) -> np.ndarray:
     Returns:
         (N,) int64 permutation (stable for ties).
     """
-    m = np.asarray(_to_numpy(means), np.float64).reshape(-1, 3)
+    m = np.asarray(as_numpy(means), np.float64).reshape(-1, 3)
     if len(m) == 0:
         return np.zeros(0, np.int64)
     q = np.floor((m - m.min(axis=0)) / cell).astype(np.int64)

@@ -141,7 +141,7 @@ def changed_rows(cur: GaussianArrays, base: GaussianArrays, quant: QuantConfig =
         return np.zeros(0, bool)
     if quant.lossless:
         return np.any([np.any(getattr(cur, k).reshape(n, -1) != getattr(base, k).reshape(n, -1), axis=1)
-                       for k in GaussianArrays._SPEC], axis=0)
+                       for k in GaussianArrays.FIELDS], axis=0)
     ch = (change_steps(cur, base, quant) if steps is None else steps) > float(tolerance)
     kb = base.kappa.astype(np.float64)
     ch |= np.abs(cur.kappa - kb) > kappa_rel * np.maximum(kb, 1.0)

@@ -21,6 +21,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc
 from services.agent.frames import encode_frame
+from services.common.client_tls import default_client_tls
 from services.common.errors import raises_typed_errors
 
 SERVICE_NAME = "gausslite.v1.Agent"
@@ -50,8 +51,6 @@ class AgentClient:
         self.timeout_s = float(timeout_s)
         self._md = (("authorization", f"Bearer {token}"),) if token else None
         if root_cert is None and client_cert is None and client_key is None:
-            from services.common.client_tls import default_client_tls
-
             root_cert, client_cert, client_key = default_client_tls()
         if (client_cert is None) != (client_key is None):
             raise ValueError("mutual TLS needs both the client certificate and its key")

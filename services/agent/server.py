@@ -31,17 +31,29 @@ import re
 import sys
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import grpc
+from pydantic import ValidationError
 
+from gausslite.datasets import load_dataset
+from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.loader import detect_layout
+from gausslite.mapping.profiles import profile_for_layout, with_profile
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, load_agent_config
+from gausslite.mission.state import ACTIVE as ACTIVE_STATES
+from gausslite.parser import TaskParser
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
 from services.agent.frames import FrameError, decode_frame, validate_frame
 from services.agent.metrics import agent_registry
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, load_agent_config
+from services.common.auth import read_secret
+from services.common.errors import status_for
 from services.common.server import MalformedMessage, RunningServer, ServerOptions, build_server, run_until_signalled
+from services.fusion_server.client import FusionClient
+from services.parser.server import graph_to_proto
 
 log = logging.getLogger(__name__)
 
@@ -80,11 +92,11 @@ class CallerNotAllowed(Exception):
 
 
 _STATES = {
-    "MAPPING": agent_pb2.MISSION_STATE_MAPPING,
-    "REPLAY_DONE": agent_pb2.MISSION_STATE_REPLAY_DONE,
-    "FINISHING": agent_pb2.MISSION_STATE_FINISHING,
-    "FINISHED": agent_pb2.MISSION_STATE_FINISHED,
-    "FAILED": agent_pb2.MISSION_STATE_FAILED,
+    MissionState.MAPPING: agent_pb2.MISSION_STATE_MAPPING,
+    MissionState.REPLAY_DONE: agent_pb2.MISSION_STATE_REPLAY_DONE,
+    MissionState.FINISHING: agent_pb2.MISSION_STATE_FINISHING,
+    MissionState.FINISHED: agent_pb2.MISSION_STATE_FINISHED,
+    MissionState.FAILED: agent_pb2.MISSION_STATE_FAILED,
 }
 
 
@@ -185,15 +197,12 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         s = self.settings
         if s.parser_address:
             return parse_task_remote(s.parser_address, text, s.token, s.root_cert, s.parser_timeout_s)
-        from gausslite.parser import TaskParser
 
         return TaskParser().parse(text)
 
     def _fusion_client(self, address: str):
         if not address:
             return None
-        from services.common.auth import read_secret
-        from services.fusion_server.client import FusionClient
 
         s = self.settings
         try:
@@ -243,9 +252,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             FileNotFoundError: dataset/annotations path missing.
             grpc.RpcError: the parser service failed.
         """
-        from gausslite.datasets import load_dataset
-        from gausslite.datasets.annotations import load_annotations
-
         s, cfg = self.settings, self.settings.config
         _check_task_text(task_text)
         if mission_id and not _valid_id(mission_id):
@@ -258,15 +264,13 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
                                    f"({self.missions[mission_id].state.lower()})")
             cur = self.missions.get(self.current) if self.current else None
-            if cur is not None and cur.state in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+            if cur is not None and cur.state in ACTIVE_STATES:
                 raise MissionError(f"mission {cur.mission_id} is still {cur.state.lower()}; Finish it first")
         dataset = None
         annotations = None
         if dataset_path:
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
-            from gausslite.datasets.loader import detect_layout
-            from gausslite.mapping.profiles import profile_for_layout, with_profile
 
             layout = detect_layout(dataset_path)[0]
             profile = profile_for_layout(layout)
@@ -291,8 +295,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         aid = agent_id or s.agent_id
         mid = mission_id or None
         if mid is None and s.data_dir:
-            import uuid
-
             mid = uuid.uuid4().hex[:12]
         ckpt = Path(s.data_dir) / aid / mid if s.data_dir else None
         rt = AgentRuntime(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
@@ -312,7 +314,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
     def _auto_finish(self, rt: AgentRuntime) -> None:
         rt.wait_mapped()
-        if rt.state != "FAILED":
+        if rt.state != MissionState.FAILED:
             try:
                 rt.finish()
             except Exception as e:
@@ -378,12 +380,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except (FileNotFoundError, KeyError) as e:
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    str(e.args[0] if isinstance(e, KeyError) else e))
-        except MissionError as e:
-            _abort(context, "StartMission", grpc.StatusCode.FAILED_PRECONDITION, str(e))
-        except ValueError as e:
-            msg = str(e)
-            code = (grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT)
-            _abort(context, "StartMission", code, msg)
+        except (MissionError, ValueError) as e:
+            _abort(context, "StartMission", status_for(e), str(e))
         except OSError as e:  # a path the agent cannot read (too long, a directory, no permission)
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    f"cannot read a path of the request: {type(e).__name__}: {str(e)[:300]}")
@@ -395,7 +393,6 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except Exception as e:  # noqa: BLE001 - never crash: INTERNAL with the cause logged
             log.exception("StartMission failed")
             _abort(context, "StartMission", grpc.StatusCode.INTERNAL, f"internal error: {type(e).__name__}: {e}")
-        from services.parser.server import graph_to_proto
 
         g = rt.graph
         gp = g if hasattr(g, "SerializeToString") else graph_to_proto(g)
@@ -411,16 +408,11 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             rt.update_task(request.task_text, graph, request.task_id or None)
         except KeyError as e:
             _abort(context, "UpdateTask", grpc.StatusCode.INVALID_ARGUMENT, str(e.args[0]))
-        except MissionError as e:
-            _abort(context, "UpdateTask", grpc.StatusCode.FAILED_PRECONDITION, str(e))
-        except ValueError as e:
-            msg = str(e)
-            code = grpc.StatusCode.FAILED_PRECONDITION if "relevance" in msg else grpc.StatusCode.INVALID_ARGUMENT
-            _abort(context, "UpdateTask", code, msg)
+        except (MissionError, ValueError) as e:
+            _abort(context, "UpdateTask", status_for(e), str(e))
         except grpc.RpcError as e:
             code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
             _abort(context, "UpdateTask", code, f"parser service: {e.code().name}: {e.details()}")
-        from services.parser.server import graph_to_proto
 
         gp = graph if hasattr(graph, "SerializeToString") else graph_to_proto(graph)
         return agent_pb2.UpdateTaskResponse(mission_id=rt.mission_id, graph=gp)
@@ -456,8 +448,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                         if not context.is_active():
                             return agent_pb2.StreamFramesResponse()
             except MissionError as e:
-                code = (grpc.StatusCode.INVALID_ARGUMENT if "image size" in str(e)
-                        else grpc.StatusCode.FAILED_PRECONDITION)
+                code = status_for(e)
                 log.warning("agent %s: StreamFrames %s: %s", rt.agent_id, code.name, e)
                 context.abort(code, str(e))
             n += 1
@@ -514,7 +505,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         deadline = time.monotonic() + max(0.0, timeout_s)
         pushed = []
         for rt in list(self.missions.values()):
-            if rt.state not in ("MAPPING", "REPLAY_DONE", "FINISHING"):
+            if rt.state not in ACTIVE_STATES:
                 continue
             log.info("agent %s: shutting down mission %s: final push and checkpoint", rt.agent_id, rt.mission_id)
             try:
@@ -623,8 +614,6 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
         FileNotFoundError / ValueError / pydantic.ValidationError: bad config; an unreadable or empty
             ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate and key.
     """
-    from services.common.auth import read_secret
-
     env = os.environ if env is None else env
     overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
     kw = {k: env.get(v) or None for k, v in ENV.items()}
@@ -647,8 +636,6 @@ def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
     Agent-specific settings come from the environment (:func:`settings_from_env`; the ``serve agent``
     flags ``--agent-id --parser --fusion --dataset --task --task-id --data-dir`` set those variables).
     """
-    from pydantic import ValidationError
-
     try:
         settings = settings_from_env(config_path, token=options.token)
     except ValidationError as e:

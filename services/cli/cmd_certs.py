@@ -46,6 +46,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the services or gRPC
     from pathlib import Path
 
     from services.common import auth, pki

@@ -39,6 +39,7 @@ def check_health(target: str, service: str = "", timeout_s: float = 3.0, tls_ca:
     Raises:
         OSError: a PEM file is unreadable. ValueError: only one of client certificate and key.
     """
+    # lazy: the command line starts without loading the services or gRPC
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 

@@ -71,6 +71,7 @@ def resolve_options(args: argparse.Namespace, env=None):
         ValueError: a port from the environment is not an integer; ``--agent-tokens`` for another
             service than fusion (the only one that checks who writes what).
     """
+    # lazy: the command line starts without loading the services or gRPC
     from services.common.metrics import metrics_port_from
     from services.common.server import ServerOptions
 

@@ -91,6 +91,7 @@ def register(subparsers) -> None:
     p.add_argument("--tls-client-cert", default=None,
                    help="with --attach: this client's PEM certificate for mutual TLS (env GAUSSLITE_TLS_CLIENT_CERT)")
     p.add_argument("--tls-client-key", default=None, help="its PEM key (env GAUSSLITE_TLS_CLIENT_KEY)")
+    # lazy: the command line starts without loading the services or gRPC
     from gausslite.cli.cmd_map import add_bag_args
 
     add_bag_args(p)  # shortcuts for agent.bag.<field>
@@ -144,6 +145,7 @@ def _handle(args: argparse.Namespace) -> int:
         if not args.offline_report:
             print("gausslite sim: error: --report-only needs --offline-report", file=sys.stderr)
             return 2
+        # lazy: the command line starts without loading the services or gRPC
         from services.sim import attach_offline_report
 
         try:
@@ -166,6 +168,7 @@ def _handle(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 2
         overrides.append(f"agent.scoring.protocols=[{', '.join(protos)}]")
+    # lazy: the command line starts without loading the services or gRPC
     from gausslite.cli.cmd_map import bag_options_from_args
 
     overrides += [f"agent.bag.{k}={v}" for k, v in bag_options_from_args(args).items()]
@@ -199,6 +202,7 @@ def _handle(args: argparse.Namespace) -> int:
         tls = [args.tls_ca or env.get("GAUSSLITE_TLS_CA"), args.tls_client_cert or env.get("GAUSSLITE_TLS_CLIENT_CERT"),
                args.tls_client_key or env.get("GAUSSLITE_TLS_CLIENT_KEY")]
         if any(tls):  # the attached services run TLS: every client of this run uses it
+            # lazy: the command line starts without loading the services or gRPC
             from services.common.client_tls import client_tls_from_files, set_default_client_tls
 
             try:
@@ -216,6 +220,7 @@ def _handle(args: argparse.Namespace) -> int:
     if args.merge_only:
         return _merge_context(args)
     try:
+        # lazy: the command line starts without loading the services or gRPC
         from services.common.auth import read_secret
         from services.sim import run_sim
 
@@ -242,6 +247,7 @@ def _handle(args: argparse.Namespace) -> int:
 def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach):
     """``--baseline uniform``: the same sim with ``mapper.mode=uniform`` into ``OUT/baseline_uniform`` (run after the
     GaussLite one, never beside it: live budgets are wall time), then its agents' figures into the main report."""
+    # lazy: the command line starts without loading the services or gRPC
     import json
 
     from services.sim import attach_uniform_baseline, run_sim, write_markdown
@@ -257,6 +263,7 @@ def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach)
 
 def _merge_context(args: argparse.Namespace) -> int:
     """``--merge-only``: add the context run's figures to an existing report (no processes)."""
+    # lazy: the command line starts without loading the services or gRPC
     import json
     from pathlib import Path
 

@@ -49,6 +49,7 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
+    # lazy: the command line starts without loading the services or gRPC
     from services.common import auth
 
     try:

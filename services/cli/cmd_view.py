@@ -23,6 +23,7 @@ import time
 
 def register(subparsers) -> None:
     """Add the ``view`` subcommand to ``subparsers``."""
+    # lazy: the command line starts without loading the services or gRPC
     from gausslite.viewer.app import UP_AXES
     from gausslite.viewer.splats import COLOR_MODES
 
@@ -53,6 +54,7 @@ def _handle(args: argparse.Namespace) -> int:
         return 2
     try:
         if args.map:  # a missing or unsupported file fails before a page is served
+            # lazy: the command line starts without loading the services or gRPC
             from gausslite.viewer.export import format_of
 
             format_of(args.map)
@@ -61,6 +63,7 @@ def _handle(args: argparse.Namespace) -> int:
         port = args.port if args.port is not None else int(env.get("GAUSSLITE_VIEW_PORT", 8080))
         if not args.poll > 0:
             raise ValueError(f"--poll must be > 0, got {args.poll}")
+        # lazy: the command line starts without loading the services or gRPC
         from gausslite.viewer.app import MapViewer
 
         viewer = MapViewer(args.host, port, up=args.up)
@@ -72,6 +75,7 @@ def _handle(args: argparse.Namespace) -> int:
     feed = client = None
     try:
         if args.map:
+            # lazy: the command line starts without loading the services or gRPC
             from gausslite.viewer.export import load_map
 
             # The page is served from here on: print its URL first, then read and convert the map, so
@@ -90,6 +94,7 @@ def _handle(args: argparse.Namespace) -> int:
                 return 130
             print(f"showing {args.map} ({len(g):,} Gaussians) at {viewer.url}", flush=True)
         else:
+            # lazy: the command line starts without loading the services or gRPC
             from services.fusion_server.client import FusionClient
             from services.viewer.feed import FusionFeed
 

@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import grpc
+import yaml
 
 log = logging.getLogger(__name__)
 
@@ -229,8 +230,6 @@ def read_token_file(path: str | os.PathLike) -> Dict[str, Tuple[str, ...]]:
     text = p.read_text(encoding="utf-8")
     try:
         if p.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
             data = yaml.safe_load(text)
         else:
             data = json.loads(text)
@@ -249,8 +248,6 @@ def write_token_file(path: str | os.PathLike, records: Mapping[str, Sequence[str
     doc = {"agents": {a: (list(r) if len(r) > 1 else r[0]) for a, r in sorted(records.items())}}
     parse_token_records(doc, str(p))
     if p.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
         text = yaml.safe_dump(doc, sort_keys=True)
     else:
         text = json.dumps(doc, indent=2, sort_keys=True) + "\n"

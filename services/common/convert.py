@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from gausslite.camera import Intrinsics
+from gausslite.errors import ImageSizeError
 from gausslite_rpc import common_pb2
 
 #: Largest image side (pixels) a message may declare: a larger one is refused before any buffer is sized by it.
@@ -20,12 +21,12 @@ def intrinsics_from_proto(m: common_pb2.Intrinsics) -> Intrinsics:
     """``common.Intrinsics`` (pixels) → :class:`gausslite.camera.Intrinsics`, validated.
 
     Raises:
-        ValueError: non-finite or non-positive focal lengths, a non-finite principal point, or an image side of 0
-            or above :data:`MAX_SIDE`. The agent answers it as a rejected frame, the fusion server as
-            INVALID_ARGUMENT.
+        ValueError: non-finite or non-positive focal lengths, a non-finite principal point, or (an
+            :class:`gausslite.errors.ImageSizeError`) an image side of 0 or above :data:`MAX_SIDE`. The agent
+            answers it as a rejected frame, the fusion server as INVALID_ARGUMENT.
     """
     if not (0 < m.width <= MAX_SIDE and 0 < m.height <= MAX_SIDE):
-        raise ValueError(f"image size {m.width}x{m.height} outside 1..{MAX_SIDE}")
+        raise ImageSizeError(f"image size {m.width}x{m.height} outside 1..{MAX_SIDE}")
     return Intrinsics(float(m.fx), float(m.fy), float(m.cx), float(m.cy), int(m.width), int(m.height))
 
 

@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import functools
 import inspect
-from typing import Dict, Type
+from typing import Dict, Tuple, Type
 
 import grpc
 
-from gausslite.mission.errors import PreconditionFailed
+from gausslite.errors import ImageSizeError, RelevanceUnavailable
+from gausslite.mission.errors import MissionError, PreconditionFailed
 
-__all__ = ["RpcStatusError", "InvalidArgument", "NotFound", "AlreadyExists", "FailedPrecondition",
+__all__ = ["status_for", "LIBRARY_STATUSES",
+           "RpcStatusError", "InvalidArgument", "NotFound", "AlreadyExists", "FailedPrecondition",
            "PermissionDenied", "Unauthenticated", "ResourceExhausted", "Unavailable", "DeadlineExceeded",
            "Cancelled", "Internal", "typed_error", "raises_typed_errors"]
 
@@ -100,3 +102,23 @@ def raises_typed_errors(cls):
                     raise typed_error(e, _fn.__name__) from e
             setattr(cls, name, call)
     return cls
+
+
+#: the gRPC status of each library exception type, most specific first (:func:`status_for` takes the first match)
+LIBRARY_STATUSES: Tuple[Tuple[Type[BaseException], grpc.StatusCode], ...] = (
+    (ImageSizeError, grpc.StatusCode.INVALID_ARGUMENT),  # also a mission's FrameSizeMismatch
+    (RelevanceUnavailable, grpc.StatusCode.FAILED_PRECONDITION),
+    (MissionError, grpc.StatusCode.FAILED_PRECONDITION),
+    (PreconditionFailed, grpc.StatusCode.FAILED_PRECONDITION),
+    (ValueError, grpc.StatusCode.INVALID_ARGUMENT),
+)
+
+
+def status_for(e: BaseException, default: grpc.StatusCode = grpc.StatusCode.INTERNAL) -> grpc.StatusCode:
+    """The gRPC status a server answers for the library exception ``e``, chosen by its type
+    (:data:`LIBRARY_STATUSES`), never by its message; ``default`` when no entry matches."""
+    for cls, code in LIBRARY_STATUSES:
+        if isinstance(e, cls):
+            return code
+    return default
+

@@ -22,6 +22,8 @@ import os
 from pathlib import Path
 from typing import Dict, Iterable, Optional, Sequence, Tuple
 
+from services.common.auth import AGENT_ID_RE
+
 __all__ = ["SERVER_CN", "DEFAULT_SERVER_NAMES", "make_ca", "issue_certificate", "provision_pki", "certificate_info"]
 
 #: subject CN of the server certificate: not an agent id, so a probe presenting it is a team member
@@ -31,6 +33,7 @@ DEFAULT_SERVER_NAMES = ("fusion", "fusion_server", "fusion_server_2", "parser", 
 
 
 def _crypto():
+    # lazy: only certificate commands load cryptography; a missing install is reported as a RuntimeError
     try:
         from cryptography import x509
         from cryptography.hazmat.primitives import hashes, serialization
@@ -161,8 +164,6 @@ def provision_pki(directory: str | os.PathLike, agent_ids: Sequence[str], *,
     Raises:
         ValueError: a bad agent id or validity. OSError: unwritable directory.
     """
-    from services.common.auth import AGENT_ID_RE
-
     for a in agent_ids:
         if not AGENT_ID_RE.match(a):
             raise ValueError(f"invalid agent id {a!r}: need 1..64 characters of [A-Za-z0-9_.-]")

@@ -22,6 +22,7 @@
 
 from __future__ import annotations
 
+import collections
 import hmac
 import logging
 import os
@@ -171,8 +172,6 @@ class FailureLimiter:
 
     def __init__(self, max_failures: int = 20, window_s: float = 10.0, max_hosts: int = 4096,
                  max_in_flight: int = 4) -> None:
-        import collections
-
         self.max_failures, self.window_s, self.max_hosts = int(max_failures), float(window_s), int(max_hosts)
         self.max_in_flight = int(max_in_flight)
         self._lock = threading.Lock()
@@ -214,8 +213,6 @@ class FailureLimiter:
 
     def failed(self, host: str) -> None:
         """Record one failed authentication of ``host``."""
-        import collections
-
         now = time.monotonic()
         with self._lock:
             q = self._recent(host, now)

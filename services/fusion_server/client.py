@@ -40,9 +40,12 @@ surfaces as :class:`grpc.RpcError` with the server's status code (see ``proto/ga
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
 
 import grpc
@@ -50,10 +53,12 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset
-from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
-from services.common.errors import raises_typed_errors
+from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
+from services.common.auth import read_secret
+from services.common.client_tls import default_client_tls
 from services.common.convert import intrinsics_to_proto
+from services.common.errors import raises_typed_errors
 
 log = logging.getLogger(__name__)
 
@@ -87,11 +92,6 @@ def client_credentials_from_env(env=None) -> dict:
         OSError: a named file is unreadable. ValueError: an empty/invalid token file, or only one of
             client certificate and key.
     """
-    import os
-    from pathlib import Path
-
-    from services.common.auth import read_secret
-
     env = os.environ if env is None else env
     token = env.get("GAUSSLITE_FUSION_TOKEN") or None
     if token is None and env.get("GAUSSLITE_FUSION_TOKEN_FILE"):
@@ -146,8 +146,6 @@ def channel_options(max_message_bytes: int = 64 * 1024 * 1024, max_reconnect_bac
     """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config, and a bound on
     gRPC's reconnection backoff (ms; gRPC's default grows to 120 s, so after a long outage the channel would keep
     failing calls for up to two minutes after the server is back)."""
-    import json
-
     return [("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
             ("grpc.enable_retries", 1),
@@ -203,6 +201,8 @@ class FuseResult:
         first_row (dict[str, int]): provenance, agent id → its first row in the fused map: rows
             ``[first_row[a], first_row[a] + kept[a])`` of :meth:`FusionClient.download_fused` came from agent ``a``;
             empty for a refined map (the refinement splits, clones and prunes rows).
+        vote_seconds (float): wall time of the vote stage alone (s; 0 for concat). agents_revoted (int): agents whose
+        subset changed since the server's last vote. incremental (bool): the vote re-used the server's voted map.
     """
 
     fused_version: int
@@ -220,6 +220,9 @@ class FuseResult:
     contest_radius: int = 0
     for_agent: str = ""
     first_row: Dict[str, int] = field(default_factory=dict)
+    vote_seconds: float = 0.0
+    agents_revoted: int = 0
+    incremental: bool = False
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -232,7 +235,8 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         method=_METHOD_NAMES.get(r.method, "vote"), refined=bool(r.refined),
         refine_iters=int(r.refine_iters), voxel_size=float(r.voxel_size),
         keyframes_used=int(r.keyframes_used), bytes=int(r.bytes), contest_radius=int(r.contest_radius),
-        for_agent=str(r.for_agent),
+        for_agent=str(r.for_agent), vote_seconds=float(r.vote_seconds), agents_revoted=int(r.agents_revoted),
+        incremental=bool(r.incremental),
         first_row={a.agent_id: int(a.first_row) for a in r.agents if a.HasField("first_row")},
     )
 
@@ -297,8 +301,6 @@ class FusionClient:
         self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         if root_cert is None and client_cert is None and client_key is None:
-            from services.common.client_tls import default_client_tls
-
             root_cert, client_cert, client_key = default_client_tls()
         opts = channel_options(CLIENT_MAX_MESSAGE_BYTES)
         creds = channel_credentials(root_cert, client_cert, client_key)

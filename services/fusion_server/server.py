@@ -49,6 +49,8 @@ import threading
 from dataclasses import dataclass
 from typing import Optional
 
+from grpc_health.v1 import health_pb2
+
 from gausslite.config import FusionSettings
 from gausslite_rpc import fusion_pb2_grpc
 from services.common.metrics import metrics_port_from
@@ -86,8 +88,6 @@ class StoreHealth:
 
     def probe(self) -> bool:
         """One probe; updates health on a change. Returns whether the store answered."""
-        from grpc_health.v1 import health_pb2
-
         try:
             self.store.latest_complete()
             ok = True

@@ -16,6 +16,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.config import FusionSettings
+from gausslite.datasets.base import Frame
 from gausslite.fusion.engine import FuseEngine
 from gausslite.fusion.plausible import check_plausible
 from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler, WireError,
@@ -530,6 +531,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
     def _roi_views(self, agent: str) -> list:
         """``agent``'s stored keyframes that carry an ROI, as :class:`gausslite.fusion.diagnose.RoiView` (pose,
         intrinsics and the decoded ROI mask only: the colour and depth images stay encoded)."""
+        # lazy: keeps services.fusion_server.servicer importable without torch
         from gausslite.fusion.diagnose import RoiView
 
         out = []
@@ -543,8 +545,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     def _refine_keyframes(self) -> list:
         """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
-        from gausslite.camera import Intrinsics
-        from gausslite.datasets.base import Frame
+        # lazy: keeps services.fusion_server.servicer importable without torch
         from gausslite.mapping.views import keyframe_from_frame
 
         kfs = []

@@ -645,6 +645,7 @@ class SqliteFusionStore(SqlFusionStore):
     @contextlib.contextmanager
     def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
         """``flock`` on ``<data_dir>/fuse.lock``: excludes every store (thread or process) on this file."""
+        # lazy: fcntl exists on POSIX only
         import fcntl
 
         with open(self.data_dir / "fuse.lock", "a+b") as f:
@@ -679,6 +680,7 @@ FusionStore = SqliteFusionStore
 def redact_dsn(dsn: str) -> str:
     """The DSN without its password (for logs and error messages)."""
     try:
+        # lazy: heavy optional dependency, loaded only on this path
         from psycopg.conninfo import conninfo_to_dict, make_conninfo
 
         params = conninfo_to_dict(dsn)
@@ -736,6 +738,7 @@ class PostgresFusionStore(SqlFusionStore):
 
     def __init__(self, dsn: str, pool_size: int = 12, connect_timeout_s: float = 10.0, acquire_timeout_s: float = 5.0):
         try:
+            # lazy: heavy optional dependency, loaded only on this path
             import psycopg
             from psycopg_pool import ConnectionPool, PoolTimeout
         except ImportError as e:  # pragma: no cover - dependencies of the package
@@ -797,6 +800,7 @@ class PostgresFusionStore(SqlFusionStore):
             if not degraded:
                 self._degraded = True
                 raise
+            # lazy: heavy optional dependency, loaded only on this path
             import psycopg
 
             conn = psycopg.connect(self.dsn, autocommit=False, connect_timeout=self._connect_timeout)
@@ -827,6 +831,7 @@ class PostgresFusionStore(SqlFusionStore):
     def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
         """Session-level advisory lock on a dedicated connection; released when the block ends or
         the connection drops (a SIGKILLed replica never blocks the others)."""
+        # lazy: heavy optional dependency, loaded only on this path
         import psycopg
 
         with self._reachable(), psycopg.connect(self.dsn, autocommit=True) as conn:

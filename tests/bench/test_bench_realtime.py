@@ -157,7 +157,7 @@ def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path
            "overrides": ["mapper.seeding.seeds_per_frame=600", "mapper.budget_clock=work"],
            "protocols": ("sensor", "keyframes", "tracked"), "track_iters": 3, "track_stride": 2,
            "defer_dir": str(tmp_path / "maps")}
-    ds, ann, task, agent, fp = rt._mission(job, 1.0)
+    ds, ann, task, agent, fp = rt.start_mission(job, 1.0)
     try:
         for i in rt.keyframe_schedule(ds, 0.5):
             agent.mapper.map_frame(ds[i], agent.relevance(ds[i]), time_budget_s=0.08)

@@ -25,7 +25,7 @@ def test_recording_fusion_holds_what_the_server_holds_after_full_and_delta_pushe
     p1 = planner.plan(ids, cur, 1)
     sink.upload_chunks("a", 1, p1.chunks)
     planner.acknowledge(p1)
-    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays._SPEC})
+    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays.FIELDS})
     nxt.means[:10] += 0.02
     keep = np.ones(200, bool)
     keep[50:60] = False

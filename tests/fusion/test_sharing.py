@@ -257,18 +257,18 @@ def test_update_shared_subset_changes_only_new_and_refreshed_rows_of_the_servers
     agent_ids = np.concatenate([np.arange(101, 116), np.arange(200, 205)])
     order = np.argsort(base_ids)
     held = base.take(order[np.searchsorted(base_ids, np.arange(101, 116), sorter=order)])
-    drift = GaussianArrays(**{k: getattr(held, k) for k in GaussianArrays._SPEC})
+    drift = GaussianArrays(**{k: getattr(held, k) for k in GaussianArrays.FIELDS})
     drift.colors[:] = np.clip(drift.colors + 0.05, 0, 1)
     drift.kappa[:] += 40
     new = GaussianArrays.from_any(_grid_subset(n_side=3, z=1.95)).take(np.arange(5))
-    agent = GaussianArrays(**{k: np.concatenate([getattr(drift, k), getattr(new, k)]) for k in GaussianArrays._SPEC})
+    agent = GaussianArrays(**{k: np.concatenate([getattr(drift, k), getattr(new, k)]) for k in GaussianArrays.FIELDS})
     for refresh, n_refresh in ((0.0, 0), (0.2, 3), (1.0, 15)):
         out, st = update_shared_subset(agent, agent_ids, base, base_ids, [kf], iters=40, refresh=refresh, seed=0)
         assert st == {"base": 15, "new": 5, "refreshed": n_refresh}
         assert len(out) == 20
         srv = base.take(order[np.searchsorted(base_ids, agent_ids[:15], sorter=order)])
         same = np.all([np.all(getattr(out, k)[:15].reshape(15, -1) == getattr(srv, k).reshape(15, -1), axis=1)
-                       for k in GaussianArrays._SPEC if k != "kappa"], axis=0)
+                       for k in GaussianArrays.FIELDS if k != "kappa"], axis=0)
         assert int((~same).sum()) <= n_refresh and int(same.sum()) >= 15 - n_refresh
         if refresh < 1.0:
             assert int((~same).sum()) == n_refresh

@@ -774,7 +774,7 @@ def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
     rec = rt.pusher.pushes[-1]
     assert rec.unchanged and rec.bytes_on_wire == 0 and rec.version == held == rt.share.planner.base_version
     assert rt.pusher.total_upload_bytes == sum(p.bytes_on_wire for p in rt.pusher.pushes)
-    grown = GaussianArrays(**{k: np.array(getattr(base, k), copy=True) for k in GaussianArrays._SPEC})
+    grown = GaussianArrays(**{k: np.array(getattr(base, k), copy=True) for k in GaussianArrays.FIELDS})
     grown.kappa[grown.active] += 25
     rt.pusher.push_once(Snapshot(held + 2, grown, 1000, True, ids, 2))
     assert len(fusion.uploads) == n_up + 1 and not rt.pusher.pushes[-1].unchanged

@@ -39,7 +39,7 @@ class Agent:
 
     def evolve(self, seed: int, n_move=30, n_remove=20, n_new=50, kappa_growth=0):
         r = np.random.default_rng(seed)
-        a = {k: np.array(getattr(self.arr, k), copy=True) for k in GaussianArrays._SPEC}
+        a = {k: np.array(getattr(self.arr, k), copy=True) for k in GaussianArrays.FIELDS}
         a["kappa"] += kappa_growth  # ROI-phase iterations since the last push: every active row grows
         mv = r.choice(len(self.ids), n_move, replace=False)
         a["means"][mv] += 0.01

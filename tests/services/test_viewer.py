@@ -72,7 +72,7 @@ def test_splat_arrays_modes_and_progress():
     assert roi[~a].max() <= 0.5 + 1e-6  # dim
     with pytest.raises(ValueError, match="colour mode"):
         splat_arrays(g, "depth")
-    bad = GaussianArrays(**{**{k: getattr(g, k) for k in GaussianArrays._SPEC}, "means": g.means.copy()})
+    bad = GaussianArrays(**{**{k: getattr(g, k) for k in GaussianArrays.FIELDS}, "means": g.means.copy()})
     bad.means[3, 1] = np.nan
     with pytest.raises(ValueError, match="1 Gaussian.*non-finite means"):
         splat_arrays(bad)
@@ -454,7 +454,7 @@ def fusion_with_two_agents(tmp_path):
     for j, agent in enumerate(("robot_a", "robot_b")):
         fc.open_session(agent, f"task {agent}", INTR)
         sub = shell_map(1500, seed=10 + j)
-        sub = GaussianArrays(**{**{k: getattr(sub, k) for k in GaussianArrays._SPEC},
+        sub = GaussianArrays(**{**{k: getattr(sub, k) for k in GaussianArrays.FIELDS},
                                 "means": sub.means + np.float32([0.8 * (2 * j - 1), 0, 0])})
         fc.upload_subset(agent, 1, sub, full_map_gaussians=6000)
         fc.upload_keyframes(agent, [_kf(i, 0.8 * (2 * j - 1)) for i in range(4)])

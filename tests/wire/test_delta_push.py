@@ -71,7 +71,7 @@ def test_delta_push_rebuilds_the_server_subset_exactly():
     assert server.equals(p1.subset)
     planner.acknowledge(p1)
     # mutate: 10 rows move 2 cm, 5 rows move far below the quantisation step, 20 removed, 40 new
-    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays._SPEC})
+    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays.FIELDS})
     nxt.means[:10] += 0.02
     nxt.means[10:15] += 1e-6
     keep = np.ones(300, bool)
@@ -108,7 +108,7 @@ def test_delta_push_rebuilds_the_server_subset_exactly():
 
 def test_changed_rows_rule_and_delta_validation():
     a = _arrays(50)
-    b = GaussianArrays(**{k: np.array(getattr(a, k), copy=True) for k in GaussianArrays._SPEC})
+    b = GaussianArrays(**{k: np.array(getattr(a, k), copy=True) for k in GaussianArrays.FIELDS})
     assert not changed_rows(a, b).any()
     b.means[3, 0] += 1.5 * QuantConfig().mean_step  # beyond one step
     b.kappa[4] = a.kappa[4] * 2 + 2
@@ -149,7 +149,7 @@ def test_kappa_growth_travels_as_one_shift_not_as_rows():
     cur.active[190:] = False  # context rows of the ROI render: their κ does not grow
     p1 = planner.plan(ids, cur, 1)
     planner.acknowledge(p1)
-    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays._SPEC})
+    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays.FIELDS})
     nxt.kappa[nxt.active] += 125  # 5 frames × 25 ROI-phase iterations
     nxt.kappa[:6] += 200  # six rows grew far more (e.g. active in extra iterations): beyond kappa_rel
     nxt.kappa[6:9] += 3  # within kappa_rel of base + shift: not re-sent
