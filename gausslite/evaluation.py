@@ -284,8 +284,8 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
     """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
     every mode (docs/realtime.md#scoring-protocols):
 
-    - ``sensor``: every frame at the sensor's pose with its keyframe's (or the nearest keyframe's) refined
-      correction and exposure response (:meth:`Mapper.render_frame`);
+    - ``sensor``: every frame at the sensor's pose with its keyframe's refined correction and exposure response
+      (between keyframes: interpolated, or the nearest one's, ``pose.between_keyframes``; :meth:`Mapper.render_frame`);
     - ``keyframes``: the trained views only (``keyframe_ids``; default the mapped frames), each at its own refined
       pose and exposure response; with ``keyframe_poses`` (frame id → (4, 4) camera-to-world, e.g. the keyframes a
       robot uploaded at their refined poses) those frames at those poses, identity exposure;
