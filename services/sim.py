@@ -43,7 +43,6 @@ from gausslite.evaluation import PROTOCOLS, evaluate_fused, render_map, score_ma
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mapping.config import apply_overrides
-from gausslite.mission.config import ScoringConfig
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import WireLimits, assemble
 from gausslite_rpc import agent_pb2
@@ -144,13 +143,13 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
             for name, path, tid in zip(AGENT_NAMES, paths, task_ids)]
 
 
-def _check_bags(plans: List[AgentPlan], cfg: dict) -> None:
+def _check_bags(plans: List[AgentPlan], agent_cfg) -> None:
     """Open every ROS bag the agents will replay, so a bad bag fails with its one clear error before any
-    process starts (``BagError`` lists the bag's topics and TF frames)."""
-    a = cfg.get("agent") or {}
+    process starts (``BagError`` lists the bag's topics and TF frames). ``agent_cfg``: the typed
+    :class:`gausslite.mission.config.AgentConfig` (max_frames, bag options)."""
     for path in sorted({p.dataset for p in plans}):
         if detect_layout(path)[0] == "bag":
-            ds = load_dataset(path, max_frames=a.get("max_frames"), bag=a.get("bag"))
+            ds = load_dataset(path, max_frames=agent_cfg.max_frames, bag=agent_cfg.bag)
             ds.close()
 
 
@@ -676,6 +675,279 @@ def write_markdown(report: dict, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def _generate_scene(out: Path, scene, progress: bool) -> str:
+    """Generate the synthetic default scene (``scene``: :class:`gausslite.config.SimScene`) into ``out/scene`` and
+    return that folder's path."""
+    log.info("generating the synthetic default scene into %s", out / "scene")
+    make_scene(out / "scene", seed=scene.seed, width=scene.width, height=scene.height, frames=scene.frames,
+               progress=progress)
+    return str(out / "scene")
+
+
+def _start_services(out: Path, config_path: Path, plans: List[AgentPlan], group: ProcessGroup,
+                    token: Optional[str]) -> Dict[str, str]:
+    """Start the parser, the fusion server and the agents in ``group`` on free loopback ports, each waited for
+    until its health service reports SERVING (120 s, agents 180 s).
+
+    Returns:
+        service name → ``host:port``.
+    Raises:
+        TimeoutError: a service not healthy in time. RuntimeError: a process died.
+    """
+    ports = {n: free_port() for n in ("parser", "fusion_server", *AGENT_NAMES)}
+    addrs = {n: f"127.0.0.1:{p}" for n, p in ports.items()}
+    cmds = service_commands(config_path, plans, ports, out / "data")
+    tok = {"GAUSSLITE_TOKEN": token} if token else {}
+    for name in ("parser", "fusion_server"):
+        group.start(name, cmds[name][0], {**cmds[name][1], **tok})
+    wait_healthy(addrs["parser"], "gausslite.v1.Parser", 120, group)
+    wait_healthy(addrs["fusion_server"], "gausslite.v1.Fusion", 120, group)
+    for p in plans:
+        group.start(p.name, cmds[p.name][0], {**cmds[p.name][1], **tok})
+    for p in plans:
+        wait_healthy(addrs[p.name], "gausslite.v1.Agent", 180, group)
+    return addrs
+
+
+def _connect(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str], fusion_token: Optional[str],
+             clients: list):
+    """Clients of the fusion server (waited for until ready, 60 s) and of each agent (``addrs``: service name →
+    ``host:port``; each plan's ``address`` is set). Every client is appended to ``clients`` as soon as it exists,
+    so the caller closes it whatever fails next.
+
+    Returns:
+        ``(fusion, agents)``: the ``FusionClient`` and agent id → ``AgentClient``.
+    """
+    for p in plans:
+        p.address = addrs[p.name]
+    fusion = FusionClient(addrs["fusion_server"], token=fusion_token or token, timeout_s=120.0)
+    clients.append(fusion)
+    fusion.wait_ready(60)
+    agents = {p.name: AgentClient(p.address, token=token) for p in plans}
+    clients.extend(agents.values())
+    return fusion, agents
+
+
+def _wait_for_missions(agents: dict, group: ProcessGroup, tracker: FusedTimeline, t0: float, deadline: float,
+                       timeout_s: float) -> None:
+    """Poll the agents' status every second until every mission is replayed or finished, vote-fusing whenever a new
+    subset arrived (``tracker``: the fused map over time; ``t0``: the sim's ``perf_counter`` start) and logging
+    progress every 5 s.
+
+    Raises:
+        RuntimeError: a mission failed or a process died. TimeoutError: past ``deadline`` (monotonic s).
+        grpc.RpcError: an agent's status call failed (NOT_FOUND is waited out until the deadline).
+    """
+    done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
+    last_print = 0.0
+    while True:
+        group.check_alive()
+        tracker.poll(time.perf_counter() - t0)
+        try:
+            sts = {n: c.status() for n, c in agents.items()}
+        except grpc.RpcError as e:  # an attached agent that has not started its mission yet
+            if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+            continue
+        for n, st in sts.items():
+            if st.state == agent_pb2.MISSION_STATE_FAILED:
+                raise RuntimeError(f"{n} mission failed: {st.last_error}")
+        if time.monotonic() - last_print > 5.0 or all(st.state in done for st in sts.values()):
+            last_print = time.monotonic()
+            log.info("mapping: " + ", ".join(
+                f"{n} {st.frames_mapped}/{st.frames_received or '?'} frames, {st.n_gaussians} G, "
+                f"{st.pushes} pushes" for n, st in sts.items()))
+        if all(st.state in done for st in sts.values()):
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"agents not done after {timeout_s:.0f} s")
+        time.sleep(1.0)
+
+
+def _finish_agents(agents: dict, deadline: float) -> dict:
+    """Each agent's Finish summary (agent id → summary), within what is left until ``deadline`` (at least 10 s).
+
+    Raises:
+        RuntimeError: an agent's final push failed.
+    """
+    summaries = {}
+    for n, c in agents.items():
+        summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
+        if not summaries[n].final_push_ok:
+            raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+    return summaries
+
+
+def _load_eval_frames(plans: List[AgentPlan], agent_cfg) -> Dict[str, tuple]:
+    """Agent id → ``(dataset, frames)``: each agent's sequence loaded as its agent replays it (``agent_cfg``: the
+    typed :class:`gausslite.mission.config.AgentConfig`; downscale, max_frames, stride, bag options)."""
+    eval_frames = {}
+    for p in plans:
+        ds = load_dataset(p.dataset, downscale=agent_cfg.downscale, max_frames=agent_cfg.max_frames,
+                          stride=agent_cfg.stride, bag=agent_cfg.bag)
+        eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
+    return eval_frames
+
+
+def _uploaded_keyframe_poses(fusion, plans: List[AgentPlan]) -> Dict[str, dict]:
+    """Agent id → {frame id → (4, 4) camera-to-world}: the keyframes each robot uploaded, at the refined poses they
+    carry (the ``keyframes`` protocol). An agent whose poses cannot be read is logged and left out."""
+    import grpc
+
+    kf_poses = {}
+    for p in plans:
+        try:
+            kf_poses[p.name] = {int(k["frame_id"]): k["c2w"] for k in fusion.keyframe_poses(p.name)}
+        except grpc.RpcError as e:
+            log.warning("no keyframe poses of %s: %s", p.name, e.details())
+    return kf_poses
+
+
+def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
+    """Run the fusion of report key ``key`` (one of :data:`FUSED_KEYS`) on the server and download the result;
+    ``for_robot`` fuses once per agent (``for_agent``). ``fz``: :func:`fuse_settings`.
+
+    Returns:
+        ``(gmaps, res)``: agent id → the fused ``GaussianMap`` its task is scored on, and the last fuse result.
+    """
+    method = "concat" if key == "concat" else "vote"
+    gmaps, res = {}, None
+    for p in (plans if key == "for_robot" else [None]):
+        res = fusion.fuse(method, refine=(key == "refine"), refine_iters=fz["refine_iters"],
+                          voxel_size=fz["voxel_size"], contest_radius=fz["contest_radius"] if method == "vote" else None,
+                          for_agent=p.name if p is not None else None,
+                          progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
+        g = fusion.download_fused(res.fused_version).to_gaussian_map()
+        for q in ([p] if p is not None else plans):
+            gmaps[q.name] = g
+    return gmaps, res
+
+
+def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, task_id: str,
+                        backend: str) -> Optional[dict]:
+    """Write ``out/renders/<key>_<task>.png`` (the fused map beside the frame, ROI outlined) at the frame with the
+    task's largest ROI. Returns the report's render entry, or None when no frame shows the ROI."""
+    import cv2
+
+    mid = _roi_frame(frames, annotations, task_id)
+    if mid is None:
+        return None
+    fr = frames[mid]
+    roi = annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
+    img = side_by_side(render_map(gmap, fr, backend), fr, roi)
+    rel = f"renders/{key}_{task_id}.png"
+    cv2.imwrite(str(out / rel), img)
+    return {"fused": key, "task": task_id, "frame_id": int(fr.frame_id), "path": rel}
+
+
+def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
+                    kf_poses: Dict[str, dict], backend: str):
+    """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
+    frames and under ``scoring``'s protocols, :func:`fused_protocols`) with a render per task in ``out/renders``.
+
+    Returns:
+        ``(fused, renders)``: key → the report's figures of that fused map, and the render entries.
+    """
+    from gausslite.evaluation import evaluate_fused
+
+    fused: Dict[str, dict] = {}
+    renders = []
+    (out / "renders").mkdir(exist_ok=True)
+    for key in FUSED_KEYS:
+        log.info("fusing: %s", key)
+        gmaps, res = _fuse_maps(fusion, key, plans, fz)
+        per_task, protos = {}, {}
+        for p in plans:
+            gmap = gmaps[p.name]
+            ds, frames = eval_frames[p.name]
+            per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
+            protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
+                                                scoring, kf_poses.get(p.name, {}), backend)
+            render = _write_fused_render(out, key, gmap, frames, ds.annotations, p.task_id, backend)
+            if render is not None:
+                renders.append(render)
+        vals = [v for v in per_task.values() if v is not None]
+        fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
+                      "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
+                      "fused_version": int(res.fused_version), "kept": dict(res.kept),
+                      "protocols": {q: {t: protos[t][q] for t in protos} for q in scoring.chosen()}}
+        log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: _fmt(v) for k, v in per_task.items()})
+    return fused, renders
+
+
+def _agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optional[float]]]) -> dict:
+    """One agent's entry of ``report["agents"]`` from its Finish summary ``s``, the fusion server's stats of it
+    ``st`` and the every-frame ROI PSNR of an offline run (``offline``: agent id → dB, or None)."""
+    return {
+        "id": p.name, "task": p.task_id, "task_text": p.task, "dataset": p.dataset,
+        "roi_psnr": s.roi_psnr if s.has_roi_psnr else None, "psnr": s.psnr,
+        "n_gaussians": int(s.status.n_gaussians), "n_shared": int(s.n_shared),
+        "share_pct": float(st.get("share_pct", s.share_pct)),
+        # agent-side figures: the server stores delta-rebuilt subsets losslessly
+        "bytes_on_wire": int(s.bytes_on_wire),
+        "bytes_per_gaussian": float(s.bytes_per_gaussian),
+        "total_upload_bytes": int(s.total_upload_bytes),
+        "final_subset_bytes": int(s.final_subset_bytes),
+        "upload_ratio": (s.total_upload_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
+        "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
+                      "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
+                      "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
+                      "unchanged": bool(getattr(q, "unchanged", False)),
+                      "share_pct": 100.0 * q.n_shared / q.n_total if q.n_total else 0.0}
+                     for q in s.pushes],
+        "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
+        "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
+        "frames_received": int(s.status.frames_received), "frames_keyframed": int(s.status.frames_keyframed),
+        "frames_skipped": int(s.status.frames_skipped),
+        "accept_latency_ms_p99": float(s.status.accept_latency_ms_p99),
+        "keyframe_latency_s_p95": float(s.status.keyframe_latency_s_p95),
+        "idle_iterations": int(s.status.idle_iterations),
+        "keyframe_iterations": int(s.status.keyframe_iterations),
+        "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
+        "frames_all": int(s.frames_all),
+        "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
+        "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
+                          "ssim": v.ssim, "frames_scored": int(v.frames_scored),
+                          "roi_frames": int(v.roi_frames)}
+                      for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
+    }
+
+
+def _fused_minus_own(report: dict) -> None:
+    """Each fused map's ``minus_own[task]``: its ROI PSNR minus the task's robot's own map (every-frame figure in
+    realtime runs, else the mapped frames')."""
+    own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr")
+           for a in report["agents"]}
+    for f in report["fused"].values():
+        f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
+                          for t, v in f["roi_psnr_per_task"].items()}
+
+
+def _write_report(report: dict, out: Path) -> None:
+    """Write the plots (``pushes.png``, ``fused_over_time.png``, named in ``report`` when drawn), ``report.json``
+    and ``report.md`` into ``out``."""
+    if plot_pushes(report, out / "pushes.png"):
+        report["pushes_plot"] = "pushes.png"
+    if plot_fused_timeline(report, out / "fused_over_time.png"):
+        report["fused_timeline_plot"] = "fused_over_time.png"
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])
+
+
+def _close_all(clients: list, group: ProcessGroup, previous_sigterm) -> None:
+    """Close the gRPC clients (errors ignored), stop the started processes and restore the SIGTERM handler."""
+    for c in clients:
+        try:
+            c.close()
+        except Exception:
+            pass
+    group.stop_all()
+    if previous_sigterm is not None:
+        signal.signal(signal.SIGTERM, previous_sigterm)
+
+
 def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
             overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
             timeout_s: Optional[float] = None, token: Optional[str] = None, fusion_token: Optional[str] = None,
@@ -683,6 +955,10 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             offline_report: Optional[str | Path] = None,
             context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
+
+    Stages: start the services (:func:`_start_services`, skipped with ``attach``), run the agents' missions
+    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse and score (:func:`_fuse_and_score`), then write the
+    report (:func:`_write_report`).
 
     Args:
         out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
@@ -711,185 +987,46 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_sim_config(config, list(overrides))
-
-    sim_cfg = SimConfig.model_validate(cfg.get("sim") or {})  # typed: its defaults are the only ones
-    timeout_s = float(timeout_s or sim_cfg.timeout_s)
+    typed = GaussLiteConfig.model_validate(cfg)  # typed: its defaults are the only ones
+    timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
     config_path = out / "config.yaml"
     config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     if dataset is None:
-        sc = sim_cfg.scene
-        log.info("generating the synthetic default scene into %s", out / "scene")
-        make_scene(out / "scene", seed=sc.seed, width=sc.width, height=sc.height, frames=sc.frames, progress=progress)
-        dataset = str(out / "scene")
+        dataset = _generate_scene(out, typed.sim.scene, progress)
     plans = plan_agents(dataset, cfg, task_ids)
-    _check_bags(plans, cfg)
+    _check_bags(plans, typed.agent)
     group = ProcessGroup(out / "logs")
     previous = None
     if attach is None and hasattr(signal, "SIGTERM") and _main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_interrupt)
     clients: list = []
     try:
-        if attach is None:
-            ports = {n: free_port() for n in ("parser", "fusion_server", *AGENT_NAMES)}
-            addrs = {n: f"127.0.0.1:{p}" for n, p in ports.items()}
-            cmds = service_commands(config_path, plans, ports, out / "data")
-            tok = {"GAUSSLITE_TOKEN": token} if token else {}
-            for name in ("parser", "fusion_server"):
-                group.start(name, cmds[name][0], {**cmds[name][1], **tok})
-            wait_healthy(addrs["parser"], "gausslite.v1.Parser", 120, group)
-            wait_healthy(addrs["fusion_server"], "gausslite.v1.Fusion", 120, group)
-            for p in plans:
-                group.start(p.name, cmds[p.name][0], {**cmds[p.name][1], **tok})
-            for p in plans:
-                wait_healthy(addrs[p.name], "gausslite.v1.Agent", 180, group)
-        else:
-            addrs = dict(attach)
-        for p in plans:
-            p.address = addrs[p.name]
-        fusion = FusionClient(addrs["fusion_server"], token=fusion_token or token, timeout_s=120.0)
-        clients.append(fusion)
-        fusion.wait_ready(60)
-        agents = {p.name: AgentClient(p.address, token=token) for p in plans}
-        clients.extend(agents.values())
-        # ---- wait for the missions; vote-fuse whenever a new subset arrived (the fused map over time)
-        done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
-        last_print = 0.0
-        fz = fuse_settings(cfg, realtime=bool((cfg.get("agent") or {}).get("realtime", False)))
+        addrs = _start_services(out, config_path, plans, group, token) if attach is None else dict(attach)
+        fusion, agents = _connect(addrs, plans, token, fusion_token, clients)
+        # ---- run the missions; vote-fuse whenever a new subset arrived (the fused map over time)
+        fz = typed.sim.fuse.settings(typed.agent.realtime)
         tracker = FusedTimeline(fusion, fz["voxel_size"], fz["contest_radius"])
-        while True:
-            group.check_alive()
-            tracker.poll(time.perf_counter() - t0)
-            try:
-                sts = {n: c.status() for n, c in agents.items()}
-            except grpc.RpcError as e:  # an attached agent that has not started its mission yet
-                if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() > deadline:
-                    raise
-                time.sleep(1.0)
-                continue
-            for n, st in sts.items():
-                if st.state == agent_pb2.MISSION_STATE_FAILED:
-                    raise RuntimeError(f"{n} mission failed: {st.last_error}")
-            if time.monotonic() - last_print > 5.0 or all(st.state in done for st in sts.values()):
-                last_print = time.monotonic()
-                log.info("mapping: " + ", ".join(
-                    f"{n} {st.frames_mapped}/{st.frames_received or '?'} frames, {st.n_gaussians} G, "
-                    f"{st.pushes} pushes" for n, st in sts.items()))
-            if all(st.state in done for st in sts.values()):
-                break
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"agents not done after {timeout_s:.0f} s")
-            time.sleep(1.0)
-        summaries = {}
-        for n, c in agents.items():
-            summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
-            if not summaries[n].final_push_ok:
-                raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+        _wait_for_missions(agents, group, tracker, t0, deadline, timeout_s)
+        summaries = _finish_agents(agents, deadline)
         tracker.poll(time.perf_counter() - t0)
         stats = fusion.stats().get("agents", {})
-        # ---- fuse
-        voxel, refine_iters, radius = fz["voxel_size"], fz["refine_iters"], fz["contest_radius"]
-        backend = (cfg.get("mapper") or {}).get("backend", "auto")
-        eval_frames = {}
-        for p in plans:
-            a = cfg.get("agent") or {}
-            ds = load_dataset(p.dataset, downscale=a.get("downscale", 1), max_frames=a.get("max_frames"),
-                              stride=a.get("stride", 1), bag=a.get("bag"))
-            eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
-        scoring = ScoringConfig.model_validate((cfg.get("agent") or {}).get("scoring") or {})
-        kf_poses = {}  # the keyframes each robot uploaded, at the refined poses they carry (the `keyframes` protocol)
-        for p in plans:
-            try:
-                kf_poses[p.name] = {int(k["frame_id"]): k["c2w"] for k in fusion.keyframe_poses(p.name)}
-            except grpc.RpcError as e:
-                log.warning("no keyframe poses of %s: %s", p.name, e.details())
-        fused: Dict[str, dict] = {}
-        renders = []
-        (out / "renders").mkdir(exist_ok=True)
-        for key in FUSED_KEYS:
-            method = "concat" if key == "concat" else "vote"
-            log.info("fusing: %s", key)
-            per_task, gmaps, res = {}, {}, None
-            for p in (plans if key == "for_robot" else [None]):
-                res = fusion.fuse(method, refine=(key == "refine"), refine_iters=refine_iters, voxel_size=voxel,
-                                  contest_radius=radius if method == "vote" else None,
-                                  for_agent=p.name if p is not None else None,
-                                  progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
-                g = fusion.download_fused(res.fused_version).to_gaussian_map()
-                for q in ([p] if p is not None else plans):
-                    gmaps[q.name] = g
-            protos: Dict[str, dict] = {}
-            for p in plans:
-                gmap = gmaps[p.name]
-                ds, frames = eval_frames[p.name]
-                per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
-                protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
-                                                    scoring, kf_poses.get(p.name, {}), backend)
-                mid = _roi_frame(frames, ds.annotations, p.task_id)
-                if mid is not None:
-                    fr = frames[mid]
-                    roi = ds.annotations.roi_mask(p.task_id, fr.depth, fr.c2w, fr.intrinsics)
-                    img = side_by_side(render_map(gmap, fr, backend), fr, roi)
-                    rel = f"renders/{key}_{p.task_id}.png"
-                    cv2.imwrite(str(out / rel), img)
-                    renders.append({"fused": key, "task": p.task_id, "frame_id": int(fr.frame_id), "path": rel})
-            vals = [v for v in per_task.values() if v is not None]
-            fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
-                          "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
-                          "fused_version": int(res.fused_version), "kept": dict(res.kept),
-                          "protocols": {q: {t: protos[t][q] for t in protos} for q in scoring.chosen()}}
-            log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians,
-                     {k: _fmt(v) for k, v in per_task.items()})
+        # ---- fuse and score
+        backend, scoring = typed.mapper.backend, typed.agent.scoring
+        eval_frames = _load_eval_frames(plans, typed.agent)
+        fused, renders = _fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
+                                         _uploaded_keyframe_poses(fusion, plans), backend)
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
-        agents_rep = []
-        for p in plans:
-            s = summaries[p.name]
-            st = stats.get(p.name, {})
-            agents_rep.append({
-                "id": p.name, "task": p.task_id, "task_text": p.task, "dataset": p.dataset,
-                "roi_psnr": s.roi_psnr if s.has_roi_psnr else None, "psnr": s.psnr,
-                "n_gaussians": int(s.status.n_gaussians), "n_shared": int(s.n_shared),
-                "share_pct": float(st.get("share_pct", s.share_pct)),
-                # agent-side figures: the server stores delta-rebuilt subsets losslessly
-                "bytes_on_wire": int(s.bytes_on_wire),
-                "bytes_per_gaussian": float(s.bytes_per_gaussian),
-                "total_upload_bytes": int(s.total_upload_bytes),
-                "final_subset_bytes": int(s.final_subset_bytes),
-                "upload_ratio": (s.total_upload_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
-                "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
-                              "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
-                              "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
-                              "unchanged": bool(getattr(q, "unchanged", False)),
-                              "share_pct": 100.0 * q.n_shared / q.n_total if q.n_total else 0.0}
-                             for q in s.pushes],
-                "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
-                "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
-                "frames_received": int(s.status.frames_received), "frames_keyframed": int(s.status.frames_keyframed),
-                "frames_skipped": int(s.status.frames_skipped),
-                "accept_latency_ms_p99": float(s.status.accept_latency_ms_p99),
-                "keyframe_latency_s_p95": float(s.status.keyframe_latency_s_p95),
-                "idle_iterations": int(s.status.idle_iterations),
-                "keyframe_iterations": int(s.status.keyframe_iterations),
-                "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
-                "frames_all": int(s.frames_all),
-                "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
-                "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
-                                  "ssim": v.ssim, "frames_scored": int(v.frames_scored),
-                                  "roi_frames": int(v.roi_frames)}
-                              for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
-            })
-        report = {"scene": dataset, "seconds": time.perf_counter() - t0, "agents": agents_rep, "fused": fused,
-                  "renders": renders, "fused_timeline": timeline,
-                  "realtime": bool((cfg.get("agent") or {}).get("realtime", False)),
+        # ---- the report
+        report = {"scene": dataset, "seconds": time.perf_counter() - t0,
+                  "agents": [_agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
+                  "fused": fused, "renders": renders, "fused_timeline": timeline, "realtime": typed.agent.realtime,
                   "offline_report": str(offline_report) if offline_report else None,
-                  "settings": {"voxel_size": voxel, "contest_radius": radius, "refine_iters": refine_iters,
-                               "scoring": scoring.model_dump(), "config": str(config_path),
-                               "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
-        own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr") for a in agents_rep}
-        for f in fused.values():
-            f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
-                              for t, v in f["roi_psnr_per_task"].items()}
+                  "settings": {"voxel_size": fz["voxel_size"], "contest_radius": fz["contest_radius"],
+                               "refine_iters": fz["refine_iters"], "scoring": scoring.model_dump(),
+                               "config": str(config_path), "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+        _fused_minus_own(report)
         _protocol_minus_own(report)
         if attach is None:
             try:
@@ -898,25 +1035,12 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 log.warning("ROI cover diagnosis failed: %s", e)
         if context_report is not None:
             attach_context_baseline(report, json.loads(Path(context_report).read_text()))
-        elif ((cfg.get("mapper") or {}).get("roi_render") or "context") == "context":
+        elif typed.mapper.roi_render == "context":
             attach_context_baseline(report, report)  # the agents themselves mapped with roi_render: context
-        if plot_pushes(report, out / "pushes.png"):
-            report["pushes_plot"] = "pushes.png"
-        if plot_fused_timeline(report, out / "fused_over_time.png"):
-            report["fused_timeline_plot"] = "fused_over_time.png"
-        (out / "report.json").write_text(json.dumps(report, indent=2))
-        write_markdown(report, out / "report.md")
-        log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])
+        _write_report(report, out)
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
-        for c in clients:
-            try:
-                c.close()
-            except Exception:
-                pass
-        group.stop_all()
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        _close_all(clients, group, previous)
 
 
 def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:

@@ -18,7 +18,7 @@ Per frame (:meth:`AttentionFrontEnd.process`):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -178,21 +178,7 @@ class AttentionFrontEnd:
         ctx = FrameContext(depth=np.asarray(frame.depth), c2w=np.asarray(frame.c2w, dtype=np.float64),
                            intrinsics=intr, frame_id=int(getattr(frame, "frame_id", -1)))
         is_kf = self.trigger.update(frame.c2w)
-        if is_kf:
-            self.detector_calls += 1
-            dets = self.config.detector.detect(rgb, self.phrases, ctx)
-            extras = dets.extra if dets.extra else [None] * len(dets)
-        else:
-            boxes, scores, pids, extras = [], [], [], []
-            for tr in self._tracks:
-                b = reproject_box(tr.box, tr.depth_lo, tr.depth_hi, tr.c2w, tr.intr, ctx.c2w, intr)
-                if b is not None:
-                    boxes.append(b)
-                    scores.append(tr.score)
-                    pids.append(tr.phrase_id)
-                    extras.append(tr.extra)
-            dets = Detections(np.reshape(boxes, (-1, 4)), scores, pids, extras) if boxes else Detections.empty()
-            extras = extras if boxes else []
+        dets, extras = self._detect_or_track(rgb, ctx, is_kf)
         debug: Dict[str, Any] = {"keyframe": bool(is_kf), "frame_id": ctx.frame_id, "phrases": list(self.phrases),
                                  "detections": []}
         relevance = np.zeros((H, W), dtype=bool)
@@ -211,8 +197,40 @@ class AttentionFrontEnd:
             cand = np.asarray(self.config.segmenter.segment(rgb, dets.boxes[idx], ctx), dtype=bool).reshape(-1, H, W)
             assign = match_masks_to_boxes(cand, dets.boxes[idx], self.config.mask_match_min_iou)
             masks = np.stack([cand[a] if a >= 0 else np.zeros((H, W), dtype=bool) for a in assign])
+        lifted = self._lift_and_track(dets, extras, idx, masks, depth, ctx)
+        keep, reasons = self._judge(dets, idx, masks, lifted, self._anchor_pool(dets, idx, lifted))
+        for k, i in enumerate(idx):
+            if keep[k]:
+                relevance |= masks[k]
+            debug["detections"].append(self._dbg(dets, extras, i, masks[k], lifted[k], bool(keep[k]), reasons[k]))
+        debug["detector_calls"] = self.detector_calls
+        return relevance, debug
 
-        # lift and build new tracks
+    def _detect_or_track(self, rgb: np.ndarray, ctx: FrameContext, is_kf: bool) -> Tuple[Detections, list]:
+        """This frame's detections and their per-detection extras: the detector's on a keyframe, else the tracks'
+        boxes reprojected into this view (tracks that leave the view are dropped for this frame)."""
+        if is_kf:
+            self.detector_calls += 1
+            dets = self.config.detector.detect(rgb, self.phrases, ctx)
+            return dets, (dets.extra if dets.extra else [None] * len(dets))
+        boxes, scores, pids, extras = [], [], [], []
+        for tr in self._tracks:
+            b = reproject_box(tr.box, tr.depth_lo, tr.depth_hi, tr.c2w, tr.intr, ctx.c2w, ctx.intrinsics)
+            if b is not None:
+                boxes.append(b)
+                scores.append(tr.score)
+                pids.append(tr.phrase_id)
+                extras.append(tr.extra)
+        if not boxes:
+            return Detections.empty(), []
+        return Detections(np.reshape(boxes, (-1, 4)), scores, pids, extras), extras
+
+    def _lift_and_track(self, dets: Detections, extras: list, idx: np.ndarray, masks: np.ndarray, depth: np.ndarray,
+                        ctx: FrameContext) -> List[Optional[LiftedMask]]:
+        """Lift each kept detection's mask (``masks[k]`` of ``dets[idx[k]]``) into the world frame with ``depth``
+        (metres) and make the detections with a lifted mask the new tracks (a detection whose mask is empty, an
+        object that left the view, ends its track). Returns the lifted masks (None: no valid depth)."""
+        intr = ctx.intrinsics
         lifted: List[Optional[LiftedMask]] = []
         new_tracks: List[_Track] = []
         for k, i in enumerate(idx):
@@ -221,9 +239,13 @@ class AttentionFrontEnd:
             if lm is not None:
                 new_tracks.append(_Track(dets.boxes[i].copy(), int(dets.phrase_ids[i]), float(dets.scores[i]),
                                          extras[i], lm.depth_lo, lm.depth_hi, ctx.c2w.copy(), intr))
-        self._tracks = new_tracks  # detections whose mask is empty (object left the view) end their track
+        self._tracks = new_tracks
+        return lifted
 
-        # anchors of this frame (world frame) + memory
+    def _anchor_pool(self, dets: Detections, idx: np.ndarray,
+                     lifted: List[Optional[LiftedMask]]) -> Dict[str, List[LiftedMask]]:
+        """Anchor phrase → its lifted masks (world frame) this frame, merged into the anchor memory when
+        ``config.remember_anchors`` (then the memory is the pool)."""
         anchors_now: Dict[str, List[LiftedMask]] = {}
         for k, i in enumerate(idx):
             p = self.phrases[int(dets.phrase_ids[i])]
@@ -231,10 +253,14 @@ class AttentionFrontEnd:
                 anchors_now.setdefault(p, []).append(lifted[k])
         if self.config.remember_anchors:
             self._anchor_memory.update(anchors_now)
-            anchor_pool = dict(self._anchor_memory)
-        else:
-            anchor_pool = anchors_now
+            return dict(self._anchor_memory)
+        return anchors_now
 
+    def _judge(self, dets: Detections, idx: np.ndarray, masks: np.ndarray, lifted: List[Optional[LiftedMask]],
+               anchor_pool: Dict[str, List[LiftedMask]]) -> Tuple[np.ndarray, List[str]]:
+        """Which kept detections are relevant: anchors and targets without relations are; a target with relations
+        is when one of them holds against an anchor in ``anchor_pool`` (then, with ``spatial.nearest_only``, only
+        the nearest for each ``near`` relation). Returns ``(keep (K,) bool, reasons)``."""
         keep = np.zeros(len(idx), dtype=bool)
         reasons: List[str] = [""] * len(idx)
         dists: Dict[Tuple[int, str, str], float] = {}
@@ -270,23 +296,24 @@ class AttentionFrontEnd:
                     why.append(f"{pred}({a}) fails, d={best:.2f} m")
             reasons[k] = "; ".join(why)
         if sp.nearest_only:
-            for pred, t, a in self.relations:
-                if pred != "near":
-                    continue
-                ks = [k for k in range(len(idx)) if keep[k] and (k, pred, a) in dists
-                      and self.phrases[int(dets.phrase_ids[idx[k]])] == t]
-                if ks:
-                    dmin = min(dists[(k, pred, a)] for k in ks)
-                    for k in ks:
-                        if dists[(k, pred, a)] > dmin + sp.nearest_tie_m:
-                            keep[k] = False
-                            reasons[k] += "; not the nearest to " + a
-        for k, i in enumerate(idx):
-            if keep[k]:
-                relevance |= masks[k]
-            debug["detections"].append(self._dbg(dets, extras, i, masks[k], lifted[k], bool(keep[k]), reasons[k]))
-        debug["detector_calls"] = self.detector_calls
-        return relevance, debug
+            self._keep_nearest(dets, idx, keep, reasons, dists)
+        return keep, reasons
+
+    def _keep_nearest(self, dets: Detections, idx: np.ndarray, keep: np.ndarray, reasons: List[str],
+                      dists: Dict[Tuple[int, str, str], float]) -> None:
+        """For each ``near`` relation, unkeep (in place) the kept targets farther from the anchor than the
+        nearest one plus ``spatial.nearest_tie_m`` (``dists``: (k, predicate, anchor) → metres)."""
+        for pred, t, a in self.relations:
+            if pred != "near":
+                continue
+            ks = [k for k in range(len(idx)) if keep[k] and (k, pred, a) in dists
+                  and self.phrases[int(dets.phrase_ids[idx[k]])] == t]
+            if ks:
+                dmin = min(dists[(k, pred, a)] for k in ks)
+                for k in ks:
+                    if dists[(k, pred, a)] > dmin + self.config.spatial.nearest_tie_m:
+                        keep[k] = False
+                        reasons[k] += "; not the nearest to " + a
 
     def _dbg(self, dets: Detections, extras, i, mask, lm, kept: bool, reason: str) -> Dict[str, Any]:
         p = self.phrases[int(dets.phrase_ids[i])]

@@ -242,16 +242,55 @@ class TUMDataset(PosedImageDataset):
         rgb_file = seq / "rgb.txt"
         rgb_ts, rgb_names = read_file_list(rgb_file)
         depth_ts, depth_names = read_file_list(seq / "depth.txt")
-        gt_ts, gt_t, gt_q, gt_lines = read_groundtruth(seq / "groundtruth.txt")
+        gt = read_groundtruth(seq / "groundtruth.txt")
         if len(rgb_ts) == 0:
             raise ValueError(f"{rgb_file}: no frames listed")
         if len(depth_ts) == 0:
             raise ValueError(f"{seq / 'depth.txt'}: no frames listed")
+        intr = self._setup_camera(seq, intrinsics, distortion, undistort)
+        keep, d_idx, g_idx = self._associate(seq, rgb_ts, depth_ts, gt[0], max_depth_dt, max_pose_dt)
+        sel = [int(keep[k]) for k in select_indices(len(keep), stride, max_frames)]
+        poses = [self._gt_pose(seq, gt, rgb_ts[i], int(g_idx[i]), interpolate_poses) for i in sel]
+        #: per selected frame, T_color_depth of the depth/colour time offset (identity when not aligned)
+        self._time_extrinsics: Optional[List[np.ndarray]] = None
+        self.align_depth_time = bool(align_depth_time)
+        if self.align_depth_time:
+            self._time_extrinsics = self._depth_time_extrinsics(seq, gt, sel, rgb_ts, depth_ts[d_idx[sel]], g_idx,
+                                                                poses, interpolate_poses)
+        rgb_paths = [seq / rgb_names[i] for i in sel]
+        depth_paths = [seq / depth_names[int(d_idx[i])] for i in sel]
+        for lst, listing in ((rgb_paths, "rgb.txt"), (depth_paths, "depth.txt")):
+            for p in lst:
+                if not p.is_file():
+                    raise FileNotFoundError(f"image listed in {seq / listing} not found: {p}")
+        super().__init__(
+            path=seq,
+            name=seq.name,
+            rgb_paths=rgb_paths,
+            depth_paths=depth_paths,
+            poses=np.stack(poses),
+            timestamps=rgb_ts[sel],
+            frame_ids=sel,
+            frame_names=[Path(rgb_names[i]).stem for i in sel],
+            native_intrinsics=intr,
+            depth_scale=depth_scale,
+            downscale=downscale,
+            annotations=load_annotations(seq),
+            depth_camera=depth_camera,
+        )
+        self._maps = None
 
-        # sequence name -> Freiburg camera
+    def _setup_camera(self, seq: Path, intrinsics, distortion, undistort: bool) -> Intrinsics:
+        """Set ``freiburg`` (from the sequence name, else the comment lines of ``rgb.txt``), ``distortion``,
+        ``undistort`` and ``raw_intrinsics``; returns the native intrinsics (the alpha=0 optimal new pinhole
+        camera when undistorting). Arguments as the constructor's.
+
+        Raises:
+            ValueError: a bad ``intrinsics`` or ``distortion`` override.
+        """
         fr = freiburg_id(seq.name)
         if fr is None:
-            with open(rgb_file, "r", encoding="utf-8") as fh:
+            with open(seq / "rgb.txt", "r", encoding="utf-8") as fh:
                 head = "".join(line for line in fh.readlines()[:5] if line.startswith("#"))
             fr = freiburg_id(head)
         self.freiburg = fr
@@ -278,8 +317,19 @@ class TUMDataset(PosedImageDataset):
             new_k, _ = cv2.getOptimalNewCameraMatrix(intr.K, np.asarray(dist), (intr.width, intr.height), 0.0)
             intr = Intrinsics(float(new_k[0, 0]), float(new_k[1, 1]), float(new_k[0, 2]), float(new_k[1, 2]),
                               intr.width, intr.height)
+        return intr
 
-        # association
+    def _associate(self, seq: Path, rgb_ts: np.ndarray, depth_ts: np.ndarray, gt_ts: np.ndarray,
+                   max_depth_dt: float, max_pose_dt: float):
+        """Match each colour timestamp (s) to the nearest depth and groundtruth sample; sets ``n_dropped`` (colour
+        frames without a match within ``max_depth_dt`` / ``max_pose_dt`` s, logged).
+
+        Returns:
+            ``(keep, d_idx, g_idx)``: indices of the matched colour frames, and per colour frame the index of its
+            depth file and of its groundtruth sample.
+        Raises:
+            ValueError: no colour frame matched.
+        """
         d_order = np.argsort(depth_ts, kind="stable")
         d_idx, d_gap = associate_nearest(rgb_ts, depth_ts[d_order])
         d_idx = d_order[d_idx]
@@ -299,54 +349,38 @@ class TUMDataset(PosedImageDataset):
             raise ValueError(
                 f"{seq}: no colour frame has depth within {max_depth_dt} s and groundtruth within {max_pose_dt} s"
             )
+        return keep, d_idx, g_idx
 
-        sel = [int(keep[k]) for k in select_indices(len(keep), stride, max_frames)]
-        def pose_at(ts: float, g: int, interp: bool) -> np.ndarray:
-            t, q = gt_t[g], gt_q[g]
-            if interp:
-                t, q = self._interp(ts, gt_ts, gt_t, gt_q, g)
-            T = np.eye(4)
-            T[:3, :3] = quat_to_rot(q)
-            T[:3, 3] = t
-            return check_rigid(T, what=f"{seq / 'groundtruth.txt'}:{gt_lines[g]}")
+    def _gt_pose(self, seq: Path, gt: tuple, ts: float, g: int, interp: bool) -> np.ndarray:
+        """(4, 4) camera-to-world at time ``ts`` (s): groundtruth sample ``g`` of ``gt`` (the
+        :func:`read_groundtruth` tuple), or with ``interp`` interpolated between the bracketing samples.
 
-        poses = [pose_at(rgb_ts[i], int(g_idx[i]), interpolate_poses) for i in sel]
-        #: per selected frame, T_color_depth of the depth/colour time offset (identity when not aligned)
-        self._time_extrinsics: Optional[List[np.ndarray]] = None
-        self.align_depth_time = bool(align_depth_time)
-        if self.align_depth_time:
-            td = depth_ts[d_idx[sel]]
-            gd, _ = associate_nearest(td, gt_ts)
-            ext = []
-            for k, i in enumerate(sel):
-                T_wd = pose_at(float(td[k]), int(gd[k]), True)
-                T_wc = poses[k] if interpolate_poses else pose_at(rgb_ts[i], int(g_idx[i]), True)
-                T = np.linalg.inv(T_wc) @ T_wd
-                T[3] = (0.0, 0.0, 0.0, 1.0)
-                ext.append(T)
-            self._time_extrinsics = ext
-        rgb_paths = [seq / rgb_names[i] for i in sel]
-        depth_paths = [seq / depth_names[int(d_idx[i])] for i in sel]
-        for lst, listing in ((rgb_paths, "rgb.txt"), (depth_paths, "depth.txt")):
-            for p in lst:
-                if not p.is_file():
-                    raise FileNotFoundError(f"image listed in {seq / listing} not found: {p}")
-        super().__init__(
-            path=seq,
-            name=seq.name,
-            rgb_paths=rgb_paths,
-            depth_paths=depth_paths,
-            poses=np.stack(poses),
-            timestamps=rgb_ts[sel],
-            frame_ids=sel,
-            frame_names=[Path(rgb_names[i]).stem for i in sel],
-            native_intrinsics=intr,
-            depth_scale=depth_scale,
-            downscale=downscale,
-            annotations=load_annotations(seq),
-            depth_camera=depth_camera,
-        )
-        self._maps = None
+        Raises:
+            ValueError: not a rigid transform (names the groundtruth line).
+        """
+        gt_ts, gt_t, gt_q, gt_lines = gt
+        t, q = gt_t[g], gt_q[g]
+        if interp:
+            t, q = self._interp(ts, gt_ts, gt_t, gt_q, g)
+        T = np.eye(4)
+        T[:3, :3] = quat_to_rot(q)
+        T[:3, 3] = t
+        return check_rigid(T, what=f"{seq / 'groundtruth.txt'}:{gt_lines[g]}")
+
+    def _depth_time_extrinsics(self, seq: Path, gt: tuple, sel: List[int], rgb_ts: np.ndarray, td: np.ndarray,
+                               g_idx: np.ndarray, poses: List[np.ndarray], interpolate_poses: bool) -> List[np.ndarray]:
+        """Per selected colour frame ``sel[k]``, the (4, 4) T_color_depth that re-projects its depth image (taken at
+        ``td[k]`` s) from the interpolated pose at that time to the colour frame's (``poses``: the colour frames'
+        poses, interpolated when ``interpolate_poses``)."""
+        gd, _ = associate_nearest(td, gt[0])
+        ext = []
+        for k, i in enumerate(sel):
+            T_wd = self._gt_pose(seq, gt, float(td[k]), int(gd[k]), True)
+            T_wc = poses[k] if interpolate_poses else self._gt_pose(seq, gt, rgb_ts[i], int(g_idx[i]), True)
+            T = np.linalg.inv(T_wc) @ T_wd
+            T[3] = (0.0, 0.0, 0.0, 1.0)
+            ext.append(T)
+        return ext
 
     @staticmethod
     def _interp(t_q: float, gt_ts: np.ndarray, gt_t: np.ndarray, gt_q: np.ndarray, g: int):

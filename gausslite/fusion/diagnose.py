@@ -73,6 +73,67 @@ def _depth_offset(means: np.ndarray, v: RoiView) -> np.ndarray:
     return z - float(np.median(d))
 
 
+def _check_provenance(subsets: Mapping[str, GaussianArrays], agents: Sequence[str], n_fused: int, src_a: np.ndarray,
+                      src_r: np.ndarray) -> None:
+    """Raise ValueError unless ``src_a`` / ``src_r`` have ``n_fused`` entries pointing into the subsets."""
+    if len(src_a) != n_fused or len(src_r) != n_fused:
+        raise ValueError(f"provenance of {len(src_a)} / {len(src_r)} rows for a fused map of {n_fused}")
+    if len(src_a) and (src_a.min() < 0 or src_a.max() >= len(agents)):
+        raise ValueError("source_agent points outside the subsets")
+    for i, a in enumerate(agents):
+        rows = src_r[src_a == i]
+        if len(rows) and (rows.min() < 0 or rows.max() >= len(subsets[a])):
+            raise ValueError(f"source_row points outside agent {a!r}'s subset")
+
+
+def _roi_weights(fused: GaussianArrays, fused_map, own_map, n_own: int, vs: Sequence[RoiView], backend: str):
+    """Summed over the views ``vs``: each fused row's ROI blending weight, its weight-averaged depth offset from the
+    view's median ROI depth (m; NaN where it draws nothing or the offset is unknown), and each own-subset row's ROI
+    weight (``own_map``: the subset's ``GaussianMap``, ``n_own`` rows). Also returns the views' ROI pixel count.
+
+    Returns:
+        ``(w (M,), dz (M,), own_w (n_own,), pixels)``.
+    """
+    # lazy: keeps gausslite.fusion.diagnose importable without OpenCV
+    from gausslite.sharing import roi_contribution
+
+    w = np.zeros(len(fused))
+    wdz = np.zeros(len(fused))
+    wdz_w = np.zeros(len(fused))
+    own_w = np.zeros(n_own)
+    pixels = 0
+    for v in vs:
+        pixels += int(v.roi.sum())
+        wv = roi_contribution(fused_map, [v], backend)
+        w += wv
+        dz = _depth_offset(fused.means, v)
+        ok = np.isfinite(dz) & (wv > 0)
+        wdz[ok] += wv[ok] * dz[ok]
+        wdz_w[ok] += wv[ok]
+        own_w += roi_contribution(own_map, [v], backend)
+    dz = np.where(wdz_w > 0, wdz / np.maximum(wdz_w, 1e-12), np.nan)
+    return w, dz, own_w, pixels
+
+
+def _foreign_stats(w: np.ndarray, dz: np.ndarray, fmask: np.ndarray, extent: np.ndarray, opacity: np.ndarray,
+                   surface_margin_m: float) -> dict:
+    """The ``foreign`` entry of :func:`roi_cover` for the foreign rows ``fmask`` that draw into the ROI (``w``: ROI
+    weights, ``dz``: depth offsets (m), ``extent`` (m), ``opacity`` per fused row)."""
+    fw = w[fmask]
+    ftot = float(fw.sum())
+    fdz = dz[fmask]
+    known = np.isfinite(fdz)
+    return {"rows": int(fmask.sum()),
+            "extent_m_median": float(np.median(extent[fmask])) if fmask.any() else None,
+            "extent_m_p90": float(np.percentile(extent[fmask], 90)) if fmask.any() else None,
+            "weighted_extent_m": float((extent[fmask] * fw).sum() / ftot) if ftot > 0 else None,
+            "opacity_median": float(np.median(opacity[fmask])) if fmask.any() else None,
+            "weight_in_front": float(fw[known & (fdz < -surface_margin_m)].sum() / ftot) if ftot > 0 else None,
+            "weight_at_surface": float(fw[known & (np.abs(fdz) <= surface_margin_m)].sum() / ftot)
+            if ftot > 0 else None,
+            "weight_behind": float(fw[known & (fdz > surface_margin_m)].sum() / ftot) if ftot > 0 else None}
+
+
 def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, source_agent: np.ndarray,
               source_row: np.ndarray, views: Mapping[str, Sequence[RoiView]], *, region_voxel_m: float = 0.05,
               region_dilate: int = 1, surface_margin_m: float = 0.05, top: int = 8,
@@ -104,19 +165,12 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
         ValueError: provenance arrays of the wrong length or pointing outside the subsets.
     """
     # lazy: keeps gausslite.fusion.diagnose importable without OpenCV
-    from gausslite.sharing import in_region, roi_contribution, task_region
+    from gausslite.sharing import in_region, task_region
 
     agents = sorted(subsets)
     src_a = np.asarray(source_agent, np.int64).reshape(-1)
     src_r = np.asarray(source_row, np.int64).reshape(-1)
-    if len(src_a) != len(fused) or len(src_r) != len(fused):
-        raise ValueError(f"provenance of {len(src_a)} / {len(src_r)} rows for a fused map of {len(fused)}")
-    if len(src_a) and (src_a.min() < 0 or src_a.max() >= len(agents)):
-        raise ValueError("source_agent points outside the subsets")
-    for i, a in enumerate(agents):
-        rows = src_r[src_a == i]
-        if len(rows) and (rows.min() < 0 or rows.max() >= len(subsets[a])):
-            raise ValueError(f"source_row points outside agent {a!r}'s subset")
+    _check_provenance(subsets, agents, len(fused), src_a, src_r)
     # each fused row: is its mean inside its own agent's task region?
     in_task = np.zeros(len(fused), bool)
     for i, a in enumerate(agents):
@@ -131,41 +185,15 @@ def roi_cover(subsets: Mapping[str, GaussianArrays], fused: GaussianArrays, sour
         vs = [v for v in views.get(a, ()) if np.asarray(v.roi).any()]
         if not vs:
             continue
-        w = np.zeros(len(fused))
-        wdz = np.zeros(len(fused))
-        wdz_w = np.zeros(len(fused))
-        own_w = np.zeros(len(subsets[a]))
-        own_map = subsets[a].to_gaussian_map()
-        pixels = 0
-        for v in vs:
-            pixels += int(v.roi.sum())
-            wv = roi_contribution(fused_map, [v], backend)
-            w += wv
-            dz = _depth_offset(fused.means, v)
-            ok = np.isfinite(dz) & (wv > 0)
-            wdz[ok] += wv[ok] * dz[ok]
-            wdz_w[ok] += wv[ok]
-            own_w += roi_contribution(own_map, [v], backend)
+        w, dz, own_w, pixels = _roi_weights(fused, fused_map, subsets[a].to_gaussian_map(), len(subsets[a]), vs,
+                                            backend)
         own = src_a == i
         foreign = ~own
         mass = {"own": float(w[own].sum() / pixels), "foreign_task": float(w[foreign & in_task].sum() / pixels),
                 "foreign_context": float(w[foreign & ~in_task].sum() / pixels)}
         mass["uncovered"] = max(0.0, 1.0 - sum(mass.values()))
-        dz = np.where(wdz_w > 0, wdz / np.maximum(wdz_w, 1e-12), np.nan)
         fmask = foreign & (w > 1e-6)
-        fw = w[fmask]
-        ftot = float(fw.sum())
-        fdz = dz[fmask]
-        known = np.isfinite(fdz)
-        fstats = {"rows": int(fmask.sum()),
-                  "extent_m_median": float(np.median(extent[fmask])) if fmask.any() else None,
-                  "extent_m_p90": float(np.percentile(extent[fmask], 90)) if fmask.any() else None,
-                  "weighted_extent_m": float((extent[fmask] * fw).sum() / ftot) if ftot > 0 else None,
-                  "opacity_median": float(np.median(opacity[fmask])) if fmask.any() else None,
-                  "weight_in_front": float(fw[known & (fdz < -surface_margin_m)].sum() / ftot) if ftot > 0 else None,
-                  "weight_at_surface": float(fw[known & (np.abs(fdz) <= surface_margin_m)].sum() / ftot)
-                  if ftot > 0 else None,
-                  "weight_behind": float(fw[known & (fdz > surface_margin_m)].sum() / ftot) if ftot > 0 else None}
+        fstats = _foreign_stats(w, dz, fmask, extent, opacity, surface_margin_m)
         idx = np.nonzero(fmask)[0]
         order = idx[np.argsort(-w[idx], kind="stable")[:top]]
         top_rows = [{"agent": agents[int(src_a[j])], "row": int(src_r[j]), "roi_weight": float(w[j] / pixels),

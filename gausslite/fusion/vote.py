@@ -122,6 +122,60 @@ def _bits(n: int) -> int:
     return max(0, int(n - 1).bit_length()) if n > 1 else 0
 
 
+def _voxel_agent_keys(means: np.ndarray, voxel_size: float, agent_of: np.ndarray, n_agents: int):
+    """One int64 sort key per row, ``(voxel id << abits) | agent index``, with voxel ids packed from the rows'
+    voxel indices (compacted first when the extent does not fit in 63 bits). Returns ``(key, abits)``.
+
+    Raises:
+        ValueError: too many voxels to key.
+    """
+    ijk = voxel_keys(means, voxel_size)
+    ijk -= ijk.min(axis=0)
+    span_bits = [_bits(int(s) + 1) for s in ijk.max(axis=0)]
+    abits = _bits(n_agents)
+    if sum(span_bits) + abits <= 63:
+        vox = (ijk[:, 0] << (span_bits[1] + span_bits[2])) | (ijk[:, 1] << span_bits[2]) | ijk[:, 2]
+    else:  # enormous extent: compact voxel ids first (slower, still vectorised)
+        vox = np.unique(ijk, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
+        if _bits(int(vox.max()) + 1) + abits > 63:
+            raise ValueError("too many voxels")
+    return (vox << abits) | agent_of, abits
+
+
+def _vote_winners(key: np.ndarray, abits: int, kappa: np.ndarray):
+    """Per-voxel winners over the rows keyed by :func:`_voxel_agent_keys`: max summed κ, then max count, then the
+    smallest agent index.
+
+    Returns:
+        ``(keep (N,) bool per row, pagent, winner, vpairs)``: the rows of winning (voxel, agent) pairs, each pair's
+        agent index, and per voxel its winning pair's index and its number of pairs.
+    """
+    total = len(key)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    # segments of equal (voxel, agent): "pairs", sorted by voxel then agent id
+    pstart = np.flatnonzero(np.concatenate(([True], ks[1:] != ks[:-1])))
+    pcount = np.diff(np.append(pstart, total))
+    pagent = ks[pstart] & ((1 << abits) - 1)
+    pvox = ks[pstart] >> abits
+    psum = np.add.reduceat(kappa[order], pstart)
+    # segments of equal voxel over the pairs
+    vstart = np.flatnonzero(np.concatenate(([True], pvox[1:] != pvox[:-1])))
+    vpairs = np.diff(np.append(vstart, len(pvox)))
+    # winner per voxel: max summed κ, then max count, then smallest agent index (= first in segment)
+    best_sum = np.repeat(np.maximum.reduceat(psum, vstart), vpairs)
+    cand = psum == best_sum
+    best_cnt = np.repeat(np.maximum.reduceat(np.where(cand, pcount, -1), vstart), vpairs)
+    cand &= pcount == best_cnt
+    pos = np.arange(len(pvox), dtype=np.int64)
+    winner = np.minimum.reduceat(np.where(cand, pos, len(pvox)), vstart)
+    pwin = np.zeros(len(pvox), dtype=bool)
+    pwin[winner] = True
+    keep = np.empty(total, dtype=bool)
+    keep[order] = np.repeat(pwin, pcount)
+    return keep, pagent, winner, vpairs
+
+
 def voxel_vote(maps: Mapping[str, Any], voxel_size: float = 0.10, contest_radius: int = 0
                ) -> tuple[GaussianArrays, VoteReport]:
     """κ-weighted per-voxel selection between agents (paper Sec. III-E).
@@ -170,41 +224,8 @@ def voxel_vote(maps: Mapping[str, Any], voxel_size: float = 0.10, contest_radius
         if int(kappa.astype(object).sum()) >= 2**63:
             raise ValueError("summed kappa overflows int64")
 
-    ijk = voxel_keys(means, voxel_size)
-    ijk -= ijk.min(axis=0)
-    span_bits = [_bits(int(s) + 1) for s in ijk.max(axis=0)]
-    abits = _bits(n_agents)
-    if sum(span_bits) + abits <= 63:
-        vox = (ijk[:, 0] << (span_bits[1] + span_bits[2])) | (ijk[:, 1] << span_bits[2]) | ijk[:, 2]
-    else:  # enormous extent: compact voxel ids first (slower, still vectorised)
-        vox = np.unique(ijk, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
-        if _bits(int(vox.max()) + 1) + abits > 63:
-            raise ValueError("too many voxels")
-    key = (vox << abits) | agent_of
-
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    # segments of equal (voxel, agent): "pairs", sorted by voxel then agent id
-    pstart = np.flatnonzero(np.concatenate(([True], ks[1:] != ks[:-1])))
-    pcount = np.diff(np.append(pstart, total))
-    pagent = ks[pstart] & ((1 << abits) - 1)
-    pvox = ks[pstart] >> abits
-    psum = np.add.reduceat(kappa[order], pstart)
-    # segments of equal voxel over the pairs
-    vstart = np.flatnonzero(np.concatenate(([True], pvox[1:] != pvox[:-1])))
-    vpairs = np.diff(np.append(vstart, len(pvox)))
-    # winner per voxel: max summed κ, then max count, then smallest agent index (= first in segment)
-    best_sum = np.repeat(np.maximum.reduceat(psum, vstart), vpairs)
-    cand = psum == best_sum
-    best_cnt = np.repeat(np.maximum.reduceat(np.where(cand, pcount, -1), vstart), vpairs)
-    cand &= pcount == best_cnt
-    pos = np.arange(len(pvox), dtype=np.int64)
-    winner = np.minimum.reduceat(np.where(cand, pos, len(pvox)), vstart)
-    pwin = np.zeros(len(pvox), dtype=bool)
-    pwin[winner] = True
-
-    keep = np.empty(total, dtype=bool)
-    keep[order] = np.repeat(pwin, pcount)
+    key, abits = _voxel_agent_keys(means, voxel_size, agent_of, n_agents)
+    keep, pagent, winner, vpairs = _vote_winners(key, abits, kappa)
     idx = np.flatnonzero(keep)
 
     contested = vpairs >= 2
@@ -217,7 +238,7 @@ def voxel_vote(maps: Mapping[str, Any], voxel_size: float = 0.10, contest_radius
         agents=agents,
         kept={a: int(kept[i]) for i, a in enumerate(agents)},
         dropped={a: int(sizes[i] - kept[i]) for i, a in enumerate(agents)},
-        voxels=int(len(vstart)),
+        voxels=int(len(vpairs)),
         contested_voxels=int(contested.sum()),
         won_voxels={a: int(won[i]) for i, a in enumerate(agents)},
         source_agent=agent_of[idx].astype(np.int32),

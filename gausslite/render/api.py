@@ -90,6 +90,118 @@ def _resolve_backend(backend: str, device: torch.device) -> str:
     return backend
 
 
+def _camera_tensors(K, c2w, viewmat, device: torch.device, dtype: torch.dtype):
+    """``(K64, vm64)``: the (3, 3) intrinsics (pixels) and (4, 4) world-to-camera matrix as ``dtype`` tensors on
+    ``device``, from ``K`` and exactly one of ``c2w`` / ``viewmat``.
+
+    Raises:
+        ValueError: both or neither pose given, bad shapes, NaN/Inf, non-positive focal lengths.
+    """
+    if (c2w is None) == (viewmat is None):
+        raise ValueError("give exactly one of c2w (camera-to-world) or viewmat (world-to-camera)")
+    K64 = _as_tensor(K, "K", (3, 3), device, dtype)
+    if K64[0, 0] <= 0 or K64[1, 1] <= 0:
+        raise ValueError(f"K must have positive focal lengths, got fx={K64[0, 0]} fy={K64[1, 1]}")
+    if c2w is not None:
+        vm64 = torch.linalg.inv(_as_tensor(c2w, "c2w", (4, 4), device, dtype))
+    else:
+        vm64 = _as_tensor(viewmat, "viewmat", (4, 4), device, dtype)
+    return K64, vm64
+
+
+def _gather_subset(subset, N: int, device: torch.device, params: tuple):
+    """``(ids, sel)``: the (M,) int64 rows to render and ``params`` (the five (N, ...) parameter tensors) gathered
+    at them; ``subset`` None keeps every row and makes no copy (autograd scatters gradients back into the full
+    tensors).
+
+    Raises:
+        ValueError: a bool mask not of shape (N,), indices outside [0, N), or another kind of ``subset``.
+    """
+    if subset is None:
+        return torch.arange(N, device=device), params
+    if not isinstance(subset, torch.Tensor):
+        subset = torch.as_tensor(np.asarray(subset))
+    subset = subset.to(device)
+    if subset.dtype == torch.bool:
+        if tuple(subset.shape) != (N,):
+            raise ValueError(f"bool subset must have shape ({N},), got {tuple(subset.shape)}")
+        ids = torch.nonzero(subset).squeeze(1)
+    elif not subset.is_floating_point() and subset.dim() == 1:
+        ids = subset.to(torch.int64)
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= N):
+            raise ValueError(f"subset indices must be in [0, {N}), got range "
+                             f"[{int(ids.min())}, {int(ids.max())}]")
+    else:
+        raise ValueError("subset must be None, a (N,) bool mask or a 1-D integer index tensor")
+    return ids, tuple(t.index_select(0, ids) for t in params)
+
+
+def _rasterize_warp_cpu(m, q, ls, ol, col, vm64, K64, width, height, *, near, far, eps2d, tile_size, nt, bg,
+                        cpu_kernel, ids) -> RenderOutput:
+    """The warp backend's CPU fast path (float32/float64 parameters): projection, binning, sigmoid, compositing over
+    the background ``bg`` and depth normalisation all run in Warp kernels (few per-element torch ops). Arguments as
+    :func:`rasterize` (``m, q, ls, ol, col``: the gathered rows; ``nt``: launch threads)."""
+    dtype = m.dtype
+    proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
+                                  near=near, far=far, eps2d=eps2d, num_threads=nt)
+    means2d, radii = proj.means2d, proj.radii
+    if torch.is_grad_enabled() and means2d.requires_grad:
+        means2d.retain_grad()
+    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt)
+    color, depth, alpha = RasterizeWarp.apply(
+        means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
+        bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
+    )
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii, ids=ids)
+
+
+def _rasterize_raw(m, q, ls, ol, col, vm64, K64, width, height, *, backend, near, far, eps2d, tile_size, nt,
+                   cpu_kernel):
+    """Projection and sigmoid in torch, then compositing by the Warp kernels (``backend`` "warp") or the torch
+    reference ("torch"), without background or depth normalisation.
+
+    Returns:
+        ``(color_raw (H, W, 3), depth_sum (H, W), alpha (H, W), means2d (M, 2), radii (M,))``.
+    """
+    dtype = m.dtype
+    proj = project_gaussians(m, q, ls, vm64.to(dtype), K64.to(dtype), width, height,
+                             near=near, far=far, eps2d=eps2d)
+    means2d, radii = proj.means2d, proj.radii
+    if torch.is_grad_enabled() and means2d.requires_grad:
+        means2d.retain_grad()
+    opac = torch.sigmoid(ol)
+    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size)
+    if backend == "warp":
+        color_raw, depth_sum, alpha = RasterizeWarp.apply(
+            means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,
+            bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, False, None,
+            cpu_kernel,
+        )
+    else:
+        color_raw, depth_sum, alpha = rasterize_reference(
+            means2d, proj.conics, opac, col, proj.depths, bins, width, height, tile_size
+        )
+        if torch.is_grad_enabled() and not color_raw.requires_grad and means2d.requires_grad:
+            # Nothing was visible: keep the outputs attached to the graph (zero gradients).
+            z = 0.0 * (means2d.sum() + proj.conics.sum() + opac.sum() + col.sum() + proj.depths.sum())
+            color_raw, depth_sum, alpha = color_raw + z, depth_sum + z, alpha + z
+    return color_raw, depth_sum, alpha, means2d, radii
+
+
+def _composite_output(color_raw, depth_sum, alpha, bg, out_dt: torch.dtype, means2d, radii, ids) -> RenderOutput:
+    """Composite ``color_raw`` over the background ``bg`` (3,) and normalise the depth by alpha (0 where alpha <
+    1e-6), all in ``out_dt``."""
+    color_raw = color_raw.to(out_dt)
+    depth_sum = depth_sum.to(out_dt)
+    alpha = alpha.to(out_dt)
+    color = color_raw + (1.0 - alpha)[..., None] * bg.to(out_dt)
+    ok = alpha >= 1e-6
+    depth = torch.where(ok, depth_sum / torch.where(ok, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(depth_sum))
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d,
+                        radii=radii.to(torch.int32), ids=ids)
+
+
 def rasterize(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -160,42 +272,13 @@ def rasterize(
     if tile_size <= 0:
         raise ValueError(f"tile_size must be > 0, got {tile_size}")
     check_cpu_kernel(cpu_kernel)
-    if (c2w is None) == (viewmat is None):
-        raise ValueError("give exactly one of c2w (camera-to-world) or viewmat (world-to-camera)")
-    K64 = _as_tensor(K, "K", (3, 3), device, dtype)
-    if K64[0, 0] <= 0 or K64[1, 1] <= 0:
-        raise ValueError(f"K must have positive focal lengths, got fx={K64[0, 0]} fy={K64[1, 1]}")
-    if c2w is not None:
-        vm64 = torch.linalg.inv(_as_tensor(c2w, "c2w", (4, 4), device, dtype))
-    else:
-        vm64 = _as_tensor(viewmat, "viewmat", (4, 4), device, dtype)
+    K64, vm64 = _camera_tensors(K, c2w, viewmat, device, dtype)
     backend = _resolve_backend(backend, device)
     if background is None:
         bg = torch.zeros(3, dtype=torch.float32, device=device)
     else:
         bg = _as_tensor(background, "background", (3,), device, dtype).to(torch.float32)
-
-    # Subset: gather only the selected rows (autograd scatters gradients back into the full tensors).
-    if subset is None:
-        ids = torch.arange(N, device=device)
-        sel = (means, quats, log_scales, opacity_logits, colors)
-    else:
-        if not isinstance(subset, torch.Tensor):
-            subset = torch.as_tensor(np.asarray(subset))
-        subset = subset.to(device)
-        if subset.dtype == torch.bool:
-            if tuple(subset.shape) != (N,):
-                raise ValueError(f"bool subset must have shape ({N},), got {tuple(subset.shape)}")
-            ids = torch.nonzero(subset).squeeze(1)
-        elif not subset.is_floating_point() and subset.dim() == 1:
-            ids = subset.to(torch.int64)
-            if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= N):
-                raise ValueError(f"subset indices must be in [0, {N}), got range "
-                                 f"[{int(ids.min())}, {int(ids.max())}]")
-        else:
-            raise ValueError("subset must be None, a (N,) bool mask or a 1-D integer index tensor")
-        sel = tuple(t.index_select(0, ids) for t in (means, quats, log_scales, opacity_logits, colors))
-    m, q, ls, ol, col = sel
+    ids, (m, q, ls, ol, col) = _gather_subset(subset, N, device, (means, quats, log_scales, opacity_logits, colors))
 
     if backend == "gsplat":
         color_raw, depth_sum, alpha, means2d, radii = rasterize_gsplat(
@@ -203,59 +286,19 @@ def rasterize(
             near=near, far=far, eps2d=eps2d, tile_size=tile_size,
         )
     else:
+        nt = None
         if backend == "warp":
             nt = default_num_threads() if num_threads is None else int(num_threads)
             if nt <= 0:
                 raise ValueError(f"num_threads must be > 0, got {num_threads}")
+        kw = dict(near=near, far=far, eps2d=eps2d, tile_size=tile_size, nt=nt, cpu_kernel=cpu_kernel)
         if backend == "warp" and device.type == "cpu" and dtype in (torch.float32, torch.float64):
-            # CPU fast path: projection, binning, sigmoid, compositing over the background and
-            # depth normalisation all run in Warp kernels (few per-element torch ops).
-            proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
-                                          near=near, far=far, eps2d=eps2d, num_threads=nt)
-            means2d, radii = proj.means2d, proj.radii
-            if torch.is_grad_enabled() and means2d.requires_grad:
-                means2d.retain_grad()
-            bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt)
-            color, depth, alpha = RasterizeWarp.apply(
-                means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
-                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
-            )
-            return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii,
-                                ids=ids)
-        proj = project_gaussians(m, q, ls, vm64.to(dtype), K64.to(dtype), width, height,
-                                 near=near, far=far, eps2d=eps2d)
-        means2d, radii = proj.means2d, proj.radii
-        if torch.is_grad_enabled() and means2d.requires_grad:
-            means2d.retain_grad()
-        opac = torch.sigmoid(ol)
-        bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size)
-        if backend == "warp":
-            color_raw, depth_sum, alpha = RasterizeWarp.apply(
-                means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,
-                bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, False, None,
-                cpu_kernel,
-            )
-        else:
-            color_raw, depth_sum, alpha = rasterize_reference(
-                means2d, proj.conics, opac, col, proj.depths, bins, width, height, tile_size
-            )
-            if torch.is_grad_enabled() and not color_raw.requires_grad and means2d.requires_grad:
-                # Nothing was visible: keep the outputs attached to the graph (zero gradients).
-                z = 0.0 * (means2d.sum() + proj.conics.sum() + opac.sum() + col.sum() + proj.depths.sum())
-                color_raw, depth_sum, alpha = color_raw + z, depth_sum + z, alpha + z
-
+            return _rasterize_warp_cpu(m, q, ls, ol, col, vm64, K64, width, height, bg=bg, ids=ids, **kw)
+        color_raw, depth_sum, alpha, means2d, radii = _rasterize_raw(m, q, ls, ol, col, vm64, K64, width, height,
+                                                                     backend=backend, **kw)
     # float32 output, except the reference keeps float64 so it can be gradchecked end to end.
     out_dt = dtype if (backend == "torch" and dtype == torch.float64) else torch.float32
-    color_raw = color_raw.to(out_dt)
-    depth_sum = depth_sum.to(out_dt)
-    alpha = alpha.to(out_dt)
-    color = color_raw + (1.0 - alpha)[..., None] * bg.to(out_dt)
-    ok = alpha >= 1e-6
-    depth = torch.where(ok, depth_sum / torch.where(ok, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(depth_sum))
-    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d,
-                        radii=radii.to(torch.int32), ids=ids)
-
+    return _composite_output(color_raw, depth_sum, alpha, bg, out_dt, means2d, radii, ids)
 
 def blend_weights(
     means: torch.Tensor,

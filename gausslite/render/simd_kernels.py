@@ -279,6 +279,9 @@ def _bwd_tile_native(gdata: wp.array2d(dtype=wp.float32), gids: wp.array(dtype=w
                      state: wp.array(dtype=wp.vec2), grad_gdata: wp.array2d(dtype=wp.float32)): ...
 
 
+# The kernels below are the Warp tile kernels' wrappers with the native tile function in place of
+# ``_fwd_tile_warp`` / ``_bwd_tile_warp`` (same arguments); why the parameter lists and inner loops are
+# not one source: docs/architecture.md, "Kernel sources".
 @wp.kernel
 def rasterize_fwd_tile_simd_kernel(
     gdata: wp.array2d(dtype=wp.float32),

@@ -318,6 +318,111 @@ def tile_box(tid: int, tiles_x: int, stripe: int, nstripes: int, tile_size: int,
     return vec5i(ty * tiles_x + tx, x0, y0, wp.min(x0 + tile_size, width) - 1, wp.min(y0 + tile_size, height) - 1)
 
 
+@wp.func
+def _fwd_tile_reset(x0: int, y0: int, x1: int, y1: int, width: int, start: int,
+                    out_c: wp.array(dtype=wp.vec4), out_a: wp.array(dtype=wp.float32),
+                    out_T: wp.array(dtype=wp.float32), out_last: wp.array(dtype=wp.int32)):
+    """Start values of the tile's pixels [x0, x1] x [y0, y1]: no colour or alpha, T = 1, last = ``start``."""
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            out_c[pix] = wp.vec4(0.0)
+            out_a[pix] = 0.0
+            out_T[pix] = 1.0
+            out_last[pix] = start
+
+
+@wp.func
+def _fwd_tile_gaussian(gdata: wp.array2d(dtype=wp.float32), g: int, jn: int, x0: int, y0: int, x1: int, y1: int,
+                       width: int, out_c: wp.array(dtype=wp.vec4), out_a: wp.array(dtype=wp.float32),
+                       out_T: wp.array(dtype=wp.float32), out_last: wp.array(dtype=wp.int32)):
+    """Composite Gaussian ``g`` (``gdata`` row; ``jn``: one past its index into ``gids``) front to back into the
+    tile's pixels its footprint reaches. Returns how many pixels it terminated (marked by a negated ``out_T``)."""
+    uh = gdata[g, 0]
+    vh = gdata[g, 1]
+    ca = gdata[g, 2]
+    cb = gdata[g, 3]
+    cc = gdata[g, 4]
+    op = gdata[g, 5]
+    feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
+    ul = gdata[g, 10]
+    vl = gdata[g, 11]
+    pm = gdata[g, 12]
+    uu = uh + ul
+    vv = vh + vl
+    ks = gdata[g, 13]
+    k1 = gdata[g, 14]
+    k0 = gdata[g, 15]
+    n_done = int(0)
+    rows = _tile_rows(vv, k1, k0, y0, y1)
+    for py in range(rows[0], rows[1] + 1):
+        fy = float(py)
+        dyr = vv - fy
+        span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
+        if span[0] > span[1]:
+            continue
+        dy = (vh - fy) + vl
+        for px in range(span[0], span[1] + 1):
+            pix = py * width + px
+            T = out_T[pix]
+            if T < 0.0:
+                continue
+            dx = (uh - float(px)) + ul
+            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+            if power > 0.0 or power < pm:
+                continue
+            alpha = wp.min(ALPHA_MAX, op * wp.exp(power))
+            if alpha < ALPHA_MIN:
+                continue
+            test_T = T * (1.0 - alpha)
+            if test_T < T_MIN:
+                out_T[pix] = -T
+                n_done += 1
+                continue
+            w = alpha * T
+            out_c[pix] = out_c[pix] + w * feat
+            out_a[pix] = out_a[pix] + w
+            out_T[pix] = test_T
+            out_last[pix] = jn
+    return n_done
+
+
+@wp.func
+def _fwd_tile_finish(x0: int, y0: int, x1: int, y1: int, width: int, composite: int, bg: wp.vec3,
+                     out_c: wp.array(dtype=wp.vec4), out_a: wp.array(dtype=wp.float32),
+                     out_T: wp.array(dtype=wp.float32)):
+    """Unmark terminated pixels (``|out_T|``) and, with ``composite`` != 0, finish ``out_c`` as
+    ``(RGB + (1 - A) bg, depth)`` (see :func:`rasterize_fwd_tile_kernel`)."""
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            pix = py * width + px
+            out_T[pix] = wp.abs(out_T[pix])
+            if composite != 0:
+                c = out_c[pix]
+                A = out_a[pix]
+                t = 1.0 - A
+                depth = float(0.0)
+                if A >= DEPTH_ALPHA_MIN:
+                    depth = c[3] / A
+                out_c[pix] = wp.vec4(c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2], depth)
+
+
+@wp.func
+def _fwd_tile_warp(gdata: wp.array2d(dtype=wp.float32), gids: wp.array(dtype=wp.int32), start: int, end: int,
+                   x0: int, y0: int, x1: int, y1: int, width: int, composite: int, bgr: float, bgg: float,
+                   bgb: float, out_c: wp.array(dtype=wp.vec4), out_a: wp.array(dtype=wp.float32),
+                   out_T: wp.array(dtype=wp.float32), out_last: wp.array(dtype=wp.int32)):
+    """Forward pass of the tile [x0, x1] x [y0, y1] over its entries ``gids[start:end]`` (the signature of the SIMD
+    kernels' native tile function); stops once every pixel has terminated."""
+    _fwd_tile_reset(x0, y0, x1, y1, width, start, out_c, out_a, out_T, out_last)
+    n_active = (x1 - x0 + 1) * (y1 - y0 + 1)
+    for j in range(start, end):
+        n_active -= _fwd_tile_gaussian(gdata, gids[j], j + 1, x0, y0, x1, y1, width, out_c, out_a, out_T, out_last)
+        if n_active == 0:
+            break
+    _fwd_tile_finish(x0, y0, x1, y1, width, composite, wp.vec3(bgr, bgg, bgb), out_c, out_a, out_T)
+
+
 @wp.kernel
 def rasterize_fwd_tile_kernel(
     gdata: wp.array2d(dtype=wp.float32),
@@ -345,85 +450,12 @@ def rasterize_fwd_tile_kernel(
     :func:`gausslite.render.api.rasterize`: ``(RGB + (1 - A) bg, depth)`` with
     ``depth = sum w z / A`` if ``A >= 1e-6`` else 0 (same float32 operations as the torch code).
     While the tile is processed, a pixel that has terminated is marked by a negated ``out_T``.
+    The work is :func:`_fwd_tile_warp`, the Warp twin of the SIMD kernel's native tile function.
     """
     box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
     tile = box[0]
-    x0 = box[1]
-    y0 = box[2]
-    x1 = box[3]
-    y1 = box[4]
-    start = tile_start[tile]
-    end = tile_end[tile]
-    for py in range(y0, y1 + 1):
-        for px in range(x0, x1 + 1):
-            pix = py * width + px
-            out_c[pix] = wp.vec4(0.0)
-            out_a[pix] = 0.0
-            out_T[pix] = 1.0
-            out_last[pix] = start
-    n_active = (x1 - x0 + 1) * (y1 - y0 + 1)
-    for j in range(start, end):
-        g = gids[j]
-        uh = gdata[g, 0]
-        vh = gdata[g, 1]
-        ca = gdata[g, 2]
-        cb = gdata[g, 3]
-        cc = gdata[g, 4]
-        op = gdata[g, 5]
-        feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
-        ul = gdata[g, 10]
-        vl = gdata[g, 11]
-        pm = gdata[g, 12]
-        uu = uh + ul
-        vv = vh + vl
-        ks = gdata[g, 13]
-        k1 = gdata[g, 14]
-        k0 = gdata[g, 15]
-        jn = j + 1
-        rows = _tile_rows(vv, k1, k0, y0, y1)
-        for py in range(rows[0], rows[1] + 1):
-            fy = float(py)
-            dyr = vv - fy
-            span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
-            if span[0] > span[1]:
-                continue
-            dy = (vh - fy) + vl
-            for px in range(span[0], span[1] + 1):
-                pix = py * width + px
-                T = out_T[pix]
-                if T < 0.0:
-                    continue
-                dx = (uh - float(px)) + ul
-                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                if power > 0.0 or power < pm:
-                    continue
-                alpha = wp.min(ALPHA_MAX, op * wp.exp(power))
-                if alpha < ALPHA_MIN:
-                    continue
-                test_T = T * (1.0 - alpha)
-                if test_T < T_MIN:
-                    out_T[pix] = -T
-                    n_active -= 1
-                    continue
-                w = alpha * T
-                out_c[pix] = out_c[pix] + w * feat
-                out_a[pix] = out_a[pix] + w
-                out_T[pix] = test_T
-                out_last[pix] = jn
-        if n_active == 0:
-            break
-    for py in range(y0, y1 + 1):
-        for px in range(x0, x1 + 1):
-            pix = py * width + px
-            out_T[pix] = wp.abs(out_T[pix])
-            if composite != 0:
-                c = out_c[pix]
-                A = out_a[pix]
-                t = 1.0 - A
-                depth = float(0.0)
-                if A >= DEPTH_ALPHA_MIN:
-                    depth = c[3] / A
-                out_c[pix] = wp.vec4(c[0] + t * bg[0], c[1] + t * bg[1], c[2] + t * bg[2], depth)
+    _fwd_tile_warp(gdata, gids, tile_start[tile], tile_end[tile], box[1], box[2], box[3], box[4], width, composite,
+                   bg[0], bg[1], bg[2], out_c, out_a, out_T, out_last)
 
 
 @wp.func
@@ -470,6 +502,134 @@ def bwd_tile_init(
     return maxlast
 
 
+@wp.func
+def _bwd_tile_row(gdata: wp.array2d(dtype=wp.float32), g: int, j: int, py: int, xa: int, xb: int, dy: float,
+                  width: int, last_idx: wp.array(dtype=wp.int32), grad_c: wp.array(dtype=wp.vec4),
+                  state: wp.array(dtype=wp.vec2), s_f: wp.vec4):
+    """Back-to-front step of Gaussian ``g`` (entry ``j`` of ``gids``) over pixels [xa, xb] of row ``py`` (``dy``:
+    the row's offset v - py): updates each pixel's ``state`` and adds ``w * grad_c`` to ``s_f``.
+
+    Returns:
+        ``(hit, m0, mx, mxx, s_f)``: whether any pixel took part, the row's sums of dl/dpower, dl/dpower dx and
+        dl/dpower dx^2 (unclamped pairs only), and the updated ``s_f``.
+    """
+    uh = gdata[g, 0]
+    ca = gdata[g, 2]
+    cbb = gdata[g, 3]
+    cc = gdata[g, 4]
+    op = gdata[g, 5]
+    feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
+    ul = gdata[g, 10]
+    pm = gdata[g, 12]
+    hit = int(0)
+    m0 = float(0.0)
+    mx = float(0.0)
+    mxx = float(0.0)
+    for px in range(xa, xb + 1):
+        pix = py * width + px
+        if j >= last_idx[pix]:
+            continue
+        dx = (uh - float(px)) + ul
+        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cbb * dx * dy
+        if power > 0.0 or power < pm:
+            continue
+        G = wp.exp(power)
+        raw = op * G
+        alpha = wp.min(ALPHA_MAX, raw)
+        if alpha < ALPHA_MIN:
+            continue
+        hit = 1
+        inv = 1.0 / (1.0 - alpha)
+        st = state[pix]
+        T = st[0] * inv
+        w = alpha * T
+        gf = grad_c[pix]
+        s_f += w * gf
+        fg = wp.dot(feat, gf)
+        dl_dalpha = fg * T + st[1] * inv
+        state[pix] = wp.vec2(T, st[1] - fg * w)
+        if raw <= ALPHA_MAX:
+            # dl/dpower = alpha dl/dalpha (no gradient through a clamped alpha)
+            dl_dp = alpha * dl_dalpha
+            m0 += dl_dp
+            t = dl_dp * dx
+            mx += t
+            mxx += t * dx
+    return hit, m0, mx, mxx, s_f
+
+
+@wp.func
+def _bwd_tile_gaussian(gdata: wp.array2d(dtype=wp.float32), g: int, j: int, x0: int, y0: int, x1: int, y1: int,
+                       width: int, last_idx: wp.array(dtype=wp.int32), grad_c: wp.array(dtype=wp.vec4),
+                       state: wp.array(dtype=wp.vec2), grad_gdata: wp.array2d(dtype=wp.float32)):
+    """Gradients of Gaussian ``g`` (entry ``j`` of ``gids``) over the tile [x0, x1] x [y0, y1], row by row
+    (:func:`_bwd_tile_row`), expanded from the per-row moments and added to ``grad_gdata[g]``."""
+    uh = gdata[g, 0]
+    vh = gdata[g, 1]
+    ca = gdata[g, 2]
+    cbb = gdata[g, 3]
+    cc = gdata[g, 4]
+    op = gdata[g, 5]
+    ul = gdata[g, 10]
+    vl = gdata[g, 11]
+    uu = uh + ul
+    vv = vh + vl
+    ks = gdata[g, 13]
+    k1 = gdata[g, 14]
+    k0 = gdata[g, 15]
+    rows = _tile_rows(vv, k1, k0, y0, y1)
+    hit = int(0)
+    # sums over the tile's pixels of dl_dp, dl_dp dx, dl_dp dy, dl_dp dx^2, dl_dp dx dy, dl_dp dy^2
+    s_0 = float(0.0)
+    s_x = float(0.0)
+    s_y = float(0.0)
+    s_xx = float(0.0)
+    s_xy = float(0.0)
+    s_yy = float(0.0)
+    s_f = wp.vec4(0.0)
+    for py in range(rows[0], rows[1] + 1):
+        fy = float(py)
+        dyr = vv - fy
+        span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
+        if span[0] > span[1]:
+            continue
+        dy = (vh - fy) + vl
+        row_hit, m0, mx, mxx, s_f = _bwd_tile_row(gdata, g, j, py, span[0], span[1], dy, width, last_idx, grad_c,
+                                                  state, s_f)
+        hit = wp.max(hit, row_hit)
+        s_0 += m0
+        s_x += mx
+        s_y += m0 * dy
+        s_xx += mxx
+        s_xy += mx * dy
+        s_yy += m0 * dy * dy
+    if hit != 0:
+        # power = -0.5 (a dx^2 + c dy^2) - b dx dy with dx = u - px, dy = v - py;
+        # dl/do = sum G dl/dalpha = sum dl_dp / o (unclamped pairs: alpha = o G)
+        wp.atomic_add(grad_gdata, g, 0, -(ca * s_x + cbb * s_y))
+        wp.atomic_add(grad_gdata, g, 1, -(cc * s_y + cbb * s_x))
+        wp.atomic_add(grad_gdata, g, 2, -0.5 * s_xx)
+        wp.atomic_add(grad_gdata, g, 3, -s_xy)
+        wp.atomic_add(grad_gdata, g, 4, -0.5 * s_yy)
+        wp.atomic_add(grad_gdata, g, 5, s_0 / op)
+        wp.atomic_add(grad_gdata, g, 6, s_f[0])
+        wp.atomic_add(grad_gdata, g, 7, s_f[1])
+        wp.atomic_add(grad_gdata, g, 8, s_f[2])
+        wp.atomic_add(grad_gdata, g, 9, s_f[3])
+
+
+@wp.func
+def _bwd_tile_warp(gdata: wp.array2d(dtype=wp.float32), gids: wp.array(dtype=wp.int32), start: int,
+                   maxlast: int, x0: int, y0: int, x1: int, y1: int, width: int,
+                   last_idx: wp.array(dtype=wp.int32), grad_c: wp.array(dtype=wp.vec4),
+                   state: wp.array(dtype=wp.vec2), grad_gdata: wp.array2d(dtype=wp.float32)):
+    """Back-to-front loop of the tile [x0, x1] x [y0, y1] over ``gids[start:maxlast]`` (the signature of the SIMD
+    kernels' native tile function)."""
+    for k in range(maxlast - start):
+        j = maxlast - 1 - k
+        _bwd_tile_gaussian(gdata, gids[j], j, x0, y0, x1, y1, width, last_idx, grad_c, state, grad_gdata)
+
+
 @wp.kernel
 def rasterize_bwd_tile_kernel(
     gdata: wp.array2d(dtype=wp.float32),
@@ -508,7 +668,8 @@ def rasterize_bwd_tile_kernel(
     ``state[pix] = (T_i, dL/dA T_final - S_i)`` is the back-to-front running state of each
     pixel. ``grad_c`` and ``state`` are per-pixel scratch arrays written here. The geometric
     gradients are accumulated as per-row moments of dL/dpower (sums of dl_dp, dl_dp dx,
-    dl_dp dx^2 per row, combined with the row offset dy) and expanded once per Gaussian.
+    dl_dp dx^2 per row, combined with the row offset dy) and expanded once per Gaussian. The loop is
+    :func:`_bwd_tile_warp`, the Warp twin of the SIMD kernel's native tile function.
     """
     box = tile_box(wp.tid(), tiles_x, stripe, nstripes, tile_size, width, height)
     tile = box[0]
@@ -519,93 +680,7 @@ def rasterize_bwd_tile_kernel(
     start = tile_start[tile]
     maxlast = bwd_tile_init(x0, y0, x1, y1, width, start, final_T, last_idx, composite, bg, out_c, out_a,
                             g_color, g_depth, g_alpha, grad_c, state)
-    for k in range(maxlast - start):
-        j = maxlast - 1 - k
-        g = gids[j]
-        uh = gdata[g, 0]
-        vh = gdata[g, 1]
-        ca = gdata[g, 2]
-        cbb = gdata[g, 3]
-        cc = gdata[g, 4]
-        op = gdata[g, 5]
-        feat = wp.vec4(gdata[g, 6], gdata[g, 7], gdata[g, 8], gdata[g, 9])
-        ul = gdata[g, 10]
-        vl = gdata[g, 11]
-        pm = gdata[g, 12]
-        uu = uh + ul
-        vv = vh + vl
-        ks = gdata[g, 13]
-        k1 = gdata[g, 14]
-        k0 = gdata[g, 15]
-        rows = _tile_rows(vv, k1, k0, y0, y1)
-        hit = int(0)
-        # sums over the tile's pixels of dl_dp, dl_dp dx, dl_dp dy, dl_dp dx^2, dl_dp dx dy, dl_dp dy^2
-        s_0 = float(0.0)
-        s_x = float(0.0)
-        s_y = float(0.0)
-        s_xx = float(0.0)
-        s_xy = float(0.0)
-        s_yy = float(0.0)
-        s_f = wp.vec4(0.0)
-        for py in range(rows[0], rows[1] + 1):
-            fy = float(py)
-            dyr = vv - fy
-            span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
-            if span[0] > span[1]:
-                continue
-            dy = (vh - fy) + vl
-            m0 = float(0.0)
-            mx = float(0.0)
-            mxx = float(0.0)
-            for px in range(span[0], span[1] + 1):
-                pix = py * width + px
-                if j >= last_idx[pix]:
-                    continue
-                dx = (uh - float(px)) + ul
-                power = -0.5 * (ca * dx * dx + cc * dy * dy) - cbb * dx * dy
-                if power > 0.0 or power < pm:
-                    continue
-                G = wp.exp(power)
-                raw = op * G
-                alpha = wp.min(ALPHA_MAX, raw)
-                if alpha < ALPHA_MIN:
-                    continue
-                hit = 1
-                inv = 1.0 / (1.0 - alpha)
-                st = state[pix]
-                T = st[0] * inv
-                w = alpha * T
-                gf = grad_c[pix]
-                s_f += w * gf
-                fg = wp.dot(feat, gf)
-                dl_dalpha = fg * T + st[1] * inv
-                state[pix] = wp.vec2(T, st[1] - fg * w)
-                if raw <= ALPHA_MAX:
-                    # dl/dpower = alpha dl/dalpha (no gradient through a clamped alpha)
-                    dl_dp = alpha * dl_dalpha
-                    m0 += dl_dp
-                    t = dl_dp * dx
-                    mx += t
-                    mxx += t * dx
-            s_0 += m0
-            s_x += mx
-            s_y += m0 * dy
-            s_xx += mxx
-            s_xy += mx * dy
-            s_yy += m0 * dy * dy
-        if hit != 0:
-            # power = -0.5 (a dx^2 + c dy^2) - b dx dy with dx = u - px, dy = v - py;
-            # dl/do = sum G dl/dalpha = sum dl_dp / o (unclamped pairs: alpha = o G)
-            wp.atomic_add(grad_gdata, g, 0, -(ca * s_x + cbb * s_y))
-            wp.atomic_add(grad_gdata, g, 1, -(cc * s_y + cbb * s_x))
-            wp.atomic_add(grad_gdata, g, 2, -0.5 * s_xx)
-            wp.atomic_add(grad_gdata, g, 3, -s_xy)
-            wp.atomic_add(grad_gdata, g, 4, -0.5 * s_yy)
-            wp.atomic_add(grad_gdata, g, 5, s_0 / op)
-            wp.atomic_add(grad_gdata, g, 6, s_f[0])
-            wp.atomic_add(grad_gdata, g, 7, s_f[1])
-            wp.atomic_add(grad_gdata, g, 8, s_f[2])
-            wp.atomic_add(grad_gdata, g, 9, s_f[3])
+    _bwd_tile_warp(gdata, gids, start, maxlast, x0, y0, x1, y1, width, last_idx, grad_c, state, grad_gdata)
 
 
 @wp.kernel
@@ -934,6 +1009,99 @@ def _ewa_cov2d(cov: wp.mat33d, fx: wp.float64, fy: wp.float64, rz: wp.float64, t
     return j0, j1, w0, w1, abc
 
 
+@wp.func
+def _screen_cov(rot: wp.mat33d, q: wp.vec4d, ls: wp.vec3d, xs: wp.float64, ys: wp.float64, zs: wp.float64,
+                width: int, height: int, intr: wp.vec4d, eps2d: wp.float64):
+    """The projection's shared intermediates of one Gaussian at camera point (xs, ys, zs) (metres): the quaternion
+    norm ``qlen`` and divisor ``qden``, unit quaternion ``qn``, (Rq, exp(ls), M) of :func:`_cam_cov`, the clamp
+    limits ``lim`` (:func:`_tan_limits`), ``rz = 1 / zs``, the clamped ``txc = x/z``, ``tyc = y/z`` and the
+    outputs of :func:`_ewa_cov2d` at them (the screen covariance ``abc`` in px^2 and its factors)."""
+    qlen = wp.length(q)
+    qden = wp.max(qlen, wp.float64(1e-12))
+    qn = q / qden
+    rq, s, mm, cov = _cam_cov(rot, qn, ls)
+    lim = _tan_limits(width, height, intr)
+    rz = wp.float64(1.0) / zs
+    txc = wp.min(wp.max(xs * rz, -lim[1]), lim[0])
+    tyc = wp.min(wp.max(ys * rz, -lim[3]), lim[2])
+    j0, j1, w0, w1, abc = _ewa_cov2d(cov, intr[0], intr[1], rz, zs * txc, zs * tyc, eps2d)
+    return qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc
+
+
+@wp.func
+def _conic_grad(gA: wp.float64, gB: wp.float64, gC: wp.float64, abc: wp.vec3d):
+    """Gradient w.r.t. the screen covariance (a, b, c) of the conic ``(c, -b, a) / det`` given its gradient
+    (gA, gB, gC); a covariance that is not positive definite had the conic ``(c, -b, a)`` (det taken as 1)."""
+    a = abc[0]
+    b = abc[1]
+    c = abc[2]
+    one = wp.float64(1.0)
+    det = a * c - b * b
+    ga = gC
+    gb = -gB
+    gc = gA
+    if det > wp.float64(0.0) and wp.isfinite(det):
+        idet = one / det
+        gdet = -(gA * c - gB * b + gC * a) * idet * idet
+        ga = gC * idet + gdet * c
+        gc = gA * idet + gdet * a
+        gb = -gB * idet - wp.float64(2.0) * gdet * b
+    return wp.vec3d(ga, gb, gc)
+
+
+@wp.func
+def _quat_grad(qn: wp.vec4d, qlen: wp.float64, qden: wp.float64, grq: wp.mat33d):
+    """Gradient w.r.t. the raw quaternion of ``Rq = R(q / max(|q|, 1e-12))`` given ``grq = dL/dRq``."""
+    two = wp.float64(2.0)
+    qw = qn[0]
+    qx = qn[1]
+    qy = qn[2]
+    qz = qn[3]
+    gw = two * (-qz * grq[0, 1] + qy * grq[0, 2] + qz * grq[1, 0] - qx * grq[1, 2] - qy * grq[2, 0]
+                + qx * grq[2, 1])
+    gx = two * (qy * grq[0, 1] + qz * grq[0, 2] + qy * grq[1, 0] - two * qx * grq[1, 1] - qw * grq[1, 2]
+                + qz * grq[2, 0] + qw * grq[2, 1] - two * qx * grq[2, 2])
+    gy = two * (-two * qy * grq[0, 0] + qx * grq[0, 1] + qw * grq[0, 2] + qx * grq[1, 0] + qz * grq[1, 2]
+                - qw * grq[2, 0] + qz * grq[2, 1] - two * qy * grq[2, 2])
+    gz = two * (-two * qz * grq[0, 0] - qw * grq[0, 1] + qx * grq[0, 2] + qw * grq[1, 0]
+                - two * qz * grq[1, 1] + qy * grq[1, 2] + qx * grq[2, 0] + qy * grq[2, 1])
+    gqn = wp.vec4d(gw, gx, gy, gz)
+    gq = gqn / qden
+    if qlen >= wp.float64(1e-12):
+        gq = (gqn - qn * wp.dot(qn, gqn)) / qden
+    return gq
+
+
+@wp.func
+def _mean_grad(rot: wp.mat33d, intr: wp.vec4d, lim: wp.vec4d, xs: wp.float64, ys: wp.float64, zs: wp.float64,
+               rz: wp.float64, txc: wp.float64, tyc: wp.float64, gj0: wp.vec3d, gj1: wp.vec3d, gu: wp.float64,
+               gv: wp.float64, gzs: wp.float64):
+    """Gradient w.r.t. the world-frame mean through the Jacobian rows (``gj0``, ``gj1``: their gradients), the
+    pixel centre (gu, gv) and the depth (``gzs``), with the clamp of x/z, y/z (:func:`_clamp_grad_factor`)."""
+    two = wp.float64(2.0)
+    fx = intr[0]
+    fy = intr[1]
+    tx = zs * txc
+    ty = zs * tyc
+    # Jacobian entries J00 = fx rz, J02 = -fx tx rz^2, J11 = fy rz, J12 = -fy ty rz^2
+    grz = fx * gj0[0] + fy * gj1[1] - two * fx * tx * rz * gj0[2] - two * fy * ty * rz * gj1[2]
+    gtx = -fx * rz * rz * gj0[2]
+    gty = -fy * rz * rz * gj1[2]
+    # u = fx xs rz + cx, v = fy ys rz + cy
+    gxs = gu * fx * rz
+    gys = gv * fy * rz
+    grz += gu * fx * xs + gv * fy * ys
+    # tx = zs clamp(xs rz), ty = zs clamp(ys rz)
+    gzs += gtx * txc + gty * tyc
+    gxr = gtx * zs * _clamp_grad_factor(xs * rz, -lim[1], lim[0])
+    gyr = gty * zs * _clamp_grad_factor(ys * rz, -lim[3], lim[2])
+    gxs += gxr * rz
+    gys += gyr * rz
+    grz += gxr * xs + gyr * ys
+    gzs += -grz * rz * rz
+    return wp.transpose(rot) @ wp.vec3d(gxs, gys, gzs)
+
+
 @wp.kernel
 def project_fwd_kernel(
     means: wp.array2d(dtype=Any),
@@ -980,15 +1148,10 @@ def project_fwd_kernel(
     else:
         q = wp.vec4d(one, one, one, one)
         ls = wp.vec3d(zero, zero, zero)
-    qn = q / wp.max(wp.length(q), wp.float64(1e-12))
-    rq, s, mm, cov = _cam_cov(rot, qn, ls)
+    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = _screen_cov(
+        rot, q, ls, xs, ys, zs, width, height, intr, eps2d)
     w = wp.float64(width)
     h = wp.float64(height)
-    lim = _tan_limits(width, height, intr)
-    rz = one / zs
-    tx = zs * wp.min(wp.max(xs * rz, -lim[1]), lim[0])
-    ty = zs * wp.min(wp.max(ys * rz, -lim[3]), lim[2])
-    j0, j1, w0, w1, abc = _ewa_cov2d(cov, fx, fy, rz, tx, ty, eps2d)
     a = abc[0]
     b = abc[1]
     c = abc[2]
@@ -1043,12 +1206,8 @@ def project_bwd_kernel(
     means, quats and log_scales of Gaussian ``offset + tid`` (recomputes the forward
     intermediates)."""
     i = wp.tid() + offset
-    zero = wp.float64(0.0)
-    one = wp.float64(1.0)
     half = wp.float64(0.5)
     two = wp.float64(2.0)
-    fx = intr[0]
-    fy = intr[1]
     p, q, ls = _load_cam(means, quats, log_scales, i, rot, trans)
     finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
     valid = finite and p[2] > near and p[2] < far
@@ -1062,45 +1221,12 @@ def project_bwd_kernel(
     xs = p[0]
     ys = p[1]
     zs = p[2]
-    qlen = wp.length(q)
-    qden = wp.max(qlen, wp.float64(1e-12))
-    qn = q / qden
-    rq, s, mm, cov = _cam_cov(rot, qn, ls)
-    lim = _tan_limits(width, height, intr)
-    lxp = lim[0]
-    lxn = lim[1]
-    lyp = lim[2]
-    lyn = lim[3]
-    rz = one / zs
-    xr = xs * rz
-    yr = ys * rz
-    txc = wp.min(wp.max(xr, -lxn), lxp)
-    tyc = wp.min(wp.max(yr, -lyn), lyp)
-    tx = zs * txc
-    ty = zs * tyc
-    j0, j1, w0, w1, abc = _ewa_cov2d(cov, fx, fy, rz, tx, ty, eps2d)
-    a = abc[0]
-    b = abc[1]
-    c = abc[2]
-    det = a * c - b * b
-    valid2 = det > zero and wp.isfinite(det)
-
-    gu = wp.float64(g_means2d[i, 0])
-    gv = wp.float64(g_means2d[i, 1])
-    gA = wp.float64(g_conics[i, 0])
-    gB = wp.float64(g_conics[i, 1])
-    gC = wp.float64(g_conics[i, 2])
-    gzs = wp.float64(g_depths[i])
-    # conic = (c, -b, a) / det_s
-    ga = gC
-    gb = -gB
-    gc = gA
-    if valid2:
-        idet = one / det
-        gdet = -(gA * c - gB * b + gC * a) * idet * idet
-        ga = gC * idet + gdet * c
-        gc = gA * idet + gdet * a
-        gb = -gB * idet - two * gdet * b
+    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = _screen_cov(
+        rot, q, ls, xs, ys, zs, width, height, intr, eps2d)
+    gabc = _conic_grad(wp.float64(g_conics[i, 0]), wp.float64(g_conics[i, 1]), wp.float64(g_conics[i, 2]), abc)
+    ga = gabc[0]
+    gb = gabc[1]
+    gc = gabc[2]
     # cov2 = J cov J^T with the symmetric upstream gradient [[ga, gb/2], [gb/2, gc]]
     gj0 = two * ga * w0 + gb * w1
     gj1 = gb * w0 + two * gc * w1
@@ -1108,43 +1234,12 @@ def project_bwd_kernel(
     gmm = two * (gcov @ mm)
     gn = wp.transpose(rot) @ gmm  # gradient of N = Rq diag(s)
     grq = gn @ wp.diag(s)
-    gls = wp.vec3d(zero, zero, zero)
+    gls = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     for k in range(3):
         gls[k] = (gn[0, k] * rq[0, k] + gn[1, k] * rq[1, k] + gn[2, k] * rq[2, k]) * s[k]
-    # rotation matrix of the unit quaternion -> (w, x, y, z)
-    qw = qn[0]
-    qx = qn[1]
-    qy = qn[2]
-    qz = qn[3]
-    gw = two * (-qz * grq[0, 1] + qy * grq[0, 2] + qz * grq[1, 0] - qx * grq[1, 2] - qy * grq[2, 0]
-                + qx * grq[2, 1])
-    gx = two * (qy * grq[0, 1] + qz * grq[0, 2] + qy * grq[1, 0] - two * qx * grq[1, 1] - qw * grq[1, 2]
-                + qz * grq[2, 0] + qw * grq[2, 1] - two * qx * grq[2, 2])
-    gy = two * (-two * qy * grq[0, 0] + qx * grq[0, 1] + qw * grq[0, 2] + qx * grq[1, 0] + qz * grq[1, 2]
-                - qw * grq[2, 0] + qz * grq[2, 1] - two * qy * grq[2, 2])
-    gz = two * (-two * qz * grq[0, 0] - qw * grq[0, 1] + qx * grq[0, 2] + qw * grq[1, 0]
-                - two * qz * grq[1, 1] + qy * grq[1, 2] + qx * grq[2, 0] + qy * grq[2, 1])
-    gqn = wp.vec4d(gw, gx, gy, gz)
-    gq = gqn / qden
-    if qlen >= wp.float64(1e-12):
-        gq = (gqn - qn * wp.dot(qn, gqn)) / qden
-    # Jacobian entries J00 = fx rz, J02 = -fx tx rz^2, J11 = fy rz, J12 = -fy ty rz^2
-    grz = fx * gj0[0] + fy * gj1[1] - two * fx * tx * rz * gj0[2] - two * fy * ty * rz * gj1[2]
-    gtx = -fx * rz * rz * gj0[2]
-    gty = -fy * rz * rz * gj1[2]
-    # u = fx xs rz + cx, v = fy ys rz + cy
-    gxs = gu * fx * rz
-    gys = gv * fy * rz
-    grz += gu * fx * xs + gv * fy * ys
-    # tx = zs clamp(xs rz), ty = zs clamp(ys rz)
-    gzs += gtx * txc + gty * tyc
-    gxr = gtx * zs * _clamp_grad_factor(xr, -lxn, lxp)
-    gyr = gty * zs * _clamp_grad_factor(yr, -lyn, lyp)
-    gxs += gxr * rz
-    gys += gyr * rz
-    grz += gxr * xs + gyr * ys
-    gzs += -grz * rz * rz
-    gm = wp.transpose(rot) @ wp.vec3d(gxs, gys, gzs)
+    gq = _quat_grad(qn, qlen, qden, grq)
+    gm = _mean_grad(rot, intr, lim, xs, ys, zs, rz, txc, tyc, gj0, gj1, wp.float64(g_means2d[i, 0]),
+                    wp.float64(g_means2d[i, 1]), wp.float64(g_depths[i]))
     for k in range(3):
         g_means[i, k] = g_means.dtype(gm[k])
         g_log_scales[i, k] = g_log_scales.dtype(gls[k])

@@ -165,6 +165,77 @@ def _room_uv(axis: np.ndarray, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+def _nearest_primitives(scene: Scene, o: np.ndarray, dT: np.ndarray, t_best: np.ndarray):
+    """Intersect the rays (origin ``o`` (3,), directions ``dT`` (3, N), world frame) with every object's
+    primitives (only rays that hit the object's hull before ``t_best``), lowering ``t_best`` (N,) in place.
+
+    Returns:
+        ``(prim_best (N,) int64, prims)``: per ray the index into ``prims`` of the nearest primitive (-1: the room
+        shell), and every object's primitives in scene order.
+    """
+    prim_best = np.full(dT.shape[1], -1, dtype=np.int64)
+    prims = []
+    for obj in scene.objects:
+        ht = _box_t(obj.rotation.T @ (o - obj.hull_center), obj.rotation.T @ dT, obj.hull_half)
+        cand = np.nonzero(ht < t_best)[0]
+        base = len(prims)
+        prims.extend(obj.primitives)
+        if cand.size == 0:
+            continue
+        dc = dT[:, cand]
+        for k, p in enumerate(obj.primitives):
+            t = _prim_t(p, o, dc)
+            better = t < t_best[cand]
+            if np.any(better):
+                idx = cand[better]
+                t_best[idx] = t[better]
+                prim_best[idx] = base + k
+    return prim_best, prims
+
+
+def _footprint(nrm: np.ndarray, dnorm: np.ndarray, t: np.ndarray, f_mean: float) -> np.ndarray:
+    """Pixel footprint on the surface (m) of rays with unit directions ``dnorm`` hitting at depth ``t`` (m) a
+    surface of normal ``nrm`` (grazing angles capped at cos = 0.25); ``f_mean``: focal length (px)."""
+    cos = np.abs(np.einsum("ij,ij->i", nrm, dnorm))
+    return t / f_mean / np.maximum(cos, 0.25)
+
+
+def _shade_room(scene: Scene, ax: np.ndarray, sd: np.ndarray, pts: np.ndarray, dnorm: np.ndarray, t: np.ndarray,
+                f_mean: float):
+    """Surface of the rays that hit the room shell (wall axis ``ax``, side ``sd``, hit points ``pts``, unit
+    directions ``dnorm``, depths ``t``): face materials, baseboard and decals (with their frames).
+
+    Returns:
+        ``(normal (n, 3), surface id (n,) int16, albedo (n, 3))``.
+    """
+    n = len(ax)
+    nr = np.zeros((n, 3))
+    nr[np.arange(n), ax] = np.where(sd == 1, -1.0, 1.0)
+    u, v = _room_uv(ax, pts)
+    sid = np.zeros(n, dtype=np.int16)
+    for (a_, s_), fid in _ROOM_FACE_IDS.items():
+        sid[(ax == a_) & (sd == s_)] = fid
+    fw = _footprint(nr, dnorm, t, f_mean)
+    col = np.zeros((n, 3))
+    for fid, mat in scene.room.materials.items():
+        m = sid == fid
+        if np.any(m):
+            col[m] = shade_material(mat, u[m], v[m], fw[m])
+    bb_h, bb_c = scene.room.baseboard
+    wall = (ax != 2) & (v < bb_h)
+    col[wall] = np.asarray(bb_c) * (0.9 + 0.1 * (v[wall] > bb_h - 0.01))[:, None]
+    for dec in scene.room.decals:
+        m = (sid == dec.surface_id) & (u >= dec.u0) & (u <= dec.u1) & (v >= dec.v0) & (v <= dec.v1)
+        if not np.any(m):
+            continue
+        col[m] = shade_material(dec.material, u[m] - dec.u0, v[m] - dec.v0, fw[m])
+        if dec.frame_color is not None:
+            bw = 0.025
+            edge = m & ((u - dec.u0 < bw) | (dec.u1 - u < bw) | (v - dec.v0 < bw) | (dec.v1 - v < bw))
+            col[edge] = dec.frame_color
+    return nr, sid, col
+
+
 def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
     """Ray-cast one view of ``scene``.
 
@@ -184,23 +255,7 @@ def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
     d = dT.T
     n_rays = d.shape[0]
     t_best, axis, side = _room_hits(scene, o, d)
-    prim_best = np.full(n_rays, -1, dtype=np.int64)
-    prims = []
-    for obj in scene.objects:
-        ht = _box_t(obj.rotation.T @ (o - obj.hull_center), obj.rotation.T @ dT, obj.hull_half)
-        cand = np.nonzero(ht < t_best)[0]
-        base = len(prims)
-        prims.extend(obj.primitives)
-        if cand.size == 0:
-            continue
-        dc = dT[:, cand]
-        for k, p in enumerate(obj.primitives):
-            t = _prim_t(p, o, dc)
-            better = t < t_best[cand]
-            if np.any(better):
-                idx = cand[better]
-                t_best[idx] = t[better]
-                prim_best[idx] = base + k
+    prim_best, prims = _nearest_primitives(scene, o, dT, t_best)
 
     pts = o + t_best[:, None] * d
     dnorm = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
@@ -208,42 +263,10 @@ def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
     normal = np.zeros((n_rays, 3))
     ids = np.zeros(n_rays, dtype=np.int16)
     f_mean = 0.5 * (intr.fx + intr.fy)
-
-    def footprint(nrm: np.ndarray, sel: np.ndarray) -> np.ndarray:
-        cos = np.abs(np.einsum("ij,ij->i", nrm, dnorm[sel]))
-        return t_best[sel] / f_mean / np.maximum(cos, 0.25)
-
-    # room shell
     room_sel = np.nonzero(prim_best < 0)[0]
     if room_sel.size:
-        ax, sd = axis[room_sel], side[room_sel]
-        nr = np.zeros((room_sel.size, 3))
-        nr[np.arange(room_sel.size), ax] = np.where(sd == 1, -1.0, 1.0)
-        normal[room_sel] = nr
-        u, v = _room_uv(ax, pts[room_sel])
-        sid = np.zeros(room_sel.size, dtype=np.int16)
-        for (a_, s_), fid in _ROOM_FACE_IDS.items():
-            sid[(ax == a_) & (sd == s_)] = fid
-        ids[room_sel] = sid
-        fw = footprint(nr, room_sel)
-        col = np.zeros((room_sel.size, 3))
-        for fid, mat in scene.room.materials.items():
-            m = sid == fid
-            if np.any(m):
-                col[m] = shade_material(mat, u[m], v[m], fw[m])
-        bb_h, bb_c = scene.room.baseboard
-        wall = (ax != 2) & (v < bb_h)
-        col[wall] = np.asarray(bb_c) * (0.9 + 0.1 * (v[wall] > bb_h - 0.01))[:, None]
-        for dec in scene.room.decals:
-            m = (sid == dec.surface_id) & (u >= dec.u0) & (u <= dec.u1) & (v >= dec.v0) & (v <= dec.v1)
-            if not np.any(m):
-                continue
-            col[m] = shade_material(dec.material, u[m] - dec.u0, v[m] - dec.v0, fw[m])
-            if dec.frame_color is not None:
-                bw = 0.025
-                edge = m & ((u - dec.u0 < bw) | (dec.u1 - u < bw) | (v - dec.v0 < bw) | (dec.v1 - v < bw))
-                col[edge] = dec.frame_color
-        albedo[room_sel] = col
+        normal[room_sel], ids[room_sel], albedo[room_sel] = _shade_room(
+            scene, axis[room_sel], side[room_sel], pts[room_sel], dnorm[room_sel], t_best[room_sel], f_mean)
 
     # primitives, grouped by primitive index
     obj_sel = np.nonzero(prim_best >= 0)[0]
@@ -258,7 +281,7 @@ def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
             nw, u, v = _prim_surface(p, o, d[sel], t_best[sel])
             normal[sel] = nw
             ids[sel] = p.object_id
-            albedo[sel] = shade_material(p.material, u, v, footprint(nw, sel))
+            albedo[sel] = shade_material(p.material, u, v, _footprint(nw, dnorm[sel], t_best[sel], f_mean))
 
     to_light = scene.light - pts
     ndotl = np.einsum("ij,ij->i", normal, to_light) / np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), 1e-9)

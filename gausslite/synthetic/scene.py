@@ -253,24 +253,9 @@ def _jitter_color(rng: np.random.Generator, rgb: Sequence[float], dh: float = 0.
     return tuple(float(x) for x in colorsys.hsv_to_rgb(h, s, v))  # type: ignore[return-value]
 
 
-def build_default_scene(seed: int = 0) -> Scene:
-    """Build the default room for ``seed``.
-
-    The layout (desk in the middle, chairs, door and trash can on the +y wall, shelves on the -x
-    wall) is fixed; the seed jitters colours, texture seeds, small-object placement on the desk,
-    chair yaw and the books on the shelves by small amounts, so every task stays valid.
-
-    Args:
-        seed: any integer; equal seeds give identical scenes.
-
-    Returns:
-        The :class:`Scene` (9 objects, 6 tasks).
-    """
-    rng = np.random.default_rng(int(seed))
-    tex_seed = lambda: int(rng.integers(0, 2**20))  # noqa: E731
-    jc = lambda c: _jitter_color(rng, c)  # noqa: E731
-
-    # ---- room shell -------------------------------------------------------------------------
+def _room_shell(jc, tex_seed) -> Room:
+    """The room's walls, floor and ceiling with their decals (``jc``: seeded colour jitter, ``tex_seed``: seeded
+    texture seed; both draw from the scene's generator, so the call order is part of the scene)."""
     room = Room(
         lo=np.array([-3.0, -2.5, 0.0]), hi=np.array([3.0, 2.5, 2.6]),
         materials={
@@ -294,13 +279,12 @@ def build_default_scene(seed: int = 0) -> Scene:
         Decal(WALL_XMIN_ID, 0.4, 2.2, 2.0, 2.4,
               Material("checker", jc((0.20, 0.30, 0.25)), jc((0.85, 0.85, 0.80)), 0.05, tex_seed()), (0.1, 0.1, 0.1)),
     ])
+    return room
 
-    objs: List[SceneObject] = []
 
-    # ---- 1: desk (label "desk", synonym "table") ---------------------------------------------
-    desk_pos = np.array([-0.2, 0.55, 0.0])
-    desk_yaw = np.deg2rad(8.0)
-    top_z = 0.75
+def _desk(jc, tex_seed, desk_pos: np.ndarray, desk_yaw: float, top_z: float) -> Tuple[SceneObject, Material]:
+    """Object 1, the desk (label "desk", synonym "table") at ``desk_pos`` (m, world), yawed ``desk_yaw`` (rad), its
+    top at ``top_z`` (m). Returns the desk and its leg metal, which the door and the trash can reuse."""
     wood_top = Material("wood", jc((0.70, 0.50, 0.30)), jc((0.50, 0.32, 0.18)), 0.025, tex_seed())
     metal = Material("brushed", (0.55, 0.56, 0.58), (0.80, 0.81, 0.83), 0.05, tex_seed())
     drawer = Material("fabric", jc((0.88, 0.88, 0.84)), jc((0.70, 0.70, 0.66)), 0.012, tex_seed())
@@ -312,15 +296,15 @@ def build_default_scene(seed: int = 0) -> Scene:
     b.box([0.42, 0.0, 0.595], [0.42, 0.6, 0.25], drawer)
     b.box([0.42, -0.305, 0.595], [0.16, 0.012, 0.03], metal)  # drawer handle
     b.box([-0.1, 0.32, 0.52], [1.1, 0.02, 0.36], wood_top)  # modesty panel
-    objs.append(b.build("desk", ["table", "work table", "writing desk", "office desk"],
-                        "wooden desk with metal legs and a drawer unit in the middle of the room", obstacle=True))
+    desk = b.build("desk", ["table", "work table", "writing desk", "office desk"],
+                   "wooden desk with metal legs and a drawer unit in the middle of the room", obstacle=True)
+    return desk, metal
 
-    Rd = rot_z(desk_yaw)
 
-    def on_desk(local_xy: Sequence[float]) -> np.ndarray:
-        return desk_pos + Rd @ np.array([local_xy[0], local_xy[1], top_z])
-
-    # ---- 2: mug, 3: box, 4: book on the desk -------------------------------------------------
+def _desk_items(rng: np.random.Generator, jc, tex_seed, on_desk, desk_yaw: float) -> List[SceneObject]:
+    """Objects 2 (mug), 3 (box) and 4 (book) on the desk (``on_desk``: desk-local xy → world point on its top),
+    their placement and yaw jittered by ``rng``."""
+    objs: List[SceneObject] = []
     j = rng.uniform(-0.04, 0.04, size=(3, 2))
     b = ObjectBuilder(2, on_desk([-0.38 + j[0, 0], 0.08 + j[0, 1]]), desk_yaw + rng.uniform(0, 2 * np.pi))
     mug = Material("stripes", jc((0.85, 0.20, 0.18)), (0.95, 0.93, 0.88), 0.018, tex_seed())
@@ -343,8 +327,13 @@ def build_default_scene(seed: int = 0) -> Scene:
     b.box([0.0, 0.0, 0.0375], [0.18, 0.11, 0.003], Material("text", (0.96, 0.95, 0.90), (0.1, 0.1, 0.1), 0.012, tex_seed()))
     objs.append(b.build("book", ["notebook", "object"], "green hardcover book with a paper label, on the right of the desk",
                         clearance=SUPPORT_CLEARANCE_M))
+    return objs
 
-    # ---- 5, 6: chairs --------------------------------------------------------------------------
+
+def _chairs(rng: np.random.Generator, jc, tex_seed, desk_pos: np.ndarray, desk_yaw: float) -> List[SceneObject]:
+    """Objects 5 (blue chair at the desk's left end, the one closest to the table) and 6 (yellow chair near the
+    right wall), their yaw jittered by ``rng``."""
+
     def chair(oid: int, pos: Sequence[float], yaw: float, seat_c: Tuple[float, float, float]) -> ObjectBuilder:
         cb = ObjectBuilder(oid, pos, yaw)
         legs = Material("wood", jc((0.45, 0.30, 0.18)), jc((0.30, 0.19, 0.10)), 0.012, tex_seed())
@@ -357,15 +346,18 @@ def build_default_scene(seed: int = 0) -> Scene:
         cb.box([-0.205, 0.0, 0.79], [0.03, 0.35, 0.22], seat)
         return cb
 
-    near_local = Rd @ np.array([-0.98, 0.05, 0.0])
+    near_local = rot_z(desk_yaw) @ np.array([-0.98, 0.05, 0.0])
     b = chair(5, desk_pos + near_local, desk_yaw + np.deg2rad(rng.uniform(-6, 6)), (0.20, 0.35, 0.65))
-    objs.append(b.build("chair", ["seat", "desk chair", "wooden chair"],
-                        "blue chair at the left end of the desk, the chair closest to the table", obstacle=True))
+    near = b.build("chair", ["seat", "desk chair", "wooden chair"],
+                   "blue chair at the left end of the desk, the chair closest to the table", obstacle=True)
     b = chair(6, [2.2, 1.55, 0.0], np.deg2rad(200.0 + rng.uniform(-8, 8)), (0.75, 0.55, 0.15))
-    objs.append(b.build("chair", ["seat", "wooden chair"],
-                        "yellow chair near the right wall, about 2 m from the desk", obstacle=True))
+    far = b.build("chair", ["seat", "wooden chair"],
+                  "yellow chair near the right wall, about 2 m from the desk", obstacle=True)
+    return [near, far]
 
-    # ---- 7: door on the +y wall ------------------------------------------------------------------
+
+def _door_and_trash_can(jc, tex_seed, metal: Material) -> List[SceneObject]:
+    """Objects 7 (door in the +y wall) and 8 (trash can next to it); ``metal``: the desk's leg metal (handle, rim)."""
     b = ObjectBuilder(7, [1.3, 2.5, 0.0], 0.0)
     panel = Material("wood", jc((0.55, 0.36, 0.22)), jc((0.38, 0.23, 0.13)), 0.03, tex_seed())
     frame_m = Material("solid", (0.92, 0.91, 0.87), scale=0.2, seed=tex_seed())
@@ -375,19 +367,22 @@ def build_default_scene(seed: int = 0) -> Scene:
     b.box([0.0, -0.03, 2.03], [0.98, 0.06, 0.06], frame_m)
     b.box([0.31, -0.065, 1.0], [0.13, 0.05, 0.025], metal)
     b.box([0.0, -0.045, 1.45], [0.5, 0.01, 0.6], Material("text", (0.95, 0.95, 0.95), (0.6, 0.1, 0.1), 0.07, tex_seed()))
-    objs.append(b.build("door", ["doorway", "entrance", "exit"],
-                        "wooden door with a white frame in the wall opposite the cameras"))
+    door = b.build("door", ["doorway", "entrance", "exit"],
+                   "wooden door with a white frame in the wall opposite the cameras")
 
-    # ---- 8: trash can next to the door -----------------------------------------------------------
     b = ObjectBuilder(8, [0.45, 2.22, 0.0], 0.0)
     can = Material("stripes", jc((0.25, 0.45, 0.30)), jc((0.15, 0.30, 0.20)), 0.03, tex_seed())
     b.cylinder([0.0, 0.0, 0.0], 0.16, 0.41, can)
     b.cylinder([0.0, 0.0, 0.41], 0.17, 0.03, metal)
     b.cylinder([0.0, 0.0, 0.44], 0.14, 0.004, Material("noise", (0.15, 0.15, 0.15), (0.4, 0.4, 0.38), 0.03, tex_seed()))
-    objs.append(b.build("trash can", ["bin", "trash bin", "waste basket", "garbage can", "dustbin"],
-                        "green cylindrical trash can beside the door", obstacle=True))
+    trash = b.build("trash can", ["bin", "trash bin", "waste basket", "garbage can", "dustbin"],
+                    "green cylindrical trash can beside the door", obstacle=True)
+    return [door, trash]
 
-    # ---- 9: shelves on the -x wall ---------------------------------------------------------------
+
+def _shelf(rng: np.random.Generator, jc, tex_seed) -> SceneObject:
+    """Object 9, the bookshelf against the -x wall, its lower three shelves filled with books whose widths,
+    heights, depths and colours ``rng`` draws."""
     b = ObjectBuilder(9, [-2.83, 1.3, 0.0], np.deg2rad(90.0))  # local -y faces +x (into the room)
     board = Material("wood", jc((0.78, 0.66, 0.48)), jc((0.60, 0.48, 0.32)), 0.02, tex_seed())
     W, D, Hs = 1.0, 0.34, 1.8
@@ -410,11 +405,14 @@ def build_default_scene(seed: int = 0) -> Scene:
             mat = Material(kind, tuple(col), (0.95, 0.9, 0.7), 0.012, tex_seed())
             b.box([x + wbk / 2, -D / 2 + 0.01 + db / 2, z + 0.02 + hb / 2], [wbk, db, hb], mat)
             x += wbk + float(rng.uniform(0.0, 0.012))
-    objs.append(b.build("shelf", ["shelves", "bookshelf", "bookcase", "shelving unit"],
-                        "wooden bookshelf with books on its lower three shelves against the left wall", obstacle=True))
+    return b.build("shelf", ["shelves", "bookshelf", "bookcase", "shelving unit"],
+                   "wooden bookshelf with books on its lower three shelves against the left wall", obstacle=True)
 
+
+def _default_tasks(objs: List[SceneObject]) -> List[Task]:
+    """The default scene's six tasks over ``objs`` (ids 1–9 as :func:`build_default_scene` numbers them)."""
     obstacles = [o.id for o in objs if o.obstacle]
-    tasks = [
+    return [
         Task("synth-pick-object", "Prepare to pick up the object on the desk", ["object"], ["desk"],
              [("on", "object", "desk")], [2, 3, 4, 1]),
         Task("synth-pick-mug", "Prepare to pick up the mug on the desk", ["mug"], ["desk"],
@@ -427,4 +425,37 @@ def build_default_scene(seed: int = 0) -> Scene:
         Task("synth-find-trash", "Find the trash can next to the door", ["trash can"], ["door"],
              [("near", "trash can", "door")], [8, 7]),
     ]
-    return Scene(seed=int(seed), room=room, objects=objs, tasks=tasks, light=np.array([0.4, 0.2, 2.35]))
+
+
+def build_default_scene(seed: int = 0) -> Scene:
+    """Build the default room for ``seed``.
+
+    The layout (desk in the middle, chairs, door and trash can on the +y wall, shelves on the -x
+    wall) is fixed; the seed jitters colours, texture seeds, small-object placement on the desk,
+    chair yaw and the books on the shelves by small amounts, so every task stays valid. The parts are
+    built in a fixed order from one generator, so equal seeds give identical scenes.
+
+    Args:
+        seed: any integer; equal seeds give identical scenes.
+
+    Returns:
+        The :class:`Scene` (9 objects, 6 tasks).
+    """
+    rng = np.random.default_rng(int(seed))
+    tex_seed = lambda: int(rng.integers(0, 2**20))  # noqa: E731
+    jc = lambda c: _jitter_color(rng, c)  # noqa: E731
+
+    room = _room_shell(jc, tex_seed)
+    desk_pos, desk_yaw, top_z = np.array([-0.2, 0.55, 0.0]), np.deg2rad(8.0), 0.75
+    desk, metal = _desk(jc, tex_seed, desk_pos, desk_yaw, top_z)
+    Rd = rot_z(desk_yaw)
+
+    def on_desk(local_xy: Sequence[float]) -> np.ndarray:
+        return desk_pos + Rd @ np.array([local_xy[0], local_xy[1], top_z])
+
+    objs: List[SceneObject] = [desk]
+    objs += _desk_items(rng, jc, tex_seed, on_desk, desk_yaw)
+    objs += _chairs(rng, jc, tex_seed, desk_pos, desk_yaw)
+    objs += _door_and_trash_can(jc, tex_seed, metal)
+    objs.append(_shelf(rng, jc, tex_seed))
+    return Scene(seed=int(seed), room=room, objects=objs, tasks=_default_tasks(objs), light=np.array([0.4, 0.2, 2.35]))

@@ -865,19 +865,12 @@ def _as_view(data: Any) -> memoryview:
     raise TypeError(f"chunk must be bytes-like, got {type(data).__name__}")
 
 
-def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
-    """Parse and fully validate a chunk's header and checksum, without decompressing.
-
-    Cheap (one CRC pass): servers can route, dedupe (agent, map version, chunk index) and reject
-    chunks before decoding.
+def _check_prefix(buf, size: int, limits: WireLimits) -> int:
+    """Size limit, magic and format version of a chunk of ``size`` bytes; returns the version.
 
     Raises:
-        TypeError: ``data`` is not bytes-like.
-        TruncatedChunk, BadMagic, UnsupportedVersion, ChecksumMismatch, LimitExceeded,
-        MalformedChunk: see their docstrings (checked in this order).
+        LimitExceeded, TruncatedChunk, BadMagic, UnsupportedVersion (checked in this order).
     """
-    buf = _as_view(data)
-    size = len(buf)
     if size > limits.max_chunk_bytes:
         raise LimitExceeded(f"chunk of {size} bytes, above the limit of {limits.max_chunk_bytes} bytes")
     if size < len(MAGIC):
@@ -892,9 +885,15 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
                                  f"{', '.join(map(str, SUPPORTED_VERSIONS))}")
     if size < HEADER_SIZE:
         raise TruncatedChunk(f"{size} bytes, shorter than the {HEADER_SIZE}-byte header")
-    (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
-     kappa_shift, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
-     n_removed, predict_mask) = _HEADER.unpack_from(buf)
+    return version
+
+
+def _check_length_and_crc(buf, size: int, alen: int, plen: int, limits: WireLimits) -> None:
+    """The declared agent-id and payload lengths against the limits and the chunk's ``size``, then its CRC-32.
+
+    Raises:
+        LimitExceeded, TruncatedChunk, MalformedChunk (trailing bytes), ChecksumMismatch.
+    """
     if alen > limits.max_agent_id_bytes:
         raise LimitExceeded(f"agent id of {alen} bytes")
     if plen > limits.max_chunk_bytes:
@@ -907,7 +906,15 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     (crc,) = _CRC.unpack_from(buf, size - _CRC.size)
     if zlib.crc32(buf[: size - _CRC.size]) != crc:
         raise ChecksumMismatch("CRC-32 mismatch")
-    # ---- semantic validation (a valid CRC says nothing about intent)
+
+
+def _check_flags(version: int, flags: int, kappa_shift: int, predict_mask: int, map_version: int,
+                 base_version: int, base_count: int, n_removed: int, limits: WireLimits) -> tuple[bool, bool]:
+    """Flags, κ shift, predict mask and delta fields of a header; returns ``(lossless, delta)``.
+
+    Raises:
+        MalformedChunk, LimitExceeded (a delta base above ``limits.max_total_gaussians``).
+    """
     if flags & ~_KNOWN_FLAGS:
         raise MalformedChunk(f"unknown flags {flags:#x}")
     if kappa_shift and (version < 3 or not flags & FLAG_DELTA):
@@ -926,12 +933,15 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
             raise MalformedChunk(f"{n_removed} removed rows of a {base_count}-row base")
     elif base_version or base_count or n_removed:
         raise MalformedChunk("delta fields set on a full chunk")
-    if alen == 0:
-        raise MalformedChunk("empty agent id")
-    try:
-        agent_id = bytes(buf[HEADER_SIZE:HEADER_SIZE + alen]).decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise MalformedChunk(f"agent id is not UTF-8: {e}") from None
+    return lossless, delta
+
+
+def _check_counts(n: int, total: int, count_chunks: int, index: int, limits: WireLimits) -> None:
+    """Row and chunk counts of a header against the limits and each other.
+
+    Raises:
+        LimitExceeded, MalformedChunk.
+    """
     if n > limits.max_chunk_gaussians:
         raise LimitExceeded(f"chunk claims {n} Gaussians, above the limit of {limits.max_chunk_gaussians} per chunk")
     if total > limits.max_total_gaussians:
@@ -944,9 +954,17 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
         raise MalformedChunk(f"chunk holds {n} rows, its subset {total} (a chunk holds 1..total rows, 0 only when total is 0)")
     if count_chunks > max(1, total):
         raise MalformedChunk(f"{count_chunks} chunks for {total} Gaussians")
+
+
+def _check_quantisation(lossless: bool, mb: int, qb: int, sb: int, ob: int, cb: int, kb: int, floats: tuple) -> None:
+    """Field widths and quantisation parameters (``floats``: mean origin and step, scale and colour ranges): none
+    in a lossless chunk, valid ones in a quantised chunk.
+
+    Raises:
+        MalformedChunk.
+    """
     if kb > 8:
         raise MalformedChunk(f"kappa bytes {kb}")
-    floats = (ox, oy, oz, sx, sy, sz, slo, shi, clo, chi)
     if lossless:
         if mb or qb or sb or ob or cb or any(floats):
             raise MalformedChunk("lossless chunk with quantisation parameters")
@@ -955,8 +973,40 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
             raise MalformedChunk(f"bad quantisation widths {(mb, qb, sb, ob, cb)}")
         if not all(math.isfinite(f) for f in floats):
             raise MalformedChunk("non-finite quantisation parameters")
+        _ox, _oy, _oz, sx, sy, sz, slo, shi, clo, chi = floats
         if min(sx, sy, sz) < 0 or slo > shi or clo > chi:
             raise MalformedChunk("negative mean step or inverted range")
+
+
+def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
+    """Parse and fully validate a chunk's header and checksum, without decompressing.
+
+    Cheap (one CRC pass): servers can route, dedupe (agent, map version, chunk index) and reject
+    chunks before decoding.
+
+    Raises:
+        TypeError: ``data`` is not bytes-like.
+        TruncatedChunk, BadMagic, UnsupportedVersion, ChecksumMismatch, LimitExceeded,
+        MalformedChunk: see their docstrings (checked in this order).
+    """
+    buf = _as_view(data)
+    size = len(buf)
+    version = _check_prefix(buf, size, limits)
+    (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
+     kappa_shift, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
+     n_removed, predict_mask) = _HEADER.unpack_from(buf)
+    _check_length_and_crc(buf, size, alen, plen, limits)
+    # ---- semantic validation (a valid CRC says nothing about intent)
+    lossless, delta = _check_flags(version, flags, kappa_shift, predict_mask, map_version, base_version, base_count,
+                                   n_removed, limits)
+    if alen == 0:
+        raise MalformedChunk("empty agent id")
+    try:
+        agent_id = bytes(buf[HEADER_SIZE:HEADER_SIZE + alen]).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise MalformedChunk(f"agent id is not UTF-8: {e}") from None
+    _check_counts(n, total, count_chunks, index, limits)
+    _check_quantisation(lossless, mb, qb, sb, ob, cb, kb, (ox, oy, oz, sx, sy, sz, slo, shi, clo, chi))
     want = _raw_len(n, _field_widths(lossless, mb, qb, sb, ob, cb, kb, delta), n_removed)
     if raw_len != want:
         raise MalformedChunk(f"raw length {raw_len}, expected {want} for {n} Gaussians")

@@ -10,6 +10,7 @@ import grpc
 import pytest
 
 from gausslite.cli import main
+from gausslite.config import GaussLiteConfig
 from gausslite.datasets import load_dataset
 from gausslite.datasets.bag import BagError
 from gausslite.ros.export import export_bag
@@ -84,9 +85,10 @@ def test_sim_plans_bag_agents_and_checks_bags_before_starting(bag_scene):
     plans = plan_agents(str(out), cfg)
     assert [p.dataset for p in plans] == [str(out / "agent_a"), str(out / "agent_b")]
     assert [p.task_id for p in plans] == ["synth-pick-object", "synth-find-chair"]
-    _check_bags(plans, cfg)  # good bags pass
+    _check_bags(plans, GaussLiteConfig.model_validate(cfg).agent)  # good bags pass
+    bad = load_sim_config(None, ["agent.bag.depth_topic=/nope"])
     with pytest.raises(BagError, match="depth topic '/nope' is not in the bag"):
-        _check_bags(plans, load_sim_config(None, ["agent.bag.depth_topic=/nope"]))
+        _check_bags(plans, GaussLiteConfig.model_validate(bad).agent)
 
 
 def test_sim_cli_bag_flags_become_agent_overrides(bag_scene, capsys):
