@@ -410,6 +410,75 @@ def plot_team(runs: list[dict], team: str, path: Path) -> None:
     plt.close(fig)
 
 
+#: the figures of the share curve, per agent (``summarise``'s names; each with its ``_std``)
+CURVE_KEYS = ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "vote_minus_own",
+              "for_robot_minus_own", "refine_minus_own")
+
+
+def share_bound(result: dict) -> Optional[float]:
+    """The ``agent.share_max_fraction`` a team result ran with (its ``--set`` overrides), None when not set."""
+    for o in result.get("settings", {}).get("overrides", []):
+        key, _, val = o.partition("=")
+        if key.strip() == "agent.share_max_fraction":
+            return float(val)
+    return None
+
+
+def share_curve(results: list[dict], default_bound: Optional[float] = None) -> dict:
+    """The share curve (docs/sharing.md#how-much-to-share) from team results run at different share bounds:
+    ``{team: {agent_id: {"task", "points": [{"bound", <CURVE_KEYS>, <key>_std, "runs"}, ...]}}}``, points sorted by
+    bound. A result without a bound override counts at ``default_bound``.
+
+    Raises:
+        ValueError: a result has no bound and ``default_bound`` is None, or two results have the same bound.
+    """
+    bounds = [share_bound(r) if share_bound(r) is not None else default_bound for r in results]
+    if any(b is None for b in bounds):
+        raise ValueError("a team result without agent.share_max_fraction: pass the deployed bound")
+    if len(set(bounds)) != len(bounds):
+        raise ValueError(f"two results at the same share bound: {bounds}")
+    curve: dict = {}
+    for b, r in sorted(zip(bounds, results), key=lambda x: x[0]):
+        for team, blk in r["teams"].items():
+            for aid, a in blk["agents"].items():
+                entry = curve.setdefault(team, {}).setdefault(aid, {"task": a["task"], "points": []})
+                entry["points"].append({"bound": b, "runs": blk.get("runs"),
+                                        **{k: a.get(k) for k in CURVE_KEYS},
+                                        **{f"{k}_std": a.get(f"{k}_std") for k in CURVE_KEYS}})
+    return curve
+
+
+def curve_table(curve: dict) -> str:
+    """Markdown table of :func:`share_curve`: per team, agent and bound the share, upload ratio, bytes per Gaussian
+    and the fused ROI PSNR − the robot's own map (vote, team map for the robot, vote + refine)."""
+    lines = ["| team | agent, task | bound | shared % | upload / final | B / Gaussian | own ROI PSNR | vote − own | "
+             "for robot − own | refine − own |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for team, agents in curve.items():
+        for aid, e in agents.items():
+            for q in e["points"]:
+                lines.append(f"| {team} | {aid}, {e['task']} | {100 * q['bound']:g} % | {_f(q['share_pct'], 1)} | "
+                             f"{_f(q['upload_ratio'])} | {_f(q['bytes_per_gaussian'], 1)} | {_f(q['own_roi_psnr'])} | "
+                             f"{_pm(q['vote_minus_own'], q['vote_minus_own_std'])} | "
+                             f"{_pm(q['for_robot_minus_own'], q['for_robot_minus_own_std'])} | "
+                             f"{_pm(q['refine_minus_own'], q['refine_minus_own_std'])} |")
+    return "\n".join(lines)
+
+
+def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict:
+    """Read the team results ``files``, write their share curve into ``out`` (its other keys kept; a new file
+    holds the curve alone) and the table beside it (``<out stem>_curve.md``); returns the curve."""
+    curve = share_curve([json.loads(Path(f).read_text()) for f in files], default_bound)
+    doc = json.loads(out.read_text()) if out.exists() else {}
+    doc["share_curve"] = {"sources": [Path(f).name for f in files], "teams": curve}
+    out.write_text(json.dumps(doc, indent=1))
+    md = out.with_name(f"{out.stem}_curve.md")
+    md.write_text(f"# bench.team share curve\n\n`python -m bench.team {' '.join(argv or [])}`\n\n"
+                  f"Fused ROI PSNR − the robot's own map against the share bound (agent.share_max_fraction).\n\n"
+                  f"{curve_table(curve)}\n")
+    print(curve_table(curve))
+    return curve
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--teams", default=",".join(TEAMS))
@@ -425,7 +494,15 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="agent config override, e.g. agent.share_coverage=0.9")
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
+    ap.add_argument("--curve", default=None, metavar="FILE[,FILE...]",
+                    help="run nothing: read team results run at different agent.share_max_fraction bounds and write "
+                         "their share curve into --out (key share_curve) and <out>_curve.md")
+    ap.add_argument("--default-bound", type=float, default=0.08,
+                    help="--curve: the bound of a result run without a share_max_fraction override")
     args = ap.parse_args(argv)
+    if args.curve:
+        write_curve([f for f in args.curve.split(",") if f], Path(args.out), args.default_bound, argv)
+        return 0
 
     teams = [t for t in args.teams.split(",") if t]
     for t in teams:

@@ -63,7 +63,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _subset(n: int, seed: int):
+def random_subset(n: int, seed: int):
+    """A random ``GaussianArrays`` of ``n`` Gaussians (seeded), the stand-in for a robot's ROI subset."""
+    # lazy: the wire codec loads only once the benchmark runs, not at --help
     from gausslite.wire.codec import GaussianArrays
 
     r = np.random.default_rng(seed)
@@ -81,7 +83,8 @@ def percentiles(values_ms: List[float]) -> Dict[str, Optional[float]]:
             "p99": float(np.percentile(a, 99)), "max": float(a.max())}
 
 
-def _vm_mb(pid: int, key: str) -> Optional[float]:
+def proc_status_mb(pid: int, key: str) -> Optional[float]:
+    """``key`` (``VmRSS``, ``VmHWM``) of process ``pid`` from ``/proc/<pid>/status``, in MB; None when unreadable."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith(key + ":"):
@@ -91,11 +94,13 @@ def _vm_mb(pid: int, key: str) -> Optional[float]:
     return None
 
 
-def start_server(work: Path, tokens_file: Path, workers: int, idle_s: Optional[float]) -> tuple:
-    """A fusion server process with per-robot tokens; returns (Popen, address). Raises RuntimeError when it does
-    not come up within 60 s (its log is ``work/fusion.log``)."""
+def start_server(work: Path, tokens_file: Path, workers: int, idle_s: Optional[float],
+                 settings: Optional[dict] = None) -> tuple:
+    """A fusion server process with per-robot tokens and the ``fusion`` ``settings`` given (plus ``stream_idle_s``
+    when ``idle_s`` is set); returns (Popen, address). Raises RuntimeError when it does not come up within 60 s (its
+    log is ``work/fusion.log``)."""
     cfg = work / "fusion.json"
-    cfg.write_text(json.dumps({} if idle_s is None else {"stream_idle_s": idle_s}))
+    cfg.write_text(json.dumps({**(settings or {}), **({} if idle_s is None else {"stream_idle_s": idle_s})}))
     port_file = work / "port"
     port_file.unlink(missing_ok=True)
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
@@ -150,10 +155,10 @@ def run(args: argparse.Namespace) -> dict:
             with FusionClient(address, token=tok[a], timeout_s=30, max_retries=3) as c:
                 c.wait_ready(60)
                 c.open_session(a, "find the chair", intr)
-        rss_start = _vm_mb(proc.pid, "VmRSS")
+        rss_start = proc_status_mb(proc.pid, "VmRSS")
         channel = grpc.insecure_channel(address)
         stub = fusion_pb2_grpc.FusionStub(channel)
-        stalled_chunks = {a: encode_subset(_subset(400, 7), a, 1, max_chunk_bytes=4096) for a in stalled_ids}
+        stalled_chunks = {a: encode_subset(random_subset(400, 7), a, 1, max_chunk_bytes=4096) for a in stalled_ids}
 
         def stalled_stream(i: int) -> None:
             agent = stalled_ids[i % len(stalled_ids)]
@@ -212,7 +217,7 @@ def run(args: argparse.Namespace) -> dict:
             t.start()
         time.sleep(1.0)  # the stalled streams are open and the wrong tokens flowing before the robot pushes
 
-        sub = _subset(args.gaussians, 1)
+        sub = random_subset(args.gaussians, 1)
         version = 0
         t_start = time.monotonic()
         t_end = t_start + args.seconds
@@ -248,7 +253,7 @@ def run(args: argparse.Namespace) -> dict:
             time.sleep(args.pause_s)
         if bar is not None:
             bar.close()
-        rss_peak = _vm_mb(proc.pid, "VmHWM")
+        rss_peak = proc_status_mb(proc.pid, "VmHWM")
         stop.set()
         for t in threads:
             t.join(30)

@@ -26,7 +26,7 @@ INTEGRATION = {
     "bench/test_bench_long_mission.py", "bench/test_bench_mapper.py", "bench/test_bench_roi_ceiling.py",
     "bench/test_bench_share_finetune.py", "bench/test_bench_share_refresh.py",
     "bench/test_bench_fleet.py", "bench/test_bench_soak.py", "bench/test_bench_realtime.py",
-    "bench/test_bench_trust_load.py",
+    "bench/test_bench_trust_load.py", "bench/test_bench_fuse_flood.py",
     "deploy/test_deploy_compose.py", "parser/test_parser_facade.py",
     "services/test_agent_live.py", "services/test_agent_service.py", "services/test_agent_update_task.py", "services/test_bag_services.py",
     "services/test_client_errors.py", "services/test_delta_server.py", "services/test_fusion_db_outage.py",

@@ -160,3 +160,39 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
     assert pa["tracked"]["for_robot_minus_own_std"] == pytest.approx(np.std([-1.0, -0.5], ddof=1))
     md = team.protocol_table({"teams": s})
     assert "| synthetic | agent_b, tb | keyframes | 23.00 ± 0.00 |" in md and md.count("\n") == 1 + 6
+
+
+def _team_result(bound, vote_minus_own):
+    agent = {"task": "synth-pick-object", "share_pct": 100 * (bound or 0.08), "upload_ratio": 1.2,
+             "bytes_per_gaussian": 13.0, "own_roi_psnr": 22.0, "vote_minus_own": vote_minus_own,
+             "for_robot_minus_own": vote_minus_own + 0.1, "refine_minus_own": 1.0}
+    agent.update({f"{k}_std": 0.1 for k in list(agent) if k != "task"})
+    return {"settings": {"overrides": [] if bound is None else [f"agent.share_max_fraction={bound}"]},
+            "teams": {"synthetic": {"runs": 3, "agents": {"agent_a": agent}}}}
+
+
+def test_share_curve_orders_the_bounds_and_keeps_the_figures(tmp_path):
+    import json
+
+    from bench.team import main, share_bound, share_curve
+
+    res = [_team_result(0.25, -1.0), _team_result(None, -4.6), _team_result(0.15, -3.5)]
+    assert [share_bound(r) for r in res] == [0.25, None, 0.15]
+    pts = share_curve(res, default_bound=0.08)["synthetic"]["agent_a"]["points"]
+    assert [p["bound"] for p in pts] == [0.08, 0.15, 0.25]
+    assert [p["vote_minus_own"] for p in pts] == [-4.6, -3.5, -1.0] and pts[0]["runs"] == 3
+    with pytest.raises(ValueError):
+        share_curve(res)  # a result without a bound and no default
+    with pytest.raises(ValueError):
+        share_curve([_team_result(0.15, -3.5), _team_result(0.15, -3.0)])
+    files = []
+    for i, r in enumerate(res):
+        files.append(tmp_path / f"r{i}.json")
+        files[-1].write_text(json.dumps(r))
+    out = tmp_path / "team.json"
+    out.write_text(json.dumps({"teams": {"kept": True}}))
+    assert main(["--curve", ",".join(map(str, files)), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["teams"] == {"kept": True} and len(doc["share_curve"]["teams"]["synthetic"]["agent_a"]["points"]) == 3
+    md = (tmp_path / "team_curve.md").read_text()
+    assert "| synthetic | agent_a, synth-pick-object | 15 % |" in md and "-3.50 ± 0.10" in md
