@@ -78,7 +78,8 @@ def test_keyframe_rule_translation_rotation_interval_and_newest_pending():
 
 # ---------------------------------------------------------------------------------------------- mapper API
 def _mapper(**kw):
-    return Mapper(MapperConfig(mode="gausslite", iters_per_frame=4, warmup_iters=1, seeds_per_frame=150, **kw))
+    return Mapper(MapperConfig(mode="gausslite", iters_per_frame=4, warmup_iters=1, seeding={"seeds_per_frame": 150},
+                               **kw))
 
 
 def _count_iters(m):
@@ -792,7 +793,8 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     from gausslite.mission import AgentConfig
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite", render_threads=2))
+    cfg = AgentConfig(share="task", share_worker="thread",
+                      mapper=MapperConfig(mode="gausslite", performance={"render_threads": 2}))
     rt = AgentRuntime("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
     try:
         deadline = time.time() + 5
@@ -851,7 +853,8 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, r
     ds = load_dataset(scene / "agent_a")
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     cfg = AgentConfig(share="task", share_worker="process", realtime=realtime, rate=0.2,
-                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
+                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1,
+                                          seeding={"seeds_per_frame": 100}))
     rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
         assert rt.share.pool is None  # nothing runs before the mission starts
