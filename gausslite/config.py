@@ -12,6 +12,7 @@ JSON schema.
 
 from __future__ import annotations
 
+import copy
 import json
 import tomllib
 from pathlib import Path
@@ -235,7 +236,7 @@ def load_mapper_config(path: Optional[str | Path] = None, overrides: Iterable[st
         FileNotFoundError: ``path`` does not exist. ValueError: a bad override.
         pydantic.ValidationError: unknown keys or invalid values (the message names the field).
     """
-    data: dict = deep_merge({}, defaults or {})
+    data: dict = copy.deepcopy(defaults or {})  # the overrides below write into nested groups in place
     if path is not None:
         data = deep_merge(data, read_yaml(path))
     data = apply_overrides(data, overrides)

@@ -52,3 +52,9 @@ def test_ablation_rows_are_cumulative():
     on = [sum(vars(sw).values()) for _, sw in rows]
     assert on == [0, 1, 2, 3, 4, 5]
     assert rows[3][1].roi and rows[3][1].mvo and rows[3][1].sb and not rows[3][1].sis
+
+
+def test_overrides_do_not_write_into_the_defaults_they_start_from():
+    defaults = {"pose": {"refine": True}}
+    assert load_mapper_config(None, ["pose.refine=false"], defaults=defaults).pose.refine is False
+    assert defaults == {"pose": {"refine": True}}  # e.g. a sensor profile's mapper defaults, shared by every run
