@@ -33,7 +33,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics
 from gausslite.datasets import load_dataset
-from gausslite.mapping.config import load_config
+from gausslite.config import load_mapper_config
 from gausslite.pipeline import run_mapping
 from gausslite.ros.bagio import BagWriter
 from gausslite.ros.export import T_BASE_OPTICAL, export_bag
@@ -51,8 +51,9 @@ def _dir_size(p: Path) -> int:
 
 
 def _map(ds, iters: int, seeds: int) -> dict:
-    cfg = load_config(None, [f"iters_per_frame={iters}", f"seeds_per_frame={seeds}", "final_iters=0",
-                             f"warmup_iters={max(1, iters // 3)}"], backend="warp")
+    overrides = [f"iters_per_frame={iters}", f"seeding.seeds_per_frame={seeds}", "final_iters=0",
+                 f"warmup_iters={max(1, iters // 3)}"]
+    cfg = load_mapper_config(None, overrides, backend="warp")
     _, m = run_mapping(ds, cfg, progress=False)
     return {k: m[k] for k in ("psnr", "ssim", "depth_l1", "n_gaussians", "n_frames")}
 

@@ -71,7 +71,7 @@ from bench._relay import TcpRelay
 from gausslite.datasets import load_dataset
 from gausslite.fusion.vote import voxel_vote
 from gausslite.gaussians import GaussianMap
-from gausslite.mapping.config import load_config
+from gausslite.config import load_mapper_config
 from gausslite.mapping.mapper import Mapper
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset, peek_header
@@ -93,7 +93,7 @@ def source_map(args) -> "object":
         return GaussianArrays.from_any(GaussianMap.load_ply(cache))
 
     ds = load_dataset(scene_dir(args), max_frames=args.map_frames)
-    cfg = load_config(None, [], iters_per_frame=args.map_iters, warmup_iters=min(args.map_iters, 15))
+    cfg = load_mapper_config(None, [], iters_per_frame=args.map_iters, warmup_iters=min(args.map_iters, 15))
     torch.manual_seed(cfg.seed)
     t0 = time.perf_counter()
     mapper = Mapper(cfg)

@@ -46,7 +46,7 @@ import torch
 from tqdm import tqdm
 
 from gausslite.datasets import detect_layout, load_dataset
-from gausslite.mapping.config import load_config
+from gausslite.config import load_mapper_config
 from gausslite.mapping.profiles import profile_for_layout
 from gausslite.pipeline import run_mapping
 from gausslite.stats import aggregate, fmt, gain, mean_std
@@ -94,8 +94,8 @@ def map_job(job: dict):
     torch.set_num_threads(1)
     ds, profile = load_scene(job["scene"], Path(job["path"]), job.get("max_frames"), job.get("downscale"))
     stride = SCENES[job["scene"]]["stride"]
-    cfg = load_config(None, job.get("overrides", []), defaults=dict(profile.mapper), mode=job["mode"],
-                      seed=job["seed"], render_threads=1)
+    cfg = load_mapper_config(None, job.get("overrides", []), defaults=dict(profile.mapper), mode=job["mode"],
+                             seed=job["seed"], performance={"render_threads": 1})
     t0 = time.perf_counter()
     # run_mapping scores every mapped frame (at the mapper's refined pose under pose_refine, as SLAM
     # systems score at their own poses) and, in the same render pass, each task's ROI

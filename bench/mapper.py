@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from bench._results import write_results
 from gausslite.datasets import detect_layout, load_dataset
-from gausslite.mapping.config import load_config
+from gausslite.config import load_mapper_config
 from gausslite.mapping.profiles import SPEED_PRESETS, profile_for_layout
 from gausslite.pipeline import run_mapping
 from gausslite.stats import aggregate, fmt, mean_std
@@ -84,7 +84,7 @@ def task_ids(path: Path) -> list[str]:
 def run_one(ds, profile, setting: str, task: str, seed: int) -> dict:
     """Map ``ds`` with full GaussLite for one task, seed and speed setting; times and scores."""
     defaults = {**profile.mapper, **SPEED_PRESETS[setting]}
-    cfg = load_config(None, [], defaults=defaults, mode="gausslite", seed=seed)
+    cfg = load_mapper_config(None, [], defaults=defaults, mode="gausslite", seed=seed)
     t0 = time.perf_counter()
     mapper, m = run_mapping(ds, cfg, task_id=task, out_dir=None, progress=False)
     secs = [s.seconds for s in mapper.stats]

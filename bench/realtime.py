@@ -53,7 +53,8 @@ from gausslite.mapping.budget import WallClock, fit_work_cost
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
-from gausslite.mission import AgentRuntime, FusionPort, load_agent_config
+from gausslite.config import load_config
+from gausslite.mission import AgentRuntime, FusionPort
 from gausslite.mission.relevance import build_relevance
 from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, gain
@@ -189,10 +190,10 @@ class SinkFusion:
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
     """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
     budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
-    cfg = load_agent_config(REPO / "deploy" / "gausslite.yaml", [
+    cfg = load_config(REPO / "deploy" / "gausslite.yaml", [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
         f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true",
-        f"agent.rate={rate}", "agent.downscale=1", *overrides])
+        f"agent.rate={rate}", "agent.downscale=1", *overrides]).agent
     m = with_profile(cfg.mapper, profile)
     final_per_kf = float(m.final_iters_per_keyframe)
     # no offline refinement: the final pass is scored in its own column

@@ -3,24 +3,29 @@
 ``GaussLiteConfig{mapper, agent, sim, fusion}``: the mapper (:class:`gausslite.mapping.config.MapperConfig`, its
 knobs grouped by prefix), the agent's mission (:class:`gausslite.mission.config.AgentConfig`), the local
 two-agent simulation (:class:`SimConfig`) and the fusion server (:class:`FusionSettings`). :func:`load_config`
-is the one loader: YAML, then dotted ``key=value`` overrides, then validation, so a typo fails before anything
-starts. ``gausslite config --show`` prints the effective tree, ``--schema`` its JSON schema.
+is the one loader of the tree: YAML, then dotted ``key=value`` overrides, then validation, so a typo fails before
+anything starts; each part takes its own group (``cfg.mapper``, ``cfg.agent``, ``cfg.sim``, ``cfg.fusion``).
+:func:`load_mapper_config` reads a mapper-only file (``gausslite map --config``). Old flat mapper names go through
+:func:`migrate_flat_names`, which warns. ``gausslite config --show`` prints the effective tree, ``--schema`` its
+JSON schema.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import tomllib
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Any, Dict, Iterable, List, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
+from gausslite.mapping.config import (FLAT_NAMES, MapperConfig, apply_overrides, deep_merge, migrate_flat_names,
+                                      read_yaml)
 from gausslite.mission.config import AgentSections
 
-__all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config", "read_yaml",
-           "DEFAULT_CONFIG_PATH"]
+__all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config",
+           "load_mapper_config", "migrate_flat_names", "FLAT_NAMES", "read_yaml", "DEFAULT_CONFIG_PATH"]
 
 #: the deployed settings shipped with the repository
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "deploy" / "gausslite.yaml"
@@ -91,7 +96,7 @@ class FusionSettings(BaseModel):
             An incremental update with r = 1 re-votes the 27-fold neighbourhood of what it touches.
         default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
         max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
-        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``max_gaussians``).
+        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``budget: {max_gaussians: N}``).
         fused_keep_per_method (int): fused maps kept per fuse method (vote, concat), newest first: every ``Fuse``
             stores a map, so older ones are deleted (``DownloadFused`` of one is NOT_FOUND) and ``GetStats``, which
             lists the fused maps held, stays bounded.
@@ -190,13 +195,63 @@ class GaussLiteConfig(AgentSections):
         return schema
 
 
-def load_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> GaussLiteConfig:
-    """Read a GaussLite YAML file (default ``deploy/gausslite.yaml``), apply dotted ``key=value`` overrides
-    (``agent.push_every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate.
+def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
+                deployed: bool = True) -> GaussLiteConfig:
+    """The one loader of the configuration tree: read a GaussLite YAML file, apply dotted ``key=value`` overrides
+    (``agent.push_every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate. Each part
+    takes its own group: ``cfg.mapper`` (the mapper), ``cfg.agent`` (an agent's mission), ``cfg.sim``
+    (``gausslite sim``), ``cfg.fusion`` (the fusion server).
 
+    Args:
+        path: the YAML file; None = ``deploy/gausslite.yaml`` (:data:`DEFAULT_CONFIG_PATH`), or, with
+            ``deployed=False``, no file at all: every section at its model's defaults (``gausslite serve agent``
+            without ``--config``).
+        overrides: dotted ``key=value`` strings, values parsed as YAML, applied in order after the file.
+        deployed: whether ``path=None`` reads the deployed file.
+    Returns:
+        The validated tree. Old flat mapper names go through :func:`migrate_flat_names` (a ``DeprecationWarning``).
     Raises:
         FileNotFoundError: missing file. ValueError: not a mapping, or a bad override.
         pydantic.ValidationError: unknown keys or bad values (the message names them).
     """
-    data = read_yaml(path or DEFAULT_CONFIG_PATH)
+    if path is None and not deployed:
+        data: dict = {}
+    else:
+        data = read_yaml(path or DEFAULT_CONFIG_PATH)
     return GaussLiteConfig.model_validate(apply_overrides(data, list(overrides)))
+
+
+def load_mapper_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
+                       defaults: Optional[dict] = None, **fields: Any) -> MapperConfig:
+    """The mapper's settings alone (``gausslite map`` and ``gausslite ablate``; a Python caller of the mapper), from
+    a mapper-only YAML file whose top-level keys are :class:`MapperConfig` fields (the ``mapper`` section of a
+    GaussLite YAML, as its own file; the whole tree's mapper is ``load_config(...).mapper``).
+
+    Layers, lowest first: ``defaults`` (e.g. a sensor profile's), the file, ``key=value`` overrides (dotted keys
+    reach groups: ``seeding.seeds_per_frame=800``), then keyword fields (``iters_per_frame=20``,
+    ``seeding={"seeds_per_frame": 800}``). Groups are merged key by key; a keyword field that is None counts as not
+    given.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist. ValueError: a bad override.
+        pydantic.ValidationError: unknown keys or invalid values (the message names the field).
+    """
+    data: dict = copy.deepcopy(defaults or {})  # the overrides below write into nested groups in place
+    if path is not None:
+        data = deep_merge(data, read_yaml(path))
+    data = apply_overrides(data, overrides)
+    data = deep_merge(data, _given(fields))
+    return MapperConfig.model_validate(data)
+
+
+def _given(fields: dict) -> dict:
+    """``fields`` without the None values (in groups too) and without groups left empty."""
+    out = {}
+    for k, v in fields.items():
+        if isinstance(v, dict):
+            v = _given(v)
+            if not v:
+                continue
+        if v is not None:
+            out[k] = v
+    return out

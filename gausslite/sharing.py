@@ -225,8 +225,8 @@ def select_task_subset(gmap, views: Sequence, cfg: ShareConfig = ShareConfig(),
     return cand, stats
 
 
-def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int = 0, footprint_alpha: float = 0.0,
-                    final_lr: float = 0.05, frozen: Optional[np.ndarray] = None):
+def finetune_subset(subset, keyframes: Sequence, iters: int, cfg: Optional[MapperConfig] = None, seed: int = 0,
+                    footprint_alpha: float = 0.0, final_lr: float = 0.05, frozen: Optional[np.ndarray] = None):
     """Fit a copy of the shared subset, rendered alone, to the ROI of the agent's keyframes.
 
     An agent that maps with ``roi_render: context`` fits its active Gaussians to the pixels the *full*
@@ -318,7 +318,7 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg=None, seed: int
 
 
 def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters: int, refresh: float = 0.05,
-                         cfg=None, seed: int = 0, quant=None, final_lr: float = 0.05):
+                         cfg: Optional[MapperConfig] = None, seed: int = 0, quant=None, final_lr: float = 0.05):
     """Fine-tune the subset to share next against the copy the fusion server already holds, so that a
     delta push carries the new Gaussians and only a bounded share of the old ones (target:
     ``total_upload_bytes ≤ 1.5 × final_subset_bytes``).

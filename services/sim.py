@@ -36,13 +36,13 @@ import grpc
 import numpy as np
 import yaml
 
-from gausslite.config import GaussLiteConfig, SimConfig, SimFuse, read_yaml
+from gausslite.config import GaussLiteConfig, load_config
 from gausslite.datasets import detect_layout, load_dataset
 from gausslite.datasets.annotations import load_annotations
 from gausslite.evaluation import PROTOCOLS, evaluate_fused, render_map, score_map, side_by_side
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
-from gausslite.mapping.config import apply_overrides
+from gausslite.mission.config import AgentConfig
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import WireLimits, assemble
 from gausslite_rpc import agent_pb2
@@ -54,7 +54,6 @@ from services.fusion_server.store import SqliteFusionStore
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_CONFIG = REPO / "deploy" / "gausslite.yaml"
 AGENT_NAMES = ("agent_a", "agent_b")
 FUSED_KEYS = ("concat", "vote", "for_robot", "refine")
 #: what each fused key is, for the report
@@ -95,20 +94,7 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(s.getsockname()[1])
 
 
-def load_sim_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> dict:
-    """The whole GaussLite YAML (``agent``, ``mapper``, ``sim`` sections) with dotted overrides applied, validated
-    as a :class:`gausslite.config.GaussLiteConfig` (so that a typo fails before any process starts).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: not a mapping / bad override. pydantic.ValidationError: bad
-        keys or values.
-    """
-    data = apply_overrides(read_yaml(path or DEFAULT_CONFIG), list(overrides))
-    GaussLiteConfig.model_validate(data)
-    return data
-
-
-def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -> List[AgentPlan]:
+def plan_agents(dataset: str, cfg: GaussLiteConfig, task_ids: Optional[List[str]] = None) -> List[AgentPlan]:
     """The two agents' datasets and tasks.
 
     Synthetic default scene (``dataset`` holds ``agent_a``/``agent_b``): each agent its own trajectory.
@@ -126,7 +112,7 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
         raise ValueError(f"{dataset}: the simulation needs objects.json/tasks.json with tasks")
     known = [t.id for t in ann.tasks]
 
-    tasks_cfg = SimConfig.model_validate(cfg.get("sim") or {}).tasks
+    tasks_cfg = cfg.sim.tasks
     if not task_ids:
         for key in ("synthetic", "room0"):
             pair = tasks_cfg.get(key) or []
@@ -143,7 +129,7 @@ def plan_agents(dataset: str, cfg: dict, task_ids: Optional[List[str]] = None) -
             for name, path, tid in zip(AGENT_NAMES, paths, task_ids)]
 
 
-def _check_bags(plans: List[AgentPlan], agent_cfg) -> None:
+def _check_bags(plans: List[AgentPlan], agent_cfg: AgentConfig) -> None:
     """Open every ROS bag the agents will replay, so a bad bag fails with its one clear error before any
     process starts (``BagError`` lists the bag's topics and TF frames). ``agent_cfg``: the typed
     :class:`gausslite.mission.config.AgentConfig` (max_frames, bag options)."""
@@ -349,12 +335,12 @@ def plot_pushes(report: dict, path: Path) -> bool:
     return True
 
 
-def fuse_settings(cfg: dict, realtime: bool = False) -> dict:
-    """The simulation's fusion settings (:meth:`gausslite.config.SimFuse.settings` of ``cfg["sim"]["fuse"]``): live
+def fuse_settings(cfg: GaussLiteConfig, realtime: bool = False) -> dict:
+    """The simulation's fusion settings (:meth:`gausslite.config.SimFuse.settings` of ``cfg.sim.fuse``): live
     runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's per-voxel rule): measured
     live, the neighbourhood contest empties an owner's voxels next to another robot's denser task region
     (``docs/sharing.md``)."""
-    return SimFuse.model_validate((cfg.get("sim") or {}).get("fuse") or {}).settings(realtime)
+    return cfg.sim.fuse.settings(realtime)
 
 
 class FusedTimeline:
@@ -779,7 +765,7 @@ def _finish_agents(agents: dict, deadline: float) -> dict:
     return summaries
 
 
-def _load_eval_frames(plans: List[AgentPlan], agent_cfg) -> Dict[str, tuple]:
+def _load_eval_frames(plans: List[AgentPlan], agent_cfg: AgentConfig) -> Dict[str, tuple]:
     """Agent id → ``(dataset, frames)``: each agent's sequence loaded as its agent replays it (``agent_cfg``: the
     typed :class:`gausslite.mission.config.AgentConfig`; downscale, max_frames, stride, bag options)."""
     eval_frames = {}
@@ -986,15 +972,15 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     offline = _load_offline(offline_report) if offline_report else None
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    cfg = load_sim_config(config, list(overrides))
-    typed = GaussLiteConfig.model_validate(cfg)  # typed: its defaults are the only ones
+    typed = load_config(config, overrides)  # a typo fails here, before any process starts
+    cfg = typed.to_yaml_dict()  # the effective tree: what the agents read (--config) and the report records
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
     config_path = out / "config.yaml"
     config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
-    plans = plan_agents(dataset, cfg, task_ids)
+    plans = plan_agents(dataset, typed, task_ids)
     _check_bags(plans, typed.agent)
     group = ProcessGroup(out / "logs")
     previous = None
@@ -1025,7 +1011,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": fz["voxel_size"], "contest_radius": fz["contest_radius"],
                                "refine_iters": fz["refine_iters"], "scoring": scoring.model_dump(),
-                               "config": str(config_path), "agent": cfg.get("agent"), "mapper": cfg.get("mapper")}}
+                               "config": str(config_path), "agent": cfg["agent"], "mapper": cfg["mapper"]}}
         _fused_minus_own(report)
         _protocol_minus_own(report)
         if attach is None:

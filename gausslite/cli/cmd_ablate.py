@@ -16,10 +16,14 @@ import json
 import logging
 import textwrap
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gausslite.cli.cmd_map import add_mapping_args, config_from_args, resolve_dataset
+
+if TYPE_CHECKING:  # the command line starts without loading the library
+    from gausslite.mapping.config import MapperConfig
 
 log = logging.getLogger("gausslite.ablate")
 
@@ -87,7 +91,7 @@ ROW_KEYS = ("roi_psnr", "psnr", "seconds_per_frame", "n_gaussians")
 TASK_KEYS = ("roi_psnr", "psnr", "ssim", "roi_ssim", "seconds_per_frame", "n_gaussians", "n_active")
 
 
-def run_ablation(dataset, base_cfg, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True,
+def run_ablation(dataset, base_cfg: MapperConfig, task_ids: list[str], out: Path, stride: int = 1, progress: bool = True,
                  rows_to_run: list[tuple[str, object]] | None = None, seeds: list[int] | None = None) -> list[dict]:
     """Run ablation rows (default: all) for every task and seed at the same budget; return the rows.
 

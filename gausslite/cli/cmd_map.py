@@ -6,6 +6,10 @@ import argparse
 import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the command line starts without loading the library
+    from gausslite.mapping.config import MapperConfig
 
 log = logging.getLogger("gausslite.map")
 
@@ -175,16 +179,17 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
     return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **kw)
 
 
-def config_from_args(args: argparse.Namespace, **extra):
-    """MapperConfig from --config, --set and the shortcut flags (flags win)."""
+def config_from_args(args: argparse.Namespace, **extra) -> MapperConfig:
+    """MapperConfig from --config (a mapper-only YAML: :func:`gausslite.config.load_mapper_config`), --set and the
+    shortcut flags (flags win), over the dataset's sensor profile (``args.profile``)."""
     # lazy: the command line starts without loading the library
-    from gausslite.mapping.config import load_config
+    from gausslite.config import load_mapper_config
 
     profile = getattr(args, "profile", None)
-    return load_config(
+    return load_mapper_config(
         args.config, args.overrides, defaults=dict(profile.mapper) if profile is not None else None,
-        iters_per_frame=args.iters, seeds_per_frame=args.seeds_per_frame, max_gaussians=args.max_gaussians,
-        backend=args.backend, seed=args.seed, **extra,
+        iters_per_frame=args.iters, seeding={"seeds_per_frame": args.seeds_per_frame},
+        budget={"max_gaussians": args.max_gaussians}, backend=args.backend, seed=args.seed, **extra,
     )
 
 

@@ -19,7 +19,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.model import cosine_lr_factor
 from gausslite.mapping.views import Keyframe
@@ -57,8 +57,8 @@ def refine_map(
             Gaussians explain background they do not cover (measured on Replica room0: refine 0.2 dB
             below vote with the full-image loss).
         cfg: mapper config supplying learning rates, loss weights and density control (default
-            ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``lambda_ssim=0.0``; grouped settings by group,
-            ``budget={...}``, or flat name).
+            ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``lambda_ssim=0.0``; a group is merged key by
+            key, ``budget={"max_gaussians": N}``).
         roi_loss: with ``footprint_only``, restrict the loss of a keyframe that carries an ROI to it
             (room0, 3 seeds, ``bench.share_finetune``; synthetic sim scene seed 0: 26.81 / 27.14 dB with
             it against 25.95 / 26.31 without).
@@ -84,8 +84,10 @@ def refine_map(
     if not keyframes:
         raise ValueError("refinement needs at least one keyframe")
     base = cfg or MapperConfig()
-    cfg = MapperConfig.model_validate({**base.model_dump(), "seed": seed,
-                                       "max_gaussians": max(base.budget.max_gaussians or 0, len(arrays)), **overrides})
+    data = base.model_dump()
+    data["seed"] = seed
+    data["budget"]["max_gaussians"] = max(base.budget.max_gaussians or 0, len(arrays))
+    cfg = MapperConfig.model_validate(deep_merge(data, overrides))
     mapper = Mapper(cfg)
     mapper.load_map(arrays.to_gaussian_map(cfg.device))
     # the pool's own numbering (two agents' frame ids may coincide: the mapper caches SSIM statistics by view)

@@ -1,16 +1,23 @@
 """Typed mapper configuration with defaults from the paper (Sec. III-C/III-D).
 
-Load from YAML with :func:`load_config`; override single fields from the command line with
-``key=value`` strings (dotted keys reach nested sections, e.g. ``lr.means=2e-4``).
+The loaders live in :mod:`gausslite.config`: :func:`gausslite.config.load_config` reads the whole GaussLite YAML
+(its ``mapper`` section is ``cfg.mapper``), :func:`gausslite.config.load_mapper_config` a mapper-only file
+(``gausslite map --config``). Both override single fields with ``key=value`` strings (dotted keys reach nested
+groups, e.g. ``lr.means=2e-4``, ``seeding.seeds_per_frame=800``). Settings named by their old flat names
+(:data:`FLAT_NAMES`) are moved into their groups by :func:`migrate_flat_names`, with a ``DeprecationWarning``.
 """
 
 from __future__ import annotations
 
+import logging
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Literal, Optional
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+log = logging.getLogger(__name__)
 
 
 class _Strict(BaseModel):
@@ -283,7 +290,9 @@ class PerformanceConfig(_Strict):
     )
 
 
-#: flat setting name → (group, name in the group): accepted in input (YAML, ``--set``, keyword arguments)
+#: old flat setting name → (group, name in the group), from before the settings were grouped. Input that still uses
+#: one (YAML, ``--set``, keyword arguments) goes through :func:`migrate_flat_names`, which warns
+#: (docs/mapper.md#old-flat-names)
 FLAT_NAMES: dict[str, tuple[str, str]] = {
     "seeds_per_frame": ("seeding", "seeds_per_frame"),
     "first_frame_seeds": ("seeding", "first_frame_seeds"),
@@ -336,6 +345,42 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
 }
 
 
+def migrate_flat_names(data: Any) -> Any:
+    """The one migration of old flat mapper setting names (:data:`FLAT_NAMES`) to their grouped keys.
+
+    Each flat key of the mapper mapping ``data`` (``max_gaussians``, ``pose_refine``, …) is moved to its group
+    (``budget.max_gaussians``, ``pose.refine``, …). A flat name wins over the same setting given in its group: it
+    comes from a later layer (a ``--set`` override or a keyword argument over a YAML file's group). Every use is
+    reported: one ``DeprecationWarning`` and one warning log line listing each old name with its new key
+    (``docs/mapper.md#old-flat-names``). :class:`MapperConfig` applies it to its input, so a YAML file, a ``--set``
+    override or a keyword argument written with the old names still loads, to the same values.
+
+    Args:
+        data: the mapper settings as a mapping (the ``mapper`` section of a GaussLite YAML, a mapper-only file, or
+            keyword arguments); anything else is returned unchanged.
+    Returns:
+        ``data`` itself when it holds no flat name, else a new dict (groups given as models are dumped to dicts of
+        their explicitly set fields); the input is not modified.
+    """
+    if not isinstance(data, dict):
+        return data
+    flat = [k for k in data if k in FLAT_NAMES]
+    if not flat:
+        return data
+    moves = ", ".join(f"{k} -> {'.'.join(FLAT_NAMES[k])}" for k in flat)
+    msg = f"old flat mapper setting names, use the grouped keys instead: {moves} (docs/mapper.md#old-flat-names)"
+    warnings.warn(msg, DeprecationWarning, stacklevel=2)
+    log.warning("%s", msg)
+    data = dict(data)
+    for k in flat:
+        group, name = FLAT_NAMES[k]
+        sub = data.get(group) or {}
+        sub = sub.model_dump(exclude_unset=True) if isinstance(sub, BaseModel) else dict(sub)
+        sub[name] = data.pop(k)
+        data[group] = sub
+    return data
+
+
 class MapperConfig(_Strict):
     """Mapper configuration. Defaults: paper values where it gives them, tuned otherwise.
 
@@ -346,8 +391,8 @@ class MapperConfig(_Strict):
     comparison of paper Sec. IV.
 
     The settings of one concern are grouped: ``seeding``, ``budget``, ``pose``, ``sensor``, ``performance``,
-    ``densify``, ``lr``, ``components``. Input may also name a grouped setting by its flat name (``max_gaussians``,
-    ``pose_refine``, …: :data:`FLAT_NAMES`), as YAML files and ``--set`` overrides written before the groups do.
+    ``densify``, ``lr``, ``components``. Input that names a grouped setting by its old flat name (``max_gaussians``,
+    ``pose_refine``, …: :data:`FLAT_NAMES`) is migrated by :func:`migrate_flat_names`, with a warning.
     """
 
     mode: Literal["uniform", "gausslite"] = "uniform"
@@ -451,19 +496,8 @@ class MapperConfig(_Strict):
     @model_validator(mode="before")
     @classmethod
     def _group_flat_names(cls, data: Any) -> Any:
-        """Move settings given by their flat name (:data:`FLAT_NAMES`) into their group. A flat name wins over the
-        same setting in its group: it comes from a later layer (a ``--set`` override or a keyword argument over a
-        YAML file's group)."""
-        if not isinstance(data, dict) or not any(k in FLAT_NAMES for k in data):
-            return data
-        data = dict(data)
-        for flat in [k for k in data if k in FLAT_NAMES]:
-            group, name = FLAT_NAMES[flat]
-            sub = data.get(group) or {}
-            sub = sub.model_dump(exclude_unset=True) if isinstance(sub, BaseModel) else dict(sub)
-            sub[name] = data.pop(flat)
-            data[group] = sub
-        return data
+        """Old flat names into their groups (:func:`migrate_flat_names`, which warns)."""
+        return migrate_flat_names(data)
 
     @model_validator(mode="after")
     def _check(self) -> "MapperConfig":
@@ -517,23 +551,6 @@ def read_yaml(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise ValueError(f"{p}: top level must be a mapping, got {type(data).__name__}")
     return data
-
-
-def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
-                defaults: Optional[dict] = None, **fields: Any) -> MapperConfig:
-    """Build a :class:`MapperConfig` from ``defaults`` (e.g. a sensor profile's; lowest precedence),
-    an optional YAML file, ``key=value`` overrides, then keyword fields (highest precedence).
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        pydantic.ValidationError: unknown keys or invalid values (the message names the field).
-    """
-    data: dict = deep_merge({}, defaults or {})
-    if path is not None:
-        data = deep_merge(data, read_yaml(path))
-    data = apply_overrides(data, overrides)
-    data.update({k: v for k, v in fields.items() if v is not None})
-    return MapperConfig.model_validate(data)
 
 
 def deep_merge(base: dict, top: dict) -> dict:

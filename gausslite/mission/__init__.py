@@ -2,7 +2,7 @@
 it shares (paper Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``). No gRPC here: the agent service
 (``services/agent``) adapts it to the wire, and any object with the fusion client's methods can receive its pushes."""
 
-from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig, load_agent_config
+from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig
 from gausslite.mission.errors import FrameSizeMismatch, MissionError, PreconditionFailed
 from gausslite.mission.ports import FusionPort
 from gausslite.mission.pusher import Pusher, PushRecord
@@ -10,6 +10,6 @@ from gausslite.mission.runtime import AgentRuntime, MissionSummaryData
 from gausslite.mission.share import ShareSession, select_shared
 from gausslite.mission.state import MissionState
 
-__all__ = ["AgentConfig", "OnnxRelevanceConfig", "load_agent_config", "PreconditionFailed", "AgentRuntime",
+__all__ = ["AgentConfig", "OnnxRelevanceConfig", "PreconditionFailed", "AgentRuntime",
            "MissionError", "FrameSizeMismatch", "MissionState", "FusionPort", "MissionSummaryData", "Pusher", "PushRecord",
            "ShareSession", "select_shared"]

@@ -9,9 +9,9 @@ from typing import List, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gausslite.datasets.bag import BagOptions
-from gausslite.mapping.config import MapperConfig, apply_overrides, read_yaml
+from gausslite.mapping.config import MapperConfig
 
-__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "AgentSections", "load_agent_config"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "AgentSections"]
 
 
 class ScoringConfig(BaseModel):
@@ -240,14 +240,3 @@ class AgentSections(BaseModel):
         """The mapper section."""
         return self.agent.mapper
 
-
-def load_agent_config(path: Optional[str | Path] = None, overrides: List[str] = ()) -> AgentConfig:
-    """Read the ``agent`` and ``mapper`` sections of a GaussLite YAML file (other sections, e.g. ``sim``,
-    are ignored) and apply dotted ``key=value`` overrides (``agent.push_every=3``,
-    ``mapper.iters_per_frame=5``).
-
-    Raises:
-        FileNotFoundError: missing file. ValueError: not a mapping. pydantic.ValidationError: bad values.
-    """
-    data = apply_overrides(read_yaml(path) if path else {}, list(overrides))
-    return AgentSections.model_validate({k: data[k] for k in ("agent", "mapper") if k in data}).agent

@@ -25,11 +25,12 @@ from gausslite.attention import (
 from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
 from gausslite.datasets.base import Frame
 from gausslite.errors import RelevanceUnavailable
+from gausslite.mission.config import AgentConfig
 
 RelevanceFn = Callable[[Frame], np.ndarray]
 
 
-def build_relevance(config, graph, annotations=None, task_id: Optional[str] = None,
+def build_relevance(config: AgentConfig, graph, annotations=None, task_id: Optional[str] = None,
                     mapper_of: Optional[Callable] = None) -> tuple[RelevanceFn, object]:
     """The mission's relevance function ``frame -> (H, W) bool`` and its attention front-end (None for ``gt``).
 
@@ -77,7 +78,7 @@ def build_relevance(config, graph, annotations=None, task_id: Optional[str] = No
     return fn, fe
 
 
-def onnx_frontend(config, graph, annotations=None, answer_from=None):
+def onnx_frontend(config: AgentConfig, graph, annotations=None, answer_from=None):
     """Attention front-end over the configured ONNX detector and segmenter (paper Sec. III-B). With ``answer_from``
     (scene annotations) the models run for their cost only and the annotation backend answers
     (``relevance_backend: onnx_cost``).

@@ -16,14 +16,18 @@ import os
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from gausslite.mapping.config import MapperConfig
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.heap import trim_heap
 from gausslite.wire.codec import GaussianArrays
 from gausslite.wire.delta import PushPlanner
+
+if TYPE_CHECKING:  # torch: gausslite.mission.share stays importable without it
+    from gausslite.sharing import ShareConfig
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +90,7 @@ def _trimmed(fn, *args):
         trim_heap()
 
 
-def _select(gmap, views, share_cfg, backend: str, held=None):
+def _select(gmap, views, share_cfg: ShareConfig, backend: str, held=None):
     """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
     :class:`gausslite.sharing.ShareConfig`, and the rows the server holds); runs in the share worker."""
     # lazy: keeps gausslite.mission.share importable without torch
@@ -95,7 +99,7 @@ def _select(gmap, views, share_cfg, backend: str, held=None):
     return select_task_subset(gmap, views, share_cfg, backend=backend, held=held)
 
 
-def _finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg, seed: int):
+def _finetune(arrays, ids, base, base_ids, kfs, iters: int, refresh: float, cfg: MapperConfig, seed: int):
     """The shared subset fine-tuned alone on the compact ROI keyframes ``kfs``
     (:func:`gausslite.sharing.update_shared_subset`, which decodes each keyframe when it draws it); runs in the
     share worker."""
@@ -195,7 +199,7 @@ class ShareSession:
         h.update(ids.tobytes())
         return h.digest(), kfs
 
-    def finetuned(self, arrays, ids, key, kfs, mapper_cfg):
+    def finetuned(self, arrays, ids, key, kfs, mapper_cfg: MapperConfig):
         """The shared subset fine-tuned alone on the ROI keyframes ``kfs`` (compact), against the copy the server
         acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by
         ``mapper_cfg.seed``). Without delta pushes every push is fine-tuned from the agent's values alone. The same

@@ -43,7 +43,8 @@ from gausslite.datasets import load_dataset
 from gausslite.datasets.annotations import load_annotations
 from gausslite.datasets.loader import detect_layout
 from gausslite.mapping.profiles import profile_for_layout, with_profile
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, load_agent_config
+from gausslite.config import load_config
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.parser import TaskParser
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
@@ -608,7 +609,8 @@ ENV = {
 def settings_from_env(config_path: Optional[str], env=None, token: Optional[str] = None) -> AgentSettings:
     """Agent settings from environment variables (:data:`ENV`; ``GAUSSLITE_AGENT_SET`` holds
     ``;``-separated ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto
-    finish) and the YAML config file (``agent``/``mapper`` sections).
+    finish) and the GaussLite YAML file (:func:`gausslite.config.load_config`; the agent takes its ``agent`` and
+    ``mapper`` sections; no file: the models' defaults).
 
     Raises:
         FileNotFoundError / ValueError / pydantic.ValidationError: bad config; an unreadable or empty
@@ -626,7 +628,7 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
         read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
     if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):
         raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
-    return AgentSettings(**kw, token=token, config=load_agent_config(config_path, overrides),
+    return AgentSettings(**kw, token=token, config=load_config(config_path, overrides, deployed=False).agent,
                          auto_finish=(env.get("GAUSSLITE_AGENT_AUTO_FINISH", "1").lower() not in ("0", "false", "no")))
 
 

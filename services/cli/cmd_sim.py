@@ -140,21 +140,26 @@ def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
         env["GAUSSLITE_AGENT_SET"] = ";".join(ov)
 
 
+def _report_only(args: argparse.Namespace) -> int:
+    """``--report-only``: attach ``--offline-report`` to the finished realtime run in ``--out`` (nothing re-run)."""
+    if not args.offline_report:
+        print("gausslite sim: error: --report-only needs --offline-report", file=sys.stderr)
+        return 2
+    # lazy: the command line starts without loading the services or gRPC
+    from services.sim import attach_offline_report
+
+    try:
+        attach_offline_report(args.out, args.offline_report)
+    except (ValueError, OSError) as e:
+        print(f"gausslite sim: error: {e}", file=sys.stderr)
+        return 1
+    print((Path(args.out) / "report.md").read_text())
+    return 0
+
+
 def _handle(args: argparse.Namespace) -> int:
     if args.report_only:
-        if not args.offline_report:
-            print("gausslite sim: error: --report-only needs --offline-report", file=sys.stderr)
-            return 2
-        # lazy: the command line starts without loading the services or gRPC
-        from services.sim import attach_offline_report
-
-        try:
-            attach_offline_report(args.out, args.offline_report)
-        except (ValueError, OSError) as e:
-            print(f"gausslite sim: error: {e}", file=sys.stderr)
-            return 1
-        print((Path(args.out) / "report.md").read_text())
-        return 0
+        return _report_only(args)
     overrides = list(args.overrides)
     for flag, key in (("iters", "mapper.iters_per_frame"), ("seeds_per_frame", "mapper.seeding.seeds_per_frame"),
                       ("downscale", "agent.downscale"), ("max_frames", "agent.max_frames")):

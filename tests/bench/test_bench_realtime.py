@@ -49,7 +49,7 @@ def test_twin_reaches_the_same_binding_cap_in_both_modes_and_is_deterministic(tm
     make_scene(tmp_path / "scene", frames=8, width=64, height=48, trajectory="circle")
     path = tmp_path / "scene" / "agent_a"
     job = {"scene": "synthetic_circle", "path": str(path), "task": "synth-pick-object", "budget": 0.08, "run": 0,
-           "cap": 300, "clock": "dataset", "overrides": ["mapper.seeds_per_frame=600"]}
+           "cap": 300, "clock": "dataset", "overrides": ["mapper.seeding.seeds_per_frame=600"]}
     runs = {mode: rt.twin_one({**job, "mode": mode}) for mode in ("uniform", "gausslite")}
     for mode, r in runs.items():
         assert r["cap_reached"] and 0.9 * 300 <= r["n_gaussians"] <= 300, mode  # the cap binds (less what pruning took)

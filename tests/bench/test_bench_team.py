@@ -124,7 +124,8 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
     frames = [plane_frame(i, 0.015 * i, H, W) for i in range(6)]
     agents = []
     for n, (aid, lo) in enumerate((("agent_a", 0), ("agent_b", 3))):
-        cfg = MapperConfig(mode="gausslite", seeds_per_frame=300, iters_per_frame=5, warmup_iters=2, backend="warp")
+        cfg = MapperConfig(mode="gausslite", seeding={"seeds_per_frame": 300}, iters_per_frame=5, warmup_iters=2,
+                           backend="warp")
         m = Mapper(cfg)
         for fr in frames[lo:lo + 3]:
             m.map_frame(fr, roi)

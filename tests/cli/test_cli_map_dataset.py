@@ -67,7 +67,7 @@ def test_handheld_profile_refines_poses_from_the_sensor_pose(tum_rpy_dir, room0_
     resolve_dataset(args, tmp_path)
     cfg = config_from_args(args)
     assert cfg.pose.refine is True and cfg.pose.init == "identity" and cfg.sensor.exposure_comp is True
-    args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1", "--set", "pose_refine=false")
+    args = _args("--dataset", str(tum_rpy_dir), "--max-frames", "1", "--set", "pose.refine=false")
     resolve_dataset(args, tmp_path)
     assert config_from_args(args).pose.refine is False and config_from_args(args).sensor.exposure_comp is True
     args = _args("--dataset", str(room0_dir), "--max-frames", "1")
@@ -78,10 +78,11 @@ def test_handheld_profile_refines_poses_from_the_sensor_pose(tum_rpy_dir, room0_
 
 
 def test_with_profile_fills_only_the_fields_the_config_left_unset():
-    from gausslite.mapping.config import MapperConfig, load_config
+    from gausslite.config import load_mapper_config
+    from gausslite.mapping.config import MapperConfig
     from gausslite.mapping.profiles import HANDHELD, RENDERED, with_profile
 
-    cfg = load_config(None, ["iters_per_frame=17"], mode="gausslite")
+    cfg = load_mapper_config(None, ["iters_per_frame=17"], mode="gausslite")
     out = with_profile(cfg, HANDHELD)
     assert out.pose.refine is True and out.final_iters_per_keyframe == 20.0 and out.lambda_depth == 0.3
     assert out.sensor.exposure_comp is True and out.sensor.motion_blur is True and out.sensor.rolling_shutter_s == 0.02
@@ -89,7 +90,7 @@ def test_with_profile_fills_only_the_fields_the_config_left_unset():
     rendered = with_profile(cfg, RENDERED)
     assert rendered.final_iters_per_keyframe == 5.0 and rendered.pose.refine is False  # a short final pass only
     assert rendered.iters_per_frame == 17 and rendered.mode == "gausslite"
-    explicit = load_config(None, ["pose_refine=false", "final_iters_per_keyframe=0"])
+    explicit = load_mapper_config(None, ["pose.refine=false", "final_iters_per_keyframe=0"])
     kept = with_profile(explicit, HANDHELD)
     assert kept.pose.refine is False and kept.final_iters_per_keyframe == 0.0  # set explicitly: kept
     assert with_profile(MapperConfig(), HANDHELD).pose.refine is True

@@ -10,7 +10,6 @@ from pydantic import ValidationError
 
 from gausslite.cli import main
 from gausslite.config import GaussLiteConfig, load_config
-from gausslite.mission import load_agent_config
 
 
 def test_the_deployed_file_loads_into_one_tree_and_overrides_reach_every_section():
@@ -21,8 +20,9 @@ def test_the_deployed_file_loads_into_one_tree_and_overrides_reach_every_section
                              "fusion.max_keyframes_per_agent=8"])
     assert (cfg.mapper.iters_per_frame, cfg.agent.push_every, cfg.sim.fuse.refine_iters,
             cfg.fusion.max_keyframes_per_agent) == (12, 3, 100, 8)
-    # the agent's loader is the same tree, agent and mapper sections only
-    assert load_agent_config(None, ["mapper.iters_per_frame=40"]).mapper.iters_per_frame == 40
+    # no file (an agent served without --config): every section at its model's defaults, overrides still apply
+    bare = load_config(None, ["mapper.iters_per_frame=40"], deployed=False)
+    assert bare.agent.mapper.iters_per_frame == 40 and bare.agent.share == "active" and bare.mapper.mode == "gausslite"
 
 
 def test_typos_fail_before_anything_starts(tmp_path):

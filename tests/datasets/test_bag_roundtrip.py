@@ -85,14 +85,14 @@ def test_export_bag_cli_and_mapping_gives_the_same_psnr(tmp_path, tum_rpy_dir):
     assert metrics["bag"]["psnr"] == pytest.approx(metrics["folder"]["psnr"], abs=1e-3)
     assert metrics["bag"]["depth_l1"] == pytest.approx(metrics["folder"]["depth_l1"], rel=1e-3)
     # ... and exact once the folder carries the bag's poses: images, depths and intrinsics map identically
-    from gausslite.mapping.config import load_config
+    from gausslite.config import load_mapper_config
     from gausslite.mapping.profiles import profile_for_layout
     from gausslite.pipeline import run_mapping
 
     bag = load_dataset(out)
     tum.poses = np.stack([bag[i].c2w for i in range(len(bag))])
-    cfg = load_config(None, ["final_iters=0", "warmup_iters=1", "final_iters_per_keyframe=0"], iters_per_frame=4,
-                      seeds_per_frame=300, defaults=dict(profile_for_layout("bag").mapper),  # as `map` of the bag
-                      backend="warp", mode="uniform")
+    cfg = load_mapper_config(None, ["final_iters=0", "warmup_iters=1", "final_iters_per_keyframe=0"], iters_per_frame=4,
+                             seeding={"seeds_per_frame": 300}, defaults=dict(profile_for_layout("bag").mapper),
+                             backend="warp", mode="uniform")  # as `map` of the bag
     _, m = run_mapping(tum, cfg, progress=False)
     assert m["psnr"] == metrics["bag"]["psnr"] and m["n_gaussians"] == metrics["bag"]["n_gaussians"]

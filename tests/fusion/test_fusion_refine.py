@@ -32,7 +32,7 @@ def _score(arrays, frames):
 
 def test_refine_improves_a_perturbed_map_and_keeps_task_fields():
     frames = [plane_frame(i, 0.04 * i) for i in range(3)]
-    cfg = MapperConfig(seeds_per_frame=800, iters_per_frame=10, warmup_iters=0, backend="warp")
+    cfg = MapperConfig(seeding={"seeds_per_frame": 800}, iters_per_frame=10, warmup_iters=0, backend="warp")
     m = Mapper(cfg)
     for fr in frames:
         m.map_frame(fr)
@@ -57,7 +57,7 @@ def test_refine_zero_iters_is_identity_and_inputs_validated():
     fr = plane_frame(0)
     g = GaussianArrays.from_any(Mapper(MapperConfig()).gmap)
     assert len(refine_map(g, [], iters=0)) == 0
-    cfg = MapperConfig(seeds_per_frame=100, iters_per_frame=1, warmup_iters=0, backend="warp")
+    cfg = MapperConfig(seeding={"seeds_per_frame": 100}, iters_per_frame=1, warmup_iters=0, backend="warp")
     m = Mapper(cfg)
     m.map_frame(fr)
     g = GaussianArrays.from_any(m.gmap)
@@ -74,7 +74,7 @@ def test_refine_fits_only_the_roi_of_keyframes_that_carry_one():
     """With ``roi_loss`` (default), pixels outside a keyframe's ROI do not steer the refinement: changing
     them leaves the result unchanged; without it they do. An empty ROI falls back to the footprint."""
     frames = [plane_frame(i, 0.04 * i) for i in range(2)]
-    cfg = MapperConfig(seeds_per_frame=600, iters_per_frame=5, warmup_iters=0, backend="warp",
+    cfg = MapperConfig(seeding={"seeds_per_frame": 600}, iters_per_frame=5, warmup_iters=0, backend="warp",
                        densify={"enabled": False})
     m = Mapper(cfg)
     for fr in frames:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gausslite.mapping.budget import WallClock, WorkClock, WorkCost, fit_work_cost
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from tests._scenes import plane_frame
 
@@ -20,9 +20,9 @@ def _roi() -> np.ndarray:
 
 
 def _cfg(**kw) -> MapperConfig:
-    base = dict(seeds_per_frame=300, iters_per_frame=30, warmup_iters=10, window=4, backend="warp",
+    base = dict(seeding={"seeds_per_frame": 300}, iters_per_frame=30, warmup_iters=10, window=4, backend="warp",
                 mode="gausslite", budget_clock="work")
-    base.update(kw)
+    base = deep_merge(base, kw)  # a group given as a keyword is merged key by key
     cfg = MapperConfig(**base)
     cfg.densify.enabled = False
     return cfg

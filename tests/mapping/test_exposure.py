@@ -80,8 +80,8 @@ def _darkened(i: int, gain: float):
 
 
 def _map(exposure: bool):
-    cfg = MapperConfig(mode="uniform", seeds_per_frame=1500, iters_per_frame=40, backend="warp",
-                       exposure_comp=exposure, exposure_lr=0.02, seed=0)
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp",
+                       sensor={"exposure_comp": exposure, "exposure_lr": 0.02}, seed=0)
     cfg.densify.enabled = False
     m = Mapper(cfg)
     frames = [_darkened(0, 1.0), _darkened(1, 1.0), _darkened(2, 0.6), _darkened(3, 0.6)]

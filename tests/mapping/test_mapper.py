@@ -12,7 +12,7 @@ import gausslite.mapping.step as step_mod
 import gausslite.mapping.views as views_mod
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from tests._scenes import plane_frame
 
@@ -30,9 +30,9 @@ def _roi() -> np.ndarray:
 
 
 def _cfg(**kw) -> MapperConfig:
-    base = dict(seeds_per_frame=300, iters_per_frame=8, warmup_iters=3, window=4, backend="warp",
+    base = dict(seeding={"seeds_per_frame": 300}, iters_per_frame=8, warmup_iters=3, window=4, backend="warp",
                 mode="gausslite")
-    base.update(kw)
+    base = deep_merge(base, kw)  # a group given as a keyword is merged key by key
     cfg = MapperConfig(**base)
     cfg.densify.enabled = False  # tests that need density control switch it on
     return cfg
@@ -67,7 +67,7 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
 
     monkeypatch.setattr(sensor_mod, "rasterize", spy)
     # roi_cull off: which Gaussians a render draws is the point here (the crop's culling: test below)
-    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, roi_cull=False))
+    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, performance={"roi_cull": False}))
     fr = _frame(0)
     m.seed_frame(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
@@ -149,7 +149,7 @@ def test_roi_cull_renders_the_same_crop():
     fr = _frame(0)
     outs = []
     for cull in (False, True):
-        m = Mapper(_cfg(roi_cull=cull, frustum_cull_min=10**9))
+        m = Mapper(_cfg(performance={"roi_cull": cull, "frustum_cull_min": 10**9}))
         m.seed_frame(fr, _roi())
         kf = views_mod.keyframe_from_frame(fr, m.device, _roi())
         crop = views_mod.crop_keyframe(kf, 2)
@@ -319,7 +319,7 @@ def test_mvo_draws_views_uniformly_from_the_window(monkeypatch):
 
 
 def test_budget_cap_is_enforced_through_seeding_and_densification():
-    cfg = _cfg(max_gaussians=500, seeds_per_frame=300)
+    cfg = _cfg(budget={"max_gaussians": 500}, seeding={"seeds_per_frame": 300})
     cfg.densify.enabled = True
     cfg.densify.every = 2
     cfg.densify.grad_threshold = 1e-9  # densify everything it can
@@ -349,7 +349,7 @@ def test_mapping_fits_the_scene():
     """A few frames of mapping reproduce the textured plane well (training-view PSNR)."""
     from gausslite.metrics import psnr
 
-    cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=40)
+    cfg = _cfg(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40)
     cfg.densify.enabled = True
     m = Mapper(cfg)
     frames = [_frame(i, 0.03 * i) for i in range(3)]
@@ -371,8 +371,8 @@ def test_relevance_shape_checked():
 
 
 def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
-    cfg = _cfg(mode="uniform", seeds_per_frame=1500, iters_per_frame=2, warmup_iters=0, budget_mode="image",
-               evict="opacity")
+    cfg = _cfg(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=2, warmup_iters=0,
+               budget={"mode": "image", "evict": "opacity"})
     assert cfg.budget.max_gaussians is None
     m = Mapper(cfg)
     m.map_frame(_frame(0))
@@ -389,7 +389,7 @@ def test_default_budget_is_per_pixel_and_new_seeds_replace_at_the_cap():
 def test_density_control_clones_only_when_enabled(clone):
     """``densify.clone`` (off by default): high-gradient Gaussians below ``split_scale_m`` are cloned only
     when it is on; large ones split either way."""
-    cfg = _cfg(densify={"clone": clone}, max_gaussians=100_000)  # room for every candidate
+    cfg = _cfg(densify={"clone": clone}, budget={"max_gaussians": 100_000})  # room for every candidate
     m = Mapper(cfg)
     m.map_frame(_frame(0))
     n = len(m.model)
@@ -419,7 +419,7 @@ def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monk
     maps, counts = [], []
     for n in (0, 32):
         calls.clear()
-        m = Mapper(_cfg(ssim_cache_views=n, iters_per_frame=12, render_threads=1))
+        m = Mapper(_cfg(performance={"ssim_cache_views": n, "render_threads": 1}, iters_per_frame=12))
         for i in range(4):
             m.map_frame(_frame(i, 0.02 * i), _roi())
         maps.append(m.gmap)
@@ -428,7 +428,7 @@ def test_ground_truth_ssim_statistics_are_cached_per_view_with_the_same_map(monk
     assert counts[0] >= 4 * counts[1]  # without the cache: recomputed at most iterations
     for k in ("means", "quats", "log_scales", "opacity_logits", "colors", "kappa"):
         assert torch.equal(getattr(maps[0], k), getattr(maps[1], k)), k
-    small = Mapper(_cfg(ssim_cache_views=1, render_threads=1))
+    small = Mapper(_cfg(performance={"ssim_cache_views": 1, "render_threads": 1}))
     for i in range(3):
         small.map_frame(_frame(i), _roi())
     assert len(small.step.ssim_cache) == 1  # bounded

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from gausslite.camera import Intrinsics
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.views import keyframe_from_frame
 from gausslite.camera import backproject
@@ -17,8 +17,9 @@ H, W = 40, 56
 
 
 def _cfg(**kw) -> MapperConfig:
-    base = dict(seeds_per_frame=300, iters_per_frame=20, warmup_iters=0, window=4, backend="warp", mode="uniform")
-    base.update(kw)
+    base = dict(seeding={"seeds_per_frame": 300}, iters_per_frame=20, warmup_iters=0, window=4, backend="warp",
+                mode="uniform")
+    base = deep_merge(base, kw)  # a group given as a keyword is merged key by key
     cfg = MapperConfig(**base)
     cfg.densify.enabled = False
     return cfg
@@ -64,20 +65,20 @@ def test_no_seeds_where_the_map_already_explains_the_frame():
 
 
 def test_coverage_seeding_off_seeds_every_frame_fully():
-    m = Mapper(_cfg(coverage_seeding=False))
+    m = Mapper(_cfg(seeding={"coverage": False}))
     m.map_frame(plane_frame(0))
     assert m.map_frame(plane_frame(1)).n_seeds == 300
 
 
 # ---------------------------------------------------------------- budget and eviction
 def test_scene_budget_grows_with_observed_voxels_and_is_capped():
-    m = Mapper(_cfg(gaussians_per_voxel=10.0, budget_voxel_m=0.1, max_gaussians_cap=10_000, iters_per_frame=2))
+    m = Mapper(_cfg(budget={"gaussians_per_voxel": 10.0, "voxel_m": 0.1, "cap": 10_000}, iters_per_frame=2))
     m.map_frame(plane_frame(0))
     b0, v0 = m.budget, len(m.strategy.voxels)
     assert v0 >= 100 and b0 == round(10.0 * v0)
     m.map_frame(plane_frame(1, shift=2.0))  # a new stretch of wall
     assert len(m.strategy.voxels) > 1.5 * v0 and m.budget > b0
-    m2 = Mapper(_cfg(gaussians_per_voxel=100.0, budget_voxel_m=0.1, max_gaussians_cap=700, iters_per_frame=2))
+    m2 = Mapper(_cfg(budget={"gaussians_per_voxel": 100.0, "voxel_m": 0.1, "cap": 700}, iters_per_frame=2))
     m2.map_frame(plane_frame(0))
     assert m2.budget == 700
 
@@ -98,7 +99,7 @@ def test_surface_voxels_count_a_plane():
 
 def test_contribution_is_the_alpha_blending_weight():
     """Σ_i contribution_i = Σ_pixels alpha (the weights w_i = T_i α_i of a pixel sum to its alpha)."""
-    m = Mapper(_cfg(evict="contribution", iters_per_frame=5))
+    m = Mapper(_cfg(budget={"evict": "contribution"}, iters_per_frame=5))
     fr = plane_frame(0)
     m.map_frame(fr)
     c_before = m.strategy.contribution.clone()
@@ -117,8 +118,8 @@ def test_contribution_is_the_alpha_blending_weight():
 
 
 def test_eviction_by_contribution_and_roi_protection():
-    cfg = _cfg(mode="gausslite", max_gaussians=700, roi_protect=4.0, iters_per_frame=1, warmup_iters=0,
-               coverage_seeding=False, seeds_per_frame=300, first_frame_seeds=600)
+    cfg = _cfg(mode="gausslite", budget={"max_gaussians": 700, "roi_protect": 4.0}, iters_per_frame=1, warmup_iters=0,
+               seeding={"coverage": False, "seeds_per_frame": 300, "first_frame_seeds": 600})
     m = Mapper(cfg)
     m.map_frame(plane_frame(0), _roi())
     n = len(m.model)
@@ -152,7 +153,7 @@ def test_eviction_by_contribution_and_roi_protection():
 
 
 def test_contribution_follows_densification_parents():
-    cfg = _cfg(iters_per_frame=4, max_gaussians=5000)
+    cfg = _cfg(iters_per_frame=4, budget={"max_gaussians": 5000})
     cfg.densify.enabled = True
     cfg.densify.every = 4
     cfg.densify.grad_threshold = 1e-9

@@ -2,12 +2,16 @@
 each restores its own state; the grouped configuration and its flat names; the one keyframe type."""
 
 import dataclasses
+import re
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from gausslite.mapping.config import FLAT_NAMES, MapperConfig, load_config
+from gausslite.config import load_config, load_mapper_config, migrate_flat_names
+from gausslite.mapping.config import FLAT_NAMES, MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import HANDHELD, with_profile
 from gausslite.mapping.step import TrainStep
@@ -25,11 +29,10 @@ def _roi() -> np.ndarray:
 
 
 def _handheld_cfg(**kw) -> MapperConfig:
-    base = dict(mode="gausslite", seeds_per_frame=300, iters_per_frame=6, warmup_iters=2, window=3, backend="warp",
-                pose_refine=True, exposure_comp=True, motion_blur=True, rolling_shutter_s=0.02,
-                densify={"every": 3})
-    base.update(kw)
-    return MapperConfig(**base)
+    base = dict(mode="gausslite", seeding={"seeds_per_frame": 300}, iters_per_frame=6, warmup_iters=2, window=3,
+                backend="warp", pose={"refine": True}, densify={"every": 3},
+                sensor={"exposure_comp": True, "motion_blur": True, "rolling_shutter_s": 0.02})
+    return MapperConfig.model_validate(deep_merge(base, kw))
 
 
 def _equal(a, b) -> bool:
@@ -81,7 +84,8 @@ def test_the_checkpoint_is_the_union_of_the_parts_and_resumes_the_same_map():
 
 
 def test_the_training_step_is_public_and_counts_kappa_in_the_roi_phase():
-    m = Mapper(_handheld_cfg(pose_refine=False, exposure_comp=False, motion_blur=False, rolling_shutter_s=0.0))
+    m = Mapper(_handheld_cfg(pose={"refine": False},
+                             sensor={"exposure_comp": False, "motion_blur": False, "rolling_shutter_s": 0.0}))
     fr = plane_frame(0, 0.0, H, W)
     m.seed_frame(fr, _roi())
     assert isinstance(m.step, TrainStep)
@@ -94,8 +98,9 @@ def test_the_training_step_is_public_and_counts_kappa_in_the_roi_phase():
     assert torch.all(m.model.kappa[act] == 1)
 
 
-def test_grouped_settings_and_their_flat_names():
-    cfg = MapperConfig(max_gaussians=5000, pose_refine=True, seeds_per_frame=300, cpu_kernel="tile")
+def test_grouped_settings_and_the_migration_of_their_old_flat_names(caplog):
+    cfg = MapperConfig(budget={"max_gaussians": 5000}, pose={"refine": True}, seeding={"seeds_per_frame": 300},
+                       performance={"cpu_kernel": "tile"})
     assert cfg.budget.max_gaussians == 5000 and cfg.pose.refine and cfg.seeding.seeds_per_frame == 300
     assert cfg.performance.cpu_kernel == "tile"
     # every flat name names one grouped field; settings added since the groups have none (grouped names only)
@@ -105,13 +110,35 @@ def test_grouped_settings_and_their_flat_names():
     n_fields = sum(len(type(getattr(cfg, g)).model_fields) for g in groups)
     assert len(FLAT_NAMES) == len(set(FLAT_NAMES.values())) == 48 < n_fields
     assert ("pose", "roi_phase") not in FLAT_NAMES.values() and ("seeding", "adopt") not in FLAT_NAMES.values()
-    # a flat name from a later layer (--set, keyword) wins over the YAML group
-    cfg = load_config(None, ["max_gaussians=700"], defaults={"budget": {"max_gaussians": 100, "cap": 900}})
-    assert (cfg.budget.max_gaussians, cfg.budget.cap) == (700, 900)
-    cfg = load_config(None, ["budget.max_gaussians=800"], max_gaussians=None)
-    assert cfg.budget.max_gaussians == 800
+    # grouped names: no warning, no log line
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mapper_config(None, ["budget.max_gaussians=800", "pose.refine=true"], seeding={"seeds_per_frame": 9})
+        load_config(None, ["mapper.budget.max_gaussians=800"])
+        assert migrate_flat_names({"budget": {"cap": 3}}) == {"budget": {"cap": 3}}
+    assert "old flat mapper setting names" not in caplog.text
+    # an old flat name still loads, to its grouped setting, with a DeprecationWarning and a log line naming the new key
+    with pytest.warns(DeprecationWarning, match=r"max_gaussians -> budget\.max_gaussians"):
+        cfg = load_mapper_config(None, ["max_gaussians=700"], defaults={"budget": {"max_gaussians": 100, "cap": 900}})
+    assert (cfg.budget.max_gaussians, cfg.budget.cap) == (700, 900)  # a flat name from a later layer wins
+    assert "pose_refine -> pose.refine" not in caplog.text and "max_gaussians -> budget.max_gaussians" in caplog.text
+    with pytest.warns(DeprecationWarning, match=r"pose_refine -> pose\.refine.*coverage_seeding -> seeding\.coverage"):
+        tree = load_config(None, ["mapper.pose_refine=false", "mapper.coverage_seeding=false"])
+    assert tree.mapper.pose.refine is False and tree.mapper.seeding.coverage is False
+    assert tree.mapper.seeding.seeds_per_frame == 1500  # the deployed file's group is kept beside the migrated key
+    data = {"evict": "opacity", "budget": {"cap": 5}}
+    with pytest.warns(DeprecationWarning):
+        assert migrate_flat_names(data) == {"budget": {"cap": 5, "evict": "opacity"}}
+    assert data == {"evict": "opacity", "budget": {"cap": 5}}  # the input is not modified
     with pytest.raises(ValueError):
         MapperConfig(budget={"no_such_setting": 1})
+
+
+def test_the_documented_migration_table_is_the_one_the_code_applies():
+    text = (Path(__file__).resolve().parents[2] / "docs" / "mapper.md").read_text(encoding="utf-8")
+    section = text.split("## Old flat names", 1)[1]
+    rows = dict(re.findall(r"^\| `(\w+)` \| `(\w+\.\w+)` \|$", section, flags=re.M))
+    assert rows == {flat: ".".join(key) for flat, key in FLAT_NAMES.items()}
 
 
 def test_a_sensor_profile_fills_only_what_the_config_left_unset():

@@ -113,8 +113,8 @@ def test_coarse_iterations_render_downscaled_views(monkeypatch):
     frame = Frame(0, 0.0, rng.integers(0, 255, (H, W, 3), dtype=np.uint8), np.full((H, W), 2.0, np.float32),
                   np.eye(4), intr)
     for coarse, want in ((3, [16] * 3 + [32] * 5), (0, [32] * 8)):
-        m = Mapper(MapperConfig(iters_per_frame=8, warmup_iters=8, seeds_per_frame=300, coarse_iters=coarse,
-                                backend="torch"))
+        m = Mapper(MapperConfig(iters_per_frame=8, warmup_iters=8, seeding={"seeds_per_frame": 300},
+                                performance={"coarse_iters": coarse}, backend="torch"))
         widths = []
         orig = m.sensor.rasterize
         monkeypatch.setattr(m.sensor, "rasterize", lambda c2w, K, w, h, subset, **kw: (widths.append(w), orig(c2w, K, w, h, subset, **kw))[1])

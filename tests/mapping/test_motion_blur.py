@@ -54,8 +54,9 @@ def _blurred(i: int, speed: float, dt: float, n_sub: int = 9):
 
 
 def _map(blur: bool, frames):
-    cfg = MapperConfig(mode="uniform", seeds_per_frame=1500, iters_per_frame=40, backend="warp", seed=0,
-                       motion_blur=blur, blur_exposure_s=0.1, blur_px_per_sample=1.5, blur_max_samples=7)
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp", seed=0,
+                       sensor={"motion_blur": blur, "blur_exposure_s": 0.1, "blur_px_per_sample": 1.5,
+                               "blur_max_samples": 7})
     cfg.densify.enabled = False
     m = Mapper(cfg)
     for fr in frames:

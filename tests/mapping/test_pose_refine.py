@@ -5,7 +5,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.poses import (PoseRefiner, move_gaussians_for_pose_delta, pose_delta, quat_of_rotvec,
                                      so3_exp)
@@ -66,9 +66,9 @@ def test_moving_the_gaussians_equals_moving_the_camera():
 
 
 def _cfg(**kw) -> MapperConfig:
-    base = dict(mode="uniform", seeds_per_frame=1500, iters_per_frame=30, backend="warp", pose_refine=True,
-                pose_lr_rot=2e-3, pose_lr_trans=4e-3)
-    base.update(kw)
+    base = dict(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=30, backend="warp",
+                pose={"refine": True, "lr_rot": 2e-3, "lr_trans": 4e-3})
+    base = deep_merge(base, kw)  # a group given as a keyword is merged key by key
     cfg = MapperConfig(**base)
     cfg.densify.enabled = False
     return cfg
@@ -99,7 +99,7 @@ def test_refinement_pulls_a_wrong_pose_towards_the_truth():
 
 
 def test_pose_refine_off_leaves_poses_and_renders_untouched():
-    m = Mapper(_cfg(pose_refine=False))
+    m = Mapper(_cfg(pose={"refine": False}))
     fr = plane_frame(0, 0.0, H, W)
     m.map_frame(fr)
     assert m.poses is None
@@ -148,7 +148,7 @@ def test_a_frame_between_keyframes_takes_the_interpolated_correction():
 def test_tracking_corrects_a_new_frame_before_it_is_seeded():
     """With pose_track_iters, frame 3's 12 cm pose error shrinks before its seeds are placed, so its
     seeds land on the plane where the earlier frames put it (not 12 cm aside)."""
-    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg(pose_track_iters=40, iters_per_frame=20, warmup_iters=15))
+    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg(pose={"track_iters": 40}, iters_per_frame=20, warmup_iters=15))
     assert abs(m.pose_of(3, fr.c2w)[0, 3] - true_x) < 0.05
 
 
@@ -156,7 +156,7 @@ def test_tracking_corrects_a_new_frame_before_it_is_seeded():
 def test_a_new_keyframe_starts_from_the_latest_correction_or_from_the_sensor_pose(init):
     """``pose_init``: after frame 3's pose was pulled 6+ cm, frame 4 starts from that correction ('inherit')
     or from its given pose ('identity')."""
-    m, fr, _ = _mapped_with_a_wrong_fourth_pose(_cfg(pose_init=init))
+    m, fr, _ = _mapped_with_a_wrong_fourth_pose(_cfg(pose={"init": init}))
     m.optimize(n_iters=120)
     E3 = m.poses.corrections[3]
     assert np.linalg.norm(E3[:3, 3]) > 0.05

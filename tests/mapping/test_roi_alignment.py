@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from tests._scenes import plane_frame
 
@@ -21,11 +21,11 @@ def _roi(h=H, w=W) -> np.ndarray:
 
 def _cfg(roi_phase: bool = True, roi_lr_scale: float = 1.0, pose_refine: bool = True, exposure_comp: bool = True,
          **kw) -> MapperConfig:
-    base = dict(mode="gausslite", seeds_per_frame=800, iters_per_frame=10, warmup_iters=10, backend="warp",
+    base = dict(mode="gausslite", seeding={"seeds_per_frame": 800}, iters_per_frame=10, warmup_iters=10, backend="warp",
                 pose={"refine": pose_refine, "lr_rot": 2e-3, "lr_trans": 4e-3, "roi_phase": roi_phase,
                       "roi_lr_scale": roi_lr_scale},
                 sensor={"exposure_comp": exposure_comp})
-    base.update(kw)
+    base = deep_merge(base, kw)  # a group given as a keyword is merged key by key
     cfg = MapperConfig(**base)
     cfg.densify.enabled = False
     return cfg
@@ -79,7 +79,8 @@ def test_roi_lr_scale_shrinks_roi_phase_pose_steps():
 
 
 def _cap_cfg(**kw) -> MapperConfig:
-    return _cfg(pose_refine=False, exposure_comp=False, seeds_per_frame=300, max_gaussians=500, warmup_iters=5, **kw)
+    return _cfg(pose_refine=False, exposure_comp=False, seeding={"seeds_per_frame": 300}, budget={"max_gaussians": 500},
+                warmup_iters=5, **kw)
 
 
 def _late_mapper(cfg: MapperConfig) -> Mapper:

@@ -56,8 +56,8 @@ def test_bands_follow_the_motion_across_the_readout_and_cover_the_view():
 
 
 def _mapper(rs: float) -> Mapper:
-    cfg = MapperConfig(mode="uniform", seeds_per_frame=1500, iters_per_frame=40, backend="warp", seed=0,
-                       rolling_shutter_s=rs, rs_px_per_band=0.5, rs_max_bands=8)
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp", seed=0,
+                       sensor={"rolling_shutter_s": rs, "rs_px_per_band": 0.5, "rs_max_bands": 8})
     cfg.densify.enabled = False
     return Mapper(cfg)
 
@@ -161,8 +161,8 @@ def test_central_motion_estimate_gives_each_frame_the_motion_around_it():
     frames = [dataclasses.replace(plane_frame(i, x, H, W), timestamp=0.1 * i) for i, x in enumerate((0.0, 0.01, 0.03))]
     got = {}
     for est in ("backward", "central"):
-        cfg = MapperConfig(mode="uniform", seeds_per_frame=200, iters_per_frame=1, warmup_iters=1, backend="warp", seed=0,
-                           rolling_shutter_s=READOUT, motion_estimate=est)
+        cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 200}, iters_per_frame=1, warmup_iters=1,
+                           backend="warp", seed=0, sensor={"rolling_shutter_s": READOUT, "motion_estimate": est})
         m = Mapper(cfg)
         for fr in frames:
             m.map_frame(fr)

@@ -16,8 +16,8 @@ H, W = 40, 56
 
 
 def _plane_map(mode: str = "uniform", roi=None) -> Mapper:
-    cfg = MapperConfig(mode=mode, seeds_per_frame=1500, iters_per_frame=40, warmup_iters=20, backend="warp",
-                       sensor={"exposure_comp": True}, pose={"refine": True})
+    cfg = MapperConfig(mode=mode, seeding={"seeds_per_frame": 1500}, iters_per_frame=40, warmup_iters=20,
+                       backend="warp", sensor={"exposure_comp": True}, pose={"refine": True})
     cfg.densify.enabled = False
     m = Mapper(cfg)
     for i in range(4):

@@ -28,13 +28,14 @@ from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
 from services.agent.client import AgentClient
 from services.agent.frames import encode_frame
-from gausslite.mission import AgentRuntime, load_agent_config
+from gausslite.config import load_config
+from gausslite.mission import AgentRuntime
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
+        "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +78,8 @@ def test_keyframe_rule_translation_rotation_interval_and_newest_pending():
 
 # ---------------------------------------------------------------------------------------------- mapper API
 def _mapper(**kw):
-    return Mapper(MapperConfig(mode="gausslite", iters_per_frame=4, warmup_iters=1, seeds_per_frame=150, **kw))
+    return Mapper(MapperConfig(mode="gausslite", iters_per_frame=4, warmup_iters=1, seeding={"seeds_per_frame": 150},
+                               **kw))
 
 
 def _count_iters(m):
@@ -154,7 +156,7 @@ def test_mapper_checkpoint_round_trip(scene):
 # ---------------------------------------------------------------------------------------------- ingest
 def test_submit_never_blocks_while_the_mapper_is_busy(scene):
     ds = load_dataset(scene / "agent_a")
-    cfg = load_agent_config(None, TINY + ["agent.keyframe_translation_m=1e-6", "agent.idle_optimize=false"])
+    cfg = load_config(None, TINY + ["agent.keyframe_translation_m=1e-6", "agent.idle_optimize=false"], deployed=False).agent
     rt = AgentRuntime("live", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=lambda fr: None)
     gate, entered = threading.Event(), threading.Event()
@@ -202,7 +204,7 @@ def test_submit_never_blocks_while_the_mapper_is_busy(scene):
 
 def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
     ds = load_dataset(scene / "agent_a")
-    cfg = load_agent_config(None, TINY + ["agent.checkpoint_every=1", "agent.keyframe_translation_m=1e-6"])
+    cfg = load_config(None, TINY + ["agent.checkpoint_every=1", "agent.keyframe_translation_m=1e-6"], deployed=False).agent
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     rt = AgentRuntime("a1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
                       checkpoint_dir=tmp_path / "m1")
@@ -231,7 +233,7 @@ def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
 
 # ---------------------------------------------------------------------------------------------- gRPC
 def test_streaming_with_keyframe_ingest_and_bad_input(scene):
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg))
     c = AgentClient(ag.address)
     try:
@@ -270,10 +272,10 @@ def test_streaming_with_keyframe_ingest_and_bad_input(scene):
 
 
 def test_no_relevance_source_is_failed_precondition(scene, tmp_path):
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", config=cfg))  # no annotations
-    cfg2 = load_agent_config(None, TINY + ["agent.relevance_backend=onnx",
-                                           f"agent.onnx.detector_path={tmp_path / 'missing.onnx'}"])
+    cfg2 = load_config(None, TINY + ["agent.relevance_backend=onnx",
+                                           f"agent.onnx.detector_path={tmp_path / 'missing.onnx'}"], deployed=False).agent
     ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo2", config=cfg2))
     try:
         with AgentClient(ag.address) as c:
@@ -305,9 +307,9 @@ def test_onnx_relevance_backend_with_tiny_models(scene, tmp_path):
     protos = np.full((1, 1, 16, 16), 5.0)
     pred = np.asarray([[32, 32, 30, 30, 0.9, 1]], dtype=np.float64).T[None]  # one big mask in the centre
     seg = _fastsam_model(tmp_path / "fs.onnx", pred, protos, 64)
-    cfg = load_agent_config(None, TINY + ["agent.ingest=every_frame", "agent.relevance_backend=onnx",
+    cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.relevance_backend=onnx",
                                           f"agent.onnx.detector_path={det}", f"agent.onnx.segmenter_path={seg}",
-                                          f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"])
+                                          f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"], deployed=False).agent
     graph = {"targets": ["chair"], "anchors": [], "relations": []}
     rt = AgentRuntime("onnx", "Find the chair", graph, cfg)  # no annotations at all
     ds = load_dataset(scene / "agent_a")
@@ -330,9 +332,9 @@ def test_onnx_cost_backend_runs_the_models_and_answers_from_annotations(scene, t
     graph = {"targets": ["chair"], "anchors": [], "relations": []}
     onnx = [f"agent.onnx.detector_path={det}", f"agent.onnx.segmenter_path={seg}",
             f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"]
-    ref = AgentRuntime("ann", "Find the chair", graph, load_agent_config(None, TINY), annotations=ds.annotations)
+    ref = AgentRuntime("ann", "Find the chair", graph, load_config(None, TINY, deployed=False).agent, annotations=ds.annotations)
     cost = AgentRuntime("cost", "Find the chair", graph,
-                        load_agent_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx),
+                        load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx, deployed=False).agent,
                         annotations=ds.annotations)
     try:
         for i in range(3):
@@ -346,7 +348,7 @@ def test_onnx_cost_backend_runs_the_models_and_answers_from_annotations(scene, t
         cost.close()
     with pytest.raises(ValueError, match="backend 'onnx_cost' needs scene annotations"):
         AgentRuntime("cost", "Find the chair", graph,
-                     load_agent_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx))
+                     load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx, deployed=False).agent)
 
 def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
     from tests.attention.test_attention_onnx import _fastsam_model
@@ -358,9 +360,9 @@ def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
     cases = [(junk, seg, "junk.onnx is not a loadable ONNX model"),
              (seg, seg, "fs.onnx: the model has no 'input_ids' input")]  # a segmenter given as the detector
     for det_path, seg_path, why in cases:
-        cfg = load_agent_config(None, TINY + ["agent.relevance_backend=onnx", f"agent.onnx.detector_path={det_path}",
+        cfg = load_config(None, TINY + ["agent.relevance_backend=onnx", f"agent.onnx.detector_path={det_path}",
                                               f"agent.onnx.segmenter_path={seg_path}",
-                                              f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"])
+                                              f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"], deployed=False).agent
         ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", config=cfg))
         try:
             with AgentClient(ag.address) as c:
@@ -398,7 +400,7 @@ def _agent_processes(scene, tmp_path, monkeypatch, agent_cfg: dict):
     cfg_path = tmp_path / "agent.yaml"
     cfg_path.write_text(yaml.safe_dump({
         "agent": {"keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05, "backoff_s": 0.1, **agent_cfg},
-        "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeds_per_frame": 200}}))
+        "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeding": {"seeds_per_frame": 200}}}))
     port = free_port()
     log = open(tmp_path / "agent.log", "w")
     procs = []
@@ -517,7 +519,7 @@ def test_validate_frame_reads_headers_and_defers_decoding(scene):
     pf = validate_frame(bad)
     with pytest.raises(FrameError):
         pf.materialize()
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     rt = AgentRuntime("r", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=lambda f: None)
     assert rt.submit(pf) is True
@@ -532,7 +534,7 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
 
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
-    cfg = load_agent_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5"])
+    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5"], deployed=False).agent
     rt = AgentRuntime("rt", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
                       task_id="synth-pick-object")
     t0 = time.perf_counter()
@@ -555,7 +557,7 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
     assert all(v["roi_psnr"] is not None and 0 < v["roi_psnr"] < 80 for v in p.values())
     rt.close()
     # sensor alone when told so
-    cfg = load_agent_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"])
+    cfg = load_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"], deployed=False).agent
     rt = AgentRuntime("rt2", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
                       task_id="synth-pick-object")
     try:
@@ -626,8 +628,8 @@ def _run_task_agent(scene, overrides: list, n_frames: int):
     to a recording fusion stand-in; returns (runtime, fusion, roi)."""
     ds = load_dataset(scene / "agent_a")
     # the share work in the pusher thread, so spies in this process see it (the worker process: its own test)
-    cfg = load_agent_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
-                                          "agent.share_worker=thread", *overrides])
+    cfg = load_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
+                                          "agent.share_worker=thread", *overrides], deployed=False).agent
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
@@ -743,8 +745,8 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
             c.wait_ready(10)
             runs = []
             for n_frames in (2, 5):
-                cfg = load_agent_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
-                                                      "agent.push_every=100"])
+                cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
+                                                      "agent.push_every=100"], deployed=False).agent
                 rt = _mission("robot", cfg, lambda fr: np.ones((48, 64), bool), c, ds, n_frames)
                 assert rt.pusher.final_push_ok and len(rt.pusher.pushes) == 1
                 runs.append(rt.pusher.pushes[0])
@@ -791,7 +793,8 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     from gausslite.mission import AgentConfig
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite", render_threads=2))
+    cfg = AgentConfig(share="task", share_worker="thread",
+                      mapper=MapperConfig(mode="gausslite", performance={"render_threads": 2}))
     rt = AgentRuntime("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
     try:
         deadline = time.time() + 5
@@ -851,7 +854,8 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, r
     ds = load_dataset(scene / "agent_a")
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     cfg = AgentConfig(share="task", share_worker="process", realtime=realtime, rate=0.2,
-                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
+                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1,
+                                          seeding={"seeds_per_frame": 100}))
     rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
         assert rt.share.pool is None  # nothing runs before the mission starts

@@ -17,13 +17,14 @@ from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2, agent_pb2_grpc
 from services.agent.client import AgentClient
 from services.agent.frames import encode_frame
-from gausslite.mission import AgentRuntime, load_agent_config
+from gausslite.config import load_config
+from gausslite.mission import AgentRuntime
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=200"]
+        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +57,7 @@ def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
     from services.fusion_server.client import FusionClient
 
     fusion = _fusion(tmp_path / "fusion")
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     agents = [serve_agent(ServerOptions(port=0), AgentSettings(
         agent_id=name, parser_address=parser_server.address, fusion_address=fusion.address,
         annotations_path=str(scene), data_dir=str(tmp_path / "agents"), config=cfg)) for name in ("agent_a", "agent_b")]
@@ -117,7 +118,7 @@ def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
 
 @pytest.fixture()
 def local_agent(scene):
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     ag = serve_agent(ServerOptions(port=0, token="s3cret"),
                      AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg))
     c = AgentClient(ag.address, token="s3cret")
@@ -204,7 +205,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     data = tmp_path / "fusion"
     f1 = _fusion(data)
     port = f1.port
-    cfg = load_agent_config(None, TINY + ["agent.final_push_timeout_s=60"])
+    cfg = load_config(None, TINY + ["agent.final_push_timeout_s=60"], deployed=False).agent
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     client = FusionClient(f1.address, timeout_s=5, max_retries=1, backoff_s=0.05)
@@ -253,10 +254,10 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
     from tests.datasets.test_datasets_fixtures import make_tum
 
     seq = make_tum(tmp_path / "tum", n=3)
-    for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose_refine=false"], False)):
+    for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose.refine=false"], False)):
         ag = serve_agent(ServerOptions(port=0), AgentSettings(
             agent_id="tum", annotations_path=str(scene), data_roots=(str(tmp_path / "tum"),),
-            config=load_agent_config(None, overrides)))
+            config=load_config(None, overrides, deployed=False).agent))
         try:
             rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
             assert rt.config.mapper.pose.refine is want_refine
@@ -294,7 +295,7 @@ def test_a_caller_cannot_send_the_agents_fusion_credentials_elsewhere(scene, par
     recorder = f"127.0.0.1:{rec_port}"
     fusion = _fusion(tmp_path / "fusion")
     settings = dict(agent_id="robot1", parser_address=parser_server.address, fusion_address=fusion.address,
-                    fusion_token="robot1-secret", annotations_path=str(scene), config=load_agent_config(None, TINY))
+                    fusion_token="robot1-secret", annotations_path=str(scene), config=load_config(None, TINY, deployed=False).agent)
     agent = serve_agent(ServerOptions(port=0), AgentSettings(**settings))
     try:
         c = AgentClient(agent.address)
@@ -353,7 +354,7 @@ def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
     scene_copy(secret)
     scene_copy(tmp_path / "missions-evil")  # shares the root's prefix
     os.symlink(secret, root / "escape")  # a link inside the root to a folder outside it
-    cfg = load_agent_config(None, TINY)
+    cfg = load_config(None, TINY, deployed=False).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg,
                                                           data_roots=(str(root),)))
     c = AgentClient(ag.address)

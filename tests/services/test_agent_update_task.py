@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from gausslite.datasets import load_dataset
-from gausslite.mission import load_agent_config
+from gausslite.config import load_config
 from gausslite.synthetic import make_scene
 from services.agent.client import AgentClient
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
 
 TINY = ["agent.ingest=every_frame", "agent.push_every=100", "agent.keyframe_every=1", "mapper.iters_per_frame=4",
-        "mapper.warmup_iters=1", "mapper.seeds_per_frame=300"]
+        "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300"]
 OBJECT = "Prepare to pick up the object on the desk"
 CHAIR = "Identify the chair closest to the table"
 
@@ -32,7 +32,7 @@ def scene(tmp_path_factory):
 @pytest.fixture()
 def agent(scene):
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="robot", annotations_path=str(scene),
-                                                          config=load_agent_config(None, TINY)))
+                                                          config=load_config(None, TINY, deployed=False).agent))
     c = AgentClient(ag.address)
     yield ag, c
     c.close()

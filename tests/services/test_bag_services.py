@@ -10,20 +10,19 @@ import grpc
 import pytest
 
 from gausslite.cli import main
-from gausslite.config import GaussLiteConfig
+from gausslite.config import load_config
 from gausslite.datasets import load_dataset
 from gausslite.datasets.bag import BagError
 from gausslite.ros.export import export_bag
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
 from services.agent.client import AgentClient
-from gausslite.mission import load_agent_config
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
-from services.sim import _check_bags, load_sim_config, plan_agents
+from services.sim import _check_bags, plan_agents
 
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
-        "mapper.seeds_per_frame=150"]
+        "mapper.seeding.seeds_per_frame=150"]
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +46,7 @@ def test_exported_scene_bags_match_the_folders(bag_scene):
 
 def test_agent_replays_a_bag(bag_scene, tmp_path):
     _src, out = bag_scene
-    cfg = load_agent_config(None, TINY + ["agent.bag.max_pose_dt=0.01"])
+    cfg = load_config(None, TINY + ["agent.bag.max_pose_dt=0.01"], deployed=False).agent
     assert cfg.bag.max_pose_dt == 0.01
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", data_dir=str(tmp_path / "a"),
                                                           data_roots=(str(out),), config=cfg))
@@ -63,7 +62,7 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
         s = c.finish(m.mission_id, timeout_s=60)
         assert s.status.frames_received == 4 and s.status.frames_mapped == 4
         # a bad bag is refused with the bag's one clear error
-        bad_cfg = load_agent_config(None, TINY + ["agent.bag.rgb_topic=/nope"])
+        bad_cfg = load_config(None, TINY + ["agent.bag.rgb_topic=/nope"], deployed=False).agent
         ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", data_roots=(str(out),), config=bad_cfg))
         c2 = AgentClient(ag2.address)
         try:
@@ -81,14 +80,14 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
 
 def test_sim_plans_bag_agents_and_checks_bags_before_starting(bag_scene):
     _src, out = bag_scene
-    cfg = load_sim_config(None, [])
+    cfg = load_config()
     plans = plan_agents(str(out), cfg)
     assert [p.dataset for p in plans] == [str(out / "agent_a"), str(out / "agent_b")]
     assert [p.task_id for p in plans] == ["synth-pick-object", "synth-find-chair"]
-    _check_bags(plans, GaussLiteConfig.model_validate(cfg).agent)  # good bags pass
-    bad = load_sim_config(None, ["agent.bag.depth_topic=/nope"])
+    _check_bags(plans, cfg.agent)  # good bags pass
+    bad = load_config(None, ["agent.bag.depth_topic=/nope"])
     with pytest.raises(BagError, match="depth topic '/nope' is not in the bag"):
-        _check_bags(plans, GaussLiteConfig.model_validate(bad).agent)
+        _check_bags(plans, bad.agent)
 
 
 def test_sim_cli_bag_flags_become_agent_overrides(bag_scene, capsys):

@@ -22,7 +22,7 @@ from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import agent_pb2, fusion_pb2, parser_pb2
-from gausslite.mission import load_agent_config
+from gausslite.config import load_config
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
 
@@ -44,8 +44,8 @@ def services(request, tmp_path):
     fusion = serve_fusion(ServerOptions(port=0, max_message_bytes=1 << 20), data_dir=str(tmp_path / "fusion"),
                           store=store)
     # a final push that fails (the fuzzer may have opened the agent's session) ends Finish well within its deadline
-    cfg = load_agent_config(None, ["mapper.iters_per_frame=1", "mapper.warmup_iters=1", "mapper.seeds_per_frame=50",
-                                   "agent.share=active", "agent.final_push_timeout_s=2", "agent.final_pass_s=1"])
+    cfg = load_config(None, ["mapper.iters_per_frame=1", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=50",
+                                   "agent.share=active", "agent.final_push_timeout_s=2", "agent.final_pass_s=1"], deployed=False).agent
     agent = serve_agent(ServerOptions(port=0, max_message_bytes=1 << 20), AgentSettings(
         agent_id="fuzzbot", parser_address=parser.address, fusion_address=fusion.address, parser_timeout_s=5,
         annotations_path=str(tmp_path / "scene"), config=cfg))

@@ -8,11 +8,13 @@ import math
 import os
 
 import pytest
+from pydantic import ValidationError
 
-from services.sim import plan_agents, load_sim_config, run_sim
+from gausslite.config import load_config
+from services.sim import plan_agents, run_sim
 
 TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
-        "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeds_per_frame=150",
+        "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=150",
         "sim.fuse.refine_iters=3", "agent.share_finetune_iters=20"]
 
 
@@ -119,12 +121,12 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
 
 
 def test_sim_plans_room0_tasks(room0_dir):
-    plans = plan_agents(str(room0_dir), load_sim_config())
+    plans = plan_agents(str(room0_dir), load_config())
     assert [p.task_id for p in plans] == ["room0-pick-plant", "room0-find-ottoman"]
     assert plans[0].dataset == plans[1].dataset == str(room0_dir)
 
 
 def test_sim_rejects_bad_settings_before_starting(tmp_path):
-    with pytest.raises(Exception) as e:
-        load_sim_config(None, ["mapper.iters_per_frame=0"])
-    assert "iters_per_frame" in str(e.value)
+    with pytest.raises(ValidationError, match="iters_per_frame"):
+        run_sim(tmp_path / "out", overrides=["mapper.iters_per_frame=0"])
+    assert not (tmp_path / "out" / "config.yaml").exists()  # failed before writing the agents' config

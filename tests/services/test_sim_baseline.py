@@ -109,12 +109,13 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
 
 
 def test_live_sims_fuse_with_the_paper_per_voxel_rule_and_offline_sims_with_the_neighbourhood():
-    from services.sim import fuse_settings, load_sim_config
+    from gausslite.config import load_config
+    from services.sim import fuse_settings
 
-    cfg = load_sim_config(None)  # deploy/gausslite.yaml
+    cfg = load_config()  # deploy/gausslite.yaml
     assert fuse_settings(cfg) == {"voxel_size": 0.10, "contest_radius": 1, "refine_iters": 300}
     assert fuse_settings(cfg, realtime=True)["contest_radius"] == 0
-    assert fuse_settings({"sim": {"fuse": {"contest_radius": 2}}}, realtime=True)["contest_radius"] == 0
+    assert fuse_settings(load_config(None, ["sim.fuse.contest_radius=2"]), realtime=True)["contest_radius"] == 0
     # the deployed agents share with the live rule
-    agent = cfg["agent"]
-    assert agent["share"] == "task" and agent["share_candidates"] == "rendered" and agent["share_max_fraction"] == 0.25
+    agent = cfg.agent
+    assert agent.share == "task" and agent.share_candidates == "rendered" and agent.share_max_fraction == 0.25
