@@ -106,6 +106,11 @@ class AgentConfig(BaseModel):
         share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
             own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
             would hold against the mapping thread) or ``thread`` (the pusher thread itself).
+        share_worker_start: when the worker process starts: ``first_push`` (default) or ``mission`` (with the
+            mission, warmed up, so a short mission's periodic subsets reach the server while it maps; an every-frame
+            mission's then at the mapper's priority). Measured, ``mission`` makes the team map worse: early pushes
+            fix young rows on the server, and ``share_refresh`` lets later pushes move only a share of them (room0
+            sim vote −5 dB, live synthetic team vote −0.6 to −1.8 dB; docs/sharing.md#how-much-to-share).
         share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
             already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
             others stay as the server has them, so a delta carries the new rows and this share of the
@@ -177,6 +182,7 @@ class AgentConfig(BaseModel):
     share_outside_alpha: float = Field(0.0, ge=0)
     pusher_nice: int = Field(19, ge=0, le=19)
     share_worker: Literal["process", "thread"] = "process"
+    share_worker_start: Literal["first_push", "mission"] = "first_push"
     push_every: int = Field(5, ge=1)
     downscale: float = Field(1.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)

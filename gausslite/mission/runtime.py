@@ -316,19 +316,17 @@ class AgentRuntime:
         return self._replay_thread
 
     def _start_share(self, live: bool) -> None:
-        """Start an every-frame mission's share worker (an offline replay, or ``ingest: every_frame``) as the mission
-        starts, at the mapper's priority (:meth:`ShareSession.start`): it has no keyframe budget to protect and maps
-        as fast as it can, so a worker started at the first push, below the mapper, would get no processor until
-        mapping ends and every periodic push would wait for the end of the mission. A live mission's worker starts at
-        its first push, at ``pusher_nice``: started with the mission, it cost the live synthetic team 0.6-1.8 dB of
-        vote ROI PSNR and raised its upload from 1.19x to 1.35x the final subset (``bench.team``, 3 runs;
-        docs/sharing.md#how-much-to-share)."""
+        """Under ``share_worker_start: mission``, start the share worker as the mission starts
+        (:meth:`ShareSession.start`): a live mission's at ``pusher_nice``, an every-frame mission's at the mapper's
+        priority (it has no keyframe budget to protect; below a mapper that maps as fast as it can, the worker would
+        get no processor until mapping ends). By default (``first_push``) the worker starts at the first push: an
+        early start makes the team map worse (:class:`~gausslite.mission.config.AgentConfig`)."""
         with self._lock:
             if self._share_started:
                 return
             self._share_started = True
-        if self.fusion is not None and not live:
-            self.share.start(0)
+        if self.fusion is not None and self.config.share_worker_start == "mission":
+            self.share.start(self.config.pusher_nice if live else 0)
 
     @property
     def replaying(self) -> bool:

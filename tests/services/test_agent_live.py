@@ -843,38 +843,41 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
 
 @pytest.mark.parametrize("realtime", [False, True])
 def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime):
-    """An every-frame sharing mission starts (and warms up) its share worker process when its replay starts, before
-    any frame is mapped, at the mapper's priority (no keyframe budget to protect: below a mapper that maps as fast
-    as it can, the worker would get no processor until the mission ends), and the pushes use that same process. A
-    live mission's worker starts at its first push, at ``pusher_nice`` (started with the mission it cost the live
-    team's vote, docs/sharing.md#how-much-to-share)."""
+    """Under ``share_worker_start: mission`` a sharing mission starts (and warms up) its share worker process when
+    its replay starts, before any frame is mapped, and the pushes use that same process; a live mission's worker
+    runs at ``pusher_nice``, an every-frame replay's at the mapper's priority. By default (``first_push``) no worker
+    runs until the first push."""
     from gausslite.mission import AgentConfig
     from gausslite.mission.share import _warm
 
     ds = load_dataset(scene / "agent_a")
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="process", realtime=realtime, rate=0.2,
-                      mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1,
-                                          seeding={"seeds_per_frame": 100}))
+    base = dict(share="task", share_worker="process", realtime=realtime, rate=0.2,
+                mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
+    rt = AgentRuntime("w0", "Pick up the object", graph, AgentConfig(**base), relevance_fn=lambda fr: None,
+                      fusion=_RecordingFusion())
+    try:
+        rt.replay(ds)
+        assert rt.share.pool is None and rt.share.warm is None  # the default: at the first push
+    finally:
+        rt.close()
+    cfg = AgentConfig(**base, share_worker_start="mission")
     rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
         assert rt.share.pool is None  # nothing runs before the mission starts
         rt.replay(ds)
-        if realtime:
-            assert rt.share.pool is None and rt.share.warm is None  # a live mission: at its first push
-            pid = rt.share.call(_warm)
-            assert os.getpriority(os.PRIO_PROCESS, pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 19)
-        else:
-            assert rt.share.pool is not None and rt.share.warm is not None and rt.frames_mapped < len(ds)
-            pid = rt.share.warm.result(timeout=300)  # the warm-up job ran in the worker process...
-            assert pid != os.getpid() and rt.share.call(_warm) == pid  # ...which is the one the pushes use
-            assert os.getpriority(os.PRIO_PROCESS, pid) == os.getpriority(os.PRIO_PROCESS, 0)
+        assert rt.share.pool is not None and rt.share.warm is not None and rt.frames_mapped < len(ds)
+        pid = rt.share.warm.result(timeout=300)  # the warm-up job ran in the worker process...
+        assert pid != os.getpid() and rt.share.call(_warm) == pid  # ...which is the one the pushes use
+        expected = min(19, os.getpriority(os.PRIO_PROCESS, 0) + (19 if realtime else 0))
+        assert os.getpriority(os.PRIO_PROCESS, pid) == expected
     finally:
         rt.close()
     assert rt.share.pool is None
     # a mission that does not share (no fusion client) or shares without the worker starts no process
     for kw in ({"fusion": None}, {"fusion": _RecordingFusion(), "share": "active"}):
-        c = AgentConfig(share=kw.get("share", "task"), share_worker="process", mapper=MapperConfig(mode="gausslite"))
+        c = AgentConfig(share=kw.get("share", "task"), share_worker="process", share_worker_start="mission",
+                        mapper=MapperConfig(mode="gausslite"))
         r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
         try:
             r._start_share(True)
