@@ -1,4 +1,4 @@
-"""Unit tests of the attention front-end building blocks (SPEC §4)."""
+"""Unit tests of the attention front-end building blocks."""
 
 from __future__ import annotations
 

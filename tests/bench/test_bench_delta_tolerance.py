@@ -1,4 +1,4 @@
-"""bench.delta_tolerance (issue 12): one mapping, every tolerance planned on the same snapshots."""
+"""bench.delta_tolerance: one mapping, every tolerance planned on the same snapshots."""
 
 import json
 

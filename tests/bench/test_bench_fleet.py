@@ -1,4 +1,4 @@
-"""bench.fleet (issue 14): a tiny real run — 3 replay agents, 2 fusion replicas on PostgreSQL, one
+"""bench.fleet: a tiny real run — 3 replay agents, 2 fusion replicas on PostgreSQL, one
 SIGKILLed and restarted mid-run — writes the issue's JSON fields; and the exit code follows the goals."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""bench.long_mission's aggregation: the JSON schema of issue 10 (mean, ``_std`` and seeds per field,
+"""bench.long_mission's aggregation: the JSON schema (mean, ``_std`` and seeds per field,
 uniform scored on every task's ROI, paired gains) and gausslite.stats."""
 
 import math

@@ -1,4 +1,4 @@
-"""bench.mapper (issue 11): the JSON schema (baseline/fast per scene, mean ± std over seeds, paired
+"""bench.mapper: the JSON schema (baseline/fast per scene, mean ± std over seeds, paired
 speed-up and ROI PSNR loss) and an end-to-end smoke run on the synthetic scene."""
 
 import json

@@ -1,4 +1,4 @@
-"""bench.share_finetune (issue 12 item 4): two agents, fine-tuned subsets, both vote rules, both refine schedules."""
+"""bench.share_finetune: two agents, fine-tuned subsets, both vote rules, both refine schedules."""
 
 import json
 

@@ -1,4 +1,4 @@
-"""bench.share_refresh (issue 12 item 2) and bench.sim_seeds: the refresh arms' bytes and scores; the
+"""bench.share_refresh and bench.sim_seeds: the refresh arms' bytes and scores; the
 multi-seed sim summary."""
 
 import json

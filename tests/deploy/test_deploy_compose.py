@@ -1,8 +1,8 @@
 """deploy/: compose-file schema, ``docker-compose config -q``, and every compose service's own command and
 environment started locally (service host names → 127.0.0.1, container ports → free local ports,
 volumes → temp/bind folders, the ``postgres`` service → the test PostgreSQL, the replicas' network
-alias ``dns:///fusion:PORT`` → ``ipv4:`` of both local replicas) until its healthcheck passes (SPEC §1
-deployment, §8; issue 14: two fusion replicas on one PostgreSQL).
+alias ``dns:///fusion:PORT`` → ``ipv4:`` of both local replicas) until its healthcheck passes (two fusion
+replicas on one PostgreSQL).
 
 Per-robot credentials: compose secrets (``/run/secrets/<name>`` → the secret's file when started
 locally), made for the test by the documented one command (``gausslite certs provision``); each agent gets

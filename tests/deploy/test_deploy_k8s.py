@@ -1,7 +1,7 @@
 """deploy/k8s/: every manifest validates offline against the Kubernetes OpenAPI schemas bundled with
 ``kubernetes-validate`` (strict: unknown fields are errors), and the pieces fit together: fusion
 replicas on the PostgreSQL DSN Secret with gRPC health probes behind a headless Service that the
-agent reaches with ``dns:///`` round-robin (issue 14).
+agent reaches with ``dns:///`` round-robin.
 
 Without ``kubernetes-validate`` (the ``dev`` extra) the schema tests skip on a user's machine but
 fail under CI (``CI=true``), like the shared data and PostgreSQL fixtures in conftest.py."""

@@ -1,4 +1,4 @@
-"""κ-weighted voxel vote (paper Sec. III-E, SPEC §7) against a brute-force reference."""
+"""κ-weighted voxel vote (paper Sec. III-E) against a brute-force reference."""
 
 from __future__ import annotations
 

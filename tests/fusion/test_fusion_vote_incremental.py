@@ -1,4 +1,4 @@
-"""Incremental κ-weighted voxel vote (paper Sec. III-E, SPEC §7): after any sequence of agent
+"""Incremental κ-weighted voxel vote (paper Sec. III-E): after any sequence of agent
 updates and removals, :class:`IncrementalVote` gives exactly what a full :func:`voxel_vote` over the
 same subsets gives (fused rows, canonical order, provenance and report)."""
 

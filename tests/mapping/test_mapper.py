@@ -450,7 +450,7 @@ class _FakeClock:
 def test_time_budget_keeps_the_roi_phase_and_density_control(monkeypatch):
     """A keyframe budget shorter than ``warmup_iters`` iterations still gets ROI-phase iterations (κ, and so
     the shared subset): the warm-up is the first warmup_iters / iters_per_frame of the time, the first
-    iteration full-image; density control counts budgeted iterations across calls (issue 11, live agent)."""
+    iteration full-image; density control counts budgeted iterations across calls (live agent)."""
     clock = _FakeClock()
     monkeypatch.setattr(mapper_mod, "time", clock)
     cfg = _cfg(iters_per_frame=30, warmup_iters=10)  # the deployed agent's schedule

@@ -1,4 +1,4 @@
-"""Long-mission mapper contracts (issue 10): coverage-driven seeding, the scene-following budget,
+"""Long-mission mapper contracts: coverage-driven seeding, the scene-following budget,
 contribution eviction with ROI protection, the mission-wide keyframe store and its sampler."""
 
 import numpy as np

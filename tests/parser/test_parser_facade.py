@@ -1,4 +1,4 @@
-"""TaskParser facade and CLI ``parse`` (SPEC §3)."""
+"""TaskParser facade and CLI ``parse``."""
 
 from __future__ import annotations
 

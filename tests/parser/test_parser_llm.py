@@ -1,4 +1,4 @@
-"""LLM backends and fallback (SPEC §3) against a real local OpenAI-compatible HTTP server."""
+"""LLM backends and fallback against a real local OpenAI-compatible HTTP server."""
 
 from __future__ import annotations
 

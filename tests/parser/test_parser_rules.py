@@ -1,4 +1,4 @@
-"""Rule parser (SPEC §3): shared phrasings, dataset task files, extra everyday phrasings, robustness."""
+"""Rule parser: shared phrasings, dataset task files, extra everyday phrasings, robustness."""
 
 from __future__ import annotations
 

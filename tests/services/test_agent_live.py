@@ -1,4 +1,4 @@
-"""Live operation of the agent (issue 11): keyframe selection, the non-blocking ingest path, time-budgeted
+"""Live operation of the agent: keyframe selection, the non-blocking ingest path, time-budgeted
 mapping and optimisation between keyframes, checkpoint/resume (in-process and after SIGKILL of a real agent
 process), the ONNX relevance backend and its FAILED_PRECONDITION path."""
 

@@ -1,4 +1,4 @@
-"""Agent service (SPEC §7, §8): full in-process path parser + fusion + two agents with streamed frames,
+"""Agent service: full in-process path parser + fusion + two agents with streamed frames,
 bad-input status codes, and a fusion-server restart during a mission."""
 
 from __future__ import annotations
@@ -198,7 +198,7 @@ def test_bad_inputs_give_precise_codes(local_agent, scene):
 
 def test_fusion_restart_during_mission(scene, tmp_path):
     """The fusion server goes down mid-mission and comes back on the same port and data dir: the agent
-    keeps mapping, retries with backoff and completes its final push (SPEC §8)."""
+    keeps mapping, retries with backoff and completes its final push."""
     from gausslite.parser import TaskParser
     from services.fusion_server.client import FusionClient
 

@@ -1,4 +1,4 @@
-"""Fusion replicas on one PostgreSQL store (issue 14): any replica accepts any agent's chunks, an
+"""Fusion replicas on one PostgreSQL store: any replica accepts any agent's chunks, an
 upload interrupted by a SIGKILLed replica resumes on another through the round-robin client, fused
 versions are allocated in the database with concurrent ``Fuse`` calls serialised, and
 ``DownloadFused`` / ``GetStats`` answer the same on every replica; a ``dns:///`` target reaches a replica."""

@@ -1,4 +1,4 @@
-"""Integration tests of the fusion server (paper Sec. III-E, SPEC §7–8) with real in-process gRPC
+"""Integration tests of the fusion server (paper Sec. III-E) with real in-process gRPC
 servers on ephemeral loopback ports (127.0.0.1:0) and the robot-side :class:`FusionClient`."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``python -m services.fusion_server`` startup (issue 14): ``$GAUSSLITE_FUSION_STORE`` alone selects
+"""``python -m services.fusion_server`` startup: ``$GAUSSLITE_FUSION_STORE`` alone selects
 the PostgreSQL store, and a store whose schema is newer than this server supports is refused with
 exit code 2 and a clear message."""
 

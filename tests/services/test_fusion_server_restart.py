@@ -1,4 +1,4 @@
-"""Durability (SPEC §8): a real fusion-server subprocess is SIGKILLed mid-upload (after some chunks
+"""Durability: a real fusion-server subprocess is SIGKILLed mid-upload (after some chunks
 were acknowledged) and restarted on the same data dir; nothing acknowledged is lost, the client
 resumes via GetUploadStatus and the assembled subset equals the original."""
 

@@ -1,4 +1,4 @@
-"""The fusion-store contract (SPEC §8), run against both backends: the embedded SQLite store and the
+"""The fusion-store contract, run against both backends: the embedded SQLite store and the
 PostgreSQL store (psycopg 3 + psycopg_pool) that fusion replicas share.
 
 Each test opens stores through ``opener()``; a second ``opener()`` is a second, independent store
@@ -256,7 +256,7 @@ def test_unreachable_postgres_is_a_clear_store_error():
 
 
 def test_delta_upload_completes_only_with_its_rebuilt_subset(backend):
-    """Delta pushes (issue 12): the last delta chunk leaves the upload incomplete; the rebuilt full
+    """Delta pushes: the last delta chunk leaves the upload incomplete; the rebuilt full
     subset replaces the delta chunks and completes it in one transaction; an abandoned delta is
     discarded. Same contract on both backends."""
     _, opener, _ = backend

@@ -1,4 +1,4 @@
-"""Generated gRPC code is current (scripts/gen_proto.py --check) and importable (SPEC §1)."""
+"""Generated gRPC code is current (scripts/gen_proto.py --check) and importable."""
 
 from __future__ import annotations
 

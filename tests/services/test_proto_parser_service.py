@@ -1,4 +1,4 @@
-"""Parser gRPC service integration (SPEC §8): real server in-process on an ephemeral loopback port."""
+"""Parser gRPC service integration: real server in-process on an ephemeral loopback port."""
 
 from __future__ import annotations
 

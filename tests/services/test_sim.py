@@ -1,5 +1,5 @@
 """``gausslite sim``: a tiny two-agent simulation with real processes (parser, fusion server, two agents)
-on loopback, fusion (concat / vote / vote+refine), evaluation and the report (SPEC §1, §7, §9)."""
+on loopback, fusion (concat / vote / vote+refine), evaluation and the report."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     md = (tmp_path / "sim" / "report.md").read_text()
     assert "| agent_a | synth-pick-object |" in md and "| refine |" in md
     assert rep["renders"] and all((tmp_path / "sim" / r["path"]).is_file() for r in rep["renders"])
-    # bandwidth fields (issue 12): every push logged, the total is their sum, the plot exists
+    # bandwidth fields: every push logged, the total is their sum, the plot exists
     for a in rep["agents"]:
         assert a["push_log"] and a["final_subset_bytes"] > 0
         assert a["total_upload_bytes"] == sum(q["bytes_sent"] for q in a["push_log"]) >= a["final_subset_bytes"]

@@ -1,5 +1,5 @@
 """Stable Gaussian ids through density control, and delta pushes planned against a mirror of the
-server's subset (issue 12 part 2; library level, no gRPC)."""
+server's subset (library level, no gRPC)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Wire codec: round trips, precision bounds, chunking, assembly, idempotency (SPEC §8)."""
+"""Wire codec: round trips, precision bounds, chunking, assembly, idempotency."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Wire codec on hostile bytes: only typed WireError subclasses, limits before allocation (SPEC §8).
+"""Wire codec on hostile bytes: only typed WireError subclasses, limits before allocation.
 The randomised (hypothesis) hostile-input properties live in ``bench.wire_fuzz``
 (``tests/wire/test_wire_fuzz.py`` runs them briefly)."""
 
