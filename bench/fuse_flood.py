@@ -28,7 +28,7 @@ import grpc
 from tqdm import tqdm
 
 from bench._results import write_results
-from bench.trust_load import RESULTS, proc_status_mb, random_subset, start_server
+from bench.trust_load import RESULTS, proc_status_mb, random_subset, start_server, stop_server
 from gausslite.camera import Intrinsics
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from services.common import auth
@@ -79,30 +79,25 @@ def run(args: argparse.Namespace) -> dict:
             ack = up.upload_subset("mapper", 1, random_subset(args.gaussians, 1), full_map_gaussians=20 * args.gaussians)
             if not ack.complete:
                 raise RuntimeError("the subset upload did not complete")
-        channel = grpc.insecure_channel(address)
-        stub, md = fusion_pb2_grpc.FusionStub(channel), (("authorization", f"Bearer {tok['reader']}"),)
-        with FusionClient(address, token=tok["reader"], timeout_s=60) as reader:
-            keep = None
+        md = (("authorization", f"Bearer {tok['reader']}"),)
+        with FusionClient(address, token=tok["reader"], timeout_s=60) as reader, \
+                grpc.insecure_channel(address) as channel:
+            stub = fusion_pb2_grpc.FusionStub(channel)  # raw GetStats: the first page's size on the wire
             for i in tqdm(range(1, args.calls + 1), desc="Fuse(concat)", unit="call", disable=args.no_progress):
                 reader.fuse("concat")
                 if i % args.every == 0 or i == args.calls or i == 1:
-                    raw = stub.GetStats(fusion_pb2.StatsRequest(), timeout=60, metadata=md)  # the first page
+                    raw = stub.GetStats(fusion_pb2.StatsRequest(), timeout=60, metadata=md)
                     samples.append({"calls": i, "store_bytes": store_bytes(work / "data"),
                                     "stats_bytes": raw.ByteSize(), "fused_held": len(raw.fused),
                                     "rss_mb": proc_status_mb(proc.pid, "VmRSS")})
-                    keep = len(raw.fused) if keep is None else max(keep, len(raw.fused))
-        channel.close()
     finally:
-        proc.terminate()
-        try:
-            proc.wait(30)
-        except Exception:  # noqa: BLE001 - a server that does not stop is killed
-            proc.kill()
+        stop_server(proc)
     mid = min(samples, key=lambda q: abs(q["calls"] - args.calls / 2))
     last = samples[-1]
     goals = {"store_bounded": last["store_bytes"] <= 1.1 * mid["store_bytes"] + STORE_SLACK_BYTES,
              "get_stats_under_1_MB": max(s["stats_bytes"] for s in samples) < STATS_GOAL_BYTES}
-    return {"calls": args.calls, "gaussians": args.gaussians, "fused_held_max": keep, "samples": samples,
+    return {"calls": args.calls, "gaussians": args.gaussians,
+            "fused_held_max": max(q["fused_held"] for q in samples), "samples": samples,
             "store_bytes_half_way": mid["store_bytes"], "half_way_calls": mid["calls"],
             "store_bytes_last": last["store_bytes"], "stats_bytes_max": max(s["stats_bytes"] for s in samples),
             "rss_mb_max": max((s["rss_mb"] or 0.0) for s in samples), "goals": goals}

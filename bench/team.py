@@ -432,7 +432,7 @@ def share_curve(results: list[dict], default_bound: Optional[float] = None) -> d
     Raises:
         ValueError: a result has no bound and ``default_bound`` is None, or two results have the same bound.
     """
-    bounds = [share_bound(r) if share_bound(r) is not None else default_bound for r in results]
+    bounds = [default_bound if b is None else b for b in map(share_bound, results)]
     if any(b is None for b in bounds):
         raise ValueError("a team result without agent.share_max_fraction: pass the deployed bound")
     if len(set(bounds)) != len(bounds):

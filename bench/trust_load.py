@@ -119,6 +119,17 @@ def start_server(work: Path, tokens_file: Path, workers: int, idle_s: Optional[f
     return proc, f"127.0.0.1:{int(port_file.read_text())}"
 
 
+def stop_server(proc: subprocess.Popen, timeout_s: float = 20.0) -> None:
+    """Stop a server process from :func:`start_server`: SIGTERM, then SIGKILL if it has not exited in
+    ``timeout_s`` seconds; returns once it has exited."""
+    proc.terminate()
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def run(args: argparse.Namespace) -> dict:
     """Run the benchmark (module docstring) and return its results."""
     import grpc
@@ -267,12 +278,7 @@ def run(args: argparse.Namespace) -> dict:
         channel.close()
     finally:
         stop.set()
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_server(proc)
     lat = percentiles(acks_ms)
     idle = args.idle_s
     if idle is None:
