@@ -52,6 +52,7 @@ from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TR
                             scene_path, score, start_mission)
 from gausslite.config import load_config
 from gausslite.evaluation import PROTOCOLS, evaluate_fused, score_map
+from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import refine_map
 from gausslite.fusion.vote import concat, voxel_vote
@@ -225,7 +226,59 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
         robot[a["task"]] = by_protocol(g, a, out["for_robot"]["roi_psnr"][a["task"]])
     out["for_robot"]["protocols"] = _by_task(robot)
     out["vote_report"] = report.to_dict()
+    out["cover"] = team_cover(agents, final, vote, report)
     return out
+
+
+def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -> dict:
+    """What draws each robot's ROI in the team vote map (:func:`gausslite.fusion.diagnose.roi_cover`, as the sim
+    report's "what covers each robot's ROI"): the final subsets ``final`` (agent id → ``GaussianArrays``), the vote
+    map ``vote`` and its ``VoteReport``, each robot's views every ``stride``-th frame of its sequence that shows its
+    ROI (ground truth). Returns agent id → ``{"mass", "foreign", "own_missing", "top_foreign" (3)}``."""
+    views = {}
+    for a in agents:
+        ann, task = a["_annotations"], a["task"]
+        vs = []
+        for fr in a["_frames"][::stride]:
+            roi = ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics)
+            if roi.any():
+                vs.append(RoiView.from_frame(fr, roi))
+        views[a["id"]] = vs
+    if not final:
+        return {}
+    cov = roi_cover(final, vote, report.source_agent, report.source_row, views, top=3)
+    return {aid: {k: c[k] for k in ("mass", "foreign", "own_missing", "top_foreign")} for aid, c in cov.items()}
+
+
+def cover_table(runs: list[dict]) -> str:
+    """Markdown: per team and robot, the share of its ROI pixels' blending weight in the vote map drawn by its own
+    rows, by the other robots' rows in their task region or only in their context, left uncovered, the others' rows
+    over it (weighted extent, share in front of the ROI surface) and the robot's own rows the vote dropped (share of
+    its subset's ROI weight); mean over runs and, in brackets, the range."""
+    def rng(v: list) -> str:
+        v = [x for x in v if x is not None]
+        if not v:
+            return "–"
+        return f"{np.mean(v):.2f}" + (f" ({min(v):.2f}–{max(v):.2f})" if len(v) > 1 else "")
+
+    lines = ["| team | robot, task | own | others, task region | others, context | uncovered | others' extent (m) | "
+             "others in front | own ROI weight dropped | runs |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for team in sorted({r["team"] for r in runs}):
+        rs = [r for r in runs if r["team"] == team]
+        for aid in [a["id"] for a in rs[0]["agents"]]:
+            cs = [next(a for a in r["agents"] if a["id"] == aid).get("cover") for r in rs]
+            cs = [c for c in cs if c]
+            if not cs:
+                continue
+            task = next(a for a in rs[0]["agents"] if a["id"] == aid)["task"]
+            lines.append(
+                f"| {team} | {aid}, {task} | {rng([c['mass']['own'] for c in cs])} | "
+                f"{rng([c['mass']['foreign_task'] for c in cs])} | {rng([c['mass']['foreign_context'] for c in cs])} | "
+                f"{rng([c['mass']['uncovered'] for c in cs])} | "
+                f"{rng([c['foreign'].get('weighted_extent_m') for c in cs])} | "
+                f"{rng([c['foreign'].get('weight_in_front') for c in cs])} | "
+                f"{rng([c['own_missing'].get('weight_share') for c in cs])} | {len(cs)} |")
+    return "\n".join(lines)
 
 
 def _by_task(per_task: dict) -> dict:
@@ -249,6 +302,7 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
             a.pop(k)
         for key in (*FUSED_KEYS, "for_robot"):
             a[f"{key}_roi_psnr"] = fused[key]["roi_psnr"].get(a["task"])
+        a["cover"] = fused["cover"].get(a["id"])
         own = a.pop("own_protocols")
         a["protocols"] = {q: {"own_roi_psnr": v["roi_psnr"], "own_frames": v["frames_scored"],
                               **{f"{key}_roi_psnr": fused[key]["protocols"].get(q, {}).get(a["task"])
@@ -538,7 +592,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     for team in teams:
         plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
     write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min",
-                  table(result) + "\n\n" + protocol_table(result), result)
+                  table(result) + "\n\n" + protocol_table(result)
+                  + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n" + cover_table(runs),
+                  result)
     out.with_suffix(".partial.json").unlink(missing_ok=True)  # the runs are in the result now
     return 0
 

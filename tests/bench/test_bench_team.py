@@ -141,6 +141,16 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         for a in agents:
             assert p["sensor"][a["task"]] == out[key]["roi_psnr"][a["task"]]
             assert p["keyframes"][a["task"]] is not None and p["tracked"][a["task"]] is not None
+    # what draws each robot's ROI in the vote map: every robot diagnosed, the weights add up to the ROI
+    for a in agents:
+        c = out["cover"][a["id"]]
+        assert sum(c["mass"].values()) == pytest.approx(1.0, abs=1e-6)
+        assert 0.0 < c["mass"]["own"] <= 1.0
+        assert c["own_missing"]["of"] == len(a["_history"][-1][1])
+    run = {"team": "synthetic", "agents": [{"id": a["id"], "task": a["task"], "cover": out["cover"][a["id"]]}
+                                           for a in agents]}
+    md = team.cover_table([run, run])
+    assert md.count("\n") == 1 + 2 and "| synthetic | agent_a, t0 |" in md and "| 2 |" in md
     # sensor alone: no other protocol is scored
     only = team.fused_scores(agents, fuse, 0, 3, protocols=("sensor",))
     assert set(only["vote"]["protocols"]) == {"sensor"}
