@@ -5,7 +5,7 @@ The services map each type to a gRPC status in one place (``services/common/erro
 
 from __future__ import annotations
 
-__all__ = ["ImageSizeError", "RelevanceUnavailable"]
+__all__ = ["ImageSizeError", "RelevanceUnavailable", "PreconditionFailed", "CapacityExceeded"]
 
 
 class ImageSizeError(ValueError):
@@ -17,3 +17,17 @@ class RelevanceUnavailable(ValueError):
     """The configured relevance source cannot be built: scene annotations, a task id or the ONNX models it needs
     are missing (``gausslite.mission.relevance.build_relevance``). A matter of the agent's configuration rather
     than of the request: the agent answers FAILED_PRECONDITION."""
+
+
+class PreconditionFailed(Exception):
+    """A call was refused because of the callee's state, not because of its arguments: for a delta push, the fusion
+    side does not hold the delta's base (``gausslite.fusion.uploads.MissingDeltaBase``), or a newer complete version
+    supersedes the upload (``gausslite.fusion.uploads.SupersededVersion``). The services answer
+    FAILED_PRECONDITION; the mission then uploads the full subset. The gRPC client's ``FailedPrecondition`` is one.
+    Also importable as ``gausslite.mission.errors.PreconditionFailed``."""
+
+
+class CapacityExceeded(Exception):
+    """A request would make the callee hold more than a configured bound allows (e.g. a delta that rebuilds a subset
+    above the fusion server's ``fusion.max_subset_gaussians``). Not a malformed argument: the services answer
+    RESOURCE_EXHAUSTED."""

@@ -37,12 +37,13 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.memory import VOXEL_KEY_OFFSET, pack_voxel_keys
 from gausslite.mapping.model import cosine_lr_factor
 from gausslite.mapping.views import StoredKeyframe
-from gausslite.wire.codec import GaussianArrays, QuantConfig
 from gausslite.wire.delta import change_steps
+from gausslite.wire.format import QuantConfig
 
 __all__ = ["ShareConfig", "task_region", "in_region", "roi_contribution", "select_task_subset",
            "finetune_subset", "update_shared_subset"]

@@ -44,7 +44,8 @@ from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mission.config import AgentConfig
 from gausslite.synthetic import make_scene
-from gausslite.wire.codec import WireLimits, assemble
+from gausslite.wire.decode import assemble
+from gausslite.wire.format import WireLimits
 from gausslite_rpc import agent_pb2
 from services.agent.client import AgentClient
 from services.cli.cmd_health import check_health

@@ -25,7 +25,7 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 import torch
 
-from gausslite.wire.codec import GaussianArrays
+from gausslite.core.arrays import GaussianArrays
 
 __all__ = ["RoiView", "roi_cover", "cover_image"]
 

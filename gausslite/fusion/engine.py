@@ -13,9 +13,9 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Mapping, Optional, Sequence
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_vote
-from gausslite.wire.codec import GaussianArrays
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from gausslite.wire.codec import GaussianArrays
+from gausslite.core.arrays import GaussianArrays
 
 __all__ = ["GuardReport", "roi_weights", "roi_guard", "for_robot"]
 

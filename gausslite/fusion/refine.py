@@ -19,11 +19,11 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.model import cosine_lr_factor
 from gausslite.mapping.views import Keyframe
-from gausslite.wire.codec import GaussianArrays
 
 log = logging.getLogger(__name__)
 

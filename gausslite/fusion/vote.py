@@ -36,7 +36,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from gausslite.wire.codec import GaussianArrays
+from gausslite.core.arrays import GaussianArrays
 
 __all__ = ["VoteReport", "voxel_vote", "concat", "voxel_keys", "IncrementalVote", "VoxelRangeError"]
 

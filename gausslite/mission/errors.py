@@ -1,9 +1,10 @@
 """Errors of a mission: what its fusion client raises for the mission loop to act on, and what the mission raises
-to its caller."""
+to its caller. :class:`PreconditionFailed` (a refused delta base) is defined in :mod:`gausslite.errors`, beside the
+other library error types, and re-exported here."""
 
 from __future__ import annotations
 
-from gausslite.errors import ImageSizeError
+from gausslite.errors import ImageSizeError, PreconditionFailed
 
 __all__ = ["PreconditionFailed", "MissionError", "FrameSizeMismatch"]
 
@@ -15,8 +16,3 @@ class MissionError(RuntimeError):
 class FrameSizeMismatch(MissionError, ImageSizeError):
     """A frame's image size differs from the mission's first frame (a :class:`MissionError` and an
     :class:`gausslite.errors.ImageSizeError`: a bad argument, not a mission state)."""
-
-
-class PreconditionFailed(Exception):
-    """The fusion side refused a call because of its state (for a delta push: it does not hold the delta's base).
-    The mission then uploads the full subset. The gRPC client's ``FailedPrecondition`` is one."""

@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.mapping.config import MapperConfig
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.heap import trim_heap
-from gausslite.wire.codec import GaussianArrays
 from gausslite.wire.delta import PushPlanner
 
 if TYPE_CHECKING:  # torch: gausslite.mission.share stays importable without it

@@ -22,8 +22,8 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.viewer.splats import COLOR_MODES, scene_bounds, splat_arrays
-from gausslite.wire.codec import GaussianArrays
 
 log = logging.getLogger(__name__)
 

@@ -22,8 +22,8 @@ from typing import Union
 
 import numpy as np
 
+from gausslite.core.arrays import GaussianArrays
 from gausslite.viewer.splats import normalized_quats, sigmoid
-from gausslite.wire.codec import GaussianArrays
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Map → splat arrays for viewers (paper Sec. III-A Gaussian parameters; 3DGS, Kerbl et al. 2023, Sec. 4).
 
 A viewer needs, per Gaussian, a centre, a 3×3 world covariance Σ = R S Sᵀ Rᵀ, an RGB colour and an
-opacity. :func:`splat_arrays` computes them from a :class:`gausslite.wire.codec.GaussianArrays` (or
+opacity. :func:`splat_arrays` computes them from a :class:`gausslite.core.arrays.GaussianArrays` (or
 anything :meth:`GaussianArrays.from_any` takes: a ``GaussianMap``, a mapping of arrays) in chunks,
 reporting progress, so a map of millions of Gaussians converts with a live progress bar.
 
@@ -23,7 +23,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from gausslite.wire.codec import GaussianArrays
+from gausslite.core.arrays import GaussianArrays
 
 #: Colour modes understood by :func:`splat_arrays`.
 COLOR_MODES = ("rgb", "kappa", "roi")

@@ -1,11 +1,14 @@
 """Wire format for Gaussian subsets exchanged between agents and the fusion server.
 
-Paper Sec. III-E.  See :mod:`gausslite.wire.codec` and ``docs/wire-format.md`` for the
-byte layout, precision and error hierarchy.  Pure library code (numpy + zstandard); the gRPC
-services call these functions.
+Paper Sec. III-E.  The codec is split by concern: :mod:`gausslite.wire.format` (constants, layouts,
+configuration, limits, errors), :mod:`gausslite.wire.encode` and :mod:`gausslite.wire.decode`;
+:mod:`gausslite.wire.codec` re-exports their public API.  Byte layout, precision and error hierarchy:
+``docs/wire-format.md``.  Pure library code (numpy + zstandard); the gRPC services call these functions.
 """
 
-from gausslite.wire.codec import (
+from gausslite.wire.decode import SubsetAssembler, apply_delta, assemble, decode_chunk, peek_header, raw_payload
+from gausslite.wire.encode import encode_delta, encode_subset, pack_sections, spatial_order
+from gausslite.wire.format import (
     DEFAULT_LIMITS,
     FORMAT_VERSION,
     HEADER_SIZE,
@@ -27,23 +30,13 @@ from gausslite.wire.codec import (
     MalformedChunk,
     NonFiniteValues,
     QuantConfig,
-    SubsetAssembler,
     SubsetMeta,
     TruncatedChunk,
     UnsupportedVersion,
     WireError,
     WireLimits,
-    apply_delta,
-    assemble,
-    decode_chunk,
-    encode_delta,
-    encode_subset,
-    pack_sections,
-    peek_header,
     raw_bytes_per_gaussian,
-    raw_payload,
     section_lengths,
-    spatial_order,
 )
 
 __all__ = [

@@ -4,7 +4,7 @@ decides which Gaussians a push must carry (``docs/sharing.md``; delta records: `
 An agent identifies its Gaussians by the stable per-agent ids of
 :attr:`gausslite.mapping.model.GaussianModel.ids`.  Ids never travel on the wire: a delta names
 rows of the *base* subset (the last version the server acknowledged) by position, and the server
-rebuilds the new subset with :func:`gausslite.wire.codec.apply_delta`.  The agent applies the very
+rebuilds the new subset with :func:`gausslite.wire.decode.apply_delta`.  The agent applies the very
 same decoded delta to its mirror, so both sides hold bit-identical subsets and the mirror maps
 every server row back to an id.
 
@@ -42,16 +42,10 @@ from typing import Optional
 
 import numpy as np
 
-from gausslite.wire.codec import (
-    GaussianArrays,
-    QuantConfig,
-    apply_delta,
-    assemble,
-    encode_delta,
-    encode_subset,
-    spatial_order,
-)
-from gausslite.wire.codec import MAX_KAPPA_SHIFT
+from gausslite.core.arrays import GaussianArrays
+from gausslite.wire.decode import apply_delta, assemble
+from gausslite.wire.encode import encode_delta, encode_subset, spatial_order
+from gausslite.wire.format import MAX_KAPPA_SHIFT, QuantConfig
 
 __all__ = ["PlannedPush", "PushPlanner", "change_steps", "changed_rows", "kappa_shift_of"]
 

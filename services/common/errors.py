@@ -15,8 +15,8 @@ from typing import Dict, Tuple, Type
 
 import grpc
 
-from gausslite.errors import ImageSizeError, RelevanceUnavailable
-from gausslite.mission.errors import MissionError, PreconditionFailed
+from gausslite.errors import CapacityExceeded, ImageSizeError, PreconditionFailed, RelevanceUnavailable
+from gausslite.mission.errors import MissionError
 
 __all__ = ["status_for", "LIBRARY_STATUSES",
            "RpcStatusError", "InvalidArgument", "NotFound", "AlreadyExists", "FailedPrecondition",
@@ -51,7 +51,7 @@ def _status(code: grpc.StatusCode, *bases: type) -> Type[RpcStatusError]:
 InvalidArgument = _status(grpc.StatusCode.INVALID_ARGUMENT)
 NotFound = _status(grpc.StatusCode.NOT_FOUND)
 AlreadyExists = _status(grpc.StatusCode.ALREADY_EXISTS)
-#: also the mission loop's :class:`gausslite.mission.errors.PreconditionFailed` (a delta push without its base)
+#: also the mission loop's :class:`gausslite.errors.PreconditionFailed` (a delta push without its base)
 FailedPrecondition = _status(grpc.StatusCode.FAILED_PRECONDITION, PreconditionFailed)
 PermissionDenied = _status(grpc.StatusCode.PERMISSION_DENIED)
 Unauthenticated = _status(grpc.StatusCode.UNAUTHENTICATED)
@@ -109,7 +109,8 @@ LIBRARY_STATUSES: Tuple[Tuple[Type[BaseException], grpc.StatusCode], ...] = (
     (ImageSizeError, grpc.StatusCode.INVALID_ARGUMENT),  # also a mission's FrameSizeMismatch
     (RelevanceUnavailable, grpc.StatusCode.FAILED_PRECONDITION),
     (MissionError, grpc.StatusCode.FAILED_PRECONDITION),
-    (PreconditionFailed, grpc.StatusCode.FAILED_PRECONDITION),
+    (PreconditionFailed, grpc.StatusCode.FAILED_PRECONDITION),  # also gausslite.fusion.uploads' version checks
+    (CapacityExceeded, grpc.StatusCode.RESOURCE_EXHAUSTED),
     (ValueError, grpc.StatusCode.INVALID_ARGUMENT),
 )
 

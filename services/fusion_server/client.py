@@ -52,7 +52,10 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset
+from gausslite.core.arrays import GaussianArrays
+from gausslite.wire.decode import assemble
+from gausslite.wire.encode import encode_subset
+from gausslite.wire.format import QuantConfig
 from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import read_secret
@@ -382,7 +385,7 @@ class FusionClient:
                       full_map_bytes: int = 0) -> UploadResult:
         """Encode and upload an ROI subset, resuming whatever the server already holds.
 
-        The subset is encoded with :func:`gausslite.wire.codec.encode_subset`; before every attempt
+        The subset is encoded with :func:`gausslite.wire.encode.encode_subset`; before every attempt
         the client asks ``GetUploadStatus`` and sends only missing chunks, in calls of at most
         :data:`UPLOAD_BATCH_BYTES` (each call is acknowledged after its chunks are persisted).
 
@@ -411,7 +414,7 @@ class FusionClient:
     def upload_chunks(self, agent_id: str, map_version: int, chunks: Sequence[bytes], *, n_gaussians: int,
                       full_map_gaussians: int, full_map_bytes: int = 0) -> UploadResult:
         """Upload already encoded chunks of (agent, map version) — a full subset or a delta
-        (:func:`gausslite.wire.codec.encode_delta`) — resuming whatever the server already holds.
+        (:func:`gausslite.wire.encode.encode_delta`) — resuming whatever the server already holds.
 
         Args:
             chunks: the version's wire chunks (chunk i has index i).
@@ -563,7 +566,7 @@ class FusionClient:
             GaussianArrays (lossless copy of the server's fused map).
         Raises:
             grpc.RpcError: NOT_FOUND (unknown version / no fused map yet), ...
-            gausslite.wire.codec.WireError: corrupt download.
+            gausslite.wire.format.WireError: corrupt download.
         """
         m = fusion_pb2.FUSE_METHOD_UNSPECIFIED if method is None else _METHODS[method]
         req = fusion_pb2.DownloadFusedRequest(fused_version=int(fused_version), method=m)

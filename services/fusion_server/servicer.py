@@ -4,26 +4,32 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import queue
 import threading
 import time
-from typing import Dict, Optional
+from typing import Dict, Iterator, Optional
 
 import grpc
 import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.config import FusionSettings
+from gausslite.core.arrays import GaussianArrays
 from gausslite.datasets.base import Frame
+from gausslite.errors import CapacityExceeded, PreconditionFailed
 from gausslite.fusion.engine import FuseEngine
 from gausslite.fusion.plausible import check_plausible
-from gausslite.wire.codec import (LOSSLESS, DeltaMismatch, GaussianArrays, LimitExceeded, SubsetAssembler, WireError,
-                                  WireLimits, apply_delta, assemble, decode_chunk, encode_subset, peek_header)
+from gausslite.fusion.uploads import check_delta_base, check_not_superseded, complete_delta_upload
+from gausslite.wire.decode import assemble, decode_chunk, peek_header
+from gausslite.wire.encode import encode_subset
+from gausslite.wire.format import LOSSLESS, DeltaMismatch, LimitExceeded, WireError, WireLimits
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
 from services.common.auth import Authenticator, AuthError
 from services.common.convert import intrinsics_to_proto
+from services.common.errors import status_for
 from services.common.server import peer_host
 from services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard, unary_guard,
                                            check_agent_id, check_int64, decode_color, decode_depth, decode_roi,
@@ -45,6 +51,20 @@ CHUNK_ENVELOPE_BYTES = 16
 MAX_CHUNK_GAUSSIANS = 1 << 20
 #: smallest message bound the server runs with: a fused chunk (64 KiB at least) and its ``FuseResult`` must fit
 MIN_MESSAGE_BYTES = 128 * 1024
+
+
+#: the library's refusals of an upload (:mod:`gausslite.fusion.uploads`)
+_UPLOAD_REFUSALS = (PreconditionFailed, CapacityExceeded, DeltaMismatch)
+
+
+@contextlib.contextmanager
+def _upload_refusals() -> Iterator[None]:
+    """Answer the library's refusals of an upload (:data:`_UPLOAD_REFUSALS`) raised in the block with the status
+    :func:`services.common.errors.status_for` gives their type, and their message."""
+    try:
+        yield
+    except _UPLOAD_REFUSALS as e:
+        raise Reject(status_for(e), str(e)) from None
 
 
 def _ordinal(n: int) -> str:
@@ -175,50 +195,17 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 del self._cache[k]
             self._cache[(agent_id, version)] = arrays
 
-    def _check_delta_base(self, agent: str, version: int, base_version: int) -> None:
-        """FAILED_PRECONDITION (and the delta upload discarded) when the base is not stored."""
-        base = self.store.upload(agent, base_version)
-        if base is None or not base.complete:
-            self.store.discard_upload(agent, version)
-            latest = self.store.latest_version(agent)
-            raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
-                         f"delta v{version} of {agent!r} needs base version {base_version}, which this server "
-                         f"does not hold (latest complete: {latest if latest is not None else 'none'}); "
-                         "upload the full subset")
-
     def _rebuild_delta(self, agent: str, version: int) -> None:
-        """When every chunk of a delta upload is stored: rebuild the full subset from its base and
-        store it (lossless chunks) as the complete version.  Idempotent and crash-safe: the delta
-        chunks stay until the rebuilt subset is committed, and a resumed upload redoes this."""
-        up = self.store.upload(agent, version)
-        if up is None or up.complete or up.missing:
+        """When every chunk of a delta upload is stored: rebuild and store the full subset
+        (:func:`gausslite.fusion.uploads.complete_delta_upload`) and keep it decoded."""
+        with _upload_refusals():
+            done = complete_delta_upload(self.store, agent, version, self.limits, self._subset)
+        if done is None:
             return
-        asm = SubsetAssembler(self.limits, agent_id=agent, map_version=version)
-        for c in self.store.chunk_data(agent, version):
-            asm.add(c)
-        records, meta = asm.result()
-        if not meta.delta:
-            return
-        self._check_delta_base(agent, version, meta.base_version)
-        targets, removed = asm.delta_parts()
-        try:
-            full = apply_delta(self._subset(agent, meta.base_version), records, targets, removed,
-                               meta.base_count, meta.kappa_shift)
-        except DeltaMismatch as e:
-            self.store.discard_upload(agent, version)
-            raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"delta v{version} of {agent!r}: {e}") from None
-        if len(full) > self.limits.max_total_gaussians:
-            self.store.discard_upload(agent, version)
-            raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                         f"delta v{version} of {agent!r} rebuilds a subset of {len(full)} Gaussians, above the "
-                         f"server's limit of {self.limits.max_total_gaussians}")
-        chunks = encode_subset(full, agent, version, quant=LOSSLESS, max_chunk_bytes=self.limits.max_chunk_bytes,
-                               limits=self.limits)
-        stored = [(c, decode_chunk(c, self.limits).digest, peek_header(c, self.limits).count) for c in chunks]
-        self.store.complete_rebuilt(agent, version, stored, len(full), True)
-        self._cache_put(agent, version, full)
+        self._cache_put(agent, version, done.subset)
         log.info("subset %s v%d rebuilt from base v%d + delta (%d records, %d removed, κ shift %d): %d Gaussians",
-                 agent, version, meta.base_version, len(records), len(removed), meta.kappa_shift, len(full))
+                 agent, version, done.meta.base_version, done.records, done.removed, done.meta.kappa_shift,
+                 len(done.subset))
 
     # ------------------------------------------------------------------ RPCs
     @unary_guard
@@ -265,10 +252,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "n_chunks must be >= 1")
         if n_chunks > self.limits.max_chunks:
             raise Reject(grpc.StatusCode.RESOURCE_EXHAUSTED, f"n_chunks {n_chunks} exceeds {self.limits.max_chunks}")
-        latest = self.store.latest_version(agent)
-        if latest is not None and version < latest:
-            raise Reject(grpc.StatusCode.FAILED_PRECONDITION,
-                         f"map_version {version} of {agent!r} is superseded by complete version {latest}")
+        with _upload_refusals():
+            check_not_superseded(agent, version, self.store.latest_version(agent))
         try:
             self.store.begin_upload(agent, version, n_chunks, check_int64(h.full_map_gaussians, "full_map_gaussians"),
                                     check_int64(h.full_map_bytes, "full_map_bytes"))
@@ -292,7 +277,9 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"{unread}: {type(e).__name__}: {e}") from None
             idx = hdr.chunk_index
             if hdr.delta:
-                self._check_delta_base(agent, version, check_int64(hdr.base_version, "delta base_version"))
+                base_version = check_int64(hdr.base_version, "delta base_version")
+                with _upload_refusals():
+                    check_delta_base(self.store, agent, version, base_version)
             if hdr.agent_id != agent or hdr.map_version != version:
                 raise Reject(grpc.StatusCode.INVALID_ARGUMENT,
                              f"chunk index {idx} belongs to agent {hdr.agent_id!r} v{hdr.map_version}, the upload "

@@ -5,9 +5,11 @@ import grpc
 import pytest
 from gausslite_rpc import common_pb2
 
-from gausslite.errors import ImageSizeError, RelevanceUnavailable
+from gausslite.errors import CapacityExceeded, ImageSizeError, RelevanceUnavailable
+from gausslite.fusion.uploads import MissingDeltaBase, RebuiltTooLarge, SupersededVersion
 from gausslite.mission import AgentConfig, FrameSizeMismatch, MissionError, PreconditionFailed
 from gausslite.mission.relevance import build_relevance
+from gausslite.wire import DeltaMismatch, LimitExceeded
 from services.common.convert import intrinsics_from_proto
 from services.common.errors import status_for
 
@@ -38,3 +40,13 @@ def test_library_raises_the_typed_errors():
     e = FrameSizeMismatch("frame 1")
     assert isinstance(e, MissionError) and isinstance(e, ValueError)
 
+
+def test_upload_refusals_keep_their_statuses():
+    # gausslite.fusion.uploads raises these; the fusion server answers with status_for
+    assert status_for(SupersededVersion("x")) == grpc.StatusCode.FAILED_PRECONDITION
+    assert status_for(MissingDeltaBase("x")) == grpc.StatusCode.FAILED_PRECONDITION
+    assert status_for(DeltaMismatch("x")) == grpc.StatusCode.INVALID_ARGUMENT
+    assert status_for(RebuiltTooLarge("x")) == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert status_for(CapacityExceeded("x")) == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert status_for(LimitExceeded("x")) == grpc.StatusCode.INVALID_ARGUMENT  # unchanged: a wire error
+    assert isinstance(MissingDeltaBase("x"), PreconditionFailed)  # the mission's fallback to a full upload
