@@ -25,7 +25,7 @@ from services.agent.client import AgentClient
 from services.cli.cmd_health import check_health
 from services.fusion_server.client import FusionClient
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("services.sim")  # one logger for the whole simulation
 
 REPO = Path(__file__).resolve().parents[2]
 AGENT_NAMES = ("agent_a", "agent_b")

@@ -14,7 +14,7 @@ from typing import Dict, List, Optional
 from gausslite.evaluation import PROTOCOLS
 from services.sim.launch import AgentPlan
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("services.sim")  # one logger for the whole simulation
 
 FUSED_KEYS = ("concat", "vote", "for_robot", "refine")
 #: what each fused key is, for the report

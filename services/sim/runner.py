@@ -24,7 +24,7 @@ from services.sim.report import (_agent_report, _fused_minus_own, _load_offline,
 from services.sim.scoring import _fuse_and_score, _load_eval_frames, _uploaded_keyframe_poses, roi_cover_report
 from services.sim.timeline import FusedTimeline
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("services.sim")  # one logger for the whole simulation
 
 
 @dataclass

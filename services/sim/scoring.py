@@ -28,7 +28,7 @@ from services.fusion_server.store import SqliteFusionStore
 from services.sim.launch import AgentPlan
 from services.sim.report import FUSED_KEYS, _fmt
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("services.sim")  # one logger for the whole simulation
 
 
 def fuse_settings(cfg: GaussLiteConfig, realtime: bool = False) -> dict:

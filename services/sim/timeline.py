@@ -8,7 +8,7 @@ from typing import Dict, List, Optional
 
 from gausslite.evaluation import evaluate_fused
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("services.sim")  # one logger for the whole simulation
 
 
 class FusedTimeline:
