@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .warp_kernels import bwd_tile_init, tile_box
+from .warp_kernels_bwd import bwd_tile_init
+from .warp_kernels_common import tile_box
 
 wp.set_module_options({"enable_backward": False})
 
@@ -46,8 +47,8 @@ def check_cpu_kernel(cpu_kernel: str) -> None:
         raise ValueError(f"cpu_kernel must be one of {CPU_KERNELS}, got {cpu_kernel!r}")
 
 # Pieces shared by both snippets (substituted below): the Gaussian's gdata row, its tile rows
-# (:func:`~gausslite.render.warp_kernels._tile_rows`), the row span as lanes [la, lb] with the row
-# offsets (:func:`~gausslite.render.warp_kernels._row_span`), and the polynomial exp of ``x``
+# (:func:`~gausslite.render.warp_kernels_common._tile_rows`), the row span as lanes [la, lb] with the row
+# offsets (:func:`~gausslite.render.warp_kernels_common._row_span`), and the polynomial exp of ``x``
 # (Cephes expf: x = n ln2 + r, e^r by a degree-6 polynomial, 2^n through the exponent bits) as
 # ``p * sc.f``.
 _LOAD = r"""

@@ -7,6 +7,7 @@ many agents, voxel-votes them into one map (optional joint refinement), persists
 * :mod:`services.fusion_server.guards` — request checks and the status guards (a precise status and a log line
   for every rejected call).
 * :mod:`services.fusion_server.store` — durable store (everything acknowledged is committed): embedded
-  SQLite by default, PostgreSQL (shared by replicas) selected by a ``postgresql://`` DSN.
+  SQLite by default, PostgreSQL (shared by replicas) selected by a ``postgresql://`` DSN; the contract in SQL,
+  the backends and the record types live in its ``store_*`` modules.
 * :mod:`services.fusion_server.client` — the robot-side :class:`FusionClient`.
 """

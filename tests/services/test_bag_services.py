@@ -19,7 +19,8 @@ from gausslite_rpc import agent_pb2
 from services.agent.client import AgentClient
 from services.agent.server import AgentSettings, serve as serve_agent
 from services.common.server import ServerOptions
-from services.sim import _check_bags, plan_agents
+from services.sim import plan_agents
+from services.sim.launch import _check_bags
 
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=150"]

@@ -82,7 +82,7 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
                             ("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"), ("vote", 0.1, 1, "agent_b")]
     assert [(t, v) for t, v, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
     scored = []
-    monkeypatch.setattr(sim, "evaluate_fused",
+    monkeypatch.setattr(sim.timeline, "evaluate_fused",
                         lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames))) or 20.0 + len(g))
 
     class _DS:
