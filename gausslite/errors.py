@@ -5,7 +5,7 @@ The services map each type to a gRPC status in one place (``services/common/erro
 
 from __future__ import annotations
 
-__all__ = ["ImageSizeError", "RelevanceUnavailable"]
+__all__ = ["ImageSizeError", "RelevanceUnavailable", "ExtraUnavailable"]
 
 
 class ImageSizeError(ValueError):
@@ -17,3 +17,20 @@ class RelevanceUnavailable(ValueError):
     """The configured relevance source cannot be built: scene annotations, a task id or the ONNX models it needs
     are missing (``gausslite.mission.relevance.build_relevance``). A matter of the agent's configuration rather
     than of the request: the agent answers FAILED_PRECONDITION."""
+
+
+class ExtraUnavailable(RuntimeError):
+    """A feature needs an optional extra of the package that is not installed here (``gausslite.core.extras``; e.g.
+    the fusion server's refinement on a light install without torch). A matter of the installation rather than of
+    the request: the services answer FAILED_PRECONDITION.
+
+    Args:
+        message: what cannot run, the extra it needs and how to install it.
+        extra: the extra's name (``mapper``, ``fusion``).
+        missing: the top-level modules not found.
+    """
+
+    def __init__(self, message: str, extra: str = "", missing: tuple = ()) -> None:
+        super().__init__(message)
+        self.extra = extra
+        self.missing = tuple(missing)

@@ -15,7 +15,7 @@ from typing import Dict, Tuple, Type
 
 import grpc
 
-from gausslite.errors import ImageSizeError, RelevanceUnavailable
+from gausslite.errors import ExtraUnavailable, ImageSizeError, RelevanceUnavailable
 from gausslite.mission.errors import MissionError, PreconditionFailed
 
 __all__ = ["status_for", "LIBRARY_STATUSES",
@@ -108,6 +108,7 @@ def raises_typed_errors(cls):
 LIBRARY_STATUSES: Tuple[Tuple[Type[BaseException], grpc.StatusCode], ...] = (
     (ImageSizeError, grpc.StatusCode.INVALID_ARGUMENT),  # also a mission's FrameSizeMismatch
     (RelevanceUnavailable, grpc.StatusCode.FAILED_PRECONDITION),
+    (ExtraUnavailable, grpc.StatusCode.FAILED_PRECONDITION),  # a feature of an extra this install lacks
     (MissionError, grpc.StatusCode.FAILED_PRECONDITION),
     (PreconditionFailed, grpc.StatusCode.FAILED_PRECONDITION),
     (ValueError, grpc.StatusCode.INVALID_ARGUMENT),
