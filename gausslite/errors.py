@@ -5,7 +5,7 @@ The services map each type to a gRPC status in one place (``services/common/erro
 
 from __future__ import annotations
 
-__all__ = ["ImageSizeError", "RelevanceUnavailable", "PreconditionFailed", "CapacityExceeded"]
+__all__ = ["ImageSizeError", "RelevanceUnavailable", "PreconditionFailed", "CapacityExceeded", "ExtraUnavailable"]
 
 
 class ImageSizeError(ValueError):
@@ -31,3 +31,20 @@ class CapacityExceeded(Exception):
     """A request would make the callee hold more than a configured bound allows (e.g. a delta that rebuilds a subset
     above the fusion server's ``fusion.max_subset_gaussians``). Not a malformed argument: the services answer
     RESOURCE_EXHAUSTED."""
+
+
+class ExtraUnavailable(RuntimeError):
+    """A feature needs an optional extra of the package that is not installed here (``gausslite.core.extras``; e.g.
+    the fusion server's refinement on a light install without torch). A matter of the installation rather than of
+    the request: the services answer FAILED_PRECONDITION.
+
+    Args:
+        message: what cannot run, the extra it needs and how to install it.
+        extra: the extra's name (``mapper``, ``fusion``).
+        missing: the top-level modules not found.
+    """
+
+    def __init__(self, message: str, extra: str = "", missing: tuple = ()) -> None:
+        super().__init__(message)
+        self.extra = extra
+        self.missing = tuple(missing)

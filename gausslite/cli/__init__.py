@@ -12,6 +12,8 @@ import pkgutil
 import sys
 from typing import Optional, Sequence
 
+from gausslite.core.extras import unavailable_from
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The top-level argument parser with every discovered subcommand registered."""
@@ -39,14 +41,24 @@ def command_packages() -> list:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Entry point of the ``gausslite`` console script. Returns the process exit code."""
+    """Entry point of the ``gausslite`` console script. Returns the process exit code (2 when the command needs an
+    extra of the package that is not installed: ``gausslite.core.extras``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    rc = args.func(args)
+    try:
+        rc = args.func(args)
+    except ImportError as e:
+        # a command needing an extra this install lacks (e.g. `map` on the light fusion-server install): name the
+        # extra instead of a traceback; any other failed import is a broken install and propagates
+        missing = unavailable_from(e, "this command")
+        if missing is None:
+            raise
+        print(f"gausslite {args.command}: error: {missing}", file=sys.stderr)
+        return 2
     return int(rc or 0)
 
 

@@ -19,41 +19,15 @@ Pure NumPy/PyTorch on top of :func:`gausslite.render.blend_weights`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Mapping, Optional, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from gausslite.core.arrays import GaussianArrays
+from gausslite.fusion.guard import RoiView  # also importable from here (torch-free in guard)
 
 __all__ = ["RoiView", "roi_cover", "cover_image"]
-
-
-@dataclass(frozen=True)
-class RoiView:
-    """One view of a robot's task ROI.
-
-    Attributes:
-        K: (3, 3) float pixel intrinsics.  width, height: image size (pixels).
-        c2w: (4, 4) float camera-to-world, OpenCV camera axes, metres.
-        roi: (height, width) bool ROI pixels.
-        depth: (height, width) float32 sensor depth (metres along camera z, 0 = invalid), or None.
-    """
-
-    K: np.ndarray
-    width: int
-    height: int
-    c2w: np.ndarray
-    roi: np.ndarray
-    depth: Optional[np.ndarray] = None
-
-    @classmethod
-    def from_frame(cls, frame, roi: np.ndarray) -> "RoiView":
-        """From a dataset ``Frame`` and its (H, W) bool ROI."""
-        i = frame.intrinsics
-        return cls(np.asarray(i.K, np.float64), int(i.width), int(i.height), np.asarray(frame.c2w, np.float64),
-                   np.asarray(roi, bool), np.asarray(frame.depth, np.float32))
 
 
 def _torch(g: GaussianArrays):

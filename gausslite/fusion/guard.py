@@ -31,7 +31,33 @@ import numpy as np
 
 from gausslite.core.arrays import GaussianArrays
 
-__all__ = ["GuardReport", "roi_weights", "roi_guard", "for_robot"]
+__all__ = ["RoiView", "GuardReport", "roi_weights", "roi_guard", "for_robot"]
+
+
+@dataclass(frozen=True)
+class RoiView:
+    """One view of a robot's task ROI.
+
+    Attributes:
+        K: (3, 3) float pixel intrinsics.  width, height: image size (pixels).
+        c2w: (4, 4) float camera-to-world, OpenCV camera axes, metres.
+        roi: (height, width) bool ROI pixels.
+        depth: (height, width) float32 sensor depth (metres along camera z, 0 = invalid), or None.
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    c2w: np.ndarray
+    roi: np.ndarray
+    depth: Optional[np.ndarray] = None
+
+    @classmethod
+    def from_frame(cls, frame, roi: np.ndarray) -> "RoiView":
+        """From a dataset ``Frame`` and its (H, W) bool ROI."""
+        i = frame.intrinsics
+        return cls(np.asarray(i.K, np.float64), int(i.width), int(i.height), np.asarray(frame.c2w, np.float64),
+                   np.asarray(roi, bool), np.asarray(frame.depth, np.float32))
 
 
 @dataclass(frozen=True)
@@ -60,15 +86,16 @@ def roi_weights(gaussians: GaussianArrays, views: Sequence, backend: str = "auto
         gaussians: the map (world frame, metres).
         views: ROI views, each with ``K`` (3, 3) pixels, ``width``, ``height``, ``c2w`` (4, 4) camera-to-world (OpenCV
             axes) and ``roi`` (height, width) bool (arrays or CPU tensors, e.g. ``gausslite.mapping.views.Keyframe``
-            or :class:`gausslite.fusion.diagnose.RoiView`); views without ROI pixels are skipped.
+            or :class:`RoiView`); views without ROI pixels are skipped.
         backend: rasterizer backend.
     """
-    # lazy: keeps gausslite.fusion.guard importable without OpenCV, torch
-    from gausslite.sharing import roi_contribution
-
     vs = _roi_views(views)
     if not vs or len(gaussians) == 0:
         return np.zeros(len(gaussians), np.float64)
+    # lazy: torch and the rasterizer (the 'mapper' extra), needed only when there are ROI views to render; keeps
+    # gausslite.fusion.guard importable, and the team map of a robot without ROI views made, on the light install
+    from gausslite.sharing import roi_contribution
+
     return roi_contribution(gaussians.to_gaussian_map(), vs, backend) / len(vs)
 
 

@@ -15,7 +15,8 @@ from typing import Dict, Tuple, Type
 
 import grpc
 
-from gausslite.errors import CapacityExceeded, ImageSizeError, PreconditionFailed, RelevanceUnavailable
+from gausslite.errors import (CapacityExceeded, ExtraUnavailable, ImageSizeError, PreconditionFailed,
+                              RelevanceUnavailable)
 from gausslite.mission.errors import MissionError
 
 __all__ = ["status_for", "LIBRARY_STATUSES",
@@ -108,6 +109,7 @@ def raises_typed_errors(cls):
 LIBRARY_STATUSES: Tuple[Tuple[Type[BaseException], grpc.StatusCode], ...] = (
     (ImageSizeError, grpc.StatusCode.INVALID_ARGUMENT),  # also a mission's FrameSizeMismatch
     (RelevanceUnavailable, grpc.StatusCode.FAILED_PRECONDITION),
+    (ExtraUnavailable, grpc.StatusCode.FAILED_PRECONDITION),  # a feature of an extra this install lacks
     (MissionError, grpc.StatusCode.FAILED_PRECONDITION),
     (PreconditionFailed, grpc.StatusCode.FAILED_PRECONDITION),  # also gausslite.fusion.uploads' version checks
     (CapacityExceeded, grpc.StatusCode.RESOURCE_EXHAUSTED),

@@ -44,6 +44,8 @@ class FusionMetrics:
         fuse_runs: ``gausslite_fusion_fuse_runs_total{method,outcome}`` Fuse calls (ok/error/cancelled).
         fuse_seconds: ``gausslite_fusion_fuse_duration_seconds{method}`` histogram of fusion work time.
         fused_gaussians: ``gausslite_fusion_fused_gaussians`` Gaussians in the newest fused map.
+        fuse_mode_available: ``gausslite_fusion_fuse_mode_available{mode}`` 1 when this server's install runs the fuse
+            mode (vote, concat, for_agent, refine), 0 when it lacks the extra the mode needs.
     """
 
     def __init__(self, registry: CollectorRegistry | None = None):
@@ -70,6 +72,9 @@ class FusionMetrics:
                                       ["method"], buckets=JOB_BUCKETS, registry=r)
         self.fused_gaussians = Gauge("gausslite_fusion_fused_gaussians", "Gaussians in the newest fused map",
                                      registry=r)
+        self.fuse_mode_available = Gauge("gausslite_fusion_fuse_mode_available",
+                                         "1 when this server's install runs the fuse mode, 0 when it lacks its extra",
+                                         ["mode"], registry=r)
 
 
 class MeteredFusion(ServicerProxy):

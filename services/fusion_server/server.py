@@ -9,7 +9,9 @@ fused version and streams progress; ``DownloadFused`` serves it as wire-codec ch
 Status codes (see also ``proto/gausslite_rpc/fusion.proto``): INVALID_ARGUMENT for bad input
 (never a crash), NOT_FOUND for an agent without a session (the session is the addressed entity) and
 unknown fused versions, FAILED_PRECONDITION for a Fuse without complete subsets / refine without
-keyframes / an upload older than the agent's latest complete version, RESOURCE_EXHAUSTED for
+keyframes / an upload older than the agent's latest complete version, and for a refine or a ``for_agent`` ROI guard
+on an install without the ``mapper`` extra (torch, the rasterizer: ``gausslite.core.extras``; the startup log and the
+``gausslite_fusion_fuse_mode_available`` metric say which fuse modes this server runs), RESOURCE_EXHAUSTED for
 oversized messages and subsets beyond the server's limits and for upload streams beyond its caps,
 DEADLINE_EXCEEDED for an upload stream that sent nothing for ``fusion.stream_idle_s``, ABORTED for a stalled upload
 stream whose slot went to another upload (:class:`services.fusion_server.guards.UploadStreams`), UNAUTHENTICATED for
@@ -193,6 +195,9 @@ def serve(options: ServerOptions, config: Optional[FusionConfig] = None, *,
         store.close()
         raise
     log.info("fusion store: %s (%s, schema %d)", store.location, store.dialect, store.schema_version())
+    for mode, why in servicer.fuse_modes().items():
+        metered.metrics.fuse_mode_available.labels(mode=mode).set(0 if why else 1)
+    log.info("%s", servicer.describe_fuse_modes())
     return FusionServer(running, servicer, store, StoreHealth(store, running, config.health_probe_s))
 
 

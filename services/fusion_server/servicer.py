@@ -17,10 +17,12 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.config import FusionSettings
+from gausslite.core import extras
 from gausslite.core.arrays import GaussianArrays
 from gausslite.datasets.base import Frame
-from gausslite.errors import CapacityExceeded, PreconditionFailed
+from gausslite.errors import CapacityExceeded, ExtraUnavailable, PreconditionFailed
 from gausslite.fusion.engine import FuseEngine
+from gausslite.fusion.guard import RoiView
 from gausslite.fusion.plausible import check_plausible
 from gausslite.fusion.uploads import check_delta_base, check_not_superseded, complete_delta_upload
 from gausslite.wire.decode import assemble, decode_chunk, peek_header
@@ -115,6 +117,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
         self._engine = FuseEngine(config.refine_options)  # keeps the voted map current (under the fuse locks)
+        # what this install can fuse: refinement and the ROI guard need the 'mapper' extra (torch, the rasterizer)
+        self._unavailable = {f: extras.unavailable(f) for f in ("refine", "roi_guard")}
         self._shutdown = threading.Event()
         self._workers: "set[threading.Thread]" = set()
 
@@ -128,6 +132,20 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         deadline = time.monotonic() + wait_s
         for t in list(self._workers):
             t.join(max(0.0, deadline - time.monotonic()))
+
+    def fuse_modes(self) -> Dict[str, Optional[str]]:
+        """The fuse modes and whether this install runs them: mode → None when it does, else why not (the extra it
+        needs, ``gausslite.core.extras``). Modes: ``vote`` and ``concat`` (always), ``for_agent`` (a robot's team
+        map; over ROI keyframes its ROI guard renders them), ``refine`` (the joint refinement)."""
+        return {"vote": None, "concat": None, "for_agent": self._unavailable["roi_guard"],
+                "refine": self._unavailable["refine"]}
+
+    def describe_fuse_modes(self) -> str:
+        """One line for the startup log: the modes available, and each unavailable one with the reason."""
+        modes = self.fuse_modes()
+        line = "fuse modes available: " + ", ".join(m for m, why in modes.items() if why is None)
+        off = [f"{m} ({why})" for m, why in modes.items() if why is not None]
+        return line + ("; unavailable: " + "; ".join(off) if off else "")
 
     # ------------------------------------------------------------------ helpers
     def _check_writer(self, context, agent_id: str) -> None:
@@ -381,6 +399,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         method = request.method or fusion_pb2.FUSE_METHOD_VOTE
         if method not in _METHOD_NAMES:
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown fuse method {request.method}")
+        if request.refine and self._unavailable["refine"]:
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION, f"refine=true: {self._unavailable['refine']}")
         voxel = float(request.voxel_size) or self.config.default_voxel_size
         if not (math.isfinite(voxel) and voxel > 0):
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"voxel_size must be finite and > 0, got {voxel}")
@@ -434,6 +454,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                 elif kind == "cancelled":
                     return
                 else:  # error
+                    if isinstance(payload, ExtraUnavailable):
+                        raise Reject(grpc.StatusCode.FAILED_PRECONDITION, str(payload))
                     if isinstance(payload, ValueError):
                         raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"fusion failed: {payload}")
                     raise payload
@@ -509,6 +531,12 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             events.put(("cancelled", None))
         except Reject as r:
             events.put(("error", ValueError(r.message)))
+        except ImportError as e:  # an extra this install lacks (FAILED_PRECONDITION), else a broken install
+            feature = "refine" if refine else "roi_guard" if for_agent else None
+            missing = extras.unavailable_from(e, extras.FEATURES[feature].what if feature else "this Fuse")
+            if missing is None:
+                log.exception("Fuse work failed")
+            events.put(("error", missing or e))
         except Exception as e:  # noqa: BLE001 - reported to the caller as a status
             log.exception("Fuse work failed")
             events.put(("error", e))
@@ -516,11 +544,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self._workers.discard(threading.current_thread())
 
     def _roi_views(self, agent: str) -> list:
-        """``agent``'s stored keyframes that carry an ROI, as :class:`gausslite.fusion.diagnose.RoiView` (pose,
+        """``agent``'s stored keyframes that carry an ROI, as :class:`gausslite.fusion.guard.RoiView` (pose,
         intrinsics and the decoded ROI mask only: the colour and depth images stay encoded)."""
-        # lazy: keeps services.fusion_server.servicer importable without torch
-        from gausslite.fusion.diagnose import RoiView
-
         out = []
         for k in self.store.keyframes([agent]):
             if not k.roi:
@@ -532,7 +557,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
 
     def _refine_keyframes(self) -> list:
         """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
-        # lazy: keeps services.fusion_server.servicer importable without torch
+        # lazy: torch (the 'mapper' extra); only the refinement needs keyframes as tensors, and the light install
+        # (vote, concat) has no torch
         from gausslite.mapping.views import keyframe_from_frame
 
         kfs = []

@@ -76,7 +76,8 @@ class PostgresFusionStore(SqlFusionStore):
             import psycopg
             from psycopg_pool import ConnectionPool, PoolTimeout
         except ImportError as e:  # pragma: no cover - dependencies of the package
-            raise StoreError(f"PostgreSQL store needs psycopg 3 and psycopg_pool: {e}") from e
+            raise StoreError(f"PostgreSQL store needs psycopg 3 and psycopg_pool, the 'fusion' extra "
+                             f"(pip install 'gausslite[fusion]'): {e}") from e
         self.dsn = dsn
         self.location = redact_dsn(dsn)
         #: errors meaning "the database is not reachable now" (StoreUnavailable)
