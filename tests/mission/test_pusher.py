@@ -33,7 +33,9 @@ def _wait(pred, timeout_s=10.0):
 
 
 def _pusher(fusion, **cfg):
-    config = AgentConfig(**cfg)
+    # the pusher at the test's own priority: these tests time its logic, not how a niced thread fares on a busy
+    # machine (pusher_nice 19 starves it while other jobs run)
+    config = AgentConfig(**{"pusher_nice": 0, **cfg})
     errors = []
     p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=None,
                intrinsics=lambda: None, report=errors.append)
