@@ -16,7 +16,7 @@ keyframes are the scene's posed RGB-D frames (downscaled by ``--keyframe-downsca
 
 Replay clients are threads of this process, one gRPC channel each, addressing every replica as
 ``ipv4:127.0.0.1:p1,127.0.0.1:p2`` (round_robin, UNAVAILABLE retried — the same channel options as
-:class:`services.fusion_server.client.FusionClient`); chunks are pre-encoded per version and sent one
+:class:`gausslite_services.fusion_server.client.FusionClient`); chunks are pre-encoded per version and sent one
 ``UploadSubset`` call per ``--chunks-per-call`` chunks; a failed call is resumed from
 ``GetUploadStatus``. An ack's latency runs from the first send attempt of its chunks to the ack
 (retries included).
@@ -76,7 +76,8 @@ from gausslite.mapping.mapper import Mapper
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset, peek_header
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.fusion_server.client import FusionClient, channel_options, intrinsics_to_proto, keyframe_to_proto
+from gausslite_services.fusion_server.client import (FusionClient, channel_options, intrinsics_to_proto,
+                                                     keyframe_to_proto)
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -187,7 +188,7 @@ class Replica:
         env.pop("GAUSSLITE_FUSION_STORE", None)
         self.log = open(self.work / f"{self.name}.log", "ab")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.fusion_server", "--host", "127.0.0.1", "--port", str(self.port),
+            [sys.executable, "-m", "gausslite_services.fusion_server", "--host", "127.0.0.1", "--port", str(self.port),
              "--store", self.dsn, "--port-file", str(port_file), "--max-workers", "48", "--log-level", "WARNING",
              "--data-dir", str(self.work / f"{self.name}-unused")],
             cwd=str(REPO), env=env, stdout=self.log, stderr=subprocess.STDOUT)

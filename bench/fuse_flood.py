@@ -2,10 +2,11 @@
 
     python -m bench.fuse_flood                 # 5,000 Fuse(concat) calls; --calls, --gaussians, --every
 
-Starts a real fusion server process (``python -m services.fusion_server``, SQLite store in ``--work``, per-robot
-tokens), has one robot upload a ``--gaussians`` (2,000) Gaussian subset, then has a second robot — a team member that
-uploads nothing — call ``Fuse(concat)`` ``--calls`` (5,000) times. Every ``--every`` calls it records the store's
-size on disk (the SQLite file and its WAL), the serialized size of a ``GetStats`` first page, and the server's RSS.
+Starts a real fusion server process (``python -m gausslite_services.fusion_server``, SQLite store in ``--work``,
+per-robot tokens), has one robot upload a ``--gaussians`` (2,000) Gaussian subset, then has a second robot — a team
+member that uploads nothing — call ``Fuse(concat)`` ``--calls`` (5,000) times. Every ``--every`` calls it records the
+store's size on disk (the SQLite file and its WAL), the serialized size of a ``GetStats`` first page, and the server's
+RSS.
 
 The server keeps only the newest ``fusion.fused_keep_per_method`` fused maps of each method
 (docs/security.md#the-fusion-server), so the store must stop growing once that many maps exist, and ``GetStats``
@@ -31,8 +32,8 @@ from bench._results import write_results
 from bench.trust_load import RESULTS, proc_status_mb, random_subset, start_server, stop_server
 from gausslite.camera import Intrinsics
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common import auth
-from services.fusion_server.client import FusionClient
+from gausslite_services.common import auth
+from gausslite_services.fusion_server.client import FusionClient
 
 REPO = Path(__file__).resolve().parents[1]
 STATS_GOAL_BYTES = 1 << 20

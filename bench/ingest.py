@@ -38,9 +38,9 @@ import numpy as np
 
 from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
-from services.agent.client import AgentClient
-from services.agent.frames import encode_frame
-from services.sim import free_port
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.frames import encode_frame
+from gausslite_services.sim import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"

@@ -28,7 +28,7 @@ from gausslite.mapping.views import keyframe_from_frame
 from gausslite.wire.codec import assemble
 from gausslite.wire.images import decode_color, decode_depth
 from gausslite_rpc import fusion_pb2
-from services.fusion_server.store import FusionStore
+from gausslite_services.fusion_server.store import FusionStore
 
 RESULTS = Path(__file__).resolve().parent / "results" / "share_sim_seeds"
 

@@ -2,8 +2,8 @@
 
     python -m bench.soak --minutes 60          # default 10; --sample-s 60 between samples
 
-Starts a real fusion server (``python -m services.fusion_server``, SQLite store in ``--work``) and a real agent
-(``gausslite serve agent`` with ``deploy/gausslite.yaml``, keyframe ingest, ``mapper.keyframe_budget_s`` =
+Starts a real fusion server (``python -m gausslite_services.fusion_server``, SQLite store in ``--work``) and a real
+agent (``gausslite serve agent`` with ``deploy/gausslite.yaml``, keyframe ingest, ``mapper.keyframe_budget_s`` =
 ``--budget``, checkpoints in its data dir, pushes to the fusion server), opens a streaming mission and sends the
 synthetic scene's circle trajectory (``make_scene(trajectory="circle")``, ``--frames`` frames of
 ``--width`` x ``--height``, generated once and cached in ``--work``) in a loop at ``--fps`` (30 Hz) for
@@ -41,10 +41,10 @@ from bench._results import write_results
 from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
-from services.agent.client import AgentClient
-from services.agent.frames import encode_frame
-from services.fusion_server.client import FusionClient
-from services.sim import free_port
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.frames import encode_frame
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.sim import free_port
 
 import grpc
 import numpy as np
@@ -228,7 +228,7 @@ def run(args) -> dict:
     samples: List[dict] = []
     errors: List[str] = []
     try:
-        fusion = _start([sys.executable, "-m", "services.fusion_server", "--host", "127.0.0.1", "--port", "0",
+        fusion = _start([sys.executable, "-m", "gausslite_services.fusion_server", "--host", "127.0.0.1", "--port", "0",
                          "--data-dir", str(fusion_dir), "--port-file", str(port_file), "--log-level", "WARNING"],
                         env, work / f"fusion-{tag}.log")
         deadline = time.monotonic() + 60

@@ -2,8 +2,8 @@
 
     python -m bench.trust_load                      # 45 s; --seconds, --stalled, --bad-rate, --gaussians
 
-Starts a real fusion server process (``python -m services.fusion_server``, SQLite store in ``--work``, 16 handler
-threads, per-robot tokens stored as salted PBKDF2 records, the costly kind for a wrong token) and, at once:
+Starts a real fusion server process (``python -m gausslite_services.fusion_server``, SQLite store in ``--work``, 16
+handler threads, per-robot tokens stored as salted PBKDF2 records, the costly kind for a wrong token) and, at once:
 
 * ``--stalled`` upload streams (16) from ``--stalled-robots`` misbehaving robots with valid tokens: each sends an
   ``UploadSubset`` header and one chunk, then nothing; when the server ends it, the stream is opened again. The
@@ -105,7 +105,7 @@ def start_server(work: Path, tokens_file: Path, workers: int, idle_s: Optional[f
     port_file.unlink(missing_ok=True)
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     log = open(work / "fusion.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "services.fusion_server", "--port", "0", "--port-file",
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", "0", "--port-file",
                              str(port_file), "--data-dir", str(work / "data"), "--agent-tokens", str(tokens_file),
                              "--max-workers", str(workers), "--config", str(cfg), "--log-level", "WARNING"],
                             cwd=str(REPO), env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -137,8 +137,8 @@ def run(args: argparse.Namespace) -> dict:
     from gausslite.camera import Intrinsics
     from gausslite.wire.codec import encode_subset
     from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-    from services.common import auth
-    from services.fusion_server.client import FusionClient
+    from gausslite_services.common import auth
+    from gausslite_services.fusion_server.client import FusionClient
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)

@@ -77,7 +77,7 @@ class SimConfig(BaseModel):
 
 
 class FusionSettings(BaseModel):
-    """The fusion server's settings (the ``fusion`` section; ``services.fusion_server`` serves with them).
+    """The fusion server's settings (the ``fusion`` section; ``gausslite_services.fusion_server`` serves with them).
 
     Attributes:
         data_dir (str): directory of the embedded SQLite store (used when ``store`` is empty).
@@ -104,7 +104,7 @@ class FusionSettings(BaseModel):
             INVALID_ARGUMENT before any image is decoded (default: a 4K frame; each decoded keyframe holds about
             7 bytes per pixel).
         health_probe_s (float): period of the store probe behind the health service: NOT_SERVING while the store
-            cannot be reached (``services.fusion_server.server.StoreHealth``).
+            cannot be reached (``gausslite_services.fusion_server.server.StoreHealth``).
         max_abs_mean_m (float), max_scale_m (float), max_abs_opacity_logit (float): plausibility bounds of pushed
             Gaussians (:func:`gausslite.fusion.check_plausible`): a mean farther than this from the map origin on any
             axis, a standard deviation above this on any axis, an opacity logit beyond ± this; an upload carrying one

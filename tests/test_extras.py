@@ -14,7 +14,7 @@ import pytest
 from gausslite.cli import main
 from gausslite.core import extras
 from gausslite.errors import ExtraUnavailable
-from services.common.errors import status_for
+from gausslite_services.common.errors import status_for
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The import graph of ``gausslite/``, ``services/`` and ``bench/`` has no circles and no import from a lower
+"""The import graph of ``gausslite/``, ``gausslite_services/`` and ``bench/`` has no circles and no import from a lower
 layer up to a higher one (the layers of ``docs/architecture.md``).
 
 The graph is read with :mod:`ast` from the sources, so it holds every import: module-level, inside functions and
@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Dict, List, Set, Tuple
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("gausslite", "services", "bench")
+PACKAGES = ("gausslite", "gausslite_services", "bench")
 
 #: lowest first; a module may import modules of its own layer and of the layers below it. A module belongs to the
-#: entry with the longest matching dotted prefix; the roots "gausslite" and "services" match only themselves.
+#: entry with the longest matching dotted prefix; the roots "gausslite" and "gausslite_services" match only themselves.
 LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("core", ("gausslite", "gausslite.core", "gausslite.errors", "gausslite.camera", "gausslite.stats",
               "gausslite.metrics", "gausslite.lpips", "gausslite.gaussians")),
@@ -29,13 +29,13 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("sharing", ("gausslite.sharing", "gausslite.fusion")),
     ("mission", ("gausslite.mission",)),
     ("app", ("gausslite.config", "gausslite.viewer", "gausslite.cli")),
-    ("services.common", ("services", "services.common")),
-    ("services.servers", ("services.parser", "services.fusion_server")),
-    ("services.agent", ("services.agent",)),
-    ("services.entry", ("services.viewer", "services.sim", "services.cli")),
+    ("gausslite_services.common", ("gausslite_services", "gausslite_services.common")),
+    ("gausslite_services.servers", ("gausslite_services.parser", "gausslite_services.fusion_server")),
+    ("gausslite_services.agent", ("gausslite_services.agent",)),
+    ("gausslite_services.entry", ("gausslite_services.viewer", "gausslite_services.sim", "gausslite_services.cli")),
     ("bench", ("bench",)),
 ]
-_ROOTS = {"gausslite", "services"}  # "bench" holds only benchmarks: one layer
+_ROOTS = {"gausslite", "gausslite_services"}  # "bench" holds only benchmarks: one layer
 
 
 def _modules() -> Dict[str, Path]:
@@ -180,8 +180,9 @@ def test_no_upward_imports():
 def test_the_checks_see_circles_and_upward_imports():
     """The graph reader finds function-level imports, and the checks report what they should."""
     mods, edges = import_graph()
-    # an import of a sibling package's module is an edge: services.sim.launch imports cmd_health for wait_healthy
-    assert "services.cli.cmd_health" in edges["services.sim.launch"]
+    # an import of a sibling package's module is an edge: gausslite_services.sim.launch imports cmd_health for
+    # wait_healthy
+    assert "gausslite_services.cli.cmd_health" in edges["gausslite_services.sim.launch"]
     assert _cycles(["a", "b", "c"], {"a": {"b"}, "b": {"c"}, "c": {"a"}}) == [["a", "b", "c"]]
     assert _cycles(["a", "b"], {"a": {"b"}}) == []
     assert layer_of("gausslite.mission.runtime") > layer_of("gausslite.mapping.mapper")

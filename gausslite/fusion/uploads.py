@@ -10,7 +10,7 @@ until the rebuilt subset is committed, and a resumed upload redoes it.
 
 The state lives in any object with the methods of :class:`UploadStore` (the fusion server's SQL store conforms).
 No gRPC here: refusals are typed exceptions, which the fusion server answers with the status
-``services.common.errors.status_for`` gives their type:
+``gausslite_services.common.errors.status_for`` gives their type:
 
 =========================  ===========================================  ====================
 exception                  when                                         status
@@ -66,7 +66,8 @@ class UploadState(Protocol):
 
 
 class UploadStore(Protocol):
-    """The upload state the rules read and change (``services.fusion_server.store.SqlFusionStore`` conforms)."""
+    """The upload state the rules read and change (``gausslite_services.fusion_server.store.SqlFusionStore``
+    conforms)."""
 
     def upload(self, agent_id: str, map_version: int) -> Optional[UploadState]:
         """State of (agent, version), None when never announced."""

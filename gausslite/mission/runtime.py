@@ -4,7 +4,7 @@ Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``).
 :class:`AgentRuntime` is usable without gRPC: it needs a task graph (any object with ``targets``,
 ``anchors``, ``relations``), scene annotations for the offline relevance sources, and optionally a
 *fusion client*: a :class:`gausslite.mission.ports.FusionPort` (``open_session``, ``upload_chunks``,
-``upload_keyframes``; the gRPC ``services.fusion_server.client.FusionClient`` is one), or None to map locally
+``upload_keyframes``; the gRPC ``gausslite_services.fusion_server.client.FusionClient`` is one), or None to map locally
 only. The fusion client signals a rejected delta base with :class:`gausslite.mission.errors.PreconditionFailed`.
 
 Threads per mission:
@@ -228,7 +228,7 @@ class AgentRuntime:
         Args:
             frame: the decoded frame, or a validated not yet decoded one (an object with ``frame_id``,
                 ``c2w``, ``intrinsics`` and ``materialize() -> Frame``, e.g.
-                :class:`services.agent.frames.PendingFrame`; decoded by the worker if it becomes a keyframe).
+                :class:`gausslite_services.agent.frames.PendingFrame`; decoded by the worker if it becomes a keyframe).
                 timeout: every-frame ingest only: how long to wait for queue space.
             arrival: ``time.perf_counter()`` when the frame arrived (before decoding); the accept latency
                 (arrival → accepted, ``accept_latency_ms_p99``) and keyframe latency (arrival → mapped)

@@ -50,7 +50,7 @@ def test_show_prints_the_effective_tree_and_schema_its_json_schema(capsys, tmp_p
 
 
 def test_fusion_server_reads_the_fusion_section(tmp_path):
-    from services.fusion_server.server import FusionConfig
+    from gausslite_services.fusion_server.server import FusionConfig
 
     f = tmp_path / "g.yaml"
     f.write_text(yaml.safe_dump({"fusion": {"max_keyframes_per_agent": 9}}))

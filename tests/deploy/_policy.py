@@ -16,7 +16,7 @@ AGENT_TOKENS = ("--agent-tokens", "GAUSSLITE_AGENT_TOKENS_FILE")
 def server_kind(command: List[str]) -> Optional[str]:
     """``"fusion"``, ``"parser"`` or ``"agent"`` for a command that runs a GaussLite server, else None."""
     cmd = [str(c) for c in command or []]
-    if "services.fusion_server" in cmd:
+    if "gausslite_services.fusion_server" in cmd:
         return "fusion"
     if "serve" in cmd:
         i = cmd.index("serve")

@@ -26,7 +26,7 @@ from tests._ci import missing
 import yaml
 
 from gausslite.cli import build_parser
-from services.sim import free_port
+from gausslite_services.sim import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -110,7 +110,7 @@ def _secret_names(svc: dict) -> list:
 
 
 def test_compose_provisions_per_robot_credentials(compose):
-    from services.common.auth import AgentTokens, read_secret
+    from gausslite_services.common.auth import AgentTokens, read_secret
 
     services = compose["services"]
 
@@ -126,7 +126,7 @@ def test_compose_provisions_per_robot_credentials(compose):
     hashes = hashes.pop()
     store = AgentTokens(_secret_file(compose, hashes))  # a valid token file: only hashes
     identity = {}
-    from services.common.pki import certificate_info
+    from gausslite_services.common.pki import certificate_info
 
     for name in ("agent_a", "agent_b", "report"):
         secret = secret_of(name, "GAUSSLITE_FUSION_TOKEN_FILE")
@@ -273,7 +273,7 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
                         time.sleep(0.5)
                 assert ok, f"{name} not healthy: " + (tmp_path / f"{name}.log").read_text()[-2000:]
         # the agents really started their missions with the compose settings
-        from services.agent.client import AgentClient
+        from gausslite_services.agent.client import AgentClient
 
         def secret_bytes(service: str, var: str) -> bytes:
             return Path(paths[_env(services[service])[var]]).read_bytes()
@@ -301,8 +301,8 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
         import grpc
 
         from gausslite.camera import Intrinsics
-        from services.common.auth import read_secret
-        from services.fusion_server.client import FusionClient
+        from gausslite_services.common.auth import read_secret
+        from gausslite_services.fusion_server.client import FusionClient
 
         token_a = read_secret(paths[_env(services["agent_a"])["GAUSSLITE_FUSION_TOKEN_FILE"]])
         tls_a = {"root_cert": secret_bytes("agent_a", "GAUSSLITE_TLS_CA"),

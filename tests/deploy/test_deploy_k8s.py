@@ -90,7 +90,7 @@ def test_fusion_replicas_share_the_store_and_probe_grpc_health():
     assert fusion["spec"]["replicas"] >= 2
     c = _container(fusion)
     port = c["ports"][0]["containerPort"]
-    assert c["command"][:3] == ["python", "-m", "services.fusion_server"]
+    assert c["command"][:3] == ["python", "-m", "gausslite_services.fusion_server"]
     assert c["command"][c["command"].index("--port") + 1] == str(port)
     ready, live = c["readinessProbe"]["exec"]["command"], c["livenessProbe"]["exec"]["command"]
     for probe in (ready, live):  # gausslite health over (mutual) TLS: the kubelet's gRPC probe cannot

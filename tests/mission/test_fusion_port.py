@@ -8,7 +8,7 @@ import pytest
 from bench.realtime import SinkFusion
 from bench.team import RecordingFusion
 from gausslite.mission import FusionPort
-from services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.client import FusionClient
 
 #: how gausslite.mission.pusher.Pusher calls each method (arguments after self)
 CALLS = {

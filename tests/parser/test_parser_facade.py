@@ -70,7 +70,7 @@ def test_cli_parse_errors(capsys, tmp_path):
 def test_cli_serve_options_env():
     import argparse
 
-    from services.cli.cmd_serve import SERVICES, resolve_options
+    from gausslite_services.cli.cmd_serve import SERVICES, resolve_options
 
     assert "parser" in SERVICES
     args = argparse.Namespace(service="parser", host=None, port=None, token=None, tls_cert=None, tls_key=None,

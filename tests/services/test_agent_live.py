@@ -26,12 +26,12 @@ from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mapping.mapper import Mapper
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
-from services.agent.client import AgentClient
-from services.agent.frames import encode_frame
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.frames import encode_frame
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
-from services.agent.server import AgentSettings, serve as serve_agent
-from services.common.server import ServerOptions
+from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+from gausslite_services.common.server import ServerOptions
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
@@ -390,9 +390,9 @@ def _agent_processes(scene, tmp_path, monkeypatch, agent_cfg: dict):
     everything afterwards."""
     import yaml
 
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve as serve_fusion
-    from services.sim import free_port
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve as serve_fusion
+    from gausslite_services.sim import free_port
 
     fusion = serve_fusion(ServerOptions(port=0), data_dir=str(tmp_path / "fusion"))
     monkeypatch.setenv("_TEST_FUSION", fusion.address)
@@ -492,7 +492,7 @@ def test_sigterm_pushes_the_final_subset_and_checkpoints(scene, tmp_path, monkey
 def test_validate_frame_reads_headers_and_defers_decoding(scene):
     import cv2
 
-    from services.agent.frames import FrameError, validate_frame
+    from gausslite_services.agent.frames import FrameError, validate_frame
 
     fr = load_dataset(scene / "agent_a")[0]
     for fmt in (".png", ".jpg"):
@@ -582,7 +582,7 @@ def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
 def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_one(tmp_path):
     import json
 
-    from services.sim import attach_offline_report
+    from gausslite_services.sim import attach_offline_report
 
     agent = {"id": "agent_a", "task": "t", "roi_psnr": 20.0, "n_gaussians": 10, "n_shared": 5, "share_pct": 50.0,
              "bytes_per_gaussian": 14.0, "frames_received": 16, "frames_keyframed": 4, "frames_skipped": 12,
@@ -735,8 +735,8 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
     their own count: without the rule the resumable upload would find v1 complete on the server and take the
     old mission's chunks for the new ones."""
     from gausslite.wire.codec import assemble
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve as serve_fusion
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve as serve_fusion
 
     ds = load_dataset(scene / "agent_a")
     srv = serve_fusion(ServerOptions(port=0, max_workers=8), None, data_dir=str(tmp_path / "fusion"))

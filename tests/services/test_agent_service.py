@@ -15,12 +15,12 @@ import pytest
 from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2, agent_pb2_grpc
-from services.agent.client import AgentClient
-from services.agent.frames import encode_frame
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.frames import encode_frame
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
-from services.agent.server import AgentSettings, serve as serve_agent
-from services.common.server import ServerOptions
+from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
@@ -36,7 +36,7 @@ def scene(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def parser_server():
-    from services.parser.server import serve
+    from gausslite_services.parser.server import serve
 
     srv = serve(ServerOptions(port=0))
     yield srv
@@ -44,7 +44,7 @@ def parser_server():
 
 
 def _fusion(data_dir, port=0):
-    from services.fusion_server.server import serve
+    from gausslite_services.fusion_server.server import serve
 
     return serve(ServerOptions(port=port), data_dir=str(data_dir))
 
@@ -54,7 +54,7 @@ def _code(excinfo) -> grpc.StatusCode:
 
 
 def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
-    from services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.client import FusionClient
 
     fusion = _fusion(tmp_path / "fusion")
     cfg = load_config(None, TINY, deployed=False).agent
@@ -191,7 +191,7 @@ def test_bad_inputs_give_precise_codes(local_agent, scene):
         c.stream_messages([good], timeout_s=10)
     assert _code(e) == grpc.StatusCode.FAILED_PRECONDITION
     # server is still healthy after all that
-    from services.cli.cmd_health import check_health
+    from gausslite_services.cli.cmd_health import check_health
 
     assert check_health(ag.address, "gausslite.v1.Agent") == "SERVING"
 
@@ -200,7 +200,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     """The fusion server goes down mid-mission and comes back on the same port and data dir: the agent
     keeps mapping, retries with backoff and completes its final push."""
     from gausslite.parser import TaskParser
-    from services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.client import FusionClient
 
     data = tmp_path / "fusion"
     f1 = _fusion(data)
@@ -328,7 +328,7 @@ def test_a_caller_cannot_send_the_agents_fusion_credentials_elsewhere(scene, par
 
 
 def test_fusion_allow_list_from_the_environment():
-    from services.agent.server import settings_from_env
+    from gausslite_services.agent.server import settings_from_env
 
     s = settings_from_env(None, env={"GAUSSLITE_FUSION_ADDR": "h:1", "GAUSSLITE_FUSION_ALLOW": "h:2, h:3,"})
     assert s.fusion_address == "h:1" and s.fusion_allow == ("h:2", "h:3")
@@ -364,7 +364,7 @@ def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
         denied = [{"annotations_path": str(secret)}, {"annotations_path": str(root / "escape")},
                   {"annotations_path": f"{root}/site/../../secret"}, {"annotations_path": str(tmp_path / "missions-evil")},
                   {"dataset_path": str(secret)}, {"dataset_path": "/etc"}, {"annotations_path": "/"}]
-        with caplog.at_level(logging.WARNING, logger="services.agent.server"):
+        with caplog.at_level(logging.WARNING, logger="gausslite_services.agent.server"):
             for kw in denied:
                 with pytest.raises(grpc.RpcError) as e:
                     c.start_mission(task, **kw)
@@ -386,8 +386,8 @@ def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
 
 def test_data_roots_from_the_environment_and_the_command_line():
     from gausslite.cli import build_parser
-    from services.agent.server import settings_from_env
-    from services.cli.cmd_sim import export_agent_env
+    from gausslite_services.agent.server import settings_from_env
+    from gausslite_services.cli.cmd_sim import export_agent_env
 
     s = settings_from_env(None, env={"GAUSSLITE_AGENT_DATA_ROOTS": "/data/scene, /mnt/bags,"})
     assert s.data_roots == ("/data/scene", "/mnt/bags")

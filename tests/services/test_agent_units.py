@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from gausslite.cli import build_parser
-from services.cli.cmd_sim import export_agent_env
-from services.agent.frames import FrameError, decode_frame, encode_frame
+from gausslite_services.cli.cmd_sim import export_agent_env
+from gausslite_services.agent.frames import FrameError, decode_frame, encode_frame
 from gausslite.mission import select_shared
-from services.agent.server import settings_from_env
+from gausslite_services.agent.server import settings_from_env
 from tests._scenes import plane_frame
 
 

@@ -12,9 +12,9 @@ import pytest
 from gausslite.datasets import load_dataset
 from gausslite.config import load_config
 from gausslite.synthetic import make_scene
-from services.agent.client import AgentClient
-from services.agent.server import AgentSettings, serve as serve_agent
-from services.common.server import ServerOptions
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+from gausslite_services.common.server import ServerOptions
 
 TINY = ["agent.ingest=every_frame", "agent.push_every=100", "agent.keyframe_every=1", "mapper.iters_per_frame=4",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300"]

@@ -16,11 +16,11 @@ from gausslite.datasets.bag import BagError
 from gausslite.ros.export import export_bag
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
-from services.agent.client import AgentClient
-from services.agent.server import AgentSettings, serve as serve_agent
-from services.common.server import ServerOptions
-from services.sim import plan_agents
-from services.sim.launch import _check_bags
+from gausslite_services.agent.client import AgentClient
+from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.sim import plan_agents
+from gausslite_services.sim.launch import _check_bags
 
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=150"]
@@ -113,9 +113,9 @@ def _serve_agent_as_documented(argv, data_dir):
     """``gausslite serve agent ARGV`` in-process: the real CLI parser and flag → environment → settings
     path of ``gausslite serve agent``, then the agent server (not its blocking ``run``)."""
     from gausslite.cli import build_parser
-    from services.cli.cmd_serve import resolve_options
-    from services.cli.cmd_sim import export_agent_env
-    from services.agent.server import settings_from_env
+    from gausslite_services.cli.cmd_serve import resolve_options
+    from gausslite_services.cli.cmd_sim import export_agent_env
+    from gausslite_services.agent.server import settings_from_env
 
     args = build_parser().parse_args(["serve", "agent", *argv, "--data-dir", str(data_dir)])
     env: dict = {}
@@ -132,9 +132,9 @@ def test_bag_to_fused_map_as_documented(bag_scene, tmp_path):
     import shutil
 
     from gausslite.viewer.export import load_map
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve as serve_fusion
-    from services.parser.server import serve as serve_parser
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve as serve_fusion
+    from gausslite_services.parser.server import serve as serve_parser
 
     src, out = bag_scene
     tasks = {t.id: t.text for t in load_dataset(src / "agent_a").annotations.tasks}

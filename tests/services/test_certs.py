@@ -1,4 +1,4 @@
-"""``gausslite certs``: the team's CA, certificates and tokens in one command (services.common.pki;
+"""``gausslite certs``: the team's CA, certificates and tokens in one command (gausslite_services.common.pki;
 docs/security.md), and that what it makes works: a fusion server with mutual TLS and per-agent tokens accepts a
 provisioned robot and refuses what it must."""
 
@@ -10,10 +10,10 @@ import grpc
 import pytest
 
 from gausslite.cli import main
-from services.common import auth, pki
-from services.common.server import ServerOptions
-from services.fusion_server.client import FusionClient
-from services.fusion_server.server import serve
+from gausslite_services.common import auth, pki
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.server import serve
 from tests.services.test_fusion_server import INTR
 
 

@@ -1,12 +1,12 @@
-"""Typed client errors (services.common.errors): one class per status code, still grpc.RpcError."""
+"""Typed client errors (gausslite_services.common.errors): one class per status code, still grpc.RpcError."""
 
 from __future__ import annotations
 
 import grpc
 import pytest
 
-from services.common.errors import (FailedPrecondition, NotFound, RpcStatusError, Unavailable, raises_typed_errors,
-                                    typed_error)
+from gausslite_services.common.errors import (FailedPrecondition, NotFound, RpcStatusError, Unavailable,
+                                              raises_typed_errors, typed_error)
 
 
 class _Raw(grpc.RpcError):
@@ -53,9 +53,9 @@ def test_decorated_clients_raise_typed_errors_from_calls_and_streams():
 
 
 def test_fusion_client_maps_a_server_status_to_its_class(tmp_path):
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import FusionConfig, serve
-    from services.common.server import ServerOptions
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import FusionConfig, serve
+    from gausslite_services.common.server import ServerOptions
 
     srv = serve(ServerOptions(host="127.0.0.1", port=0), FusionConfig(data_dir=str(tmp_path)))
     try:

@@ -15,9 +15,9 @@ from gausslite.camera import Intrinsics
 from gausslite.wire.codec import GaussianArrays, assemble, decode_chunk, peek_header
 from gausslite.wire.delta import PushPlanner
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions
-from services.fusion_server.client import FusionClient
-from services.fusion_server.server import serve
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.server import serve
 
 INTR = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
 

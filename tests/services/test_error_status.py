@@ -1,5 +1,5 @@
-"""gRPC statuses come from the library's exception types (services.common.errors.status_for), never from message
-text: the same message under another type gets another status."""
+"""gRPC statuses come from the library's exception types (gausslite_services.common.errors.status_for), never from
+message text: the same message under another type gets another status."""
 
 import grpc
 import pytest
@@ -10,8 +10,8 @@ from gausslite.fusion.uploads import MissingDeltaBase, RebuiltTooLarge, Supersed
 from gausslite.mission import AgentConfig, FrameSizeMismatch, MissionError, PreconditionFailed
 from gausslite.mission.relevance import build_relevance
 from gausslite.wire import DeltaMismatch, LimitExceeded
-from services.common.convert import intrinsics_from_proto
-from services.common.errors import status_for
+from gausslite_services.common.convert import intrinsics_from_proto
+from gausslite_services.common.errors import status_for
 
 
 def test_status_by_type():

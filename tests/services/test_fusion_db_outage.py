@@ -16,10 +16,10 @@ import pytest
 from bench._relay import TcpRelay
 from gausslite.wire.codec import LOSSLESS, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions
-from services.fusion_server.client import FusionClient, intrinsics_to_proto
-from services.fusion_server.server import FusionConfig, serve
-from services.fusion_server.store import PostgresFusionStore, StoreUnavailable
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import FusionClient, intrinsics_to_proto
+from gausslite_services.fusion_server.server import FusionConfig, serve
+from gausslite_services.fusion_server.store import PostgresFusionStore, StoreUnavailable
 from tests.services.test_fusion_server import INTR, rand_subset
 
 
@@ -123,7 +123,7 @@ def test_health_is_not_serving_while_the_database_is_unreachable(tmp_path, relay
     the replica out of rotation), SERVING again once it can, without a restart."""
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-    from services.fusion_server.servicer import SERVICE_NAME
+    from gausslite_services.fusion_server.servicer import SERVICE_NAME
 
     relay, dsn = relayed
     rep = serve(ServerOptions(port=0), FusionConfig(store_acquire_timeout_s=1.0, health_probe_s=0.3),

@@ -20,11 +20,11 @@ from gausslite.camera import Intrinsics
 from gausslite.config import FusionSettings
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
-from services.common import auth
-from services.common.convert import intrinsics_to_proto
-from services.common.server import ServerOptions
-from services.fusion_server.client import FusionClient
-from services.fusion_server.server import serve
+from gausslite_services.common import auth
+from gausslite_services.common.convert import intrinsics_to_proto
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.server import serve
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 24, 32
@@ -228,7 +228,7 @@ def test_upload_slots_go_to_a_caller_below_its_fair_share():
     """With every slot taken, a caller holding none takes a waiting stream's slot from a caller holding two (even
     one that waited only briefly); between callers holding one slot each, only a stream waiting longer than
     evict_idle_s gives way."""
-    from services.fusion_server.guards import Reject, UploadStreams
+    from gausslite_services.fusion_server.guards import Reject, UploadStreams
 
     class Ctx:
         def is_active(self):
@@ -345,13 +345,13 @@ def test_a_decompression_bomb_leaves_a_server_process_small_and_serving(tmp_path
     from grpc_health.v1 import health_pb2, health_pb2_grpc
 
     from gausslite.datasets.base import Frame
-    from services.fusion_server.client import keyframe_to_proto
+    from gausslite_services.fusion_server.client import keyframe_to_proto
 
     assert 1_000_000 < len(bomb_png) < 1_400_000
     port_file = tmp_path / "port"
     env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     log = open(tmp_path / "fusion.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "services.fusion_server", "--port", "0", "--port-file",
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", "0", "--port-file",
                              str(port_file), "--data-dir", str(tmp_path / "data")], cwd=str(REPO), env=env,
                             stdout=log, stderr=subprocess.STDOUT)
     try:

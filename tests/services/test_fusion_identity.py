@@ -22,10 +22,10 @@ from gausslite.cli import main as cli_main
 from gausslite.datasets.base import Frame
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common import auth
-from services.common.server import ServerOptions, run_until_signalled
-from services.fusion_server.client import FusionClient, client_credentials_from_env
-from services.fusion_server.server import serve
+from gausslite_services.common import auth
+from gausslite_services.common.server import ServerOptions, run_until_signalled
+from gausslite_services.fusion_server.client import FusionClient, client_credentials_from_env
+from gausslite_services.fusion_server.server import serve
 
 H, W = 24, 32
 INTR = Intrinsics(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, W, H)
@@ -118,7 +118,7 @@ def test_a_robot_writes_only_its_own_agent_id(tmp_path, tokens, caplog):
             # a stream that switches to another agent is cut at the first foreign keyframe
             ch, st, md_a = stub(srv, tok["robot-a"])
             with ch:
-                from services.fusion_server.client import keyframe_to_proto
+                from gausslite_services.fusion_server.client import keyframe_to_proto
 
                 msgs = [keyframe_to_proto("robot-a", frame(7)), keyframe_to_proto("robot-b", frame(8))]
                 assert code_of(lambda: st.UploadKeyframes(iter(msgs), timeout=10, metadata=md_a))[0] == DENIED
@@ -315,7 +315,7 @@ def test_sighup_reloads_the_token_file(tmp_path, tokens):
 
 
 def test_the_agent_sends_its_own_token(tmp_path, tokens):
-    from services.agent.server import AgentServicer, settings_from_env
+    from gausslite_services.agent.server import AgentServicer, settings_from_env
 
     path, tok = tokens
     secret = tmp_path / "robot-a.token"
@@ -421,7 +421,7 @@ def test_tokens_command(tmp_path, capsys):
 
 def test_serve_cli_credentials_options(tmp_path, tokens):
     from gausslite.cli import build_parser
-    from services.cli.cmd_serve import resolve_options
+    from gausslite_services.cli.cmd_serve import resolve_options
 
     path, _ = tokens
     args = build_parser().parse_args(["serve", "fusion", "--agent-tokens", str(path), "--tls-client-ca", "ca.pem"])
@@ -435,7 +435,7 @@ def test_serve_cli_credentials_options(tmp_path, tokens):
     with pytest.raises(ValueError, match="fusion server only"):
         resolve_options(build_parser().parse_args(["serve", "agent", "--agent-tokens", str(path)]), env={})
     # the fusion module's own CLI: a broken token file is a precise start-up error (exit 2)
-    from services.fusion_server.server import main as fusion_main
+    from gausslite_services.fusion_server.server import main as fusion_main
 
     bad = tmp_path / "bad.json"
     bad.write_text("{")
@@ -446,7 +446,7 @@ def test_wrong_tokens_from_one_peer_cannot_starve_the_robots(tmp_path):
     """A peer over its budget of failed authentications gets only the cheap checks: its unknown tokens are refused
     without a key derivation (PBKDF2, about 65 ms per record), while a robot's token verified before, from the same
     address, still works."""
-    from services.common.server import FailureLimiter, peer_host
+    from gausslite_services.common.server import FailureLimiter, peer_host
 
     assert peer_host("ipv4:10.0.0.7:51234") == "ipv4:10.0.0.7" and peer_host("ipv6:[::1]:5") == "ipv6:[::1]"
     lim = FailureLimiter(max_failures=3, window_s=0.3)

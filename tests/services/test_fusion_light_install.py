@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-OWN = {"gausslite", "gausslite_rpc", "services", "bench", "tests"}
+OWN = {"gausslite", "gausslite_rpc", "gausslite_services", "bench", "tests"}
 
 #: first lines of a child process: refuse the top-level modules named by argv[1] (comma-separated), as if their
 #: distributions were not installed
@@ -54,10 +54,10 @@ _CHILD = _HOOK + textwrap.dedent('''
     from gausslite.datasets.base import Frame
     from gausslite.fusion.vote import voxel_vote
     from gausslite.wire.codec import GaussianArrays, assemble, encode_subset
-    from services.common.errors import FailedPrecondition
-    from services.common.server import ServerOptions
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve
+    from gausslite_services.common.errors import FailedPrecondition
+    from gausslite_services.common.server import ServerOptions
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve
 
     H, W = 24, 32
     K = Intrinsics(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, W, H)
@@ -204,8 +204,8 @@ def test_fusion_server_serves_vote_and_refuses_refine_without_the_mapper_extra(t
 
 def test_the_full_install_runs_every_fuse_mode(tmp_path):
     """The same server on the full install (this environment) announces every mode."""
-    from services.common.server import ServerOptions
-    from services.fusion_server.server import serve
+    from gausslite_services.common.server import ServerOptions
+    from gausslite_services.fusion_server.server import serve
 
     srv = serve(ServerOptions(port=0, max_workers=4), data_dir=str(tmp_path / "data"))
     try:

@@ -14,9 +14,9 @@ import pytest
 from gausslite.fusion.vote import voxel_vote
 from gausslite.wire.codec import LOSSLESS, assemble, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions
-from services.fusion_server.client import FusionClient
-from services.fusion_server.server import serve
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.server import serve
 from tests.services.test_fusion_server import INTR, frame, rand_subset
 from tests.services.test_fusion_server_restart import _kill, _start
 
@@ -28,8 +28,9 @@ def _replica(tmp_path, dsn, name):
 def test_upload_interrupted_by_a_killed_replica_resumes_on_another(tmp_path, pg_schema_dsn):
     g = rand_subset(6000, 0.0, 1)
     chunks = encode_subset(g, "survivor", 3, chunk_gaussians=500, quant=LOSSLESS)  # 12 chunks
-    proc, port_a = _start([sys.executable, "-m", "services.fusion_server", "--port", "0", "--store", pg_schema_dsn,
-                           "--data-dir", str(tmp_path / "unused"), "--port-file", str(tmp_path / "port")],
+    proc, port_a = _start([sys.executable, "-m", "gausslite_services.fusion_server", "--port", "0", "--store",
+                           pg_schema_dsn, "--data-dir", str(tmp_path / "unused"), "--port-file",
+                           str(tmp_path / "port")],
                           tmp_path, tmp_path / "port")
     b = _replica(tmp_path, pg_schema_dsn, "b")
     try:
@@ -113,7 +114,7 @@ def test_replicas_agree_and_serialise_concurrent_fusions(tmp_path, pg_schema_dsn
 
 
 def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys):
-    from services.fusion_server.server import main
+    from gausslite_services.fusion_server.server import main
 
     rc = main(["--port", "0", "--store", "postgresql://x:secret@127.0.0.1:1/none", "--data-dir", str(tmp_path)])
     err = capsys.readouterr().err
@@ -124,7 +125,7 @@ def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys):
 def test_client_balances_round_robin_over_every_listed_replica(tmp_path):
     """The channel spreads calls over all replicas of an ``ipv4:`` list (gRPC round_robin): with
     separate SQLite stores each replica records the sessions it served."""
-    from services.fusion_server.client import RETRIED_METHODS, service_config
+    from gausslite_services.fusion_server.client import RETRIED_METHODS, service_config
 
     cfg = service_config()
     assert cfg["loadBalancingConfig"] == [{"round_robin": {}}]

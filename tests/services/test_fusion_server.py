@@ -18,10 +18,10 @@ from gausslite.datasets.base import Frame
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.wire.codec import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset
 from gausslite_rpc import common_pb2, fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions
-from services.fusion_server.client import (FusionClient, encode_color_jpeg, encode_depth_png, intrinsics_to_proto,
-                                           keyframe_to_proto)
-from services.fusion_server.server import FusionConfig, serve
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.client import (FusionClient, encode_color_jpeg, encode_depth_png,
+                                                     intrinsics_to_proto, keyframe_to_proto)
+from gausslite_services.fusion_server.server import FusionConfig, serve
 
 H, W = 24, 32
 INTR = Intrinsics(30.0, 30.0, (W - 1) / 2, (H - 1) / 2, W, H)
@@ -220,7 +220,7 @@ def test_upload_idempotent_shuffled_and_resumable(server, client):
 
 
 def test_bad_input_precise_codes(server, client, caplog):
-    caplog.set_level(logging.WARNING, logger="services.fusion_server.server")
+    caplog.set_level(logging.WARNING, logger="gausslite_services.fusion_server.server")
     ch, stub, _ = stub_of(server)
     try:
         g = rand_subset(500, 0.0, 7)
@@ -471,7 +471,7 @@ def test_keyframe_roi_is_validated_and_stored(server, client):
     """Keyframes may carry the agent's task ROI (8-bit PNG); a wrong size or format is INVALID_ARGUMENT."""
     import cv2
 
-    from services.fusion_server.client import keyframe_to_proto
+    from gausslite_services.fusion_server.client import keyframe_to_proto
 
     _, stub, _ = stub_of(server)
     client.open_session("roi-agent", "find the cup", INTR)

@@ -1,4 +1,4 @@
-"""``python -m services.fusion_server`` startup: ``$GAUSSLITE_FUSION_STORE`` alone selects
+"""``python -m gausslite_services.fusion_server`` startup: ``$GAUSSLITE_FUSION_STORE`` alone selects
 the PostgreSQL store, and a store whose schema is newer than this server supports is refused with
 exit code 2 and a clear message."""
 
@@ -8,8 +8,8 @@ import signal
 import sqlite3
 import sys
 
-from services.fusion_server.client import FusionClient
-from services.fusion_server.store import SCHEMA_VERSION, SqliteFusionStore
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.store import SCHEMA_VERSION, SqliteFusionStore
 from tests.services.test_fusion_server import INTR
 from tests.services.test_fusion_server_restart import _kill, _start
 
@@ -20,8 +20,8 @@ def test_store_env_var_alone_selects_postgresql(tmp_path, pg_schema_dsn):
     import psycopg
 
     data_dir, port_file = tmp_path / "data", tmp_path / "port"
-    proc, port = _start([sys.executable, "-m", "services.fusion_server", "--port", "0", "--data-dir", str(data_dir),
-                         "--port-file", str(port_file), "--log-level", "INFO"], data_dir, port_file,
+    proc, port = _start([sys.executable, "-m", "gausslite_services.fusion_server", "--port", "0", "--data-dir",
+                         str(data_dir), "--port-file", str(port_file), "--log-level", "INFO"], data_dir, port_file,
                         {"GAUSSLITE_FUSION_STORE": pg_schema_dsn})
     try:
         with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:
@@ -40,7 +40,7 @@ def test_store_env_var_alone_selects_postgresql(tmp_path, pg_schema_dsn):
 
 
 def test_newer_store_schema_is_refused_at_startup(tmp_path, capsys, monkeypatch):
-    from services.fusion_server.server import main
+    from gausslite_services.fusion_server.server import main
 
     monkeypatch.delenv("GAUSSLITE_FUSION_STORE", raising=False)  # the SQLite store in --data-dir
     data_dir = tmp_path / "data"

@@ -19,7 +19,7 @@ from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.wire.codec import LOSSLESS, GaussianArrays, assemble, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.client import FusionClient
 
 REPO = Path(__file__).resolve().parents[2]
 INTR = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
@@ -63,9 +63,9 @@ def test_sigkill_mid_upload_then_resume(tmp_path):
     frames = [Frame(i, 0.0, np.full((24, 32, 3), 40 * i, np.uint8), np.full((24, 32), 2.0, np.float32),
                     np.eye(4), INTR) for i in range(3)]
 
-    # 1st run: python -m services.fusion_server
-    proc, port = _start([sys.executable, "-m", "services.fusion_server", "--port", "0", "--data-dir", str(data_dir),
-                         "--port-file", str(port_file)], data_dir, port_file)
+    # 1st run: python -m gausslite_services.fusion_server
+    proc, port = _start([sys.executable, "-m", "gausslite_services.fusion_server", "--port", "0", "--data-dir",
+                         str(data_dir), "--port-file", str(port_file)], data_dir, port_file)
     try:
         with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:
             c.wait_ready(20)

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from gausslite.wire.codec import LOSSLESS, decode_chunk, encode_subset, peek_header
-from services.fusion_server.store import (SCHEMA_VERSION, ChunkConflict, PostgresFusionStore, SchemaTooNew,
-                                          Session, SqliteFusionStore, StoredKeyframe, StoreError, open_store)
+from gausslite_services.fusion_server.store import (SCHEMA_VERSION, ChunkConflict, PostgresFusionStore, SchemaTooNew,
+                                                    Session, SqliteFusionStore, StoredKeyframe, StoreError, open_store)
 from tests.services.test_fusion_server import rand_subset
 
 

@@ -23,8 +23,8 @@ from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import agent_pb2, fusion_pb2, parser_pb2
 from gausslite.config import load_config
-from services.agent.server import AgentSettings, serve as serve_agent
-from services.common.server import ServerOptions
+from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+from gausslite_services.common.server import ServerOptions
 
 SEED = int(os.environ.get("GAUSSLITE_FUZZ_SEED", "0"))
 CASES = int(os.environ.get("GAUSSLITE_FUZZ_CASES", "60"))
@@ -35,8 +35,8 @@ FORBIDDEN = {grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
 @pytest.fixture(params=["sqlite", "postgresql"])
 def services(request, tmp_path):
     """Parser, fusion server (SQLite store, or PostgreSQL: a fresh schema of the test database) and agent."""
-    from services.fusion_server.server import serve as serve_fusion
-    from services.parser.server import serve as serve_parser
+    from gausslite_services.fusion_server.server import serve as serve_fusion
+    from gausslite_services.parser.server import serve as serve_parser
 
     store = request.getfixturevalue("pg_schema_dsn") if request.param == "postgresql" else None
     make_scene(tmp_path / "scene", seed=0, width=32, height=24, frames=2, progress=False)
@@ -143,8 +143,8 @@ def _chunks(rng: random.Random, version: int = 1) -> list:
 def _templates(m, rng: random.Random, scene) -> list | None:
     """Valid requests of the method (a mission, a session, a subset upload, keyframes), which mutations then
     damage; None for methods without one (their messages are filled at random)."""
-    from services.agent.frames import encode_frame
-    from services.fusion_server.client import intrinsics_to_proto, keyframe_to_proto
+    from gausslite_services.agent.frames import encode_frame
+    from gausslite_services.fusion_server.client import intrinsics_to_proto, keyframe_to_proto
 
     ds, text = scene
     if m.name == "Parse":

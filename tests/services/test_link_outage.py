@@ -19,8 +19,8 @@ from gausslite.parser import TaskParser
 from gausslite.synthetic import make_scene
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
-from services.agent.server import AgentServicer
-from services.fusion_server.client import FusionClient
+from gausslite_services.agent.server import AgentServicer
+from gausslite_services.fusion_server.client import FusionClient
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
@@ -33,8 +33,8 @@ def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subpr
     if port_file.exists():
         port_file.unlink()
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "services.fusion_server", "--port", str(port), "--data-dir",
-                             str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", str(port),
+                             "--data-dir", str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 30
     while not port_file.exists() or not port_file.read_text().strip():

@@ -18,8 +18,8 @@ from gausslite.datasets.base import Frame
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.metrics import metrics_port_from
-from services.common.server import ServerOptions
+from gausslite_services.common.metrics import metrics_port_from
+from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
@@ -64,7 +64,7 @@ def test_metrics_port_parsing():
 
 def test_serve_cli_metrics_flag_and_env():
     from gausslite.cli import build_parser
-    from services.cli.cmd_serve import resolve_options
+    from gausslite_services.cli.cmd_serve import resolve_options
 
     args = build_parser().parse_args(["serve", "fusion", "--metrics-port", "9123"])
     assert resolve_options(args, env={})[0].metrics_port == 9123
@@ -78,7 +78,7 @@ def test_serve_cli_metrics_flag_and_env():
 
 
 def test_metrics_off_by_default(tmp_path):
-    from services.parser.server import serve
+    from gausslite_services.parser.server import serve
 
     srv = serve(ServerOptions(port=0))
     try:
@@ -89,7 +89,7 @@ def test_metrics_off_by_default(tmp_path):
 
 def test_parser_metrics_move(tmp_path):
     from gausslite_rpc import parser_pb2, parser_pb2_grpc
-    from services.parser.server import serve
+    from gausslite_services.parser.server import serve
 
     srv = serve(ServerOptions(port=0, metrics_port=0))
     url = srv.metrics.url
@@ -121,11 +121,11 @@ def scene(tmp_path_factory):
 
 
 def test_fusion_and_agent_metrics_move(tmp_path, scene):
-    from services.agent.client import AgentClient
+    from gausslite_services.agent.client import AgentClient
     from gausslite.config import load_config
-    from services.agent.server import AgentSettings, serve as serve_agent
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve as serve_fusion
+    from gausslite_services.agent.server import AgentSettings, serve as serve_agent
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve as serve_fusion
 
     fusion = serve_fusion(ServerOptions(port=0, metrics_port=0, max_message_bytes=1 << 20),
                           data_dir=str(tmp_path / "fusion"))
@@ -211,8 +211,9 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
 
 
 def test_fusion_module_cli_metrics_port(tmp_path, monkeypatch):
-    """``python -m services.fusion_server`` reads --metrics-port / GAUSSLITE_METRICS_PORT (bad value → exit 2)."""
-    from services.fusion_server.server import main
+    """``python -m gausslite_services.fusion_server`` reads --metrics-port / GAUSSLITE_METRICS_PORT (bad value → exit
+    2)."""
+    from gausslite_services.fusion_server.server import main
 
     monkeypatch.setenv("GAUSSLITE_METRICS_PORT", "not-a-port")
     assert main(["--port", "0", "--data-dir", str(tmp_path / "f")]) == 2
@@ -242,7 +243,7 @@ def test_compose_metrics_setting_serves_metrics(service, tmp_path):
 
     import yaml
 
-    from services.sim import free_port
+    from gausslite_services.sim import free_port
 
     repo = Path(__file__).resolve().parents[2]
     compose = yaml.safe_load((repo / "deploy" / "docker-compose.yml").read_text())["services"]

@@ -14,8 +14,8 @@ from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoRe
 
 from gausslite.parser import LLMBackend, OpenAIConfig, ParserConfig, TaskGraph, TaskParser
 from gausslite_rpc import parser_pb2, parser_pb2_grpc
-from services.common.server import ServerOptions
-from services.parser.server import SERVICE_NAME, serve
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.parser.server import SERVICE_NAME, serve
 
 TOKEN = "s3cret-token"
 

@@ -11,8 +11,8 @@ import grpc
 import pytest
 
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions
-from services.fusion_server.server import serve
+from gausslite_services.common.server import ServerOptions
+from gausslite_services.fusion_server.server import serve
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "robot-integration.md"
 TOKEN = "doc-test-token"

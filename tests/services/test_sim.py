@@ -11,7 +11,7 @@ import pytest
 from pydantic import ValidationError
 
 from gausslite.config import load_config
-from services.sim import plan_agents, run_sim
+from gausslite_services.sim import plan_agents, run_sim
 
 TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
         "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=150",
@@ -74,7 +74,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
                                          for e in rep["fused_timeline"])
     assert any(e["roi_psnr_for_robot"] for e in rep["fused_timeline"])
     # own-map figure of a roi_render=context run of the same sim
-    from services.sim import attach_context_baseline
+    from gausslite_services.sim import attach_context_baseline
 
     ctx = json.loads(json.dumps(rep))
     ctx["settings"]["mapper"]["roi_render"] = "context"

@@ -2,7 +2,7 @@
 
 import pytest
 
-from services.sim import attach_uniform_baseline, write_markdown
+from gausslite_services.sim import attach_uniform_baseline, write_markdown
 
 
 LIVE = {"frames_received": 150, "frames_keyframed": 20, "frames_skipped": 130, "accept_latency_ms_p99": 0.1,
@@ -68,7 +68,7 @@ class _FakeFusion:
 
 
 def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_path, monkeypatch):
-    from services import sim
+    from gausslite_services import sim
 
     fusion = _FakeFusion()
     tl = sim.FusedTimeline(fusion, 0.1, 1)
@@ -110,7 +110,7 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
 
 def test_live_sims_fuse_with_the_paper_per_voxel_rule_and_offline_sims_with_the_neighbourhood():
     from gausslite.config import load_config
-    from services.sim import fuse_settings
+    from gausslite_services.sim import fuse_settings
 
     cfg = load_config()  # deploy/gausslite.yaml
     assert fuse_settings(cfg) == {"voxel_size": 0.10, "contest_radius": 1, "refine_iters": 300}

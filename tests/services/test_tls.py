@@ -1,4 +1,4 @@
-"""TLS and mutual TLS of the gRPC services (services/common/server.py) with a throwaway CA made in a
+"""TLS and mutual TLS of the gRPC services (gausslite_services/common/server.py) with a throwaway CA made in a
 temp dir (tests/_pki.py, the openssl command line): a call over TLS succeeds; plaintext to the TLS port,
 a client trusting another CA and (with mTLS) a client without a certificate are refused; the client
 certificate's CN is the agent id on the fusion server; certificates rotate without a restart
@@ -14,11 +14,11 @@ import pytest
 
 from tests._pki import Pem, make_ca, make_leaf
 from gausslite.camera import Intrinsics
-from services.cli.cmd_health import check_health
+from gausslite_services.cli.cmd_health import check_health
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
-from services.common.server import ServerOptions, TlsFiles, tls_files
-from services.fusion_server.client import FusionClient
-from services.fusion_server.server import serve
+from gausslite_services.common.server import ServerOptions, TlsFiles, tls_files
+from gausslite_services.fusion_server.client import FusionClient
+from gausslite_services.fusion_server.server import serve
 
 INTR = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
 #: a fresh connection per channel (gRPC shares connections between identical channels otherwise)
@@ -127,7 +127,7 @@ def test_mtls_certificate_cn_is_the_agent_id(tmp_path, pki, caplog):
 
 
 def test_mtls_together_with_per_agent_tokens(tmp_path, pki):
-    from services.common import auth
+    from gausslite_services.common import auth
 
     path = tmp_path / "tokens.json"
     tok = {a: auth.issue_token(path, a) for a in ("robot-a", "robot-b")}

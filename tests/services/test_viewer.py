@@ -165,7 +165,7 @@ def test_cli_export(tmp_path):
 
 
 def test_cli_view_serves_page(tmp_path):
-    from services.sim import free_port
+    from gausslite_services.sim import free_port
 
     write_map(shell_map(2000), tmp_path / "m.ply")
     port = free_port()
@@ -359,7 +359,7 @@ def test_cli_view_prints_url_before_loading_and_page_sees_progress(tmp_path, mon
 
     import gausslite.viewer.app as app
     import gausslite.viewer.export as export
-    from services.sim import free_port
+    from gausslite_services.sim import free_port
 
     write_map(shell_map(2500, seed=5), tmp_path / "m.ply")
     entered, release = threading.Event(), threading.Event()
@@ -444,9 +444,9 @@ def _kf(i: int, x: float) -> Frame:
 
 @pytest.fixture()
 def fusion_with_two_agents(tmp_path):
-    from services.common.server import ServerOptions
-    from services.fusion_server.client import FusionClient
-    from services.fusion_server.server import serve
+    from gausslite_services.common.server import ServerOptions
+    from gausslite_services.fusion_server.client import FusionClient
+    from gausslite_services.fusion_server.server import serve
 
     srv = serve(ServerOptions(port=0, max_workers=8), data_dir=str(tmp_path / "fusion"))
     fc = FusionClient(srv.address, timeout_s=20, backoff_s=0.05)
@@ -482,7 +482,7 @@ def test_keyframe_poses_rpc(fusion_with_two_agents):
 
 def test_fusion_feed_follows_versions(fusion_with_two_agents):
     from gausslite.viewer.app import MapViewer
-    from services.viewer.feed import FusionFeed
+    from gausslite_services.viewer.feed import FusionFeed
 
     srv, fc = fusion_with_two_agents
     viewer = MapViewer("127.0.0.1", 0)
@@ -516,7 +516,7 @@ def test_fusion_feed_follows_versions(fusion_with_two_agents):
 
 
 def test_cli_view_follows_fusion(fusion_with_two_agents):
-    from services.sim import free_port
+    from gausslite_services.sim import free_port
 
     _, fc = fusion_with_two_agents
     r = fc.fuse("concat")
@@ -578,7 +578,7 @@ def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
     from tests._browser import headless_chromium, hide_overlays, keep_artifact, require_chromium, screenshot, \
         wait_for_change
     from gausslite.viewer.app import MapViewer
-    from services.viewer.feed import FusionFeed
+    from gausslite_services.viewer.feed import FusionFeed
 
     require_chromium()
     _, fc = fusion_with_two_agents
@@ -614,7 +614,7 @@ def test_browser_opened_during_load_shows_progress(tmp_path, monkeypatch):
     from selenium.webdriver.common.by import By
 
     import gausslite.viewer.app as app
-    from services.sim import free_port
+    from gausslite_services.sim import free_port
 
     require_chromium()
     write_map(shell_map(3000, seed=6), tmp_path / "m.ply")

@@ -1,0 +1,463 @@
+"""The simulation's report: each agent's entry (:func:`_agent_report`), the fused-minus-own differences, the
+figures of other runs merged in (matched uniform agents, a ``roi_render: context`` run, an every-frame offline
+run), the plots and ``report.json`` / ``report.md`` (:func:`write_markdown`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Dict, List, Optional
+
+from gausslite.evaluation import PROTOCOLS
+from gausslite_services.sim.launch import AgentPlan
+
+log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
+
+FUSED_KEYS = ("concat", "vote", "for_robot", "refine")
+#: what each fused key is, for the report
+FUSED_HELP = {
+    "concat": "plain concatenation of the agents' ROI subsets",
+    "vote": "the team map: per-voxel κ vote (paper Sec. III-E)",
+    "for_robot": "the team map as each robot uses it (`Fuse(for_agent=…)`): its own subset whole, and the others' "
+                 "voted rows except those over its ROI; each task scored on the map made for its robot",
+    "refine": "vote + joint refinement over the uploaded keyframes",
+}
+
+
+def attach_context_baseline(report: dict, context_report: dict) -> dict:
+    """Copy each agent's own-map ROI PSNR of a run mapped with ``mapper.roi_render: context`` (same
+    scene and tasks, e.g. ``gausslite sim ... --set mapper.roi_render=context``) into ``report`` as
+    ``own_roi_psnr_context``, and per task ``vote_minus_own_context`` (fused vote ROI PSNR minus it).
+
+    Raises:
+        ValueError: the context run used another roi_render mode, or its agents/tasks differ.
+    """
+    mode = ((context_report.get("settings") or {}).get("mapper") or {}).get("roi_render", "context")
+    if mode != "context":
+        raise ValueError(f"the context report was mapped with roi_render={mode!r}, not 'context'")
+    ctx = {(a["id"], a["task"]): a.get("roi_psnr") for a in context_report.get("agents", [])}
+    vote = (report.get("fused") or {}).get("vote", {}).get("roi_psnr_per_task", {})
+    for a in report["agents"]:
+        if (a["id"], a["task"]) not in ctx:
+            raise ValueError(f"the context report has no agent {a['id']} on task {a['task']}")
+        a["own_roi_psnr_context"] = ctx[(a["id"], a["task"])]
+        v = vote.get(a["task"])
+        a["vote_minus_own_context"] = (v - a["own_roi_psnr_context"]) if v is not None and a[
+            "own_roi_psnr_context"] is not None else None
+    return report
+
+
+def attach_uniform_baseline(report: dict, baseline: dict) -> dict:
+    """Put the own-map figures of a matched uniform run (the same sim with ``mapper.mode=uniform``: same scene,
+    tasks, keyframe budget and Gaussian budget) beside each agent of ``report``: ``uniform_roi_psnr``,
+    ``uniform_roi_psnr_all_frames`` (realtime runs), ``uniform_psnr``, ``uniform_n_gaussians`` and
+    ``task_gain_db`` (this agent's ROI PSNR minus uniform's, over every frame for realtime runs).
+
+    Raises:
+        ValueError: the baseline was not mapped in uniform mode, or its agents/tasks differ.
+    """
+    mode = ((baseline.get("settings") or {}).get("mapper") or {}).get("mode")
+    if mode != "uniform":
+        raise ValueError(f"the baseline report was mapped with mapper.mode={mode!r}, not 'uniform'")
+    base = {(a["id"], a["task"]): a for a in baseline.get("agents", [])}
+    for a in report["agents"]:
+        b = base.get((a["id"], a["task"]))
+        if b is None:
+            raise ValueError(f"the baseline report has no agent {a['id']} on task {a['task']}")
+        a["uniform_roi_psnr"] = b.get("roi_psnr")
+        a["uniform_roi_psnr_all_frames"] = b.get("roi_psnr_all_frames")
+        a["uniform_psnr"] = b.get("psnr")
+        a["uniform_n_gaussians"] = b.get("n_gaussians")
+        own, uni = ((a.get("roi_psnr_all_frames"), b.get("roi_psnr_all_frames")) if report.get("realtime")
+                    else (a.get("roi_psnr"), b.get("roi_psnr")))
+        a["task_gain_db"] = (own - uni) if own is not None and uni is not None else None
+    report["uniform_baseline"] = True
+    return report
+
+
+def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:
+    """Put the every-frame ROI PSNR of ``offline_report`` next to the realtime figures of the finished
+    realtime simulation in ``out`` (rewrites ``out/report.json`` and ``out/report.md``; nothing is re-run).
+
+    Raises:
+        FileNotFoundError: missing reports. ValueError: ``out`` is not a realtime run, or ``offline_report``
+            is one.
+    """
+    out = Path(out)
+    p = out / "report.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"no report.json in {out}")
+    report = json.loads(p.read_text())
+    if not report.get("realtime"):
+        raise ValueError(f"{p} is not a realtime run (gausslite sim --realtime)")
+    offline = _load_offline(offline_report)
+    for a in report["agents"]:
+        a["offline_roi_psnr_all_frames"] = offline.get(a["id"])
+    report["offline_report"] = str(offline_report)
+    p.write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    return report
+
+
+def _load_offline(path: str | Path) -> Dict[str, Optional[float]]:
+    """Agent id → every-frame ROI PSNR of an earlier non-realtime ``report.json`` (or its folder): its
+    ``roi_psnr_all_frames`` when present, else its ``roi_psnr`` (mean over the mapped frames, which are all
+    frames in an every-frame run).
+
+    Raises:
+        FileNotFoundError: no report. ValueError: not a simulation report, or a realtime one.
+    """
+    p = Path(path)
+    p = p / "report.json" if p.is_dir() else p
+    if not p.is_file():
+        raise FileNotFoundError(f"offline report not found: {p}")
+    try:
+        rep = json.loads(p.read_text())
+        agents = rep["agents"]
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{p} is not a simulation report.json: {e}") from None
+    if rep.get("realtime"):
+        raise ValueError(f"{p} is a realtime run; give an every-frame run (gausslite sim without --realtime)")
+    return {a["id"]: a.get("roi_psnr_all_frames", a.get("roi_psnr")) for a in agents}
+
+
+def _agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optional[float]]]) -> dict:
+    """One agent's entry of ``report["agents"]`` from its Finish summary ``s``, the fusion server's stats of it
+    ``st`` and the every-frame ROI PSNR of an offline run (``offline``: agent id → dB, or None)."""
+    return {
+        "id": p.name, "task": p.task_id, "task_text": p.task, "dataset": p.dataset,
+        "roi_psnr": s.roi_psnr if s.has_roi_psnr else None, "psnr": s.psnr,
+        "n_gaussians": int(s.status.n_gaussians), "n_shared": int(s.n_shared),
+        "share_pct": float(st.get("share_pct", s.share_pct)),
+        # agent-side figures: the server stores delta-rebuilt subsets losslessly
+        "bytes_on_wire": int(s.bytes_on_wire),
+        "bytes_per_gaussian": float(s.bytes_per_gaussian),
+        "total_upload_bytes": int(s.total_upload_bytes),
+        "final_subset_bytes": int(s.final_subset_bytes),
+        "upload_ratio": (s.total_upload_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
+        "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
+                      "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
+                      "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
+                      "unchanged": bool(getattr(q, "unchanged", False)),
+                      "share_pct": 100.0 * q.n_shared / q.n_total if q.n_total else 0.0}
+                     for q in s.pushes],
+        "pushes": int(s.status.pushes), "frames_mapped": int(s.status.frames_mapped),
+        "seconds_per_frame": float(s.seconds_per_frame), "keyframes": int(st.get("keyframes", 0)),
+        "frames_received": int(s.status.frames_received), "frames_keyframed": int(s.status.frames_keyframed),
+        "frames_skipped": int(s.status.frames_skipped),
+        "accept_latency_ms_p99": float(s.status.accept_latency_ms_p99),
+        "keyframe_latency_s_p95": float(s.status.keyframe_latency_s_p95),
+        "idle_iterations": int(s.status.idle_iterations),
+        "keyframe_iterations": int(s.status.keyframe_iterations),
+        "roi_psnr_all_frames": s.roi_psnr_all_frames if s.has_roi_psnr_all_frames else None,
+        "frames_all": int(s.frames_all),
+        "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
+        "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
+                          "ssim": v.ssim, "frames_scored": int(v.frames_scored),
+                          "roi_frames": int(v.roi_frames)}
+                      for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
+    }
+
+
+def _fused_minus_own(report: dict) -> None:
+    """Each fused map's ``minus_own[task]``: its ROI PSNR minus the task's robot's own map (every-frame figure in
+    realtime runs, else the mapped frames')."""
+    own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr")
+           for a in report["agents"]}
+    for f in report["fused"].values():
+        f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
+                          for t, v in f["roi_psnr_per_task"].items()}
+
+
+def _protocol_minus_own(report: dict) -> None:
+    """Each fused map's ``protocols[q][task]["minus_own"]``: its ROI PSNR minus the task's robot's own map under the
+    same protocol (the agent's ``protocols[q]``)."""
+    own = {a["task"]: a.get("protocols") or {} for a in report["agents"]}
+    for f in (report.get("fused") or {}).values():
+        for q, per_task in (f.get("protocols") or {}).items():
+            for t, v in per_task.items():
+                o = (own.get(t, {}).get(q) or {}).get("roi_psnr")
+                v["minus_own"] = (v["roi_psnr"] - o) if v.get("roi_psnr") is not None and o is not None else None
+
+
+def _write_report(report: dict, out: Path) -> None:
+    """Write the plots (``pushes.png``, ``fused_over_time.png``, named in ``report`` when drawn), ``report.json``
+    and ``report.md`` into ``out``."""
+    if plot_pushes(report, out / "pushes.png"):
+        report["pushes_plot"] = "pushes.png"
+    if plot_fused_timeline(report, out / "fused_over_time.png"):
+        report["fused_timeline_plot"] = "fused_over_time.png"
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    write_markdown(report, out / "report.md")
+    log.info("wrote %s and %s (%.0f s)", out / "report.json", out / "report.md", report["seconds"])
+
+
+def plot_pushes(report: dict, path: Path) -> bool:
+    """Plot bytes per push and share of the map over time (frames mapped) for every agent into
+    ``path`` (PNG). Returns False when no agent logged a push."""
+    agents = [a for a in report["agents"] if a.get("push_log")]
+    if not agents:
+        return False
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib
+
+    matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for a in agents:
+        log_ = a["push_log"]
+        x = [q["frames_mapped"] for q in log_]
+        ax1.plot(x, [q["bytes_sent"] / 1024 for q in log_], "o-", label=a["id"])
+        for q, xi in zip(log_, x):
+            ax1.annotate("Δ" if q["delta"] else "full", (xi, q["bytes_sent"] / 1024), fontsize=7,
+                         textcoords="offset points", xytext=(0, 4), ha="center")
+        ax2.plot(x, [q["share_pct"] for q in log_], "o-", label=a["id"])
+    ax1.set(xlabel="frames mapped", ylabel="KiB sent", title="bytes per push")
+    ax2.set(xlabel="frames mapped", ylabel="% of the agent's map", title="shared subset")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def plot_fused_timeline(report: dict, path: Path) -> bool:
+    """PNG of the vote-fused team map's ROI PSNR per task over the simulation's time (dotted: on the team map as the
+    task's robot uses it), with each agent's own final ROI PSNR as a dashed line. Returns False when there is nothing to plot."""
+    tl = report.get("fused_timeline") or []
+    if not tl:
+        return False
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib
+
+    matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    for a in report["agents"]:
+        pts = [(e["t"], e["roi_psnr"].get(a["task"])) for e in tl if e["roi_psnr"].get(a["task"]) is not None]
+        if not pts:
+            continue
+        line, = ax.plot(*zip(*pts), "o-", ms=3, label=f"team map, {a['task']}")
+        rp = [(e["t"], (e.get("roi_psnr_for_robot") or {}).get(a["task"])) for e in tl]
+        rp = [q for q in rp if q[1] is not None]
+        if rp:
+            ax.plot(*zip(*rp), "s:", ms=3, color=line.get_color(), label=f"team map for {a['id']}")
+        own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
+        if own is not None:
+            ax.axhline(own, ls="--", lw=1, color=line.get_color(), label=f"{a['id']} own map (end)")
+    ax.set_xlabel("simulation time (s)")
+    ax.set_ylabel("ROI PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def _fmt(v, nd=2) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
+
+
+def write_markdown(report: dict, path: Path) -> None:
+    """Write the human-readable report (tables + render links)."""
+    tasks = [a["task"] for a in report["agents"]]
+    lines = ["# GaussLite two-agent simulation", "",
+             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time.", "",
+             "## Agents (own map, own task)", "",
+             "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian | pushes | "
+             "total upload bytes | final subset bytes | upload / final |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
+                     f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
+                     f"{a.get('total_upload_bytes', '–')} | {a.get('final_subset_bytes', '–')} | "
+                     f"{_fmt(a.get('upload_ratio'))} |")
+    if any("own_roi_psnr_context" in a for a in report["agents"]):
+        lines += ["", "Own map with `roi_render: context` (this run's agents, or a run of the same sim mapped that "
+                  "way) against the fused vote map:", "",
+                  "| agent | task | own ROI PSNR, deployed | own ROI PSNR, context | fused vote | vote − own context |",
+                  "|---|---|---|---|---|---|"]
+        vote = report["fused"]["vote"]["roi_psnr_per_task"]
+        for a in report["agents"]:
+            lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {_fmt(a.get('own_roi_psnr_context'))} | "
+                         f"{_fmt(vote.get(a['task']))} | {_fmt(a.get('vote_minus_own_context'))} |")
+    lines += ["", "Pushes (bytes sent per push, `Δ` = delta push; share of the map when pushed):", ""]
+    for a in report["agents"]:
+        cells = ", ".join(f"{q['bytes_sent']} B{' Δ' if q['delta'] else ''} @ {q['share_pct']:.1f} %"
+                          for q in a.get("push_log", []))
+        lines.append(f"- {a['id']}: {cells or '–'}")
+    if report.get("pushes_plot"):
+        lines += ["", f"![bytes per push and share over time]({report['pushes_plot']})"]
+    lines += _timeline_lines(report)
+    lines += _live_lines(report)
+    lines += _baseline_lines(report)
+    lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
+              "Each cell: the fused map's ROI PSNR, and in brackets its difference to the robot's own map.", "",
+              "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
+              "|---|" + "---|" * (len(tasks) + 3)]
+    for key in FUSED_KEYS:
+        f = report["fused"].get(key)
+        if f is None:
+            continue
+        mo = f.get("minus_own") or {}
+        per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) + (f" ({mo[t]:+.2f})" if mo.get(t) is not None else "")
+                         for t in tasks)
+        lines.append(f"| {key} | {per} | {_fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {_fmt(f['seconds'])} |")
+    lines += [""] + [f"- `{k}`: {FUSED_HELP[k]}" for k in FUSED_KEYS if k in report["fused"]]
+    lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
+              f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
+              f"{report['settings']['refine_iters']} iterations."]
+    lines += _protocol_lines(report)
+    lines += _cover_lines(report)
+    lines += ["", "## Renders (render | ground truth | task ROI)", ""]
+    for r in report.get("renders", []):
+        lines.append(f"**{r['fused']} — {r['task']} (frame {r['frame_id']})**  ")
+        lines.append(f"![{r['fused']} {r['task']}]({r['path']})")
+        lines.append("")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _baseline_lines(report: dict) -> List[str]:
+    """Markdown of the matched uniform baseline (``gausslite sim --baseline uniform``)."""
+    if not report.get("uniform_baseline"):
+        return []
+    col = "ROI PSNR, all frames" if report.get("realtime") else "ROI PSNR, mapped frames"
+    lines = ["", "## What the task buys: GaussLite against matched uniform agents", "",
+             f"| agent | task | GaussLite {col} | uniform {col} | gain (dB) | GaussLite PSNR | uniform PSNR | "
+             "Gaussians (GaussLite / uniform) |", "|---|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
+        uni = a.get("uniform_roi_psnr_all_frames") if report.get("realtime") else a.get("uniform_roi_psnr")
+        lines.append(f"| {a['id']} | {a['task']} | {_fmt(own)} | {_fmt(uni)} | {_fmt(a.get('task_gain_db'))} | "
+                     f"{_fmt(a.get('psnr'))} | {_fmt(a.get('uniform_psnr'))} | {a['n_gaussians']} / "
+                     f"{a.get('uniform_n_gaussians', '–')} |")
+    lines += ["", "The uniform agents ran the same sim with `mapper.mode=uniform` (same scene, keyframe rule, keyframe "
+              "budget and Gaussian budget; they share nothing). `docs/realtime.md` has the budget sweep."]
+    return lines
+
+
+def _live_lines(report: dict) -> List[str]:
+    """Markdown of the live-ingest figures (realtime runs only)."""
+    if not report.get("realtime"):
+        return []
+    src = report.get("offline_report")
+    lines = ["", "## Live operation (realtime replay at the dataset clock)", "",
+             "| agent | received | keyframed | skipped | accept p99 (ms) | keyframe latency p95 (s) | iters / keyframe | "
+             "idle iters | ROI PSNR all frames, realtime (dB) | same, offline every-frame (dB) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for a in report["agents"]:
+        lines.append(f"| {a['id']} | {a['frames_received']} | {a['frames_keyframed']} | {a['frames_skipped']} | "
+                     f"{_fmt(a['accept_latency_ms_p99'])} | {_fmt(a['keyframe_latency_s_p95'])} | "
+                     f"{_fmt(a.get('keyframe_iterations', 0) / max(a['frames_keyframed'], 1), 1)} | "
+                     f"{a['idle_iterations']} | {_fmt(a['roi_psnr_all_frames'])} | "
+                     f"{_fmt(a['offline_roi_psnr_all_frames'])} |")
+    lines += ["", f"ROI PSNR over all {report['agents'][0]['frames_all']} frames of the sequence (skipped ones "
+              "included) of each agent's final map on its own task. Offline column: "
+              + (f"`{src}`." if src else "not given (pass `--offline-report DIR` of an every-frame `gausslite sim` "
+                 "on the same dataset).")]
+    return lines
+
+
+def _timeline_lines(report: dict) -> List[str]:
+    """Markdown of the fused map over time (one vote after each new subset)."""
+    tl = report.get("fused_timeline") or []
+    if not tl:
+        return []
+    tasks = [a["task"] for a in report["agents"]]
+    robot = any(e.get("roi_psnr_for_robot") for e in tl)
+    lines = ["", "## The fused map while mapping", "",
+             "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame: the team "
+             "map" + (", and (→ robot) each task on the team map as its robot uses it (`Fuse(for_agent=…)`)" if robot
+                      else "") + ":", "",
+             "| time (s) | subset versions | Gaussians | " + " | ".join(tasks)
+             + ("".join(f" | {t} → robot" for t in tasks) if robot else "") + " |",
+             "|---|---|---|" + "---|" * (len(tasks) * (2 if robot else 1))]
+    for e in tl:
+        vs = ", ".join(f"{a} v{v}" for a, v in sorted(e["versions"].items()))
+        cells = [_fmt(e["roi_psnr"].get(t)) for t in tasks]
+        if robot:
+            cells += [_fmt((e.get("roi_psnr_for_robot") or {}).get(t)) for t in tasks]
+        lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | " + " | ".join(cells) + " |")
+    if report.get("fused_timeline_plot"):
+        lines += ["", f"![fused ROI PSNR over time]({report['fused_timeline_plot']})"]
+    return lines
+
+
+def _protocol_lines(report: dict) -> List[str]:
+    """Markdown of the own and fused maps under each scoring protocol (docs/realtime.md#scoring-protocols)."""
+    agents = report["agents"]
+    names = sorted(dict.fromkeys(q for a in agents for q in (a.get("protocols") or {})), key=_protocol_order)
+    if not names:
+        return []
+    tasks = [a["task"] for a in agents]
+    stride = int(((report.get("settings") or {}).get("scoring") or {}).get("track_stride", 5))
+    lines = ["", "## Own and fused maps under each scoring protocol", "",
+             "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its difference to the robot's own map under "
+             "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
+             "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
+             f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
+             "map (docs/realtime.md#scoring-protocols).", "",
+             "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
+    for q in names:
+        own = {a["task"]: (a.get("protocols") or {}).get(q, {}) for a in agents}
+        lines.append(f"| {q} | own | " + " | ".join(
+            f"{_fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
+        for key in FUSED_KEYS:
+            per = ((report["fused"].get(key) or {}).get("protocols") or {}).get(q)
+            if not per:
+                continue
+            cells = []
+            for t in tasks:
+                v = per.get(t) or {}
+                mo = v.get("minus_own")
+                cells.append(_fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
+            lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _protocol_order(name: str) -> int:
+    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``)."""
+    return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
+
+
+def _every(n: int) -> str:
+    """"every frame", "every 2nd frame", …, "every 5th frame"."""
+    if n <= 1:
+        return "every frame"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every {n}{suffix} frame"
+
+
+def _cover_lines(report: dict) -> List[str]:
+    """Markdown of what covers each robot's ROI in the team map (:func:`roi_cover_report`)."""
+    cov = (report.get("fused") or {}).get("vote", {}).get("cover") or {}
+    if not cov:
+        return []
+    lines = ["", "## What covers each robot's ROI in the team map", "",
+             "Share of the ROI pixels' blending weight in the vote map drawn by the robot's own Gaussians, by the "
+             "other robots' Gaussians whose centre lies in their own task region or only in their context, and left "
+             "uncovered; the other robots' Gaussians over the ROI (weighted mean extent, share of their weight in front "
+             "of the ROI surface); and the robot's own rows the vote dropped, with the share of its subset's ROI "
+             "weight they carried (docs/sharing.md).", "",
+             "| robot | own | others, in their task region | others, context | uncovered | others' extent (m) | "
+             "others in front | own rows dropped | their ROI weight |", "|---|---|---|---|---|---|---|---|---|"]
+    for a, c in cov.items():
+        m, f, om = c["mass"], c["foreign"], c["own_missing"]
+        lines.append(f"| {a} | {m['own']:.2f} | {m['foreign_task']:.2f} | {m['foreign_context']:.2f} | "
+                     f"{m['uncovered']:.2f} | {_fmt(f.get('weighted_extent_m'))} | {_fmt(f.get('weight_in_front'))} | "
+                     f"{om['rows']} of {om['of']} | {_fmt(om.get('weight_share'))} |")
+    for a, c in cov.items():
+        if c.get("image"):
+            lines += ["", f"**{a}: the other robots' Gaussians over its ROI (red), ROI outline (green)**  ",
+                      f"![cover {a}]({c['image']})"]
+    return lines

@@ -1,0 +1,193 @@
+"""The simulation run (:func:`run_sim`): services started (or attached), the agents' missions waited for while the
+fused map is followed over time, every fused map made and scored, and the report written."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import grpc
+import yaml
+
+from gausslite.config import load_config
+from gausslite.synthetic import make_scene
+from gausslite_rpc import agent_pb2
+from gausslite_services.sim.launch import (ProcessGroup, _check_bags, _close_all, _connect, _main_thread,
+                                           _raise_interrupt, _start_services, plan_agents)
+from gausslite_services.sim.report import (_agent_report, _fused_minus_own, _load_offline, _protocol_minus_own,
+                                           _write_report, attach_context_baseline)
+from gausslite_services.sim.scoring import (_fuse_and_score, _load_eval_frames, _uploaded_keyframe_poses,
+                                            roi_cover_report)
+from gausslite_services.sim.timeline import FusedTimeline
+
+log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
+
+
+@dataclass
+class SimResult:
+    """``report`` (the report.json dict), ``out`` folder, wall ``seconds``."""
+
+    report: dict
+    out: Path
+    seconds: float
+    pids: Dict[str, int] = field(default_factory=dict)
+
+
+def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[str | Path] = None,
+            overrides: List[str] = (), task_ids: Optional[List[str]] = None, attach: Optional[Dict[str, str]] = None,
+            timeout_s: Optional[float] = None, token: Optional[str] = None, fusion_token: Optional[str] = None,
+            progress: bool = True,
+            offline_report: Optional[str | Path] = None,
+            context_report: Optional[str | Path] = None) -> SimResult:
+    """Run the two-agent simulation and write the report.
+
+    Stages: start the services (:func:`_start_services`, skipped with ``attach``), run the agents' missions
+    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse and score (:func:`_fuse_and_score`), then write the
+    report (:func:`_write_report`).
+
+    Args:
+        out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
+        dataset: scene folder; None → generate the synthetic default scene into ``out/scene``.
+        config: GaussLite YAML (default ``deploy/gausslite.yaml``); ``overrides``: dotted ``key=value``.
+        task_ids: the two agents' task ids (default from ``sim.tasks``).
+        attach: ``{"parser", "fusion_server", "agent_a", "agent_b"} → host:port`` of running services
+            (no processes started; the agents must already run their missions).
+        timeout_s: overall bound (default ``sim.timeout_s``).
+        token: bearer token for the services (also passed to started processes).
+        fusion_token: this client's own token for the fusion server when it checks per-agent tokens
+            (default ``token``; ``docs/security.md``).
+        offline_report: folder or ``report.json`` of an earlier every-frame run on the same dataset; its
+            agents' ROI PSNR is reported next to ``roi_psnr_all_frames`` (``agent.realtime`` runs).
+        context_report: ``report.json`` of the same sim mapped with ``mapper.roi_render=context``:
+            adds ``own_roi_psnr_context`` per agent (:func:`attach_context_baseline`). Without it, a run
+            whose agents map with ``roi_render: context`` (the deployed setting) reports its own figures
+            there.
+    Returns:
+        SimResult.
+    Raises:
+        TimeoutError, RuntimeError (a service died or failed), ValueError/FileNotFoundError (bad input).
+    """
+    t0 = time.perf_counter()
+    offline = _load_offline(offline_report) if offline_report else None
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    typed = load_config(config, overrides)  # a typo fails here, before any process starts
+    cfg = typed.to_yaml_dict()  # the effective tree: what the agents read (--config) and the report records
+    timeout_s = float(timeout_s or typed.sim.timeout_s)
+    deadline = time.monotonic() + timeout_s
+    config_path = out / "config.yaml"
+    config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    if dataset is None:
+        dataset = _generate_scene(out, typed.sim.scene, progress)
+    plans = plan_agents(dataset, typed, task_ids)
+    _check_bags(plans, typed.agent)
+    group = ProcessGroup(out / "logs")
+    previous = None
+    if attach is None and hasattr(signal, "SIGTERM") and _main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    clients: list = []
+    try:
+        addrs = _start_services(out, config_path, plans, group, token) if attach is None else dict(attach)
+        fusion, agents = _connect(addrs, plans, token, fusion_token, clients)
+        # ---- run the missions; vote-fuse whenever a new subset arrived (the fused map over time)
+        fz = typed.sim.fuse.settings(typed.agent.realtime)
+        tracker = FusedTimeline(fusion, fz["voxel_size"], fz["contest_radius"])
+        _wait_for_missions(agents, group, tracker, t0, deadline, timeout_s)
+        summaries = _finish_agents(agents, deadline)
+        tracker.poll(time.perf_counter() - t0)
+        stats = fusion.stats().get("agents", {})
+        # ---- fuse and score
+        backend, scoring = typed.mapper.backend, typed.agent.scoring
+        eval_frames = _load_eval_frames(plans, typed.agent)
+        fused, renders = _fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
+                                         _uploaded_keyframe_poses(fusion, plans), backend)
+        timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
+                                  task_of={p.name: p.task_id for p in plans})
+        # ---- the report
+        report = {"scene": dataset, "seconds": time.perf_counter() - t0,
+                  "agents": [_agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
+                  "fused": fused, "renders": renders, "fused_timeline": timeline, "realtime": typed.agent.realtime,
+                  "offline_report": str(offline_report) if offline_report else None,
+                  "settings": {"voxel_size": fz["voxel_size"], "contest_radius": fz["contest_radius"],
+                               "refine_iters": fz["refine_iters"], "scoring": scoring.model_dump(),
+                               "config": str(config_path), "agent": cfg["agent"], "mapper": cfg["mapper"]}}
+        _fused_minus_own(report)
+        _protocol_minus_own(report)
+        if attach is None:
+            try:
+                fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
+            except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
+                log.warning("ROI cover diagnosis failed: %s", e)
+        if context_report is not None:
+            attach_context_baseline(report, json.loads(Path(context_report).read_text()))
+        elif typed.mapper.roi_render == "context":
+            attach_context_baseline(report, report)  # the agents themselves mapped with roi_render: context
+        _write_report(report, out)
+        return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
+    finally:
+        _close_all(clients, group, previous)
+
+
+def _generate_scene(out: Path, scene, progress: bool) -> str:
+    """Generate the synthetic default scene (``scene``: :class:`gausslite.config.SimScene`) into ``out/scene`` and
+    return that folder's path."""
+    log.info("generating the synthetic default scene into %s", out / "scene")
+    make_scene(out / "scene", seed=scene.seed, width=scene.width, height=scene.height, frames=scene.frames,
+               progress=progress)
+    return str(out / "scene")
+
+
+def _wait_for_missions(agents: dict, group: ProcessGroup, tracker: FusedTimeline, t0: float, deadline: float,
+                       timeout_s: float) -> None:
+    """Poll the agents' status every second until every mission is replayed or finished, vote-fusing whenever a new
+    subset arrived (``tracker``: the fused map over time; ``t0``: the sim's ``perf_counter`` start) and logging
+    progress every 5 s.
+
+    Raises:
+        RuntimeError: a mission failed or a process died. TimeoutError: past ``deadline`` (monotonic s).
+        grpc.RpcError: an agent's status call failed (NOT_FOUND is waited out until the deadline).
+    """
+    done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
+    last_print = 0.0
+    while True:
+        group.check_alive()
+        tracker.poll(time.perf_counter() - t0)
+        try:
+            sts = {n: c.status() for n, c in agents.items()}
+        except grpc.RpcError as e:  # an attached agent that has not started its mission yet
+            if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+            continue
+        for n, st in sts.items():
+            if st.state == agent_pb2.MISSION_STATE_FAILED:
+                raise RuntimeError(f"{n} mission failed: {st.last_error}")
+        if time.monotonic() - last_print > 5.0 or all(st.state in done for st in sts.values()):
+            last_print = time.monotonic()
+            log.info("mapping: " + ", ".join(
+                f"{n} {st.frames_mapped}/{st.frames_received or '?'} frames, {st.n_gaussians} G, "
+                f"{st.pushes} pushes" for n, st in sts.items()))
+        if all(st.state in done for st in sts.values()):
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"agents not done after {timeout_s:.0f} s")
+        time.sleep(1.0)
+
+
+def _finish_agents(agents: dict, deadline: float) -> dict:
+    """Each agent's Finish summary (agent id → summary), within what is left until ``deadline`` (at least 10 s).
+
+    Raises:
+        RuntimeError: an agent's final push failed.
+    """
+    summaries = {}
+    for n, c in agents.items():
+        summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
+        if not summaries[n].final_push_ok:
+            raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+    return summaries

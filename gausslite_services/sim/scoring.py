@@ -1,0 +1,200 @@
+"""Fusing and scoring at the end of a simulation: every fused map of :data:`~gausslite_services.sim.report.FUSED_KEYS`
+made on the fusion server, scored on each agent's task ROI over its frames and under the scoring protocols
+(:func:`fused_protocols`), a render per task, and what covers each robot's ROI in the team map
+(:func:`roi_cover_report`).
+
+Fused-map ROI PSNR of a task = mean over that task's agent's frames of the PSNR restricted to the task's
+ground-truth ROI mask (frames whose ROI is empty are skipped), rendering the fused map at those views.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import cv2
+import grpc
+import numpy as np
+
+from gausslite.config import GaussLiteConfig
+from gausslite.datasets import load_dataset
+from gausslite.evaluation import evaluate_fused, render_map, score_map, side_by_side
+from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
+from gausslite.fusion.vote import voxel_vote
+from gausslite.mission.config import AgentConfig
+from gausslite.wire.decode import assemble
+from gausslite.wire.format import WireLimits
+from gausslite_services.fusion_server.store import SqliteFusionStore
+from gausslite_services.sim.launch import AgentPlan
+from gausslite_services.sim.report import FUSED_KEYS, _fmt
+
+log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
+
+
+def fuse_settings(cfg: GaussLiteConfig, realtime: bool = False) -> dict:
+    """The simulation's fusion settings (:meth:`gausslite.config.SimFuse.settings` of ``cfg.sim.fuse``): live
+    runs (``realtime``) contest with ``live_contest_radius`` (default 0, the paper's per-voxel rule): measured
+    live, the neighbourhood contest empties an owner's voxels next to another robot's denser task region
+    (``docs/sharing.md``)."""
+    return cfg.sim.fuse.settings(realtime)
+
+
+def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_psnr: Optional[float], scoring,
+                    keyframe_poses: Dict[int, np.ndarray], backend: str = "auto") -> dict:
+    """One fused map's figures on one task under the scoring protocols of ``scoring`` (a
+    :class:`gausslite.mission.config.ScoringConfig`), as its robot's own map is scored
+    (docs/realtime.md#scoring-protocols): ``sensor`` is ``sensor_roi_psnr`` (:func:`evaluate_fused` over every frame
+    at the sensor's pose); ``keyframes`` the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the
+    keyframes the task's robot uploaded, at the refined poses they carry), ``tracked`` every ``track_stride``-th
+    frame at a pose and exposure fitted against the fused map from the sensor's pose
+    (:func:`gausslite.evaluation.score_map`).
+
+    Returns:
+        ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
+    """
+    rest = [q for q in scoring.chosen() if q != "sensor"]
+    out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
+    if rest:
+        res = score_map(gmap, frames, lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics),
+                        rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
+                        keyframe_poses=keyframe_poses, backend=backend)
+        out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
+    return out
+
+
+def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict,
+                     backend: str = "auto", stride: int = 2) -> dict:
+    """What covers each robot's ROI in the team (vote) map (:func:`gausslite.fusion.diagnose.roi_cover`): the final
+    subsets are read from the fusion server's store in ``out/data/fusion`` and voted again with the sim's settings
+    (the same vote as the server's), and scored on every ``stride``-th frame of each robot's sequence with its task's
+    ground-truth ROI. Writes ``renders/cover_<task>.png`` (the others' blending weight in red, the ROI in green).
+
+    Returns:
+        agent id → the diagnosis (``mass``, ``foreign``, ``top_foreign`` (5), ``own_missing``) plus ``image``.
+    """
+    store = SqliteFusionStore(out / "data" / "fusion")
+    try:
+        subsets = {a: assemble(store.chunk_data(a, v), WireLimits())[0] for a, v in store.latest_complete().items()}
+    finally:
+        store.close()
+    fused, rep = voxel_vote(subsets, fz["voxel_size"], contest_radius=fz["contest_radius"])
+    views = {}
+    for p in plans:
+        ds, frames = eval_frames[p.name]
+        vs = []
+        for fr in frames[::stride]:
+            roi = ds.annotations.roi_mask(p.task_id, fr.depth, fr.c2w, fr.intrinsics)
+            if roi.any():
+                vs.append(RoiView.from_frame(fr, roi))
+        views[p.name] = vs
+    cov = roi_cover(subsets, fused, rep.source_agent, rep.source_row, views, top=5, backend=backend)
+    agents = list(rep.agents)
+    for p in plans:
+        if p.name in cov and views[p.name]:
+            rel = f"renders/cover_{p.task_id}.png"
+            view = views[p.name][len(views[p.name]) // 2]
+            cv2.imwrite(str(out / rel), cover_image(fused, rep.source_agent != agents.index(p.name), view, backend))
+            cov[p.name]["image"] = rel
+    return cov
+
+
+def _load_eval_frames(plans: List[AgentPlan], agent_cfg: AgentConfig) -> Dict[str, tuple]:
+    """Agent id → ``(dataset, frames)``: each agent's sequence loaded as its agent replays it (``agent_cfg``: the
+    typed :class:`gausslite.mission.config.AgentConfig`; downscale, max_frames, stride, bag options)."""
+    eval_frames = {}
+    for p in plans:
+        ds = load_dataset(p.dataset, downscale=agent_cfg.downscale, max_frames=agent_cfg.max_frames,
+                          stride=agent_cfg.stride, bag=agent_cfg.bag)
+        eval_frames[p.name] = (ds, [ds[i] for i in range(len(ds))])
+    return eval_frames
+
+
+def _uploaded_keyframe_poses(fusion, plans: List[AgentPlan]) -> Dict[str, dict]:
+    """Agent id → {frame id → (4, 4) camera-to-world}: the keyframes each robot uploaded, at the refined poses they
+    carry (the ``keyframes`` protocol). An agent whose poses cannot be read is logged and left out."""
+    kf_poses = {}
+    for p in plans:
+        try:
+            kf_poses[p.name] = {int(k["frame_id"]): k["c2w"] for k in fusion.keyframe_poses(p.name)}
+        except grpc.RpcError as e:
+            log.warning("no keyframe poses of %s: %s", p.name, e.details())
+    return kf_poses
+
+
+def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
+    """Run the fusion of report key ``key`` (one of :data:`FUSED_KEYS`) on the server and download the result;
+    ``for_robot`` fuses once per agent (``for_agent``). ``fz``: :func:`fuse_settings`.
+
+    Returns:
+        ``(gmaps, res)``: agent id → the fused ``GaussianMap`` its task is scored on, and the last fuse result.
+    """
+    method = "concat" if key == "concat" else "vote"
+    gmaps, res = {}, None
+    for p in (plans if key == "for_robot" else [None]):
+        res = fusion.fuse(method, refine=(key == "refine"), refine_iters=fz["refine_iters"],
+                          voxel_size=fz["voxel_size"], contest_radius=fz["contest_radius"] if method == "vote" else None,
+                          for_agent=p.name if p is not None else None,
+                          progress=(lambda f, m, k=key: log.info("  %s %3.0f%% %s", k, 100 * f, m)))
+        g = fusion.download_fused(res.fused_version).to_gaussian_map()
+        for q in ([p] if p is not None else plans):
+            gmaps[q.name] = g
+    return gmaps, res
+
+
+def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, task_id: str,
+                        backend: str) -> Optional[dict]:
+    """Write ``out/renders/<key>_<task>.png`` (the fused map beside the frame, ROI outlined) at the frame with the
+    task's largest ROI. Returns the report's render entry, or None when no frame shows the ROI."""
+    mid = _roi_frame(frames, annotations, task_id)
+    if mid is None:
+        return None
+    fr = frames[mid]
+    roi = annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
+    img = side_by_side(render_map(gmap, fr, backend), fr, roi)
+    rel = f"renders/{key}_{task_id}.png"
+    cv2.imwrite(str(out / rel), img)
+    return {"fused": key, "task": task_id, "frame_id": int(fr.frame_id), "path": rel}
+
+
+def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
+                    kf_poses: Dict[str, dict], backend: str):
+    """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
+    frames and under ``scoring``'s protocols, :func:`fused_protocols`) with a render per task in ``out/renders``.
+
+    Returns:
+        ``(fused, renders)``: key → the report's figures of that fused map, and the render entries.
+    """
+    fused: Dict[str, dict] = {}
+    renders = []
+    (out / "renders").mkdir(exist_ok=True)
+    for key in FUSED_KEYS:
+        log.info("fusing: %s", key)
+        gmaps, res = _fuse_maps(fusion, key, plans, fz)
+        per_task, protos = {}, {}
+        for p in plans:
+            gmap = gmaps[p.name]
+            ds, frames = eval_frames[p.name]
+            per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
+            protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
+                                                scoring, kf_poses.get(p.name, {}), backend)
+            render = _write_fused_render(out, key, gmap, frames, ds.annotations, p.task_id, backend)
+            if render is not None:
+                renders.append(render)
+        vals = [v for v in per_task.values() if v is not None]
+        fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
+                      "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
+                      "fused_version": int(res.fused_version), "kept": dict(res.kept),
+                      "protocols": {q: {t: protos[t][q] for t in protos} for q in scoring.chosen()}}
+        log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: _fmt(v) for k, v in per_task.items()})
+    return fused, renders
+
+
+def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:
+    """Index of the frame with the largest ROI of ``task_id`` (None when no frame shows it)."""
+    best, idx = 0, None
+    for i, fr in enumerate(frames):
+        n = int(annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics).sum())
+        if n > best:
+            best, idx = n, i
+    return idx

@@ -1,7 +1,0 @@
-"""``python -m services.fusion_server [--host H] [--port P] [--data-dir D] [--port-file F] ...``."""
-
-import sys
-
-from services.fusion_server.server import main
-
-sys.exit(main())
