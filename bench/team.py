@@ -57,7 +57,10 @@ from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import refine_map
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.mapping.views import keyframe_from_frame
-from gausslite.wire.codec import GaussianArrays, SubsetAssembler, apply_delta
+from gausslite.core.arrays import GaussianArrays
+from gausslite.fusion.uploads import rebuild_subset
+from gausslite.wire.decode import SubsetAssembler
+from gausslite.wire.format import WireLimits
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
 #: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
@@ -79,7 +82,7 @@ LONG_REFINE_ITERS = 1000
 class RecordingFusion(SinkFusion):
     """In-process stand-in of the fusion server's store for one agent (a :class:`gausslite.mission.ports.FusionPort`):
     every upload is decoded and, for a delta, rebuilt on the subset it names as base
-    (:func:`gausslite.wire.codec.apply_delta`), exactly as the server stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
+    (:func:`gausslite.fusion.uploads.rebuild_subset`), exactly as the server stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
     holds (seconds since ``start()``, version, subset) of every push."""
 
     def __init__(self, max_keyframes: int = 64) -> None:
@@ -101,8 +104,8 @@ class RecordingFusion(SinkFusion):
         records, meta = asm.result()
         if meta.delta:
             targets, removed = asm.delta_parts()
-            records = apply_delta(self.subsets[meta.base_version], records, targets, removed, meta.base_count,
-                                  meta.kappa_shift)
+            records = rebuild_subset(self.subsets[meta.base_version], records, targets, removed, meta,
+                                     WireLimits().max_total_gaussians)
         self.subsets[int(version)] = records
         self.history.append((time.perf_counter() - self.t0, int(version), records))
         return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
