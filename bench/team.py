@@ -51,7 +51,7 @@ from bench._results import write_results
 from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion,
                             scene_path, score, start_mission)
 from gausslite.config import load_config
-from gausslite.evaluation import PROTOCOLS, evaluate_fused, score_map
+from gausslite.evaluation import PROTOCOLS, evaluate_fused, roi_psnr_over, score_map
 from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import refine_map
@@ -75,6 +75,11 @@ TEAMS = {
                               {"id": "agent_b", "task": "tum-reach-keyboard", "frames": [75, 150]}]},
 }
 FUSED_KEYS = ("concat", "vote", "vote_r1", "refine", "refine_long")
+#: the fused maps' scores through each robot's own camera model: every frame at the sensor's pose with the robot's
+#: refined correction, motion blur, rolling shutter and exposure response, the rule its own map's ``sensor`` score
+#: follows (:meth:`gausslite.mapping.mapper.Mapper.seen_by_this_camera`); the fused ``sensor`` figures render the
+#: bare sensor pose, with none of these
+ROBOT_CAMERA = "robot_camera"
 #: refinement iterations of the ``refine_long`` column (a fusion server with time to spare)
 LONG_REFINE_ITERS = 1000
 
@@ -167,6 +172,7 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
                 "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
+                "_seen": rt.mapper.seen_by_this_camera,
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
@@ -191,7 +197,11 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                         track_iters=track_iters, track_stride=track_stride,
                         keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]}) if rest \
             else {}
-        return {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
+        out = {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
+        if "_seen" in a:  # the robot's own camera model (ROBOT_CAMERA)
+            out[ROBOT_CAMERA] = roi_psnr_over(a["_seen"](g), a["_frames"],
+                                              lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics))
+        return out
 
     events = sorted((t, a["id"], s) for a in agents for t, s in a["_history"])
     held, timeline = {}, []
@@ -307,6 +317,8 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
             a[f"{key}_roi_psnr"] = fused[key]["roi_psnr"].get(a["task"])
         a["cover"] = fused["cover"].get(a["id"])
         own = a.pop("own_protocols")
+        if ROBOT_CAMERA in fused["vote"]["protocols"]:
+            own[ROBOT_CAMERA] = own["sensor"]  # the own map is scored through its camera model already
         a["protocols"] = {q: {"own_roi_psnr": v["roi_psnr"], "own_frames": v["frames_scored"],
                               **{f"{key}_roi_psnr": fused[key]["protocols"].get(q, {}).get(a["task"])
                                  for key in (*FUSED_KEYS, "for_robot")}} for q, v in own.items()}

@@ -127,12 +127,25 @@ def evaluate_fused(gmap, frames: Sequence[Frame], annotations, task_id: str, bac
     """
     if len(gmap) == 0:
         return None
+    return roi_psnr_over(lambda fr: render_map(gmap, fr, backend), frames,
+                         lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics))
+
+
+def roi_psnr_over(render: RenderFn, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray]) -> Optional[float]:
+    """Mean ROI PSNR (dB) of ``render`` (frame → ``RenderOutput``) over ``frames``, each restricted to
+    ``roi_fn(frame)`` ((H, W) bool); frames with an empty ROI, or whose ROI PSNR is undefined, are skipped (paper
+    Sec. IV, ROI PSNR). E.g. a team map through a robot's camera model
+    (:meth:`gausslite.mapping.mapper.Mapper.seen_by_this_camera`).
+
+    Returns:
+        The mean ROI PSNR in dB, or None when no frame shows the ROI.
+    """
     vals = []
     for fr in frames:
-        roi = annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
+        roi = roi_fn(fr)
         if not roi.any():
             continue
-        s = score_view(render_map(gmap, fr, backend), fr, roi)
+        s = score_view(render(fr), fr, roi)
         if not math.isnan(s.roi_psnr):
             vals.append(s.roi_psnr)
     return float(np.mean(vals)) if vals else None

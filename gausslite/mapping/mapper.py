@@ -175,12 +175,35 @@ class Mapper:
         of the map is taken at (SLAM systems score at their estimated poses), under ``motion_blur`` blurred by
         the frame's motion (:meth:`SensorRenderer.render_view`), and under ``exposure_comp`` the frame's exposure
         response (its keyframe's, or the nearest keyframe's; colour clamped to [0, 1])."""
+        return self._render_through(self.sensor, frame)
+
+    def _render_through(self, sensor: SensorRenderer, frame: Frame) -> RenderOutput:
+        """``sensor``'s map from ``frame``'s view at :meth:`pose_of`, exposed (colour clamped to [0, 1])."""
         intr = frame.intrinsics
         with torch.no_grad():
-            out = self.sensor.render_view(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height,
-                                          frame.frame_id, None)
-        out, theta = self.sensor.exposed(out, frame.frame_id)
+            out = sensor.render_view(self.pose_of(frame.frame_id, frame.c2w), intr.K, intr.width, intr.height,
+                                     frame.frame_id, None)
+        out, theta = sensor.exposed(out, frame.frame_id)
         return out if theta is None else dataclasses.replace(out, color=out.color.clamp(0.0, 1.0))
+
+    def seen_by_this_camera(self, gmap: GaussianMap):
+        """A renderer of another map as this robot's camera sees it, for scoring a team map on the robot's own frames
+        by the rule its own map is scored by (:meth:`render_frame`, the ``sensor`` protocol): each frame at the
+        sensor's pose with this robot's refined correction, through its sensor model (motion blur, rolling shutter)
+        and its exposure response. A robot that uses the team map knows these; the map does not carry them.
+
+        Args:
+            gmap: the other map (world frame, metres), e.g. a fused team map; copied, never changed.
+
+        Returns:
+            ``render(frame) -> RenderOutput``, no gradients, charging nothing to the mapper's clock. It reads the
+            robot's pose corrections when called and its sensor state (exposure responses, motion) as it is now.
+        """
+        model = GaussianModel(self.cfg.lr, self.device)
+        model.set_map(gmap)
+        sensor = SensorRenderer(self.cfg, model, WallClock())
+        sensor.load_state_dict(self.sensor.state_dict())
+        return lambda frame: self._render_through(sensor, frame)
 
     def pose_of(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction

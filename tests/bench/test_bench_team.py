@@ -132,14 +132,16 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         g = GaussianArrays.from_any(m.gmap)
         kfs = [keyframe_from_frame(fr, "cpu", roi) for fr in frames[lo:lo + 3:2]]  # 2 uploaded keyframes
         agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
-                       "_annotations": _Ann()})
+                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera})
     fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
     out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4)
     for key in (*team.FUSED_KEYS, "for_robot"):
         p = out[key]["protocols"]
-        assert set(p) == {"sensor", "keyframes", "tracked"}, key
+        assert set(p) == {"sensor", "keyframes", "tracked", team.ROBOT_CAMERA}, key
         for a in agents:
             assert p["sensor"][a["task"]] == out[key]["roi_psnr"][a["task"]]
+            # these robots model no exposure, blur or pose correction: their camera renders the bare sensor pose
+            assert p[team.ROBOT_CAMERA][a["task"]] == pytest.approx(p["sensor"][a["task"]], abs=1e-3)
             assert p["keyframes"][a["task"]] is not None and p["tracked"][a["task"]] is not None
     # what draws each robot's ROI in the vote map: every robot diagnosed, the weights add up to the ROI
     for a in agents:
@@ -151,9 +153,9 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
                                            for a in agents]}
     md = team.cover_table([run, run])
     assert md.count("\n") == 1 + 2 and "| synthetic | agent_a, t0 |" in md and "| 2 |" in md
-    # sensor alone: no other protocol is scored
+    # sensor alone: no other protocol is scored but the robots' camera model (it costs renders only)
     only = team.fused_scores(agents, fuse, 0, 3, protocols=("sensor",))
-    assert set(only["vote"]["protocols"]) == {"sensor"}
+    assert set(only["vote"]["protocols"]) == {"sensor", team.ROBOT_CAMERA}  # the robot's camera goes with sensor
     # the per-agent rows of a run and their summary over runs
     runs = []
     for r in range(2):

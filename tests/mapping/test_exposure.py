@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from gausslite.evaluation import score_view
+from gausslite.evaluation import render_map, score_view
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import ExposureModel, apply_exposure, invert_exposure
 from gausslite.mapping.mapper import Mapper
@@ -121,3 +121,29 @@ def test_exposure_survives_checkpoint_restore():
     a = m.render_frame(frames[3]).color
     b = m2.render_frame(frames[3]).color
     torch.testing.assert_close(a, b)
+
+
+def test_another_map_seen_by_this_camera_gets_the_robots_exposure_and_corrections():
+    """``Mapper.seen_by_this_camera``: a map rendered through the robot's camera model (its exposure response,
+    refined corrections, sensor model) is rendered exactly as the robot renders its own map for scoring; the same
+    map at the bare sensor pose without the response is not (the darker frame then scores worse)."""
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp",
+                       sensor={"exposure_comp": True, "exposure_lr": 0.02}, pose={"refine": True}, seed=0)
+    cfg.densify.enabled = False
+    m = Mapper(cfg)
+    frames = [_darkened(0, 1.0), _darkened(1, 1.0), _darkened(2, 0.6), _darkened(3, 0.6)]
+    for fr in frames:
+        m.map_frame(fr)
+    m.optimize(n_iters=60)
+    other = m.gmap  # e.g. a team map holding this robot's rows: here the robot's own map, copied
+    seen = m.seen_by_this_camera(other)
+    for fr in frames:
+        np.testing.assert_allclose(seen(fr).color.numpy(), m.render_frame(fr).color.numpy(), atol=1e-6)
+    bare = score_view(render_map(other, frames[3]), frames[3]).psnr  # how a fused map is scored at the sensor's pose
+    assert score_view(seen(frames[3]), frames[3]).psnr > bare + 2.0
+    # the renderer holds a copy of the map: changing the map it was given does not change what it renders
+    before = seen(frames[1]).color.clone()
+    with torch.no_grad():
+        other.colors.zero_()
+    np.testing.assert_array_equal(seen(frames[1]).color.numpy(), before.numpy())
+
