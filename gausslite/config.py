@@ -180,11 +180,20 @@ class GaussLiteConfig(AgentSections):
     sim: SimConfig = SimConfig()
     fusion: FusionSettings = FusionSettings()
 
-    def to_yaml_dict(self) -> dict:
-        """The effective configuration in the YAML's layout (``mapper`` as its own section)."""
-        agent = self.agent.model_dump(mode="json", exclude={"mapper"})
-        return {"agent": agent, "mapper": self.agent.mapper.model_dump(mode="json"),
-                "sim": self.sim.model_dump(mode="json"), "fusion": self.fusion.model_dump(mode="json")}
+    def to_yaml_dict(self, given_only: bool = False) -> dict:
+        """The configuration in the YAML's layout (``mapper`` as its own section).
+
+        Args:
+            given_only: only the settings given explicitly (in the YAML, by overrides or keywords; pydantic's
+                ``exclude_unset``), the form to hand to an agent: a replayed dataset's sensor profile fills in every
+                mapper setting left unset (:func:`gausslite.mapping.profiles.with_profile`), which a tree with every
+                default written out would override. False: every setting, defaults included (the effective tree,
+                ``gausslite config --show``).
+        """
+        kw = {"mode": "json", "exclude_unset": given_only}
+        agent = self.agent.model_dump(exclude={"mapper"}, **kw)
+        return {"agent": agent, "mapper": self.agent.mapper.model_dump(**kw),
+                "sim": self.sim.model_dump(**kw), "fusion": self.fusion.model_dump(**kw)}
 
     @classmethod
     def json_schema(cls) -> dict:

@@ -77,11 +77,12 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     typed = load_config(config, overrides)  # a typo fails here, before any process starts
-    cfg = typed.to_yaml_dict()  # the effective tree: what the agents read (--config) and the report records
+    cfg = typed.to_yaml_dict()  # the effective tree, which the report records
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
     config_path = out / "config.yaml"
-    config_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    # what the agents read (--config): the settings given, so that each dataset's sensor profile fills in the rest
+    config_path.write_text(yaml.safe_dump(typed.to_yaml_dict(given_only=True), sort_keys=False))
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
     plans = plan_agents(dataset, typed, task_ids)

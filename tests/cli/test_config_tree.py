@@ -60,3 +60,22 @@ def test_fusion_server_reads_the_fusion_section(tmp_path):
     with pytest.raises(ValueError, match="max_keyframs_per_agent"):
         FusionConfig.from_file(str(j))
     assert isinstance(GaussLiteConfig().fusion.refine_options, dict)
+
+
+def test_the_tree_handed_to_an_agent_leaves_the_dataset_profile_its_defaults():
+    """``to_yaml_dict(given_only=True)`` (what ``gausslite sim`` writes for its agents) keeps only the settings given,
+    so a replayed TUM sequence still gets the hand-held profile (depth weight 0.3, exposure compensation, a final
+    pass); the effective tree, with every default written out, would set them back to the generic defaults."""
+    from gausslite.mapping.profiles import profile_for_layout, with_profile
+
+    cfg = load_config(None, ["mapper.iters_per_frame=17"])
+    given = cfg.to_yaml_dict(given_only=True)
+    assert given["mapper"]["iters_per_frame"] == 17 and "lambda_depth" not in given["mapper"]
+    handheld = profile_for_layout("tum")
+    m = with_profile(GaussLiteConfig.model_validate(given).agent.mapper, handheld)
+    assert (m.lambda_depth, m.sensor.exposure_comp, m.final_iters_per_keyframe, m.iters_per_frame) == (0.3, True,
+                                                                                                        20.0, 17)
+    full = with_profile(GaussLiteConfig.model_validate(cfg.to_yaml_dict()).agent.mapper, handheld)
+    assert (full.lambda_depth, full.sensor.exposure_comp) == (1.0, False)  # why the agents get the given settings
+    # both forms load back to the same effective settings
+    assert GaussLiteConfig.model_validate(given).to_yaml_dict() == cfg.to_yaml_dict()

@@ -48,6 +48,12 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert not a["push_log"][0]["delta"]  # the first push has no base
     assert rep["pushes_plot"] == "pushes.png" and (tmp_path / "sim" / "pushes.png").is_file()
     assert "total upload bytes" in md and "![bytes per push" in md
+    # the agents' config holds the settings given, not every default: the scene's sensor profile fills in the rest
+    import yaml
+
+    given = yaml.safe_load((tmp_path / "sim" / "config.yaml").read_text())
+    assert given["mapper"]["iters_per_frame"] == 3 and given["mapper"]["roi_render"] == "context"
+    assert "final_iters_per_keyframe" not in given["mapper"] and "lambda_depth" not in given["mapper"]
     # the deployed agents map with roi_render: context, so their own maps are the context figure
     assert rep["settings"]["mapper"]["roi_render"] == "context"
     assert rep["settings"]["contest_radius"] == 1 and "neighbourhood of radius 1" in md
