@@ -248,15 +248,8 @@ def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -
     report's "what covers each robot's ROI"): the final subsets ``final`` (agent id → ``GaussianArrays``), the vote
     map ``vote`` and its ``VoteReport``, each robot's views every ``stride``-th frame of its sequence that shows its
     ROI (ground truth). Returns agent id → ``{"mass", "foreign", "own_missing", "top_foreign" (3)}``."""
-    views = {}
-    for a in agents:
-        ann, task = a["_annotations"], a["task"]
-        vs = []
-        for fr in a["_frames"][::stride]:
-            roi = ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics)
-            if roi.any():
-                vs.append(RoiView.from_frame(fr, roi))
-        views[a["id"]] = vs
+    views = {a["id"]: RoiView.of_frames(a["_frames"], lambda fr, ann=a["_annotations"], t=a["task"]:
+                                        ann.roi_mask(t, fr.depth, fr.c2w, fr.intrinsics), stride) for a in agents}
     if not final:
         return {}
     cov = roi_cover(final, vote, report.source_agent, report.source_row, views, top=3)

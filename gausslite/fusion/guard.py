@@ -59,6 +59,17 @@ class RoiView:
         return cls(np.asarray(i.K, np.float64), int(i.width), int(i.height), np.asarray(frame.c2w, np.float64),
                    np.asarray(roi, bool), np.asarray(frame.depth, np.float32))
 
+    @classmethod
+    def of_frames(cls, frames, roi_fn, stride: int = 1) -> list:
+        """The views of every ``stride``-th dataset ``Frame`` of ``frames`` whose ROI (``roi_fn(frame)``, (H, W) bool,
+        e.g. a task's ground-truth ROI) is not empty, in order."""
+        views = []
+        for fr in list(frames)[::stride]:
+            roi = roi_fn(fr)
+            if roi.any():
+                views.append(cls.from_frame(fr, roi))
+        return views
+
 
 @dataclass(frozen=True)
 class GuardReport:

@@ -6,9 +6,7 @@ configuration, limits, errors), :mod:`gausslite.wire.encode` and :mod:`gausslite
 ``docs/wire-format.md``.  Pure library code (numpy + zstandard); the gRPC services call these functions.
 """
 
-from gausslite.wire.decode import SubsetAssembler, apply_delta, assemble, decode_chunk, peek_header, raw_payload
-from gausslite.wire.encode import encode_delta, encode_subset, pack_sections, spatial_order
-from gausslite.wire.format import (
+from gausslite.wire.codec import (  # the package exports the codec facade
     DEFAULT_LIMITS,
     FORMAT_VERSION,
     HEADER_SIZE,
@@ -35,8 +33,18 @@ from gausslite.wire.format import (
     UnsupportedVersion,
     WireError,
     WireLimits,
+    SubsetAssembler,
+    apply_delta,
+    assemble,
+    decode_chunk,
+    encode_delta,
+    encode_subset,
+    pack_sections,
+    peek_header,
     raw_bytes_per_gaussian,
+    raw_payload,
     section_lengths,
+    spatial_order,
 )
 
 __all__ = [

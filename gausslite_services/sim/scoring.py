@@ -82,12 +82,8 @@ def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, t
     views = {}
     for p in plans:
         ds, frames = eval_frames[p.name]
-        vs = []
-        for fr in frames[::stride]:
-            roi = ds.annotations.roi_mask(p.task_id, fr.depth, fr.c2w, fr.intrinsics)
-            if roi.any():
-                vs.append(RoiView.from_frame(fr, roi))
-        views[p.name] = vs
+        views[p.name] = RoiView.of_frames(frames, lambda fr, ann=ds.annotations, t=p.task_id:
+                                          ann.roi_mask(t, fr.depth, fr.c2w, fr.intrinsics), stride)
     cov = roi_cover(subsets, fused, rep.source_agent, rep.source_row, views, top=5, backend=backend)
     agents = list(rep.agents)
     for p in plans:

@@ -79,9 +79,9 @@ def _darkened(i: int, gain: float):
     return dataclasses.replace(fr, rgb=rgb)
 
 
-def _map(exposure: bool):
+def _map(exposure: bool, pose_refine: bool = False):
     cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp",
-                       sensor={"exposure_comp": exposure, "exposure_lr": 0.02}, seed=0)
+                       sensor={"exposure_comp": exposure, "exposure_lr": 0.02}, pose={"refine": pose_refine}, seed=0)
     cfg.densify.enabled = False
     m = Mapper(cfg)
     frames = [_darkened(0, 1.0), _darkened(1, 1.0), _darkened(2, 0.6), _darkened(3, 0.6)]
@@ -127,14 +127,7 @@ def test_another_map_seen_by_this_camera_gets_the_robots_exposure_and_correction
     """``Mapper.seen_by_this_camera``: a map rendered through the robot's camera model (its exposure response,
     refined corrections, sensor model) is rendered exactly as the robot renders its own map for scoring; the same
     map at the bare sensor pose without the response is not (the darker frame then scores worse)."""
-    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp",
-                       sensor={"exposure_comp": True, "exposure_lr": 0.02}, pose={"refine": True}, seed=0)
-    cfg.densify.enabled = False
-    m = Mapper(cfg)
-    frames = [_darkened(0, 1.0), _darkened(1, 1.0), _darkened(2, 0.6), _darkened(3, 0.6)]
-    for fr in frames:
-        m.map_frame(fr)
-    m.optimize(n_iters=60)
+    m, frames = _map(True, pose_refine=True)
     other = m.gmap  # e.g. a team map holding this robot's rows: here the robot's own map, copied
     seen = m.seen_by_this_camera(other)
     for fr in frames:
