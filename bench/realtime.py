@@ -55,10 +55,11 @@ from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime, FusionPort
-from gausslite.mission.relevance import build_relevance
 from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, gain
 from gausslite.synthetic import make_scene
+
+from bench.realtime_late import LATE_VIA, give_late_task, late_relevance
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
@@ -240,20 +241,10 @@ def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[F
     cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
                                   [*extra_overrides, *job.get("overrides", ())])
     graph = parse_task(task.text)
-    relevance_fn = None
-    if job.get("late"):
-        # the task's relevance starts after the first ``late`` share of the sequence (a task that arrives late)
-        start_id = ds[min(len(ds) - 1, int(job["late"] * len(ds)))].frame_id
-        rt_box: list = []
-        fn, _ = build_relevance(cfg, graph, ann, task.id, lambda: rt_box[0].mapper if rt_box else None)
-
-        def relevance_fn(fr):
-            return fn(fr) if fr.frame_id >= start_id else np.zeros(fr.depth.shape, bool)
-
+    relevance_fn, bind = late_relevance(job, ds, cfg, graph, ann, task)
     rt = AgentRuntime("bench", task.text, graph, cfg, annotations=ann, task_id=task.id, fusion=fusion,
                       relevance_fn=relevance_fn)
-    if relevance_fn is not None:
-        rt_box.append(rt)
+    bind(rt)
     return ds, ann, task, rt, fp_per_kf
 
 
@@ -322,9 +313,11 @@ def run_one(job: dict) -> dict:
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
     ds, ann, task, rt, fp_per_kf = start_mission(job, rate, fusion=sink)
+    give = give_late_task(job, ds, rt, task)
     t0 = time.perf_counter()
     try:
-        rt.replay(ds).join()
+        # the replay reports each frame after it is sent: the task is given before the late start's frame
+        rt.replay(ds, progress=(lambda i, n: give(i)) if give else None).join()
         rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
         st = rt.status()
@@ -368,7 +361,10 @@ def twin_one(job: dict) -> dict:
         mapper = rt.mapper
         kfs = keyframe_schedule(ds, spacing)
         iters = 0
+        give = give_late_task(job, ds, rt, task)
         for i in kfs:
+            if give and give(i):
+                rt.apply_pending_task()
             fr = ds[i]
             iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"]).iters
         return _result(job, mapper, ds, ann, task, fp_per_kf, twin=True, keyframes=len(kfs), keyframe_iters=iters,
@@ -625,8 +621,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
                     help="tracked protocol: score every k-th frame of the sequence (MonoGS: every 5th)")
     ap.add_argument("--late", type=float, default=None, metavar="F",
-                    help="the 'late' scenario: the task's relevance starts after this share of the sequence "
-                         "(scenes named <scene>_late)")
+                    help="the 'late' scenario: the task starts after this share of the sequence (scenes named "
+                         "<scene>_late, or <scene>_late_detection with --late-via detection)")
+    ap.add_argument("--late-via", choices=LATE_VIA, default="task",
+                    help="late scenario: 'task', the task is given mid-mission (UpdateTask: the stored keyframes "
+                         "get its relevance); 'detection', the task's object is first detected then (earlier frames "
+                         "never get its relevance)")
     ap.add_argument("--budgets", default="0.25,0.5,1,2", help="seconds per keyframe, comma-separated")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--modes", default=",".join(MODES))
@@ -706,7 +706,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         spec = specs[scene]
         path = Path(spec["path"]) if "path" in spec else scene_path(scene, work)
         cap = args.cap or spec["cap"]
-        name = f"{scene}_late" if args.late else scene
+        name = (scene + ("_late" if args.late_via == "task" else "_late_detection")) if args.late else scene
         names[name] = cap
         for run in range(args.runs):
             for b in budgets:
@@ -714,7 +714,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                     job = {"scene": name, "spec": spec, "path": str(path), "task": args.task or spec["task"],
                            "mode": mode, "budget": b, "run": run, "cap": cap, "clock": args.clock,
                            "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
-                           "late": args.late, "protocols": protocols, "track_iters": args.track_iters,
+                           "late": args.late, "late_via": args.late_via, "protocols": protocols,
+                           "track_iters": args.track_iters,
                            "track_stride": args.track_stride,
                            "render_dir": (str(out.with_name(out.stem + "_renders"))
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
@@ -767,7 +768,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
-                           "dataset": args.dataset},
+                           "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "runs": runs}
     for scene, cap in names.items():
         blk = summarise(runs, scene, budgets, cap)

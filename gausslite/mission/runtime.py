@@ -381,12 +381,19 @@ class AgentRuntime:
         log.info("agent %s mission %s: new task %r (applied before the next keyframe)", self.agent_id,
                  self.mission_id, task_text)
 
-    def _apply_pending_task(self) -> None:
-        """Mapping thread: switch to the task :meth:`update_task` left, if any."""
+    def apply_pending_task(self) -> bool:
+        """Switch to the task :meth:`update_task` left, if any: the mapping thread calls it before every keyframe
+        and idle iteration; a caller that drives ``self.mapper`` itself (a deterministic replay) calls it between
+        keyframes. The stored keyframes get the new task's relevance maps, so the ROI phase draws every view the
+        mission already has of the task's region.
+
+        Returns:
+            True when a new task was applied.
+        """
         with self._lock:
             pending, self._pending_task = self._pending_task, None
         if pending is None:
-            return
+            return False
         task_text, graph, task_id, fn, frontend = pending
         if self._relevance_worker is not None:
             self._relevance_worker.close()
@@ -406,6 +413,7 @@ class AgentRuntime:
         self.pusher.set_task(task_text)
         log.info("agent %s mission %s: now mapping for task %r (%d stored keyframes re-targeted)", self.agent_id,
                  self.mission_id, task_text, len(store))
+        return True
 
     def _idle_work(self) -> bool:
         """Whether the worker should optimise between keyframes instead of blocking on the queue."""
@@ -416,7 +424,7 @@ class AgentRuntime:
         cfg = self.config
         while True:
             try:
-                self._apply_pending_task()
+                self.apply_pending_task()
             except Exception as e:
                 self._fail(f"switching to the new task failed: {type(e).__name__}: {e}")
             idle = self._idle_work()

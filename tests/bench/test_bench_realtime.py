@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from bench import realtime as rt
+from bench.realtime_late import give_late_task, late_index
 
 
 class _Frames:
@@ -124,24 +125,56 @@ def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp
     with pytest.raises(FileNotFoundError):
         rt.dataset_scenes(tmp_path / "nowhere", ["synth-pick-object"], 300)
     out = tmp_path / "own.json"
-    for late in (None, 0.4):
+    for late, via in ((None, None), (0.4, "task"), (0.4, "detection")):
         argv = ["--dataset", str(path), "--tasks", "synth-pick-object", "--budgets", "0.08", "--runs", "1",
                 "--twin", "--cap", "300", "--fps", "2", "--final-pass-budgets", "", "--track-iters", "3",
                 "--track-stride", "4", "--set", "mapper.seeding.seeds_per_frame=600", "--out", str(out)]
         if late:
-            argv += ["--late", str(late)]
+            argv += ["--late", str(late), "--late-via", via]
         assert rt.main(argv) == 0
         res = __import__("json").loads(out.read_text())
-        name = "synth-pick-object" + ("_late" if late else "")
+        name = "synth-pick-object" + ({"task": "_late", "detection": "_late_detection"}[via] if late else "")
         blk = res["scenes"][name]["budgets"]["0.08"]
         assert set(blk["protocols"]) == {"sensor", "keyframes", "tracked"}
         for p, v in blk["protocols"].items():
             assert v["uniform"]["runs"] == v["gausslite"]["runs"] == 1 and v["gain"] is not None, p
         assert blk["protocols"]["tracked"]["gausslite"]["frames_scored"] == 2  # every 4th of 8 frames
         assert blk["protocols"]["sensor"]["gausslite"]["roi_psnr"] == blk["gausslite"]["roi_psnr"]
-        assert res["settings"]["late"] == late
-    g = [r for r in res["runs"] if r["mode"] == "gausslite"][0]
-    assert g["roi_iters"] > 0  # the late task engaged
+        assert res["settings"]["late"] == late and res["settings"]["late_via"] == via
+        g = [r for r in res["runs"] if r["mode"] == "gausslite" and r["scene"] == name][0]
+        assert g["roi_iters"] > 0  # the (late) task engaged
+
+
+def test_a_late_task_given_mid_mission_reaches_the_stored_keyframes(tmp_path):
+    """``--late F`` (``late_via: task``): the mission has no relevance before F, then gets its task through
+    ``AgentRuntime.update_task`` (the product's path): the keyframes stored before F carry the task's ROI, so the
+    ROI phase draws them. ``late_via: detection``: the keyframes before F never get it."""
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=8, width=64, height=48, trajectory="circle")
+    base = {"scene": "synthetic_circle", "spec": rt.SCENES["synthetic_circle"], "path": str(tmp_path / "scene" / "agent_a"),
+            "task": "synth-pick-object", "mode": "gausslite", "budget": 0.08, "run": 0, "cap": 300, "late": 0.5,
+            "overrides": ["mapper.seeding.seeds_per_frame=600", "mapper.budget_clock=work"]}
+    seen = {}
+    for via in ("task", "detection"):
+        job = {**base, "late_via": via}
+        ds, ann, task, agent, fp = rt.start_mission(job, 1.0)
+        try:
+            give = give_late_task(job, ds, agent, task)
+            assert (give is None) == (via == "detection")
+            start = late_index(job, ds)
+            for i in range(len(ds)):
+                if give and give(i):
+                    assert i == start and agent.apply_pending_task()
+                    assert not agent.apply_pending_task()  # applied once
+                if i < start:
+                    assert not agent.relevance(ds[i]).any()
+                agent.mapper.map_frame(ds[i], agent.relevance(ds[i]), time_budget_s=0.08)
+            seen[via] = [k.sees_roi for k in agent.mapper.keyframes if k.frame_id < ds[start].frame_id]
+        finally:
+            agent.close()
+    assert seen["task"] and any(seen["task"])
+    assert not any(seen["detection"])
 
 
 def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path):
