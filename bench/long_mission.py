@@ -1,6 +1,7 @@
 """Retention benchmark: does the map keep what it has seen over a long mission?
 
     python -m bench.long_mission [--seeds 3] [--tasks 2|all|ID,ID] [--jobs 2] [--scenes tum_fr1_rpy,synthetic_long]
+                                 [--modes uniform,gausslite]
                                  [--tum-downscale 2] [--synthetic-frames 600] [--set KEY=VALUE ...] [--resume|--fresh]
 
 On this 2-core machine the full default bench takes longer than a session; the run reported in
@@ -277,6 +278,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--tasks", default="2",
                     help="tasks per scene for GaussLite: a number (first N), 'all', or a comma list of task ids")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--modes", default="uniform,gausslite",
+                    help="modes to run (default both; one mode: a comparison of settings within it, no ROI gain)")
     ap.add_argument("--max-frames", type=int, default=None, help="quick runs: first N frames only")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="mapper config override for both modes")
@@ -304,6 +307,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     if unknown:
         ap.error(f"unknown scenes {unknown}; known: {list(SCENES)}")
     seeds = list(range(args.seeds))
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    if not modes or set(modes) - {"uniform", "gausslite"}:
+        ap.error(f"--modes takes uniform and/or gausslite, got {args.modes!r}")
     jobs, scene_tasks = [], {}
     for sc in scenes:
         path = scene_path(sc, args.work)
@@ -317,9 +323,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         base = {"scene": sc, "path": str(path), "max_frames": args.max_frames, "overrides": args.overrides,
                 "downscale": SCENES[sc].get("downscale", 1.0)}
         for s in seeds:
-            jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
-            for t in tasks:
-                jobs.append({**base, "mode": "gausslite", "task": t, "seed": s, "eval_tasks": [t]})
+            if "uniform" in modes:
+                jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
+            if "gausslite" in modes:
+                jobs.extend({**base, "mode": "gausslite", "task": t, "seed": s, "eval_tasks": [t]} for t in tasks)
     settings = {"tasks": scene_tasks, "max_frames": args.max_frames, "overrides": args.overrides,
                 "scenes": {sc: SCENES[sc] for sc in scenes}}
     partial_path = args.out.with_suffix(".partial.json")
@@ -356,7 +363,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     partial_path.unlink(missing_ok=True)
     result = {
         "scenes": {sc: summarise(runs, sc, scene_tasks[sc], seeds) for sc in scenes},
-        "settings": {"seeds": seeds, "tasks": args.tasks, "max_frames": args.max_frames, "overrides": args.overrides,
+        "settings": {"seeds": seeds, "tasks": args.tasks, "modes": modes, "max_frames": args.max_frames,
+                     "overrides": args.overrides,
                      "scenes": {sc: SCENES[sc] for sc in scenes}, "jobs": args.jobs, "resumed": bool(args.resume),
                      "run_settings": settings},  # what --resume requires of a partial file
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},

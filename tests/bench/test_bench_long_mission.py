@@ -77,6 +77,27 @@ def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
     assert not out.with_suffix(".partial.json").exists()
 
 
+def test_one_mode_compares_settings_within_it(tmp_path):
+    """``--modes gausslite``: only GaussLite runs (a comparison of two settings of one mode), the table has no uniform
+    row and no ROI gain; an unknown mode is refused."""
+    import json
+
+    from bench.long_mission import main
+
+    out = tmp_path / "lm.json"
+    argv = ["--scenes", "synthetic_long", "--seeds", "1", "--tasks", "1", "--jobs", "1", "--synthetic-frames", "24",
+            "--max-frames", "12", "--set", "iters_per_frame=2", "--set", "warmup_iters=1",
+            "--work", str(tmp_path / "work"), "--out", str(out)]
+    assert main([*argv, "--modes", "gausslite"]) == 0
+    res = json.loads(out.read_text())
+    assert {r["mode"] for r in res["runs"]} == {"gausslite"} and res["settings"]["modes"] == ["gausslite"]
+    assert "roi_gain" not in res["scenes"]["synthetic_long"]
+    md = out.with_suffix(".md").read_text()
+    assert "| synthetic_long | gausslite |" in md and "| uniform |" not in md and "ROI gain" not in md
+    with pytest.raises(SystemExit):
+        main([*argv, "--modes", "splat"])
+
+
 def test_select_tasks():
     from bench.long_mission import select_tasks
 
