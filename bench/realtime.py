@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from gausslite.datasets import detect_layout, load_dataset
+from gausslite.datasets import detect_layout, load_dataset, task_roi
 from gausslite.evaluation import PROTOCOLS, score_live_map, side_by_side
 from gausslite.mapping.budget import WallClock, fit_work_cost
 from gausslite.mapping.config import MapperConfig
@@ -210,7 +210,7 @@ def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = 
     each protocol's."""
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
     frames = [ds[i] for i in range(len(ds))]
-    res = score_live_map(mapper, frames, lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), protocols,
+    res = score_live_map(mapper, frames, task_roi(ann, task), protocols,
                          track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids)
     sensor = res["sensor"]
     return {"roi_psnr": sensor["roi_psnr"], "psnr": sensor["psnr"], "ssim": sensor["ssim"],

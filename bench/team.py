@@ -51,6 +51,7 @@ from bench._results import write_results
 from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion,
                             scene_path, score, start_mission)
 from gausslite.config import load_config
+from gausslite.datasets import task_roi
 from gausslite.evaluation import PROTOCOLS, evaluate_fused, roi_psnr_over, score_map
 from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
@@ -192,15 +193,14 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
 
     def by_protocol(g, a: dict, sensor: Optional[float]) -> dict:
         """``{protocol: dB}`` of map ``g`` on agent ``a``'s task (``sensor``: the figure already scored)."""
-        ann, task = a["_annotations"], a["task"]
-        res = score_map(g, a["_frames"], lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics), rest,
+        roi_fn = task_roi(a["_annotations"], a["task"])
+        res = score_map(g, a["_frames"], roi_fn, rest,
                         track_iters=track_iters, track_stride=track_stride,
                         keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]}) if rest \
             else {}
         out = {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
         if "_seen" in a:  # the robot's own camera model (ROBOT_CAMERA)
-            out[ROBOT_CAMERA] = roi_psnr_over(a["_seen"](g), a["_frames"],
-                                              lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics))
+            out[ROBOT_CAMERA] = roi_psnr_over(a["_seen"](g), a["_frames"], roi_fn)
         return out
 
     events = sorted((t, a["id"], s) for a in agents for t, s in a["_history"])
@@ -248,8 +248,7 @@ def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -
     report's "what covers each robot's ROI"): the final subsets ``final`` (agent id → ``GaussianArrays``), the vote
     map ``vote`` and its ``VoteReport``, each robot's views every ``stride``-th frame of its sequence that shows its
     ROI (ground truth). Returns agent id → ``{"mass", "foreign", "own_missing", "top_foreign" (3)}``."""
-    views = {a["id"]: RoiView.of_frames(a["_frames"], lambda fr, ann=a["_annotations"], t=a["task"]:
-                                        ann.roi_mask(t, fr.depth, fr.c2w, fr.intrinsics), stride) for a in agents}
+    views = {a["id"]: RoiView.of_frames(a["_frames"], task_roi(a["_annotations"], a["task"]), stride) for a in agents}
     if not final:
         return {}
     cov = roi_cover(final, vote, report.source_agent, report.source_row, views, top=3)

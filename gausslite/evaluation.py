@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from gausslite.datasets.annotations import task_roi
 from gausslite.datasets.base import Frame
 from gausslite.mapping.exposure import apply_exposure
 from gausslite.mapping.poses import VectorAdam, pose_delta
@@ -128,7 +129,7 @@ def evaluate_fused(gmap, frames: Sequence[Frame], annotations, task_id: str, bac
     if len(gmap) == 0:
         return None
     return roi_psnr_over(lambda fr: render_map(gmap, fr, backend), frames,
-                         lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics))
+                         task_roi(annotations, task_id))
 
 
 def roi_psnr_over(render: RenderFn, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray]) -> Optional[float]:

@@ -11,6 +11,7 @@ from gausslite.datasets.annotations import (
     find_annotation_files,
     load_annotations,
     parse_up_axis,
+    task_roi,
 )
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import PosedImageDataset, downscale_depth, downscale_rgb, read_depth, read_rgb
@@ -45,4 +46,5 @@ __all__ = [
     "load_annotations",
     "find_annotation_files",
     "parse_up_axis",
+    "task_roi",
 ]

@@ -21,7 +21,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Iterable, List, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -38,6 +38,7 @@ __all__ = [
     "load_annotations",
     "parse_objects",
     "parse_tasks",
+    "task_roi",
 ]
 
 OBJECTS_FORMAT = "gausslite-objects/1"
@@ -248,6 +249,19 @@ class SceneAnnotations:
             KeyError: unknown task id.
         """
         return self.object_mask(self.task_by_id(task_id).roi_object_ids, depth, c2w, intrinsics)
+
+
+
+def task_roi(annotations, task_id: str) -> Callable[[Any], np.ndarray]:
+    """The ground-truth ROI of a task as a function of a frame, the form the scorers and the ``gt`` relevance source
+    take: ``frame`` (a dataset ``Frame``: ``depth`` (H, W) float32 metres, ``c2w`` (4, 4) camera-to-world,
+    ``intrinsics``) → (H, W) bool, ``annotations.roi_mask`` of that view (:meth:`SceneAnnotations.roi_mask`, or any
+    object with that method).
+
+    Raises:
+        KeyError (when called): unknown task id.
+    """
+    return lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)
 
 
 # ----------------------------------------------------------------------------------------------

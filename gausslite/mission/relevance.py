@@ -23,6 +23,7 @@ from gausslite.attention import (
     OnnxGroundingDetector,
 )
 from gausslite.attention.timing import CostOnlyDetector, CostOnlySegmenter
+from gausslite.datasets.annotations import task_roi
 from gausslite.datasets.base import Frame
 from gausslite.errors import RelevanceUnavailable
 from gausslite.mission.config import AgentConfig
@@ -49,7 +50,7 @@ def build_relevance(config: AgentConfig, graph, annotations=None, task_id: Optio
     if config.relevance == "gt":
         if annotations is None or task_id is None:
             raise RelevanceUnavailable("relevance 'gt' needs scene annotations and a task id from tasks.json")
-        return (lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics)), None
+        return task_roi(annotations, task_id), None
 
     if config.relevance_backend == "onnx":
         fe = onnx_frontend(config, graph, annotations)

@@ -44,6 +44,7 @@ import numpy as np
 
 from gausslite.attention.worker import RelevanceWorker
 from gausslite.camera import Intrinsics
+from gausslite.datasets.annotations import task_roi
 from gausslite.datasets.base import Frame
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
@@ -747,9 +748,8 @@ class AgentRuntime:
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
             return {}
-        sc, ann, task = self.config.scoring, self.annotations, self.task_id
-        return score_live_map(self.mapper, self._dataset,
-                              lambda fr: ann.roi_mask(task, fr.depth, fr.c2w, fr.intrinsics),
+        sc = self.config.scoring
+        return score_live_map(self.mapper, self._dataset, task_roi(self.annotations, self.task_id),
                               sc.chosen() if protocols is None else protocols, track_iters=sc.track_iters,
                               track_stride=sc.track_stride)
 

@@ -18,7 +18,7 @@ import grpc
 import numpy as np
 
 from gausslite.config import GaussLiteConfig
-from gausslite.datasets import load_dataset
+from gausslite.datasets import load_dataset, task_roi
 from gausslite.evaluation import evaluate_fused, render_map, score_map, side_by_side
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
@@ -56,7 +56,7 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_ps
     rest = [q for q in scoring.chosen() if q != "sensor"]
     out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
     if rest:
-        res = score_map(gmap, frames, lambda fr: annotations.roi_mask(task_id, fr.depth, fr.c2w, fr.intrinsics),
+        res = score_map(gmap, frames, task_roi(annotations, task_id),
                         rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
                         keyframe_poses=keyframe_poses, backend=backend)
         out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
@@ -82,8 +82,7 @@ def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, t
     views = {}
     for p in plans:
         ds, frames = eval_frames[p.name]
-        views[p.name] = RoiView.of_frames(frames, lambda fr, ann=ds.annotations, t=p.task_id:
-                                          ann.roi_mask(t, fr.depth, fr.c2w, fr.intrinsics), stride)
+        views[p.name] = RoiView.of_frames(frames, task_roi(ds.annotations, p.task_id), stride)
     cov = roi_cover(subsets, fused, rep.source_agent, rep.source_row, views, top=5, backend=backend)
     agents = list(rep.agents)
     for p in plans:

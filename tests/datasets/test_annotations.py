@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.datasets import SceneAnnotations, SceneObject, load_annotations, parse_up_axis
+from gausslite.datasets import SceneAnnotations, SceneObject, load_annotations, parse_up_axis, task_roi
 from gausslite.datasets.annotations import find_annotation_files
 
 
@@ -314,6 +314,13 @@ def test_roi_mask_is_union(tmp_path):
     assert roi.dtype == bool and roi.shape == (48, 64)
     with pytest.raises(KeyError, match="available ids"):
         ann.roi_mask("nope", depth, np.eye(4), intr)
+    # the same ROI as a function of a frame (the scorers' and the gt relevance source's form)
+    from types import SimpleNamespace
+
+    fr = SimpleNamespace(depth=depth, c2w=np.eye(4), intrinsics=intr)
+    np.testing.assert_array_equal(task_roi(ann, "pick-cup")(fr), roi)
+    with pytest.raises(KeyError, match="available ids"):
+        task_roi(ann, "nope")(fr)
 
 
 def test_in_memory_construction_validates():
