@@ -48,8 +48,10 @@ import torch
 from tqdm import tqdm
 
 from gausslite.datasets import detect_layout, load_dataset, task_roi
-from gausslite.evaluation import PROTOCOLS, score_live_map, side_by_side
-from gausslite.mapping.budget import WallClock, fit_work_cost
+from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS, FrameSubset, score_live_map, side_by_side, withheld_indices
+from gausslite.datasets.subset import ScaledFrames
+from gausslite.mapping.budget import WallClock, WorkCost, fit_work_cost
+from gausslite.mapping.resolution import choose_downscale, downscale_frame
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
@@ -202,16 +204,33 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
     return cfg.model_copy(update={"mapper": m}), final_per_kf
 
 
+def training_frames(job: dict, ds):
+    """The frames the mission of ``job`` may see: ``ds`` without every ``job["novel_every"]``-th frame (the
+    ``novel`` protocol's withheld frames, :func:`gausslite.evaluation.withheld_indices`), or ``ds`` itself when
+    nothing is withheld (``novel_every`` 0)."""
+    k = int(job.get("novel_every") or 0)
+    return FrameSubset(ds, withheld_indices(len(ds), k)) if k else ds
+
+
+def novel_ids(job: dict, ds) -> Optional[list[int]]:
+    """Frame ids of the frames ``job``'s mission never saw (None when nothing is withheld)."""
+    k = int(job.get("novel_every") or 0)
+    return [int(ds[i].frame_id) for i in withheld_indices(len(ds), k)] if k else None
+
+
 def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = TRACK_ITERS,
-          track_stride: int = TRACK_STRIDE, keyframe_ids=None) -> dict:
+          track_stride: int = TRACK_STRIDE, keyframe_ids=None, novel=None) -> dict:
     """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map under each scoring protocol
-    (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``), the same for every mode.
-    The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds
-    each protocol's."""
+    (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``, and ``novel`` over the
+    frame ids ``novel`` withheld from the mission), the same for every mode. The top-level figures are the
+    ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds each protocol's."""
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
+    if novel is None:
+        protocols = tuple(p for p in protocols if p != "novel")
     frames = [ds[i] for i in range(len(ds))]
     res = score_live_map(mapper, frames, task_roi(ann, task), protocols,
-                         track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids)
+                         track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids,
+                         novel_ids=novel)
     sensor = res["sensor"]
     return {"roi_psnr": sensor["roi_psnr"], "psnr": sensor["psnr"], "ssim": sensor["ssim"],
             "frames_scored": sensor["frames_scored"], "protocols": res}
@@ -255,7 +274,9 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
            **fields, "n_gaussians": len(mapper.model), "n_active": int(mapper.model.active.sum()), "frames": len(ds),
            "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
            "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
-           "evicted": int(sum(s.n_evicted for s in mapper.stats))}
+           "evicted": int(sum(s.n_evicted for s in mapper.stats)), "roi_views": len(mapper.roi_views),
+           "roi_views_added": int(mapper.roi_views.n_added), "withheld": len(novel_ids(job, ds) or []),
+           "mapping_downscale": float(job.get("mapping_downscale") or 1.0)}
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
     if job.get("defer_dir"):
         # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
@@ -266,7 +287,8 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
                     "keyframe_ids": kf_ids}, path)
         res.update(state_path=str(path), fp_per_kf=fp_per_kf,
                    score_job={k: job.get(k) for k in ("scene", "mode", "spec", "path", "task", "protocols",
-                                                       "track_iters", "track_stride", "render_dir", "final_pass")})
+                                                       "track_iters", "track_stride", "render_dir", "final_pass",
+                                                       "novel_every", "mapping_downscale")})
         return res
     res.update(_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
     return res
@@ -278,9 +300,13 @@ def _key_name(job: dict) -> str:
 
 def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe_ids) -> dict:
     """The scores of a finished map under ``job["protocols"]``, its render (``job["render_dir"]``) and, with
-    ``job["final_pass"]``, the scores after the profile's final pass (which changes ``mapper``)."""
+    ``job["final_pass"]``, the scores after the profile's final pass (which changes ``mapper``). Scored at the
+    resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution)."""
+    f = float(job.get("mapping_downscale") or 1.0)
+    if f != 1:
+        ds = ScaledFrames(ds, f, downscale_frame)
     res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
-                job.get("track_stride", TRACK_STRIDE), keyframe_ids)
+                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel_ids(job, ds))
     if job.get("render_dir"):
         save_render(mapper, ds, ann, task_id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
@@ -313,13 +339,15 @@ def run_one(job: dict) -> dict:
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
     ds, ann, task, rt, fp_per_kf = start_mission(job, rate, fusion=sink)
-    give = give_late_task(job, ds, rt, task)
+    train = training_frames(job, ds)
+    give = give_late_task(job, train, rt, task)
     t0 = time.perf_counter()
     try:
         # the replay reports each frame after it is sent: the task is given before the late start's frame
-        rt.replay(ds, progress=(lambda i, n: give(i)) if give else None).join()
+        rt.replay(train, progress=(lambda i, n: give(i)) if give else None).join()
         rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
+        job = {**job, "mapping_downscale": rt.resolution.factor}
         st = rt.status()
         mapper = rt.mapper
         last = rt.pusher.pushes[-1] if rt.pusher.pushes else None
@@ -359,14 +387,25 @@ def twin_one(job: dict) -> dict:
     ds, ann, task, rt, fp_per_kf = start_mission(job, 1.0, ["mapper.budget_clock=work"])
     try:
         mapper = rt.mapper
-        kfs = keyframe_schedule(ds, spacing)
+        # the mapping resolution the agent would pick (agent.resolution) from the work model of the twin's clock
+        rc, fr0 = rt.config.resolution, ds[0]
+        choice = choose_downscale(fr0.intrinsics.width, fr0.intrinsics.height, job["budget"], job["cap"],
+                                  WorkCost(**mapper.cfg.work_cost.model_dump()), rc.target_iters, rc.max_downscale,
+                                  rc.pinned)
+        job = {**job, "mapping_downscale": choice.factor}
+        train = training_frames(job, ScaledFrames(ds, choice.factor, downscale_frame) if choice.factor != 1 else ds)
+        kfs = keyframe_schedule(train, spacing)
         iters = 0
-        give = give_late_task(job, ds, rt, task)
+        give = give_late_task(job, train, rt, task)
+        prev = -1
         for i in kfs:
             if give and give(i):
                 rt.apply_pending_task()
-            fr = ds[i]
-            iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"]).iters
+            fr = train[i]
+            # the frames the robot saw since the previous keyframe (their motion; ROI crops under roi_views)
+            between = [train[j] for j in range(prev + 1, i)]
+            prev = i
+            iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"], between=between).iters
         return _result(job, mapper, ds, ann, task, fp_per_kf, twin=True, keyframes=len(kfs), keyframe_iters=iters,
                        idle_iters=0, iters_per_keyframe=iters / max(1, len(kfs)), wall_s=0.0)
     finally:
@@ -563,6 +602,9 @@ class _CountingClock(WallClock):
     def charge_step(self, gaussians: int) -> None:
         self.stepped += gaussians
 
+    def charge_fixed(self, seconds: float) -> None:
+        pass
+
 
 def calibrate(scene: str, work: Path, mode: str = "gausslite", frames: int = 24, iters: int = 12,
               overrides=()) -> dict:
@@ -615,8 +657,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--tasks", default="", help="--dataset: task ids of its tasks.json, comma-separated")
     ap.add_argument("--fps", type=float, default=None, help="--dataset: replay clock of sequences without timestamps")
     ap.add_argument("--downscale", type=float, default=1.0, help="--dataset: image downscale factor")
-    ap.add_argument("--protocols", default="sensor,keyframes,tracked",
+    ap.add_argument("--protocols", default="sensor,keyframes,tracked,novel",
                     help="scoring protocols (docs/realtime.md#scoring-protocols), comma-separated")
+    ap.add_argument("--novel-every", type=int, default=NOVEL_EVERY,
+                    help="novel protocol: every k-th frame of the sequence is withheld from the mapper in both modes "
+                         "and scored at a tracked pose (0: nothing withheld, no novel protocol)")
     ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
                     help="tracked protocol: score every k-th frame of the sequence (MonoGS: every 5th)")
@@ -673,6 +718,8 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     if any(p not in PROTOCOLS for p in protocols):
         ap.error(f"unknown protocol in {args.protocols!r} (known: {', '.join(PROTOCOLS)})")
+    if args.novel_every == 1 or args.novel_every < 0:
+        ap.error("--novel-every must be 0 (off) or >= 2")
     if args.late is not None and not 0 < args.late < 1:
         ap.error("--late must be in (0, 1)")
     if args.dataset:
@@ -715,6 +762,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                            "mode": mode, "budget": b, "run": run, "cap": cap, "clock": args.clock,
                            "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
                            "late": args.late, "late_via": args.late_via, "protocols": protocols,
+                           "novel_every": args.novel_every,
                            "track_iters": args.track_iters,
                            "track_stride": args.track_stride,
                            "render_dir": (str(out.with_name(out.stem + "_renders"))
@@ -768,6 +816,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
+                           "novel_every": args.novel_every,
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "runs": runs}
     for scene, cap in names.items():

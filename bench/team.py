@@ -52,7 +52,8 @@ from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TR
                             scene_path, score, start_mission)
 from gausslite.config import load_config
 from gausslite.datasets import task_roi
-from gausslite.evaluation import PROTOCOLS, evaluate_fused, roi_psnr_over, score_map
+from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, FrameSubset, evaluate_fused, roi_psnr_over, score_map,
+                                  withheld_indices)
 from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import refine_map
@@ -132,12 +133,13 @@ def fuse_settings() -> dict:
 
 def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Path, overrides=(),
               keep_state: bool = False, protocols=PROTOCOLS, track_iters: int = TRACK_ITERS,
-              track_stride: int = TRACK_STRIDE) -> dict:
+              track_stride: int = TRACK_STRIDE, novel_every: int = NOVEL_EVERY) -> dict:
     """One agent's live mission (``bench.realtime`` protocol) sharing to a :class:`RecordingFusion`: its figures,
     its own map's scores over every frame of the team's sequence under each scoring protocol (``protocols``,
     :func:`bench.realtime.score`: ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push
     history and uploaded keyframes (``keep_state``: also its final map, ROI keyframes and mapper settings, to study
-    share rules offline)."""
+    share rules offline). Every ``novel_every``-th frame of the team's sequence is withheld from every robot (the
+    ``novel`` protocol; 0: none)."""
     scene = TEAMS[team]["scene"]
     path = scene_path(scene, work)
     if spec.get("dir"):
@@ -148,15 +150,17 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
     sink = RecordingFusion()
     ds, ann, task, rt, _ = start_mission(job, rate, fusion=sink)
     lo, hi = spec.get("frames") or (0, len(ds))
+    held = withheld_indices(len(ds), novel_every) if novel_every else []
+    novel = [int(ds[i].frame_id) for i in held] if novel_every else None
     try:
         sink.start()
-        rt.replay(ds.slice(lo, hi)).join()
+        rt.replay(FrameSubset(ds.slice(lo, hi), [i - lo for i in held if lo <= i < hi])).join()
         rt.finish(push=True, evaluate=False)
         wall = time.perf_counter() - sink.t0
         pu = rt.pusher
         last = pu.pushes[-1] if pu.pushes else None
         own = score(rt.mapper, ds, ann, task.id, protocols, track_iters, track_stride,
-                    sorted(int(st.frame_id) for st in rt.mapper.stats))
+                    sorted(int(st.frame_id) for st in rt.mapper.stats), novel)
         state = {}
         if keep_state:
             state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
@@ -173,7 +177,7 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
                 "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
-                "_seen": rt.mapper.seen_by_this_camera,
+                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
@@ -194,10 +198,11 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
     def by_protocol(g, a: dict, sensor: Optional[float]) -> dict:
         """``{protocol: dB}`` of map ``g`` on agent ``a``'s task (``sensor``: the figure already scored)."""
         roi_fn = task_roi(a["_annotations"], a["task"])
-        res = score_map(g, a["_frames"], roi_fn, rest,
+        todo = [q for q in rest if q != "novel" or a.get("_novel") is not None]
+        res = score_map(g, a["_frames"], roi_fn, todo,
                         track_iters=track_iters, track_stride=track_stride,
-                        keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]}) if rest \
-            else {}
+                        keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]},
+                        novel_ids=a.get("_novel")) if todo else {}
         out = {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
         if "_seen" in a:  # the robot's own camera model (ROBOT_CAMERA)
             out[ROBOT_CAMERA] = roi_psnr_over(a["_seen"](g), a["_frames"], roi_fn)
@@ -293,14 +298,15 @@ def _by_task(per_task: dict) -> dict:
 
 
 def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=(),
-             protocols=PROTOCOLS, track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE) -> dict:
+             protocols=PROTOCOLS, track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE,
+             novel_every: int = NOVEL_EVERY) -> dict:
     """One run of a team: every agent live (one after the other), then the fused figures. Each agent's row gains
     ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
     own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s)."""
     spec = TEAMS[team]
     cap = SCENES[spec["scene"]]["cap"]
     agents = [run_agent(team, a, budget, run, cap, work, overrides, protocols=protocols, track_iters=track_iters,
-                        track_stride=track_stride) for a in spec["agents"]]
+                        track_stride=track_stride, novel_every=novel_every) for a in spec["agents"]]
     fused = fused_scores(agents, fuse_settings(), run, eval_stride, protocols, track_iters, track_stride)
     for a in agents:
         for k in [k for k in a if k.startswith("_")]:
@@ -551,6 +557,9 @@ def main(argv: Optional[list[str]] = None) -> int:
                          "docs/realtime.md#scoring-protocols)")
     ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE, help="tracked protocol: every this many frames")
+    ap.add_argument("--novel-every", type=int, default=NOVEL_EVERY,
+                    help="novel protocol: every k-th frame of the team's sequence is withheld from every robot and "
+                         "scored at a tracked pose (0: none withheld, no novel protocol)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="agent config override, e.g. agent.share_coverage=0.9")
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
@@ -574,6 +583,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         ap.error(f"unknown protocol in {args.protocols!r} (known: {', '.join(PROTOCOLS)})")
     if args.track_stride < 1 or args.track_iters < 0:
         ap.error("--track-stride must be >= 1 and --track-iters >= 0")
+    if args.novel_every == 1 or args.novel_every < 0:
+        ap.error("--novel-every must be 0 (off) or >= 2")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     out = Path(args.out)
@@ -582,7 +593,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     runs = []
     for team, run in tqdm([(t, r) for t in teams for r in range(args.runs)], desc="team runs", unit="run"):
         r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides, protocols, args.track_iters,
-                     args.track_stride)
+                     args.track_stride, args.novel_every)
         runs.append(r)
         tqdm.write(f"{team} run {run}: " + "; ".join(
             f"{a['id']} {a['task']} share {_f(a['share_pct'], 1)} % upload {_f(a['upload_ratio'])}x own "

@@ -18,6 +18,7 @@ import torch
 
 from gausslite.datasets.annotations import task_roi
 from gausslite.datasets.base import Frame
+from gausslite.datasets.subset import NOVEL_EVERY, FrameSubset, withheld_indices  # noqa: F401  (re-exported)
 from gausslite.mapping.exposure import apply_exposure
 from gausslite.mapping.poses import VectorAdam, pose_delta
 from gausslite.mapping.views import keyframe_from_frame
@@ -189,7 +190,7 @@ def evaluate(
 
 # ---------------------------------------------------------------------------------------------------- live-map scoring
 #: the scoring protocols of a live map (docs/realtime.md#scoring-protocols)
-PROTOCOLS = ("sensor", "keyframes", "tracked")
+PROTOCOLS = ("sensor", "keyframes", "tracked", "novel")
 
 
 @dataclass
@@ -282,6 +283,7 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
                                              frame.frame_id, None)
     if protocol in ("sensor", "keyframes"):
         return mapper.render_frame(frame)
+    # tracked and novel: a pose and exposure fitted to the frame against the frozen map
     exposure = mapper.sensor.exposure
     theta0 = exposure.of(frame.frame_id) if exposure is not None else None
     tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
@@ -292,9 +294,10 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
 
 
 def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
-                   protocols: Sequence[str] = PROTOCOLS, track_iters: int = 30, track_stride: int = 1,
+                   protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
                    keyframe_ids: Optional[Iterable[int]] = None,
-                   keyframe_poses: Optional[Mapping[int, np.ndarray]] = None) -> dict:
+                   keyframe_poses: Optional[Mapping[int, np.ndarray]] = None,
+                   novel_ids: Optional[Iterable[int]] = None) -> dict:
     """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
     every mode (docs/realtime.md#scoring-protocols):
 
@@ -304,7 +307,10 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
       pose and exposure response; with ``keyframe_poses`` (frame id → (4, 4) camera-to-world, e.g. the keyframes a
       robot uploaded at their refined poses) those frames at those poses, identity exposure;
     - ``tracked``: every ``track_stride``-th frame at a pose and affine exposure fitted to that frame against the
-      frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol.
+      frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol;
+    - ``novel``: the frames withheld from the mapper (``novel_ids``: never a keyframe, never a training view of any
+      kind), each at a pose and exposure tracked like ``tracked``'s: what the map renders from views it was not
+      trained on.
 
     Args:
         mapper: the map to score (not modified). frames: the sequence's frames (ground truth): a list, or a dataset
@@ -312,16 +318,28 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         roi_fn: frame → (H, W) bool ground-truth ROI mask (the scores' ROI; tracking never sees it).
         protocols: which of :data:`PROTOCOLS` to score. track_iters: the tracker's Adam steps per frame.
         track_stride: ``tracked`` scores every this many frames. keyframe_ids / keyframe_poses: see ``keyframes``.
+        novel_ids: frame ids withheld from the mapper (:func:`withheld_indices`, :class:`FrameSubset`); needed by
+            ``novel``.
     Returns:
         ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``: means over the scored frames
         (ROI PSNR over those that show the ROI; None when none does).
     Raises:
-        ValueError: an unknown protocol or ``track_stride`` < 1.
+        ValueError: an unknown protocol, ``track_stride`` < 1, ``novel`` without ``novel_ids``, or a withheld frame
+            that the mapper trained on (a keyframe or a stored ROI view: the bookkeeping is broken).
     """
     bad = [p for p in protocols if p not in PROTOCOLS]
     if bad or track_stride < 1:
         raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
                          f"track_stride must be >= 1, got {track_stride}")
+    novel = {int(i) for i in novel_ids} if novel_ids is not None else None
+    if "novel" in protocols and novel is None:
+        raise ValueError("the novel protocol needs the withheld frames' ids (novel_ids)")
+    if novel:
+        trained = ({int(s.frame_id) for s in mapper.stats}
+                   | {int(i) for i in getattr(getattr(mapper, "roi_views", None), "frame_ids", [])})
+        leaked = sorted(novel & trained)
+        if leaked:
+            raise ValueError(f"withheld frames {leaked[:5]} were training views of the map: not novel")
     poses = {int(k): v for k, v in keyframe_poses.items()} if keyframe_poses is not None else {}
     kf_ids = (set(poses) if keyframe_poses is not None else {int(s.frame_id) for s in mapper.stats}
               if keyframe_ids is None else {int(i) for i in keyframe_ids})
@@ -331,6 +349,8 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         # one frame in memory at a time (``frames`` may be a dataset that loads each on access)
         if protocol == "keyframes":
             chosen = (fr for fr in (frames[i] for i in range(n)) if int(fr.frame_id) in kf_ids)
+        elif protocol == "novel":
+            chosen = (fr for fr in (frames[i] for i in range(n)) if int(fr.frame_id) in novel)
         else:
             chosen = (frames[i] for i in range(0, n, track_stride if protocol == "tracked" else 1))
         ps, ss, rps = [], [], []
@@ -364,8 +384,9 @@ def frozen_mapper(gmap, backend: str = "auto"):
 
 
 def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
-              protocols: Sequence[str] = PROTOCOLS, track_iters: int = 30, track_stride: int = 1,
-              keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto") -> dict:
+              protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
+              keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto",
+              novel_ids: Optional[Iterable[int]] = None) -> dict:
     """Score a frozen map that has no mission of its own (a fused team map) under the scoring protocols, as
     :func:`score_live_map` scores a robot's own map (docs/realtime.md#scoring-protocols):
 
@@ -373,11 +394,12 @@ def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarra
     - ``keyframes``: the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the keyframes the owner
       robot uploaded, at the refined poses they carry), identity exposure; none scored without it;
     - ``tracked``: every ``track_stride``-th frame at the pose and affine exposure :func:`track_view` fits against
-      ``gmap`` from the sensor's pose.
+      ``gmap`` from the sensor's pose;
+    - ``novel``: the frames of ``novel_ids`` (withheld from every robot's mapper), tracked the same way.
 
     Args:
         gmap: ``GaussianMap`` (torch, CPU). frames: ground-truth frames. roi_fn: frame → (H, W) bool ROI mask.
-        protocols, track_iters, track_stride: as :func:`score_live_map`. backend: rasterizer backend.
+        protocols, track_iters, track_stride, novel_ids: as :func:`score_live_map`. backend: rasterizer backend.
     Returns:
         ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (None figures for an empty map).
     Raises:
@@ -391,4 +413,4 @@ def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarra
         return {p: {"roi_psnr": None, "psnr": None, "ssim": None, "frames_scored": 0, "roi_frames": 0}
                 for p in protocols}
     return score_live_map(frozen_mapper(gmap, backend), frames, roi_fn, protocols, track_iters=track_iters,
-                          track_stride=track_stride, keyframe_poses=keyframe_poses or {})
+                          track_stride=track_stride, keyframe_poses=keyframe_poses or {}, novel_ids=novel_ids)

@@ -122,7 +122,7 @@ class FinishRequest(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., skip_push: _Optional[bool] = ..., skip_eval: _Optional[bool] = ...) -> None: ...
 
 class MissionStatus(_message.Message):
-    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations", "newest_map_version", "push_backlog", "keyframes_backlog", "link_down_s", "accept_latency_ms_p99_recent")
+    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations", "newest_map_version", "push_backlog", "keyframes_backlog", "link_down_s", "accept_latency_ms_p99_recent", "mapping_width", "mapping_height", "mapping_downscale", "resolution_pinned", "resolution_predicted_iters", "resolution_measured_iters", "resolution_reaches_target", "resolution_changes")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -153,6 +153,14 @@ class MissionStatus(_message.Message):
     KEYFRAMES_BACKLOG_FIELD_NUMBER: _ClassVar[int]
     LINK_DOWN_S_FIELD_NUMBER: _ClassVar[int]
     ACCEPT_LATENCY_MS_P99_RECENT_FIELD_NUMBER: _ClassVar[int]
+    MAPPING_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    MAPPING_HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    MAPPING_DOWNSCALE_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_PINNED_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_PREDICTED_ITERS_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_MEASURED_ITERS_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_REACHES_TARGET_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_CHANGES_FIELD_NUMBER: _ClassVar[int]
     mission_id: str
     agent_id: str
     state: MissionState
@@ -183,7 +191,15 @@ class MissionStatus(_message.Message):
     keyframes_backlog: int
     link_down_s: float
     accept_latency_ms_p99_recent: float
-    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ...) -> None: ...
+    mapping_width: int
+    mapping_height: int
+    mapping_downscale: float
+    resolution_pinned: bool
+    resolution_predicted_iters: float
+    resolution_measured_iters: float
+    resolution_reaches_target: bool
+    resolution_changes: int
+    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ..., mapping_width: _Optional[int] = ..., mapping_height: _Optional[int] = ..., mapping_downscale: _Optional[float] = ..., resolution_pinned: _Optional[bool] = ..., resolution_predicted_iters: _Optional[float] = ..., resolution_measured_iters: _Optional[float] = ..., resolution_reaches_target: _Optional[bool] = ..., resolution_changes: _Optional[int] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
     __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes", "protocols")

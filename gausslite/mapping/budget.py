@@ -86,6 +86,10 @@ class WorkClock:
     def charge_step(self, gaussians: int) -> None:
         self.t += self.cost.step(gaussians)
 
+    def charge_fixed(self, seconds: float) -> None:
+        """Charge work of a modelled fixed cost (e.g. storing an ROI view, ``roi_views.view_cost_s``)."""
+        self.t += float(seconds)
+
 
 def fit_work_cost(samples: list[tuple[int, int, int, int, float]]) -> WorkCost:
     """Least-squares :class:`WorkCost` from measured iterations.

@@ -233,10 +233,43 @@ class SensorConfig(_Strict):
     rs_px_per_band: float = Field(2.0, gt=0, description="rolling shutter: one row band per this many pixels of motion "
                                   "between a view's first and last row")
     rs_max_bands: int = Field(6, ge=1, description="rolling shutter: at most this many row bands per view")
+    motion_every_frame: bool = Field(
+        False, description="motion blur and rolling shutter: estimate the camera's motion from every frame the robot "
+        "saw (the frames between keyframes included, Mapper.map_frame's between), not only from consecutive keyframes"
+    )
     blur_max_dt: float = Field(
         0.5, gt=0, description="motion blur: consecutive mapped frames further apart than this (seconds) give no "
         "motion estimate (the view is rendered sharp)"
     )
+
+
+class RoiViewConfig(_Strict):
+    """ROI views: the task region's crops of the frames between keyframes, drawn by ROI-phase iterations beside the
+    keyframes (:mod:`gausslite.mapping.roi_views`; docs/realtime.md, "Every view of the region")."""
+
+    enabled: bool = Field(
+        False, description="store the ROI crop of frames between keyframes (gausslite mode, a task in view) and let "
+        "ROI-phase iterations draw them as well as the keyframes (uniform maps ignore it); the frames' region comes "
+        "from the keyframes' relevance maps carried over by depth"
+    )
+    every: int = Field(1, ge=1, description="keep every n-th frame between keyframes that sees the region")
+    max_views: int = Field(96, ge=1, description="at most this many stored views (the most redundant pose is evicted)")
+    max_bytes: int = Field(16 << 20, ge=1, description="at most this many bytes of stored crops")
+    min_roi_px: int = Field(64, ge=1, description="a frame whose carried-over region has fewer pixels is not stored")
+    depth_tol_m: float = Field(0.1, gt=0, description="carried-over region: occlusion tolerance against the "
+                               "frame's depth (metres; at least 5 % of the depth)")
+    dilate_px: int = Field(3, ge=0, description="carried-over region: dilation of the projected points (pixels)")
+    draw: float = Field(
+        1.0, ge=0, description="an ROI-phase iteration whose drawn keyframe sees the region takes a stored view "
+        "instead with probability draw × views / (views + ROI keyframes): 1 = a uniform draw over every view of the "
+        "region, keyframes and stored crops alike; 0 = keyframes only"
+    )
+    align: bool = Field(
+        True, description="ROI-phase iterations on a stored view refine its pose correction and exposure response "
+        "(pose.roi_phase); False: both stay as interpolated from its keyframes when it was stored"
+    )
+    view_cost_s: float = Field(
+        1.5e-3, ge=0, description="deterministic twin (budget_clock work): modelled seconds of storing one view")
 
 
 class PerformanceConfig(_Strict):
@@ -492,6 +525,7 @@ class MapperConfig(_Strict):
     pose: PoseConfig = PoseConfig()
     sensor: SensorConfig = SensorConfig()
     performance: PerformanceConfig = PerformanceConfig()
+    roi_views: RoiViewConfig = RoiViewConfig()
 
     @model_validator(mode="before")
     @classmethod

@@ -62,6 +62,7 @@ from gausslite.mapping.loss import photometric_loss
 from gausslite.mapping.memory import KeyframeStore, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner
+from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_view_of, window_points
 from gausslite.mapping.seeding import SeedSelection, local_median_nn_distance, seed_points, select_seeds
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
@@ -135,10 +136,12 @@ class Mapper:
         self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose.lr_rot, cfg.pose.lr_trans,
                                                          cfg.pose.between_keyframes == "interpolate")
                                              if cfg.pose.refine else None)
+        #: ROI crops of the frames between keyframes (``roi_views``), drawn by ROI-phase iterations
+        self.roi_views = RoiViewStore(cfg.roi_views.max_views, cfg.roi_views.max_bytes)
         self.strategy = DensityStrategy(cfg, self.model, self.torch_gen)
         self.sensor = SensorRenderer(cfg, self.model, self.clock)
         self.step = TrainStep(cfg, self.model, self.sensor, self.strategy, self.keyframes, self.poses, self.clock,
-                              self.rng)
+                              self.rng, views=self.roi_views)
         self.n_mapped = 0
         self.stats: list[FrameStats] = []
         self.n_idle_iters = 0  # iterations of optimize() between keyframes
@@ -364,6 +367,7 @@ class Mapper:
         self.model.active = torch.zeros_like(self.model.active)
         self.model.kappa = torch.zeros_like(self.model.kappa)
         self.keyframes.clear_roi()
+        self.roi_views.clear()
 
     def accumulate_contribution(self, kf: Keyframe) -> None:
         """Add each Gaussian's alpha-blending weight Σ_pixels T_i α_i in keyframe ``kf`` (sharp view) to the
@@ -383,12 +387,76 @@ class Mapper:
         roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
         i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w,
                                         roi_only=roi_phase and cfg.roi_phase_views == "roi")
+        if roi_phase and self.keyframes[i].sees_roi:
+            v = self._roi_view_draw()
+            if v is not None:
+                return v
         if i == n - 1 and self.keyframes[i].frame_id == current.frame_id:
             return current
         return self.keyframes.load(i, self.device)
 
+    def _roi_view_draw(self) -> Optional[Keyframe]:
+        """For an ROI-phase iteration whose drawn keyframe sees the region: a stored ROI view instead, with
+        probability ``roi_views.draw`` × views / (views + ROI keyframes) (``roi_views``); None: keep the keyframe."""
+        nv = len(self.roi_views)
+        if nv == 0 or not self.cfg.roi_views.enabled:
+            return None
+        n_roi = sum(1 for k in self.keyframes if k.sees_roi)
+        if self.rng.random() >= self.cfg.roi_views.draw * nv / (nv + n_roi):
+            return None
+        return self.roi_views.load(int(self.rng.integers(nv)), self.device)
+
+    def add_roi_views(self, frames, current: Optional[Keyframe] = None) -> int:
+        """Store the ROI crop of frames between keyframes (``roi_views``; gausslite mode with a task in view).
+
+        Each frame's region is the ROI of the newest stored keyframe that sees it and of ``current`` (the keyframe
+        being mapped), carried over by their depth (:func:`~gausslite.mapping.roi_views.project_roi`); a frame whose
+        region has fewer than ``roi_views.min_roi_px`` pixels is skipped, and so is all but every
+        ``roi_views.every``-th of the others. A stored view gets a pose-correction slot (interpolated between its
+        keyframes, or the nearest one's, ``pose.between_keyframes``) and an exposure slot (likewise), refined by the
+        ROI-phase iterations that draw it (``pose.roi_phase``). Charged to a deterministic clock at
+        ``roi_views.view_cost_s`` per frame examined.
+
+        Args:
+            frames: decoded frames (``Frame``: uint8 rgb (H, W, 3), float32 depth (H, W) metres, ``c2w`` (4, 4),
+                pinhole intrinsics) between the previous keyframe and ``current``, oldest first.
+            current: the keyframe being mapped (float tensors), or None.
+        Returns:
+            the number of views stored.
+        """
+        rc = self.cfg.roi_views
+        if not (rc.enabled and self.cfg.effective().roi) or not frames:
+            return 0
+        sources = [k for k in reversed(list(self.keyframes)) if k.sees_roi][:1]
+        if current is not None and current.roi_box is not None:
+            sources.append(current.compact())
+        pts = window_points(sources)
+        if len(pts) == 0:
+            return 0
+        stored, seen = 0, 0
+        for fr in frames:
+            if self.clock.charges and hasattr(self.clock, "charge_fixed"):
+                self.clock.charge_fixed(rc.view_cost_s)
+            c2w = self.pose_of(fr.frame_id, fr.c2w)
+            roi = project_roi(pts, fr.depth, fr.intrinsics.K, c2w, rc.depth_tol_m, rc.dilate_px)
+            if int(roi.sum()) < rc.min_roi_px:
+                continue
+            seen += 1
+            if (seen - 1) % rc.every:
+                continue
+            view = roi_view_of(dataclasses.replace(fr, c2w=c2w), roi, self.cfg.roi_crop_pad, self.device)
+            if self.poses is not None:
+                self.poses.register(fr.frame_id, np.linalg.inv(np.asarray(fr.c2w, np.float64)) @ c2w,
+                                    fixed=not rc.align)
+            exposure = self.sensor.exposure
+            if exposure is not None:
+                exposure.register(fr.frame_id, exposure.of(fr.frame_id), fixed=not rc.align)
+            self.roi_views.add(view)
+            stored += 1
+        return stored
+
     def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None,
-                  time_budget_s: Optional[float] = None) -> FrameStats:
+                  time_budget_s: Optional[float] = None, between=()) -> FrameStats:
         """Seed and optimise for one posed RGB-D frame.
 
         Args:
@@ -402,6 +470,11 @@ class Mapper:
                 the first ``warmup_iters / iters_per_frame`` of the time left after seeding is full-image
                 (at least one iteration when ``warmup_iters`` > 0), the rest ROI-phase, and density
                 control runs every ``densify.every`` budgeted iterations counted across calls.
+            between: the frames the robot saw since the previous keyframe (oldest first; decoded ``Frame`` objects,
+                or objects with ``frame_id``, ``timestamp``, ``c2w`` and ``intrinsics`` when only their motion is
+                used): under ``sensor.motion_every_frame`` every mode records the camera's motion through them
+                (motion blur, rolling shutter), and under ``roi_views`` GaussLite stores their ROI crops (:meth:`add_roi_views`), inside this call's
+                budget.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
@@ -412,6 +485,9 @@ class Mapper:
         cfg, sw = self.cfg, self.cfg.effective()
         t_wall = time.perf_counter()
         t0 = self.clock.now()
+        if cfg.sensor.motion_every_frame:
+            for fr in between:
+                self.sensor.observe(fr)
         self.sensor.observe(frame)  # the camera's motion over this frame's exposure (motion blur, rolling shutter)
         if self.poses is not None:
             # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
@@ -426,6 +502,8 @@ class Mapper:
             exposure.register(frame.frame_id, exposure.initial(frame.frame_id), fixed=self.n_mapped == 0)
         seeded = self.seed_frame(frame, relevance)
         kf = keyframe_from_frame(frame, self.device, relevance)
+        if between and cfg.roi_views.enabled and sw.roi:
+            self.add_roi_views(between, kf)
         if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
             self.keyframes.add(kf)
         loss = 0.0
@@ -535,10 +613,11 @@ class Mapper:
         while (n_iters is None or done < n_iters) and (done == 0 or max_seconds is None
                                                          or self.clock.now() - t0 < max_seconds):
             i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
-            view = self.keyframes.load(i, self.device)
             phase = self.n_idle_iters % cfg.iters_per_frame
-            active_phase = (sw.roi and phase >= cfg.warmup_iters and view.roi is not None
+            active_phase = (sw.roi and phase >= cfg.warmup_iters and self.keyframes[i].roi is not None
                             and bool(self.model.active.any()))
+            view = ((self._roi_view_draw() if active_phase and self.keyframes[i].sees_roi else None)
+                    or self.keyframes.load(i, self.device))
             self.step(view, active_phase)
             self.n_idle_iters += 1
             done += 1
@@ -591,6 +670,7 @@ class Mapper:
         n = None if max_keyframes is None else max(max_keyframes, self.cfg.window)
         return {
             **self.model.state_dict(), **self.strategy.state_dict(), **self.keyframes.state_dict(n),
+            **self.roi_views.state_dict(),
             **self.sensor.state_dict(), **self.step.state_dict(),
             "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "n_budget_iters": self.n_budget_iters,
             "rng": self.rng.bit_generator.state,
@@ -606,6 +686,7 @@ class Mapper:
         self.model.load_state_dict(state)
         self.strategy.load_state_dict(state)
         self.keyframes.load_state_dict(state)
+        self.roi_views.load_state_dict(state)
         self.sensor.load_state_dict(state)
         self.step.load_state_dict(state)
         self.n_mapped = int(state["n_mapped"])

@@ -31,6 +31,8 @@ class TrainStep:
         model: the Gaussians; sensor: renders them as the sensor saw a view; strategy: receives the density
             statistics (post-backward hook).
         keyframes: the mission's keyframe store (a refined pose is written back to it).
+        views: the ROI view store (:class:`~gausslite.mapping.roi_views.RoiViewStore`) a refined view pose is
+            written back to when the view is not a keyframe, or None.
         poses: per-keyframe pose refinement, or None.
         clock: the budget clock (a deterministic clock is charged for every Adam step).
         rng: NumPy generator of random windows (``full_crop_fraction``).
@@ -39,8 +41,10 @@ class TrainStep:
     """
 
     def __init__(self, cfg: MapperConfig, model: GaussianModel, sensor: SensorRenderer, strategy: DensityStrategy,
-                 keyframes: KeyframeStore, poses: Optional[PoseRefiner], clock, rng: np.random.Generator) -> None:
+                 keyframes: KeyframeStore, poses: Optional[PoseRefiner], clock, rng: np.random.Generator,
+                 views=None) -> None:
         self.cfg, self.model, self.sensor, self.strategy = cfg, model, sensor, strategy
+        self.views = views
         self.keyframes, self.poses, self.clock, self.rng = keyframes, poses, clock, rng
         self.device = model.device
         self.roi_iters = 0
@@ -154,9 +158,15 @@ class TrainStep:
         if refine:
             new = self.poses.step(kf.frame_id, xi.grad, kf.c2w, cfg.pose.roi_lr_scale if active_phase else 1.0)
             if new is not None:
-                kf.c2w.copy_(new)  # crops/windows of kf share this tensor
-                self.keyframes.set_pose(kf.frame_id, new)
+                self._write_pose(kf, new)
         return float(loss.detach())
+
+    def _write_pose(self, kf: Keyframe, new: torch.Tensor) -> None:
+        """Keep view ``kf``'s refined pose ``new`` (4, 4): in the view (its crops and windows share the tensor) and
+        in the store that holds it (a keyframe, or else a stored ROI view)."""
+        kf.c2w.copy_(new)
+        if not self.keyframes.set_pose(kf.frame_id, new) and self.views is not None:
+            self.views.set_pose(kf.frame_id, new)
 
 
 __all__ = ["TrainStep"]

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Literal, Optional
+from typing import List, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -22,20 +22,56 @@ class ScoringConfig(BaseModel):
         protocols: which of ``sensor`` (every frame at the sensor's pose with its keyframe's refined correction and
             exposure response), ``keyframes`` (the mapped keyframes at their refined pose and exposure) and
             ``tracked`` (every ``track_stride``-th frame at a pose and affine exposure fitted against the frozen map,
-            MonoGS's protocol) to score; ``sensor`` is always scored (the summary's ``roi_psnr_all_frames``).
+            MonoGS's protocol) and ``novel`` (the frames a replay withholds from the mapper, every ``novel_every``-th,
+            at a tracked pose) to score; ``sensor`` is always scored (the summary's ``roi_psnr_all_frames``).
         track_iters: Adam steps of the ``tracked`` protocol's tracker per frame (fixed, the same for every map).
         track_stride: the ``tracked`` protocol scores every this many frames (MonoGS: every 5th).
+        novel_every: with ``novel`` among the protocols, a replay withholds every this many frames from the mapper
+            (never a keyframe, never a training view) and scores them at a tracked pose.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    protocols: List[Literal["sensor", "keyframes", "tracked"]] = ["sensor", "keyframes", "tracked"]
+    protocols: List[Literal["sensor", "keyframes", "tracked", "novel"]] = ["sensor", "keyframes", "tracked"]
     track_iters: int = Field(30, ge=0)
     track_stride: int = Field(5, ge=1)
+    novel_every: int = Field(10, ge=2)
 
     def chosen(self) -> tuple:
         """The protocols to score, ``sensor`` first and always."""
         return tuple(dict.fromkeys(["sensor", *self.protocols]))
+
+
+class ResolutionConfig(BaseModel):
+    """The mapping resolution of a live agent (``agent.resolution`` in YAML; :mod:`gausslite.mapping.resolution`,
+    docs/live.md#mapping-resolution): the image downscale at which a keyframe gets ``target_iters`` iterations
+    under its budget (``mapper.keyframe_budget_s``), chosen from the first frame and lowered, one level at a time,
+    when keyframes get fewer.
+
+    Attributes:
+        downscale: ``auto``, or a factor ≥ 1 that pins it (a user's choice, never changed; 1 = native).
+        target_iters: iterations per keyframe to reach (the live TUM figures were measured at 12-23).
+        max_downscale: the coarsest automatic level.
+        adapt_after: keyframes measured before each correction.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    downscale: Union[Literal["auto"], float] = "auto"
+    target_iters: float = Field(10.0, ge=1)
+    max_downscale: int = Field(4, ge=1, le=16)
+    adapt_after: int = Field(3, ge=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> "ResolutionConfig":
+        if self.downscale != "auto" and float(self.downscale) < 1:
+            raise ValueError(f"agent.resolution.downscale must be 'auto' or >= 1, got {self.downscale}")
+        return self
+
+    @property
+    def pinned(self) -> Optional[float]:
+        """The pinned factor, or None when automatic."""
+        return None if self.downscale == "auto" else float(self.downscale)
 
 
 class OnnxRelevanceConfig(BaseModel):
@@ -216,6 +252,7 @@ class AgentConfig(BaseModel):
     onnx: OnnxRelevanceConfig = OnnxRelevanceConfig()
     relevance_max_wait_s: Optional[float] = Field(None, ge=0)
     scoring: ScoringConfig = ScoringConfig()
+    resolution: ResolutionConfig = ResolutionConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 

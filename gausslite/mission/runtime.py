@@ -93,6 +93,8 @@ _CKPT_COUNTERS = ("frames_received", "frames_mapped", "frames_keyframed", "frame
 CHECKPOINT_FILE = "checkpoint.pt"
 RECENT_FRAMES = 1800  #: frames of ``accept_latency_ms_p99_recent`` (a minute at 30 Hz)
 VERSION_FILE = "pushed_version.json"
+#: frames between keyframes held for the next keyframe (``AgentRuntime._between``): a second at 60 Hz
+BETWEEN_MAX = 64
 
 
 def _percentile(vals, q: float) -> float:
@@ -170,8 +172,19 @@ class AgentRuntime:
         # lazy: keeps gausslite.mission.runtime importable without SciPy, Warp, torch
         from gausslite.mapping.mapper import Mapper
 
+        # lazy: keeps gausslite.mission.runtime importable without OpenCV
+        from gausslite.mapping.budget import WorkCost
+        from gausslite.mapping.resolution import ResolutionGovernor
+
         torch.manual_seed(config.mapper.seed)
         self.mapper = Mapper(config.mapper)
+        rc = config.resolution
+        #: the mapping resolution (agent.resolution): chosen at the first frame, lowered while keyframes get too few
+        #: iterations (docs/live.md#mapping-resolution)
+        self.resolution = ResolutionGovernor(rc.target_iters, rc.max_downscale, rc.pinned, rc.adapt_after,
+                                             WorkCost(**config.mapper.work_cost.model_dump()))
+        self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
+        self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (scoring: novel)
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
         self._finish_lock = threading.Lock()
@@ -188,7 +201,7 @@ class AgentRuntime:
         self.summary: Optional[MissionSummaryData] = None
         self.share = ShareSession(agent_id, config)  # selection, fine-tune cache, delta planning
         #: the pushes: versions, backlog, retries, keyframe uploads (gausslite.mission.pusher)
-        self.pusher = Pusher(agent_id, task_text, config, fusion, self.share, self.mapper, lambda: self.intrinsics,
+        self.pusher = Pusher(agent_id, task_text, config, fusion, self.share, self.mapper, lambda: self.upload_intrinsics,
                              self._set_error)
         self._replay_thread: Optional[threading.Thread] = None
         self.replay_frames = 0
@@ -199,6 +212,9 @@ class AgentRuntime:
                                                       config.keyframe_max_interval_s))
         self._online = config.ingest == "keyframes"  # replay() sets it from config.realtime
         self.frames_keyframed = 0
+        #: frames that did not become keyframes since the last one (oldest first, bounded): the mapper records the
+        #: camera's motion through them and, under ``mapper.roi_views``, keeps their ROI crops
+        self._between: "deque" = deque(maxlen=BETWEEN_MAX)
         self.frames_skipped = 0
         self.frames_rejected = 0
         self.keyframe_iterations = 0
@@ -259,6 +275,10 @@ class AgentRuntime:
                 self.intrinsics = intr
             if self._online:
                 pending, replaced = self.selector.offer((frame, t_arr), frame.c2w, t_arr)
+                if replaced is not None:
+                    self._between.append(replaced[0])
+                if not pending:
+                    self._between.append(frame)
                 self.frames_received += 1
                 self.frames_skipped += int(not pending) + int(replaced is not None)
                 if pending and replaced is None:
@@ -282,6 +302,13 @@ class AgentRuntime:
 
         self.replay_frames = len(dataset)
         self._dataset = dataset
+        sc = self.config.scoring
+        if "novel" in sc.protocols:
+            # lazy: keeps gausslite.mission.runtime importable without the dataset loaders
+            from gausslite.datasets.subset import FrameSubset, withheld_indices
+
+            dataset = FrameSubset(dataset, withheld_indices(len(dataset), sc.novel_every))
+            self._novel_ids = dataset.withheld_ids
         realtime = self.config.realtime
         with self._lock:
             self._online = bool(realtime)
@@ -486,12 +513,22 @@ class AgentRuntime:
                     self.frames_rejected += 1
                     self.last_error = f"rejected frame: {e}"
                 return
+        native = item
         try:
+            if self.resolution.choice is None:
+                intr = item.intrinsics
+                self.resolution.start(intr.width, intr.height, cfg.mapper.keyframe_budget_s,
+                                      cfg.mapper.budget.max_gaussians)
+                self._upload_factor = self.resolution.factor
+            item = self.resolution.apply(item)
+            between = [self.resolution.apply(f) if isinstance(f, Frame) else f
+                       for f in self._take_between(item.frame_id)]
             w = self.relevance(item)
             # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
             b = cfg.mapper.keyframe_budget_s
             left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
-            st = self.mapper.map_frame(item, w, time_budget_s=left)
+            st = self.mapper.map_frame(item, w, time_budget_s=left, between=between)
+            self.resolution.record(st.iters)
         except Exception as e:
             self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
             return
@@ -507,7 +544,7 @@ class AgentRuntime:
             if len(self._eval_frames) < cfg.eval_max_frames:
                 self._eval_frames.append(item)
         if upload:
-            self.pusher.add_keyframe(item, w)
+            self.pusher.add_keyframe(*self._upload_view(native, item, w))
         log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
                   item.frame_id, st.n_gaussians, self.n_active, st.seconds)
         if self.frames_mapped % cfg.push_every == 0:
@@ -518,6 +555,56 @@ class AgentRuntime:
                 self.save_checkpoint()
             except Exception as e:  # a full disk must not stop mapping
                 log.warning("agent %s: checkpoint failed: %s: %s", self.agent_id, type(e).__name__, e)
+
+    @property
+    def upload_intrinsics(self):
+        """Intrinsics of the keyframes this mission sends to the fusion server: the first frame's, at the mapping
+        resolution chosen then (None before the first frame)."""
+        if self.intrinsics is None:
+            return None
+        f = self._upload_factor or self.resolution.factor
+        intr = self.intrinsics
+        return intr if f == 1 else intr.scaled(f)
+
+    def _upload_view(self, native: Frame, mapped: Frame, w: np.ndarray) -> tuple:
+        """The keyframe and relevance map to upload: as mapped, or at the first choice's resolution when the mapping
+        resolution has changed since (the fusion session keeps one image size)."""
+        if self._upload_factor is None or self._upload_factor == self.resolution.factor:
+            return mapped, w
+        # lazy: keeps gausslite.mission.runtime importable without OpenCV
+        import cv2
+
+        from gausslite.mapping.resolution import downscale_frame
+
+        up = downscale_frame(native, self._upload_factor)
+        wu = cv2.resize(np.asarray(w, np.uint8), (up.intrinsics.width, up.intrinsics.height),
+                        interpolation=cv2.INTER_NEAREST) > 0
+        return up, wu
+
+    def _take_between(self, frame_id: int) -> list:
+        """The frames seen before keyframe ``frame_id`` since the last keyframe (oldest first), for
+        :meth:`Mapper.map_frame`'s ``between``: decoded when the mapper keeps their ROI crops (``mapper.roi_views``
+        in gausslite mode), otherwise as they came (their pose and time are what the motion models need). A frame
+        whose images do not decode is left out and logged."""
+        with self._lock:
+            taken = [f for f in self._between if f.frame_id < frame_id]
+            rest = [f for f in self._between if f.frame_id > frame_id]
+            self._between.clear()
+            self._between.extend(rest)
+        m = self.config.mapper
+        if not (m.roi_views.enabled and m.effective().roi):
+            return taken
+        out = []
+        for f in taken:
+            if hasattr(f, "materialize"):
+                try:
+                    f = f.materialize()
+                except ValueError as e:
+                    log.warning("agent %s mission %s: frame %d between keyframes not decoded: %s", self.agent_id,
+                                self.mission_id, f.frame_id, e)
+                    continue
+            out.append(f)
+        return out
 
     # ------------------------------------------------------------------ checkpoint / resume
     def save_checkpoint(self) -> Path:
@@ -611,7 +698,7 @@ class AgentRuntime:
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
-                "keyframe_iterations": self.keyframe_iterations,
+                "keyframe_iterations": self.keyframe_iterations, **self.resolution.status(),
             }
 
     def acknowledged_subset(self):
@@ -744,14 +831,20 @@ class AgentRuntime:
             frames that show the ROI, None when none does); ``{}`` without a replayed dataset, annotations or task
             id. Call only while the worker is idle."""
         # lazy: keeps gausslite.mission.runtime importable without Warp, torch
+        from gausslite.datasets.subset import ScaledFrames
         from gausslite.evaluation import score_live_map
+        from gausslite.mapping.resolution import downscale_frame
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
             return {}
         sc = self.config.scoring
-        return score_live_map(self.mapper, self._dataset, task_roi(self.annotations, self.task_id),
-                              sc.chosen() if protocols is None else protocols, track_iters=sc.track_iters,
-                              track_stride=sc.track_stride)
+        chosen = sc.chosen() if protocols is None else tuple(protocols)
+        if self._novel_ids is None:
+            chosen = tuple(p for p in chosen if p != "novel")
+        # scored at the mapping resolution: the map's own detail, and minutes instead of tens of minutes at 640x480
+        frames = ScaledFrames(self._dataset, self.resolution.factor, downscale_frame)
+        return score_live_map(self.mapper, frames, task_roi(self.annotations, self.task_id), chosen,
+                              track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

@@ -73,6 +73,11 @@ class AgentCollector:
                                     "mission; 0..2: only the newest is kept while the link is down)", labels=["agent"])
         link_down = GaugeMetricFamily("gausslite_agent_link_down_seconds", "Seconds since the first failed push "
                                       "attempt without an acknowledgement since (0 = link up)", labels=["agent"])
+        downscale = GaugeMetricFamily("gausslite_agent_mapping_downscale", "Image downscale the current mission maps "
+                                      "at (agent.resolution; 1 = native, 0 = no frame yet)", labels=["agent"])
+        kf_iters = GaugeMetricFamily("gausslite_agent_keyframe_iterations_measured", "Mean iterations per keyframe "
+                                     "at the current mapping resolution (agent.resolution.target_iters is the target)",
+                                     labels=["agent"])
         states = GaugeMetricFamily("gausslite_agent_missions", "Missions by state", labels=["state"])
         push_s = HistogramMetricFamily("gausslite_agent_push_seconds", "Duration of successful pushes",
                                        labels=["agent"])
@@ -100,6 +105,8 @@ class AgentCollector:
                 active.add_metric([agent], st["n_active"])
                 backlog.add_metric([agent], st["push_backlog"])
                 link_down.add_metric([agent], st["link_down_s"])
+                downscale.add_metric([agent], st.get("mapping_downscale", 0.0))
+                kf_iters.add_metric([agent], st.get("resolution_measured_iters", 0.0))
         for agent, s in sorted(sums.items()):
             for key, f in fam.items():
                 f.add_metric([agent], s[key])
@@ -108,7 +115,7 @@ class AgentCollector:
         for state, n in sorted(tally.items()):
             states.add_metric([state.lower()], n)
         yield from fam.values()
-        yield from (queue, gaussians, active, backlog, link_down, states, push_s)
+        yield from (queue, gaussians, active, backlog, link_down, downscale, kf_iters, states, push_s)
 
 
 def agent_registry(servicer) -> CollectorRegistry:

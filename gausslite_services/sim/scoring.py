@@ -19,7 +19,7 @@ import numpy as np
 
 from gausslite.config import GaussLiteConfig
 from gausslite.datasets import load_dataset, task_roi
-from gausslite.evaluation import evaluate_fused, render_map, score_map, side_by_side
+from gausslite.evaluation import evaluate_fused, render_map, score_map, side_by_side, withheld_indices
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mission.config import AgentConfig
@@ -47,18 +47,21 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_ps
     (docs/realtime.md#scoring-protocols): ``sensor`` is ``sensor_roi_psnr`` (:func:`evaluate_fused` over every frame
     at the sensor's pose); ``keyframes`` the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the
     keyframes the task's robot uploaded, at the refined poses they carry), ``tracked`` every ``track_stride``-th
-    frame at a pose and exposure fitted against the fused map from the sensor's pose
-    (:func:`gausslite.evaluation.score_map`).
+    frame at a pose and exposure fitted against the fused map from the sensor's pose, ``novel`` the frames every
+    agent's replay withheld (every ``novel_every``-th of the sequence, :func:`gausslite.evaluation.withheld_indices`)
+    fitted the same way (:func:`gausslite.evaluation.score_map`).
 
     Returns:
         ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
     """
     rest = [q for q in scoring.chosen() if q != "sensor"]
     out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
+    novel = ([int(frames[i].frame_id) for i in withheld_indices(len(frames), scoring.novel_every)]
+             if "novel" in rest else None)
     if rest:
         res = score_map(gmap, frames, task_roi(annotations, task_id),
                         rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
-                        keyframe_poses=keyframe_poses, backend=backend)
+                        keyframe_poses=keyframe_poses, backend=backend, novel_ids=novel)
         out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
     return out
 

@@ -135,7 +135,8 @@ def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp
         res = __import__("json").loads(out.read_text())
         name = "synth-pick-object" + ({"task": "_late", "detection": "_late_detection"}[via] if late else "")
         blk = res["scenes"][name]["budgets"]["0.08"]
-        assert set(blk["protocols"]) == {"sensor", "keyframes", "tracked"}
+        assert set(blk["protocols"]) == {"sensor", "keyframes", "tracked", "novel"}
+        assert blk["protocols"]["novel"]["gausslite"]["frames_scored"] == 1  # frame 5 of 8 withheld (every 10th)
         for p, v in blk["protocols"].items():
             assert v["uniform"]["runs"] == v["gausslite"]["runs"] == 1 and v["gain"] is not None, p
         assert blk["protocols"]["tracked"]["gausslite"]["frames_scored"] == 2  # every 4th of 8 frames
@@ -229,3 +230,34 @@ def test_live_missions_back_to_back_then_scored_apart(tmp_path):
     assert "gausslite" not in blk["0.4"] and blk["0.4"]["uniform"]["runs"] == 1
     assert all("protocols" in r and "state_path" not in r for r in res["runs"])
     assert not list((tmp_path / "work" / "maps").glob("*.pt"))
+
+
+def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_path, monkeypatch):
+    """The novel protocol: every k-th frame is withheld from the mission in both modes, live and on the twin: never
+    a keyframe, never a frame between keyframes (whose ROI crop the mapper may keep), and scored under ``novel``."""
+    from gausslite.mapping.mapper import Mapper
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=9, width=64, height=48, trajectory="circle")
+    seen: list = []
+    real = Mapper.map_frame
+
+    def spy(self, frame, relevance=None, time_budget_s=None, between=()):
+        seen.extend([int(frame.frame_id), *(int(f.frame_id) for f in between)])
+        return real(self, frame, relevance, time_budget_s, between)
+
+    monkeypatch.setattr(Mapper, "map_frame", spy)
+    job = {"scene": "synthetic_circle", "spec": rt.SCENES["synthetic_circle"], "path": str(tmp_path / "scene" / "agent_a"),
+           "task": "synth-pick-object", "budget": 0.08, "run": 0, "cap": 300, "clock": "dataset",
+           "overrides": ["mapper.seeding.seeds_per_frame=300", "mapper.roi_views.enabled=true"],
+           "protocols": ("sensor", "keyframes", "tracked", "novel"), "track_iters": 2, "track_stride": 4,
+           "novel_every": 3}
+    ds = rt.Preloaded(rt.load_scene(rt.SCENES["synthetic_circle"], Path(job["path"]))[0])
+    withheld = set(rt.novel_ids(job, ds))
+    assert withheld == {int(ds[i].frame_id) for i in (1, 4, 7)}
+    for run in (rt.twin_one, rt.run_one):
+        for mode in ("uniform", "gausslite"):
+            seen.clear()
+            r = run({**job, "mode": mode})
+            assert seen and not withheld & set(seen), (run.__name__, mode)
+            assert r["withheld"] == 3 and r["protocols"]["novel"]["frames_scored"] == 3, (run.__name__, mode)

@@ -117,3 +117,22 @@ def test_a_frozen_map_is_scored_under_every_protocol_at_the_poses_given_for_its_
     empty = score_map(gmap.subset(torch.zeros(len(gmap), dtype=torch.bool)), frames, lambda fr: roi)
     assert set(empty) == {"sensor", "keyframes", "tracked"}
     assert all(v["roi_psnr"] is None and v["frames_scored"] == 0 for v in empty.values())
+
+
+def test_the_novel_protocol_scores_only_withheld_frames_and_refuses_a_training_view():
+    from gausslite.evaluation import FrameSubset, withheld_indices
+
+    assert withheld_indices(25, 10) == [5, 15] and withheld_indices(9, 3) == [1, 4, 7]
+    with pytest.raises(ValueError):
+        withheld_indices(10, 1)
+    frames = [plane_frame(i, 0.03 * i, H, W) for i in range(6)]
+    sub = FrameSubset(frames, [1, 4])
+    assert [f.frame_id for f in sub] == [0, 2, 3, 5] and sub.withheld_ids == {1, 4}
+    m = _plane_map()  # mapped frames 0..3
+    roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
+    res = score_live_map(m, frames, roi, ("novel",), track_iters=2, novel_ids=[4, 5])
+    assert res["novel"]["frames_scored"] == 2
+    with pytest.raises(ValueError, match="training views"):
+        score_live_map(m, frames, roi, ("novel",), track_iters=2, novel_ids=[3, 5])
+    with pytest.raises(ValueError, match="novel_ids"):
+        score_live_map(m, frames, roi, ("novel",))
