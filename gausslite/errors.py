@@ -1,6 +1,6 @@
 """Exception types of the library that callers tell apart by type, never by message text.
 
-The services map each type to a gRPC status in one place (``gausslite_services/common/errors.py``, ``status_for``).
+The services map each type to a gRPC status in one place (``services/common/errors.py``, ``status_for``).
 """
 
 from __future__ import annotations

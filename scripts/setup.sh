@@ -10,8 +10,9 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.gausslite-installed
-# Reinstall when pyproject.toml or the set of top-level packages changes (an editable install maps
-# top-level packages when it is made).
+# Reinstall when pyproject.toml or the set of top-level package folders changes (gausslite/, gausslite_rpc/ and
+# services/, which installs as gausslite_services: an editable install maps each top-level package to its folder
+# when it is made).
 sig=$( (cat pyproject.toml; ls -d ./*/__init__.py) | sha1sum | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null

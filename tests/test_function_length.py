@@ -1,4 +1,4 @@
-"""No product function (``gausslite/``, ``gausslite_services/``) is longer than :data:`MAX_LINES` lines.
+"""No product function (``gausslite/``, ``services/``) is longer than :data:`MAX_LINES` lines.
 
 Length of a function = ``end_lineno - lineno + 1`` of its ``def`` (decorators not counted, docstring and nested
 functions counted), for every ``def`` / ``async def`` at any depth, methods and nested functions included.
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Dict, List, Tuple
 
 REPO = Path(__file__).resolve().parents[1]
-PRODUCT_DIRS = ("gausslite", "gausslite_services")
+PRODUCT_DIRS = ("gausslite", "services")  # the folders (services/ installs as gausslite_services)
 MAX_LINES = 100
 
 #: ``(path relative to the repo, function name) -> the longest length allowed``, each with the reason it cannot be

@@ -1,5 +1,5 @@
-"""The import graph of ``gausslite/``, ``gausslite_services/`` and ``bench/`` has no circles and no import from a lower
-layer up to a higher one (the layers of ``docs/architecture.md``).
+"""The import graph of ``gausslite/``, ``services/`` (the package ``gausslite_services``) and ``bench/`` has no
+circles and no import from a lower layer up to a higher one (the layers of ``docs/architecture.md``).
 
 The graph is read with :mod:`ast` from the sources, so it holds every import: module-level, inside functions and
 under ``if TYPE_CHECKING``. ``from package import name`` counts as an import of the submodule ``package.name``
@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Dict, List, Set, Tuple
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("gausslite", "gausslite_services", "bench")
+#: import name -> the folder of the repository that holds its sources (``pyproject.toml``'s ``package-dir``)
+PACKAGES = {"gausslite": "gausslite", "gausslite_services": "services", "bench": "bench"}
 
 #: lowest first; a module may import modules of its own layer and of the layers below it. A module belongs to the
 #: entry with the longest matching dotted prefix; the roots "gausslite" and "gausslite_services" match only themselves.
@@ -40,9 +41,9 @@ _ROOTS = {"gausslite", "gausslite_services"}  # "bench" holds only benchmarks: o
 
 def _modules() -> Dict[str, Path]:
     mods = {}
-    for pkg in PACKAGES:
-        for path in sorted((ROOT / pkg).rglob("*.py")):
-            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    for pkg, folder in PACKAGES.items():
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = [pkg, *path.relative_to(ROOT / folder).with_suffix("").parts]
             if parts[-1] == "__init__":
                 parts.pop()
             mods[".".join(parts)] = path

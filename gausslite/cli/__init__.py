@@ -1,6 +1,6 @@
 """``gausslite`` command line. Each subcommand lives in a module ``cmd_<name>.py`` that defines
 ``register(subparsers)``: the library's own in ``gausslite/cli/``, and those of every package named by a
-``gausslite.commands`` entry point (the services' in ``gausslite_services/cli/``, which run or call the gRPC
+``gausslite.commands`` entry point (the services' in ``services/cli/``, which run or call the gRPC
 services), so the core library never imports the services or gRPC."""
 
 from __future__ import annotations

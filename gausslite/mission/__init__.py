@@ -1,6 +1,6 @@
 """An agent's mission as a library: settings, the mission loop (frames → relevance → mapper), its pusher and what
 it shares (paper Sec. III-B to III-E; ``docs/live.md``, ``docs/sharing.md``). No gRPC here: the agent service
-(``gausslite_services/agent``) adapts it to the wire, and any object with the fusion client's methods can receive its
+(``services/agent``) adapts it to the wire, and any object with the fusion client's methods can receive its
 pushes."""
 
 from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig

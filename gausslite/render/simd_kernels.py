@@ -9,10 +9,10 @@ changes that let clang emit 8-wide AVX2 code:
 - **Tile-local SoA state.** Each tile (edge ``tile_size`` <= 16) keeps its pixels' colour sums, alpha,
   transmittance and last index (forward) or gradient and back-to-front state (backward) in 16 x 16
   stack arrays, one array per quantity, written back once per tile.
-- **Fixed 8-lane row blocks.** For each (Gaussian, row) the row span of :func:`_row_span` becomes a
-  lane mask over the 8-column halves of the tile row it touches, and the per-pixel branches (terminated
-  pixel, footprint pre-test, alpha threshold, termination) become selects; every lane of a block runs
-  the same instructions.
+- **Fixed 8-lane row blocks.** For each (Gaussian, row) the row span of
+  :func:`~gausslite.render.warp_kernels_common.row_span` becomes a lane mask over the 8-column halves of the tile
+  row it touches, and the per-pixel branches (terminated pixel, footprint pre-test, alpha threshold, termination)
+  become selects; every lane of a block runs the same instructions.
 - **Polynomial exp.** ``exp(power)`` for ``power`` in ``[p_min, 0]`` is the Cephes ``expf`` polynomial
   (range reduction by ln 2, degree-6 polynomial, exponent bits); within 2 ulp of libm ``expf``, whose
   scalar call would keep the loop from vectorising. The backward pass's per-row sums are vectorised
@@ -47,8 +47,8 @@ def check_cpu_kernel(cpu_kernel: str) -> None:
         raise ValueError(f"cpu_kernel must be one of {CPU_KERNELS}, got {cpu_kernel!r}")
 
 # Pieces shared by both snippets (substituted below): the Gaussian's gdata row, its tile rows
-# (:func:`~gausslite.render.warp_kernels_common._tile_rows`), the row span as lanes [la, lb] with the row
-# offsets (:func:`~gausslite.render.warp_kernels_common._row_span`), and the polynomial exp of ``x``
+# (:func:`~gausslite.render.warp_kernels_common.tile_rows`), the row span as lanes [la, lb] with the row
+# offsets (:func:`~gausslite.render.warp_kernels_common.row_span`), and the polynomial exp of ``x``
 # (Cephes expf: x = n ln2 + r, e^r by a degree-6 polynomial, 2^n through the exponent bits) as
 # ``p * sc.f``.
 _LOAD = r"""

@@ -8,8 +8,8 @@ from typing import Any
 
 import warp as wp
 
-from .warp_kernels_common import (ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, _load_cam, _pixel_of, _row_span,
-                                  _screen_cov, _tile_rows, tile_box)
+from .warp_kernels_common import (ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, load_cam, pixel_of, row_span,
+                                  screen_cov, tile_box, tile_rows)
 
 # Only the hand-written forward and backward kernels are used: skip generating Warp adjoints.
 wp.set_module_options({"enable_backward": False})
@@ -40,7 +40,7 @@ def rasterize_bwd_kernel(
     by division. No gradient flows through a clamped alpha (``o G > 0.99``).
     """
     tid = wp.tid()
-    q = _pixel_of(tid, width, height, tile_size, tiles_x, stripe, nstripes)
+    q = pixel_of(tid, width, height, tile_size, tiles_x, stripe, nstripes)
     px = q[0]
     py = q[1]
     if py >= height:
@@ -236,7 +236,7 @@ def _bwd_tile_gaussian(gdata: wp.array2d(dtype=wp.float32), g: int, j: int, x0: 
     ks = gdata[g, 13]
     k1 = gdata[g, 14]
     k0 = gdata[g, 15]
-    rows = _tile_rows(vv, k1, k0, y0, y1)
+    rows = tile_rows(vv, k1, k0, y0, y1)
     hit = int(0)
     # sums over the tile's pixels of dl_dp, dl_dp dx, dl_dp dy, dl_dp dx^2, dl_dp dx dy, dl_dp dy^2
     s_0 = float(0.0)
@@ -249,7 +249,7 @@ def _bwd_tile_gaussian(gdata: wp.array2d(dtype=wp.float32), g: int, j: int, x0: 
     for py in range(rows[0], rows[1] + 1):
         fy = float(py)
         dyr = vv - fy
-        span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
+        span = row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
         if span[0] > span[1]:
             continue
         dy = (vh - fy) + vl
@@ -505,7 +505,7 @@ def project_bwd_kernel(
     i = wp.tid() + offset
     half = wp.float64(0.5)
     two = wp.float64(2.0)
-    p, q, ls = _load_cam(means, quats, log_scales, i, rot, trans)
+    p, q, ls = load_cam(means, quats, log_scales, i, rot, trans)
     finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
     valid = finite and p[2] > near and p[2] < far
     if not valid:
@@ -518,7 +518,7 @@ def project_bwd_kernel(
     xs = p[0]
     ys = p[1]
     zs = p[2]
-    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = _screen_cov(
+    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = screen_cov(
         rot, q, ls, xs, ys, zs, width, height, intr, eps2d)
     gabc = _conic_grad(wp.float64(g_conics[i, 0]), wp.float64(g_conics[i, 1]), wp.float64(g_conics[i, 2]), abc)
     ga = gabc[0]

@@ -4,8 +4,20 @@
 thread, the row bounds of a Gaussian's footprint in a tile, and the EWA projection's forward intermediates. The data
 layout and launch geometry are described in :mod:`gausslite.render.warp_kernels`.
 
+The interface (what the kernel modules import; every other name here is this module's own):
+
+- :data:`ALPHA_MIN`, :data:`ALPHA_MAX`, :data:`T_MIN`, :data:`DEPTH_ALPHA_MIN`: the compositing thresholds
+  (``wp.constant``);
+- :func:`pixel_of`: pixel and tile of a per-pixel launch thread;
+- :func:`tile_box` (with its return type :data:`vec5i`): tile and pixel bounds of a tile launch thread;
+- :func:`tile_rows`, :func:`row_span`: the rows of a tile, and the columns of one row, that a Gaussian's
+  footprint reaches (the tile kernels' pixel bounds);
+- :func:`load_cam`: one Gaussian's centre in the camera frame and its raw rotation and scale, in float64;
+- :func:`screen_cov`: the EWA projection's intermediates of one Gaussian, shared by the forward and the
+  hand-written backward projection.
+
 A ``@wp.func`` is compiled into every Warp module whose kernels call it, so these helpers have no module of their
-own to load.
+own to load. They are called from Warp kernels and functions only, not from Python.
 """
 
 from __future__ import annotations
@@ -26,7 +38,12 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def _pixel_of(tid: int, width: int, height: int, tile_size: int, tiles_x: int, stripe: int, nstripes: int):
+def pixel_of(tid: int, width: int, height: int, tile_size: int, tiles_x: int, stripe: int, nstripes: int):
+    """Pixel of thread ``tid`` of a per-pixel launch over stripe ``stripe`` of ``nstripes`` (tile rows ``stripe``,
+    ``stripe + nstripes``, ...; the mapping of :mod:`gausslite.render.warp_kernels`) of a ``width`` x ``height``
+    image (px) cut into ``tile_size`` px tiles, ``tiles_x`` per row. Returns ``wp.vec3i(px, py, tile)``: the column
+    and row (int32, px; ``py`` may be ``>= height`` in the last tile row, which the caller skips) and the row-major
+    tile index."""
     local_row = tid // width
     px = tid - local_row * width
     tr_local = local_row // tile_size
@@ -51,9 +68,12 @@ def _pixel_of(tid: int, width: int, height: int, tile_size: int, tiles_x: int, s
 
 
 @wp.func
-def _tile_rows(vv: float, ky1: float, ky0: float, y0: int, y1: int):
-    """Rows [ya, yb] of ``[y0, y1]`` whose row offset ``dy = v - py`` satisfies
-    ``ky0 - ky1 dy^2 >= 0`` (widened by 0.5 px); empty if ya > yb."""
+def tile_rows(vv: float, ky1: float, ky0: float, y0: int, y1: int):
+    """Rows ``[ya, yb]`` of the tile rows ``[y0, y1]`` (inclusive, px) that a Gaussian's footprint reaches: those
+    whose row offset ``dy = vv - py`` satisfies ``ky0 - ky1 dy^2 >= 0``, widened by 0.5 px. ``vv`` is the
+    Gaussian's row centre (float32, px); ``ky1`` (1) and ``ky0`` (px^2) are its ``gdata`` row-span coefficients
+    ``k1``, ``k0`` (columns 14, 15; :func:`~gausslite.render.warp_kernels_fwd.pack_gdata_kernel`). Returns
+    ``wp.vec2i(ya, yb)`` (int32); empty if ``ya > yb``."""
     e = wp.sqrt(ky0 / ky1) + 0.5
     lo = wp.ceil(vv - e)
     hi = wp.floor(vv + e)
@@ -71,9 +91,11 @@ def _tile_rows(vv: float, ky1: float, ky0: float, y0: int, y1: int):
 
 
 @wp.func
-def _row_span(cx: float, half2: float, x0: int, x1: int):
-    """Columns [xa, xb] of ``[x0, x1]`` within ``sqrt(half2) + 0.5`` px of ``cx``; empty if
-    ``half2 < 0`` or xa > xb."""
+def row_span(cx: float, half2: float, x0: int, x1: int):
+    """Columns ``[xa, xb]`` of the tile columns ``[x0, x1]`` (inclusive, px) within ``sqrt(half2) + 0.5`` px of
+    ``cx``: on a row at offset ``dy`` from a Gaussian's centre, ``cx = u + ks dy`` (float32, px) is the footprint's
+    centre and ``half2 = k0 - k1 dy^2`` (float32, px^2) its squared half-width. Returns ``wp.vec2i(xa, xb)``
+    (int32); empty if ``half2 < 0`` or ``xa > xb``."""
     xa = x1 + 1
     xb = x1
     if half2 >= 0.0:
@@ -130,7 +152,7 @@ def _quat_rotmat(w: wp.float64, x: wp.float64, y: wp.float64, z: wp.float64):
 
 
 @wp.func
-def _load_cam(
+def load_cam(
     means: wp.array2d(dtype=Any),
     quats: wp.array2d(dtype=Any),
     log_scales: wp.array2d(dtype=Any),
@@ -138,8 +160,11 @@ def _load_cam(
     rot: wp.mat33d,
     trans: wp.vec3d,
 ):
-    """Row ``i`` in float64: camera-frame centre ``rot @ mean + trans`` (metres), raw quaternion
-    (w, x, y, z) and log-scales."""
+    """Row ``i`` of the ``(N, 3)`` ``means`` (world frame, metres), ``(N, 4)`` ``quats`` (w, x, y, z; not
+    necessarily unit) and ``(N, 3)`` ``log_scales`` (log metres), float32 or float64, read in float64. ``rot``
+    (``wp.mat33d``) and ``trans`` (``wp.vec3d``, metres) map world to camera. Returns ``(p, q, ls)``: the
+    camera-frame centre ``rot @ mean + trans`` (``wp.vec3d``, metres, OpenCV axes), the raw quaternion
+    (``wp.vec4d``) and the log-scales (``wp.vec3d``)."""
     m = wp.vec3d(wp.float64(means[i, 0]), wp.float64(means[i, 1]), wp.float64(means[i, 2]))
     q = wp.vec4d(wp.float64(quats[i, 0]), wp.float64(quats[i, 1]), wp.float64(quats[i, 2]),
                  wp.float64(quats[i, 3]))
@@ -190,12 +215,17 @@ def _ewa_cov2d(cov: wp.mat33d, fx: wp.float64, fy: wp.float64, rz: wp.float64, t
 
 
 @wp.func
-def _screen_cov(rot: wp.mat33d, q: wp.vec4d, ls: wp.vec3d, xs: wp.float64, ys: wp.float64, zs: wp.float64,
-                width: int, height: int, intr: wp.vec4d, eps2d: wp.float64):
-    """The projection's shared intermediates of one Gaussian at camera point (xs, ys, zs) (metres): the quaternion
-    norm ``qlen`` and divisor ``qden``, unit quaternion ``qn``, (Rq, exp(ls), M) of :func:`_cam_cov`, the clamp
-    limits ``lim`` (:func:`_tan_limits`), ``rz = 1 / zs``, the clamped ``txc = x/z``, ``tyc = y/z`` and the
-    outputs of :func:`_ewa_cov2d` at them (the screen covariance ``abc`` in px^2 and its factors)."""
+def screen_cov(rot: wp.mat33d, q: wp.vec4d, ls: wp.vec3d, xs: wp.float64, ys: wp.float64, zs: wp.float64,
+               width: int, height: int, intr: wp.vec4d, eps2d: wp.float64):
+    """The projection's shared intermediates of one Gaussian at camera point (xs, ys, zs) (float64, metres; ``zs >
+    0``), with ``rot`` the world-to-camera rotation, ``q`` its raw quaternion (w, x, y, z) and ``ls`` its log-scales
+    (as :func:`load_cam` returns them), a ``width`` x ``height`` px image, ``intr = (fx, fy, cx, cy)`` (px) and the
+    low-pass ``eps2d`` (px^2). All in float64; returns, in order: the quaternion norm ``qlen`` and divisor ``qden``
+    (scalars), the unit quaternion ``qn`` (``wp.vec4d``), ``(Rq, exp(ls), M)`` of :func:`_cam_cov` (``wp.mat33d``,
+    ``wp.vec3d`` metres, ``wp.mat33d``), the clamp limits ``lim`` (``wp.vec4d``, :func:`_tan_limits`),
+    ``rz = 1 / zs`` (1/metres), the clamped ``txc = x/z``, ``tyc = y/z`` (scalars) and the outputs of
+    :func:`_ewa_cov2d` at them: the Jacobian rows ``j0``, ``j1`` and ``w0 = cov j0``, ``w1 = cov j1``
+    (``wp.vec3d``) and the screen covariance ``abc = (a, b, c)`` (``wp.vec3d``, px^2)."""
     qlen = wp.length(q)
     qden = wp.max(qlen, wp.float64(1e-12))
     qn = q / qden

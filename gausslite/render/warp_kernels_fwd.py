@@ -8,8 +8,8 @@ from typing import Any
 
 import warp as wp
 
-from .warp_kernels_common import (ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, T_MIN, _load_cam, _pixel_of, _row_span,
-                                  _screen_cov, _tile_rows, tile_box)
+from .warp_kernels_common import (ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, T_MIN, load_cam, pixel_of, row_span,
+                                  screen_cov, tile_box, tile_rows)
 
 # Only the hand-written forward and backward kernels are used: skip generating Warp adjoints.
 wp.set_module_options({"enable_backward": False})
@@ -39,7 +39,7 @@ def rasterize_fwd_kernel(
     ``out_last[pix]`` = one past the index (into ``gids``) of the last contributing Gaussian.
     """
     tid = wp.tid()
-    q = _pixel_of(tid, width, height, tile_size, tiles_x, stripe, nstripes)
+    q = pixel_of(tid, width, height, tile_size, tiles_x, stripe, nstripes)
     px = q[0]
     py = q[1]
     if py >= height:
@@ -127,11 +127,11 @@ def _fwd_tile_gaussian(gdata: wp.array2d(dtype=wp.float32), g: int, jn: int, x0:
     k1 = gdata[g, 14]
     k0 = gdata[g, 15]
     n_done = int(0)
-    rows = _tile_rows(vv, k1, k0, y0, y1)
+    rows = tile_rows(vv, k1, k0, y0, y1)
     for py in range(rows[0], rows[1] + 1):
         fy = float(py)
         dyr = vv - fy
-        span = _row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
+        span = row_span(uu + ks * dyr, k0 - k1 * dyr * dyr, x0, x1)
         if span[0] > span[1]:
             continue
         dy = (vh - fy) + vl
@@ -454,7 +454,7 @@ def project_fwd_kernel(
     fy = intr[1]
     cx = intr[2]
     cy = intr[3]
-    p, q, ls = _load_cam(means, quats, log_scales, i, rot, trans)
+    p, q, ls = load_cam(means, quats, log_scales, i, rot, trans)
     finite = wp.isfinite(p) and wp.isfinite(q) and wp.isfinite(ls)
     valid = finite and p[2] > near and p[2] < far
     xs = zero
@@ -467,7 +467,7 @@ def project_fwd_kernel(
     else:
         q = wp.vec4d(one, one, one, one)
         ls = wp.vec3d(zero, zero, zero)
-    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = _screen_cov(
+    qlen, qden, qn, rq, s, mm, lim, rz, txc, tyc, j0, j1, w0, w1, abc = screen_cov(
         rot, q, ls, xs, ys, zs, width, height, intr, eps2d)
     w = wp.float64(width)
     h = wp.float64(height)

@@ -3,7 +3,7 @@ camera frusta and a GUI panel.
 
 :class:`MapViewer` is a thin presentation layer: it converts maps with
 :func:`gausslite.viewer.splats.splat_arrays` and draws what it is handed. It knows nothing of gRPC;
-the live fusion feed (``gausslite_services/viewer``) polls the fusion server and calls :meth:`MapViewer.set_map`,
+the live fusion feed (``services/viewer``) polls the fusion server and calls :meth:`MapViewer.set_map`,
 :meth:`MapViewer.set_keyframes` and :meth:`MapViewer.set_panel`.
 
 Frames: the world frame of the map (metres). Keyframe poses are camera-to-world 4×4 matrices with

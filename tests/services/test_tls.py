@@ -1,4 +1,4 @@
-"""TLS and mutual TLS of the gRPC services (gausslite_services/common/server.py) with a throwaway CA made in a
+"""TLS and mutual TLS of the gRPC services (services/common/server.py) with a throwaway CA made in a
 temp dir (tests/_pki.py, the openssl command line): a call over TLS succeeds; plaintext to the TLS port,
 a client trusting another CA and (with mTLS) a client without a certificate are refused; the client
 certificate's CN is the agent id on the fusion server; certificates rotate without a restart

@@ -5,8 +5,8 @@ process, so nothing is registered in the global default registry) and serves it 
 ``http://HOST:METRICS_PORT/metrics`` when a metrics port is configured
 (:attr:`gausslite_services.common.server.ServerOptions.metrics_port`; ``gausslite serve ... --metrics-port P``).
 
-The metric families of each service live next to it (``gausslite_services/fusion_server/metrics.py``,
-``gausslite_services/agent/metrics.py``, ``gausslite_services/parser/metrics.py``); names follow the Prometheus
+The metric families of each service live next to it (``services/fusion_server/metrics.py``,
+``services/agent/metrics.py``, ``services/parser/metrics.py``); names follow the Prometheus
 conventions: ``gausslite_<service>_<what>_<unit>``, counters end in ``_total``, durations are
 ``_seconds`` histograms, per-robot series carry the label ``agent``.
 """
