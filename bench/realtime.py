@@ -391,7 +391,7 @@ def twin_one(job: dict) -> dict:
         rc, fr0 = rt.config.resolution, ds[0]
         choice = choose_downscale(fr0.intrinsics.width, fr0.intrinsics.height, job["budget"], job["cap"],
                                   WorkCost(**mapper.cfg.work_cost.model_dump()), rc.target_iters, rc.max_downscale,
-                                  rc.pinned)
+                                  rc.pinned, min_width=rc.min_width)
         job = {**job, "mapping_downscale": choice.factor}
         train = training_frames(job, ScaledFrames(ds, choice.factor, downscale_frame) if choice.factor != 1 else ds)
         kfs = keyframe_schedule(train, spacing)

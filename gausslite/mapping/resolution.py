@@ -22,9 +22,13 @@ from gausslite.datasets.base import Frame
 from gausslite.datasets.common import downscale_depth, downscale_rgb
 from gausslite.mapping.budget import WorkCost
 
-__all__ = ["ResolutionChoice", "predict_iters", "choose_downscale", "downscale_frame", "ResolutionGovernor"]
+__all__ = ["ResolutionChoice", "predict_iters", "coarsest_level", "choose_downscale", "downscale_frame",
+           "ResolutionGovernor"]
 
 log = logging.getLogger(__name__)
+
+#: the map size a prediction assumes without a Gaussian cap (a room-sized scene budget early in a mission)
+NOMINAL_GAUSSIANS = 20_000
 
 
 @dataclass
@@ -65,16 +69,24 @@ def predict_iters(width: int, height: int, budget_s: float, cap: int, cost: Work
     return max(0.0, budget_s - cost.render(px, cap, grad=False)) / it
 
 
+def coarsest_level(width: int, max_downscale: int, min_width: int) -> int:
+    """The coarsest integer downscale allowed for an image ``width`` pixels wide: at most ``max_downscale``, and
+    never below ``min_width`` pixels (1 when the image is that narrow already)."""
+    return max(1, min(int(max_downscale), int(width) // max(1, int(min_width))))
+
+
 def choose_downscale(width: int, height: int, budget_s: Optional[float], cap: Optional[int], cost: WorkCost,
                      target_iters: float, max_downscale: int = 4, pinned: Optional[float] = None,
-                     renders_per_iter: float = 1.0) -> ResolutionChoice:
-    """The smallest integer downscale in ``1 … max_downscale`` whose predicted iterations per keyframe
+                     renders_per_iter: float = 1.0, min_width: int = 160) -> ResolutionChoice:
+    """The smallest integer downscale in ``1 … max_downscale`` (never narrower than ``min_width`` pixels,
+    :func:`coarsest_level`) whose predicted iterations per keyframe
     (:func:`predict_iters`) reach ``target_iters``; the coarsest when none does. A ``pinned`` factor is taken as
     given. Without a budget (offline mapping: a fixed iteration count) the native size.
 
     Args:
         width, height: native image size, pixels. budget_s: keyframe budget in seconds, or None. cap: Gaussian cap
-            (None: 400,000, the scene budget's hard cap). cost: the machine's work model. target_iters: iterations
+            (None: the map follows the scene; predicted at :data:`NOMINAL_GAUSSIANS`, and measured iterations correct
+            the choice as it grows). cost: the machine's work model. target_iters: iterations
             per keyframe to reach. max_downscale: coarsest level. pinned: a user's factor (≥ 1), or None.
     Returns:
         :class:`ResolutionChoice`.
@@ -83,7 +95,8 @@ def choose_downscale(width: int, height: int, budget_s: Optional[float], cap: Op
     """
     if target_iters < 1 or max_downscale < 1:
         raise ValueError(f"target_iters and max_downscale must be >= 1, got {target_iters}, {max_downscale}")
-    cap = 400_000 if cap is None else int(cap)
+    cap = NOMINAL_GAUSSIANS if cap is None else int(cap)
+    max_downscale = coarsest_level(width, max_downscale, min_width)
 
     def size(f: float) -> tuple[int, int]:
         return max(1, int(width // f)), max(1, int(height // f))
@@ -139,17 +152,20 @@ class ResolutionGovernor:
     Args:
         target_iters: iterations per keyframe to reach. max_downscale: coarsest level. pinned: a user's factor, or
             None (automatic). adapt_after: keyframes measured per decision. cost: the work model.
+        min_width: the narrowest mapped image (pixels) an automatic level may give.
     Attributes:
         choice: the current :class:`ResolutionChoice` (None before the first frame). changes: level changes so far.
         measured_iters: mean iterations of the keyframes measured at the current level (None before any).
     """
 
     def __init__(self, target_iters: float = 10.0, max_downscale: int = 4, pinned: Optional[float] = None,
-                 adapt_after: int = 3, cost: Optional[WorkCost] = None) -> None:
+                 adapt_after: int = 3, cost: Optional[WorkCost] = None, min_width: int = 160) -> None:
         self.target_iters, self.max_downscale, self.pinned = float(target_iters), int(max_downscale), pinned
+        self.min_width = int(min_width)
         self.adapt_after = max(1, int(adapt_after))
         self.cost = cost or WorkCost()
         self.choice: Optional[ResolutionChoice] = None
+        self.budget_s: Optional[float] = None
         self.native: Optional[tuple[int, int]] = None
         self.changes = 0
         self.measured_iters: Optional[float] = None
@@ -160,8 +176,10 @@ class ResolutionGovernor:
               renders_per_iter: float = 1.0) -> ResolutionChoice:
         """Choose from the first frame's size (native pixels) and log the choice."""
         self.native = (int(width), int(height))
+        self.budget_s = budget_s
+        self.max_downscale = coarsest_level(width, self.max_downscale, self.min_width)
         self.choice = choose_downscale(width, height, budget_s, cap, self.cost, self.target_iters,
-                                       self.max_downscale, self.pinned, renders_per_iter)
+                                       self.max_downscale, self.pinned, renders_per_iter, self.min_width)
         c = self.choice
         log.info("mapping resolution %dx%d (downscale %g of %dx%d): %s", c.width, c.height, c.factor, width, height,
                  c.reason)
@@ -179,8 +197,9 @@ class ResolutionGovernor:
         return downscale_frame(frame, self.factor)
 
     def record(self, iters: int) -> Optional[ResolutionChoice]:
-        """Record one mapped keyframe's iterations; returns the new choice when the level changed, else None."""
-        if self.choice is None:
+        """Record one mapped keyframe's iterations; returns the new choice when the level changed, else None. Without
+        a keyframe budget (a fixed iteration count) there is nothing to correct."""
+        if self.choice is None or self.budget_s is None:
             return None
         self._iters.append(int(iters))
         if len(self._iters) < self.adapt_after:

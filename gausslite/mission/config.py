@@ -52,6 +52,7 @@ class ResolutionConfig(BaseModel):
         downscale: ``auto``, or a factor ≥ 1 that pins it (a user's choice, never changed; 1 = native).
         target_iters: iterations per keyframe to reach (the live TUM figures were measured at 12-23).
         max_downscale: the coarsest automatic level.
+        min_width: an automatic level never maps images narrower than this (pixels).
         adapt_after: keyframes measured before each correction.
     """
 
@@ -60,6 +61,7 @@ class ResolutionConfig(BaseModel):
     downscale: Union[Literal["auto"], float] = "auto"
     target_iters: float = Field(10.0, ge=1)
     max_downscale: int = Field(4, ge=1, le=16)
+    min_width: int = Field(160, ge=16)
     adapt_after: int = Field(3, ge=1)
 
     @model_validator(mode="after")

@@ -44,7 +44,7 @@ def test_downscaled_frames_keep_pixel_centres_and_pose():
 
 
 def test_the_governor_lowers_the_level_from_measured_iterations_and_warns_once_at_the_coarsest(caplog):
-    g = ResolutionGovernor(target_iters=10, max_downscale=2, adapt_after=2)
+    g = ResolutionGovernor(target_iters=10, max_downscale=2, adapt_after=2, min_width=64)
     with caplog.at_level(logging.INFO, logger="gausslite.mapping.resolution"):
         first = g.start(320, 240, 0.5, 6000)
     assert first.factor == 1.0 and "mapping resolution 320x240" in caplog.text
@@ -69,3 +69,9 @@ def test_a_pinned_resolution_is_never_changed():
     for _ in range(4):
         assert g.record(2) is None
     assert g.factor == 1.0 and g.changes == 0 and g.status()["resolution_pinned"]
+
+
+def test_automatic_levels_never_map_narrower_than_the_floor():
+    cost = WorkCost()
+    assert choose_downscale(64, 48, 0.001, 6000, cost, 10).factor == 1.0  # already narrow: native, said unreachable
+    assert choose_downscale(640, 480, 0.001, 6000, cost, 10, max_downscale=8).factor == 4.0  # 160 px wide at most

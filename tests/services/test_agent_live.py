@@ -914,3 +914,40 @@ def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
         with rt.pusher._lock:
             rt.pusher._pending = None
         rt.close()
+
+
+def test_the_mapping_resolution_is_reported_pinned_or_chosen_and_maps_what_it_says(scene):
+    """``agent.resolution``: a pinned downscale maps every keyframe at that size and is reported in GetStatus; the
+    keyframes sent to the fusion session keep the size the mission opened with; automatic, a tiny image under a
+    generous budget maps at its own size and says it reaches the target."""
+    ds = load_dataset(scene / "agent_a")
+    graph = {"targets": ["object"], "anchors": [], "relations": []}
+    for extra, factor, pinned in ((["agent.resolution.downscale=2"], 2.0, True),
+                                  (["mapper.keyframe_budget_s=0.5", "mapper.budget.max_gaussians=2000",
+                                   "agent.resolution.min_width=16"], 1.0, False)):
+        cfg = load_config(None, TINY + ["agent.ingest=every_frame", *extra], deployed=False).agent
+        rt = AgentRuntime("res", "Pick up the object", graph, cfg, relevance_fn=lambda fr: np.ones(fr.depth.shape, bool))
+        sizes = []
+        orig = rt.mapper.map_frame
+
+        def spy(frame, w=None, **kw):
+            sizes.append((frame.intrinsics.width, frame.intrinsics.height, None if w is None else w.shape))
+            return orig(frame, w, **kw)
+
+        rt.mapper.map_frame = spy
+        try:
+            for i in range(3):
+                rt.submit(ds[i])
+            assert rt.wait_mapped(60)
+            st = rt.status()
+            w, h = 64 // int(factor), 48 // int(factor)
+            assert set(sizes) == {(w, h, (h, w))}
+            assert (st["mapping_width"], st["mapping_height"], st["mapping_downscale"]) == (w, h, factor)
+            assert st["resolution_pinned"] is pinned
+            if not pinned:
+                assert st["resolution_predicted_iters"] > 10 and st["resolution_reaches_target"]
+            assert (rt.upload_intrinsics.width, rt.upload_intrinsics.height) == (w, h)
+            msg = agent_pb2.MissionStatus(**{k: v for k, v in st.items() if k != "state"})
+            assert msg.mapping_downscale == factor and msg.mapping_width == w
+        finally:
+            rt.close()
