@@ -322,6 +322,7 @@ def score_deferred(res: dict) -> dict:
     rebuild the mapper from its state and configuration and add the scores to the result (the state file is
     removed)."""
     job = res["score_job"]
+    t0 = time.perf_counter()
     saved = torch.load(res["state_path"], weights_only=False)
     mapper = Mapper(MapperConfig.model_validate(saved["cfg"]))
     mapper.load_state_dict(saved["state"])
@@ -329,6 +330,7 @@ def score_deferred(res: dict) -> dict:
     ds = Preloaded(ds)
     out = {k: v for k, v in res.items() if k not in ("state_path", "fp_per_kf", "score_job")}
     out.update(_scores(job, mapper, ds, ds.annotations, job["task"], res["fp_per_kf"], saved["keyframe_ids"]))
+    out["score_s"] = time.perf_counter() - t0  # loading, every protocol, the render (and a final pass, if asked)
     Path(res["state_path"]).unlink(missing_ok=True)
     return out
 

@@ -514,6 +514,15 @@ class MapperConfig(_Strict):
         2, ge=0, description="roi_outside_alpha: pixels around the ROI left out of the penalty (its anti-aliased edge)"
     )
     lambda_depth: float = Field(1.0, ge=0, description="λ_d in L = L1_c + λ_d L1_d + λ_s (1-SSIM)")
+    roi_lambda_depth: Optional[float] = Field(
+        None, ge=0, description="ROI phase: λ_d of ROI-phase iterations (depth supervision weighted up where the task "
+        "is, against fitting few views' colour alone); None = lambda_depth"
+    )
+    roi_iso_weight: float = Field(
+        0.0, ge=0, description="ROI phase: weight of an isotropy regulariser on the Gaussians the step updates, the "
+        "mean |s - mean(s)| of their scales in metres (Gaussian-SLAM's isotropic term, Yugay et al. 2023), against "
+        "needle-like Gaussians that fit their training views only; 0 = off"
+    )
     lambda_ssim: float = Field(0.2, ge=0, description="λ_s")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 

@@ -128,7 +128,10 @@ class TrainStep:
             cache_key = (view.frame_id, view.width, view.height, float(view.K[0, 2]), float(view.K[1, 2]))
             if view.ssim_stats is None:
                 view.ssim_stats = self.ssim_cache.get(cache_key)
-        loss = photometric_loss(out, view, cfg.lambda_depth, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
+        lam_d = cfg.roi_lambda_depth if active_phase and cfg.roi_lambda_depth is not None else cfg.lambda_depth
+        loss = photometric_loss(out, view, lam_d, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
+        if active_phase and cfg.roi_iso_weight > 0:
+            loss = loss + cfg.roi_iso_weight * self._isotropy(parts or [[out]])
         if active_phase and cfg.roi_outside_alpha > 0 and view.roi is not None:
             loss = loss + cfg.roi_outside_alpha * outside_alpha(out.alpha, view.roi, cfg.roi_outside_margin_px)
         if cache_key is not None and view.ssim_stats is not None:
@@ -160,6 +163,15 @@ class TrainStep:
             if new is not None:
                 self._write_pose(kf, new)
         return float(loss.detach())
+
+    def _isotropy(self, groups) -> torch.Tensor:
+        """Mean over the Gaussians a render drew of |s − mean(s)| (scales in metres): Gaussian-SLAM's isotropic
+        regulariser (Yugay et al. 2023, Eq. 9), 0 when none is drawn."""
+        ids = torch.unique(torch.cat([o.ids[o.radii > 0] for g in groups for o in g]))
+        if ids.numel() == 0:
+            return torch.zeros((), device=self.device)
+        s = torch.exp(self.model.params["log_scales"][ids])
+        return (s - s.mean(dim=1, keepdim=True)).abs().mean()
 
     def _write_pose(self, kf: Keyframe, new: torch.Tensor) -> None:
         """Keep view ``kf``'s refined pose ``new`` (4, 4): in the view (its crops and windows share the tensor) and
