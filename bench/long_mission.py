@@ -271,7 +271,8 @@ def load_partial(path: Path, settings: dict) -> tuple[list[dict], float]:
     return list(part["runs"]), float(part.get("wall_s", 0.0))
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m bench.long_mission``."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma list of " + ", ".join(SCENES))
     ap.add_argument("--seeds", type=int, default=3, help="random seeds per run (default 3)")
@@ -294,8 +295,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--fresh", action="store_true",
                     help="discard the runs of an existing <out>.partial.json and start over (without --resume or "
                     "--fresh, an existing partial file stops the bench, so that its runs are not lost)")
-    args = ap.parse_args(argv)
+    return ap
 
+
+def _scenes_seeds_modes(ap: argparse.ArgumentParser, args: argparse.Namespace
+                        ) -> tuple[list[str], list[int], list[str]]:
+    """The scenes (with ``--tum-downscale`` / ``--synthetic-frames`` applied to :data:`SCENES`), seeds and modes."""
     if args.tum_downscale is not None:
         SCENES["tum_fr1_rpy"]["downscale"] = float(args.tum_downscale)
     if args.synthetic_frames is not None:
@@ -310,6 +315,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if not modes or set(modes) - {"uniform", "gausslite"}:
         ap.error(f"--modes takes uniform and/or gausslite, got {args.modes!r}")
+    return scenes, seeds, modes
+
+
+def _build_jobs(ap: argparse.ArgumentParser, args: argparse.Namespace, scenes: list[str], seeds: list[int],
+                modes: list[str]) -> tuple[list[dict], dict[str, list[str]]]:
+    """The (scene, mode, task, seed) jobs to run and each scene's tasks (generates the synthetic scene once)."""
     jobs, scene_tasks = [], {}
     for sc in scenes:
         path = scene_path(sc, args.work)
@@ -327,9 +338,12 @@ def main(argv: Optional[list[str]] = None) -> int:
                 jobs.append({**base, "mode": "uniform", "task": None, "seed": s, "eval_tasks": tasks})
             if "gausslite" in modes:
                 jobs.extend({**base, "mode": "gausslite", "task": t, "seed": s, "eval_tasks": [t]} for t in tasks)
-    settings = {"tasks": scene_tasks, "max_frames": args.max_frames, "overrides": args.overrides,
-                "scenes": {sc: SCENES[sc] for sc in scenes}}
-    partial_path = args.out.with_suffix(".partial.json")
+    return jobs, scene_tasks
+
+
+def _resume_or_fresh(ap: argparse.ArgumentParser, args: argparse.Namespace, jobs: list[dict], settings: dict,
+                     partial_path: Path) -> tuple[list[dict], list[dict], float]:
+    """``--resume`` / ``--fresh`` against ``partial_path``: (jobs still to run, runs kept, wall seconds before)."""
     runs, wall_before = [], 0.0
     if args.resume and args.fresh:
         ap.error("--resume and --fresh exclude each other")
@@ -344,8 +358,13 @@ def main(argv: Optional[list[str]] = None) -> int:
         done = {_run_key(r) for r in runs}
         jobs = [j for j in jobs if _run_key(j) not in done]
         print(f"resuming: kept {len(runs)} run(s) from {partial_path}, {len(jobs)} to run")
-    t0 = time.time() - wall_before
-    with ProcessPoolExecutor(max_workers=args.jobs) as ex:
+    return jobs, runs, wall_before
+
+
+def _run_jobs(jobs: list[dict], runs: list[dict], n_workers: int, settings: dict, out: Path, partial_path: Path,
+              t0: float) -> None:
+    """Run ``jobs`` on ``n_workers`` processes, appending to ``runs`` and rewriting ``partial_path`` after each."""
+    with ProcessPoolExecutor(max_workers=n_workers) as ex:
         futs = {ex.submit(run_one, j): j for j in jobs}
         with tqdm(total=len(futs), desc="long_mission", unit="run") as bar:
             for f in as_completed(futs):
@@ -358,9 +377,13 @@ def main(argv: Optional[list[str]] = None) -> int:
                           f"{r['s_per_frame']:.2f} s/frame, {r['n_gaussians']} Gaussians")
                 bar.update(1)
                 partial = {"partial": True, "settings": settings, "runs": runs, "wall_s": time.time() - t0}
-                args.out.parent.mkdir(parents=True, exist_ok=True)
+                out.parent.mkdir(parents=True, exist_ok=True)
                 partial_path.write_text(json.dumps(partial))  # survives an interrupted bench (--resume)
-    partial_path.unlink(missing_ok=True)
+
+
+def _write_results(args: argparse.Namespace, runs: list[dict], scenes: list[str], scene_tasks: dict, seeds: list[int],
+                   modes: list[str], settings: dict, t0: float) -> None:
+    """Write the JSON, the markdown table and one plot per scene to ``--out``; print the table."""
     result = {
         "scenes": {sc: summarise(runs, sc, scene_tasks[sc], seeds) for sc in scenes},
         "settings": {"seeds": seeds, "tasks": args.tasks, "modes": modes, "max_frames": args.max_frames,
@@ -379,6 +402,22 @@ def main(argv: Optional[list[str]] = None) -> int:
         plot_scene(runs, sc, args.out.parent / f"{args.out.stem}_{sc}.png")
     print(md)
     print(f"wrote {args.out} ({result['wall_s'] / 60:.1f} min)")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Run the bench of the command line ``argv``; 0 on success."""
+    ap = _parser()
+    args = ap.parse_args(argv)
+    scenes, seeds, modes = _scenes_seeds_modes(ap, args)
+    jobs, scene_tasks = _build_jobs(ap, args, scenes, seeds, modes)
+    settings = {"tasks": scene_tasks, "max_frames": args.max_frames, "overrides": args.overrides,
+                "scenes": {sc: SCENES[sc] for sc in scenes}}
+    partial_path = args.out.with_suffix(".partial.json")
+    jobs, runs, wall_before = _resume_or_fresh(ap, args, jobs, settings, partial_path)
+    t0 = time.time() - wall_before
+    _run_jobs(jobs, runs, args.jobs, settings, args.out, partial_path, t0)
+    partial_path.unlink(missing_ok=True)
+    _write_results(args, runs, scenes, scene_tasks, seeds, modes, settings, t0)
     return 0
 
 

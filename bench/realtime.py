@@ -651,6 +651,49 @@ def _key(r: dict) -> tuple:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    """Run the benchmark of the command line ``argv`` (``--help``); 0 on success."""
+    ap = _parser()
+    args = ap.parse_args(argv)
+
+    if args.calibrate:
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
+        res = calibrate(args.scenes.split(",")[0], work, overrides=args.overrides)
+        print(json.dumps(res, indent=1))
+        return 0
+
+    protocols, scenes, specs = _checked_scenes(ap, args)
+    budgets = [float(b) for b in args.budgets.split(",") if b]
+    fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
+    modes = [m for m in args.modes.split(",") if m]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_suffix(".partial.json")
+    runs: list[dict] = []
+    if (args.resume or args.score_only) and partial.is_file():
+        runs = json.loads(partial.read_text())["runs"]
+    done = {_key(r) for r in runs}
+    jobs, names = _build_jobs(args, scenes, specs, protocols, budgets, fp_budgets, modes, out, done)
+    if args.score_only:
+        # score what earlier --missions-only invocations saved (every budget they ran), start no mission
+        jobs = []
+        budgets = sorted({float(r["budget"]) for r in runs if r["scene"] in names} | set(budgets))
+    defer = None if args.twin or args.score_inline else Path(args.work) / "maps"
+    for job in jobs:
+        job["defer_dir"] = str(defer) if defer else None
+    t0 = time.time()
+    _run_jobs(args, jobs, runs, partial)
+    pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
+    if args.missions_only:
+        print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
+        return 0
+    _score_pending(args, runs, pending, partial)
+    _write_result(args, runs, names, budgets, protocols, out, t0)
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m bench.realtime``."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="tum_fr1_rpy,synthetic_circle,tum_fr1_rpy_cup,room0")
     ap.add_argument("--dataset", default=None, metavar="PATH",
@@ -707,15 +750,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--calibrate", action="store_true",
                     help="fit the deterministic budget clock's cost model (mapper.work_cost) on this machine and "
                          "print it (first scene)")
-    args = ap.parse_args(argv)
+    return ap
 
-    if args.calibrate:
-        work = Path(args.work)
-        work.mkdir(parents=True, exist_ok=True)
-        res = calibrate(args.scenes.split(",")[0], work, overrides=args.overrides)
-        print(json.dumps(res, indent=1))
-        return 0
 
+def _checked_scenes(ap: argparse.ArgumentParser, args: argparse.Namespace) -> tuple:
+    """The protocols, the scene names and each scene's spec (``--dataset``'s tasks or built-in scenes); unusable
+    options end the program through ``ap.error``."""
     protocols = tuple(p for p in args.protocols.split(",") if p)
 
     if any(p not in PROTOCOLS for p in protocols):
@@ -737,16 +777,12 @@ def main(argv: Optional[list[str]] = None) -> int:
             if s not in SCENES:
                 ap.error(f"unknown scene {s!r} (known: {', '.join(SCENES)})")
         specs = {s: SCENES[s] for s in scenes}
-    budgets = [float(b) for b in args.budgets.split(",") if b]
-    fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
-    modes = [m for m in args.modes.split(",") if m]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_suffix(".partial.json")
-    runs: list[dict] = []
-    if (args.resume or args.score_only) and partial.is_file():
-        runs = json.loads(partial.read_text())["runs"]
-    done = {_key(r) for r in runs}
+    return protocols, scenes, specs
+
+
+def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protocols: tuple, budgets: list[float],
+                fp_budgets: set, modes: list[str], out: Path, done: set) -> tuple[list[dict], dict]:
+    """The (scene, run, budget, mode) jobs not ``done`` yet, and each scene's name (``_late`` ...) with its cap."""
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     jobs = []
@@ -771,14 +807,12 @@ def main(argv: Optional[list[str]] = None) -> int:
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
                         jobs.append(job)
-    if args.score_only:
-        # score what earlier --missions-only invocations saved (every budget they ran), start no mission
-        jobs = []
-        budgets = sorted({float(r["budget"]) for r in runs if r["scene"] in names} | set(budgets))
-    defer = None if args.twin or args.score_inline else Path(args.work) / "maps"
-    for job in jobs:
-        job["defer_dir"] = str(defer) if defer else None
-    t0 = time.time()
+    return jobs, names
+
+
+def _run_jobs(args: argparse.Namespace, jobs: list[dict], runs: list[dict], partial: Path) -> None:
+    """Run ``jobs`` (twin runs on ``--jobs`` processes, live missions one after another), appending to ``runs`` and
+    rewriting ``partial`` after each."""
     if args.twin:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             results = pool.map(twin_one, jobs)
@@ -799,10 +833,10 @@ def main(argv: Optional[list[str]] = None) -> int:
                    f"({per}), PSNR {r['psnr']:.2f}, {r['n_gaussians']} G, {r['keyframes']} kf x "
                    f"{r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), {r['wall_s']:.0f} s")
         partial.write_text(json.dumps({"runs": runs}, indent=1))
-    pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
-    if args.missions_only:
-        print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
-        return 0
+
+
+def _score_pending(args: argparse.Namespace, runs: list[dict], pending: list[int], partial: Path) -> None:
+    """Score the saved maps of ``runs[i]`` for ``i`` in ``pending`` on ``--jobs`` processes, in place."""
     if pending:
         items = [runs[i] for i in pending]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
@@ -814,6 +848,11 @@ def main(argv: Optional[list[str]] = None) -> int:
                 tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI ({per}), "
                            f"PSNR {r['psnr']:.2f}")
                 partial.write_text(json.dumps({"runs": runs}, indent=1))
+
+
+def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budgets: list[float], protocols: tuple,
+                  out: Path, t0: float) -> None:
+    """Write the JSON, the markdown tables and one plot per scene with several budgets; print the tables."""
     result = {"settings": {"budgets": budgets, "runs": args.runs, "clock": args.clock, "overrides": args.overrides,
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
@@ -831,7 +870,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     md = table(result) + "\n\n" + protocol_table(result)
     out.with_suffix(".md").write_text(md + "\n")
     print(md)
-    return 0
 
 
 if __name__ == "__main__":

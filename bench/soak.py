@@ -213,6 +213,149 @@ def _scene(args, work: Path):
     return [ds[i] for i in range(len(ds))], d / "agent_a", ds.annotations
 
 
+def _wait_for_port(fusion: subprocess.Popen, port_file: Path, log_path: Path) -> str:
+    """The fusion server's address once it has written its port (RuntimeError when it has not within 60 s)."""
+    deadline = time.monotonic() + 60
+    while not (port_file.exists() and port_file.read_text().strip()):
+        if fusion.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"the fusion server did not start; see {log_path}")
+        time.sleep(0.05)
+    return f"127.0.0.1:{int(port_file.read_text())}"
+
+
+def _start_agent(args, env: dict, agent_port: int, fusion_addr: str, agent_dir: Path, scene: Path,
+                 log_path: Path) -> subprocess.Popen:
+    """The agent process (``deploy/gausslite.yaml``, ``--budget`` and ``--set`` overrides), pushing to
+    ``fusion_addr``."""
+    overrides = [f"mapper.keyframe_budget_s={args.budget}", "agent.downscale=1"] + list(args.set)
+    return _start([sys.executable, "-m", "gausslite.cli", "serve", "agent", "--host", "127.0.0.1", "--port",
+                   str(agent_port), "--config", str(REPO / "deploy" / "gausslite.yaml")],
+                  dict(env, GAUSSLITE_AGENT_ID="soak", GAUSSLITE_FUSION_ADDR=fusion_addr,
+                       GAUSSLITE_DATA_DIR=str(agent_dir), GAUSSLITE_AGENT_SET=";".join(overrides),
+                       GAUSSLITE_AGENT_DATA_ROOTS=str(scene)),
+                  log_path)
+
+
+def _paced(encoded: list, period: float, stop: threading.Event, sent: dict):
+    """The encoded frames in a loop, one every ``period`` seconds until ``stop``; records in ``sent`` how many were
+    sent and the largest lateness."""
+    t0 = time.perf_counter()
+    k = 0
+    while not stop.is_set():
+        due = t0 + k * period
+        now = time.perf_counter()
+        if due > now:
+            time.sleep(due - now)
+        sent["late_ms_max"] = max(sent["late_ms_max"], 1e3 * (time.perf_counter() - due))
+        msg = encoded[k % len(encoded)]
+        msg.frame_id = k
+        msg.timestamp = k * period
+        sent["n"] = k + 1
+        k += 1
+        yield msg
+
+
+def _stream(c: AgentClient, messages, total_s: float, errors: List[str]) -> None:
+    """Stream ``messages`` to the agent; a stream error goes to ``errors``."""
+    try:
+        c.stream_messages(messages, timeout_s=total_s + 600)
+    except grpc.RpcError as e:
+        errors.append(f"StreamFrames: {e.code().name}: {e.details()}")
+
+
+def _sample_loop(args, c: AgentClient, fc: FusionClient, mission_id: str, agent: subprocess.Popen,
+                 fusion: subprocess.Popen, agent_dir: Path, fusion_dir: Path, t_start: float, total_s: float,
+                 sent: dict, samples: List[dict], errors: List[str]) -> None:
+    """A sample every ``--sample-s`` seconds into ``samples`` (and printed) until ``total_s`` or a failed
+    mission."""
+    k = 0
+    while True:
+        k += 1
+        t_next = t_start + k * args.sample_s
+        end = min(t_next, t_start + total_s)
+        time.sleep(max(0.0, end - time.monotonic()))
+        st = c.status(mission_id)
+        try:
+            held = fc.stats()["agents"].get("soak", {})
+        except grpc.RpcError as e:
+            errors.append(f"GetStats: {e.code().name}: {e.details()}")
+            held = {}
+        s = {"t_s": round(time.monotonic() - t_start, 1),
+             **_memory("agent", agent.pid), **_memory("fusion", fusion.pid),
+             **_disk("agent", agent_dir), **_disk("fusion", fusion_dir),
+             "accept_p99_ms": round(float(st.accept_latency_ms_p99_recent), 3),
+             "keyframe_latency_s_p95": round(float(st.keyframe_latency_s_p95), 3),
+             "n_gaussians": int(st.n_gaussians), "n_active": int(st.n_active),
+             "fusion_subset_gaussians": int(held.get("gaussians_received", 0)),
+             "fusion_keyframes": int(held.get("keyframes", 0)),
+             "frames_sent": sent["n"], "frames_received": int(st.frames_received),
+             "frames_keyframed": int(st.frames_keyframed), "pushes": int(st.pushes),
+             "push_failures": int(st.push_failures), "frames_rejected": int(st.frames_rejected),
+             "checkpoints": int(st.checkpoints), "state": agent_state_name(st.state)}
+        samples.append(s)
+        print(" ".join(f"{k2}={v}" for k2, v in s.items() if not k2.startswith("procs_")), flush=True)
+        if st.state == 5:  # MISSION_STATE_FAILED
+            errors.append(f"mission failed: {st.last_error}")
+            break
+        if time.monotonic() - t_start >= total_s - 1e-3:
+            break
+
+
+def _mission(args, c: AgentClient, fc: FusionClient, frames: list, scene: Path, ann, agent: subprocess.Popen,
+             fusion: subprocess.Popen, agent_dir: Path, fusion_dir: Path, samples: List[dict],
+             errors: List[str]) -> dict:
+    """Start the mission, stream the circle for ``--minutes`` while sampling, finish it and check both processes;
+    returns what the sender recorded (``n``, ``late_ms_max``)."""
+    c.wait_ready(180)
+    task = ann.tasks[0].text
+    m = c.start_mission(task, annotations_path=str(scene))
+    encoded = [encode_frame(f, m.mission_id, color_format=".jpg") for f in frames]
+    period = 1.0 / args.fps
+    total_s = args.minutes * 60.0
+    stop = threading.Event()
+    sent = {"n": 0, "late_ms_max": 0.0}
+    th = threading.Thread(target=lambda: _stream(c, _paced(encoded, period, stop, sent), total_s, errors),
+                          name="soak-stream", daemon=True)
+    t_start = time.monotonic()
+    th.start()
+    print(f"streaming {len(frames)}-frame circle at {args.fps:.0f} Hz for {args.minutes:g} min; "
+          f"a sample every {args.sample_s:g} s", flush=True)
+    _sample_loop(args, c, fc, m.mission_id, agent, fusion, agent_dir, fusion_dir, t_start, total_s, sent, samples,
+                 errors)
+    stop.set()
+    th.join(120)
+    fin = c.finish(m.mission_id, skip_push=True, skip_eval=True, timeout_s=600).status
+    if fin.push_failures:
+        errors.append(f"{fin.push_failures} failed push attempts (last: {fin.last_error})")
+    if fin.frames_rejected:
+        errors.append(f"{fin.frames_rejected} rejected frames")
+    for p, name in ((agent, "agent"), (fusion, "fusion")):
+        if p.poll() is not None:
+            errors.append(f"the {name} process exited ({p.returncode})")
+    return sent
+
+
+def _results(args, samples: List[dict], errors: List[str], sent: Optional[dict]) -> dict:
+    """The results dict: settings, samples, errors, growth and trend over the last half, goals."""
+    res = {"minutes": args.minutes, "sample_s": args.sample_s, "fps": args.fps,
+           "scene": f"synthetic circle, {args.frames} frames of {args.width}x{args.height}, looped",
+           "budget_s": args.budget, "overrides": list(args.set), "frames_sent": samples[-1]["frames_sent"] if samples
+           else 0, "sender_late_ms_max": round(sent["late_ms_max"], 1) if samples else None,
+           "errors": errors, "samples": samples,
+           "machine": f"{os.cpu_count()} CPUs, load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}"}
+    res["growth_last_half"] = {k: (None if (g := growth_last_half(samples, k)) is None else round(g, 4))
+                               for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
+    res["trend_last_half_per_30min"] = {k: (None if (g := trend_last_half(samples, k)) is None else round(g, 4))
+                                        for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
+    res["accept_p99_ms_max"] = max((s["accept_p99_ms"] for s in samples), default=None)
+    res["goals"] = {
+        **{f"{k} growth<=5%": g is not None and g <= GROWTH_LIMIT for k, g in res["growth_last_half"].items()},
+        "accept p99<=20ms": res["accept_p99_ms_max"] is not None and res["accept_p99_ms_max"] <= ACCEPT_P99_LIMIT_MS,
+        "no errors": not errors,
+    }
+    return res
+
+
 def run(args) -> dict:
     """Run the soak (see the module docstring); returns the results dict (``samples``, ``goals``, ...)."""
     work = Path(args.work)
@@ -231,118 +374,15 @@ def run(args) -> dict:
         fusion = _start([sys.executable, "-m", "gausslite_services.fusion_server", "--host", "127.0.0.1", "--port", "0",
                          "--data-dir", str(fusion_dir), "--port-file", str(port_file), "--log-level", "WARNING"],
                         env, work / f"fusion-{tag}.log")
-        deadline = time.monotonic() + 60
-        while not (port_file.exists() and port_file.read_text().strip()):
-            if fusion.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the fusion server did not start; see {work / f'fusion-{tag}.log'}")
-            time.sleep(0.05)
-        fusion_addr = f"127.0.0.1:{int(port_file.read_text())}"
+        fusion_addr = _wait_for_port(fusion, port_file, work / f"fusion-{tag}.log")
         agent_port = free_port()
-        overrides = [f"mapper.keyframe_budget_s={args.budget}", "agent.downscale=1"] + list(args.set)
-        agent = _start([sys.executable, "-m", "gausslite.cli", "serve", "agent", "--host", "127.0.0.1", "--port",
-                        str(agent_port), "--config", str(REPO / "deploy" / "gausslite.yaml")],
-                       dict(env, GAUSSLITE_AGENT_ID="soak", GAUSSLITE_FUSION_ADDR=fusion_addr,
-                            GAUSSLITE_DATA_DIR=str(agent_dir), GAUSSLITE_AGENT_SET=";".join(overrides),
-                            GAUSSLITE_AGENT_DATA_ROOTS=str(scene)),
-                       work / f"agent-{tag}.log")
+        agent = _start_agent(args, env, agent_port, fusion_addr, agent_dir, scene, work / f"agent-{tag}.log")
         with AgentClient(f"127.0.0.1:{agent_port}") as c, FusionClient(fusion_addr, timeout_s=30) as fc:
-            c.wait_ready(180)
-            task = ann.tasks[0].text
-            m = c.start_mission(task, annotations_path=str(scene))
-            encoded = [encode_frame(f, m.mission_id, color_format=".jpg") for f in frames]
-            period = 1.0 / args.fps
-            total_s = args.minutes * 60.0
-            stop = threading.Event()
-            sent = {"n": 0, "late_ms_max": 0.0}
-
-            def gen():
-                t0 = time.perf_counter()
-                k = 0
-                while not stop.is_set():
-                    due = t0 + k * period
-                    now = time.perf_counter()
-                    if due > now:
-                        time.sleep(due - now)
-                    sent["late_ms_max"] = max(sent["late_ms_max"], 1e3 * (time.perf_counter() - due))
-                    msg = encoded[k % len(encoded)]
-                    msg.frame_id = k
-                    msg.timestamp = k * period
-                    sent["n"] = k + 1
-                    k += 1
-                    yield msg
-
-            def stream():
-                try:
-                    c.stream_messages(gen(), timeout_s=total_s + 600)
-                except grpc.RpcError as e:
-                    errors.append(f"StreamFrames: {e.code().name}: {e.details()}")
-
-            th = threading.Thread(target=stream, name="soak-stream", daemon=True)
-            t_start = time.monotonic()
-            th.start()
-            print(f"streaming {len(frames)}-frame circle at {args.fps:.0f} Hz for {args.minutes:g} min; "
-                  f"a sample every {args.sample_s:g} s", flush=True)
-            k = 0
-            while True:
-                k += 1
-                t_next = t_start + k * args.sample_s
-                end = min(t_next, t_start + total_s)
-                time.sleep(max(0.0, end - time.monotonic()))
-                st = c.status(m.mission_id)
-                try:
-                    held = fc.stats()["agents"].get("soak", {})
-                except grpc.RpcError as e:
-                    errors.append(f"GetStats: {e.code().name}: {e.details()}")
-                    held = {}
-                s = {"t_s": round(time.monotonic() - t_start, 1),
-                     **_memory("agent", agent.pid), **_memory("fusion", fusion.pid),
-                     **_disk("agent", agent_dir), **_disk("fusion", fusion_dir),
-                     "accept_p99_ms": round(float(st.accept_latency_ms_p99_recent), 3),
-                     "keyframe_latency_s_p95": round(float(st.keyframe_latency_s_p95), 3),
-                     "n_gaussians": int(st.n_gaussians), "n_active": int(st.n_active),
-                     "fusion_subset_gaussians": int(held.get("gaussians_received", 0)),
-                     "fusion_keyframes": int(held.get("keyframes", 0)),
-                     "frames_sent": sent["n"], "frames_received": int(st.frames_received),
-                     "frames_keyframed": int(st.frames_keyframed), "pushes": int(st.pushes),
-                     "push_failures": int(st.push_failures), "frames_rejected": int(st.frames_rejected),
-                     "checkpoints": int(st.checkpoints), "state": agent_state_name(st.state)}
-                samples.append(s)
-                print(" ".join(f"{k2}={v}" for k2, v in s.items() if not k2.startswith("procs_")), flush=True)
-                if st.state == 5:  # MISSION_STATE_FAILED
-                    errors.append(f"mission failed: {st.last_error}")
-                    break
-                if time.monotonic() - t_start >= total_s - 1e-3:
-                    break
-            stop.set()
-            th.join(120)
-            fin = c.finish(m.mission_id, skip_push=True, skip_eval=True, timeout_s=600).status
-            if fin.push_failures:
-                errors.append(f"{fin.push_failures} failed push attempts (last: {fin.last_error})")
-            if fin.frames_rejected:
-                errors.append(f"{fin.frames_rejected} rejected frames")
-            for p, name in ((agent, "agent"), (fusion, "fusion")):
-                if p.poll() is not None:
-                    errors.append(f"the {name} process exited ({p.returncode})")
+            sent = _mission(args, c, fc, frames, scene, ann, agent, fusion, agent_dir, fusion_dir, samples, errors)
     finally:
         _stop(agent)
         _stop(fusion)
-    res = {"minutes": args.minutes, "sample_s": args.sample_s, "fps": args.fps,
-           "scene": f"synthetic circle, {args.frames} frames of {args.width}x{args.height}, looped",
-           "budget_s": args.budget, "overrides": list(args.set), "frames_sent": samples[-1]["frames_sent"] if samples
-           else 0, "sender_late_ms_max": round(sent["late_ms_max"], 1) if samples else None,
-           "errors": errors, "samples": samples,
-           "machine": f"{os.cpu_count()} CPUs, load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}"}
-    res["growth_last_half"] = {k: (None if (g := growth_last_half(samples, k)) is None else round(g, 4))
-                               for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
-    res["trend_last_half_per_30min"] = {k: (None if (g := trend_last_half(samples, k)) is None else round(g, 4))
-                                        for k in ("rss_mb_agent", "rss_mb_fusion", "disk_mb_agent", "disk_mb_fusion")}
-    res["accept_p99_ms_max"] = max((s["accept_p99_ms"] for s in samples), default=None)
-    res["goals"] = {
-        **{f"{k} growth<=5%": g is not None and g <= GROWTH_LIMIT for k, g in res["growth_last_half"].items()},
-        "accept p99<=20ms": res["accept_p99_ms_max"] is not None and res["accept_p99_ms_max"] <= ACCEPT_P99_LIMIT_MS,
-        "no errors": not errors,
-    }
-    return res
+    return _results(args, samples, errors, sent)
 
 
 def agent_state_name(state: int) -> str:

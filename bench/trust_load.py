@@ -33,6 +33,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -130,15 +131,25 @@ def stop_server(proc: subprocess.Popen, timeout_s: float = 20.0) -> None:
         proc.wait()
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the benchmark (module docstring) and return its results."""
-    import grpc
+@dataclass
+class _Load:
+    """What the load threads and the valid robot record while the benchmark runs; ``lock`` guards what the threads
+    share, ``stop`` ends them."""
 
-    from gausslite.camera import Intrinsics
-    from gausslite.wire.codec import encode_subset
-    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
+    stop: threading.Event = field(default_factory=threading.Event)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    stalled_codes: Counter = field(default_factory=Counter)
+    stalled_durations: List[float] = field(default_factory=list)
+    bad_codes: Counter = field(default_factory=Counter)
+    acks_ms: List[float] = field(default_factory=list)
+    ack_times: List[float] = field(default_factory=list)  # seconds since the robot's first push, per ack
+    valid_errors: List[str] = field(default_factory=list)
+
+
+def _fresh_store_and_tokens(args: argparse.Namespace) -> tuple:
+    """An empty store and a new token file in ``--work``; returns (work folder, token file, the stalled robots' ids,
+    token per robot)."""
     from gausslite_services.common import auth
-    from gausslite_services.fusion_server.client import FusionClient
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -149,136 +160,168 @@ def run(args: argparse.Namespace) -> dict:
     tokens_file.unlink(missing_ok=True)
     stalled_ids = [f"stalled-{i}" for i in range(max(1, args.stalled_robots))]
     tok = {a: auth.issue_token(tokens_file, a, scheme=args.token_scheme) for a in ["valid", *stalled_ids]}
-    proc, address = start_server(work, tokens_file, args.workers, args.idle_s)
+    return work, tokens_file, stalled_ids, tok
+
+
+def _open_sessions(address: str, tok: Dict[str, str], agents: List[str]) -> None:
+    """Open a session for each of ``agents`` once the server serves."""
+    from gausslite.camera import Intrinsics
+    from gausslite_services.fusion_server.client import FusionClient
+
     intr = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
-    md = {a: (("authorization", f"Bearer {t}"),) for a, t in tok.items()}
-    stop = threading.Event()
-    lock = threading.Lock()
-    stalled_codes: Counter = Counter()
-    stalled_durations: List[float] = []
-    bad_codes: Counter = Counter()
-    acks_ms: List[float] = []
-    ack_times: List[float] = []  # seconds since the robot's first push, per ack
-    valid_errors: List[str] = []
-    rss_start = None
-    try:
-        for a in ["valid", *stalled_ids]:
-            with FusionClient(address, token=tok[a], timeout_s=30, max_retries=3) as c:
-                c.wait_ready(60)
-                c.open_session(a, "find the chair", intr)
-        rss_start = proc_status_mb(proc.pid, "VmRSS")
-        channel = grpc.insecure_channel(address)
-        stub = fusion_pb2_grpc.FusionStub(channel)
-        stalled_chunks = {a: encode_subset(random_subset(400, 7), a, 1, max_chunk_bytes=4096) for a in stalled_ids}
+    for a in agents:
+        with FusionClient(address, token=tok[a], timeout_s=30, max_retries=3) as c:
+            c.wait_ready(60)
+            c.open_session(a, "find the chair", intr)
 
-        def stalled_stream(i: int) -> None:
-            agent = stalled_ids[i % len(stalled_ids)]
-            chunks = stalled_chunks[agent]
-            ch = grpc.insecure_channel(address)  # a connection of its own, as a separate client would have
-            st = fusion_pb2_grpc.FusionStub(ch)
-            while not stop.is_set():
-                def requests():
-                    yield fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
-                        agent_id=agent, map_version=1, n_chunks=len(chunks), full_map_gaussians=400))
-                    yield fusion_pb2.UploadSubsetRequest(chunk=chunks[0])
-                    stop.wait()  # then nothing until the benchmark ends
 
-                t0 = time.monotonic()
-                try:
-                    st.UploadSubset(requests(), timeout=args.seconds + 120, metadata=md[agent])
-                    code = "OK"
-                except grpc.RpcError as e:
-                    code = e.code().name
-                with lock:
-                    stalled_codes[code] += 1
-                    if code == "DEADLINE_EXCEEDED":
-                        stalled_durations.append(time.monotonic() - t0)
-                if code != "DEADLINE_EXCEEDED":
-                    stop.wait(0.5)  # refused: try again a little later
-            ch.close()
+def _stalled_stream(address: str, agent: str, chunks: list, metadata: tuple, seconds: float, load: _Load) -> None:
+    """One stalled upload of ``agent``: a header and one chunk, then nothing; opened again when the server ends it,
+    until ``load.stop``."""
+    import grpc
 
-        def wrong_tokens() -> None:
-            period = 1.0 / args.bad_rate
-            nxt = time.monotonic()
-            pending = []
-            while not stop.is_set():
-                bad = (("authorization", f"Bearer {secrets.token_urlsafe(32)}"),)
-                pending.append(stub.GetStats.future(fusion_pb2.StatsRequest(), timeout=10, metadata=bad))
-                done = [f for f in pending if f.done()]
-                for f in done:
-                    pending.remove(f)
-                    with lock:
-                        bad_codes[f.code().name] += 1
-                nxt += period
-                stop.wait(max(0.0, nxt - time.monotonic()))
-            for f in pending:
-                try:
-                    f.result(timeout=10)
-                    code = "OK"
-                except grpc.RpcError as e:
-                    code = e.code().name
-                except grpc.FutureTimeoutError:
-                    code = "NO_ANSWER"
-                bad_codes[code] += 1
+    from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 
-        threads = [threading.Thread(target=stalled_stream, args=(i,), daemon=True) for i in range(args.stalled)]
-        if args.bad_rate > 0:
-            threads.append(threading.Thread(target=wrong_tokens, daemon=True))
-        for t in threads:
-            t.start()
-        time.sleep(1.0)  # the stalled streams are open and the wrong tokens flowing before the robot pushes
+    stop = load.stop
+    ch = grpc.insecure_channel(address)  # a connection of its own, as a separate client would have
+    st = fusion_pb2_grpc.FusionStub(ch)
+    while not stop.is_set():
+        def requests():
+            yield fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
+                agent_id=agent, map_version=1, n_chunks=len(chunks), full_map_gaussians=400))
+            yield fusion_pb2.UploadSubsetRequest(chunk=chunks[0])
+            stop.wait()  # then nothing until the benchmark ends
 
-        sub = random_subset(args.gaussians, 1)
-        version = 0
-        t_start = time.monotonic()
-        t_end = t_start + args.seconds
-        bar = None
-        if not args.no_progress:
-            from tqdm import tqdm
+        t0 = time.monotonic()
+        try:
+            st.UploadSubset(requests(), timeout=seconds + 120, metadata=metadata)
+            code = "OK"
+        except grpc.RpcError as e:
+            code = e.code().name
+        with load.lock:
+            load.stalled_codes[code] += 1
+            if code == "DEADLINE_EXCEEDED":
+                load.stalled_durations.append(time.monotonic() - t0)
+        if code != "DEADLINE_EXCEEDED":
+            stop.wait(0.5)  # refused: try again a little later
+    ch.close()
 
-            bar = tqdm(total=int(args.seconds), desc="bench.trust_load", unit="s")
-        failed_last = False
-        while time.monotonic() < t_end:
-            if not failed_last:  # a refused push is sent again (same version), as the agent's pusher does
-                version += 1
-            chunks = encode_subset(sub, "valid", version)
-            msgs = [fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
-                agent_id="valid", map_version=version, n_chunks=len(chunks), full_map_gaussians=50_000))]
-            msgs += [fusion_pb2.UploadSubsetRequest(chunk=c) for c in chunks]
-            t0 = time.perf_counter()
-            try:
-                ack = stub.UploadSubset(iter(msgs), timeout=30, metadata=md["valid"])
-                dt = (time.perf_counter() - t0) * 1000.0
-                failed_last = not ack.complete
-                if ack.complete:
-                    acks_ms.append(dt)
-                    ack_times.append(time.monotonic() - t_start)
-                else:
-                    valid_errors.append(f"v{version}: incomplete ack")
-            except grpc.RpcError as e:
-                failed_last = True
-                valid_errors.append(f"v{version}: {e.code().name}: {e.details()}")
-            if bar is not None:
-                bar.n = min(int(args.seconds), int(args.seconds - (t_end - time.monotonic())))
-                bar.refresh()
-            time.sleep(args.pause_s)
+
+def _wrong_tokens(stub, bad_rate: float, load: _Load) -> None:
+    """``GetStats`` calls with a fresh random token, ``bad_rate`` per second until ``load.stop``; counts their
+    status codes."""
+    import grpc
+
+    from gausslite_rpc import fusion_pb2
+
+    stop = load.stop
+    period = 1.0 / bad_rate
+    nxt = time.monotonic()
+    pending = []
+    while not stop.is_set():
+        bad = (("authorization", f"Bearer {secrets.token_urlsafe(32)}"),)
+        pending.append(stub.GetStats.future(fusion_pb2.StatsRequest(), timeout=10, metadata=bad))
+        done = [f for f in pending if f.done()]
+        for f in done:
+            pending.remove(f)
+            with load.lock:
+                load.bad_codes[f.code().name] += 1
+        nxt += period
+        stop.wait(max(0.0, nxt - time.monotonic()))
+    for f in pending:
+        try:
+            f.result(timeout=10)
+            code = "OK"
+        except grpc.RpcError as e:
+            code = e.code().name
+        except grpc.FutureTimeoutError:
+            code = "NO_ANSWER"
+        load.bad_codes[code] += 1
+
+
+def _start_load(args: argparse.Namespace, address: str, stub, stalled_ids: List[str], md: dict,
+                load: _Load) -> List[threading.Thread]:
+    """Start the stalled streams and the wrong-token calls; returns their threads after they have run for 1 s."""
+    from gausslite.wire.codec import encode_subset
+
+    stalled_chunks = {a: encode_subset(random_subset(400, 7), a, 1, max_chunk_bytes=4096) for a in stalled_ids}
+    threads = []
+    for i in range(args.stalled):
+        agent = stalled_ids[i % len(stalled_ids)]
+        threads.append(threading.Thread(target=_stalled_stream, daemon=True,
+                                        args=(address, agent, stalled_chunks[agent], md[agent], args.seconds, load)))
+    if args.bad_rate > 0:
+        threads.append(threading.Thread(target=_wrong_tokens, args=(stub, args.bad_rate, load), daemon=True))
+    for t in threads:
+        t.start()
+    time.sleep(1.0)  # the stalled streams are open and the wrong tokens flowing before the robot pushes
+    return threads
+
+
+def _push_valid(args: argparse.Namespace, stub, metadata: tuple, load: _Load) -> None:
+    """The valid robot: push its subset back to back for ``--seconds``, timing each ack (a refused push is counted
+    and sent again)."""
+    import grpc
+
+    from gausslite.wire.codec import encode_subset
+    from gausslite_rpc import fusion_pb2
+
+    sub = random_subset(args.gaussians, 1)
+    version = 0
+    t_start = time.monotonic()
+    t_end = t_start + args.seconds
+    bar = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(args.seconds), desc="bench.trust_load", unit="s")
+    failed_last = False
+    while time.monotonic() < t_end:
+        if not failed_last:  # a refused push is sent again (same version), as the agent's pusher does
+            version += 1
+        chunks = encode_subset(sub, "valid", version)
+        msgs = [fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
+            agent_id="valid", map_version=version, n_chunks=len(chunks), full_map_gaussians=50_000))]
+        msgs += [fusion_pb2.UploadSubsetRequest(chunk=c) for c in chunks]
+        t0 = time.perf_counter()
+        try:
+            ack = stub.UploadSubset(iter(msgs), timeout=30, metadata=metadata)
+            dt = (time.perf_counter() - t0) * 1000.0
+            failed_last = not ack.complete
+            if ack.complete:
+                load.acks_ms.append(dt)
+                load.ack_times.append(time.monotonic() - t_start)
+            else:
+                load.valid_errors.append(f"v{version}: incomplete ack")
+        except grpc.RpcError as e:
+            failed_last = True
+            load.valid_errors.append(f"v{version}: {e.code().name}: {e.details()}")
         if bar is not None:
-            bar.close()
-        rss_peak = proc_status_mb(proc.pid, "VmHWM")
-        stop.set()
-        for t in threads:
-            t.join(30)
-        health = None
-        with FusionClient(address, token=tok["valid"], timeout_s=10, max_retries=0) as c:
-            try:
-                c.wait_ready(5)
-                health = "SERVING"
-            except Exception as e:  # noqa: BLE001 - recorded, not raised
-                health = f"{type(e).__name__}: {e}"
-        channel.close()
-    finally:
-        stop.set()
-        stop_server(proc)
+            bar.n = min(int(args.seconds), int(args.seconds - (t_end - time.monotonic())))
+            bar.refresh()
+        time.sleep(args.pause_s)
+    if bar is not None:
+        bar.close()
+
+
+def _health(address: str, token: str) -> str:
+    """``SERVING`` when the server answers a readiness check within 5 s, else the error."""
+    from gausslite_services.fusion_server.client import FusionClient
+
+    health = None
+    with FusionClient(address, token=token, timeout_s=10, max_retries=0) as c:
+        try:
+            c.wait_ready(5)
+            health = "SERVING"
+        except Exception as e:  # noqa: BLE001 - recorded, not raised
+            health = f"{type(e).__name__}: {e}"
+    return health
+
+
+def _results(args: argparse.Namespace, load: _Load, n_stalled_robots: int, rss_start: Optional[float],
+             rss_peak: Optional[float], health: str) -> dict:
+    """The benchmark's results (the JSON) from what ``load`` recorded, with the goals met or missed."""
+    acks_ms, valid_errors, stalled_codes = load.acks_ms, load.valid_errors, load.stalled_codes
     lat = percentiles(acks_ms)
     idle = args.idle_s
     if idle is None:
@@ -287,20 +330,50 @@ def run(args: argparse.Namespace) -> dict:
         idle = FusionSettings().stream_idle_s
     goals = {f"ack p99 <= {ACK_P99_GOAL_MS:g} ms": lat["p99"] is not None and lat["p99"] <= ACK_P99_GOAL_MS,
              "no refused push": not valid_errors, "health SERVING after": health == "SERVING"}
-    return {"seconds": args.seconds, "stalled_streams": args.stalled, "stalled_robots": len(stalled_ids),
+    return {"seconds": args.seconds, "stalled_streams": args.stalled, "stalled_robots": n_stalled_robots,
             "bad_rate_per_s": args.bad_rate, "gaussians": args.gaussians, "workers": args.workers,
             "token_scheme": args.token_scheme, "stream_idle_s": idle,
             "pushes": len(acks_ms) + len(valid_errors), "acks": len(acks_ms),
             "ack_ms": lat, "valid_errors": valid_errors[:20],
-            "slowest_acks": [{"t_s": round(ack_times[i], 2), "ms": round(acks_ms[i], 1)}
+            "slowest_acks": [{"t_s": round(load.ack_times[i], 2), "ms": round(acks_ms[i], 1)}
                              for i in sorted(np.argsort(acks_ms)[::-1][:10].tolist())],
             "stalled_ended_by_deadline": int(stalled_codes.get("DEADLINE_EXCEEDED", 0)),
             "stalled_refused": int(stalled_codes.get("RESOURCE_EXHAUSTED", 0)),
             "stalled_evicted": int(stalled_codes.get("ABORTED", 0)),
             "stalled_codes": dict(stalled_codes),
-            "stalled_s_median": float(np.median(stalled_durations)) if stalled_durations else None,
-            "bad_calls": int(sum(bad_codes.values())), "bad_codes": dict(bad_codes),
+            "stalled_s_median": float(np.median(load.stalled_durations)) if load.stalled_durations else None,
+            "bad_calls": int(sum(load.bad_codes.values())), "bad_codes": dict(load.bad_codes),
             "rss_mb_start": rss_start, "rss_mb_peak": rss_peak, "health_after": health, "goals": goals}
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Run the benchmark (module docstring) and return its results."""
+    import grpc
+
+    from gausslite_rpc import fusion_pb2_grpc
+
+    work, tokens_file, stalled_ids, tok = _fresh_store_and_tokens(args)
+    proc, address = start_server(work, tokens_file, args.workers, args.idle_s)
+    md = {a: (("authorization", f"Bearer {t}"),) for a, t in tok.items()}
+    load = _Load()
+    rss_start = None
+    try:
+        _open_sessions(address, tok, ["valid", *stalled_ids])
+        rss_start = proc_status_mb(proc.pid, "VmRSS")
+        channel = grpc.insecure_channel(address)
+        stub = fusion_pb2_grpc.FusionStub(channel)
+        threads = _start_load(args, address, stub, stalled_ids, md, load)
+        _push_valid(args, stub, md["valid"], load)
+        rss_peak = proc_status_mb(proc.pid, "VmHWM")
+        load.stop.set()
+        for t in threads:
+            t.join(30)
+        health = _health(address, tok["valid"])
+        channel.close()
+    finally:
+        load.stop.set()
+        stop_server(proc)
+    return _results(args, load, len(stalled_ids), rss_start, rss_peak, health)
 
 
 def table(res: dict) -> str:

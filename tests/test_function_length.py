@@ -1,4 +1,5 @@
-"""No product function (``gausslite/``, ``services/``) is longer than :data:`MAX_LINES` lines.
+"""No function of the product (``gausslite/``, ``services/``) or of its benchmarks (``bench/``) is longer than
+:data:`MAX_LINES` lines.
 
 Length of a function = ``end_lineno - lineno + 1`` of its ``def`` (decorators not counted, docstring and nested
 functions counted), for every ``def`` / ``async def`` at any depth, methods and nested functions included.
@@ -13,6 +14,7 @@ from typing import Dict, List, Tuple
 
 REPO = Path(__file__).resolve().parents[1]
 PRODUCT_DIRS = ("gausslite", "services")  # the folders (services/ installs as gausslite_services)
+BENCH_DIRS = ("bench",)  # the benchmarks' entry points are held to the product's length
 MAX_LINES = 100
 
 #: ``(path relative to the repo, function name) -> the longest length allowed``, each with the reason it cannot be
@@ -40,6 +42,10 @@ def _product_files() -> List[Path]:
     return [p for d in PRODUCT_DIRS for p in sorted((REPO / d).rglob("*.py")) if not _generated(p)]
 
 
+def _bench_files() -> List[Path]:
+    return [p for d in BENCH_DIRS for p in sorted((REPO / d).rglob("*.py")) if not _generated(p)]
+
+
 def test_measure_flags_long_functions_at_any_depth():
     body = "\n".join(f"    x{i} = {i}" for i in range(100))
     src = (f"def ok():\n{body[: body.rfind(chr(10))]}\n\n"  # 100 lines: allowed
@@ -49,16 +55,34 @@ def test_measure_flags_long_functions_at_any_depth():
     assert [(name, n) for name, _, n in found] == [("too_long", 103)]
 
 
-def test_product_functions_are_short():
-    files = _product_files()
-    assert len(files) > 50, "product sources not found"
+def _over_limit(files: List[Path]) -> List[str]:
+    """``path:line name: n lines`` of every function in ``files`` longer than :data:`ALLOWED` or :data:`MAX_LINES`."""
     over = []
     for path in files:
         rel = path.relative_to(REPO).as_posix()
         for name, line, n in long_functions(path.read_text(encoding="utf-8")):
             if n > ALLOWED.get((rel, name), MAX_LINES):
                 over.append(f"{rel}:{line} {name}: {n} lines")
+    return over
+
+
+def test_product_functions_are_short():
+    files = _product_files()
+    assert len(files) > 50, "product sources not found"
+    over = _over_limit(files)
     assert not over, f"functions over {MAX_LINES} lines (split them into named helpers):\n" + "\n".join(over)
+
+
+def test_bench_functions_are_short():
+    files = _bench_files()
+    assert len(files) > 20, "benchmark sources not found"
+    over = _over_limit(files)
+    assert not over, f"functions over {MAX_LINES} lines (split them into named helpers):\n" + "\n".join(over)
+
+
+def test_allow_list_holds_no_benchmark():
+    assert not [rel for rel, _ in ALLOWED if rel.startswith(tuple(d + "/" for d in BENCH_DIRS))], \
+        "benchmark functions are split, never allow-listed"
 
 
 def test_allow_list_entries_still_exist_and_are_needed():
