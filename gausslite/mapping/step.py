@@ -128,10 +128,7 @@ class TrainStep:
             cache_key = (view.frame_id, view.width, view.height, float(view.K[0, 2]), float(view.K[1, 2]))
             if view.ssim_stats is None:
                 view.ssim_stats = self.ssim_cache.get(cache_key)
-        lam_d = cfg.roi_lambda_depth if active_phase and cfg.roi_lambda_depth is not None else cfg.lambda_depth
-        loss = photometric_loss(out, view, lam_d, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
-        if active_phase and cfg.roi_iso_weight > 0:
-            loss = loss + cfg.roi_iso_weight * self._isotropy(parts or [[out]])
+        loss = self._loss(out, view, mask, active_phase, parts)
         if active_phase and cfg.roi_outside_alpha > 0 and view.roi is not None:
             loss = loss + cfg.roi_outside_alpha * outside_alpha(out.alpha, view.roi, cfg.roi_outside_margin_px)
         if cache_key is not None and view.ssim_stats is not None:
@@ -163,6 +160,16 @@ class TrainStep:
             if new is not None:
                 self._write_pose(kf, new)
         return float(loss.detach())
+
+    def _loss(self, out, view: Keyframe, mask: Optional[torch.Tensor], active_phase: bool, parts: list) -> torch.Tensor:
+        """Eq. 1 on ``view`` (ROI-phase iterations with their own depth weight ``roi_lambda_depth`` and the isotropy
+        term ``roi_iso_weight`` when set)."""
+        cfg = self.cfg
+        lam_d = cfg.roi_lambda_depth if active_phase and cfg.roi_lambda_depth is not None else cfg.lambda_depth
+        loss = photometric_loss(out, view, lam_d, cfg.lambda_ssim, mask, cfg.performance.reference_paths)
+        if active_phase and cfg.roi_iso_weight > 0:
+            loss = loss + cfg.roi_iso_weight * self._isotropy(parts or [[out]])
+        return loss
 
     def _isotropy(self, groups) -> torch.Tensor:
         """Mean over the Gaussians a render drew of |s − mean(s)| (scales in metres): Gaussian-SLAM's isotropic
