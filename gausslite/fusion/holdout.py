@@ -122,16 +122,16 @@ def split_views(n: int, sources: Optional[Sequence[Hashable]] = None, fraction: 
                 seed: int = 0) -> Tuple[List[int], List[int]]:
     """Split ``n`` keyframes into training and held-out ones, deterministically by ``seed``.
 
-    The keyframes are interleaved across sources (each source's keyframes in their order, placed at evenly spaced
-    positions), then every (1/``fraction``)-th one of that sequence is held out, from an offset drawn from ``seed``:
-    the held-out keyframes are spread over the robots and along each robot's trajectory.
-    ``max(1, round(n × fraction))`` are held out from two keyframes on (``fraction`` > 0), none below.
+    ``max(1, round(n × fraction))`` keyframes are held out from two keyframes on (``fraction`` > 0), none below. They
+    are shared among the sources in proportion to their keyframes (largest remainders, ties in a seeded order), and
+    each source holds out every (its keyframes / its share)-th keyframe of its own sequence from a seeded offset: the
+    held-out keyframes are spread over the robots and along each robot's trajectory.
 
     Args:
         n: number of keyframes (>= 0).
         sources: one label per keyframe (e.g. the uploading agent's id); None = one source.
         fraction: share held out, in [0, 0.5] (so at least half are trained on).
-        seed: RNG seed of the offset.
+        seed: RNG seed of the offsets and the ties.
 
     Returns:
         ``(train, held_out)``: sorted keyframe indices in ``range(n)``, disjoint, together all of them.
@@ -148,20 +148,25 @@ def split_views(n: int, sources: Optional[Sequence[Hashable]] = None, fraction: 
     if n < 2 or fraction == 0:
         return list(range(n)), []
     labels = list(sources) if sources is not None else [0] * n
-    order = {s: i for i, s in enumerate(dict.fromkeys(labels))}  # sources in order of first appearance
-    count: dict = {}
-    rank = []  # a keyframe's index within its source
-    for s in labels:
-        rank.append(count.get(s, 0))
-        count[s] = rank[-1] + 1
-    # a keyframe's place: its position along its source's sequence, in [0, 1); ties by source order
-    place = sorted(range(n), key=lambda i: ((rank[i] + 0.5) / count[labels[i]], order[labels[i]]))
+    members: dict = {}  # source -> its keyframes, in order (sources in order of first appearance)
+    for i, s in enumerate(labels):
+        members.setdefault(s, []).append(i)
+    groups = list(members.values())
     k = max(1, int(round(n * fraction)))
-    stride = n / k
-    start = float(np.random.default_rng([int(seed), 0x4F1D]).random()) * stride
-    held = sorted(place[min(n - 1, int(start + j * stride))] for j in range(k))
+    rng = np.random.default_rng([int(seed), 0x4F1D])
+    exact = [k * len(g) / n for g in groups]
+    quota = [int(e) for e in exact]
+    tie = rng.permutation(len(groups))
+    for gi in sorted(range(len(groups)), key=lambda g: (quota[g] - exact[g], tie[g]))[:k - sum(quota)]:
+        quota[gi] += 1
+    held = []
+    for g, q in zip(groups, quota):
+        if q:
+            stride = len(g) / q
+            start = float(rng.random()) * stride
+            held += [g[int(start + j * stride)] for j in range(q)]
     held_set = set(held)
-    return [i for i in range(n) if i not in held_set], held
+    return [i for i in range(n) if i not in held_set], sorted(held)
 
 
 def scaled_iters(iters: int, train_views: int, per_view_iters: int = DEFAULT_PER_VIEW_ITERS) -> int:
