@@ -74,7 +74,8 @@ class RefineReport:
         iters_run: iterations run (fewer than planned when stopped early).
         train_views, heldout_views: keyframes trained on / held out.
         validated: whether held-out keyframes were scored (False with a single keyframe, ``holdout_fraction`` 0, or
-            held-out keyframes on which the vote draws no pixel; then the last state is returned).
+            when the vote draws no pixel of any held-out keyframe; then the last state is returned). A held-out
+            keyframe without such a pixel is trained on and counted in ``train_views``.
         vote_loss: held-out loss of the input map (the vote).
         best_loss: lowest held-out loss seen (``vote_loss`` when nothing beat the vote).
         best_iter: iteration after which ``best_loss`` was reached (0 = the vote).

@@ -127,9 +127,9 @@ def refine_map(
     kfs = [dataclasses.replace(k.to(mapper.device), frame_id=i,
                                **({} if roi_loss else {"roi": None, "roi_box": None}))
            for i, k in enumerate(keyframes)]
-    held = _Heldout(mapper, [kfs[i] for i in held_idx], footprint_only and roi_loss, footprint_only)
-    if held_idx and not held.views:  # the vote draws no pixel of any held-out keyframe: nothing to score there
-        train_idx, held_idx = list(range(len(kfs))), []
+    held = _Heldout(mapper, kfs, held_idx, footprint_only and roi_loss, footprint_only)
+    # a held-out keyframe of which the vote draws no pixel cannot be scored: it is trained on
+    train_idx, held_idx = sorted(set(train_idx) | (set(held_idx) - set(held.index))), held.index
     rep.train_views, rep.heldout_views, rep.validated = len(train_idx), len(held_idx), bool(held_idx)
     rep.iters_planned = scaled_iters(iters, len(train_idx), per_view_iters)
     best = _train(mapper, cfg, [kfs[i] for i in train_idx], held if held_idx else None, rep, seed, progress,
@@ -153,16 +153,19 @@ def _refine_mapper(arrays: GaussianArrays, seed: int, cfg: Optional[MapperConfig
 
 
 class _Heldout:
-    """The held-out keyframes' score: the training loss (Eq. 1), no gradients, averaged over the keyframes, each on
-    the pixels the map renders when built (alpha > ``footprint_alpha``; within the keyframe's ROI with ``roi``), or
-    on the whole image without ``footprint``. Keyframes on which that leaves no pixel are dropped (``views``)."""
+    """The held-out keyframes' score: the training loss (Eq. 1), no gradients, averaged over the keyframes
+    ``kfs[i]``, ``i`` in ``index``, each on the pixels the map renders when built (alpha > ``footprint_alpha``; within
+    the keyframe's ROI with ``roi``), or on the whole image without ``footprint``. Keyframes on which that leaves no
+    pixel are left out (``index`` holds those scored)."""
 
-    def __init__(self, mapper: Mapper, views: List[Keyframe], roi: bool, footprint: bool) -> None:
+    def __init__(self, mapper: Mapper, kfs: List[Keyframe], index: List[int], roi: bool, footprint: bool) -> None:
         self.mapper = mapper
+        self.index: List[int] = []
         self.views: List[Keyframe] = []
         self.masks: List[Optional[torch.Tensor]] = []
         fa = mapper.cfg.footprint_alpha
-        for v in views:
+        for i in index:
+            v = kfs[i]
             mask = None
             if footprint:
                 mask = self._render(v).alpha > fa
@@ -170,6 +173,7 @@ class _Heldout:
                     mask = mask & v.roi
                 if not bool(mask.any()):
                     continue
+            self.index.append(i)
             self.views.append(v)
             self.masks.append(mask)
 

@@ -150,6 +150,14 @@ def test_refine_report_fields_progress_and_the_unvalidated_single_view(scene):
     out = refine_map(vote, kfs[:1], iters=30, seed=0, cfg=CFG, report=one)
     assert (one.train_views, one.heldout_views, one.validated, one.vote_loss, one.iters_run) == (1, 0, False, None, 25)
     assert not one.rolled_back and not out.equals(vote) and "no held-out check" in one.summary()
+    # a held-out view the vote draws nothing of (the camera turned away from the plane) is trained on instead
+    away = dataclasses.replace(kfs[1], c2w=torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64)))
+    _, (h,) = split_views(3, None, 0.25, seed=0)
+    pool = [kfs[0], kfs[2]]
+    pool.insert(h, away)
+    unscored = RefineReport()
+    refine_map(vote, pool, iters=30, seed=0, cfg=CFG, report=unscored)
+    assert (unscored.train_views, unscored.heldout_views, unscored.validated) == (3, 0, False)
     for bad in (dict(check_every=0), dict(patience=0), dict(holdout_fraction=0.6), dict(per_view_iters=-1),
                 dict(sources=["a"])):
         with pytest.raises(ValueError):
