@@ -124,7 +124,7 @@ class FuseEngine:
 
     def fuse(self, versions: Mapping[str, int], maps: Mapping[str, GaussianArrays], method: str = "vote", *,
              voxel_size: float = 0.10, contest_radius: int = 0, refine_iters: int = 0,
-             keyframes: Callable[[], Sequence] = lambda: (), seed: int = 0,
+             keyframes: Callable[[], KeyframePool] = lambda: (), seed: int = 0,
              progress: Optional[StageFn] = None, for_agent: Optional[str] = None,
              roi_views: Callable[[str], Sequence] = lambda agent: ()) -> FuseOutcome:
         """One fuse job.
