@@ -20,6 +20,7 @@ from typing import Any, Dict, Iterable, List, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from gausslite.fusion.holdout import RefineValidation
 from gausslite.mapping.config import (FLAT_NAMES, MapperConfig, apply_overrides, deep_merge, migrate_flat_names,
                                       read_yaml)
 from gausslite.mission.config import AgentSections
@@ -96,7 +97,13 @@ class FusionSettings(BaseModel):
             An incremental update with r = 1 re-votes the 27-fold neighbourhood of what it touches.
         default_refine_iters (int): refinement iterations when a FuseRequest leaves them 0.
         max_refine_iters (int): largest accepted ``refine_iters`` (INVALID_ARGUMENT beyond).
-        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``budget: {max_gaussians: N}``).
+        refine_validation (RefineValidation): the refinement's held-out check
+            (:class:`gausslite.fusion.holdout.RefineValidation`): ``holdout_fraction`` of the uploaded keyframes held
+            out of training and scored every ``check_every`` iterations, a stop after ``patience`` scores without a
+            new best, the best state kept (the vote when nothing beat it), and at most ``per_view_iters`` iterations
+            per training keyframe (``docs/sharing.md``).
+        refine_options (dict): extra keyword arguments for ``refine_map`` (e.g. ``budget: {max_gaussians: N}``); they
+            take precedence over ``refine_validation``.
         fused_keep_per_method (int): fused maps kept per fuse method (vote, concat), newest first: every ``Fuse``
             stores a map, so older ones are deleted (``DownloadFused`` of one is NOT_FOUND) and ``GetStats``, which
             lists the fused maps held, stays bounded.
@@ -137,6 +144,10 @@ class FusionSettings(BaseModel):
     default_contest_radius: int = Field(0, ge=0, le=8)
     default_refine_iters: int = Field(200, ge=0)
     max_refine_iters: int = Field(20000, ge=0)
+    refine_validation: RefineValidation = Field(
+        default_factory=RefineValidation,
+        description="the refinement's held-out check: keyframes held out of training, early stop, best state kept, "
+                    "iterations scaled to the training keyframes")
     refine_options: dict = Field(default_factory=dict)
     fused_keep_per_method: int = Field(32, ge=1)
     max_keyframe_pixels: int = Field(3840 * 2160, ge=1)

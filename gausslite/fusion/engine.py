@@ -3,7 +3,8 @@
 The fusion server runs this for every ``Fuse`` call; the benches run it in process. Steps: the κ voxel vote
 (:func:`gausslite.fusion.vote.voxel_vote`, through a kept :class:`IncrementalVote` so that only agents whose subset
 changed are re-voted) or plain concatenation, then optionally the joint refinement over the union of the agents'
-keyframes (:func:`gausslite.fusion.refine.refine_map`).
+keyframes (:func:`gausslite.fusion.refine.refine_map`), validated on keyframes it holds out of training
+(:class:`~gausslite.fusion.holdout.RefineReport` in :attr:`FuseOutcome.refine_report`).
 """
 
 from __future__ import annotations
@@ -11,10 +12,11 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Callable, Dict, Mapping, Optional, Sequence
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 from gausslite.core.arrays import GaussianArrays
 from gausslite.fusion.guard import for_robot
+from gausslite.fusion.holdout import RefineReport
 from gausslite.fusion.vote import IncrementalVote, VoteReport, VoxelRangeError, concat, voxel_vote
 
 log = logging.getLogger(__name__)
@@ -41,6 +43,8 @@ class FuseOutcome:
         first_row: provenance, agent id → index of its first row in ``fused``: rows ``[first_row[a], first_row[a] +
             kept[a])`` came from agent ``a`` (vote and concat group the rows by agent); None after a refinement,
             which splits, clones and prunes rows.
+        refine_report: what the refinement did (held-out losses of the vote and of the best state, iterations,
+            early stop, rollback to the vote, training / held-out keyframes); None without a refinement.
     """
 
     fused: GaussianArrays
@@ -52,6 +56,19 @@ class FuseOutcome:
     keyframes_used: int = 0
     seconds: float = 0.0
     first_row: Optional[Dict[str, int]] = None
+    refine_report: Optional[RefineReport] = None
+
+
+#: what a ``keyframes`` callback of :meth:`FuseEngine.fuse` returns: a pool, or agent id → that agent's keyframes
+KeyframePool = Union[Sequence, Mapping[str, Sequence]]
+
+
+def _pool(found: KeyframePool) -> Tuple[List, Optional[List[str]]]:
+    """(keyframes, their agents or None) of a :data:`KeyframePool`; a mapping is flattened in its order."""
+    if isinstance(found, Mapping):
+        pairs = [(a, k) for a, ks in found.items() for k in ks]
+        return [k for _, k in pairs], [a for a, _ in pairs]
+    return list(found), None
 
 
 def _first_rows(order: Sequence[str], kept: Mapping[str, int]) -> Dict[str, int]:
@@ -67,7 +84,9 @@ class FuseEngine:
     """Runs fuse jobs and keeps the incremental vote between them (one engine per fusion server).
 
     Args:
-        refine_options: extra keyword arguments of :func:`gausslite.fusion.refine.refine_map`.
+        refine_options: extra keyword arguments of :func:`gausslite.fusion.refine.refine_map` (the fusion server's:
+            its ``refine_validation`` settings, :meth:`gausslite.fusion.holdout.RefineValidation.options`, then its
+            ``refine_options``).
     """
 
     def __init__(self, refine_options: Optional[dict] = None) -> None:
@@ -105,7 +124,7 @@ class FuseEngine:
 
     def fuse(self, versions: Mapping[str, int], maps: Mapping[str, GaussianArrays], method: str = "vote", *,
              voxel_size: float = 0.10, contest_radius: int = 0, refine_iters: int = 0,
-             keyframes: Callable[[], Sequence] = lambda: (), seed: int = 0,
+             keyframes: Callable[[], KeyframePool] = lambda: (), seed: int = 0,
              progress: Optional[StageFn] = None, for_agent: Optional[str] = None,
              roi_views: Callable[[str], Sequence] = lambda agent: ()) -> FuseOutcome:
         """One fuse job.
@@ -115,9 +134,11 @@ class FuseEngine:
             maps: agent id → subset (``GaussianArrays``).
             method: ``vote`` or ``concat``.
             voxel_size, contest_radius: the vote's δ (m) and neighbourhood (voxels).
-            refine_iters: 0 = no refinement; otherwise the joint refinement's iterations.
+            refine_iters: 0 = no refinement; otherwise the joint refinement's iterations at most (it runs fewer over
+                few keyframes and stops early once its held-out keyframes stop improving; ``refine_options``).
             keyframes: returns the refinement's keyframes (:class:`~gausslite.mapping.views.Keyframe`; called only when
-                refining).
+                refining), as one pool or as agent id → that agent's keyframes (the held-out keyframes are then
+                spread over the agents).
             seed: refinement RNG seed.
             progress: ``(stage, fraction, message)`` callback; it may raise to stop the job.
             for_agent: vote only: the team map as this agent uses it (:func:`gausslite.fusion.guard.for_robot`:
@@ -161,18 +182,31 @@ class FuseEngine:
         else:
             raise ValueError(f"unknown fuse method {method!r} (use 'vote' or 'concat')")
         if refine_iters:
-            # lazy: keeps gausslite.fusion.engine importable without OpenCV, SciPy, Warp, torch
-            from gausslite.fusion.refine import refine_map
-
-            kfs = list(keyframes())
-            if not kfs:
-                raise ValueError("refinement needs at least one keyframe")
-            out.keyframes_used = len(kfs)
-            emit("refine", end, f"refining {len(out.fused)} Gaussians over {len(kfs)} keyframes, {refine_iters} "
-                 "iterations")
-            out.first_row = None
-            out.fused = refine_map(out.fused, kfs, refine_iters,
-                                   progress=lambda f, m: emit("refine", end + (0.9 - end) * float(f), m),
-                                   seed=seed, **self.refine_options)
+            self._refine(out, keyframes, refine_iters, seed, emit, end)
         out.seconds = time.monotonic() - t0
         return out
+
+    def _refine(self, out: FuseOutcome, keyframes: Callable[[], KeyframePool], iters: int, seed: int, emit: StageFn,
+                start: float) -> None:
+        """Refine ``out.fused`` in place over ``keyframes()`` (:func:`gausslite.fusion.refine.refine_map` with
+        :attr:`refine_options`), progress from ``start`` to 0.9; fills ``out.keyframes_used`` and
+        ``out.refine_report`` and logs the report. Raises ValueError without keyframes."""
+        # lazy: keeps gausslite.fusion.engine importable without OpenCV, SciPy, Warp, torch
+        from gausslite.fusion.refine import refine_map
+
+        kfs, sources = _pool(keyframes())
+        if not kfs:
+            raise ValueError("refinement needs at least one keyframe")
+        out.keyframes_used = len(kfs)
+        emit("refine", start, f"refining {len(out.fused)} Gaussians over {len(kfs)} keyframes, up to {iters} "
+             "iterations")
+        out.first_row = None
+        report = RefineReport()
+        options = dict(self.refine_options)
+        if sources is not None:
+            options.setdefault("sources", sources)
+        out.fused = refine_map(out.fused, kfs, iters, seed=seed, report=report, **options,
+                               progress=lambda f, m: emit("refine", start + (0.9 - start) * float(f), m))
+        out.refine_report = report
+        log.info("refinement: %s", report.summary())
+        emit("refine", 0.9, report.summary())

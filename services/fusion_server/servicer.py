@@ -116,7 +116,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
-        self._engine = FuseEngine(config.refine_options)  # keeps the voted map current (under the fuse locks)
+        # keeps the voted map current (under the fuse locks); refine_options take precedence over the held-out check's
+        self._engine = FuseEngine({**config.refine_validation.options(), **config.refine_options})
         # what this install can fuse: refinement and the ROI guard need the 'mapper' extra (torch, the rasterizer)
         self._unavailable = {f: extras.unavailable(f) for f in ("refine", "roi_guard")}
         self._shutdown = threading.Event()
@@ -555,19 +556,21 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             out.append(RoiView(K, int(k.width), int(k.height), np.asarray(k.c2w, np.float64), roi))
         return out
 
-    def _refine_keyframes(self) -> list:
-        """The stored keyframes of every agent, decoded for the refinement (:class:`gausslite.mapping.views.Keyframe`)."""
+    def _refine_keyframes(self) -> Dict[str, list]:
+        """The stored keyframes of every agent, decoded for the refinement: agent id → its
+        :class:`gausslite.mapping.views.Keyframe` list (the refinement spreads its held-out keyframes over the
+        agents)."""
         # lazy: torch (the 'mapper' extra); only the refinement needs keyframes as tensors, and the light install
         # (vote, concat) has no torch
         from gausslite.mapping.views import keyframe_from_frame
 
-        kfs = []
+        kfs: Dict[str, list] = {}
         for k in self.store.keyframes():
             what = f"stored keyframe {k.frame_id}"
             frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what), decode_depth(k.depth, k.depth_scale, what),
                           np.asarray(k.c2w, np.float64), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
             roi = decode_roi(k.roi, (k.height, k.width), what) if k.roi else None
-            kfs.append(keyframe_from_frame(frame, "cpu", roi))
+            kfs.setdefault(k.agent_id, []).append(keyframe_from_frame(frame, "cpu", roi))
         return kfs
 
     @stream_guard
