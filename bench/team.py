@@ -223,7 +223,7 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
     maps = {"concat": concat(final), "vote": vote,
             "vote_r1": voxel_vote(final, fuse["voxel_size"], contest_radius=1)[0],
             "refine": refine_map(vote, kfs, fuse["refine_iters"], seed=seed) if kfs else vote,
-            "refine_long": refine_map(vote, kfs, LONG_REFINE_ITERS, seed=seed) if kfs else vote}
+            "refine_long": refine_map(vote, kfs, LONG_REFINE_ITERS, seed=seed, per_view_iters=0) if kfs else vote}
     for key in FUSED_KEYS:
         g = maps[key].to_gaussian_map()
         out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}

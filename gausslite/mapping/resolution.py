@@ -145,21 +145,28 @@ class ResolutionGovernor:
     """Applies the mapping resolution to a live mission's frames and corrects it from what keyframes got.
 
     The first frame's size fixes the choice (:func:`choose_downscale` with the work model, or a pinned factor);
-    then, unless pinned, after every ``adapt_after`` keyframes whose mean iterations fall below the target the
-    factor steps to the next coarser level (logged as a warning). Where even the coarsest level does not reach
-    the target, it says so once, as an error log line.
+    then, unless pinned, when the mean iterations of the last ``adapt_after`` keyframes (the mission's first keyframe,
+    which seeds twice as much, not counted) fall below ``tolerance`` × the target, the factor steps to the next coarser
+    level (logged as a warning): a level holds while its keyframes get most of the target, so run-to-run noise around
+    it does not halve the image. Where even the coarsest level falls short, it says so once, as an error log line.
 
     Args:
         target_iters: iterations per keyframe to reach. max_downscale: coarsest level. pinned: a user's factor, or
             None (automatic). adapt_after: keyframes measured per decision. cost: the work model.
-        min_width: the narrowest mapped image (pixels) an automatic level may give.
+        min_width: the narrowest mapped image (pixels) an automatic level may give. tolerance: the share of the target
+            a level must keep (0 < tolerance ≤ 1).
     Attributes:
         choice: the current :class:`ResolutionChoice` (None before the first frame). changes: level changes so far.
         measured_iters: mean iterations of the keyframes measured at the current level (None before any).
     """
 
     def __init__(self, target_iters: float = 10.0, max_downscale: int = 4, pinned: Optional[float] = None,
-                 adapt_after: int = 3, cost: Optional[WorkCost] = None, min_width: int = 160) -> None:
+                 adapt_after: int = 3, cost: Optional[WorkCost] = None, min_width: int = 160,
+                 tolerance: float = 0.75) -> None:
+        if not 0 < tolerance <= 1:
+            raise ValueError(f"tolerance must be in (0, 1], got {tolerance}")
+        self.tolerance = float(tolerance)
+        self._seen = 0
         self.target_iters, self.max_downscale, self.pinned = float(target_iters), int(max_downscale), pinned
         self.min_width = int(min_width)
         self.adapt_after = max(1, int(adapt_after))
@@ -201,12 +208,16 @@ class ResolutionGovernor:
         a keyframe budget (a fixed iteration count) there is nothing to correct."""
         if self.choice is None or self.budget_s is None:
             return None
+        self._seen += 1
+        if self._seen == 1:
+            return None  # the first keyframe seeds twice as much: not a measure of the level
         self._iters.append(int(iters))
         if len(self._iters) < self.adapt_after:
             return None
         self.measured_iters = float(np.mean(self._iters[-self.adapt_after:]))
-        if self.measured_iters >= self.target_iters or self.choice.pinned:
-            self.choice.reaches_target = self.measured_iters >= self.target_iters
+        floor = self.tolerance * self.target_iters
+        if self.measured_iters >= floor or self.choice.pinned:
+            self.choice.reaches_target = self.measured_iters >= floor
             if not self.choice.reaches_target:
                 self._say_unreachable(self.measured_iters)
             return None
@@ -218,7 +229,8 @@ class ResolutionGovernor:
         w, h = self.native
         self.choice = ResolutionChoice(f, max(1, int(w // f)), max(1, int(h // f)), None, self.target_iters, True,
                                        False, f"measured {self.measured_iters:.1f} iterations per keyframe "
-                                       f"< {self.target_iters:g} at downscale {f - 1:g}")
+                                       f"< {floor:.1f} ({self.tolerance:g} of {self.target_iters:g}) at downscale "
+                                       f"{f - 1:g}")
         self.changes += 1
         self._iters = []
         log.warning("mapping resolution lowered to %dx%d (downscale %g): %s", self.choice.width, self.choice.height,

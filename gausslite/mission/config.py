@@ -53,7 +53,8 @@ class ResolutionConfig(BaseModel):
         target_iters: iterations per keyframe to reach (the live TUM figures were measured at 12-23).
         max_downscale: the coarsest automatic level.
         min_width: an automatic level never maps images narrower than this (pixels).
-        adapt_after: keyframes measured before each correction.
+        adapt_after: keyframes measured before each correction (the first keyframe is never counted).
+        tolerance: a level holds while its keyframes get this share of ``target_iters``.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -63,6 +64,7 @@ class ResolutionConfig(BaseModel):
     max_downscale: int = Field(4, ge=1, le=16)
     min_width: int = Field(160, ge=16)
     adapt_after: int = Field(3, ge=1)
+    tolerance: float = Field(0.75, gt=0, le=1)
 
     @model_validator(mode="after")
     def _check(self) -> "ResolutionConfig":

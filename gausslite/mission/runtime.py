@@ -182,7 +182,8 @@ class AgentRuntime:
         #: the mapping resolution (agent.resolution): chosen at the first frame, lowered while keyframes get too few
         #: iterations (docs/live.md#mapping-resolution)
         self.resolution = ResolutionGovernor(rc.target_iters, rc.max_downscale, rc.pinned, rc.adapt_after,
-                                             WorkCost(**config.mapper.work_cost.model_dump()), rc.min_width)
+                                             WorkCost(**config.mapper.work_cost.model_dump()), rc.min_width,
+                                             rc.tolerance)
         self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
         self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (scoring: novel)
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
