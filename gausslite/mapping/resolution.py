@@ -161,8 +161,8 @@ class ResolutionGovernor:
     """
 
     def __init__(self, target_iters: float = 10.0, max_downscale: int = 4, pinned: Optional[float] = None,
-                 adapt_after: int = 3, cost: Optional[WorkCost] = None, min_width: int = 160,
-                 tolerance: float = 0.75) -> None:
+                 adapt_after: int = 5, cost: Optional[WorkCost] = None, min_width: int = 160,
+                 tolerance: float = 0.5) -> None:
         if not 0 < tolerance <= 1:
             raise ValueError(f"tolerance must be in (0, 1], got {tolerance}")
         self.tolerance = float(tolerance)

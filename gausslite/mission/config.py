@@ -63,8 +63,8 @@ class ResolutionConfig(BaseModel):
     target_iters: float = Field(10.0, ge=1)
     max_downscale: int = Field(4, ge=1, le=16)
     min_width: int = Field(160, ge=16)
-    adapt_after: int = Field(3, ge=1)
-    tolerance: float = Field(0.75, gt=0, le=1)
+    adapt_after: int = Field(5, ge=1)
+    tolerance: float = Field(0.5, gt=0, le=1)
 
     @model_validator(mode="after")
     def _check(self) -> "ResolutionConfig":
