@@ -18,17 +18,16 @@ pixels of a new frame its map does not yet explain.
 
 from __future__ import annotations
 
-from dataclasses import fields
 from typing import Optional
 
 import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.mapping.views import StoredKeyframe, roi_box
+from gausslite.mapping.views import StoredKeyframe, StoredViews, roi_box
 
 
-class KeyframeStore:
+class KeyframeStore(StoredViews):
     """The mission's keyframes, compact and bounded, with MVO's view sampler.
 
     Args:
@@ -44,30 +43,15 @@ class KeyframeStore:
         self.max_keyframes = int(max_keyframes)
         self.protect_recent = int(protect_recent)
         self.rot_weight_m = float(rot_weight_m)
-        self._items: list[StoredKeyframe] = []
+        super().__init__()
         self.n_dropped = 0
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def __getitem__(self, i: int) -> StoredKeyframe:
-        return self._items[i]
-
-    def __iter__(self):
-        return iter(self._items)
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by all stored keyframe images."""
-        return sum(k.nbytes for k in self._items)
 
     def state_dict(self, newest: Optional[int] = None) -> dict:
         """``{"keyframes": [...]}``: the newest ``newest`` stored keyframes (None: all) as plain dicts of their
         compact fields (copies: CPU tensors; ``torch.save``-able). Copies, because training refines a stored
         keyframe's pose in place."""
         first = 0 if newest is None else max(0, len(self._items) - newest)
-        return {"keyframes": [{f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v) for f in fields(k)}
-                              for k in self._items[first:]]}
+        return {"keyframes": self._dump(self._items[first:])}
 
     def load_state_dict(self, state: dict) -> None:
         """Replace the stored keyframes by copies of those of a :meth:`state_dict`.
@@ -75,8 +59,7 @@ class KeyframeStore:
         Raises:
             KeyError / TypeError: a dict without ``keyframes`` or with keyframes of other fields.
         """
-        self._items = [StoredKeyframe(**{k: v.clone() if torch.is_tensor(v) else v for k, v in d.items()})
-                       for d in state["keyframes"]]
+        self._items = self._undump(state["keyframes"])
 
     def add(self, kf) -> StoredKeyframe:
         """Store a :class:`~gausslite.mapping.views.Keyframe` (float tensors) compactly; returns it.
@@ -103,15 +86,6 @@ class KeyframeStore:
         j = int(np.argmin(cost[: n_old - 1])) + 1  # never the first keyframe, never the window
         self._items.pop(j)
         self.n_dropped += 1
-
-    def set_pose(self, frame_id: int, c2w: torch.Tensor) -> bool:
-        """Replace the stored pose of keyframe ``frame_id`` by ``c2w`` (4, 4) (pose refinement);
-        False when that keyframe is not (or no longer) stored."""
-        for k in reversed(self._items):
-            if k.frame_id == int(frame_id):
-                k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
-                return True
-        return False
 
     def set_roi(self, i: int, roi: Optional[np.ndarray]) -> None:
         """Replace keyframe ``i``'s ROI by ``roi`` ((H, W) bool, or None: no ROI), with its box (a new task).

@@ -22,7 +22,6 @@ frame, carried over by their depth.
 
 from __future__ import annotations
 
-from dataclasses import fields
 from typing import Optional, Sequence
 
 import cv2
@@ -30,7 +29,8 @@ import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.mapping.views import Keyframe, StoredKeyframe, keyframe_from_frame, roi_box, window_keyframe
+from gausslite.mapping.views import (Keyframe, StoredKeyframe, StoredViews, keyframe_from_frame, roi_box,
+                                     window_keyframe)
 
 __all__ = ["RoiViewStore", "roi_points", "project_roi", "roi_view_of"]
 
@@ -106,7 +106,7 @@ def roi_view_of(frame, roi: np.ndarray, pad: int, device: torch.device | str = "
     return window_keyframe(kf, x0 - pad, y0 - pad, x1 + pad, y1 + pad)
 
 
-class RoiViewStore:
+class RoiViewStore(StoredViews):
     """The ROI crops of frames between keyframes, compact (uint8 colour, float16 depth, bool ROI) and bounded.
 
     Args:
@@ -123,23 +123,9 @@ class RoiViewStore:
         if max_views < 1 or max_bytes < 1:
             raise ValueError(f"max_views and max_bytes must be >= 1, got {max_views}, {max_bytes}")
         self.max_views, self.max_bytes, self.rot_weight_m = int(max_views), int(max_bytes), float(rot_weight_m)
-        self._items: list[StoredKeyframe] = []
+        super().__init__()
         self.n_added = 0
         self.n_evicted = 0
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def __getitem__(self, i: int) -> StoredKeyframe:
-        return self._items[i]
-
-    def __iter__(self):
-        return iter(self._items)
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes held by the stored crops' images."""
-        return sum(k.nbytes for k in self._items)
 
     @property
     def frame_ids(self) -> list[int]:
@@ -177,29 +163,18 @@ class RoiViewStore:
         """View ``i`` as a float :class:`~gausslite.mapping.views.Keyframe` on ``device``."""
         return self._items[i].to_keyframe(device)
 
-    def set_pose(self, frame_id: int, c2w: torch.Tensor) -> bool:
-        """Replace the stored pose of view ``frame_id`` by ``c2w`` (4, 4) (ROI-phase alignment); False when that
-        view is not (or no longer) stored."""
-        for k in reversed(self._items):
-            if k.frame_id == int(frame_id):
-                k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
-                return True
-        return False
-
     def clear(self) -> None:
         """Forget every view (the task changed: their ROI was the old task's)."""
         self._items = []
 
     def state_dict(self) -> dict:
         """``{"roi_views": [...]}``: the stored views as plain dicts of their compact fields (CPU tensor copies)."""
-        return {"roi_views": [{f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v)
-                               for f in fields(k)} for k in self._items]}
+        return {"roi_views": self._dump(self._items)}
 
     def load_state_dict(self, state: dict) -> None:
         """Replace the views by copies of those of a :meth:`state_dict` (none when the key is absent: a checkpoint
         written before the store existed)."""
-        self._items = [StoredKeyframe(**{k: v.clone() if torch.is_tensor(v) else v for k, v in d.items()})
-                       for d in state.get("roi_views", [])]
+        self._items = self._undump(state.get("roi_views", []))
 
 
 def window_points(stores: Sequence[StoredKeyframe], stride: int = 2) -> np.ndarray:

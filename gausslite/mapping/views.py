@@ -110,6 +110,48 @@ def roi_box(roi: Optional[np.ndarray]) -> Optional[tuple[int, int, int, int]]:
     return (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
 
 
+class StoredViews:
+    """A list of :class:`StoredKeyframe` views (compact, CPU) with what every store of training views shares: length,
+    indexing, iteration, their bytes, a refined pose written back, and the checkpoint form of the views."""
+
+    def __init__(self) -> None:
+        self._items: list[StoredKeyframe] = []
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, i: int) -> StoredKeyframe:
+        return self._items[i]
+
+    def __iter__(self):
+        return iter(self._items)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the stored views' images."""
+        return sum(k.nbytes for k in self._items)
+
+    def set_pose(self, frame_id: int, c2w: torch.Tensor) -> bool:
+        """Replace the stored pose of view ``frame_id`` by ``c2w`` (4, 4) float64 camera-to-world (pose refinement);
+        False when that view is not (or no longer) stored."""
+        for k in reversed(self._items):
+            if k.frame_id == int(frame_id):
+                k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
+                return True
+        return False
+
+    @staticmethod
+    def _dump(items) -> list:
+        """``items`` as plain dicts of their compact fields (CPU tensor copies: training refines poses in place)."""
+        return [{f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v) for f in dataclasses.fields(k)}
+                for k in items]
+
+    @staticmethod
+    def _undump(dicts) -> list:
+        """Views from :meth:`_dump`'s dicts (copies)."""
+        return [StoredKeyframe(**{k: v.clone() if torch.is_tensor(v) else v for k, v in d.items()}) for d in dicts]
+
+
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
     """Convert a posed RGB-D ``Frame`` (uint8 rgb (H, W, 3), float32 depth (H, W) metres, ``c2w`` (4, 4)
     camera-to-world, pinhole intrinsics in pixels) and its optional (H, W) bool ROI into a tensor ``Keyframe``.
