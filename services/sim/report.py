@@ -400,13 +400,16 @@ def _protocol_lines(report: dict) -> List[str]:
     if not names:
         return []
     tasks = [a["task"] for a in agents]
-    stride = int(((report.get("settings") or {}).get("scoring") or {}).get("track_stride", 5))
+    scoring = (report.get("settings") or {}).get("scoring") or {}
+    stride = int(scoring.get("track_stride", 5))
+    novel = (f"; `novel`: {_every(int(scoring.get('novel_every', 10)))} withheld from every robot's mapper, at a "
+             "pose fitted the same way: what no map trained on" if "novel" in names else "")
     lines = ["", "## Own and fused maps under each scoring protocol", "",
              "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its difference to the robot's own map under "
              "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
              "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
              f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
-             "map (docs/realtime.md#scoring-protocols).", "",
+             f"map{novel} (docs/realtime.md#scoring-protocols).", "",
              "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
     for q in names:
         own = {a["task"]: (a.get("protocols") or {}).get(q, {}) for a in agents}
@@ -426,7 +429,7 @@ def _protocol_lines(report: dict) -> List[str]:
 
 
 def _protocol_order(name: str) -> int:
-    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``)."""
+    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``, ``novel``)."""
     return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
 
 
