@@ -96,15 +96,19 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     # every map under each scoring protocol (agent.scoring): the own maps scored by their agents, the fused maps
     # by the sim, each fused figure beside the own one under the same protocol; sensor is the top-level figure
     protos = {"sensor", "keyframes", "tracked"}
-    assert rep["settings"]["scoring"]["protocols"] == ["sensor", "keyframes", "tracked"]
+    assert rep["settings"]["scoring"]["protocols"] == ["sensor", "keyframes", "tracked", "novel"]
     for a in rep["agents"]:
         p = a["protocols"]
+        # novel: every 10th frame from the 5th is withheld; a 3-frame sequence withholds none and scores none
+        novel = p.pop("novel")
+        assert novel["frames_scored"] == 0 and novel["roi_psnr"] is None
         assert set(p) == protos
         assert p["sensor"]["roi_psnr"] == pytest.approx(a["roi_psnr_all_frames"]) and p["sensor"]["frames_scored"] == 3
         assert p["keyframes"]["frames_scored"] == a["frames_mapped"] == 3  # an every-frame replay
         assert p["tracked"]["frames_scored"] == 1  # every 5th of 3 frames
         assert all(v["roi_psnr"] is not None for v in p.values())
     for k, f in rep["fused"].items():
+        assert all(v["frames_scored"] == 0 for v in f["protocols"].pop("novel").values()), k
         assert set(f["protocols"]) == protos, k
         for a in rep["agents"]:
             t = a["task"]
