@@ -51,7 +51,7 @@ from gausslite.datasets import detect_layout, load_dataset, task_roi
 from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS, FrameSubset, score_live_map, side_by_side, withheld_indices
 from gausslite.datasets.subset import ScaledFrames
 from gausslite.mapping.budget import WallClock, WorkCost, fit_work_cost
-from gausslite.mapping.resolution import choose_downscale, downscale_frame
+from gausslite.mapping.resolution import choose_downscale
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
@@ -304,7 +304,7 @@ def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe
     resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution)."""
     f = float(job.get("mapping_downscale") or 1.0)
     if f != 1:
-        ds = ScaledFrames(ds, f, downscale_frame)
+        ds = ScaledFrames(ds, f)
     res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
                 job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel_ids(job, ds))
     if job.get("render_dir"):
@@ -395,7 +395,7 @@ def twin_one(job: dict) -> dict:
                                   WorkCost(**mapper.cfg.work_cost.model_dump()), rc.target_iters, rc.max_downscale,
                                   rc.pinned, min_width=rc.min_width)
         job = {**job, "mapping_downscale": choice.factor}
-        train = training_frames(job, ScaledFrames(ds, choice.factor, downscale_frame) if choice.factor != 1 else ds)
+        train = training_frames(job, ScaledFrames(ds, choice.factor) if choice.factor != 1 else ds)
         kfs = keyframe_schedule(train, spacing)
         iters = 0
         give = give_late_task(job, train, rt, task)

@@ -335,8 +335,7 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
     if "novel" in protocols and novel is None:
         raise ValueError("the novel protocol needs the withheld frames' ids (novel_ids)")
     if novel:
-        trained = ({int(s.frame_id) for s in mapper.stats}
-                   | {int(i) for i in getattr(getattr(mapper, "roi_views", None), "frame_ids", [])})
+        trained = {int(s.frame_id) for s in mapper.stats} | set(mapper.roi_views.frame_ids)
         leaked = sorted(novel & trained)
         if leaked:
             raise ValueError(f"withheld frames {leaked[:5]} were training views of the map: not novel")

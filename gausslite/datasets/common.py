@@ -21,6 +21,7 @@ Downscaling (``downscale_rgb`` / ``downscale_depth``) by a factor ``f >= 1`` (in
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple, Union
@@ -234,6 +235,23 @@ def downscale_depth(depth: np.ndarray, factor: Union[int, float]) -> np.ndarray:
     out = np.where(has_valid, out, 0).astype(depth.dtype, copy=False)
     return out
 
+
+def downscale_frame(frame: Frame, factor: Union[int, float]) -> Frame:
+    """``frame`` at 1/``factor`` resolution: colour by area, depth by the valid sample nearest each block's centre
+    (:func:`~gausslite.datasets.common.downscale_depth`), intrinsics scaled (:meth:`Intrinsics.scaled`); pose,
+    time and id unchanged. ``factor`` 1 returns ``frame``.
+
+    Raises:
+        ValueError: a factor below 1 or one larger than the image.
+    """
+    if factor == 1:
+        return frame
+    rgb = downscale_rgb(frame.rgb, factor)
+    depth = downscale_depth(frame.depth, factor)
+    intr = frame.intrinsics.scaled(factor)
+    if (intr.width, intr.height) != (depth.shape[1], depth.shape[0]):
+        intr = dataclasses.replace(intr, width=depth.shape[1], height=depth.shape[0])
+    return dataclasses.replace(frame, rgb=rgb, depth=np.ascontiguousarray(depth), intrinsics=intr)
 
 # ----------------------------------------------------------------------------------------------
 # generic posed image-file sequence

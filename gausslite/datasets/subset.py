@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from typing import Iterable
 
+from gausslite.datasets.common import downscale_frame
+
 #: the ``novel`` protocol's default: every this many frames of a sequence is withheld from the mapper
 NOVEL_EVERY = 10
 
@@ -54,15 +56,14 @@ class FrameSubset:
 
 class ScaledFrames:
     """A read-only view of ``frames`` with every frame downscaled by ``factor`` on access
-    (:func:`gausslite.mapping.resolution.downscale_frame` is passed in as ``scale``: this layer does not import the
-    mapper): scoring a map at the resolution it was mapped at."""
+    (:func:`~gausslite.datasets.common.downscale_frame`): scoring a map at the resolution it was mapped at."""
 
-    def __init__(self, frames, factor: float, scale) -> None:
-        self._frames, self.factor, self._scale = frames, float(factor), scale
+    def __init__(self, frames, factor: float) -> None:
+        self._frames, self.factor = frames, float(factor)
         self.annotations = getattr(frames, "annotations", None)
 
     def __len__(self) -> int:
         return len(self._frames)
 
     def __getitem__(self, i: int):
-        return self._scale(self._frames[i], self.factor)
+        return downscale_frame(self._frames[i], self.factor)

@@ -435,7 +435,7 @@ class Mapper:
             return 0
         stored, seen = 0, 0
         for fr in frames:
-            if self.clock.charges and hasattr(self.clock, "charge_fixed"):
+            if self.clock.charges:
                 self.clock.charge_fixed(rc.view_cost_s)
             c2w = self.pose_of(fr.frame_id, fr.c2w)
             roi = project_roi(pts, fr.depth, fr.intrinsics.K, c2w, rc.depth_tol_m, rc.dilate_px)
@@ -473,8 +473,8 @@ class Mapper:
             between: the frames the robot saw since the previous keyframe (oldest first; decoded ``Frame`` objects,
                 or objects with ``frame_id``, ``timestamp``, ``c2w`` and ``intrinsics`` when only their motion is
                 used): under ``sensor.motion_every_frame`` every mode records the camera's motion through them
-                (motion blur, rolling shutter), and under ``roi_views`` GaussLite stores their ROI crops (:meth:`add_roi_views`), inside this call's
-                budget.
+                (motion blur, rolling shutter), and under ``roi_views`` GaussLite stores their ROI crops
+                (:meth:`add_roi_views`), inside this call's budget.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
@@ -502,7 +502,7 @@ class Mapper:
             exposure.register(frame.frame_id, exposure.initial(frame.frame_id), fixed=self.n_mapped == 0)
         seeded = self.seed_frame(frame, relevance)
         kf = keyframe_from_frame(frame, self.device, relevance)
-        if between and cfg.roi_views.enabled and sw.roi:
+        if between:
             self.add_roi_views(between, kf)
         if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
             self.keyframes.add(kf)

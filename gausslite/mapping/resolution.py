@@ -11,7 +11,6 @@ from the iterations keyframes actually got, once per level, never past ``max_dow
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Optional
@@ -19,7 +18,7 @@ from typing import Optional
 import numpy as np
 
 from gausslite.datasets.base import Frame
-from gausslite.datasets.common import downscale_depth, downscale_rgb
+from gausslite.datasets.common import downscale_frame
 from gausslite.mapping.budget import WorkCost
 
 __all__ = ["ResolutionChoice", "predict_iters", "coarsest_level", "choose_downscale", "downscale_frame",
@@ -121,24 +120,6 @@ def choose_downscale(width: int, height: int, budget_s: Optional[float], cap: Op
     p = predicted(f)
     return ResolutionChoice(f, *size(f), p, target_iters, False, False,
                             f"only {p:.1f} predicted iterations per keyframe at the coarsest level {max_downscale}")
-
-
-def downscale_frame(frame: Frame, factor: float) -> Frame:
-    """``frame`` at 1/``factor`` resolution: colour by area, depth by the valid sample nearest each block's centre
-    (:func:`~gausslite.datasets.common.downscale_depth`), intrinsics scaled (:meth:`Intrinsics.scaled`); pose,
-    time and id unchanged. ``factor`` 1 returns ``frame``.
-
-    Raises:
-        ValueError: a factor below 1 or one larger than the image.
-    """
-    if factor == 1:
-        return frame
-    rgb = downscale_rgb(frame.rgb, factor)
-    depth = downscale_depth(frame.depth, factor)
-    intr = frame.intrinsics.scaled(factor)
-    if (intr.width, intr.height) != (depth.shape[1], depth.shape[0]):
-        intr = dataclasses.replace(intr, width=depth.shape[1], height=depth.shape[0])
-    return dataclasses.replace(frame, rgb=rgb, depth=np.ascontiguousarray(depth), intrinsics=intr)
 
 
 class ResolutionGovernor:

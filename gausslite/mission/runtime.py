@@ -216,6 +216,10 @@ class AgentRuntime:
         #: frames that did not become keyframes since the last one (oldest first, bounded): the mapper records the
         #: camera's motion through them and, under ``mapper.roi_views``, keeps their ROI crops
         self._between: "deque" = deque(maxlen=BETWEEN_MAX)
+        m = config.mapper
+        #: the mapper uses the frames between keyframes: their ROI crops (decoded), or only their motion
+        self._keeps_views = m.roi_views.enabled and m.effective().roi
+        self._uses_between = self._keeps_views or m.sensor.motion_every_frame
         self.frames_skipped = 0
         self.frames_rejected = 0
         self.keyframe_iterations = 0
@@ -276,10 +280,11 @@ class AgentRuntime:
                 self.intrinsics = intr
             if self._online:
                 pending, replaced = self.selector.offer((frame, t_arr), frame.c2w, t_arr)
-                if replaced is not None:
-                    self._between.append(replaced[0])
-                if not pending:
-                    self._between.append(frame)
+                if self._uses_between:
+                    if replaced is not None:
+                        self._between.append(replaced[0])
+                    if not pending:
+                        self._between.append(frame)
                 self.frames_received += 1
                 self.frames_skipped += int(not pending) + int(replaced is not None)
                 if pending and replaced is None:
@@ -575,7 +580,7 @@ class AgentRuntime:
         # lazy: keeps gausslite.mission.runtime importable without OpenCV
         import cv2
 
-        from gausslite.mapping.resolution import downscale_frame
+        from gausslite.datasets.common import downscale_frame
 
         up = downscale_frame(native, self._upload_factor)
         wu = cv2.resize(np.asarray(w, np.uint8), (up.intrinsics.width, up.intrinsics.height),
@@ -592,8 +597,7 @@ class AgentRuntime:
             rest = [f for f in self._between if f.frame_id > frame_id]
             self._between.clear()
             self._between.extend(rest)
-        m = self.config.mapper
-        if not (m.roi_views.enabled and m.effective().roi):
+        if not self._keeps_views:
             return taken
         out = []
         for f in taken:
@@ -834,7 +838,6 @@ class AgentRuntime:
         # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.datasets.subset import ScaledFrames
         from gausslite.evaluation import score_live_map
-        from gausslite.mapping.resolution import downscale_frame
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
             return {}
@@ -843,7 +846,7 @@ class AgentRuntime:
         if self._novel_ids is None:
             chosen = tuple(p for p in chosen if p != "novel")
         # scored at the mapping resolution: the map's own detail, and minutes instead of tens of minutes at 640x480
-        frames = ScaledFrames(self._dataset, self.resolution.factor, downscale_frame)
+        frames = ScaledFrames(self._dataset, self.resolution.factor)
         return score_live_map(self.mapper, frames, task_roi(self.annotations, self.task_id), chosen,
                               track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids)
 
