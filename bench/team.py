@@ -56,7 +56,7 @@ from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, FrameSubset, evaluate_
                                   withheld_indices)
 from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
-from gausslite.fusion.refine import refine_map
+from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.mapping.views import keyframe_from_frame
 from gausslite.core.arrays import GaussianArrays
@@ -172,6 +172,10 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
                 "pushes": len(pu.pushes), "last_error": rt.last_error, "total_upload_bytes": int(pu.total_upload_bytes),
                 "final_subset_bytes": int(pu.final_subset_bytes),
+                # the views sent for the refinement (agent.refine_views), beside the subset's bytes
+                "view_bytes": int(pu.views.sent_bytes), "views_sent": int(pu.views.sent),
+                "views_unsent": pu.views_unsent(),
+                "view_ratio": pu.views.sent_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
                 "upload_ratio": pu.total_upload_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
                 "bytes_per_gaussian": (pu.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
@@ -220,13 +224,19 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
     out = {"timeline": timeline}
     vote, report = voxel_vote(final, fuse["voxel_size"], contest_radius=fuse["contest_radius"])
     kfs = [k for a in agents for k in a["_keyframes"]]
+    sources = [a["id"] for a in agents for _ in a["_keyframes"]]  # held-out views spread over the robots
+    records = {"refine": RefineReport(), "refine_long": RefineReport()}
     maps = {"concat": concat(final), "vote": vote,
             "vote_r1": voxel_vote(final, fuse["voxel_size"], contest_radius=1)[0],
-            "refine": refine_map(vote, kfs, fuse["refine_iters"], seed=seed) if kfs else vote,
-            "refine_long": refine_map(vote, kfs, LONG_REFINE_ITERS, seed=seed, per_view_iters=0) if kfs else vote}
+            "refine": refine_map(vote, kfs, fuse["refine_iters"], seed=seed, sources=sources,
+                                 report=records["refine"]) if kfs else vote,
+            "refine_long": refine_map(vote, kfs, LONG_REFINE_ITERS, seed=seed, per_view_iters=0, sources=sources,
+                                      report=records["refine_long"]) if kfs else vote}
     for key in FUSED_KEYS:
         g = maps[key].to_gaussian_map()
         out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}
+        if key in records:  # the refinement's held-out record: views, iterations run, early stop, rollback
+            out[key]["refine_record"] = records[key].as_dict() if kfs else None
         out[key]["protocols"] = _by_task({a["task"]: by_protocol(g, a, out[key]["roi_psnr"][a["task"]])
                                           for a in agents})
     # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot

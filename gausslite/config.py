@@ -77,6 +77,40 @@ class SimConfig(BaseModel):
     timeout_s: float = Field(1800.0, gt=0)
 
 
+class TeamMapSettings(BaseModel):
+    """The team map the fusion server keeps refined while the team maps (the ``fusion.team_map`` section;
+    docs/sharing.md#the-team-map-while-the-team-maps).
+
+    Whenever an agent's latest subset or the server's keyframes change, the server waits ``settle_s`` (uploads come
+    in bursts), then votes the latest subsets and refines the vote over every agent's uploaded views, validated on
+    views it holds out (``refine_validation``), in a background thread at niceness ``nice``; one refinement at a time
+    across every replica on the store, at most one start every ``min_interval_s``. Uploads and reads never wait for
+    it. ``Fuse`` with ``team_map`` serves its latest complete version at once.
+
+    Attributes:
+        enabled: keep the team map refined (needs the refinement's extra, ``mapper``).
+        refine_iters: the refinement's iterations at most (fewer over few views, and it stops early).
+        settle_s: seconds without a new upload before a refinement starts.
+        min_interval_s: seconds between the starts of two refinements.
+        nice: niceness of the refinement thread (0-19): the handler threads keep the cores.
+        voxel_size: the vote's δ in metres (None: ``default_voxel_size``).
+        contest_radius: the vote's neighbourhood in voxels (None: ``default_contest_radius``).
+        seed: the refinement's seed.
+        keep: team-map versions kept (they have their own retention, apart from the ``Fuse`` results).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = False
+    refine_iters: int = Field(300, ge=1)
+    settle_s: float = Field(1.0, ge=0)
+    min_interval_s: float = Field(5.0, ge=0)
+    nice: int = Field(10, ge=0, le=19)
+    voxel_size: Optional[float] = Field(None, gt=0)
+    contest_radius: Optional[int] = Field(None, ge=0, le=8)
+    seed: int = 0
+    keep: int = Field(4, ge=1)
+
+
 class FusionSettings(BaseModel):
     """The fusion server's settings (the ``fusion`` section; ``gausslite_services.fusion_server`` serves with them).
 
@@ -130,6 +164,7 @@ class FusionSettings(BaseModel):
             milliseconds between messages).
         max_upload_streams_per_caller (int): upload streams in progress at once per caller (authenticated agent id,
             else peer host); beyond it RESOURCE_EXHAUSTED, so one client cannot take every upload slot.
+        team_map (TeamMapSettings): the team map kept refined in the background (off by default).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -159,6 +194,7 @@ class FusionSettings(BaseModel):
     max_upload_streams: int = Field(8, ge=1)
     stream_evict_idle_s: float = Field(1.0, gt=0)
     max_upload_streams_per_caller: int = Field(2, ge=1)
+    team_map: TeamMapSettings = Field(default_factory=TeamMapSettings)
 
     @classmethod
     def from_file(cls, path: str | Path) -> "FusionSettings":

@@ -273,9 +273,12 @@ def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarr
 
 
 def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
-                     pose: Optional[np.ndarray] = None) -> RenderOutput:
+                     pose: Optional[np.ndarray] = None, given: Optional[TrackedView] = None,
+                     record: Optional[dict] = None) -> RenderOutput:
     """The render a protocol scores a frame by (:func:`score_live_map`); ``pose``: a ``keyframes`` view's own pose
-    (rendered as is, identity exposure) instead of the mapper's refined one."""
+    (rendered as is, identity exposure) instead of the mapper's refined one; ``given``: a ``tracked`` or ``novel``
+    view's pose and exposure fitted against another map (rendered as is, not tracked); ``record``: frame id → the
+    :class:`TrackedView` of each ``tracked`` / ``novel`` frame, filled."""
     intr = frame.intrinsics
     if protocol == "keyframes" and pose is not None:
         with torch.no_grad():
@@ -284,9 +287,13 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
     if protocol in ("sensor", "keyframes"):
         return mapper.render_frame(frame)
     # tracked and novel: a pose and exposure fitted to the frame against the frozen map
-    exposure = mapper.sensor.exposure
-    theta0 = exposure.of(frame.frame_id) if exposure is not None else None
-    tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
+    tv = given
+    if tv is None:
+        exposure = mapper.sensor.exposure
+        theta0 = exposure.of(frame.frame_id) if exposure is not None else None
+        tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
+    if record is not None:
+        record[int(frame.frame_id)] = tv
     with torch.no_grad():
         out = mapper.sensor.render_view(tv.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
         th = torch.tensor(tv.theta, dtype=torch.float32, device=out.color.device)
@@ -297,7 +304,8 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
                    protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
                    keyframe_ids: Optional[Iterable[int]] = None,
                    keyframe_poses: Optional[Mapping[int, np.ndarray]] = None,
-                   novel_ids: Optional[Iterable[int]] = None) -> dict:
+                   novel_ids: Optional[Iterable[int]] = None, views: Optional[Mapping[int, TrackedView]] = None,
+                   record: Optional[dict] = None) -> dict:
     """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
     every mode (docs/realtime.md#scoring-protocols):
 
@@ -320,6 +328,12 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         track_stride: ``tracked`` scores every this many frames. keyframe_ids / keyframe_poses: see ``keyframes``.
         novel_ids: frame ids withheld from the mapper (:func:`withheld_indices`, :class:`FrameSubset`); needed by
             ``novel``.
+        views: frame id → a :class:`TrackedView` fitted against another map (e.g. the robot's own map, when scoring a
+            team map at the views its robot localises): ``tracked`` and ``novel`` frames with an entry are rendered
+            at its pose and exposure instead of being tracked against this map. Both maps are then scored at the
+            same views: their difference is what they render, not how well each one tracks.
+        record: filled with frame id → the :class:`TrackedView` of every ``tracked`` and ``novel`` frame scored (the
+            ``views`` of another map's scoring).
     Returns:
         ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``: means over the scored frames
         (ROI PSNR over those that show the ROI; None when none does).
@@ -354,8 +368,9 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
             chosen = (frames[i] for i in range(0, n, track_stride if protocol == "tracked" else 1))
         ps, ss, rps = [], [], []
         for fr in chosen:
-            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, poses.get(int(fr.frame_id))), fr,
-                           roi_fn(fr))
+            given = None if views is None or protocol not in ("tracked", "novel") else views.get(int(fr.frame_id))
+            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, poses.get(int(fr.frame_id)), given,
+                                            record), fr, roi_fn(fr))
             ps.append(s.psnr)
             ss.append(s.ssim)
             if not math.isnan(s.roi_psnr):
@@ -385,7 +400,7 @@ def frozen_mapper(gmap, backend: str = "auto"):
 def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
               protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
               keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto",
-              novel_ids: Optional[Iterable[int]] = None) -> dict:
+              novel_ids: Optional[Iterable[int]] = None, views: Optional[Mapping[int, TrackedView]] = None) -> dict:
     """Score a frozen map that has no mission of its own (a fused team map) under the scoring protocols, as
     :func:`score_live_map` scores a robot's own map (docs/realtime.md#scoring-protocols):
 
@@ -398,7 +413,9 @@ def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarra
 
     Args:
         gmap: ``GaussianMap`` (torch, CPU). frames: ground-truth frames. roi_fn: frame → (H, W) bool ROI mask.
-        protocols, track_iters, track_stride, novel_ids: as :func:`score_live_map`. backend: rasterizer backend.
+        protocols, track_iters, track_stride, novel_ids, views: as :func:`score_live_map` (``views``: the poses and
+            exposures the robot's own map was tracked at, to score a team map at the robot's views).
+        backend: rasterizer backend.
     Returns:
         ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (None figures for an empty map).
     Raises:
@@ -412,4 +429,5 @@ def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarra
         return {p: {"roi_psnr": None, "psnr": None, "ssim": None, "frames_scored": 0, "roi_frames": 0}
                 for p in protocols}
     return score_live_map(frozen_mapper(gmap, backend), frames, roi_fn, protocols, track_iters=track_iters,
-                          track_stride=track_stride, keyframe_poses=keyframe_poses or {}, novel_ids=novel_ids)
+                          track_stride=track_stride, keyframe_poses=keyframe_poses or {}, novel_ids=novel_ids,
+                          views=views)

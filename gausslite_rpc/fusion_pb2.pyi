@@ -150,7 +150,7 @@ class KeyframeAck(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., received: _Optional[int] = ..., stored: _Optional[int] = ..., duplicates: _Optional[int] = ..., evicted: _Optional[int] = ..., buffered: _Optional[int] = ...) -> None: ...
 
 class FuseRequest(_message.Message):
-    __slots__ = ("method", "voxel_size", "refine", "refine_iters", "seed", "contest_radius", "for_agent")
+    __slots__ = ("method", "voxel_size", "refine", "refine_iters", "seed", "contest_radius", "for_agent", "team_map")
     METHOD_FIELD_NUMBER: _ClassVar[int]
     VOXEL_SIZE_FIELD_NUMBER: _ClassVar[int]
     REFINE_FIELD_NUMBER: _ClassVar[int]
@@ -158,6 +158,7 @@ class FuseRequest(_message.Message):
     SEED_FIELD_NUMBER: _ClassVar[int]
     CONTEST_RADIUS_FIELD_NUMBER: _ClassVar[int]
     FOR_AGENT_FIELD_NUMBER: _ClassVar[int]
+    TEAM_MAP_FIELD_NUMBER: _ClassVar[int]
     method: FuseMethod
     voxel_size: float
     refine: bool
@@ -165,7 +166,34 @@ class FuseRequest(_message.Message):
     seed: int
     contest_radius: int
     for_agent: str
-    def __init__(self, method: _Optional[_Union[FuseMethod, str]] = ..., voxel_size: _Optional[float] = ..., refine: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., seed: _Optional[int] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ...) -> None: ...
+    team_map: bool
+    def __init__(self, method: _Optional[_Union[FuseMethod, str]] = ..., voxel_size: _Optional[float] = ..., refine: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., seed: _Optional[int] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ..., team_map: _Optional[bool] = ...) -> None: ...
+
+class RefineRecord(_message.Message):
+    __slots__ = ("iters_requested", "iters_planned", "iters_run", "train_views", "heldout_views", "validated", "vote_loss", "best_loss", "best_iter", "stopped_early", "rolled_back")
+    ITERS_REQUESTED_FIELD_NUMBER: _ClassVar[int]
+    ITERS_PLANNED_FIELD_NUMBER: _ClassVar[int]
+    ITERS_RUN_FIELD_NUMBER: _ClassVar[int]
+    TRAIN_VIEWS_FIELD_NUMBER: _ClassVar[int]
+    HELDOUT_VIEWS_FIELD_NUMBER: _ClassVar[int]
+    VALIDATED_FIELD_NUMBER: _ClassVar[int]
+    VOTE_LOSS_FIELD_NUMBER: _ClassVar[int]
+    BEST_LOSS_FIELD_NUMBER: _ClassVar[int]
+    BEST_ITER_FIELD_NUMBER: _ClassVar[int]
+    STOPPED_EARLY_FIELD_NUMBER: _ClassVar[int]
+    ROLLED_BACK_FIELD_NUMBER: _ClassVar[int]
+    iters_requested: int
+    iters_planned: int
+    iters_run: int
+    train_views: int
+    heldout_views: int
+    validated: bool
+    vote_loss: float
+    best_loss: float
+    best_iter: int
+    stopped_early: bool
+    rolled_back: bool
+    def __init__(self, iters_requested: _Optional[int] = ..., iters_planned: _Optional[int] = ..., iters_run: _Optional[int] = ..., train_views: _Optional[int] = ..., heldout_views: _Optional[int] = ..., validated: _Optional[bool] = ..., vote_loss: _Optional[float] = ..., best_loss: _Optional[float] = ..., best_iter: _Optional[int] = ..., stopped_early: _Optional[bool] = ..., rolled_back: _Optional[bool] = ...) -> None: ...
 
 class AgentContribution(_message.Message):
     __slots__ = ("agent_id", "map_version", "received", "kept", "first_row")
@@ -182,7 +210,7 @@ class AgentContribution(_message.Message):
     def __init__(self, agent_id: _Optional[str] = ..., map_version: _Optional[int] = ..., received: _Optional[int] = ..., kept: _Optional[int] = ..., first_row: _Optional[int] = ...) -> None: ...
 
 class FuseResult(_message.Message):
-    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental", "contest_radius", "for_agent")
+    __slots__ = ("fused_version", "n_gaussians", "seconds", "agents", "method", "refined", "refine_iters", "voxel_size", "keyframes_used", "bytes", "created_unix", "vote_seconds", "agents_revoted", "incremental", "contest_radius", "for_agent", "refine_record", "team_map", "age_s", "team_map_current", "keyframes_seen")
     FUSED_VERSION_FIELD_NUMBER: _ClassVar[int]
     N_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
     SECONDS_FIELD_NUMBER: _ClassVar[int]
@@ -199,6 +227,11 @@ class FuseResult(_message.Message):
     INCREMENTAL_FIELD_NUMBER: _ClassVar[int]
     CONTEST_RADIUS_FIELD_NUMBER: _ClassVar[int]
     FOR_AGENT_FIELD_NUMBER: _ClassVar[int]
+    REFINE_RECORD_FIELD_NUMBER: _ClassVar[int]
+    TEAM_MAP_FIELD_NUMBER: _ClassVar[int]
+    AGE_S_FIELD_NUMBER: _ClassVar[int]
+    TEAM_MAP_CURRENT_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_SEEN_FIELD_NUMBER: _ClassVar[int]
     fused_version: int
     n_gaussians: int
     seconds: float
@@ -215,7 +248,12 @@ class FuseResult(_message.Message):
     incremental: bool
     contest_radius: int
     for_agent: str
-    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ..., vote_seconds: _Optional[float] = ..., agents_revoted: _Optional[int] = ..., incremental: _Optional[bool] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ...) -> None: ...
+    refine_record: RefineRecord
+    team_map: bool
+    age_s: float
+    team_map_current: bool
+    keyframes_seen: int
+    def __init__(self, fused_version: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., seconds: _Optional[float] = ..., agents: _Optional[_Iterable[_Union[AgentContribution, _Mapping]]] = ..., method: _Optional[_Union[FuseMethod, str]] = ..., refined: _Optional[bool] = ..., refine_iters: _Optional[int] = ..., voxel_size: _Optional[float] = ..., keyframes_used: _Optional[int] = ..., bytes: _Optional[int] = ..., created_unix: _Optional[float] = ..., vote_seconds: _Optional[float] = ..., agents_revoted: _Optional[int] = ..., incremental: _Optional[bool] = ..., contest_radius: _Optional[int] = ..., for_agent: _Optional[str] = ..., refine_record: _Optional[_Union[RefineRecord, _Mapping]] = ..., team_map: _Optional[bool] = ..., age_s: _Optional[float] = ..., team_map_current: _Optional[bool] = ..., keyframes_seen: _Optional[int] = ...) -> None: ...
 
 class FuseProgress(_message.Message):
     __slots__ = ("stage", "fraction", "message", "done", "result")

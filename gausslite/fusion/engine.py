@@ -182,17 +182,25 @@ class FuseEngine:
         else:
             raise ValueError(f"unknown fuse method {method!r} (use 'vote' or 'concat')")
         if refine_iters:
-            self._refine(out, keyframes, refine_iters, seed, emit, end)
+            self.refine(out, keyframes, refine_iters, seed, emit, end)
         out.seconds = time.monotonic() - t0
         return out
 
-    def _refine(self, out: FuseOutcome, keyframes: Callable[[], KeyframePool], iters: int, seed: int, emit: StageFn,
-                start: float) -> None:
-        """Refine ``out.fused`` in place over ``keyframes()`` (:func:`gausslite.fusion.refine.refine_map` with
-        :attr:`refine_options`), progress from ``start`` to 0.9; fills ``out.keyframes_used`` and
-        ``out.refine_report`` and logs the report. Raises ValueError without keyframes."""
+    def refine(self, out: FuseOutcome, keyframes: Callable[[], KeyframePool], iters: int, seed: int = 0,
+               emit: Optional[StageFn] = None, start: float = 0.3, options: Optional[dict] = None) -> None:
+        """Refine ``out.fused`` (a vote's or concat's outcome) over ``keyframes()``
+        (:func:`gausslite.fusion.refine.refine_map` with :attr:`refine_options`, at most ``iters`` iterations, seed
+        ``seed``), progress from ``start`` to 0.9 through ``emit``; fills ``out.keyframes_used`` and
+        ``out.refine_report`` and logs the report. ``options`` go to ``refine_map`` over :attr:`refine_options`.
+        Touches no state of the engine (the kept vote), so it may run outside the lock that guards :meth:`fuse`.
+
+        Raises:
+            ValueError: no keyframes.
+        """
+        emit = emit or (lambda stage, fraction, message: None)
         # lazy: keeps gausslite.fusion.engine importable without OpenCV, SciPy, Warp, torch
         from gausslite.fusion.refine import refine_map
+        from gausslite.mapping.config import deep_merge
 
         kfs, sources = _pool(keyframes())
         if not kfs:
@@ -202,7 +210,7 @@ class FuseEngine:
              "iterations")
         out.first_row = None
         report = RefineReport()
-        options = dict(self.refine_options)
+        options = deep_merge(dict(self.refine_options), dict(options or {}))
         if sources is not None:
             options.setdefault("sources", sources)
         out.fused = refine_map(out.fused, kfs, iters, seed=seed, report=report, **options,

@@ -78,6 +78,35 @@ class ResolutionConfig(BaseModel):
         return None if self.downscale == "auto" else float(self.downscale)
 
 
+class RefineViewsConfig(BaseModel):
+    """The views an agent sends for the fusion server's joint refinement (``agent.refine_views`` in YAML;
+    :mod:`gausslite.fusion.views`, docs/sharing.md#the-views-the-refinement-fits).
+
+    Attributes:
+        crop: send the crop around the task ROI of each keyframe (``margin_px`` around the ROI's box) instead of
+            the whole keyframe: the refinement fits ROI pixels only, so a crop carries what it needs in a fraction
+            of the bytes. A keyframe without ROI pixels is then not sent.
+        margin_px: pixels around the ROI's bounding box in a crop.
+        between: a live mission also offers crops of the frames it sees between keyframes (their ROI is the
+            keyframe's carried over by depth, :func:`gausslite.fusion.views.region_points`); every ``between_every``-th
+            of them.
+        between_every: see ``between``.
+        budget_ratio: the bytes of all views sent over a mission are at most this multiple of the latest shared
+            subset's bytes (:class:`gausslite.fusion.views.ViewBudget`; the farthest views first when it is short);
+            null = no bound.
+        min_roi_px: a view whose ROI has fewer pixels is not offered.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    crop: bool = False
+    margin_px: int = Field(8, ge=0)
+    between: bool = False
+    between_every: int = Field(2, ge=1)
+    budget_ratio: Optional[float] = Field(None, gt=0)
+    min_roi_px: int = Field(64, ge=1)
+
+
 class OnnxRelevanceConfig(BaseModel):
     """ONNX attention backends of the agent (``agent.onnx`` in YAML; paper Sec. III-B).
 
@@ -205,6 +234,9 @@ class AgentConfig(BaseModel):
             map's rendered depth, since the map is being optimised meanwhile).
         scoring: how Finish scores a replayed mission's final map over every frame (:class:`ScoringConfig`; also
             the protocols the simulation scores the fused maps under).
+        resolution: the live mapping resolution (:class:`ResolutionConfig`).
+        refine_views: the views sent for the fusion refinement (:class:`RefineViewsConfig`): ROI crops, frames
+            between keyframes, the byte budget.
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 
@@ -257,6 +289,7 @@ class AgentConfig(BaseModel):
     relevance_max_wait_s: Optional[float] = Field(None, ge=0)
     scoring: ScoringConfig = ScoringConfig()
     resolution: ResolutionConfig = ResolutionConfig()
+    refine_views: RefineViewsConfig = RefineViewsConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 

@@ -28,6 +28,7 @@ from typing import Any, Callable, List, Optional
 
 import numpy as np
 
+from gausslite.fusion.views import ViewBudget, roi_crop, view_bytes
 from gausslite.mission.errors import PreconditionFailed
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.heap import trim_heap
@@ -120,6 +121,8 @@ class Pusher:
         self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
         self._kf_pending: list = []  # frames to upload with the next push
         self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
+        #: bytes of the refinement views sent over the mission, bounded by agent.refine_views.budget_ratio
+        self.views = ViewBudget(config.refine_views.budget_ratio)
         self.thread = threading.Thread(target=self._loop, name=f"agent-{agent_id}-push", daemon=True)
 
     def start(self) -> None:
@@ -148,10 +151,16 @@ class Pusher:
             self._cv.notify_all()
             return self._version
 
-    def add_keyframe(self, frame, roi: Optional[np.ndarray]) -> None:
-        """Upload ``frame`` (with its (H, W) bool relevance ``roi``, or None) with the next push; only the newest
-        ``max_keyframes`` wait."""
-        keep = self.config.max_keyframes
+    def add_keyframe(self, frame, roi: Optional[np.ndarray]) -> bool:
+        """Upload ``frame`` (with its (H, W) bool relevance ``roi``, or None) with the next push, as a refinement
+        view: whole, or its ROI crop with ``agent.refine_views.crop`` (:func:`gausslite.fusion.views.roi_crop`; a
+        frame whose ROI has fewer than ``refine_views.min_roi_px`` pixels is then dropped). Only the newest
+        ``max_keyframes`` wait. Returns whether the view was queued."""
+        keep, rv = self.config.max_keyframes, self.config.refine_views
+        if rv.crop:
+            if roi is None or int(np.count_nonzero(roi)) < rv.min_roi_px:
+                return False
+            frame, roi = roi_crop(frame, roi, rv.margin_px)
         with self._lock:
             self._kf_pending.append(frame)
             if roi is not None:
@@ -159,6 +168,7 @@ class Pusher:
             for old in self._kf_pending[:-keep]:
                 self._kf_roi.pop(id(old), None)
             del self._kf_pending[:-keep]
+        return True
 
     def status(self) -> dict:
         """The push keys of ``MissionStatus``: pushes, failures, last acknowledged and newest versions, backlog,
@@ -307,21 +317,39 @@ class Pusher:
         return frame if E is None else dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E)
 
     def _upload_pending_keyframes(self, c: FusionPort) -> tuple[list, int]:
-        """Upload the keyframes not yet sent (with their ROI); returns (keyframes sent, count acknowledged)."""
+        """Upload the keyframes not yet sent (with their ROI) that the view budget allows (:attr:`views`: the
+        farthest first; the others wait for a larger subset); returns (keyframes sent, count acknowledged)."""
+        cfg = self.config
         with self._lock:
-            kfs = list(self._kf_pending)
-            rois = [self._kf_roi.get(id(f)) for f in kfs]
+            waiting = list(self._kf_pending)
+            rois = [self._kf_roi.get(id(f)) for f in waiting]
+        if not waiting:
+            return [], 0
+        refined = [self._refined(f) for f in waiting]
+        sizes = [view_bytes(f, r, cfg.keyframe_format, cfg.jpeg_quality) for f, r in zip(waiting, rois)]
+        before = dataclasses.replace(self.views, poses=list(self.views.poses))
+        chosen = self.views.choose(sizes, [f.c2w for f in refined], self.final_subset_bytes)
+        kfs = [waiting[i] for i in chosen]
         n_kf = 0
         if kfs:
-            n_kf = int(c.upload_keyframes(self.agent_id, [self._refined(f) for f in kfs],
-                                          jpeg_quality=self.config.jpeg_quality,
-                                          color_format=self.config.keyframe_format, rois=rois) or 0)
+            try:
+                n_kf = int(c.upload_keyframes(self.agent_id, [refined[i] for i in chosen],
+                                              jpeg_quality=cfg.jpeg_quality, color_format=cfg.keyframe_format,
+                                              rois=[rois[i] for i in chosen]) or 0)
+            except Exception:
+                self.views = before  # nothing of this upload counts as sent
+                raise
             with self._lock:
                 sent = {id(f) for f in kfs}
                 self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
                 for i in sent:
                     self._kf_roi.pop(i, None)
         return kfs, n_kf
+
+    def views_unsent(self) -> int:
+        """Refinement views queued and never sent (the budget was short, or the link down)."""
+        with self._lock:
+            return len(self._kf_pending)
 
     def set_task(self, task_text: str) -> None:
         """The mission's task changed: the next push re-opens the fusion session under ``task_text``."""

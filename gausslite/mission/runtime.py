@@ -79,10 +79,19 @@ class MissionSummaryData:
     total_upload_bytes: int = 0
     final_subset_bytes: int = 0
     pushes: List[dict] = field(default_factory=list)
+    #: the views sent for the fusion refinement (``agent.refine_views``): bytes on the wire, views sent, views unsent
+    view_bytes: int = 0
+    views_sent: int = 0
+    views_unsent: int = 0
+    #: replays: frame id → :class:`gausslite.evaluation.TrackedView` of each ``tracked`` / ``novel`` frame scored
+    tracked_views: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        """JSON-ready dict."""
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """JSON-ready dict (``tracked_views``: frame id → ``{"c2w": 4 × 4 list, "exposure": 6 floats}``)."""
+        out = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        out["tracked_views"] = {int(i): {"c2w": np.asarray(v.c2w).tolist(), "exposure": np.asarray(v.theta).tolist()}
+                                for i, v in self.tracked_views.items()}
+        return out
 
 
 _FINISH = object()
@@ -186,6 +195,8 @@ class AgentRuntime:
                                              rc.tolerance)
         self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
         self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (scoring: novel)
+        #: frame id → TrackedView of the tracked / novel frames of the last scoring (a team map is scored at them)
+        self.tracked_views: dict = {}
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
         self._finish_lock = threading.Lock()
@@ -217,8 +228,10 @@ class AgentRuntime:
         #: camera's motion through them and, under ``mapper.roi_views``, keeps their ROI crops
         self._between: "deque" = deque(maxlen=BETWEEN_MAX)
         m = config.mapper
-        #: the mapper uses the frames between keyframes: their ROI crops (decoded), or only their motion
-        self._keeps_views = m.roi_views.enabled and m.effective().roi
+        #: the frames between keyframes are used: decoded for their ROI crops (the mapper's ROI views, the views sent
+        #: for the fusion refinement), or only for their motion
+        self._sends_between = config.refine_views.crop and config.refine_views.between
+        self._keeps_views = (m.roi_views.enabled and m.effective().roi) or self._sends_between
         self._uses_between = self._keeps_views or m.sensor.motion_every_frame
         self.frames_skipped = 0
         self.frames_rejected = 0
@@ -551,6 +564,8 @@ class AgentRuntime:
                 self._eval_frames.append(item)
         if upload:
             self.pusher.add_keyframe(*self._upload_view(native, item, w))
+        if self._sends_between and between:
+            self._offer_between_views(item, w, between)
         log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
                   item.frame_id, st.n_gaussians, self.n_active, st.seconds)
         if self.frames_mapped % cfg.push_every == 0:
@@ -586,6 +601,29 @@ class AgentRuntime:
         wu = cv2.resize(np.asarray(w, np.uint8), (up.intrinsics.width, up.intrinsics.height),
                         interpolation=cv2.INTER_NEAREST) > 0
         return up, wu
+
+    def _offer_between_views(self, keyframe: Frame, w: np.ndarray, frames: list) -> int:
+        """Offer the pusher the ROI crops of every ``refine_views.between_every``-th of ``frames`` (decoded frames
+        between the previous keyframe and ``keyframe``, at the mapping resolution) that see the task region: the
+        keyframe's ROI ``w`` carried over by depth (:func:`gausslite.fusion.views.region_points`,
+        :func:`gausslite.mapping.roi_views.project_roi`). Nothing while the mapping resolution differs from the
+        uploads' (the fusion session keeps one image size). Returns the views queued."""
+        if self._upload_factor is not None and self._upload_factor != self.resolution.factor:
+            return 0
+        # lazy: keeps gausslite.mission.runtime importable without OpenCV
+        from gausslite.fusion.views import region_points
+        from gausslite.mapping.roi_views import project_roi
+
+        pts = region_points(keyframe, np.asarray(w) > 0)
+        if len(pts) == 0:
+            return 0
+        queued = 0
+        for fr in frames[::self.config.refine_views.between_every]:
+            if not isinstance(fr, Frame):
+                continue
+            roi = project_roi(pts, np.asarray(fr.depth, np.float32), fr.intrinsics.K, fr.c2w)
+            queued += int(self.pusher.add_keyframe(fr, roi))
+        return queued
 
     def _take_between(self, frame_id: int) -> list:
         """The frames seen before keyframe ``frame_id`` since the last keyframe (oldest first), for
@@ -783,7 +821,8 @@ class AgentRuntime:
             roi_psnr_all_frames=roi_all, frames_all=len(self._dataset) if self._dataset is not None else 0,
             protocols=protocols,
             total_upload_bytes=pusher.total_upload_bytes, final_subset_bytes=pusher.final_subset_bytes,
-            pushes=[dict(p.__dict__) for p in pusher.pushes])
+            pushes=[dict(p.__dict__) for p in pusher.pushes], view_bytes=pusher.views.sent_bytes,
+            views_sent=pusher.views.sent, views_unsent=pusher.views_unsent(), tracked_views=dict(self.tracked_views))
         if self.on_finished is not None:
             try:
                 self.on_finished(self)
@@ -847,8 +886,10 @@ class AgentRuntime:
             chosen = tuple(p for p in chosen if p != "novel")
         # scored at the mapping resolution: the map's own detail, and minutes instead of tens of minutes at 640x480
         frames = ScaledFrames(self._dataset, self.resolution.factor)
+        self.tracked_views = {}
         return score_live_map(self.mapper, frames, task_roi(self.annotations, self.task_id), chosen,
-                              track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids)
+                              track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids,
+                              record=self.tracked_views)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import grpc
+import numpy as np
 from pydantic import ValidationError
 
 from gausslite.datasets import load_dataset
@@ -47,7 +48,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.parser import TaskParser
-from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
+from gausslite_rpc import agent_pb2, agent_pb2_grpc, common_pb2, parser_pb2, parser_pb2_grpc
 from gausslite_services.agent.frames import FrameError, decode_frame, validate_frame
 from gausslite_services.agent.metrics import agent_registry
 from gausslite_services.common.auth import read_secret
@@ -484,7 +485,11 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             seconds_per_frame=s.seconds_per_frame, has_roi_psnr_all_frames=s.roi_psnr_all_frames is not None,
             roi_psnr_all_frames=s.roi_psnr_all_frames or 0.0, frames_all=s.frames_all,
             total_upload_bytes=s.total_upload_bytes,
-            final_subset_bytes=s.final_subset_bytes,
+            final_subset_bytes=s.final_subset_bytes, view_bytes=s.view_bytes, views_sent=s.views_sent,
+            views_unsent=s.views_unsent,
+            tracked_views=[agent_pb2.TrackedPose(frame_id=int(i), pose=common_pb2.Pose(
+                c2w=np.asarray(v.c2w, np.float64).reshape(-1).tolist()), exposure=np.asarray(v.theta).tolist())
+                for i, v in sorted(s.tracked_views.items())],
             pushes=[agent_pb2.PushInfo(version=p["version"], n_shared=p["n_shared"], n_total=p["n_total"],
                                        bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
                                        removed=p["removed"], frames_mapped=p["frames_mapped"],

@@ -206,6 +206,12 @@ class FuseResult:
             empty for a refined map (the refinement splits, clones and prunes rows).
         vote_seconds (float): wall time of the vote stage alone (s; 0 for concat). agents_revoted (int): agents whose
         subset changed since the server's last vote. incremental (bool): the vote re-used the server's voted map.
+        refine_record (dict): refined maps: what the refinement did (``RefineRecord``: iterations requested, planned
+            and run, training and held-out views, held-out losses of the vote and of the best state, best iteration,
+            early stop, rollback to the vote); empty otherwise.
+        team_map (bool): made by the server's background refinement (``fuse(team_map=True)``).
+        age_s (float): served maps: seconds since it was made. team_map_current (bool): a team map made from the
+            server's latest subsets and keyframes. keyframes_seen (int): team map: keyframes held when it was made.
     """
 
     fused_version: int
@@ -226,6 +232,11 @@ class FuseResult:
     vote_seconds: float = 0.0
     agents_revoted: int = 0
     incremental: bool = False
+    refine_record: Dict[str, object] = field(default_factory=dict)
+    team_map: bool = False
+    age_s: float = 0.0
+    team_map_current: bool = False
+    keyframes_seen: int = 0
 
 
 def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
@@ -241,6 +252,10 @@ def fuse_result_from_proto(r: "fusion_pb2.FuseResult") -> FuseResult:
         for_agent=str(r.for_agent), vote_seconds=float(r.vote_seconds), agents_revoted=int(r.agents_revoted),
         incremental=bool(r.incremental),
         first_row={a.agent_id: int(a.first_row) for a in r.agents if a.HasField("first_row")},
+        refine_record=({f.name: getattr(r.refine_record, f.name) for f in r.refine_record.DESCRIPTOR.fields}
+                       if r.HasField("refine_record") else {}),
+        team_map=bool(r.team_map), age_s=float(r.age_s), team_map_current=bool(r.team_map_current),
+        keyframes_seen=int(r.keyframes_seen),
     )
 
 
@@ -514,7 +529,7 @@ class FusionClient:
     def fuse(self, method: str = "vote", *, refine: bool = False, refine_iters: int = 200,
              voxel_size: float = 0.10, progress: Optional[Callable[[float, str], None]] = None,
              seed: int = 0, timeout_s: Optional[float] = None, contest_radius: Optional[int] = None,
-             for_agent: Optional[str] = None) -> FuseResult:
+             for_agent: Optional[str] = None, team_map: bool = False) -> FuseResult:
         """Run a fusion on the server and wait for its result (not retried: each call makes a version).
 
         Args:
@@ -531,6 +546,9 @@ class FusionClient:
             for_agent (str | None): vote only: the team map as this agent uses it, its whole subset and the others'
                 voted rows except those that draw its ROI in its uploaded ROI keyframes
                 (:func:`gausslite.fusion.guard.for_robot`, ``docs/sharing.md``); None = the team map.
+            team_map (bool): no fusion: the team map the server keeps refined in the background (``fusion.team_map``),
+                its newest complete version at once, with ``age_s`` and ``team_map_current``; the other arguments
+                are ignored. FAILED_PRECONDITION when the server keeps none, NOT_FOUND before its first version.
         Returns:
             FuseResult.
         Raises:
@@ -547,6 +565,7 @@ class FusionClient:
             req.contest_radius = int(contest_radius)
         if for_agent:
             req.for_agent = str(for_agent)
+        req.team_map = bool(team_map)
         t = timeout_s if timeout_s is not None else max(600.0, 20 * self.timeout_s)
         stream = self._stub.Fuse(req, timeout=t, metadata=self._metadata)
         try:

@@ -37,6 +37,7 @@ from gausslite_services.fusion_server.guards import (Cancelled, intrinsics_from_
                                                      unary_guard, check_agent_id, check_int64, decode_color,
                                                      decode_depth, decode_roi, UploadStreams)
 from gausslite_services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
+from gausslite_services.fusion_server.team_map import TeamMapRefresher
 
 log = logging.getLogger("gausslite_services.fusion_server.server")  # one logger for the whole service
 
@@ -46,6 +47,9 @@ FUSED_AGENT_ID = "fused"
 STATS_PAGE_SIZE = 100
 MAX_STATS_PAGE_SIZE = 1000
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
+#: the store's retention class of team maps (its ``method`` column; not a FuseMethod, which stays VOTE in their
+#: FuseResult): kept apart from the Fuse results, so frequent Fuse calls never evict the team map being served
+TEAM_MAP_RETENTION = 100
 #: bytes an ``UploadSubsetRequest`` adds around its chunk (field tag and length, 6 at most, with margin): a chunk fits
 #: in one message when it is at most ``max_message_bytes - CHUNK_ENVELOPE_BYTES`` (``SessionInfo.max_chunk_bytes``)
 CHUNK_ENVELOPE_BYTES = 16
@@ -116,12 +120,21 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
         self._fuse_lock = threading.Lock()
+        self._refine_lock = threading.Lock()  # one joint refinement at a time in this server (Fuse's or the team map's)
         # keeps the voted map current (under the fuse locks); refine_options take precedence over the held-out check's
         self._engine = FuseEngine({**config.refine_validation.options(), **config.refine_options})
         # what this install can fuse: refinement and the ROI guard need the 'mapper' extra (torch, the rasterizer)
         self._unavailable = {f: extras.unavailable(f) for f in ("refine", "roi_guard")}
         self._shutdown = threading.Event()
         self._workers: "set[threading.Thread]" = set()
+        self.team_map: Optional[TeamMapRefresher] = None
+        if config.team_map.enabled:
+            if self._unavailable["refine"]:
+                log.error("fusion.team_map.enabled, but this install cannot refine (%s): no team map is kept",
+                          self._unavailable["refine"])
+            else:
+                self.team_map = TeamMapRefresher(self, config.team_map)
+                self.team_map.start()
 
     def shutdown(self, wait_s: float = 10.0) -> None:
         """Stop running Fuse work (after the gRPC grace period) and wait up to ``wait_s`` for it.
@@ -131,6 +144,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         """
         self._shutdown.set()
         deadline = time.monotonic() + wait_s
+        if self.team_map is not None:
+            self.team_map.stop(wait_s)
         for t in list(self._workers):
             t.join(max(0.0, deadline - time.monotonic()))
 
@@ -335,6 +350,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         if ack.complete and newly:
             log.info("subset %s v%d complete: %d Gaussians, %d chunks, %d bytes received, %d bytes stored", agent,
                      version, ack.n_gaussians, ack.n_chunks, ack.bytes_on_wire, ack.stored_bytes)
+            if self.team_map is not None:
+                self.team_map.notify()
         return ack
 
     @unary_guard
@@ -392,11 +409,37 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             evicted += ev
         if received == 0:
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, "empty keyframe stream")
+        if stored and self.team_map is not None:
+            self.team_map.notify()
         return fusion_pb2.KeyframeAck(agent_id=agent, received=received, stored=stored, duplicates=dups,
                                       evicted=evicted, buffered=self.store.keyframe_count(agent))
 
+    def _served_team_map(self) -> fusion_pb2.FuseProgress:
+        """The ``Fuse(team_map=true)`` answer: the newest stored team map's result, with its age and whether it is
+        current. Raises Reject: FAILED_PRECONDITION when this server keeps no team map, NOT_FOUND before the first."""
+        if self.team_map is None:
+            why = self._unavailable["refine"] if self.config.team_map.enabled else "fusion.team_map.enabled is false"
+            raise Reject(grpc.StatusCode.FAILED_PRECONDITION, f"this server keeps no team map ({why})")
+        result = self.team_map.latest()
+        if result is None:
+            raise Reject(grpc.StatusCode.NOT_FOUND, "no team map yet: it is made once a subset and keyframes are in"
+                         + (f" (last refinement failed: {self.team_map.last_error})" if self.team_map.last_error
+                            else ""))
+        self._served(result)
+        return fusion_pb2.FuseProgress(stage="done", fraction=1.0, done=True, result=result,
+                                       message=f"team map version {result.fused_version}")
+
+    def _served(self, result: fusion_pb2.FuseResult) -> None:
+        """Fill a stored result's serving fields: its age, and for a team map whether it is current."""
+        result.age_s = max(0.0, time.time() - result.created_unix)
+        if result.team_map and self.team_map is not None:
+            result.team_map_current = self.team_map.is_current(result, *self.team_map.inputs())
+
     @stream_guard
     def Fuse(self, request, context):  # noqa: N802
+        if request.team_map:
+            yield self._served_team_map()
+            return
         method = request.method or fusion_pb2.FUSE_METHOD_VOTE
         if method not in _METHOD_NAMES:
             raise Reject(grpc.StatusCode.INVALID_ARGUMENT, f"unknown fuse method {request.method}")
@@ -479,54 +522,21 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             return cancel.is_set() or self._shutdown.is_set()
 
         try:
-            while not self._fuse_lock.acquire(timeout=0.2):
-                if stopped():
-                    raise Cancelled()
-            db_lock = None
-            try:
-                cm = self.store.fuse_lock(stopped)  # serialises Fuse across every replica on the store
-                try:
-                    cm.__enter__()
-                except InterruptedError:
-                    raise Cancelled() from None
-                db_lock = cm
+            with self.fuse_locks(stopped):
                 emit("load", 0.0, f"loading the subsets of {len(latest)} agent(s)")
                 maps = {a: self._subset(a, v) for a, v in latest.items()}
-                out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel, contest_radius=radius,
-                                        refine_iters=iters if refine else 0, keyframes=self._refine_keyframes,
-                                        seed=seed, progress=emit, for_agent=for_agent,
-                                        roi_views=self._roi_views)
-                fused = out.fused
-                emit("store", 0.9, f"storing {len(fused)} Gaussians")
-                agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
-                                                       kept=int(out.kept.get(a, 0)),
-                                                       first_row=None if out.first_row is None else out.first_row[a])
-                          for a in sorted(maps)]
-
-                def info(version: int, nbytes: int) -> bytes:
-                    return fusion_pb2.FuseResult(
-                        fused_version=version, n_gaussians=len(fused), seconds=out.seconds, agents=agents,
-                        method=method, refined=refine, refine_iters=iters if refine else 0, voxel_size=voxel,
-                        keyframes_used=out.keyframes_used, bytes=nbytes, created_unix=time.time(),
-                        vote_seconds=out.vote_seconds, agents_revoted=out.agents_revoted, incremental=out.incremental,
-                        contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0,
-                        for_agent=for_agent or "").SerializeToString()
-
-                if cancel.is_set() or self._shutdown.is_set():
+                with self._refining(stopped) if refine else contextlib.nullcontext():
+                    out = self._engine.fuse(latest, maps, _METHOD_NAMES[method], voxel_size=voxel,
+                                            contest_radius=radius, refine_iters=iters if refine else 0,
+                                            keyframes=self._refine_keyframes, seed=seed, progress=emit,
+                                            for_agent=for_agent, roi_views=self._roi_views)
+                emit("store", 0.9, f"storing {len(out.fused)} Gaussians")
+                if stopped():
                     raise Cancelled()
-                version = self.store.put_fused(
-                    info, method, keep=self.config.fused_keep_per_method,
-                    chunks_fn=lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
-                                                          quant=LOSSLESS))
-                result = fusion_pb2.FuseResult.FromString(self.store.fused_info(version)[1])
-                log.info("fused version %d: %s, %d Gaussians, refine=%s, %.2fs", version, _METHOD_NAMES[method],
-                         len(fused), refine, result.seconds)
+                result = self.store_fused(out, latest, maps, method, iters if refine else 0, voxel, radius,
+                                          for_agent=for_agent or "")
                 events.put(("done", fusion_pb2.FuseProgress(stage="done", fraction=1.0, done=True, result=result,
-                                                            message=f"fused version {version}")))
-            finally:
-                if db_lock is not None:
-                    db_lock.__exit__(None, None, None)
-                self._fuse_lock.release()
+                                                            message=f"fused version {result.fused_version}")))
         except Cancelled:
             log.info("Fuse work stopped during stage %r (cancelled)", stage["name"])
             events.put(("cancelled", None))
@@ -543,6 +553,72 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             events.put(("error", e))
         finally:
             self._workers.discard(threading.current_thread())
+
+    @contextlib.contextmanager
+    def fuse_locks(self, stopped) -> Iterator[None]:
+        """Hold the locks of Fuse work: this server's, then the store's (every replica on the store), waiting until
+        they are free. Raises :class:`Cancelled` when ``stopped()`` turns true while waiting."""
+        while not self._fuse_lock.acquire(timeout=0.2):
+            if stopped():
+                raise Cancelled()
+        try:
+            try:
+                cm = self.store.fuse_lock(stopped)  # serialises Fuse across every replica on the store
+                cm.__enter__()
+            except InterruptedError:
+                raise Cancelled() from None
+            try:
+                yield
+            finally:
+                cm.__exit__(None, None, None)
+        finally:
+            self._fuse_lock.release()
+
+    @contextlib.contextmanager
+    def _refining(self, stopped) -> Iterator[None]:
+        """Hold this server's refinement lock (one joint refinement at a time: a Fuse's or the team map's)."""
+        while not self._refine_lock.acquire(timeout=0.2):
+            if stopped():
+                raise Cancelled()
+        try:
+            yield
+        finally:
+            self._refine_lock.release()
+
+    def store_fused(self, out, latest: Dict[str, int], maps: Dict[str, GaussianArrays], method: int, iters: int,
+                    voxel: float, radius: int, *, for_agent: str = "", team_map: bool = False,
+                    keyframes_seen: int = 0) -> fusion_pb2.FuseResult:
+        """Store the fused map of ``out`` (:class:`gausslite.fusion.engine.FuseOutcome`, from the subsets ``maps`` at
+        ``latest`` versions) as a new version and return its ``FuseResult``. ``iters`` > 0: it was refined with that
+        many iterations at most. Team maps (``team_map``) are kept apart, ``fusion.team_map.keep`` of them."""
+        fused = out.fused
+        agents = [fusion_pb2.AgentContribution(agent_id=a, map_version=latest[a], received=len(maps[a]),
+                                               kept=int(out.kept.get(a, 0)),
+                                               first_row=None if out.first_row is None else out.first_row[a])
+                  for a in sorted(maps)]
+        rep = out.refine_report
+        record = None if rep is None else fusion_pb2.RefineRecord(**{
+            k: (v if v is not None else 0.0) for k, v in rep.as_dict().items() if k not in ("last_loss", "checks",
+                                                                                        "gaussians")})
+
+        def info(version: int, nbytes: int) -> bytes:
+            return fusion_pb2.FuseResult(
+                fused_version=version, n_gaussians=len(fused), seconds=out.seconds, agents=agents, method=method,
+                refined=bool(iters), refine_iters=iters, voxel_size=voxel, keyframes_used=out.keyframes_used,
+                bytes=nbytes, created_unix=time.time(), vote_seconds=out.vote_seconds,
+                agents_revoted=out.agents_revoted, incremental=out.incremental,
+                contest_radius=radius if method == fusion_pb2.FUSE_METHOD_VOTE else 0, for_agent=for_agent,
+                refine_record=record, team_map=team_map, keyframes_seen=keyframes_seen).SerializeToString()
+
+        version = self.store.put_fused(
+            info, TEAM_MAP_RETENTION if team_map else method,
+            keep=self.config.team_map.keep if team_map else self.config.fused_keep_per_method,
+            chunks_fn=lambda v: encode_subset(fused, FUSED_AGENT_ID, v, max_chunk_bytes=self.fused_chunk_bytes,
+                                              quant=LOSSLESS))
+        result = fusion_pb2.FuseResult.FromString(self.store.fused_info(version)[1])
+        log.info("fused version %d: %s%s, %d Gaussians, refine=%s, %.2fs", version, _METHOD_NAMES[method],
+                 " (team map)" if team_map else "", len(fused), bool(iters), result.seconds)
+        return result
 
     def _roi_views(self, agent: str) -> list:
         """``agent``'s stored keyframes that carry an ROI, as :class:`gausslite.fusion.guard.RoiView` (pose,
@@ -585,6 +661,7 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
                           + (f" of method {_METHOD_NAMES[method]}" if method else ""))
         version, info_bytes, n = found
         info = fusion_pb2.FuseResult.FromString(info_bytes)
+        self._served(info)
         if method and request.fused_version and info.method != method:
             raise Reject(grpc.StatusCode.NOT_FOUND,
                          f"fused version {version} was made by {_METHOD_NAMES.get(info.method)}, "

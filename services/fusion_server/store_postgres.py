@@ -8,7 +8,7 @@ import time
 from typing import Callable, Dict, Iterator
 
 from gausslite_services.fusion_server.store_records import StoreError, StoreUnavailable
-from gausslite_services.fusion_server.store_sql import _LOCK_AGENT, _LOCK_FUSE, SqlFusionStore
+from gausslite_services.fusion_server.store_sql import _LOCK_AGENT, FUSE_LOCKS, SqlFusionStore
 
 
 def redact_dsn(dsn: str) -> str:
@@ -163,21 +163,22 @@ class PostgresFusionStore(SqlFusionStore):
             yield _PgConn(conn)
 
     @contextlib.contextmanager
-    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
-        """Session-level advisory lock on a dedicated connection; released when the block ends or
-        the connection drops (a SIGKILLed replica never blocks the others)."""
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2, name: str = "fuse"):
+        """Session-level advisory lock (class :data:`FUSE_LOCKS` ``[name]``) on a dedicated connection; released when
+        the block ends or the connection drops (a SIGKILLed replica never blocks the others)."""
         # lazy: heavy optional dependency, loaded only on this path
         import psycopg
 
+        lock = FUSE_LOCKS[name]
         with self._reachable(), psycopg.connect(self.dsn, autocommit=True) as conn:
-            while not conn.execute("SELECT pg_try_advisory_lock(%s, 0)", (_LOCK_FUSE,)).fetchone()[0]:
+            while not conn.execute("SELECT pg_try_advisory_lock(%s, 0)", (lock,)).fetchone()[0]:
                 if should_stop():
                     raise InterruptedError("stopped while waiting for the fuse lock")
                 time.sleep(poll_s)
             try:
                 yield
             finally:
-                conn.execute("SELECT pg_advisory_unlock(%s, 0)", (_LOCK_FUSE,))
+                conn.execute("SELECT pg_advisory_unlock(%s, 0)", (lock,))
 
     def close(self) -> None:
         """Close the pool (idempotent)."""

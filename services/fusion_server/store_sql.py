@@ -62,8 +62,12 @@ MIGRATIONS: List[Tuple[int, List[str]]] = [
 ]
 assert MIGRATIONS[-1][0] == SCHEMA_VERSION
 
-# advisory-lock class ids (PostgreSQL two-int form): per-agent writes, fused versions, fuse, migration
-_LOCK_AGENT, _LOCK_FUSED, _LOCK_FUSE, _LOCK_MIGRATE = 0x474C01, 0x474C02, 0x474C03, 0x474C04
+# advisory-lock class ids (PostgreSQL two-int form): per-agent writes, fused versions, fuse, migration, and the
+# background refinement of the team map
+_LOCK_AGENT, _LOCK_FUSED, _LOCK_FUSE, _LOCK_MIGRATE, _LOCK_TEAM_MAP = 0x474C01, 0x474C02, 0x474C03, 0x474C04, 0x474C05
+#: the named locks of :meth:`SqlFusionStore.fuse_lock`: ``fuse`` (Fuse work), ``team_map`` (one background refinement
+#: of the team map at a time across replicas)
+FUSE_LOCKS = {"fuse": _LOCK_FUSE, "team_map": _LOCK_TEAM_MAP}
 
 
 class SqlFusionStore(abc.ABC):
@@ -90,11 +94,12 @@ class SqlFusionStore(abc.ABC):
         """A read-only connection (consistent within the block)."""
 
     @abc.abstractmethod
-    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
-        """Context manager serialising ``Fuse`` work across every server on this database.
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2, name: str = "fuse"):
+        """Context manager serialising ``Fuse`` work (``name`` ``fuse``) or the background refinement of the team map
+        (``team_map``) across every server on this database.
 
         Waits (polling every ``poll_s`` seconds) until the lock is free; raises
-        :class:`InterruptedError` when ``should_stop()`` turns true while waiting.
+        :class:`InterruptedError` when ``should_stop()`` turns true while waiting, KeyError for an unknown ``name``.
         """
 
     @abc.abstractmethod

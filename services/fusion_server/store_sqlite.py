@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Callable, Iterator, Optional
 
 from gausslite_services.fusion_server.store_records import StoreError
-from gausslite_services.fusion_server.store_sql import SqlFusionStore
+from gausslite_services.fusion_server.store_sql import FUSE_LOCKS, SqlFusionStore
 
 DB_NAME = "fusion.sqlite3"
 
@@ -72,12 +72,14 @@ class SqliteFusionStore(SqlFusionStore):
             yield self._conn()
 
     @contextlib.contextmanager
-    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2):
-        """``flock`` on ``<data_dir>/fuse.lock``: excludes every store (thread or process) on this file."""
+    def fuse_lock(self, should_stop: Callable[[], bool], poll_s: float = 0.2, name: str = "fuse"):
+        """``flock`` on ``<data_dir>/<name>.lock`` (``name`` one of :data:`FUSE_LOCKS`): excludes every store (thread
+        or process) on this file."""
         # lazy: fcntl exists on POSIX only
         import fcntl
 
-        with open(self.data_dir / "fuse.lock", "a+b") as f:
+        FUSE_LOCKS[name]  # noqa: B018 - an unknown name is a KeyError, as on PostgreSQL
+        with open(self.data_dir / f"{name}.lock", "a+b") as f:
             while True:
                 try:
                     fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)

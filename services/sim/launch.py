@@ -156,7 +156,7 @@ def service_commands(config_path: Path, plans: List[AgentPlan], ports: Dict[str,
     cmds = {
         "parser": (_cli("serve", "parser", "--host", host, "--port", str(ports["parser"])), {}),
         "fusion_server": ([sys.executable, "-m", "gausslite_services.fusion_server", "--host", host,
-                           "--port", str(ports["fusion_server"])],
+                           "--port", str(ports["fusion_server"]), "--config", str(config_path)],
                           {"GAUSSLITE_DATA_DIR": str(data_dir / "fusion")}),
     }
     for p in plans:

@@ -16,14 +16,16 @@ from gausslite_services.sim.launch import AgentPlan
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
-FUSED_KEYS = ("concat", "vote", "for_robot", "refine")
+FUSED_KEYS = ("concat", "vote", "for_robot", "refine", "team_map")
 #: what each fused key is, for the report
 FUSED_HELP = {
     "concat": "plain concatenation of the agents' ROI subsets",
     "vote": "the team map: per-voxel κ vote (paper Sec. III-E)",
     "for_robot": "the team map as each robot uses it (`Fuse(for_agent=…)`): its own subset whole, and the others' "
                  "voted rows except those over its ROI; each task scored on the map made for its robot",
-    "refine": "vote + joint refinement over the uploaded keyframes",
+    "refine": "vote + joint refinement over the uploaded views (`Fuse(refine=true)` once the missions ended)",
+    "team_map": "the team map the fusion server keeps refined in the background (`Fuse(team_map=true)`), once it holds "
+                "the final subsets and views",
 }
 
 
@@ -138,6 +140,9 @@ def _agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optiona
         "total_upload_bytes": int(s.total_upload_bytes),
         "final_subset_bytes": int(s.final_subset_bytes),
         "upload_ratio": (s.total_upload_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
+        # the views sent for the fusion refinement (agent.refine_views), beside the subset's bytes
+        "view_bytes": int(s.view_bytes), "views_sent": int(s.views_sent), "views_unsent": int(s.views_unsent),
+        "view_ratio": (s.view_bytes / s.final_subset_bytes) if s.final_subset_bytes else None,
         "push_log": [{"version": int(q.version), "n_shared": int(q.n_shared), "n_total": int(q.n_total),
                       "bytes_sent": int(q.bytes_sent), "delta": bool(q.delta), "records": int(q.records),
                       "removed": int(q.removed), "frames_mapped": int(q.frames_mapped),
@@ -179,7 +184,7 @@ def _protocol_minus_own(report: dict) -> None:
     for f in (report.get("fused") or {}).values():
         for q, per_task in (f.get("protocols") or {}).items():
             for t, v in per_task.items():
-                o = (own.get(t, {}).get(q) or {}).get("roi_psnr")
+                o = (own.get(t, {}).get(q.split("@")[0]) or {}).get("roi_psnr")
                 v["minus_own"] = (v["roi_psnr"] - o) if v.get("roi_psnr") is not None and o is not None else None
 
 
@@ -251,6 +256,10 @@ def plot_fused_timeline(report: dict, path: Path) -> bool:
         rp = [q for q in rp if q[1] is not None]
         if rp:
             ax.plot(*zip(*rp), "s:", ms=3, color=line.get_color(), label=f"team map for {a['id']}")
+        sp = [(e["t"], ((e.get("served") or {}).get("roi_psnr") or {}).get(a["task"])) for e in tl]
+        sp = [q for q in sp if q[1] is not None]
+        if sp:
+            ax.plot(*zip(*sp), "^-", ms=4, lw=2, alpha=0.6, color=line.get_color(), label=f"served team map, {a['task']}")
         own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
         if own is not None:
             ax.axhline(own, ls="--", lw=1, color=line.get_color(), label=f"{a['id']} own map (end)")
@@ -375,18 +384,27 @@ def _timeline_lines(report: dict) -> List[str]:
         return []
     tasks = [a["task"] for a in report["agents"]]
     robot = any(e.get("roi_psnr_for_robot") for e in tl)
+    served = any(e.get("served") for e in tl)
     lines = ["", "## The fused map while mapping", "",
              "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame: the team "
              "map" + (", and (→ robot) each task on the team map as its robot uses it (`Fuse(for_agent=…)`)" if robot
-                      else "") + ":", "",
+                      else "")
+             + ("; (served) the team map the server serves then (`Fuse(team_map=true)`, refined in the background), "
+                "its version and the subset versions it was made from (* = current)" if served else "") + ":", "",
              "| time (s) | subset versions | Gaussians | " + " | ".join(tasks)
-             + ("".join(f" | {t} → robot" for t in tasks) if robot else "") + " |",
-             "|---|---|---|" + "---|" * (len(tasks) * (2 if robot else 1))]
+             + ("".join(f" | {t} → robot" for t in tasks) if robot else "")
+             + (" | served | " + " | ".join(f"{t} (served)" for t in tasks) if served else "") + " |",
+             "|---|---|---|" + "---|" * (len(tasks) * (2 if robot else 1) + ((1 + len(tasks)) if served else 0))]
     for e in tl:
         vs = ", ".join(f"{a} v{v}" for a, v in sorted(e["versions"].items()))
         cells = [_fmt(e["roi_psnr"].get(t)) for t in tasks]
         if robot:
             cells += [_fmt((e.get("roi_psnr_for_robot") or {}).get(t)) for t in tasks]
+        if served:
+            s = e.get("served") or {}
+            cells += [(f"v{s['version']}{'*' if s['current'] else ''} ("
+                       + ", ".join(f"{a} v{v}" for a, v in sorted(s["versions"].items())) + ")") if s else "–"]
+            cells += [_fmt((s.get("roi_psnr") or {}).get(t)) for t in tasks]
         lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | " + " | ".join(cells) + " |")
     if report.get("fused_timeline_plot"):
         lines += ["", f"![fused ROI PSNR over time]({report['fused_timeline_plot']})"]
@@ -409,10 +427,13 @@ def _protocol_lines(report: dict) -> List[str]:
              "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
              "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
              f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
-             f"map{novel} (docs/realtime.md#scoring-protocols).", "",
+             f"map{novel}; `tracked@own`, `novel@own`: a fused map at the pose and exposure those frames were tracked at on "
+             "the robot's own map, so both maps are scored at the same views (docs/realtime.md#scoring-protocols).", "",
              "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
-    for q in names:
-        own = {a["task"]: (a.get("protocols") or {}).get(q, {}) for a in agents}
+    at_own = [f"{q}@own" for q in names if any(f"{q}@own" in (f.get("protocols") or {})
+                                                for f in (report.get("fused") or {}).values())]
+    for q in [*names, *at_own]:
+        own = {a["task"]: (a.get("protocols") or {}).get(q.split("@")[0], {}) for a in agents}
         lines.append(f"| {q} | own | " + " | ".join(
             f"{_fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
         for key in FUSED_KEYS:

@@ -22,7 +22,7 @@ from gausslite_services.sim.launch import (ProcessGroup, _check_bags, _close_all
 from gausslite_services.sim.report import (_agent_report, _fused_minus_own, _load_offline, _protocol_minus_own,
                                            _write_report, attach_context_baseline)
 from gausslite_services.sim.scoring import (_fuse_and_score, _load_eval_frames, _uploaded_keyframe_poses,
-                                            roi_cover_report)
+                                            own_views, roi_cover_report)
 from gausslite_services.sim.timeline import FusedTimeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -106,7 +106,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         backend, scoring = typed.mapper.backend, typed.agent.scoring
         eval_frames = _load_eval_frames(plans, typed.agent)
         fused, renders = _fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
-                                         _uploaded_keyframe_poses(fusion, plans), backend)
+                                         _uploaded_keyframe_poses(fusion, plans), backend,
+                                         {n: own_views(s) for n, s in summaries.items()})
+        tracker.poll(time.perf_counter() - t0)  # the team map made from the final subsets, when the server keeps one
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
         # ---- the report

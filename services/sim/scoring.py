@@ -10,6 +10,7 @@ ground-truth ROI mask (frames whose ROI is empty are skipped), rendering the fus
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from gausslite.config import GaussLiteConfig
 from gausslite.datasets import load_dataset, task_roi
-from gausslite.evaluation import evaluate_fused, render_map, score_map, side_by_side, withheld_indices
+from gausslite.evaluation import TrackedView, evaluate_fused, render_map, score_map, side_by_side, withheld_indices
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mission.config import AgentConfig
@@ -40,8 +41,21 @@ def fuse_settings(cfg: GaussLiteConfig, realtime: bool = False) -> dict:
     return cfg.sim.fuse.settings(realtime)
 
 
+#: the protocols a team map is also scored under at its robot's own views: ``tracked@own`` and ``novel@own``
+AT_OWN = ("tracked", "novel")
+
+
+def own_views(summary) -> Dict[int, TrackedView]:
+    """frame id → the :class:`gausslite.evaluation.TrackedView` (pose and exposure) each ``tracked`` / ``novel`` frame
+    was scored at on the robot's own map, from its Finish summary (``MissionSummary.tracked_views``)."""
+    return {int(t.frame_id): TrackedView(np.asarray(t.pose.c2w, np.float64).reshape(4, 4),
+                                         np.asarray(t.exposure, np.float64), 0.0, 0.0, 0.0, 0)
+            for t in getattr(summary, "tracked_views", ())}
+
+
 def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_psnr: Optional[float], scoring,
-                    keyframe_poses: Dict[int, np.ndarray], backend: str = "auto") -> dict:
+                    keyframe_poses: Dict[int, np.ndarray], backend: str = "auto",
+                    views: Optional[Dict[int, TrackedView]] = None) -> dict:
     """One fused map's figures on one task under the scoring protocols of ``scoring`` (a
     :class:`gausslite.mission.config.ScoringConfig`), as its robot's own map is scored
     (docs/realtime.md#scoring-protocols): ``sensor`` is ``sensor_roi_psnr`` (:func:`evaluate_fused` over every frame
@@ -49,7 +63,10 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_ps
     keyframes the task's robot uploaded, at the refined poses they carry), ``tracked`` every ``track_stride``-th
     frame at a pose and exposure fitted against the fused map from the sensor's pose, ``novel`` the frames every
     agent's replay withheld (every ``novel_every``-th of the sequence, :func:`gausslite.evaluation.withheld_indices`)
-    fitted the same way (:func:`gausslite.evaluation.score_map`).
+    fitted the same way (:func:`gausslite.evaluation.score_map`). With ``views`` (:func:`own_views`), ``tracked@own`` and
+    ``novel@own`` score the same frames at the pose and exposure they were tracked at on the robot's own map: the
+    fused map and the own map at the same views, so their difference is what they render, not how well each tracks
+    (a team map holds ROI subsets only, and a partial map tracks worse; docs/realtime.md#scoring-protocols).
 
     Returns:
         ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
@@ -63,6 +80,12 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_ps
                         rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
                         keyframe_poses=keyframe_poses, backend=backend, novel_ids=novel)
         out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
+    at_own = [q for q in rest if q in AT_OWN]
+    if views and at_own:
+        res = score_map(gmap, frames, task_roi(annotations, task_id), at_own, track_iters=scoring.track_iters,
+                        track_stride=scoring.track_stride, backend=backend, novel_ids=novel, views=views)
+        out.update({f"{q}@own": {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]}
+                    for q, v in res.items()})
     return out
 
 
@@ -127,8 +150,18 @@ def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
     Returns:
         ``(gmaps, res)``: agent id → the fused ``GaussianMap`` its task is scored on, and the last fuse result.
     """
+    if key == "team_map":
+        res = _current_team_map(fusion)
+        if res is None:
+            return None, None
+        g = fusion.download_fused(res.fused_version).to_gaussian_map()
+        return {p.name: g for p in plans}, res
     method = "concat" if key == "concat" else "vote"
     gmaps, res = {}, None
+    held = fusion.stats().get("agents", {}) if key == "refine" else {}
+    if key == "refine" and not any(v.get("keyframes") for v in held.values()):
+        log.warning("no refinement: no robot sent a view for it (agent.refine_views)")
+        return None, None
     for p in (plans if key == "for_robot" else [None]):
         res = fusion.fuse(method, refine=(key == "refine"), refine_iters=fz["refine_iters"],
                           voxel_size=fz["voxel_size"], contest_radius=fz["contest_radius"] if method == "vote" else None,
@@ -138,6 +171,27 @@ def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
         for q in ([p] if p is not None else plans):
             gmaps[q.name] = g
     return gmaps, res
+
+
+def _current_team_map(fusion, timeout_s: float = 600.0):
+    """The team map the fusion server serves once it is current (made from the final subsets and views), waited for
+    up to ``timeout_s``; None when the server keeps none (logged). Raises TimeoutError when it is not current in
+    time."""
+    t0 = time.monotonic()
+    while True:
+        try:
+            res = fusion.fuse(team_map=True)
+            if res.team_map_current:
+                return res
+        except grpc.RpcError as e:
+            if e.code() == grpc.StatusCode.FAILED_PRECONDITION:
+                log.info("no team map: %s", e.details())
+                return None
+            if e.code() != grpc.StatusCode.NOT_FOUND:
+                raise
+        if time.monotonic() - t0 > timeout_s:
+            raise TimeoutError(f"the team map was not current after {timeout_s:.0f} s")
+        time.sleep(1.0)
 
 
 def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, task_id: str,
@@ -156,9 +210,10 @@ def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, ta
 
 
 def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
-                    kf_poses: Dict[str, dict], backend: str):
+                    kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None):
     """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
-    frames and under ``scoring``'s protocols, :func:`fused_protocols`) with a render per task in ``out/renders``.
+    frames and under ``scoring``'s protocols, :func:`fused_protocols`, at the agent's own ``views`` too: agent id →
+    :func:`own_views`) with a render per task in ``out/renders``.
 
     Returns:
         ``(fused, renders)``: key → the report's figures of that fused map, and the render entries.
@@ -169,13 +224,15 @@ def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict
     for key in FUSED_KEYS:
         log.info("fusing: %s", key)
         gmaps, res = _fuse_maps(fusion, key, plans, fz)
+        if gmaps is None:
+            continue
         per_task, protos = {}, {}
         for p in plans:
             gmap = gmaps[p.name]
             ds, frames = eval_frames[p.name]
             per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
             protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
-                                                scoring, kf_poses.get(p.name, {}), backend)
+                                                scoring, kf_poses.get(p.name, {}), backend, (views or {}).get(p.name))
             render = _write_fused_render(out, key, gmap, frames, ds.annotations, p.task_id, backend)
             if render is not None:
                 renders.append(render)
@@ -183,7 +240,10 @@ def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict
         fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
                       "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
                       "fused_version": int(res.fused_version), "kept": dict(res.kept),
-                      "protocols": {q: {t: protos[t][q] for t in protos} for q in scoring.chosen()}}
+                      "protocols": {q: {t: protos[t][q] for t in protos if q in protos[t]}
+                                    for q in [*scoring.chosen(), *[f"{a}@own" for a in AT_OWN]]
+                                    if any(q in v for v in protos.values())},
+                      "refine_record": dict(res.refine_record) or None}
         log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: _fmt(v) for k, v in per_task.items()})
     return fused, renders
 

@@ -15,7 +15,8 @@ from gausslite_services.sim import plan_agents, run_sim
 
 TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
         "agent.push_every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=150",
-        "sim.fuse.refine_iters=3", "agent.share_finetune_iters=20"]
+        "sim.fuse.refine_iters=3", "agent.share_finetune_iters=20", "agent.refine_views.min_roi_px=1",
+        "agent.refine_views.budget_ratio=8", "fusion.team_map.refine_iters=3"]
 
 
 def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
@@ -30,7 +31,11 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert 0 < a["n_shared"] < a["n_gaussians"]
         assert math.isclose(a["share_pct"], 100 * a["n_shared"] / a["n_gaussians"], rel_tol=1e-3)
         assert 0 < a["bytes_per_gaussian"] < 100
-    assert set(rep["fused"]) == {"concat", "vote", "for_robot", "refine"}
+    assert set(rep["fused"]) == {"concat", "vote", "for_robot", "refine", "team_map"}
+    tm = rep["fused"]["team_map"]  # the served team map, once made from the final subsets and views
+    assert tm["refine_record"]["train_views"] + tm["refine_record"]["heldout_views"] >= 1
+    for a in rep["agents"]:
+        assert 0 < a["view_bytes"] <= 8 * a["final_subset_bytes"] and a["views_sent"] >= 1
     shared = sum(a["n_shared"] for a in rep["agents"])
     assert rep["fused"]["concat"]["n_gaussians"] == shared
     assert rep["fused"]["vote"]["n_gaussians"] <= shared
@@ -108,18 +113,20 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert p["tracked"]["frames_scored"] == 1  # every 5th of 3 frames
         assert all(v["roi_psnr"] is not None for v in p.values())
     for k, f in rep["fused"].items():
-        assert all(v["frames_scored"] == 0 for v in f["protocols"].pop("novel").values()), k
-        assert set(f["protocols"]) == protos, k
+        for q in ("novel", "novel@own"):
+            assert all(v["frames_scored"] == 0 for v in f["protocols"].pop(q).values()), k
+        # tracked@own: the same frames at the pose and exposure the robot's own map was tracked at
+        assert set(f["protocols"]) == protos | {"tracked@own"}, k
         for a in rep["agents"]:
             t = a["task"]
             assert f["protocols"]["sensor"][t]["roi_psnr"] == f["roi_psnr_per_task"][t]
-            # the keyframes the robot uploaded (every 2nd mapped frame: 0 and 2)
-            assert f["protocols"]["keyframes"][t]["frames_scored"] == 2, (k, t)
-            assert f["protocols"]["tracked"][t]["frames_scored"] == 1
-            for q in protos:
+            # the views the robot uploaded (a crop of each mapped frame that shows its ROI, within the budget)
+            assert f["protocols"]["keyframes"][t]["frames_scored"] == a["views_sent"], (k, t)
+            assert f["protocols"]["tracked"][t]["frames_scored"] == f["protocols"]["tracked@own"][t]["frames_scored"] == 1
+            for q in protos | {"tracked@own"}:
                 v = f["protocols"][q][t]
-                assert v["roi_psnr"] is not None and math.isclose(v["minus_own"],
-                                                                  v["roi_psnr"] - a["protocols"][q]["roi_psnr"])
+                own = a["protocols"][q.split("@")[0]]["roi_psnr"]
+                assert v["roi_psnr"] is not None and math.isclose(v["minus_own"], v["roi_psnr"] - own)
     assert "## Own and fused maps under each scoring protocol" in md
     assert "| tracked | own |" in md and "| keyframes | vote |" in md and "| sensor | for_robot |" in md
     assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| tracked | own |")

@@ -1,0 +1,168 @@
+"""The one team map over several runs of the two-agent simulation: every fused map against each robot's own map under
+every scoring protocol, the team map served while the team maps, and the bytes of the views sent for the refinement.
+
+    python -m bench.team_map [--realtime] [--runs 3] [--scene synthetic] [--set KEY=VALUE ...] [--out PATH]
+    python -m bench.team_map --summarise runs/a/report.json runs/b/report.json ...   # reports already made
+
+Runs ``gausslite sim`` ``--runs`` times one after the other (seed ``s`` → ``--set mapper.seed=s``; ``--realtime`` adds
+``--realtime``: live, under the keyframe time budget, so nothing else may run beside it), each into
+``<work>/<scene>[_rt]_seed<s>``, and summarises the reports (docs/sharing.md#which-map-to-use-when):
+
+- ``fused``: for ``vote``, ``for_robot``, ``refine`` and ``team_map`` (the served team map once current), per task and
+  protocol (``sensor``, ``keyframes``, ``tracked``, ``novel``, and ``tracked@own``, ``novel@own``: at the views the
+  robot's own map was tracked at), the fused map's ROI PSNR minus the robot's own map's under the same protocol: mean
+  ± std over runs, and the per-run values;
+- ``refine_record``: the refinement's held-out record per run (views trained / held out, iterations run, early stop,
+  rollback), for ``refine`` and ``team_map``;
+- ``served``: per run, the served team map against each robot's own map at every step of the timeline once the
+  served map holds both robots' subsets (the worst step, and how many steps);
+- ``views``: per agent, the bytes of the views sent for the refinement over its final subset's bytes, views sent and
+  left unsent.
+
+Writes ``bench/results/team_map_sim.json`` (``--realtime``: ``team_map_sim_rt.json``) and ``.md`` (``--out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+from tqdm import tqdm
+
+from bench._results import write_results
+from bench.sim_seeds import scene_args
+from gausslite.stats import fmt, mean_std
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+KEYS = ("vote", "for_robot", "refine", "team_map")
+PROTOCOLS = ("sensor", "keyframes", "tracked", "novel", "tracked@own", "novel@own")
+
+
+def fused_rows(report: dict) -> Dict[str, Dict[str, Dict[str, Optional[float]]]]:
+    """key → task → protocol → fused − own (dB) of one report (None where either is missing)."""
+    out: dict = {}
+    for k in KEYS:
+        f = (report.get("fused") or {}).get(k)
+        if not f:
+            continue
+        for q, per in (f.get("protocols") or {}).items():
+            for task, v in per.items():
+                out.setdefault(k, {}).setdefault(task, {})[q] = v.get("minus_own")
+    return out
+
+
+def served_steps(report: dict) -> Dict[str, dict]:
+    """task → {"worst": min over the timeline's steps whose served team map holds every robot's subset of (served −
+    the robot's own map, dB), "steps": their number}; the own map is the figure the report's timeline plot draws."""
+    agents = report["agents"]
+    own = {a["task"]: a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr") for a in agents}
+    ids = {a["id"] for a in agents}
+    out = {}
+    for task, o in own.items():
+        vals = [s["roi_psnr"][task] - o for e in report.get("fused_timeline") or []
+                for s in [e.get("served")] if s and set(s["versions"]) >= ids and o is not None
+                and s["roi_psnr"].get(task) is not None]
+        out[task] = {"worst": min(vals) if vals else None, "steps": len(vals)}
+    return out
+
+
+def view_rows(report: dict) -> Dict[str, dict]:
+    """agent id → its refinement views: ``ratio`` (view bytes / final subset bytes), ``view_bytes``, ``views_sent``,
+    ``views_unsent``, ``final_subset_bytes``."""
+    return {a["id"]: {"ratio": a.get("view_ratio"), "view_bytes": a.get("view_bytes"),
+                      "views_sent": a.get("views_sent"), "views_unsent": a.get("views_unsent"),
+                      "final_subset_bytes": a.get("final_subset_bytes")} for a in report["agents"]}
+
+
+def _stat(vals: List[Optional[float]]) -> dict:
+    got = [v for v in vals if v is not None]
+    m, s = mean_std(got) if got else (None, None)
+    return {"mean": m, "std": s, "per_run": vals}
+
+
+def summarise(reports: List[dict]) -> dict:
+    """The summary of several reports of the same configuration (module docstring)."""
+    rows = [fused_rows(r) for r in reports]
+    fused: dict = {}
+    for k in KEYS:
+        tasks = sorted({t for r in rows for t in r.get(k, {})})
+        for t in tasks:
+            for q in PROTOCOLS:
+                fused.setdefault(k, {}).setdefault(t, {})[q] = _stat([r.get(k, {}).get(t, {}).get(q) for r in rows])
+    served = [served_steps(r) for r in reports]
+    tasks = sorted({t for s in served for t in s})
+    views = [view_rows(r) for r in reports]
+    agents = sorted({a for v in views for a in v})
+    return {"runs": len(reports), "fused": fused,
+            "refine_record": {k: [((r.get("fused") or {}).get(k) or {}).get("refine_record") for r in reports]
+                              for k in ("refine", "team_map")},
+            "served": {t: {"worst": _stat([s.get(t, {}).get("worst") for s in served]),
+                           "steps": [s.get(t, {}).get("steps") for s in served]} for t in tasks},
+            "views": {a: {f: _stat([v.get(a, {}).get(f) for v in views])
+                          for f in ("ratio", "view_bytes", "views_sent", "views_unsent")} for a in agents},
+            "seconds": _stat([r.get("seconds") for r in reports])}
+
+
+def table(summary: dict) -> str:
+    """Markdown tables of a summary: fused − own per map, task and protocol; the served timeline; the views."""
+    f = lambda b: fmt(b["mean"], b["std"], 2) if b["mean"] is not None else "–"  # noqa: E731
+    lines = ["| map | task | " + " | ".join(PROTOCOLS) + " |", "|---|---|" + "---|" * len(PROTOCOLS)]
+    for k, per in summary["fused"].items():
+        for t, qs in per.items():
+            lines.append(f"| {k} | {t} | " + " | ".join(f(qs[q]) for q in PROTOCOLS) + " |")
+    lines += ["", "| task | served team map − own, worst step once it holds both subsets | steps |", "|---|---|---|"]
+    for t, b in summary["served"].items():
+        lines.append(f"| {t} | {f(b['worst'])} | {b['steps']} |")
+    lines += ["", "| agent | view bytes / subset bytes | view bytes | views sent | views unsent |", "|---|---|---|---|---|"]
+    for a, b in summary["views"].items():
+        lines.append(f"| {a} | {f(b['ratio'])} | {f(b['view_bytes'])} | {f(b['views_sent'])} | "
+                     f"{f(b['views_unsent'])} |")
+    return "\n".join(lines)
+
+
+def run_sims(scene: str, runs: int, realtime: bool, sets: List[str], work: Path) -> List[Path]:
+    """Run ``gausslite sim`` ``runs`` times, one after the other; returns the report paths."""
+    paths = []
+    for s in tqdm(range(runs), desc="bench.team_map", unit="sim"):
+        out = work / f"{scene}{'_rt' if realtime else ''}_seed{s}"
+        shutil.rmtree(out, ignore_errors=True)  # a fresh fusion store and agent data per run
+        cmd = [sys.executable, "-m", "gausslite.cli", "sim", *scene_args(scene), *(["--realtime"] if realtime else []),
+               "--set", f"mapper.seed={s}", *[x for kv in sets for x in ("--set", kv)], "--out", str(out)]
+        r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-3000:]}")
+        paths.append(out / "report.json")
+    return paths
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.team_map", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default="synthetic", help="synthetic (the embedded default) or room0")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--realtime", action="store_true", help="gausslite sim --realtime (live; run it alone)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to gausslite sim")
+    ap.add_argument("--summarise", nargs="+", type=Path, metavar="REPORT", help="summarise these reports only")
+    ap.add_argument("--work", type=Path, default=REPO / "runs" / "team_map")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    out = args.out or RESULTS / f"team_map_sim{'_rt' if args.realtime else ''}.json"
+    t0 = time.perf_counter()
+    paths = args.summarise or run_sims(args.scene, args.runs, args.realtime, args.set, args.work)
+    summary = summarise([json.loads(Path(p).read_text()) for p in paths])
+    result = {"scene": args.scene, "realtime": args.realtime, "set": args.set, "reports": [str(p) for p in paths],
+              "summary": summary, "wall_s": time.perf_counter() - t0}
+    write_results(out, "team_map", argv, f": {summary['runs']} runs, {result['wall_s'] / 60:.1f} min",
+                  table(summary), result)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
