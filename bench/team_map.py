@@ -19,7 +19,8 @@ Runs ``gausslite sim`` ``--runs`` times one after the other (seed ``s`` → ``--
 - ``views``: per agent, the bytes of the views sent for the refinement over its final subset's bytes, views sent and
   left unsent.
 
-Writes ``bench/results/team_map_sim.json`` (``--realtime``: ``team_map_sim_rt.json``) and ``.md`` (``--out``).
+Writes ``bench/results/team_map_sim.json`` (``--realtime``: ``team_map_sim_rt.json``) and ``.md`` (``--out``), and per
+task an image of the first run's team vote above its served team map (``team_map_sim_<task>.png``).
 """
 
 from __future__ import annotations
@@ -60,9 +61,10 @@ def fused_rows(report: dict) -> Dict[str, Dict[str, Dict[str, Optional[float]]]]
 
 def served_steps(report: dict) -> Dict[str, dict]:
     """task → {"worst": min over the timeline's steps whose served team map holds every robot's subset of (served −
-    the robot's own map, dB), "steps": their number}; the own map is the figure the report's timeline plot draws."""
+    the robot's own map, dB), "steps": their number}; the own map's figure over every frame (``roi_psnr_all_frames``,
+    the ``sensor`` protocol; its mapped frames' when absent), as the timeline scores the fused maps."""
     agents = report["agents"]
-    own = {a["task"]: a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr") for a in agents}
+    own = {a["task"]: a.get("roi_psnr_all_frames") or a.get("roi_psnr") for a in agents}
     ids = {a["id"] for a in agents}
     out = {}
     for task, o in own.items():
@@ -127,6 +129,35 @@ def table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def before_after(report_path: Path, out: Path) -> List[str]:
+    """Write, per task, ``<out stem>_<task>.png``: the first run's render of the team vote (top) above the served team
+    map (bottom), each beside the frame and its ROI (the sim's ``renders/vote_*`` and ``renders/team_map_*``).
+    Returns the images written (none when the report has no such renders)."""
+    # lazy: OpenCV, only for the images
+    import cv2
+    import numpy as np
+
+    rep = json.loads(report_path.read_text())
+    paths = {(r["fused"], r["task"]): report_path.parent / r["path"] for r in rep.get("renders") or []}
+    written = []
+    for a in rep["agents"]:
+        pair = [paths.get((k, a["task"])) for k in ("vote", "team_map")]
+        if not all(p is not None and p.is_file() for p in pair):
+            continue
+        rows = []
+        for p, label in zip(pair, ("team vote", "served team map (refined in the background)")):
+            img = cv2.imread(str(p))
+            bar = np.full((22, img.shape[1], 3), 255, np.uint8)
+            cv2.putText(bar, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+            rows += [bar, img]
+        dest = out.with_name(f"{out.stem}_{a['task']}.png")
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(dest), np.vstack(rows)):
+            raise OSError(f"could not write {dest}")
+        written.append(str(dest))
+    return written
+
+
 def run_sims(scene: str, runs: int, realtime: bool, sets: List[str], work: Path) -> List[Path]:
     """Run ``gausslite sim`` ``runs`` times, one after the other; returns the report paths."""
     paths = []
@@ -157,7 +188,7 @@ def main(argv=None) -> int:
     paths = args.summarise or run_sims(args.scene, args.runs, args.realtime, args.set, args.work)
     summary = summarise([json.loads(Path(p).read_text()) for p in paths])
     result = {"scene": args.scene, "realtime": args.realtime, "set": args.set, "reports": [str(p) for p in paths],
-              "summary": summary, "wall_s": time.perf_counter() - t0}
+              "summary": summary, "images": before_after(Path(paths[0]), out), "wall_s": time.perf_counter() - t0}
     write_results(out, "team_map", argv, f": {summary['runs']} runs, {result['wall_s'] / 60:.1f} min",
                   table(summary), result)
     print(f"wrote {out}")

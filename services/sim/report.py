@@ -386,7 +386,8 @@ def _timeline_lines(report: dict) -> List[str]:
     robot = any(e.get("roi_psnr_for_robot") for e in tl)
     served = any(e.get("served") for e in tl)
     lines = ["", "## The fused map while mapping", "",
-             "A vote fuse after each new subset on the server (no refinement), scored on every fifth frame: the team "
+             "A vote fuse after each new subset on the server (no refinement), scored on every frame (every k-th of a "
+             "sequence longer than 50 frames, about 50 of them): the team "
              "map" + (", and (→ robot) each task on the team map as its robot uses it (`Fuse(for_agent=…)`)" if robot
                       else "")
              + ("; (served) the team map the server serves then (`Fuse(team_map=true)`, refined in the background), "

@@ -67,8 +67,8 @@ class FusedTimeline:
 
     def _poll_served(self, t: float) -> Optional[Tuple[int, bool]]:
         """(version, current) of the team map the server serves now, downloading a new version; None when it serves
-        none (yet)."""
-        if not self.team_map:
+        none (yet, or before any subset: not asked then)."""
+        if not self.team_map or self._vote is None:
             return None
         try:
             r = self.fusion.fuse(team_map=True)
@@ -86,11 +86,12 @@ class FusedTimeline:
             log.warning("fused timeline: team map at %.0f s failed: %s", t, e)
             return None
 
-    def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: int = 5,
+    def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: Optional[int] = None,
                task_of: Optional[Dict[str, str]] = None) -> List[dict]:
         """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}, "roi_psnr_for_robot": {task: dB},
         "served": {...} | None}]``: every fused team map scored on each task's ROI (every ``stride``-th frame of
-        ``frames_by_task[task] = (dataset, frames)``), each task on the map made for its robot (``task_of``: agent id
+        ``frames_by_task[task] = (dataset, frames)``; None: every frame of a sequence of up to 50, else a stride that
+        scores about 50), each task on the map made for its robot (``task_of``: agent id
         → task id), and the team map served then (``served``: its ``version``, the subset ``versions`` it was made
         from, whether it was ``current``, the sim time it was first served ``made_t``, its ``refine_record`` and
         ``roi_psnr`` per task). A map is scored once, however many rows hold it."""
@@ -100,7 +101,8 @@ class FusedTimeline:
             key = (id(arrays), task)
             if key not in cache:
                 ds, fr = frames_by_task[task]
-                cache[key] = evaluate_fused(arrays.to_gaussian_map(), fr[::stride], ds.annotations, task, backend)
+                step = stride or max(1, len(fr) // 50)
+                cache[key] = evaluate_fused(arrays.to_gaussian_map(), fr[::step], ds.annotations, task, backend)
             return cache[key]
 
         out = []

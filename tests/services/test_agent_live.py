@@ -951,3 +951,49 @@ def test_the_mapping_resolution_is_reported_pinned_or_chosen_and_maps_what_it_sa
             assert msg.mapping_downscale == factor and msg.mapping_width == w
         finally:
             rt.close()
+
+
+class _ViewRecorder(_RecordingFusion):
+    """A fusion stand-in that also keeps the refinement views it is sent."""
+
+    def __init__(self):
+        super().__init__()
+        self.views = []
+
+    def upload_keyframes(self, agent_id, kfs, jpeg_quality=95, color_format="png", rois=None):
+        self.views += list(zip(kfs, rois or [None] * len(kfs)))
+        return super().upload_keyframes(agent_id, kfs, jpeg_quality, color_format, rois)
+
+
+def test_a_live_agent_sends_roi_crops_of_keyframes_and_of_the_frames_between_them_within_its_budget(scene):
+    from gausslite.parser import TaskParser
+
+    ds = load_dataset(scene / "agent_a")
+    text = ds.annotations.task_by_id("synth-pick-object").text
+    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5", "agent.keyframe_every=1",
+                                    "agent.keyframe_max_interval_s=0.1", "agent.keyframe_translation_m=10",
+                                    "agent.keyframe_rotation_deg=90", "agent.refine_views.crop=true",
+                                    "agent.refine_views.between=true", "agent.refine_views.between_every=1",
+                                    "agent.refine_views.min_roi_px=4", "agent.refine_views.budget_ratio=40"],
+                      deployed=False).agent
+    fusion = _ViewRecorder()
+    rt = AgentRuntime("rv", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
+                      task_id="synth-pick-object", fusion=fusion)
+    try:
+        rt.replay(ds)
+        s = rt.finish(push=True, timeout_s=120)
+    finally:
+        rt.close()
+    st = s.status
+    assert st["frames_keyframed"] >= 2 and st["frames_skipped"] >= 1
+    sent = {int(f.frame_id) for f, _ in fusion.views}
+    keyframes = {int(x.frame_id) for x in rt.mapper.stats}
+    assert sent - keyframes, (sent, keyframes)  # frames that were never keyframes reached the server as views
+    full = ds[0].rgb.shape[:2]
+    for f, roi in fusion.views:
+        assert roi is not None and roi.shape == f.depth.shape and roi.any()
+        assert f.rgb.shape[0] <= full[0] and f.rgb.shape[1] <= full[1]
+        assert (f.intrinsics.width, f.intrinsics.height) == (f.rgb.shape[1], f.rgb.shape[0])
+    assert s.views_sent == len(fusion.views) and 0 < s.view_bytes <= 40 * s.final_subset_bytes
+    # the own map's tracked views travel with the summary: a team map is scored at them
+    assert set(s.tracked_views) == set(range(0, len(ds), 5)) and all(v.c2w.shape == (4, 4) for v in s.tracked_views.values())
