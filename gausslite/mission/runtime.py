@@ -227,12 +227,7 @@ class AgentRuntime:
         #: frames that did not become keyframes since the last one (oldest first, bounded): the mapper records the
         #: camera's motion through them and, under ``mapper.roi_views``, keeps their ROI crops
         self._between: "deque" = deque(maxlen=BETWEEN_MAX)
-        m = config.mapper
-        #: the frames between keyframes are used: decoded for their ROI crops (the mapper's ROI views, the views sent
-        #: for the fusion refinement), or only for their motion
-        self._sends_between = config.refine_views.crop and config.refine_views.between
-        self._keeps_views = (m.roi_views.enabled and m.effective().roi) or self._sends_between
-        self._uses_between = self._keeps_views or m.sensor.motion_every_frame
+        self._sends_between, self._keeps_views, self._uses_between = self._between_use(config)
         self.frames_skipped = 0
         self.frames_rejected = 0
         self.keyframe_iterations = 0
@@ -601,6 +596,16 @@ class AgentRuntime:
         wu = cv2.resize(np.asarray(w, np.uint8), (up.intrinsics.width, up.intrinsics.height),
                         interpolation=cv2.INTER_NEAREST) > 0
         return up, wu
+
+    @staticmethod
+    def _between_use(config: AgentConfig) -> tuple:
+        """How the frames between keyframes are used: (their ROI crops are sent for the fusion refinement, they are
+        decoded for ROI crops (the mapper's ROI views or those views), they are kept at all (also for their motion
+        alone))."""
+        m = config.mapper
+        sends = config.refine_views.crop and config.refine_views.between
+        keeps = (m.roi_views.enabled and m.effective().roi) or sends
+        return sends, keeps, keeps or m.sensor.motion_every_frame
 
     def _offer_between_views(self, keyframe: Frame, w: np.ndarray, frames: list) -> int:
         """Offer the pusher the ROI crops of every ``refine_views.between_every``-th of ``frames`` (decoded frames
