@@ -37,7 +37,7 @@ from gausslite_services.fusion_server.guards import (Cancelled, intrinsics_from_
                                                      unary_guard, check_agent_id, check_int64, decode_color,
                                                      decode_depth, decode_roi, UploadStreams)
 from gausslite_services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
-from gausslite_services.fusion_server.team_map import TeamMapRefresher
+from gausslite_services.fusion_server.team_map import TEAM_MAP_RETENTION, TeamMapRefresher
 
 log = logging.getLogger("gausslite_services.fusion_server.server")  # one logger for the whole service
 
@@ -47,9 +47,6 @@ FUSED_AGENT_ID = "fused"
 STATS_PAGE_SIZE = 100
 MAX_STATS_PAGE_SIZE = 1000
 _METHOD_NAMES = {fusion_pb2.FUSE_METHOD_VOTE: "vote", fusion_pb2.FUSE_METHOD_CONCAT: "concat"}
-#: the store's retention class of team maps (its ``method`` column; not a FuseMethod, which stays VOTE in their
-#: FuseResult): kept apart from the Fuse results, so frequent Fuse calls never evict the team map being served
-TEAM_MAP_RETENTION = 100
 #: bytes an ``UploadSubsetRequest`` adds around its chunk (field tag and length, 6 at most, with margin): a chunk fits
 #: in one message when it is at most ``max_message_bytes - CHUNK_ENVELOPE_BYTES`` (``SessionInfo.max_chunk_bytes``)
 CHUNK_ENVELOPE_BYTES = 16

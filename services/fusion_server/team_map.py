@@ -26,7 +26,11 @@ from gausslite_services.fusion_server.guards import Cancelled
 
 log = logging.getLogger("gausslite_services.fusion_server.server")  # one logger for the whole service
 
-__all__ = ["TeamMapRefresher", "lower_thread_priority"]
+__all__ = ["TeamMapRefresher", "lower_thread_priority", "TEAM_MAP_RETENTION"]
+
+#: the store's retention class of team maps (its ``method`` column; not a FuseMethod, which stays VOTE in their
+#: FuseResult): kept apart from the Fuse results, so frequent Fuse calls never evict the team map being served
+TEAM_MAP_RETENTION = 100
 
 
 def lower_thread_priority(nice: int) -> bool:
@@ -94,8 +98,6 @@ class TeamMapRefresher:
 
     def latest(self) -> Optional[fusion_pb2.FuseResult]:
         """The newest stored team map's result (any replica's), or None."""
-        from gausslite_services.fusion_server.servicer import TEAM_MAP_RETENTION
-
         found = self.servicer.store.fused_info(0, TEAM_MAP_RETENTION)
         return None if found is None else fusion_pb2.FuseResult.FromString(found[1])
 

@@ -249,7 +249,8 @@ def test_compose_metrics_setting_serves_metrics(service, tmp_path):
     compose = yaml.safe_load((repo / "deploy" / "docker-compose.yml").read_text())["services"]
     for name in ("parser", "fusion_server", "agent_a", "agent_b"):
         assert compose[name]["environment"]["GAUSSLITE_METRICS_PORT"] == "${GAUSSLITE_METRICS_PORT:-0}"
-    cmd = list(compose[service]["command"])
+    # the image's /app/deploy is this checkout's deploy/
+    cmd = [c.replace("/app/deploy/", f"{repo / 'deploy'}/") for c in compose[service]["command"]]
     cmd[cmd.index("--port") + 1] = str(free_port())
     cmd = [sys.executable, "-m", "gausslite.cli", *cmd[1:]] if cmd[0] == "gausslite" else [sys.executable, *cmd[1:]]
     mport = free_port()

@@ -51,13 +51,23 @@ class _FakeFusion:
     def __init__(self):
         self.versions = {}
         self.fuses = []
+        self.team = None  # the served team map: (version, its subset versions, current), None before the first
 
     def stats(self):
         return {"agents": {a: {"latest_map_version": v, "has_complete_subset": v > 0} for a, v in self.versions.items()}}
 
-    def fuse(self, method, voxel_size, contest_radius, for_agent=None):
+    def fuse(self, method="vote", voxel_size=0.1, contest_radius=None, for_agent=None, team_map=False):
         from types import SimpleNamespace
 
+        import grpc
+
+        if team_map:
+            if self.team is None:
+                raise type("NotFound", (grpc.RpcError,), {"code": lambda s: grpc.StatusCode.NOT_FOUND,
+                                                          "details": lambda s: "no team map yet"})()
+            v, versions, current = self.team
+            return SimpleNamespace(fused_version=v, map_versions=versions, team_map_current=current,
+                                   refine_record={"iters_run": 5})
         self.fuses.append((method, voxel_size, contest_radius, for_agent))
         return SimpleNamespace(fused_version=len(self.fuses))
 
@@ -80,7 +90,7 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     # the team map, then the map for each robot with a subset
     assert fusion.fuses == [("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"),
                             ("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"), ("vote", 0.1, 1, "agent_b")]
-    assert [(t, v) for t, v, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
+    assert [(t, v) for t, v, _, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
     scored = []
     monkeypatch.setattr(sim.timeline, "evaluate_fused",
                         lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames))) or 20.0 + len(g))
@@ -102,10 +112,21 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     assert "The fused map while mapping" in md and "| 3 | agent_a v1, agent_b v1 | 2 | 22.00 | 22.00 | 22.00 | 22.00 |" in md
     assert "| 1 | agent_a v1 | 1 | 21.00 | 21.00 | 21.00 | – |" in md
     assert "![fused ROI PSNR over time](t.png)" in md
+    # the served team map: a row when a new version is served, then when it turns current; none before it exists
+    assert all(m[3] is None for m in tl.maps)
+    fusion.team = (50, {"agent_a": 1, "agent_b": 1}, True)
+    assert tl.poll(3.5) and tl.maps[-1][3] == (50, True) and not tl.poll(3.6)
+    fusion.team = (50, {"agent_a": 1, "agent_b": 1}, False)
+    assert tl.poll(3.7) and tl.maps[-1][3] == (50, False)
+    rows = tl.scores({"t-a": (_DS, list(range(12))), "t-b": (_DS, list(range(12)))}, stride=5,
+                     task_of={"agent_a": "t-a", "agent_b": "t-b"})
+    s = rows[-1]["served"]
+    assert s["version"] == 50 and not s["current"] and s["versions"] == {"agent_a": 1, "agent_b": 1}
+    assert s["made_t"] == 3.5 and s["roi_psnr"]["t-a"] == 20.0 + s["n_gaussians"] and rows[0]["served"] is None
     # a failing fuse is logged and skipped, not raised
     fusion.versions = {"agent_a": 2, "agent_b": 1}
     fusion.fuse = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("server gone"))
-    assert not tl.poll(4.0) and len(tl.maps) == 2
+    assert not tl.poll(4.0) and len(tl.maps) == 4
 
 
 def test_live_sims_fuse_with_the_paper_per_voxel_rule_and_offline_sims_with_the_neighbourhood():
