@@ -113,9 +113,18 @@ def test_replicas_agree_and_serialise_concurrent_fusions(tmp_path, pg_schema_dsn
             r.stop(0.5)
 
 
-def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys):
+def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys, monkeypatch):
+    from gausslite_services.fusion_server import store_postgres
     from gausslite_services.fusion_server.server import main
 
+    # nothing listens on port 1, so every connection attempt is refused at once: the store gives up after its
+    # first-connection wait (10 s by default), which this test shortens; the error is the same
+    real_init = store_postgres.PostgresFusionStore.__init__
+
+    def quick_init(self, dsn, **kw):
+        real_init(self, dsn, **{"connect_timeout_s": 1.0, **kw})
+
+    monkeypatch.setattr(store_postgres.PostgresFusionStore, "__init__", quick_init)
     rc = main(["--port", "0", "--store", "postgresql://x:secret@127.0.0.1:1/none", "--data-dir", str(tmp_path)])
     err = capsys.readouterr().err
     assert rc == 2 and "cannot connect to the PostgreSQL fusion store" in err
