@@ -61,3 +61,33 @@ def save_checkpoint(folder: Path, seed: int = 0) -> Path:
     tiny_grounding_dino(seed).save_pretrained(folder)
     write_bert_vocab(folder / "vocab.txt")
     return folder
+
+
+#: detector input (h, w) and segmenter input (h, w) of :func:`export_models_cli`
+DET_SIZE = (160, 224)
+SEG_IMGSZ = (96, 128)
+
+
+def export_models_cli(folder: Path) -> dict:
+    """``gausslite export-models`` on a tiny Grounding DINO checkpoint (:func:`save_checkpoint`, seed 0) and
+    ultralytics' yolov8n-seg.yaml, at :data:`DET_SIZE` / :data:`SEG_IMGSZ`, into ``folder / "models"``.
+
+    Returns:
+        {"rc": exit code, "err": what the command wrote to stderr, "checkpoint": the checkpoint folder,
+        "out": the output folder}
+    """
+    import contextlib
+    import io
+
+    need("transformers")
+    need("onnxscript")
+    need("ultralytics")
+    from gausslite.cli import main
+
+    ckpt = save_checkpoint(folder / "gdino-ckpt")
+    out = folder / "models"
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = main(["export-models", "--detector", str(ckpt), "--segmenter", "yolov8n-seg.yaml", "--out", str(out),
+                   "--det-size", *map(str, DET_SIZE), "--seg-imgsz", *map(str, SEG_IMGSZ)])
+    return {"rc": rc, "err": err.getvalue(), "checkpoint": ckpt, "out": out}

@@ -8,22 +8,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests._real_models import WORDS, need, tiny_grounding_dino, write_bert_vocab
+from tests._real_models import DET_SIZE, WORDS, need
 
-H_DET, W_DET = 160, 224
+H_DET, W_DET = DET_SIZE
 
 
 @pytest.fixture(scope="module")
-def gdino(tmp_path_factory):
+def gdino(exported_models):
+    """The tiny Grounding DINO exported by ``gausslite export-models`` (at :data:`DET_SIZE`) and the model it was
+    exported from, loaded again from its checkpoint folder."""
     torch = need("torch")
-    need("transformers")
-    need("onnxscript")
-    from gausslite.attention.export import export_grounding_dino
+    from gausslite.attention.export import load_grounding_dino
 
-    d = tmp_path_factory.mktemp("gdino")
-    model = tiny_grounding_dino()
-    path = export_grounding_dino(model, d / "detector.onnx", image_size=(H_DET, W_DET))
-    return model, path, write_bert_vocab(d / "vocab.txt"), torch
+    assert exported_models["rc"] == 0, exported_models["err"]
+    out = exported_models["out"]
+    model = load_grounding_dino(exported_models["checkpoint"])
+    return model, out / "detector.onnx", out / "vocab.txt", torch
 
 
 @pytest.fixture(scope="module")

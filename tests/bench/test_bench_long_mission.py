@@ -15,6 +15,13 @@ def _run(mode, seed, task, roi, psnr, fifths):
             "s_per_frame_by_fifth": [2.0] * 5, "n_gaussians": 1000, "keyframe_mb": 3.0}
 
 
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """``--work``: where the bench generates its synthetic scene (the same 24-frame circle for every run here, made
+    once and only read by the runs)."""
+    return tmp_path_factory.mktemp("work")
+
+
 def test_summarise_follows_the_issue_schema():
     runs = []
     for s, off in ((0, 0.0), (1, 1.0)):
@@ -54,7 +61,7 @@ def test_stats_helpers():
         gain([1.0], [1.0, 2.0])
 
 
-def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
+def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path, work):
     """``python -m bench.long_mission`` on a 24-frame synthetic circle (first 20 frames, 10 mapped, 3 iterations each):
     JSON in the issue's schema, the table, the plot, and no partial file left behind."""
     import json
@@ -64,7 +71,7 @@ def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
     out = tmp_path / "lm.json"
     rc = main(["--scenes", "synthetic_long", "--seeds", "1", "--tasks", "1", "--jobs", "1", "--synthetic-frames", "24",
                "--max-frames", "20", "--set", "iters_per_frame=3", "--set", "warmup_iters=1",
-               "--work", str(tmp_path / "work"), "--out", str(out)])
+               "--work", str(work), "--out", str(out)])
     assert rc == 0
     res = json.loads(out.read_text())
     sc = res["scenes"]["synthetic_long"]
@@ -77,7 +84,7 @@ def test_bench_runs_end_to_end_on_a_tiny_synthetic_circle(tmp_path):
     assert not out.with_suffix(".partial.json").exists()
 
 
-def test_one_mode_compares_settings_within_it(tmp_path):
+def test_one_mode_compares_settings_within_it(tmp_path, work):
     """``--modes gausslite``: only GaussLite runs (a comparison of two settings of one mode), the table has no uniform
     row and no ROI gain; an unknown mode is refused."""
     import json
@@ -87,7 +94,7 @@ def test_one_mode_compares_settings_within_it(tmp_path):
     out = tmp_path / "lm.json"
     argv = ["--scenes", "synthetic_long", "--seeds", "1", "--tasks", "1", "--jobs", "1", "--synthetic-frames", "24",
             "--max-frames", "12", "--set", "iters_per_frame=2", "--set", "warmup_iters=1",
-            "--work", str(tmp_path / "work"), "--out", str(out)]
+            "--work", str(work), "--out", str(out)]
     assert main([*argv, "--modes", "gausslite"]) == 0
     res = json.loads(out.read_text())
     assert {r["mode"] for r in res["runs"]} == {"gausslite"} and res["settings"]["modes"] == ["gausslite"]
@@ -109,7 +116,7 @@ def test_select_tasks():
         select_tasks("0", ts)
 
 
-def test_resume_keeps_the_partial_runs_and_runs_only_the_missing_ones(tmp_path, capsys):
+def test_resume_keeps_the_partial_runs_and_runs_only_the_missing_ones(tmp_path, capsys, work):
     """An interrupted bench (its ``.partial.json``) resumed with one more seed: the kept runs are not redone
     (their figures are carried over as written), the missing seed runs, and other settings are refused."""
     import json
@@ -118,7 +125,7 @@ def test_resume_keeps_the_partial_runs_and_runs_only_the_missing_ones(tmp_path, 
 
     common = ["--scenes", "synthetic_long", "--tasks", "synth-pick-object", "--jobs", "1", "--synthetic-frames", "24",
               "--max-frames", "8", "--set", "iters_per_frame=2", "--set", "warmup_iters=1",
-              "--work", str(tmp_path / "work")]
+              "--work", str(work)]
     first = tmp_path / "a.json"
     assert main(common + ["--seeds", "1", "--out", str(first)]) == 0
     res1 = json.loads(first.read_text())

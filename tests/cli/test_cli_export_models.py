@@ -7,18 +7,12 @@ import numpy as np
 import yaml
 
 from gausslite.cli import main
-from tests._real_models import need, save_checkpoint
+from tests._real_models import DET_SIZE, SEG_IMGSZ, need
 
 
-def test_export_models_writes_what_the_agent_loads(tmp_path, capsys):
-    need("transformers")
-    need("onnxscript")
-    need("ultralytics")
-    ckpt = save_checkpoint(tmp_path / "gdino-ckpt")
-    out = tmp_path / "models"
-    rc = main(["export-models", "--detector", str(ckpt), "--segmenter", "yolov8n-seg.yaml", "--out", str(out),
-               "--det-size", "128", "160", "--seg-imgsz", "96", "128"])
-    assert rc == 0, capsys.readouterr().err
+def test_export_models_writes_what_the_agent_loads(exported_models):
+    rc, out = exported_models["rc"], exported_models["out"]
+    assert rc == 0, exported_models["err"]
     assert sorted(p.name for p in out.iterdir()) == ["agent-onnx.yaml", "detector.onnx", "segmenter.onnx", "vocab.txt"]
     cfg = yaml.safe_load((out / "agent-onnx.yaml").read_text())["agent"]
     assert cfg["relevance_backend"] == "onnx"
@@ -30,7 +24,7 @@ def test_export_models_writes_what_the_agent_loads(tmp_path, capsys):
 
     det = OnnxGroundingDetector(o.detector_path, o.vocab_path)
     seg = OnnxFastSAMSegmenter(o.segmenter_path)
-    assert det.input_size == (128, 160) and seg.input_hw == (96, 128)
+    assert det.input_size == DET_SIZE == (160, 224) and seg.input_hw == SEG_IMGSZ == (96, 128)
     img = np.zeros((48, 64, 3), np.uint8)
     d = det.detect(img, ["red cup", "desk"])
     assert len(d) <= 20 and d.boxes.shape == (len(d), 4)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -321,12 +322,17 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
                     fc.stats()
                 assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
-        for p in procs.values():
-            if p.poll() is None:
+        # An agent stopped with SIGTERM ends its mission first (share fine-tune, final pass, final push retried
+        # for up to agent.final_push_timeout_s), which is not what this test checks: the agents and their share
+        # workers (one process group each) are killed outright. The parser and the replicas stop on SIGTERM.
+        for name, p in procs.items():
+            if name.startswith("agent") and p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+            elif p.poll() is None:
                 p.terminate()
         for p in procs.values():
             try:
                 p.wait(15)
             except subprocess.TimeoutExpired:
-                p.kill()
+                os.killpg(p.pid, signal.SIGKILL)
                 p.wait(5)
