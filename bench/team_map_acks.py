@@ -82,7 +82,7 @@ def run_phase(work: Path, team_map: bool, args) -> dict:
         _setup(c, args.gaussians, args.views)
         refining = None
         if team_map:  # the first refinement starts once uploads settle; it runs for minutes
-            time.sleep(3.0)
+            time.sleep(args.settle)
         acks, views_ms = [], []
         t_end = time.monotonic() + args.seconds
         v = 2
@@ -134,6 +134,9 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=float, default=0.5, help="seconds between pushes")
     ap.add_argument("--gaussians", type=int, default=3000, help="Gaussians per subset")
     ap.add_argument("--views", type=int, default=16, help="ROI views each robot uploads at the start")
+    ap.add_argument("--settle", type=float, default=3.0,
+                    help="seconds from the uploads to the first push, for the refinement to start (the server's "
+                         "settle_s is 0.2 s)")
     ap.add_argument("--work", type=Path, default=Path("runs") / "team_map_acks")
     ap.add_argument("--out", type=Path, default=RESULTS / "team_map_acks.json")
     args = ap.parse_args(argv)

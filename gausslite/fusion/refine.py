@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from typing import Callable, Hashable, List, Optional, Sequence
 
 import numpy as np
@@ -35,6 +36,10 @@ from gausslite.mapping.model import cosine_lr_factor
 from gausslite.mapping.views import Keyframe
 
 log = logging.getLogger(__name__)
+
+#: longest wait (s) between two progress reports of a refinement: how long a cancellation (a server stopping) may
+#: take to reach it
+PROGRESS_PERIOD_S = 0.5
 
 __all__ = ["refine_map", "RefineReport"]
 
@@ -68,7 +73,9 @@ def refine_map(
             the training keyframes uniformly. Their frame ids need not be unique (each agent counts its own).
         iters: number of Adam iterations asked for (0 returns the input unchanged); at most
             ``per_view_iters`` × training keyframes are run (:func:`~gausslite.fusion.holdout.scaled_iters`).
-        progress: optional callback ``(fraction in [0,1], message)``, called about 20 times and once at 1.0.
+        progress: optional callback ``(fraction in [0,1], message)``, called about 20 times, at least every
+            :data:`PROGRESS_PERIOD_S` seconds, and once at 1.0; an exception it raises (a cancellation) stops the
+            refinement within that period.
         seed: RNG seed for view sampling and the train / held-out split.
         footprint_only: restrict the loss to pixels the map renders (alpha > ``footprint_alpha``).
             A fused map holds only the agents' ROI subsets: a full-image loss would make those
@@ -208,6 +215,7 @@ def _train(mapper: Mapper, cfg: MapperConfig, train: List[Keyframe], held: Optio
     n_iters = rep.iters_planned
     rng = np.random.default_rng(seed)
     every = max(1, n_iters // 20)
+    reported = time.monotonic()
     best: Optional[GaussianArrays] = None
     if held is not None:
         rep.vote_loss = rep.best_loss = rep.last_loss = held.loss()
@@ -229,7 +237,9 @@ def _train(mapper: Mapper, cfg: MapperConfig, train: List[Keyframe], held: Optio
             else:
                 stale += 1
         rep.stopped_early = stale >= patience and it + 1 < n_iters
-        if progress is not None and ((it + 1) % every == 0 or it + 1 == n_iters):
+        if progress is not None and ((it + 1) % every == 0 or it + 1 == n_iters
+                                     or time.monotonic() - reported >= PROGRESS_PERIOD_S):
+            reported = time.monotonic()
             progress((it + 1) / n_iters, f"refine {it + 1}/{n_iters} loss {loss:.4f} gaussians {len(mapper.model)}"
                      + ("" if rep.last_loss is None else f" held-out {rep.last_loss:.4f}"))
         if rep.stopped_early:

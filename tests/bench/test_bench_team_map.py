@@ -53,7 +53,7 @@ def test_a_report_file_is_summarised_from_the_command_line(tmp_path):
 @pytest.mark.integration
 def test_push_acknowledgements_are_timed_while_the_team_map_refines(tmp_path):
     out = tmp_path / "acks.json"
-    team_map_acks.main(["--seconds", "3", "--every", "0.3", "--gaussians", "400", "--views", "4",
+    team_map_acks.main(["--seconds", "2", "--every", "0.3", "--gaussians", "400", "--views", "4", "--settle", "1",
                         "--work", str(tmp_path / "w"), "--out", str(out)])
     got = json.loads(out.read_text())
     on, off = got["phases"]

@@ -13,6 +13,7 @@ import torch
 from gausslite.config import FusionSettings
 from gausslite.fusion.engine import FuseEngine
 from gausslite.fusion.holdout import RefineReport, RefineValidation, scaled_iters, split_views
+from gausslite.fusion import refine as refine_mod
 from gausslite.fusion.refine import refine_map
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.loss import photometric_loss
@@ -162,6 +163,27 @@ def test_refine_report_fields_progress_and_the_unvalidated_single_view(scene):
                 dict(sources=["a"])):
         with pytest.raises(ValueError):
             refine_map(vote, kfs[:2], iters=5, cfg=CFG, **bad)
+
+
+def test_a_cancelling_progress_callback_stops_a_long_refinement_within_the_report_period(scene, monkeypatch):
+    """Progress is reported at least every PROGRESS_PERIOD_S, not only every 1/20 of the iterations, so a stopping
+    server's cancellation reaches a long refinement at once (here: a period of 0 s reports every iteration)."""
+    frames, kfs, fitted = scene
+
+    class Stop(Exception):
+        pass
+
+    def cancel_at_third(f, m):
+        calls.append(f)
+        if len(calls) == 3:
+            raise Stop()
+
+    calls, rep = [], RefineReport()
+    monkeypatch.setattr(refine_mod, "PROGRESS_PERIOD_S", 0.0)
+    with pytest.raises(Stop):
+        refine_map(_noisy(fitted, 0.15), kfs[:3], iters=2000, seed=0, cfg=CFG, per_view_iters=0, report=rep,
+                   progress=cancel_at_third)
+    assert rep.iters_planned == 2000 and rep.iters_run == 3 and calls == [1 / 2000, 2 / 2000, 3 / 2000]
 
 
 def test_engine_carries_logs_and_reports_the_refinement(scene, caplog):
