@@ -10,6 +10,7 @@ import math
 import queue
 import threading
 import time
+import zlib
 from typing import Dict, Iterator, Optional
 
 import grpc
@@ -116,6 +117,10 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self.fused_chunk_bytes = min(4 << 20, self.max_message_bytes) - 64 * 1024
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
+        # decoded keyframes of the refinement, by (agent, frame id, CRC-32 of the stored images, pose, intrinsics): a
+        # refinement decodes only the keyframes stored since the last one (the team map refines again and again over
+        # the same views)
+        self._decoded: Dict[tuple, object] = {}
         self._fuse_lock = threading.Lock()
         self._refine_lock = threading.Lock()  # one joint refinement at a time in this server (Fuse's or the team map's)
         # keeps the voted map current (under the fuse locks); refine_options take precedence over the held-out check's
@@ -638,12 +643,23 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         from gausslite.mapping.views import keyframe_from_frame
 
         kfs: Dict[str, list] = {}
+        keep: Dict[tuple, object] = {}
         for k in self.store.keyframes():
-            what = f"stored keyframe {k.frame_id}"
-            frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what), decode_depth(k.depth, k.depth_scale, what),
-                          np.asarray(k.c2w, np.float64), Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
-            roi = decode_roi(k.roi, (k.height, k.width), what) if k.roi else None
-            kfs.setdefault(k.agent_id, []).append(keyframe_from_frame(frame, "cpu", roi))
+            key = (k.agent_id, k.frame_id, zlib.crc32(k.roi, zlib.crc32(k.depth, zlib.crc32(k.color))),
+                   np.asarray(k.c2w, np.float64).tobytes(), k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale)
+            with self._cache_lock:
+                kf = self._decoded.get(key)
+            if kf is None:
+                what = f"stored keyframe {k.frame_id}"
+                frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what),
+                              decode_depth(k.depth, k.depth_scale, what), np.asarray(k.c2w, np.float64),
+                              Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
+                roi = decode_roi(k.roi, (k.height, k.width), what) if k.roi else None
+                kf = keyframe_from_frame(frame, "cpu", roi)
+            keep[key] = kf
+            kfs.setdefault(k.agent_id, []).append(kf)
+        with self._cache_lock:  # only what the store still holds (evicted keyframes leave the cache)
+            self._decoded = keep
         return kfs
 
     @stream_guard

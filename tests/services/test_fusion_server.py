@@ -507,6 +507,34 @@ def _png_bomb(width: int, height: int, color_type: int = 2, bits: int = 8) -> by
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
 
 
+def test_a_refinement_decodes_only_the_keyframes_stored_since_the_last_one(tmp_path, monkeypatch):
+    """The team map refines again and again over the same stored views: each keyframe is decoded once, the decoded
+    views are the same objects the next time, and evicted keyframes leave the cache."""
+    from gausslite_services.fusion_server import servicer as servicer_mod
+
+    srv = start(tmp_path, config=FusionConfig(max_keyframes_per_agent=3))
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
+            c.open_session("a", "find the cup", INTR)
+            decoded = []
+            real = servicer_mod.decode_color
+            monkeypatch.setattr(servicer_mod, "decode_color",  # the refinement's decoding (uploads check theirs too)
+                                lambda *a: (a[1].startswith("stored") and decoded.append(a[1])) or real(*a))
+            assert c.upload_keyframes("a", [frame(i) for i in range(2)]) == 2
+            first = srv.servicer._refine_keyframes()
+            assert [k.frame_id for k in first["a"]] == [0, 1] and len(decoded) == 2
+            again = srv.servicer._refine_keyframes()
+            assert len(decoded) == 2 and all(x is y for x, y in zip(first["a"], again["a"]))
+            assert c.upload_keyframes("a", [frame(i) for i in range(2, 4)], color_format="png") == 2  # 0 is evicted
+            later = srv.servicer._refine_keyframes()
+            assert [k.frame_id for k in later["a"]] == [1, 2, 3] and len(decoded) == 4
+            assert later["a"][0] is first["a"][1]
+            assert sorted(k[1] for k in srv.servicer._decoded) == [1, 2, 3]
+            np.testing.assert_allclose(later["a"][2].rgb.numpy(), frame(3).rgb / 255.0, atol=1e-6)  # lossless PNG
+    finally:
+        srv.stop(0.5)
+
+
 def test_keyframe_images_are_checked_against_the_intrinsics_before_they_are_decoded(server, client, monkeypatch):
     """A small file can declare a huge image: a 1.17 MB PNG of 20000x20000 pixels decodes to 1.2 GB. The server reads
     the sizes from the headers and rejects a mismatch without decoding anything (INVALID_ARGUMENT)."""
