@@ -121,6 +121,8 @@ class Pusher:
         self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
         self._kf_pending: list = []  # frames to upload with the next push
         self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
+        # id(frame) -> its bytes on the wire (view_bytes), measured once by the push thread while the view waits
+        self._kf_size: dict = {}
         #: bytes of the refinement views sent over the mission, bounded by agent.refine_views.budget_ratio
         self.views = ViewBudget(config.refine_views.budget_ratio)
         self.thread = threading.Thread(target=self._loop, name=f"agent-{agent_id}-push", daemon=True)
@@ -167,6 +169,7 @@ class Pusher:
                 self._kf_roi[id(frame)] = np.asarray(roi, bool)
             for old in self._kf_pending[:-keep]:
                 self._kf_roi.pop(id(old), None)
+                self._kf_size.pop(id(old), None)
             del self._kf_pending[:-keep]
         return True
 
@@ -323,10 +326,16 @@ class Pusher:
         with self._lock:
             waiting = list(self._kf_pending)
             rois = [self._kf_roi.get(id(f)) for f in waiting]
+            sizes = [self._kf_size.get(id(f)) for f in waiting]
         if not waiting:
             return [], 0
         refined = [self._refined(f) for f in waiting]
-        sizes = [view_bytes(f, r, cfg.keyframe_format, cfg.jpeg_quality) for f, r in zip(waiting, rois)]
+        for i, (f, r) in enumerate(zip(waiting, rois)):  # encoded once: a view may wait through many pushes
+            if sizes[i] is None:
+                sizes[i] = view_bytes(f, r, cfg.keyframe_format, cfg.jpeg_quality)
+                with self._lock:
+                    if any(f is g for g in self._kf_pending):
+                        self._kf_size[id(f)] = sizes[i]
         before = dataclasses.replace(self.views, poses=list(self.views.poses))
         chosen = self.views.choose(sizes, [f.c2w for f in refined], self.final_subset_bytes)
         kfs = [waiting[i] for i in chosen]
@@ -344,6 +353,7 @@ class Pusher:
                 self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
                 for i in sent:
                     self._kf_roi.pop(i, None)
+                    self._kf_size.pop(i, None)
         return kfs, n_kf
 
     def views_unsent(self) -> int:

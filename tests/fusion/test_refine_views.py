@@ -12,6 +12,7 @@ from gausslite.datasets.base import Frame
 from gausslite.fusion.views import ViewBudget, next_view, region_points, roi_crop, view_bytes
 from gausslite.mapping.roi_views import project_roi
 from gausslite.mission import AgentConfig
+from gausslite.mission import pusher as pusher_mod
 from gausslite.mission.pusher import Pusher
 from gausslite.mission.share import ShareSession
 from gausslite_services.fusion_server.client import keyframe_to_proto
@@ -108,7 +109,7 @@ class _Recorder:
         return len(frames)
 
 
-def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire():
+def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(monkeypatch):
     config = AgentConfig(pusher_nice=0, refine_views={"crop": True, "margin_px": 4, "budget_ratio": 2.0,
                                                       "min_roi_px": 16})
     p = Pusher("p1", "find the object", config, None, ShareSession("p1", config), mapper=None,
@@ -120,9 +121,12 @@ def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(
     sizes = [view_bytes(*roi_crop(_frame(i, x=0.05 * i), _roi(), 4)) for i in range(12)]
     assert max(sizes) < 1.2 * min(sizes)
     p.final_subset_bytes = -(-5 * max(sizes) // 2)  # room for five views, not six
+    measured = []  # each waiting view is encoded to measure its size once, not at every push
+    monkeypatch.setattr(pusher_mod, "view_bytes", lambda *a: measured.append(1) or view_bytes(*a))
     rec = _Recorder()
     sent, n = p._upload_pending_keyframes(rec)
     assert n == len(sent) == 5 and p.views.sent == 5 and p.views_unsent() == 7
+    assert len(measured) == 12 and len(p._kf_size) == 7  # the sizes of the views still waiting are kept
     assert all(f.rgb.shape == (28, 28, 3) for f in rec.sent)
     assert rec.wire_bytes <= p.views.sent_bytes <= 2 * p.final_subset_bytes
     # spread over the trajectory: the first and last frames and the middle, not five neighbours
@@ -130,4 +134,5 @@ def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(
     p.final_subset_bytes *= 2  # a larger subset: more room
     sent, _ = p._upload_pending_keyframes(rec)
     assert len(sent) == 5 and p.views_unsent() == 2 and rec.wire_bytes <= 2 * p.final_subset_bytes
+    assert len(measured) == 12 and len(p._kf_size) == 2
 
