@@ -8,7 +8,7 @@ import time
 from typing import Callable, Dict, Iterator
 
 from gausslite_services.fusion_server.store_records import StoreError, StoreUnavailable
-from gausslite_services.fusion_server.store_sql import _LOCK_AGENT, FUSE_LOCKS, SqlFusionStore
+from gausslite_services.fusion_server.store_sql import LOCK_AGENT, FUSE_LOCKS, SqlFusionStore
 
 
 def redact_dsn(dsn: str) -> str:
@@ -152,7 +152,7 @@ class PostgresFusionStore(SqlFusionStore):
         # one transaction: committed on exit (an unreachable database at commit raises: nothing acknowledged)
         with self._reachable(), self._connection() as conn:
             if agent is not None:
-                conn.execute("SELECT pg_advisory_xact_lock(%s, hashtext(%s))", (_LOCK_AGENT, agent))
+                conn.execute("SELECT pg_advisory_xact_lock(%s, hashtext(%s))", (LOCK_AGENT, agent))
             if lock is not None:
                 conn.execute("SELECT pg_advisory_xact_lock(%s, 0)", (lock,))
             yield _PgConn(conn)

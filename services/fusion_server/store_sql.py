@@ -62,9 +62,9 @@ MIGRATIONS: List[Tuple[int, List[str]]] = [
 ]
 assert MIGRATIONS[-1][0] == SCHEMA_VERSION
 
-# advisory-lock class ids (PostgreSQL two-int form): per-agent writes, fused versions, fuse, migration, and the
-# background refinement of the team map
-_LOCK_AGENT, _LOCK_FUSED, _LOCK_FUSE, _LOCK_MIGRATE, _LOCK_TEAM_MAP = 0x474C01, 0x474C02, 0x474C03, 0x474C04, 0x474C05
+#: advisory-lock class ids (PostgreSQL two-int form): per-agent writes (``LOCK_AGENT``, shared with the PostgreSQL
+#: store), fused versions, fuse, migration, and the background refinement of the team map
+LOCK_AGENT, _LOCK_FUSED, _LOCK_FUSE, _LOCK_MIGRATE, _LOCK_TEAM_MAP = 0x474C01, 0x474C02, 0x474C03, 0x474C04, 0x474C05
 #: the named locks of :meth:`SqlFusionStore.fuse_lock`: ``fuse`` (Fuse work), ``team_map`` (one background refinement
 #: of the team map at a time across replicas)
 FUSE_LOCKS = {"fuse": _LOCK_FUSE, "team_map": _LOCK_TEAM_MAP}

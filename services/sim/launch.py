@@ -1,6 +1,6 @@
 """The simulation's agents and processes: which dataset and task each agent gets (:func:`plan_agents`), the
 service commands mirroring ``deploy/docker-compose.yml`` (:func:`service_commands`), the child processes
-(:class:`ProcessGroup`), their health (:func:`wait_healthy`) and the gRPC clients of a run (:func:`_connect`).
+(:class:`ProcessGroup`), their health (:func:`wait_healthy`) and the gRPC clients of a run (:func:`connect_clients`).
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def plan_agents(dataset: str, cfg: GaussLiteConfig, task_ids: Optional[List[str]
             for name, path, tid in zip(AGENT_NAMES, paths, task_ids)]
 
 
-def _check_bags(plans: List[AgentPlan], agent_cfg: AgentConfig) -> None:
+def check_bags(plans: List[AgentPlan], agent_cfg: AgentConfig) -> None:
     """Open every ROS bag the agents will replay, so a bad bag fails with its one clear error before any
     process starts (``BagError`` lists the bag's topics and TF frames). ``agent_cfg``: the typed
     :class:`gausslite.mission.config.AgentConfig` (max_frames, bag options)."""
@@ -187,7 +187,7 @@ def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[Pr
     raise TimeoutError(f"{service} at {target} not healthy after {timeout_s:.0f} s (last: {status})")
 
 
-def _start_services(out: Path, config_path: Path, plans: List[AgentPlan], group: ProcessGroup,
+def start_services(out: Path, config_path: Path, plans: List[AgentPlan], group: ProcessGroup,
                     token: Optional[str]) -> Dict[str, str]:
     """Start the parser, the fusion server and the agents in ``group`` on free loopback ports, each waited for
     until its health service reports SERVING (120 s, agents 180 s).
@@ -212,7 +212,7 @@ def _start_services(out: Path, config_path: Path, plans: List[AgentPlan], group:
     return addrs
 
 
-def _connect(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str], fusion_token: Optional[str],
+def connect_clients(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str], fusion_token: Optional[str],
              clients: list):
     """Clients of the fusion server (waited for until ready, 60 s) and of each agent (``addrs``: service name →
     ``host:port``; each plan's ``address`` is set). Every client is appended to ``clients`` as soon as it exists,
@@ -231,7 +231,7 @@ def _connect(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str]
     return fusion, agents
 
 
-def _close_all(clients: list, group: ProcessGroup, previous_sigterm) -> None:
+def close_all(clients: list, group: ProcessGroup, previous_sigterm) -> None:
     """Close the gRPC clients (errors ignored), stop the started processes and restore the SIGTERM handler."""
     for c in clients:
         try:
@@ -243,9 +243,11 @@ def _close_all(clients: list, group: ProcessGroup, previous_sigterm) -> None:
         signal.signal(signal.SIGTERM, previous_sigterm)
 
 
-def _main_thread() -> bool:
+def main_thread() -> bool:
+    """Whether the caller runs on the interpreter's main thread (where signal handlers may be installed)."""
     return threading.current_thread() is threading.main_thread()
 
 
-def _raise_interrupt(signum, frame):
+def raise_interrupt(signum, frame):
+    """A signal handler (SIGTERM) that stops the simulation as Ctrl-C does. Raises: KeyboardInterrupt."""
     raise KeyboardInterrupt(f"signal {signum}")

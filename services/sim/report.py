@@ -1,4 +1,4 @@
-"""The simulation's report: each agent's entry (:func:`_agent_report`), the fused-minus-own differences, the
+"""The simulation's report: each agent's entry (:func:`agent_report`), the fused-minus-own differences, the
 figures of other runs merged in (matched uniform agents, a ``roi_render: context`` run, an every-frame offline
 run), the plots and ``report.json`` / ``report.md`` (:func:`write_markdown`).
 """
@@ -95,7 +95,7 @@ def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:
     report = json.loads(p.read_text())
     if not report.get("realtime"):
         raise ValueError(f"{p} is not a realtime run (gausslite sim --realtime)")
-    offline = _load_offline(offline_report)
+    offline = load_offline(offline_report)
     for a in report["agents"]:
         a["offline_roi_psnr_all_frames"] = offline.get(a["id"])
     report["offline_report"] = str(offline_report)
@@ -104,7 +104,7 @@ def attach_offline_report(out: str | Path, offline_report: str | Path) -> dict:
     return report
 
 
-def _load_offline(path: str | Path) -> Dict[str, Optional[float]]:
+def load_offline(path: str | Path) -> Dict[str, Optional[float]]:
     """Agent id → every-frame ROI PSNR of an earlier non-realtime ``report.json`` (or its folder): its
     ``roi_psnr_all_frames`` when present, else its ``roi_psnr`` (mean over the mapped frames, which are all
     frames in an every-frame run).
@@ -126,7 +126,7 @@ def _load_offline(path: str | Path) -> Dict[str, Optional[float]]:
     return {a["id"]: a.get("roi_psnr_all_frames", a.get("roi_psnr")) for a in agents}
 
 
-def _agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optional[float]]]) -> dict:
+def agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optional[float]]]) -> dict:
     """One agent's entry of ``report["agents"]`` from its Finish summary ``s``, the fusion server's stats of it
     ``st`` and the every-frame ROI PSNR of an offline run (``offline``: agent id → dB, or None)."""
     return {
@@ -167,7 +167,7 @@ def _agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optiona
     }
 
 
-def _fused_minus_own(report: dict) -> None:
+def fused_minus_own(report: dict) -> None:
     """Each fused map's ``minus_own[task]``: its ROI PSNR minus the task's robot's own map (every-frame figure in
     realtime runs, else the mapped frames')."""
     own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr")
@@ -177,7 +177,7 @@ def _fused_minus_own(report: dict) -> None:
                           for t, v in f["roi_psnr_per_task"].items()}
 
 
-def _protocol_minus_own(report: dict) -> None:
+def protocol_minus_own(report: dict) -> None:
     """Each fused map's ``protocols[q][task]["minus_own"]``: its ROI PSNR minus the task's robot's own map under the
     same protocol (the agent's ``protocols[q]``)."""
     own = {a["task"]: a.get("protocols") or {} for a in report["agents"]}
@@ -188,7 +188,7 @@ def _protocol_minus_own(report: dict) -> None:
                 v["minus_own"] = (v["roi_psnr"] - o) if v.get("roi_psnr") is not None and o is not None else None
 
 
-def _write_report(report: dict, out: Path) -> None:
+def write_report(report: dict, out: Path) -> None:
     """Write the plots (``pushes.png``, ``fused_over_time.png``, named in ``report`` when drawn), ``report.json``
     and ``report.md`` into ``out``."""
     if plot_pushes(report, out / "pushes.png"):
@@ -273,7 +273,8 @@ def plot_fused_timeline(report: dict, path: Path) -> bool:
     return True
 
 
-def _fmt(v, nd=2) -> str:
+def fmt(v, nd=2) -> str:
+    """``v`` with ``nd`` decimals for a report table; "–" for None or NaN."""
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{nd}f}"
 
 
@@ -287,10 +288,10 @@ def write_markdown(report: dict, path: Path) -> None:
              "total upload bytes | final subset bytes | upload / final |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for a in report["agents"]:
-        lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
-                     f"{_fmt(a['share_pct'])} | {_fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
+        lines.append(f"| {a['id']} | {a['task']} | {fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
+                     f"{fmt(a['share_pct'])} | {fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
                      f"{a.get('total_upload_bytes', '–')} | {a.get('final_subset_bytes', '–')} | "
-                     f"{_fmt(a.get('upload_ratio'))} |")
+                     f"{fmt(a.get('upload_ratio'))} |")
     if any("own_roi_psnr_context" in a for a in report["agents"]):
         lines += ["", "Own map with `roi_render: context` (this run's agents, or a run of the same sim mapped that "
                   "way) against the fused vote map:", "",
@@ -298,8 +299,8 @@ def write_markdown(report: dict, path: Path) -> None:
                   "|---|---|---|---|---|---|"]
         vote = report["fused"]["vote"]["roi_psnr_per_task"]
         for a in report["agents"]:
-            lines.append(f"| {a['id']} | {a['task']} | {_fmt(a['roi_psnr'])} | {_fmt(a.get('own_roi_psnr_context'))} | "
-                         f"{_fmt(vote.get(a['task']))} | {_fmt(a.get('vote_minus_own_context'))} |")
+            lines.append(f"| {a['id']} | {a['task']} | {fmt(a['roi_psnr'])} | {fmt(a.get('own_roi_psnr_context'))} | "
+                         f"{fmt(vote.get(a['task']))} | {fmt(a.get('vote_minus_own_context'))} |")
     lines += ["", "Pushes (bytes sent per push, `Δ` = delta push; share of the map when pushed):", ""]
     for a in report["agents"]:
         cells = ", ".join(f"{q['bytes_sent']} B{' Δ' if q['delta'] else ''} @ {q['share_pct']:.1f} %"
@@ -319,9 +320,9 @@ def write_markdown(report: dict, path: Path) -> None:
         if f is None:
             continue
         mo = f.get("minus_own") or {}
-        per = " | ".join(_fmt(f["roi_psnr_per_task"].get(t)) + (f" ({mo[t]:+.2f})" if mo.get(t) is not None else "")
+        per = " | ".join(fmt(f["roi_psnr_per_task"].get(t)) + (f" ({mo[t]:+.2f})" if mo.get(t) is not None else "")
                          for t in tasks)
-        lines.append(f"| {key} | {per} | {_fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {_fmt(f['seconds'])} |")
+        lines.append(f"| {key} | {per} | {fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {fmt(f['seconds'])} |")
     lines += [""] + [f"- `{k}`: {FUSED_HELP[k]}" for k in FUSED_KEYS if k in report["fused"]]
     lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
               f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
@@ -347,8 +348,8 @@ def _baseline_lines(report: dict) -> List[str]:
     for a in report["agents"]:
         own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
         uni = a.get("uniform_roi_psnr_all_frames") if report.get("realtime") else a.get("uniform_roi_psnr")
-        lines.append(f"| {a['id']} | {a['task']} | {_fmt(own)} | {_fmt(uni)} | {_fmt(a.get('task_gain_db'))} | "
-                     f"{_fmt(a.get('psnr'))} | {_fmt(a.get('uniform_psnr'))} | {a['n_gaussians']} / "
+        lines.append(f"| {a['id']} | {a['task']} | {fmt(own)} | {fmt(uni)} | {fmt(a.get('task_gain_db'))} | "
+                     f"{fmt(a.get('psnr'))} | {fmt(a.get('uniform_psnr'))} | {a['n_gaussians']} / "
                      f"{a.get('uniform_n_gaussians', '–')} |")
     lines += ["", "The uniform agents ran the same sim with `mapper.mode=uniform` (same scene, keyframe rule, keyframe "
               "budget and Gaussian budget; they share nothing). `docs/realtime.md` has the budget sweep."]
@@ -366,10 +367,10 @@ def _live_lines(report: dict) -> List[str]:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for a in report["agents"]:
         lines.append(f"| {a['id']} | {a['frames_received']} | {a['frames_keyframed']} | {a['frames_skipped']} | "
-                     f"{_fmt(a['accept_latency_ms_p99'])} | {_fmt(a['keyframe_latency_s_p95'])} | "
-                     f"{_fmt(a.get('keyframe_iterations', 0) / max(a['frames_keyframed'], 1), 1)} | "
-                     f"{a['idle_iterations']} | {_fmt(a['roi_psnr_all_frames'])} | "
-                     f"{_fmt(a['offline_roi_psnr_all_frames'])} |")
+                     f"{fmt(a['accept_latency_ms_p99'])} | {fmt(a['keyframe_latency_s_p95'])} | "
+                     f"{fmt(a.get('keyframe_iterations', 0) / max(a['frames_keyframed'], 1), 1)} | "
+                     f"{a['idle_iterations']} | {fmt(a['roi_psnr_all_frames'])} | "
+                     f"{fmt(a['offline_roi_psnr_all_frames'])} |")
     lines += ["", f"ROI PSNR over all {report['agents'][0]['frames_all']} frames of the sequence (skipped ones "
               "included) of each agent's final map on its own task. Offline column: "
               + (f"`{src}`." if src else "not given (pass `--offline-report DIR` of an every-frame `gausslite sim` "
@@ -398,14 +399,14 @@ def _timeline_lines(report: dict) -> List[str]:
              "|---|---|---|" + "---|" * (len(tasks) * (2 if robot else 1) + ((1 + len(tasks)) if served else 0))]
     for e in tl:
         vs = ", ".join(f"{a} v{v}" for a, v in sorted(e["versions"].items()))
-        cells = [_fmt(e["roi_psnr"].get(t)) for t in tasks]
+        cells = [fmt(e["roi_psnr"].get(t)) for t in tasks]
         if robot:
-            cells += [_fmt((e.get("roi_psnr_for_robot") or {}).get(t)) for t in tasks]
+            cells += [fmt((e.get("roi_psnr_for_robot") or {}).get(t)) for t in tasks]
         if served:
             s = e.get("served") or {}
             cells += [(f"v{s['version']}{'*' if s['current'] else ''} ("
                        + ", ".join(f"{a} v{v}" for a, v in sorted(s["versions"].items())) + ")") if s else "–"]
-            cells += [_fmt((s.get("roi_psnr") or {}).get(t)) for t in tasks]
+            cells += [fmt((s.get("roi_psnr") or {}).get(t)) for t in tasks]
         lines.append(f"| {e['t']:.0f} | {vs} | {e['n_gaussians']} | " + " | ".join(cells) + " |")
     if report.get("fused_timeline_plot"):
         lines += ["", f"![fused ROI PSNR over time]({report['fused_timeline_plot']})"]
@@ -436,7 +437,7 @@ def _protocol_lines(report: dict) -> List[str]:
     for q in [*names, *at_own]:
         own = {a["task"]: (a.get("protocols") or {}).get(q.split("@")[0], {}) for a in agents}
         lines.append(f"| {q} | own | " + " | ".join(
-            f"{_fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
+            f"{fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
         for key in FUSED_KEYS:
             per = ((report["fused"].get(key) or {}).get("protocols") or {}).get(q)
             if not per:
@@ -445,7 +446,7 @@ def _protocol_lines(report: dict) -> List[str]:
             for t in tasks:
                 v = per.get(t) or {}
                 mo = v.get("minus_own")
-                cells.append(_fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
+                cells.append(fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
             lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
     return lines
 
@@ -479,8 +480,8 @@ def _cover_lines(report: dict) -> List[str]:
     for a, c in cov.items():
         m, f, om = c["mass"], c["foreign"], c["own_missing"]
         lines.append(f"| {a} | {m['own']:.2f} | {m['foreign_task']:.2f} | {m['foreign_context']:.2f} | "
-                     f"{m['uncovered']:.2f} | {_fmt(f.get('weighted_extent_m'))} | {_fmt(f.get('weight_in_front'))} | "
-                     f"{om['rows']} of {om['of']} | {_fmt(om.get('weight_share'))} |")
+                     f"{m['uncovered']:.2f} | {fmt(f.get('weighted_extent_m'))} | {fmt(f.get('weight_in_front'))} | "
+                     f"{om['rows']} of {om['of']} | {fmt(om.get('weight_share'))} |")
     for a, c in cov.items():
         if c.get("image"):
             lines += ["", f"**{a}: the other robots' Gaussians over its ROI (red), ROI outline (green)**  ",

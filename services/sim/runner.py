@@ -17,11 +17,11 @@ import yaml
 from gausslite.config import load_config
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2
-from gausslite_services.sim.launch import (ProcessGroup, _check_bags, _close_all, _connect, _main_thread,
-                                           _raise_interrupt, _start_services, plan_agents)
-from gausslite_services.sim.report import (_agent_report, _fused_minus_own, _load_offline, _protocol_minus_own,
-                                           _write_report, attach_context_baseline)
-from gausslite_services.sim.scoring import (_fuse_and_score, _load_eval_frames, _uploaded_keyframe_poses,
+from gausslite_services.sim.launch import (ProcessGroup, check_bags, close_all, connect_clients, main_thread,
+                                           raise_interrupt, start_services, plan_agents)
+from gausslite_services.sim.report import (agent_report, fused_minus_own, load_offline, protocol_minus_own,
+                                           write_report, attach_context_baseline)
+from gausslite_services.sim.scoring import (fuse_and_score, load_eval_frames, uploaded_keyframe_poses,
                                             own_views, roi_cover_report)
 from gausslite_services.sim.timeline import FusedTimeline
 
@@ -46,9 +46,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
 
-    Stages: start the services (:func:`_start_services`, skipped with ``attach``), run the agents' missions
-    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse and score (:func:`_fuse_and_score`), then write the
-    report (:func:`_write_report`).
+    Stages: start the services (:func:`start_services`, skipped with ``attach``), run the agents' missions
+    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse and score (:func:`fuse_and_score`), then write the
+    report (:func:`write_report`).
 
     Args:
         out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
@@ -73,7 +73,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         TimeoutError, RuntimeError (a service died or failed), ValueError/FileNotFoundError (bad input).
     """
     t0 = time.perf_counter()
-    offline = _load_offline(offline_report) if offline_report else None
+    offline = load_offline(offline_report) if offline_report else None
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     typed = load_config(config, overrides)  # a typo fails here, before any process starts
@@ -86,15 +86,15 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
     plans = plan_agents(dataset, typed, task_ids)
-    _check_bags(plans, typed.agent)
+    check_bags(plans, typed.agent)
     group = ProcessGroup(out / "logs")
     previous = None
-    if attach is None and hasattr(signal, "SIGTERM") and _main_thread():
-        previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    if attach is None and hasattr(signal, "SIGTERM") and main_thread():
+        previous = signal.signal(signal.SIGTERM, raise_interrupt)
     clients: list = []
     try:
-        addrs = _start_services(out, config_path, plans, group, token) if attach is None else dict(attach)
-        fusion, agents = _connect(addrs, plans, token, fusion_token, clients)
+        addrs = start_services(out, config_path, plans, group, token) if attach is None else dict(attach)
+        fusion, agents = connect_clients(addrs, plans, token, fusion_token, clients)
         # ---- run the missions; vote-fuse whenever a new subset arrived (the fused map over time)
         fz = typed.sim.fuse.settings(typed.agent.realtime)
         tracker = FusedTimeline(fusion, fz["voxel_size"], fz["contest_radius"])
@@ -104,23 +104,23 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         stats = fusion.stats().get("agents", {})
         # ---- fuse and score
         backend, scoring = typed.mapper.backend, typed.agent.scoring
-        eval_frames = _load_eval_frames(plans, typed.agent)
-        fused, renders = _fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
-                                         _uploaded_keyframe_poses(fusion, plans), backend,
+        eval_frames = load_eval_frames(plans, typed.agent)
+        fused, renders = fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
+                                         uploaded_keyframe_poses(fusion, plans), backend,
                                          {n: own_views(s) for n, s in summaries.items()})
         tracker.poll(time.perf_counter() - t0)  # the team map made from the final subsets, when the server keeps one
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
         # ---- the report
         report = {"scene": dataset, "seconds": time.perf_counter() - t0,
-                  "agents": [_agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
+                  "agents": [agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
                   "fused": fused, "renders": renders, "fused_timeline": timeline, "realtime": typed.agent.realtime,
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": fz["voxel_size"], "contest_radius": fz["contest_radius"],
                                "refine_iters": fz["refine_iters"], "scoring": scoring.model_dump(),
                                "config": str(config_path), "agent": cfg["agent"], "mapper": cfg["mapper"]}}
-        _fused_minus_own(report)
-        _protocol_minus_own(report)
+        fused_minus_own(report)
+        protocol_minus_own(report)
         if attach is None:
             try:
                 fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
@@ -130,10 +130,10 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             attach_context_baseline(report, json.loads(Path(context_report).read_text()))
         elif typed.mapper.roi_render == "context":
             attach_context_baseline(report, report)  # the agents themselves mapped with roi_render: context
-        _write_report(report, out)
+        write_report(report, out)
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
-        _close_all(clients, group, previous)
+        close_all(clients, group, previous)
 
 
 def _generate_scene(out: Path, scene, progress: bool) -> str:

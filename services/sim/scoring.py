@@ -28,7 +28,7 @@ from gausslite.wire.decode import assemble
 from gausslite.wire.format import WireLimits
 from gausslite_services.fusion_server.store import SqliteFusionStore
 from gausslite_services.sim.launch import AgentPlan
-from gausslite_services.sim.report import FUSED_KEYS, _fmt
+from gausslite_services.sim.report import FUSED_KEYS, fmt
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
@@ -120,7 +120,7 @@ def roi_cover_report(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, t
     return cov
 
 
-def _load_eval_frames(plans: List[AgentPlan], agent_cfg: AgentConfig) -> Dict[str, tuple]:
+def load_eval_frames(plans: List[AgentPlan], agent_cfg: AgentConfig) -> Dict[str, tuple]:
     """Agent id → ``(dataset, frames)``: each agent's sequence loaded as its agent replays it (``agent_cfg``: the
     typed :class:`gausslite.mission.config.AgentConfig`; downscale, max_frames, stride, bag options)."""
     eval_frames = {}
@@ -131,7 +131,7 @@ def _load_eval_frames(plans: List[AgentPlan], agent_cfg: AgentConfig) -> Dict[st
     return eval_frames
 
 
-def _uploaded_keyframe_poses(fusion, plans: List[AgentPlan]) -> Dict[str, dict]:
+def uploaded_keyframe_poses(fusion, plans: List[AgentPlan]) -> Dict[str, dict]:
     """Agent id → {frame id → (4, 4) camera-to-world}: the keyframes each robot uploaded, at the refined poses they
     carry (the ``keyframes`` protocol). An agent whose poses cannot be read is logged and left out."""
     kf_poses = {}
@@ -209,7 +209,7 @@ def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, ta
     return {"fused": key, "task": task_id, "frame_id": int(fr.frame_id), "path": rel}
 
 
-def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
+def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
                     kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None):
     """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
     frames and under ``scoring``'s protocols, :func:`fused_protocols`, at the agent's own ``views`` too: agent id →
@@ -244,7 +244,7 @@ def _fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict
                                     for q in [*scoring.chosen(), *[f"{a}@own" for a in AT_OWN]]
                                     if any(q in v for v in protos.values())},
                       "refine_record": dict(res.refine_record) or None}
-        log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: _fmt(v) for k, v in per_task.items()})
+        log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: fmt(v) for k, v in per_task.items()})
     return fused, renders
 
 

@@ -20,7 +20,7 @@ from gausslite_services.agent.client import AgentClient
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 from gausslite_services.sim import plan_agents
-from gausslite_services.sim.launch import _check_bags
+from gausslite_services.sim.launch import check_bags
 
 TINY = ["agent.push_every=2", "agent.keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=150"]
@@ -85,10 +85,10 @@ def test_sim_plans_bag_agents_and_checks_bags_before_starting(bag_scene):
     plans = plan_agents(str(out), cfg)
     assert [p.dataset for p in plans] == [str(out / "agent_a"), str(out / "agent_b")]
     assert [p.task_id for p in plans] == ["synth-pick-object", "synth-find-chair"]
-    _check_bags(plans, cfg.agent)  # good bags pass
+    check_bags(plans, cfg.agent)  # good bags pass
     bad = load_config(None, ["agent.bag.depth_topic=/nope"])
     with pytest.raises(BagError, match="depth topic '/nope' is not in the bag"):
-        _check_bags(plans, bad.agent)
+        check_bags(plans, bad.agent)
 
 
 def test_sim_cli_bag_flags_become_agent_overrides(bag_scene, capsys):
