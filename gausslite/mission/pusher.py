@@ -61,6 +61,17 @@ class PushRecord:
 
 
 @dataclass
+class WaitingView:
+    """A refinement view queued for upload: the frame (an ROI crop with ``refine_views.crop``), its (H, W) bool
+    relevance (sent with it; None: none) and its bytes on the wire (:func:`gausslite.fusion.views.view_bytes`),
+    measured once by the push thread (None until then: a view may wait through many pushes)."""
+
+    frame: Any
+    roi: Optional[np.ndarray]
+    size: Optional[int] = None
+
+
+@dataclass
 class Snapshot:
     """One map version on its way to the fusion server."""
 
@@ -119,10 +130,7 @@ class Pusher:
         self._session_open = False
         self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
         self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
-        self._kf_pending: list = []  # frames to upload with the next push
-        self._kf_roi: dict = {}  # id(frame) -> (H, W) bool relevance of a pending keyframe (sent with it)
-        # id(frame) -> its bytes on the wire (view_bytes), measured once by the push thread while the view waits
-        self._kf_size: dict = {}
+        self._kf_pending: List[WaitingView] = []  # views to upload with the next push (oldest first)
         #: bytes of the refinement views sent over the mission, bounded by agent.refine_views.budget_ratio
         self.views = ViewBudget(config.refine_views.budget_ratio)
         self.thread = threading.Thread(target=self._loop, name=f"agent-{agent_id}-push", daemon=True)
@@ -164,12 +172,7 @@ class Pusher:
                 return False
             frame, roi = roi_crop(frame, roi, rv.margin_px)
         with self._lock:
-            self._kf_pending.append(frame)
-            if roi is not None:
-                self._kf_roi[id(frame)] = np.asarray(roi, bool)
-            for old in self._kf_pending[:-keep]:
-                self._kf_roi.pop(id(old), None)
-                self._kf_size.pop(id(old), None)
+            self._kf_pending.append(WaitingView(frame, None if roi is None else np.asarray(roi, bool)))
             del self._kf_pending[:-keep]
         return True
 
@@ -325,36 +328,27 @@ class Pusher:
         cfg = self.config
         with self._lock:
             waiting = list(self._kf_pending)
-            rois = [self._kf_roi.get(id(f)) for f in waiting]
-            sizes = [self._kf_size.get(id(f)) for f in waiting]
         if not waiting:
             return [], 0
-        refined = [self._refined(f) for f in waiting]
-        for i, (f, r) in enumerate(zip(waiting, rois)):  # encoded once: a view may wait through many pushes
-            if sizes[i] is None:
-                sizes[i] = view_bytes(f, r, cfg.keyframe_format, cfg.jpeg_quality)
-                with self._lock:
-                    if any(f is g for g in self._kf_pending):
-                        self._kf_size[id(f)] = sizes[i]
+        refined = [self._refined(w.frame) for w in waiting]
+        for w in waiting:  # encoded once: a view may wait through many pushes
+            if w.size is None:
+                w.size = view_bytes(w.frame, w.roi, cfg.keyframe_format, cfg.jpeg_quality)
         before = dataclasses.replace(self.views, poses=list(self.views.poses))
-        chosen = self.views.choose(sizes, [f.c2w for f in refined], self.final_subset_bytes)
-        kfs = [waiting[i] for i in chosen]
+        chosen = self.views.choose([w.size for w in waiting], [f.c2w for f in refined], self.final_subset_bytes)
         n_kf = 0
-        if kfs:
+        if chosen:
             try:
                 n_kf = int(c.upload_keyframes(self.agent_id, [refined[i] for i in chosen],
                                               jpeg_quality=cfg.jpeg_quality, color_format=cfg.keyframe_format,
-                                              rois=[rois[i] for i in chosen]) or 0)
+                                              rois=[waiting[i].roi for i in chosen]) or 0)
             except Exception:
                 self.views = before  # nothing of this upload counts as sent
                 raise
             with self._lock:
-                sent = {id(f) for f in kfs}
-                self._kf_pending = [f for f in self._kf_pending if id(f) not in sent]
-                for i in sent:
-                    self._kf_roi.pop(i, None)
-                    self._kf_size.pop(i, None)
-        return kfs, n_kf
+                sent = {id(waiting[i]) for i in chosen}
+                self._kf_pending = [w for w in self._kf_pending if id(w) not in sent]
+        return [waiting[i].frame for i in chosen], n_kf
 
     def views_unsent(self) -> int:
         """Refinement views queued and never sent (the budget was short, or the link down)."""

@@ -188,7 +188,7 @@ def wait_healthy(target: str, service: str, timeout_s: float, group: Optional[Pr
 
 
 def start_services(out: Path, config_path: Path, plans: List[AgentPlan], group: ProcessGroup,
-                    token: Optional[str]) -> Dict[str, str]:
+                   token: Optional[str]) -> Dict[str, str]:
     """Start the parser, the fusion server and the agents in ``group`` on free loopback ports, each waited for
     until its health service reports SERVING (120 s, agents 180 s).
 
@@ -212,8 +212,8 @@ def start_services(out: Path, config_path: Path, plans: List[AgentPlan], group: 
     return addrs
 
 
-def connect_clients(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str], fusion_token: Optional[str],
-             clients: list):
+def connect_clients(addrs: Dict[str, str], plans: List[AgentPlan], token: Optional[str],
+                    fusion_token: Optional[str], clients: list):
     """Clients of the fusion server (waited for until ready, 60 s) and of each agent (``addrs``: service name →
     ``host:port``; each plan's ``address`` is set). Every client is appended to ``clients`` as soon as it exists,
     so the caller closes it whatever fails next.

@@ -210,7 +210,7 @@ def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, ta
 
 
 def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
-                    kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None):
+                   kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None):
     """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
     frames and under ``scoring``'s protocols, :func:`fused_protocols`, at the agent's own ``views`` too: agent id →
     :func:`own_views`) with a render per task in ``out/renders``.

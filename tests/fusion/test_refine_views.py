@@ -126,7 +126,8 @@ def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(
     rec = _Recorder()
     sent, n = p._upload_pending_keyframes(rec)
     assert n == len(sent) == 5 and p.views.sent == 5 and p.views_unsent() == 7
-    assert len(measured) == 12 and len(p._kf_size) == 7  # the sizes of the views still waiting are kept
+    # the sizes of the views still waiting are kept
+    assert len(measured) == 12 and len(p._kf_pending) == 7 and all(w.size for w in p._kf_pending)
     assert all(f.rgb.shape == (28, 28, 3) for f in rec.sent)
     assert rec.wire_bytes <= p.views.sent_bytes <= 2 * p.final_subset_bytes
     # spread over the trajectory: the first and last frames and the middle, not five neighbours
@@ -134,5 +135,5 @@ def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(
     p.final_subset_bytes *= 2  # a larger subset: more room
     sent, _ = p._upload_pending_keyframes(rec)
     assert len(sent) == 5 and p.views_unsent() == 2 and rec.wire_bytes <= 2 * p.final_subset_bytes
-    assert len(measured) == 12 and len(p._kf_size) == 2
+    assert len(measured) == 12 and len(p._kf_pending) == 2 and all(w.size for w in p._kf_pending)
 

@@ -672,7 +672,7 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
-    assert rt.pusher._kf_roi == {}  # nothing kept once sent
+    assert [w for w in rt.pusher._kf_pending if w.roi is not None] == []  # nothing kept once sent
     if iters == 0:
         assert calls == []
         return
