@@ -26,9 +26,9 @@ from gausslite.mapping.config import (FLAT_NAMES, MapperConfig, apply_overrides,
 from gausslite.mission.config import AgentSections
 
 __all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config",
-           "load_mapper_config", "migrate_flat_names", "FLAT_NAMES", "read_yaml", "DEFAULT_CONFIG_PATH"]
+           "load_mapper_config", "migrate_flat_names", "FLAT_NAMES", "read_yaml", "DEFAULT_CONFIG_PATH", "ROLE_SECTIONS"]
 
-#: the deployed settings shipped with the repository
+#: the site file shipped with the repository (compose and Kubernetes mount it); it changes no measured setting
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "deploy" / "gausslite.yaml"
 
 
@@ -67,12 +67,17 @@ class SimFuse(BaseModel):
                 "refine_iters": self.refine_iters}
 
 
+#: the two agents' task ids per default scene kind (task ids of the scene's ``tasks.json``)
+DEFAULT_SIM_TASKS: Dict[str, List[str]] = {"synthetic": ["synth-pick-object", "synth-find-chair"],
+                                           "room0": ["room0-pick-plant", "room0-find-ottoman"]}
+
+
 class SimConfig(BaseModel):
     """``gausslite sim``: the default scene, the two agents' task ids per scene kind, fusion, the overall bound (s)."""
 
     model_config = ConfigDict(extra="forbid")
     scene: SimScene = SimScene()
-    tasks: Dict[str, List[str]] = Field(default_factory=dict)
+    tasks: Dict[str, List[str]] = Field(default_factory=lambda: {k: list(v) for k, v in DEFAULT_SIM_TASKS.items()})
     fuse: SimFuse = SimFuse()
     timeout_s: float = Field(1800.0, gt=0)
 
@@ -88,7 +93,8 @@ class TeamMapSettings(BaseModel):
     it. ``Fuse`` with ``team_map`` serves its latest complete version at once.
 
     Attributes:
-        enabled: keep the team map refined (needs the refinement's extra, ``mapper``).
+        enabled: keep the team map refined (needs the refinement's extra, ``mapper``; on by default, so that
+            ``Fuse`` with ``team_map`` answers on every server).
         refine_iters: the refinement's iterations at most (fewer over few views, and it stops early).
         settle_s: seconds without a new upload before a refinement starts.
         min_interval_s: seconds between the starts of two refinements.
@@ -100,7 +106,7 @@ class TeamMapSettings(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid")
-    enabled: bool = False
+    enabled: bool = True
     refine_iters: int = Field(300, ge=1)
     settle_s: float = Field(1.0, ge=0)
     min_interval_s: float = Field(5.0, ge=0)
@@ -164,7 +170,7 @@ class FusionSettings(BaseModel):
             milliseconds between messages).
         max_upload_streams_per_caller (int): upload streams in progress at once per caller (authenticated agent id,
             else peer host); beyond it RESOURCE_EXHAUSTED, so one client cannot take every upload slot.
-        team_map (TeamMapSettings): the team map kept refined in the background (off by default).
+        team_map (TeamMapSettings): the team map kept refined in the background (on by default).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -219,6 +225,11 @@ class FusionSettings(BaseModel):
             raise ValueError(f"cannot parse fusion config {path}: {e}") from e
 
 
+#: the configuration sections each process runs with (:meth:`GaussLiteConfig.sections`)
+ROLE_SECTIONS: Dict[str, tuple] = {"agent": ("agent", "mapper"), "fusion": ("fusion",),
+                                   "sim": ("agent", "mapper", "sim", "fusion"), "all": ("agent", "mapper", "sim", "fusion")}
+
+
 class GaussLiteConfig(AgentSections):
     """The whole configuration (module docstring). In YAML the mapper is a top-level section; here it is also
     ``agent.mapper``, the agent's copy, which the YAML's ``mapper`` section sets."""
@@ -242,6 +253,21 @@ class GaussLiteConfig(AgentSections):
         return {"agent": agent, "mapper": self.agent.mapper.model_dump(**kw),
                 "sim": self.sim.model_dump(**kw), "fusion": self.fusion.model_dump(**kw)}
 
+    def sections(self, role: str = "all") -> dict:
+        """The sections one process runs with, in the YAML's layout, every default written out: what
+        ``gausslite config --show --role ROLE`` prints and what ``gausslite serve ROLE`` logs at start-up
+        (``effective configuration: {...}``).
+
+        Args:
+            role: ``agent`` (``agent`` and ``mapper``), ``fusion`` (``fusion``), ``sim`` or ``all`` (every section).
+        Raises:
+            ValueError: an unknown role.
+        """
+        tree = self.to_yaml_dict()
+        if role not in ROLE_SECTIONS:
+            raise ValueError(f"unknown role {role!r}: one of {', '.join(ROLE_SECTIONS)}")
+        return {k: tree[k] for k in ROLE_SECTIONS[role]}
+
     @classmethod
     def json_schema(cls) -> dict:
         """JSON schema of the YAML layout."""
@@ -251,29 +277,26 @@ class GaussLiteConfig(AgentSections):
         return schema
 
 
-def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = (), *,
-                deployed: bool = True) -> GaussLiteConfig:
+def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()) -> GaussLiteConfig:
     """The one loader of the configuration tree: read a GaussLite YAML file, apply dotted ``key=value`` overrides
     (``agent.push_every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate. Each part
     takes its own group: ``cfg.mapper`` (the mapper), ``cfg.agent`` (an agent's mission), ``cfg.sim``
     (``gausslite sim``), ``cfg.fusion`` (the fusion server).
 
+    The models' defaults are the measured settings (docs/results.md): ``gausslite serve``, ``gausslite sim``,
+    compose and Kubernetes run the same mapper, sharing and team map with or without a file, which holds only what
+    a site changes (``deploy/gausslite.yaml``).
+
     Args:
-        path: the YAML file; None = ``deploy/gausslite.yaml`` (:data:`DEFAULT_CONFIG_PATH`), or, with
-            ``deployed=False``, no file at all: every section at its model's defaults (``gausslite serve agent``
-            without ``--config``).
+        path: the YAML file; None = no file, every section at its model's defaults.
         overrides: dotted ``key=value`` strings, values parsed as YAML, applied in order after the file.
-        deployed: whether ``path=None`` reads the deployed file.
     Returns:
         The validated tree. Old flat mapper names go through :func:`migrate_flat_names` (a ``DeprecationWarning``).
     Raises:
         FileNotFoundError: missing file. ValueError: not a mapping, or a bad override.
         pydantic.ValidationError: unknown keys or bad values (the message names them).
     """
-    if path is None and not deployed:
-        data: dict = {}
-    else:
-        data = read_yaml(path or DEFAULT_CONFIG_PATH)
+    data: dict = {} if path is None else read_yaml(path)
     return GaussLiteConfig.model_validate(apply_overrides(data, list(overrides)))
 
 

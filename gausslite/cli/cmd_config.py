@@ -16,9 +16,12 @@ def register(subparsers) -> None:
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--show", action="store_true", help="the effective configuration as YAML")
     what.add_argument("--schema", action="store_true", help="the JSON schema of a configuration file")
-    p.add_argument("--config", default=None, help="GaussLite YAML (default deploy/gausslite.yaml)")
+    p.add_argument("--config", default=None, help="GaussLite YAML of site settings (default: none, the measured defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="dotted override, e.g. --set mapper.iters_per_frame=10 (repeatable)")
+    p.add_argument("--role", choices=["all", "agent", "fusion", "sim"], default="all",
+                   help="only the sections this process runs with: what `gausslite serve ROLE` given the same "
+                        "--config and --set runs (and logs at start-up as 'effective configuration')")
     p.set_defaults(func=_handle)
 
 
@@ -37,5 +40,5 @@ def _handle(args: argparse.Namespace) -> int:
     except (ValidationError, ValueError, OSError) as e:
         print(f"gausslite config: error: {e}", file=sys.stderr)
         return 2
-    print(yaml.safe_dump(cfg.to_yaml_dict(), sort_keys=False), end="")
+    print(yaml.safe_dump(cfg.sections(args.role), sort_keys=False), end="")
     return 0

@@ -87,7 +87,7 @@ class SeedingConfig(_Strict):
     """Relevance-driven seeding (paper Sec. III-C): how many Gaussians a frame seeds, where (SB, SIS, GFD), and
     their initial scale and opacity."""
 
-    seeds_per_frame: int = Field(4000, ge=1, description="N new Gaussians per mapped frame")
+    seeds_per_frame: int = Field(1500, ge=1, description="N new Gaussians per mapped frame")
     first_frame_seeds: Optional[int] = Field(
         None, ge=1, description="seeds on the first mapped frame (default 2×seeds_per_frame)"
     )
@@ -281,8 +281,9 @@ class PerformanceConfig(_Strict):
         "threads competing with the rasterizer's band threads (measured 4× faster under load)"
     )
     render_threads: Optional[int] = Field(
-        None, ge=1, description="rasterizer CPU band threads (None = min(2, cores)); 1 per agent when "
-        "two agents share two cores"
+        1, ge=1, description="rasterizer CPU band threads (None = min(2, cores)); default 1, the measured "
+        "setting: two agents share two cores in the simulation, and a live agent leaves a core to its pusher, "
+        "relevance and ingest threads"
     )
     cpu_kernel: Literal["simd", "tile"] = Field(
         "simd", description="CPU compositing kernels (gausslite.render.simd_kernels): 'simd' = vectorised "
@@ -432,7 +433,7 @@ class MapperConfig(_Strict):
     seed: int = 0
     device: str = "cpu"
     backend: Literal["auto", "warp", "torch", "gsplat"] = "auto"
-    iters_per_frame: int = Field(40, ge=1, description="Adam iterations per mapped frame")
+    iters_per_frame: int = Field(30, ge=1, description="Adam iterations per mapped frame")
     keyframe_budget_s: Optional[float] = Field(
         None, gt=0, description="online agent: wall-clock seconds per mapped keyframe (seeding included); "
         "iterations run until it is spent instead of iters_per_frame. None = iters_per_frame (offline map/ablate "
@@ -445,7 +446,7 @@ class MapperConfig(_Strict):
     )
     work_cost: WorkCostConfig = WorkCostConfig()
     warmup_iters: int = Field(
-        15, ge=0, description="ROI phase: full-image iterations before the active-only phase"
+        10, ge=0, description="ROI phase: full-image iterations before the active-only phase"
     )
     window: int = Field(8, ge=1, description="recent-keyframe window of view sampling")
     recent_prob: float = Field(
@@ -486,9 +487,10 @@ class MapperConfig(_Strict):
         "docs/results.md)"
     )
     roi_update: Literal["active", "visible", "all"] = Field(
-        "active", description="ROI phase: which Gaussians the Adam step updates: 'active' (a = 1, the paper's rule); "
-        "'visible' (every Gaussian the ROI render draws, so inactive ones covering ROI pixels are fitted too; "
-        "the others keep their values and moments); 'all' (a full Adam step). κ counts active Gaussians only"
+        "visible", description="ROI phase: which Gaussians the Adam step updates: 'visible' (default: every "
+        "Gaussian the ROI render draws, so inactive ones covering ROI pixels are fitted too; the others keep their "
+        "values and moments; live under a keyframe budget 'active' loses to uniform: docs/realtime.md); 'active' "
+        "(a = 1, the paper's rule); 'all' (a full Adam step). κ counts active Gaussians only"
     )
     roi_phase_views: Literal["any", "roi"] = Field(
         "any", description="ROI phase: the view is drawn as in the warm-up ('any'; a drawn view without ROI pixels "

@@ -6,12 +6,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from gausslite.camera import check_rigid
 from gausslite.datasets.bag import BagOptions
 from gausslite.mapping.config import MapperConfig
 
-__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "AgentConfig", "AgentSections"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "AgentConfig", "AgentSections"]
+
+#: tolerance of a T_world_map's rigidity check (orthonormal rotation, det +1, last row 0 0 0 1), as for frame poses
+RIGID_ATOL = 1e-3
 
 
 class ScoringConfig(BaseModel):
@@ -19,20 +24,24 @@ class ScoringConfig(BaseModel):
     simulation scores the team's fused maps (``agent.scoring`` in YAML; docs/realtime.md#scoring-protocols).
 
     Attributes:
-        protocols: which of ``sensor`` (every frame at the sensor's pose with its keyframe's refined correction and
-            exposure response), ``keyframes`` (the mapped keyframes at their refined pose and exposure) and
-            ``tracked`` (every ``track_stride``-th frame at a pose and affine exposure fitted against the frozen map,
-            MonoGS's protocol) and ``novel`` (the frames a replay withholds from the mapper, every ``novel_every``-th,
-            at a tracked pose) to score; ``sensor`` is always scored (the summary's ``roi_psnr_all_frames``).
-        track_iters: Adam steps of the ``tracked`` protocol's tracker per frame (fixed, the same for every map).
+        protocols: which to score (``sensor`` is always scored: the summary's ``roi_psnr_all_frames``). At the pose
+            the robot gives, with what the map learned: ``sensor`` (every frame at the sensor's pose with its
+            keyframe's refined correction and exposure response), ``keyframes`` (the mapped keyframes at their refined
+            pose and exposure) and ``novel`` (the frames a replay withholds from the mapper, every ``novel_every``-th,
+            at the pose and exposure the map predicts for them, as ``sensor`` renders every frame: the map at the pose
+            a robot would use, on views it never trained on). At a pose fitted to each frame against the map (how well
+            a robot could localise against it, and the map from there): ``tracked`` (every ``track_stride``-th frame,
+            MonoGS's protocol) and ``novel-tracked`` (the withheld frames).
+        track_iters: Adam steps of the tracked protocols' tracker per frame (fixed, the same for every map).
         track_stride: the ``tracked`` protocol scores every this many frames (MonoGS: every 5th).
-        novel_every: with ``novel`` among the protocols, a replay withholds every this many frames from the mapper
-            (never a keyframe, never a training view) and scores them at a tracked pose.
+        novel_every: with ``novel`` or ``novel-tracked`` among the protocols, a replay withholds every this many
+            frames from the mapper (never a keyframe, never a training view).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    protocols: List[Literal["sensor", "keyframes", "tracked", "novel"]] = ["sensor", "keyframes", "tracked"]
+    protocols: List[Literal["sensor", "keyframes", "novel", "tracked", "novel-tracked"]] = [
+        "sensor", "keyframes", "novel", "tracked", "novel-tracked"]
     track_iters: int = Field(30, ge=0)
     track_stride: int = Field(5, ge=1)
     novel_every: int = Field(10, ge=2)
@@ -40,6 +49,11 @@ class ScoringConfig(BaseModel):
     def chosen(self) -> tuple:
         """The protocols to score, ``sensor`` first and always."""
         return tuple(dict.fromkeys(["sensor", *self.protocols]))
+
+    def withholds(self) -> bool:
+        """Whether a replay withholds every ``novel_every``-th frame from the mapper (``novel`` or ``novel-tracked``
+        is scored)."""
+        return any(p in ("novel", "novel-tracked") for p in self.protocols)
 
 
 class ResolutionConfig(BaseModel):
@@ -99,12 +113,54 @@ class RefineViewsConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    crop: bool = False
+    crop: bool = True
     margin_px: int = Field(8, ge=0)
-    between: bool = False
+    between: bool = True
     between_every: int = Field(2, ge=1)
-    budget_ratio: Optional[float] = Field(None, gt=0)
+    budget_ratio: Optional[float] = Field(8.0, gt=0)
     min_roi_px: int = Field(64, ge=1)
+
+
+class FrameConfig(BaseModel):
+    """Where this robot's poses sit in the team's world frame (``agent.frame`` in YAML; docs/team.md). The fusion
+    server votes per voxel in the coordinates it receives and aligns nothing, so every robot of a team gives its
+    Gaussians, keyframes and task regions in one world frame.
+
+    Attributes:
+        T_world_map: the fixed rigid transform from this robot's own map (or odometry) frame into the team's world
+            frame (REP 103/105 naming: it maps points given in ``map`` into ``world``), as a 4 × 4 matrix of four rows
+            (row-major; rotation block and translation in metres; last row ``[0, 0, 0, 1]``). Every frame's pose
+            becomes ``T_world_map @ c2w`` before mapping, and the scene annotations' boxes go through the same
+            transform. Null (default): the robot's map frame is the world frame. A ``StartMission`` may override it
+            per mission (``StartMissionRequest.T_world_map``).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    T_world_map: Optional[List[List[float]]] = None
+
+    @field_validator("T_world_map")
+    @classmethod
+    def _rigid(cls, v: Optional[List[List[float]]]) -> Optional[List[List[float]]]:
+        if v is None:
+            return v
+        if len(v) != 4 or any(len(row) != 4 for row in v):
+            raise ValueError(f"T_world_map must be a 4 x 4 matrix given as four rows of four numbers, got "
+                             f"{len(v)} rows of {[len(row) for row in v]} numbers")
+        check_rigid(np.asarray(v, np.float64), atol=RIGID_ATOL, what="T_world_map")
+        return [[float(x) for x in row] for row in v]
+
+    def matrix(self) -> Optional[np.ndarray]:
+        """``T_world_map`` as a (4, 4) float64 array whose rotation block is the nearest proper rotation to the one
+        given (the setting is rigid within 1e-3; the projection keeps every transformed pose exactly rigid), or
+        None when unset (identity)."""
+        if self.T_world_map is None:
+            return None
+        T = np.asarray(self.T_world_map, np.float64).copy()
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = u @ vt  # det +1: the check above refused reflections
+        T[3] = (0.0, 0.0, 0.0, 1.0)
+        return T
 
 
 class OnnxRelevanceConfig(BaseModel):
@@ -237,17 +293,18 @@ class AgentConfig(BaseModel):
         resolution: the live mapping resolution (:class:`ResolutionConfig`).
         refine_views: the views sent for the fusion refinement (:class:`RefineViewsConfig`): ROI crops, frames
             between keyframes, the byte budget.
+        frame: this robot's map frame in the team's world frame (:class:`FrameConfig`, ``frame.T_world_map``).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     relevance: Literal["attention", "gt"] = "attention"
-    share: Literal["active", "kappa", "task"] = "active"
+    share: Literal["active", "kappa", "task"] = "task"
     kappa_threshold: int = Field(1, ge=0)
     share_coverage: float = Field(0.99, gt=0, le=1)
-    share_candidates: Literal["active", "rendered"] = "active"
-    share_max_fraction: Optional[float] = Field(None, gt=0, le=1)
+    share_candidates: Literal["active", "rendered"] = "rendered"
+    share_max_fraction: Optional[float] = Field(0.25, gt=0, le=1)
     share_held_weight: float = Field(1.0, ge=1)
     share_finetune_iters: int = Field(200, ge=0)
     share_refresh: float = Field(0.05, ge=0, le=1)
@@ -256,12 +313,12 @@ class AgentConfig(BaseModel):
     share_worker: Literal["process", "thread"] = "process"
     share_worker_start: Literal["first_push", "mission"] = "first_push"
     push_every: int = Field(5, ge=1)
-    downscale: float = Field(1.0, ge=1.0)
+    downscale: float = Field(2.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
     stride: int = Field(1, ge=1)
     bag: BagOptions = BagOptions()
     queue_size: int = Field(4, ge=1)
-    keyframe_every: int = Field(2, ge=1)
+    keyframe_every: int = Field(1, ge=1)
     max_keyframes: int = Field(64, ge=1)
     jpeg_quality: int = Field(95, ge=1, le=100)
     keyframe_format: Literal["png", "jpeg"] = "png"
@@ -290,6 +347,7 @@ class AgentConfig(BaseModel):
     scoring: ScoringConfig = ScoringConfig()
     resolution: ResolutionConfig = ResolutionConfig()
     refine_views: RefineViewsConfig = RefineViewsConfig()
+    frame: FrameConfig = FrameConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 

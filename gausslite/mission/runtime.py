@@ -54,6 +54,7 @@ from gausslite.mission.pusher import Pusher
 from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
 from gausslite.mission.state import ACCEPTS_TASK, MissionState
+from gausslite.mission.team_frame import WorldFrames, annotations_to_world, frame_to_world
 
 log = logging.getLogger(__name__)
 
@@ -83,14 +84,20 @@ class MissionSummaryData:
     view_bytes: int = 0
     views_sent: int = 0
     views_unsent: int = 0
-    #: replays: frame id → :class:`gausslite.evaluation.TrackedView` of each ``tracked`` / ``novel`` frame scored
+    #: replays: frame id → :class:`gausslite.evaluation.TrackedView` of each ``tracked`` / ``novel-tracked`` frame
+    #: scored (its pose and exposure fitted against this map)
     tracked_views: dict = field(default_factory=dict)
+    #: replays: frame id → :class:`gausslite.evaluation.TrackedView` of each ``novel`` frame scored: the pose and
+    #: exposure this map predicts for it (a team map is scored at them)
+    predicted_views: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        """JSON-ready dict (``tracked_views``: frame id → ``{"c2w": 4 × 4 list, "exposure": 6 floats}``)."""
+        """JSON-ready dict (``tracked_views``, ``predicted_views``: frame id → ``{"c2w": 4 × 4 list, "exposure": 6
+        floats}``)."""
         out = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        out["tracked_views"] = {int(i): {"c2w": np.asarray(v.c2w).tolist(), "exposure": np.asarray(v.theta).tolist()}
-                                for i, v in self.tracked_views.items()}
+        for key in ("tracked_views", "predicted_views"):
+            out[key] = {int(i): {"c2w": np.asarray(v.c2w).tolist(), "exposure": np.asarray(v.theta).tolist()}
+                        for i, v in getattr(self, key).items()}
         return out
 
 
@@ -127,10 +134,11 @@ class AgentRuntime:
         agent_id (str): the agent's id on the fusion server (non-empty).
         task_text (str): the task.
         graph: parsed task graph (``targets``, ``anchors``, ``relations``).
-        config (AgentConfig): settings.
-        annotations: ``SceneAnnotations`` of the scene (``objects.json``/``tasks.json``), needed by both
-            relevance sources and by the ROI PSNR of the summary; None only works with a custom
-            ``relevance_fn``.
+        config (AgentConfig): settings; ``config.frame.T_world_map`` moves every frame's pose and the annotations
+            from the robot's map frame into the team's world frame (:mod:`gausslite.mission.team_frame`).
+        annotations: ``SceneAnnotations`` of the scene (``objects.json``/``tasks.json``), in the robot's map frame
+            (the frame of its poses), needed by both relevance sources and by the ROI PSNR of the summary; None only
+            works with a custom ``relevance_fn``.
         task_id (str | None): the task's id in ``tasks.json`` (GT relevance, evaluation).
         fusion: a FusionClient-like object, or None (no pushes).
         relevance_fn: optional override ``frame -> (H, W) bool``.
@@ -142,7 +150,8 @@ class AgentRuntime:
 
     Raises:
         ValueError: empty agent id; ``relevance: gt`` without annotations/task id; ``relevance:
-            attention`` without annotations (and without ``relevance_fn``); a graph with no phrases.
+            attention`` without annotations (and without ``relevance_fn``); a graph with no phrases; a
+            checkpoint mapped under another ``T_world_map``.
     """
 
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
@@ -156,6 +165,10 @@ class AgentRuntime:
         self.task_text = task_text
         self.graph = graph
         self.config = config
+        #: this robot's map frame in the team's world frame (``agent.frame.T_world_map``; None: the same frame): every
+        #: frame's pose and the annotations' boxes are moved into the world frame as they enter (docs/team.md)
+        self.T_world_map = config.frame.matrix()
+        annotations = annotations_to_world(annotations, self.T_world_map)
         self.annotations = annotations
         self.fusion = fusion
         self.mission_id = mission_id or uuid.uuid4().hex[:12]
@@ -194,9 +207,12 @@ class AgentRuntime:
                                              WorkCost(**config.mapper.work_cost.model_dump()), rc.min_width,
                                              rc.tolerance)
         self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
-        self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (scoring: novel)
-        #: frame id → TrackedView of the tracked / novel frames of the last scoring (a team map is scored at them)
+        #: frames a replay withheld from the mapper (scoring: novel, novel-tracked)
+        self._novel_ids: Optional[frozenset] = None
+        #: frame id → TrackedView of the tracked / novel-tracked frames of the last scoring (a team map is scored at
+        #: them), and of the novel frames (the pose and exposure this map predicts for each)
         self.tracked_views: dict = {}
+        self.predicted_views: dict = {}
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
         self._finish_lock = threading.Lock()
@@ -253,7 +269,8 @@ class AgentRuntime:
         Keyframe ingest (``ingest: keyframes``, and realtime replays) never blocks: the frame is offered to
         the keyframe selector (:mod:`gausslite.mapping.keyframes`), which keeps only the newest pending
         candidate; frames that are not candidates, or are replaced before the mapper takes them, count as
-        skipped. Every-frame ingest queues the frame and blocks while the queue is full.
+        skipped. Every-frame ingest queues the frame and blocks while the queue is full. The frame's pose is given in
+        the robot's map frame and enters the mission as ``T_world_map @ c2w`` (``agent.frame``; docs/team.md).
 
         Args:
             frame: the decoded frame, or a validated not yet decoded one (an object with ``frame_id``,
@@ -271,6 +288,8 @@ class AgentRuntime:
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
+        if not _replay:  # a replay's frames are in the world frame already (replay())
+            frame = frame_to_world(frame, self.T_world_map)
         if not self._share_started and not _replay:
             self._start_share(self._online)  # a streamed mission starts with its first frame
         with self._lock:
@@ -312,12 +331,15 @@ class AgentRuntime:
         With ``config.realtime`` the frames are sent at the dataset's clock (``frame.timestamp`` relative
         to the first frame, divided by ``config.rate``) through keyframe ingest, as a robot would stream
         them; otherwise every frame is mapped (offline behaviour). The final map is evaluated over every
-        frame of the dataset at Finish (``roi_psnr_all_frames``)."""
+        frame of the dataset at Finish (``roi_psnr_all_frames``). With ``agent.frame.T_world_map`` the dataset's poses
+        are moved into the team's world frame (:class:`~gausslite.mission.team_frame.WorldFrames`)."""
 
         self.replay_frames = len(dataset)
+        if self.T_world_map is not None:
+            dataset = WorldFrames(dataset, self.T_world_map)
         self._dataset = dataset
         sc = self.config.scoring
-        if "novel" in sc.protocols:
+        if sc.withholds():
             # lazy: keeps gausslite.mission.runtime importable without the dataset loaders
             from gausslite.datasets.subset import FrameSubset, withheld_indices
 
@@ -559,7 +581,7 @@ class AgentRuntime:
                 self._eval_frames.append(item)
         if upload:
             self.pusher.add_keyframe(*self._upload_view(native, item, w))
-        if self._sends_between and between:
+        if self._sends_between and between and w is not None:  # no relevance, no task region to carry over
             self._offer_between_views(item, w, between)
         log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
                   item.frame_id, st.n_gaussians, self.n_active, st.seconds)
@@ -670,7 +692,8 @@ class AgentRuntime:
         version = self.pusher.version
         state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
                  "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
-                 "mapper": self.mapper.state_dict(), "saved_unix": time.time()}
+                 "mapper": self.mapper.state_dict(), "saved_unix": time.time(),
+                 "T_world_map": None if self.T_world_map is None else self.T_world_map.tolist()}
         path = self.checkpoint_dir / CHECKPOINT_FILE
         _atomic_write(path, lambda p: torch.save(state, p))
         with self._lock:
@@ -705,6 +728,12 @@ class AgentRuntime:
         if state.get("task_text") != self.task_text:
             raise ValueError(f"checkpoint {path}: mission {self.mission_id} was started with the task "
                              f"{state.get('task_text')!r}, not {self.task_text!r}")
+        saved = state.get("T_world_map")
+        if not np.allclose(np.eye(4) if saved is None else np.asarray(saved),
+                           np.eye(4) if self.T_world_map is None else self.T_world_map, atol=1e-9):
+            raise ValueError(f"checkpoint {path}: mission {self.mission_id} was mapped with T_world_map {saved}, not "
+                             f"{None if self.T_world_map is None else self.T_world_map.tolist()}: its map lies in "
+                             "another world frame")
         self.mapper.load_state_dict(state["mapper"])
         for k, v in state["counters"].items():
             setattr(self, k, v)
@@ -827,7 +856,13 @@ class AgentRuntime:
             protocols=protocols,
             total_upload_bytes=pusher.total_upload_bytes, final_subset_bytes=pusher.final_subset_bytes,
             pushes=[dict(p.__dict__) for p in pusher.pushes], view_bytes=pusher.views.sent_bytes,
-            views_sent=pusher.views.sent, views_unsent=pusher.views_unsent(), tracked_views=dict(self.tracked_views))
+            views_sent=pusher.views.sent, views_unsent=pusher.views_unsent(), tracked_views=dict(self.tracked_views),
+            predicted_views=dict(self.predicted_views))
+        if protocols:
+            # lazy: keeps gausslite.mission.runtime importable without torch (scoring imported it already)
+            from gausslite.evaluation import protocol_line
+
+            log.info("agent %s final map, ROI PSNR (dB): %s", self.agent_id, protocol_line(protocols))
         if self.on_finished is not None:
             try:
                 self.on_finished(self)
@@ -872,13 +907,15 @@ class AgentRuntime:
         """The current map over every frame of the replayed dataset under the scoring protocols of
         ``config.scoring`` (:func:`gausslite.evaluation.score_live_map`; ``sensor`` always, whose ROI PSNR is
         :meth:`evaluate_all_frames`'s figure; ``keyframes``: the mapped keyframes at their refined pose and exposure;
-        ``tracked``: every ``track_stride``-th frame at a pose and exposure fitted against the frozen map), or of
-        ``protocols``.
+        ``novel``: the withheld frames at the pose and exposure the map predicts for them, nothing fitted; ``tracked``
+        / ``novel-tracked``: every ``track_stride``-th / every withheld frame at a pose and exposure fitted against the
+        frozen map), or of ``protocols``. Fills :attr:`tracked_views` and :attr:`predicted_views`.
 
         Returns:
-            ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (dB; ROI PSNR over the
-            frames that show the ROI, None when none does); ``{}`` without a replayed dataset, annotations or task
-            id. Call only while the worker is idle."""
+            ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames", "roi_psnr_per_frame",
+            "psnr_per_frame"}}`` (dB; ROI PSNR over the frames that show the ROI, None when none does; per frame:
+            frame id → dB); ``{}`` without a replayed dataset, annotations or task id. Call only while the worker is
+            idle."""
         # lazy: keeps gausslite.mission.runtime importable without Warp, torch
         from gausslite.datasets.subset import ScaledFrames
         from gausslite.evaluation import score_live_map
@@ -888,13 +925,13 @@ class AgentRuntime:
         sc = self.config.scoring
         chosen = sc.chosen() if protocols is None else tuple(protocols)
         if self._novel_ids is None:
-            chosen = tuple(p for p in chosen if p != "novel")
+            chosen = tuple(p for p in chosen if p not in ("novel", "novel-tracked"))
         # scored at the mapping resolution: the map's own detail, and minutes instead of tens of minutes at 640x480
         frames = ScaledFrames(self._dataset, self.resolution.factor)
-        self.tracked_views = {}
+        self.tracked_views, self.predicted_views = {}, {}
         return score_live_map(self.mapper, frames, task_roi(self.annotations, self.task_id), chosen,
                               track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids,
-                              record=self.tracked_views)
+                              record=self.tracked_views, predicted=self.predicted_views)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped). Safe to call more than once."""

@@ -4,7 +4,9 @@ Sec. III-E).
 ``gausslite.v1.Agent``:
 
 * ``StartMission`` — parses the task with the parser service (``parser_address``; empty → the
-  in-process rule parser), opens a mission, and either replays ``dataset_path`` or waits for frames.
+  in-process rule parser), opens a mission, and either replays ``dataset_path`` or waits for frames; its
+  ``T_world_map`` (or the setting ``agent.frame.T_world_map``) puts the mission's poses in the team's world frame
+  (``docs/team.md``).
 * ``StreamFrames`` — a client stream of posed RGB-D frames (:mod:`gausslite_services.agent.frames` validates
   each: INVALID_ARGUMENT for malformed frames, wrong shapes, NaN poses). With keyframe ingest (default)
   the call never blocks the sender: headers are validated on arrival, keyframe selection keeps the
@@ -46,7 +48,9 @@ from gausslite.datasets.loader import detect_layout
 from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
 from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState
+from gausslite.mission.config import FrameConfig
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
+from gausslite.mission.team_frame import parse_T_world_map
 from gausslite.parser import TaskParser
 from gausslite_rpc import agent_pb2, agent_pb2_grpc, common_pb2, parser_pb2, parser_pb2_grpc
 from gausslite_services.agent.frames import FrameError, decode_frame, validate_frame
@@ -240,14 +244,17 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
     def start_mission(self, task_text: str, *, task_id: str = "", dataset_path: str = "",
                       annotations_path: str = "", fusion_address: str = "", agent_id: str = "",
-                      auto_finish: bool = False, mission_id: str = "") -> AgentRuntime:
+                      auto_finish: bool = False, mission_id: str = "", T_world_map=()) -> AgentRuntime:
         """Create and start a mission (used by ``StartMission`` and by the boot-time auto start).
 
         With a data dir, the mission checkpoints into ``<data_dir>/<agent_id>/<mission_id>/``; a
-        ``mission_id`` whose folder holds a checkpoint resumes from it.
+        ``mission_id`` whose folder holds a checkpoint resumes from it. ``T_world_map``: 16 row-major numbers, this
+        mission's map frame in the team's world frame (overrides ``agent.frame.T_world_map``; empty: the setting;
+        docs/team.md).
 
         Raises:
-            ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id.
+            ValueError: empty/oversized task or one with a NUL character, bad dataset, missing relevance source, unknown task id,
+                a ``T_world_map`` that is not 16 numbers of a rigid transform.
             CallerNotAllowed: a ``fusion_address`` or ``agent_id`` other than the configured ones, a
                 ``dataset_path`` or ``annotations_path`` outside the data roots (:meth:`_check_caller_choices`).
             MissionError: another mission is still mapping; ``mission_id`` already used in this process;
@@ -262,6 +269,9 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if agent_id and not _valid_id(agent_id):
             raise ValueError(f"agent_id {agent_id[:80]!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         self._check_caller_choices(fusion_address, agent_id, dataset_path, annotations_path)
+        T = parse_T_world_map(T_world_map, "T_world_map")
+        if T is not None:  # the mission's option overrides the agent's setting
+            cfg = cfg.model_copy(update={"frame": FrameConfig(T_world_map=T.tolist())})
         with self._lock:
             if mission_id and mission_id in self.missions:
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
@@ -377,7 +387,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             rt = self.start_mission(request.task_text, task_id=request.task_id, dataset_path=request.dataset_path,
                                     annotations_path=request.annotations_path,
                                     fusion_address=request.fusion_address, agent_id=request.agent_id,
-                                    mission_id=request.mission_id)
+                                    mission_id=request.mission_id, T_world_map=request.T_world_map)
         except CallerNotAllowed as e:
             _abort(context, "StartMission", grpc.StatusCode.PERMISSION_DENIED, str(e))
         except (FileNotFoundError, KeyError) as e:
@@ -487,9 +497,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             total_upload_bytes=s.total_upload_bytes,
             final_subset_bytes=s.final_subset_bytes, view_bytes=s.view_bytes, views_sent=s.views_sent,
             views_unsent=s.views_unsent,
-            tracked_views=[agent_pb2.TrackedPose(frame_id=int(i), pose=common_pb2.Pose(
-                c2w=np.asarray(v.c2w, np.float64).reshape(-1).tolist()), exposure=np.asarray(v.theta).tolist())
-                for i, v in sorted(s.tracked_views.items())],
+            tracked_views=_views_proto(s.tracked_views), predicted_views=_views_proto(s.predicted_views),
             pushes=[agent_pb2.PushInfo(version=p["version"], n_shared=p["n_shared"], n_total=p["n_total"],
                                        bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
                                        removed=p["removed"], frames_mapped=p["frames_mapped"],
@@ -498,7 +506,9 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             protocols={name: agent_pb2.ProtocolScore(
                 has_roi_psnr=v.get("roi_psnr") is not None, roi_psnr=v.get("roi_psnr") or 0.0,
                 psnr=v.get("psnr") or 0.0, ssim=v.get("ssim") or 0.0, frames_scored=int(v.get("frames_scored", 0)),
-                roi_frames=int(v.get("roi_frames", 0))) for name, v in s.protocols.items()})
+                roi_frames=int(v.get("roi_frames", 0)),
+                roi_psnr_per_frame={int(k): float(x) for k, x in (v.get("roi_psnr_per_frame") or {}).items()})
+                for name, v in s.protocols.items()})
 
     def shutdown(self, timeout_s: float) -> List[str]:
         """What SIGTERM does before the process exits: every mission still mapping stops ingest, maps what it holds,
@@ -612,6 +622,14 @@ ENV = {
 }
 
 
+def _views_proto(views: dict) -> list:
+    """frame id → :class:`gausslite.evaluation.TrackedView` (pose (4, 4) camera-to-world, metres; exposure (6,)) as
+    ``TrackedPose`` messages, by frame id."""
+    return [agent_pb2.TrackedPose(frame_id=int(i), pose=common_pb2.Pose(
+        c2w=np.asarray(v.c2w, np.float64).reshape(-1).tolist()), exposure=np.asarray(v.theta).tolist())
+        for i, v in sorted(views.items())]
+
+
 def settings_from_env(config_path: Optional[str], env=None, token: Optional[str] = None) -> AgentSettings:
     """Agent settings from environment variables (:data:`ENV`; ``GAUSSLITE_AGENT_SET`` holds
     ``;``-separated ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto
@@ -634,7 +652,9 @@ def settings_from_env(config_path: Optional[str], env=None, token: Optional[str]
         read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
     if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):
         raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
-    return AgentSettings(**kw, token=token, config=load_config(config_path, overrides, deployed=False).agent,
+    tree = load_config(config_path, overrides)
+    log.info("effective configuration: %s", json.dumps(tree.sections("agent"), sort_keys=True))
+    return AgentSettings(**kw, token=token, config=tree.agent,
                          auto_finish=(env.get("GAUSSLITE_AGENT_AUTO_FINISH", "1").lower() not in ("0", "false", "no")))
 
 

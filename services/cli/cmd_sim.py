@@ -47,7 +47,7 @@ def register(subparsers) -> None:
                    help="scene folder or ROS bag with objects.json/tasks.json beside it (default: generate the "
                         "synthetic scene)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--config", default=None, help="GaussLite YAML (default deploy/gausslite.yaml)")
+    p.add_argument("--config", default=None, help="GaussLite YAML of site settings (default: none, the measured defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override, e.g. mapper.iters_per_frame=5 agent.max_frames=4 sim.scene.frames=6")
     p.add_argument("--tasks", default=None, help="two task ids, comma-separated (agent_a,agent_b)")
@@ -56,10 +56,10 @@ def register(subparsers) -> None:
                    help="shortcut for mapper.seeding.seeds_per_frame")
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
-    p.add_argument("--protocols", default=None, metavar="P[,P...]",
-                   help="scoring protocols of the own and fused maps: sensor (always), keyframes, tracked, novel "
-                        "(every 10th frame withheld from the agents; agent.scoring.protocols; default all four, "
-                        "docs/realtime.md#scoring-protocols)")
+    # Options of the report machinery and the benchmarks work but are not listed by --help (SUPPRESS):
+    # --protocols: the scoring protocols of the own and fused maps, sensor (always), keyframes, tracked, novel (every
+    # 10th frame withheld from the agents; agent.scoring.protocols; default all four, docs/realtime.md)
+    p.add_argument("--protocols", default=None, metavar="P[,P...]", help=argparse.SUPPRESS)
     p.add_argument("--realtime", action="store_true",
                    help="agents replay at the dataset's clock through keyframe ingest (agent.realtime=true), as a "
                         "robot streams; the report adds frames received/keyframed/skipped, latencies and the ROI "
@@ -70,15 +70,15 @@ def register(subparsers) -> None:
     p.add_argument("--budget", type=float, default=None,
                    help="seconds per mapped keyframe (mapper.keyframe_budget_s; --realtime default 1.0, otherwise "
                         "the fixed iterations of mapper.iters_per_frame)")
-    p.add_argument("--baseline", choices=("uniform",), default=None,
-                   help="also run matched uniform agents (the same sim with mapper.mode=uniform, into OUT/baseline_uniform) "
-                        "and put their own-map ROI PSNR beside GaussLite's in report.md (what the task buys)")
+    # --baseline uniform (not listed): also run matched uniform agents (the same sim with mapper.mode=uniform, into
+    # OUT/baseline_uniform) and put their own-map ROI PSNR beside GaussLite's in report.md (what the task buys)
+    p.add_argument("--baseline", choices=("uniform",), default=None, help=argparse.SUPPRESS)
     p.add_argument("--offline-report", default=None, metavar="DIR",
                    help="an earlier `gausslite sim` (every frame, same dataset) whose agents' ROI PSNR goes next to "
                         "the realtime figures in report.md")
-    p.add_argument("--report-only", action="store_true",
-                   help="with --offline-report: add the offline column to the finished realtime run in --out "
-                        "(rewrites its report.json/report.md, runs nothing)")
+    # --report-only (not listed): with --offline-report, add the offline column to the finished realtime run in --out
+    # (rewrites its report.json/report.md, runs nothing)
+    p.add_argument("--report-only", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--timeout", type=float, default=None, help="overall bound in seconds (default sim.timeout_s)")
     p.add_argument("--token", default=None, help="bearer token for all services (env GAUSSLITE_TOKEN)")
     p.add_argument("--fusion-token", default=None,
@@ -96,10 +96,11 @@ def register(subparsers) -> None:
     from gausslite.cli.cmd_map import add_bag_args
 
     add_bag_args(p)  # shortcuts for agent.bag.<field>
-    p.add_argument("--context-report", default=None, metavar="REPORT_JSON",
-                   help="report.json of the same sim run with --set mapper.roi_render=context: adds each agent's "
-                        "own_roi_psnr_context (with --merge-only: into the existing DIR/report.json, no new run)")
-    p.add_argument("--merge-only", action="store_true", help="with --context-report: rewrite DIR/report.* only")
+    # --context-report REPORT_JSON (not listed): report.json of the same sim run with --set mapper.roi_render=context,
+    # adds each agent's own_roi_psnr_context; --merge-only (not listed): with --context-report, into the existing
+    # DIR/report.json (rewrites DIR/report.* only, no new run)
+    p.add_argument("--context-report", default=None, metavar="REPORT_JSON", help=argparse.SUPPRESS)
+    p.add_argument("--merge-only", action="store_true", help=argparse.SUPPRESS)
     p.set_defaults(func=_handle)
     _extend_serve(subparsers)
 

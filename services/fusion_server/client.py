@@ -8,7 +8,7 @@ Usage::
 
     from gausslite_services.fusion_server.client import FusionClient
 
-    with FusionClient("127.0.0.1:50053", token="secret") as fc:
+    with FusionClient("127.0.0.1:50052", token="secret") as fc:
         fc.wait_ready()
         fc.open_session("robot-1", "find the red cup on the desk", intrinsics)
         res = fc.upload_subset("robot-1", map_version=3, gaussians=roi_subset,
@@ -18,8 +18,8 @@ Usage::
         arrays = fc.download_fused(fused.fused_version)
 
 Replicas: ``target`` may name several fusion replicas sharing one PostgreSQL store —
-``dns:///fusion.example:50053`` (every address the name resolves to, e.g. a Kubernetes headless
-service) or ``ipv4:10.0.0.5:50053,10.0.0.6:50053``. The channel uses gRPC's own client-side load
+``dns:///fusion.example:50052`` (every address the name resolves to, e.g. a Kubernetes headless
+service) or ``ipv4:10.0.0.5:50052,10.0.0.6:50052``. The channel uses gRPC's own client-side load
 balancing (``round_robin`` over the resolved addresses, re-resolved when connections drop) and
 gRPC's retry policy re-sends calls that fail with ``UNAVAILABLE`` before the server saw them
 (:func:`channel_options`); any replica accepts any agent's chunks, and an upload interrupted on one
@@ -577,6 +577,34 @@ class FusionClient:
         finally:
             stream.cancel()  # no-op when finished; stops server work if the caller bailed out
         raise RuntimeError("Fuse stream ended without a result")
+
+    def team_map(self, wait_s: float = 0.0, *, current: bool = False, poll_s: float = 1.0) -> FuseResult:
+        """The team map the server keeps refined in the background (``fuse(team_map=True)``), waiting up to
+        ``wait_s`` seconds for its first version (NOT_FOUND until the first refinement over the robots' subsets and
+        keyframes is done) or, with ``current``, for a version made from every robot's latest subset.
+
+        Args:
+            wait_s (float): seconds to wait; 0 = ask once.
+            current (bool): also wait until ``team_map_current`` (the robots' final pushes are in it).
+            poll_s (float): seconds between two asks.
+        Returns:
+            FuseResult of the newest version (``age_s``, ``team_map_current``); after ``wait_s`` the newest there is,
+            current or not.
+        Raises:
+            gausslite_services.common.errors.NotFound: no version within ``wait_s``.
+            gausslite_services.common.errors.FailedPrecondition: the server keeps no team map
+            (``fusion.team_map.enabled: false``, or an install without the refinement's extra).
+        """
+        deadline = time.monotonic() + max(0.0, float(wait_s))
+        while True:
+            try:
+                r = self.fuse(team_map=True)
+                if r.team_map_current or not current or time.monotonic() >= deadline:
+                    return r
+            except grpc.RpcError as e:
+                if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() >= deadline:
+                    raise
+            time.sleep(max(0.05, min(poll_s, deadline - time.monotonic())))
 
     def download_fused(self, fused_version: int = 0, method: Optional[str] = None) -> GaussianArrays:
         """Download a fused map (``fused_version`` 0 = latest, optionally of ``method``).

@@ -43,7 +43,7 @@ frame_id): the first write wins, re-sends are no-ops.
 
 from __future__ import annotations
 
-import argparse
+import json
 import logging
 import os
 import sys
@@ -55,17 +55,18 @@ from grpc_health.v1 import health_pb2
 
 from gausslite.config import FusionSettings
 from gausslite_rpc import fusion_pb2_grpc
-from gausslite_services.common.metrics import metrics_port_from
+from gausslite_services.common.cli_options import log_level_from, server_options_from_args
 from gausslite_services.common.server import (RunningServer, ServerOptions, authenticator_from_options, build_server,
                                               run_until_signalled)
 from gausslite_services.fusion_server.metrics import FusionMetrics, MeteredFusion
+from gausslite_services.fusion_server.options import (DEFAULT_GRACE_S, DEFAULT_MAX_WORKERS, DEFAULT_PORT, build_parser,
+                                                      fusion_run_arguments)
 from gausslite_services.fusion_server.guards import check_agent_id  # noqa: F401 - re-exported
 from gausslite_services.fusion_server.servicer import FUSED_AGENT_ID, SERVICE_NAME, FusionServicer  # noqa: F401 - re-exported
 from gausslite_services.fusion_server.store import SqlFusionStore, StoreUnavailable, open_store
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PORT = 50053
 
 #: the fusion server's settings: the ``fusion`` section of the configuration tree (:mod:`gausslite.config`)
 FusionConfig = FusionSettings
@@ -223,6 +224,7 @@ def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: 
     if not logging.getLogger().handlers:  # `gausslite serve` does not configure logging itself
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = FusionConfig.from_file(config_path) if config_path else FusionConfig()
+    log.info("effective configuration: %s", json.dumps({"fusion": config.model_dump(mode="json")}, sort_keys=True))
     data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
     store = store or os.environ.get("GAUSSLITE_FUSION_STORE") or None
     server = serve(options, config, data_dir=data_dir, store=store)
@@ -234,58 +236,17 @@ def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: 
 
 
 def main(argv=None) -> int:
-    """``python -m gausslite_services.fusion_server``: CLI with environment fallbacks (see ``--help``)."""
+    """``python -m gausslite_services.fusion_server``: the options of ``gausslite serve fusion``
+    (:func:`gausslite_services.fusion_server.options.build_parser`, see ``--help``) with their environment fallbacks.
+    Returns the exit code: 2 on bad options or a failed start (the reason on stderr)."""
+    args = build_parser().parse_args(argv)
     env = os.environ
-    p = argparse.ArgumentParser(prog="python -m gausslite_services.fusion_server",
-                                description="GaussLite fusion server (gausslite.v1.Fusion).")
-    p.add_argument("--host", default=env.get("GAUSSLITE_FUSION_HOST", "127.0.0.1"),
-                   help="bind address (env GAUSSLITE_FUSION_HOST)")
-    p.add_argument("--port", type=int, default=int(env.get("GAUSSLITE_FUSION_PORT", DEFAULT_PORT)),
-                   help=f"port, 0 = ephemeral (env GAUSSLITE_FUSION_PORT, default {DEFAULT_PORT})")
-    p.add_argument("--data-dir", default=env.get("GAUSSLITE_DATA_DIR"),
-                   help="folder of the fusion store, the SQLite database fusion.sqlite3 with every subset, keyframe "
-                        "and fused map the server acknowledged (env GAUSSLITE_DATA_DIR; default ./gausslite_fusion_data; "
-                        "not used with --store)")
-    p.add_argument("--store", default=env.get("GAUSSLITE_FUSION_STORE"),
-                   help="postgresql://user:pw@host:port/db to share a PostgreSQL store between replicas "
-                        "(env GAUSSLITE_FUSION_STORE; default: SQLite in --data-dir)")
-    p.add_argument("--port-file", default=env.get("GAUSSLITE_FUSION_PORT_FILE"),
-                   help="write the bound port to this file (env GAUSSLITE_FUSION_PORT_FILE)")
-    p.add_argument("--token", default=env.get("GAUSSLITE_TOKEN"),
-                   help="fleet bearer token, team-wide mode (env GAUSSLITE_TOKEN)")
-    p.add_argument("--agent-tokens", default=env.get("GAUSSLITE_AGENT_TOKENS_FILE"),
-                   help="JSON/YAML file of per-agent token hashes, re-read when it changes or on SIGHUP "
-                        "(env GAUSSLITE_AGENT_TOKENS_FILE; `gausslite tokens` makes it)")
-    p.add_argument("--fleet-token-writes", action="store_true",
-                   default=env.get("GAUSSLITE_FLEET_TOKEN_WRITES", "").lower() in ("1", "true", "yes"),
-                   help="the fleet token keeps write access to every agent next to per-agent credentials "
-                        "(migration; env GAUSSLITE_FLEET_TOKEN_WRITES=1)")
-    p.add_argument("--tls-cert", default=env.get("GAUSSLITE_TLS_CERT"), help="PEM cert (env GAUSSLITE_TLS_CERT)")
-    p.add_argument("--tls-key", default=env.get("GAUSSLITE_TLS_KEY"), help="PEM key (env GAUSSLITE_TLS_KEY)")
-    p.add_argument("--tls-client-ca", default=env.get("GAUSSLITE_TLS_CLIENT_CA"),
-                   help="PEM CA of client certificates: mutual TLS, the certificate CN is the agent id "
-                        "(env GAUSSLITE_TLS_CLIENT_CA)")
-    p.add_argument("--config", default=env.get("GAUSSLITE_FUSION_CONFIG"),
-                   help="JSON/TOML FusionConfig file (env GAUSSLITE_FUSION_CONFIG)")
-    p.add_argument("--max-workers", type=int, default=16, help="handler threads")
-    p.add_argument("--max-message-bytes", type=int, default=4 * 1024 * 1024, help="gRPC message bound in bytes (default 4 MiB, at least 128 KiB); a wire chunk may take it minus 16 "
-                        "bytes (SessionInfo.max_chunk_bytes)")
-    p.add_argument("--grace", type=float, default=10.0, help="shutdown grace period, seconds")
-    p.add_argument("--metrics-port", type=int, default=None,
-                   help="Prometheus /metrics port, 0 = off (env GAUSSLITE_FUSION_METRICS_PORT, GAUSSLITE_METRICS_PORT)")
-    p.add_argument("--log-level", default=env.get("GAUSSLITE_LOG_LEVEL", "INFO"))
-    args = p.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    opts = ServerOptions(host=args.host, port=args.port, token=args.token or None, tls_cert=args.tls_cert or None,
-                         tls_key=args.tls_key or None, agent_tokens_file=args.agent_tokens or None,
-                         tls_client_ca=args.tls_client_ca or None,
-                         fleet_token_writes=True if args.fleet_token_writes else None,
-                         max_message_bytes=args.max_message_bytes,
-                         max_workers=args.max_workers, grace_s=args.grace)
     try:
-        opts.metrics_port = metrics_port_from(args.metrics_port, env.get("GAUSSLITE_FUSION_METRICS_PORT")
-                                              or env.get("GAUSSLITE_METRICS_PORT"))
-        return run(opts, args.config, data_dir=args.data_dir, port_file=args.port_file, store=args.store)
+        level = log_level_from(args, env) or "INFO"
+        logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        opts, config_path = server_options_from_args(args, "fusion", env, default_port=DEFAULT_PORT,
+                                                     max_workers=DEFAULT_MAX_WORKERS, grace_s=DEFAULT_GRACE_S)
+        return run(opts, config_path, **fusion_run_arguments(args, env))
     except (ValueError, OSError, RuntimeError) as e:
         print(f"fusion server: error: {e}", file=sys.stderr)
         return 2

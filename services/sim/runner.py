@@ -22,7 +22,7 @@ from gausslite_services.sim.launch import (ProcessGroup, check_bags, close_all, 
 from gausslite_services.sim.report import (agent_report, fused_minus_own, load_offline, protocol_minus_own,
                                            write_report, attach_context_baseline)
 from gausslite_services.sim.scoring import (fuse_and_score, load_eval_frames, uploaded_keyframe_poses,
-                                            own_views, roi_cover_report)
+                                            own_views, predicted_views, roi_cover_report)
 from gausslite_services.sim.timeline import FusedTimeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -53,7 +53,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     Args:
         out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
         dataset: scene folder; None → generate the synthetic default scene into ``out/scene``.
-        config: GaussLite YAML (default ``deploy/gausslite.yaml``); ``overrides``: dotted ``key=value``.
+        config: GaussLite YAML of site settings (default: none, the models' measured defaults); ``overrides``: dotted ``key=value``.
         task_ids: the two agents' task ids (default from ``sim.tasks``).
         attach: ``{"parser", "fusion_server", "agent_a", "agent_b"} → host:port`` of running services
             (no processes started; the agents must already run their missions).
@@ -80,9 +80,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     cfg = typed.to_yaml_dict()  # the effective tree, which the report records
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
-    config_path = out / "config.yaml"
-    # what the agents read (--config): the settings given, so that each dataset's sensor profile fills in the rest
-    config_path.write_text(yaml.safe_dump(typed.to_yaml_dict(given_only=True), sort_keys=False))
+    config_path = write_service_config(typed, out / "config.yaml")
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
     plans = plan_agents(dataset, typed, task_ids)
@@ -107,7 +105,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         eval_frames = load_eval_frames(plans, typed.agent)
         fused, renders = fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
                                          uploaded_keyframe_poses(fusion, plans), backend,
-                                         {n: own_views(s) for n, s in summaries.items()})
+                                         {n: own_views(s) for n, s in summaries.items()},
+                                         {n: predicted_views(s) for n, s in summaries.items()})
         tracker.poll(time.perf_counter() - t0)  # the team map made from the final subsets, when the server keeps one
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
@@ -134,6 +133,20 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
         close_all(clients, group, previous)
+
+
+def write_service_config(typed, path: Path) -> Path:
+    """Write the configuration file the simulation's services read (``--config``): the settings given (file and
+    overrides), so that each dataset's sensor profile fills in the rest (:meth:`GaussLiteConfig.to_yaml_dict`).
+
+    Args:
+        typed (gausslite.config.GaussLiteConfig): the simulation's tree.
+        path: the file to write.
+    Returns:
+        ``path``.
+    """
+    path.write_text(yaml.safe_dump(typed.to_yaml_dict(given_only=True), sort_keys=False))
+    return path
 
 
 def _generate_scene(out: Path, scene, progress: bool) -> str:

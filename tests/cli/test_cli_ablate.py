@@ -54,7 +54,7 @@ def test_ablate_rejects_unknown_rows_and_a_bad_merge_before_mapping(tmp_path, ca
     # an inconsistent configuration is a clear error, not a traceback
     bad = [a for a in TINY if a != "warmup_iters=2" and a != "--set"]
     assert main(["ablate", *bad, "--out", str(tmp_path / "e")]) == 2
-    assert "warmup_iters (15) must not exceed iters_per_frame (4)" in caplog.text
+    assert "warmup_iters (10) must not exceed iters_per_frame (4)" in caplog.text
     assert main(["map", *bad, "--mode", "gausslite", "--out", str(tmp_path / "f")]) == 2
 
 

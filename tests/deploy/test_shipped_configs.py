@@ -81,12 +81,33 @@ def test_every_shipped_config_loads_without_a_warning():
             if _kind(doc) is not None:
                 load_strictly(doc, _kind(doc))
                 loaded.append(md.name)
-    assert "deploy/gausslite.yaml" in loaded
-    # and through the loaders the command line uses (the deployed file is load_config's default)
+    # the site file sets nothing (the models' defaults are the measured settings) and its commented example loads
+    site = ROOT / "deploy" / "gausslite.yaml"
+    assert yaml.safe_load(site.read_text(encoding="utf-8")) == {}
+    example_doc = yaml.safe_load(_commented_example(site.read_text(encoding="utf-8")))
+    assert set(example_doc) == {"agent", "fusion"}
+    load_strictly(example_doc, "tree")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        load_config(ROOT / "deploy" / "gausslite.yaml")
+        load_config(site)
         load_config()
+
+
+def _commented_example(text: str) -> str:
+    """The YAML example of a commented-out file: the ``# `` lines from the first ``section:`` line to the next prose
+    line (a comment line that is not indented YAML and not a ``key:`` line)."""
+    out, inside = [], False
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            continue
+        body = line[2:] if line.startswith("# ") else line[1:]
+        if re.match(r"^[a-z_]+:\s*$", body):
+            inside = True
+        elif inside and not body.startswith(" "):
+            break
+        if inside:
+            out.append(body)
+    return "\n".join(out)
 
 
 def test_the_check_fails_on_an_old_flat_name(tmp_path):

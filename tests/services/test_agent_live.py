@@ -156,7 +156,7 @@ def test_mapper_checkpoint_round_trip(scene):
 # ---------------------------------------------------------------------------------------------- ingest
 def test_submit_never_blocks_while_the_mapper_is_busy(scene):
     ds = load_dataset(scene / "agent_a")
-    cfg = load_config(None, TINY + ["agent.keyframe_translation_m=1e-6", "agent.idle_optimize=false"], deployed=False).agent
+    cfg = load_config(None, TINY + ["agent.keyframe_translation_m=1e-6", "agent.idle_optimize=false"]).agent
     rt = AgentRuntime("live", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=lambda fr: None)
     gate, entered = threading.Event(), threading.Event()
@@ -204,7 +204,7 @@ def test_submit_never_blocks_while_the_mapper_is_busy(scene):
 
 def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
     ds = load_dataset(scene / "agent_a")
-    cfg = load_config(None, TINY + ["agent.checkpoint_every=1", "agent.keyframe_translation_m=1e-6"], deployed=False).agent
+    cfg = load_config(None, TINY + ["agent.checkpoint_every=1", "agent.keyframe_translation_m=1e-6"]).agent
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     rt = AgentRuntime("a1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
                       checkpoint_dir=tmp_path / "m1")
@@ -233,7 +233,7 @@ def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
 
 # ---------------------------------------------------------------------------------------------- gRPC
 def test_streaming_with_keyframe_ingest_and_bad_input(scene):
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg))
     c = AgentClient(ag.address)
     try:
@@ -272,10 +272,10 @@ def test_streaming_with_keyframe_ingest_and_bad_input(scene):
 
 
 def test_no_relevance_source_is_failed_precondition(scene, tmp_path):
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", config=cfg))  # no annotations
     cfg2 = load_config(None, TINY + ["agent.relevance_backend=onnx",
-                                           f"agent.onnx.detector_path={tmp_path / 'missing.onnx'}"], deployed=False).agent
+                                           f"agent.onnx.detector_path={tmp_path / 'missing.onnx'}"]).agent
     ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo2", config=cfg2))
     try:
         with AgentClient(ag.address) as c:
@@ -309,7 +309,7 @@ def test_onnx_relevance_backend_with_tiny_models(scene, tmp_path):
     seg = _fastsam_model(tmp_path / "fs.onnx", pred, protos, 64)
     cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.relevance_backend=onnx",
                                           f"agent.onnx.detector_path={det}", f"agent.onnx.segmenter_path={seg}",
-                                          f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"], deployed=False).agent
+                                          f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"]).agent
     graph = {"targets": ["chair"], "anchors": [], "relations": []}
     rt = AgentRuntime("onnx", "Find the chair", graph, cfg)  # no annotations at all
     ds = load_dataset(scene / "agent_a")
@@ -332,9 +332,9 @@ def test_onnx_cost_backend_runs_the_models_and_answers_from_annotations(scene, t
     graph = {"targets": ["chair"], "anchors": [], "relations": []}
     onnx = [f"agent.onnx.detector_path={det}", f"agent.onnx.segmenter_path={seg}",
             f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"]
-    ref = AgentRuntime("ann", "Find the chair", graph, load_config(None, TINY, deployed=False).agent, annotations=ds.annotations)
+    ref = AgentRuntime("ann", "Find the chair", graph, load_config(None, TINY).agent, annotations=ds.annotations)
     cost = AgentRuntime("cost", "Find the chair", graph,
-                        load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx, deployed=False).agent,
+                        load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx).agent,
                         annotations=ds.annotations)
     try:
         for i in range(3):
@@ -348,7 +348,7 @@ def test_onnx_cost_backend_runs_the_models_and_answers_from_annotations(scene, t
         cost.close()
     with pytest.raises(ValueError, match="backend 'onnx_cost' needs scene annotations"):
         AgentRuntime("cost", "Find the chair", graph,
-                     load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx, deployed=False).agent)
+                     load_config(None, TINY + ["agent.relevance_backend=onnx_cost"] + onnx).agent)
 
 def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
     from tests.attention.test_attention_onnx import _fastsam_model
@@ -362,7 +362,7 @@ def test_incompatible_onnx_models_are_failed_precondition(tmp_path):
     for det_path, seg_path, why in cases:
         cfg = load_config(None, TINY + ["agent.relevance_backend=onnx", f"agent.onnx.detector_path={det_path}",
                                               f"agent.onnx.segmenter_path={seg_path}",
-                                              f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"], deployed=False).agent
+                                              f"agent.onnx.vocab_path={tmp_path / 'vocab.txt'}"]).agent
         ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", config=cfg))
         try:
             with AgentClient(ag.address) as c:
@@ -519,7 +519,7 @@ def test_validate_frame_reads_headers_and_defers_decoding(scene):
     pf = validate_frame(bad)
     with pytest.raises(FrameError):
         pf.materialize()
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     rt = AgentRuntime("r", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=lambda f: None)
     assert rt.submit(pf) is True
@@ -534,7 +534,9 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
 
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
-    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5"], deployed=False).agent
+    # no frame withheld for the novel-view protocol: every frame of the replay reaches the agent
+    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5",
+                                    "agent.scoring.protocols=[sensor,keyframes,tracked]"]).agent
     rt = AgentRuntime("rt", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
                       task_id="synth-pick-object")
     t0 = time.perf_counter()
@@ -557,7 +559,7 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
     assert all(v["roi_psnr"] is not None and 0 < v["roi_psnr"] < 80 for v in p.values())
     rt.close()
     # sensor alone when told so
-    cfg = load_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"], deployed=False).agent
+    cfg = load_config(None, TINY + ["agent.scoring.protocols=[tracked]", "agent.scoring.track_stride=2"]).agent
     rt = AgentRuntime("rt2", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
                       task_id="synth-pick-object")
     try:
@@ -629,7 +631,7 @@ def _run_task_agent(scene, overrides: list, n_frames: int):
     ds = load_dataset(scene / "agent_a")
     # the share work in the pusher thread, so spies in this process see it (the worker process: its own test)
     cfg = load_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
-                                          "agent.share_worker=thread", *overrides], deployed=False).agent
+                                          "agent.share_worker=thread", *overrides]).agent
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
@@ -668,7 +670,8 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
         return out
 
     monkeypatch.setattr(sharing, "finetune_subset", spy)
-    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false"], 4)
+    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false",
+                                              "agent.refine_views.crop=false"], 4)  # whole keyframes, their ROI
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
@@ -746,7 +749,7 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
             runs = []
             for n_frames in (2, 5):
                 cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
-                                                      "agent.push_every=100"], deployed=False).agent
+                                                      "agent.push_every=100"]).agent
                 rt = _mission("robot", cfg, lambda fr: np.ones((48, 64), bool), c, ds, n_frames)
                 assert rt.pusher.final_push_ok and len(rt.pusher.pushes) == 1
                 runs.append(rt.pusher.pushes[0])
@@ -925,7 +928,7 @@ def test_the_mapping_resolution_is_reported_pinned_or_chosen_and_maps_what_it_sa
     for extra, factor, pinned in ((["agent.resolution.downscale=2"], 2.0, True),
                                   (["mapper.keyframe_budget_s=0.5", "mapper.budget.max_gaussians=2000",
                                    "agent.resolution.min_width=16"], 1.0, False)):
-        cfg = load_config(None, TINY + ["agent.ingest=every_frame", *extra], deployed=False).agent
+        cfg = load_config(None, TINY + ["agent.ingest=every_frame", *extra]).agent
         rt = AgentRuntime("res", "Pick up the object", graph, cfg, relevance_fn=lambda fr: np.ones(fr.depth.shape, bool))
         sizes = []
         orig = rt.mapper.map_frame
@@ -975,7 +978,7 @@ def test_a_live_agent_sends_roi_crops_of_keyframes_and_of_the_frames_between_the
                                     "agent.keyframe_rotation_deg=90", "agent.refine_views.crop=true",
                                     "agent.refine_views.between=true", "agent.refine_views.between_every=1",
                                     "agent.refine_views.min_roi_px=4", "agent.refine_views.budget_ratio=40"],
-                      deployed=False).agent
+                      ).agent
     fusion = _ViewRecorder()
     rt = AgentRuntime("rv", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
                       task_id="synth-pick-object", fusion=fusion)

@@ -24,7 +24,10 @@ from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
+        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
+        # the plumbing of pushes and uploads, counted: the a = 1 subset at every snapshot and whole keyframes (task
+        # sharing and ROI crops, the defaults: tests/services/test_agent_live.py, tests/docs/)
+        "agent.share=active", "agent.refine_views.crop=false"]
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +60,7 @@ def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
     from gausslite_services.fusion_server.client import FusionClient
 
     fusion = _fusion(tmp_path / "fusion")
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     agents = [serve_agent(ServerOptions(port=0), AgentSettings(
         agent_id=name, parser_address=parser_server.address, fusion_address=fusion.address,
         annotations_path=str(scene), data_dir=str(tmp_path / "agents"), config=cfg)) for name in ("agent_a", "agent_b")]
@@ -118,7 +121,7 @@ def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
 
 @pytest.fixture()
 def local_agent(scene):
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     ag = serve_agent(ServerOptions(port=0, token="s3cret"),
                      AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg))
     c = AgentClient(ag.address, token="s3cret")
@@ -205,7 +208,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     data = tmp_path / "fusion"
     f1 = _fusion(data)
     port = f1.port
-    cfg = load_config(None, TINY + ["agent.final_push_timeout_s=60"], deployed=False).agent
+    cfg = load_config(None, TINY + ["agent.final_push_timeout_s=60"]).agent
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     client = FusionClient(f1.address, timeout_s=5, max_retries=1, backoff_s=0.05)
@@ -257,7 +260,7 @@ def test_replayed_dataset_maps_with_its_sensor_profile_under_the_agent_yaml(scen
     for overrides, want_refine in ((TINY, True), (TINY + ["mapper.pose.refine=false"], False)):
         ag = serve_agent(ServerOptions(port=0), AgentSettings(
             agent_id="tum", annotations_path=str(scene), data_roots=(str(tmp_path / "tum"),),
-            config=load_config(None, overrides, deployed=False).agent))
+            config=load_config(None, overrides).agent))
         try:
             rt = ag.servicer.start_mission("Find the chair", dataset_path=str(seq), annotations_path=str(scene))
             assert rt.config.mapper.pose.refine is want_refine
@@ -295,7 +298,7 @@ def test_a_caller_cannot_send_the_agents_fusion_credentials_elsewhere(scene, par
     recorder = f"127.0.0.1:{rec_port}"
     fusion = _fusion(tmp_path / "fusion")
     settings = dict(agent_id="robot1", parser_address=parser_server.address, fusion_address=fusion.address,
-                    fusion_token="robot1-secret", annotations_path=str(scene), config=load_config(None, TINY, deployed=False).agent)
+                    fusion_token="robot1-secret", annotations_path=str(scene), config=load_config(None, TINY).agent)
     agent = serve_agent(ServerOptions(port=0), AgentSettings(**settings))
     try:
         c = AgentClient(agent.address)
@@ -354,7 +357,7 @@ def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
     scene_copy(secret)
     scene_copy(tmp_path / "missions-evil")  # shares the root's prefix
     os.symlink(secret, root / "escape")  # a link inside the root to a folder outside it
-    cfg = load_config(None, TINY, deployed=False).agent
+    cfg = load_config(None, TINY).agent
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", annotations_path=str(scene), config=cfg,
                                                           data_roots=(str(root),)))
     c = AgentClient(ag.address)

@@ -32,7 +32,7 @@ def scene(tmp_path_factory):
 @pytest.fixture()
 def agent(scene):
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="robot", annotations_path=str(scene),
-                                                          config=load_config(None, TINY, deployed=False).agent))
+                                                          config=load_config(None, TINY).agent))
     c = AgentClient(ag.address)
     yield ag, c
     c.close()

@@ -47,7 +47,7 @@ def test_exported_scene_bags_match_the_folders(bag_scene):
 
 def test_agent_replays_a_bag(bag_scene, tmp_path):
     _src, out = bag_scene
-    cfg = load_config(None, TINY + ["agent.bag.max_pose_dt=0.01"], deployed=False).agent
+    cfg = load_config(None, TINY + ["agent.bag.max_pose_dt=0.01"]).agent
     assert cfg.bag.max_pose_dt == 0.01
     ag = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="solo", data_dir=str(tmp_path / "a"),
                                                           data_roots=(str(out),), config=cfg))
@@ -63,7 +63,7 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
         s = c.finish(m.mission_id, timeout_s=60)
         assert s.status.frames_received == 4 and s.status.frames_mapped == 4
         # a bad bag is refused with the bag's one clear error
-        bad_cfg = load_config(None, TINY + ["agent.bag.rgb_topic=/nope"], deployed=False).agent
+        bad_cfg = load_config(None, TINY + ["agent.bag.rgb_topic=/nope"]).agent
         ag2 = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="bad", data_roots=(str(out),), config=bad_cfg))
         c2 = AgentClient(ag2.address)
         try:

@@ -26,7 +26,8 @@ REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
 CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1",
        "agent.max_backoff_s=0.5", "agent.max_keyframes=3", "agent.final_push_timeout_s=60",
-       "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
+       "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
+       "agent.refine_views.crop=false"]  # every keyframe uploaded whole: the backlog below counts them
 
 
 def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subprocess.Popen, int]:
@@ -72,7 +73,7 @@ def test_link_outage_mid_mission(tmp_path):
     data, port_file = tmp_path / "fusion", tmp_path / "port"
     proc, port = _start_fusion(data, port_file)
     client = FusionClient(f"127.0.0.1:{port}", timeout_s=3, max_retries=1, backoff_s=0.05)
-    rt = AgentRuntime("robot1", text, TaskParser().parse(text), load_config(None, CFG, deployed=False).agent,
+    rt = AgentRuntime("robot1", text, TaskParser().parse(text), load_config(None, CFG).agent,
                       annotations=ds.annotations, fusion=client)
     try:
         for i in range(4):

@@ -23,7 +23,8 @@ from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
+        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
+        "agent.refine_views.crop=false"]  # every keyframe uploaded whole: the counters below count them
 
 
 def scrape(url: str) -> dict:
@@ -131,7 +132,7 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
                           data_dir=str(tmp_path / "fusion"))
     agent = serve_agent(ServerOptions(port=0, metrics_port=0), AgentSettings(
         agent_id="robot_m", fusion_address=fusion.address, annotations_path=str(scene),
-        config=load_config(None, TINY, deployed=False).agent))
+        config=load_config(None, TINY).agent))
     fusion_url, agent_url = fusion.rpc.metrics.url, agent.running.metrics.url
     assert fusion_url != agent_url
     try:

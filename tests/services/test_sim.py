@@ -57,7 +57,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     import yaml
 
     given = yaml.safe_load((tmp_path / "sim" / "config.yaml").read_text())
-    assert given["mapper"]["iters_per_frame"] == 3 and given["mapper"]["roi_render"] == "context"
+    assert given["mapper"]["iters_per_frame"] == 3 and "roi_render" not in given["mapper"]  # a default: not given
     assert "final_iters_per_keyframe" not in given["mapper"] and "lambda_depth" not in given["mapper"]
     # the deployed agents map with roi_render: context, so their own maps are the context figure
     assert rep["settings"]["mapper"]["roi_render"] == "context"
