@@ -36,7 +36,7 @@ def _pusher(fusion, **cfg):
     # the pusher at the test's own priority: these tests time its logic, not how a niced thread fares on a busy
     # machine (pusher_nice 19 starves it while other jobs run)
     # whole keyframes: these tests are about the backlog (ROI crops: tests/services/test_agent_live.py)
-    config = AgentConfig(**{"pusher_nice": 0, "refine_views": {"crop": False}, **cfg})
+    config = AgentConfig(**{"pusher_nice": 0, "refine_views": {"crop": False, "budget_ratio": None}, **cfg})
     errors = []
     p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=None,
                intrinsics=lambda: None, report=errors.append)
@@ -128,7 +128,7 @@ def test_uploaded_keyframes_carry_their_refined_pose_and_leave_the_backlog():
     E[0, 3] = 0.02
     sent = []
     fusion = SimpleNamespace(upload_keyframes=lambda agent_id, frames, **kw: sent.extend(frames) or len(frames))
-    config = AgentConfig(refine_views={"crop": False})
+    config = AgentConfig(refine_views={"crop": False, "budget_ratio": None})
     mapper = SimpleNamespace(poses=SimpleNamespace(corrections={3: E}))
     p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=mapper,
                intrinsics=lambda: None, report=lambda m: None)

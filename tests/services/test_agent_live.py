@@ -670,8 +670,8 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
         return out
 
     monkeypatch.setattr(sharing, "finetune_subset", spy)
-    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false",
-                                              "agent.refine_views.crop=false"], 4)  # whole keyframes, their ROI
+    whole = ["agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, their ROI
+    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false", *whole], 4)
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)

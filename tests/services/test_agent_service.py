@@ -27,7 +27,7 @@ TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
         # the plumbing of pushes and uploads, counted: the a = 1 subset at every snapshot and whole keyframes (task
         # sharing and ROI crops, the defaults: tests/services/test_agent_live.py, tests/docs/)
-        "agent.share=active", "agent.refine_views.crop=false"]
+        "agent.share=active", "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
 CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1",
        "agent.max_backoff_s=0.5", "agent.max_keyframes=3", "agent.final_push_timeout_s=60",
        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
-       "agent.refine_views.crop=false"]  # every keyframe uploaded whole: the backlog below counts them
+       "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, all counted
 
 
 def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subprocess.Popen, int]:
