@@ -3,8 +3,8 @@
 
     python -m bench.delta_tolerance [--tolerances 1,4,16] [--kappa-rel 0.25,1e9] [--seeds 3] [--task-id room0-pick-plant]
 
-One agent maps Replica room0 (20 frames, 300×170) with the deployed mapper settings of
-``deploy/gausslite.yaml`` (full GaussLite, 30 iterations and 1,500 seeds per frame) and the differences the
+One agent maps Replica room0 (20 frames, 300×170) with the default mapper settings (full GaussLite, 30 iterations
+and 1,500 seeds per frame) and the differences the
 committed figures were measured with (:data:`MAPPER_OVERRIDES`: ``roi_render: active``, ``roi_update:
 active``, every 2nd frame a keyframe), with the ground-truth ROI. Every ``--push-every`` frames and after the
 last one it selects the task subset (``gausslite.sharing.select_task_subset``, coverage 0.99) and plans
@@ -50,7 +50,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
 
-#: the committed figures' mapper: ``deploy/gausslite.yaml``'s with these overrides
+#: the committed figures' mapper: the defaults with these overrides
 MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "mapper.keyframe_every=2",
                     "mapper.performance.render_threads=null"]
 

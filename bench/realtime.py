@@ -9,7 +9,7 @@ Each run is one agent mission (:class:`gausslite.mission.AgentRuntime`, in proce
 that replays the scene through the agent's keyframe ingest as a robot streams it: frames arrive at the
 scene's clock, the keyframe selector keeps the newest candidate while the mapper is busy, and every mapped
 keyframe gets ``budget`` seconds of wall time (decoding, relevance and seeding included). Both modes map with
-the agent's deployed settings (``deploy/gausslite.yaml``) and the scene's sensor profile, at the same
+the agent's default settings (the measured ones) and the scene's sensor profile, at the same
 **binding** Gaussian cap (``mapper.budget.max_gaussians``; each run's final count is reported), the same keyframe
 rule, no sharing and **no final pass**. At the end of the mission the map is scored over **every** frame of
 the sequence (skipped ones included): ROI PSNR, PSNR, SSIM. With ``--final-pass-budgets`` the same map then
@@ -191,9 +191,9 @@ class SinkFusion:
 
 
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
-    """The agent's deployed configuration (``deploy/gausslite.yaml``) for one bench run: ``mode``, the keyframe
+    """The agent's default configuration (the measured settings) for one bench run: ``mode``, the keyframe
     budget, the cap, no final pass, realtime replay at ``rate``, one agent with the machine to itself."""
-    cfg = load_config(REPO / "deploy" / "gausslite.yaml", [
+    cfg = load_config(None, [
         f"mapper.mode={mode}", f"mapper.seed={seed}", f"mapper.keyframe_budget_s={budget}",
         f"mapper.budget.max_gaussians={cap}", "mapper.performance.render_threads=2", "agent.realtime=true",
         f"agent.rate={rate}", "agent.downscale=1", *overrides]).agent

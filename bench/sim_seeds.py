@@ -2,8 +2,8 @@
 
     python -m bench.sim_seeds [--scenes room0,synthetic] [--seeds 3] [--set agent.share_refresh=0.1 ...]
 
-Runs ``gausslite sim`` once per scene and seed (``--set mapper.seed=S``; the deployed settings of
-``deploy/gausslite.yaml`` otherwise, plus any ``--set``), one after the other, each into
+Runs ``gausslite sim`` once per scene and seed (``--set mapper.seed=S``; the default settings
+otherwise, plus any ``--set``), one after the other, each into
 ``runs/sim_seeds/<scene>_seed<S>``, and summarises the reports per agent: ``share_pct``,
 ``bytes_per_gaussian``, ``upload_ratio`` (total upload / final subset), the agent's own map
 (``own_context``: ROI PSNR with ``roi_render: context``), the fused ROI PSNR of its task for ``concat``,

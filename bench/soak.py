@@ -3,7 +3,7 @@
     python -m bench.soak --minutes 60          # default 10; --sample-s 60 between samples
 
 Starts a real fusion server (``python -m gausslite_services.fusion_server``, SQLite store in ``--work``) and a real
-agent (``gausslite serve agent`` with ``deploy/gausslite.yaml``, keyframe ingest, ``mapper.keyframe_budget_s`` =
+agent (``gausslite serve agent`` with the default settings, keyframe ingest, ``mapper.keyframe_budget_s`` =
 ``--budget``, checkpoints in its data dir, pushes to the fusion server), opens a streaming mission and sends the
 synthetic scene's circle trajectory (``make_scene(trajectory="circle")``, ``--frames`` frames of
 ``--width`` x ``--height``, generated once and cached in ``--work``) in a loop at ``--fps`` (30 Hz) for
@@ -225,7 +225,7 @@ def _wait_for_port(fusion: subprocess.Popen, port_file: Path, log_path: Path) ->
 
 def _start_agent(args, env: dict, agent_port: int, fusion_addr: str, agent_dir: Path, scene: Path,
                  log_path: Path) -> subprocess.Popen:
-    """The agent process (``deploy/gausslite.yaml``, ``--budget`` and ``--set`` overrides), pushing to
+    """The agent process (the default settings, ``--budget`` and ``--set`` overrides), pushing to
     ``fusion_addr``."""
     overrides = [f"mapper.keyframe_budget_s={args.budget}", "agent.downscale=1"] + list(args.set)
     return _start([sys.executable, "-m", "gausslite.cli", "serve", "agent", "--host", "127.0.0.1", "--port",

@@ -14,8 +14,8 @@ clock. After the missions:
 * **fused over time** — the pushes of all agents are merged by mission time; after each one the vote map of the
   subsets held at that moment is scored on every task's ROI (every ``--eval-stride``-th frame);
 * **final** — concat, vote, vote + refine and the team map as each robot uses it (``for_robot``,
-  :func:`gausslite.fusion.guard.for_robot`) of the final subsets (``sim.fuse`` settings of
-  ``deploy/gausslite.yaml``), scored on every frame of the team's sequence, against each agent's own map scored
+  :func:`gausslite.fusion.guard.for_robot`) of the final subsets (the ``sim.fuse``
+  settings), scored on every frame of the team's sequence, against each agent's own map scored
   on the same frames (``own``: ROI PSNR of the owner's task over all frames);
 * **scoring protocols** — the own and final fused maps also under ``keyframes`` and ``tracked``
   (docs/realtime.md#scoring-protocols; ``--protocols``, ``--track-stride``): the own map on its keyframes at their
@@ -127,7 +127,7 @@ class RecordingFusion(SinkFusion):
 
 
 def fuse_settings() -> dict:
-    """The live sim's fusion settings (``sim.fuse`` of ``deploy/gausslite.yaml``, with its ``live_contest_radius``)."""
+    """The live sim's fusion settings (``sim.fuse``, with its ``live_contest_radius``)."""
     return load_config().sim.fuse.settings(realtime=True)
 
 

@@ -1,4 +1,4 @@
-"""One typed configuration tree for everything a GaussLite YAML file sets (``deploy/gausslite.yaml``).
+"""One typed configuration tree for everything a GaussLite YAML file sets; its defaults are the measured settings.
 
 ``GaussLiteConfig{mapper, agent, sim, fusion}``: the mapper (:class:`gausslite.mapping.config.MapperConfig`, its
 knobs grouped by prefix), the agent's mission (:class:`gausslite.mission.config.AgentConfig`), the local

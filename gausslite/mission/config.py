@@ -1,4 +1,4 @@
-"""Settings of an agent's mission (YAML section ``agent`` of ``deploy/gausslite.yaml`` plus its ``mapper`` section;
+"""Settings of an agent's mission (YAML section ``agent`` of a GaussLite configuration plus its ``mapper`` section;
 ``docs/live.md``, ``docs/sharing.md``)."""
 
 from __future__ import annotations
