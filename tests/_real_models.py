@@ -69,7 +69,7 @@ SEG_IMGSZ = (96, 128)
 
 
 def export_models_cli(folder: Path) -> dict:
-    """``gausslite export-models`` on a tiny Grounding DINO checkpoint (:func:`save_checkpoint`, seed 0) and
+    """``gausslite export models`` on a tiny Grounding DINO checkpoint (:func:`save_checkpoint`, seed 0) and
     ultralytics' yolov8n-seg.yaml, at :data:`DET_SIZE` / :data:`SEG_IMGSZ`, into ``folder / "models"``.
 
     Returns:
@@ -88,6 +88,6 @@ def export_models_cli(folder: Path) -> dict:
     out = folder / "models"
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
-        rc = main(["export-models", "--detector", str(ckpt), "--segmenter", "yolov8n-seg.yaml", "--out", str(out),
+        rc = main(["export", "models", "--detector", str(ckpt), "--segmenter", "yolov8n-seg.yaml", "--out", str(out),
                    "--det-size", *map(str, DET_SIZE), "--seg-imgsz", *map(str, SEG_IMGSZ)])
     return {"rc": rc, "err": err.getvalue(), "checkpoint": ckpt, "out": out}

@@ -142,7 +142,7 @@ def pg_schema_dsn(pg_dsn):
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="session")
 def exported_models(tmp_path_factory) -> dict:
-    """``gausslite export-models`` on the tiny random-weight Grounding DINO checkpoint and yolov8n-seg.yaml
+    """``gausslite export models`` on the tiny random-weight Grounding DINO checkpoint and yolov8n-seg.yaml
     (:func:`tests._real_models.export_models_cli`): the torch.onnx export of Grounding DINO is the slow part, and
     the CLI test and the ONNX backend tests read the same files (the tests only read them)."""
     from tests._real_models import export_models_cli

@@ -8,7 +8,7 @@ ROS 1 bags (``.bag``, format 2.0). Reading is :class:`gausslite.datasets.bag.Bag
 ``CompressedImage``, ``CameraInfo``, ``tf2_msgs/TFMessage``, ``geometry_msgs/PoseStamped``,
 ``nav_msgs/Odometry``) into any of the three formats, with the field spellings each ROS version uses
 (ROS 1 ``CameraInfo.K`` / ``Header.seq``, ROS 2 ``CameraInfo.k``). It is used by
-``gausslite export-bag`` and by the tests that build bags.
+``gausslite export bag`` and by the tests that build bags.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Write any GaussLite dataset as a ROS bag (``gausslite export-bag``), readable back by the bag loader.
+"""Write any GaussLite dataset as a ROS bag (``gausslite export bag``), readable back by the bag loader.
 
 Topics and frames (the layout a RealSense-style driver with ``align_depth`` publishes; REP 105 frames):
 

@@ -4,7 +4,8 @@ connection errors or when the deadline passes). Used by the docker-compose healt
 
 Environment fallbacks: ``GAUSSLITE_HEALTH_TARGET``, ``GAUSSLITE_TLS_CA`` (PEM CA → TLS),
 ``GAUSSLITE_TLS_CLIENT_CERT`` / ``GAUSSLITE_TLS_CLIENT_KEY`` (client certificate for a server that
-requires mutual TLS).
+requires mutual TLS). The TLS options are those of every client command
+(:func:`gausslite_services.common.cli_options.add_client_credential_arguments`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+
+# grpc-free: the command line registers the options without loading the services
+from gausslite_services.common.cli_options import add_client_credential_arguments, client_tls_paths
 
 
 def register(subparsers) -> None:
@@ -21,10 +25,7 @@ def register(subparsers) -> None:
     p.add_argument("--target", default=None, help="host:port (env GAUSSLITE_HEALTH_TARGET)")
     p.add_argument("--service", default="", help="service name, e.g. gausslite.v1.Agent ('' = whole server)")
     p.add_argument("--timeout", type=float, default=3.0, help="deadline in seconds (default 3)")
-    p.add_argument("--tls-ca", default=None, help="PEM CA certificate for TLS (env GAUSSLITE_TLS_CA)")
-    p.add_argument("--tls-client-cert", default=None,
-                   help="PEM client certificate for mutual TLS (env GAUSSLITE_TLS_CLIENT_CERT)")
-    p.add_argument("--tls-client-key", default=None, help="its PEM key (env GAUSSLITE_TLS_CLIENT_KEY)")
+    add_client_credential_arguments(p, token=False, server="the service")
     p.set_defaults(func=_handle)
 
 
@@ -65,11 +66,8 @@ def _handle(args: argparse.Namespace) -> int:
     if not target:
         print("gausslite health: error: --target HOST:PORT is required", file=sys.stderr)
         return 2
-    env = os.environ
     try:
-        status = check_health(target, args.service, args.timeout, args.tls_ca or env.get("GAUSSLITE_TLS_CA"),
-                              args.tls_client_cert or env.get("GAUSSLITE_TLS_CLIENT_CERT"),
-                              args.tls_client_key or env.get("GAUSSLITE_TLS_CLIENT_KEY"))
+        status = check_health(target, args.service, args.timeout, *client_tls_paths(args))
     except (ValueError, OSError) as e:
         print(f"gausslite health: error: {e}", file=sys.stderr)
         return 2

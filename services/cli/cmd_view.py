@@ -2,15 +2,18 @@
 
     gausslite view MAP.ply [--port 8080] [--color rgb|kappa|roi]     # also .splat / .spz
     gausslite view --fusion HOST:PORT [--poll 1.0] [--token T]       # new fused versions appear live
+    gausslite view --fusion HOST:PORT --tls-ca ca.pem --tls-client-cert viewer.pem --tls-client-key viewer.key
 
 Open the printed URL (``http://127.0.0.1:8080/``). A map file is loaded after the URL is printed: a
 page opened meanwhile shows the loading progress (progress bar and notification), as does the console.
 The GUI panel switches the colouring (RGB, κ, ROI), shows only the ROI (active) Gaussians, toggles
 keyframe trajectories and frusta and, with ``--fusion``, lists agents, shares, bytes and versions.
-``--host 0.0.0.0`` serves the page to other machines. Environment fallbacks: ``GAUSSLITE_VIEW_PORT``,
-``GAUSSLITE_FUSION_ADDR``, ``GAUSSLITE_TOKEN``, ``GAUSSLITE_TLS_CA``; a per-agent fusion token
-(``GAUSSLITE_FUSION_TOKEN`` / ``GAUSSLITE_FUSION_TOKEN_FILE``) and a client certificate
-(``GAUSSLITE_TLS_CLIENT_CERT`` / ``GAUSSLITE_TLS_CLIENT_KEY``) as for the agents (``docs/security.md``).
+``--host 0.0.0.0`` serves the page to other machines. The fusion server's credentials take the options of
+every client command (``--tls-ca``, ``--tls-client-cert``, ``--tls-client-key`` for TLS and mutual TLS,
+``--token`` / ``--token-file``) with the agents' environment fallbacks (``docs/security.md``):
+``GAUSSLITE_TLS_CA``, ``GAUSSLITE_TLS_CLIENT_CERT`` / ``GAUSSLITE_TLS_CLIENT_KEY``, a per-agent token
+``GAUSSLITE_FUSION_TOKEN`` / ``GAUSSLITE_FUSION_TOKEN_FILE``, else the fleet token ``GAUSSLITE_TOKEN``. Further
+environment fallbacks: ``GAUSSLITE_VIEW_PORT``, ``GAUSSLITE_FUSION_ADDR``.
 """
 
 from __future__ import annotations
@@ -19,6 +22,9 @@ import argparse
 import os
 import sys
 import time
+
+# grpc-free: the command line registers the options without loading the services
+from gausslite_services.common.cli_options import add_client_credential_arguments, client_credentials_from_args
 
 
 def register(subparsers) -> None:
@@ -39,10 +45,10 @@ def register(subparsers) -> None:
     p.add_argument("--up", default="auto", choices=["auto", *UP_AXES],
                    help="world up axis of the initial camera (auto: from keyframes, else +z)")
     p.add_argument("--poll", type=float, default=1.0, help="seconds between fusion-server polls (default 1)")
-    p.add_argument("--token", default=None, help="bearer token of the fusion server (env GAUSSLITE_TOKEN)")
-    p.add_argument("--tls-ca", default=None, help="PEM CA for TLS to the fusion server (env GAUSSLITE_TLS_CA)")
     p.add_argument("--timeout", type=float, default=None,
                    help="stop after this many seconds (default: run until Ctrl-C)")
+    add_client_credential_arguments(p.add_argument_group("fusion server credentials (with --fusion)"),
+                                    server="the fusion server")
     p.set_defaults(func=_handle)
 
 
@@ -98,15 +104,11 @@ def _handle(args: argparse.Namespace) -> int:
             from gausslite_services.fusion_server.client import FusionClient
             from gausslite_services.viewer.feed import FusionFeed
 
-            from gausslite_services.fusion_server.client import client_credentials_from_env
-
             try:
-                creds = client_credentials_from_env({**env, **({"GAUSSLITE_TLS_CA": args.tls_ca} if args.tls_ca else {})})
+                creds = client_credentials_from_args(args, env)
             except (ValueError, OSError) as e:
                 print(f"gausslite view: error: {e}", file=sys.stderr)
                 return 2
-            if args.token:
-                creds["token"] = args.token
             client = FusionClient(fusion, **creds)
             feed = FusionFeed(viewer, client, poll_s=args.poll).start()
             print(f"following fusion server {fusion} at {viewer.url}", flush=True)

@@ -15,7 +15,7 @@ H_DET, W_DET = DET_SIZE
 
 @pytest.fixture(scope="module")
 def gdino(exported_models):
-    """The tiny Grounding DINO exported by ``gausslite export-models`` (at :data:`DET_SIZE`) and the model it was
+    """The tiny Grounding DINO exported by ``gausslite export models`` (at :data:`DET_SIZE`) and the model it was
     exported from, loaded again from its checkpoint folder."""
     torch = need("torch")
     from gausslite.attention.export import load_grounding_dino

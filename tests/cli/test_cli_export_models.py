@@ -1,4 +1,4 @@
-"""``gausslite export-models`` on random-weight real architectures (a saved tiny Grounding DINO checkpoint
+"""``gausslite export models`` on random-weight real architectures (a saved tiny Grounding DINO checkpoint
 folder and ultralytics' yolov8n-seg.yaml), and its messages when files are missing or a hub id is offline."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def test_export_models_lists_missing_files(tmp_path, capsys, monkeypatch):
     empty = tmp_path / "ckpt"
     empty.mkdir()
     (empty / "config.json").write_text("{}")
-    rc = main(["export-models", "--detector", str(empty), "--segmenter", str(tmp_path / "FastSAM-s.pt"),
+    rc = main(["export", "models", "--detector", str(empty), "--segmenter", str(tmp_path / "FastSAM-s.pt"),
                "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2
@@ -46,8 +46,8 @@ def test_export_models_lists_missing_files(tmp_path, capsys, monkeypatch):
     # a hub id that is not in the local cache, offline
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
-    rc = main(["export-models", "--detector", "IDEA-Research/grounding-dino-tiny", "--out", str(tmp_path / "o")])
+    rc = main(["export", "models", "--detector", "IDEA-Research/grounding-dino-tiny", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "config.json" in err and "vocab.txt" in err and "hf download IDEA-Research/grounding-dino-tiny" in err
-    rc = main(["export-models", "--out", str(tmp_path / "o")])
+    rc = main(["export", "models", "--out", str(tmp_path / "o")])
     assert rc == 2 and "--detector and/or --segmenter" in capsys.readouterr().err

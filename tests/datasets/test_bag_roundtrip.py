@@ -1,4 +1,4 @@
-"""TUM fr1_rpy → ``gausslite export-bag`` → bag loader: same images, depths, intrinsics and poses, and the
+"""TUM fr1_rpy → ``gausslite export bag`` → bag loader: same images, depths, intrinsics and poses, and the
 same mapping PSNR (a few frames at low resolution so the test stays a few seconds)."""
 
 from __future__ import annotations
@@ -64,10 +64,10 @@ def test_tum_round_trip_16uc1_and_annotations(tmp_path, tum_small):
 def test_export_bag_cli_and_mapping_gives_the_same_psnr(tmp_path, tum_rpy_dir):
     out = tmp_path / "cli_bag"
     args = ["--downscale", "4", "--max-frames", "3"]
-    assert main(["export-bag", "--dataset", str(tum_rpy_dir), "--out", str(out), *args]) == 0
-    assert main(["export-bag", "--dataset", str(tum_rpy_dir), "--out", str(out), *args]) == 2  # exists
+    assert main(["export", "bag", "--dataset", str(tum_rpy_dir), "--out", str(out), *args]) == 0
+    assert main(["export", "bag", "--dataset", str(tum_rpy_dir), "--out", str(out), *args]) == 2  # exists
     tum = load_dataset(tum_rpy_dir, downscale=4, max_frames=3, undistort=True, interpolate_poses=True,
-                       align_depth_time=True)  # the hand-held profile, as export-bag applies it
+                       align_depth_time=True)  # the hand-held profile, as export bag applies it
     assert isinstance(tum, TUMDataset)
     fast = ["--iters", "4", "--seeds-per-frame", "300", "--set", "final_iters=0", "--set", "warmup_iters=1",
             "--set", "final_iters_per_keyframe=0",

@@ -154,13 +154,13 @@ def _cli(*args, timeout=120, **kw):
 def test_cli_export(tmp_path):
     g = shell_map(800, seed=4)
     write_map(g, tmp_path / "m.ply")
-    r = _cli("export", str(tmp_path / "m.ply"), "--out", str(tmp_path / "m.splat"))
+    r = _cli("export", "map", str(tmp_path / "m.ply"), "--out", str(tmp_path / "m.splat"))
     assert r.returncode == 0, r.stderr
     assert "800 Gaussians" in r.stdout and (tmp_path / "m.splat").stat().st_size == 32 * 800
-    r = _cli("export", str(tmp_path / "m.splat"), "--out", str(tmp_path / "x.bin"), "--format", "spz")
+    r = _cli("export", "map", str(tmp_path / "m.splat"), "--out", str(tmp_path / "x.bin"), "--format", "spz")
     assert r.returncode == 0, r.stderr
     assert len(read_spz(tmp_path / "x.bin")) == 800
-    r = _cli("export", str(tmp_path / "nope.ply"), "--out", str(tmp_path / "o.splat"))
+    r = _cli("export", "map", str(tmp_path / "nope.ply"), "--out", str(tmp_path / "o.splat"))
     assert r.returncode == 2 and "not found" in r.stderr
 
 

@@ -1,4 +1,4 @@
-"""``gausslite export-models``: write the ONNX detector, its vocab.txt and the ONNX segmenter that an agent's
+"""``gausslite export models``: write the ONNX detector, its vocab.txt and the ONNX segmenter that an agent's
 ``relevance_backend: onnx`` loads (docs/perception.md).
 
 Detector: a Grounding DINO checkpoint folder (``config.json``, ``model.safetensors`` or ``pytorch_model.bin``,
@@ -16,10 +16,14 @@ import sys
 from pathlib import Path
 
 
-def register(subparsers) -> None:
-    """Add the ``export-models`` subcommand to ``subparsers``."""
-    p = subparsers.add_parser("export-models", help="export Grounding DINO / YOLOv8-seg (FastSAM) to the ONNX files "
-                              "the agent loads", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+#: one line for the command listing of ``gausslite export``
+HELP = "Grounding DINO / YOLOv8-seg (FastSAM) as the ONNX files the agent loads"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the options of ``gausslite export models`` to ``p`` (a parser made with
+    ``formatter_class=argparse.RawDescriptionHelpFormatter``) and make :func:`handle` its handler."""
+    p.description = __doc__
     p.add_argument("--detector", default=None, help="Grounding DINO checkpoint folder or hub id")
     p.add_argument("--segmenter", default=None, help="ultralytics .pt or .yaml (YOLOv8-seg, FastSAM)")
     p.add_argument("--out", required=True, help="output folder")
@@ -29,18 +33,20 @@ def register(subparsers) -> None:
                    help="segmenter input: S (square) or H W (default 640; ultralytics rounds up to multiples of 32)")
     p.add_argument("--allow-download", action="store_true",
                    help="let transformers fetch a hub id that is not cached (default: local files only)")
-    p.set_defaults(func=_handle)
+    p.set_defaults(func=handle)
 
 
-def _handle(args) -> int:
+def handle(args: argparse.Namespace) -> int:
+    """Run ``gausslite export models``. Returns the exit code: 0, or 2 with the reason on stderr (no source given,
+    a bad ``--seg-imgsz``, model files missing or not available offline, the export packages not installed)."""
     # lazy: the command line starts without loading the library
     from gausslite.attention.export import MissingModelFiles, export_models
 
     if args.detector is None and args.segmenter is None:
-        print("export-models: give --detector and/or --segmenter", file=sys.stderr)
+        print("gausslite export models: give --detector and/or --segmenter", file=sys.stderr)
         return 2
     if len(args.seg_imgsz) not in (1, 2):
-        print("export-models: --seg-imgsz takes S or H W", file=sys.stderr)
+        print("gausslite export models: --seg-imgsz takes S or H W", file=sys.stderr)
         return 2
     seg_imgsz = args.seg_imgsz[0] if len(args.seg_imgsz) == 1 else tuple(args.seg_imgsz)
     try:
@@ -48,17 +54,17 @@ def _handle(args) -> int:
                             det_size=tuple(args.det_size), seg_imgsz=seg_imgsz,
                             local_files_only=not args.allow_download)
     except MissingModelFiles as e:
-        print(f"export-models: {e}", file=sys.stderr)
-        print("export-models: needed files:", file=sys.stderr)
+        print(f"gausslite export models: {e}", file=sys.stderr)
+        print("gausslite export models: needed files:", file=sys.stderr)
         for n in e.needed:
             print(f"  {n}", file=sys.stderr)
         return 2
     except ImportError as e:
-        print(f"export-models: {e} (bash scripts/setup.sh installs transformers, onnxscript and ultralytics)",
+        print(f"gausslite export models: {e} (bash scripts/setup.sh installs transformers, onnxscript and ultralytics)",
               file=sys.stderr)
         return 2
     except ValueError as e:
-        print(f"export-models: {e}", file=sys.stderr)
+        print(f"gausslite export models: {e}", file=sys.stderr)
         return 2
     yaml_path = Path(args.out) / "agent-onnx.yaml"
     yaml_path.write_text(res.agent_yaml())

@@ -1,4 +1,4 @@
-"""``gausslite export-bag --dataset PATH --out BAG``: write any supported dataset as a ROS bag.
+"""``gausslite export bag --dataset PATH --out BAG``: write any supported dataset as a ROS bag.
 
 Default output: rosbag2 with MCAP storage (a new folder). Topics, frames and stamps are described in
 :mod:`gausslite.ros.export`; the bag reads back with ``--dataset BAG`` giving the same images, depths,
@@ -15,12 +15,16 @@ from pathlib import Path
 log = logging.getLogger("gausslite.export_bag")
 
 
-def register(sub) -> None:
+#: one line for the command listing of ``gausslite export``
+HELP = "a dataset as a ROS bag: rosbag2 MCAP (or SQLite3 / ROS 1)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the options of ``gausslite export bag`` to ``p`` and make :func:`handle` its handler."""
     # lazy: the command line starts without loading the library
     from gausslite.cli.cmd_map import add_bag_args, add_depth_camera_args
 
-    p = sub.add_parser("export-bag", help="write a dataset as a rosbag2 MCAP (or SQLite3 / ROS 1) bag",
-                       description=__doc__.split("\n\n")[0])
+    p.description = __doc__.split("\n\n")[0]
     p.add_argument("--dataset", required=True, type=Path, help="dataset folder or bag (any supported layout)")
     p.add_argument("--out", required=True, type=Path, help="output bag (a new folder; a .bag file with --storage ros1)")
     p.add_argument("--storage", choices=["mcap", "sqlite3", "ros1"], default="mcap")
@@ -35,10 +39,12 @@ def register(sub) -> None:
                    help="TUM only: interpolate ground-truth poses (on by default, as in `map`)")
     add_bag_args(p)
     add_depth_camera_args(p)
-    p.set_defaults(func=_handler)
+    p.set_defaults(func=handle)
 
 
-def _handler(args: argparse.Namespace) -> int:
+def handle(args: argparse.Namespace) -> int:
+    """Run ``gausslite export bag``: print the bag's summary (JSON). Returns the exit code: 0, or 2 when the
+    dataset does not load or the bag cannot be written (e.g. ``--out`` exists)."""
     # lazy: the command line starts without loading the library
     from tqdm import tqdm
 
@@ -52,7 +58,7 @@ def _handler(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as e:
         log.error("cannot load the dataset: %s", e)
         return 2
-    bar = tqdm(total=len(ds), desc="export-bag", unit="frame")
+    bar = tqdm(total=len(ds), desc="export bag", unit="frame")
     try:
         summary = export_bag(ds, args.out, storage=args.storage, depth_encoding=args.depth_encoding,
                              progress=lambda i, n: bar.update(1))
