@@ -24,7 +24,7 @@ MISSION_STATE_FINISHED: MissionState
 MISSION_STATE_FAILED: MissionState
 
 class StartMissionRequest(_message.Message):
-    __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id", "mission_id")
+    __slots__ = ("task_text", "task_id", "dataset_path", "annotations_path", "fusion_address", "agent_id", "mission_id", "T_world_map")
     TASK_TEXT_FIELD_NUMBER: _ClassVar[int]
     TASK_ID_FIELD_NUMBER: _ClassVar[int]
     DATASET_PATH_FIELD_NUMBER: _ClassVar[int]
@@ -32,6 +32,7 @@ class StartMissionRequest(_message.Message):
     FUSION_ADDRESS_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
+    T_WORLD_MAP_FIELD_NUMBER: _ClassVar[int]
     task_text: str
     task_id: str
     dataset_path: str
@@ -39,7 +40,8 @@ class StartMissionRequest(_message.Message):
     fusion_address: str
     agent_id: str
     mission_id: str
-    def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ..., mission_id: _Optional[str] = ...) -> None: ...
+    T_world_map: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., dataset_path: _Optional[str] = ..., annotations_path: _Optional[str] = ..., fusion_address: _Optional[str] = ..., agent_id: _Optional[str] = ..., mission_id: _Optional[str] = ..., T_world_map: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class UpdateTaskRequest(_message.Message):
     __slots__ = ("mission_id", "task_text", "task_id")

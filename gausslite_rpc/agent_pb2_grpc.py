@@ -66,7 +66,7 @@ class AgentServicer:
 
     def StartMission(self, request, context):
         """Parses the task (parser service) and starts mapping. Errors: INVALID_ARGUMENT (empty task, bad
-        dataset path), UNAVAILABLE (parser unreachable), FAILED_PRECONDITION (no relevance source).
+        dataset path, a T_world_map that is not a rigid 4x4), UNAVAILABLE (parser unreachable), FAILED_PRECONDITION (no relevance source).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

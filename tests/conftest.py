@@ -36,6 +36,7 @@ INTEGRATION = {
     "services/test_fusion_store_contract.py", "services/test_grpc_fuzz.py", "services/test_link_outage.py",
     "services/test_metrics_services.py", "services/test_proto_parser_service.py", "services/test_sim.py",
     "services/test_tls.py", "services/test_viewer.py",
+    "services/test_team_frame.py", "services/test_third_party_kappa.py", "services/test_team_doc.py",
 }
 
 

@@ -27,6 +27,7 @@ What is shared, the share worker, the fine-tune cache and the delta planning liv
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -134,11 +135,9 @@ class AgentRuntime:
         agent_id (str): the agent's id on the fusion server (non-empty).
         task_text (str): the task.
         graph: parsed task graph (``targets``, ``anchors``, ``relations``).
-        config (AgentConfig): settings; ``config.frame.T_world_map`` moves every frame's pose and the annotations
-            from the robot's map frame into the team's world frame (:mod:`gausslite.mission.team_frame`).
-        annotations: ``SceneAnnotations`` of the scene (``objects.json``/``tasks.json``), in the robot's map frame
-            (the frame of its poses), needed by both relevance sources and by the ROI PSNR of the summary; None only
-            works with a custom ``relevance_fn``.
+        config (AgentConfig): settings (``frame``: the robot's map frame in the team's world frame, docs/team.md).
+        annotations: ``SceneAnnotations`` (``objects.json``/``tasks.json``) in the frame of the poses, for both
+            relevance sources and the summary's ROI PSNR; None only works with a custom ``relevance_fn``.
         task_id (str | None): the task's id in ``tasks.json`` (GT relevance, evaluation).
         fusion: a FusionClient-like object, or None (no pushes).
         relevance_fn: optional override ``frame -> (H, W) bool``.
@@ -149,9 +148,8 @@ class AgentRuntime:
             (map, keyframes, counters, pushed version) and keeps pushing newer versions.
 
     Raises:
-        ValueError: empty agent id; ``relevance: gt`` without annotations/task id; ``relevance:
-            attention`` without annotations (and without ``relevance_fn``); a graph with no phrases; a
-            checkpoint mapped under another ``T_world_map``.
+        ValueError: empty agent id; ``relevance: gt`` without annotations/task id; ``relevance: attention`` without
+            annotations (or ``relevance_fn``); a graph with no phrases; a checkpoint of another ``T_world_map``.
     """
 
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
@@ -165,11 +163,7 @@ class AgentRuntime:
         self.task_text = task_text
         self.graph = graph
         self.config = config
-        #: this robot's map frame in the team's world frame (``agent.frame.T_world_map``; None: the same frame): every
-        #: frame's pose and the annotations' boxes are moved into the world frame as they enter (docs/team.md)
-        self.T_world_map = config.frame.matrix()
-        annotations = annotations_to_world(annotations, self.T_world_map)
-        self.annotations = annotations
+        self.annotations = annotations = annotations_to_world(annotations, self.T_world_map)
         self.fusion = fusion
         self.mission_id = mission_id or uuid.uuid4().hex[:12]
         self.on_finished = on_finished
@@ -260,6 +254,13 @@ class AgentRuntime:
         self._worker.start()
         self.pusher.start()
         self._share_started = False
+
+    @functools.cached_property
+    def T_world_map(self) -> Optional[np.ndarray]:
+        """(4, 4) float64 rigid transform from the robot's map frame into the team's world frame
+        (``config.frame.T_world_map``; docs/team.md), or None when they are the same frame: every frame's pose and the
+        annotations' boxes enter the mission through it (:mod:`gausslite.mission.team_frame`)."""
+        return self.config.frame.matrix()
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,

@@ -17,6 +17,7 @@ import time
 from typing import Iterable, Optional
 
 import grpc
+import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite_rpc import agent_pb2, agent_pb2_grpc
@@ -83,12 +84,16 @@ class AgentClient:
 
     def start_mission(self, task_text: str, *, task_id: str = "", dataset_path: str = "",
                       annotations_path: str = "", fusion_address: str = "", agent_id: str = "",
-                      mission_id: str = "", timeout_s: Optional[float] = None) -> agent_pb2.StartMissionResponse:
+                      mission_id: str = "", T_world_map=None,
+                      timeout_s: Optional[float] = None) -> agent_pb2.StartMissionResponse:
         """Start a mission; a ``mission_id`` with a checkpoint in the agent's data dir resumes it
-        (``response.resumed``). Raises grpc.RpcError (INVALID_ARGUMENT, FAILED_PRECONDITION, UNAVAILABLE)."""
+        (``response.resumed``). ``T_world_map``: this mission's map frame in the team's world frame, a (4, 4) rigid
+        transform (array or nested rows, metres) sent as 16 row-major numbers; None = the agent's setting
+        (docs/team.md). Raises grpc.RpcError (INVALID_ARGUMENT, FAILED_PRECONDITION, UNAVAILABLE)."""
+        T = [] if T_world_map is None else np.asarray(T_world_map, np.float64).reshape(-1).tolist()
         req = agent_pb2.StartMissionRequest(task_text=task_text, task_id=task_id, dataset_path=dataset_path,
                                             annotations_path=annotations_path, fusion_address=fusion_address,
-                                            agent_id=agent_id, mission_id=mission_id)
+                                            agent_id=agent_id, mission_id=mission_id, T_world_map=T)
         return self.stub.StartMission(req, timeout=timeout_s or max(self.timeout_s, 60.0), metadata=self._md)
 
     def stream_frames(self, mission_id: str, frames: Iterable, *, color_format: str = ".png",
