@@ -115,11 +115,16 @@ def _extend_serve(subparsers) -> None:
         if flag not in existing:
             group.add_argument(flag, dest=dest, default=None, help=f"{help_} (env {_env})")
     if "--set" not in existing:
-        group.add_argument("--set", dest="agent_overrides", action="append", default=None, metavar="KEY=VALUE",
-                           help="agent config override, e.g. mapper.iters_per_frame=5 (env GAUSSLITE_AGENT_SET, ';'-separated)")
+        group.add_argument("--set", dest="config_overrides", action="append", default=None, metavar="KEY=VALUE",
+                           help="configuration override (repeatable): agent.* and mapper.* for an agent (env "
+                                "GAUSSLITE_AGENT_SET), fusion.* for the fusion server (env GAUSSLITE_FUSION_SET); "
+                                "';'-separated in the environment")
     original = serve.get_default("func")
 
     def handle(args: argparse.Namespace) -> int:
+        if getattr(args, "service", None) == "parser" and getattr(args, "config_overrides", None):
+            print("gausslite serve parser: error: --set applies to the agent and fusion services", file=sys.stderr)
+            return 2
         if getattr(args, "service", None) == "agent":
             export_agent_env(args, os.environ, serve)
         elif getattr(args, "data_dir", None):  # --data-dir is generic (fusion store, agent results)
@@ -137,7 +142,7 @@ def export_agent_env(args: argparse.Namespace, env, serve_parser=None) -> None:
         val = getattr(args, dest, None)
         if val is not None:
             env[var] = str(val)
-    ov = getattr(args, "agent_overrides", None)
+    ov = getattr(args, "config_overrides", None)
     if ov:
         env["GAUSSLITE_AGENT_SET"] = ";".join(ov)
 

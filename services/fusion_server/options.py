@@ -48,18 +48,26 @@ def build_parser(prog: str = "python -m gausslite_services.fusion_server") -> ar
                                 "options as `gausslite serve fusion`.")
     add_server_arguments(p, "fusion", default_port=DEFAULT_PORT, max_workers=DEFAULT_MAX_WORKERS,
                          grace_s=DEFAULT_GRACE_S)
-    add_fusion_arguments(p.add_argument_group("fusion server options"))
+    g = p.add_argument_group("fusion server options")
+    add_fusion_arguments(g)
+    g.add_argument("--set", dest="config_overrides", action="append", default=None, metavar="KEY=VALUE",
+                   help="configuration override, e.g. fusion.team_map.refine_iters=100 (repeatable; env "
+                        "GAUSSLITE_FUSION_SET, ';'-separated)")
     return p
 
 
 def fusion_run_arguments(args: argparse.Namespace, env: Optional[Mapping[str, str]] = None) -> dict:
     """Keyword arguments of :func:`gausslite_services.fusion_server.server.run` beyond the server options:
     ``data_dir``, ``store`` and ``port_file``, each the option, else its environment variable
-    (``GAUSSLITE_DATA_DIR``, ``GAUSSLITE_FUSION_STORE``, ``GAUSSLITE_FUSION_PORT_FILE``), else None."""
+    (``GAUSSLITE_DATA_DIR``, ``GAUSSLITE_FUSION_STORE``, ``GAUSSLITE_FUSION_PORT_FILE``), else None; and ``overrides``,
+    the ``--set KEY=VALUE`` options, else ``GAUSSLITE_FUSION_SET`` (``;``-separated)."""
     env = os.environ if env is None else env
+    given = getattr(args, "config_overrides", None)
+    overrides = list(given) if given else [o for o in (env.get("GAUSSLITE_FUSION_SET") or "").split(";") if o.strip()]
     return {"data_dir": getattr(args, "data_dir", None) or env.get("GAUSSLITE_DATA_DIR") or None,
             "store": getattr(args, "store", None) or env.get("GAUSSLITE_FUSION_STORE") or None,
-            "port_file": getattr(args, "port_file", None) or env.get("GAUSSLITE_FUSION_PORT_FILE") or None}
+            "port_file": getattr(args, "port_file", None) or env.get("GAUSSLITE_FUSION_PORT_FILE") or None,
+            "overrides": overrides}
 
 
 __all__ = ["DEFAULT_PORT", "DEFAULT_MAX_WORKERS", "DEFAULT_GRACE_S", "FUSION_ONLY", "add_fusion_arguments",

@@ -49,11 +49,13 @@ import os
 import sys
 import threading
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 from grpc_health.v1 import health_pb2
+from pydantic import ValidationError
 
-from gausslite.config import FusionSettings
+from gausslite.config import FusionSettings, GaussLiteConfig
+from gausslite.mapping.config import apply_overrides, read_yaml
 from gausslite_rpc import fusion_pb2_grpc
 from gausslite_services.common.cli_options import log_level_from, server_options_from_args
 from gausslite_services.common.server import (RunningServer, ServerOptions, authenticator_from_options, build_server,
@@ -211,19 +213,45 @@ def _write_port_file(path: str, port: int) -> None:
     os.replace(tmp, path)
 
 
+def fusion_settings(config_path: Optional[str] = None, overrides: Sequence[str] = ()) -> FusionConfig:
+    """The settings a fusion server runs with: the models' defaults (the measured settings), the file's, then the
+    dotted ``fusion.KEY=VALUE`` overrides (``gausslite serve fusion --set``); what ``gausslite config --show --role
+    fusion`` prints given the same file and overrides.
+
+    Args:
+        config_path: a GaussLite YAML (its ``fusion`` section), or a JSON or TOML file of the section's fields; None.
+        overrides: ``fusion.``-prefixed dotted overrides, values parsed as YAML.
+    Raises:
+        ValueError: an override outside ``fusion.``, a bad value or file. FileNotFoundError: a missing file.
+    """
+    outside = [o for o in overrides if not o.strip().startswith("fusion.")]
+    if outside:
+        raise ValueError(f"the fusion server takes fusion.* overrides only, got {', '.join(outside)}")
+    if not overrides:
+        return FusionConfig.from_file(config_path) if config_path else FusionConfig()
+    if config_path and not str(config_path).endswith((".yaml", ".yml")):
+        base = {"fusion": FusionConfig.from_file(config_path).model_dump(mode="json", exclude_unset=True)}
+    else:
+        base = read_yaml(config_path) if config_path else {}
+    try:
+        return GaussLiteConfig.model_validate(apply_overrides(base, list(overrides))).fusion
+    except ValidationError as e:
+        raise ValueError(f"bad fusion setting: {e}") from None
+
+
 def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: Optional[str] = None,
-        port_file: Optional[str] = None, store: Optional[str] = None) -> int:
+        port_file: Optional[str] = None, store: Optional[str] = None, overrides: Sequence[str] = ()) -> int:
     """Serve until SIGTERM/SIGINT (``gausslite serve fusion`` / ``python -m gausslite_services.fusion_server``).
 
     The data directory comes from ``data_dir``, else ``$GAUSSLITE_DATA_DIR``, else the config file's
     ``data_dir``, else ``./gausslite_fusion_data``; the store from ``store`` (a ``postgresql://``
     DSN), else ``$GAUSSLITE_FUSION_STORE``, else the config file's ``store``, else SQLite in the
     data directory; the port file from ``port_file`` or ``$GAUSSLITE_FUSION_PORT_FILE``. Prints
-    ``fusion listening on HOST:PORT`` once serving.
+    ``fusion listening on HOST:PORT`` once serving. The settings: :func:`fusion_settings` (``overrides``: ``--set``).
     """
     if not logging.getLogger().handlers:  # `gausslite serve` does not configure logging itself
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    config = FusionConfig.from_file(config_path) if config_path else FusionConfig()
+    config = fusion_settings(config_path, overrides)
     log.info("effective configuration: %s", json.dumps({"fusion": config.model_dump(mode="json")}, sort_keys=True))
     data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
     store = store or os.environ.get("GAUSSLITE_FUSION_STORE") or None
@@ -252,5 +280,5 @@ def main(argv=None) -> int:
         return 2
 
 
-__all__ = ["FusionConfig", "FusionServicer", "FusionServer", "serve", "run", "main", "SERVICE_NAME",
+__all__ = ["FusionConfig", "FusionServicer", "FusionServer", "fusion_settings", "serve", "run", "main", "SERVICE_NAME",
            "DEFAULT_PORT", "check_agent_id"]

@@ -63,11 +63,12 @@ FULL = ["--host", "0.0.0.0", "--port", "50099", "--token", "fleet", "--tls-cert"
         "--tls-client-ca", "ca.pem", "--config", "f.yaml", "--data-dir", "d", "--max-workers", "4",
         "--max-message-bytes", "262144", "--grace", "2.5", "--metrics-port", "9100", "--log-level", "debug",
         "--agent-tokens", "tokens.json", "--fleet-token-writes", "--store", "postgresql://u:pw@db:5432/g",
-        "--port-file", "port.txt"]
+        "--port-file", "port.txt", "--set", "fusion.max_keyframes_per_agent=8"]
 ENV = {"GAUSSLITE_FUSION_PORT": "50123", "GAUSSLITE_FUSION_HOST": "10.0.0.2", "GAUSSLITE_TOKEN": "env-token",
        "GAUSSLITE_FUSION_STORE": "postgresql://env@db/g", "GAUSSLITE_FUSION_PORT_FILE": "env-port",
        "GAUSSLITE_DATA_DIR": "env-dir", "GAUSSLITE_AGENT_TOKENS_FILE": "env-tokens.json",
-       "GAUSSLITE_FUSION_METRICS_PORT": "9200", "GAUSSLITE_FUSION_CONFIG": "env.yaml"}
+       "GAUSSLITE_FUSION_METRICS_PORT": "9200", "GAUSSLITE_FUSION_CONFIG": "env.yaml",
+       "GAUSSLITE_FUSION_SET": "fusion.team_map.refine_iters=50;fusion.max_keyframes_per_agent=9"}
 
 
 @pytest.mark.parametrize("argv, env", [(FULL, {}), (FULL, ENV), ([], ENV), ([], {})],
@@ -81,11 +82,13 @@ def test_both_entry_points_resolve_alike(argv, env):
             ("0.0.0.0", 50099, 262144, 4, 2.5)
         assert (opts.agent_tokens_file, opts.fleet_token_writes, opts.metrics_port, config) == \
             ("tokens.json", True, 9100, "f.yaml")
-        assert run_kw == {"data_dir": "d", "store": "postgresql://u:pw@db:5432/g", "port_file": "port.txt"}
+        assert run_kw == {"data_dir": "d", "store": "postgresql://u:pw@db:5432/g", "port_file": "port.txt",
+                          "overrides": ["fusion.max_keyframes_per_agent=8"]}
     elif env:
         assert (opts.host, opts.port, opts.token, opts.metrics_port, config) == \
             ("10.0.0.2", 50123, "env-token", 9200, "env.yaml")
-        assert run_kw == {"data_dir": "env-dir", "store": "postgresql://env@db/g", "port_file": "env-port"}
+        assert run_kw == {"data_dir": "env-dir", "store": "postgresql://env@db/g", "port_file": "env-port",
+                          "overrides": ["fusion.team_map.refine_iters=50", "fusion.max_keyframes_per_agent=9"]}
     else:  # the fusion server's defaults, whichever entry point starts it
         assert (opts.port, opts.max_workers, opts.grace_s, opts.max_message_bytes) == (50052, 16, 10.0, 4 * 1024 * 1024)
         assert SERVICES["fusion"].default_port == fusion_options.DEFAULT_PORT == 50052

@@ -82,8 +82,19 @@ def workdir(tmp_path_factory):
     return ws
 
 
+#: pages whose blocks a test of their own runs, in the environment the page describes (a fusion server's address and
+#: a robot's token in the environment)
+OWN_RUNNER = {"docs/robot-integration.md": "tests/services/test_robot_integration_doc.py"}
+
+
+def test_pages_with_a_runner_of_their_own_have_it():
+    from tests.docs.blocks import REPO
+    for page, runner in OWN_RUNNER.items():
+        assert runnable(page) and (REPO / runner).is_file() and page in (REPO / runner).read_text(encoding="utf-8")
+
+
 @pytest.mark.integration
-@pytest.mark.parametrize("page", [p for p in PAGES if any(b.skip is None for b in runnable(p))])
+@pytest.mark.parametrize("page", [p for p in PAGES if p not in OWN_RUNNER and any(b.skip is None for b in runnable(p))])
 def test_the_page_runs_as_written(page, workdir):
     runner = PageRunner(workdir, timeout_s=900)
     try:

@@ -84,3 +84,28 @@ def test_a_site_file_changes_only_what_it_names(tmp_path):
     mine["agent"]["max_keyframes"], mine["fusion"]["max_keyframes_per_agent"] = (base["agent"]["max_keyframes"],
                                                                                   base["fusion"]["max_keyframes_per_agent"])
     assert mine == base
+
+
+@pytest.mark.parametrize("role, argv, override", [
+    ("agent", ["serve", "agent", "--port", "0", "--agent-id", "robot1", "--data-dir", "agents"], "agent.max_keyframes=9"),
+    ("fusion", ["serve", "fusion", "--port", "0", "--data-dir", "fusion"], "fusion.team_map.refine_iters=77"),
+])
+def test_config_show_prints_what_serve_runs_given_the_same_flags(role, argv, override, tmp_path):
+    site = tmp_path / "site.yaml"
+    site.write_text("agent:\n  push_every: 4\nfusion:\n  max_keyframes_per_agent: 96\n")
+    flags = ["--config", str(site), "--set", override]
+    served = _effective(GAUSSLITE + argv + flags, tmp_path)
+    shown = subprocess.run(GAUSSLITE + ["config", "--show", "--role", role, *flags], capture_output=True, text=True,
+                           check=True, timeout=60).stdout
+    assert _json(yaml.safe_load(shown)) == served != _json(load_config().sections(role))
+    key, _, value = override.partition("=")
+    node = served
+    for part in key.split("."):
+        node = node[part]
+    assert str(node) == value
+
+
+def test_a_service_refuses_settings_of_another_role(tmp_path):
+    r = subprocess.run(GAUSSLITE + ["serve", "fusion", "--port", "0", "--data-dir", str(tmp_path),
+                                    "--set", "agent.push_every=3"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "fusion.* overrides only" in r.stderr
