@@ -84,7 +84,8 @@ def workdir(tmp_path_factory):
 
 #: pages whose blocks a test of their own runs, in the environment the page describes (a fusion server's address and
 #: a robot's token in the environment)
-OWN_RUNNER = {"docs/robot-integration.md": "tests/services/test_robot_integration_doc.py"}
+OWN_RUNNER = {"docs/robot-integration.md": "tests/services/test_robot_integration_doc.py",
+              "docs/team.md": "tests/services/test_team_doc.py"}
 
 
 def test_pages_with_a_runner_of_their_own_have_it():
