@@ -21,7 +21,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import shutil
 import tempfile
@@ -41,6 +40,8 @@ from gausslite.ros.transforms import make_transform
 from gausslite.synthetic.raycast import render
 from gausslite.synthetic.scene import build_default_scene
 from gausslite.synthetic.trajectories import make_trajectories
+
+from bench._results import write_json
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "TUM_rgbd_dataset_freiburg1_rpy"
@@ -201,8 +202,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
     if "mapping" in rg:
         for k, m in rg["mapping"].items():
             print(f"mapping with {k} depth: PSNR {m['psnr']:.2f} dB, depth L1 {m['depth_l1']:.4f} m, {m['n_gaussians']} G")
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(result, indent=2))
+    write_json(a.out, result, "bag", argv)
     print(f"wrote {a.out}")
     return result
 

@@ -12,7 +12,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -22,6 +21,8 @@ import numpy as np
 import torch
 
 from gausslite.wire import LOSSLESS, GaussianArrays, QuantConfig, assemble, encode_subset
+
+from bench._results import write_json
 
 PLY_BYTES_PER_GAUSSIAN = 56
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -210,8 +211,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
                     "processor": platform.processor() or platform.machine()},
         "cases": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result, "codec", argv)
     print(f"wrote {args.out}")
     return result
 

@@ -50,7 +50,6 @@ restart (and ``lost`` = 0 as always).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import subprocess
@@ -68,6 +67,7 @@ import numpy as np
 import torch
 
 from bench._relay import TcpRelay
+from bench._results import write_json
 from gausslite.datasets import load_dataset
 from gausslite.fusion.vote import voxel_vote
 from gausslite.gaussians import GaussianMap
@@ -707,11 +707,10 @@ def _results(args, logs: List[AgentLog], reps: List[Replica], outage: Optional[D
     return res
 
 
-def _write_and_print(args, res: dict) -> None:
-    """Write ``res`` to ``--out`` and print its headline figures."""
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=2) + "\n")
+def _write_and_print(args, res: dict, argv=None) -> None:
+    """Write ``res`` to ``--out`` (with the run's provenance, :func:`bench._results.write_json`) and print its
+    headline figures."""
+    out = write_json(Path(args.out), res, "fleet", argv)
     keys = ["agents", "replicas", "acks", "lost", "ack_latency_ms_p50", "ack_latency_ms_p99", "gaussians_per_s",
             "fuse_full_s", "fuse_incremental_s", "voxel_vote_local_s", "incremental_over_full", "fuse_full_rpc_s", "fuse_incremental_rpc_s", "peak_rss_mb",
             "fused_equals_local_vote", "replicas_agree_getstats", "failed_call_codes"]
@@ -760,7 +759,7 @@ def main(argv=None) -> int:
             outage.close()
         with psycopg.connect(args.store, autocommit=True) as conn:
             conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
-    _write_and_print(args, res)
+    _write_and_print(args, res, argv)
     return exit_code(res)
 
 

@@ -24,7 +24,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import signal
@@ -36,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench._results import write_json
 from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
 from gausslite_services.agent.client import AgentClient
@@ -143,7 +143,7 @@ def main(argv=None) -> int:
             ("keyframe latency p95", f"{res['keyframe_latency_s_p95']:.2f} s (arrival -> mapped)")]
     w = max(len(k) for k, _ in rows)
     print("\n".join(f"{k:<{w}}  {v}" for k, v in rows))
-    Path(a.out).write_text(json.dumps(res, indent=2))
+    write_json(Path(a.out), res, "ingest", argv)
     print(f"wrote {a.out}")
     return 0 if res["meets_target"] else 1
 

@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bench._results import command_line, portable_text, write_json
 from gausslite.datasets import detect_layout, load_dataset
 from gausslite.config import load_mapper_config
 from gausslite.mapping.profiles import profile_for_layout
@@ -382,7 +383,7 @@ def _run_jobs(jobs: list[dict], runs: list[dict], n_workers: int, settings: dict
 
 
 def _write_results(args: argparse.Namespace, runs: list[dict], scenes: list[str], scene_tasks: dict, seeds: list[int],
-                   modes: list[str], settings: dict, t0: float) -> None:
+                   modes: list[str], settings: dict, t0: float, argv: Optional[list[str]] = None) -> None:
     """Write the JSON, the markdown table and one plot per scene to ``--out``; print the table."""
     result = {
         "scenes": {sc: summarise(runs, sc, scene_tasks[sc], seeds) for sc in scenes},
@@ -394,10 +395,10 @@ def _write_results(args: argparse.Namespace, runs: list[dict], scenes: list[str]
         "wall_s": time.time() - t0,
         "runs": runs,  # with frame_psnr: the plot can be redrawn from the JSON
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
+    write_json(args.out, result, "long_mission", argv)
     md = table(result)
-    args.out.with_suffix(".md").write_text("# Long-mission retention\n\n" + md + "\n")
+    head = f"# Long-mission retention\n\n`{command_line('long_mission', argv)}`\n\n"
+    args.out.with_suffix(".md").write_text(portable_text(head + md + "\n"))
     for sc in scenes:
         plot_scene(runs, sc, args.out.parent / f"{args.out.stem}_{sc}.png")
     print(md)
@@ -417,7 +418,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     t0 = time.time() - wall_before
     _run_jobs(jobs, runs, args.jobs, settings, args.out, partial_path, t0)
     partial_path.unlink(missing_ok=True)
-    _write_results(args, runs, scenes, scene_tasks, seeds, modes, settings, t0)
+    _write_results(args, runs, scenes, scene_tasks, seeds, modes, settings, t0, argv)
     return 0
 
 

@@ -16,6 +16,7 @@ import statistics
 import time
 from pathlib import Path
 
+from bench._results import write_json
 from gausslite.parser import RuleParser, TaskParser
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,8 +43,9 @@ def _stats(samples: list) -> dict:
             "p95_ms": pick(0.95) * 1e3, "p99_ms": pick(0.99) * 1e3, "max_ms": s[-1] * 1e3}
 
 
-def run(repeats: int = 50) -> dict:
-    """Measure and return the results dict (also written to ``bench/results/parser.json``)."""
+def run(repeats: int = 50, argv=None) -> dict:
+    """Measure and return the results dict (also written to ``bench/results/parser.json``, with the provenance of
+    the command line ``argv``)."""
     texts = load_texts()
     rules = RuleParser()
     cached = TaskParser()
@@ -66,9 +68,7 @@ def run(repeats: int = 50) -> dict:
     rows["TaskParser (LRU cache)"] = _stats(samples)
     result = {"texts": len(texts), "repeats": repeats, "python": platform.python_version(),
               "machine": platform.machine(), "cpu_count": os.cpu_count(), "budget_p99_ms": 5.0, "rows": rows}
-    out = REPO / "bench" / "results" / "parser.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(REPO / "bench" / "results" / "parser.json", result, "parser", argv)
     return result
 
 
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="rule-parser latency benchmark")
     ap.add_argument("--repeats", type=int, default=50)
     args = ap.parse_args(argv)
-    res = run(args.repeats)
+    res = run(args.repeats, argv)
     print(f"{res['texts']} texts x {res['repeats']} repeats (python {res['python']}, {res['cpu_count']} cpus)")
     print(f"{'backend':<24}{'n':>7}{'mean':>9}{'p50':>9}{'p95':>9}{'p99':>9}{'max':>9}  (ms)")
     for name, r in res["rows"].items():

@@ -13,7 +13,6 @@ Prints a table and writes ``bench/results/quant_psnr.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Optional, Sequence
@@ -21,6 +20,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from bench._results import write_json
 from gausslite.datasets import load_dataset
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import MapperConfig
@@ -101,10 +101,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f"{r['psnr']:>8.3f} {r['roi_psnr']:>9.3f} {r['delta_roi_psnr_db']:>+8.4f}")
     d_full, d_roi = rows[1]["delta_psnr_db"], rows[1]["delta_roi_psnr_db"]
     print(f"quantised − lossless: PSNR {d_full:+.4f} dB, ROI PSNR {d_roi:+.4f} dB (budget −{args.budget_db} dB)")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"map": str(args.map), "task_id": args.task_id, "n_gaussians": len(arrays),
-                                    "n_active": len(active), "rows": rows, "delta_psnr_db": d_full,
-                                    "delta_roi_psnr_db": d_roi}, indent=2))
+    write_json(args.out, {"map": str(args.map), "task_id": args.task_id, "n_gaussians": len(arrays),
+                          "n_active": len(active), "rows": rows, "delta_psnr_db": d_full,
+                          "delta_roi_psnr_db": d_roi}, "quant_psnr", argv)
     return 0 if (math.isnan(d_roi) or d_roi >= -args.budget_db) else 1
 
 

@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+from bench._results import write_json
 from gausslite.render import rasterize
 
 import numpy as np
@@ -155,8 +156,7 @@ def main(argv=None) -> dict:
 
     dest = args.out if args.out is not None else (None if args.quick else RESULTS)
     if dest is not None:
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        dest.write_text(json.dumps(out, indent=2) + "\n")
+        write_json(dest, out, "rasterizer", argv)
         print(f"wrote {dest}")
     return out
 

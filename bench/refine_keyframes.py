@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
+from bench._results import write_json
 from gausslite.camera import Intrinsics
 from gausslite.datasets import load_dataset
 from gausslite.datasets.base import Frame
@@ -67,9 +67,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         g = arr.to_gaussian_map()
         rows[name] = {t: evaluate_fused(g, frames, ds.annotations, t) for t in tasks}
         print(f"{name:<28} " + "  ".join(f"{t} {v:.2f}" for t, v in rows[name].items()), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"fusion_dir": str(args.fusion_dir), "keyframes": len(uploaded),
-                                    "roi_psnr": rows}, indent=2))
+    write_json(args.out, {"fusion_dir": str(args.fusion_dir), "keyframes": len(uploaded), "roi_psnr": rows},
+               "refine_keyframes", argv)
     return 0
 
 

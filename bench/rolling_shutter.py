@@ -19,7 +19,6 @@ warp error at readout 0 and at the best readout).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -31,6 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from bench._results import write_json
 from gausslite.datasets import detect_layout, load_dataset
 from gausslite.mapping.blur import exposure_twist
 from gausslite.mapping.profiles import profile_for_layout
@@ -151,10 +151,9 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"| {r['readout_s'] * 1e3:g} | {r['offset_s'] * 1e3:g} | {r['rows']} | {r['warp_psnr']:.2f} | "
               f"{r['gain']:+.2f} ± {r['gain_std']:.2f} | {100 * r['improved']:.0f} % |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"dataset": str(args.dataset.name), "downscale": args.downscale,
-                                    "pairs": pairs, "base_warp_psnr": float(base.mean()), "rows": rows,
-                                    "best_readout_s": best["readout_s"]}, indent=1))
+    write_json(args.out, {"dataset": str(args.dataset.name), "downscale": args.downscale, "pairs": pairs,
+                          "base_warp_psnr": float(base.mean()), "rows": rows, "best_readout_s": best["readout_s"]},
+               "rolling_shutter", argv, indent=1)
     # picture: frame i of the fastest pair, its warp error without and with the best readout
     i, j = max(pairs, key=lambda p: max(speed[p[0]], speed[p[1]]))
     errs = [warp_psnr(frames[i], frames[j], vels[i], vels[j], ro, return_error=True)[2] for ro in (0.0, best["readout_s"])]

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -36,6 +35,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bench._results import write_results
 from bench.delta_tolerance import agent_mapper
 from gausslite.datasets import load_dataset
 from gausslite.evaluation import evaluate_fused
@@ -129,13 +129,8 @@ def main(argv=None) -> int:
     for task, b in summary.items():
         f = lambda k: fmt(b[k], b[k + "_std"], 2)  # noqa: E731
         lines.append(f"| {task} | " + " | ".join(f(k) for k in FIELDS) + f" | {f('vote_r1_minus_own')} |")
-    md = (f"# bench.share_finetune\n\n`python -m bench.share_finetune --seeds {args.seeds}`: ROI PSNR [dB] over "
-          f"{args.max_frames} room0 frames, mean ± std over {args.seeds} seeds, {result['wall_s'] / 60:.1f} min\n\n"
-          + "\n".join(lines) + "\n")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2))
-    args.out.with_suffix(".md").write_text(md)
-    print(md)
+    write_results(args.out, "share_finetune", argv, f": ROI PSNR [dB] over {args.max_frames} room0 frames, mean ± std "
+                  f"over {args.seeds} seeds, {result['wall_s'] / 60:.1f} min", "\n".join(lines), result)
     return 0
 
 

@@ -13,7 +13,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -23,6 +22,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from bench._results import write_json
 from bench.codec import synthetic_room
 from gausslite.fusion import concat, voxel_vote
 
@@ -87,8 +87,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
         "machine": {"python": platform.python_version(), "numpy": np.__version__,
                     "processor": platform.processor() or platform.machine()},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result, "vote", argv)
     print(f"wrote {args.out}")
     return result
 

@@ -11,7 +11,6 @@ properties with a few dozen examples each in the normal suite.
 from __future__ import annotations
 
 import argparse
-import json
 import struct
 import time
 import zlib
@@ -22,6 +21,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bench._results import write_json
 from gausslite.wire import (
     GaussianArrays,
     LOSSLESS,
@@ -260,8 +260,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               flush=True)
     total = sum(r["examples"] for r in rows)
     print(f"total {total} examples, {sum(1 for r in rows if r['failure'])} failing properties")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"total_examples": total, "rows": rows}, indent=2))
+    write_json(args.out, {"total_examples": total, "rows": rows}, "wire_fuzz", argv)
     return 1 if any(r["failure"] for r in rows) else 0
 
 
