@@ -48,7 +48,8 @@ import torch
 from tqdm import tqdm
 
 from gausslite.datasets import detect_layout, load_dataset, task_roi
-from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS, FrameSubset, score_live_map, side_by_side, withheld_indices
+from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, current_protocols,
+                                  score_live_map, side_by_side, withheld_indices)
 from gausslite.datasets.subset import ScaledFrames
 from gausslite.mapping.budget import WallClock, WorkCost, fit_work_cost
 from gausslite.mapping.resolution import choose_downscale
@@ -58,7 +59,7 @@ from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime, FusionPort
 from gausslite.parser import parse_task
-from gausslite.stats import aggregate, fmt, gain
+from gausslite.stats import aggregate, fmt, fmt_gain, gain, paired_gain, significant
 from gausslite.synthetic import make_scene
 
 from bench.realtime_late import LATE_VIA, give_late_task, late_relevance
@@ -219,18 +220,21 @@ def novel_ids(job: dict, ds) -> Optional[list[int]]:
 
 
 def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = TRACK_ITERS,
-          track_stride: int = TRACK_STRIDE, keyframe_ids=None, novel=None) -> dict:
+          track_stride: int = TRACK_STRIDE, keyframe_ids=None, novel=None, record: Optional[dict] = None,
+          predicted: Optional[dict] = None) -> dict:
     """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map under each scoring protocol
-    (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``, and ``novel`` over the
-    frame ids ``novel`` withheld from the mission), the same for every mode. The top-level figures are the
-    ``sensor`` protocol's (every frame at the sensor's pose); ``protocols`` holds each protocol's."""
+    (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``, and ``novel`` (at the pose
+    the map predicts) and ``novel-tracked`` over the frame ids ``novel`` withheld from the mission), the same for
+    every mode. The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose);
+    ``protocols`` holds each protocol's, with each frame's figures. ``record`` / ``predicted``: filled with the
+    views the tracked / ``novel`` frames were scored at (frame id → ``TrackedView``)."""
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
     if novel is None:
-        protocols = tuple(p for p in protocols if p != "novel")
+        protocols = tuple(p for p in protocols if p not in WITHHELD_PROTOCOLS)
     frames = [ds[i] for i in range(len(ds))]
     res = score_live_map(mapper, frames, task_roi(ann, task), protocols,
                          track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids,
-                         novel_ids=novel)
+                         novel_ids=novel, record=record, predicted=predicted)
     sensor = res["sensor"]
     return {"roi_psnr": sensor["roi_psnr"], "psnr": sensor["psnr"], "ssim": sensor["ssim"],
             "frames_scored": sensor["frames_scored"], "protocols": res}
@@ -437,9 +441,8 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
             u = {r["run"]: r for r in by_mode["uniform"]}
             g = {r["run"]: r for r in by_mode["gausslite"]}
             common = sorted(set(u) & set(g))
-            gg = gain([g[i]["roi_psnr"] for i in common], [u[i]["roi_psnr"] for i in common])
-            blk["gain"], blk["gain_std"], blk["gain_significant"] = gg["gain"], gg["gain_std"], gg["significant"]
-            pg = gain([g[i]["psnr"] for i in common], [u[i]["psnr"] for i in common])
+            blk.update(_paired(g, u, common, "roi_psnr", "sensor"))
+            pg = _paired(g, u, common, "psnr", "sensor")
             blk["psnr_gain"], blk["psnr_gain_std"] = pg["gain"], pg["gain_std"]
         protos = _summarise_protocols(by_mode)
         if protos:
@@ -453,17 +456,44 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
     return out
 
 
+def _paired(g: dict, u: dict, runs: list, field: str, protocol: str) -> dict:
+    """GaussLite − uniform of ``field`` (``roi_psnr`` or ``psnr``) over the runs ``runs`` of both modes (run → result):
+    ``gain`` the mean of the paired per-frame differences over runs × frames under ``protocol`` with its 95 %
+    interval (``gain_ci``, ``gain_frames``; :func:`gausslite.stats.paired_gain`), ``gain_std`` the spread over runs
+    of the per-run differences, ``gain_significant`` whether the interval excludes zero. Runs scored before per-frame
+    figures were kept (an older partial file): the per-run differences alone (``gain_pairs: "runs"``, significant
+    above twice their spread)."""
+    def frames(r):
+        return ((current_protocols(r.get("protocols")).get(protocol) or {}).get(f"{field}_per_frame"))
+
+    def top(r):
+        return r.get(field) if protocol == "sensor" else (current_protocols(r.get("protocols")).get(protocol)
+                                                          or {}).get(field)
+
+    per_run = gain([top(g[i]) for i in runs], [top(u[i]) for i in runs])
+    fg, fu = [frames(g[i]) for i in runs], [frames(u[i]) for i in runs]
+    if runs and all(x is not None for x in fg + fu):
+        pg = paired_gain(fg, fu)
+        return {"gain": pg["gain"], "gain_ci": [pg["ci_low"], pg["ci_high"]], "gain_frames": pg["n"],
+                "gain_std": per_run["gain_std"], "gain_significant": significant(pg), "gain_pairs": "frames"}
+    return {"gain": per_run["gain"], "gain_ci": None, "gain_frames": None, "gain_std": per_run["gain_std"],
+            "gain_significant": per_run["significant"], "gain_pairs": "runs"}
+
+
 def _summarise_protocols(by_mode: dict) -> dict:
-    """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_std", "gain_significant", "psnr_gain",
-    "runs"}}`` of one budget: per mode the means and stds over runs of each protocol's figures, and the paired
-    gain (runs of both modes with the same seed)."""
-    names = sorted({p for rs in by_mode.values() for r in rs for p in r.get("protocols", {})})
+    """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_ci", "gain_std", "gain_significant",
+    "psnr_gain", "runs"}}`` of one budget: per mode the means and stds over runs of each protocol's figures, and the
+    paired gain (:func:`_paired`: per frame, over the runs of both modes with the same seed). Older runs' ``novel``
+    (then tracked) is read as ``novel-tracked``."""
+    names = sorted({p for rs in by_mode.values() for r in rs for p in current_protocols(r.get("protocols"))},
+                   key=lambda p: PROTOCOLS.index(p) if p in PROTOCOLS else len(PROTOCOLS))
     out = {}
     for p in names:
         blk: dict = {}
         per_mode = {}
         for mode, rs in by_mode.items():
-            rows = [{"run": r["run"], **r["protocols"][p]} for r in rs if p in r.get("protocols", {})]
+            rows = [{"run": r["run"], **current_protocols(r.get("protocols"))[p]} for r in rs
+                    if p in current_protocols(r.get("protocols"))]
             if not rows:
                 continue
             per_mode[mode] = {r["run"]: r for r in rows}
@@ -472,13 +502,15 @@ def _summarise_protocols(by_mode: dict) -> dict:
             agg["runs"] = len(rows)
             blk[mode] = agg
         if len(per_mode) == 2:
-            u, g = per_mode["uniform"], per_mode["gausslite"]
-            common = sorted(i for i in set(u) & set(g) if u[i]["roi_psnr"] is not None and g[i]["roi_psnr"] is not None)
+            u = {r["run"]: r for r in by_mode["uniform"]}
+            g = {r["run"]: r for r in by_mode["gausslite"]}
+            pu, pgl = per_mode["uniform"], per_mode["gausslite"]
+            common = sorted(i for i in set(pu) & set(pgl)
+                            if pu[i]["roi_psnr"] is not None and pgl[i]["roi_psnr"] is not None)
             if common:
-                gg = gain([g[i]["roi_psnr"] for i in common], [u[i]["roi_psnr"] for i in common])
-                pg = gain([g[i]["psnr"] for i in common], [u[i]["psnr"] for i in common])
-                blk.update(gain=gg["gain"], gain_std=gg["gain_std"], gain_significant=gg["significant"],
-                           psnr_gain=pg["gain"], psnr_gain_std=pg["gain_std"], runs=len(common))
+                blk.update(_paired(g, u, common, "roi_psnr", p))
+                pg = _paired(g, u, common, "psnr", p)
+                blk.update(psnr_gain=pg["gain"], psnr_gain_std=pg["gain_std"], runs=len(common))
         out[p] = blk
     return out
 
@@ -518,7 +550,7 @@ def table(result: dict) -> str:
                 m = v.get(mode)
                 if not m:
                     continue
-                g = fmt(v.get("gain"), v.get("gain_std")) if mode == "gausslite" and "gain" in v else ""
+                g = _gain_cell(v) if mode == "gausslite" and "gain" in v else ""
                 fp = (f"{fmt(m.get('final_roi_psnr'), m.get('final_roi_psnr_std'))} / "
                       f"{fmt(m.get('final_psnr'), m.get('final_psnr_std'))}" if m.get("final_roi_psnr") is not None
                       else "")
@@ -528,9 +560,24 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _gain_cell(v: dict) -> str:
+    """A gain of :func:`_paired` for a table: ``"+1.23 [+0.80, +1.66] (σ runs 0.30)"`` (paired per frame, 95 %
+    interval, the per-run spread), or ``"+1.23 ± 0.30 (runs)"`` for runs without per-frame figures; ``*``: the
+    interval (older runs: twice the spread) excludes zero."""
+    if v.get("gain") is None:
+        return "–"
+    star = "*" if v.get("gain_significant") else ""
+    if v.get("gain_ci") and v["gain_ci"][0] is not None:
+        ci = {"gain": v["gain"], "ci_low": v["gain_ci"][0], "ci_high": v["gain_ci"][1]}
+        return f"{fmt_gain(ci)}{star} (σ runs {fmt(v.get('gain_std'), None)})"
+    return f"{fmt(v['gain'], v.get('gain_std'))} (runs){star}"
+
+
 def protocol_table(result: dict) -> str:
-    """Markdown table of every scoring protocol: per scene, budget and protocol, both modes' ROI PSNR and PSNR and
-    the paired ROI gain (docs/realtime.md#scoring-protocols)."""
+    """Markdown table of every scoring protocol: per scene, budget and protocol (docs/realtime.md#scoring-protocols:
+    ``sensor``, ``keyframes``, ``novel`` at the pose the robot gives; ``tracked``, ``novel-tracked`` at a pose fitted
+    to the map), both modes' ROI PSNR and PSNR (mean ± std over runs) and the paired ROI gain (mean of the per-frame
+    differences over runs × frames, 95 % interval, and the spread of the per-run gains)."""
     lines = ["| scene | budget (s) | protocol | uniform ROI PSNR | GaussLite ROI PSNR | ROI gain | uniform PSNR | "
              "GaussLite PSNR | runs |", "|" + "---|" * 9]
     for scene, blk in result["scenes"].items():
@@ -539,9 +586,13 @@ def protocol_table(result: dict) -> str:
                 u, g = pv.get("uniform", {}), pv.get("gausslite", {})
                 lines.append(
                     f"| {scene} | {b} | {p} | {fmt(u.get('roi_psnr'), u.get('roi_psnr_std'))} | "
-                    f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {fmt(pv.get('gain'), pv.get('gain_std'))}"
-                    f"{' (> 2σ)' if pv.get('gain_significant') else ''} | {fmt(u.get('psnr'), u.get('psnr_std'))} | "
+                    f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {_gain_cell(pv)} | "
+                    f"{fmt(u.get('psnr'), u.get('psnr_std'))} | "
                     f"{fmt(g.get('psnr'), g.get('psnr_std'))} | {pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))} |")
+    lines += ["", "ROI gain: GaussLite − uniform, the mean of the paired per-frame differences over runs × frames "
+              "[95 % interval], σ runs: the spread of the per-run gains; * the interval excludes zero. "
+              "`novel` answers how the map serves a robot at the pose it would use on views it never trained on; "
+              "`tracked` / `novel-tracked` how well a robot could localise against the map, and the map from there."]
     return "\n".join(lines)
 
 
@@ -702,12 +753,14 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--tasks", default="", help="--dataset: task ids of its tasks.json, comma-separated")
     ap.add_argument("--fps", type=float, default=None, help="--dataset: replay clock of sequences without timestamps")
     ap.add_argument("--downscale", type=float, default=1.0, help="--dataset: image downscale factor")
-    ap.add_argument("--protocols", default="sensor,keyframes,tracked,novel",
+    ap.add_argument("--protocols", default=",".join(PROTOCOLS),
                     help="scoring protocols (docs/realtime.md#scoring-protocols), comma-separated")
     ap.add_argument("--novel-every", type=int, default=NOVEL_EVERY,
-                    help="novel protocol: every k-th frame of the sequence is withheld from the mapper in both modes "
-                         "and scored at a tracked pose (0: nothing withheld, no novel protocol)")
-    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
+                    help="novel / novel-tracked protocols: every k-th frame of the sequence is withheld from the "
+                         "mapper in both modes, scored at the pose the map predicts (novel) and at a pose tracked "
+                         "against the map (novel-tracked) (0: nothing withheld, neither protocol)")
+    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS,
+                    help="tracked / novel-tracked protocols: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
                     help="tracked protocol: score every k-th frame of the sequence (MonoGS: every 5th)")
     ap.add_argument("--late", type=float, default=None, metavar="F",

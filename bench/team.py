@@ -17,11 +17,13 @@ clock. After the missions:
   :func:`gausslite.fusion.guard.for_robot`) of the final subsets (the ``sim.fuse``
   settings), scored on every frame of the team's sequence, against each agent's own map scored
   on the same frames (``own``: ROI PSNR of the owner's task over all frames);
-* **scoring protocols** — the own and final fused maps also under ``keyframes`` and ``tracked``
-  (docs/realtime.md#scoring-protocols; ``--protocols``, ``--track-stride``): the own map on its keyframes at their
-  refined pose and exposure, a fused map on the owner's uploaded keyframes at the refined poses they carry, and
-  both on every 5th frame at a pose fitted against that map; each agent row's ``protocols`` block, the top-level
-  figures being ``sensor``'s;
+* **scoring protocols** — the own and final fused maps also under ``keyframes``, ``novel``, ``tracked`` and
+  ``novel-tracked`` (docs/realtime.md#scoring-protocols; ``--protocols``, ``--track-stride``): the own map on its
+  keyframes at their refined pose and exposure, a fused map on the owner's uploaded keyframes at the refined poses
+  they carry; both on the withheld frames at the pose and exposure the owner's map predicts (``novel``: the fused map
+  through the owner's camera model, nothing fitted), and on every 5th / every withheld frame at a pose fitted against
+  that map; each agent row's ``protocols`` block, the top-level figures being ``sensor``'s. Every gain (fused − own)
+  is the mean of the paired per-frame differences over runs × frames with its 95 % interval;
 * **bandwidth** — share of the map (final subset / map), bytes per pushed Gaussian, total upload / final subset.
 
 Teams (``TEAMS``): ``tum`` and ``synthetic`` are the live sims of ``gausslite sim --realtime`` (two tasks, both
@@ -52,8 +54,9 @@ from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TR
                             scene_path, score, start_mission)
 from gausslite.config import load_config
 from gausslite.datasets import task_roi
-from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, FrameSubset, evaluate_fused, roi_psnr_over, score_map,
-                                  withheld_indices)
+from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, evaluate_fused,
+                                  evaluate_fused_frames, roi_psnr_frames, score_map, withheld_indices)
+from gausslite.stats import fmt_gain, paired_gain
 from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import RefineReport, refine_map
@@ -139,7 +142,7 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
     :func:`bench.realtime.score`: ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push
     history and uploaded keyframes (``keep_state``: also its final map, ROI keyframes and mapper settings, to study
     share rules offline). Every ``novel_every``-th frame of the team's sequence is withheld from every robot (the
-    ``novel`` protocol; 0: none)."""
+    ``novel`` and ``novel-tracked`` protocols; 0: none)."""
     scene = TEAMS[team]["scene"]
     path = scene_path(scene, work)
     if spec.get("dir"):
@@ -159,8 +162,9 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
         wall = time.perf_counter() - sink.t0
         pu = rt.pusher
         last = pu.pushes[-1] if pu.pushes else None
+        predicted: dict = {}
         own = score(rt.mapper, ds, ann, task.id, protocols, track_iters, track_stride,
-                    sorted(int(st.frame_id) for st in rt.mapper.stats), novel)
+                    sorted(int(st.frame_id) for st in rt.mapper.stats), novel, predicted=predicted)
         state = {}
         if keep_state:
             state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
@@ -181,7 +185,7 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
                 "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
-                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
+                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel, "_predicted": predicted,
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
@@ -191,26 +195,11 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                  track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE) -> dict:
     """Fused figures of one team run: ROI PSNR per task (on its owner's whole sequence) after each push (vote,
     every ``eval_stride``-th frame, time on the mission clock in s) and of the final concat / vote / refine maps
-    over every frame, each final map also under the scoring protocols (``protocols``: ``{protocol: {task: dB}}``;
-    ``keyframes``: the owner's uploaded keyframes at the refined poses they carry, ``tracked``: every
-    ``track_stride``-th frame at a pose fitted against the fused map; :func:`gausslite.evaluation.score_map`)."""
+    over every frame, each final map also under the scoring protocols (``protocols``: ``{protocol: {task: dB}}``, and
+    each frame's figure in ``protocols_per_frame``: ``{protocol: {task: {frame id: dB}}}``, the pairs of every fused −
+    own gain; :func:`_by_protocol`)."""
     def scores(g, stride: int = 1) -> dict:
         return {a["task"]: evaluate_fused(g, a["_frames"][::stride], a["_annotations"], a["task"]) for a in agents}
-
-    rest = [q for q in dict.fromkeys(("sensor", *protocols)) if q != "sensor"]
-
-    def by_protocol(g, a: dict, sensor: Optional[float]) -> dict:
-        """``{protocol: dB}`` of map ``g`` on agent ``a``'s task (``sensor``: the figure already scored)."""
-        roi_fn = task_roi(a["_annotations"], a["task"])
-        todo = [q for q in rest if q != "novel" or a.get("_novel") is not None]
-        res = score_map(g, a["_frames"], roi_fn, todo,
-                        track_iters=track_iters, track_stride=track_stride,
-                        keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]},
-                        novel_ids=a.get("_novel")) if todo else {}
-        out = {"sensor": sensor, **{q: v["roi_psnr"] for q, v in res.items()}}
-        if "_seen" in a:  # the robot's own camera model (ROBOT_CAMERA)
-            out[ROBOT_CAMERA] = roi_psnr_over(a["_seen"](g), a["_frames"], roi_fn)
-        return out
 
     events = sorted((t, a["id"], s) for a in agents for t, s in a["_history"])
     held, timeline = {}, []
@@ -234,28 +223,65 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                                       report=records["refine_long"]) if kfs else vote}
     for key in FUSED_KEYS:
         g = maps[key].to_gaussian_map()
-        out[key] = {"n": len(maps[key]), "roi_psnr": scores(g)}
+        out[key] = {"n": len(maps[key])}
         if key in records:  # the refinement's held-out record: views, iterations run, early stop, rollback
             out[key]["refine_record"] = records[key].as_dict() if kfs else None
-        out[key]["protocols"] = _by_task({a["task"]: by_protocol(g, a, out[key]["roi_psnr"][a["task"]])
-                                          for a in agents})
+        _put_protocols(out[key], {a["task"]: _by_protocol(g, a, protocols, track_iters, track_stride)
+                                  for a in agents})
     # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot
-
-    out["for_robot"] = {"n": {}, "roi_psnr": {}}
+    out["for_robot"] = {"n": {}}
     robot = {}
     for a in agents:
         if a["id"] not in final:
             continue
         m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], final[a["id"]],
                          [k for k in a["_keyframes"] if k.roi is not None])
-        g = m.to_gaussian_map()
         out["for_robot"]["n"][a["id"]] = len(m)
-        out["for_robot"]["roi_psnr"][a["task"]] = evaluate_fused(g, a["_frames"], a["_annotations"], a["task"])
-        robot[a["task"]] = by_protocol(g, a, out["for_robot"]["roi_psnr"][a["task"]])
-    out["for_robot"]["protocols"] = _by_task(robot)
+        robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
+    _put_protocols(out["for_robot"], robot)
     out["vote_report"] = report.to_dict()
     out["cover"] = team_cover(agents, final, vote, report)
     return out
+
+
+def _put_protocols(block: dict, per_task: dict) -> None:
+    """Fill a fused map's ``roi_psnr`` (task → the ``sensor`` figure), ``protocols`` (protocol → task → dB) and
+    ``protocols_per_frame`` (protocol → task → frame id → dB) from task → :func:`_by_protocol`."""
+    block["roi_psnr"] = {t: v["sensor"][0] for t, v in per_task.items()}
+    block["protocols"] = _by_task({t: {q: v[0] for q, v in p.items()} for t, p in per_task.items()})
+    block["protocols_per_frame"] = _by_task({t: {q: v[1] for q, v in p.items()} for t, p in per_task.items()})
+
+
+def _by_protocol(g, a: dict, protocols, track_iters: int, track_stride: int) -> dict:
+    """``{protocol: (ROI PSNR dB or None, {frame id: dB})}`` of map ``g`` on agent ``a``'s task: ``sensor`` every frame
+    at the sensor's pose (:func:`gausslite.evaluation.evaluate_fused`'s figure); ``keyframes`` the owner's uploaded
+    keyframes at the refined poses they carry; ``novel`` the withheld frames through the owner's camera model
+    (:meth:`gausslite.mapping.mapper.Mapper.seen_by_this_camera`: the pose and exposure the owner's map predicts,
+    exactly as its own map's ``novel``; without it at the owner's predicted views, ``a["_predicted"]``); ``tracked`` /
+    ``novel-tracked`` at a pose fitted against ``g`` (:func:`gausslite.evaluation.score_map`); ``ROBOT_CAMERA`` every
+    frame through the owner's camera model."""
+    roi_fn = task_roi(a["_annotations"], a["task"])
+    rest = [q for q in dict.fromkeys(protocols) if q != "sensor"
+            and (q not in WITHHELD_PROTOCOLS or a.get("_novel") is not None)]
+    camera = a["_seen"](g) if "_seen" in a else None
+    todo = [q for q in rest if not (q == "novel" and camera is not None)]
+    res = score_map(g, a["_frames"], roi_fn, todo, track_iters=track_iters, track_stride=track_stride,
+                    keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]},
+                    novel_ids=a.get("_novel"), novel_views=a.get("_predicted")) if todo else {}
+    sensor = evaluate_fused_frames(g, a["_frames"], a["_annotations"], a["task"])
+    out = {"sensor": (_mean(sensor), sensor), **{q: (v["roi_psnr"], v["roi_psnr_per_frame"]) for q, v in res.items()}}
+    if camera is not None:
+        if "novel" in rest:
+            held = set(a["_novel"])
+            per = roi_psnr_frames(camera, [fr for fr in a["_frames"] if int(fr.frame_id) in held], roi_fn)
+            out["novel"] = (_mean(per), per)
+        per = roi_psnr_frames(camera, a["_frames"], roi_fn)  # the robot's own camera model (ROBOT_CAMERA)
+        out[ROBOT_CAMERA] = (_mean(per), per)
+    return out
+
+
+def _mean(per_frame: dict) -> Optional[float]:
+    return float(np.mean(list(per_frame.values()))) if per_frame else None
 
 
 def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -> dict:
@@ -312,7 +338,8 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
              novel_every: int = NOVEL_EVERY) -> dict:
     """One run of a team: every agent live (one after the other), then the fused figures. Each agent's row gains
     ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
-    own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s)."""
+    own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s), each with its
+    per-frame figures (``own_per_frame``, ``vote_per_frame``, …: frame id → dB, the pairs of the summary's gains)."""
     spec = TEAMS[team]
     cap = SCENES[spec["scene"]]["cap"]
     agents = [run_agent(team, a, budget, run, cap, work, overrides, protocols=protocols, track_iters=track_iters,
@@ -327,15 +354,27 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
         own = a.pop("own_protocols")
         if ROBOT_CAMERA in fused["vote"]["protocols"]:
             own[ROBOT_CAMERA] = own["sensor"]  # the own map is scored through its camera model already
+        keys = (*FUSED_KEYS, "for_robot")
+        a["own_per_frame"] = own["sensor"]["roi_psnr_per_frame"]
+        a.update({f"{key}_per_frame": fused[key]["protocols_per_frame"].get("sensor", {}).get(a["task"])
+                  for key in keys})
         a["protocols"] = {q: {"own_roi_psnr": v["roi_psnr"], "own_frames": v["frames_scored"],
-                              **{f"{key}_roi_psnr": fused[key]["protocols"].get(q, {}).get(a["task"])
-                                 for key in (*FUSED_KEYS, "for_robot")}} for q, v in own.items()}
+                              "own_per_frame": v["roi_psnr_per_frame"],
+                              **({"pose": "predicted"} if q == "novel" else {}),
+                              **{f"{key}_roi_psnr": fused[key]["protocols"].get(q, {}).get(a["task"]) for key in keys},
+                              **{f"{key}_per_frame": fused[key]["protocols_per_frame"].get(q, {}).get(a["task"])
+                                 for key in keys}}
+                          for q, v in own.items()}
+    for key in (*FUSED_KEYS, "for_robot"):
+        fused[key].pop("protocols_per_frame", None)  # in the agents' rows
     return {"team": team, "budget": budget, "run": run, "agents": agents, "fused": fused}
 
 
 def summarise(runs: list[dict]) -> dict:
     """Per team: per agent the mean ± std over runs of share %, upload ratio, bytes per Gaussian, own and fused
-    ROI PSNR, and the goals' checks (share ≤ 10 %, upload ≤ 1.5×, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
+    ROI PSNR, the gains fused − own and vote − concat (:func:`gain_over_runs`: the mean of the paired per-frame
+    differences over runs × frames with its 95 % interval, ``<gain>_gain``, beside the per-run spread ``<gain>_std``),
+    and the goals' checks (share ≤ 10 %, upload ≤ 1.5×, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
     out = {}
     for team in sorted({r["team"] for r in runs}):
         rs = [r for r in runs if r["team"] == team]
@@ -353,11 +392,7 @@ def summarise(runs: list[dict]) -> dict:
                 row[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
             for k in ("vote_minus_own", "refine_minus_own", "vote_minus_concat", "refine_long_minus_own",
                       "for_robot_minus_own"):
-                a_, b_ = k.rsplit("_minus_", 1)
-                d = [a[f"{a_}_roi_psnr"] - a[f"{b_}_roi_psnr"] for a in per
-                     if a.get(f"{a_}_roi_psnr") is not None and a.get(f"{b_}_roi_psnr") is not None]
-                row[k] = float(np.mean(d)) if d else None
-                row[k + "_std"] = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+                row.update(gain_over_runs(per, *k.rsplit("_minus_", 1), name=k))
             row["protocols"] = _summarise_protocols(per)
             blk["agents"][aid] = row
         ag = blk["agents"].values()
@@ -377,10 +412,27 @@ def summarise(runs: list[dict]) -> dict:
     return out
 
 
+def gain_over_runs(rows: list[dict], treated: str, baseline: str, name: Optional[str] = None) -> dict:
+    """``treated − baseline`` (map names: ``vote``, ``own``, …) over one agent's rows of several runs:
+    ``{name: gain, name_std: spread over runs, name_gain: the paired per-frame gain}``. The gain is the mean of the
+    paired per-frame differences over runs × frames (``<map>_per_frame``; :func:`gausslite.stats.paired_gain`, with
+    its 95 % interval); rows without per-frame figures (older runs) give the mean of the per-run differences and no
+    interval. The spread is the std of the per-run differences of the means."""
+    name = name or f"{treated}_minus_{baseline}"
+    d = [r[f"{treated}_roi_psnr"] - r[f"{baseline}_roi_psnr"] for r in rows
+         if r.get(f"{treated}_roi_psnr") is not None and r.get(f"{baseline}_roi_psnr") is not None]
+    pairs = [(r.get(f"{treated}_per_frame"), r.get(f"{baseline}_per_frame")) for r in rows]
+    g = (paired_gain([t for t, _ in pairs], [b for _, b in pairs])
+         if rows and all(t is not None and b is not None for t, b in pairs) else None)
+    g = g if g and g["n"] else None
+    return {name: g["gain"] if g else (float(np.mean(d)) if d else None),
+            name + "_std": float(np.std(d, ddof=1)) if len(d) > 1 else 0.0, name + "_gain": g}
+
+
 def _summarise_protocols(per: list[dict]) -> dict:
     """One agent's rows over runs → ``{protocol: {"own_roi_psnr", …, "for_robot_roi_psnr" (means), their "_std",
-    "vote_minus_own", "for_robot_minus_own", "refine_minus_own" (paired means over runs) and their "_std",
-    "runs"}}``."""
+    "vote_minus_own", "for_robot_minus_own", "refine_minus_own" (:func:`gain_over_runs`: paired per frame over runs ×
+    frames, with "_gain" and the per-run "_std"), "runs"}}``."""
     names = list(dict.fromkeys(q for a in per for q in a.get("protocols", {})))
     out = {}
     for q in names:
@@ -391,17 +443,16 @@ def _summarise_protocols(per: list[dict]) -> dict:
             blk[k] = float(np.mean(v)) if v else None
             blk[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
         for key in ("vote", "refine", "for_robot"):
-            d = [r[f"{key}_roi_psnr"] - r["own_roi_psnr"] for r in rows
-                 if r.get(f"{key}_roi_psnr") is not None and r.get("own_roi_psnr") is not None]
-            blk[f"{key}_minus_own"] = float(np.mean(d)) if d else None
-            blk[f"{key}_minus_own_std"] = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+            blk.update(gain_over_runs(rows, key, "own"))
         out[q] = blk
     return out
 
 
 def protocol_table(result: dict) -> str:
     """Markdown table of every team agent's own and fused maps under each scoring protocol (mean ± std over runs;
-    docs/realtime.md#scoring-protocols)."""
+    the gains fused − own paired per frame over runs × frames [95 % interval]; docs/realtime.md#scoring-protocols:
+    ``novel`` the maps at the pose the robot would use on views no map trained on, ``tracked`` / ``novel-tracked``
+    at a pose fitted to each map, how well a robot could localise against it)."""
     lines = ["| team | agent, task | protocol | own ROI PSNR | concat | vote | refine | for robot | vote − own | "
              "refine − own | for robot − own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for team, blk in result["teams"].items():
@@ -412,10 +463,18 @@ def protocol_table(result: dict) -> str:
                     f"{_pm(v['concat_roi_psnr'], v['concat_roi_psnr_std'])} | {_pm(v['vote_roi_psnr'], v['vote_roi_psnr_std'])} | "
                     f"{_pm(v['refine_roi_psnr'], v['refine_roi_psnr_std'])} | "
                     f"{_pm(v['for_robot_roi_psnr'], v['for_robot_roi_psnr_std'])} | "
-                    f"{_pm(v['vote_minus_own'], v['vote_minus_own_std'])} | "
-                    f"{_pm(v['refine_minus_own'], v['refine_minus_own_std'])} | "
-                    f"{_pm(v['for_robot_minus_own'], v['for_robot_minus_own_std'])} |")
+                    f"{_gain_pm(v, 'vote_minus_own')} | {_gain_pm(v, 'refine_minus_own')} | "
+                    f"{_gain_pm(v, 'for_robot_minus_own')} |")
     return "\n".join(lines)
+
+
+def _gain_pm(row: dict, key: str) -> str:
+    """A gain of :func:`gain_over_runs` for a table: the paired per-frame gain [95 % interval] with the per-run
+    spread, or mean ± std over runs for rows without per-frame figures."""
+    g = row.get(f"{key}_gain")
+    if g:
+        return f"{fmt_gain(g)} (σ runs {_f(row.get(f'{key}_std'))})"
+    return _pm(row.get(key), row.get(f"{key}_std", 0.0))
 
 
 def _f(v, nd=2) -> str:
@@ -430,7 +489,9 @@ def table(result: dict) -> str:
     """Markdown tables of :func:`summarise`'s output."""
     f = result["settings"]["fuse"]
     lines = [f"Keyframe budget {result['settings']['budget']} s, {result['settings']['runs']} run(s); mean ± std over "
-             f"runs. ROI PSNR (dB) over every frame of the owner's sequence. vote: δ = {f['voxel_size']} m, contest "
+             f"runs. ROI PSNR (dB) over every frame of the owner's sequence (`sensor`); gains: the mean of the paired "
+             f"per-frame differences over runs × frames [95 % interval] (σ runs: the spread of the per-run gains). "
+             f"vote: δ = {f['voxel_size']} m, contest "
              f"radius {f['contest_radius']}; vote r1: radius 1; refine: vote + {f['refine_iters']} iterations; "
              f"refine {LONG_REFINE_ITERS}: vote + {LONG_REFINE_ITERS} iterations.", "",
              "| team | agent, task | share % | upload / final | B / Gaussian | own ROI PSNR | concat | vote | vote r1 | "
@@ -447,9 +508,8 @@ def table(result: dict) -> str:
                 f"{_pm(a['refine_roi_psnr'], a['refine_roi_psnr_std'])} | "
                 f"{_pm(a['refine_long_roi_psnr'], a['refine_long_roi_psnr_std'])} | "
                 f"{_pm(a.get('for_robot_roi_psnr'), a.get('for_robot_roi_psnr_std', 0.0))} | "
-                f"{_pm(a['vote_minus_concat'], a['vote_minus_concat_std'])} | {_pm(a['vote_minus_own'], a['vote_minus_own_std'])} | "
-                f"{_pm(a['refine_minus_own'], a['refine_minus_own_std'])} | "
-                f"{_pm(a.get('for_robot_minus_own'), a.get('for_robot_minus_own_std', 0.0))} |")
+                f"{_gain_pm(a, 'vote_minus_concat')} | {_gain_pm(a, 'vote_minus_own')} | "
+                f"{_gain_pm(a, 'refine_minus_own')} | {_gain_pm(a, 'for_robot_minus_own')} |")
     goals = list(dict.fromkeys(k for blk in result["teams"].values() for k in blk["goals"]))
     lines += ["", "| team | " + " | ".join(goals) + " |", "|---|" + "---|" * len(goals)]
     for team, blk in result["teams"].items():
@@ -521,7 +581,8 @@ def share_curve(results: list[dict], default_bound: Optional[float] = None) -> d
                 entry = curve.setdefault(team, {}).setdefault(aid, {"task": a["task"], "points": []})
                 entry["points"].append({"bound": b, "runs": blk.get("runs"),
                                         **{k: a.get(k) for k in CURVE_KEYS},
-                                        **{f"{k}_std": a.get(f"{k}_std") for k in CURVE_KEYS}})
+                                        **{f"{k}_std": a.get(f"{k}_std") for k in CURVE_KEYS},
+                                        **{f"{k}_gain": a.get(f"{k}_gain") for k in CURVE_KEYS if "_minus_" in k}})
     return curve
 
 
@@ -535,9 +596,8 @@ def curve_table(curve: dict) -> str:
             for q in e["points"]:
                 lines.append(f"| {team} | {aid}, {e['task']} | {100 * q['bound']:g} % | {_f(q['share_pct'], 1)} | "
                              f"{_f(q['upload_ratio'])} | {_f(q['bytes_per_gaussian'], 1)} | {_f(q['own_roi_psnr'])} | "
-                             f"{_pm(q['vote_minus_own'], q['vote_minus_own_std'])} | "
-                             f"{_pm(q['for_robot_minus_own'], q['for_robot_minus_own_std'])} | "
-                             f"{_pm(q['refine_minus_own'], q['refine_minus_own_std'])} |")
+                             f"{_gain_pm(q, 'vote_minus_own')} | {_gain_pm(q, 'for_robot_minus_own')} | "
+                             f"{_gain_pm(q, 'refine_minus_own')} |")
     return "\n".join(lines)
 
 
@@ -565,11 +625,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--protocols", default=",".join(PROTOCOLS),
                     help="scoring protocols of the own and final fused maps (sensor always; "
                          "docs/realtime.md#scoring-protocols)")
-    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="tracked protocol: Adam steps per frame")
+    ap.add_argument("--track-iters", type=int, default=TRACK_ITERS,
+                    help="tracked / novel-tracked protocols: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE, help="tracked protocol: every this many frames")
     ap.add_argument("--novel-every", type=int, default=NOVEL_EVERY,
-                    help="novel protocol: every k-th frame of the team's sequence is withheld from every robot and "
-                         "scored at a tracked pose (0: none withheld, no novel protocol)")
+                    help="novel / novel-tracked protocols: every k-th frame of the team's sequence is withheld from "
+                         "every robot, scored at the pose the robot's map predicts (novel) and at a pose tracked "
+                         "against each map (novel-tracked) (0: none withheld, neither protocol)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="agent config override, e.g. agent.share_coverage=0.9")
     ap.add_argument("--out", default=str(RESULTS / "team.json"))

@@ -9,13 +9,15 @@ Runs ``gausslite sim`` ``--runs`` times one after the other (seed ``s`` → ``--
 ``<work>/<scene>[_rt]_seed<s>``, and summarises the reports (docs/sharing.md#which-map-to-use-when):
 
 - ``fused``: for ``vote``, ``for_robot``, ``refine`` and ``team_map`` (the served team map once current), per task and
-  protocol (``sensor``, ``keyframes``, ``tracked``, ``novel``, and ``tracked@own``, ``novel@own``: at the views the
-  robot's own map was tracked at), the fused map's ROI PSNR minus the robot's own map's under the same protocol: mean
-  ± std over runs, and the per-run values;
+  protocol (``sensor``, ``keyframes``, ``novel``: at the pose the robot's own map predicts, ``tracked``,
+  ``novel-tracked``, and ``tracked@own``, ``novel-tracked@own``: at the views the robot's own map was tracked at), the
+  fused map's ROI PSNR minus the robot's own map's under the same protocol: the mean of the paired per-frame
+  differences over runs × frames with its 95 % interval, and the per-run values' mean ± std (older reports, whose
+  ``novel`` was tracked, are read as ``novel-tracked``);
 - ``refine_record``: the refinement's held-out record per run (views trained / held out, iterations run, early stop,
   rollback), for ``refine`` and ``team_map``;
 - ``served``: per run, the served team map against each robot's own map at every step of the timeline once the
-  served map holds both robots' subsets (the worst step, and how many steps);
+  served map holds both robots' subsets (the worst step's paired per-frame gain, and how many steps);
 - ``views``: per agent, the bytes of the views sent for the refinement over its final subset's bytes, views sent and
   left unsent.
 
@@ -38,40 +40,70 @@ from tqdm import tqdm
 
 from bench._results import write_results
 from bench.sim_seeds import scene_args
-from gausslite.stats import fmt, mean_std
+from gausslite.evaluation import PROTOCOL_QUESTIONS, current_protocols
+from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 KEYS = ("vote", "for_robot", "refine", "team_map")
-PROTOCOLS = ("sensor", "keyframes", "tracked", "novel", "tracked@own", "novel@own")
+PROTOCOLS = ("sensor", "keyframes", "novel", "tracked", "novel-tracked", "tracked@own", "novel-tracked@own")
 
 
-def fused_rows(report: dict) -> Dict[str, Dict[str, Dict[str, Optional[float]]]]:
-    """key → task → protocol → fused − own (dB) of one report (None where either is missing)."""
+def _own_frames(report: dict) -> Dict[str, Dict[str, dict]]:
+    """task → protocol → frame id → the robot's own map's ROI PSNR (dB), where the report has per-frame figures."""
+    out: dict = {}
+    for a in report.get("agents") or []:
+        for q, v in current_protocols(a.get("protocols")).items():
+            if (v or {}).get("roi_psnr_per_frame") is not None:
+                out.setdefault(a["task"], {})[q] = v["roi_psnr_per_frame"]
+    return out
+
+
+def fused_rows(report: dict) -> Dict[str, Dict[str, Dict[str, dict]]]:
+    """key → task → protocol → ``{"minus_own": fused − own (dB, the report's figure), "fused": frame id → dB,
+    "own": frame id → dB}`` of one report (per-frame figures None where the report has none: an older report, whose
+    ``novel`` / ``novel@own`` — then tracked against the map — are read as ``novel-tracked`` /
+    ``novel-tracked@own``)."""
+    own = _own_frames(report)
     out: dict = {}
     for k in KEYS:
         f = (report.get("fused") or {}).get(k)
         if not f:
             continue
-        for q, per in (f.get("protocols") or {}).items():
+        for q, per in current_protocols(f.get("protocols")).items():
             for task, v in per.items():
-                out.setdefault(k, {}).setdefault(task, {})[q] = v.get("minus_own")
+                out.setdefault(k, {}).setdefault(task, {})[q] = {
+                    "minus_own": v.get("minus_own"), "fused": v.get("roi_psnr_per_frame"),
+                    "own": own.get(task, {}).get(q.split("@")[0])}
     return out
 
 
 def served_steps(report: dict) -> Dict[str, dict]:
-    """task → {"worst": min over the timeline's steps whose served team map holds every robot's subset of (served −
-    the robot's own map, dB), "steps": their number}; the own map's figure over every frame (``roi_psnr_all_frames``,
-    the ``sensor`` protocol; its mapped frames' when absent), as the timeline scores the fused maps."""
+    """task → {"worst": the timeline step whose served team map, holding every robot's subset, is furthest below the
+    robot's own map: its paired per-frame gain served − own (:func:`gausslite.stats.paired_gain`, the own map's
+    ``sensor`` figures, every frame as the timeline scores the fused maps; an older report without per-frame figures:
+    the difference of the means, ``{"gain": dB}``), "steps": their number}."""
     agents = report["agents"]
-    own = {a["task"]: a.get("roi_psnr_all_frames") or a.get("roi_psnr") for a in agents}
+    own_all = {a["task"]: a.get("roi_psnr_all_frames") or a.get("roi_psnr") for a in agents}
+    own_frames = {t: q.get("sensor") for t, q in _own_frames(report).items()}
     ids = {a["id"] for a in agents}
     out = {}
-    for task, o in own.items():
-        vals = [s["roi_psnr"][task] - o for e in report.get("fused_timeline") or []
-                for s in [e.get("served")] if s and set(s["versions"]) >= ids and o is not None
-                and s["roi_psnr"].get(task) is not None]
-        out[task] = {"worst": min(vals) if vals else None, "steps": len(vals)}
+    for task, o in own_all.items():
+        gains = []
+        for e in report.get("fused_timeline") or []:
+            s = e.get("served")
+            if not s or not set(s["versions"]) >= ids:
+                continue
+            frames = (s.get("roi_psnr_per_frame") or {}).get(task)
+            if frames is not None and own_frames.get(task) is not None:
+                g = paired_gain(frames, own_frames[task])
+            elif s["roi_psnr"].get(task) is not None and o is not None:
+                g = {"gain": s["roi_psnr"][task] - o}
+            else:
+                continue
+            if g.get("gain") is not None:
+                gains.append(g)
+        out[task] = {"worst": min(gains, key=lambda g: g["gain"]) if gains else None, "steps": len(gains)}
     return out
 
 
@@ -89,6 +121,17 @@ def _stat(vals: List[Optional[float]]) -> dict:
     return {"mean": m, "std": s, "per_run": vals}
 
 
+def _gain(cells: List[Optional[dict]]) -> dict:
+    """One map, task and protocol over runs: the paired per-frame gain over runs × frames (``gain``, with its 95 %
+    interval; None when a run lacks per-frame figures) beside the per-run figures' mean ± std (``mean``, ``std``,
+    ``per_run``)."""
+    out = _stat([(c or {}).get("minus_own") for c in cells])
+    pairs = [(c["fused"], c["own"]) for c in cells if c and c.get("fused") is not None and c.get("own") is not None]
+    out["gain"] = (paired_gain([f for f, _ in pairs], [o for _, o in pairs])
+                   if pairs and len(pairs) == sum(1 for c in cells if c) else None)
+    return out
+
+
 def summarise(reports: List[dict]) -> dict:
     """The summary of several reports of the same configuration (module docstring)."""
     rows = [fused_rows(r) for r in reports]
@@ -97,7 +140,7 @@ def summarise(reports: List[dict]) -> dict:
         tasks = sorted({t for r in rows for t in r.get(k, {})})
         for t in tasks:
             for q in PROTOCOLS:
-                fused.setdefault(k, {}).setdefault(t, {})[q] = _stat([r.get(k, {}).get(t, {}).get(q) for r in rows])
+                fused.setdefault(k, {}).setdefault(t, {})[q] = _gain([r.get(k, {}).get(t, {}).get(q) for r in rows])
     served = [served_steps(r) for r in reports]
     tasks = sorted({t for s in served for t in s})
     views = [view_rows(r) for r in reports]
@@ -105,7 +148,8 @@ def summarise(reports: List[dict]) -> dict:
     return {"runs": len(reports), "fused": fused,
             "refine_record": {k: [((r.get("fused") or {}).get(k) or {}).get("refine_record") for r in reports]
                               for k in ("refine", "team_map")},
-            "served": {t: {"worst": _stat([s.get(t, {}).get("worst") for s in served]),
+            "served": {t: {"worst": _stat([((s.get(t) or {}).get("worst") or {}).get("gain") for s in served]),
+                           "worst_gain": [(s.get(t) or {}).get("worst") for s in served],
                            "steps": [s.get(t, {}).get("steps") for s in served]} for t in tasks},
             "views": {a: {f: _stat([v.get(a, {}).get(f) for v in views])
                           for f in ("ratio", "view_bytes", "views_sent", "views_unsent")} for a in agents},
@@ -113,15 +157,27 @@ def summarise(reports: List[dict]) -> dict:
 
 
 def table(summary: dict) -> str:
-    """Markdown tables of a summary: fused − own per map, task and protocol; the served timeline; the views."""
+    """Markdown tables of a summary: fused − own per map, task and protocol (the paired per-frame gain over runs ×
+    frames [95 % interval], and the per-run mean ± std); the served timeline; the views."""
     f = lambda b: fmt(b["mean"], b["std"], 2) if b["mean"] is not None else "–"  # noqa: E731
-    lines = ["| map | task | " + " | ".join(PROTOCOLS) + " |", "|---|---|" + "---|" * len(PROTOCOLS)]
+
+    def cell(b):
+        return (fmt_gain(b.get("gain")) + f" (runs {f(b)})") if b.get("gain") else f(b)
+
+    lines = ["Fused map − the robot's own map under each protocol (dB): the mean of the paired per-frame differences "
+             "over runs × frames [95 % interval], and in brackets the per-run differences' mean ± std. What each "
+             "protocol answers: " + "; ".join(f"`{q}`: {PROTOCOL_QUESTIONS[q]}" for q in PROTOCOLS
+                                              if q in PROTOCOL_QUESTIONS)
+             + "; `@own`: at the pose the robot tracked against its own map.", "",
+             "| map | task | " + " | ".join(PROTOCOLS) + " |", "|---|---|" + "---|" * len(PROTOCOLS)]
     for k, per in summary["fused"].items():
         for t, qs in per.items():
-            lines.append(f"| {k} | {t} | " + " | ".join(f(qs[q]) for q in PROTOCOLS) + " |")
-    lines += ["", "| task | served team map − own, worst step once it holds both subsets | steps |", "|---|---|---|"]
+            lines.append(f"| {k} | {t} | " + " | ".join(cell(qs[q]) for q in PROTOCOLS) + " |")
+    lines += ["", "| task | served team map − own, worst step once it holds both subsets (paired gain per run) | "
+              "over runs | steps |", "|---|---|---|---|"]
     for t, b in summary["served"].items():
-        lines.append(f"| {t} | {f(b['worst'])} | {b['steps']} |")
+        per_run = ", ".join("–" if not g else fmt_gain(g) if "n" in g else f"{g['gain']:+.2f}" for g in b["worst_gain"])
+        lines.append(f"| {t} | {per_run} | {f(b['worst'])} | {b['steps']} |")
     lines += ["", "| agent | view bytes / subset bytes | view bytes | views sent | views unsent |", "|---|---|---|---|---|"]
     for a, b in summary["views"].items():
         lines.append(f"| {a} | {f(b['ratio'])} | {f(b['view_bytes'])} | {f(b['views_sent'])} | "

@@ -127,10 +127,17 @@ def evaluate_fused(gmap, frames: Sequence[Frame], annotations, task_id: str, bac
     Returns:
         The mean ROI PSNR in dB, or None when no frame shows the ROI or the map is empty.
     """
+    vals = list(evaluate_fused_frames(gmap, frames, annotations, task_id, backend).values())
+    return float(np.mean(vals)) if vals else None
+
+
+def evaluate_fused_frames(gmap, frames: Sequence[Frame], annotations, task_id: str,
+                          backend: str = "auto") -> dict[int, float]:
+    """:func:`evaluate_fused` frame by frame: frame id → ROI PSNR (dB) of each frame that shows the ROI (the pairs of
+    a paired gain, :func:`gausslite.stats.paired_gain`); empty for an empty map."""
     if len(gmap) == 0:
-        return None
-    return roi_psnr_over(lambda fr: render_map(gmap, fr, backend), frames,
-                         task_roi(annotations, task_id))
+        return {}
+    return roi_psnr_frames(lambda fr: render_map(gmap, fr, backend), frames, task_roi(annotations, task_id))
 
 
 def roi_psnr_over(render: RenderFn, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray]) -> Optional[float]:
@@ -142,15 +149,23 @@ def roi_psnr_over(render: RenderFn, frames: Sequence[Frame], roi_fn: Callable[[F
     Returns:
         The mean ROI PSNR in dB, or None when no frame shows the ROI.
     """
-    vals = []
+    vals = list(roi_psnr_frames(render, frames, roi_fn).values())
+    return float(np.mean(vals)) if vals else None
+
+
+def roi_psnr_frames(render: RenderFn, frames: Sequence[Frame],
+                    roi_fn: Callable[[Frame], np.ndarray]) -> dict[int, float]:
+    """:func:`roi_psnr_over` frame by frame: frame id → ROI PSNR (dB) of each frame whose ROI is not empty and whose
+    ROI PSNR is defined."""
+    vals = {}
     for fr in frames:
         roi = roi_fn(fr)
         if not roi.any():
             continue
         s = score_view(render(fr), fr, roi)
         if not math.isnan(s.roi_psnr):
-            vals.append(s.roi_psnr)
-    return float(np.mean(vals)) if vals else None
+            vals[int(fr.frame_id)] = s.roi_psnr
+    return vals
 
 
 def evaluate(
@@ -189,20 +204,84 @@ def evaluate(
 
 
 # ---------------------------------------------------------------------------------------------------- live-map scoring
-#: the scoring protocols of a live map (docs/realtime.md#scoring-protocols)
-PROTOCOLS = ("sensor", "keyframes", "tracked", "novel")
+#: the scoring protocols of a live map (docs/realtime.md#scoring-protocols): three at the pose the robot gives (with
+#: the map's learned correction), two at a pose fitted to the frame against the map
+PROTOCOLS = ("sensor", "keyframes", "novel", "tracked", "novel-tracked")
+#: the protocols that fit each frame's pose and exposure to the map under test (:func:`track_view`)
+TRACKED_PROTOCOLS = ("tracked", "novel-tracked")
+#: the protocols that score the frames withheld from the mapper (``novel_ids``)
+WITHHELD_PROTOCOLS = ("novel", "novel-tracked")
+#: the question each protocol answers, for reports
+PROTOCOL_QUESTIONS = {
+    "sensor": "every frame at the pose the robot gives with the map's learned correction and exposure: the map as "
+              "the robot uses it, mostly on views it trained on",
+    "keyframes": "the trained views at their refined pose and exposure: what the map memorised",
+    "novel": "frames withheld from the mapper at the pose and exposure the map predicts from its training alone: the "
+             "map at the pose a robot would use, on views it never trained on",
+    "tracked": "every k-th frame at a pose and exposure fitted to it against the map: how well a robot could localise "
+               "against the map, and how the map looks from there",
+    "novel-tracked": "the withheld frames at a pose and exposure fitted against the map: localisation on views no map "
+                     "trained on, and the map from there",
+}
+
+
+def protocol_line(protocols: Mapping[str, Mapping]) -> str:
+    """One line of a map's ROI PSNR under each scored protocol, each with the question it answers in short: the
+    figures at the pose the robot gives (``sensor``, ``keyframes``, ``novel``) first, the tracked ones beside them.
+
+    Args:
+        protocols: :func:`score_live_map`'s result (``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``).
+    Returns:
+        e.g. ``"novel 23.10 (given pose, unseen views; 12 frames) | novel-tracked 23.60 (…) | …"``.
+    """
+    short = {"sensor": "given pose, every frame", "keyframes": "trained views", "novel": "given pose, unseen views",
+             "tracked": "pose fitted to the map", "novel-tracked": "unseen views, pose fitted to the map"}
+    order = ["novel", "novel-tracked", "sensor", "keyframes", "tracked"]
+    cells = []
+    for q in sorted(protocols, key=lambda q: order.index(q) if q in order else len(order)):
+        v = protocols[q] or {}
+        r = v.get("roi_psnr")
+        fig = "–" if r is None else f"{r:.2f}"
+        cells.append(f"{q} {fig} ({short.get(q, q)}; {v.get('frames_scored', 0)} frames)")
+    return " | ".join(cells)
+
+
+def current_protocol_name(name: str, entry=None) -> str:
+    """The current name of a protocol read from an older result. Before ``novel`` scored the withheld frames at the
+    pose the map predicts, ``novel`` (and a fused map's ``novel@own``) scored them at a pose tracked against the map:
+    that figure is ``novel-tracked`` now. A ``novel`` entry written since carries ``"pose": "predicted"`` (itself, or
+    each of its per-task entries); one without it is the older figure.
+
+    Args:
+        name: the protocol key read (``novel``, ``tracked@own``, …). entry: its value (a protocol's figures, or
+            task → figures); None: the name alone decides (an old name stays).
+    Returns:
+        ``name``, or ``novel-tracked`` / ``novel-tracked@own`` for an older ``novel`` / ``novel@own`` entry.
+    """
+    base, at, suffix = name.partition("@")
+    if base != "novel" or entry is None or not isinstance(entry, Mapping):
+        return name
+    marks = [entry.get("pose")] + [v.get("pose") for v in entry.values() if isinstance(v, Mapping)]
+    return name if "predicted" in marks else "novel-tracked" + at + suffix
+
+
+def current_protocols(protocols: Optional[Mapping]) -> dict:
+    """``{protocol: entry}`` read from a result of any age, with :func:`current_protocol_name`'s keys (an older
+    ``novel`` entry becomes ``novel-tracked``)."""
+    return {current_protocol_name(q, v): v for q, v in (protocols or {}).items()}
 
 
 @dataclass
 class TrackedView:
-    """A frame's view fitted to a frozen map by :func:`track_view`.
+    """A frame's view for scoring: a pose and exposure fitted to a frozen map by :func:`track_view`, or the pose and
+    exposure a map predicts for it (:func:`predicted_view`; ``iters`` 0).
 
     Attributes:
-        c2w: (4, 4) float64 fitted camera-to-world pose (OpenCV camera axes, metres).
-        theta: (6,) float64 fitted affine exposure (log gains, offsets; :func:`gausslite.mapping.exposure.apply_exposure`).
-        loss: the full-image tracking loss at the last step.
-        rot_deg / trans_m: the fitted pose's rotation (degrees) and translation (metres) away from the start.
-        iters: Adam steps taken.
+        c2w: (4, 4) float64 camera-to-world pose (OpenCV camera axes, metres).
+        theta: (6,) float64 affine exposure (log gains, offsets; :func:`gausslite.mapping.exposure.apply_exposure`).
+        loss: the full-image tracking loss at the last step (NaN for a predicted view).
+        rot_deg / trans_m: the pose's rotation (degrees) and translation (metres) away from the sensor's pose.
+        iters: Adam steps of the pose fit (0: nothing fitted).
     """
 
     c2w: np.ndarray
@@ -213,11 +292,93 @@ class TrackedView:
     iters: int
 
 
+def _offset(c2w0: np.ndarray, c2w: np.ndarray) -> tuple[float, float]:
+    """Rotation (degrees) and translation (metres) of ``c2w`` away from ``c2w0`` (both (4, 4))."""
+    E = np.linalg.inv(np.asarray(c2w0, np.float64)) @ np.asarray(c2w, np.float64)
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+    return ang, float(np.linalg.norm(E[:3, 3]))
+
+
+def has_exposure_records(mapper) -> bool:
+    """Whether ``mapper`` keeps per-keyframe exposure responses (``sensor.exposure_comp`` and at least one keyframe);
+    a fused map (:func:`frozen_mapper`) keeps none."""
+    exposure = mapper.sensor.exposure
+    return exposure is not None and bool(exposure.params)
+
+
+def predicted_view(mapper, frame: Frame) -> TrackedView:
+    """The pose and exposure ``mapper`` predicts for ``frame`` from its training alone, the ones the ``sensor`` protocol
+    renders every frame at (:meth:`~gausslite.mapping.mapper.Mapper.render_frame`): the sensor's pose with the map's
+    learned correction (:meth:`~gausslite.mapping.mapper.Mapper.pose_of`: the keyframe's own, or interpolated between
+    the keyframes on either side / the nearest one's, ``mapper.pose.between_keyframes``) and the exposure response
+    likewise (:meth:`~gausslite.mapping.exposure.ExposureModel.of`; zeros without exposure records). Nothing is fitted
+    on ``frame``: its images are never read.
+
+    Args:
+        mapper: a :class:`~gausslite.mapping.mapper.Mapper` (not modified). frame: the view (its id and (4, 4)
+            ``c2w`` camera-to-world, metres).
+    Returns:
+        :class:`TrackedView` with ``iters`` 0 and NaN loss.
+    """
+    c2w = np.asarray(mapper.pose_of(frame.frame_id, frame.c2w), np.float64)
+    theta = (np.asarray(mapper.sensor.exposure.of(frame.frame_id), np.float64).copy() if has_exposure_records(mapper)
+             else np.zeros(6))
+    return TrackedView(c2w, theta, math.nan, *_offset(frame.c2w, c2w), 0)
+
+
+def fit_exposure_outside_roi(out: RenderOutput, frame: Frame, roi: Optional[np.ndarray], iters: int = 100,
+                             lr: float = 0.01, alpha_min: float = 0.5, min_fraction: float = 0.05) -> np.ndarray:
+    """The affine exposure of a render fitted on the pixels OUTSIDE the scored ROI, for a map that keeps no exposure
+    response of the view (a fused map): the appearance of a held-out image is fitted on pixels that are not scored,
+    as NeRF-W fits a test image's appearance embedding on its left half and scores the right one (Martin-Brualla et
+    al., CVPR 2021) and 3DGS's ``train_test_exp`` fits a test view's exposure on the half it does not score. The
+    pose is never fitted and the ROI's pixels never enter the fit.
+
+    ``iters`` Adam steps minimise L1 colour of ``exp(a)·I + b`` against the frame over the pixels outside ``roi`` that
+    the map covers (rendered alpha > ``alpha_min``), from θ = 0.
+
+    Args:
+        out: the render ((H, W, 3) float colour in [0, 1], (H, W) alpha) at the pose the frame is scored at.
+        frame: ground truth (uint8 rgb (H, W, 3)). roi: (H, W) bool scored ROI, or None (no ROI: every covered pixel).
+        iters: Adam steps. lr: step size of θ. alpha_min: silhouette threshold. min_fraction: fewer fitting pixels
+            than this share of the image: nothing is fitted (θ = 0).
+    Returns:
+        (6,) float64 θ (log gains, offsets; :func:`gausslite.mapping.exposure.apply_exposure`).
+    Raises:
+        ValueError: ``iters`` < 0, or a ROI / frame whose size differs from the render's.
+    """
+    if iters < 0:
+        raise ValueError(f"iters must be >= 0, got {iters}")
+    color = out.color.detach()
+    dev = color.device
+    gt = torch.from_numpy(np.ascontiguousarray(frame.rgb)).to(dev, torch.float32) / 255.0
+    if gt.shape != color.shape or (roi is not None and tuple(np.shape(roi)) != tuple(color.shape[:2])):
+        raise ValueError(f"render {tuple(color.shape)}, frame {tuple(gt.shape)} and ROI "
+                         f"{None if roi is None else np.shape(roi)} differ in size")
+    mask = out.alpha.detach().reshape(color.shape[:2]) > alpha_min
+    if roi is not None:
+        mask = mask & ~torch.from_numpy(np.asarray(roi, bool)).to(dev)
+    theta = np.zeros(6)
+    if int(mask.sum()) < min_fraction * mask.numel():
+        return theta
+    adam = VectorAdam(np.full(6, float(lr)))
+    m = mask.float()
+    for _ in range(iters):
+        th = torch.tensor(theta, dtype=torch.float32, device=dev, requires_grad=True)
+        loss = ((apply_exposure(color, th) - gt).abs().sum(-1) * m).sum() / (3.0 * m.sum())
+        loss.backward()
+        d = adam.delta(0, th.grad.detach().cpu().double().numpy())
+        if d is None:
+            break
+        theta = theta + d
+    return theta
+
+
 def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarray] = None, iters: int = 30,
                lr_rot: float = 2e-3, lr_trans: float = 2e-3, lr_exposure: float = 0.01, lambda_depth: float = 0.5,
                alpha_min: float = 0.5) -> TrackedView:
-    """Fit a frame's pose and affine exposure to a frozen map, for scoring (the ``tracked`` protocol; MonoGS's
-    evaluation renders every frame at the pose its tracker fitted, Matsuki et al. CVPR 2024).
+    """Fit a frame's pose and affine exposure to a frozen map, for scoring (the ``tracked`` and ``novel-tracked``
+    protocols; MonoGS's evaluation renders every frame at the pose its tracker fitted, Matsuki et al. CVPR 2024).
 
     The map is never changed. Starting from ``c2w0`` (the sensor's pose) and ``theta0``, ``iters`` Adam steps
     minimise L1 colour (after the exposure ``exp(a)·I + b``) + ``lambda_depth`` · L1 depth over the pixels the
@@ -267,26 +428,60 @@ def track_view(sensor, frame: Frame, c2w0: np.ndarray, theta0: Optional[np.ndarr
         c2w = c2w @ pose_delta(torch.from_numpy(dxi)).to(dev)
         theta = theta + dth
         loss_v, done = float(loss.detach()), done + 1
-    E = np.linalg.inv(np.asarray(c2w0, np.float64)) @ c2w.cpu().numpy()
-    ang = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
-    return TrackedView(c2w.cpu().numpy(), theta, loss_v, ang, float(np.linalg.norm(E[:3, 3])), done)
+    return TrackedView(c2w.cpu().numpy(), theta, loss_v, *_offset(c2w0, c2w.cpu().numpy()), done)
 
 
-def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
-                     pose: Optional[np.ndarray] = None, given: Optional[TrackedView] = None,
-                     record: Optional[dict] = None) -> RenderOutput:
-    """The render a protocol scores a frame by (:func:`score_live_map`); ``pose``: a ``keyframes`` view's own pose
-    (rendered as is, identity exposure) instead of the mapper's refined one; ``given``: a ``tracked`` or ``novel``
-    view's pose and exposure fitted against another map (rendered as is, not tracked); ``record``: frame id → the
-    :class:`TrackedView` of each ``tracked`` / ``novel`` frame, filled."""
+def _render_at(mapper, frame: Frame, view: TrackedView) -> RenderOutput:
+    """``mapper``'s map from ``frame``'s intrinsics at ``view``'s pose through its sensor model, ``view``'s exposure
+    applied (colour clamped to [0, 1]); no gradients."""
     intr = frame.intrinsics
+    with torch.no_grad():
+        out = mapper.sensor.render_view(view.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
+        th = torch.tensor(view.theta, dtype=torch.float32, device=out.color.device)
+        return dataclasses.replace(out, color=apply_exposure(out.color, th).clamp(0.0, 1.0))
+
+
+def _novel_render(mapper, frame: Frame, roi: Optional[np.ndarray], given: Optional[TrackedView],
+                  fit_exposure: bool) -> tuple[RenderOutput, TrackedView]:
+    """The ``novel`` protocol's render of a withheld frame and the view it was rendered at: ``given`` (the pose and
+    exposure its owner robot's map predicts, e.g. to score a fused map), else the map's own prediction through the
+    ``sensor`` protocol's code (:meth:`Mapper.render_frame`, :func:`predicted_view`); a map without exposure records
+    under ``fit_exposure`` gets the exposure fitted outside the ROI (:func:`fit_exposure_outside_roi`). The pose is
+    never fitted."""
+    if given is not None:
+        return _render_at(mapper, frame, given), given
+    view = predicted_view(mapper, frame)
+    if not (fit_exposure and not has_exposure_records(mapper)):
+        return mapper.render_frame(frame), view
+    intr = frame.intrinsics
+    with torch.no_grad():
+        out = mapper.sensor.render_view(view.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
+    view = dataclasses.replace(view, theta=fit_exposure_outside_roi(out, frame, roi))
+    th = torch.tensor(view.theta, dtype=torch.float32, device=out.color.device)
+    return dataclasses.replace(out, color=apply_exposure(out.color.detach(), th).clamp(0.0, 1.0)), view
+
+
+def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int, roi: Optional[np.ndarray],
+                     pose: Optional[np.ndarray] = None, given: Optional[TrackedView] = None,
+                     record: Optional[dict] = None, fit_exposure: bool = False) -> RenderOutput:
+    """The render a protocol scores a frame by (:func:`score_live_map`); ``pose``: a ``keyframes`` view's own pose
+    (rendered as is, identity exposure) instead of the mapper's refined one; ``given``: the view to render a
+    ``tracked`` / ``novel-tracked`` frame at (fitted against another map) or a ``novel`` frame at (predicted by
+    another map), not fitted here; ``record``: frame id → the :class:`TrackedView` the frame was rendered at, filled
+    for the tracked and ``novel`` protocols; ``fit_exposure``: see :func:`score_live_map`."""
     if protocol == "keyframes" and pose is not None:
+        intr = frame.intrinsics
         with torch.no_grad():
             return mapper.sensor.render_view(np.asarray(pose, np.float64), intr.K, intr.width, intr.height,
                                              frame.frame_id, None)
     if protocol in ("sensor", "keyframes"):
         return mapper.render_frame(frame)
-    # tracked and novel: a pose and exposure fitted to the frame against the frozen map
+    if protocol == "novel":
+        out, view = _novel_render(mapper, frame, roi, given, fit_exposure)
+        if record is not None:
+            record[int(frame.frame_id)] = view
+        return out
+    # tracked and novel-tracked: a pose and exposure fitted to the frame against the frozen map
     tv = given
     if tv is None:
         exposure = mapper.sensor.exposure
@@ -294,60 +489,87 @@ def _protocol_render(mapper, frame: Frame, protocol: str, track_iters: int,
         tv = track_view(mapper.sensor, frame, frame.c2w, theta0, iters=track_iters)
     if record is not None:
         record[int(frame.frame_id)] = tv
-    with torch.no_grad():
-        out = mapper.sensor.render_view(tv.c2w, intr.K, intr.width, intr.height, frame.frame_id, None)
-        th = torch.tensor(tv.theta, dtype=torch.float32, device=out.color.device)
-        return dataclasses.replace(out, color=apply_exposure(out.color, th).clamp(0.0, 1.0))
+    return _render_at(mapper, frame, tv)
+
+
+def _check_protocols(protocols: Sequence[str], track_stride: int) -> None:
+    bad = [p for p in protocols if p not in PROTOCOLS]
+    if bad or track_stride < 1:
+        raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
+                         f"track_stride must be >= 1, got {track_stride}")
+
+
+def _empty_result(protocol: str) -> dict:
+    out = {"roi_psnr": None, "psnr": None, "ssim": None, "frames_scored": 0, "roi_frames": 0,
+           "roi_psnr_per_frame": {}, "psnr_per_frame": {}}
+    if protocol == "novel":
+        out["pose"] = "predicted"
+    return out
 
 
 def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
-                   protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
-                   keyframe_ids: Optional[Iterable[int]] = None,
+                   protocols: Sequence[str] = ("sensor", "keyframes", "tracked"), track_iters: int = 30,
+                   track_stride: int = 1, keyframe_ids: Optional[Iterable[int]] = None,
                    keyframe_poses: Optional[Mapping[int, np.ndarray]] = None,
                    novel_ids: Optional[Iterable[int]] = None, views: Optional[Mapping[int, TrackedView]] = None,
-                   record: Optional[dict] = None) -> dict:
+                   record: Optional[dict] = None, novel_views: Optional[Mapping[int, TrackedView]] = None,
+                   predicted: Optional[dict] = None, fit_exposure: bool = False) -> dict:
     """Score a live map (:class:`~gausslite.mapping.mapper.Mapper`) under the scoring protocols, the same way for
-    every mode (docs/realtime.md#scoring-protocols):
+    every mode (docs/realtime.md#scoring-protocols; :data:`PROTOCOL_QUESTIONS` says what each answers). At the pose
+    the robot gives (its own SLAM's) with what the map learned:
 
     - ``sensor``: every frame at the sensor's pose with its keyframe's refined correction and exposure response
       (between keyframes: interpolated, or the nearest one's, ``pose.between_keyframes``; :meth:`Mapper.render_frame`);
     - ``keyframes``: the trained views only (``keyframe_ids``; default the mapped frames), each at its own refined
       pose and exposure response; with ``keyframe_poses`` (frame id → (4, 4) camera-to-world, e.g. the keyframes a
       robot uploaded at their refined poses) those frames at those poses, identity exposure;
+    - ``novel``: the frames withheld from the mapper (``novel_ids``: never a keyframe, never a training view of any
+      kind) at the pose and exposure the map predicts for them from its training alone, exactly as ``sensor`` renders
+      every frame (:func:`predicted_view`): nothing is fitted on a withheld frame. With ``novel_views`` (frame id →
+      the view the owner robot's map predicts, e.g. to score a fused map) those views; a map without exposure
+      records under ``fit_exposure`` gets each frame's affine exposure fitted on the pixels outside the ROI only
+      (:func:`fit_exposure_outside_roi`, as NeRF-W and 3DGS's ``train_test_exp``), never the pose.
+
+    At a pose fitted to the frame against the map under test (how well a robot could localise against it, and how the
+    map looks from there):
+
     - ``tracked``: every ``track_stride``-th frame at a pose and affine exposure fitted to that frame against the
       frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol;
-    - ``novel``: the frames withheld from the mapper (``novel_ids``: never a keyframe, never a training view of any
-      kind), each at a pose and exposure tracked like ``tracked``'s: what the map renders from views it was not
-      trained on.
+    - ``novel-tracked``: the withheld frames, tracked like ``tracked``'s.
 
     Args:
         mapper: the map to score (not modified). frames: the sequence's frames (ground truth): a list, or a dataset
             (``len`` and indexing; read one frame at a time).
-        roi_fn: frame → (H, W) bool ground-truth ROI mask (the scores' ROI; tracking never sees it).
+        roi_fn: frame → (H, W) bool ground-truth ROI mask (the scores' ROI; tracking never sees it, an exposure fit
+            only its complement).
         protocols: which of :data:`PROTOCOLS` to score. track_iters: the tracker's Adam steps per frame.
         track_stride: ``tracked`` scores every this many frames. keyframe_ids / keyframe_poses: see ``keyframes``.
         novel_ids: frame ids withheld from the mapper (:func:`withheld_indices`, :class:`FrameSubset`); needed by
-            ``novel``.
+            ``novel`` and ``novel-tracked``.
         views: frame id → a :class:`TrackedView` fitted against another map (e.g. the robot's own map, when scoring a
-            team map at the views its robot localises): ``tracked`` and ``novel`` frames with an entry are rendered
-            at its pose and exposure instead of being tracked against this map. Both maps are then scored at the
-            same views: their difference is what they render, not how well each one tracks.
-        record: filled with frame id → the :class:`TrackedView` of every ``tracked`` and ``novel`` frame scored (the
-            ``views`` of another map's scoring).
+            team map at the views its robot localises): ``tracked`` and ``novel-tracked`` frames with an entry are
+            rendered at its pose and exposure instead of being tracked against this map. Both maps are then scored at
+            the same views: their difference is what they render, not how well each one tracks.
+        record / predicted: filled with frame id → the :class:`TrackedView` of every ``tracked`` and ``novel-tracked``
+            frame scored (the ``views`` of another map's scoring) / every ``novel`` frame.
+        novel_views: frame id → the view to render a ``novel`` frame at (another map's :func:`predicted_view`).
+        fit_exposure: ``novel`` frames without a ``novel_views`` entry, on a map without exposure records: fit the
+            affine exposure outside the ROI (a fused map); False: the map's prediction as is (identity exposure).
     Returns:
-        ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}``: means over the scored frames
-        (ROI PSNR over those that show the ROI; None when none does).
+        ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames", "roi_psnr_per_frame",
+        "psnr_per_frame"}}``: means over the scored frames (ROI PSNR over those that show the ROI; None when none
+        does) and each frame's figure (frame id → dB; the pairs of every paired gain,
+        :func:`gausslite.stats.paired_gain`); ``novel`` also carries ``"pose": "predicted"``
+        (:func:`current_protocol_name`).
     Raises:
-        ValueError: an unknown protocol, ``track_stride`` < 1, ``novel`` without ``novel_ids``, or a withheld frame
-            that the mapper trained on (a keyframe or a stored ROI view: the bookkeeping is broken).
+        ValueError: an unknown protocol, ``track_stride`` < 1, ``novel`` / ``novel-tracked`` without ``novel_ids``,
+            or a withheld frame that the mapper trained on (a keyframe or a stored ROI view: the bookkeeping is
+            broken).
     """
-    bad = [p for p in protocols if p not in PROTOCOLS]
-    if bad or track_stride < 1:
-        raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
-                         f"track_stride must be >= 1, got {track_stride}")
+    _check_protocols(protocols, track_stride)
     novel = {int(i) for i in novel_ids} if novel_ids is not None else None
-    if "novel" in protocols and novel is None:
-        raise ValueError("the novel protocol needs the withheld frames' ids (novel_ids)")
+    if any(p in WITHHELD_PROTOCOLS for p in protocols) and novel is None:
+        raise ValueError("the novel and novel-tracked protocols need the withheld frames' ids (novel_ids)")
     if novel:
         trained = {int(s.frame_id) for s in mapper.stats} | set(mapper.roi_views.frame_ids)
         leaked = sorted(novel & trained)
@@ -362,22 +584,27 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         # one frame in memory at a time (``frames`` may be a dataset that loads each on access)
         if protocol == "keyframes":
             chosen = (fr for fr in (frames[i] for i in range(n)) if int(fr.frame_id) in kf_ids)
-        elif protocol == "novel":
+        elif protocol in WITHHELD_PROTOCOLS:
             chosen = (fr for fr in (frames[i] for i in range(n)) if int(fr.frame_id) in novel)
         else:
             chosen = (frames[i] for i in range(0, n, track_stride if protocol == "tracked" else 1))
-        ps, ss, rps = [], [], []
+        given_of = (novel_views if protocol == "novel" else views if protocol in TRACKED_PROTOCOLS else None) or {}
+        rec = predicted if protocol == "novel" else record if protocol in TRACKED_PROTOCOLS else None
+        out = _empty_result(protocol)
+        ss = []
         for fr in chosen:
-            given = None if views is None or protocol not in ("tracked", "novel") else views.get(int(fr.frame_id))
-            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, poses.get(int(fr.frame_id)), given,
-                                            record), fr, roi_fn(fr))
-            ps.append(s.psnr)
+            fid = int(fr.frame_id)
+            roi = roi_fn(fr)
+            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, roi, poses.get(fid), given_of.get(fid),
+                                            rec, fit_exposure), fr, roi)
+            out["psnr_per_frame"][fid] = s.psnr
             ss.append(s.ssim)
             if not math.isnan(s.roi_psnr):
-                rps.append(s.roi_psnr)
-        res[protocol] = {"roi_psnr": float(np.mean(rps)) if rps else None,
-                         "psnr": float(np.mean(ps)) if ps else None, "ssim": float(np.mean(ss)) if ss else None,
-                         "frames_scored": len(ps), "roi_frames": len(rps)}
+                out["roi_psnr_per_frame"][fid] = s.roi_psnr
+        rps, ps = list(out["roi_psnr_per_frame"].values()), list(out["psnr_per_frame"].values())
+        out.update(roi_psnr=float(np.mean(rps)) if rps else None, psnr=float(np.mean(ps)) if ps else None,
+                   ssim=float(np.mean(ss)) if ss else None, frames_scored=len(ps), roi_frames=len(rps))
+        res[protocol] = out
     return res
 
 
@@ -398,36 +625,41 @@ def frozen_mapper(gmap, backend: str = "auto"):
 
 
 def score_map(gmap, frames: Sequence[Frame], roi_fn: Callable[[Frame], np.ndarray],
-              protocols: Sequence[str] = PROTOCOLS[:3], track_iters: int = 30, track_stride: int = 1,
-              keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto",
-              novel_ids: Optional[Iterable[int]] = None, views: Optional[Mapping[int, TrackedView]] = None) -> dict:
+              protocols: Sequence[str] = ("sensor", "keyframes", "tracked"), track_iters: int = 30,
+              track_stride: int = 1, keyframe_poses: Optional[Mapping[int, np.ndarray]] = None, backend: str = "auto",
+              novel_ids: Optional[Iterable[int]] = None, views: Optional[Mapping[int, TrackedView]] = None,
+              novel_views: Optional[Mapping[int, TrackedView]] = None, record: Optional[dict] = None,
+              predicted: Optional[dict] = None) -> dict:
     """Score a frozen map that has no mission of its own (a fused team map) under the scoring protocols, as
     :func:`score_live_map` scores a robot's own map (docs/realtime.md#scoring-protocols):
 
     - ``sensor``: every frame at the sensor's pose (:func:`evaluate_fused`'s figure);
     - ``keyframes``: the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the keyframes the owner
       robot uploaded, at the refined poses they carry), identity exposure; none scored without it;
+    - ``novel``: the frames of ``novel_ids`` (withheld from every robot's mapper) at the pose and exposure the owner
+      robot's map predicts for them (``novel_views``: its :func:`predicted_view` of each, the robot's learned
+      correction and exposure response); a frame without one at the sensor's pose, its affine exposure fitted on
+      the pixels outside the ROI (:func:`fit_exposure_outside_roi`: a fused map keeps no exposure records). Nothing
+      is fitted to the pose;
     - ``tracked``: every ``track_stride``-th frame at the pose and affine exposure :func:`track_view` fits against
       ``gmap`` from the sensor's pose;
-    - ``novel``: the frames of ``novel_ids`` (withheld from every robot's mapper), tracked the same way.
+    - ``novel-tracked``: the frames of ``novel_ids``, tracked the same way.
 
     Args:
         gmap: ``GaussianMap`` (torch, CPU). frames: ground-truth frames. roi_fn: frame → (H, W) bool ROI mask.
-        protocols, track_iters, track_stride, novel_ids, views: as :func:`score_live_map` (``views``: the poses and
-            exposures the robot's own map was tracked at, to score a team map at the robot's views).
+        protocols, track_iters, track_stride, novel_ids, views, record, predicted: as :func:`score_live_map`
+            (``views``: the poses and exposures the robot's own map was tracked at, to score a team map at the
+            robot's views).
+        novel_views: frame id → the owner robot's :func:`predicted_view` of each withheld frame.
         backend: rasterizer backend.
     Returns:
-        ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames"}}`` (None figures for an empty map).
+        as :func:`score_live_map` (None figures and no frames for an empty map).
     Raises:
         ValueError: an unknown protocol or ``track_stride`` < 1.
     """
     if len(gmap) == 0:
-        bad = [p for p in protocols if p not in PROTOCOLS]
-        if bad or track_stride < 1:
-            raise ValueError(f"unknown protocols {bad} (known: {PROTOCOLS})" if bad else
-                             f"track_stride must be >= 1, got {track_stride}")
-        return {p: {"roi_psnr": None, "psnr": None, "ssim": None, "frames_scored": 0, "roi_frames": 0}
-                for p in protocols}
+        _check_protocols(protocols, track_stride)
+        return {p: _empty_result(p) for p in protocols}
     return score_live_map(frozen_mapper(gmap, backend), frames, roi_fn, protocols, track_iters=track_iters,
                           track_stride=track_stride, keyframe_poses=keyframe_poses or {}, novel_ids=novel_ids,
-                          views=views)
+                          views=views, record=record, novel_views=novel_views, predicted=predicted, fit_exposure=True)

@@ -204,7 +204,7 @@ class MissionStatus(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ..., mapping_width: _Optional[int] = ..., mapping_height: _Optional[int] = ..., mapping_downscale: _Optional[float] = ..., resolution_pinned: _Optional[bool] = ..., resolution_predicted_iters: _Optional[float] = ..., resolution_measured_iters: _Optional[float] = ..., resolution_reaches_target: _Optional[bool] = ..., resolution_changes: _Optional[int] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
-    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes", "protocols", "view_bytes", "views_sent", "views_unsent", "tracked_views")
+    __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes", "protocols", "view_bytes", "views_sent", "views_unsent", "tracked_views", "predicted_views")
     class ProtocolsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -233,6 +233,7 @@ class MissionSummary(_message.Message):
     VIEWS_SENT_FIELD_NUMBER: _ClassVar[int]
     VIEWS_UNSENT_FIELD_NUMBER: _ClassVar[int]
     TRACKED_VIEWS_FIELD_NUMBER: _ClassVar[int]
+    PREDICTED_VIEWS_FIELD_NUMBER: _ClassVar[int]
     status: MissionStatus
     final_push_ok: bool
     n_shared: int
@@ -254,7 +255,8 @@ class MissionSummary(_message.Message):
     views_sent: int
     views_unsent: int
     tracked_views: _containers.RepeatedCompositeFieldContainer[TrackedPose]
-    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ..., protocols: _Optional[_Mapping[str, ProtocolScore]] = ..., view_bytes: _Optional[int] = ..., views_sent: _Optional[int] = ..., views_unsent: _Optional[int] = ..., tracked_views: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ...) -> None: ...
+    predicted_views: _containers.RepeatedCompositeFieldContainer[TrackedPose]
+    def __init__(self, status: _Optional[_Union[MissionStatus, _Mapping]] = ..., final_push_ok: _Optional[bool] = ..., n_shared: _Optional[int] = ..., share_pct: _Optional[float] = ..., bytes_on_wire: _Optional[int] = ..., bytes_per_gaussian: _Optional[float] = ..., has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., seconds_per_frame: _Optional[float] = ..., has_roi_psnr_all_frames: _Optional[bool] = ..., roi_psnr_all_frames: _Optional[float] = ..., frames_all: _Optional[int] = ..., total_upload_bytes: _Optional[int] = ..., final_subset_bytes: _Optional[int] = ..., pushes: _Optional[_Iterable[_Union[PushInfo, _Mapping]]] = ..., protocols: _Optional[_Mapping[str, ProtocolScore]] = ..., view_bytes: _Optional[int] = ..., views_sent: _Optional[int] = ..., views_unsent: _Optional[int] = ..., tracked_views: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ..., predicted_views: _Optional[_Iterable[_Union[TrackedPose, _Mapping]]] = ...) -> None: ...
 
 class TrackedPose(_message.Message):
     __slots__ = ("frame_id", "pose", "exposure")
@@ -267,20 +269,29 @@ class TrackedPose(_message.Message):
     def __init__(self, frame_id: _Optional[int] = ..., pose: _Optional[_Union[_common_pb2.Pose, _Mapping]] = ..., exposure: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProtocolScore(_message.Message):
-    __slots__ = ("has_roi_psnr", "roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames")
+    __slots__ = ("has_roi_psnr", "roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames", "roi_psnr_per_frame")
+    class RoiPsnrPerFrameEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: int
+        value: float
+        def __init__(self, key: _Optional[int] = ..., value: _Optional[float] = ...) -> None: ...
     HAS_ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
     ROI_PSNR_FIELD_NUMBER: _ClassVar[int]
     PSNR_FIELD_NUMBER: _ClassVar[int]
     SSIM_FIELD_NUMBER: _ClassVar[int]
     FRAMES_SCORED_FIELD_NUMBER: _ClassVar[int]
     ROI_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    ROI_PSNR_PER_FRAME_FIELD_NUMBER: _ClassVar[int]
     has_roi_psnr: bool
     roi_psnr: float
     psnr: float
     ssim: float
     frames_scored: int
     roi_frames: int
-    def __init__(self, has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., ssim: _Optional[float] = ..., frames_scored: _Optional[int] = ..., roi_frames: _Optional[int] = ...) -> None: ...
+    roi_psnr_per_frame: _containers.ScalarMap[int, float]
+    def __init__(self, has_roi_psnr: _Optional[bool] = ..., roi_psnr: _Optional[float] = ..., psnr: _Optional[float] = ..., ssim: _Optional[float] = ..., frames_scored: _Optional[int] = ..., roi_frames: _Optional[int] = ..., roi_psnr_per_frame: _Optional[_Mapping[int, float]] = ...) -> None: ...
 
 class PushInfo(_message.Message):
     __slots__ = ("version", "n_shared", "n_total", "bytes_sent", "delta", "records", "removed", "frames_mapped", "unchanged")

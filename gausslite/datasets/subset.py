@@ -1,8 +1,10 @@
-"""Frames withheld from a mapper: the ``novel`` scoring protocol's split of a sequence (docs/realtime.md#scoring-protocols).
+"""Frames withheld from a mapper: the split of a sequence of the ``novel`` and ``novel-tracked`` scoring protocols
+(docs/realtime.md#scoring-protocols).
 
 A map is scored on frames that no mapper trained on (MonoGS evaluates non-keyframes; novel-view benchmarks hold
-frames out): every k-th frame of the sequence is withheld from the mapper, in every mode, and scored at a pose and
-exposure tracked against the finished map (:func:`gausslite.evaluation.score_live_map`).
+frames out): every k-th frame of the sequence is withheld from the mapper, in every mode, and scored at the pose and
+exposure the finished map predicts for it (``novel``) and at a pose and exposure tracked against the finished map
+(``novel-tracked``; :func:`gausslite.evaluation.score_live_map`).
 """
 
 from __future__ import annotations

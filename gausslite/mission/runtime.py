@@ -201,12 +201,9 @@ class AgentRuntime:
                                              WorkCost(**config.mapper.work_cost.model_dump()), rc.min_width,
                                              rc.tolerance)
         self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
-        #: frames a replay withheld from the mapper (scoring: novel, novel-tracked)
-        self._novel_ids: Optional[frozenset] = None
-        #: frame id → TrackedView of the tracked / novel-tracked frames of the last scoring (a team map is scored at
-        #: them), and of the novel frames (the pose and exposure this map predicts for each)
-        self.tracked_views: dict = {}
-        self.predicted_views: dict = {}
+        self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (novel, novel-tracked)
+        #: frame id → TrackedView of the tracked / novel-tracked frames, and of the novel ones (predicted), last scored
+        self.tracked_views, self.predicted_views = {}, {}
         self._queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
         self._lock = threading.Lock()
         self._finish_lock = threading.Lock()

@@ -57,8 +57,8 @@ def register(subparsers) -> None:
     p.add_argument("--downscale", type=float, default=None, help="shortcut for agent.downscale")
     p.add_argument("--max-frames", type=int, default=None, help="shortcut for agent.max_frames")
     # Options of the report machinery and the benchmarks work but are not listed by --help (SUPPRESS):
-    # --protocols: the scoring protocols of the own and fused maps, sensor (always), keyframes, tracked, novel (every
-    # 10th frame withheld from the agents; agent.scoring.protocols; default all four, docs/realtime.md)
+    # --protocols: the scoring protocols of the own and fused maps, sensor (always), keyframes, novel, tracked,
+    # novel-tracked (every 10th frame withheld from the agents; agent.scoring.protocols; default all, docs/realtime.md)
     p.add_argument("--protocols", default=None, metavar="P[,P...]", help=argparse.SUPPRESS)
     p.add_argument("--realtime", action="store_true",
                    help="agents replay at the dataset's clock through keyframe ingest (agent.realtime=true), as a "
@@ -174,7 +174,7 @@ def _handle(args: argparse.Namespace) -> int:
             overrides.append(f"{key}={getattr(args, flag)}")
     if args.protocols is not None:
         protos = [q.strip() for q in args.protocols.split(",") if q.strip()]
-        known = ("sensor", "keyframes", "tracked", "novel")
+        known = ("sensor", "keyframes", "novel", "tracked", "novel-tracked")
         if not protos or any(q not in known for q in protos):
             print(f"gausslite sim: error: --protocols {args.protocols!r}: choose among {', '.join(known)}",
                   file=sys.stderr)

@@ -11,7 +11,8 @@ import math
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from gausslite.evaluation import PROTOCOLS
+from gausslite.evaluation import PROTOCOL_QUESTIONS, PROTOCOLS, current_protocols
+from gausslite.stats import fmt_gain, paired_gain, significant
 from gausslite_services.sim.launch import AgentPlan
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -32,7 +33,9 @@ FUSED_HELP = {
 def attach_context_baseline(report: dict, context_report: dict) -> dict:
     """Copy each agent's own-map ROI PSNR of a run mapped with ``mapper.roi_render: context`` (same
     scene and tasks, e.g. ``gausslite sim ... --set mapper.roi_render=context``) into ``report`` as
-    ``own_roi_psnr_context``, and per task ``vote_minus_own_context`` (fused vote ROI PSNR minus it).
+    ``own_roi_psnr_context``, and per task ``vote_minus_own_context`` (fused vote minus it: the mean of the paired
+    per-frame differences of the ``sensor`` protocol, ``vote_minus_own_context_gain`` with its 95 % interval,
+    :func:`gausslite.stats.paired_gain`; None when either side has no per-frame figures).
 
     Raises:
         ValueError: the context run used another roi_render mode, or its agents/tasks differ.
@@ -40,23 +43,50 @@ def attach_context_baseline(report: dict, context_report: dict) -> dict:
     mode = ((context_report.get("settings") or {}).get("mapper") or {}).get("roi_render", "context")
     if mode != "context":
         raise ValueError(f"the context report was mapped with roi_render={mode!r}, not 'context'")
-    ctx = {(a["id"], a["task"]): a.get("roi_psnr") for a in context_report.get("agents", [])}
-    vote = (report.get("fused") or {}).get("vote", {}).get("roi_psnr_per_task", {})
+    ctx = {(a["id"], a["task"]): a for a in context_report.get("agents", [])}
+    vote = _fused_frames(report, "vote", "sensor")
     for a in report["agents"]:
         if (a["id"], a["task"]) not in ctx:
             raise ValueError(f"the context report has no agent {a['id']} on task {a['task']}")
-        a["own_roi_psnr_context"] = ctx[(a["id"], a["task"])]
-        v = vote.get(a["task"])
-        a["vote_minus_own_context"] = (v - a["own_roi_psnr_context"]) if v is not None and a[
-            "own_roi_psnr_context"] is not None else None
+        c = ctx[(a["id"], a["task"])]
+        a["own_roi_psnr_context"] = c.get("roi_psnr")
+        g = _pair(vote.get(a["task"]), own_frames(c, "sensor"))
+        a["vote_minus_own_context_gain"] = g
+        a["vote_minus_own_context"] = None if g is None else g["gain"]
     return report
+
+
+def own_frames(agent: dict, protocol: str) -> Optional[dict]:
+    """Frame id → ROI PSNR (dB) of an agent's own map under ``protocol`` (its report entry's
+    ``protocols[protocol]["roi_psnr_per_frame"]``, the name read as :func:`gausslite.evaluation.current_protocols`
+    reads an older report's); None when the report has none."""
+    v = current_protocols(agent.get("protocols")).get(protocol) or {}
+    return v.get("roi_psnr_per_frame")
+
+
+def _fused_frames(report: dict, key: str, protocol: str) -> Dict[str, dict]:
+    """task → frame id → ROI PSNR (dB) of fused map ``key`` under ``protocol`` (empty when not scored)."""
+    per = current_protocols(((report.get("fused") or {}).get(key) or {}).get("protocols")).get(protocol) or {}
+    return {t: v.get("roi_psnr_per_frame") for t, v in per.items() if v.get("roi_psnr_per_frame") is not None}
+
+
+def _pair(treated: Optional[dict], baseline: Optional[dict]) -> Optional[dict]:
+    """The paired per-frame gain ``treated − baseline`` (:func:`gausslite.stats.paired_gain`), None without figures
+    on either side or without a common frame."""
+    if treated is None or baseline is None:
+        return None
+    g = paired_gain(treated, baseline)
+    return g if g["n"] else None
 
 
 def attach_uniform_baseline(report: dict, baseline: dict) -> dict:
     """Put the own-map figures of a matched uniform run (the same sim with ``mapper.mode=uniform``: same scene,
     tasks, keyframe budget and Gaussian budget) beside each agent of ``report``: ``uniform_roi_psnr``,
-    ``uniform_roi_psnr_all_frames`` (realtime runs), ``uniform_psnr``, ``uniform_n_gaussians`` and
-    ``task_gain_db`` (this agent's ROI PSNR minus uniform's, over every frame for realtime runs).
+    ``uniform_roi_psnr_all_frames`` (realtime runs), ``uniform_psnr``, ``uniform_n_gaussians``, ``uniform_protocols``
+    (uniform's ROI PSNR per protocol) and the gains GaussLite − uniform as means of paired per-frame differences with
+    their 95 % interval (:func:`gausslite.stats.paired_gain`): ``gain_by_protocol`` (protocol → gain), and
+    ``task_gain_db`` / ``task_gain``, the ``sensor`` protocol's (every frame). A gain is None where either report has
+    no per-frame figures.
 
     Raises:
         ValueError: the baseline was not mapped in uniform mode, or its agents/tasks differ.
@@ -73,9 +103,12 @@ def attach_uniform_baseline(report: dict, baseline: dict) -> dict:
         a["uniform_roi_psnr_all_frames"] = b.get("roi_psnr_all_frames")
         a["uniform_psnr"] = b.get("psnr")
         a["uniform_n_gaussians"] = b.get("n_gaussians")
-        own, uni = ((a.get("roi_psnr_all_frames"), b.get("roi_psnr_all_frames")) if report.get("realtime")
-                    else (a.get("roi_psnr"), b.get("roi_psnr")))
-        a["task_gain_db"] = (own - uni) if own is not None and uni is not None else None
+        uni = current_protocols(b.get("protocols"))
+        a["uniform_protocols"] = {q: (v or {}).get("roi_psnr") for q, v in uni.items()}
+        a["gain_by_protocol"] = {q: _pair(own_frames(a, q), own_frames(b, q))
+                                 for q in current_protocols(a.get("protocols")) if q in uni}
+        a["task_gain"] = a["gain_by_protocol"].get("sensor")
+        a["task_gain_db"] = None if a["task_gain"] is None else a["task_gain"]["gain"]
     report["uniform_baseline"] = True
     return report
 
@@ -162,30 +195,37 @@ def agent_report(p: AgentPlan, s, st: dict, offline: Optional[Dict[str, Optional
         "offline_roi_psnr_all_frames": (offline or {}).get(p.name),
         "protocols": {q: {"roi_psnr": v.roi_psnr if v.has_roi_psnr else None, "psnr": v.psnr,
                           "ssim": v.ssim, "frames_scored": int(v.frames_scored),
-                          "roi_frames": int(v.roi_frames)}
+                          "roi_frames": int(v.roi_frames),
+                          "roi_psnr_per_frame": {int(k): float(x) for k, x in
+                                                 sorted(getattr(v, "roi_psnr_per_frame", {}).items())},
+                          **({"pose": "predicted"} if q == "novel" else {})}
                       for q, v in sorted(s.protocols.items(), key=lambda kv: _protocol_order(kv[0]))},
     }
 
 
 def fused_minus_own(report: dict) -> None:
-    """Each fused map's ``minus_own[task]``: its ROI PSNR minus the task's robot's own map (every-frame figure in
-    realtime runs, else the mapped frames')."""
-    own = {a["task"]: a.get("roi_psnr_all_frames") if report["realtime"] else a.get("roi_psnr")
-           for a in report["agents"]}
-    for f in report["fused"].values():
-        f["minus_own"] = {t: (v - own[t]) if v is not None and own.get(t) is not None else None
-                          for t, v in f["roi_psnr_per_task"].items()}
+    """Each fused map's ``minus_own[task]``: its ROI PSNR minus the task's robot's own map, the mean of the paired
+    per-frame differences under the ``sensor`` protocol (every frame at the sensor's pose; the own map's figures are
+    its Finish summary's), and ``minus_own_gain[task]`` with its 95 % interval (:func:`gausslite.stats.paired_gain`);
+    None where either map has no per-frame figures."""
+    own = {a["task"]: own_frames(a, "sensor") for a in report["agents"]}
+    for key, f in report["fused"].items():
+        fused = _fused_frames(report, key, "sensor")
+        f["minus_own_gain"] = {t: _pair(fused.get(t), own.get(t)) for t in f["roi_psnr_per_task"]}
+        f["minus_own"] = {t: None if g is None else g["gain"] for t, g in f["minus_own_gain"].items()}
 
 
 def protocol_minus_own(report: dict) -> None:
     """Each fused map's ``protocols[q][task]["minus_own"]``: its ROI PSNR minus the task's robot's own map under the
-    same protocol (the agent's ``protocols[q]``)."""
-    own = {a["task"]: a.get("protocols") or {} for a in report["agents"]}
+    same protocol (the agent's ``protocols[q]``; ``q@own``: the own map's ``q``), the mean of the paired per-frame
+    differences, and ``["minus_own_gain"]`` with its 95 % interval (:func:`gausslite.stats.paired_gain`)."""
     for f in (report.get("fused") or {}).values():
         for q, per_task in (f.get("protocols") or {}).items():
             for t, v in per_task.items():
-                o = (own.get(t, {}).get(q.split("@")[0]) or {}).get("roi_psnr")
-                v["minus_own"] = (v["roi_psnr"] - o) if v.get("roi_psnr") is not None and o is not None else None
+                a = next((a for a in report["agents"] if a["task"] == t), {})
+                g = _pair(v.get("roi_psnr_per_frame"), own_frames(a, q.split("@")[0]))
+                v["minus_own_gain"] = g
+                v["minus_own"] = None if g is None else g["gain"]
 
 
 def write_report(report: dict, out: Path) -> None:
@@ -279,14 +319,18 @@ def fmt(v, nd=2) -> str:
 
 
 def write_markdown(report: dict, path: Path) -> None:
-    """Write the human-readable report (tables + render links)."""
+    """Write the human-readable report: the answer first (each robot's own map, the team map a robot can load now,
+    the bytes shared, one picture: :func:`_answer_lines`), then the protocols × the maps, then the details (agents,
+    pushes, the fused map over time, live figures, baselines, every fused map, what covers each ROI, the renders)."""
     tasks = [a["task"] for a in report["agents"]]
     lines = ["# GaussLite two-agent simulation", "",
-             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time.", "",
-             "## Agents (own map, own task)", "",
-             "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian | pushes | "
-             "total upload bytes | final subset bytes | upload / final |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time."]
+    lines += _answer_lines(report)
+    lines += _protocol_lines(report)
+    lines += ["", "## Agents (own map, own task)", "",
+              "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian | pushes | "
+              "total upload bytes | final subset bytes | upload / final |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for a in report["agents"]:
         lines.append(f"| {a['id']} | {a['task']} | {fmt(a['roi_psnr'])} | {a['n_gaussians']} | {a['n_shared']} | "
                      f"{fmt(a['share_pct'])} | {fmt(a['bytes_per_gaussian'])} | {a.get('pushes', 0)} | "
@@ -294,13 +338,14 @@ def write_markdown(report: dict, path: Path) -> None:
                      f"{fmt(a.get('upload_ratio'))} |")
     if any("own_roi_psnr_context" in a for a in report["agents"]):
         lines += ["", "Own map with `roi_render: context` (this run's agents, or a run of the same sim mapped that "
-                  "way) against the fused vote map:", "",
+                  "way) against the fused vote map (`sensor`; gain: mean of the paired per-frame differences "
+                  "[95 % interval]):", "",
                   "| agent | task | own ROI PSNR, deployed | own ROI PSNR, context | fused vote | vote − own context |",
                   "|---|---|---|---|---|---|"]
         vote = report["fused"]["vote"]["roi_psnr_per_task"]
         for a in report["agents"]:
             lines.append(f"| {a['id']} | {a['task']} | {fmt(a['roi_psnr'])} | {fmt(a.get('own_roi_psnr_context'))} | "
-                         f"{fmt(vote.get(a['task']))} | {fmt(a.get('vote_minus_own_context'))} |")
+                         f"{fmt(vote.get(a['task']))} | {fmt_gain(a.get('vote_minus_own_context_gain'))} |")
     lines += ["", "Pushes (bytes sent per push, `Δ` = delta push; share of the map when pushed):", ""]
     for a in report["agents"]:
         cells = ", ".join(f"{q['bytes_sent']} B{' Δ' if q['delta'] else ''} @ {q['share_pct']:.1f} %"
@@ -311,23 +356,7 @@ def write_markdown(report: dict, path: Path) -> None:
     lines += _timeline_lines(report)
     lines += _live_lines(report)
     lines += _baseline_lines(report)
-    lines += ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
-              "Each cell: the fused map's ROI PSNR, and in brackets its difference to the robot's own map.", "",
-              "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
-              "|---|" + "---|" * (len(tasks) + 3)]
-    for key in FUSED_KEYS:
-        f = report["fused"].get(key)
-        if f is None:
-            continue
-        mo = f.get("minus_own") or {}
-        per = " | ".join(fmt(f["roi_psnr_per_task"].get(t)) + (f" ({mo[t]:+.2f})" if mo.get(t) is not None else "")
-                         for t in tasks)
-        lines.append(f"| {key} | {per} | {fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {fmt(f['seconds'])} |")
-    lines += [""] + [f"- `{k}`: {FUSED_HELP[k]}" for k in FUSED_KEYS if k in report["fused"]]
-    lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
-              f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
-              f"{report['settings']['refine_iters']} iterations."]
-    lines += _protocol_lines(report)
+    lines += _fused_lines(report, tasks)
     lines += _cover_lines(report)
     lines += ["", "## Renders (render | ground truth | task ROI)", ""]
     for r in report.get("renders", []):
@@ -337,21 +366,127 @@ def write_markdown(report: dict, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+#: the team maps a robot can load now, in the order the answer prefers them (report key, how it is asked for)
+LOADABLE = (("team_map", "`Fuse(team_map=true)`"), ("for_robot", "`Fuse(for_agent=…)`"))
+
+
+def lead_protocol(report: dict) -> str:
+    """The protocol the report leads with: ``novel`` (the map at the pose a robot would use, on views no map trained
+    on) when the agents scored withheld frames, else ``sensor``."""
+    for a in report["agents"]:
+        v = current_protocols(a.get("protocols")).get("novel") or {}
+        if v.get("frames_scored"):
+            return "novel"
+    return "sensor"
+
+
+def _loadable_cell(report: dict, key: str, q: str, task: str) -> tuple:
+    """(ROI PSNR, gain over the own map) cells of loadable map ``key`` on ``task`` under protocol ``q``."""
+    v = ((((report.get("fused") or {}).get(key) or {}).get("protocols") or {}).get(q) or {}).get(task) or {}
+    if not v:
+        return "–", "–"
+    return fmt(v.get("roi_psnr")), fmt_gain(v.get("minus_own_gain"))
+
+
+def _answer_lines(report: dict) -> List[str]:
+    """The report's lead: per robot its own map, the team map it can load now (the served team map and the one made
+    for it) with the paired gain over its own map, the tracked figure beside it, the bytes it sent; and one picture
+    (:func:`_telling_render`)."""
+    q = lead_protocol(report)
+    tracked = "novel-tracked@own" if q == "novel" else "tracked@own"
+    keys = [(k, how) for k, how in LOADABLE if k in (report.get("fused") or {})]
+    question = PROTOCOL_QUESTIONS[q]
+    lines = ["", "## The answer", "",
+             f"ROI PSNR (dB) on each robot's task under `{q}`: {question}"
+             + ("" if q == "novel" else " (no frame was withheld from the mappers: `novel` has nothing to score)")
+             + ". Gains: mean of the paired per-frame differences [95 % interval]. "
+             f"`{tracked}`: the same frames at the pose the robot tracked against its own map: how the team map looks "
+             "where the robot localises. Bytes: every subset push and the views sent for the refinement.", "",
+             "| robot | task | own map | " + "".join(f"{k} ({how}) | {k} − own | " for k, how in keys)
+             + (f"{keys[0][0]} − own, `{tracked}` | " if keys else "") + "bytes sent (subsets + views) |",
+             "|---|---|---|" + "---|---|" * len(keys) + ("---|" if keys else "") + "---|"]
+    for a in report["agents"]:
+        own = (current_protocols(a.get("protocols")).get(q) or {}).get("roi_psnr")
+        own = own if own is not None or q != "sensor" else a.get("roi_psnr_all_frames")
+        cells = [c for k, _ in keys for c in _loadable_cell(report, k, q, a["task"])]
+        if keys:
+            cells.append(_loadable_cell(report, keys[0][0], tracked, a["task"])[1])
+        sent = int(a.get("total_upload_bytes") or 0) + int(a.get("view_bytes") or 0)
+        lines.append(f"| {a['id']} | {a['task']} | {fmt(own)} | " + "".join(f"{c} | " for c in cells) + f"{sent:,} |")
+    pic = _telling_render(report, q)
+    if pic is not None:
+        r, why = pic
+        lines += ["", f"![{r['fused']} {r['task']}]({r['path']})", "",
+                  f"*{r['fused']} on `{r['task']}`, frame {r['frame_id']} (render | ground truth | ROI): {why}.*"]
+    return lines
+
+
+def _telling_render(report: dict, q: str) -> Optional[tuple]:
+    """(render entry, why) of the render the answer shows: the first loadable team map's render on the task where it
+    differs most from the robot's own map under ``q`` (either way); None without such a render."""
+    renders = report.get("renders") or []
+    for key, _ in LOADABLE:
+        per = ((((report.get("fused") or {}).get(key) or {}).get("protocols") or {}).get(q) or {})
+        cands = [r for r in renders if r["fused"] == key]
+        if not cands:
+            continue
+        gain = {t: (v.get("minus_own") if v else None) for t, v in per.items()}
+
+        def size(r):
+            g = gain.get(r["task"])
+            return -1.0 if g is None else abs(g)
+
+        r = max(cands, key=size)
+        g = gain.get(r["task"])
+        why = ("the task where the team map differs most from the robot's own map "
+               f"({g:+.2f} dB under `{q}`)" if g is not None else "the team map a robot loads now")
+        return r, why
+    return None
+
+
+def _fused_lines(report: dict, tasks: List[str]) -> List[str]:
+    """Markdown of every fused map's ROI PSNR per task (``sensor``), with its paired gain over the own map."""
+    lines = ["", "## Fused maps: ROI PSNR (dB) on each task's ROI", "",
+             "Each cell: the fused map's ROI PSNR over every frame at the sensor's pose (`sensor`), and in brackets its "
+             "gain over the robot's own map: the mean of the paired per-frame differences [95 % interval].", "",
+             "| fused map | " + " | ".join(tasks) + " | mean | Gaussians | seconds |",
+             "|---|" + "---|" * (len(tasks) + 3)]
+    for key in FUSED_KEYS:
+        f = report["fused"].get(key)
+        if f is None:
+            continue
+        mo = f.get("minus_own_gain") or {}
+        per = " | ".join(fmt(f["roi_psnr_per_task"].get(t)) + (f" ({fmt_gain(mo[t])})" if mo.get(t) else "")
+                         for t in tasks)
+        lines.append(f"| {key} | {per} | {fmt(f['roi_psnr_mean'])} | {f['n_gaussians']} | {fmt(f['seconds'])} |")
+    lines += [""] + [f"- `{k}`: {FUSED_HELP[k]}" for k in FUSED_KEYS if k in report["fused"]]
+    lines += [f"- vote settings: δ = {report['settings']['voxel_size']} m, each voxel contested over its neighbourhood "
+              f"of radius {report['settings'].get('contest_radius', 0)} voxels; refinement: "
+              f"{report['settings']['refine_iters']} iterations."]
+    return lines
+
+
 def _baseline_lines(report: dict) -> List[str]:
-    """Markdown of the matched uniform baseline (``gausslite sim --baseline uniform``)."""
+    """Markdown of the matched uniform baseline (``gausslite sim --baseline uniform``): per agent and protocol both
+    maps' ROI PSNR and the paired per-frame gain."""
     if not report.get("uniform_baseline"):
         return []
-    col = "ROI PSNR, all frames" if report.get("realtime") else "ROI PSNR, mapped frames"
+    names = sorted({q for a in report["agents"] for q in (a.get("gain_by_protocol") or {})}, key=_protocol_order)
     lines = ["", "## What the task buys: GaussLite against matched uniform agents", "",
-             f"| agent | task | GaussLite {col} | uniform {col} | gain (dB) | GaussLite PSNR | uniform PSNR | "
-             "Gaussians (GaussLite / uniform) |", "|---|---|---|---|---|---|---|---|"]
+             "ROI PSNR (dB) of each robot's own map under each protocol, GaussLite / uniform, and the gain: the mean of "
+             "the paired per-frame differences [95 % interval].", "",
+             "| agent | task | protocol | GaussLite | uniform | gain (dB) |", "|---|---|---|---|---|---|"]
     for a in report["agents"]:
-        own = a.get("roi_psnr_all_frames") if report.get("realtime") else a.get("roi_psnr")
-        uni = a.get("uniform_roi_psnr_all_frames") if report.get("realtime") else a.get("uniform_roi_psnr")
-        lines.append(f"| {a['id']} | {a['task']} | {fmt(own)} | {fmt(uni)} | {fmt(a.get('task_gain_db'))} | "
-                     f"{fmt(a.get('psnr'))} | {fmt(a.get('uniform_psnr'))} | {a['n_gaussians']} / "
-                     f"{a.get('uniform_n_gaussians', '–')} |")
-    lines += ["", "The uniform agents ran the same sim with `mapper.mode=uniform` (same scene, keyframe rule, keyframe "
+        own = current_protocols(a.get("protocols"))
+        for q in names or ["sensor"]:
+            lines.append(f"| {a['id']} | {a['task']} | {q} | {fmt((own.get(q) or {}).get('roi_psnr'))} | "
+                         f"{fmt((a.get('uniform_protocols') or {}).get(q))} | "
+                         f"{fmt_gain((a.get('gain_by_protocol') or {}).get(q))} |")
+    lines += ["", "Full-image PSNR, GaussLite / uniform: " + "; ".join(
+        f"{a['id']} {fmt(a.get('psnr'))} / {fmt(a.get('uniform_psnr'))}" for a in report["agents"])
+              + ". Gaussians: " + "; ".join(f"{a['id']} {a['n_gaussians']} / {a.get('uniform_n_gaussians', '–')}"
+                                            for a in report["agents"]) + ".",
+              "", "The uniform agents ran the same sim with `mapper.mode=uniform` (same scene, keyframe rule, keyframe "
               "budget and Gaussian budget; they share nothing). `docs/realtime.md` has the budget sweep."]
     return lines
 
@@ -414,45 +549,61 @@ def _timeline_lines(report: dict) -> List[str]:
 
 
 def _protocol_lines(report: dict) -> List[str]:
-    """Markdown of the own and fused maps under each scoring protocol (docs/realtime.md#scoring-protocols)."""
+    """Markdown of the own and fused maps under each scoring protocol (docs/realtime.md#scoring-protocols): the
+    protocols × the maps, each fused cell with its paired per-frame gain over the robot's own map, and what each
+    protocol answers."""
     agents = report["agents"]
-    names = sorted(dict.fromkeys(q for a in agents for q in (a.get("protocols") or {})), key=_protocol_order)
+    names = sorted(dict.fromkeys(q for a in agents for q in current_protocols(a.get("protocols"))),
+                   key=_protocol_order)
     if not names:
         return []
     tasks = [a["task"] for a in agents]
     scoring = (report.get("settings") or {}).get("scoring") or {}
-    stride = int(scoring.get("track_stride", 5))
-    novel = (f"; `novel`: {_every(int(scoring.get('novel_every', 10)))} withheld from every robot's mapper, at a "
-             "pose fitted the same way: what no map trained on" if "novel" in names else "")
-    lines = ["", "## Own and fused maps under each scoring protocol", "",
-             "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its difference to the robot's own map under "
-             "the same protocol. `sensor`: every frame at the sensor's pose (the figures above); `keyframes`: the own "
-             "map on its keyframes at their refined pose and exposure, a fused map on the keyframes the robot uploaded "
-             f"at the refined poses they carry; `tracked`: {_every(stride)} at a pose and exposure fitted against the "
-             f"map{novel}; `tracked@own`, `novel@own`: a fused map at the pose and exposure those frames were tracked at on "
-             "the robot's own map, so both maps are scored at the same views (docs/realtime.md#scoring-protocols).", "",
-             "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
-    at_own = [f"{q}@own" for q in names if any(f"{q}@own" in (f.get("protocols") or {})
-                                                for f in (report.get("fused") or {}).values())]
+    stride, every = int(scoring.get("track_stride", 5)), int(scoring.get("novel_every", 10))
+    fused = report.get("fused") or {}
+    at_own = [f"{q}@own" for q in names if any(f"{q}@own" in (f.get("protocols") or {}) for f in fused.values())]
+    which = {"tracked": f"{_every(stride)}", "novel": f"{_every(every)}, withheld from every robot's mapper",
+             "novel-tracked": "the withheld frames"}
+    lines = ["", "## The protocols × the maps", "",
+             "ROI PSNR (dB) on each task's ROI; each fused cell in brackets: its gain over the robot's own map under "
+             "the same protocol, the mean of the paired per-frame differences [95 % interval]. What each protocol "
+             "answers (docs/realtime.md#scoring-protocols):", ""]
+    lines += [f"- `{q}`" + (f" ({which[q]})" if q in which else "") + f": {PROTOCOL_QUESTIONS.get(q, q)}."
+              for q in names]
+    lines += ["- a fused map under `keyframes`: the keyframes the robot uploaded, at the refined poses they carry; "
+              "under `novel`: at the pose and exposure the robot's own map predicts (a robot loads the team map and "
+              "uses it at its own pose); under `tracked` / `novel-tracked`: tracked against the fused map itself."]
+    if at_own:
+        lines += ["- " + ", ".join(f"`{q}`" for q in at_own) + ": a fused map at the pose and exposure the robot "
+                  "tracked those frames at on its own map, so both maps are scored at the same views: where the robot "
+                  "localises, how the team map looks."]
+    lines += ["", "| protocol | map | " + " | ".join(tasks) + " |", "|---|---|" + "---|" * len(tasks)]
     for q in [*names, *at_own]:
-        own = {a["task"]: (a.get("protocols") or {}).get(q.split("@")[0], {}) for a in agents}
+        own = {a["task"]: current_protocols(a.get("protocols")).get(q.split("@")[0]) or {} for a in agents}
         lines.append(f"| {q} | own | " + " | ".join(
-            f"{fmt(own[t].get('roi_psnr'))} ({own[t].get('frames_scored', 0)} frames)" for t in tasks) + " |")
+            f"{fmt(own[t].get('roi_psnr'))} ({_frames(own[t].get('frames_scored', 0))})" for t in tasks) + " |")
         for key in FUSED_KEYS:
-            per = ((report["fused"].get(key) or {}).get("protocols") or {}).get(q)
+            per = current_protocols((fused.get(key) or {}).get("protocols")).get(q)
             if not per:
                 continue
             cells = []
             for t in tasks:
                 v = per.get(t) or {}
-                mo = v.get("minus_own")
-                cells.append(fmt(v.get("roi_psnr")) + (f" ({mo:+.2f})" if mo is not None else ""))
+                g = v.get("minus_own_gain")
+                cells.append(fmt(v.get("roi_psnr")) + (f" ({fmt_gain(g)}{'*' if significant(g) else ''})" if g else ""))
             lines.append(f"| {q} | {key} | " + " | ".join(cells) + " |")
+    lines += ["", "\\* the interval excludes zero."]
     return lines
 
 
+def _frames(n: int) -> str:
+    """"1 frame", "3 frames"."""
+    return f"{n} frame" + ("" if n == 1 else "s")
+
+
 def _protocol_order(name: str) -> int:
-    """Report order of the scoring protocols (``sensor``, ``keyframes``, ``tracked``, ``novel``)."""
+    """Report order of the scoring protocols (:data:`gausslite.evaluation.PROTOCOLS`: ``sensor``, ``keyframes``,
+    ``novel``, ``tracked``, ``novel-tracked``)."""
     return PROTOCOLS.index(name) if name in PROTOCOLS else len(PROTOCOLS)
 
 

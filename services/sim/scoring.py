@@ -20,7 +20,7 @@ import numpy as np
 
 from gausslite.config import GaussLiteConfig
 from gausslite.datasets import load_dataset, task_roi
-from gausslite.evaluation import TrackedView, evaluate_fused, render_map, score_map, side_by_side, withheld_indices
+from gausslite.evaluation import TrackedView, render_map, score_map, side_by_side, withheld_indices
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mission.config import AgentConfig
@@ -41,51 +41,76 @@ def fuse_settings(cfg: GaussLiteConfig, realtime: bool = False) -> dict:
     return cfg.sim.fuse.settings(realtime)
 
 
-#: the protocols a team map is also scored under at its robot's own views: ``tracked@own`` and ``novel@own``
-AT_OWN = ("tracked", "novel")
+#: the protocols a team map is also scored under at its robot's own tracked views: ``tracked@own`` and
+#: ``novel-tracked@own`` (``novel`` scores a team map at its robot's predicted views already)
+AT_OWN = ("tracked", "novel-tracked")
+
+
+def _views(summary, field: str) -> Dict[int, TrackedView]:
+    return {int(t.frame_id): TrackedView(np.asarray(t.pose.c2w, np.float64).reshape(4, 4),
+                                         np.asarray(t.exposure, np.float64), 0.0, 0.0, 0.0, 0)
+            for t in getattr(summary, field, ())}
 
 
 def own_views(summary) -> Dict[int, TrackedView]:
-    """frame id → the :class:`gausslite.evaluation.TrackedView` (pose and exposure) each ``tracked`` / ``novel`` frame
-    was scored at on the robot's own map, from its Finish summary (``MissionSummary.tracked_views``)."""
-    return {int(t.frame_id): TrackedView(np.asarray(t.pose.c2w, np.float64).reshape(4, 4),
-                                         np.asarray(t.exposure, np.float64), 0.0, 0.0, 0.0, 0)
-            for t in getattr(summary, "tracked_views", ())}
+    """frame id → the :class:`gausslite.evaluation.TrackedView` (pose and exposure) each ``tracked`` /
+    ``novel-tracked`` frame was scored at on the robot's own map, tracked against it, from its Finish summary
+    (``MissionSummary.tracked_views``)."""
+    return _views(summary, "tracked_views")
 
 
-def fused_protocols(gmap, frames: list, annotations, task_id: str, sensor_roi_psnr: Optional[float], scoring,
-                    keyframe_poses: Dict[int, np.ndarray], backend: str = "auto",
-                    views: Optional[Dict[int, TrackedView]] = None) -> dict:
+def predicted_views(summary) -> Dict[int, TrackedView]:
+    """frame id → the :class:`gausslite.evaluation.TrackedView` each ``novel`` frame was scored at on the robot's own
+    map: the pose and exposure its map predicts from its training alone (the given pose with the robot's learned
+    correction, the exposure between its keyframes), from its Finish summary (``MissionSummary.predicted_views``);
+    empty for an agent that sends none (a fused map is then scored at the sensor's pose, its exposure fitted outside
+    the ROI)."""
+    return _views(summary, "predicted_views")
+
+
+def _entry(q: str, v: dict) -> dict:
+    """A protocol's figures as the report keeps them (ROI PSNR, frames, each frame's ROI PSNR; ``novel``'s pose)."""
+    out = {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"],
+           "roi_psnr_per_frame": dict(v.get("roi_psnr_per_frame") or {})}
+    if q.split("@")[0] == "novel":
+        out["pose"] = "predicted"
+    return out
+
+
+def fused_protocols(gmap, frames: list, annotations, task_id: str, scoring, keyframe_poses: Dict[int, np.ndarray],
+                    backend: str = "auto", views: Optional[Dict[int, TrackedView]] = None,
+                    novel_views: Optional[Dict[int, TrackedView]] = None) -> dict:
     """One fused map's figures on one task under the scoring protocols of ``scoring`` (a
     :class:`gausslite.mission.config.ScoringConfig`), as its robot's own map is scored
-    (docs/realtime.md#scoring-protocols): ``sensor`` is ``sensor_roi_psnr`` (:func:`evaluate_fused` over every frame
-    at the sensor's pose); ``keyframes`` the frames of ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the
-    keyframes the task's robot uploaded, at the refined poses they carry), ``tracked`` every ``track_stride``-th
-    frame at a pose and exposure fitted against the fused map from the sensor's pose, ``novel`` the frames every
-    agent's replay withheld (every ``novel_every``-th of the sequence, :func:`gausslite.evaluation.withheld_indices`)
-    fitted the same way (:func:`gausslite.evaluation.score_map`). With ``views`` (:func:`own_views`), ``tracked@own`` and
-    ``novel@own`` score the same frames at the pose and exposure they were tracked at on the robot's own map: the
-    fused map and the own map at the same views, so their difference is what they render, not how well each tracks
-    (a team map holds ROI subsets only, and a partial map tracks worse; docs/realtime.md#scoring-protocols).
+    (docs/realtime.md#scoring-protocols; :func:`gausslite.evaluation.score_map`): ``sensor`` every frame at the
+    sensor's pose (:func:`gausslite.evaluation.evaluate_fused`'s figure); ``keyframes`` the frames of
+    ``keyframe_poses`` (frame id → (4, 4) camera-to-world: the keyframes the task's robot uploaded, at the refined
+    poses they carry); ``novel`` the frames
+    every agent's replay withheld (every ``novel_every``-th of the sequence,
+    :func:`gausslite.evaluation.withheld_indices`) at the pose and exposure the task's robot predicts for them
+    (``novel_views``, :func:`predicted_views`: a robot loads the team map and uses it at its own SLAM pose with its
+    learned correction), nothing fitted; ``tracked`` / ``novel-tracked`` every ``track_stride``-th / every withheld
+    frame at a pose and exposure fitted against the fused map from the sensor's pose. With ``views``
+    (:func:`own_views`), ``tracked@own`` and ``novel-tracked@own`` score the same frames at the pose and exposure they
+    were tracked at on the robot's own map: both maps at the same views, so their difference is what they render, not
+    how well each tracks (a team map holds ROI subsets only, and a partial map tracks worse).
 
     Returns:
-        ``{protocol: {"roi_psnr": dB or None, "frames_scored": n}}``.
+        ``{protocol: {"roi_psnr": dB or None, "frames_scored": n, "roi_psnr_per_frame": {frame id: dB}}}``
+        (``novel`` with ``"pose": "predicted"``).
     """
-    rest = [q for q in scoring.chosen() if q != "sensor"]
-    out = {"sensor": {"roi_psnr": sensor_roi_psnr, "frames_scored": len(frames)}}
-    novel = ([int(frames[i].frame_id) for i in withheld_indices(len(frames), scoring.novel_every)]
-             if "novel" in rest else None)
-    if rest:
-        res = score_map(gmap, frames, task_roi(annotations, task_id),
-                        rest, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
-                        keyframe_poses=keyframe_poses, backend=backend, novel_ids=novel)
-        out.update({q: {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]} for q, v in res.items()})
-    at_own = [q for q in rest if q in AT_OWN]
+    chosen = list(scoring.chosen())
+    withheld = any(q in ("novel", "novel-tracked") for q in chosen)
+    novel = [int(frames[i].frame_id) for i in withheld_indices(len(frames), scoring.novel_every)] if withheld else None
+    roi_fn = task_roi(annotations, task_id)
+    res = score_map(gmap, frames, roi_fn, chosen, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
+                    keyframe_poses=keyframe_poses, backend=backend, novel_ids=novel, novel_views=novel_views)
+    out = {q: _entry(q, v) for q, v in res.items()}
+    at_own = [q for q in chosen if q in AT_OWN]
     if views and at_own:
-        res = score_map(gmap, frames, task_roi(annotations, task_id), at_own, track_iters=scoring.track_iters,
+        res = score_map(gmap, frames, roi_fn, at_own, track_iters=scoring.track_iters,
                         track_stride=scoring.track_stride, backend=backend, novel_ids=novel, views=views)
-        out.update({f"{q}@own": {"roi_psnr": v["roi_psnr"], "frames_scored": v["frames_scored"]}
-                    for q, v in res.items()})
+        out.update({f"{q}@own": _entry(q, v) for q, v in res.items()})
     return out
 
 
@@ -210,10 +235,12 @@ def _write_fused_render(out: Path, key: str, gmap, frames: list, annotations, ta
 
 
 def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], fz: dict, scoring,
-                   kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None):
+                   kf_poses: Dict[str, dict], backend: str, views: Optional[Dict[str, dict]] = None,
+                   novel_views: Optional[Dict[str, dict]] = None):
     """Every fused map of :data:`FUSED_KEYS` made on the server, scored on each agent's task (ROI PSNR over its
-    frames and under ``scoring``'s protocols, :func:`fused_protocols`, at the agent's own ``views`` too: agent id →
-    :func:`own_views`) with a render per task in ``out/renders``.
+    frames, the ``sensor`` protocol's, and under ``scoring``'s protocols, :func:`fused_protocols`: ``novel`` at the
+    agent's predicted views, ``novel_views``: agent id → :func:`predicted_views`, and at the agent's own tracked
+    ``views`` too: agent id → :func:`own_views`) with a render per task in ``out/renders``.
 
     Returns:
         ``(fused, renders)``: key → the report's figures of that fused map, and the render entries.
@@ -230,9 +257,10 @@ def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[
         for p in plans:
             gmap = gmaps[p.name]
             ds, frames = eval_frames[p.name]
-            per_task[p.task_id] = evaluate_fused(gmap, frames, ds.annotations, p.task_id, backend)
-            protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, per_task[p.task_id],
-                                                scoring, kf_poses.get(p.name, {}), backend, (views or {}).get(p.name))
+            protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, scoring,
+                                                kf_poses.get(p.name, {}), backend, (views or {}).get(p.name),
+                                                (novel_views or {}).get(p.name))
+            per_task[p.task_id] = protos[p.task_id]["sensor"]["roi_psnr"]  # evaluate_fused's figure
             render = _write_fused_render(out, key, gmap, frames, ds.annotations, p.task_id, backend)
             if render is not None:
                 renders.append(render)

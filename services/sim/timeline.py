@@ -9,7 +9,7 @@ from typing import Dict, List, Optional, Tuple
 
 import grpc
 
-from gausslite.evaluation import evaluate_fused
+from gausslite.evaluation import evaluate_fused_frames
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
@@ -93,17 +93,22 @@ class FusedTimeline:
         ``frames_by_task[task] = (dataset, frames)``; None: every frame of a sequence of up to 50, else a stride that
         scores about 50), each task on the map made for its robot (``task_of``: agent id
         → task id), and the team map served then (``served``: its ``version``, the subset ``versions`` it was made
-        from, whether it was ``current``, the sim time it was first served ``made_t``, its ``refine_record`` and
-        ``roi_psnr`` per task). A map is scored once, however many rows hold it."""
-        cache: Dict[int, float] = {}
+        from, whether it was ``current``, the sim time it was first served ``made_t``, its ``refine_record``,
+        ``roi_psnr`` per task and ``roi_psnr_per_frame``: task → frame id → dB, the pairs of its gain over a robot's
+        own map). A map is scored once, however many rows hold it."""
+        cache: Dict[tuple, dict] = {}
 
-        def score(arrays, task):
+        def frames_of(arrays, task) -> dict:
             key = (id(arrays), task)
             if key not in cache:
                 ds, fr = frames_by_task[task]
                 step = stride or max(1, len(fr) // 50)
-                cache[key] = evaluate_fused(arrays.to_gaussian_map(), fr[::step], ds.annotations, task, backend)
+                cache[key] = evaluate_fused_frames(arrays.to_gaussian_map(), fr[::step], ds.annotations, task, backend)
             return cache[key]
+
+        def score(arrays, task) -> Optional[float]:
+            vals = list(frames_of(arrays, task).values())
+            return sum(vals) / len(vals) if vals else None
 
         out = []
         for t, versions, maps, seen in self.maps:
@@ -117,6 +122,7 @@ class FusedTimeline:
                 arrays, r, made_t = self.served[seen[0]]
                 row["served"] = {"version": seen[0], "current": seen[1], "versions": dict(r.map_versions),
                                  "made_t": made_t, "n_gaussians": len(arrays), "refine_record": dict(r.refine_record),
-                                 "roi_psnr": {k: score(arrays, k) for k in frames_by_task}}
+                                 "roi_psnr": {k: score(arrays, k) for k in frames_by_task},
+                                 "roi_psnr_per_frame": {k: frames_of(arrays, k) for k in frames_by_task}}
             out.append(row)
         return out

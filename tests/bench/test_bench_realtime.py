@@ -84,33 +84,68 @@ def test_summary_pairs_runs_and_finds_the_budget_uniform_needs():
     assert "| s | 100 | 0.5 | gausslite |" in md
 
 
-def _proto_run(mode, b, run, roi, protos):
+def _proto_run(mode, b, run, roi, protos, frames=None):
+    """A run with each protocol's ROI PSNR; with ``frames`` (frame id → offset) also its per-frame figures."""
     r = _run(mode, b, run, roi)
     r["protocols"] = {p: {"roi_psnr": v, "psnr": 20.0 + 0.1 * run, "ssim": 0.7, "frames_scored": 30}
                       for p, v in protos.items()}
+    if frames is not None:
+        for p, v in protos.items():
+            r["protocols"][p]["roi_psnr_per_frame"] = {str(i): v + d for i, d in frames.items()}
+            r["protocols"][p]["psnr_per_frame"] = {str(i): 20.0 + 0.1 * run for i in frames}
     return r
 
 
 def test_summary_reports_every_protocol_with_its_paired_gain_and_matching_budget():
+    """Runs without per-frame figures (an older partial file): the gain pairs run by run; their ``novel`` (then
+    tracked against the map) reads as ``novel-tracked``."""
     runs = []
     for run in range(3):
-        for b, u in ((0.5, 21.0), (1.0, 22.0), (2.0, 23.0)):
-            runs.append(_proto_run("uniform", b, run, u, {"sensor": u, "tracked": u + 1.0, "keyframes": u + 2.0}))
+        for b, u in ((0.25, 20.0), (0.5, 21.0), (1.0, 22.0), (2.0, 23.0)):
+            runs.append(_proto_run("uniform", b, run, u, {"sensor": u, "tracked": u + 1.0, "keyframes": u + 2.0,
+                                                          "novel": u + 0.5}))
             runs.append(_proto_run("gausslite", b, run, u + 0.5,
-                                   {"sensor": u + 0.5, "tracked": u + 3.0 + 0.1 * run, "keyframes": u + 5.0}))
-    s = rt.summarise(runs, "s", [0.5, 1.0, 2.0], 100)
+                                   {"sensor": u + 0.5, "tracked": u + 3.0 + 0.1 * run, "keyframes": u + 5.0,
+                                    "novel": u + 1.0}))
+    s = rt.summarise(runs, "s", [0.25, 0.5, 1.0, 2.0], 100)
     p = s["budgets"]["0.5"]["protocols"]
-    assert set(p) == {"sensor", "tracked", "keyframes"}
+    assert set(p) == {"sensor", "tracked", "keyframes", "novel-tracked"}
     assert p["tracked"]["gain"] == pytest.approx(2.1) and p["tracked"]["runs"] == 3
     assert p["tracked"]["gain_std"] == pytest.approx(0.1) and p["tracked"]["gain_significant"]
+    assert p["tracked"]["gain_pairs"] == "runs" and p["tracked"]["gain_ci"] is None
     assert p["tracked"]["uniform"]["roi_psnr"] == pytest.approx(22.0)
-    assert p["keyframes"]["gausslite"]["roi_psnr"] == pytest.approx(26.0)
-    assert p["sensor"]["gain"] == pytest.approx(s["budgets"]["0.5"]["gain"])  # top level = sensor
+    assert p["keyframes"]["gain"] == pytest.approx(3.0)
     # GaussLite tracked at 0.5 s: 24.1 dB; uniform tracked reaches it between 1 s (23) and 2 s (24.0): beyond 2 s
     by = s["uniform_budget_matching_gausslite_0.5_by_protocol"]
     assert by["tracked"] is None and by["sensor"] == pytest.approx(0.5 ** 0.5, rel=1e-6)  # 21.5 dB: halfway
     md = rt.protocol_table({"scenes": {"s": s}})
-    assert "| s | 0.5 | tracked | 22.00 ± 0.00 | 24.10 ± 0.10 | 2.10 ± 0.10 (> 2σ) |" in md
+    assert "| s | 0.5 | tracked | 22.00 ± 0.00 | 24.10 ± 0.10 | 2.10 ± 0.10 (runs)* |" in md
+
+
+def test_the_gain_is_the_mean_of_paired_per_frame_differences_with_its_interval():
+    """Runs with per-frame figures: GaussLite − uniform pairs frame by frame within each seed, pooled over runs ×
+    frames with a t-interval; the spread of the per-run gains stays beside it."""
+    from gausslite.stats import paired_gain
+
+    frames = {i: 0.3 * (i % 5) for i in range(20)}  # the frames' own spread, shared by both maps
+    runs = []
+    for run in range(3):
+        jitter = {i: d + (0.4 if (i + run) % 2 else -0.4) for i, d in frames.items()}
+        for r in (_proto_run("uniform", 0.5, run, 21.0, {"sensor": 21.0, "novel": 21.0}, frames),
+                  _proto_run("gausslite", 0.5, run, 22.0, {"sensor": 22.0, "novel": 22.0}, jitter)):
+            r["protocols"]["novel"]["pose"] = "predicted"  # as score_live_map writes it
+            runs.append(r)
+    s = rt.summarise(runs, "s", [0.5], 100)
+    blk = s["budgets"]["0.5"]
+    p = blk["protocols"]["novel"]
+    want = paired_gain([{i: 22.0 + v for i, v in (
+        (i, d + (0.4 if (i + run) % 2 else -0.4)) for i, d in frames.items())} for run in range(3)],
+        [{i: 21.0 + d for i, d in frames.items()} for _ in range(3)])
+    assert p["gain"] == pytest.approx(1.0) and p["gain_frames"] == 60 and p["gain_pairs"] == "frames"
+    assert p["gain_ci"] == [pytest.approx(want["ci_low"]), pytest.approx(want["ci_high"])]
+    assert p["gain_significant"] and blk["gain"] == pytest.approx(1.0) and blk["gain_ci"][0] > 0.8
+    md = rt.protocol_table({"scenes": {"s": s}})
+    assert f"| s | 0.5 | novel | 21.00 ± 0.00 | 22.00 ± 0.00 | +1.00 [{want['ci_low']:+.2f}, {want['ci_high']:+.2f}]*" in md
 
 
 def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp_path):
@@ -135,8 +170,9 @@ def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp
         res = __import__("json").loads(out.read_text())
         name = "synth-pick-object" + ({"task": "_late", "detection": "_late_detection"}[via] if late else "")
         blk = res["scenes"][name]["budgets"]["0.08"]
-        assert set(blk["protocols"]) == {"sensor", "keyframes", "tracked", "novel"}
-        assert blk["protocols"]["novel"]["gausslite"]["frames_scored"] == 1  # frame 5 of 8 withheld (every 10th)
+        assert set(blk["protocols"]) == {"sensor", "keyframes", "novel", "tracked", "novel-tracked"}
+        for q in ("novel", "novel-tracked"):  # frame 5 of 8 withheld (every 10th)
+            assert blk["protocols"][q]["gausslite"]["frames_scored"] == 1
         for p, v in blk["protocols"].items():
             assert v["uniform"]["runs"] == v["gausslite"]["runs"] == 1 and v["gain"] is not None, p
         assert blk["protocols"]["tracked"]["gausslite"]["frames_scored"] == 2  # every 4th of 8 frames
@@ -233,8 +269,9 @@ def test_live_missions_back_to_back_then_scored_apart(tmp_path):
 
 
 def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_path, monkeypatch):
-    """The novel protocol: every k-th frame is withheld from the mission in both modes, live and on the twin: never
-    a keyframe, never a frame between keyframes (whose ROI crop the mapper may keep), and scored under ``novel``."""
+    """The novel protocols: every k-th frame is withheld from the mission in both modes, live and on the twin: never
+    a keyframe, never a frame between keyframes (whose ROI crop the mapper may keep), and scored under ``novel`` and
+    ``novel-tracked``."""
     from gausslite.mapping.mapper import Mapper
     from gausslite.synthetic import make_scene
 
@@ -250,8 +287,8 @@ def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_
     job = {"scene": "synthetic_circle", "spec": rt.SCENES["synthetic_circle"], "path": str(tmp_path / "scene" / "agent_a"),
            "task": "synth-pick-object", "budget": 0.08, "run": 0, "cap": 300, "clock": "dataset",
            "overrides": ["mapper.seeding.seeds_per_frame=300", "mapper.roi_views.enabled=true"],
-           "protocols": ("sensor", "keyframes", "tracked", "novel"), "track_iters": 2, "track_stride": 4,
-           "novel_every": 3}
+           "protocols": ("sensor", "keyframes", "novel", "tracked", "novel-tracked"), "track_iters": 2,
+           "track_stride": 4, "novel_every": 3}
     ds = rt.Preloaded(rt.load_scene(rt.SCENES["synthetic_circle"], Path(job["path"]))[0])
     withheld = set(rt.novel_ids(job, ds))
     assert withheld == {int(ds[i].frame_id) for i in (1, 4, 7)}
@@ -260,4 +297,6 @@ def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_
             seen.clear()
             r = run({**job, "mode": mode})
             assert seen and not withheld & set(seen), (run.__name__, mode)
-            assert r["withheld"] == 3 and r["protocols"]["novel"]["frames_scored"] == 3, (run.__name__, mode)
+            assert r["withheld"] == 3, (run.__name__, mode)
+            for q in ("novel", "novel-tracked"):
+                assert r["protocols"][q]["frames_scored"] == 3, (run.__name__, mode, q)

@@ -103,9 +103,11 @@ def test_summary_checks_the_goals_per_team():
 
 def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(monkeypatch):
     """``fused_scores``: every final fused map (and the map made for each robot) on each task under ``sensor`` (the
-    top-level figure), ``keyframes`` (the owner's uploaded keyframes at the poses they carry) and ``tracked`` (every
-    stride-th frame); ``run_team``'s per-agent ``protocols`` rows and ``summarise`` carry them, with vote − own per
-    protocol, and the markdown has a protocol table."""
+    top-level figure), ``keyframes`` (the owner's uploaded keyframes at the poses they carry), ``novel`` (the withheld
+    frame through the owner's camera model: its predicted pose, nothing fitted), ``tracked`` (every stride-th frame)
+    and ``novel-tracked``, each with its per-frame figures; ``run_team``'s per-agent ``protocols`` rows and
+    ``summarise`` carry them, with vote − own per protocol paired frame by frame, and the markdown has a protocol
+    table."""
     import bench.team as team
     from gausslite.mapping.config import MapperConfig
     from gausslite.mapping.mapper import Mapper
@@ -121,7 +123,7 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         def roi_mask(self, task, depth, c2w, intr):
             return roi
 
-    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(6)]
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(7)]  # frame 6: withheld from both robots
     agents = []
     for n, (aid, lo) in enumerate((("agent_a", 0), ("agent_b", 3))):
         cfg = MapperConfig(mode="gausslite", seeding={"seeds_per_frame": 300}, iters_per_frame=5, warmup_iters=2,
@@ -132,14 +134,19 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         g = GaussianArrays.from_any(m.gmap)
         kfs = [keyframe_from_frame(fr, "cpu", roi) for fr in frames[lo:lo + 3:2]]  # 2 uploaded keyframes
         agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
-                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera})
+                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6]})
     fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
     out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4)
     for key in (*team.FUSED_KEYS, "for_robot"):
         p = out[key]["protocols"]
-        assert set(p) == {"sensor", "keyframes", "tracked", team.ROBOT_CAMERA}, key
+        assert set(p) == {"sensor", "keyframes", "novel", "tracked", "novel-tracked", team.ROBOT_CAMERA}, key
         for a in agents:
             assert p["sensor"][a["task"]] == out[key]["roi_psnr"][a["task"]]
+            per = out[key]["protocols_per_frame"]
+            assert set(per["novel"][a["task"]]) == set(per["novel-tracked"][a["task"]]) == {6}
+            assert len(per["sensor"][a["task"]]) == 7
+            # novel: the robot's camera on the withheld frame, exactly its figure under the robot's camera model
+            assert per["novel"][a["task"]][6] == per[team.ROBOT_CAMERA][a["task"]][6]
             # these robots model no exposure, blur or pose correction: their camera renders the bare sensor pose
             assert p[team.ROBOT_CAMERA][a["task"]] == pytest.approx(p["sensor"][a["task"]], abs=1e-3)
             assert p["keyframes"][a["task"]] is not None and p["tracked"][a["task"]] is not None
@@ -153,6 +160,16 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
                                            for a in agents]}
     md = team.cover_table([run, run])
     assert md.count("\n") == 1 + 2 and "| synthetic | agent_a, t0 |" in md and "| 2 |" in md
+    # without the robot's camera, novel renders the owner's predicted views as given
+    from gausslite.evaluation import TrackedView
+
+    bare = [{**a, "_predicted": {6: TrackedView(frames[6].c2w, np.zeros(6), 0.0, 0.0, 0.0, 0)}} for a in agents]
+    for a in bare:
+        a.pop("_seen")
+    alone = team.fused_scores(bare, fuse, 0, 3, protocols=("sensor", "novel"))
+    for a in agents:
+        assert alone["vote"]["protocols"]["novel"][a["task"]] == pytest.approx(
+            out["vote"]["protocols"]["novel"][a["task"]], abs=1e-3)  # no correction, exposure or blur to model
     # sensor alone: no other protocol is scored but the robots' camera model (it costs renders only)
     only = team.fused_scores(agents, fuse, 0, 3, protocols=("sensor",))
     assert set(only["vote"]["protocols"]) == {"sensor", team.ROBOT_CAMERA}  # the robot's camera goes with sensor
@@ -169,10 +186,20 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
     pa = s["synthetic"]["agents"]["agent_b"]["protocols"]
     assert set(pa) == {"sensor", "keyframes", "tracked"} and pa["keyframes"]["runs"] == 2
     assert pa["keyframes"]["own_roi_psnr"] == pytest.approx(23.0)
-    assert pa["keyframes"]["vote_minus_own"] == pytest.approx(-0.75)
+    assert pa["keyframes"]["vote_minus_own"] == pytest.approx(-0.75) and pa["keyframes"]["vote_minus_own_gain"] is None
     assert pa["tracked"]["for_robot_minus_own_std"] == pytest.approx(np.std([-1.0, -0.5], ddof=1))
     md = team.protocol_table({"teams": s})
     assert "| synthetic | agent_b, tb | keyframes | 23.00 ± 0.00 |" in md and md.count("\n") == 1 + 6
+    # with per-frame figures, every gain pairs frame by frame over runs × frames
+    for r, run in enumerate(runs):
+        for a in run["agents"]:
+            row = a["protocols"]["novel"] = dict(a["protocols"]["sensor"], pose="predicted")
+            row["own_per_frame"] = {str(i): 20.0 + i for i in range(8)}
+            for k in (*team.FUSED_KEYS, "for_robot"):
+                row[f"{k}_per_frame"] = {str(i): 20.0 + i - 1.0 + (0.1 if (i + r) % 2 else -0.1) for i in range(8)}
+    g = summarise(runs)["synthetic"]["agents"]["agent_a"]["protocols"]["novel"]["vote_minus_own_gain"]
+    assert g["n"] == 16 and g["gain"] == pytest.approx(-1.0) and g["ci_low"] < -1.0 < g["ci_high"]
+    assert "[" in team.protocol_table({"teams": summarise(runs)})
 
 
 def _team_result(bound, vote_minus_own):

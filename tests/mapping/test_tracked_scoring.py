@@ -1,5 +1,6 @@
-"""Scoring a live map under the three protocols (gausslite.evaluation: ``sensor``, ``keyframes``, ``tracked``) and
-the tracker the ``tracked`` protocol fits each frame's pose and exposure with."""
+"""Scoring a live map under the protocols (gausslite.evaluation: ``sensor``, ``keyframes``, ``novel`` at the pose the
+robot gives with what the map learned; ``tracked``, ``novel-tracked`` at a pose fitted to the map), the tracker those
+fit each frame's pose and exposure with, and the exposure fit outside the ROI of a map without exposure records."""
 
 import dataclasses
 
@@ -130,9 +131,127 @@ def test_the_novel_protocol_scores_only_withheld_frames_and_refuses_a_training_v
     assert [f.frame_id for f in sub] == [0, 2, 3, 5] and sub.withheld_ids == {1, 4}
     m = _plane_map()  # mapped frames 0..3
     roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
-    res = score_live_map(m, frames, roi, ("novel",), track_iters=2, novel_ids=[4, 5])
-    assert res["novel"]["frames_scored"] == 2
-    with pytest.raises(ValueError, match="training views"):
-        score_live_map(m, frames, roi, ("novel",), track_iters=2, novel_ids=[3, 5])
-    with pytest.raises(ValueError, match="novel_ids"):
-        score_live_map(m, frames, roi, ("novel",))
+    res = score_live_map(m, frames, roi, ("novel", "novel-tracked"), track_iters=2, novel_ids=[4, 5])
+    assert res["novel"]["frames_scored"] == res["novel-tracked"]["frames_scored"] == 2
+    assert set(res["novel"]["roi_psnr_per_frame"]) == {4, 5} and res["novel"]["pose"] == "predicted"
+    for q in ("novel", "novel-tracked"):
+        with pytest.raises(ValueError, match="training views"):
+            score_live_map(m, frames, roi, (q,), track_iters=2, novel_ids=[3, 5])
+        with pytest.raises(ValueError, match="novel_ids"):
+            score_live_map(m, frames, roi, (q,))
+
+
+def _corrected_map(withheld: int = 2) -> Mapper:
+    """The plane mapped on frames 0..4 but ``withheld``, interpolating between keyframes, with known corrections and
+    exposure responses set on the keyframes (so a prediction differs from the sensor's pose and from zero)."""
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=20, warmup_iters=10,
+                       backend="warp", sensor={"exposure_comp": True},
+                       pose={"refine": True, "between_keyframes": "interpolate"})
+    cfg.densify.enabled = False
+    m = Mapper(cfg)
+    for i in range(5):
+        if i != withheld:
+            m.map_frame(plane_frame(i, 0.03 * i, H, W))
+    for k in list(m.poses.corrections):
+        m.poses.corrections[k] = _perturbed(np.eye(4), [0.0, 0.01 * k, 0.0, 0.004 * k, 0.0, 0.0])
+        m.sensor.exposure.params[k] = np.array([-0.05 * k, 0.0, 0.02 * k, 0.01, 0.0, -0.01 * k])
+    return m
+
+
+def test_novel_renders_a_withheld_frame_at_the_predicted_pose_and_fits_nothing(monkeypatch):
+    """``novel`` is the ``sensor`` protocol on the withheld frames: the given pose with the correction interpolated
+    between the keyframes on either side, the exposure likewise, exactly; the tracker never runs and the frame's
+    images never move the view (a darker frame is scored at the same pose and exposure)."""
+    import gausslite.evaluation as ev
+    from gausslite.mapping.poses import interpolate_pose
+
+    m = _corrected_map(withheld=2)
+    frames = [plane_frame(i, 0.03 * i, H, W) for i in range(5)]
+    used = []
+    real = m.sensor.render_view
+
+    def spy(c2w, *a, **kw):
+        used.append(np.array(c2w, np.float64))
+        return real(c2w, *a, **kw)
+
+    def no_tracking(*a, **kw):
+        raise AssertionError("novel must not fit a pose")
+
+    monkeypatch.setattr(m.sensor, "render_view", spy)
+    monkeypatch.setattr(ev, "track_view", no_tracking)
+    roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
+    views: dict = {}
+    res = ev.score_live_map(m, frames, roi, ("sensor", "novel"), novel_ids=[2], predicted=views)
+    want = frames[2].c2w @ interpolate_pose(m.poses.corrections[1], m.poses.corrections[3], 0.5)
+    assert np.array_equal(used[-1], want) and np.array_equal(views[2].c2w, want)
+    assert np.array_equal(views[2].theta, 0.5 * (m.sensor.exposure.params[1] + m.sensor.exposure.params[3]))
+    assert views[2].iters == 0 and views[2].trans_m > 0.005
+    # the very figure the sensor protocol gives that frame
+    assert res["novel"]["psnr_per_frame"][2] == res["sensor"]["psnr_per_frame"][2]
+    dark = [dataclasses.replace(f, rgb=(f.rgb * 0.5).astype(np.uint8)) if f.frame_id == 2 else f for f in frames]
+    again: dict = {}
+    ev.score_live_map(m, dark, roi, ("novel",), novel_ids=[2], predicted=again)
+    assert np.array_equal(again[2].c2w, want) and np.array_equal(again[2].theta, views[2].theta)
+
+
+def test_novel_tracked_fits_the_withheld_frames_and_a_given_prediction_is_used_as_is(monkeypatch):
+    """``novel-tracked`` tracks each withheld frame against the map (the old ``novel``); ``novel_views`` (another map's
+    prediction: the owner robot's, for a fused map) is rendered as given."""
+    from gausslite.evaluation import TrackedView, score_live_map
+
+    m = _corrected_map(withheld=2)
+    frames = [plane_frame(i, 0.03 * i, H, W) for i in range(5)]
+    roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
+    tracked: dict = {}
+    score_live_map(m, frames, roi, ("novel-tracked",), track_iters=3, novel_ids=[2], record=tracked)
+    assert tracked[2].iters == 3
+    given = TrackedView(_perturbed(frames[2].c2w, [0.0, 0.0, 0.0, 0.02, 0.0, 0.0]), np.zeros(6), 0.0, 0.0, 0.0, 0)
+    used: dict = {}
+    score_live_map(m, frames, roi, ("novel",), novel_ids=[2], novel_views={2: given}, predicted=used)
+    assert used[2] is given
+
+
+def test_a_map_without_exposure_records_fits_the_exposure_outside_the_roi_only():
+    """A fused map (``score_map``) keeps no exposure response: ``novel`` renders it at the sensor's pose (nothing
+    fitted to the pose) and fits the affine exposure on the pixels outside the scored ROI, as NeRF-W and 3DGS's
+    train_test_exp do: changing the ROI's pixels leaves the fitted exposure exactly as it was, changing the others
+    moves it."""
+    import torch
+
+    from gausslite.evaluation import fit_exposure_outside_roi, render_map, score_map
+
+    gmap = _plane_map().gmap
+    fr = plane_frame(9, 0.045, H, W)
+    roi = np.zeros((H, W), bool)
+    roi[10:30, 14:42] = True
+    out = render_map(gmap, fr, "warp")
+    darker = dataclasses.replace(fr, rgb=(fr.rgb * 0.7).astype(np.uint8))
+    th = fit_exposure_outside_roi(out, darker, roi)
+    assert th[:3].mean() < np.log(0.85)  # the darker frame is found from the pixels outside the ROI
+    inside = darker.rgb.copy()
+    inside[roi] = 255 - inside[roi]
+    assert np.array_equal(fit_exposure_outside_roi(out, dataclasses.replace(darker, rgb=inside), roi), th)
+    outside = darker.rgb.copy()
+    outside[~roi] = (outside[~roi] * 0.5).astype(np.uint8)
+    assert not np.allclose(fit_exposure_outside_roi(out, dataclasses.replace(darker, rgb=outside), roi), th)
+    all_roi = np.ones((H, W), bool)  # nothing outside the ROI: nothing to fit on
+    assert np.array_equal(fit_exposure_outside_roi(out, darker, all_roi), np.zeros(6))
+    with pytest.raises(ValueError):
+        fit_exposure_outside_roi(out, darker, roi[:10])
+    # through score_map: the view is the sensor's pose exactly, the exposure the fit's
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(3)] + [darker]
+    views: dict = {}
+    res = score_map(gmap, frames, lambda f: roi, ("novel",), backend="warp", novel_ids=[9], predicted=views)
+    assert np.array_equal(views[9].c2w, darker.c2w) and views[9].iters == 0
+    assert np.allclose(views[9].theta, th) and res["novel"]["frames_scored"] == 1
+    assert not torch.equal(torch.tensor(views[9].theta), torch.zeros(6))
+
+
+def test_older_results_name_the_tracked_novel_figure_novel_tracked():
+    from gausslite.evaluation import current_protocol_name, current_protocols
+
+    old = {"sensor": {"roi_psnr": 20.0}, "novel": {"roi_psnr": 21.0}, "novel@own": {"t": {"roi_psnr": 1.0}}}
+    assert set(current_protocols(old)) == {"sensor", "novel-tracked", "novel-tracked@own"}
+    new = {"novel": {"roi_psnr": 21.0, "pose": "predicted"}, "novel-tracked": {"roi_psnr": 22.0}}
+    assert current_protocols(new) == new
+    assert current_protocol_name("novel", {"t": {"roi_psnr": 1.0, "pose": "predicted"}}) == "novel"

@@ -20,7 +20,9 @@ TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agen
 
 
 def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
-    res = run_sim(tmp_path / "sim", None, overrides=TINY, timeout_s=240, progress=False)
+    # every 2nd frame withheld from the 2nd: of 3 frames the agents map 0 and 2, and frame 1 is scored under novel
+    res = run_sim(tmp_path / "sim", None, overrides=TINY + ["agent.scoring.novel_every=2"], timeout_s=240,
+                  progress=False)
     rep = json.loads((tmp_path / "sim" / "report.json").read_text())
     assert rep == json.loads(json.dumps(res.report))
     assert [a["id"] for a in rep["agents"]] == ["agent_a", "agent_b"]
@@ -64,13 +66,18 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     assert rep["settings"]["contest_radius"] == 1 and "neighbourhood of radius 1" in md
     for a in rep["agents"]:
         assert a["own_roi_psnr_context"] == a["roi_psnr"]
-        assert math.isclose(a["vote_minus_own_context"],
-                            rep["fused"]["vote"]["roi_psnr_per_task"][a["task"]] - a["roi_psnr"])
+        assert math.isclose(a["vote_minus_own_context"], rep["fused"]["vote"]["minus_own"][a["task"]])
     assert "vote − own context" in md
-    # each fused map's difference to the robot's own map; the team map made for each robot holds its whole subset
+    # each fused map's gain over the robot's own map: the mean of the paired per-frame differences (sensor, every
+    # frame), with its interval; the team map made for each robot holds its whole subset
     for k, f in rep["fused"].items():
         for a in rep["agents"]:
-            assert math.isclose(f["minus_own"][a["task"]], f["roi_psnr_per_task"][a["task"]] - a["roi_psnr"])
+            t = a["task"]
+            own, fused = a["protocols"]["sensor"]["roi_psnr_per_frame"], f["protocols"]["sensor"][t]["roi_psnr_per_frame"]
+            assert set(own) == set(fused) and len(own) == 3
+            assert math.isclose(f["minus_own"][t], sum(fused[i] - own[i] for i in own) / 3, abs_tol=1e-9)
+            g = f["minus_own_gain"][t]
+            assert g["n"] == 3 and g["ci_low"] <= g["gain"] <= g["ci_high"]
     assert set(rep["fused"]["for_robot"]["kept"]) == {"agent_a", "agent_b"}
     # what covers each ROI in the team map: shares of the ROI weight that add up, and a picture per robot
     cov = rep["fused"]["vote"]["cover"]
@@ -91,45 +98,57 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     ctx["settings"]["mapper"]["roi_render"] = "context"
     for a in ctx["agents"]:
         a["roi_psnr"] = 20.0
+        a["protocols"]["sensor"]["roi_psnr_per_frame"] = {k: 20.0 for k in a["protocols"]["sensor"]["roi_psnr_per_frame"]}
     merged = attach_context_baseline(json.loads(json.dumps(rep)), ctx)
     for a in merged["agents"]:
+        vote = rep["fused"]["vote"]["protocols"]["sensor"][a["task"]]["roi_psnr_per_frame"]
         assert a["own_roi_psnr_context"] == 20.0
-        assert math.isclose(a["vote_minus_own_context"], rep["fused"]["vote"]["roi_psnr_per_task"][a["task"]] - 20)
+        assert math.isclose(a["vote_minus_own_context"], sum(v - 20.0 for v in vote.values()) / len(vote))
     ctx["settings"]["mapper"]["roi_render"] = "active"
     with pytest.raises(ValueError):
         attach_context_baseline(rep, ctx)
     # every map under each scoring protocol (agent.scoring): the own maps scored by their agents, the fused maps
     # by the sim, each fused figure beside the own one under the same protocol; sensor is the top-level figure
-    protos = {"sensor", "keyframes", "tracked"}
-    assert rep["settings"]["scoring"]["protocols"] == ["sensor", "keyframes", "tracked", "novel"]
+    protos = {"sensor", "keyframes", "novel", "tracked", "novel-tracked"}
+    assert rep["settings"]["scoring"]["protocols"] == ["sensor", "keyframes", "novel", "tracked", "novel-tracked"]
     for a in rep["agents"]:
         p = a["protocols"]
-        # novel: every 10th frame from the 5th is withheld; a 3-frame sequence withholds none and scores none
-        novel = p.pop("novel")
-        assert novel["frames_scored"] == 0 and novel["roi_psnr"] is None
         assert set(p) == protos
         assert p["sensor"]["roi_psnr"] == pytest.approx(a["roi_psnr_all_frames"]) and p["sensor"]["frames_scored"] == 3
-        assert p["keyframes"]["frames_scored"] == a["frames_mapped"] == 3  # an every-frame replay
+        assert p["keyframes"]["frames_scored"] == a["frames_mapped"] == 2  # an every-frame replay, frame 1 withheld
         assert p["tracked"]["frames_scored"] == 1  # every 5th of 3 frames
+        assert p["novel"]["frames_scored"] == p["novel-tracked"]["frames_scored"] == 1  # the withheld frame
+        assert p["novel"]["pose"] == "predicted" and set(p["novel"]["roi_psnr_per_frame"]) == {"1"}
         assert all(v["roi_psnr"] is not None for v in p.values())
     for k, f in rep["fused"].items():
-        for q in ("novel", "novel@own"):
-            assert all(v["frames_scored"] == 0 for v in f["protocols"].pop(q).values()), k
-        # tracked@own: the same frames at the pose and exposure the robot's own map was tracked at
-        assert set(f["protocols"]) == protos | {"tracked@own"}, k
+        # @own: the same frames at the pose and exposure the robot's own map was tracked at
+        assert set(f["protocols"]) == protos | {"tracked@own", "novel-tracked@own"}, k
         for a in rep["agents"]:
             t = a["task"]
             assert f["protocols"]["sensor"][t]["roi_psnr"] == f["roi_psnr_per_task"][t]
             # the views the robot uploaded (a crop of each mapped frame that shows its ROI, within the budget)
             assert f["protocols"]["keyframes"][t]["frames_scored"] == a["views_sent"], (k, t)
             assert f["protocols"]["tracked"][t]["frames_scored"] == f["protocols"]["tracked@own"][t]["frames_scored"] == 1
-            for q in protos | {"tracked@own"}:
+            # the fused map at the robot's predicted view of the withheld frame: one frame, paired with its own map's
+            assert f["protocols"]["novel"][t]["frames_scored"] == 1 and f["protocols"]["novel"][t]["pose"] == "predicted"
+            for q in protos | {"tracked@own", "novel-tracked@own"}:
                 v = f["protocols"][q][t]
-                own = a["protocols"][q.split("@")[0]]["roi_psnr"]
-                assert v["roi_psnr"] is not None and math.isclose(v["minus_own"], v["roi_psnr"] - own)
-    assert "## Own and fused maps under each scoring protocol" in md
+                own = a["protocols"][q.split("@")[0]]
+                both = set(v["roi_psnr_per_frame"]) & set(own["roi_psnr_per_frame"])
+                want = sum(v["roi_psnr_per_frame"][i] - own["roi_psnr_per_frame"][i] for i in both) / len(both)
+                assert v["roi_psnr"] is not None and math.isclose(v["minus_own"], want, abs_tol=1e-9), (k, t, q)
+    # the answer first: each robot's own map and the team map it can load now, with the bytes it sent and a picture;
+    # then the protocols × the maps
+    assert md.index("## The answer") < md.index("## The protocols × the maps") < md.index("## Agents (own map")
+    lead = md[md.index("## The answer"):md.index("## The protocols × the maps")]
+    assert "under `novel`" in lead and "team_map (`Fuse(team_map=true)`)" in lead and "bytes sent" in lead
+    assert "| agent_a | synth-pick-object |" in lead and "![team_map " in lead
+    for a in rep["agents"]:
+        assert f"{a['total_upload_bytes'] + a['view_bytes']:,}" in lead
     assert "| tracked | own |" in md and "| keyframes | vote |" in md and "| sensor | for_robot |" in md
-    assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| tracked | own |")
+    assert "| novel-tracked@own | team_map |" in md and "how well a robot could localise" in md
+    assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| novel | own |") \
+        < md.index("| tracked | own |")
     # every child process is gone
     assert set(res.pids) == {"parser", "fusion_server", "agent_a", "agent_b"}
     for pid in res.pids.values():

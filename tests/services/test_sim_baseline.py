@@ -10,11 +10,21 @@ LIVE = {"frames_received": 150, "frames_keyframed": 20, "frames_skipped": 130, "
         "offline_roi_psnr_all_frames": None}
 
 
-def _report(mode: str, realtime: bool, own: float, all_frames: float) -> dict:
+def _report(mode: str, realtime: bool, own: float, all_frames: float, per_frame: bool = True) -> dict:
+    def protocols(base: float) -> dict:
+        if not per_frame:
+            return {"sensor": {"roi_psnr": base}}
+        frames = {str(i): base + 0.5 * (i % 3) for i in range(12)}
+        return {"sensor": {"roi_psnr": base + 0.5, "roi_psnr_per_frame": frames},
+                "novel": {"roi_psnr": base, "roi_psnr_per_frame": {k: v - 0.5 for k, v in frames.items() if int(k) % 4 == 1},
+                          "pose": "predicted", "frames_scored": 3}}
+
     agents = [{"id": "agent_a", "task": "t-a", "roi_psnr": own, "roi_psnr_all_frames": all_frames, "psnr": 20.0,
-               "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0, **LIVE},
+               "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0,
+               "protocols": protocols(all_frames), **LIVE},
               {"id": "agent_b", "task": "t-b", "roi_psnr": own + 1, "roi_psnr_all_frames": all_frames + 1,
-               "psnr": 21.0, "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0, **LIVE}]
+               "psnr": 21.0, "n_gaussians": 6000, "n_shared": 10, "share_pct": 1.0, "bytes_per_gaussian": 12.0,
+               "protocols": protocols(all_frames + 1), **LIVE}]
     return {"scene": "s", "seconds": 1.0, "agents": agents, "realtime": realtime,
             "fused": {k: {"roi_psnr_per_task": {}, "roi_psnr_mean": None, "n_gaussians": 0, "seconds": 0.0}
                       for k in ("concat", "vote", "refine")},
@@ -23,15 +33,22 @@ def _report(mode: str, realtime: bool, own: float, all_frames: float) -> dict:
 
 @pytest.mark.parametrize("realtime", [True, False])
 def test_uniform_baseline_gives_each_agent_its_task_gain(tmp_path, realtime):
+    """GaussLite − uniform per protocol: the mean of the paired per-frame differences with its interval, the
+    ``sensor`` one as the agent's ``task_gain_db``; a baseline without per-frame figures gives no gain."""
     rep = _report("gausslite", realtime, own=25.0, all_frames=23.0)
     base = _report("uniform", realtime, own=24.0, all_frames=21.5)
     attach_uniform_baseline(rep, base)
     a = rep["agents"][0]
     assert a["uniform_roi_psnr_all_frames"] == 21.5 and a["uniform_roi_psnr"] == 24.0
-    assert a["task_gain_db"] == pytest.approx(1.5 if realtime else 1.0)
+    assert a["task_gain_db"] == pytest.approx(1.5) and a["task_gain"]["n"] == 12
+    assert a["gain_by_protocol"]["novel"]["gain"] == pytest.approx(1.5) and a["gain_by_protocol"]["novel"]["n"] == 3
+    assert a["uniform_protocols"]["novel"] == 21.5
     write_markdown(rep, tmp_path / "report.md")
     md = (tmp_path / "report.md").read_text()
-    assert "What the task buys" in md and ("| 1.50 |" if realtime else "| 1.00 |") in md
+    assert "What the task buys" in md and "| agent_a | t-a | novel | 23.00 | 21.50 | +1.50 [+1.50, +1.50] |" in md
+    old = _report("gausslite", realtime, own=25.0, all_frames=23.0)
+    attach_uniform_baseline(old, _report("uniform", realtime, own=24.0, all_frames=21.5, per_frame=False))
+    assert old["agents"][0]["task_gain_db"] is None  # nothing to pair: no gain invented
 
 
 def test_uniform_baseline_refuses_a_mismatched_report():
@@ -92,8 +109,9 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
                             ("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"), ("vote", 0.1, 1, "agent_b")]
     assert [(t, v) for t, v, _, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
     scored = []
-    monkeypatch.setattr(sim.timeline, "evaluate_fused",
-                        lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames))) or 20.0 + len(g))
+    monkeypatch.setattr(sim.timeline, "evaluate_fused_frames",
+                        lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames)))
+                        or {int(i): 20.0 + len(g) for i in frames})
 
     class _DS:
         annotations = None
@@ -123,6 +141,9 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     s = rows[-1]["served"]
     assert s["version"] == 50 and not s["current"] and s["versions"] == {"agent_a": 1, "agent_b": 1}
     assert s["made_t"] == 3.5 and s["roi_psnr"]["t-a"] == 20.0 + s["n_gaussians"] and rows[0]["served"] is None
+    # each served map's frames, the pairs of its gain over a robot's own map
+    assert s["roi_psnr_per_frame"]["t-a"] == {0: 20.0 + s["n_gaussians"], 5: 20.0 + s["n_gaussians"],
+                                              10: 20.0 + s["n_gaussians"]}
     # a failing fuse is logged and skipped, not raised
     fusion.versions = {"agent_a": 2, "agent_b": 1}
     fusion.fuse = lambda *a, **k: (_ for _ in ()).throw(RuntimeError("server gone"))
