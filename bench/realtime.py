@@ -62,6 +62,7 @@ from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, fmt_gain, gain, paired_gain, significant
 from gausslite.synthetic import make_scene
 
+from bench._results import write_json
 from bench.realtime_late import LATE_VIA, give_late_task, late_relevance
 
 REPO = Path(__file__).resolve().parents[1]
@@ -739,7 +740,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
         return 0
     _score_pending(args, runs, pending, partial)
-    _write_result(args, runs, names, budgets, protocols, out, t0)
+    _write_result(args, runs, names, budgets, protocols, out, t0, argv)
     return 0
 
 
@@ -904,8 +905,9 @@ def _score_pending(args: argparse.Namespace, runs: list[dict], pending: list[int
 
 
 def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budgets: list[float], protocols: tuple,
-                  out: Path, t0: float) -> None:
-    """Write the JSON, the markdown tables and one plot per scene with several budgets; print the tables."""
+                  out: Path, t0: float, argv: Optional[list[str]] = None) -> None:
+    """Write the JSON (with the run's provenance, :func:`bench._results.write_json`), the markdown tables and one
+    plot per scene with several budgets; print the tables."""
     result = {"settings": {"budgets": budgets, "runs": args.runs, "clock": args.clock, "overrides": args.overrides,
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
@@ -918,8 +920,7 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
         result["scenes"][scene] = blk
         if len(blk["budgets"]) > 1:
             plot_scene(blk, scene, out.with_name(f"{out.stem}_{scene}.png"))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_json(out, result, "realtime", argv, indent=1)
     md = table(result) + "\n\n" + protocol_table(result)
     out.with_suffix(".md").write_text(md + "\n")
     print(md)

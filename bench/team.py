@@ -49,7 +49,7 @@ from typing import Optional
 import numpy as np
 from tqdm import tqdm
 
-from bench._results import write_results
+from bench._results import write_json, write_results
 from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion,
                             scene_path, score, start_mission)
 from gausslite.config import load_config
@@ -607,7 +607,7 @@ def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict
     curve = share_curve([json.loads(Path(f).read_text()) for f in files], default_bound)
     doc = json.loads(out.read_text()) if out.exists() else {}
     doc["share_curve"] = {"sources": [Path(f).name for f in files], "teams": curve}
-    out.write_text(json.dumps(doc, indent=1))
+    write_json(out, doc, "team", argv, indent=1)
     md = out.with_name(f"{out.stem}_curve.md")
     md.write_text(f"# bench.team share curve\n\n`python -m bench.team {' '.join(argv or [])}`\n\n"
                   f"Fused ROI PSNR − the robot's own map against the share bound (agent.share_max_fraction).\n\n"
