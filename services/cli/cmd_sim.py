@@ -87,11 +87,9 @@ def register(subparsers) -> None:
     p.add_argument("--attach", default=None, metavar="NAME=HOST:PORT,...",
                    help="drive running services instead of starting processes (parser=..,fusion_server=..,"
                         "agent_a=..,agent_b=..; the compose 'report' service uses this)")
-    p.add_argument("--tls-ca", default=None,
-                   help="with --attach: PEM CA the services' certificates chain to (env GAUSSLITE_TLS_CA)")
-    p.add_argument("--tls-client-cert", default=None,
-                   help="with --attach: this client's PEM certificate for mutual TLS (env GAUSSLITE_TLS_CLIENT_CERT)")
-    p.add_argument("--tls-client-key", default=None, help="its PEM key (env GAUSSLITE_TLS_CLIENT_KEY)")
+    # with --attach: the same TLS options as every client
+    from gausslite_services.common.cli_options import add_client_credential_arguments
+    add_client_credential_arguments(p, token=False, server="an attached service")
     # lazy: the command line starts without loading the services or gRPC
     from gausslite.cli.cmd_map import add_bag_args
 
