@@ -62,7 +62,8 @@ def run_mapping(
     """Map ``dataset`` (every ``stride``-th frame) and evaluate.
 
     Args:
-        dataset: posed RGB-D sequence.
+        dataset: posed RGB-D sequence; with a ``pose_ok`` array (odometry), the frames whose tracking failed are
+            neither mapped nor scored (``metrics["n_frames_lost"]``).
         cfg: mapper config. In ``gausslite`` mode a relevance source is required.
         task_id: task in the dataset's ``tasks.json``: gives the ground-truth ROI for the ROI
             metrics, and the relevance map when ``relevance_fn`` is None.
@@ -88,8 +89,14 @@ def run_mapping(
 
     torch.manual_seed(cfg.seed)
     mapper = Mapper(cfg)
-    train_idx = list(range(0, len(dataset), stride))
-    test_idx = [i for i in range(len(dataset)) if i % stride != 0]
+    # frames whose odometry failed (pose_ok False) carry the last good pose, not theirs: neither mapped nor scored
+    lost = set(np.flatnonzero(~np.asarray(dataset.pose_ok)).tolist()) if hasattr(dataset, "pose_ok") else set()
+    if lost:
+        log.warning("%s: %d frames lost by the odometry are neither mapped nor scored", dataset.path, len(lost))
+    train_idx = [i for i in range(0, len(dataset), stride) if i not in lost]
+    test_idx = [i for i in range(len(dataset)) if i % stride != 0 and i not in lost]
+    if not train_idx:
+        raise ValueError(f"{dataset.path}: every frame to map was lost by the odometry")
     t0 = time.perf_counter()
     bar = tqdm(train_idx, desc=desc, disable=not progress, unit="frame")
     for i in bar:
@@ -116,6 +123,7 @@ def run_mapping(
         "seconds_per_frame": float(np.mean([s.seconds for s in mapper.stats])),
         "map_seconds": map_seconds,
         "n_frames": len(train_idx),
+        "n_frames_lost": len(lost),
         "stride": stride,
     }
     if test_idx:

@@ -9,6 +9,16 @@ PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
+# Open3D (the RGB-D odometry, gausslite.datasets.odometry) loads libusb-1.0, which a minimal Debian/Ubuntu lacks:
+# install Debian's package where it is missing (as root), else say how
+if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    (apt-get install -y -qq libusb-1.0-0 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0)) >/dev/null 2>&1 \
+      || echo "warning: could not install libusb-1.0-0 (Open3D's odometry will not import)" >&2
+  else
+    echo "warning: libusb-1.0 is missing: Open3D's odometry needs it (sudo apt-get install libusb-1.0-0)" >&2
+  fi
+fi
 stamp=.venv/.gausslite-installed
 # Reinstall when pyproject.toml or the set of top-level package folders changes (gausslite/, gausslite_rpc/ and
 # services/, which installs as gausslite_services: an editable install maps each top-level package to its folder

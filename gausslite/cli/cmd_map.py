@@ -42,6 +42,10 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
                    help="TUM only: re-project each depth image from the pose at its own timestamp to the colour "
                         "frame's (the Kinect streams are not synchronised); on by default for TUM, "
                         "--no-align-depth-time to opt out")
+    p.add_argument("--pose-source", dest="pose_source", choices=["auto", "given", "odometry"], default="auto",
+                   help="camera poses: given (the dataset's own), odometry (estimated with Open3D's RGB-D odometry, "
+                        "docs/mapper.md#poses-from-odometry) or auto (default: given when the dataset has poses, else "
+                        "odometry)")
     p.add_argument("--no-progress", action="store_true")
     add_bag_args(p)
     add_depth_camera_args(p)
@@ -172,11 +176,35 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
         path = scene_dir / "agent_a"
     kw = dataset_kwargs(args, path)
     profile = args.profile
+    source = getattr(args, "pose_source", "auto")
+    if source == "odometry" and kw.get("align_depth_time") and args.align_depth_time is None:
+        kw["align_depth_time"] = False  # it re-projects depth with the ground truth: not for estimated poses
     msg = (f"profile: {profile.name} ({profile.description}); loader "
            f"{ {k: v for k, v in kw.items() if k != 'bag'} or 'defaults'}; mapper {profile.mapper or 'defaults'}")
     log.info("%s", msg)
     print(msg, flush=True)
-    return load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, **kw)
+    ds = load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, pose_source=source,
+                      progress=not getattr(args, "no_progress", False), **kw)
+    used = "odometry" if hasattr(ds, "reference_poses") else "given"
+    print(f"poses: {used}" + (" (the dataset has none)" if used == "odometry" and source == "auto" else ""),
+          flush=True)
+    return ds
+
+
+def write_trajectory(ds, out: Path) -> Path:
+    """Write the poses the map was made with as ``out/trajectory.tum`` (TUM format: ``timestamp tx ty tz qx qy qz
+    qw``, camera-to-world, metres), leaving out the frames the odometry lost. Returns the file."""
+    # lazy: the command line starts without loading the library
+    import numpy as np
+
+    from gausslite.datasets.trajectory import write_tum_trajectory
+
+    ok = np.asarray(getattr(ds, "pose_ok", np.ones(len(ds), dtype=bool)), dtype=bool)
+    stamps = np.asarray(getattr(ds, "timestamps", None) if hasattr(ds, "timestamps")
+                        else [ds[i].timestamp for i in range(len(ds))], dtype=np.float64)
+    source = "odometry" if hasattr(ds, "reference_poses") else "given"
+    return write_tum_trajectory(out / "trajectory.tum", stamps[ok], np.asarray(ds.poses)[ok],
+                                comment=f"gausslite map: the poses it mapped with ({source}) of {ds.path}")
 
 
 def config_from_args(args: argparse.Namespace, **extra) -> MapperConfig:
@@ -210,6 +238,39 @@ def warn_uniform(task_id) -> None:
                     "add --mode gausslite to map for it", task_id)
 
 
+def ground_task(args: argparse.Namespace, ds):
+    """The relevance function ``frame -> (H, W) bool`` of ``--task`` text, grounded as the agent grounds it
+    (:func:`gausslite.mission.relevance.build_relevance`): the task parser's graph, then the attention front-end with
+    the dataset's annotations (``objects.json``) when it has them, else with the ONNX detector and segmenter of
+    ``--onnx-detector/--onnx-vocab/--onnx-segmenter``. Prints which it used.
+
+    Raises:
+        ValueError: the task cannot be grounded (no annotations and no ONNX models; models that do not load).
+    """
+    # lazy: the command line starts without loading the library
+    from gausslite.mission.config import AgentConfig, OnnxRelevanceConfig
+    from gausslite.mission.relevance import build_relevance
+    from gausslite.parser import TaskParser
+
+    onnx = OnnxRelevanceConfig(detector_path=args.onnx_detector, vocab_path=args.onnx_vocab,
+                               segmenter_path=args.onnx_segmenter)
+    ann = ds.annotations if ds.annotations is not None and ds.annotations.objects else None
+    if ann is not None:
+        backend, what = "annotation", f"the scene annotations (objects.json beside {ds.path})"
+    elif any((args.onnx_detector, args.onnx_vocab, args.onnx_segmenter)):
+        backend, what = "onnx", f"the ONNX detector {args.onnx_detector} and segmenter {args.onnx_segmenter}"
+    else:
+        raise ValueError(f"cannot ground the task {args.task!r}: {ds.path} has no objects.json (scene annotations) "
+                         f"and no ONNX models are configured (--onnx-detector, --onnx-vocab, --onnx-segmenter; "
+                         f"docs/perception.md)")
+    graph = TaskParser().parse(args.task)
+    cfg = AgentConfig(relevance="attention", relevance_backend=backend, onnx=onnx)
+    fn, _ = build_relevance(cfg, graph, ann)
+    print(f"task: {args.task!r} grounded with {what}; targets {list(graph.targets)}, anchors {list(graph.anchors)}",
+          flush=True)
+    return fn
+
+
 def _handler(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -218,14 +279,23 @@ def _handler(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as e:  # bad dataset / bag: one clear error, no traceback
         log.error("cannot load the dataset: %s", e)
         return 2
+    if args.mode is None:
+        args.mode = "gausslite" if args.task else "uniform"
     try:
         cfg = config_from_args(args, mode=args.mode)
     except (ValueError, FileNotFoundError) as e:  # pydantic's ValidationError is a ValueError
         log.error("invalid mapper configuration: %s", e)
         return 2
-    if cfg.mode == "uniform":
+    relevance = None
+    if args.task:
+        try:
+            relevance = ground_task(args, ds)
+        except ValueError as e:  # RelevanceUnavailable, an unparsable task: one line
+            log.error("%s", e)
+            return 2
+    elif cfg.mode == "uniform":
         warn_uniform(args.task_id)
-    if args.task_id is None and cfg.mode == "gausslite":
+    if args.task_id is None and cfg.mode == "gausslite" and relevance is None:
         if ds.annotations is None or not ds.annotations.tasks:
             log.error("mode gausslite needs --task-id and a tasks.json next to %s", ds.path)
             return 2
@@ -236,19 +306,28 @@ def _handler(args: argparse.Namespace) -> int:
 
     log.info("mapping %s (%d frames, %dx%d) mode=%s task=%s", ds.path, len(ds),
              ds.intrinsics.width, ds.intrinsics.height, cfg.mode, args.task_id)
-    _, metrics = run_mapping(ds, cfg, task_id=args.task_id, stride=args.stride, out_dir=out,
+    _, metrics = run_mapping(ds, cfg, task_id=args.task_id, relevance_fn=relevance, stride=args.stride, out_dir=out,
                              progress=not args.no_progress)
     brief = {k: v for k, v in metrics.items() if k != "per_frame"}
     print(json.dumps(brief, indent=2))
+    print(f"trajectory: {write_trajectory(ds, out)}", flush=True)
     return 0
 
 
 def register(sub) -> None:
-    p = sub.add_parser("map", help="map a posed RGB-D sequence and evaluate it",
-                       description="Map a sequence with known poses; writes map.ply, metrics.json and PNGs.")
+    p = sub.add_parser("map", help="map an RGB-D sequence and evaluate it",
+                       description="Map an RGB-D sequence, with its poses or poses from odometry; writes map.ply, "
+                                   "metrics.json, trajectory.tum and PNGs.")
     add_mapping_args(p)
-    p.add_argument("--mode", choices=["uniform", "gausslite"], default="uniform",
-                   help="uniform (default: every region alike, a warning says so) or gausslite (task-conditioned: "
-                        "needs --task-id or a tasks.json beside the dataset, with objects.json)")
+    p.add_argument("--mode", choices=["uniform", "gausslite"], default=None,
+                   help="uniform (the default without --task: every region alike, a warning says so) or gausslite "
+                        "(task-conditioned, the default with --task: needs --task, or --task-id or a tasks.json beside "
+                        "the dataset, with objects.json)")
+    g = p.add_argument_group("task text (grounded as the agent grounds it: the task parser, then the attention "
+                             "front-end with the dataset's objects.json, else the ONNX models below)")
+    g.add_argument("--task", default=None, help='what the map is for, e.g. "pick up the cup"')
+    g.add_argument("--onnx-detector", default=None, metavar="PATH", help="Grounding-DINO-style detector .onnx")
+    g.add_argument("--onnx-vocab", default=None, metavar="PATH", help="the detector's vocab.txt")
+    g.add_argument("--onnx-segmenter", default=None, metavar="PATH", help="FastSAM / YOLOv8-seg segmenter .onnx")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=_handler)

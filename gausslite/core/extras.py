@@ -27,7 +27,7 @@ EXTRA_MODULES: Dict[str, Dict[str, str]] = {
     "fusion": {"psycopg": "psycopg[binary]", "psycopg_pool": "psycopg-pool"},
     "mapper": {"torch": "torch", "warp": "warp-lang", "scipy": "scipy", "onnxruntime": "onnxruntime",
                "plyfile": "plyfile", "matplotlib": "matplotlib", "viser": "viser", "gsply": "gsply",
-               "rosbags": "rosbags"},
+               "rosbags": "rosbags", "open3d": "open3d-cpu"},
 }
 
 

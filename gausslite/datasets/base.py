@@ -23,6 +23,9 @@ class Frame:
         depth: (H, W) float32 depth in metres along camera z; 0 = invalid.
         c2w: (4, 4) float64 camera-to-world pose, OpenCV camera axes (x right, y down, z forward).
         intrinsics: pinhole intrinsics matching ``rgb``/``depth`` size.
+        name: the frame's name in its sequence (e.g. the colour file's stem).
+        pose_ok: False when ``c2w`` is not an estimate of this frame: its odometry failed and it carries the last
+            good pose (:mod:`gausslite.datasets.odometry`); the mapper skips such a frame.
     """
 
     frame_id: int
@@ -32,19 +35,23 @@ class Frame:
     c2w: np.ndarray
     intrinsics: Intrinsics
     name: str = ""
+    pose_ok: bool = True
 
 
 class RGBDDataset(Sequence[Frame], ABC):
     """Base class: a posed RGB-D sequence, indexable and iterable, loading frames lazily.
 
     Subclasses set ``self.path``, ``self.intrinsics`` (after downscaling), ``self.annotations``
-    (``SceneAnnotations`` or None) and implement ``__len__`` and ``_load(i)``.
+    (``SceneAnnotations`` or None) and implement ``__len__`` and ``_load(i)``. ``has_poses`` is False for a
+    sequence read without poses (its frames carry the identity until :class:`~gausslite.datasets.odometry.
+    OdometryDataset` estimates them).
     """
 
     path: Path
     intrinsics: Intrinsics
     annotations: "Optional[object]" = None
     name: str = ""
+    has_poses: bool = True
 
     @abstractmethod
     def __len__(self) -> int:

@@ -269,7 +269,8 @@ class PosedImageDataset(RGBDDataset):
         native_intrinsics: intrinsics of the image files on disk.
         downscale: the downscale factor (float >= 1).
         depth_scale: raw depth units per metre.
-        poses: (N, 4, 4) float64 camera-to-world poses of the selected frames (OpenCV camera axes).
+        poses: (N, 4, 4) float64 camera-to-world poses of the selected frames (OpenCV camera axes); the identity
+            when the constructor got ``poses=None`` (no pose file: ``has_poses`` False).
         timestamps: (N,) float64 seconds.
         frame_ids: list of N ints, index of each frame in the full sequence.
         rgb_paths, depth_paths: lists of N file paths.
@@ -282,7 +283,7 @@ class PosedImageDataset(RGBDDataset):
         name: str,
         rgb_paths: Sequence[Path],
         depth_paths: Sequence[Path],
-        poses: np.ndarray,
+        poses: Optional[np.ndarray],
         timestamps: Sequence[float],
         frame_ids: Sequence[int],
         frame_names: Sequence[str],
@@ -294,6 +295,11 @@ class PosedImageDataset(RGBDDataset):
         depth_camera: Optional["DepthCamera"] = None,
     ) -> None:
         n = len(rgb_paths)
+        #: False when the sequence has no pose file: every frame carries the identity until odometry estimates
+        #: its pose (:func:`gausslite.datasets.odometry.with_pose_source`)
+        self.has_poses = poses is not None
+        if poses is None:
+            poses = np.broadcast_to(np.eye(4), (n, 4, 4))
         if not (len(depth_paths) == len(poses) == len(timestamps) == len(frame_ids) == len(frame_names) == n):
             raise ValueError(f"{path}: internal error, per-frame lists have different lengths")
         if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):

@@ -184,7 +184,10 @@ class ReplicaDataset(PosedImageDataset):
         for k, dp in zip(nums, depth_all):
             if not dp.is_file():
                 raise FileNotFoundError(f"depth image not found for {by_num[k][0].name}: {dp}")
-        poses_all = read_traj(seq / "traj.txt", n_all)
+        # no traj.txt at all: a sequence without poses (odometry estimates them, gausslite.datasets.odometry)
+        poses_all = read_traj(seq / "traj.txt", n_all) if (seq / "traj.txt").exists() else None
+        #: the pose file a sequence without poses lacks (for the error of pose_source "given")
+        self.missing_poses = str(seq / "traj.txt")
 
         idx = select_indices(n_all, stride, max_frames)
         super().__init__(
@@ -192,7 +195,7 @@ class ReplicaDataset(PosedImageDataset):
             name=seq.name,
             rgb_paths=[by_num[nums[i]][0] for i in idx],
             depth_paths=[depth_all[i] for i in idx],
-            poses=poses_all[idx] if idx else np.zeros((0, 4, 4)),
+            poses=None if poses_all is None else (poses_all[idx] if idx else np.zeros((0, 4, 4))),
             timestamps=[i / float(fps) for i in idx],
             frame_ids=idx,
             frame_names=[by_num[nums[i]][0].stem for i in idx],

@@ -149,15 +149,20 @@ class SevenScenesDataset(PosedImageDataset):
         nums = sorted(by_num)
         idx = select_indices(len(nums), stride, max_frames)
         rgb_paths, depth_paths, poses, names = [], [], [], []
+        # no pose file at all: a sequence without poses (odometry estimates them, gausslite.datasets.odometry)
+        posed = any(seq.glob("frame-*.pose.txt"))
+        #: the pose files a sequence without poses lacks (for the error of pose_source "given")
+        self.missing_poses = str(seq / "frame-NNNNNN.pose.txt")
         for i in idx:
             f, digits, _ = by_num[nums[i]]
             dp = seq / f"frame-{digits}.depth.png"
             pp = seq / f"frame-{digits}.pose.txt"
             if not dp.is_file():
                 raise FileNotFoundError(f"depth image not found for {f.name}: {dp}")
-            if not pp.is_file():
+            if posed and not pp.is_file():
                 raise FileNotFoundError(f"pose file not found for {f.name}: {pp}")
-            poses.append(check_rigid(read_matrix_file(pp, 4, 4), what=str(pp)))
+            if posed:
+                poses.append(check_rigid(read_matrix_file(pp, 4, 4), what=str(pp)))
             rgb_paths.append(f)
             depth_paths.append(dp)
             names.append(f"frame-{digits}")
@@ -167,7 +172,7 @@ class SevenScenesDataset(PosedImageDataset):
             name=seq.name,
             rgb_paths=rgb_paths,
             depth_paths=depth_paths,
-            poses=np.stack(poses),
+            poses=np.stack(poses) if posed else None,
             timestamps=[k / float(fps) for k in fids],
             frame_ids=fids,
             frame_names=names,

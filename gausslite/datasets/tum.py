@@ -23,6 +23,11 @@ re-projected (z-buffered, :func:`~gausslite.datasets.registration.register_depth
 at its own timestamp into the colour camera at the colour timestamp, both poses interpolated from the
 groundtruth, as a depth→colour extrinsic ``T_color_depth = T_wc(t_colour)^-1 T_wc(t_depth)``.
 
+Without ``groundtruth.txt`` the sequence has no poses (``has_poses`` False; odometry estimates them,
+:mod:`gausslite.datasets.odometry`). A camera file beside ``rgb.txt`` (``camera.yaml`` / ``camera.json``,
+:mod:`gausslite.datasets.camera_file`) overrides the camera below: its size, intrinsics, ``depth_scale`` and
+distortion.
+
 Intrinsics: TUM's published pinhole values chosen from the sequence name (folder name, else the
 ``# file: '...bag'`` header of ``rgb.txt``): freiburg1/fr1 517.3 516.5 318.6 255.3, freiburg2/fr2 520.9
 521.0 325.1 249.7, freiburg3/fr3 535.4 539.2 320.1 247.6, otherwise the ROS default 525 525 319.5 239.5;
@@ -47,6 +52,7 @@ import numpy as np
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.camera_file import find_camera_file, read_camera_file
 from gausslite.datasets.registration import DepthCamera
 from gausslite.datasets.common import PosedImageDataset, select_indices
 from gausslite.ros.transforms import quat_to_rot, slerp
@@ -242,15 +248,31 @@ class TUMDataset(PosedImageDataset):
         rgb_file = seq / "rgb.txt"
         rgb_ts, rgb_names = read_file_list(rgb_file)
         depth_ts, depth_names = read_file_list(seq / "depth.txt")
-        gt = read_groundtruth(seq / "groundtruth.txt")
+        # no groundtruth.txt: a sequence without poses (odometry estimates them, gausslite.datasets.odometry); the
+        # pose interpolation and the depth time alignment need the ground truth and are off
+        gt = read_groundtruth(seq / "groundtruth.txt") if (seq / "groundtruth.txt").exists() else None
+        #: the pose file a sequence without poses lacks (for the error of pose_source "given")
+        self.missing_poses = str(seq / "groundtruth.txt")
+        if gt is None and (interpolate_poses or align_depth_time):
+            log.info("%s: no groundtruth.txt: poses from odometry, without pose interpolation or depth time "
+                     "alignment", seq)
+            interpolate_poses = align_depth_time = False
+        cam = find_camera_file(seq)
+        #: the camera file beside the sequence (None: the Freiburg camera), which overrides the camera and depth / 5000
+        self.camera = read_camera_file(cam) if cam is not None else None
+        if self.camera is not None:
+            depth_scale = self.camera.depth_scale
+            distortion = self.camera.distortion if distortion is None else distortion
         if len(rgb_ts) == 0:
             raise ValueError(f"{rgb_file}: no frames listed")
         if len(depth_ts) == 0:
             raise ValueError(f"{seq / 'depth.txt'}: no frames listed")
         intr = self._setup_camera(seq, intrinsics, distortion, undistort)
-        keep, d_idx, g_idx = self._associate(seq, rgb_ts, depth_ts, gt[0], max_depth_dt, max_pose_dt)
+        keep, d_idx, g_idx = self._associate(seq, rgb_ts, depth_ts, None if gt is None else gt[0], max_depth_dt,
+                                             max_pose_dt)
         sel = [int(keep[k]) for k in select_indices(len(keep), stride, max_frames)]
-        poses = [self._gt_pose(seq, gt, rgb_ts[i], int(g_idx[i]), interpolate_poses) for i in sel]
+        poses = None if gt is None else [self._gt_pose(seq, gt, rgb_ts[i], int(g_idx[i]), interpolate_poses)
+                                         for i in sel]
         #: per selected frame, T_color_depth of the depth/colour time offset (identity when not aligned)
         self._time_extrinsics: Optional[List[np.ndarray]] = None
         self.align_depth_time = bool(align_depth_time)
@@ -268,7 +290,7 @@ class TUMDataset(PosedImageDataset):
             name=seq.name,
             rgb_paths=rgb_paths,
             depth_paths=depth_paths,
-            poses=np.stack(poses),
+            poses=None if poses is None else np.stack(poses),
             timestamps=rgb_ts[sel],
             frame_ids=sel,
             frame_names=[Path(rgb_names[i]).stem for i in sel],
@@ -294,7 +316,11 @@ class TUMDataset(PosedImageDataset):
                 head = "".join(line for line in fh.readlines()[:5] if line.startswith("#"))
             fr = freiburg_id(head)
         self.freiburg = fr
-        if intrinsics is None:
+        cam = self.camera
+        size = (cam.intrinsics.width, cam.intrinsics.height) if cam is not None else TUM_SIZE
+        if intrinsics is None and cam is not None:
+            intr = cam.intrinsics
+        elif intrinsics is None:
             intr = Intrinsics(*TUM_INTRINSICS[fr], *TUM_SIZE)
         elif isinstance(intrinsics, Intrinsics):
             intr = intrinsics
@@ -302,7 +328,7 @@ class TUMDataset(PosedImageDataset):
             vals = [float(v) for v in intrinsics]
             if len(vals) != 4:
                 raise ValueError(f"intrinsics override must be Intrinsics or (fx, fy, cx, cy), got {intrinsics!r}")
-            intr = Intrinsics(*vals, *TUM_SIZE)
+            intr = Intrinsics(*vals, *size)
         dist = TUM_DISTORTION[fr] if distortion is None else tuple(float(v) for v in distortion)
         if len(dist) != 5 or not all(math.isfinite(v) for v in dist):
             raise ValueError(f"distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {distortion!r}")
@@ -333,7 +359,10 @@ class TUMDataset(PosedImageDataset):
         d_order = np.argsort(depth_ts, kind="stable")
         d_idx, d_gap = associate_nearest(rgb_ts, depth_ts[d_order])
         d_idx = d_order[d_idx]
-        g_idx, g_gap = associate_nearest(rgb_ts, gt_ts)
+        if gt_ts is None:  # no ground truth: every colour frame with depth is kept
+            g_idx, g_gap = np.zeros(len(rgb_ts), dtype=np.int64), np.zeros(len(rgb_ts))
+        else:
+            g_idx, g_gap = associate_nearest(rgb_ts, gt_ts)
         ok = (d_gap <= max_depth_dt) & (g_gap <= max_pose_dt)
         keep = np.flatnonzero(ok)
         self.n_dropped = int(len(rgb_ts) - len(keep))

@@ -60,13 +60,14 @@ HANDHELD = SensorProfile(
 )
 HANDHELD_PINHOLE = SensorProfile(
     "handheld",
-    "hand-held RGB-D without published distortion (7-Scenes) or undistorted by its loader from CameraInfo "
-    "(ROS bags): keyframe poses refined from the sensor's, per-keyframe exposure compensation, the camera's "
-    "motion blur and rolling shutter, a lighter depth loss, a final pass over every keyframe",
+    "hand-held RGB-D without published distortion (7-Scenes), undistorted by its loader from CameraInfo "
+    "(ROS bags) or from its camera file (camera folders), or RealSense recordings: keyframe poses refined from the "
+    "sensor's, per-keyframe exposure compensation, the camera's motion blur and rolling shutter, a lighter depth loss, a final pass over every keyframe",
     mapper=_HANDHELD_MAPPER,
 )
 
-_BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE, "bag": HANDHELD_PINHOLE}
+_BY_LAYOUT = {"replica": RENDERED, "tum": HANDHELD, "7scenes": HANDHELD_PINHOLE, "bag": HANDHELD_PINHOLE,
+              "camera": HANDHELD_PINHOLE, "realsense": HANDHELD_PINHOLE}
 
 
 def profile_for_layout(layout: str) -> SensorProfile:

@@ -153,9 +153,10 @@ def test_replica_missing_folders_and_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="results"):
         ReplicaDataset(empty)
     seq = make_replica(tmp_path / "a")
-    (seq / "traj.txt").unlink()
-    with pytest.raises(FileNotFoundError, match="traj.txt"):
-        ReplicaDataset(seq)
+    (seq / "traj.txt").unlink()  # no poses: odometry estimates them, pose_source "given" names the file
+    assert not ReplicaDataset(seq).has_poses
+    with pytest.raises(ValueError, match="traj.txt"):
+        load_dataset(seq, pose_source="given")
     seq = make_replica(tmp_path / "b")
     (seq.parent / "cam_params.json").unlink()
     with pytest.raises(FileNotFoundError, match="cam_params.json"):
@@ -323,9 +324,10 @@ def test_tum_malformed_files(tmp_path, fname, content, match):
 
 def test_tum_missing_files(tmp_path):
     seq = make_tum(tmp_path, n=2)
-    (seq / "groundtruth.txt").unlink()
-    with pytest.raises(FileNotFoundError, match="groundtruth.txt"):
-        TUMDataset(seq)
+    (seq / "groundtruth.txt").unlink()  # no poses: odometry estimates them, pose_source "given" names the file
+    assert not TUMDataset(seq).has_poses
+    with pytest.raises(ValueError, match="groundtruth.txt"):
+        load_dataset(seq, pose_source="given")
     seq = make_tum(tmp_path / "b", n=2)
     victim = sorted((seq / "rgb").iterdir())[1]
     victim.unlink()
