@@ -144,7 +144,7 @@ class RealSenseBagDataset(RGBDDataset):
 
     def _first(self, topic: str, required: bool = True):
         conns = [c for c in self._reader.connections if c.topic == topic]
-        for c, _t, raw in self._reader.messages(connections=conns):
+        for c, _t, raw in self._reader.messages(connections=conns) if conns else ():  # no connection: all of them
             return self._reader.deserialize(raw, c.msgtype)
         if required:
             raise ValueError(f"{self.path}: topic {topic} is missing or empty")
@@ -153,7 +153,7 @@ class RealSenseBagDataset(RGBDDataset):
     def _stamps(self, topic: str) -> List[Tuple[int, int]]:
         """``[(bag time ns, message index)]`` of an image topic, in bag order."""
         conns = [c for c in self._reader.connections if c.topic == topic]
-        return [(int(t), i) for i, (_c, t, _raw) in enumerate(self._reader.messages(connections=conns))]
+        return [(int(t), i) for i, (_c, t, _raw) in enumerate(self._reader.messages(connections=conns) if conns else ())]
 
     def _scan(self, max_depth_dt: float, depth_splat: int) -> None:
         """Read the cameras, the depth units and the extrinsics, and pair colour with depth messages."""
