@@ -1,0 +1,156 @@
+"""Tracking error and cost of the RGB-D odometry (``gausslite.datasets.odometry``), the pose source of input without
+poses (docs/mapper.md, "Poses from odometry").
+
+Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
+
+- ``tum_fr1_rpy``: TUM RGB-D fr1/rpy, the loader's 150 frames at 320×240 (``--downscale 2``), undistorted; the depth
+  is not re-aligned in time (that uses the ground truth);
+- ``synthetic_circle``: the synthetic scene (``gausslite make-scene --trajectory circle``), robot A, 300 frames at
+  320×240 (rendered: exact depth, no noise);
+- ``room0``: Replica room0, 20 frames at 300×170 (``--downscale 4``), far apart.
+
+Measured: ATE RMSE after rigid (SE(3), no scale) alignment to the reference poses, as the TUM benchmark's
+``evaluate_ate.py``; RPE (translational and rotational RMSE) per frame and per second; the fraction of frames
+tracked (not lost); the odometry's wall-clock time per frame (``track`` alone: the frames are read first). Each
+variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped settings) and ``frame_to_frame`` (the same
+registration against the previous frame only).
+
+Wall-clock figures are only comparable on an idle machine: the JSON records the load average before and after.
+
+Usage::
+
+    python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0] [--variants default,frame_to_frame]
+                             [--synthetic-frames 300] [--out bench/results/odometry.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from bench._results import write_results
+from gausslite.datasets import load_dataset
+from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
+from gausslite.datasets.trajectory import ate_rmse, rpe
+from gausslite.synthetic import make_scene
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")) / "datasets"
+RESULTS = REPO / "bench" / "results"
+
+#: the odometry settings compared (``OdometryConfig`` fields over the defaults)
+VARIANTS = {"default": {}, "frame_to_frame": {"reference": "previous_frame"}}
+SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0")
+
+
+def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple) -> list:
+    """The frames (with their reference poses as ``c2w``) of a bench sequence, read into memory.
+
+    Raises:
+        FileNotFoundError: a shared dataset that is absent (set ``GAUSSLITE_SHARED``).
+    """
+    if name == "tum_fr1_rpy":
+        ds = load_dataset(SHARED / "TUM_rgbd_dataset_freiburg1_rpy", downscale=2, undistort=True,
+                          interpolate_poses=True, align_depth_time=False, pose_source="given")
+    elif name == "room0":
+        ds = load_dataset(SHARED / "Replica_room0", downscale=4, pose_source="given")
+    else:
+        scene = work / "synthetic"
+        if not (scene / "agent_a" / "traj.txt").is_file():
+            make_scene(scene, frames=synthetic_frames, width=size[0], height=size[1], trajectory="circle",
+                       progress=False)
+        ds = load_dataset(scene / "agent_a", pose_source="given")
+    return [ds[i] for i in range(len(ds))]
+
+
+def track(frames: list, overrides: dict) -> dict:
+    """Run the odometry over ``frames`` (the first one's reference pose fixes the world frame) and score it."""
+    odo = RGBDOdometry(OdometryConfig(**overrides), initial_pose=frames[0].c2w)
+    seconds, results = [], []
+    for f in frames:
+        t0 = time.perf_counter()
+        results.append(odo.track(f))
+        seconds.append(time.perf_counter() - t0)
+    est = np.stack([r.c2w for r in results])
+    ref = np.stack([f.c2w for f in frames])
+    ts = np.array([f.timestamp for f in frames])
+    i = frames[0].intrinsics
+    return {"frames": len(frames), "size": [i.width, i.height],
+            "ate_rmse_m": ate_rmse(est, ref),
+            "rpe": {"per_frame": rpe(est, ref), "per_second": rpe(est, ref, ts, 1.0, per_second=True)},
+            "ms_per_frame": 1000.0 * float(np.mean(seconds[1:])) if len(seconds) > 1 else None,
+            "tracked_fraction": float(np.mean([r.ok for r in results])),
+            "lost_frame_ids": list(odo.failed_ids), "keyframes": odo.n_keyframes}
+
+
+def _cm(v) -> str:
+    return "—" if v is None else f"{100 * v:.2f}"
+
+
+def table(results: dict) -> str:
+    """The Markdown table of ``results[sequence][variant]``."""
+    rows = ["| sequence | variant | frames | size | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | RPE (cm / s) | "
+            "tracked | ms / frame |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for seq, by_variant in results.items():
+        for var, r in by_variant.items():
+            pf, ps = r["rpe"]["per_frame"], r["rpe"]["per_second"]
+            rot = "—" if pf["rot_rmse_deg"] is None else f"{pf['rot_rmse_deg']:.2f}"
+            ms = "—" if r["ms_per_frame"] is None else f"{r['ms_per_frame']:.0f}"
+            rows.append(f"| {seq} | {var} | {r['frames']} | {r['size'][0]}×{r['size'][1]} | {_cm(r['ate_rmse_m'])} "
+                        f"| {_cm(pf['trans_rmse_m'])} | {rot} | {_cm(ps['trans_rmse_m'])} | "
+                        f"{100 * r['tracked_fraction']:.0f} % | {ms} |")
+    return "\n".join(rows)
+
+
+def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path) -> dict:
+    """``{sequence: {variant: metrics}}`` (:func:`track`), printing each row as it is measured."""
+    out: dict = {}
+    for name in sequences:
+        frames = load_sequence(name, work, synthetic_frames, size)
+        out[name] = {}
+        for var in variants:
+            out[name][var] = track(frames, VARIANTS[var])
+            r = out[name][var]
+            print(f"{name} {var}: ATE {100 * r['ate_rmse_m']:.2f} cm, tracked {100 * r['tracked_fraction']:.0f} %, "
+                  f"{r['ms_per_frame']:.0f} ms/frame", flush=True)
+    return out
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Entry point: measure, write the JSON and the Markdown table, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sequences", default=",".join(SEQUENCES), help=f"comma-separated, of {', '.join(SEQUENCES)}")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--synthetic-frames", type=int, default=300, help="frames of the synthetic circle")
+    ap.add_argument("--synthetic-size", default="320x240", help="WxH of the synthetic circle")
+    ap.add_argument("--out", type=Path, default=RESULTS / "odometry.json")
+    args = ap.parse_args(argv)
+    seqs = [s for s in args.sequences.split(",") if s]
+    variants = [v for v in args.variants.split(",") if v]
+    bad = [s for s in seqs if s not in SEQUENCES] + [v for v in variants if v not in VARIANTS]
+    if bad:
+        ap.error(f"unknown sequence or variant: {', '.join(bad)}")
+    size = tuple(int(v) for v in args.synthetic_size.lower().split("x"))
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
+        results = run(seqs, variants, args.synthetic_frames, size, Path(tmp))
+    doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
+           "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",
+           "variants": {v: VARIANTS[v] for v in variants}, "odometry_defaults": OdometryConfig().model_dump(),
+           "sequences": results}
+    details = (f": {time.perf_counter() - t0:.0f} s; load average {load_before[0]:.1f} before, "
+               f"{os.getloadavg()[0]:.1f} after (2 cores)")
+    write_results(args.out, "odometry", argv, details, table(results), doc)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
