@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from dataclasses import dataclass
 from typing import List, Literal, Optional
 
@@ -140,6 +141,7 @@ class RGBDOdometry:
         #: keyframes taken so far (including those dropped from the search)
         self.n_keyframes = 0
         self._since_good = 0  # frames lost since the last good pose
+        self._lock = threading.Lock()
         self._prev: Optional[_Keyframe] = None
         o3d = _open3d()
         c = self.config
@@ -179,7 +181,7 @@ class RGBDOdometry:
         return min(self.keyframes, key=distance)
 
     def track(self, frame: Frame) -> TrackResult:
-        """Estimate the pose of the next frame of the stream.
+        """Estimate the pose of the next frame of the stream (thread-safe: one frame at a time).
 
         Args:
             frame: the frame (``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float32 metres, ``intrinsics``,
@@ -187,6 +189,10 @@ class RGBDOdometry:
         Returns:
             the :class:`TrackResult` (a failed frame: ``ok`` False, ``c2w`` the last good pose).
         """
+        with self._lock:
+            return self._track(frame)
+
+    def _track(self, frame: Frame) -> TrackResult:
         image = self._image(frame)
         if self.last_pose is None:  # the first frame fixes the world frame
             self.last_pose = self.initial_pose.copy()

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from gausslite.camera import check_rigid
 from gausslite.datasets.bag import BagOptions
+from gausslite.datasets.odometry import OdometryConfig
 from gausslite.mapping.config import MapperConfig
 
 __all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "AgentConfig", "AgentSections"]
@@ -294,6 +295,10 @@ class AgentConfig(BaseModel):
         refine_views: the views sent for the fusion refinement (:class:`RefineViewsConfig`): ROI crops, frames
             between keyframes, the byte budget.
         frame: this robot's map frame in the team's world frame (:class:`FrameConfig`, ``frame.T_world_map``).
+        pose_source: ``given`` (each frame's own pose) or ``odometry``: every streamed or replayed frame is tracked by
+            RGB-D odometry (:mod:`gausslite.datasets.odometry`) as it arrives, beside the mapper; the keyframe selection
+            uses the estimate, and a frame whose tracking fails is logged, counted (``frames_rejected``) and not mapped.
+        odometry: the odometry's settings (:class:`~gausslite.datasets.odometry.OdometryConfig`).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 
@@ -348,6 +353,8 @@ class AgentConfig(BaseModel):
     resolution: ResolutionConfig = ResolutionConfig()
     refine_views: RefineViewsConfig = RefineViewsConfig()
     frame: FrameConfig = FrameConfig()
+    pose_source: Literal["given", "odometry"] = "given"
+    odometry: OdometryConfig = OdometryConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
 
 

@@ -27,6 +27,7 @@ What is shared, the share worker, the fine-tune cache and the delta planning liv
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -237,6 +238,7 @@ class AgentRuntime:
         self._sends_between, self._keeps_views, self._uses_between = self._between_use(config)
         self.frames_skipped = 0
         self.frames_rejected = 0
+        self._odometry = _odometry(config)  # agent.pose_source odometry: every frame is tracked in submit
         self.keyframe_iterations = 0
         self.idle_iterations = 0
         self.checkpoints = 0
@@ -286,6 +288,10 @@ class AgentRuntime:
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
+        if self._odometry is not None:
+            frame = self._track(frame)
+            if frame is None:
+                return False
         if not _replay:  # a replay's frames are in the world frame already (replay())
             frame = frame_to_world(frame, self.T_world_map)
         if not self._share_started and not _replay:
@@ -321,6 +327,22 @@ class AgentRuntime:
             self.frames_received += 1
             self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
         return True
+
+    def _track(self, frame) -> Optional[Frame]:
+        """``frame`` (decoded) with the odometry's pose (agent.pose_source odometry), or None when its tracking failed:
+        the frame is then logged, counted as rejected and not mapped."""
+        if hasattr(frame, "materialize"):
+            frame = frame.materialize()  # the odometry needs the images of every frame
+        if self._odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
+            self._odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
+        r = self._odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
+        if r.ok:
+            return dataclasses.replace(frame, c2w=r.c2w)
+        with self._lock:
+            self.frames_received += 1
+            self.frames_rejected += 1
+            self.last_error = f"odometry lost frame {frame.frame_id}: {r.reason}"
+        return None
 
     def replay(self, dataset, progress: Optional[Callable[[int, int], None]] = None) -> threading.Thread:
         """Feed every frame of ``dataset`` from a background thread; the state becomes ``REPLAY_DONE``
@@ -949,3 +971,14 @@ class AgentRuntime:
         if self._relevance_worker is not None:
             self._relevance_worker.close()
         self.share.close()
+
+
+def _odometry(config: AgentConfig):
+    """The RGB-D odometry of a mission with ``agent.pose_source: odometry`` (None otherwise); its world frame is the
+    first frame's pose (the identity for a stream without poses)."""
+    if config.pose_source != "odometry":
+        return None
+    # lazy: Open3D loads only for missions that track
+    from gausslite.datasets.odometry import RGBDOdometry
+
+    return RGBDOdometry(config.odometry)
