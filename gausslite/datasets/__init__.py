@@ -1,4 +1,5 @@
-"""RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes, ROS bags) and scene annotations.
+"""RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes, ROS bags, RealSense recordings, camera-file
+folders), poses from RGB-D odometry for input without them, and scene annotations.
 
 Every loader is an :class:`RGBDDataset` yielding :class:`Frame` objects lazily; ``load_dataset`` picks
 the loader from the folder layout. ``dataset.annotations`` is a :class:`SceneAnnotations` or None.
@@ -16,7 +17,10 @@ from gausslite.datasets.annotations import (
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import PosedImageDataset, downscale_depth, downscale_rgb, read_depth, read_rgb
 from gausslite.datasets.bag import BagDataset, BagError, BagOptions
+from gausslite.datasets.camera_folder import CameraFolderDataset
 from gausslite.datasets.loader import detect_layout, load_dataset
+from gausslite.datasets.odometry import OdometryConfig, OdometryDataset, RGBDOdometry
+from gausslite.datasets.realsense import RealSenseBagDataset
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.datasets.replica import ReplicaDataset
 from gausslite.datasets.sevenscenes import SevenScenesDataset
@@ -30,6 +34,11 @@ __all__ = [
     "TUMDataset",
     "SevenScenesDataset",
     "BagDataset",
+    "CameraFolderDataset",
+    "RealSenseBagDataset",
+    "OdometryConfig",
+    "OdometryDataset",
+    "RGBDOdometry",
     "BagOptions",
     "BagError",
     "DepthCamera",

@@ -3,6 +3,7 @@ agent grounds it (annotations, else ONNX, else a one-line refusal) and the traje
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 
@@ -57,3 +58,18 @@ def test_a_task_that_cannot_be_grounded_and_given_poses_that_are_missing_are_one
     with caplog.at_level(logging.ERROR):
         assert main(["map", "--dataset", str(seq), "--pose-source", "given", "--out", str(tmp_path / "b")]) == 2
     assert "traj.txt not found" in caplog.text and "pose_source 'odometry'" in caplog.text
+
+
+def test_run_mapping_neither_maps_nor_scores_a_lost_frame(bare):
+    from gausslite.config import load_mapper_config
+    from gausslite.pipeline import run_mapping
+
+    seq, _ = bare
+    ds = load_dataset(seq, max_frames=6, progress=False)
+    ds.track()
+    ds.results[3] = dataclasses.replace(ds.results[3], ok=False)  # as a lost frame is flagged
+    assert not ds[3].pose_ok and list(ds.pose_ok) == [True] * 3 + [False] + [True] * 2
+    cfg = load_mapper_config(None, ["iters_per_frame=3", "warmup_iters=1", "final_iters_per_keyframe=0"])
+    mapper, m = run_mapping(ds, cfg, progress=False, stride=2)
+    assert m["n_frames_lost"] == 1 and m["n_frames"] == 3  # frames 0, 2, 4 mapped; 3 not scored as held out
+    assert {int(s.frame_id) for s in mapper.stats} == {0, 2, 4} and m["heldout_psnr"] is not None
