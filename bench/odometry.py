@@ -12,14 +12,16 @@ Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
 Measured: ATE RMSE after rigid (SE(3), no scale) alignment to the reference poses, as the TUM benchmark's
 ``evaluate_ate.py``; RPE (translational and rotational RMSE) per frame and per second; the fraction of frames
 tracked (not lost); the odometry's wall-clock time per frame (``track`` alone: the frames are read first). Each
-variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped settings) and ``frame_to_frame`` (the same
-registration against the previous frame only).
+variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped settings: tracked at about 160 pixels
+wide), ``mapping_resolution`` (tracked at the sequence's own resolution) and ``frame_to_frame`` (the shipped settings
+registering against the previous frame only).
 
 Wall-clock figures are only comparable on an idle machine: the JSON records the load average before and after.
 
 Usage::
 
-    python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0] [--variants default,frame_to_frame]
+    python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0]
+                             [--variants default,mapping_resolution,frame_to_frame]
                              [--synthetic-frames 300] [--out bench/results/odometry.json]
 """
 
@@ -46,7 +48,7 @@ SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")) / "dat
 RESULTS = REPO / "bench" / "results"
 
 #: the odometry settings compared (``OdometryConfig`` fields over the defaults)
-VARIANTS = {"default": {}, "frame_to_frame": {"reference": "previous_frame"}}
+VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None}, "frame_to_frame": {"reference": "previous_frame"}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0")
 
 
@@ -82,7 +84,9 @@ def track(frames: list, overrides: dict) -> dict:
     ref = np.stack([f.c2w for f in frames])
     ts = np.array([f.timestamp for f in frames])
     i = frames[0].intrinsics
-    return {"frames": len(frames), "size": [i.width, i.height],
+    tw = odo.config.track_width
+    f = 1 if tw is None else max(1, round(i.width / tw))
+    return {"frames": len(frames), "size": [i.width, i.height], "tracked_size": [i.width // f, i.height // f],
             "ate_rmse_m": ate_rmse(est, ref),
             "rpe": {"per_frame": rpe(est, ref), "per_second": rpe(est, ref, ts, 1.0, per_second=True)},
             "ms_per_frame": 1000.0 * float(np.mean(seconds[1:])) if len(seconds) > 1 else None,
@@ -96,14 +100,16 @@ def _cm(v) -> str:
 
 def table(results: dict) -> str:
     """The Markdown table of ``results[sequence][variant]``."""
-    rows = ["| sequence | variant | frames | size | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | RPE (cm / s) | "
-            "tracked | ms / frame |", "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| sequence | variant | frames | size | tracked at | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | RPE (cm / s) | "
+            "tracked | ms / frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for seq, by_variant in results.items():
         for var, r in by_variant.items():
             pf, ps = r["rpe"]["per_frame"], r["rpe"]["per_second"]
             rot = "—" if pf["rot_rmse_deg"] is None else f"{pf['rot_rmse_deg']:.2f}"
             ms = "—" if r["ms_per_frame"] is None else f"{r['ms_per_frame']:.0f}"
-            rows.append(f"| {seq} | {var} | {r['frames']} | {r['size'][0]}×{r['size'][1]} | {_cm(r['ate_rmse_m'])} "
+            ts = r["tracked_size"]
+            rows.append(f"| {seq} | {var} | {r['frames']} | {r['size'][0]}×{r['size'][1]} | {ts[0]}×{ts[1]} | "
+                        f"{_cm(r['ate_rmse_m'])} "
                         f"| {_cm(pf['trans_rmse_m'])} | {rot} | {_cm(ps['trans_rmse_m'])} | "
                         f"{100 * r['tracked_fraction']:.0f} % | {ms} |")
     return "\n".join(rows)

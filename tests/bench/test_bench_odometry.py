@@ -13,11 +13,11 @@ def test_odometry_bench_smoke(tmp_path, capsys):
     res = json.loads(out.read_text())
     assert res["provenance"]["command"].startswith("python -m bench.odometry --sequences synthetic_circle")
     assert len(res["load_average_before"]) == 3 and res["odometry_defaults"]["reference"] == "nearest_keyframe"
-    for variant in ("default", "frame_to_frame"):
+    for variant in ("default", "mapping_resolution", "frame_to_frame"):
         r = res["sequences"]["synthetic_circle"][variant]
         assert r["frames"] == 90 and r["size"] == [160, 120] and r["ms_per_frame"] > 0
         assert r["tracked_fraction"] > 0.9 and r["ate_rmse_m"] < 0.1
         assert r["rpe"]["per_frame"]["pairs"] == 89 and r["rpe"]["per_second"]["trans_rmse_m"] is not None
     printed = capsys.readouterr().out
-    assert "| synthetic_circle | default | 90 | 160×120 |" in printed
-    assert printed.count("| synthetic_circle |") == 2 and out.with_suffix(".md").is_file()
+    assert "| synthetic_circle | default | 90 | 160×120 | 160×120 |" in printed
+    assert printed.count("| synthetic_circle |") == 3 and out.with_suffix(".md").is_file()
