@@ -1,16 +1,19 @@
 """Push acknowledgements while the fusion server refines the team map in the background.
 
-    python -m bench.team_map_acks                  # 40 s with the team map refining, then 40 s without
+    python -m bench.team_map_acks                    # 40 s with the team map refining, then 40 s without
+    python -m bench.team_map_acks --refine-iters 300 # short refinements: vote, refine, store again and again
 
 Starts a real fusion server process (SQLite store in ``--work``, per-robot tokens, ``fusion.team_map`` on or off).
 Two robots open sessions and upload a subset (``--gaussians`` each, on a plane 1.5 m ahead) and ``--views`` ROI views
-(64 × 64), so the server starts a refinement of the team map (a long one: ``refine_iters`` 20,000, no early stop).
-While it runs, robot A pushes a new full subset version every ``--every`` seconds and a view every other push, for
-``--seconds``, and the benchmark times each call from the first byte sent to the acknowledgement. The same load then
-runs against a server without a team map. Goal: p99 of a push acknowledgement ≤ 250 ms while the team map refines.
+(64 × 64), so the server starts a refinement of the team map (by default a long one: ``refine_iters`` 20,000, no early
+stop; ``--refine-iters``). While it runs, robot A pushes a new full subset version every ``--every`` seconds and a view
+every other push, for ``--seconds``, and the benchmark times each call from the first byte sent to the
+acknowledgement. The same load then runs against a server without a team map. Goal: p99 of a push acknowledgement
+while the team map refines ≤ :data:`GOAL_RATIO` × its p99 without a team map.
 
 A wall-clock benchmark: run it alone on the machine. Writes ``bench/results/team_map_acks.json`` and ``.md``
-(``--out``); exit code 1 when the goal is missed or the refinement was not running throughout.
+(``--out``); exit code 1 when the goal is missed or no refinement ran during the pushes (a long one: throughout; short
+ones: at least two team maps made).
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from gausslite.datasets.base import Frame
 from gausslite_services.common import auth
 from gausslite_services.fusion_server.client import FusionClient
 
-GOAL_P99_MS = 250.0
+#: the goal: p99 of a push acknowledgement while the team map refines <= GOAL_RATIO x its p99 without a team map
+GOAL_RATIO = 2.0
 INTR = Intrinsics(60.0, 60.0, 31.5, 31.5, 64, 64)
 
 
@@ -67,12 +71,14 @@ def _setup(c: Dict[str, FusionClient], gaussians: int, views: int) -> None:
 
 def run_phase(work: Path, team_map: bool, args) -> dict:
     """One phase: a server (team map on or off), the set-up, then ``args.seconds`` of pushes by robot A. Returns the
-    acknowledgement times (ms) and, with the team map, whether a refinement ran throughout."""
+    acknowledgement times (ms) and, with the team map, whether a refinement ran throughout and how many team maps
+    were stored (the first included)."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     tokens_file = work / "tokens.json"
     tokens = {a: auth.issue_token(tokens_file, a) for a in ("robot-a", "robot-b")}
-    settings = {"team_map": {"enabled": team_map, "refine_iters": 20000, "settle_s": 0.2, "min_interval_s": 0.0},
+    settings = {"team_map": {"enabled": team_map, "refine_iters": args.refine_iters, "settle_s": 0.2,
+                             "min_interval_s": 0.0},
                 "refine_validation": {"per_view_iters": 0, "patience": 1000000}}
     proc, addr = start_server(work, tokens_file, 16, None, settings)
     c = {a: FusionClient(addr, token=t, timeout_s=30) for a, t in tokens.items()}
@@ -80,7 +86,7 @@ def run_phase(work: Path, team_map: bool, args) -> dict:
         for cl in c.values():
             cl.wait_ready(30)
         _setup(c, args.gaussians, args.views)
-        refining = None
+        refining, made = None, None
         if team_map:  # the first refinement starts once uploads settle; it runs for minutes
             time.sleep(args.settle)
         acks, views_ms = [], []
@@ -106,10 +112,11 @@ def run_phase(work: Path, team_map: bool, args) -> dict:
             try:
                 served = c["robot-b"].fuse(team_map=True)
                 refining = not served.team_map_current  # never caught up: a refinement ran the whole time
+                made = int(served.fused_version)  # a fresh store where only team maps are made
             except Exception:  # noqa: BLE001 - NOT_FOUND: the first refinement was still running
-                refining = True
+                refining, made = True, 0
         return {"team_map": team_map, "pushes": len(acks), "push_ack_ms": percentiles(acks),
-                "view_ack_ms": percentiles(views_ms), "refining_throughout": refining}
+                "view_ack_ms": percentiles(views_ms), "refining_throughout": refining, "team_maps_made": made}
     finally:
         for cl in c.values():
             cl.close()
@@ -119,13 +126,25 @@ def run_phase(work: Path, team_map: bool, args) -> dict:
 def table(phases: List[dict]) -> str:
     """Markdown: push and view acknowledgement percentiles per phase."""
     f = lambda v: "–" if v is None else f"{v:.0f}"  # noqa: E731
-    lines = ["| team map refining | pushes | push ack p50 / p99 / max (ms) | view ack p50 / p99 (ms) |",
-             "|---|---|---|---|"]
+    lines = ["| team map refining | pushes | push ack p50 / p99 / max (ms) | view ack p50 / p99 (ms) "
+             "| team maps made |", "|---|---|---|---|---|"]
     for p in phases:
         a, w = p["push_ack_ms"], p["view_ack_ms"]
+        made = p.get("team_maps_made")
         lines.append(f"| {'yes' if p['team_map'] else 'no (no team map)'} | {p['pushes']} | {f(a['p50'])} / "
-                     f"{f(a['p99'])} / {f(a['max'])} | {f(w['p50'])} / {f(w['p99'])} |")
+                     f"{f(a['p99'])} / {f(a['max'])} | {f(w['p50'])} / {f(w['p99'])} | {f(made)} |")
     return "\n".join(lines)
+
+
+def goal(on: dict, off: dict) -> tuple:
+    """(goal met, p99 ratio or None) of the phases with (``on``) and without (``off``) a team map: met when the p99
+    of a push acknowledgement with it is <= :data:`GOAL_RATIO` x without, and a refinement ran during the pushes
+    (throughout, or at least two team maps were made)."""
+    a, b = on["push_ack_ms"]["p99"], off["push_ack_ms"]["p99"]
+    if a is None or not b:
+        return False, None
+    ran = bool(on["refining_throughout"]) or (on.get("team_maps_made") or 0) >= 2
+    return bool(a <= GOAL_RATIO * b and ran), a / b
 
 
 def main(argv=None) -> int:
@@ -134,6 +153,9 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=float, default=0.5, help="seconds between pushes")
     ap.add_argument("--gaussians", type=int, default=3000, help="Gaussians per subset")
     ap.add_argument("--views", type=int, default=16, help="ROI views each robot uploads at the start")
+    ap.add_argument("--refine-iters", type=int, default=20000,
+                    help="the team map's refine_iters (no early stop): 20,000 refines throughout the pushes, 300 (the "
+                         "shipped setting) votes, refines and stores a team map every few seconds")
     ap.add_argument("--settle", type=float, default=3.0,
                     help="seconds from the uploads to the first push, for the refinement to start (the server's "
                          "settle_s is 0.2 s)")
@@ -142,13 +164,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     phases = [run_phase(args.work / name, on, args) for name, on in (("on", True), ("off", False))]
-    on = phases[0]
-    ok = on["push_ack_ms"]["p99"] is not None and on["push_ack_ms"]["p99"] <= GOAL_P99_MS and on["refining_throughout"]
-    result = {"phases": phases, "goal_p99_ms": GOAL_P99_MS, "goal_met": bool(ok), "wall_s": time.perf_counter() - t0,
+    on, off = phases
+    ok, ratio = goal(on, off)
+    result = {"phases": phases, "goal_ratio": GOAL_RATIO, "p99_ratio": ratio, "goal_met": ok,
+              "wall_s": time.perf_counter() - t0,
               "settings": vars(args) | {"work": str(args.work), "out": str(args.out)}}
-    write_results(args.out, "team_map_acks", argv, f": {args.seconds:.0f} s a phase, push every {args.every} s",
-                  table(phases), result)
-    print(f"wrote {args.out}; goal (p99 <= {GOAL_P99_MS:.0f} ms while refining) {'met' if ok else 'MISSED'}")
+    write_results(args.out, "team_map_acks", argv, f": {args.seconds:.0f} s a phase, push every {args.every} s, "
+                  f"refine_iters {args.refine_iters}", table(phases), result)
+    print(f"wrote {args.out}; goal (p99 while refining <= {GOAL_RATIO:g} x p99 without) {'met' if ok else 'MISSED'}"
+          + ("" if ratio is None else f": {ratio:.2f} x"))
     return 0 if ok else 1
 
 

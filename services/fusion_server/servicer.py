@@ -10,7 +10,6 @@ import math
 import queue
 import threading
 import time
-import zlib
 from typing import Dict, Iterator, Optional
 
 import grpc
@@ -20,7 +19,6 @@ from gausslite.camera import Intrinsics, check_rigid
 from gausslite.config import FusionSettings
 from gausslite.core import extras
 from gausslite.core.arrays import GaussianArrays
-from gausslite.datasets.base import Frame
 from gausslite.errors import CapacityExceeded, ExtraUnavailable, PreconditionFailed
 from gausslite.fusion.engine import FuseEngine
 from gausslite.fusion.guard import RoiView
@@ -37,6 +35,7 @@ from gausslite_services.common.server import peer_host
 from gausslite_services.fusion_server.guards import (Cancelled, intrinsics_from_proto, Reject, stream_guard,
                                                      unary_guard, check_agent_id, check_int64, decode_color,
                                                      decode_depth, decode_roi, UploadStreams)
+from gausslite_services.fusion_server.refine_worker import decode_keyframe, keyframe_key
 from gausslite_services.fusion_server.store import ChunkConflict, Session, SqlFusionStore, StoredKeyframe
 from gausslite_services.fusion_server.team_map import TEAM_MAP_RETENTION, TeamMapRefresher
 
@@ -117,9 +116,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self.fused_chunk_bytes = min(4 << 20, self.max_message_bytes) - 64 * 1024
         self._cache: Dict[tuple, GaussianArrays] = {}
         self._cache_lock = threading.Lock()
-        # decoded keyframes of the refinement, by (agent, frame id, CRC-32 of the stored images, pose, intrinsics): a
-        # refinement decodes only the keyframes stored since the last one (the team map refines again and again over
-        # the same views)
+        # decoded keyframes of Fuse's refinement, by refine_worker.keyframe_key: a refinement decodes only the
+        # keyframes stored since the last one (the team map's worker process keeps its own)
         self._decoded: Dict[tuple, object] = {}
         self._fuse_lock = threading.Lock()
         self._refine_lock = threading.Lock()  # one joint refinement at a time in this server (Fuse's or the team map's)
@@ -638,24 +636,14 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         """The stored keyframes of every agent, decoded for the refinement: agent id → its
         :class:`gausslite.mapping.views.Keyframe` list (the refinement spreads its held-out keyframes over the
         agents)."""
-        # lazy: torch (the 'mapper' extra); only the refinement needs keyframes as tensors, and the light install
-        # (vote, concat) has no torch
-        from gausslite.mapping.views import keyframe_from_frame
-
         kfs: Dict[str, list] = {}
         keep: Dict[tuple, object] = {}
         for k in self.store.keyframes():
-            key = (k.agent_id, k.frame_id, zlib.crc32(k.roi, zlib.crc32(k.depth, zlib.crc32(k.color))),
-                   np.asarray(k.c2w, np.float64).tobytes(), k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale)
+            key = keyframe_key(k)
             with self._cache_lock:
                 kf = self._decoded.get(key)
             if kf is None:
-                what = f"stored keyframe {k.frame_id}"
-                frame = Frame(k.frame_id, k.timestamp, decode_color(k.color, what),
-                              decode_depth(k.depth, k.depth_scale, what), np.asarray(k.c2w, np.float64),
-                              Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height))
-                roi = decode_roi(k.roi, (k.height, k.width), what) if k.roi else None
-                kf = keyframe_from_frame(frame, "cpu", roi)
+                kf = decode_keyframe(k)
             keep[key] = kf
             kfs.setdefault(k.agent_id, []).append(kf)
         with self._cache_lock:  # only what the store still holds (evicted keyframes leave the cache)

@@ -4,8 +4,10 @@
 keyframes notifies it; once uploads have settled it votes the agents' latest subsets (under the Fuse locks, which
 the vote holds for a fraction of a second) and refines the vote over every agent's uploaded views outside them
 (:meth:`gausslite.fusion.engine.FuseEngine.refine`: held-out views, early stop, never worse than the vote on them),
-then stores the result as a team-map version. Uploads, downloads and other Fuse calls never wait for the
-refinement; its thread runs at ``fusion.team_map.nice`` and renders on one thread.
+then stores the result as a team-map version. The refinement runs in a worker process
+(:class:`~gausslite_services.fusion_server.refine_worker.RefineWorker`, at ``fusion.team_map.nice``, one thread),
+not in the server's interpreter: the thread only waits for it, so the gRPC handlers never wait for the interpreter
+lock behind it. Uploads, downloads and other Fuse calls never wait for the refinement.
 
 Replicas: the refinement holds the store's ``team_map`` lock (:meth:`SqlFusionStore.fuse_lock`), so one replica
 refines at a time; before it starts, it checks the newest stored team map, and a replica that finds it made from
@@ -23,6 +25,7 @@ from typing import Dict, Optional, Tuple
 from gausslite.config import TeamMapSettings
 from gausslite_rpc import fusion_pb2
 from gausslite_services.fusion_server.guards import Cancelled
+from gausslite_services.fusion_server.refine_worker import RefineWorker
 
 log = logging.getLogger("gausslite_services.fusion_server.server")  # one logger for the whole service
 
@@ -57,6 +60,8 @@ class TeamMapRefresher:
     Attributes:
         runs: refinements stored by this server. skipped: refreshes that found the stored team map current.
         last_error: the last refresh's error ("" when it succeeded).
+        worker: the :class:`~gausslite_services.fusion_server.refine_worker.RefineWorker` that refines (its process
+            starts with the first refinement).
     """
 
     def __init__(self, servicer, settings: TeamMapSettings) -> None:
@@ -69,6 +74,7 @@ class TeamMapRefresher:
         self.skipped = 0
         self.last_error = ""
         self.busy = threading.Event()
+        self.worker = RefineWorker(settings.nice, torch_threads=1)
 
     # ------------------------------------------------------------------ control
     def start(self) -> None:
@@ -81,11 +87,14 @@ class TeamMapRefresher:
         self._changed.set()
 
     def stop(self, wait_s: float = 10.0) -> None:
-        """Stop the thread (a running refinement stops at its next progress report) and wait up to ``wait_s``."""
+        """Stop the thread and wait up to ``wait_s`` seconds for it; a running refinement ends at once (its process is
+        killed)."""
         self._stop.set()
         self._changed.set()
+        self.worker.kill(min(2.0, wait_s))
         if self._thread.is_alive():
             self._thread.join(wait_s)
+        self.worker.kill(min(2.0, wait_s))  # one started meanwhile
 
     def _stopped(self) -> bool:
         return self._stop.is_set() or self.servicer._shutdown.is_set()
@@ -165,7 +174,8 @@ class TeamMapRefresher:
         return result
 
     def _make(self, latest: Dict[str, int], kfs: int) -> fusion_pb2.FuseResult:
-        """Vote ``latest`` under the Fuse locks, refine outside them, store (a team-map version)."""
+        """Vote ``latest`` under the Fuse locks, refine outside them in the worker process, store (a team-map
+        version)."""
         s, sv = self.settings, self.servicer
         self._last_start = t0 = time.monotonic()
         voxel = float(s.voxel_size or sv.config.default_voxel_size)
@@ -178,16 +188,21 @@ class TeamMapRefresher:
         with sv.fuse_locks(self._stopped):
             maps = {a: sv._subset(a, v) for a, v in latest.items()}
             out = sv._engine.fuse(latest, maps, "vote", voxel_size=voxel, contest_radius=radius, progress=emit)
-        views = sv._refine_keyframes()
+        stored = sv.store.keyframes()  # ordered by agent: the held-out views are spread over the agents
         with sv._refining(self._stopped):
-            sv._engine.refine(out, lambda: views, s.refine_iters, s.seed, emit,
-                              options={"performance": {"render_threads": 1, "torch_threads": 1}})
+            try:
+                done = self.worker.refine(out.fused, stored, s.refine_iters, s.seed, sv._engine.refine_options,
+                                          {"performance": {"render_threads": 1, "torch_threads": 1}}, self._stopped)
+            except InterruptedError:
+                raise Cancelled() from None
+        out.fused, out.refine_report, out.keyframes_used = done.fused, done.report, done.keyframes_used
+        out.first_row = None  # a refinement splits, clones and prunes rows
         out.seconds = time.monotonic() - t0
         if self._stopped():
             raise Cancelled()
         result = sv.store_fused(out, latest, maps, fusion_pb2.FUSE_METHOD_VOTE, s.refine_iters, voxel, radius,
                                 team_map=True, keyframes_seen=kfs)
-        log.info("team map v%d from %s, %d views: %s (%.1f s)", result.fused_version,
-                 ", ".join(f"{a} v{v}" for a, v in sorted(latest.items())), out.keyframes_used,
+        log.info("team map v%d from %s, %d views (%d decoded for it): %s (%.1f s)", result.fused_version,
+                 ", ".join(f"{a} v{v}" for a, v in sorted(latest.items())), out.keyframes_used, done.decoded,
                  out.refine_report.summary() if out.refine_report is not None else "not refined", out.seconds)
         return result

@@ -508,17 +508,18 @@ def _png_bomb(width: int, height: int, color_type: int = 2, bits: int = 8) -> by
 
 
 def test_a_refinement_decodes_only_the_keyframes_stored_since_the_last_one(tmp_path, monkeypatch):
-    """The team map refines again and again over the same stored views: each keyframe is decoded once, the decoded
-    views are the same objects the next time, and evicted keyframes leave the cache."""
-    from gausslite_services.fusion_server import servicer as servicer_mod
+    """Fuse's refinements run again and again over the same stored views: each keyframe is decoded once, the decoded
+    views are the same objects the next time, and evicted keyframes leave the cache (the team map's refinement
+    process keeps its own: tests/services/test_refine_worker.py)."""
+    from gausslite.wire import images
 
-    srv = start(tmp_path, config=FusionConfig(max_keyframes_per_agent=3))
+    srv = start(tmp_path, config=FusionConfig(max_keyframes_per_agent=3, team_map={"enabled": False}))
     try:
         with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.open_session("a", "find the cup", INTR)
             decoded = []
-            real = servicer_mod.decode_color
-            monkeypatch.setattr(servicer_mod, "decode_color",  # the refinement's decoding (uploads check theirs too)
+            real = images.decode_color
+            monkeypatch.setattr(images, "decode_color",  # the refinement's decoding (uploads check theirs too)
                                 lambda *a: (a[1].startswith("stored") and decoded.append(a[1])) or real(*a))
             assert c.upload_keyframes("a", [frame(i) for i in range(2)]) == 2
             first = srv.servicer._refine_keyframes()

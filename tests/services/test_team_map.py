@@ -1,10 +1,11 @@
 """The team map the fusion server keeps refined in the background (fusion.team_map): made once subsets and keyframes
 are in, served at once by Fuse(team_map) with its version, age and whether it is current, re-made when a subset
-changes; uploads, downloads and other Fuse calls go on while it refines, and a read during a refinement gets the
-last complete version."""
+changes; uploads, downloads and other Fuse calls go on while it refines (in a process of its own), and a read during
+a refinement gets the last complete version; a stopping server kills the refinement's process."""
 
 from __future__ import annotations
 
+import os
 import time
 
 import grpc
@@ -103,6 +104,8 @@ def test_uploads_reads_and_fuse_calls_go_on_while_the_team_map_refines(tmp_path)
             srv.servicer._engine.refine_options["patience"] = 10 ** 6
             _fill(c, ("r2",))  # a second robot: a new refinement starts
             assert _wait(lambda: tm.busy.is_set(), 30)
+            child = _wait(lambda: tm.worker.pid, 30)  # the refinement runs in a process of its own
+            assert child != os.getpid()
             t0 = time.monotonic()
             assert c.upload_subset("r2", 2, _plane_subset(9, 0.1), full_map_gaussians=3000).complete
             assert c.upload_keyframes("r2", [frame(40)]) == 1
@@ -117,10 +120,13 @@ def test_uploads_reads_and_fuse_calls_go_on_while_the_team_map_refines(tmp_path)
     finally:
         srv.stop(0.5)
     assert not srv.servicer.team_map._thread.is_alive()  # the stop ended the refinement
+    assert tm.worker.pid is None  # and killed its process
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)
 
 
 def test_a_server_without_a_team_map_says_so(tmp_path):
-    srv = start(tmp_path)
+    srv = start(tmp_path, config=FusionSettings(team_map={"enabled": False}))
     try:
         with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             with pytest.raises(grpc.RpcError) as e:
