@@ -88,7 +88,7 @@ class TeamMapSettings(BaseModel):
 
     Whenever an agent's latest subset or the server's keyframes change, the server waits ``settle_s`` (uploads come
     in bursts), then votes the latest subsets and refines the vote over every agent's uploaded views, validated on
-    views it holds out (``refine_validation``), in a background thread at niceness ``nice``; one refinement at a time
+    views it holds out (``refine_validation``), in a worker process at niceness ``nice``; one refinement at a time
     across every replica on the store, at most one start every ``min_interval_s``. Uploads and reads never wait for
     it. ``Fuse`` with ``team_map`` serves its latest complete version at once.
 
@@ -98,7 +98,7 @@ class TeamMapSettings(BaseModel):
         refine_iters: the refinement's iterations at most (fewer over few views, and it stops early).
         settle_s: seconds without a new upload before a refinement starts.
         min_interval_s: seconds between the starts of two refinements.
-        nice: niceness of the refinement thread (0-19): the handler threads keep the cores.
+        nice: niceness of the refinement process (0-19): the handler threads keep the cores.
         voxel_size: the vote's δ in metres (None: ``default_voxel_size``).
         contest_radius: the vote's neighbourhood in voxels (None: ``default_contest_radius``).
         seed: the refinement's seed.
