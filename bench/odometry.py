@@ -16,13 +16,17 @@ variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped sett
 wide), ``mapping_resolution`` (tracked at the sequence's own resolution) and ``frame_to_frame`` (the shipped settings
 registering against the previous frame only).
 
+``--live`` also streams TUM fr1/rpy at 15 Hz to an agent with ``agent.pose_source: odometry`` that maps as it tracks
+(:func:`live`): the share of frames tracked, the tracking time while mapping, and whether the frames kept to the
+stream's clock.
+
 Wall-clock figures are only comparable on an idle machine: the JSON records the load average before and after.
 
 Usage::
 
     python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0]
                              [--variants default,mapping_resolution,frame_to_frame]
-                             [--synthetic-frames 300] [--out bench/results/odometry.json]
+                             [--synthetic-frames 300] [--live] [--out bench/results/odometry.json]
 """
 
 from __future__ import annotations
@@ -94,6 +98,59 @@ def track(frames: list, overrides: dict) -> dict:
             "lost_frame_ids": list(odo.failed_ids), "keyframes": odo.n_keyframes}
 
 
+def live(rate: float, budget: float) -> dict:
+    """TUM fr1/rpy streamed to an agent at its 15 Hz (``agent.realtime``, ``agent.rate`` ``rate``) with
+    ``agent.pose_source: odometry``: every frame is tracked as it arrives while the mapper maps keyframes under a
+    ``budget`` s keyframe budget (the hand-held profile, no final pass). Returns the share of frames tracked, the
+    tracking time per frame while mapping, how late the frames reached the agent against the stream's clock, and the
+    keyframes mapped."""
+    # lazy: the agent (torch, the mapper) loads only for the live measurement
+    from gausslite.config import load_config
+    from gausslite.mapping.profiles import profile_for_layout, with_profile
+    from gausslite.mission import AgentRuntime
+    from gausslite.parser import TaskParser
+
+    ds = load_dataset(SHARED / "TUM_rgbd_dataset_freiburg1_rpy", downscale=2, undistort=True, interpolate_poses=True,
+                      align_depth_time=False, pose_source="given")
+    frames = [ds[i] for i in range(len(ds))]  # read first: the stream's clock measures the agent, not the disk
+    cfg = load_config(None, ["agent.pose_source=odometry", "agent.realtime=true", f"agent.rate={rate}",
+                             "agent.downscale=1", "agent.scoring.protocols=[sensor]", "agent.push_every=100000",
+                             f"mapper.keyframe_budget_s={budget}", "mapper.performance.render_threads=2"]).agent
+    m = with_profile(cfg.mapper, profile_for_layout("tum")).model_copy(update={"final_iters": 0,
+                                                                                "final_iters_per_keyframe": 0.0})
+    task = ds.annotations.tasks[0]
+    rt = AgentRuntime("bench", task.text, TaskParser().parse(task.text), cfg.model_copy(update={"mapper": m}),
+                      annotations=ds.annotations, task_id=task.id)
+    track_ms, arrivals = [], []
+    track, submit = rt.odometry.track, rt.submit
+
+    def timed_track(frame):
+        t0 = time.perf_counter()
+        out = track(frame)
+        track_ms.append(1e3 * (time.perf_counter() - t0))
+        return out
+
+    def recorded_submit(frame, *a, **kw):
+        arrivals.append((frame.timestamp, time.perf_counter()))
+        return submit(frame, *a, **kw)
+
+    rt.odometry.track, rt.submit = timed_track, recorded_submit
+    try:
+        rt.replay(frames)
+        rt.wait_mapped(timeout_s=600)
+        st = rt.status()
+    finally:
+        rt.close()
+    t_data0, t_wall0 = arrivals[0]
+    late = [max(0.0, (w - t_wall0) - (t - t_data0) / rate) for t, w in arrivals]
+    period = 1.0 / (15.0 * rate)
+    return {"frames": len(frames), "rate": rate, "keyframe_budget_s": budget,
+            "tracked_fraction": rt.odometry.n_tracked / len(frames), "lost": rt.odometry.n_failed,
+            "track_ms_mean": float(np.mean(track_ms)), "track_ms_p95": float(np.percentile(track_ms, 95)),
+            "on_time_fraction": float(np.mean([x <= period for x in late])), "late_s_max": float(max(late)),
+            "frames_keyframed": st["frames_keyframed"], "frames_skipped": st["frames_skipped"]}
+
+
 def _cm(v) -> str:
     return "—" if v is None else f"{100 * v:.2f}"
 
@@ -113,6 +170,15 @@ def table(results: dict) -> str:
                         f"| {_cm(pf['trans_rmse_m'])} | {rot} | {_cm(ps['trans_rmse_m'])} | "
                         f"{100 * r['tracked_fraction']:.0f} % | {ms} |")
     return "\n".join(rows)
+
+
+def live_table(r: dict) -> str:
+    """The Markdown table of the live measurement (:func:`live`)."""
+    return ("| live: TUM fr1/rpy at 15 Hz | tracked | lost | track ms (mean / p95) | frames on time | latest (s) | "
+            "keyframes |\n|---|---|---|---|---|---|---|\n"
+            f"| keyframe budget {r['keyframe_budget_s']} s | {100 * r['tracked_fraction']:.0f} % | {r['lost']} | "
+            f"{r['track_ms_mean']:.0f} / {r['track_ms_p95']:.0f} | {100 * r['on_time_fraction']:.0f} % | "
+            f"{r['late_s_max']:.2f} | {r['frames_keyframed']} |")
 
 
 def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path) -> dict:
@@ -136,6 +202,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--synthetic-frames", type=int, default=300, help="frames of the synthetic circle")
     ap.add_argument("--synthetic-size", default="320x240", help="WxH of the synthetic circle")
+    ap.add_argument("--live", action="store_true",
+                    help="also stream TUM fr1/rpy at 15 Hz to an agent that tracks every frame while it maps")
+    ap.add_argument("--live-budget", type=float, default=0.5, help="the live agent's keyframe budget, seconds")
     ap.add_argument("--out", type=Path, default=RESULTS / "odometry.json")
     args = ap.parse_args(argv)
     seqs = [s for s in args.sequences.split(",") if s]
@@ -148,13 +217,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
         results = run(seqs, variants, args.synthetic_frames, size, Path(tmp))
+    live_result = live(1.0, args.live_budget) if args.live else None
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
            "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",
            "variants": {v: VARIANTS[v] for v in variants}, "odometry_defaults": OdometryConfig().model_dump(),
-           "sequences": results}
+           "sequences": results, **({"live": live_result} if live_result else {})}
     details = (f": {time.perf_counter() - t0:.0f} s; load average {load_before[0]:.1f} before, "
                f"{os.getloadavg()[0]:.1f} after (2 cores)")
-    write_results(args.out, "odometry", argv, details, table(results), doc)
+    md = table(results)
+    if live_result:
+        md += "\n\n" + live_table(live_result)
+    write_results(args.out, "odometry", argv, details, md, doc)
     return 0
 
 

@@ -238,7 +238,7 @@ class AgentRuntime:
         self._sends_between, self._keeps_views, self._uses_between = self._between_use(config)
         self.frames_skipped = 0
         self.frames_rejected = 0
-        self._odometry = _odometry(config)  # agent.pose_source odometry: every frame is tracked in submit
+        self.odometry = _odometry(config)  # agent.pose_source odometry: every frame is tracked in submit
         self.keyframe_iterations = 0
         self.idle_iterations = 0
         self.checkpoints = 0
@@ -288,7 +288,7 @@ class AgentRuntime:
             queue.Full: ``timeout`` expired (every-frame ingest).
         """
         t_arr = time.perf_counter() if arrival is None else arrival
-        if self._odometry is not None:
+        if self.odometry is not None:
             frame = self._track(frame)
             if frame is None:
                 return False
@@ -333,9 +333,9 @@ class AgentRuntime:
         the frame is then logged, counted as rejected and not mapped."""
         if hasattr(frame, "materialize"):
             frame = frame.materialize()  # the odometry needs the images of every frame
-        if self._odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
-            self._odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
-        r = self._odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
+        if self.odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
+            self.odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
+        r = self.odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
         if r.ok:
             return dataclasses.replace(frame, c2w=r.c2w)
         with self._lock:

@@ -21,3 +21,11 @@ def test_odometry_bench_smoke(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| synthetic_circle | default | 90 | 160×120 | 160×120 |" in printed
     assert printed.count("| synthetic_circle |") == 3 and out.with_suffix(".md").is_file()
+
+
+def test_the_live_table_reads_the_live_figures():
+    import bench.odometry as bo
+
+    r = {"keyframe_budget_s": 0.5, "tracked_fraction": 0.96, "lost": 6, "track_ms_mean": 27.2, "track_ms_p95": 37.4,
+         "on_time_fraction": 1.0, "late_s_max": 0.0, "frames_keyframed": 20}
+    assert bo.live_table(r).splitlines()[-1] == "| keyframe budget 0.5 s | 96 % | 6 | 27 / 37 | 100 % | 0.00 | 20 |"

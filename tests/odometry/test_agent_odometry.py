@@ -53,7 +53,7 @@ def test_a_replay_tracks_every_frame_and_a_lost_one_is_counted_not_mapped(tmp_pa
         assert st["frames_received"] == 14 and st["frames_mapped"] == 13
         mapped = {int(s.frame_id) for s in rt.mapper.stats}
         assert 5 not in mapped and len(mapped) == 13
-        odo = rt._odometry
+        odo = rt.odometry
         assert odo.n_failed == 1 and odo.n_tracked == 13
         # the tracked poses stay near the given ones (the first frame's pose fixes the frame)
         assert np.linalg.norm(odo.last_pose[:3, 3] - ds[13].c2w[:3, 3]) < 0.25 < np.linalg.norm(ds[13].c2w[:3, 3])
