@@ -52,7 +52,8 @@ SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")) / "dat
 RESULTS = REPO / "bench" / "results"
 
 #: the odometry settings compared (``OdometryConfig`` fields over the defaults)
-VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None}, "frame_to_frame": {"reference": "previous_frame"}}
+VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
+            "frame_to_frame": {"reference": "previous_frame"}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0")
 
 
@@ -157,7 +158,8 @@ def _cm(v) -> str:
 
 def table(results: dict) -> str:
     """The Markdown table of ``results[sequence][variant]``."""
-    rows = ["| sequence | variant | frames | size | tracked at | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | RPE (cm / s) | "
+    rows = ["| sequence | variant | frames | size | tracked at | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | "
+            "RPE (cm / s) | "
             "tracked | ms / frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for seq, by_variant in results.items():
         for var, r in by_variant.items():

@@ -38,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
+from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import downscale_frame
 from gausslite.datasets.trajectory import rotation_angle_deg
@@ -111,7 +112,8 @@ class TrackResult:
 class _Keyframe:
     frame_id: int
     c2w: np.ndarray
-    image: object  # open3d.geometry.RGBDImage
+    image: object  # open3d.geometry.RGBDImage of ``frame``
+    frame: Frame  # at the tracking size (for the state)
 
 
 def _open3d():
@@ -172,7 +174,7 @@ class RGBDOdometry:
         return frame if factor == 1 else downscale_frame(frame, factor)
 
     def _add_keyframe(self, frame: Frame, c2w: np.ndarray, image) -> None:
-        self.keyframes.append(_Keyframe(frame.frame_id, c2w.copy(), image))
+        self.keyframes.append(_Keyframe(frame.frame_id, c2w.copy(), image, frame))
         self.n_keyframes += 1
         if len(self.keyframes) > self.config.max_keyframes:
             self.keyframes.pop(0)
@@ -234,7 +236,7 @@ class RGBDOdometry:
                  or rotation_angle_deg(rel) > self.config.keyframe_rot_deg)
         if is_kf:
             self._add_keyframe(frame, c2w, image)
-        self._prev = _Keyframe(frame.frame_id, c2w.copy(), image)
+        self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
         return TrackResult(c2w.copy(), True, fitness=fitness, keyframe=is_kf, reference=ref.frame_id)
 
     def _register(self, frame: Frame, image, ref: _Keyframe, init: np.ndarray):
@@ -284,6 +286,47 @@ class RGBDOdometry:
         log.warning("odometry: frame %d lost (%s); it keeps the last good pose and is not mapped (%d lost so far)",
                     frame.frame_id, reason, self.n_failed)
         return TrackResult(self.last_pose.copy(), False, reason, fitness, False, ref.frame_id)
+
+    def state_dict(self) -> dict:
+        """The tracker's state (for a mission's checkpoint): poses, motion, counters and the keyframes' images at the
+        tracking size (``rgb`` (h, w, 3) uint8, ``depth`` (h, w) float32 metres, ``c2w`` (4, 4) float64)."""
+        def kf(k: _Keyframe) -> dict:
+            i = k.frame.intrinsics
+            return {"frame_id": k.frame_id, "c2w": k.c2w.copy(), "rgb": k.frame.rgb.copy(),
+                    "depth": k.frame.depth.copy(), "timestamp": k.frame.timestamp,
+                    "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height]}
+
+        with self._lock:
+            return {"format": 1, "config": self.config.model_dump(), "initial_pose": self.initial_pose.copy(),
+                    "last_pose": None if self.last_pose is None else self.last_pose.copy(),
+                    "velocity": self.velocity.copy(), "since_good": self._since_good, "n_tracked": self.n_tracked,
+                    "n_failed": self.n_failed, "failed_ids": list(self.failed_ids), "n_keyframes": self.n_keyframes,
+                    "keyframes": [kf(k) for k in self.keyframes],
+                    "previous": None if self._prev is None else kf(self._prev)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s state (the settings stay this tracker's).
+
+        Raises:
+            ValueError: not a state of this format.
+        """
+        if not isinstance(state, dict) or state.get("format") != 1:
+            raise ValueError("not an odometry state (format 1)")
+
+        def kf(d: dict) -> _Keyframe:
+            fx, fy, cx, cy, w, h = d["intrinsics"]
+            f = Frame(int(d["frame_id"]), float(d["timestamp"]), d["rgb"], d["depth"], d["c2w"],
+                      Intrinsics(fx, fy, cx, cy, int(w), int(h)))
+            return _Keyframe(f.frame_id, np.asarray(d["c2w"], np.float64), self._image(f), f)
+
+        with self._lock:
+            self.initial_pose = np.asarray(state["initial_pose"], np.float64)
+            self.last_pose = None if state["last_pose"] is None else np.asarray(state["last_pose"], np.float64)
+            self.velocity = np.asarray(state["velocity"], np.float64)
+            self._since_good, self.n_tracked, self.n_failed = state["since_good"], state["n_tracked"], state["n_failed"]
+            self.failed_ids, self.n_keyframes = list(state["failed_ids"]), state["n_keyframes"]
+            self.keyframes = [kf(d) for d in state["keyframes"]]
+            self._prev = None if state["previous"] is None else kf(state["previous"])
 
     def summary(self) -> dict:
         """``{"tracked", "failed", "keyframes", "failed_frame_ids"}``: the counts so far."""

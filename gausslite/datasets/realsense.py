@@ -153,7 +153,8 @@ class RealSenseBagDataset(RGBDDataset):
     def _stamps(self, topic: str) -> List[Tuple[int, int]]:
         """``[(bag time ns, message index)]`` of an image topic, in bag order."""
         conns = [c for c in self._reader.connections if c.topic == topic]
-        return [(int(t), i) for i, (_c, t, _raw) in enumerate(self._reader.messages(connections=conns) if conns else ())]
+        msgs = self._reader.messages(connections=conns) if conns else ()  # no connection would read every topic
+        return [(int(t), i) for i, (_c, t, _raw) in enumerate(msgs)]
 
     def _scan(self, max_depth_dt: float, depth_splat: int) -> None:
         """Read the cameras, the depth units and the extrinsics, and pair colour with depth messages."""

@@ -713,7 +713,8 @@ class AgentRuntime:
         state = {"format": 1, "agent_id": self.agent_id, "mission_id": self.mission_id, "task_text": self.task_text,
                  "task_id": self.task_id, "version": version, "counters": counters, "selector": sel,
                  "mapper": self.mapper.state_dict(), "saved_unix": time.time(),
-                 "T_world_map": None if self.T_world_map is None else self.T_world_map.tolist()}
+                 "T_world_map": None if self.T_world_map is None else self.T_world_map.tolist(),
+                 "odometry": None if self.odometry is None else self.odometry.state_dict()}
         path = self.checkpoint_dir / CHECKPOINT_FILE
         _atomic_write(path, lambda p: torch.save(state, p))
         with self._lock:
@@ -758,6 +759,8 @@ class AgentRuntime:
         for k, v in state["counters"].items():
             setattr(self, k, v)
         self.selector.load_state_dict(state["selector"])
+        if self.odometry is not None and state.get("odometry"):  # agent.pose_source odometry: tracking resumes
+            self.odometry.load_state_dict(state["odometry"])
         version = int(state["version"])
         vpath = self.checkpoint_dir / VERSION_FILE
         if vpath.is_file():  # pushes after the checkpoint: never reuse a version the fusion server holds

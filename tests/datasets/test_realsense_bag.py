@@ -50,8 +50,8 @@ def write_realsense_bag(path, T_ref_color=np.eye(4), depth_intr=D_INTR, units=Tr
         w.write_camera_info(f"{DEPTH}/info/camera_info", 0.0, "", depth_intr)
         for topic, T in ((f"{DEPTH}/tf/0", np.eye(4)), (f"{COLOR}/tf/0", T_ref_color))[: 2 if color_tf else 1]:
             v, q = w._tq(T)
-            w.write(topic, "geometry_msgs/msg/Transform", w._t("geometry_msgs/msg/Transform")(translation=v, rotation=q),
-                    0.0)
+            msg = w._t("geometry_msgs/msg/Transform")(translation=v, rotation=q)
+            w.write(topic, "geometry_msgs/msg/Transform", msg, 0.0)
         if units:
             w.write("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32",
                     w._t("std_msgs/msg/Float32")(data=UNITS), 0.0)

@@ -148,3 +148,21 @@ def test_the_pose_source_of_a_dataset_with_and_without_poses(scene, tmp_path):
         load_dataset(bare, pose_source="given")
     with pytest.raises(ValueError, match="pose_source must be"):
         load_dataset(bare, pose_source="slam")
+
+
+def test_the_tracker_state_round_trips_mid_sequence(scene):
+    frames = list(load_dataset(scene / "agent_b", pose_source="given"))
+    straight = RGBDOdometry(initial_pose=frames[0].c2w)
+    want = [straight.track(f).c2w for f in frames]
+    first = RGBDOdometry(initial_pose=frames[0].c2w)
+    for f in frames[:6]:
+        first.track(f)
+    state = first.state_dict()
+    assert state["n_tracked"] == 6 and len(state["keyframes"]) == first.n_keyframes
+    resumed = RGBDOdometry()
+    resumed.load_state_dict(state)
+    got = [resumed.track(f).c2w for f in frames[6:]]
+    assert np.allclose(np.stack(got), np.stack(want[6:]), atol=1e-4)
+    assert resumed.n_tracked == 12 and resumed.summary() == straight.summary()
+    with pytest.raises(ValueError, match="not an odometry state"):
+        resumed.load_state_dict({"format": 0})
