@@ -297,7 +297,8 @@ class AgentConfig(BaseModel):
         frame: this robot's map frame in the team's world frame (:class:`FrameConfig`, ``frame.T_world_map``).
         pose_source: ``given`` (each frame's own pose) or ``odometry``: every streamed or replayed frame is tracked by
             RGB-D odometry (:mod:`gausslite.datasets.odometry`) as it arrives, beside the mapper; the keyframe selection
-            uses the estimate, and a frame whose tracking fails is logged, counted (``frames_rejected``) and not mapped.
+            uses the estimate, and a frame whose tracking fails is logged, counted (``frames_rejected``) and not mapped;
+            the tracker's state is saved with the mission's checkpoint.
         odometry: the odometry's settings (:class:`~gausslite.datasets.odometry.OdometryConfig`).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
