@@ -17,8 +17,9 @@ log = logging.getLogger("gausslite.map")
 def add_mapping_args(p: argparse.ArgumentParser) -> None:
     """Arguments shared by ``map`` and ``ablate``: dataset selection and config overrides."""
     p.add_argument("--dataset", type=Path, default=None,
-                   help="sequence folder (Replica/TUM/7-Scenes layout) or ROS bag (rosbag2 folder, .mcap, .db3, "
-                        ".bag); default: generate the synthetic scene")
+                   help="sequence folder (Replica/TUM/7-Scenes layout, or a camera folder: camera.yaml, rgb/, "
+                        "depth/) or ROS bag (rosbag2 folder, .mcap, .db3, .bag; a RealSense .bag); default: generate "
+                        "the synthetic scene")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (intrinsics scale too)")
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--stride", type=int, default=1, help="map every k-th frame; the others are held-out views")
