@@ -189,6 +189,14 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
     used = "odometry" if hasattr(ds, "reference_poses") else "given"
     print(f"poses: {used}" + (" (the dataset has none)" if used == "odometry" and source == "auto" else ""),
           flush=True)
+    if used == "odometry" and not profile.mapper.get("pose", {}).get("refine"):
+        # lazy: the command line starts without loading the library
+        from dataclasses import replace
+
+        from gausslite.mapping.config import deep_merge
+
+        # estimated poses are refined with the map, from the estimate (the rendered profile's exact poses are not)
+        args.profile = replace(profile, mapper=deep_merge(profile.mapper, {"pose": {"refine": True}}))
     return ds
 
 

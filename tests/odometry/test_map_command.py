@@ -4,6 +4,7 @@ agent grounds it (annotations, else ONNX, else a one-line refusal) and the traje
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import shutil
 
@@ -43,7 +44,9 @@ def test_map_grounds_the_task_and_writes_the_trajectory(bare, tmp_path, capsys):
     assert len(ts) == 16 and np.allclose(ts, np.arange(16) / 30.0, atol=1e-6)
     assert np.allclose(poses[0], np.eye(4), atol=1e-6)  # the first camera is the world frame
     assert ate_rmse(poses, gt) < 0.03
-    assert (out / "map.ply").is_file() and '"mode": "gausslite"' in (out / "config.json").read_text()
+    cfg = json.loads((out / "config.json").read_text())
+    assert (out / "map.ply").is_file() and cfg["mode"] == "gausslite"
+    assert cfg["pose"]["refine"] is True  # estimated poses are refined with the map (off in the rendered profile)
 
 
 def test_a_task_that_cannot_be_grounded_and_given_poses_that_are_missing_are_one_line(bare, tmp_path, caplog):
