@@ -9,14 +9,20 @@ PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
-# Open3D (the RGB-D odometry, gausslite.datasets.odometry) loads libusb-1.0, which a minimal Debian/Ubuntu lacks:
-# install Debian's package where it is missing (as root), else say how
-if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
+# Open3D (the RGB-D odometry, gausslite.datasets.odometry) loads libusb-1.0, libGL, libEGL and libX11, which a minimal
+# Debian/Ubuntu lacks: install Debian's packages where one is missing (as root), else say how
+o3d_libs="libusb-1.0.so.0:libusb-1.0-0 libGL.so.1:libgl1 libEGL.so.1:libegl1 libX11.so.6:libx11-6"
+o3d_missing=""
+for pair in $o3d_libs; do
+  ldconfig -p 2>/dev/null | grep -q "${pair%%:*}" || o3d_missing="$o3d_missing ${pair##*:}"
+done
+if [ -n "$o3d_missing" ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    (apt-get install -y -qq libusb-1.0-0 || (apt-get update -qq && apt-get install -y -qq libusb-1.0-0)) >/dev/null 2>&1 \
-      || echo "warning: could not install libusb-1.0-0 (Open3D's odometry will not import)" >&2
+    # shellcheck disable=SC2086
+    (apt-get install -y -qq $o3d_missing || (apt-get update -qq && apt-get install -y -qq $o3d_missing)) >/dev/null 2>&1 \
+      || echo "warning: could not install$o3d_missing (Open3D's odometry will not import)" >&2
   else
-    echo "warning: libusb-1.0 is missing: Open3D's odometry needs it (sudo apt-get install libusb-1.0-0)" >&2
+    echo "warning: Open3D's odometry needs$o3d_missing (sudo apt-get install$o3d_missing)" >&2
   fi
 fi
 stamp=.venv/.gausslite-installed
