@@ -187,6 +187,8 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
     ds = load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, pose_source=source,
                       progress=not getattr(args, "no_progress", False), **kw)
     used = "odometry" if hasattr(ds, "reference_poses") else "given"
+    if used == "odometry":
+        ds.track()  # before mapping: a frame that cannot be read, or Open3D missing a library, fails here
     print(f"poses: {used}" + (" (the dataset has none)" if used == "odometry" and source == "auto" else ""),
           flush=True)
     if used == "odometry" and not profile.mapper.get("pose", {}).get("refine"):
@@ -285,7 +287,7 @@ def _handler(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     try:
         ds = resolve_dataset(args, out)
-    except (ValueError, FileNotFoundError) as e:  # bad dataset / bag: one clear error, no traceback
+    except (ValueError, FileNotFoundError, RuntimeError) as e:  # bad dataset / bag: one clear error, no traceback
         log.error("cannot load the dataset: %s", e)
         return 2
     if args.mode is None:

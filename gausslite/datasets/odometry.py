@@ -117,9 +117,19 @@ class _Keyframe:
 
 
 def _open3d():
-    """The ``open3d`` module (imported on first use: about a second)."""
-    import open3d  # noqa: PLC0415 - heavy, and only the odometry needs it
+    """The ``open3d`` module (imported on first use: about a second).
 
+    Raises:
+        ModuleNotFoundError: Open3D is not installed (the ``mapper`` extra brings it).
+        RuntimeError: it is installed but its native library does not load (a system library missing).
+    """
+    try:
+        import open3d  # noqa: PLC0415 - heavy, and only the odometry needs it
+    except ModuleNotFoundError:
+        raise
+    except (ImportError, OSError) as e:
+        raise RuntimeError(f"Open3D's library does not load ({e}); on Debian/Ubuntu: apt-get install libusb-1.0-0 "
+                           "libgl1 libegl1 libx11-6 (scripts/setup.sh installs them)") from None
     return open3d
 
 

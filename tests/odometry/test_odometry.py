@@ -166,3 +166,20 @@ def test_the_tracker_state_round_trips_mid_sequence(scene):
     assert resumed.n_tracked == 12 and resumed.summary() == straight.summary()
     with pytest.raises(ValueError, match="not an odometry state"):
         resumed.load_state_dict({"format": 0})
+
+
+def test_an_open3d_that_does_not_load_is_one_clear_error(monkeypatch):
+    import builtins
+
+    from gausslite.datasets import odometry
+
+    real = builtins.__import__
+
+    def broken(name, *a, **kw):
+        if name == "open3d":
+            raise ImportError("libusb-1.0.so.0: cannot open shared object file")
+        return real(name, *a, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", broken)
+    with pytest.raises(RuntimeError, match="libusb-1.0.so.0.*apt-get install libusb-1.0-0"):
+        odometry.RGBDOdometry()
