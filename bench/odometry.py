@@ -71,8 +71,7 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple) -> 
     else:
         scene = work / "synthetic"
         if not (scene / "agent_a" / "traj.txt").is_file():
-            make_scene(scene, frames=synthetic_frames, width=size[0], height=size[1], trajectory="circle",
-                       progress=False)
+            make_scene(scene, frames=synthetic_frames, width=size[0], height=size[1], trajectory="circle")
         ds = load_dataset(scene / "agent_a", pose_source="given")
     return [ds[i] for i in range(len(ds))]
 
