@@ -130,8 +130,9 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self.team_map: Optional[TeamMapRefresher] = None
         if config.team_map.enabled:
             if self._unavailable["refine"]:
-                log.error("fusion.team_map.enabled, but this install cannot refine (%s): no team map is kept",
-                          self._unavailable["refine"])
+                log.warning("this install cannot refine (%s): no team map is kept (Fuse with team_map is "
+                            "FAILED_PRECONDITION); install the 'mapper' extra, or set fusion.team_map.enabled: false "
+                            "to silence this", self._unavailable["refine"])
             else:
                 self.team_map = TeamMapRefresher(self, config.team_map)
                 self.team_map.start()
