@@ -198,7 +198,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.cross_scoring", description=__doc__.split("\n\n")[0])
     ap.add_argument("--from", dest="source", type=Path, default=None, metavar="PARTIAL",
                     help="the <out>.partial.json of a `python -m bench.realtime --missions-only` run: its saved maps")
-    ap.add_argument("--scenes", default="synthetic_circle")
+    ap.add_argument("--scenes", default=None,
+                    help="scenes to run (default synthetic_circle) or, with --from, to score (default: every scene "
+                         "of the file)")
     ap.add_argument("--dataset", default=None, metavar="PATH", help="a sequence of your own (bench.realtime --dataset)")
     ap.add_argument("--tasks", default="", help="--dataset: task ids, comma-separated")
     ap.add_argument("--fps", type=float, default=None, help="--dataset: replay clock of sequences without timestamps")
@@ -222,7 +224,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     if args.source is not None:
         runs = json.loads(args.source.read_text())["runs"]
+        if args.scenes:
+            runs = [r for r in runs if r["scene"] in args.scenes.split(",")]
     else:
+        args.scenes = args.scenes or "synthetic_circle"
         try:
             jobs = mission_jobs(args, work)
         except (FileNotFoundError, ValueError, KeyError) as e:

@@ -44,10 +44,11 @@ def test_every_generated_figure_is_what_its_json_gives():
 def test_a_figure_changed_by_hand_is_caught_and_the_prose_is_kept():
     text = page("README.md")
     m = re.search(r"\(headline\).*?<!-- end generated -->", text, re.S)
-    assert m and "+5.68 ± 0.24" in m.group(0)
-    edited = text.replace("+5.68 ± 0.24", "+5.86 ± 0.24", 1)
+    figure = re.search(r"\*\*(\+\d+\.\d\d) \[", m.group(0)).group(1)  # the first gain of the table
+    edited = text.replace(figure, "+9" + figure[2:], 1)
+    assert edited != text
     new, changed = report.regenerate(edited)
-    assert [c["name"] for c in changed] == ["headline"] and "+5.86" in changed[0]["old"]
+    assert [c["name"] for c in changed] == ["headline"] and "+9" + figure[2:] in changed[0]["old"]
     assert new == text  # the region is written back from the JSON; everything outside it is untouched
 
 
@@ -77,15 +78,23 @@ def test_the_headline_reads_protocols_by_name_in_old_and_new_results():
     old = _realtime({**base, "novel": _block(10.0, 12.5, 2.5, True)})  # before the split: novel was tracked
     new = _realtime({**base, "novel": _block(30.0, 31.0, 1.0), "novel-tracked": _block(10.0, 12.5, 2.5, True)})
     new_us = _realtime({**base, "novel": _block(30.0, 31.0, 1.0), "novel_tracked": _block(10.0, 12.5, 2.5, True)})
-    tables = [report.headline_table(r) for r in (old, new, new_us)]
-    assert tables[0] == tables[1] == tables[2]
+    tables = [report.headline_table(r) for r in (new, new_us)]
+    assert tables[0] == tables[1]
     row = tables[0].splitlines()[2].split(" | ")
-    assert row[1:4] == ["10.00 ± 0.10", "12.50 ± 0.20", "**+2.50 ± 0.30**"] and "30.00" not in tables[0]
-    assert "`novel-tracked`" in tables[0].splitlines()[0]
-    # a new result's novel (the predicted pose) is its own protocol, never read as novel-tracked
-    assert report.protocol(new, "room0", "novel")["gain"] == 1.0
+    # the headline's ROI PSNR is novel's (the predicted pose); novel-tracked's gain stands beside it
+    assert row[1:5] == ["30.00 ± 0.10", "31.00 ± 0.20", "+1.00 ± 0.30", "**+2.50 ± 0.30**"]
+    assert "`novel`" in tables[0].splitlines()[0] and "`novel-tracked`" in tables[0].splitlines()[0]
+    # an old result's novel was scored at a tracked pose: it is novel-tracked, and gives no headline
+    assert report.protocol(old, "room0", "novel-tracked")["gain"] == 2.5
     with pytest.raises(report.ReportError, match="no protocol 'novel'"):
-        report.protocol(old, "room0", "novel")
+        report.headline_table(old)
+
+
+def test_a_gain_with_per_frame_pairs_shows_its_interval_and_is_bold_when_it_excludes_zero():
+    assert report.gain_text({"gain": 1.2, "gain_ci": [0.4, 2.0], "gain_std": 0.9}) == "**+1.20 [+0.40, +2.00]**"
+    assert report.gain_text({"gain": 0.3, "gain_ci": [-0.4, 1.0]}) == "+0.30 [−0.40, +1.00]"
+    assert report.gain_text({"gain": 0.3, "gain_ci": None, "gain_std": 0.1, "gain_significant": True}) == \
+        "**+0.30 ± 0.10**"
 
 
 def test_the_sim_figures_are_the_mean_of_both_agents():
