@@ -287,7 +287,7 @@ def sim_seconds(fr: dict) -> str:
 def suite_minutes(fr: dict) -> str:
     """The test suite's first run over the fresh clones: ``8 min 47 s to 9 min 44 s``."""
     lo, hi = _command(fr, "tests")["now"]["wall_s_range"]
-    return f"{duration(lo)} to {duration(hi)}"
+    return duration(lo) if lo == hi else f"{duration(lo)} to {duration(hi)}"
 
 
 # ---------------------------------------------------------------- regions

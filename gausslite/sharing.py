@@ -294,9 +294,11 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg: Optional[Mappe
     if iters == 0 or len(gmap) == 0 or not kfs or not free.any():
         return gmap
     active, kappa = gmap.active.clone(), gmap.kappa.clone()
-    # 'context' render inside the copy = the whole copy (the subset alone), with only the free rows updated
+    # 'context' render inside the copy = the whole copy (the subset alone), with only the free rows updated: the
+    # step updates the active rows alone ('active'), whatever rule the mapper maps with ('visible' would move the
+    # frozen rows the server holds too)
     fcfg = base.model_copy(update={
-        "seed": seed, "roi_render": "context", "footprint_alpha": float(footprint_alpha),
+        "seed": seed, "roi_render": "context", "roi_update": "active", "footprint_alpha": float(footprint_alpha),
         "budget": base.budget.model_copy(update={"max_gaussians": max(base.budget.max_gaussians or 0, len(gmap))}),
         "densify": base.densify.model_copy(update={"enabled": False})})
     mapper = Mapper(fcfg)

@@ -30,7 +30,7 @@ def test_yaml_overrides_and_flags(tmp_path):
     # keyword fields win over file and overrides; a group given as a keyword is merged key by key, None is not given
     assert load_mapper_config(p, ["iters_per_frame=50"], iters_per_frame=60).iters_per_frame == 60
     cfg = load_mapper_config(p, ["lr.colors=0.02"], lr={"means": 0.002}, seeding={"seeds_per_frame": None})
-    assert (cfg.lr.means, cfg.lr.colors, cfg.seeding.seeds_per_frame) == (0.002, 0.02, 4000)
+    assert (cfg.lr.means, cfg.lr.colors, cfg.seeding.seeds_per_frame) == (0.002, 0.02, 1500)
 
 
 def test_invalid_values_and_unknown_keys_rejected(tmp_path):

@@ -67,7 +67,8 @@ def test_roi_phase_renders_the_roi_box_and_updates_only_active(monkeypatch, mode
 
     monkeypatch.setattr(sensor_mod, "rasterize", spy)
     # roi_cull off: which Gaussians a render draws is the point here (the crop's culling: test below)
-    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, performance={"roi_cull": False}))
+    m = Mapper(_cfg(iters_per_frame=6, warmup_iters=2, roi_render=mode, roi_crop_pad=3, performance={"roi_cull": False},
+                    roi_update="active"))  # the paper's rule: the ROI phase updates the active rows alone
     fr = _frame(0)
     m.seed_frame(fr, _roi())  # seed, then drive the iterations by hand to inspect parameters
     kf = views_mod.keyframe_from_frame(fr, m.device, _roi())

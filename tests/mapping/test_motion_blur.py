@@ -55,6 +55,7 @@ def _blurred(i: int, speed: float, dt: float, n_sub: int = 9):
 
 def _map(blur: bool, frames):
     cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp", seed=0,
+                       performance={"render_threads": 2},  # the band split its margin below was measured with
                        sensor={"motion_blur": blur, "blur_exposure_s": 0.1, "blur_px_per_sample": 1.5,
                                "blur_max_samples": 7})
     cfg.densify.enabled = False
