@@ -54,8 +54,8 @@ from typing import Optional, Sequence
 from grpc_health.v1 import health_pb2
 from pydantic import ValidationError
 
-from gausslite.config import FusionSettings, GaussLiteConfig
-from gausslite.mapping.config import apply_overrides, read_yaml
+from gausslite.config import FusionSettings, GaussLiteConfig, load_config
+from gausslite.mapping.config import apply_overrides
 from gausslite_rpc import fusion_pb2_grpc
 from gausslite_services.common.cli_options import log_level_from, server_options_from_args
 from gausslite_services.common.server import (RunningServer, ServerOptions, authenticator_from_options, build_server,
@@ -229,12 +229,11 @@ def fusion_settings(config_path: Optional[str] = None, overrides: Sequence[str] 
         raise ValueError(f"the fusion server takes fusion.* overrides only, got {', '.join(outside)}")
     if not overrides:
         return FusionConfig.from_file(config_path) if config_path else FusionConfig()
-    if config_path and not str(config_path).endswith((".yaml", ".yml")):
-        base = {"fusion": FusionConfig.from_file(config_path).model_dump(mode="json", exclude_unset=True)}
-    else:
-        base = read_yaml(config_path) if config_path else {}
     try:
-        return GaussLiteConfig.model_validate(apply_overrides(base, list(overrides))).fusion
+        if config_path and not str(config_path).endswith((".yaml", ".yml")):  # a JSON/TOML file of the section
+            base = {"fusion": FusionConfig.from_file(config_path).model_dump(mode="json", exclude_unset=True)}
+            return GaussLiteConfig.model_validate(apply_overrides(base, list(overrides))).fusion
+        return load_config(config_path, overrides).fusion  # the one loader of a GaussLite YAML
     except ValidationError as e:
         raise ValueError(f"bad fusion setting: {e}") from None
 
