@@ -50,7 +50,7 @@ from tqdm import tqdm
 from gausslite.datasets import detect_layout, load_dataset, task_roi
 from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, current_protocols,
                                   score_live_map, side_by_side, withheld_indices)
-from gausslite.datasets.subset import ScaledFrames
+from gausslite.datasets.subset import EstimatedPoses, ScaledFrames
 from gausslite.mapping.budget import WallClock, WorkCost, fit_work_cost
 from gausslite.mapping.resolution import choose_downscale
 from gausslite.mapping.config import MapperConfig
@@ -222,18 +222,25 @@ def novel_ids(job: dict, ds) -> Optional[list[int]]:
 
 def score(mapper, ds, ann, task: str, protocols=("sensor",), track_iters: int = TRACK_ITERS,
           track_stride: int = TRACK_STRIDE, keyframe_ids=None, novel=None, record: Optional[dict] = None,
-          predicted: Optional[dict] = None) -> dict:
+          predicted: Optional[dict] = None, poses: Optional[dict] = None) -> dict:
     """ROI PSNR, PSNR and SSIM (means; ROI over frames that show the ROI) of the map under each scoring protocol
     (:func:`gausslite.evaluation.score_live_map`: ``sensor``, ``keyframes``, ``tracked``, and ``novel`` (at the pose
     the map predicts) and ``novel-tracked`` over the frame ids ``novel`` withheld from the mission), the same for
     every mode. The top-level figures are the ``sensor`` protocol's (every frame at the sensor's pose);
     ``protocols`` holds each protocol's, with each frame's figures. ``record`` / ``predicted``: filled with the
-    views the tracked / ``novel`` frames were scored at (frame id → ``TrackedView``)."""
+    views the tracked / ``novel`` frames were scored at (frame id → ``TrackedView``). ``poses``: frame id → (4, 4)
+    c2w the mission's odometry estimated (``--pose-source odometry``): every protocol starts from those instead of
+    the given poses, the ROI stays the given poses', frames without an estimate are not scored
+    (:class:`gausslite.datasets.subset.EstimatedPoses`)."""
     protocols = tuple(dict.fromkeys(("sensor", *protocols)))
     if novel is None:
         protocols = tuple(p for p in protocols if p not in WITHHELD_PROTOCOLS)
+    roi = task_roi(ann, task)
+    if poses is not None:
+        ds = EstimatedPoses(ds, poses)
+        roi = ds.roi_fn(ann, task)
     frames = [ds[i] for i in range(len(ds))]
-    res = score_live_map(mapper, frames, task_roi(ann, task), protocols,
+    res = score_live_map(mapper, frames, roi, protocols,
                          track_iters=track_iters, track_stride=track_stride, keyframe_ids=keyframe_ids,
                          novel_ids=novel, record=record, predicted=predicted)
     sensor = res["sensor"]
@@ -281,7 +288,8 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
            "cap_reached": max((s.n_gaussians for s in mapper.stats), default=0) >= job["cap"],
            "evicted": int(sum(s.n_evicted for s in mapper.stats)), "roi_views": len(mapper.roi_views),
            "roi_views_added": int(mapper.roi_views.n_added), "withheld": len(novel_ids(job, ds) or []),
-           "mapping_downscale": float(job.get("mapping_downscale") or 1.0)}
+           "mapping_downscale": float(job.get("mapping_downscale") or 1.0),
+           "pose_source": job.get("pose_source") or "given"}
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
     if job.get("defer_dir"):
         # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
@@ -289,7 +297,7 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
         path = Path(job["defer_dir"]) / f"{_key_name(job)}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         torch.save({"state": mapper.state_dict(max_keyframes=None), "cfg": mapper.cfg.model_dump(),
-                    "keyframe_ids": kf_ids}, path)
+                    "keyframe_ids": kf_ids, "estimated_poses": job.get("estimated_poses")}, path)
         res.update(state_path=str(path), fp_per_kf=fp_per_kf,
                    score_job={k: job.get(k) for k in ("scene", "mode", "spec", "path", "task", "protocols",
                                                        "track_iters", "track_stride", "render_dir", "final_pass",
@@ -311,7 +319,8 @@ def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe
     if f != 1:
         ds = ScaledFrames(ds, f)
     res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
-                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel_ids(job, ds))
+                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel_ids(job, ds),
+                poses=job.get("estimated_poses"))
     if job.get("render_dir"):
         save_render(mapper, ds, ann, task_id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
@@ -334,6 +343,7 @@ def score_deferred(res: dict) -> dict:
     ds, _ = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
     ds = Preloaded(ds)
     out = {k: v for k, v in res.items() if k not in ("state_path", "fp_per_kf", "score_job")}
+    job = {**job, "estimated_poses": saved.get("estimated_poses")}
     out.update(_scores(job, mapper, ds, ds.annotations, job["task"], res["fp_per_kf"], saved["keyframe_ids"]))
     out["score_s"] = time.perf_counter() - t0  # loading, every protocol, the render (and a final pass, if asked)
     Path(res["state_path"]).unlink(missing_ok=True)
@@ -345,8 +355,16 @@ def run_one(job: dict) -> dict:
     to the in-process sink, otherwise without a push), score."""
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
-    ds, ann, task, rt, fp_per_kf = start_mission(job, rate, fusion=sink)
-    train = training_frames(job, ds)
+    odometry = job.get("pose_source") == "odometry"
+    extra = ()
+    if odometry:
+        # the runtime withholds the frames itself, so that its odometry still tracks them in order, unmapped
+        k = int(job.get("novel_every") or 0)
+        extra = ("agent.pose_source=odometry",
+                 *((f"agent.scoring.novel_every={k}", "agent.scoring.protocols=[sensor,novel]") if k
+                   else ("agent.scoring.protocols=[sensor]",)))
+    ds, ann, task, rt, fp_per_kf = start_mission(job, rate, extra, fusion=sink)
+    train = ds if odometry else training_frames(job, ds)
     give = give_late_task(job, train, rt, task)
     t0 = time.perf_counter()
     try:
@@ -354,7 +372,8 @@ def run_one(job: dict) -> dict:
         rt.replay(train, progress=(lambda i, n: give(i)) if give else None).join()
         rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
-        job = {**job, "mapping_downscale": rt.resolution.factor}
+        job = {**job, "mapping_downscale": rt.resolution.factor,
+               "estimated_poses": {int(k): v.copy() for k, v in rt.estimated_poses.items()} if odometry else None}
         st = rt.status()
         mapper = rt.mapper
         last = rt.pusher.pushes[-1] if rt.pusher.pushes else None
@@ -364,7 +383,8 @@ def run_one(job: dict) -> dict:
             iters_per_keyframe=rt.keyframe_iterations / max(1, rt.frames_keyframed),
             kappa_mean_active=(float(mapper.model.kappa[mapper.model.active].float().mean())
                                if bool(mapper.model.active.any()) else 0.0),
-            status={k: st[k] for k in ("frames_received", "frames_skipped") if k in st},
+            status={k: st[k] for k in ("frames_received", "frames_skipped", "frames_rejected") if k in st},
+            frames_estimated=len(rt.estimated_poses) if odometry else None,
             share=bool(sink), pushes=len(rt.pusher.pushes),
             share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None)
     finally:
@@ -760,6 +780,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="novel / novel-tracked protocols: every k-th frame of the sequence is withheld from the "
                          "mapper in both modes, scored at the pose the map predicts (novel) and at a pose tracked "
                          "against the map (novel-tracked) (0: nothing withheld, neither protocol)")
+    ap.add_argument("--pose-source", choices=("given", "odometry"), default="given",
+                    help="the poses the agents map and are scored at: the sequence's own (given), or the RGB-D "
+                         "odometry's estimates of every frame, the withheld ones included (agent.pose_source "
+                         "odometry: a camera without SLAM); the ROI is the given poses' either way")
     ap.add_argument("--track-iters", type=int, default=TRACK_ITERS,
                     help="tracked / novel-tracked protocols: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
@@ -818,6 +842,8 @@ def _checked_scenes(ap: argparse.ArgumentParser, args: argparse.Namespace) -> tu
         ap.error("--novel-every must be 0 (off) or >= 2")
     if args.late is not None and not 0 < args.late < 1:
         ap.error("--late must be in (0, 1)")
+    if args.twin and args.pose_source != "given":
+        ap.error("--pose-source odometry runs live missions only (the twin replays the given poses)")
     if args.dataset:
         try:
             specs = dataset_scenes(Path(args.dataset), [t for t in args.tasks.split(",") if t],
@@ -854,7 +880,7 @@ def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protoc
                            "mode": mode, "budget": b, "run": run, "cap": cap, "clock": args.clock,
                            "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
                            "late": args.late, "late_via": args.late_via, "protocols": protocols,
-                           "novel_every": args.novel_every,
+                           "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "track_iters": args.track_iters,
                            "track_stride": args.track_stride,
                            "render_dir": (str(out.with_name(out.stem + "_renders"))
@@ -912,7 +938,7 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
                            "reference_budget_s": REFERENCE_BUDGET_S, "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
-                           "novel_every": args.novel_every,
+                           "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "runs": runs}
     for scene, cap in names.items():

@@ -41,8 +41,15 @@ INTEGRATION = {
 }
 
 
+#: test files whose tests run in one pytest-xdist worker (``--dist loadgroup``, scripts/test.sh): the doc pages start
+#: services on the ports the pages give, as a user would, so two pages at once would collide; the users of the
+#: session fixture ``exported_models`` (a minute of torch.onnx export) share one export instead of one per worker
+SERIAL_GROUPS = {"docs/test_doc_blocks.py": "doc-pages", "attention/test_onnx_real_models.py": "exported-models",
+                 "cli/test_cli_export_models.py": "exported-models"}
+
+
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of the ``INTEGRATION`` files."""
+    """Mark the tests of the ``INTEGRATION`` files; keep the ``SERIAL_GROUPS`` files' tests in one xdist worker."""
     here = Path(__file__).resolve().parent
     for item in items:
         try:
@@ -51,6 +58,8 @@ def pytest_collection_modifyitems(config, items):
             continue
         if rel in INTEGRATION:
             item.add_marker(pytest.mark.integration)
+        if rel in SERIAL_GROUPS:
+            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUPS[rel]))
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")).resolve()
 
 

@@ -9,14 +9,17 @@ exposure the finished map predicts for it (``novel``) and at a pose and exposure
 
 from __future__ import annotations
 
-from typing import Iterable
+import dataclasses
+from typing import Iterable, Mapping
+
+import numpy as np
 
 from gausslite.datasets.common import downscale_frame
 
 #: the ``novel`` protocol's default: every this many frames of a sequence is withheld from the mapper
 NOVEL_EVERY = 10
 
-__all__ = ["NOVEL_EVERY", "withheld_indices", "FrameSubset"]
+__all__ = ["NOVEL_EVERY", "withheld_indices", "FrameSubset", "ScaledFrames", "EstimatedPoses"]
 
 
 def withheld_indices(n: int, every: int = NOVEL_EVERY) -> list[int]:
@@ -69,3 +72,43 @@ class ScaledFrames:
 
     def __getitem__(self, i: int):
         return downscale_frame(self._frames[i], self.factor)
+
+
+class EstimatedPoses:
+    """A read-only view of ``frames`` at the poses a robot estimated for them (``agent.pose_source: odometry``): each
+    frame's ``c2w`` is replaced by its estimate, and a frame without one (its tracking failed) is left out, as a robot
+    has no pose to use the map at there. The frames' own poses stay in :attr:`given`, for what is a property of the
+    image rather than of the robot's belief: the ground-truth ROI (:meth:`roi_fn`).
+
+    Args:
+        frames: a dataset or list (``len`` and indexing) of frames with their given (reference) poses.
+        poses: frame id → (4, 4) float64 camera-to-world estimate (metres; the world frame of ``frames``).
+    Attributes:
+        given: frame id → (4, 4) float64 given camera-to-world pose of every frame kept.
+        n_without_estimate: frames of ``frames`` left out for want of an estimate.
+    """
+
+    def __init__(self, frames, poses: Mapping[int, np.ndarray]) -> None:
+        self._frames = frames
+        self._poses = {int(k): np.asarray(v, dtype=np.float64) for k, v in poses.items()}
+        ids = [int(frames[i].frame_id) for i in range(len(frames))]
+        self._keep = [i for i, fid in enumerate(ids) if fid in self._poses]
+        self.given = {ids[i]: np.asarray(frames[i].c2w, dtype=np.float64) for i in self._keep}
+        self.n_without_estimate = len(ids) - len(self._keep)
+        self.annotations = getattr(frames, "annotations", None)
+
+    def __len__(self) -> int:
+        return len(self._keep)
+
+    def __getitem__(self, i: int):
+        fr = self._frames[self._keep[i]]
+        return dataclasses.replace(fr, c2w=self._poses[int(fr.frame_id)].copy())
+
+    def roi_fn(self, annotations, task_id: str):
+        """The ground-truth ROI of ``task_id`` (:func:`gausslite.datasets.annotations.task_roi`) of each frame of this
+        view, from its given pose, not its estimate: frame → (H, W) bool.
+
+        Raises:
+            KeyError (when called): unknown task id, or a frame not in this view.
+        """
+        return lambda fr: annotations.roi_mask(task_id, fr.depth, self.given[int(fr.frame_id)], fr.intrinsics)

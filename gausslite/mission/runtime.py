@@ -40,7 +40,7 @@ import uuid
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
@@ -239,6 +239,9 @@ class AgentRuntime:
         self.frames_skipped = 0
         self.frames_rejected = 0
         self.odometry = _odometry(config)  # agent.pose_source odometry: every frame is tracked in submit
+        #: replays under ``agent.pose_source: odometry``: frame id → (4, 4) float64 c2w the odometry estimated (in the
+        #: world frame), every frame tracked, the withheld ones too: the poses the mission is scored at
+        self.estimated_poses: Dict[int, np.ndarray] = {}
         self.keyframe_iterations = 0
         self.idle_iterations = 0
         self.checkpoints = 0
@@ -337,6 +340,8 @@ class AgentRuntime:
             self.odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
         r = self.odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
         if r.ok:
+            if self._dataset is not None:  # a replay: scored at these poses (evaluate_protocols)
+                self.estimated_poses[int(frame.frame_id)] = np.asarray(r.c2w, dtype=np.float64).copy()
             return dataclasses.replace(frame, c2w=r.c2w)
         with self._lock:
             self.frames_received += 1
@@ -359,33 +364,42 @@ class AgentRuntime:
             dataset = WorldFrames(dataset, self.T_world_map)
         self._dataset = dataset
         sc = self.config.scoring
+        held: frozenset = frozenset()
         if sc.withholds():
             # lazy: keeps gausslite.mission.runtime importable without the dataset loaders
-            from gausslite.datasets.subset import FrameSubset, withheld_indices
+            from gausslite.datasets.subset import withheld_indices
 
-            dataset = FrameSubset(dataset, withheld_indices(len(dataset), sc.novel_every))
-            self._novel_ids = dataset.withheld_ids
+            held = frozenset(withheld_indices(len(dataset), sc.novel_every))
+            self._novel_ids = frozenset(int(dataset[i].frame_id) for i in held)
         realtime = self.config.realtime
         with self._lock:
             self._online = bool(realtime)
         self._start_share(bool(realtime))
 
         def run():
-            n = len(dataset)
+            # the withheld frames never reach the mapper; with odometry they are still tracked in order, at their
+            # own time, as a robot's odometry tracks every frame (their estimated poses are where they are scored)
+            n, sent = len(dataset) - len(held), 0
             t_start, ts0 = time.perf_counter(), None
             try:
-                for i in range(n):
+                for i in range(len(dataset)):
                     if self._stop.is_set():
                         return
+                    if i in held and self.odometry is None:
+                        continue
                     fr = dataset[i]
                     if realtime:
                         ts0 = fr.timestamp if ts0 is None else ts0
                         wait = t_start + (fr.timestamp - ts0) / self.config.rate - time.perf_counter()
                         if wait > 0 and self._stop.wait(wait):
                             return
+                    if i in held:
+                        self._track(fr)
+                        continue
                     self.submit(fr, _replay=True)
+                    sent += 1
                     if progress:
-                        progress(i + 1, n)
+                        progress(sent, n)
                 self._queue.join()
                 with self._lock:
                     if self.state == MissionState.MAPPING:
@@ -932,7 +946,10 @@ class AgentRuntime:
         :meth:`evaluate_all_frames`'s figure; ``keyframes``: the mapped keyframes at their refined pose and exposure;
         ``novel``: the withheld frames at the pose and exposure the map predicts for them, nothing fitted; ``tracked``
         / ``novel-tracked``: every ``track_stride``-th / every withheld frame at a pose and exposure fitted against the
-        frozen map), or of ``protocols``. Fills :attr:`tracked_views` and :attr:`predicted_views`.
+        frozen map), or of ``protocols``. Under ``agent.pose_source: odometry`` every protocol starts from the poses
+        the odometry estimated (:attr:`estimated_poses`, the withheld frames' included), as the robot uses its map,
+        with the ground-truth ROI from the given poses; frames it lost are not scored. Fills :attr:`tracked_views`
+        and :attr:`predicted_views`.
 
         Returns:
             ``{protocol: {"roi_psnr", "psnr", "ssim", "frames_scored", "roi_frames", "roi_psnr_per_frame",
@@ -940,7 +957,7 @@ class AgentRuntime:
             frame id → dB); ``{}`` without a replayed dataset, annotations or task id. Call only while the worker is
             idle."""
         # lazy: keeps gausslite.mission.runtime importable without Warp, torch
-        from gausslite.datasets.subset import ScaledFrames
+        from gausslite.datasets.subset import EstimatedPoses, ScaledFrames
         from gausslite.evaluation import score_live_map
 
         if self._dataset is None or self.annotations is None or self.task_id is None:
@@ -951,8 +968,14 @@ class AgentRuntime:
             chosen = tuple(p for p in chosen if p not in ("novel", "novel-tracked"))
         # scored at the mapping resolution: the map's own detail, and minutes instead of tens of minutes at 640x480
         frames = ScaledFrames(self._dataset, self.resolution.factor)
+        roi = task_roi(self.annotations, self.task_id)
+        if self.odometry is not None:
+            # at the poses the odometry estimated, as the robot uses its map; the ROI from the given poses (the
+            # image's ground truth); a frame whose tracking failed has no pose to be scored at
+            frames = EstimatedPoses(frames, self.estimated_poses)
+            roi = frames.roi_fn(self.annotations, self.task_id)
         self.tracked_views, self.predicted_views = {}, {}
-        return score_live_map(self.mapper, frames, task_roi(self.annotations, self.task_id), chosen,
+        return score_live_map(self.mapper, frames, roi, chosen,
                               track_iters=sc.track_iters, track_stride=sc.track_stride, novel_ids=self._novel_ids,
                               record=self.tracked_views, predicted=self.predicted_views)
 

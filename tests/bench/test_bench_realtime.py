@@ -300,3 +300,27 @@ def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_
             assert r["withheld"] == 3, (run.__name__, mode)
             for q in ("novel", "novel-tracked"):
                 assert r["protocols"][q]["frames_scored"] == 3, (run.__name__, mode, q)
+
+
+def test_live_missions_with_poses_from_odometry_are_scored_at_the_estimates(tmp_path):
+    """``--pose-source odometry``: the agents track every frame (the withheld ones too) and map at the estimates; both
+    modes are scored at those estimates, the ROI from the given poses; the twin refuses it."""
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=14, width=96, height=72)  # a hand-held pace: every frame tracks
+    path = tmp_path / "scene" / "agent_a"
+    out = tmp_path / "odo.json"
+    argv = ["--dataset", str(path), "--tasks", "synth-pick-object", "--budgets", "0.1", "--runs", "1", "--cap", "300",
+            "--fps", "8", "--final-pass-budgets", "", "--protocols", "sensor,novel", "--novel-every", "4",
+            "--set", "mapper.seeding.seeds_per_frame=300", "--work", str(tmp_path / "w"), "--out", str(out)]
+    with pytest.raises(SystemExit):
+        rt.main([*argv, "--twin", "--pose-source", "odometry"])
+    assert rt.main([*argv, "--pose-source", "odometry"]) == 0
+    res = __import__("json").loads(out.read_text())
+    assert res["settings"]["pose_source"] == "odometry"
+    for r in res["runs"]:
+        assert r["pose_source"] == "odometry" and r["frames_estimated"] == 14 and r["withheld"] == 3
+        assert r["status"]["frames_received"] == 11  # the withheld frames were tracked, never sent to the mapper
+    blk = res["scenes"]["synth-pick-object"]["budgets"]["0.1"]["protocols"]
+    assert blk["novel"]["gausslite"]["frames_scored"] == 3 and blk["novel"]["gain"] is not None
+    assert blk["sensor"]["uniform"]["frames_scored"] == 14

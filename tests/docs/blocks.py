@@ -141,6 +141,8 @@ class PageRunner:
         self.groups: List[int] = []
         self.done: set = set()
         self.logs: List[Path] = []
+        #: (block name, seconds) of each block run, in order
+        self.timings: List[tuple] = []
 
     def run(self, block: Block) -> None:
         """Run ``block`` (and first the sections it is to run after, once each).
@@ -155,6 +157,13 @@ class PageRunner:
         if key in self.done:
             return
         self.done.add(key)
+        t0 = time.monotonic()
+        try:
+            self._dispatch(block)
+        finally:
+            self.timings.append((block.name, time.monotonic() - t0))
+
+    def _dispatch(self, block: Block) -> None:
         if block.writes:
             path = self.workdir / block.writes
             path.parent.mkdir(parents=True, exist_ok=True)

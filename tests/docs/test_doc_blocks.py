@@ -74,7 +74,7 @@ def workdir(tmp_path_factory):
     scene = ws / "data" / "scene"
     venv = PageRunner(ws).env
     run = dict(cwd=ws, env=venv, check=True, capture_output=True, timeout=300)
-    subprocess.run(["gausslite", "make-scene", "--out", str(scene), "--frames", "5", "--width", "128",
+    subprocess.run(["gausslite", "make-scene", "--out", str(scene), "--frames", "3", "--width", "128",
                     "--height", "96", "--quiet"], **run)
     for name, agent in BAGS.items():
         subprocess.run(["gausslite", "export", "bag", "--dataset", str(scene / agent), "--out", str(ws / name)],

@@ -59,3 +59,47 @@ def test_a_replay_tracks_every_frame_and_a_lost_one_is_counted_not_mapped(tmp_pa
         assert np.linalg.norm(odo.last_pose[:3, 3] - ds[13].c2w[:3, 3]) < 0.25 < np.linalg.norm(ds[13].c2w[:3, 3])
     finally:
         rt.close()
+
+
+def test_withheld_frames_are_tracked_not_mapped_and_the_map_is_scored_at_the_estimated_poses(tmp_path, monkeypatch):
+    """A robot's odometry tracks every frame, the ones withheld from the mapper too: ``novel`` scores those at their
+    estimated pose (with the map's learned correction), and every protocol starts from the estimates, with the ROI
+    of the given poses."""
+    import gausslite.evaluation as evaluation
+
+    make_scene(tmp_path, seed=0, width=96, height=72, frames=14, progress=False)
+    ds = load_dataset(tmp_path / "agent_a")
+    text = ds.annotations.task_by_id("synth-pick-object").text
+    cfg = load_config(None, [*TINY, "agent.scoring.protocols=[sensor,novel]", "agent.scoring.novel_every=4"]).agent
+    rt = AgentRuntime("a", text, TaskParser().parse(text), cfg, annotations=ds.annotations,
+                      task_id="synth-pick-object")
+    seen = {}
+    real = evaluation.score_live_map
+
+    def spy(mapper, frames, roi_fn, *a, **kw):
+        seen["poses"] = {int(f.frame_id): f.c2w.copy() for f in frames}
+        seen["roi"] = {int(f.frame_id): roi_fn(f) for f in frames}
+        return real(mapper, frames, roi_fn, *a, **kw)
+
+    monkeypatch.setattr(evaluation, "score_live_map", spy)
+    try:
+        rt.replay(ds)
+        assert rt.wait_mapped(timeout_s=120)
+        held = {int(ds[i].frame_id) for i in (2, 6, 10)}
+        mapped = {int(s.frame_id) for s in rt.mapper.stats}
+        assert mapped.isdisjoint(held) and len(mapped) == 11
+        # every frame tracked, the withheld ones too, in order: the odometry's count and the recorded estimates
+        assert rt.odometry.n_tracked == 14 and set(rt.estimated_poses) == {int(f.frame_id) for f in ds}
+        assert rt.status()["frames_received"] == 11
+        res = rt.evaluate_protocols()
+        assert res["novel"]["frames_scored"] == 3 and res["sensor"]["frames_scored"] == 14
+        for fid, c2w in seen["poses"].items():
+            np.testing.assert_allclose(c2w, rt.estimated_poses[fid])
+        moved = [fid for fid in held if np.linalg.norm(rt.estimated_poses[fid][:3, 3] - ds[fid].c2w[:3, 3]) > 1e-6]
+        assert moved  # estimates, not the given poses
+        # the ROI is the image's ground truth: the mask of the given pose
+        f = ds[6]
+        np.testing.assert_array_equal(seen["roi"][int(f.frame_id)],
+                                      ds.annotations.roi_mask("synth-pick-object", f.depth, f.c2w, f.intrinsics))
+    finally:
+        rt.close()
