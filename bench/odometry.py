@@ -16,6 +16,9 @@ variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped sett
 wide), ``mapping_resolution`` (tracked at the sequence's own resolution) and ``frame_to_frame`` (the shipped settings
 registering against the previous frame only).
 
+``--gains GIVEN.json,ODOMETRY.json`` compares the ROI gain (GaussLite − uniform, ``novel``) of live missions at the
+odometry's poses with the gain at the given poses, from two ``bench.realtime`` runs (:func:`pose_gains`).
+
 ``--live`` also streams TUM fr1/rpy at 15 Hz to an agent with ``agent.pose_source: odometry`` that maps as it tracks
 (:func:`live`): the share of frames tracked, the tracking time while mapping, and whether the frames kept to the
 stream's clock.
@@ -26,7 +29,8 @@ Usage::
 
     python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0]
                              [--variants default,mapping_resolution,frame_to_frame]
-                             [--synthetic-frames 300] [--live] [--out bench/results/odometry.json]
+                             [--synthetic-frames 300] [--live] [--gains GIVEN.json,ODOMETRY.json]
+                             [--out bench/results/odometry.json]
 """
 
 from __future__ import annotations
@@ -151,6 +155,63 @@ def live(rate: float, budget: float) -> dict:
             "frames_keyframed": st["frames_keyframed"], "frames_skipped": st["frames_skipped"]}
 
 
+def pose_gains(given_path: Path, odometry_path: Path, protocol: str = "novel", budget: str = "0.5") -> dict:
+    """The ROI gain (GaussLite − uniform) of live missions mapped and scored at the odometry's poses against the
+    same missions at the given poses: two ``bench.realtime`` results, ``--pose-source given`` and ``--pose-source
+    odometry``, of the same scenes, budget and runs. Per scene (a sequence and its task): both gains (the paired
+    per-frame means with their 95 % interval, :func:`gausslite.stats.paired_gain`) and ``gain_estimated_minus_given``,
+    their difference with the interval of a difference of independent means (half-widths added in quadrature).
+
+    Raises:
+        FileNotFoundError: a result file is missing. ValueError: the files share no scene at ``budget``, or the
+            second was not run with ``--pose-source odometry``.
+    """
+    import json
+
+    given, est = (json.loads(Path(p).read_text()) for p in (given_path, odometry_path))
+    if est["settings"].get("pose_source") != "odometry" or given["settings"].get("pose_source", "given") != "given":
+        raise ValueError(f"{odometry_path} must be a --pose-source odometry run and {given_path} a given-pose run")
+    out = {}
+    for scene, blk in est["scenes"].items():
+        g_blk = given["scenes"].get(scene, {}).get("budgets", {}).get(budget)
+        e_blk = blk.get("budgets", {}).get(budget)
+        if not g_blk or not e_blk or protocol not in g_blk["protocols"] or protocol not in e_blk["protocols"]:
+            continue
+        g, e = g_blk["protocols"][protocol], e_blk["protocols"][protocol]
+        if g["gain"] is None or e["gain"] is None:
+            continue
+        hw = [None if v.get("gain_ci") is None else (v["gain_ci"][1] - v["gain_ci"][0]) / 2 for v in (g, e)]
+        d = e["gain"] - g["gain"]
+        half = None if None in hw else float(np.hypot(*hw))
+        out[scene] = {"protocol": protocol, "budget_s": float(budget),
+                      "given": {k: g[k] for k in ("gain", "gain_ci", "gain_frames")},
+                      "estimated": {k: e[k] for k in ("gain", "gain_ci", "gain_frames")},
+                      "roi_psnr": {src: {m: v[m]["roi_psnr"] for m in ("uniform", "gausslite")}
+                                   for src, v in (("given", g), ("estimated", e))},
+                      "runs": {"given": g["gausslite"].get("runs"), "estimated": e["gausslite"].get("runs")},
+                      "gain_estimated_minus_given": {"mean": d, "ci": None if half is None else [d - half, d + half]}}
+    if not out:
+        raise ValueError(f"{given_path} and {odometry_path} share no scene scored under {protocol} at {budget} s")
+    return out
+
+
+def gains_table(gains: dict) -> str:
+    """The Markdown table of :func:`pose_gains`."""
+    def cell(v):
+        ci = v.get("gain_ci") or v.get("ci")
+        m = v.get("gain", v.get("mean"))
+        return f"{m:+.2f}" + ("" if not ci else f" [{ci[0]:+.2f}, {ci[1]:+.2f}]")
+
+    rows = ["| scene | ROI PSNR uniform / GaussLite, given poses (dB) | the same, odometry's poses (dB) | gain, given | "
+            "gain, odometry's poses | estimated − given |", "|---|---|---|---|---|---|"]
+    for scene, r in gains.items():
+        p = r["roi_psnr"]
+        rows.append(f"| {scene} | {p['given']['uniform']:.2f} / {p['given']['gausslite']:.2f} | "
+                    f"{p['estimated']['uniform']:.2f} / {p['estimated']['gausslite']:.2f} | {cell(r['given'])} | "
+                    f"{cell(r['estimated'])} | {cell(r['gain_estimated_minus_given'])} |")
+    return "\n".join(rows)
+
+
 def _cm(v) -> str:
     return "—" if v is None else f"{100 * v:.2f}"
 
@@ -206,8 +267,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="also stream TUM fr1/rpy at 15 Hz to an agent that tracks every frame while it maps")
     ap.add_argument("--live-budget", type=float, default=0.5, help="the live agent's keyframe budget, seconds")
+    ap.add_argument("--gains", default=None, metavar="GIVEN.json,ODOMETRY.json",
+                    help="also compare the ROI gain of live missions at the odometry's poses with the gain at the "
+                         "given poses: two bench.realtime results of the same scenes (--pose-source given, then "
+                         "odometry), scored under novel")
     ap.add_argument("--out", type=Path, default=RESULTS / "odometry.json")
     args = ap.parse_args(argv)
+    gains = None
+    if args.gains:
+        paths = [Path(p) for p in args.gains.split(",") if p]
+        if len(paths) != 2:
+            ap.error("--gains takes two files: GIVEN.json,ODOMETRY.json")
+        try:
+            gains = pose_gains(*paths)
+        except (FileNotFoundError, ValueError, KeyError) as e:
+            ap.error(f"--gains: {e}")
     seqs = [s for s in args.sequences.split(",") if s]
     variants = [v for v in args.variants.split(",") if v]
     bad = [s for s in seqs if s not in SEQUENCES] + [v for v in variants if v not in VARIANTS]
@@ -222,12 +296,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
            "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",
            "variants": {v: VARIANTS[v] for v in variants}, "odometry_defaults": OdometryConfig().model_dump(),
-           "sequences": results, **({"live": live_result} if live_result else {})}
+           "sequences": results, **({"live": live_result} if live_result else {}),
+           **({"gain_estimated_minus_given": gains, "gains_from": args.gains} if gains else {})}
     details = (f": {time.perf_counter() - t0:.0f} s; load average {load_before[0]:.1f} before, "
                f"{os.getloadavg()[0]:.1f} after (2 cores)")
     md = table(results)
     if live_result:
         md += "\n\n" + live_table(live_result)
+    if gains:
+        md += "\n\n" + gains_table(gains)
     write_results(args.out, "odometry", argv, details, md, doc)
     return 0
 

@@ -250,13 +250,14 @@ def _when(t: dict, with_counts: bool = True) -> str:
     """``12 min 50 s (956 passed, 26 skipped; pytest 7 min 25 s)``, or a range over fresh clones."""
     if "wall_s" not in t:
         lo, hi = t["wall_s_range"]
-        return f"{lo}–{hi} s ({words(t['clones'])} fresh clones)"
+        return f"{lo}–{hi} s ({words(t['clones'])} fresh clone{'s' if t['clones'] != 1 else ''})"
     extra = [f"{t['passed']} passed, {t['skipped']} skipped"] if with_counts and "passed" in t else []
     extra += [f"pytest {duration(t['pytest_s'])}"] if "pytest_s" in t else []
     out = duration(t["wall_s"]) + (f" ({'; '.join(extra)})" if extra else "")
     if "wall_s_range" in t:
         lo, hi = t["wall_s_range"]
-        out += f"; {clock(lo)}–{clock(hi)} over {words(t['clones'])} fresh clones"
+        out += (f"; {clock(lo)}–{clock(hi)} over {words(t['clones'])} fresh clones" if t["clones"] != 1
+                else " (one fresh clone)")
     return out
 
 

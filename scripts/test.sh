@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The README's test command: set-up (idempotent), then the whole test suite, spread over the machine's cores with
-# pytest-xdist (GAUSSLITE_TEST_WORKERS: a number of workers, or 0 to run in this process; tests/conftest.py keeps
-# the tests that must not run side by side in one worker).
+# The README's test command: set-up (idempotent), then the whole test suite, spread with pytest-xdist over one worker
+# per core and one more (much of an integration test's time is spent waiting on the processes it starts);
+# GAUSSLITE_TEST_WORKERS sets the number (0: run in this process). tests/conftest.py keeps the tests that must not
+# run side by side in one worker.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-auto}" --dist loadgroup "$@"
+exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist loadgroup "$@"

@@ -8,19 +8,21 @@ def test_odometry_bench_smoke(tmp_path, capsys):
     import bench.odometry as bo
 
     out = tmp_path / "odometry.json"
+    # at 160×120 the mapping resolution is the default's tracking size: the two variants would be the same run
     assert bo.main(["--sequences", "synthetic_circle", "--synthetic-frames", "90", "--synthetic-size", "160x120",
-                    "--out", str(out)]) == 0
+                    "--variants", "default,frame_to_frame", "--out", str(out)]) == 0
     res = json.loads(out.read_text())
     assert res["provenance"]["command"].startswith("python -m bench.odometry --sequences synthetic_circle")
     assert len(res["load_average_before"]) == 3 and res["odometry_defaults"]["reference"] == "nearest_keyframe"
-    for variant in ("default", "mapping_resolution", "frame_to_frame"):
+    assert set(res["sequences"]["synthetic_circle"]) == {"default", "frame_to_frame"}
+    for variant in ("default", "frame_to_frame"):
         r = res["sequences"]["synthetic_circle"][variant]
         assert r["frames"] == 90 and r["size"] == [160, 120] and r["ms_per_frame"] > 0
         assert r["tracked_fraction"] > 0.9 and r["ate_rmse_m"] < 0.1
         assert r["rpe"]["per_frame"]["pairs"] == 89 and r["rpe"]["per_second"]["trans_rmse_m"] is not None
     printed = capsys.readouterr().out
     assert "| synthetic_circle | default | 90 | 160×120 | 160×120 |" in printed
-    assert printed.count("| synthetic_circle |") == 3 and out.with_suffix(".md").is_file()
+    assert printed.count("| synthetic_circle |") == 2 and out.with_suffix(".md").is_file()
 
 
 def test_the_live_table_reads_the_live_figures():
@@ -29,3 +31,30 @@ def test_the_live_table_reads_the_live_figures():
     r = {"keyframe_budget_s": 0.5, "tracked_fraction": 0.96, "lost": 6, "track_ms_mean": 27.2, "track_ms_p95": 37.4,
          "on_time_fraction": 1.0, "late_s_max": 0.0, "frames_keyframed": 20}
     assert bo.live_table(r).splitlines()[-1] == "| keyframe budget 0.5 s | 96 % | 6 | 27 / 37 | 100 % | 0.00 | 20 |"
+
+
+def _realtime_result(pose_source, gain, ci, uniform, gausslite):
+    novel = {"gain": gain, "gain_ci": ci, "gain_frames": 30,
+             "uniform": {"roi_psnr": uniform, "runs": 3}, "gausslite": {"roi_psnr": gausslite, "runs": 3}}
+    return {"settings": {"pose_source": pose_source},
+            "scenes": {"tum_fr1_rpy": {"budgets": {"0.5": {"protocols": {"novel": novel, "sensor": novel}}}}}}
+
+
+def test_the_gain_at_the_odometrys_poses_is_compared_with_the_gain_at_the_given_ones(tmp_path):
+    import pytest
+
+    import bench.odometry as bo
+
+    given, odo = tmp_path / "given.json", tmp_path / "odo.json"
+    given.write_text(json.dumps(_realtime_result("given", 1.5, [0.5, 2.5], 21.0, 22.5)))
+    odo.write_text(json.dumps(_realtime_result("odometry", 0.9, [0.6, 1.2], 20.0, 20.9)))
+    g = bo.pose_gains(given, odo)["tum_fr1_rpy"]
+    d = g["gain_estimated_minus_given"]
+    assert abs(d["mean"] + 0.6) < 1e-9
+    half = (1.0 ** 2 + 0.3 ** 2) ** 0.5  # the half-widths in quadrature
+    assert abs(d["ci"][0] - (-0.6 - half)) < 1e-9 and abs(d["ci"][1] - (-0.6 + half)) < 1e-9
+    assert g["roi_psnr"]["estimated"] == {"uniform": 20.0, "gausslite": 20.9} and g["runs"]["estimated"] == 3
+    row = bo.gains_table({"tum_fr1_rpy": g}).splitlines()[-1]
+    assert row.startswith("| tum_fr1_rpy | 21.00 / 22.50 | 20.00 / 20.90 | +1.50 [+0.50, +2.50] | +0.90 [+0.60, +1.20]")
+    with pytest.raises(ValueError, match="pose-source odometry"):
+        bo.pose_gains(odo, given)  # the files swapped

@@ -625,9 +625,10 @@ class _RecordingFusion:
         return len(kfs)
 
 
-def _run_task_agent(scene, overrides: list, n_frames: int):
+def _run_task_agent(scene, overrides: list, n_frames: int, push_after: int = 0):
     """An agent with ``share: task`` and a fixed ROI box maps ``n_frames`` of the scene's agent_a and pushes
-    to a recording fusion stand-in; returns (runtime, fusion, roi)."""
+    to a recording fusion stand-in (with ``push_after``, a periodic push is acknowledged before the frames after the
+    first ``push_after`` are sent); returns (runtime, fusion, roi)."""
     ds = load_dataset(scene / "agent_a")
     # the share work in the pusher thread, so spies in this process see it (the worker process: its own test)
     cfg = load_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
@@ -635,15 +636,22 @@ def _run_task_agent(scene, overrides: list, n_frames: int):
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
-    return _mission("a1", cfg, lambda fr: roi, fusion, ds, n_frames), fusion, roi
+    return _mission("a1", cfg, lambda fr: roi, fusion, ds, n_frames, push_after), fusion, roi
 
 
-def _mission(agent_id, cfg, relevance_fn, fusion, ds, n_frames: int) -> AgentRuntime:
-    """One mission of an in-process agent: map ``n_frames`` of ``ds``, finish with a push, close."""
+def _mission(agent_id, cfg, relevance_fn, fusion, ds, n_frames: int, push_after: int = 0) -> AgentRuntime:
+    """One mission of an in-process agent: map ``n_frames`` of ``ds``, finish with a push, close. With
+    ``push_after``, the frames after the first ``push_after`` wait for a periodic push to be acknowledged (a loaded
+    machine would otherwise fold it into the final one)."""
     rt = AgentRuntime(agent_id, "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=relevance_fn, fusion=fusion)
     try:
         for i in range(n_frames):
+            if push_after and i == push_after:
+                deadline = time.monotonic() + 120
+                while not rt.pusher.pushes and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert rt.pusher.pushes, rt.status()
             rt.submit(ds[i])
         rt.finish(push=True, evaluate=False, timeout_s=120)
     finally:
@@ -719,7 +727,8 @@ def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(s
         return out, st
 
     monkeypatch.setattr(sharing, "update_shared_subset", spy)
-    _, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=5", "agent.share_refresh=0.2"], 6)
+    _, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=5", "agent.share_refresh=0.2"], 6,
+                                   push_after=2)
     assert len(calls) >= 2 and calls[0][0] is None and calls[0][2]["base"] == 0
     later = [c for c in calls[1:] if c[0] is not None]
     assert later, calls
