@@ -750,7 +750,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         # score what earlier --missions-only invocations saved (every budget they ran), start no mission
         jobs = []
         budgets = sorted({float(r["budget"]) for r in runs if r["scene"] in names} | set(budgets))
-    defer = None if args.twin or args.score_inline else Path(args.work) / "maps"
+    # one folder per result file: two invocations that share --work (given and odometry poses, say) keep their maps
+    defer = None if args.twin or args.score_inline else Path(args.work) / "maps" / out.stem
     for job in jobs:
         job["defer_dir"] = str(defer) if defer else None
     t0 = time.time()

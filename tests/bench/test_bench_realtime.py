@@ -259,13 +259,19 @@ def test_live_missions_back_to_back_then_scored_apart(tmp_path):
     saved = json.loads(out.with_suffix(".partial.json").read_text())["runs"]
     assert len(saved) == 3 and all("state_path" in r and "protocols" not in r for r in saved)
     assert not out.exists()
+    # another result file sharing the work folder (the same scene, mode, budget and run) keeps its maps apart
+    other = tmp_path / "other.json"
+    assert rt.main([*base[:-4], "--out", str(other), "--work", str(tmp_path / "work"), "--budgets", "0.2",
+                    "--modes", "uniform", "--missions-only"]) == 0
+    theirs = json.loads(other.with_suffix(".partial.json").read_text())["runs"][0]["state_path"]
+    assert theirs not in {r["state_path"] for r in saved} and all(Path(r["state_path"]).is_file() for r in saved)
     assert rt.main(base + ["--budgets", "0.2", "--score-only"]) == 0
     res = json.loads(out.read_text())
     blk = res["scenes"]["synth-pick-object"]["budgets"]
     assert set(blk) == {"0.2", "0.4"} and blk["0.2"]["protocols"]["tracked"]["runs"] == 1
     assert "gausslite" not in blk["0.4"] and blk["0.4"]["uniform"]["runs"] == 1
     assert all("protocols" in r and "state_path" not in r for r in res["runs"])
-    assert not list((tmp_path / "work" / "maps").glob("*.pt"))
+    assert not list((tmp_path / "work" / "maps" / "live").glob("*.pt")) and Path(theirs).is_file()
 
 
 def test_withheld_frames_never_reach_the_mapper_in_either_mode_twin_or_live(tmp_path, monkeypatch):
