@@ -168,12 +168,7 @@ class AgentRuntime:
         self.fusion = fusion
         self.mission_id = mission_id or uuid.uuid4().hex[:12]
         self.on_finished = on_finished
-        if task_id is None and annotations is not None:
-            task_id = next((t.id for t in getattr(annotations, "tasks", []) or []
-                            if t.text.strip().lower() == task_text.strip().lower()), None)
-        if task_id is not None and annotations is not None:
-            annotations.task_by_id(task_id)  # KeyError with the known ids
-        self.task_id = task_id
+        self.task_id = task_id = _task_id_of(annotations, task_id, task_text)
         self.frontend = None  # the attention front-end (relevance: attention), gausslite.mission.relevance
         if relevance_fn is None:
             relevance_fn, self.frontend = build_relevance(config, graph, annotations, task_id, lambda: self.mapper)
@@ -997,6 +992,19 @@ class AgentRuntime:
         if self._relevance_worker is not None:
             self._relevance_worker.close()
         self.share.close()
+
+
+def _task_id_of(annotations, task_id: Optional[str], task_text: str) -> Optional[str]:
+    """The annotations' id of the mission's task: ``task_id`` checked against them (KeyError with the known ids), or,
+    without one, the id of the annotated task whose text is ``task_text`` (case and surrounding space ignored); None
+    without annotations or a match."""
+    if annotations is None:
+        return task_id
+    if task_id is None:
+        return next((t.id for t in getattr(annotations, "tasks", []) or []
+                     if t.text.strip().lower() == task_text.strip().lower()), None)
+    annotations.task_by_id(task_id)  # KeyError with the known ids
+    return task_id
 
 
 def _odometry(config: AgentConfig):
