@@ -98,7 +98,8 @@ def test_uploads_reads_and_fuse_calls_go_on_while_the_team_map_refines(tmp_path)
         with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             _fill(c, ("r1",))
             tm = srv.servicer.team_map
-            first = _wait(lambda: _served(c), 120)
+            # the team map of everything r1 sent (a loaded machine may make one before its last keyframe is in)
+            first = _wait(lambda: (r := _served(c)) is not None and r.team_map_current and r, 120)
             # then a long refinement (many iterations, no early stop) to act during
             tm.settings = tm.settings.model_copy(update={"refine_iters": 20000})
             srv.servicer._engine.refine_options["patience"] = 10 ** 6
