@@ -23,15 +23,21 @@ keyframes against iterations).
 
 Runs are wall-clock measurements: they run one at a time in this process, and nothing else should run
 beside the bench. Writes ``bench/results/realtime.json`` (``{"scenes": {scene: {"cap", "budgets": {b:
-{"uniform": {...}, "gausslite": {...}, "gain", "gain_std"}}}}}``), ``realtime.md`` and ``realtime_<scene>.png``
-(ROI PSNR against budget, both modes). After each run the runs so far go to ``<out>.partial.json``;
-``--resume`` continues from it.
+{"uniform": {...}, "gausslite": {...}, "gain", "gain_ci", "gain_interval", "gain_std", "protocols"}}}}, "runs":
+[...]}``), ``realtime.md`` and ``realtime_<scene>.png`` (ROI PSNR against budget, both modes). After each run the
+runs so far go to ``<out>.partial.json``; ``--resume`` continues from it.
+
+Gains pair GaussLite and uniform frame by frame within each run (the same seed), and only runs that mapped at the
+same resolution (:func:`pairable_runs`); over several runs the interval is run-clustered, a t-interval over the
+per-run gains (:func:`gausslite.stats.paired_gain`). Each run records the settings its mission ran with
+(``"mission"``, :func:`mission_settings`). ``--reaggregate`` rewrites a written result's summary from its runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import platform
@@ -62,12 +68,13 @@ from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, fmt_gain, gain, paired_gain, significant
 from gausslite.synthetic import make_scene
 
-from bench._results import write_json
+from bench._results import provenance, write_json
 from bench.realtime_late import LATE_VIA, give_late_task, late_relevance
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
+log = logging.getLogger(__name__)
 
 #: bench scenes: dataset, task, resolution, clock and the matched Gaussian cap (a cap uniform reaches at every
 #: budget: measured counts below it, docs/realtime.md)
@@ -280,8 +287,9 @@ def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[F
 
 
 def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dict:
-    """The figures of one finished mission: ``fields``, the map's counts, the scores over every frame, the render
-    (``job["render_dir"]``) and, with ``job["final_pass"]``, the scores after the profile's final pass."""
+    """The figures of one finished mission: ``fields``, the map's counts, the settings it ran with (``"mission"``,
+    :func:`mission_settings`), the scores over every frame, the render (``job["render_dir"]``) and, with
+    ``job["final_pass"]``, the scores after the profile's final pass."""
     res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"], "cap": job["cap"],
            **fields, "n_gaussians": len(mapper.model), "n_active": int(mapper.model.active.sum()), "frames": len(ds),
            "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
@@ -289,7 +297,8 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
            "evicted": int(sum(s.n_evicted for s in mapper.stats)), "roi_views": len(mapper.roi_views),
            "roi_views_added": int(mapper.roi_views.n_added), "withheld": len(novel_ids(job, ds) or []),
            "mapping_downscale": float(job.get("mapping_downscale") or 1.0),
-           "pose_source": job.get("pose_source") or "given"}
+           "pose_source": job.get("pose_source") or "given",
+           "mission": mission_settings(job, mapper.cfg, fields.get("iters_per_keyframe"))}
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
     if job.get("defer_dir"):
         # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
@@ -307,6 +316,54 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
     return res
 
 
+def mission_settings(job: dict, cfg: MapperConfig, iters_per_keyframe: Optional[float]) -> dict:
+    """What a run's mission ran with, as its result records it (``"mission"``): the effective mapper settings that
+    decide its figures and the resolution it mapped at.
+
+    Args:
+        job: the run's job (``mode``, ``budget``, ``clock``, ``pose_source``, ``novel_every``, ``overrides``, and
+            ``resolution``: ``{"downscale", "size": [w, h], "native_size": [w, h], "changes"}`` of the mapping
+            resolution, pixels; absent: ``mapping_downscale`` alone).
+        cfg: the mission's effective :class:`~gausslite.mapping.config.MapperConfig` (after the sensor profile and
+            every override).
+        iters_per_keyframe: iterations per keyframe the mission achieved (None: not measured).
+    Returns:
+        ``{"mode", "keyframe_budget_s", "budget_clock", "max_gaussians", "render_threads", "seed", "pose_source",
+        "clock", "rate", "novel_every", "overrides", "mapping_downscale", "mapping_size", "native_size",
+        "resolution_changes", "iters_per_keyframe"}`` (sizes [width, height] in pixels, None when not known).
+    """
+    res = job.get("resolution") or {}
+    return {"mode": cfg.mode, "keyframe_budget_s": cfg.keyframe_budget_s, "budget_clock": cfg.budget_clock,
+            "max_gaussians": cfg.budget.max_gaussians, "render_threads": cfg.performance.render_threads,
+            "seed": cfg.seed, "pose_source": job.get("pose_source") or "given", "clock": job.get("clock"),
+            "rate": job.get("rate"), "novel_every": int(job.get("novel_every") or 0),
+            "overrides": list(job.get("overrides") or ()),
+            "mapping_downscale": float(res.get("downscale") or job.get("mapping_downscale") or 1.0),
+            "mapping_size": res.get("size"), "native_size": res.get("native_size"),
+            "resolution_changes": res.get("changes"),
+            "iters_per_keyframe": None if iters_per_keyframe is None else float(iters_per_keyframe)}
+
+
+def check_withheld(novel, keyframe_ids, roi_view_ids=()) -> None:
+    """The leak guard of the withheld protocols: no frame scored as novel was a training view of the map.
+
+    Args:
+        novel: frame ids withheld from the mission (None: nothing withheld).
+        keyframe_ids: frame ids of the map's keyframes (a saved map's own record: a map rebuilt from its state has
+            no per-keyframe statistics of its own to check).
+        roi_view_ids: frame ids of its stored ROI views.
+    Raises:
+        ValueError: a withheld frame among them (the mission saw it: the novel figures would not be novel).
+    """
+    if not novel:
+        return
+    trained = {int(i) for i in keyframe_ids or ()} | {int(i) for i in roi_view_ids or ()}
+    leaked = sorted({int(i) for i in novel} & trained)
+    if leaked:
+        raise ValueError(f"withheld frames {leaked[:5]} were training views of the map (keyframes or ROI views): "
+                         f"not novel")
+
+
 def _key_name(job: dict) -> str:
     return "_".join(str(x) for x in _key(job)).replace("/", "-")
 
@@ -314,13 +371,17 @@ def _key_name(job: dict) -> str:
 def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe_ids) -> dict:
     """The scores of a finished map under ``job["protocols"]``, its render (``job["render_dir"]``) and, with
     ``job["final_pass"]``, the scores after the profile's final pass (which changes ``mapper``). Scored at the
-    resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution)."""
+    resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution).
+
+    Raises:
+        ValueError: a withheld frame among ``keyframe_ids`` or the map's ROI views (:func:`check_withheld`)."""
     f = float(job.get("mapping_downscale") or 1.0)
     if f != 1:
         ds = ScaledFrames(ds, f)
+    novel = novel_ids(job, ds)
+    check_withheld(novel, keyframe_ids, mapper.roi_views.frame_ids)
     res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
-                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel_ids(job, ds),
-                poses=job.get("estimated_poses"))
+                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel, poses=job.get("estimated_poses"))
     if job.get("render_dir"):
         save_render(mapper, ds, ann, task_id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
@@ -372,7 +433,11 @@ def run_one(job: dict) -> dict:
         rt.replay(train, progress=(lambda i, n: give(i)) if give else None).join()
         rt.finish(push=sink is not None, evaluate=False)
         wall = time.perf_counter() - t0
-        job = {**job, "mapping_downscale": rt.resolution.factor,
+        rs = rt.resolution.status()
+        job = {**job, "mapping_downscale": rt.resolution.factor, "rate": rate,
+               "resolution": {"downscale": rt.resolution.factor, "size": [rs["mapping_width"], rs["mapping_height"]],
+                              "native_size": list(rt.resolution.native) if rt.resolution.native else None,
+                              "changes": int(rt.resolution.changes)},
                "estimated_poses": {int(k): v.copy() for k, v in rt.estimated_poses.items()} if odometry else None}
         st = rt.status()
         mapper = rt.mapper
@@ -419,7 +484,9 @@ def twin_one(job: dict) -> dict:
         choice = choose_downscale(fr0.intrinsics.width, fr0.intrinsics.height, job["budget"], job["cap"],
                                   WorkCost(**mapper.cfg.work_cost.model_dump()), rc.target_iters, rc.max_downscale,
                                   rc.pinned, min_width=rc.min_width)
-        job = {**job, "mapping_downscale": choice.factor}
+        job = {**job, "mapping_downscale": choice.factor, "rate": 1.0,
+               "resolution": {"downscale": choice.factor, "size": [choice.width, choice.height],
+                              "native_size": [fr0.intrinsics.width, fr0.intrinsics.height], "changes": 0}}
         train = training_frames(job, ScaledFrames(ds, choice.factor) if choice.factor != 1 else ds)
         kfs = keyframe_schedule(train, spacing)
         iters = 0
@@ -461,7 +528,9 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
         if len(by_mode) == 2:
             u = {r["run"]: r for r in by_mode["uniform"]}
             g = {r["run"]: r for r in by_mode["gausslite"]}
-            common = sorted(set(u) & set(g))
+            common, refused = pairable_runs(g, u, set(u) & set(g))
+            if refused:
+                blk["unpaired_runs"] = refused
             blk.update(_paired(g, u, common, "roi_psnr", "sensor"))
             pg = _paired(g, u, common, "psnr", "sensor")
             blk["psnr_gain"], blk["psnr_gain_std"] = pg["gain"], pg["gain_std"]
@@ -477,12 +546,49 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
     return out
 
 
+def mapping_resolution(r: dict) -> tuple:
+    """The resolution run ``r`` mapped at, as its result records it: ``(downscale factor, width, height, resolution
+    changes during the mission)``; width, height and changes None when not recorded (a result written before the
+    ``mission`` record), a factor not recorded read as 1 (the runner writes an absent factor as 1)."""
+    m = r.get("mission") or {}
+    w, h = m.get("mapping_size") or (None, None)
+    return float(r.get("mapping_downscale") or 1.0), w, h, m.get("resolution_changes")
+
+
+def pairable_runs(g: dict, u: dict, runs) -> tuple[list, list[dict]]:
+    """The runs of ``runs`` (ids of both modes' results, ``g`` / ``u``: run → result) whose GaussLite and uniform
+    missions mapped at the same resolution, and the others, refused: a map's PSNR depends on the image size it is
+    scored at (each map is scored at its own mapping resolution), so a pair across resolutions would measure the
+    resolution, not the mode. Each refusal is logged.
+
+    Returns:
+        (sorted run ids to pair, ``[{"run", "reason"}]`` of the refused ones). Two results differ when their factors
+        differ, or both record the mapped size (or the count of resolution changes) and those differ.
+    """
+    keep, refused = [], []
+    for i in sorted(runs):
+        a, b = mapping_resolution(g[i]), mapping_resolution(u[i])
+        differs = [k for k, x, y in zip(("downscale", "width", "height", "changes"), a, b)
+                   if x is not None and y is not None and x != y]
+        if differs:
+            reason = (f"mapped at different resolutions: GaussLite downscale {a[0]:g} ({a[1]}x{a[2]}, {a[3]} changes), "
+                      f"uniform {b[0]:g} ({b[1]}x{b[2]}, {b[3]} changes)")
+            log.warning("%s, budget %s s, run %s not paired: %s", g[i].get("scene"), g[i].get("budget"), i, reason)
+            refused.append({"run": i, "reason": reason})
+        else:
+            keep.append(i)
+    return keep, refused
+
+
 def _paired(g: dict, u: dict, runs: list, field: str, protocol: str) -> dict:
-    """GaussLite − uniform of ``field`` (``roi_psnr`` or ``psnr``) over the runs ``runs`` of both modes (run → result):
-    ``gain`` the mean of the paired per-frame differences over runs × frames under ``protocol`` with its 95 %
-    interval (``gain_ci``, ``gain_frames``; :func:`gausslite.stats.paired_gain`), ``gain_std`` the spread over runs
-    of the per-run differences, ``gain_significant`` whether the interval excludes zero. Runs scored before per-frame
-    figures were kept (an older partial file): the per-run differences alone (``gain_pairs: "runs"``, significant
+    """GaussLite − uniform of ``field`` (``roi_psnr`` or ``psnr``) over the runs ``runs`` of both modes (run → result,
+    already checked to pair: :func:`pairable_runs`), paired frame by frame within each run under ``protocol``
+    (:func:`gausslite.stats.paired_gain`): ``gain`` the mean of the per-run gains (each the mean of that run's paired
+    per-frame differences), ``gain_ci`` its 95 % interval, run-clustered over several runs (``gain_interval``:
+    ``"run-clustered"``, a t-interval over the per-run gains; ``"per-frame"`` for a single run), ``gain_runs`` the
+    runs, ``gain_per_run`` their gains, ``gain_frames`` the frame pairs, ``gain_std`` the spread of the per-run gains,
+    ``gain_significant`` whether the interval excludes zero. Runs scored before per-frame figures were kept (an older
+    partial file): the per-run differences of the means alone (``gain_pairs: "runs"``, no interval, significant
     above twice their spread)."""
     def frames(r):
         return ((current_protocols(r.get("protocols")).get(protocol) or {}).get(f"{field}_per_frame"))
@@ -495,17 +601,21 @@ def _paired(g: dict, u: dict, runs: list, field: str, protocol: str) -> dict:
     fg, fu = [frames(g[i]) for i in runs], [frames(u[i]) for i in runs]
     if runs and all(x is not None for x in fg + fu):
         pg = paired_gain(fg, fu)
-        return {"gain": pg["gain"], "gain_ci": [pg["ci_low"], pg["ci_high"]], "gain_frames": pg["n"],
-                "gain_std": per_run["gain_std"], "gain_significant": significant(pg), "gain_pairs": "frames"}
-    return {"gain": per_run["gain"], "gain_ci": None, "gain_frames": None, "gain_std": per_run["gain_std"],
-            "gain_significant": per_run["significant"], "gain_pairs": "runs"}
+        return {"gain": pg["gain"], "gain_ci": [pg["ci_low"], pg["ci_high"]], "gain_interval": pg["interval"],
+                "gain_runs": pg["runs"], "gain_per_run": pg["run_gains"], "gain_frames": pg["n"],
+                "gain_std": pg["std"] if pg["interval"] == "run-clustered" else per_run["gain_std"],
+                "gain_significant": significant(pg), "gain_pairs": "frames"}
+    return {"gain": per_run["gain"], "gain_ci": None, "gain_interval": None, "gain_runs": per_run["n"],
+            "gain_frames": None, "gain_std": per_run["gain_std"], "gain_significant": per_run["significant"],
+            "gain_pairs": "runs"}
 
 
 def _summarise_protocols(by_mode: dict) -> dict:
-    """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_ci", "gain_std", "gain_significant",
-    "psnr_gain", "runs"}}`` of one budget: per mode the means and stds over runs of each protocol's figures, and the
-    paired gain (:func:`_paired`: per frame, over the runs of both modes with the same seed). Older runs' ``novel``
-    (then tracked) is read as ``novel-tracked``."""
+    """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_ci", "gain_interval", "gain_std",
+    "gain_significant", "psnr_gain", "runs", "unpaired_runs"}}`` of one budget: per mode the means and stds over runs
+    of each protocol's figures, and the paired gain (:func:`_paired`: per frame within each run, run-clustered over
+    the runs of both modes with the same seed that mapped at the same resolution, :func:`pairable_runs`). Older runs'
+    ``novel`` (then tracked) is read as ``novel-tracked``."""
     names = sorted({p for rs in by_mode.values() for r in rs for p in current_protocols(r.get("protocols"))},
                    key=lambda p: PROTOCOLS.index(p) if p in PROTOCOLS else len(PROTOCOLS))
     out = {}
@@ -526,8 +636,10 @@ def _summarise_protocols(by_mode: dict) -> dict:
             u = {r["run"]: r for r in by_mode["uniform"]}
             g = {r["run"]: r for r in by_mode["gausslite"]}
             pu, pgl = per_mode["uniform"], per_mode["gausslite"]
-            common = sorted(i for i in set(pu) & set(pgl)
-                            if pu[i]["roi_psnr"] is not None and pgl[i]["roi_psnr"] is not None)
+            common, refused = pairable_runs(g, u, {i for i in set(pu) & set(pgl)
+                                                   if pu[i]["roi_psnr"] is not None and pgl[i]["roi_psnr"] is not None})
+            if refused:
+                blk["unpaired_runs"] = refused
             if common:
                 blk.update(_paired(g, u, common, "roi_psnr", p))
                 pg = _paired(g, u, common, "psnr", p)
@@ -582,14 +694,17 @@ def table(result: dict) -> str:
 
 
 def _gain_cell(v: dict) -> str:
-    """A gain of :func:`_paired` for a table: ``"+1.23 [+0.80, +1.66] (σ runs 0.30)"`` (paired per frame, 95 %
-    interval, the per-run spread), or ``"+1.23 ± 0.30 (runs)"`` for runs without per-frame figures; ``*``: the
-    interval (older runs: twice the spread) excludes zero."""
+    """A gain of :func:`_paired` for a table: ``"+1.23 [+0.80, +1.66] (σ runs 0.30)"`` (the mean of the per-run
+    paired gains, its run-clustered 95 % interval, their spread), ``"+1.23 [+0.80, +1.66] (per frame, 1 run)"`` for
+    a single run's per-frame interval, or ``"+1.23 ± 0.30 (runs)"`` for runs without per-frame figures; ``*``: the
+    interval (without one: twice the spread) excludes zero."""
     if v.get("gain") is None:
         return "–"
     star = "*" if v.get("gain_significant") else ""
     if v.get("gain_ci") and v["gain_ci"][0] is not None:
         ci = {"gain": v["gain"], "ci_low": v["gain_ci"][0], "ci_high": v["gain_ci"][1]}
+        if v.get("gain_interval") == "per-frame":
+            return f"{fmt_gain(ci)}{star} (per frame, 1 run)"
         return f"{fmt_gain(ci)}{star} (σ runs {fmt(v.get('gain_std'), None)})"
     return f"{fmt(v['gain'], v.get('gain_std'))} (runs){star}"
 
@@ -597,8 +712,8 @@ def _gain_cell(v: dict) -> str:
 def protocol_table(result: dict) -> str:
     """Markdown table of every scoring protocol: per scene, budget and protocol (docs/realtime.md#scoring-protocols:
     ``sensor``, ``keyframes``, ``novel`` at the pose the robot gives; ``tracked``, ``novel-tracked`` at a pose fitted
-    to the map), both modes' ROI PSNR and PSNR (mean ± std over runs) and the paired ROI gain (mean of the per-frame
-    differences over runs × frames, 95 % interval, and the spread of the per-run gains)."""
+    to the map), both modes' ROI PSNR and PSNR (mean ± std over runs) and the paired ROI gain (:func:`_gain_cell`:
+    the mean of the per-run paired gains with its run-clustered 95 % interval and their spread)."""
     lines = ["| scene | budget (s) | protocol | uniform ROI PSNR | GaussLite ROI PSNR | ROI gain | uniform PSNR | "
              "GaussLite PSNR | runs |", "|" + "---|" * 9]
     for scene, blk in result["scenes"].items():
@@ -610,8 +725,9 @@ def protocol_table(result: dict) -> str:
                     f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {_gain_cell(pv)} | "
                     f"{fmt(u.get('psnr'), u.get('psnr_std'))} | "
                     f"{fmt(g.get('psnr'), g.get('psnr_std'))} | {pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))} |")
-    lines += ["", "ROI gain: GaussLite − uniform, the mean of the paired per-frame differences over runs × frames "
-              "[95 % interval], σ runs: the spread of the per-run gains; * the interval excludes zero. "
+    lines += ["", "ROI gain: GaussLite − uniform, paired frame by frame within each run: the mean of the per-run "
+              "gains [95 % run-clustered interval: the t-interval over the per-run gains], σ runs: their spread; "
+              "* the interval excludes zero. "
               "`novel` answers how the map serves a robot at the pose it would use on views it never trained on; "
               "`tracked` / `novel-tracked` how well a robot could localise against the map, and the map from there."]
     return "\n".join(lines)
@@ -734,6 +850,9 @@ def main(argv: Optional[list[str]] = None) -> int:
         print(json.dumps(res, indent=1))
         return 0
 
+    if args.reaggregate:
+        reaggregate(Path(args.out), argv)
+        return 0
     protocols, scenes, specs = _checked_scenes(ap, args)
     budgets = [float(b) for b in args.budgets.split(",") if b]
     fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
@@ -823,6 +942,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--score-only", action="store_true",
                     help="start no mission: score the maps earlier --missions-only runs saved to the same --out "
                          "(its partial file) and write the result over every budget they ran")
+    ap.add_argument("--reaggregate", action="store_true",
+                    help="start no mission, score nothing: rewrite the summary (means, paired gains) of the result "
+                         "--out from the runs it holds, with today's aggregation; its runs and settings stay")
     ap.add_argument("--score-inline", action="store_true",
                     help="score each live map right after its mission (default: every mission first, alone on the "
                          "machine, then the saved maps are scored, --jobs at a time)")
@@ -929,6 +1051,29 @@ def _score_pending(args: argparse.Namespace, runs: list[dict], pending: list[int
                 tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI ({per}), "
                            f"PSNR {r['psnr']:.2f}")
                 partial.write_text(json.dumps({"runs": runs}, indent=1))
+
+
+def reaggregate(out: Path, argv: Optional[list[str]] = None) -> dict:
+    """Rewrite the summary of the written result ``out`` from the runs it holds (``--reaggregate``): every scene's
+    block (:func:`summarise`: the means over runs and the paired gains, run-clustered) and ``<out>.md``; the runs, the
+    settings and the provenance of the missions stay as they were, the aggregation's own provenance goes to
+    ``"aggregation"``. Nothing is run or scored again.
+
+    Returns:
+        the rewritten result.
+    Raises:
+        FileNotFoundError: no such file. KeyError: a file without ``runs`` and ``scenes`` (not a realtime result).
+    """
+    result = json.loads(Path(out).read_text())
+    budgets = [float(b) for b in result["settings"]["budgets"]]
+    for scene, blk in result["scenes"].items():
+        result["scenes"][scene] = summarise(result["runs"], scene, budgets, blk["cap"])
+    result["aggregation"] = provenance("realtime", argv)
+    write_json(out, result, "realtime", argv, indent=1)
+    md = table(result) + "\n\n" + protocol_table(result)
+    Path(out).with_suffix(".md").write_text(md + "\n")
+    print(md)
+    return result
 
 
 def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budgets: list[float], protocols: tuple,

@@ -12,6 +12,9 @@ A generated region sits between two HTML comments, invisible on the rendered pag
 markers is rewritten, so the prose around a table stays as written. A region that opens its own line is a block (a
 table, with a blank line on either side); one inside a line is inline (a figure in a sentence or a table cell).
 
+Every interval a page shows is run-clustered (:data:`SHOWN_INTERVAL`: the t-interval over the per-run gains,
+``gausslite.stats.paired_gain``); a summary that holds another refuses to be written (:func:`gain_text`).
+
 The realtime tables read each scoring protocol by name. A result written before ``novel`` was scored at the pose the
 map predicts has a single ``novel`` entry, scored at a tracked pose: it is read as ``novel-tracked``. Newer results
 name that one ``novel-tracked`` (or ``novel_tracked``) and keep ``novel`` for the predicted pose.
@@ -122,14 +125,31 @@ def protocol(result: dict, scene: str, name: str, budget: str = "0.5") -> dict:
     return protos[name]
 
 
+#: the interval a page shows: over the runs (``gausslite.stats.paired_gain``), never over runs × frames pooled
+SHOWN_INTERVAL = "run-clustered"
+
+
 def gain_text(p: dict, unit: str = "") -> str:
-    """A gain: the mean of the paired per-frame differences with its 95 % interval, bold when the interval excludes
-    0 (``**+5.68 [+5.31, +6.05]**``); a result without per-frame pairs gives the mean with its spread over runs, bold
-    when the result counts it significant (``**+5.68 ± 0.24**``)."""
+    """A gain: the mean of the per-run paired gains with its run-clustered 95 % interval, bold when the interval
+    excludes 0 (``**+5.68 [+5.31, +6.05]**``). Without an interval over runs: a result without per-frame pairs gives
+    the mean with its spread over runs, bold when the result counts it significant, and says so
+    (``**+5.68 ± 0.24** (no per-frame pairs)``); a single run gives its mean alone (``+5.68 (one run)``).
+
+    Raises:
+        ReportError: an interval that is not run-clustered (a summary written before the intervals were: rewrite it
+            with ``python -m bench.realtime --reaggregate --out FILE``).
+    """
     ci = p.get("gain_ci")
     if ci and ci[0] is not None and ci[1] is not None:
+        kind = p.get("gain_interval")
+        if kind == "per-frame" and p.get("gain_runs") == 1:
+            return f"{signed(p['gain'])}{unit} (one run)"
+        if kind != SHOWN_INTERVAL:
+            raise ReportError(f"the gain {p['gain']:+.2f} has a {kind or 'runs × frames pooled'} interval, not a "
+                              f"{SHOWN_INTERVAL} one: rewrite its summary (python -m bench.realtime --reaggregate)")
         return bold(f"{signed(p['gain'])} [{signed(ci[0])}, {signed(ci[1])}]{unit}", ci[0] > 0 or ci[1] < 0)
-    return bold(pm(p["gain"], p.get("gain_std"), sign=True) + unit, bool(p.get("gain_significant")))
+    return (bold(pm(p["gain"], p.get("gain_std"), sign=True) + unit, bool(p.get("gain_significant")))
+            + " (no per-frame pairs)")
 
 
 #: the README's headline rows: scene key of ``realtime.json`` and the row's label
@@ -156,6 +176,33 @@ def headline_table(result: dict) -> str:
         cells += [gain_text(protocol(result, scene, name)) for name in HEADLINE_GAINS]
         cells.append(f"{num(g['psnr'])} / {num(u['psnr'])}")
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+#: docs/realtime.md's table of every protocol: scene key of ``realtime.json`` and the row's label, in page order
+PROTOCOL_SCENES = (("tum_fr1_rpy", "TUM fr1/rpy, find the mouse"), ("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"),
+                   ("synthetic_circle", "synthetic circle, pick up the object"),
+                   ("room0", "Replica room0, pick up the plant"))
+PROTOCOL_ROWS = ("sensor", "keyframes", "novel", "novel-tracked")
+
+
+def protocols_table(result: dict) -> str:
+    """docs/realtime.md's live table: per scene and protocol of :data:`PROTOCOL_ROWS` both modes' ROI PSNR (mean ±
+    std over runs), the gain (:func:`gain_text`) with the spread of the per-run gains, the runs paired, and the
+    full-image PSNR, GaussLite / uniform; the headline's protocol in bold."""
+    head = ["scene, task", "protocol", "uniform", "GaussLite", "gain [95 %, run-clustered] (σ runs)", "runs",
+            "PSNR"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for scene, label in PROTOCOL_SCENES:
+        for i, name in enumerate(PROTOCOL_ROWS):
+            p = protocol(result, scene, name)
+            u, g = p["uniform"], p["gausslite"]
+            spread = f" ({num(p['gain_std'])})" if p.get("gain_std") is not None else ""
+            cells = [label if i == 0 else "", bold(name, name == HEADLINE_PRIMARY),
+                     pm(u["roi_psnr"], u["roi_psnr_std"]), pm(g["roi_psnr"], g["roi_psnr_std"]),
+                     gain_text(p) + spread, str(p.get("gain_runs", p.get("runs"))),
+                     f"{num(g['psnr'])} / {num(u['psnr'])}"]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -305,6 +352,7 @@ class Region:
 REGIONS: Dict[str, Region] = {
     "headline": Region("bench/results/realtime.json", headline_table),
     "glance-realtime": Region("bench/results/realtime.json", glance_realtime),
+    "realtime-protocols": Region("bench/results/realtime.json", protocols_table),
     "glance-sim-synthetic": Region("bench/results/sim_seeds.json", lambda r: sim_glance(r, "synthetic")),
     "glance-sim-room0": Region("bench/results/sim_seeds.json", lambda r: sim_glance(r, "room0")),
     "sim-seeds": Region("bench/results/sim_seeds.json", sim_seeds_table),

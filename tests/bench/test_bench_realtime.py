@@ -58,6 +58,12 @@ def test_twin_reaches_the_same_binding_cap_in_both_modes_and_is_deterministic(tm
                                                            0.08))
         assert r["frames_scored"] == 8 and r["roi_psnr"] is not None
     assert runs["gausslite"]["roi_iters"] > 0 and runs["uniform"]["roi_iters"] == 0
+    for mode, r in runs.items():  # the settings the mission ran with
+        m = r["mission"]
+        assert (m["mode"], m["keyframe_budget_s"], m["max_gaussians"], m["seed"]) == (mode, 0.08, 300, 0), mode
+        assert m["render_threads"] == 2 and m["pose_source"] == "given" and m["budget_clock"] == "work"
+        assert m["mapping_size"] == [64 / m["mapping_downscale"], 48 / m["mapping_downscale"]]
+        assert m["native_size"] == [64, 48] and m["iters_per_keyframe"] == r["iters_per_keyframe"] > 0
     again = rt.twin_one({**job, "mode": "gausslite"})
     assert again["roi_psnr"] == runs["gausslite"]["roi_psnr"]
     assert again["keyframe_iters"] == runs["gausslite"]["keyframe_iters"]
@@ -122,30 +128,67 @@ def test_summary_reports_every_protocol_with_its_paired_gain_and_matching_budget
     assert "| s | 0.5 | tracked | 22.00 ± 0.00 | 24.10 ± 0.10 | 2.10 ± 0.10 (runs)* |" in md
 
 
-def test_the_gain_is_the_mean_of_paired_per_frame_differences_with_its_interval():
-    """Runs with per-frame figures: GaussLite − uniform pairs frame by frame within each seed, pooled over runs ×
-    frames with a t-interval; the spread of the per-run gains stays beside it."""
-    from gausslite.stats import paired_gain
+RUN_SHIFT = (0.0, 0.3, -0.3)  # each run's own gain offset: 1.0, 1.3 and 0.7 dB
 
-    frames = {i: 0.3 * (i % 5) for i in range(20)}  # the frames' own spread, shared by both maps
+
+def _per_frame_runs(frames: dict, resolution=lambda mode, run: 1.0) -> list:
+    """Three runs of both modes with per-frame figures: GaussLite 1 dB + the run's shift above uniform on every
+    frame, ±0.4 dB of frame noise that cancels within each run; ``resolution(mode, run)``: its mapping downscale."""
     runs = []
     for run in range(3):
         jitter = {i: d + (0.4 if (i + run) % 2 else -0.4) for i, d in frames.items()}
         for r in (_proto_run("uniform", 0.5, run, 21.0, {"sensor": 21.0, "novel": 21.0}, frames),
-                  _proto_run("gausslite", 0.5, run, 22.0, {"sensor": 22.0, "novel": 22.0}, jitter)):
+                  _proto_run("gausslite", 0.5, run, 22.0 + RUN_SHIFT[run],
+                             {"sensor": 22.0 + RUN_SHIFT[run], "novel": 22.0 + RUN_SHIFT[run]}, jitter)):
             r["protocols"]["novel"]["pose"] = "predicted"  # as score_live_map writes it
+            r["mapping_downscale"] = resolution(r["mode"], run)
             runs.append(r)
-    s = rt.summarise(runs, "s", [0.5], 100)
+    return runs
+
+
+def test_the_gain_pairs_frames_within_each_run_with_a_run_clustered_interval():
+    """Runs with per-frame figures: GaussLite − uniform pairs frame by frame within each seed; the interval is the
+    t-interval over the three per-run gains (1.0, 1.3, 0.7 dB), not over the 60 frame pairs pooled, which the
+    frames' ±0.4 dB noise would make look far more precise than three runs are."""
+    from scipy import stats
+
+    frames = {i: 0.3 * (i % 5) for i in range(20)}  # the frames' own spread, shared by both maps
+    s = rt.summarise(_per_frame_runs(frames), "s", [0.5], 100)
     blk = s["budgets"]["0.5"]
     p = blk["protocols"]["novel"]
-    want = paired_gain([{i: 22.0 + v for i, v in (
-        (i, d + (0.4 if (i + run) % 2 else -0.4)) for i, d in frames.items())} for run in range(3)],
-        [{i: 21.0 + d for i, d in frames.items()} for _ in range(3)])
+    lo, hi = stats.t.interval(0.95, 2, loc=1.0, scale=stats.sem([1.0, 1.3, 0.7]))
     assert p["gain"] == pytest.approx(1.0) and p["gain_frames"] == 60 and p["gain_pairs"] == "frames"
-    assert p["gain_ci"] == [pytest.approx(want["ci_low"]), pytest.approx(want["ci_high"])]
-    assert p["gain_significant"] and blk["gain"] == pytest.approx(1.0) and blk["gain_ci"][0] > 0.8
+    assert p["gain_interval"] == "run-clustered" and p["gain_runs"] == 3
+    assert p["gain_per_run"] == [pytest.approx(1.0), pytest.approx(1.3), pytest.approx(0.7)]
+    assert p["gain_ci"] == [pytest.approx(lo), pytest.approx(hi)] and p["gain_std"] == pytest.approx(0.3)
+    assert p["gain_significant"] and blk["gain"] == pytest.approx(1.0) and blk["gain_interval"] == "run-clustered"
+    assert hi - lo > 1.4  # what three runs support; pooled over 60 frame pairs it was a quarter of that
     md = rt.protocol_table({"scenes": {"s": s}})
-    assert f"| s | 0.5 | novel | 21.00 ± 0.00 | 22.00 ± 0.00 | +1.00 [{want['ci_low']:+.2f}, {want['ci_high']:+.2f}]*" in md
+    assert f"| s | 0.5 | novel | 21.00 ± 0.00 | 22.00 ± 0.30 | +1.00 [{lo:+.2f}, {hi:+.2f}]* (σ runs 0.30)" in md
+    assert "run-clustered" in md
+
+
+def test_runs_mapped_at_different_resolutions_are_never_paired(caplog):
+    """Each map is scored at its own mapping resolution, so a GaussLite run at half the resolution of its uniform
+    twin would measure the resolution: that run is left out of every gain, with its reason logged and recorded."""
+    frames = {i: 0.3 * (i % 5) for i in range(20)}
+    runs = _per_frame_runs(frames, lambda mode, run: 2.0 if (mode, run) == ("gausslite", 1) else 1.0)
+    with caplog.at_level("WARNING", logger="bench.realtime"):
+        blk = rt.summarise(runs, "s", [0.5], 100)["budgets"]["0.5"]
+    p = blk["protocols"]["novel"]
+    assert [u["run"] for u in p["unpaired_runs"]] == [1] and "different resolutions" in p["unpaired_runs"][0]["reason"]
+    assert [u["run"] for u in blk["unpaired_runs"]] == [1]
+    assert p["gain_runs"] == 2 and p["gain_frames"] == 40 and p["gain_per_run"] == [pytest.approx(1.0),
+                                                                                    pytest.approx(0.7)]
+    assert p["gausslite"]["runs"] == 3  # each mode's own means keep every run
+    assert "run 1 not paired" in caplog.text
+    # the same factor but a different mapped size (or a mid-mission change) is a different resolution too
+    g, u = {0: {"mapping_downscale": 2.0, "mission": {"mapping_size": [320, 240], "resolution_changes": 0}}}, \
+        {0: {"mapping_downscale": 2.0, "mission": {"mapping_size": [320, 240], "resolution_changes": 1}}}
+    assert rt.pairable_runs(g, u, [0])[0] == []
+    u[0]["mission"]["resolution_changes"] = 0
+    assert rt.pairable_runs(g, u, [0]) == ([0], [])
+    assert rt.pairable_runs(g, {0: {}}, [0])[0] == []  # no factor recorded: the scene's own resolution, 1
 
 
 def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp_path):
@@ -242,6 +285,38 @@ def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path
         assert scored["protocols"][p]["roi_psnr"] == pytest.approx(inline["protocols"][p]["roi_psnr"], abs=1e-4), p
 
 
+def test_a_saved_map_whose_keyframes_include_a_withheld_frame_is_not_scored_as_novel(tmp_path):
+    """``--score-only`` rebuilds each saved map from its state, which holds no per-keyframe statistics: the leak
+    guard checks the keyframe ids saved with the map against the withheld frames, and refuses to score a map that
+    trained on one."""
+    import torch
+
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=7, width=64, height=48, trajectory="circle")
+    job = {"scene": "synthetic_circle", "spec": rt.SCENES["synthetic_circle"], "path": str(tmp_path / "scene" / "agent_a"),
+           "task": "synth-pick-object", "mode": "gausslite", "budget": 0.08, "run": 0, "cap": 300, "clock": "dataset",
+           "overrides": ["mapper.seeding.seeds_per_frame=300", "mapper.budget_clock=work"],
+           "protocols": ("sensor", "novel"), "novel_every": 3, "track_iters": 2, "track_stride": 4,
+           "defer_dir": str(tmp_path / "maps")}
+    ds, ann, task, agent, fp = rt.start_mission(job, 1.0)
+    try:
+        train = rt.training_frames(job, ds)
+        for i in range(0, len(train), 2):
+            agent.mapper.map_frame(train[i], agent.relevance(train[i]), time_budget_s=0.08)
+        saved = rt._result(job, agent.mapper, ds, ann, task, fp)
+    finally:
+        agent.close()
+    withheld = rt.novel_ids(job, ds)
+    state = torch.load(saved["state_path"], weights_only=False)
+    assert state["keyframe_ids"] and not set(withheld) & set(state["keyframe_ids"])
+    rt.check_withheld(withheld, state["keyframe_ids"])  # the true record passes
+    state["keyframe_ids"] = sorted([*state["keyframe_ids"], withheld[0]])  # a map that trained on a withheld frame
+    torch.save(state, saved["state_path"])
+    with pytest.raises(ValueError, match=f"withheld frames \\[{withheld[0]}\\]"):
+        rt.score_deferred(saved)
+
+
 def test_live_missions_back_to_back_then_scored_apart(tmp_path):
     """``--missions-only`` runs the live missions and saves their maps unscored; ``--score-only`` scores them (no
     new mission) and writes the usual layout over every budget run."""
@@ -326,6 +401,8 @@ def test_live_missions_with_poses_from_odometry_are_scored_at_the_estimates(tmp_
     assert res["settings"]["pose_source"] == "odometry"
     for r in res["runs"]:
         assert r["pose_source"] == "odometry" and r["frames_estimated"] == 14 and r["withheld"] == 3
+        assert r["mission"]["pose_source"] == "odometry" and r["mission"]["mapping_size"] == [96, 72]
+        assert r["mission"]["keyframe_budget_s"] == 0.1 and r["mission"]["rate"] == 5.0
         assert r["status"]["frames_received"] == 11  # the withheld frames were tracked, never sent to the mapper
     blk = res["scenes"]["synth-pick-object"]["budgets"]["0.1"]["protocols"]
     assert blk["novel"]["gausslite"]["frames_scored"] == 3 and blk["novel"]["gain"] is not None

@@ -198,7 +198,8 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
             for k in (*team.FUSED_KEYS, "for_robot"):
                 row[f"{k}_per_frame"] = {str(i): 20.0 + i - 1.0 + (0.1 if (i + r) % 2 else -0.1) for i in range(8)}
     g = summarise(runs)["synthetic"]["agents"]["agent_a"]["protocols"]["novel"]["vote_minus_own_gain"]
-    assert g["n"] == 16 and g["gain"] == pytest.approx(-1.0) and g["ci_low"] < -1.0 < g["ci_high"]
+    assert g["n"] == 16 and g["gain"] == pytest.approx(-1.0) and g["ci_low"] <= -1.0 <= g["ci_high"]
+    assert g["interval"] == "run-clustered" and g["runs"] == 2  # both runs' gains are −1.0: a zero-width interval
     assert "[" in team.protocol_table({"teams": summarise(runs)})
 
 

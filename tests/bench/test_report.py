@@ -15,7 +15,8 @@ import bench.report as report
 EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md", "test-minutes"),
             ("docs/results.md", "glance-realtime"), ("docs/results.md", "glance-sim-synthetic"),
             ("docs/results.md", "glance-sim-room0"), ("docs/results.md", "sim-seeds"),
-            ("docs/results.md", "sim-seconds"), ("docs/results.md", "first-run"), ("docs/results.md", "slowest-tests")}
+            ("docs/results.md", "sim-seconds"), ("docs/results.md", "first-run"), ("docs/results.md", "slowest-tests"),
+            ("docs/realtime.md", "realtime-protocols")}
 
 
 def page(name: str) -> str:
@@ -82,7 +83,8 @@ def test_the_headline_reads_protocols_by_name_in_old_and_new_results():
     assert tables[0] == tables[1]
     row = tables[0].splitlines()[2].split(" | ")
     # the headline's ROI PSNR is novel's (the predicted pose); novel-tracked's gain stands beside it
-    assert row[1:5] == ["30.00 ± 0.10", "31.00 ± 0.20", "+1.00 ± 0.30", "**+2.50 ± 0.30**"]
+    assert row[1:5] == ["30.00 ± 0.10", "31.00 ± 0.20", "+1.00 ± 0.30 (no per-frame pairs)",
+                        "**+2.50 ± 0.30** (no per-frame pairs)"]
     assert "`novel`" in tables[0].splitlines()[0] and "`novel-tracked`" in tables[0].splitlines()[0]
     # an old result's novel was scored at a tracked pose: it is novel-tracked, and gives no headline
     assert report.protocol(old, "room0", "novel-tracked")["gain"] == 2.5
@@ -90,11 +92,37 @@ def test_the_headline_reads_protocols_by_name_in_old_and_new_results():
         report.headline_table(old)
 
 
-def test_a_gain_with_per_frame_pairs_shows_its_interval_and_is_bold_when_it_excludes_zero():
-    assert report.gain_text({"gain": 1.2, "gain_ci": [0.4, 2.0], "gain_std": 0.9}) == "**+1.20 [+0.40, +2.00]**"
-    assert report.gain_text({"gain": 0.3, "gain_ci": [-0.4, 1.0]}) == "+0.30 [−0.40, +1.00]"
+def test_a_gain_shows_its_run_clustered_interval_bold_when_it_excludes_zero_and_no_other():
+    rc = {"gain_interval": "run-clustered", "gain_runs": 6}
+    assert report.gain_text({"gain": 1.2, "gain_ci": [0.4, 2.0], "gain_std": 0.9, **rc}) == "**+1.20 [+0.40, +2.00]**"
+    assert report.gain_text({"gain": 0.3, "gain_ci": [-0.4, 1.0], **rc}) == "+0.30 [−0.40, +1.00]"
+    # without per-frame figures: the spread over runs, and the page says so
     assert report.gain_text({"gain": 0.3, "gain_ci": None, "gain_std": 0.1, "gain_significant": True}) == \
-        "**+0.30 ± 0.10**"
+        "**+0.30 ± 0.10** (no per-frame pairs)"
+    # one run: its per-frame interval is not shown as if it were over runs
+    assert report.gain_text({"gain": 0.3, "gain_ci": [0.1, 0.5], "gain_interval": "per-frame", "gain_runs": 1}) == \
+        "+0.30 (one run)"
+    # an interval pooled over runs × frames (a summary written before the run-clustered one) is refused
+    with pytest.raises(report.ReportError, match="run-clustered"):
+        report.gain_text({"gain": 1.2, "gain_ci": [0.9, 1.5], "gain_pairs": "frames"})
+
+
+def test_the_pages_show_the_run_clustered_interval_of_the_committed_runs():
+    """The README's find-mouse gain under ``novel`` is the t-interval over its six per-run gains, recomputed here
+    from the runs the result file holds (not read from its summary)."""
+    from scipy import stats
+
+    result = json.loads((report.RESULTS / "realtime.json").read_text())
+    runs = [r for r in result["runs"] if r["scene"] == "tum_fr1_rpy" and r["budget"] == 0.5]
+    by = {m: {r["run"]: r["protocols"]["novel"]["roi_psnr_per_frame"] for r in runs if r["mode"] == m}
+          for m in ("uniform", "gausslite")}
+    per_run = [sum(g[k] - u[k] for k in g if k in u) / len([k for k in g if k in u])
+               for g, u in ((by["gausslite"][i], by["uniform"][i]) for i in sorted(by["uniform"]))]
+    assert len(per_run) == 6
+    lo, hi = stats.t.interval(0.95, 5, loc=sum(per_run) / 6, scale=stats.sem(per_run))
+    cell = report.gain_text(report.protocol(result, "tum_fr1_rpy", "novel"))
+    assert f"[{report.signed(lo)}, {report.signed(hi)}]" in cell
+    assert cell in report.headline_table(result) and cell in report.protocols_table(result)
 
 
 def test_the_sim_figures_are_the_mean_of_both_agents():
