@@ -5,13 +5,21 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional
 
 if TYPE_CHECKING:  # the command line starts without loading the library
     from gausslite.mapping.config import MapperConfig
+    from gausslite.pipeline import TimeBudget
 
 log = logging.getLogger("gausslite.map")
+
+#: ``gausslite map``'s default total time budget, minutes: a 250-frame 640x480 sequence without poses (odometry
+#: included) maps and scores in about this long on a 2-core CPU (docs/mapper.md, "Running it")
+DEFAULT_TIME_BUDGET_MIN = 4.0
+#: ``--time-budget`` values that turn the budget off (the fixed schedule: every frame, ``iters_per_frame`` iterations)
+NO_BUDGET = ("none", "off")
 
 
 def add_mapping_args(p: argparse.ArgumentParser) -> None:
@@ -188,7 +196,9 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
                       progress=not getattr(args, "no_progress", False), **kw)
     used = "odometry" if hasattr(ds, "reference_poses") else "given"
     if used == "odometry":
+        t_track = time.perf_counter()
         ds.track()  # before mapping: a frame that cannot be read, or Open3D missing a library, fails here
+        args.odometry_s = time.perf_counter() - t_track  # recorded in metrics.json by ``map``
     print(f"poses: {used}" + (" (the dataset has none)" if used == "odometry" and source == "auto" else ""),
           flush=True)
     if used == "odometry" and not profile.mapper.get("pose", {}).get("refine"):
@@ -282,7 +292,83 @@ def ground_task(args: argparse.Namespace, ds):
     return fn
 
 
+def parse_time_budget(text: str):
+    """``--time-budget``'s value: minutes (a float > 0), or ``"none"`` for ``none``/``off`` (the fixed schedule).
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    if str(text).strip().lower() in NO_BUDGET:
+        return "none"
+    try:
+        minutes = float(text)
+    except ValueError:
+        minutes = float("nan")
+    if not minutes > 0 or minutes == float("inf"):
+        raise argparse.ArgumentTypeError(f"--time-budget takes minutes > 0 or 'none', got {text!r}")
+    return minutes
+
+
+def parse_withhold(text: str) -> int:
+    """``--withhold``'s value: an integer ≥ 2.
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 2:
+        raise argparse.ArgumentTypeError(f"--withhold takes an integer >= 2 (every k-th frame), got {text!r}")
+    return k
+
+
+def time_budget_from_args(args: argparse.Namespace, cfg: MapperConfig, spent_s: float) -> Optional[TimeBudget]:
+    """The total time budget of ``gausslite map`` (:class:`gausslite.pipeline.TimeBudget`), or None for the fixed
+    schedule, with the live agent's keyframe rule and resolution governor (the defaults of ``AgentConfig``:
+    ``keyframe_*``, ``agent.resolution``; the work model of ``cfg.work_cost``).
+
+    The budget is ``--time-budget`` minutes, by default :data:`DEFAULT_TIME_BUDGET_MIN`; the fixed schedule is
+    ``--time-budget none``, or, when ``--time-budget`` is not given, an iteration count or keyframe budget set by
+    ``--iters``, ``--config`` or ``--set`` (``iters_per_frame``, ``keyframe_budget_s``).
+
+    Args:
+        args: the parsed arguments (``time_budget``: minutes, ``"none"`` for the fixed schedule, or None/absent when
+            not given).
+        cfg: the mapper config. spent_s: seconds the command spent before mapping (loading, odometry).
+    Raises:
+        ValueError: ``--time-budget`` with ``mapper.keyframe_budget_s`` set (two budgets).
+    """
+    # lazy: the command line starts without loading the library
+    from gausslite.mapping.budget import WorkCost
+    from gausslite.mapping.keyframes import KeyframeRule
+    from gausslite.mapping.resolution import ResolutionGovernor
+    from gausslite.mission.config import AgentConfig
+    from gausslite.pipeline import TimeBudget
+
+    given = getattr(args, "time_budget", None)
+    if given == "none":
+        return None
+    fixed = {"iters_per_frame", "keyframe_budget_s"} & cfg.model_fields_set
+    if given is None and fixed:
+        log.info("fixed schedule (%s set): every frame mapped at its size; --time-budget MIN fits a budget instead",
+                 " and ".join(sorted(fixed)))
+        return None
+    if cfg.keyframe_budget_s is not None:
+        raise ValueError("--time-budget and mapper.keyframe_budget_s both set a budget: give one (the total budget "
+                         "sets each keyframe's)")
+    minutes = DEFAULT_TIME_BUDGET_MIN if given is None else float(given)
+    agent = AgentConfig()
+    rc = agent.resolution
+    governor = ResolutionGovernor(rc.target_iters, rc.max_downscale, rc.pinned, rc.adapt_after,
+                                  WorkCost(**cfg.work_cost.model_dump()), rc.min_width, rc.tolerance)
+    rule = KeyframeRule(agent.keyframe_translation_m, agent.keyframe_rotation_deg, agent.keyframe_max_interval_s)
+    return TimeBudget(60.0 * minutes, max(0.0, spent_s), rule, governor)
+
+
 def _handler(args: argparse.Namespace) -> int:
+    t_start = time.perf_counter()  # the time budget counts from here: loading and odometry are part of it
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -315,11 +401,24 @@ def _handler(args: argparse.Namespace) -> int:
     # lazy: the command line starts without loading the library
     from gausslite.pipeline import run_mapping  # torch + warp: imported once the inputs are valid
 
+    try:
+        budget = time_budget_from_args(args, cfg, time.perf_counter() - t_start)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
     log.info("mapping %s (%d frames, %dx%d) mode=%s task=%s", ds.path, len(ds),
              ds.intrinsics.width, ds.intrinsics.height, cfg.mode, args.task_id)
+    print(f"schedule: time budget {budget.total_s / 60:g} min ({budget.spent_s:.0f} s spent loading), keyframes and "
+          f"resolution as the live agent picks them" if budget is not None else
+          f"schedule: fixed, {cfg.iters_per_frame} iterations on every frame at its size (no time budget)", flush=True)
     _, metrics = run_mapping(ds, cfg, task_id=args.task_id, relevance_fn=relevance, stride=args.stride, out_dir=out,
-                             progress=not args.no_progress)
+                             progress=not args.no_progress, withhold_every=args.withhold, time_budget=budget)
+    if getattr(args, "odometry_s", None) is not None:  # the tracking before mapping (part of a time budget)
+        metrics["odometry_s"] = args.odometry_s
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     brief = {k: v for k, v in metrics.items() if k != "per_frame"}
+    if "time_budget" in brief:
+        brief["time_budget"] = {k: v for k, v in brief["time_budget"].items() if k != "keyframe_ids"}
     print(json.dumps(brief, indent=2))
     print(f"trajectory: {write_trajectory(ds, out)}", flush=True)
     return 0
@@ -340,5 +439,14 @@ def register(sub) -> None:
     g.add_argument("--onnx-detector", default=None, metavar="PATH", help="Grounding-DINO-style detector .onnx")
     g.add_argument("--onnx-vocab", default=None, metavar="PATH", help="the detector's vocab.txt")
     g.add_argument("--onnx-segmenter", default=None, metavar="PATH", help="FastSAM / YOLOv8-seg segmenter .onnx")
+    p.add_argument("--time-budget", dest="time_budget", type=parse_time_budget, default=None, metavar="MIN",
+                   help=f"total time budget in minutes, loading, odometry and scoring included (default "
+                        f"{DEFAULT_TIME_BUDGET_MIN:g}): keyframes and the mapping resolution are picked as the live "
+                        f"agent picks them and each keyframe gets its share, at most iters_per_frame iterations' "
+                        f"worth; 'none' maps every frame with iters_per_frame iterations at its size (the fixed "
+                        f"schedule, also the default when --iters, iters_per_frame or keyframe_budget_s is set)")
+    p.add_argument("--withhold", type=parse_withhold, default=None, metavar="K",
+                   help="withhold every K-th frame (from frame K/2) from the mapper and score it as a held-out view "
+                        "(heldout_* in metrics.json)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=_handler)
