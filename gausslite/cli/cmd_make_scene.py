@@ -17,7 +17,8 @@ def _handler(args: argparse.Namespace) -> int:
 
     try:
         summary = make_scene(args.out, seed=args.seed, width=args.width, height=args.height,
-                             frames=args.frames, progress=not args.quiet, trajectory=args.trajectory)
+                             frames=args.frames, progress=not args.quiet, trajectory=args.trajectory,
+                             sensor_noise=args.sensor_noise, fps=args.fps)
     except ValueError as e:
         log.error("make-scene: %s", e)
         return 2
@@ -41,8 +42,15 @@ def register(subparsers) -> None:
     p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="image height in pixels (default 240)")
     p.add_argument("--frames", type=int, default=30, help="frames per agent (default 30)")
-    p.add_argument("--trajectory", choices=["arcs", "circle"], default="arcs",
+    p.add_argument("--trajectory", choices=["arcs", "circle", "walk"], default="arcs",
                    help="arcs: two arcs in front of the desk (default); circle: both robots once around the "
-                        "room, for long missions (e.g. --frames 600, mapped with --stride 2)")
+                        "room, for long missions (e.g. --frames 600, mapped with --stride 2); walk: a 7 m hand-held "
+                        "walk, two loops in front of the desk (--frames 525 at 30 fps = 0.40 m/s)")
+    p.add_argument("--sensor-noise", dest="sensor_noise", choices=["none", "realistic"], default="none",
+                   help="none: exact renders (default); realistic: Kinect-like depth noise and holes, motion blur, "
+                        "rolling shutter, exposure changes and colour noise (seeded by --seed)")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="frame rate of the sequence: the walk's clock and the sensor model's (default 30, the "
+                        "rate the Replica loader replays it at)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_handler)

@@ -10,7 +10,7 @@ shadows; textures are filtered over each pixel's footprint (see :mod:`.textures`
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -35,11 +35,14 @@ class RenderResult:
         depth: (H, W) float64 depth in metres along the camera z axis (> 0 everywhere: the room is closed).
         ids: (H, W) int16 id of the visible surface: object id (>= 1) or a negative room surface id
             (``FLOOR_ID``, ``CEILING_ID``, ``WALL_*_ID`` from :mod:`.scene`).
+        normal: (H, W, 3) float64 unit world-frame normal of the visible surface (facing the camera's side for the
+            room shell, outward for objects), or None.
     """
 
     rgb: np.ndarray
     depth: np.ndarray
     ids: np.ndarray
+    normal: Optional[np.ndarray] = None
 
 
 def camera_rays(intr: Intrinsics, c2w: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -245,7 +248,8 @@ def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
         c2w: (4, 4) float64 camera-to-world pose (metres, OpenCV camera axes).
 
     Returns:
-        :class:`RenderResult` with rgb (H, W, 3) uint8, depth (H, W) float64 metres, ids (H, W) int16.
+        :class:`RenderResult` with rgb (H, W, 3) uint8, depth (H, W) float64 metres, ids (H, W) int16 and the
+        surface normals (H, W, 3) float64.
 
     Raises:
         ValueError: ``c2w`` is not a rigid 4x4 transform, or the camera is outside the room.
@@ -288,7 +292,8 @@ def render(scene: Scene, intr: Intrinsics, c2w: np.ndarray) -> RenderResult:
     shade = scene.ambient + (1.0 - scene.ambient) * np.clip(ndotl, 0.0, 1.0)
     rgb = np.clip(np.rint(albedo * shade[:, None] * 255.0), 0, 255).astype(np.uint8)
     H, W = intr.height, intr.width
-    return RenderResult(rgb=rgb.reshape(H, W, 3), depth=t_best.reshape(H, W), ids=ids.reshape(H, W))
+    return RenderResult(rgb=rgb.reshape(H, W, 3), depth=t_best.reshape(H, W), ids=ids.reshape(H, W),
+                        normal=normal.reshape(H, W, 3))
 
 
 __all__ = ["RenderResult", "camera_rays", "render"]

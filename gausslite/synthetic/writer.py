@@ -5,13 +5,15 @@ Output of :func:`make_scene` (``DIR`` = ``out_dir``)::
     DIR/cam_params.json            {"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale": 6553.5}}
     DIR/objects.json               gausslite-objects/1, up_axis "+z"
     DIR/tasks.json                 gausslite-tasks/1
-    DIR/scene.json                 summary: seed, sizes, frames, generator version, ROI fractions
+    DIR/scene.json                 summary: seed, sizes, frames, generator version, ROI fractions (and, for the
+                                   walk or with sensor noise, the frame rate, path lengths and sensor model)
     DIR/agent_a/traj.txt           one row-major 4x4 camera-to-world pose per line
     DIR/agent_a/results/frame000000.jpg   colour (JPEG quality 97)
     DIR/agent_a/results/depth000000.png   uint16 depth, metres = value / 6553.5
     DIR/agent_b/...                likewise
 
-Everything written is a deterministic function of ``(seed, width, height, frames)``.
+Everything written is a deterministic function of the arguments ``(seed, width, height, frames, trajectory,
+sensor_noise, fps)``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Dict, Sequence, Union
+from typing import Dict, Optional, Sequence, Union
 
 import cv2
 import numpy as np
@@ -29,7 +31,8 @@ from tqdm import tqdm
 from gausslite.camera import Intrinsics, backproject
 from gausslite.synthetic.raycast import render
 from gausslite.synthetic.scene import GENERATOR_VERSION, build_default_scene
-from gausslite.synthetic.trajectories import AGENTS, make_trajectories
+from gausslite.synthetic.sensor import SensorErrorModel, exposure_track, render_with_errors, sensor_model
+from gausslite.synthetic.trajectories import AGENTS, WALK_FPS, make_trajectories
 
 log = logging.getLogger(__name__)
 
@@ -84,86 +87,51 @@ def _dump_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, height: int = 240,
-               frames: int = 30, progress: bool = True, trajectory: str = "arcs") -> Dict:
-    """Generate, render and write the default synthetic two-robot scene.
+def _write_agent(out: Path, agent: str, poses: np.ndarray, scene, intr: Intrinsics, by_id: dict, bar,
+                 noise: Optional[SensorErrorModel], rng: Optional[np.random.Generator], fps: float):
+    """Render and write one agent's frames and ``traj.txt``; returns ``(roi fraction sum, frames with ROI)``, each
+    task id -> float / int, over the written depth."""
+    res_dir = out / agent / "results"
+    res_dir.mkdir(parents=True, exist_ok=True)
+    for stale in list(res_dir.glob("frame??????.jpg")) + list(res_dir.glob("depth??????.png")):
+        stale.unlink()
+    np.savetxt(out / agent / "traj.txt", poses.reshape(len(poses), 16), fmt="%.18e")
+    if noise is not None:
+        gain, offset = exposure_track(rng, len(poses), fps, noise)
+    roi_sum = {t.id: 0.0 for t in scene.tasks}
+    roi_hit = {t.id: 0 for t in scene.tasks}
+    for i, c2w in enumerate(poses):
+        if noise is None:
+            r = render(scene, intr, c2w)
+        else:
+            r = render_with_errors(scene, intr, poses, i, fps, noise, rng, gain[i], float(offset[i]))
+        dq = quantize_depth(r.depth)
+        if not cv2.imwrite(str(res_dir / f"frame{i:06d}.jpg"), r.rgb[:, :, ::-1],
+                           [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+            raise OSError(f"could not write {res_dir / f'frame{i:06d}.jpg'}")
+        if not cv2.imwrite(str(res_dir / f"depth{i:06d}.png"), dq):
+            raise OSError(f"could not write {res_dir / f'depth{i:06d}.png'}")
+        dm = dq.astype(np.float64) / DEPTH_SCALE
+        pts = backproject(dm, intr, c2w)
+        valid = dm > 0
+        masks = {oid: mask_rule(pts, valid, o) for oid, o in by_id.items()}
+        for t in scene.tasks:
+            m = np.zeros(dm.shape, dtype=bool)
+            for oid in t.roi_object_ids:
+                m |= masks[oid]
+            frac = float(m.mean())
+            roi_sum[t.id] += frac
+            roi_hit[t.id] += int(frac > 0)
+        bar.update(1)
+    return roi_sum, roi_hit
 
-    Args:
-        out_dir: output folder (created; previously written frames there are replaced).
-        seed: scene / trajectory seed; equal arguments give byte-identical files.
-        width, height: image size in pixels (>= 16 x 12).
-        frames: frames per agent (>= 2).
-        progress: show a tqdm progress bar over the rendered frames.
-        trajectory: ``"arcs"`` (the default two-robot arcs) or ``"circle"`` (both robots once around
-            the room: the long-mission scene, e.g. ``frames=600`` mapped with stride 2).
 
-    Returns:
-        Summary dict: ``out_dir``, ``cam_params``, ``objects``, ``tasks``, ``scene_json`` (paths as
-        str), ``agents`` (name -> ``{"dir", "traj", "frames"}``), ``tasks_text`` (task id -> text),
-        ``roi_fraction`` (agent -> task id -> mean fraction of pixels in the task's ROI mask),
-        ``roi_nonempty`` (agent -> task id -> fraction of frames whose ROI mask is non-empty),
-        ``num_objects`` and ``seconds`` (wall time; the only non-deterministic entry, not written).
-
-    Raises:
-        ValueError: invalid size or frame count.
-    """
-    t0 = time.perf_counter()
-    if int(frames) < 2:
-        raise ValueError(f"frames must be >= 2, got {frames}")
-    intr = default_intrinsics(width, height)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    scene = build_default_scene(seed)
-    trajs = make_trajectories(frames, seed, trajectory)
-    objects_json = scene.objects_json()
-    tasks_json = scene.tasks_json()
-    by_id = {o["id"]: o for o in objects_json["objects"]}
-
-    _dump_json(out / "cam_params.json", {"camera": {
-        "w": intr.width, "h": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-        "scale": DEPTH_SCALE}})
-    _dump_json(out / "objects.json", objects_json)
-    _dump_json(out / "tasks.json", tasks_json)
-
-    roi_sum = {a: {t.id: 0.0 for t in scene.tasks} for a in AGENTS}
-    roi_hit = {a: {t.id: 0 for t in scene.tasks} for a in AGENTS}
-    agents_out = {}
-    bar = tqdm(total=len(AGENTS) * int(frames), desc="make-scene", unit="frame", disable=not progress)
-    try:
-        for agent in AGENTS:
-            res_dir = out / agent / "results"
-            res_dir.mkdir(parents=True, exist_ok=True)
-            for stale in list(res_dir.glob("frame??????.jpg")) + list(res_dir.glob("depth??????.png")):
-                stale.unlink()
-            poses = trajs[agent]
-            np.savetxt(out / agent / "traj.txt", poses.reshape(len(poses), 16), fmt="%.18e")
-            for i, c2w in enumerate(poses):
-                r = render(scene, intr, c2w)
-                dq = quantize_depth(r.depth)
-                if not cv2.imwrite(str(res_dir / f"frame{i:06d}.jpg"), r.rgb[:, :, ::-1],
-                                   [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
-                    raise OSError(f"could not write {res_dir / f'frame{i:06d}.jpg'}")
-                if not cv2.imwrite(str(res_dir / f"depth{i:06d}.png"), dq):
-                    raise OSError(f"could not write {res_dir / f'depth{i:06d}.png'}")
-                dm = dq.astype(np.float64) / DEPTH_SCALE
-                pts = backproject(dm, intr, c2w)
-                valid = dm > 0
-                masks = {oid: mask_rule(pts, valid, o) for oid, o in by_id.items()}
-                for t in scene.tasks:
-                    m = np.zeros(dm.shape, dtype=bool)
-                    for oid in t.roi_object_ids:
-                        m |= masks[oid]
-                    frac = float(m.mean())
-                    roi_sum[agent][t.id] += frac
-                    roi_hit[agent][t.id] += int(frac > 0)
-                bar.update(1)
-            agents_out[agent] = {"dir": str(out / agent), "traj": str(out / agent / "traj.txt"), "frames": int(frames)}
-    finally:
-        bar.close()
-
-    roi_fraction = {a: {k: round(v / frames, 6) for k, v in d.items()} for a, d in roi_sum.items()}
-    roi_nonempty = {a: {k: round(v / frames, 6) for k, v in d.items()} for a, d in roi_hit.items()}
-    _dump_json(out / "scene.json", {
+def _scene_json(seed: int, intr: Intrinsics, frames: int, trajectory: str, scene, roi_fraction: dict,
+                roi_nonempty: dict, noise: Optional[SensorErrorModel], sensor_noise: str, fps: float,
+                trajs: Dict[str, np.ndarray]) -> dict:
+    """``scene.json``'s content; the walk and the sensor model add ``fps``, ``sensor_noise`` (with the model's
+    parameters) and each agent's path length, the default scenes' content is unchanged."""
+    doc = {
         "format": "gausslite-synthetic-scene/1",
         "generator_version": GENERATOR_VERSION,
         "seed": int(seed), "width": intr.width, "height": intr.height, "frames_per_agent": int(frames),
@@ -174,10 +142,84 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
         "tasks": {t.id: t.text for t in scene.tasks},
         "roi_fraction_mean": roi_fraction,
         "roi_nonempty_frame_fraction": roi_nonempty,
-    })
+    }
+    if trajectory == "walk" or noise is not None:
+        lengths = {a: round(float(np.linalg.norm(np.diff(p[:, :3, 3], axis=0), axis=1).sum()), 4)
+                   for a, p in trajs.items()}
+        doc.update({"fps": float(fps), "path_length_m": lengths,
+                    "mean_speed_m_s": {a: round(v * fps / max(int(frames) - 1, 1), 4) for a, v in lengths.items()},
+                    "sensor_noise": sensor_noise, "sensor_model": noise.to_json() if noise is not None else None})
+    return doc
+
+
+def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, height: int = 240,
+               frames: int = 30, progress: bool = True, trajectory: str = "arcs", sensor_noise: str = "none",
+               fps: float = WALK_FPS) -> Dict:
+    """Generate, render and write the default synthetic two-robot scene.
+
+    Args:
+        out_dir: output folder (created; previously written frames there are replaced).
+        seed: scene / trajectory / sensor-noise seed; equal arguments give byte-identical files.
+        width, height: image size in pixels (>= 16 x 12).
+        frames: frames per agent (>= 2).
+        progress: show a tqdm progress bar over the rendered frames.
+        trajectory: ``"arcs"`` (the default two-robot arcs), ``"circle"`` (both robots once around
+            the room: the long-mission scene, e.g. ``frames=600`` mapped with stride 2) or ``"walk"`` (a 7 m
+            hand-held walk, two loops in front of the desk: :func:`gausslite.synthetic.make_trajectories`;
+            ``frames=525`` at 30 fps walks at 0.40 m/s).
+        sensor_noise: ``"none"`` (exact renders, the default) or ``"realistic"`` (Kinect-like depth noise and holes,
+            motion blur, rolling shutter, exposure changes and colour noise: :mod:`gausslite.synthetic.sensor`).
+        fps: frame rate of the sequence (frames per second): the walk's clock and the sensor model's (exposure and
+            readout times). The Replica loader replays at 30 fps unless told otherwise (``fps=`` of
+            :class:`gausslite.datasets.replica.ReplicaDataset`).
+
+    Returns:
+        Summary dict: ``out_dir``, ``cam_params``, ``objects``, ``tasks``, ``scene_json`` (paths as
+        str), ``agents`` (name -> ``{"dir", "traj", "frames"}``), ``tasks_text`` (task id -> text),
+        ``roi_fraction`` (agent -> task id -> mean fraction of pixels in the task's ROI mask),
+        ``roi_nonempty`` (agent -> task id -> fraction of frames whose ROI mask is non-empty),
+        ``num_objects`` and ``seconds`` (wall time; the only non-deterministic entry, not written).
+
+    Raises:
+        ValueError: invalid size, frame count, trajectory, sensor noise name or frame rate.
+    """
+    t0 = time.perf_counter()
+    if int(frames) < 2:
+        raise ValueError(f"frames must be >= 2, got {frames}")
+    noise = sensor_model(sensor_noise)
+    intr = default_intrinsics(width, height)
+    out = Path(out_dir)
+    scene = build_default_scene(seed)
+    trajs = make_trajectories(frames, seed, trajectory, fps=fps)
+    out.mkdir(parents=True, exist_ok=True)
+    objects_json = scene.objects_json()
+    tasks_json = scene.tasks_json()
+    by_id = {o["id"]: o for o in objects_json["objects"]}
+
+    _dump_json(out / "cam_params.json", {"camera": {
+        "w": intr.width, "h": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+        "scale": DEPTH_SCALE}})
+    _dump_json(out / "objects.json", objects_json)
+    _dump_json(out / "tasks.json", tasks_json)
+
+    roi_sum, roi_hit, agents_out = {}, {}, {}
+    bar = tqdm(total=len(AGENTS) * int(frames), desc="make-scene", unit="frame", disable=not progress)
+    try:
+        for k, agent in enumerate(AGENTS):
+            rng = np.random.default_rng([int(seed), k, 1729]) if noise is not None else None
+            roi_sum[agent], roi_hit[agent] = _write_agent(out, agent, trajs[agent], scene, intr, by_id, bar,
+                                                          noise, rng, float(fps))
+            agents_out[agent] = {"dir": str(out / agent), "traj": str(out / agent / "traj.txt"), "frames": int(frames)}
+    finally:
+        bar.close()
+
+    roi_fraction = {a: {k: round(v / frames, 6) for k, v in d.items()} for a, d in roi_sum.items()}
+    roi_nonempty = {a: {k: round(v / frames, 6) for k, v in d.items()} for a, d in roi_hit.items()}
+    _dump_json(out / "scene.json", _scene_json(seed, intr, frames, trajectory, scene, roi_fraction, roi_nonempty,
+                                               noise, sensor_noise, fps, trajs))
     secs = time.perf_counter() - t0
-    log.info("wrote synthetic scene (seed %d, %dx%d, %d frames/agent) to %s in %.1f s",
-             seed, intr.width, intr.height, frames, out, secs)
+    log.info("wrote synthetic scene (seed %d, %dx%d, %d frames/agent, %s, sensor noise %s) to %s in %.1f s",
+             seed, intr.width, intr.height, frames, trajectory, sensor_noise, out, secs)
     return {
         "out_dir": str(out), "cam_params": str(out / "cam_params.json"), "objects": str(out / "objects.json"),
         "tasks": str(out / "tasks.json"), "scene_json": str(out / "scene.json"), "agents": agents_out,
