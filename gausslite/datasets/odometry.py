@@ -32,7 +32,7 @@ import dataclasses
 import logging
 import threading
 from dataclasses import dataclass
-from typing import List, Literal, Optional
+from typing import Callable, Dict, List, Literal, Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -41,6 +41,8 @@ from tqdm import tqdm
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import downscale_frame
+from gausslite.datasets.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, RelocConfig, open3d_module, relocalise
+from gausslite.datasets.pose_graph import thumbnail, verify_registration
 from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -68,6 +70,8 @@ class OdometryConfig(BaseModel):
         track_width: frames are tracked downscaled by the integer factor that brings their width nearest this
             (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.
         max_step_m, max_step_deg: an estimate further than these from the last good pose fails (a jump).
+        loop: loop closure over the keyframes (:class:`~gausslite.datasets.pose_graph.LoopConfig`).
+        relocalise: re-localisation of lost frames (:class:`~gausslite.datasets.pose_graph.RelocConfig`).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -85,6 +89,8 @@ class OdometryConfig(BaseModel):
     track_width: Optional[int] = Field(160, ge=16)
     max_step_m: float = Field(0.3, gt=0)
     max_step_deg: float = Field(30.0, gt=0)
+    loop: LoopConfig = Field(default_factory=LoopConfig)
+    relocalise: RelocConfig = Field(default_factory=RelocConfig)
 
 
 @dataclass
@@ -98,6 +104,10 @@ class TrackResult:
         fitness: share of the frame's valid depth pixels with a correspondence (0..1).
         keyframe: the frame became a keyframe.
         reference: frame id of the keyframe (or frame) it was registered to; -1 for the first frame.
+        anchor: frame id of the keyframe the pose is held relative to (itself for a keyframe; -1: none, a lost frame).
+        T_anchor: (4, 4) float64 ``c2w_anchor⁻¹ c2w`` at tracking time: when the pose graph corrects the anchor, the
+            frame's corrected pose is the anchor's new pose times this (:meth:`RGBDOdometry.corrected`).
+        relocalised: the frame was lost to the tracking and found again against a keyframe.
     """
 
     c2w: np.ndarray
@@ -106,6 +116,9 @@ class TrackResult:
     fitness: float = 1.0
     keyframe: bool = False
     reference: int = -1
+    anchor: int = -1
+    T_anchor: Optional[np.ndarray] = None
+    relocalised: bool = False
 
 
 @dataclass
@@ -114,23 +127,7 @@ class _Keyframe:
     c2w: np.ndarray
     image: object  # open3d.geometry.RGBDImage of ``frame``
     frame: Frame  # at the tracking size (for the state)
-
-
-def _open3d():
-    """The ``open3d`` module (imported on first use: about a second).
-
-    Raises:
-        ModuleNotFoundError: Open3D is not installed (the ``mapper`` extra brings it).
-        RuntimeError: it is installed but its native library does not load (a system library missing).
-    """
-    try:
-        import open3d  # noqa: PLC0415 - heavy, and only the odometry needs it
-    except ModuleNotFoundError:
-        raise
-    except (ImportError, OSError) as e:
-        raise RuntimeError(f"Open3D's library does not load ({e}); on Debian/Ubuntu: apt-get install libusb-1.0-0 "
-                           "libgl1 libegl1 libx11-6 (scripts/setup.sh installs them)") from None
-    return open3d
+    thumb: Optional[np.ndarray] = None  # appearance for re-localisation (pose_graph.thumbnail)
 
 
 class RGBDOdometry:
@@ -141,9 +138,15 @@ class RGBDOdometry:
         initial_pose: (4, 4) c2w of the first frame (None: the identity).
 
     Attributes:
-        n_tracked, n_failed: frames tracked and frames that failed so far (the first frame counts as tracked).
+        n_tracked, n_failed: frames tracked and frames that failed so far (the first frame counts as tracked;
+            a re-localised frame counts as tracked).
         n_keyframes: keyframes taken so far.
+        n_relocalised: lost frames found again against a keyframe (:func:`~gausslite.datasets.pose_graph.relocalise`).
         failed_ids: frame ids of the failed frames.
+        graph: the keyframe pose graph with its loop closures (:class:`~gausslite.datasets.pose_graph.KeyframeGraph`).
+        loop_keyframes: frame id → keyframe kept with its images for loops and re-localisation.
+        on_correction: called with ``{frame id: new (4, 4) c2w}`` of every keyframe after the pose graph moved them
+            (from the tracking thread), e.g. to move the map with its keyframes.
     """
 
     def __init__(self, config: Optional[OdometryConfig] = None, initial_pose: Optional[np.ndarray] = None) -> None:
@@ -157,10 +160,14 @@ class RGBDOdometry:
         self.failed_ids: List[int] = []
         #: keyframes taken so far (including those dropped from the search)
         self.n_keyframes = 0
+        self.n_relocalised = 0
+        self.graph = KeyframeGraph()
+        self.loop_keyframes: Dict[int, _Keyframe] = {}
+        self.on_correction: Optional[Callable[[Dict[int, np.ndarray]], None]] = None
         self._since_good = 0  # frames lost since the last good pose
         self._lock = threading.Lock()
         self._prev: Optional[_Keyframe] = None
-        o3d = _open3d()
+        o3d = open3d_module()
         c = self.config
         self._option = o3d.pipelines.odometry.OdometryOption(
             iteration_number_per_pyramid_level=o3d.utility.IntVector(list(c.iterations)),
@@ -170,7 +177,7 @@ class RGBDOdometry:
 
     def _image(self, frame: Frame):
         """Open3D's RGB-D image of ``frame`` (intensity from the colour, depth in metres truncated at depth_max_m)."""
-        o3d = _open3d()
+        o3d = open3d_module()
         return o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(np.ascontiguousarray(frame.rgb)),
             o3d.geometry.Image(np.ascontiguousarray(frame.depth, dtype=np.float32)),
@@ -183,11 +190,28 @@ class RGBDOdometry:
         factor = 1 if tw is None else max(1, round(frame.intrinsics.width / tw))
         return frame if factor == 1 else downscale_frame(frame, factor)
 
-    def _add_keyframe(self, frame: Frame, c2w: np.ndarray, image) -> None:
-        self.keyframes.append(_Keyframe(frame.frame_id, c2w.copy(), image, frame))
+    def _add_keyframe(self, frame: Frame, c2w: np.ndarray, image, reference: Optional[int] = None,
+                      T: Optional[np.ndarray] = None, information: Optional[np.ndarray] = None) -> _Keyframe:
+        """A new keyframe: into the tracking window, the loop store and the pose graph (with its odometry edge to
+        ``reference``, ``T = c2w_ref⁻¹ c2w`` measured with ``information``)."""
+        kf = _Keyframe(frame.frame_id, c2w.copy(), image, frame, thumbnail(frame.rgb))
+        self.keyframes.append(kf)
         self.n_keyframes += 1
         if len(self.keyframes) > self.config.max_keyframes:
             self.keyframes.pop(0)
+        self.loop_keyframes[int(frame.frame_id)] = kf
+        if len(self.loop_keyframes) > self.config.loop.max_keyframes:
+            self.loop_keyframes.pop(next(iter(self.loop_keyframes)))
+        self.graph.add(frame.frame_id, c2w, reference, T, information)
+        return kf
+
+    def corrected(self, result: TrackResult) -> np.ndarray:
+        """(4, 4) float64 c2w of a tracked frame after the pose graph's corrections so far: its anchor keyframe's
+        current pose times ``result.T_anchor`` (a lost frame, with no anchor: its own ``c2w``)."""
+        node = self.graph.nodes.get(int(result.anchor))
+        if node is None or result.T_anchor is None:
+            return result.c2w.copy()
+        return node.c2w @ result.T_anchor
 
     def _reference(self, pred: np.ndarray) -> _Keyframe:
         """The keyframe (or previous frame) the frame predicted at ``pred`` registers to."""
@@ -221,38 +245,131 @@ class RGBDOdometry:
         image = self._image(frame)
         if self.last_pose is None:  # the first frame fixes the world frame
             self.last_pose = self.initial_pose.copy()
-            self._add_keyframe(frame, self.last_pose, image)
-            self._prev = self.keyframes[-1]
+            self._prev = self._add_keyframe(frame, self.last_pose, image)
             self.n_tracked += 1
-            return TrackResult(self.last_pose.copy(), True, keyframe=True)
+            return TrackResult(self.last_pose.copy(), True, keyframe=True, anchor=int(frame.frame_id),
+                               T_anchor=np.eye(4))
         # the previous good frame's motion, once per frame since the last good pose (lost frames in between)
         steps = self._since_good + 1
         vel = np.linalg.matrix_power(self.velocity, steps) if self.config.motion_prior else np.eye(4)
         pred = self.last_pose @ vel
         ref = self._reference(pred)
-        ok, T, info, fitness = self._register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
+        ok, T, info, fitness = self.register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
         c2w = ref.c2w @ T
         reason = "" if ok else "Open3D's odometry did not converge"
-        if ok and fitness < self.config.min_fitness:
-            reason = f"fitness {fitness:.2f} < {self.config.min_fitness}"
+        # after a loss the motion prior means little: the estimate must pass the re-localisation's fitness
+        min_fit = self.config.min_fitness
+        if self._since_good:
+            min_fit = max(min_fit, self.config.relocalise.min_fitness)
+        if ok and fitness < min_fit:
+            reason = f"fitness {fitness:.2f} < {min_fit}"
         reason = reason or self._implausible(c2w, steps)
         if reason:
-            return self._fail(frame, reason, fitness, ref)
+            return self._relocalise(frame, image) or self._fail(frame, reason, fitness, ref)
         self.velocity = self._root(np.linalg.inv(self.last_pose) @ c2w, steps)
         self.last_pose, self._since_good = c2w, 0
         self.n_tracked += 1
         rel = np.linalg.inv(ref.c2w) @ c2w
         is_kf = (float(np.linalg.norm(rel[:3, 3])) > self.config.keyframe_trans_m
                  or rotation_angle_deg(rel) > self.config.keyframe_rot_deg)
+        out = TrackResult(c2w.copy(), True, fitness=fitness, keyframe=is_kf, reference=ref.frame_id,
+                          anchor=ref.frame_id, T_anchor=T.copy())
         if is_kf:
-            self._add_keyframe(frame, c2w, image)
-        self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
-        return TrackResult(c2w.copy(), True, fitness=fitness, keyframe=is_kf, reference=ref.frame_id)
+            self._prev = self._add_keyframe(frame, c2w, image, ref.frame_id, T, info)
+            out.anchor, out.T_anchor = int(frame.frame_id), np.eye(4)
+            self._close_loops(self._prev)
+            out.c2w = self.last_pose.copy()  # the pose graph may have moved it
+        else:
+            self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
+        return out
 
-    def _register(self, frame: Frame, image, ref: _Keyframe, init: np.ndarray):
-        """Open3D's odometry of ``image`` (source) to ``ref`` (target) from ``init`` (4, 4) T_ref_frame. Returns
-        ``(success, T_ref_frame (4, 4), information (6, 6), fitness)``."""
-        o3d = _open3d()
+    def _close_loops(self, kf: _Keyframe) -> int:
+        """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.datasets.pose_graph`)
+        and, when one passes, optimise the pose graph and move the keyframes, the last pose and the previous frame
+        with it. Returns the loops accepted."""
+        cfg = self.config.loop
+        if not cfg.enabled:
+            return 0
+        ids = list(self.graph.nodes)
+        older = set(ids[:max(0, len(ids) - 1 - cfg.min_gap)])
+
+        def near(k: _Keyframe) -> Optional[float]:
+            dist = float(np.linalg.norm(k.c2w[:3, 3] - kf.c2w[:3, 3]))
+            cos = float(np.clip(k.c2w[:3, 2] @ kf.c2w[:3, 2], -1.0, 1.0))
+            return dist if dist <= cfg.radius_m and np.degrees(np.arccos(cos)) <= cfg.max_angle_deg else None
+
+        cands = sorted((d, k.frame_id) for k in self.loop_keyframes.values()
+                       if k.frame_id in older and (d := near(k)) is not None)[:cfg.max_candidates]
+        added = []
+        for _, fid in cands:
+            target = self.loop_keyframes[fid]
+            init = np.linalg.inv(target.c2w) @ kf.c2w
+            self.graph.n_loop_tried += 1
+            got = verify_registration(self, kf.frame, kf.image, target, init, cfg.min_fitness, cfg)
+            bound_m, bound_deg = self.graph.drift_bound(kf.frame_id, fid, cfg)
+            d = None if got is None else np.linalg.inv(init) @ got[0]
+            if d is None or float(np.linalg.norm(d[:3, 3])) > bound_m or rotation_angle_deg(d) > bound_deg:
+                self.graph.n_loop_rejected += 1
+                continue
+            added.append(LoopEdge(int(kf.frame_id), int(fid), got[0], got[2], got[3]))
+        if not added:
+            return 0
+        self.graph.loops.extend(added)
+        new = self.graph.optimise(cfg)
+        if not new:
+            self.graph.loops = [e for e in self.graph.loops if e not in added]
+            self.graph.n_loop_rejected += len(added)
+            return 0
+        self._apply_correction(new)
+        log.info("odometry: %d loop(s) closed at keyframe %d; the pose graph moved the keyframes (%d loops so far)",
+                 len(added), kf.frame_id, len(self.graph.loops))
+        return len(added)
+
+    def _apply_correction(self, new: Dict[int, np.ndarray]) -> None:
+        """Move the stored keyframes to the pose graph's ``new`` poses, and the last pose and previous frame with
+        the newest keyframe (they are the newest keyframe, or tracked against it)."""
+        newest = next(reversed(self.graph.nodes))
+        old_newest = self.loop_keyframes[newest].c2w.copy()
+        for fid, c2w in new.items():
+            if fid in self.loop_keyframes:
+                self.loop_keyframes[fid].c2w = c2w.copy()
+        delta = new[newest] @ np.linalg.inv(old_newest)
+        self.last_pose = delta @ self.last_pose
+        if self._prev is not None and self._prev.frame_id not in self.loop_keyframes:
+            self._prev.c2w = delta @ self._prev.c2w
+        if self.on_correction is not None:
+            self.on_correction({fid: c2w.copy() for fid, c2w in new.items()})
+
+    def _relocalise(self, frame: Frame, image) -> Optional[TrackResult]:
+        """A lost frame found again against the keyframes (:func:`~gausslite.datasets.pose_graph.relocalise`), as
+        a tracked frame, or None."""
+        cfg = self.config.relocalise
+        if not cfg.enabled or self._since_good % cfg.every != 0:
+            return None
+        got = relocalise(self, frame, image, self.last_pose, cfg)
+        if got is None:
+            return None
+        c2w, fid, fitness = got
+        lost = self._since_good
+        self.velocity, self.last_pose, self._since_good = np.eye(4), c2w, 0
+        self.n_tracked += 1
+        self.n_relocalised += 1
+        self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
+        log.info("odometry: frame %d re-localised against keyframe %d (fitness %.2f) after %d lost frame(s)",
+                 frame.frame_id, fid, fitness, lost)
+        kf = self.loop_keyframes[fid]
+        return TrackResult(c2w.copy(), True, fitness=fitness, reference=fid, anchor=fid,
+                           T_anchor=np.linalg.inv(kf.c2w) @ c2w, relocalised=True)
+
+    def register(self, frame: Frame, image, ref, init: np.ndarray):
+        """Open3D's odometry of ``frame`` (at the tracking size; ``image`` its Open3D RGB-D image) to ``ref`` (a
+        keyframe: ``frame``, ``image``) from ``init`` (4, 4) T_ref_frame.
+
+        Returns:
+            ``(success, T_ref_frame (4, 4) float64, information (6, 6), fitness)``: fitness is the share of the
+            frame's valid depth pixels with a correspondence.
+        """
+        o3d = open3d_module()
         intr = frame.intrinsics
         pin = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy)
         ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(image, ref.image, pin, init, self._jacobian,
@@ -298,58 +415,87 @@ class RGBDOdometry:
         return TrackResult(self.last_pose.copy(), False, reason, fitness, False, ref.frame_id)
 
     def state_dict(self) -> dict:
-        """The tracker's state (for a mission's checkpoint): poses, motion, counters and the keyframes' images at the
-        tracking size (``rgb`` (h, w, 3) uint8, ``depth`` (h, w) float32 metres, ``c2w`` (4, 4) float64)."""
-        def kf(k: _Keyframe) -> dict:
-            i = k.frame.intrinsics
-            return {"frame_id": k.frame_id, "c2w": k.c2w.copy(), "rgb": k.frame.rgb.copy(),
-                    "depth": k.frame.depth.copy(), "timestamp": k.frame.timestamp,
-                    "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height]}
-
+        """The tracker's state (for a mission's checkpoint): poses, motion, counters, the pose graph, and the stored
+        keyframes' images at the tracking size (``rgb`` (h, w, 3) uint8, ``depth`` (h, w) float32 metres, ``c2w``
+        (4, 4) float64)."""
         with self._lock:
-            return {"format": 1, "config": self.config.model_dump(), "initial_pose": self.initial_pose.copy(),
+            g = self.graph
+            return {"format": 2, "config": self.config.model_dump(), "initial_pose": self.initial_pose.copy(),
                     "last_pose": None if self.last_pose is None else self.last_pose.copy(),
                     "velocity": self.velocity.copy(), "since_good": self._since_good, "n_tracked": self.n_tracked,
                     "n_failed": self.n_failed, "failed_ids": list(self.failed_ids), "n_keyframes": self.n_keyframes,
-                    "keyframes": [kf(k) for k in self.keyframes],
-                    "previous": None if self._prev is None else kf(self._prev)}
+                    "n_relocalised": self.n_relocalised,
+                    "stored": [_keyframe_state(k) for k in self.loop_keyframes.values()],
+                    "window": [k.frame_id for k in self.keyframes],
+                    "previous": None if self._prev is None else _keyframe_state(self._prev),
+                    "graph": {"nodes": [(n.frame_id, n.c2w.copy(), n.path_m) for n in g.nodes.values()],
+                              "odometry_edges": list(g.odometry_edges), "loops": list(g.loops),
+                              "counts": [g.n_loop_tried, g.n_loop_rejected, g.n_optimisations]}}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`'s state (the settings stay this tracker's).
+        """Restore :meth:`state_dict`'s state (the settings stay this tracker's); a state of the format before the
+        pose graph (1) restores its keyframes with an empty graph.
 
         Raises:
-            ValueError: not a state of this format.
+            ValueError: not a state of either format.
         """
-        if not isinstance(state, dict) or state.get("format") != 1:
-            raise ValueError("not an odometry state (format 1)")
-
-        def kf(d: dict) -> _Keyframe:
-            fx, fy, cx, cy, w, h = d["intrinsics"]
-            f = Frame(int(d["frame_id"]), float(d["timestamp"]), d["rgb"], d["depth"], d["c2w"],
-                      Intrinsics(fx, fy, cx, cy, int(w), int(h)))
-            return _Keyframe(f.frame_id, np.asarray(d["c2w"], np.float64), self._image(f), f)
-
+        if not isinstance(state, dict) or state.get("format") not in (1, 2):
+            raise ValueError("not an odometry state (format 1 or 2)")
         with self._lock:
             self.initial_pose = np.asarray(state["initial_pose"], np.float64)
             self.last_pose = None if state["last_pose"] is None else np.asarray(state["last_pose"], np.float64)
             self.velocity = np.asarray(state["velocity"], np.float64)
             self._since_good, self.n_tracked, self.n_failed = state["since_good"], state["n_tracked"], state["n_failed"]
             self.failed_ids, self.n_keyframes = list(state["failed_ids"]), state["n_keyframes"]
-            self.keyframes = [kf(d) for d in state["keyframes"]]
-            self._prev = None if state["previous"] is None else kf(state["previous"])
+            self.n_relocalised = int(state.get("n_relocalised", 0))
+            stored = [self._keyframe_of(d) for d in state.get("stored", state.get("keyframes", []))]
+            self.loop_keyframes = {k.frame_id: k for k in stored}
+            window = state.get("window", [k.frame_id for k in stored])
+            self.keyframes = [self.loop_keyframes[i] for i in window if i in self.loop_keyframes]
+            self._prev = None if state["previous"] is None else self._keyframe_of(state["previous"])
+            self.graph = KeyframeGraph()
+            g = state.get("graph")
+            if g is None:  # format 1: the keyframes alone, as graph nodes without edges
+                for k in stored:
+                    self.graph.add(k.frame_id, k.c2w)
+                return
+            for fid, c2w, path in g["nodes"]:
+                self.graph.add(fid, c2w)
+                self.graph.nodes[int(fid)].path_m = float(path)
+            self.graph.odometry_edges, self.graph.loops = list(g["odometry_edges"]), list(g["loops"])
+            self.graph.n_loop_tried, self.graph.n_loop_rejected, self.graph.n_optimisations = g["counts"]
+
+    def _keyframe_of(self, d: dict) -> _Keyframe:
+        """A keyframe from :func:`_keyframe_state`'s dict (its Open3D image and thumbnail made anew)."""
+        fx, fy, cx, cy, w, h = d["intrinsics"]
+        f = Frame(int(d["frame_id"]), float(d["timestamp"]), d["rgb"], d["depth"], d["c2w"],
+                  Intrinsics(fx, fy, cx, cy, int(w), int(h)))
+        return _Keyframe(f.frame_id, np.asarray(d["c2w"], np.float64), self._image(f), f, thumbnail(f.rgb))
 
     def summary(self) -> dict:
-        """``{"tracked", "failed", "keyframes", "failed_frame_ids"}``: the counts so far."""
+        """``{"tracked", "failed", "keyframes", "failed_frame_ids", "relocalised", "loops", "loop_candidates",
+        "loop_rejected", "optimisations"}``: the counts so far."""
+        g = self.graph.summary()
         return {"tracked": self.n_tracked, "failed": self.n_failed, "keyframes": self.n_keyframes,
-                "failed_frame_ids": list(self.failed_ids)}
+                "failed_frame_ids": list(self.failed_ids), "relocalised": self.n_relocalised, "loops": g["loops"],
+                "loop_candidates": g["loop_candidates"], "loop_rejected": g["loop_rejected"],
+                "optimisations": g["optimisations"]}
+
+
+def _keyframe_state(k: _Keyframe) -> dict:
+    """A keyframe as plain arrays (for a checkpoint): its id, pose, tracking-size images, timestamp, intrinsics."""
+    i = k.frame.intrinsics
+    return {"frame_id": k.frame_id, "c2w": k.c2w.copy(), "rgb": k.frame.rgb.copy(), "depth": k.frame.depth.copy(),
+            "timestamp": k.frame.timestamp, "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height]}
 
 
 class OdometryDataset(RGBDDataset):
     """A dataset whose poses come from :class:`RGBDOdometry` run over its frames in order.
 
     The odometry runs once, over every frame, at the first frame read (with a progress bar); each frame then
-    carries its estimate as ``c2w`` and ``pose_ok`` False when its tracking failed. Other attributes are the
-    wrapped dataset's.
+    carries its pose after the pose graph's corrections over the whole sequence (:meth:`RGBDOdometry.corrected`: an
+    offline map is made after every loop is closed) as ``c2w``, and ``pose_ok`` False when its tracking failed. Other
+    attributes are the wrapped dataset's.
 
     Args:
         base: the dataset (its frames' colour, depth, intrinsics and timestamps are used; its poses are not).
@@ -358,7 +504,8 @@ class OdometryDataset(RGBDDataset):
 
     Attributes:
         reference_poses: (N, 4, 4) the wrapped dataset's own poses when it has them (for tracking error), else None.
-        poses: (N, 4, 4) the estimates (after tracking), results: the N :class:`TrackResult`.
+        poses: (N, 4, 4) the corrected estimates (after tracking), online_poses: (N, 4, 4) the estimates as each frame
+            was tracked, before later loop closures; results: the N :class:`TrackResult`.
     """
 
     has_poses = True
@@ -373,6 +520,7 @@ class OdometryDataset(RGBDDataset):
         self.annotations = base.annotations
         self.reference_poses = getattr(base, "poses", None) if getattr(base, "has_poses", True) else None
         self.results: Optional[List[TrackResult]] = None
+        self._corrected: List[np.ndarray] = []
         self.odometry: Optional[RGBDOdometry] = None
 
     def __getattr__(self, name):  # the wrapped dataset's other attributes (frame_ids, timestamps, ...)
@@ -394,15 +542,23 @@ class OdometryDataset(RGBDDataset):
         bar = tqdm(range(len(self.base)), desc="odometry", unit="frame", disable=not self.progress)
         for i in bar:
             results.append(odo.track(self.base[i]))
-            bar.set_postfix(lost=odo.n_failed, keyframes=odo.n_keyframes)
+            bar.set_postfix(lost=odo.n_failed, keyframes=odo.n_keyframes, loops=len(odo.graph.loops))
+        self._corrected = [odo.corrected(r) for r in results]
         self.odometry, self.results = odo, results
-        log.info("odometry: %d of %d frames tracked, %d lost, %d keyframes (%s)", odo.n_tracked, len(results),
-                 odo.n_failed, odo.n_keyframes, self.path)
+        log.info("odometry: %d of %d frames tracked, %d lost, %d re-localised, %d keyframes, %d loops closed (%s)",
+                 odo.n_tracked, len(results), odo.n_failed, odo.n_relocalised, odo.n_keyframes,
+                 len(odo.graph.loops), self.path)
         return results
 
     @property
     def poses(self) -> np.ndarray:
-        """(N, 4, 4) float64 estimated c2w poses (tracks on first use)."""
+        """(N, 4, 4) float64 estimated c2w poses after the pose graph's corrections (tracks on first use)."""
+        self.track()
+        return np.stack(self._corrected)
+
+    @property
+    def online_poses(self) -> np.ndarray:
+        """(N, 4, 4) float64 c2w poses as each frame was tracked, before later loop closures (tracks on first use)."""
         return np.stack([r.c2w for r in self.track()])
 
     @property
@@ -412,7 +568,7 @@ class OdometryDataset(RGBDDataset):
 
     def _load(self, i: int) -> Frame:
         r = self.track()[i]
-        return dataclasses.replace(self.base[i], c2w=r.c2w.copy(), pose_ok=bool(r.ok))
+        return dataclasses.replace(self.base[i], c2w=self._corrected[i].copy(), pose_ok=bool(r.ok))
 
     def __repr__(self) -> str:
         return f"OdometryDataset({self.base!r})"

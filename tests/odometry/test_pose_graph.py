@@ -1,0 +1,146 @@
+"""Drift correction for the RGB-D odometry (gausslite.datasets.pose_graph): the keyframe pose graph removes the drift
+a loop measures, its gates turn false loops away, the map's frames follow the corrected keyframes, and a lost frame
+is re-localised against the keyframes when the camera comes back."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gausslite.datasets import load_dataset
+from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
+from gausslite.datasets.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, thumbnail
+from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg
+from gausslite.synthetic import make_scene
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """The synthetic scene's robot A, 16 frames at 160x120, read with their exact poses."""
+    out = tmp_path_factory.mktemp("scene")
+    make_scene(out, frames=16, width=160, height=120, progress=False)
+    return list(load_dataset(out / "agent_a", pose_source="given"))
+
+
+def _pose(x: float, y: float, yaw_deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [x, y, 0]
+    return T
+
+
+def test_a_loop_edge_removes_the_drift_of_a_square():
+    # a 1 m square walked in 8 keyframes: each odometry edge turns 1 degree too far, so the chain drifts
+    true = [_pose(*p) for p in [(0, 0, 0), (.5, 0, 0), (1, 0, 90), (1, .5, 90), (1, 1, 180), (.5, 1, 180),
+                               (0, 1, 270), (0, .5, 270)]]
+    bias = _pose(0.0, 0.0, 1.0)
+    est = [true[0]]
+    for i in range(1, len(true)):
+        est.append(est[-1] @ np.linalg.inv(true[i - 1]) @ true[i] @ bias)
+    graph = KeyframeGraph()
+    graph.add(0, est[0])
+    for i in range(1, len(true)):
+        graph.add(i, est[i], i - 1, np.linalg.inv(est[i - 1]) @ est[i], np.eye(6) * 100)
+    drifted = ate_rmse(np.stack(est), np.stack(true))
+    # the last keyframe sees the first again: the loop measures their true relative pose
+    graph.loops.append(LoopEdge(7, 0, np.linalg.inv(true[0]) @ true[7], 0.9, 0.005))
+    cfg = LoopConfig(drift_floor_m=0.5, drift_floor_deg=20.0)
+    new = graph.optimise(cfg)
+    fixed = ate_rmse(np.stack([new[i] for i in range(8)]), np.stack(true))
+    assert drifted > 0.02 and fixed < 0.5 * drifted
+    assert np.allclose(new[0], est[0])  # the first keyframe fixes the gauge
+    assert graph.summary()["loops"] == 1 and graph.summary()["optimisations"] == 1
+
+
+def _chain(information: float) -> KeyframeGraph:
+    """Three keyframes 10 cm apart, and a "loop" that puts the last one 2 m from the first."""
+    graph = KeyframeGraph()
+    graph.add(0, np.eye(4))
+    graph.add(1, _pose(0.1, 0, 0), 0, _pose(0.1, 0, 0), np.eye(6) * information)
+    graph.add(2, _pose(0.2, 0, 0), 1, _pose(0.1, 0, 0), np.eye(6) * information)
+    graph.loops.append(LoopEdge(2, 0, _pose(2.0, 0, 0), 0.9, 0.005))
+    return graph
+
+
+def test_a_loop_that_disagrees_with_the_odometry_is_pruned_or_undone():
+    graph = _chain(100.0)  # firm odometry: the line process prunes the loop, and nothing moves
+    before = {k: n.c2w.copy() for k, n in graph.nodes.items()}
+    new = graph.optimise(LoopConfig())
+    assert graph.loops == [] and all(np.allclose(new[k], before[k], atol=1e-6) for k in before)
+    graph = _chain(1e-6)  # weak odometry: the loop wins, moves a keyframe 1.8 m, and the optimisation is undone
+    before = {k: n.c2w.copy() for k, n in graph.nodes.items()}
+    assert graph.optimise(LoopConfig(prune_threshold=1e-3)) == {}
+    assert all(np.array_equal(graph.nodes[k].c2w, before[k]) for k in before)
+
+
+def test_false_loops_between_different_places_are_turned_away(frames):
+    odo = RGBDOdometry(OdometryConfig(track_width=None), initial_pose=frames[0].c2w)
+    for f in frames:
+        odo.track(f)
+    kfs = list(odo.loop_keyframes.values())
+    assert len(kfs) >= 8
+    kfs = kfs[::2][:5]  # views 0.4 m or more apart
+    # every pair of keyframes, each registered as if the camera stood where the other one does: a "loop" between
+    # views that do not show the same place (or do, at the wrong pose) must not pass the gates
+    from gausslite.datasets.pose_graph import verify_registration
+
+    cfg = odo.config.loop
+    accepted_wrong = 0
+    for a in kfs:
+        for b in kfs:
+            if a is b:
+                continue
+            got = verify_registration(odo, a.frame, a.image, b, np.eye(4), cfg.min_fitness, cfg)
+            if got is None:
+                continue
+            true = np.linalg.inv(b.c2w) @ a.c2w
+            d = np.linalg.inv(true) @ got[0]
+            # wrong: off by more than a registration's error over that baseline (2 cm + 6 % of it, or 3 degrees)
+            baseline = float(np.linalg.norm(true[:3, 3]))
+            accepted_wrong += float(np.linalg.norm(d[:3, 3])) > 0.02 + 0.06 * baseline or rotation_angle_deg(d) > 3.0
+    assert accepted_wrong == 0
+
+
+def test_a_lost_frame_is_relocalised_when_the_camera_comes_back(frames):
+    blank = dataclasses.replace(frames[8], depth=np.zeros_like(frames[8].depth))  # the camera covered
+    stream = frames[:14] + [dataclasses.replace(blank, frame_id=100 + i) for i in range(3)]
+    back = dataclasses.replace(frames[1], frame_id=200)  # then it comes back, 2.6 m away, to a view it saw before
+    stream.append(back)
+    for enabled in (False, True):
+        cfg = OdometryConfig(track_width=None)
+        cfg.relocalise.enabled = enabled
+        odo = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
+        results = [odo.track(f) for f in stream]
+        assert [r.ok for r in results[14:17]] == [False] * 3
+        last = results[-1]
+        if not enabled:
+            assert not last.ok and odo.n_relocalised == 0
+            continue
+        assert last.ok and last.relocalised and odo.n_relocalised == 1 and odo.n_failed == 3
+        assert float(np.linalg.norm(last.c2w[:3, 3] - frames[1].c2w[:3, 3])) < 0.02
+        assert odo.summary()["relocalised"] == 1
+
+
+def test_frames_follow_their_anchor_keyframe_when_the_graph_moves_it(frames):
+    odo = RGBDOdometry(OdometryConfig(track_width=None), initial_pose=frames[0].c2w)
+    results = [odo.track(f) for f in frames[:6]]
+    moved = {}
+    odo.on_correction = moved.update
+    r = results[3]
+    shift = _pose(0.0, 0.1, 0.0)
+    new = {fid: (shift @ n.c2w if fid == r.anchor else n.c2w) for fid, n in odo.graph.nodes.items()}
+    for fid, c2w in new.items():
+        odo.graph.nodes[fid].c2w = c2w
+    odo._apply_correction(new)
+    assert np.allclose(odo.corrected(r), shift @ r.c2w)
+    assert moved.keys() == new.keys()
+
+
+def test_thumbnails_match_the_same_view_best(frames):
+    th = [thumbnail(f.rgb) for f in frames]
+    sims = np.array([[a @ b for b in th] for a in th])
+    assert np.allclose(np.diag(sims), 1.0, atol=1e-5)
+    assert all(int(np.argmax(row)) == i for i, row in enumerate(sims))
