@@ -164,10 +164,46 @@ class PoseConfig(_Strict):
         "scores are then taken at the refined poses, as SLAM systems score at their estimated poses"
     )
     track_iters: int = Field(
-        0, ge=0, description="pose refinement: Adam steps on a new frame's pose alone, against the current map, "
-        "before it is seeded (SplaTAM-style tracking from the sensor's pose); 0 = none"
+        0, ge=0, description="keyframe placement: at most this many Adam steps on a new keyframe's pose alone against "
+        "the frozen map before it is seeded or trains (frame-to-map tracking from the sensor's pose, "
+        "gausslite.mapping.tracking; SplaTAM Sec. 3.3); 0 = none. Works with or without pose.refine"
     )
     track_alpha: float = Field(0.9, gt=0, lt=1, description="tracking: pixels with rendered silhouette above this")
+    track_width: Optional[int] = Field(
+        None, ge=8, description="tracking: render at about this many pixels wide (the frame downscaled by the "
+        "integer factor width // track_width: colour block means, valid-depth means); None = the frame's resolution"
+    )
+    track_lr_rot: float = Field(2e-3, gt=0, description="tracking: Adam step of the rotation (radians)")
+    track_lr_trans: float = Field(2e-3, gt=0, description="tracking: Adam step of the translation (metres)")
+    track_lambda_depth: Optional[float] = Field(
+        None, ge=0, description="tracking: weight of the depth L1 (metres) beside the colour L1; None = lambda_depth"
+    )
+    track_robust_k: float = Field(
+        3.0, ge=0, description="tracking: robust (Cauchy) pixel weights 1 / (1 + (r / (k σ))²) on the colour and "
+        "depth residuals r, σ = 1.4826 × their median (MAD scale), so pixels the map does not explain (moving "
+        "objects, new surfaces) pull less; 0 = plain L1"
+    )
+    track_roi_weight: float = Field(
+        1.0, ge=0, description="tracking, gausslite mode: pixels of the relevance map weigh 1 + this (the task "
+        "region, where the map is sharpest); uniform mode weighs every pixel alike"
+    )
+    track_budget_frac: float = Field(
+        0.25, gt=0, le=1, description="tracking under a keyframe time budget (keyframe_budget_s or map_frame's "
+        "time_budget_s): it stops once this share of the budget is spent (at least one step); offline it runs "
+        "up to track_iters"
+    )
+    track_converge: float = Field(
+        1e-3, ge=0, description="tracking: stop early once the loss has not dropped by this share of its best for "
+        "10 steps; the best pose seen is kept"
+    )
+    track_max_trans_m: float = Field(
+        0.1, gt=0, description="tracking sanity gate: a correction that moves the camera more than this (metres) "
+        "is rejected (logged); the keyframe keeps the pose it came with"
+    )
+    track_max_rot_deg: float = Field(
+        10.0, gt=0, description="tracking sanity gate: a correction that turns the camera more than this "
+        "(degrees) is rejected likewise"
+    )
     lr_rot: float = Field(1e-3, gt=0, description="pose refinement: Adam step of the rotation (radians)")
     lr_trans: float = Field(5e-4, gt=0, description="pose refinement: Adam step of the translation (metres)")
     roi_phase: bool = Field(

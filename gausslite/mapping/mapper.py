@@ -26,6 +26,11 @@ Per mapped frame (paper Sec. III-C/III-D):
 4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
    view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
+Before seeding, under ``pose.track_iters`` a new keyframe is placed against the frozen map
+(:class:`~gausslite.mapping.tracking.FrameTracker`). Every Gaussian records the mapped frame that seeded it (its
+keyframe anchor, :attr:`GaussianModel.anchors <gausslite.mapping.model.GaussianModel.anchors>`), so that
+:meth:`Mapper.apply_pose_corrections` can move it with its keyframe when a pose graph corrects the poses.
+
 The mapper does not care where w came from (ground truth or the attention front-end).
 
 Parts (gsplat style; each with its own ``state_dict`` / ``load_state_dict``, gathered by :meth:`Mapper.state_dict`):
@@ -48,7 +53,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 import torch
@@ -58,15 +63,15 @@ from gausslite.gaussians import GaussianMap
 from gausslite.mapping.budget import WallClock, WorkClock, WorkCost
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.exposure import invert_exposure
-from gausslite.mapping.loss import photometric_loss
 from gausslite.mapping.memory import KeyframeStore, unexplained_mask
 from gausslite.mapping.model import GaussianModel
-from gausslite.mapping.poses import PoseRefiner
+from gausslite.mapping.poses import PoseRefiner, nearest_key
 from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_view_of, window_points
 from gausslite.mapping.seeding import SeedSelection, local_median_nn_distance, seed_points, select_seeds
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
 from gausslite.mapping.strategy import DensityStrategy
+from gausslite.mapping.tracking import FrameTracker, TrackResult
 from gausslite.mapping.views import Keyframe, keyframe_from_frame
 from gausslite.render import RenderOutput
 
@@ -91,6 +96,11 @@ class FrameStats:
     n_evicted: int = 0  #: existing Gaussians replaced by this frame's seeds at the budget
     n_adopted: int = 0  #: existing Gaussians that joined the task in this frame (``seeding.adopt``)
     n_gap_seeds: int = 0  #: ROI seeds on relevant pixels the task's Gaussians left uncovered
+    track_iters: int = 0  #: keyframe placement: Adam steps of the frame-to-map tracker (``pose.track_iters``)
+    #: keyframe placement: the tracked pose was kept (None: not tracked; False: no coverage, or the gate rejected it)
+    track_accepted: Optional[bool] = None
+    track_rot_deg: float = 0.0  #: keyframe placement: the tracked correction's rotation, degrees (rejected or not)
+    track_trans_m: float = 0.0  #: keyframe placement: the tracked correction's translation, metres
 
 
 @dataclass
@@ -117,7 +127,11 @@ class Mapper:
         step: one Adam iteration on one view, ``mapper.step(view, active_phase=...)``
             (:class:`~gausslite.mapping.step.TrainStep`).
         keyframes: every keyframe of the mission, compact and bounded (MVO draws from it).
-        poses: keyframe pose refinement (``cfg.pose.refine``), None when off.
+        poses: per-keyframe pose corrections (refined under ``cfg.pose.refine``, set by keyframe placement under
+            ``cfg.pose.track_iters`` and by :meth:`apply_pose_corrections`); None while none of them is on.
+        tracker: keyframe placement against the frozen map (:class:`~gausslite.mapping.tracking.FrameTracker`).
+        input_poses: frame id → (4, 4) float64 pose each mapped frame came with (the anchors of
+            :meth:`apply_pose_corrections`).
         clock: clock of the keyframe budget and the idle/final time bounds (wall time, or its deterministic twin).
         stats: one :class:`FrameStats` per :meth:`map_frame` call.
     """
@@ -133,20 +147,28 @@ class Mapper:
                       else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
-        self.poses: Optional[PoseRefiner] = (PoseRefiner(cfg.pose.lr_rot, cfg.pose.lr_trans,
-                                                         cfg.pose.between_keyframes == "interpolate")
-                                             if cfg.pose.refine else None)
+        # the per-keyframe corrections: refined with the map (pose.refine), set by keyframe placement
+        # (pose.track_iters), or by a pose graph (apply_pose_corrections)
+        self.poses: Optional[PoseRefiner] = (self._new_pose_record() if cfg.pose.refine or cfg.pose.track_iters
+                                             else None)
+        #: frame id → (4, 4) float64 pose each mapped frame came with (before any correction), the anchor frames
+        self.input_poses: dict[int, np.ndarray] = {}
         #: ROI crops of the frames between keyframes (``roi_views``), drawn by ROI-phase iterations
         self.roi_views = RoiViewStore(cfg.roi_views.max_views, cfg.roi_views.max_bytes)
         self.strategy = DensityStrategy(cfg, self.model, self.torch_gen)
         self.sensor = SensorRenderer(cfg, self.model, self.clock)
-        self.step = TrainStep(cfg, self.model, self.sensor, self.strategy, self.keyframes, self.poses, self.clock,
-                              self.rng, views=self.roi_views)
+        self.tracker = FrameTracker(cfg, self.sensor, self.clock)
+        self.step = TrainStep(cfg, self.model, self.sensor, self.strategy, self.keyframes,
+                              self.poses if cfg.pose.refine else None, self.clock, self.rng, views=self.roi_views)
         self.n_mapped = 0
         self.stats: list[FrameStats] = []
         self.n_idle_iters = 0  # iterations of optimize() between keyframes
         #: iterations of time-budgeted map_frame calls (their density-control schedule spans calls)
         self.n_budget_iters = 0
+
+    def _new_pose_record(self) -> PoseRefiner:
+        pc = self.cfg.pose
+        return PoseRefiner(pc.lr_rot, pc.lr_trans, pc.between_keyframes == "interpolate")
 
     @property
     def window(self) -> list[Keyframe]:
@@ -212,6 +234,76 @@ class Mapper:
         """The pose to render frame ``frame_id`` at: ``c2w`` (4, 4) with the keyframe's refined correction
         (or the nearest keyframe's for a frame that is not one) under ``pose_refine``; ``c2w`` otherwise."""
         return self.poses.corrected(frame_id, c2w) if self.poses is not None else np.asarray(c2w, np.float64)
+
+    # ------------------------------------------------------------------ keyframe anchors
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Frame id → (4, 4) float64 camera-to-world pose (metres, OpenCV camera axes) of every mapped frame, the
+        keyframes Gaussians are anchored to, as the map holds it now: the pose it came with and its current
+        correction (:meth:`pose_of`: refinement, placement, pose-graph corrections). The poses a pose graph starts
+        from and hands back to :meth:`apply_pose_corrections`."""
+        return {fid: self.pose_of(fid, c2w) for fid, c2w in self.input_poses.items()}
+
+    def apply_pose_corrections(self, new_c2w: Mapping[int, np.ndarray]) -> int:
+        """Make the map follow corrected keyframe poses (e.g. a pose graph's, after a loop closure): for every
+        keyframe whose pose changed, the world-frame rigid transform ``T = new_c2w · old_c2w⁻¹`` moves the Gaussians
+        anchored to it (their means and rotations, :meth:`GaussianModel.move_rows
+        <gausslite.mapping.model.GaussianModel.move_rows>`), so they look from the new pose as they looked from the
+        old one. The keyframe's stored pose (the keyframe store) and its correction record (:meth:`pose_of`) take the
+        new pose; the ROI views stored between keyframes move with their nearest mapped frame. Gaussians of other
+        keyframes, and unanchored ones (a map loaded from outside), stay. Without ``pose.refine`` and tracking, the
+        mapper starts keeping a correction record here, so that frames are rendered at their corrected poses.
+
+        Args:
+            new_c2w: frame id → (4, 4) camera-to-world pose (float, metres; rotation orthonormal with determinant 1)
+                of mapped frames (:meth:`keyframe_poses` gives their poses now). Frames whose pose is unchanged
+                (to 1e-12) are left alone.
+        Returns:
+            the number of Gaussians moved.
+        Raises:
+            KeyError: a frame id that was never mapped. ValueError: a pose that is not a finite rigid transform.
+        """
+        current = self.keyframe_poses()
+        moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for fid, c2w in new_c2w.items():
+            fid = int(fid)
+            if fid not in current:
+                raise KeyError(f"frame {fid} was never mapped: no keyframe to correct (mapped: {len(current)} frames)")
+            new = np.asarray(c2w, np.float64)
+            if new.shape != (4, 4) or not np.all(np.isfinite(new)) or not np.allclose(
+                    new[:3, :3] @ new[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(new[:3, :3]) < 0:
+                raise ValueError(f"frame {fid}: the corrected pose is not a finite (4, 4) rigid transform: {new!r}")
+            T = new @ np.linalg.inv(current[fid])
+            if not np.allclose(T, np.eye(4), rtol=0.0, atol=1e-12):
+                moves[fid] = (T, new)
+        if not moves:
+            return 0
+        if self.poses is None:
+            self.poses = self._new_pose_record()
+            for fid in self.input_poses:
+                self.poses.register(fid, np.eye(4))
+        self._move_roi_views(moves)
+        n_moved = 0
+        for fid, (T, new) in moves.items():
+            rows = torch.nonzero(self.model.anchors == fid).squeeze(1)
+            self.model.move_rows(rows, T)
+            n_moved += int(rows.numel())
+            self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ new)
+            self.keyframes.set_pose(fid, torch.from_numpy(new))
+        return n_moved
+
+    def _move_roi_views(self, moves: dict) -> None:
+        """Each stored ROI view (frames between keyframes) moves by the transform of its nearest mapped frame when
+        ``moves`` (frame id → (T, new pose)) has one: its stored pose and its correction record."""
+        for view in self.roi_views:
+            k = nearest_key(self.input_poses, view.frame_id)
+            if k not in moves:
+                continue
+            old = view.c2w.numpy().copy()
+            new = moves[k][0] @ old
+            view.c2w.copy_(torch.from_numpy(new))
+            if view.frame_id in self.poses.corrections:
+                E = self.poses.corrections[view.frame_id]
+                self.poses.register(view.frame_id, E @ np.linalg.inv(old) @ new)
 
     def load_map(self, gmap: GaussianMap, contribution: Optional[torch.Tensor] = None) -> None:
         """Replace the whole map from outside the mapping loop (refinement of a fused map, a checkpoint):
@@ -315,7 +407,7 @@ class Mapper:
             merged, keep = merged.cap(budget, score=score)
             parent = parent[keep]
             stats.n_evicted = len(cur) + len(new) - len(merged)
-        self.strategy.set_map(merged, parent)
+        self.strategy.set_map(merged, parent, new_anchor=int(frame.frame_id))
         stats.n_seeds, stats.n_roi = int(sel.pixels.size), int(is_roi.sum())
         return stats
 
@@ -460,7 +552,8 @@ class Mapper:
         """Seed and optimise for one posed RGB-D frame.
 
         Args:
-            frame: the frame (its pose is trusted).
+            frame: the frame (its pose is where it starts; under ``pose.track_iters`` it is placed against the map
+                before it seeds, :meth:`_place_keyframe`).
             relevance: (H, W) bool relevance map w for this frame, or None (no ROI).
             time_budget_s: wall-clock budget of this call in seconds (seeding included); None →
                 ``cfg.keyframe_budget_s``; both None → ``cfg.iters_per_frame`` iterations (offline
@@ -485,17 +578,13 @@ class Mapper:
         cfg, sw = self.cfg, self.cfg.effective()
         t_wall = time.perf_counter()
         t0 = self.clock.now()
+        budget = cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
         if cfg.sensor.motion_every_frame:
             for fr in between:
                 self.sensor.observe(fr)
         self.sensor.observe(frame)  # the camera's motion over this frame's exposure (motion blur, rolling shutter)
-        if self.poses is not None:
-            # start from the latest keyframe's correction (or the sensor's pose); the first keyframe fixes the gauge
-            E0 = self.poses.initial_correction(frame.frame_id) if cfg.pose.init == "inherit" else np.eye(4)
-            frame = dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E0)
-            self.poses.register(frame.frame_id, E0, fixed=self.n_mapped == 0)
-            if cfg.pose.track_iters and self.n_mapped > 0 and len(self.model):
-                frame = self._track(frame)
+        frame, placed = self._place_keyframe(
+            frame, relevance, None if budget is None else t0 + cfg.pose.track_budget_frac * budget)
         exposure = self.sensor.exposure
         if exposure is not None:
             # start from the latest keyframe's response; the first keyframe fixes the map's exposure
@@ -511,7 +600,6 @@ class Mapper:
         n_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
-        budget = self.cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
         warm_until = None
         if budget is not None:
             # the paper's warm-up → ROI-phase schedule in time: the first warmup_iters / iters_per_frame of
@@ -545,32 +633,34 @@ class Mapper:
                         loss, active_iters, dstats, n_iters, unexplained=seeded.unexplained,
                         budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted,
                         n_adopted=seeded.n_adopted, n_gap_seeds=seeded.n_gap_seeds)
+        if placed is not None:
+            st.track_iters, st.track_accepted = placed.iters, placed.accepted
+            st.track_rot_deg, st.track_trans_m = placed.rot_deg, placed.trans_m
         self.stats.append(st)
         return st
 
-    def _track(self, frame: Frame) -> Frame:
-        """Refine a new frame's pose against the current map before seeding (``pose_track_iters`` Adam
-        steps on ξ alone, Gaussians fixed): colour and depth L1 on the pixels the map explains (rendered
-        silhouette > ``pose_track_alpha``), SplaTAM's tracking loss (Keetha et al., CVPR 2024, Sec. 3.3)
-        started from the sensor's pose instead of a motion model. Returns the frame at the tracked pose."""
+    def _place_keyframe(self, frame: Frame, relevance: Optional[np.ndarray],
+                        deadline: Optional[float]) -> tuple[Frame, Optional[TrackResult]]:
+        """The pose a new keyframe seeds and trains at: its input pose with the correction it starts from (the latest
+        keyframe's under ``pose.init: inherit``; the first keyframe fixes the gauge), then, under
+        ``pose.track_iters``, placed against the frozen map (:class:`~gausslite.mapping.tracking.FrameTracker`,
+        stopped at ``deadline`` clock seconds when given). Records the input pose (:attr:`input_poses`) and the
+        correction (:attr:`poses`). Returns the frame at that pose and the tracker's result (None: not tracked)."""
         cfg = self.cfg
-        kf = keyframe_from_frame(frame, self.device, None)
-        kf.c2w = kf.c2w.clone()
-        for _ in range(cfg.pose.track_iters):
-            xi = torch.zeros(6, dtype=torch.float64, device=self.device, requires_grad=True)
-            out = self.sensor.render_view(kf.c2w, kf.K, kf.width, kf.height, kf.frame_id, None, pose_xi=xi,
-                                          detach_map=True)
-            mask = out.alpha.detach() > cfg.pose.track_alpha
-            if int(mask.sum()) < 0.05 * mask.numel():
-                break  # the map hardly covers the frame: nothing to track against
-            out, _ = self.sensor.exposed(out, kf.frame_id)
-            loss = photometric_loss(out, kf, cfg.lambda_depth, 0.0, mask)
-            loss.backward()
-            new = self.poses.step(kf.frame_id, xi.grad, kf.c2w)
-            if new is None:
-                break
-            kf.c2w = new
-        return dataclasses.replace(frame, c2w=kf.c2w.cpu().numpy().copy())
+        fid = int(frame.frame_id)
+        self.input_poses[fid] = np.asarray(frame.c2w, np.float64).copy()
+        if self.poses is None:
+            return frame, None
+        E0 = self.poses.initial_correction(fid) if cfg.pose.init == "inherit" else np.eye(4)
+        frame = dataclasses.replace(frame, c2w=self.input_poses[fid] @ E0)
+        self.poses.register(fid, E0, fixed=self.n_mapped == 0)
+        if not (cfg.pose.track_iters and self.n_mapped > 0 and len(self.model)):
+            return frame, None
+        res = self.tracker.track(frame, relevance, deadline)
+        if res.accepted:
+            self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ res.c2w)
+            frame = dataclasses.replace(frame, c2w=res.c2w.copy())
+        return frame, res
 
     def _iterations(self, t0: float, budget: Optional[float]):
         """Iteration indices of one ``map_frame`` call: ``iters_per_frame`` (``budget`` None), or as many as
@@ -663,7 +753,8 @@ class Mapper:
         Gaussians with κ, task flags and stable ids (:class:`GaussianModel`), accumulated contribution, budget
         and observed voxels (:class:`DensityStrategy`), the newest ``max_keyframes`` stored keyframes in their
         compact form (None: all; they bound the file size of a long mission; the MVO window is the newest of
-        them), the sensor state (:class:`SensorRenderer`), the pose corrections, the schedule counters and the
+        them), the sensor state (:class:`SensorRenderer`), the pose corrections and the mapped frames' input poses (the
+        keyframe anchors' frames), the schedule counters and the
         RNG state; not the Adam moments (a resumed mapper restarts them at zero, as for newly seeded
         Gaussians). One flat ``torch.save``-able dict.
         """
@@ -675,6 +766,7 @@ class Mapper:
             "n_mapped": self.n_mapped, "n_idle_iters": self.n_idle_iters, "n_budget_iters": self.n_budget_iters,
             "rng": self.rng.bit_generator.state,
             "pose_corrections": None if self.poses is None else self.poses.state_dict(),
+            "input_poses": {k: v.copy() for k, v in self.input_poses.items()},
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -693,5 +785,9 @@ class Mapper:
         self.n_idle_iters = int(state["n_idle_iters"])
         self.n_budget_iters = int(state.get("n_budget_iters", 0))  # absent in older checkpoints
         self.rng.bit_generator.state = state["rng"]
-        if self.poses is not None and state.get("pose_corrections"):
+        if state.get("pose_corrections"):
+            if self.poses is None:  # corrections a pose graph applied to a mapper that neither refines nor tracks
+                self.poses = self._new_pose_record()
             self.poses.load_state_dict(state["pose_corrections"])
+        self.input_poses = {int(k): np.asarray(v, np.float64).copy()
+                            for k, v in (state.get("input_poses") or {}).items()}  # absent in older checkpoints

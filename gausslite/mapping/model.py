@@ -12,10 +12,12 @@ from __future__ import annotations
 import math
 from typing import Optional
 
+import numpy as np
 import torch
 
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import LearningRates
+from gausslite.mapping.poses import quat_mul, quat_of_rotvec
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "colors")
 
@@ -37,6 +39,11 @@ class GaussianModel:
             original, or the first daughter of a split), every further child (clones, the other
             daughters) and every new seed (parent −1) gets a fresh id; ids of removed rows (prune,
             budget replacement) are never reused.  Delta pushes key on them.
+        anchors: (N,) int64 (CPU) keyframe anchor of each row: the frame id of the mapped frame whose seeds it
+            derives from, −1 for an unanchored row (a map loaded from outside). Every child of a parent (kept
+            original, clones, split daughters) keeps the parent's anchor; new seeds take ``set_map``'s
+            ``new_anchor``. :meth:`Mapper.apply_pose_corrections
+            <gausslite.mapping.mapper.Mapper.apply_pose_corrections>` moves the rows of a keyframe whose pose changed.
         optimizer: ``torch.optim.Adam`` with one parameter group per field.
     """
 
@@ -46,6 +53,7 @@ class GaussianModel:
         self.params: dict[str, torch.nn.Parameter] = {}
         self.optimizer: Optional[torch.optim.Adam] = None
         self.ids = torch.zeros(0, dtype=torch.int64)
+        self.anchors = torch.zeros(0, dtype=torch.int64)
         self._next_id = 0
         self.set_map(GaussianMap.empty(device=self.device))
 
@@ -57,8 +65,9 @@ class GaussianModel:
         p = {k: v.detach() for k, v in self.params.items()}
         return GaussianMap(active=self.active, kappa=self.kappa, **p)
 
-    def set_map(self, gmap: GaussianMap, parent_index: Optional[torch.Tensor] = None) -> None:
-        """Replace the parameters by ``gmap``'s fields, carrying Adam state along ``parent_index``.
+    def set_map(self, gmap: GaussianMap, parent_index: Optional[torch.Tensor] = None, new_anchor: int = -1) -> None:
+        """Replace the parameters by ``gmap``'s fields, carrying Adam state, stable ids and keyframe anchors along
+        ``parent_index``.
 
         Args:
             gmap: the new map (its tensors are copied into fresh parameters).
@@ -66,6 +75,8 @@ class GaussianModel:
                 derives from, or −1 for a brand-new Gaussian. The first row of each parent carries its Adam
                 moments; other rows of the same parent (clones, second split daughters) and brand-new rows
                 start from zero moments. None drops all optimiser state.
+            new_anchor: the keyframe anchor (frame id) of the brand-new rows (parent −1, or every row when
+                ``parent_index`` is None); −1 = unanchored.
         """
         old_state = {}
         old_n = len(self) if self.params else 0
@@ -77,6 +88,7 @@ class GaussianModel:
         if parent_index is not None and int(parent_index.shape[0]) != len(gmap.means):
             raise ValueError(f"parent_index has {parent_index.shape[0]} rows, map has {len(gmap.means)}")
         self.ids = self._carry_ids(parent_index, len(gmap.means))
+        self.anchors = self._carry_anchors(parent_index, len(gmap.means), new_anchor)
         new_params = {
             name: torch.nn.Parameter(getattr(gmap, name).detach().to(self.device, torch.float32).clone().contiguous())
             for name in PARAM_NAMES
@@ -109,16 +121,16 @@ class GaussianModel:
 
     def state_dict(self) -> dict:
         """CPU copy of the map for checkpoints: ``gaussians`` (the :class:`GaussianMap` fields, κ and task flags
-        included), ``ids`` (N,) int64 and ``next_id``; not the Adam moments (a loaded model restarts them at
-        zero, as for new seeds)."""
+        included), ``ids`` (N,) int64, ``next_id`` and ``anchors`` (N,) int64; not the Adam moments (a loaded model
+        restarts them at zero, as for new seeds)."""
         g = self.to_map().to("cpu")
         return {"gaussians": {f: getattr(g, f).clone() for f in ("means", "quats", "log_scales", "opacity_logits",
                                                                  "colors", "active", "kappa")},
-                "ids": self.ids.clone(), "next_id": int(self._next_id)}
+                "ids": self.ids.clone(), "next_id": int(self._next_id), "anchors": self.anchors.clone()}
 
     def load_state_dict(self, state: dict) -> None:
-        """Replace the map by a :meth:`state_dict`'s; its stable ids are kept when present and of the map's length
-        (otherwise the rows get fresh ids).
+        """Replace the map by a :meth:`state_dict`'s; its stable ids and keyframe anchors are kept when present and
+        of the map's length (otherwise the rows get fresh ids and no anchor, −1).
 
         Raises:
             KeyError / TypeError / ValueError: no ``gaussians``, or fields of inconsistent shapes.
@@ -127,6 +139,9 @@ class GaussianModel:
         if "ids" in state and int(state["ids"].shape[0]) == len(self):
             self.ids = state["ids"].clone()
             self._next_id = int(state["next_id"])
+        anchors = state.get("anchors")
+        if anchors is not None and int(anchors.shape[0]) == len(self):
+            self.anchors = anchors.to("cpu", torch.int64).clone()
 
     @staticmethod
     def _first_children(parent_index: torch.Tensor) -> torch.Tensor:
@@ -160,6 +175,48 @@ class GaussianModel:
         ids[fresh] = torch.arange(self._next_id, self._next_id + k, dtype=torch.int64)
         self._next_id += k
         return ids
+
+    def _carry_anchors(self, parent_index: Optional[torch.Tensor], n_new: int, new_anchor: int) -> torch.Tensor:
+        """(n_new,) int64 keyframe anchors of the rows of a new map (see the ``anchors`` attribute)."""
+        out = torch.full((n_new,), int(new_anchor), dtype=torch.int64)
+        if parent_index is not None:
+            pi = parent_index.detach().to("cpu", torch.int64)
+            has = pi >= 0
+            out[has] = self.anchors[pi[has]]
+        return out
+
+    @torch.no_grad()
+    def move_rows(self, rows: torch.Tensor, T: np.ndarray) -> None:
+        """Apply the world-frame rigid transform ``T`` to the Gaussians ``rows``: ``means ← R means + t``,
+        ``quats ← q_R ⊗ quats`` (their rotations turn with the frame; scales, opacity and colour are intrinsic).
+        Their Adam moments of the two moved fields restart at zero (as for new rows: moments taken in the old
+        frame do not apply in the new one).
+
+        Args:
+            rows: (K,) int64 row indices (any device). T: (4, 4) float64 rigid transform (rotation R, translation t
+                in metres).
+        Raises:
+            ValueError: ``T`` not a finite (4, 4) rigid transform.
+        """
+        T = np.asarray(T, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3),
+                                                                              atol=1e-6):
+            raise ValueError(f"expected a finite (4, 4) rigid transform, got {T!r}")
+        rows = rows.to(self.device, torch.int64)
+        if rows.numel() == 0:
+            return
+        R = torch.from_numpy(T[:3, :3]).to(self.device)
+        t = torch.from_numpy(T[:3, 3]).to(self.device)
+        means, quats = self.params["means"], self.params["quats"]
+        moved = means[rows].double() @ R.T + t
+        means.index_copy_(0, rows, moved.to(means.dtype))
+        qR = quat_of_matrix(T[:3, :3]).to(self.device, quats.dtype)
+        quats.index_copy_(0, rows, quat_mul(qR, quats[rows]))
+        for p in (means, quats):
+            st = self.optimizer.state.get(p) if self.optimizer is not None else None
+            for key in ("exp_avg", "exp_avg_sq"):
+                if st and key in st:
+                    st[key].index_fill_(0, rows, 0.0)
 
     def set_lr_scale(self, factor: float) -> None:
         """Set every parameter group's learning rate to ``factor`` × its configured rate (``self.lr``).
@@ -213,6 +270,15 @@ class GaussianModel:
                 st["exp_avg_sq"].index_copy_(0, rows, v)
                 denom = (v.sqrt() / ((1.0 - b2 ** t) ** 0.5)).add_(eps)
                 p.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** t))
+
+
+def quat_of_matrix(R: np.ndarray) -> torch.Tensor:
+    """(4,) float64 unit quaternion (w, x, y, z) of a (3, 3) rotation matrix ``R`` (via its rotation vector,
+    SciPy's ``Rotation``)."""
+    # lazy: keeps gausslite.mapping.model importable without SciPy
+    from scipy.spatial.transform import Rotation
+
+    return quat_of_rotvec(torch.from_numpy(Rotation.from_matrix(np.asarray(R, np.float64)).as_rotvec()))
 
 
 def masked_step_reference(model: GaussianModel, update: torch.Tensor) -> None:

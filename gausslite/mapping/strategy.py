@@ -82,15 +82,15 @@ class DensityStrategy:
         self.contribution += weights
 
     # ------------------------------------------------------------------ map changes
-    def set_map(self, gmap: GaussianMap, parent: torch.Tensor) -> None:
+    def set_map(self, gmap: GaussianMap, parent: torch.Tensor, new_anchor: int = -1) -> None:
         """Replace the model's rows by ``gmap`` (``parent`` (M,) int64: the current row each derives from, −1 for
-        a new one; :meth:`GaussianModel.set_map`), carry :attr:`contribution` along ``parent`` (new rows start
-        at 0) and reset the density statistics."""
+        a new one, whose keyframe anchor is ``new_anchor``; :meth:`GaussianModel.set_map`), carry
+        :attr:`contribution` along ``parent`` (new rows start at 0) and reset the density statistics."""
         new = torch.zeros(parent.shape[0], device=self.device)
         has = parent >= 0  # rows of the current map: len(contribution) == len(model) always holds
         new[has] = self.contribution[parent[has]]
         self.contribution = new
-        self.model.set_map(gmap, parent)
+        self.model.set_map(gmap, parent, new_anchor)
         self.reset_stats()
 
     def reset(self, contribution: Optional[torch.Tensor] = None) -> None:
