@@ -807,8 +807,15 @@ class AgentRuntime:
                 "keyframe_latency_s_p95": _percentile(self._kf_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
-                "keyframe_iterations": self.keyframe_iterations, **self.resolution.status(),
+                "keyframe_iterations": self.keyframe_iterations, **self.resolution.status(), **self._tracking_status(),
             }
+
+    def _tracking_status(self) -> dict:
+        """``frames_lost``, ``frames_relocalised`` and ``loop_closures`` of the odometry (zeros without one)."""
+        if self.odometry is None:
+            return {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0}
+        s = self.odometry.summary()
+        return {"frames_lost": s["failed"], "frames_relocalised": s["relocalised"], "loop_closures": s["loops"]}
 
     def acknowledged_subset(self):
         """The subset the fusion server acknowledged last, as the server holds it (decoded wire values):
