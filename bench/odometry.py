@@ -7,14 +7,24 @@ Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
   is not re-aligned in time (that uses the ground truth);
 - ``synthetic_circle``: the synthetic scene (``gausslite make-scene --trajectory circle``), robot A, 300 frames at
   320×240 (rendered: exact depth, no noise);
-- ``room0``: Replica room0, 20 frames at 300×170 (``--downscale 4``), far apart.
+- ``room0``: Replica room0, 20 frames at 300×170 (``--downscale 4``), far apart;
+- ``synthetic_walk``: a room-sized hand-held walk of the synthetic scene (``gausslite make-scene --trajectory walk
+  --sensor-noise realistic``: 7 m in two loops that come back to the desk, Kinect-like depth noise and holes, motion
+  blur, rolling shutter, exposure changes), robot A, 525 frames at 320×240;
+- ``synthetic_walk_covered``: the same walk with the lens covered for 30 frames (2 s, black and without depth) halfway
+  round its first loop, while the camera keeps walking (:func:`covered`): the tracker loses those frames and must
+  re-localise.
 
 Measured: ATE RMSE after rigid (SE(3), no scale) alignment to the reference poses, as the TUM benchmark's
-``evaluate_ate.py``; RPE (translational and rotational RMSE) per frame and per second; the fraction of frames
+``evaluate_ate.py``, of the poses as each frame was tracked (``ate_online_m``: what a live robot has at that moment)
+and after the pose graph's later loop closures (``ate_rmse_m``: what an offline map uses), over the frames tracked;
+the loop closures accepted and their error against the reference (a **false loop**: one whose measured relative pose
+is more than 5 cm or 3° from the truth); the frames lost and re-localised; RPE (translational and rotational RMSE) per frame and per second; the fraction of frames
 tracked (not lost); the odometry's wall-clock time per frame (``track`` alone: the frames are read first). Each
 variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped settings: tracked at about 160 pixels
-wide), ``mapping_resolution`` (tracked at the sequence's own resolution) and ``frame_to_frame`` (the shipped settings
-registering against the previous frame only).
+wide), ``mapping_resolution`` (tracked at the sequence's own resolution), ``frame_to_frame`` (the shipped settings
+registering against the previous frame only), ``no_loops`` (the shipped settings without loop closure) and
+``no_relocalisation`` (without re-localisation).
 
 ``--gains GIVEN.json,ODOMETRY.json`` compares the ROI gain (GaussLite − uniform, ``novel``) of live missions at the
 odometry's poses with the gain at the given poses, from two ``bench.realtime`` runs (:func:`pose_gains`).
@@ -36,6 +46,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import tempfile
@@ -44,11 +55,12 @@ from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
+from tqdm import tqdm
 
 from bench._results import write_results
 from gausslite.datasets import load_dataset
 from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
-from gausslite.datasets.trajectory import ate_rmse, rpe
+from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg, rpe
 from gausslite.synthetic import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -57,11 +69,21 @@ RESULTS = REPO / "bench" / "results"
 
 #: the odometry settings compared (``OdometryConfig`` fields over the defaults)
 VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
-            "frame_to_frame": {"reference": "previous_frame"}}
-SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0")
+            "frame_to_frame": {"reference": "previous_frame"}, "no_loops": {"loop": {"enabled": False}},
+            "no_relocalisation": {"relocalise": {"enabled": False}}}
+SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered")
+#: a loop closure whose relative pose is further than this from the reference's is a false loop (metres, degrees)
+FALSE_LOOP = (0.05, 3.0)
 
 
-def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple) -> list:
+def covered(n: int) -> range:
+    """``synthetic_walk_covered``'s frames with the lens covered (black, no depth) in a walk of ``n`` frames: from 23 %
+    of the walk (halfway round its first loop), 30 of 525 (2 s at 30 fps), scaled with ``n``."""
+    start = int(0.23 * n)
+    return range(start, start + max(1, round(30 * n / 525)))
+
+
+def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, walk_frames: int = 525) -> list:
     """The frames (with their reference poses as ``c2w``) of a bench sequence, read into memory.
 
     Raises:
@@ -72,6 +94,17 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple) -> 
                           interpolate_poses=True, align_depth_time=False, pose_source="given")
     elif name == "room0":
         ds = load_dataset(SHARED / "Replica_room0", downscale=4, pose_source="given")
+    elif name.startswith("synthetic_walk"):
+        scene = work / "walk"
+        if not (scene / "agent_a" / "traj.txt").is_file():
+            make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory="walk",
+                       sensor_noise="realistic")
+        ds = load_dataset(scene / "agent_a", pose_source="given")
+        frames = [ds[i] for i in range(len(ds))]
+        if name.endswith("_covered"):
+            frames = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb), depth=np.zeros_like(f.depth))
+                      if i in covered(len(frames)) else f for i, f in enumerate(frames)]
+        return frames
     else:
         scene = work / "synthetic"
         if not (scene / "agent_a" / "traj.txt").is_file():
@@ -81,25 +114,50 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple) -> 
 
 
 def track(frames: list, overrides: dict) -> dict:
-    """Run the odometry over ``frames`` (the first one's reference pose fixes the world frame) and score it."""
+    """Run the odometry over ``frames`` (the first one's reference pose fixes the world frame) and score it: ATE of
+    the online and the corrected poses over the tracked frames, RPE of the corrected ones, the loop closures and
+    their error against the reference poses, the frames lost and re-localised, and the time per frame."""
     odo = RGBDOdometry(OdometryConfig(**overrides), initial_pose=frames[0].c2w)
     seconds, results = [], []
-    for f in frames:
+    for f in tqdm(frames, desc="odometry", unit="frame", leave=False):
         t0 = time.perf_counter()
         results.append(odo.track(f))
         seconds.append(time.perf_counter() - t0)
-    est = np.stack([r.c2w for r in results])
+    ok = np.array([r.ok for r in results])
+    online = np.stack([r.c2w for r in results])
+    est = np.stack([odo.corrected(r) for r in results])
     ref = np.stack([f.c2w for f in frames])
     ts = np.array([f.timestamp for f in frames])
     i = frames[0].intrinsics
     tw = odo.config.track_width
     f = 1 if tw is None else max(1, round(i.width / tw))
+    loops = loop_errors(odo, frames)
+    summary = odo.summary()
     return {"frames": len(frames), "size": [i.width, i.height], "tracked_size": [i.width // f, i.height // f],
-            "ate_rmse_m": ate_rmse(est, ref),
-            "rpe": {"per_frame": rpe(est, ref), "per_second": rpe(est, ref, ts, 1.0, per_second=True)},
+            "ate_rmse_m": ate_rmse(est[ok], ref[ok]), "ate_online_m": ate_rmse(online[ok], ref[ok]),
+            "rpe": {"per_frame": rpe(est[ok], ref[ok]), "per_second": rpe(est[ok], ref[ok], ts[ok], 1.0,
+                                                                          per_second=True)},
             "ms_per_frame": 1000.0 * float(np.mean(seconds[1:])) if len(seconds) > 1 else None,
-            "tracked_fraction": float(np.mean([r.ok for r in results])),
-            "lost_frame_ids": list(odo.failed_ids), "keyframes": odo.n_keyframes}
+            "tracked_fraction": float(np.mean(ok)), "lost": summary["failed"], "relocalised": summary["relocalised"],
+            "lost_frame_ids": list(odo.failed_ids), "keyframes": odo.n_keyframes,
+            "loops": {"accepted": len(loops), "false": sum(e["false"] for e in loops),
+                      "candidates": summary["loop_candidates"], "rejected": summary["loop_rejected"],
+                      "max_error_m": max((e["error_m"] for e in loops), default=None),
+                      "max_error_deg": max((e["error_deg"] for e in loops), default=None), "edges": loops}}
+
+
+def loop_errors(odo: RGBDOdometry, frames: list) -> list:
+    """Each accepted loop closure of ``odo`` with its error against the reference poses of ``frames``:
+    ``[{"source", "target", "error_m", "error_deg", "false"}]`` (false: beyond :data:`FALSE_LOOP`)."""
+    index = {int(f.frame_id): i for i, f in enumerate(frames)}
+    out = []
+    for e in odo.graph.loops:
+        true = np.linalg.inv(frames[index[e.target]].c2w) @ frames[index[e.source]].c2w
+        d = np.linalg.inv(true) @ e.T
+        err_m, err_deg = float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
+        out.append({"source": e.source, "target": e.target, "error_m": err_m, "error_deg": err_deg,
+                    "false": bool(err_m > FALSE_LOOP[0] or err_deg > FALSE_LOOP[1])})
+    return out
 
 
 def live(rate: float, budget: float) -> dict:
@@ -218,19 +276,23 @@ def _cm(v) -> str:
 
 def table(results: dict) -> str:
     """The Markdown table of ``results[sequence][variant]``."""
-    rows = ["| sequence | variant | frames | size | tracked at | ATE (cm) | RPE (cm / frame) | RPE (° / frame) | "
-            "RPE (cm / s) | "
-            "tracked | ms / frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| sequence | variant | frames | size | tracked at | ATE (cm) | ATE online (cm) | RPE (cm / frame) | "
+            "RPE (° / frame) | RPE (cm / s) | tracked | lost / re-localised | loops (false) | largest loop error | "
+            "ms / frame |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for seq, by_variant in results.items():
         for var, r in by_variant.items():
             pf, ps = r["rpe"]["per_frame"], r["rpe"]["per_second"]
             rot = "—" if pf["rot_rmse_deg"] is None else f"{pf['rot_rmse_deg']:.2f}"
             ms = "—" if r["ms_per_frame"] is None else f"{r['ms_per_frame']:.0f}"
             ts = r["tracked_size"]
+            lp = r["loops"]
+            worst = ("—" if lp["max_error_m"] is None
+                     else f"{100 * lp['max_error_m']:.1f} cm / {lp['max_error_deg']:.1f}°")
             rows.append(f"| {seq} | {var} | {r['frames']} | {r['size'][0]}×{r['size'][1]} | {ts[0]}×{ts[1]} | "
-                        f"{_cm(r['ate_rmse_m'])} "
+                        f"{_cm(r['ate_rmse_m'])} | {_cm(r['ate_online_m'])} "
                         f"| {_cm(pf['trans_rmse_m'])} | {rot} | {_cm(ps['trans_rmse_m'])} | "
-                        f"{100 * r['tracked_fraction']:.0f} % | {ms} |")
+                        f"{100 * r['tracked_fraction']:.0f} % | {r['lost']} / {r['relocalised']} | "
+                        f"{lp['accepted']} ({lp['false']}) | {worst} | {ms} |")
     return "\n".join(rows)
 
 
@@ -243,17 +305,20 @@ def live_table(r: dict) -> str:
             f"{r['late_s_max']:.2f} | {r['frames_keyframed']} |")
 
 
-def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path) -> dict:
+def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path,
+        walk_frames: int = 525) -> dict:
     """``{sequence: {variant: metrics}}`` (:func:`track`), printing each row as it is measured."""
     out: dict = {}
     for name in sequences:
-        frames = load_sequence(name, work, synthetic_frames, size)
+        frames = load_sequence(name, work, synthetic_frames, size, walk_frames)
         out[name] = {}
         for var in variants:
             out[name][var] = track(frames, VARIANTS[var])
             r = out[name][var]
-            print(f"{name} {var}: ATE {100 * r['ate_rmse_m']:.2f} cm, tracked {100 * r['tracked_fraction']:.0f} %, "
-                  f"{r['ms_per_frame']:.0f} ms/frame", flush=True)
+            print(f"{name} {var}: ATE {100 * r['ate_rmse_m']:.2f} cm (online {100 * r['ate_online_m']:.2f}), "
+                  f"tracked {100 * r['tracked_fraction']:.0f} %, lost {r['lost']}, re-localised {r['relocalised']}, "
+                  f"loops {r['loops']['accepted']} ({r['loops']['false']} false), {r['ms_per_frame']:.0f} ms/frame",
+                  flush=True)
     return out
 
 
@@ -263,7 +328,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--sequences", default=",".join(SEQUENCES), help=f"comma-separated, of {', '.join(SEQUENCES)}")
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--synthetic-frames", type=int, default=300, help="frames of the synthetic circle")
-    ap.add_argument("--synthetic-size", default="320x240", help="WxH of the synthetic circle")
+    ap.add_argument("--synthetic-size", default="320x240", help="WxH of the synthetic circle and walk")
+    ap.add_argument("--walk-frames", type=int, default=525, help="frames of the synthetic walk (525: 7 m at 30 fps)")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="folder for the rendered synthetic scenes, kept for the next run (default: a temporary one)")
     ap.add_argument("--live", action="store_true",
                     help="also stream TUM fr1/rpy at 15 Hz to an agent that tracks every frame while it maps")
     ap.add_argument("--live-budget", type=float, default=0.5, help="the live agent's keyframe budget, seconds")
@@ -291,7 +359,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
-        results = run(seqs, variants, args.synthetic_frames, size, Path(tmp))
+        results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames)
     live_result = live(1.0, args.live_budget) if args.live else None
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
            "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",

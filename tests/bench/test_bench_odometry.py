@@ -20,9 +20,25 @@ def test_odometry_bench_smoke(tmp_path, capsys):
         assert r["frames"] == 90 and r["size"] == [160, 120] and r["ms_per_frame"] > 0
         assert r["tracked_fraction"] > 0.9 and r["ate_rmse_m"] < 0.1
         assert r["rpe"]["per_frame"]["pairs"] == 89 and r["rpe"]["per_second"]["trans_rmse_m"] is not None
+        assert r["ate_online_m"] < 0.1 and r["loops"]["false"] == 0 and r["lost"] == 0
     printed = capsys.readouterr().out
     assert "| synthetic_circle | default | 90 | 160×120 | 160×120 |" in printed
     assert printed.count("| synthetic_circle |") == 2 and out.with_suffix(".md").is_file()
+
+
+def test_the_covered_walk_loses_the_covered_frames_and_counts_what_it_found_again(tmp_path):
+    import bench.odometry as bo
+
+    out = tmp_path / "odometry.json"
+    assert bo.main(["--sequences", "synthetic_walk_covered", "--walk-frames", "70", "--synthetic-size", "160x120",
+                    "--variants", "default,no_relocalisation", "--work", str(tmp_path), "--out", str(out)]) == 0
+    res = json.loads(out.read_text())["sequences"]["synthetic_walk_covered"]
+    n_covered = len(bo.covered(70))
+    assert n_covered == 4
+    for variant in ("default", "no_relocalisation"):
+        r = res[variant]
+        assert r["frames"] == 70 and r["lost"] >= n_covered and r["loops"]["false"] == 0
+    assert res["no_relocalisation"]["relocalised"] == 0
 
 
 def test_the_live_table_reads_the_live_figures():
