@@ -48,7 +48,7 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopConfig", "RelocConfig", "LoopEdge", "KeyframeGraph", "verify_registration", "relocalise",
-           "thumbnail", "open3d_module"]
+           "thumbnail", "open3d_module", "loop_information"]
 
 
 def open3d_module():
@@ -205,7 +205,7 @@ class KeyframeGraph:
         for s, t, T, info in self.odometry_edges:
             pg.edges.append(reg.PoseGraphEdge(index[s], index[t], T, info, uncertain=False))
         for e in self.loops:
-            info = _icp_information(e)
+            info = loop_information(e)
             pg.edges.append(reg.PoseGraphEdge(index[e.source], index[e.target], e.T, info, uncertain=True))
         option = reg.GlobalOptimizationOption(max_correspondence_distance=cfg.icp_distance_m,
                                               edge_prune_threshold=cfg.prune_threshold, preference_loop_closure=1.0,
@@ -253,7 +253,7 @@ class KeyframeGraph:
                 "loop_rejected": self.n_loop_rejected, "optimisations": self.n_optimisations}
 
 
-def _icp_information(e: LoopEdge) -> np.ndarray:
+def loop_information(e: LoopEdge) -> np.ndarray:
     """A loop edge's information: identity scaled by 1 / RMSE² (a tighter registration weighs more)."""
     return np.eye(6) / max(e.icp_rmse_m, 1e-3) ** 2
 
