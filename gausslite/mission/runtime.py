@@ -52,6 +52,7 @@ from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import FrameSizeMismatch, MissionError
 from gausslite.mission.ports import FusionPort
+from gausslite.mission.pose_follow import MapFollower
 from gausslite.mission.pusher import Pusher
 from gausslite.mission.relevance import build_relevance
 from gausslite.mission.share import ShareSession, select_shared
@@ -234,6 +235,8 @@ class AgentRuntime:
         self.frames_skipped = 0
         self.frames_rejected = 0
         self.odometry = _odometry(config)  # agent.pose_source odometry: every frame is tracked in submit
+        #: the map follows the odometry's loop closures (agent.pose_source odometry)
+        self.follower = None if self.odometry is None else MapFollower(self.odometry)
         #: replays under ``agent.pose_source: odometry``: frame id → (4, 4) float64 c2w the odometry estimated (in the
         #: world frame), every frame tracked, the withheld ones too: the poses the mission is scored at
         self.estimated_poses: Dict[int, np.ndarray] = {}
@@ -287,7 +290,7 @@ class AgentRuntime:
         """
         t_arr = time.perf_counter() if arrival is None else arrival
         if self.odometry is not None:
-            frame = self._track(frame)
+            frame = self._track(frame, None if _replay else self.T_world_map)
             if frame is None:
                 return False
         if not _replay:  # a replay's frames are in the world frame already (replay())
@@ -326,15 +329,17 @@ class AgentRuntime:
             self._accept_ms.append(1e3 * (time.perf_counter() - t_arr))
         return True
 
-    def _track(self, frame) -> Optional[Frame]:
+    def _track(self, frame, W: Optional[np.ndarray] = None) -> Optional[Frame]:
         """``frame`` (decoded) with the odometry's pose (agent.pose_source odometry), or None when its tracking failed:
-        the frame is then logged, counted as rejected and not mapped."""
+        the frame is then logged, counted as rejected and not mapped. ``W`` (4, 4): the transform from the odometry's
+        frame into the map's that the frame's pose takes next (None: the identity)."""
         if hasattr(frame, "materialize"):
             frame = frame.materialize()  # the odometry needs the images of every frame
         if self.odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
             self.odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
         r = self.odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
         if r.ok:
+            self.follower.record(frame.frame_id, r, W)
             if self._dataset is not None:  # a replay: scored at these poses (evaluate_protocols)
                 self.estimated_poses[int(frame.frame_id)] = np.asarray(r.c2w, dtype=np.float64).copy()
             return dataclasses.replace(frame, c2w=r.c2w)
@@ -528,6 +533,8 @@ class AgentRuntime:
                 if not idle:
                     continue
                 try:
+                    if self.follower is not None:  # a loop closed while the mapper waits for a keyframe
+                        self.follower.apply(self.mapper)
                     n = self.mapper.optimize(max_seconds=cfg.idle_chunk_s)
                 except Exception as e:
                     self._fail(f"optimising between keyframes failed: {type(e).__name__}: {e}")
@@ -543,6 +550,8 @@ class AgentRuntime:
                 if item is _FINISH:
                     if self.state != MissionState.FAILED:
                         if self.frames_mapped:
+                            if self.follower is not None:
+                                self.follower.apply(self.mapper)
                             n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
                             log.info("agent %s: final pass, %d iterations", self.agent_id, n)
                         self._offer_snapshot(final=True)
@@ -589,6 +598,8 @@ class AgentRuntime:
             between = [self.resolution.apply(f) if isinstance(f, Frame) else f
                        for f in self._take_between(item.frame_id)]
             w = self.relevance(item)
+            if self.follower is not None:  # a loop closure since the last keyframe: the map follows it first
+                self.follower.apply(self.mapper)
             # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
             b = cfg.mapper.keyframe_budget_s
             left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
