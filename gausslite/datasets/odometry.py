@@ -254,6 +254,9 @@ class RGBDOdometry:
         vel = np.linalg.matrix_power(self.velocity, steps) if self.config.motion_prior else np.eye(4)
         pred = self.last_pose @ vel
         ref = self._reference(pred)
+        if self._since_good and self.config.relocalise.enabled:
+            # after a loss the camera may be anywhere: only a re-localisation, with its stricter gates, finds it again
+            return self._relocalise(frame, image, pred) or self._fail(frame, "not re-localised", 0.0, ref)
         ok, T, info, fitness = self.register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
         c2w = ref.c2w @ T
         reason = "" if ok else "Open3D's odometry did not converge"
@@ -265,7 +268,7 @@ class RGBDOdometry:
             reason = f"fitness {fitness:.2f} < {min_fit}"
         reason = reason or self._implausible(c2w, steps)
         if reason:
-            return self._relocalise(frame, image) or self._fail(frame, reason, fitness, ref)
+            return self._relocalise(frame, image, pred) or self._fail(frame, reason, fitness, ref)
         self.velocity = self._root(np.linalg.inv(self.last_pose) @ c2w, steps)
         self.last_pose, self._since_good = c2w, 0
         self.n_tracked += 1
@@ -340,13 +343,13 @@ class RGBDOdometry:
         if self.on_correction is not None:
             self.on_correction({fid: c2w.copy() for fid, c2w in new.items()})
 
-    def _relocalise(self, frame: Frame, image) -> Optional[TrackResult]:
-        """A lost frame found again against the keyframes (:func:`~gausslite.datasets.pose_graph.relocalise`), as
-        a tracked frame, or None."""
+    def _relocalise(self, frame: Frame, image, pred: np.ndarray) -> Optional[TrackResult]:
+        """A lost frame found again against the keyframes (:func:`~gausslite.datasets.pose_graph.relocalise`, from
+        ``pred`` (4, 4), the pose the motion predicts), as a tracked frame, or None."""
         cfg = self.config.relocalise
         if not cfg.enabled or self._since_good % cfg.every != 0:
             return None
-        got = relocalise(self, frame, image, self.last_pose, cfg)
+        got = relocalise(self, frame, image, pred, cfg)
         if got is None:
             return None
         c2w, fid, fitness = got
