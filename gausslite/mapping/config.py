@@ -173,8 +173,8 @@ class PoseConfig(_Strict):
         None, ge=8, description="tracking: render at about this many pixels wide (the frame downscaled by the "
         "integer factor width // track_width: colour block means, valid-depth means); None = the frame's resolution"
     )
-    track_lr_rot: float = Field(2e-3, gt=0, description="tracking: Adam step of the rotation (radians)")
-    track_lr_trans: float = Field(2e-3, gt=0, description="tracking: Adam step of the translation (metres)")
+    track_lr_rot: float = Field(5e-3, gt=0, description="tracking: Adam step of the rotation (radians)")
+    track_lr_trans: float = Field(5e-3, gt=0, description="tracking: Adam step of the translation (metres)")
     track_lambda_depth: Optional[float] = Field(
         None, ge=0, description="tracking: weight of the depth L1 (metres) beside the colour L1; None = lambda_depth"
     )
