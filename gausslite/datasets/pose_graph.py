@@ -28,7 +28,9 @@ Loop edges are gated hard, since one false loop bends the whole map:
 
 A frame whose tracking failed is **re-localised** (:func:`relocalise`): the keyframes whose thumbnails look most
 like it (zero-mean normalised cross-correlation of 40 × 30 grey images), each from its own pose, and those nearest
-the pose the last motion predicts, from that prediction, are tried with the same gates as a loop (2-3). Once a frame
+the pose the last motion predicts, from that prediction, are tried with the same gates as a loop (2-3), and the pose
+is kept only when ``min_support`` keyframes give it alike (a registration that slid along a wall or the desk fits
+one keyframe, rarely two). Once a frame
 is lost, the next ones are only re-localised: the ordinary tracking's looser check does not apply until one is found
 again. The best one passing them gives the frame's pose.
 
@@ -120,14 +122,17 @@ class RelocConfig(BaseModel):
             to the last good pose.
         every: try on every ``every``-th consecutive lost frame (1: each one), to bound the cost of a long loss.
         min_fitness: the gates' fitness (as :class:`LoopConfig`'s; the ICP gates are :class:`LoopConfig`'s).
+        min_support: keyframes whose registrations must give the same pose (within :class:`LoopConfig`'s
+            ``agree_m`` / ``agree_deg``; fewer only while the odometry has fewer keyframes).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     enabled: bool = True
-    candidates: int = Field(4, ge=1)
+    candidates: int = Field(6, ge=1)
     every: int = Field(1, ge=1)
     min_fitness: float = Field(0.45, gt=0, le=1)
+    min_support: int = Field(2, ge=1)
 
 
 @dataclass
@@ -347,7 +352,7 @@ def relocalise(odo, frame, image, pred: np.ndarray,
     by_look = sorted(kfs, key=lambda k: -float(th @ k.thumb))
     by_pose = sorted(kfs, key=lambda k: float(np.linalg.norm(k.c2w[:3, 3] - pred[:3, 3])))
     n_look = max(1, cfg.candidates // 2)
-    tried, best = [], None
+    tried, passed = [], []
     for k in by_look[:n_look] + by_pose:
         if len(tried) >= cfg.candidates:
             break
@@ -356,6 +361,9 @@ def relocalise(odo, frame, image, pred: np.ndarray,
         tried.append(k.frame_id)
         init = np.eye(4) if k in by_look[:n_look] else np.linalg.inv(k.c2w) @ pred
         got = verify_registration(odo, frame, image, k, init, cfg.min_fitness, odo.config.loop)
-        if got is not None and (best is None or got[2] > best[2]):
-            best = (k.c2w @ got[0], k.frame_id, got[2])
-    return best
+        if got is not None:
+            passed.append((k.c2w @ got[0], k.frame_id, got[2]))
+    # a pose two keyframes give alike (a slide along a wall or the desk fits one keyframe, rarely two)
+    support = [[q for q in passed if _agree(p[0], q[0], odo.config.loop)] for p in passed]
+    agreed = [p for p, s in zip(passed, support) if len(s) >= min(cfg.min_support, len(kfs))]
+    return max(agreed, key=lambda p: p[2], default=None)
