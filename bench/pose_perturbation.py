@@ -40,6 +40,7 @@ missing ones (runs are deterministic per seed).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -103,43 +104,64 @@ def sequence(n_total: int, frames: int, withhold_every: int) -> tuple[list[int],
     return [i for i in idx if i not in held], sorted(held)
 
 
-def _score(gmap, frames: list, roi_fn) -> dict:
-    """Mean ROI PSNR and PSNR of ``gmap`` rendered at ``frames``' own (true) poses; ROI over non-empty ROIs."""
-    scores = [score_view(render_map(gmap, fr), fr, roi_fn(fr)) for fr in frames]
+def _score(render, frames: list, roi_fn) -> dict:
+    """Mean ROI PSNR and PSNR of ``render`` (frame -> RenderOutput) over ``frames``; ROI over non-empty ROIs."""
+    scores = [score_view(render(fr), fr, roi_fn(fr)) for fr in frames]
     roi = [s.roi_psnr for s in scores if np.isfinite(s.roi_psnr)]
     return {"roi_psnr": float(np.mean(roi)) if roi else None, "psnr": float(np.mean([s.psnr for s in scores])),
             "roi_psnr_per_frame": {int(s.frame_id): s.roi_psnr for s in scores if np.isfinite(s.roi_psnr)}}
 
 
-def run_one(job: dict) -> dict:
-    """Map one (scene, level, refine, mode, seed) at perturbed poses and score it at the true poses (a worker)."""
-    torch.set_num_threads(1)
-    spec = SCENES[job["scene"]]
-    ds, profile = realtime.load_scene({"downscale": spec["downscale"]}, Path(job["path"]))
-    mapped, held = sequence(len(ds), job["frames"], job["withhold_every"])
-    order = sorted(mapped + held)
-    true = np.stack([ds[i].c2w for i in order])
-    est = perturb_trajectory(true, job["level"], seed=job["seed"])
-    est_by_id = {int(ds[i].frame_id): est[k] for k, i in enumerate(order) if i in set(mapped)}
+def _map(job: dict, ds, profile, mapped: list[int], est_by_id: dict):
+    """Map the ``mapped`` frames of ``ds`` at the poses ``est_by_id`` (frame id -> c2w) with the job's settings."""
     view = EstimatedPoses(FrameSubset(ds, [i for i in range(len(ds)) if i not in set(mapped)]), est_by_id)
     overrides = list(job["overrides"])
     if job["refine"]:
         overrides += ["pose.refine=true", f"pose.track_iters={job['track_iters']}"]
     cfg = load_mapper_config(None, overrides, defaults=dict(profile.mapper), mode=job["mode"], seed=job["seed"],
                              performance={"render_threads": 1})
-    t0 = time.perf_counter()
-    task = spec["task"]
+    task = SCENES[job["scene"]]["task"]
     mapper, _ = run_mapping(view, cfg, task_id=task, relevance_fn=view.roi_fn(ds.annotations, task), progress=False)
+    return mapper
+
+
+def run_one(job: dict) -> dict:
+    """Map one (scene, level, refine, mode, seed) at perturbed poses and score it at the true poses (a worker);
+    also at the poses the robot believes (the estimate with the map's correction), for comparison."""
+    torch.set_num_threads(1)
+    spec = SCENES[job["scene"]]
+    ds, profile = realtime.load_scene({"downscale": spec["downscale"]}, Path(job["path"]))
+    mapped, held = sequence(len(ds), job["frames"], job["withhold_every"])
+    order = sorted(mapped + held)
+    frames = {i: ds[i] for i in order}
+    true = np.stack([frames[i].c2w for i in order])
+    est = perturb_trajectory(true, job["level"], seed=job["seed"])
+    est_of = {i: est[k] for k, i in enumerate(order)}
+    t0 = time.perf_counter()
+    mapper = _map(job, ds, profile, mapped, {int(frames[i].frame_id): est_of[i] for i in mapped})
     wall = time.perf_counter() - t0
-    gmap, roi = mapper.gmap, task_roi(ds.annotations, task)
-    withheld = _score(gmap, [ds[i] for i in held], roi)
-    on_mapped = _score(gmap, [ds[i] for i in mapped], roi)
-    mapped_k = [k for k, i in enumerate(order) if i in set(mapped)]
+    gmap, roi = mapper.gmap, task_roi(ds.annotations, SCENES[job["scene"]]["task"])
+    believed = {i: mapper.pose_of(int(frames[i].frame_id), est_of[i]) for i in order}
+    by_id = {int(frames[i].frame_id): believed[i] for i in order}
+
+    def at_true(fr):
+        return render_map(gmap, fr)
+
+    def at_estimate(fr):  # the estimate with the map's correction; the ROI stays the true one
+        return render_map(gmap, dataclasses.replace(fr, c2w=by_id[int(fr.frame_id)]))
+
+    withheld = _score(at_true, [frames[i] for i in held], roi)
+    withheld_est = _score(at_estimate, [frames[i] for i in held], roi)
+    on_mapped = _score(at_true, [frames[i] for i in mapped], roi)
+    mk = [k for k, i in enumerate(order) if i in set(mapped)]
+    believed_mapped = np.stack([believed[i] for i in mapped])
     return {**{k: job[k] for k in ("scene", "level", "refine", "mode", "seed")},
             "roi_psnr": withheld["roi_psnr"], "psnr": withheld["psnr"],
             "roi_psnr_per_frame": withheld["roi_psnr_per_frame"],
+            "roi_psnr_at_estimate": withheld_est["roi_psnr"], "psnr_at_estimate": withheld_est["psnr"],
             "roi_psnr_mapped": on_mapped["roi_psnr"], "psnr_mapped": on_mapped["psnr"],
-            "pose_error": pose_error_stats(est, true), "pose_error_mapped": pose_error_stats(est[mapped_k], true[mapped_k]),
+            "pose_error": pose_error_stats(est, true), "pose_error_mapped": pose_error_stats(est[mk], true[mk]),
+            "pose_error_after_map": pose_error_stats(believed_mapped, true[mk]),
             "n_mapped": len(mapped), "n_withheld": len(held), "n_gaussians": len(mapper.model),
             "s_per_frame": float(np.mean([s.seconds for s in mapper.stats])), "wall_s": wall}
 
@@ -156,12 +178,18 @@ def summarise(runs: list[dict], scenes: list[str], levels: list[str], refines: l
                 by = {m: {r["seed"]: r for r in rs if r["mode"] == m} for m in MODES}
                 row: dict = {"seeds": [s for s in seeds if all(s in by[m] for m in MODES)]}
                 for m in MODES:
-                    for k in ("roi_psnr", "psnr", "roi_psnr_mapped", "psnr_mapped", "n_gaussians", "s_per_frame"):
+                    for k in ("roi_psnr", "psnr", "roi_psnr_at_estimate", "roi_psnr_mapped", "psnr_mapped",
+                              "n_gaussians", "s_per_frame"):
                         row[f"{m}_{k}"], row[f"{m}_{k}_std"] = mean_std([by[m][s][k] for s in by[m]])
                 pe = [r["pose_error"] for r in rs if r["mode"] == "uniform"]
                 for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m", "trans_max_m"):
                     row[k], row[k + "_std"] = mean_std([p[k] for p in pe])
-                for key, field in (("gain", "roi_psnr"), ("gain_mapped", "roi_psnr_mapped")):
+                for m in MODES:  # the mapped frames' poses after mapping (refined, or as given) against the truth
+                    for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m"):
+                        row[f"{m}_after_map_{k}"], row[f"{m}_after_map_{k}_std"] = mean_std(
+                            [by[m][s]["pose_error_after_map"][k] for s in by[m]])
+                for key, field in (("gain", "roi_psnr"), ("gain_mapped", "roi_psnr_mapped"),
+                                   ("gain_at_estimate", "roi_psnr_at_estimate")):
                     g = gain([by["gausslite"][s][field] for s in row["seeds"]],
                              [by["uniform"][s][field] for s in row["seeds"]])
                     row[key], row[key + "_std"], row[key + "_significant"] = g["gain"], g["gain_std"], g["significant"]
@@ -175,9 +203,10 @@ def summarise(runs: list[dict], scenes: list[str], levels: list[str], refines: l
 
 def table(summary: dict) -> str:
     """The Markdown table of :func:`summarise`'s result."""
-    lines = ["| scene | pose refine | level | realised ATE / rot / unaligned RMSE | uniform ROI PSNR | GaussLite ROI PSNR "
-             "| gain (GaussLite − uniform) | exact gain kept | gain on mapped views |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | pose refine | level | given poses: ATE / rot / unaligned RMSE | mapped poses after mapping, "
+             "uniform / GaussLite: unaligned RMSE, rot | uniform ROI PSNR | GaussLite ROI PSNR "
+             "| gain (GaussLite − uniform) | exact gain kept | gain on mapped views | gain at the believed pose |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for scene, by_refine in summary.items():
         for rkey, block in by_refine.items():
             for level, r in block.items():
@@ -186,10 +215,14 @@ def table(summary: dict) -> str:
                 g = "–" if r["gain"] is None else (f"{fmt(r['gain'], r['gain_std'])} dB"
                                                   + (" (sig.)" if r["gain_significant"] else ""))
                 kept = "–" if r["gain_kept"] is None else f"{100 * r['gain_kept']:.0f} %"
-                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level} | {err} | "
+                after = " / ".join("–" if r[f"{m}_after_map_trans_rmse_m"] is None else
+                                   f"{100 * r[f'{m}_after_map_trans_rmse_m']:.2f} cm, "
+                                   f"{r[f'{m}_after_map_rot_rmse_deg']:.2f}°" for m in MODES)
+                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level} | {err} | {after} | "
                              f"{fmt(r['uniform_roi_psnr'], r['uniform_roi_psnr_std'])} | "
                              f"{fmt(r['gausslite_roi_psnr'], r['gausslite_roi_psnr_std'])} | {g} | {kept} | "
-                             f"{fmt(r['gain_mapped'], r['gain_mapped_std'])} |")
+                             f"{fmt(r['gain_mapped'], r['gain_mapped_std'])} | "
+                             f"{fmt(r['gain_at_estimate'], r['gain_at_estimate_std'])} |")
     return "\n".join(lines)
 
 

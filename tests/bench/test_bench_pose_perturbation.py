@@ -24,8 +24,8 @@ def test_sequence_spreads_frames_and_withholds_every_kth():
 def _run(scene, level, refine, mode, seed, roi):
     err = {"ate_m": 0.01, "rot_rmse_deg": 0.5, "trans_rmse_m": 0.02, "trans_max_m": 0.04}
     return {"scene": scene, "level": level, "refine": refine, "mode": mode, "seed": seed, "roi_psnr": roi,
-            "psnr": roi + 1, "roi_psnr_mapped": roi + 2, "psnr_mapped": roi + 3, "n_gaussians": 100,
-            "s_per_frame": 1.0, "pose_error": err}
+            "psnr": roi + 1, "roi_psnr_mapped": roi + 2, "psnr_mapped": roi + 3, "roi_psnr_at_estimate": roi + 4,
+            "n_gaussians": 100, "s_per_frame": 1.0, "pose_error": err, "pose_error_after_map": err}
 
 
 def test_summary_gains_and_fraction_kept():
@@ -42,7 +42,9 @@ def test_summary_gains_and_fraction_kept():
     assert lv["uniform_roi_psnr"] == pytest.approx(20.0) and lv["uniform_roi_psnr_std"] == pytest.approx(0.5)
     assert lv["ate_m"] == pytest.approx(0.01) and lv["seeds"] == [0, 1, 2]
     md = table(out)
-    assert "| s | off | 3cm_1.5deg | 1.00 cm / 0.50° / 2.00 cm |" in md and "52 %" in md
+    assert lv["gain_at_estimate"] == pytest.approx(1.1) and lv["uniform_after_map_trans_rmse_m"] == pytest.approx(0.02)
+    assert "| s | off | 3cm_1.5deg | 1.00 cm / 0.50° / 2.00 cm | 2.00 cm, 0.50° / 2.00 cm, 0.50° |" in md
+    assert "52 %" in md
 
 
 def test_one_tiny_run_scores_at_true_poses(tmp_path):
@@ -54,5 +56,6 @@ def test_one_tiny_run_scores_at_true_poses(tmp_path):
     assert r["n_mapped"] == 10 and r["n_withheld"] == 2
     assert r["pose_error"]["ate_m"] == pytest.approx(0.03, rel=1e-6)
     assert r["pose_error_mapped"]["trans_rmse_m"] > 0
+    assert r["pose_error_after_map"]["trans_rmse_m"] > 0 and r["psnr_at_estimate"] > 5.0
     assert math.isfinite(r["psnr"]) and r["psnr"] > 5.0 and r["n_gaussians"] > 0
     assert r["roi_psnr"] is None or math.isfinite(r["roi_psnr"])
