@@ -338,6 +338,41 @@ def suite_minutes(fr: dict) -> str:
     return duration(lo) if lo == hi else f"{duration(lo)} to {duration(hi)}"
 
 
+# ---------------------------------------------------------------- poses (bench.odometry, bench.pose_graph_solvers)
+
+#: the sequences of bench.odometry's table, in the order shown, with their names on the page
+ODOMETRY_SEQUENCES = {"tum_fr1_rpy": "TUM fr1/rpy", "synthetic_circle": "synthetic circle",
+                      "synthetic_walk": "synthetic walk (7 m, sensor error)",
+                      "synthetic_walk_covered": "the walk, lens covered 2 s", "room0": "Replica room0"}
+
+
+def odometry_table(r: dict) -> str:
+    """The odometry's tracking error per sequence and variant (``bench/results/odometry.json``)."""
+    rows = ["| sequence | variant | ATE (cm) | ATE online (cm) | tracked | lost / re-localised | loops (false) | "
+            "ms / frame |", "|---|---|---|---|---|---|---|---|"]
+    for seq, name in ODOMETRY_SEQUENCES.items():
+        for var, v in r["sequences"].get(seq, {}).items():
+            lp = v["loops"]
+            rows.append(f"| {name} | `{var}` | {num(100 * v['ate_rmse_m'])} | {num(100 * v['ate_online_m'])} | "
+                        f"{100 * v['tracked_fraction']:.0f} % | {v['lost']} / {v['relocalised']} | "
+                        f"{lp['accepted']} ({lp['false']}) | {v['ms_per_frame']:.0f} |")
+    return "\n".join(rows) + "\n"
+
+
+def solvers_table(r: dict) -> str:
+    """Open3D's and gtsam's pose-graph solutions (``bench/results/pose_graph_solvers.json``)."""
+    rows = ["| sequence | keyframes | loops | chained (cm) | Open3D (cm) | gtsam (cm) | Open3D (ms) | gtsam (ms) |",
+            "|---|---|---|---|---|---|---|---|"]
+    for seq, name in ODOMETRY_SEQUENCES.items():
+        v = r["sequences"].get(seq)
+        if v is None:
+            continue
+        rows.append(f"| {name} | {v['keyframes']} | {v['loops']} | {num(100 * v['ate_chained_m'])} | "
+                    f"{num(100 * v['open3d']['ate_m'])} | {num(100 * v['gtsam']['ate_m'])} | "
+                    f"{1e3 * v['open3d']['seconds']:.0f} | {1e3 * v['gtsam']['seconds']:.0f} |")
+    return "\n".join(rows) + "\n"
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -361,6 +396,8 @@ REGIONS: Dict[str, Region] = {
     "slowest-tests": Region("bench/results/first_run.json", slowest_tests_table),
     "sim-seconds": Region("bench/results/first_run.json", sim_seconds),
     "test-minutes": Region("bench/results/first_run.json", suite_minutes),
+    "odometry": Region("bench/results/odometry.json", odometry_table),
+    "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
 }
 
 
