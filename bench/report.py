@@ -359,6 +359,26 @@ def odometry_table(r: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def _gain_cell(v: dict) -> str:
+    m, ci = v.get("gain", v.get("mean")), v.get("gain_ci") or v.get("ci")
+    return signed(m) + ("" if not ci else f" [{signed(ci[0])}, {signed(ci[1])}]")
+
+
+def pose_gains_table(r: dict) -> str:
+    """The ROI gain at the given poses and at the odometry's (``gain_estimated_minus_given`` of
+    ``bench/results/odometry.json``)."""
+    names = {"tum_fr1_rpy": "find the mouse", "tum_fr1_rpy_cup": "pick up the cup"}
+    rows = ["| task | uniform / GaussLite, given poses | uniform / GaussLite, odometry's poses | gain, given | "
+            "gain, odometry's poses | estimated − given |", "|---|---|---|---|---|---|"]
+    for scene, v in r["gain_estimated_minus_given"].items():
+        p = v["roi_psnr"]
+        rows.append(f"| {names.get(scene, scene)} | {num(p['given']['uniform'])} / {num(p['given']['gausslite'])} | "
+                    f"{num(p['estimated']['uniform'])} / {num(p['estimated']['gausslite'])} | "
+                    f"{_gain_cell(v['given'])} | {_gain_cell(v['estimated'])} | "
+                    f"{_gain_cell(v['gain_estimated_minus_given'])} |")
+    return "\n".join(rows) + "\n"
+
+
 def solvers_table(r: dict) -> str:
     """Open3D's and gtsam's pose-graph solutions (``bench/results/pose_graph_solvers.json``)."""
     rows = ["| sequence | keyframes | loops | chained (cm) | Open3D (cm) | gtsam (cm) | Open3D (ms) | gtsam (ms) |",
@@ -397,6 +417,7 @@ REGIONS: Dict[str, Region] = {
     "sim-seconds": Region("bench/results/first_run.json", sim_seconds),
     "test-minutes": Region("bench/results/first_run.json", suite_minutes),
     "odometry": Region("bench/results/odometry.json", odometry_table),
+    "odometry-gains": Region("bench/results/odometry.json", pose_gains_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
 }
 
