@@ -25,8 +25,6 @@ from pathlib import Path
 from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
-from scipy.optimize import brentq
-from scipy.spatial.transform import Rotation
 
 from gausslite.ros.transforms import quat_to_rot
 
@@ -255,6 +253,8 @@ def pose_error_stats(est: np.ndarray, ref: np.ndarray) -> dict:
     est, ref = np.asarray(est, np.float64), np.asarray(ref, np.float64)
     ate = ate_rmse(est, ref)
     rel = np.einsum("nij,nkj->nik", est[:, :3, :3], ref[:, :3, :3])
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light fusion install
+
     ang = Rotation.from_matrix(rel).magnitude()
     d = np.linalg.norm(est[:, :3, 3] - ref[:, :3, 3], axis=1)
     return {"ate_m": ate, "rot_rmse_deg": float(np.degrees(np.sqrt(np.mean(ang ** 2)))),
@@ -264,6 +264,8 @@ def pose_error_stats(est: np.ndarray, ref: np.ndarray) -> dict:
 def _exp_se3(rotvec: np.ndarray, trans: np.ndarray) -> np.ndarray:
     """(M, 4, 4) rigid transforms ``[Rot(rotvec) | trans]`` of (M, 3) rotation vectors (rad) and translations (m)."""
     out = np.repeat(np.eye(4)[None], len(rotvec), axis=0)
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light fusion install
+
     out[:, :3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     out[:, :3, 3] = trans
     return out
@@ -293,6 +295,8 @@ def _calibrate(f, target: float) -> float:
         hi *= 4.0
         if hi > 1e3:
             raise ValueError("pose error level out of reach for this trajectory")
+    from scipy.optimize import brentq  # noqa: PLC0415 - SciPy is not in the light fusion install
+
     return float(brentq(lambda x: f(x) - target, 0.0, hi, xtol=1e-12, rtol=1e-10))
 
 
