@@ -43,8 +43,6 @@ from typing import Optional, Tuple
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.spatial.transform import Rotation
 
 from gausslite.camera import Intrinsics
 from gausslite.synthetic.raycast import RenderResult, camera_rays, render
@@ -120,6 +118,8 @@ def exposure_track(rng: np.random.Generator, n_frames: int, fps: float,
     Returns:
         ``(gain (n, 3) float64, offset (n,) float64)``: frame ``i``'s colour is ``gain[i] * I + offset[i]``.
     """
+    from scipy.ndimage import gaussian_filter1d  # noqa: PLC0415 - SciPy is not in the light install
+
     sigma = max(model.exposure_smooth_s * fps, 0.5)
 
     def smooth(k: int) -> np.ndarray:
@@ -137,6 +137,8 @@ def _image_motion_px(poses: np.ndarray, i: int, fps: float, f_px: float) -> floa
     if dt <= 0:
         return 0.0
     rel = np.linalg.inv(a) @ b
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light install
+
     ang = Rotation.from_matrix(rel[:3, :3]).magnitude()
     return f_px * (ang + float(np.linalg.norm(rel[:3, 3])) / 1.0) / dt
 
@@ -149,6 +151,8 @@ def poses_at(poses: np.ndarray, ts: np.ndarray) -> np.ndarray:
     Returns:
         (M, 4, 4) float64 camera-to-world poses.
     """
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light install
+
     n = len(poses)
     ts = np.clip(np.asarray(ts, np.float64), 0.0, n - 1)
     out = np.repeat(np.eye(4)[None], len(ts), axis=0)

@@ -6,8 +6,6 @@ from __future__ import annotations
 from typing import Dict
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.spatial.transform import Rotation
 
 #: Agent names, in output order.
 AGENTS = ("agent_a", "agent_b")
@@ -129,6 +127,8 @@ def _hand_jitter(rng: np.random.Generator, n_frames: int, fps: float, dist: np.n
     """Hand-held rotation jitter (n, 3) rad about the camera's x (pitch), y (yaw) and z (roll) axes: tremor (white
     noise low-passed with a 0.1 s Gaussian, RMS 0.8 / 1.0 / 0.6 degrees) plus the gait's pitch nod at the step
     frequency (0.5 degrees) and roll at half of it (0.7 degrees), the gait terms scaled by ``env``."""
+    from scipy.ndimage import gaussian_filter1d  # noqa: PLC0415 - SciPy is not in the light install
+
     tremor = gaussian_filter1d(rng.standard_normal((int(n_frames), 3)), sigma=max(0.1 * fps, 0.5), axis=0, mode="wrap")
     tremor /= np.maximum(tremor.std(axis=0), 1e-12)
     tremor *= np.deg2rad([0.8, 1.0, 0.6])
@@ -140,6 +140,8 @@ def _hand_jitter(rng: np.random.Generator, n_frames: int, fps: float, dist: np.n
 
 def _walk_trajectories(n_frames: int, rng: np.random.Generator, fps: float) -> Dict[str, np.ndarray]:
     """Both robots' hand-held walks (see :func:`make_trajectories`, ``kind="walk"``)."""
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light install
+
     u, env = _walk_progress(n_frames)
     dist = u * WALK_PATH_M
     out: Dict[str, np.ndarray] = {}
