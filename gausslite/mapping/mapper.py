@@ -562,7 +562,9 @@ class Mapper:
                 the first ``warmup_iters`` iterations are full-image, the rest ROI-phase; with a budget
                 the first ``warmup_iters / iters_per_frame`` of the time left after seeding is full-image
                 (at least one iteration when ``warmup_iters`` > 0), the rest ROI-phase, and density
-                control runs every ``densify.every`` budgeted iterations counted across calls.
+                control runs every ``densify.every`` budgeted iterations counted across calls. Under
+                ``pose.track_iters`` the keyframe's placement (:meth:`_place_keyframe`) comes out of the budget too,
+                at most ``pose.track_budget_frac`` of it.
             between: the frames the robot saw since the previous keyframe (oldest first; decoded ``Frame`` objects,
                 or objects with ``frame_id``, ``timestamp``, ``c2w`` and ``intrinsics`` when only their motion is
                 used): under ``sensor.motion_every_frame`` every mode records the camera's motion through them
