@@ -41,8 +41,8 @@ from tqdm import tqdm
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import downscale_frame
-from gausslite.datasets.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, RelocConfig, open3d_module, relocalise
-from gausslite.datasets.pose_graph import thumbnail, verify_registration
+from gausslite.datasets.pose_graph import (DepthClouds, KeyframeGraph, LoopConfig, LoopEdge, RelocConfig,
+                                           open3d_module, relocalise, thumbnail, verify_registration)
 from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -304,11 +304,12 @@ class RGBDOdometry:
         cands = sorted((d, k.frame_id) for k in self.loop_keyframes.values()
                        if k.frame_id in older and (d := near(k)) is not None)[:cfg.max_candidates]
         added = []
+        clouds = DepthClouds(self.config.depth_max_m)
         for _, fid in cands:
             target = self.loop_keyframes[fid]
             init = np.linalg.inv(target.c2w) @ kf.c2w
             self.graph.n_loop_tried += 1
-            got = verify_registration(self, kf.frame, kf.image, target, init, cfg.min_fitness, cfg)
+            got = verify_registration(self, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, clouds)
             bound_m, bound_deg = self.graph.drift_bound(kf.frame_id, fid, cfg)
             d = None if got is None else np.linalg.inv(init) @ got[0]
             if d is None or float(np.linalg.norm(d[:3, 3])) > bound_m or rotation_angle_deg(d) > bound_deg:

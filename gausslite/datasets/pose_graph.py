@@ -52,7 +52,7 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopConfig", "RelocConfig", "LoopEdge", "KeyframeGraph", "verify_registration", "relocalise",
-           "thumbnail", "open3d_module", "loop_information"]
+           "thumbnail", "open3d_module", "loop_information", "DepthClouds"]
 
 
 def open3d_module():
@@ -119,7 +119,7 @@ class RelocConfig(BaseModel):
     Attributes:
         enabled: try to re-localise a frame whose tracking failed.
         candidates: keyframes tried per lost frame: half by appearance (thumbnail correlation), the rest nearest
-            to the last good pose.
+            to the pose the last motion predicts.
         every: try on every ``every``-th consecutive lost frame (1: each one), to bound the cost of a long loss.
         min_fitness: the gates' fitness (as :class:`LoopConfig`'s; the ICP gates are :class:`LoopConfig`'s).
         min_support: keyframes whose registrations must give the same pose (within :class:`LoopConfig`'s
@@ -192,8 +192,7 @@ class KeyframeGraph:
 
     def drift_bound(self, a: int, b: int, cfg: LoopConfig) -> Tuple[float, float]:
         """The largest correction (metres, degrees) a loop between keyframes ``a`` and ``b`` may imply."""
-        path = abs(self.nodes[a].path_m - self.nodes[b].path_m)
-        return cfg.drift_floor_m + cfg.drift_per_m * path, cfg.drift_floor_deg + cfg.drift_deg_per_m * path
+        return _drift_over(abs(self.nodes[a].path_m - self.nodes[b].path_m), cfg)
 
     def optimise(self, cfg: LoopConfig) -> Dict[int, np.ndarray]:
         """Optimise the graph (Open3D's Levenberg-Marquardt with the line process; the first keyframe is fixed).
@@ -245,8 +244,7 @@ class KeyframeGraph:
         if not self.loops:
             return None
         path = max(max(self.nodes[e.source].path_m, self.nodes[e.target].path_m) for e in self.loops)
-        lim_m = 2.0 * (cfg.drift_floor_m + cfg.drift_per_m * path)
-        lim_deg = 2.0 * (cfg.drift_floor_deg + cfg.drift_deg_per_m * path)
+        lim_m, lim_deg = (2.0 * v for v in _drift_over(path, cfg))
         for fid, c2w in new.items():
             old = self.nodes[fid].c2w
             moved = float(np.linalg.norm(c2w[:3, 3] - old[:3, 3]))
@@ -259,6 +257,11 @@ class KeyframeGraph:
         """``{"keyframes", "loops", "loop_candidates", "loop_rejected", "optimisations"}``."""
         return {"keyframes": len(self.nodes), "loops": len(self.loops), "loop_candidates": self.n_loop_tried,
                 "loop_rejected": self.n_loop_rejected, "optimisations": self.n_optimisations}
+
+
+def _drift_over(path_m: float, cfg: LoopConfig) -> Tuple[float, float]:
+    """The drift (metres, degrees) the odometry may accumulate over ``path_m`` metres of path (gate 4)."""
+    return cfg.drift_floor_m + cfg.drift_per_m * path_m, cfg.drift_floor_deg + cfg.drift_deg_per_m * path_m
 
 
 def loop_information(e: LoopEdge) -> np.ndarray:
@@ -277,20 +280,33 @@ def thumbnail(rgb: np.ndarray) -> np.ndarray:
     return g / max(float(np.linalg.norm(g)), 1e-6)
 
 
-def _cloud(frame, depth_max: float):
-    """Open3D point cloud of ``frame``'s depth (camera frame, metres) with normals."""
-    o3d = open3d_module()
-    i = frame.intrinsics
-    pin = o3d.camera.PinholeCameraIntrinsic(i.width, i.height, i.fx, i.fy, i.cx, i.cy)
-    pcd = o3d.geometry.PointCloud.create_from_depth_image(
-        o3d.geometry.Image(np.ascontiguousarray(frame.depth, dtype=np.float32)), pin, depth_scale=1.0,
-        depth_trunc=depth_max)
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.1, max_nn=30))
-    return pcd
+class DepthClouds:
+    """Open3D point clouds (camera frame, metres, with normals) of frames' depth up to ``depth_max`` metres, each made
+    once: one search (a keyframe's loop candidates, a lost frame's re-localisation) registers the same frame to
+    several keyframes. Keyed by the frame object, so it lives only as long as that search."""
+
+    def __init__(self, depth_max: float) -> None:
+        self.depth_max = depth_max
+        self._made: Dict[int, Tuple[object, object]] = {}
+
+    def of(self, frame):
+        """The cloud of ``frame`` (``depth`` (H, W) float32 metres, ``intrinsics``)."""
+        hit = self._made.get(id(frame))
+        if hit is not None and hit[0] is frame:
+            return hit[1]
+        o3d = open3d_module()
+        i = frame.intrinsics
+        pin = o3d.camera.PinholeCameraIntrinsic(i.width, i.height, i.fx, i.fy, i.cx, i.cy)
+        pcd = o3d.geometry.PointCloud.create_from_depth_image(
+            o3d.geometry.Image(np.ascontiguousarray(frame.depth, dtype=np.float32)), pin, depth_scale=1.0,
+            depth_trunc=self.depth_max)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.1, max_nn=30))
+        self._made[id(frame)] = (frame, pcd)
+        return pcd
 
 
-def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness: float,
-                        cfg: LoopConfig) -> Optional[Tuple[np.ndarray, np.ndarray, float, float]]:
+def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness: float, cfg: LoopConfig,
+                        clouds: Optional[DepthClouds] = None) -> Optional[Tuple[np.ndarray, np.ndarray, float, float]]:
     """Register ``frame`` to the keyframe ``target`` from ``init`` and apply gates 2-3 of the module docstring.
 
     Args:
@@ -299,6 +315,7 @@ def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness
         target: the keyframe (``frame``, ``image``, ``c2w``).
         init: (4, 4) initial ``c2w_target⁻¹ c2w_frame``.
         min_fitness: the dense and ICP fitness gate; cfg: the ICP gates.
+        clouds: the depth clouds of the search this check belongs to (None: made for this check alone).
     Returns:
         ``(T (4, 4) c2w_target⁻¹ c2w_frame, information (6, 6), fitness, icp_rmse_m)``, or None when a gate failed.
     """
@@ -310,7 +327,8 @@ def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness
     if not back_ok or back_fit < min_fitness or not _agree(T @ back, np.eye(4), cfg):
         return None
     reg = open3d_module().pipelines.registration
-    src, tgt = _cloud(frame, odo.config.depth_max_m), _cloud(target.frame, odo.config.depth_max_m)
+    clouds = clouds or DepthClouds(odo.config.depth_max_m)
+    src, tgt = clouds.of(frame), clouds.of(target.frame)
     icp = reg.registration_icp(src, tgt, cfg.icp_distance_m, T, reg.TransformationEstimationPointToPlane())
     if icp.fitness < min_fitness or icp.inlier_rmse > cfg.icp_max_rmse_m:
         return None
@@ -352,15 +370,17 @@ def relocalise(odo, frame, image, pred: np.ndarray,
     by_look = sorted(kfs, key=lambda k: -float(th @ k.thumb))
     by_pose = sorted(kfs, key=lambda k: float(np.linalg.norm(k.c2w[:3, 3] - pred[:3, 3])))
     n_look = max(1, cfg.candidates // 2)
-    tried, passed = [], []
+    look_ids = {k.frame_id for k in by_look[:n_look]}
+    tried, passed = set(), []
+    clouds = DepthClouds(odo.config.depth_max_m)
     for k in by_look[:n_look] + by_pose:
         if len(tried) >= cfg.candidates:
             break
         if k.frame_id in tried:
             continue
-        tried.append(k.frame_id)
-        init = np.eye(4) if k in by_look[:n_look] else np.linalg.inv(k.c2w) @ pred
-        got = verify_registration(odo, frame, image, k, init, cfg.min_fitness, odo.config.loop)
+        tried.add(k.frame_id)
+        init = np.eye(4) if k.frame_id in look_ids else np.linalg.inv(k.c2w) @ pred
+        got = verify_registration(odo, frame, image, k, init, cfg.min_fitness, odo.config.loop, clouds)
         if got is not None:
             passed.append((k.c2w @ got[0], k.frame_id, got[2]))
     # a pose two keyframes give alike (a slide along a wall or the desk fits one keyframe, rarely two)
