@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import OrderedDict
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -24,6 +25,9 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 __all__ = ["MapFollower"]
+
+#: tracked frames held until the mapper maps or skips them (most are never mapped): a minute at 30 Hz
+MAX_UNMAPPED = 1800
 
 
 class MapFollower:
@@ -41,8 +45,10 @@ class MapFollower:
         self.odometry = odometry
         odometry.on_correction = self.on_correction
         self._lock = threading.Lock()
-        #: frame id → (anchor keyframe id, T_anchor (4, 4), sensor pose it is mapped at (4, 4), W (4, 4))
+        #: mapped frames: frame id → (anchor keyframe id, T_anchor (4, 4), sensor pose it is mapped at (4, 4), W (4, 4))
         self._frames: Dict[int, Tuple[int, np.ndarray, np.ndarray, np.ndarray]] = {}
+        #: the same for tracked frames not mapped yet (bounded: the oldest go first)
+        self._unmapped: "OrderedDict[int, Tuple[int, np.ndarray, np.ndarray, np.ndarray]]" = OrderedDict()
         self._pending = False
         self.n_corrections = 0
         self.n_moved = 0
@@ -53,9 +59,18 @@ class MapFollower:
         if result.anchor < 0 or result.T_anchor is None:
             return
         with self._lock:
-            self._frames[int(frame_id)] = (int(result.anchor), np.asarray(result.T_anchor, np.float64).copy(),
-                                           np.asarray(result.c2w, np.float64).copy(),
-                                           np.eye(4) if W is None else np.asarray(W, np.float64).copy())
+            self._unmapped[int(frame_id)] = (int(result.anchor), np.asarray(result.T_anchor, np.float64).copy(),
+                                             np.asarray(result.c2w, np.float64).copy(),
+                                             np.eye(4) if W is None else np.asarray(W, np.float64).copy())
+            while len(self._unmapped) > MAX_UNMAPPED:
+                self._unmapped.popitem(last=False)
+
+    def mapped(self, frame_id: int) -> None:
+        """Note that the mapper mapped ``frame_id`` (mapping worker): only mapped frames follow corrections."""
+        with self._lock:
+            rec = self._unmapped.pop(int(frame_id), None)
+            if rec is not None:
+                self._frames[int(frame_id)] = rec
 
     def on_correction(self, new_poses: Dict[int, np.ndarray]) -> None:
         """The odometry's callback after its pose graph moved keyframes (tracking thread): the map is moved at the

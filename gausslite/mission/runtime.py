@@ -605,6 +605,8 @@ class AgentRuntime:
             left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
             st = self.mapper.map_frame(item, w, time_budget_s=left, between=between)
             self.resolution.record(st.iters)
+            if self.follower is not None:
+                self.follower.mapped(item.frame_id)
         except Exception as e:
             self._fail(f"mapping frame {item.frame_id} failed: {type(e).__name__}: {e}")
             return

@@ -41,6 +41,9 @@ def test_a_mapped_frame_moves_with_its_anchor_in_the_maps_frame():
     # frame 11 tracked 0.1 m past keyframe 10; frame 21 past keyframe 20; both mapped (the map refined 11's pose)
     follower.record(11, TrackResult(_shift(1.1), True, anchor=10, T_anchor=_shift(0.1)), W)
     follower.record(21, TrackResult(_shift(2.1), True, anchor=20, T_anchor=_shift(0.1)), W)
+    follower.record(12, TrackResult(_shift(1.2), True, anchor=10, T_anchor=_shift(0.2)), W)  # tracked, never mapped
+    follower.mapped(11)
+    follower.mapped(21)
     refined = W @ _shift(1.1) @ _shift(0.0, 0.01)
     mapper = _Mapper({11: refined, 21: W @ _shift(2.1)})
     assert follower.apply(mapper) == 0 and mapper.applied == []  # nothing pending
@@ -54,3 +57,15 @@ def test_a_mapped_frame_moves_with_its_anchor_in_the_maps_frame():
     assert follower.apply(mapper) == 0  # applied once
     follower.on_correction({})
     assert follower.apply(mapper) == 0  # the same anchors again: nothing moves twice
+
+
+def test_frames_that_are_never_mapped_are_not_kept_for_ever():
+    from gausslite.mission import pose_follow
+
+    follower = MapFollower(SimpleNamespace(graph=SimpleNamespace(nodes={}), on_correction=None))
+    for fid in range(pose_follow.MAX_UNMAPPED + 10):
+        follower.record(fid, TrackResult(np.eye(4), True, anchor=0, T_anchor=np.eye(4)))
+    follower.mapped(3)  # dropped already: the oldest go first
+    follower.mapped(pose_follow.MAX_UNMAPPED + 9)
+    assert len(follower._unmapped) == pose_follow.MAX_UNMAPPED - 1 and list(follower._frames) == [
+        pose_follow.MAX_UNMAPPED + 9]
