@@ -3,7 +3,7 @@
     python -m bench.pose_perturbation [--scenes synthetic_circle,synthetic_walk] [--levels exact,1cm_0.5deg,3cm_1.5deg]
                                       [--seeds 3] [--modes uniform,gausslite] [--refine off,on] [--frames 40]
                                       [--withhold-every 5] [--track-iters 20] [--jobs 2] [--set KEY=VALUE ...]
-                                      [--out bench/results/pose_perturbation.json] [--resume|--fresh]
+                                      [--out bench/results/pose_perturbation.json] [--resume|--fresh] [--max-runs N]
 
 The scenes are rendered, so their poses are exact and the error is known exactly:
 
@@ -20,21 +20,32 @@ true poses). Every ``--withhold-every``-th frame (from the middle of the first b
 :func:`gausslite.datasets.subset.withheld_indices`) is withheld from the mapper. GaussLite's relevance is the task's
 ground-truth ROI from the frames' TRUE poses (as an image-based detector sees it: no pose in it).
 
-Scoring: the final map is rendered at the withheld frames' TRUE poses (no pose correction: where the robot really
-was) and scored there on the task's ground-truth ROI (ROI PSNR) and the whole image (PSNR); the same on the mapped
-frames at their true poses. A map built at drifting poses is misplaced against the world, so this is the error a
-robot sees when it uses the map from where it is.
+Scoring (docs/realtime.md "Scoring protocols", :func:`gausslite.evaluation.score_live_map`). A robot uses the map at
+the pose its SLAM gives it, so the withheld frames are scored under the ``novel`` protocol: at each frame's GIVEN
+(perturbed) pose with the map's learned pose correction interpolated in frame id between the keyframes on either side
+(:func:`gausslite.evaluation.predicted_view`; the identity without pose refinement). Nothing is fitted on a withheld
+frame, and the true pose is never used to place the camera. The ROI scored is the ground truth's, from the true pose
+(a property of the image, :class:`gausslite.datasets.subset.EstimatedPoses`). The gains and the fraction kept are
+taken from this figure: how good the map is where the robot uses it. Two more figures answer other questions:
+
+- ``true_pose``: the same render and exposure with the camera at the frame's TRUE pose: the map's absolute accuracy,
+  whether its content sits where it is in the world, as a user localised independently of this robot's SLAM (another
+  robot, a motion-capture system) sees it. A map built at drifting poses, or whose refinement moved its gauge, is
+  misplaced against the world and loses here even where its own robot sees it right.
+- ``keyframes``: the mapped frames at their own refined pose: what the map memorised.
 
 Variants: ``--refine off`` maps at the given poses as they are; ``on`` sets ``pose.refine=true`` and
 ``pose.track_iters=N`` (the map's keyframe pose refinement and per-frame tracking, docs/mapper.md "Pose refinement").
-Per (scene, level, refine): each mode's ROI PSNR (mean ± std over seeds), the paired gain GaussLite − uniform per seed
-(mean ± std, significant when the mean exceeds twice its std), and the fraction of the exact-pose gain kept (the level's
-mean gain over the exact level's mean gain under the same refine setting). The seed drives both the perturbation and
-the mapper.
+Per (scene, level, refine): each mode's ROI PSNR (mean ± std over seeds); the gain GaussLite − uniform, paired frame
+by frame within a seed and run-clustered over the seeds (the mean of the per-seed gains with its 95 % Student-t
+interval, :func:`gausslite.stats.paired_gain`; significant when the interval excludes zero); and the fraction of the
+exact-pose gain kept (the level's gain at the predicted pose over the exact level's, same refine setting). The seed
+drives both the perturbation and the mapper.
 
 Writes ``bench/results/pose_perturbation.json`` (through ``bench/_results.py``), ``.md`` and ``.png`` (gain and ROI
 PSNR against the level). After each run the runs so far go to ``<out>.partial.json``; ``--resume`` runs only the
-missing ones (runs are deterministic per seed).
+missing ones (runs are deterministic per seed); ``--max-runs N`` stops after N runs and leaves the partial file for
+the next ``--resume`` (a long run in short chunks). The results are written once no run is missing.
 """
 
 from __future__ import annotations
@@ -42,6 +53,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -56,12 +68,11 @@ from bench import realtime
 from bench._results import write_results
 from bench.long_mission import load_partial
 from gausslite.config import load_mapper_config
-from gausslite.datasets import task_roi
 from gausslite.datasets.subset import EstimatedPoses, FrameSubset, withheld_indices
 from gausslite.datasets.trajectory import POSE_ERROR_LEVELS, perturb_trajectory, pose_error_stats
-from gausslite.evaluation import render_map, score_view
+from gausslite.evaluation import score_live_map
 from gausslite.pipeline import run_mapping
-from gausslite.stats import fmt, gain, mean_std
+from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain, significant
 from gausslite.synthetic import make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,6 +88,9 @@ LEVELS = tuple(POSE_ERROR_LEVELS)
 MODES = ("uniform", "gausslite")
 #: tracking steps per frame of the refine variant (docs/results.md measured tracking with 20)
 TRACK_ITERS = 20
+#: how the withheld frames are scored (kept with the runs: a partial file scored otherwise is not resumed)
+SCORING = ("withheld frames under the novel protocol: the given pose with the map's correction interpolated from its "
+           "keyframes (also at the true pose, for the map's absolute accuracy)")
 
 
 def scene_path(name: str, work: Path) -> Path:
@@ -104,12 +118,27 @@ def sequence(n_total: int, frames: int, withhold_every: int) -> tuple[list[int],
     return [i for i in idx if i not in held], sorted(held)
 
 
-def _score(render, frames: list, roi_fn) -> dict:
-    """Mean ROI PSNR and PSNR of ``render`` (frame -> RenderOutput) over ``frames``; ROI over non-empty ROIs."""
-    scores = [score_view(render(fr), fr, roi_fn(fr)) for fr in frames]
-    roi = [s.roi_psnr for s in scores if np.isfinite(s.roi_psnr)]
-    return {"roi_psnr": float(np.mean(roi)) if roi else None, "psnr": float(np.mean([s.psnr for s in scores])),
-            "roi_psnr_per_frame": {int(s.frame_id): s.roi_psnr for s in scores if np.isfinite(s.roi_psnr)}}
+@dataclasses.dataclass
+class MappedSequence:
+    """One run's map and what scoring it needs.
+
+    Attributes:
+        mapper: the :class:`~gausslite.mapping.mapper.Mapper` after mapping (its pose corrections, if any).
+        frames: the sequence's frames in order (mapped and withheld), at their TRUE poses.
+        given: frame id → (4, 4) float64 camera-to-world pose the robot gives (the perturbed estimate; metres,
+            OpenCV camera axes): the mapper's input for the mapped frames, the robot's pose at the withheld ones.
+        mapped_ids / withheld_ids: frame ids mapped / withheld from the mapper.
+        annotations: the scene's annotations (the task's ground-truth ROI).
+        wall_s: seconds the mapping took.
+    """
+
+    mapper: object
+    frames: list
+    given: dict
+    mapped_ids: list
+    withheld_ids: list
+    annotations: object
+    wall_s: float
 
 
 def _map(job: dict, ds, profile, mapped: list[int], est_by_id: dict):
@@ -125,109 +154,178 @@ def _map(job: dict, ds, profile, mapped: list[int], est_by_id: dict):
     return mapper
 
 
-def run_one(job: dict) -> dict:
-    """Map one (scene, level, refine, mode, seed) at perturbed poses and score it at the true poses (a worker);
-    also at the poses the robot believes (the estimate with the map's correction), for comparison."""
-    torch.set_num_threads(1)
+def map_sequence(job: dict) -> MappedSequence:
+    """Map one job's sequence (``scene``, ``path``, ``level``, ``refine``, ``mode``, ``seed``, ``frames``,
+    ``withhold_every``, ``track_iters``, ``overrides``) at poses perturbed to the job's level (seeded by its seed),
+    its withheld frames left out of the mapper."""
     spec = SCENES[job["scene"]]
     ds, profile = realtime.load_scene({"downscale": spec["downscale"]}, Path(job["path"]))
     mapped, held = sequence(len(ds), job["frames"], job["withhold_every"])
-    order = sorted(mapped + held)
-    frames = {i: ds[i] for i in order}
-    true = np.stack([frames[i].c2w for i in order])
-    est = perturb_trajectory(true, job["level"], seed=job["seed"])
-    est_of = {i: est[k] for k, i in enumerate(order)}
+    frames = [ds[i] for i in sorted(mapped + held)]
+    est = perturb_trajectory(np.stack([fr.c2w for fr in frames]), job["level"], seed=job["seed"])
+    given = {int(fr.frame_id): est[k] for k, fr in enumerate(frames)}
+    mapped_ids, held_ids = [int(ds[i].frame_id) for i in mapped], [int(ds[i].frame_id) for i in held]
     t0 = time.perf_counter()
-    mapper = _map(job, ds, profile, mapped, {int(frames[i].frame_id): est_of[i] for i in mapped})
-    wall = time.perf_counter() - t0
-    gmap, roi = mapper.gmap, task_roi(ds.annotations, SCENES[job["scene"]]["task"])
-    believed = {i: mapper.pose_of(int(frames[i].frame_id), est_of[i]) for i in order}
-    by_id = {int(frames[i].frame_id): believed[i] for i in order}
+    mapper = _map(job, ds, profile, mapped, {fid: given[fid] for fid in mapped_ids})
+    return MappedSequence(mapper, frames, given, mapped_ids, held_ids, ds.annotations, time.perf_counter() - t0)
 
-    def at_true(fr):
-        return render_map(gmap, fr)
 
-    def at_estimate(fr):  # the estimate with the map's correction; the ROI stays the true one
-        return render_map(gmap, dataclasses.replace(fr, c2w=by_id[int(fr.frame_id)]))
+def score_sequence(run: MappedSequence, task: str) -> dict:
+    """Score a mapped sequence (docs/realtime.md "Scoring protocols"): the withheld frames under ``novel``, at the
+    pose the robot would use (the given pose with the map's correction interpolated from its keyframes,
+    :func:`gausslite.evaluation.predicted_view`; nothing fitted on the frame), the same renders with the camera at
+    the TRUE pose instead (the map's absolute accuracy), and the mapped frames under ``keyframes`` (their own refined
+    pose). The ROI of every score is the task's ground truth from the true pose.
 
-    withheld = _score(at_true, [frames[i] for i in held], roi)
-    withheld_est = _score(at_estimate, [frames[i] for i in held], roi)
-    on_mapped = _score(at_true, [frames[i] for i in mapped], roi)
-    mk = [k for k, i in enumerate(order) if i in set(mapped)]
-    believed_mapped = np.stack([believed[i] for i in mapped])
-    return {**{k: job[k] for k in ("scene", "level", "refine", "mode", "seed")},
-            "roi_psnr": withheld["roi_psnr"], "psnr": withheld["psnr"],
-            "roi_psnr_per_frame": withheld["roi_psnr_per_frame"],
-            "roi_psnr_at_estimate": withheld_est["roi_psnr"], "psnr_at_estimate": withheld_est["psnr"],
-            "roi_psnr_mapped": on_mapped["roi_psnr"], "psnr_mapped": on_mapped["psnr"],
-            "pose_error": pose_error_stats(est, true), "pose_error_mapped": pose_error_stats(est[mk], true[mk]),
-            "pose_error_after_map": pose_error_stats(believed_mapped, true[mk]),
-            "n_mapped": len(mapped), "n_withheld": len(held), "n_gaussians": len(mapper.model),
-            "s_per_frame": float(np.mean([s.seconds for s in mapper.stats])), "wall_s": wall}
+    Returns:
+        ``{"novel", "true_pose", "keyframes"}``: :func:`gausslite.evaluation.score_live_map`'s figures of each
+        (``roi_psnr`` dB or None, ``psnr``, ``roi_psnr_per_frame`` frame id → dB, …), and ``"views"``: withheld frame
+        id → the :class:`~gausslite.evaluation.TrackedView` it was rendered at under ``novel`` (its ``c2w`` the
+        predicted pose, ``rot_deg`` / ``trans_m`` the correction away from the given pose).
+    """
+    at_given = EstimatedPoses(run.frames, run.given)  # the frames at the robot's poses; the ROI from the true ones
+    frames = [at_given[k] for k in range(len(at_given))]
+    roi_fn = at_given.roi_fn(run.annotations, task)
+    views: dict = {}
+    res = score_live_map(run.mapper, frames, roi_fn, protocols=("novel", "keyframes"), novel_ids=run.withheld_ids,
+                         predicted=views)
+    # the same exposure, the camera at the truth (the offsets from the given pose are not read for rendering)
+    true = {int(fr.frame_id): np.asarray(fr.c2w, np.float64) for fr in run.frames}
+    at_truth = {fid: dataclasses.replace(v, c2w=true[fid].copy(), rot_deg=math.nan, trans_m=math.nan)
+                for fid, v in views.items()}
+    truth = score_live_map(run.mapper, frames, roi_fn, protocols=("novel",), novel_ids=run.withheld_ids,
+                           novel_views=at_truth)["novel"]
+    return {"novel": res["novel"], "true_pose": truth, "keyframes": res["keyframes"], "views": views}
+
+
+def run_one(job: dict) -> dict:
+    """Map one (scene, level, refine, mode, seed) at perturbed poses and score it (:func:`score_sequence`), with the
+    pose errors: the given poses, the mapped frames' poses after mapping, and the withheld frames' predicted poses,
+    each against the truth (a worker)."""
+    torch.set_num_threads(1)
+    run = map_sequence(job)
+    mapper, true = run.mapper, {int(fr.frame_id): fr.c2w for fr in run.frames}
+    sc = score_sequence(run, SCENES[job["scene"]]["task"])
+    views, order = sc["views"], sorted(true)
+
+    def err(ids, poses):
+        return pose_error_stats(np.stack([poses[i] for i in ids]), np.stack([true[i] for i in ids]))
+
+    after_map = {i: mapper.pose_of(i, run.given[i]) for i in run.mapped_ids}
+    held = sorted(views)
+    out = {k: job[k] for k in ("scene", "level", "refine", "mode", "seed")}
+    for name, key in (("", "novel"), ("_true_pose", "true_pose"), ("_keyframes", "keyframes")):
+        out.update({f"roi_psnr{name}": sc[key]["roi_psnr"], f"psnr{name}": sc[key]["psnr"],
+                    f"roi_psnr{name}_per_frame": sc[key]["roi_psnr_per_frame"]})
+    return {**out, "scored_at": "predicted pose (novel protocol)",
+            "correction_withheld": {"rot_deg": float(np.mean([views[i].rot_deg for i in held])),
+                                    "trans_m": float(np.mean([views[i].trans_m for i in held]))},
+            "pose_error": err(order, run.given), "pose_error_mapped": err(run.mapped_ids, run.given),
+            "pose_error_after_map": err(run.mapped_ids, after_map),
+            "pose_error_predicted": err(held, {i: views[i].c2w for i in held}),
+            "n_mapped": len(run.mapped_ids), "n_withheld": len(held), "n_roi_withheld": sc["novel"]["roi_frames"],
+            "n_gaussians": len(mapper.model), "s_per_frame": float(np.mean([s.seconds for s in mapper.stats])),
+            "wall_s": run.wall_s}
+
+
+#: the per-run figures a summary row gives per mode (mean and std over seeds)
+MODE_FIGURES = ("roi_psnr", "psnr", "roi_psnr_true_pose", "psnr_true_pose", "roi_psnr_keyframes", "n_gaussians",
+                "s_per_frame")
+#: the gains of a summary row: key → the per-frame figure paired (GaussLite − uniform)
+GAINS = {"gain": "roi_psnr_per_frame", "gain_true_pose": "roi_psnr_true_pose_per_frame",
+         "gain_keyframes": "roi_psnr_keyframes_per_frame"}
+
+
+def _pose_rows(row: dict, rs: list[dict], by: dict) -> None:
+    """The pose errors of a summary row (mean and std over seeds), in place: the given poses' (of the uniform runs:
+    both modes draw the same), and per mode the mapped frames' poses after mapping, the withheld frames' predicted
+    poses against the truth and the correction the map applied to the withheld frames' given poses."""
+    pe = [r["pose_error"] for r in rs if r["mode"] == "uniform"]
+    for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m", "trans_max_m"):
+        row[k], row[k + "_std"] = mean_std([p[k] for p in pe])
+    for m in MODES:
+        runs = list(by[m].values())
+        for what in ("after_map", "predicted"):
+            for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m"):
+                row[f"{m}_{what}_{k}"], row[f"{m}_{what}_{k}_std"] = mean_std(
+                    [r[f"pose_error_{what}"][k] for r in runs])
+        for k in ("rot_deg", "trans_m"):
+            row[f"{m}_correction_{k}"], row[f"{m}_correction_{k}_std"] = mean_std(
+                [r["correction_withheld"][k] for r in runs])
+
+
+def summary_row(rs: list[dict], seeds: list[int]) -> dict:
+    """One cell's summary (the runs ``rs`` of one scene, refine setting and level): each mode's figures (mean ±
+    std over seeds), the pose errors, and the gains GaussLite − uniform of :data:`GAINS` (paired frame by frame within
+    a seed, run-clustered over the seeds that ran both modes: :func:`gausslite.stats.paired_gain`)."""
+    by = {m: {r["seed"]: r for r in rs if r["mode"] == m} for m in MODES}
+    row: dict = {"seeds": [s for s in seeds if all(s in by[m] for m in MODES)]}
+    for m in MODES:
+        for k in MODE_FIGURES:
+            row[f"{m}_{k}"], row[f"{m}_{k}_std"] = mean_std([by[m][s][k] for s in by[m]])
+    _pose_rows(row, rs, by)
+    for key, field in GAINS.items():
+        g = paired_gain([by["gausslite"][s][field] for s in row["seeds"]],
+                        [by["uniform"][s][field] for s in row["seeds"]])
+        row[key] = {**g, "significant": significant(g)}
+    return row
 
 
 def summarise(runs: list[dict], scenes: list[str], levels: list[str], refines: list[bool], seeds: list[int]) -> dict:
-    """Per scene, refine setting and level: each mode's figures (mean ± std over seeds), the paired ROI gain and the
-    fraction of the exact level's gain kept."""
+    """Per scene, refine setting and level: :func:`summary_row`, and the fraction of the exact level's gain each level
+    keeps (``gain_kept`` at the predicted pose, ``gain_true_pose_kept`` at the true one; same refine setting; None
+    when the exact gain is not positive)."""
     out: dict = {}
     for scene in scenes:
         for refine in refines:
-            block: dict = {}
-            for level in levels:
-                rs = [r for r in runs if r["scene"] == scene and r["refine"] == refine and r["level"] == level]
-                by = {m: {r["seed"]: r for r in rs if r["mode"] == m} for m in MODES}
-                row: dict = {"seeds": [s for s in seeds if all(s in by[m] for m in MODES)]}
-                for m in MODES:
-                    for k in ("roi_psnr", "psnr", "roi_psnr_at_estimate", "roi_psnr_mapped", "psnr_mapped",
-                              "n_gaussians", "s_per_frame"):
-                        row[f"{m}_{k}"], row[f"{m}_{k}_std"] = mean_std([by[m][s][k] for s in by[m]])
-                pe = [r["pose_error"] for r in rs if r["mode"] == "uniform"]
-                for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m", "trans_max_m"):
-                    row[k], row[k + "_std"] = mean_std([p[k] for p in pe])
-                for m in MODES:  # the mapped frames' poses after mapping (refined, or as given) against the truth
-                    for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m"):
-                        row[f"{m}_after_map_{k}"], row[f"{m}_after_map_{k}_std"] = mean_std(
-                            [by[m][s]["pose_error_after_map"][k] for s in by[m]])
-                for key, field in (("gain", "roi_psnr"), ("gain_mapped", "roi_psnr_mapped"),
-                                   ("gain_at_estimate", "roi_psnr_at_estimate")):
-                    g = gain([by["gausslite"][s][field] for s in row["seeds"]],
-                             [by["uniform"][s][field] for s in row["seeds"]])
-                    row[key], row[key + "_std"], row[key + "_significant"] = g["gain"], g["gain_std"], g["significant"]
-                block[level] = row
-            ref = block.get("exact", {}).get("gain")
-            for level, row in block.items():
-                row["gain_kept"] = (row["gain"] / ref) if ref and row["gain"] is not None and ref > 0 else None
+            block = {level: summary_row([r for r in runs if r["scene"] == scene and r["refine"] == refine
+                                         and r["level"] == level], seeds) for level in levels}
+            for key in ("gain", "gain_true_pose"):
+                ref = block.get("exact", {}).get(key, {}).get("gain")
+                for row in block.values():
+                    g = row[key]["gain"]
+                    row[key + "_kept"] = g / ref if ref is not None and ref > 0 and g is not None else None
             out.setdefault(scene, {})["refine_on" if refine else "refine_off"] = block
     return out
 
 
+def _cm_deg(r: dict, prefix: str) -> str:
+    """``"2.07 cm, 0.50°"``: a summary row's unaligned position RMSE and rotation RMSE under ``prefix``."""
+    if r.get(prefix + "trans_rmse_m") is None:
+        return "–"
+    return f"{100 * r[prefix + 'trans_rmse_m']:.2f} cm, {r[prefix + 'rot_rmse_deg']:.2f}°"
+
+
 def table(summary: dict) -> str:
-    """The Markdown table of :func:`summarise`'s result."""
-    lines = ["| scene | pose refine | level | given poses: ATE / rot / unaligned RMSE | mapped poses after mapping, "
-             "uniform / GaussLite: unaligned RMSE, rot | uniform ROI PSNR | GaussLite ROI PSNR "
-             "| gain (GaussLite − uniform) | exact gain kept | gain on mapped views | gain at the believed pose |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    """The Markdown table of :func:`summarise`'s result: ROI PSNR of the withheld frames at the predicted pose (the
+    ``novel`` protocol) and the gain with its 95 % run-clustered interval, then the same at the true pose, then the
+    gain on the keyframes."""
+    lines = ["| scene | pose refine | level | given poses: ATE / rot / unaligned RMSE | withheld frames' predicted "
+             "pose vs truth, uniform / GaussLite | uniform ROI PSNR | GaussLite ROI PSNR | gain (GaussLite − uniform) "
+             "[95 % CI] | exact gain kept | at the true pose: uniform / GaussLite | gain at the true pose [95 % CI] "
+             "| gain on keyframes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for scene, by_refine in summary.items():
         for rkey, block in by_refine.items():
             for level, r in block.items():
                 err = (f"{100 * r['ate_m']:.2f} cm / {r['rot_rmse_deg']:.2f}° / {100 * r['trans_rmse_m']:.2f} cm"
                        if r["ate_m"] is not None else "–")
-                g = "–" if r["gain"] is None else (f"{fmt(r['gain'], r['gain_std'])} dB"
-                                                  + (" (sig.)" if r["gain_significant"] else ""))
+                g = fmt_gain(r["gain"]) + (" (sig.)" if r["gain"]["significant"] else "")
+                gt = fmt_gain(r["gain_true_pose"]) + (" (sig.)" if r["gain_true_pose"]["significant"] else "")
                 kept = "–" if r["gain_kept"] is None else f"{100 * r['gain_kept']:.0f} %"
-                after = " / ".join("–" if r[f"{m}_after_map_trans_rmse_m"] is None else
-                                   f"{100 * r[f'{m}_after_map_trans_rmse_m']:.2f} cm, "
-                                   f"{r[f'{m}_after_map_rot_rmse_deg']:.2f}°" for m in MODES)
-                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level} | {err} | {after} | "
+                pred = " / ".join(_cm_deg(r, f"{m}_predicted_") for m in MODES)
+                at_true = " / ".join(fmt(r[f"{m}_roi_psnr_true_pose"], r[f"{m}_roi_psnr_true_pose_std"])
+                                     for m in MODES)
+                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level} | {err} | {pred} | "
                              f"{fmt(r['uniform_roi_psnr'], r['uniform_roi_psnr_std'])} | "
                              f"{fmt(r['gausslite_roi_psnr'], r['gausslite_roi_psnr_std'])} | {g} | {kept} | "
-                             f"{fmt(r['gain_mapped'], r['gain_mapped_std'])} | "
-                             f"{fmt(r['gain_at_estimate'], r['gain_at_estimate_std'])} |")
+                             f"{at_true} | {gt} | {fmt_gain(r['gain_keyframes'])} |")
     return "\n".join(lines)
 
 
 def plot(summary: dict, path: Path) -> None:
-    """ROI gain (left) and each mode's ROI PSNR (right) against the pose error level, per scene and refine setting."""
+    """ROI gain (left, with its 95 % interval) and each mode's ROI PSNR (right) of the withheld frames at the
+    predicted pose against the pose error level, per scene and refine setting."""
     # lazy: heavy optional dependency, loaded only on this path
     import matplotlib
 
@@ -242,13 +340,14 @@ def plot(summary: dict, path: Path) -> None:
             levels = list(block)
             x = np.arange(len(levels)) + 0.04 * k
             lab = f"{scene}, refine {rkey.split('_')[1]}"
-            g = [np.nan if block[lv]["gain"] is None else block[lv]["gain"] for lv in levels]
-            e = [0.0 if block[lv]["gain_std"] is None else block[lv]["gain_std"] for lv in levels]
+            g = [np.nan if block[lv]["gain"]["gain"] is None else block[lv]["gain"]["gain"] for lv in levels]
+            e = [0.0 if block[lv]["gain"]["half_width"] is None else block[lv]["gain"]["half_width"]
+                 for lv in levels]
             axes[0].errorbar(x, g, yerr=e, ls=styles[rkey], marker="o", capsize=3, color=f"C{k}", label=lab)
             for m, mk in (("uniform", "s"), ("gausslite", "o")):
                 v = [np.nan if block[lv][f"{m}_roi_psnr"] is None else block[lv][f"{m}_roi_psnr"] for lv in levels]
                 axes[1].plot(x, v, ls=styles[rkey], marker=mk, color=f"C{k}", label=f"{lab}, {m}")
-    for ax, ylab in zip(axes, ("ROI gain GaussLite − uniform [dB]", "ROI PSNR at true poses [dB]")):
+    for ax, ylab in zip(axes, ("ROI gain GaussLite − uniform [dB]", "ROI PSNR at the predicted pose [dB]")):
         ax.set_xticks(np.arange(len(levels)), levels)
         ax.set_xlabel("pose error level (ATE_rotation)")
         ax.set_ylabel(ylab)
@@ -256,7 +355,8 @@ def plot(summary: dict, path: Path) -> None:
     axes[0].axhline(0.0, color="grey", lw=0.8)
     axes[0].legend(fontsize=7)
     axes[1].legend(fontsize=6, ncol=2)
-    fig.suptitle("Withheld views scored at their true poses (mean ± std over seeds)", fontsize=10)
+    fig.suptitle("Withheld views at the predicted pose (given pose + the map's interpolated correction); "
+                 "gain: mean and 95 % interval over seeds", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -280,6 +380,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", type=Path, default=RESULTS / "pose_perturbation.json")
     ap.add_argument("--resume", action="store_true", help="keep the runs of <out>.partial.json, run the missing ones")
     ap.add_argument("--fresh", action="store_true", help="discard an existing <out>.partial.json")
+    ap.add_argument("--max-runs", type=int, default=None, metavar="N",
+                    help="run at most N of the missing runs, then stop (continue with --resume); the results are "
+                    "written once none is missing")
     return ap
 
 
@@ -297,7 +400,7 @@ def _key(r: dict) -> tuple:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    """Run the bench; returns the exit code."""
+    """Run the bench (or ``--max-runs`` of its missing runs); returns the exit code."""
     ap = _parser()
     args = ap.parse_args(argv)
     scenes = [s for s in args.scenes.split(",") if s]
@@ -307,14 +410,18 @@ def main(argv: Optional[list[str]] = None) -> int:
     seeds = list(range(args.seeds))
     if any(s not in SCENES for s in scenes):
         ap.error(f"unknown scene in {scenes}; known: {list(SCENES)}")
-    settings = {k: getattr(args, k) for k in ("frames", "withhold_every", "track_iters", "overrides")}
+    if args.max_runs is not None and args.max_runs < 1:
+        ap.error("--max-runs must be >= 1")
+    settings = {**{k: getattr(args, k) for k in ("frames", "withhold_every", "track_iters", "overrides")},
+                "scoring": SCORING}
     partial = args.out.with_suffix(".partial.json")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if partial.exists() and not (args.resume or args.fresh):
         ap.error(f"{partial} exists: --resume to continue it or --fresh to discard it")
     runs, wall0 = load_partial(partial, settings) if args.resume else ([], 0.0)
     done = {_key(r) for r in runs}
-    jobs = [j for j in _jobs(args, scenes, levels, refines, modes, seeds) if _key(j) not in done]
+    missing = [j for j in _jobs(args, scenes, levels, refines, modes, seeds) if _key(j) not in done]
+    jobs = missing[:args.max_runs] if args.max_runs is not None else missing
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         futs = [pool.submit(run_one, j) for j in jobs]
@@ -322,14 +429,18 @@ def main(argv: Optional[list[str]] = None) -> int:
             runs.append(f.result())
             partial.write_text(json.dumps({"settings": settings, "runs": runs,
                                            "wall_s": wall0 + time.perf_counter() - t0}, indent=1))
-    summary = summarise(runs, scenes, levels, refines, seeds)
     wall = wall0 + time.perf_counter() - t0
+    if len(jobs) < len(missing):
+        print(f"{len(missing) - len(jobs)} runs left ({len(runs)} done, {wall / 60:.1f} min so far): "
+              f"continue with --resume")
+        return 0
+    summary = summarise(runs, scenes, levels, refines, seeds)
     result = {"settings": {**settings, "scenes": scenes, "levels": levels, "modes": modes, "seeds": seeds,
-                           "refine": args.refine, "scoring": "withheld frames at their true poses"},
+                           "refine": args.refine},
               "summary": summary, "runs": runs, "wall_s": wall}
     plot(summary, args.out.with_suffix(".png"))
     write_results(args.out, "pose_perturbation", argv, f": {len(seeds)} seeds, {len(runs)} runs, {wall / 60:.0f} min "
-                  "(2-core machine shared with other work)", table(summary), result)
+                  "of mapping and scoring (2 workers; 2-core machine shared with other work)", table(summary), result)
     partial.unlink(missing_ok=True)
     return 0
 
