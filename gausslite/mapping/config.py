@@ -308,6 +308,38 @@ class RoiViewConfig(_Strict):
         1.5e-3, ge=0, description="deterministic twin (budget_clock work): modelled seconds of storing one view")
 
 
+class DetailConfig(_Strict):
+    """The task region at its own resolution (:mod:`gausslite.mapping.detail`; docs/mapper.md, "The task region at
+    its own resolution"): beside the keyframe at the mapping resolution, ``Mapper.map_frame`` may get the same view at
+    a finer one (a :class:`~gausslite.mapping.detail.DetailView`); the keyframe then keeps a crop of the task region
+    at that resolution, which ROI-phase iterations fit instead of the coarse crop, and which the region's seeds and
+    ROI views come from. GaussLite mode with the ROI phase only; one map either way."""
+
+    enabled: bool = Field(
+        False, description="use the detail view map_frame is given (without one, or with this off, the mapper maps "
+        "as it does at one resolution, bit for bit)"
+    )
+    pad_px: Optional[int] = Field(
+        None, ge=0, description="pixels around the region's box in the detail crop, at the detail resolution; None = "
+        "roi_crop_pad × the detail scale (the detail view's focal over the mapping focal), the coarse crop's area"
+    )
+    max_bytes: int = Field(
+        64 << 20, ge=1, description="bound on the bytes of the keyframes' detail crops (uint8 colour, float16 depth, "
+        "bool region: 6 B/pixel; counted in KeyframeStore.nbytes); past it the detail crop of the most redundant "
+        "keyframe is dropped (the older of the closest pair of poses), the coarse keyframe stays"
+    )
+    seeds: bool = Field(
+        True, description="with SB: the region's seeds are drawn from the detail crop's relevant pixels (their initial "
+        "scale follows the finer spacing); the background's from the coarse frame outside the region. False: every "
+        "seed from the coarse frame"
+    )
+    roi_views: bool = Field(
+        True, description="with roi_views.enabled: the ROI views of the frames between keyframes are cut from the "
+        "detail view's frames (DetailView.between) when it has them, their dilation and minimum region size scaled "
+        "to the detail resolution; the view store's max_bytes then counts the larger crops"
+    )
+
+
 class PerformanceConfig(_Strict):
     """Speed settings: threads, kernels, culling, caches and the cheaper iteration variants. Except for
     ``coarse_iters`` and ``full_crop_fraction`` they do not change the map beyond float rounding."""
@@ -461,8 +493,9 @@ class MapperConfig(_Strict):
     comparison of paper Sec. IV.
 
     The settings of one concern are grouped: ``seeding``, ``budget``, ``pose``, ``sensor``, ``performance``,
-    ``densify``, ``lr``, ``components``. Input that names a grouped setting by its old flat name (``max_gaussians``,
-    ``pose_refine``, …: :data:`FLAT_NAMES`) is migrated by :func:`migrate_flat_names`, with a warning.
+    ``densify``, ``lr``, ``components``, ``roi_views``, ``detail``. Input that names a grouped setting by its old flat
+    name (``max_gaussians``, ``pose_refine``, …: :data:`FLAT_NAMES`) is migrated by :func:`migrate_flat_names`, with
+    a warning.
     """
 
     mode: Literal["uniform", "gausslite"] = "uniform"
@@ -573,6 +606,7 @@ class MapperConfig(_Strict):
     sensor: SensorConfig = SensorConfig()
     performance: PerformanceConfig = PerformanceConfig()
     roi_views: RoiViewConfig = RoiViewConfig()
+    detail: DetailConfig = DetailConfig()
 
     @model_validator(mode="before")
     @classmethod

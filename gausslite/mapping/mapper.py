@@ -26,6 +26,11 @@ Per mapped frame (paper Sec. III-C/III-D):
 4. standard 3DGS clone/split/prune every ``densify.every`` iterations, under the global budget; the
    view-space gradient statistics come from full-image iterations only (``densify.active_phase_stats``).
 
+With ``detail.enabled`` and a :class:`~gausslite.mapping.detail.DetailView` (the same keyframe at a finer resolution),
+the task region has its own resolution in the one map (:mod:`gausslite.mapping.detail`): the keyframe keeps a detail
+crop of the region, ROI-phase iterations fit it instead of the coarse crop, the region's seeds and ROI views come from
+the finer pixels.
+
 Before seeding, under ``pose.track_iters`` a new keyframe is placed against the frozen map
 (:class:`~gausslite.mapping.tracking.FrameTracker`). Every Gaussian records the mapped frame that seeded it (its
 keyframe anchor, :attr:`GaussianModel.anchors <gausslite.mapping.model.GaussianModel.anchors>`), so that
@@ -62,17 +67,20 @@ from gausslite.datasets.base import Frame
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.budget import WallClock, WorkClock, WorkCost
 from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.detail import (DetailCrop, DetailView, check_detail, cut_detail, detail_pad, detail_pool,
+                                      detail_scale, detail_seed_pixels)
 from gausslite.mapping.exposure import invert_exposure
 from gausslite.mapping.memory import KeyframeStore, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner, nearest_key
 from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_view_of, window_points
-from gausslite.mapping.seeding import SeedSelection, local_median_nn_distance, seed_points, select_seeds
+from gausslite.mapping.seeding import (SeedSelection, local_median_nn_distance, seed_points, select_seeds,
+                                       weighted_choice)
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
 from gausslite.mapping.strategy import DensityStrategy
 from gausslite.mapping.tracking import FrameTracker, TrackResult
-from gausslite.mapping.views import Keyframe, keyframe_from_frame
+from gausslite.mapping.views import Keyframe, keyframe_from_frame, roi_box
 from gausslite.render import RenderOutput
 
 log = logging.getLogger(__name__)
@@ -101,6 +109,7 @@ class FrameStats:
     track_accepted: Optional[bool] = None
     track_rot_deg: float = 0.0  #: keyframe placement: the tracked correction's rotation, degrees (rejected or not)
     track_trans_m: float = 0.0  #: keyframe placement: the tracked correction's translation, metres
+    detail_px: int = 0  #: pixels (w × h) of the detail crop the keyframe stored (``detail``; 0: none)
 
 
 @dataclass
@@ -146,7 +155,8 @@ class Mapper:
         self.clock = (WorkClock(WorkCost(**cfg.work_cost.model_dump())) if cfg.budget_clock == "work"
                       else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window)
+        self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window,
+                                       max_detail_bytes=cfg.detail.max_bytes)
         # the per-keyframe corrections: refined with the map (pose.refine), set by keyframe placement
         # (pose.track_iters), or by a pose graph (apply_pose_corrections)
         self.poses: Optional[PoseRefiner] = (self._new_pose_record() if cfg.pose.refine or cfg.pose.track_iters
@@ -248,9 +258,9 @@ class Mapper:
         keyframe whose pose changed, the world-frame rigid transform ``T = new_c2w · old_c2w⁻¹`` moves the Gaussians
         anchored to it (their means and rotations, :meth:`GaussianModel.move_rows
         <gausslite.mapping.model.GaussianModel.move_rows>`), so they look from the new pose as they looked from the
-        old one. The keyframe's stored pose (the keyframe store) and its correction record (:meth:`pose_of`) take the
-        new pose; the ROI views stored between keyframes move with their nearest mapped frame. Gaussians of other
-        keyframes, and unanchored ones (a map loaded from outside), stay. Without ``pose.refine`` and tracking, the
+        old one. The keyframe's stored pose (the keyframe store, its detail crop with it) and its correction record
+        (:meth:`pose_of`) take the new pose; the ROI views stored between keyframes move with their nearest mapped
+        frame. Gaussians of other keyframes, and unanchored ones (a map loaded from outside), stay. Without ``pose.refine`` and tracking, the
         mapper starts keeping a correction record here, so that frames are rendered at their corrected poses.
 
         Args:
@@ -335,17 +345,20 @@ class Mapper:
                                 cfg.seeding.coverage_alpha, cfg.seeding.coverage_depth_factor)
         return cand, float(cand.sum()) / max(1, int(valid.sum()))
 
-    def seed_frame(self, frame: Frame, relevance: Optional[np.ndarray]) -> SeedStats:
+    def seed_frame(self, frame: Frame, relevance: Optional[np.ndarray],
+                   detail: Optional[DetailCrop] = None) -> SeedStats:
         """Seed new Gaussians where ``frame`` is not explained by the map (paper Sec. III-C).
 
         The count is ``seeds_per_frame`` × the unexplained share of valid pixels (twice as many, or
         ``first_frame_seeds``, on the first frame), within the budget; pixels are drawn uniformly or by SB/SIS/GFD
         with the relevance map; a new Gaussian is active when its seed pixel is relevant. At the budget the new
-        seeds replace the existing Gaussians of lowest eviction score (:class:`DensityStrategy`).
+        seeds replace the existing Gaussians of lowest eviction score (:class:`DensityStrategy`). With a ``detail``
+        crop and SB the region's seeds come from the crop's pixels (:meth:`_two_resolution_seeds`).
 
         Args:
             frame: posed RGB-D frame (world frame ``c2w``, metres).
             relevance: (H, W) bool relevance map w, or None.
+            detail: the keyframe's detail crop (:func:`~gausslite.mapping.detail.cut_detail`), or None.
         Returns:
             :class:`SeedStats`.
         """
@@ -360,28 +373,13 @@ class Mapper:
         else:
             n = int(math.ceil(n * share))
         n = min(n, budget)
-        sel = select_seeds(
-            cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
-            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.seeding.rho, gfd_eps=cfg.seeding.gfd_eps,
-        ) if n > 0 else None
-        if gap is not None:
-            # ROI seeds where the task's Gaussians leave relevant pixels uncovered (gap ∩ cand = ∅: no duplicates)
-            pool = np.flatnonzero(gap.ravel())
-            roi_valid = int((relevance & (frame.depth > 0)).sum())
-            n_gap = min(pool.size, budget, int(math.ceil(cfg.seeding.rho * cfg.seeding.seeds_per_frame
-                                                          * pool.size / max(1, roi_valid))))
-            extra = self.rng.choice(pool, size=n_gap, replace=False).astype(np.int64)
-            stats.n_gap_seeds = int(extra.size)
-            sel = SeedSelection(extra, np.ones(extra.size, bool)) if sel is None else dataclasses.replace(
-                sel, pixels=np.concatenate([sel.pixels, extra]), is_roi=np.concatenate([sel.is_roi, np.ones(extra.size, bool)]))
-        if sel is None or sel.pixels.size == 0:
+        if detail is not None and sw.sb and relevance is not None:
+            seeds = self._two_resolution_seeds(frame, relevance, cand, gap, n, budget, detail, stats)
+        else:
+            seeds = self._frame_seeds(frame, relevance, cand, gap, n, budget, stats)
+        if seeds is None:
             return stats
-        if sel.n_roi_shortfall:
-            log.debug("frame %d: ROI has %d fewer candidate pixels than its seed share; moved to background",
-                      frame.frame_id, sel.n_roi_shortfall)
-        # a_i comes from w at the seed pixel, whatever the seeding strategy
-        is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
-        pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
+        pts, cols, is_roi = seeds
         if self.sensor.exposure is not None:
             cols = invert_exposure(cols, self.sensor.exposure.of(frame.frame_id))  # into the map's exposure
         s0 = local_median_nn_distance(pts, k=cfg.seeding.knn)
@@ -408,8 +406,74 @@ class Mapper:
             parent = parent[keep]
             stats.n_evicted = len(cur) + len(new) - len(merged)
         self.strategy.set_map(merged, parent, new_anchor=int(frame.frame_id))
-        stats.n_seeds, stats.n_roi = int(sel.pixels.size), int(is_roi.sum())
+        stats.n_seeds, stats.n_roi = int(pts.shape[0]), int(is_roi.sum())
         return stats
+
+    def _gap_count(self, n_pool: int, n_roi_valid: int, budget: int) -> int:
+        """Adoption's ROI seeds: ρ × ``seeds_per_frame`` × the uncovered share of the valid relevant pixels (at most
+        the pool and the budget)."""
+        sc = self.cfg.seeding
+        return min(n_pool, budget, int(math.ceil(sc.rho * sc.seeds_per_frame * n_pool / max(1, n_roi_valid))))
+
+    def _frame_seeds(self, frame: Frame, relevance: Optional[np.ndarray], cand: np.ndarray,
+                     gap: Optional[np.ndarray], n: int, budget: int,
+                     stats: SeedStats) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Seeds of one frame at its own resolution: ``n`` pixels of ``cand`` (uniform, or SB/SIS/GFD with
+        ``relevance``), plus ROI seeds on the adoption ``gap``. Returns (points (S, 3) float64 world metres, colours
+        (S, 3) float32 in [0, 1], is_roi (S,) bool), or None without a seed."""
+        cfg, sw = self.cfg, self.cfg.effective()
+        sel = select_seeds(
+            cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
+            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.seeding.rho, gfd_eps=cfg.seeding.gfd_eps,
+        ) if n > 0 else None
+        if gap is not None:
+            # ROI seeds where the task's Gaussians leave relevant pixels uncovered (gap ∩ cand = ∅: no duplicates)
+            pool = np.flatnonzero(gap.ravel())
+            n_gap = self._gap_count(pool.size, int((relevance & (frame.depth > 0)).sum()), budget)
+            extra = self.rng.choice(pool, size=n_gap, replace=False).astype(np.int64)
+            stats.n_gap_seeds = int(extra.size)
+            sel = SeedSelection(extra, np.ones(extra.size, bool)) if sel is None else dataclasses.replace(
+                sel, pixels=np.concatenate([sel.pixels, extra]), is_roi=np.concatenate([sel.is_roi, np.ones(extra.size, bool)]))
+        if sel is None or sel.pixels.size == 0:
+            return None
+        if sel.n_roi_shortfall:
+            log.debug("frame %d: ROI has %d fewer candidate pixels than its seed share; moved to background",
+                      frame.frame_id, sel.n_roi_shortfall)
+        # a_i comes from w at the seed pixel, whatever the seeding strategy
+        is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
+        pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
+        return pts, cols, is_roi
+
+    def _two_resolution_seeds(self, frame: Frame, relevance: np.ndarray, cand: np.ndarray,
+                              gap: Optional[np.ndarray], n: int, budget: int, detail: DetailCrop,
+                              stats: SeedStats) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Seeds of a keyframe with a detail crop (SB; docs/mapper.md, "The task region at its own resolution"): the
+        region's ⌊ρn⌋ seeds from the crop's relevant pixels whose coarse pixel is a candidate
+        (:func:`~gausslite.mapping.detail.detail_pool`, GFD at the detail resolution), the background's n − those
+        from the coarse frame outside the region (SIS/GFD as :func:`select_seeds`), the adoption gap's ROI seeds from
+        the crop's pixels on the gap. A region seed's initial scale (s0, the nearest-neighbour spacing of the new
+        seeds) then follows the finer sampling. Returns (points, colours, is_roi) as :meth:`_frame_seeds`, or None."""
+        cfg, sw = self.cfg, self.cfg.effective()
+        cf = detail.frame
+        roi_pix = np.zeros(0, np.int64)
+        if n > 0:
+            roi_pix = detail_seed_pixels(detail, detail_pool(detail, cand, frame.intrinsics),
+                                         int(math.floor(cfg.seeding.rho * n)), self.rng, sw.gfd, cfg.seeding.gfd_eps)
+        n_bg = n - int(roi_pix.size)  # a short pool leaves its share to the background, as SB does
+        bg_pix = select_seeds(cand, n_bg, self.rng, relevance=relevance, rgb=frame.rgb, sb=True, sis=sw.sis,
+                              gfd=sw.gfd, rho=0.0, gfd_eps=cfg.seeding.gfd_eps).pixels if n_bg > 0 else roi_pix[:0]
+        if gap is not None:
+            pool = detail_pool(detail, gap, frame.intrinsics)
+            n_gap = self._gap_count(pool.size, int((detail.relevance & (cf.depth > 0)).sum()), budget)
+            extra = weighted_choice(pool, n_gap, self.rng)
+            stats.n_gap_seeds = int(extra.size)
+            roi_pix = np.concatenate([roi_pix, extra])
+        if roi_pix.size + bg_pix.size == 0:
+            return None
+        p_roi, c_roi = seed_points(roi_pix, cf.depth, cf.rgb, cf.intrinsics, cf.c2w)
+        p_bg, c_bg = seed_points(bg_pix, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
+        is_roi = np.concatenate([np.ones(roi_pix.size, bool), relevance.ravel()[bg_pix]])
+        return np.concatenate([p_roi, p_bg]), np.concatenate([c_roi, c_bg]), is_roi
 
     def _adopt_task_region(self, frame: Frame, relevance: Optional[np.ndarray], cand: np.ndarray,
                            stats: SeedStats) -> Optional[np.ndarray]:
@@ -454,8 +518,9 @@ class Mapper:
     def retarget(self) -> None:
         """Forget the current task (a new one follows, :meth:`AgentRuntime.update_task
         <gausslite.mission.runtime.AgentRuntime.update_task>`): every task flag and κ restart at zero and the
-        stored keyframes lose their ROI; the map, its keyframes, poses and exposure stay. The new task's relevance
-        maps then re-target the map through seeding and adoption (``seeding.adopt``)."""
+        stored keyframes lose their ROI and their detail crops (cut around the old task's region); the map, its
+        keyframes, poses and exposure stay. The new task's relevance maps then re-target the map through seeding and
+        adoption (``seeding.adopt``)."""
         self.model.active = torch.zeros_like(self.model.active)
         self.model.kappa = torch.zeros_like(self.model.kappa)
         self.keyframes.clear_roi()
@@ -498,7 +563,7 @@ class Mapper:
             return None
         return self.roi_views.load(int(self.rng.integers(nv)), self.device)
 
-    def add_roi_views(self, frames, current: Optional[Keyframe] = None) -> int:
+    def add_roi_views(self, frames, current: Optional[Keyframe] = None, scale: Optional[float] = None) -> int:
         """Store the ROI crop of frames between keyframes (``roi_views``; gausslite mode with a task in view).
 
         Each frame's region is the ROI of the newest stored keyframe that sees it and of ``current`` (the keyframe
@@ -513,6 +578,10 @@ class Mapper:
             frames: decoded frames (``Frame``: uint8 rgb (H, W, 3), float32 depth (H, W) metres, ``c2w`` (4, 4),
                 pinhole intrinsics) between the previous keyframe and ``current``, oldest first.
             current: the keyframe being mapped (float tensors), or None.
+            scale: the frames' resolution over the mapping resolution when they are a detail view's
+                (:class:`~gausslite.mapping.detail.DetailView`'s ``between``): the region's dilation is
+                ``roi_views.dilate_px`` × it, its minimum size ``roi_views.min_roi_px`` × its square and the crop's
+                pad :func:`~gausslite.mapping.detail.detail_pad`'s. None: frames at the mapping resolution.
         Returns:
             the number of views stored.
         """
@@ -525,18 +594,22 @@ class Mapper:
         pts = window_points(sources)
         if len(pts) == 0:
             return 0
+        dilate, min_px, pad = rc.dilate_px, rc.min_roi_px, self.cfg.roi_crop_pad
+        if scale is not None:
+            dilate, min_px = int(round(rc.dilate_px * scale)), rc.min_roi_px * scale * scale
+            pad = detail_pad(self.cfg.detail.pad_px, self.cfg.roi_crop_pad, scale)
         stored, seen = 0, 0
         for fr in frames:
             if self.clock.charges:
                 self.clock.charge_fixed(rc.view_cost_s)
             c2w = self.pose_of(fr.frame_id, fr.c2w)
-            roi = project_roi(pts, fr.depth, fr.intrinsics.K, c2w, rc.depth_tol_m, rc.dilate_px)
-            if int(roi.sum()) < rc.min_roi_px:
+            roi = project_roi(pts, fr.depth, fr.intrinsics.K, c2w, rc.depth_tol_m, dilate)
+            if int(roi.sum()) < min_px:
                 continue
             seen += 1
             if (seen - 1) % rc.every:
                 continue
-            view = roi_view_of(dataclasses.replace(fr, c2w=c2w), roi, self.cfg.roi_crop_pad, self.device)
+            view = roi_view_of(dataclasses.replace(fr, c2w=c2w), roi, pad, self.device)
             if self.poses is not None:
                 self.poses.register(fr.frame_id, np.linalg.inv(np.asarray(fr.c2w, np.float64)) @ c2w,
                                     fixed=not rc.align)
@@ -548,7 +621,8 @@ class Mapper:
         return stored
 
     def map_frame(self, frame: Frame, relevance: Optional[np.ndarray] = None,
-                  time_budget_s: Optional[float] = None, between=()) -> FrameStats:
+                  time_budget_s: Optional[float] = None, between=(),
+                  detail: Optional[DetailView] = None) -> FrameStats:
         """Seed and optimise for one posed RGB-D frame.
 
         Args:
@@ -570,14 +644,24 @@ class Mapper:
                 used): under ``sensor.motion_every_frame`` every mode records the camera's motion through them
                 (motion blur, rolling shutter), and under ``roi_views`` GaussLite stores their ROI crops
                 (:meth:`add_roi_views`), inside this call's budget.
+            detail: the same keyframe at the task region's (finer) resolution, with its relevance there and the
+                frames between keyframes at that size (:class:`~gausslite.mapping.detail.DetailView`). Used under
+                ``detail.enabled`` in GaussLite mode with the ROI phase and a relevance map: the keyframe stores the
+                region's detail crop (when both relevance maps have pixels; :attr:`FrameStats.detail_px`), its
+                ROI-phase iterations fit that crop, the region's seeds come from it (``detail.seeds``) and the ROI
+                views from ``detail.between`` (``detail.roi_views``). None, or ``detail.enabled`` off: mapping at
+                one resolution, bit for bit.
         Returns:
             FrameStats (seconds includes seeding, optimisation and density control).
         Raises:
-            ValueError: relevance map of the wrong shape.
+            ValueError: relevance map of the wrong shape; a detail view of another frame or of inconsistent shapes.
         """
         if relevance is not None and relevance.shape != frame.depth.shape:
             raise ValueError(f"relevance map shape {relevance.shape} != frame shape {frame.depth.shape}")
-        cfg, sw = self.cfg, self.cfg.effective()
+        cfg = self.cfg
+        use_detail = (detail is not None and cfg.detail.enabled and cfg.effective().roi and relevance is not None)
+        if use_detail:
+            check_detail(detail, frame)
         t_wall = time.perf_counter()
         t0 = self.clock.now()
         budget = cfg.keyframe_budget_s if time_budget_s is None else time_budget_s
@@ -591,12 +675,41 @@ class Mapper:
         if exposure is not None:
             # start from the latest keyframe's response; the first keyframe fixes the map's exposure
             exposure.register(frame.frame_id, exposure.initial(frame.frame_id), fixed=self.n_mapped == 0)
-        seeded = self.seed_frame(frame, relevance)
+        crop = None
+        if use_detail and roi_box(relevance) is not None:  # at the placed pose: the keyframe's
+            crop = cut_detail(detail, frame.c2w, frame.intrinsics, cfg.detail.pad_px, cfg.roi_crop_pad)
+        seeded = self.seed_frame(frame, relevance, crop if cfg.detail.seeds else None)
         kf = keyframe_from_frame(frame, self.device, relevance)
-        if between:
+        if crop is not None:  # the crop shares the keyframe's pose tensor: corrections move both
+            kf.detail = dataclasses.replace(keyframe_from_frame(crop.frame, self.device, crop.relevance), c2w=kf.c2w)
+        if use_detail and cfg.detail.roi_views and detail.between:
+            self.add_roi_views(detail.between, kf, detail_scale(detail.frame.intrinsics, frame.intrinsics))
+        elif between:
             self.add_roi_views(between, kf)
+        stored = None
         if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
-            self.keyframes.add(kf)
+            stored = self.keyframes.add(kf)
+        loss, active_iters, n_iters, dstats = self._train_keyframe(kf, t0, budget)
+        if cfg.budget.evict == "contribution":
+            self.accumulate_contribution(kf)
+        self.n_mapped += 1
+        st = FrameStats(frame.frame_id, time.perf_counter() - t_wall, seeded.n_seeds, seeded.n_roi, len(self.model),
+                        loss, active_iters, dstats, n_iters, unexplained=seeded.unexplained,
+                        budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted,
+                        n_adopted=seeded.n_adopted, n_gap_seeds=seeded.n_gap_seeds)
+        if placed is not None:
+            st.track_iters, st.track_accepted = placed.iters, placed.accepted
+            st.track_rot_deg, st.track_trans_m = placed.rot_deg, placed.trans_m
+        if stored is not None and stored.detail is not None:
+            st.detail_px = int(stored.detail.width * stored.detail.height)
+        self.stats.append(st)
+        return st
+
+    def _train_keyframe(self, kf: Keyframe, t0: float, budget: Optional[float]) -> tuple[float, int, int, dict]:
+        """The iterations of one :meth:`map_frame` call on keyframe ``kf`` (started at clock time ``t0``, ``budget``
+        seconds or None for ``iters_per_frame``): warm-up then ROI phase, density control on schedule. Returns
+        (last loss, ROI-phase iterations, iterations, summed density-control counts)."""
+        cfg, sw = self.cfg, self.cfg.effective()
         loss = 0.0
         active_iters = 0
         n_iters = 0
@@ -628,18 +741,7 @@ class Mapper:
                 for k, v in self.strategy.densify_and_prune().items():
                     dstats[k] = dstats.get(k, 0) + v
                 has_active = bool(self.model.active.any())
-        if cfg.budget.evict == "contribution":
-            self.accumulate_contribution(kf)
-        self.n_mapped += 1
-        st = FrameStats(frame.frame_id, time.perf_counter() - t_wall, seeded.n_seeds, seeded.n_roi, len(self.model),
-                        loss, active_iters, dstats, n_iters, unexplained=seeded.unexplained,
-                        budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted,
-                        n_adopted=seeded.n_adopted, n_gap_seeds=seeded.n_gap_seeds)
-        if placed is not None:
-            st.track_iters, st.track_accepted = placed.iters, placed.accepted
-            st.track_rot_deg, st.track_trans_m = placed.rot_deg, placed.trans_m
-        self.stats.append(st)
-        return st
+        return loss, active_iters, n_iters, dstats
 
     def _place_keyframe(self, frame: Frame, relevance: Optional[np.ndarray],
                         deadline: Optional[float]) -> tuple[Frame, Optional[TrackResult]]:
@@ -754,8 +856,8 @@ class Mapper:
         """CPU copy of what a restarted online mapper needs, gathered from its parts' ``state_dict``: the
         Gaussians with κ, task flags and stable ids (:class:`GaussianModel`), accumulated contribution, budget
         and observed voxels (:class:`DensityStrategy`), the newest ``max_keyframes`` stored keyframes in their
-        compact form (None: all; they bound the file size of a long mission; the MVO window is the newest of
-        them), the sensor state (:class:`SensorRenderer`), the pose corrections and the mapped frames' input poses (the
+        compact form with their detail crops (None: all; they bound the file size of a long mission; the MVO window
+        is the newest of them), the sensor state (:class:`SensorRenderer`), the pose corrections and the mapped frames' input poses (the
         keyframe anchors' frames), the schedule counters and the
         RNG state; not the Adam moments (a resumed mapper restarts them at zero, as for newly seeded
         Gaussians). One flat ``torch.save``-able dict.

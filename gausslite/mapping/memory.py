@@ -5,7 +5,9 @@ pixels of a new frame its map does not yet explain.
   depth, bool ROI: 3.0 B/pixel + ROI instead of 16 B/pixel as float32 tensors), bounded by
   ``max_keyframes`` (the most redundant old keyframe is dropped), with the view sampler of
   multi-view optimisation: a draw from the recent window or from the whole mission, weighted towards
-  keyframes that see the ROI. This follows MonoGS (Matsuki et al., CVPR 2024, Sec. 3.3.1: a window
+  keyframes that see the ROI. A keyframe may also keep a detail crop (its task region at a finer resolution,
+  :mod:`gausslite.mapping.detail`); those crops are bounded by ``max_detail_bytes`` (the most redundant one is
+  dropped, its keyframe stays). This follows MonoGS (Matsuki et al., CVPR 2024, Sec. 3.3.1: a window
   of recent keyframes plus randomly drawn past keyframes each iteration, against forgetting) and
   SplaTAM's covisibility-driven keyframe choice (Keetha et al., CVPR 2024, Sec. 3.5), with "sees the
   ROI" as the covisibility test.
@@ -35,16 +37,32 @@ class KeyframeStore(StoredViews):
             recent ``protect_recent``) whose pose is closest to its predecessor's is dropped
             (translation in metres + rotation angle in radians × ``rot_weight_m``).
         protect_recent: this many newest keyframes are never dropped (the MVO window).
+        max_detail_bytes: bound on the bytes of the keyframes' detail crops (:mod:`gausslite.mapping.detail`); past
+            it, the detail crop of the keyframe whose pose is closest to another detail keyframe's is dropped (the
+            older of the pair; the newest keyframe's crop last), the keyframe itself stays.
+    Attributes:
+        n_dropped: keyframes dropped so far. n_detail_dropped: detail crops dropped so far.
+    Raises:
+        ValueError: ``max_keyframes`` or ``max_detail_bytes`` below 1.
     """
 
-    def __init__(self, max_keyframes: int = 500, protect_recent: int = 8, rot_weight_m: float = 0.5) -> None:
-        if max_keyframes < 1:
-            raise ValueError(f"max_keyframes must be >= 1, got {max_keyframes}")
+    def __init__(self, max_keyframes: int = 500, protect_recent: int = 8, rot_weight_m: float = 0.5,
+                 max_detail_bytes: int = 64 << 20) -> None:
+        if max_keyframes < 1 or max_detail_bytes < 1:
+            raise ValueError(f"max_keyframes and max_detail_bytes must be >= 1, got {max_keyframes}, "
+                             f"{max_detail_bytes}")
         self.max_keyframes = int(max_keyframes)
         self.protect_recent = int(protect_recent)
         self.rot_weight_m = float(rot_weight_m)
+        self.max_detail_bytes = int(max_detail_bytes)
         super().__init__()
         self.n_dropped = 0
+        self.n_detail_dropped = 0
+
+    @property
+    def detail_nbytes(self) -> int:
+        """Bytes held by the stored keyframes' detail crops (part of :attr:`nbytes`)."""
+        return sum(k.detail.nbytes for k in self._items if k.detail is not None)
 
     def state_dict(self, newest: Optional[int] = None) -> dict:
         """``{"keyframes": [...]}``: the newest ``newest`` stored keyframes (None: all) as plain dicts of their
@@ -64,13 +82,35 @@ class KeyframeStore(StoredViews):
     def add(self, kf) -> StoredKeyframe:
         """Store a :class:`~gausslite.mapping.views.Keyframe` (float tensors) compactly; returns it.
 
-        Drops the most redundant old keyframe when the store is over ``max_keyframes``.
+        Drops the most redundant old keyframe when the store is over ``max_keyframes``, then detail crops while
+        they hold more than ``max_detail_bytes``.
         """
         st = kf.compact()
         self._items.append(st)
         if len(self._items) > self.max_keyframes:
             self._drop_redundant()
+        while st.detail is not None and self.detail_nbytes > self.max_detail_bytes:
+            self._drop_detail()
         return st
+
+    def _drop_detail(self) -> None:
+        """Drop one detail crop: of the closest pair of detail keyframes (pose distance as :meth:`_drop_redundant`),
+        the older one's; the only one left is dropped last."""
+        idx = [i for i, k in enumerate(self._items) if k.detail is not None]
+        if len(idx) == 1:
+            j = idx[0]
+        else:
+            c2w = torch.stack([self._items[i].c2w for i in idx]).numpy()
+            t = c2w[:, :3, 3]
+            dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
+            rel = np.einsum("aji,bjk->abik", c2w[:, :3, :3], c2w[:, :3, :3])
+            ang = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+            cost = dt + self.rot_weight_m * ang
+            np.fill_diagonal(cost, np.inf)
+            a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)
+            j = idx[min(a, b)]
+        self._items[j].detail = None
+        self.n_detail_dropped += 1
 
     def _drop_redundant(self) -> None:
         n_old = len(self._items) - self.protect_recent
@@ -88,7 +128,8 @@ class KeyframeStore(StoredViews):
         self.n_dropped += 1
 
     def set_roi(self, i: int, roi: Optional[np.ndarray]) -> None:
-        """Replace keyframe ``i``'s ROI by ``roi`` ((H, W) bool, or None: no ROI), with its box (a new task).
+        """Replace keyframe ``i``'s ROI by ``roi`` ((H, W) bool, or None: no ROI), with its box (a new task). Its
+        detail crop, cut around the old task's region, is dropped.
 
         Raises:
             ValueError: a mask of another size than the keyframe.
@@ -99,9 +140,10 @@ class KeyframeStore(StoredViews):
         box = roi_box(roi)
         k.roi = None if box is None else torch.from_numpy(np.asarray(roi, bool).copy())
         k.roi_box = box
+        k.detail = None
 
     def clear_roi(self) -> None:
-        """Every stored keyframe loses its ROI (the task changed)."""
+        """Every stored keyframe loses its ROI and its detail crop (the task changed)."""
         for i in range(len(self._items)):
             self.set_roi(i, None)
 

@@ -78,25 +78,14 @@ class TrainStep:
         ``footprint_roi`` the loss is further restricted to the keyframe's ROI when it has a non-empty one.
         ``coarse``: a full-image iteration renders the view at 1/``coarse_downscale`` resolution
         (:func:`~gausslite.mapping.views.downscale_keyframe`).
+        Under ``detail.enabled`` an ROI-phase iteration on a keyframe with a detail crop (``kf.detail``,
+        :mod:`gausslite.mapping.detail`) renders and fits that crop instead of the coarse one: same loss, the
+        keyframe's pose correction and exposure response (keyed by its frame id; the crop shares its pose tensor).
         """
         cfg = self.cfg
         if active_phase and kf.roi_box is None:
             active_phase = False
-        # density statistics: view-space gradients normalised by the full image size (crops and windows
-        # keep its pixel scale; a downscaled view has its own), times a weight (below)
-        stat_w, stat_h, stat_weight = kf.width, kf.height, 1.0
-        if active_phase:
-            view = crop_keyframe(kf, cfg.roi_crop_pad)
-        elif coarse and not footprint_only:
-            view = downscale_keyframe(kf, cfg.performance.coarse_downscale)
-            stat_w, stat_h = view.width, view.height
-        elif cfg.performance.full_crop_fraction < 1.0 and not footprint_only:
-            view = random_window(kf, cfg.performance.full_crop_fraction, self.rng)
-            # the window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
-            # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
-            stat_weight = view.width * view.height / float(kf.width * kf.height)
-        else:
-            view = kf
+        view, stat_w, stat_h, stat_weight = self._view_of(kf, active_phase, footprint_only, coarse)
         alone = cfg.roi_render == "active" or (cfg.roi_render == "alternate" and self.roi_iters % 2 == 1)
         subset = self.model.active if active_phase and alone else None
         self.roi_iters += int(active_phase)
@@ -160,6 +149,29 @@ class TrainStep:
             if new is not None:
                 self._write_pose(kf, new)
         return float(loss.detach())
+
+    def _view_of(self, kf: Keyframe, active_phase: bool, footprint_only: bool,
+                 coarse: bool) -> tuple[Keyframe, float, float, float]:
+        """The view one iteration on ``kf`` renders (ROI crop, detail crop, downscaled view, random window or the
+        keyframe itself) and its density-statistics scale: (view, width, height, weight), the gradients normalised by
+        the full image size at the view's resolution (crops and windows keep the keyframe's pixel scale; a
+        downscaled view and a detail crop have their own: :class:`~gausslite.mapping.strategy.DensityStrategy`)."""
+        cfg = self.cfg
+        detail = kf.detail if active_phase and cfg.detail.enabled else None
+        if detail is not None and detail.roi_box is not None:
+            scale = float(detail.K[0, 0]) / float(kf.K[0, 0])
+            return detail, kf.width * scale, kf.height * scale, 1.0
+        if active_phase:
+            return crop_keyframe(kf, cfg.roi_crop_pad), kf.width, kf.height, 1.0
+        if coarse and not footprint_only:
+            view = downscale_keyframe(kf, cfg.performance.coarse_downscale)
+            return view, view.width, view.height, 1.0
+        if cfg.performance.full_crop_fraction < 1.0 and not footprint_only:
+            view = random_window(kf, cfg.performance.full_crop_fraction, self.rng)
+            # the window's loss is a mean over fewer pixels: each pixel weighs full/window more, so its
+            # Gaussians' gradients are larger by that factor; weigh them back to full-image scale
+            return view, kf.width, kf.height, view.width * view.height / float(kf.width * kf.height)
+        return kf, kf.width, kf.height, 1.0
 
     def _loss(self, out, view: Keyframe, mask: Optional[torch.Tensor], active_phase: bool, parts: list) -> torch.Tensor:
         """Eq. 1 on ``view`` (ROI-phase iterations with their own depth weight ``roi_lambda_depth`` and the isotropy

@@ -10,6 +10,13 @@ settings in the typed config, state in :class:`DensityStrategy`, hooks the mappe
 - **Density control** (:meth:`DensityStrategy.accumulate` after each backward pass,
   :meth:`DensityStrategy.densify_and_prune` every ``densify.every`` iterations): clone/split on the mean
   view-space gradient norm, prune transparent or oversized Gaussians, within the budget.
+
+The gradient statistic is resolution-free: a Gaussian's gradient in pixels times half the size of the full image at
+the rendered view's resolution is its gradient in normalised image coordinates, which does not change with the pixel
+size (a view k times finer gives 1/k the pixel gradient and k times the image size). ``densify.grad_threshold`` thus
+holds for a coarse view, a downscaled one and the task region's detail crop (:mod:`gausslite.mapping.detail`) alike,
+and none of them over- or under-densifies the region; ROI-phase iterations, detail crops included, feed the statistic
+only under ``densify.active_phase_stats``.
 """
 
 from __future__ import annotations
@@ -113,9 +120,10 @@ class DensityStrategy:
         self.grad_accum = torch.zeros(n, device=self.device)
         self.grad_count = torch.zeros(n, device=self.device)
 
-    def accumulate(self, outs: list[RenderOutput], width: int, height: int, weight: float = 1.0) -> None:
+    def accumulate(self, outs: list[RenderOutput], width: float, height: float, weight: float = 1.0) -> None:
         """Post-backward hook: add each visible Gaussian's view-space gradient norm (pixels × half the image
-        size, times ``weight``) to the density-control statistics. ``outs``: the renders of one image (one, or the
+        size, times ``weight``; ``width`` × ``height`` the full image at the view's resolution, fractional for a
+        detail crop) to the density-control statistics. ``outs``: the renders of one image (one, or the
         row bands of a rolling-shutter view, whose gradients of a Gaussian are summed before the norm, so a
         Gaussian cut by a band edge counts as in one render)."""
         if len(outs) == 1:

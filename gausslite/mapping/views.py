@@ -4,6 +4,10 @@ crops, windows and pyramid levels an iteration renders (paper Sec. III-D).
 A keyframe's compact form (uint8 colour, float16 depth, CPU) is its serialisation: :meth:`Keyframe.compact`
 gives it and :meth:`~gausslite.mapping.memory.StoredKeyframe.to_keyframe` reads it back; the mission's
 keyframe store and the mapper's checkpoints hold that form.
+
+A keyframe may carry a *detail crop* (``detail``): the same view's task region at a finer resolution than the
+mapping resolution (:mod:`gausslite.mapping.detail`), a :class:`Keyframe` of its own with the same frame id that
+shares the keyframe's pose tensor, so a refined or corrected pose moves both.
 """
 
 from __future__ import annotations
@@ -24,7 +28,9 @@ class Keyframe:
 
     rgb (H,W,3) float32 [0,1]; depth (H,W) float32 metres (0 invalid); c2w (4,4) float64;
     K (3,3) float32; roi (H,W) bool or None; roi_box (x0, y0, x1, y1) pixels, the half-open
-    bounding box of the ROI pixels, or None when the ROI is absent or empty.
+    bounding box of the ROI pixels, or None when the ROI is absent or empty; detail: the keyframe's detail crop
+    (:mod:`gausslite.mapping.detail`: the task region at a finer resolution, its own size and K, the same frame id
+    and the same ``c2w`` tensor) or None.
     """
 
     frame_id: int
@@ -39,22 +45,30 @@ class Keyframe:
     #: cached :func:`gausslite.metrics.ssim_gt_stats` of ``rgb`` (filled by the first loss on this view;
     #: the mapper also keeps recent views' statistics, see ``MapperConfig.performance.ssim_cache_views``)
     ssim_stats: Optional[tuple] = field(default=None, repr=False, compare=False)
+    detail: Optional["Keyframe"] = field(default=None, repr=False, compare=False)
 
     def to(self, device: torch.device | str) -> "Keyframe":
-        """This keyframe with its tensors on ``device`` (a shallow copy; no cached SSIM statistics)."""
+        """This keyframe with its tensors (and its detail crop's) on ``device`` (a shallow copy; no cached SSIM
+        statistics)."""
         move = {k: getattr(self, k).to(device) for k in ("rgb", "depth", "c2w", "K")}
         if self.roi is not None:
             move["roi"] = self.roi.to(device)
+        if self.detail is not None:
+            move["detail"] = dataclasses.replace(self.detail.to(device), c2w=move["c2w"])
         return dataclasses.replace(self, ssim_stats=None, **move)
 
     def compact(self) -> "StoredKeyframe":
-        """This keyframe in its compact stored form (CPU; colour rounded to uint8, depth to float16)."""
-        return StoredKeyframe(
+        """This keyframe in its compact stored form (CPU; colour rounded to uint8, depth to float16), with its
+        detail crop's compact form sharing the stored pose tensor."""
+        st = StoredKeyframe(
             frame_id=int(self.frame_id), rgb=(self.rgb.detach().clamp(0, 1) * 255.0 + 0.5).to("cpu", torch.uint8),
             depth=self.depth.detach().to("cpu", torch.float16), c2w=self.c2w.detach().to("cpu", torch.float64),
             K=self.K.detach().to("cpu", torch.float32), width=int(self.width), height=int(self.height),
             roi=None if self.roi is None else self.roi.detach().to("cpu", torch.bool), roi_box=self.roi_box,
         )
+        if self.detail is not None:
+            st.detail = dataclasses.replace(self.detail.compact(), c2w=st.c2w)
+        return st
 
 
 @dataclass
@@ -63,7 +77,8 @@ class StoredKeyframe:
 
     rgb (H,W,3) uint8; depth (H,W) float16 metres (0 invalid; ≈1 mm resolution at 2 m);
     c2w (4,4) float64 camera-to-world (OpenCV camera axes, metres); K (3,3) float32 pixels;
-    roi (H,W) bool or None; roi_box (x0,y0,x1,y1) half-open pixel box of the ROI or None.
+    roi (H,W) bool or None; roi_box (x0,y0,x1,y1) half-open pixel box of the ROI or None; detail: the compact
+    detail crop (:mod:`gausslite.mapping.detail`; its ``c2w`` is this keyframe's tensor) or None.
     """
 
     frame_id: int
@@ -75,11 +90,13 @@ class StoredKeyframe:
     height: int
     roi: Optional[torch.Tensor]
     roi_box: Optional[tuple[int, int, int, int]]
+    detail: Optional["StoredKeyframe"] = None
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the image tensors."""
+        """Bytes held by the image tensors (the detail crop's included)."""
         n = self.rgb.numel() + 2 * self.depth.numel()
+        n += self.detail.nbytes if self.detail is not None else 0
         return n + (self.roi.numel() if self.roi is not None else 0)
 
     @property
@@ -89,13 +106,17 @@ class StoredKeyframe:
 
     def to_keyframe(self, device: torch.device) -> Keyframe:
         """This keyframe as a float :class:`Keyframe` on ``device`` (rgb (H,W,3) float32 in [0, 1], depth (H,W)
-        float32 metres; c2w, K and roi shared with this object on CPU)."""
-        return Keyframe(
+        float32 metres; c2w, K and roi shared with this object on CPU), with its detail crop likewise (sharing the
+        keyframe's ``c2w`` tensor)."""
+        kf = Keyframe(
             frame_id=self.frame_id, rgb=self.rgb.to(device, torch.float32) / 255.0,
             depth=self.depth.to(device, torch.float32), c2w=self.c2w.to(device), K=self.K.to(device),
             width=self.width, height=self.height, roi=None if self.roi is None else self.roi.to(device),
             roi_box=self.roi_box,
         )
+        if self.detail is not None:
+            kf.detail = dataclasses.replace(self.detail.to_keyframe(device), c2w=kf.c2w)
+        return kf
 
 
 
@@ -137,19 +158,35 @@ class StoredViews:
         for k in reversed(self._items):
             if k.frame_id == int(frame_id):
                 k.c2w.copy_(c2w.detach().to("cpu", torch.float64))
+                if k.detail is not None:  # the same tensor unless a caller replaced it
+                    k.detail.c2w.copy_(k.c2w)
                 return True
         return False
 
     @staticmethod
     def _dump(items) -> list:
-        """``items`` as plain dicts of their compact fields (CPU tensor copies: training refines poses in place)."""
-        return [{f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v) for f in dataclasses.fields(k)}
-                for k in items]
+        """``items`` as plain dicts of their compact fields (CPU tensor copies: training refines poses in place); a
+        detail crop as a nested dict under ``"detail"`` (no key without one)."""
+        out = []
+        for k in items:
+            d = {f.name: (v.clone() if torch.is_tensor(v := getattr(k, f.name)) else v)
+                 for f in dataclasses.fields(k) if f.name != "detail"}
+            if k.detail is not None:
+                d["detail"] = StoredViews._dump([k.detail])[0]
+            out.append(d)
+        return out
 
     @staticmethod
     def _undump(dicts) -> list:
-        """Views from :meth:`_dump`'s dicts (copies)."""
-        return [StoredKeyframe(**{k: v.clone() if torch.is_tensor(v) else v for k, v in d.items()}) for d in dicts]
+        """Views from :meth:`_dump`'s dicts (copies; a detail crop shares its keyframe's pose tensor again)."""
+        out = []
+        for d in dicts:
+            nested = d.get("detail")
+            k = StoredKeyframe(**{n: v.clone() if torch.is_tensor(v) else v for n, v in d.items() if n != "detail"})
+            if nested is not None:
+                k.detail = dataclasses.replace(StoredViews._undump([nested])[0], c2w=k.c2w)
+            out.append(k)
+        return out
 
 
 def keyframe_from_frame(frame: Frame, device: torch.device, roi: Optional[np.ndarray] = None) -> Keyframe:
