@@ -58,6 +58,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bench._results import write_results
+from gausslite.stats import fmt, mean_std
 from gausslite.datasets import load_dataset
 from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
 from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg, rpe
@@ -160,12 +161,19 @@ def loop_errors(odo: RGBDOdometry, frames: list) -> list:
     return out
 
 
-def live(rate: float, budget: float) -> dict:
+#: the live measurement's variants: agent settings, and whether loops are closed on the tracking thread instead of
+#: the agent's own loop-closing thread (``RGBDOdometry(background_loops=...)``)
+LIVE_VARIANTS = {"default": ([], True), "loops_inline": ([], False),
+                 "no_loops": (["agent.odometry.loop.enabled=false"], True)}
+
+
+def live(rate: float, budget: float, variant: str = "default") -> dict:
     """TUM fr1/rpy streamed to an agent at its 15 Hz (``agent.realtime``, ``agent.rate`` ``rate``) with
     ``agent.pose_source: odometry``: every frame is tracked as it arrives while the mapper maps keyframes under a
-    ``budget`` s keyframe budget (the hand-held profile, no final pass). Returns the share of frames tracked, the
-    tracking time per frame while mapping, how late the frames reached the agent against the stream's clock, and the
-    keyframes mapped."""
+    ``budget`` s keyframe budget (the hand-held profile, no final pass), with the settings of ``variant``
+    (:data:`LIVE_VARIANTS`). Returns the share of frames tracked, the tracking time per frame while mapping, how late
+    the frames reached the agent against the stream's clock (on time: within one frame period), the loops closed and
+    the keyframes mapped."""
     # lazy: the agent (torch, the mapper) loads only for the live measurement
     from gausslite.config import load_config
     from gausslite.mapping.profiles import profile_for_layout, with_profile
@@ -175,14 +183,17 @@ def live(rate: float, budget: float) -> dict:
     ds = load_dataset(SHARED / "TUM_rgbd_dataset_freiburg1_rpy", downscale=2, undistort=True, interpolate_poses=True,
                       align_depth_time=False, pose_source="given")
     frames = [ds[i] for i in range(len(ds))]  # read first: the stream's clock measures the agent, not the disk
+    overrides, background = LIVE_VARIANTS[variant]
     cfg = load_config(None, ["agent.pose_source=odometry", "agent.realtime=true", f"agent.rate={rate}",
                              "agent.downscale=1", "agent.scoring.protocols=[sensor]", "agent.push_every=100000",
-                             f"mapper.keyframe_budget_s={budget}", "mapper.performance.render_threads=2"]).agent
+                             f"mapper.keyframe_budget_s={budget}", "mapper.performance.render_threads=2",
+                             *overrides]).agent
     m = with_profile(cfg.mapper, profile_for_layout("tum")).model_copy(update={"final_iters": 0,
                                                                                 "final_iters_per_keyframe": 0.0})
     task = ds.annotations.tasks[0]
     rt = AgentRuntime("bench", task.text, TaskParser().parse(task.text), cfg.model_copy(update={"mapper": m}),
                       annotations=ds.annotations, task_id=task.id)
+    rt.odometry.background_loops = background
     track_ms, arrivals = [], []
     track, submit = rt.odometry.track, rt.submit
 
@@ -206,7 +217,8 @@ def live(rate: float, budget: float) -> dict:
     t_data0, t_wall0 = arrivals[0]
     late = [max(0.0, (w - t_wall0) - (t - t_data0) / rate) for t, w in arrivals]
     period = 1.0 / (15.0 * rate)
-    return {"frames": len(frames), "rate": rate, "keyframe_budget_s": budget,
+    return {"variant": variant, "frames": len(frames), "rate": rate, "keyframe_budget_s": budget,
+            "loops": st["loop_closures"],
             "tracked_fraction": rt.odometry.n_tracked / len(frames), "lost": rt.odometry.n_failed,
             "track_ms_mean": float(np.mean(track_ms)), "track_ms_p95": float(np.percentile(track_ms, 95)),
             "on_time_fraction": float(np.mean([x <= period for x in late])), "late_s_max": float(max(late)),
@@ -296,13 +308,21 @@ def table(results: dict) -> str:
     return "\n".join(rows)
 
 
-def live_table(r: dict) -> str:
-    """The Markdown table of the live measurement (:func:`live`)."""
-    return ("| live: TUM fr1/rpy at 15 Hz | tracked | lost | track ms (mean / p95) | frames on time | latest (s) | "
-            "keyframes |\n|---|---|---|---|---|---|---|\n"
-            f"| keyframe budget {r['keyframe_budget_s']} s | {100 * r['tracked_fraction']:.0f} % | {r['lost']} | "
-            f"{r['track_ms_mean']:.0f} / {r['track_ms_p95']:.0f} | {100 * r['on_time_fraction']:.0f} % | "
-            f"{r['late_s_max']:.2f} | {r['frames_keyframed']} |")
+def live_table(runs: List[dict]) -> str:
+    """The Markdown table of the live measurement: per variant, the mean ± std over its runs (:func:`live`)."""
+    rows = ["| live: TUM fr1/rpy at 15 Hz, keyframe budget | variant | runs | tracked | lost | track ms (mean / p95) "
+            "| frames on time | latest (s) | loops | keyframes |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for var in dict.fromkeys(r["variant"] for r in runs):
+        rs = [r for r in runs if r["variant"] == var]
+
+        def ms(key: str, scale: float = 1.0, digits: int = 0) -> str:  # one run: no spread
+            m, sd = mean_std([scale * r[key] for r in rs])
+            return fmt(m, sd if len(rs) > 1 else None, digits)
+
+        rows.append(f"| {rs[0]['keyframe_budget_s']} s | {var} | {len(rs)} | {ms('tracked_fraction', 100)} % | "
+                    f"{ms('lost')} | {ms('track_ms_mean')} / {ms('track_ms_p95')} | {ms('on_time_fraction', 100)} % | "
+                    f"{ms('late_s_max', 1.0, 2)} | {ms('loops', 1.0, 1)} | {ms('frames_keyframed')} |")
+    return "\n".join(rows)
 
 
 def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path,
@@ -335,6 +355,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--live", action="store_true",
                     help="also stream TUM fr1/rpy at 15 Hz to an agent that tracks every frame while it maps")
     ap.add_argument("--live-budget", type=float, default=0.5, help="the live agent's keyframe budget, seconds")
+    ap.add_argument("--live-runs", type=int, default=3, help="runs of each live variant")
+    ap.add_argument("--live-variants", default="default", help=f"comma-separated, of {', '.join(LIVE_VARIANTS)}")
     ap.add_argument("--gains", default=None, metavar="GIVEN.json,ODOMETRY.json",
                     help="also compare the ROI gain of live missions at the odometry's poses with the gain at the "
                          "given poses: two bench.realtime results of the same scenes (--pose-source given, then "
@@ -352,7 +374,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             ap.error(f"--gains: {e}")
     seqs = [s for s in args.sequences.split(",") if s]
     variants = [v for v in args.variants.split(",") if v]
-    bad = [s for s in seqs if s not in SEQUENCES] + [v for v in variants if v not in VARIANTS]
+    live_variants = [v for v in args.live_variants.split(",") if v]
+    bad = ([s for s in seqs if s not in SEQUENCES] + [v for v in variants if v not in VARIANTS]
+           + [v for v in live_variants if v not in LIVE_VARIANTS])
     if bad:
         ap.error(f"unknown sequence or variant: {', '.join(bad)}")
     size = tuple(int(v) for v in args.synthetic_size.lower().split("x"))
@@ -360,7 +384,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
         results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames)
-    live_result = live(1.0, args.live_budget) if args.live else None
+    live_result = ([live(1.0, args.live_budget, v) for v in tqdm(live_variants, desc="live variants")
+                    for _ in range(args.live_runs)] if args.live else None)
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
            "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",
            "variants": {v: VARIANTS[v] for v in variants}, "odometry_defaults": OdometryConfig().model_dump(),
@@ -368,9 +393,9 @@ def main(argv: Optional[List[str]] = None) -> int:
            **({"gain_estimated_minus_given": gains, "gains_from": args.gains} if gains else {})}
     details = (f": {time.perf_counter() - t0:.0f} s; load average {load_before[0]:.1f} before, "
                f"{os.getloadavg()[0]:.1f} after (2 cores)")
-    md = table(results)
+    md = table(results) if results else ""
     if live_result:
-        md += "\n\n" + live_table(live_result)
+        md += ("\n\n" if md else "") + live_table(live_result)
     if gains:
         md += "\n\n" + gains_table(gains)
     write_results(args.out, "odometry", argv, details, md, doc)

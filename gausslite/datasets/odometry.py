@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
 import threading
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Literal, Optional
@@ -136,6 +137,11 @@ class RGBDOdometry:
     Args:
         config: the settings (None: the defaults).
         initial_pose: (4, 4) c2w of the first frame (None: the identity).
+        background_loops: loop closure runs on its own thread (a live stream: a new keyframe's loop registrations,
+            tens of milliseconds each, never hold up the next frame's tracking), as ORB-SLAM's LoopClosing thread
+            (Mur-Artal and Tardós, IEEE T-RO 2017, Sec. III). The corrections then come later, through ``on_correction``;
+            :meth:`flush` waits for them and :meth:`close` stops the thread. False (offline, the default): each
+            keyframe's loops are closed before its frame returns, so the result does not depend on timing.
 
     Attributes:
         n_tracked, n_failed: frames tracked and frames that failed so far (the first frame counts as tracked;
@@ -146,11 +152,16 @@ class RGBDOdometry:
         graph: the keyframe pose graph with its loop closures (:class:`~gausslite.datasets.pose_graph.KeyframeGraph`).
         loop_keyframes: frame id → keyframe kept with its images for loops and re-localisation.
         on_correction: called with ``{frame id: new (4, 4) c2w}`` of every keyframe after the pose graph moved them
-            (from the tracking thread), e.g. to move the map with its keyframes.
+            (from the tracking thread, or the loop-closing thread under ``background_loops``), e.g. to move the map
+            with its keyframes.
     """
 
-    def __init__(self, config: Optional[OdometryConfig] = None, initial_pose: Optional[np.ndarray] = None) -> None:
+    def __init__(self, config: Optional[OdometryConfig] = None, initial_pose: Optional[np.ndarray] = None,
+                 background_loops: bool = False) -> None:
         self.config = config or OdometryConfig()
+        self.background_loops = bool(background_loops)
+        self._loop_queue: "queue.Queue" = queue.Queue()
+        self._loop_thread: Optional[threading.Thread] = None
         self.initial_pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64).copy()
         self.keyframes: List[_Keyframe] = []
         self.last_pose: Optional[np.ndarray] = None
@@ -280,8 +291,11 @@ class RGBDOdometry:
         if is_kf:
             self._prev = self._add_keyframe(frame, c2w, image, ref.frame_id, T, info)
             out.anchor, out.T_anchor = int(frame.frame_id), np.eye(4)
-            self._close_loops(self._prev)
-            out.c2w = self.last_pose.copy()  # the pose graph may have moved it
+            if self.background_loops:
+                self._loops_later(self._prev)
+            else:
+                self._close_loops(self._prev)
+                out.c2w = self.last_pose.copy()  # the pose graph may have moved it
         else:
             self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
         return out
@@ -289,10 +303,16 @@ class RGBDOdometry:
     def _close_loops(self, kf: _Keyframe) -> int:
         """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.datasets.pose_graph`)
         and, when one passes, optimise the pose graph and move the keyframes, the last pose and the previous frame
-        with it. Returns the loops accepted."""
-        cfg = self.config.loop
-        if not cfg.enabled:
+        with it (the caller holds the tracker's lock). Returns the loops accepted."""
+        if not self.config.loop.enabled:
             return 0
+        cands = self._loop_candidates(kf)
+        return self._commit_loops(kf, self._verify_loops(kf, cands), len(cands))
+
+    def _loop_candidates(self, kf: _Keyframe) -> list:
+        """The keyframes a loop from ``kf`` is tried to (under the lock): ``[(keyframe, init (4, 4) T_target_kf at the
+        current poses, drift bound in metres, drift bound in degrees)]``, nearest first, at most ``max_candidates``."""
+        cfg = self.config.loop
         ids = list(self.graph.nodes)
         older = set(ids[:max(0, len(ids) - 1 - cfg.min_gap)])
 
@@ -301,33 +321,87 @@ class RGBDOdometry:
             cos = float(np.clip(k.c2w[:3, 2] @ kf.c2w[:3, 2], -1.0, 1.0))
             return dist if dist <= cfg.radius_m and np.degrees(np.arccos(cos)) <= cfg.max_angle_deg else None
 
-        cands = sorted((d, k.frame_id) for k in self.loop_keyframes.values()
-                       if k.frame_id in older and (d := near(k)) is not None)[:cfg.max_candidates]
+        near_ids = sorted((d, k.frame_id) for k in self.loop_keyframes.values()
+                          if k.frame_id in older and (d := near(k)) is not None)[:cfg.max_candidates]
+        out = []
+        for _, fid in near_ids:
+            target = self.loop_keyframes[fid]
+            out.append((target, np.linalg.inv(target.c2w) @ kf.c2w, *self.graph.drift_bound(kf.frame_id, fid, cfg)))
+        return out
+
+    def _verify_loops(self, kf: _Keyframe, cands: list) -> List[LoopEdge]:
+        """The loop edges from ``kf`` that pass every gate (registrations only: no state of the tracker changes, so a
+        loop-closing thread runs this without the lock)."""
+        cfg = self.config.loop
         added = []
         clouds = DepthClouds(self.config.depth_max_m)
-        for _, fid in cands:
-            target = self.loop_keyframes[fid]
-            init = np.linalg.inv(target.c2w) @ kf.c2w
-            self.graph.n_loop_tried += 1
+        for target, init, bound_m, bound_deg in cands:
             got = verify_registration(self, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, clouds)
-            bound_m, bound_deg = self.graph.drift_bound(kf.frame_id, fid, cfg)
             d = None if got is None else np.linalg.inv(init) @ got[0]
             if d is None or float(np.linalg.norm(d[:3, 3])) > bound_m or rotation_angle_deg(d) > bound_deg:
-                self.graph.n_loop_rejected += 1
                 continue
-            added.append(LoopEdge(int(kf.frame_id), int(fid), got[0], got[2], got[3]))
+            added.append(LoopEdge(int(kf.frame_id), int(target.frame_id), got[0], got[2], got[3]))
+        return added
+
+    def _commit_loops(self, kf: _Keyframe, added: List[LoopEdge], tried: int) -> int:
+        """Add the verified loop edges ``added`` of ``kf`` (``tried`` candidates) to the pose graph and optimise it;
+        the keyframes move when the optimisation holds (under the lock). Returns the loops accepted."""
+        g = self.graph
+        g.n_loop_tried += tried
+        g.n_loop_rejected += tried - len(added)
         if not added:
             return 0
-        self.graph.loops.extend(added)
-        new = self.graph.optimise(cfg)
+        g.loops.extend(added)
+        new = g.optimise(self.config.loop)
         if not new:
-            self.graph.loops = [e for e in self.graph.loops if e not in added]
-            self.graph.n_loop_rejected += len(added)
+            g.loops = [e for e in g.loops if e not in added]
+            g.n_loop_rejected += len(added)
             return 0
         self._apply_correction(new)
         log.info("odometry: %d loop(s) closed at keyframe %d; the pose graph moved the keyframes (%d loops so far)",
-                 len(added), kf.frame_id, len(self.graph.loops))
+                 len(added), kf.frame_id, len(g.loops))
         return len(added)
+
+    def _loops_later(self, kf: _Keyframe) -> None:
+        """Queue ``kf`` for the loop-closing thread (started on first use; ``background_loops``)."""
+        if not self.config.loop.enabled:
+            return
+        if self._loop_thread is None:
+            self._loop_thread = threading.Thread(target=self._loop_worker, name="odometry-loops", daemon=True)
+            self._loop_thread.start()
+        self._loop_queue.put(kf)
+
+    def _loop_worker(self) -> None:
+        """The loop-closing thread: candidates under the lock, registrations without it (the tracking goes on), the
+        pose graph under it again. A loop's edge is a relative pose, so keyframes tracked meanwhile join the
+        optimisation through their odometry edges."""
+        while True:
+            kf = self._loop_queue.get()
+            try:
+                if kf is None:
+                    return
+                with self._lock:
+                    cands = self._loop_candidates(kf)
+                added = self._verify_loops(kf, cands)
+                with self._lock:
+                    self._commit_loops(kf, added, len(cands))
+            except Exception:  # a failed loop check must not stop the tracking: logged, the keyframe has no loop
+                log.exception("odometry: loop closure at keyframe %d failed", getattr(kf, "frame_id", -1))
+            finally:
+                self._loop_queue.task_done()
+
+    def flush(self, timeout_s: Optional[float] = None) -> bool:
+        """Wait until the loop-closing thread has checked every keyframe queued so far (``background_loops``; returns
+        at once otherwise). Returns False when ``timeout_s`` seconds passed first."""
+        q = self._loop_queue
+        with q.all_tasks_done:
+            return q.all_tasks_done.wait_for(lambda: q.unfinished_tasks == 0, timeout_s)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the loop-closing thread (keyframes still queued are not checked). Safe to call more than once."""
+        if self._loop_thread is not None and self._loop_thread.is_alive():
+            self._loop_queue.put(None)
+            self._loop_thread.join(timeout_s)
 
     def _apply_correction(self, new: Dict[int, np.ndarray]) -> None:
         """Move the stored keyframes to the pose graph's ``new`` poses, and the last pose and previous frame with

@@ -3,7 +3,7 @@ to them move, and with them the Gaussians those frames seeded (:meth:`gausslite.
 
 Each frame the odometry tracks holds its pose relative to an anchor keyframe of the odometry
 (:attr:`gausslite.datasets.odometry.TrackResult.anchor`, ``T_anchor``). When the pose graph moves the anchor
-(:attr:`gausslite.datasets.odometry.RGBDOdometry.on_correction`, called from the tracking thread), this module only
+(:attr:`gausslite.datasets.odometry.RGBDOdometry.on_correction`, called from its loop-closing thread), this module only
 notes it; the mapping worker then, between two keyframes (:meth:`MapFollower.apply`), moves every mapped frame by the
 correction of its anchor, applied on the left in the world frame: a frame mapped at ``P`` (its sensor pose, before the
 map's own pose refinement) whose new sensor pose is ``P'`` moves by ``W P' P⁻¹ W⁻¹``, with ``W`` the transform from
@@ -73,8 +73,8 @@ class MapFollower:
                 self._frames[int(frame_id)] = rec
 
     def on_correction(self, new_poses: Dict[int, np.ndarray]) -> None:
-        """The odometry's callback after its pose graph moved keyframes (tracking thread): the map is moved at the
-        next :meth:`apply`."""
+        """The odometry's callback after its pose graph moved keyframes (its tracking or loop-closing thread): the map
+        is moved at the next :meth:`apply`."""
         with self._lock:
             self._pending = True
 

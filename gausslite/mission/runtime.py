@@ -550,7 +550,8 @@ class AgentRuntime:
                 if item is _FINISH:
                     if self.state != MissionState.FAILED:
                         if self.frames_mapped:
-                            if self.follower is not None:
+                            if self.follower is not None:  # every loop checked, then the map follows them
+                                self.odometry.flush(self.config.final_pass_s)
                                 self.follower.apply(self.mapper)
                             n = self.mapper.finalize(max_seconds=self.config.final_pass_s)
                             log.info("agent %s: final pass, %d iterations", self.agent_id, n)
@@ -1011,6 +1012,8 @@ class AgentRuntime:
         self.pusher.close(5.0)
         if self._relevance_worker is not None:
             self._relevance_worker.close()
+        if self.odometry is not None:
+            self.odometry.close()
         self.share.close()
 
 
@@ -1035,4 +1038,5 @@ def _odometry(config: AgentConfig):
     # lazy: Open3D loads only for missions that track
     from gausslite.datasets.odometry import RGBDOdometry
 
-    return RGBDOdometry(config.odometry)
+    # a live stream: loop closure on its own thread, so that a keyframe's loop registrations never delay tracking
+    return RGBDOdometry(config.odometry, background_loops=True)

@@ -41,12 +41,20 @@ def test_the_covered_walk_loses_the_covered_frames_and_counts_what_it_found_agai
     assert res["no_relocalisation"]["relocalised"] == 0
 
 
-def test_the_live_table_reads_the_live_figures():
+def test_the_live_table_gives_each_variant_its_mean_and_spread_over_runs():
     import bench.odometry as bo
 
-    r = {"keyframe_budget_s": 0.5, "tracked_fraction": 0.96, "lost": 6, "track_ms_mean": 27.2, "track_ms_p95": 37.4,
-         "on_time_fraction": 1.0, "late_s_max": 0.0, "frames_keyframed": 20}
-    assert bo.live_table(r).splitlines()[-1] == "| keyframe budget 0.5 s | 96 % | 6 | 27 / 37 | 100 % | 0.00 | 20 |"
+    def run(variant, on_time, loops):
+        return {"variant": variant, "keyframe_budget_s": 0.5, "tracked_fraction": 1.0, "lost": 0, "track_ms_mean": 27.2,
+                "track_ms_p95": 37.4, "on_time_fraction": on_time, "late_s_max": 0.1, "loops": loops,
+                "frames_keyframed": 20}
+
+    rows = bo.live_table([run("default", 0.98, 6), run("default", 0.96, 4), run("loops_inline", 0.84, 6)])
+    rows = rows.splitlines()
+    assert len(rows) == 4
+    assert rows[2] == ("| 0.5 s | default | 2 | 100 ± 0 % | 0 ± 0 | 27 ± 0 / 37 ± 0 | 97 ± 1 % | 0.10 ± 0.00 | "
+                       "5.0 ± 1.4 | 20 ± 0 |")
+    assert rows[3].startswith("| 0.5 s | loops_inline | 1 | 100 % |") and "| 84 % |" in rows[3]
 
 
 def _realtime_result(pose_source, gain, ci, uniform, gausslite):

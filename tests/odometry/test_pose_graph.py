@@ -5,6 +5,7 @@ is re-localised against the keyframes when the camera comes back."""
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
@@ -144,3 +145,44 @@ def test_thumbnails_match_the_same_view_best(frames):
     sims = np.array([[a @ b for b in th] for a in th])
     assert np.allclose(np.diag(sims), 1.0, atol=1e-5)
     assert all(int(np.argmax(row)) == i for i, row in enumerate(sims))
+
+
+def _there_and_back(frames):
+    """The camera walks the frames and comes back along them (new frame ids): with a tracking window of two
+    keyframes, the way back takes new keyframes where old ones stand, and those close loops."""
+    back = [dataclasses.replace(f, frame_id=100 + i) for i, f in enumerate(reversed(frames[:-1]))]
+    return list(frames) + back
+
+
+def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeypatch):
+    stream = _there_and_back(frames)
+    cfg = OdometryConfig(track_width=None, max_keyframes=2)
+    inline = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
+    for f in stream:
+        inline.track(f)
+    assert inline.summary()["loops"] >= 1  # the way back closes loops
+
+    odo = RGBDOdometry(cfg, initial_pose=frames[0].c2w, background_loops=True)
+    gate = threading.Event()
+    verify = odo._verify_loops
+
+    def held_verify(kf, cands):  # the loop thread's registrations wait until the whole stream is tracked
+        gate.wait(60.0)
+        return verify(kf, cands)
+
+    monkeypatch.setattr(odo, "_verify_loops", held_verify)
+    corrections = []
+    odo.on_correction = corrections.append
+    try:
+        results = [odo.track(f) for f in stream]  # returns although no keyframe's loops were checked yet
+        assert all(r.ok for r in results) and not corrections and odo.summary()["loops"] == 0
+        gate.set()
+        assert odo.flush(60.0)
+        assert odo.summary()["loops"] >= 1 and corrections
+        # the loops a thread closes later correct the keyframes as those closed at once do
+        for fid, node in inline.graph.nodes.items():
+            assert float(np.linalg.norm(odo.graph.nodes[fid].c2w[:3, 3] - node.c2w[:3, 3])) < 0.01
+    finally:
+        gate.set()
+        odo.close()
+    assert not odo._loop_thread.is_alive()
