@@ -36,7 +36,7 @@ from gausslite.evaluation import evaluate, score_view
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mapping.mapper import Mapper
-from gausslite.mapping.resolution import NOMINAL_GAUSSIANS, ResolutionGovernor
+from gausslite.mapping.resolution import NOMINAL_GAUSSIANS, ResolutionGovernor, uses_detail
 
 log = logging.getLogger(__name__)
 
@@ -329,6 +329,7 @@ class BudgetedMapping:
         cfg = mapper.cfg
         self.final_share = final_share(cfg, len(self.keyframes))
         self.uses_between = cfg.sensor.motion_every_frame or (cfg.roi_views.enabled and cfg.effective().roi)
+        self.uses_detail = uses_detail(cfg)  # the task region at its own level (mapper.detail)
         self.cap = cfg.budget.max_gaussians or NOMINAL_GAUSSIANS
         self.reserve = budget.score_reserve_s
         self.provisional = 0.0  # the scoring reserve until it is timed (start_resolution)
@@ -363,7 +364,8 @@ class BudgetedMapping:
         return sum(s for s, _ in m) / max(1, sum(n for _, n in m)) if m else None
 
     def map_keyframe(self, k: int):
-        """Read, scale and map keyframe ``k`` with its share of the time left; returns its ``FrameStats``."""
+        """Read, scale and map keyframe ``k`` with its share of the time left (under ``mapper.detail``, with the
+        keyframe at the task region's level: :meth:`ResolutionGovernor.detail_view`); returns its ``FrameStats``."""
         mapper, gov, i = self.mapper, self.budget.governor, self.keyframes[k]
         t_read = time.perf_counter()
         frame = self.dataset[i]
@@ -375,13 +377,17 @@ class BudgetedMapping:
             self.over_budget += 1
         b = keyframe_share(self.mapping_left(), n_left, self.iter_seconds() or self.first_iter_seconds(),
                            mapper.cfg.iters_per_frame)
-        frame = gov.apply(frame)
-        between = self.between(k)
+        native, frame = frame, gov.apply(frame)
+        native_between = self.between(k)
+        between = [gov.apply(f) for f in native_between]
         w = self.relevance_fn(frame) if self.relevance_fn is not None else None
+        detail = gov.detail_view(native, w, native_between) if self.uses_detail else None
         c = mapper.clock.now()
-        st = mapper.map_frame(frame, w, time_budget_s=b, between=between)
+        st = mapper.map_frame(frame, w, time_budget_s=b, between=between,
+                              **({} if detail is None else {"detail": detail}))
         self.measured.append((mapper.clock.now() - c, max(1, st.iters)))
-        gov.record(st.iters)
+        shows_region = w is not None and bool(np.any(w)) and bool(mapper.model.active.any())
+        gov.record(st.iters, st.active_iters if shows_region else None, st.n_gaussians, st.detail_px)
         self.budgets.append(b)
         self.iters.append(st.iters)
         if k == 0 and self.reserve is None and len(mapper.model):
@@ -395,7 +401,7 @@ class BudgetedMapping:
         intr, gov = frame.intrinsics, self.budget.governor
         self.provisional = self.n_scored * (t_read + gov.cost.render(intr.width * intr.height, self.cap, grad=False))
         share = keyframe_share(self.mapping_left(), len(self.keyframes), None, 1)
-        gov.start(intr.width, intr.height, share, self.mapper.cfg.budget.max_gaussians)
+        gov.start(intr.width, intr.height, share, self.mapper.cfg.budget.max_gaussians, region=self.uses_detail)
 
     def first_iter_seconds(self) -> float:
         """The work model's seconds per iteration of the first keyframe at the mapping resolution (its seeds: twice
@@ -405,13 +411,13 @@ class BudgetedMapping:
         return cost.render(c.width * c.height, n) + cost.step(n)
 
     def between(self, k: int) -> list:
-        """The frames to map between keyframe ``k - 1`` and ``k`` (at most :data:`BETWEEN_MAX`, at the mapping
-        resolution), read only when the mapper uses them (``sensor.motion_every_frame``, ``roi_views``)."""
+        """The frames to map between keyframe ``k - 1`` and ``k`` (at most :data:`BETWEEN_MAX`, at the dataset's
+        size), read only when the mapper uses them (``sensor.motion_every_frame``, ``roi_views``)."""
         if not self.uses_between or k == 0:
             return []
         lo, hi = self.keyframes[k - 1], self.keyframes[k]
         idx = [i for i in self.train_idx if lo < i < hi][-BETWEEN_MAX:]
-        return [self.budget.governor.apply(self.dataset[i]) for i in idx]
+        return [self.dataset[i] for i in idx]
 
     def score_seconds(self, i: int) -> float:
         """Seconds the scoring will take: one view per view to score, timed on frame ``i`` (read, rendered at the

@@ -124,7 +124,7 @@ class FinishRequest(_message.Message):
     def __init__(self, mission_id: _Optional[str] = ..., skip_push: _Optional[bool] = ..., skip_eval: _Optional[bool] = ...) -> None: ...
 
 class MissionStatus(_message.Message):
-    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations", "newest_map_version", "push_backlog", "keyframes_backlog", "link_down_s", "accept_latency_ms_p99_recent", "mapping_width", "mapping_height", "mapping_downscale", "resolution_pinned", "resolution_predicted_iters", "resolution_measured_iters", "resolution_reaches_target", "resolution_changes", "frames_lost", "frames_relocalised", "loop_closures")
+    __slots__ = ("mission_id", "agent_id", "state", "task_text", "task_id", "frames_received", "frames_mapped", "frames_queued", "n_gaussians", "n_active", "pushes", "push_failures", "last_pushed_version", "last_error", "seconds_mapping", "keyframes_uploaded", "frames_keyframed", "frames_skipped", "accept_latency_ms_p99", "keyframe_latency_s_p95", "idle_iterations", "checkpoints", "resumed_keyframes", "frames_rejected", "keyframe_iterations", "newest_map_version", "push_backlog", "keyframes_backlog", "link_down_s", "accept_latency_ms_p99_recent", "mapping_width", "mapping_height", "mapping_downscale", "resolution_pinned", "resolution_predicted_iters", "resolution_measured_iters", "resolution_reaches_target", "resolution_changes", "frames_lost", "frames_relocalised", "loop_closures", "keyframe_iters_recent", "roi_iters_recent", "region_width", "region_height", "region_downscale", "region_detail", "region_target_iters", "region_measured_iters", "region_reaches_target", "region_changes")
     MISSION_ID_FIELD_NUMBER: _ClassVar[int]
     AGENT_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -166,6 +166,16 @@ class MissionStatus(_message.Message):
     FRAMES_LOST_FIELD_NUMBER: _ClassVar[int]
     FRAMES_RELOCALISED_FIELD_NUMBER: _ClassVar[int]
     LOOP_CLOSURES_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAME_ITERS_RECENT_FIELD_NUMBER: _ClassVar[int]
+    ROI_ITERS_RECENT_FIELD_NUMBER: _ClassVar[int]
+    REGION_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    REGION_HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    REGION_DOWNSCALE_FIELD_NUMBER: _ClassVar[int]
+    REGION_DETAIL_FIELD_NUMBER: _ClassVar[int]
+    REGION_TARGET_ITERS_FIELD_NUMBER: _ClassVar[int]
+    REGION_MEASURED_ITERS_FIELD_NUMBER: _ClassVar[int]
+    REGION_REACHES_TARGET_FIELD_NUMBER: _ClassVar[int]
+    REGION_CHANGES_FIELD_NUMBER: _ClassVar[int]
     mission_id: str
     agent_id: str
     state: MissionState
@@ -207,7 +217,17 @@ class MissionStatus(_message.Message):
     frames_lost: int
     frames_relocalised: int
     loop_closures: int
-    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ..., mapping_width: _Optional[int] = ..., mapping_height: _Optional[int] = ..., mapping_downscale: _Optional[float] = ..., resolution_pinned: _Optional[bool] = ..., resolution_predicted_iters: _Optional[float] = ..., resolution_measured_iters: _Optional[float] = ..., resolution_reaches_target: _Optional[bool] = ..., resolution_changes: _Optional[int] = ..., frames_lost: _Optional[int] = ..., frames_relocalised: _Optional[int] = ..., loop_closures: _Optional[int] = ...) -> None: ...
+    keyframe_iters_recent: float
+    roi_iters_recent: float
+    region_width: int
+    region_height: int
+    region_downscale: float
+    region_detail: bool
+    region_target_iters: float
+    region_measured_iters: float
+    region_reaches_target: bool
+    region_changes: int
+    def __init__(self, mission_id: _Optional[str] = ..., agent_id: _Optional[str] = ..., state: _Optional[_Union[MissionState, str]] = ..., task_text: _Optional[str] = ..., task_id: _Optional[str] = ..., frames_received: _Optional[int] = ..., frames_mapped: _Optional[int] = ..., frames_queued: _Optional[int] = ..., n_gaussians: _Optional[int] = ..., n_active: _Optional[int] = ..., pushes: _Optional[int] = ..., push_failures: _Optional[int] = ..., last_pushed_version: _Optional[int] = ..., last_error: _Optional[str] = ..., seconds_mapping: _Optional[float] = ..., keyframes_uploaded: _Optional[int] = ..., frames_keyframed: _Optional[int] = ..., frames_skipped: _Optional[int] = ..., accept_latency_ms_p99: _Optional[float] = ..., keyframe_latency_s_p95: _Optional[float] = ..., idle_iterations: _Optional[int] = ..., checkpoints: _Optional[int] = ..., resumed_keyframes: _Optional[int] = ..., frames_rejected: _Optional[int] = ..., keyframe_iterations: _Optional[int] = ..., newest_map_version: _Optional[int] = ..., push_backlog: _Optional[int] = ..., keyframes_backlog: _Optional[int] = ..., link_down_s: _Optional[float] = ..., accept_latency_ms_p99_recent: _Optional[float] = ..., mapping_width: _Optional[int] = ..., mapping_height: _Optional[int] = ..., mapping_downscale: _Optional[float] = ..., resolution_pinned: _Optional[bool] = ..., resolution_predicted_iters: _Optional[float] = ..., resolution_measured_iters: _Optional[float] = ..., resolution_reaches_target: _Optional[bool] = ..., resolution_changes: _Optional[int] = ..., frames_lost: _Optional[int] = ..., frames_relocalised: _Optional[int] = ..., loop_closures: _Optional[int] = ..., keyframe_iters_recent: _Optional[float] = ..., roi_iters_recent: _Optional[float] = ..., region_width: _Optional[int] = ..., region_height: _Optional[int] = ..., region_downscale: _Optional[float] = ..., region_detail: _Optional[bool] = ..., region_target_iters: _Optional[float] = ..., region_measured_iters: _Optional[float] = ..., region_reaches_target: _Optional[bool] = ..., region_changes: _Optional[int] = ...) -> None: ...
 
 class MissionSummary(_message.Message):
     __slots__ = ("status", "final_push_ok", "n_shared", "share_pct", "bytes_on_wire", "bytes_per_gaussian", "has_roi_psnr", "roi_psnr", "psnr", "seconds_per_frame", "has_roi_psnr_all_frames", "roi_psnr_all_frames", "frames_all", "total_upload_bytes", "final_subset_bytes", "pushes", "protocols", "view_bytes", "views_sent", "views_unsent", "tracked_views", "predicted_views")

@@ -327,7 +327,8 @@ def parse_withhold(text: str) -> int:
 def time_budget_from_args(args: argparse.Namespace, cfg: MapperConfig, spent_s: float) -> Optional[TimeBudget]:
     """The total time budget of ``gausslite map`` (:class:`gausslite.pipeline.TimeBudget`), or None for the fixed
     schedule, with the live agent's keyframe rule and resolution governor (the defaults of ``AgentConfig``:
-    ``keyframe_*``, ``agent.resolution``; the work model of ``cfg.work_cost``).
+    ``keyframe_*``, ``agent.resolution``; the work model of ``cfg.work_cost``; with ``cfg.detail`` the task region's
+    own level too, :meth:`~gausslite.mission.config.ResolutionConfig.governor`).
 
     The budget is ``--time-budget`` minutes, by default :data:`DEFAULT_TIME_BUDGET_MIN`; the fixed schedule is
     ``--time-budget none``, or, when ``--time-budget`` is not given, an iteration count or keyframe budget set by
@@ -341,9 +342,7 @@ def time_budget_from_args(args: argparse.Namespace, cfg: MapperConfig, spent_s: 
         ValueError: ``--time-budget`` with ``mapper.keyframe_budget_s`` set (two budgets).
     """
     # lazy: the command line starts without loading the library
-    from gausslite.mapping.budget import WorkCost
     from gausslite.mapping.keyframes import KeyframeRule
-    from gausslite.mapping.resolution import ResolutionGovernor
     from gausslite.mission.config import AgentConfig
     from gausslite.pipeline import TimeBudget
 
@@ -360,9 +359,7 @@ def time_budget_from_args(args: argparse.Namespace, cfg: MapperConfig, spent_s: 
                          "sets each keyframe's)")
     minutes = DEFAULT_TIME_BUDGET_MIN if given is None else float(given)
     agent = AgentConfig()
-    rc = agent.resolution
-    governor = ResolutionGovernor(rc.target_iters, rc.max_downscale, rc.pinned, rc.adapt_after,
-                                  WorkCost(**cfg.work_cost.model_dump()), rc.min_width, rc.tolerance)
+    governor = agent.resolution.governor(cfg)  # the task region's level too, under mapper.detail
     rule = KeyframeRule(agent.keyframe_translation_m, agent.keyframe_rotation_deg, agent.keyframe_max_interval_s)
     return TimeBudget(60.0 * minutes, max(0.0, spent_s), rule, governor)
 

@@ -58,10 +58,11 @@ class ScoringConfig(BaseModel):
 
 
 class ResolutionConfig(BaseModel):
-    """The mapping resolution of a live agent (``agent.resolution`` in YAML; :mod:`gausslite.mapping.resolution`,
+    """The mapping resolutions of a live agent (``agent.resolution`` in YAML; :mod:`gausslite.mapping.resolution`,
     docs/live.md#mapping-resolution): the image downscale at which a keyframe gets ``target_iters`` iterations
-    under its budget (``mapper.keyframe_budget_s``), chosen from the first frame and lowered, one level at a time,
-    when keyframes get fewer.
+    under its budget (``mapper.keyframe_budget_s``), chosen from the first frame and corrected one level at a time
+    both ways as the iterations keyframes get change; with the mapper's detail layer (``mapper.detail.enabled``) the
+    task region's own, finer level, corrected from its ROI-phase iterations.
 
     Attributes:
         downscale: ``auto``, or a factor ≥ 1 that pins it (a user's choice, never changed; 1 = native).
@@ -69,7 +70,18 @@ class ResolutionConfig(BaseModel):
         max_downscale: the coarsest automatic level.
         min_width: an automatic level never maps images narrower than this (pixels).
         adapt_after: keyframes measured before each correction (the first keyframe is never counted).
-        tolerance: a level holds while its keyframes get this share of ``target_iters``.
+        tolerance: a level holds while its keyframes get this share of ``target_iters``; below it, one level coarser.
+        finer: take a finer level again when iterations recover (False: only ever coarser).
+        finer_share: one level finer when the iterations measured at this level, carried to the finer level by the
+            work model (``mapper.work_cost``), reach this share of the target (taken as at least ``tolerance``).
+        hold_keyframes: keyframes measured at a level before a finer step (doubled after a finer step that had to be
+            undone).
+        roi_downscale: the task region's level: ``auto`` (starts at native, follows its ROI iterations), or a factor
+            ≥ 1 that pins it (never coarser than the background's).
+        roi_target_iters: ROI-phase iterations per keyframe the region should get; None: ``target_iters`` × the ROI
+            phase's share of a keyframe (1 − ``mapper.warmup_iters`` / ``mapper.iters_per_frame``).
+        roi_ratio: an automatic region level stays at least this many times finer (linear) than a background that
+            stepped down (never finer than native).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -80,17 +92,51 @@ class ResolutionConfig(BaseModel):
     min_width: int = Field(160, ge=16)
     adapt_after: int = Field(5, ge=1)
     tolerance: float = Field(0.5, gt=0, le=1)
+    finer: bool = True
+    finer_share: float = Field(0.75, gt=0, le=4)
+    hold_keyframes: int = Field(10, ge=1)
+    roi_downscale: Union[Literal["auto"], float] = "auto"
+    roi_target_iters: Optional[float] = Field(None, ge=1)
+    roi_ratio: float = Field(2.0, ge=1)
 
     @model_validator(mode="after")
     def _check(self) -> "ResolutionConfig":
-        if self.downscale != "auto" and float(self.downscale) < 1:
-            raise ValueError(f"agent.resolution.downscale must be 'auto' or >= 1, got {self.downscale}")
+        for name in ("downscale", "roi_downscale"):
+            v = getattr(self, name)
+            if v != "auto" and float(v) < 1:
+                raise ValueError(f"agent.resolution.{name} must be 'auto' or >= 1, got {v}")
         return self
 
     @property
     def pinned(self) -> Optional[float]:
         """The pinned factor, or None when automatic."""
         return None if self.downscale == "auto" else float(self.downscale)
+
+    @property
+    def roi_pinned(self) -> Optional[float]:
+        """The task region's pinned factor, or None when automatic."""
+        return None if self.roi_downscale == "auto" else float(self.roi_downscale)
+
+    def roi_target(self, mapper: MapperConfig) -> float:
+        """The task region's ROI-phase iterations per keyframe: ``roi_target_iters``, or ``target_iters`` × the ROI
+        phase's share of a keyframe under ``mapper`` (at least 1)."""
+        if self.roi_target_iters is not None:
+            return float(self.roi_target_iters)
+        share = 1.0 - mapper.warmup_iters / mapper.iters_per_frame
+        return max(1.0, self.target_iters * share)
+
+    def governor(self, mapper: MapperConfig):
+        """A fresh :class:`~gausslite.mapping.resolution.ResolutionGovernor` of these settings, with ``mapper``'s work
+        model (``mapper.work_cost``) and the region's target (:meth:`roi_target`)."""
+        # lazy: keeps gausslite.mission.config importable without OpenCV
+        from gausslite.mapping.budget import WorkCost
+        from gausslite.mapping.resolution import ResolutionGovernor
+
+        return ResolutionGovernor(self.target_iters, self.max_downscale, self.pinned, self.adapt_after,
+                                  WorkCost(**mapper.work_cost.model_dump()), self.min_width, self.tolerance,
+                                  finer=self.finer, finer_share=self.finer_share, hold_keyframes=self.hold_keyframes,
+                                  roi_target_iters=self.roi_target(mapper), roi_pinned=self.roi_pinned,
+                                  roi_ratio=self.roi_ratio)
 
 
 class RefineViewsConfig(BaseModel):

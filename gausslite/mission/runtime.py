@@ -186,17 +186,16 @@ class AgentRuntime:
         from gausslite.mapping.mapper import Mapper
 
         # lazy: keeps gausslite.mission.runtime importable without OpenCV
-        from gausslite.mapping.budget import WorkCost
-        from gausslite.mapping.resolution import ResolutionGovernor
+        from gausslite.mapping.resolution import uses_detail
 
         torch.manual_seed(config.mapper.seed)
         self.mapper = Mapper(config.mapper)
-        rc = config.resolution
-        #: the mapping resolution (agent.resolution): chosen at the first frame, lowered while keyframes get too few
-        #: iterations (docs/live.md#mapping-resolution)
-        self.resolution = ResolutionGovernor(rc.target_iters, rc.max_downscale, rc.pinned, rc.adapt_after,
-                                             WorkCost(**config.mapper.work_cost.model_dump()), rc.min_width,
-                                             rc.tolerance)
+        #: the mapping resolutions (agent.resolution): the background's chosen at the first frame, and with the detail
+        #: layer the task region's own; each corrected both ways from the iterations keyframes get
+        #: (docs/live.md#mapping-resolution)
+        self.resolution = config.resolution.governor(config.mapper)
+        #: the mapper maps the task region at its own level (mapper.detail, a mode with a task region)
+        self.maps_detail = uses_detail(config.mapper)
         self._upload_factor: Optional[float] = None  # the downscale of the keyframes sent to the fusion server
         self._novel_ids: Optional[frozenset] = None  # frames a replay withheld from the mapper (novel, novel-tracked)
         #: frame id → TrackedView of the tracked / novel-tracked frames, and of the novel ones (predicted), last scored
@@ -593,19 +592,22 @@ class AgentRuntime:
             if self.resolution.choice is None:
                 intr = item.intrinsics
                 self.resolution.start(intr.width, intr.height, cfg.mapper.keyframe_budget_s,
-                                      cfg.mapper.budget.max_gaussians)
+                                      cfg.mapper.budget.max_gaussians, region=self.maps_detail)
                 self._upload_factor = self.resolution.factor
             item = self.resolution.apply(item)
-            between = [self.resolution.apply(f) if isinstance(f, Frame) else f
-                       for f in self._take_between(item.frame_id)]
+            native_between = self._take_between(item.frame_id)
+            between = [self.resolution.apply(f) if isinstance(f, Frame) else f for f in native_between]
             w = self.relevance(item)
+            # the task region at its own level (mapper.detail): the keyframe and its frames at the region's size
+            detail = self.resolution.detail_view(native, w, native_between) if self.maps_detail else None
             if self.follower is not None:  # a loop closure since the last keyframe: the map follows it first
                 self.follower.apply(self.mapper)
             # the per-keyframe budget covers decoding and relevance too: the mapper gets what is left
             b = cfg.mapper.keyframe_budget_s
             left = None if b is None else max(1e-6, b - (time.perf_counter() - t0))
-            st = self.mapper.map_frame(item, w, time_budget_s=left, between=between)
-            self.resolution.record(st.iters)
+            st = self.mapper.map_frame(item, w, time_budget_s=left, between=between,
+                                       **({} if detail is None else {"detail": detail}))
+            self._record_iterations(st, w)
             if self.follower is not None:
                 self.follower.mapped(item.frame_id)
         except Exception as e:
@@ -636,6 +638,12 @@ class AgentRuntime:
                 self.save_checkpoint()
             except Exception as e:  # a full disk must not stop mapping
                 log.warning("agent %s: checkpoint failed: %s: %s", self.agent_id, type(e).__name__, e)
+
+    def _record_iterations(self, st, w: Optional[np.ndarray]) -> None:
+        """Hand the resolution governor what keyframe ``st`` (``FrameStats``) got: its iterations, and its ROI-phase
+        iterations when it showed the task region (relevance ``w``) and the map had task Gaussians to fit."""
+        shows_region = w is not None and bool(np.any(w)) and bool(self.mapper.model.active.any())
+        self.resolution.record(st.iters, st.active_iters if shows_region else None, st.n_gaussians, st.detail_px)
 
     @property
     def upload_intrinsics(self):

@@ -15,6 +15,13 @@ Families (label ``agent`` = the mission's agent id):
 * ``gausslite_agent_bytes_pushed_total`` — wire bytes of the pushed subsets
 * ``gausslite_agent_keyframes_uploaded_total``
 * ``gausslite_agent_missions`` — missions by state
+* mapping resolutions of the current mission (docs/live.md, "Mapping resolution"):
+  ``gausslite_agent_mapping_downscale``, ``gausslite_agent_mapping_width_pixels``,
+  ``gausslite_agent_mapping_height_pixels`` (the background), ``gausslite_agent_region_downscale``,
+  ``gausslite_agent_region_width_pixels``, ``gausslite_agent_region_height_pixels`` (the task region),
+  ``gausslite_agent_keyframe_iterations_measured`` (mean at the background's level),
+  ``gausslite_agent_keyframe_iterations_recent`` and ``gausslite_agent_roi_iterations_recent`` (means over the last
+  keyframes: iterations, ROI-phase iterations)
 """
 
 from __future__ import annotations
@@ -78,6 +85,7 @@ class AgentCollector:
         kf_iters = GaugeMetricFamily("gausslite_agent_keyframe_iterations_measured", "Mean iterations per keyframe "
                                      "at the current mapping resolution (agent.resolution.target_iters is the target)",
                                      labels=["agent"])
+        sizes = resolution_families()
         states = GaugeMetricFamily("gausslite_agent_missions", "Missions by state", labels=["state"])
         push_s = HistogramMetricFamily("gausslite_agent_push_seconds", "Duration of successful pushes",
                                        labels=["agent"])
@@ -107,6 +115,8 @@ class AgentCollector:
                 link_down.add_metric([agent], st["link_down_s"])
                 downscale.add_metric([agent], st.get("mapping_downscale", 0.0))
                 kf_iters.add_metric([agent], st.get("resolution_measured_iters", 0.0))
+                for key, f in sizes.items():
+                    f.add_metric([agent], st.get(key, 0))
         for agent, s in sorted(sums.items()):
             for key, f in fam.items():
                 f.add_metric([agent], s[key])
@@ -115,7 +125,28 @@ class AgentCollector:
         for state, n in sorted(tally.items()):
             states.add_metric([state.lower()], n)
         yield from fam.values()
-        yield from (queue, gaussians, active, backlog, link_down, downscale, kf_iters, states, push_s)
+        yield from (queue, gaussians, active, backlog, link_down, downscale, kf_iters, *sizes.values(), states, push_s)
+
+
+def resolution_families() -> dict:
+    """Empty gauge families (label ``agent``) of the current mission's mapping sizes and iterations, keyed by the
+    ``AgentRuntime.status()`` field each reports (:meth:`gausslite.mapping.resolution.ResolutionGovernor.status`)."""
+    spec = {
+        "mapping_width": ("gausslite_agent_mapping_width_pixels", "Width of the images the current mission maps the "
+                          "background at (pixels; 0 = no frame yet)"),
+        "mapping_height": ("gausslite_agent_mapping_height_pixels", "Height of the images the current mission maps "
+                           "the background at (pixels; 0 = no frame yet)"),
+        "region_downscale": ("gausslite_agent_region_downscale", "Image downscale the current mission maps its task "
+                             "region at (the background's without mapper.detail; 1 = native, 0 = no frame yet)"),
+        "region_width": ("gausslite_agent_region_width_pixels", "Width of the task region's images (pixels)"),
+        "region_height": ("gausslite_agent_region_height_pixels", "Height of the task region's images (pixels)"),
+        "keyframe_iters_recent": ("gausslite_agent_keyframe_iterations_recent", "Mean iterations per keyframe over "
+                                  "the current mission's last 10 keyframes"),
+        "roi_iters_recent": ("gausslite_agent_roi_iterations_recent", "Mean ROI-phase iterations per keyframe over "
+                             "the current mission's last 10 keyframes that showed the task region "
+                             "(agent.resolution.roi_target_iters is the target)"),
+    }
+    return {key: GaugeMetricFamily(name, doc, labels=["agent"]) for key, (name, doc) in spec.items()}
 
 
 def agent_registry(servicer) -> CollectorRegistry:
@@ -125,4 +156,4 @@ def agent_registry(servicer) -> CollectorRegistry:
     return registry
 
 
-__all__ = ["AgentCollector", "agent_registry", "histogram_buckets"]
+__all__ = ["AgentCollector", "agent_registry", "histogram_buckets", "resolution_families"]
