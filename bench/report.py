@@ -393,6 +393,13 @@ def solvers_table(r: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def odometry_live_table(r: dict) -> str:
+    """The live tracking beside the mapper per variant (``live`` of ``bench/results/odometry_live.json``)."""
+    from bench.odometry import live_table  # lazy: the page's other regions need none of the odometry
+
+    return live_table(r["live"]) + "\n"
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -418,6 +425,7 @@ REGIONS: Dict[str, Region] = {
     "test-minutes": Region("bench/results/first_run.json", suite_minutes),
     "odometry": Region("bench/results/odometry.json", odometry_table),
     "odometry-gains": Region("bench/results/odometry.json", pose_gains_table),
+    "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
 }
 
