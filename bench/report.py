@@ -400,6 +400,15 @@ def odometry_live_table(r: dict) -> str:
     return live_table(r["live"]) + "\n"
 
 
+def map_budget_table(r: dict) -> str:
+    """Offline ``gausslite map`` under its time budget against the fixed schedule (``bench/results/map_budget.json``)."""
+    import argparse
+
+    from bench.map_budget import table  # lazy: the page's other regions need none of it
+
+    return table(r["summary"], argparse.Namespace(frames=r["frames"], fixed_frames=r["fixed_frames"])) + "\n"
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -426,6 +435,7 @@ REGIONS: Dict[str, Region] = {
     "odometry": Region("bench/results/odometry.json", odometry_table),
     "odometry-gains": Region("bench/results/odometry.json", pose_gains_table),
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
+    "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
 }
 
