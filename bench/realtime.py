@@ -3,7 +3,8 @@ Gaussian cap, no final pass (paper Sec. IV-A, Baselines). See ``docs/realtime.md
 
     python -m bench.realtime [--scenes tum_fr1_rpy,synthetic_circle,room0] [--budgets 0.25,0.5,1,2]
                              [--runs 3] [--modes uniform,gausslite] [--clock scaled|dataset]
-                             [--final-pass-budgets 0.5] [--set KEY=VALUE ...] [--out bench/results/realtime.json]
+                             [--final-pass-budgets 0.5] [--score-at mapping|scene] [--set KEY=VALUE ...]
+                             [--out bench/results/realtime.json]
 
 Each run is one agent mission (:class:`gausslite.mission.AgentRuntime`, in process, no fusion server)
 that replays the scene through the agent's keyframe ingest as a robot streams it: frames arrive at the
@@ -27,8 +28,13 @@ beside the bench. Writes ``bench/results/realtime.json`` (``{"scenes": {scene: {
 [...]}``), ``realtime.md`` and ``realtime_<scene>.png`` (ROI PSNR against budget, both modes). After each run the
 runs so far go to ``<out>.partial.json``; ``--resume`` continues from it.
 
-Gains pair GaussLite and uniform frame by frame within each run (the same seed), and only runs that mapped at the
-same resolution (:func:`pairable_runs`); over several runs the interval is run-clustered, a t-interval over the
+Scoring resolution. ``--score-at mapping`` (default) scores each map at the resolution its mission mapped at;
+``--score-at scene`` at the scene's own (the dataset as the scene spec loads it, e.g. TUM at 320×240), whatever
+resolution the agent chose, so that runs mapped at different resolutions compare on the same pixels and a map's
+finer detail counts (``bench.compute_sweep``). Each run records the basis and the size it was scored at.
+
+Gains pair GaussLite and uniform frame by frame within each run (the same seed), and only runs scored at the same
+resolution (:func:`pairable_runs`); over several runs the interval is run-clustered, a t-interval over the
 per-run gains (:func:`gausslite.stats.paired_gain`). Each run records the settings its mission ran with
 (``"mission"``, :func:`mission_settings`). ``--reaggregate`` rewrites a written result's summary from its runs.
 """
@@ -310,7 +316,7 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
         res.update(state_path=str(path), fp_per_kf=fp_per_kf,
                    score_job={k: job.get(k) for k in ("scene", "mode", "spec", "path", "task", "protocols",
                                                        "track_iters", "track_stride", "render_dir", "final_pass",
-                                                       "novel_every", "mapping_downscale")})
+                                                       "novel_every", "mapping_downscale", "score_at")})
         return res
     res.update(_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
     return res
@@ -371,17 +377,22 @@ def _key_name(job: dict) -> str:
 def _scores(job: dict, mapper, ds, ann, task_id: str, fp_per_kf: float, keyframe_ids) -> dict:
     """The scores of a finished map under ``job["protocols"]``, its render (``job["render_dir"]``) and, with
     ``job["final_pass"]``, the scores after the profile's final pass (which changes ``mapper``). Scored at the
-    resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution).
+    resolution the mission mapped at (``job["mapping_downscale"]``, agent.resolution) or, with ``job["score_at"]``
+    ``"scene"``, at the resolution of ``ds`` itself (the scene's); the result records which (``"score_at"``) and the
+    size, ``"scored_size"`` [width, height] in pixels.
 
     Raises:
         ValueError: a withheld frame among ``keyframe_ids`` or the map's ROI views (:func:`check_withheld`)."""
-    f = float(job.get("mapping_downscale") or 1.0)
+    basis = job.get("score_at") or "mapping"
+    f = float(job.get("mapping_downscale") or 1.0) if basis == "mapping" else 1.0
     if f != 1:
         ds = ScaledFrames(ds, f)
     novel = novel_ids(job, ds)
     check_withheld(novel, keyframe_ids, mapper.roi_views.frame_ids)
-    res = score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
-                job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel, poses=job.get("estimated_poses"))
+    size = ds[0].intrinsics
+    res = {"score_at": basis, "scored_size": [int(size.width), int(size.height)]}
+    res |= score(mapper, ds, ann, task_id, job.get("protocols", ("sensor",)), job.get("track_iters", TRACK_ITERS),
+                 job.get("track_stride", TRACK_STRIDE), keyframe_ids, novel, poses=job.get("estimated_poses"))
     if job.get("render_dir"):
         save_render(mapper, ds, ann, task_id, Path(job["render_dir"]) / f"{job['scene']}_{job['mode']}.png")
     if job.get("final_pass") and fp_per_kf:
@@ -427,6 +438,7 @@ def run_one(job: dict) -> dict:
     ds, ann, task, rt, fp_per_kf = start_mission(job, rate, extra, fusion=sink)
     train = ds if odometry else training_frames(job, ds)
     give = give_late_task(job, train, rt, task)
+    load0 = load_average()
     t0 = time.perf_counter()
     try:
         # the replay reports each frame after it is sent: the task is given before the late start's frame
@@ -451,9 +463,18 @@ def run_one(job: dict) -> dict:
             status={k: st[k] for k in ("frames_received", "frames_skipped", "frames_rejected") if k in st},
             frames_estimated=len(rt.estimated_poses) if odometry else None,
             share=bool(sink), pushes=len(rt.pusher.pushes),
-            share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None)
+            share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None,
+            resolution_status=dict(rs), load_avg_1m=[load0, load_average()])
     finally:
         rt.close()
+
+
+def load_average() -> Optional[float]:
+    """The machine's 1-minute load average (runnable processes, ``os.getloadavg``); None where the platform has none."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return None
 
 
 def keyframe_schedule(ds, spacing_s: float) -> list[int]:
@@ -556,23 +577,31 @@ def mapping_resolution(r: dict) -> tuple:
 
 
 def pairable_runs(g: dict, u: dict, runs) -> tuple[list, list[dict]]:
-    """The runs of ``runs`` (ids of both modes' results, ``g`` / ``u``: run → result) whose GaussLite and uniform
-    missions mapped at the same resolution, and the others, refused: a map's PSNR depends on the image size it is
-    scored at (each map is scored at its own mapping resolution), so a pair across resolutions would measure the
-    resolution, not the mode. Each refusal is logged.
+    """The runs of ``runs`` (ids of both modes' results, ``g`` / ``u``: run → result) whose GaussLite and uniform maps
+    were scored at the same image size, and the others, refused: a map's PSNR depends on the image size it is scored
+    at, so a pair across sizes would measure the size, not the mode. Maps scored at their own mapping resolution
+    (``--score-at mapping``) pair when their missions mapped at the same resolution; maps both scored at the scene's
+    resolution (``--score-at scene``) pair when that size is the same, whatever resolutions they mapped at (that
+    choice is then part of what the gain compares). Each refusal is logged.
 
     Returns:
-        (sorted run ids to pair, ``[{"run", "reason"}]`` of the refused ones). Two results differ when their factors
-        differ, or both record the mapped size (or the count of resolution changes) and those differ.
+        (sorted run ids to pair, ``[{"run", "reason"}]`` of the refused ones). Two maps scored at the scene's
+        resolution differ when their recorded ``scored_size`` differ; two others when their mapping factors differ,
+        or both record the mapped size (or the count of resolution changes) and those differ.
     """
     keep, refused = [], []
     for i in sorted(runs):
         a, b = mapping_resolution(g[i]), mapping_resolution(u[i])
-        differs = [k for k, x, y in zip(("downscale", "width", "height", "changes"), a, b)
-                   if x is not None and y is not None and x != y]
+        if g[i].get("score_at") == u[i].get("score_at") == "scene":
+            sa, sb = g[i].get("scored_size"), u[i].get("scored_size")
+            differs = sa != sb
+            reason = f"scored at different sizes: GaussLite {sa}, uniform {sb}"
+        else:
+            differs = [k for k, x, y in zip(("downscale", "width", "height", "changes"), a, b)
+                       if x is not None and y is not None and x != y]
+            reason = (f"mapped at different resolutions: GaussLite downscale {a[0]:g} ({a[1]}x{a[2]}, {a[3]} "
+                      f"changes), uniform {b[0]:g} ({b[1]}x{b[2]}, {b[3]} changes)")
         if differs:
-            reason = (f"mapped at different resolutions: GaussLite downscale {a[0]:g} ({a[1]}x{a[2]}, {a[3]} changes), "
-                      f"uniform {b[0]:g} ({b[1]}x{b[2]}, {b[3]} changes)")
             log.warning("%s, budget %s s, run %s not paired: %s", g[i].get("scene"), g[i].get("budget"), i, reason)
             refused.append({"run": i, "reason": reason})
         else:
@@ -683,7 +712,7 @@ def table(result: dict) -> str:
                 m = v.get(mode)
                 if not m:
                     continue
-                g = _gain_cell(v) if mode == "gausslite" and "gain" in v else ""
+                g = gain_cell(v) if mode == "gausslite" and "gain" in v else ""
                 fp = (f"{fmt(m.get('final_roi_psnr'), m.get('final_roi_psnr_std'))} / "
                       f"{fmt(m.get('final_psnr'), m.get('final_psnr_std'))}" if m.get("final_roi_psnr") is not None
                       else "")
@@ -693,7 +722,7 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def _gain_cell(v: dict) -> str:
+def gain_cell(v: dict) -> str:
     """A gain of :func:`_paired` for a table: ``"+1.23 [+0.80, +1.66] (σ runs 0.30)"`` (the mean of the per-run
     paired gains, its run-clustered 95 % interval, their spread), ``"+1.23 [+0.80, +1.66] (per frame, 1 run)"`` for
     a single run's per-frame interval, or ``"+1.23 ± 0.30 (runs)"`` for runs without per-frame figures; ``*``: the
@@ -712,7 +741,7 @@ def _gain_cell(v: dict) -> str:
 def protocol_table(result: dict) -> str:
     """Markdown table of every scoring protocol: per scene, budget and protocol (docs/realtime.md#scoring-protocols:
     ``sensor``, ``keyframes``, ``novel`` at the pose the robot gives; ``tracked``, ``novel-tracked`` at a pose fitted
-    to the map), both modes' ROI PSNR and PSNR (mean ± std over runs) and the paired ROI gain (:func:`_gain_cell`:
+    to the map), both modes' ROI PSNR and PSNR (mean ± std over runs) and the paired ROI gain (:func:`gain_cell`:
     the mean of the per-run paired gains with its run-clustered 95 % interval and their spread)."""
     lines = ["| scene | budget (s) | protocol | uniform ROI PSNR | GaussLite ROI PSNR | ROI gain | uniform PSNR | "
              "GaussLite PSNR | runs |", "|" + "---|" * 9]
@@ -722,7 +751,7 @@ def protocol_table(result: dict) -> str:
                 u, g = pv.get("uniform", {}), pv.get("gausslite", {})
                 lines.append(
                     f"| {scene} | {b} | {p} | {fmt(u.get('roi_psnr'), u.get('roi_psnr_std'))} | "
-                    f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {_gain_cell(pv)} | "
+                    f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {gain_cell(pv)} | "
                     f"{fmt(u.get('psnr'), u.get('psnr_std'))} | "
                     f"{fmt(g.get('psnr'), g.get('psnr_std'))} | {pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))} |")
     lines += ["", "ROI gain: GaussLite − uniform, paired frame by frame within each run: the mean of the per-run "
@@ -904,6 +933,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="the poses the agents map and are scored at: the sequence's own (given), or the RGB-D "
                          "odometry's estimates of every frame, the withheld ones included (agent.pose_source "
                          "odometry: a camera without SLAM); the ROI is the given poses' either way")
+    ap.add_argument("--score-at", choices=("mapping", "scene"), default="mapping",
+                    help="score each map at the resolution its mission mapped at (mapping), or at the scene's own "
+                         "resolution whatever the agent mapped at (scene: runs mapped at different resolutions pair, "
+                         "and a map's detail counts); decided with the missions, recorded with each saved map")
     ap.add_argument("--track-iters", type=int, default=TRACK_ITERS,
                     help="tracked / novel-tracked protocols: Adam steps per frame")
     ap.add_argument("--track-stride", type=int, default=TRACK_STRIDE,
@@ -1005,7 +1038,7 @@ def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protoc
                            "late": args.late, "late_via": args.late_via, "protocols": protocols,
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "track_iters": args.track_iters,
-                           "track_stride": args.track_stride,
+                           "track_stride": args.track_stride, "score_at": args.score_at,
                            "render_dir": (str(out.with_name(out.stem + "_renders"))
                                           if run == 0 and b == REFERENCE_BUDGET_S and not args.twin else None)}
                     if _key(job) not in done:
@@ -1085,6 +1118,7 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
+                           "score_at": args.score_at,
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "runs": runs}
     for scene, cap in names.items():
