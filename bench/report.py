@@ -167,7 +167,8 @@ def headline_table(result: dict) -> str:
     under :data:`HEADLINE_GAINS` and the full-image PSNR under the primary protocol."""
     p0 = f"`{HEADLINE_PRIMARY}`"
     head = (["scene, task", f"uniform ROI PSNR, {p0} (dB)", f"GaussLite ROI PSNR, {p0} (dB)"]
-            + [f"gain, `{g}`" for g in HEADLINE_GAINS] + ["PSNR, GaussLite / uniform"])
+            + [f"gain, `{g}`" for g in HEADLINE_GAINS] + ["PSNR, GaussLite / uniform",
+                                                          "iterations per keyframe, GaussLite / uniform"])
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for scene, label in HEADLINE_SCENES:
         p = protocol(result, scene, HEADLINE_PRIMARY)
@@ -175,8 +176,16 @@ def headline_table(result: dict) -> str:
         cells = [label, pm(u["roi_psnr"], u["roi_psnr_std"]), pm(g["roi_psnr"], g["roi_psnr_std"])]
         cells += [gain_text(protocol(result, scene, name)) for name in HEADLINE_GAINS]
         cells.append(f"{num(g['psnr'])} / {num(u['psnr'])}")
+        cells.append(" / ".join(num(iters_per_keyframe(result, scene, m), 1) for m in ("gausslite", "uniform")))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def iters_per_keyframe(result: dict, scene: str, mode: str) -> Optional[float]:
+    """The mean mapping iterations per keyframe of ``mode``'s runs of ``scene`` (what the budget bought them)."""
+    vals = [r["iters_per_keyframe"] for r in result["runs"]
+            if r["scene"] == scene and r["mode"] == mode and r.get("iters_per_keyframe") is not None]
+    return sum(vals) / len(vals) if vals else None
 
 
 #: docs/realtime.md's table of every protocol: scene key of ``realtime.json`` and the row's label, in page order
@@ -409,6 +418,13 @@ def map_budget_table(r: dict) -> str:
     return table(r["summary"], argparse.Namespace(frames=r["frames"], fixed_frames=r["fixed_frames"])) + "\n"
 
 
+def detail_live_table(r: dict) -> str:
+    """Live missions with and without the task region's own resolution (``bench/results/detail_live.json``)."""
+    from bench.detail_live import table  # lazy: the page's other regions need none of it
+
+    return table(r["cells"]) + "\n"
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -436,6 +452,7 @@ REGIONS: Dict[str, Region] = {
     "odometry-gains": Region("bench/results/odometry.json", pose_gains_table),
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
+    "detail-live": Region("bench/results/detail_live.json", detail_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
 }
 
