@@ -176,14 +176,15 @@ def headline_table(result: dict) -> str:
         cells = [label, pm(u["roi_psnr"], u["roi_psnr_std"]), pm(g["roi_psnr"], g["roi_psnr_std"])]
         cells += [gain_text(protocol(result, scene, name)) for name in HEADLINE_GAINS]
         cells.append(f"{num(g['psnr'])} / {num(u['psnr'])}")
-        cells.append(" / ".join(num(iters_per_keyframe(result, scene, m), 1) for m in ("gausslite", "uniform")))
+        its = [iters_per_keyframe(result, scene, m) for m in ("gausslite", "uniform")]
+        cells.append("–" if None in its else " / ".join(num(x, 1) for x in its))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def iters_per_keyframe(result: dict, scene: str, mode: str) -> Optional[float]:
     """The mean mapping iterations per keyframe of ``mode``'s runs of ``scene`` (what the budget bought them)."""
-    vals = [r["iters_per_keyframe"] for r in result["runs"]
+    vals = [r["iters_per_keyframe"] for r in result.get("runs", [])
             if r["scene"] == scene and r["mode"] == mode and r.get("iters_per_keyframe") is not None]
     return sum(vals) / len(vals) if vals else None
 
