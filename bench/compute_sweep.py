@@ -404,6 +404,8 @@ def plot(result: dict, path: Path, protocol: str = "novel") -> None:
             for x, y, name, load in pts:
                 ax.scatter(x, y, marker=shape[load], color=colour, s=36, zorder=3)
                 ax.annotate(name, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color=colour)
+    for load in sorted({p["load"] for p in result["pairs"]}, key=lambda x: x or ""):
+        ax.scatter([], [], marker=shape[load], color="0.4", label=f"load: {load or 'none'}")
     ax.axhline(0.0, color="k", lw=0.8, ls=":")
     ax.set_xlabel("GaussLite iterations per keyframe")
     ax.set_ylabel(f"{protocol} ROI gain, GaussLite − uniform (dB)")
