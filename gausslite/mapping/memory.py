@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.mapping.views import StoredKeyframe, StoredViews, roi_box
+from gausslite.mapping.views import StoredKeyframe, StoredViews, closest_pose_pair, roi_box
 
 
 class KeyframeStore(StoredViews):
@@ -101,14 +101,7 @@ class KeyframeStore(StoredViews):
             j = idx[0]
         else:
             c2w = torch.stack([self._items[i].c2w for i in idx]).numpy()
-            t = c2w[:, :3, 3]
-            dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
-            rel = np.einsum("aji,bjk->abik", c2w[:, :3, :3], c2w[:, :3, :3])
-            ang = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
-            cost = dt + self.rot_weight_m * ang
-            np.fill_diagonal(cost, np.inf)
-            a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)
-            j = idx[min(a, b)]
+            j = idx[closest_pose_pair(c2w, self.rot_weight_m)[0]]
         self._items[j].detail = None
         self.n_detail_dropped += 1
 

@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
-from gausslite.mapping.views import (Keyframe, StoredKeyframe, StoredViews, keyframe_from_frame, roi_box,
-                                     window_keyframe)
+from gausslite.mapping.views import (Keyframe, StoredKeyframe, StoredViews, closest_pose_pair, keyframe_from_frame,
+                                     roi_box, window_keyframe)
 
 __all__ = ["RoiViewStore", "roi_points", "project_roi", "roi_view_of"]
 

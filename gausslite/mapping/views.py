@@ -304,3 +304,23 @@ def crop_keyframe(kf: Keyframe, pad: int) -> Keyframe:
     bx0, by0, bx1, by1 = kf.roi_box
     return window_keyframe(kf, bx0 - pad, by0 - pad, bx1 + pad, by1 + pad)
 
+
+
+def closest_pose_pair(c2w: np.ndarray, rot_weight_m: float) -> tuple[int, int]:
+    """The two views whose poses lie closest: translation distance in metres plus the relative rotation angle in
+    radians times ``rot_weight_m`` (the rule by which the keyframe and ROI view stores drop a redundant view).
+
+    Args:
+        c2w: (N, 4, 4) camera-to-world poses, N ≥ 2 (metres, OpenCV camera axes).
+        rot_weight_m: metres one radian of rotation counts as.
+    Returns:
+        the pair's indices ``(a, b)``, ``a < b``.
+    """
+    t = c2w[:, :3, 3]
+    dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
+    rel = np.einsum("aji,bjk->abik", c2w[:, :3, :3], c2w[:, :3, :3])
+    ang = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+    cost = dt + rot_weight_m * ang
+    np.fill_diagonal(cost, np.inf)
+    a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    return int(min(a, b)), int(max(a, b))
