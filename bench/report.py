@@ -376,7 +376,7 @@ def _gain_cell(v: dict) -> str:
 
 def pose_gains_table(r: dict) -> str:
     """The ROI gain at the given poses and at the odometry's (``gain_estimated_minus_given`` of
-    ``bench/results/odometry.json``)."""
+    ``bench/results/odometry_gains.json``)."""
     names = {"tum_fr1_rpy": "find the mouse", "tum_fr1_rpy_cup": "pick up the cup"}
     rows = ["| task | uniform / GaussLite, given poses | uniform / GaussLite, odometry's poses | gain, given | "
             "gain, odometry's poses | estimated − given |", "|---|---|---|---|---|---|"]
@@ -450,7 +450,7 @@ REGIONS: Dict[str, Region] = {
     "sim-seconds": Region("bench/results/first_run.json", sim_seconds),
     "test-minutes": Region("bench/results/first_run.json", suite_minutes),
     "odometry": Region("bench/results/odometry.json", odometry_table),
-    "odometry-gains": Region("bench/results/odometry.json", pose_gains_table),
+    "odometry-gains": Region("bench/results/odometry_gains.json", pose_gains_table),
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),
