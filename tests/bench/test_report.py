@@ -18,7 +18,8 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/results.md", "sim-seconds"), ("docs/results.md", "first-run"), ("docs/results.md", "slowest-tests"),
             ("docs/realtime.md", "realtime-protocols"), ("docs/mapper.md", "odometry"),
             ("docs/design.md", "pose-graph-solvers"), ("docs/mapper.md", "odometry-gains"),
-            ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "map-budget")}
+            ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "map-budget"),
+            ("docs/mapper.md", "detail-live")}
 
 
 def page(name: str) -> str:
