@@ -31,7 +31,6 @@ import numpy as np
 from gausslite.fusion.views import ViewBudget, roi_crop, view_bytes
 from gausslite.mission.errors import PreconditionFailed
 from gausslite.mission.config import AgentConfig
-from gausslite.mission.heap import trim_heap
 from gausslite.mission.ports import FusionPort
 from gausslite.mission.share import Captured, ShareSession
 
@@ -117,6 +116,13 @@ class Pusher:
         self._stop = threading.Event()
         #: set once the final push ended (acknowledged or not; ``final_push_ok`` tells) or the mission gave up
         self.final_done = threading.Event()
+        #: set after each push: the push's temporary copies are garbage, and the mission's owner should return them
+        #: to the OS (:func:`~gausslite.mission.heap.trim_heap`) from a thread at the mapper's priority. The pusher
+        #: never trims itself: at ``pusher_nice`` a thread holding the interpreter lock (``gc.collect``) or the
+        #: allocator's locks (``malloc_trim``) is descheduled whenever a CPU-bound process wants the cores, and
+        #: every thread of the agent then waits for it (measured beside an all-core load: the mapper stalled for
+        #: 9-11 s at a time, docs/live.md "Beside other processes").
+        self.trim_due = threading.Event()
         self.final_push_ok = False
         self.pushes: List[PushRecord] = []
         self.push_failures = 0
@@ -227,7 +233,7 @@ class Pusher:
             finally:
                 with self._lock:
                     self._inflight = None
-                trim_heap()  # the push's temporary copies back to the OS (gausslite.mission.heap)
+                self.trim_due.set()  # the owner trims at its own priority (trim_due)
 
     def _final(self, ok: bool) -> None:
         self.final_push_ok = ok

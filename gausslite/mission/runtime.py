@@ -51,6 +51,7 @@ from gausslite.datasets.base import Frame
 from gausslite.mapping.keyframes import KeyframeRule, KeyframeSelector
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import FrameSizeMismatch, MissionError
+from gausslite.mission.heap import trim_heap
 from gausslite.mission.ports import FusionPort
 from gausslite.mission.pose_follow import MapFollower
 from gausslite.mission.pusher import Pusher
@@ -524,6 +525,9 @@ class AgentRuntime:
                 self.apply_pending_task()
             except Exception as e:
                 self._fail(f"switching to the new task failed: {type(e).__name__}: {e}")
+            if self.pusher.trim_due.is_set():  # a push's copies back to the OS, at the mapper's priority
+                self.pusher.trim_due.clear()
+                trim_heap()
             idle = self._idle_work()
             try:
                 # a blocking wait wakes up now and then to apply a new task (update_task)

@@ -1,0 +1,44 @@
+"""Returning a push's freed memory to the OS (gausslite.mission.heap) happens on the mapping thread, never on the
+pusher thread: at ``pusher_nice`` a thread holding the interpreter lock (``gc.collect``) or the allocator's locks
+(``malloc_trim``) is descheduled whenever another process wants the cores, and every thread of the agent waits for it
+(docs/live.md, "Beside other processes")."""
+
+from __future__ import annotations
+
+import threading
+
+from gausslite.config import load_config
+from gausslite.mapping.mapper import FrameStats
+from gausslite.mission import AgentRuntime
+from gausslite.mission import runtime as runtime_mod
+from tests._scenes import plane_frame
+
+def _wait(pred, timeout_s: float = 60.0) -> bool:
+    stop = threading.Event()
+    for _ in range(int(timeout_s / 0.05)):
+        if pred():
+            return True
+        stop.wait(0.05)
+    return bool(pred())
+
+
+GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
+
+
+def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatch):
+    trims = []
+    monkeypatch.setattr(runtime_mod, "trim_heap", lambda: trims.append(threading.current_thread().name) or True)
+    cfg = load_config(None, ["agent.ingest=every_frame", "agent.push_every=1", "mapper.mode=uniform",
+                             "agent.resolution.min_width=16"]).agent
+    rt = AgentRuntime("t", "Pick up the object", GRAPH, cfg, relevance_fn=lambda fr: None)
+    rt.mapper.map_frame = lambda frame, *a, **k: FrameStats(frame.frame_id, 0.01, 0, 0, 0, 0.0, 0, iters=1)
+    try:
+        for i in range(3):
+            rt.submit(plane_frame(i, 0.1 * i, 24, 32))
+        assert rt.wait_mapped(60)
+        # each push sets the flag when it is done; the worker, awake at least every 0.5 s, takes it
+        assert _wait(lambda: trims), \
+            "the mapping thread never trimmed after a push (waited 60 s)"
+    finally:
+        rt.close()
+    assert set(trims) == {"agent-t-map"}, trims
