@@ -561,6 +561,11 @@ class MapperConfig(_Strict):
         "values and moments; live under a keyframe budget 'active' loses to uniform: docs/realtime.md); 'active' "
         "(a = 1, the paper's rule); 'all' (a full Adam step). κ counts active Gaussians only"
     )
+    roi_min_iters: int = Field(
+        2, ge=0, description="ROI schedule: iterations of each keyframe the task region is owed, however few the "
+        "budget buys: the warm-up ends early to leave this many, and the ROI phase's first this-many draws are among "
+        "the keyframes that see the ROI (docs/mapper.md \"The ROI schedule\"); 0: the plain split"
+    )
     roi_phase_views: Literal["any", "roi"] = Field(
         "any", description="ROI phase: the view is drawn as in the warm-up ('any'; a drawn view without ROI pixels "
         "gets a full-image iteration) or among the keyframes that see the ROI ('roi'; same recent-window / mission "

@@ -74,6 +74,7 @@ from gausslite.mapping.memory import KeyframeStore, unexplained_mask
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import PoseRefiner, nearest_key
 from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_view_of, window_points
+from gausslite.mapping.schedule import RoiSchedule
 from gausslite.mapping.seeding import (SeedSelection, local_median_nn_distance, seed_points, select_seeds,
                                        weighted_choice)
 from gausslite.mapping.sensor import SensorRenderer
@@ -533,17 +534,18 @@ class Mapper:
             self.strategy.add_contribution(self.sensor.blend_weights(kf.K, kf.width, kf.height, kf.c2w))
 
     # ------------------------------------------------------------------ schedules
-    def _pick_view(self, current: Keyframe, roi_phase: bool = False) -> Keyframe:
+    def _pick_view(self, current: Keyframe, roi_phase: bool = False, owed: bool = False) -> Keyframe:
         """The view of one iteration: from the recent window or the whole mission (see
         ``KeyframeStore.sample_index``); without MVO the current frame with ``current_frame_prob``. ``roi_phase``
-        with ``roi_phase_views='roi'`` and MVO: among the keyframes that see the ROI."""
+        with ``roi_phase_views='roi'``, or ``owed`` (an ROI-phase iteration the ROI schedule owes the region,
+        ``roi_min_iters``): among the keyframes that see the ROI."""
         cfg, sw = self.cfg, self.cfg.effective()
         n = len(self.keyframes)
-        if not sw.mvo and (n <= 1 or self.rng.random() < cfg.current_frame_prob):
+        if not sw.mvo and not owed and (n <= 1 or self.rng.random() < cfg.current_frame_prob):
             return current
         roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
         i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w,
-                                        roi_only=roi_phase and cfg.roi_phase_views == "roi")
+                                        roi_only=roi_phase and (owed or cfg.roi_phase_views == "roi"))
         if roi_phase and self.keyframes[i].sees_roi:
             v = self._roi_view_draw()
             if v is not None:
@@ -715,22 +717,28 @@ class Mapper:
         n_iters = 0
         dstats: dict = {}
         has_active = bool(self.model.active.any())
-        warm_until = None
+        schedule = RoiSchedule(cfg.warmup_iters, cfg.iters_per_frame, cfg.roi_min_iters if sw.roi else 0)
+        warm_until = t_it = None
         if budget is not None:
             # the paper's warm-up → ROI-phase schedule in time: the first warmup_iters / iters_per_frame of
             # the time left after seeding is full-image, the rest ROI-phase (a fixed warm-up count would
             # outlast a short budget and leave the ROI phase, κ and the shared subset empty)
             t_it = self.clock.now()
-            warm_until = t_it + max(0.0, budget - (t_it - t0)) * cfg.warmup_iters / cfg.iters_per_frame
+            warm_until = t_it + max(0.0, budget - (t_it - t0)) * schedule.warm_share
+        roi_draws = 0
         for it in self._iterations(t0, budget):
             if warm_until is None:
-                warm = it < cfg.warmup_iters
-            else:  # at least one full-image iteration for the new seeds (unless warm-up is off)
-                warm = cfg.warmup_iters > 0 and (it == 0 or self.clock.now() < warm_until)
-            view = self._pick_view(kf, roi_phase=sw.roi and not warm and has_active)
+                warm = it < schedule.warm_iters
+            else:
+                now = self.clock.now()
+                left = schedule.iters_left(t0 + budget - now, (now - t_it) / it if it else None)
+                warm = schedule.warm_in_time(it, now < warm_until, left)
+            roi_phase = sw.roi and not warm and has_active
+            view = self._pick_view(kf, roi_phase=roi_phase, owed=roi_phase and roi_draws < schedule.roi_min_iters)
+            roi_draws += int(roi_phase)
             active_phase = sw.roi and not warm and has_active and view.roi is not None
             loss = self.step(view, active_phase, coarse=it < cfg.performance.coarse_iters)
-            active_iters += int(active_phase)
+            active_iters += int(active_phase and view.roi_box is not None)  # an empty ROI: a full-image iteration
             n_iters += 1
             if warm_until is not None:  # a budget may give fewer than densify.every iterations per call
                 self.n_budget_iters += 1
