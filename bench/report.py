@@ -426,6 +426,20 @@ def detail_live_table(r: dict) -> str:
     return table(r["cells"]) + "\n"
 
 
+def pose_perturbation_table(r: dict) -> str:
+    """Offline maps at perturbed poses (``summary`` of ``bench/results/pose_perturbation.json``)."""
+    from bench.pose_perturbation import table  # lazy: the page's other regions need none of it
+
+    return table(r["summary"]) + "\n"
+
+
+def compute_sweep_table(r: dict) -> str:
+    """The gain per compute cell (``bench/results/compute_sweep*.json``)."""
+    from bench.compute_sweep import table  # lazy: the page's other regions need none of it
+
+    return table(r) + "\n"
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -455,6 +469,9 @@ REGIONS: Dict[str, Region] = {
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
+    "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
+    "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
+    "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
 }
 
 

@@ -243,10 +243,10 @@ def config_from_args(args: argparse.Namespace, **extra) -> MapperConfig:
 
 
 #: what task-conditioned mapping of one's own recording needs (``docs/ros.md``, "Task-conditioned mapping of your bag")
-TASK_HELP = ("task-conditioned mapping needs --mode gausslite and a task: --task-id ID of a tasks.json (task text and its "
-             "roi_object_ids) with an objects.json (labelled 3D boxes in the poses' world frame) in the dataset's folder "
-             "or its parent; to map from task text alone with an ONNX detector, replay the recording through "
-             "`gausslite serve agent` (docs/ros.md)")
+TASK_HELP = ("task-conditioned mapping needs a task: --task \"pick up the cup\" (its words, grounded in an objects.json of "
+             "labelled 3D boxes in the poses' world frame, in the dataset's folder or its parent, or by the ONNX "
+             "detector and segmenter of --onnx-detector, --onnx-vocab and --onnx-segmenter), or --mode gausslite "
+             "--task-id ID of a tasks.json beside the objects.json (docs/ros.md)")
 
 
 def warn_uniform(task_id) -> None:

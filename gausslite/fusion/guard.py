@@ -31,7 +31,7 @@ import numpy as np
 
 from gausslite.core.arrays import GaussianArrays
 
-__all__ = ["RoiView", "GuardReport", "roi_weights", "roi_guard", "for_robot"]
+__all__ = ["RoiView", "GuardReport", "roi_weights", "roi_guard", "for_robot", "provenance_rows", "with_own_map"]
 
 
 @dataclass(frozen=True)
@@ -210,3 +210,55 @@ def for_robot(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
     kept = {a: (len(subset) if j == i else int((keep & (src_o == j)).sum())) for j, a in enumerate(agents)}
     return out, {"own": len(subset), "others_kept": int(keep.sum()), "others_dropped": int((~keep).sum()),
                  "views": len(vs), "kept": kept}
+
+
+def provenance_rows(first_row: Mapping[str, int], kept: Mapping[str, int], n_rows: int) -> tuple[list, np.ndarray]:
+    """The per-row agent of a fused map from its provenance (``FuseResult.first_row`` / ``kept``: rows
+    ``[first_row[a], first_row[a] + kept[a])`` came from agent ``a``).
+
+    Returns:
+        (agents, source_agent): agent ids in row order, and (n_rows,) int64 index into them of each row's agent.
+    Raises:
+        ValueError: ranges that overlap, leave rows out, or run past ``n_rows``.
+    """
+    agents = sorted(first_row, key=lambda a: int(first_row[a]))
+    src = np.full(int(n_rows), -1, np.int64)
+    for i, a in enumerate(agents):
+        lo, n = int(first_row[a]), int(kept.get(a, 0))
+        if lo < 0 or lo + n > n_rows or (src[lo:lo + n] >= 0).any():
+            raise ValueError(f"provenance of agent {a!r} (rows {lo}..{lo + n}) does not fit a map of {n_rows} rows")
+        src[lo:lo + n] = i
+    if (src < 0).any():
+        raise ValueError(f"{int((src < 0).sum())} rows of the fused map have no provenance")
+    return agents, src
+
+
+def with_own_map(fused: GaussianArrays, first_row: Mapping[str, int], kept: Mapping[str, int], robot: str,
+                 own_map: GaussianArrays, views: Sequence, *, min_weight: float = 0.01, max_views: int = 16,
+                 backend: str = "auto") -> tuple[GaussianArrays, dict]:
+    """The team map as a robot should load it, made on the robot: its own WHOLE map, and the other robots' rows of a
+    vote (the team vote or ``Fuse(for_agent=robot)``) except those that draw the robot's ROI in its own views
+    (``docs/sharing.md``, "The team map for one robot").
+
+    :func:`for_robot` on the server can only keep what the robot shared: its subset, fine-tuned to render its ROI
+    alone, holds a bounded share of the map, so the robot's region there is never quite its own map's. On the robot
+    the whole map is at hand: with it in place of the subset, what the robot sees of its own region is its own map's,
+    up to the others' rows that draw less than ``min_weight`` of its ROI per view.
+
+    Args:
+        fused: a vote's map as downloaded (``FusionClient.download_fused``), M rows, world frame.
+        first_row, kept: its provenance (``FuseResult.first_row`` / ``kept``); the refined team map has none.
+        robot: the robot's agent id; its rows in ``fused`` are replaced by ``own_map``.
+        own_map: the robot's own map (``Mapper.gmap`` as arrays, or its ``map.ply``), world frame.
+        views: its ROI views (:func:`roi_weights`: its keyframes with their relevance maps).
+        min_weight, max_views, backend: as :func:`for_robot`.
+    Returns:
+        (map, stats) as :func:`for_robot`: the robot's own map's rows first.
+    Raises:
+        ValueError: provenance that does not fit ``fused``; a robot the provenance does not name.
+    """
+    agents, src = provenance_rows(first_row, kept, len(fused))
+    if robot not in agents:
+        raise ValueError(f"the fused map has no rows of robot {robot!r} (agents: {', '.join(agents)})")
+    return for_robot(fused, src, agents, robot, own_map, views, min_weight=min_weight, max_views=max_views,
+                     backend=backend)

@@ -138,7 +138,8 @@ class AgentSettings:
         annotations_path (str | None): default scene folder with ``objects.json``/``tasks.json`` for
             streamed missions.
         auto_finish (bool): finish an auto-started replay mission (final push) when it is mapped.
-        parser_timeout_s (float): deadline of the Parse call (waits for the parser to become ready).
+        parser_timeout_s (float): deadline of the Parse call, which waits for the parser to become ready: long
+            enough for a parser process started beside the agent on a busy robot computer to load.
         shutdown_s (float): on SIGTERM, how long the agent may take to push the final subset of a mission still
             mapping and write its checkpoint before it exits (:meth:`AgentServicer.shutdown`).
         config (AgentConfig): mission/mapper settings.
@@ -161,7 +162,7 @@ class AgentSettings:
     task_id: Optional[str] = None
     annotations_path: Optional[str] = None
     auto_finish: bool = True
-    parser_timeout_s: float = 30.0
+    parser_timeout_s: float = 120.0
     shutdown_s: float = 30.0
     config: AgentConfig = field(default_factory=lambda: AgentConfig())
 
@@ -206,6 +207,15 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             return parse_task_remote(s.parser_address, text, s.token, s.root_cert, s.parser_timeout_s)
 
         return TaskParser().parse(text)
+
+    def _parser_failed(self, context, method: str, e: grpc.RpcError) -> None:
+        """Abort ``method`` after the parser service failed: its INVALID_ARGUMENT passes through, anything else is
+        UNAVAILABLE; a deadline says how long the agent waited for which parser."""
+        code = e.code() if e.code() == grpc.StatusCode.INVALID_ARGUMENT else grpc.StatusCode.UNAVAILABLE
+        s = self.settings
+        waited = (f" (waited {s.parser_timeout_s:g} s for the parser at {s.parser_address} to become ready and answer)"
+                  if e.code() == grpc.StatusCode.DEADLINE_EXCEEDED else "")
+        _abort(context, method, code, f"parser service: {e.code().name}: {e.details()}{waited}")
 
     def _fusion_client(self, address: str):
         if not address:
@@ -399,8 +409,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             _abort(context, "StartMission", grpc.StatusCode.INVALID_ARGUMENT,
                    f"cannot read a path of the request: {type(e).__name__}: {str(e)[:300]}")
         except grpc.RpcError as e:
-            code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
-            _abort(context, "StartMission", code, f"parser service: {e.code().name}: {e.details()}")
+            self._parser_failed(context, "StartMission", e)
         except MalformedMessage:
             raise
         except Exception as e:  # noqa: BLE001 - never crash: INTERNAL with the cause logged
@@ -424,8 +433,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         except (MissionError, ValueError) as e:
             _abort(context, "UpdateTask", status_for(e), str(e))
         except grpc.RpcError as e:
-            code = e.code() if e.code() in (grpc.StatusCode.INVALID_ARGUMENT,) else grpc.StatusCode.UNAVAILABLE
-            _abort(context, "UpdateTask", code, f"parser service: {e.code().name}: {e.details()}")
+            self._parser_failed(context, "UpdateTask", e)
 
         gp = graph if hasattr(graph, "SerializeToString") else graph_to_proto(graph)
         return agent_pb2.UpdateTaskResponse(mission_id=rt.mission_id, graph=gp)

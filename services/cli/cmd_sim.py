@@ -15,6 +15,7 @@ exported to the agent's environment variables (``GAUSSLITE_AGENT_ID``, ``GAUSSLI
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -158,7 +159,7 @@ def _report_only(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as e:
         print(f"gausslite sim: error: {e}", file=sys.stderr)
         return 1
-    print((Path(args.out) / "report.md").read_text())
+    _print_answer(Path(args.out))
     return 0
 
 
@@ -249,9 +250,18 @@ def _handle(args: argparse.Namespace) -> int:
     except (ValueError, KeyError, OSError, RuntimeError, TimeoutError) as e:
         print(f"gausslite sim: error: {e}", file=sys.stderr)
         return 1
-    print((res.out / "report.md").read_text())
-    print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} in {res.seconds:.0f} s")
+    _print_answer(res.out)
+    print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} (every protocol and map, the pushes, the "
+          f"renders) in {res.seconds:.0f} s")
     return 0
+
+
+def _print_answer(out: Path) -> None:
+    """Print the report's first screen (``answer_markdown``) from ``out/report.json``."""
+    # lazy: the command line starts without loading the services or gRPC
+    from gausslite_services.sim.report import answer_markdown
+
+    print(answer_markdown(json.loads((out / "report.json").read_text())))
 
 
 def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach):

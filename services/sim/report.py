@@ -17,13 +17,17 @@ from gausslite_services.sim.launch import AgentPlan
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
-FUSED_KEYS = ("concat", "vote", "for_robot", "refine", "team_map")
+FUSED_KEYS = ("concat", "vote", "for_robot", "with_own", "refine", "team_map")
+#: the fused keys made once per robot (each task is scored on its robot's map)
+PER_ROBOT = ("for_robot", "with_own")
 #: what each fused key is, for the report
 FUSED_HELP = {
     "concat": "plain concatenation of the agents' ROI subsets",
     "vote": "the team map: per-voxel κ vote (paper Sec. III-E)",
     "for_robot": "the team map as each robot uses it (`Fuse(for_agent=…)`): its own subset whole, and the others' "
                  "voted rows except those over its ROI; each task scored on the map made for its robot",
+    "with_own": "the team map as each robot loads it on board (`gausslite.fusion.guard.with_own_map`): its own whole "
+                "map, and the others' voted rows except those that draw its ROI in its keyframes",
     "refine": "vote + joint refinement over the uploaded views (`Fuse(refine=true)` once the missions ended)",
     "team_map": "the team map the fusion server keeps refined in the background (`Fuse(team_map=true)`), once it holds "
                 "the final subsets and views",
@@ -323,9 +327,7 @@ def write_markdown(report: dict, path: Path) -> None:
     the bytes shared, one picture: :func:`_answer_lines`), then the protocols × the maps, then the details (agents,
     pushes, the fused map over time, live figures, baselines, every fused map, what covers each ROI, the renders)."""
     tasks = [a["task"] for a in report["agents"]]
-    lines = ["# GaussLite two-agent simulation", "",
-             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time."]
-    lines += _answer_lines(report)
+    lines = answer_markdown(report).splitlines()
     lines += _protocol_lines(report)
     lines += ["", "## Agents (own map, own task)", "",
               "| agent | task | ROI PSNR (dB) | Gaussians | shared | shared % | bytes / Gaussian | pushes | "
@@ -366,8 +368,17 @@ def write_markdown(report: dict, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def answer_markdown(report: dict) -> str:
+    """The report's first screen: the title, the scene, the answer table, the maps written and how to open them, and
+    one picture (:func:`_answer_lines`); ``gausslite sim`` prints it, ``report.md`` goes on with the details."""
+    lines = ["# GaussLite two-agent simulation", "",
+             f"Scene: `{report['scene']}` — {report['seconds']:.0f} s wall time."]
+    return "\n".join(lines + _answer_lines(report)) + "\n"
+
+
 #: the team maps a robot can load now, in the order the answer prefers them (report key, how it is asked for)
-LOADABLE = (("team_map", "`Fuse(team_map=true)`"), ("for_robot", "`Fuse(for_agent=…)`"))
+LOADABLE = (("team_map", "`Fuse(team_map=true)`"), ("with_own", "`with_own_map` on the robot"),
+            ("for_robot", "`Fuse(for_agent=…)`"))
 
 
 def lead_protocol(report: dict) -> str:
@@ -413,12 +424,28 @@ def _answer_lines(report: dict) -> List[str]:
             cells.append(_loadable_cell(report, keys[0][0], tracked, a["task"])[1])
         sent = int(a.get("total_upload_bytes") or 0) + int(a.get("view_bytes") or 0)
         lines.append(f"| {a['id']} | {a['task']} | {fmt(own)} | " + "".join(f"{c} | " for c in cells) + f"{sent:,} |")
+    lines += _map_file_lines(report)
     pic = _telling_render(report, q)
     if pic is not None:
         r, why = pic
         lines += ["", f"![{r['fused']} {r['task']}]({r['path']})", "",
                   f"*{r['fused']} on `{r['task']}`, frame {r['frame_id']} (render | ground truth | ROI): {why}.*"]
     return lines
+
+
+def _map_file_lines(report: dict) -> List[str]:
+    """The maps the simulation wrote, each with the command that opens it (paths relative to the output folder)."""
+    rows = [(f"{a}'s own map", f) for a, f in (report.get("own_maps") or {}).items()]
+    for key, v in (report.get("fused") or {}).items():
+        files = v.get("ply") or {}
+        if key in PER_ROBOT:
+            rows += [(f"{key} for {a}", f) for a, f in files.items()]
+        elif files:
+            rows.append((f"the {key} map", next(iter(files.values()))))
+    if not rows:
+        return []
+    return ["", "Open a map in the browser with `gausslite view FILE` (from this folder):", "",
+            *[f"- {what}: `gausslite view {f}`" for what, f in rows]]
 
 
 def _telling_render(report: dict, q: str) -> Optional[tuple]:

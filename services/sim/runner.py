@@ -21,8 +21,8 @@ from gausslite_services.sim.launch import (ProcessGroup, check_bags, close_all, 
                                            raise_interrupt, start_services, plan_agents)
 from gausslite_services.sim.report import (agent_report, fused_minus_own, load_offline, protocol_minus_own,
                                            write_report, attach_context_baseline)
-from gausslite_services.sim.scoring import (fuse_and_score, load_eval_frames, uploaded_keyframe_poses,
-                                            own_views, predicted_views, roi_cover_report)
+from gausslite_services.sim.scoring import (fuse_and_score, load_eval_frames, own_map_files, own_views,
+                                            predicted_views, roi_cover_report, uploaded_keyframe_poses)
 from gausslite_services.sim.timeline import FusedTimeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -114,6 +114,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         report = {"scene": dataset, "seconds": time.perf_counter() - t0,
                   "agents": [agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
                   "fused": fused, "renders": renders, "fused_timeline": timeline, "realtime": typed.agent.realtime,
+                  "own_maps": own_map_files(out, [p.name for p in plans]),
                   "offline_report": str(offline_report) if offline_report else None,
                   "settings": {"voxel_size": fz["voxel_size"], "contest_radius": fz["contest_radius"],
                                "refine_iters": fz["refine_iters"], "scoring": scoring.model_dump(),

@@ -9,8 +9,10 @@ ground-truth ROI mask (frames whose ROI is empty are skipped), rendering the fus
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -19,16 +21,19 @@ import grpc
 import numpy as np
 
 from gausslite.config import GaussLiteConfig
+from gausslite.core.arrays import GaussianArrays
 from gausslite.datasets import load_dataset, task_roi
 from gausslite.evaluation import TrackedView, render_map, score_map, side_by_side, withheld_indices
 from gausslite.fusion.diagnose import RoiView, cover_image, roi_cover
+from gausslite.fusion.guard import with_own_map
+from gausslite.gaussians import GaussianMap
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mission.config import AgentConfig
 from gausslite.wire.decode import assemble
 from gausslite.wire.format import WireLimits
 from gausslite_services.fusion_server.store import SqliteFusionStore
 from gausslite_services.sim.launch import AgentPlan
-from gausslite_services.sim.report import FUSED_KEYS, fmt
+from gausslite_services.sim.report import FUSED_KEYS, PER_ROBOT, fmt
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
@@ -175,6 +180,8 @@ def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
     Returns:
         ``(gmaps, res)``: agent id → the fused ``GaussianMap`` its task is scored on, and the last fuse result.
     """
+    if key == "with_own":
+        return None, None  # made on the robots' side: :func:`_with_own_maps`
     if key == "team_map":
         res = _current_team_map(fusion)
         if res is None:
@@ -196,6 +203,48 @@ def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
         for q in ([p] if p is not None else plans):
             gmaps[q.name] = g
     return gmaps, res
+
+
+@dataclass
+class _LocalFuse:
+    """What :func:`fuse_and_score` reads of a fuse made on the robots' side (the fields of a ``FuseResult``)."""
+
+    n_gaussians: int
+    seconds: float
+    kept: dict
+    fused_version: int = 0
+    refine_record: dict = field(default_factory=dict)
+
+
+def _with_own_maps(out: Path, plans: List[AgentPlan], vote, eval_frames: Dict[str, tuple], kf_poses: Dict[str, dict],
+                   backend: str):
+    """Each robot's team map made on board (:func:`gausslite.fusion.guard.with_own_map`): its own map as its agent
+    wrote it and the vote's rows of the others, culled in its keyframes (the frames it mapped, at its keyframe poses,
+    with its task's ROI). ``vote``: (the vote's map, its fuse result with provenance), or None.
+
+    Returns:
+        ``(gmaps, res)`` as :func:`_fuse_maps`; (None, None) without a vote or an own map of every robot.
+    """
+    own = own_map_files(out, [p.name for p in plans])
+    if vote is None or len(own) < len(plans):
+        log.warning("no on-board team maps: %s", "no vote" if vote is None else "a robot's own map is missing")
+        return None, None
+    t0 = time.perf_counter()
+    vote_map, res = vote
+    fused = GaussianArrays.from_any(vote_map)
+    gmaps, kept = {}, {}
+    for p in plans:
+        ds, frames = eval_frames[p.name]
+        poses = kf_poses.get(p.name, {})
+        roi_fn = task_roi(ds.annotations, p.task_id)
+        views = [RoiView.from_frame(dataclasses.replace(fr, c2w=np.asarray(poses[int(fr.frame_id)])), roi)
+                 for fr in frames if int(fr.frame_id) in poses for roi in [roi_fn(fr)] if roi.any()]
+        own_map = GaussianArrays.from_any(GaussianMap.load_ply(out / own[p.name]))
+        g, st = with_own_map(fused, res.first_row, res.kept, p.name, own_map, views, backend=backend)
+        gmaps[p.name] = g.to_gaussian_map()
+        kept[p.name] = st["kept"]
+    n = max(len(g) for g in gmaps.values())
+    return gmaps, _LocalFuse(n, time.perf_counter() - t0, {a: k[a] for a, k in kept.items()})  # robot: its own rows
 
 
 def _current_team_map(fusion, timeout_s: float = 600.0):
@@ -248,11 +297,18 @@ def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[
     fused: Dict[str, dict] = {}
     renders = []
     (out / "renders").mkdir(exist_ok=True)
+    vote = None
     for key in FUSED_KEYS:
         log.info("fusing: %s", key)
-        gmaps, res = _fuse_maps(fusion, key, plans, fz)
+        if key == "with_own":
+            gmaps, res = _with_own_maps(out, plans, vote, eval_frames, kf_poses, backend)
+        else:
+            gmaps, res = _fuse_maps(fusion, key, plans, fz)
+        if key == "vote" and gmaps is not None:
+            vote = (next(iter(gmaps.values())), res)
         if gmaps is None:
             continue
+        files = save_fused_maps(out, key, gmaps)
         per_task, protos = {}, {}
         for p in plans:
             gmap = gmaps[p.name]
@@ -267,13 +323,40 @@ def fuse_and_score(fusion, out: Path, plans: List[AgentPlan], eval_frames: Dict[
         vals = [v for v in per_task.values() if v is not None]
         fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
                       "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
-                      "fused_version": int(res.fused_version), "kept": dict(res.kept),
+                      "fused_version": int(res.fused_version), "kept": dict(res.kept), "ply": files,
                       "protocols": {q: {t: protos[t][q] for t in protos if q in protos[t]}
                                     for q in [*scoring.chosen(), *[f"{a}@own" for a in AT_OWN]]
                                     if any(q in v for v in protos.values())},
                       "refine_record": dict(res.refine_record) or None}
         log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: fmt(v) for k, v in per_task.items()})
     return fused, renders
+
+
+def save_fused_maps(out: Path, key: str, gmaps: Dict[str, object]) -> Dict[str, str]:
+    """Write fused map ``key`` as PLY under ``out/maps`` for ``gausslite view``: ``<key>.ply``, or for a map made per
+    robot (``for_robot``, ``with_own``) ``<key>_<agent>.ply``. ``gmaps``: agent id → ``GaussianMap``. Returns agent
+    id → the file's path relative to ``out``."""
+    (out / "maps").mkdir(exist_ok=True)
+    files, written = {}, {}
+    per_robot = len({id(g) for g in gmaps.values()}) > 1 or key in PER_ROBOT
+    for agent, gmap in gmaps.items():
+        rel = f"maps/{key}_{agent}.ply" if per_robot else f"maps/{key}.ply"
+        if id(gmap) not in written:
+            gmap.save_ply(out / rel)
+            written[id(gmap)] = rel
+        files[agent] = written[id(gmap)]
+    return files
+
+
+def own_map_files(out: Path, agent_ids: List[str]) -> Dict[str, str]:
+    """Each robot's own final map as its agent wrote it (``data/agents/<agent>/<mission>/map.ply``, the newest
+    mission's), relative to ``out``; robots without one are left out."""
+    files = {}
+    for a in agent_ids:
+        found = sorted((out / "data" / "agents" / a).glob("*/map.ply"), key=lambda f: f.stat().st_mtime)
+        if found:
+            files[a] = str(found[-1].relative_to(out))
+    return files
 
 
 def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:

@@ -122,7 +122,8 @@ def test_map_warns_when_it_maps_uniformly(room0_dir, tmp_path, monkeypatch, capl
     assert rc == 0 and seen == {"mode": "uniform", "task_id": None}
     msg = " ".join(r.getMessage() for r in caplog.records)
     assert "no task given: mapping uniformly" in msg
-    assert "--mode gausslite" in msg and "--task-id" in msg and "objects.json" in msg and "serve agent" in msg
+    assert "--mode gausslite" in msg and "--task-id" in msg and "objects.json" in msg and "--task \"" in msg
+    assert "--onnx-detector" in msg and "serve agent" not in msg  # map grounds task words itself
     caplog.clear()
     rc, seen = _run_map(["--dataset", str(room0_dir), "--max-frames", "1", "--task-id", "room0-pick-plant"],
                         monkeypatch, tmp_path)

@@ -133,3 +133,30 @@ def test_team_map_for_a_robot_keeps_its_roi_whatever_another_robot_shares():
     assert float((roi_render(team) - roi_render(before)).abs().max()) > 0.05
     with pytest.raises(ValueError):
         for_robot(team, rep2.source_agent, rep2.agents, "agent_z", subsets["agent_a"], views["agent_a"])
+
+
+def test_the_team_map_made_on_board_holds_the_robots_whole_map_and_culls_what_covers_its_roi():
+    """``with_own_map``: the vote's rows of robot a are replaced by a's whole map (more than it shared); b's splat over
+    a's ROI goes, b's region stays; provenance that does not fit the map is refused."""
+    from gausslite.fusion.guard import provenance_rows, with_own_map
+
+    subsets, views = _team()
+    fused, rep = voxel_vote(subsets, 0.10)
+    order = [rep.agents[i] for i in rep.source_agent]
+    first_row = {a: order.index(a) for a in rep.agents}
+    kept = {a: order.count(a) for a in rep.agents}
+    assert order == sorted(order)  # rows grouped by agent, as a downloaded vote is
+    agents, src = provenance_rows(first_row, kept, len(fused))
+    assert agents == ["agent_a", "agent_b"] and np.array_equal(src, rep.source_agent)
+    own = GaussianArrays.concat([subsets["agent_a"], _arrays([[-0.8, 0.3, 3.0]], [0.05])])  # a row it never shared
+    out, st = with_own_map(fused, first_row, kept, "agent_a", own, views["agent_a"])
+    assert st["own"] == len(own) == 4 and out.take(np.arange(4)).equals(own)
+    assert st["others_dropped"] == 1 and st["others_kept"] == 2  # the large splat only
+    rest = out.take(np.arange(4, len(out)))
+    assert np.allclose(np.sort(rest.means[:, 0]), [0.3, 0.4])
+    with pytest.raises(ValueError, match="does not fit"):
+        provenance_rows({"agent_a": 0, "agent_b": 2}, kept, len(fused))
+    with pytest.raises(ValueError, match="no provenance"):
+        provenance_rows({"agent_a": 0}, {"agent_a": 3}, len(fused))
+    with pytest.raises(ValueError, match="no rows of robot"):
+        with_own_map(fused, first_row, kept, "agent_c", own, views["agent_a"])

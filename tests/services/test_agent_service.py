@@ -398,3 +398,22 @@ def test_data_roots_from_the_environment_and_the_command_line():
     env: dict = {}
     export_agent_env(build_parser().parse_args(["serve", "agent", "--data-roots", "/a,/b"]), env)
     assert settings_from_env(None, env=env).data_roots == ("/a", "/b")
+
+
+def test_a_parser_that_never_answers_is_unavailable_and_the_error_says_how_long_the_agent_waited(tmp_path):
+    """StartMission waits for the parser to become ready (``parser_timeout_s``); when it never does, the caller gets
+    UNAVAILABLE with the parser's address and the wait in the message, not a bare deadline."""
+    from gausslite_services.sim import free_port
+
+    nowhere = f"127.0.0.1:{free_port()}"  # nothing listens there
+    agent = serve_agent(ServerOptions(port=0), AgentSettings(agent_id="robot1", parser_address=nowhere,
+                                                             parser_timeout_s=0.5, config=load_config(None, TINY).agent))
+    try:
+        c = AgentClient(agent.address)
+        c.wait_ready(30)
+        with pytest.raises(grpc.RpcError) as ei:
+            c.start_mission("pick up the red cup")
+        assert _code(ei) == grpc.StatusCode.UNAVAILABLE
+        assert f"waited 0.5 s for the parser at {nowhere}" in ei.value.details()
+    finally:
+        agent.stop(0)

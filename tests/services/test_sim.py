@@ -33,7 +33,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
         assert 0 < a["n_shared"] < a["n_gaussians"]
         assert math.isclose(a["share_pct"], 100 * a["n_shared"] / a["n_gaussians"], rel_tol=1e-3)
         assert 0 < a["bytes_per_gaussian"] < 100
-    assert set(rep["fused"]) == {"concat", "vote", "for_robot", "refine", "team_map"}
+    assert set(rep["fused"]) == {"concat", "vote", "for_robot", "with_own", "refine", "team_map"}
     tm = rep["fused"]["team_map"]  # the served team map, once made from the final subsets and views
     assert tm["refine_record"]["train_views"] + tm["refine_record"]["heldout_views"] >= 1
     for a in rep["agents"]:
@@ -145,6 +145,20 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     assert "| agent_a | synth-pick-object |" in lead and "![team_map " in lead
     for a in rep["agents"]:
         assert f"{a['total_upload_bytes'] + a['view_bytes']:,}" in lead
+    # the maps a user can open: each robot's own, every fused one, the team map for each robot, with the command
+    sim = tmp_path / "sim"
+    assert set(rep["own_maps"]) == {"agent_a", "agent_b"}
+    for key in ("for_robot", "with_own"):
+        assert rep["fused"][key]["ply"] == {a: f"maps/{key}_{a}.ply" for a in ("agent_a", "agent_b")}
+    assert rep["fused"]["team_map"]["ply"] == {"agent_a": "maps/team_map.ply", "agent_b": "maps/team_map.ply"}
+    files = [*rep["own_maps"].values(), *(f for v in rep["fused"].values() for f in v["ply"].values())]
+    for f in files:
+        assert (sim / f).stat().st_size > 1000 and f"`gausslite view {f}`" in lead, f
+    # the team map made on board holds the robot's whole map: its own region is its own map's, whatever others sent
+    for a in rep["agents"]:
+        g = rep["fused"]["with_own"]["protocols"]["sensor"][a["task"]]
+        assert g["minus_own"] > -0.1, (a["task"], g["minus_own"])
+        assert rep["fused"]["with_own"]["kept"][a["id"]] > a["n_shared"]  # its own rows: more than it shared
     assert "| tracked | own |" in md and "| keyframes | vote |" in md and "| sensor | for_robot |" in md
     assert "| novel-tracked@own | team_map |" in md and "how well a robot could localise" in md
     assert md.index("| sensor | own |") < md.index("| keyframes | own |") < md.index("| novel | own |") \
