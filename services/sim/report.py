@@ -439,9 +439,9 @@ def _map_file_lines(report: dict) -> List[str]:
     for key, v in (report.get("fused") or {}).items():
         files = v.get("ply") or {}
         if key in PER_ROBOT:
-            rows += [(f"{key} for {a}", f) for a, f in files.items()]
+            rows += [(f"`{key}` for {a}", f) for a, f in files.items()]
         elif files:
-            rows.append((f"the {key} map", next(iter(files.values()))))
+            rows.append((f"`{key}`", next(iter(files.values()))))
     if not rows:
         return []
     return ["", "Open a map in the browser with `gausslite view FILE` (from this folder):", "",

@@ -19,7 +19,8 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/realtime.md", "realtime-protocols"), ("docs/mapper.md", "odometry"),
             ("docs/design.md", "pose-graph-solvers"), ("docs/mapper.md", "odometry-gains"),
             ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "map-budget"),
-            ("docs/mapper.md", "detail-live")}
+            ("docs/mapper.md", "detail-live"), ("docs/realtime.md", "pose-perturbation"),
+            ("docs/realtime.md", "compute-sweep"), ("docs/realtime.md", "compute-sweep-synthetic")}
 
 
 def page(name: str) -> str:
