@@ -17,3 +17,10 @@ def plane_frame(i: int, shift: float = 0.0, H: int = 40, W: int = 56) -> Frame:
     checker = ((np.floor(xw / 0.4) + np.floor(yw / 0.4)) % 2).astype(np.float32)
     rgb = np.stack([0.2 + 0.6 * checker, 0.5 + 0.3 * np.sin(xw * 4), 0.3 + 0.4 * (yw > 0)], -1)
     return Frame(i, i / 30.0, (rgb * 255).astype(np.uint8), np.full((H, W), 2.0, np.float32), c2w, intr)
+
+
+def plane_roi(H: int = 40, W: int = 56) -> np.ndarray:
+    """(H, W) bool task region of :func:`plane_frame`'s image: the box of rows 10-25 and columns 14-33."""
+    r = np.zeros((H, W), bool)
+    r[10:26, 14:34] = True
+    return r

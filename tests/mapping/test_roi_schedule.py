@@ -10,21 +10,20 @@ import pytest
 from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.schedule import RoiSchedule
-from tests._scenes import plane_frame
+from tests._scenes import plane_frame, plane_roi
 
 H, W = 40, 56
 
 
 def _roi() -> np.ndarray:
-    r = np.zeros((H, W), bool)
-    r[10:26, 14:34] = True
-    return r
+    return plane_roi(H, W)
 
 
 def _cfg(**kw) -> MapperConfig:
-    base = dict(seeding={"seeds_per_frame": 300}, iters_per_frame=30, warmup_iters=10, window=2, recent_prob=0.5,
-                backend="warp", mode="gausslite", budget_clock="work")
-    cfg = MapperConfig(**deep_merge(base, kw))
+    """The mapper on the work clock (deterministic budgets), a window of 2 keyframes."""
+    cfg = MapperConfig(**deep_merge(dict(seeding={"seeds_per_frame": 300}, iters_per_frame=30, warmup_iters=10,
+                                         window=2, recent_prob=0.5, backend="warp", mode="gausslite",
+                                         budget_clock="work"), kw))
     cfg.densify.enabled = False
     return cfg
 
