@@ -736,7 +736,7 @@ class Mapper:
             roi_phase = sw.roi and not warm and has_active
             view = self._pick_view(kf, roi_phase=roi_phase, owed=roi_phase and roi_draws < schedule.roi_min_iters)
             roi_draws += int(roi_phase)
-            active_phase = sw.roi and not warm and has_active and view.roi is not None
+            active_phase = roi_phase and view.roi is not None
             loss = self.step(view, active_phase, coarse=it < cfg.performance.coarse_iters)
             active_iters += int(active_phase and view.roi_box is not None)  # an empty ROI: a full-image iteration
             n_iters += 1

@@ -15,7 +15,6 @@ exported to the agent's environment variables (``GAUSSLITE_AGENT_ID``, ``GAUSSLI
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -155,11 +154,11 @@ def _report_only(args: argparse.Namespace) -> int:
     from gausslite_services.sim import attach_offline_report
 
     try:
-        attach_offline_report(args.out, args.offline_report)
+        report = attach_offline_report(args.out, args.offline_report)
     except (ValueError, OSError) as e:
         print(f"gausslite sim: error: {e}", file=sys.stderr)
         return 1
-    _print_answer(Path(args.out))
+    _print_answer(report)
     return 0
 
 
@@ -250,18 +249,18 @@ def _handle(args: argparse.Namespace) -> int:
     except (ValueError, KeyError, OSError, RuntimeError, TimeoutError) as e:
         print(f"gausslite sim: error: {e}", file=sys.stderr)
         return 1
-    _print_answer(res.out)
+    _print_answer(res.report)
     print(f"wrote {res.out / 'report.json'} and {res.out / 'report.md'} (every protocol and map, the pushes, the "
           f"renders) in {res.seconds:.0f} s")
     return 0
 
 
-def _print_answer(out: Path) -> None:
-    """Print the report's first screen (``answer_markdown``) from ``out/report.json``."""
+def _print_answer(report: dict) -> None:
+    """Print the first screen of a simulation's report (``answer_markdown``); ``report.md`` holds the rest."""
     # lazy: the command line starts without loading the services or gRPC
     from gausslite_services.sim.report import answer_markdown
 
-    print(answer_markdown(json.loads((out / "report.json").read_text())))
+    print(answer_markdown(report))
 
 
 def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach):
@@ -303,5 +302,5 @@ def _merge_context(args: argparse.Namespace) -> int:
         report["pushes_plot"] = "pushes.png"
     (out / "report.json").write_text(json.dumps(report, indent=2))
     write_markdown(report, out / "report.md")
-    print((out / "report.md").read_text())
+    _print_answer(report)
     return 0

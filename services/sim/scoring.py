@@ -180,8 +180,6 @@ def _fuse_maps(fusion, key: str, plans: List[AgentPlan], fz: dict):
     Returns:
         ``(gmaps, res)``: agent id → the fused ``GaussianMap`` its task is scored on, and the last fuse result.
     """
-    if key == "with_own":
-        return None, None  # made on the robots' side: :func:`_with_own_maps`
     if key == "team_map":
         res = _current_team_map(fusion)
         if res is None:
@@ -232,19 +230,19 @@ def _with_own_maps(out: Path, plans: List[AgentPlan], vote, eval_frames: Dict[st
     t0 = time.perf_counter()
     vote_map, res = vote
     fused = GaussianArrays.from_any(vote_map)
-    gmaps, kept = {}, {}
+    gmaps, own_rows = {}, {}
     for p in plans:
         ds, frames = eval_frames[p.name]
         poses = kf_poses.get(p.name, {})
-        roi_fn = task_roi(ds.annotations, p.task_id)
-        views = [RoiView.from_frame(dataclasses.replace(fr, c2w=np.asarray(poses[int(fr.frame_id)])), roi)
-                 for fr in frames if int(fr.frame_id) in poses for roi in [roi_fn(fr)] if roi.any()]
+        keyframes = [dataclasses.replace(fr, c2w=np.asarray(poses[int(fr.frame_id)]))
+                     for fr in frames if int(fr.frame_id) in poses]
+        views = RoiView.of_frames(keyframes, task_roi(ds.annotations, p.task_id))
         own_map = GaussianArrays.from_any(GaussianMap.load_ply(out / own[p.name]))
         g, st = with_own_map(fused, res.first_row, res.kept, p.name, own_map, views, backend=backend)
         gmaps[p.name] = g.to_gaussian_map()
-        kept[p.name] = st["kept"]
+        own_rows[p.name] = st["own"]
     n = max(len(g) for g in gmaps.values())
-    return gmaps, _LocalFuse(n, time.perf_counter() - t0, {a: k[a] for a, k in kept.items()})  # robot: its own rows
+    return gmaps, _LocalFuse(n, time.perf_counter() - t0, own_rows)  # kept: robot → its own rows
 
 
 def _current_team_map(fusion, timeout_s: float = 600.0):
@@ -337,15 +335,12 @@ def save_fused_maps(out: Path, key: str, gmaps: Dict[str, object]) -> Dict[str, 
     robot (``for_robot``, ``with_own``) ``<key>_<agent>.ply``. ``gmaps``: agent id → ``GaussianMap``. Returns agent
     id → the file's path relative to ``out``."""
     (out / "maps").mkdir(exist_ok=True)
-    files, written = {}, {}
-    per_robot = len({id(g) for g in gmaps.values()}) > 1 or key in PER_ROBOT
+    if key not in PER_ROBOT:  # one map every task is scored on
+        next(iter(gmaps.values())).save_ply(out / f"maps/{key}.ply")
+        return {agent: f"maps/{key}.ply" for agent in gmaps}
     for agent, gmap in gmaps.items():
-        rel = f"maps/{key}_{agent}.ply" if per_robot else f"maps/{key}.ply"
-        if id(gmap) not in written:
-            gmap.save_ply(out / rel)
-            written[id(gmap)] = rel
-        files[agent] = written[id(gmap)]
-    return files
+        gmap.save_ply(out / f"maps/{key}_{agent}.ply")
+    return {agent: f"maps/{key}_{agent}.ply" for agent in gmaps}
 
 
 def own_map_files(out: Path, agent_ids: List[str]) -> Dict[str, str]:

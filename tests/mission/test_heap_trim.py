@@ -12,15 +12,7 @@ from gausslite.mapping.mapper import FrameStats
 from gausslite.mission import AgentRuntime
 from gausslite.mission import runtime as runtime_mod
 from tests._scenes import plane_frame
-
-def _wait(pred, timeout_s: float = 60.0) -> bool:
-    stop = threading.Event()
-    for _ in range(int(timeout_s / 0.05)):
-        if pred():
-            return True
-        stop.wait(0.05)
-    return bool(pred())
-
+from tests._waits import wait_until
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
@@ -37,8 +29,7 @@ def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatc
             rt.submit(plane_frame(i, 0.1 * i, 24, 32))
         assert rt.wait_mapped(60)
         # each push sets the flag when it is done; the worker, awake at least every 0.5 s, takes it
-        assert _wait(lambda: trims), \
-            "the mapping thread never trimmed after a push (waited 60 s)"
+        assert wait_until(lambda: trims, 60), "the mapping thread never trimmed after a push (waited 60 s)"
     finally:
         rt.close()
     assert set(trims) == {"agent-t-map"}, trims

@@ -10,6 +10,7 @@ import numpy as np
 from gausslite.mission import AgentConfig
 from gausslite.mission.pusher import Pusher, Snapshot
 from gausslite.mission.share import Captured, ShareSession
+from tests._waits import wait_until
 
 
 class _DownLink:
@@ -21,15 +22,6 @@ class _DownLink:
     def open_session(self, *a, **k):
         self.calls += 1
         raise ConnectionError("link down")
-
-
-def _wait(pred, timeout_s=10.0):
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout_s:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def _pusher(fusion, **cfg):
@@ -49,7 +41,7 @@ def test_retries_with_backoff_while_the_link_is_down_and_a_newer_offer_replaces_
     p.start()
     try:
         v1 = p.offer(Captured(None, np.zeros(0, np.int64), 10), frames_mapped=5, final=False)
-        assert _wait(lambda: p.status()["push_failures"] >= 3)
+        assert wait_until(lambda: p.status()["push_failures"] >= 3, 10.0, poll_s=0.01)
         st = p.status()
         assert st["link_down_s"] > 0 and st["push_backlog"] == 1 and st["newest_map_version"] == v1 == 1
         assert st["pushes"] == 0 and st["last_pushed_version"] == 0
@@ -60,7 +52,7 @@ def test_retries_with_backoff_while_the_link_is_down_and_a_newer_offer_replaces_
         assert link.calls - n <= int(0.5 / 0.2) + 2, (link.calls - n, time.monotonic() - t0)
         v2 = p.offer(Captured(None, np.zeros(0, np.int64), 10), frames_mapped=9, final=False)
         assert v2 == 2
-        assert _wait(lambda: any(e.startswith("push v2") for e in errors))  # the newer one is tried, v1 dropped
+        assert wait_until(lambda: any(e.startswith("push v2") for e in errors), 10.0, poll_s=0.01)  # the newer one is tried, v1 dropped
         assert p.status()["push_backlog"] <= 2
     finally:
         p.close()

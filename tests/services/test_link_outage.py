@@ -21,6 +21,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentServicer
 from gausslite_services.fusion_server.client import FusionClient
+from tests._waits import wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
@@ -56,14 +57,6 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait(10)
 
 
-def _wait(cond, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
-
 
 def test_link_outage_mid_mission(tmp_path):
     scene = tmp_path / "scene"
@@ -79,7 +72,7 @@ def test_link_outage_mid_mission(tmp_path):
         for i in range(4):
             rt.submit(ds[i])
         assert rt.wait_mapped(60)
-        assert _wait(lambda: rt.status()["last_pushed_version"] >= 2, 60), rt.last_error
+        assert wait_until(lambda: rt.status()["last_pushed_version"] >= 2, 60), rt.last_error
         acked_before = rt.status()["last_pushed_version"]
 
         _stop(proc)  # the link drops
@@ -87,7 +80,7 @@ def test_link_outage_mid_mission(tmp_path):
         for i in range(4, len(ds)):  # the agent keeps mapping
             rt.submit(ds[i])
         assert rt.wait_mapped(120)
-        assert _wait(lambda: rt.pusher.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
+        assert wait_until(lambda: rt.pusher.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
         st = rt.status()
         assert st["frames_mapped"] == len(ds) == 12
         assert st["last_pushed_version"] == acked_before  # nothing acknowledged while the link is down
@@ -102,7 +95,7 @@ def test_link_outage_mid_mission(tmp_path):
         proc, port2 = _start_fusion(data, port_file, port)  # the link returns
         assert port2 == port
         # the held subset goes out without any new frame or Finish
-        assert _wait(lambda: rt.status()["last_pushed_version"] == 6, 60), rt.last_error
+        assert wait_until(lambda: rt.status()["last_pushed_version"] == 6, 60), rt.last_error
         st = rt.status()
         assert st["push_backlog"] == 0 and st["link_down_s"] == 0.0 and st["keyframes_backlog"] == 0
 
