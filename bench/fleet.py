@@ -176,6 +176,7 @@ class Replica:
     dsn: str
     work: Path
     port: int = 0
+    team_map: bool = False
     proc: Optional[subprocess.Popen] = None
     peak_rss_mb: List[float] = field(default_factory=list)  # per incarnation
     log: Optional[object] = None
@@ -190,7 +191,8 @@ class Replica:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "gausslite_services.fusion_server", "--host", "127.0.0.1", "--port", str(self.port),
              "--store", self.dsn, "--port-file", str(port_file), "--max-workers", "48", "--log-level", "WARNING",
-             "--data-dir", str(self.work / f"{self.name}-unused")],
+             "--data-dir", str(self.work / f"{self.name}-unused"),
+             "--set", f"fusion.team_map.enabled={str(self.team_map).lower()}"],
             cwd=str(REPO), env=env, stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s
         while not port_file.exists():
@@ -427,6 +429,10 @@ def parse_args(argv=None):
     p.add_argument("--db-start-cmd", default=None, help="shell command starting PostgreSQL again after the outage")
     p.add_argument("--interval", type=float, default=2.0, help="seconds between an agent's map versions")
     p.add_argument("--keyframe-every", type=int, default=2, help="a keyframe every k versions (0 = none)")
+    p.add_argument("--team-map", action="store_true",
+                   help="keep the replicas' team map refined while the fleet pushes (off: the bench measures ingest "
+                        "and Fuse; the team map's refinement would compete for the cores, and its vote shares the "
+                        "replica's incremental vote, so a Fuse after it finds nothing left to re-vote)")
     p.add_argument("--rooms", type=int, default=1, help="copies of the mapped room making up the site (1 = one room)")
     p.add_argument("--share", type=float, default=0.04, help="fraction of the site map in one agent's subset")
     p.add_argument("--drift", type=float, default=0.05, help="metres the ROI centre moves per version")
@@ -681,7 +687,7 @@ def _results(args, logs: List[AgentLog], reps: List[Replica], outage: Optional[D
         "source_gaussians": n_map, "site_gaussians": len(src), "rooms": args.rooms, "subset_gaussians": make.k,
         "source": (args.ply or f"synthetic scene, {args.map_frames} frames x {args.map_iters} iters")
                   + f", site of {args.rooms} room copies",
-        "chunks_per_call": args.chunks_per_call,
+        "chunks_per_call": args.chunks_per_call, "team_map": bool(args.team_map),
         "interval_s": args.interval, "chunk_gaussians": args.chunk_gaussians,
         "machine": f"{os.cpu_count()} CPUs, shared with other jobs (load average "
                    f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the end)",
@@ -746,7 +752,7 @@ def main(argv=None) -> int:
     dsn = args.store + ("&" if "?" in args.store else "?") + f"options=-csearch_path%3D{schema}"
     outage = DbOutage(args.store, args.db_stop_cmd, args.db_start_cmd) if args.db_outage > 0 else None
     rep_dsn = outage.dsn(dsn) if outage is not None else dsn
-    reps = [Replica(f"replica{r}", rep_dsn, work) for r in range(args.replicas)]
+    reps = [Replica(f"replica{r}", rep_dsn, work, team_map=args.team_map) for r in range(args.replicas)]
     logs = [AgentLog() for _ in range(args.agents)]
     res: dict = {}
     try:
