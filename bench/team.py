@@ -75,11 +75,18 @@ TEAMS = {
     "synthetic": {"scene": "synthetic_circle", "overlap": False,
                   "agents": [{"id": "agent_a", "task": "synth-pick-object", "dir": "agent_a"},
                              {"id": "agent_b", "task": "synth-find-chair", "dir": "agent_b"}]},
+    "tum_three": {"scene": "tum_fr1_rpy", "overlap": False,
+                  "agents": [{"id": "agent_a", "task": "tum-pick-cup"}, {"id": "agent_b", "task": "tum-find-mouse"},
+                             {"id": "agent_c", "task": "tum-reach-keyboard"}]},
     "tum_halves": {"scene": "tum_fr1_rpy", "overlap": True,
                    "agents": [{"id": "agent_a", "task": "tum-find-mouse", "frames": [0, 75]},
                               {"id": "agent_b", "task": "tum-reach-keyboard", "frames": [75, 150]}]},
 }
 FUSED_KEYS = ("concat", "vote", "vote_r1", "refine", "refine_long")
+#: the team map as each robot loads it: ``for_robot`` made on the server from the robot's subset
+#: (:func:`gausslite.fusion.guard.for_robot`), ``with_own`` made on the robot from its own whole map
+#: (:func:`gausslite.fusion.guard.with_own_map`); both cull the others' rows that draw the robot's ROI in its views
+PER_ROBOT = ("for_robot", "with_own")
 #: the fused maps' scores through each robot's own camera model: every frame at the sensor's pose with the robot's
 #: refined correction, motion blur, rolling shutter and exposure response, the rule its own map's ``sensor`` score
 #: follows (:meth:`gausslite.mapping.mapper.Mapper.seen_by_this_camera`); the fused ``sensor`` figures render the
@@ -185,7 +192,8 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
                 "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
-                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel, "_predicted": predicted,
+                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
+                "_own_map": GaussianArrays.from_any(rt.mapper.gmap), "_predicted": predicted,
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
@@ -228,17 +236,20 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
             out[key]["refine_record"] = records[key].as_dict() if kfs else None
         _put_protocols(out[key], {a["task"]: _by_protocol(g, a, protocols, track_iters, track_stride)
                                   for a in agents})
-    # the team map as each robot uses it (Fuse(for_agent=...)): each task scored on the map made for its robot
-    out["for_robot"] = {"n": {}}
-    robot = {}
-    for a in agents:
-        if a["id"] not in final:
-            continue
-        m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], final[a["id"]],
-                         [k for k in a["_keyframes"] if k.roi is not None])
-        out["for_robot"]["n"][a["id"]] = len(m)
-        robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
-    _put_protocols(out["for_robot"], robot)
+    # the team map as each robot loads it: each task scored on the map made for its robot, from its shared subset
+    # on the server (Fuse(for_agent=...)) and from its own whole map on board (with_own_map)
+    for key in PER_ROBOT:
+        out[key] = {"n": {}}
+        robot = {}
+        for a in agents:
+            if a["id"] not in final:
+                continue
+            base = final[a["id"]] if key == "for_robot" else a["_own_map"]
+            m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], base,
+                             [k for k in a["_keyframes"] if k.roi is not None])
+            out[key]["n"][a["id"]] = len(m)
+            robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
+        _put_protocols(out[key], robot)
     out["vote_report"] = report.to_dict()
     out["cover"] = team_cover(agents, final, vote, report)
     return out
@@ -348,13 +359,13 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
     for a in agents:
         for k in [k for k in a if k.startswith("_")]:
             a.pop(k)
-        for key in (*FUSED_KEYS, "for_robot"):
+        for key in (*FUSED_KEYS, *PER_ROBOT):
             a[f"{key}_roi_psnr"] = fused[key]["roi_psnr"].get(a["task"])
         a["cover"] = fused["cover"].get(a["id"])
         own = a.pop("own_protocols")
         if ROBOT_CAMERA in fused["vote"]["protocols"]:
             own[ROBOT_CAMERA] = own["sensor"]  # the own map is scored through its camera model already
-        keys = (*FUSED_KEYS, "for_robot")
+        keys = (*FUSED_KEYS, *PER_ROBOT)
         a["own_per_frame"] = own["sensor"]["roi_psnr_per_frame"]
         a.update({f"{key}_per_frame": fused[key]["protocols_per_frame"].get("sensor", {}).get(a["task"])
                   for key in keys})
@@ -365,7 +376,7 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
                               **{f"{key}_per_frame": fused[key]["protocols_per_frame"].get(q, {}).get(a["task"])
                                  for key in keys}}
                           for q, v in own.items()}
-    for key in (*FUSED_KEYS, "for_robot"):
+    for key in (*FUSED_KEYS, *PER_ROBOT):
         fused[key].pop("protocols_per_frame", None)  # in the agents' rows
     return {"team": team, "budget": budget, "run": run, "agents": agents, "fused": fused}
 
@@ -385,13 +396,13 @@ def summarise(runs: list[dict]) -> dict:
             row = {"task": per[0]["task"]}
             for k in ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "concat_roi_psnr",
                       "vote_roi_psnr", "vote_r1_roi_psnr", "refine_roi_psnr", "refine_long_roi_psnr", "for_robot_roi_psnr",
-                      "keyframes",
+                      "with_own_roi_psnr", "keyframes",
                       "iters_per_keyframe", "pushes", "n_gaussians"):
                 v = [a[k] for a in per if a.get(k) is not None]
                 row[k] = float(np.mean(v)) if v else None
                 row[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
             for k in ("vote_minus_own", "refine_minus_own", "vote_minus_concat", "refine_long_minus_own",
-                      "for_robot_minus_own"):
+                      "for_robot_minus_own", "with_own_minus_own"):
                 row.update(gain_over_runs(per, *k.rsplit("_minus_", 1), name=k))
             row["protocols"] = _summarise_protocols(per)
             blk["agents"][aid] = row
@@ -405,6 +416,8 @@ def summarise(runs: list[dict]) -> dict:
             "vote_ge_concat": all(a["vote_minus_concat"] is not None and a["vote_minus_concat"] >= 0 for a in ag),
             "for_robot_ge_own_minus_0.5": all(a.get("for_robot_minus_own") is not None and a["for_robot_minus_own"] >= -0.5
                                               for a in ag),
+            "with_own_ge_own_minus_0.1": all(a.get("with_own_minus_own") is not None
+                                             and a["with_own_minus_own"] >= -0.1 for a in ag),
         }
         if blk["overlap"]:
             blk["goals"]["vote_ge_own"] = all(a["vote_minus_own"] is not None and a["vote_minus_own"] >= 0 for a in ag)
@@ -438,11 +451,11 @@ def _summarise_protocols(per: list[dict]) -> dict:
     for q in names:
         rows = [a["protocols"][q] for a in per if q in a.get("protocols", {})]
         blk = {"runs": len(rows)}
-        for k in ("own_roi_psnr", *(f"{key}_roi_psnr" for key in (*FUSED_KEYS, "for_robot"))):
+        for k in ("own_roi_psnr", *(f"{key}_roi_psnr" for key in (*FUSED_KEYS, *PER_ROBOT))):
             v = [r[k] for r in rows if r.get(k) is not None]
             blk[k] = float(np.mean(v)) if v else None
             blk[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
-        for key in ("vote", "refine", "for_robot"):
+        for key in ("vote", "refine", *PER_ROBOT):
             blk.update(gain_over_runs(rows, key, "own"))
         out[q] = blk
     return out
@@ -453,8 +466,9 @@ def protocol_table(result: dict) -> str:
     the gains fused − own paired per frame over runs × frames [95 % interval]; docs/realtime.md#scoring-protocols:
     ``novel`` the maps at the pose the robot would use on views no map trained on, ``tracked`` / ``novel-tracked``
     at a pose fitted to each map, how well a robot could localise against it)."""
-    lines = ["| team | agent, task | protocol | own ROI PSNR | concat | vote | refine | for robot | vote − own | "
-             "refine − own | for robot − own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| team | agent, task | protocol | own ROI PSNR | concat | vote | refine | for robot | with own | "
+             "vote − own | refine − own | for robot − own | with own − own |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for team, blk in result["teams"].items():
         for aid, a in blk["agents"].items():
             for q, v in (a.get("protocols") or {}).items():
@@ -463,8 +477,9 @@ def protocol_table(result: dict) -> str:
                     f"{_pm(v['concat_roi_psnr'], v['concat_roi_psnr_std'])} | {_pm(v['vote_roi_psnr'], v['vote_roi_psnr_std'])} | "
                     f"{_pm(v['refine_roi_psnr'], v['refine_roi_psnr_std'])} | "
                     f"{_pm(v['for_robot_roi_psnr'], v['for_robot_roi_psnr_std'])} | "
+                    f"{_pm(v.get('with_own_roi_psnr'), v.get('with_own_roi_psnr_std', 0.0))} | "
                     f"{_gain_pm(v, 'vote_minus_own')} | {_gain_pm(v, 'refine_minus_own')} | "
-                    f"{_gain_pm(v, 'for_robot_minus_own')} |")
+                    f"{_gain_pm(v, 'for_robot_minus_own')} | {_gain_pm(v, 'with_own_minus_own')} |")
     return "\n".join(lines)
 
 
@@ -495,9 +510,9 @@ def table(result: dict) -> str:
              f"radius {f['contest_radius']}; vote r1: radius 1; refine: vote + {f['refine_iters']} iterations; "
              f"refine {LONG_REFINE_ITERS}: vote + {LONG_REFINE_ITERS} iterations.", "",
              "| team | agent, task | share % | upload / final | B / Gaussian | own ROI PSNR | concat | vote | vote r1 | "
-             f"refine | refine {LONG_REFINE_ITERS} | for robot | vote − concat | vote − own | refine − own | "
-             "for robot − own |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             f"refine | refine {LONG_REFINE_ITERS} | for robot | with own | vote − concat | vote − own | "
+             "refine − own | for robot − own | with own − own |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for team, blk in result["teams"].items():
         for aid, a in blk["agents"].items():
             lines.append(
@@ -508,8 +523,10 @@ def table(result: dict) -> str:
                 f"{_pm(a['refine_roi_psnr'], a['refine_roi_psnr_std'])} | "
                 f"{_pm(a['refine_long_roi_psnr'], a['refine_long_roi_psnr_std'])} | "
                 f"{_pm(a.get('for_robot_roi_psnr'), a.get('for_robot_roi_psnr_std', 0.0))} | "
+                f"{_pm(a.get('with_own_roi_psnr'), a.get('with_own_roi_psnr_std', 0.0))} | "
                 f"{_gain_pm(a, 'vote_minus_concat')} | {_gain_pm(a, 'vote_minus_own')} | "
-                f"{_gain_pm(a, 'refine_minus_own')} | {_gain_pm(a, 'for_robot_minus_own')} |")
+                f"{_gain_pm(a, 'refine_minus_own')} | {_gain_pm(a, 'for_robot_minus_own')} | "
+                f"{_gain_pm(a, 'with_own_minus_own')} |")
     goals = list(dict.fromkeys(k for blk in result["teams"].values() for k in blk["goals"]))
     lines += ["", "| team | " + " | ".join(goals) + " |", "|---|" + "---|" * len(goals)]
     for team, blk in result["teams"].items():
@@ -549,7 +566,7 @@ def plot_team(runs: list[dict], team: str, path: Path) -> None:
 
 #: the figures of the share curve, per agent (``summarise``'s names; each with its ``_std``)
 CURVE_KEYS = ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "vote_minus_own",
-              "for_robot_minus_own", "refine_minus_own")
+              "for_robot_minus_own", "with_own_minus_own", "refine_minus_own")
 
 
 def share_bound(result: dict) -> Optional[float]:
@@ -590,14 +607,14 @@ def curve_table(curve: dict) -> str:
     """Markdown table of :func:`share_curve`: per team, agent and bound the share, upload ratio, bytes per Gaussian
     and the fused ROI PSNR − the robot's own map (vote, team map for the robot, vote + refine)."""
     lines = ["| team | agent, task | bound | shared % | upload / final | B / Gaussian | own ROI PSNR | vote − own | "
-             "for robot − own | refine − own |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "for robot − own | with own − own | refine − own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for team, agents in curve.items():
         for aid, e in agents.items():
             for q in e["points"]:
                 lines.append(f"| {team} | {aid}, {e['task']} | {100 * q['bound']:g} % | {_f(q['share_pct'], 1)} | "
                              f"{_f(q['upload_ratio'])} | {_f(q['bytes_per_gaussian'], 1)} | {_f(q['own_roi_psnr'])} | "
                              f"{_gain_pm(q, 'vote_minus_own')} | {_gain_pm(q, 'for_robot_minus_own')} | "
-                             f"{_gain_pm(q, 'refine_minus_own')} |")
+                             f"{_gain_pm(q, 'with_own_minus_own')} | {_gain_pm(q, 'refine_minus_own')} |")
     return "\n".join(lines)
 
 

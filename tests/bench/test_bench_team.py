@@ -55,8 +55,9 @@ def test_recording_fusion_keeps_the_newest_keyframes_within_the_servers_bound():
 
 def test_teams_and_the_overlapping_view_team():
     for name, team in TEAMS.items():
-        assert len(team["agents"]) == 2 and len({a["id"] for a in team["agents"]}) == 2, name
-        assert len({a["task"] for a in team["agents"]}) == 2, name
+        n = 3 if name == "tum_three" else 2
+        assert len(team["agents"]) == n and len({a["id"] for a in team["agents"]}) == n, name
+        assert len({a["task"] for a in team["agents"]}) == n, name
     halves = TEAMS["tum_halves"]
     assert halves["overlap"] and not TEAMS["tum"]["overlap"] and not TEAMS["synthetic"]["overlap"]
     (a0, a1), (b0, b1) = (a["frames"] for a in halves["agents"])
@@ -74,11 +75,12 @@ def test_teams_and_the_overlapping_view_team():
     assert shared
 
 
-def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.2, -0.2)):
+def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.2, -0.2), with_own=(0.0, -0.05)):
     agents = [{"id": f"agent_{c}", "task": f"t{c}", "share_pct": share, "upload_ratio": upload,
                "bytes_per_gaussian": 12.0, "own_roi_psnr": own[i], "concat_roi_psnr": concat[i],
                "vote_roi_psnr": vote[i], "vote_r1_roi_psnr": vote[i] - 1, "refine_roi_psnr": refine[i],
-               "refine_long_roi_psnr": refine[i] + 0.5, "for_robot_roi_psnr": own[i] + robot[i], "keyframes": 20, "iters_per_keyframe": 20.0,
+               "refine_long_roi_psnr": refine[i] + 0.5, "for_robot_roi_psnr": own[i] + robot[i],
+               "with_own_roi_psnr": own[i] + with_own[i], "keyframes": 20, "iters_per_keyframe": 20.0,
                "pushes": 2, "n_gaussians": 6000} for i, c in enumerate("ab")]
     return {"team": team, "run": run, "agents": agents}
 
@@ -86,14 +88,16 @@ def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.
 def test_summary_checks_the_goals_per_team():
     runs = [_run("tum_halves", r, own=(20, 22), concat=(19, 21), vote=(20.5, 22.5), refine=(21, 23)) for r in range(3)]
     runs += [_run("tum", r, own=(20, 22), concat=(19, 21), vote=(18, 21.5), refine=(21, 21.9), share=30.0,
-                  robot=(0.3, -1.0)) for r in range(3)]
+                  robot=(0.3, -1.0), with_own=(0.0, -0.3)) for r in range(3)]
     s = summarise(runs)
     h, t = s["tum_halves"], s["tum"]
     assert h["goals"] == {"share_le_25pct": True, "upload_le_1.5x": True, "refine_ge_own": True,
                           "refine_long_ge_own": True, "vote_ge_concat": True, "vote_ge_own": True,
-                          "for_robot_ge_own_minus_0.5": True}
+                          "for_robot_ge_own_minus_0.5": True, "with_own_ge_own_minus_0.1": True}
     assert h["agents"]["agent_b"]["for_robot_minus_own"] == pytest.approx(-0.2)
     assert t["goals"]["for_robot_ge_own_minus_0.5"] is False  # agent_b: 1 dB below its own map
+    assert t["goals"]["with_own_ge_own_minus_0.1"] is False  # agent_b: 0.3 dB below
+    assert h["agents"]["agent_b"]["with_own_minus_own"] == pytest.approx(-0.05)
     assert h["agents"]["agent_a"]["vote_minus_own"] == pytest.approx(0.5)
     assert t["goals"]["share_le_25pct"] is False and t["goals"]["vote_ge_concat"] is False
     assert t["goals"]["refine_ge_own"] is False and "vote_ge_own" not in t["goals"]
@@ -134,10 +138,10 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         g = GaussianArrays.from_any(m.gmap)
         kfs = [keyframe_from_frame(fr, "cpu", roi) for fr in frames[lo:lo + 3:2]]  # 2 uploaded keyframes
         agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
-                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6]})
+                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6], "_own_map": g})
     fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
     out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4)
-    for key in (*team.FUSED_KEYS, "for_robot"):
+    for key in (*team.FUSED_KEYS, *team.PER_ROBOT):
         p = out[key]["protocols"]
         assert set(p) == {"sensor", "keyframes", "novel", "tracked", "novel-tracked", team.ROBOT_CAMERA}, key
         for a in agents:
@@ -150,6 +154,10 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
             # these robots model no exposure, blur or pose correction: their camera renders the bare sensor pose
             assert p[team.ROBOT_CAMERA][a["task"]] == pytest.approx(p["sensor"][a["task"]], abs=1e-3)
             assert p["keyframes"][a["task"]] is not None and p["tracked"][a["task"]] is not None
+    # the map made on board holds the robot's whole own map, the server's its shared subset
+    for a in agents:
+        assert out["with_own"]["n"][a["id"]] >= len(a["_own_map"])
+        assert out["for_robot"]["n"][a["id"]] >= len(a["_history"][-1][1])
     # what draws each robot's ROI in the vote map: every robot diagnosed, the weights add up to the ROI
     for a in agents:
         c = out["cover"][a["id"]]
