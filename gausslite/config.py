@@ -35,13 +35,23 @@ DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "deploy" / "gausslit
 class SimScene(BaseModel):
     """The synthetic default scene of ``gausslite sim`` without ``--dataset`` (:func:`gausslite.synthetic.make_scene`).
 
-    Attributes: seed; width, height (pixels); frames (per robot)."""
+    Attributes:
+        seed: scene and trajectory seed.
+        width, height: image size (pixels).
+        frames: frames rendered along each robot's arc.
+        novel_every: on this scene the robots' replays withhold every this many frames from their mappers, scored
+            under ``novel`` (the scene's own ``agent.scoring.novel_every``; a value given for
+            ``agent.scoring.novel_every`` wins). 31 frames with every second withheld: each robot maps 16 frames, the
+            arc's 16 evenly spaced poses, and 15 views between them score every map on views no map trained on, so
+            the answer's interval is narrow enough to read (docs/sharing.md#what-to-read-in-a-report).
+    """
 
     model_config = ConfigDict(extra="forbid")
     seed: int = 0
     width: int = Field(320, ge=16)
     height: int = Field(240, ge=12)
-    frames: int = Field(16, ge=2)
+    frames: int = Field(31, ge=2)
+    novel_every: int = Field(2, ge=2)
 
 
 class SimFuse(BaseModel):

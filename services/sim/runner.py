@@ -77,6 +77,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     typed = load_config(config, overrides)  # a typo fails here, before any process starts
+    if dataset is None and "novel_every" not in typed.agent.scoring.model_fields_set:  # the default scene's views
+        overrides = [*overrides, f"agent.scoring.novel_every={typed.sim.scene.novel_every}"]
+        typed = load_config(config, overrides)
     cfg = typed.to_yaml_dict()  # the effective tree, which the report records
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from gausslite.config import load_config
+
 from tests._ci import missing
 import yaml
 
@@ -95,6 +97,14 @@ def test_compose_schema(compose):
     args = build_parser().parse_args(cmd[1:])
     assert args.command == "sim" and {kv.split("=")[0] for kv in args.attach.split(",")} == \
         {"parser", "fusion_server", "agent_a", "agent_b"}
+    # the compose team maps and scores the sim's default scene as `gausslite sim` does: its frames, and the same
+    # frames withheld from both mappers and scored as novel (a mismatch would score frames a robot mapped)
+    scene = load_config().sim.scene
+    sc = services["scene"]["command"]
+    assert sc[1] == "make-scene" and int(sc[sc.index("--frames") + 1]) == scene.frames
+    held = f"agent.scoring.novel_every={scene.novel_every}"
+    assert all(_env(services[n])["GAUSSLITE_AGENT_SET"] == held for n in ("agent_a", "agent_b"))
+    assert args.overrides == [held]
     df = (DEPLOY / "Dockerfile").read_text()
     assert "FROM python:3.11-slim" in df
     assert "torch==2.13.0" in df and "download.pytorch.org/whl/cpu" in df
