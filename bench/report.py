@@ -276,8 +276,8 @@ def sim_seeds_row(scene: str, command: str, first: bool, agent: str, a: dict) ->
 
 
 def sim_seeds_table(result: dict) -> str:
-    """docs/results.md's table of the default sims over seeds: per scene and agent the share, bytes, upload, the own
-    map and the fused maps, mean ± std over seeds with the per-seed values in brackets."""
+    """The table of the two-agent sims over seeds (``bench.sim_seeds``): per scene and agent the share, bytes, upload,
+    the own map and the fused maps, mean ± std over seeds with the per-seed values in brackets."""
     head = ["sim (command)", "agent, task", "share of map", "B / shared Gaussian", "total upload / final subset",
             "own map ROI PSNR (`context`)", "fused ROI PSNR concat → vote → refine", "vote − own", "refine − own",
             "vote − concat", "refine − concat"]
@@ -440,6 +440,424 @@ def compute_sweep_table(r: dict) -> str:
     return table(r) + "\n"
 
 
+# ---------------------------------------------------------------- the summary page (docs/results.md)
+
+#: the cumulative rows of ``gausslite ablate`` (the paper's Table 3), in order
+ABLATION_ROWS = ("none", "+SB", "+MVO", "+ROI", "+SIS", "+GFD")
+#: the readout time the hand-held profile models (``sensor.rolling_shutter_s``), seconds
+DEFAULT_READOUT_S = 0.02
+
+
+def _ablation_rows(rows: list) -> Dict[str, dict]:
+    """An ablation result (a list of rows) by row name."""
+    if not isinstance(rows, list):
+        raise ReportError("an ablation result is a list of rows")
+    return {r["row"]: r for r in rows}
+
+
+def ablation_cells(rows: list) -> str:
+    """One scene's cells of the cumulative ablation (``gausslite ablate``, one seed): per row of
+    :data:`ABLATION_ROWS` ``ROI PSNR / PSNR / s per frame`` (full GaussLite's ROI PSNR bold), then full GaussLite −
+    uniform in ROI PSNR (dB).
+
+    Raises:
+        ReportError: a row of :data:`ABLATION_ROWS` is missing.
+    """
+    by = _ablation_rows(rows)
+    missing = [n for n in ABLATION_ROWS if n not in by]
+    if missing:
+        raise ReportError(f"the ablation has no rows {missing}")
+    cells = [f"{bold(num(by[n]['roi_psnr']), n == '+GFD')} / {num(by[n]['psnr'])} / "
+             f"{num(by[n]['seconds_per_frame'], 1)}" for n in ABLATION_ROWS]
+    return " | ".join(cells + [signed(by["+GFD"]["roi_psnr"] - by["none"]["roi_psnr"])])
+
+
+def ablation_seeds_cells(rows: list) -> str:
+    """The cells of a multi-seed ablation of uniform (``none``) against full GaussLite (``+GFD``): each mode's ROI
+    PSNR mean ± std over seeds (its PSNR in brackets; ``–`` for a row the run lacks), then the ROI gain paired by
+    seed (mean ± std, bold when it exceeds twice its std, :func:`gausslite.stats.gain`) and the seeds.
+
+    Raises:
+        ReportError: the result has no ``+GFD`` row.
+    """
+    from gausslite.stats import gain  # lazy: the page's other regions need none of it
+
+    by = _ablation_rows(rows)
+    if "+GFD" not in by:
+        raise ReportError("the ablation has no +GFD row")
+    full, base = by["+GFD"], by.get("none")
+
+    def cell(r: Optional[dict]) -> str:
+        return "–" if r is None else f"{pm(r['roi_psnr'], r.get('roi_psnr_std'))} ({num(r['psnr'])})"
+
+    g = None
+    if base is not None and base.get("by_seed", {}).keys() == full.get("by_seed", {}).keys():
+        ks = sorted(full["by_seed"])
+        g = gain([full["by_seed"][k]["roi_psnr"] for k in ks], [base["by_seed"][k]["roi_psnr"] for k in ks])
+    gtxt = "–" if g is None or g["gain"] is None else bold(pm(g["gain"], g["gain_std"], sign=True), g["significant"])
+    return f"{cell(base)} | {cell(full)} | {gtxt} | {len(full.get('seeds') or [])}"
+
+
+def long_mission_cells(r: dict, scene: str) -> str:
+    """``bench.long_mission``'s cells for ``scene``: per mode (uniform, then GaussLite; ``–`` for a mode not run) PSNR
+    and ROI PSNR, mean ± std over seeds, and the first − last fifth of the sequence; then the ROI gain paired by seed
+    (mean ± std, bold when significant).
+
+    Raises:
+        ReportError: the result has no such scene.
+    """
+    try:
+        sc = r["scenes"][scene]
+    except KeyError as e:
+        raise ReportError(f"the long-mission result has no scene {scene!r}") from e
+
+    def cell(mode: str) -> str:
+        b = sc.get(mode)
+        if not b or b.get("psnr") is None:
+            return "–"
+        ret = "–" if b.get("retention_db") is None else signed(b["retention_db"])
+        return (f"{pm(b['psnr'], b.get('psnr_std'))} (ROI {pm(b['roi_psnr'], b.get('roi_psnr_std'))}), "
+                f"first − last {ret}")
+
+    g = sc.get("roi_gain")
+    if not g or g.get("gain") is None:
+        gtxt = "–"
+    else:
+        gtxt = bold(pm(g["gain"], g.get("gain_std"), sign=True), g["significant"])
+        gtxt += "" if g["significant"] else " (not significant)"
+    return f"{cell('uniform')} | {cell('gausslite')} | {gtxt}"
+
+
+def roi_ceiling_text(r: dict) -> str:
+    """``bench.roi_ceiling``: the uniform map's ROI PSNR, after the full-image pass, and after each ROI-only
+    fine-tune (the first task)."""
+    task = next(iter(r["before"]["roi_psnr"]))
+    only = r["roi_only"][task]
+    return (f"uniform map {num(r['before']['roi_psnr'][task])} dB; {r['full_pass']['iters']} more full-image "
+            f"iterations {num(r['full_pass']['roi_psnr'][task])}; ROI-only "
+            f"{' / '.join(num(x['roi_psnr']) for x in only)} after {' / '.join(str(x['iters']) for x in only)} "
+            f"iterations")
+
+
+#: bench.mapper's scenes by their names on the page
+MAPPER_SCENES = {"room0": "Replica room0, 20 frames, 300×170, 5 tasks",
+                 "synthetic": "synthetic, 30 frames, 160×120, 6 tasks"}
+
+
+def mapper_speed_table(r: dict) -> str:
+    """``bench.mapper``: per scene and setting the seconds per keyframe, ROI PSNR and PSNR (mean ± std over seeds) and
+    the Gaussians, then the paired speed-up and ROI PSNR loss of ``fast`` against ``baseline``."""
+    lines = ["| scene | setting | s / keyframe | ROI PSNR (dB) | PSNR (dB) | Gaussians |", "|---|---|---|---|---|---|"]
+    for scene, blk in r["scenes"].items():
+        for i, st in enumerate(s for s in r["settings"] if blk.get(s)):
+            b = blk[st]
+            lines.append(f"| {MAPPER_SCENES.get(scene, scene) if i == 0 else ''} | `{st}` | "
+                         f"{pm(b['s_per_keyframe'], b.get('s_per_keyframe_std'))} | "
+                         f"{pm(b['roi_psnr'], b.get('roi_psnr_std'))} | {pm(b['psnr'], b.get('psnr_std'))} | "
+                         f"{b['n_gaussians'] / 1e3:.1f}k |")
+        if blk.get("speedup") is not None:
+            lines.append(f"| | **fast / baseline** | **{pm(blk['speedup'], blk.get('speedup_std'))}× faster** | "
+                         f"loss {pm(blk['roi_psnr_loss'], blk.get('roi_psnr_loss_std'))} | | |")
+    return "\n".join(lines)
+
+
+def _tracking_row(r: dict, source: str, mode: str, variant: str) -> dict:
+    for row in r["summary"]:
+        if (row["source"], row["mode"], row["variant"]) == (source, mode, variant):
+            return row
+    raise ReportError(f"the map-tracking result has no row {source}/{mode}/{variant}")
+
+
+def map_tracking_text(r: dict) -> str:
+    """``bench.map_tracking`` at the odometry's poses, 40 placement steps against none, per mode: the keyframes' ATE
+    after mapping (cm), the mapping iterations per keyframe when the result records them, and the ROI PSNR and PSNR
+    differences paired by seed (mean ± std, dB)."""
+    parts = []
+    for mode, label in (("uniform", "uniform"), ("gausslite", "GaussLite")):
+        off, on = _tracking_row(r, "odometry", mode, "off"), _tracking_row(r, "odometry", mode, "track40")
+        its = (f", {num(off['map_iters_mean'], 1)} → {num(on['map_iters_mean'], 1)} iterations per keyframe"
+               if off.get("map_iters_mean") is not None and on.get("map_iters_mean") is not None else "")
+        psnr = ("" if on.get("psnr_minus_off") is None
+                else f", PSNR {pm(on['psnr_minus_off'], on.get('psnr_minus_off_std'), sign=True)}")
+        roi = pm(on["roi_psnr_minus_off"], on.get("roi_psnr_minus_off_std"), sign=True)
+        parts.append(f"{label}: keyframe ATE {num(off['ate_final_cm'])} → {num(on['ate_final_cm'])} cm{its}, "
+                     f"ROI PSNR {roi} dB{psnr}")
+    return "; ".join(parts)
+
+
+def rolling_shutter_text(r: dict) -> str:
+    """``bench.rolling_shutter``: the mean warp-PSNR gain over a global shutter at the deployed readout
+    (:data:`DEFAULT_READOUT_S`, rows read top first, no clock offset), its spread over frame pairs and the share of
+    pairs it improves, and the best readout's gain.
+
+    Raises:
+        ReportError: the sweep lacks the deployed readout.
+    """
+    rows = {x["readout_s"]: x for x in r["rows"] if x["offset_s"] == 0 and x["rows"] == "top first"}
+    if DEFAULT_READOUT_S not in rows:
+        raise ReportError(f"the rolling-shutter sweep has no {DEFAULT_READOUT_S} s readout")
+    d, best = rows[DEFAULT_READOUT_S], rows[r["best_readout_s"]]
+    return (f"against a global shutter (warp PSNR {num(r['base_warp_psnr'])} dB): {signed(d['gain'])} ± "
+            f"{num(d['gain_std'])} dB at a {1e3 * DEFAULT_READOUT_S:.0f} ms readout ({100 * d['improved']:.0f} % of "
+            f"{len(r['pairs'])} frame pairs better); the best, {1e3 * r['best_readout_s']:.0f} ms, "
+            f"{signed(best['gain'])}")
+
+
+def team_live_table(r: dict) -> str:
+    """``bench.team``: per team and robot the share of its map, the total upload over its final subset, its own map's
+    ROI PSNR and the fused maps' differences from it (the team vote, the vote refined, the team map for the robot),
+    mean ± std over runs."""
+    its = r["settings"]["fuse"]["refine_iters"]
+    lines = [f"| team | robot, task | share % | upload / final subset | own ROI PSNR (dB) | vote − own | "
+             f"refine {its} − own | for robot − own |", "|---|---|---|---|---|---|---|---|"]
+    for team, blk in r["teams"].items():
+        for i, (aid, a) in enumerate(blk["agents"].items()):
+            diff = lambda k: pm(a[k], a.get(f"{k}_std"), sign=True) if a.get(k) is not None else "–"  # noqa: E731
+            lines.append(f"| {f'`{team}`' if i == 0 else ''} | {aid}, {a['task']} | {num(a['share_pct'], 1)} | "
+                         f"{pm(a['upload_ratio'], a.get('upload_ratio_std'))} | "
+                         f"{pm(a['own_roi_psnr'], a.get('own_roi_psnr_std'))} | {diff('vote_minus_own')} | "
+                         f"{diff('refine_minus_own')} | {diff('for_robot_minus_own')} |")
+    return "\n".join(lines)
+
+
+def team_agents_text(r: dict, team: str) -> str:
+    """One team of ``bench.team`` in a sentence: per robot its task, share, upload ratio and the fused maps' differences
+    from its own map (mean ± std over runs)."""
+    try:
+        agents = r["teams"][team]["agents"]
+    except KeyError as e:
+        raise ReportError(f"the team result has no team {team!r}") from e
+    its = r["settings"]["fuse"]["refine_iters"]
+    return "; ".join(
+        f"{a['task']}: shares {num(a['share_pct'], 1)} %, uploads {num(a['upload_ratio'])}× its final subset, "
+        f"vote − own {pm(a['vote_minus_own'], a.get('vote_minus_own_std'), sign=True)}, refine {its} − own "
+        f"{pm(a['refine_minus_own'], a.get('refine_minus_own_std'), sign=True)}, for robot − own "
+        f"{pm(a['for_robot_minus_own'], a.get('for_robot_minus_own_std'), sign=True)}" for a in agents.values())
+
+
+def run_clustered(per_run: Sequence[float]) -> dict:
+    """The mean of per-run gains with its run-clustered 95 % interval (the Student-t interval over the runs, as
+    ``gausslite.stats.paired_gain`` computes it), in the form :func:`gain_text` reads.
+
+    Raises:
+        ReportError: fewer than two runs.
+    """
+    from scipy.stats import t as student_t  # lazy: the page's other regions need none of it
+
+    n = len(per_run)
+    if n < 2:
+        raise ReportError("a run-clustered interval needs at least two runs")
+    mean = sum(per_run) / n
+    sd = (sum((x - mean) ** 2 for x in per_run) / (n - 1)) ** 0.5
+    hw = float(student_t.ppf(0.975, n - 1)) * sd / n ** 0.5
+    return {"gain": mean, "gain_ci": [mean - hw, mean + hw], "gain_interval": SHOWN_INTERVAL, "gain_runs": n}
+
+
+def team_map_gains(r: dict, fused: str = "team_map", protocol: str = "novel") -> str:
+    """``bench.team_map``: ``fused`` − each robot's own map under ``protocol``, per task, the mean of the per-run
+    gains with its run-clustered interval (:func:`run_clustered`).
+
+    Raises:
+        ReportError: the summary has no such fused map or protocol.
+    """
+    try:
+        tasks = r["summary"]["fused"][fused]
+        cells = [f"{task.split('-', 1)[-1]} {gain_text(run_clustered(v[protocol]['per_run']))}"
+                 for task, v in sorted(tasks.items(), reverse=True)]
+    except KeyError as e:
+        raise ReportError(f"the team-map summary has no {fused!r} under {protocol!r}") from e
+    return " / ".join(cells)
+
+
+def team_map_acks_text(r: dict) -> str:
+    """``bench.team_map_acks``: push acknowledgements' p99 while the team map refines against without a team map."""
+    ph = {p["team_map"]: p for p in r["phases"]}
+    on, off = ph[True]["push_ack_ms"]["p99"], ph[False]["push_ack_ms"]["p99"]
+    return (f"push acknowledgements p99 {on:.0f} ms while the team map refines against {off:.0f} ms without one "
+            f"({r['p99_ratio']:.2f}×, goal ≤ {r['goal_ratio']}×)")
+
+
+def share_finetune_text(r: dict) -> str:
+    """``bench.share_finetune``: per task the subset alone before and after its fine-tune, and the vote (r = 1) against
+    the owner's map, ROI PSNR means over seeds (dB)."""
+    return "; ".join(f"{task.split('-', 1)[-1]}: subset alone {num(t['alone_raw'])} → fine-tuned "
+                     f"{num(t['alone_ft'])}, vote (r = 1) {num(t['vote_r1'])} against own {num(t['own'])}"
+                     for task, t in r["tasks"].items())
+
+
+def share_refresh_text(r: dict) -> str:
+    """``bench.share_refresh``: the total upload over the final subset per refresh share (mean over seeds), per task."""
+    out = []
+    for task, arms in r["summary"].items():
+        shares = [f"r={x:g}" for x in r["refresh"]]
+        out.append(f"{task.split('-', 1)[-1]} " + " / ".join(num(arms[s]["upload_ratio"]) for s in shares))
+    return f"upload / final subset at refresh {' / '.join(f'{x:g}' for x in r['refresh'])}: " + "; ".join(out)
+
+
+def keyframe_format_text(r: dict) -> str:
+    """``bench.refine_keyframes``: the vote, and its refinement over the uploaded and over the original frames, per
+    task (ROI PSNR, dB)."""
+    v = r["roi_psnr"]
+    return "; ".join(f"{task.split('-', 1)[-1]}: vote {num(v['vote'][task])}, refined over the uploaded keyframes "
+                     f"{num(v['refine, uploaded keyframes'][task])}, over the original frames "
+                     f"{num(v['refine, original frames'][task])}" for task in v["vote"])
+
+
+def frontend_table(r: dict) -> str:
+    """``bench.frontend``: per image size and thread count the detector's and segmenter's seconds per call and the
+    cost amortised over the mapping keyframes under the detection schedule."""
+    lines = ["| size | threads | detect (s) | segment (s) | amortised per keyframe (s) |", "|---|---|---|---|---|"]
+    best = min(x["amortised_s"] for x in r["runs"])
+    for x in r["runs"]:
+        amortised = bold(f"{x['amortised_s']:.3f}", x["amortised_s"] == best)
+        lines.append(f"| {x['size'].replace('x', '×')} | {x['threads']} | {x['detect_s']:.3f} | "
+                     f"{x['segment_s']:.3f} | {amortised} |")
+    return "\n".join(lines)
+
+
+def live_mission_cells(r: dict, scene: str = "tum_fr1_rpy", mode: str = "gausslite", budget: str = "0.5") -> str:
+    """One mode of a ``bench.realtime`` result as table cells: keyframes, iterations per keyframe, ROI PSNR over
+    every frame (mean ± std over runs) and PSNR.
+
+    Raises:
+        ReportError: the result has no such scene, budget or mode.
+    """
+    try:
+        b = r["scenes"][scene]["budgets"][budget][mode]
+    except KeyError as e:
+        raise ReportError(f"no {mode} at {budget} s for {scene!r} in the realtime result") from e
+    return (f"{num(b['keyframes'], 1).removesuffix('.0')} | {num(b['iters_per_keyframe'], 1)} | "
+            f"{pm(b['roi_psnr'], b.get('roi_psnr_std'))} | {num(b['psnr'])}")
+
+
+def ingest_text(r: dict) -> str:
+    """``bench.ingest``: accept latency, frames, keyframes and iterations of a 30 Hz stream to a busy agent."""
+    return (f"accept p99 **{r['accept_latency_ms_p99']:.2f} ms** "
+            f"(target ≤ {r['target_accept_latency_ms_p99']:g} ms); "
+            f"{r['frames_received']}/{r['frames_sent']} frames received, {r['frames_keyframed']} keyframed, "
+            f"{r['frames_skipped']} skipped; sender lag p99 {r['sender_lag_ms_p99']:.1f} ms; keyframe latency p95 "
+            f"{r['keyframe_latency_s_p95']:.1f} s; {r['iterations_per_keyframe']:.1f} Adam iterations per keyframe")
+
+
+def _goals(goals: dict) -> str:
+    missed = [k for k, ok in goals.items() if not ok]
+    return "every goal met" if not missed else "missed: " + ", ".join(f"`{k}`" for k in missed)
+
+
+def soak_text(r: dict) -> str:
+    """``bench.soak``: what was streamed and mapped, errors, accept p99, the last half's growth of memory and disk,
+    and its goals."""
+    last, g = r["samples"][-1], r["growth_last_half"]
+    return (f"{last['frames_sent']:,} frames, {last['frames_keyframed']:,} keyframes mapped, {last['pushes']} pushes, "
+            f"{len(r['errors']) or 'no'} error{'s' if len(r['errors']) != 1 else ''}; accept p99 at most "
+            f"{r['accept_p99_ms_max']:.2f} ms; over the last half RSS {100 * g['rss_mb_agent']:+.1f} % (agent) / "
+            f"{100 * g['rss_mb_fusion']:+.1f} % (fusion), disk {100 * g['disk_mb_agent']:+.1f} % / "
+            f"{100 * g['disk_mb_fusion']:+.1f} %; {_goals(r['goals'])}")
+
+
+def live_sim_text(r: dict, setting: str = "after") -> str:
+    """``gausslite sim --realtime`` on TUM (``live_tum_realtime_ab.json``, one setting): per robot its keyframes,
+    iterations per keyframe and ROI PSNR over every frame, mean ± std over runs, and the fused vote + refine (mean
+    of both tasks).
+
+    Raises:
+        ReportError: the file has no such setting.
+    """
+    from gausslite.stats import mean_std  # lazy: the page's other regions need none of it
+
+    try:
+        runs = r["runs"][setting]
+    except KeyError as e:
+        raise ReportError(f"the live sim file has no setting {setting!r}") from e
+    agents = [k for k in runs[0] if k != "fused"]
+    col = lambda a, k: mean_std([run[a][k] for run in runs])  # noqa: E731
+    parts = [f"{num(col(a, 'kf')[0], 1)} keyframes, {num(col(a, 'it')[0], 1)} iterations each, ROI PSNR over every "
+             f"frame {pm(*col(a, 'roi_all'))}" for a in agents]
+    fused = mean_std([run["fused"]["refine"] for run in runs])
+    return f"{' / '.join(parts)} dB; fused vote + refine {pm(*fused)} dB ({len(runs)} runs)"
+
+
+def fleet_text(r: dict) -> str:
+    """``bench.fleet``: agents, replicas and subset size, acknowledgements and losses, latency, throughput, the vote's
+    full and incremental times, peak memory and the goals."""
+    rss = " / ".join(f"{v:.0f}" for v in r["peak_rss_mb"].values())
+    return (f"{r['agents']} agents, {r['replicas']} replicas, {r['subset_gaussians']:,} Gaussians per subset: "
+            f"{r['acks']:,} acks, {r['lost']} lost, ack p50 / p99 {r['ack_latency_ms_p50']:.1f} / "
+            f"{r['ack_latency_ms_p99']:.1f} ms, {r['gaussians_per_s']:,.0f} Gaussians/s; vote {r['fuse_full_s']:.3f} s "
+            f"full, {r['fuse_incremental_s']:.4f} s incremental ({r['incremental_over_full']:.3f}×); "
+            f"peak RSS {rss} MB; {_goals(r['goals'])}")
+
+
+def fleet_outage_text(r: dict) -> str:
+    """``bench.fleet --db-outage``: the outage, acknowledgements and losses, failed calls, service after it."""
+    codes = ", ".join(f"{n} {c}" for c, n in r["failed_call_codes"].items()) or "none"
+    return (f"{r['agents']} agents, database down {r['db_outage_s']:.1f} s: {r['acks']} acks, {r['lost']} lost, failed "
+            f"calls {codes} (all retried), {r['acks_during_outage']} acks during it, every replica serving "
+            f"{r['replicas_serving_after_s']:.2f} s after, none restarted: {str(r['replicas_not_restarted']).lower()}; "
+            f"{_goals(r['goals'])}")
+
+
+def bag_round_trip_text(r: dict) -> str:
+    """``bench.bag``: each storage's round trip (largest colour, depth, pose and stamp difference, size) and the
+    mapping PSNR from the folder and from the bag."""
+    rt = r["round_trip"]
+    st = rt["storages"]
+    worst = lambda k: max(v[k] for v in st.values())  # noqa: E731
+    mb = " / ".join(f"{v['bytes'] / 1e6:.2f}" for v in st.values())
+    m = rt["mapping"]
+    return (f"{' / '.join(st)}: colour and depth differences {worst('max_rgb_diff')} / {worst('max_depth_diff_m')} m, "
+            f"poses within {worst('max_pose_diff'):.1e}, stamps within {worst('max_stamp_diff_s')} s "
+            f"({mb} MB); mapping PSNR {num(m['folder']['psnr'])} dB from the folder, {num(m['bag_mcap']['psnr'])} "
+            f"from the bag and {num(m['folder_with_bag_poses']['psnr'])} from the folder with the bag's poses")
+
+
+def bag_registration_text(r: dict) -> str:
+    """``bench.bag``: registered against unregistered depth (coverage, errors) and the mapping PSNR of each."""
+    g = r["registration"]
+    reg, naive, m = g["registered"], g["naive"], g["mapping"]
+    return (f"registered: {100 * reg['coverage']:.1f} % of pixels covered, median error "
+            f"{1e3 * reg['median_abs_err_m']:.1f} mm, p95 {1e3 * reg['p95_abs_err_m']:.1f} mm, "
+            f"{100 * reg['frac_err_gt_5cm']:.2f} % > 5 cm; unregistered: median "
+            f"{1e2 * naive['median_abs_err_m']:.1f} cm, {100 * naive['frac_err_gt_5cm']:.0f} % > 5 cm; "
+            f"mapping PSNR {num(m['registered']['psnr'])} dB registered, "
+            f"{num(m['ideal']['psnr'])} ideal, {num(m['naive']['psnr'])} unregistered")
+
+
+def quant_psnr_text(r: dict) -> str:
+    """``bench.quant_psnr``: bytes per Gaussian of the deployed quantisation and its ROI PSNR cost against lossless."""
+    q = next((x for x in r["rows"] if x["codec"] == "quantised"), None)
+    if q is None:
+        raise ReportError("quant_psnr has no 'quantised' row")
+    return (f"{q['active_subset_bytes_per_gaussian']:.2f} B per active (shared) Gaussian, "
+            f"{q['bytes_per_gaussian']:.2f} B over the whole {r['n_gaussians'] / 1e3:.0f}k map, "
+            f"{signed(q['delta_roi_psnr_db'], 3)} dB ROI PSNR against lossless")
+
+
+def wire_fuzz_text(r: dict) -> str:
+    """``bench.wire_fuzz``: cases, properties, failures and time."""
+    failed = sum(1 for x in r["rows"] if x.get("failure"))
+    minutes = sum(x["seconds"] for x in r["rows"]) / 60
+    return (f"{r['total_examples']:,} hypothesis cases over {len(r['rows'])} properties "
+            f"({', '.join(x['property'].replace('_', ' ') for x in r['rows'])}), {failed} failures, {minutes:.0f} min")
+
+
+def vote_text(r: dict) -> str:
+    """``bench.vote``: the voxel vote's time on its Gaussians."""
+    cores = "one core" if r["threads"] == 1 else f"{r['threads']} threads"
+    return f"{r['n']:,} Gaussians in {r['vote_s_min']:.2f} s on {cores} (target ≤ {r['target_s']:g} s)"
+
+
+def rasterizer_text(r: dict) -> str:
+    """``bench.rasterizer``: forward + backward seconds of the SIMD kernels, the Warp tile kernels and the PyTorch
+    reference at both sizes, and the SIMD kernels' peak memory."""
+    a, b = "20k_320x240", "100k_640x480"
+    return (f"SIMD kernels (default) {r['ours_s_' + a]:.3f} s at 20k Gaussians / 320×240, {r['ours_s_' + b]:.3f} s at "
+            f"100k / 640×480 ({r['peak_rss_mb_' + b]:.0f} MB peak); Warp tile kernels {r['tile_s_' + a]:.3f} / "
+            f"{r['tile_s_' + b]:.3f} s ({r['simd_vs_tile_' + a]:.2f}× / {r['simd_vs_tile_' + b]:.2f}× slower); "
+            f"PyTorch reference {r['ref_s_' + a]:.2f} / {r['ref_s_' + b]:.2f} s ({r['speedup_' + a]:.1f}× / "
+            f"{r['speedup_' + b]:.1f}×)")
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -455,8 +873,9 @@ REGIONS: Dict[str, Region] = {
     "headline": Region("bench/results/realtime.json", headline_table),
     "glance-realtime": Region("bench/results/realtime.json", glance_realtime),
     "realtime-protocols": Region("bench/results/realtime.json", protocols_table),
-    "glance-sim-synthetic": Region("bench/results/sim_seeds.json", lambda r: sim_glance(r, "synthetic")),
-    "glance-sim-room0": Region("bench/results/sim_seeds.json", lambda r: sim_glance(r, "room0")),
+    "glance-sim-synthetic": Region("bench/results/sim_seeds_share25.json", lambda r: sim_glance(r, "synthetic")),
+    "glance-sim-room0": Region("bench/results/sim_seeds_share25.json", lambda r: sim_glance(r, "room0")),
+    "sim-defaults": Region("bench/results/sim_seeds_share25.json", sim_seeds_table),
     "sim-seeds": Region("bench/results/sim_seeds.json", sim_seeds_table),
     "sim-seeds-minutes": Region("bench/results/sim_seeds.json", sim_seeds_minutes),
     "first-run": Region("bench/results/first_run.json", first_run_table),
@@ -472,6 +891,53 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
+    # docs/results.md's summary
+    "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),
+    "ablation-synth": Region("bench/results/ablation_synth.json", ablation_cells),
+    "ablation-room0-seeds": Region("bench/results/ablation_room0_5tasks_3seeds_fp5.json", ablation_seeds_cells),
+    "ablation-room0-recheck": Region("bench/results/ablation_room0_5tasks_3seeds_recheck.json", ablation_seeds_cells),
+    "ablation-room0-noadopt": Region("bench/results/ablation_room0_5tasks_3seeds_noadopt.json", ablation_seeds_cells),
+    "long-mission-tum320": Region("bench/results/long_mission_tum320_rs.json",
+                                  lambda r: long_mission_cells(r, "tum_fr1_rpy")),
+    "long-mission-synthetic-fp5": Region("bench/results/long_mission_synthetic_fp5.json",
+                                         lambda r: long_mission_cells(r, "synthetic_long")),
+    "long-mission-tum160": Region("bench/results/long_mission.json", lambda r: long_mission_cells(r, "tum_fr1_rpy")),
+    "long-mission-synthetic160": Region("bench/results/long_mission.json",
+                                        lambda r: long_mission_cells(r, "synthetic_long")),
+    "long-mission-roi-phase": Region("bench/results/long_mission_tum160_roi_phase.json",
+                                     lambda r: long_mission_cells(r, "tum_fr1_rpy")),
+    "long-mission-no-roi-phase": Region("bench/results/long_mission_tum160_no_roi_phase.json",
+                                        lambda r: long_mission_cells(r, "tum_fr1_rpy")),
+    "roi-ceiling": Region("bench/results/roi_ceiling_synthetic_long.json", roi_ceiling_text),
+    "mapper-speed": Region("bench/results/mapper.json", mapper_speed_table),
+    "map-tracking": Region("bench/results/map_tracking.json", map_tracking_text),
+    "map-tracking-budget": Region("bench/results/map_tracking_budget.json", map_tracking_text),
+    "rolling-shutter": Region("bench/results/rolling_shutter.json", rolling_shutter_text),
+    "team-live": Region("bench/results/team.json", team_live_table),
+    "team-tum-halves": Region("bench/results/team_tum_halves.json", lambda r: team_agents_text(r, "tum_halves")),
+    "team-map-offline": Region("bench/results/team_map_sim.json", team_map_gains),
+    "team-map-live": Region("bench/results/team_map_sim_rt.json", team_map_gains),
+    "team-map-acks": Region("bench/results/team_map_acks.json", team_map_acks_text),
+    "share-finetune": Region("bench/results/share_finetune.json", share_finetune_text),
+    "share-refresh": Region("bench/results/share_refresh_room0_low.json", share_refresh_text),
+    "keyframe-format": Region("bench/results/share_sim_seeds/refine_jpeg_vs_png_room0.json", keyframe_format_text),
+    "frontend": Region("bench/results/frontend.json", frontend_table),
+    "perception-annotation": Region("bench/results/realtime_perception_annotation.json", live_mission_cells),
+    "perception-onnx": Region("bench/results/realtime_perception_onnx.json", live_mission_cells),
+    "perception-onnx-worker": Region("bench/results/realtime_perception_onnx_worker.json", live_mission_cells),
+    "ingest": Region("bench/results/ingest.json", ingest_text),
+    "soak-60min": Region("bench/results/soak_60min.json", soak_text),
+    "soak": Region("bench/results/soak.json", soak_text),
+    "live-sim-tum": Region("bench/results/live_tum_realtime_ab.json", live_sim_text),
+    "fleet": Region("bench/results/fleet.json", fleet_text),
+    "fleet-site": Region("bench/results/fleet_site.json", fleet_text),
+    "fleet-db-outage": Region("bench/results/fleet_db_outage.json", fleet_outage_text),
+    "bag-round-trip": Region("bench/results/bag.json", bag_round_trip_text),
+    "bag-registration": Region("bench/results/bag.json", bag_registration_text),
+    "quant-psnr": Region("bench/results/quant_psnr.json", quant_psnr_text),
+    "wire-fuzz": Region("bench/results/wire_fuzz.json", wire_fuzz_text),
+    "vote": Region("bench/results/vote.json", vote_text),
+    "rasterizer": Region("bench/results/rasterizer.json", rasterizer_text),
 }
 
 

@@ -14,13 +14,25 @@ import bench.report as report
 #: regions that must exist, with the page that holds them (a check over no region could not fail)
 EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md", "test-minutes"),
             ("docs/results.md", "glance-realtime"), ("docs/results.md", "glance-sim-synthetic"),
-            ("docs/results.md", "glance-sim-room0"), ("docs/results.md", "sim-seeds"),
+            ("docs/results.md", "glance-sim-room0"), ("docs/results.md", "sim-defaults"),
             ("docs/results.md", "sim-seconds"), ("docs/results.md", "first-run"), ("docs/results.md", "slowest-tests"),
+            ("docs/history.md", "sim-seeds"), ("docs/history.md", "sim-seeds-minutes"),
             ("docs/realtime.md", "realtime-protocols"), ("docs/mapper.md", "odometry"),
             ("docs/design.md", "pose-graph-solvers"), ("docs/mapper.md", "odometry-gains"),
             ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "map-budget"),
             ("docs/mapper.md", "detail-live"), ("docs/realtime.md", "pose-perturbation"),
-            ("docs/realtime.md", "compute-sweep"), ("docs/realtime.md", "compute-sweep-synthetic")}
+            ("docs/realtime.md", "compute-sweep"), ("docs/realtime.md", "compute-sweep-synthetic"),
+            *(("docs/results.md", name) for name in (
+                "ablation-room0", "ablation-synth", "ablation-room0-seeds", "ablation-room0-recheck",
+                "ablation-room0-noadopt", "long-mission-tum320", "long-mission-synthetic-fp5", "long-mission-tum160",
+                "long-mission-synthetic160", "long-mission-roi-phase", "long-mission-no-roi-phase", "roi-ceiling",
+                "mapper-speed", "map-tracking", "map-tracking-budget", "rolling-shutter", "team-live", "team-tum-halves",
+                "team-map-offline", "team-map-live", "team-map-acks", "share-finetune", "share-refresh",
+                "keyframe-format", "frontend", "perception-annotation", "perception-onnx", "perception-onnx-worker",
+                "ingest", "soak-60min", "soak", "live-sim-tum", "fleet", "fleet-site", "fleet-db-outage",
+                "bag-round-trip", "bag-registration", "quant-psnr", "wire-fuzz", "vote", "rasterizer"))}
+#: the summary page of the current figures, and its length bound (the long logs live in docs/history.md)
+SUMMARY, SUMMARY_MAX_LINES = "docs/results.md", 300
 
 
 def page(name: str) -> str:
@@ -135,3 +147,37 @@ def test_the_sim_figures_are_the_mean_of_both_agents():
     text = report.sim_glance(result, "synthetic")
     for key, label in (("vote", "vote"), ("refine", "vote+refine")):
         assert f"{label} {sum(a[key] for a in agents) / 2:.2f}" in text
+
+
+def test_the_summary_page_is_short_and_links_the_json_of_every_generated_figure():
+    text = page(SUMMARY)
+    assert len(text.splitlines()) <= SUMMARY_MAX_LINES, f"{SUMMARY}: {len(text.splitlines())} lines"
+    for name, src in report.regions_in(text):
+        assert f"](../{src})" in text, f"{SUMMARY}: region {name!r} is written from {src}, which the page does not link"
+
+
+def test_the_run_clustered_interval_is_the_one_paired_gain_computes():
+    """:func:`bench.report.run_clustered` reads per-run gains from a summary; it gives the interval
+    ``gausslite.stats.paired_gain`` gives over the same runs."""
+    from gausslite.stats import paired_gain
+
+    treated = [{0: 21.0, 1: 22.5}, {0: 20.0, 1: 20.4}, {0: 23.1, 1: 22.0}]
+    baseline = [{0: 20.0, 1: 20.0}, {0: 20.5, 1: 19.0}, {0: 21.0, 1: 21.5}]
+    g = paired_gain(treated, baseline)
+    r = report.run_clustered(g["run_gains"])
+    assert r["gain"] == pytest.approx(g["gain"]) and r["gain_ci"] == pytest.approx([g["ci_low"], g["ci_high"]])
+    with pytest.raises(report.ReportError, match="two runs"):
+        report.run_clustered([1.0])
+
+
+def test_the_ablation_cells_pair_seeds_and_name_missing_rows():
+    rows = [{"row": "none", "roi_psnr": 36.0, "roi_psnr_std": 0.5, "psnr": 38.0, "seeds": [0, 1],
+             "by_seed": {"0": {"roi_psnr": 35.5}, "1": {"roi_psnr": 36.5}}},
+            {"row": "+GFD", "roi_psnr": 40.0, "roi_psnr_std": 0.1, "psnr": 34.0, "seeds": [0, 1],
+             "by_seed": {"0": {"roi_psnr": 39.9}, "1": {"roi_psnr": 40.1}}}]
+    cells = report.ablation_seeds_cells(rows).split(" | ")
+    assert cells == ["36.00 ± 0.50 (38.00)", "40.00 ± 0.10 (34.00)", "**+4.00 ± 0.57**", "2"]
+    # a run without the uniform row shows no gain
+    assert report.ablation_seeds_cells(rows[1:]).split(" | ")[::2] == ["–", "–"]
+    with pytest.raises(report.ReportError, match="no rows"):
+        report.ablation_cells(rows)
