@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.team import TEAMS, RecordingFusion, summarise
+from bench.team import FUSED_KEYS, PER_ROBOT, TEAMS, RecordingFusion, summarise
 from bench.wire_fuzz import random_arrays
 from gausslite.wire.codec import GaussianArrays
 from gausslite.wire.delta import PushPlanner
@@ -103,6 +103,16 @@ def test_summary_checks_the_goals_per_team():
     assert t["goals"]["refine_ge_own"] is False and "vote_ge_own" not in t["goals"]
     assert t["goals"]["refine_long_ge_own"] is True  # 21.5 / 22.4 against 20 / 22
     assert t["agents"]["agent_b"]["refine_minus_own"] == pytest.approx(-0.1)
+    assert h["goals_protocol"] == t["goals_protocol"] == "sensor"  # no protocol rows: the sensor figures
+    # under novel the fused − own goals read the novel rows: here agent_b's map from the server holds its region
+    for r in runs[3:]:
+        for i, a in enumerate(r["agents"]):
+            a["protocols"] = {"novel": {"own_roi_psnr": 20.0, **{f"{k}_roi_psnr": 20.0 - 0.05 * i
+                                                                  for k in (*FUSED_KEYS, *PER_ROBOT)}}}
+    t = summarise(runs)["tum"]
+    assert t["goals_protocol"] == "novel"
+    assert t["goals"]["for_robot_ge_own_minus_0.5"] is True and t["goals"]["with_own_ge_own_minus_0.1"] is True
+    assert t["goals"]["refine_ge_own"] is False  # agent_b: 0.05 dB below under novel too
 
 
 def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(monkeypatch):
