@@ -15,11 +15,11 @@ with v (the robot's region of interest drifting), its κ scaled per agent and gr
 keyframes are the scene's posed RGB-D frames (downscaled by ``--keyframe-downscale``).
 
 Replay clients are threads of this process, one gRPC channel each, addressing every replica as
-``ipv4:127.0.0.1:p1,127.0.0.1:p2`` (round_robin, UNAVAILABLE retried — the same channel options as
+``ipv4:127.0.0.1:p1,127.0.0.1:p2`` (round_robin, no retry policy — the same channel options as
 :class:`gausslite_services.fusion_server.client.FusionClient`); chunks are pre-encoded per version and sent one
-``UploadSubset`` call per ``--chunks-per-call`` chunks; a failed call is resumed from
-``GetUploadStatus``. An ack's latency runs from the first send attempt of its chunks to the ack
-(retries included).
+``UploadSubset`` call per ``--chunks-per-call`` chunks; a failed call is resumed from ``GetUploadStatus``
+(:func:`gausslite_services.fusion_server.client.resume_upload`). An ack's latency runs from the first send attempt
+of its chunks to the ack (retries included).
 
 Measured (``bench/results/fleet.json``): ``acks`` (chunks acknowledged), ``lost`` (acknowledged chunks
 of each agent's final version that the store does not hold at the end, plus acknowledged-complete
@@ -40,8 +40,8 @@ run (before the replica kill): by default the replicas reach the database throug
 that is cut (connections dropped, new ones refused — what a stopped server looks like to a client, without
 stopping a cluster others share); ``--db-stop-cmd`` / ``--db-start-cmd`` stop and start the real server instead
 (e.g. ``pg_ctlcluster 15 main stop``). Clients retry UNAVAILABLE and DEADLINE_EXCEEDED with exponential backoff
-(0.05 s doubling to 2 s). Added to the results: ``failed_call_codes`` (status codes of the calls that failed
-after the channel's own retries), ``acks_during_outage``, ``replicas_serving_after_s`` (from the database's
+(0.05 s doubling to 2 s). Added to the results: ``failed_call_codes`` (status codes of the failed calls;
+the agents retry the transient ones), ``acks_during_outage``, ``replicas_serving_after_s`` (from the database's
 return until every replica answers ``GetStats``), ``replicas_not_restarted`` (same processes) and
 ``acks_in_2s_after_recovery``; goals: no INTERNAL/UNKNOWN status, no agent error, replicas recovered without a
 restart (and ``lost`` = 0 as always).
@@ -77,7 +77,7 @@ from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_subset, peek_header
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.fusion_server.client import (FusionClient, channel_options, intrinsics_to_proto,
-                                                     keyframe_to_proto)
+                                                     keyframe_to_proto, resume_upload)
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -253,38 +253,35 @@ def backoff(attempt: int, first_s: float = 0.05, max_s: float = 2.0) -> float:
 
 def push_version(stub, grpc, fusion_pb2, aid: str, v: int, chunks: List[bytes], counts: List[int],
                  full: int, per_call: int, log: AgentLog, timeout_s: float, give_up: float) -> bool:
-    """Upload one version, resuming from GetUploadStatus after failures. True when complete."""
-    header = fusion_pb2.UploadSubsetRequest(header=fusion_pb2.UploadHeader(
-        agent_id=aid, map_version=v, n_chunks=len(chunks), full_map_gaussians=full))
+    """Upload one version, resuming from GetUploadStatus after failures (:func:`resume_upload`, at most ``per_call``
+    chunks per call), retried with :func:`backoff` until ``give_up`` (monotonic s). True when complete."""
+    header = fusion_pb2.UploadHeader(agent_id=aid, map_version=v, n_chunks=len(chunks), full_map_gaussians=full)
     first_sent: Dict[int, float] = {}
     acked = log.acked.setdefault(v, set())
     attempts = 0  # consecutive failed calls: exponential backoff (a database outage lasts seconds)
+
+    def sending(batch: List[int]) -> None:
+        now = time.monotonic()
+        for i in batch:
+            first_sent.setdefault(i, now)
+
+    def acknowledged(batch: List[int], ack) -> None:
+        nonlocal attempts
+        t = time.monotonic()
+        attempts = 0
+        stored = set(ack.stored)
+        for i in batch:
+            if i in stored and i not in acked:
+                acked.add(i)
+                log.gaussians_acked += counts[i]
+                log.latencies_ms.append(1000.0 * (t - first_sent[i]))
+
     while time.monotonic() < give_up:
         try:
-            st = stub.GetUploadStatus(fusion_pb2.UploadStatusRequest(agent_id=aid, map_version=v), timeout=timeout_s)
-            if st.complete:
+            if resume_upload(stub, header, chunks, timeout_s=timeout_s, batch_bytes=None, chunks_per_call=per_call,
+                             on_send=sending, on_ack=acknowledged).complete:
                 log.complete.append(v)
                 return True
-            have = set(st.stored) if st.n_chunks == len(chunks) else set()
-            todo = [i for i in range(len(chunks)) if i not in have]
-            for s in range(0, max(1, len(todo)), per_call):
-                batch = todo[s:s + per_call]
-                now = time.monotonic()
-                for i in batch:
-                    first_sent.setdefault(i, now)
-                ack = stub.UploadSubset(iter([header] + [fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
-                                                         for i in batch]), timeout=timeout_s)
-                t = time.monotonic()
-                attempts = 0
-                stored = set(ack.stored)
-                for i in batch:
-                    if i in stored and i not in acked:
-                        acked.add(i)
-                        log.gaussians_acked += counts[i]
-                        log.latencies_ms.append(1000.0 * (t - first_sent[i]))
-                if ack.complete:
-                    log.complete.append(v)
-                    return True
         except grpc.RpcError as e:
             log.failed(e)
             if e.code().name not in RETRYABLE_CODES:

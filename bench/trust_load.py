@@ -170,7 +170,7 @@ def _open_sessions(address: str, tok: Dict[str, str], agents: List[str]) -> None
 
     intr = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
     for a in agents:
-        with FusionClient(address, token=tok[a], timeout_s=30, max_retries=3) as c:
+        with FusionClient(address, token=tok[a], timeout_s=30) as c:
             c.wait_ready(60)
             c.open_session(a, "find the chair", intr)
 
@@ -309,7 +309,7 @@ def _health(address: str, token: str) -> str:
     from gausslite_services.fusion_server.client import FusionClient
 
     health = None
-    with FusionClient(address, token=token, timeout_s=10, max_retries=0) as c:
+    with FusionClient(address, token=token, timeout_s=10) as c:
         try:
             c.wait_ready(5)
             health = "SERVING"

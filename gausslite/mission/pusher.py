@@ -13,6 +13,11 @@ pusher thread then, for the newest offer only (an older pending one is supersede
    replaces it, so at most two subsets are held however long the link is down, and the newest goes out when
    it returns; the final one is retried for ``final_push_timeout_s``.
 
+The pusher is the one layer that retries a push: the fusion port beneath it makes one attempt per call
+(``gausslite_services.fusion_server.client.FusionClient`` sends each call once, with its deadline, and raises the
+call's error), so an attempt costs at most its calls' deadlines and the backoff alone spaces the attempts. Each
+attempt resumes the upload: ``upload_chunks`` asks which chunks the server holds and sends the others.
+
 :meth:`Pusher.status` gives the backlog and the last acknowledged version (``GetStatus``).
 """
 
@@ -288,7 +293,8 @@ class Pusher:
         """Push ``snap`` until acknowledged (True). Gives up (False) when the pusher stops, when a newer
         snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
         the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
-        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``."""
+        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``. Each
+        attempt is one :meth:`push_once` (the fusion port makes each of its calls once: no retries beneath)."""
         deadline = None if budget_s is None else time.monotonic() + budget_s
         attempt = 0
         while True:

@@ -20,30 +20,40 @@ Usage::
 Replicas: ``target`` may name several fusion replicas sharing one PostgreSQL store —
 ``dns:///fusion.example:50052`` (every address the name resolves to, e.g. a Kubernetes headless
 service) or ``ipv4:10.0.0.5:50052,10.0.0.6:50052``. The channel uses gRPC's own client-side load
-balancing (``round_robin`` over the resolved addresses, re-resolved when connections drop) and
-gRPC's retry policy re-sends calls that fail with ``UNAVAILABLE`` before the server saw them
-(:func:`channel_options`); any replica accepts any agent's chunks, and an upload interrupted on one
-replica resumes on another.
+balancing (``round_robin`` over the resolved addresses, re-resolved when connections drop; calls go to
+the replicas that are connected, :func:`channel_options`); any replica accepts any agent's chunks, and an
+upload interrupted on one replica resumes on another.
 
 Credentials (``docs/security.md``): a robot sends its own per-agent token (``token=``) and/or presents
 a client certificate whose CN is its agent id (``client_cert=``, ``client_key=``); the server lets it
 write only its own agent id (``PERMISSION_DENIED`` otherwise). :func:`client_credentials_from_env`
 reads them the way the agent service and the CLI do.
 
-Error handling: every call carries a deadline (``timeout_s`` unless stated otherwise). Idempotent
-calls (everything except :meth:`FusionClient.fuse`) are retried on ``UNAVAILABLE`` and
-``DEADLINE_EXCEEDED`` with exponential backoff (``backoff_s · 2^attempt``, at most ``max_retries``
-retries); :meth:`FusionClient.upload_subset` re-reads the server's upload state
-(``GetUploadStatus``) before every attempt and only sends the missing chunks. Every other failure
-surfaces as :class:`grpc.RpcError` with the server's status code (see ``proto/gausslite_rpc/fusion.proto``).
+Errors and retries: the client makes one attempt. Every method sends each of its calls once, with a
+deadline (``timeout_s`` unless stated otherwise), and raises the :class:`grpc.RpcError` of the call that
+failed (a :mod:`gausslite_services.common.errors` subclass) with its status code: ``UNAVAILABLE`` (no
+server at the address, a server restarting, its database unreachable), ``DEADLINE_EXCEEDED``, or the
+server's own status (see ``proto/gausslite_rpc/fusion.proto``). The channel sets no gRPC retry policy.
+What gRPC still does by itself is its transparent retry: it re-sends a call that never reached the
+server's handler (its connection dropped before the call left this process, or the server refused the
+stream unread), so no call is handled twice and no attempt count stacks under the caller's.
+
+Retrying is the caller's choice: every call except :meth:`FusionClient.fuse` is idempotent, and
+:data:`RETRYABLE` lists the transient codes. The agent's pusher (:class:`gausslite.mission.pusher.Pusher`)
+retries pushes with exponential backoff, knowing about newer snapshots and the final push's deadline; a
+robot without an agent retries in a loop of its own (``docs/robot-integration.md``). An upload resumes:
+each :meth:`FusionClient.upload_subset` / :meth:`FusionClient.upload_chunks` call asks ``GetUploadStatus``
+first and sends only the chunks the server misses (:func:`resume_upload` does the same over a stub of
+the caller's own). :meth:`FusionClient.wait_ready` and :meth:`FusionClient.team_map` poll until their own
+deadline: they wait for a state, they do not retry failures.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence
@@ -63,10 +73,8 @@ from gausslite_services.common.client_tls import default_client_tls
 from gausslite_services.common.convert import intrinsics_to_proto
 from gausslite_services.common.errors import raises_typed_errors
 
-log = logging.getLogger(__name__)
-
 SERVICE_NAME = "gausslite.v1.Fusion"
-#: Transient status codes retried by idempotent calls.
+#: Transient status codes: worth retrying with backoff (the client itself does not; module docstring).
 RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
 #: Client-side message bound (the server enforces its own, smaller one).
 CLIENT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
@@ -74,8 +82,6 @@ CLIENT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 UPLOAD_BATCH_BYTES = 8 * 1024 * 1024
 #: Keyframes sent per ``UploadKeyframes`` call.
 KEYFRAME_BATCH = 8
-#: Methods that gRPC's retry policy may re-send on UNAVAILABLE (all but the non-idempotent Fuse).
-RETRIED_METHODS = ("OpenSession", "UploadSubset", "GetUploadStatus", "UploadKeyframes", "DownloadFused", "GetStats")
 
 
 def client_credentials_from_env(env=None) -> dict:
@@ -127,28 +133,22 @@ def channel_credentials(root_cert: Optional[bytes] = None, client_cert: Optional
                                         certificate_chain=client_cert)
 
 
-def service_config(max_attempts: int = 5) -> dict:
-    """gRPC service config: ``round_robin`` load balancing and a retry policy for UNAVAILABLE.
+def service_config() -> dict:
+    """gRPC service config of the fusion channel: ``round_robin`` load balancing over every resolved address and no
+    retry policy (the client makes one attempt per call; module docstring).
 
-    Args:
-        max_attempts (int): attempts per call including the first (gRPC caps this at 5).
     Returns:
         dict: the JSON service config (see gRPC's service_config.proto).
     """
-    return {
-        "loadBalancingConfig": [{"round_robin": {}}],
-        "methodConfig": [{
-            "name": [{"service": SERVICE_NAME, "method": m} for m in RETRIED_METHODS],
-            "retryPolicy": {"maxAttempts": int(max(2, min(5, max_attempts))), "initialBackoff": "0.1s",
-                            "maxBackoff": "2s", "backoffMultiplier": 2, "retryableStatusCodes": ["UNAVAILABLE"]},
-        }],
-    }
+    return {"loadBalancingConfig": [{"round_robin": {}}]}
 
 
 def channel_options(max_message_bytes: int = 64 * 1024 * 1024, max_reconnect_backoff_ms: int = 5000) -> list:
-    """Channel arguments of :class:`FusionClient`: message bounds, retries, the service config, and a bound on
-    gRPC's reconnection backoff (ms; gRPC's default grows to 120 s, so after a long outage the channel would keep
-    failing calls for up to two minutes after the server is back)."""
+    """Channel arguments of :class:`FusionClient`: message bounds (bytes), the service config (:func:`service_config`:
+    no retry policy), and a bound on gRPC's reconnection backoff (ms; gRPC's default grows to 120 s, so after a long
+    outage the channel would keep failing calls for up to two minutes after the server is back).
+    ``grpc.enable_retries`` stays on for gRPC's transparent retry of calls that never reached a server's handler
+    (module docstring)."""
     return [("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
             ("grpc.enable_retries", 1),
@@ -288,9 +288,104 @@ def keyframe_to_proto(agent_id: str, frame, jpeg_quality: int = 95,
     )
 
 
+def missing_chunks(status: fusion_pb2.UploadAck, n_chunks: int) -> List[int]:
+    """The chunk indices of a version of ``n_chunks`` chunks that the server lacks, from its ``UploadAck``
+    (``GetUploadStatus``'s answer, or an ``UploadSubset`` ack).
+
+    Args:
+        status (fusion_pb2.UploadAck): the server's upload state of the version.
+        n_chunks (int): chunks of the version as the caller encoded it.
+    Returns:
+        list[int]: ascending chunk indices; [] when the version is complete; every index when the server holds the
+        version under another chunk count (a count it may change while none of its chunks is stored) or not at all.
+    """
+    if status.complete:
+        return []
+    have = set(status.stored) if status.n_chunks == n_chunks else set()
+    return [i for i in range(int(n_chunks)) if i not in have]
+
+
+def _upload_calls(todo: Sequence[int], chunks: Sequence[bytes], batch_bytes: Optional[int],
+                  chunks_per_call: Optional[int]) -> List[List[int]]:
+    """``todo`` split into ``UploadSubset`` calls of at most ``batch_bytes`` chunk bytes (a larger chunk alone) and
+    ``chunks_per_call`` chunks; one empty call when ``todo`` is empty (the header alone refreshes the share stats)."""
+    calls: List[List[int]] = [[]]
+    size = 0
+    for i in todo:
+        full_bytes = batch_bytes is not None and size + len(chunks[i]) > batch_bytes
+        full_count = chunks_per_call is not None and len(calls[-1]) >= chunks_per_call
+        if calls[-1] and (full_bytes or full_count):
+            calls.append([])
+            size = 0
+        calls[-1].append(i)
+        size += len(chunks[i])
+    return calls
+
+
+def _upload_messages(header: fusion_pb2.UploadHeader, chunks: Sequence[bytes],
+                     batch: Sequence[int]) -> Iterator[fusion_pb2.UploadSubsetRequest]:
+    """One ``UploadSubset`` stream: the header, then the chunks of ``batch`` (made as gRPC sends them)."""
+    yield fusion_pb2.UploadSubsetRequest(header=header)
+    for i in batch:
+        yield fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
+
+
+def resume_upload(stub: fusion_pb2_grpc.FusionStub, header: fusion_pb2.UploadHeader, chunks: Sequence[bytes], *,
+                  timeout_s: float, metadata=None, n_gaussians: int = 0,
+                  batch_bytes: Optional[int] = UPLOAD_BATCH_BYTES, chunks_per_call: Optional[int] = None,
+                  on_send: Optional[Callable[[List[int]], None]] = None,
+                  on_ack: Optional[Callable[[List[int], fusion_pb2.UploadAck], None]] = None) -> UploadResult:
+    """One attempt at uploading a version's chunks, resuming what the server holds: ``GetUploadStatus``, then the
+    missing chunks (:func:`missing_chunks`) in ``UploadSubset`` calls, each call made once. Stops at the first ack
+    that reports the version complete. Call it again (after a backoff of the caller's choosing) to resume after an
+    error or an incomplete result; chunks acknowledged before a failure stay stored.
+
+    Args:
+        stub: a ``gausslite.v1.Fusion`` stub (the caller's channel: its credentials, load balancing, options).
+        header (fusion_pb2.UploadHeader): agent id, map version, chunk count (``len(chunks)``), map sizes.
+        chunks (list[bytes]): the version's wire chunks; chunk i has index i.
+        timeout_s (float): deadline of each call (s). metadata: call metadata (e.g. the bearer token), or None.
+        n_gaussians (int): records the chunks carry (reported back only).
+        batch_bytes (int | None): at most this many chunk bytes per call (a larger chunk goes alone); None = no bound.
+        chunks_per_call (int | None): at most this many chunks per call; None = no bound.
+        on_send ((chunk indices) -> None): called before each ``UploadSubset`` call with the chunks it carries.
+        on_ack ((chunk indices, UploadAck) -> None): called with each call's ack.
+    Returns:
+        UploadResult: ``complete`` False when the server still misses chunks after this pass (another writer of the
+        same version, or a version superseded meanwhile); ``attempts`` counts the ``UploadSubset`` calls.
+    Raises:
+        ValueError: ``header.n_chunks`` differs from ``len(chunks)``.
+        grpc.RpcError: the first call that failed, with its status (``UNAVAILABLE``, ``DEADLINE_EXCEEDED``,
+        ``INVALID_ARGUMENT``, ``FAILED_PRECONDITION``, ...).
+    """
+    if int(header.n_chunks) != len(chunks):
+        raise ValueError(f"header names {header.n_chunks} chunks, {len(chunks)} given")
+    total = sum(len(c) for c in chunks)
+    status = stub.GetUploadStatus(fusion_pb2.UploadStatusRequest(agent_id=header.agent_id,
+                                                                 map_version=header.map_version),
+                                  timeout=timeout_s, metadata=metadata)
+    if status.complete:
+        return UploadResult(True, len(chunks), total, int(n_gaussians))
+    sent = sent_bytes = calls = 0
+    ack = status
+    for batch in _upload_calls(missing_chunks(status, len(chunks)), chunks, batch_bytes, chunks_per_call):
+        if on_send is not None:
+            on_send(batch)
+        calls += 1
+        ack = stub.UploadSubset(_upload_messages(header, chunks, batch), timeout=timeout_s, metadata=metadata)
+        sent += len(batch)
+        sent_bytes += sum(len(chunks[i]) for i in batch)
+        if on_ack is not None:
+            on_ack(batch, ack)
+        if ack.complete:
+            break
+    return UploadResult(bool(ack.complete), len(chunks), total, int(n_gaussians), sent, calls, sent_bytes)
+
+
 @raises_typed_errors
 class FusionClient:
-    """Synchronous client of ``gausslite.v1.Fusion`` (thread-safe: one channel, stateless calls).
+    """Synchronous client of ``gausslite.v1.Fusion`` (thread-safe: one channel, stateless calls). Each method makes
+    its calls once and raises the failed call's ``grpc.RpcError``; retrying is the caller's (module docstring).
 
     Args:
         target (str): ``host:port`` of the fusion server, or several replicas as
@@ -302,21 +397,23 @@ class FusionClient:
             mutual TLS (TLS even without ``root_cert``: the system's roots then); the CN is the agent id.
             With none of the three: the process defaults (:mod:`gausslite_services.common.client_tls`), else plaintext.
         timeout_s (float): deadline of each call (seconds); :meth:`fuse` uses its own, longer one.
-        max_retries (int): retries of transient failures (UNAVAILABLE, DEADLINE_EXCEEDED).
-        backoff_s (float): first retry delay; doubles every retry.
+        max_retries, backoff_s: deprecated and ignored (a ``DeprecationWarning``): every call is made once and its
+            failure raised (module docstring); retry in the caller.
     Raises:
-        ValueError: non-positive timeout or negative retries/backoff; only one of client cert/key.
+        ValueError: non-positive timeout; only one of client cert/key.
     """
 
     def __init__(self, target: str, *, token: Optional[str] = None, root_cert: Optional[bytes] = None,
-                 timeout_s: float = 30.0, max_retries: int = 5, backoff_s: float = 0.2,
+                 timeout_s: float = 30.0, max_retries: Optional[int] = None, backoff_s: Optional[float] = None,
                  client_cert: Optional[bytes] = None, client_key: Optional[bytes] = None):
-        if not timeout_s > 0 or max_retries < 0 or backoff_s < 0:
-            raise ValueError("timeout_s must be > 0, max_retries and backoff_s >= 0")
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        if max_retries is not None or backoff_s is not None:
+            warnings.warn("FusionClient(max_retries=, backoff_s=) is deprecated and ignored: the client makes one "
+                          "attempt per call and raises its failure; retry in the caller (docs/robot-integration.md)",
+                          DeprecationWarning, stacklevel=2)
         self.target = target
         self.timeout_s = float(timeout_s)
-        self.max_retries = int(max_retries)
-        self.backoff_s = float(backoff_s)
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         if root_cert is None and client_cert is None and client_key is None:
             root_cert, client_cert, client_key = default_client_tls()
@@ -330,25 +427,9 @@ class FusionClient:
         self._health = health_pb2_grpc.HealthStub(self._channel)
 
     # ------------------------------------------------------------------ plumbing
-    def _retry(self, what: str, fn: Callable[[], object]):
-        """Call ``fn`` retrying RETRYABLE failures with exponential backoff."""
-        attempt = 0
-        while True:
-            try:
-                return fn()
-            except grpc.RpcError as e:
-                code = e.code() if hasattr(e, "code") else None
-                if code not in RETRYABLE or attempt >= self.max_retries:
-                    raise
-                delay = self.backoff_s * (2 ** attempt)
-                log.info("%s: %s (%s), retry %d/%d in %.2fs", what, code, e.details() if hasattr(e, "details") else "",
-                         attempt + 1, self.max_retries, delay)
-                time.sleep(delay)
-                attempt += 1
-
-    def _unary(self, method, request, what: str, timeout_s: Optional[float] = None):
-        t = self.timeout_s if timeout_s is None else timeout_s
-        return self._retry(what, lambda: method(request, timeout=t, metadata=self._metadata))
+    def _unary(self, method, request):
+        """One call of the unary ``method`` with the client's deadline and credentials."""
+        return method(request, timeout=self.timeout_s, metadata=self._metadata)
 
     # ------------------------------------------------------------------ API
     def wait_ready(self, timeout_s: float = 30.0) -> None:
@@ -387,22 +468,22 @@ class FusionClient:
         """
         req = fusion_pb2.OpenSessionRequest(agent_id=agent_id, task_text=task_text,
                                             intrinsics=intrinsics_to_proto(intrinsics))
-        return self._unary(self._stub.OpenSession, req, "OpenSession")
+        return self._unary(self._stub.OpenSession, req)
 
     def upload_status(self, agent_id: str, map_version: int) -> fusion_pb2.UploadAck:
         """The server's ``UploadAck`` for (agent, map version) (``n_chunks == 0``: never seen)."""
         return self._unary(self._stub.GetUploadStatus,
-                           fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
-                           "GetUploadStatus")
+                           fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)))
 
     def upload_subset(self, agent_id: str, map_version: int, gaussians, *, full_map_gaussians: int,
                       quant: Optional[QuantConfig] = None, chunk_gaussians: int = 20000,
                       full_map_bytes: int = 0) -> UploadResult:
         """Encode and upload an ROI subset, resuming whatever the server already holds.
 
-        The subset is encoded with :func:`gausslite.wire.encode.encode_subset`; before every attempt
-        the client asks ``GetUploadStatus`` and sends only missing chunks, in calls of at most
-        :data:`UPLOAD_BATCH_BYTES` (each call is acknowledged after its chunks are persisted).
+        The subset is encoded with :func:`gausslite.wire.encode.encode_subset`; the client asks
+        ``GetUploadStatus`` and sends only missing chunks, in calls of at most :data:`UPLOAD_BATCH_BYTES`
+        (each call is acknowledged after its chunks are persisted): one attempt (:func:`resume_upload`).
+        Call it again after a failure to resume.
 
         Args:
             agent_id (str): the agent (its session must be open).
@@ -413,13 +494,12 @@ class FusionClient:
             chunk_gaussians (int): Gaussians per chunk.
             full_map_bytes (int): optional wire size of the whole map (for statistics).
         Returns:
-            UploadResult.
+            UploadResult (``complete`` False: the server still misses chunks after this pass; call again).
         Raises:
             ValueError: the subset cannot be encoded (non-finite values, bad id).
-            grpc.RpcError: INVALID_ARGUMENT, NOT_FOUND (no session), FAILED_PRECONDITION (older than
-            the latest complete version), RESOURCE_EXHAUSTED, PERMISSION_DENIED (``agent_id`` is not
-            the caller's own), or a transient error after
-            ``max_retries`` retries.
+            grpc.RpcError: the failed call's status: INVALID_ARGUMENT, NOT_FOUND (no session), FAILED_PRECONDITION
+            (older than the latest complete version), RESOURCE_EXHAUSTED, PERMISSION_DENIED (``agent_id`` is not
+            the caller's own), or a transient UNAVAILABLE / DEADLINE_EXCEEDED (chunks acknowledged before it stay).
         """
         chunks = encode_subset(gaussians, agent_id, int(map_version), chunk_gaussians=int(chunk_gaussians),
                                quant=quant or QuantConfig())
@@ -429,7 +509,8 @@ class FusionClient:
     def upload_chunks(self, agent_id: str, map_version: int, chunks: Sequence[bytes], *, n_gaussians: int,
                       full_map_gaussians: int, full_map_bytes: int = 0) -> UploadResult:
         """Upload already encoded chunks of (agent, map version) — a full subset or a delta
-        (:func:`gausslite.wire.encode.encode_delta`) — resuming whatever the server already holds.
+        (:func:`gausslite.wire.encode.encode_delta`) — resuming whatever the server already holds: one attempt
+        (:func:`resume_upload`); call it again after a failure to resume.
 
         Args:
             chunks: the version's wire chunks (chunk i has index i).
@@ -437,62 +518,16 @@ class FusionClient:
             full_map_gaussians, full_map_bytes: as :meth:`upload_subset`.
         Returns:
             UploadResult (``bytes_on_wire``: the sizes of ``chunks``, what the server's ack reports as received;
-            ``bytes_sent`` counts the bytes transmitted by this call).
+            ``bytes_sent`` counts the bytes transmitted by this call; ``complete`` False: the server still misses
+            chunks after this pass).
         Raises:
             grpc.RpcError: as :meth:`upload_subset`; FAILED_PRECONDITION also when a delta's base
             version is not on the server (upload the full subset then).
         """
-        n = int(n_gaussians)
         header = fusion_pb2.UploadHeader(agent_id=agent_id, map_version=int(map_version), n_chunks=len(chunks),
                                          full_map_gaussians=int(full_map_gaussians), full_map_bytes=int(full_map_bytes))
-        total_bytes = sum(len(c) for c in chunks)
-        sent = 0
-        sent_bytes = 0
-        attempts = 0
-        retry = 0
-        while True:
-            try:
-                status = self._unary(self._stub.GetUploadStatus,
-                                     fusion_pb2.UploadStatusRequest(agent_id=agent_id, map_version=int(map_version)),
-                                     "GetUploadStatus")
-                if status.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
-                have = set(status.stored) if status.n_chunks == len(chunks) else set()
-                todo = [i for i in range(len(chunks)) if i not in have]
-                # one call per batch; an empty todo list still sends the header (refreshes share stats)
-                batches: List[List[int]] = [[]]
-                size = 0
-                for i in todo:
-                    if batches[-1] and size + len(chunks[i]) > UPLOAD_BATCH_BYTES:
-                        batches.append([])
-                        size = 0
-                    batches[-1].append(i)
-                    size += len(chunks[i])
-                ack = None
-                for batch in batches:
-                    def messages(batch=batch) -> Iterator[fusion_pb2.UploadSubsetRequest]:
-                        yield fusion_pb2.UploadSubsetRequest(header=header)
-                        for i in batch:
-                            yield fusion_pb2.UploadSubsetRequest(chunk=chunks[i])
-                    attempts += 1
-                    ack = self._stub.UploadSubset(messages(), timeout=self.timeout_s, metadata=self._metadata)
-                    sent += len(batch)
-                    sent_bytes += sum(len(chunks[i]) for i in batch)
-                if ack is not None and ack.complete:
-                    return UploadResult(True, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
-                if ack is not None and not ack.missing:
-                    return UploadResult(bool(ack.complete), len(chunks), total_bytes, n, sent, attempts, sent_bytes)
-                # missing chunks after a full pass: someone else interfered; loop once more
-                raise _Incomplete(list(ack.missing) if ack is not None else [])
-            except grpc.RpcError as e:
-                if e.code() not in RETRYABLE or retry >= self.max_retries:
-                    raise
-            except _Incomplete as e:
-                if retry >= self.max_retries:
-                    return UploadResult(False, len(chunks), total_bytes, n, sent, attempts, sent_bytes)
-                log.info("upload %s v%d still misses chunks %s", agent_id, map_version, e.missing[:8])
-            time.sleep(self.backoff_s * (2 ** retry))
-            retry += 1
+        return resume_upload(self._stub, header, chunks, timeout_s=self.timeout_s, metadata=self._metadata,
+                             n_gaussians=int(n_gaussians))
 
     def upload_keyframes(self, agent_id: str, keyframes: Sequence, *, jpeg_quality: int = 95,
                          color_format: str = "jpeg", rois: Optional[Sequence] = None) -> int:
@@ -521,8 +556,7 @@ class FusionClient:
         accepted = 0
         for s in range(0, len(msgs), KEYFRAME_BATCH):
             batch = msgs[s:s + KEYFRAME_BATCH]
-            ack = self._retry("UploadKeyframes", lambda b=batch: self._stub.UploadKeyframes(
-                iter(b), timeout=self.timeout_s, metadata=self._metadata))
+            ack = self._stub.UploadKeyframes(iter(batch), timeout=self.timeout_s, metadata=self._metadata)
             accepted += int(ack.stored) + int(ack.duplicates)
         return accepted
 
@@ -617,11 +651,8 @@ class FusionClient:
         """
         m = fusion_pb2.FUSE_METHOD_UNSPECIFIED if method is None else _METHODS[method]
         req = fusion_pb2.DownloadFusedRequest(fused_version=int(fused_version), method=m)
-
-        def call():
-            return [c.chunk for c in self._stub.DownloadFused(req, timeout=self.timeout_s, metadata=self._metadata)]
-
-        arrays, _ = assemble(self._retry("DownloadFused", call))
+        chunks = [c.chunk for c in self._stub.DownloadFused(req, timeout=self.timeout_s, metadata=self._metadata)]
+        arrays, _ = assemble(chunks)
         return arrays
 
     def stats(self) -> dict:
@@ -633,10 +664,9 @@ class FusionClient:
             full_map_gaussians, full_map_bytes, share_pct, keyframes, bytes_per_gaussian (stored)}}, "fused": [{fused_version, n_gaussians,
             seconds, method, refined, kept: {...}, ...}], "latest_fused_version": int}``.
         """
-        pages = [self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(), "GetStats")]
+        pages = [self._unary(self._stub.GetStats, fusion_pb2.StatsRequest())]
         while pages[-1].next_page_token:  # every page of agents; the fused maps come with the first
-            pages.append(self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(page_token=pages[-1].next_page_token),
-                                     "GetStats"))
+            pages.append(self._unary(self._stub.GetStats, fusion_pb2.StatsRequest(page_token=pages[-1].next_page_token)))
         r = pages[0]
         agents = {}
         for a in (a for p in pages for a in p.agents):
@@ -662,8 +692,7 @@ class FusionClient:
         Raises:
             grpc.RpcError: NOT_FOUND (agent without a session), INVALID_ARGUMENT (bad agent id), ...
         """
-        r = self._unary(self._stub.GetKeyframePoses, fusion_pb2.KeyframePosesRequest(agent_id=agent_id),
-                        "GetKeyframePoses")
+        r = self._unary(self._stub.GetKeyframePoses, fusion_pb2.KeyframePosesRequest(agent_id=agent_id))
         return [{"agent_id": k.agent_id, "frame_id": int(k.frame_id),
                  "c2w": np.asarray(k.pose.c2w, np.float64).reshape(4, 4), "fx": k.intrinsics.fx,
                  "fy": k.intrinsics.fy, "cx": k.intrinsics.cx, "cy": k.intrinsics.cy,
@@ -681,11 +710,6 @@ class FusionClient:
         self.close()
 
 
-class _Incomplete(Exception):
-    def __init__(self, missing: List[int]):
-        super().__init__(f"missing chunks {missing[:8]}")
-        self.missing = missing
-
-
-__all__ = ["FusionClient", "client_credentials_from_env", "channel_credentials", "service_config", "channel_options", "RETRIED_METHODS", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png", "encode_color_jpeg",
-           "keyframe_to_proto", "intrinsics_to_proto", "fuse_result_from_proto"]
+__all__ = ["FusionClient", "client_credentials_from_env", "channel_credentials", "service_config", "channel_options",
+           "resume_upload", "missing_chunks", "UploadResult", "FuseResult", "RETRYABLE", "encode_depth_png",
+           "encode_color_jpeg", "keyframe_to_proto", "intrinsics_to_proto", "fuse_result_from_proto"]

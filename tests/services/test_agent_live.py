@@ -753,7 +753,7 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
     ds = load_dataset(scene / "agent_a")
     srv = serve_fusion(ServerOptions(port=0, max_workers=8), None, data_dir=str(tmp_path / "fusion"))
     try:
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             runs = []
             for n_frames in (2, 5):

@@ -211,7 +211,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     cfg = load_config(None, TINY + ["agent.final_push_timeout_s=60"]).agent
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
-    client = FusionClient(f1.address, timeout_s=5, max_retries=1, backoff_s=0.05)
+    client = FusionClient(f1.address, timeout_s=5)
     rt = AgentRuntime("robot1", text, TaskParser().parse(text), cfg, annotations=ds.annotations, fusion=client)
     f2 = None
     try:

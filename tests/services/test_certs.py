@@ -52,7 +52,7 @@ def test_a_provisioned_robot_reaches_a_secure_fusion_server(tmp_path):
             with pytest.raises(grpc.RpcError) as e:  # robot1 may not write robot2's data
                 c.open_session("robot2", "find the desk", INTR)
             assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
-        with FusionClient(f"localhost:{srv.port}", root_cert=read("ca.pem"), timeout_s=5, max_retries=0) as c:
+        with FusionClient(f"localhost:{srv.port}", root_cert=read("ca.pem"), timeout_s=5) as c:
             with pytest.raises(grpc.RpcError):  # no client certificate: the TLS handshake fails
                 c.stats()
     finally:

@@ -59,7 +59,7 @@ def test_fusion_client_maps_a_server_status_to_its_class(tmp_path):
 
     srv = serve(ServerOptions(host="127.0.0.1", port=0), FusionConfig(data_dir=str(tmp_path)))
     try:
-        c = FusionClient(srv.address, timeout_s=10.0, max_retries=0)
+        c = FusionClient(srv.address, timeout_s=10.0)
         c.wait_ready(30)
         with pytest.raises(FailedPrecondition):  # nothing uploaded yet
             c.fuse("vote")

@@ -55,7 +55,7 @@ def _server(path):
     """An in-process fusion server on ``path`` and a client with the agent's session open."""
     srv = serve(ServerOptions(port=0, max_workers=8), None, data_dir=str(path))
     try:
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             c.open_session("robot", "find the mug", INTR)
             yield srv, c

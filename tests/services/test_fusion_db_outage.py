@@ -17,7 +17,7 @@ from bench._relay import TcpRelay
 from gausslite.wire.codec import LOSSLESS, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.common.server import ServerOptions
-from gausslite_services.fusion_server.client import FusionClient, intrinsics_to_proto
+from gausslite_services.fusion_server.client import RETRYABLE, FusionClient, intrinsics_to_proto
 from gausslite_services.fusion_server.server import FusionConfig, serve
 from gausslite_services.fusion_server.store import PostgresFusionStore, StoreUnavailable
 from tests.services.test_fusion_server import INTR, rand_subset
@@ -97,11 +97,17 @@ def test_two_replicas_answer_unavailable_and_recover_without_restart(tmp_path, r
                 codes[f"{name}@{r}"] = ei.value.code()
         assert set(codes.values()) == {grpc.StatusCode.UNAVAILABLE}, codes
 
-        # a client retrying with backoff gets through once the database is back
+        # a caller retrying with backoff gets through once the database is back (the client makes one attempt)
         threading.Timer(1.5, relay.restore).start()
-        with FusionClient(f"ipv4:127.0.0.1:{reps[0].port},127.0.0.1:{reps[1].port}", timeout_s=10, max_retries=8,
-                          backoff_s=0.2) as c:
-            res = c.upload_subset("robot1", 2, g2, full_map_gaussians=5000, quant=LOSSLESS, chunk_gaussians=300)
+        with FusionClient(f"ipv4:127.0.0.1:{reps[0].port},127.0.0.1:{reps[1].port}", timeout_s=10) as c:
+            for attempt in range(9):
+                try:
+                    res = c.upload_subset("robot1", 2, g2, full_map_gaussians=5000, quant=LOSSLESS,
+                                          chunk_gaussians=300)
+                    break
+                except grpc.RpcError as e:
+                    assert e.code() in RETRYABLE and attempt < 8, e
+                    time.sleep(0.2 * 2 ** attempt)
             assert res.complete
         # both replicas serve again (same processes) and agree; nothing acknowledged was lost
         for r in reps:

@@ -85,7 +85,7 @@ def test_a_stalled_upload_ends_after_the_idle_deadline_and_keeps_nothing_visible
     st = fusion_pb2_grpc.FusionStub(ch)
     stalled = []
     try:
-        with FusionClient(srv.address, timeout_s=10, max_retries=0) as c:
+        with FusionClient(srv.address, timeout_s=10) as c:
             for a in ("slow", "good"):
                 c.open_session(a, "find the chair", INTR)
             chunks = encode_subset(rand_subset(400, 1), "slow", 1, max_chunk_bytes=8 * 1024)
@@ -175,7 +175,7 @@ def test_upload_streams_are_bounded_server_wide_and_per_caller(tmp_path):
         held[2].release()
         held[2].wait(10)
         wait_active(2)
-        with FusionClient(srv.address, token=tok["robot-b"], timeout_s=10, max_retries=0) as c:
+        with FusionClient(srv.address, token=tok["robot-b"], timeout_s=10) as c:
             c.open_session("robot-b", "find the chair", INTR)
             assert c.upload_subset("robot-b", 1, rand_subset(200, 3), full_map_gaussians=500).complete
     finally:
@@ -211,7 +211,7 @@ def test_a_new_upload_takes_the_slot_of_a_stalled_stream_when_all_are_taken(tmp_
             st.UploadKeyframes(iter([]), timeout=5, metadata=md["good"])
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "2 on this server" in e.value.details()
         time.sleep(0.6)
-        with FusionClient(srv.address, token=tok["good"], timeout_s=10, max_retries=0) as c:
+        with FusionClient(srv.address, token=tok["good"], timeout_s=10) as c:
             c.open_session("good", "find the chair", INTR)
             assert c.upload_subset("good", 1, rand_subset(300, 5), full_map_gaussians=500).complete
         assert held[0].wait(5) and not held[1].wait(0.5)  # the longest-waiting stream (bad-1) gave its slot
@@ -256,7 +256,7 @@ def test_get_stats_pages_its_agents(tmp_path):
     ch = grpc.insecure_channel(srv.address)
     st = fusion_pb2_grpc.FusionStub(ch)
     try:
-        with FusionClient(srv.address, timeout_s=10, max_retries=0) as c:
+        with FusionClient(srv.address, timeout_s=10) as c:
             ids = [f"robot-{i:03d}" for i in range(103)]
             for a in ids:
                 c.open_session(a, "find the chair", INTR)
@@ -363,7 +363,7 @@ def test_a_decompression_bomb_leaves_a_server_process_small_and_serving(tmp_path
         r = np.random.default_rng(0)
         good = Frame(1, 0.0, r.integers(0, 255, (H, W, 3), dtype=np.uint8), np.full((H, W), 1.5, np.float32),
                      np.eye(4), INTR)
-        with FusionClient(address, timeout_s=30, max_retries=0) as c:
+        with FusionClient(address, timeout_s=30) as c:
             c.wait_ready(30)
             c.open_session("robot-1", "find the chair", INTR)
             c.upload_keyframes("robot-1", [good])  # warm: the decoding path has run once

@@ -64,7 +64,7 @@ def start(tmp_path, **kw):
 
 
 def client(srv, token=None) -> FusionClient:
-    return FusionClient(f"127.0.0.1:{srv.port}", token=token, timeout_s=10, max_retries=0, backoff_s=0.01)
+    return FusionClient(f"127.0.0.1:{srv.port}", token=token, timeout_s=10)
 
 
 def stub(srv, token):

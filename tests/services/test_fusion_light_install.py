@@ -86,7 +86,7 @@ _CHILD = _HOOK + textwrap.dedent('''
     srv = serve(ServerOptions(port=0, max_workers=8, metrics_port=metrics_port), data_dir=tempfile.mkdtemp())
     try:
         a, b = subset(600, 0.0, 1), subset(400, 0.5, 2)
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             c.open_session("robot-a", "find the cup", K)
             c.open_session("robot-b", "find the desk", K)

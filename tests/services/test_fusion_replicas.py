@@ -47,7 +47,7 @@ def test_upload_interrupted_by_a_killed_replica_resumes_on_another(tmp_path, pg_
         assert list(ack.stored) == [0, 1, 2, 5, 7] and not ack.complete
         _kill(proc)  # SIGKILL replica A mid-upload
         # the agent's round-robin channel names both replicas; A is gone, B has everything A acknowledged
-        with FusionClient(f"ipv4:127.0.0.1:{port_a},127.0.0.1:{b.port}", timeout_s=10, backoff_s=0.05) as c:
+        with FusionClient(f"ipv4:127.0.0.1:{port_a},127.0.0.1:{b.port}", timeout_s=10) as c:
             st = c.upload_status("survivor", 3)
             assert list(st.stored) == [0, 1, 2, 5, 7] and sorted(st.missing) == [3, 4, 6, 8, 9, 10, 11]
             res = c.upload_subset("survivor", 3, g, full_map_gaussians=60000, quant=LOSSLESS, chunk_gaussians=500)
@@ -66,7 +66,7 @@ def test_replicas_agree_and_serialise_concurrent_fusions(tmp_path, pg_schema_dsn
     subsets = {f"r{i}": rand_subset(3000, 0.6 * i, 10 + i) for i in range(4)}  # neighbouring cubes overlap
     try:
         target = "ipv4:" + ",".join(f"127.0.0.1:{r.port}" for r in reps)
-        with FusionClient(target, timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(target, timeout_s=20) as c:
             for a, g in subsets.items():  # round robin: chunks of one agent land on both replicas
                 c.open_session(a, f"task {a}", INTR)
                 assert c.upload_subset(a, 1, g, full_map_gaussians=30000, chunk_gaussians=400,
@@ -134,12 +134,10 @@ def test_bad_store_dsn_is_a_clear_startup_error(tmp_path, capsys, monkeypatch):
 def test_client_balances_round_robin_over_every_listed_replica(tmp_path):
     """The channel spreads calls over all replicas of an ``ipv4:`` list (gRPC round_robin): with
     separate SQLite stores each replica records the sessions it served."""
-    from gausslite_services.fusion_server.client import RETRIED_METHODS, service_config
+    from gausslite_services.fusion_server.client import service_config
 
-    cfg = service_config()
-    assert cfg["loadBalancingConfig"] == [{"round_robin": {}}]
-    policy = cfg["methodConfig"][0]["retryPolicy"]
-    assert policy["retryableStatusCodes"] == ["UNAVAILABLE"] and "Fuse" not in RETRIED_METHODS
+    # round robin, and no retry policy: the client makes one attempt per call, its caller retries
+    assert service_config() == {"loadBalancingConfig": [{"round_robin": {}}]}
     reps = [serve(ServerOptions(port=0), data_dir=str(tmp_path / n)) for n in ("a", "b")]
     try:
         with FusionClient("ipv4:" + ",".join(f"127.0.0.1:{r.port}" for r in reps), timeout_s=10) as c:
@@ -160,7 +158,7 @@ def test_dns_target_reaches_a_replica(tmp_path, pg_schema_dsn):
     reps = [_replica(tmp_path, pg_schema_dsn, n) for n in ("a", "b")]
     g = rand_subset(800, 0.0, 5)
     try:
-        with FusionClient(f"dns:///localhost:{reps[0].port}", timeout_s=10, backoff_s=0.05) as c:
+        with FusionClient(f"dns:///localhost:{reps[0].port}", timeout_s=10) as c:
             c.wait_ready(20)
             assert c.open_session("dns-agent", "inspect the valve", INTR).latest_map_version == 0
             assert c.upload_subset("dns-agent", 1, g, full_map_gaussians=8000, quant=LOSSLESS).complete
@@ -169,7 +167,7 @@ def test_dns_target_reaches_a_replica(tmp_path, pg_schema_dsn):
         assert reps[0].store.latest_version("dns-agent") == 1
         with FusionClient(f"127.0.0.1:{reps[1].port}", timeout_s=10) as c:
             assert c.stats()["agents"]["dns-agent"]["latest_map_version"] == 1
-        with FusionClient(f"dns:///no-such-fusion-host.invalid:{reps[0].port}", timeout_s=2, max_retries=0) as c:
+        with FusionClient(f"dns:///no-such-fusion-host.invalid:{reps[0].port}", timeout_s=2) as c:
             with pytest.raises(TimeoutError, match="no-such-fusion-host"):
                 c.wait_ready(2)
     finally:

@@ -61,7 +61,7 @@ def server(tmp_path):
 
 @pytest.fixture()
 def client(server):
-    with FusionClient(f"127.0.0.1:{server.port}", timeout_s=20, backoff_s=0.05) as c:
+    with FusionClient(f"127.0.0.1:{server.port}", timeout_s=20) as c:
         c.wait_ready(10)
         yield c
 
@@ -442,29 +442,36 @@ def test_intrinsics_and_session_reopen(server, client):
     assert client.stats()["agents"]["re"]["task_text"] == "second"
 
 
-def test_client_retries_transient_failures(tmp_path):
+def test_client_fails_fast_and_a_retry_loop_of_the_caller_gets_through(tmp_path):
+    """No server: a call fails with UNAVAILABLE (one attempt, no waiting for a deadline); the server comes up while the
+    caller's own loop backs off, and the next attempt succeeds on the same client."""
     import socket
 
     with socket.socket() as s:  # a free loopback port with nothing listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    with FusionClient(f"127.0.0.1:{port}", timeout_s=2, max_retries=2, backoff_s=0.1) as c:
-        t0 = time.monotonic()
-        code, _ = code_of(c.stats)
-        assert code == grpc.StatusCode.UNAVAILABLE and time.monotonic() - t0 >= 0.3  # 0.1 + 0.2 backoff
-        with pytest.raises(TimeoutError):
-            c.wait_ready(0.3)
-    # the server comes up while the client is backing off: the call succeeds
     box = {}
     starter = threading.Timer(0.4, lambda: box.setdefault("srv", start(tmp_path, port=port)))
-    starter.start()
-    try:
-        with FusionClient(f"127.0.0.1:{port}", timeout_s=2, max_retries=8, backoff_s=0.1) as c:
-            c.open_session("late", "t", INTR)
+    with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:
+        t0 = time.monotonic()
+        code, _ = code_of(c.stats)
+        assert code == grpc.StatusCode.UNAVAILABLE and time.monotonic() - t0 < 10  # not the deadline: refused
+        with pytest.raises(TimeoutError):
+            c.wait_ready(0.3)
+        starter.start()
+        try:
+            deadline = time.monotonic() + 30
+            while True:
+                try:
+                    c.open_session("late", "t", INTR)
+                    break
+                except grpc.RpcError as e:
+                    assert e.code() == grpc.StatusCode.UNAVAILABLE and time.monotonic() < deadline
+                    time.sleep(0.1)
             assert c.upload_subset("late", 1, rand_subset(100, 0, 1), full_map_gaussians=100).complete
-    finally:
-        starter.join()
-        box["srv"].stop(0.5)
+        finally:
+            starter.join()
+            box["srv"].stop(0.5)
 
 
 def test_keyframe_roi_is_validated_and_stored(server, client):
@@ -629,7 +636,7 @@ def test_absurd_gaussians_are_refused_and_the_bounds_are_configurable(tmp_path):
 
     srv = start(tmp_path)
     try:
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             c.open_session("robot_p", "find the cup", INTR)
             good = _splats([[0.0, 0.0, 1.5], [0.1, 0.0, 1.5]], 0.05)
@@ -653,7 +660,7 @@ def test_absurd_gaussians_are_refused_and_the_bounds_are_configurable(tmp_path):
         srv.stop(0.5)
     srv = start(tmp_path, name="wide", config=FusionSettings(max_scale_m=2000.0))
     try:
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             c.open_session("robot_p", "find the cup", INTR)
             assert c.upload_subset("robot_p", 1, _splats([[0.0, 0.0, 1.5]], 1000.0), full_map_gaussians=10,
@@ -669,7 +676,7 @@ def test_fused_maps_are_kept_up_to_the_retention_bound(tmp_path):
 
     srv = start(tmp_path, config=FusionSettings(fused_keep_per_method=3))
     try:
-        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20, backoff_s=0.05) as c:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=20) as c:
             c.wait_ready(10)
             c.open_session("robot_r", "find the cup", INTR)
             c.upload_subset("robot_r", 1, rand_subset(200, 0.0, 3), full_map_gaussians=1000)

@@ -65,7 +65,7 @@ def test_link_outage_mid_mission(tmp_path):
     text = ds.annotations.task_by_id("synth-pick-object").text
     data, port_file = tmp_path / "fusion", tmp_path / "port"
     proc, port = _start_fusion(data, port_file)
-    client = FusionClient(f"127.0.0.1:{port}", timeout_s=3, max_retries=1, backoff_s=0.05)
+    client = FusionClient(f"127.0.0.1:{port}", timeout_s=3)
     rt = AgentRuntime("robot1", text, TaskParser().parse(text), load_config(None, CFG).agent,
                       annotations=ds.annotations, fusion=client)
     try:

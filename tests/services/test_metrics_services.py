@@ -145,7 +145,7 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
         intr = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
         g = subset(2500, 1)
         wire_bytes = sum(len(c) for c in encode_subset(g, "robot_x", 1, chunk_gaussians=1000))
-        with FusionClient(fusion.address, timeout_s=20, backoff_s=0.05) as fc:
+        with FusionClient(fusion.address, timeout_s=20) as fc:
             fc.wait_ready(10)
             fc.open_session("robot_x", "find the cup", intr)
             up = fc.upload_subset("robot_x", 1, g, full_map_gaussians=5000, chunk_gaussians=1000)

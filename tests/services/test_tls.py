@@ -66,7 +66,7 @@ def stats_code(port, ca=None, client=None, token=None):
 def fusion_client(port, ca: Pem, client: Pem = None, token=None) -> FusionClient:
     return FusionClient(f"127.0.0.1:{port}", token=token, root_cert=ca.cert_bytes(),
                         client_cert=client.cert_bytes() if client else None,
-                        client_key=client.key_bytes() if client else None, timeout_s=5, max_retries=0)
+                        client_key=client.key_bytes() if client else None, timeout_s=5)
 
 
 def test_tls_call_succeeds_and_plaintext_or_wrong_ca_fails(tmp_path, pki):
