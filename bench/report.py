@@ -440,6 +440,13 @@ def compute_sweep_table(r: dict) -> str:
     return table(r) + "\n"
 
 
+def team_long_table(r: dict) -> str:
+    """Long live teams under ``novel``: each team map − each robot's own map (``bench/results/team_long.json``)."""
+    from bench.team import long_table  # lazy: the page's other regions need none of it
+
+    return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, long_table(r)) + "\n"
+
+
 # ---------------------------------------------------------------- the summary page (docs/results.md)
 
 #: the cumulative rows of ``gausslite ablate`` (the paper's Table 3), in order
@@ -890,6 +897,7 @@ REGIONS: Dict[str, Region] = {
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
+    "team-long": Region("bench/results/team_long.json", team_long_table),
     "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
     # docs/results.md's summary
     "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),

@@ -488,6 +488,27 @@ def protocol_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+#: the maps a long-mission table compares with each robot's own map: (summary key, column title)
+LONG_COLUMNS = (("vote", "vote"), ("refine", "served team map (vote + refine)"),
+                ("for_robot", "map for the robot (server)"), ("with_own", "team map made on board"))
+
+
+def long_table(result: dict, q: str = "novel") -> str:
+    """docs/sharing.md's long-mission table: per team and robot its own map's ROI PSNR under protocol ``q`` and each
+    map of :data:`LONG_COLUMNS` − the own map (the paired per-frame gain over runs, run-clustered 95 % interval)."""
+    lines = ["| team | robot, task | own map (dB) | " + " | ".join(f"{t} − own" for _, t in LONG_COLUMNS) + " |",
+             "|---|---|---|" + "---|" * len(LONG_COLUMNS)]
+    for team, blk in result["teams"].items():
+        for aid, a in blk["agents"].items():
+            v = (a.get("protocols") or {}).get(q)
+            if not v:
+                continue
+            lines.append(f"| {team} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | "
+                         + " | ".join(fmt_gain(v[f"{k}_minus_own_gain"]) if v.get(f"{k}_minus_own_gain")
+                                      else _f(v.get(f"{k}_minus_own")) for k, _ in LONG_COLUMNS) + " |")
+    return "\n".join(lines)
+
+
 def _gain_pm(row: dict, key: str) -> str:
     """A gain of :func:`gain_over_runs` for a table: the paired per-frame gain [95 % interval] with the per-run
     spread, or mean ± std over runs for rows without per-frame figures."""
@@ -639,6 +660,19 @@ def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict
     return curve
 
 
+def resummarise(src: Path, out: Path, argv) -> dict:
+    """Summarise the runs of the team result ``src`` again (:func:`summarise`, the tables) into ``out`` and its
+    ``.md``; the JSON keeps the runs' provenance and settings. Returns the result."""
+    result = json.loads(src.read_text())
+    result["teams"] = summarise(result["runs"])
+    ran = result.get("provenance", {}).get("command", str(src))
+    write_results(out, "team", argv, f": the runs of `{ran}`, summarised again",
+                  table(result) + "\n\n" + protocol_table(result)
+                  + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n"
+                  + cover_table(result["runs"]), result)
+    return result
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--teams", default=",".join(TEAMS))
@@ -662,9 +696,15 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--curve", default=None, metavar="FILE[,FILE...]",
                     help="run nothing: read team results run at different agent.share_max_fraction bounds and write "
                          "their share curve into --out (key share_curve) and <out>_curve.md")
+    ap.add_argument("--summary-of", default=None, metavar="FILE",
+                    help="run nothing: summarise the runs of a team result again (this version's goals and tables) "
+                         "into --out, keeping the runs' provenance")
     ap.add_argument("--default-bound", type=float, default=0.08,
                     help="--curve: the bound of a result run without a share_max_fraction override")
     args = ap.parse_args(argv)
+    if args.summary_of:
+        resummarise(Path(args.summary_of), Path(args.out), argv)
+        return 0
     if args.curve:
         write_curve([f for f in args.curve.split(",") if f], Path(args.out), args.default_bound, argv)
         return 0
