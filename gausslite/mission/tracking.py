@@ -1,0 +1,109 @@
+"""Where a mission's poses come from (``agent.pose_source``): the poses each frame carries (``given``), or the RGB-D
+odometry tracking every frame as it arrives (``odometry``, :class:`gausslite.datasets.odometry.RGBDOdometry`), whose
+loop closures the map then follows (:class:`gausslite.mission.pose_follow.MapFollower`).
+
+Poses are camera-to-world, (4, 4) float64, metres, OpenCV camera axes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Dict, Optional
+
+import numpy as np
+
+from gausslite.datasets.base import Frame
+from gausslite.mission.config import AgentConfig
+from gausslite.mission.pose_follow import MapFollower
+from gausslite.mission.progress import MissionProgress
+
+__all__ = ["PoseSource", "odometry_for"]
+
+
+def odometry_for(config: AgentConfig):
+    """The RGB-D odometry of a mission with ``agent.pose_source: odometry`` (None otherwise); its world frame is the
+    first frame's pose (the identity for a stream without poses)."""
+    if config.pose_source != "odometry":
+        return None
+    # lazy: Open3D loads only for missions that track
+    from gausslite.datasets.odometry import RGBDOdometry
+
+    # a live stream: loop closure on its own thread, so that a keyframe's loop registrations never delay tracking
+    return RGBDOdometry(config.odometry, background_loops=True)
+
+
+class PoseSource:
+    """The mission's poses: given with the frames, or tracked by the odometry (``agent.pose_source``).
+
+    Args:
+        config: the mission's ``AgentConfig`` (``pose_source``, ``odometry``).
+        progress: the mission's :class:`~gausslite.mission.progress.MissionProgress` (a frame the odometry loses is
+            counted as received and rejected there, with ``last_error``).
+
+    Attributes:
+        odometry: the :class:`~gausslite.datasets.odometry.RGBDOdometry`, or None for given poses.
+        follower: the :class:`~gausslite.mission.pose_follow.MapFollower` moving the map after the odometry's loop
+            closures, or None.
+        estimated_poses: frame id → (4, 4) float64 c2w the odometry estimated, in the world frame, for every frame
+            tracked while :attr:`records` is set (a replay: the poses its map is scored at).
+        records: keep :attr:`estimated_poses` (set by a replay before its first frame).
+    """
+
+    def __init__(self, config: AgentConfig, progress: MissionProgress) -> None:
+        self.progress = progress
+        self.odometry = odometry_for(config)
+        self.follower = None if self.odometry is None else MapFollower(self.odometry)
+        self.estimated_poses: Dict[int, np.ndarray] = {}
+        self.records = False
+
+    @property
+    def tracks(self) -> bool:
+        """The odometry gives the poses (``agent.pose_source: odometry``)."""
+        return self.odometry is not None
+
+    def track(self, frame, W: Optional[np.ndarray] = None) -> Optional[Frame]:
+        """``frame`` decoded, with the odometry's pose, or None when its tracking failed: the frame is then logged in
+        ``last_error``, counted as received and rejected, and not mapped. Call only when :attr:`tracks`.
+
+        Args:
+            frame: a :class:`~gausslite.datasets.base.Frame` or a not yet decoded one (``materialize() -> Frame``):
+                the odometry needs every frame's images.
+            W: (4, 4) the transform from the odometry's frame into the map's that the frame's pose takes next
+                (None: the identity).
+        Returns:
+            the decoded frame with ``c2w`` the odometry's (4, 4) float64 estimate, or None.
+        """
+        if hasattr(frame, "materialize"):
+            frame = frame.materialize()
+        odometry = self.odometry
+        if odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
+            odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
+        r = odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
+        if r.ok:
+            self.follower.record(frame.frame_id, r, W)
+            if self.records:
+                self.estimated_poses[int(frame.frame_id)] = np.asarray(r.c2w, dtype=np.float64).copy()
+            return dataclasses.replace(frame, c2w=r.c2w)
+        p = self.progress
+        with p.lock:
+            p.frames_received += 1
+            p.frames_rejected += 1
+            p.last_error = f"odometry lost frame {frame.frame_id}: {r.reason}"
+        return None
+
+    def follow(self, mapper) -> None:
+        """Move ``mapper``'s frames by the loop closures found since the last call (no-op for given poses)."""
+        if self.follower is not None:
+            self.follower.apply(mapper)
+
+    def status(self) -> dict:
+        """``frames_lost``, ``frames_relocalised`` and ``loop_closures`` of the odometry (zeros without one)."""
+        if self.odometry is None:
+            return {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0}
+        s = self.odometry.summary()
+        return {"frames_lost": s["failed"], "frames_relocalised": s["relocalised"], "loop_closures": s["loops"]}
+
+    def close(self) -> None:
+        """Stop the odometry's loop-closing thread. Safe to call more than once."""
+        if self.odometry is not None:
+            self.odometry.close()
