@@ -320,8 +320,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if mid is None and s.data_dir:
             mid = uuid.uuid4().hex[:12]
         ckpt = Path(s.data_dir) / aid / mid if s.data_dir else None
-        rt = AgentRuntime(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
-                          fusion=fusion, on_finished=self._save, mission_id=mid, checkpoint_dir=ckpt)
+        rt = AgentRuntime.launch(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
+                                 fusion=fusion, on_finished=self._save, mission_id=mid, checkpoint_dir=ckpt)
         with self._lock:
             self.missions[rt.mission_id] = rt
             self.current = rt.mission_id

@@ -10,7 +10,7 @@ import threading
 from gausslite.config import load_config
 from gausslite.mapping.mapper import FrameStats
 from gausslite.mission import AgentRuntime
-from gausslite.mission import runtime as runtime_mod
+from gausslite.mission import worker as worker_mod
 from tests._scenes import plane_frame
 from tests._waits import wait_until
 
@@ -19,7 +19,7 @@ GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
 def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatch):
     trims = []
-    monkeypatch.setattr(runtime_mod, "trim_heap", lambda: trims.append(threading.current_thread().name) or True)
+    monkeypatch.setattr(worker_mod, "trim_heap", lambda: trims.append(threading.current_thread().name) or True)
     cfg = load_config(None, ["agent.ingest=every_frame", "agent.push_every=1", "mapper.mode=uniform",
                              "agent.resolution.min_width=16"]).agent
     rt = AgentRuntime("t", "Pick up the object", GRAPH, cfg, relevance_fn=lambda fr: None)

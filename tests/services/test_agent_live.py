@@ -220,15 +220,15 @@ def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
     keyframed, n_g, version = st["frames_keyframed"], st["n_gaussians"], rt.pusher.version
     rt.close()
     # a second runtime with the same mission id resumes
-    rt2 = AgentRuntime("a1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
-                       checkpoint_dir=tmp_path / "m1")
+    rt2 = AgentRuntime.launch("a1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
+                              checkpoint_dir=tmp_path / "m1")
     st2 = rt2.status()
     assert st2["resumed_keyframes"] == keyframed == st2["frames_keyframed"] >= 1
     assert st2["n_gaussians"] > 0 and rt2.pusher.version >= version >= 1
     rt2.close()
     with pytest.raises(ValueError, match="task"):
-        AgentRuntime("a1", "Find the chair", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
-                     checkpoint_dir=tmp_path / "m1")
+        AgentRuntime.launch("a1", "Find the chair", graph, cfg, relevance_fn=lambda fr: None, mission_id="m1",
+                            checkpoint_dir=tmp_path / "m1")
 
 
 # ---------------------------------------------------------------------------------------------- gRPC
@@ -807,7 +807,7 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     graph = {"targets": ["object"], "anchors": [], "relations": []}
     cfg = AgentConfig(share="task", share_worker="thread",
                       mapper=MapperConfig(mode="gausslite", performance={"render_threads": 2}))
-    rt = AgentRuntime("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
+    rt = AgentRuntime.launch("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
     try:
         deadline = time.time() + 5
         nice = None

@@ -120,8 +120,8 @@ def test_a_checkpoint_resumes_only_in_the_world_frame_it_was_mapped_in(scenes, t
     finally:
         rt.close()
     with pytest.raises(ValueError, match="another world frame"):
-        AgentRuntime("b", "Find the chair", graph, cfgs[1], relevance_fn=lambda fr: None, mission_id="m1",
-                     checkpoint_dir=tmp_path / "m1")
+        AgentRuntime.launch("b", "Find the chair", graph, cfgs[1], relevance_fn=lambda fr: None, mission_id="m1",
+                            checkpoint_dir=tmp_path / "m1")
 
 
 def _subset(fusion, agent: str):
