@@ -66,7 +66,6 @@ import grpc
 import numpy as np
 import torch
 
-from bench._relay import TcpRelay
 from bench._results import write_json
 from gausslite.datasets import load_dataset
 from gausslite.fusion.vote import voxel_vote
@@ -78,6 +77,7 @@ from gausslite.wire.codec import GaussianArrays, QuantConfig, assemble, encode_s
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.fusion_server.client import (FusionClient, channel_options, intrinsics_to_proto,
                                                      keyframe_to_proto, resume_upload)
+from tests._relay import TcpRelay
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -343,7 +343,7 @@ def agent_main(i: int, target: str, make, args, frames: list, stop: threading.Ev
 # ------------------------------------------------------------------------------------ database outage
 class DbOutage:
     """Makes the PostgreSQL store unreachable for the replicas and brings it back: cuts a TCP relay of this
-    process that the replicas connect through (:class:`bench._relay.TcpRelay`; the default, safe on a
+    process that the replicas connect through (:class:`tests._relay.TcpRelay`; the default, safe on a
     shared cluster), or runs ``stop_cmd`` / ``start_cmd`` (e.g. ``pg_ctlcluster 15 main stop|start``)."""
 
     def __init__(self, store_dsn: str, stop_cmd: Optional[str] = None, start_cmd: Optional[str] = None):

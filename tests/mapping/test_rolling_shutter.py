@@ -18,7 +18,7 @@ H, W = 40, 56
 READOUT = 0.05  # seconds, first row to last
 
 
-def _rs_frame(i: int, x: float, speed: float, t: float) -> "object":
+def rolling_shutter_frame(i: int, x: float, speed: float, t: float) -> "object":
     """Plane frame i of a camera at world x = ``x`` at its timestamp ``t``, sliding along x at ``speed`` m/s,
     taken with a rolling shutter: row v is the row of a global-shutter image taken at t + t(v)."""
     fr = plane_frame(i, x, H, W)
@@ -64,7 +64,7 @@ def _mapper(rs: float) -> Mapper:
 
 def test_render_view_stacks_bands_rendered_from_their_readout_poses():
     m = _mapper(READOUT)
-    slow = [_rs_frame(i, 0.005 * i, 0.05, i * 0.1) for i in range(3)]
+    slow = [rolling_shutter_frame(i, 0.005 * i, 0.05, i * 0.1) for i in range(3)]
     for fr in slow:
         m.map_frame(fr)
     assert m.sensor.rs_norm == pytest.approx(readout_norm(READOUT, 50.0, H))
@@ -104,9 +104,9 @@ def test_a_map_rendered_with_the_rolling_shutter_matches_a_fast_frame_taken_with
     band by band at the rows' readout poses it matches the image far better than a global-shutter render."""
     m = _mapper(READOUT)
     for i in range(3):
-        m.map_frame(_rs_frame(i, 0.005 * i, 0.05, i * 0.1))
+        m.map_frame(rolling_shutter_frame(i, 0.005 * i, 0.05, i * 0.1))
     m.optimize(n_iters=120)
-    fast = _rs_frame(3, 0.01, 2.0, 0.3)
+    fast = rolling_shutter_frame(3, 0.01, 2.0, 0.3)
     sharp = score_view(m.render_frame(fast), fast).psnr  # frame 3 was not mapped: frame 2's (slow) motion
     m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, fast.c2w, 0.3, m.cfg.sensor.blur_exposure_s)
     rs = score_view(m.render_frame(fast), fast).psnr
@@ -116,7 +116,7 @@ def test_a_map_rendered_with_the_rolling_shutter_matches_a_fast_frame_taken_with
 def test_density_statistics_count_a_banded_view_once_per_gaussian():
     """With zero motion the rolling-shutter mapper renders one image and its statistics equal the global
     shutter's; a banded view sums a Gaussian's gradient over the bands before the norm (one count each)."""
-    frames = [_rs_frame(i, 0.0, 0.0, i * 0.1) for i in range(2)]
+    frames = [rolling_shutter_frame(i, 0.0, 0.0, i * 0.1) for i in range(2)]
     a, b = _mapper(0.0), _mapper(READOUT)
     for m in (a, b):
         m.cfg.densify.enabled = True
@@ -132,26 +132,6 @@ def test_density_statistics_count_a_banded_view_once_per_gaussian():
     kf = m.keyframes.load(1, m.device)
     m.step(kf, active_phase=False)
     assert m.strategy.grad_count.max() == 1 and m.strategy.grad_count.sum() > 0
-
-
-def test_bench_warp_psnr_peaks_at_the_true_readout():
-    """bench.rolling_shutter's calibration on frames with a known 50 ms readout: two views of the plane taken
-    sliding left and right at 2 m/s warp into each other best with the true readout, worse with a global
-    shutter, worst with the rows read bottom first; the velocities are the poses' central differences."""
-    from bench.rolling_shutter import velocities, warp_psnr
-
-    fi = _rs_frame(0, 0.0, 2.0, 0.0)
-    fj = _rs_frame(1, 0.03, -2.0, 0.1)
-    vi, vj = np.array([0, 0, 0, 2.0, 0, 0]), np.array([0, 0, 0, -2.0, 0, 0])
-    true, cover = warp_psnr(fi, fj, vi, vj, READOUT)
-    gs = warp_psnr(fi, fj, vi, vj, 0.0)[0]
-    flipped = warp_psnr(fi, fj, vi, vj, READOUT, rows_top_first=False)[0]
-    assert cover > 0.5
-    assert true > gs + 3.0 and gs > flipped, (true, gs, flipped)
-    frames = [plane_frame(i, 0.1 * i, H, W) for i in range(3)]  # 0.1 m per 1/30 s: 3 m/s along x
-    v = velocities(frames)
-    np.testing.assert_allclose(v[1], [0, 0, 0, 3.0, 0, 0], atol=1e-9)
-    np.testing.assert_allclose(v[0], v[1], atol=1e-9)  # one-sided at the ends
 
 
 def test_central_motion_estimate_gives_each_frame_the_motion_around_it():

@@ -1,5 +1,5 @@
 """PostgreSQL going away under two fusion replicas: the replicas reach the test database through a TCP relay
-(:class:`bench._relay.TcpRelay`) that the test cuts — their connections drop and new ones are refused, as
+(:class:`tests._relay.TcpRelay`) that the test cuts — their connections drop and new ones are refused, as
 when the database is stopped — without stopping the shared cluster. Calls then fail with UNAVAILABLE (not
 INTERNAL), a retrying client gets through once the link is back, nothing acknowledged before is lost and
 the replicas serve again without a restart."""
@@ -13,7 +13,7 @@ from urllib.parse import urlsplit, urlunsplit
 import grpc
 import pytest
 
-from bench._relay import TcpRelay
+from tests._relay import TcpRelay
 from gausslite.wire.codec import LOSSLESS, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.common.server import ServerOptions

@@ -89,7 +89,7 @@ class _FakeFusion:
         return SimpleNamespace(fused_version=len(self.fuses))
 
     def download_fused(self, version):
-        from bench.wire_fuzz import random_arrays
+        from tests._fuzz import random_arrays
 
         return random_arrays(sum(self.versions.values()), version, extent=1.0)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.wire_fuzz import random_arrays
+from tests._fuzz import random_arrays
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.config import LearningRates
 from gausslite.mapping.model import GaussianModel

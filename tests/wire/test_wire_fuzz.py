@@ -1,11 +1,11 @@
-"""Fast variant of ``bench.wire_fuzz`` (≈ 200 hypothesis examples over every property); the bench
-runs the same properties with ≥ 100k examples."""
+"""Fast variant of ``bench.wire_fuzz`` (≈ 200 hypothesis examples over every property of ``tests/_fuzz.py``);
+the bench runs the same properties with ≥ 100k examples."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench.wire_fuzz import properties
+from tests._fuzz import properties
 
 PROPS = properties()
 

@@ -1,5 +1,5 @@
 """Wire codec on hostile bytes: only typed WireError subclasses, limits before allocation.
-The randomised (hypothesis) hostile-input properties live in ``bench.wire_fuzz``
+The randomised (hypothesis) hostile-input properties live in ``tests/_fuzz.py``
 (``tests/wire/test_wire_fuzz.py`` runs them briefly)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zstandard
 
-from bench.wire_fuzz import forge, with_payload
+from tests._fuzz import forge, with_payload
 from gausslite.wire import (
     HEADER_SIZE,
     LOSSLESS,

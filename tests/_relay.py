@@ -1,6 +1,6 @@
 """A TCP relay that can cut a link: the database (or any server) behind it "goes down" for its clients
-without stopping the real server, which other users may share. Used by ``bench.fleet --db-outage`` and
-the database-outage tests."""
+without stopping the real server, which other users may share (not a test module). Used by the database-outage
+tests and by ``bench.fleet --db-outage``."""
 
 from __future__ import annotations
 
