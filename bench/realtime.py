@@ -51,7 +51,6 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Optional
 
 import cv2
@@ -70,6 +69,7 @@ from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
 from gausslite.mission import AgentRuntime, FusionPort
+from gausslite.mission.fakes import SinkFusion
 from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, fmt_gain, gain, paired_gain, significant
 from gausslite.synthetic import make_scene
@@ -180,29 +180,6 @@ class Preloaded:
 
     def __getitem__(self, i: int):
         return self.frames[i]
-
-
-class SinkFusion:
-    """An in-process :class:`gausslite.mission.ports.FusionPort` that accepts every upload (``--share``): the agent selects,
-    fine-tunes, plans and encodes its pushes as it would for a server, so the push work competes with mapping
-    as it does on a robot, without a network in the measurement."""
-
-    def __init__(self) -> None:
-        self.bytes = 0
-        self.uploads = 0
-
-    def open_session(self, agent_id, task_text, intrinsics):
-        return SimpleNamespace(latest_map_version=0)
-
-    def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
-        chunks = list(chunks)
-        n = sum(len(c.SerializeToString()) if hasattr(c, "SerializeToString") else len(c) for c in chunks)
-        self.bytes += n
-        self.uploads += 1
-        return SimpleNamespace(complete=True, bytes_sent=n, n_chunks=len(chunks))
-
-    def upload_keyframes(self, agent_id, frames, **kw):
-        return len(frames)
 
 
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):

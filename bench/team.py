@@ -7,9 +7,9 @@ Each run maps every agent of a team live (``bench.realtime``'s protocol: the age
 scene's sensor profile, keyframe ingest at the scene's clock, ``budget`` s of wall time per keyframe, the Gaussian
 cap, **no final pass**), one agent after the other, so that each has the machine to itself as a robot has its own
 computer. Agents share as deployed (task selection, fine-tune, delta pushes) to an in-process stand-in of the
-fusion server's store (:class:`RecordingFusion`): it rebuilds every push (deltas on their base) as the server
-holds it and keeps the uploaded keyframes (the server's per-agent bound), with the push's time on the mission
-clock. After the missions:
+fusion server's store (:class:`gausslite.mission.fakes.RecordingFusion`): it rebuilds every push (deltas on their
+base) as the server holds it and keeps the uploaded keyframes (the server's per-agent bound), with the push's time
+on the mission clock. After the missions:
 
 * **fused over time** — the pushes of all agents are merged by mission time; after each one the vote map of the
   subsets held at that moment is scored on every task's ROI (every ``--eval-stride``-th frame);
@@ -50,8 +50,8 @@ import numpy as np
 from tqdm import tqdm
 
 from bench._results import write_json, write_results
-from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, SinkFusion,
-                            scene_path, score, start_mission)
+from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, scene_path, score,
+                            start_mission)
 from gausslite.config import load_config
 from gausslite.datasets import task_roi
 from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, evaluate_fused,
@@ -61,11 +61,8 @@ from gausslite.fusion.diagnose import RoiView, roi_cover
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
-from gausslite.mapping.views import keyframe_from_frame
+from gausslite.mission.fakes import RecordingFusion
 from gausslite.core.arrays import GaussianArrays
-from gausslite.fusion.uploads import rebuild_subset
-from gausslite.wire.decode import SubsetAssembler
-from gausslite.wire.format import WireLimits
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
 #: of the sequence; None = all). ``dir``: the synthetic scene's robot folder.
@@ -94,46 +91,6 @@ PER_ROBOT = ("for_robot", "with_own")
 ROBOT_CAMERA = "robot_camera"
 #: refinement iterations of the ``refine_long`` column (a fusion server with time to spare)
 LONG_REFINE_ITERS = 1000
-
-
-class RecordingFusion(SinkFusion):
-    """In-process stand-in of the fusion server's store for one agent (a :class:`gausslite.mission.ports.FusionPort`):
-    every upload is decoded and, for a delta, rebuilt on the subset it names as base
-    (:func:`gausslite.fusion.uploads.rebuild_subset`), exactly as the server stores it; keyframes are kept (at most ``max_keyframes``, oldest dropped, as the server does). ``history``
-    holds (seconds since ``start()``, version, subset) of every push."""
-
-    def __init__(self, max_keyframes: int = 64) -> None:
-        super().__init__()
-        self.max_keyframes = int(max_keyframes)
-        self.t0 = time.perf_counter()
-        self.history: list = []
-        self.subsets: dict = {}
-        self.keyframes: dict = {}  # frame_id -> gausslite.mapping.views.Keyframe
-
-    def start(self) -> None:
-        self.t0 = time.perf_counter()
-
-    def upload_chunks(self, agent_id, version, chunks, n_gaussians=0, full_map_gaussians=0):
-        chunks = list(chunks)
-        asm = SubsetAssembler(agent_id=agent_id, map_version=version)
-        for c in chunks:
-            asm.add(c.SerializeToString() if hasattr(c, "SerializeToString") else c)
-        records, meta = asm.result()
-        if meta.delta:
-            targets, removed = asm.delta_parts()
-            records = rebuild_subset(self.subsets[meta.base_version], records, targets, removed, meta,
-                                     WireLimits().max_total_gaussians)
-        self.subsets[int(version)] = records
-        self.history.append((time.perf_counter() - self.t0, int(version), records))
-        return super().upload_chunks(agent_id, version, chunks, n_gaussians, full_map_gaussians)
-
-    def upload_keyframes(self, agent_id, frames, *, rois=None, **kw):
-        for i, fr in enumerate(frames):
-            roi = None if rois is None or rois[i] is None else np.asarray(rois[i], bool)
-            self.keyframes.setdefault(int(fr.frame_id), keyframe_from_frame(fr, "cpu", roi))
-        while len(self.keyframes) > self.max_keyframes:
-            self.keyframes.pop(next(iter(self.keyframes)))
-        return len(frames)
 
 
 def fuse_settings() -> dict:

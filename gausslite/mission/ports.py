@@ -1,9 +1,10 @@
 """The port through which a mission pushes to the fusion side (paper Sec. III-E; ``docs/sharing.md``).
 
 :class:`FusionPort` lists what :class:`gausslite.mission.pusher.Pusher` calls. The gRPC client
-(``gausslite_services.fusion_server.client.FusionClient``) implements it over the wire; the benchmarks' in-process sink
-and recording store (``bench.realtime.SinkFusion``, ``bench.team.RecordingFusion``) implement it in memory. A rejected
-delta base is signalled by raising :class:`gausslite.mission.errors.PreconditionFailed`.
+(``gausslite_services.fusion_server.client.FusionClient``) implements it over the wire; the in-process sink and
+recording store (:class:`gausslite.mission.fakes.SinkFusion`, :class:`gausslite.mission.fakes.RecordingFusion`)
+implement it in memory. A rejected delta base is signalled by raising
+:class:`gausslite.mission.errors.PreconditionFailed`.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The live team benchmark (bench.team): its stand-in of the fusion server's store, its team definitions (the
-overlapping-view team among them) and its goal checks."""
+"""The live team benchmark (bench.team): its team definitions (the overlapping-view team among them) and its goal
+checks."""
 
 from __future__ import annotations
 
@@ -9,48 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.team import FUSED_KEYS, PER_ROBOT, TEAMS, RecordingFusion, summarise
-from bench.wire_fuzz import random_arrays
+from bench.team import FUSED_KEYS, PER_ROBOT, TEAMS, summarise
 from gausslite.wire.codec import GaussianArrays
-from gausslite.wire.delta import PushPlanner
 
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", Path(__file__).resolve().parents[3] / "shared"))
-
-
-def test_recording_fusion_holds_what_the_server_holds_after_full_and_delta_pushes():
-    planner = PushPlanner("a", chunk_gaussians=64)
-    sink = RecordingFusion()
-    ids = np.arange(200)
-    cur = random_arrays(200, 0, extent=1.0)
-    p1 = planner.plan(ids, cur, 1)
-    sink.upload_chunks("a", 1, p1.chunks)
-    planner.acknowledge(p1)
-    nxt = GaussianArrays(**{k: np.array(getattr(cur, k), copy=True) for k in GaussianArrays.FIELDS})
-    nxt.means[:10] += 0.02
-    keep = np.ones(200, bool)
-    keep[50:60] = False
-    nxt = GaussianArrays.concat([nxt.take(keep), random_arrays(30, 7, extent=1.0)])
-    p2 = planner.plan(np.concatenate([ids[keep], 1000 + np.arange(30)]), nxt, 2, measure_full=False)
-    assert p2.is_delta
-    sink.upload_chunks("a", 2, p2.chunks)
-    assert sink.subsets[1].equals(p1.subset) and sink.subsets[2].equals(p2.subset)
-    assert [v for _, v, _ in sink.history] == [1, 2] and sink.history[0][0] <= sink.history[1][0]
-    assert sink.uploads == 2 and sink.bytes == sum(len(c) for c in p1.chunks + p2.chunks)
-
-
-def test_recording_fusion_keeps_the_newest_keyframes_within_the_servers_bound():
-    from gausslite.camera import Intrinsics
-    from gausslite.datasets.base import Frame
-
-    K = np.array([[50.0, 0, 16], [0, 50.0, 12], [0, 0, 1]])
-    frames = [Frame(i, float(i), np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32), np.eye(4),
-                    Intrinsics.from_K(K, 32, 24)) for i in range(5)]
-    sink = RecordingFusion(max_keyframes=3)
-    roi = np.zeros((24, 32), bool)
-    assert sink.upload_keyframes("a", frames[:2], rois=[roi, None]) == 2
-    assert sink.upload_keyframes("a", frames[2:]) == 3
-    assert sorted(sink.keyframes) == [2, 3, 4]
-    assert sink.keyframes[2].roi is None and sink.keyframes[4].width == 32
 
 
 def test_teams_and_the_overlapping_view_team():

@@ -1,13 +1,13 @@
-"""The gRPC fusion client, the benchmarks' in-process sink and recording store all implement FusionPort: every
-method the pusher calls exists and accepts the pusher's arguments (positional and keyword) as it passes them."""
+"""The gRPC fusion client and the in-memory sink and recording store (gausslite.mission.fakes) all implement
+FusionPort: every method the pusher calls exists and accepts the pusher's arguments (positional and keyword) as it
+passes them."""
 
 import inspect
 
 import pytest
 
-from bench.realtime import SinkFusion
-from bench.team import RecordingFusion
 from gausslite.mission import FusionPort
+from gausslite.mission.fakes import RecordingFusion, SinkFusion
 from gausslite_services.fusion_server.client import FusionClient
 
 #: how gausslite.mission.pusher.Pusher calls each method (arguments after self)
