@@ -221,7 +221,9 @@ def run_sims(scene: str, runs: int, realtime: bool, sets: List[str], work: Path)
         out = work / f"{scene}{'_rt' if realtime else ''}_seed{s}"
         shutil.rmtree(out, ignore_errors=True)  # a fresh fusion store and agent data per run
         cmd = [sys.executable, "-m", "gausslite.cli", "sim", *scene_args(scene), *(["--realtime"] if realtime else []),
-               "--set", f"mapper.seed={s}", *[x for kv in sets for x in ("--set", kv)], "--out", str(out)]
+               "--set", f"mapper.seed={s}",
+               "--set", "agent.scoring.track_fused=true",  # the table's tracked columns: fitted to each fused map
+               *[x for kv in sets for x in ("--set", kv)], "--out", str(out)]
         r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-3000:]}")

@@ -12,9 +12,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from gausslite.camera import check_rigid
 from gausslite.datasets.bag import BagOptions
 from gausslite.datasets.odometry import OdometryConfig
-from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.config import MapperConfig, migrate_flat_names
 
-__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "AgentConfig", "AgentSections"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "AgentConfig", "AgentSections", "OLD_AGENT_NAMES"]
 
 #: tolerance of a T_world_map's rigidity check (orthonormal rotation, det +1, last row 0 0 0 1), as for frame poses
 RIGID_ATOL = 1e-3
@@ -37,6 +37,10 @@ class ScoringConfig(BaseModel):
         track_stride: the ``tracked`` protocol scores every this many frames (MonoGS: every 5th).
         novel_every: with ``novel`` or ``novel-tracked`` among the protocols, a replay withholds every this many
             frames from the mapper (never a keyframe, never a training view).
+        track_fused: the simulation also fits each ``tracked`` / ``novel-tracked`` frame's pose against every fused
+            map. Off, a fused map is scored under those protocols at the views its robot tracked against its own
+            map (``tracked@own`` / ``novel-tracked@own``, render only): a robot localises against its own map, and a
+            team map that holds task regions only tracks worse (docs/sharing.md#what-to-read-in-a-report).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -46,6 +50,7 @@ class ScoringConfig(BaseModel):
     track_iters: int = Field(30, ge=0)
     track_stride: int = Field(5, ge=1)
     novel_every: int = Field(10, ge=2)
+    track_fused: bool = False
 
     def chosen(self) -> tuple:
         """The protocols to score, ``sensor`` first and always."""
@@ -245,6 +250,17 @@ class OnnxRelevanceConfig(BaseModel):
         return out
 
 
+#: agent settings renamed so that each name says what it bounds and means one thing across the configuration tree:
+#: old key → new key, dotted within the ``agent`` section (the odometry's settings included; AgentConfig migrates them
+#: with :func:`gausslite.mapping.config.migrate_flat_names`, which warns; docs/reference.md#old-setting-names)
+OLD_AGENT_NAMES: dict[str, str] = {
+    "keyframe_every": "upload_keyframe_every",
+    "max_keyframes": "upload_backlog_max",
+    "odometry.max_keyframes": "odometry.reference_keyframes_max",
+    "odometry.loop.max_keyframes": "odometry.loop.keyframe_images_max",
+}
+
+
 class AgentConfig(BaseModel):
     """Agent mission settings (YAML section ``agent`` plus the mapper section ``mapper``).
 
@@ -293,8 +309,10 @@ class AgentConfig(BaseModel):
         bag: ROS bag options (topics, frames, tolerances; ``gausslite.datasets.bag.BagOptions``) for a
             replayed bag, e.g. ``agent.bag.rgb_topic=/camera/color/image_raw``; ignored for folders.
         queue_size: frames buffered between the stream and the mapping worker.
-        keyframe_every: every k-th mapped frame is uploaded as a keyframe for the fusion refinement.
-        max_keyframes: keep at most this many keyframes for upload (older ones dropped first).
+        upload_keyframe_every: every k-th mapped keyframe is uploaded (as a refinement view) for the fusion
+            refinement.
+        upload_backlog_max: at most this many refinement views wait for upload (the oldest dropped first while the
+            link is down; ``GetStatus``'s ``keyframes_backlog``).
         jpeg_quality: keyframe JPEG quality on the wire (``keyframe_format: jpeg``).
         keyframe_format: ``png`` (lossless colour, the default: the fusion refinement fits the uploaded
             colours; measured: docs/results.md) or ``jpeg``.
@@ -370,8 +388,8 @@ class AgentConfig(BaseModel):
     stride: int = Field(1, ge=1)
     bag: BagOptions = BagOptions()
     queue_size: int = Field(4, ge=1)
-    keyframe_every: int = Field(1, ge=1)
-    max_keyframes: int = Field(64, ge=1)
+    upload_keyframe_every: int = Field(1, ge=1)
+    upload_backlog_max: int = Field(64, ge=1)
     jpeg_quality: int = Field(95, ge=1, le=100)
     keyframe_format: Literal["png", "jpeg"] = "png"
     chunk_gaussians: int = Field(20000, ge=1)
@@ -403,6 +421,12 @@ class AgentConfig(BaseModel):
     pose_source: Literal["given", "odometry"] = "given"
     odometry: OdometryConfig = OdometryConfig()
     mapper: MapperConfig = MapperConfig(mode="gausslite")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed_settings(cls, data):
+        """Old names of renamed settings to their new keys (:data:`OLD_AGENT_NAMES`; ``migrate_flat_names`` warns)."""
+        return migrate_flat_names(data, OLD_AGENT_NAMES, "agent")
 
 
 class AgentSections(BaseModel):

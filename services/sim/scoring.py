@@ -95,7 +95,8 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, scoring, keyf
     :func:`gausslite.evaluation.withheld_indices`) at the pose and exposure the task's robot predicts for them
     (``novel_views``, :func:`predicted_views`: a robot loads the team map and uses it at its own SLAM pose with its
     learned correction), nothing fitted; ``tracked`` / ``novel-tracked`` every ``track_stride``-th / every withheld
-    frame at a pose and exposure fitted against the fused map from the sensor's pose. With ``views``
+    frame at a pose and exposure fitted against the fused map from the sensor's pose, only with
+    ``scoring.track_fused``. With ``views``
     (:func:`own_views`), ``tracked@own`` and ``novel-tracked@own`` score the same frames at the pose and exposure they
     were tracked at on the robot's own map: both maps at the same views, so their difference is what they render, not
     how well each tracks (a team map holds ROI subsets only, and a partial map tracks worse).
@@ -108,7 +109,8 @@ def fused_protocols(gmap, frames: list, annotations, task_id: str, scoring, keyf
     withheld = any(q in ("novel", "novel-tracked") for q in chosen)
     novel = [int(frames[i].frame_id) for i in withheld_indices(len(frames), scoring.novel_every)] if withheld else None
     roi_fn = task_roi(annotations, task_id)
-    res = score_map(gmap, frames, roi_fn, chosen, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
+    fitted = [q for q in chosen if q not in AT_OWN or scoring.track_fused]
+    res = score_map(gmap, frames, roi_fn, fitted, track_iters=scoring.track_iters, track_stride=scoring.track_stride,
                     keyframe_poses=keyframe_poses, backend=backend, novel_ids=novel, novel_views=novel_views)
     out = {q: _entry(q, v) for q, v in res.items()}
     at_own = [q for q in chosen if q in AT_OWN]
