@@ -51,7 +51,7 @@ SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
 
 #: the committed figures' mapper: the defaults with these overrides
-MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "mapper.keyframe_every=2",
+MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "mapper.store_keyframe_every=2",
                     "mapper.performance.render_threads=null"]
 
 

@@ -288,7 +288,7 @@ def _result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dic
 
         path = Path(job["defer_dir"]) / f"{_key_name(job)}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"state": mapper.state_dict(max_keyframes=None), "cfg": mapper.cfg.model_dump(),
+        torch.save({"state": mapper.state_dict(saved_keyframes_max=None), "cfg": mapper.cfg.model_dump(),
                     "keyframe_ids": kf_ids, "estimated_poses": job.get("estimated_poses")}, path)
         res.update(state_path=str(path), fp_per_kf=fp_per_kf,
                    score_job={k: job.get(k) for k in ("scene", "mode", "spec", "path", "task", "protocols",

@@ -5,9 +5,9 @@ knobs grouped by prefix), the agent's mission (:class:`gausslite.mission.config.
 two-agent simulation (:class:`SimConfig`) and the fusion server (:class:`FusionSettings`). :func:`load_config`
 is the one loader of the tree: YAML, then dotted ``key=value`` overrides, then validation, so a typo fails before
 anything starts; each part takes its own group (``cfg.mapper``, ``cfg.agent``, ``cfg.sim``, ``cfg.fusion``).
-:func:`load_mapper_config` reads a mapper-only file (``gausslite map --config``). Old flat mapper names go through
-:func:`migrate_flat_names`, which warns. ``gausslite config --show`` prints the effective tree, ``--schema`` its
-JSON schema.
+:func:`load_mapper_config` reads a mapper-only file (``gausslite map --config``). Old setting names (the mapper's old
+flat names, and the old names of renamed settings: :data:`OLD_NAMES`) go through :func:`migrate_flat_names`, which
+warns. ``gausslite config --show`` prints the effective tree, ``--schema`` its JSON schema.
 """
 
 from __future__ import annotations
@@ -21,12 +21,17 @@ from typing import Any, Dict, Iterable, List, Optional
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gausslite.fusion.holdout import RefineValidation
-from gausslite.mapping.config import (FLAT_NAMES, MapperConfig, apply_overrides, deep_merge, migrate_flat_names,
-                                      read_yaml)
-from gausslite.mission.config import AgentSections
+from gausslite.mapping.config import (FLAT_NAMES, OLD_MAPPER_NAMES, MapperConfig, apply_overrides, deep_merge,
+                                      migrate_flat_names, read_yaml)
+from gausslite.mission.config import OLD_AGENT_NAMES, AgentSections
 
 __all__ = ["SimScene", "SimFuse", "SimConfig", "FusionSettings", "GaussLiteConfig", "load_config",
-           "load_mapper_config", "migrate_flat_names", "FLAT_NAMES", "read_yaml", "DEFAULT_CONFIG_PATH", "ROLE_SECTIONS"]
+           "load_mapper_config", "migrate_flat_names", "FLAT_NAMES", "OLD_NAMES", "read_yaml", "DEFAULT_CONFIG_PATH",
+           "ROLE_SECTIONS"]
+
+#: every old setting name the tree still loads, per YAML section: old key → new key, dotted within the section (a
+#: ``DeprecationWarning`` names the new key; docs/reference.md#old-setting-names, docs/mapper.md#old-flat-names)
+OLD_NAMES: Dict[str, Dict[str, str]] = {"mapper": OLD_MAPPER_NAMES, "agent": OLD_AGENT_NAMES}
 
 #: the site file shipped with the repository (compose and Kubernetes mount it); it changes no measured setting
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "deploy" / "gausslite.yaml"
@@ -301,7 +306,8 @@ def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()
         path: the YAML file; None = no file, every section at its model's defaults.
         overrides: dotted ``key=value`` strings, values parsed as YAML, applied in order after the file.
     Returns:
-        The validated tree. Old flat mapper names go through :func:`migrate_flat_names` (a ``DeprecationWarning``).
+        The validated tree. Old setting names (:data:`OLD_NAMES`) go through :func:`migrate_flat_names` (a
+        ``DeprecationWarning`` naming the new key).
     Raises:
         FileNotFoundError: missing file. ValueError: not a mapping, or a bad override.
         pydantic.ValidationError: unknown keys or bad values (the message names them).

@@ -5,7 +5,7 @@ compute_rgbd_odometry`` with the hybrid Jacobian: photometric and geometric term
 Open3D's "RGBD Odometry" tutorial), and the estimate is checked before it is kept:
 
 - **reference**: the keyframe nearest to the frame's predicted pose (rotation angle in degrees plus translation
-  scaled by ``keyframe_rot_deg / keyframe_trans_m``), among the latest ``max_keyframes``; a frame becomes a
+  scaled by ``keyframe_rot_deg / keyframe_trans_m``), among the latest ``reference_keyframes_max``; a frame becomes a
   keyframe when it moved more than ``keyframe_trans_m`` or ``keyframe_rot_deg`` from its reference. A hand-held
   camera that sweeps back over a view registers against the keyframe it took there, not against a chain of
   frames, so its error does not grow with every frame (``docs/mapper.md``, "Poses from odometry", measures each
@@ -59,10 +59,11 @@ class OdometryConfig(BaseModel):
 
     Attributes:
         method: Open3D's Jacobian: ``hybrid`` (photometric + geometric) or ``color`` (photometric only).
-        reference: what a frame registers to: ``nearest_keyframe`` (of the latest ``max_keyframes``),
+        reference: what a frame registers to: ``nearest_keyframe`` (of the latest ``reference_keyframes_max``),
             ``last_keyframe``, or ``previous_frame`` (plain frame-to-frame).
         keyframe_trans_m, keyframe_rot_deg: a frame that moved more than either from its reference becomes a keyframe.
-        max_keyframes: keyframes kept for the nearest-keyframe search (the oldest is dropped first).
+        reference_keyframes_max: keyframes a frame may register to, the nearest-keyframe search's (the oldest is
+            dropped first).
         motion_prior: start from the previous frame's motion (constant velocity); False: from the last good pose.
         depth_max_m: depth beyond this is ignored (metres).
         depth_diff_max_m: largest depth difference of a correspondence (Open3D's ``depth_diff_max``, metres).
@@ -81,7 +82,7 @@ class OdometryConfig(BaseModel):
     reference: Literal["nearest_keyframe", "last_keyframe", "previous_frame"] = "nearest_keyframe"
     keyframe_trans_m: float = Field(0.10, gt=0)
     keyframe_rot_deg: float = Field(10.0, gt=0)
-    max_keyframes: int = Field(64, ge=1)
+    reference_keyframes_max: int = Field(64, ge=1)
     motion_prior: bool = True
     depth_max_m: float = Field(10.0, gt=0)
     depth_diff_max_m: float = Field(0.15, gt=0)
@@ -208,10 +209,10 @@ class RGBDOdometry:
         kf = _Keyframe(frame.frame_id, c2w.copy(), image, frame, thumbnail(frame.rgb))
         self.keyframes.append(kf)
         self.n_keyframes += 1
-        if len(self.keyframes) > self.config.max_keyframes:
+        if len(self.keyframes) > self.config.reference_keyframes_max:
             self.keyframes.pop(0)
         self.loop_keyframes[int(frame.frame_id)] = kf
-        if len(self.loop_keyframes) > self.config.loop.max_keyframes:
+        if len(self.loop_keyframes) > self.config.loop.keyframe_images_max:
             self.loop_keyframes.pop(next(iter(self.loop_keyframes)))
         self.graph.add(frame.frame_id, c2w, reference, T, information)
         return kf

@@ -89,8 +89,8 @@ class LoopConfig(BaseModel):
             the path travelled between its keyframes.
         prune_threshold: Open3D's ``edge_prune_threshold`` (the line process's confidence below which an uncertain
             edge is dropped).
-        max_keyframes: keyframes kept with their images for loops and re-localisation (the oldest dropped first;
-            their poses stay in the graph).
+        keyframe_images_max: keyframes kept with their images for loops and re-localisation (the oldest dropped
+            first; their poses stay in the graph).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -110,7 +110,7 @@ class LoopConfig(BaseModel):
     drift_floor_deg: float = Field(2.0, ge=0)
     drift_deg_per_m: float = Field(3.0, ge=0)
     prune_threshold: float = Field(0.25, gt=0, lt=1)
-    max_keyframes: int = Field(2000, ge=1)
+    keyframe_images_max: int = Field(2000, ge=1)
 
 
 class RelocConfig(BaseModel):

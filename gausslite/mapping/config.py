@@ -4,7 +4,8 @@ The loaders live in :mod:`gausslite.config`: :func:`gausslite.config.load_config
 (its ``mapper`` section is ``cfg.mapper``), :func:`gausslite.config.load_mapper_config` a mapper-only file
 (``gausslite map --config``). Both override single fields with ``key=value`` strings (dotted keys reach nested
 groups, e.g. ``lr.means=2e-4``, ``seeding.seeds_per_frame=800``). Settings named by their old flat names
-(:data:`FLAT_NAMES`) are moved into their groups by :func:`migrate_flat_names`, with a ``DeprecationWarning``.
+(:data:`FLAT_NAMES`) or by the old names of renamed settings (:data:`RENAMED_MAPPER_KEYS`) are moved to their keys by
+:func:`migrate_flat_names`, with a ``DeprecationWarning``.
 """
 
 from __future__ import annotations
@@ -447,40 +448,85 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
 }
 
 
-def migrate_flat_names(data: Any) -> Any:
-    """The one migration of old flat mapper setting names (:data:`FLAT_NAMES`) to their grouped keys.
+#: mapper settings renamed so that each name says what it bounds and means one thing across the configuration tree:
+#: old name → new key (docs/reference.md#old-setting-names)
+RENAMED_MAPPER_KEYS: dict[str, str] = {
+    "max_keyframes": "stored_keyframes_max",
+    "keyframe_every": "store_keyframe_every",
+}
 
-    Each flat key of the mapper mapping ``data`` (``max_gaussians``, ``pose_refine``, …) is moved to its group
-    (``budget.max_gaussians``, ``pose.refine``, …). A flat name wins over the same setting given in its group: it
-    comes from a later layer (a ``--set`` override or a keyword argument over a YAML file's group). Every use is
-    reported: one ``DeprecationWarning`` and one warning log line listing each old name with its new key
-    (``docs/mapper.md#old-flat-names``). :class:`MapperConfig` applies it to its input, so a YAML file, a ``--set``
-    override or a keyword argument written with the old names still loads, to the same values.
+#: every old mapper setting name → its key now (dotted within the mapper section): the flat names
+#: (:data:`FLAT_NAMES`) and the renamed settings (:data:`RENAMED_MAPPER_KEYS`); :class:`MapperConfig` migrates them
+OLD_MAPPER_NAMES: dict[str, str] = {**{k: ".".join(v) for k, v in FLAT_NAMES.items()}, **RENAMED_MAPPER_KEYS}
+
+
+def migrate_flat_names(data: Any, names: Optional[dict[str, str]] = None, where: str = "mapper") -> Any:
+    """The one migration of old setting names to their keys now: the mapper's old flat names to their groups
+    (:data:`FLAT_NAMES`) and renamed settings of every section to their new names.
+
+    Each old key of the mapping ``data`` (a key path, dotted for a setting of a nested section: ``max_gaussians``,
+    ``odometry.loop.max_keyframes``) is moved to its new key (``budget.max_gaussians``,
+    ``odometry.loop.keyframe_images_max``). An old name wins over the same setting given by its new key: it comes from
+    a later layer (a ``--set`` override or a keyword argument over a YAML file). Every use is reported: one
+    ``DeprecationWarning`` and one warning log line naming the section and listing each old key with its new key
+    (``docs/reference.md#old-setting-names``). :class:`MapperConfig` applies it to its input with
+    :data:`OLD_MAPPER_NAMES`, :class:`gausslite.mission.config.AgentConfig` with its own table, so a YAML file, a
+    ``--set`` override or a keyword argument written with the old names still loads, to the same values.
 
     Args:
-        data: the mapper settings as a mapping (the ``mapper`` section of a GaussLite YAML, a mapper-only file, or
-            keyword arguments); anything else is returned unchanged.
+        data: the settings of one section as a mapping (the ``mapper`` section of a GaussLite YAML, a mapper-only
+            file, keyword arguments, the ``agent`` section); anything else is returned unchanged.
+        names: old key → new key, both dotted within the section (None: :data:`OLD_MAPPER_NAMES`).
+        where: the section's name in the messages.
     Returns:
-        ``data`` itself when it holds no flat name, else a new dict (groups given as models are dumped to dicts of
-        their explicitly set fields); the input is not modified.
+        ``data`` itself when it holds no old name, else a new dict (sections along a moved key are copied, and
+        sections given as models dumped to dicts of their explicitly set fields); the input is not modified.
+    Raises:
+        ValueError: a section along a new key is given as something other than a mapping.
     """
     if not isinstance(data, dict):
         return data
-    flat = [k for k in data if k in FLAT_NAMES]
-    if not flat:
+    names = OLD_MAPPER_NAMES if names is None else names
+    found = [k for k in data if k in names] + [k for k in names if "." in k and _holds(data, k.split("."))]
+    if not found:
         return data
-    moves = ", ".join(f"{k} -> {'.'.join(FLAT_NAMES[k])}" for k in flat)
-    msg = f"old flat mapper setting names, use the grouped keys instead: {moves} (docs/mapper.md#old-flat-names)"
+    moves = ", ".join(f"{k} -> {names[k]}" for k in found)
+    msg = f"old {where} setting names, use the new keys instead: {moves} (docs/reference.md#old-setting-names)"
     warnings.warn(msg, DeprecationWarning, stacklevel=2)
     log.warning("%s", msg)
     data = dict(data)
-    for k in flat:
-        group, name = FLAT_NAMES[k]
-        sub = data.get(group) or {}
-        sub = sub.model_dump(exclude_unset=True) if isinstance(sub, BaseModel) else dict(sub)
-        sub[name] = data.pop(k)
-        data[group] = sub
+    for k in found:
+        *old_path, old_leaf = k.split(".")
+        value = _section(data, old_path, where).pop(old_leaf)
+        *new_path, new_leaf = names[k].split(".")
+        _section(data, new_path, where)[new_leaf] = value
     return data
+
+
+def _holds(data: dict, path: list[str]) -> bool:
+    """Whether the nested mapping ``data`` has a value at the key path ``path``."""
+    node: Any = data
+    for key in path[:-1]:
+        node = node.get(key)
+        if not isinstance(node, dict):
+            return False
+    return path[-1] in node
+
+
+def _section(data: dict, path: list[str], where: str) -> dict:
+    """The mapping at the key path ``path`` of ``data``, each level along it replaced in its parent by a copy (a
+    model by a dict of its explicitly set fields, an absent or null section by an empty dict), so that changing it
+    changes no input. Raises ValueError when a level is neither a mapping nor a model."""
+    node = data
+    for i, key in enumerate(path):
+        sub = node.get(key) or {}
+        if isinstance(sub, BaseModel):
+            sub = sub.model_dump(exclude_unset=True)
+        elif not isinstance(sub, dict):
+            raise ValueError(f"{where}.{'.'.join(path[:i + 1])} must be a section (a mapping), got {sub!r}")
+        node[key] = sub = dict(sub)
+        node = sub
+    return node
 
 
 class MapperConfig(_Strict):
@@ -494,8 +540,9 @@ class MapperConfig(_Strict):
 
     The settings of one concern are grouped: ``seeding``, ``budget``, ``pose``, ``sensor``, ``performance``,
     ``densify``, ``lr``, ``components``, ``roi_views``, ``detail``. Input that names a grouped setting by its old flat
-    name (``max_gaussians``, ``pose_refine``, …: :data:`FLAT_NAMES`) is migrated by :func:`migrate_flat_names`, with
-    a warning.
+    name (``max_gaussians``, ``pose_refine``, …: :data:`FLAT_NAMES`) or a renamed setting by its old name
+    (``max_keyframes``, ``keyframe_every``: :data:`RENAMED_MAPPER_KEYS`) is migrated by :func:`migrate_flat_names`,
+    with a warning.
     """
 
     mode: Literal["uniform", "gausslite"] = "uniform"
@@ -526,11 +573,14 @@ class MapperConfig(_Strict):
         2.0, ge=0, description="MVO mission-wide draws: keyframes that see the ROI weigh 1 + this (gausslite "
         "mode with MVO), the others 1"
     )
-    max_keyframes: int = Field(
-        600, ge=1, description="keyframes kept (compact: uint8 colour, float16 depth); beyond, the old keyframe "
-        "closest in pose to its predecessor is dropped"
+    stored_keyframes_max: int = Field(
+        600, ge=1, description="keyframes the mapper's keyframe store keeps for the view draws and the final pass "
+        "(compact: uint8 colour, float16 depth); beyond, the old keyframe closest in pose to its predecessor is dropped"
     )
-    keyframe_every: int = Field(1, ge=1, description="every k-th mapped frame becomes a keyframe")
+    store_keyframe_every: int = Field(
+        1, ge=1, description="every k-th mapped frame is stored in the keyframe store (the others are fitted "
+        "while they are mapped only)"
+    )
     current_frame_prob: float = Field(
         0.5, ge=0, le=1, description="without MVO: probability that an iteration uses the current frame"
     )
@@ -616,7 +666,7 @@ class MapperConfig(_Strict):
     @model_validator(mode="before")
     @classmethod
     def _group_flat_names(cls, data: Any) -> Any:
-        """Old flat names into their groups (:func:`migrate_flat_names`, which warns)."""
+        """Old names to their keys now (:func:`migrate_flat_names`, which warns)."""
         return migrate_flat_names(data)
 
     @model_validator(mode="after")

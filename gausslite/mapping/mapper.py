@@ -156,7 +156,7 @@ class Mapper:
         self.clock = (WorkClock(WorkCost(**cfg.work_cost.model_dump())) if cfg.budget_clock == "work"
                       else WallClock())
         self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
-        self.keyframes = KeyframeStore(cfg.max_keyframes, protect_recent=cfg.window,
+        self.keyframes = KeyframeStore(cfg.stored_keyframes_max, protect_recent=cfg.window,
                                        max_detail_bytes=cfg.detail.max_bytes)
         # the per-keyframe corrections: refined with the map (pose.refine), set by keyframe placement
         # (pose.track_iters), or by a pose graph (apply_pose_corrections)
@@ -689,7 +689,7 @@ class Mapper:
         elif between:
             self.add_roi_views(between, kf)
         stored = None
-        if self.n_mapped % cfg.keyframe_every == 0 or len(self.keyframes) == 0:
+        if self.n_mapped % cfg.store_keyframe_every == 0 or len(self.keyframes) == 0:
             stored = self.keyframes.add(kf)
         loss, active_iters, n_iters, dstats = self._train_keyframe(kf, t0, budget)
         if cfg.budget.evict == "contribution":
@@ -860,17 +860,17 @@ class Mapper:
 
 
     # ------------------------------------------------------------------ checkpoint / resume
-    def state_dict(self, max_keyframes: Optional[int] = 32) -> dict:
+    def state_dict(self, saved_keyframes_max: Optional[int] = 32) -> dict:
         """CPU copy of what a restarted online mapper needs, gathered from its parts' ``state_dict``: the
         Gaussians with κ, task flags and stable ids (:class:`GaussianModel`), accumulated contribution, budget
-        and observed voxels (:class:`DensityStrategy`), the newest ``max_keyframes`` stored keyframes in their
+        and observed voxels (:class:`DensityStrategy`), the newest ``saved_keyframes_max`` stored keyframes in their
         compact form with their detail crops (None: all; they bound the file size of a long mission; the MVO window
         is the newest of them), the sensor state (:class:`SensorRenderer`), the pose corrections and the mapped frames' input poses (the
         keyframe anchors' frames), the schedule counters and the
         RNG state; not the Adam moments (a resumed mapper restarts them at zero, as for newly seeded
         Gaussians). One flat ``torch.save``-able dict.
         """
-        n = None if max_keyframes is None else max(max_keyframes, self.cfg.window)
+        n = None if saved_keyframes_max is None else max(saved_keyframes_max, self.cfg.window)
         return {
             **self.model.state_dict(), **self.strategy.state_dict(), **self.keyframes.state_dict(n),
             **self.roi_views.state_dict(),

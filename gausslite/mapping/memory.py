@@ -3,7 +3,7 @@ pixels of a new frame its map does not yet explain.
 
 - :class:`KeyframeStore`: every keyframe of the mission, stored compactly (uint8 colour, float16
   depth, bool ROI: 3.0 B/pixel + ROI instead of 16 B/pixel as float32 tensors), bounded by
-  ``max_keyframes`` (the most redundant old keyframe is dropped), with the view sampler of
+  ``stored_keyframes_max`` (the most redundant old keyframe is dropped), with the view sampler of
   multi-view optimisation: a draw from the recent window or from the whole mission, weighted towards
   keyframes that see the ROI. A keyframe may also keep a detail crop (its task region at a finer resolution,
   :mod:`gausslite.mapping.detail`); those crops are bounded by ``max_detail_bytes`` (the most redundant one is
@@ -33,7 +33,7 @@ class KeyframeStore(StoredViews):
     """The mission's keyframes, compact and bounded, with MVO's view sampler.
 
     Args:
-        max_keyframes: bound on stored keyframes; when exceeded, the old keyframe (outside the
+        stored_keyframes_max: bound on stored keyframes; when exceeded, the old keyframe (outside the
             recent ``protect_recent``) whose pose is closest to its predecessor's is dropped
             (translation in metres + rotation angle in radians × ``rot_weight_m``).
         protect_recent: this many newest keyframes are never dropped (the MVO window).
@@ -43,15 +43,15 @@ class KeyframeStore(StoredViews):
     Attributes:
         n_dropped: keyframes dropped so far. n_detail_dropped: detail crops dropped so far.
     Raises:
-        ValueError: ``max_keyframes`` or ``max_detail_bytes`` below 1.
+        ValueError: ``stored_keyframes_max`` or ``max_detail_bytes`` below 1.
     """
 
-    def __init__(self, max_keyframes: int = 500, protect_recent: int = 8, rot_weight_m: float = 0.5,
+    def __init__(self, stored_keyframes_max: int = 500, protect_recent: int = 8, rot_weight_m: float = 0.5,
                  max_detail_bytes: int = 64 << 20) -> None:
-        if max_keyframes < 1 or max_detail_bytes < 1:
-            raise ValueError(f"max_keyframes and max_detail_bytes must be >= 1, got {max_keyframes}, "
+        if stored_keyframes_max < 1 or max_detail_bytes < 1:
+            raise ValueError(f"stored_keyframes_max and max_detail_bytes must be >= 1, got {stored_keyframes_max}, "
                              f"{max_detail_bytes}")
-        self.max_keyframes = int(max_keyframes)
+        self.stored_keyframes_max = int(stored_keyframes_max)
         self.protect_recent = int(protect_recent)
         self.rot_weight_m = float(rot_weight_m)
         self.max_detail_bytes = int(max_detail_bytes)
@@ -82,12 +82,12 @@ class KeyframeStore(StoredViews):
     def add(self, kf) -> StoredKeyframe:
         """Store a :class:`~gausslite.mapping.views.Keyframe` (float tensors) compactly; returns it.
 
-        Drops the most redundant old keyframe when the store is over ``max_keyframes``, then detail crops while
+        Drops the most redundant old keyframe when the store is over ``stored_keyframes_max``, then detail crops while
         they hold more than ``max_detail_bytes``.
         """
         st = kf.compact()
         self._items.append(st)
-        if len(self._items) > self.max_keyframes:
+        if len(self._items) > self.stored_keyframes_max:
             self._drop_redundant()
         while st.detail is not None and self.detail_nbytes > self.max_detail_bytes:
             self._drop_detail()

@@ -7,7 +7,7 @@ pusher thread then, for the newest offer only (an older pending one is supersede
 
 1. selects the task subset and fine-tunes it in the share worker (:class:`gausslite.mission.share.ShareSession`);
 2. plans a delta against the subset the server acknowledged last, or a full upload, and sends it in chunks;
-3. uploads the keyframes not yet sent (at most ``max_keyframes`` wait);
+3. uploads the keyframes not yet sent (at most ``upload_backlog_max`` wait);
 4. on failure retries with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, kept across
    offers while the link is down). A periodic push is retried until it is acknowledged or a newer offer
    replaces it, so at most two subsets are held however long the link is down, and the newest goes out when
@@ -99,7 +99,7 @@ class Pusher:
     Args:
         agent_id: the agent's id on the fusion server.
         task_text: the mission's task (sent when a fusion session opens).
-        config: the mission's ``AgentConfig`` (``max_keyframes``, ``backoff_s``, ``max_backoff_s``,
+        config: the mission's ``AgentConfig`` (``upload_backlog_max``, ``backoff_s``, ``max_backoff_s``,
             ``final_push_timeout_s``, ``pusher_nice``, ``jpeg_quality``, ``keyframe_format``).
         fusion: the fusion side (:class:`gausslite.mission.ports.FusionPort`: the gRPC client or an in-process
             stand-in; a rejected delta base raises :class:`gausslite.mission.errors.PreconditionFailed`), or None:
@@ -176,8 +176,8 @@ class Pusher:
         """Upload ``frame`` (with its (H, W) bool relevance ``roi``, or None) with the next push, as a refinement
         view: whole, or its ROI crop with ``agent.refine_views.crop`` (:func:`gausslite.fusion.views.roi_crop`; a
         frame whose ROI has fewer than ``refine_views.min_roi_px`` pixels is then dropped). Only the newest
-        ``max_keyframes`` wait. Returns whether the view was queued."""
-        keep, rv = self.config.max_keyframes, self.config.refine_views
+        ``upload_backlog_max`` wait. Returns whether the view was queued."""
+        keep, rv = self.config.upload_backlog_max, self.config.refine_views
         if rv.crop:
             if roi is None or int(np.count_nonzero(roi)) < rv.min_roi_px:
                 return False

@@ -1,4 +1,4 @@
-"""The keyframes and refinement views a mission sends the fusion server (``agent.keyframe_every``,
+"""The keyframes and refinement views a mission sends the fusion server (``agent.upload_keyframe_every``,
 ``agent.refine_views``; docs/sharing.md): a fusion session keeps one image size, the one of the mapping resolution
 chosen at the first keyframe, so a keyframe mapped at another resolution later is sent at that first size.
 """

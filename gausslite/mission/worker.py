@@ -3,8 +3,8 @@
 It takes the ingest queue's items (:mod:`gausslite.mission.ingest`) in order. For each keyframe it decodes the frame
 (a ``PendingFrame`` of a live stream), chooses or corrects the mapping resolution, computes the relevance map, maps
 it (``mapper.keyframe_budget_s`` per keyframe, decoding and relevance included, or fixed iterations), every
-``keyframe_every`` mapped frames uploads the keyframe, every ``push_every`` hands a snapshot of the ROI subset to
-the pusher and every ``checkpoint_every`` writes a checkpoint. Between keyframes it applies a new task
+``upload_keyframe_every`` mapped frames uploads the keyframe, every ``push_every`` hands a snapshot of the ROI subset
+to the pusher and every ``checkpoint_every`` writes a checkpoint. Between keyframes it applies a new task
 (:class:`gausslite.mission.task.MissionTask`), returns a push's freed memory to the OS (:mod:`gausslite.mission.heap`,
 at the mapper's priority, never the niced pusher's), follows the odometry's loop closures, and, under live ingest
 with ``idle_optimize``, optimises over its keyframes while none is pending.
@@ -240,7 +240,7 @@ class MappingWorker:
 
     def _count(self, item: Frame, st, t0: float, t_arrival: float) -> bool:
         """Count the mapped keyframe ``item`` (``FrameStats`` ``st``; ``t0`` when its work began, ``t_arrival`` when it
-        arrived) and keep it for Finish's PSNR; returns whether it is uploaded (every ``keyframe_every``-th)."""
+        arrived) and keep it for Finish's PSNR; returns whether it is uploaded (every ``upload_keyframe_every``-th)."""
         p, cfg = self.progress, self.config
         with p.lock:
             p.frames_mapped += 1
@@ -252,7 +252,7 @@ class MappingWorker:
             p.n_active = int(self.mapper.model.active.sum())
             if len(self.eval_frames) < cfg.eval_max_frames:
                 self.eval_frames.append(item)
-            return (p.frames_mapped - 1) % cfg.keyframe_every == 0
+            return (p.frames_mapped - 1) % cfg.upload_keyframe_every == 0
 
     def _periodic(self) -> None:
         """Every ``push_every`` mapped frames a snapshot for the pusher; every ``checkpoint_every`` a checkpoint (a

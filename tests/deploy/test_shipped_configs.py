@@ -1,6 +1,7 @@
 """Every YAML file shipped in the repository (outside ``tests/``) parses, and every GaussLite configuration among them
-(and among the YAML examples of the docs) loads into the typed tree with warnings turned into errors: no old flat
-mapper name (``docs/mapper.md#old-flat-names``) and no other deprecation."""
+(and among the YAML examples of the docs) loads into the typed tree with warnings turned into errors: no old setting
+name (an old flat mapper name, ``docs/mapper.md#old-flat-names``, or the old name of a renamed setting,
+``docs/reference.md#old-setting-names``) and no other deprecation."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gausslite.config import FLAT_NAMES, GaussLiteConfig, load_config, load_mapper_config
+from gausslite.config import OLD_NAMES, GaussLiteConfig, load_config, load_mapper_config
 from gausslite.mapping.config import MapperConfig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -35,12 +36,12 @@ def shipped_yaml() -> list:
 
 def _kind(doc) -> str | None:
     """``tree`` for a GaussLite YAML (:data:`SECTIONS`), ``mapper`` for a mapper-only file (fields
-    of :class:`MapperConfig`, old flat names included), None for anything else (compose, Kubernetes, tokens)."""
+    of :class:`MapperConfig`, old names included), None for anything else (compose, Kubernetes, tokens)."""
     if not isinstance(doc, dict) or not doc:
         return None
     if set(doc) <= SECTIONS:
         return "tree"
-    if set(doc) <= set(MapperConfig.model_fields) | set(FLAT_NAMES):
+    if set(doc) <= set(MapperConfig.model_fields) | set(OLD_NAMES["mapper"]):
         return "mapper"
     return None
 
@@ -110,13 +111,21 @@ def _commented_example(text: str) -> str:
     return "\n".join(out)
 
 
-def test_the_check_fails_on_an_old_flat_name(tmp_path):
+def test_the_check_fails_on_an_old_name(tmp_path):
     flat = {"mapper": {"max_gaussians": 5000, "budget": {"cap": 9000}}}
     assert _kind(flat) == "tree" and _kind(flat["mapper"]) == "mapper"
     with pytest.raises(DeprecationWarning, match=r"max_gaussians -> budget\.max_gaussians"):
         load_strictly(flat, "tree")
     with pytest.raises(DeprecationWarning):
         load_strictly({"pose_refine": True}, "mapper")
+    # and on the old name of a renamed setting, in any section
+    with pytest.raises(DeprecationWarning, match=r"max_keyframes -> upload_backlog_max"):
+        load_strictly({"agent": {"max_keyframes": 128}}, "tree")
+    with pytest.raises(DeprecationWarning, match=r"loop\.max_keyframes -> odometry\.loop\.keyframe_images_max"):
+        load_strictly({"agent": {"odometry": {"loop": {"max_keyframes": 500}}}}, "tree")
+    assert _kind({"max_keyframes": 200}) == "mapper"
+    with pytest.raises(DeprecationWarning, match=r"max_keyframes -> stored_keyframes_max"):
+        load_strictly({"max_keyframes": 200}, "mapper")
     f = tmp_path / "mapper.yaml"
     f.write_text(yaml.safe_dump({"budget": {"max_gaussians": 5000}}))
     with warnings.catch_warnings():

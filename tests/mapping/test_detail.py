@@ -194,7 +194,7 @@ def test_roi_views_are_cut_from_the_detail_frames_between_keyframes():
 
 def test_detail_crops_are_bounded_by_bytes_and_checked():
     crop_bytes = 72 * 64 * 6
-    store = KeyframeStore(max_keyframes=10, protect_recent=2, max_detail_bytes=2 * crop_bytes)
+    store = KeyframeStore(stored_keyframes_max=10, protect_recent=2, max_detail_bytes=2 * crop_bytes)
     for i, shift in enumerate([0.0, 0.3, 0.301, 0.6]):  # keyframes 1 and 2 are nearly the same pose
         frame, rel, det = inputs(i, shift)
         kf = keyframe_from_frame(frame, "cpu", rel)

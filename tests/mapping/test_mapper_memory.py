@@ -175,7 +175,7 @@ def test_contribution_follows_densification_parents():
 
 # ---------------------------------------------------------------- mission-wide keyframes
 def _store_with(n: int, roi_every: int = 0) -> KeyframeStore:
-    st = KeyframeStore(max_keyframes=10_000, protect_recent=4)
+    st = KeyframeStore(stored_keyframes_max=10_000, protect_recent=4)
     for i in range(n):
         roi = _roi() if roi_every and i % roi_every == 0 else np.zeros((H, W), bool)
         st.add(keyframe_from_frame(plane_frame(i, 0.05 * i), torch.device("cpu"), roi))
@@ -212,7 +212,7 @@ def test_mapper_views_come_from_old_keyframes(monkeypatch):
 
 
 def test_keyframe_store_is_compact_and_bounded():
-    st = KeyframeStore(max_keyframes=6, protect_recent=2)
+    st = KeyframeStore(stored_keyframes_max=6, protect_recent=2)
     frames = [plane_frame(i, 0.1 * i) for i in range(10)]
     frames[3] = plane_frame(3, 0.2 + 1e-4)  # nearly a duplicate of keyframe 2: most redundant
     for fr in frames:
@@ -231,7 +231,7 @@ def test_keyframe_store_is_compact_and_bounded():
 
 
 def test_mapper_keyframe_memory_stays_bounded():
-    m = Mapper(_cfg(max_keyframes=5, iters_per_frame=1, window=2))
+    m = Mapper(_cfg(stored_keyframes_max=5, iters_per_frame=1, window=2))
     for i in range(9):
         m.map_frame(plane_frame(i, 0.03 * i))
     assert len(m.keyframes) == 5

@@ -68,13 +68,13 @@ def test_each_part_restores_its_own_state(part):
 
 def test_the_checkpoint_is_the_union_of_the_parts_and_resumes_the_same_map():
     m = _mapped(densify={"enabled": False})  # split daughters' positions come from a generator not checkpointed
-    state = m.state_dict(max_keyframes=None)
+    state = m.state_dict(saved_keyframes_max=None)
     for part in ("model", "strategy", "sensor", "step"):
         for k, v in getattr(m, part).state_dict().items():
             assert _equal(state[k], v), (part, k)
     m2 = Mapper(_handheld_cfg(densify={"enabled": False}))
     m2.load_state_dict(state)
-    assert _equal(m2.state_dict(max_keyframes=None), state)
+    assert _equal(m2.state_dict(saved_keyframes_max=None), state)
     # both continue alike: the same frame, the same parameters (Adam moments restart at zero in both)
     m.load_state_dict(state)
     for mm in (m, m2):
@@ -116,7 +116,7 @@ def test_grouped_settings_and_the_migration_of_their_old_flat_names(caplog):
         load_mapper_config(None, ["budget.max_gaussians=800", "pose.refine=true"], seeding={"seeds_per_frame": 9})
         load_config(None, ["mapper.budget.max_gaussians=800"])
         assert migrate_flat_names({"budget": {"cap": 3}}) == {"budget": {"cap": 3}}
-    assert "old flat mapper setting names" not in caplog.text
+    assert "old mapper setting names" not in caplog.text
     # an old flat name still loads, to its grouped setting, with a DeprecationWarning and a log line naming the new key
     with pytest.warns(DeprecationWarning, match=r"max_gaussians -> budget\.max_gaussians"):
         cfg = load_mapper_config(None, ["max_gaussians=700"], defaults={"budget": {"max_gaussians": 100, "cap": 900}})

@@ -83,8 +83,8 @@ def test_without_a_fusion_client_offers_are_dropped_and_the_final_one_ends_unack
         p.close()
 
 
-def test_only_the_newest_max_keyframes_wait_for_upload_and_a_resumed_mission_continues_above_its_version():
-    p, _ = _pusher(None, max_keyframes=3)  # never started: nothing is sent
+def test_only_the_newest_upload_backlog_max_views_wait_for_upload_and_a_resumed_mission_continues_above_its_version():
+    p, _ = _pusher(None, upload_backlog_max=3)  # never started: nothing is sent
     frames = [object() for _ in range(5)]
     for i, f in enumerate(frames):
         p.add_keyframe(f, np.full((2, 2), i % 2 == 0))

@@ -1,8 +1,8 @@
 """The mapping worker on its own (gausslite.mission.worker), with stand-ins for the mapper, the pusher, the share
 session and the checkpoint: each keyframe is mapped at the mapping resolution with its relevance, counted, uploaded
-every ``keyframe_every``, offered to the pusher every ``push_every`` and checkpointed every ``checkpoint_every``;
-corrupt images are rejected, a mapping error fails the mission; the thread optimises between keyframes under live
-ingest, applies a new task, and ends a Finish with the final pass and push (or without a push)."""
+every ``upload_keyframe_every``, offered to the pusher every ``push_every`` and checkpointed every
+``checkpoint_every``; corrupt images are rejected, a mapping error fails the mission; the thread optimises between
+keyframes under live ingest, applies a new task, and ends a Finish with the final pass and push (or without a push)."""
 
 from __future__ import annotations
 
@@ -115,7 +115,8 @@ def _worker(*overrides, relevance=None):
 
 
 def test_each_keyframe_is_mapped_counted_uploaded_pushed_and_checkpointed_on_its_schedule():
-    m = _worker("agent.keyframe_every=2", "agent.push_every=3", "agent.checkpoint_every=2", "agent.eval_max_frames=4")
+    m = _worker("agent.upload_keyframe_every=2", "agent.push_every=3", "agent.checkpoint_every=2",
+                "agent.eval_max_frames=4")
     for i in range(6):
         m.worker.map_keyframe(plane_frame(i, 0.1 * i), t_arrival=0.0)
     # mapped at the mapping resolution (downscale 2 of 56x40), with the task's relevance at that size
@@ -124,7 +125,7 @@ def test_each_keyframe_is_mapped_counted_uploaded_pushed_and_checkpointed_on_its
     p = m.progress
     assert (p.frames_mapped, p.frames_keyframed, p.keyframe_iterations) == (6, 6, 30)
     assert (p.n_gaussians, p.n_active) == (60, 24) and len(p.keyframe_latency_s) == 6 and p.seconds_mapping > 0
-    assert [fid for fid, _ in m.pusher.keyframes] == [0, 2, 4]  # every keyframe_every-th mapped frame
+    assert [fid for fid, _ in m.pusher.keyframes] == [0, 2, 4]  # every upload_keyframe_every-th mapped frame
     assert m.uploads.factor == 2.0 and m.pusher.keyframes[0][1].shape == (20, 28)
     assert [(n, final) for _, n, final in m.pusher.offers] == [(3, False), (6, False)]
     assert m.pusher.offers[0][0] == ("snapshot", 3) and m.checkpoint.versions == 2

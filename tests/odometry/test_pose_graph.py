@@ -156,7 +156,7 @@ def _there_and_back(frames):
 
 def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeypatch):
     stream = _there_and_back(frames)
-    cfg = OdometryConfig(track_width=None, max_keyframes=2)
+    cfg = OdometryConfig(track_width=None, reference_keyframes_max=2)
     inline = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
     for f in stream:
         inline.track(f)

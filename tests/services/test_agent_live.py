@@ -34,7 +34,7 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = ["agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+TINY = ["agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
         "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
 
 
@@ -141,7 +141,7 @@ def test_mapper_checkpoint_round_trip(scene):
     m2.map_frame(ds[3])  # and it keeps mapping
     assert m2.n_mapped == 4
     m3 = _mapper()  # a bounded checkpoint keeps the newest keyframes, never fewer than the window
-    m3.load_state_dict(m.state_dict(max_keyframes=1))
+    m3.load_state_dict(m.state_dict(saved_keyframes_max=1))
     keep = max(1, m.cfg.window)
     assert [k.frame_id for k in m3.keyframes] == [k.frame_id for k in m.keyframes][-keep:]
     assert [k.frame_id for k in m3.window] == [k.frame_id for k in m.window]
@@ -149,7 +149,7 @@ def test_mapper_checkpoint_round_trip(scene):
     for i in range(4):
         m4.map_frame(ds[i])
     m5 = _mapper(window=2)
-    m5.load_state_dict(m4.state_dict(max_keyframes=1))
+    m5.load_state_dict(m4.state_dict(saved_keyframes_max=1))
     assert [k.frame_id for k in m5.keyframes] == [k.frame_id for k in m4.keyframes][-2:]
 
 
@@ -982,7 +982,7 @@ def test_a_live_agent_sends_roi_crops_of_keyframes_and_of_the_frames_between_the
 
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
-    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5", "agent.keyframe_every=1",
+    cfg = load_config(None, TINY + ["agent.realtime=true", "agent.rate=0.5", "agent.upload_keyframe_every=1",
                                     "agent.keyframe_max_interval_s=0.1", "agent.keyframe_translation_m=10",
                                     "agent.keyframe_rotation_deg=90", "agent.refine_views.crop=true",
                                     "agent.refine_views.between=true", "agent.refine_views.between_every=1",

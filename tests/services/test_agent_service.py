@@ -23,7 +23,7 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
-TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
         # the plumbing of pushes and uploads, counted: the a = 1 subset at every snapshot and whole keyframes (task
         # sharing and ROI crops, the defaults: tests/services/test_agent_live.py, tests/docs/)

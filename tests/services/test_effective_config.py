@@ -78,16 +78,16 @@ def test_a_service_without_config_runs_what_sim_and_compose_run(role, argv, tmp_
 
 def test_a_site_file_changes_only_what_it_names(tmp_path):
     site = tmp_path / "site.yaml"
-    site.write_text("agent:\n  max_keyframes: 128\nfusion:\n  max_keyframes_per_agent: 96\n")
+    site.write_text("agent:\n  upload_backlog_max: 128\nfusion:\n  max_keyframes_per_agent: 96\n")
     base, mine = load_config().to_yaml_dict(), load_config(site).to_yaml_dict()
-    assert mine["agent"]["max_keyframes"] == 128 and mine["fusion"]["max_keyframes_per_agent"] == 96
-    mine["agent"]["max_keyframes"], mine["fusion"]["max_keyframes_per_agent"] = (base["agent"]["max_keyframes"],
-                                                                                  base["fusion"]["max_keyframes_per_agent"])
+    assert mine["agent"]["upload_backlog_max"] == 128 and mine["fusion"]["max_keyframes_per_agent"] == 96
+    for section, key in (("agent", "upload_backlog_max"), ("fusion", "max_keyframes_per_agent")):
+        mine[section][key] = base[section][key]
     assert mine == base
 
 
 @pytest.mark.parametrize("role, argv, override", [
-    ("agent", ["serve", "agent", "--port", "0", "--agent-id", "robot1", "--data-dir", "agents"], "agent.max_keyframes=9"),
+    ("agent", ["serve", "agent", "--port", "0", "--agent-id", "robot1", "--data-dir", "agents"], "agent.upload_backlog_max=9"),
     ("fusion", ["serve", "fusion", "--port", "0", "--data-dir", "fusion"], "fusion.team_map.refine_iters=77"),
 ])
 def test_config_show_prints_what_serve_runs_given_the_same_flags(role, argv, override, tmp_path):

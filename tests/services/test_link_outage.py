@@ -25,8 +25,8 @@ from tests._waits import wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
-CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.keyframe_every=1", "agent.backoff_s=0.1",
-       "agent.max_backoff_s=0.5", "agent.max_keyframes=3", "agent.final_push_timeout_s=60",
+CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1",
+       "agent.max_backoff_s=0.5", "agent.upload_backlog_max=3", "agent.final_push_timeout_s=60",
        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
        "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, all counted
 
@@ -86,7 +86,7 @@ def test_link_outage_mid_mission(tmp_path):
         assert st["last_pushed_version"] == acked_before  # nothing acknowledged while the link is down
         assert st["newest_map_version"] == 6 > acked_before  # 12 frames, a snapshot every 2
         assert 1 <= st["push_backlog"] <= 2  # only the newest subset is held, not one per version
-        assert 1 <= st["keyframes_backlog"] <= 3  # bounded by agent.max_keyframes
+        assert 1 <= st["keyframes_backlog"] <= 3  # bounded by agent.upload_backlog_max
         msg = AgentServicer._status_proto(st)  # what GetStatus sends
         assert msg.push_backlog == st["push_backlog"] and msg.newest_map_version == 6
         assert msg.last_pushed_version == acked_before and msg.link_down_s > 0
