@@ -307,7 +307,7 @@ def _when(t: dict, with_counts: bool = True) -> str:
     """``12 min 50 s (956 passed, 26 skipped; pytest 7 min 25 s)``, or a range over fresh clones."""
     if "wall_s" not in t:
         lo, hi = t["wall_s_range"]
-        return f"{lo}–{hi} s ({words(t['clones'])} fresh clone{'s' if t['clones'] != 1 else ''})"
+        return f"{lo if lo == hi else f'{lo}–{hi}'} s ({words(t['clones'])} fresh clone{'s' if t['clones'] != 1 else ''})"
     extra = [f"{t['passed']} passed, {t['skipped']} skipped"] if with_counts and "passed" in t else []
     extra += [f"pytest {duration(t['pytest_s'])}"] if "pytest_s" in t else []
     out = duration(t["wall_s"]) + (f" ({'; '.join(extra)})" if extra else "")
@@ -339,7 +339,7 @@ def slowest_tests_table(fr: dict) -> str:
 def sim_seconds(fr: dict) -> str:
     """The sim's first run on a fresh clone: ``72–79 s``."""
     lo, hi = _command(fr, "sim")["now"]["wall_s_range"]
-    return f"{lo}–{hi} s"
+    return f"{lo} s" if lo == hi else f"{lo}–{hi} s"
 
 
 def suite_minutes(fr: dict) -> str:
