@@ -157,7 +157,8 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
 
 
 def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, protocols=PROTOCOLS,
-                 track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE) -> dict:
+                 track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE,
+                 renders: Optional[Path] = None) -> dict:
     """Fused figures of one team run: ROI PSNR per task (on its owner's whole sequence) after each push (vote,
     every ``eval_stride``-th frame, time on the mission clock in s) and of the final concat / vote / refine maps
     over every frame, each final map also under the scoring protocols (``protocols``: ``{protocol: {task: dB}}``, and
@@ -195,6 +196,7 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                                   for a in agents})
     # the team map as each robot loads it: each task scored on the map made for its robot, from its shared subset
     # on the server (Fuse(for_agent=...)) and from its own whole map on board (with_own_map)
+    on_board = {}
     for key in PER_ROBOT:
         out[key] = {"n": {}}
         robot = {}
@@ -206,7 +208,11 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                              [k for k in a["_keyframes"] if k.roi is not None])
             out[key]["n"][a["id"]] = len(m)
             robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
+            if key == "with_own":
+                on_board[a["id"]] = m
         _put_protocols(out[key], robot)
+    if renders is not None:
+        out["renders"] = write_renders(agents, vote, report, on_board, renders)
     out["vote_report"] = report.to_dict()
     out["cover"] = team_cover(agents, final, vote, report)
     return out
@@ -250,6 +256,45 @@ def _by_protocol(g, a: dict, protocols, track_iters: int, track_stride: int) -> 
 
 def _mean(per_frame: dict) -> Optional[float]:
     return float(np.mean(list(per_frame.values()))) if per_frame else None
+
+
+def write_renders(agents: list[dict], vote, report, on_board: dict, folder: Path) -> dict:
+    """One picture per robot (``folder/<task>.png``): at its middle withheld frame, at the sensor's pose, its own map |
+    the team vote with the other robots' blending weight in red (:func:`gausslite.fusion.diagnose.cover_image`) | the
+    team map made on board | the frame, each with the task's ROI outlined in green. Returns agent id → the file."""
+    import cv2  # lazy: only this picture needs OpenCV here
+
+    from gausslite.evaluation import render_map
+    from gausslite.fusion.diagnose import cover_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for a in agents:
+        ids = a["_novel"] or [int(f.frame_id) for f in a["_frames"]]
+        fid = ids[len(ids) // 2]
+        frame = next(f for f in a["_frames"] if int(f.frame_id) == fid)
+        roi = task_roi(a["_annotations"], a["task"])(frame)
+        outline = cv2.morphologyEx(roi.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+
+        def panel(bgr: np.ndarray, title: str) -> np.ndarray:
+            img = bgr.copy()
+            img[outline] = (0, 255, 0)
+            cv2.putText(img, title, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+            return img
+
+        def rendered(g) -> np.ndarray:
+            rgb = render_map(g.to_gaussian_map(), frame).color.clamp(0, 1).cpu().numpy()
+            return cv2.cvtColor((rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+
+        foreign = report.source_agent != list(report.agents).index(a["id"])
+        panels = [panel(rendered(a["_own_map"]), "own map"),
+                  panel(cover_image(vote, foreign, RoiView.from_frame(frame, roi)), "team vote (others in red)"),
+                  panel(rendered(on_board[a["id"]]), "team map made on board"),
+                  panel(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR), f"frame {fid} (withheld)")]
+        path = folder / f"{a['task']}.png"
+        cv2.imwrite(str(path), np.concatenate(panels, axis=1))
+        files[a["id"]] = str(path)
+    return files
 
 
 def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -> dict:
@@ -303,7 +348,7 @@ def _by_task(per_task: dict) -> dict:
 
 def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=(),
              protocols=PROTOCOLS, track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE,
-             novel_every: int = NOVEL_EVERY) -> dict:
+             novel_every: int = NOVEL_EVERY, renders: Optional[Path] = None) -> dict:
     """One run of a team: every agent live (one after the other), then the fused figures. Each agent's row gains
     ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
     own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s), each with its
@@ -312,7 +357,8 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
     cap = SCENES[spec["scene"]]["cap"]
     agents = [run_agent(team, a, budget, run, cap, work, overrides, protocols=protocols, track_iters=track_iters,
                         track_stride=track_stride, novel_every=novel_every) for a in spec["agents"]]
-    fused = fused_scores(agents, fuse_settings(), run, eval_stride, protocols, track_iters, track_stride)
+    fused = fused_scores(agents, fuse_settings(), run, eval_stride, protocols, track_iters, track_stride,
+                         renders / f"{team}_run{run}" if renders is not None else None)
     for a in agents:
         for k in [k for k in a if k.startswith("_")]:
             a.pop(k)
@@ -653,6 +699,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--curve", default=None, metavar="FILE[,FILE...]",
                     help="run nothing: read team results run at different agent.share_max_fraction bounds and write "
                          "their share curve into --out (key share_curve) and <out>_curve.md")
+    ap.add_argument("--renders", default=None, metavar="DIR",
+                    help="also write, per run and robot, its own map | the team vote (the others in red) | the team "
+                         "map made on board | the frame, at its middle withheld frame (DIR/<team>_run<k>/<task>.png)")
     ap.add_argument("--summary-of", default=None, metavar="FILE",
                     help="run nothing: summarise the runs of a team result again (this version's goals and tables) "
                          "into --out, keeping the runs' provenance")
@@ -685,7 +734,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     runs = []
     for team, run in tqdm([(t, r) for t in teams for r in range(args.runs)], desc="team runs", unit="run"):
         r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides, protocols, args.track_iters,
-                     args.track_stride, args.novel_every)
+                     args.track_stride, args.novel_every, Path(args.renders) if args.renders else None)
         runs.append(r)
         tqdm.write(f"{team} run {run}: " + "; ".join(
             f"{a['id']} {a['task']} share {_f(a['share_pct'], 1)} % upload {_f(a['upload_ratio'])}x own "

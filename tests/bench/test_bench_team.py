@@ -77,7 +77,7 @@ def test_summary_checks_the_goals_per_team():
     assert t["goals"]["refine_ge_own"] is False  # agent_b: 0.05 dB below under novel too
 
 
-def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(monkeypatch):
+def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(monkeypatch, tmp_path):
     """``fused_scores``: every final fused map (and the map made for each robot) on each task under ``sensor`` (the
     top-level figure), ``keyframes`` (the owner's uploaded keyframes at the poses they carry), ``novel`` (the withheld
     frame through the owner's camera model: its predicted pose, nothing fitted), ``tracked`` (every stride-th frame)
@@ -112,7 +112,13 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
                        "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6], "_own_map": g})
     fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
-    out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4)
+    out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4, renders=tmp_path / "renders")
+    # one picture per robot at its middle withheld frame: own | vote | on board | frame, each H x W
+    import cv2
+
+    for a in agents:
+        img = cv2.imread(out["renders"][a["id"]])
+        assert img is not None and img.shape == (H, 4 * W, 3), a["id"]
     for key in (*team.FUSED_KEYS, *team.PER_ROBOT):
         p = out[key]["protocols"]
         assert set(p) == {"sensor", "keyframes", "novel", "tracked", "novel-tracked", team.ROBOT_CAMERA}, key
