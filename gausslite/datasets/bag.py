@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
@@ -163,7 +164,8 @@ class BagDataset(RGBDDataset):
         undistortion), raw_intrinsics (CameraInfo), distortion, poses ((N, 4, 4) float64 camera-to-world,
         optical axes), timestamps ((N,) colour stamps, s), frame_ids (index of the colour message),
         topics (``{name: (type, count)}``), tf (:class:`TFBuffer`), world_frame, camera_frame,
-        rgb_topic, depth_topic, pose_source (``"tf"`` or the pose topic), registered (False: the depth
+        rgb_topic, depth_topic, pose_topic (where the poses were read: ``"tf"`` for the TF tree, else the pose
+        topic; ``pose_source`` is its old name, deprecated), registered (False: the depth
         topic has its own camera and is registered on load, see :meth:`depth_camera_at`), n_dropped, annotations.
 
     Raises:
@@ -426,8 +428,9 @@ class BagDataset(RGBDDataset):
         return ni, maps
 
     # ------------------------------------------------------------------ poses
-    def _pose_source(self, reader, opt: BagOptions):
-        """``(source, sample_fn)``: sample_fn(t) -> (T_world_camera or None, problem)."""
+    def _pose_reader(self, reader, opt: BagOptions):
+        """``(pose_topic, sample_fn)``: ``"tf"`` or the pose topic read; sample_fn(t) -> (T_world_camera or None,
+        problem)."""
         pose_topics = [t for t, (ty, _n) in self.topics.items() if ty in POSE_TYPES]
         topic = opt.pose_topic
         in_tf = self.camera_frame in self.tf.frames
@@ -536,7 +539,7 @@ class BagDataset(RGBDDataset):
             raise self._fail(f"colour topic {self.rgb_topic!r} has no messages")
         if not depth:
             raise self._fail(f"depth topic {self.depth_topic!r} has no messages")
-        self.pose_source, pose_at = self._pose_source(reader, opt)
+        self.pose_topic, pose_at = self._pose_reader(reader, opt)
         d_ts = np.array([d.stamp for d in depth])
         d_order = np.argsort(d_ts, kind="stable")
         idx, gap = associate_nearest(np.array([c.stamp for c in colour]), d_ts[d_order])
@@ -558,7 +561,7 @@ class BagDataset(RGBDDataset):
         self.n_dropped = len(colour) - len(pairs)
         if not pairs:
             raise self._fail(f"no colour frame of {self.rgb_topic!r} has depth and a pose within tolerance "
-                             f"(pose source {self.pose_source!r}, world {self.world_frame!r}, camera "
+                             f"(poses from {self.pose_topic!r}, world {self.world_frame!r}, camera "
                              f"{self.camera_frame!r}); first problems:\n    " + "\n    ".join(problems[:3]))
         if self.n_dropped:
             log.warning("%s: dropped %d of %d colour frames without depth/pose within tolerance (first: %s)",
@@ -566,6 +569,15 @@ class BagDataset(RGBDDataset):
         return pairs
 
     # ------------------------------------------------------------------ frames
+    @property
+    def pose_source(self) -> str:
+        """The old name of :attr:`pose_topic` (``"tf"`` or the pose topic the poses were read from); reading it warns
+        (DeprecationWarning). ``pose_source`` names where poses come from across GaussLite
+        (:data:`gausslite.datasets.odometry.PoseSource`: ``given`` / ``odometry``); a bag's are ``given``."""
+        warnings.warn("BagDataset.pose_source is renamed pose_topic (\"tf\" or the pose topic read)",
+                      DeprecationWarning, stacklevel=2)
+        return self.pose_topic
+
     def __len__(self) -> int:
         """Number of (selected) frames."""
         return len(self._pairs)

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Optional, Tuple, Union
+from typing import Literal, Optional, Tuple, Union
 
 from gausslite.datasets.bag import BagDataset
 from gausslite.datasets.base import RGBDDataset
 from gausslite.datasets.camera_folder import CameraFolderDataset, is_camera_folder
 from gausslite.datasets.common import PathLike
-from gausslite.datasets.odometry import OdometryConfig, with_pose_source
+from gausslite.datasets.odometry import OdometryConfig, PoseSource, with_pose_source
 from gausslite.datasets.realsense import RealSenseBagDataset, is_realsense_bag
 from gausslite.datasets.replica import ReplicaDataset
 from gausslite.datasets.sevenscenes import SevenScenesDataset
@@ -109,7 +109,7 @@ def load_dataset(
     max_frames: Optional[int] = None,
     stride: int = 1,
     bag: Optional[object] = None,
-    pose_source: str = "auto",
+    pose_source: Union[PoseSource, Literal["auto"]] = "auto",
     odometry: Optional[OdometryConfig] = None,
     progress: bool = True,
     **kw,
@@ -126,8 +126,9 @@ def load_dataset(
         stride: keep every ``stride``-th frame.
         bag: ``BagOptions`` or dict (topics, frames, tolerances) used when the path is a ROS bag; a
             non-empty value for another layout is an error.
-        pose_source: ``auto`` (the sequence's poses, else odometry), ``given`` (its poses; an error when it has
-            none) or ``odometry`` (:func:`gausslite.datasets.odometry.with_pose_source`).
+        pose_source: a :data:`~gausslite.datasets.odometry.PoseSource`, ``given`` (its poses; an error when it
+            has none) or ``odometry``, or ``auto`` (the sequence's poses, else odometry;
+            :func:`gausslite.datasets.odometry.with_pose_source`).
         odometry: the odometry's settings (``OdometryConfig``; None: the defaults).
         progress: the odometry shows a progress bar.
         **kw: passed to the loader (``ReplicaDataset``, ``TUMDataset``, ``SevenScenesDataset``,

@@ -33,7 +33,7 @@ import logging
 import queue
 import threading
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Literal, Optional
+from typing import Callable, Dict, List, Literal, Optional, Union, get_args
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -48,10 +48,17 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OdometryConfig", "TrackResult", "RGBDOdometry", "OdometryDataset", "POSE_SOURCES", "with_pose_source"]
+__all__ = ["OdometryConfig", "TrackResult", "RGBDOdometry", "OdometryDataset", "PoseSource", "POSE_SOURCES",
+           "with_pose_source"]
 
-#: the values of ``pose_source`` (``agent.pose_source``, ``gausslite map --pose-source``, ``load_dataset``)
-POSE_SOURCES = ("auto", "given", "odometry")
+#: where the camera poses (camera-to-world) come from: the frames' own (``given``: the sequence's pose file, a bag's
+#: TF or pose topic, the pose each streamed frame carries) or the RGB-D odometry's estimate (``odometry``). The type of
+#: ``agent.pose_source``; ``load_dataset`` and ``gausslite map --pose-source`` take it or ``auto``
+#: (:data:`POSE_SOURCES`).
+PoseSource = Literal["given", "odometry"]
+#: the values a loader takes (``load_dataset(pose_source=...)``, ``gausslite map --pose-source``): a
+#: :data:`PoseSource`, or ``auto`` (``given`` when the sequence has poses, else ``odometry``)
+POSE_SOURCES = ("auto", *get_args(PoseSource))
 
 
 class OdometryConfig(BaseModel):
@@ -654,14 +661,14 @@ class OdometryDataset(RGBDDataset):
 
 
 
-def with_pose_source(dataset: RGBDDataset, pose_source: str = "auto", config: Optional[OdometryConfig] = None,
-                     progress: bool = True) -> RGBDDataset:
+def with_pose_source(dataset: RGBDDataset, pose_source: Union[PoseSource, Literal["auto"]] = "auto",
+                     config: Optional[OdometryConfig] = None, progress: bool = True) -> RGBDDataset:
     """``dataset`` with the poses ``pose_source`` names: ``given`` (its own), ``odometry`` (an
     :class:`OdometryDataset` over it), or ``auto`` (its own when it has them, else odometry).
 
     Args:
         dataset: the dataset (``has_poses`` False when it was read without poses).
-        pose_source: one of :data:`POSE_SOURCES`.
+        pose_source: one of :data:`POSE_SOURCES` (a :data:`PoseSource` or ``auto``).
         config: the odometry's settings.
         progress: the odometry shows a progress bar.
     Returns:

@@ -27,7 +27,7 @@ from gausslite.mission.errors import FrameSizeMismatch
 from gausslite.mission.progress import MissionProgress
 from gausslite.mission.state import MissionState
 from gausslite.mission.team_frame import frame_to_world
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 
 log = logging.getLogger("gausslite.mission.runtime")  # one logger for the whole mission loop
 
@@ -57,7 +57,7 @@ class Ingest:
         config: the mission's ``AgentConfig`` (``ingest``, ``queue_size``, ``keyframe_translation_m``,
             ``keyframe_rotation_deg``, ``keyframe_max_interval_s``, ``refine_views``, ``mapper``).
         progress: the mission's :class:`~gausslite.mission.progress.MissionProgress` (state, counters, lock).
-        poses: the mission's :class:`~gausslite.mission.tracking.PoseSource`.
+        poses: the mission's :class:`~gausslite.mission.tracking.MissionPoses`.
         T_world_map: (4, 4) float64 from the robot's map frame into the team's world frame, or None (the same frame).
 
     Attributes:
@@ -69,7 +69,7 @@ class Ingest:
     """
 
     def __init__(self, agent_id: str, mission_id: str, config: AgentConfig, progress: MissionProgress,
-                 poses: PoseSource, T_world_map: Optional[np.ndarray]) -> None:
+                 poses: MissionPoses, T_world_map: Optional[np.ndarray]) -> None:
         self.agent_id, self.mission_id, self.progress = agent_id, mission_id, progress
         self.poses, self.T_world_map = poses, T_world_map
         self.queue: "queue.Queue" = queue.Queue(maxsize=config.queue_size)
@@ -84,7 +84,7 @@ class Ingest:
     def posed(self, frame, replayed: bool):
         """``frame`` with its pose in the world frame: the odometry's (``agent.pose_source: odometry``, decoded for
         it), moved by ``T_world_map`` unless ``replayed`` (a replay's frames are in the world frame already); None
-        when the odometry lost it (counted, :meth:`PoseSource.track`)."""
+        when the odometry lost it (counted, :meth:`MissionPoses.track`)."""
         if self.poses.tracks:
             frame = self.poses.track(frame, None if replayed else self.T_world_map)
             if frame is None:

@@ -20,7 +20,7 @@ from gausslite.mission.errors import MissionError
 from gausslite.mission.progress import MissionProgress
 from gausslite.mission.state import MissionState
 from gausslite.mission.team_frame import WorldFrames
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 
 __all__ = ["Replay"]
 
@@ -76,7 +76,7 @@ class Replay:
                 raise TimeoutError("replay still running at the Finish deadline")
             t.join(0.1)
 
-    def start(self, *, submit: Callable, progress: MissionProgress, poses: PoseSource, join: Callable[[], None],
+    def start(self, *, submit: Callable, progress: MissionProgress, poses: MissionPoses, join: Callable[[], None],
               fail: Callable[[str], None], report: Optional[Callable[[int, int], None]] = None,
               name: str = "replay") -> threading.Thread:
         """Start feeding the frames.
@@ -85,7 +85,7 @@ class Replay:
             submit: ``(frame) -> bool``: hands one frame (world frame) to the mission.
             progress: the mission's :class:`~gausslite.mission.progress.MissionProgress` (``stop`` ends the replay;
                 the state becomes ``REPLAY_DONE`` once every frame is mapped).
-            poses: the mission's :class:`~gausslite.mission.tracking.PoseSource` (withheld frames are tracked).
+            poses: the mission's :class:`~gausslite.mission.tracking.MissionPoses` (withheld frames are tracked).
             join: ``() -> None``: returns once every queued frame is mapped.
             fail: ``(message) -> None``: the replay failed (an unreadable frame).
             report: ``(sent, total) -> None`` after each frame sent (total: frames not withheld).
@@ -98,7 +98,7 @@ class Replay:
         self.thread.start()
         return self.thread
 
-    def _run(self, submit, progress: MissionProgress, poses: PoseSource, join, fail, report) -> None:
+    def _run(self, submit, progress: MissionProgress, poses: MissionPoses, join, fail, report) -> None:
         ds, held, stop = self.dataset, self.held, progress.stop
         n, sent = len(ds) - len(held), 0
         t_start, ts0 = time.perf_counter(), None

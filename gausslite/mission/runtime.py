@@ -10,7 +10,7 @@ only. The fusion client signals a rejected delta base with :class:`gausslite.mis
 The runtime coordinates its parts, one job each:
 
 * frames in — :class:`~gausslite.mission.ingest.Ingest` (pose into the world frame, image size, keyframe selection
-  or the every-frame queue), :class:`~gausslite.mission.tracking.PoseSource` (given poses or the RGB-D odometry),
+  or the every-frame queue), :class:`~gausslite.mission.tracking.MissionPoses` (given poses or the RGB-D odometry),
   :class:`~gausslite.mission.replay.Replay` (a dataset fed from a thread, at its clock under ``realtime``);
 * mapping worker — :class:`~gausslite.mission.worker.MappingWorker`, the thread that maps keyframes, optimises
   between them (live ingest), hands snapshots to the pusher and writes checkpoints;
@@ -49,7 +49,7 @@ from gausslite.mission.share import ShareSession
 from gausslite.mission.state import ACCEPTS_TASK
 from gausslite.mission.task import MissionTask
 from gausslite.mission.team_frame import annotations_to_world
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 from gausslite.mission.uploads import KeyframeUploads
 from gausslite.mission.worker import DRAIN, FINISH, MappingWorker
 
@@ -164,7 +164,7 @@ class AgentRuntime:
         #: frame id → TrackedView of the tracked / novel-tracked frames, and of the novel ones (predicted), last scored
         self.tracked_views, self.predicted_views = {}, {}
         self.summary: Optional[MissionSummaryData] = None
-        self.poses = PoseSource(config, self.progress)
+        self.poses = MissionPoses(config, self.progress)
         self.ingest = Ingest(agent_id, mid, config, self.progress, self.poses, self.T_world_map)
         self.uploads = KeyframeUploads(config, self.resolution, lambda: self.ingest.intrinsics)
         self.share = ShareSession(agent_id, config)  # selection, fine-tune cache, delta planning

@@ -1,6 +1,7 @@
-"""Where a mission's poses come from (``agent.pose_source``): the poses each frame carries (``given``), or the RGB-D
-odometry tracking every frame as it arrives (``odometry``, :class:`gausslite.datasets.odometry.RGBDOdometry`), whose
-loop closures the map then follows (:class:`gausslite.mission.pose_follow.MapFollower`).
+"""Where a mission's poses come from (``agent.pose_source``, a :data:`gausslite.datasets.odometry.PoseSource`): the
+poses each frame carries (``given``), or the RGB-D odometry tracking every frame as it arrives (``odometry``,
+:class:`gausslite.datasets.odometry.RGBDOdometry`), whose loop closures the map then follows
+(:class:`gausslite.mission.pose_follow.MapFollower`). :class:`MissionPoses` is the mission's part that holds them.
 
 Poses are camera-to-world, (4, 4) float64, metres, OpenCV camera axes.
 """
@@ -17,7 +18,7 @@ from gausslite.mission.config import AgentConfig
 from gausslite.mission.pose_follow import MapFollower
 from gausslite.mission.progress import MissionProgress
 
-__all__ = ["PoseSource", "odometry_for"]
+__all__ = ["MissionPoses", "odometry_for"]
 
 
 def odometry_for(config: AgentConfig):
@@ -32,7 +33,7 @@ def odometry_for(config: AgentConfig):
     return RGBDOdometry(config.odometry, background_loops=True)
 
 
-class PoseSource:
+class MissionPoses:
     """The mission's poses: given with the frames, or tracked by the odometry (``agent.pose_source``).
 
     Args:

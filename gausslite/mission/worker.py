@@ -29,7 +29,7 @@ from gausslite.mission.heap import trim_heap
 from gausslite.mission.ingest import SLOT, Ingest
 from gausslite.mission.progress import MissionProgress
 from gausslite.mission.state import MissionState
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 from gausslite.mission.uploads import KeyframeUploads
 
 log = logging.getLogger("gausslite.mission.runtime")  # one logger for the whole mission loop
@@ -49,7 +49,7 @@ class MappingWorker:
         config: the mission's ``AgentConfig``.
         progress: the mission's :class:`~gausslite.mission.progress.MissionProgress` (counters, state, lock).
         ingest: the mission's :class:`~gausslite.mission.ingest.Ingest` (queue, keyframe candidate, frames between).
-        poses: the mission's :class:`~gausslite.mission.tracking.PoseSource` (loop closures the map follows).
+        poses: the mission's :class:`~gausslite.mission.tracking.MissionPoses` (loop closures the map follows).
         task: the mission's :class:`~gausslite.mission.task.MissionTask` (relevance, pending task).
         mapper: the mission's :class:`~gausslite.mapping.mapper.Mapper`.
         resolution: the mission's resolution governor (:class:`gausslite.mapping.resolution.ResolutionGovernor`).
@@ -65,7 +65,7 @@ class MappingWorker:
     """
 
     def __init__(self, agent_id: str, mission_id: str, config: AgentConfig, *, progress: MissionProgress,
-                 ingest: Ingest, poses: PoseSource, task, mapper, resolution, maps_detail: bool,
+                 ingest: Ingest, poses: MissionPoses, task, mapper, resolution, maps_detail: bool,
                  uploads: KeyframeUploads, pusher, share, checkpoint, fail: Callable[[str], None]) -> None:
         self.agent_id, self.mission_id, self.config = agent_id, mission_id, config
         self.progress, self.ingest, self.poses, self.task = progress, ingest, poses, task

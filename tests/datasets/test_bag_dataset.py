@@ -107,7 +107,9 @@ def test_storage_formats_images_intrinsics_and_tf_poses(tmp_path, storage):
     assert is_bag_path(p) and detect_layout(p) == ("bag", p)
     ds = load_dataset(p)
     assert isinstance(ds, BagDataset) and len(ds) == N
-    assert ds.intrinsics == INTR and ds.pose_source == "tf" and ds.world_frame == "map" and ds.camera_frame == OPT
+    assert ds.intrinsics == INTR and ds.pose_topic == "tf" and ds.world_frame == "map" and ds.camera_frame == OPT
+    with pytest.warns(DeprecationWarning, match="renamed pose_topic"):
+        assert ds.pose_source == "tf"  # the old name still reads, with a warning
     for k, fr in enumerate(ds):
         assert np.array_equal(fr.rgb, rgb_img(k))
         assert fr.depth.dtype == np.float32 and np.array_equal(fr.depth, depth_img(k))
@@ -162,7 +164,7 @@ def test_downscale_stride_max_frames(tmp_path):
 # ---------------------------------------------------------------------------------------------- poses
 def test_pose_stamped_topic_without_tf(tmp_path):
     ds = load_dataset(_bag(tmp_path, poses="pose"))
-    assert ds.pose_source == "/camera/pose" and ds.world_frame == "map"
+    assert ds.pose_topic == "/camera/pose" and ds.world_frame == "map"
     for k in range(N):
         assert np.allclose(ds[k].c2w, expected_c2w(k), atol=1e-9)
 
@@ -173,7 +175,7 @@ def test_odometry_topic_composed_with_static_tf(tmp_path):
             w.write_tf(t, [("base_link", OPT, T_BASE_OPT)], static=True)
 
     ds = load_dataset(_bag(tmp_path, poses="odom", extra=static))
-    assert ds.pose_source == "/odom" and ds.world_frame == "odom"
+    assert ds.pose_topic == "/odom" and ds.world_frame == "odom"
     for k in range(N):
         assert np.allclose(ds[k].c2w, expected_c2w(k, "odom"), atol=1e-9)
 

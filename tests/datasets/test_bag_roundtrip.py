@@ -39,7 +39,7 @@ def test_tum_round_trip_through_every_storage(tmp_path, tum_small, storage):
     summary = export_bag(tum_small, out, storage=storage)
     assert summary["frames"] == N_FRAMES and summary["topics"] == TOPICS
     bag = load_dataset(out)
-    assert isinstance(bag, BagDataset) and bag.pose_source == "tf" and bag.world_frame == "map"
+    assert isinstance(bag, BagDataset) and bag.pose_topic == "tf" and bag.world_frame == "map"
     _assert_same(tum_small, bag)
     # the PoseStamped topic gives the same poses
     via_topic = load_dataset(out, bag={"pose_topic": TOPICS["pose"]})

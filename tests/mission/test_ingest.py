@@ -16,14 +16,14 @@ from gausslite.mission.errors import FrameSizeMismatch, MissionError
 from gausslite.mission.ingest import SLOT, Ingest, between_use
 from gausslite.mission.progress import CHECKPOINT_COUNTERS, MissionProgress, percentile
 from gausslite.mission.state import MissionState
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 from tests._scenes import plane_frame
 
 
 def _ingest(*overrides, T_world_map=None):
     cfg = load_config(None, list(overrides)).agent
     progress = MissionProgress()
-    poses = PoseSource(cfg, progress)
+    poses = MissionPoses(cfg, progress)
     return Ingest("a", "m1", cfg, progress, poses, T_world_map), progress
 
 
@@ -217,7 +217,7 @@ class _Follower:
 
 def test_the_odometry_tracks_each_frame_and_a_lost_one_is_counted_rejected():
     p = MissionProgress()
-    poses = PoseSource(load_config(None, []).agent, p)
+    poses = MissionPoses(load_config(None, []).agent, p)
     poses.odometry, poses.follower = _Odometry(lost={1}), _Follower()
     poses.records = True
     assert poses.tracks

@@ -16,7 +16,7 @@ from gausslite.mission.progress import MissionProgress
 from gausslite.mission.pusher import PushRecord
 from gausslite.mission.replay import Replay
 from gausslite.mission.state import MissionState
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 from tests._scenes import plane_frame
 
 
@@ -95,7 +95,7 @@ def _replay(n=6, *overrides, T=None):
 
 def _feed(rp, cfg, *, submit=None, tracks=False, report=None):
     progress = MissionProgress()
-    poses = PoseSource(cfg, progress)
+    poses = MissionPoses(cfg, progress)
     tracked, sent, failures = [], [], []
     if tracks:
         poses.odometry, poses.track = object(), lambda fr, W=None: tracked.append(fr.frame_id)
@@ -149,7 +149,7 @@ def test_a_stopped_mission_stops_its_replay_and_a_replay_not_started_waits_for_n
     progress = MissionProgress()
     progress.stop.set()
     sent = []
-    rp.start(submit=sent.append, progress=progress, poses=PoseSource(cfg, progress), join=lambda: None,
+    rp.start(submit=sent.append, progress=progress, poses=MissionPoses(cfg, progress), join=lambda: None,
              fail=lambda msg: None)
     rp.wait()
     assert sent == [] and progress.state == MissionState.MAPPING

@@ -19,7 +19,7 @@ from gausslite.mission.ingest import Ingest
 from gausslite.mission.progress import MissionProgress
 from gausslite.mission.state import MissionState
 from gausslite.mission.task import MissionTask
-from gausslite.mission.tracking import PoseSource
+from gausslite.mission.tracking import MissionPoses
 from gausslite.mission.uploads import KeyframeUploads
 from gausslite.mission.worker import DRAIN, FINISH, MappingWorker
 from tests._scenes import plane_frame, plane_roi
@@ -93,7 +93,7 @@ def _worker(*overrides, relevance=None):
                              "agent.resolution.min_width=16", "agent.refine_views.between=false",
                              *overrides]).agent
     progress = MissionProgress()
-    poses = PoseSource(cfg, progress)
+    poses = MissionPoses(cfg, progress)
     ingest = Ingest("w", "m1", cfg, progress, poses, None)
     mapper, pusher, checkpoint, failures = _Mapper(), _Pusher(), _Checkpoint(), []
     roi = relevance or (lambda fr: np.ones(fr.depth.shape, bool))
