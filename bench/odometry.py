@@ -177,8 +177,7 @@ def live(rate: float, budget: float, variant: str = "default") -> dict:
     # lazy: the agent (torch, the mapper) loads only for the live measurement
     from gausslite.config import load_config
     from gausslite.mapping.profiles import profile_for_layout, with_profile
-    from gausslite.mission import AgentRuntime
-    from gausslite.parser import TaskParser
+    from gausslite.mission import build_mission
 
     ds = load_dataset(SHARED / "TUM_rgbd_dataset_freiburg1_rpy", downscale=2, undistort=True, interpolate_poses=True,
                       align_depth_time=False, pose_source="given")
@@ -191,8 +190,8 @@ def live(rate: float, budget: float, variant: str = "default") -> dict:
     m = with_profile(cfg.mapper, profile_for_layout("tum")).model_copy(update={"final_iters": 0,
                                                                                 "final_iters_per_keyframe": 0.0})
     task = ds.annotations.tasks[0]
-    rt = AgentRuntime("bench", task.text, TaskParser().parse(task.text), cfg.model_copy(update={"mapper": m}),
-                      annotations=ds.annotations, task_id=task.id)
+    rt = build_mission(cfg, task.text, agent_id="bench", annotations=ds.annotations, task_id=task.id, mapper=m,
+                       start=False)
     rt.odometry.background_loops = background
     track_ms, arrivals = [], []
     track, submit = rt.odometry.track, rt.submit

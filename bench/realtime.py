@@ -51,7 +51,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Optional
+from typing import Optional, get_args
 
 import cv2
 import numpy as np
@@ -61,6 +61,7 @@ from tqdm import tqdm
 from gausslite.datasets import detect_layout, load_dataset, task_roi
 from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, current_protocols,
                                   score_live_map, side_by_side, withheld_indices)
+from gausslite.datasets.odometry import PoseSource
 from gausslite.datasets.subset import EstimatedPoses, ScaledFrames
 from gausslite.mapping.budget import WallClock, WorkCost, fit_work_cost
 from gausslite.mapping.resolution import choose_downscale
@@ -68,7 +69,7 @@ from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
-from gausslite.mission import AgentRuntime, FusionPort
+from gausslite.mission import FusionPort, build_mission
 from gausslite.mission.fakes import SinkFusion
 from gausslite.parser import parse_task
 from gausslite.stats import aggregate, fmt, fmt_gain, gain, paired_gain, significant
@@ -263,8 +264,8 @@ def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[F
                                   [*extra_overrides, *job.get("overrides", ())])
     graph = parse_task(task.text)
     relevance_fn, bind = late_relevance(job, ds, cfg, graph, ann, task)
-    rt = AgentRuntime("bench", task.text, graph, cfg, annotations=ann, task_id=task.id, fusion=fusion,
-                      relevance_fn=relevance_fn)
+    rt = build_mission(cfg, task.text, graph, agent_id="bench", annotations=ann, task_id=task.id, fusion=fusion,
+                       relevance_fn=relevance_fn, start=False)
     bind(rt)
     return ds, ann, task, rt, fp_per_kf
 
@@ -906,7 +907,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="novel / novel-tracked protocols: every k-th frame of the sequence is withheld from the "
                          "mapper in both modes, scored at the pose the map predicts (novel) and at a pose tracked "
                          "against the map (novel-tracked) (0: nothing withheld, neither protocol)")
-    ap.add_argument("--pose-source", choices=("given", "odometry"), default="given",
+    ap.add_argument("--pose-source", choices=get_args(PoseSource), default="given",
                     help="the poses the agents map and are scored at: the sequence's own (given), or the RGB-D "
                          "odometry's estimates of every frame, the withheld ones included (agent.pose_source "
                          "odometry: a camera without SLAM); the ROI is the given poses' either way")

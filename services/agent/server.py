@@ -42,13 +42,9 @@ import grpc
 import numpy as np
 from pydantic import ValidationError
 
-from gausslite.datasets import load_dataset
 from gausslite.datasets.annotations import load_annotations
-from gausslite.datasets.loader import detect_layout
-from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.config import load_config
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState
-from gausslite.mission.config import FrameConfig
+from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, build_mission, replay_dataset
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.mission.team_frame import parse_T_world_map
 from gausslite.parser import TaskParser
@@ -279,9 +275,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if agent_id and not _valid_id(agent_id):
             raise ValueError(f"agent_id {agent_id[:80]!r} must be 1..64 characters of [A-Za-z0-9_.-], not only dots")
         self._check_caller_choices(fusion_address, agent_id, dataset_path, annotations_path)
-        T = parse_T_world_map(T_world_map, "T_world_map")
-        if T is not None:  # the mission's option overrides the agent's setting
-            cfg = cfg.model_copy(update={"frame": FrameConfig(T_world_map=T.tolist())})
+        T = parse_T_world_map(T_world_map, "T_world_map")  # overrides agent.frame.T_world_map when given
         with self._lock:
             if mission_id and mission_id in self.missions:
                 raise MissionError(f"mission {mission_id} already exists in this agent process "
@@ -294,19 +288,10 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if dataset_path:
             if not Path(dataset_path).exists():
                 raise FileNotFoundError(f"dataset_path not found on the agent: {dataset_path}")
-
-            layout = detect_layout(dataset_path)[0]
-            profile = profile_for_layout(layout)
-            kw = dict(profile.loader)  # e.g. TUM: undistorted, interpolated poses
-            # mapper defaults of the sensor profile (e.g. hand-held: pose refinement, a final pass) under
-            # whatever the agent's YAML / overrides set, as `gausslite map` layers them
-            cfg = cfg.model_copy(update={"mapper": with_profile(cfg.mapper, profile)})
+            # the sensor profile's loader options and mapper defaults under whatever the agent's YAML sets
+            dataset, cfg, profile = replay_dataset(dataset_path, cfg)
             log.info("agent %s: dataset profile %s (%s); mapper %s", agent_id or s.agent_id, profile.name,
                      profile.description, {k: getattr(cfg.mapper, k) for k in profile.mapper} or "defaults")
-            if cfg.fps is not None and layout in ("replica", "7scenes"):
-                kw["fps"] = cfg.fps  # replay clock of datasets without timestamps (TUM keeps its own)
-            dataset = load_dataset(dataset_path, downscale=cfg.downscale, max_frames=cfg.max_frames,
-                                   stride=cfg.stride, bag=cfg.bag, **kw)
             annotations = dataset.annotations
         ann_path = annotations_path or (s.annotations_path if not dataset_path else "")
         if ann_path:
@@ -320,8 +305,9 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if mid is None and s.data_dir:
             mid = uuid.uuid4().hex[:12]
         ckpt = Path(s.data_dir) / aid / mid if s.data_dir else None
-        rt = AgentRuntime.launch(aid, task_text, graph, cfg, annotations=annotations, task_id=task_id or None,
-                                 fusion=fusion, on_finished=self._save, mission_id=mid, checkpoint_dir=ckpt)
+        rt = build_mission(cfg, task_text, graph, agent_id=aid, annotations=annotations, task_id=task_id or None,
+                           fusion=fusion, on_finished=self._save, mission_id=mid, checkpoint_dir=ckpt,
+                           T_world_map=T, start=True)
         with self._lock:
             self.missions[rt.mission_id] = rt
             self.current = rt.mission_id
