@@ -29,7 +29,7 @@ CALLERS = {"services/agent/server.py": "start_mission", "bench/realtime.py": "st
 
 def _config(*overrides):
     return load_config(None, ["agent.ingest=every_frame", "agent.push_every=1000", "mapper.mode=gausslite",
-                              "mapper.iters_per_frame=3", *overrides]).agent
+                              "mapper.iters_per_frame=3", "mapper.warmup_iters=1", *overrides]).agent
 
 
 def _shift(x: float) -> np.ndarray:
