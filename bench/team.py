@@ -663,16 +663,19 @@ def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict
     return curve
 
 
+def markdown(result: dict) -> str:
+    """A team result's Markdown: the summary (:func:`table`), the protocol table and what draws each robot's ROI."""
+    return (table(result) + "\n\n" + protocol_table(result)
+            + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n" + cover_table(result["runs"]))
+
+
 def resummarise(src: Path, out: Path, argv) -> dict:
     """Summarise the runs of the team result ``src`` again (:func:`summarise`, the tables) into ``out`` and its
     ``.md``; the JSON keeps the runs' provenance and settings. Returns the result."""
     result = json.loads(src.read_text())
     result["teams"] = summarise(result["runs"])
     ran = result.get("provenance", {}).get("command", str(src))
-    write_results(out, "team", argv, f": the runs of `{ran}`, summarised again",
-                  table(result) + "\n\n" + protocol_table(result)
-                  + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n"
-                  + cover_table(result["runs"]), result)
+    write_results(out, "team", argv, f": the runs of `{ran}`, summarised again", markdown(result), result)
     return result
 
 
@@ -750,9 +753,7 @@ def main(argv: Optional[list[str]] = None) -> int:
               "teams": summarise(runs), "runs": runs}
     for team in teams:
         plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
-    write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min",
-                  table(result) + "\n\n" + protocol_table(result)
-                  + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n" + cover_table(runs),
+    write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min", markdown(result),
                   result)
     out.with_suffix(".partial.json").unlink(missing_ok=True)  # the runs are in the result now
     return 0
