@@ -45,17 +45,17 @@ Parts (gsplat style; each with its own ``state_dict`` / ``load_state_dict``, gat
 - :class:`~gausslite.mapping.sensor.SensorRenderer`: the map rendered as the sensor took a view (exposure,
   motion blur, rolling shutter);
 - :class:`~gausslite.mapping.step.TrainStep`: one Adam iteration on one view (``mapper.step``);
-- :class:`~gausslite.mapping.memory.KeyframeStore`, :class:`~gausslite.mapping.poses.PoseRefiner`.
+- :class:`~gausslite.mapping.memory.KeyframeStore`, :class:`~gausslite.mapping.poses.PoseRefiner`;
+- :class:`~gausslite.mapping.seeder.FrameSeeder`: seeding one frame (``mapper.seeder``; it keeps no state).
 
-:class:`Mapper` keeps the schedules: :meth:`~Mapper.map_frame` (seed, then iterate under an iteration count or a
-time budget), :meth:`~Mapper.optimize` (between keyframes) and :meth:`~Mapper.finalize`.
+:class:`Mapper` coordinates them: :meth:`~Mapper.map_frame` (place the keyframe, seed, store, then iterate under an
+iteration count or a time budget), :meth:`~Mapper.optimize` (between keyframes) and :meth:`~Mapper.finalize`; the
+iterations themselves (how many, on which view, in which phase) are :mod:`gausslite.mapping.iterations`'.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import logging
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Mapping, Optional
@@ -67,16 +67,13 @@ from gausslite.datasets.base import Frame
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.budget import WallClock, WorkClock, WorkCost
 from gausslite.mapping.config import MapperConfig
-from gausslite.mapping.detail import (DetailCrop, DetailView, check_detail, cut_detail, detail_pad, detail_pool,
-                                      detail_scale, detail_seed_pixels)
-from gausslite.mapping.exposure import invert_exposure
-from gausslite.mapping.memory import KeyframeStore, unexplained_mask
+from gausslite.mapping.detail import DetailCrop, DetailView, check_detail, cut_detail, detail_pad, detail_scale
+from gausslite.mapping.iterations import between_keyframes, final_pass, keyframe_iterations
+from gausslite.mapping.memory import KeyframeStore
 from gausslite.mapping.model import GaussianModel
-from gausslite.mapping.poses import PoseRefiner, nearest_key
+from gausslite.mapping.poses import PoseRefiner, correction_moves
 from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_view_of, window_points
-from gausslite.mapping.schedule import RoiSchedule
-from gausslite.mapping.seeding import (SeedSelection, local_median_nn_distance, seed_points, select_seeds,
-                                       weighted_choice)
+from gausslite.mapping.seeder import FrameSeeder, SeedStats
 from gausslite.mapping.sensor import SensorRenderer
 from gausslite.mapping.step import TrainStep
 from gausslite.mapping.strategy import DensityStrategy
@@ -84,7 +81,7 @@ from gausslite.mapping.tracking import FrameTracker, TrackResult
 from gausslite.mapping.views import Keyframe, keyframe_from_frame, roi_box
 from gausslite.render import RenderOutput
 
-log = logging.getLogger(__name__)
+__all__ = ["FrameStats", "Mapper", "SeedStats"]
 
 
 @dataclass
@@ -113,18 +110,6 @@ class FrameStats:
     detail_px: int = 0  #: pixels (w × h) of the detail crop the keyframe stored (``detail``; 0: none)
 
 
-@dataclass
-class SeedStats:
-    """What seeding one frame did (:meth:`Mapper.seed_frame`)."""
-
-    n_seeds: int = 0  #: new Gaussians
-    n_roi: int = 0  #: of them active (a = 1: their seed pixel is in the relevance map)
-    unexplained: float = 1.0  #: share of valid pixels the map did not explain before seeding
-    n_evicted: int = 0  #: existing Gaussians the new seeds replaced at the budget
-    n_adopted: int = 0  #: existing Gaussians that joined the task (``seeding.adopt``)
-    n_gap_seeds: int = 0  #: of the new seeds, those on relevant pixels the task's Gaussians left uncovered
-
-
 class Mapper:
     """The online mapper (one global map, known poses).
 
@@ -136,6 +121,7 @@ class Mapper:
         sensor: the sensor renderer (:class:`~gausslite.mapping.sensor.SensorRenderer`).
         step: one Adam iteration on one view, ``mapper.step(view, active_phase=...)``
             (:class:`~gausslite.mapping.step.TrainStep`).
+        seeder: seeds a frame (:class:`~gausslite.mapping.seeder.FrameSeeder`).
         keyframes: every keyframe of the mission, compact and bounded (MVO draws from it).
         poses: per-keyframe pose corrections (refined under ``cfg.pose.refine``, set by keyframe placement under
             ``cfg.pose.track_iters`` and by :meth:`apply_pose_corrections`); None while none of them is on.
@@ -171,6 +157,7 @@ class Mapper:
         self.tracker = FrameTracker(cfg, self.sensor, self.clock)
         self.step = TrainStep(cfg, self.model, self.sensor, self.strategy, self.keyframes,
                               self.poses if cfg.pose.refine else None, self.clock, self.rng, views=self.roi_views)
+        self.seeder = FrameSeeder(cfg, self.model, self.strategy, self.sensor, self.rng)
         self.n_mapped = 0
         self.stats: list[FrameStats] = []
         self.n_idle_iters = 0  # iterations of optimize() between keyframes
@@ -273,26 +260,14 @@ class Mapper:
         Raises:
             KeyError: a frame id that was never mapped. ValueError: a pose that is not a finite rigid transform.
         """
-        current = self.keyframe_poses()
-        moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for fid, c2w in new_c2w.items():
-            fid = int(fid)
-            if fid not in current:
-                raise KeyError(f"frame {fid} was never mapped: no keyframe to correct (mapped: {len(current)} frames)")
-            new = np.asarray(c2w, np.float64)
-            if new.shape != (4, 4) or not np.all(np.isfinite(new)) or not np.allclose(
-                    new[:3, :3] @ new[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(new[:3, :3]) < 0:
-                raise ValueError(f"frame {fid}: the corrected pose is not a finite (4, 4) rigid transform: {new!r}")
-            T = new @ np.linalg.inv(current[fid])
-            if not np.allclose(T, np.eye(4), rtol=0.0, atol=1e-12):
-                moves[fid] = (T, new)
+        moves = correction_moves(new_c2w, self.keyframe_poses())
         if not moves:
             return 0
         if self.poses is None:
             self.poses = self._new_pose_record()
             for fid in self.input_poses:
                 self.poses.register(fid, np.eye(4))
-        self._move_roi_views(moves)
+        self.roi_views.follow(moves, self.input_poses, self.poses)
         n_moved = 0
         for fid, (T, new) in moves.items():
             rows = torch.nonzero(self.model.anchors == fid).squeeze(1)
@@ -301,20 +276,6 @@ class Mapper:
             self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ new)
             self.keyframes.set_pose(fid, torch.from_numpy(new))
         return n_moved
-
-    def _move_roi_views(self, moves: dict) -> None:
-        """Each stored ROI view (frames between keyframes) moves by the transform of its nearest mapped frame when
-        ``moves`` (frame id → (T, new pose)) has one: its stored pose and its correction record."""
-        for view in self.roi_views:
-            k = nearest_key(self.input_poses, view.frame_id)
-            if k not in moves:
-                continue
-            old = view.c2w.numpy().copy()
-            new = moves[k][0] @ old
-            view.c2w.copy_(torch.from_numpy(new))
-            if view.frame_id in self.poses.corrections:
-                E = self.poses.corrections[view.frame_id]
-                self.poses.register(view.frame_id, E @ np.linalg.inv(old) @ new)
 
     def load_map(self, gmap: GaussianMap, contribution: Optional[torch.Tensor] = None) -> None:
         """Replace the whole map from outside the mapping loop (refinement of a fused map, a checkpoint):
@@ -330,191 +291,13 @@ class Mapper:
         self.strategy.reset(contribution)
 
     # ------------------------------------------------------------------ seeding
-    def _candidates(self, frame: Frame) -> tuple[np.ndarray, float]:
-        """Seed candidate pixels of ``frame`` and their share of the valid pixels.
-
-        With ``coverage_seeding`` and a non-empty map: the pixels the map does not explain
-        (:func:`~gausslite.mapping.memory.unexplained_mask`, SplaTAM Eq. 9); otherwise every valid pixel.
-        """
-        cfg = self.cfg
-        valid = frame.depth > 0
-        if not cfg.seeding.coverage or len(self.model) == 0:
-            return valid, 1.0
-        intr = frame.intrinsics
-        out = self.render(frame.c2w, intr.K, intr.width, intr.height)
-        cand = unexplained_mask(frame.depth, out.alpha.cpu().numpy(), out.depth.cpu().numpy(),
-                                cfg.seeding.coverage_alpha, cfg.seeding.coverage_depth_factor)
-        return cand, float(cand.sum()) / max(1, int(valid.sum()))
-
     def seed_frame(self, frame: Frame, relevance: Optional[np.ndarray],
                    detail: Optional[DetailCrop] = None) -> SeedStats:
-        """Seed new Gaussians where ``frame`` is not explained by the map (paper Sec. III-C).
-
-        The count is ``seeds_per_frame`` × the unexplained share of valid pixels (twice as many, or
-        ``first_frame_seeds``, on the first frame), within the budget; pixels are drawn uniformly or by SB/SIS/GFD
-        with the relevance map; a new Gaussian is active when its seed pixel is relevant. At the budget the new
-        seeds replace the existing Gaussians of lowest eviction score (:class:`DensityStrategy`). With a ``detail``
-        crop and SB the region's seeds come from the crop's pixels (:meth:`_two_resolution_seeds`).
-
-        Args:
-            frame: posed RGB-D frame (world frame ``c2w``, metres).
-            relevance: (H, W) bool relevance map w, or None.
-            detail: the keyframe's detail crop (:func:`~gausslite.mapping.detail.cut_detail`), or None.
-        Returns:
-            :class:`SeedStats`.
-        """
-        cfg, sw = self.cfg, self.cfg.effective()
-        budget = self.strategy.update_budget(frame)
-        cand, share = self._candidates(frame)
-        stats = SeedStats(unexplained=share)
-        gap = self._adopt_task_region(frame, relevance, cand, stats)
-        n = cfg.seeding.seeds_per_frame
-        if self.n_mapped == 0 or len(self.model) == 0:
-            n = cfg.seeding.first_frame_seeds or 2 * cfg.seeding.seeds_per_frame
-        else:
-            n = int(math.ceil(n * share))
-        n = min(n, budget)
-        if detail is not None and sw.sb and relevance is not None:
-            seeds = self._two_resolution_seeds(frame, relevance, cand, gap, n, budget, detail, stats)
-        else:
-            seeds = self._frame_seeds(frame, relevance, cand, gap, n, budget, stats)
-        if seeds is None:
-            return stats
-        pts, cols, is_roi = seeds
-        if self.sensor.exposure is not None:
-            cols = invert_exposure(cols, self.sensor.exposure.of(frame.frame_id))  # into the map's exposure
-        s0 = local_median_nn_distance(pts, k=cfg.seeding.knn)
-        if sw.sis:
-            mult = np.where(is_roi, cfg.seeding.m_roi, cfg.seeding.m_bg)
-        else:
-            mult = np.full(pts.shape[0], cfg.seeding.m_uniform)
-        new = GaussianMap.from_points(
-            torch.from_numpy(pts).float(), torch.from_numpy(cols).float(),
-            torch.from_numpy(s0 * mult).float(), opacity=cfg.seeding.init_opacity,
-            active=torch.from_numpy(is_roi),
-        ).to(self.device)
-        cur = self.model.to_map()
-        n_old = len(self.model)
-        merged = cur.append(new)
-        parent = torch.cat([torch.arange(n_old, device=self.device),
-                            torch.full((len(new),), -1, dtype=torch.int64, device=self.device)])
-        if len(merged) > budget:
-            # at the budget, the new seeds (what this frame sees and the map does not explain) always
-            # enter and replace the existing Gaussians of lowest score (same rule in every mode)
-            score = torch.cat([self.strategy.eviction_score(cur),
-                               torch.full((len(new),), float("inf"), device=self.device)])
-            merged, keep = merged.cap(budget, score=score)
-            parent = parent[keep]
-            stats.n_evicted = len(cur) + len(new) - len(merged)
-        self.strategy.set_map(merged, parent, new_anchor=int(frame.frame_id))
-        stats.n_seeds, stats.n_roi = int(pts.shape[0]), int(is_roi.sum())
-        return stats
-
-    def _gap_count(self, n_pool: int, n_roi_valid: int, budget: int) -> int:
-        """Adoption's ROI seeds: ρ × ``seeds_per_frame`` × the uncovered share of the valid relevant pixels (at most
-        the pool and the budget)."""
-        sc = self.cfg.seeding
-        return min(n_pool, budget, int(math.ceil(sc.rho * sc.seeds_per_frame * n_pool / max(1, n_roi_valid))))
-
-    def _frame_seeds(self, frame: Frame, relevance: Optional[np.ndarray], cand: np.ndarray,
-                     gap: Optional[np.ndarray], n: int, budget: int,
-                     stats: SeedStats) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Seeds of one frame at its own resolution: ``n`` pixels of ``cand`` (uniform, or SB/SIS/GFD with
-        ``relevance``), plus ROI seeds on the adoption ``gap``. Returns (points (S, 3) float64 world metres, colours
-        (S, 3) float32 in [0, 1], is_roi (S,) bool), or None without a seed."""
-        cfg, sw = self.cfg, self.cfg.effective()
-        sel = select_seeds(
-            cand, n, self.rng, relevance=relevance if sw.sb else None, rgb=frame.rgb,
-            sb=sw.sb, sis=sw.sis, gfd=sw.gfd, rho=cfg.seeding.rho, gfd_eps=cfg.seeding.gfd_eps,
-        ) if n > 0 else None
-        if gap is not None:
-            # ROI seeds where the task's Gaussians leave relevant pixels uncovered (gap ∩ cand = ∅: no duplicates)
-            pool = np.flatnonzero(gap.ravel())
-            n_gap = self._gap_count(pool.size, int((relevance & (frame.depth > 0)).sum()), budget)
-            extra = self.rng.choice(pool, size=n_gap, replace=False).astype(np.int64)
-            stats.n_gap_seeds = int(extra.size)
-            sel = SeedSelection(extra, np.ones(extra.size, bool)) if sel is None else dataclasses.replace(
-                sel, pixels=np.concatenate([sel.pixels, extra]), is_roi=np.concatenate([sel.is_roi, np.ones(extra.size, bool)]))
-        if sel is None or sel.pixels.size == 0:
-            return None
-        if sel.n_roi_shortfall:
-            log.debug("frame %d: ROI has %d fewer candidate pixels than its seed share; moved to background",
-                      frame.frame_id, sel.n_roi_shortfall)
-        # a_i comes from w at the seed pixel, whatever the seeding strategy
-        is_roi = relevance.ravel()[sel.pixels] if relevance is not None else np.zeros(sel.pixels.size, bool)
-        pts, cols = seed_points(sel.pixels, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
-        return pts, cols, is_roi
-
-    def _two_resolution_seeds(self, frame: Frame, relevance: np.ndarray, cand: np.ndarray,
-                              gap: Optional[np.ndarray], n: int, budget: int, detail: DetailCrop,
-                              stats: SeedStats) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Seeds of a keyframe with a detail crop (SB; docs/mapper.md, "The task region at its own resolution"): the
-        region's ⌊ρn⌋ seeds from the crop's relevant pixels whose coarse pixel is a candidate
-        (:func:`~gausslite.mapping.detail.detail_pool`, GFD at the detail resolution), the background's n − those
-        from the coarse frame outside the region (SIS/GFD as :func:`select_seeds`), the adoption gap's ROI seeds from
-        the crop's pixels on the gap. A region seed's initial scale (s0, the nearest-neighbour spacing of the new
-        seeds) then follows the finer sampling. Returns (points, colours, is_roi) as :meth:`_frame_seeds`, or None."""
-        cfg, sw = self.cfg, self.cfg.effective()
-        cf = detail.frame
-        roi_pix = np.zeros(0, np.int64)
-        if n > 0:
-            roi_pix = detail_seed_pixels(detail, detail_pool(detail, cand, frame.intrinsics),
-                                         int(math.floor(cfg.seeding.rho * n)), self.rng, sw.gfd, cfg.seeding.gfd_eps)
-        n_bg = n - int(roi_pix.size)  # a short pool leaves its share to the background, as SB does
-        bg_pix = select_seeds(cand, n_bg, self.rng, relevance=relevance, rgb=frame.rgb, sb=True, sis=sw.sis,
-                              gfd=sw.gfd, rho=0.0, gfd_eps=cfg.seeding.gfd_eps).pixels if n_bg > 0 else roi_pix[:0]
-        if gap is not None:
-            pool = detail_pool(detail, gap, frame.intrinsics)
-            n_gap = self._gap_count(pool.size, int((detail.relevance & (cf.depth > 0)).sum()), budget)
-            extra = weighted_choice(pool, n_gap, self.rng)
-            stats.n_gap_seeds = int(extra.size)
-            roi_pix = np.concatenate([roi_pix, extra])
-        if roi_pix.size + bg_pix.size == 0:
-            return None
-        p_roi, c_roi = seed_points(roi_pix, cf.depth, cf.rgb, cf.intrinsics, cf.c2w)
-        p_bg, c_bg = seed_points(bg_pix, frame.depth, frame.rgb, frame.intrinsics, frame.c2w)
-        is_roi = np.concatenate([np.ones(roi_pix.size, bool), relevance.ravel()[bg_pix]])
-        return np.concatenate([p_roi, p_bg]), np.concatenate([c_roi, c_bg]), is_roi
-
-    def _adopt_task_region(self, frame: Frame, relevance: Optional[np.ndarray], cand: np.ndarray,
-                           stats: SeedStats) -> Optional[np.ndarray]:
-        """Task adoption (``seeding.adopt``; docs/mapper.md#tasks-that-arrive-late): when the task's Gaussians
-        (a = 1) leave more than ``roi_gap`` of ``frame``'s valid relevant pixels uncovered, the Gaussians that draw
-        those pixels with at least ``adopt_fraction`` of their blending weight in the frame join the task (a = 1;
-        their κ counts from the next ROI-phase iteration on).
-
-        Args:
-            frame: the new frame (world ``c2w``, metres). relevance: (H, W) bool relevance map w, or None.
-            cand: (H, W) bool seed candidates (pixels the whole map does not explain). stats: receives
-                ``n_adopted``.
-        Returns:
-            (H, W) bool relevant pixels that the map explains but the task's Gaussians did not (they get ROI
-            seeds), or None when adoption is off, not GaussLite, or the gap is below the trigger.
-        """
-        cfg, sw = self.cfg, self.cfg.effective()
-        if not (cfg.seeding.adopt and sw.roi and sw.sb) or relevance is None or len(self.model) == 0:
-            return None
-        roi_valid = relevance & (frame.depth > 0)
-        n_roi = int(roi_valid.sum())
-        if n_roi == 0:
-            return None
-        intr = frame.intrinsics
-        active = self.model.active
-        if bool(active.any()):
-            alpha = self.render(frame.c2w, intr.K, intr.width, intr.height, subset=active).alpha.cpu().numpy()
-        else:
-            alpha = np.zeros(roi_valid.shape, np.float32)
-        gap = roi_valid & (alpha < cfg.seeding.coverage_alpha) & ~cand
-        if int(gap.sum()) < max(32, cfg.seeding.roi_gap * n_roi):
-            return None
-        c2w = torch.as_tensor(np.asarray(frame.c2w, np.float64))
-        inside, total = self.sensor.blend_weights_inside(torch.as_tensor(intr.K), intr.width, intr.height, c2w,
-                                                         torch.from_numpy(roi_valid))
-        join = (~active) & (inside >= 1.0) & (inside >= cfg.seeding.adopt_fraction * total)
-        stats.n_adopted = int(join.sum())
-        if stats.n_adopted:
-            self.model.active = active | join
-        return gap
+        """Seed new Gaussians where ``frame`` (posed RGB-D, world ``c2w``, metres) is not explained by the map
+        (paper Sec. III-C; :meth:`FrameSeeder.seed <gausslite.mapping.seeder.FrameSeeder.seed>`: the count, the
+        draws, the budget), with the (H, W) bool ``relevance`` map w or None, and the keyframe's ``detail`` crop
+        (:func:`~gausslite.mapping.detail.cut_detail`) or None. Returns :class:`SeedStats`."""
+        return self.seeder.seed(frame, relevance, detail, first=self.n_mapped == 0)
 
     def retarget(self) -> None:
         """Forget the current task (a new one follows, :meth:`AgentRuntime.update_task
@@ -532,38 +315,6 @@ class Mapper:
         strategy's contribution, the eviction score (:meth:`DensityStrategy.eviction_score`)."""
         if len(self.model):
             self.strategy.add_contribution(self.sensor.blend_weights(kf.K, kf.width, kf.height, kf.c2w))
-
-    # ------------------------------------------------------------------ schedules
-    def _pick_view(self, current: Keyframe, roi_phase: bool = False, owed: bool = False) -> Keyframe:
-        """The view of one iteration: from the recent window or the whole mission (see
-        ``KeyframeStore.sample_index``); without MVO the current frame with ``current_frame_prob``. ``roi_phase``
-        with ``roi_phase_views='roi'``, or ``owed`` (an ROI-phase iteration the ROI schedule owes the region,
-        ``roi_min_iters``): among the keyframes that see the ROI."""
-        cfg, sw = self.cfg, self.cfg.effective()
-        n = len(self.keyframes)
-        if not sw.mvo and not owed and (n <= 1 or self.rng.random() < cfg.current_frame_prob):
-            return current
-        roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
-        i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w,
-                                        roi_only=roi_phase and (owed or cfg.roi_phase_views == "roi"))
-        if roi_phase and self.keyframes[i].sees_roi:
-            v = self._roi_view_draw()
-            if v is not None:
-                return v
-        if i == n - 1 and self.keyframes[i].frame_id == current.frame_id:
-            return current
-        return self.keyframes.load(i, self.device)
-
-    def _roi_view_draw(self) -> Optional[Keyframe]:
-        """For an ROI-phase iteration whose drawn keyframe sees the region: a stored ROI view instead, with
-        probability ``roi_views.draw`` × views / (views + ROI keyframes) (``roi_views``); None: keep the keyframe."""
-        nv = len(self.roi_views)
-        if nv == 0 or not self.cfg.roi_views.enabled:
-            return None
-        n_roi = sum(1 for k in self.keyframes if k.sees_roi)
-        if self.rng.random() >= self.cfg.roi_views.draw * nv / (nv + n_roi):
-            return None
-        return self.roi_views.load(int(self.rng.integers(nv)), self.device)
 
     def add_roi_views(self, frames, current: Optional[Keyframe] = None, scale: Optional[float] = None) -> int:
         """Store the ROI crop of frames between keyframes (``roi_views``; gausslite mode with a task in view).
@@ -691,7 +442,7 @@ class Mapper:
         stored = None
         if self.n_mapped % cfg.store_keyframe_every == 0 or len(self.keyframes) == 0:
             stored = self.keyframes.add(kf)
-        loss, active_iters, n_iters, dstats = self._train_keyframe(kf, t0, budget)
+        loss, active_iters, n_iters, dstats = keyframe_iterations(self, kf, t0, budget)
         if cfg.budget.evict == "contribution":
             self.accumulate_contribution(kf)
         self.n_mapped += 1
@@ -706,50 +457,6 @@ class Mapper:
             st.detail_px = int(stored.detail.width * stored.detail.height)
         self.stats.append(st)
         return st
-
-    def _train_keyframe(self, kf: Keyframe, t0: float, budget: Optional[float]) -> tuple[float, int, int, dict]:
-        """The iterations of one :meth:`map_frame` call on keyframe ``kf`` (started at clock time ``t0``, ``budget``
-        seconds or None for ``iters_per_frame``): warm-up then ROI phase, density control on schedule. Returns
-        (last loss, ROI-phase iterations, iterations, summed density-control counts)."""
-        cfg, sw = self.cfg, self.cfg.effective()
-        loss = 0.0
-        active_iters = 0
-        n_iters = 0
-        dstats: dict = {}
-        has_active = bool(self.model.active.any())
-        schedule = RoiSchedule(cfg.warmup_iters, cfg.iters_per_frame, cfg.roi_min_iters if sw.roi else 0)
-        warm_until = t_it = None
-        if budget is not None:
-            # the paper's warm-up → ROI-phase schedule in time: the first warmup_iters / iters_per_frame of
-            # the time left after seeding is full-image, the rest ROI-phase (a fixed warm-up count would
-            # outlast a short budget and leave the ROI phase, κ and the shared subset empty)
-            t_it = self.clock.now()
-            warm_until = t_it + max(0.0, budget - (t_it - t0)) * schedule.warm_share
-        roi_draws = 0
-        for it in self._iterations(t0, budget):
-            if warm_until is None:
-                warm = it < schedule.warm_iters
-            else:
-                now = self.clock.now()
-                left = schedule.iters_left(t0 + budget - now, (now - t_it) / it if it else None)
-                warm = schedule.warm_in_time(it, now < warm_until, left)
-            roi_phase = sw.roi and not warm and has_active
-            view = self._pick_view(kf, roi_phase=roi_phase, owed=roi_phase and roi_draws < schedule.roi_min_iters)
-            roi_draws += int(roi_phase)
-            active_phase = roi_phase and view.roi is not None
-            loss = self.step(view, active_phase, coarse=it < cfg.performance.coarse_iters)
-            active_iters += int(active_phase and view.roi_box is not None)  # an empty ROI: a full-image iteration
-            n_iters += 1
-            if warm_until is not None:  # a budget may give fewer than densify.every iterations per call
-                self.n_budget_iters += 1
-                dc_due = self.n_budget_iters % cfg.densify.every == 0
-            else:
-                dc_due = (it + 1) % cfg.densify.every == 0
-            if cfg.densify.enabled and dc_due:
-                for k, v in self.strategy.densify_and_prune().items():
-                    dstats[k] = dstats.get(k, 0) + v
-                has_active = bool(self.model.active.any())
-        return loss, active_iters, n_iters, dstats
 
     def _place_keyframe(self, frame: Frame, relevance: Optional[np.ndarray],
                         deadline: Optional[float]) -> tuple[Frame, Optional[TrackResult]]:
@@ -774,17 +481,6 @@ class Mapper:
             frame = dataclasses.replace(frame, c2w=res.c2w.copy())
         return frame, res
 
-    def _iterations(self, t0: float, budget: Optional[float]):
-        """Iteration indices of one ``map_frame`` call: ``iters_per_frame`` (``budget`` None), or as many as
-        fit ``budget`` seconds after ``t0``."""
-        if budget is None:
-            yield from range(self.cfg.iters_per_frame)
-            return
-        it = 0
-        while it == 0 or self.clock.now() - t0 < budget:
-            yield it
-            it += 1
-
     def optimize(self, max_seconds: Optional[float] = None, n_iters: Optional[int] = None) -> int:
         """Keep optimising between keyframes (MVO over the stored keyframes; paper III-D.2).
 
@@ -802,30 +498,7 @@ class Mapper:
         Raises:
             ValueError: neither bound given, or a bound that is not > 0.
         """
-        if max_seconds is None and n_iters is None:
-            raise ValueError("optimize needs max_seconds or n_iters")
-        if (max_seconds is not None and not max_seconds > 0) or (n_iters is not None and n_iters < 1):
-            raise ValueError(f"optimize bounds must be > 0, got max_seconds={max_seconds}, n_iters={n_iters}")
-        if len(self.keyframes) == 0 or len(self.model) == 0:
-            return 0
-        cfg, sw = self.cfg, self.cfg.effective()
-        roi_w = cfg.roi_covis_weight if sw.mvo else 0.0
-        t0 = self.clock.now()
-        done = 0
-        while (n_iters is None or done < n_iters) and (done == 0 or max_seconds is None
-                                                         or self.clock.now() - t0 < max_seconds):
-            i = self.keyframes.sample_index(self.rng, cfg.window, cfg.recent_prob, roi_w)
-            phase = self.n_idle_iters % cfg.iters_per_frame
-            active_phase = (sw.roi and phase >= cfg.warmup_iters and self.keyframes[i].roi is not None
-                            and bool(self.model.active.any()))
-            view = ((self._roi_view_draw() if active_phase and self.keyframes[i].sees_roi else None)
-                    or self.keyframes.load(i, self.device))
-            self.step(view, active_phase)
-            self.n_idle_iters += 1
-            done += 1
-            if cfg.densify.enabled and self.n_idle_iters % cfg.densify.every == 0:
-                self.strategy.densify_and_prune()
-        return done
+        return between_keyframes(self, max_seconds, n_iters)
 
     def finalize(self, max_seconds: Optional[float] = None) -> int:
         """Optional extra iterations over all keyframes (``final_iters`` + ``final_iters_per_keyframe`` ×
@@ -841,23 +514,7 @@ class Mapper:
         Raises:
             ValueError: ``max_seconds`` not > 0.
         """
-        if max_seconds is not None and not max_seconds > 0:
-            raise ValueError(f"max_seconds must be > 0, got {max_seconds}")
-        cfg = self.cfg
-        n = len(self.keyframes)
-        total = cfg.final_iters + round(cfg.final_iters_per_keyframe * n)
-        roi_schedule = cfg.final_schedule == "mapping" and cfg.effective().roi and bool(self.model.active.any())
-        t0 = self.clock.now()
-        done = 0
-        for it in range(total if n else 0):
-            if max_seconds is not None and self.clock.now() - t0 >= max_seconds:
-                break
-            view = self.keyframes.load(int(self.rng.integers(n)), self.device)
-            # a keyframe without ROI pixels gets a full-image iteration (TrainStep)
-            self.step(view, active_phase=roi_schedule and it % cfg.iters_per_frame >= cfg.warmup_iters)
-            done += 1
-        return done
-
+        return final_pass(self, max_seconds)
 
     # ------------------------------------------------------------------ checkpoint / resume
     def state_dict(self, saved_keyframes_max: Optional[int] = 32) -> dict:

@@ -24,7 +24,7 @@ Each keyframe's ξ has its own Adam moments (:class:`PoseRefiner`, :class:`Vecto
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 import torch
@@ -136,6 +136,36 @@ def nearest_key(keyed: dict, frame_id: int) -> int:
     empty. Used for pose corrections, exposure responses and motion-blur twists alike."""
     fid = int(frame_id)
     return fid if fid in keyed else min(keyed, key=lambda k: abs(k - fid))
+
+
+def correction_moves(new_c2w: Mapping[int, np.ndarray],
+                     current: Mapping[int, np.ndarray]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The rigid moves that take mapped frames from their ``current`` poses to corrected ones.
+
+    Args:
+        new_c2w: frame id → corrected (4, 4) camera-to-world pose (float, metres; rotation orthonormal with
+            determinant 1).
+        current: frame id → (4, 4) float64 pose of every mapped frame now.
+    Returns:
+        frame id → ``(T, new)``: the world-frame (4, 4) float64 transform ``T = new · current⁻¹`` and the new pose, for
+        the frames whose pose changes (``T`` off the identity by more than 1e-12).
+    Raises:
+        KeyError: a frame id of ``new_c2w`` not in ``current``. ValueError: a pose that is not a finite rigid
+        transform.
+    """
+    moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for fid, c2w in new_c2w.items():
+        fid = int(fid)
+        if fid not in current:
+            raise KeyError(f"frame {fid} was never mapped: no keyframe to correct (mapped: {len(current)} frames)")
+        new = np.asarray(c2w, np.float64)
+        if new.shape != (4, 4) or not np.all(np.isfinite(new)) or not np.allclose(
+                new[:3, :3] @ new[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(new[:3, :3]) < 0:
+            raise ValueError(f"frame {fid}: the corrected pose is not a finite (4, 4) rigid transform: {new!r}")
+        T = new @ np.linalg.inv(current[fid])
+        if not np.allclose(T, np.eye(4), rtol=0.0, atol=1e-12):
+            moves[fid] = (T, new)
+    return moves
 
 
 @dataclass

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from gausslite.camera import Intrinsics, backproject
+from gausslite.mapping.poses import PoseRefiner, nearest_key
 from gausslite.mapping.views import (Keyframe, StoredKeyframe, StoredViews, closest_pose_pair, keyframe_from_frame,
                                      roi_box, window_keyframe)
 
@@ -166,6 +167,22 @@ class RoiViewStore(StoredViews):
     def clear(self) -> None:
         """Forget every view (the task changed: their ROI was the old task's)."""
         self._items = []
+
+    def follow(self, moves: dict, input_poses: dict, poses: PoseRefiner) -> None:
+        """Move the views with corrected keyframes (:meth:`Mapper.apply_pose_corrections
+        <gausslite.mapping.mapper.Mapper.apply_pose_corrections>`): each view whose nearest mapped frame (by frame id,
+        among ``input_poses``' keys) has a move in ``moves`` (frame id → ((4, 4) world transform T, new pose)) takes
+        ``T`` on its stored pose, and its correction in ``poses`` follows when it has one."""
+        for view in self:
+            k = nearest_key(input_poses, view.frame_id)
+            if k not in moves:
+                continue
+            old = view.c2w.numpy().copy()
+            new = moves[k][0] @ old
+            view.c2w.copy_(torch.from_numpy(new))
+            if view.frame_id in poses.corrections:
+                E = poses.corrections[view.frame_id]
+                poses.register(view.frame_id, E @ np.linalg.inv(old) @ new)
 
     def state_dict(self) -> dict:
         """``{"roi_views": [...]}``: the stored views as plain dicts of their compact fields (CPU tensor copies)."""

@@ -13,6 +13,7 @@ import gausslite.mapping.views as views_mod
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig, deep_merge
+from gausslite.mapping.iterations import pick_view
 from gausslite.mapping.mapper import Mapper
 from tests._scenes import plane_frame
 
@@ -166,9 +167,9 @@ def test_roi_phase_views_roi_draws_roi_keyframes_only():
     empty = np.zeros((H, W), bool)
     for i in range(6):
         m.map_frame(_frame(i), _roi() if i in (0, 3) else empty)
-    picks = {m._pick_view(m.keyframes.load(5, m.device), roi_phase=True).frame_id for _ in range(60)}
+    picks = {pick_view(m, m.keyframes.load(5, m.device), roi_phase=True).frame_id for _ in range(60)}
     assert picks == {0, 3}
-    anyp = {m._pick_view(m.keyframes.load(5, m.device), roi_phase=False).frame_id for _ in range(200)}
+    anyp = {pick_view(m, m.keyframes.load(5, m.device), roi_phase=False).frame_id for _ in range(200)}
     assert len(anyp) > 2
 
 

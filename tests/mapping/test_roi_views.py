@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from gausslite.mapping.config import MapperConfig
+from gausslite.mapping.iterations import roi_view_draw
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.roi_views import RoiViewStore, project_roi, roi_points, roi_view_of
 from gausslite.mapping.views import keyframe_from_frame
@@ -95,7 +96,7 @@ def test_the_mapper_stores_the_frames_between_keyframes_with_their_own_pose_and_
     assert all(i in m.poses.corrections for i in (1, 2, 3)) and all(i in m.sensor.exposure.params for i in (1, 2, 3))
     assert [int(s.frame_id) for s in m.stats] == [0, 4]  # views are never keyframes
     # ROI-phase draws: with draw = 1 the store's share of the ROI views is views / (views + ROI keyframes)
-    drawn = [m._roi_view_draw() for _ in range(400)]
+    drawn = [roi_view_draw(m) for _ in range(400)]
     share = np.mean([d is not None for d in drawn])
     assert 0.45 < share < 0.75  # 3 / (3 + 2) = 0.6
     m.retarget()
@@ -106,7 +107,7 @@ def test_uniform_maps_and_a_disabled_store_keep_no_view():
     for m in (_mapper(mode="uniform"), _mapper(enabled=False)):
         m.map_frame(plane_frame(0, 0.0, H, W), _roi())
         m.map_frame(plane_frame(4, 0.04, H, W), _roi(), between=[plane_frame(i, 0.01 * i, H, W) for i in (1, 2, 3)])
-        assert len(m.roi_views) == 0 and m._roi_view_draw() is None
+        assert len(m.roi_views) == 0 and roi_view_draw(m) is None
 
 
 def test_a_view_drawn_by_the_roi_phase_is_aligned_and_written_back():
