@@ -48,8 +48,12 @@ from tqdm import tqdm
 from gausslite.evaluation import current_protocols
 from gausslite.stats import aggregate, fmt, paired_gain
 
-from bench import realtime as rt
 from bench._results import write_results
+from bench.realtime import cli as realtime_cli
+from bench.realtime.missions import load_average
+from bench.realtime.scenes import MODES
+from bench.realtime.summary import pairable_runs
+from bench.realtime.tables import gain_cell
 
 RESULTS = Path(__file__).resolve().parents[1] / "bench" / "results"
 THREADS = (1, 2)
@@ -219,9 +223,9 @@ def run_missions(cells: list[Cell], common: list[str], work: Path, resume: bool)
                    f"load {cell.load or 'none'}")
         t0 = time.perf_counter()
         with load_process(cell.load) as load:
-            load0 = rt.load_average()
-            rt.main([*common, *cell_args(cell, work), "--missions-only", *(["--resume"] if resume else [])])
-            load1 = rt.load_average()
+            load0 = load_average()
+            realtime_cli.main([*common, *cell_args(cell, work), "--missions-only", *(["--resume"] if resume else [])])
+            load1 = load_average()
         log.append({"missions": _saved_runs(out.with_suffix(".partial.json")) - before, "load": load,
                     "load_avg_1m": [load0, load1], "wall_s": time.perf_counter() - t0})
         log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -237,7 +241,7 @@ def score_cells(cells: list[Cell], common: list[str], work: Path, jobs: int) -> 
     for cell in tqdm(cells, desc="cells (scoring)", unit="cell"):
         if not cell_out(cell, work).with_suffix(".partial.json").is_file():
             raise FileNotFoundError(f"cell {cell.name} has no missions in {work}: run the sweep without --score-only")
-        rt.main([*common, *cell_args(cell, work), "--score-only", "--jobs", str(max(1, jobs))])
+        realtime_cli.main([*common, *cell_args(cell, work), "--score-only", "--jobs", str(max(1, jobs))])
 
 
 def sizes(run: dict) -> dict:
@@ -278,9 +282,9 @@ def run_row(cell: Cell, run: dict) -> dict:
 
 def pair_row(g: dict, u: dict, ok: bool) -> dict:
     """One run's pair (``g`` GaussLite, ``u`` uniform: :func:`run_row` records of the same cell, scene and run; ``ok``:
-    whether they pair, :func:`bench.realtime.pairable_runs`): both modes' iterations per keyframe, ROI iterations per
-    keyframe, mapping sizes and load averages, and the run's ``novel`` ROI gain (the mean of its paired per-frame
-    differences, dB; None when they do not pair)."""
+    whether they pair, :func:`bench.realtime.summary.pairable_runs`): both modes' iterations per keyframe, ROI
+    iterations per keyframe, mapping sizes and load averages, and the run's ``novel`` ROI gain (the mean of its paired
+    per-frame differences, dB; None when they do not pair)."""
     both = {"gausslite": g, "uniform": u}
     pg = paired_gain(g["novel"]["roi_psnr_per_frame"] or {}, u["novel"]["roi_psnr_per_frame"] or {}) if ok else {}
     return {"cell": g["cell"], "threads": g["threads"], "budget": g["budget"], "load": g["load"], "scene": g["scene"],
@@ -296,12 +300,12 @@ def cell_summary(cell: Cell, block: dict, rows: list[dict]) -> dict:
     ROI PSNR per mode and ROI gain (``gain``, ``gain_ci`` run-clustered over several runs, ``gain_std``,
     ``gain_interval``, ``gain_significant``, ``runs``, ``unpaired_runs``), and the mean load average at the runs'
     ends."""
-    per_mode = {m: [r for r in rows if r["mode"] == m] for m in rt.MODES}
+    per_mode = {m: [r for r in rows if r["mode"] == m] for m in MODES}
     its = {m: aggregate(rs, ["iters_per_keyframe", "roi_iters_per_keyframe"]) for m, rs in per_mode.items() if rs}
     protocols = {}
     for p, pv in block.get("protocols", {}).items():
-        protocols[p] = {"roi_psnr": {m: pv.get(m, {}).get("roi_psnr") for m in rt.MODES},
-                        "roi_psnr_std": {m: pv.get(m, {}).get("roi_psnr_std") for m in rt.MODES},
+        protocols[p] = {"roi_psnr": {m: pv.get(m, {}).get("roi_psnr") for m in MODES},
+                        "roi_psnr_std": {m: pv.get(m, {}).get("roi_psnr_std") for m in MODES},
                         **{k: pv.get(k) for k in ("gain", "gain_ci", "gain_std", "gain_interval", "gain_significant",
                                                   "gain_per_run", "runs", "unpaired_runs")}}
     ends = [r["load_avg_1m"][1] for r in rows if r.get("load_avg_1m") and r["load_avg_1m"][1] is not None]
@@ -335,8 +339,8 @@ def collect(cells: list[Cell], work: Path) -> dict:
             mine = [r for r in rows if r["scene"] == scene]
             out["scenes"].setdefault(scene, {})[cell.name] = cell_summary(cell, blk["budgets"][f"{cell.budget:g}"],
                                                                            mine)
-            raw = {m: {r["run"]: r for r in res["runs"] if r["scene"] == scene and r["mode"] == m} for m in rt.MODES}
-            ok, _ = rt.pairable_runs(raw["gausslite"], raw["uniform"], set(raw["gausslite"]) & set(raw["uniform"]))
+            raw = {m: {r["run"]: r for r in res["runs"] if r["scene"] == scene and r["mode"] == m} for m in MODES}
+            ok, _ = pairable_runs(raw["gausslite"], raw["uniform"], set(raw["gausslite"]) & set(raw["uniform"]))
             g = {r["run"]: r for r in mine if r["mode"] == "gausslite"}
             u = {r["run"]: r for r in mine if r["mode"] == "uniform"}
             out["pairs"] += [pair_row(g[i], u[i], i in ok) for i in sorted(set(g) & set(u))]
@@ -346,7 +350,7 @@ def collect(cells: list[Cell], work: Path) -> dict:
 def table(result: dict, protocol: str = "novel") -> str:
     """Markdown table of a sweep: per scene and cell, both modes' iterations per keyframe, GaussLite's ROI-phase
     iterations per keyframe, the mapping sizes, both modes' ROI PSNR and the ROI gain under ``protocol``
-    (:func:`bench.realtime.gain_cell`), and the load average."""
+    (:func:`bench.realtime.tables.gain_cell`), and the load average."""
     lines = [f"| scene | cell | threads | budget (s) | load | iters/kf GaussLite / uniform | ROI iters/kf GaussLite | "
              f"mapping size GaussLite / uniform | {protocol} ROI PSNR uniform | {protocol} ROI PSNR GaussLite | "
              f"{protocol} ROI gain | load avg (1 min) |", "|" + "---|" * 12]
@@ -362,7 +366,7 @@ def table(result: dict, protocol: str = "novel") -> str:
                          f"{fmt(it.get('uniform'), sd.get('uniform'), 1)} | "
                          f"{fmt(s['roi_iters_per_keyframe'].get('gausslite'), None, 1)} | {size} | "
                          f"{fmt(psnr.get('uniform'), psd.get('uniform'))} | "
-                         f"{fmt(psnr.get('gausslite'), psd.get('gausslite'))} | {rt.gain_cell(pv)} | "
+                         f"{fmt(psnr.get('gausslite'), psd.get('gausslite'))} | {gain_cell(pv)} | "
                          f"{fmt(s['load_avg_1m'], None)} |")
     lines += ["", f"Every map scored at the scene's resolution ({_scored(result)}). ROI gain: GaussLite − uniform, "
               "paired frame by frame within each run: the mean of the per-run gains [95 % run-clustered interval], "

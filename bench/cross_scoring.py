@@ -38,11 +38,12 @@ import numpy as np
 import torch
 
 from bench._results import write_results
-from bench.realtime import (NOVEL_EVERY, REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, Preloaded, dataset_scenes,
-                            load_scene, novel_ids, run_one, scene_path, twin_one)
+from bench.realtime.missions import run_one, twin_one
+from bench.realtime.protocol import TRACK_ITERS, novel_ids
+from bench.realtime.scenes import REFERENCE_BUDGET_S, RESULTS, SCENES, Preloaded, dataset_scenes, load_scene, scene_path
 from gausslite.datasets import task_roi
 from gausslite.datasets.subset import ScaledFrames
-from gausslite.evaluation import score_live_map
+from gausslite.evaluation import NOVEL_EVERY, score_live_map
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain

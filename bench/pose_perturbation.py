@@ -64,7 +64,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bench import realtime
+from bench.realtime import scenes as realtime
 from bench._results import write_results
 from bench.long_mission import load_partial
 from gausslite.config import load_mapper_config

@@ -50,8 +50,9 @@ import numpy as np
 from tqdm import tqdm
 
 from bench._results import write_json, write_results
-from bench.realtime import (REFERENCE_BUDGET_S, RESULTS, SCENES, TRACK_ITERS, TRACK_STRIDE, scene_path, score,
-                            start_mission)
+from bench.realtime.missions import start_mission
+from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score
+from bench.realtime.scenes import REFERENCE_BUDGET_S, RESULTS, SCENES, scene_path
 from gausslite.config import load_config
 from gausslite.datasets import task_roi
 from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, evaluate_fused,

@@ -274,9 +274,9 @@ def test_a_live_map_scored_after_the_missions_scores_as_it_would_inline(tmp_path
     try:
         for i in rt.keyframe_schedule(ds, 0.5):
             agent.mapper.map_frame(ds[i], agent.relevance(ds[i]), time_budget_s=0.08)
-        saved = rt._result(job, agent.mapper, ds, ann, task, fp)
+        saved = rt.mission_result(job, agent.mapper, ds, ann, task, fp)
         assert "protocols" not in saved and Path(saved["state_path"]).is_file()
-        inline = rt._scores(job, agent.mapper, ds, ann, task.id, fp, sorted(s.frame_id for s in agent.mapper.stats))
+        inline = rt.map_scores(job, agent.mapper, ds, ann, task.id, fp, sorted(s.frame_id for s in agent.mapper.stats))
     finally:
         agent.close()
     scored = rt.score_deferred(saved)
@@ -304,7 +304,7 @@ def test_a_saved_map_whose_keyframes_include_a_withheld_frame_is_not_scored_as_n
         train = rt.training_frames(job, ds)
         for i in range(0, len(train), 2):
             agent.mapper.map_frame(train[i], agent.relevance(train[i]), time_budget_s=0.08)
-        saved = rt._result(job, agent.mapper, ds, ann, task, fp)
+        saved = rt.mission_result(job, agent.mapper, ds, ann, task, fp)
     finally:
         agent.close()
     withheld = rt.novel_ids(job, ds)

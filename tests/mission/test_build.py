@@ -23,7 +23,7 @@ from tests._scenes import plane_frame, plane_roi
 ROOT = Path(__file__).resolve().parents[2]
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 #: the callers that build a mission, and the function of each that does
-CALLERS = {"services/agent/server.py": "start_mission", "bench/realtime.py": "start_mission",
+CALLERS = {"services/agent/server.py": "start_mission", "bench/realtime/missions.py": "start_mission",
            "bench/odometry.py": "live"}
 
 
