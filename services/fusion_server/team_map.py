@@ -186,7 +186,7 @@ class TeamMapRefresher:
                 raise Cancelled()
 
         with sv.fuse_locks(self._stopped):
-            maps = {a: sv._subset(a, v) for a, v in latest.items()}
+            maps = {a: sv.subset(a, v) for a, v in latest.items()}
             out = sv._engine.fuse(latest, maps, "vote", voxel_size=voxel, contest_radius=radius, progress=emit)
         stored = sv.store.keyframes()  # ordered by agent: the held-out views are spread over the agents
         with sv._refining(self._stopped):
