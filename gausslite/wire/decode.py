@@ -3,7 +3,8 @@
 Source: paper Sec. III-E.  The byte layout is specified in :mod:`gausslite.wire.format` and
 ``docs/wire-format.md``; :mod:`gausslite.wire.encode` writes what this module reads.  Uploads are resumable
 and idempotent by (agent id, map version, chunk index): :class:`SubsetAssembler` accepts chunks in any order
-and ignores identical re-deliveries.  Pure numpy + zstandard.
+and ignores identical re-deliveries.  The checks of a header before anything is decoded are
+:mod:`gausslite.wire.header_checks`'.  Pure numpy + zstandard.
 
 Hostile input
 -------------
@@ -16,9 +17,6 @@ frame's declared content size must equal the (bounded) expected raw length befor
 from __future__ import annotations
 
 import hashlib
-import math
-import struct
-import zlib
 from typing import Any, Iterable, Optional
 
 import numpy as np
@@ -26,45 +24,31 @@ import zstandard
 
 from gausslite.core.arrays import GAUSSIAN_FIELDS, GaussianArrays
 from gausslite.wire.format import (
-    CRC_TRAILER,
     DEFAULT_LIMITS,
-    FLAG_DELTA,
-    FLAG_LOSSLESS,
     FLAG_SHUFFLE,
     HEADER,
     HEADER_SIZE,
-    KNOWN_FLAGS,
-    MAGIC,
-    PREDICTABLE_FIELDS,
     QUAT_COMPONENT_BOUND,
     QUAT_REST,
     SECTION_LENGTH,
-    SUPPORTED_VERSIONS,
-    BadMagic,
-    ChecksumMismatch,
     ChunkHeader,
     ConflictingDuplicate,
     DecodedChunk,
     DeltaMismatch,
     IncompleteSubset,
     InconsistentChunks,
-    LimitExceeded,
     MalformedChunk,
     NonFiniteValues,
     SubsetMeta,
-    TruncatedChunk,
-    UnsupportedVersion,
     WireLimits,
     field_widths,
     raw_length,
     section_lengths,
 )
+from gausslite.wire.header_checks import (as_view, check_counts, check_flags, check_length_and_crc, check_prefix,
+                                          check_quantisation)
 
 __all__ = ["peek_header", "decode_chunk", "raw_payload", "SubsetAssembler", "assemble", "apply_delta"]
-
-#: the magic and format version, read before the rest of the header
-_PREFIX = struct.Struct("<4sH")
-
 
 # --------------------------------------------------------------------------------------------
 # byte planes and dequantisers
@@ -133,129 +117,6 @@ def _opacity_decode(q: np.ndarray, bits: int) -> np.ndarray:
     return np.log(p / (1.0 - p)).astype(np.float32)
 
 
-# --------------------------------------------------------------------------------------------
-# header validation
-
-
-def _as_view(data: Any) -> memoryview:
-    if isinstance(data, (bytes, bytearray, memoryview)):
-        return memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
-    raise TypeError(f"chunk must be bytes-like, got {type(data).__name__}")
-
-
-def _check_prefix(buf, size: int, limits: WireLimits) -> int:
-    """Size limit, magic and format version of a chunk of ``size`` bytes; returns the version.
-
-    Raises:
-        LimitExceeded, TruncatedChunk, BadMagic, UnsupportedVersion (checked in this order).
-    """
-    if size > limits.max_chunk_bytes:
-        raise LimitExceeded(f"chunk of {size} bytes, above the limit of {limits.max_chunk_bytes} bytes")
-    if size < len(MAGIC):
-        raise TruncatedChunk(f"{size} bytes, shorter than the magic")
-    if bytes(buf[:4]) != MAGIC:
-        raise BadMagic(f"bad magic {bytes(buf[:4])!r}")
-    if size < _PREFIX.size:
-        raise TruncatedChunk("no version field")
-    version = _PREFIX.unpack_from(buf)[1]
-    if version not in SUPPORTED_VERSIONS:
-        raise UnsupportedVersion(f"format version {version}, supported: "
-                                 f"{', '.join(map(str, SUPPORTED_VERSIONS))}")
-    if size < HEADER_SIZE:
-        raise TruncatedChunk(f"{size} bytes, shorter than the {HEADER_SIZE}-byte header")
-    return version
-
-
-def _check_length_and_crc(buf, size: int, alen: int, plen: int, limits: WireLimits) -> None:
-    """The declared agent-id and payload lengths against the limits and the chunk's ``size``, then its CRC-32.
-
-    Raises:
-        LimitExceeded, TruncatedChunk, MalformedChunk (trailing bytes), ChecksumMismatch.
-    """
-    if alen > limits.max_agent_id_bytes:
-        raise LimitExceeded(f"agent id of {alen} bytes")
-    if plen > limits.max_chunk_bytes:
-        raise LimitExceeded(f"payload of {plen} bytes")
-    expected = HEADER_SIZE + alen + plen + CRC_TRAILER.size
-    if size < expected:
-        raise TruncatedChunk(f"{size} bytes, header declares {expected}")
-    if size > expected:
-        raise MalformedChunk(f"{size - expected} trailing bytes")
-    (crc,) = CRC_TRAILER.unpack_from(buf, size - CRC_TRAILER.size)
-    if zlib.crc32(buf[: size - CRC_TRAILER.size]) != crc:
-        raise ChecksumMismatch("CRC-32 mismatch")
-
-
-def _check_flags(version: int, flags: int, kappa_shift: int, predict_mask: int, map_version: int,
-                 base_version: int, base_count: int, n_removed: int, limits: WireLimits) -> tuple[bool, bool]:
-    """Flags, κ shift, predict mask and delta fields of a header; returns ``(lossless, delta)``.
-
-    Raises:
-        MalformedChunk, LimitExceeded (a delta base above ``limits.max_total_gaussians``).
-    """
-    if flags & ~KNOWN_FLAGS:
-        raise MalformedChunk(f"unknown flags {flags:#x}")
-    if kappa_shift and (version < 3 or not flags & FLAG_DELTA):
-        raise MalformedChunk(f"κ shift {kappa_shift} in a {'format 2' if version < 3 else 'full'} chunk "
-                             "(reserved, must be 0)")
-    lossless = bool(flags & FLAG_LOSSLESS)
-    delta = bool(flags & FLAG_DELTA)
-    if predict_mask >> PREDICTABLE_FIELDS or (predict_mask and lossless):
-        raise MalformedChunk(f"predict mask {predict_mask:#x} (lossless: {lossless})")
-    if delta:
-        if base_version >= map_version:
-            raise MalformedChunk(f"delta base version {base_version} >= map version {map_version}")
-        if base_count > limits.max_total_gaussians or n_removed > limits.max_total_gaussians:
-            raise LimitExceeded(f"delta base of {base_count} rows / {n_removed} removed rows")
-        if n_removed > base_count:
-            raise MalformedChunk(f"{n_removed} removed rows of a {base_count}-row base")
-    elif base_version or base_count or n_removed:
-        raise MalformedChunk("delta fields set on a full chunk")
-    return lossless, delta
-
-
-def _check_counts(n: int, total: int, count_chunks: int, index: int, limits: WireLimits) -> None:
-    """Row and chunk counts of a header against the limits and each other.
-
-    Raises:
-        LimitExceeded, MalformedChunk.
-    """
-    if n > limits.max_chunk_gaussians:
-        raise LimitExceeded(f"chunk claims {n} Gaussians, above the limit of {limits.max_chunk_gaussians} per chunk")
-    if total > limits.max_total_gaussians:
-        raise LimitExceeded(f"subset claims {total} Gaussians, above the limit of {limits.max_total_gaussians}")
-    if count_chunks > limits.max_chunks:
-        raise LimitExceeded(f"subset claims {count_chunks} chunks, above the limit of {limits.max_chunks}")
-    if count_chunks == 0 or index >= count_chunks:
-        raise MalformedChunk(f"chunk index {index} is not below the chunk count {count_chunks} (indices are 0-based)")
-    if n > total or (n == 0 and total != 0):
-        raise MalformedChunk(f"chunk holds {n} rows, its subset {total} (a chunk holds 1..total rows, 0 only when total is 0)")
-    if count_chunks > max(1, total):
-        raise MalformedChunk(f"{count_chunks} chunks for {total} Gaussians")
-
-
-def _check_quantisation(lossless: bool, mb: int, qb: int, sb: int, ob: int, cb: int, kb: int, floats: tuple) -> None:
-    """Field widths and quantisation parameters (``floats``: mean origin and step, scale and colour ranges): none
-    in a lossless chunk, valid ones in a quantised chunk.
-
-    Raises:
-        MalformedChunk.
-    """
-    if kb > 8:
-        raise MalformedChunk(f"kappa bytes {kb}")
-    if lossless:
-        if mb or qb or sb or ob or cb or any(floats):
-            raise MalformedChunk("lossless chunk with quantisation parameters")
-    else:
-        if mb not in (1, 2, 3, 4) or not 4 <= qb <= 20 or not all(1 <= b <= 16 for b in (sb, ob, cb)):
-            raise MalformedChunk(f"bad quantisation widths {(mb, qb, sb, ob, cb)}")
-        if not all(math.isfinite(f) for f in floats):
-            raise MalformedChunk("non-finite quantisation parameters")
-        _ox, _oy, _oz, sx, sy, sz, slo, shi, clo, chi = floats
-        if min(sx, sy, sz) < 0 or slo > shi or clo > chi:
-            raise MalformedChunk("negative mean step or inverted range")
-
-
 def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
     """Parse and fully validate a chunk's header and checksum, without decompressing.
 
@@ -267,15 +128,15 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
         TruncatedChunk, BadMagic, UnsupportedVersion, ChecksumMismatch, LimitExceeded,
         MalformedChunk: see their docstrings (checked in this order).
     """
-    buf = _as_view(data)
+    buf = as_view(data)
     size = len(buf)
-    version = _check_prefix(buf, size, limits)
+    version = check_prefix(buf, size, limits)
     (_, _, flags, map_version, index, count_chunks, total, n, alen, mb, qb, sb, ob, cb, kb,
      kappa_shift, ox, oy, oz, sx, sy, sz, slo, shi, clo, chi, raw_len, plen, base_version, base_count,
      n_removed, predict_mask) = HEADER.unpack_from(buf)
-    _check_length_and_crc(buf, size, alen, plen, limits)
+    check_length_and_crc(buf, size, alen, plen, limits)
     # ---- semantic validation (a valid CRC says nothing about intent)
-    lossless, delta = _check_flags(version, flags, kappa_shift, predict_mask, map_version, base_version, base_count,
+    lossless, delta = check_flags(version, flags, kappa_shift, predict_mask, map_version, base_version, base_count,
                                    n_removed, limits)
     if alen == 0:
         raise MalformedChunk("empty agent id")
@@ -283,8 +144,8 @@ def peek_header(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> ChunkHeader:
         agent_id = bytes(buf[HEADER_SIZE:HEADER_SIZE + alen]).decode("utf-8")
     except UnicodeDecodeError as e:
         raise MalformedChunk(f"agent id is not UTF-8: {e}") from None
-    _check_counts(n, total, count_chunks, index, limits)
-    _check_quantisation(lossless, mb, qb, sb, ob, cb, kb, (ox, oy, oz, sx, sy, sz, slo, shi, clo, chi))
+    check_counts(n, total, count_chunks, index, limits)
+    check_quantisation(lossless, mb, qb, sb, ob, cb, kb, (ox, oy, oz, sx, sy, sz, slo, shi, clo, chi))
     want = raw_length(n, field_widths(lossless, mb, qb, sb, ob, cb, kb, delta), n_removed)
     if raw_len != want:
         raise MalformedChunk(f"raw length {raw_len}, expected {want} for {n} Gaussians")
@@ -308,7 +169,7 @@ def raw_payload(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> bytes:
     conformance tests.  Raises what :func:`peek_header` raises and MalformedChunk."""
     h = peek_header(data, limits)
     start = HEADER_SIZE + len(h.agent_id.encode("utf-8"))
-    return _decompress_sections(_as_view(data)[start:start + h.payload_len], section_lengths(h))
+    return _decompress_sections(as_view(data)[start:start + h.payload_len], section_lengths(h))
 
 
 #: payload section names in order (docs/wire-format.md §4): a full chunk's, and a delta chunk's
@@ -385,7 +246,7 @@ def decode_chunk(data: Any, limits: WireLimits = DEFAULT_LIMITS) -> DecodedChunk
         NonFiniteValues (NaN/inf after decoding).
     """
     h = peek_header(data, limits)
-    buf = _as_view(data)
+    buf = as_view(data)
     start = HEADER_SIZE + len(h.agent_id.encode("utf-8"))
     raw = _decompress_sections(buf[start:start + h.payload_len], section_lengths(h))
     mv = memoryview(raw)
