@@ -21,7 +21,7 @@ channel with zero padding to "same" size exactly as the reference 3DGS code (Ker
 from __future__ import annotations
 
 import math
-from typing import Callable, Dict, Optional
+from typing import Dict, Optional
 
 import torch
 import torch.nn.functional as F
@@ -238,7 +238,6 @@ def evaluate_frame(
     pred_depth: Optional[torch.Tensor] = None,
     gt_depth: Optional[torch.Tensor] = None,
     roi_mask: Optional[torch.Tensor] = None,
-    lpips_fn: Optional[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = None,
 ) -> Dict[str, float]:
     """All per-frame evaluation metrics as Python floats.
 
@@ -246,9 +245,8 @@ def evaluate_frame(
         pred_rgb, gt_rgb: (H, W, 3) float in [0, 1].
         pred_depth, gt_depth: (H, W) metres (both or neither; depth_l1 is skipped if either is None).
         roi_mask: optional (H, W) bool ground-truth ROI mask.
-        lpips_fn: optional callable (pred, gt) -> 0-dim tensor, e.g. a :class:`gausslite.lpips.LPIPS`.
     Returns:
-        Keys ``psnr``, ``ssim`` and, when available, ``depth_l1``, ``lpips``; with a mask also
+        Keys ``psnr``, ``ssim`` and, with depth, ``depth_l1``; with a mask also
         ``roi_psnr``, ``roi_ssim`` and (with depth) ``roi_depth_l1``. NaN where a selection is empty.
     """
     out: Dict[str, float] = {
@@ -258,8 +256,6 @@ def evaluate_frame(
     have_depth = pred_depth is not None and gt_depth is not None
     if have_depth:
         out["depth_l1"] = float(depth_l1(pred_depth, gt_depth))
-    if lpips_fn is not None:
-        out["lpips"] = float(lpips_fn(pred_rgb, gt_rgb))
     if roi_mask is not None:
         out["roi_psnr"] = float(psnr(pred_rgb, gt_rgb, roi_mask))
         out["roi_ssim"] = float(ssim(pred_rgb, gt_rgb, roi_mask))

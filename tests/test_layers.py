@@ -21,7 +21,7 @@ PACKAGES = {"gausslite": "gausslite", "gausslite_services": "services", "bench":
 #: entry with the longest matching dotted prefix; the roots "gausslite" and "gausslite_services" match only themselves.
 LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("core", ("gausslite", "gausslite.core", "gausslite.errors", "gausslite.camera", "gausslite.stats",
-              "gausslite.metrics", "gausslite.lpips", "gausslite.gaussians")),
+              "gausslite.metrics", "gausslite.gaussians")),
     ("formats", ("gausslite.wire", "gausslite.ros")),
     ("datasets", ("gausslite.datasets", "gausslite.synthetic")),
     ("perception", ("gausslite.parser", "gausslite.attention")),
