@@ -29,6 +29,7 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("mapping", ("gausslite.mapping", "gausslite.evaluation", "gausslite.pipeline")),
     ("sharing", ("gausslite.sharing", "gausslite.fusion")),
     ("mission", ("gausslite.mission",)),
+    ("team", ("gausslite.team",)),
     ("app", ("gausslite.config", "gausslite.viewer", "gausslite.cli")),
     ("gausslite_services.common", ("gausslite_services", "gausslite_services.common")),
     ("gausslite_services.servers", ("gausslite_services.parser", "gausslite_services.fusion_server")),

@@ -14,22 +14,22 @@ success, failure, SIGTERM or Ctrl-C; their logs are in ``DIR/logs``.
 Fused-map ROI PSNR of a task = mean over that task's agent's frames of the PSNR restricted to the task's
 ground-truth ROI mask (frames whose ROI is empty are skipped), rendering the fused map at those views.
 
-Modules: :mod:`~gausslite_services.sim.launch` (agents' plans, service commands, child processes, health),
-:mod:`~gausslite_services.sim.runner` (:func:`run_sim`), :mod:`~gausslite_services.sim.timeline` (the fused map over
-time), :mod:`~gausslite_services.sim.scoring` (fusing and scoring the final maps) and
-:mod:`~gausslite_services.sim.report` (report.json, report.md, plots, figures merged in from other runs). The names
-below are this package's interface.
+This package is the adapter between the services and the library: it runs the processes and drives them over the
+wire; the scoring of the team's maps against each robot's own and the report are the library's
+(:mod:`gausslite.team`). Modules: :mod:`~gausslite_services.sim.launch` (agents' plans, service commands, child
+processes, health), :mod:`~gausslite_services.sim.runner` (:func:`run_sim`), :mod:`~gausslite_services.sim.timeline`
+(the fused map over time, polled from the server), :mod:`~gausslite_services.sim.scoring` (the fused maps the server
+makes, the keyframe poses and subsets it holds) and :mod:`~gausslite_services.sim.summary` (an agent's Finish summary
+as the library reads it). The names below are this package's interface.
 """
 
 from gausslite_services.sim.launch import (AGENT_NAMES, REPO, AgentPlan, ProcessGroup, free_port, plan_agents,
                                            service_commands, wait_healthy)
-from gausslite_services.sim.report import (FUSED_HELP, FUSED_KEYS, attach_context_baseline, attach_offline_report,
-                                           attach_uniform_baseline, plot_fused_timeline, plot_pushes, write_markdown)
 from gausslite_services.sim.runner import SimResult, run_sim
-from gausslite_services.sim.scoring import fuse_settings, fused_protocols, roi_cover_report
+from gausslite_services.sim.scoring import fuse_settings, roi_cover_report
+from gausslite_services.sim.summary import summary_from_proto
 from gausslite_services.sim.timeline import FusedTimeline
 
-__all__ = ["AGENT_NAMES", "FUSED_HELP", "FUSED_KEYS", "REPO", "AgentPlan", "FusedTimeline", "ProcessGroup", "SimResult",
-           "attach_context_baseline", "attach_offline_report", "attach_uniform_baseline", "free_port", "fuse_settings",
-           "fused_protocols", "plan_agents", "plot_fused_timeline", "plot_pushes", "roi_cover_report", "run_sim",
-           "service_commands", "wait_healthy", "write_markdown"]
+__all__ = ["AGENT_NAMES", "REPO", "AgentPlan", "FusedTimeline", "ProcessGroup", "SimResult", "free_port",
+           "fuse_settings", "plan_agents", "roi_cover_report", "run_sim", "service_commands", "summary_from_proto",
+           "wait_healthy"]

@@ -13,7 +13,6 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -21,6 +20,7 @@ from gausslite.config import GaussLiteConfig
 from gausslite.datasets import detect_layout, load_dataset
 from gausslite.datasets.annotations import load_annotations
 from gausslite.mission.config import AgentConfig
+from gausslite.team import AgentPlan
 from gausslite_services.agent.client import AgentClient
 from gausslite_services.cli.cmd_health import check_health
 from gausslite_services.fusion_server.client import FusionClient
@@ -29,17 +29,6 @@ log = logging.getLogger("gausslite_services.sim")  # one logger for the whole si
 
 REPO = Path(__file__).resolve().parents[2]
 AGENT_NAMES = ("agent_a", "agent_b")
-
-
-@dataclass
-class AgentPlan:
-    """One simulated agent: ``name`` (also its agent id), replayed ``dataset`` folder, ``task_id``, ``task``."""
-
-    name: str
-    dataset: str
-    task_id: str
-    task: str
-    address: str = ""
 
 
 def free_port(host: str = "127.0.0.1") -> int:

@@ -16,13 +16,13 @@ import yaml
 
 from gausslite.config import load_config
 from gausslite.synthetic import make_scene
+from gausslite.team import (agent_report, attach_context_baseline, fused_minus_own, load_eval_frames, load_offline,
+                            own_map_files, protocol_minus_own, score_fused_maps, write_report)
 from gausslite_rpc import agent_pb2
 from gausslite_services.sim.launch import (ProcessGroup, check_bags, close_all, connect_clients, main_thread,
                                            raise_interrupt, start_services, plan_agents)
-from gausslite_services.sim.report import (agent_report, fused_minus_own, load_offline, protocol_minus_own,
-                                           write_report, attach_context_baseline)
-from gausslite_services.sim.scoring import (fuse_and_score, load_eval_frames, own_map_files, own_views,
-                                            predicted_views, roi_cover_report, uploaded_keyframe_poses)
+from gausslite_services.sim.scoring import fuse_on_server, roi_cover_report, uploaded_keyframe_poses
+from gausslite_services.sim.summary import summary_from_proto
 from gausslite_services.sim.timeline import FusedTimeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -47,8 +47,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     """Run the two-agent simulation and write the report.
 
     Stages: start the services (:func:`start_services`, skipped with ``attach``), run the agents' missions
-    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse and score (:func:`fuse_and_score`), then write the
-    report (:func:`write_report`).
+    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse on the server and score
+    (:func:`gausslite.team.scoring.score_fused_maps`), then write the report
+    (:func:`gausslite.team.report.write_report`).
 
     Args:
         out: output folder (``report.json``, ``report.md``, ``renders/``, ``logs/``, ``config.yaml``, ``scene/``).
@@ -106,10 +107,10 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         # ---- fuse and score
         backend, scoring = typed.mapper.backend, typed.agent.scoring
         eval_frames = load_eval_frames(plans, typed.agent)
-        fused, renders = fuse_and_score(fusion, out, plans, eval_frames, fz, scoring,
-                                         uploaded_keyframe_poses(fusion, plans), backend,
-                                         {n: own_views(s) for n, s in summaries.items()},
-                                         {n: predicted_views(s) for n, s in summaries.items()})
+        fused, renders = score_fused_maps(out, plans, eval_frames, scoring, uploaded_keyframe_poses(fusion, plans),
+                                          backend, lambda key: fuse_on_server(fusion, key, plans, fz),
+                                          {n: s.tracked_views for n, s in summaries.items()},
+                                          {n: s.predicted_views for n, s in summaries.items()})
         tracker.poll(time.perf_counter() - t0)  # the team map made from the final subsets, when the server keeps one
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
@@ -200,14 +201,15 @@ def _wait_for_missions(agents: dict, group: ProcessGroup, tracker: FusedTimeline
 
 
 def _finish_agents(agents: dict, deadline: float) -> dict:
-    """Each agent's Finish summary (agent id → summary), within what is left until ``deadline`` (at least 10 s).
+    """Each agent's Finish summary (agent id → :class:`gausslite.mission.scoring.MissionSummaryData`,
+    :func:`summary_from_proto`), within what is left until ``deadline`` (at least 10 s).
 
     Raises:
         RuntimeError: an agent's final push failed.
     """
     summaries = {}
     for n, c in agents.items():
-        summaries[n] = c.finish(timeout_s=max(10.0, deadline - time.monotonic()))
+        summaries[n] = summary_from_proto(c.finish(timeout_s=max(10.0, deadline - time.monotonic())))
         if not summaries[n].final_push_ok:
-            raise RuntimeError(f"{n}: final push failed: {summaries[n].status.last_error}")
+            raise RuntimeError(f"{n}: final push failed: {summaries[n].status['last_error']}")
     return summaries

@@ -1,6 +1,6 @@
 """The fused maps while the robots map (:class:`FusedTimeline`): a vote fuse whenever a new subset reaches the fusion
 server, and the team map the server keeps refined in the background (``fusion.team_map``) as it is served, scored
-after the missions (paper Sec. III-E)."""
+after the missions by the library (:func:`gausslite.team.scoring.score_timeline`; paper Sec. III-E)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Dict, List, Optional, Tuple
 
 import grpc
 
-from gausslite.evaluation import evaluate_fused_frames
+from gausslite.team import score_timeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
 
@@ -88,41 +88,7 @@ class FusedTimeline:
 
     def scores(self, frames_by_task: Dict[str, tuple], backend: str = "auto", stride: Optional[int] = None,
                task_of: Optional[Dict[str, str]] = None) -> List[dict]:
-        """``[{"t": s, "versions": {...}, "n_gaussians": N, "roi_psnr": {task: dB}, "roi_psnr_for_robot": {task: dB},
-        "served": {...} | None}]``: every fused team map scored on each task's ROI (every ``stride``-th frame of
-        ``frames_by_task[task] = (dataset, frames)``; None: every frame of a sequence of up to 50, else a stride that
-        scores about 50), each task on the map made for its robot (``task_of``: agent id
-        → task id), and the team map served then (``served``: its ``version``, the subset ``versions`` it was made
-        from, whether it was ``current``, the sim time it was first served ``made_t``, its ``refine_record``,
-        ``roi_psnr`` per task and ``roi_psnr_per_frame``: task → frame id → dB, the pairs of its gain over a robot's
-        own map). A map is scored once, however many rows hold it."""
-        cache: Dict[tuple, dict] = {}
-
-        def frames_of(arrays, task) -> dict:
-            key = (id(arrays), task)
-            if key not in cache:
-                ds, fr = frames_by_task[task]
-                step = stride or max(1, len(fr) // 50)
-                cache[key] = evaluate_fused_frames(arrays.to_gaussian_map(), fr[::step], ds.annotations, task, backend)
-            return cache[key]
-
-        def score(arrays, task) -> Optional[float]:
-            vals = list(frames_of(arrays, task).values())
-            return sum(vals) / len(vals) if vals else None
-
-        out = []
-        for t, versions, maps, seen in self.maps:
-            row = {"t": t, "versions": versions, "n_gaussians": len(maps[""]),
-                   "roi_psnr": {k: score(maps[""], k) for k in frames_by_task}, "roi_psnr_for_robot": {},
-                   "served": None}
-            for a, task in (task_of or {}).items():
-                if a in maps and task in frames_by_task:
-                    row["roi_psnr_for_robot"][task] = score(maps[a], task)
-            if seen is not None:
-                arrays, r, made_t = self.served[seen[0]]
-                row["served"] = {"version": seen[0], "current": seen[1], "versions": dict(r.map_versions),
-                                 "made_t": made_t, "n_gaussians": len(arrays), "refine_record": dict(r.refine_record),
-                                 "roi_psnr": {k: score(arrays, k) for k in frames_by_task},
-                                 "roi_psnr_per_frame": {k: frames_of(arrays, k) for k in frames_by_task}}
-            out.append(row)
-        return out
+        """The rows kept, scored after the missions (:func:`gausslite.team.scoring.score_timeline`: each vote on every
+        task's ROI, each task on the map made for its robot, ``task_of``: agent id → task id, and the team map served
+        then; ``frames_by_task``: task id → ``(dataset, frames)``, every ``stride``-th frame scored)."""
+        return score_timeline(self.maps, self.served, frames_by_task, backend, stride, task_of)

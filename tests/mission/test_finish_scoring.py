@@ -13,7 +13,7 @@ from gausslite.mission import AgentRuntime
 from gausslite.parser import TaskParser
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2, common_pb2
-from gausslite_services.sim.scoring import own_views, predicted_views
+from gausslite_services.sim.summary import summary_from_proto
 
 TINY = ["agent.push_every=2", "agent.upload_keyframe_every=1", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200", "agent.scoring.novel_every=3",
@@ -52,7 +52,7 @@ def test_finish_scores_withheld_frames_at_the_predicted_view_and_sends_both_view
         predicted_views=[agent_pb2.TrackedPose(frame_id=i, pose=common_pb2.Pose(c2w=v.c2w.reshape(-1).tolist()),
                                                exposure=v.theta.tolist()) for i, v in s.predicted_views.items()],
         protocols={"novel": agent_pb2.ProtocolScore(roi_psnr_per_frame={1: 20.5})})
-    back = predicted_views(msg)
-    assert set(back) == withheld and not own_views(msg)
+    back = summary_from_proto(msg).predicted_views
+    assert set(back) == withheld and not summary_from_proto(msg).tracked_views
     assert all(np.array_equal(back[i].c2w, s.predicted_views[i].c2w) for i in withheld)
     assert dict(msg.protocols["novel"].roi_psnr_per_frame) == {1: 20.5}

@@ -584,7 +584,7 @@ def test_sim_cli_rejects_rate_without_realtime(tmp_path, capsys):
 def test_attach_offline_report_puts_the_every_frame_figure_beside_the_realtime_one(tmp_path):
     import json
 
-    from gausslite_services.sim import attach_offline_report
+    from gausslite.team import attach_offline_report
 
     agent = {"id": "agent_a", "task": "t", "roi_psnr": 20.0, "n_gaussians": 10, "n_shared": 5, "share_pct": 50.0,
              "bytes_per_gaussian": 14.0, "frames_received": 16, "frames_keyframed": 4, "frames_skipped": 12,

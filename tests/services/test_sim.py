@@ -92,7 +92,7 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
                                          for e in rep["fused_timeline"])
     assert any(e["roi_psnr_for_robot"] for e in rep["fused_timeline"])
     # own-map figure of a roi_render=context run of the same sim
-    from gausslite_services.sim import attach_context_baseline
+    from gausslite.team import attach_context_baseline
 
     ctx = json.loads(json.dumps(rep))
     ctx["settings"]["mapper"]["roi_render"] = "context"

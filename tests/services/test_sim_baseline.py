@@ -2,7 +2,7 @@
 
 import pytest
 
-from gausslite_services.sim import attach_uniform_baseline, write_markdown
+from gausslite.team import attach_uniform_baseline, plot_fused_timeline, write_markdown
 
 
 LIVE = {"frames_received": 150, "frames_keyframed": 20, "frames_skipped": 130, "accept_latency_ms_p99": 0.1,
@@ -95,6 +95,7 @@ class _FakeFusion:
 
 
 def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_path, monkeypatch):
+    from gausslite.team import scoring
     from gausslite_services import sim
 
     fusion = _FakeFusion()
@@ -109,7 +110,7 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
                             ("vote", 0.1, 1, None), ("vote", 0.1, 1, "agent_a"), ("vote", 0.1, 1, "agent_b")]
     assert [(t, v) for t, v, _, _ in tl.maps] == [(1.0, {"agent_a": 1}), (3.0, {"agent_a": 1, "agent_b": 1})]
     scored = []
-    monkeypatch.setattr(sim.timeline, "evaluate_fused_frames",
+    monkeypatch.setattr(scoring, "evaluate_fused_frames",
                         lambda g, frames, ann, task, backend="auto": scored.append((len(g), len(frames)))
                         or {int(i): 20.0 + len(g) for i in frames})
 
@@ -123,7 +124,7 @@ def test_fused_timeline_fuses_after_each_new_subset_and_reaches_the_report(tmp_p
     assert scored[0] == (1, 3)  # every fifth frame
     rep = _report("gausslite", True, own=25.0, all_frames=23.0)
     rep["fused_timeline"] = out
-    assert sim.plot_fused_timeline(rep, tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
+    assert plot_fused_timeline(rep, tmp_path / "t.png") and (tmp_path / "t.png").stat().st_size > 0
     rep["fused_timeline_plot"] = "t.png"
     write_markdown(rep, tmp_path / "report.md")
     md = (tmp_path / "report.md").read_text()
