@@ -1,8 +1,8 @@
 """Poses from RGB-D odometry, for input without poses: a hand-held camera and no SLAM.
 
-Each frame is registered to a keyframe with Open3D's dense RGB-D odometry (``open3d.pipelines.odometry.
-compute_rgbd_odometry`` with the hybrid Jacobian: photometric and geometric terms, Park, Zhou, Koltun, ICCV 2017;
-Open3D's "RGBD Odometry" tutorial), and the estimate is checked before it is kept:
+Each frame is registered to a keyframe with Open3D's dense RGB-D odometry (``open3d.t.pipelines.odometry.
+rgbd_odometry_multi_scale``, the hybrid method: photometric and geometric terms, Park, Zhou, Koltun, ICCV 2017, each
+under a Huber loss), and the estimate is checked before it is kept:
 
 - **reference**: the keyframe nearest to the frame's predicted pose (rotation angle in degrees plus translation
   scaled by ``keyframe_rot_deg / keyframe_trans_m``), among the latest ``reference_keyframes_max``; a frame becomes a
@@ -65,7 +65,8 @@ class OdometryConfig(BaseModel):
     """Settings of the RGB-D odometry (defaults: the measured choice on TUM fr1/rpy, ``docs/mapper.md``).
 
     Attributes:
-        method: Open3D's Jacobian: ``hybrid`` (photometric + geometric) or ``color`` (photometric only).
+        method: the residuals Open3D minimises: ``hybrid`` (photometric + geometric), ``color`` (photometric only)
+            or ``point_to_plane`` (geometric only).
         reference: what a frame registers to: ``nearest_keyframe`` (of the latest ``reference_keyframes_max``),
             ``last_keyframe``, or ``previous_frame`` (plain frame-to-frame).
         keyframe_trans_m, keyframe_rot_deg: a frame that moved more than either from its reference becomes a keyframe.
@@ -73,8 +74,16 @@ class OdometryConfig(BaseModel):
             dropped first).
         motion_prior: start from the previous frame's motion (constant velocity); False: from the last good pose.
         depth_max_m: depth beyond this is ignored (metres).
-        depth_diff_max_m: largest depth difference of a correspondence (Open3D's ``depth_diff_max``, metres).
-        iterations: Gauss-Newton iterations per pyramid level, coarse levels last (Open3D's order).
+        depth_diff_max_m: largest depth difference of a correspondence (Open3D's ``depth_outlier_trunc``, metres).
+        depth_huber_delta_m: the geometric residual's Huber threshold (metres).
+        intensity_huber_delta: the photometric residual's Huber threshold (intensity in 0..1). Open3D's default,
+            0.1, down-weights most of a hand-held camera's photometric residuals (exposure, blur) and drifts; 0.5
+            measures best on every sequence of ``bench.odometry`` (``docs/mapper.md``, "Poses from odometry").
+        iterations: Gauss-Newton iterations per pyramid level, the finest level first (Open3D's order).
+        threads: Open3D's worker threads (a process-wide Open3D setting, applied when the odometry is built; 0 leaves
+            Open3D's default, every core). With 1 the poses repeat exactly from run to run: Open3D's multi-threaded
+            reductions sum in a varying order, and over a sequence that moves poses by millimetres to centimetres.
+            One thread is also faster at the tracking size on 2 cores beside the mapper.
         min_fitness: a frame whose share of valid depth pixels with a correspondence is below this fails.
         track_width: frames are tracked downscaled by the integer factor that brings their width nearest this
             (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.
@@ -85,15 +94,18 @@ class OdometryConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    method: Literal["hybrid", "color"] = "hybrid"
+    method: Literal["hybrid", "color", "point_to_plane"] = "hybrid"
     reference: Literal["nearest_keyframe", "last_keyframe", "previous_frame"] = "nearest_keyframe"
     keyframe_trans_m: float = Field(0.10, gt=0)
     keyframe_rot_deg: float = Field(10.0, gt=0)
     reference_keyframes_max: int = Field(64, ge=1)
     motion_prior: bool = True
     depth_max_m: float = Field(10.0, gt=0)
-    depth_diff_max_m: float = Field(0.15, gt=0)
+    depth_diff_max_m: float = Field(0.07, gt=0)
+    depth_huber_delta_m: float = Field(0.05, gt=0)
+    intensity_huber_delta: float = Field(0.5, gt=0)
     iterations: List[int] = Field(default_factory=lambda: [20, 10, 5], min_length=1)
+    threads: int = Field(1, ge=0)
     min_fitness: float = Field(0.2, ge=0, le=1)
     track_width: Optional[int] = Field(160, ge=16)
     max_step_m: float = Field(0.3, gt=0)
@@ -187,20 +199,20 @@ class RGBDOdometry:
         self._lock = threading.Lock()
         self._prev: Optional[_Keyframe] = None
         o3d = open3d_module()
-        c = self.config
-        self._option = o3d.pipelines.odometry.OdometryOption(
-            iteration_number_per_pyramid_level=o3d.utility.IntVector(list(c.iterations)),
-            depth_diff_max=c.depth_diff_max_m, depth_min=0.0, depth_max=c.depth_max_m)
-        self._jacobian = (o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm() if c.method == "hybrid"
-                          else o3d.pipelines.odometry.RGBDOdometryJacobianFromColorTerm())
+        c, odometry = self.config, o3d.t.pipelines.odometry
+        if c.threads:
+            o3d.utility.set_max_threads(c.threads)
+        self._criteria = [odometry.OdometryConvergenceCriteria(n) for n in c.iterations]
+        self._method = {"hybrid": odometry.Method.Hybrid, "color": odometry.Method.Intensity,
+                        "point_to_plane": odometry.Method.PointToPlane}[c.method]
+        self._loss = odometry.OdometryLossParams(c.depth_diff_max_m, c.depth_huber_delta_m, c.intensity_huber_delta)
 
     def _image(self, frame: Frame):
-        """Open3D's RGB-D image of ``frame`` (intensity from the colour, depth in metres truncated at depth_max_m)."""
+        """Open3D's RGB-D image of ``frame`` (tensor geometry: colour as float32 in 0..1, depth in metres)."""
         o3d = open3d_module()
-        return o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)),
-            o3d.geometry.Image(np.ascontiguousarray(frame.depth, dtype=np.float32)),
-            depth_scale=1.0, depth_trunc=self.config.depth_max_m, convert_rgb_to_intensity=True)
+        return o3d.t.geometry.RGBDImage(
+            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.rgb, dtype=np.float32) / 255.0)),
+            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.depth, dtype=np.float32))))
 
     def _at_tracking_size(self, frame: Frame) -> Frame:
         """``frame`` downscaled by the integer factor that brings its width nearest ``track_width`` (colour by area,
@@ -456,11 +468,19 @@ class RGBDOdometry:
             frame's valid depth pixels with a correspondence.
         """
         o3d = open3d_module()
-        intr = frame.intrinsics
-        pin = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy)
-        ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(image, ref.image, pin, init, self._jacobian,
-                                                                  self._option)
-        valid = int(np.count_nonzero((frame.depth > 0) & (frame.depth < self.config.depth_max_m)))
+        odometry, c, intr = o3d.t.pipelines.odometry, self.config, frame.intrinsics
+        K = o3d.core.Tensor(np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]]))
+        try:
+            init_t = o3d.core.Tensor(np.asarray(init, np.float64))
+            result = odometry.rgbd_odometry_multi_scale(image, ref.image, K, init_t, 1.0, c.depth_max_m,
+                                                        self._criteria, self._method, self._loss)
+        except RuntimeError as e:  # Open3D raises when a level has too few correspondences to solve
+            log.debug("frame %s: Open3D's odometry failed: %s", frame.frame_id, e)
+            return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0
+        ok, T = result.fitness > 0, result.transformation.numpy().astype(np.float64)
+        info = odometry.compute_odometry_information_matrix(image.depth, ref.image.depth, K, result.transformation,
+                                                            c.depth_diff_max_m, 1.0, c.depth_max_m).numpy()
+        valid = int(np.count_nonzero((frame.depth > 0) & (frame.depth < c.depth_max_m)))
         # the information matrix is the sum over correspondences of J^T J with J = [-[p]x | I]: its translation
         # block holds the number of correspondences on the diagonal
         n_corr = float(info[3, 3]) if np.size(info) == 36 else 0.0
