@@ -8,9 +8,8 @@ Conventions (every function here):
     * masks are (H, W) bool tensors; a mask *restricts* a metric to the True pixels;
     * all inputs of one call must share shape and device.
 
-Metric functions return 0-dim torch tensors (so they can be logged or differentiated);
-:func:`evaluate_frame` returns plain Python floats. An empty selection (mask with no True pixel,
-or no valid ground-truth depth) gives NaN, never an exception.
+Metric functions return 0-dim torch tensors (so they can be logged or differentiated). An empty selection
+(mask with no True pixel, or no valid ground-truth depth) gives NaN, never an exception.
 
 SSIM follows Wang et al. 2004 ("Image quality assessment: from error visibility to structural
 similarity") with an 11x11 Gaussian window (σ = 1.5), K1 = 0.01, K2 = 0.03, L = 1, computed per
@@ -21,7 +20,7 @@ channel with zero padding to "same" size exactly as the reference 3DGS code (Ker
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -31,9 +30,7 @@ __all__ = [
     "psnr",
     "ssim_map",
     "ssim",
-    "ssim_loss",
     "depth_l1",
-    "evaluate_frame",
 ]
 
 SSIM_C1 = 0.01**2
@@ -187,24 +184,6 @@ def ssim(
     return m.mean()
 
 
-def ssim_loss(
-    pred: torch.Tensor,
-    gt: torch.Tensor,
-    mask: Optional[torch.Tensor] = None,
-    window: int = 11,
-    sigma: float = 1.5,
-) -> torch.Tensor:
-    """Training loss 1 − SSIM (optionally masked as in :func:`ssim`), differentiable.
-
-    Unlike :func:`ssim`, an empty mask gives a loss of exactly 0 that is still connected to the
-    graph (zero gradient), so a frame whose ROI is empty does not poison the optimiser with NaN.
-    """
-    _check_images(pred, gt, mask)
-    if mask is not None and not bool(mask.any()):
-        return pred.sum() * 0.0
-    return 1.0 - ssim(pred, gt, mask, window, sigma)
-
-
 def depth_l1(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Mean absolute depth error in metres over pixels with valid ground truth.
 
@@ -229,36 +208,3 @@ def depth_l1(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] 
     if err.numel() == 0:
         return torch.tensor(math.nan, dtype=pred.dtype, device=pred.device)
     return err.mean()
-
-
-@torch.no_grad()
-def evaluate_frame(
-    pred_rgb: torch.Tensor,
-    gt_rgb: torch.Tensor,
-    pred_depth: Optional[torch.Tensor] = None,
-    gt_depth: Optional[torch.Tensor] = None,
-    roi_mask: Optional[torch.Tensor] = None,
-) -> Dict[str, float]:
-    """All per-frame evaluation metrics as Python floats.
-
-    Args:
-        pred_rgb, gt_rgb: (H, W, 3) float in [0, 1].
-        pred_depth, gt_depth: (H, W) metres (both or neither; depth_l1 is skipped if either is None).
-        roi_mask: optional (H, W) bool ground-truth ROI mask.
-    Returns:
-        Keys ``psnr``, ``ssim`` and, with depth, ``depth_l1``; with a mask also
-        ``roi_psnr``, ``roi_ssim`` and (with depth) ``roi_depth_l1``. NaN where a selection is empty.
-    """
-    out: Dict[str, float] = {
-        "psnr": float(psnr(pred_rgb, gt_rgb)),
-        "ssim": float(ssim(pred_rgb, gt_rgb)),
-    }
-    have_depth = pred_depth is not None and gt_depth is not None
-    if have_depth:
-        out["depth_l1"] = float(depth_l1(pred_depth, gt_depth))
-    if roi_mask is not None:
-        out["roi_psnr"] = float(psnr(pred_rgb, gt_rgb, roi_mask))
-        out["roi_ssim"] = float(ssim(pred_rgb, gt_rgb, roi_mask))
-        if have_depth:
-            out["roi_depth_l1"] = float(depth_l1(pred_depth, gt_depth, roi_mask))
-    return out

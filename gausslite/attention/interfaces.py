@@ -25,7 +25,6 @@ __all__ = [
     "nms",
     "filter_boxes_by_area",
     "match_masks_to_boxes",
-    "mask_to_box",
 ]
 
 
@@ -139,14 +138,6 @@ def mask_box_iou(masks: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         if u1 >= u0 and v1 >= v0:
             fills[j, v0 : v1 + 1, u0 : u1 + 1] = True
     return mask_iou(masks, fills)
-
-
-def mask_to_box(mask: np.ndarray) -> Optional[np.ndarray]:
-    """Tight xyxy box (4,) float32 of a (H, W) bool mask (pixel edges), or None when the mask is empty."""
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
-        return None
-    return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5], dtype=np.float32)
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:

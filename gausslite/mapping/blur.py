@@ -77,10 +77,4 @@ def motion_deltas(xi_b: np.ndarray, k: int, centre: float = 0.0,
     return [pose_delta(float(centre + s) * xi).to(device) for s in offsets]
 
 
-def blur_deltas(xi_b: np.ndarray, k: int, device: Optional[torch.device] = None) -> list[torch.Tensor]:
-    """The K (4, 4) float64 right corrections ``E(s_k · ξ_b)``, ``s_k = linspace(−½, ½, K)``; [] for K ≤ 1
-    (:func:`motion_deltas` around the frame's pose)."""
-    return motion_deltas(xi_b, k, 0.0, device) if k > 1 else []
-
-
-__all__ = ["exposure_twist", "blur_length_px", "blur_samples", "motion_deltas", "blur_deltas"]
+__all__ = ["exposure_twist", "blur_length_px", "blur_samples", "motion_deltas"]

@@ -6,10 +6,18 @@ import numpy as np
 import pytest
 
 from gausslite.attention import AttentionConfig, AttentionFrontEnd, Detections, KeyframeConfig
-from gausslite.attention.interfaces import box_iou, mask_to_box
+from gausslite.attention.interfaces import box_iou
 from gausslite.camera import Intrinsics
 from gausslite.datasets import Frame, load_dataset
 from gausslite.parser import TaskParser
+
+def mask_to_box(mask: np.ndarray):
+    """Tight xyxy box (4,) float32 of a (H, W) bool mask (pixel edges), or None when the mask is empty."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return None
+    return np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5], dtype=np.float32)
+
 
 H, W = 240, 320
 INTR = Intrinsics(200.0, 200.0, 159.5, 119.5, W, H)

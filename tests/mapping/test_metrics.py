@@ -1,4 +1,4 @@
-"""PSNR / SSIM / depth L1 / evaluate_frame."""
+"""PSNR / SSIM / depth L1."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy import ndimage
 
-from gausslite.metrics import depth_l1, evaluate_frame, gaussian_window, psnr, ssim, ssim_loss, ssim_map
+from gausslite.metrics import depth_l1, gaussian_window, psnr, ssim, ssim_map
 
 
 def rand_img(h=24, w=32, seed=0, dtype=torch.float32):
@@ -122,13 +122,13 @@ def test_ssim_is_differentiable_plain_and_masked():
     gt = rand_img(16, 16, seed=7)
     pred = (gt + 0.1 * torch.randn(16, 16, 3, generator=torch.Generator().manual_seed(8))).clamp(0, 1)
     pred.requires_grad_(True)
-    loss = ssim_loss(pred, gt)
+    loss = 1.0 - ssim(pred, gt)
     loss.backward()
     assert pred.grad is not None and torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
     # gradient step decreases 1 - SSIM
     with torch.no_grad():
         better = pred - 0.5 * pred.grad / pred.grad.abs().max() * 0.05
-    assert float(ssim_loss(better, gt)) < float(loss.detach())
+    assert float(1.0 - ssim(better, gt)) < float(loss.detach())
     # float64 gradcheck on a small patch
     x = rand_img(6, 7, seed=10, dtype=torch.float64).requires_grad_(True)
     y = rand_img(6, 7, seed=11, dtype=torch.float64)
@@ -139,13 +139,8 @@ def test_ssim_is_differentiable_plain_and_masked():
     p2 = pred.detach().clone().requires_grad_(True)
     m2 = torch.zeros(16, 16, dtype=torch.bool)
     m2[0:2, 0:2] = True
-    ssim_loss(p2, gt, m2, window=3).backward()
+    (1.0 - ssim(p2, gt, m2, window=3)).backward()
     assert p2.grad[5:, :].abs().sum() == 0 and p2.grad[:3, :3].abs().sum() > 0
-    # empty mask → zero loss, zero (finite) gradient
-    p3 = pred.detach().clone().requires_grad_(True)
-    l3 = ssim_loss(p3, gt, torch.zeros(16, 16, dtype=torch.bool))
-    l3.backward()
-    assert float(l3.detach()) == 0.0 and torch.equal(p3.grad, torch.zeros_like(p3))
 
 
 # ---------------------------------------------------------------- depth L1
@@ -167,29 +162,6 @@ def test_depth_l1_valid_pixels_and_mask():
     p = pred.clone().requires_grad_(True)
     depth_l1(p, gt).backward()
     assert p.grad[0].abs().sum() == 0 and p.grad[2, 2] > 0
-
-
-# ---------------------------------------------------------- evaluate_frame
-def test_evaluate_frame_keys_and_values():
-    gt = rand_img(32, 32, seed=12)
-    pred = (gt + 0.1).clamp(max=5.0)
-    gd = torch.full((32, 32), 1.5)
-    pd = gd + 0.2
-    out = evaluate_frame(pred, gt, pd, gd)
-    assert set(out) == {"psnr", "ssim", "depth_l1"}
-    assert all(isinstance(v, float) for v in out.values())
-    assert out["psnr"] == pytest.approx(20.0, abs=1e-4)
-    assert out["depth_l1"] == pytest.approx(0.2, abs=1e-6)
-    roi = torch.zeros(32, 32, dtype=torch.bool)
-    roi[8:24, 8:24] = True
-    pred2 = pred.clone()
-    pred2[~roi] = gt[~roi]  # perfect outside the ROI
-    out2 = evaluate_frame(pred2, gt, pd, gd, roi_mask=roi)
-    assert set(out2) == {"psnr", "ssim", "depth_l1", "roi_psnr", "roi_ssim", "roi_depth_l1"}
-    assert out2["roi_psnr"] == pytest.approx(20.0, abs=1e-4) and out2["psnr"] > out2["roi_psnr"]
-    assert out2["roi_ssim"] < out2["ssim"] <= 1.0
-    out3 = evaluate_frame(pred, gt, roi_mask=torch.zeros(32, 32, dtype=torch.bool))
-    assert "depth_l1" not in out3 and math.isnan(out3["roi_psnr"]) and math.isnan(out3["roi_ssim"])
 
 
 def test_ssim_map_fast_path_matches_full_filtering():

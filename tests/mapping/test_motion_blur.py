@@ -7,7 +7,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from gausslite.evaluation import score_view
-from gausslite.mapping.blur import blur_deltas, blur_length_px, blur_samples, exposure_twist
+from gausslite.mapping.blur import blur_length_px, blur_samples, exposure_twist, motion_deltas
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.poses import pose_delta
@@ -37,8 +37,8 @@ def test_samples_follow_the_streak_length_and_deltas_are_centred():
     assert blur_samples(xi, 250.0, 320, 240, px_per_sample=4.0, max_samples=5) == 3
     assert blur_samples(xi, 250.0, 320, 240, px_per_sample=1.0, max_samples=5) == 5
     assert blur_samples(np.zeros(6), 250.0, 320, 240, 4.0, 5) == 1
-    assert blur_deltas(xi, 1) == []
-    d = blur_deltas(xi, 3)
+    torch.testing.assert_close(motion_deltas(xi, 1)[0], torch.eye(4, dtype=torch.float64))
+    d = motion_deltas(xi, 3)
     torch.testing.assert_close(d[1], torch.eye(4, dtype=torch.float64))
     torch.testing.assert_close(d[0], pose_delta(torch.tensor(-0.5 * xi)))
     torch.testing.assert_close(d[2] @ d[0], torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0)
@@ -91,7 +91,7 @@ def test_render_view_is_the_mean_of_the_virtual_pose_renders():
     c2w = torch.from_numpy(fr.c2w)
     with torch.no_grad():
         got = m.sensor.render_view(c2w, K, W, H, fr.frame_id, None)
-        deltas = blur_deltas(m.sensor.blur[1], blur_samples(m.sensor.blur[1], 50.0, W, H, 1.5, 7))
+        deltas = motion_deltas(m.sensor.blur[1], blur_samples(m.sensor.blur[1], 50.0, W, H, 1.5, 7))
         assert len(deltas) == 3
         outs = [m.sensor.rasterize(c2w, K, W, H, None, view_delta=d) for d in deltas]
     torch.testing.assert_close(got.color, sum(o.color for o in outs) / 3)
