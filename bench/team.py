@@ -22,8 +22,9 @@ on the mission clock. After the missions:
   keyframes at their refined pose and exposure, a fused map on the owner's uploaded keyframes at the refined poses
   they carry; both on the withheld frames at the pose and exposure the owner's map predicts (``novel``: the fused map
   through the owner's camera model, nothing fitted), and on every 5th / every withheld frame at a pose fitted against
-  that map; each agent row's ``protocols`` block, the top-level figures being ``sensor``'s. Every gain (fused − own)
-  is the mean of the paired per-frame differences over runs × frames with its 95 % interval;
+  that map (:func:`gausslite.team.scoring.score_team_map`, the scoring of ``gausslite sim``'s team maps); each agent
+  row's ``protocols`` block, the top-level figures being ``sensor``'s. Every gain (fused − own) is the mean of the
+  paired per-frame differences over runs × frames with its 95 % interval;
 * **bandwidth** — share of the map (final subset / map), bytes per pushed Gaussian, total upload / final subset.
 
 Teams (``TEAMS``): ``tum`` and ``synthetic`` are the live sims of ``gausslite sim --realtime`` (two tasks, both
@@ -56,13 +57,14 @@ from bench.realtime.scenes import REFERENCE_BUDGET_S, RESULTS, SCENES, scene_pat
 from gausslite.config import load_config
 from gausslite.datasets import task_roi
 from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, FrameSubset, evaluate_fused,
-                                  evaluate_fused_frames, roi_psnr_frames, score_map, withheld_indices)
+                                  evaluate_fused_frames, roi_psnr_frames, withheld_indices)
 from gausslite.stats import fmt_gain, paired_gain
-from gausslite.fusion.diagnose import RoiView, roi_cover
+from gausslite.fusion.diagnose import RoiView
 from gausslite.fusion.guard import for_robot
 from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.mission.fakes import RecordingFusion
+from gausslite.team import scoring as team_scoring
 from gausslite.core.arrays import GaussianArrays
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
@@ -233,16 +235,17 @@ def _by_protocol(g, a: dict, protocols, track_iters: int, track_stride: int) -> 
     keyframes at the refined poses they carry; ``novel`` the withheld frames through the owner's camera model
     (:meth:`gausslite.mapping.mapper.Mapper.seen_by_this_camera`: the pose and exposure the owner's map predicts,
     exactly as its own map's ``novel``; without it at the owner's predicted views, ``a["_predicted"]``); ``tracked`` /
-    ``novel-tracked`` at a pose fitted against ``g`` (:func:`gausslite.evaluation.score_map`); ``ROBOT_CAMERA`` every
-    frame through the owner's camera model."""
+    ``novel-tracked`` at a pose fitted against ``g`` (:func:`gausslite.team.scoring.score_team_map`, as the sim scores
+    its team maps); ``ROBOT_CAMERA`` every frame through the owner's camera model."""
     roi_fn = task_roi(a["_annotations"], a["task"])
     rest = [q for q in dict.fromkeys(protocols) if q != "sensor"
             and (q not in WITHHELD_PROTOCOLS or a.get("_novel") is not None)]
     camera = a["_seen"](g) if "_seen" in a else None
     todo = [q for q in rest if not (q == "novel" and camera is not None)]
-    res = score_map(g, a["_frames"], roi_fn, todo, track_iters=track_iters, track_stride=track_stride,
-                    keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]},
-                    novel_ids=a.get("_novel"), novel_views=a.get("_predicted")) if todo else {}
+    res = team_scoring.score_team_map(
+        g, a["_frames"], roi_fn, todo, track_iters=track_iters, track_stride=track_stride,
+        keyframe_poses={int(k.frame_id): k.c2w.double().numpy() for k in a["_keyframes"]},
+        novel_ids=a.get("_novel"), novel_views=a.get("_predicted"))
     sensor = evaluate_fused_frames(g, a["_frames"], a["_annotations"], a["task"])
     out = {"sensor": (_mean(sensor), sensor), **{q: (v["roi_psnr"], v["roi_psnr_per_frame"]) for q, v in res.items()}}
     if camera is not None:
@@ -299,14 +302,14 @@ def write_renders(agents: list[dict], vote, report, on_board: dict, folder: Path
 
 
 def team_cover(agents: list[dict], final: dict, vote, report, stride: int = 2) -> dict:
-    """What draws each robot's ROI in the team vote map (:func:`gausslite.fusion.diagnose.roi_cover`, as the sim
-    report's "what covers each robot's ROI"): the final subsets ``final`` (agent id → ``GaussianArrays``), the vote
-    map ``vote`` and its ``VoteReport``, each robot's views every ``stride``-th frame of its sequence that shows its
-    ROI (ground truth). Returns agent id → ``{"mass", "foreign", "own_missing", "top_foreign" (3)}``."""
-    views = {a["id"]: RoiView.of_frames(a["_frames"], task_roi(a["_annotations"], a["task"]), stride) for a in agents}
+    """What draws each robot's ROI in the team vote map (:func:`gausslite.team.scoring.team_cover`, the sim report's
+    "what covers each robot's ROI"): the final subsets ``final`` (agent id → ``GaussianArrays``), the vote map
+    ``vote`` and its ``VoteReport``, each robot's views every ``stride``-th frame of its sequence that shows its ROI
+    (ground truth). Returns agent id → ``{"mass", "foreign", "own_missing", "top_foreign" (3)}``."""
     if not final:
         return {}
-    cov = roi_cover(final, vote, report.source_agent, report.source_row, views, top=3)
+    robots = {a["id"]: (a["_frames"], a["_annotations"], a["task"]) for a in agents}
+    cov, _ = team_scoring.team_cover(final, vote, report, robots, stride, top=3)
     return {aid: {k: c[k] for k in ("mass", "foreign", "own_missing", "top_foreign")} for aid, c in cov.items()}
 
 
