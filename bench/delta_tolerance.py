@@ -41,7 +41,8 @@ from gausslite.evaluation import score_view
 from gausslite.mapping.mapper import Mapper
 from gausslite.pipeline import gt_roi_fn
 from gausslite.render import rasterize
-from gausslite.sharing import ShareConfig, select_task_subset
+from gausslite.mission.config import ShareConfig
+from gausslite.sharing import select_task_subset
 from gausslite.stats import fmt, mean_std
 from gausslite.wire.codec import GaussianArrays
 from gausslite.wire.delta import PushPlanner
@@ -53,6 +54,10 @@ RESULTS = REPO / "bench" / "results"
 #: the committed figures' mapper: the defaults with these overrides
 MAPPER_OVERRIDES = ["mapper.roi_render=active", "mapper.roi_update=active", "mapper.store_keyframe_every=2",
                     "mapper.performance.render_threads=null"]
+#: the committed figures' share rule (here and in ``bench.share_finetune``, ``bench.share_refresh``): the agent's
+#: defaults (``agent.share``) but for the paper's candidates (a = 1 and κ in the task region, for a map fitted with
+#: ``mapper.roi_update: active``) and no bound on the shared fraction
+SHARE_RULE = ShareConfig(candidates="active", max_fraction=None)
 
 
 def agent_mapper(seed: int, extra=()):
@@ -97,7 +102,7 @@ def run_seed(args, seed: int, tolerances: list[tuple[float, float]]) -> dict:
         if (i + 1) % args.push_every and not last:
             continue
         gmap = mapper.gmap
-        mask, _ = select_task_subset(gmap, list(mapper.keyframes), ShareConfig(coverage=0.99))
+        mask, _ = select_task_subset(gmap, list(mapper.keyframes), SHARE_RULE)
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = mapper.model.ids.numpy()[mask]
         version += 1

@@ -184,7 +184,7 @@ def live(rate: float, budget: float, variant: str = "default") -> dict:
     frames = [ds[i] for i in range(len(ds))]  # read first: the stream's clock measures the agent, not the disk
     overrides, background = LIVE_VARIANTS[variant]
     cfg = load_config(None, ["agent.pose_source=odometry", "agent.realtime=true", f"agent.rate={rate}",
-                             "agent.downscale=1", "agent.scoring.protocols=[sensor]", "agent.push_every=100000",
+                             "agent.downscale=1", "agent.scoring.protocols=[sensor]", "agent.push.every=100000",
                              f"mapper.keyframe_budget_s={budget}", "mapper.performance.render_threads=2",
                              *overrides]).agent
     m = with_profile(cfg.mapper, profile_for_layout("tum")).model_copy(update={"final_iters": 0,

@@ -36,14 +36,14 @@ import torch
 from tqdm import tqdm
 
 from bench._results import write_results
-from bench.delta_tolerance import agent_mapper
+from bench.delta_tolerance import SHARE_RULE, agent_mapper
 from gausslite.datasets import load_dataset
 from gausslite.evaluation import evaluate_fused
 from gausslite.fusion.refine import refine_map
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mapping.mapper import Mapper
 from gausslite.pipeline import gt_roi_fn
-from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset
+from gausslite.sharing import finetune_subset, select_task_subset
 from gausslite.stats import fmt, mean_std
 from gausslite.wire.codec import GaussianArrays
 
@@ -72,7 +72,7 @@ def run_seed(args, seed: int) -> dict:
             mapper.map_frame(fr, roi_fn(fr))
         out[task]["own"] = score(mapper.gmap, task)
         kfs = [mapper.keyframes.load(i, mapper.device) for i in range(len(mapper.keyframes))]
-        mask, _ = select_task_subset(mapper.gmap, kfs, ShareConfig(coverage=0.99))
+        mask, _ = select_task_subset(mapper.gmap, kfs, SHARE_RULE)
         raw = GaussianArrays.from_any(mapper.gmap).take(mask)
         t0 = time.perf_counter()
         subs[task] = GaussianArrays.from_any(finetune_subset(raw, kfs, args.finetune_iters, mapper.cfg, seed=seed))

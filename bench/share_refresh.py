@@ -43,13 +43,13 @@ import torch
 from tqdm import tqdm
 
 from bench._results import write_results
-from bench.delta_tolerance import agent_mapper
+from bench.delta_tolerance import SHARE_RULE, agent_mapper
 from gausslite.datasets import load_dataset
 from gausslite.evaluation import evaluate_fused
 from gausslite.fusion.vote import voxel_vote
 from gausslite.mapping.mapper import Mapper
 from gausslite.pipeline import gt_roi_fn
-from gausslite.sharing import ShareConfig, finetune_subset, select_task_subset, update_shared_subset
+from gausslite.sharing import finetune_subset, select_task_subset, update_shared_subset
 from gausslite.stats import fmt, mean_std
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays
@@ -105,7 +105,7 @@ def run_seed(args, seed: int, refresh: list[float]) -> dict:
                 continue
             version += 1
             kfs = [mapper.keyframes.load(k, mapper.device) for k in range(len(mapper.keyframes))]
-            mask, _ = select_task_subset(mapper.gmap, kfs, ShareConfig(coverage=0.99))
+            mask, _ = select_task_subset(mapper.gmap, kfs, SHARE_RULE)
             raw = GaussianArrays.from_any(mapper.gmap).take(mask)
             ids = mapper.model.ids.numpy()[mask]
             for a, r in zip(arms, [None] + refresh):

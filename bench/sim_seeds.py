@@ -1,6 +1,6 @@
 """The two-agent sim over several seeds: the sharing table (share, bytes, own vs fused per task), mean ± std.
 
-    python -m bench.sim_seeds [--scenes room0,synthetic] [--seeds 3] [--set agent.share_refresh=0.1 ...]
+    python -m bench.sim_seeds [--scenes room0,synthetic] [--seeds 3] [--set agent.share.refresh=0.1 ...]
 
 Runs ``gausslite sim`` once per scene and seed (``--set mapper.seed=S``; the default settings
 otherwise, plus any ``--set``), one after the other, each into

@@ -66,7 +66,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--budget", type=float, default=1.0, help="mapper.keyframe_budget_s of the agent")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="more agent config overrides (agent.push_every=10, mapper.stored_keyframes_max=300, ...)")
+                   help="more agent config overrides (agent.push.every=10, mapper.stored_keyframes_max=300, ...)")
     p.add_argument("--work", default=str(REPO / "runs" / "soak"), help="scratch folder (scene, data dirs, logs)")
     p.add_argument("--out", default=str(RESULTS / "soak.json"))
     return p.parse_args(argv)

@@ -604,10 +604,11 @@ CURVE_KEYS = ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr",
 
 
 def share_bound(result: dict) -> Optional[float]:
-    """The ``agent.share_max_fraction`` a team result ran with (its ``--set`` overrides), None when not set."""
+    """The ``agent.share.max_fraction`` a team result ran with (its ``--set`` overrides, under that key or its old
+    name ``agent.share_max_fraction``), None when not set."""
     for o in result.get("settings", {}).get("overrides", []):
         key, _, val = o.partition("=")
-        if key.strip() == "agent.share_max_fraction":
+        if key.strip() in ("agent.share.max_fraction", "agent.share_max_fraction"):
             return float(val)
     return None
 
@@ -622,7 +623,7 @@ def share_curve(results: list[dict], default_bound: Optional[float] = None) -> d
     """
     bounds = [default_bound if b is None else b for b in map(share_bound, results)]
     if any(b is None for b in bounds):
-        raise ValueError("a team result without agent.share_max_fraction: pass the deployed bound")
+        raise ValueError("a team result without agent.share.max_fraction: pass the deployed bound")
     if len(set(bounds)) != len(bounds):
         raise ValueError(f"two results at the same share bound: {bounds}")
     curve: dict = {}
@@ -661,7 +662,7 @@ def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict
     write_json(out, doc, "team", argv, indent=1)
     md = out.with_name(f"{out.stem}_curve.md")
     md.write_text(f"# bench.team share curve\n\n`python -m bench.team {' '.join(argv or [])}`\n\n"
-                  f"Fused ROI PSNR − the robot's own map against the share bound (agent.share_max_fraction).\n\n"
+                  f"Fused ROI PSNR − the robot's own map against the share bound (agent.share.max_fraction).\n\n"
                   f"{curve_table(curve)}\n")
     print(curve_table(curve))
     return curve
@@ -700,11 +701,11 @@ def main(argv: Optional[list[str]] = None) -> int:
                          "every robot, scored at the pose the robot's map predicts (novel) and at a pose tracked "
                          "against each map (novel-tracked) (0: none withheld, neither protocol)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="agent config override, e.g. agent.share_coverage=0.9")
+                    help="agent config override, e.g. agent.share.coverage=0.9")
     ap.add_argument("--out", default=str(RESULTS / "team.json"))
     ap.add_argument("--work", default="/tmp/gausslite_bench_realtime")
     ap.add_argument("--curve", default=None, metavar="FILE[,FILE...]",
-                    help="run nothing: read team results run at different agent.share_max_fraction bounds and write "
+                    help="run nothing: read team results run at different agent.share.max_fraction bounds and write "
                          "their share curve into --out (key share_curve) and <out>_curve.md")
     ap.add_argument("--renders", default=None, metavar="DIR",
                     help="also write, per run and robot, its own map | the team vote (the others in red) | the team "
@@ -713,7 +714,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="run nothing: summarise the runs of a team result again (this version's goals and tables) "
                          "into --out, keeping the runs' provenance")
     ap.add_argument("--default-bound", type=float, default=0.08,
-                    help="--curve: the bound of a result run without a share_max_fraction override")
+                    help="--curve: the bound of a result run without an agent.share.max_fraction override")
     args = ap.parse_args(argv)
     if args.summary_of:
         resummarise(Path(args.summary_of), Path(args.out), argv)

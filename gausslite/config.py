@@ -294,7 +294,7 @@ class GaussLiteConfig(AgentSections):
 
 def load_config(path: Optional[str | Path] = None, overrides: Iterable[str] = ()) -> GaussLiteConfig:
     """The one loader of the configuration tree: read a GaussLite YAML file, apply dotted ``key=value`` overrides
-    (``agent.push_every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate. Each part
+    (``agent.push.every=3``, ``mapper.iters_per_frame=5``, ``sim.fuse.refine_iters=100``) and validate. Each part
     takes its own group: ``cfg.mapper`` (the mapper), ``cfg.agent`` (an agent's mission), ``cfg.sim``
     (``gausslite sim``), ``cfg.fusion`` (the fusion server).
 

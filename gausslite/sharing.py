@@ -31,8 +31,7 @@ Pure torch/numpy; the renderer is :func:`gausslite.render.rasterize`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -45,56 +44,41 @@ from gausslite.mapping.views import StoredKeyframe
 from gausslite.wire.delta import change_steps
 from gausslite.wire.format import QuantConfig
 
-__all__ = ["ShareConfig", "task_region", "in_region", "roi_contribution", "select_task_subset",
+__all__ = ["ShareRule", "task_region", "in_region", "roi_contribution", "select_task_subset",
            "finetune_subset", "update_shared_subset"]
 
 _OFF = VOXEL_KEY_OFFSET  # voxel keys as in the scene budget (gausslite.mapping.memory)
 _pack = pack_voxel_keys
 
 
-@dataclass(frozen=True)
-class ShareConfig:
-    """Parameters of :func:`select_task_subset`.
+class ShareRule(Protocol):
+    """The parameters :func:`select_task_subset` reads: :class:`gausslite.mission.config.ShareConfig` (an agent's
+    ``agent.share``) conforms, and holds their meaning and defaults.
 
     Attributes:
+        kappa_threshold: minimum κ of a shared Gaussian (with ``a = 1``).
         region_voxel_m: voxel size of the task region (metres, > 0).
         region_dilate: dilation of the region in voxels (>= 0).
-        kappa_threshold: minimum κ of a shared Gaussian (with ``a = 1``).
         min_opacity: prune Gaussians below this opacity (near-transparent).
         coverage: keep the fewest Gaussians (by decreasing contribution) carrying this fraction of
             the total ROI blending weight; 1.0 keeps every Gaussian with a positive contribution.
         candidates: ``active`` — rules 1 and 2 (the paper's ``a = 1`` and κ, inside the task region);
             ``rendered`` — every Gaussian that draws the ROI pixels of the ROI keyframes competes in rule 3,
-            whatever its flag (for maps whose ROI phase fits every Gaussian the ROI crop draws,
-            ``mapper.roi_update: visible``: there inactive Gaussians render the task region too, and a subset
-            of active ones alone leaves it half drawn; ``docs/sharing.md``).
+            whatever its flag.
         max_fraction: at most this fraction of the map is shared (the Gaussians with the largest
-            contribution); None = no bound. A bandwidth bound for maps still being trained, where a coverage
-            rule alone keeps many small, overlapping Gaussians (``docs/sharing.md``).
+            contribution); None = no bound.
         held_weight: the Gaussians the fusion server already holds (``held`` of :func:`select_task_subset`) rank
-            with their contribution times this (>= 1): hysteresis, so that a bounded subset does not trade rows of
-            nearly equal contribution at every push, each of which a delta push must carry (``docs/sharing.md``).
-
-    Raises:
-        ValueError: unknown ``candidates``, ``max_fraction`` outside (0, 1] or ``held_weight`` < 1.
+            with their contribution times this (>= 1).
     """
 
-    region_voxel_m: float = 0.05
-    region_dilate: int = 1
-    kappa_threshold: int = 1
-    min_opacity: float = 0.02
-    coverage: float = 0.99
-    candidates: str = "active"
-    max_fraction: Optional[float] = None
-    held_weight: float = 1.0
-
-    def __post_init__(self) -> None:
-        if self.candidates not in ("active", "rendered"):
-            raise ValueError(f"candidates must be 'active' or 'rendered', got {self.candidates!r}")
-        if self.max_fraction is not None and not 0 < self.max_fraction <= 1:
-            raise ValueError(f"max_fraction must be in (0, 1] or None, got {self.max_fraction}")
-        if not self.held_weight >= 1.0:
-            raise ValueError(f"held_weight must be >= 1, got {self.held_weight}")
+    kappa_threshold: int
+    region_voxel_m: float
+    region_dilate: int
+    min_opacity: float
+    coverage: float
+    candidates: str
+    max_fraction: Optional[float]
+    held_weight: float
 
 
 def task_region(views: Sequence, voxel_m: float = 0.05, dilate: int = 1) -> np.ndarray:
@@ -170,15 +154,15 @@ def roi_contribution(gmap, views: Sequence, backend: str = "auto",
     return out
 
 
-def select_task_subset(gmap, views: Sequence, cfg: ShareConfig = ShareConfig(),
-                       backend: str = "auto", held: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
+def select_task_subset(gmap, views: Sequence, cfg: ShareRule, backend: str = "auto",
+                       held: Optional[np.ndarray] = None) -> tuple[np.ndarray, dict]:
     """Boolean mask (N,) of the Gaussians to share, and counts per rule (module docstring).
 
     Args:
         gmap: the agent's map (GaussianMap: means, opacity_logits, active, kappa, ...).
         views: the ROI keyframes (as in :func:`task_region`).  With no ROI pixel at all, the task flag and κ rule
             alone decide.
-        cfg: rule parameters.  backend: renderer backend.
+        cfg: rule parameters (:class:`ShareRule`; an agent's ``agent.share``).  backend: renderer backend.
         held: optional (N,) bool, the Gaussians the fusion server holds from the last push (``cfg.held_weight``).
 
     Returns:

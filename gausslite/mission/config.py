@@ -14,7 +14,8 @@ from gausslite.datasets.bag import BagOptions
 from gausslite.datasets.odometry import OdometryConfig, PoseSource
 from gausslite.mapping.config import MapperConfig, migrate_flat_names
 
-__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "AgentConfig", "AgentSections", "OLD_AGENT_NAMES"]
+__all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "ShareConfig", "PushConfig", "AgentConfig",
+           "AgentSections", "OLD_AGENT_NAMES"]
 
 #: tolerance of a T_world_map's rigidity check (orthonormal rotation, det +1, last row 0 0 0 1), as for frame poses
 RIGID_ATOL = 1e-3
@@ -250,6 +251,105 @@ class OnnxRelevanceConfig(BaseModel):
         return out
 
 
+class ShareConfig(BaseModel):
+    """What an agent shares and where the work runs (``agent.share`` in YAML; :mod:`gausslite.sharing`,
+    docs/sharing.md#the-shared-subset). The defaults are the measured settings.
+    :func:`gausslite.sharing.select_task_subset` takes the selection's fields (``kappa_threshold`` to ``held_weight``;
+    it is a :class:`gausslite.sharing.ShareRule`).
+
+    Attributes:
+        rule: which Gaussians are pushed: ``active`` (a = 1), ``kappa`` (κ >= ``kappa_threshold``) or ``task`` (a = 1
+            and κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
+            :func:`gausslite.sharing.select_task_subset`).
+        kappa_threshold: minimum κ of a shared Gaussian (``kappa``, and with ``a = 1`` for ``task``).
+        region_voxel_m: voxel size of the task region (metres).
+        region_dilate: dilation of the task region in voxels (26-neighbourhood per step).
+        min_opacity: Gaussians below this opacity are not shared (near-transparent).
+        coverage: keep the fewest Gaussians (by decreasing ROI contribution) carrying this fraction of the total ROI
+            blending weight; 1.0 keeps every Gaussian with a positive contribution.
+        candidates: ``active`` (the paper's a = 1 and κ inside the task region, then compaction) or ``rendered``
+            (every Gaussian that draws the ROI competes in the compaction, whatever its flag: what a map fitted with
+            ``mapper.roi_update: visible`` needs, where inactive Gaussians render the task region too).
+        max_fraction: at most this fraction of the map is shared (largest ROI contribution first); null = no bound.
+            A bandwidth bound for maps still being trained, where a coverage rule alone keeps many small,
+            overlapping Gaussians.
+        held_weight: the rows the fusion server holds rank with their ROI contribution times this (>= 1), so a
+            bounded subset keeps them rather than trading rows of nearly equal contribution at every push, each of
+            which a delta push must carry (1 = off).
+        finetune_iters: ``rule: task``: before each push, fine-tune a copy of the shared subset rendered alone on
+            the ROI keyframes for this many iterations (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's
+            rows as they are). The agent's own map is untouched, so it can map with ``roi_render: context`` (its best
+            own map) and still share a subset that renders the ROI on its own.
+        refresh: with fine-tuning and delta pushes: share of the rows the server already holds that one push may
+            change (:func:`gausslite.sharing.update_shared_subset`); the others stay as the server has them, so a
+            delta carries the new rows and this share of the old ones. 1 = every row may move at every push (each
+            delta re-sends about the whole subset).
+        outside_alpha: with fine-tuning: weight of the fine-tune's penalty on the subset's alpha outside the ROI of
+            each keyframe (``mapper.roi_outside_alpha`` of the fine-tune), so the subset draws its ROI and nothing
+            beside it, where other robots' regions lie in a fused map (0 = off).
+        worker: where ``rule: task`` selection and fine-tuning run: ``process`` (a worker process of its own, at
+            ``agent.push.nice``: no interpreter lock shared with mapping, which a thread of the agent's process
+            would hold against the mapping thread) or ``thread`` (the pusher thread itself).
+        worker_start: when the worker process starts: ``first_push`` or ``mission`` (with the mission, warmed up, so
+            a short mission's periodic subsets reach the server while it maps; an every-frame mission's then at the
+            mapper's priority). Measured, ``mission`` makes the team map worse: early pushes fix young rows on the
+            server, and ``refresh`` lets later pushes move only a share of them (room0 sim vote −5 dB, live
+            synthetic team vote −0.6 to −1.8 dB; docs/sharing.md#how-much-to-share).
+
+    Raises:
+        pydantic.ValidationError (a ValueError): a value outside its range, e.g. ``max_fraction`` outside (0, 1] or
+            ``held_weight`` < 1.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    rule: Literal["active", "kappa", "task"] = "task"
+    kappa_threshold: int = Field(1, ge=0)
+    region_voxel_m: float = Field(0.05, gt=0)
+    region_dilate: int = Field(1, ge=0)
+    min_opacity: float = Field(0.02, ge=0, le=1)
+    coverage: float = Field(0.99, gt=0, le=1)
+    candidates: Literal["active", "rendered"] = "rendered"
+    max_fraction: Optional[float] = Field(0.25, gt=0, le=1)
+    held_weight: float = Field(1.0, ge=1)
+    finetune_iters: int = Field(200, ge=0)
+    refresh: float = Field(0.05, ge=0, le=1)
+    outside_alpha: float = Field(0.0, ge=0)
+    worker: Literal["process", "thread"] = "process"
+    worker_start: Literal["first_push", "mission"] = "first_push"
+
+
+class PushConfig(BaseModel):
+    """When and how an agent pushes its shared subset to the fusion server (``agent.push`` in YAML; docs/live.md,
+    docs/sharing.md#how-a-push-travels). The defaults are the measured settings.
+
+    Attributes:
+        every: push a subset every this many mapped frames (and always at the end).
+        delta: push only the Gaussians new or changed beyond quantisation since the version the server
+            acknowledged, plus the removed rows (wire delta chunks); a full upload when the server lacks the base
+            (FAILED_PRECONDITION) or the delta would not be smaller.
+        delta_tolerance: multiple of one code step that counts as "changed" (:mod:`gausslite.wire.delta`).
+        final_timeout_s: retry the final push for up to this many seconds (a fusion-server restart).
+        backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds); a periodic push is retried
+            until acknowledged or replaced by a newer snapshot (no give-up: the link may be down for minutes), the
+            final one up to ``final_timeout_s``.
+        nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
+            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md). Live
+            missions only: an every-frame mission's share worker runs at the mapper's priority (docs/sharing.md).
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    every: int = Field(5, ge=1)
+    delta: bool = True
+    delta_tolerance: float = Field(1.0, ge=0)
+    chunk_gaussians: int = Field(20000, ge=1)
+    final_timeout_s: float = Field(120.0, gt=0)
+    backoff_s: float = Field(0.2, gt=0)
+    max_backoff_s: float = Field(5.0, gt=0)
+    nice: int = Field(19, ge=0, le=19)
+
+
 #: agent settings renamed so that each name says what it bounds and means one thing across the configuration tree:
 #: old key → new key, dotted within the ``agent`` section (the odometry's settings included; AgentConfig migrates them
 #: with :func:`gausslite.mapping.config.migrate_flat_names`, which warns; docs/reference.md#old-setting-names)
@@ -258,6 +358,26 @@ OLD_AGENT_NAMES: dict[str, str] = {
     "max_keyframes": "upload_backlog_max",
     "odometry.max_keyframes": "odometry.reference_keyframes_max",
     "odometry.loop.max_keyframes": "odometry.loop.keyframe_images_max",
+    # the share rule given as the value of ``share`` itself (a rule name, not a section)
+    "share": "share.rule",
+    "kappa_threshold": "share.kappa_threshold",
+    "share_coverage": "share.coverage",
+    "share_candidates": "share.candidates",
+    "share_max_fraction": "share.max_fraction",
+    "share_held_weight": "share.held_weight",
+    "share_finetune_iters": "share.finetune_iters",
+    "share_refresh": "share.refresh",
+    "share_outside_alpha": "share.outside_alpha",
+    "share_worker": "share.worker",
+    "share_worker_start": "share.worker_start",
+    "push_every": "push.every",
+    "delta_push": "push.delta",
+    "delta_tolerance": "push.delta_tolerance",
+    "chunk_gaussians": "push.chunk_gaussians",
+    "final_push_timeout_s": "push.final_timeout_s",
+    "backoff_s": "push.backoff_s",
+    "max_backoff_s": "push.max_backoff_s",
+    "pusher_nice": "push.nice",
 }
 
 
@@ -267,44 +387,10 @@ class AgentConfig(BaseModel):
     Attributes:
         relevance: ``attention`` (task graph grounded by the attention front-end with the scene's offline
             annotation backend, paper Sec. III-B) or ``gt`` (ground-truth ROI of ``task_id``, for ablations).
-        share: ``active`` (a = 1), ``kappa`` (κ >= ``kappa_threshold``) or ``task`` (a = 1 and
-            κ >= ``kappa_threshold`` inside the task's 3D region, compacted by ROI contribution:
-            :func:`gausslite.sharing.select_task_subset`): which Gaussians are pushed.
-        share_coverage: ``share: task``: fraction of the ROI blending weight the shared subset keeps.
-        share_candidates: ``share: task``: ``active`` (the paper's a = 1 and κ inside the task region, then
-            compaction) or ``rendered`` (every Gaussian that draws the ROI competes in the compaction: what a map
-            fitted with ``mapper.roi_update: visible`` needs; :class:`gausslite.sharing.ShareConfig`).
-        share_max_fraction: ``share: task``: at most this fraction of the map is shared (largest ROI contribution
-            first); null = no bound (``docs/sharing.md``).
-        share_held_weight: ``share: task``: the rows the fusion server holds rank with their ROI contribution times
-            this (>= 1), so a bounded subset keeps them rather than trading near-equal rows at every push
-            (:class:`gausslite.sharing.ShareConfig`).
-        share_finetune_iters: ``share: task``: before each push, fine-tune a copy of the shared subset
-            rendered alone on the ROI keyframes for this many iterations
-            (:func:`gausslite.sharing.finetune_subset`; 0 = push the map's rows as they are). The agent's
-            own map is untouched, so it can map with ``roi_render: context`` (its best own map) and still
-            share a subset that renders the ROI on its own.
-        share_outside_alpha: ``share: task`` with fine-tuning: weight of the fine-tune's penalty on the subset's
-            alpha outside the ROI of each keyframe (``mapper.roi_outside_alpha`` of the fine-tune), so the subset draws
-            its ROI and nothing beside it, where other robots' regions lie in a fused map (0 = off;
-            ``docs/sharing.md``).
-        pusher_nice: scheduling niceness of the pusher thread and of the share worker (Linux; 0 = the mapper's own
-            priority): at 19 the kernel gives mapping the cores whenever both want them (docs/realtime.md). Live
-            missions only: an every-frame mission's share worker runs at the mapper's priority (docs/sharing.md).
-        share_worker: where ``share: task`` selection and fine-tuning run: ``process`` (a worker process of its
-            own, at ``pusher_nice``: no interpreter lock shared with mapping, which a thread of the agent's process
-            would hold against the mapping thread) or ``thread`` (the pusher thread itself).
-        share_worker_start: when the worker process starts: ``first_push`` (default) or ``mission`` (with the
-            mission, warmed up, so a short mission's periodic subsets reach the server while it maps; an every-frame
-            mission's then at the mapper's priority). Measured, ``mission`` makes the team map worse: early pushes
-            fix young rows on the server, and ``share_refresh`` lets later pushes move only a share of them (room0
-            sim vote −5 dB, live synthetic team vote −0.6 to −1.8 dB; docs/sharing.md#how-much-to-share).
-        share_refresh: ``share: task`` with fine-tuning and delta pushes: share of the rows the server
-            already holds that one push may change (:func:`gausslite.sharing.update_shared_subset`); the
-            others stay as the server has them, so a delta carries the new rows and this share of the
-            old ones. 1 = every row may move at every push (each delta re-sends about the whole subset).
-        kappa_threshold: κ threshold for ``share: kappa``.
-        push_every: push a subset every this many mapped frames (and always at the end).
+        share: what is pushed and where its selection and fine-tune run (:class:`ShareConfig`: the share rule,
+            its coverage and bound, the fine-tune, the share worker).
+        push: when and how it is pushed (:class:`PushConfig`: every how many frames, delta pushes, retries, the
+            pusher's niceness).
         downscale, max_frames, stride: applied to replayed datasets (``load_dataset``).
         bag: ROS bag options (topics, frames, tolerances; ``gausslite.datasets.bag.BagOptions``) for a
             replayed bag, e.g. ``agent.bag.rgb_topic=/camera/color/image_raw``; ignored for folders.
@@ -316,15 +402,6 @@ class AgentConfig(BaseModel):
         jpeg_quality: keyframe JPEG quality on the wire (``keyframe_format: jpeg``).
         keyframe_format: ``png`` (lossless colour, the default: the fusion refinement fits the uploaded
             colours; measured: docs/results.md) or ``jpeg``.
-        chunk_gaussians: Gaussians per wire chunk.
-        delta_push: push only the Gaussians new or changed beyond quantisation since the version the
-            server acknowledged, plus the removed rows (wire delta chunks); a full upload when the
-            server lacks the base (FAILED_PRECONDITION) or the delta would not be smaller.
-        delta_tolerance: multiple of one code step that counts as "changed" (gausslite.wire.delta).
-        final_push_timeout_s: retry the final push for up to this many seconds (fusion-server restart).
-        backoff_s, max_backoff_s: exponential backoff between retries of a push (seconds); a periodic push is
-            retried until acknowledged or replaced by a newer snapshot (no give-up: the link may be down for
-            minutes), the final one up to ``final_push_timeout_s``.
         attention_rendered_depth: give the attention front-end the depth rendered from the current map.
         eval_max_frames: frames kept for the ROI PSNR of the Finish summary.
         ingest: streamed frames go through keyframe selection with a one-frame pending slot and never
@@ -371,19 +448,8 @@ class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     relevance: Literal["attention", "gt"] = "attention"
-    share: Literal["active", "kappa", "task"] = "task"
-    kappa_threshold: int = Field(1, ge=0)
-    share_coverage: float = Field(0.99, gt=0, le=1)
-    share_candidates: Literal["active", "rendered"] = "rendered"
-    share_max_fraction: Optional[float] = Field(0.25, gt=0, le=1)
-    share_held_weight: float = Field(1.0, ge=1)
-    share_finetune_iters: int = Field(200, ge=0)
-    share_refresh: float = Field(0.05, ge=0, le=1)
-    share_outside_alpha: float = Field(0.0, ge=0)
-    pusher_nice: int = Field(19, ge=0, le=19)
-    share_worker: Literal["process", "thread"] = "process"
-    share_worker_start: Literal["first_push", "mission"] = "first_push"
-    push_every: int = Field(5, ge=1)
+    share: ShareConfig = ShareConfig()
+    push: PushConfig = PushConfig()
     downscale: float = Field(2.0, ge=1.0)
     max_frames: Optional[int] = Field(None, ge=1)
     stride: int = Field(1, ge=1)
@@ -393,12 +459,6 @@ class AgentConfig(BaseModel):
     upload_backlog_max: int = Field(64, ge=1)
     jpeg_quality: int = Field(95, ge=1, le=100)
     keyframe_format: Literal["png", "jpeg"] = "png"
-    chunk_gaussians: int = Field(20000, ge=1)
-    delta_push: bool = True
-    delta_tolerance: float = Field(1.0, ge=0)
-    final_push_timeout_s: float = Field(120.0, gt=0)
-    backoff_s: float = Field(0.2, gt=0)
-    max_backoff_s: float = Field(5.0, gt=0)
     attention_rendered_depth: bool = True
     eval_max_frames: int = Field(200, ge=1)
     ingest: Literal["keyframes", "every_frame"] = "keyframes"
@@ -426,8 +486,14 @@ class AgentConfig(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _renamed_settings(cls, data):
-        """Old names of renamed settings to their new keys (:data:`OLD_AGENT_NAMES`; ``migrate_flat_names`` warns)."""
-        return migrate_flat_names(data, OLD_AGENT_NAMES, "agent")
+        """Old names of renamed settings to their new keys (:data:`OLD_AGENT_NAMES`; ``migrate_flat_names`` warns).
+        ``share`` is an old name only when its value is a rule name (``share: task`` → ``share.rule: task``)."""
+        if not isinstance(data, dict):
+            return data
+        if isinstance(data.get("share"), str):
+            # first, so that the old flat share_* names then move into the section it becomes
+            return migrate_flat_names({"share": data["share"], **data}, OLD_AGENT_NAMES, "agent")
+        return migrate_flat_names(data, {k: v for k, v in OLD_AGENT_NAMES.items() if k != "share"}, "agent")
 
 
 class AgentSections(BaseModel):

@@ -8,10 +8,10 @@ pusher thread then, for the newest offer only (an older pending one is supersede
 1. selects the task subset and fine-tunes it in the share worker (:class:`gausslite.mission.share.ShareSession`);
 2. plans a delta against the subset the server acknowledged last, or a full upload, and sends it in chunks;
 3. uploads the keyframes not yet sent (at most ``upload_backlog_max`` wait);
-4. on failure retries with exponential backoff (``backoff_s`` doubling up to ``max_backoff_s``, kept across
+4. on failure retries with exponential backoff (``push.backoff_s`` doubling up to ``push.max_backoff_s``, kept across
    offers while the link is down). A periodic push is retried until it is acknowledged or a newer offer
    replaces it, so at most two subsets are held however long the link is down, and the newest goes out when
-   it returns; the final one is retried for ``final_push_timeout_s``.
+   it returns; the final one is retried for ``push.final_timeout_s``.
 
 The pusher is the one layer that retries a push: the fusion port beneath it makes one attempt per call
 (``gausslite_services.fusion_server.client.FusionClient`` sends each call once, with its deadline, and raises the
@@ -86,9 +86,9 @@ class Snapshot:
     ids: Any = None  # (N,) int64 stable Gaussian ids of the rows
     frames_mapped: int = 0
     #: (cache key, compact ROI keyframes) captured with the subset: the pusher thread fine-tunes it before
-    #: the push (``share_finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
+    #: the push (``share.finetune_iters``), so the mapping thread never waits for a fine-tune; None = push as is
     finetune: Any = None
-    #: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
+    #: ``share.rule: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None) from which the pusher thread
     #: selects the subset (``gaussians`` None and ``ids`` every row's until then)
     select: Any = None
 
@@ -99,8 +99,8 @@ class Pusher:
     Args:
         agent_id: the agent's id on the fusion server.
         task_text: the mission's task (sent when a fusion session opens).
-        config: the mission's ``AgentConfig`` (``upload_backlog_max``, ``backoff_s``, ``max_backoff_s``,
-            ``final_push_timeout_s``, ``pusher_nice``, ``jpeg_quality``, ``keyframe_format``).
+        config: the mission's ``AgentConfig`` (``upload_backlog_max``; of ``push``: ``backoff_s``,
+            ``max_backoff_s``, ``final_timeout_s``, ``nice``; ``jpeg_quality``, ``keyframe_format``).
         fusion: the fusion side (:class:`gausslite.mission.ports.FusionPort`: the gRPC client or an in-process
             stand-in; a rejected delta base raises :class:`gausslite.mission.errors.PreconditionFailed`), or None:
             offers are dropped.
@@ -123,7 +123,7 @@ class Pusher:
         self.final_done = threading.Event()
         #: set after each push: the push's temporary copies are garbage, and the mission's owner should return them
         #: to the OS (:func:`~gausslite.mission.heap.trim_heap`) from a thread at the mapper's priority. The pusher
-        #: never trims itself: at ``pusher_nice`` a thread holding the interpreter lock (``gc.collect``) or the
+        #: never trims itself: at ``push.nice`` a thread holding the interpreter lock (``gc.collect``) or the
         #: allocator's locks (``malloc_trim``) is descheduled whenever a CPU-bound process wants the cores, and
         #: every thread of the agent then waits for it (measured beside an all-core load: the mapper stalled for
         #: 9-11 s at a time, docs/live.md "Beside other processes").
@@ -139,7 +139,7 @@ class Pusher:
         self._inflight: Optional[int] = None  # version of the snapshot being worked on
         self._abandoned = False  # the last selected snapshot was superseded before its fine-tune
         self._session_open = False
-        self._retry_delay = config.backoff_s  # next backoff; kept across snapshots while the link is down
+        self._retry_delay = config.push.backoff_s  # next backoff; kept across snapshots while the link is down
         self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
         self._kf_pending: List[WaitingView] = []  # views to upload with the next push (oldest first)
         #: bytes of the refinement views sent over the mission, bounded by agent.refine_views.budget_ratio
@@ -214,8 +214,8 @@ class Pusher:
 
     # ------------------------------------------------------------------ pusher thread
     def _lower_priority(self) -> None:
-        """Give the pusher thread ``pusher_nice`` niceness; threads it starts inherit it."""
-        nice = self.config.pusher_nice
+        """Give the pusher thread ``push.nice`` niceness; threads it starts inherit it."""
+        nice = self.config.push.nice
         if not nice or not hasattr(os, "setpriority"):
             return
         try:
@@ -281,7 +281,7 @@ class Pusher:
                               self.agent_id, snap.version, e)
                 out = snap.gaussians
             snap = dataclasses.replace(snap, gaussians=out, finetune=None)
-        ok = self._push_with_retries(snap, self.config.final_push_timeout_s if snap.final else None)
+        ok = self._push_with_retries(snap, self.config.push.final_timeout_s if snap.final else None)
         if snap.final:
             self._final(ok)
 
@@ -292,8 +292,8 @@ class Pusher:
     def _push_with_retries(self, snap: Snapshot, budget_s: Optional[float]) -> bool:
         """Push ``snap`` until acknowledged (True). Gives up (False) when the pusher stops, when a newer
         snapshot is pending (it carries the newer map), or, with ``budget_s`` (seconds; the final push), when
-        the next attempt would start after it. The backoff doubles up to ``max_backoff_s`` and is kept across
-        snapshots while the link stays down, so a long outage costs one attempt every ``max_backoff_s``. Each
+        the next attempt would start after it. The backoff doubles up to ``push.max_backoff_s`` and is kept across
+        snapshots while the link stays down, so a long outage costs one attempt every ``push.max_backoff_s``. Each
         attempt is one :meth:`push_once` (the fusion port makes each of its calls once: no retries beneath)."""
         deadline = None if budget_s is None else time.monotonic() + budget_s
         attempt = 0
@@ -305,7 +305,7 @@ class Pusher:
                     if self._link_down_since is not None:
                         log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
                                  time.monotonic() - self._link_down_since, snap.version)
-                    self._retry_delay = self.config.backoff_s
+                    self._retry_delay = self.config.push.backoff_s
                     self._link_down_since = None
                 return True
             except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
@@ -316,7 +316,7 @@ class Pusher:
                     if self._link_down_since is None:
                         self._link_down_since = time.monotonic()
                     delay = self._retry_delay
-                    self._retry_delay = min(delay * 2.0, self.config.max_backoff_s)
+                    self._retry_delay = min(delay * 2.0, self.config.push.max_backoff_s)
                 self._report(msg)
                 log.warning("agent %s: %s (next attempt in %.1f s)", self.agent_id, msg, delay)
             if self._stop.is_set() or self._superseded(snap):

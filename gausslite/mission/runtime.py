@@ -274,16 +274,16 @@ class AgentRuntime:
                         name=f"agent-{self.agent_id}-replay")
 
     def _start_share(self, live: bool) -> None:
-        """Under ``share_worker_start: mission``, start the share worker as the mission starts
-        (:meth:`ShareSession.start`): a ``live`` mission's at ``pusher_nice``, an every-frame mission's at the
+        """Under ``share.worker_start: mission``, start the share worker as the mission starts
+        (:meth:`ShareSession.start`): a ``live`` mission's at ``push.nice``, an every-frame mission's at the
         mapper's priority (it has no keyframe budget to protect; below a mapper that maps as fast as it can, the
         worker would get no processor until mapping ends). By default (``first_push``) it starts at the first push."""
         with self.progress.lock:
             if self._share_started:
                 return
             self._share_started = True
-        if self.fusion is not None and self.config.share_worker_start == "mission":
-            self.share.start(self.config.pusher_nice if live else 0)
+        if self.fusion is not None and self.config.share.worker_start == "mission":
+            self.share.start(self.config.push.nice if live else 0)
 
     @property
     def replaying(self) -> bool:
@@ -379,7 +379,7 @@ class AgentRuntime:
         """Stop accepting frames, map what is queued, do the final push, evaluate; idempotent.
 
         Args:
-            push: do the final push (retried up to ``final_push_timeout_s``).
+            push: do the final push (retried up to ``push.final_timeout_s``).
             evaluate: compute full-image and ROI PSNR over the kept mapped frames (ROI needs annotations
                 and a task id), and for a replay every scoring protocol over all its frames.
             timeout_s: overall bound on waiting for mapping and the final push (None: unbounded).

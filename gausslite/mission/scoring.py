@@ -148,7 +148,8 @@ def summarise(status: dict, pusher, mapper, config, *, pushed: bool, psnr: Optio
     """
     last = pusher.pushes[-1] if pusher.pushes else None
     n_gaussians = status["n_gaussians"]
-    n_shared = last.n_shared if last else int(select_shared(mapper.gmap, config.share, config.kappa_threshold).sum())
+    n_shared = last.n_shared if last else int(
+        select_shared(mapper.gmap, config.share.rule, config.share.kappa_threshold).sum())
     return MissionSummaryData(
         status=status, final_push_ok=bool(pusher.final_push_ok and pushed),
         n_shared=int(n_shared), share_pct=100.0 * n_shared / max(n_gaussians, 1) if n_gaussians else 0.0,

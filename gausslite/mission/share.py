@@ -1,6 +1,6 @@
 """What an agent shares, and the state behind its pushes (paper Sec. III-E; ``docs/sharing.md``).
 
-:class:`ShareSession` owns, for one mission: the share rule (``agent.share``), the share worker process that runs
+:class:`ShareSession` owns, for one mission: the share rule (``agent.share.rule``), the share worker process that runs
 the task selection and the fine-tune at low priority, the fine-tune cache, the delta push planner and the copy of
 the subset the fusion server acknowledged last. The mission loop (:class:`gausslite.mission.runtime.AgentRuntime`)
 calls :meth:`ShareSession.capture` from its mapping thread, and the other methods from its pusher thread.
@@ -16,43 +16,40 @@ import os
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import numpy as np
 
 from gausslite.core.arrays import GaussianArrays
 from gausslite.mapping.config import MapperConfig
-from gausslite.mission.config import AgentConfig
+from gausslite.mission.config import AgentConfig, ShareConfig
 from gausslite.mission.heap import trim_heap
 from gausslite.wire.delta import PushPlanner
-
-if TYPE_CHECKING:  # torch: gausslite.mission.share stays importable without it
-    from gausslite.sharing import ShareConfig
 
 log = logging.getLogger(__name__)
 
 __all__ = ["select_shared", "ShareSession", "Captured"]
 
 
-def select_shared(gmap, share: str = "active", kappa_threshold: int = 1) -> np.ndarray:
+def select_shared(gmap, rule: str = "active", kappa_threshold: int = 1) -> np.ndarray:
     """Boolean mask (N,) of the Gaussians an agent shares (paper Sec. III-E).
 
     Args:
         gmap: ``GaussianMap`` (or anything with ``active`` and ``kappa`` arrays/tensors).
-        share: ``active`` (a = 1) or ``kappa`` (κ >= ``kappa_threshold``); ``task`` without views is a = 1 and κ
-            (:class:`ShareSession` adds the task region and the compaction).
+        rule: ``active`` (a = 1) or ``kappa`` (κ >= ``kappa_threshold``); ``task`` without views is a = 1 and κ
+            (:class:`ShareSession` adds the task region and the compaction); ``agent.share.rule``.
     Raises:
-        ValueError: unknown ``share`` rule.
+        ValueError: unknown ``rule``.
     """
     active = np.asarray(gmap.active.cpu().numpy() if hasattr(gmap.active, "cpu") else gmap.active, dtype=bool)
     kappa = np.asarray(gmap.kappa.cpu().numpy() if hasattr(gmap.kappa, "cpu") else gmap.kappa)
-    if share == "active":
+    if rule == "active":
         return active
-    if share == "kappa":
+    if rule == "kappa":
         return kappa >= int(kappa_threshold)
-    if share == "task":
+    if rule == "task":
         return active & (kappa >= int(kappa_threshold))
-    raise ValueError(f"unknown share rule {share!r} (use 'active', 'kappa' or 'task')")
+    raise ValueError(f"unknown share rule {rule!r} (use 'active', 'kappa' or 'task')")
 
 
 def _worker_init(nice: int) -> None:
@@ -91,8 +88,8 @@ def _trimmed(fn, *args):
 
 
 def _select(gmap, views, share_cfg: ShareConfig, backend: str, held=None):
-    """``share: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, a
-    :class:`gausslite.sharing.ShareConfig`, and the rows the server holds); runs in the share worker."""
+    """``rule: task`` selection (:func:`gausslite.sharing.select_task_subset` with ``share_cfg``, the mission's
+    ``agent.share``, and the rows the server holds); runs in the share worker."""
     # lazy: keeps gausslite.mission.share importable without torch
     from gausslite.sharing import select_task_subset
 
@@ -117,7 +114,7 @@ class Captured:
         gaussians: the subset to push (``GaussianArrays``), or None until :meth:`ShareSession.select` ran.
         ids: (N,) int64 stable ids of its rows (of every map row until selected).
         n_total: Gaussians in the map.
-        select: ``share: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None).
+        select: ``share.rule: task``: (map copy, ROI views, keyframe poses, ROI keyframes or None).
         finetune: (cache key, compact ROI keyframes) once selected, when the subset is fine-tuned before the push.
     """
 
@@ -133,14 +130,14 @@ class ShareSession:
 
     Args:
         agent_id: the agent's id (logs, the push planner's chunk headers).
-        config: the mission's ``AgentConfig`` (``share*``, ``kappa_threshold``, ``pusher_nice``, ``delta_push``,
-            ``delta_tolerance``, ``chunk_gaussians``).
+        config: the mission's ``AgentConfig`` (``share``; of ``push``: ``nice``, ``delta``, ``delta_tolerance``,
+            ``chunk_gaussians``).
     """
 
     def __init__(self, agent_id: str, config: AgentConfig) -> None:
         self.agent_id, self.config = agent_id, config
         self.planner = None  # gausslite.wire.delta.PushPlanner, created at the first push
-        self.pool = None  # the share worker process (share_worker: process), started by start() or on first use
+        self.pool = None  # the share worker process (share.worker: process), started by start() or on first use
         self.warm = None  # Future of the worker's warm-up job (its pid), once start() ran
         self.finetune_cache = None  # (hash of the subset and keyframes, fine-tuned subset, ids) of the last push
         self._acked = None  # (version, subset, ids) the server acknowledged last (the planner's base)
@@ -152,33 +149,28 @@ class ShareSession:
         the map, the ROI keyframes and their poses: the selection (which renders every ROI keyframe) and the
         fine-tune then run in the share worker (:meth:`select`, :meth:`finetuned`), so a push takes no time from
         the keyframe budget."""
-        gmap = mapper.gmap
-        if self.config.share != "task":
-            mask = select_shared(gmap, self.config.share, self.config.kappa_threshold)
+        gmap, share = mapper.gmap, self.config.share
+        if share.rule != "task":
+            mask = select_shared(gmap, share.rule, share.kappa_threshold)
             return Captured(GaussianArrays.from_any(gmap).take(mask), mapper.model.ids.numpy()[mask], len(gmap))
         store = mapper.keyframes
         # the ROI keyframes with poses of their own (mapping refines the store's in place), compact
         views = [dataclasses.replace(kf, c2w=kf.c2w.clone()) for kf in store if kf.roi is not None]
         poses = [(int(kf.frame_id), kf.c2w.cpu().numpy().copy()) for kf in store]
         # only the keyframes that see the ROI take part in the fine-tune: the same copies (neither step changes them)
-        kfs = [kf for kf in views if kf.sees_roi] if self.config.share_finetune_iters > 0 else None
+        kfs = [kf for kf in views if kf.sees_roi] if share.finetune_iters > 0 else None
         return Captured(None, mapper.model.ids.numpy().copy(), len(gmap), (gmap.clone(), views, poses, kfs))
 
     # ------------------------------------------------------------------ pusher thread
     def select(self, cap: Captured, backend: str = "auto") -> Captured:
-        """``share: task``: ``cap`` with its task subset selected (:func:`gausslite.sharing.select_task_subset`)
-        and, with fine-tuning, its fine-tune inputs."""
-        # lazy: keeps gausslite.mission.share importable without torch
-        from gausslite.sharing import ShareConfig
-
+        """``share.rule: task``: ``cap`` with its task subset selected
+        (:func:`gausslite.sharing.select_task_subset` with ``agent.share``) and, with fine-tuning, its fine-tune
+        inputs."""
         gmap, views, poses, kfs = cap.select
-        c = self.config
-        share_cfg = ShareConfig(kappa_threshold=c.kappa_threshold, coverage=c.share_coverage,
-                                candidates=c.share_candidates, max_fraction=c.share_max_fraction,
-                                held_weight=c.share_held_weight)
+        share = self.config.share
         acked = self.acknowledged()
-        held = np.isin(cap.ids, acked[2]) if acked is not None and c.share_held_weight != 1.0 else None
-        mask, st = self.call(_select, gmap, views, share_cfg, backend, held)
+        held = np.isin(cap.ids, acked[2]) if acked is not None and share.held_weight != 1.0 else None
+        mask, st = self.call(_select, gmap, views, share, backend, held)
         log.info("agent %s share: %s of %d (%d ROI keyframes)", self.agent_id, st, len(gmap), len(views))
         arrays = GaussianArrays.from_any(gmap).take(mask)
         ids = cap.ids[mask]
@@ -201,7 +193,7 @@ class ShareSession:
 
     def finetuned(self, arrays, ids, key, kfs, mapper_cfg: MapperConfig):
         """The shared subset fine-tuned alone on the ROI keyframes ``kfs`` (compact), against the copy the server
-        acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share_refresh``; seeded by
+        acknowledged (:func:`gausslite.sharing.update_shared_subset`, ``share.refresh``; seeded by
         ``mapper_cfg.seed``). Without delta pushes every push is fine-tuned from the agent's values alone. The same
         subset and keyframes as at the last push (``key``, :meth:`finetune_inputs`) give the last result again
         without work (whatever the server acknowledged since), so an unchanged map (e.g. the final push right after
@@ -209,20 +201,21 @@ class ShareSession:
         if self.finetune_cache is not None and self.finetune_cache[0] == key:
             return self.finetune_cache[1]
         with self._lock:
-            acked = self._acked if self._acked is not None and self.config.delta_push else (None, None, None)
+            acked = self._acked if self._acked is not None and self.config.push.delta else (None, None, None)
         base_version, base, base_ids = acked
         t0 = time.perf_counter()
-        # one rasterizer thread: in the pusher thread (share_worker: thread) the rasterizer's band pool is shared with
+        # one rasterizer thread: in the pusher thread (share.worker: thread) the rasterizer's band pool is shared with
         # the mapper and runs at its priority, so a multi-threaded fine-tune would queue ahead of mapping work; the
         # worker process, at low priority, takes at most the one core mapping leaves idle
+        share = self.config.share
         fcfg = mapper_cfg.model_copy(
             update={"performance": mapper_cfg.performance.model_copy(update={"render_threads": 1}),
-                    "roi_outside_alpha": self.config.share_outside_alpha})
-        out, st = self.call(_finetune, arrays, ids, base, base_ids, kfs, self.config.share_finetune_iters,
-                            self.config.share_refresh, fcfg, mapper_cfg.seed)
+                    "roi_outside_alpha": share.outside_alpha})
+        out, st = self.call(_finetune, arrays, ids, base, base_ids, kfs, share.finetune_iters, share.refresh, fcfg,
+                            mapper_cfg.seed)
         log.info("agent %s: shared subset of %d fine-tuned alone on %d ROI keyframes, %d iterations, against "
                  "server v%s (%s), %.2f s", self.agent_id, len(arrays), len(kfs),
-                 self.config.share_finetune_iters, base_version, st, time.perf_counter() - t0)
+                 share.finetune_iters, base_version, st, time.perf_counter() - t0)
         self.finetune_cache = (key, out, ids)
         return out
 
@@ -231,14 +224,15 @@ class ShareSession:
         that shares calls this when it starts, so its first push finds the worker ready. Starting a process and
         importing torch and the rasterizer takes seconds to tens of seconds on a loaded robot computer; started at
         the first push instead, the worker would still be starting while the next subsets are mapped, and those
-        would be superseded before any reached the fusion server. No-op under ``share_worker: thread``, for a share
+        would be superseded before any reached the fusion server. No-op under ``share.worker: thread``, for a share
         rule other than ``task``, or when the worker runs already.
 
         Args:
-            nice: the worker's niceness above the agent's (default ``pusher_nice``; 0: the mapper's priority).
+            nice: the worker's niceness above the agent's (default ``push.nice``; 0: the mapper's priority).
         """
-        if self.config.share_worker != "process" or self.config.share != "task" or self.pool is not None:
-            return  # only ``share: task`` selects and fine-tunes in the worker
+        share = self.config.share
+        if share.worker != "process" or share.rule != "task" or self.pool is not None:
+            return  # only ``rule: task`` selects and fine-tunes in the worker
         self._pool(nice)
         self.warm = self.pool.submit(_warm)
 
@@ -246,14 +240,14 @@ class ShareSession:
         if self.pool is None:
             self.pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                             initializer=_worker_init,
-                                            initargs=(self.config.pusher_nice if nice is None else int(nice),))
+                                            initargs=(self.config.push.nice if nice is None else int(nice),))
         return self.pool
 
     def call(self, fn, *args):
-        """Run ``fn(*args)`` in the share worker process (``share_worker: process``, started by :meth:`start` or on
+        """Run ``fn(*args)`` in the share worker process (``share.worker: process``, started by :meth:`start` or on
         first use, with the ``spawn`` method: forking a process that runs rasterizer threads is unsafe), or here
         (``thread``)."""
-        if self.config.share_worker != "process":
+        if self.config.share.worker != "process":
             return fn(*args)
         return self._pool().submit(_trimmed, fn, *args).result()
 
@@ -267,9 +261,9 @@ class ShareSession:
         """The push of ``gaussians`` (rows ``ids``) as ``version``: a delta against the acknowledged base when there
         is one (:class:`gausslite.wire.delta.PushPlanner`)."""
         if self.planner is None:
-            c = self.config
-            self.planner = PushPlanner(self.agent_id, chunk_gaussians=c.chunk_gaussians, tolerance=c.delta_tolerance,
-                                       delta=c.delta_push)
+            push = self.config.push
+            self.planner = PushPlanner(self.agent_id, chunk_gaussians=push.chunk_gaussians,
+                                       tolerance=push.delta_tolerance, delta=push.delta)
         return self.planner.plan(ids, gaussians, version)
 
     def acknowledge(self, plan) -> None:

@@ -3,7 +3,7 @@
 It takes the ingest queue's items (:mod:`gausslite.mission.ingest`) in order. For each keyframe it decodes the frame
 (a ``PendingFrame`` of a live stream), chooses or corrects the mapping resolution, computes the relevance map, maps
 it (``mapper.keyframe_budget_s`` per keyframe, decoding and relevance included, or fixed iterations), every
-``upload_keyframe_every`` mapped frames uploads the keyframe, every ``push_every`` hands a snapshot of the ROI subset
+``upload_keyframe_every`` mapped frames uploads the keyframe, every ``push.every`` hands a snapshot of the ROI subset
 to the pusher and every ``checkpoint_every`` writes a checkpoint. Between keyframes it applies a new task
 (:class:`gausslite.mission.task.MissionTask`), returns a push's freed memory to the OS (:mod:`gausslite.mission.heap`,
 at the mapper's priority, never the niced pusher's), follows the odometry's loop closures, and, under live ingest
@@ -255,10 +255,10 @@ class MappingWorker:
             return (p.frames_mapped - 1) % cfg.upload_keyframe_every == 0
 
     def _periodic(self) -> None:
-        """Every ``push_every`` mapped frames a snapshot for the pusher; every ``checkpoint_every`` a checkpoint (a
+        """Every ``push.every`` mapped frames a snapshot for the pusher; every ``checkpoint_every`` a checkpoint (a
         failure is logged: a full disk must not stop mapping)."""
         cfg, mapped = self.config, self.progress.frames_mapped
-        if mapped % cfg.push_every == 0:
+        if mapped % cfg.push.every == 0:
             self.offer_snapshot(final=False)
         if self.checkpoint is not None and cfg.checkpoint_every and mapped % cfg.checkpoint_every == 0:
             try:

@@ -194,7 +194,7 @@ def _team_result(bound, vote_minus_own):
              "bytes_per_gaussian": 13.0, "own_roi_psnr": 22.0, "vote_minus_own": vote_minus_own,
              "for_robot_minus_own": vote_minus_own + 0.1, "refine_minus_own": 1.0}
     agent.update({f"{k}_std": 0.1 for k in list(agent) if k != "task"})
-    return {"settings": {"overrides": [] if bound is None else [f"agent.share_max_fraction={bound}"]},
+    return {"settings": {"overrides": [] if bound is None else [f"agent.share.max_fraction={bound}"]},
             "teams": {"synthetic": {"runs": 3, "agents": {"agent_a": agent}}}}
 
 

@@ -17,15 +17,15 @@ def test_the_defaults_are_the_measured_settings_and_overrides_reach_every_sectio
     assert cfg.mapper is cfg.agent.mapper and cfg.mapper.mode == "gausslite"
     # the measured settings (docs/results.md): task sharing bounded at 25 %, the ROI phase fitting what the ROI draws,
     # the team map kept refined, the novel-view protocol scored
-    assert (cfg.agent.share, cfg.agent.share_candidates, cfg.agent.share_max_fraction) == ("task", "rendered", 0.25)
+    assert (cfg.agent.share.rule, cfg.agent.share.candidates, cfg.agent.share.max_fraction) == ("task", "rendered", 0.25)
     assert (cfg.mapper.roi_update, cfg.mapper.iters_per_frame, cfg.mapper.seeding.seeds_per_frame) == ("visible", 30, 1500)
     assert cfg.fusion.team_map.enabled and "novel" in cfg.agent.scoring.protocols
     assert cfg.sim.fuse.voxel_size == 0.10 and cfg.sim.tasks["synthetic"] == ["synth-pick-object", "synth-find-chair"]
     # the shipped site file changes none of them
     assert load_config(DEFAULT_CONFIG_PATH).to_yaml_dict() == cfg.to_yaml_dict()
-    cfg = load_config(None, ["mapper.iters_per_frame=12", "agent.push_every=3", "sim.fuse.refine_iters=100",
+    cfg = load_config(None, ["mapper.iters_per_frame=12", "agent.push.every=3", "sim.fuse.refine_iters=100",
                              "fusion.max_keyframes_per_agent=8"])
-    assert (cfg.mapper.iters_per_frame, cfg.agent.push_every, cfg.sim.fuse.refine_iters,
+    assert (cfg.mapper.iters_per_frame, cfg.agent.push.every, cfg.sim.fuse.refine_iters,
             cfg.fusion.max_keyframes_per_agent) == (12, 3, 100, 8)
 
 

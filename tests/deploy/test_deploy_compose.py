@@ -333,7 +333,7 @@ def test_each_compose_service_starts_locally_and_gets_healthy(compose, tmp_path,
                 assert ei.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
         # An agent stopped with SIGTERM ends its mission first (share fine-tune, final pass, final push retried
-        # for up to agent.final_push_timeout_s), which is not what this test checks: the agents and their share
+        # for up to agent.push.final_timeout_s), which is not what this test checks: the agents and their share
         # workers (one process group each) are killed outright. The parser and the replicas stop on SIGTERM.
         for name, p in procs.items():
             if name.startswith("agent") and p.poll() is None:

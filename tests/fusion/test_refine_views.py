@@ -110,7 +110,7 @@ class _Recorder:
 
 
 def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(monkeypatch):
-    config = AgentConfig(pusher_nice=0, refine_views={"crop": True, "margin_px": 4, "budget_ratio": 2.0,
+    config = AgentConfig(push={"nice": 0}, refine_views={"crop": True, "margin_px": 4, "budget_ratio": 2.0,
                                                       "min_roi_px": 16})
     p = Pusher("p1", "find the object", config, None, ShareSession("p1", config), mapper=None,
                intrinsics=lambda: None, report=lambda m: None)

@@ -8,9 +8,13 @@ import torch
 
 from gausslite.gaussians import GaussianMap
 from gausslite.mapping.views import Keyframe, roi_box
-from gausslite.sharing import ShareConfig, in_region, roi_contribution, select_task_subset, task_region
+from gausslite.mission.config import ShareConfig
+from gausslite.sharing import in_region, roi_contribution, select_task_subset, task_region
 
 K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+
+#: the paper's share rule (a = 1 and κ in the task region, no bound); the agent's defaults are ``rendered``, 25 %
+PAPER = {"candidates": "active", "max_fraction": None}
 
 
 def _view(box=(24, 16, 40, 32), depth=2.0) -> Keyframe:
@@ -61,14 +65,14 @@ def test_contribution_is_the_roi_blending_weight_and_compaction_prunes_occluded_
     out = rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors, K=K, width=64, height=48,
                     c2w=np.eye(4), background=torch.zeros(3))
     assert c.sum() == pytest.approx(float(out.alpha[v.roi].sum()), rel=1e-3)
-    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0))
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, **PAPER))
     assert mask.tolist() == [True, True, False, False, False]  # region, opacity, active rules
     assert st == {"active_kappa": 4, "in_region": 3, "opaque": 2, "shared": 2}
     assert c[0] / (c[0] + c[1]) > 0.8
-    mask, st = select_task_subset(g, [v], ShareConfig(coverage=0.8))
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=0.8, **PAPER))
     assert mask.tolist() == [True, False, False, False, False]  # the occluded one is redundant
     # no ROI pixels at all: the task flag and κ rule alone
-    mask, _ = select_task_subset(g, [_view(box=(0, 0, 0, 0))])
+    mask, _ = select_task_subset(g, [_view(box=(0, 0, 0, 0))], ShareConfig(**PAPER))
     assert mask.tolist() == [True, True, True, True, False]
 
 
@@ -83,18 +87,19 @@ def test_rendered_candidates_rank_every_gaussian_that_draws_the_roi_and_max_frac
     g.kappa[4] = 0
     v = _view()
     c = roi_contribution(g, [v])
-    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="rendered"))
+    mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="rendered", max_fraction=None))
     # every opaque Gaussian with a positive ROI weight, the inactive one included; not the one outside the ROI
     assert mask.tolist() == [True, True, False, False, True]
     assert st["shared"] == 3 and st["active_kappa"] == 4
     # the paper's rule on the same map leaves the inactive one out
-    assert select_task_subset(g, [v], ShareConfig(coverage=1.0))[0].tolist() == [True, True, False, False, False]
+    paper = select_task_subset(g, [v], ShareConfig(coverage=1.0, **PAPER))[0]
+    assert paper.tolist() == [True, True, False, False, False]
     # at most floor(0.4 * 5) = 2 Gaussians: the two largest contributions
     mask, st = select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="rendered", max_fraction=0.4))
     top2 = set(np.argsort(-c)[:2].tolist())
     assert set(np.nonzero(mask)[0].tolist()) == top2 and st["shared"] == 2
     # the bound applies to the paper's rule as well
-    assert select_task_subset(g, [v], ShareConfig(coverage=1.0, max_fraction=0.2))[0].sum() == 1
+    assert select_task_subset(g, [v], ShareConfig(coverage=1.0, candidates="active", max_fraction=0.2))[0].sum() == 1
     # hysteresis: a held row ranks with its contribution times held_weight, so it stays in a bounded subset
     third = int(np.argsort(-c)[2])
     held = np.zeros(5, bool)
@@ -168,7 +173,7 @@ def test_finetune_subset_fits_the_subset_alone_to_the_roi_and_keeps_rows_kappa_a
 
 def test_finetune_with_the_outside_penalty_keeps_the_subset_off_the_pixels_beside_its_roi():
     """A subset fitted alone on its ROI spreads over the pixels beside it (nothing there is in its loss); with
-    ``roi_outside_alpha`` (the share fine-tune's ``agent.share_outside_alpha``) it draws the ROI and little else."""
+    ``roi_outside_alpha`` (the share fine-tune's ``agent.share.outside_alpha``) it draws the ROI and little else."""
     from gausslite.mapping.config import MapperConfig
     from gausslite.render import rasterize
     from gausslite.sharing import finetune_subset
@@ -290,3 +295,12 @@ def test_update_shared_subset_changes_only_new_and_refreshed_rows_of_the_servers
         update_shared_subset(agent, agent_ids, base, base_ids, [kf], iters=10, refresh=1.5)
     with pytest.raises(ValueError):
         update_shared_subset(agent, agent_ids[:-1], base, base_ids, [kf], iters=10)
+
+
+def test_the_share_rule_has_one_set_of_defaults_the_agents():
+    """``ShareConfig()`` is what an agent shares with (``agent.share``): the measured rule, rendered candidates
+    bounded at 25 % of the map."""
+    from gausslite.mission.config import AgentConfig
+
+    assert ShareConfig() == AgentConfig().share
+    assert (ShareConfig().rule, ShareConfig().candidates, ShareConfig().max_fraction) == ("task", "rendered", 0.25)

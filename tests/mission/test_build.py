@@ -28,7 +28,7 @@ CALLERS = {"services/agent/server.py": "start_mission", "bench/realtime/missions
 
 
 def _config(*overrides):
-    return load_config(None, ["agent.ingest=every_frame", "agent.push_every=1000", "mapper.mode=gausslite",
+    return load_config(None, ["agent.ingest=every_frame", "agent.push.every=1000", "mapper.mode=gausslite",
                               "mapper.iters_per_frame=3", "mapper.warmup_iters=1", *overrides]).agent
 
 
@@ -39,7 +39,7 @@ def _shift(x: float) -> np.ndarray:
 
 
 def test_build_mission_maps_a_tiny_scene_and_pushes_to_its_fusion_side():
-    cfg, sink = _config("agent.share_worker=thread", "agent.share_finetune_iters=2"), SinkFusion()
+    cfg, sink = _config("agent.share.worker=thread", "agent.share.finetune_iters=2"), SinkFusion()
     rt = build_mission(cfg, "Pick up the object", GRAPH, agent_id="b", fusion=sink, relevance_fn=lambda fr: plane_roi(),
                        T_world_map=_shift(1.0))
     try:

@@ -15,7 +15,7 @@ from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2, common_pb2
 from gausslite_services.sim.summary import summary_from_proto
 
-TINY = ["agent.push_every=2", "agent.upload_keyframe_every=1", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3",
+TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200", "agent.scoring.novel_every=3",
         "agent.scoring.track_iters=2", "mapper.pose.refine=true", "mapper.sensor.exposure_comp=true"]
 

@@ -1,5 +1,5 @@
 """Returning a push's freed memory to the OS (gausslite.mission.heap) happens on the mapping thread, never on the
-pusher thread: at ``pusher_nice`` a thread holding the interpreter lock (``gc.collect``) or the allocator's locks
+pusher thread: at ``push.nice`` a thread holding the interpreter lock (``gc.collect``) or the allocator's locks
 (``malloc_trim``) is descheduled whenever another process wants the cores, and every thread of the agent waits for it
 (docs/live.md, "Beside other processes")."""
 
@@ -20,7 +20,7 @@ GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatch):
     trims = []
     monkeypatch.setattr(worker_mod, "trim_heap", lambda: trims.append(threading.current_thread().name) or True)
-    cfg = load_config(None, ["agent.ingest=every_frame", "agent.push_every=1", "mapper.mode=uniform",
+    cfg = load_config(None, ["agent.ingest=every_frame", "agent.push.every=1", "mapper.mode=uniform",
                              "agent.resolution.min_width=16"]).agent
     rt = AgentRuntime("t", "Pick up the object", GRAPH, cfg, relevance_fn=lambda fr: None)
     rt.mapper.map_frame = lambda frame, *a, **k: FrameStats(frame.frame_id, 0.01, 0, 0, 0, 0.0, 0, iters=1)

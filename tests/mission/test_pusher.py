@@ -24,11 +24,11 @@ class _DownLink:
         raise ConnectionError("link down")
 
 
-def _pusher(fusion, **cfg):
+def _pusher(fusion, agent=None, **push):
     # the pusher at the test's own priority: these tests time its logic, not how a niced thread fares on a busy
-    # machine (pusher_nice 19 starves it while other jobs run)
+    # machine (push.nice 19 starves it while other jobs run)
     # whole keyframes: these tests are about the backlog (ROI crops: tests/services/test_agent_live.py)
-    config = AgentConfig(**{"pusher_nice": 0, "refine_views": {"crop": False, "budget_ratio": None}, **cfg})
+    config = AgentConfig(push={"nice": 0, **push}, refine_views={"crop": False, "budget_ratio": None}, **(agent or {}))
     errors = []
     p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=None,
                intrinsics=lambda: None, report=errors.append)
@@ -60,7 +60,7 @@ def test_retries_with_backoff_while_the_link_is_down_and_a_newer_offer_replaces_
 
 
 def test_the_final_push_gives_up_after_its_budget_and_reports_it():
-    p, _ = _pusher(_DownLink(), backoff_s=0.05, max_backoff_s=0.1, final_push_timeout_s=0.3)
+    p, _ = _pusher(_DownLink(), backoff_s=0.05, max_backoff_s=0.1, final_timeout_s=0.3)
     p.start()
     try:
         t0 = time.monotonic()
@@ -84,7 +84,7 @@ def test_without_a_fusion_client_offers_are_dropped_and_the_final_one_ends_unack
 
 
 def test_only_the_newest_upload_backlog_max_views_wait_for_upload_and_a_resumed_mission_continues_above_its_version():
-    p, _ = _pusher(None, upload_backlog_max=3)  # never started: nothing is sent
+    p, _ = _pusher(None, agent={"upload_backlog_max": 3})  # never started: nothing is sent
     frames = [object() for _ in range(5)]
     for i, f in enumerate(frames):
         p.add_keyframe(f, np.full((2, 2), i % 2 == 0))

@@ -20,7 +20,7 @@ GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
 @pytest.mark.parametrize("enabled", [False, True])
 def test_the_agent_hands_the_mapper_a_detail_view_only_with_the_detail_layer(enabled):
-    cfg = load_config(None, ["agent.ingest=every_frame", "agent.push_every=1000", "mapper.mode=gausslite",
+    cfg = load_config(None, ["agent.ingest=every_frame", "agent.push.every=1000", "mapper.mode=gausslite",
                              "mapper.keyframe_budget_s=0.5", "agent.resolution.downscale=2",
                              "agent.resolution.min_width=16", f"mapper.detail.enabled={str(enabled).lower()}"]).agent
     region = np.zeros((24, 32), bool)

@@ -15,7 +15,7 @@ from gausslite.mission import AgentRuntime, MissionError, MissionState
 from tests._scenes import plane_frame
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
-CFG = ["agent.ingest=every_frame", "agent.push_every=1000", "agent.checkpoint_every=1", "mapper.mode=uniform",
+CFG = ["agent.ingest=every_frame", "agent.push.every=1000", "agent.checkpoint_every=1", "mapper.mode=uniform",
        "agent.resolution.min_width=16"]
 
 

@@ -51,7 +51,7 @@ def test_the_summary_reads_the_last_push_and_the_final_status():
 
 def test_without_a_push_the_summary_counts_what_the_share_rule_would_send():
     gmap = types.SimpleNamespace(active=np.array([True, True, False, True]), kappa=np.array([0, 2, 3, 1]))
-    cfg = load_config(None, ["agent.share=active"]).agent
+    cfg = load_config(None, ["agent.share.rule=active"]).agent
     s = scoring.summarise(dict(STATUS, n_gaussians=4), _Pusher(), types.SimpleNamespace(gmap=gmap), cfg,
                           pushed=False, psnr=None, roi_psnr=None, protocols={}, frames_all=0, tracked_views={},
                           predicted_views={})

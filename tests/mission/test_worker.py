@@ -1,6 +1,6 @@
 """The mapping worker on its own (gausslite.mission.worker), with stand-ins for the mapper, the pusher, the share
 session and the checkpoint: each keyframe is mapped at the mapping resolution with its relevance, counted, uploaded
-every ``upload_keyframe_every``, offered to the pusher every ``push_every`` and checkpointed every
+every ``upload_keyframe_every``, offered to the pusher every ``push.every`` and checkpointed every
 ``checkpoint_every``; corrupt images are rejected, a mapping error fails the mission; the thread optimises between
 keyframes under live ingest, applies a new task, and ends a Finish with the final pass and push (or without a push)."""
 
@@ -115,7 +115,7 @@ def _worker(*overrides, relevance=None):
 
 
 def test_each_keyframe_is_mapped_counted_uploaded_pushed_and_checkpointed_on_its_schedule():
-    m = _worker("agent.upload_keyframe_every=2", "agent.push_every=3", "agent.checkpoint_every=2",
+    m = _worker("agent.upload_keyframe_every=2", "agent.push.every=3", "agent.checkpoint_every=2",
                 "agent.eval_max_frames=4")
     for i in range(6):
         m.worker.map_keyframe(plane_frame(i, 0.1 * i), t_arrival=0.0)
@@ -177,7 +177,7 @@ def test_the_frames_between_keyframes_reach_the_mapper_and_the_uploads():
 
 
 def test_the_thread_maps_the_queue_then_ends_finish_with_the_final_pass_and_push():
-    m = _worker("agent.push_every=100")
+    m = _worker("agent.push.every=100")
     m.worker.start()
     try:
         q = m.ingest.queue

@@ -13,7 +13,7 @@ from gausslite.mission import AgentRuntime
 from gausslite.parser import TaskParser
 from gausslite.synthetic import make_scene
 
-TINY = ["agent.push_every=100", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
+TINY = ["agent.push.every=100", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=200", "agent.scoring.protocols=[sensor]", "agent.pose_source=odometry",
         "agent.ingest=every_frame"]
 

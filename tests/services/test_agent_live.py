@@ -34,8 +34,8 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = ["agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
+TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1",
+        "agent.push.max_backoff_s=0.5", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
 
 
 @pytest.fixture(scope="module")
@@ -398,8 +398,10 @@ def _agent_processes(scene, tmp_path, monkeypatch, agent_cfg: dict):
     monkeypatch.setenv("_TEST_FUSION", fusion.address)
     monkeypatch.setenv("GAUSSLITE_AGENT_DATA_ROOTS", str(scene))  # the missions name scene/agent_a
     cfg_path = tmp_path / "agent.yaml"
+    agent = {"keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05, **agent_cfg,
+             "push": {"backoff_s": 0.1, **agent_cfg.get("push", {})}}
     cfg_path.write_text(yaml.safe_dump({
-        "agent": {"keyframe_translation_m": 1e-6, "idle_chunk_s": 0.05, "backoff_s": 0.1, **agent_cfg},
+        "agent": agent,
         "mapper": {"iters_per_frame": 3, "warmup_iters": 1, "seeding": {"seeds_per_frame": 200}}}))
     port = free_port()
     log = open(tmp_path / "agent.log", "w")
@@ -432,8 +434,8 @@ def _stream_keyframes(c, mission_id: str, frames) -> None:
 
 
 def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
-    with _agent_processes(scene, tmp_path, monkeypatch, {"push_every": 1, "checkpoint_every": 1}) as (start, fc, ds,
-                                                                                                      port):
+    cfg = {"push": {"every": 1}, "checkpoint_every": 1}
+    with _agent_processes(scene, tmp_path, monkeypatch, cfg) as (start, fc, ds, port):
         p = start()
         with AgentClient(f"127.0.0.1:{port}") as c:
             c.wait_ready(120)
@@ -467,7 +469,7 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
 def test_sigterm_pushes_the_final_subset_and_checkpoints(scene, tmp_path, monkeypatch):
     """A robot being shut down (SIGTERM) mid-mission, with no periodic push or checkpoint due yet: the agent stops
     ingest, pushes its final subset, writes its checkpoint and exits; a restart resumes the mission."""
-    cfg = {"push_every": 1000, "checkpoint_every": 1000, "share_worker": "thread"}
+    cfg = {"push": {"every": 1000}, "checkpoint_every": 1000, "share": {"worker": "thread"}}
     with _agent_processes(scene, tmp_path, monkeypatch, cfg) as (start, fc, ds, port):
         p = start()
         with AgentClient(f"127.0.0.1:{port}") as c:
@@ -631,8 +633,8 @@ def _run_task_agent(scene, overrides: list, n_frames: int, push_after: int = 0):
     first ``push_after`` are sent); returns (runtime, fusion, roi)."""
     ds = load_dataset(scene / "agent_a")
     # the share work in the pusher thread, so spies in this process see it (the worker process: its own test)
-    cfg = load_config(None, TINY + ["agent.share=task", "agent.ingest=every_frame", "mapper.roi_render=context",
-                                          "agent.share_worker=thread", *overrides]).agent
+    cfg = load_config(None, TINY + ["agent.share.rule=task", "agent.ingest=every_frame", "mapper.roi_render=context",
+                                          "agent.share.worker=thread", *overrides]).agent
     roi = np.zeros((48, 64), bool)
     roi[12:36, 16:48] = True
     fusion = _RecordingFusion()
@@ -661,7 +663,7 @@ def _mission(agent_id, cfg, relevance_fn, fusion, ds, n_frames: int, push_after:
 
 @pytest.mark.parametrize("iters", [0, 7])
 def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters):
-    """``share: task`` with ``share_finetune_iters``: each push carries the output of
+    """``share.rule: task`` with ``share.finetune_iters``: each push carries the output of
     ``finetune_subset`` on the agent's keyframes (the map itself is not modified); 0 turns it off."""
     import gausslite.sharing as sharing
     from gausslite.wire.codec import GaussianArrays, assemble
@@ -679,7 +681,8 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
 
     monkeypatch.setattr(sharing, "finetune_subset", spy)
     whole = ["agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, their ROI
-    rt, fusion, roi = _run_task_agent(scene, [f"agent.share_finetune_iters={iters}", "agent.delta_push=false", *whole], 4)
+    rt, fusion, roi = _run_task_agent(scene, [f"agent.share.finetune_iters={iters}", "agent.push.delta=false", *whole],
+                                      4)
     assert fusion.uploads
     # keyframes travel with the relevance the agent mapped them with (ROI-restricted refinement)
     assert fusion.keyframe_rois and all(r is not None and np.array_equal(r, roi) for r in fusion.keyframe_rois)
@@ -714,7 +717,7 @@ def test_task_share_pushes_the_subset_fine_tuned_alone(scene, monkeypatch, iters
 def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(scene, monkeypatch):
     """With delta pushes, every push after the first fine-tunes against the copy the server acknowledged
     (``update_shared_subset`` gets the planner's base), and the delta carries at most the new rows plus
-    ``share_refresh`` of the held ones."""
+    ``share.refresh`` of the held ones."""
     import gausslite.sharing as sharing
     from gausslite.wire.codec import peek_header
 
@@ -727,7 +730,7 @@ def test_task_share_with_delta_pushes_fine_tunes_against_the_acknowledged_copy(s
         return out, st
 
     monkeypatch.setattr(sharing, "update_shared_subset", spy)
-    _, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=5", "agent.share_refresh=0.2"], 6,
+    _, fusion, _ = _run_task_agent(scene, ["agent.share.finetune_iters=5", "agent.share.refresh=0.2"], 6,
                                    push_after=2)
     assert len(calls) >= 2 and calls[0][0] is None and calls[0][2]["base"] == 0
     later = [c for c in calls[1:] if c[0] is not None]
@@ -757,8 +760,8 @@ def test_new_mission_never_reuses_a_version_the_fusion_server_holds(scene, tmp_p
             c.wait_ready(10)
             runs = []
             for n_frames in (2, 5):
-                cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.share=active",
-                                                      "agent.push_every=100"]).agent
+                cfg = load_config(None, TINY + ["agent.ingest=every_frame", "agent.share.rule=active",
+                                                      "agent.push.every=100"]).agent
                 rt = _mission("robot", cfg, lambda fr: np.ones((48, 64), bool), c, ds, n_frames)
                 assert rt.pusher.final_push_ok and len(rt.pusher.pushes) == 1
                 runs.append(rt.pusher.pushes[0])
@@ -778,7 +781,7 @@ def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
     from gausslite.wire.codec import GaussianArrays, peek_header
     from gausslite.mission.pusher import Snapshot
 
-    rt, fusion, _ = _run_task_agent(scene, ["agent.share_finetune_iters=0"], 2)
+    rt, fusion, _ = _run_task_agent(scene, ["agent.share.finetune_iters=0"], 2)
     n_up, n_push = len(fusion.uploads), len(rt.pusher.pushes)
     base = rt.share.planner.base
     ids = rt.share.planner.base_ids
@@ -798,14 +801,14 @@ def test_an_unchanged_subset_is_not_uploaded_again_but_kappa_growth_is(scene):
 
 def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own(monkeypatch):
     """The share fine-tune competes with mapping on a robot's few cores: the pusher thread takes
-    ``agent.pusher_nice`` niceness, and its fine-tune renders with a single rasterizer thread (the band pool is
+    ``agent.push.nice`` niceness, and its fine-tune renders with a single rasterizer thread (the band pool is
     shared with the mapper and runs at the mapper's priority)."""
     import os
 
     from gausslite.mission import AgentConfig
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="thread",
+    cfg = AgentConfig(share={"rule": "task", "worker": "thread"},
                       mapper=MapperConfig(mode="gausslite", performance={"render_threads": 2}))
     rt = AgentRuntime.launch("p1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None)
     try:
@@ -829,12 +832,12 @@ def test_pusher_runs_at_lower_priority_and_fine_tunes_with_one_thread_of_its_own
     finally:
         rt.close()
     with pytest.raises(Exception):
-        AgentConfig(pusher_nice=20)
-    assert AgentConfig().pusher_nice == 19
+        AgentConfig(push={"nice": 20})
+    assert AgentConfig().push.nice == 19
 
 
 def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monkeypatch):
-    """``share_worker: process`` (the default): selection and fine-tune run in a worker process of their own (no
+    """``share.worker: process`` (the default): selection and fine-tune run in a worker process of their own (no
     interpreter lock shared with mapping); the pushes carry a fine-tuned task subset, and close() stops the worker."""
     import gausslite.sharing as sharing
     from gausslite.wire.codec import assemble
@@ -843,8 +846,8 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
     for name in ("select_task_subset", "update_shared_subset"):
         real = getattr(sharing, name)
         monkeypatch.setattr(sharing, name, lambda *a, _real=real, _n=name, **kw: here.append(_n) or _real(*a, **kw))
-    rt, fusion, _ = _run_task_agent(scene, ["agent.share_worker=process", "agent.share_finetune_iters=5",
-                                            "agent.delta_push=false"], 4)
+    rt, fusion, _ = _run_task_agent(scene, ["agent.share.worker=process", "agent.share.finetune_iters=5",
+                                            "agent.push.delta=false"], 4)
     assert fusion.uploads and rt.pusher.final_push_ok
     pushed, _ = assemble(fusion.uploads[-1][1])
     assert 0 < len(pushed) <= rt.n_gaussians
@@ -855,25 +858,26 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
 
 @pytest.mark.parametrize("realtime", [False, True])
 def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime):
-    """Under ``share_worker_start: mission`` a sharing mission starts (and warms up) its share worker process when
+    """Under ``share.worker_start: mission`` a sharing mission starts (and warms up) its share worker process when
     its replay starts, before any frame is mapped, and the pushes use that same process; a live mission's worker
-    runs at ``pusher_nice``, an every-frame replay's at the mapper's priority. By default (``first_push``) no worker
+    runs at ``push.nice``, an every-frame replay's at the mapper's priority. By default (``first_push``) no worker
     runs until the first push."""
     from gausslite.mission import AgentConfig
     from gausslite.mission.share import _warm
 
     ds = load_dataset(scene / "agent_a")
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    base = dict(share="task", share_worker="process", realtime=realtime, rate=0.2,
+    share = {"rule": "task", "worker": "process"}
+    base = dict(realtime=realtime, rate=0.2,
                 mapper=MapperConfig(mode="gausslite", iters_per_frame=2, warmup_iters=1, seeds_per_frame=100))
-    rt = AgentRuntime("w0", "Pick up the object", graph, AgentConfig(**base), relevance_fn=lambda fr: None,
-                      fusion=_RecordingFusion())
+    rt = AgentRuntime("w0", "Pick up the object", graph, AgentConfig(**base, share=share),
+                      relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
         rt.replay(ds)
         assert rt.share.pool is None and rt.share.warm is None  # the default: at the first push
     finally:
         rt.close()
-    cfg = AgentConfig(**base, share_worker_start="mission")
+    cfg = AgentConfig(**base, share={**share, "worker_start": "mission"})
     rt = AgentRuntime("w1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=_RecordingFusion())
     try:
         assert rt.share.pool is None  # nothing runs before the mission starts
@@ -888,7 +892,7 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, r
     assert rt.share.pool is None
     # a mission that does not share (no fusion client) or shares without the worker starts no process
     for kw in ({"fusion": None}, {"fusion": _RecordingFusion(), "share": "active"}):
-        c = AgentConfig(share=kw.get("share", "task"), share_worker="process", share_worker_start="mission",
+        c = AgentConfig(share={"rule": kw.get("share", "task"), "worker": "process", "worker_start": "mission"},
                         mapper=MapperConfig(mode="gausslite"))
         r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
         try:
@@ -905,7 +909,7 @@ def test_a_selected_snapshot_is_superseded_at_most_once_in_a_row(monkeypatch):
     from gausslite.mission.pusher import Snapshot
 
     graph = {"targets": ["object"], "anchors": [], "relations": []}
-    cfg = AgentConfig(share="task", share_worker="thread", mapper=MapperConfig(mode="gausslite"))
+    cfg = AgentConfig(share={"rule": "task", "worker": "thread"}, mapper=MapperConfig(mode="gausslite"))
     rt = AgentRuntime("s1", "Pick up the object", graph, cfg, relevance_fn=lambda fr: None, fusion=object())
     pushed = []
     try:

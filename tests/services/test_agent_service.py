@@ -23,11 +23,11 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
-TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+TINY = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
         # the plumbing of pushes and uploads, counted: the a = 1 subset at every snapshot and whole keyframes (task
         # sharing and ROI crops, the defaults: tests/services/test_agent_live.py, tests/docs/)
-        "agent.share=active", "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]
+        "agent.share.rule=active", "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]
 
 
 @pytest.fixture(scope="module")
@@ -208,7 +208,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
     data = tmp_path / "fusion"
     f1 = _fusion(data)
     port = f1.port
-    cfg = load_config(None, TINY + ["agent.final_push_timeout_s=60"]).agent
+    cfg = load_config(None, TINY + ["agent.push.final_timeout_s=60"]).agent
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     client = FusionClient(f1.address, timeout_s=5)

@@ -45,7 +45,7 @@ def test_select_shared_active_and_kappa_rules():
 def test_serve_agent_flags_reach_settings(tmp_path):
     args = build_parser().parse_args(["serve", "agent", "--port", "0", "--agent-id", "r2", "--parser", "h:1",
                                       "--fusion", "h:2", "--task", "Map the chairs", "--data-dir", str(tmp_path),
-                                      "--set", "mapper.iters_per_frame=20", "--set", "agent.push_every=3"])
+                                      "--set", "mapper.iters_per_frame=20", "--set", "agent.push.every=3"])
     env = {"GAUSSLITE_AGENT_ID": "from-env", "GAUSSLITE_AGENT_TASK_ID": "t-env"}
     export_agent_env(args, env)
     assert env["GAUSSLITE_AGENT_ID"] == "r2"  # flag wins over env
@@ -53,5 +53,5 @@ def test_serve_agent_flags_reach_settings(tmp_path):
     assert (s.agent_id, s.parser_address, s.fusion_address, s.task, s.task_id) == ("r2", "h:1", "h:2",
                                                                                      "Map the chairs", "t-env")
     assert s.data_dir == str(tmp_path) and s.token == "tok"
-    assert s.config.mapper.iters_per_frame == 20 and s.config.push_every == 3
+    assert s.config.mapper.iters_per_frame == 20 and s.config.push.every == 3
     assert s.config.mapper.mode == "gausslite"

@@ -16,7 +16,7 @@ from gausslite_services.agent.client import AgentClient
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
-TINY = ["agent.ingest=every_frame", "agent.push_every=100", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=4",
+TINY = ["agent.ingest=every_frame", "agent.push.every=100", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=4",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300"]
 OBJECT = "Prepare to pick up the object on the desk"
 CHAIR = "Identify the chair closest to the table"

@@ -22,7 +22,7 @@ from gausslite_services.common.server import ServerOptions
 from gausslite_services.sim import plan_agents
 from gausslite_services.sim.launch import check_bags
 
-TINY = ["agent.push_every=2", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
+TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=150"]
 
 

@@ -67,7 +67,7 @@ def test_a_service_without_config_runs_what_sim_and_compose_run(role, argv, tmp_
     assert served == sim == compose
     # the measured settings, not a model's bare defaults
     if role == "agent":
-        assert (served["agent"]["share"], served["mapper"]["roi_update"]) == ("task", "visible")
+        assert (served["agent"]["share"]["rule"], served["mapper"]["roi_update"]) == ("task", "visible")
     else:
         assert served["fusion"]["team_map"]["enabled"] is True
     # `gausslite config --show --role` prints the same
@@ -92,7 +92,7 @@ def test_a_site_file_changes_only_what_it_names(tmp_path):
 ])
 def test_config_show_prints_what_serve_runs_given_the_same_flags(role, argv, override, tmp_path):
     site = tmp_path / "site.yaml"
-    site.write_text("agent:\n  push_every: 4\nfusion:\n  max_keyframes_per_agent: 96\n")
+    site.write_text("agent:\n  push:\n    every: 4\nfusion:\n  max_keyframes_per_agent: 96\n")
     flags = ["--config", str(site), "--set", override]
     served = _effective(GAUSSLITE + argv + flags, tmp_path)
     shown = subprocess.run(GAUSSLITE + ["config", "--show", "--role", role, *flags], capture_output=True, text=True,
@@ -107,5 +107,5 @@ def test_config_show_prints_what_serve_runs_given_the_same_flags(role, argv, ove
 
 def test_a_service_refuses_settings_of_another_role(tmp_path):
     r = subprocess.run(GAUSSLITE + ["serve", "fusion", "--port", "0", "--data-dir", str(tmp_path),
-                                    "--set", "agent.push_every=3"], capture_output=True, text=True, timeout=60)
+                                    "--set", "agent.push.every=3"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "fusion.* overrides only" in r.stderr

@@ -177,8 +177,8 @@ def test_resume_upload_sends_only_the_missing_chunks_in_bounded_calls(tmp_path):
         srv.stop(0.5)
 
 
-def _pusher(fusion, **cfg):
-    config = AgentConfig(**{"pusher_nice": 0, "refine_views": {"crop": False, "budget_ratio": None}, **cfg})
+def _pusher(fusion, **push):
+    config = AgentConfig(push={"nice": 0, **push}, refine_views={"crop": False, "budget_ratio": None})
     errors = []
     p = Pusher("p1", "find the object", config, fusion, ShareSession("p1", config), mapper=None,
                intrinsics=lambda: INTR, report=errors.append)
@@ -195,7 +195,7 @@ def test_a_final_push_to_a_failing_server_makes_exactly_the_pushers_attempts(fak
     fusion, address = fake
     fusion.down = {"UploadSubset"}
     with FusionClient(address, timeout_s=10) as c:
-        p, errors = _pusher(c, backoff_s=0.05, max_backoff_s=0.2, final_push_timeout_s=1.0)
+        p, errors = _pusher(c, backoff_s=0.05, max_backoff_s=0.2, final_timeout_s=1.0)
         try:
             p.push_snapshot(_final_snapshot())
         finally:
@@ -213,7 +213,7 @@ def test_the_pusher_retries_until_the_server_answers_and_each_attempt_is_one_cal
     fusion, address = fake
     fusion.fail["UploadSubset"] = 2  # the first two uploads fail, the third completes
     with FusionClient(address, timeout_s=10) as c:
-        p, _ = _pusher(c, backoff_s=0.05, max_backoff_s=0.2, final_push_timeout_s=30)
+        p, _ = _pusher(c, backoff_s=0.05, max_backoff_s=0.2, final_timeout_s=30)
         try:
             p.push_snapshot(_final_snapshot())
         finally:

@@ -45,7 +45,7 @@ def services(request, tmp_path):
                           store=store)
     # a final push that fails (the fuzzer may have opened the agent's session) ends Finish well within its deadline
     cfg = load_config(None, ["mapper.iters_per_frame=1", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=50",
-                                   "agent.share=active", "agent.final_push_timeout_s=2", "agent.final_pass_s=1"]).agent
+                                   "agent.share.rule=active", "agent.push.final_timeout_s=2", "agent.final_pass_s=1"]).agent
     agent = serve_agent(ServerOptions(port=0, max_message_bytes=1 << 20), AgentSettings(
         agent_id="fuzzbot", parser_address=parser.address, fusion_address=fusion.address, parser_timeout_s=5,
         annotations_path=str(tmp_path / "scene"), config=cfg))

@@ -25,8 +25,8 @@ from tests._waits import wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
-CFG = ["agent.ingest=every_frame", "agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1",
-       "agent.max_backoff_s=0.5", "agent.upload_backlog_max=3", "agent.final_push_timeout_s=60",
+CFG = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1",
+       "agent.push.max_backoff_s=0.5", "agent.upload_backlog_max=3", "agent.push.final_timeout_s=60",
        "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
        "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, all counted
 

@@ -22,7 +22,7 @@ from gausslite_services.common.metrics import metrics_port_from
 from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
-TINY = ["agent.ingest=every_frame", "agent.push_every=2", "agent.upload_keyframe_every=1", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
+TINY = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
         "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, all counted
 

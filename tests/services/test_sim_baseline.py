@@ -161,4 +161,4 @@ def test_live_sims_fuse_with_the_paper_per_voxel_rule_and_offline_sims_with_the_
     assert fuse_settings(load_config(None, ["sim.fuse.contest_radius=2"]), realtime=True)["contest_radius"] == 0
     # the deployed agents share with the live rule
     agent = cfg.agent
-    assert agent.share == "task" and agent.share_candidates == "rendered" and agent.share_max_fraction == 0.25
+    assert agent.share.rule == "task" and agent.share.candidates == "rendered" and agent.share.max_fraction == 0.25

@@ -29,8 +29,8 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 # every_frame ingest, tiny images, few iterations: five missions of six frames run in seconds
-TINY = ["agent.ingest=every_frame", "agent.push_every=100", "mapper.budget_clock=work", "agent.backoff_s=0.1", "agent.max_backoff_s=0.5",
-        "agent.scoring.protocols=[sensor]", "agent.share_finetune_iters=10", "agent.share_worker=thread",
+TINY = ["agent.ingest=every_frame", "agent.push.every=100", "mapper.budget_clock=work", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
+        "agent.scoring.protocols=[sensor]", "agent.share.finetune_iters=10", "agent.share.worker=thread",
         "agent.refine_views.min_roi_px=4",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200"]
 TASK = "synth-find-chair"
