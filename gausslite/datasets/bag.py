@@ -61,13 +61,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gausslite.camera import Intrinsics, check_rigid
 from gausslite.datasets.annotations import load_annotations
+from gausslite.datasets.bag_poses import POSE_TYPES, header_stamp, pose_sampler  # noqa: F401 - POSE_TYPES re-exported
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import check_downscale, downscale_depth, downscale_rgb, select_indices
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.datasets.tum import associate_nearest
 from gausslite.ros.bagio import is_bag_path
 from gausslite.ros.images import ImageDecodeError, decode_compressed, decode_image
-from gausslite.ros.transforms import TFBuffer, TFError, interpolate_transform, make_transform, normalize_frame
+from gausslite.ros.transforms import TFBuffer, TFError, make_transform, normalize_frame
 
 log = logging.getLogger(__name__)
 
@@ -77,12 +78,6 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
-POSE_TYPES = (
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/PoseWithCovarianceStamped",
-    "geometry_msgs/msg/TransformStamped",
-    "nav_msgs/msg/Odometry",
-)
 
 
 class BagError(ValueError):
@@ -128,19 +123,10 @@ class _Img:
     index: int
 
 
-def _stamp(header) -> float:
-    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
-
-
 def _field(msg, name: str):
     """CameraInfo fields are ``k`` in ROS 2 and ``K`` in ROS 1."""
     v = getattr(msg, name, None)
     return v if v is not None else getattr(msg, name.upper())
-
-
-def _pose_matrix(pose) -> np.ndarray:
-    p, q = pose.position, pose.orientation
-    return make_transform((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
 
 
 def _namespace(topic: str) -> str:
@@ -313,7 +299,7 @@ class BagDataset(RGBDDataset):
                                    (tr.transform.rotation.x, tr.transform.rotation.y, tr.transform.rotation.z,
                                     tr.transform.rotation.w))
                 try:
-                    self.tf.add(tr.header.frame_id, tr.child_frame_id, _stamp(tr.header), T, static=c.topic == "/tf_static")
+                    self.tf.add(tr.header.frame_id, tr.child_frame_id, header_stamp(tr.header), T, static=c.topic == "/tf_static")
                 except TFError as e:
                     raise self._fail(str(e)) from None
 
@@ -381,7 +367,7 @@ class BagDataset(RGBDDataset):
         for c, ts, raw in reader.messages(connections=conns):
             h = reader.deserialize(raw, c.msgtype).header
             lst = imgs[c.topic]
-            lst.append(_Img(_stamp(h), int(ts), normalize_frame(h.frame_id), len(lst)))
+            lst.append(_Img(header_stamp(h), int(ts), normalize_frame(h.frame_id), len(lst)))
         colour_msgs, depth_msgs = imgs[self.rgb_topic], imgs[self.depth_topic]
 
         # depth camera (unregistered)
@@ -427,119 +413,14 @@ class BagDataset(RGBDDataset):
         maps = cv2.initUndistortRectifyMap(ri.K, dist, None, ni.K, (ni.width, ni.height), cv2.CV_32FC1)
         return ni, maps
 
-    # ------------------------------------------------------------------ poses
-    def _pose_reader(self, reader, opt: BagOptions):
-        """``(pose_topic, sample_fn)``: ``"tf"`` or the pose topic read; sample_fn(t) -> (T_world_camera or None,
-        problem)."""
-        pose_topics = [t for t, (ty, _n) in self.topics.items() if ty in POSE_TYPES]
-        topic = opt.pose_topic
-        in_tf = self.camera_frame in self.tf.frames
-        moving = in_tf and not all(self.tf.is_static(f) for f in self.tf.ancestors(self.camera_frame))
-        if not topic and not moving and len(pose_topics) == 1:
-            topic = pose_topics[0]  # TF holds at most the static mounting: the pose topic moves the camera
-        if not topic and not in_tf:
-            raise self._fail(
-                f"no poses: the camera frame {self.camera_frame!r} is not in the TF tree and "
-                + ("there is no PoseStamped/Odometry topic" if not pose_topics else
-                   f"there are several pose topics ({', '.join(pose_topics)}); choose one with --pose-topic")
-                + " (see --camera-frame, --pose-topic)")
-        if topic:
-            return topic, self._topic_poses(reader, opt, topic)
-        world = self._world_frame(opt)
-        self.world_frame = world
-        if not self.tf.can_transform(world, self.camera_frame):
-            raise self._fail(f"TF chain {world!r} <- {self.camera_frame!r} does not connect: the camera frame is in "
-                             f"the tree rooted at {self.tf.root(self.camera_frame)!r}, {world!r} in the tree rooted "
-                             f"at {self.tf.root(world) if world in self.tf.frames else '(not in TF)'!r}")
-
-        def at(t: float):
-            try:
-                return self.tf.lookup(world, self.camera_frame, t, opt.max_pose_dt), ""
-            except TFError as e:
-                return None, str(e)
-
-        return "tf", at
-
-    def _world_frame(self, opt: BagOptions) -> str:
-        """``world_frame``, else REP 105's ``map``, else ``odom``, else the root of the camera's TF tree."""
-        if opt.world_frame:
-            return normalize_frame(opt.world_frame)
-        for f in ("map", "odom"):
-            if f in self.tf.frames:
-                return f
-        return self.tf.root(self.camera_frame)
-
-    def _topic_poses(self, reader, opt: BagOptions, topic: str):
-        ty = self.topics.get(topic, ("", 0))[0]
-        if topic not in self.topics:
-            raise self._fail(f"pose topic {topic!r} is not in the bag")
-        if ty not in POSE_TYPES:
-            raise self._fail(f"pose topic {topic!r} has type {ty}, expected one of {list(POSE_TYPES)}")
-        times, mats, frames, childs = [], [], set(), set()
-        conns = [c for c in reader.connections if c.topic == topic]
-        for c, _ts, raw in reader.messages(connections=conns):
-            m = reader.deserialize(raw, c.msgtype)
-            if ty.endswith("Odometry"):
-                T, child = _pose_matrix(m.pose.pose), m.child_frame_id
-            elif ty.endswith("PoseWithCovarianceStamped"):
-                T, child = _pose_matrix(m.pose.pose), None
-            elif ty.endswith("TransformStamped"):
-                tr = m.transform
-                T = make_transform((tr.translation.x, tr.translation.y, tr.translation.z),
-                                   (tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w))
-                child = m.child_frame_id
-            else:
-                T, child = _pose_matrix(m.pose), None
-            times.append(_stamp(m.header))
-            mats.append(T)
-            frames.add(normalize_frame(m.header.frame_id))
-            childs.add(normalize_frame(child) if child else None)
-        if not times:
-            raise self._fail(f"pose topic {topic!r} has no messages")
-        if len(frames) > 1 or len(childs) > 1:
-            raise self._fail(f"pose topic {topic!r} changes frames during the recording ({sorted(map(str, frames | childs))})")
-        msg_frame = frames.pop()
-        child = childs.pop() or (normalize_frame(opt.pose_child_frame) if opt.pose_child_frame else self.camera_frame)
-        world = normalize_frame(opt.world_frame) if opt.world_frame else msg_frame
-        self.world_frame = world
-        for a, b, what in ((world, msg_frame, "world frame"), (child, self.camera_frame, "camera frame")):
-            if a != b and not self.tf.can_transform(a, b):
-                raise self._fail(f"pose topic {topic!r}: no TF chain between {a!r} and {b!r} ({what}); "
-                                 f"the pose topic gives {child!r} in {msg_frame!r}")
-        order = np.argsort(times, kind="stable")
-        ts = np.asarray(times)[order]
-        mats = [mats[i] for i in order]
-        tol = opt.max_pose_dt
-
-        def at(t: float):
-            j = int(np.searchsorted(ts, t))
-            near = [k for k in (j - 1, j) if 0 <= k < len(ts)]
-            gap = min(abs(ts[k] - t) for k in near)
-            if gap > tol:
-                return None, (f"no {topic} pose within {tol:g} s of t={t:.6f} (nearest {gap:.3f} s away; poses from "
-                              f"{ts[0]:.6f} to {ts[-1]:.6f})")
-            if 0 < j < len(ts) and ts[j] > ts[j - 1]:
-                T = interpolate_transform(mats[j - 1], mats[j], (t - ts[j - 1]) / (ts[j] - ts[j - 1]))
-            else:
-                T = mats[min(near, key=lambda k: abs(ts[k] - t))]
-            try:
-                if world != msg_frame:
-                    T = self.tf.lookup(world, msg_frame, t, tol) @ T
-                if child != self.camera_frame:
-                    T = T @ self.tf.lookup(child, self.camera_frame, t, tol)
-            except TFError as e:
-                return None, str(e)
-            return T, ""
-
-        return at
-
     # ------------------------------------------------------------------ association
     def _associate(self, reader, opt: BagOptions, colour: List[_Img], depth: List[_Img]):
         if not colour:
             raise self._fail(f"colour topic {self.rgb_topic!r} has no messages")
         if not depth:
             raise self._fail(f"depth topic {self.depth_topic!r} has no messages")
-        self.pose_topic, pose_at = self._pose_reader(reader, opt)
+        self.pose_topic, self.world_frame, pose_at = pose_sampler(reader, self.topics, self.tf, self.camera_frame,
+                                                                  opt, self._fail)
         d_ts = np.array([d.stamp for d in depth])
         d_order = np.argsort(d_ts, kind="stable")
         idx, gap = associate_nearest(np.array([c.stamp for c in colour]), d_ts[d_order])
