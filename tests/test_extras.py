@@ -40,7 +40,7 @@ def test_the_extras_tables_are_the_pyproject_extras():
     assert opt["all"] == ["gausslite[fusion,mapper]"]
     assert set(opt) == {"fusion", "mapper", "all", "dev"}
     core = {_name(r) for r in project["dependencies"]}
-    for heavy in ("torch", "warp-lang", "onnxruntime", "scipy", "viser", "matplotlib", "rosbags", "gsply", "plyfile"):
+    for heavy in ("torch", "warp-lang", "onnxruntime", "scipy", "viser", "matplotlib", "rosbags", "plyfile"):
         assert heavy not in core and heavy in extras.EXTRA_MODULES["mapper"].values(), heavy
     for feature in extras.FEATURES.values():
         assert set(feature.modules) <= set(extras.EXTRA_MODULES[feature.extra]), feature

@@ -5,7 +5,7 @@
     gausslite export models --detector DIR --segmenter FILE.pt --out DIR   # the agent's ONNX detector/segmenter
 
 ``export map`` converts a Gaussian map to the standard formats other splat viewers read (``.splat``:
-antimatter15's 32-byte records; ``.spz``: Niantic's compressed format, via gsply). The input may be a 3DGS
+antimatter15's 32-byte records; ``.spz``: Niantic's compressed format). The input may be a 3DGS
 ``.ply`` (ours or another tool's), ``.splat`` or ``.spz``; the format defaults to the output's suffix. Both
 target formats are lossy and carry no κ / a.
 

@@ -26,7 +26,7 @@ __all__ = ["EXTRA_MODULES", "FEATURES", "Feature", "missing_modules", "unavailab
 EXTRA_MODULES: Dict[str, Dict[str, str]] = {
     "fusion": {"psycopg": "psycopg[binary]", "psycopg_pool": "psycopg-pool"},
     "mapper": {"torch": "torch", "warp": "warp-lang", "scipy": "scipy", "onnxruntime": "onnxruntime",
-               "plyfile": "plyfile", "matplotlib": "matplotlib", "viser": "viser", "gsply": "gsply",
+               "plyfile": "plyfile", "matplotlib": "matplotlib", "viser": "viser",
                "rosbags": "rosbags", "open3d": "open3d-cpu"},
 }
 

@@ -7,7 +7,7 @@
   are sorted by ``exp(Σ log_scale) · opacity``, largest first, as that viewer expects. No κ / a flag.
   The layout is a 32-byte struct: we write it with numpy (no library implements it for Python).
 * ``.spz`` — Niantic's compressed format (gzip; 24-bit fixed-point positions, 8-bit log-scales,
-  colours and opacities, smallest-three quaternions), written and read with ``gsply``. SH degree 0.
+  colours and opacities, smallest-three quaternions), written and read by :mod:`gausslite.viewer.spz`. SH degree 0.
   No κ / a flag.
 
 Quantisation (both lossy): colour and opacity to 1/255 (``.splat``) or the SPZ 8-bit encodings;
@@ -24,6 +24,7 @@ import numpy as np
 
 from gausslite.core.arrays import GaussianArrays
 from gausslite.viewer.splats import normalized_quats, sigmoid
+from gausslite.viewer.spz import decode_spz, encode_spz
 
 log = logging.getLogger(__name__)
 
@@ -99,48 +100,40 @@ def read_splat(path: PathLike) -> GaussianArrays:
 
 
 def write_spz(path: PathLike, gaussians) -> int:
-    """Write a Niantic ``.spz`` file with gsply (SH degree 0). Returns its size in bytes.
+    """Write a Niantic ``.spz`` file (version 3, SH degree 0; :mod:`gausslite.viewer.spz`). Returns its size in bytes.
 
     Raises:
-        ValueError: non-finite parameters. OSError: unwritable path.
+        ValueError: non-finite parameters, or positions beyond ±2048 m (the format's 24-bit positions at 2^-12 m).
+        OSError: unwritable path.
     """
-    # lazy: keeps gausslite.viewer.export importable without gsply
-    import gsply
-
     g = GaussianArrays.from_any(gaussians)
     for name in ("means", "log_scales", "quats", "opacity_logits", "colors"):
         if len(g) and not np.isfinite(getattr(g, name)).all():
             raise ValueError(f"cannot write .spz: non-finite {name}")
-    data = gsply.GSData(means=np.ascontiguousarray(g.means), scales=np.ascontiguousarray(g.log_scales),
-                        quats=normalized_quats(g.quats).astype(np.float32),
-                        opacities=np.ascontiguousarray(g.opacity_logits),
-                        sh0=((g.colors.astype(np.float64) - 0.5) / SH_C0).astype(np.float32),
-                        shN=np.zeros((len(g), 0, 3), np.float32))
-    gsply.write_spz(str(path), data)
-    return Path(path).stat().st_size
+    data = encode_spz(g.means, g.log_scales, normalized_quats(g.quats), g.opacity_logits,
+                      (g.colors.astype(np.float64) - 0.5) / SH_C0)
+    Path(path).write_bytes(data)
+    return len(data)
 
 
 def read_spz(path: PathLike) -> GaussianArrays:
-    """Read a ``.spz`` file with gsply (higher SH bands, if any, are ignored). κ = 0, a = False.
+    """Read a ``.spz`` file, versions 2 to 4 (higher SH bands, if any, are ignored). κ = 0, a = False.
 
     Raises:
-        FileNotFoundError: missing file. ValueError: not an SPZ file.
+        FileNotFoundError: missing file. ValueError: not an SPZ file, or one :func:`gausslite.viewer.spz.decode_spz`
+        refuses (the message names the file).
     """
-    # lazy: keeps gausslite.viewer.export importable without gsply
-    import gsply
-
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"SPZ file not found: {p}")
     try:
-        d = gsply.read_spz(str(p))
-    except (ValueError, OSError, EOFError) as e:
+        d = decode_spz(p.read_bytes())
+    except ValueError as e:
         raise ValueError(f"{p} is not a readable SPZ file: {e}") from e
-    n = len(d.means)
-    return GaussianArrays(means=np.asarray(d.means, np.float32), quats=np.asarray(d.quats, np.float32),
-                          log_scales=np.asarray(d.scales, np.float32),
-                          opacity_logits=np.asarray(d.opacities, np.float32).reshape(n),
-                          colors=(np.asarray(d.sh0, np.float64) * SH_C0 + 0.5).astype(np.float32),
+    n = len(d["means"])
+    return GaussianArrays(means=d["means"], quats=d["quats_wxyz"], log_scales=d["log_scales"],
+                          opacity_logits=d["opacity_logits"],
+                          colors=(d["sh_dc"].astype(np.float64) * SH_C0 + 0.5).astype(np.float32),
                           kappa=np.zeros(n, np.int64), active=np.zeros(n, bool))
 
 

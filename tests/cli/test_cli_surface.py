@@ -98,7 +98,6 @@ def test_export_help_names_the_three_verbs(capsys):
 
 
 def test_export_map_and_its_deprecated_spelling(tmp_path, capsys):
-    pytest.importorskip("gsply")
     n = _small_map(tmp_path / "m.ply")
     assert main(["export", "map", str(tmp_path / "m.ply"), "--out", str(tmp_path / "a.splat")]) == 0
     out = capsys.readouterr()

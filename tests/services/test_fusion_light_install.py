@@ -168,7 +168,7 @@ def light_install_blocks(more=()) -> tuple:
 
 def test_the_light_set_leaves_out_the_mapper_dependencies():
     blocked, light = light_install_blocks()
-    for heavy in ("torch", "warp", "onnxruntime", "scipy", "matplotlib", "viser", "rosbags", "plyfile", "gsply"):
+    for heavy in ("torch", "warp", "onnxruntime", "scipy", "matplotlib", "viser", "rosbags", "plyfile"):
         assert heavy in blocked, heavy
     for needed in ("numpy", "grpc", "google", "zstandard", "cv2", "yaml", "pydantic", "prometheus_client", "psycopg"):
         assert needed not in blocked, needed
