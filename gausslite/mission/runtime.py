@@ -18,15 +18,15 @@ The runtime coordinates its parts, one job each:
 * pushes — :class:`~gausslite.mission.pusher.Pusher` (the thread that sends the newest snapshot with retries and
   backoff, so a fusion-server outage never stalls mapping), :class:`~gausslite.mission.share.ShareSession` (what is
   shared), :class:`~gausslite.mission.uploads.KeyframeUploads` (keyframes and views at one image size);
-* :class:`~gausslite.mission.checkpoint.MissionCheckpoint` (checkpoint and resume), :mod:`gausslite.mission.scoring`
-  (Finish's scores and summary), :class:`~gausslite.mission.progress.MissionProgress` (state and counters under the
-  mission's lock). The settings are in :mod:`gausslite.mission.config`.
+* :class:`~gausslite.mission.checkpoint.MissionCheckpoint` (checkpoint and resume),
+  :class:`~gausslite.mission.finish.MissionFinish` (Finish: the last mapping and push, the scores of
+  :mod:`gausslite.mission.scoring` and the summary), :class:`~gausslite.mission.lifecycle.MissionLifecycle` (its
+  threads started and stopped once each), :class:`~gausslite.mission.progress.MissionProgress` (state and counters
+  under the mission's lock). The settings are in :mod:`gausslite.mission.config`.
 """
 
 from __future__ import annotations
 
-import functools
-import logging
 import threading
 import time
 import uuid
@@ -39,21 +39,20 @@ from gausslite.datasets.base import Frame
 from gausslite.mission.checkpoint import MissionCheckpoint
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import MissionError
+from gausslite.mission.finish import MissionFinish
 from gausslite.mission.ingest import Ingest
+from gausslite.mission.lifecycle import MissionLifecycle
 from gausslite.mission.ports import FusionPort
 from gausslite.mission.progress import MissionProgress
 from gausslite.mission.pusher import Pusher
-from gausslite.mission.replay import Replay
-from gausslite.mission.scoring import MissionSummaryData, score_kept_frames, score_protocols, summarise
+from gausslite.mission.scoring import MissionSummaryData
 from gausslite.mission.share import ShareSession
 from gausslite.mission.state import ACCEPTS_TASK
 from gausslite.mission.task import MissionTask
 from gausslite.mission.team_frame import annotations_to_world
 from gausslite.mission.tracking import MissionPoses
 from gausslite.mission.uploads import KeyframeUploads
-from gausslite.mission.worker import DRAIN, FINISH, MappingWorker
-
-log = logging.getLogger(__name__)
+from gausslite.mission.worker import MappingWorker
 
 __all__ = ["AgentRuntime", "MissionSummaryData"]
 
@@ -146,6 +145,14 @@ class AgentRuntime:
     #: replays under ``agent.pose_source: odometry``: frame id → (4, 4) float64 world c2w the odometry estimated for
     #: every frame, the withheld ones too: the poses the mission is scored at
     estimated_poses = _PartField("poses", "estimated_poses")
+    summary = _PartField("finishing", "summary")  # Finish's MissionSummaryData (None before)
+    #: frame id → TrackedView of the tracked / novel-tracked frames, and of the novel ones (predicted), last scored
+    tracked_views = _PartField("finishing", "tracked_views")
+    predicted_views = _PartField("finishing", "predicted_views")
+    replaying = _PartField("lifecycle", "replaying")  # a replay thread is feeding frames
+    replay_frames = _PartField("lifecycle", "replay_frames")  # frames of the replayed dataset (0: no replay)
+    _replay_thread = _PartField("lifecycle", "replay_thread")
+    upload_intrinsics = _PartField("uploads", "intrinsics")  # of the keyframes sent to the fusion server
 
     def __init__(self, agent_id: str, task_text: str, graph, config: AgentConfig, *, annotations=None,
                  task_id: Optional[str] = None, fusion: Optional[FusionPort] = None, relevance_fn: Optional[Callable] = None,
@@ -156,14 +163,15 @@ class AgentRuntime:
             raise ValueError("agent_id must be non-empty")
         self.agent_id, self.config, self.fusion, self.on_finished = agent_id, config, fusion, on_finished
         self.mission_id = mid = mission_id or uuid.uuid4().hex[:12]
+        #: (4, 4) float64 rigid transform from the robot's map frame into the team's world frame (``config.frame``;
+        #: docs/team.md), or None when they are the same: every pose and annotation box enters the mission through it
+        self.T_world_map: Optional[np.ndarray] = config.frame.matrix()
         self.annotations = annotations_to_world(annotations, self.T_world_map)
         self.progress = MissionProgress()
         self.task = MissionTask(agent_id, mid, config, task_text, graph, task_id, self.annotations, relevance_fn,
                                 lambda: self.mapper, self.progress)
         self.mapper, self.resolution, self.maps_detail = mapping_parts(config)
-        #: frame id → TrackedView of the tracked / novel-tracked frames, and of the novel ones (predicted), last scored
-        self.tracked_views, self.predicted_views = {}, {}
-        self.summary: Optional[MissionSummaryData] = None
+        self.lifecycle, self.finishing = MissionLifecycle(self), MissionFinish(self)  # threads; Finish
         self.poses = MissionPoses(config, self.progress)
         self.ingest = Ingest(agent_id, mid, config, self.progress, self.poses, self.T_world_map)
         self.uploads = KeyframeUploads(config, self.resolution, lambda: self.ingest.intrinsics)
@@ -178,10 +186,7 @@ class AgentRuntime:
         self.worker = MappingWorker(
             agent_id, mid, config, progress=self.progress, ingest=self.ingest, poses=self.poses, task=self.task,
             mapper=self.mapper, resolution=self.resolution, maps_detail=self.maps_detail, uploads=self.uploads,
-            pusher=self.pusher, share=self.share, checkpoint=self.checkpoint, fail=self._fail)
-        self._replay: Optional[Replay] = None
-        self._started = self._share_started = False
-        self._start_lock, self._finish_lock = threading.Lock(), threading.Lock()
+            pusher=self.pusher, share=self.share, checkpoint=self.checkpoint, fail=self.lifecycle.fail)
 
     @classmethod
     def launch(cls, *args, **kwargs) -> "AgentRuntime":
@@ -196,35 +201,11 @@ class AgentRuntime:
 
     def start(self) -> "AgentRuntime":
         """Start the mission once: resume ``checkpoint_dir``'s checkpoint when it holds one, then start the mapping
-        thread, the pusher and the relevance thread (``relevance_max_wait_s``). Returns self.
-
-        Raises:
-            ValueError: the checkpoint is unreadable, or another agent's, mission's, task's or world frame's.
-            MissionError: the mission was closed.
-        """
-        with self._start_lock:
-            if self._started:
-                return self
-            if self.progress.stop.is_set():
-                raise MissionError(f"mission {self.mission_id} is closed: it cannot start")
-            if self.checkpoint is not None and self.checkpoint.exists():
-                self.checkpoint.resume()
-            self.task.start()
-            self.worker.start()
-            self.pusher.start()
-            self._started = True
+        thread, the pusher and the relevance thread (:meth:`MissionLifecycle.start
+        <gausslite.mission.lifecycle.MissionLifecycle.start>`, which raises ValueError for a checkpoint it cannot
+        resume and MissionError for a closed mission). Returns self."""
+        self.lifecycle.start()
         return self
-
-    def _ensure_started(self) -> None:
-        if not self._started and not self.progress.stop.is_set():
-            self.start()
-
-    @functools.cached_property
-    def T_world_map(self) -> Optional[np.ndarray]:
-        """(4, 4) float64 rigid transform from the robot's map frame into the team's world frame
-        (``config.frame.T_world_map``; docs/team.md), or None when they are the same frame: every frame's pose and the
-        annotations' boxes enter the mission through it (:mod:`gausslite.mission.team_frame`)."""
-        return self.config.frame.matrix()
 
     # ------------------------------------------------------------------ input
     def submit(self, frame: Frame, timeout: Optional[float] = None, _replay: bool = False,
@@ -234,27 +215,24 @@ class AgentRuntime:
         given in the robot's map frame and enters the mission as ``T_world_map @ c2w`` (docs/team.md).
 
         Args:
-            frame: the decoded frame, or a validated not yet decoded one (``frame_id``, ``c2w``, ``intrinsics``,
-                ``materialize() -> Frame``, e.g. :class:`gausslite_services.agent.frames.PendingFrame`).
-            timeout: every-frame ingest only: how long to wait for queue space.
+            frame, timeout: as :meth:`Ingest.accept <gausslite.mission.ingest.Ingest.accept>` (e.g. a
+                :class:`gausslite_services.agent.frames.PendingFrame`, decoded when mapped).
             arrival: ``time.perf_counter()`` when the frame arrived (before decoding; default: now): the accept and
                 keyframe latencies are measured from it.
         Returns:
             True when the frame was queued or became the pending keyframe candidate, False when skipped (or lost
             by the odometry).
         Raises:
-            MissionError: the mission no longer accepts frames (finishing, finished, failed).
-            FrameSizeMismatch (a MissionError): the frame's image size differs from the mission's first frame.
-            queue.Full: ``timeout`` expired (every-frame ingest).
-            ValueError: a mission started by this frame could not resume its checkpoint (:meth:`start`).
+            what :meth:`Ingest.accept <gausslite.mission.ingest.Ingest.accept>` raises (MissionError,
+            FrameSizeMismatch, queue.Full); ValueError: a mission started by this frame could not resume its checkpoint.
         """
         t_arr = time.perf_counter() if arrival is None else arrival
-        self._ensure_started()
+        self.lifecycle.ensure_started()
         frame = self.ingest.posed(frame, replayed=_replay)
         if frame is None:
             return False
-        if not self._share_started and not _replay:
-            self._start_share(self.ingest.online)  # a streamed mission starts with its first frame
+        if not self.lifecycle.share_started and not _replay:
+            self.lifecycle.start_share(self.ingest.online)  # a streamed mission starts with its first frame
         return self.ingest.accept(frame, t_arr, streamed=not _replay, timeout=timeout)
 
     def replay(self, dataset, progress: Optional[Callable[[int, int], None]] = None) -> threading.Thread:
@@ -263,46 +241,8 @@ class AgentRuntime:
         refused meanwhile. With ``config.realtime`` the frames are sent at the dataset's clock through keyframe
         ingest, otherwise every frame is mapped. The final map is scored over every frame of the dataset at Finish
         (``roi_psnr_all_frames``). ``progress(sent, total)`` is called after each frame sent. Returns the thread."""
-        self._ensure_started()
-        self._replay = rp = Replay(dataset, self.config, self.T_world_map)
-        self.poses.records = True  # a replay is scored at the odometry's poses (evaluate_protocols)
-        with self.progress.lock:
-            self.ingest.online = rp.realtime
-        self._start_share(rp.realtime)
-        return rp.start(submit=lambda fr: self.submit(fr, _replay=True), progress=self.progress, poses=self.poses,
-                        join=self.ingest.queue.join, fail=self._fail, report=progress,
-                        name=f"agent-{self.agent_id}-replay")
-
-    def _start_share(self, live: bool) -> None:
-        """Under ``share.worker_start: mission``, start the share worker as the mission starts
-        (:meth:`ShareSession.start`): a ``live`` mission's at ``push.nice``, an every-frame mission's at the
-        mapper's priority (it has no keyframe budget to protect; below a mapper that maps as fast as it can, the
-        worker would get no processor until mapping ends). By default (``first_push``) it starts at the first push."""
-        with self.progress.lock:
-            if self._share_started:
-                return
-            self._share_started = True
-        if self.fusion is not None and self.config.share.worker_start == "mission":
-            self.share.start(self.config.push.nice if live else 0)
-
-    @property
-    def replaying(self) -> bool:
-        """True while a replay thread is feeding frames."""
-        return self._replay is not None and self._replay.running
-
-    @property
-    def replay_frames(self) -> int:
-        """Frames of the replayed dataset (0: no replay)."""
-        return 0 if self._replay is None else self._replay.frames
-
-    @property
-    def _replay_thread(self) -> Optional[threading.Thread]:
-        return None if self._replay is None else self._replay.thread
-
-    def _fail(self, msg: str) -> None:
-        log.error("agent %s mission %s: %s", self.agent_id, self.mission_id, msg)
-        self.progress.fail(msg)
-        self.pusher.final_done.set()
+        self.lifecycle.ensure_started()
+        return self.lifecycle.replay(dataset, progress)
 
     # ------------------------------------------------------------------ task
     def relevance(self, frame: Frame) -> np.ndarray:
@@ -315,13 +255,11 @@ class AgentRuntime:
         source is built now (a task the scene cannot answer fails here, nothing changed); the mapping thread applies
         it before its next keyframe or idle iteration (:meth:`apply_pending_task`; docs/live.md#changing-the-task).
 
-        Args:
-            task_text: the new task. graph: its parsed graph (``targets``, ``anchors``, ``relations``).
-            task_id: its id in the scene's ``tasks.json`` (``relevance: gt``), or None (looked up by text).
+        Args: as :meth:`MissionTask.request <gausslite.mission.task.MissionTask.request>` (``task_id``: its id in the
+        scene's ``tasks.json``, or None: looked up by text).
         Raises:
-            MissionError: the mission is finishing, finished or failed.
-            ValueError: a relevance source that cannot be built for the task (as at :class:`AgentRuntime`), or an
-                unknown task id.
+            MissionError: the mission is finishing, finished or failed. ValueError: a relevance source that cannot be
+                built for the task (as at :class:`AgentRuntime`), or an unknown task id.
         """
         with self.progress.lock:
             if self.progress.state not in ACCEPTS_TASK:
@@ -335,19 +273,13 @@ class AgentRuntime:
         return self.task.apply_pending(self.mapper, self.pusher)
 
     # ------------------------------------------------------------------ pushes, checkpoint
-    @property
-    def upload_intrinsics(self):
-        """Intrinsics of the keyframes this mission sends to the fusion server: the first frame's, at the mapping
-        resolution chosen then (None before the first frame)."""
-        return self.uploads.intrinsics
-
     def save_checkpoint(self) -> Path:
         """Write ``checkpoint.pt`` atomically into ``checkpoint_dir`` (:meth:`MissionCheckpoint.save
         <gausslite.mission.checkpoint.MissionCheckpoint.save>`). Call from the worker thread or while it is idle.
         Returns the path. Raises OSError on write failure, ValueError without a folder."""
         if self.checkpoint is None:
             raise ValueError("no checkpoint_dir configured")
-        self._ensure_started()  # a checkpoint to resume is resumed before it is overwritten
+        self.lifecycle.ensure_started()  # a checkpoint to resume is resumed before it is overwritten
         return self.checkpoint.save()
 
     def acknowledged_subset(self):
@@ -376,61 +308,16 @@ class AgentRuntime:
         return self.ingest.wait_mapped(timeout_s, busy=lambda: self.replaying)
 
     def finish(self, push: bool = True, evaluate: bool = True, timeout_s: Optional[float] = None) -> MissionSummaryData:
-        """Stop accepting frames, map what is queued, do the final push, evaluate; idempotent.
-
-        Args:
-            push: do the final push (retried up to ``push.final_timeout_s``).
-            evaluate: compute full-image and ROI PSNR over the kept mapped frames (ROI needs annotations
-                and a task id), and for a replay every scoring protocol over all its frames.
-            timeout_s: overall bound on waiting for mapping and the final push (None: unbounded).
-        Returns:
-            MissionSummaryData.
-        Raises:
-            TimeoutError: mapping or the final push did not complete within ``timeout_s``.
-        """
-        self._ensure_started()
-        if not self._finish_lock.acquire(timeout=-1 if timeout_s is None else max(0.0, timeout_s)):
-            raise TimeoutError(f"mission {self.mission_id}: another Finish still running after {timeout_s} s")
-        try:
-            return self.summary if self.summary is not None else self._finish(push, evaluate, timeout_s)
-        finally:
-            self._finish_lock.release()
-
-    def _finish(self, push: bool, evaluate: bool, timeout_s: Optional[float]) -> MissionSummaryData:
-        first = self.progress.begin_finish()
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        left = lambda: None if deadline is None else max(0.0, deadline - time.monotonic())  # noqa: E731
-        if first:
-            if self._replay is not None:  # a replay still running completes: Finish maps the rest, then pushes
-                self._replay.wait(deadline)
-            # both markers queue behind the pending keyframe; the worker stops optimising between keyframes
-            self.ingest.queue.put(FINISH if push else DRAIN)
-        if not self.pusher.final_done.wait(left()):
-            raise TimeoutError(f"mission {self.mission_id}: mapping/final push not done within {timeout_s} s")
-        self.wait_mapped(left())
-        scored = evaluate and self.progress.frames_mapped
-        psnr, roi_psnr = self.evaluate() if scored else (None, None)
-        protocols = self.evaluate_protocols() if scored and self._replay is not None else {}
-        self.progress.end_finish()
-        self.summary = summarise(self.status(), self.pusher, self.mapper, self.config, pushed=push, psnr=psnr,
-                                 roi_psnr=roi_psnr, protocols=protocols, frames_all=self.replay_frames,
-                                 tracked_views=self.tracked_views, predicted_views=self.predicted_views)
-        if protocols:
-            # lazy: keeps gausslite.mission.runtime importable without torch (scoring imported it already)
-            from gausslite.evaluation import protocol_line
-
-            log.info("agent %s final map, ROI PSNR (dB): %s", self.agent_id, protocol_line(protocols))
-        if self.on_finished is not None:
-            try:
-                self.on_finished(self)
-            except Exception as e:  # saving results must not lose the summary
-                log.warning("agent %s: on_finished hook failed: %s", self.agent_id, e)
-        return self.summary
+        """Stop accepting frames, map what is queued, do the final push (``push``), evaluate (``evaluate``); idempotent
+        (:meth:`MissionFinish.finish <gausslite.mission.finish.MissionFinish.finish>`). Returns the summary; raises
+        TimeoutError when Finish, mapping or the final push did not complete within ``timeout_s`` seconds."""
+        self.lifecycle.ensure_started()
+        return self.finishing.finish(push, evaluate, timeout_s)
 
     def evaluate(self) -> tuple[Optional[float], Optional[float]]:
-        """(full-image PSNR, ROI PSNR) in dB of the current map, mean over the kept mapped frames; ROI PSNR is
-        None without annotations/task id or when no frame shows the ROI. Call only while the worker is idle."""
-        return score_kept_frames(self.mapper, self.worker.eval_frames, self.annotations, self.task.task_id)
+        """(full-image PSNR, ROI PSNR) in dB of the current map over the kept mapped frames
+        (:meth:`MissionFinish.evaluate <gausslite.mission.finish.MissionFinish.evaluate>`)."""
+        return self.finishing.evaluate()
 
     def evaluate_all_frames(self) -> Optional[float]:
         """ROI PSNR (dB) of the current map over **every** frame of the replayed dataset (``sensor`` protocol), None
@@ -439,34 +326,12 @@ class AgentRuntime:
         return res["sensor"]["roi_psnr"] if res else None
 
     def evaluate_protocols(self, protocols: Optional[tuple] = None) -> dict:
-        """The current map over every frame of the replayed dataset under the scoring protocols of
-        ``config.scoring``, or of ``protocols``: :func:`gausslite.mission.scoring.score_protocols`'s result (at the
-        odometry's :attr:`estimated_poses` under ``agent.pose_source: odometry``), ``{}`` without a replayed dataset,
-        annotations or task id. Fills :attr:`tracked_views` and :attr:`predicted_views`. Call while the worker is
-        idle."""
-        rp, task_id = self._replay, self.task.task_id
-        if rp is None or self.annotations is None or task_id is None:
-            return {}
-        self.tracked_views, self.predicted_views = {}, {}
-        return score_protocols(self.mapper, rp.dataset, self.annotations, task_id, self.config.scoring,
-                               self.resolution.factor, protocols=protocols, novel_ids=rp.novel_ids,
-                               estimated_poses=self.poses.estimated_poses if self.poses.tracks else None,
-                               record=self.tracked_views, predicted=self.predicted_views)
+        """The current map over every frame of the replayed dataset under the scoring protocols (``config.scoring``,
+        or ``protocols``; :meth:`MissionFinish.evaluate_protocols
+        <gausslite.mission.finish.MissionFinish.evaluate_protocols>`). Call while the worker is idle."""
+        return self.finishing.evaluate_protocols(protocols)
 
     def close(self) -> None:
         """Stop the threads (pending frames are dropped); a closed mission does not start. Safe to call more than
         once."""
-        p = self.progress
-        with self._start_lock:
-            with p.lock:
-                p.closed_for_input = True
-            p.stop.set()
-            started = self._started
-        self.pusher.stop()  # a push waiting to retry ends now
-        self.ingest.drop_queued()
-        if started:
-            self.worker.stop(5.0)
-        self.pusher.close(5.0)
-        self.task.close()
-        self.poses.close()
-        self.share.close()
+        self.lifecycle.close()

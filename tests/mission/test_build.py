@@ -60,7 +60,7 @@ def test_build_mission_unstarted_parses_the_task_and_takes_a_mapper_of_its_own()
     mapper = cfg.mapper.model_copy(update={"final_iters": 0})
     rt = build_mission(cfg, "pick up the cup", relevance_fn=lambda fr: plane_roi(), mapper=mapper, start=False)
     try:
-        assert not rt._started and rt.agent_id == "agent"
+        assert not rt.lifecycle.started and rt.agent_id == "agent"
         assert "cup" in list(rt.graph.targets)  # the in-process rule parser's graph
         assert rt.config.mapper == mapper and rt.config.mapper.final_iters == 0
         assert cfg.mapper is not mapper and rt.config is not cfg  # the settings given stay as they were

@@ -896,7 +896,7 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, r
                         mapper=MapperConfig(mode="gausslite"))
         r = AgentRuntime("w2", "Pick up the object", graph, c, relevance_fn=lambda fr: None, fusion=kw["fusion"])
         try:
-            r._start_share(True)
+            r.lifecycle.start_share(True)
             assert r.share.pool is None
         finally:
             r.close()
