@@ -26,7 +26,7 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("datasets", ("gausslite.datasets", "gausslite.synthetic")),
     ("perception", ("gausslite.parser", "gausslite.attention")),
     ("render", ("gausslite.render", "gausslite.fused_ssim")),
-    ("mapping", ("gausslite.mapping", "gausslite.evaluation", "gausslite.pipeline")),
+    ("mapping", ("gausslite.mapping", "gausslite.evaluation", "gausslite.tracked_views", "gausslite.pipeline")),
     ("sharing", ("gausslite.sharing", "gausslite.fusion")),
     ("mission", ("gausslite.mission",)),
     ("team", ("gausslite.team",)),
