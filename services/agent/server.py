@@ -44,6 +44,7 @@ from pydantic import ValidationError
 
 from gausslite.datasets.annotations import load_annotations
 from gausslite.config import load_config
+from gausslite.core.environment import EnvironmentSettings
 from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, build_mission, replay_dataset
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.mission.team_frame import parse_T_world_map
@@ -597,22 +598,24 @@ def serve(options: ServerOptions, settings: Optional[AgentSettings] = None) -> R
     return agent
 
 
+#: AgentSettings field → the :class:`~gausslite.core.environment.EnvironmentSettings` field (``GAUSSLITE_*`` variable)
+#: it falls back to
 ENV = {
-    "agent_id": "GAUSSLITE_AGENT_ID",
-    "parser_address": "GAUSSLITE_PARSER_ADDR",
-    "fusion_address": "GAUSSLITE_FUSION_ADDR",
-    "fusion_allow": "GAUSSLITE_FUSION_ALLOW",
-    "data_roots": "GAUSSLITE_AGENT_DATA_ROOTS",
-    "data_dir": "GAUSSLITE_DATA_DIR",
-    "dataset": "GAUSSLITE_AGENT_DATASET",
-    "task": "GAUSSLITE_AGENT_TASK",
-    "task_id": "GAUSSLITE_AGENT_TASK_ID",
-    "annotations_path": "GAUSSLITE_AGENT_ANNOTATIONS",
-    "root_cert": "GAUSSLITE_TLS_CA",
-    "fusion_token": "GAUSSLITE_FUSION_TOKEN",
-    "fusion_token_file": "GAUSSLITE_FUSION_TOKEN_FILE",
-    "tls_client_cert": "GAUSSLITE_TLS_CLIENT_CERT",
-    "tls_client_key": "GAUSSLITE_TLS_CLIENT_KEY",
+    "agent_id": "agent_id",  # GAUSSLITE_AGENT_ID
+    "parser_address": "parser_addr",  # GAUSSLITE_PARSER_ADDR
+    "fusion_address": "fusion_addr",  # GAUSSLITE_FUSION_ADDR
+    "fusion_allow": "fusion_allow",  # GAUSSLITE_FUSION_ALLOW
+    "data_roots": "agent_data_roots",  # GAUSSLITE_AGENT_DATA_ROOTS
+    "data_dir": "data_dir",  # GAUSSLITE_DATA_DIR
+    "dataset": "agent_dataset",  # GAUSSLITE_AGENT_DATASET
+    "task": "agent_task",  # GAUSSLITE_AGENT_TASK
+    "task_id": "agent_task_id",  # GAUSSLITE_AGENT_TASK_ID
+    "annotations_path": "agent_annotations",  # GAUSSLITE_AGENT_ANNOTATIONS
+    "root_cert": "tls_ca",  # GAUSSLITE_TLS_CA
+    "fusion_token": "fusion_token",  # GAUSSLITE_FUSION_TOKEN
+    "fusion_token_file": "fusion_token_file",  # GAUSSLITE_FUSION_TOKEN_FILE
+    "tls_client_cert": "tls_client_cert",  # GAUSSLITE_TLS_CLIENT_CERT
+    "tls_client_key": "tls_client_key",  # GAUSSLITE_TLS_CLIENT_KEY
 }
 
 
@@ -625,31 +628,31 @@ def _views_proto(views: dict) -> list:
 
 
 def settings_from_env(config_path: Optional[str], env=None, token: Optional[str] = None) -> AgentSettings:
-    """Agent settings from environment variables (:data:`ENV`; ``GAUSSLITE_AGENT_SET`` holds
-    ``;``-separated ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto
-    finish) and the GaussLite YAML file (:func:`gausslite.config.load_config`; the agent takes its ``agent`` and
-    ``mapper`` sections; no file: the models' defaults).
+    """Agent settings from environment variables (:data:`ENV`, read through
+    :class:`gausslite.core.environment.EnvironmentSettings`; ``GAUSSLITE_AGENT_SET`` holds ``;``-separated
+    ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto finish) and the GaussLite YAML
+    file (:func:`gausslite.config.load_config`; the agent takes its ``agent`` and ``mapper`` sections; no file: the
+    models' defaults).
 
+    Args:
+        config_path: the GaussLite YAML, or None.
+        env: the environment (default ``os.environ``).
+        token: the fleet token the agent's server requires.
     Raises:
-        FileNotFoundError / ValueError / pydantic.ValidationError: bad config; an unreadable or empty
-            ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate and key.
+        FileNotFoundError / ValueError / pydantic.ValidationError: bad config; a ``GAUSSLITE_*`` variable that does
+            not parse; an unreadable or empty ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate
+            and key.
     """
-    env = os.environ if env is None else env
-    overrides = [o for o in (env.get("GAUSSLITE_AGENT_SET") or "").split(";") if o.strip()]
-    kw = {k: env.get(v) or None for k, v in ENV.items()}
-    kw = {k: v for k, v in kw.items() if v is not None}
-    if "fusion_allow" in kw:  # comma-separated host:port list
-        kw["fusion_allow"] = tuple(a.strip() for a in kw["fusion_allow"].split(",") if a.strip())
-    if "data_roots" in kw:  # comma-separated folders
-        kw["data_roots"] = tuple(r.strip() for r in kw["data_roots"].split(",") if r.strip())
+    variables = EnvironmentSettings.read(env)
+    kw = {k: getattr(variables, v) for k, v in ENV.items()}
+    kw = {k: v for k, v in kw.items() if v is not None and v != ()}
     if kw.get("fusion_token_file"):
         read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
     if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):
         raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
-    tree = load_config(config_path, overrides)
+    tree = load_config(config_path, list(variables.agent_set))
     log.info("effective configuration: %s", json.dumps(tree.sections("agent"), sort_keys=True))
-    return AgentSettings(**kw, token=token, config=tree.agent,
-                         auto_finish=(env.get("GAUSSLITE_AGENT_AUTO_FINISH", "1").lower() not in ("0", "false", "no")))
+    return AgentSettings(**kw, token=token, config=tree.agent, auto_finish=variables.agent_auto_finish)
 
 
 def run(options: ServerOptions, config_path: Optional[str] = None) -> int:

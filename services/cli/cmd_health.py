@@ -11,9 +11,9 @@ requires mutual TLS). The TLS options are those of every client command
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
+from gausslite.core.environment import EnvironmentSettings
 # grpc-free: the command line registers the options without loading the services
 from gausslite_services.common.cli_options import add_client_credential_arguments, client_tls_paths
 
@@ -62,7 +62,11 @@ def check_health(target: str, service: str = "", timeout_s: float = 3.0, tls_ca:
 
 
 def _handle(args: argparse.Namespace) -> int:
-    target = args.target or os.environ.get("GAUSSLITE_HEALTH_TARGET")
+    try:
+        target = args.target or EnvironmentSettings.read().health_target
+    except ValueError as e:
+        print(f"gausslite health: error: {e}", file=sys.stderr)
+        return 2
     if not target:
         print("gausslite health: error: --target HOST:PORT is required", file=sys.stderr)
         return 2

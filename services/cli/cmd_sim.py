@@ -19,6 +19,8 @@ import os
 import sys
 from pathlib import Path
 
+from gausslite.core.environment import EnvironmentSettings
+
 #: serve-agent flag → (argparse dest, environment variable, help)
 AGENT_FLAGS = {
     "--agent-id": ("agent_id", "GAUSSLITE_AGENT_ID", "agent id on the fusion server (agent only)"),
@@ -197,6 +199,11 @@ def _handle(args: argparse.Namespace) -> int:
     if args.budget is not None:
         overrides.append(f"mapper.keyframe_budget_s={args.budget}")
     tasks = [t.strip() for t in args.tasks.split(",")] if args.tasks else None
+    try:
+        variables = EnvironmentSettings.read()
+    except ValueError as e:
+        print(f"gausslite sim: error: {e}", file=sys.stderr)
+        return 2
     attach = None
     if args.attach:
         try:
@@ -208,9 +215,8 @@ def _handle(args: argparse.Namespace) -> int:
         if missing - {"parser"}:
             print(f"gausslite sim: error: --attach misses {sorted(missing)}", file=sys.stderr)
             return 2
-        env = os.environ
-        tls = [args.tls_ca or env.get("GAUSSLITE_TLS_CA"), args.tls_client_cert or env.get("GAUSSLITE_TLS_CLIENT_CERT"),
-               args.tls_client_key or env.get("GAUSSLITE_TLS_CLIENT_KEY")]
+        tls = [args.tls_ca or variables.tls_ca, args.tls_client_cert or variables.tls_client_cert,
+               args.tls_client_key or variables.tls_client_key]
         if any(tls):  # the attached services run TLS: every client of this run uses it
             # lazy: the command line starts without loading the services or gRPC
             from gausslite_services.common.client_tls import client_tls_from_files, set_default_client_tls
@@ -234,12 +240,11 @@ def _handle(args: argparse.Namespace) -> int:
         from gausslite_services.common.auth import read_secret
         from gausslite_services.sim import run_sim
 
-        fusion_token = args.fusion_token or os.environ.get("GAUSSLITE_FUSION_TOKEN") or (
-            read_secret(os.environ["GAUSSLITE_FUSION_TOKEN_FILE"]) if os.environ.get("GAUSSLITE_FUSION_TOKEN_FILE")
-            else None)
+        fusion_token = args.fusion_token or variables.fusion_token or (
+            read_secret(variables.fusion_token_file) if variables.fusion_token_file else None)
         res = run_sim(args.out, args.dataset, config=args.config, overrides=overrides, task_ids=tasks, attach=attach,
                       offline_report=args.offline_report,
-                      timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None,
+                      timeout_s=args.timeout, token=args.token or variables.token,
                       fusion_token=fusion_token, context_report=args.context_report)
         if args.baseline:
             res = _run_baseline(args, res, overrides, tasks, attach)
@@ -274,7 +279,7 @@ def _run_baseline(args: argparse.Namespace, res, overrides: list, tasks, attach)
 
     base = run_sim(res.out / "baseline_uniform", args.dataset, config=args.config,
                    overrides=[*overrides, "mapper.mode=uniform"], task_ids=tasks, attach=attach,
-                   timeout_s=args.timeout, token=args.token or os.environ.get("GAUSSLITE_TOKEN") or None)
+                   timeout_s=args.timeout, token=args.token or EnvironmentSettings.read().token)
     attach_uniform_baseline(res.report, base.report)
     (res.out / "report.json").write_text(json.dumps(res.report, indent=2))
     write_markdown(res.report, res.out / "report.md")

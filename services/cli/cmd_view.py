@@ -23,6 +23,7 @@ import os
 import sys
 import time
 
+from gausslite.core.environment import EnvironmentSettings
 # grpc-free: the command line registers the options without loading the services
 from gausslite_services.common.cli_options import add_client_credential_arguments, client_credentials_from_args
 
@@ -53,8 +54,12 @@ def register(subparsers) -> None:
 
 
 def _handle(args: argparse.Namespace) -> int:
-    env = os.environ
-    fusion = args.fusion or (None if args.map else env.get("GAUSSLITE_FUSION_ADDR"))
+    try:
+        variables = EnvironmentSettings.read()
+    except ValueError as e:
+        print(f"gausslite view: error: {e}", file=sys.stderr)
+        return 2
+    fusion = args.fusion or (None if args.map else variables.fusion_addr)
     if bool(args.map) == bool(fusion):
         print("gausslite view: error: give either a map file or --fusion HOST:PORT", file=sys.stderr)
         return 2
@@ -66,7 +71,7 @@ def _handle(args: argparse.Namespace) -> int:
             format_of(args.map)
             if not os.path.isfile(args.map):
                 raise FileNotFoundError(f"map file not found: {args.map}")
-        port = args.port if args.port is not None else int(env.get("GAUSSLITE_VIEW_PORT", 8080))
+        port = next(p for p in (args.port, variables.view_port, 8080) if p is not None)
         if not args.poll > 0:
             raise ValueError(f"--poll must be > 0, got {args.poll}")
         # lazy: the command line starts without loading the services or gRPC
@@ -105,7 +110,7 @@ def _handle(args: argparse.Namespace) -> int:
             from gausslite_services.viewer.feed import FusionFeed
 
             try:
-                creds = client_credentials_from_args(args, env)
+                creds = client_credentials_from_args(args)
             except (ValueError, OSError) as e:
                 print(f"gausslite view: error: {e}", file=sys.stderr)
                 return 2

@@ -11,22 +11,19 @@ falls back to the same environment variables.
   ``GAUSSLITE_FUSION_TOKEN_FILE``, ``GAUSSLITE_TOKEN``) the way the agents and
   :func:`gausslite_services.fusion_server.client.client_credentials_from_env` do.
 
-Every option defaults to None in the parser, so a given flag always wins over its environment variable. This module
-imports neither gRPC nor a server: the command line registers the options without loading them.
+Every option defaults to None in the parser, so a given flag always wins over its environment variable; the variables
+are read through :class:`gausslite.core.environment.EnvironmentSettings`. This module imports neither gRPC nor a
+server: the command line registers the options without loading them.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 from typing import Mapping, Optional, Tuple
 
-#: the names ``--log-level`` / ``GAUSSLITE_LOG_LEVEL`` take
-LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
-#: values of a yes/no environment variable that mean yes
-TRUE_WORDS = ("1", "true", "yes")
+from gausslite.core.environment import LOG_LEVELS, EnvironmentSettings
 
 
 def add_server_arguments(parser, service: Optional[str] = None, *, default_port: Optional[int] = None,
@@ -89,57 +86,52 @@ def server_options_from_args(args: argparse.Namespace, service: str, env: Option
         (ServerOptions, config_path): ``config_path`` is ``--config`` or ``GAUSSLITE_<SERVICE>_CONFIG`` (None when
         neither is set).
     Raises:
-        ValueError: a port from the environment that is not an integer, a bad metrics port, or ``--agent-tokens``
-            for another service than fusion (the only one that checks which agent writes what).
+        ValueError: a ``GAUSSLITE_*`` variable that does not parse (a port that is not an integer; naming it), a bad
+            metrics port, or ``--agent-tokens`` for another service than fusion (the only one that checks which agent
+            writes what).
     """
     # lazy: the command line registers the options without loading gRPC
     from gausslite_services.common.metrics import metrics_port_from
     from gausslite_services.common.server import ServerOptions
 
-    env = os.environ if env is None else env
+    variables = EnvironmentSettings.read(env)
     given = lambda name: getattr(args, name, None)  # noqa: E731
-    prefix = f"GAUSSLITE_{service.upper()}_"
+    host, env_port, config, env_metrics_port = variables.service(service)
     agent_tokens = given("agent_tokens")
     if agent_tokens and service != "fusion":
         raise ValueError("--agent-tokens applies to the fusion server only (the service that checks which agent "
                          "writes what); the parser and agent services take the fleet token or client certificates")
     if service == "fusion":
-        agent_tokens = agent_tokens or env.get("GAUSSLITE_AGENT_TOKENS_FILE") or None
+        agent_tokens = agent_tokens or variables.agent_tokens_file
     port = given("port")
     if port is None:
-        raw = env.get(prefix + "PORT") or default_port
-        try:
-            port = int(raw)
-        except ValueError:
-            raise ValueError(f"{prefix}PORT must be an integer, got {raw!r}") from None
-    fleet_writes = given("fleet_token_writes") or env.get("GAUSSLITE_FLEET_TOKEN_WRITES", "").lower() in TRUE_WORDS
+        port = env_port if env_port is not None else int(default_port)
+    fleet_writes = given("fleet_token_writes") or variables.fleet_token_writes
     opts = ServerOptions(
-        host=given("host") or env.get(prefix + "HOST") or "127.0.0.1",
+        host=given("host") or host or "127.0.0.1",
         port=port,
-        token=given("token") or env.get("GAUSSLITE_TOKEN") or None,
-        tls_cert=given("tls_cert") or env.get("GAUSSLITE_TLS_CERT") or None,
-        tls_key=given("tls_key") or env.get("GAUSSLITE_TLS_KEY") or None,
-        tls_client_ca=given("tls_client_ca") or env.get("GAUSSLITE_TLS_CLIENT_CA") or None,
+        token=given("token") or variables.token,
+        tls_cert=given("tls_cert") or variables.tls_cert,
+        tls_key=given("tls_key") or variables.tls_key,
+        tls_client_ca=given("tls_client_ca") or variables.tls_client_ca,
         agent_tokens_file=agent_tokens or None,
         fleet_token_writes=True if fleet_writes else None,
         max_workers=given("max_workers") if given("max_workers") is not None else max_workers,
         grace_s=given("grace") if given("grace") is not None else grace_s,
-        metrics_port=metrics_port_from(given("metrics_port"),
-                                       env.get(prefix + "METRICS_PORT") or env.get("GAUSSLITE_METRICS_PORT")),
+        metrics_port=metrics_port_from(given("metrics_port"), env_metrics_port),
     )
     if given("max_message_bytes") is not None:
         opts.max_message_bytes = given("max_message_bytes")
-    return opts, given("config") or env.get(prefix + "CONFIG") or None
+    return opts, given("config") or config
 
 
 def log_level_from(args: argparse.Namespace, env: Optional[Mapping[str, str]] = None) -> Optional[str]:
     """``--log-level``, else ``GAUSSLITE_LOG_LEVEL``, upper-cased; None when neither is set.
 
     Raises:
-        ValueError: not one of :data:`LOG_LEVELS`.
+        ValueError: not one of :data:`LOG_LEVELS`, or another ``GAUSSLITE_*`` variable that does not parse.
     """
-    env = os.environ if env is None else env
-    level = getattr(args, "log_level", None) or env.get("GAUSSLITE_LOG_LEVEL") or None
+    level = getattr(args, "log_level", None) or EnvironmentSettings.read(env).log_level
     if level is None:
         return None
     if level.upper() not in LOG_LEVELS:
@@ -178,12 +170,12 @@ def client_tls_paths(args: argparse.Namespace, env: Optional[Mapping[str, str]] 
     its environment variable, else None.
 
     Raises:
-        ValueError: only one of the client certificate and its key.
+        ValueError: only one of the client certificate and its key; a ``GAUSSLITE_*`` variable that does not parse.
     """
-    env = os.environ if env is None else env
-    ca = getattr(args, "tls_ca", None) or env.get("GAUSSLITE_TLS_CA") or None
-    cert = getattr(args, "tls_client_cert", None) or env.get("GAUSSLITE_TLS_CLIENT_CERT") or None
-    key = getattr(args, "tls_client_key", None) or env.get("GAUSSLITE_TLS_CLIENT_KEY") or None
+    variables = EnvironmentSettings.read(env)
+    ca = getattr(args, "tls_ca", None) or variables.tls_ca
+    cert = getattr(args, "tls_client_cert", None) or variables.tls_client_cert
+    key = getattr(args, "tls_client_key", None) or variables.tls_client_key
     if bool(cert) != bool(key):
         raise ValueError("mutual TLS needs both the client certificate and its key (--tls-client-cert and "
                          "--tls-client-key, or GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY)")
@@ -207,15 +199,15 @@ def client_credentials_from_args(args: argparse.Namespace, env: Optional[Mapping
     # lazy: the command line registers the options without loading the services
     from gausslite_services.common.auth import read_secret
 
-    env = os.environ if env is None else env
+    variables = EnvironmentSettings.read(env)
     if getattr(args, "token", None) and getattr(args, "token_file", None):
         raise ValueError("give --token or --token-file, not both")
     token_file = getattr(args, "token_file", None)
     token = getattr(args, "token", None) or (read_secret(token_file) if token_file else None)
-    token = token or env.get("GAUSSLITE_FUSION_TOKEN") or None
-    if token is None and env.get("GAUSSLITE_FUSION_TOKEN_FILE"):
-        token = read_secret(env["GAUSSLITE_FUSION_TOKEN_FILE"])
-    token = token or env.get("GAUSSLITE_TOKEN") or None
+    token = token or variables.fusion_token
+    if token is None and variables.fusion_token_file:
+        token = read_secret(variables.fusion_token_file)
+    token = token or variables.token
     read = lambda p: Path(p).read_bytes() if p else None  # noqa: E731
     ca, cert, key = client_tls_paths(args, env)
     return {"token": token, "root_cert": read(ca), "client_cert": read(cert), "client_key": read(key)}

@@ -51,7 +51,6 @@ deadline: they wait for a state, they do not retry failures.
 from __future__ import annotations
 
 import json
-import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -63,6 +62,7 @@ import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from gausslite.core.arrays import GaussianArrays
+from gausslite.core.environment import EnvironmentSettings
 from gausslite.wire.decode import assemble
 from gausslite.wire.encode import encode_subset
 from gausslite.wire.format import QuantConfig
@@ -99,19 +99,19 @@ def client_credentials_from_env(env=None) -> dict:
     Returns:
         dict with keys ``token``, ``root_cert``, ``client_cert``, ``client_key`` (None when unset).
     Raises:
-        OSError: a named file is unreadable. ValueError: an empty/invalid token file, or only one of
-            client certificate and key.
+        OSError: a named file is unreadable. ValueError: an empty/invalid token file, only one of
+            client certificate and key, or a ``GAUSSLITE_*`` variable that does not parse.
     """
-    env = os.environ if env is None else env
-    token = env.get("GAUSSLITE_FUSION_TOKEN") or None
-    if token is None and env.get("GAUSSLITE_FUSION_TOKEN_FILE"):
-        token = read_secret(env["GAUSSLITE_FUSION_TOKEN_FILE"])
-    token = token or env.get("GAUSSLITE_TOKEN") or None
-    read = lambda var: Path(env[var]).read_bytes() if env.get(var) else None  # noqa: E731
-    cert, key = read("GAUSSLITE_TLS_CLIENT_CERT"), read("GAUSSLITE_TLS_CLIENT_KEY")
+    variables = EnvironmentSettings.read(env)
+    token = variables.fusion_token
+    if token is None and variables.fusion_token_file:
+        token = read_secret(variables.fusion_token_file)
+    token = token or variables.token
+    read = lambda path: Path(path).read_bytes() if path else None  # noqa: E731
+    cert, key = read(variables.tls_client_cert), read(variables.tls_client_key)
     if (cert is None) != (key is None):
         raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
-    return {"token": token, "root_cert": read("GAUSSLITE_TLS_CA"), "client_cert": cert, "client_key": key}
+    return {"token": token, "root_cert": read(variables.tls_ca), "client_cert": cert, "client_key": key}
 
 
 def channel_credentials(root_cert: Optional[bytes] = None, client_cert: Optional[bytes] = None,

@@ -8,9 +8,9 @@ Imports neither gRPC nor the server: ``gausslite`` registers these options witho
 from __future__ import annotations
 
 import argparse
-import os
 from typing import Mapping, Optional
 
+from gausslite.core.environment import EnvironmentSettings
 from gausslite_services.common.cli_options import add_server_arguments
 
 #: the fusion server's port (``deploy/``, the docs and the clients use it too)
@@ -60,14 +60,18 @@ def fusion_run_arguments(args: argparse.Namespace, env: Optional[Mapping[str, st
     """Keyword arguments of :func:`gausslite_services.fusion_server.server.run` beyond the server options:
     ``data_dir``, ``store`` and ``port_file``, each the option, else its environment variable
     (``GAUSSLITE_DATA_DIR``, ``GAUSSLITE_FUSION_STORE``, ``GAUSSLITE_FUSION_PORT_FILE``), else None; and ``overrides``,
-    the ``--set KEY=VALUE`` options, else ``GAUSSLITE_FUSION_SET`` (``;``-separated)."""
-    env = os.environ if env is None else env
+    the ``--set KEY=VALUE`` options, else ``GAUSSLITE_FUSION_SET`` (``;``-separated). The variables are read through
+    :class:`gausslite.core.environment.EnvironmentSettings` (``env``: default ``os.environ``).
+
+    Raises:
+        ValueError: a ``GAUSSLITE_*`` variable that does not parse.
+    """
+    variables = EnvironmentSettings.read(env)
     given = getattr(args, "config_overrides", None)
-    overrides = list(given) if given else [o for o in (env.get("GAUSSLITE_FUSION_SET") or "").split(";") if o.strip()]
-    return {"data_dir": getattr(args, "data_dir", None) or env.get("GAUSSLITE_DATA_DIR") or None,
-            "store": getattr(args, "store", None) or env.get("GAUSSLITE_FUSION_STORE") or None,
-            "port_file": getattr(args, "port_file", None) or env.get("GAUSSLITE_FUSION_PORT_FILE") or None,
-            "overrides": overrides}
+    return {"data_dir": getattr(args, "data_dir", None) or variables.data_dir,
+            "store": getattr(args, "store", None) or variables.fusion_store,
+            "port_file": getattr(args, "port_file", None) or variables.fusion_port_file,
+            "overrides": list(given) if given else list(variables.fusion_set)}
 
 
 __all__ = ["DEFAULT_PORT", "DEFAULT_MAX_WORKERS", "DEFAULT_GRACE_S", "FUSION_ONLY", "add_fusion_arguments",

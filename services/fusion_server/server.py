@@ -55,6 +55,7 @@ from grpc_health.v1 import health_pb2
 from pydantic import ValidationError
 
 from gausslite.config import FusionSettings, GaussLiteConfig, load_config
+from gausslite.core.environment import EnvironmentSettings
 from gausslite.mapping.config import apply_overrides
 from gausslite_rpc import fusion_pb2_grpc
 from gausslite_services.common.cli_options import log_level_from, server_options_from_args
@@ -247,15 +248,20 @@ def run(options: ServerOptions, config_path: Optional[str] = None, *, data_dir: 
     DSN), else ``$GAUSSLITE_FUSION_STORE``, else the config file's ``store``, else SQLite in the
     data directory; the port file from ``port_file`` or ``$GAUSSLITE_FUSION_PORT_FILE``. Prints
     ``fusion listening on HOST:PORT`` once serving. The settings: :func:`fusion_settings` (``overrides``: ``--set``).
+
+    Raises:
+        ValueError: a bad configuration, or a ``GAUSSLITE_*`` variable that does not parse
+            (:class:`gausslite.core.environment.EnvironmentSettings`).
     """
     if not logging.getLogger().handlers:  # `gausslite serve` does not configure logging itself
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = fusion_settings(config_path, overrides)
     log.info("effective configuration: %s", json.dumps({"fusion": config.model_dump(mode="json")}, sort_keys=True))
-    data_dir = data_dir or os.environ.get("GAUSSLITE_DATA_DIR") or None
-    store = store or os.environ.get("GAUSSLITE_FUSION_STORE") or None
+    variables = EnvironmentSettings.read()
+    data_dir = data_dir or variables.data_dir
+    store = store or variables.fusion_store
     server = serve(options, config, data_dir=data_dir, store=store)
-    port_file = port_file or os.environ.get("GAUSSLITE_FUSION_PORT_FILE") or None
+    port_file = port_file or variables.fusion_port_file
     if port_file:
         _write_port_file(port_file, server.port)
     print(f"fusion listening on {options.host}:{server.port}", flush=True)
