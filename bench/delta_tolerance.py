@@ -1,5 +1,5 @@
 """Delta pushes: bytes on the link against the fidelity of the server's copy, per change tolerance
-(goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``push_every: 5``).
+(goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``agent.push.every: 5``).
 
     python -m bench.delta_tolerance [--tolerances 1,4,16] [--kappa-rel 0.25,1e9] [--seeds 3] [--task-id room0-pick-plant]
 

@@ -1,5 +1,5 @@
 """Delta pushes of fine-tuned subsets: bytes on the link against the fused map, per refresh share
-(goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``push_every: 5``).
+(goal ``total_upload_bytes ≤ 1.5 × final_subset_bytes`` on room0 with ``agent.push.every: 5``).
 
     python -m bench.share_refresh [--scene room0|synthetic] [--seeds 3] [--refresh 1,0.25,0.07]
                                   [--finetune-iters 200]
