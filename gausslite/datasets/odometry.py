@@ -23,124 +23,35 @@ under a Huber loss), and the estimate is checked before it is kept:
 Poses are camera-to-world (c2w, 4 × 4 float64, metres, OpenCV camera axes: x right, y down, z forward). The world
 frame is the first frame's camera frame, or the pose given to it (``initial_pose``).
 
-Open3D (the ``open3d-cpu`` wheel of the ``mapper`` extra) is imported on first use.
+Open3D (the ``open3d-cpu`` wheel of the ``mapper`` extra) is imported on first use. The settings and results are
+:mod:`gausslite.datasets.odometry_config`'s (re-exported here); loop closure over the keyframes is
+:class:`~gausslite.datasets.loop_closing.LoopClosing`'s (``RGBDOdometry.loops``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import queue
 import threading
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Literal, Optional, Union, get_args
+from typing import Callable, Dict, List, Literal, Optional, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
 from gausslite.camera import Intrinsics
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import downscale_frame
-from gausslite.datasets.pose_graph import (DepthClouds, KeyframeGraph, LoopConfig, LoopEdge, RelocConfig,
-                                           open3d_module, relocalise, thumbnail, verify_registration)
+from gausslite.datasets.loop_closing import LoopClosing
+# the settings and results live in a module of their own; their names import from here as before
+from gausslite.datasets.odometry_config import POSE_SOURCES, OdometryConfig, PoseSource, TrackResult  # noqa: F401
+from gausslite.datasets.pose_graph import KeyframeGraph, open3d_module, relocalise, thumbnail
 from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
 __all__ = ["OdometryConfig", "TrackResult", "RGBDOdometry", "OdometryDataset", "PoseSource", "POSE_SOURCES",
            "with_pose_source"]
-
-#: where the camera poses (camera-to-world) come from: the frames' own (``given``: the sequence's pose file, a bag's
-#: TF or pose topic, the pose each streamed frame carries) or the RGB-D odometry's estimate (``odometry``). The type of
-#: ``agent.pose_source``; ``load_dataset`` and ``gausslite map --pose-source`` take it or ``auto``
-#: (:data:`POSE_SOURCES`).
-PoseSource = Literal["given", "odometry"]
-#: the values a loader takes (``load_dataset(pose_source=...)``, ``gausslite map --pose-source``): a
-#: :data:`PoseSource`, or ``auto`` (``given`` when the sequence has poses, else ``odometry``)
-POSE_SOURCES = ("auto", *get_args(PoseSource))
-
-
-class OdometryConfig(BaseModel):
-    """Settings of the RGB-D odometry (defaults: the measured choice on TUM fr1/rpy, ``docs/mapper.md``).
-
-    Attributes:
-        method: the residuals Open3D minimises: ``hybrid`` (photometric + geometric), ``color`` (photometric only)
-            or ``point_to_plane`` (geometric only).
-        reference: what a frame registers to: ``nearest_keyframe`` (of the latest ``reference_keyframes_max``),
-            ``last_keyframe``, or ``previous_frame`` (plain frame-to-frame).
-        keyframe_trans_m, keyframe_rot_deg: a frame that moved more than either from its reference becomes a keyframe.
-        reference_keyframes_max: keyframes a frame may register to, the nearest-keyframe search's (the oldest is
-            dropped first).
-        motion_prior: start from the previous frame's motion (constant velocity); False: from the last good pose.
-        depth_max_m: depth beyond this is ignored (metres).
-        depth_diff_max_m: largest depth difference of a correspondence (Open3D's ``depth_outlier_trunc``, metres).
-        depth_huber_delta_m: the geometric residual's Huber threshold (metres).
-        intensity_huber_delta: the photometric residual's Huber threshold (intensity in 0..1). Open3D's default,
-            0.1, down-weights most of a hand-held camera's photometric residuals (exposure, blur) and drifts; 0.5
-            measures best on every sequence of ``bench.odometry`` (``docs/mapper.md``, "Poses from odometry").
-        iterations: Gauss-Newton iterations per pyramid level, the finest level first (Open3D's order).
-        threads: Open3D's worker threads (a process-wide Open3D setting, applied when the odometry is built; 0 leaves
-            Open3D's default, every core). With 1 the poses repeat exactly from run to run: Open3D's multi-threaded
-            reductions sum in a varying order, and over a sequence that moves poses by millimetres to centimetres.
-            One thread is also faster at the tracking size on 2 cores beside the mapper.
-        min_fitness: a frame whose share of valid depth pixels with a correspondence is below this fails.
-        track_width: frames are tracked downscaled by the integer factor that brings their width nearest this
-            (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.
-        max_step_m, max_step_deg: an estimate further than these from the last good pose fails (a jump).
-        loop: loop closure over the keyframes (:class:`~gausslite.datasets.pose_graph.LoopConfig`).
-        relocalise: re-localisation of lost frames (:class:`~gausslite.datasets.pose_graph.RelocConfig`).
-    """
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-    method: Literal["hybrid", "color", "point_to_plane"] = "hybrid"
-    reference: Literal["nearest_keyframe", "last_keyframe", "previous_frame"] = "nearest_keyframe"
-    keyframe_trans_m: float = Field(0.10, gt=0)
-    keyframe_rot_deg: float = Field(10.0, gt=0)
-    reference_keyframes_max: int = Field(64, ge=1)
-    motion_prior: bool = True
-    depth_max_m: float = Field(10.0, gt=0)
-    depth_diff_max_m: float = Field(0.07, gt=0)
-    depth_huber_delta_m: float = Field(0.05, gt=0)
-    intensity_huber_delta: float = Field(0.5, gt=0)
-    iterations: List[int] = Field(default_factory=lambda: [20, 10, 5], min_length=1)
-    threads: int = Field(1, ge=0)
-    min_fitness: float = Field(0.2, ge=0, le=1)
-    track_width: Optional[int] = Field(160, ge=16)
-    max_step_m: float = Field(0.3, gt=0)
-    max_step_deg: float = Field(30.0, gt=0)
-    loop: LoopConfig = Field(default_factory=LoopConfig)
-    relocalise: RelocConfig = Field(default_factory=RelocConfig)
-
-
-@dataclass
-class TrackResult:
-    """What tracking one frame gave.
-
-    Attributes:
-        c2w: (4, 4) float64 camera-to-world pose: the estimate, or the last good pose when ``ok`` is False.
-        ok: the estimate passed every check.
-        reason: why it failed ("" when ``ok``).
-        fitness: share of the frame's valid depth pixels with a correspondence (0..1).
-        keyframe: the frame became a keyframe.
-        reference: frame id of the keyframe (or frame) it was registered to; -1 for the first frame.
-        anchor: frame id of the keyframe the pose is held relative to (itself for a keyframe; -1: none, a lost frame).
-        T_anchor: (4, 4) float64 ``c2w_anchor⁻¹ c2w`` at tracking time: when the pose graph corrects the anchor, the
-            frame's corrected pose is the anchor's new pose times this (:meth:`RGBDOdometry.corrected`).
-        relocalised: the frame was lost to the tracking and found again against a keyframe.
-    """
-
-    c2w: np.ndarray
-    ok: bool
-    reason: str = ""
-    fitness: float = 1.0
-    keyframe: bool = False
-    reference: int = -1
-    anchor: int = -1
-    T_anchor: Optional[np.ndarray] = None
-    relocalised: bool = False
-
 
 @dataclass
 class _Keyframe:
@@ -171,6 +82,8 @@ class RGBDOdometry:
         failed_ids: frame ids of the failed frames.
         graph: the keyframe pose graph with its loop closures (:class:`~gausslite.datasets.pose_graph.KeyframeGraph`).
         loop_keyframes: frame id → keyframe kept with its images for loops and re-localisation.
+        loops: loop closure over the keyframes (:class:`~gausslite.datasets.loop_closing.LoopClosing`).
+        lock: held while a frame is tracked and while the loop-closing thread changes the pose graph.
         on_correction: called with ``{frame id: new (4, 4) c2w}`` of every keyframe after the pose graph moved them
             (from the tracking thread, or the loop-closing thread under ``background_loops``), e.g. to move the map
             with its keyframes.
@@ -180,8 +93,6 @@ class RGBDOdometry:
                  background_loops: bool = False) -> None:
         self.config = config or OdometryConfig()
         self.background_loops = bool(background_loops)
-        self._loop_queue: "queue.Queue" = queue.Queue()
-        self._loop_thread: Optional[threading.Thread] = None
         self.initial_pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64).copy()
         self.keyframes: List[_Keyframe] = []
         self.last_pose: Optional[np.ndarray] = None
@@ -196,7 +107,8 @@ class RGBDOdometry:
         self.loop_keyframes: Dict[int, _Keyframe] = {}
         self.on_correction: Optional[Callable[[Dict[int, np.ndarray]], None]] = None
         self._since_good = 0  # frames lost since the last good pose
-        self._lock = threading.Lock()
+        self.lock = threading.Lock()  # one frame at a time; the loop-closing thread's pose graph updates
+        self.loops = LoopClosing(self)  # loop closure over the keyframes, inline or on its own thread
         self._prev: Optional[_Keyframe] = None
         o3d = open3d_module()
         c, odometry = self.config, o3d.t.pipelines.odometry
@@ -268,7 +180,7 @@ class RGBDOdometry:
         Returns:
             the :class:`TrackResult` (a failed frame: ``ok`` False, ``c2w`` the last good pose).
         """
-        with self._lock:
+        with self.lock:
             return self._track(frame)
 
     def _track(self, frame: Frame) -> TrackResult:
@@ -312,118 +224,24 @@ class RGBDOdometry:
             self._prev = self._add_keyframe(frame, c2w, image, ref.frame_id, T, info)
             out.anchor, out.T_anchor = int(frame.frame_id), np.eye(4)
             if self.background_loops:
-                self._loops_later(self._prev)
+                self.loops.later(self._prev)
             else:
-                self._close_loops(self._prev)
+                self.loops.close_loops(self._prev)
                 out.c2w = self.last_pose.copy()  # the pose graph may have moved it
         else:
             self._prev = _Keyframe(frame.frame_id, c2w.copy(), image, frame)
         return out
 
-    def _close_loops(self, kf: _Keyframe) -> int:
-        """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.datasets.pose_graph`)
-        and, when one passes, optimise the pose graph and move the keyframes, the last pose and the previous frame
-        with it (the caller holds the tracker's lock). Returns the loops accepted."""
-        if not self.config.loop.enabled:
-            return 0
-        cands = self._loop_candidates(kf)
-        return self._commit_loops(kf, self._verify_loops(kf, cands), len(cands))
-
-    def _loop_candidates(self, kf: _Keyframe) -> list:
-        """The keyframes a loop from ``kf`` is tried to (under the lock): ``[(keyframe, init (4, 4) T_target_kf at the
-        current poses, drift bound in metres, drift bound in degrees)]``, nearest first, at most ``max_candidates``."""
-        cfg = self.config.loop
-        ids = list(self.graph.nodes)
-        older = set(ids[:max(0, len(ids) - 1 - cfg.min_gap)])
-
-        def near(k: _Keyframe) -> Optional[float]:
-            dist = float(np.linalg.norm(k.c2w[:3, 3] - kf.c2w[:3, 3]))
-            cos = float(np.clip(k.c2w[:3, 2] @ kf.c2w[:3, 2], -1.0, 1.0))
-            return dist if dist <= cfg.radius_m and np.degrees(np.arccos(cos)) <= cfg.max_angle_deg else None
-
-        near_ids = sorted((d, k.frame_id) for k in self.loop_keyframes.values()
-                          if k.frame_id in older and (d := near(k)) is not None)[:cfg.max_candidates]
-        out = []
-        for _, fid in near_ids:
-            target = self.loop_keyframes[fid]
-            out.append((target, np.linalg.inv(target.c2w) @ kf.c2w, *self.graph.drift_bound(kf.frame_id, fid, cfg)))
-        return out
-
-    def _verify_loops(self, kf: _Keyframe, cands: list) -> List[LoopEdge]:
-        """The loop edges from ``kf`` that pass every gate (registrations only: no state of the tracker changes, so a
-        loop-closing thread runs this without the lock)."""
-        cfg = self.config.loop
-        added = []
-        clouds = DepthClouds(self.config.depth_max_m)
-        for target, init, bound_m, bound_deg in cands:
-            got = verify_registration(self, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, clouds)
-            d = None if got is None else np.linalg.inv(init) @ got[0]
-            if d is None or float(np.linalg.norm(d[:3, 3])) > bound_m or rotation_angle_deg(d) > bound_deg:
-                continue
-            added.append(LoopEdge(int(kf.frame_id), int(target.frame_id), got[0], got[2], got[3]))
-        return added
-
-    def _commit_loops(self, kf: _Keyframe, added: List[LoopEdge], tried: int) -> int:
-        """Add the verified loop edges ``added`` of ``kf`` (``tried`` candidates) to the pose graph and optimise it;
-        the keyframes move when the optimisation holds (under the lock). Returns the loops accepted."""
-        g = self.graph
-        g.n_loop_tried += tried
-        g.n_loop_rejected += tried - len(added)
-        if not added:
-            return 0
-        g.loops.extend(added)
-        new = g.optimise(self.config.loop)
-        if not new:
-            g.loops = [e for e in g.loops if e not in added]
-            g.n_loop_rejected += len(added)
-            return 0
-        self._apply_correction(new)
-        log.info("odometry: %d loop(s) closed at keyframe %d; the pose graph moved the keyframes (%d loops so far)",
-                 len(added), kf.frame_id, len(g.loops))
-        return len(added)
-
-    def _loops_later(self, kf: _Keyframe) -> None:
-        """Queue ``kf`` for the loop-closing thread (started on first use; ``background_loops``)."""
-        if not self.config.loop.enabled:
-            return
-        if self._loop_thread is None:
-            self._loop_thread = threading.Thread(target=self._loop_worker, name="odometry-loops", daemon=True)
-            self._loop_thread.start()
-        self._loop_queue.put(kf)
-
-    def _loop_worker(self) -> None:
-        """The loop-closing thread: candidates under the lock, registrations without it (the tracking goes on), the
-        pose graph under it again. A loop's edge is a relative pose, so keyframes tracked meanwhile join the
-        optimisation through their odometry edges."""
-        while True:
-            kf = self._loop_queue.get()
-            try:
-                if kf is None:
-                    return
-                with self._lock:
-                    cands = self._loop_candidates(kf)
-                added = self._verify_loops(kf, cands)
-                with self._lock:
-                    self._commit_loops(kf, added, len(cands))
-            except Exception:  # a failed loop check must not stop the tracking: logged, the keyframe has no loop
-                log.exception("odometry: loop closure at keyframe %d failed", getattr(kf, "frame_id", -1))
-            finally:
-                self._loop_queue.task_done()
-
     def flush(self, timeout_s: Optional[float] = None) -> bool:
         """Wait until the loop-closing thread has checked every keyframe queued so far (``background_loops``; returns
         at once otherwise). Returns False when ``timeout_s`` seconds passed first."""
-        q = self._loop_queue
-        with q.all_tasks_done:
-            return q.all_tasks_done.wait_for(lambda: q.unfinished_tasks == 0, timeout_s)
+        return self.loops.flush(timeout_s)
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the loop-closing thread (keyframes still queued are not checked). Safe to call more than once."""
-        if self._loop_thread is not None and self._loop_thread.is_alive():
-            self._loop_queue.put(None)
-            self._loop_thread.join(timeout_s)
+        self.loops.stop(timeout_s)
 
-    def _apply_correction(self, new: Dict[int, np.ndarray]) -> None:
+    def apply_correction(self, new: Dict[int, np.ndarray]) -> None:
         """Move the stored keyframes to the pose graph's ``new`` poses, and the last pose and previous frame with
         the newest keyframe (they are the newest keyframe, or tracked against it)."""
         newest = next(reversed(self.graph.nodes))
@@ -524,7 +342,7 @@ class RGBDOdometry:
         """The tracker's state (for a mission's checkpoint): poses, motion, counters, the pose graph, and the stored
         keyframes' images at the tracking size (``rgb`` (h, w, 3) uint8, ``depth`` (h, w) float32 metres, ``c2w``
         (4, 4) float64)."""
-        with self._lock:
+        with self.lock:
             g = self.graph
             return {"format": 2, "config": self.config.model_dump(), "initial_pose": self.initial_pose.copy(),
                     "last_pose": None if self.last_pose is None else self.last_pose.copy(),
@@ -547,7 +365,7 @@ class RGBDOdometry:
         """
         if not isinstance(state, dict) or state.get("format") not in (1, 2):
             raise ValueError("not an odometry state (format 1 or 2)")
-        with self._lock:
+        with self.lock:
             self.initial_pose = np.asarray(state["initial_pose"], np.float64)
             self.last_pose = None if state["last_pose"] is None else np.asarray(state["last_pose"], np.float64)
             self.velocity = np.asarray(state["velocity"], np.float64)

@@ -135,7 +135,7 @@ def test_frames_follow_their_anchor_keyframe_when_the_graph_moves_it(frames):
     new = {fid: (shift @ n.c2w if fid == r.anchor else n.c2w) for fid, n in odo.graph.nodes.items()}
     for fid, c2w in new.items():
         odo.graph.nodes[fid].c2w = c2w
-    odo._apply_correction(new)
+    odo.apply_correction(new)
     assert np.allclose(odo.corrected(r), shift @ r.c2w)
     assert moved.keys() == new.keys()
 
@@ -164,13 +164,13 @@ def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeyp
 
     odo = RGBDOdometry(cfg, initial_pose=frames[0].c2w, background_loops=True)
     gate = threading.Event()
-    verify = odo._verify_loops
+    verify = odo.loops.verify
 
     def held_verify(kf, cands):  # the loop thread's registrations wait until the whole stream is tracked
         gate.wait(60.0)
         return verify(kf, cands)
 
-    monkeypatch.setattr(odo, "_verify_loops", held_verify)
+    monkeypatch.setattr(odo.loops, "verify", held_verify)
     corrections = []
     odo.on_correction = corrections.append
     try:
@@ -185,4 +185,4 @@ def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeyp
     finally:
         gate.set()
         odo.close()
-    assert not odo._loop_thread.is_alive()
+    assert not odo.loops.thread.is_alive()
