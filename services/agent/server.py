@@ -22,6 +22,9 @@ did not complete within the client's deadline), PERMISSION_DENIED (a ``StartMiss
 agent id or a path outside what the agent is configured for: ``docs/security.md``). Health, reflection, bounded message sizes, bearer
 token and TLS come from :mod:`gausslite_services.common.server`; on shutdown the health service goes
 NOT_SERVING, in-flight calls get the grace period and running missions are closed.
+
+The agent's settings and their reading from the environment are :mod:`gausslite_services.agent.settings`' (re-exported
+here); the messages made from a mission's status and summary are :mod:`gausslite_services.agent.convert`'s.
 """
 
 from __future__ import annotations
@@ -34,24 +37,24 @@ import sys
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional
 
 import grpc
-import numpy as np
 from pydantic import ValidationError
 
 from gausslite.datasets.annotations import load_annotations
-from gausslite.config import load_config
-from gausslite.core.environment import EnvironmentSettings
-from gausslite.mission import AgentConfig, AgentRuntime, MissionError, MissionState, build_mission, replay_dataset
+from gausslite.mission import AgentRuntime, MissionError, MissionState, build_mission, replay_dataset
 from gausslite.mission.state import ACTIVE as ACTIVE_STATES
 from gausslite.mission.team_frame import parse_T_world_map
 from gausslite.parser import TaskParser
-from gausslite_rpc import agent_pb2, agent_pb2_grpc, common_pb2, parser_pb2, parser_pb2_grpc
+from gausslite_rpc import agent_pb2, agent_pb2_grpc, parser_pb2, parser_pb2_grpc
+from gausslite_services.agent.convert import status_proto, summary_proto
 from gausslite_services.agent.frames import FrameError, decode_frame, validate_frame
 from gausslite_services.agent.metrics import agent_registry
+# the settings and their reading live in a module of their own; their names import from here as before
+from gausslite_services.agent.settings import ENV, AgentSettings, settings_from_env  # noqa: F401
 from gausslite_services.common.auth import read_secret
 from gausslite_services.common.errors import status_for
 from gausslite_services.common.server import (MalformedMessage, RunningServer, ServerOptions, build_server,
@@ -93,75 +96,6 @@ def _abort(context, method: str, code: grpc.StatusCode, message: str) -> None:
 
 class CallerNotAllowed(Exception):
     """A ``StartMission`` asked for what only the agent's configuration decides (PERMISSION_DENIED)."""
-
-
-_STATES = {
-    MissionState.MAPPING: agent_pb2.MISSION_STATE_MAPPING,
-    MissionState.REPLAY_DONE: agent_pb2.MISSION_STATE_REPLAY_DONE,
-    MissionState.FINISHING: agent_pb2.MISSION_STATE_FINISHING,
-    MissionState.FINISHED: agent_pb2.MISSION_STATE_FINISHED,
-    MissionState.FAILED: agent_pb2.MISSION_STATE_FAILED,
-}
-
-
-@dataclass
-class AgentSettings:
-    """Settings of one agent process.
-
-    Attributes:
-        agent_id (str): id on the fusion server.
-        parser_address (str): parser service ``host:port``; empty → in-process rule parser.
-        fusion_address (str): fusion server ``host:port``; empty → no pushes (local mapping only).
-        fusion_allow (tuple[str, ...]): other fusion servers a ``StartMission`` may name (``fusion_address`` of the
-            request). The agent sends its fusion token and client certificate to the server it pushes to, so it
-            never pushes to an address a caller picks: one not configured here is PERMISSION_DENIED
-            (``docs/security.md``).
-        data_roots (tuple[str, ...]): folders under which a ``StartMission``'s ``dataset_path`` and
-            ``annotations_path`` must lie (after following symlinks and ``..``); any other path is PERMISSION_DENIED.
-            The configured ``dataset`` and ``annotations_path`` always count as roots (a folder itself, a file its
-            folder). Env ``GAUSSLITE_AGENT_DATA_ROOTS`` (comma-separated), CLI ``--data-root``.
-        token (str | None): bearer token sent to the parser service, and to the fusion server unless
-            a per-agent fusion token is set (the fleet token: team-wide mode).
-        fusion_token (str | None): this robot's own token for the fusion server (per-robot identity:
-            it may write only ``agent_id``'s data there; ``docs/security.md``).
-        fusion_token_file (str | None): file holding that token (a docker secret / mounted Kubernetes
-            Secret); read whenever a mission connects, so a rotated token is picked up by the next one.
-        root_cert (str | None): PEM file of the CA for TLS to parser/fusion (None: plaintext).
-        tls_client_cert (str | None), tls_client_key (str | None): PEM client certificate and key
-            presented to the fusion server (mutual TLS; the certificate's CN must be ``agent_id``).
-        data_dir (str | None): where finished missions write ``<agent_id>/<mission>/map.ply`` and
-            ``summary.json``.
-        dataset (str | None), task (str | None), task_id (str | None): auto-start a replay mission at boot.
-        annotations_path (str | None): default scene folder with ``objects.json``/``tasks.json`` for
-            streamed missions.
-        auto_finish (bool): finish an auto-started replay mission (final push) when it is mapped.
-        parser_timeout_s (float): deadline of the Parse call, which waits for the parser to become ready: long
-            enough for a parser process started beside the agent on a busy robot computer to load.
-        shutdown_s (float): on SIGTERM, how long the agent may take to push the final subset of a mission still
-            mapping and write its checkpoint before it exits (:meth:`AgentServicer.shutdown`).
-        config (AgentConfig): mission/mapper settings.
-    """
-
-    agent_id: str = "agent"
-    parser_address: str = ""
-    fusion_address: str = ""
-    fusion_allow: Tuple[str, ...] = ()
-    data_roots: Tuple[str, ...] = ()
-    token: Optional[str] = None
-    fusion_token: Optional[str] = None
-    fusion_token_file: Optional[str] = None
-    root_cert: Optional[str] = None
-    tls_client_cert: Optional[str] = None
-    tls_client_key: Optional[str] = None
-    data_dir: Optional[str] = None
-    dataset: Optional[str] = None
-    task: Optional[str] = None
-    task_id: Optional[str] = None
-    annotations_path: Optional[str] = None
-    auto_finish: bool = True
-    parser_timeout_s: float = 120.0
-    shutdown_s: float = 30.0
-    config: AgentConfig = field(default_factory=lambda: AgentConfig())
 
 
 def _channel(address: str, root_cert: Optional[str]) -> grpc.Channel:
@@ -468,9 +402,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
     @staticmethod
     def _status_proto(st: dict) -> agent_pb2.MissionStatus:
-        d = dict(st)
-        d["state"] = _STATES.get(d["state"], agent_pb2.MISSION_STATE_UNSPECIFIED)
-        return agent_pb2.MissionStatus(**d)
+        return status_proto(st)
 
     def GetStatus(self, request, context):  # noqa: N802
         return self._status_proto(self._mission(request.mission_id, context).status())
@@ -483,27 +415,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
                           timeout_s=None if remaining is None else max(0.1, remaining - 0.5))
         except TimeoutError as e:
             context.abort(grpc.StatusCode.DEADLINE_EXCEEDED, f"{e}; call Finish again to keep waiting")
-        return agent_pb2.MissionSummary(
-            status=self._status_proto(s.status), final_push_ok=s.final_push_ok, n_shared=s.n_shared,
-            share_pct=s.share_pct, bytes_on_wire=s.bytes_on_wire, bytes_per_gaussian=s.bytes_per_gaussian,
-            has_roi_psnr=s.roi_psnr is not None, roi_psnr=s.roi_psnr or 0.0, psnr=s.psnr or 0.0,
-            seconds_per_frame=s.seconds_per_frame, has_roi_psnr_all_frames=s.roi_psnr_all_frames is not None,
-            roi_psnr_all_frames=s.roi_psnr_all_frames or 0.0, frames_all=s.frames_all,
-            total_upload_bytes=s.total_upload_bytes,
-            final_subset_bytes=s.final_subset_bytes, view_bytes=s.view_bytes, views_sent=s.views_sent,
-            views_unsent=s.views_unsent,
-            tracked_views=_views_proto(s.tracked_views), predicted_views=_views_proto(s.predicted_views),
-            pushes=[agent_pb2.PushInfo(version=p["version"], n_shared=p["n_shared"], n_total=p["n_total"],
-                                       bytes_sent=p["bytes_on_wire"], delta=p["delta"], records=p["records"],
-                                       removed=p["removed"], frames_mapped=p["frames_mapped"],
-                                       unchanged=p.get("unchanged", False))
-                    for p in s.pushes],
-            protocols={name: agent_pb2.ProtocolScore(
-                has_roi_psnr=v.get("roi_psnr") is not None, roi_psnr=v.get("roi_psnr") or 0.0,
-                psnr=v.get("psnr") or 0.0, ssim=v.get("ssim") or 0.0, frames_scored=int(v.get("frames_scored", 0)),
-                roi_frames=int(v.get("roi_frames", 0)),
-                roi_psnr_per_frame={int(k): float(x) for k, x in (v.get("roi_psnr_per_frame") or {}).items()})
-                for name, v in s.protocols.items()})
+        return summary_proto(s)
 
     def shutdown(self, timeout_s: float) -> List[str]:
         """What SIGTERM does before the process exits: every mission still mapping stops ingest, maps what it holds,
@@ -596,63 +508,6 @@ def serve(options: ServerOptions, settings: Optional[AgentSettings] = None) -> R
             agent.stop(0)
             raise
     return agent
-
-
-#: AgentSettings field → the :class:`~gausslite.core.environment.EnvironmentSettings` field (``GAUSSLITE_*`` variable)
-#: it falls back to
-ENV = {
-    "agent_id": "agent_id",  # GAUSSLITE_AGENT_ID
-    "parser_address": "parser_addr",  # GAUSSLITE_PARSER_ADDR
-    "fusion_address": "fusion_addr",  # GAUSSLITE_FUSION_ADDR
-    "fusion_allow": "fusion_allow",  # GAUSSLITE_FUSION_ALLOW
-    "data_roots": "agent_data_roots",  # GAUSSLITE_AGENT_DATA_ROOTS
-    "data_dir": "data_dir",  # GAUSSLITE_DATA_DIR
-    "dataset": "agent_dataset",  # GAUSSLITE_AGENT_DATASET
-    "task": "agent_task",  # GAUSSLITE_AGENT_TASK
-    "task_id": "agent_task_id",  # GAUSSLITE_AGENT_TASK_ID
-    "annotations_path": "agent_annotations",  # GAUSSLITE_AGENT_ANNOTATIONS
-    "root_cert": "tls_ca",  # GAUSSLITE_TLS_CA
-    "fusion_token": "fusion_token",  # GAUSSLITE_FUSION_TOKEN
-    "fusion_token_file": "fusion_token_file",  # GAUSSLITE_FUSION_TOKEN_FILE
-    "tls_client_cert": "tls_client_cert",  # GAUSSLITE_TLS_CLIENT_CERT
-    "tls_client_key": "tls_client_key",  # GAUSSLITE_TLS_CLIENT_KEY
-}
-
-
-def _views_proto(views: dict) -> list:
-    """frame id → :class:`gausslite.evaluation.TrackedView` (pose (4, 4) camera-to-world, metres; exposure (6,)) as
-    ``TrackedPose`` messages, by frame id."""
-    return [agent_pb2.TrackedPose(frame_id=int(i), pose=common_pb2.Pose(
-        c2w=np.asarray(v.c2w, np.float64).reshape(-1).tolist()), exposure=np.asarray(v.theta).tolist())
-        for i, v in sorted(views.items())]
-
-
-def settings_from_env(config_path: Optional[str], env=None, token: Optional[str] = None) -> AgentSettings:
-    """Agent settings from environment variables (:data:`ENV`, read through
-    :class:`gausslite.core.environment.EnvironmentSettings`; ``GAUSSLITE_AGENT_SET`` holds ``;``-separated
-    ``key=value`` config overrides, ``GAUSSLITE_AGENT_AUTO_FINISH=0`` disables auto finish) and the GaussLite YAML
-    file (:func:`gausslite.config.load_config`; the agent takes its ``agent`` and ``mapper`` sections; no file: the
-    models' defaults).
-
-    Args:
-        config_path: the GaussLite YAML, or None.
-        env: the environment (default ``os.environ``).
-        token: the fleet token the agent's server requires.
-    Raises:
-        FileNotFoundError / ValueError / pydantic.ValidationError: bad config; a ``GAUSSLITE_*`` variable that does
-            not parse; an unreadable or empty ``GAUSSLITE_FUSION_TOKEN_FILE``, only one of the client certificate
-            and key.
-    """
-    variables = EnvironmentSettings.read(env)
-    kw = {k: getattr(variables, v) for k, v in ENV.items()}
-    kw = {k: v for k, v in kw.items() if v is not None and v != ()}
-    if kw.get("fusion_token_file"):
-        read_secret(kw["fusion_token_file"])  # fail at start-up, not at the first push
-    if bool(kw.get("tls_client_cert")) != bool(kw.get("tls_client_key")):
-        raise ValueError("mutual TLS needs both GAUSSLITE_TLS_CLIENT_CERT and GAUSSLITE_TLS_CLIENT_KEY")
-    tree = load_config(config_path, list(variables.agent_set))
-    log.info("effective configuration: %s", json.dumps(tree.sections("agent"), sort_keys=True))
-    return AgentSettings(**kw, token=token, config=tree.agent, auto_finish=variables.agent_auto_finish)
 
 
 def run(options: ServerOptions, config_path: Optional[str] = None) -> int:
