@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The README's test command: set-up (idempotent), then the whole test suite, spread with pytest-xdist over one worker
 # per core and one more (much of an integration test's time is spent waiting on the processes it starts);
-# GAUSSLITE_TEST_WORKERS sets the number (0: run in this process). tests/conftest.py keeps the tests that must not
-# run side by side in one worker.
+# GAUSSLITE_TEST_WORKERS sets the number (0: run in this process). Tests that must not run side by side take a lock
+# file instead of a worker of their own (the doc pages that serve on the pages' fixed ports, the one export of the
+# tiny models: tests/docs/test_doc_blocks.py, tests/conftest.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist loadgroup "$@"
+exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist load "$@"

@@ -4,6 +4,9 @@ Nothing is downloaded: the BERT vocab is written here (real BERT ids for the spe
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import json
 from pathlib import Path
 
 from tests._ci import missing
@@ -91,3 +94,30 @@ def export_models_cli(folder: Path) -> dict:
         rc = main(["export", "models", "--detector", str(ckpt), "--segmenter", "yolov8n-seg.yaml", "--out", str(out),
                    "--det-size", *map(str, DET_SIZE), "--seg-imgsz", *map(str, SEG_IMGSZ)])
     return {"rc": rc, "err": err.getvalue(), "checkpoint": ckpt, "out": out}
+
+
+def export_models_once(root: Path) -> dict:
+    """:func:`export_models_cli` built once under ``root`` and then read by every process that asks: the first to
+    take ``root/<key>.lock`` exports into ``root/<key>/`` and records the result there; the others wait on the lock
+    (as long as the export takes) and read the record. ``<key>`` hashes the export's inputs (the sizes, the seed and
+    the sources of the export code), so a ``root`` shared by the workers of a run holds one export per input.
+
+    Returns:
+        As :func:`export_models_cli`.
+    """
+    repo = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256(json.dumps([DET_SIZE, SEG_IMGSZ, 0]).encode())
+    for src in sorted([*(repo / "gausslite" / "attention").glob("*.py"), repo / "gausslite" / "cli" / "cmd_export.py",
+                       Path(__file__)]):
+        h.update(src.read_bytes())
+    key = h.hexdigest()[:16]
+    root.mkdir(parents=True, exist_ok=True)
+    folder, record = root / key, root / key / "result.json"
+    with open(root / f"{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not record.is_file():
+            folder.mkdir(exist_ok=True)
+            result = export_models_cli(folder)
+            record.write_text(json.dumps({"rc": result["rc"], "err": result["err"]}), encoding="utf-8")
+        done = json.loads(record.read_text(encoding="utf-8"))
+    return {**done, "checkpoint": folder / "gdino-ckpt", "out": folder / "models"}

@@ -41,15 +41,8 @@ INTEGRATION = {
 }
 
 
-#: test files whose tests run in one pytest-xdist worker (``--dist loadgroup``, scripts/test.sh): the doc pages start
-#: services on the ports the pages give, as a user would, so two pages at once would collide; the users of the
-#: session fixture ``exported_models`` (a minute of torch.onnx export) share one export instead of one per worker
-SERIAL_GROUPS = {"docs/test_doc_blocks.py": "doc-pages", "attention/test_onnx_real_models.py": "exported-models",
-                 "cli/test_cli_export_models.py": "exported-models"}
-
-
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of the ``INTEGRATION`` files; keep the ``SERIAL_GROUPS`` files' tests in one xdist worker."""
+    """Mark the tests of the ``INTEGRATION`` files."""
     here = Path(__file__).resolve().parent
     for item in items:
         try:
@@ -58,8 +51,8 @@ def pytest_collection_modifyitems(config, items):
             continue
         if rel in INTEGRATION:
             item.add_marker(pytest.mark.integration)
-        if rel in SERIAL_GROUPS:
-            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUPS[rel]))
+
+
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")).resolve()
 
 
@@ -151,11 +144,19 @@ def pg_schema_dsn(pg_dsn):
 # ---------------------------------------------------------------------------------------------
 # Real detector / segmenter architectures exported once (tests/_real_models.py)
 # ---------------------------------------------------------------------------------------------
+def run_folder(tmp_path_factory) -> Path:
+    """The folder of this pytest run that its pytest-xdist workers share (each worker's base folder is a child of
+    it); the base folder when the run has no workers."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
 @pytest.fixture(scope="session")
 def exported_models(tmp_path_factory) -> dict:
-    """``gausslite export models`` on the tiny random-weight Grounding DINO checkpoint and yolov8n-seg.yaml
-    (:func:`tests._real_models.export_models_cli`): the torch.onnx export of Grounding DINO is the slow part, and
-    the CLI test and the ONNX backend tests read the same files (the tests only read them)."""
-    from tests._real_models import export_models_cli
+    """``gausslite export models`` on the tiny random-weight Grounding DINO checkpoint and yolov8n-seg.yaml, built
+    once per run for all its workers (:func:`tests._real_models.export_models_once` in :func:`run_folder`): the
+    torch.onnx export of Grounding DINO is the slow part, and the CLI test and the ONNX backend tests read the same
+    files (the tests only read them)."""
+    from tests._real_models import export_models_once
 
-    return export_models_cli(tmp_path_factory.mktemp("export-models"))
+    return export_models_once(run_folder(tmp_path_factory) / "exported-models")

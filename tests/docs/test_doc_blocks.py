@@ -5,8 +5,13 @@ test makes itself, against real processes; a block that cannot run here says why
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import re
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -94,13 +99,34 @@ def test_pages_with_a_runner_of_their_own_have_it():
         assert runnable(page) and (REPO / runner).is_file() and page in (REPO / runner).read_text(encoding="utf-8")
 
 
+#: held while a page that serves on the pages' fixed ports runs, so that one such page at a time runs on this machine,
+#: whichever pytest worker or run it is in (the ports are the machine's); the other pages run side by side
+PORTS_LOCK = Path(tempfile.gettempdir()) / "gausslite-doc-pages-ports.lock"
+#: a command that serves on a port the page gives
+_SERVES = re.compile(r"gausslite (serve|view)\b|--port\b")
+
+
+def serves_on_fixed_ports(page: str) -> bool:
+    """Whether a block the page runs, or a block of a section it runs first, starts a service on a port."""
+    run = [b for b in runnable(page) if b.skip is None]
+    codes = [b.code for b in run] + [d.code for b in run for ref in b.after for d in section(ref)]
+    return any(_SERVES.search(code) for code in codes)
+
+
+def test_the_pages_that_serve_on_fixed_ports_are_found():
+    serving = {p for p in PAGES if serves_on_fixed_ports(p)}
+    assert {"README.md", "docs/live.md", "docs/fusion-and-deploy.md"} <= serving
+    assert not {"docs/ros.md", "docs/mapper.md"} & serving
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize("page", [p for p in PAGES if p not in OWN_RUNNER and any(b.skip is None for b in runnable(p))])
 def test_the_page_runs_as_written(page, workdir):
-    runner = PageRunner(workdir, timeout_s=900)
-    try:
+    with contextlib.ExitStack() as stack:
+        if serves_on_fixed_ports(page):
+            fcntl.flock(stack.enter_context(open(PORTS_LOCK, "w")), fcntl.LOCK_EX)  # released when the file closes
+        runner = PageRunner(workdir, timeout_s=900)
+        stack.callback(runner.close)
         for block in runnable(page):
             if block.skip is None:
                 runner.run(block)
-    finally:
-        runner.close()
