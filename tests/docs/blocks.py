@@ -132,6 +132,11 @@ class PageRunner:
         self.env = dict(os.environ if env is None else env)
         venv_bin = str(Path(sys.executable).parent)
         self.env["PATH"] = venv_bin + os.pathsep + self.env.get("PATH", "")
+        # the machine's Warp kernel cache, as a user's own after a first run: with an empty cache the first map of each
+        # work folder compiles the rasterizer's kernels inside its time budget, and the budget, estimated from that
+        # first keyframe, then keeps gausslite map on a 3-frame bag busy for 90 s instead of 20
+        cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+        self.env.setdefault("WARP_CACHE_PATH", str(cache / "warp"))
         self.env["HOME"] = str(self.workdir / "home")  # a page's ~/ stays in the work folder
         (self.workdir / "home").mkdir(parents=True, exist_ok=True)
         for var in [v for v in self.env if v.startswith("GAUSSLITE_") and v != "GAUSSLITE_SHARED"]:
