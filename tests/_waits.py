@@ -11,3 +11,33 @@ def wait_until(pred, timeout_s: float, poll_s: float = 0.05) -> bool:
             return False
         time.sleep(poll_s)
     return True
+
+
+#: how long a test waits for a process it started to be ready: the start of a service that imports torch and Warp,
+#: several at once on a loaded 2-core machine, with room to spare. A process that exits ends the wait at once.
+STARTUP_S = 180.0
+
+
+def wait_for_start(proc, ready, what: str, log=None, timeout_s: float = STARTUP_S) -> None:
+    """Poll ``ready()`` until it is true while ``proc`` (a ``subprocess.Popen``) runs.
+
+    Args:
+        ready: callable -> bool, e.g. "the port file has a port".
+        what: what the wait is for, as the failure message names it ("the fusion server's port file").
+        log: optional path of the process's output, whose tail the failure message shows.
+    Raises:
+        AssertionError: ``proc`` exited first, or ``timeout_s`` passed (``proc`` is then killed); the message names
+            ``what``, the seconds waited and the exit status.
+    """
+    t0 = time.monotonic()
+    while not ready():
+        waited = time.monotonic() - t0
+        if proc.poll() is not None or waited > timeout_s:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+            tail = log.read_text(errors="replace")[-3000:] if log is not None and log.exists() else ""
+            raise AssertionError(f"waited {waited:.0f} s (bound {timeout_s:.0f} s) for {what}; the process "
+                                 f"{'exited ' + str(proc.returncode) if proc.returncode is not None else 'hung'}"
+                                 + (f"; its output ends:\n{tail}" if tail else ""))
+        time.sleep(0.05)

@@ -11,7 +11,6 @@ import shlex
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -21,6 +20,7 @@ from gausslite.cli import build_parser, main
 from gausslite_services.cli.cmd_serve import SERVICES, resolve_options
 from gausslite_services.common.cli_options import server_options_from_args
 from gausslite_services.fusion_server import options as fusion_options
+from tests._waits import wait_for_start
 
 REPO = Path(__file__).resolve().parents[2]
 #: the two ways to start the fusion server, as the docs write them
@@ -178,11 +178,8 @@ def test_serve_fusion_max_message_bytes_reaches_the_running_server(tmp_path):
                              str(tmp_path / "data"), "--port-file", str(port_file), "--max-message-bytes", "262144",
                              "--log-level", "warning"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 60
-        while not port_file.exists():
-            assert proc.poll() is None, proc.stdout.read().decode()[-2000:]
-            assert time.monotonic() < deadline, "no port file"
-            time.sleep(0.05)
+        wait_for_start(proc, lambda: port_file.exists() and port_file.read_text().strip(),
+                       "the port file of gausslite serve fusion")
         port = int(port_file.read_text())
         with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:
             c.wait_ready(20)

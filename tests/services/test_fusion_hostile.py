@@ -25,6 +25,7 @@ from gausslite_services.common.convert import intrinsics_to_proto
 from gausslite_services.common.server import ServerOptions
 from gausslite_services.fusion_server.client import FusionClient
 from gausslite_services.fusion_server.server import serve
+from tests._waits import wait_for_start
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 24, 32
@@ -355,10 +356,8 @@ def test_a_decompression_bomb_leaves_a_server_process_small_and_serving(tmp_path
                              str(port_file), "--data-dir", str(tmp_path / "data")], cwd=str(REPO), env=env,
                             stdout=log, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 60
-        while not port_file.exists():
-            assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "fusion.log").read_text()
-            time.sleep(0.05)
+        wait_for_start(proc, lambda: port_file.exists() and port_file.read_text().strip(),
+                       "the fusion server's port file", tmp_path / "fusion.log")
         address = f"127.0.0.1:{int(port_file.read_text())}"
         r = np.random.default_rng(0)
         good = Frame(1, 0.0, r.integers(0, 255, (H, W, 3), dtype=np.uint8), np.full((H, W), 1.5, np.float32),

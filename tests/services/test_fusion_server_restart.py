@@ -8,7 +8,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import grpc
@@ -20,6 +19,7 @@ from gausslite.datasets.base import Frame
 from gausslite.wire.codec import LOSSLESS, GaussianArrays, assemble, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.fusion_server.client import FusionClient
+from tests._waits import wait_for_start
 
 REPO = Path(__file__).resolve().parents[2]
 INTR = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
@@ -37,15 +37,11 @@ def _start(cmd, data_dir: Path, port_file: Path, env_extra=None):
         port_file.unlink()
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.update(env_extra or {})
-    proc = subprocess.Popen(cmd, cwd=str(REPO), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 30
-    while not port_file.exists():
-        if proc.poll() is not None:
-            raise AssertionError(f"server exited {proc.returncode}: {proc.stdout.read().decode()[-2000:]}")
-        if time.monotonic() > deadline:
-            proc.kill()
-            raise AssertionError("server did not write its port file")
-        time.sleep(0.05)
+    log = data_dir.parent / f"{port_file.name}.log"
+    with open(log, "ab") as out:
+        proc = subprocess.Popen(cmd, cwd=str(REPO), env=env, stdout=out, stderr=subprocess.STDOUT)
+    wait_for_start(proc, lambda: port_file.exists() and port_file.read_text().strip(),
+                   f"the fusion server's port file {port_file}", log)
     return proc, int(port_file.read_text().strip())
 
 
@@ -53,7 +49,6 @@ def _kill(proc):
     if proc.poll() is None:
         proc.send_signal(signal.SIGKILL)
     proc.wait(10)
-    proc.stdout.close()
 
 
 def test_sigkill_mid_upload_then_resume(tmp_path):

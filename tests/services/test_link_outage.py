@@ -12,8 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from gausslite.datasets import load_dataset
 from gausslite.parser import TaskParser
 from gausslite.synthetic import make_scene
@@ -21,7 +19,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentServicer
 from gausslite_services.fusion_server.client import FusionClient
-from tests._waits import wait_until
+from tests._waits import wait_for_start, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
@@ -35,15 +33,13 @@ def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subpr
     if port_file.exists():
         port_file.unlink()
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", str(port),
-                             "--data-dir", str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 30
-    while not port_file.exists() or not port_file.read_text().strip():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            pytest.fail(f"fusion server did not start (exit {proc.poll()})")
-        time.sleep(0.05)
+    log = data_dir.parent / f"{port_file.name}.log"
+    with open(log, "ab") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", str(port),
+                                 "--data-dir", str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
+                                stdout=out, stderr=subprocess.STDOUT)
+    wait_for_start(proc, lambda: port_file.exists() and port_file.read_text().strip(),
+                   f"the fusion server's port file {port_file}", log)
     return proc, int(port_file.read_text().strip())
 
 
