@@ -23,8 +23,10 @@ is more than 5 cm or 3° from the truth); the frames lost and re-localised; RPE 
 tracked (not lost); the odometry's wall-clock time per frame (``track`` alone: the frames are read first). Each
 variant (``--variants``) is an ``OdometryConfig``: ``default`` (the shipped settings: tracked at about 160 pixels
 wide), ``mapping_resolution`` (tracked at the sequence's own resolution), ``frame_to_frame`` (the shipped settings
-registering against the previous frame only), ``no_loops`` (the shipped settings without loop closure) and
-``no_relocalisation`` (without re-localisation).
+registering against the previous frame only), ``no_loops`` (the shipped settings without loop closure),
+``no_relocalisation`` (without re-localisation), and the registration's residuals: ``open3d_huber`` (Open3D's own
+photometric Huber threshold, 0.1, instead of 0.5), ``photometric`` (the colour term alone) and ``geometric``
+(point-to-plane alone).
 
 ``--gains GIVEN.json,ODOMETRY.json`` compares the ROI gain (GaussLite − uniform, ``novel``) of live missions at the
 odometry's poses with the gain at the given poses, from two ``bench.realtime`` runs (:func:`pose_gains`).
@@ -71,7 +73,10 @@ RESULTS = REPO / "bench" / "results"
 #: the odometry settings compared (``OdometryConfig`` fields over the defaults)
 VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             "frame_to_frame": {"reference": "previous_frame"}, "no_loops": {"loop": {"enabled": False}},
-            "no_relocalisation": {"relocalise": {"enabled": False}}}
+            "no_relocalisation": {"relocalise": {"enabled": False}},
+            # the registration's residuals: Open3D's own Huber threshold on the photometric term, and each term alone
+            "open3d_huber": {"intensity_huber_delta": 0.1}, "photometric": {"method": "color"},
+            "geometric": {"method": "point_to_plane"}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered")
 #: a loop closure whose relative pose is further than this from the reference's is a false loop (metres, degrees)
 FALSE_LOOP = (0.05, 3.0)

@@ -369,6 +369,28 @@ def odometry_table(r: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def odometry_residuals_table(r: dict) -> str:
+    """The odometry's ATE per registration variant (rows) and sequence (columns), with its loops (and the false ones)
+    and the share of frames tracked when some were lost (``bench/results/odometry_residuals.json``)."""
+    seqs = [s for s in ODOMETRY_SEQUENCES if s in r["sequences"]]
+    variants = list(dict.fromkeys(v for s in seqs for v in r["sequences"][s]))
+    rows = ["| variant | " + " | ".join(f"{ODOMETRY_SEQUENCES[s]}: ATE cm (loops)" for s in seqs) + " |",
+            "|---|" + "---|" * len(seqs)]
+    for var in variants:
+        cells = []
+        for s in seqs:
+            v = r["sequences"][s].get(var)
+            lp = v and v["loops"]
+            if v is None:
+                cells.append("—")
+                continue
+            tracked = "" if v["tracked_fraction"] >= 1 else f", {100 * v['tracked_fraction']:.0f} % tracked"
+            false = f", {lp['false']} false" if lp["false"] else ""
+            cells.append(f"{num(100 * v['ate_rmse_m'])} ({lp['accepted']}{false}{tracked})")
+        rows.append(f"| `{var}` | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
+
+
 def _gain_cell(v: dict) -> str:
     m, ci = v.get("gain", v.get("mean")), v.get("gain_ci") or v.get("ci")
     return signed(m) + ("" if not ci else f" [{signed(ci[0])}, {signed(ci[1])}]")
@@ -891,6 +913,7 @@ REGIONS: Dict[str, Region] = {
     "test-minutes": Region("bench/results/first_run.json", suite_minutes),
     "odometry": Region("bench/results/odometry.json", odometry_table),
     "odometry-gains": Region("bench/results/odometry_gains.json", pose_gains_table),
+    "odometry-residuals": Region("bench/results/odometry_residuals.json", odometry_residuals_table),
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),

@@ -19,7 +19,8 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/history.md", "sim-seeds"), ("docs/history.md", "sim-seeds-minutes"),
             ("docs/realtime.md", "realtime-protocols"), ("docs/mapper.md", "odometry"),
             ("docs/design.md", "pose-graph-solvers"), ("docs/mapper.md", "odometry-gains"),
-            ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "map-budget"),
+            ("docs/mapper.md", "odometry-live"), ("docs/mapper.md", "odometry-residuals"),
+            ("docs/mapper.md", "map-budget"),
             ("docs/mapper.md", "detail-live"), ("docs/realtime.md", "pose-perturbation"),
             ("docs/realtime.md", "compute-sweep"), ("docs/sharing.md", "team-long"), ("docs/realtime.md", "compute-sweep-synthetic"),
             *(("docs/results.md", name) for name in (
