@@ -29,7 +29,7 @@ def test_store_env_var_alone_selects_postgresql(tmp_path, pg_schema_dsn):
             c.open_session("env-agent", "inspect the valve", INTR)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
-        out = proc.stdout.read().decode()
+        out = (tmp_path / "port.log").read_text()  # the server's output, as _start writes it
     finally:
         _kill(proc)
     assert f"(postgresql, schema {SCHEMA_VERSION})" in out, out[-2000:]
