@@ -357,10 +357,11 @@ class BudgetedMapping:
         return self.reserve if self.reserve is not None else self.provisional
 
     def iter_seconds(self) -> Optional[float]:
-        """Seconds per iteration (seeding included) of the recent keyframes (the first, which seeds twice as much,
-        only while it is the only one); None before any."""
-        m = self.measured[1:] if len(self.measured) > 1 else self.measured
-        m = m[-ITER_WINDOW:]
+        """Seconds per iteration (seeding included) of the recent keyframes after the first; None before the second.
+        The first keyframe is never measured against: it seeds twice as much, and on a fresh install its time holds
+        the renderer's one-time kernel compilation, which would shrink every later keyframe's share (until then the
+        work model's estimate, :meth:`first_iter_seconds`, stands in)."""
+        m = self.measured[1:][-ITER_WINDOW:]
         return sum(s for s, _ in m) / max(1, sum(n for _, n in m)) if m else None
 
     def map_keyframe(self, k: int):
