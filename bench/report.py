@@ -380,10 +380,10 @@ def odometry_residuals_table(r: dict) -> str:
         cells = []
         for s in seqs:
             v = r["sequences"][s].get(var)
-            lp = v and v["loops"]
             if v is None:
                 cells.append("—")
                 continue
+            lp = v["loops"]
             tracked = "" if v["tracked_fraction"] >= 1 else f", {100 * v['tracked_fraction']:.0f} % tracked"
             false = f", {lp['false']} false" if lp["false"] else ""
             cells.append(f"{num(100 * v['ate_rmse_m'])} ({lp['accepted']}{false}{tracked})")

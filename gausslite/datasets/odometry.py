@@ -301,8 +301,7 @@ class RGBDOdometry:
         valid = int(np.count_nonzero((frame.depth > 0) & (frame.depth < c.depth_max_m)))
         # the information matrix is the sum over correspondences of J^T J with J = [-[p]x | I]: its translation
         # block holds the number of correspondences on the diagonal
-        n_corr = float(info[3, 3]) if np.size(info) == 36 else 0.0
-        return bool(ok), np.asarray(T, np.float64), info, (n_corr / valid if valid else 0.0)
+        return bool(ok), T, info, (float(info[3, 3]) / valid if valid else 0.0)
 
     @staticmethod
     def _root(T: np.ndarray, steps: int) -> np.ndarray:
