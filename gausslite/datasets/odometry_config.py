@@ -52,6 +52,10 @@ class OdometryConfig(BaseModel):
         track_width: frames are tracked downscaled by the integer factor that brings their width nearest this
             (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.
         max_step_m, max_step_deg: an estimate further than these from the last good pose fails (a jump).
+        prediction_check_m, prediction_check_deg: an estimate further than these (per frame since the last good
+            pose) from the motion's prediction is checked against a second registration, to the latest keyframe, and
+            the one nearer the prediction is kept (a registration to a far keyframe can converge to a wrong pose that
+            passes the fitness check).
         loop: loop closure over the keyframes (:class:`~gausslite.datasets.pose_graph.LoopConfig`).
         relocalise: re-localisation of lost frames (:class:`~gausslite.datasets.pose_graph.RelocConfig`).
     """
@@ -74,6 +78,8 @@ class OdometryConfig(BaseModel):
     track_width: Optional[int] = Field(160, ge=16)
     max_step_m: float = Field(0.3, gt=0)
     max_step_deg: float = Field(30.0, gt=0)
+    prediction_check_m: float = Field(0.08, gt=0)
+    prediction_check_deg: float = Field(8.0, gt=0)
     loop: LoopConfig = Field(default_factory=LoopConfig)
     relocalise: RelocConfig = Field(default_factory=RelocConfig)
 

@@ -133,6 +133,41 @@ def test_an_implausible_jump_fails():
     assert odo._implausible(T) == ""
 
 
+def _off_by(odo: RGBDOdometry, metres: float):
+    """``odo.register`` made to converge ``metres`` away from its initial guess when it registers to a keyframe other
+    than the previous frame (the far-keyframe failure the prediction check guards against)."""
+    register = odo.register
+
+    def wrong_far(frame, image, ref, init):
+        if ref is odo._prev:
+            return register(frame, image, ref, init)
+        T = np.array(init, np.float64)
+        T[0, 3] += metres
+        return True, T, np.eye(6), 0.9
+
+    odo.register = wrong_far
+
+
+@pytest.mark.parametrize("check_m, kept_wrong", [(0.08, False), (10.0, True)])
+def test_a_registration_far_from_the_prediction_gets_a_second_opinion(scene, check_m, kept_wrong):
+    frames = list(load_dataset(scene / "agent_a", pose_source="given"))
+    # keyframes far apart, so that frames register to a keyframe older than the previous frame
+    cfg = OdometryConfig(keyframe_trans_m=5.0, keyframe_rot_deg=170.0, loop={"enabled": False},
+                         prediction_check_m=check_m)
+    odo = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
+    _off_by(odo, 0.2)
+    results = [odo.track(f) for f in frames]
+    ok = np.array([r.ok for r in results])
+    est = np.stack([odo.corrected(r) for r in results])
+    ref = np.stack([f.c2w for f in frames])
+    if kept_wrong:  # each frame 0.2 m off its prediction, and the motion prior carries it on until jumps fail
+        assert not ok.all() or ate_rmse(est, ref) > 0.1
+        return
+    assert ok.all() and odo.n_keyframes == 1
+    assert all(r.reference == frames[0].frame_id and r.anchor == frames[0].frame_id for r in results[1:])
+    assert ate_rmse(est, ref) < 0.03  # the previous frame's registrations kept
+
+
 def test_the_pose_source_of_a_dataset_with_and_without_poses(scene, tmp_path):
     posed = load_dataset(scene / "agent_a")
     assert posed.has_poses and with_pose_source(posed, "auto") is posed
