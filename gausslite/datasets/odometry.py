@@ -202,7 +202,7 @@ class RGBDOdometry:
             return self._relocalise(frame, image, pred) or self._fail(frame, "not re-localised", 0.0, ref)
         ok, T, info, fitness = self.register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
         if ok and ref is not self._prev and self._off_prediction(ref.c2w @ T, pred, steps):
-            ok, T, info, fitness = self._second_opinion(frame, image, pred, ref, (ok, T, info, fitness))
+            ok, T, info, fitness = self._second_opinion(frame, image, pred, steps, ref, (ok, T, info, fitness))
         c2w = ref.c2w @ T
         reason = "" if ok else "Open3D's odometry did not converge"
         # after a loss the motion prior means little: the estimate must pass the re-localisation's fitness
@@ -313,24 +313,26 @@ class RGBDOdometry:
         return (float(np.linalg.norm(d[:3, 3])) > c.prediction_check_m * steps
                 or rotation_angle_deg(d) > c.prediction_check_deg * steps)
 
-    def _second_opinion(self, frame: Frame, image, pred: np.ndarray, ref: _Keyframe, got: tuple) -> tuple:
+    def _second_opinion(self, frame: Frame, image, pred: np.ndarray, steps: int, ref: _Keyframe, got: tuple) -> tuple:
         """The frame registered again, to the previous good frame, after its registration to the keyframe ``ref``
         (``got``: :meth:`register`'s result) landed far from the motion's prediction ``pred``: a registration to a
         keyframe far back in time can converge to a wrong pose that passes the fitness check, and the previous frame
-        is the nearest in time. Returns :meth:`register`'s result, relative to ``ref``, of the registration that lands
-        nearer the prediction."""
+        is the nearest in time. The second is kept when it passes the fitness check, lands within the check's bounds
+        of the prediction (``steps`` frames since the last good pose) and nearer it than the first. Returns
+        :meth:`register`'s result, relative to ``ref``, of the registration kept."""
         prev = self._prev
         alt = self.register(frame, image, prev, np.linalg.inv(prev.c2w) @ pred)
-        if not alt[0]:
-            return got
         c = self.config
+        if not alt[0] or alt[3] < c.min_fitness:
+            return got
 
         def off(c2w: np.ndarray) -> float:  # distance from the prediction, in units of the check's bounds
             d = np.linalg.inv(pred) @ c2w
-            return max(float(np.linalg.norm(d[:3, 3])) / c.prediction_check_m, rotation_angle_deg(d) / c.prediction_check_deg)
+            return max(float(np.linalg.norm(d[:3, 3])) / c.prediction_check_m,
+                       rotation_angle_deg(d) / c.prediction_check_deg) / steps
 
         c2w = prev.c2w @ alt[1]
-        if off(c2w) >= off(ref.c2w @ got[1]):
+        if off(c2w) > 1.0 or off(c2w) >= off(ref.c2w @ got[1]):  # the second must agree with the motion
             return got
         log.debug("odometry: frame %d kept its registration to the previous frame %d: keyframe %d's lands further "
                   "from the motion's prediction", frame.frame_id, prev.frame_id, ref.frame_id)
