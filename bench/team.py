@@ -154,6 +154,8 @@ def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Pa
                 "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
                 "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
                 "_own_map": GaussianArrays.from_any(rt.mapper.gmap), "_predicted": predicted,
+                # every keyframe the robot holds with its ROI: the views its on-board team map is culled in
+                "_own_views": [kf for kf in rt.mapper.keyframes if kf.roi is not None],
                 "_frames": ds.frames, "_annotations": ann}
     finally:
         rt.close()
@@ -206,9 +208,12 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
         for a in agents:
             if a["id"] not in final:
                 continue
-            base = final[a["id"]] if key == "for_robot" else a["_own_map"]
-            m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], base,
-                             [k for k in a["_keyframes"] if k.roi is not None])
+            if key == "for_robot":  # on the server: the robot's subset, culled in the ROI views it uploaded
+                m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], final[a["id"]],
+                                 [k for k in a["_keyframes"] if k.roi is not None])
+            else:  # on board: its whole map, culled in every keyframe it holds (with_own_map's default)
+                m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], a["_own_map"], a["_own_views"],
+                                 max_views=None)
             out[key]["n"][a["id"]] = len(m)
             robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
             if key == "with_own":

@@ -165,8 +165,8 @@ def roi_guard(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
 
 
 def for_robot(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[str], robot: str,
-              subset: GaussianArrays, views: Sequence, *, min_weight: float = 0.01, max_views: int = 16,
-              backend: str = "auto") -> tuple[GaussianArrays, dict]:
+              subset: GaussianArrays, views: Sequence, *, min_weight: float = 0.01,
+              max_views: Optional[int] = 16, backend: str = "auto") -> tuple[GaussianArrays, dict]:
     """The team map as one robot uses it: its own subset whole, and the team's vote wherever its ROI views do not
     look (``docs/sharing.md``, "The team map for one robot").
 
@@ -182,7 +182,7 @@ def for_robot(fused: GaussianArrays, source_agent: np.ndarray, agents: Sequence[
         robot: the robot's agent id (in ``agents``).
         subset: that robot's shared subset as the server holds it (the vote's input).
         views: its ROI views (as :func:`roi_weights`; the server's uploaded keyframes with their ROI), at most
-            ``max_views`` of them evenly spaced.
+            ``max_views`` of them evenly spaced (None: all of them).
         min_weight: another agent's row that draws more than this (pixels of blending weight per view) of the robot's
             ROI is dropped (>= 0). Default sim (``docs/sharing.md``): 0.01 keeps the robot's region within 0.1 dB of
             its subset alone, 0.05 within 0.7 dB, at the cost of 0.2–0.6 dB on the other robots' regions.
@@ -234,8 +234,8 @@ def provenance_rows(first_row: Mapping[str, int], kept: Mapping[str, int], n_row
 
 
 def with_own_map(fused: GaussianArrays, first_row: Mapping[str, int], kept: Mapping[str, int], robot: str,
-                 own_map: GaussianArrays, views: Sequence, *, min_weight: float = 0.01, max_views: int = 16,
-                 backend: str = "auto") -> tuple[GaussianArrays, dict]:
+                 own_map: GaussianArrays, views: Sequence, *, min_weight: float = 0.01,
+                 max_views: Optional[int] = None, backend: str = "auto") -> tuple[GaussianArrays, dict]:
     """The team map as a robot should load it, made on the robot: its own WHOLE map, and the other robots' rows of a
     vote (the team vote or ``Fuse(for_agent=robot)``) except those that draw the robot's ROI in its own views
     (``docs/sharing.md``, "The team map for one robot").
@@ -250,8 +250,12 @@ def with_own_map(fused: GaussianArrays, first_row: Mapping[str, int], kept: Mapp
         first_row, kept: its provenance (``FuseResult.first_row`` / ``kept``); the refined team map has none.
         robot: the robot's agent id; its rows in ``fused`` are replaced by ``own_map``.
         own_map: the robot's own map (``Mapper.gmap`` as arrays, or its ``map.ply``), world frame.
-        views: its ROI views (:func:`roi_weights`: its keyframes with their relevance maps).
-        min_weight, max_views, backend: as :func:`for_robot`.
+        views: its ROI views (:func:`roi_weights`): every keyframe it holds, with its ROI mask. A robot culls in all of
+            them (``max_views`` None): culled in the few ROI views it uploads, others' rows that draw its region from
+            the views in between stay, and on long missions they cost its region up to 0.13 dB
+            (``docs/sharing.md``, "The team map made on board").
+        min_weight, backend: as :func:`for_robot`.
+        max_views: at most this many of ``views``, evenly spaced (None: all of them).
     Returns:
         (map, stats) as :func:`for_robot`: the robot's own map's rows first.
     Raises:

@@ -110,7 +110,8 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
         g = GaussianArrays.from_any(m.gmap)
         kfs = [keyframe_from_frame(fr, "cpu", roi) for fr in frames[lo:lo + 3:2]]  # 2 uploaded keyframes
         agents.append({"id": aid, "task": f"t{n}", "_history": [(1.0 + n, g)], "_keyframes": kfs, "_frames": frames,
-                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6], "_own_map": g})
+                       "_annotations": _Ann(), "_seen": m.seen_by_this_camera, "_novel": [6], "_own_map": g,
+                       "_own_views": [kf for kf in m.keyframes if kf.roi is not None]})
     fuse = {"voxel_size": 0.1, "contest_radius": 0, "refine_iters": 2}
     out = team.fused_scores(agents, fuse, 0, 3, track_iters=3, track_stride=4, renders=tmp_path / "renders")
     # one picture per robot at its middle withheld frame: own | vote | on board | frame, each H x W
