@@ -463,7 +463,8 @@ def compute_sweep_table(r: dict) -> str:
 
 
 def team_long_table(r: dict) -> str:
-    """Long live teams under ``novel``: each team map − each robot's own map (``bench/results/team_long.json``)."""
+    """Long live teams under ``novel``: each team map − each robot's own map (``bench/results/team_long.json``, and
+    ``team_long_onboard.json``: the team map made on board culled in every keyframe the robot holds)."""
     from bench.team import long_table  # lazy: the page's other regions need none of it
 
     return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, long_table(r)) + "\n"
@@ -921,6 +922,7 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
+    "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
     "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
     # docs/results.md's summary
     "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),
