@@ -196,8 +196,9 @@ class _LocalFuse:
 def _with_own_maps(out: Path, plans: List[AgentPlan], vote, eval_frames: Dict[str, tuple], kf_poses: Dict[str, dict],
                    backend: str):
     """Each robot's team map made on board (:func:`gausslite.fusion.guard.with_own_map`): its own map as its agent
-    wrote it and the vote's rows of the others, culled in its keyframes (the frames it mapped, at its keyframe poses,
-    with its task's ROI). ``vote``: (the vote's map, its fuse result with provenance), or None.
+    wrote it and the vote's rows of the others, culled in every keyframe the robot holds (its checkpoint's keyframes,
+    :func:`own_keyframe_poses`; else the keyframes it uploaded, ``kf_poses``), at their poses, with its task's ROI.
+    ``vote``: (the vote's map, its fuse result with provenance), or None.
 
     Returns:
         ``(gmaps, res)`` as :func:`score_fused_maps`'s ``fuse``; (None, None) without a vote or an own map of every
@@ -211,9 +212,10 @@ def _with_own_maps(out: Path, plans: List[AgentPlan], vote, eval_frames: Dict[st
     vote_map, res = vote
     fused = GaussianArrays.from_any(vote_map)
     gmaps, own_rows = {}, {}
+    held = own_keyframe_poses(out, [p.name for p in plans])
     for p in plans:
         ds, frames = eval_frames[p.name]
-        poses = kf_poses.get(p.name, {})
+        poses = held.get(p.name) or kf_poses.get(p.name, {})
         keyframes = [dataclasses.replace(fr, c2w=np.asarray(poses[int(fr.frame_id)]))
                      for fr in frames if int(fr.frame_id) in poses]
         views = RoiView.of_frames(keyframes, task_roi(ds.annotations, p.task_id))
@@ -262,6 +264,27 @@ def own_map_files(out: Path, agent_ids: List[str]) -> Dict[str, str]:
         if found:
             files[a] = str(found[-1].relative_to(out))
     return files
+
+
+def own_keyframe_poses(out: Path, agent_ids: List[str]) -> Dict[str, dict]:
+    """Every keyframe each robot holds, from the checkpoint its agent wrote beside its map
+    (``data/agents/<agent>/<mission>/checkpoint.pt``, the newest mission's): agent id → {frame id → (4, 4) float64
+    camera-to-world, world frame}. Robots without a readable checkpoint are left out (logged)."""
+    import torch  # lazy: the checkpoint is a torch file; the report's other parts need none of it
+
+    poses = {}
+    for a in agent_ids:
+        found = sorted((out / "data" / "agents" / a).glob("*/checkpoint.pt"), key=lambda f: f.stat().st_mtime)
+        if not found:
+            continue
+        try:
+            state = torch.load(found[-1], map_location="cpu", weights_only=False)
+            kfs = state["mapper"]["keyframes"]
+            poses[a] = {int(k["frame_id"]): np.asarray(torch.as_tensor(k["c2w"]), np.float64) for k in kfs}
+        except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
+            log.warning("%s: no keyframes read from %s (%s); its on-board team map is culled in its uploaded ones",
+                        a, found[-1], e)
+    return poses
 
 
 def _roi_frame(frames: list, annotations, task_id: str) -> Optional[int]:
