@@ -60,7 +60,7 @@ from gausslite.evaluation import (NOVEL_EVERY, PROTOCOLS, WITHHELD_PROTOCOLS, Fr
                                   evaluate_fused_frames, roi_psnr_frames, withheld_indices)
 from gausslite.stats import fmt_gain, paired_gain
 from gausslite.fusion.diagnose import RoiView
-from gausslite.fusion.guard import for_robot
+from gausslite.fusion.guard import ON_BOARD_MIN_WEIGHT, for_robot
 from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.mission.fakes import RecordingFusion
@@ -213,7 +213,7 @@ def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, pr
                                  [k for k in a["_keyframes"] if k.roi is not None])
             else:  # on board: its whole map, culled in every keyframe it holds (with_own_map's default)
                 m, _ = for_robot(vote, report.source_agent, report.agents, a["id"], a["_own_map"], a["_own_views"],
-                                 max_views=None)
+                                 min_weight=ON_BOARD_MIN_WEIGHT, max_views=None)
             out[key]["n"][a["id"]] = len(m)
             robot[a["task"]] = _by_protocol(m.to_gaussian_map(), a, protocols, track_iters, track_stride)
             if key == "with_own":
