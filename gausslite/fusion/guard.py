@@ -258,7 +258,7 @@ def with_own_map(fused: GaussianArrays, first_row: Mapping[str, int], kept: Mapp
         own_map: the robot's own map (``Mapper.gmap`` as arrays, or its ``map.ply``), world frame.
         views: its ROI views (:func:`roi_weights`): every keyframe it holds, with its ROI mask. A robot culls in all of
             them (``max_views`` None): culled in the few ROI views it uploads, others' rows that draw its region from
-            the views in between stay, and on long missions they cost its region up to 0.13 dB
+            the views in between stay, and on long missions they cost its region up to 0.18 dB
             (``docs/sharing.md``, "The team map made on board").
         min_weight: another robot's row that draws more than this (pixels of blending weight per view) of the robot's
             ROI is dropped (>= 0). 0.001, a tenth of :func:`for_robot`'s: on the default sim (3 seeds) the robots'
