@@ -201,8 +201,8 @@ class RGBDOdometry:
             # after a loss the camera may be anywhere: only a re-localisation, with its stricter gates, finds it again
             return self._relocalise(frame, image, pred) or self._fail(frame, "not re-localised", 0.0, ref)
         ok, T, info, fitness = self.register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
-        if ok and ref is not self._prev and self._off_prediction(ref.c2w @ T, pred, steps):
-            ok, T, info, fitness = self._second_opinion(frame, image, pred, steps, ref, (ok, T, info, fitness))
+        if ok and ref is not self._prev and (off := self._from_prediction(ref.c2w @ T, pred, steps)) > 1.0:
+            ok, T, info, fitness = self._second_opinion(frame, image, pred, steps, ref, (ok, T, info, fitness), off)
         c2w = ref.c2w @ T
         reason = "" if ok else "Open3D's odometry did not converge"
         # after a loss the motion prior means little: the estimate must pass the re-localisation's fitness
@@ -305,34 +305,29 @@ class RGBDOdometry:
         # block holds the number of correspondences on the diagonal
         return bool(ok), T, info, (float(info[3, 3]) / valid if valid else 0.0)
 
-    def _off_prediction(self, c2w: np.ndarray, pred: np.ndarray, steps: int = 1) -> bool:
-        """``c2w`` lies further from the motion's prediction ``pred`` than ``prediction_check_m`` /
-        ``prediction_check_deg`` per frame since the last good pose."""
+    def _from_prediction(self, c2w: np.ndarray, pred: np.ndarray, steps: int = 1) -> float:
+        """How far ``c2w`` lies from the motion's prediction ``pred``, in units of the prediction check's bounds
+        (``prediction_check_m`` / ``prediction_check_deg`` per frame since the last good pose): above 1 is off it."""
         c = self.config
         d = np.linalg.inv(pred) @ c2w
-        return (float(np.linalg.norm(d[:3, 3])) > c.prediction_check_m * steps
-                or rotation_angle_deg(d) > c.prediction_check_deg * steps)
+        return max(float(np.linalg.norm(d[:3, 3])) / c.prediction_check_m,
+                   rotation_angle_deg(d) / c.prediction_check_deg) / steps
 
-    def _second_opinion(self, frame: Frame, image, pred: np.ndarray, steps: int, ref: _Keyframe, got: tuple) -> tuple:
+    def _second_opinion(self, frame: Frame, image, pred: np.ndarray, steps: int, ref: _Keyframe, got: tuple,
+                        off: float) -> tuple:
         """The frame registered again, to the previous good frame, after its registration to the keyframe ``ref``
-        (``got``: :meth:`register`'s result) landed far from the motion's prediction ``pred``: a registration to a
-        keyframe far back in time can converge to a wrong pose that passes the fitness check, and the previous frame
-        is the nearest in time. The second is kept when it passes the fitness check, lands within the check's bounds
-        of the prediction (``steps`` frames since the last good pose) and nearer it than the first. Returns
-        :meth:`register`'s result, relative to ``ref``, of the registration kept."""
+        (``got``: :meth:`register`'s result) landed ``off`` (:meth:`_from_prediction`) from the motion's prediction
+        ``pred``: a registration to a keyframe far back in time can converge to a wrong pose that passes the fitness
+        check, and the previous frame is the nearest in time. The second is kept when it passes the fitness check,
+        lands within the check's bounds of the prediction (``steps`` frames since the last good pose) and nearer it
+        than the first. Returns :meth:`register`'s result, relative to ``ref``, of the registration kept."""
         prev = self._prev
         alt = self.register(frame, image, prev, np.linalg.inv(prev.c2w) @ pred)
-        c = self.config
-        if not alt[0] or alt[3] < c.min_fitness:
+        if not alt[0] or alt[3] < self.config.min_fitness:
             return got
-
-        def off(c2w: np.ndarray) -> float:  # distance from the prediction, in units of the check's bounds
-            d = np.linalg.inv(pred) @ c2w
-            return max(float(np.linalg.norm(d[:3, 3])) / c.prediction_check_m,
-                       rotation_angle_deg(d) / c.prediction_check_deg) / steps
-
         c2w = prev.c2w @ alt[1]
-        if off(c2w) > 1.0 or off(c2w) >= off(ref.c2w @ got[1]):  # the second must agree with the motion
+        alt_off = self._from_prediction(c2w, pred, steps)
+        if alt_off > 1.0 or alt_off >= off:  # the second must agree with the motion
             return got
         log.debug("odometry: frame %d kept its registration to the previous frame %d: keyframe %d's lands further "
                   "from the motion's prediction", frame.frame_id, prev.frame_id, ref.frame_id)

@@ -53,9 +53,9 @@ class OdometryConfig(BaseModel):
             (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.
         max_step_m, max_step_deg: an estimate further than these from the last good pose fails (a jump).
         prediction_check_m, prediction_check_deg: an estimate further than these (per frame since the last good
-            pose) from the motion's prediction is checked against a second registration, to the latest keyframe, and
-            the one nearer the prediction is kept (a registration to a far keyframe can converge to a wrong pose that
-            passes the fitness check).
+            pose) from the motion's prediction gets a second registration, to the previous good frame, kept when it
+            passes the fitness check and lands within these bounds and nearer the prediction (a registration to a
+            keyframe far back in time can converge to a wrong pose that passes the fitness check).
         loop: loop closure over the keyframes (:class:`~gausslite.datasets.pose_graph.LoopConfig`).
         relocalise: re-localisation of lost frames (:class:`~gausslite.datasets.pose_graph.RelocConfig`).
     """
