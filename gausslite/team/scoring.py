@@ -260,10 +260,16 @@ def own_map_files(out: Path, agent_ids: List[str]) -> Dict[str, str]:
     mission's), relative to ``out``; robots without one are left out."""
     files = {}
     for a in agent_ids:
-        found = sorted((out / "data" / "agents" / a).glob("*/map.ply"), key=lambda f: f.stat().st_mtime)
-        if found:
-            files[a] = str(found[-1].relative_to(out))
+        found = _newest_mission_file(out, a, "map.ply")
+        if found is not None:
+            files[a] = str(found.relative_to(out))
     return files
+
+
+def _newest_mission_file(out: Path, agent_id: str, name: str) -> Optional[Path]:
+    """``out/data/agents/<agent_id>/<mission>/<name>`` of the newest mission that wrote one, or None."""
+    found = sorted((out / "data" / "agents" / agent_id).glob(f"*/{name}"), key=lambda f: f.stat().st_mtime)
+    return found[-1] if found else None
 
 
 def own_keyframe_poses(out: Path, agent_ids: List[str]) -> Dict[str, dict]:
@@ -274,16 +280,16 @@ def own_keyframe_poses(out: Path, agent_ids: List[str]) -> Dict[str, dict]:
 
     poses = {}
     for a in agent_ids:
-        found = sorted((out / "data" / "agents" / a).glob("*/checkpoint.pt"), key=lambda f: f.stat().st_mtime)
-        if not found:
+        found = _newest_mission_file(out, a, "checkpoint.pt")
+        if found is None:
             continue
         try:
-            state = torch.load(found[-1], map_location="cpu", weights_only=False)
+            state = torch.load(found, map_location="cpu", weights_only=False)
             kfs = state["mapper"]["keyframes"]
             poses[a] = {int(k["frame_id"]): np.asarray(torch.as_tensor(k["c2w"]), np.float64) for k in kfs}
         except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
             log.warning("%s: no keyframes read from %s (%s); its on-board team map is culled in its uploaded ones",
-                        a, found[-1], e)
+                        a, found, e)
     return poses
 
 
