@@ -470,6 +470,14 @@ def team_long_table(r: dict) -> str:
     return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, long_table(r)) + "\n"
 
 
+def team_long_curve_table(r: dict) -> str:
+    """The share curve of long live teams under ``novel`` (``bench/results/team_long_share.json``: the team results at
+    each ``agent.share.max_fraction``, each fused map − each robot's own map)."""
+    from bench.team import curve_table  # lazy: the page's other regions need none of it
+
+    return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, curve_table(r["share_curve"]["teams"])) + "\n"
+
+
 # ---------------------------------------------------------------- the summary page (docs/results.md)
 
 #: the cumulative rows of ``gausslite ablate`` (the paper's Table 3), in order
@@ -699,6 +707,50 @@ def team_map_gains(r: dict, fused: str = "team_map", protocol: str = "novel") ->
     return " / ".join(cells)
 
 
+#: the maps of the sim's team-map table, in order: (summary key, row title)
+TEAM_MAP_ROWS = (("vote", "vote"), ("team_map", "**served team map**"), ("for_robot", "map for the robot"),
+                 ("with_own", "team map made on board"))
+#: its protocols: (protocol, column title)
+TEAM_MAP_PROTOCOLS = (("sensor", "`sensor`"), ("novel", "**`novel`**"), ("novel-tracked", "`novel-tracked`"),
+                      ("novel-tracked@own", "`novel-tracked@own`"))
+
+
+def team_map_table(r: dict) -> str:
+    """``bench.team_map``: each fused map − each robot's own map, one row per map (:data:`TEAM_MAP_ROWS`, those the
+    result holds) and one column per protocol (:data:`TEAM_MAP_PROTOCOLS`), both tasks in a cell (in the summary's
+    task order, reversed: pick-object / find-chair on the default scene): the mean of the per-run gains, under
+    ``novel`` with its run-clustered interval (:func:`run_clustered`).
+
+    Raises:
+        ReportError: the summary has no vote or no ``novel`` figures.
+    """
+    fused = r.get("summary", {}).get("fused", {})
+    if "vote" not in fused:
+        raise ReportError("the team-map summary has no vote")
+    tasks = sorted(fused["vote"], reverse=True)
+    head = ["| map | " + " | ".join(t for _, t in TEAM_MAP_PROTOCOLS) + " |", "|---|" + "---|" * len(TEAM_MAP_PROTOCOLS)]
+    rows = []
+    for key, title in TEAM_MAP_ROWS:
+        if key not in fused:
+            continue
+        cells = []
+        for q, _ in TEAM_MAP_PROTOCOLS:
+            vals = []
+            for t in tasks:
+                blk = fused[key].get(t, {}).get(q)
+                if not blk or blk.get("mean") is None:
+                    vals.append("–")
+                elif q == "novel":
+                    vals.append(gain_text(run_clustered(blk["per_run"])))
+                else:
+                    vals.append(f"{blk['mean']:+.2f}".replace("-", MINUS))
+            cells.append(" / ".join(vals))
+        rows.append(f"| {title} | " + " | ".join(cells) + " |")
+    if not any("[" in row for row in rows):
+        raise ReportError("the team-map summary has no novel figures")
+    return "\n".join(head + rows) + "\n"
+
+
 def team_map_acks_text(r: dict) -> str:
     """``bench.team_map_acks``: push acknowledgements' p99 while the team map refines against without a team map."""
     ph = {p["team_map"]: p for p in r["phases"]}
@@ -923,6 +975,7 @@ REGIONS: Dict[str, Region] = {
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
     "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
+    "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),
     "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
     # docs/results.md's summary
     "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),
@@ -950,6 +1003,8 @@ REGIONS: Dict[str, Region] = {
     "team-tum-halves": Region("bench/results/team_tum_halves.json", lambda r: team_agents_text(r, "tum_halves")),
     "team-map-offline": Region("bench/results/team_map_sim.json", team_map_gains),
     "team-map-live": Region("bench/results/team_map_sim_rt.json", team_map_gains),
+    "team-map-sim": Region("bench/results/team_map_sim.json", team_map_table),
+    "team-map-sim-live": Region("bench/results/team_map_sim_rt.json", team_map_table),
     "team-map-acks": Region("bench/results/team_map_acks.json", team_map_acks_text),
     "share-finetune": Region("bench/results/share_finetune.json", share_finetune_text),
     "share-refresh": Region("bench/results/share_refresh_room0_low.json", share_refresh_text),

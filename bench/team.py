@@ -394,10 +394,11 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
 
 
 def summarise(runs: list[dict]) -> dict:
-    """Per team: per agent the mean ± std over runs of share %, upload ratio, bytes per Gaussian, own and fused
-    ROI PSNR, the gains fused − own and vote − concat (:func:`gain_over_runs`: the mean of the paired per-frame
-    differences over runs × frames with its 95 % interval, ``<gain>_gain``, beside the per-run spread ``<gain>_std``),
-    and the goals' checks (share ≤ 10 %, upload ≤ 1.5×, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
+    """Per team: per agent the mean ± std over runs of share %, upload ratio, the refinement views' bytes over the final
+    subset's, bytes per Gaussian, own and fused ROI PSNR, the gains fused − own and vote − concat
+    (:func:`gain_over_runs`: the mean of the paired per-frame differences over runs × frames with its 95 % interval,
+    ``<gain>_gain``, beside the per-run spread ``<gain>_std``), and the goals' checks (share ≤ 25 %, upload ≤ 1.5×,
+    views ≤ 8× the subset, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
     out = {}
     for team in sorted({r["team"] for r in runs}):
         rs = [r for r in runs if r["team"] == team]
@@ -406,10 +407,10 @@ def summarise(runs: list[dict]) -> dict:
         for aid in ids:
             per = [next(a for a in r["agents"] if a["id"] == aid) for r in rs]
             row = {"task": per[0]["task"]}
-            for k in ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "concat_roi_psnr",
-                      "vote_roi_psnr", "vote_r1_roi_psnr", "refine_roi_psnr", "refine_long_roi_psnr", "for_robot_roi_psnr",
-                      "with_own_roi_psnr", "keyframes",
-                      "iters_per_keyframe", "pushes", "n_gaussians"):
+            for k in ("share_pct", "upload_ratio", "view_ratio", "bytes_per_gaussian", "own_roi_psnr",
+                      "concat_roi_psnr", "vote_roi_psnr", "vote_r1_roi_psnr", "refine_roi_psnr", "refine_long_roi_psnr",
+                      "for_robot_roi_psnr", "with_own_roi_psnr", "keyframes", "iters_per_keyframe", "pushes",
+                      "n_gaussians"):
                 v = [a[k] for a in per if a.get(k) is not None]
                 row[k] = float(np.mean(v)) if v else None
                 row[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
@@ -427,6 +428,7 @@ def summarise(runs: list[dict]) -> dict:
         blk["goals"] = {
             "share_le_25pct": all(a["share_pct"] is not None and a["share_pct"] <= 25.0 for a in ag),
             "upload_le_1.5x": all(a["upload_ratio"] is not None and a["upload_ratio"] <= 1.5 for a in ag),
+            "views_le_8x": all(a.get("view_ratio") is not None and a["view_ratio"] <= 8.0 for a in ag),
             "refine_ge_own": all(a["refine_minus_own"] is not None and a["refine_minus_own"] >= 0 for a in lead),
             "refine_long_ge_own": all(a.get("refine_long_minus_own") is not None and a["refine_long_minus_own"] >= 0
                                       for a in ag),
@@ -604,8 +606,10 @@ def plot_team(runs: list[dict], team: str, path: Path) -> None:
 
 
 #: the figures of the share curve, per agent (``summarise``'s names; each with its ``_std``)
-CURVE_KEYS = ("share_pct", "upload_ratio", "bytes_per_gaussian", "own_roi_psnr", "vote_minus_own",
+CURVE_KEYS = ("share_pct", "upload_ratio", "view_ratio", "bytes_per_gaussian", "own_roi_psnr", "vote_minus_own",
               "for_robot_minus_own", "with_own_minus_own", "refine_minus_own")
+#: the keys of :data:`CURVE_KEYS` a scoring protocol gives (the rest are the robot's bytes, the same under every one)
+CURVE_SCORES = ("own_roi_psnr", "vote_minus_own", "for_robot_minus_own", "with_own_minus_own", "refine_minus_own")
 
 
 def share_bound(result: dict) -> Optional[float]:
@@ -618,13 +622,17 @@ def share_bound(result: dict) -> Optional[float]:
     return None
 
 
-def share_curve(results: list[dict], default_bound: Optional[float] = None) -> dict:
+def share_curve(results: list[dict], default_bound: Optional[float] = None, protocol: Optional[str] = None) -> dict:
     """The share curve (docs/sharing.md#how-much-to-share) from team results run at different share bounds:
     ``{team: {agent_id: {"task", "points": [{"bound", <CURVE_KEYS>, <key>_std, "runs"}, ...]}}}``, points sorted by
-    bound. A result without a bound override counts at ``default_bound``.
+    bound. A result without a bound override counts at ``default_bound``. With ``protocol`` (e.g. ``novel``) the own
+    map's ROI PSNR and the fused − own gains (:data:`CURVE_SCORES`) are that protocol's (``protocols`` of each agent's
+    summary, the paired per-frame gain with its run-clustered interval), else the summary's top-level (``sensor``)
+    figures.
 
     Raises:
-        ValueError: a result has no bound and ``default_bound`` is None, or two results have the same bound.
+        ValueError: a result has no bound and ``default_bound`` is None, two results have the same bound, or an agent
+            of a result was not scored under ``protocol``.
     """
     bounds = [default_bound if b is None else b for b in map(share_bound, results)]
     if any(b is None for b in bounds):
@@ -636,39 +644,50 @@ def share_curve(results: list[dict], default_bound: Optional[float] = None) -> d
         for team, blk in r["teams"].items():
             for aid, a in blk["agents"].items():
                 entry = curve.setdefault(team, {}).setdefault(aid, {"task": a["task"], "points": []})
+                scores = a
+                if protocol is not None:
+                    scores = (a.get("protocols") or {}).get(protocol)
+                    if not scores:
+                        raise ValueError(f"{team} {aid} at bound {b} was not scored under {protocol!r}")
+                src = {k: (scores if k in CURVE_SCORES else a) for k in CURVE_KEYS}
                 entry["points"].append({"bound": b, "runs": blk.get("runs"),
-                                        **{k: a.get(k) for k in CURVE_KEYS},
-                                        **{f"{k}_std": a.get(f"{k}_std") for k in CURVE_KEYS},
-                                        **{f"{k}_gain": a.get(f"{k}_gain") for k in CURVE_KEYS if "_minus_" in k}})
+                                        **{k: src[k].get(k) for k in CURVE_KEYS},
+                                        **{f"{k}_std": src[k].get(f"{k}_std") for k in CURVE_KEYS},
+                                        **{f"{k}_gain": src[k].get(f"{k}_gain") for k in CURVE_KEYS if "_minus_" in k}})
     return curve
 
 
 def curve_table(curve: dict) -> str:
-    """Markdown table of :func:`share_curve`: per team, agent and bound the share, upload ratio, bytes per Gaussian
-    and the fused ROI PSNR − the robot's own map (vote, team map for the robot, vote + refine)."""
-    lines = ["| team | agent, task | bound | shared % | upload / final | B / Gaussian | own ROI PSNR | vote − own | "
-             "for robot − own | with own − own | refine − own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    """Markdown table of :func:`share_curve`: per team, agent and bound the share, upload ratio, the refinement views'
+    bytes over the final subset's, bytes per Gaussian and the fused ROI PSNR − the robot's own map (vote, team map for
+    the robot, team map made on board, vote + refine)."""
+    lines = ["| team | agent, task | bound | shared % | upload / final | views / final | B / Gaussian | own ROI PSNR | "
+             "vote − own | for robot − own | with own − own | refine − own |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for team, agents in curve.items():
         for aid, e in agents.items():
             for q in e["points"]:
                 lines.append(f"| {team} | {aid}, {e['task']} | {100 * q['bound']:g} % | {_f(q['share_pct'], 1)} | "
-                             f"{_f(q['upload_ratio'])} | {_f(q['bytes_per_gaussian'], 1)} | {_f(q['own_roi_psnr'])} | "
+                             f"{_f(q['upload_ratio'])} | {_f(q.get('view_ratio'))} | {_f(q['bytes_per_gaussian'], 1)} | "
+                             f"{_f(q['own_roi_psnr'])} | "
                              f"{_gain_pm(q, 'vote_minus_own')} | {_gain_pm(q, 'for_robot_minus_own')} | "
                              f"{_gain_pm(q, 'with_own_minus_own')} | {_gain_pm(q, 'refine_minus_own')} |")
     return "\n".join(lines)
 
 
-def write_curve(files: list[str], out: Path, default_bound: float, argv) -> dict:
-    """Read the team results ``files``, write their share curve into ``out`` (its other keys kept; a new file
-    holds the curve alone) and the table beside it (``<out stem>_curve.md``); returns the curve."""
-    curve = share_curve([json.loads(Path(f).read_text()) for f in files], default_bound)
+def write_curve(files: list[str], out: Path, default_bound: float, argv, protocol: Optional[str] = None) -> dict:
+    """Read the team results ``files``, write their share curve (:func:`share_curve`, under ``protocol``) into
+    ``out`` (its other keys kept; a new file holds the curve alone) and the table beside it
+    (``<out stem>_curve.md``); returns the curve."""
+    curve = share_curve([json.loads(Path(f).read_text()) for f in files], default_bound, protocol)
     doc = json.loads(out.read_text()) if out.exists() else {}
-    doc["share_curve"] = {"sources": [Path(f).name for f in files], "teams": curve}
+    doc["share_curve"] = {"sources": [Path(f).name for f in files], "protocol": protocol or "sensor", "teams": curve}
     write_json(out, doc, "team", argv, indent=1)
     md = out.with_name(f"{out.stem}_curve.md")
     md.write_text(f"# bench.team share curve\n\n`python -m bench.team {' '.join(argv or [])}`\n\n"
-                  f"Fused ROI PSNR − the robot's own map against the share bound (agent.share.max_fraction).\n\n"
-                  f"{curve_table(curve)}\n")
+                  f"Fused ROI PSNR − the robot's own map against the share bound (agent.share.max_fraction), under "
+                  f"`{protocol or 'sensor'}`: the paired per-frame gain over runs × frames [95 % interval] and the "
+                  f"per-run spread.\n\n{curve_table(curve)}\n")
     print(curve_table(curve))
     return curve
 
@@ -720,12 +739,18 @@ def main(argv: Optional[list[str]] = None) -> int:
                          "into --out, keeping the runs' provenance")
     ap.add_argument("--default-bound", type=float, default=0.08,
                     help="--curve: the bound of a result run without an agent.share.max_fraction override")
+    ap.add_argument("--curve-protocol", default=None, metavar="PROTOCOL",
+                    help="--curve: the scoring protocol of the figures (e.g. novel, as the long-mission goals are "
+                         "judged; default: the summary's sensor figures)")
     args = ap.parse_args(argv)
     if args.summary_of:
         resummarise(Path(args.summary_of), Path(args.out), argv)
         return 0
     if args.curve:
-        write_curve([f for f in args.curve.split(",") if f], Path(args.out), args.default_bound, argv)
+        if args.curve_protocol is not None and args.curve_protocol not in PROTOCOLS:
+            ap.error(f"unknown --curve-protocol {args.curve_protocol!r} (known: {', '.join(PROTOCOLS)})")
+        write_curve([f for f in args.curve.split(",") if f], Path(args.out), args.default_bound, argv,
+                    args.curve_protocol)
         return 0
 
     teams = [t for t in args.teams.split(",") if t]

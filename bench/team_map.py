@@ -45,7 +45,7 @@ from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
-KEYS = ("vote", "for_robot", "refine", "team_map")
+KEYS = ("vote", "for_robot", "with_own", "refine", "team_map")
 PROTOCOLS = ("sensor", "keyframes", "novel", "tracked", "novel-tracked", "tracked@own", "novel-tracked@own")
 
 

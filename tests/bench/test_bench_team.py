@@ -37,8 +37,9 @@ def test_teams_and_the_overlapping_view_team():
     assert shared
 
 
-def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.2, -0.2), with_own=(0.0, -0.05)):
-    agents = [{"id": f"agent_{c}", "task": f"t{c}", "share_pct": share, "upload_ratio": upload,
+def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.2, -0.2), with_own=(0.0, -0.05),
+         views=6.5):
+    agents = [{"id": f"agent_{c}", "task": f"t{c}", "share_pct": share, "upload_ratio": upload, "view_ratio": views,
                "bytes_per_gaussian": 12.0, "own_roi_psnr": own[i], "concat_roi_psnr": concat[i],
                "vote_roi_psnr": vote[i], "vote_r1_roi_psnr": vote[i] - 1, "refine_roi_psnr": refine[i],
                "refine_long_roi_psnr": refine[i] + 0.5, "for_robot_roi_psnr": own[i] + robot[i],
@@ -50,10 +51,11 @@ def _run(team, run, own, concat, vote, refine, share=8.0, upload=1.2, robot=(-0.
 def test_summary_checks_the_goals_per_team():
     runs = [_run("tum_halves", r, own=(20, 22), concat=(19, 21), vote=(20.5, 22.5), refine=(21, 23)) for r in range(3)]
     runs += [_run("tum", r, own=(20, 22), concat=(19, 21), vote=(18, 21.5), refine=(21, 21.9), share=30.0,
-                  robot=(0.3, -1.0), with_own=(0.0, -0.3)) for r in range(3)]
+                  robot=(0.3, -1.0), with_own=(0.0, -0.3), views=9.0) for r in range(3)]
     s = summarise(runs)
     h, t = s["tum_halves"], s["tum"]
-    assert h["goals"] == {"share_le_25pct": True, "upload_le_1.5x": True, "refine_ge_own": True,
+    assert t["goals"]["views_le_8x"] is False and t["agents"]["agent_a"]["view_ratio"] == pytest.approx(9.0)
+    assert h["goals"] == {"share_le_25pct": True, "upload_le_1.5x": True, "views_le_8x": True, "refine_ge_own": True,
                           "refine_long_ge_own": True, "vote_ge_concat": True, "vote_ge_own": True,
                           "for_robot_ge_own_minus_0.5": True, "with_own_ge_own_minus_0.1": True}
     assert h["agents"]["agent_b"]["for_robot_minus_own"] == pytest.approx(-0.2)
@@ -224,3 +226,37 @@ def test_share_curve_orders_the_bounds_and_keeps_the_figures(tmp_path):
     assert doc["teams"] == {"kept": True} and len(doc["share_curve"]["teams"]["synthetic"]["agent_a"]["points"]) == 3
     md = (tmp_path / "team_curve.md").read_text()
     assert "| synthetic | agent_a, synth-pick-object | 15 % |" in md and "-3.50 ± 0.10" in md
+
+
+def test_share_curve_under_a_protocol_reads_its_figures_and_keeps_the_bytes(tmp_path):
+    import json
+
+    from bench.team import main, share_curve
+
+    res = [_team_result(0.25, -1.0), _team_result(0.5, -0.4)]
+    for r, novel in zip(res, (-2.0, -0.6)):
+        a = r["teams"]["synthetic"]["agents"]["agent_a"]
+        a["view_ratio"] = 6.0
+        gain = {"gain": novel, "ci_low": novel - 0.3, "ci_high": novel + 0.3, "runs": 3, "n": 30,
+                "interval": "run-clustered"}
+        a["protocols"] = {"novel": {"own_roi_psnr": 21.0, "own_roi_psnr_std": 0.2, "refine_minus_own": novel,
+                                    "refine_minus_own_std": 0.4, "refine_minus_own_gain": gain}}
+    pts = share_curve(res, protocol="novel")["synthetic"]["agent_a"]["points"]
+    assert [p["refine_minus_own"] for p in pts] == [-2.0, -0.6] and pts[1]["refine_minus_own_gain"]["ci_low"] == pytest.approx(-0.9)
+    assert [p["own_roi_psnr"] for p in pts] == [21.0, 21.0]  # the protocol's own map, not the sensor figure (22.0)
+    assert [p["share_pct"] for p in pts] == [25.0, 50.0] and pts[0]["view_ratio"] == 6.0  # bytes from the summary
+    assert [p["refine_minus_own"] for p in share_curve(res)["synthetic"]["agent_a"]["points"]] == [1.0, 1.0]
+    with pytest.raises(ValueError, match="tracked"):
+        share_curve(res, protocol="tracked")  # not scored under it
+    files = []
+    for i, r in enumerate(res):
+        files.append(tmp_path / f"r{i}.json")
+        files[-1].write_text(json.dumps(r))
+    out = tmp_path / "long.json"
+    assert main(["--curve", ",".join(map(str, files)), "--curve-protocol", "novel", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["share_curve"]["protocol"] == "novel"
+    md = (tmp_path / "long_curve.md").read_text()
+    assert "under `novel`" in md and "| synthetic | agent_a, synth-pick-object | 50 % | 50.0 | 1.20 | 6.00 |" in md
+    assert "-0.60 [-0.90, -0.30] (σ runs 0.40)" in md
+    with pytest.raises(SystemExit):
+        main(["--curve", str(files[0]), "--curve-protocol", "nonsense", "--out", str(out)])

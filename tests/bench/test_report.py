@@ -23,7 +23,8 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/mapper.md", "map-budget"),
             ("docs/mapper.md", "detail-live"), ("docs/realtime.md", "pose-perturbation"),
             ("docs/realtime.md", "compute-sweep"), ("docs/sharing.md", "team-long"),
-            ("docs/sharing.md", "team-long-onboard"), ("docs/realtime.md", "compute-sweep-synthetic"),
+            ("docs/sharing.md", "team-long-onboard"), ("docs/sharing.md", "team-long-curve"),
+            ("docs/realtime.md", "compute-sweep-synthetic"),
             *(("docs/results.md", name) for name in (
                 "ablation-room0", "ablation-synth", "ablation-room0-seeds", "ablation-room0-recheck",
                 "ablation-room0-noadopt", "long-mission-tum320", "long-mission-synthetic-fp5", "long-mission-tum160",
