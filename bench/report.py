@@ -54,6 +54,12 @@ def num(x: float, nd: int = 2) -> str:
     return MINUS + s[1:] if s.startswith("-") and float(s) != 0 else s.lstrip("-")
 
 
+def typographic_minus(text: str) -> str:
+    """``text`` (a Markdown table written by a bench) with each minus sign before a number, at the start of a word or
+    an interval, made typographic (``-0.53 [-1.16, +0.10]`` → ``−0.53 [−1.16, +0.10]``)."""
+    return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, text)
+
+
 def signed(x: float, nd: int = 2) -> str:
     """``x`` with its sign always written (``+5.68``, ``−0.21``)."""
     s = num(x, nd)
@@ -467,7 +473,7 @@ def team_long_table(r: dict) -> str:
     ``team_long_onboard.json``: the team map made on board culled in every keyframe the robot holds)."""
     from bench.team import long_table  # lazy: the page's other regions need none of it
 
-    return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, long_table(r)) + "\n"
+    return typographic_minus(long_table(r)) + "\n"
 
 
 def team_long_curve_table(r: dict) -> str:
@@ -475,7 +481,7 @@ def team_long_curve_table(r: dict) -> str:
     each ``agent.share.max_fraction``, each fused map − each robot's own map)."""
     from bench.team import curve_table  # lazy: the page's other regions need none of it
 
-    return re.sub(r"(?<=[\s\[])-(?=\d)", MINUS, curve_table(r["share_curve"]["teams"])) + "\n"
+    return typographic_minus(curve_table(r["share_curve"]["teams"])) + "\n"
 
 
 # ---------------------------------------------------------------- the summary page (docs/results.md)
@@ -729,7 +735,7 @@ def team_map_table(r: dict) -> str:
         raise ReportError("the team-map summary has no vote")
     tasks = sorted(fused["vote"], reverse=True)
     head = ["| map | " + " | ".join(t for _, t in TEAM_MAP_PROTOCOLS) + " |", "|---|" + "---|" * len(TEAM_MAP_PROTOCOLS)]
-    rows = []
+    rows, novel = [], False
     for key, title in TEAM_MAP_ROWS:
         if key not in fused:
             continue
@@ -741,12 +747,13 @@ def team_map_table(r: dict) -> str:
                 if not blk or blk.get("mean") is None:
                     vals.append("–")
                 elif q == "novel":
+                    novel = True
                     vals.append(gain_text(run_clustered(blk["per_run"])))
                 else:
-                    vals.append(f"{blk['mean']:+.2f}".replace("-", MINUS))
+                    vals.append(signed(blk["mean"]))
             cells.append(" / ".join(vals))
         rows.append(f"| {title} | " + " | ".join(cells) + " |")
-    if not any("[" in row for row in rows):
+    if not novel:
         raise ReportError("the team-map summary has no novel figures")
     return "\n".join(head + rows) + "\n"
 

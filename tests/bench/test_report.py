@@ -184,3 +184,26 @@ def test_the_ablation_cells_pair_seeds_and_name_missing_rows():
     assert report.ablation_seeds_cells(rows[1:]).split(" | ")[::2] == ["–", "–"]
     with pytest.raises(report.ReportError, match="no rows"):
         report.ablation_cells(rows)
+
+
+def test_the_team_map_table_has_a_row_per_map_it_holds_and_needs_novel():
+    """bench.team_map's table: one row per fused map the summary holds (in TEAM_MAP_ROWS' order), both tasks per cell
+    in reversed task order, the other protocols as signed means and `novel` with its run-clustered interval."""
+    def blk(mean, per_run):
+        return {"mean": mean, "per_run": per_run}
+
+    fused = {key: {"synth-pick-object": {"sensor": blk(d, [d]), "novel": blk(d, [d - 0.1, d + 0.1])},
+                   "synth-find-chair": {"sensor": blk(-d, [-d]), "novel": blk(-d, [-d - 0.1, -d + 0.1])}}
+             for key, d in (("vote", -5.0), ("team_map", 1.0))}
+    md = report.team_map_table({"summary": {"fused": fused}})
+    lines = md.strip().splitlines()
+    assert len(lines) == 4 and lines[2].startswith("| vote |") and lines[3].startswith("| **served team map** |")
+    assert "| −5.00 / +5.00 |" in lines[2] and "| +1.00 / −1.00 |" in lines[3]  # pick-object first
+    assert "[" in lines[3].split("|")[3] and "| – / – |" in lines[3]  # novel's interval; no novel-tracked figures
+    for b in fused.values():
+        for t in b.values():
+            t.pop("novel")
+    with pytest.raises(report.ReportError):
+        report.team_map_table({"summary": {"fused": fused}})
+    with pytest.raises(report.ReportError):
+        report.team_map_table({"summary": {"fused": {"team_map": fused["team_map"]}}})  # no vote
