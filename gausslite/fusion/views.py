@@ -125,26 +125,36 @@ def next_view(candidates: Sequence[np.ndarray], sent: Sequence[np.ndarray]) -> i
 @dataclass
 class ViewBudget:
     """The bytes one robot may send for refinement views: at most ``ratio`` × its shared subset's bytes (the latest
-    subset encoded whole), counted over the whole mission; None = no bound.
+    subset encoded whole), counted over the whole mission; None = no bound. A share ``reserve`` of it is held back
+    until the mission's final push, where it goes to the views still waiting that lie farthest from those sent: the
+    views of places the robot reached late in the mission still find budget, chosen over the whole mission.
 
     Attributes:
         ratio: budget as a multiple of the subset's bytes (None: unbounded).
+        reserve: share of the budget (0 ≤ reserve < 1) held for the final push (0: spend as views arrive).
         sent_bytes, sent: bytes and views sent so far.
         skipped: views left unsent because the budget was short when they were offered last.
         poses: (4, 4) poses of the views sent (for :func:`next_view`).
     """
 
     ratio: Optional[float] = 2.0
+    reserve: float = 0.0
     sent_bytes: int = 0
     sent: int = 0
     skipped: int = 0
     poses: List[np.ndarray] = dataclasses.field(default_factory=list)
 
-    def allowance(self, subset_bytes: int) -> Optional[int]:
-        """Bytes still allowed with a subset of ``subset_bytes`` (never negative); None when unbounded."""
+    def __post_init__(self) -> None:
+        if not 0.0 <= float(self.reserve) < 1.0:
+            raise ValueError(f"reserve must be in [0, 1), got {self.reserve}")
+
+    def allowance(self, subset_bytes: int, final: bool = True) -> Optional[int]:
+        """Bytes still allowed with a subset of ``subset_bytes`` (never negative); None when unbounded. Before the
+        final push (``final`` False) the :attr:`reserve` is not yet allowed."""
         if self.ratio is None:
             return None
-        return max(0, int(self.ratio * max(0, int(subset_bytes))) - self.sent_bytes)
+        share = 1.0 if final else 1.0 - float(self.reserve)
+        return max(0, int(self.ratio * share * max(0, int(subset_bytes))) - self.sent_bytes)
 
     def record(self, nbytes: int, c2w: np.ndarray) -> None:
         """Count one view of ``nbytes`` bytes at pose ``c2w`` as sent."""
@@ -152,7 +162,8 @@ class ViewBudget:
         self.sent += 1
         self.poses.append(np.asarray(c2w, np.float64))
 
-    def choose(self, sizes: Sequence[int], poses: Sequence[np.ndarray], subset_bytes: int) -> List[int]:
+    def choose(self, sizes: Sequence[int], poses: Sequence[np.ndarray], subset_bytes: int,
+               final: bool = True) -> List[int]:
         """Which of the waiting views to send now, in sending order: farthest-first (:func:`next_view`) while they
         fit the allowance (a view too large is passed over for smaller ones). Records the chosen ones as sent and
         sets :attr:`skipped` to the number left.
@@ -160,6 +171,7 @@ class ViewBudget:
         Args:
             sizes: bytes of each waiting view (:func:`view_bytes`). poses: their (4, 4) camera-to-world poses.
             subset_bytes: the robot's latest shared subset's bytes.
+            final: the mission's final push, which may spend the :attr:`reserve` (:meth:`allowance`).
         Returns:
             indices into ``sizes``.
         Raises:
@@ -170,7 +182,7 @@ class ViewBudget:
         left = list(range(len(sizes)))
         out: List[int] = []
         while left:
-            room = self.allowance(subset_bytes)
+            room = self.allowance(subset_bytes, final)
             fits = [i for i in left if room is None or sizes[i] <= room]
             if not fits:
                 break

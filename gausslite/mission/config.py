@@ -162,6 +162,9 @@ class RefineViewsConfig(BaseModel):
             subset's bytes (:class:`gausslite.fusion.views.ViewBudget`; the farthest views first when it is short);
             null = no bound.
         min_roi_px: a view whose ROI has fewer pixels is not offered.
+        reserve: share of the budget held back until the mission's final push, where it buys the waiting views
+            farthest from those sent, chosen over the whole mission (:class:`gausslite.fusion.views.ViewBudget`);
+            0 = spend it as views arrive. Waiting views are bounded by ``upload_backlog_max``.
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -172,6 +175,7 @@ class RefineViewsConfig(BaseModel):
     between_every: int = Field(2, ge=1)
     budget_ratio: Optional[float] = Field(8.0, gt=0)
     min_roi_px: int = Field(64, ge=1)
+    reserve: float = Field(0.0, ge=0, lt=1)
 
 
 class FrameConfig(BaseModel):

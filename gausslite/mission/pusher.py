@@ -143,7 +143,7 @@ class Pusher:
         self._link_down_since: Optional[float] = None  # monotonic time of the first failure since the last ack
         self._kf_pending: List[WaitingView] = []  # views to upload with the next push (oldest first)
         #: bytes of the refinement views sent over the mission, bounded by agent.refine_views.budget_ratio
-        self.views = ViewBudget(config.refine_views.budget_ratio)
+        self.views = ViewBudget(config.refine_views.budget_ratio, config.refine_views.reserve)
         self.thread = threading.Thread(target=self._loop, name=f"agent-{agent_id}-push", daemon=True)
 
     def start(self) -> None:
@@ -334,9 +334,10 @@ class Pusher:
         E = poses.corrections.get(int(frame.frame_id)) if poses is not None else None
         return frame if E is None else dataclasses.replace(frame, c2w=np.asarray(frame.c2w, np.float64) @ E)
 
-    def _upload_pending_keyframes(self, c: FusionPort) -> tuple[list, int]:
+    def _upload_pending_keyframes(self, c: FusionPort, final: bool = False) -> tuple[list, int]:
         """Upload the keyframes not yet sent (with their ROI) that the view budget allows (:attr:`views`: the
-        farthest first; the others wait for a larger subset); returns (keyframes sent, count acknowledged)."""
+        farthest first; the others wait for a larger subset, and the budget's reserve for the ``final`` push);
+        returns (keyframes sent, count acknowledged)."""
         cfg = self.config
         with self._lock:
             waiting = list(self._kf_pending)
@@ -347,7 +348,8 @@ class Pusher:
             if w.size is None:
                 w.size = view_bytes(w.frame, w.roi, cfg.keyframe_format, cfg.jpeg_quality)
         before = dataclasses.replace(self.views, poses=list(self.views.poses))
-        chosen = self.views.choose([w.size for w in waiting], [f.c2w for f in refined], self.final_subset_bytes)
+        chosen = self.views.choose([w.size for w in waiting], [f.c2w for f in refined], self.final_subset_bytes,
+                                   final)
         n_kf = 0
         if chosen:
             try:
@@ -395,7 +397,7 @@ class Pusher:
             # the server holds exactly this subset already (e.g. the final push right after a periodic one):
             # no upload (an empty delta is still 270 B of headers); pending keyframes still go
             self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else self.final_subset_bytes
-            kfs, _ = self._upload_pending_keyframes(c)
+            kfs, _ = self._upload_pending_keyframes(c, snap.final)
             rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
                              time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
             with self._lock:
@@ -424,7 +426,7 @@ class Pusher:
             raise RuntimeError(f"subset v{plan.version} upload incomplete ({getattr(r, 'n_chunks', '?')} chunks)")
         self.share.acknowledge(plan)
         self.final_subset_bytes = plan.full_bytes if plan.full_bytes is not None else plan.nbytes
-        kfs, n_kf = self._upload_pending_keyframes(c)
+        kfs, n_kf = self._upload_pending_keyframes(c, snap.final)
         rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
                          int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
                          plan.n_records, plan.n_removed, snap.frames_mapped)

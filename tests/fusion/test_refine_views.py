@@ -96,6 +96,26 @@ def test_the_budget_sends_the_farthest_views_first_and_never_beyond_its_ratio():
         b.choose([1, 2], poses[:1], 10)
 
 
+def test_the_reserve_waits_for_the_final_push_and_buys_the_farthest_views_left():
+    poses = [np.eye(4) for _ in range(6)]
+    for i, x in enumerate([0.0, 0.05, 0.1, 2.0, 1.0, 0.15]):
+        poses[i][0, 3] = x
+    b = ViewBudget(ratio=4.0, reserve=0.5)
+    assert b.allowance(1000, final=False) == 2000 and b.allowance(1000) == 4000
+    # during the mission only half the budget goes: the early, close views
+    assert b.choose([1000] * 3, poses[:3], subset_bytes=1000, final=False) == [0, 2]
+    assert b.sent_bytes == 2000 and b.skipped == 1
+    assert b.choose([1000] * 4, [poses[1], *poses[3:]], subset_bytes=1000, final=False) == []
+    # the final push spends the reserve on the waiting views farthest from those sent, wherever they came from
+    assert b.choose([1000] * 4, [poses[1], *poses[3:]], subset_bytes=1000, final=True) == [1, 2]
+    assert b.sent_bytes == 4000 and b.skipped == 2
+    # without a reserve the final flag changes nothing
+    assert ViewBudget(ratio=2.0).allowance(1000, final=False) == 2000
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError):
+            ViewBudget(ratio=2.0, reserve=bad)
+
+
 class _Recorder:
     """A fusion client that records the keyframes it is given and their bytes on the wire."""
 
@@ -137,3 +157,19 @@ def test_the_pusher_sends_roi_crops_within_its_byte_budget_measured_on_the_wire(
     assert len(sent) == 5 and p.views_unsent() == 2 and rec.wire_bytes <= 2 * p.final_subset_bytes
     assert len(measured) == 12 and len(p._kf_pending) == 2 and all(w.size for w in p._kf_pending)
 
+
+
+def test_the_pusher_keeps_the_reserve_for_its_final_push():
+    config = AgentConfig(push={"nice": 0}, refine_views={"crop": True, "margin_px": 4, "budget_ratio": 2.0,
+                                                      "min_roi_px": 16, "reserve": 0.5})
+    p = Pusher("p1", "find the object", config, None, ShareSession("p1", config), mapper=None,
+               intrinsics=lambda: None, report=lambda m: None)
+    for i in range(8):
+        assert p.add_keyframe(_frame(i, x=0.05 * i), _roi())
+    size = max(view_bytes(*roi_crop(_frame(i, x=0.05 * i), _roi(), 4)) for i in range(8))
+    p.final_subset_bytes = 2 * size  # room for four views in all, two before the final push
+    rec = _Recorder()
+    sent, _ = p._upload_pending_keyframes(rec)
+    assert len(sent) == 2 and p.views_unsent() == 6
+    sent, _ = p._upload_pending_keyframes(rec, final=True)
+    assert len(sent) == 2 and p.views_unsent() == 4 and rec.wire_bytes <= 2 * p.final_subset_bytes
