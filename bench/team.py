@@ -463,8 +463,9 @@ def gain_over_runs(rows: list[dict], treated: str, baseline: str, name: Optional
 
 def _summarise_protocols(per: list[dict]) -> dict:
     """One agent's rows over runs → ``{protocol: {"own_roi_psnr", …, "for_robot_roi_psnr" (means), their "_std",
-    "vote_minus_own", "for_robot_minus_own", "refine_minus_own" (:func:`gain_over_runs`: paired per frame over runs ×
-    frames, with "_gain" and the per-run "_std"), "runs"}}``."""
+    "vote_minus_own", "for_robot_minus_own", "refine_minus_own", and "refine_minus_vote" (what the refinement adds to
+    the vote it starts from) (:func:`gain_over_runs`: paired per frame over runs × frames, with "_gain" and the
+    per-run "_std"), "runs"}}``."""
     names = list(dict.fromkeys(q for a in per for q in a.get("protocols", {})))
     out = {}
     for q in names:
@@ -476,6 +477,7 @@ def _summarise_protocols(per: list[dict]) -> dict:
             blk[k + "_std"] = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
         for key in ("vote", "refine", *PER_ROBOT):
             blk.update(gain_over_runs(rows, key, "own"))
+        blk.update(gain_over_runs(rows, "refine", "vote"))  # what the refinement's views add to the vote
         out[q] = blk
     return out
 
@@ -508,18 +510,21 @@ LONG_COLUMNS = (("vote", "vote"), ("refine", "served team map (vote + refine)"),
 
 
 def long_table(result: dict, q: str = "novel") -> str:
-    """docs/sharing.md's long-mission table: per team and robot its own map's ROI PSNR under protocol ``q`` and each
-    map of :data:`LONG_COLUMNS` − the own map (the paired per-frame gain over runs, run-clustered 95 % interval)."""
-    lines = ["| team | robot, task | own map (dB) | " + " | ".join(f"{t} − own" for _, t in LONG_COLUMNS) + " |",
-             "|---|---|---|" + "---|" * len(LONG_COLUMNS)]
+    """docs/sharing.md's long-mission table: per team and robot its own map's ROI PSNR under protocol ``q``, each
+    map of :data:`LONG_COLUMNS` − the own map, and the served team map − the vote, what the refinement's views add
+    (each the paired per-frame gain over runs, run-clustered 95 % interval; a summary without it: a dash)."""
+    lines = ["| team | robot, task | own map (dB) | " + " | ".join(f"{t} − own" for _, t in LONG_COLUMNS)
+             + " | served team map − vote |", "|---|---|---|" + "---|" * (len(LONG_COLUMNS) + 1)]
     for team, blk in result["teams"].items():
         for aid, a in blk["agents"].items():
             v = (a.get("protocols") or {}).get(q)
             if not v:
                 continue
-            lines.append(f"| {team} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | "
-                         + " | ".join(fmt_gain(v[f"{k}_minus_own_gain"]) if v.get(f"{k}_minus_own_gain")
-                                      else _f(v.get(f"{k}_minus_own")) for k, _ in LONG_COLUMNS) + " |")
+            cells = [fmt_gain(v[f"{k}_minus_own_gain"]) if v.get(f"{k}_minus_own_gain") else _f(v.get(f"{k}_minus_own"))
+                     for k, _ in LONG_COLUMNS]
+            views = v.get("refine_minus_vote_gain")
+            cells.append(fmt_gain(views) if views else _f(v.get("refine_minus_vote")))
+            lines.append(f"| {team} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

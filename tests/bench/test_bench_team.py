@@ -190,6 +190,22 @@ def test_fused_maps_are_scored_under_every_protocol_beside_the_owners_own_map(mo
     assert g["n"] == 16 and g["gain"] == pytest.approx(-1.0) and g["ci_low"] <= -1.0 <= g["ci_high"]
     assert g["interval"] == "run-clustered" and g["runs"] == 2  # both runs' gains are −1.0: a zero-width interval
     assert "[" in team.protocol_table({"teams": summarise(runs)})
+    # what the refinement's views add to the vote, paired frame by frame: +0.4 in run 0, +0.6 in run 1
+    for r, run in enumerate(runs):
+        for a in run["agents"]:
+            row = a["protocols"]["novel"]
+            row["refine_per_frame"] = {i: v + 0.4 + 0.2 * r for i, v in row["vote_per_frame"].items()}
+    s = summarise(runs)
+    views = s["synthetic"]["agents"]["agent_a"]["protocols"]["novel"]["refine_minus_vote_gain"]
+    assert views["gain"] == pytest.approx(0.5) and views["runs"] == 2 and views["ci_low"] < 0.4 < 0.6 < views["ci_high"]
+    lines = team.long_table({"teams": s}).splitlines()
+    assert lines[0].endswith("| team map made on board − own | served team map − vote |") and len(lines) == 4
+    assert lines[2].startswith("| synthetic | agent_a, ta | 20.00 | -1.00 [") and lines[2].endswith("|")
+    assert lines[2].split(" | ")[-1].startswith("+0.50 [")
+    # a summary from before the column: a dash
+    del s["synthetic"]["agents"]["agent_a"]["protocols"]["novel"]["refine_minus_vote_gain"]
+    del s["synthetic"]["agents"]["agent_a"]["protocols"]["novel"]["refine_minus_vote"]
+    assert team.long_table({"teams": s}).splitlines()[2].endswith(" | – |")
 
 
 def _team_result(bound, vote_minus_own):
