@@ -984,6 +984,7 @@ REGIONS: Dict[str, Region] = {
     "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
     "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),
     "team-long-reserve": Region("bench/results/team_long_reserve.json", team_long_table),
+    "team-long-reserve-between": Region("bench/results/team_long_reserve_between.json", team_long_table),
     "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
     # docs/results.md's summary
     "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),

@@ -25,6 +25,7 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/realtime.md", "compute-sweep"), ("docs/sharing.md", "team-long"),
             ("docs/sharing.md", "team-long-onboard"), ("docs/sharing.md", "team-long-curve"),
             ("docs/sharing.md", "team-long-reserve"),
+            ("docs/sharing.md", "team-long-reserve-between"),
             ("docs/realtime.md", "compute-sweep-synthetic"),
             *(("docs/results.md", name) for name in (
                 "ablation-room0", "ablation-synth", "ablation-room0-seeds", "ablation-room0-recheck",
