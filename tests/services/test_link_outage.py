@@ -19,7 +19,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentServicer
 from gausslite_services.fusion_server.client import FusionClient
-from tests._waits import wait_for_start, wait_until
+from tests._waits import STARTUP_S, wait_for_start, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
@@ -67,16 +67,19 @@ def test_link_outage_mid_mission(tmp_path):
     try:
         for i in range(4):
             rt.submit(ds[i])
-        assert rt.wait_mapped(60)
-        assert wait_until(lambda: rt.status()["last_pushed_version"] >= 2, 60), rt.last_error
+        assert rt.wait_mapped(STARTUP_S)
+        # the first push starts the share worker's process (it imports torch): a start, bounded as one under load
+        assert wait_until(lambda: rt.status()["last_pushed_version"] >= 2, STARTUP_S), \
+            f"no push acknowledged within {STARTUP_S:.0f} s: {rt.last_error}"
         acked_before = rt.status()["last_pushed_version"]
 
         _stop(proc)  # the link drops
         t_down = time.monotonic()
         for i in range(4, len(ds)):  # the agent keeps mapping
             rt.submit(ds[i])
-        assert rt.wait_mapped(120)
-        assert wait_until(lambda: rt.pusher.push_failures > 0 and rt.status()["link_down_s"] > 0, 60)
+        assert rt.wait_mapped(STARTUP_S)
+        assert wait_until(lambda: rt.pusher.push_failures > 0 and rt.status()["link_down_s"] > 0, STARTUP_S), \
+            f"no failed push within {STARTUP_S:.0f} s of the link dropping"
         st = rt.status()
         assert st["frames_mapped"] == len(ds) == 12
         assert st["last_pushed_version"] == acked_before  # nothing acknowledged while the link is down
@@ -91,7 +94,8 @@ def test_link_outage_mid_mission(tmp_path):
         proc, port2 = _start_fusion(data, port_file, port)  # the link returns
         assert port2 == port
         # the held subset goes out without any new frame or Finish
-        assert wait_until(lambda: rt.status()["last_pushed_version"] == 6, 60), rt.last_error
+        assert wait_until(lambda: rt.status()["last_pushed_version"] == 6, STARTUP_S), \
+            f"the held subset not acknowledged within {STARTUP_S:.0f} s of the link returning: {rt.last_error}"
         st = rt.status()
         assert st["push_backlog"] == 0 and st["link_down_s"] == 0.0 and st["keyframes_backlog"] == 0
 
