@@ -520,12 +520,16 @@ def long_table(result: dict, q: str = "novel") -> str:
             v = (a.get("protocols") or {}).get(q)
             if not v:
                 continue
-            cells = [fmt_gain(v[f"{k}_minus_own_gain"]) if v.get(f"{k}_minus_own_gain") else _f(v.get(f"{k}_minus_own"))
-                     for k, _ in LONG_COLUMNS]
-            views = v.get("refine_minus_vote_gain")
-            cells.append(fmt_gain(views) if views else _f(v.get("refine_minus_vote")))
+            cells = [_gain_cell(v, f"{k}_minus_own") for k, _ in LONG_COLUMNS] + [_gain_cell(v, "refine_minus_vote")]
             lines.append(f"| {team} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _gain_cell(row: dict, key: str) -> str:
+    """A gain of :func:`gain_over_runs` as a table cell: the paired per-frame gain [95 % interval], or the mean of
+    the per-run gains for rows without per-frame figures (a dash without either)."""
+    g = row.get(f"{key}_gain")
+    return fmt_gain(g) if g else _f(row.get(key))
 
 
 def _gain_pm(row: dict, key: str) -> str:
