@@ -55,7 +55,8 @@ def _frames(n_max: int):
         return [ds[i] for i in range(len(ds))], str(TUM), "TUM fr1_rpy 640x480"
 
     out = Path(tempfile.mkdtemp(prefix="ingest_scene_"))
-    make_scene(out, seed=0, width=640, height=480, frames=min(n_max, 12), progress=False)
+    make_scene(out, seed=0, width=640, height=480, frames=min(n_max, 12), progress=False,
+               agents=("agent_a",))
     ds = load_dataset(out / "agent_a")
     return [ds[i] for i in range(len(ds))], str(out / "agent_a"), "synthetic 640x480"
 

@@ -69,7 +69,8 @@ def make_input(work: Path, frames: int, size: tuple, trajectory: str) -> tuple[P
     scene = work / f"scene_{tag}"
     if not (scene / "agent_a" / "traj.txt").is_file():
         cmd = [sys.executable, "-m", "gausslite.cli", "make-scene", "--out", str(scene), "--frames", str(frames),
-               "--width", str(size[0]), "--height", str(size[1]), "--trajectory", trajectory, "--quiet"]
+               "--width", str(size[0]), "--height", str(size[1]), "--trajectory", trajectory, "--agents", "agent_a",
+               "--quiet"]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise RuntimeError(f"make-scene failed ({r.returncode}): {r.stderr[-2000:]}")

@@ -63,7 +63,7 @@ def scene_dataset(name: str, max_frames: Optional[int] = None):
     else:
         out = WORK / f"synthetic_{spec['width']}x{spec['height']}"
         if not (out / "agent_a").is_dir():
-            make_scene(out, width=spec["width"], height=spec["height"], progress=False)
+            make_scene(out, width=spec["width"], height=spec["height"], progress=False, agents=("agent_a",))
         path = out / "agent_a"
     profile = profile_for_layout(detect_layout(path)[0])
     ds = load_dataset(path, downscale=spec["downscale"], max_frames=max_frames or spec["max_frames"],

@@ -104,7 +104,7 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
         scene = work / "walk"
         if not (scene / "agent_a" / "traj.txt").is_file():
             make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory="walk",
-                       sensor_noise="realistic")
+                       sensor_noise="realistic", agents=("agent_a",))
         ds = load_dataset(scene / "agent_a", pose_source="given")
         frames = [ds[i] for i in range(len(ds))]
         if name.endswith("_covered"):
@@ -114,7 +114,8 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
     else:
         scene = work / "synthetic"
         if not (scene / "agent_a" / "traj.txt").is_file():
-            make_scene(scene, frames=synthetic_frames, width=size[0], height=size[1], trajectory="circle")
+            make_scene(scene, frames=synthetic_frames, width=size[0], height=size[1], trajectory="circle",
+                       agents=("agent_a",))
         ds = load_dataset(scene / "agent_a", pose_source="given")
     return [ds[i] for i in range(len(ds))]
 

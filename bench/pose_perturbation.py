@@ -100,7 +100,8 @@ def scene_path(name: str, work: Path) -> Path:
         return realtime.scene_path(name, work)
     out = work / f"synthetic_walk_{spec['frames']}_{spec['width']}x{spec['height']}"
     if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
-        make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="walk")
+        make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="walk",
+                   agents=("agent_a",))
     return out / "agent_a"
 
 

@@ -208,7 +208,7 @@ def _scene(args, work: Path):
     if not (d / "agent_a" / "traj.txt").is_file():
         print(f"rendering the circle scene ({args.frames} frames) into {d} ...", flush=True)
         make_scene(d, seed=0, width=args.width, height=args.height, frames=args.frames, progress=False,
-                   trajectory="circle")
+                   trajectory="circle", agents=("agent_a",))
     ds = load_dataset(d / "agent_a")
     return [ds[i] for i in range(len(ds))], d / "agent_a", ds.annotations
 

@@ -51,3 +51,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
     >/dev/null 2>&1 || true
   echo "$sig" > "$stamp"
 fi
+# The package's own modules (an editable install: they stay in this folder), compiled here too: where the environment
+# sets PYTHONDONTWRITEBYTECODE (as container images often do) Python writes no bytecode itself, and every process it
+# starts (a service, a CLI call, a test worker) would compile each module it imports anew. Up-to-date files are skipped.
+.venv/bin/python -m compileall -q -j 0 gausslite gausslite_rpc services >/dev/null 2>&1 || true

@@ -18,7 +18,7 @@ def _handler(args: argparse.Namespace) -> int:
     try:
         summary = make_scene(args.out, seed=args.seed, width=args.width, height=args.height,
                              frames=args.frames, progress=not args.quiet, trajectory=args.trajectory,
-                             sensor_noise=args.sensor_noise, fps=args.fps)
+                             sensor_noise=args.sensor_noise, fps=args.fps, agents=args.agents)
     except ValueError as e:
         log.error("make-scene: %s", e)
         return 2
@@ -52,5 +52,8 @@ def register(subparsers) -> None:
     p.add_argument("--fps", type=float, default=30.0,
                    help="frame rate of the sequence: the walk's clock and the sensor model's (default 30, the "
                         "rate the Replica loader replays it at)")
+    p.add_argument("--agents", nargs="+", choices=["agent_a", "agent_b"], default=["agent_a", "agent_b"],
+                   metavar="AGENT", help="the robots whose frames are written (default both: agent_a agent_b; "
+                   "one robot renders half the frames)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_handler)

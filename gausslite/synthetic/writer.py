@@ -136,7 +136,7 @@ def _scene_json(seed: int, intr: Intrinsics, frames: int, trajectory: str, scene
         "generator_version": GENERATOR_VERSION,
         "seed": int(seed), "width": intr.width, "height": intr.height, "frames_per_agent": int(frames),
         "trajectory": trajectory,
-        "agents": list(AGENTS), "depth_scale": DEPTH_SCALE, "jpeg_quality": JPEG_QUALITY,
+        "agents": list(roi_fraction), "depth_scale": DEPTH_SCALE, "jpeg_quality": JPEG_QUALITY,
         "num_objects": len(scene.objects),
         "objects": [{"id": o.id, "label": o.label} for o in scene.objects],
         "tasks": {t.id: t.text for t in scene.tasks},
@@ -154,7 +154,7 @@ def _scene_json(seed: int, intr: Intrinsics, frames: int, trajectory: str, scene
 
 def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, height: int = 240,
                frames: int = 30, progress: bool = True, trajectory: str = "arcs", sensor_noise: str = "none",
-               fps: float = WALK_FPS) -> Dict:
+               fps: float = WALK_FPS, agents: Sequence[str] = AGENTS) -> Dict:
     """Generate, render and write the default synthetic two-robot scene.
 
     Args:
@@ -172,6 +172,9 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
         fps: frame rate of the sequence (frames per second): the walk's clock and the sensor model's (exposure and
             readout times). The Replica loader replays at 30 fps unless told otherwise (``fps=`` of
             :class:`gausslite.datasets.replica.ReplicaDataset`).
+        agents: the robots whose frames are rendered and written (a subset of ``AGENTS``, in any order; the others'
+            folders are not written). A single-robot benchmark renders half the frames with ``("agent_a",)``; the
+            scene, its objects, tasks and each robot's trajectory are the same whichever robots are written.
 
     Returns:
         Summary dict: ``out_dir``, ``cam_params``, ``objects``, ``tasks``, ``scene_json`` (paths as
@@ -181,11 +184,14 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
         ``num_objects`` and ``seconds`` (wall time; the only non-deterministic entry, not written).
 
     Raises:
-        ValueError: invalid size, frame count, trajectory, sensor noise name or frame rate.
+        ValueError: invalid size, frame count, trajectory, sensor noise name, frame rate or robot name (or none).
     """
     t0 = time.perf_counter()
     if int(frames) < 2:
         raise ValueError(f"frames must be >= 2, got {frames}")
+    agents = tuple(dict.fromkeys(agents))
+    if not agents or any(a not in AGENTS for a in agents):
+        raise ValueError(f"agents must name one or more of {', '.join(AGENTS)}, got {list(agents)}")
     noise = sensor_model(sensor_noise)
     intr = default_intrinsics(width, height)
     out = Path(out_dir)
@@ -203,9 +209,10 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
     _dump_json(out / "tasks.json", tasks_json)
 
     roi_sum, roi_hit, agents_out = {}, {}, {}
-    bar = tqdm(total=len(AGENTS) * int(frames), desc="make-scene", unit="frame", disable=not progress)
+    bar = tqdm(total=len(agents) * int(frames), desc="make-scene", unit="frame", disable=not progress)
     try:
-        for k, agent in enumerate(AGENTS):
+        for agent in agents:
+            k = AGENTS.index(agent)  # each robot's noise stream is its own, whichever others are written
             rng = np.random.default_rng([int(seed), k, 1729]) if noise is not None else None
             roi_sum[agent], roi_hit[agent] = _write_agent(out, agent, trajs[agent], scene, intr, by_id, bar,
                                                           noise, rng, float(fps))

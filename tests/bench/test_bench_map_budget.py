@@ -20,7 +20,7 @@ def test_subset_budget_keeps_the_start_up_and_scales_the_rest():
 def test_the_bench_runs_both_schedules_and_writes_its_table(tmp_path):
     out = tmp_path / "map_budget.json"
     rc = map_budget.main(["--frames", "24", "--size", "160x120", "--trajectory", "arcs", "--seeds", "0",
-                          "--fixed-frames", "6", "--time-budget", "0.4", "--set", "iters_per_frame=4",
+                          "--fixed-frames", "6", "--time-budget", "0.2", "--set", "iters_per_frame=4",
                           "--set", "warmup_iters=2", "--work", str(tmp_path / "work"), "--out", str(out)])
     assert rc == 0
     doc = json.loads(out.read_text())

@@ -66,7 +66,7 @@ def test_summary_gains_are_paired_per_frame_and_run_clustered():
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
     out = tmp_path_factory.mktemp("pose_perturbation") / "walk"
-    make_scene(out, width=48, height=36, frames=24, progress=False, trajectory="walk")
+    make_scene(out, width=48, height=36, frames=24, progress=False, trajectory="walk", agents=("agent_a",))
     return str(out / "agent_a")
 
 

@@ -36,7 +36,7 @@ def scene(tmp_path_factory):
     """The synthetic scene's first robot, 60 frames at 160x120 on the arcs (3.6 cm apart: dense for the keyframe
     rule), with its poses and without them (the annotations beside both)."""
     root = tmp_path_factory.mktemp("budget")
-    make_scene(root / "scene", frames=60, width=160, height=120, progress=False)
+    make_scene(root / "scene", frames=60, width=160, height=120, progress=False, agents=("agent_a",))
     bare = root / "bare" / "agent_a"
     shutil.copytree(root / "scene" / "agent_a", bare)
     for name in ("cam_params.json", "objects.json", "tasks.json"):

@@ -80,6 +80,31 @@ def test_deterministic_bytes(scene_dir: Path, tmp_path: Path) -> None:
     assert c["agent_a/results/frame000000.jpg"] != a["agent_a/results/frame000000.jpg"]
 
 
+def test_one_robot_is_written_as_it_is_in_the_two_robot_scene(scene_dir: Path, tmp_path: Path) -> None:
+    """``agents`` writes only the named robots, each byte for byte as in the two-robot scene (its own noise stream
+    and trajectory), with the same scene files apart from the robots ``scene.json`` lists; a bad name is refused."""
+    for noise in ("none", "realistic"):
+        if noise == "none":
+            both = _files(scene_dir)
+        else:
+            make_scene(tmp_path / "both", seed=SEED, width=W, height=H, frames=N, progress=False, sensor_noise=noise)
+            both = _files(tmp_path / "both")
+        out = tmp_path / f"b_only_{noise}"
+        summary = make_scene(out, seed=SEED, width=W, height=H, frames=N, progress=False, sensor_noise=noise,
+                             agents=("agent_b",))
+        one = _files(out)
+        assert not (out / "agent_a").exists() and list(summary["agents"]) == ["agent_b"]
+        assert {k for k in one if k.startswith("agent_b/")} == {k for k in both if k.startswith("agent_b/")}
+        for k in one:
+            if k != "scene.json":
+                assert one[k] == both[k], f"{k} differs from the two-robot scene's ({noise})"
+        doc = _read_json(out / "scene.json")
+        assert doc["agents"] == ["agent_b"] and list(doc["roi_fraction_mean"]) == ["agent_b"]
+    for bad in ((), ("agent_c",)):
+        with pytest.raises(ValueError, match="agents must name"):
+            make_scene(tmp_path / "bad", seed=SEED, width=W, height=H, frames=N, progress=False, agents=bad)
+
+
 def test_written_depth_matches_raycast(scene_dir: Path) -> None:
     """The PNG depth is the quantised ray-cast depth at the traj.txt pose, valid everywhere."""
     scene = build_default_scene(SEED)
@@ -260,3 +285,7 @@ def test_cli_make_scene(tmp_path: Path) -> None:
     assert _read_json(out / "scene.json")["seed"] == 5
     assert np.loadtxt(out / "agent_a" / "traj.txt").shape == (2, 16)
     assert main(["make-scene", "--out", str(tmp_path / "bad"), "--frames", "1", "--quiet"]) == 2
+    one = tmp_path / "one"
+    assert main(["make-scene", "--out", str(one), "--width", "32", "--height", "24", "--frames", "2",
+                 "--agents", "agent_a", "--quiet"]) == 0
+    assert (one / "agent_a" / "traj.txt").is_file() and not (one / "agent_b").exists()

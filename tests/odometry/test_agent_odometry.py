@@ -38,7 +38,7 @@ class _Spoiled:
 
 
 def test_a_replay_tracks_every_frame_and_a_lost_one_is_counted_not_mapped(tmp_path):
-    make_scene(tmp_path, seed=0, width=96, height=72, frames=14, progress=False)
+    make_scene(tmp_path, seed=0, width=96, height=72, frames=14, progress=False, agents=("agent_a",))
     ds = load_dataset(tmp_path / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     cfg = load_config(None, TINY).agent
@@ -69,7 +69,7 @@ def test_withheld_frames_are_tracked_not_mapped_and_the_map_is_scored_at_the_est
     of the given poses."""
     import gausslite.evaluation as evaluation
 
-    make_scene(tmp_path, seed=0, width=96, height=72, frames=14, progress=False)
+    make_scene(tmp_path, seed=0, width=96, height=72, frames=14, progress=False, agents=("agent_a",))
     ds = load_dataset(tmp_path / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     cfg = load_config(None, [*TINY, "agent.scoring.protocols=[sensor,novel]", "agent.scoring.novel_every=4"]).agent

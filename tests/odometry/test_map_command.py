@@ -22,7 +22,7 @@ def bare(tmp_path_factory):
     """The synthetic scene's first robot (16 frames, 160x120) without traj.txt, with the scene's annotations; and
     its ground-truth poses."""
     root = tmp_path_factory.mktemp("scene")
-    make_scene(root / "scene", frames=16, width=160, height=120, progress=False)
+    make_scene(root / "scene", frames=16, width=160, height=120, progress=False, agents=("agent_a",))
     seq = root / "bare" / "agent_a"
     shutil.copytree(root / "scene" / "agent_a", seq)
     for name in ("cam_params.json", "objects.json", "tasks.json"):

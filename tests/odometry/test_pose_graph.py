@@ -21,7 +21,7 @@ from gausslite.synthetic import make_scene
 def frames(tmp_path_factory):
     """The synthetic scene's robot A, 16 frames at 160x120, read with their exact poses."""
     out = tmp_path_factory.mktemp("scene")
-    make_scene(out, frames=16, width=160, height=120, progress=False)
+    make_scene(out, frames=16, width=160, height=120, progress=False, agents=("agent_a",))
     return list(load_dataset(out / "agent_a", pose_source="given"))
 
 

@@ -56,7 +56,7 @@ def _stop(proc: subprocess.Popen) -> None:
 
 def test_link_outage_mid_mission(tmp_path):
     scene = tmp_path / "scene"
-    make_scene(scene, seed=0, width=64, height=48, frames=12, progress=False)
+    make_scene(scene, seed=0, width=64, height=48, frames=12, progress=False, agents=("agent_a",))
     ds = load_dataset(scene / "agent_a")
     text = ds.annotations.task_by_id("synth-pick-object").text
     data, port_file = tmp_path / "fusion", tmp_path / "port"
