@@ -7,8 +7,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-# The suite starts a few hundred Python processes and three workers that each import every test module: let them keep
-# the bytecode they compile (in __pycache__/, ignored by git) even where the environment says not to write it
-# (PYTHONDONTWRITEBYTECODE, common in container images); without it each process compiles what it imports anew.
+# The suite starts many Python processes (services, CLI calls) and three workers that each import every test
+# module: keep the bytecode they compile (in __pycache__/, ignored by git) even where the environment says not to
+# write it (PYTHONDONTWRITEBYTECODE, common in container images); without it each process compiles what it imports.
 unset PYTHONDONTWRITEBYTECODE
 exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist load "$@"
