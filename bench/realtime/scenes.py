@@ -16,14 +16,16 @@ REPO = Path(__file__).resolve().parents[2]
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared"))
 RESULTS = REPO / "bench" / "results"
 
-#: bench scenes: dataset, task, resolution, clock and the matched Gaussian cap (a cap uniform reaches at every
-#: budget: measured counts below it, docs/realtime.md)
+#: bench scenes: dataset, task, resolution, clock, the matched Gaussian cap (a cap uniform reaches at every budget:
+#: measured counts below it, docs/realtime.md) and, for the public sequences, the annotations GaussLite ships
+#: (``gausslite/datasets/labels``, docs/annotations.md), so that a row reproduces from the dataset and the repository
 SCENES = {
-    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "task": "tum-find-mouse", "cap": 6000},
+    "tum_fr1_rpy": {"kind": "tum", "downscale": 2.0, "task": "tum-find-mouse", "cap": 6000, "annotations": "shipped"},
     "synthetic_circle": {"kind": "synthetic", "frames": 300, "width": 320, "height": 240,
                          "task": "synth-pick-object", "cap": 6000},
-    "room0": {"kind": "replica", "downscale": 4.0, "fps": 2.0, "task": "room0-pick-plant", "cap": 6000},
-    "tum_fr1_rpy_cup": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000},
+    "room0": {"kind": "replica", "downscale": 4.0, "fps": 2.0, "task": "room0-pick-plant", "cap": 6000,
+              "annotations": "shipped"},
+    "tum_fr1_rpy_cup": {"kind": "tum", "downscale": 2.0, "task": "tum-pick-cup", "cap": 6000, "annotations": "shipped"},
 }
 MODES = ("uniform", "gausslite")
 #: data seconds per keyframe that every budget covers under ``--clock scaled`` (the paper's 0.5 s/frame)
@@ -83,13 +85,15 @@ def dataset_scenes(path: Path, task_ids: list[str], cap: int, downscale: float =
 
 
 def load_scene(spec: dict, path: Path):
-    """(dataset, sensor profile) of a scene spec with the profile's loader options and the scene's clock."""
+    """(dataset, sensor profile) of a scene spec with the profile's loader options, the scene's clock and its
+    annotations (``spec["annotations"]``: a choice of :func:`gausslite.datasets.load_dataset`, default ``auto``)."""
     layout = detect_layout(path)[0]
     profile = profile_for_layout(layout)
     kw = dict(profile.loader)
     if spec.get("fps") and layout in ("replica", "7scenes"):
         kw["fps"] = spec["fps"]
-    return load_dataset(path, downscale=spec.get("downscale", 1.0), **kw), profile
+    return load_dataset(path, downscale=spec.get("downscale", 1.0), annotations=spec.get("annotations", "auto"),
+                        **kw), profile
 
 
 class Preloaded:

@@ -19,7 +19,7 @@ from typing import List, Optional, Sequence
 from gausslite.core.extras import unavailable_from
 
 #: the product's commands, in the order ``gausslite --help`` lists them
-PRODUCT_COMMANDS = ("sim", "map", "serve", "health", "view", "config", "certs", "tokens", "parse", "export",
+PRODUCT_COMMANDS = ("sim", "map", "serve", "health", "view", "config", "certs", "tokens", "parse", "annotate", "export",
                     "make-scene")
 #: commands that reproduce the paper's measurements and run benchmarks, listed apart
 RESEARCH_COMMANDS = ("ablate", "attention", "bench")

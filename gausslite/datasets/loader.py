@@ -14,6 +14,7 @@ from gausslite.datasets.bag import BagDataset
 from gausslite.datasets.base import RGBDDataset
 from gausslite.datasets.camera_folder import CameraFolderDataset, is_camera_folder
 from gausslite.datasets.common import PathLike
+from gausslite.datasets.labelling import resolve_annotations
 from gausslite.datasets.odometry import OdometryConfig, PoseSource, with_pose_source
 from gausslite.datasets.realsense import RealSenseBagDataset, is_realsense_bag
 from gausslite.datasets.replica import ReplicaDataset
@@ -112,6 +113,7 @@ def load_dataset(
     pose_source: Union[PoseSource, Literal["auto"]] = "auto",
     odometry: Optional[OdometryConfig] = None,
     progress: bool = True,
+    annotations: Union[str, Path] = "auto",
     **kw,
 ) -> RGBDDataset:
     """Open an RGB-D sequence, detecting its layout when ``kind == "auto"``.
@@ -131,15 +133,18 @@ def load_dataset(
             :func:`gausslite.datasets.odometry.with_pose_source`).
         odometry: the odometry's settings (``OdometryConfig``; None: the defaults).
         progress: the odometry shows a progress bar.
+        annotations: which scene annotations the dataset carries (:func:`gausslite.datasets.labelling.resolve_annotations`):
+            ``"auto"`` (``objects.json`` / ``tasks.json`` beside the data, else the set GaussLite ships for a
+            recognised public sequence), ``"beside"``, ``"shipped"``, or a folder holding the two files.
         **kw: passed to the loader (``ReplicaDataset``, ``TUMDataset``, ``SevenScenesDataset``,
             ``BagDataset``); ``depth_camera`` (a ``DepthCamera``) registers unregistered depth files.
 
     Returns:
-        The dataset, with ``.annotations`` set (None when the folder has no annotation files).
+        The dataset, with ``.annotations`` set (None when there are none).
 
     Raises:
         FileNotFoundError: missing folder or files. ValueError: unknown ``kind``, unknown layout, or
-        invalid content (see each loader).
+        invalid content (see each loader), or ``annotations="shipped"`` for a sequence GaussLite ships none for.
     """
     p = Path(path)
     if kind == "auto":
@@ -150,6 +155,7 @@ def load_dataset(
             raise ValueError(f"unknown dataset kind {kind!r}; use 'auto' or one of {sorted(set(_KINDS))}")
     if k == "bag":
         ds = BagDataset(p, downscale=downscale, max_frames=max_frames, stride=stride, options=bag, **kw)
+        ds.annotations = resolve_annotations(ds.path, k, annotations, ds.annotations)
         return with_pose_source(ds, pose_source, odometry, progress)
     bag_opts = bag.model_dump(exclude_defaults=True) if hasattr(bag, "model_dump") else dict(bag or {})
     if bag_opts:
@@ -157,4 +163,5 @@ def load_dataset(
     cls = {"replica": ReplicaDataset, "tum": TUMDataset, "7scenes": SevenScenesDataset,
            "camera": CameraFolderDataset, "realsense": RealSenseBagDataset}[k]
     ds = cls(p, downscale=downscale, max_frames=max_frames, stride=stride, **kw)
+    ds.annotations = resolve_annotations(ds.path, k, annotations, ds.annotations)
     return with_pose_source(ds, pose_source, odometry, progress)
