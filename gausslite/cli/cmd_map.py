@@ -32,6 +32,10 @@ def add_mapping_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
     p.add_argument("--stride", type=int, default=1, help="map every k-th frame; the others are held-out views")
     p.add_argument("--task-id", default=None, help="task id from the dataset's tasks.json (ROI + metrics)")
+    p.add_argument("--annotations", default="auto", metavar="auto|beside|shipped|FOLDER",
+                   help="scene annotations (objects.json, tasks.json): auto (default: the files beside the data, "
+                        "else the set GaussLite ships for TUM fr1/rpy and Replica room0), beside, shipped, or a "
+                        "folder holding them (docs/annotations.md)")
     p.add_argument("--config", type=Path, default=None, help="YAML mapper config")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config field, e.g. --set iters_per_frame=60 --set lr.means=1e-4")
@@ -193,7 +197,7 @@ def resolve_dataset(args: argparse.Namespace, out: Path):
     log.info("%s", msg)
     print(msg, flush=True)
     ds = load_dataset(path, downscale=args.downscale, max_frames=args.max_frames, pose_source=source,
-                      progress=not getattr(args, "no_progress", False), **kw)
+                      progress=not getattr(args, "no_progress", False), annotations=args.annotations, **kw)
     used = "odometry" if hasattr(ds, "reference_poses") else "given"
     if used == "odometry":
         t_track = time.perf_counter()
@@ -277,12 +281,12 @@ def ground_task(args: argparse.Namespace, ds):
                                segmenter_path=args.onnx_segmenter)
     ann = ds.annotations if ds.annotations is not None and ds.annotations.objects else None
     if ann is not None:
-        backend, what = "annotation", f"the scene annotations (objects.json beside {ds.path})"
+        backend, what = "annotation", f"the scene annotations ({ann.objects_path})"
     elif any((args.onnx_detector, args.onnx_vocab, args.onnx_segmenter)):
         backend, what = "onnx", f"the ONNX detector {args.onnx_detector} and segmenter {args.onnx_segmenter}"
     else:
-        raise ValueError(f"cannot ground the task {args.task!r}: {ds.path} has no objects.json (scene annotations) "
-                         f"and no ONNX models are configured (--onnx-detector, --onnx-vocab, --onnx-segmenter; "
+        raise ValueError(f"cannot ground the task {args.task!r}: {ds.path} has no objects.json (scene annotations; "
+                         f"--annotations FOLDER, docs/annotations.md) and no ONNX models are configured (--onnx-detector, --onnx-vocab, --onnx-segmenter; "
                          f"docs/perception.md)")
     graph = TaskParser().parse(args.task)
     cfg = AgentConfig(relevance="attention", relevance_backend=backend, onnx=onnx)

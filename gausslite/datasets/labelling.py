@@ -234,7 +234,7 @@ def object_box(points: np.ndarray, seed_xyz: np.ndarray, up: np.ndarray, *, radi
                plane_dist_m: float = 0.012, eps_m: float = 0.02) -> Dict[str, Any]:
     """The box of a thing standing on a surface, from one point on it.
 
-    Within ``radius_m`` of ``seed_xyz`` seen from above, the supporting plane is the largest near-horizontal plane
+    Within ``radius_m`` of ``seed_xyz`` seen from above, the supporting plane is the most populated horizontal plane
     in the metre below the seed (:func:`_horizontal_plane`); the points above it are clustered (DBSCAN, ``eps_m``) and the cluster holding the seed is boxed,
     gravity-aligned, down to the plane.
 
