@@ -11,4 +11,6 @@ bash scripts/setup.sh
 # module: keep the bytecode they compile (in __pycache__/, ignored by git) even where the environment says not to
 # write it (PYTHONDONTWRITEBYTECODE, common in container images); without it each process compiles what it imports.
 unset PYTHONDONTWRITEBYTECODE
-exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist load "$@"
+# --dist worksteal: a worker that runs out of tests takes queued ones from the others (the long integration tests
+# are collected first, tests/conftest.py), so the workers finish together.
+exec .venv/bin/python -m pytest -q -n "${GAUSSLITE_TEST_WORKERS:-$(( $(nproc) + 1 ))}" --dist worksteal "$@"

@@ -42,7 +42,10 @@ INTEGRATION = {
 
 
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of the ``INTEGRATION`` files."""
+    """Mark the tests of the ``INTEGRATION`` files, then put every integration test (those files' and the doc
+    pages') before the unit tests, in their collected order otherwise: the long tests start first and the short
+    ones fill the workers' gaps at the end (longest-processing-time-first, with ``--dist worksteal``), instead of one
+    worker starting a page of a minute and a half while the others run out of tests."""
     here = Path(__file__).resolve().parent
     for item in items:
         try:
@@ -51,6 +54,7 @@ def pytest_collection_modifyitems(config, items):
             continue
         if rel in INTEGRATION:
             item.add_marker(pytest.mark.integration)
+    items.sort(key=lambda item: item.get_closest_marker("integration") is None)
 
 
 SHARED = Path(os.environ.get("GAUSSLITE_SHARED", REPO.parent / "shared")).resolve()
