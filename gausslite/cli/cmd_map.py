@@ -286,8 +286,8 @@ def ground_task(args: argparse.Namespace, ds):
         backend, what = "onnx", f"the ONNX detector {args.onnx_detector} and segmenter {args.onnx_segmenter}"
     else:
         raise ValueError(f"cannot ground the task {args.task!r}: {ds.path} has no objects.json (scene annotations; "
-                         f"--annotations FOLDER, docs/annotations.md) and no ONNX models are configured (--onnx-detector, --onnx-vocab, --onnx-segmenter; "
-                         f"docs/perception.md)")
+                         f"--annotations FOLDER, docs/annotations.md) and no ONNX models are configured "
+                         f"(--onnx-detector, --onnx-vocab, --onnx-segmenter; docs/perception.md)")
     graph = TaskParser().parse(args.task)
     cfg = AgentConfig(relevance="attention", relevance_backend=backend, onnx=onnx)
     fn, _ = build_relevance(cfg, graph, ann)

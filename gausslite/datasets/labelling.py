@@ -39,11 +39,8 @@ SHIPPED = {
     "tum_fr1_rpy": ("tum", "rgbd_dataset_freiburg1_rpy"),
     "replica_room0": ("replica", "room0"),
 }
-#: ``annotations=`` choices besides a folder
-ANNOTATION_CHOICES = ("auto", "beside", "shipped")
 
 __all__ = [
-    "ANNOTATION_CHOICES",
     "LABELS_FORMAT",
     "SHIPPED",
     "SHIPPED_DIR",
@@ -111,6 +108,14 @@ def resolve_annotations(seq_dir: Union[str, Path], layout: str, choice: Union[st
 # ----------------------------------------------------------------------------------------------
 # points
 # ----------------------------------------------------------------------------------------------
+def _frame(dataset, name: str):
+    """The dataset's frame named ``name`` (its file stem). Raises KeyError: a frame the dataset lacks."""
+    try:
+        return dataset[dataset.frame_names.index(name)]
+    except ValueError:
+        raise KeyError(f"frame {name!r} is not in {dataset.path}") from None
+
+
 def fused_cloud(dataset, frame_names: Sequence[str], *, pixel_stride: int = 2, voxel_m: float = 0.01,
                 max_depth_m: float = 4.0):
     """The depth of the named frames, back-projected at their poses and fused on a voxel grid.
@@ -130,12 +135,9 @@ def fused_cloud(dataset, frame_names: Sequence[str], *, pixel_stride: int = 2, v
 
     from gausslite.camera import backproject
 
-    index = {n: i for i, n in enumerate(dataset.frame_names)}
     pts: List[np.ndarray] = []
     for name in frame_names:
-        if name not in index:
-            raise KeyError(f"frame {name!r} is not in {dataset.path}")
-        fr = dataset[index[name]]
+        fr = _frame(dataset, name)
         depth = np.where((fr.depth > 0) & (fr.depth < max_depth_m), fr.depth, 0.0).astype(np.float32)
         world = backproject(depth, fr.intrinsics, fr.c2w)
         world = world[::pixel_stride, ::pixel_stride].reshape(-1, 3)
@@ -156,10 +158,9 @@ def click_point(dataset, frame_name: str, uv: Sequence[float], window: int = 2) 
     Raises:
         KeyError: unknown frame. ValueError: the pixel is outside the image or has no valid depth around it.
     """
-    index = {n: i for i, n in enumerate(dataset.frame_names)}
-    if frame_name not in index:
-        raise KeyError(f"frame {frame_name!r} is not in {dataset.path}")
-    fr = dataset[index[frame_name]]
+    from gausslite.camera import backproject
+
+    fr = _frame(dataset, frame_name)
     u, v = int(round(uv[0])), int(round(uv[1]))
     h, w = fr.depth.shape
     if not (0 <= u < w and 0 <= v < h):
@@ -168,10 +169,9 @@ def click_point(dataset, frame_name: str, uv: Sequence[float], window: int = 2) 
     patch = patch[patch > 0]
     if patch.size == 0:
         raise ValueError(f"pixel {uv} of frame {frame_name!r} has no valid depth")
-    z = float(np.median(patch))
-    K = fr.intrinsics
-    cam = np.array([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z, 1.0])
-    return (np.asarray(fr.c2w, dtype=np.float64) @ cam)[:3]
+    depth = np.zeros(fr.depth.shape, dtype=np.float64)
+    depth[v, u] = np.median(patch)
+    return backproject(depth, fr.intrinsics, np.asarray(fr.c2w, dtype=np.float64))[v, u]
 
 
 def _up_frame(up: np.ndarray) -> np.ndarray:
@@ -190,7 +190,7 @@ def _box(points: np.ndarray, up: np.ndarray, z_lo: float, z_hi: float) -> Dict[s
 
     R = _up_frame(up)
     local = points @ R
-    (cx, cy), (sx, sy), ang = cv2.minAreaRect(local[:, :2].astype(np.float64).astype(np.float32))
+    (cx, cy), (sx, sy), ang = cv2.minAreaRect(local[:, :2].astype(np.float32))
     t = np.deg2rad(ang)
     a1, a2 = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
     if sy > sx:
@@ -245,7 +245,8 @@ def object_box(points: np.ndarray, seed_xyz: np.ndarray, up: np.ndarray, *, radi
     Raises:
         ValueError: no supporting plane below the seed, or no cluster at it.
     """
-    flat = (points - seed_xyz) - np.outer((points - seed_xyz) @ up, up)
+    offset = points - seed_xyz
+    flat = offset - np.outer(offset @ up, up)
     near = points[np.linalg.norm(flat, axis=1) < radius_m]
     h_seed = float(seed_xyz @ up)
     below = near[(near @ up < h_seed - plane_dist_m) & (near @ up > h_seed - 1.0)]
