@@ -6,7 +6,9 @@
 Each run maps every agent of a team live (``bench.realtime``'s protocol: the agent's deployed settings, the
 scene's sensor profile, keyframe ingest at the scene's clock, ``budget`` s of wall time per keyframe, the Gaussian
 cap, **no final pass**), one agent after the other, so that each has the machine to itself as a robot has its own
-computer. Agents share as deployed (task selection, fine-tune, delta pushes) to an in-process stand-in of the
+computer: the team harness that drives ``gausslite sim`` (:func:`gausslite.team.harness.run_team`), with the robots
+in this process (:class:`gausslite.team.inprocess.InProcessTeam`) instead of as services. Agents share as deployed
+(task selection, fine-tune, delta pushes) to an in-process stand-in of the
 fusion server's store (:class:`gausslite.mission.fakes.RecordingFusion`): it rebuilds every push (deltas on their
 base) as the server holds it and keeps the uploaded keyframes (the server's per-agent bound), with the push's time
 on the mission clock. After the missions:
@@ -63,8 +65,10 @@ from gausslite.fusion.diagnose import RoiView
 from gausslite.fusion.guard import ON_BOARD_MIN_WEIGHT, for_robot
 from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
-from gausslite.mission.fakes import RecordingFusion
+from gausslite.team import AgentPlan
 from gausslite.team import scoring as team_scoring
+from gausslite.team.harness import run_team
+from gausslite.team.inprocess import InProcessMission, InProcessTeam
 from gausslite.core.arrays import GaussianArrays
 
 #: teams: the scene (``bench.realtime.SCENES``), and per agent its id, task, and the frames it maps ([start, stop)
@@ -101,64 +105,91 @@ def fuse_settings() -> dict:
     return load_config().sim.fuse.settings(realtime=True)
 
 
-def run_agent(team: str, spec: dict, budget: float, run: int, cap: int, work: Path, overrides=(),
-              keep_state: bool = False, protocols=PROTOCOLS, track_iters: int = TRACK_ITERS,
-              track_stride: int = TRACK_STRIDE, novel_every: int = NOVEL_EVERY) -> dict:
-    """One agent's live mission (``bench.realtime`` protocol) sharing to a :class:`RecordingFusion`: its figures,
-    its own map's scores over every frame of the team's sequence under each scoring protocol (``protocols``,
-    :func:`bench.realtime.score`: ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push
-    history and uploaded keyframes (``keep_state``: also its final map, ROI keyframes and mapper settings, to study
-    share rules offline). Every ``novel_every``-th frame of the team's sequence is withheld from every robot (the
-    ``novel`` and ``novel-tracked`` protocols; 0: none)."""
+#: bound on one team run's missions (s): the longest team here runs about 10 min
+TEAM_TIMEOUT_S = 3600.0
+
+
+def team_plans(team: str, work: Path) -> list[AgentPlan]:
+    """The robots of ``team`` (:data:`TEAMS`) as the team harness's plans: each its id, its scene folder (the synthetic
+    scene's robot folder for robots with a ``dir``) and its task id; the task's text is filled in when its mission
+    is built."""
     scene = TEAMS[team]["scene"]
     path = scene_path(scene, work)
-    if spec.get("dir"):
-        path = path.parent / spec["dir"]
-    job = {"scene": scene, "path": str(path), "task": spec["task"], "mode": "gausslite", "budget": budget,
-           "run": run, "cap": cap, "clock": "scaled", "overrides": list(overrides)}
+    return [AgentPlan(spec["id"], str(path.parent / spec["dir"] if spec.get("dir") else path), spec["task"], "")
+            for spec in TEAMS[team]["agents"]]
+
+
+def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overrides=(),
+                 novel_every: int = NOVEL_EVERY) -> tuple[InProcessTeam, dict]:
+    """Every robot of ``team`` live (``bench.realtime``'s protocol: its deployed settings, the scene's sensor profile,
+    keyframe ingest at the scene's clock scaled to ``budget`` s per keyframe, the Gaussian ``cap``, no final pass),
+    driven by the team harness (:func:`gausslite.team.harness.run_team`) in this process, one robot after the other
+    (:class:`gausslite.team.inprocess.InProcessTeam`), each sharing to its own recording store. Every
+    ``novel_every``-th frame of the team's sequence is withheld from every robot (0: none); a robot with ``frames``
+    maps that window of the sequence.
+
+    Returns:
+        ``(team runner, loaded)``: the runner, its missions finished and still open (close it), and per agent id
+        ``{"dataset", "annotations", "task", "frames": [lo, hi], "novel": withheld frame ids or None}``.
+    """
+    specs = {a["id"]: a for a in TEAMS[team]["agents"]}
     rate = REFERENCE_BUDGET_S / budget
-    sink = RecordingFusion()
-    ds, ann, task, rt, _ = start_mission(job, rate, fusion=sink)
-    lo, hi = spec.get("frames") or (0, len(ds))
-    held = withheld_indices(len(ds), novel_every) if novel_every else []
-    novel = [int(ds[i].frame_id) for i in held] if novel_every else None
+    loaded: dict = {}
+
+    def mission(plan: AgentPlan, fusion):
+        job = {"scene": TEAMS[team]["scene"], "path": plan.dataset, "task": plan.task_id, "mode": "gausslite",
+               "budget": budget, "run": run, "cap": cap, "clock": "scaled", "overrides": list(overrides)}
+        ds, ann, task, rt, _ = start_mission(job, rate, fusion=fusion)
+        plan.task = task.text
+        lo, hi = specs[plan.name].get("frames") or (0, len(ds))
+        held = withheld_indices(len(ds), novel_every) if novel_every else []
+        loaded[plan.name] = {"dataset": ds, "annotations": ann, "task": task, "frames": [lo, hi],
+                             "novel": [int(ds[i].frame_id) for i in held] if novel_every else None}
+        return rt, FrameSubset(ds.slice(lo, hi), [i - lo for i in held if lo <= i < hi])
+
+    runner = InProcessTeam(team_plans(team, work), mission)
     try:
-        sink.start()
-        rt.replay(FrameSubset(ds.slice(lo, hi), [i - lo for i in held if lo <= i < hi])).join()
-        rt.finish(push=True, evaluate=False)
-        wall = time.perf_counter() - sink.t0
-        pu = rt.pusher
-        last = pu.pushes[-1] if pu.pushes else None
-        predicted: dict = {}
-        own = score(rt.mapper, ds, ann, task.id, protocols, track_iters, track_stride,
-                    sorted(int(st.frame_id) for st in rt.mapper.stats), novel, predicted=predicted)
-        state = {}
-        if keep_state:
-            state = {"_map": GaussianArrays.from_any(rt.mapper.gmap), "_ids": rt.mapper.model.ids.numpy().copy(),
-                     "_kfs": [kf for kf in rt.mapper.keyframes if kf.roi is not None], "_cfg": rt.mapper.cfg}
-        return {**state, "id": spec["id"], "task": task.id, "frames": [lo, hi], "wall_s": wall, "rate": rate,
-                "keyframes": int(rt.frames_keyframed), "n_gaussians": len(rt.mapper.model),
-                "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
-                "n_shared": int(last.n_shared) if last else 0,
-                "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
-                "pushes": len(pu.pushes), "last_error": rt.last_error, "total_upload_bytes": int(pu.total_upload_bytes),
-                "final_subset_bytes": int(pu.final_subset_bytes),
-                # the views sent for the refinement (agent.refine_views), beside the subset's bytes
-                "view_bytes": int(pu.views.sent_bytes), "views_sent": int(pu.views.sent),
-                "views_unsent": pu.views_unsent(),
-                "view_ratio": pu.views.sent_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
-                "upload_ratio": pu.total_upload_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
-                "bytes_per_gaussian": (pu.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
-                "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
-                "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
-                "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
-                "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
-                "_own_map": GaussianArrays.from_any(rt.mapper.gmap), "_predicted": predicted,
-                # every keyframe the robot holds with its ROI: the views its on-board team map is culled in
-                "_own_views": [kf for kf in rt.mapper.keyframes if kf.roi is not None],
-                "_frames": ds.frames, "_annotations": ann}
-    finally:
-        rt.close()
+        run_team(runner, timeout_s=TEAM_TIMEOUT_S, poll_s=0.05)
+    except BaseException:
+        runner.close()
+        raise
+    return runner, loaded
+
+
+def agent_row(m: InProcessMission, loaded: dict, rate: float, protocols=PROTOCOLS, track_iters: int = TRACK_ITERS,
+              track_stride: int = TRACK_STRIDE) -> dict:
+    """One robot's figures after its mission (``m``, :func:`run_missions`): its share and bytes, its own map's scores
+    over every frame of the team's sequence under each scoring protocol (``protocols``, :func:`bench.realtime.score`:
+    ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push history on the sequence clock
+    (``rate``: the mission clock's speed-up) and uploaded keyframes; the keys starting with ``_`` are for
+    :func:`fused_scores` and leave the run's record."""
+    rt, sink, pu = m.runtime, m.fusion, m.runtime.pusher
+    ds, ann, task, novel = loaded["dataset"], loaded["annotations"], loaded["task"], loaded["novel"]
+    last = pu.pushes[-1] if pu.pushes else None
+    predicted: dict = {}
+    own = score(rt.mapper, ds, ann, task.id, protocols, track_iters, track_stride,
+                sorted(int(st.frame_id) for st in rt.mapper.stats), novel, predicted=predicted)
+    return {"id": m.plan.name, "task": task.id, "frames": loaded["frames"], "wall_s": m.wall_s, "rate": rate,
+            "keyframes": int(rt.frames_keyframed), "n_gaussians": len(rt.mapper.model),
+            "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
+            "n_shared": int(last.n_shared) if last else 0,
+            "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
+            "pushes": len(pu.pushes), "last_error": rt.last_error, "total_upload_bytes": int(pu.total_upload_bytes),
+            "final_subset_bytes": int(pu.final_subset_bytes),
+            # the views sent for the refinement (agent.refine_views), beside the subset's bytes
+            "view_bytes": int(pu.views.sent_bytes), "views_sent": int(pu.views.sent),
+            "views_unsent": pu.views_unsent(),
+            "view_ratio": pu.views.sent_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
+            "upload_ratio": pu.total_upload_bytes / pu.final_subset_bytes if pu.final_subset_bytes else None,
+            "bytes_per_gaussian": (pu.final_subset_bytes / last.n_shared) if last and last.n_shared else None,
+            "push_log": [{"t": t, "version": v, "n": len(s)} for t, v, s in sink.history],
+            "own_roi_psnr": own["roi_psnr"], "own_psnr": own["psnr"], "own_protocols": own["protocols"],
+            "_history": [(t * rate, s) for t, _, s in sink.history], "_keyframes": list(sink.keyframes.values()),
+            "_seen": rt.mapper.seen_by_this_camera, "_novel": novel,
+            "_own_map": GaussianArrays.from_any(rt.mapper.gmap), "_predicted": predicted,
+            # every keyframe the robot holds with its ROI: the views its on-board team map is culled in
+            "_own_views": [kf for kf in rt.mapper.keyframes if kf.roi is not None],
+            "_frames": ds.frames, "_annotations": ann}
 
 
 def fused_scores(agents: list[dict], fuse: dict, seed: int, eval_stride: int, protocols=PROTOCOLS,
@@ -358,14 +389,17 @@ def _by_task(per_task: dict) -> dict:
 def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 5, overrides=(),
              protocols=PROTOCOLS, track_iters: int = TRACK_ITERS, track_stride: int = TRACK_STRIDE,
              novel_every: int = NOVEL_EVERY, renders: Optional[Path] = None) -> dict:
-    """One run of a team: every agent live (one after the other), then the fused figures. Each agent's row gains
+    """One run of a team: every agent live, one after the other (:func:`run_missions`), then the fused figures. Each agent's row gains
     ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
     own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s), each with its
     per-frame figures (``own_per_frame``, ``vote_per_frame``, …: frame id → dB, the pairs of the summary's gains)."""
-    spec = TEAMS[team]
-    cap = SCENES[spec["scene"]]["cap"]
-    agents = [run_agent(team, a, budget, run, cap, work, overrides, protocols=protocols, track_iters=track_iters,
-                        track_stride=track_stride, novel_every=novel_every) for a in spec["agents"]]
+    runner, loaded = run_missions(team, budget, run, SCENES[TEAMS[team]["scene"]]["cap"], work, overrides,
+                                  novel_every)
+    try:
+        agents = [agent_row(runner.missions[p.name], loaded[p.name], REFERENCE_BUDGET_S / budget, protocols,
+                            track_iters, track_stride) for p in runner.plans]
+    finally:
+        runner.close()
     fused = fused_scores(agents, fuse_settings(), run, eval_stride, protocols, track_iters, track_stride,
                          renders / f"{team}_run{run}" if renders is not None else None)
     for a in agents:

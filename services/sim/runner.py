@@ -11,18 +11,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
 
-import grpc
 import yaml
 
 from gausslite.config import load_config
 from gausslite.synthetic import make_scene
 from gausslite.team import (agent_report, attach_context_baseline, fused_minus_own, load_eval_frames, load_offline,
                             own_map_files, protocol_minus_own, score_fused_maps, write_report)
-from gausslite_rpc import agent_pb2
-from gausslite_services.sim.launch import (ProcessGroup, check_bags, close_all, connect_clients, main_thread,
-                                           raise_interrupt, start_services, plan_agents)
+from gausslite.team.harness import run_team
+from gausslite_services.sim.launch import ProcessGroup, check_bags, main_thread, plan_agents, raise_interrupt
 from gausslite_services.sim.scoring import fuse_on_server, roi_cover_report, uploaded_keyframe_poses
-from gausslite_services.sim.summary import summary_from_proto
+from gausslite_services.sim.team import ServiceTeam
 from gausslite_services.sim.timeline import FusedTimeline
 
 log = logging.getLogger("gausslite_services.sim")  # one logger for the whole simulation
@@ -46,8 +44,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
             context_report: Optional[str | Path] = None) -> SimResult:
     """Run the two-agent simulation and write the report.
 
-    Stages: start the services (:func:`start_services`, skipped with ``attach``), run the agents' missions
-    (:func:`_wait_for_missions`, :func:`_finish_agents`), fuse on the server and score
+    Stages: start the services (:class:`~gausslite_services.sim.team.ServiceTeam`; attached with ``attach``), drive
+    the agents' missions (:func:`gausslite.team.harness.run_team`), fuse on the server and score
     (:func:`gausslite.team.scoring.score_fused_maps`), then write the report
     (:func:`gausslite.team.report.write_report`).
 
@@ -93,15 +91,15 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     previous = None
     if attach is None and hasattr(signal, "SIGTERM") and main_thread():
         previous = signal.signal(signal.SIGTERM, raise_interrupt)
-    clients: list = []
+    team = ServiceTeam(out, config_path, plans, group, token, fusion_token, attach)
     try:
-        addrs = start_services(out, config_path, plans, group, token) if attach is None else dict(attach)
-        fusion, agents = connect_clients(addrs, plans, token, fusion_token, clients)
+        team.start()
+        fusion = team.fusion
         # ---- run the missions; vote-fuse whenever a new subset arrived (the fused map over time)
         fz = typed.sim.fuse.settings(typed.agent.realtime)
         tracker = FusedTimeline(fusion, fz["voxel_size"], fz["contest_radius"])
-        _wait_for_missions(agents, group, tracker, t0, deadline, timeout_s)
-        summaries = _finish_agents(agents, deadline)
+        summaries = run_team(team, timeout_s=max(1.0, deadline - time.monotonic()),
+                             on_poll=lambda: tracker.poll(time.perf_counter() - t0))
         tracker.poll(time.perf_counter() - t0)
         stats = fusion.stats().get("agents", {})
         # ---- fuse and score
@@ -137,7 +135,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         write_report(report, out)
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
-        close_all(clients, group, previous)
+        team.close(previous)
 
 
 def write_service_config(typed, path: Path) -> Path:
@@ -161,55 +159,3 @@ def _generate_scene(out: Path, scene, progress: bool) -> str:
     make_scene(out / "scene", seed=scene.seed, width=scene.width, height=scene.height, frames=scene.frames,
                progress=progress)
     return str(out / "scene")
-
-
-def _wait_for_missions(agents: dict, group: ProcessGroup, tracker: FusedTimeline, t0: float, deadline: float,
-                       timeout_s: float) -> None:
-    """Poll the agents' status every second until every mission is replayed or finished, vote-fusing whenever a new
-    subset arrived (``tracker``: the fused map over time; ``t0``: the sim's ``perf_counter`` start) and logging
-    progress every 5 s.
-
-    Raises:
-        RuntimeError: a mission failed or a process died. TimeoutError: past ``deadline`` (monotonic s).
-        grpc.RpcError: an agent's status call failed (NOT_FOUND is waited out until the deadline).
-    """
-    done = {agent_pb2.MISSION_STATE_REPLAY_DONE, agent_pb2.MISSION_STATE_FINISHED}
-    last_print = 0.0
-    while True:
-        group.check_alive()
-        tracker.poll(time.perf_counter() - t0)
-        try:
-            sts = {n: c.status() for n, c in agents.items()}
-        except grpc.RpcError as e:  # an attached agent that has not started its mission yet
-            if e.code() != grpc.StatusCode.NOT_FOUND or time.monotonic() > deadline:
-                raise
-            time.sleep(1.0)
-            continue
-        for n, st in sts.items():
-            if st.state == agent_pb2.MISSION_STATE_FAILED:
-                raise RuntimeError(f"{n} mission failed: {st.last_error}")
-        if time.monotonic() - last_print > 5.0 or all(st.state in done for st in sts.values()):
-            last_print = time.monotonic()
-            log.info("mapping: " + ", ".join(
-                f"{n} {st.frames_mapped}/{st.frames_received or '?'} frames, {st.n_gaussians} G, "
-                f"{st.pushes} pushes" for n, st in sts.items()))
-        if all(st.state in done for st in sts.values()):
-            return
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"agents not done after {timeout_s:.0f} s")
-        time.sleep(1.0)
-
-
-def _finish_agents(agents: dict, deadline: float) -> dict:
-    """Each agent's Finish summary (agent id → :class:`gausslite.mission.scoring.MissionSummaryData`,
-    :func:`summary_from_proto`), within what is left until ``deadline`` (at least 10 s).
-
-    Raises:
-        RuntimeError: an agent's final push failed.
-    """
-    summaries = {}
-    for n, c in agents.items():
-        summaries[n] = summary_from_proto(c.finish(timeout_s=max(10.0, deadline - time.monotonic())))
-        if not summaries[n].final_push_ok:
-            raise RuntimeError(f"{n}: final push failed: {summaries[n].status['last_error']}")
-    return summaries

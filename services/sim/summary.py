@@ -1,6 +1,7 @@
-"""An agent's Finish summary as the library reads it: the ``MissionSummary`` message of the agent service turned into
-the library's :class:`gausslite.mission.scoring.MissionSummaryData` (:func:`summary_from_proto`), which the team's
-report (:mod:`gausslite.team`) reads."""
+"""An agent's status and Finish summary as the library reads them: the ``MissionStatus`` message as the mission's
+status dict (:func:`status_from_proto`, which :func:`gausslite.team.harness.run_team` follows) and the
+``MissionSummary`` message as the library's :class:`gausslite.mission.scoring.MissionSummaryData`
+(:func:`summary_from_proto`, which the team's report, :mod:`gausslite.team`, reads)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,10 @@ import numpy as np
 from gausslite.evaluation import TrackedView
 from gausslite.mission.scoring import MissionSummaryData
 from gausslite_rpc import agent_pb2
+from gausslite_services.agent.convert import STATES
+
+#: ``MissionState`` enum value on the wire → the mission's state
+_STATE_OF = {v: k for k, v in STATES.items()}
 
 
 def _views(poses) -> Dict[int, TrackedView]:
@@ -18,6 +23,15 @@ def _views(poses) -> Dict[int, TrackedView]:
     return {int(t.frame_id): TrackedView(np.asarray(t.pose.c2w, np.float64).reshape(4, 4),
                                          np.asarray(t.exposure, np.float64), 0.0, 0.0, 0.0, 0)
             for t in poses}
+
+
+def status_from_proto(msg: agent_pb2.MissionStatus) -> dict:
+    """A ``MissionStatus`` message as the mission's status dict (:meth:`AgentRuntime.status
+    <gausslite.mission.runtime.AgentRuntime.status>`'s keys), ``state`` a :class:`~gausslite.mission.state.MissionState`
+    (None for ``MISSION_STATE_UNSPECIFIED``)."""
+    st = {f.name: getattr(msg, f.name) for f in msg.DESCRIPTOR.fields}
+    st["state"] = _STATE_OF.get(msg.state)
+    return st
 
 
 def summary_from_proto(msg: agent_pb2.MissionSummary) -> MissionSummaryData:
