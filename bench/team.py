@@ -67,7 +67,7 @@ from gausslite.fusion.refine import RefineReport, refine_map
 from gausslite.fusion.vote import concat, voxel_vote
 from gausslite.team import AgentPlan
 from gausslite.team import scoring as team_scoring
-from gausslite.team.harness import run_team
+from gausslite.team import harness
 from gausslite.team.inprocess import InProcessMission, InProcessTeam
 from gausslite.core.arrays import GaussianArrays
 
@@ -149,7 +149,7 @@ def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overr
 
     runner = InProcessTeam(team_plans(team, work), mission)
     try:
-        run_team(runner, timeout_s=TEAM_TIMEOUT_S, poll_s=0.05)
+        harness.run_team(runner, timeout_s=TEAM_TIMEOUT_S, poll_s=0.05)
     except BaseException:
         runner.close()
         raise
