@@ -17,6 +17,7 @@ from gausslite.mission.fakes import RecordingFusion
 from gausslite.mission.ports import FusionPort
 from gausslite.mission.runtime import AgentRuntime
 from gausslite.mission.scoring import MissionSummaryData
+from gausslite.mission.state import MissionState
 from gausslite.team.plan import AgentPlan
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,8 @@ class InProcessMission:
     """One robot's mission as :class:`InProcessTeam` ran it.
 
     Attributes:
-        plan: the robot. runtime: its mission (finished, still open: its map, keyframes and pusher can be read).
+        plan: the robot. runtime: its mission (finished and closed: its threads stopped, its map, keyframes and pusher
+            still readable).
         fusion: what the fusion server's store holds of it (its ``history`` clock starts when the replay starts).
         wall_s: seconds from the replay's start to the end of its Finish (the final push included).
         summary: its Finish summary.
@@ -51,8 +53,9 @@ class InProcessTeam:
     """The robots of ``plans`` as missions of this process, one after the other.
 
     :meth:`progress` runs the turns: when the running robot has replayed its frames, it is finished (the final push,
-    ``evaluate`` scoring its map at Finish or not) and the next robot's mission is built and started. Read
-    :attr:`missions` after :func:`gausslite.team.harness.run_team`; :meth:`close` closes every mission.
+    ``evaluate`` scoring its map at Finish or not) and closed, and the next robot's mission is built and started.
+    Read :attr:`missions` after :func:`gausslite.team.harness.run_team`; :meth:`close` closes every mission (after a
+    failure, the one still running).
 
     Args:
         plans: the robots, in the order they run (unique names).
@@ -87,16 +90,23 @@ class InProcessTeam:
         fusion.start()
         self._replay = rt.replay(frames)
 
-    def _finish_running(self) -> None:
+    def _finish_running(self, timeout_s: Optional[float] = None) -> None:
+        """Finish the running robot (its final push), then close it: none of its threads or worker processes runs
+        beside the next robot; its map, keyframes, pusher and store stay readable."""
         m = list(self.missions.values())[-1]
-        m.summary = m.runtime.finish(push=True, evaluate=self.evaluate)
-        m.wall_s = time.perf_counter() - m.fusion.t0
+        try:
+            m.summary = m.runtime.finish(push=True, evaluate=self.evaluate, timeout_s=timeout_s)
+            m.wall_s = time.perf_counter() - m.fusion.t0
+        finally:
+            m.runtime.close()
 
     def progress(self) -> Dict[str, Optional[dict]]:
         """Agent id → its mission's status (None for a robot whose turn has not come). When the running robot has
-        replayed its frames it is finished here and the next robot started."""
+        replayed its frames it is finished here and the next robot started; a robot whose mission failed stays as it
+        is (``FAILED``, for :func:`~gausslite.team.harness.run_team` to report)."""
         running = list(self.missions.values())[-1] if self.missions else None
-        if running is not None and running.summary is None and not self._replay.is_alive():
+        if (running is not None and running.summary is None and not self._replay.is_alive()
+                and running.runtime.status()["state"] != MissionState.FAILED):  # a failed one is reported, not finished
             self._finish_running()
             if len(self.missions) < len(self.plans):
                 self._begin(self.plans[len(self.missions)])
@@ -112,10 +122,8 @@ class InProcessTeam:
         missing = [p.name for p in self.plans if p.name not in self.missions]
         if missing:
             raise RuntimeError(f"robots that never started: {missing}")
-        running = list(self.missions.values())[-1]
-        if running.summary is None:
-            running.summary = running.runtime.finish(push=True, evaluate=self.evaluate, timeout_s=timeout_s)
-            running.wall_s = time.perf_counter() - running.fusion.t0
+        if list(self.missions.values())[-1].summary is None:
+            self._finish_running(timeout_s)
         return {p.name: self.missions[p.name].summary for p in self.plans}
 
     def close(self) -> None:

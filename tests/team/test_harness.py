@@ -120,6 +120,7 @@ def test_in_process_team_runs_the_robots_in_turn_each_sharing_to_its_own_store()
         for name, m in runner.missions.items():
             assert m.summary is out[name] and m.summary.final_push_ok and m.wall_s > 0
             assert m.runtime.frames_mapped == 4 and m.runtime.status()["state"] == MissionState.FINISHED
+            assert not m.runtime.worker.thread.is_alive()  # closed after its turn, before the next robot's
             # the store holds what the robot pushed, on its own mission clock, and the robot's subset only
             assert m.fusion.history and m.fusion.history[0][0] <= m.wall_s
             assert len(m.fusion.history[-1][2]) == m.summary.n_shared
@@ -129,6 +130,22 @@ def test_in_process_team_runs_the_robots_in_turn_each_sharing_to_its_own_store()
         runner.close()
     with pytest.raises(ValueError, match="unique names"):
         InProcessTeam([plans[0], plans[0]], mission)
+
+    def broken(plan, fusion):  # the first robot's mapping fails: reported by name, the second never starts
+        def relevance(fr):
+            raise RuntimeError("no relevance")
+
+        rt = build_mission(cfg, "Pick up the object", GRAPH, agent_id=plan.name, fusion=fusion,
+                           relevance_fn=relevance, start=False)
+        return rt, [plane_frame(i, 0.03 * i) for i in range(4)]
+
+    failing = InProcessTeam(plans, broken)
+    try:
+        with pytest.raises(RuntimeError, match="a mission failed: .*no relevance"):
+            run_team(failing, timeout_s=120, poll_s=0.01)
+        assert list(failing.missions) == ["a"]
+    finally:
+        failing.close()
     idle = InProcessTeam(plans, mission)
     with pytest.raises(RuntimeError, match=r"never started: \['a', 'b'\]"):
         idle.finish()
