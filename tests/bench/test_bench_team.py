@@ -290,10 +290,12 @@ def test_a_team_runs_end_to_end_through_the_harness(tmp_path, monkeypatch):
     monkeypatch.setitem(scenes.SCENES, "synthetic_circle",
                         {**scenes.SCENES["synthetic_circle"], "frames": 24, "width": 80, "height": 60, "cap": 1500})
     monkeypatch.setattr(team, "LONG_REFINE_ITERS", 2)
+    settings = {**team.fuse_settings(), "refine_iters": 5}
+    monkeypatch.setattr(team, "fuse_settings", lambda: settings)
     out = tmp_path / "team.json"
     rc = team.main(["--teams", "synthetic", "--runs", "1", "--protocols", "sensor", "--out", str(out),
-                    "--work", str(tmp_path / "work"), "--set", "mapper.iters_per_frame=3",
-                    "--set", "mapper.warmup_iters=1"])
+                    "--work", str(tmp_path / "work"), "--budget", "0.2", "--set", "mapper.iters_per_frame=3",
+                    "--set", "mapper.warmup_iters=1", "--set", "agent.share.worker=thread"])
     assert rc == 0
     res = json.loads(out.read_text())
     (run,) = res["runs"]

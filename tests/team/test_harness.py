@@ -97,7 +97,7 @@ def test_run_team_bounds_the_wait_and_refuses_a_bound_that_is_not_positive():
 def _config():
     return load_config(None, ["agent.ingest=every_frame", "agent.push.every=2", "mapper.mode=gausslite",
                               "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
-                              "mapper.seeding.seeds_per_frame=200"]).agent
+                              "mapper.seeding.seeds_per_frame=200", "agent.share.worker=thread"]).agent
 
 
 def test_in_process_team_runs_the_robots_in_turn_each_sharing_to_its_own_store():
