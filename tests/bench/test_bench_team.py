@@ -279,7 +279,7 @@ def test_share_curve_under_a_protocol_reads_its_figures_and_keeps_the_bytes(tmp_
 
 
 def test_a_team_runs_end_to_end_through_the_harness(tmp_path, monkeypatch):
-    """``python -m bench.team`` on a tiny synthetic circle (24 frames at 80×60): both robots driven by the team
+    """``python -m bench.team`` on a tiny synthetic circle (12 frames at 64×48): both robots driven by the team
     harness in process, one after the other, each sharing to its own store; their own and fused maps scored and the
     results written. Figures on a tiny scene are not measurements: only what the bench computes from them is checked."""
     import json
@@ -288,7 +288,7 @@ def test_a_team_runs_end_to_end_through_the_harness(tmp_path, monkeypatch):
     from bench.realtime import scenes
 
     monkeypatch.setitem(scenes.SCENES, "synthetic_circle",
-                        {**scenes.SCENES["synthetic_circle"], "frames": 24, "width": 80, "height": 60, "cap": 1500})
+                        {**scenes.SCENES["synthetic_circle"], "frames": 12, "width": 64, "height": 48, "cap": 1000})
     monkeypatch.setattr(team, "LONG_REFINE_ITERS", 2)
     settings = {**team.fuse_settings(), "refine_iters": 5}
     monkeypatch.setattr(team, "fuse_settings", lambda: settings)
