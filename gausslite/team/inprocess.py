@@ -90,10 +90,14 @@ class InProcessTeam:
         fusion.start()
         self._replay = rt.replay(frames)
 
+    def _last(self) -> Optional[InProcessMission]:
+        """The robot started last (the running one until it is finished), None before the first."""
+        return next(reversed(self.missions.values()), None)
+
     def _finish_running(self, timeout_s: Optional[float] = None) -> None:
         """Finish the running robot (its final push), then close it: none of its threads or worker processes runs
         beside the next robot; its map, keyframes, pusher and store stay readable."""
-        m = list(self.missions.values())[-1]
+        m = self._last()
         try:
             m.summary = m.runtime.finish(push=True, evaluate=self.evaluate, timeout_s=timeout_s)
             m.wall_s = time.perf_counter() - m.fusion.t0
@@ -104,7 +108,7 @@ class InProcessTeam:
         """Agent id → its mission's status (None for a robot whose turn has not come). When the running robot has
         replayed its frames it is finished here and the next robot started; a robot whose mission failed stays as it
         is (``FAILED``, for :func:`~gausslite.team.harness.run_team` to report)."""
-        running = list(self.missions.values())[-1] if self.missions else None
+        running = self._last()
         if (running is not None and running.summary is None and not self._replay.is_alive()
                 and running.runtime.status()["state"] != MissionState.FAILED):  # a failed one is reported, not finished
             self._finish_running()
@@ -122,7 +126,7 @@ class InProcessTeam:
         missing = [p.name for p in self.plans if p.name not in self.missions]
         if missing:
             raise RuntimeError(f"robots that never started: {missing}")
-        if list(self.missions.values())[-1].summary is None:
+        if self._last().summary is None:
             self._finish_running(timeout_s)
         return {p.name: self.missions[p.name].summary for p in self.plans}
 

@@ -40,7 +40,7 @@ def summary_from_proto(msg: agent_pb2.MissionSummary) -> MissionSummaryData:
     Args:
         msg: the agent service's answer to ``Finish``.
     Returns:
-        ``status``: the ``MissionStatus`` fields by name (``state`` the enum's number); the ROI PSNRs (dB) None where
+        ``status``: the ``MissionStatus`` fields by name (:func:`status_from_proto`); the ROI PSNRs (dB) None where
         the message says it has none (``has_roi_psnr``, ``has_roi_psnr_all_frames``); ``pushes``: one record per push
         as the mission keeps them (``bytes_on_wire``: the push's bytes sent); ``protocols``: protocol →
         ``{"roi_psnr" (None without one), "psnr", "ssim", "frames_scored", "roi_frames", "roi_psnr_per_frame"}``;
@@ -48,8 +48,7 @@ def summary_from_proto(msg: agent_pb2.MissionSummary) -> MissionSummaryData:
         camera-to-world (4, 4) float64, and exposure each ``tracked`` / ``novel`` frame was scored at on the robot's
         own map).
     """
-    st = msg.status
-    status = {f.name: getattr(st, f.name) for f in st.DESCRIPTOR.fields}
+    status = status_from_proto(msg.status)
     pushes = [{"version": q.version, "n_shared": q.n_shared, "n_total": q.n_total, "bytes_on_wire": q.bytes_sent,
                "delta": q.delta, "records": q.records, "removed": q.removed, "frames_mapped": q.frames_mapped,
                "unchanged": q.unchanged} for q in msg.pushes]

@@ -19,6 +19,7 @@ from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.mission import AgentRuntime, build_mission, replay_dataset
 from gausslite.mission.fakes import SinkFusion
 from tests._scenes import plane_frame, plane_roi
+from tests._source import calls_in
 
 ROOT = Path(__file__).resolve().parents[2]
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
@@ -89,19 +90,9 @@ def test_replay_dataset_opens_a_sequence_with_its_sensor_profile(tmp_path):
         replay_dataset(tmp_path / "missing", cfg)
 
 
-def _calls_in(path: str, function: str) -> set:
-    """Names called inside ``function`` (a function or method) of the file at ``path``."""
-    tree = ast.parse((ROOT / path).read_text(encoding="utf-8"))
-    for node in ast.walk(tree):
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == function:
-            return {c.func.id if isinstance(c.func, ast.Name) else c.func.attr
-                    for c in ast.walk(node) if isinstance(c, ast.Call) and isinstance(c.func, (ast.Name, ast.Attribute))}
-    raise AssertionError(f"{path} has no function {function}")
-
-
 @pytest.mark.parametrize("path", sorted(CALLERS))
 def test_every_caller_builds_its_mission_with_build_mission(path):
-    assert "build_mission" in _calls_in(path, CALLERS[path])
+    assert "build_mission" in calls_in(path, CALLERS[path])
 
 
 def test_no_code_but_build_mission_constructs_a_runtime():
@@ -127,7 +118,7 @@ def test_gausslite_map_runs_no_mission_and_takes_the_loaders_pose_sources():
 
     from gausslite.cli import cmd_map
 
-    assert "build_mission" not in _calls_in("gausslite/cli/cmd_map.py", "_handler")
+    assert "build_mission" not in calls_in("gausslite/cli/cmd_map.py", "_handler")
     p = argparse.ArgumentParser()
     cmd_map.add_mapping_args(p)
     choices = next(a.choices for a in p._actions if a.dest == "pose_source")

@@ -6,7 +6,6 @@ both drive their teams through it."""
 
 from __future__ import annotations
 
-import ast
 import logging
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from gausslite.team import AgentPlan
 from gausslite.team.harness import TeamRunner, progress_line, run_team
 from gausslite.team.inprocess import InProcessTeam
 from tests._scenes import plane_frame, plane_roi
+from tests._source import calls_in
 
 ROOT = Path(__file__).resolve().parents[2]
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
@@ -151,20 +151,10 @@ def test_in_process_team_runs_the_robots_in_turn_each_sharing_to_its_own_store()
         idle.finish()
 
 
-def _calls_in(path: str, function: str) -> set:
-    """Names called inside ``function`` of the file at ``path`` (read, not imported)."""
-    tree = ast.parse((ROOT / path).read_text(encoding="utf-8"))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.FunctionDef) and node.name == function:
-            return {c.func.id if isinstance(c.func, ast.Name) else c.func.attr
-                    for c in ast.walk(node) if isinstance(c, ast.Call) and isinstance(c.func, (ast.Name, ast.Attribute))}
-    raise AssertionError(f"{path} has no function {function}")
-
-
 @pytest.mark.parametrize("path, function, runner", [("services/sim/runner.py", "run_sim", "ServiceTeam"),
                                                      ("bench/team.py", "run_missions", "InProcessTeam")])
 def test_the_simulation_and_the_team_benchmark_drive_their_teams_with_the_harness(path, function, runner):
-    called = _calls_in(path, function)
+    called = calls_in(path, function)
     assert {"run_team", runner} <= called
     # nothing else in them follows or finishes a robot's mission itself
     src = (ROOT / path).read_text(encoding="utf-8")
