@@ -127,10 +127,11 @@ class MeteredFusion(ServicerProxy):
         outcome = "cancelled"
         try:
             for msg in self._inner.Fuse(request, context):
-                if msg.done:
+                if msg.done:  # counted before the client can see the result (and scrape right after it)
                     outcome = "ok"
                     m.fuse_seconds.labels(method).observe(msg.result.seconds)
                     m.fused_gaussians.set(msg.result.n_gaussians)
+                    m.fuse_runs.labels(method, outcome).inc()
                 yield msg
         except grpc.RpcError:
             outcome = "error"
@@ -141,7 +142,8 @@ class MeteredFusion(ServicerProxy):
             outcome = "error"
             raise
         finally:
-            m.fuse_runs.labels(method, outcome).inc()
+            if outcome != "ok":
+                m.fuse_runs.labels(method, outcome).inc()
 
 
 __all__ = ["FusionMetrics", "MeteredFusion"]
