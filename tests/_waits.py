@@ -17,6 +17,11 @@ def wait_until(pred, timeout_s: float, poll_s: float = 0.05) -> bool:
 #: several at once on a loaded 2-core machine, with room to spare. A process that exits ends the wait at once.
 STARTUP_S = 180.0
 
+#: how long a test lets an agent's own work take: mapping the frames it was sent, a push it waits for, a Finish (the
+#: final pass and push, for which the share worker may start). The bound only keeps a hung agent from holding the
+#: suite: beside a CPU-bound process on a 2-core machine, a Finish of a few frames has taken over 120 s.
+WORK_S = 600.0
+
 
 def wait_for_start(proc, ready, what: str, log=None, timeout_s: float = STARTUP_S) -> None:
     """Poll ``ready()`` until it is true while ``proc`` (a ``subprocess.Popen``) runs.

@@ -20,6 +20,7 @@ from gausslite.mission import AgentRuntime, build_mission, replay_dataset
 from gausslite.mission.fakes import SinkFusion
 from tests._scenes import plane_frame, plane_roi
 from tests._source import calls_in
+from tests._waits import WORK_S
 
 ROOT = Path(__file__).resolve().parents[2]
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
@@ -49,8 +50,8 @@ def test_build_mission_maps_a_tiny_scene_and_pushes_to_its_fusion_side():
         assert cfg.frame.matrix() is None and rt.config.mapper == cfg.mapper
         for i in range(3):
             assert rt.submit(plane_frame(i, 0.05 * i))
-        assert rt.wait_mapped(60)
-        summary = rt.finish(push=True, evaluate=False, timeout_s=60)
+        assert rt.wait_mapped(WORK_S)
+        summary = rt.finish(push=True, evaluate=False, timeout_s=WORK_S)
         assert rt.frames_mapped == 3 and summary.final_push_ok and sink.uploads >= 1
     finally:
         rt.close()

@@ -14,6 +14,7 @@ from gausslite.parser import TaskParser
 from gausslite.synthetic import make_scene
 from gausslite_rpc import agent_pb2, common_pb2
 from gausslite_services.sim.summary import summary_from_proto
+from tests._waits import WORK_S
 
 TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "agent.idle_chunk_s=0.05", "mapper.iters_per_frame=3",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200", "agent.scoring.novel_every=3",
@@ -29,7 +30,7 @@ def test_finish_scores_withheld_frames_at_the_predicted_view_and_sends_both_view
                       task_id="synth-pick-object")
     try:
         rt.replay(ds)
-        s = rt.finish(push=False, timeout_s=120)
+        s = rt.finish(push=False, timeout_s=WORK_S)
         withheld = {int(ds[i].frame_id) for i in (1, 4)}  # every 3rd frame from the 2nd
         assert {int(st.frame_id) for st in rt.mapper.stats}.isdisjoint(withheld)
         p = s.protocols

@@ -12,7 +12,7 @@ from gausslite.mapping.mapper import FrameStats
 from gausslite.mission import AgentRuntime
 from gausslite.mission import worker as worker_mod
 from tests._scenes import plane_frame
-from tests._waits import wait_until
+from tests._waits import WORK_S, wait_until
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
@@ -27,7 +27,7 @@ def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatc
     try:
         for i in range(3):
             rt.submit(plane_frame(i, 0.1 * i, 24, 32))
-        assert rt.wait_mapped(60)
+        assert rt.wait_mapped(WORK_S)
         # each push sets the flag when it is done; the worker, awake at least every 0.5 s, takes it
         assert wait_until(lambda: trims, 60), "the mapping thread never trimmed after a push (waited 60 s)"
     finally:

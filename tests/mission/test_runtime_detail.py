@@ -14,6 +14,7 @@ from gausslite.mapping.resolution import nearest_mask
 from gausslite.mission import AgentRuntime
 from gausslite_rpc import agent_pb2
 from tests._scenes import plane_frame
+from tests._waits import WORK_S
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
@@ -37,7 +38,7 @@ def test_the_agent_hands_the_mapper_a_detail_view_only_with_the_detail_layer(ena
     try:
         for i in range(3):
             rt.submit(plane_frame(i, 0.1 * i, 48, 64))
-        assert rt.wait_mapped(30)
+        assert rt.wait_mapped(WORK_S)
         st = rt.status()
     finally:
         rt.close()

@@ -13,6 +13,7 @@ from gausslite.config import load_config
 from gausslite.mapping.mapper import FrameStats
 from gausslite.mission import AgentRuntime, MissionError, MissionState
 from tests._scenes import plane_frame
+from tests._waits import WORK_S
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 CFG = ["agent.ingest=every_frame", "agent.push.every=1000", "agent.checkpoint_every=1", "mapper.mode=uniform",
@@ -55,9 +56,9 @@ def test_start_starts_the_threads_once_and_the_first_frame_starts_a_runtime_not_
     assert not worker.is_alive()
     rt = _runtime()
     try:
-        assert rt.submit(plane_frame(0)) and rt.wait_mapped(60)  # as callers that never call start do
+        assert rt.submit(plane_frame(0)) and rt.wait_mapped(WORK_S)  # as callers that never call start do
         assert rt.frames_mapped == 1 and rt.worker.thread.is_alive()
-        s = rt.finish(push=False, evaluate=False, timeout_s=60)
+        s = rt.finish(push=False, evaluate=False, timeout_s=WORK_S)
         assert s.status["frames_mapped"] == 1 and rt.state == MissionState.FINISHED
     finally:
         rt.close()
@@ -68,7 +69,7 @@ def test_the_checkpoint_is_resumed_at_start_not_when_the_runtime_is_built(tmp_pa
     try:
         for i in range(2):
             rt.submit(plane_frame(i, 0.1 * i))
-        assert rt.wait_mapped(60) and rt.checkpoints == 2 and rt.checkpoint.exists()
+        assert rt.wait_mapped(WORK_S) and rt.checkpoints == 2 and rt.checkpoint.exists()
     finally:
         rt.close()
     again = _runtime(checkpoint_dir=tmp_path / "m1")

@@ -23,7 +23,7 @@ from gausslite.mission.tracking import MissionPoses
 from gausslite.mission.uploads import KeyframeUploads
 from gausslite.mission.worker import DRAIN, FINISH, MappingWorker
 from tests._scenes import plane_frame, plane_roi
-from tests._waits import wait_until
+from tests._waits import WORK_S, wait_until
 
 GRAPH = {"targets": ["object"], "anchors": [], "relations": []}
 
@@ -184,8 +184,8 @@ def test_the_thread_maps_the_queue_then_ends_finish_with_the_final_pass_and_push
         for i in range(3):
             q.put((plane_frame(i, 0.1 * i), 0.0))
         q.put(FINISH)
-        assert m.pusher.final_done.wait(60), "no final push (waited 60 s)"
-        assert m.ingest.wait_mapped(60)
+        assert m.pusher.final_done.wait(WORK_S), f"no final push (waited {WORK_S:.0f} s)"
+        assert m.ingest.wait_mapped(WORK_S)
         assert [fid for fid, *_ in m.mapper.mapped] == [0, 1, 2] and m.mapper.finalized == 1
         assert [(n, final) for _, n, final in m.pusher.offers] == [(3, True)] and m.checkpoint.versions == 1
     finally:
@@ -198,13 +198,13 @@ def test_finish_without_a_push_and_finish_of_a_failed_mission_only_end_the_finis
     m.worker.start()
     try:
         m.ingest.queue.put(DRAIN)
-        assert m.pusher.final_done.wait(60)
+        assert m.pusher.final_done.wait(WORK_S)
         m.pusher.final_done.clear()
         m.progress.fail("earlier failure")
         m.ingest.queue.put((plane_frame(0), 0.0))  # a failed mission maps nothing more
         m.ingest.queue.put(FINISH)
-        assert m.pusher.final_done.wait(60)
-        assert m.ingest.wait_mapped(60)
+        assert m.pusher.final_done.wait(WORK_S)
+        assert m.ingest.wait_mapped(WORK_S)
         assert m.mapper.mapped == [] and m.mapper.finalized == 0 and m.pusher.offers == []
     finally:
         m.worker.stop(10.0)
@@ -225,7 +225,7 @@ def test_live_ingest_optimises_between_keyframes_and_a_new_task_is_applied_by_th
         m.progress.begin_finish()  # Finish began: no more optimisation between keyframes
         n = m.mapper.optimized
         m.ingest.queue.put(DRAIN)
-        assert m.pusher.final_done.wait(60) and m.ingest.wait_mapped(60)
+        assert m.pusher.final_done.wait(WORK_S) and m.ingest.wait_mapped(WORK_S)
         assert m.mapper.optimized - n <= 1  # at most the chunk in progress when Finish began
     finally:
         m.worker.stop(10.0)

@@ -32,6 +32,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
+from tests._waits import WORK_S
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1",
@@ -194,7 +195,7 @@ def test_submit_never_blocks_while_the_mapper_is_busy(scene):
         assert st["frames_skipped"] == 38
     finally:
         gate.set()
-    s = rt.finish(push=False, timeout_s=60)
+    s = rt.finish(push=False, timeout_s=WORK_S)
     assert mapped == [0, 39]
     assert s.status["frames_keyframed"] == 2
     assert s.status["frames_received"] == s.status["frames_keyframed"] + s.status["frames_skipped"]
@@ -210,7 +211,7 @@ def test_idle_optimisation_and_checkpoint_resume_in_process(scene, tmp_path):
                       checkpoint_dir=tmp_path / "m1")
     for i in range(3):
         rt.submit(ds[i])
-        rt.wait_mapped(60)
+        rt.wait_mapped(WORK_S)
     deadline = time.monotonic() + 30
     while rt.status()["idle_iterations"] == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -257,7 +258,7 @@ def test_streaming_with_keyframe_ingest_and_bad_input(scene):
         with pytest.raises(grpc.RpcError) as e:
             c.stream_frames(m.mission_id, [small], timeout_s=10)
         assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "image size" in e.value.details()
-        s = c.finish(m.mission_id, timeout_s=120)
+        s = c.finish(m.mission_id, timeout_s=WORK_S)
         assert s.status.frames_received == s.status.frames_keyframed + s.status.frames_skipped
         assert s.status.frames_keyframed >= 1
         with pytest.raises(grpc.RpcError) as e:
@@ -316,7 +317,7 @@ def test_onnx_relevance_backend_with_tiny_models(scene, tmp_path):
     rel = rt._relevance_fn(ds[0])
     assert rel.shape == ds[0].depth.shape and rel.dtype == bool and rel.any()
     rt.submit(ds[0])
-    rt.wait_mapped(60)
+    rt.wait_mapped(WORK_S)
     assert rt.status()["frames_mapped"] == 1 and rt.status()["n_active"] > 0
     rt.close()
 
@@ -428,13 +429,13 @@ def _stream_keyframes(c, mission_id: str, frames) -> None:
     """Stream ``frames`` one per call, each waited for until it is a keyframe (once the mapper is free)."""
     for i, fr in enumerate(frames):
         c.stream_frames(mission_id, [fr], timeout_s=60)
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + WORK_S
         while c.status(mission_id).frames_keyframed < i + 1 and time.monotonic() < deadline:
             time.sleep(0.1)
 
 
 def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
-    cfg = {"push": {"every": 1}, "checkpoint_every": 1}
+    cfg = {"push": {"every": 1}, "checkpoint_every": 1, "share": {"worker": "thread"}}
     with _agent_processes(scene, tmp_path, monkeypatch, cfg) as (start, fc, ds, port):
         p = start()
         with AgentClient(f"127.0.0.1:{port}") as c:
@@ -442,7 +443,7 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
             m = c.start_mission("Pick up the object", annotations_path=str(scene / "agent_a"), mission_id="run-7")
             assert m.mission_id == "run-7" and not m.resumed
             _stream_keyframes(c, "run-7", [ds[i] for i in range(3)])
-            deadline = time.monotonic() + 120
+            deadline = time.monotonic() + WORK_S
             while (c.status("run-7").checkpoints < 3 or c.status("run-7").pushes < 1) and time.monotonic() < deadline:
                 time.sleep(0.1)
             st = c.status("run-7")
@@ -459,7 +460,7 @@ def test_agent_resumes_after_sigkill(scene, tmp_path, monkeypatch):
             st = c.status("run-7")
             assert st.frames_keyframed == 3 and st.n_gaussians > 0
             c.stream_frames("run-7", [ds[3]], timeout_s=60)
-            s = c.finish("run-7", timeout_s=180)
+            s = c.finish("run-7", timeout_s=WORK_S)
             assert s.final_push_ok, s.status.last_error
             assert s.status.frames_keyframed == 4
             assert s.status.last_pushed_version > v_before  # same agent, newer versions
@@ -525,7 +526,7 @@ def test_validate_frame_reads_headers_and_defers_decoding(scene):
     rt = AgentRuntime("r", "Pick up the object", {"targets": ["object"], "anchors": [], "relations": []}, cfg,
                       relevance_fn=lambda f: None)
     assert rt.submit(pf) is True
-    rt.wait_mapped(30)
+    rt.wait_mapped(WORK_S)
     st = rt.status()
     assert st["frames_rejected"] == 1 and st["frames_mapped"] == 0 and "rejected frame" in st["last_error"]
     rt.close()
@@ -546,7 +547,7 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
     rt._replay_thread.join(60)
     # 6 frames at 30 Hz, clock slowed to half speed: the last frame is sent 5/30/0.5 s after the first
     assert time.perf_counter() - t0 >= 5 / 30 / 0.5
-    s = rt.finish(push=False, timeout_s=120)
+    s = rt.finish(push=False, timeout_s=WORK_S)
     st = s.status
     assert st["frames_received"] == len(ds) == st["frames_keyframed"] + st["frames_skipped"]
     assert st["frames_keyframed"] >= 1
@@ -566,7 +567,7 @@ def test_realtime_replay_follows_the_clock_and_scores_every_frame(scene):
                       task_id="synth-pick-object")
     try:
         rt.replay(ds)
-        s = rt.finish(push=False, timeout_s=120)
+        s = rt.finish(push=False, timeout_s=WORK_S)
         assert set(s.protocols) == {"sensor", "tracked"}
         assert s.protocols["tracked"]["frames_scored"] == len(range(0, len(ds), 2))
     finally:
@@ -650,12 +651,12 @@ def _mission(agent_id, cfg, relevance_fn, fusion, ds, n_frames: int, push_after:
     try:
         for i in range(n_frames):
             if push_after and i == push_after:
-                deadline = time.monotonic() + 120
+                deadline = time.monotonic() + WORK_S
                 while not rt.pusher.pushes and time.monotonic() < deadline:
                     time.sleep(0.05)
                 assert rt.pusher.pushes, rt.status()
             rt.submit(ds[i])
-        rt.finish(push=True, evaluate=False, timeout_s=120)
+        rt.finish(push=True, evaluate=False, timeout_s=WORK_S)
     finally:
         rt.close()
     return rt
@@ -954,7 +955,7 @@ def test_the_mapping_resolution_is_reported_pinned_or_chosen_and_maps_what_it_sa
         try:
             for i in range(3):
                 rt.submit(ds[i])
-            assert rt.wait_mapped(60)
+            assert rt.wait_mapped(WORK_S)
             st = rt.status()
             w, h = 64 // int(factor), 48 // int(factor)
             assert set(sizes) == {(w, h, (h, w))}
@@ -997,7 +998,7 @@ def test_a_live_agent_sends_roi_crops_of_keyframes_and_of_the_frames_between_the
                       task_id="synth-pick-object", fusion=fusion)
     try:
         rt.replay(ds)
-        s = rt.finish(push=True, timeout_s=120)
+        s = rt.finish(push=True, timeout_s=WORK_S)
     finally:
         rt.close()
     st = s.status

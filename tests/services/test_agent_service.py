@@ -21,6 +21,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
+from tests._waits import WORK_S
 
 # every_frame ingest: these tests count mapped frames and pushes exactly (keyframe ingest: test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
@@ -79,7 +80,7 @@ def test_two_agents_stream_push_fuse_download(scene, parser_server, tmp_path):
             r = c.stream_frames(m.mission_id, list(ds), timeout_s=60)
             assert r.frames_received == len(ds) == 4
         for (name, tid), c in zip(plans, clients):
-            s = c.finish(timeout_s=90)
+            s = c.finish(timeout_s=WORK_S)
             summaries[name] = s
             assert s.status.state == agent_pb2.MISSION_STATE_FINISHED
             assert s.status.task_id == tid
@@ -188,7 +189,7 @@ def test_bad_inputs_give_precise_codes(local_agent, scene):
     with pytest.raises(grpc.RpcError) as e:
         c.start_mission("Map the chairs")
     assert _code(e) == grpc.StatusCode.FAILED_PRECONDITION
-    s = c.finish(m.mission_id, timeout_s=60)
+    s = c.finish(m.mission_id, timeout_s=WORK_S)
     assert s.status.frames_mapped == 1 and not s.final_push_ok  # no fusion server configured
     with pytest.raises(grpc.RpcError) as e:
         c.stream_messages([good], timeout_s=10)
@@ -222,7 +223,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
         assert len(rt.pusher.pushes) == 1
         f1.stop(0)
         rt.submit(ds[2]); rt.submit(ds[3])
-        assert rt.wait_mapped(60)
+        assert rt.wait_mapped(WORK_S)
         t0 = time.monotonic()
         while rt.pusher.push_failures == 0 and time.monotonic() - t0 < 30:
             time.sleep(0.05)
@@ -235,7 +236,7 @@ def test_fusion_restart_during_mission(scene, tmp_path):
 
         th = threading.Thread(target=restart)
         th.start()
-        s = rt.finish(timeout_s=90)
+        s = rt.finish(timeout_s=WORK_S)
         th.join()
         f2 = holder["srv"]
         assert s.final_push_ok, rt.last_error
@@ -379,9 +380,9 @@ def test_caller_paths_are_confined_to_the_data_roots(scene, tmp_path, caplog):
         # inside a root (also through `..` that stays inside), and the configured annotations folder itself
         m = c.start_mission(task, annotations_path=f"{root}/site/../site/agent_a")
         assert ag.servicer.missions[m.mission_id].annotations is not None
-        c.finish(m.mission_id, timeout_s=60)
+        c.finish(m.mission_id, timeout_s=WORK_S)
         m = c.start_mission(task, annotations_path=str(scene))
-        c.finish(m.mission_id, timeout_s=60)
+        c.finish(m.mission_id, timeout_s=WORK_S)
     finally:
         c.close()
         ag.stop(0)

@@ -15,6 +15,7 @@ from gausslite.synthetic import make_scene
 from gausslite_services.agent.client import AgentClient
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
+from tests._waits import WORK_S
 
 TINY = ["agent.ingest=every_frame", "agent.push.every=100", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=4",
         "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300"]
@@ -77,7 +78,7 @@ def test_update_task_retargets_a_running_mission(agent, scene):
     assert bool(active.any()) and int(rt.mapper.model.kappa.max()) > 0
     n_old = min(len(object_active), len(active))
     assert int((active[:n_old] & object_active[:n_old]).sum()) < int(object_active.sum())
-    s = c.finish(m.mission_id, skip_push=True, timeout_s=120)
+    s = c.finish(m.mission_id, skip_push=True, timeout_s=WORK_S)
     assert s.status.task_text == CHAIR
     with pytest.raises(grpc.RpcError) as e:
         c.update_task(m.mission_id, OBJECT)

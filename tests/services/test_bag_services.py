@@ -21,6 +21,7 @@ from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 from gausslite_services.sim import plan_agents
 from gausslite_services.sim.launch import check_bags
+from tests._waits import WORK_S
 
 TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
         "mapper.seeding.seeds_per_frame=150"]
@@ -56,11 +57,11 @@ def test_agent_replays_a_bag(bag_scene, tmp_path):
         c.wait_ready(10)
         text = load_dataset(out / "agent_a").annotations.tasks[0].text
         m = c.start_mission(text, dataset_path=str(out / "agent_a"))
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + WORK_S
         while c.status(m.mission_id).state != agent_pb2.MISSION_STATE_REPLAY_DONE:
             assert time.monotonic() < deadline, "replay did not finish"
             time.sleep(0.5)
-        s = c.finish(m.mission_id, timeout_s=60)
+        s = c.finish(m.mission_id, timeout_s=WORK_S)
         assert s.status.frames_received == 4 and s.status.frames_mapped == 4
         # a bad bag is refused with the bag's one clear error
         bad_cfg = load_config(None, TINY + ["agent.bag.rgb_topic=/nope"]).agent
@@ -176,7 +177,7 @@ def test_bag_to_fused_map_as_documented(bag_scene, tmp_path):
         for rid, m in missions.items():
             assert m.replay_frames == 4 and m.agent_id == rid
             clients[rid].wait_state([agent_pb2.MISSION_STATE_REPLAY_DONE], m.mission_id, timeout_s=120)
-            summaries[rid] = s = clients[rid].finish(m.mission_id, timeout_s=600)  # the final pass and push, busy or not
+            summaries[rid] = s = clients[rid].finish(m.mission_id, timeout_s=WORK_S)  # the final pass and push, busy or not
             assert s.final_push_ok and s.status.frames_mapped == 4 and s.n_shared > 0
         with FusionClient(fusion_srv.address) as fusion:
             stats = fusion.stats()["agents"]

@@ -19,7 +19,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentServicer
 from gausslite_services.fusion_server.client import FusionClient
-from tests._waits import STARTUP_S, wait_for_start, wait_until
+from tests._waits import STARTUP_S, WORK_S, wait_for_start, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 OUTAGE_S = float(os.environ.get("GAUSSLITE_TEST_OUTAGE_S", "3"))
@@ -99,7 +99,7 @@ def test_link_outage_mid_mission(tmp_path):
         st = rt.status()
         assert st["push_backlog"] == 0 and st["link_down_s"] == 0.0 and st["keyframes_backlog"] == 0
 
-        s = rt.finish(timeout_s=120, evaluate=False)
+        s = rt.finish(timeout_s=WORK_S, evaluate=False)
         assert s.final_push_ok, rt.last_error
         version, subset, _ = rt.acknowledged_subset()
         with FusionClient(f"127.0.0.1:{port}", timeout_s=10) as c:

@@ -20,6 +20,7 @@ from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import fusion_pb2, fusion_pb2_grpc
 from gausslite_services.common.metrics import metrics_port_from
 from gausslite_services.common.server import ServerOptions
+from tests._waits import WORK_S
 
 # every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
@@ -187,7 +188,7 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
             assert c.stream_frames(m.mission_id, list(ds), timeout_s=120).frames_received == 4
             # Finish maps what is queued, makes the final pass and push (the share worker starts for it): on a busy
             # machine that can take minutes; the bound only keeps a hung agent from holding the suite
-            s = c.finish(timeout_s=600)
+            s = c.finish(timeout_s=WORK_S)
             assert s.final_push_ok, s.status.last_error
         a1 = scrape(agent_url)
         assert val(a1, "gausslite_agent_frames_received_total", agent="robot_m") == 4

@@ -27,6 +27,7 @@ from gausslite_services.agent.client import AgentClient
 from gausslite_services.agent.frames import encode_frame, validate_frame
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
+from tests._waits import WORK_S
 
 # every_frame ingest, tiny images, few iterations: five missions of six frames run in seconds
 TINY = ["agent.ingest=every_frame", "agent.push.every=100", "mapper.budget_clock=work", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
@@ -111,7 +112,7 @@ def test_a_checkpoint_resumes_only_in_the_world_frame_it_was_mapped_in(scenes, t
                       checkpoint_dir=tmp_path / "m1")
     try:
         rt.submit(ds[0])
-        rt.wait_mapped(60)
+        rt.wait_mapped(WORK_S)
         rt.save_checkpoint()
         # the map is in the world frame: about where the world scene's first frame back-projects its depth
         ref = load_dataset(world / "agent_b")[0]
@@ -149,7 +150,7 @@ def _run(name, fusion, cfg, task_text, *, dataset="", annotations="", frames=(),
                                 T_world_map=T_option)
             if frames:
                 assert c.stream_frames(m.mission_id, frames, timeout_s=60).frames_received == len(frames)
-            s = c.finish(m.mission_id, timeout_s=120)
+            s = c.finish(m.mission_id, timeout_s=WORK_S)
     finally:
         ag.stop(0)
     assert s.final_push_ok and s.status.state == agent_pb2.MISSION_STATE_FINISHED, s.status.last_error

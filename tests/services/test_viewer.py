@@ -22,6 +22,7 @@ from gausslite.viewer.export import (export_map, from_splat_bytes, load_map, rea
                                      write_map, write_splat, write_spz)
 from gausslite.viewer.splats import covariances, kappa_colors, sigmoid, splat_arrays
 from gausslite.wire.codec import GaussianArrays
+from tests._waits import STARTUP_S
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -527,7 +528,7 @@ def test_cli_view_follows_fusion(fusion_with_two_agents):
                             text=True, env=env)
     try:
         seen = []
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + STARTUP_S
         while time.monotonic() < deadline and proc.poll() is None:
             seen.append(proc.stderr.readline())
             if "showing fused version" in seen[-1]:
