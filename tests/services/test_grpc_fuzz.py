@@ -22,16 +22,18 @@ from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
 from gausslite.wire.codec import GaussianArrays, encode_subset
 from gausslite_rpc import agent_pb2, fusion_pb2, parser_pb2
-from gausslite.config import load_config
+from gausslite.config import FusionSettings, load_config
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
 
 SEED = int(os.environ.get("GAUSSLITE_FUZZ_SEED", "0"))
 CASES = int(os.environ.get("GAUSSLITE_FUZZ_CASES", "60"))
-#: each call's deadline, which a hung handler misses. Some cases are valid requests that do real work, such as a
-#: Fuse with a joint refinement of up to a thousand iterations: beside a CPU-bound process on a 2-core machine such
-#: a call has taken more than 10 s.
+#: each call's deadline, which a hung handler misses; generous, as CI runs beside other work on two cores
 CALL_TIMEOUT_S = 60.0
+#: the fusion server's refinement limits here: some cases are valid Fuse calls with a joint refinement, which run
+#: at most this many iterations (a case asking for more gets INVALID_ARGUMENT). At the server's defaults (200, up
+#: to 20000) one such call, 1000 iterations, took more than 60 s beside a CPU-bound process.
+REFINE_LIMITS = {"default_refine_iters": 5, "max_refine_iters": 10}
 FORBIDDEN = {grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
 
 
@@ -44,8 +46,8 @@ def services(request, tmp_path):
     store = request.getfixturevalue("pg_schema_dsn") if request.param == "postgresql" else None
     make_scene(tmp_path / "scene", seed=0, width=32, height=24, frames=2, progress=False)
     parser = serve_parser(ServerOptions(port=0))
-    fusion = serve_fusion(ServerOptions(port=0, max_message_bytes=1 << 20), data_dir=str(tmp_path / "fusion"),
-                          store=store)
+    fusion = serve_fusion(ServerOptions(port=0, max_message_bytes=1 << 20), FusionSettings(**REFINE_LIMITS),
+                          data_dir=str(tmp_path / "fusion"), store=store)
     # a final push that fails (the fuzzer may have opened the agent's session) ends Finish well within its deadline
     cfg = load_config(None, ["mapper.iters_per_frame=1", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=50",
                                    "agent.share.rule=active", "agent.push.final_timeout_s=2", "agent.final_pass_s=1"]).agent
