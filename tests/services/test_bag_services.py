@@ -176,7 +176,7 @@ def test_bag_to_fused_map_as_documented(bag_scene, tmp_path):
         summaries = {}
         for rid, m in missions.items():
             assert m.replay_frames == 4 and m.agent_id == rid
-            clients[rid].wait_state([agent_pb2.MISSION_STATE_REPLAY_DONE], m.mission_id, timeout_s=120)
+            clients[rid].wait_state([agent_pb2.MISSION_STATE_REPLAY_DONE], m.mission_id, timeout_s=WORK_S)
             summaries[rid] = s = clients[rid].finish(m.mission_id, timeout_s=WORK_S)  # the final pass and push, busy or not
             assert s.final_push_ok and s.status.frames_mapped == 4 and s.n_shared > 0
         with FusionClient(fusion_srv.address) as fusion:
