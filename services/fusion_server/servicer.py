@@ -102,6 +102,8 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
         self._decoded: Dict[tuple, object] = {}
         self._fuse_lock = threading.Lock()
         self._refine_lock = threading.Lock()  # one joint refinement at a time in this server (Fuse's or the team map's)
+        self._refine_callers = 0  # Fuse calls waiting for or holding the refinement lock (the team map gives way)
+        self._refine_callers_lock = threading.Lock()
         # keeps the voted map current (under the fuse locks); refine_options take precedence over the held-out check's
         self._engine = FuseEngine({**config.refine_validation.options(), **config.refine_options})
         # what this install can fuse: refinement and the ROI guard need the 'mapper' extra (torch, the rasterizer)
@@ -352,15 +354,39 @@ class FusionServicer(fusion_pb2_grpc.FusionServicer):
             self._fuse_lock.release()
 
     @contextlib.contextmanager
-    def _refining(self, stopped) -> Iterator[None]:
-        """Hold this server's refinement lock (one joint refinement at a time: a Fuse's or the team map's)."""
-        while not self._refine_lock.acquire(timeout=0.2):
-            if stopped():
-                raise Cancelled()
+    def _refining(self, stopped, *, background: bool = False) -> Iterator[None]:
+        """Hold this server's refinement lock: one joint refinement at a time, a Fuse's or the team map's.
+
+        A Fuse (``background`` false) goes ahead of the team map's refinement (``background`` true): while it waits
+        for the lock or holds it, :meth:`caller_refining` is true, which stops a running team-map refinement
+        (:meth:`TeamMapRefresher._make`) and keeps the next one from taking the lock. Raises :class:`Cancelled` when
+        ``stopped()`` turns true while waiting."""
+        if not background:
+            with self._refine_callers_lock:
+                self._refine_callers += 1
         try:
-            yield
+            while True:
+                if stopped():
+                    raise Cancelled()
+                if background and self.caller_refining():
+                    time.sleep(0.2)
+                elif self._refine_lock.acquire(timeout=0.2):
+                    if not (background and self.caller_refining()):
+                        break
+                    self._refine_lock.release()
+            try:
+                yield
+            finally:
+                self._refine_lock.release()
         finally:
-            self._refine_lock.release()
+            if not background:
+                with self._refine_callers_lock:
+                    self._refine_callers -= 1
+
+    def caller_refining(self) -> bool:
+        """Whether a Fuse with a joint refinement is waiting for the refinement lock or holds it (the team map's
+        background refinement gives way to it: :meth:`_refining`)."""
+        return self._refine_callers > 0
 
     def store_fused(self, out, latest: Dict[str, int], maps: Dict[str, GaussianArrays], method: int, iters: int,
                     voxel: float, radius: int, *, for_agent: str = "", team_map: bool = False,

@@ -7,7 +7,9 @@ the vote holds for a fraction of a second) and refines the vote over every agent
 then stores the result as a team-map version. The refinement runs in a worker process
 (:class:`~gausslite_services.fusion_server.refine_worker.RefineWorker`, at ``fusion.team_map.nice``, one thread),
 not in the server's interpreter: the thread only waits for it, so the gRPC handlers never wait for the interpreter
-lock behind it. Uploads, downloads and other Fuse calls never wait for the refinement.
+lock behind it. Uploads, downloads and other Fuse calls never wait for the refinement, and a Fuse with a joint
+refinement of its own (one runs at a time) does not wait for it either: the team map's refinement stops (its process is
+killed) and starts again once that Fuse is done.
 
 Replicas: the refinement holds the store's ``team_map`` lock (:meth:`SqlFusionStore.fuse_lock`), so one replica
 refines at a time; before it starts, it checks the newest stored team map, and a replica that finds it made from
@@ -29,7 +31,7 @@ from gausslite_services.fusion_server.refine_worker import RefineWorker
 
 log = logging.getLogger("gausslite_services.fusion_server.server")  # one logger for the whole service
 
-__all__ = ["TeamMapRefresher", "lower_thread_priority", "TEAM_MAP_RETENTION"]
+__all__ = ["TeamMapRefresher", "GaveWay", "lower_thread_priority", "TEAM_MAP_RETENTION"]
 
 #: the store's retention class of team maps (its ``method`` column; not a FuseMethod, which stays VOTE in their
 #: FuseResult): kept apart from the Fuse results, so frequent Fuse calls never evict the team map being served
@@ -49,6 +51,10 @@ def lower_thread_priority(nice: int) -> bool:
         return False
 
 
+class GaveWay(Exception):
+    """The team map's refinement stopped for a Fuse with refinement (``FusionServicer._refining``)."""
+
+
 class TeamMapRefresher:
     """Keeps the fusion server's team map refined in the background.
 
@@ -59,6 +65,7 @@ class TeamMapRefresher:
 
     Attributes:
         runs: refinements stored by this server. skipped: refreshes that found the stored team map current.
+        gave_way: refinements stopped for a Fuse with refinement (each made again after it).
         last_error: the last refresh's error ("" when it succeeded).
         worker: the :class:`~gausslite_services.fusion_server.refine_worker.RefineWorker` that refines (its process
             starts with the first refinement).
@@ -72,6 +79,7 @@ class TeamMapRefresher:
         self._last_start = -float("inf")
         self.runs = 0
         self.skipped = 0
+        self.gave_way = 0
         self.last_error = ""
         self.busy = threading.Event()
         self.worker = RefineWorker(settings.nice, torch_threads=1)
@@ -138,6 +146,9 @@ class TeamMapRefresher:
                 self.last_error = ""
             except Cancelled:
                 return
+            except GaveWay:  # a Fuse with refinement goes first; this map is made again once it is done
+                log.info("team map: refinement stopped for a Fuse with refinement; it starts again after it")
+                self._changed.set()
             except Exception as e:  # noqa: BLE001 - the thread must outlive one failed refinement
                 self.last_error = f"{type(e).__name__}: {e}"
                 log.exception("team map: refinement failed")
@@ -147,7 +158,8 @@ class TeamMapRefresher:
         Returns its result, or None when nothing was made (current already, no subset or no keyframe yet).
 
         Raises:
-            Cancelled: the server or the refresher is stopping. ValueError: the vote cannot hold the maps.
+            Cancelled: the server or the refresher is stopping. GaveWay: a Fuse with refinement came; the
+            refinement stopped for it. ValueError: the vote cannot hold the maps.
         """
         latest, kfs = self.inputs()
         if not latest or not kfs:
@@ -189,12 +201,16 @@ class TeamMapRefresher:
             maps = {a: sv.subset(a, v) for a, v in latest.items()}
             out = sv._engine.fuse(latest, maps, "vote", voxel_size=voxel, contest_radius=radius, progress=emit)
         stored = sv.store.keyframes()  # ordered by agent: the held-out views are spread over the agents
-        with sv._refining(self._stopped):
+        with sv._refining(self._stopped, background=True):
             try:
                 done = self.worker.refine(out.fused, stored, s.refine_iters, s.seed, sv._engine.refine_options,
-                                          {"performance": {"render_threads": 1, "torch_threads": 1}}, self._stopped)
+                                          {"performance": {"render_threads": 1, "torch_threads": 1}},
+                                          lambda: self._stopped() or sv.caller_refining())
             except InterruptedError:
-                raise Cancelled() from None
+                if self._stopped():
+                    raise Cancelled() from None
+                self.gave_way += 1
+                raise GaveWay() from None
         out.fused, out.refine_report, out.keyframes_used = done.fused, done.report, done.keyframes_used
         out.first_row = None  # a refinement splits, clones and prunes rows
         out.seconds = time.monotonic() - t0

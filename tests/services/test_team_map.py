@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from gausslite.config import FusionSettings
+from tests._waits import STARTUP_S, WORK_S
 from tests.services.test_fusion_server import INTR, frame, rand_subset, start
 
 from gausslite_services.fusion_server.client import FusionClient
@@ -125,6 +126,29 @@ def test_uploads_reads_and_fuse_calls_go_on_while_the_team_map_refines(tmp_path)
     assert tm.worker.pid is None  # and killed its process
     with pytest.raises(ProcessLookupError):
         os.kill(child, 0)
+
+
+def test_a_fuse_with_refinement_goes_ahead_of_the_team_maps_refinement(tmp_path):
+    srv = start(tmp_path, config=_config(settle_s=0.0))
+    try:
+        with FusionClient(f"127.0.0.1:{srv.port}", timeout_s=WORK_S) as c:
+            tm = srv.servicer.team_map
+            # a team-map refinement that would run for a long time (many iterations, no early stop)
+            tm.settings = tm.settings.model_copy(update={"refine_iters": 20000})
+            srv.servicer._engine.refine_options["patience"] = 10 ** 6
+            _fill(c)
+            assert _wait(lambda: tm.busy.is_set() and tm.worker.pid, STARTUP_S)
+            starts = tm.worker.starts
+            tm.settings = tm.settings.model_copy(update={"refine_iters": 5})  # what it runs when it starts again
+            r = c.fuse("vote", refine=True, refine_iters=5)  # one joint refinement at a time: this one goes first
+            assert r.refined and r.refine_record["iters_run"] <= 5 and r.map_versions == {"r1": 1, "r2": 1}
+            assert tm.gave_way == 1 and tm.last_error == ""
+            # the team map is made again after the Fuse, in a new process, from the same subsets and views
+            again = _wait(lambda: (r := _served(c)) is not None and r.team_map_current and r, WORK_S)
+            assert again.map_versions == {"r1": 1, "r2": 1} and again.refine_record["iters_run"] <= 5
+            assert tm.worker.starts == starts + 1
+    finally:
+        srv.stop(0.5)
 
 
 def test_a_server_without_a_team_map_says_so(tmp_path):
