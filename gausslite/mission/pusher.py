@@ -301,12 +301,6 @@ class Pusher:
             attempt += 1
             try:
                 self.push_once(snap)
-                with self._lock:
-                    if self._link_down_since is not None:
-                        log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
-                                 time.monotonic() - self._link_down_since, snap.version)
-                    self._retry_delay = self.config.push.backoff_s
-                    self._link_down_since = None
                 return True
             except Exception as e:  # grpc.RpcError, ConnectionError, client-side errors
                 msg = f"push v{snap.version} attempt {attempt} failed: {type(e).__name__}: {_short(e)}"
@@ -326,6 +320,22 @@ class Pusher:
             with self._lock:  # a newer snapshot or close() ends the wait early
                 self._cv.wait_for(lambda: self._stop.is_set() or (not snap.final and self._pending is not None),
                                   timeout=delay)
+
+    def _acknowledged(self, rec: PushRecord, n_keyframes: int) -> None:
+        """Record the server's acknowledgement of a push (``rec``, with ``n_keyframes`` keyframes uploaded) as one
+        change of :meth:`status`: the push counted, no snapshot in flight, the link up and its backoff reset. A reader
+        never sees the version acknowledged while the backlog or the outage still shows it."""
+        with self._lock:
+            if self._link_down_since is not None:
+                log.info("agent %s: fusion link back after %.1f s; v%d acknowledged", self.agent_id,
+                         time.monotonic() - self._link_down_since, rec.version)
+            self.total_upload_bytes += rec.bytes_on_wire
+            self.pushes.append(rec)
+            self.keyframes_uploaded += n_keyframes
+            self._inflight = None
+            self._retry_delay = self.config.push.backoff_s
+            self._link_down_since = None
+        self._report("")
 
     def _refined(self, frame):
         """``frame`` at its refined pose (the mapper's keyframe correction, ``pose.refine``; full-image and ROI-phase
@@ -400,10 +410,7 @@ class Pusher:
             kfs, _ = self._upload_pending_keyframes(c, snap.final)
             rec = PushRecord(plan.base_version, len(snap.gaussians), snap.n_total, 0, 0, len(kfs),
                              time.perf_counter() - t0, True, 0, 0, snap.frames_mapped, unchanged=True)
-            with self._lock:
-                self.pushes.append(rec)
-                self.keyframes_uploaded += len(kfs)
-            self._report("")
+            self._acknowledged(rec, len(kfs))
             log.info("agent %s: subset unchanged since v%d; no upload", self.agent_id, plan.base_version)
             return
         try:
@@ -430,11 +437,7 @@ class Pusher:
         rec = PushRecord(plan.version, len(snap.gaussians), snap.n_total, int(getattr(r, "bytes_sent", 0)),
                          int(getattr(r, "n_chunks", 0)), len(kfs), time.perf_counter() - t0, plan.is_delta,
                          plan.n_records, plan.n_removed, snap.frames_mapped)
-        with self._lock:
-            self.total_upload_bytes += rec.bytes_on_wire
-            self.pushes.append(rec)
-            self.keyframes_uploaded += len(kfs)
-        self._report("")
+        self._acknowledged(rec, len(kfs))
         log.info("agent %s pushed v%d: %d/%d Gaussians, %d B, %d keyframes (%d acknowledged)", self.agent_id,
                  rec.version, rec.n_shared, rec.n_total, rec.bytes_on_wire, len(kfs), n_kf)
 

@@ -1,15 +1,18 @@
 """The pusher on its own (gausslite.mission.pusher): superseded offers, retries with backoff while the link is down,
-the keyframe bound, and the final push's outcome. A fake fusion client stands in for the server."""
+the keyframe bound, the final push's outcome, and what a status shows at an acknowledgement. Fake fusion clients stand in
+for the server."""
 
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
 from gausslite.mission import AgentConfig
 from gausslite.mission.pusher import Pusher, Snapshot
 from gausslite.mission.share import Captured, ShareSession
+from tests._fuzz import random_arrays
 from tests._waits import wait_until
 
 
@@ -111,8 +114,6 @@ def test_a_periodic_snapshot_without_a_fusion_client_leaves_the_final_open_and_c
 def test_uploaded_keyframes_carry_their_refined_pose_and_leave_the_backlog():
     """The fusion refinement sees each keyframe at the pose mapping refined (full-image and ROI-phase alignment),
     not the sensor's; a keyframe without a correction goes as it is."""
-    from types import SimpleNamespace
-
     from gausslite.datasets.base import Frame
     from gausslite.camera import Intrinsics
 
@@ -135,3 +136,36 @@ def test_uploaded_keyframes_carry_their_refined_pose_and_leave_the_backlog():
     np.testing.assert_array_equal(sent[1].c2w, np.eye(4))  # frame 4 has no correction
     np.testing.assert_array_equal(frames[0].c2w, np.eye(4))  # the mission's own frame is unchanged
     p.close()
+
+
+class _FlakyLink:
+    """A fusion client whose link is down for its first ``down`` sessions, then acknowledges every upload."""
+
+    def __init__(self, down: int):
+        self.down = down
+
+    def open_session(self, *a, **k):
+        if self.down > 0:
+            self.down -= 1
+            raise ConnectionError("link down")
+        return SimpleNamespace(latest_map_version=0)
+
+    def upload_chunks(self, agent_id, version, chunks, **kw):
+        return SimpleNamespace(complete=True, bytes_sent=sum(len(c) for c in chunks), n_chunks=len(chunks))
+
+
+def test_an_acknowledgement_clears_the_backlog_and_the_outage_in_the_same_status():
+    """A status that shows a version acknowledged shows no snapshot in flight and the link up: a GetStatus between
+    the two never says "v1 acknowledged, backlog 1, link down"."""
+    seen = []
+    p, _ = _pusher(_FlakyLink(down=2), backoff_s=0.01, max_backoff_s=0.02)
+    p._report = lambda m: seen.append(p.status()) if m == "" else None  # what a reader sees at the acknowledgement
+    p.start()
+    try:
+        p.offer(Captured(random_arrays(20, 0), np.arange(20), 40), frames_mapped=5, final=False)
+        assert wait_until(lambda: p.status()["last_pushed_version"] == 1, 10.0, poll_s=0.01)
+        assert p.status()["push_failures"] == 2
+        assert seen and seen[0]["last_pushed_version"] == 1
+        assert seen[0]["push_backlog"] == 0 and seen[0]["link_down_s"] == 0.0
+    finally:
+        p.close()
