@@ -32,8 +32,8 @@ CASES = int(os.environ.get("GAUSSLITE_FUZZ_CASES", "60"))
 CALL_TIMEOUT_S = 60.0
 #: the fusion server's refinements here: some cases are valid Fuse calls with a joint refinement, which run at most
 #: this many iterations (a case asking for more gets INVALID_ARGUMENT), and the team map kept refined in the
-#: background (whose refinement such a Fuse waits for: one at a time) refines as briefly. At the defaults (200 and
-#: up to 20000 for Fuse, 300 for the team map) such a call passed 10 s, then 60 s, beside a CPU-bound process.
+#: background refines as briefly. At the defaults (200 and up to 20000 iterations for a Fuse) one valid case took
+#: more than a minute beside a CPU-bound process, which the call's deadline would take for a hang.
 REFINE_LIMITS = {"default_refine_iters": 5, "max_refine_iters": 10, "team_map": {"refine_iters": 5}}
 FORBIDDEN = {grpc.StatusCode.UNKNOWN, grpc.StatusCode.INTERNAL}
 
