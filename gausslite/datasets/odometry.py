@@ -39,7 +39,7 @@ from typing import Callable, Dict, List, Literal, Optional, Union
 import numpy as np
 from tqdm import tqdm
 
-from gausslite.camera import Intrinsics
+from gausslite.camera import Intrinsics, nearest_rigid
 from gausslite.datasets.base import Frame, RGBDDataset
 from gausslite.datasets.common import downscale_frame
 from gausslite.datasets.loop_closing import LoopClosing
@@ -154,7 +154,7 @@ class RGBDOdometry:
         node = self.graph.nodes.get(int(result.anchor))
         if node is None or result.T_anchor is None:
             return result.c2w.copy()
-        return node.c2w @ result.T_anchor
+        return nearest_rigid(node.c2w @ result.T_anchor, f"frame {result.anchor}'s corrected pose")
 
     def _reference(self, pred: np.ndarray) -> _Keyframe:
         """The keyframe (or previous frame) the frame predicted at ``pred`` registers to."""
@@ -201,9 +201,9 @@ class RGBDOdometry:
             # after a loss the camera may be anywhere: only a re-localisation, with its stricter gates, finds it again
             return self._relocalise(frame, image, pred) or self._fail(frame, "not re-localised", 0.0, ref)
         ok, T, info, fitness = self.register(frame, image, ref, np.linalg.inv(ref.c2w) @ pred)
-        if ok and ref is not self._prev and (off := self._from_prediction(ref.c2w @ T, pred, steps)) > 1.0:
+        if ok and ref.frame_id != self._prev.frame_id and (off := self._from_prediction(ref.c2w @ T, pred, steps)) > 1.0:
             ok, T, info, fitness = self._second_opinion(frame, image, pred, steps, ref, (ok, T, info, fitness), off)
-        c2w = ref.c2w @ T
+        c2w = nearest_rigid(ref.c2w @ T, f"frame {frame.frame_id}'s pose")  # rigid by construction, every product
         reason = "" if ok else "Open3D's odometry did not converge"
         # after a loss the motion prior means little: the estimate must pass the re-localisation's fitness
         min_fit = self.config.min_fitness
@@ -214,7 +214,7 @@ class RGBDOdometry:
         reason = reason or self._implausible(c2w, steps)
         if reason:
             return self._relocalise(frame, image, pred) or self._fail(frame, reason, fitness, ref)
-        self.velocity = self._root(np.linalg.inv(self.last_pose) @ c2w, steps)
+        self.velocity = nearest_rigid(self._root(np.linalg.inv(self.last_pose) @ c2w, steps), "the motion")
         self.last_pose, self._since_good = c2w, 0
         self.n_tracked += 1
         rel = np.linalg.inv(ref.c2w) @ c2w
@@ -252,9 +252,9 @@ class RGBDOdometry:
             if fid in self.loop_keyframes:
                 self.loop_keyframes[fid].c2w = c2w.copy()
         delta = new[newest] @ np.linalg.inv(old_newest)
-        self.last_pose = delta @ self.last_pose
+        self.last_pose = nearest_rigid(delta @ self.last_pose, "the last pose")
         if self._prev is not None and self._prev.frame_id not in self.loop_keyframes:
-            self._prev.c2w = delta @ self._prev.c2w
+            self._prev.c2w = nearest_rigid(delta @ self._prev.c2w, "the previous frame's pose")
         if self.on_correction is not None:
             self.on_correction({fid: c2w.copy() for fid, c2w in new.items()})
 
@@ -268,6 +268,7 @@ class RGBDOdometry:
         if got is None:
             return None
         c2w, fid, fitness = got
+        c2w = nearest_rigid(c2w, f"frame {frame.frame_id}'s re-localised pose")
         lost = self._since_good
         self.velocity, self.last_pose, self._since_good = np.eye(4), c2w, 0
         self.n_tracked += 1
@@ -298,6 +299,11 @@ class RGBDOdometry:
             log.debug("frame %s: Open3D's odometry failed: %s", frame.frame_id, e)
             return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0
         ok, T = result.fitness > 0, result.transformation.numpy().astype(np.float64)
+        if not np.all(np.isfinite(T)):
+            return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0
+        # Open3D solves each level in float32: its rotation is orthonormal to about 1e-7, and chained products of such
+        # registrations drift off SO(3) unless projected back
+        T = nearest_rigid(T, f"frame {frame.frame_id}'s registration")
         info = odometry.compute_odometry_information_matrix(image.depth, ref.image.depth, K, result.transformation,
                                                             c.depth_diff_max_m, 1.0, c.depth_max_m).numpy()
         valid = int(np.count_nonzero((frame.depth > 0) & (frame.depth < c.depth_max_m)))
@@ -331,7 +337,7 @@ class RGBDOdometry:
             return got
         log.debug("odometry: frame %d kept its registration to the previous frame %d: keyframe %d's lands further "
                   "from the motion's prediction", frame.frame_id, prev.frame_id, ref.frame_id)
-        return True, np.linalg.inv(ref.c2w) @ c2w, alt[2], alt[3]
+        return True, nearest_rigid(np.linalg.inv(ref.c2w) @ c2w, "a registration"), alt[2], alt[3]
 
     @staticmethod
     def _root(T: np.ndarray, steps: int) -> np.ndarray:
@@ -381,6 +387,9 @@ class RGBDOdometry:
                     "stored": [_keyframe_state(k) for k in self.loop_keyframes.values()],
                     "window": [k.frame_id for k in self.keyframes],
                     "previous": None if self._prev is None else _keyframe_state(self._prev),
+                    # the previous frame is a keyframe itself (one object, moved with it by a loop closure)
+                    "previous_is_keyframe": self._prev is not None and self.loop_keyframes.get(
+                        self._prev.frame_id) is self._prev,
                     "graph": {"nodes": [(n.frame_id, n.c2w.copy(), n.path_m) for n in g.nodes.values()],
                               "odometry_edges": list(g.odometry_edges), "loops": list(g.loops),
                               "counts": [g.n_loop_tried, g.n_loop_rejected, g.n_optimisations]}}
@@ -405,7 +414,10 @@ class RGBDOdometry:
             self.loop_keyframes = {k.frame_id: k for k in stored}
             window = state.get("window", [k.frame_id for k in stored])
             self.keyframes = [self.loop_keyframes[i] for i in window if i in self.loop_keyframes]
-            self._prev = None if state["previous"] is None else self._keyframe_of(state["previous"])
+            prev = state["previous"]
+            shared = prev is not None and state.get("previous_is_keyframe") and prev["frame_id"] in self.loop_keyframes
+            self._prev = (None if prev is None else self.loop_keyframes[prev["frame_id"]] if shared
+                          else self._keyframe_of(prev))
             self.graph = KeyframeGraph()
             g = state.get("graph")
             if g is None:  # format 1: the keyframes alone, as graph nodes without edges

@@ -47,6 +47,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from gausslite.camera import nearest_rigid
 from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -227,7 +228,7 @@ class KeyframeGraph:
         for e in pruned:
             log.info("pose graph: the loop %d -> %d disagreed with the rest and was pruned", e.source, e.target)
         self.loops = [e for e in self.loops if (index[e.source], index[e.target]) in kept]
-        new = {fid: np.asarray(pg.nodes[index[fid]].pose, np.float64).copy() for fid in ids}
+        new = {fid: nearest_rigid(pg.nodes[index[fid]].pose, f"keyframe {fid}'s optimised pose") for fid in ids}
         worst = self._largest_move(new, cfg)
         if worst is not None:
             log.warning("pose graph: the optimisation moved keyframe %d by %.3f m / %.1f deg, beyond what the loops' "

@@ -273,7 +273,7 @@ class Mapper:
             rows = torch.nonzero(self.model.anchors == fid).squeeze(1)
             self.model.move_rows(rows, T)
             n_moved += int(rows.numel())
-            self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ new)
+            self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ new)  # projected onto SE(3) there
             self.keyframes.set_pose(fid, torch.from_numpy(new))
         return n_moved
 

@@ -29,6 +29,8 @@ from typing import Mapping, Optional
 import numpy as np
 import torch
 
+from gausslite.camera import nearest_rigid
+
 
 def so3_exp(omega: torch.Tensor) -> torch.Tensor:
     """Rotation matrix of a rotation vector (Rodrigues), differentiable also at 0.
@@ -143,26 +145,26 @@ def correction_moves(new_c2w: Mapping[int, np.ndarray],
     """The rigid moves that take mapped frames from their ``current`` poses to corrected ones.
 
     Args:
-        new_c2w: frame id → corrected (4, 4) camera-to-world pose (float, metres; rotation orthonormal with
-            determinant 1).
+        new_c2w: frame id → corrected (4, 4) camera-to-world pose (float, metres; a rigid transform: rounding off
+            SO(3) up to :data:`gausslite.camera.RIGID_DRIFT_MAX` is projected away).
         current: frame id → (4, 4) float64 pose of every mapped frame now.
     Returns:
         frame id → ``(T, new)``: the world-frame (4, 4) float64 transform ``T = new · current⁻¹`` and the new pose, for
         the frames whose pose changes (``T`` off the identity by more than 1e-12).
     Raises:
         KeyError: a frame id of ``new_c2w`` not in ``current``. ValueError: a pose that is not a finite rigid
-        transform.
+        transform (beyond rounding: :func:`gausslite.camera.nearest_rigid`).
     """
     moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for fid, c2w in new_c2w.items():
         fid = int(fid)
         if fid not in current:
             raise KeyError(f"frame {fid} was never mapped: no keyframe to correct (mapped: {len(current)} frames)")
-        new = np.asarray(c2w, np.float64)
-        if new.shape != (4, 4) or not np.all(np.isfinite(new)) or not np.allclose(
-                new[:3, :3] @ new[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(new[:3, :3]) < 0:
-            raise ValueError(f"frame {fid}: the corrected pose is not a finite (4, 4) rigid transform: {new!r}")
-        T = new @ np.linalg.inv(current[fid])
+        # rounding is projected away (gausslite.camera.nearest_rigid); only a pose that is no rigid transform raises
+        new = nearest_rigid(c2w, f"frame {fid}: the corrected pose")
+        if np.allclose(np.asarray(c2w, np.float64), current[fid], rtol=0.0, atol=1e-12):
+            continue  # unchanged (the projection of a pose that was not rigid to the last bit is no move)
+        T = nearest_rigid(new @ np.linalg.inv(current[fid]), f"frame {fid}: the correction")
         if not np.allclose(T, np.eye(4), rtol=0.0, atol=1e-12):
             moves[fid] = (T, new)
     return moves
@@ -229,8 +231,12 @@ class PoseRefiner:
         return self.corrections[last].copy() if last < frame_id else np.eye(4)
 
     def register(self, frame_id: int, correction: np.ndarray, fixed: bool = False) -> None:
-        """Start tracking keyframe ``frame_id`` with ``correction`` (4, 4)."""
-        self.corrections[int(frame_id)] = np.asarray(correction, np.float64).copy()
+        """Start tracking keyframe ``frame_id`` with ``correction`` (4, 4; rounding off SE(3) projected away).
+
+        Raises:
+            ValueError: ``correction`` is not a rigid transform (:func:`gausslite.camera.nearest_rigid`).
+        """
+        self.corrections[int(frame_id)] = nearest_rigid(correction, f"keyframe {int(frame_id)}'s correction")
         if fixed:
             self.fixed.add(int(frame_id))
 
@@ -252,8 +258,9 @@ class PoseRefiner:
             return None
         dxi = dxi * float(scale)
         E = pose_delta(torch.from_numpy(dxi)).to(c2w.device)
-        new = c2w @ E
-        self.corrections[fid] = self.corrections[fid] @ E.cpu().numpy()
+        new = torch.from_numpy(nearest_rigid((c2w @ E).cpu().numpy(), f"keyframe {fid}'s refined pose")).to(c2w)
+        # thousands of steps fold into the correction: each product projected back onto SE(3)
+        self.corrections[fid] = nearest_rigid(self.corrections[fid] @ E.cpu().numpy(), f"keyframe {fid}'s correction")
         return new
 
     def state_dict(self) -> dict:

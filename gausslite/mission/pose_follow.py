@@ -22,6 +22,8 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from gausslite.camera import nearest_rigid
+
 log = logging.getLogger(__name__)
 
 __all__ = ["MapFollower"]
@@ -38,7 +40,9 @@ class MapFollower:
             current poses); its ``on_correction`` is set to :meth:`on_correction`.
 
     Attributes:
-        n_corrections: corrections applied to the map; n_moved: Gaussians moved in all.
+        n_corrections: corrections applied to the map; n_moved: Gaussians moved in all; n_rejected: mapped frames'
+            corrections that could not be applied (not a rigid transform: logged and skipped, the frame stays where it
+            was mapped).
     """
 
     def __init__(self, odometry) -> None:
@@ -52,6 +56,7 @@ class MapFollower:
         self._pending = False
         self.n_corrections = 0
         self.n_moved = 0
+        self.n_rejected = 0
 
     def record(self, frame_id: int, result, W: Optional[np.ndarray] = None) -> None:
         """Note a tracked frame (tracking thread): ``result`` its :class:`~gausslite.datasets.odometry.TrackResult`,
@@ -90,19 +95,26 @@ class MapFollower:
         current = mapper.keyframe_poses()
         new: Dict[int, np.ndarray] = {}
         updated = {}
+        rejected = 0
         for fid, (anchor, T, sensor, W) in frames.items():
             if fid not in current or anchor not in nodes:
                 continue
-            moved = nodes[anchor].c2w @ T
-            delta = W @ moved @ np.linalg.inv(sensor) @ np.linalg.inv(W)
-            if np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12):
+            try:  # every product projected back onto SE(3): a correction applied a thousand times stays rigid
+                moved = nearest_rigid(nodes[anchor].c2w @ T, f"frame {fid}'s corrected sensor pose")
+                delta = nearest_rigid(W @ moved @ np.linalg.inv(sensor) @ np.linalg.inv(W), f"frame {fid}'s correction")
+                if np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12):
+                    continue
+                new[fid] = nearest_rigid(delta @ current[fid], f"frame {fid}'s corrected pose")
+            except (ValueError, np.linalg.LinAlgError) as e:  # a bug, not rounding: this frame stays, the map maps on
+                rejected += 1
+                log.warning("a loop closure's correction of mapped frame %d was rejected and skipped: %s", fid, e)
                 continue
-            new[fid] = delta @ current[fid]
             updated[fid] = (anchor, T, moved, W)
-        if not new:
-            return 0
-        n = mapper.apply_pose_corrections(new)
+        n = mapper.apply_pose_corrections(new) if new else 0
         with self._lock:
+            self.n_rejected += rejected
+            if not new:
+                return 0
             self._frames.update(updated)
             self.n_corrections += 1
             self.n_moved += n

@@ -52,6 +52,7 @@ class MissionProgress:
         self.frames_keyframed = 0
         self.frames_skipped = 0
         self.frames_rejected = 0
+        self.frames_failed = 0
         self.seconds_mapping = 0.0
         self.idle_iterations = 0
         self.keyframe_iterations = 0
@@ -66,6 +67,12 @@ class MissionProgress:
         """The mission failed: state ``FAILED``, ``last_error`` = ``msg``."""
         with self.lock:
             self.state = MissionState.FAILED
+            self.last_error = msg
+
+    def frame_failed(self, msg: str) -> None:
+        """One frame's step failed (the mission maps on): ``frames_failed`` + 1, ``last_error`` = ``msg``."""
+        with self.lock:
+            self.frames_failed += 1
             self.last_error = msg
 
     def set_error(self, msg: str) -> None:
@@ -118,7 +125,7 @@ class MissionProgress:
         """The counters and latencies of ``MissionStatus`` after ``last_error`` (call with :attr:`lock` held):
         ``seconds_mapping``, ``frames_keyframed``, ``frames_skipped``, ``accept_latency_ms_p99`` (ms, over the
         mission), ``accept_latency_ms_p99_recent`` (the last :data:`RECENT_FRAMES` frames), ``keyframe_latency_s_p95``
-        (s), ``idle_iterations``, ``checkpoints``, ``resumed_keyframes``, ``frames_rejected``,
+        (s), ``idle_iterations``, ``checkpoints``, ``resumed_keyframes``, ``frames_rejected``, ``frames_failed``,
         ``keyframe_iterations``."""
         return {"seconds_mapping": self.seconds_mapping,
                 "frames_keyframed": self.frames_keyframed, "frames_skipped": self.frames_skipped,
@@ -127,4 +134,5 @@ class MissionProgress:
                 "keyframe_latency_s_p95": percentile(self.keyframe_latency_s, 95),
                 "idle_iterations": self.idle_iterations, "checkpoints": self.checkpoints,
                 "resumed_keyframes": self.resumed_keyframes, "frames_rejected": self.frames_rejected,
+                "frames_failed": self.frames_failed,
                 "keyframe_iterations": self.keyframe_iterations}

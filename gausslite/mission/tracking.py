@@ -9,16 +9,21 @@ Poses are camera-to-world, (4, 4) float64, metres, OpenCV camera axes.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Dict, Optional
 
 import numpy as np
 
 from gausslite.datasets.base import Frame
+from gausslite.datasets.odometry_config import TrackResult
 from gausslite.mission.config import AgentConfig
+from gausslite.mission.errors import stops_the_mission
 from gausslite.mission.pose_follow import MapFollower
 from gausslite.mission.progress import MissionProgress
 
 __all__ = ["MissionPoses", "odometry_for"]
+
+log = logging.getLogger("gausslite.mission.runtime")  # one logger for the whole mission loop
 
 
 def odometry_for(config: AgentConfig):
@@ -79,7 +84,16 @@ class MissionPoses:
         odometry = self.odometry
         if odometry.last_pose is None:  # the first frame's pose (identity without one) fixes the frame
             odometry.initial_pose = np.asarray(frame.c2w, dtype=np.float64).copy()
-        r = odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
+        try:
+            r = odometry.track(frame)  # its own lock: a frame's tracking does not hold the mission's
+        except Exception as e:
+            if stops_the_mission(e):
+                raise
+            # one frame's failure, not the mission's: counted as lost (frames_failed too) and the next frame tracks
+            log.warning("odometry: tracking frame %d raised %s: %s; the frame is lost, the mission goes on",
+                        frame.frame_id, type(e).__name__, e, exc_info=e)
+            self.progress.frame_failed(f"tracking frame {frame.frame_id} failed: {type(e).__name__}: {e}")
+            r = TrackResult(np.eye(4), False, f"{type(e).__name__}: {e}")
         if r.ok:
             self.follower.record(frame.frame_id, r, W)
             if self.records:
@@ -98,11 +112,15 @@ class MissionPoses:
             self.follower.apply(mapper)
 
     def status(self) -> dict:
-        """``frames_lost``, ``frames_relocalised`` and ``loop_closures`` of the odometry (zeros without one)."""
+        """``frames_lost``, ``frames_relocalised`` and ``loop_closures`` of the odometry, and
+        ``corrections_rejected``: mapped frames whose loop-closure correction could not be applied (logged and
+        skipped, :attr:`MapFollower.n_rejected <gausslite.mission.pose_follow.MapFollower.n_rejected>`); zeros
+        without an odometry."""
         if self.odometry is None:
-            return {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0}
+            return {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0, "corrections_rejected": 0}
         s = self.odometry.summary()
-        return {"frames_lost": s["failed"], "frames_relocalised": s["relocalised"], "loop_closures": s["loops"]}
+        return {"frames_lost": s["failed"], "frames_relocalised": s["relocalised"], "loop_closures": s["loops"],
+                "corrections_rejected": self.follower.n_rejected}
 
     def close(self) -> None:
         """Stop the odometry's loop-closing thread. Safe to call more than once."""

@@ -25,6 +25,7 @@ import numpy as np
 
 from gausslite.datasets.base import Frame
 from gausslite.mission.config import AgentConfig
+from gausslite.mission.errors import stops_the_mission
 from gausslite.mission.heap import trim_heap
 from gausslite.mission.ingest import SLOT, Ingest
 from gausslite.mission.progress import MissionProgress
@@ -122,12 +123,14 @@ class MappingWorker:
                 and p.state == MissionState.MAPPING and not p.closed_for_input and not p.stop.is_set())
 
     def _optimise_idle(self) -> None:
-        """One ``idle_chunk_s`` of optimisation over the stored keyframes (the map first follows a loop closure)."""
+        """One ``idle_chunk_s`` of optimisation over the stored keyframes (the map first follows a loop closure); a
+        failed chunk is logged and counted as one step's failure (:meth:`step_failed`), and the mission maps on."""
         try:
             self.poses.follow(self.mapper)  # a loop closed while the mapper waits for a keyframe
             n = self.mapper.optimize(max_seconds=self.config.idle_chunk_s)
         except Exception as e:
-            self.fail(f"optimising between keyframes failed: {type(e).__name__}: {e}")
+            self.step_failed("optimising between keyframes", e)
+            time.sleep(self.config.idle_chunk_s)  # no busy loop of failures
             return
         with self.progress.lock:
             self.progress.idle_iterations += n
@@ -165,9 +168,23 @@ class MappingWorker:
         self.offer_snapshot(final=True)
 
     # ------------------------------------------------------------------ one keyframe
+    def step_failed(self, what: str, e: Exception) -> None:
+        """One frame's step raised ``e``: out of memory or a full disk fails the mission
+        (:func:`~gausslite.mission.errors.stops_the_mission`); any other error is logged with its traceback, counted
+        (``frames_failed``, ``last_error``) and the mission maps on with the next frame."""
+        msg = f"{what} failed: {type(e).__name__}: {e}"
+        if stops_the_mission(e):
+            self.fail(msg)
+            return
+        log.warning("agent %s mission %s: %s; the frame is skipped and the mission maps on", self.agent_id,
+                    self.mission_id, msg, exc_info=e)
+        self.progress.frame_failed(msg)
+
     def map_keyframe(self, frame, t_arrival: float) -> None:
         """Map one keyframe: decode, resolution, relevance, mapper, counters, uploads, pushes, checkpoint. Corrupt
-        image data found only now is logged and counted as rejected; a mapping error fails the mission.
+        image data found only now is logged and counted as rejected; an error of any other step is the frame's alone
+        (:meth:`step_failed`: logged, counted in ``frames_failed``, the mission maps on), unless it is out of memory
+        or a full disk, which fail the mission.
 
         Args:
             frame: a :class:`~gausslite.datasets.base.Frame` (world-frame pose) or a not yet decoded one
@@ -181,14 +198,17 @@ class MappingWorker:
         try:
             item, w, between, st = self._map(native, t0)
         except Exception as e:
-            self.fail(f"mapping frame {native.frame_id} failed: {type(e).__name__}: {e}")
+            self.step_failed(f"mapping frame {native.frame_id}", e)
             return
         upload = self._count(item, st, t0, t_arrival)
-        if upload:
-            self.pusher.add_keyframe(*self.uploads.keyframe(native, item, w))
-        if self.ingest.sends_between and between and w is not None:  # no relevance, no task region to carry over
-            for view in self.uploads.between_views(item, w, between):
-                self.pusher.add_keyframe(*view)
+        try:
+            if upload:
+                self.pusher.add_keyframe(*self.uploads.keyframe(native, item, w))
+            if self.ingest.sends_between and between and w is not None:  # no relevance, no task region to carry over
+                for view in self.uploads.between_views(item, w, between):
+                    self.pusher.add_keyframe(*view)
+        except Exception as e:  # the frame is mapped; only its upload is lost
+            self.step_failed(f"uploading frame {native.frame_id}", e)
         log.debug("agent %s mapped frame %d: %d Gaussians (%d active), %.2f s", self.agent_id,
                   item.frame_id, st.n_gaussians, self.progress.n_active, st.seconds)
         self._periodic()
@@ -259,7 +279,10 @@ class MappingWorker:
         failure is logged: a full disk must not stop mapping)."""
         cfg, mapped = self.config, self.progress.frames_mapped
         if mapped % cfg.push.every == 0:
-            self.offer_snapshot(final=False)
+            try:
+                self.offer_snapshot(final=False)
+            except Exception as e:  # this push is lost; the next one carries the map
+                self.step_failed(f"taking the snapshot after frame {mapped}", e)
         if self.checkpoint is not None and cfg.checkpoint_every and mapped % cfg.checkpoint_every == 0:
             try:
                 self.checkpoint.save()

@@ -8,6 +8,8 @@ process's missions (missions are kept for the life of the process, so the sums n
 Families (label ``agent`` = the mission's agent id):
 
 * ``gausslite_agent_frames_received_total``, ``gausslite_agent_frames_mapped_total``
+* ``gausslite_agent_frames_failed_total`` — frames whose step failed (logged, skipped; the mission maps on),
+  ``gausslite_agent_corrections_rejected_total`` — loop-closure corrections of mapped frames that were skipped
 * ``gausslite_agent_queue_depth`` — frames waiting for the mapper (current mission)
 * ``gausslite_agent_gaussians`` / ``gausslite_agent_active_gaussians`` — current mission's map size
 * ``gausslite_agent_pushes_total``, ``gausslite_agent_push_failures_total``
@@ -63,6 +65,12 @@ class AgentCollector:
             "received": CounterMetricFamily("gausslite_agent_frames_received", "Frames received (streamed or replayed)",
                                             labels=["agent"]),
             "mapped": CounterMetricFamily("gausslite_agent_frames_mapped", "Frames mapped", labels=["agent"]),
+            "frames_failed": CounterMetricFamily("gausslite_agent_frames_failed", "Frames whose tracking, mapping or "
+                                                 "upload failed (logged and skipped; the mission maps on)",
+                                                 labels=["agent"]),
+            "corrections_rejected": CounterMetricFamily("gausslite_agent_corrections_rejected", "Loop-closure "
+                                                        "corrections of mapped frames that could not be applied "
+                                                        "(skipped)", labels=["agent"]),
             "pushes": CounterMetricFamily("gausslite_agent_pushes", "Successful subset pushes", labels=["agent"]),
             "failures": CounterMetricFamily("gausslite_agent_push_failures", "Failed push attempts", labels=["agent"]),
             "bytes": CounterMetricFamily("gausslite_agent_bytes_pushed", "Wire bytes of pushed subsets",
@@ -101,6 +109,8 @@ class AgentCollector:
             s = sums.setdefault(agent, _Tally())
             s["received"] += st["frames_received"]
             s["mapped"] += st["frames_mapped"]
+            s["frames_failed"] += st.get("frames_failed", 0)
+            s["corrections_rejected"] += st.get("corrections_rejected", 0)
             s["failures"] += st["push_failures"]
             s["keyframes"] += st["keyframes_uploaded"]
             pushes = list(rt.pusher.pushes)

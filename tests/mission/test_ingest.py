@@ -185,7 +185,8 @@ def test_streamed_poses_enter_the_world_frame_and_a_replays_are_left_as_they_are
     np.testing.assert_allclose(ing.posed(fr, replayed=False).c2w, T @ fr.c2w)
     assert ing.posed(fr, replayed=True) is fr
     assert not ing.poses.tracks
-    assert ing.poses.status() == {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0}
+    assert ing.poses.status() == {"frames_lost": 0, "frames_relocalised": 0, "loop_closures": 0,
+                                  "corrections_rejected": 0}
 
 
 class _Odometry:

@@ -1,8 +1,8 @@
 """The mapping worker on its own (gausslite.mission.worker), with stand-ins for the mapper, the pusher, the share
 session and the checkpoint: each keyframe is mapped at the mapping resolution with its relevance, counted, uploaded
 every ``upload_keyframe_every``, offered to the pusher every ``push.every`` and checkpointed every
-``checkpoint_every``; corrupt images are rejected, a mapping error fails the mission; the thread optimises between
-keyframes under live ingest, applies a new task, and ends a Finish with the final pass and push (or without a push)."""
+``checkpoint_every``; corrupt images are rejected, a failed step costs its frame alone (out of memory and a full disk
+fail the mission); the thread optimises between keyframes under live ingest, applies a new task, and ends a Finish with the final pass and push (or without a push)."""
 
 from __future__ import annotations
 
@@ -35,11 +35,11 @@ class _Mapper:
         self.mapped, self.finalized, self.optimized, self.retargets = [], 0, 0, 0
         self.model = types.SimpleNamespace(active=np.zeros(0, bool))
         self.keyframes = []
-        self.fail_on = None
+        self.fail_on, self.error = None, ValueError("frame 4: the corrected pose is not a rigid transform")
 
     def map_frame(self, frame, relevance=None, time_budget_s=None, between=(), **kw):
         if frame.frame_id == self.fail_on:
-            raise RuntimeError("out of memory")
+            raise self.error
         self.mapped.append((frame.frame_id, frame.intrinsics.width, relevance, [f.frame_id for f in between], kw))
         n = 10 * len(self.mapped)
         self.model.active = np.arange(n) % 10 < 4
@@ -134,7 +134,7 @@ def test_each_keyframe_is_mapped_counted_uploaded_pushed_and_checkpointed_on_its
     assert m.failures == []
 
 
-def test_a_frame_whose_images_do_not_decode_is_rejected_and_a_mapping_error_fails_the_mission():
+def test_a_frame_whose_images_do_not_decode_is_rejected_and_a_mapping_error_costs_that_frame_alone():
     m = _worker()
 
     class Corrupt:
@@ -149,7 +149,37 @@ def test_a_frame_whose_images_do_not_decode_is_rejected_and_a_mapping_error_fail
     assert p.state == MissionState.MAPPING
     m.mapper.fail_on = 4
     m.worker.map_keyframe(plane_frame(4), 0.0)
-    assert m.failures == ["mapping frame 4 failed: RuntimeError: out of memory"] and p.frames_mapped == 0
+    # one frame's error: logged, counted, and the mission maps on
+    assert m.failures == [] and p.state == MissionState.MAPPING and p.frames_failed == 1 and p.frames_mapped == 0
+    assert p.last_error == "mapping frame 4 failed: ValueError: frame 4: the corrected pose is not a rigid transform"
+    m.worker.map_keyframe(plane_frame(5), 0.0)
+    assert p.frames_mapped == 1 and [fid for fid, *_ in m.mapper.mapped] == [5]
+
+
+@pytest.mark.parametrize("error", [MemoryError("cannot allocate"), OSError(28, "No space left on device")])
+def test_out_of_memory_or_a_full_disk_fails_the_mission(error):
+    m = _worker()
+    m.mapper.fail_on, m.mapper.error = 4, error
+    m.worker.map_keyframe(plane_frame(4), 0.0)
+    assert len(m.failures) == 1 and m.failures[0].startswith(f"mapping frame 4 failed: {type(error).__name__}")
+    assert m.progress.state == MissionState.FAILED and m.progress.frames_failed == 0
+
+
+def test_an_upload_or_a_snapshot_that_fails_costs_that_step_alone():
+    m = _worker("agent.upload_keyframe_every=1", "agent.push.every=1")
+
+    def broken(*a):
+        raise RuntimeError("encoder crashed")
+
+    m.pusher.add_keyframe = broken
+    m.worker.share = types.SimpleNamespace(capture=broken)
+    for i in range(2):
+        m.worker.map_keyframe(plane_frame(i), 0.0)
+    p = m.progress
+    assert p.frames_mapped == 2 and m.failures == [] and p.state == MissionState.MAPPING
+    assert p.frames_failed == 4  # per frame: its upload and its snapshot
+    assert p.last_error == "taking the snapshot after frame 2 failed: RuntimeError: encoder crashed"
+    assert p.counter_status()["frames_failed"] == 4
 
 
 def test_a_checkpoint_that_cannot_be_written_does_not_stop_mapping():
