@@ -27,6 +27,11 @@ Writes ``bench/results/compute_sweep.{json,md}`` (per scene and cell: iterations
 sizes, both modes' ROI PSNR and the ``novel`` ROI gain GaussLite − uniform with its run-clustered interval,
 :func:`gausslite.stats.paired_gain`; every mission's figures and each run's paired gain) and
 ``compute_sweep.png`` (the gain against GaussLite's iterations per keyframe).
+
+Failed missions (:mod:`bench._missions`): every cell's missions run to the end whatever fails (``bench.realtime
+--allow-failed``); each mission's ``end_state`` and ``error`` go to its run record, a failed one is left out of the
+figures and pairs (as ``bench.realtime`` leaves it out), its cell is marked † in the table, and the sweep exits 1 once
+the result is written unless ``--allow-failed``.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from tqdm import tqdm
 from gausslite.evaluation import current_protocols
 from gausslite.stats import aggregate, fmt, paired_gain
 
+from bench._missions import FAILED_MARK, OUTCOME_KEYS, add_allow_failed, exit_code, failed_note, succeeded
 from bench._results import write_results
 from bench.realtime import cli as realtime_cli
 from bench.realtime.missions import load_average
@@ -224,7 +230,9 @@ def run_missions(cells: list[Cell], common: list[str], work: Path, resume: bool)
         t0 = time.perf_counter()
         with load_process(cell.load) as load:
             load0 = load_average()
-            realtime_cli.main([*common, *cell_args(cell, work), "--missions-only", *(["--resume"] if resume else [])])
+            # every mission runs, whatever fails: the sweep records failed ones and decides the exit code at the end
+            realtime_cli.main([*common, *cell_args(cell, work), "--missions-only", "--allow-failed",
+                               *(["--resume"] if resume else [])])
             load1 = load_average()
         log.append({"missions": _saved_runs(out.with_suffix(".partial.json")) - before, "load": load,
                     "load_avg_1m": [load0, load1], "wall_s": time.perf_counter() - t0})
@@ -241,7 +249,8 @@ def score_cells(cells: list[Cell], common: list[str], work: Path, jobs: int) -> 
     for cell in tqdm(cells, desc="cells (scoring)", unit="cell"):
         if not cell_out(cell, work).with_suffix(".partial.json").is_file():
             raise FileNotFoundError(f"cell {cell.name} has no missions in {work}: run the sweep without --score-only")
-        realtime_cli.main([*common, *cell_args(cell, work), "--score-only", "--jobs", str(max(1, jobs))])
+        realtime_cli.main([*common, *cell_args(cell, work), "--score-only", "--allow-failed", "--jobs",
+                           str(max(1, jobs))])
 
 
 def sizes(run: dict) -> dict:
@@ -263,7 +272,8 @@ def run_row(cell: Cell, run: dict) -> dict:
     """The sweep's record of one mission: its cell (threads, budget, load), the render threads its mapper ran with,
     iterations per keyframe, ROI-phase iterations (in total and per keyframe), mapping size(s), the size it was
     scored at, the load average (1 min) at its start and end, and its ROI PSNR / PSNR under ``sensor`` and ``novel``
-    (with the per-frame ROI PSNR ``novel`` pairs on, frame id → dB)."""
+    (with the per-frame ROI PSNR ``novel`` pairs on, frame id → dB), and how its mission ended (``end_state``,
+    ``error``, ``frames_failed``, ``corrections_rejected``, when the run records them)."""
     mission = run.get("mission") or {}
     novel = _novel(run)
     return {"cell": cell.name, "threads": cell.threads, "budget": cell.budget, "load": cell.load,
@@ -277,7 +287,8 @@ def run_row(cell: Cell, run: dict) -> dict:
             "scored_size": run.get("scored_size"), "load_avg_1m": run.get("load_avg_1m"), "wall_s": run.get("wall_s"),
             "roi_psnr": run.get("roi_psnr"), "psnr": run.get("psnr"),
             "novel": {"roi_psnr": novel.get("roi_psnr"), "psnr": novel.get("psnr"),
-                      "roi_psnr_per_frame": novel.get("roi_psnr_per_frame")}}
+                      "roi_psnr_per_frame": novel.get("roi_psnr_per_frame")},
+            **{k: run[k] for k in OUTCOME_KEYS if k in run}}
 
 
 def pair_row(g: dict, u: dict, ok: bool) -> dict:
@@ -298,8 +309,9 @@ def cell_summary(cell: Cell, block: dict, rows: list[dict]) -> dict:
     paired gains); ``rows`` the cell's :func:`run_row` records of the scene. Means and stds over runs of iterations
     per keyframe and ROI iterations per keyframe per mode, the mapping sizes seen, the size scored at, each protocol's
     ROI PSNR per mode and ROI gain (``gain``, ``gain_ci`` run-clustered over several runs, ``gain_std``,
-    ``gain_interval``, ``gain_significant``, ``runs``, ``unpaired_runs``), and the mean load average at the runs'
-    ends."""
+    ``gain_interval``, ``gain_significant``, ``runs``, ``unpaired_runs``), the mean load average at the runs'
+    ends and, when missions failed, ``failed_runs`` (mode → count). Failed missions' rows are left out."""
+    rows = succeeded(rows)
     per_mode = {m: [r for r in rows if r["mode"] == m] for m in MODES}
     its = {m: aggregate(rs, ["iters_per_keyframe", "roi_iters_per_keyframe"]) for m, rs in per_mode.items() if rs}
     protocols = {}
@@ -309,8 +321,9 @@ def cell_summary(cell: Cell, block: dict, rows: list[dict]) -> dict:
                         **{k: pv.get(k) for k in ("gain", "gain_ci", "gain_std", "gain_interval", "gain_significant",
                                                   "gain_per_run", "runs", "unpaired_runs")}}
     ends = [r["load_avg_1m"][1] for r in rows if r.get("load_avg_1m") and r["load_avg_1m"][1] is not None]
+    n_failed = {m: len(v) for m, v in (block.get("failed_runs") or {}).items() if v}
     return {"cell": cell.name, "threads": cell.threads, "budget": cell.budget, "load": cell.load,
-            "runs": {m: len(rs) for m, rs in per_mode.items()},
+            "runs": {m: len(rs) for m, rs in per_mode.items()}, **({"failed_runs": n_failed} if n_failed else {}),
             "iters_per_keyframe": {m: v["iters_per_keyframe"] for m, v in its.items()},
             "iters_per_keyframe_std": {m: v["iters_per_keyframe_std"] for m, v in its.items()},
             "roi_iters_per_keyframe": {m: v["roi_iters_per_keyframe"] for m, v in its.items()},
@@ -339,10 +352,11 @@ def collect(cells: list[Cell], work: Path) -> dict:
             mine = [r for r in rows if r["scene"] == scene]
             out["scenes"].setdefault(scene, {})[cell.name] = cell_summary(cell, blk["budgets"][f"{cell.budget:g}"],
                                                                            mine)
-            raw = {m: {r["run"]: r for r in res["runs"] if r["scene"] == scene and r["mode"] == m} for m in MODES}
+            raw = {m: {r["run"]: r for r in succeeded(res["runs"]) if r["scene"] == scene and r["mode"] == m}
+                   for m in MODES}
             ok, _ = pairable_runs(raw["gausslite"], raw["uniform"], set(raw["gausslite"]) & set(raw["uniform"]))
-            g = {r["run"]: r for r in mine if r["mode"] == "gausslite"}
-            u = {r["run"]: r for r in mine if r["mode"] == "uniform"}
+            g = {r["run"]: r for r in succeeded(mine) if r["mode"] == "gausslite"}
+            u = {r["run"]: r for r in succeeded(mine) if r["mode"] == "uniform"}
             out["pairs"] += [pair_row(g[i], u[i], i in ok) for i in sorted(set(g) & set(u))]
     return out
 
@@ -361,7 +375,8 @@ def table(result: dict, protocol: str = "novel") -> str:
             psnr, psd = pv.get("roi_psnr", {}), pv.get("roi_psnr_std", {})
             size = " / ".join(", ".join(x.removeprefix("mapping ") for x in s["sizes"].get(m, [])) or "–"
                               for m in ("gausslite", "uniform"))
-            lines.append(f"| {scene} | {name} | {s['threads']} | {s['budget']:g} | {s['load'] or 'none'} | "
+            mark = f" {FAILED_MARK}" if s.get("failed_runs") else ""
+            lines.append(f"| {scene} | {name}{mark} | {s['threads']} | {s['budget']:g} | {s['load'] or 'none'} | "
                          f"{fmt(it.get('gausslite'), sd.get('gausslite'), 1)} / "
                          f"{fmt(it.get('uniform'), sd.get('uniform'), 1)} | "
                          f"{fmt(s['roi_iters_per_keyframe'].get('gausslite'), None, 1)} | {size} | "
@@ -373,6 +388,8 @@ def table(result: dict, protocol: str = "novel") -> str:
               "σ runs their spread; * the interval excludes zero. iters/kf: mean ± std over runs of the iterations "
               "each keyframe got. Mapping size: what the agent's governor chose (several: it changed between runs "
               "or the governor reports more than one resolution)."]
+    if any(s.get("failed_runs") for by_cell in result["scenes"].values() for s in by_cell.values()):
+        lines += ["", failed_note("cell with a run")]
     return "\n".join(lines)
 
 
@@ -436,6 +453,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the cells' missions where they stopped")
     ap.add_argument("--missions-only", action="store_true", help="run the missions, score nothing")
     ap.add_argument("--score-only", action="store_true", help="start no mission: score the saved maps and write")
+    add_allow_failed(ap)
     return ap
 
 
@@ -470,7 +488,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         run_missions(cells, common, work, args.resume)
         if args.missions_only:
             print(f"missions of {len(cells)} cells saved in {work}: score them with --score-only (same --work)")
-            return 0
+            saved = []
+            for c in cells:
+                f = cell_out(c, work).with_suffix(".partial.json")
+                saved += json.loads(f.read_text())["runs"] if f.is_file() else []
+            return exit_code(saved, args.allow_failed, "bench.compute_sweep", ("scene", "mode", "budget", "run"))
     score_cells(cells, common, work, args.jobs)
     result = {"settings": {"cells": [asdict(c) for c in cells], "runs": args.runs, "jobs": args.jobs,
                            "score_at": "scene", "realtime_args": common, "cores": os.cpu_count(),
@@ -481,7 +503,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     write_results(out, "compute_sweep", argv, f": {len(cells)} cells, {args.runs} runs per cell, scene and mode, "
                   f"every map scored at the scene's resolution", md, result)
     plot(result, out.with_suffix(".png"))
-    return 0
+    return exit_code(result["runs"], args.allow_failed, "bench.compute_sweep", ("cell", "scene", "mode", "run"))
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ region localises less precisely). Each gain is GaussLite − uniform, the mean o
 over runs × frames with its 95 % interval (:func:`gausslite.stats.paired_gain`).
 
 Prints the table and writes ``bench/results/cross_scoring.json`` / ``.md`` (``--out``).
+
+Failed missions (:mod:`bench._missions`: a run whose mission did not end ``FINISHED``, shows an error or failed to map
+frames, as ``bench.realtime`` records it) are never cross-scored: their run and its pair are left out, listed under
+``failed_runs`` in the JSON and below the table (†), and the command exits 1 unless ``--allow-failed``.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from bench._missions import FAILED_MARK, add_allow_failed, describe, exit_code, failure_rows, succeeded
 from bench._results import write_results
 from bench.realtime.missions import run_one, twin_one
 from bench.realtime.protocol import TRACK_ITERS, novel_ids
@@ -132,8 +137,13 @@ def summarise(pairs: list[dict]) -> dict:
     return out
 
 
-def table(summary: dict) -> str:
-    """Markdown table of :func:`summarise`."""
+#: the fields that name a run in a failed mission's line
+RUN_KEYS = ("scene", "mode", "budget", "run")
+
+
+def table(summary: dict, failed: Optional[list] = None) -> str:
+    """Markdown table of :func:`summarise`; ``failed``: the failed runs left out (:func:`bench._missions.failure_rows`),
+    listed below it, marked †."""
     lines = ["| scene | budget (s) | view | uniform ROI PSNR | GaussLite ROI PSNR | gain, paired per frame [95 %] | "
              "runs × frames |", "|---|---|---|---|---|---|---|"]
     for scene, per in summary.items():
@@ -152,6 +162,9 @@ def table(summary: dict) -> str:
                          + ", ".join(f"{m} {fmt(o[m]['rot_deg'], None)}° / {fmt(100 * o[m]['trans_m'], None)} cm"
                                      if o[m]["trans_m"] is not None else f"{m} –" for m in ("uniform", "gausslite"))
                          + " (mean over frames and runs).")
+    if failed:
+        lines += ["", f"{FAILED_MARK} Runs whose mission failed, left out with their pair (end state and error in the "
+                  "JSON's failed_runs):"] + [f"- {describe(r, RUN_KEYS)}" for r in failed]
     return "\n".join(lines)
 
 
@@ -217,6 +230,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                     help="agent config override for both modes")
     ap.add_argument("--work", default="/tmp/gausslite_bench_cross_scoring")
     ap.add_argument("--out", type=Path, default=RESULTS / "cross_scoring.json")
+    add_allow_failed(ap)
     args = ap.parse_args(argv)
     if args.novel_every < 2:
         ap.error("--novel-every must be >= 2: the cross-scoring scores the withheld frames")
@@ -234,15 +248,16 @@ def main(argv: Optional[list[str]] = None) -> int:
         except (FileNotFoundError, ValueError, KeyError) as e:
             ap.error(str(e))
         runs = [(twin_one if args.twin else run_one)(job) for job in jobs]
-    pairs = pairs_of(runs, args.track_iters)
-    if not pairs:
+    failed = failure_rows(runs, RUN_KEYS)
+    pairs = pairs_of(succeeded(runs), args.track_iters)
+    if not pairs and not failed:
         ap.error("no run holds a saved map of both modes")
     summary = summarise(pairs)
     result = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-              "summary": summary, "pairs": pairs, "wall_s": time.time() - t0}
+              "summary": summary, "pairs": pairs, "failed_runs": failed, "wall_s": time.time() - t0}
     write_results(args.out, "cross_scoring", argv, f": {len(pairs)} pairs of maps, {(time.time() - t0) / 60:.1f} min",
-                  table(summary), result)
-    return 0
+                  table(summary, failed), result)
+    return exit_code(runs, args.allow_failed, "bench.cross_scoring", RUN_KEYS)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,11 @@ sizes, the ROI gain (GaussLite − uniform, paired per frame within each run, ru
 the detail layer, and their difference (``on − off``, the interval of a difference of independent means: the two
 half-widths in quadrature). Nothing is run here: wall-clock missions are run alone on the machine by
 ``bench.realtime``.
+
+Failed missions (:mod:`bench._missions`): the two results' figures already leave out the runs whose mission failed
+(``bench.realtime`` records them with their end state and error). A scene with such runs in either result lists them
+under ``failed_runs`` (``{"off": [...], "on": [...]}``), its row is marked †, and the command exits 1 unless
+``--allow-failed``.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from bench._missions import FAILED_MARK, add_allow_failed, exit_code, failed_note, failure_rows, succeeded
 from bench._results import write_results
 from gausslite.stats import fmt, mean_std
 
@@ -46,7 +52,8 @@ def _block(result: dict, scene: str, protocol: str) -> Optional[dict]:
 
 
 def _runs(result: dict, scene: str, mode: str) -> list:
-    return [r for r in result["runs"] if r["scene"] == scene and r["mode"] == mode]
+    """The runs of ``scene`` and ``mode`` whose mission did not fail (:func:`bench._missions.succeeded`)."""
+    return succeeded(r for r in result["runs"] if r["scene"] == scene and r["mode"] == mode)
 
 
 def _mapped(runs: list) -> dict:
@@ -59,8 +66,14 @@ def _mapped(runs: list) -> dict:
                                                 for r in runs])[0]}
 
 
+#: the fields that name a run of a ``bench.realtime`` result
+RUN_KEYS = ("scene", "mode", "budget", "run")
+
+
 def compare(off: dict, on: dict, protocol: str = "novel") -> dict:
-    """Per scene: the ROI gain without (``off``) and with (``on``) the detail layer, and ``on − off``.
+    """Per scene: the ROI gain without (``off``) and with (``on``) the detail layer, and ``on − off``; a scene with
+    failed missions in either result also ``failed_runs`` (``{"off": [...], "on": [...]}``,
+    :func:`bench._missions.failure_rows`).
 
     Raises:
         ValueError: ``on`` was not run with the detail layer, or the two share no scene scored under ``protocol``.
@@ -83,6 +96,10 @@ def compare(off: dict, on: dict, protocol: str = "novel") -> dict:
                    "uniform": _mapped(_runs(res, scene, "uniform"))}
                for v, b, res in (("off", b_off, off), ("on", b_on, on))},
             "on_minus_off": {"mean": d, "ci": None if half is None else [d - half, d + half]}}
+        bad = {v: failure_rows([r for r in res.get("runs", []) if r.get("scene") == scene], RUN_KEYS)
+               for v, res in (("off", off), ("on", on))}
+        if any(bad.values()):
+            out[scene]["failed_runs"] = bad
     if not out:
         raise ValueError(f"the two results share no scene scored under {protocol}")
     return out
@@ -101,13 +118,16 @@ def table(cells: dict) -> str:
     for cell, scenes in cells.items():
         for scene, v in scenes.items():
             o, n = v["off"], v["on"]
+            mark = f" {FAILED_MARK}" if v.get("failed_runs") else ""
             rows.append(
-                f"| {cell} | {scene} | {o['roi_psnr']['uniform']:.2f} / {n['roi_psnr']['uniform']:.2f} | "
+                f"| {cell} | {scene}{mark} | {o['roi_psnr']['uniform']:.2f} / {n['roi_psnr']['uniform']:.2f} | "
                 f"{o['roi_psnr']['gausslite']:.2f} / {n['roi_psnr']['gausslite']:.2f} | "
                 f"{fmt(o['gausslite']['iters_per_keyframe'], o['gausslite']['iters_per_keyframe_std'], 1)} / "
                 f"{fmt(n['gausslite']['iters_per_keyframe'], n['gausslite']['iters_per_keyframe_std'], 1)} | "
                 f"{', '.join(o['gausslite']['mapping_sizes']) or '–'} / {', '.join(n['gausslite']['mapping_sizes']) or '–'} | "
                 f"{gain(o)} | {gain(n)} | {gain(v['on_minus_off'])} |")
+    if any(v.get("failed_runs") for scenes in cells.values() for v in scenes.values()):
+        rows += ["", failed_note("scene with a run")]
     return "\n".join(rows)
 
 
@@ -118,6 +138,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                     help="a label and two bench.realtime results: without and with --set mapper.detail.enabled=true")
     ap.add_argument("--protocol", default="novel")
     ap.add_argument("--out", type=Path, default=RESULTS / "detail_live.json")
+    add_allow_failed(ap)
     args = ap.parse_args(argv)
     cells, sources = {}, {}
     for spec in args.pair:
@@ -132,7 +153,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             ap.error(f"--pair {label}: {e}")
         sources[label] = {"off": off["settings"], "on": on["settings"], "files": [str(f) for f in files]}
     write_results(args.out, "detail_live", argv, "", table(cells), {"cells": cells, "sources": sources})
-    return 0
+    bad = [{**r, "cell": label, "detail": v} for label, scenes in cells.items() for sc in scenes.values()
+           for v, rs in (sc.get("failed_runs") or {}).items() for r in rs]
+    return exit_code(bad, args.allow_failed, "bench.detail_live", ("cell", "detail", *RUN_KEYS))
 
 
 if __name__ == "__main__":

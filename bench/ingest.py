@@ -16,9 +16,14 @@ Reported:
 
 Target: ``accept_latency_ms_p99 <= 20`` ms.
 
+The mission's end (:mod:`bench._missions`): the result records ``end_state``, ``error``, ``frames_failed`` and
+``corrections_rejected`` from the status Finish returned; a mission that failed (not ``FINISHED``, an error in its
+status, or frames that failed to map) is marked † in the printed table and exits 1 unless ``--allow-failed``.
+
 Usage::
 
     python -m bench.ingest [--seconds 20] [--fps 30] [--color .jpg|.png] [--out bench/results/ingest.json]
+                           [--allow-failed]
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench._missions import FAILED_MARK, add_allow_failed, describe, exit_code, failed, mission_outcome
 from bench._results import write_json
 from gausslite.datasets import load_dataset
 from gausslite.synthetic import make_scene
@@ -119,6 +125,7 @@ def run(seconds: float, fps: float, color: str, budget: float) -> dict:
         "sender_lag_ms_p99": float(np.percentile(lag, 99)), "sender_lag_ms_max": float(lag.max()),
         "target_accept_latency_ms_p99": TARGET_P99_MS,
         "meets_target": bool(st.accept_latency_ms_p99 <= TARGET_P99_MS),
+        **mission_outcome(st),
     }
 
 
@@ -129,6 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--color", default=".jpg", choices=[".jpg", ".png"], help="colour encoding on the wire")
     ap.add_argument("--budget", type=float, default=1.0, help="mapper.keyframe_budget_s of the agent")
     ap.add_argument("--out", default=str(RESULTS / "ingest.json"))
+    add_allow_failed(ap)
     a = ap.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     res = run(a.seconds, a.fps, a.color, a.budget)
@@ -141,12 +149,13 @@ def main(argv=None) -> int:
             ("accept latency p99", f"{res['accept_latency_ms_p99']:.2f} ms (target <= {TARGET_P99_MS:.0f} ms: "
                                    f"{'met' if res['meets_target'] else 'NOT met'})"),
             ("sender lag p99 / max", f"{res['sender_lag_ms_p99']:.2f} / {res['sender_lag_ms_max']:.2f} ms"),
-            ("keyframe latency p95", f"{res['keyframe_latency_s_p95']:.2f} s (arrival -> mapped)")]
+            ("keyframe latency p95", f"{res['keyframe_latency_s_p95']:.2f} s (arrival -> mapped)"),
+            ("mission", f"{FAILED_MARK} failed: {describe(res)}" if failed(res) else res["end_state"])]
     w = max(len(k) for k, _ in rows)
     print("\n".join(f"{k:<{w}}  {v}" for k, v in rows))
     write_json(Path(a.out), res, "ingest", argv)
     print(f"wrote {a.out}")
-    return 0 if res["meets_target"] else 1
+    return 1 if exit_code([res], a.allow_failed, "bench.ingest") or not res["meets_target"] else 0
 
 
 if __name__ == "__main__":

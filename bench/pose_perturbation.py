@@ -1,51 +1,81 @@
 """Robustness to pose error: how much of GaussLite's ROI gain over uniform mapping survives SLAM-like poses?
 
-    python -m bench.pose_perturbation [--scenes synthetic_circle,synthetic_walk] [--levels exact,1cm_0.5deg,3cm_1.5deg]
-                                      [--seeds 3] [--modes uniform,gausslite] [--refine off,on] [--frames 40]
-                                      [--withhold-every 5] [--track-iters 20] [--jobs 2] [--set KEY=VALUE ...]
-                                      [--out bench/results/pose_perturbation.json] [--resume|--fresh] [--max-runs N]
+    python -m bench.pose_perturbation [--mode live|offline] [--scenes synthetic_circle,synthetic_walk]
+                                      [--levels exact,1cm_0.5deg,3cm_1.5deg] [--seeds 3] [--modes uniform,gausslite]
+                                      [--refine off,on] [--withhold-every K] [--track-iters 20] [--set KEY=VALUE ...]
+                                      [--out FILE] [--resume|--fresh] [--max-runs N] [--allow-failed]
+                                      live: [--budget 0.5]; offline: [--frames 40] [--jobs 2]
 
-The scenes are rendered, so their poses are exact and the error is known exactly:
+The scenes are rendered, so their poses are exact and the error is known exactly. Every run replaces the frames'
+given poses by a SLAM-like estimate (:func:`gausslite.datasets.trajectory.perturb_trajectory` at the level, seeded by
+the run's seed; ``exact`` keeps the true poses) and withholds every ``--withhold-every``-th frame (from the middle of
+the first block on, :func:`gausslite.datasets.subset.withheld_indices`) from the mapper. GaussLite's relevance is the
+task's ground-truth ROI from the frames' TRUE poses (as an image-based detector sees it: no pose in it). Two modes:
 
-- ``synthetic_circle``: ``bench.realtime``'s scene (the synthetic room along ``make-scene --trajectory circle``,
-  300 frames, agent_a, task ``synth-pick-object``) loaded at 160×120; the sequence is ``--frames`` frames spread
+**Live** (``--mode live``, the default): what a robot meets. Each run is one live in-process agent mission as
+``bench.realtime`` runs it (:func:`bench.realtime.start_mission`: the agent's deployed settings, the scene's sensor
+profile, keyframe ingest at the scene's clock, ``--budget`` seconds of wall time per keyframe (0.5 s: the dataset
+clock itself), the Gaussian cap, no sharing, **no final pass**) over the scene's whole sequence, its frames streamed at
+the perturbed poses. The scenes (:data:`LIVE_SCENES`) are ``bench.realtime``'s at its resolution:
+
+- ``synthetic_circle``: ``bench.realtime``'s scene, the synthetic room along ``make-scene --trajectory circle``, 300
+  frames at 320×240 and 30 Hz (10 s), agent_a, task ``synth-pick-object``, cap 6,000;
+- ``synthetic_walk``: the room along ``make-scene --trajectory walk`` (525 frames at 320×240 and 30 Hz: a 7 m
+  hand-held walk, two loops in front of the desk, 17.5 s), agent_a, same task and cap.
+
+Every 10th frame is withheld by default (``bench.realtime``'s ``novel`` protocol). The missions are wall-clock
+measurements: they run one at a time in this process, each map scored right after its mission ended, and nothing else
+should run on the machine. Each run records its mission (``mission``: :func:`bench.realtime.mission_settings`), its
+keyframes and iterations per keyframe, the resolution it mapped at (the map is scored there; only seeds whose two
+modes mapped at the same resolution are paired) and how it ended (below). ``--set`` takes agent config keys
+(``mapper.seeding.rho=0.5``).
+
+**Offline** (``--mode offline``): every run maps a sparse sequence OFFLINE (:func:`gausslite.pipeline.run_mapping`:
+fixed iteration counts, the sensor profile's defaults and final pass, one rasterizer thread, no time budget), on
+``--jobs`` worker processes. The scenes (:data:`SCENES`) at 160×120:
+
+- ``synthetic_circle``: ``bench.realtime``'s scene loaded at 160×120; the sequence is ``--frames`` frames spread
   evenly over it (every 7th frame for 40: 280 of its 300 frames, about 10 m of path).
-- ``synthetic_walk``: the room along ``make-scene --trajectory walk`` (525 frames at 160×120, exact renders:
-  a 7 m hand-held walk, two loops in front of the desk), agent_a, same task; every 13th frame for 40.
+- ``synthetic_walk``: the walk rendered at 160×120 (525 frames), agent_a, same task; every 13th frame for 40.
 
-Every run maps one sequence OFFLINE (:func:`gausslite.pipeline.run_mapping`: fixed iteration counts, the sensor
-profile's defaults, one rasterizer thread) with the frames' given poses replaced by a SLAM-like estimate
-(:func:`gausslite.datasets.trajectory.perturb_trajectory` at the level, seeded by the run's seed; ``exact`` keeps the
-true poses). Every ``--withhold-every``-th frame (from the middle of the first block on,
-:func:`gausslite.datasets.subset.withheld_indices`) is withheld from the mapper. GaussLite's relevance is the task's
-ground-truth ROI from the frames' TRUE poses (as an image-based detector sees it: no pose in it).
+Every 5th sequence frame is withheld by default. ``--set`` takes mapper config keys (``seeding.rho=0.5``).
 
-Scoring (docs/realtime.md "Scoring protocols", :func:`gausslite.evaluation.score_live_map`). A robot uses the map at
-the pose its SLAM gives it, so the withheld frames are scored under the ``novel`` protocol: at each frame's GIVEN
-(perturbed) pose with the map's learned pose correction interpolated in frame id between the keyframes on either side
-(:func:`gausslite.evaluation.predicted_view`; the identity without pose refinement). Nothing is fitted on a withheld
-frame, and the true pose is never used to place the camera. The ROI scored is the ground truth's, from the true pose
-(a property of the image, :class:`gausslite.datasets.subset.EstimatedPoses`). The gains and the fraction kept are
-taken from this figure: how good the map is where the robot uses it. Two more figures answer other questions:
+Scoring (docs/realtime.md "Scoring protocols", :func:`gausslite.evaluation.score_live_map`), the same in both modes. A
+robot uses the map at the pose its SLAM gives it, so the withheld frames are scored under the ``novel`` protocol: at
+each frame's GIVEN (perturbed) pose with the map's learned pose correction interpolated in frame id between the
+keyframes on either side (:func:`gausslite.evaluation.predicted_view`; the identity without pose refinement). Nothing
+is fitted on a withheld frame, and the true pose is never used to place the camera. The ROI scored is the ground
+truth's, from the true pose (a property of the image, :class:`gausslite.datasets.subset.EstimatedPoses`). The gains
+and the fraction kept are taken from this figure: how good the map is where the robot uses it. Two more figures answer
+other questions:
 
 - ``true_pose``: the same render and exposure with the camera at the frame's TRUE pose: the map's absolute accuracy,
   whether its content sits where it is in the world, as a user localised independently of this robot's SLAM (another
   robot, a motion-capture system) sees it. A map built at drifting poses, or whose refinement moved its gauge, is
   misplaced against the world and loses here even where its own robot sees it right.
-- ``keyframes``: the mapped frames at their own refined pose: what the map memorised.
+- ``keyframes``: the mapped frames (live: the keyframes) at their own refined pose: what the map memorised.
 
-Variants: ``--refine off`` maps at the given poses as they are; ``on`` sets ``pose.refine=true`` and
-``pose.track_iters=N`` (the map's keyframe pose refinement and per-frame tracking, docs/mapper.md "Pose refinement").
-Per (scene, level, refine): each mode's ROI PSNR (mean ± std over seeds); the gain GaussLite − uniform, paired frame
-by frame within a seed and run-clustered over the seeds (the mean of the per-seed gains with its 95 % Student-t
-interval, :func:`gausslite.stats.paired_gain`; significant when the interval excludes zero); and the fraction of the
-exact-pose gain kept (the level's gain at the predicted pose over the exact level's, same refine setting). The seed
-drives both the perturbation and the mapper.
+Variants: ``--refine off`` maps at the given poses as they are (the profile's setting; the rendered profile does not
+refine); ``on`` sets ``pose.refine=true`` and ``pose.track_iters=N`` (the map's keyframe pose refinement and
+per-frame tracking, docs/mapper.md "Pose refinement"; live: ``mapper.pose.*``). Per (scene, level, refine): each
+mode's ROI PSNR (mean ± std over seeds); the gain GaussLite − uniform, paired frame by frame within a seed and
+run-clustered over the seeds (the mean of the per-seed gains with its 95 % Student-t interval,
+:func:`gausslite.stats.paired_gain`; significant when the interval excludes zero); and the fraction of the exact-pose
+gain kept (the level's gain at the predicted pose over the exact level's, same refine setting). The seed drives both
+the perturbation and the mapper.
 
-Writes ``bench/results/pose_perturbation.json`` (through ``bench/_results.py``), ``.md`` and ``.png`` (gain and ROI
-PSNR against the level). After each run the runs so far go to ``<out>.partial.json``; ``--resume`` runs only the
-missing ones (runs are deterministic per seed); ``--max-runs N`` stops after N runs and leaves the partial file for
-the next ``--resume`` (a long run in short chunks). The results are written once no run is missing.
+Failed missions (live; :mod:`bench._missions`): every live run records ``end_state``, ``error``, ``frames_failed`` and
+``corrections_rejected``. A run whose mission failed (not ``FINISHED``, or frames that failed to
+map) keeps whatever it scored (or ``score_error``), is left out of every mean and gain (its row lists it under
+``failed_runs`` and is marked †), and the command exits 1 once the result is written unless ``--allow-failed``;
+``--resume`` runs it again.
+
+Writes ``bench/results/pose_perturbation_live.json`` (live) or ``pose_perturbation.json`` (offline) (``--out``;
+through ``bench/_results.py``), ``.md`` and ``.png`` (gain and ROI PSNR against the level). After each run the runs so
+far go to ``<out>.partial.json``; ``--resume`` runs only the missing ones (offline runs are deterministic per seed);
+``--max-runs N`` stops after N runs and leaves the partial file for the next ``--resume`` (a long run in short
+chunks). The results are written once no run is missing; the partial file is then removed, unless a mission failed
+(``--resume`` runs those again).
 """
 
 from __future__ import annotations
@@ -64,13 +94,17 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bench._missions import (FAILED_MARK, add_allow_failed, exit_code, failed, failed_note, failure_rows,
+                             mission_outcome, succeeded)
 from bench.realtime import scenes as realtime
+from bench.realtime.missions import mission_settings, start_mission
+from bench.realtime.protocol import novel_ids, training_frames
 from bench._results import write_results
 from bench.long_mission import load_partial
 from gausslite.config import load_mapper_config
-from gausslite.datasets.subset import EstimatedPoses, FrameSubset, withheld_indices
+from gausslite.datasets.subset import EstimatedPoses, FrameSubset, ScaledFrames, withheld_indices
 from gausslite.datasets.trajectory import POSE_ERROR_LEVELS, perturb_trajectory, pose_error_stats
-from gausslite.evaluation import score_live_map
+from gausslite.evaluation import NOVEL_EVERY, score_live_map
 from gausslite.pipeline import run_mapping
 from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain, significant
 from gausslite.synthetic import make_scene
@@ -84,8 +118,23 @@ SCENES = {
     "synthetic_walk": {"source": "walk", "frames": 525, "width": 160, "height": 120, "downscale": 1.0,
                        "task": "synth-pick-object"},
 }
+#: the live mode's scenes (``bench.realtime``'s resolution, clock and cap): the trajectory rendered, its frames, size
+#: (pixels) and Gaussian cap, the task; the whole sequence streams at its 30 Hz clock
+LIVE_SCENES = {
+    "synthetic_circle": {"trajectory": "circle", "frames": realtime.SCENES["synthetic_circle"]["frames"],
+                         "width": realtime.SCENES["synthetic_circle"]["width"],
+                         "height": realtime.SCENES["synthetic_circle"]["height"],
+                         "cap": realtime.SCENES["synthetic_circle"]["cap"],
+                         "task": realtime.SCENES["synthetic_circle"]["task"]},
+    "synthetic_walk": {"trajectory": "walk", "frames": 525, "width": 320, "height": 240, "cap": 6000,
+                       "task": "synth-pick-object"},
+}
+#: how the benchmark maps: live agent missions under a keyframe budget, or offline at fixed iterations
+RUN_MODES = ("live", "offline")
 LEVELS = tuple(POSE_ERROR_LEVELS)
 MODES = ("uniform", "gausslite")
+#: the fields that name a run (a job or its result)
+RUN_KEYS = ("scene", "level", "refine", "mode", "seed")
 #: tracking steps per frame of the refine variant (docs/results.md measured tracking with 20)
 TRACK_ITERS = 20
 #: how the withheld frames are scored (kept with the runs: a partial file scored otherwise is not resumed)
@@ -102,6 +151,18 @@ def scene_path(name: str, work: Path) -> Path:
     if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
         make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"], trajectory="walk",
                    agents=("agent_a",))
+    return out / "agent_a"
+
+
+def live_scene_path(name: str, work: Path) -> Path:
+    """The sequence folder (agent_a) of a live scene (:data:`LIVE_SCENES`), rendered into ``work`` once (the circle
+    into the folder ``bench.realtime`` renders it to, ``synthetic_circle_<frames>_<w>x<h>``)."""
+    spec = LIVE_SCENES[name]
+    out = Path(work) / f"synthetic_{spec['trajectory']}_{spec['frames']}_{spec['width']}x{spec['height']}"
+    if not (out / "agent_a" / "results" / f"depth{spec['frames'] - 1:06d}.png").exists():
+        agents = {} if spec["trajectory"] == "circle" else {"agents": ("agent_a",)}  # the circle as bench.realtime's
+        make_scene(out, frames=spec["frames"], width=spec["width"], height=spec["height"],
+                   trajectory=spec["trajectory"], **agents)
     return out / "agent_a"
 
 
@@ -200,13 +261,28 @@ def score_sequence(run: MappedSequence, task: str) -> dict:
 
 
 def run_one(job: dict) -> dict:
-    """Map one (scene, level, refine, mode, seed) at perturbed poses and score it (:func:`score_sequence`), with the
-    pose errors: the given poses, the mapped frames' poses after mapping, and the withheld frames' predicted poses,
-    each against the truth (a worker)."""
+    """Map one (scene, level, refine, mode, seed) OFFLINE at perturbed poses and score it (:func:`figures`; a
+    worker)."""
     torch.set_num_threads(1)
     run = map_sequence(job)
+    return figures(job, run, SCENES[job["scene"]]["task"])
+
+
+def figures(job: dict, run: MappedSequence, task: str) -> dict:
+    """The figures of one mapped sequence: its scores (:func:`score_sequence`: ``roi_psnr`` / ``psnr`` and their
+    ``_per_frame`` under ``novel``, the same with ``_true_pose`` and ``_keyframes``, dB) and the pose errors
+    (:func:`gausslite.datasets.trajectory.pose_error_stats`: the given poses, the mapped frames' given poses and their
+    poses after mapping, the withheld frames' predicted poses, each against the truth), the correction the map applied
+    to the withheld frames (mean ``rot_deg`` degrees, ``trans_m`` metres), counts and timing (``s_per_frame``: mean
+    seconds per mapped frame, None without one).
+
+    Raises:
+        ValueError: no withheld or no mapped frame (nothing to score or to compare).
+    """
     mapper, true = run.mapper, {int(fr.frame_id): fr.c2w for fr in run.frames}
-    sc = score_sequence(run, SCENES[job["scene"]]["task"])
+    if not run.withheld_ids or not run.mapped_ids:
+        raise ValueError(f"{len(run.mapped_ids)} mapped and {len(run.withheld_ids)} withheld frames: nothing to score")
+    sc = score_sequence(run, task)
     views, order = sc["views"], sorted(true)
 
     def err(ids, poses):
@@ -214,10 +290,11 @@ def run_one(job: dict) -> dict:
 
     after_map = {i: mapper.pose_of(i, run.given[i]) for i in run.mapped_ids}
     held = sorted(views)
-    out = {k: job[k] for k in ("scene", "level", "refine", "mode", "seed")}
+    out = {k: job[k] for k in RUN_KEYS}
     for name, key in (("", "novel"), ("_true_pose", "true_pose"), ("_keyframes", "keyframes")):
         out.update({f"roi_psnr{name}": sc[key]["roi_psnr"], f"psnr{name}": sc[key]["psnr"],
                     f"roi_psnr{name}_per_frame": sc[key]["roi_psnr_per_frame"]})
+    secs = [s.seconds for s in mapper.stats]
     return {**out, "scored_at": "predicted pose (novel protocol)",
             "correction_withheld": {"rot_deg": float(np.mean([views[i].rot_deg for i in held])),
                                     "trans_m": float(np.mean([views[i].trans_m for i in held]))},
@@ -225,13 +302,89 @@ def run_one(job: dict) -> dict:
             "pose_error_after_map": err(run.mapped_ids, after_map),
             "pose_error_predicted": err(held, {i: views[i].c2w for i in held}),
             "n_mapped": len(run.mapped_ids), "n_withheld": len(held), "n_roi_withheld": sc["novel"]["roi_frames"],
-            "n_gaussians": len(mapper.model), "s_per_frame": float(np.mean([s.seconds for s in mapper.stats])),
+            "n_gaussians": len(mapper.model), "s_per_frame": float(np.mean(secs)) if secs else None,
             "wall_s": run.wall_s}
+
+
+def live_job(job: dict) -> dict:
+    """The ``bench.realtime`` job (:func:`bench.realtime.start_mission`) of one live run of this bench: its scene
+    (``job["path"]``, the scene's ``cap`` and ``task``), ``mode``, keyframe ``budget`` (s), the seed as its ``run``,
+    the withheld frames (``novel_every``) and its overrides: with ``refine``, ``mapper.pose.refine=true`` and
+    ``mapper.pose.track_iters``, then ``job["overrides"]``."""
+    refine = ["mapper.pose.refine=true", f"mapper.pose.track_iters={job['track_iters']}"] if job["refine"] else []
+    spec = LIVE_SCENES[job["scene"]]
+    return {"scene": job["scene"], "spec": {"kind": "synthetic"}, "path": job["path"], "task": spec["task"],
+            "mode": job["mode"], "budget": job["budget"], "run": job["seed"], "cap": spec["cap"], "clock": "scaled",
+            "novel_every": job["withhold_every"], "pose_source": "given",
+            # the bench withholds the frames itself (training_frames): the agent's replay streams every other one
+            "overrides": ["agent.scoring.protocols=[sensor]", *refine, *job["overrides"]]}
+
+
+def live_one(job: dict) -> dict:
+    """One live run: the scene's whole sequence streamed at perturbed poses to a live in-process agent mission as
+    ``bench.realtime`` runs it (:func:`live_job`; the agent's deployed settings, keyframe ingest at the scene's clock,
+    ``job["budget"]`` s per keyframe, the cap, no final pass, no push), every ``job["withhold_every"]``-th frame
+    withheld, then the map scored at the resolution it mapped at (:func:`figures`).
+
+    Args:
+        job: ``scene`` (a :data:`LIVE_SCENES` name), ``path`` (its rendered sequence), ``level``, ``refine``, ``mode``,
+            ``seed``, ``budget``, ``withhold_every``, ``track_iters``, ``overrides`` (agent config keys).
+    Returns:
+        :func:`figures`'s record with ``run_mode: "live"``, the mission's ``end_state``, ``error``,
+        ``frames_failed``, ``corrections_rejected`` (:func:`bench._missions.mission_outcome`), ``keyframes``,
+        ``keyframe_iters``, ``idle_iters``, ``iters_per_keyframe``, ``frames_sent``, ``mapping_downscale``,
+        ``mission`` (:func:`bench.realtime.mission_settings`) and ``wall_s`` (the mission's seconds). A failed mission
+        is recorded, not raised; when its map cannot be scored, ``score_error`` replaces the figures.
+    """
+    mjob = live_job(job)
+    rate = realtime.REFERENCE_BUDGET_S / job["budget"]
+    poses: dict = {}
+
+    def relevance(ds, ann, task):
+        """The task's ground-truth ROI from the true poses; the frames' poses perturbed (kept in ``poses``)."""
+        est = perturb_trajectory(np.stack([ds[i].c2w for i in range(len(ds))]), job["level"], seed=job["seed"])
+        poses["given"] = {int(ds[i].frame_id): est[i] for i in range(len(ds))}
+        poses["view"] = EstimatedPoses(ds, poses["given"])
+        return poses["view"].roi_fn(ann, task.id)
+
+    ds, ann, task, rt, _ = start_mission(mjob, rate, relevance=relevance)
+    train = training_frames(mjob, poses["view"])
+    t0 = time.perf_counter()
+    try:
+        rt.replay(train).join()
+        rt.finish(push=False, evaluate=False)
+        wall = time.perf_counter() - t0
+        outcome = mission_outcome(rt.status())
+        factor = float(rt.resolution.factor)
+        rs = rt.resolution.status()
+        mjob["resolution"] = {"downscale": factor, "size": [rs["mapping_width"], rs["mapping_height"]],
+                              "native_size": list(rt.resolution.native) if rt.resolution.native else None,
+                              "changes": int(rt.resolution.changes)}
+        mjob["rate"] = rate
+        live = {"run_mode": "live", **outcome, "keyframes": int(rt.frames_keyframed),
+                "keyframe_iters": int(rt.keyframe_iterations), "idle_iters": int(rt.idle_iterations),
+                "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
+                "frames_sent": int(rt.frames_received), "mapping_downscale": factor,
+                "mission": mission_settings(mjob, rt.mapper.cfg, rt.keyframe_iterations / max(1, rt.frames_keyframed))}
+    finally:
+        rt.close()
+    mapper = rt.mapper
+    frames = ScaledFrames(ds, factor) if factor != 1 else ds  # scored at the resolution the mission mapped at
+    run = MappedSequence(mapper, [frames[i] for i in range(len(frames))], poses["given"],
+                         sorted(int(s.frame_id) for s in mapper.stats), novel_ids(mjob, ds) or [], ann, wall)
+    if not failed(live):
+        return {**figures(job, run, task.id), **live}
+    try:  # what is left of a failed mission's map, for the record: it is never averaged
+        return {**figures(job, run, task.id), **live}
+    except Exception as e:
+        return {**{k: job[k] for k in RUN_KEYS}, **live, "wall_s": wall, "score_error": f"{type(e).__name__}: {e}"}
 
 
 #: the per-run figures a summary row gives per mode (mean and std over seeds)
 MODE_FIGURES = ("roi_psnr", "psnr", "roi_psnr_true_pose", "psnr_true_pose", "roi_psnr_keyframes", "n_gaussians",
                 "s_per_frame")
+#: the live runs' further figures per mode (rows of offline runs leave them out)
+LIVE_FIGURES = ("keyframes", "iters_per_keyframe", "mapping_downscale")
 #: the gains of a summary row: key → the per-frame figure paired (GaussLite − uniform)
 GAINS = {"gain": "roi_psnr_per_frame", "gain_true_pose": "roi_psnr_true_pose_per_frame",
          "gain_keyframes": "roi_psnr_keyframes_per_frame"}
@@ -241,7 +394,7 @@ def _pose_rows(row: dict, rs: list[dict], by: dict) -> None:
     """The pose errors of a summary row (mean and std over seeds), in place: the given poses' (of the uniform runs:
     both modes draw the same), and per mode the mapped frames' poses after mapping, the withheld frames' predicted
     poses against the truth and the correction the map applied to the withheld frames' given poses."""
-    pe = [r["pose_error"] for r in rs if r["mode"] == "uniform"]
+    pe = [r["pose_error"] for r in rs if r["mode"] == "uniform"] or [r["pose_error"] for r in rs]
     for k in ("ate_m", "rot_rmse_deg", "trans_rmse_m", "trans_max_m"):
         row[k], row[k + "_std"] = mean_std([p[k] for p in pe])
     for m in MODES:
@@ -258,12 +411,23 @@ def _pose_rows(row: dict, rs: list[dict], by: dict) -> None:
 def summary_row(rs: list[dict], seeds: list[int]) -> dict:
     """One cell's summary (the runs ``rs`` of one scene, refine setting and level): each mode's figures (mean ±
     std over seeds), the pose errors, and the gains GaussLite − uniform of :data:`GAINS` (paired frame by frame within
-    a seed, run-clustered over the seeds that ran both modes: :func:`gausslite.stats.paired_gain`)."""
+    a seed, run-clustered over the seeds that ran both modes: :func:`gausslite.stats.paired_gain`). Runs whose
+    mission failed (:func:`bench._missions.failed`) are left out and listed under ``failed_runs``; a seed whose two
+    modes mapped at different resolutions (live) is not paired (``unpaired_seeds``)."""
+    bad = failure_rows(rs, ("mode", "seed"))
+    rs = succeeded(rs)
     by = {m: {r["seed"]: r for r in rs if r["mode"] == m} for m in MODES}
-    row: dict = {"seeds": [s for s in seeds if all(s in by[m] for m in MODES)]}
+    both = [s for s in seeds if all(s in by[m] for m in MODES)]
+    res = {s: {by[m][s].get("mapping_downscale", 1.0) for m in MODES} for s in both}
+    row: dict = {"seeds": [s for s in both if len(res[s]) == 1]}
+    if len(row["seeds"]) < len(both):
+        row["unpaired_seeds"] = [s for s in both if len(res[s]) > 1]
+    if bad:
+        row["failed_runs"] = bad
+    live = [k for k in LIVE_FIGURES if any(k in r for r in rs)]
     for m in MODES:
-        for k in MODE_FIGURES:
-            row[f"{m}_{k}"], row[f"{m}_{k}_std"] = mean_std([by[m][s][k] for s in by[m]])
+        for k in (*MODE_FIGURES, *live):
+            row[f"{m}_{k}"], row[f"{m}_{k}_std"] = mean_std([by[m][s].get(k) for s in by[m]])
     _pose_rows(row, rs, by)
     for key, field in GAINS.items():
         g = paired_gain([by["gausslite"][s][field] for s in row["seeds"]],
@@ -317,10 +481,14 @@ def table(summary: dict) -> str:
                 pred = " / ".join(_cm_deg(r, f"{m}_predicted_") for m in MODES)
                 at_true = " / ".join(fmt(r[f"{m}_roi_psnr_true_pose"], r[f"{m}_roi_psnr_true_pose_std"])
                                      for m in MODES)
-                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level} | {err} | {pred} | "
+                mark = f" {FAILED_MARK}" if r.get("failed_runs") else ""
+                lines.append(f"| {scene} | {rkey.split('_')[1]} | {level}{mark} | {err} | {pred} | "
                              f"{fmt(r['uniform_roi_psnr'], r['uniform_roi_psnr_std'])} | "
                              f"{fmt(r['gausslite_roi_psnr'], r['gausslite_roi_psnr_std'])} | {g} | {kept} | "
                              f"{at_true} | {gt} | {fmt_gain(r['gain_keyframes'])} |")
+    if any(r.get("failed_runs") for by_refine in summary.values() for block in by_refine.values()
+           for r in block.values()):
+        lines += ["", failed_note("level with a run")]
     return "\n".join(lines)
 
 
@@ -366,84 +534,145 @@ def plot(summary: dict, path: Path) -> None:
 def _parser() -> argparse.ArgumentParser:
     """The command line of ``python -m bench.pose_perturbation``."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--mode", choices=RUN_MODES, default="live",
+                    help="live: live agent missions under a keyframe budget, as bench.realtime runs them (default); "
+                         "offline: a sparse sequence mapped at fixed iterations per frame, no time budget")
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma list of " + ", ".join(SCENES))
     ap.add_argument("--levels", default=",".join(LEVELS), help="comma list of pose error levels ('exact', '<x>cm_<y>deg')")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--refine", default="off,on", help="pose refinement variants: off, on or off,on (default)")
-    ap.add_argument("--frames", type=int, default=40, help="frames per sequence, spread over the scene (default 40)")
-    ap.add_argument("--withhold-every", type=int, default=5, help="withhold every k-th sequence frame (default 5)")
+    ap.add_argument("--budget", type=float, default=realtime.REFERENCE_BUDGET_S,
+                    help="live: seconds of wall time per keyframe (default 0.5, the scene's own clock)")
+    ap.add_argument("--frames", type=int, default=40,
+                    help="offline: frames per sequence, spread over the scene (default 40)")
+    ap.add_argument("--withhold-every", type=int, default=None, metavar="K",
+                    help=f"withhold every k-th frame (default: live {NOVEL_EVERY}, every frame of the sequence as "
+                         "bench.realtime; offline 5, every sequence frame)")
     ap.add_argument("--track-iters", type=int, default=TRACK_ITERS, help="pose.track_iters of the refine variant")
-    ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2, one rasterizer thread each)")
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="offline: worker processes (default 2, one rasterizer thread each); live missions run one at "
+                         "a time")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="mapper config override for every run")
+                    help="config override for every run: live, an agent key (mapper.seeding.rho=0.5); offline, a "
+                         "mapper key (seeding.rho=0.5)")
     ap.add_argument("--work", type=Path, default=REPO / "runs" / "bench_pose_perturbation", help="rendered scenes")
-    ap.add_argument("--out", type=Path, default=RESULTS / "pose_perturbation.json")
-    ap.add_argument("--resume", action="store_true", help="keep the runs of <out>.partial.json, run the missing ones")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="result file (default bench/results/pose_perturbation_live.json live, "
+                         "pose_perturbation.json offline)")
+    ap.add_argument("--resume", action="store_true", help="keep the runs of <out>.partial.json, run the missing ones "
+                    "(and the failed ones again)")
     ap.add_argument("--fresh", action="store_true", help="discard an existing <out>.partial.json")
     ap.add_argument("--max-runs", type=int, default=None, metavar="N",
                     help="run at most N of the missing runs, then stop (continue with --resume); the results are "
                     "written once none is missing")
+    add_allow_failed(ap)
     return ap
 
 
 def _jobs(args: argparse.Namespace, scenes: list[str], levels: list[str], refines: list[bool], modes: list[str],
           seeds: list[int]) -> list[dict]:
-    """One job per (scene, level, refine, mode, seed), the scenes rendered first."""
-    paths = {s: str(scene_path(s, args.work)) for s in scenes}
-    return [{"scene": s, "path": paths[s], "level": lv, "refine": rf, "mode": m, "seed": sd, "frames": args.frames,
-             "withhold_every": args.withhold_every, "track_iters": args.track_iters, "overrides": args.overrides}
+    """One job per (scene, level, refine, mode, seed), the scenes rendered first (``args.mode``'s scenes)."""
+    live = args.mode == "live"
+    paths = {s: str(live_scene_path(s, args.work) if live else scene_path(s, args.work)) for s in scenes}
+    common = {"withhold_every": args.withhold_every, "track_iters": args.track_iters, "overrides": args.overrides,
+              **({"budget": args.budget} if live else {"frames": args.frames})}
+    return [{"scene": s, "path": paths[s], "level": lv, "refine": rf, "mode": m, "seed": sd, **common}
             for s in scenes for lv in levels for rf in refines for sd in seeds for m in modes]
 
 
 def _key(r: dict) -> tuple:
-    return (r["scene"], r["level"], r["refine"], r["mode"], r["seed"])
+    return tuple(r[k] for k in RUN_KEYS)
+
+
+def _settings(args: argparse.Namespace) -> dict:
+    """The settings a partial file is resumed with: the offline ones as before the live mode, the live ones with
+    ``mode``, ``budget`` and the live scenes' specs."""
+    base = {k: getattr(args, k) for k in ("withhold_every", "track_iters", "overrides")}
+    if args.mode == "offline":
+        return {"frames": args.frames, **base, "scoring": SCORING}
+    return {"mode": "live", "budget": args.budget, **base, "scoring": SCORING,
+            "scenes_spec": {s: LIVE_SCENES[s] for s in args.scenes.split(",") if s in LIVE_SCENES}}
+
+
+def _run(args: argparse.Namespace, jobs: list[dict], runs: list[dict], partial: Path, settings: dict,
+         wall0: float) -> float:
+    """Run ``jobs`` (live: one mission after another in this process; offline: on ``--jobs`` processes), appending
+    to ``runs`` and rewriting ``partial`` after each; returns the seconds spent."""
+    t0 = time.perf_counter()
+
+    def keep(r: dict) -> None:
+        runs.append(r)
+        if failed(r):
+            tqdm.write(f"{FAILED_MARK} {' '.join(str(r[k]) for k in RUN_KEYS)}: mission {r['end_state']}"
+                       + (f": {r['error']}" if r.get("error") else "") + " (recorded, left out of the figures)")
+        partial.write_text(json.dumps({"settings": settings, "runs": runs,
+                                       "wall_s": wall0 + time.perf_counter() - t0}, indent=1))
+
+    if args.mode == "live":
+        for job in tqdm(jobs, desc="pose_perturbation (live)", unit="mission"):
+            keep(live_one(job))
+        return time.perf_counter() - t0
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        futs = [pool.submit(run_one, j) for j in jobs]
+        for f in tqdm(as_completed(futs), total=len(futs), desc="pose_perturbation", unit="run"):
+            keep(f.result())
+    return time.perf_counter() - t0
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    """Run the bench (or ``--max-runs`` of its missing runs); returns the exit code."""
+    """Run the bench (or ``--max-runs`` of its missing runs). Returns 0, or 1 when a live mission failed (recorded,
+    left out of the figures, printed to stderr) and ``--allow-failed`` was not given."""
     ap = _parser()
     args = ap.parse_args(argv)
+    live = args.mode == "live"
     scenes = [s for s in args.scenes.split(",") if s]
     levels = [lv for lv in args.levels.split(",") if lv]
     modes = [m for m in args.modes.split(",") if m]
     refines = [{"off": False, "on": True}[r] for r in args.refine.split(",") if r]
     seeds = list(range(args.seeds))
-    if any(s not in SCENES for s in scenes):
-        ap.error(f"unknown scene in {scenes}; known: {list(SCENES)}")
+    known = LIVE_SCENES if live else SCENES
+    if any(s not in known for s in scenes):
+        ap.error(f"unknown scene in {scenes}; known: {list(known)}")
     if args.max_runs is not None and args.max_runs < 1:
         ap.error("--max-runs must be >= 1")
-    settings = {**{k: getattr(args, k) for k in ("frames", "withhold_every", "track_iters", "overrides")},
-                "scoring": SCORING}
-    partial = args.out.with_suffix(".partial.json")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if live and args.jobs not in (None, 1):
+        ap.error("--jobs: live missions are wall-clock measurements and run one at a time")
+    args.jobs = args.jobs or 2
+    if args.withhold_every is None:
+        args.withhold_every = NOVEL_EVERY if live else 5
+    if args.withhold_every < 2:
+        ap.error("--withhold-every must be >= 2")
+    out = args.out or RESULTS / ("pose_perturbation_live.json" if live else "pose_perturbation.json")
+    settings = _settings(args)
+    partial = out.with_suffix(".partial.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
     if partial.exists() and not (args.resume or args.fresh):
         ap.error(f"{partial} exists: --resume to continue it or --fresh to discard it")
     runs, wall0 = load_partial(partial, settings) if args.resume else ([], 0.0)
+    runs = succeeded(runs)  # a failed mission of an earlier invocation runs again
     done = {_key(r) for r in runs}
     missing = [j for j in _jobs(args, scenes, levels, refines, modes, seeds) if _key(j) not in done]
     jobs = missing[:args.max_runs] if args.max_runs is not None else missing
-    t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futs = [pool.submit(run_one, j) for j in jobs]
-        for f in tqdm(as_completed(futs), total=len(futs), desc="pose_perturbation", unit="run"):
-            runs.append(f.result())
-            partial.write_text(json.dumps({"settings": settings, "runs": runs,
-                                           "wall_s": wall0 + time.perf_counter() - t0}, indent=1))
-    wall = wall0 + time.perf_counter() - t0
+    wall = wall0 + _run(args, jobs, runs, partial, settings, wall0)
     if len(jobs) < len(missing):
         print(f"{len(missing) - len(jobs)} runs left ({len(runs)} done, {wall / 60:.1f} min so far): "
               f"continue with --resume")
-        return 0
+        return exit_code(runs, args.allow_failed, "bench.pose_perturbation", RUN_KEYS)
     summary = summarise(runs, scenes, levels, refines, seeds)
-    result = {"settings": {**settings, "scenes": scenes, "levels": levels, "modes": modes, "seeds": seeds,
-                           "refine": args.refine},
-              "summary": summary, "runs": runs, "wall_s": wall}
-    plot(summary, args.out.with_suffix(".png"))
-    write_results(args.out, "pose_perturbation", argv, f": {len(seeds)} seeds, {len(runs)} runs, {wall / 60:.0f} min "
-                  "of mapping and scoring (2 workers; 2-core machine shared with other work)", table(summary), result)
-    partial.unlink(missing_ok=True)
-    return 0
+    result = {"settings": {**settings, "mode": args.mode, "scenes": scenes, "levels": levels, "modes": modes,
+                           "seeds": seeds, "refine": args.refine},
+              "summary": summary, "failed_runs": failure_rows(runs, RUN_KEYS), "runs": runs, "wall_s": wall}
+    plot(summary, out.with_suffix(".png"))
+    how = (f"live missions, {args.budget:g} s per keyframe, one at a time" if live
+           else f"offline mapping and scoring ({args.jobs} workers)")
+    write_results(out, "pose_perturbation", argv, f": {len(seeds)} seeds, {len(runs)} runs, {wall / 60:.0f} min "
+                  f"of {how} (2-core machine shared with other work)", table(summary), result)
+    if result["failed_runs"]:  # kept for --resume, which runs the failed missions again
+        print(f"{len(result['failed_runs'])} failed missions: --resume (same options) runs them again")
+    else:
+        partial.unlink(missing_ok=True)
+    return exit_code(runs, args.allow_failed, "bench.pose_perturbation", RUN_KEYS)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,13 @@ sequence; their tasks share the keyboard), where vote ≥ each owner's own map i
 
 Writes ``bench/results/team.json`` / ``.md`` and ``team_<team>.png`` (fused ROI PSNR over mission time, with each
 owner's final own figure). Wall-clock: run it alone on the machine (``docs/realtime.md``).
+
+Failed missions (:mod:`bench._missions`): every agent row records how its mission ended (``end_state``, ``error``,
+``frames_failed``, ``corrections_rejected``) and so does each run (the first agent's failure). A run in which a robot's
+mission failed (the harness stops the team: ``FAILED``, a dead mission, a final push that failed, a timeout), or whose
+agent shows an error or failed to map frames, is kept in ``runs`` (a stopped run with its agents' end states and no
+figures) and the top-level ``failed_runs``, left out of the summary, marked † in the tables, and the command exits 1
+unless ``--allow-failed``.
 """
 
 from __future__ import annotations
@@ -52,6 +59,8 @@ from typing import Optional
 import numpy as np
 from tqdm import tqdm
 
+from bench._missions import (END_OK, FAILED_MARK, add_allow_failed, describe, exit_code, failed, failed_note,
+                             failure_rows, mission_outcome, succeeded)
 from bench._results import write_json, write_results
 from bench.realtime.missions import start_mission
 from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score
@@ -119,6 +128,21 @@ def team_plans(team: str, work: Path) -> list[AgentPlan]:
             for spec in TEAMS[team]["agents"]]
 
 
+class TeamMissionFailed(RuntimeError):
+    """The team harness stopped a team run: a robot's mission failed, its final push failed, or the missions did not
+    finish in time (:func:`gausslite.team.harness.run_team`).
+
+    Attributes:
+        agents: per robot of the team, in plan order, ``{"id", "task", "end_state", "error", "frames_failed",
+            "corrections_rejected"}`` (:func:`bench._missions.mission_outcome` of its mission; ``end_state``
+            ``"NOT_STARTED"`` for a robot whose turn did not come).
+    """
+
+    def __init__(self, message: str, agents: list[dict]) -> None:
+        super().__init__(message)
+        self.agents = agents
+
+
 def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overrides=(),
                  novel_every: int = NOVEL_EVERY) -> tuple[InProcessTeam, dict]:
     """Every robot of ``team`` live (``bench.realtime``'s protocol: its deployed settings, the scene's sensor profile,
@@ -131,6 +155,9 @@ def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overr
     Returns:
         ``(team runner, loaded)``: the runner, its missions finished and still open (close it), and per agent id
         ``{"dataset", "annotations", "task", "frames": [lo, hi], "novel": withheld frame ids or None}``.
+    Raises:
+        TeamMissionFailed: the harness stopped the team (a mission failed, a final push failed, a timeout); the
+            runner is closed, the robots' end states are in the exception.
     """
     specs = {a["id"]: a for a in TEAMS[team]["agents"]}
     rate = REFERENCE_BUDGET_S / budget
@@ -150,6 +177,12 @@ def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overr
     runner = InProcessTeam(team_plans(team, work), mission)
     try:
         harness.run_team(runner, timeout_s=TEAM_TIMEOUT_S, poll_s=0.05)
+    except (RuntimeError, TimeoutError) as e:  # the harness stopped the team: record how each robot's mission ended
+        agents = [{"id": p.name, "task": p.task_id,
+                   **(mission_outcome(runner.missions[p.name].runtime.status()) if p.name in runner.missions
+                      else {"end_state": "NOT_STARTED", "error": ""})} for p in runner.plans]
+        runner.close()
+        raise TeamMissionFailed(f"{type(e).__name__}: {e}", agents) from e
     except BaseException:
         runner.close()
         raise
@@ -161,8 +194,9 @@ def agent_row(m: InProcessMission, loaded: dict, rate: float, protocols=PROTOCOL
     """One robot's figures after its mission (``m``, :func:`run_missions`): its share and bytes, its own map's scores
     over every frame of the team's sequence under each scoring protocol (``protocols``, :func:`bench.realtime.score`:
     ``own_protocols``; the top-level ``own_*`` figures are ``sensor``'s), its push history on the sequence clock
-    (``rate``: the mission clock's speed-up) and uploaded keyframes; the keys starting with ``_`` are for
-    :func:`fused_scores` and leave the run's record."""
+    (``rate``: the mission clock's speed-up) and uploaded keyframes, how its mission ended (``end_state``, ``error``,
+    ``frames_failed``, ``corrections_rejected``: :func:`bench._missions.mission_outcome`); the keys starting with
+    ``_`` are for :func:`fused_scores` and leave the run's record."""
     rt, sink, pu = m.runtime, m.fusion, m.runtime.pusher
     ds, ann, task, novel = loaded["dataset"], loaded["annotations"], loaded["task"], loaded["novel"]
     last = pu.pushes[-1] if pu.pushes else None
@@ -174,7 +208,8 @@ def agent_row(m: InProcessMission, loaded: dict, rate: float, protocols=PROTOCOL
             "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
             "n_shared": int(last.n_shared) if last else 0,
             "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
-            "pushes": len(pu.pushes), "last_error": rt.last_error, "total_upload_bytes": int(pu.total_upload_bytes),
+            "pushes": len(pu.pushes), "last_error": rt.last_error, **mission_outcome(rt.status()),
+            "total_upload_bytes": int(pu.total_upload_bytes),
             "final_subset_bytes": int(pu.final_subset_bytes),
             # the views sent for the refinement (agent.refine_views), beside the subset's bytes
             "view_bytes": int(pu.views.sent_bytes), "views_sent": int(pu.views.sent),
@@ -392,9 +427,19 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
     """One run of a team: every agent live, one after the other (:func:`run_missions`), then the fused figures. Each agent's row gains
     ``protocols``: ``{protocol: {"own_roi_psnr", "concat_roi_psnr", "vote_roi_psnr", …, "for_robot_roi_psnr"}}``, its
     own and every fused map on its task under that protocol (the top-level figures are ``sensor``'s), each with its
-    per-frame figures (``own_per_frame``, ``vote_per_frame``, …: frame id → dB, the pairs of the summary's gains)."""
-    runner, loaded = run_missions(team, budget, run, SCENES[TEAMS[team]["scene"]]["cap"], work, overrides,
-                                  novel_every)
+    per-frame figures (``own_per_frame``, ``vote_per_frame``, …: frame id → dB, the pairs of the summary's gains).
+    The run records how its missions ended (``end_state``: the first failed agent's, else ``FINISHED``; ``error``:
+    each failed agent's, :func:`bench._missions.describe`; ``frames_failed``, ``corrections_rejected``: summed). A run
+    the harness stopped (:class:`TeamMissionFailed`) is returned as ``{"team", "budget", "run", "end_state": "FAILED",
+    "error", "agents": [each robot's end state]}``, without figures."""
+    try:
+        runner, loaded = run_missions(team, budget, run, SCENES[TEAMS[team]["scene"]]["cap"], work, overrides,
+                                      novel_every)
+    except TeamMissionFailed as e:
+        return {"team": team, "budget": budget, "run": run, "end_state": "FAILED", "error": str(e),
+                "frames_failed": sum(int(a.get("frames_failed") or 0) for a in e.agents),
+                "corrections_rejected": sum(int(a.get("corrections_rejected") or 0) for a in e.agents),
+                "agents": e.agents}
     try:
         agents = [agent_row(runner.missions[p.name], loaded[p.name], REFERENCE_BUDGET_S / budget, protocols,
                             track_iters, track_stride) for p in runner.plans]
@@ -424,7 +469,13 @@ def run_team(team: str, budget: float, run: int, work: Path, eval_stride: int = 
                           for q, v in own.items()}
     for key in (*FUSED_KEYS, *PER_ROBOT):
         fused[key].pop("protocols_per_frame", None)  # in the agents' rows
-    return {"team": team, "budget": budget, "run": run, "agents": agents, "fused": fused}
+    bad = [a for a in agents if failed(a)]
+    return {"team": team, "budget": budget, "run": run,
+            "end_state": next((a["end_state"] for a in bad if a["end_state"] != END_OK), END_OK),
+            "error": "; ".join(describe(a, ("id",)) for a in bad),
+            "frames_failed": sum(int(a.get("frames_failed") or 0) for a in agents),
+            "corrections_rejected": sum(int(a.get("corrections_rejected") or 0) for a in agents),
+            "agents": agents, "fused": fused}
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -432,12 +483,19 @@ def summarise(runs: list[dict]) -> dict:
     subset's, bytes per Gaussian, own and fused ROI PSNR, the gains fused − own and vote − concat
     (:func:`gain_over_runs`: the mean of the paired per-frame differences over runs × frames with its 95 % interval,
     ``<gain>_gain``, beside the per-run spread ``<gain>_std``), and the goals' checks (share ≤ 25 %, upload ≤ 1.5×,
-    views ≤ 8× the subset, refine ≥ own, vote ≥ concat, overlap: vote ≥ own)."""
+    views ≤ 8× the subset, refine ≥ own, vote ≥ concat, overlap: vote ≥ own). Runs whose missions failed
+    (:func:`bench._missions.failed`) are left out (a team with any lists them under ``failed_runs``); a team whose
+    every run failed has no block."""
     out = {}
     for team in sorted({r["team"] for r in runs}):
-        rs = [r for r in runs if r["team"] == team]
+        every = [r for r in runs if r["team"] == team]
+        rs = succeeded(every)
+        if not rs:
+            continue
         ids = [a["id"] for a in rs[0]["agents"]]
         blk = {"runs": len(rs), "overlap": TEAMS[team]["overlap"], "agents": {}}
+        if len(rs) < len(every):
+            blk["failed_runs"] = failure_rows(every, ("run",))
         for aid in ids:
             per = [next(a for a in r["agents"] if a["id"] == aid) for r in rs]
             row = {"task": per[0]["task"]}
@@ -555,8 +613,16 @@ def long_table(result: dict, q: str = "novel") -> str:
             if not v:
                 continue
             cells = [_gain_cell(v, f"{k}_minus_own") for k, _ in LONG_COLUMNS] + [_gain_cell(v, "refine_minus_vote")]
-            lines.append(f"| {team} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | " + " | ".join(cells) + " |")
+            lines.append(f"| {team}{_failed_mark(blk)} | {aid}, {a['task']} | {_f(v['own_roi_psnr'])} | "
+                         + " | ".join(cells) + " |")
+    if any(blk.get("failed_runs") for blk in result["teams"].values()):
+        lines += ["", failed_note("team with a run")]
     return "\n".join(lines)
+
+
+def _failed_mark(blk: dict) -> str:
+    """``" †"`` for a team summary block with failed runs (:func:`summarise`), else ``""``."""
+    return f" {FAILED_MARK}" if blk.get("failed_runs") else ""
 
 
 def _gain_cell(row: dict, key: str) -> str:
@@ -599,7 +665,7 @@ def table(result: dict) -> str:
     for team, blk in result["teams"].items():
         for aid, a in blk["agents"].items():
             lines.append(
-                f"| {team} | {aid}, {a['task']} | {_pm(a['share_pct'], a['share_pct_std'], 1)} | "
+                f"| {team}{_failed_mark(blk)} | {aid}, {a['task']} | {_pm(a['share_pct'], a['share_pct_std'], 1)} | "
                 f"{_pm(a['upload_ratio'], a['upload_ratio_std'])} | {_pm(a['bytes_per_gaussian'], a['bytes_per_gaussian_std'], 1)} | "
                 f"{_pm(a['own_roi_psnr'], a['own_roi_psnr_std'])} | {_pm(a['concat_roi_psnr'], a['concat_roi_psnr_std'])} | "
                 f"{_pm(a['vote_roi_psnr'], a['vote_roi_psnr_std'])} | {_pm(a['vote_r1_roi_psnr'], a['vote_r1_roi_psnr_std'])} | "
@@ -736,9 +802,25 @@ def write_curve(files: list[str], out: Path, default_bound: float, argv, protoco
 
 
 def markdown(result: dict) -> str:
-    """A team result's Markdown: the summary (:func:`table`), the protocol table and what draws each robot's ROI."""
-    return (table(result) + "\n\n" + protocol_table(result)
-            + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n" + cover_table(result["runs"]))
+    """A team result's Markdown: the summary (:func:`table`), the protocol table, what draws each robot's ROI and,
+    when missions failed, the failed runs (†, left out of the figures)."""
+    ok = succeeded(result["runs"])
+    md = (table(result) + "\n\n" + protocol_table(result)
+          + "\n\nWhat draws each robot's ROI in the team vote map (docs/sharing.md):\n\n" + cover_table(ok))
+    bad = failed_team_runs(result["runs"])
+    if bad:
+        md += ("\n\n" + failed_note("team with a run") + "\n\n"
+               + "\n".join(f"- {FAILED_MARK} {describe(r, RUN_KEYS)}" for r in bad))
+    return md
+
+
+#: the fields that name a team run in a failed mission's line
+RUN_KEYS = ("team", "budget", "run")
+
+
+def failed_team_runs(runs: list[dict]) -> list[dict]:
+    """The failed team runs of ``runs`` (:func:`bench._missions.failed`) as :func:`bench._missions.failure_rows`."""
+    return failure_rows(runs, RUN_KEYS)
 
 
 def resummarise(src: Path, out: Path, argv) -> dict:
@@ -746,6 +828,7 @@ def resummarise(src: Path, out: Path, argv) -> dict:
     ``.md``; the JSON keeps the runs' provenance and settings. Returns the result."""
     result = json.loads(src.read_text())
     result["teams"] = summarise(result["runs"])
+    result["failed_runs"] = failed_team_runs(result["runs"])
     ran = result.get("provenance", {}).get("command", str(src))
     write_results(out, "team", argv, f": the runs of `{ran}`, summarised again", markdown(result), result)
     return result
@@ -785,10 +868,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     ap.add_argument("--curve-protocol", default=None, metavar="PROTOCOL",
                     help="--curve: the scoring protocol of the figures (e.g. novel, as the long-mission goals are "
                          "judged; default: the summary's sensor figures)")
+    add_allow_failed(ap)
     args = ap.parse_args(argv)
     if args.summary_of:
-        resummarise(Path(args.summary_of), Path(args.out), argv)
-        return 0
+        res = resummarise(Path(args.summary_of), Path(args.out), argv)
+        return exit_code(res["runs"], args.allow_failed, "bench.team", RUN_KEYS)
     if args.curve:
         if args.curve_protocol is not None and args.curve_protocol not in PROTOCOLS:
             ap.error(f"unknown --curve-protocol {args.curve_protocol!r} (known: {', '.join(PROTOCOLS)})")
@@ -817,6 +901,10 @@ def main(argv: Optional[list[str]] = None) -> int:
         r = run_team(team, args.budget, run, work, args.eval_stride, args.overrides, protocols, args.track_iters,
                      args.track_stride, args.novel_every, Path(args.renders) if args.renders else None)
         runs.append(r)
+        if "fused" not in r:  # the harness stopped the team
+            tqdm.write(f"{team} run {run}: {FAILED_MARK} {r['end_state']}: {r['error']} (recorded, left out)")
+            out.with_suffix(".partial.json").write_text(json.dumps({"runs": runs}, indent=1))
+            continue
         tqdm.write(f"{team} run {run}: " + "; ".join(
             f"{a['id']} {a['task']} share {_f(a['share_pct'], 1)} % upload {_f(a['upload_ratio'])}x own "
             f"{_f(a['own_roi_psnr'])} concat {_f(a['concat_roi_psnr'])} vote {_f(a['vote_roi_psnr'])} "
@@ -828,13 +916,14 @@ def main(argv: Optional[list[str]] = None) -> int:
                            "track_stride": args.track_stride,
                            "overrides": args.overrides, "fuse": fuse_settings(), "machine": platform.machine(),
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0},
-              "teams": summarise(runs), "runs": runs}
+              "teams": summarise(runs), "failed_runs": failed_team_runs(runs), "runs": runs}
     for team in teams:
-        plot_team(runs, team, out.with_name(f"{out.stem}_{team}.png"))
+        if any(r["team"] == team for r in succeeded(runs)):
+            plot_team(succeeded(runs), team, out.with_name(f"{out.stem}_{team}.png"))
     write_results(out, "team", argv, f": {len(runs)} runs, {(time.time() - t0) / 60:.1f} min", markdown(result),
                   result)
     out.with_suffix(".partial.json").unlink(missing_ok=True)  # the runs are in the result now
-    return 0
+    return exit_code(runs, args.allow_failed, "bench.team", RUN_KEYS)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ Gaussian cap, no final pass (paper Sec. IV-A, Baselines). See ``docs/realtime.md
     python -m bench.realtime [--scenes tum_fr1_rpy,synthetic_circle,room0] [--budgets 0.25,0.5,1,2]
                              [--runs 3] [--modes uniform,gausslite] [--clock scaled|dataset]
                              [--final-pass-budgets 0.5] [--score-at mapping|scene] [--set KEY=VALUE ...]
-                             [--out bench/results/realtime.json]
+                             [--out bench/results/realtime.json] [--allow-failed]
 
 Each run is one agent mission (:class:`gausslite.mission.AgentRuntime`, in process, no fusion server)
 that replays the scene through the agent's keyframe ingest as a robot streams it: frames arrive at the
@@ -33,6 +33,14 @@ Scoring resolution. ``--score-at mapping`` (default) scores each map at the reso
 resolution the agent chose, so that runs mapped at different resolutions compare on the same pixels and a map's
 finer detail counts (``bench.compute_sweep``). Each run records the basis and the size it was scored at.
 
+Failed missions. Each run records how its mission ended: ``end_state`` (``FINISHED``, or ``FAILED`` when it stopped,
+out of memory say), ``error`` (the status's ``last_error``, e.g. ``"mapping frame 612 failed: ..."``) and the status
+counters ``frames_failed`` and ``corrections_rejected`` (:func:`bench._missions.mission_outcome`). A run whose mission
+did not finish, shows an error or failed to map frames is a failed run (:func:`bench._missions.failed`): it stays in
+``runs`` with whatever it scored (or ``score_error``), is left out of every mean and gain (each budget block lists it
+under ``failed_runs``, the result under its top-level ``failed_runs``), is marked † in the tables, and makes the
+command exit 1 after writing its result unless ``--allow-failed``. ``--resume`` runs a failed mission again.
+
 Gains pair GaussLite and uniform frame by frame within each run (the same seed), and only runs scored at the same
 resolution (:func:`pairable_runs`); over several runs the interval is run-clustered, a t-interval over the
 per-run gains (:func:`gausslite.stats.paired_gain`). Each run records the settings its mission ran with
@@ -52,10 +60,10 @@ from bench.realtime.protocol import (TRACK_ITERS, TRACK_STRIDE, check_withheld, 
 from bench.realtime.scenes import (MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, SHARED, Preloaded, dataset_scenes,
                                    load_scene, scene_path)
 from bench.realtime.summary import budget_key, mapping_resolution, pairable_runs, summarise
-from bench.realtime.tables import gain_cell, plot_scene, protocol_table, table
+from bench.realtime.tables import failed_mark, gain_cell, plot_scene, protocol_table, table
 
 __all__ = ["MODES", "REFERENCE_BUDGET_S", "RESULTS", "SCENES", "SHARED", "TRACK_ITERS", "TRACK_STRIDE", "Preloaded",
-           "agent_config", "budget_key", "calibrate", "check_withheld", "dataset_scenes", "gain_cell",
+           "agent_config", "budget_key", "calibrate", "check_withheld", "dataset_scenes", "failed_mark", "gain_cell",
            "keyframe_schedule", "load_average", "load_scene", "main", "map_scores", "mapping_resolution",
            "mission_result", "mission_settings", "novel_ids", "pairable_runs", "plot_scene", "protocol_table",
            "reaggregate", "run_key", "run_one", "save_render", "scene_path", "score", "score_deferred",

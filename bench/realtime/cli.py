@@ -3,7 +3,11 @@ Gaussian cap, no final pass (paper Sec. IV-A, Baselines). See ``docs/realtime.md
 
 The command line of ``python -m bench.realtime`` (:func:`main`): its options, the jobs they ask for, the runs (live
 missions one after another, twin runs on worker processes), the scoring of the saved maps, and the result written
-(``<out>``, its tables and plots; the package's docstring describes the protocol and the result's layout)."""
+(``<out>``, its tables and plots; the package's docstring describes the protocol and the result's layout).
+
+A failed mission (:mod:`bench._missions`) is recorded with its end state and error, left out of the figures, marked †
+in the tables, and makes the command exit 1 once its result (or, with ``--missions-only``, its partial file) is
+written, unless ``--allow-failed``; ``--resume`` runs a failed mission again."""
 
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from tqdm import tqdm
 from gausslite.datasets.odometry import PoseSource
 from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS
 
+from bench._missions import add_allow_failed, exit_code, failed, failure_rows
 from bench._results import provenance, write_json
 from bench.realtime.missions import calibrate, run_key, run_one, twin_one
 from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score_deferred
@@ -30,9 +35,14 @@ from bench.realtime.tables import plot_scene, protocol_table, table
 from bench.realtime_late import LATE_VIA
 
 
+#: the fields that name a run in a failed mission's message
+RUN_KEYS = ("scene", "mode", "budget", "run")
+
+
 def main(argv: Optional[list[str]] = None, prog: Optional[str] = None) -> int:
     """Run the benchmark of the command line ``argv`` (``--help``; ``prog``: the program name its usage shows, default
-    argparse's); 0 on success."""
+    argparse's). Returns 0 on success, 1 when a run's mission failed (recorded, left out of the figures, each printed
+    to stderr) and ``--allow-failed`` was not given."""
     ap = _parser(prog)
     args = ap.parse_args(argv)
 
@@ -44,8 +54,8 @@ def main(argv: Optional[list[str]] = None, prog: Optional[str] = None) -> int:
         return 0
 
     if args.reaggregate:
-        reaggregate(Path(args.out), argv)
-        return 0
+        res = reaggregate(Path(args.out), argv)
+        return exit_code(res["runs"], args.allow_failed, "bench.realtime", RUN_KEYS)
     protocols, scenes, specs = _checked_scenes(ap, args)
     budgets = [float(b) for b in args.budgets.split(",") if b]
     fp_budgets = {float(b) for b in args.final_pass_budgets.split(",") if b}
@@ -56,6 +66,8 @@ def main(argv: Optional[list[str]] = None, prog: Optional[str] = None) -> int:
     runs: list[dict] = []
     if (args.resume or args.score_only) and partial.is_file():
         runs = json.loads(partial.read_text())["runs"]
+    if args.resume and not args.score_only:
+        runs = _drop_failed(runs)  # a failed mission runs again
     done = {run_key(r) for r in runs}
     jobs, names = _build_jobs(args, scenes, specs, protocols, budgets, fp_budgets, modes, out, done)
     if args.score_only:
@@ -71,10 +83,19 @@ def main(argv: Optional[list[str]] = None, prog: Optional[str] = None) -> int:
     pending = [i for i, r in enumerate(runs) if "state_path" in r and Path(r["state_path"]).is_file()]
     if args.missions_only:
         print(f"{len(pending)} maps saved for scoring: score them with --score-only (same --out)")
-        return 0
+        return exit_code(runs, args.allow_failed, "bench.realtime", RUN_KEYS)
     _score_pending(args, runs, pending, partial)
     _write_result(args, runs, names, budgets, protocols, out, t0, argv)
-    return 0
+    return exit_code(runs, args.allow_failed, "bench.realtime", RUN_KEYS)
+
+
+def _drop_failed(runs: list[dict]) -> list[dict]:
+    """``runs`` without its failed missions (their saved maps removed), so that a resumed invocation runs them
+    again."""
+    for r in runs:
+        if failed(r) and r.get("state_path"):
+            Path(r["state_path"]).unlink(missing_ok=True)
+    return [r for r in runs if not failed(r)]
 
 
 def _parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
@@ -148,6 +169,7 @@ def _parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
     ap.add_argument("--calibrate", action="store_true",
                     help="fit the deterministic budget clock's cost model (mapper.work_cost) on this machine and "
                          "print it (first scene)")
+    add_allow_failed(ap)
     return ap
 
 
@@ -221,6 +243,13 @@ def _run_jobs(args: argparse.Namespace, jobs: list[dict], runs: list[dict], part
         results = (run_one(job) for job in jobs)
     for r in tqdm(results, total=len(jobs), desc="realtime runs", unit="run", disable=args.twin):
         runs.append(r)
+        if failed(r):
+            tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: mission {r['end_state']}"
+                       + (f": {r['error']}" if r.get("error") else "")
+                       + (f", {r['frames_failed']} frames failed" if r.get("frames_failed") else "")
+                       + " (recorded, left out of the figures)")
+            partial.write_text(json.dumps({"runs": runs}, indent=1))
+            continue
         if "state_path" in r:  # scored below, once every mission ran
             tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: {r['n_gaussians']} G, "
                        f"{r['keyframes']} kf x {r['iters_per_keyframe']:.1f} it (+{r['idle_iters']} idle), "
@@ -240,14 +269,31 @@ def _score_pending(args: argparse.Namespace, runs: list[dict], pending: list[int
     if pending:
         items = [runs[i] for i in pending]
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            for i, r in zip(pending, tqdm(pool.map(score_deferred, items), total=len(items), desc="scoring",
+            for i, r in zip(pending, tqdm(pool.map(score_saved, items), total=len(items), desc="scoring",
                                           unit="map")):
                 runs[i] = r
+                if "protocols" not in r:  # a failed mission's map that could not be scored
+                    partial.write_text(json.dumps({"runs": runs}, indent=1))
+                    continue
                 per = " ".join(f"{p} {v['roi_psnr']:.2f}" for p, v in r["protocols"].items()
                                if v.get("roi_psnr") is not None)
                 tqdm.write(f"{r['scene']} {r['mode']:9s} b={r['budget']:<5g} run {r['run']}: ROI ({per}), "
                            f"PSNR {r['psnr']:.2f}")
                 partial.write_text(json.dumps({"runs": runs}, indent=1))
+
+
+def score_saved(res: dict) -> dict:
+    """:func:`~bench.realtime.protocol.score_deferred` of one saved map (a worker). A failed mission's map that cannot
+    be scored keeps its run without scores and records ``score_error`` (its state file removed); a finished mission's
+    scoring errors propagate."""
+    if not failed(res):
+        return score_deferred(res)
+    try:
+        return score_deferred(res)
+    except Exception as e:
+        Path(res["state_path"]).unlink(missing_ok=True)
+        return {**{k: v for k, v in res.items() if k not in ("state_path", "fp_per_kf", "score_job")},
+                "score_error": f"{type(e).__name__}: {e}"}
 
 
 def reaggregate(out: Path, argv: Optional[list[str]] = None) -> dict:
@@ -265,6 +311,7 @@ def reaggregate(out: Path, argv: Optional[list[str]] = None) -> dict:
     budgets = [float(b) for b in result["settings"]["budgets"]]
     for scene, blk in result["scenes"].items():
         result["scenes"][scene] = summarise(result["runs"], scene, budgets, blk["cap"])
+    result["failed_runs"] = failure_rows(result["runs"], RUN_KEYS)
     result["aggregation"] = provenance("realtime", argv)
     write_json(out, result, "realtime", argv, indent=1)
     md = table(result) + "\n\n" + protocol_table(result)
@@ -284,7 +331,7 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "score_at": args.score_at,
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
-              "scenes": {}, "runs": runs}
+              "scenes": {}, "failed_runs": failure_rows(runs, RUN_KEYS), "runs": runs}
     for scene, cap in names.items():
         blk = summarise(runs, scene, budgets, cap)
         result["scenes"][scene] = blk

@@ -1,14 +1,18 @@
 """The real-time benchmark's missions: one agent's configuration for a run (:func:`agent_config`), its mission built
 in process (:func:`start_mission`), a live run (:func:`run_one`) and its deterministic twin (:func:`twin_one`), the
 figures of a finished mission (:func:`mission_result`, :func:`mission_settings`), and the fit of the twin's work
-clock on this machine (:func:`calibrate`)."""
+clock on this machine (:func:`calibrate`).
+
+Every run records how its mission ended (``end_state``, ``error``, ``frames_failed``, ``corrections_rejected``:
+:func:`bench._missions.mission_outcome`); a failed mission's run is kept with its figures and never averaged
+(:mod:`bench._missions`)."""
 
 from __future__ import annotations
 
 import os
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -21,9 +25,11 @@ from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.profiles import with_profile
 from gausslite.mapping.resolution import choose_downscale
 from gausslite.mission import FusionPort, build_mission
+from gausslite.mission.errors import stops_the_mission
 from gausslite.mission.fakes import SinkFusion
 from gausslite.parser import parse_task
 
+from bench._missions import END_OK, failed, mission_outcome
 from bench.realtime.protocol import map_scores, novel_ids, training_frames
 from bench.realtime.scenes import REFERENCE_BUDGET_S, SCENES, Preloaded, load_scene, scene_path
 from bench.realtime.summary import budget_key
@@ -44,9 +50,21 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
     return cfg.model_copy(update={"mapper": m}), final_per_kf
 
 
-def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None):
-    """The bench agent of ``job`` (in process): (frames in memory, annotations, task, AgentRuntime, the profile's
-    final-pass iterations per keyframe)."""
+def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None,
+                  relevance: Optional[Callable] = None):
+    """The bench agent of ``job`` (in process), built and not started.
+
+    Args:
+        job: the run (``scene`` or ``spec``, ``path``, ``task``, ``mode``, ``budget``, ``cap``, ``run``: the seed,
+            ``overrides``, and the ``late`` scenario's keys).
+        rate: replay speed-up (``agent.rate``). extra_overrides: agent config overrides before ``job["overrides"]``.
+        fusion: where the agent pushes (None: no pushes).
+        relevance: ``(frames, annotations, task) -> relevance_fn`` (``relevance_fn``: frame → (H, W) bool), a
+            relevance source that replaces the scene's own (and the ``late`` scenario's); None: the scene's.
+    Returns:
+        (frames in memory (:class:`~bench.realtime.scenes.Preloaded`), annotations, task, AgentRuntime, the
+        profile's final-pass iterations per keyframe).
+    """
     ds, profile = load_scene(job.get("spec") or SCENES[job["scene"]], Path(job["path"]))
     ds = Preloaded(ds)
     ann = ds.annotations
@@ -54,7 +72,10 @@ def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[F
     cfg, fp_per_kf = agent_config(job["mode"], job["budget"], job["cap"], job["run"], rate, profile,
                                   [*extra_overrides, *job.get("overrides", ())])
     graph = parse_task(task.text)
-    relevance_fn, bind = late_relevance(job, ds, cfg, graph, ann, task)
+    if relevance is not None:
+        relevance_fn, bind = relevance(ds, ann, task), (lambda rt: None)
+    else:
+        relevance_fn, bind = late_relevance(job, ds, cfg, graph, ann, task)
     rt = build_mission(cfg, task.text, graph, agent_id="bench", annotations=ann, task_id=task.id, fusion=fusion,
                        relevance_fn=relevance_fn, start=False)
     bind(rt)
@@ -62,9 +83,13 @@ def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[F
 
 
 def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields) -> dict:
-    """The figures of one finished mission: ``fields``, the map's counts, the settings it ran with (``"mission"``,
+    """The figures of one finished mission: ``fields`` (with the mission's outcome, ``end_state``, ``error``, ...:
+    :func:`bench._missions.mission_outcome`), the map's counts, the settings it ran with (``"mission"``,
     :func:`mission_settings`), the scores over every frame, the render (``job["render_dir"]``) and, with
-    ``job["final_pass"]``, the scores after the profile's final pass."""
+    ``job["final_pass"]``, the scores after the profile's final pass. With ``job["defer_dir"]`` the map is saved for
+    :func:`~bench.realtime.protocol.score_deferred` instead of scored. A failed mission (:func:`bench._missions.failed`)
+    is scored like any other when its map can be; when scoring it raises, the run records ``score_error`` instead of
+    scores (a finished mission's scoring errors propagate)."""
     res = {"scene": job["scene"], "mode": job["mode"], "budget": job["budget"], "run": job["run"], "cap": job["cap"],
            **fields, "n_gaussians": len(mapper.model), "n_active": int(mapper.model.active.sum()), "frames": len(ds),
            "roi_iters": int(sum(s.active_iters for s in mapper.stats)),
@@ -87,7 +112,13 @@ def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields)
                                                        "track_iters", "track_stride", "render_dir", "final_pass",
                                                        "novel_every", "mapping_downscale", "score_at")})
         return res
-    res.update(map_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
+    if not failed(res):
+        res.update(map_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
+        return res
+    try:  # what is left of a failed mission's map, for the record: it is never averaged
+        res.update(map_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
+    except Exception as e:
+        res["score_error"] = f"{type(e).__name__}: {e}"
     return res
 
 
@@ -132,7 +163,10 @@ def _key_name(job: dict) -> str:
 
 def run_one(job: dict) -> dict:
     """One live mission of one (scene, mode, budget, run): replay, finish (with ``job["share"]`` after a final push
-    to the in-process sink, otherwise without a push), score."""
+    to the in-process sink, otherwise without a push), score. The result records how the mission ended
+    (``end_state``, ``error``, ``frames_failed``, ``corrections_rejected``): a mission that failed on the way (out of
+    memory: ``FAILED``) or lost frames to errors (``frames_failed``) is recorded with its error, not raised
+    (:func:`mission_result`)."""
     rate = REFERENCE_BUDGET_S / job["budget"] if job["clock"] == "scaled" else 1.0
     sink = SinkFusion() if job.get("share") else None
     odometry = job.get("pose_source") == "odometry"
@@ -169,6 +203,7 @@ def run_one(job: dict) -> dict:
             kappa_mean_active=(float(mapper.model.kappa[mapper.model.active].float().mean())
                                if bool(mapper.model.active.any()) else 0.0),
             status={k: st[k] for k in ("frames_received", "frames_skipped", "frames_rejected") if k in st},
+            **mission_outcome(st),
             frames_estimated=len(rt.estimated_poses) if odometry else None,
             share=bool(sink), pushes=len(rt.pusher.pushes),
             share_pct=100.0 * last.n_shared / max(1, last.n_total) if last else None,
@@ -203,7 +238,10 @@ def keyframe_schedule(ds, spacing_s: float) -> list[int]:
 def twin_one(job: dict) -> dict:
     """The deterministic twin of :func:`run_one`: the same agent (relevance front-end, mapper settings), keyframes
     at a fixed spacing of the sequence clock (``keyframe_schedule``), each mapped with ``budget`` modelled seconds
-    of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load."""
+    of the work clock (``mapper.budget_clock=work``), no idle iterations. Same result on any machine and load.
+    The twin maps in this thread as the mission's mapping worker would: a keyframe whose mapping raises is skipped and
+    counted (``frames_failed``, ``error`` ``"mapping frame <id> failed: ..."``), and one that runs out of memory or
+    disk ends the mapping (``end_state`` ``FAILED``; :func:`gausslite.mission.errors.stops_the_mission`)."""
     spacing = REFERENCE_BUDGET_S if job["clock"] == "scaled" else job["budget"]
     ds, ann, task, rt, fp_per_kf = start_mission(job, 1.0, ["mapper.budget_clock=work"])
     try:
@@ -221,6 +259,7 @@ def twin_one(job: dict) -> dict:
         iters = 0
         give = give_late_task(job, train, rt, task)
         prev = -1
+        status = {"state": END_OK, "last_error": "", "frames_failed": 0}
         for i in kfs:
             if give and give(i):
                 rt.apply_pending_task()
@@ -228,9 +267,17 @@ def twin_one(job: dict) -> dict:
             # the frames the robot saw since the previous keyframe (their motion; ROI crops under roi_views)
             between = [train[j] for j in range(prev + 1, i)]
             prev = i
-            iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"], between=between).iters
+            try:
+                iters += mapper.map_frame(fr, rt.relevance(fr), time_budget_s=job["budget"], between=between).iters
+            except Exception as e:  # as the mapping worker: the frame's failure, or the mission's
+                status.update(last_error=f"mapping frame {fr.frame_id} failed: {type(e).__name__}: {e}")
+                if stops_the_mission(e):
+                    status["state"] = "FAILED"
+                    break
+                status["frames_failed"] += 1
         return mission_result(job, mapper, ds, ann, task, fp_per_kf, twin=True, keyframes=len(kfs), keyframe_iters=iters,
-                       idle_iters=0, iters_per_keyframe=iters / max(1, len(kfs)), wall_s=0.0)
+                       idle_iters=0, iters_per_keyframe=iters / max(1, len(kfs)), wall_s=0.0,
+                       **mission_outcome(status))
     finally:
         rt.close()
 

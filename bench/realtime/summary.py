@@ -11,13 +11,16 @@ from typing import Optional
 from gausslite.evaluation import PROTOCOLS, current_protocols
 from gausslite.stats import aggregate, gain, paired_gain, significant
 
+from bench._missions import failure_rows, succeeded
 from bench.realtime.scenes import MODES
 
 log = logging.getLogger("bench.realtime")  # one logger for the whole benchmark
 
 
 def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> dict:
-    """The JSON block of one scene: per budget and mode the means and stds over runs, and the paired gain."""
+    """The JSON block of one scene: per budget and mode the means and stds over runs, and the paired gain. Runs of
+    failed missions (:func:`bench._missions.failed`) are left out of every figure; a budget with any lists them
+    under ``"failed_runs"`` (``{mode: [{"run", "end_state", "error", "frames_failed", "corrections_rejected"}]}``)."""
     keys = ["roi_psnr", "psnr", "ssim", "n_gaussians", "iters_per_keyframe", "keyframes", "idle_iters",
             "roi_iters", "final_roi_psnr", "final_psnr", "final_ssim"]
     out = {"cap": cap, "budgets": {}}
@@ -25,8 +28,12 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
         blk: dict = {}
         by_mode = {}
         for mode in MODES:
-            rs = sorted([r for r in runs if r["scene"] == scene and r["mode"] == mode and r["budget"] == b],
-                        key=lambda r: r["run"])
+            every = sorted([r for r in runs if r["scene"] == scene and r["mode"] == mode and r["budget"] == b],
+                           key=lambda r: r["run"])
+            bad = failure_rows(every, ("run",))
+            if bad:
+                blk.setdefault("failed_runs", {})[mode] = bad
+            rs = succeeded(every)
             if not rs:
                 continue
             by_mode[mode] = rs

@@ -1,5 +1,6 @@
 """The real-time benchmark's tables and plots: a result's markdown tables (:func:`table`, :func:`protocol_table`, a
-gain's cell :func:`gain_cell`) and a scene's ROI PSNR against the budget (:func:`plot_scene`)."""
+gain's cell :func:`gain_cell`, a failed run's mark :func:`failed_mark`) and a scene's ROI PSNR against the budget
+(:func:`plot_scene`)."""
 
 from __future__ import annotations
 
@@ -7,26 +8,45 @@ from pathlib import Path
 
 from gausslite.stats import fmt, fmt_gain
 
+from bench._missions import FAILED_MARK, failed_note
 from bench.realtime.scenes import MODES
 
 
+def failed_mark(v: dict, mode: str) -> str:
+    """The mark of a budget block's ``mode`` in a table: ``" † 1 failed"`` when runs of it failed (the block's
+    ``failed_runs``, :func:`bench.realtime.summary.summarise`), else ``""``."""
+    n = len((v.get("failed_runs") or {}).get(mode, ()))
+    return f" {FAILED_MARK} {n} failed" if n else ""
+
+
+def _any_failed(result: dict) -> bool:
+    return any(v.get("failed_runs") for blk in result["scenes"].values() for v in blk["budgets"].values())
+
+
 def table(result: dict) -> str:
-    """Markdown table of a result."""
+    """Markdown table of a result; a mode with failed runs is marked † with their count, and a footnote says what
+    that means (:func:`bench._missions.failed_note`)."""
     lines = ["| scene | cap | budget (s) | mode | ROI PSNR | PSNR | SSIM | Gaussians | iters/kf | keyframes | "
              "ROI gain | final pass: ROI PSNR / PSNR |", "|" + "---|" * 12]
     for scene, blk in result["scenes"].items():
         for b, v in blk["budgets"].items():
             for mode in MODES:
                 m = v.get(mode)
+                mark = failed_mark(v, mode)
                 if not m:
+                    if mark:  # every run of the mode failed: nothing to average, the row says so
+                        lines.append(f"| {scene} | {blk['cap']} | {b} | {mode}{mark} | " + "– | " * 6 + "| |")
                     continue
                 g = gain_cell(v) if mode == "gausslite" and "gain" in v else ""
                 fp = (f"{fmt(m.get('final_roi_psnr'), m.get('final_roi_psnr_std'))} / "
                       f"{fmt(m.get('final_psnr'), m.get('final_psnr_std'))}" if m.get("final_roi_psnr") is not None
                       else "")
-                lines.append(f"| {scene} | {blk['cap']} | {b} | {mode} | {fmt(m['roi_psnr'], m['roi_psnr_std'])} | "
+                lines.append(f"| {scene} | {blk['cap']} | {b} | {mode}{mark} | "
+                             f"{fmt(m['roi_psnr'], m['roi_psnr_std'])} | "
                              f"{fmt(m['psnr'], m['psnr_std'])} | {fmt(m['ssim'], m['ssim_std'], 3)} | "
                              f"{m['n_gaussians']:.0f} | {m['iters_per_keyframe']:.1f} | {m['keyframes']:.1f} | {g} | {fp} |")
+    if _any_failed(result):
+        lines += ["", failed_note()]
     return "\n".join(lines)
 
 
@@ -57,16 +77,20 @@ def protocol_table(result: dict) -> str:
         for b, v in blk["budgets"].items():
             for p, pv in v.get("protocols", {}).items():
                 u, g = pv.get("uniform", {}), pv.get("gausslite", {})
+                mark = "".join(failed_mark(v, m) for m in MODES)
                 lines.append(
                     f"| {scene} | {b} | {p} | {fmt(u.get('roi_psnr'), u.get('roi_psnr_std'))} | "
                     f"{fmt(g.get('roi_psnr'), g.get('roi_psnr_std'))} | {gain_cell(pv)} | "
                     f"{fmt(u.get('psnr'), u.get('psnr_std'))} | "
-                    f"{fmt(g.get('psnr'), g.get('psnr_std'))} | {pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))} |")
+                    f"{fmt(g.get('psnr'), g.get('psnr_std'))} | "
+                    f"{pv.get('runs', max(u.get('runs', 0), g.get('runs', 0)))}{mark} |")
     lines += ["", "ROI gain: GaussLite − uniform, paired frame by frame within each run: the mean of the per-run "
               "gains [95 % run-clustered interval: the t-interval over the per-run gains], σ runs: their spread; "
               "* the interval excludes zero. "
               "`novel` answers how the map serves a robot at the pose it would use on views it never trained on; "
               "`tracked` / `novel-tracked` how well a robot could localise against the map, and the map from there."]
+    if _any_failed(result):
+        lines += ["", failed_note()]
     return "\n".join(lines)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bench.pose_perturbation import map_sequence, run_one, score_sequence, sequence, summarise, table
+from gausslite.datasets.trajectory import perturb_trajectory
 from gausslite.mapping.poses import interpolate_pose, neighbour_keys
 from gausslite.synthetic import make_scene
 
@@ -133,3 +134,97 @@ def test_one_tiny_run_end_to_end(walk):
     assert r["psnr"] == pytest.approx(r["psnr_true_pose"]) and math.isfinite(r["psnr"]) and r["psnr"] > 5.0
     assert r["roi_psnr"] is None or r["roi_psnr"] == pytest.approx(r["roi_psnr_true_pose"])
     assert r["n_gaussians"] > 0 and r["psnr_keyframes"] > 5.0
+
+
+# ------------------------------------------------------------------------------------ the live mode
+def test_live_mode_runs_missions_at_perturbed_poses_and_records_a_failed_one(tmp_path, monkeypatch, capsys):
+    """``--mode live`` (the default) on a tiny circle (12 frames at 64×48): one live agent mission per level and mode
+    as bench.realtime runs it, its frames streamed at the perturbed poses, every 4th withheld and scored under
+    ``novel``; a mission whose mapping fails is recorded with its end state and error, left out of the summary,
+    marked †, and the command exits 1; a resumed invocation runs it again and exits 0. No timing is asserted."""
+    import json
+
+    import bench.pose_perturbation as pp
+    from gausslite.mapping.mapper import Mapper
+
+    monkeypatch.setitem(pp.LIVE_SCENES, "synthetic_circle",
+                        {**pp.LIVE_SCENES["synthetic_circle"], "frames": 12, "width": 64, "height": 48, "cap": 300})
+    real, real_live = Mapper.map_frame, pp.live_one
+    fail = {"armed": True, "now": False}
+    seen = {}  # (level, mode, frame id) → the pose the mapper was given
+
+    def out_of_memory(self, frame, *args, **kwargs):
+        seen[(fail["job"]["level"], self.cfg.mode, int(frame.frame_id))] = np.asarray(frame.c2w).copy()
+        if fail["now"]:
+            raise MemoryError("injected")
+        return real(self, frame, *args, **kwargs)
+
+    def live_one(job):  # the GaussLite mission at 3 cm / 1.5° runs out of memory, while armed
+        fail["job"] = job
+        fail["now"] = fail["armed"] and (job["level"], job["mode"]) == ("3cm_1.5deg", "gausslite")
+        return real_live(job)
+
+    monkeypatch.setattr(Mapper, "map_frame", out_of_memory)
+    monkeypatch.setattr(pp, "live_one", live_one)
+    out = tmp_path / "live.json"
+    argv = ["--scenes", "synthetic_circle", "--levels", "exact,3cm_1.5deg", "--seeds", "1", "--refine", "off",
+            "--budget", "0.1", "--withhold-every", "4", "--set", "mapper.seeding.seeds_per_frame=300",
+            "--work", str(tmp_path / "work"), "--out", str(out)]
+    assert pp.main(argv) == 1
+    assert "level=3cm_1.5deg refine=False mode=gausslite seed=0: FAILED" in capsys.readouterr().err
+    res = json.loads(out.read_text())
+    assert res["settings"]["mode"] == "live" and res["settings"]["budget"] == 0.1
+    assert len(res["runs"]) == 4
+    for r in res["runs"]:
+        assert r["run_mode"] == "live" and r["mission"]["keyframe_budget_s"] == 0.1
+        assert r["mission"]["max_gaussians"] == 300 and r["mission"]["mode"] == r["mode"]
+        bad = (r["level"], r["mode"]) == ("3cm_1.5deg", "gausslite")
+        assert r["end_state"] == ("FAILED" if bad else "FINISHED"), (r["level"], r["mode"])
+        assert bad == bool(r["error"]) and (not bad or "MemoryError: injected" in r["error"])
+        if bad:  # its first keyframe failed: no map to score, the record says so
+            assert r["keyframes"] == 0 and "score_error" in r and "roi_psnr" not in r
+        else:
+            assert r["frames_sent"] == 9 and r["keyframes"] >= 1  # 12 frames, 3 withheld: the rest streamed
+            assert r["n_withheld"] == 3 and r["n_mapped"] == r["keyframes"]
+            assert set(r["roi_psnr_per_frame"]) <= {"2", "6", "10"} and r["psnr"] > 5.0
+            exact = r["level"] == "exact"
+            assert (r["pose_error"]["ate_m"] < 1e-9) == exact  # the frames were given the perturbed poses
+            assert exact or r["pose_error"]["ate_m"] > 0.01
+    assert [(f["level"], f["mode"]) for f in res["failed_runs"]] == [("3cm_1.5deg", "gausslite")]
+    # the missions mapped at the perturbed poses: the level's draw for the run's seed, exact ones untouched
+    from bench.realtime.scenes import load_scene
+
+    ds = load_scene({"kind": "synthetic"}, pp.live_scene_path("synthetic_circle", tmp_path / "work"))[0]
+    true = {int(ds[i].frame_id): ds[i].c2w for i in range(len(ds))}
+    est = perturb_trajectory(np.stack(list(true.values())), "3cm_1.5deg", seed=0)
+    drawn = dict(zip(true, est))
+    keys = [k for k in seen if k[1] == "uniform"]
+    assert {k[0] for k in keys} == {"exact", "3cm_1.5deg"}
+    for level, _, fid in keys:
+        assert np.allclose(seen[(level, "uniform", fid)], true[fid] if level == "exact" else drawn[fid], atol=1e-9)
+    block = res["summary"]["synthetic_circle"]["refine_off"]
+    assert block["exact"]["seeds"] == [0] and block["exact"]["gain"]["gain"] is not None
+    assert block["exact"]["gain_kept"] is None or block["exact"]["gain_kept"] == pytest.approx(1.0)
+    lv = block["3cm_1.5deg"]
+    assert lv["seeds"] == [] and lv["gain"]["gain"] is None and lv["gain_kept"] is None
+    assert lv["failed_runs"][0]["end_state"] == "FAILED" and lv["gausslite_roi_psnr"] is None
+    assert lv["uniform_roi_psnr"] is not None and lv["ate_m"] > 0.01
+    md = out.with_suffix(".md").read_text()
+    assert "| synthetic_circle | off | 3cm_1.5deg † |" in md and "† a level with a run whose mission failed" in md
+    # resumed: only the failed mission runs again, and the result is complete
+    fail["armed"] = False
+    calls = []
+    monkeypatch.setattr(pp, "live_one", lambda job: calls.append(job) or live_one(job))
+    assert pp.main([*argv, "--resume"]) == 0
+    assert [(j["level"], j["mode"]) for j in calls] == [("3cm_1.5deg", "gausslite")]
+    res = json.loads(out.read_text())
+    assert res["failed_runs"] == [] and res["summary"]["synthetic_circle"]["refine_off"]["3cm_1.5deg"]["seeds"] == [0]
+
+
+def test_live_mode_refuses_parallel_missions_and_unknown_scenes():
+    import bench.pose_perturbation as pp
+
+    with pytest.raises(SystemExit):
+        pp.main(["--jobs", "2"])
+    with pytest.raises(SystemExit):
+        pp.main(["--scenes", "room0"])

@@ -299,9 +299,11 @@ def test_a_team_runs_end_to_end_through_the_harness(tmp_path, monkeypatch):
     assert rc == 0
     res = json.loads(out.read_text())
     (run,) = res["runs"]
+    assert run["end_state"] == "FINISHED" and run["error"] == "" and res["failed_runs"] == []
     assert [a["id"] for a in run["agents"]] == ["agent_a", "agent_b"]
     for a in run["agents"]:
         assert a["wall_s"] > 0 and a["keyframes"] >= 1 and a["pushes"] >= 1 and not a["last_error"]
+        assert a["end_state"] == "FINISHED" and not a["error"] and a["frames_failed"] == 0  # how its mission ended
         assert a["own_roi_psnr"] is not None and a["vote_roi_psnr"] is not None
         times = [p["t"] for p in a["push_log"]]
         assert times == sorted(times) and times[-1] <= a["wall_s"]  # on the robot's own mission clock

@@ -121,6 +121,7 @@ def test_a_two_cell_sweep_beside_a_load_scores_every_map_at_the_scene_size(tmp_p
         assert r["mapping_size"] == [32, 24] and r["sizes"]["mapping"] == [32, 24]
         assert r["score_at"] == "scene" and r["scored_size"] == [64, 48]
         assert r["novel"]["roi_psnr"] is not None
+        assert r["end_state"] == "FINISHED" and not r["error"] and r["frames_failed"] == 0  # every mission's end
     assert all(r["roi_iters"] > 0 for r in res["runs"] if r["mode"] == "gausslite")
     assert len(res["pairs"]) == 2 and all(p["paired"] and p["novel_gain"] is not None for p in res["pairs"])
     by_cell = res["scenes"]["synth-pick-object"]
