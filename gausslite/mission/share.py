@@ -84,7 +84,7 @@ def _trimmed(fn, *args):
     try:
         return fn(*args)
     finally:
-        trim_heap()
+        trim_heap(collect=True)
 
 
 def _select(gmap, views, share_cfg: ShareConfig, backend: str, held=None):

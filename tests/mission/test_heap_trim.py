@@ -1,5 +1,5 @@
 """Returning a push's freed memory to the OS (gausslite.mission.heap) happens on the mapping thread, never on the
-pusher thread: at ``push.nice`` a thread holding the interpreter lock (``gc.collect``) or the allocator's locks
+pusher thread: at ``push.nice`` a thread holding the interpreter lock or the allocator's locks
 (``malloc_trim``) is descheduled whenever another process wants the cores, and every thread of the agent waits for it
 (docs/live.md, "Beside other processes")."""
 
@@ -33,3 +33,18 @@ def test_a_push_is_trimmed_by_the_mapping_thread_not_the_niced_pusher(monkeypatc
     finally:
         rt.close()
     assert set(trims) == {"agent-t-map"}, trims
+
+
+def test_the_mapping_threads_trim_does_not_walk_the_heap(monkeypatch):
+    """A full collection walks every object (tens of milliseconds with PyTorch loaded), taken from a keyframe's
+    budget after every push: the mapping thread only returns free pages; a caller that asks collects first."""
+    import gc
+
+    from gausslite.mission import heap
+
+    calls = []
+    monkeypatch.setattr(gc, "collect", lambda *a: calls.append(a) or 0)
+    heap.trim_heap()
+    assert calls == []
+    heap.trim_heap(collect=True)
+    assert len(calls) == 1
