@@ -155,6 +155,48 @@ def paired_gain(treated, baseline, level: float = 0.95) -> dict:
     return out
 
 
+def unpaired_gain(treated: Sequence[Optional[float]], baseline: Sequence[Optional[float]],
+                  level: float = 0.95) -> dict:
+    """Difference of the means ``mean(treated) − mean(baseline)`` of two independent samples (e.g. each mode's
+    per-run ROI PSNR in dB, when the runs cannot be paired), with its two-sided Welch interval (Student t with the
+    Welch–Satterthwaite degrees of freedom; Welch 1947, Biometrika 34): the figure for a comparison whose runs
+    mapped under different conditions, wider than a paired one.
+
+    Args:
+        treated, baseline: the values (None or non-finite ones are left out).
+        level: the interval's coverage.
+    Returns:
+        ``{"gain", "ci_low", "ci_high", "half_width", "n_treated", "n_baseline", "interval": "unpaired"}``; the
+        interval None unless both samples hold at least two values (or both have no spread); every figure None
+        when a sample is empty.
+    Raises:
+        ValueError: ``level`` outside (0, 1).
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    t = np.array([v for v in treated if v is not None and math.isfinite(v)], dtype=np.float64)
+    b = np.array([v for v in baseline if v is not None and math.isfinite(v)], dtype=np.float64)
+    out = {"gain": None, "ci_low": None, "ci_high": None, "half_width": None, "n_treated": int(t.size),
+           "n_baseline": int(b.size), "interval": "unpaired"}
+    if not t.size or not b.size:
+        return out
+    out["gain"] = float(t.mean() - b.mean())
+    if t.size < 2 or b.size < 2:
+        return out
+    vt, vb = t.var(ddof=1) / t.size, b.var(ddof=1) / b.size
+    se = math.sqrt(vt + vb)
+    if se == 0.0:
+        hw = 0.0
+    else:
+        # lazy: SciPy only where an interval is computed
+        from scipy.stats import t as student_t
+
+        dof = (vt + vb) ** 2 / (vt ** 2 / (t.size - 1) + vb ** 2 / (b.size - 1))
+        hw = float(student_t.ppf(0.5 + level / 2.0, dof)) * se
+    out.update(half_width=hw, ci_low=out["gain"] - hw, ci_high=out["gain"] + hw)
+    return out
+
+
 def fmt_gain(g: Optional[Mapping], digits: int = 2) -> str:
     """A :func:`paired_gain` as ``"+1.23 [+0.80, +1.66]"`` (mean, 95 % interval: per-frame or run-clustered, as its
     ``interval`` says), ``"+1.23"`` without an interval, ``"–"`` without any pair."""

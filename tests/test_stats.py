@@ -74,3 +74,21 @@ def test_runs_weigh_the_same_whatever_their_pair_counts_and_missing_figures_are_
         paired_gain([{0: 1.0}], {0: 1.0})
     with pytest.raises(ValueError):
         paired_gain({0: 1.0}, {0: 1.0}, level=1.0)
+
+
+def test_the_unpaired_gain_is_the_difference_of_means_with_welchs_interval():
+    from scipy import stats
+
+    from gausslite.stats import unpaired_gain
+
+    g, u = [22.1, 23.4, 21.9, 22.8], [21.0, 20.2, 21.5]
+    got = unpaired_gain(g, u + [None, float("nan")])
+    want = stats.ttest_ind(g, u, equal_var=False).confidence_interval(0.95)
+    assert got["gain"] == pytest.approx(sum(g) / 4 - sum(u) / 3) and got["interval"] == "unpaired"
+    assert (got["ci_low"], got["ci_high"]) == (pytest.approx(want.low), pytest.approx(want.high))
+    assert (got["n_treated"], got["n_baseline"]) == (4, 3)
+    one = unpaired_gain([22.0], u)
+    assert one["gain"] == pytest.approx(22.0 - sum(u) / 3) and one["ci_low"] is None
+    assert unpaired_gain([], u)["gain"] is None
+    with pytest.raises(ValueError, match="level"):
+        unpaired_gain(g, u, level=1.0)

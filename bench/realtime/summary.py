@@ -9,7 +9,7 @@ import math
 from typing import Optional
 
 from gausslite.evaluation import PROTOCOLS, current_protocols
-from gausslite.stats import aggregate, gain, paired_gain, significant
+from gausslite.stats import aggregate, gain, paired_gain, significant, unpaired_gain
 
 from bench._missions import failure_rows, succeeded
 from bench.realtime.scenes import MODES
@@ -48,6 +48,7 @@ def summarise(runs: list[dict], scene: str, budgets: list[float], cap: int) -> d
             common, refused = pairable_runs(g, u, set(u) & set(g))
             if refused:
                 blk["unpaired_runs"] = refused
+            blk.update(_unpaired(g, u, "roi_psnr", "sensor"))
             blk.update(_paired(g, u, common, "roi_psnr", "sensor"))
             pg = _paired(g, u, common, "psnr", "sensor")
             blk["psnr_gain"], blk["psnr_gain_std"] = pg["gain"], pg["gain_std"]
@@ -135,6 +136,22 @@ def _paired(g: dict, u: dict, runs: list, field: str, protocol: str) -> dict:
             "gain_pairs": "runs"}
 
 
+def _unpaired(g: dict, u: dict, field: str, protocol: str) -> dict:
+    """GaussLite − uniform of ``field`` under ``protocol`` over every run of each mode (run → result), unpaired: the
+    difference of the two modes' means over runs with its Welch interval (:func:`gausslite.stats.unpaired_gain`):
+    ``{"unpaired_gain", "unpaired_gain_ci", "unpaired_gain_runs": [GaussLite runs, uniform runs]}``. It gives every
+    cell a figure when runs cannot pair (:func:`pairable_runs`: mapped at different resolutions, as a resolution
+    governor under load does), at the price of the run-to-run spread the pairing removes."""
+    def top(r):
+        return r.get(field) if protocol == "sensor" else (current_protocols(r.get("protocols")).get(protocol)
+                                                          or {}).get(field)
+
+    ug = unpaired_gain([top(r) for r in g.values()], [top(r) for r in u.values()])
+    return {"unpaired_gain": ug["gain"],
+            "unpaired_gain_ci": None if ug["ci_low"] is None else [ug["ci_low"], ug["ci_high"]],
+            "unpaired_gain_runs": [ug["n_treated"], ug["n_baseline"]]}
+
+
 def _summarise_protocols(by_mode: dict) -> dict:
     """``{protocol: {"uniform": {...}, "gausslite": {...}, "gain", "gain_ci", "gain_interval", "gain_std",
     "gain_significant", "psnr_gain", "runs", "unpaired_runs"}}`` of one budget: per mode the means and stds over runs
@@ -165,6 +182,7 @@ def _summarise_protocols(by_mode: dict) -> dict:
                                                    if pu[i]["roi_psnr"] is not None and pgl[i]["roi_psnr"] is not None})
             if refused:
                 blk["unpaired_runs"] = refused
+            blk.update(_unpaired(g, u, "roi_psnr", p))
             if common:
                 blk.update(_paired(g, u, common, "roi_psnr", p))
                 pg = _paired(g, u, common, "psnr", p)

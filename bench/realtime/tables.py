@@ -56,7 +56,7 @@ def gain_cell(v: dict) -> str:
     a single run's per-frame interval, or ``"+1.23 ± 0.30 (runs)"`` for runs without per-frame figures; ``*``: the
     interval (without one: twice the spread) excludes zero."""
     if v.get("gain") is None:
-        return "–"
+        return unpaired_cell(v)
     star = "*" if v.get("gain_significant") else ""
     if v.get("gain_ci") and v["gain_ci"][0] is not None:
         ci = {"gain": v["gain"], "ci_low": v["gain_ci"][0], "ci_high": v["gain_ci"][1]}
@@ -64,6 +64,18 @@ def gain_cell(v: dict) -> str:
             return f"{fmt_gain(ci)}{star} (per frame, 1 run)"
         return f"{fmt_gain(ci)}{star} (σ runs {fmt(v.get('gain_std'), None)})"
     return f"{fmt(v['gain'], v.get('gain_std'))} (runs){star}"
+
+
+def unpaired_cell(v: dict) -> str:
+    """The unpaired difference of a block whose runs did not pair (:func:`bench.realtime.summary._unpaired`):
+    ``"+1.23 [−0.40, +2.86] (unpaired, 3 + 3 runs)"`` (the difference of the modes' means over runs with its Welch
+    95 % interval), ``"–"`` without one."""
+    if v.get("unpaired_gain") is None:
+        return "–"
+    ci = v.get("unpaired_gain_ci")
+    cell = fmt_gain({"gain": v["unpaired_gain"], "ci_low": ci[0] if ci else None, "ci_high": ci[1] if ci else None})
+    ng, nu = v.get("unpaired_gain_runs") or (None, None)
+    return f"{cell} (unpaired, {ng} + {nu} runs)"
 
 
 def protocol_table(result: dict) -> str:

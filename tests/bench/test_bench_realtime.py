@@ -4,6 +4,7 @@ the budget twin, the summary's paired gain and the budget at which uniform catch
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench import realtime as rt
@@ -189,6 +190,26 @@ def test_runs_mapped_at_different_resolutions_are_never_paired(caplog):
     u[0]["mission"]["resolution_changes"] = 0
     assert rt.pairable_runs(g, u, [0]) == ([0], [])
     assert rt.pairable_runs(g, {0: {}}, [0])[0] == []  # no factor recorded: the scene's own resolution, 1
+
+
+def test_when_no_run_pairs_the_cell_gives_the_unpaired_difference_with_its_welch_interval():
+    """Under load both modes can end at the same size after different changes: no run pairs, and the cell still gets
+    a figure, the difference of the modes' means over runs with its Welch interval, marked unpaired."""
+    from scipy import stats
+
+    frames = {i: 0.3 * (i % 5) for i in range(20)}
+    runs = _per_frame_runs(frames, lambda mode, run: 2.0 if mode == "gausslite" else 1.0)
+    s = rt.summarise(runs, "s", [0.5], 100)
+    p = s["budgets"]["0.5"]["protocols"]["novel"]
+    assert [u["run"] for u in p["unpaired_runs"]] == [0, 1, 2] and "gain" not in p
+    g = [r["protocols"]["novel"]["roi_psnr"] for r in runs if r["mode"] == "gausslite"]
+    u = [r["protocols"]["novel"]["roi_psnr"] for r in runs if r["mode"] == "uniform"]
+    want = stats.ttest_ind(g, u, equal_var=False).confidence_interval(0.95)
+    assert p["unpaired_gain"] == pytest.approx(float(np.mean(g) - np.mean(u)))
+    assert p["unpaired_gain_ci"] == [pytest.approx(want.low), pytest.approx(want.high)]
+    assert p["unpaired_gain_runs"] == [3, 3]
+    md = rt.protocol_table({"scenes": {"s": s}})
+    assert f"{p['unpaired_gain']:+.2f} [{want.low:+.2f}, {want.high:+.2f}] (unpaired, 3 + 3 runs)" in md
 
 
 def test_a_users_own_sequence_runs_with_every_protocol_and_the_late_scenario(tmp_path):
