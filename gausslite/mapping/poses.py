@@ -269,11 +269,16 @@ class PoseRefiner:
         return {"corrections": {k: v.copy() for k, v in self.corrections.items()}, "fixed": sorted(self.fixed)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Replace the corrections and fixed ids by a :meth:`state_dict`'s (Adam moments restart at zero)."""
+        """Replace the corrections and fixed ids by a :meth:`state_dict`'s, bit for bit (Adam moments restart at zero).
+
+        Raises:
+            ValueError: a correction that is not a rigid transform (:func:`gausslite.camera.nearest_rigid`).
+        """
         self._adam = VectorAdam(self._adam.lr)
-        self.corrections, self.fixed = {}, set()
+        self.corrections, self.fixed = {}, set(int(f) for f in state["fixed"])
         for fid, E in state["corrections"].items():
-            self.register(int(fid), E, fixed=int(fid) in set(state["fixed"]))
+            nearest_rigid(E, f"keyframe {int(fid)}'s correction")  # a state that holds no pose raises
+            self.corrections[int(fid)] = np.asarray(E, np.float64).copy()  # as saved: bit for bit
 
     def corrected(self, frame_id: int, c2w: np.ndarray) -> np.ndarray:
         """``c2w`` (4, 4) of a frame with its keyframe's correction; for a frame between keyframes (a held-out view)
