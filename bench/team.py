@@ -178,8 +178,9 @@ def run_missions(team: str, budget: float, run: int, cap: int, work: Path, overr
     try:
         harness.run_team(runner, timeout_s=TEAM_TIMEOUT_S, poll_s=0.05)
     except (RuntimeError, TimeoutError) as e:  # the harness stopped the team: record how each robot's mission ended
+        ended = runner.statuses()
         agents = [{"id": p.name, "task": p.task_id,
-                   **(mission_outcome(runner.missions[p.name].runtime.status()) if p.name in runner.missions
+                   **(mission_outcome(ended[p.name]) if ended[p.name] is not None
                       else {"end_state": "NOT_STARTED", "error": ""})} for p in runner.plans]
         runner.close()
         raise TeamMissionFailed(f"{type(e).__name__}: {e}", agents) from e

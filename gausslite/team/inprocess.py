@@ -114,6 +114,12 @@ class InProcessTeam:
             self._finish_running()
             if len(self.missions) < len(self.plans):
                 self._begin(self.plans[len(self.missions)])
+        return self.statuses()
+
+    def statuses(self) -> Dict[str, Optional[dict]]:
+        """Agent id → its mission's status as it is (None for a robot whose turn has not come), without running the
+        turns as :meth:`progress` does: how each robot's mission ended after :func:`~gausslite.team.harness.run_team`
+        stopped the team."""
         return {p.name: self.missions[p.name].runtime.status() if p.name in self.missions else None
                 for p in self.plans}
 

@@ -131,9 +131,9 @@ def test_in_process_team_runs_the_robots_in_turn_each_sharing_to_its_own_store()
     with pytest.raises(ValueError, match="unique names"):
         InProcessTeam([plans[0], plans[0]], mission)
 
-    def broken(plan, fusion):  # the first robot's mapping fails: reported by name, the second never starts
-        def relevance(fr):
-            raise RuntimeError("no relevance")
+    def broken(plan, fusion):  # the first robot's mission fails (out of memory): reported by name, the second never
+        def relevance(fr):       # starts (an ordinary error would cost its frame alone)
+            raise MemoryError("no relevance")
 
         rt = build_mission(cfg, "Pick up the object", GRAPH, agent_id=plan.name, fusion=fusion,
                            relevance_fn=relevance, start=False)
