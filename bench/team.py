@@ -209,7 +209,7 @@ def agent_row(m: InProcessMission, loaded: dict, rate: float, protocols=PROTOCOL
             "iters_per_keyframe": rt.keyframe_iterations / max(1, rt.frames_keyframed),
             "n_shared": int(last.n_shared) if last else 0,
             "share_pct": 100.0 * last.n_shared / max(1, last.n_total) if last else None,
-            "pushes": len(pu.pushes), "last_error": rt.last_error, **mission_outcome(rt.status()),
+            "pushes": len(pu.pushes), "last_error": rt.last_error, **mission_outcome(m.summary.status),
             "total_upload_bytes": int(pu.total_upload_bytes),
             "final_subset_bytes": int(pu.final_subset_bytes),
             # the views sent for the refinement (agent.refine_views), beside the subset's bytes
