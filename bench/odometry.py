@@ -11,6 +11,9 @@ Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
 - ``synthetic_walk``: a room-sized hand-held walk of the synthetic scene (``gausslite make-scene --trajectory walk
   --sensor-noise realistic``: 7 m in two loops that come back to the desk, Kinect-like depth noise and holes, motion
   blur, rolling shutter, exposure changes), robot A, 525 frames at 320×240;
+- ``synthetic_walk_tum``: the same walk seen by the Kinect v1 of TUM fr1 as measured (``--sensor-noise tum``: its
+  field of view, disparity-quantised correlated depth noise and holes, colour-depth misregistration and delay, its
+  exposure changes, blur and rolling shutter; ``bench.sensor_calibration``), robot A, 525 frames at 320×240;
 - ``synthetic_walk_covered``: the same walk with the lens covered for 30 frames (2 s, black and without depth) halfway
   round its first loop, while the camera keeps walking (:func:`covered`): the tracker loses those frames and must
   re-localise.
@@ -77,7 +80,8 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             # the registration's residuals: Open3D's own Huber threshold on the photometric term, and each term alone
             "open3d_huber": {"intensity_huber_delta": 0.1}, "photometric": {"method": "color"},
             "geometric": {"method": "point_to_plane"}}
-SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered")
+SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered",
+             "synthetic_walk_tum")
 #: a loop closure whose relative pose is further than this from the reference's is a false loop (metres, degrees)
 FALSE_LOOP = (0.05, 3.0)
 
@@ -101,10 +105,11 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
     elif name == "room0":
         ds = load_dataset(SHARED / "Replica_room0", downscale=4, pose_source="given")
     elif name.startswith("synthetic_walk"):
-        scene = work / "walk"
+        level = "tum" if name == "synthetic_walk_tum" else "realistic"
+        scene = work / ("walk" if level == "realistic" else f"walk_{level}")  # as bench.sensor_calibration names it
         if not (scene / "agent_a" / "traj.txt").is_file():
             make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory="walk",
-                       sensor_noise="realistic", agents=("agent_a",))
+                       sensor_noise=level, agents=("agent_a",))
         ds = load_dataset(scene / "agent_a", pose_source="given")
         frames = [ds[i] for i in range(len(ds))]
         if name.endswith("_covered"):

@@ -46,9 +46,11 @@ def register(subparsers) -> None:
                    help="arcs: two arcs in front of the desk (default); circle: both robots once around the "
                         "room, for long missions (e.g. --frames 600, mapped with --stride 2); walk: a 7 m hand-held "
                         "walk, two loops in front of the desk (--frames 525 at 30 fps = 0.40 m/s)")
-    p.add_argument("--sensor-noise", dest="sensor_noise", choices=["none", "realistic"], default="none",
+    p.add_argument("--sensor-noise", dest="sensor_noise", choices=["none", "realistic", "tum"], default="none",
                    help="none: exact renders (default); realistic: Kinect-like depth noise and holes, motion blur, "
-                        "rolling shutter, exposure changes and colour noise (seeded by --seed)")
+                        "rolling shutter, exposure changes and colour noise; tum: the Kinect v1 of TUM RGB-D fr1 as "
+                        "measured (its field of view, disparity-quantised depth, holes, colour-depth misregistration "
+                        "and delay, exposure, blur and rolling shutter; seeded by --seed)")
     p.add_argument("--fps", type=float, default=30.0,
                    help="frame rate of the sequence: the walk's clock and the sensor model's (default 30, the "
                         "rate the Replica loader replays it at)")

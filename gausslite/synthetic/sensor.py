@@ -30,9 +30,26 @@ images:
     channel, ``o`` 0.015, each white noise low-passed by a Gaussian of 1.5 s;
   - photon and read noise: Gaussian of variance ``0.004^2 + 0.0001 * I`` on colour in [0, 1].
 
-Poses between frames (blur instants, shutter rows) come from the trajectory by :func:`pose_at` (rotation slerp,
-translation linear interpolation, in fractional frame index at the writer's frame rate). All randomness is drawn
-from one seeded generator per agent, so equal arguments give byte-identical files.
+The numbers above are the ``"realistic"`` level's (the :class:`SensorErrorModel` defaults). The ``"tum"`` level
+(:data:`TUM_FR1`) is a sensor as hard as TUM RGB-D fr1's Kinect v1, each value calibrated against a statistic
+measured on fr1/rpy (``python -m bench.sensor_calibration``; docs/mapper.md, "The synthetic sensor calibrated on TUM
+fr1"). Besides other values for the parameters above it turns on (:mod:`gausslite.synthetic.kinect`):
+
+- the Kinect's field of view (``fx_per_width``, ``fy_per_height``: :func:`sensor_intrinsics`) instead of the
+  scene's 90 degrees;
+- depth on the disparity lattice (step ``depth_quant_per_m * z^2``), with axial noise correlated over
+  ``depth_noise_corr_px`` pixels before the quantisation;
+- holes in the bands the registered depth does not cover (``border_*``), on dark surfaces by grey level of the
+  recorded colour (``dark_dropout``), as runs on the far side of depth edges (``shadow_p``, ``shadow_mean_px``), and
+  flying pixels between the two sides of an edge (``flying_p``);
+- the depth camera offset from the colour camera: rendered at the pose of ``t + dt`` (``depth_time_offset_s`` plus
+  Gaussian jitter ``depth_time_jitter_s`` per frame), rotated against the colour camera (``misregistration_*_mrad``:
+  :func:`misregistration`), its rows read out over ``depth_readout_s`` (:func:`depth_render`).
+
+Poses between frames (blur instants, shutter rows, the depth's delay) come from the trajectory by :func:`pose_at`
+(rotation slerp, translation linear interpolation, in fractional frame index at the writer's frame rate). All
+randomness is drawn from one seeded generator per agent, so equal arguments give byte-identical files; a part that
+is off draws nothing, so the ``"realistic"`` level's files are those it wrote before the ``"tum"`` level existed.
 """
 
 from __future__ import annotations
@@ -45,17 +62,20 @@ import cv2
 import numpy as np
 
 from gausslite.camera import Intrinsics
+from gausslite.synthetic import kinect
 from gausslite.synthetic.raycast import RenderResult, camera_rays, render
 from gausslite.synthetic.scene import Scene
 
 #: names accepted by ``make_scene(sensor_noise=...)`` / ``make-scene --sensor-noise``
-SENSOR_NOISE = ("none", "realistic")
+SENSOR_NOISE = ("none", "realistic", "tum")
 
 
 @dataclass(frozen=True)
 class SensorErrorModel:
     """Parameters of the sensor error model (module docstring; lengths in metres, times in seconds, angles in
-    degrees, colour in [0, 1])."""
+    degrees, colour in [0, 1]; ``misregistration_*_mrad`` in milliradians, ``*_px`` in pixels of the rendered image,
+    ``border_*`` fractions of its height or width, ``dark_dropout`` ``(grey level 0..255, probability)`` knots,
+    ``depth_quant_per_m`` the lattice step of ``1 / z`` in 1/m). The defaults are the ``"realistic"`` level."""
 
     depth_sigma_a: float = 0.0012
     depth_sigma_b: float = 0.0019
@@ -79,21 +99,92 @@ class SensorErrorModel:
     exposure_smooth_s: float = 1.5
     read_noise: float = 0.004
     shot_noise: float = 0.0001
+    # the structured-light depth camera (gausslite.synthetic.kinect); all off at the defaults ("realistic")
+    depth_quant_per_m: float = 0.0
+    depth_noise_corr_px: float = 0.0
+    depth_time_offset_s: float = 0.0
+    depth_time_jitter_s: float = 0.0
+    depth_readout_s: float = 0.0
+    misregistration_x_mrad: float = 0.0
+    misregistration_y_mrad: float = 0.0
+    border_top: float = 0.0
+    border_bottom: float = 0.0
+    border_left: float = 0.0
+    border_right: float = 0.0
+    dark_dropout: Tuple[Tuple[float, float], ...] = ()
+    shadow_p: float = 0.0
+    shadow_mean_px: float = 1.0
+    flying_p: float = 0.0
+    # the camera's focal lengths over the image width and height (0: the scene's own 90-degree camera)
+    fx_per_width: float = 0.0
+    fy_per_height: float = 0.0
 
     def to_json(self) -> dict:
         """The parameters as a JSON-ready dict (written to ``scene.json``)."""
         return asdict(self)
 
+    @property
+    def moves_depth(self) -> bool:
+        """Whether the depth image is taken at another pose than the colour image's (time offset, depth rolling
+        shutter, misregistration), so that :func:`render_with_errors` renders it on its own."""
+        return bool(self.depth_time_offset_s or self.depth_time_jitter_s or self.depth_readout_s
+                    or self.misregistration_x_mrad or self.misregistration_y_mrad)
+
+
+def sensor_intrinsics(model: SensorErrorModel, width: int, height: int) -> Intrinsics:
+    """The camera of a sensor model at ``width`` x ``height`` pixels: focal lengths ``model.fx_per_width * width``
+    and ``model.fy_per_height * height`` (pixels), principal point at the image centre; the scene's own camera
+    (:func:`gausslite.synthetic.writer.default_intrinsics`, 90 degrees across) where they are 0.
+
+    Raises:
+        ValueError: ``width < 16`` or ``height < 12``.
+    """
+    if int(width) < 16 or int(height) < 12:
+        raise ValueError(f"image too small: {width}x{height} (minimum 16x12)")
+    fx = model.fx_per_width * width if model.fx_per_width > 0 else width / 2.0
+    fy = model.fy_per_height * height if model.fy_per_height > 0 else width / 2.0
+    return Intrinsics(fx=float(fx), fy=float(fy), cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, width=int(width),
+                      height=int(height))
+
+
+#: The ``"tum"`` level: the Kinect v1 of TUM RGB-D fr1, each value measured on fr1/rpy as ``bench.odometry`` reads it
+#: (320x240, undistorted) by ``python -m bench.sensor_calibration`` (docs/mapper.md, "The synthetic sensor calibrated
+#: on TUM fr1"). Read from a TUM statistic directly: the camera (the undistorted fr1 camera, 546.75 / 640 and
+#: 543.09 / 480), the disparity lattice (depth step 2.8e-3 z^2), the border bands without depth, the holes by grey
+#: level, the misregistration (depth edges 1.04 px below colour edges at fy 271.5: 3.8 mrad), the depth's delay (the
+#: depth minus colour timestamps, 7.6 +- 4.7 ms), the exposure track (log gain 0.16, smoothed over 0.325 s, white
+#: balance 0.035) and the colour readout (25 ms, ``python -m bench.rolling_shutter``). Chosen so that the walk's
+#: statistic matches TUM's: the axial noise (a, b, correlation: the plane-fit residuals), blobs, shadows, grazing
+#: angles and flying pixels (the holes and the pixels at depth edges), the exposure time (the blur estimate on a walk
+#: moving as fast as TUM's images) and no added colour noise (TUM's images are smoother than the renders). The
+#: depth camera's rows are taken to be read like the colour camera's (``depth_readout_s``; not measured).
+TUM_FR1 = SensorErrorModel(
+    depth_sigma_a=0.0004, depth_sigma_b=0.0016, depth_noise_corr_px=1.0, depth_quant_per_m=0.0028,
+    grazing_start_deg=85.0, grazing_full_deg=89.5, edge_drop_p=0.0, blob_fraction=0.03, speckle_fraction=0.0,
+    shadow_p=0.035, shadow_mean_px=4.5, flying_p=0.01,
+    border_top=0.0667, border_bottom=0.0, border_left=0.0063, border_right=0.0625,
+    dark_dropout=((10.0, 0.236), (30.0, 0.19), (50.0, 0.07), (75.0, 0.025), (110.0, 0.017), (192.5, 0.0)),
+    depth_time_offset_s=0.0076, depth_time_jitter_s=0.0047, depth_readout_s=0.025,
+    misregistration_x_mrad=0.0, misregistration_y_mrad=3.8,
+    exposure_s=0.031, readout_s=0.025, gain_log_std=0.16, white_balance_std=0.035, offset_std=0.0,
+    exposure_smooth_s=0.325, read_noise=0.0, shot_noise=0.0,
+    fx_per_width=546.75 / 640, fy_per_height=543.09 / 480,
+)
+
+#: the levels of ``make_scene(sensor_noise=...)``: None = exact renders
+SENSOR_LEVELS = {"none": None, "realistic": SensorErrorModel(), "tum": TUM_FR1}
+
 
 def sensor_model(name: str) -> Optional[SensorErrorModel]:
-    """The model named ``name``: None for ``"none"``, the default :class:`SensorErrorModel` for ``"realistic"``.
+    """The model named ``name``: None for ``"none"``, the default :class:`SensorErrorModel` for ``"realistic"``,
+    :data:`TUM_FR1` for ``"tum"``.
 
     Raises:
         ValueError: an unknown name.
     """
     if name not in SENSOR_NOISE:
         raise ValueError(f"unknown sensor noise {name!r}; expected one of {SENSOR_NOISE}")
-    return None if name == "none" else SensorErrorModel()
+    return SENSOR_LEVELS[name]
 
 
 def pose_at(poses: np.ndarray, t: float) -> np.ndarray:
@@ -232,13 +323,16 @@ def _edge_holes(z: np.ndarray, model: SensorErrorModel) -> np.ndarray:
 
 
 def depth_with_errors(r: RenderResult, intr: Intrinsics, c2w: np.ndarray, model: SensorErrorModel,
-                      rng: np.random.Generator) -> np.ndarray:
-    """The depth image of a render with the model's holes and axial noise (module docstring).
+                      rng: np.random.Generator, grey: Optional[np.ndarray] = None) -> np.ndarray:
+    """The depth image of a render with the model's holes and axial noise (module docstring), and the
+    structured-light effects the model turns on (:mod:`gausslite.synthetic.kinect`: border bands, dark surfaces,
+    edge shadows, flying pixels, correlated noise, disparity quantisation).
 
     Args:
-        r: the render at the frame's pose (its ``depth`` and ``normal``). intr: intrinsics (pixels).
-        c2w: (4, 4) float64 camera-to-world pose of the render (metres). model: parameters. rng: the agent's
-        generator.
+        r: the render at the depth camera's pose (its ``depth``, 0 = nothing seen, and ``normal``). intr: intrinsics
+        (pixels). c2w: (4, 4) float64 camera-to-world pose of the render (metres). model: parameters. rng: the
+        agent's generator. grey: (H, W) grey level 0..255 of the surfaces for ``model.dark_dropout`` (default: the
+        render's own colour).
     Returns:
         (H, W) float64 depth in metres, 0 where the sensor has none.
     Raises:
@@ -260,19 +354,81 @@ def depth_with_errors(r: RenderResult, intr: Intrinsics, c2w: np.ndarray, model:
     holes |= field < np.quantile(field, model.blob_fraction)
     holes |= rng.random((H, W)) < model.speckle_fraction
     holes |= (z < model.depth_min_m) | (z > model.depth_max_m)
+    holes, z = _structured_light(z, holes, model, rng, r.rgb if grey is None else grey)
     th = np.minimum(theta, np.deg2rad(85.0))
     sigma = (model.depth_sigma_a + model.depth_sigma_b * (z - model.depth_sigma_z0) ** 2
              + model.depth_sigma_angle / np.sqrt(np.maximum(z, 1e-3)) * th ** 2 / (np.pi / 2 - th) ** 2)
-    noisy = z + sigma * rng.standard_normal((H, W))
+    noise = (kinect.correlated_field(rng, (H, W), model.depth_noise_corr_px) if model.depth_noise_corr_px > 0
+             else rng.standard_normal((H, W)))
+    noisy = kinect.quantise_disparity(z + sigma * noise, model.depth_quant_per_m)
     return np.where(holes | (noisy <= 0), 0.0, noisy)
+
+
+def _structured_light(z: np.ndarray, holes: np.ndarray, model: SensorErrorModel, rng: np.random.Generator,
+                      grey: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``(holes, depth)`` with the structured-light holes and flying pixels the model turns on (each draws from
+    ``rng`` only when it is on, so the ``"realistic"`` level's images stay as they were)."""
+    if model.border_top or model.border_bottom or model.border_left or model.border_right:
+        holes = holes | kinect.border_holes(z.shape, model.border_top, model.border_bottom, model.border_left,
+                                            model.border_right)
+    if model.dark_dropout:
+        g = np.asarray(grey, np.float64)
+        g = g @ np.array([0.299, 0.587, 0.114]) if g.ndim == 3 else g
+        holes = holes | kinect.dark_dropout(g, rng, model.dark_dropout)
+    if model.shadow_p > 0:
+        holes = holes | kinect.edge_shadows(z, rng, model.shadow_p, model.shadow_mean_px, model.edge_jump_m,
+                                            model.edge_jump_rel)
+    if model.flying_p > 0:
+        z = kinect.flying_pixels(z, rng, model.flying_p, model.edge_jump_m, model.edge_jump_rel)
+    return holes, z
+
+
+def misregistration(model: SensorErrorModel) -> np.ndarray:
+    """(4, 4) float64 pose of the depth camera in the colour camera's frame: the rotation that moves the depth
+    image's content ``model.misregistration_x_mrad * fx / 1000`` pixels right and ``misregistration_y_mrad * fy /
+    1000`` pixels down against the colour image (for small angles; no translation)."""
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light install
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([1e-3 * model.misregistration_y_mrad, -1e-3 * model.misregistration_x_mrad,
+                                      0.0]).as_matrix()
+    return T
+
+
+def depth_render(scene: Scene, intr: Intrinsics, poses: np.ndarray, i: int, fps: float, model: SensorErrorModel,
+                 rng: np.random.Generator) -> Tuple[RenderResult, np.ndarray]:
+    """The exact depth the depth camera sees for frame ``i``: rendered at the pose of ``t + dt`` (``dt`` =
+    ``model.depth_time_offset_s`` plus Gaussian jitter of ``depth_time_jitter_s``, one draw from ``rng`` when it is
+    on) times :func:`misregistration`, each row moved to its readout time over ``model.depth_readout_s``
+    (:func:`gausslite.synthetic.kinect.warp_depth_rows`).
+
+    Returns:
+        ``(render, c2w)``: the render (its depth 0 where a row's view falls outside it) and its (4, 4) pose.
+    Raises:
+        ValueError: a pose outside the room or not rigid.
+    """
+    dt = model.depth_time_offset_s
+    if model.depth_time_jitter_s > 0:
+        dt += model.depth_time_jitter_s * float(rng.standard_normal())
+    T = misregistration(model)
+    c2w = pose_at(poses, i + dt * fps) @ T
+    r = render(scene, intr, c2w)
+    if model.depth_readout_s > 0:
+        H = intr.height
+        t_row = (np.arange(H) / max(H - 1, 1) - 0.5) * model.depth_readout_s
+        rows = poses_at(poses, i + (dt + t_row) * fps) @ T[None]
+        r = RenderResult(rgb=r.rgb, depth=kinect.warp_depth_rows(r.depth, intr, c2w, rows), ids=r.ids,
+                         normal=r.normal)
+    return r, c2w
 
 
 def render_with_errors(scene: Scene, intr: Intrinsics, poses: np.ndarray, i: int, fps: float,
                        model: SensorErrorModel, rng: np.random.Generator, gain: np.ndarray,
                        offset: float) -> RenderResult:
     """Frame ``i`` of a trajectory as the modelled sensor records it: one exact render at the frame's pose, colour
-    from :func:`colour_with_errors`, depth from :func:`depth_with_errors`; ``ids`` and ``normal`` are the exact
-    render's.
+    from :func:`colour_with_errors`, depth from :func:`depth_with_errors` (of a render of its own from
+    :func:`depth_render` when the depth camera is offset in time or pose; dark surfaces judged by the recorded
+    colour, as the calibration measures them); ``ids`` and ``normal`` are the exact render's.
 
     Args:
         scene: the scene. intr: intrinsics (pixels). poses: (N, 4, 4) float64 c2w trajectory (metres). i: frame
@@ -284,5 +440,9 @@ def render_with_errors(scene: Scene, intr: Intrinsics, poses: np.ndarray, i: int
     """
     exact = render(scene, intr, poses[i])
     rgb = colour_with_errors(exact, intr, poses, i, fps, model, rng, gain, offset)
-    depth = depth_with_errors(exact, intr, poses[i], model, rng)
+    if model.moves_depth:
+        rd, c2w_d = depth_render(scene, intr, poses, i, fps, model, rng)
+        depth = depth_with_errors(rd, intr, c2w_d, model, rng, grey=rgb)
+    else:
+        depth = depth_with_errors(exact, intr, poses[i], model, rng)
     return RenderResult(rgb=rgb, depth=depth, ids=exact.ids, normal=exact.normal)

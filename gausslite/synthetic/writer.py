@@ -31,7 +31,9 @@ from tqdm import tqdm
 from gausslite.camera import Intrinsics, backproject
 from gausslite.synthetic.raycast import render
 from gausslite.synthetic.scene import GENERATOR_VERSION, build_default_scene
-from gausslite.synthetic.sensor import SensorErrorModel, exposure_track, render_with_errors, sensor_model
+from gausslite.synthetic.sensor import (
+    SensorErrorModel, exposure_track, render_with_errors, sensor_intrinsics, sensor_model,
+)
 from gausslite.synthetic.trajectories import AGENTS, WALK_FPS, make_trajectories
 
 log = logging.getLogger(__name__)
@@ -167,8 +169,11 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
             the room: the long-mission scene, e.g. ``frames=600`` mapped with stride 2) or ``"walk"`` (a 7 m
             hand-held walk, two loops in front of the desk: :func:`gausslite.synthetic.make_trajectories`;
             ``frames=525`` at 30 fps walks at 0.40 m/s).
-        sensor_noise: ``"none"`` (exact renders, the default) or ``"realistic"`` (Kinect-like depth noise and holes,
-            motion blur, rolling shutter, exposure changes and colour noise: :mod:`gausslite.synthetic.sensor`).
+        sensor_noise: ``"none"`` (exact renders, the default), ``"realistic"`` (Kinect-like depth noise and holes,
+            motion blur, rolling shutter, exposure changes and colour noise: :mod:`gausslite.synthetic.sensor`) or
+            ``"tum"`` (the Kinect v1 of TUM RGB-D fr1 as measured: its field of view, disparity-quantised and
+            correlated depth noise, its holes, colour-depth misregistration and delay, and its exposure changes,
+            blur and rolling shutter: :data:`gausslite.synthetic.sensor.TUM_FR1`).
         fps: frame rate of the sequence (frames per second): the walk's clock and the sensor model's (exposure and
             readout times). The Replica loader replays at 30 fps unless told otherwise (``fps=`` of
             :class:`gausslite.datasets.replica.ReplicaDataset`).
@@ -193,7 +198,7 @@ def make_scene(out_dir: Union[str, Path], seed: int = 0, width: int = 320, heigh
     if not agents or any(a not in AGENTS for a in agents):
         raise ValueError(f"agents must name one or more of {', '.join(AGENTS)}, got {list(agents)}")
     noise = sensor_model(sensor_noise)
-    intr = default_intrinsics(width, height)
+    intr = default_intrinsics(width, height) if noise is None else sensor_intrinsics(noise, width, height)
     out = Path(out_dir)
     scene = build_default_scene(seed)
     trajs = make_trajectories(frames, seed, trajectory, fps=fps)

@@ -82,3 +82,13 @@ def test_the_gain_at_the_odometrys_poses_is_compared_with_the_gain_at_the_given_
     assert row.startswith("| tum_fr1_rpy | 21.00 / 22.50 | 20.00 / 20.90 | +1.50 [+0.50, +2.50] | +0.90 [+0.60, +1.20]")
     with pytest.raises(ValueError, match="pose-source odometry"):
         bo.pose_gains(odo, given)  # the files swapped
+
+
+def test_the_walk_with_the_tum_sensor_is_rendered_beside_the_realistic_one(tmp_path):
+    import bench.odometry as bo
+
+    frames = bo.load_sequence("synthetic_walk_tum", tmp_path, 0, (48, 36), walk_frames=4)
+    assert len(frames) == 4 and frames[0].depth.shape == (36, 48)
+    meta = json.loads((tmp_path / "walk_tum" / "scene.json").read_text())
+    assert meta["sensor_noise"] == "tum" and not (tmp_path / "walk").exists()
+    assert abs(frames[0].intrinsics.fx - 48 * 546.75 / 640) < 1e-6  # the Kinect's field of view
