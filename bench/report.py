@@ -455,7 +455,7 @@ def detail_live_table(r: dict) -> str:
 
 
 def pose_perturbation_table(r: dict) -> str:
-    """Offline maps at perturbed poses (``summary`` of ``bench/results/pose_perturbation.json``)."""
+    """Maps at perturbed poses, offline or live (``summary`` of ``bench/results/pose_perturbation{,_live}.json``)."""
     from bench.pose_perturbation import table  # lazy: the page's other regions need none of it
 
     return table(r["summary"]) + "\n"
@@ -987,6 +987,7 @@ REGIONS: Dict[str, Region] = {
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
+    "pose-perturbation-live": Region("bench/results/pose_perturbation_live.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "throughput": Region("bench/results/throughput.json", throughput_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
