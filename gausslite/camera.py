@@ -91,8 +91,8 @@ def check_rigid(c2w: np.ndarray, atol: float = 1e-3, what: str = "pose") -> np.n
     return T
 
 
-#: how far from SE(3) a composed pose may have drifted before :func:`nearest_rigid` calls it a bug, not rounding:
-#: the largest entry of ``R Rᵀ − I`` (rounding stays near 1e-7 per float32 factor; a thousand factors, about 1e-4)
+#: how far from SE(3) a composed pose may have drifted before :func:`nearest_rigid` calls it a bug, not rounding
+#: (:func:`check_rigid`'s ``atol``; rounding stays near 1e-7 per float32 factor; a thousand factors, about 1e-4)
 RIGID_DRIFT_MAX = 1e-2
 
 
@@ -103,36 +103,24 @@ def nearest_rigid(T: np.ndarray, what: str = "pose", max_drift: float = RIGID_DR
     map's correction record) gather rounding with every factor: after a few hundred products of registrations
     computed in float32, ``R Rᵀ`` is off the identity by about 1e-4. Projecting each product back keeps every pose
     rigid by construction, as Sophus re-normalises its quaternion after a product. The projection is the orthogonal
-    Procrustes solution ``R' = U diag(1, 1, det(U Vᵀ)) Vᵀ`` of ``R = U Σ Vᵀ`` (the rotation nearest ``R`` in the
-    Frobenius norm; Horn, Hilden and Negahdaripour, JOSA A 1988); the translation is kept.
+    Procrustes solution ``R' = U Vᵀ`` of ``R = U Σ Vᵀ`` (the rotation nearest ``R`` in the Frobenius norm; Horn,
+    Hilden and Negahdaripour, JOSA A 1988; a proper rotation, since :func:`check_rigid` refuses reflections); the
+    translation is kept.
 
     Args:
-        T: (..., 4, 4) transform (any float dtype; metres).
+        T: (4, 4) transform (any float dtype; metres).
         what: what ``T`` is, for the error message.
-        max_drift: the largest ``max |R Rᵀ − I|`` that is rounding; beyond it the input is not a pose.
+        max_drift: how far off rigid (:func:`check_rigid`'s ``atol``) is still rounding; beyond it ``T`` is no pose.
     Returns:
-        (..., 4, 4) float64 rigid transform(s) (``R Rᵀ = I`` and ``det R = 1`` to about 1e-15).
+        (4, 4) float64 rigid transform (``R Rᵀ = I`` and ``det R = 1`` to about 1e-15).
     Raises:
-        ValueError: wrong shape, a non-finite entry, a last row other than ``[0, 0, 0, 1]`` (to ``max_drift``), a
-            reflection, or a rotation block further than ``max_drift`` from orthonormal: a bug, not drift.
+        ValueError: :func:`check_rigid`'s, at ``atol = max_drift``: wrong shape, a non-finite entry, a last row other
+            than ``[0, 0, 0, 1]``, or a rotation block that is no proper rotation: a bug, not drift.
     """
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape[-2:] != (4, 4):
-        raise ValueError(f"{what}: expected (..., 4, 4), got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{what}: not finite")
-    if np.max(np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])), initial=0.0) > max_drift:
-        raise ValueError(f"{what}: last row must be [0 0 0 1], got {T[..., 3, :].tolist()}")
-    R = T[..., :3, :3]
-    drift = float(np.max(np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)), initial=0.0))
-    if drift > max_drift or np.any(np.linalg.det(R) <= 0.0):
-        raise ValueError(f"{what}: the rotation block is not a rotation (max |R Rᵀ − I| = {drift:.3g}, det "
-                         f"{np.linalg.det(R).min():.6g}): not a rigid transform")
-    U, _, Vt = np.linalg.svd(R)
-    d = np.sign(np.linalg.det(U @ Vt))
-    out = np.array(T, copy=True)
-    out[..., :3, :3] = (U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[..., None, :]) @ Vt
-    out[..., 3, :] = np.array([0.0, 0.0, 0.0, 1.0])
+    out = check_rigid(T, atol=max_drift, what=what).copy()
+    U, _, Vt = np.linalg.svd(out[:3, :3])
+    out[:3, :3] = U @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
 

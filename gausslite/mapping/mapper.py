@@ -252,8 +252,8 @@ class Mapper:
         mapper starts keeping a correction record here, so that frames are rendered at their corrected poses.
 
         Args:
-            new_c2w: frame id → (4, 4) camera-to-world pose (float, metres; rotation orthonormal with determinant 1)
-                of mapped frames (:meth:`keyframe_poses` gives their poses now). Frames whose pose is unchanged
+            new_c2w: frame id → (4, 4) camera-to-world pose (float, metres; a rigid transform, rounding off SE(3)
+                projected away: :func:`~gausslite.mapping.poses.correction_moves`) of mapped frames (:meth:`keyframe_poses` gives their poses now). Frames whose pose is unchanged
                 (to 1e-12) are left alone.
         Returns:
             the number of Gaussians moved.

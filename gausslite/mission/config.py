@@ -9,7 +9,7 @@ from typing import List, Literal, Optional, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from gausslite.camera import check_rigid
+from gausslite.camera import check_rigid, nearest_rigid
 from gausslite.datasets.bag import BagOptions
 from gausslite.datasets.odometry import OdometryConfig, PoseSource
 from gausslite.mapping.config import MapperConfig, migrate_flat_names
@@ -213,11 +213,7 @@ class FrameConfig(BaseModel):
         None when unset (identity)."""
         if self.T_world_map is None:
             return None
-        T = np.asarray(self.T_world_map, np.float64).copy()
-        u, _, vt = np.linalg.svd(T[:3, :3])
-        T[:3, :3] = u @ vt  # det +1: the check above refused reflections
-        T[3] = (0.0, 0.0, 0.0, 1.0)
-        return T
+        return nearest_rigid(self.T_world_map, "T_world_map", max_drift=RIGID_ATOL)
 
 
 class OnnxRelevanceConfig(BaseModel):
