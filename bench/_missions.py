@@ -9,10 +9,9 @@ The rule, for every benchmark that runs live agent missions (``bench.realtime`` 
   status's ``last_error``, ``""`` when none) and the counters ``frames_failed`` and ``corrections_rejected`` (0 when
   the status has no such field).
 - **A mission failed** (:func:`failed`) when it did not end ``FINISHED`` (``FAILED``: it stopped, out of memory or
-  disk), when its status shows an error (``last_error``: a frame that failed to map, e.g. ``"mapping frame 612 failed:
-  ..."``, a rejected frame, a frame the odometry lost, a push not acknowledged), or when frames failed
-  (``frames_failed`` > 0: a frame's step raised and the mission went on without it). ``corrections_rejected`` is
-  recorded, not a failure by itself.
+  disk), or when frames failed (``frames_failed`` > 0: a frame's step raised, e.g. ``"mapping frame 612 failed:
+  ..."``, and the mission went on without it). An ``error`` alone is not a failure (``last_error`` also names a
+  rejected frame, a frame the odometry lost, a push retried), nor is ``corrections_rejected``: both are recorded.
 - **A failed run is kept, never averaged**: it stays in the result's runs with its end state, its error and whatever
   figures it has, is left out of every mean and gain, and is marked :data:`FAILED_MARK` (†) in the tables with a
   footnote (:func:`failed_note`).

@@ -24,7 +24,7 @@ over runs × frames with its 95 % interval (:func:`gausslite.stats.paired_gain`)
 
 Prints the table and writes ``bench/results/cross_scoring.json`` / ``.md`` (``--out``).
 
-Failed missions (:mod:`bench._missions`: a run whose mission did not end ``FINISHED``, shows an error or failed to map
+Failed missions (:mod:`bench._missions`: a run whose mission did not end ``FINISHED`` or failed to map
 frames, as ``bench.realtime`` records it) are never cross-scored: their run and its pair are left out, listed under
 ``failed_runs`` in the JSON and below the table (†), and the command exits 1 unless ``--allow-failed``.
 """

@@ -17,8 +17,8 @@ Reported:
 Target: ``accept_latency_ms_p99 <= 20`` ms.
 
 The mission's end (:mod:`bench._missions`): the result records ``end_state``, ``error``, ``frames_failed`` and
-``corrections_rejected`` from the status Finish returned; a mission that failed (not ``FINISHED``, an error in its
-status, or frames that failed to map) is marked † in the printed table and exits 1 unless ``--allow-failed``.
+``corrections_rejected`` from the status Finish returned; a mission that failed (not ``FINISHED``, or frames that failed to
+map) is marked † in the printed table and exits 1 unless ``--allow-failed``.
 
 Usage::
 

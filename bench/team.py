@@ -39,7 +39,7 @@ owner's final own figure). Wall-clock: run it alone on the machine (``docs/realt
 Failed missions (:mod:`bench._missions`): every agent row records how its mission ended (``end_state``, ``error``,
 ``frames_failed``, ``corrections_rejected``) and so does each run (the first agent's failure). A run in which a robot's
 mission failed (the harness stops the team: ``FAILED``, a dead mission, a final push that failed, a timeout), or whose
-agent shows an error or failed to map frames, is kept in ``runs`` (a stopped run with its agents' end states and no
+agent failed to map frames, is kept in ``runs`` (a stopped run with its agents' end states and no
 figures) and the top-level ``failed_runs``, left out of the summary, marked † in the tables, and the command exits 1
 unless ``--allow-failed``.
 """

@@ -36,7 +36,7 @@ finer detail counts (``bench.compute_sweep``). Each run records the basis and th
 Failed missions. Each run records how its mission ended: ``end_state`` (``FINISHED``, or ``FAILED`` when it stopped,
 out of memory say), ``error`` (the status's ``last_error``, e.g. ``"mapping frame 612 failed: ..."``) and the status
 counters ``frames_failed`` and ``corrections_rejected`` (:func:`bench._missions.mission_outcome`). A run whose mission
-did not finish, shows an error or failed to map frames is a failed run (:func:`bench._missions.failed`): it stays in
+did not finish or failed to map frames is a failed run (:func:`bench._missions.failed`): it stays in
 ``runs`` with whatever it scored (or ``score_error``), is left out of every mean and gain (each budget block lists it
 under ``failed_runs``, the result under its top-level ``failed_runs``), is marked † in the tables, and makes the
 command exit 1 after writing its result unless ``--allow-failed``. ``--resume`` runs a failed mission again.
