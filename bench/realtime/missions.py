@@ -112,13 +112,12 @@ def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields)
                                                        "track_iters", "track_stride", "render_dir", "final_pass",
                                                        "novel_every", "mapping_downscale", "score_at")})
         return res
-    if not failed(res):
-        res.update(map_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
-        return res
-    try:  # what is left of a failed mission's map, for the record: it is never averaged
+    try:
         res.update(map_scores(job, mapper, ds, ann, task.id, fp_per_kf, kf_ids))
     except Exception as e:
-        res["score_error"] = f"{type(e).__name__}: {e}"
+        if not failed(res):
+            raise
+        res["score_error"] = f"{type(e).__name__}: {e}"  # what is left of a failed mission's map: never averaged
     return res
 
 
