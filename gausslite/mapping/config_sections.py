@@ -385,3 +385,8 @@ class PerformanceConfig(StrictModel):
         True, description="ROI phase: render only the Gaussians whose 3σ sphere reaches the crop's frustum, whatever "
         "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"
     )
+    bands_in_one_pass: bool = Field(
+        True, description="rolling shutter: render a view's row bands (each from its own readout pose) in one "
+        "compositing and backward pass (gausslite.render.rasterize_bands), their edges on the rasterizer's "
+        "16-row tiles; False = one render per band at any row (docs/realtime.md, 'Mapping throughput')"
+    )

@@ -92,8 +92,18 @@ def move_gaussians_for_pose_delta(means: torch.Tensor, quats: torch.Tensor, c2w:
         means: (N, 3) world-frame centres, metres (float32). quats: (N, 4) (w, x, y, z).
         c2w: (4, 4) float64 camera-to-world pose. xi: (6,) float64 pose delta (ω, v), camera frame.
     Returns:
-        ``(means', quats')`` in the dtype of ``means``/``quats``, differentiable in all inputs.
+        ``(means', quats')`` in the dtype of ``means``/``quats``, differentiable in means, quats and ξ (and in
+        ``c2w`` for ξ ≠ 0). At ξ = 0, where the mapper and the trackers take every gradient, the Gaussians are
+        returned unmoved and ξ's gradient is closed-form (:class:`_PoseDeltaAtZero`).
     """
+    if not bool(xi.detach().any()):
+        return _PoseDeltaAtZero.apply(means, quats, c2w, xi)
+    return _move_gaussians(means, quats, c2w, xi)
+
+
+def _move_gaussians(means: torch.Tensor, quats: torch.Tensor, c2w: torch.Tensor,
+                    xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`move_gaussians_for_pose_delta` for any ξ, by autograd through the moved Gaussians."""
     Rc, tc = c2w[:3, :3], c2w[:3, 3]
     Re = so3_exp(xi[:3])
     RM = Rc @ Re.T @ Rc.T  # = exp((−Rc ω)^)
@@ -101,6 +111,49 @@ def move_gaussians_for_pose_delta(means: torch.Tensor, quats: torch.Tensor, c2w:
     moved = means @ RM.T.to(means.dtype) + tM.to(means.dtype)
     qM = quat_of_rotvec(-(Rc @ xi[:3])).to(quats.dtype)
     return moved, quat_mul(qM, quats)
+
+
+def _axial(A: torch.Tensor) -> torch.Tensor:
+    """(3,) ``(A[1,2] − A[2,1], A[2,0] − A[0,2], A[0,1] − A[1,0])`` of a (3, 3) ``A``: for ``A = Σ_i a_i b_iᵀ`` it is
+    ``Σ_i a_i × b_i``."""
+    return torch.stack([A[1, 2] - A[2, 1], A[2, 0] - A[0, 2], A[0, 1] - A[1, 0]])
+
+
+class _PoseDeltaAtZero(torch.autograd.Function):
+    """:func:`move_gaussians_for_pose_delta` at ξ = 0: the Gaussians unchanged, and in the backward pass the
+    gradients passed through to ``means`` and ``quats`` (the move's Jacobian in them is the identity at 0) and
+    the gradient of ξ in closed form, the first-order move summed over the Gaussians. With ``u = Rc ω``:
+    ``means' ≈ means − u × (means − tc) − Rc v`` and ``quats' ≈ (1, −u/2) ⊗ quats``, so
+    ``dL/dω = Rcᵀ Σ_i [g_i × (μ_i − tc) + (g_w,i q_v,i − q_w,i g_v,i − q_v,i × g_v,i) / 2]`` and
+    ``dL/dv = −Rcᵀ Σ_i g_i`` (g: the means' gradient; (g_w, g_v): the quaternion's). No (N, ·) work in the
+    forward pass and one pass over the gradients in the backward, where the general path builds and
+    differentiates the move of every Gaussian."""
+
+    @staticmethod
+    def forward(ctx, means, quats, c2w, xi):
+        ctx.save_for_backward(means, quats, c2w)
+        return means.view_as(means), quats.view_as(quats)
+
+    @staticmethod
+    def backward(ctx, g_means, g_quats):
+        means, quats, c2w = ctx.saved_tensors
+        Rc, tc = c2w[:3, :3].to(torch.float64), c2w[:3, 3].to(torch.float64)
+        d_u = torch.zeros(3, dtype=torch.float64, device=c2w.device)
+        d_v = torch.zeros(3, dtype=torch.float64, device=c2w.device)
+        if g_means is not None:
+            # Σ g × (μ − tc) = Σ g × μ − (Σ g) × tc, with Σ g × μ the axial vector of A − Aᵀ, A = Σ g μᵀ (3, 3):
+            # one (3, N) @ (N, 3) product in the map's dtype instead of N cross products
+            A = (g_means.T @ means).to(torch.float64)
+            g_sum = g_means.sum(0, dtype=torch.float64)
+            d_u = d_u + _axial(A) - torch.linalg.cross(g_sum, tc)
+            d_v = -(Rc.T @ g_sum)
+        if g_quats is not None:
+            B = (quats.T @ g_quats).to(torch.float64)  # B[i, j] = Σ q_i g_j, (w, x, y, z)
+            # Σ (g_w q_v − q_w g_v − q_v × g_v) / 2, with Σ q_v × g_v the axial vector of B[1:, 1:]
+            d_u = d_u + 0.5 * (B[1:, 0] - B[0, 1:] - _axial(B[1:, 1:]))
+        d_xi = torch.cat([Rc.T @ d_u, d_v]) if ctx.needs_input_grad[3] else None
+        return (g_means if ctx.needs_input_grad[0] else None, g_quats if ctx.needs_input_grad[1] else None,
+                None, d_xi)
 
 
 def neighbour_keys(keyed: dict, frame_id: int) -> Optional[tuple[int, int, float]]:

@@ -27,8 +27,11 @@ from gausslite.mapping.exposure import ExposureModel, apply_exposure
 from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import move_gaussians_for_pose_delta, nearest_key
 from gausslite.mapping.shutter import readout_norm, shutter_bands
-from gausslite.render import RenderOutput, blend_weights, blend_weights_inside, rasterize
+from gausslite.render import RenderOutput, blend_weights, blend_weights_inside, rasterize, rasterize_bands
 from gausslite.render.culling import frustum_cull_mask
+
+#: the rasterizer's tile edge (px): rolling-shutter bands start on tile rows to render in one pass
+TILE_SIZE = 16
 
 
 class SensorRenderer:
@@ -116,11 +119,13 @@ class SensorRenderer:
 
         - ``cfg.sensor.motion_blur`` (:mod:`gausslite.mapping.blur`): the mean colour, depth and alpha of K renders at
           ``c2w · E(s_k ξ_b)``;
-        - ``cfg.sensor.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b rendered alone (its
-          rows only) from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom.
+        - ``cfg.sensor.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b's rows rendered
+          from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom. Under
+          ``performance.bands_in_one_pass`` the band edges lie on tile rows and each blur sample's bands are one
+          render (:meth:`rasterize_bands`); otherwise each band is rendered alone, its rows only.
 
         The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
-        the renders as groups, one group per blur sample holding its bands (nothing when the view is rendered
+        the renders as groups, one group per blur sample holding its bands or its one-pass render (nothing when the view is rendered
         as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
         <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
         """
@@ -131,18 +136,28 @@ class SensorRenderer:
         xi_b = self.blur[nearest_key(self.blur, frame_id)]
         n_blur = (blur_samples(xi_b, float(K[0, 0]), width, height, sc.blur_px_per_sample, sc.blur_max_samples)
                   if sc.motion_blur else 1)
+        one_pass = self.cfg.performance.bands_in_one_pass
         bands = (shutter_bands(K, width, height, xi_b / sc.blur_exposure_s, self.rs_norm, sc.rs_px_per_band,
-                               sc.rs_max_bands) if rs else [(0, height, 0.0)])
+                               sc.rs_max_bands, align=TILE_SIZE if one_pass else 1) if rs else [(0, height, 0.0)])
         if n_blur <= 1 and len(bands) == 1 and bands[0][2] == 0.0:
             return self.rasterize(c2w, K, width, height, subset, pose_xi=pose_xi, detach_map=detach_map, cull=cull)
+        # the blur's virtual poses around each band's readout time t (t / τ exposures from the frame's pose):
+        # deltas[b][k] is band b's pose in blur sample k
+        deltas = [motion_deltas(xi_b, n_blur, t / sc.blur_exposure_s, self.device) for _, _, t in bands]
         groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
-        for y0, y1, t in bands:
-            Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
-            Kb[1, 2] -= y0
-            # the blur's virtual poses around the band's readout time t (t / τ exposures from the frame's pose)
-            for g, delta in zip(groups, motion_deltas(xi_b, n_blur, t / sc.blur_exposure_s, self.device)):
-                g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
-                                        view_delta=delta, cull=cull))
+        if one_pass and len(bands) > 1:
+            # each blur sample's bands in one pass (rasterize_bands): one group of one render per sample
+            for k, g in enumerate(groups):
+                g.append(self.rasterize_bands(c2w, K, width, height, subset,
+                                              [(y0, y1, deltas[b][k]) for b, (y0, y1, _) in enumerate(bands)],
+                                              pose_xi=pose_xi, detach_map=detach_map, cull=cull))
+        else:
+            for b, (y0, y1, _) in enumerate(bands):
+                Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
+                Kb[1, 2] -= y0
+                for g, delta in zip(groups, deltas[b]):
+                    g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
+                                            view_delta=delta, cull=cull))
         if parts is not None:
             parts.extend(groups)
 
@@ -151,8 +166,58 @@ class SensorRenderer:
                           for g in groups]
             return per_sample[0] if len(per_sample) == 1 else torch.stack(per_sample).mean(0)
 
-        mid = groups[len(groups) // 2][len(bands) // 2]
+        mid_group = groups[len(groups) // 2]
+        mid = mid_group[len(mid_group) // 2]
         return dataclasses.replace(mid, color=stacked("color"), depth=stacked("depth"), alpha=stacked("alpha"))
+
+    def _posed(self, c2w, pose_xi: Optional[torch.Tensor], detach_map: bool) -> tuple[dict, torch.Tensor, torch.Tensor]:
+        """``(params, means, quats)``: the map's parameters (detached under ``detach_map``) and its means and
+        quaternions moved for the pose delta ``pose_xi`` (:func:`move_gaussians_for_pose_delta`)."""
+        p = self.model.params
+        if detach_map:
+            p = {k: v.detach() for k, v in p.items()}
+        means, quats = p["means"], p["quats"]
+        if pose_xi is not None:
+            c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+            means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
+        return p, means, quats
+
+    def _visible(self, means: torch.Tensor, log_scales: torch.Tensor, vm: torch.Tensor, K, width: int, height: int,
+                 subset: Optional[torch.Tensor], cull: bool) -> Optional[torch.Tensor]:
+        """``subset`` narrowed to the Gaussians that may reach the view (frustum culling when the map has
+        ``frustum_cull_min`` Gaussians or more, or ``cull``), and a deterministic clock charged for the render."""
+        if self.cfg.performance.frustum_cull and (len(means) >= self.cfg.performance.frustum_cull_min or cull):
+            vis = frustum_cull_mask(means, log_scales, vm, K, width, height)
+            if subset is not None:
+                vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
+            subset = vis
+        if self.clock.charges:
+            n_render = len(means) if subset is None else (
+                int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
+            self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
+        return subset
+
+    def rasterize_bands(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor], bands: list,
+                        pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
+                        cull: bool = False) -> RenderOutput:
+        """:meth:`rasterize` of a view whose row bands ``bands`` = ``[(y0, y1, view_delta)]`` (rows ``y0 ≤ v < y1``,
+        edges on tile rows) are each seen from ``c2w · E(ξ) · view_delta`` (4, 4 float64), in one pass
+        (:func:`gausslite.render.rasterize_bands`); each band is frustum-culled to its own rows. Arguments
+        otherwise as :meth:`rasterize`."""
+        p, means, quats = self._posed(c2w, pose_xi, detach_map)
+        cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
+        vms, subsets = [], []
+        for y0, y1, delta in bands:
+            vm = torch.linalg.inv(cam @ delta.to(cam.device))
+            Kb = torch.as_tensor(K).clone()
+            Kb[1, 2] -= y0
+            vms.append(vm)
+            subsets.append(self._visible(means, p["log_scales"], vm, Kb, width, y1 - y0, subset, cull))
+        return rasterize_bands(
+            means, quats, p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width, height=height,
+            viewmats=vms, rows=[(y0, y1) for y0, y1, _ in bands], subsets=subsets, background=self.background,
+            backend=self.cfg.backend, num_threads=self.cfg.performance.render_threads,
+            cpu_kernel=self.cfg.performance.cpu_kernel, tile_size=TILE_SIZE)
 
     def rasterize(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor],
                   pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
@@ -165,26 +230,12 @@ class SensorRenderer:
         ``detach_map``: no gradient reaches the Gaussians (pose tracking); ``view_delta`` (4, 4) float64: render
         from ``c2w · E(ξ) · view_delta`` (a virtual pose within the exposure, :meth:`render_view`); ``cull``:
         frustum culling whatever the map size (``frustum_cull_min``; ROI crops, ``roi_cull``)."""
-        p = self.model.params
-        if detach_map:
-            p = {k: v.detach() for k, v in p.items()}
-        means, quats = p["means"], p["quats"]
-        if pose_xi is not None:
-            c2w_t = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
-            means, quats = move_gaussians_for_pose_delta(means, quats, c2w_t, pose_xi)
+        p, means, quats = self._posed(c2w, pose_xi, detach_map)
         cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
         if view_delta is not None:
             cam = cam @ view_delta.to(cam.device)
         vm = torch.linalg.inv(cam)
-        if self.cfg.performance.frustum_cull and (len(means) >= self.cfg.performance.frustum_cull_min or cull):
-            vis = frustum_cull_mask(means, p["log_scales"], vm, K, width, height)
-            if subset is not None:
-                vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
-            subset = vis
-        if self.clock.charges:
-            n_render = len(means) if subset is None else (
-                int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
-            self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
+        subset = self._visible(means, p["log_scales"], vm, K, width, height, subset, cull)
         return rasterize(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"],
             K=K, width=width, height=height, viewmat=vm, subset=subset, background=self.background,

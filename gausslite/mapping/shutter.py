@@ -52,7 +52,7 @@ def readout_norm(readout_s: float, fy_full: float, height_full: int) -> float:
 
 
 def shutter_bands(K, width: int, height: int, xi_rate: np.ndarray, readout_norm_s: float,
-                  px_per_band: float, max_bands: int) -> list[tuple[int, int, float]]:
+                  px_per_band: float, max_bands: int, align: int = 1) -> list[tuple[int, int, float]]:
     """The row bands of a view and the readout time of each.
 
     Args:
@@ -63,6 +63,9 @@ def shutter_bands(K, width: int, height: int, xi_rate: np.ndarray, readout_norm_
         px_per_band: one band per this many pixels of motion between the view's first and last row
             (:func:`gausslite.mapping.blur.blur_length_px`).
         max_bands: at most this many bands.
+        align: band edges on multiples of this many rows (the rasterizer's tile size, so that the bands render
+            in one pass: :func:`gausslite.render.rasterize_bands`); 1: anywhere. Bands that alignment would
+            leave empty are merged.
     Returns:
         [(y0, y1, t)]: rows ``y0 ≤ v < y1`` rendered from ``c2w · E(t · xi_rate)``, ``t`` the readout time
         (seconds) of the band's centre; they cover ``0 … height`` in order. One band when the view's rows
@@ -71,8 +74,10 @@ def shutter_bands(K, width: int, height: int, xi_rate: np.ndarray, readout_norm_
     fx, fy, cy = float(K[0][0]), float(K[1][1]), float(K[1][2])
     span = row_time(height, cy, fy, readout_norm_s) - row_time(0, cy, fy, readout_norm_s)
     motion_px = blur_length_px(span * np.asarray(xi_rate, np.float64), fx, width, height)
-    n = int(min(max(math.ceil(motion_px / px_per_band), 1), max_bands, height))
-    edges = np.linspace(0, height, n + 1).round().astype(int)
+    align = max(int(align), 1)
+    n = int(min(max(math.ceil(motion_px / px_per_band), 1), max_bands, math.ceil(height / align)))
+    inner = np.round(np.linspace(0, height, n + 1)[1:-1] / align).astype(int) * align
+    edges = [0] + sorted({int(e) for e in inner if 0 < e < height}) + [int(height)]
     return [(int(a), int(b), row_time(0.5 * (a + b), cy, fy, readout_norm_s)) for a, b in zip(edges[:-1], edges[1:])]
 
 

@@ -125,8 +125,9 @@ class DensityStrategy:
         size, times ``weight``; ``width`` × ``height`` the full image at the view's resolution, fractional for a
         detail crop) to the density-control statistics. ``outs``: the renders of one image (one, or the
         row bands of a rolling-shutter view, whose gradients of a Gaussian are summed before the norm, so a
-        Gaussian cut by a band edge counts as in one render)."""
-        if len(outs) == 1:
+        Gaussian cut by a band edge counts as in one render; likewise the bands of one render in one pass,
+        ``n_bands`` > 1)."""
+        if len(outs) == 1 and outs[0].n_bands == 1:
             g, vis = outs[0].means2d.grad, outs[0].radii > 0
             if g is None:
                 return

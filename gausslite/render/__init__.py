@@ -5,7 +5,7 @@ Backends: Warp kernels (CPU and CUDA, default), a slow pure-PyTorch reference, a
 gsplat fast path on CUDA.
 """
 
-from .api import RenderOutput, blend_weights, blend_weights_inside, rasterize
+from .api import RenderOutput, blend_weights, blend_weights_inside, rasterize, rasterize_bands
 from .projection import project_gaussians
 
-__all__ = ["rasterize", "blend_weights", "blend_weights_inside", "RenderOutput", "project_gaussians"]
+__all__ = ["rasterize", "rasterize_bands", "blend_weights", "blend_weights_inside", "RenderOutput", "project_gaussians"]

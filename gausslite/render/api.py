@@ -32,6 +32,8 @@ class RenderOutput:
             backward (densification statistics).
         radii: (M,) int32 screen radius in pixels (0 = culled).
         ids: (M,) int64 indices into the N input Gaussians of the rows of means2d/radii.
+        n_bands: row bands the image was rendered in, each from its own pose (:func:`rasterize_bands`): a
+            Gaussian seen by several bands has a row in means2d/radii/ids for each.
     """
 
     color: torch.Tensor
@@ -40,6 +42,7 @@ class RenderOutput:
     means2d: torch.Tensor
     radii: torch.Tensor
     ids: torch.Tensor
+    n_bands: int = 1
 
 
 def _as_tensor(x, name: str, shape: tuple, device, dtype) -> torch.Tensor:
@@ -299,6 +302,113 @@ def rasterize(
     # float32 output, except the reference keeps float64 so it can be gradchecked end to end.
     out_dt = dtype if (backend == "torch" and dtype == torch.float64) else torch.float32
     return _composite_output(color_raw, depth_sum, alpha, bg, out_dt, means2d, radii, ids)
+
+def rasterize_bands(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    colors: torch.Tensor,
+    *,
+    K,
+    width: int,
+    height: int,
+    viewmats: list,
+    rows: list,
+    subsets: list | None = None,
+    background=None,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e4,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+    num_threads: int | None = None,
+    cpu_kernel: str = "simd",
+) -> RenderOutput:
+    """One image whose row bands are each seen from their own pose (a rolling shutter: each band of rows is read
+    out at its own time, :mod:`gausslite.mapping.shutter`), rendered in one pass: rows ``rows[b] = (y0, y1)`` are
+    the rows of :func:`rasterize` from ``viewmats[b]``, with the image's own intrinsics and size.
+
+    The bands' Gaussians are projected pose by pose and composited together: the projected rows of every band are
+    stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
+    ``tile_rows``), and one compositing pass and one backward pass cover the image. So B bands cost B projections
+    and one binning, compositing and backward, not B of each (with the Warp backend on CPU; elsewhere the bands
+    are rendered one by one, each at the full image size, and their rows stacked: the reference of the parity
+    test).
+
+    Args:
+        means … colors, K, width, height, background, backend, near, far, eps2d, tile_size, num_threads,
+            cpu_kernel: as :func:`rasterize` (K (3, 3) pixels of the whole image).
+        viewmats: B (4, 4) world-to-camera poses (OpenCV axes), one per band.
+        rows: B ``(y0, y1)`` pixel row ranges that tile ``0 … height`` in order; every ``y0`` a multiple of
+            ``tile_size`` (a tile lies in one band).
+        subsets: None or B subsets (each as :func:`rasterize`'s ``subset``: None, (N,) bool or int64 rows), the
+            Gaussians each band may draw (a band's frustum culling).
+    Returns:
+        :class:`RenderOutput` of the image; ``means2d``, ``radii`` and ``ids`` stack the bands' projected rows (a
+        Gaussian seen by two bands has two rows).
+    Raises:
+        ValueError: as :func:`rasterize`; bands that do not tile the image in order or start off a tile row;
+            ``viewmats``, ``rows`` and ``subsets`` of different lengths.
+    """
+    B = len(viewmats)
+    if B == 0 or len(rows) != B or (subsets is not None and len(subsets) != B):
+        raise ValueError(f"need as many viewmats ({B}), rows ({len(rows)}) and subsets as bands (at least one)")
+    ends = [0] + [int(r[1]) for r in rows]
+    if any(int(r[0]) != ends[b] or int(r[1]) <= int(r[0]) for b, r in enumerate(rows)) or ends[-1] != int(height):
+        raise ValueError(f"rows must tile 0..{height} in order, got {list(rows)}")
+    if any(int(r[0]) % int(tile_size) for r in rows):
+        raise ValueError(f"every band must start on a tile row (multiple of {tile_size}), got {list(rows)}")
+    subsets = subsets if subsets is not None else [None] * B
+    N = _check_params(means, quats, log_scales, opacity_logits, colors)
+    device, dtype = means.device, means.dtype
+    params = (means, quats, log_scales, opacity_logits, colors)
+    kw = dict(K=K, width=width, height=height, background=background, backend=backend, near=near, far=far,
+              eps2d=eps2d, tile_size=tile_size, num_threads=num_threads, cpu_kernel=cpu_kernel)
+    fast = (_resolve_backend(backend, device) == "warp" and device.type == "cpu"
+            and dtype in (torch.float32, torch.float64))
+    if B == 1 or not fast:
+        outs = [rasterize(*params, viewmat=vm, subset=sub, **kw) for vm, sub in zip(viewmats, subsets)]
+        if B == 1:
+            return outs[0]
+        cut = [(o, int(r[0]), int(r[1])) for o, r in zip(outs, rows)]
+        return RenderOutput(color=torch.cat([o.color[a:b] for o, a, b in cut]),
+                            depth=torch.cat([o.depth[a:b] for o, a, b in cut]),
+                            alpha=torch.cat([o.alpha[a:b] for o, a, b in cut]),
+                            means2d=torch.cat([o.means2d for o in outs]), radii=torch.cat([o.radii for o in outs]),
+                            ids=torch.cat([o.ids for o in outs]), n_bands=B)
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"width and height must be > 0, got {width}x{height}")
+    width, height = int(width), int(height)
+    check_cpu_kernel(cpu_kernel)
+    nt = default_num_threads() if num_threads is None else int(num_threads)
+    if nt <= 0:
+        raise ValueError(f"num_threads must be > 0, got {num_threads}")
+    bg = (torch.zeros(3, dtype=torch.float32) if background is None
+          else _as_tensor(background, "background", (3,), device, dtype).to(torch.float32))
+    per_band = []
+    for vm, sub, (y0, y1) in zip(viewmats, subsets, rows):
+        K64, vm64 = _camera_tensors(K, None, vm, device, dtype)
+        ids, (m, q, ls, ol, col) = _gather_subset(sub, N, device, params)
+        proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
+                                      near=near, far=far, eps2d=eps2d, num_threads=nt)
+        band = torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size], dtype=torch.int32)
+        per_band.append((ids, ol, col, proj, band.expand(len(ids), 2)))
+    ids = torch.cat([b[0] for b in per_band])
+    ol, col = torch.cat([b[1] for b in per_band]), torch.cat([b[2] for b in per_band])
+    means2d = torch.cat([b[3].means2d for b in per_band])
+    conics, depths = torch.cat([b[3].conics for b in per_band]), torch.cat([b[3].depths for b in per_band])
+    radii = torch.cat([b[3].radii for b in per_band])
+    if torch.is_grad_enabled() and means2d.requires_grad:
+        means2d.retain_grad()
+    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size, num_threads=nt,
+                         tile_rows=torch.cat([b[4] for b in per_band]))
+    color, depth, alpha = RasterizeWarp.apply(
+        means2d, conics, ol, col, depths, bins.gids, bins.tile_start, bins.tile_end, width, height, tile_size,
+        bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
+    )
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii, ids=ids, n_bands=B)
+
 
 def blend_weights(
     means: torch.Tensor,

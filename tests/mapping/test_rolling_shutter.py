@@ -55,15 +55,17 @@ def test_bands_follow_the_motion_across_the_readout_and_cover_the_view():
     assert len(crop) == 2 and all(t > 0 for _, _, t in crop)
 
 
-def _mapper(rs: float) -> Mapper:
+def _mapper(rs: float, one_pass: bool = True) -> Mapper:
     cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=40, backend="warp", seed=0,
-                       sensor={"rolling_shutter_s": rs, "rs_px_per_band": 0.5, "rs_max_bands": 8})
+                       sensor={"rolling_shutter_s": rs, "rs_px_per_band": 0.5, "rs_max_bands": 8},
+                       performance={"bands_in_one_pass": one_pass})
     cfg.densify.enabled = False
     return Mapper(cfg)
 
 
-def test_render_view_stacks_bands_rendered_from_their_readout_poses():
-    m = _mapper(READOUT)
+@pytest.mark.parametrize("one_pass", [True, False])
+def test_render_view_stacks_bands_rendered_from_their_readout_poses(one_pass):
+    m = _mapper(READOUT, one_pass)
     slow = [rolling_shutter_frame(i, 0.005 * i, 0.05, i * 0.1) for i in range(3)]
     for fr in slow:
         m.map_frame(fr)
@@ -77,17 +79,25 @@ def test_render_view_stacks_bands_rendered_from_their_readout_poses():
     vel = m.sensor.blur[3] / m.cfg.sensor.blur_exposure_s
     bands = shutter_bands(fr.intrinsics.K, W, H, vel, m.sensor.rs_norm, 0.5, 8)
     assert len(bands) == 7  # 10 cm over the readout: 3.3 px at blur_length_px's 1.5 m reference, 0.5 px per band
+    if one_pass:  # edges on the 16-row tiles: 40 rows hold three bands
+        bands = shutter_bands(fr.intrinsics.K, W, H, vel, m.sensor.rs_norm, 0.5, 8, align=16)
+        assert [(y0, y1) for y0, y1, _ in bands] == [(0, 16), (16, 32), (32, 40)]
     with torch.no_grad():
         parts: list = []
         got = m.sensor.render_view(c2w, K, W, H, 3, None, parts=parts)
-        assert len(parts) == 1 and len(parts[0]) == 7  # one image (no blur) in 7 bands
-        # equal to the full render's rows up to the projection's EWA Jacobian, which is clamped to 1.3× the
-        # rendered field of view (Kerbl et al. 2023), here a band's: Gaussians just above or below a band
-        # get a slightly different footprint in it (≤ 7e-3 of colour measured, on a few edge pixels)
+        assert len(parts) == 1  # one image (no blur)
+        if one_pass:  # in one render of three bands
+            assert len(parts[0]) == 1 and parts[0][0].n_bands == 3
+        else:  # in 7 renders
+            assert len(parts[0]) == 7
+        # equal to the full render's rows; rendered one by one, up to the projection's EWA Jacobian, which is
+        # clamped to 1.3× the rendered field of view (Kerbl et al. 2023), here a band's: Gaussians just above or
+        # below a band get a slightly different footprint in it (≤ 7e-3 of colour measured, on a few edge pixels)
         for y0, y1, t in bands:
             full = m.sensor.rasterize(c2w, K, W, H, None, view_delta=pose_delta(torch.as_tensor(t * vel)))
-            torch.testing.assert_close(got.color[y0:y1], full.color[y0:y1], atol=2e-2, rtol=0)
-            torch.testing.assert_close(got.depth[y0:y1], full.depth[y0:y1], atol=2e-2, rtol=0)
+            tol = 1e-5 if one_pass else 2e-2
+            torch.testing.assert_close(got.color[y0:y1], full.color[y0:y1], atol=tol, rtol=0)
+            torch.testing.assert_close(got.depth[y0:y1], full.depth[y0:y1], atol=tol, rtol=0)
             assert float((got.color[y0:y1] - full.color[y0:y1]).abs().mean()) < 2e-4
         sharp = m.sensor.rasterize(c2w, K, W, H, None)
         assert (got.color - sharp.color).abs().max() > 0.1  # the bottom rows see the plane 5 mm further on

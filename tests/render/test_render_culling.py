@@ -53,3 +53,22 @@ def test_sphere_radius_and_near_plane():
     keep = frustum_cull_mask(means, log_scales, vm, K, 64, 48)
     # in view; behind; behind but its 3σ sphere crosses the near plane; far aside; far aside but huge
     assert keep.tolist() == [True, False, True, False, True]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_warp_cull_equals_the_torch_reference(seed):
+    """The CPU kernel keeps exactly the Gaussians the pure-PyTorch reference keeps (posed cameras, padded and
+    unpadded frustums, huge and tiny Gaussians, some behind the camera)."""
+    from gausslite.render.culling import frustum_cull_mask_torch
+
+    params = _scene(seed, n=20000)
+    K = torch.tensor([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.3 * seed, -0.2, 0.5]).as_matrix())
+    c2w[:3, 3] = torch.tensor([0.5, -0.3, 0.2 * seed], dtype=torch.float64)
+    vm = torch.linalg.inv(c2w)
+    for pad in (0.0, 0.5):
+        got = frustum_cull_mask(params[0], params[2], vm, K, 64, 48, pad=pad)
+        ref = frustum_cull_mask_torch(params[0], params[2], vm, K, 64, 48, pad=pad)
+        assert got.dtype == torch.bool and 0 < int(ref.sum()) < len(ref)
+        assert torch.equal(got, ref)
