@@ -121,12 +121,12 @@ class SensorRenderer:
           ``c2w · E(s_k ξ_b)``;
         - ``cfg.sensor.rolling_shutter_s`` (:mod:`gausslite.mapping.shutter`): row bands, band b's rows rendered
           from ``c2w · E(t_b ξ_b / τ)`` (and blurred around that pose), stacked top to bottom. Under
-          ``performance.bands_in_one_pass`` the band edges lie on tile rows and each blur sample's bands are one
-          render (:meth:`rasterize_bands`); otherwise each band is rendered alone, its rows only.
+          ``performance.bands_in_one_pass`` the band edges lie on tile rows and every blur sample and band is drawn in
+          one render (:meth:`_one_pass`); otherwise each band is rendered alone, its rows only.
 
         The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
-        the renders as groups, one group per blur sample holding its bands or its one-pass render (nothing when the view is rendered
-        as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
+        the renders as groups, one group per blur sample holding its bands, or one group holding the one-pass
+        render (nothing when the view is rendered as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
         <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
         """
         sc = self.cfg.sensor
@@ -144,20 +144,15 @@ class SensorRenderer:
         # the blur's virtual poses around each band's readout time t (t / τ exposures from the frame's pose):
         # deltas[b][k] is band b's pose in blur sample k
         deltas = [motion_deltas(xi_b, n_blur, t / sc.blur_exposure_s, self.device) for _, _, t in bands]
+        if one_pass:
+            return self._one_pass(c2w, K, width, height, subset, bands, deltas, pose_xi, detach_map, parts)
         groups: list[list[RenderOutput]] = [[] for _ in range(n_blur)]
-        if one_pass and len(bands) > 1:
-            # each blur sample's bands in one pass (rasterize_bands): one group of one render per sample
-            for k, g in enumerate(groups):
-                g.append(self.rasterize_bands(c2w, K, width, height, subset,
-                                              [(y0, y1, deltas[b][k]) for b, (y0, y1, _) in enumerate(bands)],
-                                              pose_xi=pose_xi, detach_map=detach_map, cull=cull))
-        else:
-            for b, (y0, y1, _) in enumerate(bands):
-                Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
-                Kb[1, 2] -= y0
-                for g, delta in zip(groups, deltas[b]):
-                    g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
-                                            view_delta=delta, cull=cull))
+        for b, (y0, y1, _) in enumerate(bands):
+            Kb = torch.as_tensor(K).clone()  # the band's rows alone: principal point moved up by its first row
+            Kb[1, 2] -= y0
+            for g, delta in zip(groups, deltas[b]):
+                g.append(self.rasterize(c2w, Kb, width, y1 - y0, subset, pose_xi=pose_xi, detach_map=detach_map,
+                                        view_delta=delta, cull=cull))
         if parts is not None:
             parts.extend(groups)
 
@@ -169,6 +164,34 @@ class SensorRenderer:
         mid_group = groups[len(groups) // 2]
         mid = mid_group[len(mid_group) // 2]
         return dataclasses.replace(mid, color=stacked("color"), depth=stacked("depth"), alpha=stacked("alpha"))
+
+    def _one_pass(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor], bands: list, deltas: list,
+                  pose_xi: Optional[torch.Tensor], detach_map: bool, parts: Optional[list]) -> RenderOutput:
+        """:meth:`render_view`'s blur samples and shutter bands in one render (:meth:`rasterize_bands`): blur sample
+        k is drawn ``k · Hp`` rows below the first (``Hp`` = the height rounded up to whole tiles; the last band of
+        each sample but the last also draws the padding rows, which are discarded), each (sample, band) from its own
+        pose, and the samples' images are averaged. ``parts`` receives one group holding the render."""
+        n_blur = len(deltas[0])
+        hp = -(-height // TILE_SIZE) * TILE_SIZE if n_blur > 1 else height
+        K0 = torch.as_tensor(K)
+        rows = []
+        for k in range(n_blur):
+            Kk = K0.clone()
+            Kk[1, 2] += k * hp
+            for b, (y0, y1, _) in enumerate(bands):
+                end = hp if b == len(bands) - 1 and k < n_blur - 1 else y1
+                rows.append((k * hp + y0, k * hp + end, deltas[b][k], Kk))
+        out = self.rasterize_bands(c2w, K0, width, (n_blur - 1) * hp + height, subset, rows, pose_xi=pose_xi,
+                                   detach_map=detach_map)
+        if parts is not None:
+            parts.append([out])
+        if n_blur == 1:
+            return out
+
+        def mean(x: torch.Tensor) -> torch.Tensor:
+            return torch.stack([x[k * hp:k * hp + height] for k in range(n_blur)]).mean(0)
+
+        return dataclasses.replace(out, color=mean(out.color), depth=mean(out.depth), alpha=mean(out.alpha))
 
     def _posed(self, c2w, pose_xi: Optional[torch.Tensor], detach_map: bool) -> tuple[dict, torch.Tensor, torch.Tensor]:
         """``(params, means, quats)``: the map's parameters (detached under ``detach_map``) and its means and
@@ -198,24 +221,27 @@ class SensorRenderer:
         return subset
 
     def rasterize_bands(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor], bands: list,
-                        pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False,
-                        cull: bool = False) -> RenderOutput:
-        """:meth:`rasterize` of a view whose row bands ``bands`` = ``[(y0, y1, view_delta)]`` (rows ``y0 ≤ v < y1``,
-        edges on tile rows) are each seen from ``c2w · E(ξ) · view_delta`` (4, 4 float64), in one pass
-        (:func:`gausslite.render.rasterize_bands`); each band is frustum-culled to its own rows. Arguments
-        otherwise as :meth:`rasterize`."""
+                        pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False) -> RenderOutput:
+        """:meth:`rasterize` of an image whose row bands ``bands`` = ``[(y0, y1, view_delta, K_b)]`` (rows
+        ``y0 ≤ v < y1``, edges on tile rows) are each seen from ``c2w · E(ξ) · view_delta`` (4, 4 float64) with
+        intrinsics ``K_b`` (3, 3; the image's ``K`` when None), in one pass (:func:`gausslite.render.rasterize_bands`);
+        each band is frustum-culled to its own rows whatever the map size (``frustum_cull``). Arguments otherwise as
+        :meth:`rasterize`."""
         p, means, quats = self._posed(c2w, pose_xi, detach_map)
         cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
-        vms, subsets = [], []
-        for y0, y1, delta in bands:
+        vms, subsets, Ks = [], [], []
+        for y0, y1, delta, Kband in bands:
             vm = torch.linalg.inv(cam @ delta.to(cam.device))
-            Kb = torch.as_tensor(K).clone()
+            Ks.append(torch.as_tensor(K if Kband is None else Kband))
+            Kb = Ks[-1].clone()
             Kb[1, 2] -= y0
             vms.append(vm)
-            subsets.append(self._visible(means, p["log_scales"], vm, Kb, width, y1 - y0, subset, cull))
+            # always culled to the band's rows (whatever the map size): its Gaussians are projected for the whole
+            # image but drawn in its rows only
+            subsets.append(self._visible(means, p["log_scales"], vm, Kb, width, y1 - y0, subset, True))
         return rasterize_bands(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width, height=height,
-            viewmats=vms, rows=[(y0, y1) for y0, y1, _ in bands], subsets=subsets, background=self.background,
+            viewmats=vms, rows=[(b[0], b[1]) for b in bands], subsets=subsets, Ks=Ks, background=self.background,
             backend=self.cfg.backend, num_threads=self.cfg.performance.render_threads,
             cpu_kernel=self.cfg.performance.cpu_kernel, tile_size=TILE_SIZE)
 

@@ -316,6 +316,7 @@ def rasterize_bands(
     viewmats: list,
     rows: list,
     subsets: list | None = None,
+    Ks: list | None = None,
     background=None,
     backend: str = "auto",
     near: float = 0.01,
@@ -344,6 +345,8 @@ def rasterize_bands(
             ``tile_size`` (a tile lies in one band).
         subsets: None or B subsets (each as :func:`rasterize`'s ``subset``: None, (N,) bool or int64 rows), the
             Gaussians each band may draw (a band's frustum culling).
+        Ks: None or B (3, 3) intrinsics, one per band (several views stacked in one image, each with its
+            principal point moved down to its rows); None: ``K`` for every band.
     Returns:
         :class:`RenderOutput` of the image; ``means2d``, ``radii`` and ``ids`` stack the bands' projected rows (a
         Gaussian seen by two bands has two rows).
@@ -352,23 +355,24 @@ def rasterize_bands(
             ``viewmats``, ``rows`` and ``subsets`` of different lengths.
     """
     B = len(viewmats)
-    if B == 0 or len(rows) != B or (subsets is not None and len(subsets) != B):
-        raise ValueError(f"need as many viewmats ({B}), rows ({len(rows)}) and subsets as bands (at least one)")
+    if B == 0 or len(rows) != B or (subsets is not None and len(subsets) != B) or (Ks is not None and len(Ks) != B):
+        raise ValueError(f"need as many viewmats ({B}), rows ({len(rows)}), subsets and Ks as bands (at least one)")
     ends = [0] + [int(r[1]) for r in rows]
     if any(int(r[0]) != ends[b] or int(r[1]) <= int(r[0]) for b, r in enumerate(rows)) or ends[-1] != int(height):
         raise ValueError(f"rows must tile 0..{height} in order, got {list(rows)}")
     if any(int(r[0]) % int(tile_size) for r in rows):
         raise ValueError(f"every band must start on a tile row (multiple of {tile_size}), got {list(rows)}")
     subsets = subsets if subsets is not None else [None] * B
+    Ks = Ks if Ks is not None else [K] * B
     N = _check_params(means, quats, log_scales, opacity_logits, colors)
     device, dtype = means.device, means.dtype
     params = (means, quats, log_scales, opacity_logits, colors)
-    kw = dict(K=K, width=width, height=height, background=background, backend=backend, near=near, far=far,
+    kw = dict(width=width, height=height, background=background, backend=backend, near=near, far=far,
               eps2d=eps2d, tile_size=tile_size, num_threads=num_threads, cpu_kernel=cpu_kernel)
     fast = (_resolve_backend(backend, device) == "warp" and device.type == "cpu"
             and dtype in (torch.float32, torch.float64))
     if B == 1 or not fast:
-        outs = [rasterize(*params, viewmat=vm, subset=sub, **kw) for vm, sub in zip(viewmats, subsets)]
+        outs = [rasterize(*params, K=Kb, viewmat=vm, subset=sub, **kw) for vm, sub, Kb in zip(viewmats, subsets, Ks)]
         if B == 1:
             return outs[0]
         cut = [(o, int(r[0]), int(r[1])) for o, r in zip(outs, rows)]
@@ -387,8 +391,8 @@ def rasterize_bands(
     bg = (torch.zeros(3, dtype=torch.float32) if background is None
           else _as_tensor(background, "background", (3,), device, dtype).to(torch.float32))
     per_band = []
-    for vm, sub, (y0, y1) in zip(viewmats, subsets, rows):
-        K64, vm64 = _camera_tensors(K, None, vm, device, dtype)
+    for vm, sub, (y0, y1), Kb in zip(viewmats, subsets, rows, Ks):
+        K64, vm64 = _camera_tensors(Kb, None, vm, device, dtype)
         ids, (m, q, ls, ol, col) = _gather_subset(sub, N, device, params)
         proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
                                       near=near, far=far, eps2d=eps2d, num_threads=nt)

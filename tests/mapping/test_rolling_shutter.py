@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from gausslite.evaluation import score_view
-from gausslite.mapping.blur import exposure_twist
+from gausslite.mapping.blur import blur_samples, exposure_twist, motion_deltas
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.mapper import Mapper
 from gausslite.mapping.poses import pose_delta
@@ -164,3 +164,38 @@ def test_central_motion_estimate_gives_each_frame_the_motion_around_it():
     np.testing.assert_allclose(got["central"][0][3], fwd01, rtol=1e-9)
     np.testing.assert_allclose(got["central"][1][3], 0.5 * (fwd01 + fwd12), rtol=1e-9)
     np.testing.assert_allclose(got["central"][2][3], fwd12, rtol=1e-9)  # the newest frame: backward until the next
+
+
+def test_blur_samples_and_bands_in_one_pass_equal_their_renders_averaged():
+    """Motion blur and rolling shutter together, in one render: every blur sample's band rows equal the full render
+    from that band's pose in that sample, and the view is the samples' mean; the density statistics get one group."""
+    cfg = MapperConfig(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=20, backend="warp", seed=0,
+                       sensor={"rolling_shutter_s": READOUT, "rs_px_per_band": 0.5, "rs_max_bands": 8,
+                               "motion_blur": True, "blur_exposure_s": 0.05, "blur_px_per_sample": 1.0,
+                               "blur_max_samples": 3})
+    m = Mapper(cfg)
+    for i in range(3):
+        m.map_frame(rolling_shutter_frame(i, 0.005 * i, 0.05, i * 0.1))
+    m.sensor.blur[3] = exposure_twist(plane_frame(2, -0.19, H, W).c2w, 0.2, plane_frame(3, 0.01, H, W).c2w, 0.3,
+                                      m.cfg.sensor.blur_exposure_s)
+    fr = plane_frame(3, 0.01, H, W)
+    K = torch.from_numpy(fr.intrinsics.K).float()
+    c2w = torch.from_numpy(fr.c2w)
+    xi_b = m.sensor.blur[3]
+    n_blur = blur_samples(xi_b, float(K[0, 0]), W, H, 1.0, 3)
+    bands = shutter_bands(fr.intrinsics.K, W, H, xi_b / m.cfg.sensor.blur_exposure_s, m.sensor.rs_norm, 0.5, 8,
+                          align=16)
+    assert n_blur == 3 and len(bands) == 3
+    with torch.no_grad():
+        parts: list = []
+        got = m.sensor.render_view(c2w, K, W, H, 3, None, parts=parts)
+        assert len(parts) == 1 and len(parts[0]) == 1 and parts[0][0].n_bands == n_blur * len(bands)
+        samples = []
+        for k in range(n_blur):
+            rows = []
+            for y0, y1, t in bands:
+                delta = motion_deltas(xi_b, n_blur, t / m.cfg.sensor.blur_exposure_s)[k]
+                rows.append(m.sensor.rasterize(c2w, K, W, H, None, view_delta=delta).color[y0:y1])
+            samples.append(torch.cat(rows))
+    torch.testing.assert_close(got.color, torch.stack(samples).mean(0), atol=1e-5, rtol=0)
+    assert (samples[0] - samples[-1]).abs().max() > 0.05  # the samples see different pixels
