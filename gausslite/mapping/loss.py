@@ -54,7 +54,8 @@ def photometric_loss(
     else:
         if not bool(mask.any()):
             return out.color.sum() * 0.0
-        l1c = (out.color - kf.rgb).abs()[mask].mean()
+        # means over the mask as masked sums (no gather of the masked pixels, and no scatter back in the backward)
+        l1c = ((out.color - kf.rgb).abs() * mask[..., None]).sum() / (3.0 * mask.sum())
         dmask = valid_d & mask
         if not lambda_ssim:
             s = 1.0
@@ -62,7 +63,10 @@ def photometric_loss(
             s = ssim_map(out.color, kf.rgb, reference=True)[mask].mean()
         else:
             s = ssim_mean(out.color, kf.rgb, _gt_ssim_stats(kf, out.color.dtype), mask=mask)
-    l1d = (out.depth - kf.depth).abs()[dmask].mean() if bool(dmask.any()) else out.depth.sum() * 0.0
+    n_d = dmask.sum()
+    # torch.where, not a product: a NaN of an invalid pixel stays out of the sum
+    l1d = (torch.where(dmask, (out.depth - kf.depth).abs(), 0.0).sum() / n_d if bool(n_d > 0)
+           else out.depth.sum() * 0.0)
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
 

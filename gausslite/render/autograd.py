@@ -28,6 +28,14 @@ from .projection import Projection
 _IDATA_COLS = [0, 1, 2, 3, 4, 10, 11, 12]
 
 
+def _wa(t: torch.Tensor, dtype=None):
+    """A launch argument for tensor ``t``: Warp's low-level array descriptor (``wp.from_torch(...,
+    return_ctype=True)``, zero-copy), which a launch takes as it takes a ``wp.array`` for half the Python
+    overhead. Only for kernels with concrete array types: a generic (``Any``) kernel picks its overload from
+    ``wp.array`` arguments."""
+    return wp.from_torch(t, dtype=dtype, return_ctype=True)
+
+
 def default_num_threads() -> int:
     """Default CPU launch parallelism: ``min(2, os.cpu_count())``."""
     return max(1, min(2, os.cpu_count() or 1))
@@ -170,10 +178,10 @@ class RasterizeWarp(torch.autograd.Function):
             T = torch.empty(HW, dtype=torch.float32, device=dev)
             last = torch.empty(HW, dtype=torch.int32, device=dev)
             bg = wp.vec3(*(background.detach().to(torch.float32).cpu().tolist() if composite else (0.0,) * 3))
-            a_g, a_ids = wp.from_torch(gdata), wp.from_torch(gids)
-            a_ts, a_te = wp.from_torch(tile_start), wp.from_torch(tile_end)
-            outs = [wp.from_torch(c4, dtype=wp.vec4), wp.from_torch(A), wp.from_torch(T),
-                    wp.from_torch(last)]
+            a_g, a_ids = _wa(gdata), _wa(gids)
+            a_ts, a_te = _wa(tile_start), _wa(tile_end)
+            outs = [_wa(c4, dtype=wp.vec4), _wa(A), _wa(T),
+                    _wa(last)]
 
             def launch_cpu(s):
                 dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
@@ -225,13 +233,13 @@ class RasterizeWarp(torch.autograd.Function):
             gd = _pixel_grad(g_depth, HW, 1, dev)
             ga = _pixel_grad(g_alpha, HW, 1, dev)
             bufs = torch.zeros(nstripes, M, 10, dtype=torch.float32, device=dev)
-            a_g, a_ids, a_ts = wp.from_torch(gdata), wp.from_torch(gids), wp.from_torch(tile_start)
-            ins = [wp.from_torch(T), wp.from_torch(last), int(ctx.composite), ctx.bg,
-                   wp.from_torch(c4, dtype=wp.vec4), wp.from_torch(A), wp.from_torch(gc),
-                   wp.from_torch(gd), wp.from_torch(ga),
-                   wp.from_torch(torch.empty(HW, 4, dtype=torch.float32, device=dev), dtype=wp.vec4),
-                   wp.from_torch(torch.empty(HW, 2, dtype=torch.float32, device=dev), dtype=wp.vec2)]
-            a_bufs = [wp.from_torch(bufs[s]) for s in range(nstripes)]
+            a_g, a_ids, a_ts = _wa(gdata), _wa(gids), _wa(tile_start)
+            ins = [_wa(T), _wa(last), int(ctx.composite), ctx.bg,
+                   _wa(c4, dtype=wp.vec4), _wa(A), _wa(gc),
+                   _wa(gd), _wa(ga),
+                   _wa(torch.empty(HW, 4, dtype=torch.float32, device=dev), dtype=wp.vec4),
+                   _wa(torch.empty(HW, 2, dtype=torch.float32, device=dev), dtype=wp.vec2)]
+            a_bufs = [_wa(bufs[s]) for s in range(nstripes)]
             bwd_kernel = sk.rasterize_bwd_tile_simd_kernel if ctx.simd else wk.rasterize_bwd_tile_kernel
 
             def launch_cpu(s):
