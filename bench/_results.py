@@ -168,3 +168,13 @@ def write_results(out: Path, module: str, argv: Optional[Sequence[str]], details
     md_path.write_text(portable_text(f"# bench.{module}\n\n`{command_line(module, argv)}`{details}\n\n{md}\n"))
     print(md)
     return md_path
+
+
+def publish(dest: Optional[Path], module: str, argv: Optional[Sequence[str]], md: str, result: dict) -> None:
+    """A bench's output: print ``md`` when ``dest`` is None (a quick run), else :func:`write_results` to ``dest``
+    with the run's minutes (``result["wall_s"]``) after the command line, and say what was written."""
+    if dest is None:
+        print(md)
+        return
+    write_results(dest, module, argv, f" ({result['wall_s'] / 60:.1f} min)", md, result)
+    print(f"wrote {dest} and {Path(dest).with_suffix('.md')}")

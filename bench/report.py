@@ -469,6 +469,29 @@ def throughput_table(r: dict) -> str:
     return table(r) + "\n"
 
 
+def quality_per_iteration_table(r: dict) -> str:
+    """PSNR against iterations, this tree against another commit, paired by seed
+    (``bench/results/quality_per_iteration.json``)."""
+    from bench.quality_per_iteration import table  # lazy: the page's other regions need none of it
+
+    return table(r["summary"]) + "\n"
+
+
+def realtime_protocol_table(r: dict) -> str:
+    """A live run's two tables as ``bench.realtime`` prints them: per mode (iterations per keyframe, Gaussians) and
+    per scoring protocol (``bench/results/realtime_throughput.json``)."""
+    from bench.realtime.tables import protocol_table, table  # lazy: the page's other regions need none of it
+
+    return table(r) + "\n\n" + protocol_table(r) + "\n"
+
+
+def sim_time_table(r: dict) -> str:
+    """The main job's wall time per tree (``bench/results/sim_time.json``)."""
+    from bench.sim_time import table  # lazy: the page's other regions need none of it
+
+    return table(r) + "\n"
+
+
 def compute_sweep_table(r: dict) -> str:
     """The gain per compute cell (``bench/results/compute_sweep*.json``)."""
     from bench.compute_sweep import table  # lazy: the page's other regions need none of it
@@ -990,6 +1013,9 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation-live": Region("bench/results/pose_perturbation_live.json", pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "throughput": Region("bench/results/throughput.json", throughput_table),
+    "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),
+    "sim-time": Region("bench/results/sim_time.json", sim_time_table),
+    "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
     "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
     "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),

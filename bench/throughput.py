@@ -408,19 +408,22 @@ def worker(spec: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ the driver
-def run_worker(tree: Path, spec: dict, timeout_s: float = 3600.0) -> dict:
-    """Run :func:`worker` for ``spec`` in a fresh process whose ``import gausslite`` is ``tree``'s (``PYTHONPATH``),
-    started from an empty folder. Raises RuntimeError when it fails or imported another tree's ``gausslite``."""
+def run_worker(tree: Path, spec: dict, timeout_s: float = 3600.0, script: Path = THIS_FILE,
+               tag: str = RESULT_TAG) -> dict:
+    """Run ``script --worker SPEC`` (default: this file's :func:`worker`) in a fresh process whose ``import
+    gausslite`` is ``tree``'s (``PYTHONPATH``), started from an empty folder; its result is the JSON of the last
+    stdout line that starts with ``tag`` and carries ``gausslite_file``. Raises RuntimeError when it fails or
+    imported another tree's ``gausslite``."""
     env = dict(os.environ, PYTHONPATH=str(tree))
-    with tempfile.TemporaryDirectory(prefix="gausslite-throughput-") as cwd:
-        proc = subprocess.run([sys.executable, "-c", _BOOT, str(THIS_FILE), "--worker", json.dumps(spec)],
+    with tempfile.TemporaryDirectory(prefix="gausslite-worker-") as cwd:
+        proc = subprocess.run([sys.executable, "-c", _BOOT, str(script), "--worker", json.dumps(spec)],
                               cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout_s, check=False)
     if proc.returncode != 0:
-        raise RuntimeError(f"throughput worker failed for {tree} ({spec['name']}):\n{proc.stderr[-4000:]}")
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(RESULT_TAG)]
+        raise RuntimeError(f"{Path(script).stem} worker failed for {tree} ({spec['name']}):\n{proc.stderr[-4000:]}")
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(tag)]
     if not lines:
-        raise RuntimeError(f"throughput worker for {tree} printed no result:\n{proc.stdout[-2000:]}")
-    res = json.loads(lines[-1][len(RESULT_TAG):])
+        raise RuntimeError(f"{Path(script).stem} worker for {tree} printed no result:\n{proc.stdout[-2000:]}")
+    res = json.loads(lines[-1][len(tag):])
     if Path(tree).resolve() not in Path(res["gausslite_file"]).resolve().parents:
         raise RuntimeError(f"the worker for {tree} imported gausslite from {res['gausslite_file']}")
     return res
@@ -625,7 +628,7 @@ def main(argv=None) -> dict:
         res = worker(json.loads(args.worker))
         print(RESULT_TAG + json.dumps(res), flush=True)
         return res
-    from bench._results import portable_path, write_results  # lazy: a worker may run against another tree's bench
+    from bench._results import portable_path, publish  # lazy: a worker may run against another tree's bench
 
     t_start = time.perf_counter()
     scene = QUICK_SCENE if args.quick else FULL_SCENE
@@ -659,12 +662,7 @@ def main(argv=None) -> dict:
     result["load_average"] = {"before": load_before, "after": list(os.getloadavg())}
     result["wall_s"] = time.perf_counter() - t_start
     md = table(result)
-    dest = args.out if args.out is not None else (None if args.quick else RESULTS)
-    if dest is None:
-        print(md)
-    else:
-        write_results(dest, "throughput", argv, f" ({result['wall_s'] / 60:.1f} min)", md, result)
-        print(f"wrote {dest} and {dest.with_suffix('.md')}")
+    publish(args.out if args.out is not None else (None if args.quick else RESULTS), "throughput", argv, md, result)
     return result
 
 
