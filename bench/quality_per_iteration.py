@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import sys
@@ -78,9 +79,19 @@ def _throughput():
     return mod
 
 
+def _finite(xs: list) -> list:
+    """``xs`` without None, NaN and infinities (a region that renders exactly scores an infinite PSNR), as floats."""
+    return [float(x) for x in xs if x is not None and math.isfinite(float(x))]
+
+
 def _mean(xs: list) -> Optional[float]:
-    xs = [x for x in xs if x is not None]
+    xs = _finite(xs)
     return float(sum(xs) / len(xs)) if xs else None
+
+
+def _std(xs: list) -> Optional[float]:
+    xs = _finite(xs)
+    return statistics.stdev(xs) if len(xs) > 1 else None
 
 
 def worker(spec: dict) -> dict:
@@ -149,11 +160,11 @@ def summarise(runs: list[dict]) -> dict:
             for key in ("keyframes", "novel", "roi_keyframes", "roi_novel"):
                 row[f"this_{key}"] = _mean([r["curve"][j][key] for r in this.values()])
                 row[f"that_{key}"] = _mean([r["curve"][j][key] for r in that.values()]) if that else None
-                diffs = [this[s]["curve"][j][key] - that[s]["curve"][j][key] for s in this
-                         if s in that and this[s]["curve"][j][key] is not None
-                         and that[s]["curve"][j][key] is not None]
+                diffs = _finite([this[s]["curve"][j][key] - that[s]["curve"][j][key] for s in this
+                                 if s in that and _finite([this[s]["curve"][j][key], that[s]["curve"][j][key]])
+                                 and len(_finite([this[s]["curve"][j][key], that[s]["curve"][j][key]])) == 2])
                 row[f"diff_{key}"] = _mean(diffs)
-                row[f"diff_{key}_std"] = statistics.stdev(diffs) if len(diffs) > 1 else None
+                row[f"diff_{key}_std"] = _std(diffs)
             rows.append(row)
         out[scene] = rows
     return out

@@ -1016,6 +1016,8 @@ REGIONS: Dict[str, Region] = {
     "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
+    "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
+    "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),
     "team-long": Region("bench/results/team_long.json", team_long_table),
     "team-long-onboard": Region("bench/results/team_long_onboard.json", team_long_table),
     "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),

@@ -53,3 +53,16 @@ def test_the_summary_pairs_runs_by_seed():
     assert row["diff_keyframes"] == pytest.approx(0.25)  # (+1.0 − 0.5) / 2
     assert row["diff_keyframes_std"] == pytest.approx(math.sqrt(((1.0 - 0.25) ** 2 + (-0.5 - 0.25) ** 2) / 1))
     assert row["this_roi_keyframes"] is None and row["diff_roi_keyframes"] is None
+
+
+def test_an_infinite_or_missing_psnr_is_left_out_of_the_means():
+    """A region rendered exactly scores an infinite PSNR: it is left out of the means and differences, which stay
+    finite."""
+    def run(tree, seed, r):
+        return {"tree": tree, "scene": "s", "seed": seed,
+                "curve": [{"iters": 10, "keyframes": 20.0, "novel": 19.0, "roi_keyframes": r, "roi_novel": None}]}
+
+    row = summarise([run("this", 0, float("inf")), run("this", 1, 21.0), run("that", 0, 20.0),
+                     run("that", 1, 20.5)])["s"][0]
+    assert row["this_roi_keyframes"] == pytest.approx(21.0) and row["diff_roi_keyframes"] == pytest.approx(0.5)
+    assert row["diff_roi_keyframes_std"] is None and row["diff_roi_novel"] is None

@@ -26,7 +26,10 @@ EXPECTED = {("README.md", "headline"), ("README.md", "sim-seconds"), ("README.md
             ("docs/sharing.md", "team-long-onboard"), ("docs/sharing.md", "team-long-curve"),
             ("docs/sharing.md", "team-long-reserve"),
             ("docs/sharing.md", "team-long-reserve-between"),
-            ("docs/realtime.md", "compute-sweep-synthetic"),
+            ("docs/realtime.md", "compute-sweep-synthetic"), ("docs/realtime.md", "throughput"),
+            ("docs/realtime.md", "quality-per-iteration"), ("docs/realtime.md", "sim-time"),
+            ("docs/realtime.md", "realtime-throughput"), ("docs/realtime.md", "realtime-governor-t20"),
+            ("docs/realtime.md", "realtime-governor-t30"),
             *(("docs/results.md", name) for name in (
                 "ablation-room0", "ablation-synth", "ablation-room0-seeds", "ablation-room0-recheck",
                 "ablation-room0-noadopt", "long-mission-tum320", "long-mission-synthetic-fp5", "long-mission-tum160",
