@@ -112,6 +112,32 @@ def _camera_tensors(K, c2w, viewmat, device: torch.device, dtype: torch.dtype):
     return K64, vm64
 
 
+def _image_settings(width, height, tile_size: int, cpu_kernel: str, background, device: torch.device,
+                    dtype: torch.dtype) -> tuple[int, int, torch.Tensor]:
+    """``(width, height, bg)``: the image size as ints and the background as a (3,) float32 tensor (black when None).
+
+    Raises:
+        ValueError: width/height or tile_size <= 0, an unknown cpu_kernel, a background not of shape (3,).
+    """
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"width and height must be > 0, got {width}x{height}")
+    if tile_size <= 0:
+        raise ValueError(f"tile_size must be > 0, got {tile_size}")
+    check_cpu_kernel(cpu_kernel)
+    if background is None:
+        return int(width), int(height), torch.zeros(3, dtype=torch.float32, device=device)
+    return int(width), int(height), _as_tensor(background, "background", (3,), device, dtype).to(torch.float32)
+
+
+def _launch_threads(num_threads) -> int:
+    """The warp backend's CPU launch threads: ``num_threads``, or :func:`default_num_threads` when None.
+    Raises ValueError when <= 0."""
+    nt = default_num_threads() if num_threads is None else int(num_threads)
+    if nt <= 0:
+        raise ValueError(f"num_threads must be > 0, got {num_threads}")
+    return nt
+
+
 def _gather_subset(subset, N: int, device: torch.device, params: tuple):
     """``(ids, sel)``: the (M,) int64 rows to render and ``params`` (the five (N, ...) parameter tensors) gathered
     at them; ``subset`` None keeps every row and makes no copy (autograd scatters gradients back into the full
@@ -269,18 +295,9 @@ def rasterize(
     """
     N = _check_params(means, quats, log_scales, opacity_logits, colors)
     device, dtype = means.device, means.dtype
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"width and height must be > 0, got {width}x{height}")
-    width, height = int(width), int(height)
-    if tile_size <= 0:
-        raise ValueError(f"tile_size must be > 0, got {tile_size}")
-    check_cpu_kernel(cpu_kernel)
+    width, height, bg = _image_settings(width, height, tile_size, cpu_kernel, background, device, dtype)
     K64, vm64 = _camera_tensors(K, c2w, viewmat, device, dtype)
     backend = _resolve_backend(backend, device)
-    if background is None:
-        bg = torch.zeros(3, dtype=torch.float32, device=device)
-    else:
-        bg = _as_tensor(background, "background", (3,), device, dtype).to(torch.float32)
     ids, (m, q, ls, ol, col) = _gather_subset(subset, N, device, (means, quats, log_scales, opacity_logits, colors))
 
     if backend == "gsplat":
@@ -289,11 +306,7 @@ def rasterize(
             near=near, far=far, eps2d=eps2d, tile_size=tile_size,
         )
     else:
-        nt = None
-        if backend == "warp":
-            nt = default_num_threads() if num_threads is None else int(num_threads)
-            if nt <= 0:
-                raise ValueError(f"num_threads must be > 0, got {num_threads}")
+        nt = _launch_threads(num_threads) if backend == "warp" else None
         kw = dict(near=near, far=far, eps2d=eps2d, tile_size=tile_size, nt=nt, cpu_kernel=cpu_kernel)
         if backend == "warp" and device.type == "cpu" and dtype in (torch.float32, torch.float64):
             return _rasterize_warp_cpu(m, q, ls, ol, col, vm64, K64, width, height, bg=bg, ids=ids, **kw)
@@ -381,15 +394,8 @@ def rasterize_bands(
                             alpha=torch.cat([o.alpha[a:b] for o, a, b in cut]),
                             means2d=torch.cat([o.means2d for o in outs]), radii=torch.cat([o.radii for o in outs]),
                             ids=torch.cat([o.ids for o in outs]), n_bands=B)
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"width and height must be > 0, got {width}x{height}")
-    width, height = int(width), int(height)
-    check_cpu_kernel(cpu_kernel)
-    nt = default_num_threads() if num_threads is None else int(num_threads)
-    if nt <= 0:
-        raise ValueError(f"num_threads must be > 0, got {num_threads}")
-    bg = (torch.zeros(3, dtype=torch.float32) if background is None
-          else _as_tensor(background, "background", (3,), device, dtype).to(torch.float32))
+    width, height, bg = _image_settings(width, height, tile_size, cpu_kernel, background, device, dtype)
+    nt = _launch_threads(num_threads)
     per_band = []
     for vm, sub, (y0, y1), Kb in zip(viewmats, subsets, rows, Ks):
         K64, vm64 = _camera_tensors(Kb, None, vm, device, dtype)

@@ -6,25 +6,19 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 
 import pytest
 
 from bench.quality_per_iteration import main, summarise
 
+from tests._git import has_git
+
 pytestmark = pytest.mark.integration
-
-
-def _has_git() -> bool:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, timeout=30).returncode == 0
-    except (OSError, subprocess.SubprocessError):
-        return False
 
 
 def test_quick_run_writes_curves_for_both_trees(tmp_path):
     out = tmp_path / "q.json"
-    against = ["--against", "HEAD"] if _has_git() else []
+    against = ["--against", "HEAD"] if has_git() else []
     main(["--quick", "--work", str(tmp_path / "work"), "--out", str(out), *against])
     res = json.loads(out.read_text())
     assert res["provenance"]["command"].startswith("python -m bench.quality_per_iteration --quick")

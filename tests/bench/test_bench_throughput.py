@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ import pytest
 from bench.rasterizer import make_scene
 from bench.throughput import FWD_FLOPS, BWD_FLOPS, count_pairs, main
 from gausslite.render import rasterize
+from tests._git import has_git
 
 pytestmark = pytest.mark.integration
 
@@ -71,16 +71,9 @@ def _positive(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
-def _has_git() -> bool:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, timeout=30).returncode == 0
-    except (OSError, subprocess.SubprocessError):
-        return False
-
-
 def test_quick_run_writes_both_trees_and_the_roofline(tmp_path):
     out = tmp_path / "throughput.json"
-    against = ["--against", "HEAD", "--cases", "1k_64x48,keyframe_agent"] if _has_git() else []
+    against = ["--against", "HEAD", "--cases", "1k_64x48,keyframe_agent"] if has_git() else []
     main(["--quick", "--work", str(tmp_path / "work"), "--out", str(out), *against])
     res = json.loads(out.read_text())
     assert res["provenance"]["command"].startswith("python -m bench.throughput --quick")
