@@ -245,7 +245,7 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from bench._results import portable_path, publish
-    from bench.throughput import _git, run_worker, worktree
+    from bench.throughput import git, run_worker, worktree
 
     t_start = time.perf_counter()
     scenes = QUICK_SCENES if args.quick else SCENES
@@ -282,7 +282,7 @@ def main(argv=None) -> dict:
                            "withhold_every": WITHHOLD_EVERY,
                            "scenes": {k: {"kind": v[0], "frames": v[1], "downscale": v[2], "task": v[3]}
                                       for k, v in scenes.items()}},
-              "trees": {"this": {"commit": _git("rev-parse", "HEAD")},
+              "trees": {"this": {"commit": git("rev-parse", "HEAD")},
                         "that": None if other is None else {"ref": args.against, "commit": other[1]}},
               "runs": [{k: v for k, v in r.items() if k != "gausslite_file"} | {"gausslite_file": portable_path(
                   Path(r["gausslite_file"]))} for r in runs],

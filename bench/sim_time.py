@@ -109,7 +109,7 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from bench._results import publish
-    from bench.throughput import _git, worktree
+    from bench.throughput import git, worktree
 
     overrides = QUICK_SET if args.quick else []
     t_start = time.perf_counter()
@@ -131,7 +131,7 @@ def main(argv=None) -> dict:
     summary = {t: {"wall_s": _median([r["wall_s"] for r in runs if r["tree"] == t and r["returncode"] == 0]) or
                    float("nan"), "import_s": imports[t]} for t in trees}
     result = {"settings": {"quick": args.quick, "rounds": args.rounds, "overrides": overrides},
-              "trees": {"this": {"commit": _git("rev-parse", "HEAD")}} | (
+              "trees": {"this": {"commit": git("rev-parse", "HEAD")}} | (
                   {} if other is None else {"that": {"ref": args.against, "commit": other[1]}}),
               "runs": runs, "summary": summary, "wall_s": time.perf_counter() - t_start}
     if other is not None:

@@ -429,7 +429,7 @@ def run_worker(tree: Path, spec: dict, timeout_s: float = 3600.0, script: Path =
     return res
 
 
-def _git(*args: str, cwd: Path = REPO) -> str:
+def git(*args: str, cwd: Path = REPO) -> str:
     """``git ARGS`` in ``cwd``: its stdout, stripped. Raises CalledProcessError when git fails."""
     out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, check=True, timeout=120)
     return out.stdout.strip()
@@ -438,10 +438,10 @@ def _git(*args: str, cwd: Path = REPO) -> str:
 @contextmanager
 def worktree(commit: str) -> Iterator[tuple[Path, str]]:
     """``(folder, full commit hash)`` of a ``git worktree`` of ``commit`` in a temporary folder, removed on exit."""
-    sha = _git("rev-parse", "--verify", f"{commit}^{{commit}}")
+    sha = git("rev-parse", "--verify", f"{commit}^{{commit}}")
     parent = Path(tempfile.mkdtemp(prefix="gausslite-against-"))
     path = parent / "tree"
-    _git("worktree", "add", "--detach", str(path), sha)
+    git("worktree", "add", "--detach", str(path), sha)
     try:
         yield path, sha
     finally:
@@ -645,7 +645,7 @@ def main(argv=None) -> dict:
                      "repeats": specs[0]["repeats"], "rounds": args.rounds, "warmup_iters": args.warmup,
                      "keyframes": specs[0]["keyframes"], "scene": {**scene, "fps": specs[0]["fps"], "task": TASK,
                                                                      "path": portable_path(scene_dir)}},
-        "trees": {"this": {"commit": _git("rev-parse", "HEAD"), "dirty": bool(_git("status", "--porcelain",
+        "trees": {"this": {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain",
                                                                                   "--untracked-files=no"))},
                   "that": None if other is None else {"ref": args.against, "commit": other[1]}},
         "roofline": roofline, "cases": {}}

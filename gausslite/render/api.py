@@ -316,6 +316,17 @@ def rasterize(
     out_dt = dtype if (backend == "torch" and dtype == torch.float64) else torch.float32
     return _composite_output(color_raw, depth_sum, alpha, bg, out_dt, means2d, radii, ids)
 
+def _stack_bands(outs: list, rows: list) -> RenderOutput:
+    """One image of full renders ``outs``, one per band: band b's rows ``rows[b]`` of ``outs[b]`` stacked, and the
+    renders' projected rows stacked (:func:`rasterize_bands`' one-by-one path)."""
+    cut = [(o, int(r[0]), int(r[1])) for o, r in zip(outs, rows)]
+    return RenderOutput(color=torch.cat([o.color[a:b] for o, a, b in cut]),
+                        depth=torch.cat([o.depth[a:b] for o, a, b in cut]),
+                        alpha=torch.cat([o.alpha[a:b] for o, a, b in cut]),
+                        means2d=torch.cat([o.means2d for o in outs]), radii=torch.cat([o.radii for o in outs]),
+                        ids=torch.cat([o.ids for o in outs]), n_bands=len(outs))
+
+
 def rasterize_bands(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -386,14 +397,7 @@ def rasterize_bands(
             and dtype in (torch.float32, torch.float64))
     if B == 1 or not fast:
         outs = [rasterize(*params, K=Kb, viewmat=vm, subset=sub, **kw) for vm, sub, Kb in zip(viewmats, subsets, Ks)]
-        if B == 1:
-            return outs[0]
-        cut = [(o, int(r[0]), int(r[1])) for o, r in zip(outs, rows)]
-        return RenderOutput(color=torch.cat([o.color[a:b] for o, a, b in cut]),
-                            depth=torch.cat([o.depth[a:b] for o, a, b in cut]),
-                            alpha=torch.cat([o.alpha[a:b] for o, a, b in cut]),
-                            means2d=torch.cat([o.means2d for o in outs]), radii=torch.cat([o.radii for o in outs]),
-                            ids=torch.cat([o.ids for o in outs]), n_bands=B)
+        return outs[0] if B == 1 else _stack_bands(outs, rows)
     width, height, bg = _image_settings(width, height, tile_size, cpu_kernel, background, device, dtype)
     nt = _launch_threads(num_threads)
     per_band = []
