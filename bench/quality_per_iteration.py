@@ -109,16 +109,14 @@ def worker(spec: dict) -> dict:
     from gausslite.pipeline import gt_roi_fn
 
     torch.set_num_threads(1)
-    profile = HANDHELD if spec["kind"] == "tum" else RENDERED
+    name, profile = ("handheld", HANDHELD) if spec["kind"] == "tum" else ("rendered", RENDERED)
     ds = load_dataset(spec["path"], downscale=spec["downscale"], max_frames=spec["frames"], **profile.loader)
     roi = gt_roi_fn(ds, spec["task"])
     ipf = int(spec["iters_per_frame"])
     tp = _throughput()
-    base = tp.mapper_config("handheld" if spec["kind"] == "tum" else "rendered", [])
     # the mapped frames' iterations: ipf, the full-image warm-up at most all of them
-    cfg = tp.mapper_config("handheld" if spec["kind"] == "tum" else "rendered", [],
-                           {"mode": "gausslite", "seed": int(spec["seed"]), "iters_per_frame": ipf,
-                            "warmup_iters": min(int(base.warmup_iters), ipf)})
+    cfg = tp.mapper_config(name, [], {"mode": "gausslite", "seed": int(spec["seed"]), "iters_per_frame": ipf,
+                                      "warmup_iters": min(int(tp.mapper_config(name, []).warmup_iters), ipf)})
     n = min(len(ds), int(spec["frames"]))
     train = [i for i in range(n) if i % WITHHOLD_EVERY != WITHHOLD_EVERY - 1]
     test = [i for i in range(n) if i % WITHHOLD_EVERY == WITHHOLD_EVERY - 1]

@@ -10,9 +10,9 @@ Each run is ``python -m gausslite.cli sim --out DIR [--set ...]`` in a fresh pro
 tree's ``services``), so the sim's own service processes (``python -m gausslite.cli serve ...``) import that tree too.
 The trees alternate run by run (this, that, this, that ...) so that drift of the machine falls on both. Timed: the
 wall seconds of the whole command, the embedded scene's generation included (each run writes a fresh folder), and
-the import of the agent service's module in a fresh process (``python -c "import gausslite_services.agent.server"``,
-the start-up each service process pays: torch, Warp, Open3D). The report's own mapping figures are read from its
-``report.json`` when present (``agents``: frames mapped and iterations per frame).
+the import of the agent service's module in a fresh process (``python -c "import gausslite_services.agent.server"``:
+what a service process pays before its own start-up; the libraries that module imports lazily are not in it). Each
+run records the top-level keys of the sim's ``report.json`` (``report_keys``: that the sim wrote its report).
 
 Output: a table (printed) and, in full mode or with ``--out``, JSON through :mod:`bench._results`: ``settings``,
 ``trees`` and ``runs`` (tree, ``wall_s``, ``import_s``, ``returncode``), ``summary`` (per tree the median wall and
@@ -51,7 +51,8 @@ def tree_env(tree: Path, shim: Path) -> dict:
 
 
 def run_sim(tree: Path, out: Path, overrides: list, timeout_s: float, shim: Path) -> dict:
-    """One timed ``gausslite sim --out out`` with ``tree``'s code: wall seconds, return code, the report's agents."""
+    """One timed ``gausslite sim --out out`` with ``tree``'s code: wall seconds, return code, the report's top-level
+    keys (and the end of stderr when it failed)."""
     env = tree_env(tree, shim)
     cmd = [sys.executable, "-m", "gausslite.cli", "sim", "--out", str(out)]
     for o in overrides:
@@ -138,8 +139,9 @@ def main(argv=None) -> dict:
         result["ratio"] = summary["that"]["wall_s"] / summary["this"]["wall_s"]
     md = table(result)
     publish(args.out if args.out is not None else (None if args.quick else RESULTS), "sim_time", argv, md, result)
-    if any(r["returncode"] != 0 for r in runs):
-        raise SystemExit(f"{sum(r['returncode'] != 0 for r in runs)} sim(s) failed: {runs[-1].get('stderr_tail', '')}")
+    failed = [r for r in runs if r["returncode"] != 0]
+    if failed:
+        raise SystemExit(f"{len(failed)} sim(s) failed; the first: {failed[0].get('stderr_tail', '')}")
     return result
 
 

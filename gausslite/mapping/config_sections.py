@@ -386,7 +386,8 @@ class PerformanceConfig(StrictModel):
         "the map size (frustum_cull_min applies to full-image renders): a crop sees a small part of the map"
     )
     bands_in_one_pass: bool = Field(
-        True, description="rolling shutter: render a view's row bands (each from its own readout pose) in one "
-        "compositing and backward pass (gausslite.render.rasterize_bands), their edges on the rasterizer's "
-        "16-row tiles; False = one render per band at any row (docs/realtime.md, 'Mapping throughput')"
+        True, description="motion blur and rolling shutter: render a view's blur samples and row bands (each from "
+        "its own pose) in one compositing and backward pass (gausslite.render.rasterize_bands), the band edges on "
+        "the rasterizer's 16-row tiles; False = one render per blur sample and band, bands at any row "
+        "(docs/mapper.md, 'One render per view')"
     )

@@ -253,8 +253,9 @@ class Mapper:
 
         Args:
             new_c2w: frame id → (4, 4) camera-to-world pose (float, metres; a rigid transform, rounding off SE(3)
-                projected away: :func:`~gausslite.mapping.poses.correction_moves`) of mapped frames (:meth:`keyframe_poses` gives their poses now). Frames whose pose is unchanged
-                (to 1e-12) are left alone.
+                projected away: :func:`~gausslite.mapping.poses.correction_moves`) of mapped frames
+                (:meth:`keyframe_poses` gives their poses now). Frames whose pose is unchanged (to 1e-12) are left
+                alone.
         Returns:
             the number of Gaussians moved.
         Raises:

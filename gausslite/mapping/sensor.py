@@ -126,8 +126,8 @@ class SensorRenderer:
 
         The screen-space data (means2d, radii, ids) are the middle render's. ``parts``: a list that receives
         the renders as groups, one group per blur sample holding its bands, or one group holding the one-pass
-        render (nothing when the view is rendered as one sharp image), for density statistics (:meth:`DensityStrategy.accumulate
-        <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
+        render (nothing when the view is rendered as one sharp image), for density statistics
+        (:meth:`DensityStrategy.accumulate <gausslite.mapping.strategy.DensityStrategy.accumulate>`).
         """
         sc = self.cfg.sensor
         rs = sc.rolling_shutter_s > 0 and self.rs_norm > 0
@@ -224,15 +224,15 @@ class SensorRenderer:
                         pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False) -> RenderOutput:
         """:meth:`rasterize` of an image whose row bands ``bands`` = ``[(y0, y1, view_delta, K_b)]`` (rows
         ``y0 ≤ v < y1``, edges on tile rows) are each seen from ``c2w · E(ξ) · view_delta`` (4, 4 float64) with
-        intrinsics ``K_b`` (3, 3; the image's ``K`` when None), in one pass (:func:`gausslite.render.rasterize_bands`);
-        each band is frustum-culled to its own rows whatever the map size (``frustum_cull``). Arguments otherwise as
+        intrinsics ``K_b`` (3, 3), in one pass (:func:`gausslite.render.rasterize_bands`); each band is
+        frustum-culled to its own rows whatever the map size (``frustum_cull``). Arguments otherwise as
         :meth:`rasterize`."""
         p, means, quats = self._posed(c2w, pose_xi, detach_map)
         cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
         vms, subsets, Ks = [], [], []
         for y0, y1, delta, Kband in bands:
             vm = torch.linalg.inv(cam @ delta.to(cam.device))
-            Ks.append(torch.as_tensor(K if Kband is None else Kband))
+            Ks.append(torch.as_tensor(Kband))
             Kb = Ks[-1].clone()
             Kb[1, 2] -= y0
             vms.append(vm)

@@ -10,7 +10,7 @@ import torch
 from .autograd import RasterizeWarp, default_num_threads, project_gaussians_warp
 from .binning import bin_gaussians
 from .gsplat_backend import gsplat_available, rasterize_gsplat
-from .projection import project_gaussians
+from .projection import Projection, project_gaussians
 from .reference import rasterize_reference
 from .simd_kernels import check_cpu_kernel
 
@@ -173,15 +173,24 @@ def _rasterize_warp_cpu(m, q, ls, ol, col, vm64, K64, width, height, *, near, fa
     dtype = m.dtype
     proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
                                   near=near, far=far, eps2d=eps2d, num_threads=nt)
+    return _composite_warp_cpu(proj, ol, col, ids, width, height, tile_size, nt, bg, cpu_kernel)
+
+
+def _composite_warp_cpu(proj: Projection, ol, col, ids, width: int, height: int, tile_size: int, nt: int, bg,
+                        cpu_kernel: str, tile_rows: torch.Tensor | None = None, n_bands: int = 1) -> RenderOutput:
+    """Bin the projected rows ``proj`` (to their ``tile_rows`` when given: :func:`rasterize_bands`) and composite
+    them with the Warp kernels over the background ``bg``; ``ol``, ``col``, ``ids``: the rows' opacity logits,
+    colours and Gaussian indices. ``proj.means2d`` keeps its gradient (density statistics)."""
     means2d, radii = proj.means2d, proj.radii
     if torch.is_grad_enabled() and means2d.requires_grad:
         means2d.retain_grad()
-    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt)
+    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt, tile_rows=tile_rows)
     color, depth, alpha = RasterizeWarp.apply(
         means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
         bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
     )
-    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii, ids=ids)
+    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii, ids=ids,
+                        n_bands=n_bands)
 
 
 def _rasterize_raw(m, q, ls, ol, col, vm64, K64, width, height, *, backend, near, far, eps2d, tile_size, nt,
@@ -316,6 +325,7 @@ def rasterize(
     out_dt = dtype if (backend == "torch" and dtype == torch.float64) else torch.float32
     return _composite_output(color_raw, depth_sum, alpha, bg, out_dt, means2d, radii, ids)
 
+
 def _stack_bands(outs: list, rows: list) -> RenderOutput:
     """One image of full renders ``outs``, one per band: band b's rows ``rows[b]`` of ``outs[b]`` stacked, and the
     renders' projected rows stacked (:func:`rasterize_bands`' one-by-one path)."""
@@ -352,7 +362,7 @@ def rasterize_bands(
 ) -> RenderOutput:
     """One image whose row bands are each seen from their own pose (a rolling shutter: each band of rows is read
     out at its own time, :mod:`gausslite.mapping.shutter`), rendered in one pass: rows ``rows[b] = (y0, y1)`` are
-    the rows of :func:`rasterize` from ``viewmats[b]``, with the image's own intrinsics and size.
+    the rows of :func:`rasterize` from ``viewmats[b]``, with the image's size and intrinsics (``Ks[b]`` when given).
 
     The bands' Gaussians are projected pose by pose and composited together: the projected rows of every band are
     stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
@@ -408,20 +418,10 @@ def rasterize_bands(
                                       near=near, far=far, eps2d=eps2d, num_threads=nt)
         band = torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size], dtype=torch.int32)
         per_band.append((ids, ol, col, proj, band.expand(len(ids), 2)))
-    ids = torch.cat([b[0] for b in per_band])
-    ol, col = torch.cat([b[1] for b in per_band]), torch.cat([b[2] for b in per_band])
-    means2d = torch.cat([b[3].means2d for b in per_band])
-    conics, depths = torch.cat([b[3].conics for b in per_band]), torch.cat([b[3].depths for b in per_band])
-    radii = torch.cat([b[3].radii for b in per_band])
-    if torch.is_grad_enabled() and means2d.requires_grad:
-        means2d.retain_grad()
-    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size, num_threads=nt,
-                         tile_rows=torch.cat([b[4] for b in per_band]))
-    color, depth, alpha = RasterizeWarp.apply(
-        means2d, conics, ol, col, depths, bins.gids, bins.tile_start, bins.tile_end, width, height, tile_size,
-        bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
-    )
-    return RenderOutput(color=color, depth=depth, alpha=alpha, means2d=means2d, radii=radii, ids=ids, n_bands=B)
+    proj = Projection(*(torch.cat([getattr(b[3], f) for b in per_band]) for f in Projection._fields))
+    return _composite_warp_cpu(proj, torch.cat([b[1] for b in per_band]), torch.cat([b[2] for b in per_band]),
+                               torch.cat([b[0] for b in per_band]), width, height, tile_size, nt, bg, cpu_kernel,
+                               tile_rows=torch.cat([b[4] for b in per_band]), n_bands=B)
 
 
 def blend_weights(

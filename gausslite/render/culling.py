@@ -36,8 +36,8 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
         outside the padded frustum or wholly nearer than ``near`` / farther than ``far``.
 
     On CPU with float32 parameters one Warp launch tests the six planes per Gaussian
-    (:func:`gausslite.render.warp_kernels.frustum_cull_kernel`, 30–60× faster than the torch ops at 15k
-    Gaussians); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
+    (:func:`gausslite.render.warp_kernels.frustum_cull_kernel`; measured about 3× faster than the torch ops
+    at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
     """
     if (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
             and len(means) > 0):

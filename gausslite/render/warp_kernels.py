@@ -135,8 +135,9 @@ def run_parallel(fns) -> None:
             f.result()
 
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bin_count_kernel", "frustum_cull_kernel",
-           "bin_scatter_kernel", "bwd_tile_init", "ensure_loaded", "ensure_module_loaded", "pack_gdata_kernel",
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bin_count_kernel",
+           "bin_scatter_kernel", "bwd_tile_init", "ensure_loaded", "ensure_module_loaded", "frustum_cull_kernel",
+           "pack_gdata_kernel",
            "project_bwd_kernel", "project_fwd_kernel", "rasterize_bwd_kernel", "rasterize_bwd_tile_kernel",
            "rasterize_fwd_kernel", "rasterize_fwd_tile_kernel", "run_parallel", "tile_box", "unpack_grads_kernel",
            "vec5i"]
