@@ -16,7 +16,10 @@ Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
   exposure changes, blur and rolling shutter; ``bench.sensor_calibration``), robot A, 525 frames at 320×240;
 - ``synthetic_walk_covered``: the same walk with the lens covered for 30 frames (2 s, black and without depth) halfway
   round its first loop, while the camera keeps walking (:func:`covered`): the tracker loses those frames and must
-  re-localise.
+  re-localise;
+- ``synthetic_scan_walk_tum``: the ``tum`` walk looking around as it goes (``--trajectory scan_walk``: roll, pitch
+  and yaw sweeps that turn the camera at TUM fr1/rpy's median rate, about 52°/s against the walk's 17°/s), robot A,
+  525 frames at 320×240.
 
 Measured: ATE RMSE after rigid (SE(3), no scale) alignment to the reference poses, as the TUM benchmark's
 ``evaluate_ate.py``, of the poses as each frame was tracked (``ate_online_m``: what a live robot has at that moment)
@@ -81,7 +84,7 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             "open3d_huber": {"intensity_huber_delta": 0.1}, "photometric": {"method": "color"},
             "geometric": {"method": "point_to_plane"}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered",
-             "synthetic_walk_tum")
+             "synthetic_walk_tum", "synthetic_scan_walk_tum")
 #: a loop closure whose relative pose is further than this from the reference's is a false loop (metres, degrees)
 FALSE_LOOP = (0.05, 3.0)
 
@@ -104,11 +107,13 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
                           interpolate_poses=True, align_depth_time=False, pose_source="given")
     elif name == "room0":
         ds = load_dataset(SHARED / "Replica_room0", downscale=4, pose_source="given")
-    elif name.startswith("synthetic_walk"):
-        level = "tum" if name == "synthetic_walk_tum" else "realistic"
+    elif name.startswith(("synthetic_walk", "synthetic_scan_walk")):
+        level = "tum" if name.endswith("_tum") else "realistic"
+        kind = "scan_walk" if name.startswith("synthetic_scan_walk") else "walk"
         scene = work / ("walk" if level == "realistic" else f"walk_{level}")  # as bench.sensor_calibration names it
+        scene = scene.with_name(scene.name.replace("walk", kind, 1))
         if not (scene / "agent_a" / "traj.txt").is_file():
-            make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory="walk",
+            make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory=kind,
                        sensor_noise=level, agents=("agent_a",))
         ds = load_dataset(scene / "agent_a", pose_source="given")
         frames = [ds[i] for i in range(len(ds))]

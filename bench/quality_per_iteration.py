@@ -4,11 +4,13 @@ Usage::
 
     python -m bench.quality_per_iteration --against 43a6a8d          # 2 scenes × 3 seeds × 2 trees: bench/results/...
     python -m bench.quality_per_iteration --quick                    # one tiny run per tree, prints only
+    python -m bench.quality_per_iteration --against HEAD --set densify.split=axis --out F.json  # a setting's effect
 
 A faster mapper must not buy its speed with a worse iteration: each iteration of this tree should leave the map as
 good as one of the other. **Protocol.** Each run maps a scene offline with the live agent's mapper settings under the
 scene's sensor profile (as :mod:`bench.throughput` configures them, mode ``gausslite``, one render thread, seeded),
-``--iters-per-frame`` iterations per frame on the training frames (the agent's 10 full-image warm-up iterations at
+``--iters-per-frame`` iterations per frame on the training frames (``--set KEY=VALUE``: mapper settings of this
+tree's runs only) (the agent's 10 full-image warm-up iterations at
 most all of them: at the default 10, each mapped frame gets full-image iterations only, and the task region its
 ROI-phase iterations in the optimisation that follows) (every 5th frame withheld), then keeps optimising
 over its keyframes (``Mapper.optimize(n_iters=...)``) and scores the map at each checkpoint of ``--checkpoints``
@@ -115,8 +117,9 @@ def worker(spec: dict) -> dict:
     ipf = int(spec["iters_per_frame"])
     tp = _throughput()
     # the mapped frames' iterations: ipf, the full-image warm-up at most all of them
-    cfg = tp.mapper_config(name, [], {"mode": "gausslite", "seed": int(spec["seed"]), "iters_per_frame": ipf,
-                                      "warmup_iters": min(int(tp.mapper_config(name, []).warmup_iters), ipf)})
+    sets = list(spec.get("overrides", []))
+    cfg = tp.mapper_config(name, sets, {"mode": "gausslite", "seed": int(spec["seed"]), "iters_per_frame": ipf,
+                                        "warmup_iters": min(int(tp.mapper_config(name, sets).warmup_iters), ipf)})
     n = min(len(ds), int(spec["frames"]))
     train = [i for i in range(n) if i % WITHHOLD_EVERY != WITHHOLD_EVERY - 1]
     test = [i for i in range(n) if i % WITHHOLD_EVERY == WITHHOLD_EVERY - 1]
@@ -227,6 +230,9 @@ def _parse(argv) -> argparse.Namespace:
     ap.add_argument("--iters-per-frame", type=int, default=10, help="iterations per mapped frame (quick: 3)")
     ap.add_argument("--checkpoints", default="100,300,600",
                     help="further iterations after mapping at which the map is scored (quick: 10)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="a mapper setting for this tree's runs only (e.g. densify.split=axis; repeatable): with "
+                         "--against HEAD, the setting against the committed default")
     ap.add_argument("--work", type=Path, default=WORK, help="where the synthetic scene is generated once")
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} unless --quick)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
@@ -269,7 +275,8 @@ def main(argv=None) -> dict:
         trees = {"this": REPO} if other is None else {"this": REPO, "that": other[0]}
         jobs = [(s, t) for s in specs for t in trees]
         for spec, t in tqdm(jobs, desc="bench.quality_per_iteration", unit="run"):
-            res = run_worker(trees[t], spec, script=THIS_FILE, tag=RESULT_TAG)
+            res = run_worker(trees[t], spec | ({"overrides": args.overrides} if t == "this" else {}),
+                             script=THIS_FILE, tag=RESULT_TAG)
             res["tree"] = t
             runs.append(res)
             last = res["curve"][-1]
@@ -277,6 +284,7 @@ def main(argv=None) -> dict:
                        f"novel {last['novel']:.2f} dB ({res['seconds']:.0f} s)")
     summary = summarise(runs)
     result = {"settings": {"quick": args.quick, "seeds": seeds, "iters_per_frame": ipf, "checkpoints": checkpoints,
+                           "overrides_this": args.overrides,
                            "withhold_every": WITHHOLD_EVERY,
                            "scenes": {k: {"kind": v[0], "frames": v[1], "downscale": v[2], "task": v[3]}
                                       for k, v in scenes.items()}},

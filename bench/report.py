@@ -492,6 +492,13 @@ def sim_time_table(r: dict) -> str:
     return table(r) + "\n"
 
 
+def sensor_calibration_table(r: dict) -> str:
+    """Every statistic of TUM fr1/rpy against the synthetic walks' (``bench/results/sensor_calibration.json``)."""
+    from bench.sensor_calibration import table  # lazy: the page's other regions need none of it
+
+    return table(r["statistics"]) + "\n"
+
+
 def compute_sweep_table(r: dict) -> str:
     """The gain per compute cell (``bench/results/compute_sweep*.json``)."""
     from bench.compute_sweep import table  # lazy: the page's other regions need none of it
@@ -1015,6 +1022,12 @@ REGIONS: Dict[str, Region] = {
     "throughput": Region("bench/results/throughput.json", throughput_table),
     "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
+    "sensor-calibration": Region("bench/results/sensor_calibration.json", sensor_calibration_table),
+    "quality-split-axis": Region("bench/results/quality_split_axis.json", quality_per_iteration_table),
+    "realtime-split-sample": Region("bench/results/realtime_split_sample.json", realtime_protocol_table),
+    "realtime-split-axis": Region("bench/results/realtime_split_axis.json", realtime_protocol_table),
+    "realtime-region-05": Region("bench/results/realtime_region_05.json", realtime_protocol_table),
+    "realtime-region-43a6a8d-15": Region("bench/results/realtime_region_43a6a8d_15.json", realtime_protocol_table),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
     "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),

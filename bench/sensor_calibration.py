@@ -45,6 +45,11 @@ alone (:data:`STATS`), so TUM and the walk are measured by the same code:
 - ``rolling_shutter`` (read from ``bench/results/rolling_shutter.json``, ``python -m bench.rolling_shutter``): the
   colour readout time that best warps TUM frames into each other.
 
+The **scan walk** (``--scan-walk``, ``make_scene(trajectory="scan_walk")``) is the same walk at the ``tum`` level,
+looking around as it goes: roll, pitch and yaw sweeps turn it at TUM fr1/rpy's median rate (about 52°/s, against the
+walk's 17°/s), so that the effects that grow with the motion (the depth's delay, the rolling shutters, the blur) act
+on it as hard as on TUM.
+
 And what the sensor does to tracking: ``bench.odometry``'s tracking (default ``OdometryConfig``) of TUM from each
 start frame of ``--starts`` and of the walk at each level for each seed of ``--seeds`` (the seed changes the scene,
 the path's jitter and the sensor's noise), the ATE's mean and standard deviation over the runs.
@@ -55,7 +60,7 @@ Prints the comparison table and the model's parameters against the values fitted
 Usage::
 
     python -m bench.sensor_calibration [--levels tum,realistic] [--walk-frames 525] [--fast-walk-frames 90]
-                                       [--seeds 0,1,2] [--starts 0,1,2] [--no-odometry] [--work DIR]
+                                       [--scan-walk all|motion|] [--seeds 0,1,2] [--starts 0,1,2] [--no-odometry] [--work DIR]
                                        [--out bench/results/sensor_calibration.json]
 """
 
@@ -506,19 +511,21 @@ def tum_frames(path: Path) -> list:
     return [ds[i] for i in tqdm(range(len(ds)), desc="read TUM", unit="frame", leave=False)]
 
 
-def walk_dir(work: Path, level: str, seed: int = 0) -> Path:
-    """The folder of the synthetic walk with sensor level ``level`` and seed ``seed`` under ``work`` (seed 0:
-    ``walk`` for ``realistic``, as ``bench.odometry`` names it, else ``walk_<level>``; ``_seed<seed>`` added for
-    another seed)."""
-    return work / (("walk" if level == "realistic" else f"walk_{level}") + (f"_seed{seed}" if seed else ""))
+def walk_dir(work: Path, level: str, seed: int = 0, trajectory: str = "walk") -> Path:
+    """The folder of the synthetic walk (``trajectory``: ``walk`` or ``scan_walk``) with sensor level ``level`` and
+    seed ``seed`` under ``work`` (seed 0: ``walk`` for ``realistic``, as ``bench.odometry`` names it, else
+    ``walk_<level>``, ``walk`` replaced by the trajectory's name; ``_seed<seed>`` added for another seed)."""
+    name = "walk" if level == "realistic" else f"walk_{level}"
+    return work / (name.replace("walk", trajectory, 1) + (f"_seed{seed}" if seed else ""))
 
 
-def walk_frames(work: Path, level: str, frames: int, size: tuple, seed: int = 0, name: Optional[str] = None) -> list:
-    """Robot A's frames of the synthetic walk with sensor level ``level`` and seed ``seed`` (rendered into
-    ``work / name``, by default :func:`walk_dir`, unless it is there)."""
-    scene = work / name if name else walk_dir(work, level, seed)
+def walk_frames(work: Path, level: str, frames: int, size: tuple, seed: int = 0, name: Optional[str] = None,
+                trajectory: str = "walk") -> list:
+    """Robot A's frames of the synthetic walk (``trajectory``) with sensor level ``level`` and seed ``seed``
+    (rendered into ``work / name``, by default :func:`walk_dir`, unless it is there)."""
+    scene = work / name if name else walk_dir(work, level, seed, trajectory)
     if not (scene / "agent_a" / "traj.txt").is_file():
-        make_scene(scene, seed=seed, frames=frames, width=size[0], height=size[1], trajectory="walk",
+        make_scene(scene, seed=seed, frames=frames, width=size[0], height=size[1], trajectory=trajectory,
                    sensor_noise=level, agents=("agent_a",))
     ds = load_dataset(scene / "agent_a", pose_source="given")
     return [ds[i] for i in tqdm(range(len(ds)), desc=f"read walk ({level})", unit="frame", leave=False)]
@@ -534,9 +541,9 @@ def measure(frames: list, tum: Optional[Path] = None) -> dict:
 
 
 def measure_all(args: argparse.Namespace, levels: List[str], size: tuple, work: Path) -> tuple:
-    """``(TUM's frames, {sequence: statistics})``: TUM, the walk at each level (seed 0), the fast walk's blur, and,
-    unless ``--no-odometry``, the odometry's ATE of TUM from each start frame of ``--starts`` and of the walk at each
-    level for each seed of ``--seeds``."""
+    """``(TUM's frames, {sequence: statistics})``: TUM, the walk at each level (seed 0), the scan walk at the ``tum``
+    level (``--scan-walk``), the fast walk's blur, and, unless ``--no-odometry``, the odometry's ATE of TUM from each
+    start frame of ``--starts`` and of each walk for each seed of ``--seeds``."""
     seeds = [int(v) for v in args.seeds.split(",") if v]
     tum = tum_frames(args.tum)
     results = {"TUM fr1/rpy": measure(tum, args.tum)}
@@ -548,6 +555,14 @@ def measure_all(args: argparse.Namespace, levels: List[str], size: tuple, work: 
         if not args.no_odometry:
             runs = [frames if seed == 0 else walk_frames(work, lv, args.walk_frames, size, seed=seed) for seed in seeds]
             results[f"walk, `{lv}`"]["odometry"] = odometry(runs)
+    if "tum" in levels and args.scan_walk:  # the walk that turns at TUM's rate
+        frames = walk_frames(work, "tum", args.walk_frames, size, trajectory="scan_walk")
+        key = "scan walk, `tum`"
+        results[key] = {"motion": motion(frames)} if args.scan_walk == "motion" else measure(frames)
+        if not args.no_odometry:
+            results[key]["odometry"] = odometry(
+                [frames if seed == 0 else walk_frames(work, "tum", args.walk_frames, size, seed=seed,
+                                                      trajectory="scan_walk") for seed in seeds])
     if "tum" in levels and args.fast_walk_frames:  # the same 7 m in 3 s: TUM's image speed, for the blur
         fast = walk_frames(work, "tum", args.fast_walk_frames, size, name=f"walk_tum_{args.fast_walk_frames}")
         results[f"fast walk, `tum` ({args.fast_walk_frames} frames)"] = {"blur": blur(fast)}
@@ -687,6 +702,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--starts", default="0,1,2", help="the odometry's start frames on TUM, one run each")
     ap.add_argument("--seeds", default="0,1,2", help="the walk's seeds (scene, path and sensor noise) tracked, one "
                     "run each; the statistics are those of seed 0")
+    ap.add_argument("--scan-walk", choices=("", "motion", "all"), default="all",
+                    help="also the walk that looks around as it goes (--trajectory scan_walk, at the tum level): "
+                         "every statistic (all), only its motion (motion), or not at all ('')")
     ap.add_argument("--out", type=Path, default=RESULTS / "sensor_calibration.json")
     args = ap.parse_args(argv)
     levels = [lv for lv in args.levels.split(",") if lv]

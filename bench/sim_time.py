@@ -10,9 +10,13 @@ Each run is ``python -m gausslite.cli sim --out DIR [--set ...]`` in a fresh pro
 tree's ``services``), so the sim's own service processes (``python -m gausslite.cli serve ...``) import that tree too.
 The trees alternate run by run (this, that, this, that ...) so that drift of the machine falls on both. Timed: the
 wall seconds of the whole command, the embedded scene's generation included (each run writes a fresh folder), and
-the import of the agent service's module in a fresh process (``python -c "import gausslite_services.agent.server"``:
+the import of the agent service's module in a fresh process (``python -c "import gausslite_services.agent.server"``,
+the faster of two:
 what a service process pays before its own start-up; the libraries that module imports lazily are not in it). Each
-run records the top-level keys of the sim's ``report.json`` (``report_keys``: that the sim wrote its report).
+run records the top-level keys of the sim's ``report.json`` (``report_keys``: that the sim wrote its report) and,
+when the report has them, the sim's stages (``stages_s``: scene generation, services started, missions replayed and
+finished, fused maps scored, the ROI cover diagnosis) and ``outside_s``, the wall time outside them (the command's
+imports, the report, the services' shutdown).
 
 Output: a table (printed) and, in full mode or with ``--out``, JSON through :mod:`bench._results`: ``settings``,
 ``trees`` and ``runs`` (tree, ``wall_s``, ``import_s``, ``returncode``), ``summary`` (per tree the median wall and
@@ -67,6 +71,9 @@ def run_sim(tree: Path, out: Path, overrides: list, timeout_s: float, shim: Path
     if rep.is_file():
         data = json.loads(rep.read_text())
         res["report_keys"] = sorted(data)[:40]
+        if data.get("stages_s"):  # where the time went (a tree whose sim reports its stages)
+            res["stages_s"] = data["stages_s"]
+            res["outside_s"] = wall - sum(data["stages_s"].values())
     return res
 
 
@@ -82,8 +89,14 @@ def _median(xs: list) -> Optional[float]:
     return statistics.median(xs) if xs else None
 
 
+#: the sim's stages as its report names them (``stages_s``), in order
+STAGES = ("scene", "services", "missions", "scoring", "cover")
+
+
 def table(result: dict) -> str:
-    """Markdown: per tree the median wall seconds of the sim and of a service's imports, and the ratio."""
+    """Markdown: per tree the median wall seconds of the sim and of a service's imports, and the ratio; then, for
+    the runs whose report has them, the stages' seconds (``stages_s``) and the rest of the wall time (the command's
+    imports before the sim starts, the report, the services' shutdown)."""
     lines = ["| tree | commit | sims | sim wall s (median) | each run s | service import s | that / this |",
              "|---|---|---|---|---|---|---|"]
     for t, s in result["summary"].items():
@@ -93,6 +106,13 @@ def table(result: dict) -> str:
         lines.append(f"| {t} | {result['trees'][t]['commit'][:7]} | {len(runs)} | "
                      f"{s['wall_s']:.1f} | {each} | {s['import_s']:.2f} | "
                      f"{'–' if ratio is None else f'{ratio:.2f}'} |")
+    staged = [r for r in result["runs"] if r.get("stages_s")]
+    if staged:
+        lines += ["", "| tree | run | " + " | ".join(f"{k} s" for k in STAGES) + " | imports, report, shutdown s |",
+                  "|---|---|" + "---|" * (len(STAGES) + 1)]
+        for k, r in enumerate(staged):
+            cells = [f"{r['stages_s'][n]:.1f}" if n in r["stages_s"] else "–" for n in STAGES]
+            lines.append(f"| {r['tree']} | {k} | " + " | ".join(cells) + f" | {r['outside_s']:.1f} |")
     return "\n".join(lines)
 
 
@@ -121,7 +141,8 @@ def main(argv=None) -> dict:
         shims = {t: Path(tmp) / f"shim_{t}" for t in trees}
         for s in shims.values():
             s.mkdir()
-        imports = {t: import_seconds(trees[t], shims[t]) for t in trees}  # also warms the caches of both
+        # twice per tree, the faster kept: the first import of a tree reads its files cold
+        imports = {t: min(import_seconds(trees[t], shims[t]) for _ in range(2)) for t in trees}
         jobs = [t for _ in range(args.rounds) for t in trees]
         for k, t in enumerate(tqdm(jobs, desc="bench.sim_time", unit="sim")):
             out = Path(tmp) / f"sim_{k}_{t}"

@@ -331,14 +331,22 @@ class GaussianMap:
         split_mask: torch.Tensor,
         n_split: int = 2,
         generator: Optional[torch.Generator] = None,
+        split_mode: str = "sample",
     ) -> Tuple["GaussianMap", torch.Tensor]:
         """Standard 3DGS clone/split densification (Kerbl et al. 2023, Sec. 5.2).
 
         * Clone: a copy of the Gaussian is appended (identical parameters; the optimiser's next step
           moves the two apart).
-        * Split: the Gaussian is removed and replaced by ``n_split`` daughters whose means are sampled
-          from the parent's distribution N(μ, R S Sᵀ Rᵀ) and whose log-scales are the parent's minus
-          log(0.8 · n_split) (i.e. scale / (0.8 n)).
+        * Split, ``split_mode="sample"`` (3DGS): the Gaussian is removed and replaced by ``n_split`` daughters
+          whose means are sampled from the parent's distribution N(μ, R S Sᵀ Rᵀ) and whose log-scales are the
+          parent's minus log(0.8 · n_split) (i.e. scale / (0.8 n)).
+        * Split, ``split_mode="axis"`` (``n_split`` must be 2): two daughters on the parent's longest axis
+          e (world frame, the column of R of the largest scale σ), at μ ± σ/2 · e, that axis's scale
+          σ √3 / 2 and the others the parent's, so that the pair's second moment along e is the parent's
+          (σ²/4 + 3σ²/4); each daughter's opacity is 1 − √(1 − α), so that where the two overlap they
+          composite to the parent's α (the opacity correction of Rota Bulò et al., "Revising Densification
+          in Gaussian Splatting", ECCV 2024). The rendered image barely changes at the split (sampled
+          daughters, smaller on every axis, leave gaps: measured in docs/mapper.md, "Density control").
         * Every new row inherits the parent's quaternion, opacity logit, colour, ``active`` flag and
           κ (daughters start with the parent's κ).
         * A Gaussian in both masks is only split (split takes precedence; the clone flag is ignored),
@@ -368,6 +376,10 @@ class GaussianMap:
         if int(n_split) != n_split or n_split < 1:
             raise ValueError(f"n_split must be an integer >= 1, got {n_split}")
         n_split = int(n_split)
+        if split_mode not in ("sample", "axis"):
+            raise ValueError(f"split_mode must be 'sample' or 'axis', got {split_mode!r}")
+        if split_mode == "axis" and n_split != 2:
+            raise ValueError(f"split_mode='axis' splits in 2, got n_split={n_split}")
         cm = cm & ~sm
         arange = torch.arange(n, device=dev)
         kept_idx = arange[~sm]
@@ -377,7 +389,9 @@ class GaussianMap:
         parent_index = torch.cat([kept_idx, clone_idx, daughter_parent])
         out = self.subset(parent_index)
         n_d = daughter_parent.numel()
-        if n_d:
+        if n_d and split_mode == "axis":
+            out = self._axis_daughters(out, daughter_parent, kept_idx.numel() + clone_idx.numel())
+        elif n_d:
             start = kept_idx.numel() + clone_idx.numel()
             p_means = self.means[daughter_parent]
             p_scales = torch.exp(self.log_scales[daughter_parent])
@@ -393,6 +407,28 @@ class GaussianMap:
                 colors=out.colors, active=out.active, kappa=out.kappa,
             )
         return out, parent_index
+
+    def _axis_daughters(self, out: "GaussianMap", parent: torch.Tensor, start: int) -> "GaussianMap":
+        """``out`` with its rows from ``start`` on (the daughters of ``parent`` (2K,), pairs in order) replaced by
+        the axis split of :meth:`densify`."""
+        n_d = parent.numel()
+        log_scales = self.log_scales[parent].clone()
+        k = log_scales.argmax(dim=1, keepdim=True)
+        rot = quat_to_rotmat(self.quats[parent])
+        axis = torch.gather(rot, 2, k[:, None, :].expand(n_d, 3, 1)).squeeze(2)  # column k: the longest axis
+        sigma = log_scales.gather(1, k).exp()
+        sign = torch.ones((n_d, 1), dtype=sigma.dtype, device=sigma.device)
+        sign[1::2] = -1.0
+        means = self.means[parent] + (0.5 * sigma * sign) * axis.to(sigma.dtype)
+        log_scales.scatter_add_(1, k, torch.full_like(sigma, 0.5 * math.log(0.75)))
+        alpha = torch.sigmoid(self.opacity_logits[parent])
+        half = (1.0 - torch.sqrt(1.0 - alpha)).clamp(1e-6, 1.0 - 1e-6)
+        return GaussianMap(
+            means=torch.cat([out.means[:start], means]), quats=out.quats,
+            log_scales=torch.cat([out.log_scales[:start], log_scales]),
+            opacity_logits=torch.cat([out.opacity_logits[:start], torch.log(half) - torch.log1p(-half)]),
+            colors=out.colors, active=out.active, kappa=out.kappa,
+        )
 
     # ------------------------------------------------------------------ PLY
     def save_ply(self, path: Union[str, os.PathLike], exact_colors: bool = True) -> None:

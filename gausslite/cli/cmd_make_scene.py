@@ -42,10 +42,11 @@ def register(subparsers) -> None:
     p.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
     p.add_argument("--height", type=int, default=240, help="image height in pixels (default 240)")
     p.add_argument("--frames", type=int, default=30, help="frames per agent (default 30)")
-    p.add_argument("--trajectory", choices=["arcs", "circle", "walk"], default="arcs",
+    p.add_argument("--trajectory", choices=["arcs", "circle", "walk", "scan_walk"], default="arcs",
                    help="arcs: two arcs in front of the desk (default); circle: both robots once around the "
                         "room, for long missions (e.g. --frames 600, mapped with --stride 2); walk: a 7 m hand-held "
-                        "walk, two loops in front of the desk (--frames 525 at 30 fps = 0.40 m/s)")
+                        "walk, two loops in front of the desk (--frames 525 at 30 fps = 0.40 m/s); scan_walk: the "
+                        "same walk looking around as it goes (about 52 degrees/s, as TUM fr1/rpy)")
     p.add_argument("--sensor-noise", dest="sensor_noise", choices=["none", "realistic", "tum"], default="none",
                    help="none: exact renders (default); realistic: Kinect-like depth noise and holes, motion blur, "
                         "rolling shutter, exposure changes and colour noise; tum: the Kinect v1 of TUM RGB-D fr1 as "

@@ -48,6 +48,12 @@ class DensifyConfig(StrictModel):
     split_scale_m: float = Field(
         0.02, gt=0, description="high-gradient Gaussians larger than this (metres) split, smaller clone"
     )
+    split: Literal["sample", "axis"] = Field(
+        "sample", description="how a Gaussian splits (GaussianMap.densify): 'sample' = 3DGS, two daughters sampled "
+        "from it and shrunk by 1.6 on every axis; 'axis' = two daughters on its longest axis, moment-matched, with "
+        "the opacity correction of Rota Bulo et al. 2024 (the image barely changes at the split; measured: "
+        "docs/mapper.md, 'Density control')"
+    )
     prune_opacity: float = Field(0.005, ge=0, description="prune Gaussians with opacity below this")
     max_scale_m: float = Field(0.5, gt=0, description="prune Gaussians with a larger max scale")
     active_phase_stats: bool = Field(

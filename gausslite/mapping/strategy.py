@@ -181,7 +181,7 @@ class DensityStrategy:
             split &= sel
         stats = {"clone": int(clone.sum()), "split": int(split.sum())}
         if stats["clone"] or stats["split"]:
-            gmap, parent = gmap.densify(clone, split, n_split=2, generator=self.generator)
+            gmap, parent = gmap.densify(clone, split, n_split=2, generator=self.generator, split_mode=dc.split)
         else:
             parent = torch.arange(n, device=self.device)
         opacity = torch.sigmoid(gmap.opacity_logits)

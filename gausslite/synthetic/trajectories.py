@@ -3,7 +3,7 @@ around the room, and a hand-held walk with loops."""
 
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 
@@ -42,7 +42,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
 
 
 #: Trajectory kinds of :func:`make_trajectories`.
-TRAJECTORIES = ("arcs", "circle", "walk")
+TRAJECTORIES = ("arcs", "circle", "walk", "scan_walk")
 #: the walk's path length (metres) and the frame rate its timing assumes (frames per second; the Replica loader's
 #: default clock, which replays the synthetic scene): ``frames=525`` walks it at 0.40 m/s
 WALK_PATH_M = 7.0
@@ -138,8 +138,28 @@ def _hand_jitter(rng: np.random.Generator, n_frames: int, fps: float, dist: np.n
     return tremor + env[:, None] * gait
 
 
-def _walk_trajectories(n_frames: int, rng: np.random.Generator, fps: float) -> Dict[str, np.ndarray]:
-    """Both robots' hand-held walks (see :func:`make_trajectories`, ``kind="walk"``)."""
+#: the look-around of ``kind="scan_walk"``: per camera axis (pitch, yaw, roll) the amplitude (degrees) and the
+#: frequency (Hz) of its sweep, chosen so that the walk turns at TUM fr1/rpy's median rate (about 52 degrees/s)
+SCAN_SWEEPS = ((12.0, 0.45), (18.0, 0.35), (12.0, 0.55))
+
+
+def _scan(rng: np.random.Generator, n_frames: int, fps: float, env: np.ndarray) -> np.ndarray:
+    """Look-around rotation (n, 3) rad about the camera's x, y and z axes: one sweep per axis of
+    :data:`SCAN_SWEEPS`, each a sinusoid with a random phase whose frequency wanders by +-20 % (so the sweeps never
+    lock into one pattern), scaled by the gait envelope ``env`` (the camera starts and ends at rest)."""
+    t = np.arange(int(n_frames)) / fps
+    out = np.zeros((int(n_frames), 3))
+    for axis, (amp_deg, hz) in enumerate(SCAN_SWEEPS):
+        wander = 1.0 + 0.2 * np.sin(2 * np.pi * t / 7.3 + rng.uniform(0.0, 2.0 * np.pi))
+        phase = 2 * np.pi * np.cumsum(hz * wander) / fps + rng.uniform(0.0, 2.0 * np.pi)
+        out[:, axis] = np.deg2rad(amp_deg) * np.sin(phase)
+    return env[:, None] * out
+
+
+def _walk_trajectories(n_frames: int, rng: np.random.Generator, fps: float,
+                       scan: Optional[np.random.Generator] = None) -> Dict[str, np.ndarray]:
+    """Both robots' hand-held walks (see :func:`make_trajectories`, ``kind="walk"``; with ``scan``, the generator of
+    the look-around's phases, ``"scan_walk"``: the same walk, looking around)."""
     from scipy.spatial.transform import Rotation  # noqa: PLC0415 - SciPy is not in the light install
 
     u, env = _walk_progress(n_frames)
@@ -160,6 +180,8 @@ def _walk_trajectories(n_frames: int, rng: np.random.Generator, fps: float) -> D
         base = np.stack([look_at(e, t) for e, t in zip(eye, _walk_targets(u, glances, sweep))])
         jit = Rotation.from_rotvec(_hand_jitter(rng, n_frames, fps, dist, env)).as_matrix()
         base[:, :3, :3] = base[:, :3, :3] @ jit
+        if scan is not None:
+            base[:, :3, :3] = base[:, :3, :3] @ Rotation.from_rotvec(_scan(scan, n_frames, fps, env)).as_matrix()
         out[name] = base
     return out
 
@@ -185,10 +207,14 @@ def make_trajectories(n_frames: int, seed: int = 0, kind: str = "arcs", fps: flo
     roll; :func:`_hand_jitter`). Its timing assumes ``fps`` frames per second: the mean speed is
     ``7 m * fps / n_frames`` (0.40 m/s for 525 frames at 30 fps).
 
+    ``kind="scan_walk"``: the same walk (the same positions for a seed), looking around as it goes: a sweep about
+    each camera axis (:data:`SCAN_SWEEPS`, random phases) turns it at about TUM fr1/rpy's median rate, 52 degrees/s
+    at 30 fps (the walk: 17), so that the sensor effects that grow with the motion act as hard as on TUM.
+
     Args:
         n_frames: frames per agent (>= 2).
         seed: integer seed.
-        kind: ``"arcs"`` (default), ``"circle"`` or ``"walk"``.
+        kind: ``"arcs"`` (default), ``"circle"``, ``"walk"`` or ``"scan_walk"``.
         fps: frames per second of the walk's clock (its jitter's time scale); the other kinds ignore it.
 
     Returns:
@@ -207,8 +233,9 @@ def make_trajectories(n_frames: int, seed: int = 0, kind: str = "arcs", fps: flo
     ph = rng.uniform(-3.0, 3.0, size=2)
     if kind == "circle":
         return _circle_trajectories(n_frames, ph)
-    if kind == "walk":
-        return _walk_trajectories(n_frames, rng, float(fps))
+    if kind in ("walk", "scan_walk"):
+        scan = np.random.default_rng(int(seed) + 8888) if kind == "scan_walk" else None
+        return _walk_trajectories(n_frames, rng, float(fps), scan)
     s = np.linspace(0.0, 1.0, int(n_frames))
     centre = np.array([0.25, 1.0, 0.0])
     out: Dict[str, np.ndarray] = {}

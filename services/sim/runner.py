@@ -83,8 +83,10 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
     config_path = write_service_config(typed, out / "config.yaml")
+    stages = _Stages(t0)
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
+    stages.mark("scene")
     plans = plan_agents(dataset, typed, task_ids)
     check_bags(plans, typed.agent)
     group = ProcessGroup(out / "logs")
@@ -94,6 +96,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     team = ServiceTeam(out, config_path, plans, group, token, fusion_token, attach)
     try:
         team.start()
+        stages.mark("services")
         fusion = team.fusion
         # ---- run the missions; vote-fuse whenever a new subset arrived (the fused map over time)
         fz = typed.sim.fuse.settings(typed.agent.realtime)
@@ -101,6 +104,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         summaries = run_team(team, timeout_s=max(1.0, deadline - time.monotonic()),
                              on_poll=lambda: tracker.poll(time.perf_counter() - t0))
         tracker.poll(time.perf_counter() - t0)
+        stages.mark("missions")
         stats = fusion.stats().get("agents", {})
         # ---- fuse and score
         backend, scoring = typed.mapper.backend, typed.agent.scoring
@@ -112,6 +116,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         tracker.poll(time.perf_counter() - t0)  # the team map made from the final subsets, when the server keeps one
         timeline = tracker.scores({p.task_id: eval_frames[p.name] for p in plans}, backend,
                                   task_of={p.name: p.task_id for p in plans})
+        stages.mark("scoring")
         # ---- the report
         report = {"scene": dataset, "seconds": time.perf_counter() - t0,
                   "agents": [agent_report(p, summaries[p.name], stats.get(p.name, {}), offline) for p in plans],
@@ -128,6 +133,8 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
                 fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
             except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
                 log.warning("ROI cover diagnosis failed: %s", e)
+        stages.mark("cover")
+        report["stages_s"] = stages.seconds
         if context_report is not None:
             attach_context_baseline(report, json.loads(Path(context_report).read_text()))
         elif typed.mapper.roi_render == "context":
@@ -136,6 +143,22 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
         team.close(previous)
+
+
+class _Stages:
+    """Wall-clock seconds of the simulation's stages, each from the previous mark (the report's ``stages_s``:
+    ``scene`` generation, ``services`` start until healthy, ``missions`` replayed and finished, ``scoring`` (fusion,
+    renders and the fused map over time), ``cover`` (the ROI cover diagnosis))."""
+
+    def __init__(self, t0: float) -> None:
+        self.last = t0
+        self.seconds: Dict[str, float] = {}
+
+    def mark(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = round(now - self.last, 3)
+        self.last = now
+        log.info("sim stage %s: %.1f s", name, self.seconds[name])
 
 
 def write_service_config(typed, path: Path) -> Path:

@@ -92,3 +92,17 @@ def test_the_walk_with_the_tum_sensor_is_rendered_beside_the_realistic_one(tmp_p
     meta = json.loads((tmp_path / "walk_tum" / "scene.json").read_text())
     assert meta["sensor_noise"] == "tum" and not (tmp_path / "walk").exists()
     assert abs(frames[0].intrinsics.fx - 48 * 546.75 / 640) < 1e-6  # the Kinect's field of view
+
+
+def test_the_scan_walk_is_the_tum_walk_looking_around(tmp_path):
+    import numpy as np
+
+    import bench.odometry as bo
+
+    walk = bo.load_sequence("synthetic_walk_tum", tmp_path, 0, (48, 36), walk_frames=12)
+    scan = bo.load_sequence("synthetic_scan_walk_tum", tmp_path, 0, (48, 36), walk_frames=12)
+    meta = json.loads((tmp_path / "scan_walk_tum" / "scene.json").read_text())
+    assert meta["trajectory"] == "scan_walk" and meta["sensor_noise"] == "tum"
+    # the same path, looking elsewhere (how fast it turns: tests/datasets/test_synthetic_walk.py)
+    assert np.allclose([f.c2w[:3, 3] for f in scan], [f.c2w[:3, 3] for f in walk])
+    assert not np.allclose([f.c2w[:3, :3] for f in scan[1:-1]], [f.c2w[:3, :3] for f in walk[1:-1]])

@@ -60,3 +60,12 @@ def test_an_infinite_or_missing_psnr_is_left_out_of_the_means():
                      run("that", 1, 20.5)])["s"][0]
     assert row["this_roi_keyframes"] == pytest.approx(21.0) and row["diff_roi_keyframes"] == pytest.approx(0.5)
     assert row["diff_roi_keyframes_std"] is None and row["diff_roi_novel"] is None
+
+
+def test_a_setting_applies_to_this_trees_runs(tmp_path):
+    out = tmp_path / "q.json"
+    main(["--quick", "--work", str(tmp_path / "work"), "--out", str(out), "--set", "seeding.seeds_per_frame=40"])
+    res = json.loads(out.read_text())
+    assert res["settings"]["overrides_this"] == ["seeding.seeds_per_frame=40"]
+    # 8 mapped frames of at most 2 × 40 seeds each, at most doubled by one density step: far below the default's
+    assert all(0 < r["n_gaussians"] <= 2 * 8 * 80 for r in res["runs"])

@@ -22,6 +22,10 @@ def test_quick_run_times_a_tiny_sim(tmp_path):
     (run,) = data["runs"]
     assert run["tree"] == "this" and run["returncode"] == 0 and run["wall_s"] > 0
     assert "agents" in run["report_keys"]  # the sim wrote its report
+    # where the time went: the sim's stages and the rest of the command, which add up to its wall time
+    assert list(run["stages_s"]) == ["scene", "services", "missions", "scoring", "cover"]
+    assert run["outside_s"] > 0 and sum(run["stages_s"].values()) + run["outside_s"] == pytest.approx(run["wall_s"])
     s = res["summary"]["this"]
     assert math.isfinite(s["wall_s"]) and s["import_s"] > 0
-    assert "| this |" in out.with_suffix(".md").read_text()
+    md = out.with_suffix(".md").read_text()
+    assert "| this |" in md and "| missions s |" in md

@@ -65,6 +65,31 @@ def test_walk_revisits_with_other_headings_and_watches_the_desk() -> None:
         assert 3.0 < rate.mean() < 60.0  # hand-held: turning, but not whipping
 
 
+def _median_turn_rate(P: np.ndarray, fps: float) -> float:
+    """Median rotation (degrees per second) between consecutive poses."""
+    from scipy.spatial.transform import Rotation
+
+    rel = np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])
+    return float(np.median(np.degrees(Rotation.from_matrix(rel).magnitude())) * fps)
+
+
+def test_scan_walk_turns_at_tum_rate_on_the_same_path() -> None:
+    walk = make_trajectories(WALK_FRAMES, SEED, "walk")
+    scan = make_trajectories(WALK_FRAMES, SEED, "scan_walk")
+    for agent in AGENTS:
+        # the same positions: only where the camera looks changes
+        assert np.allclose(scan[agent][:, :3, 3], walk[agent][:, :3, 3])
+        assert np.allclose(np.einsum("nij,nkj->nik", scan[agent][:, :3, :3], scan[agent][:, :3, :3]),
+                           np.eye(3), atol=1e-9)
+        assert _median_turn_rate(walk[agent], WALK_FPS) < 25.0
+        assert 35.0 < _median_turn_rate(scan[agent], WALK_FPS) < 70.0  # TUM fr1/rpy: 52 degrees/s
+        # at rest at both ends, as the walk
+        for i in (0, -1):
+            assert np.allclose(scan[agent][i], walk[agent][i], atol=1e-9)
+    again = make_trajectories(WALK_FRAMES, SEED, "scan_walk")
+    assert all(np.array_equal(again[a], scan[a]) for a in AGENTS)
+
+
 def test_walk_is_deterministic_per_seed() -> None:
     a = make_trajectories(60, SEED, "walk")
     b = make_trajectories(60, SEED, "walk")

@@ -237,3 +237,53 @@ def test_quat_to_rotmat_orthonormal_and_zero_safe():
     assert torch.allclose(r @ r.transpose(1, 2), eye, atol=1e-5)
     assert torch.allclose(torch.linalg.det(r), torch.ones(50), atol=1e-5)
     assert torch.equal(quat_to_rotmat(torch.zeros(1, 4))[0], torch.eye(3))
+
+
+def test_axis_split_matches_the_parent_along_its_longest_axis():
+    # an anisotropic, rotated parent: daughters at mu +- sigma/2 on the longest axis, moment-matched, opacity-corrected
+    angle = math.pi / 3
+    q = torch.tensor([[math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]])
+    m = GaussianMap(means=torch.tensor([[1.0, -2.0, 0.5]]), quats=q,
+                    log_scales=torch.log(torch.tensor([[0.5, 0.05, 0.2]])), opacity_logits=torch.tensor([1.5]),
+                    colors=torch.full((1, 3), 0.5), active=torch.tensor([True]), kappa=torch.tensor([7]))
+    out, parent = m.densify(torch.zeros(1, dtype=torch.bool), torch.ones(1, dtype=torch.bool), split_mode="axis")
+    assert parent.tolist() == [0, 0] and out.active.all() and (out.kappa == 7).all()
+    major = torch.tensor([math.cos(angle), math.sin(angle), 0.0])
+    d = out.means - m.means
+    assert torch.allclose(d[0], 0.25 * major, atol=1e-6) and torch.allclose(d[1], -0.25 * major, atol=1e-6)
+    scales = out.log_scales.exp()
+    assert torch.allclose(scales, torch.tensor([[0.5 * math.sqrt(0.75), 0.05, 0.2]] * 2), atol=1e-6)
+    # the pair's second moment along the axis is the parent's: sigma'^2 + d^2 = sigma^2
+    assert math.isclose(float(scales[0, 0] ** 2 + (d[0] @ major) ** 2), 0.25, rel_tol=1e-5)
+    a = torch.sigmoid(torch.tensor(1.5))
+    a2 = torch.sigmoid(out.opacity_logits)
+    assert torch.allclose(1 - (1 - a2) ** 2, a.expand(2), atol=1e-6)  # two overlapping daughters: the parent's alpha
+    assert torch.equal(out.quats, q.expand(2, 4)) and torch.equal(out.colors, m.colors.expand(2, 3))
+    with pytest.raises(ValueError, match="split_mode"):
+        m.densify(torch.zeros(1, dtype=torch.bool), torch.ones(1, dtype=torch.bool), split_mode="random")
+    with pytest.raises(ValueError, match="splits in 2"):
+        m.densify(torch.zeros(1, dtype=torch.bool), torch.ones(1, dtype=torch.bool), n_split=3, split_mode="axis")
+
+
+def test_axis_split_keeps_the_image_where_sampling_leaves_gaps():
+    # a wall of large Gaussians, all split: the axis split changes the render far less than the 3DGS split
+    from gausslite.render import rasterize
+
+    g = torch.Generator().manual_seed(0)
+    n = 300
+    means = torch.cat([torch.rand(n, 2, generator=g) * 2 - 1, torch.full((n, 1), 3.0)], dim=1)
+    m = GaussianMap(means=means, quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+                    log_scales=torch.log(torch.tensor([0.12, 0.05, 0.01])).expand(n, 3).clone(),
+                    opacity_logits=torch.full((n,), 1.0), colors=torch.rand(n, 3, generator=g),
+                    active=torch.zeros(n, dtype=torch.bool), kappa=torch.zeros(n, dtype=torch.int64))
+    K = torch.tensor([[80.0, 0, 64], [0, 80.0, 48], [0, 0, 1]])
+
+    def render(gm):
+        return rasterize(gm.means, gm.quats, gm.log_scales, gm.opacity_logits, gm.colors, K=K, width=128, height=96,
+                         c2w=torch.eye(4)).color
+
+    ref = render(m)
+    none, every = torch.zeros(n, dtype=torch.bool), torch.ones(n, dtype=torch.bool)
+    err = {mode: float((render(m.densify(none, every, generator=torch.Generator().manual_seed(1),
+                                         split_mode=mode)[0]) - ref).abs().mean()) for mode in ("sample", "axis")}
+    assert err["axis"] < 0.5 * err["sample"], err

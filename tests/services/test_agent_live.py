@@ -32,7 +32,7 @@ from gausslite.config import load_config
 from gausslite.mission import AgentRuntime
 from gausslite_services.agent.server import AgentSettings, serve as serve_agent
 from gausslite_services.common.server import ServerOptions
-from tests._waits import WORK_S
+from tests._waits import WORK_S, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1",
@@ -858,7 +858,7 @@ def test_task_share_in_the_worker_process_pushes_a_fine_tuned_subset(scene, monk
 
 
 @pytest.mark.parametrize("realtime", [False, True])
-def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime):
+def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, realtime, monkeypatch):
     """Under ``share.worker_start: mission`` a sharing mission starts (and warms up) its share worker process when
     its replay starts, before any frame is mapped, and the pushes use that same process; a live mission's worker
     runs at ``push.nice``, an every-frame replay's at the mapper's priority. By default (``first_push``) no worker
@@ -888,9 +888,21 @@ def test_the_share_worker_starts_with_the_mission_not_at_its_first_push(scene, r
         assert pid != os.getpid() and rt.share.call(_warm) == pid  # ...which is the one the pushes use
         expected = min(19, os.getpriority(os.PRIO_PROCESS, 0) + (19 if realtime else 0))
         assert os.getpriority(os.PRIO_PROCESS, pid) == expected
+        import gausslite.mission.share as share_mod
+
+        killed, real_kill = [], os.kill
+        monkeypatch.setattr(share_mod.os, "kill", lambda p, sig: (killed.append((p, sig)), real_kill(p, sig)))
     finally:
         rt.close()
-    assert rt.share.pool is None
+    assert rt.share.pool is None and killed == [(pid, signal.SIGTERM)]
+
+    def gone() -> bool:  # terminated, not left to end its interpreter at low priority while the agent waits
+        try:
+            return os.waitpid(pid, os.WNOHANG)[0] == pid
+        except ChildProcessError:
+            return True
+
+    assert wait_until(gone, WORK_S)
     # a mission that does not share (no fusion client) or shares without the worker starts no process
     for kw in ({"fusion": None}, {"fusion": _RecordingFusion(), "share": "active"}):
         c = AgentConfig(share={"rule": kw.get("share", "task"), "worker": "process", "worker_start": "mission"},

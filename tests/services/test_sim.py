@@ -26,6 +26,10 @@ def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
     rep = json.loads((tmp_path / "sim" / "report.json").read_text())
     assert rep == json.loads(json.dumps(res.report))
     assert [a["id"] for a in rep["agents"]] == ["agent_a", "agent_b"]
+    # where the wall time went: every stage timed, together within the run's own seconds
+    assert list(rep["stages_s"]) == ["scene", "services", "missions", "scoring", "cover"]
+    assert all(v >= 0 for v in rep["stages_s"].values()) and rep["stages_s"]["services"] > 0
+    assert sum(rep["stages_s"].values()) >= rep["seconds"] - 1.0
     assert [a["task"] for a in rep["agents"]] == ["synth-pick-object", "synth-find-chair"]
     for a in rep["agents"]:
         assert set(a) >= {"id", "task", "roi_psnr", "n_gaussians", "n_shared", "share_pct", "bytes_per_gaussian"}
