@@ -75,14 +75,9 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
     offline = load_offline(offline_report) if offline_report else None
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    typed = load_config(config, overrides)  # a typo fails here, before any process starts
-    if dataset is None and "novel_every" not in typed.agent.scoring.model_fields_set:  # the default scene's views
-        overrides = [*overrides, f"agent.scoring.novel_every={typed.sim.scene.novel_every}"]
-        typed = load_config(config, overrides)
-    cfg = typed.to_yaml_dict()  # the effective tree, which the report records
+    typed, cfg, config_path = _sim_config(out, dataset, config, overrides)
     timeout_s = float(timeout_s or typed.sim.timeout_s)
     deadline = time.monotonic() + timeout_s
-    config_path = write_service_config(typed, out / "config.yaml")
     stages = _Stages(t0)
     if dataset is None:
         dataset = _generate_scene(out, typed.sim.scene, progress)
@@ -129,10 +124,7 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         fused_minus_own(report)
         protocol_minus_own(report)
         if attach is None:
-            try:
-                fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
-            except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
-                log.warning("ROI cover diagnosis failed: %s", e)
+            _diagnose_cover(fused, out, plans, eval_frames, fz, backend)
         stages.mark("cover")
         report["stages_s"] = stages.seconds
         if context_report is not None:
@@ -143,6 +135,26 @@ def run_sim(out: str | Path, dataset: Optional[str] = None, *, config: Optional[
         return SimResult(report, out, report["seconds"], {n: p.pid for n, p in group.procs.items()})
     finally:
         team.close(previous)
+
+
+def _sim_config(out: Path, dataset: Optional[str], config, overrides) -> tuple:
+    """``(typed tree, its effective YAML dict, the services' configuration file)`` of a simulation that writes to
+    ``out``: the settings given (a typo fails here, before any process starts), and, for the generated default scene,
+    its withheld views (``sim.scene.novel_every``) unless ``agent.scoring.novel_every`` is given."""
+    typed = load_config(config, overrides)
+    if dataset is None and "novel_every" not in typed.agent.scoring.model_fields_set:  # the default scene's views
+        typed = load_config(config, [*overrides, f"agent.scoring.novel_every={typed.sim.scene.novel_every}"])
+    return typed, typed.to_yaml_dict(), write_service_config(typed, out / "config.yaml")
+
+
+def _diagnose_cover(fused: dict, out: Path, plans, eval_frames, fz: dict, backend: str) -> None:
+    """Add the ROI cover diagnosis to the vote map's figures (``fused["vote"]["cover"]``,
+    :func:`~gausslite_services.sim.scoring.roi_cover_report`); a failure is logged, never raised: a diagnostic must
+    not fail the simulation."""
+    try:
+        fused["vote"]["cover"] = roi_cover_report(out, plans, eval_frames, fz, backend)
+    except Exception as e:  # noqa: BLE001 - a diagnostic must not fail the simulation
+        log.warning("ROI cover diagnosis failed: %s", e)
 
 
 class _Stages:
