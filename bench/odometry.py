@@ -96,6 +96,15 @@ def covered(n: int) -> range:
     return range(start, start + max(1, round(30 * n / 525)))
 
 
+def walk_dir(work: Path, level: str, seed: int = 0, trajectory: str = "walk") -> Path:
+    """The folder of the synthetic walk (``trajectory``: ``walk`` or ``scan_walk``) with sensor level ``level`` and
+    seed ``seed`` under ``work``, as this bench and ``bench.sensor_calibration`` render it: seed 0 ``walk`` for
+    ``realistic``, else ``walk_<level>``, ``walk`` replaced by the trajectory's name; ``_seed<seed>`` added for
+    another seed."""
+    name = "walk" if level == "realistic" else f"walk_{level}"
+    return work / (name.replace("walk", trajectory, 1) + (f"_seed{seed}" if seed else ""))
+
+
 def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, walk_frames: int = 525) -> list:
     """The frames (with their reference poses as ``c2w``) of a bench sequence, read into memory.
 
@@ -110,8 +119,7 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
     elif name.startswith(("synthetic_walk", "synthetic_scan_walk")):
         level = "tum" if name.endswith("_tum") else "realistic"
         kind = "scan_walk" if name.startswith("synthetic_scan_walk") else "walk"
-        scene = work / ("walk" if level == "realistic" else f"walk_{level}")  # as bench.sensor_calibration names it
-        scene = scene.with_name(scene.name.replace("walk", kind, 1))
+        scene = walk_dir(work, level, trajectory=kind)
         if not (scene / "agent_a" / "traj.txt").is_file():
             make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory=kind,
                        sensor_noise=level, agents=("agent_a",))

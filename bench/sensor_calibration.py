@@ -82,7 +82,7 @@ from scipy.stats import theilslopes
 from tqdm import tqdm
 
 from bench._results import DATASETS, write_results
-from bench.odometry import track
+from bench.odometry import track, walk_dir
 from gausslite.datasets import load_dataset
 from gausslite.datasets.tum import associate_nearest, read_file_list
 from gausslite.synthetic import make_scene, sensor_model
@@ -511,18 +511,10 @@ def tum_frames(path: Path) -> list:
     return [ds[i] for i in tqdm(range(len(ds)), desc="read TUM", unit="frame", leave=False)]
 
 
-def walk_dir(work: Path, level: str, seed: int = 0, trajectory: str = "walk") -> Path:
-    """The folder of the synthetic walk (``trajectory``: ``walk`` or ``scan_walk``) with sensor level ``level`` and
-    seed ``seed`` under ``work`` (seed 0: ``walk`` for ``realistic``, as ``bench.odometry`` names it, else
-    ``walk_<level>``, ``walk`` replaced by the trajectory's name; ``_seed<seed>`` added for another seed)."""
-    name = "walk" if level == "realistic" else f"walk_{level}"
-    return work / (name.replace("walk", trajectory, 1) + (f"_seed{seed}" if seed else ""))
-
-
 def walk_frames(work: Path, level: str, frames: int, size: tuple, seed: int = 0, name: Optional[str] = None,
                 trajectory: str = "walk") -> list:
     """Robot A's frames of the synthetic walk (``trajectory``) with sensor level ``level`` and seed ``seed``
-    (rendered into ``work / name``, by default :func:`walk_dir`, unless it is there)."""
+    (rendered into ``work / name``, by default :func:`bench.odometry.walk_dir`, unless it is there)."""
     scene = work / name if name else walk_dir(work, level, seed, trajectory)
     if not (scene / "agent_a" / "traj.txt").is_file():
         make_scene(scene, seed=seed, frames=frames, width=size[0], height=size[1], trajectory=trajectory,
@@ -549,20 +541,17 @@ def measure_all(args: argparse.Namespace, levels: List[str], size: tuple, work: 
     results = {"TUM fr1/rpy": measure(tum, args.tum)}
     if not args.no_odometry:
         results["TUM fr1/rpy"]["odometry"] = odometry([tum[int(s):] for s in args.starts.split(",") if s])
-    for lv in levels:
-        frames = walk_frames(work, lv, args.walk_frames, size)
-        results[f"walk, `{lv}`"] = measure(frames)
-        if not args.no_odometry:
-            runs = [frames if seed == 0 else walk_frames(work, lv, args.walk_frames, size, seed=seed) for seed in seeds]
-            results[f"walk, `{lv}`"]["odometry"] = odometry(runs)
+    walks = [(f"walk, `{lv}`", lv, "walk", measure) for lv in levels]
     if "tum" in levels and args.scan_walk:  # the walk that turns at TUM's rate
-        frames = walk_frames(work, "tum", args.walk_frames, size, trajectory="scan_walk")
-        key = "scan walk, `tum`"
-        results[key] = {"motion": motion(frames)} if args.scan_walk == "motion" else measure(frames)
+        walks.append(("scan walk, `tum`", "tum", "scan_walk",
+                      (lambda fr: {"motion": motion(fr)}) if args.scan_walk == "motion" else measure))
+    for key, lv, trajectory, stats in walks:
+        frames = walk_frames(work, lv, args.walk_frames, size, trajectory=trajectory)
+        results[key] = stats(frames)
         if not args.no_odometry:
             results[key]["odometry"] = odometry(
-                [frames if seed == 0 else walk_frames(work, "tum", args.walk_frames, size, seed=seed,
-                                                      trajectory="scan_walk") for seed in seeds])
+                [frames if seed == 0 else walk_frames(work, lv, args.walk_frames, size, seed=seed,
+                                                      trajectory=trajectory) for seed in seeds])
     if "tum" in levels and args.fast_walk_frames:  # the same 7 m in 3 s: TUM's image speed, for the blur
         fast = walk_frames(work, "tum", args.fast_walk_frames, size, name=f"walk_tum_{args.fast_walk_frames}")
         results[f"fast walk, `tum` ({args.fast_walk_frames} frames)"] = {"blur": blur(fast)}

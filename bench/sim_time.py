@@ -89,10 +89,6 @@ def _median(xs: list) -> Optional[float]:
     return statistics.median(xs) if xs else None
 
 
-#: the sim's stages as its report names them (``stages_s``), in order
-STAGES = ("scene", "services", "missions", "scoring", "cover")
-
-
 def table(result: dict) -> str:
     """Markdown: per tree the median wall seconds of the sim and of a service's imports, and the ratio; then, for
     the runs whose report has them, the stages' seconds (``stages_s``) and the rest of the wall time (the command's
@@ -108,10 +104,11 @@ def table(result: dict) -> str:
                      f"{'–' if ratio is None else f'{ratio:.2f}'} |")
     staged = [r for r in result["runs"] if r.get("stages_s")]
     if staged:
-        lines += ["", "| tree | run | " + " | ".join(f"{k} s" for k in STAGES) + " | imports, report, shutdown s |",
-                  "|---|---|" + "---|" * (len(STAGES) + 1)]
+        stages = list(dict.fromkeys(n for r in staged for n in r["stages_s"]))  # in the order the sim ran them
+        lines += ["", "| tree | run | " + " | ".join(f"{k} s" for k in stages) + " | imports, report, shutdown s |",
+                  "|---|---|" + "---|" * (len(stages) + 1)]
         for k, r in enumerate(staged):
-            cells = [f"{r['stages_s'][n]:.1f}" if n in r["stages_s"] else "–" for n in STAGES]
+            cells = [f"{r['stages_s'][n]:.1f}" if n in r["stages_s"] else "–" for n in stages]
             lines.append(f"| {r['tree']} | {k} | " + " | ".join(cells) + f" | {r['outside_s']:.1f} |")
     return "\n".join(lines)
 
