@@ -24,6 +24,7 @@ import torch
 import warp as wp
 
 from .metrics import SSIM_C1, SSIM_C2, gaussian_window, ssim_gt_stats, ssim_map
+from .render.launch import launch_cpu
 from .render.warp_kernels import ensure_module_loaded, run_parallel
 
 wp.set_module_options({"enable_backward": False})
@@ -189,12 +190,10 @@ class FusedSSIM(torch.autograd.Function):
         deriv = torch.empty(C * 3 * H * W, dtype=torch.float32)
         ssum = torch.zeros(C, dtype=torch.float64)
         ensure_module_loaded(__name__, "cpu")
-        a = [wp.from_torch(t) for t in (p, y, my, vy, win, wt)]
-        a_s, a_d, a_sum = wp.from_torch(scratch), wp.from_torch(deriv), wp.from_torch(ssum, dtype=wp.float64)
 
         def run(c):
-            wp.launch(ssim_fwd_kernel, dim=1,
-                      inputs=a + [int(use_w), H, W, c, SSIM_C1, SSIM_C2, a_s, a_d, a_sum], device="cpu")
+            launch_cpu(ssim_fwd_kernel, 1, [p, y, my, vy, win, wt, int(use_w), H, W, c, SSIM_C1, SSIM_C2, scratch, deriv,
+                                            ssum])
 
         run_parallel([lambda c=c: run(c) for c in range(C)])
         ctx.save_for_backward(p, y, win, scratch, deriv)
@@ -208,11 +207,9 @@ class FusedSSIM(torch.autograd.Function):
         H, W, C = ctx.shape
         grad = torch.empty(H * W * C, dtype=torch.float32)
         scale = float(g_out) / ctx.norm
-        a = [wp.from_torch(t) for t in (p, y, win)]
-        a_s, a_d, a_g = wp.from_torch(scratch), wp.from_torch(deriv), wp.from_torch(grad)
 
         def run(c):
-            wp.launch(ssim_bwd_kernel, dim=1, inputs=a + [H, W, c, scale, a_s, a_d, a_g], device="cpu")
+            launch_cpu(ssim_bwd_kernel, 1, [p, y, win, H, W, c, scale, scratch, deriv, grad])
 
         run_parallel([lambda c=c: run(c) for c in range(C)])
         return grad.reshape(H, W, C), None, None, None, None

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from .poses import pose_delta
+from .poses import pose_delta_np
 
 
 def exposure_twist(c2w_prev: np.ndarray, t_prev: float, c2w: np.ndarray, t: float, exposure_s: float,
@@ -72,9 +72,9 @@ def motion_deltas(xi_b: np.ndarray, k: int, centre: float = 0.0,
     linspace(−½, ½, K)`` (``s = 0`` for K = 1) around ``c`` = ``centre`` exposures from the frame's pose (a
     rolling-shutter band's readout time over τ, :mod:`gausslite.mapping.shutter`; 0 for the whole frame). One
     twist, so ``E(c ξ_b) E(s ξ_b) = E((c + s) ξ_b)``."""
-    xi = torch.as_tensor(np.asarray(xi_b, np.float64))
+    xi = np.asarray(xi_b, np.float64)
     offsets = np.linspace(-0.5, 0.5, k) if k > 1 else np.zeros(1)
-    return [pose_delta(float(centre + s) * xi).to(device) for s in offsets]
+    return [torch.from_numpy(pose_delta_np(float(centre + s) * xi)).to(device) for s in offsets]
 
 
 __all__ = ["exposure_twist", "blur_length_px", "blur_samples", "motion_deltas"]

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from gausslite.gaussians import GaussianMap
+from gausslite.mapping.adam import fused_available, masked_adam_
 from gausslite.mapping.config import LearningRates
 from gausslite.mapping.poses import quat_mul, quat_of_rotvec
 
@@ -246,9 +247,11 @@ class GaussianModel:
         self.optimizer.zero_grad(set_to_none=True)
 
     @torch.no_grad()
-    def _masked_adam(self, rows: torch.Tensor) -> None:
+    def _masked_adam(self, rows: torch.Tensor, fused: bool = True) -> None:
         """Adam (Kingma & Ba 2015, as ``torch.optim.Adam`` without weight decay or amsgrad) on ``rows``
-        (K,) int64 of every parameter that has a gradient; the step count advances as in a full step."""
+        (K,) int64 of every parameter that has a gradient; the step count advances as in a full step. A CPU
+        float32 parameter takes one Warp launch (:func:`gausslite.mapping.adam.masked_adam_`; not with
+        ``fused`` False), any other one the torch ops of :meth:`_masked_adam_torch`."""
         opt = self.optimizer
         for group in opt.param_groups:
             b1, b2 = group["betas"]
@@ -263,13 +266,23 @@ class GaussianModel:
                     st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 st["step"] += 1
                 t = float(st["step"])
-                g = p.grad.index_select(0, rows)
-                m = st["exp_avg"].index_select(0, rows).lerp_(g, 1.0 - b1)
-                v = st["exp_avg_sq"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
-                st["exp_avg"].index_copy_(0, rows, m)
-                st["exp_avg_sq"].index_copy_(0, rows, v)
-                denom = (v.sqrt() / ((1.0 - b2 ** t) ** 0.5)).add_(eps)
-                p.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** t))
+                if fused and all(fused_available(x) for x in (p, p.grad, st["exp_avg"], st["exp_avg_sq"])):
+                    masked_adam_(p.data, p.grad, st["exp_avg"], st["exp_avg_sq"], rows, lr, b1, b2, eps, int(t))
+                else:
+                    self._masked_adam_torch(p, st, rows, lr, b1, b2, eps, t)
+
+    @staticmethod
+    def _masked_adam_torch(p: torch.Tensor, st: dict, rows: torch.Tensor, lr: float, b1: float, b2: float,
+                           eps: float, t: float) -> None:
+        """:meth:`_masked_adam`'s update of parameter ``p`` (its Adam state ``st``, step ``t`` already counted)
+        on ``rows`` with torch ops: the reference of :func:`gausslite.mapping.adam.masked_adam_`."""
+        g = p.grad.index_select(0, rows)
+        m = st["exp_avg"].index_select(0, rows).lerp_(g, 1.0 - b1)
+        v = st["exp_avg_sq"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
+        st["exp_avg"].index_copy_(0, rows, m)
+        st["exp_avg_sq"].index_copy_(0, rows, v)
+        denom = (v.sqrt() / ((1.0 - b2 ** t) ** 0.5)).add_(eps)
+        p.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** t))
 
 
 def quat_of_matrix(R: np.ndarray) -> torch.Tensor:

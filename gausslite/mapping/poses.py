@@ -75,9 +75,23 @@ def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def pose_delta(xi: torch.Tensor) -> torch.Tensor:
-    """(4, 4) ``E(ξ) = [[exp(ω^), v], [0, 1]]`` of ``xi`` (6,) = (ω radians, v metres)."""
+    """(4, 4) ``E(ξ) = [[exp(ω^), v], [0, 1]]`` of ``xi`` (6,) = (ω radians, v metres), differentiable
+    (:func:`pose_delta_np` for a value without gradient)."""
     E = torch.eye(4, dtype=xi.dtype, device=xi.device)
     E[:3, :3] = so3_exp(xi[:3])
+    E[:3, 3] = xi[3:]
+    return E
+
+
+def pose_delta_np(xi: np.ndarray) -> np.ndarray:
+    """:func:`pose_delta` as a value: (4, 4) float64 ``E(ξ)`` of ``xi`` (6,) = (ω radians, v metres), the rotation by
+    SciPy's ``Rotation.from_rotvec`` (a few NumPy calls instead of twenty torch ops: the mapper takes one per pose
+    step and per blur sample and shutter band of a render)."""
+    from scipy.spatial.transform import Rotation  # lazy: keeps this module importable without SciPy
+
+    xi = np.asarray(xi, np.float64)
+    E = np.eye(4)
+    E[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
     E[:3, 3] = xi[3:]
     return E
 
@@ -310,10 +324,10 @@ class PoseRefiner:
         if dxi is None:
             return None
         dxi = dxi * float(scale)
-        E = pose_delta(torch.from_numpy(dxi)).to(c2w.device)
-        new = torch.from_numpy(nearest_rigid((c2w @ E).cpu().numpy(), f"keyframe {fid}'s refined pose")).to(c2w)
+        E = pose_delta_np(dxi)
+        new = torch.from_numpy(nearest_rigid(c2w.detach().cpu().numpy() @ E, f"keyframe {fid}'s refined pose")).to(c2w)
         # thousands of steps fold into the correction: each product projected back onto SE(3)
-        self.corrections[fid] = nearest_rigid(self.corrections[fid] @ E.cpu().numpy(), f"keyframe {fid}'s correction")
+        self.corrections[fid] = nearest_rigid(self.corrections[fid] @ E, f"keyframe {fid}'s correction")
         return new
 
     def state_dict(self) -> dict:

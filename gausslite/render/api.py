@@ -367,7 +367,7 @@ def rasterize_bands(
     The bands' Gaussians are projected pose by pose and composited together: the projected rows of every band are
     stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
     ``tile_rows``), and one compositing pass and one backward pass cover the image. So B bands cost B projections
-    and one binning, compositing and backward, not B of each (with the Warp backend on CPU; elsewhere the bands
+    and one gather of their rows, binning, compositing and backward, not B of each (with the Warp backend on CPU; elsewhere the bands
     are rendered one by one, each at the full image size, and their rows stacked: the reference of the parity
     test).
 
@@ -410,18 +410,24 @@ def rasterize_bands(
         return outs[0] if B == 1 else _stack_bands(outs, rows)
     width, height, bg = _image_settings(width, height, tile_size, cpu_kernel, background, device, dtype)
     nt = _launch_threads(num_threads)
-    per_band = []
-    for vm, sub, (y0, y1), Kb in zip(viewmats, subsets, rows, Ks):
+    # every band's rows gathered at once (one gather per parameter, hence one scatter of its gradient), then
+    # projected band by band from their own pose
+    band_ids = [_gather_subset(sub, N, device, ())[0] for sub in subsets]
+    ids = torch.cat(band_ids)
+    m, q, ls, ol, col = (t.index_select(0, ids) for t in params)
+    q, ls = q.to(dtype), ls.to(dtype)
+    projs, tile_rows, a = [], [], 0
+    for vm, bid, (y0, y1), Kb in zip(viewmats, band_ids, rows, Ks):
         K64, vm64 = _camera_tensors(Kb, None, vm, device, dtype)
-        ids, (m, q, ls, ol, col) = _gather_subset(sub, N, device, params)
-        proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
-                                      near=near, far=far, eps2d=eps2d, num_threads=nt)
-        band = torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size], dtype=torch.int32)
-        per_band.append((ids, ol, col, proj, band.expand(len(ids), 2)))
-    proj = Projection(*(torch.cat([getattr(b[3], f) for b in per_band]) for f in Projection._fields))
-    return _composite_warp_cpu(proj, torch.cat([b[1] for b in per_band]), torch.cat([b[2] for b in per_band]),
-                               torch.cat([b[0] for b in per_band]), width, height, tile_size, nt, bg, cpu_kernel,
-                               tile_rows=torch.cat([b[4] for b in per_band]), n_bands=B)
+        b = a + len(bid)
+        projs.append(project_gaussians_warp(m[a:b], q[a:b], ls[a:b], vm64, K64, width, height,
+                                            near=near, far=far, eps2d=eps2d, num_threads=nt))
+        tile_rows.append(torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size],
+                                      dtype=torch.int32).expand(len(bid), 2))
+        a = b
+    proj = Projection(*(torch.cat([getattr(p, f) for p in projs]) for f in Projection._fields))
+    return _composite_warp_cpu(proj, ol, col, ids, width, height, tile_size, nt, bg, cpu_kernel,
+                               tile_rows=torch.cat(tile_rows), n_bands=B)
 
 
 def blend_weights(

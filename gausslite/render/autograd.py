@@ -1,7 +1,7 @@
 """``torch.autograd.Function`` wrappers of the Warp kernels (projection and rasterization).
 
-Forward/backward launch :mod:`gausslite.render.warp_kernels` on the device of the input tensors
-(zero-copy through ``wp.from_torch``).
+Forward/backward launch :mod:`gausslite.render.warp_kernels` on the device of the input tensors, zero-copy: on
+CPU through :func:`gausslite.render.launch.launch_cpu` (replayed launches), on CUDA through ``wp.from_torch``.
 
 :class:`RasterizeWarp`: one launch packs the per-Gaussian ``gdata`` rows, then the compositing
 kernels run (per-tile kernels on CPU, per-pixel kernels on CUDA). On CPU the image is split into
@@ -23,17 +23,10 @@ import warp as wp
 
 from . import simd_kernels as sk
 from . import warp_kernels as wk
+from .launch import Vec, launch_cpu
 from .projection import Projection
 
 _IDATA_COLS = [0, 1, 2, 3, 4, 10, 11, 12]
-
-
-def _wa(t: torch.Tensor, dtype=None):
-    """A launch argument for tensor ``t``: Warp's low-level array descriptor (``wp.from_torch(...,
-    return_ctype=True)``, zero-copy), which a launch takes as it takes a ``wp.array`` for half the Python
-    overhead. Only for kernels with concrete array types: a generic (``Any``) kernel picks its overload from
-    ``wp.array`` arguments."""
-    return wp.from_torch(t, dtype=dtype, return_ctype=True)
 
 
 def default_num_threads() -> int:
@@ -54,14 +47,13 @@ def _wp_device(dev: torch.device) -> str:
 
 def _launch_rows(kernel, n: int, num_threads: int, inputs, outputs) -> None:
     """Launch a per-row CPU kernel with a trailing-``offset`` argument (between ``inputs`` and
-    ``outputs``) over rows [0, n), split into ``num_threads`` contiguous chunks run concurrently."""
+    ``outputs``) over rows [0, n), split into ``num_threads`` contiguous chunks run concurrently (tensors and
+    scalars as :func:`~gausslite.render.launch.launch_cpu` takes them)."""
     k = max(1, min(int(num_threads), n // 4096 + 1))
     bounds = [n * s // k for s in range(k + 1)]
 
     def run(s):
-        if bounds[s + 1] > bounds[s]:
-            wp.launch(kernel, dim=bounds[s + 1] - bounds[s], inputs=list(inputs) + [bounds[s]],
-                      outputs=outputs, device="cpu")
+        launch_cpu(kernel, bounds[s + 1] - bounds[s], list(inputs) + [bounds[s]] + list(outputs))
 
     wk.run_parallel([lambda s=s: run(s) for s in range(k)])
 
@@ -94,10 +86,12 @@ def _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit: bo
     if M > 0:
         wdev = _wp_device(dev)
         wk.ensure_loaded(wdev)
-        wp.launch(wk.pack_gdata_kernel, dim=M,
-                  inputs=[wp.from_torch(t) for t in ins] + [int(bool(opacity_is_logit))],
-                  outputs=[wp.from_torch(gdata)], device=wdev,
-                  stream=wp.stream_from_torch(dev) if dev.type == "cuda" else None)
+        if dev.type == "cpu":
+            launch_cpu(wk.pack_gdata_kernel, M, ins + [int(bool(opacity_is_logit)), gdata])
+        else:
+            wp.launch(wk.pack_gdata_kernel, dim=M,
+                      inputs=[wp.from_torch(t) for t in ins] + [int(bool(opacity_is_logit))],
+                      outputs=[wp.from_torch(gdata)], device=wdev, stream=wp.stream_from_torch(dev))
     return gdata
 
 
@@ -114,11 +108,13 @@ def _unpack_grads(bufs: torch.Tensor, opacities: torch.Tensor, opacity_is_logit:
         outs = [torch.empty(shp, dtype=dt, device=dev) for shp in shapes]
         wdev = _wp_device(dev)
         wk.ensure_loaded(wdev)
-        wp.launch(wk.unpack_grads_kernel, dim=M,
-                  inputs=[wp.from_torch(bufs), wp.from_torch(opacities.detach().contiguous()),
-                          int(bool(opacity_is_logit))],
-                  outputs=[wp.from_torch(t) for t in outs], device=wdev,
-                  stream=wp.stream_from_torch(dev) if dev.type == "cuda" else None)
+        ops = opacities.detach().contiguous()
+        if dev.type == "cpu":
+            launch_cpu(wk.unpack_grads_kernel, M, [bufs, ops, int(bool(opacity_is_logit))] + outs)
+        else:
+            wp.launch(wk.unpack_grads_kernel, dim=M, inputs=[wp.from_torch(bufs), wp.from_torch(ops),
+                                                             int(bool(opacity_is_logit))],
+                      outputs=[wp.from_torch(t) for t in outs], device=wdev, stream=wp.stream_from_torch(dev))
         return tuple(outs)
     grad = bufs.sum(0)
     g_op = grad[:, 5]
@@ -178,20 +174,14 @@ class RasterizeWarp(torch.autograd.Function):
             T = torch.empty(HW, dtype=torch.float32, device=dev)
             last = torch.empty(HW, dtype=torch.int32, device=dev)
             bg = wp.vec3(*(background.detach().to(torch.float32).cpu().tolist() if composite else (0.0,) * 3))
-            a_g, a_ids = _wa(gdata), _wa(gids)
-            a_ts, a_te = _wa(tile_start), _wa(tile_end)
-            outs = [_wa(c4, dtype=wp.vec4), _wa(A), _wa(T),
-                    _wa(last)]
+            outs = [Vec(c4, wp.vec4), A, T, last]
 
-            def launch_cpu(s):
-                dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
-                if dim > 0:
-                    wp.launch(fwd_kernel, dim=dim,
-                              inputs=[a_g, a_ids, a_ts, a_te, width, height, tile_size, tiles_x, s,
-                                      nstripes, int(composite), bg],
-                              outputs=outs, device=wdev)
+            def launch_stripe(s):
+                launch_cpu(fwd_kernel, _stripe_dim(s, nstripes, tiles_y, 1, tiles_x),
+                           [gdata, gids, tile_start, tile_end, width, height, tile_size, tiles_x, s, nstripes,
+                            int(composite), bg] + outs)
 
-            wk.run_parallel([lambda s=s: launch_cpu(s) for s in range(nstripes)])
+            wk.run_parallel([lambda s=s: launch_stripe(s) for s in range(nstripes)])
             ctx.composite = composite
             ctx.bg = bg
             ctx.save_for_backward(gdata, gids, tile_start, T, last, c4, A, opacities)
@@ -233,24 +223,17 @@ class RasterizeWarp(torch.autograd.Function):
             gd = _pixel_grad(g_depth, HW, 1, dev)
             ga = _pixel_grad(g_alpha, HW, 1, dev)
             bufs = torch.zeros(nstripes, M, 10, dtype=torch.float32, device=dev)
-            a_g, a_ids, a_ts = _wa(gdata), _wa(gids), _wa(tile_start)
-            ins = [_wa(T), _wa(last), int(ctx.composite), ctx.bg,
-                   _wa(c4, dtype=wp.vec4), _wa(A), _wa(gc),
-                   _wa(gd), _wa(ga),
-                   _wa(torch.empty(HW, 4, dtype=torch.float32, device=dev), dtype=wp.vec4),
-                   _wa(torch.empty(HW, 2, dtype=torch.float32, device=dev), dtype=wp.vec2)]
-            a_bufs = [_wa(bufs[s]) for s in range(nstripes)]
+            ins = [T, last, int(ctx.composite), ctx.bg, Vec(c4, wp.vec4), A, gc, gd, ga,
+                   Vec(torch.empty(HW, 4, dtype=torch.float32, device=dev), wp.vec4),
+                   Vec(torch.empty(HW, 2, dtype=torch.float32, device=dev), wp.vec2)]
             bwd_kernel = sk.rasterize_bwd_tile_simd_kernel if ctx.simd else wk.rasterize_bwd_tile_kernel
 
-            def launch_cpu(s):
-                dim = _stripe_dim(s, nstripes, tiles_y, 1, tiles_x)
-                if dim > 0:
-                    wp.launch(bwd_kernel, dim=dim,
-                              inputs=[a_g, a_ids, a_ts, width, height, tile_size, tiles_x, s,
-                                      nstripes] + ins,
-                              outputs=[a_bufs[s]], device=wdev)
+            def launch_stripe(s):
+                launch_cpu(bwd_kernel, _stripe_dim(s, nstripes, tiles_y, 1, tiles_x),
+                           [gdata, gids, tile_start, width, height, tile_size, tiles_x, s, nstripes] + ins
+                           + [bufs[s]])
 
-            wk.run_parallel([lambda s=s: launch_cpu(s) for s in range(nstripes)])
+            wk.run_parallel([lambda s=s: launch_stripe(s) for s in range(nstripes)])
             return _unpack_grads(bufs, opacities, ctx.opacity_is_logit, ctx.in_dtypes) + tail
 
         gdata, gids, tile_start, T, last, idata, opacities = ctx.saved_tensors
@@ -304,9 +287,8 @@ class ProjectWarp(torch.autograd.Function):
         radii = torch.empty(N, dtype=torch.int32)
         if N > 0:
             wk.ensure_loaded("cpu")
-            _launch_rows(wk.project_fwd_kernel, N, num_threads,
-                         [wp.from_torch(t) for t in ins] + list(consts),
-                         [wp.from_torch(t) for t in (means2d, conics, depths, radii)])
+            _launch_rows(wk.project_fwd_kernel, N, num_threads, ins + list(consts),
+                         [means2d, conics, depths, radii])
         ctx.consts = consts
         ctx.num_threads = num_threads
         ctx.save_for_backward(*ins)
@@ -329,10 +311,8 @@ class ProjectWarp(torch.autograd.Function):
 
         outs = [torch.empty_like(means), torch.empty_like(quats), torch.empty_like(log_scales)]
         wk.ensure_loaded("cpu")
-        _launch_rows(wk.project_bwd_kernel, N, ctx.num_threads,
-                     [wp.from_torch(t) for t in (means, quats, log_scales)] + list(ctx.consts),
-                     [wp.from_torch(prep(g_means2d, (N, 2))), wp.from_torch(prep(g_conics, (N, 3))),
-                      wp.from_torch(prep(g_depths, (N,)))] + [wp.from_torch(t) for t in outs])
+        _launch_rows(wk.project_bwd_kernel, N, ctx.num_threads, [means, quats, log_scales] + list(ctx.consts),
+                     [prep(g_means2d, (N, 2)), prep(g_conics, (N, 3)), prep(g_depths, (N,))] + outs)
         return tuple(outs) + tail
 
 

@@ -22,6 +22,7 @@ import torch
 import warp as wp
 
 from . import warp_kernels as wk
+from .launch import launch_cpu
 
 
 class TileBins(NamedTuple):
@@ -105,27 +106,21 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     banded = int(tile_rows is not None)
     t_rows = (tile_rows.to(torch.int32).contiguous() if banded else torch.zeros(1, 2, dtype=torch.int32))
     wk.ensure_loaded("cpu")
-    a_uv, a_r, a_rows, a_trows = wp.from_torch(uv), wp.from_torch(rad), wp.from_torch(rows), wp.from_torch(t_rows)
-    a_keys = wp.from_torch(keys)
-    wp.launch(wk.bin_count_kernel, dim=1,
-              inputs=[a_uv, a_r, wp.from_torch(dep), tile_size, tiles_x, tiles_y, f32, a_trows, banded],
-              outputs=[a_keys, a_rows, wp.from_torch(n_rows), wp.from_torch(tile_start),
-                       wp.from_torch(tile_end)], device="cpu")
+    launch_cpu(wk.bin_count_kernel, 1, [uv, rad, dep, tile_size, tiles_x, tiles_y, f32, t_rows, banded, keys, rows,
+                                        n_rows, tile_start, tile_end])
     n = int(n_rows[0])
     n_isect = int(tile_end[-1])
     gids = torch.empty(n_isect, dtype=torch.int32)
     if n == 0:
         return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)
     # Positive depths: float order = order of the float32 bit patterns used by _bin_torch.
-    wp.utils.radix_sort_pairs(a_keys, a_rows, n)
+    wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(rows), n)
     cursor = tile_start.clone()
-    a_cur, a_gids = wp.from_torch(cursor), wp.from_torch(gids)
     nstripes = max(1, min(int(num_threads), tiles_y))
 
     def scatter(s):
-        wp.launch(wk.bin_scatter_kernel, dim=1,
-                  inputs=[a_uv, a_r, a_rows, n, tile_size, tiles_x, tiles_y, f32, a_trows, banded, s, nstripes],
-                  outputs=[a_cur, a_gids], device="cpu")
+        launch_cpu(wk.bin_scatter_kernel, 1,
+                   [uv, rad, rows, n, tile_size, tiles_x, tiles_y, f32, t_rows, banded, s, nstripes, cursor, gids])
 
     wk.run_parallel([lambda s=s: scatter(s) for s in range(nstripes)])
     return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)

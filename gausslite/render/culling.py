@@ -14,9 +14,9 @@ from __future__ import annotations
 import math
 
 import torch
-import warp as wp
 
 from . import warp_kernels as wk
+from .launch import launch_cpu
 
 
 def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
@@ -69,10 +69,9 @@ def _cull_warp(means, log_scales, viewmat, K, width, height, near, far, pad, sig
     """:func:`frustum_cull_mask` by one Warp launch (CPU, float32 parameters)."""
     keep = torch.empty(len(means), dtype=torch.uint8)
     wk.ensure_loaded("cpu")
-    wp.launch(wk.frustum_cull_kernel, dim=len(means),
-              inputs=[wp.from_torch(means.detach().contiguous()), wp.from_torch(log_scales.detach().contiguous()),
-                      wp.from_torch(_planes(viewmat, K, width, height, near, far, pad)), float(sigmas)],
-              outputs=[wp.from_torch(keep)], device="cpu")
+    launch_cpu(wk.frustum_cull_kernel, len(means),
+               [means.detach().contiguous(), log_scales.detach().contiguous(),
+                _planes(viewmat, K, width, height, near, far, pad), float(sigmas), keep])
     return keep.view(torch.bool)
 
 

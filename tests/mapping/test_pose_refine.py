@@ -7,8 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from gausslite.mapping.config import MapperConfig, deep_merge
 from gausslite.mapping.mapper import Mapper
-from gausslite.mapping.poses import (PoseRefiner, move_gaussians_for_pose_delta, pose_delta, quat_of_rotvec,
-                                     so3_exp)
+from gausslite.mapping.poses import (PoseRefiner, move_gaussians_for_pose_delta, pose_delta, pose_delta_np,
+                                     quat_of_rotvec, so3_exp)
 from gausslite.render import rasterize
 from tests._scenes import plane_frame
 
@@ -23,6 +23,17 @@ def test_so3_exp_and_quaternion_match_scipy(w):
     q = quat_of_rotvec(t).numpy()
     np.testing.assert_allclose(q[[1, 2, 3, 0]], r.as_quat() * np.sign(r.as_quat()[3] or 1.0), atol=1e-12)
 
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-9, 1e-4, 0.3, 3.0])
+def test_the_value_pose_delta_equals_the_differentiable_one(scale):
+    """pose_delta_np (the mapper's pose steps and blur poses) against pose_delta: the same E(ξ) to 1e-14."""
+    rng = np.random.default_rng(int(scale * 1e3) + 1)
+    for _ in range(20):
+        xi = rng.normal(size=6) * scale
+        E = pose_delta_np(xi)
+        np.testing.assert_allclose(E, pose_delta(torch.from_numpy(xi)).numpy(), atol=1e-14)
+        assert E.dtype == np.float64 and np.array_equal(E[3], [0.0, 0.0, 0.0, 1.0])
 
 def test_gradient_at_zero_is_finite_and_matches_finite_differences():
     omega = torch.zeros(3, dtype=torch.float64, requires_grad=True)
