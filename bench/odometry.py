@@ -34,6 +34,9 @@ registering against the previous frame only), ``no_loops`` (the shipped settings
 photometric Huber threshold, 0.1, instead of 0.5), ``photometric`` (the colour term alone) and ``geometric``
 (point-to-plane alone).
 
+``--walk-seeds 0,1,2`` runs each synthetic walk once per rendering (its trajectory's and sensor's random draws; the
+rows of seed s ≠ 0 are the sequence ``<name>_seed<s>``), as ``bench.sensor_calibration`` renders them.
+
 ``--gains GIVEN.json,ODOMETRY.json`` compares the ROI gain (GaussLite − uniform, ``novel``) of live missions at the
 odometry's poses with the gain at the given poses, from two ``bench.realtime`` runs (:func:`pose_gains`).
 
@@ -47,7 +50,8 @@ Usage::
 
     python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0]
                              [--variants default,mapping_resolution,frame_to_frame]
-                             [--synthetic-frames 300] [--live] [--gains GIVEN.json,ODOMETRY.json]
+                             [--synthetic-frames 300] [--walk-seeds 0,1,2] [--live]
+                             [--gains GIVEN.json,ODOMETRY.json]
                              [--out bench/results/odometry.json]
 """
 
@@ -105,8 +109,10 @@ def walk_dir(work: Path, level: str, seed: int = 0, trajectory: str = "walk") ->
     return work / (name.replace("walk", trajectory, 1) + (f"_seed{seed}" if seed else ""))
 
 
-def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, walk_frames: int = 525) -> list:
-    """The frames (with their reference poses as ``c2w``) of a bench sequence, read into memory.
+def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, walk_frames: int = 525,
+                  seed: int = 0) -> list:
+    """The frames (with their reference poses as ``c2w``) of a bench sequence, read into memory; ``seed``: which
+    rendering of a synthetic walk (its trajectory's and sensor's random draws; 0 for every other sequence).
 
     Raises:
         FileNotFoundError: a shared dataset that is absent (set ``GAUSSLITE_SHARED``).
@@ -119,9 +125,9 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
     elif name.startswith(("synthetic_walk", "synthetic_scan_walk")):
         level = "tum" if name.endswith("_tum") else "realistic"
         kind = "scan_walk" if name.startswith("synthetic_scan_walk") else "walk"
-        scene = walk_dir(work, level, trajectory=kind)
+        scene = walk_dir(work, level, seed, trajectory=kind)
         if not (scene / "agent_a" / "traj.txt").is_file():
-            make_scene(scene, frames=walk_frames, width=size[0], height=size[1], trajectory=kind,
+            make_scene(scene, seed=seed, frames=walk_frames, width=size[0], height=size[1], trajectory=kind,
                        sensor_noise=level, agents=("agent_a",))
         ds = load_dataset(scene / "agent_a", pose_source="given")
         frames = [ds[i] for i in range(len(ds))]
@@ -349,16 +355,20 @@ def live_table(runs: List[dict]) -> str:
 
 
 def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path,
-        walk_frames: int = 525) -> dict:
-    """``{sequence: {variant: metrics}}`` (:func:`track`), printing each row as it is measured."""
+        walk_frames: int = 525, walk_seeds: tuple = (0,)) -> dict:
+    """``{sequence: {variant: metrics}}`` (:func:`track`), printing each row as it is measured. A synthetic walk is
+    run once per seed of ``walk_seeds``; a seed other than 0 is its own sequence, ``<name>_seed<seed>``."""
     out: dict = {}
-    for name in sequences:
-        frames = load_sequence(name, work, synthetic_frames, size, walk_frames)
-        out[name] = {}
+    runs = [(name, seed) for name in sequences
+            for seed in (walk_seeds if name.startswith(("synthetic_walk", "synthetic_scan_walk")) else (0,))]
+    for name, seed in runs:
+        frames = load_sequence(name, work, synthetic_frames, size, walk_frames, seed)
+        key = name + (f"_seed{seed}" if seed else "")
+        out[key] = {}
         for var in variants:
-            out[name][var] = track(frames, VARIANTS[var])
-            r = out[name][var]
-            print(f"{name} {var}: ATE {100 * r['ate_rmse_m']:.2f} cm (online {100 * r['ate_online_m']:.2f}), "
+            out[key][var] = track(frames, VARIANTS[var])
+            r = out[key][var]
+            print(f"{key} {var}: ATE {100 * r['ate_rmse_m']:.2f} cm (online {100 * r['ate_online_m']:.2f}), "
                   f"tracked {100 * r['tracked_fraction']:.0f} %, lost {r['lost']}, re-localised {r['relocalised']}, "
                   f"loops {r['loops']['accepted']} ({r['loops']['false']} false), {r['ms_per_frame']:.0f} ms/frame",
                   flush=True)
@@ -373,6 +383,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--synthetic-frames", type=int, default=300, help="frames of the synthetic circle")
     ap.add_argument("--synthetic-size", default="320x240", help="WxH of the synthetic circle and walk")
     ap.add_argument("--walk-frames", type=int, default=525, help="frames of the synthetic walk (525: 7 m at 30 fps)")
+    ap.add_argument("--walk-seeds", default="0",
+                    help="comma-separated renderings of the synthetic walks (seed 0 is the sequence itself)")
     ap.add_argument("--work", type=Path, default=None,
                     help="folder for the rendered synthetic scenes, kept for the next run (default: a temporary one)")
     ap.add_argument("--live", action="store_true",
@@ -406,7 +418,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
-        results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames)
+        results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames,
+                      tuple(int(v) for v in args.walk_seeds.split(",") if v))
     live_result = ([live(1.0, args.live_budget, v) for v in tqdm(live_variants, desc="live variants")
                     for _ in range(args.live_runs)] if args.live else None)
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),

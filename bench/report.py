@@ -431,6 +431,14 @@ def solvers_table(r: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def odometry_sequences_table(r: dict) -> str:
+    """``bench.odometry``'s own table of every sequence (walk seeds included) and variant in ``r``
+    (``bench/results/odometry_scan_walk_resolution.json``)."""
+    from bench.odometry import table  # lazy: the page's other regions need none of the odometry
+
+    return table(r["sequences"]) + "\n"
+
+
 def odometry_live_table(r: dict) -> str:
     """The live tracking beside the mapper per variant (``live`` of ``bench/results/odometry_live.json``)."""
     from bench.odometry import live_table  # lazy: the page's other regions need none of the odometry
@@ -1013,6 +1021,8 @@ REGIONS: Dict[str, Region] = {
     "odometry-gains": Region("bench/results/odometry_gains.json", pose_gains_table),
     "odometry-residuals": Region("bench/results/odometry_residuals.json", odometry_residuals_table),
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
+    "odometry-scan-walk-resolution": Region("bench/results/odometry_scan_walk_resolution.json",
+                                            odometry_sequences_table),
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
@@ -1024,6 +1034,8 @@ REGIONS: Dict[str, Region] = {
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
     "sensor-calibration": Region("bench/results/sensor_calibration.json", sensor_calibration_table),
     "quality-split-axis": Region("bench/results/quality_split_axis.json", quality_per_iteration_table),
+    "quality-per-iteration-1cddfb0": Region("bench/results/quality_per_iteration_1cddfb0.json",
+                                            quality_per_iteration_table),
     "realtime-split-sample": Region("bench/results/realtime_split_sample.json", realtime_protocol_table),
     "realtime-split-axis": Region("bench/results/realtime_split_axis.json", realtime_protocol_table),
     "realtime-region-05": Region("bench/results/realtime_region_05.json", realtime_protocol_table),

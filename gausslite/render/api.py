@@ -367,9 +367,9 @@ def rasterize_bands(
     The bands' Gaussians are projected pose by pose and composited together: the projected rows of every band are
     stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
     ``tile_rows``), and one compositing pass and one backward pass cover the image. So B bands cost B projections
-    and one gather of their rows, binning, compositing and backward, not B of each (with the Warp backend on CPU; elsewhere the bands
-    are rendered one by one, each at the full image size, and their rows stacked: the reference of the parity
-    test).
+    and one gather of their rows, binning, compositing and backward, not B of each (with the Warp backend on CPU;
+    elsewhere the bands are rendered one by one, each at the full image size, and their rows stacked: the reference
+    of the parity test).
 
     Args:
         means … colors, K, width, height, background, backend, near, far, eps2d, tile_size, num_threads,

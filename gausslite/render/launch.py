@@ -127,9 +127,10 @@ class _Recorded:
 
 
 def launch_cpu(kernel, dim, args: list) -> None:
-    """Launch Warp ``kernel`` on the CPU over ``dim`` threads (an int, or a tuple for a 2-D launch) with ``args`` (module docstring: every
-    parameter in order, inputs then outputs), replaying this thread's recorded launch for the kernel and the
-    arguments' types. Same effect as ``wp.launch(kernel, dim=dim, inputs=args, device="cpu")``.
+    """Launch Warp ``kernel`` on the CPU over ``dim`` threads (an int, or a tuple for a 2-D launch) with ``args``
+    (module docstring: every parameter in order, inputs then outputs), replaying this thread's recorded launch for
+    the kernel and the arguments' types. Same effect as ``wp.launch(kernel, dim=dim, inputs=args, device="cpu")``;
+    a launch of no threads does nothing.
 
     Raises:
         ValueError: a tensor off the CPU, or a vector view whose vector dimensions are not contiguous.

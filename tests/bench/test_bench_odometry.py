@@ -106,3 +106,19 @@ def test_the_scan_walk_is_the_tum_walk_looking_around(tmp_path):
     # the same path, looking elsewhere (how fast it turns: tests/datasets/test_synthetic_walk.py)
     assert np.allclose([f.c2w[:3, 3] for f in scan], [f.c2w[:3, 3] for f in walk])
     assert not np.allclose([f.c2w[:3, :3] for f in scan[1:-1]], [f.c2w[:3, :3] for f in walk[1:-1]])
+
+
+def test_walk_seeds_are_their_own_sequences(tmp_path):
+    """``--walk-seeds 0,1``: the walk once per rendering, seed 1 as ``<name>_seed1`` from its own folder (the folder
+    bench.sensor_calibration renders it into), with another trajectory; sequences that are not walks run once."""
+    import numpy as np
+
+    import bench.odometry as bo
+
+    out = bo.run(["synthetic_scan_walk_tum"], ["default"], 0, (48, 36), tmp_path, walk_frames=6, walk_seeds=(0, 1))
+    assert list(out) == ["synthetic_scan_walk_tum", "synthetic_scan_walk_tum_seed1"]
+    assert all(out[k]["default"]["frames"] == 6 for k in out)
+    assert (bo.walk_dir(tmp_path, "tum", 1, "scan_walk") / "agent_a" / "traj.txt").is_file()
+    a = bo.load_sequence("synthetic_scan_walk_tum", tmp_path, 0, (48, 36), walk_frames=6)
+    b = bo.load_sequence("synthetic_scan_walk_tum", tmp_path, 0, (48, 36), walk_frames=6, seed=1)
+    assert not np.allclose([f.c2w for f in a], [f.c2w for f in b])
