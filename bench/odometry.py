@@ -89,6 +89,8 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             "geometric": {"method": "point_to_plane"}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered",
              "synthetic_walk_tum", "synthetic_scan_walk_tum")
+#: the name prefixes of the synthetic walks (rendered per ``--walk-seeds``; :func:`walk_dir`)
+WALKS = ("synthetic_walk", "synthetic_scan_walk")
 #: a loop closure whose relative pose is further than this from the reference's is a false loop (metres, degrees)
 FALSE_LOOP = (0.05, 3.0)
 
@@ -122,7 +124,7 @@ def load_sequence(name: str, work: Path, synthetic_frames: int, size: tuple, wal
                           interpolate_poses=True, align_depth_time=False, pose_source="given")
     elif name == "room0":
         ds = load_dataset(SHARED / "Replica_room0", downscale=4, pose_source="given")
-    elif name.startswith(("synthetic_walk", "synthetic_scan_walk")):
+    elif name.startswith(WALKS):
         level = "tum" if name.endswith("_tum") else "realistic"
         kind = "scan_walk" if name.startswith("synthetic_scan_walk") else "walk"
         scene = walk_dir(work, level, seed, trajectory=kind)
@@ -360,7 +362,7 @@ def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: 
     run once per seed of ``walk_seeds``; a seed other than 0 is its own sequence, ``<name>_seed<seed>``."""
     out: dict = {}
     runs = [(name, seed) for name in sequences
-            for seed in (walk_seeds if name.startswith(("synthetic_walk", "synthetic_scan_walk")) else (0,))]
+            for seed in (walk_seeds if name.startswith(WALKS) else (0,))]
     for name, seed in runs:
         frames = load_sequence(name, work, synthetic_frames, size, walk_frames, seed)
         key = name + (f"_seed{seed}" if seed else "")

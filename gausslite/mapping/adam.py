@@ -65,7 +65,7 @@ def masked_adam_(param: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor,
         raise ValueError("masked_adam_ takes contiguous CPU float32 tensors of one shape")
     if rows.numel() == 0:
         return
-    cols = param[0].numel() if param.dim() > 0 and len(param) else 1
+    cols = param.numel() // len(param)  # rows are given, so the tensor has rows
     p2, g2, m2, v2 = (t.view(len(param), cols) for t in ts)
     ensure_module_loaded(__name__, "cpu")
     launch_cpu(masked_adam_kernel, (int(rows.numel()), cols),
