@@ -32,10 +32,17 @@ wide), ``mapping_resolution`` (tracked at the sequence's own resolution), ``fram
 registering against the previous frame only), ``no_loops`` (the shipped settings without loop closure),
 ``no_relocalisation`` (without re-localisation), and the registration's residuals: ``open3d_huber`` (Open3D's own
 photometric Huber threshold, 0.1, instead of 0.5), ``photometric`` (the colour term alone) and ``geometric``
-(point-to-plane alone).
+(point-to-plane alone); and how a loop candidate is registered (``loop.registration``, gates 2-3 of
+``gausslite.datasets.pose_graph``): ``hybrid_loops`` (the tracker's own RGB-D registration), ``point_to_plane_loops``
+(the same with its depth term alone) and ``fine_icp_loops`` (the default ICP on every depth point, up to 30 iterations
+per level, instead of one point per 4 cm voxel and 15).
 
 ``--walk-seeds 0,1,2`` runs each synthetic walk once per rendering (its trajectory's and sensor's random draws; the
 rows of seed s ≠ 0 are the sequence ``<name>_seed<s>``), as ``bench.sensor_calibration`` renders them.
+
+``--loop-accuracy`` measures the loop registrations themselves (:func:`loop_accuracy`): every loop candidate the
+shipped odometry tries is registered, from the same estimated relative pose, by each ``LoopConfig.registration``
+alone, and the errors against the reference poses are reported (synthetic walks and TUM).
 
 ``--gains GIVEN.json,ODOMETRY.json`` compares the ROI gain (GaussLite − uniform, ``novel``) of live missions at the
 odometry's poses with the gain at the given poses, from two ``bench.realtime`` runs (:func:`pose_gains`).
@@ -50,7 +57,7 @@ Usage::
 
     python -m bench.odometry [--sequences tum_fr1_rpy,synthetic_circle,room0]
                              [--variants default,mapping_resolution,frame_to_frame]
-                             [--synthetic-frames 300] [--walk-seeds 0,1,2] [--live]
+                             [--synthetic-frames 300] [--walk-seeds 0,1,2] [--loop-accuracy] [--live]
                              [--gains GIVEN.json,ODOMETRY.json]
                              [--out bench/results/odometry.json]
 """
@@ -86,7 +93,11 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             "no_relocalisation": {"relocalise": {"enabled": False}},
             # the registration's residuals: Open3D's own Huber threshold on the photometric term, and each term alone
             "open3d_huber": {"intensity_huber_delta": 0.1}, "photometric": {"method": "color"},
-            "geometric": {"method": "point_to_plane"}}
+            "geometric": {"method": "point_to_plane"},
+            # how a loop candidate is registered and verified (gates 2-3 of gausslite.datasets.pose_graph)
+            "hybrid_loops": {"loop": {"registration": "hybrid"}},
+            "point_to_plane_loops": {"loop": {"registration": "point_to_plane"}},
+            "fine_icp_loops": {"loop": {"icp_voxel_m": None, "icp_iterations": 30, "icp_relative_change": 1e-6}}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered",
              "synthetic_walk_tum", "synthetic_scan_walk_tum")
 #: the name prefixes of the synthetic walks (rendered per ``--walk-seeds``; :func:`walk_dir`)
@@ -196,7 +207,8 @@ def loop_errors(odo: RGBDOdometry, frames: list) -> list:
 #: the live measurement's variants: agent settings, and whether loops are closed on the tracking thread instead of
 #: the agent's own loop-closing thread (``RGBDOdometry(background_loops=...)``)
 LIVE_VARIANTS = {"default": ([], True), "loops_inline": ([], False),
-                 "no_loops": (["agent.odometry.loop.enabled=false"], True)}
+                 "no_loops": (["agent.odometry.loop.enabled=false"], True),
+                 "hybrid_loops": (["agent.odometry.loop.registration=hybrid"], True)}
 
 
 def live(rate: float, budget: float, variant: str = "default") -> dict:
@@ -243,6 +255,7 @@ def live(rate: float, budget: float, variant: str = "default") -> dict:
         rt.replay(frames)
         rt.wait_mapped(timeout_s=600)
         st = rt.status()
+        iters = [fs.iters for fs in rt.mapper.stats]
     finally:
         rt.close()
     t_data0, t_wall0 = arrivals[0]
@@ -253,7 +266,8 @@ def live(rate: float, budget: float, variant: str = "default") -> dict:
             "tracked_fraction": rt.odometry.n_tracked / len(frames), "lost": rt.odometry.n_failed,
             "track_ms_mean": float(np.mean(track_ms)), "track_ms_p95": float(np.percentile(track_ms, 95)),
             "on_time_fraction": float(np.mean([x <= period for x in late])), "late_s_max": float(max(late)),
-            "frames_keyframed": st["frames_keyframed"], "frames_skipped": st["frames_skipped"]}
+            "frames_keyframed": st["frames_keyframed"], "frames_skipped": st["frames_skipped"],
+            "iters_per_keyframe": float(np.mean(iters)) if iters else None}
 
 
 def pose_gains(given_path: Path, odometry_path: Path, protocol: str = "novel", budget: str = "0.5") -> dict:
@@ -342,7 +356,8 @@ def table(results: dict) -> str:
 def live_table(runs: List[dict]) -> str:
     """The Markdown table of the live measurement: per variant, the mean ± std over its runs (:func:`live`)."""
     rows = ["| live: TUM fr1/rpy at 15 Hz, keyframe budget | variant | runs | tracked | lost | track ms (mean / p95) "
-            "| frames on time | latest (s) | loops | keyframes |", "|---|---|---|---|---|---|---|---|---|---|"]
+            "| frames on time | latest (s) | loops | keyframes | mapping iterations per keyframe |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for var in dict.fromkeys(r["variant"] for r in runs):
         rs = [r for r in runs if r["variant"] == var]
 
@@ -352,8 +367,81 @@ def live_table(runs: List[dict]) -> str:
 
         rows.append(f"| {rs[0]['keyframe_budget_s']} s | {var} | {len(rs)} | {ms('tracked_fraction', 100)} % | "
                     f"{ms('lost')} | {ms('track_ms_mean')} / {ms('track_ms_p95')} | {ms('on_time_fraction', 100)} % | "
-                    f"{ms('late_s_max', 1.0, 2)} | {ms('loops', 1.0, 1)} | {ms('frames_keyframed')} |")
+                    f"{ms('late_s_max', 1.0, 2)} | {ms('loops', 1.0, 1)} | {ms('frames_keyframed')} | "
+                    f"{ms('iters_per_keyframe', 1.0, 1) if all(r.get('iters_per_keyframe') for r in rs) else '–'} |")
     return "\n".join(rows)
+
+
+#: the loop registrations :func:`loop_accuracy` compares (``LoopConfig.registration`` values)
+LOOP_REGISTRATIONS = ("hybrid", "point_to_plane", "icp")
+
+
+def loop_accuracy(frames: list, registrations=LOOP_REGISTRATIONS) -> dict:
+    """How accurately each loop registration (``LoopConfig.registration``) measures the relative pose of the same
+    loop candidates: the shipped odometry tracks ``frames`` (the loops it closes move its poses as usual), and every
+    candidate pair it tries is also registered, from the same estimated relative pose, by each of
+    ``registrations`` alone (gate 2's registration, without the gates). Each error is against the reference poses.
+
+    Returns:
+        ``{"candidates": n, "init": stats, <registration>: stats}``, ``stats`` = ``{"median_cm", "median_deg",
+        "within_2cm", "within_3cm", "ms_median"}`` (``within_*``: candidates within 2 / 3 cm of the truth).
+    """
+    from gausslite.datasets import loop_closing, pose_graph  # noqa: PLC0415 - only this measurement wraps them
+
+    truth = {int(f.frame_id): f.c2w for f in frames}
+    errs: dict = {k: [] for k in ("init", *registrations)}
+    ms: dict = {k: [] for k in registrations}
+    shipped = pose_graph.verify_registration
+
+    def err(true: np.ndarray, T: np.ndarray) -> tuple:
+        d = np.linalg.inv(true) @ T
+        return 100.0 * float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
+
+    def measured(odo, frame, image, target, init, min_fitness, cfg, clouds=None):
+        true = np.linalg.inv(truth[int(target.frame_id)]) @ truth[int(frame.frame_id)]
+        errs["init"].append(err(true, init))
+        for name in registrations:
+            t0 = time.perf_counter()
+            if name == "icp":
+                cl = pose_graph.DepthClouds(odo.config.depth_max_m)
+                T = pose_graph._icp(cl.of(frame, cfg.icp_voxel_m), cl.of(target.frame, cfg.icp_voxel_m), init,
+                                    cfg.icp_levels_m, cfg)
+            else:
+                T = odo.register(frame, image, target, init, name)[1]
+            ms[name].append(1e3 * (time.perf_counter() - t0))
+            errs[name].append(err(true, T))
+        return shipped(odo, frame, image, target, init, min_fitness, cfg, clouds)
+
+    loop_closing.verify_registration = measured
+    try:
+        track(frames, {})
+    finally:
+        loop_closing.verify_registration = shipped
+
+    def stats(name: str) -> dict:
+        e = np.array(errs[name]).reshape(-1, 2)
+        out = {"median_cm": float(np.median(e[:, 0])) if len(e) else None,
+               "median_deg": float(np.median(e[:, 1])) if len(e) else None,
+               "within_2cm": int((e[:, 0] < 2.0).sum()), "within_3cm": int((e[:, 0] < 3.0).sum())}
+        if name in ms:
+            out["ms_median"] = float(np.median(ms[name])) if ms[name] else None
+        return out
+
+    return {"candidates": len(errs["init"]), **{k: stats(k) for k in errs}}
+
+
+def loop_accuracy_table(acc: dict) -> str:
+    """Markdown of :func:`loop_accuracy` per sequence: ``{sequence: result}``."""
+    rows = ["| sequence | candidates | registration | median error (cm / °) | within 2 cm | within 3 cm | ms, median |",
+            "|---|---|---|---|---|---|---|"]
+    for seq, a in acc.items():
+        for name in ("init", *[k for k in a if k not in ("candidates", "init")]):
+            v = a[name]
+            ms = "–" if v.get("ms_median") is None else f"{v['ms_median']:.0f}"
+            med = "–" if v["median_cm"] is None else f"{v['median_cm']:.2f} / {v['median_deg']:.2f}"
+            label = "estimated poses (start)" if name == "init" else f"`{name}`"
+            rows.append(f"| {seq} | {a['candidates']} | {label} | {med} | {v['within_2cm']} | {v['within_3cm']} | {ms} |")
+    return "\n".join(rows) + "\n"
 
 
 def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path,
@@ -389,6 +477,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                     help="comma-separated renderings of the synthetic walks (seed 0 is the sequence itself)")
     ap.add_argument("--work", type=Path, default=None,
                     help="folder for the rendered synthetic scenes, kept for the next run (default: a temporary one)")
+    ap.add_argument("--loop-accuracy", action="store_true",
+                    help="instead of the variants: register every loop candidate the shipped odometry tries on each "
+                         "sequence with each loop registration, from the same estimate, and report the errors")
     ap.add_argument("--live", action="store_true",
                     help="also stream TUM fr1/rpy at 15 Hz to an agent that tracks every frame while it maps")
     ap.add_argument("--live-budget", type=float, default=0.5, help="the live agent's keyframe budget, seconds")
@@ -419,19 +510,31 @@ def main(argv: Optional[List[str]] = None) -> int:
     size = tuple(int(v) for v in args.synthetic_size.lower().split("x"))
     load_before = os.getloadavg()
     t0 = time.perf_counter()
+    accuracy = None
     with tempfile.TemporaryDirectory(prefix="bench_odometry_") as tmp:
-        results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames,
-                      tuple(int(v) for v in args.walk_seeds.split(",") if v))
+        seeds = tuple(int(v) for v in args.walk_seeds.split(",") if v)
+        if args.loop_accuracy:
+            results, accuracy = {}, {}
+            for name, seed in [(n, s) for n in seqs for s in (seeds if n.startswith(WALKS) else (0,))]:
+                frames = load_sequence(name, args.work or Path(tmp), args.synthetic_frames, size, args.walk_frames,
+                                       seed)
+                accuracy[name + (f"_seed{seed}" if seed else "")] = loop_accuracy(frames)
+        else:
+            results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames,
+                          seeds)
     live_result = ([live(1.0, args.live_budget, v) for v in tqdm(live_variants, desc="live variants")
                     for _ in range(args.live_runs)] if args.live else None)
     doc = {"load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
            "note": "ms_per_frame is wall-clock time on this machine; compare it only with runs at a similar load",
            "variants": {v: VARIANTS[v] for v in variants}, "odometry_defaults": OdometryConfig().model_dump(),
            "sequences": results, **({"live": live_result} if live_result else {}),
+           **({"loop_accuracy": accuracy} if accuracy is not None else {}),
            **({"gain_estimated_minus_given": gains, "gains_from": args.gains} if gains else {})}
     details = (f": {time.perf_counter() - t0:.0f} s; load average {load_before[0]:.1f} before, "
                f"{os.getloadavg()[0]:.1f} after (2 cores)")
     md = table(results) if results else ""
+    if accuracy:
+        md += ("\n\n" if md else "") + loop_accuracy_table(accuracy)
     if live_result:
         md += ("\n\n" if md else "") + live_table(live_result)
     if gains:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -359,7 +360,8 @@ def suite_minutes(fr: dict) -> str:
 #: the sequences of bench.odometry's table, in the order shown, with their names on the page
 ODOMETRY_SEQUENCES = {"tum_fr1_rpy": "TUM fr1/rpy", "synthetic_circle": "synthetic circle",
                       "synthetic_walk": "synthetic walk (7 m, sensor error)",
-                      "synthetic_walk_covered": "the walk, lens covered 2 s", "room0": "Replica room0"}
+                      "synthetic_walk_covered": "the walk, lens covered 2 s", "room0": "Replica room0",
+                      "synthetic_walk_tum": "walk, TUM sensor", "synthetic_scan_walk_tum": "scan walk, TUM sensor"}
 
 
 def odometry_table(r: dict) -> str:
@@ -437,6 +439,42 @@ def odometry_sequences_table(r: dict) -> str:
     from bench.odometry import table  # lazy: the page's other regions need none of the odometry
 
     return table(r["sequences"]) + "\n"
+
+
+def _loops_cell(lp: dict) -> str:
+    return f"{lp['accepted']} ({lp['false']})"
+
+
+def odometry_seeds_table(r: dict) -> str:
+    """Each sequence's renderings (``<name>_seed<s>`` rows, :func:`bench.odometry.walk_dir`) pooled per variant: the
+    mean ± std of the ATE over them, each rendering's ATE, the loops (false ones) per rendering, the frames lost and
+    the time per frame (``bench/results/odometry_loop_registration.json``)."""
+    groups: Dict[str, Dict[str, list]] = {}
+    for seq, by_var in r["sequences"].items():
+        base = re.sub(r"_seed\d+$", "", seq)
+        for var, v in by_var.items():
+            groups.setdefault(base, {}).setdefault(var, []).append(v)
+    rows = ["| sequence | variant | renderings | ATE cm, mean ± std | ATE cm, each | loops (false), each | lost, each | "
+            "ms / frame, mean |", "|---|---|---|---|---|---|---|---|"]
+    for base, by_var in groups.items():
+        name = ODOMETRY_SEQUENCES.get(base, base)
+        for var, runs in by_var.items():
+            ate = [100 * v["ate_rmse_m"] for v in runs]
+            sd = f" ± {num(statistics.stdev(ate))}" if len(ate) > 1 else ""
+            rows.append(f"| {name} | `{var}` | {len(runs)} | {num(statistics.mean(ate))}{sd} | "
+                        f"{', '.join(num(a) for a in ate)} | "
+                        f"{', '.join(_loops_cell(v['loops']) for v in runs)} | "
+                        f"{', '.join(str(v['lost']) for v in runs)} | "
+                        f"{statistics.mean(v['ms_per_frame'] for v in runs):.0f} |")
+    return "\n".join(rows) + "\n"
+
+
+def odometry_loop_accuracy_table(r: dict) -> str:
+    """Each loop registration's error on the same candidates (``loop_accuracy`` of
+    ``bench/results/odometry_loop_accuracy.json``)."""
+    from bench.odometry import loop_accuracy_table  # lazy: the page's other regions need none of the odometry
+
+    return loop_accuracy_table(r["loop_accuracy"])
 
 
 def odometry_live_table(r: dict) -> str:
@@ -1023,6 +1061,12 @@ REGIONS: Dict[str, Region] = {
     "odometry-live": Region("bench/results/odometry_live.json", odometry_live_table),
     "odometry-scan-walk-resolution": Region("bench/results/odometry_scan_walk_resolution.json",
                                             odometry_sequences_table),
+    "odometry-loop-registration": Region("bench/results/odometry_loop_registration.json", odometry_seeds_table),
+    "odometry-loop-registration-variants": Region("bench/results/odometry_loop_registration_variants.json",
+                                                  odometry_seeds_table),
+    "odometry-loop-accuracy": Region("bench/results/odometry_loop_accuracy.json", odometry_loop_accuracy_table),
+    "odometry-live-loops": Region("bench/results/odometry_live_loops.json", odometry_live_table),
+    "odometry-live-loops-swapped": Region("bench/results/odometry_live_loops_swapped.json", odometry_live_table),
     "map-budget": Region("bench/results/map_budget.json", map_budget_table),
     "detail-live": Region("bench/results/detail_live.json", detail_live_table),
     "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),

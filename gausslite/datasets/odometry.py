@@ -115,8 +115,8 @@ class RGBDOdometry:
         if c.threads:
             o3d.utility.set_max_threads(c.threads)
         self._criteria = [odometry.OdometryConvergenceCriteria(n) for n in c.iterations]
-        self._method = {"hybrid": odometry.Method.Hybrid, "color": odometry.Method.Intensity,
-                        "point_to_plane": odometry.Method.PointToPlane}[c.method]
+        self._methods = {"hybrid": odometry.Method.Hybrid, "color": odometry.Method.Intensity,
+                         "point_to_plane": odometry.Method.PointToPlane}
         self._loss = odometry.OdometryLossParams(c.depth_diff_max_m, c.depth_huber_delta_m, c.intensity_huber_delta)
 
     def _image(self, frame: Frame):
@@ -280,9 +280,10 @@ class RGBDOdometry:
         return TrackResult(c2w.copy(), True, fitness=fitness, reference=fid, anchor=fid,
                            T_anchor=np.linalg.inv(kf.c2w) @ c2w, relocalised=True)
 
-    def register(self, frame: Frame, image, ref, init: np.ndarray):
+    def register(self, frame: Frame, image, ref, init: np.ndarray, method: Optional[str] = None):
         """Open3D's odometry of ``frame`` (at the tracking size; ``image`` its Open3D RGB-D image) to ``ref`` (a
-        keyframe: ``frame``, ``image``) from ``init`` (4, 4) T_ref_frame.
+        keyframe: ``frame``, ``image``) from ``init`` (4, 4) T_ref_frame, with the residuals ``method``
+        (:class:`OdometryConfig`'s ``method`` values; None: the configured one).
 
         Returns:
             ``(success, T_ref_frame (4, 4) float64, information (6, 6), fitness)``: fitness is the share of the
@@ -294,7 +295,7 @@ class RGBDOdometry:
         try:
             init_t = o3d.core.Tensor(np.asarray(init, np.float64))
             result = odometry.rgbd_odometry_multi_scale(image, ref.image, K, init_t, 1.0, c.depth_max_m,
-                                                        self._criteria, self._method, self._loss)
+                                                        self._criteria, self._methods[method or c.method], self._loss)
         except RuntimeError as e:  # Open3D raises when a level has too few correspondences to solve
             log.debug("frame %s: Open3D's odometry failed: %s", frame.frame_id, e)
             return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0

@@ -138,9 +138,9 @@ def _off_by(odo: RGBDOdometry, metres: float):
     than the previous frame (the far-keyframe failure the prediction check guards against)."""
     register = odo.register
 
-    def wrong_far(frame, image, ref, init):
+    def wrong_far(frame, image, ref, init, method=None):
         if ref is odo._prev:
-            return register(frame, image, ref, init)
+            return register(frame, image, ref, init, method)
         T = np.array(init, np.float64)
         T[0, 3] += metres
         return True, T, np.eye(6), 0.9
