@@ -190,6 +190,12 @@ def track(frames: list, overrides: dict) -> dict:
                       "max_error_deg": max((e["error_deg"] for e in loops), default=None), "edges": loops}}
 
 
+def relative_error(true: np.ndarray, T: np.ndarray) -> tuple:
+    """``(metres, degrees)`` of the relative pose ``T`` (4, 4) away from the reference ``true`` (4, 4)."""
+    d = np.linalg.inv(true) @ T
+    return float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
+
+
 def loop_errors(odo: RGBDOdometry, frames: list) -> list:
     """Each accepted loop closure of ``odo`` with its error against the reference poses of ``frames``:
     ``[{"source", "target", "error_m", "error_deg", "false"}]`` (false: beyond :data:`FALSE_LOOP`)."""
@@ -197,8 +203,7 @@ def loop_errors(odo: RGBDOdometry, frames: list) -> list:
     out = []
     for e in odo.graph.loops:
         true = np.linalg.inv(frames[index[e.target]].c2w) @ frames[index[e.source]].c2w
-        d = np.linalg.inv(true) @ e.T
-        err_m, err_deg = float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
+        err_m, err_deg = relative_error(true, e.T)
         out.append({"source": e.source, "target": e.target, "error_m": err_m, "error_deg": err_deg,
                     "false": bool(err_m > FALSE_LOOP[0] or err_deg > FALSE_LOOP[1])})
     return out
@@ -394,8 +399,8 @@ def loop_accuracy(frames: list, registrations=LOOP_REGISTRATIONS) -> dict:
     shipped = pose_graph.verify_registration
 
     def err(true: np.ndarray, T: np.ndarray) -> tuple:
-        d = np.linalg.inv(true) @ T
-        return 100.0 * float(np.linalg.norm(d[:3, 3])), rotation_angle_deg(d)
+        m, deg = relative_error(true, T)
+        return 100.0 * m, deg
 
     def measured(odo, frame, image, target, init, min_fitness, cfg, clouds=None):
         true = np.linalg.inv(truth[int(target.frame_id)]) @ truth[int(frame.frame_id)]
@@ -444,16 +449,20 @@ def loop_accuracy_table(acc: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
+def renderings(sequences: List[str], walk_seeds: tuple) -> List[tuple]:
+    """``[(name, seed, key)]``: each synthetic walk once per seed of ``walk_seeds``, every other sequence once (seed
+    0); ``key`` is the name of its rows, ``<name>_seed<seed>`` for a seed other than 0."""
+    return [(name, seed, name + (f"_seed{seed}" if seed else "")) for name in sequences
+            for seed in (walk_seeds if name.startswith(WALKS) else (0,))]
+
+
 def run(sequences: List[str], variants: List[str], synthetic_frames: int, size: tuple, work: Path,
         walk_frames: int = 525, walk_seeds: tuple = (0,)) -> dict:
     """``{sequence: {variant: metrics}}`` (:func:`track`), printing each row as it is measured. A synthetic walk is
     run once per seed of ``walk_seeds``; a seed other than 0 is its own sequence, ``<name>_seed<seed>``."""
     out: dict = {}
-    runs = [(name, seed) for name in sequences
-            for seed in (walk_seeds if name.startswith(WALKS) else (0,))]
-    for name, seed in runs:
+    for name, seed, key in renderings(sequences, walk_seeds):
         frames = load_sequence(name, work, synthetic_frames, size, walk_frames, seed)
-        key = name + (f"_seed{seed}" if seed else "")
         out[key] = {}
         for var in variants:
             out[key][var] = track(frames, VARIANTS[var])
@@ -515,10 +524,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         seeds = tuple(int(v) for v in args.walk_seeds.split(",") if v)
         if args.loop_accuracy:
             results, accuracy = {}, {}
-            for name, seed in [(n, s) for n in seqs for s in (seeds if n.startswith(WALKS) else (0,))]:
+            for name, seed, key in renderings(seqs, seeds):
                 frames = load_sequence(name, args.work or Path(tmp), args.synthetic_frames, size, args.walk_frames,
                                        seed)
-                accuracy[name + (f"_seed{seed}" if seed else "")] = loop_accuracy(frames)
+                accuracy[key] = loop_accuracy(frames)
         else:
             results = run(seqs, variants, args.synthetic_frames, size, args.work or Path(tmp), args.walk_frames,
                           seeds)
