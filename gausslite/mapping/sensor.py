@@ -28,7 +28,7 @@ from gausslite.mapping.model import GaussianModel
 from gausslite.mapping.poses import move_gaussians_for_pose_delta, nearest_key
 from gausslite.mapping.shutter import readout_norm, shutter_bands
 from gausslite.render import RenderOutput, blend_weights, blend_weights_inside, rasterize, rasterize_bands
-from gausslite.render.culling import frustum_cull_mask
+from gausslite.render.culling import frustum_cull_mask, frustum_cull_masks
 
 #: the rasterizer's tile edge (px): rolling-shutter bands start on tile rows to render in one pass
 TILE_SIZE = 16
@@ -220,6 +220,23 @@ class SensorRenderer:
             self.clock.charge_render(int(width) * int(height), n_render, torch.is_grad_enabled())
         return subset
 
+    def _visible_bands(self, means: torch.Tensor, log_scales: torch.Tensor, vms: list, Ks: list, width: int,
+                       heights: list, subset: Optional[torch.Tensor]) -> list:
+        """:meth:`_visible` of B row bands (``vms`` (4, 4) world-to-camera, ``Ks`` (3, 3) with the band's principal
+        point, ``heights`` its rows) by one culling pass (:func:`gausslite.render.culling.frustum_cull_masks`),
+        culled whatever the map size; a clock is charged per band."""
+        if not self.cfg.performance.frustum_cull:
+            return [self._visible(means, log_scales, vm, K, width, h, subset, True)
+                    for vm, K, h in zip(vms, Ks, heights)]
+        vis = frustum_cull_masks(means, log_scales, vms, Ks, width, heights)
+        if subset is not None:
+            vis &= (subset if subset.dtype == torch.bool
+                    else torch.zeros(len(means), dtype=torch.bool, device=means.device).index_fill_(0, subset, True))
+        if self.clock.charges:
+            for b, h in enumerate(heights):
+                self.clock.charge_render(int(width) * int(h), int(vis[b].sum()), torch.is_grad_enabled())
+        return list(vis)
+
     def rasterize_bands(self, c2w, K, width: int, height: int, subset: Optional[torch.Tensor], bands: list,
                         pose_xi: Optional[torch.Tensor] = None, detach_map: bool = False) -> RenderOutput:
         """:meth:`rasterize` of an image whose row bands ``bands`` = ``[(y0, y1, view_delta, K_b)]`` (rows
@@ -229,16 +246,15 @@ class SensorRenderer:
         :meth:`rasterize`."""
         p, means, quats = self._posed(c2w, pose_xi, detach_map)
         cam = torch.as_tensor(c2w, dtype=torch.float64, device=means.device)
-        vms, subsets, Ks = [], [], []
-        for y0, y1, delta, Kband in bands:
-            vm = torch.linalg.inv(cam @ delta.to(cam.device))
-            Ks.append(torch.as_tensor(Kband))
-            Kb = Ks[-1].clone()
-            Kb[1, 2] -= y0
-            vms.append(vm)
-            # always culled to the band's rows (whatever the map size): its Gaussians are projected for the whole
-            # image but drawn in its rows only
-            subsets.append(self._visible(means, p["log_scales"], vm, Kb, width, y1 - y0, subset, True))
+        vms = list(torch.linalg.inv(cam @ torch.stack([b[2].to(cam.device) for b in bands])))
+        Ks = [torch.as_tensor(b[3]) for b in bands]
+        Kbs = []
+        for (y0, _, _, _), Kband in zip(bands, Ks):
+            Kbs.append(Kband.clone())
+            Kbs[-1][1, 2] -= y0
+        # always culled to the band's rows (whatever the map size): its Gaussians are projected for the whole
+        # image but drawn in its rows only
+        subsets = self._visible_bands(means, p["log_scales"], vms, Kbs, width, [b[1] - b[0] for b in bands], subset)
         return rasterize_bands(
             means, quats, p["log_scales"], p["opacity_logits"], p["colors"], K=K, width=width, height=height,
             viewmats=vms, rows=[(b[0], b[1]) for b in bands], subsets=subsets, Ks=Ks, background=self.background,

@@ -172,7 +172,7 @@ def _rasterize_warp_cpu(m, q, ls, ol, col, vm64, K64, width, height, *, near, fa
     :func:`rasterize` (``m, q, ls, ol, col``: the gathered rows; ``nt``: launch threads)."""
     dtype = m.dtype
     proj = project_gaussians_warp(m, q.to(dtype), ls.to(dtype), vm64, K64, width, height,
-                                  near=near, far=far, eps2d=eps2d, num_threads=nt)
+                                  near=near, far=far, eps2d=eps2d, num_threads=nt, simd=cpu_kernel == "simd")
     return _composite_warp_cpu(proj, ol, col, ids, width, height, tile_size, nt, bg, cpu_kernel)
 
 
@@ -364,10 +364,11 @@ def rasterize_bands(
     out at its own time, :mod:`gausslite.mapping.shutter`), rendered in one pass: rows ``rows[b] = (y0, y1)`` are
     the rows of :func:`rasterize` from ``viewmats[b]``, with the image's size and intrinsics (``Ks[b]`` when given).
 
-    The bands' Gaussians are projected pose by pose and composited together: the projected rows of every band are
-    stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
-    ``tile_rows``), and one compositing pass and one backward pass cover the image. So B bands cost B projections
-    and one gather of their rows, binning, compositing and backward, not B of each (with the Warp backend on CPU;
+    The bands' Gaussians are projected each from its band's pose and composited together: the projected rows of
+    every band are stacked, each binned only to its band's tile rows (:func:`~gausslite.render.binning.bin_gaussians`
+    ``tile_rows``), and one compositing pass and one backward pass cover the image. So B bands cost one gather of
+    their rows, one projection (the SIMD kernels, ``cpu_kernel`` "simd"; B with the Warp tile kernels), binning,
+    compositing and backward, not B of each (with the Warp backend on CPU;
     elsewhere the bands are rendered one by one, each at the full image size, and their rows stacked: the reference
     of the parity test).
 
@@ -411,23 +412,28 @@ def rasterize_bands(
     width, height, bg = _image_settings(width, height, tile_size, cpu_kernel, background, device, dtype)
     nt = _launch_threads(num_threads)
     # every band's rows gathered at once (one gather per parameter, hence one scatter of its gradient), then
-    # projected band by band from their own pose
+    # projected from their band's pose: in one launch by the SIMD kernels, else band by band
     band_ids = [_gather_subset(sub, N, device, ())[0] for sub in subsets]
     ids = torch.cat(band_ids)
     m, q, ls, ol, col = (t.index_select(0, ids) for t in params)
     q, ls = q.to(dtype), ls.to(dtype)
-    projs, tile_rows, a = [], [], 0
-    for vm, bid, (y0, y1), Kb in zip(viewmats, band_ids, rows, Ks):
-        K64, vm64 = _camera_tensors(Kb, None, vm, device, dtype)
-        b = a + len(bid)
-        projs.append(project_gaussians_warp(m[a:b], q[a:b], ls[a:b], vm64, K64, width, height,
-                                            near=near, far=far, eps2d=eps2d, num_threads=nt))
-        tile_rows.append(torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size],
-                                      dtype=torch.int32).expand(len(bid), 2))
-        a = b
-    proj = Projection(*(torch.cat([getattr(p, f) for p in projs]) for f in Projection._fields))
+    cams = [_camera_tensors(Kb, None, vm, device, dtype) for vm, Kb in zip(viewmats, Ks)]
+    counts = [len(bid) for bid in band_ids]
+    tile_rows = torch.cat([torch.tensor([int(y0) // tile_size, (int(y1) - 1) // tile_size],
+                                        dtype=torch.int32).expand(n, 2) for (y0, y1), n in zip(rows, counts)])
+    if cpu_kernel == "simd":
+        cam_of_row = torch.repeat_interleave(torch.arange(B, dtype=torch.int32), torch.tensor(counts))
+        proj = project_gaussians_warp(m, q, ls, [vm64 for _, vm64 in cams], [K64 for K64, _ in cams], width,
+                                      height, near=near, far=far, eps2d=eps2d, num_threads=nt, cam_of_row=cam_of_row)
+    else:
+        projs, a = [], 0
+        for (K64, vm64), n in zip(cams, counts):
+            projs.append(project_gaussians_warp(m[a:a + n], q[a:a + n], ls[a:a + n], vm64, K64, width, height,
+                                                near=near, far=far, eps2d=eps2d, num_threads=nt, simd=False))
+            a += n
+        proj = Projection(*(torch.cat([getattr(p, f) for p in projs]) for f in Projection._fields))
     return _composite_warp_cpu(proj, ol, col, ids, width, height, tile_size, nt, bg, cpu_kernel,
-                               tile_rows=torch.cat(tile_rows), n_bands=B)
+                               tile_rows=tile_rows, n_bands=B)
 
 
 def blend_weights(

@@ -22,6 +22,7 @@ import torch
 import warp as wp
 
 from . import simd_kernels as sk
+from . import simd_projection as sp
 from . import warp_kernels as wk
 from .launch import Vec, launch_cpu
 from .projection import Projection
@@ -54,6 +55,30 @@ def _launch_rows(kernel, n: int, num_threads: int, inputs, outputs) -> None:
 
     def run(s):
         launch_cpu(kernel, bounds[s + 1] - bounds[s], list(inputs) + [bounds[s]] + list(outputs))
+
+    wk.run_parallel([lambda s=s: run(s) for s in range(k)])
+
+
+def _launch_lanes(kernel, n: int, num_threads: int, inputs, outputs) -> None:
+    """Launch a :mod:`~gausslite.render.simd_projection` kernel over rows [0, n) as :func:`_launch_rows` does
+    (contiguous chunks run concurrently), one kernel thread per :data:`~gausslite.render.simd_projection.LANES`
+    rows: each chunk's ``offset`` and ``end`` go between ``inputs`` and ``outputs``, tensors as their data
+    pointers (C-contiguous rows, checked)."""
+    k = max(1, min(int(num_threads), n // 4096 + 1))
+    bounds = [n * s // k for s in range(k + 1)]
+
+    def ptr(a):
+        if isinstance(a, torch.Tensor):
+            if a.device.type != "cpu" or not a.is_contiguous():
+                raise ValueError("the SIMD projection takes C-contiguous CPU tensors")
+            return a.data_ptr()
+        return a
+
+    ins, outs = [ptr(a) for a in inputs], [ptr(a) for a in outputs]
+
+    def run(s):
+        rows = bounds[s + 1] - bounds[s]
+        launch_cpu(kernel, -(-rows // sp.LANES), ins + [bounds[s], bounds[s + 1]] + outs)
 
     wk.run_parallel([lambda s=s: run(s) for s in range(k)])
 
@@ -264,33 +289,52 @@ class ProjectWarp(torch.autograd.Function):
 
     forward(means (N,3), quats (N,4), log_scales (N,3) -- one dtype, float32 or float64 --,
     viewmat (4,4) world-to-camera, K (3,3) intrinsics in pixels, width, height, near, far, eps2d
-    [, num_threads=1]) -> (means2d (N,2), conics (N,3), depths (N,), radii (N,) int32), float
-    outputs in the input dtype. viewmat and K get no gradient. The rows are split into
-    ``num_threads`` contiguous chunks launched concurrently.
+    [, num_threads=1, simd=True, cam_of_row=None]) -> (means2d (N,2), conics (N,3), depths (N,), radii (N,)
+    int32), float outputs in the input dtype. viewmat and K get no gradient. The rows are split into
+    ``num_threads`` contiguous chunks launched concurrently. ``simd`` (default True): the SIMD kernels of
+    :mod:`gausslite.render.simd_projection` (eight Gaussians per call); False: the scalar Warp kernels they
+    replace (the parity tests' reference). With ``cam_of_row`` ((N,) int32, SIMD only), ``viewmat`` (B,4,4) and
+    ``K`` (B,3,3) are B cameras and row i is projected by camera ``cam_of_row[i]`` (the bands of a rolling
+    shutter in one launch).
     """
 
     @staticmethod
     def forward(ctx, means, quats, log_scales, viewmat, K, width, height, near, far, eps2d,
-                num_threads=1):
+                num_threads=1, simd=True, cam_of_row=None):
         dt = means.dtype
         N = means.shape[0]
         ins = [t.detach().contiguous() for t in (means, quats, log_scales)]
-        vm = viewmat.detach().to(torch.float64).cpu().tolist()
-        k = K.detach().to(torch.float64).cpu().tolist()
-        consts = (wp.mat33d(*(vm[r][c] for r in range(3) for c in range(3))),
-                  wp.vec3d(vm[0][3], vm[1][3], vm[2][3]),
-                  wp.vec4d(k[0][0], k[1][1], k[0][2], k[1][2]),
-                  int(width), int(height), wp.float64(near), wp.float64(far), wp.float64(eps2d))
+        tail = [int(width), int(height), wp.float64(near), wp.float64(far), wp.float64(eps2d)]
+        if simd:
+            many = cam_of_row is not None
+            cams = sp.camera_table(viewmat if many else [viewmat], K if many else [K], width, height)
+            if many and (cam_of_row.dtype != torch.int32 or tuple(cam_of_row.shape) != (N,)
+                         or len(cams) != len(K)):
+                raise ValueError("cam_of_row must be (N,) int32 with (B, 4, 4) viewmats and (B, 3, 3) Ks")
+            rows = cam_of_row.contiguous() if many else None
+            consts = [int(dt == torch.float64), cams, rows.data_ptr() if many else 0] + tail
+            ctx.keep = (cams, rows)  # the pointers the backward reads
+        else:
+            if cam_of_row is not None:
+                raise ValueError("several cameras (cam_of_row) need the SIMD kernels (simd=True)")
+            vm = viewmat.detach().to(torch.float64).cpu().tolist()
+            k = K.detach().to(torch.float64).cpu().tolist()
+            consts = [wp.mat33d(*(vm[r][c] for r in range(3) for c in range(3))),
+                      wp.vec3d(vm[0][3], vm[1][3], vm[2][3]), wp.vec4d(k[0][0], k[1][1], k[0][2], k[1][2])] + tail
         means2d = torch.empty(N, 2, dtype=dt)
         conics = torch.empty(N, 3, dtype=dt)
         depths = torch.empty(N, dtype=dt)
         radii = torch.empty(N, dtype=torch.int32)
         if N > 0:
             wk.ensure_loaded("cpu")
-            _launch_rows(wk.project_fwd_kernel, N, num_threads, ins + list(consts),
-                         [means2d, conics, depths, radii])
+            if simd:
+                _launch_lanes(sp.project_fwd_simd_kernel, N, num_threads, ins + consts,
+                              [means2d, conics, depths, radii])
+            else:
+                _launch_rows(wk.project_fwd_kernel, N, num_threads, ins + consts, [means2d, conics, depths, radii])
         ctx.consts = consts
         ctx.num_threads = num_threads
+        ctx.simd = bool(simd)
         ctx.save_for_backward(*ins)
         ctx.mark_non_differentiable(radii)
         return means2d, conics, depths, radii
@@ -300,7 +344,7 @@ class ProjectWarp(torch.autograd.Function):
         means, quats, log_scales = ctx.saved_tensors
         dt = means.dtype
         N = means.shape[0]
-        tail = (None,) * 8
+        tail = (None,) * 10
         if N == 0 or not any(ctx.needs_input_grad[:3]):
             return (torch.zeros_like(means), torch.zeros_like(quats), torch.zeros_like(log_scales)) + tail
 
@@ -311,16 +355,27 @@ class ProjectWarp(torch.autograd.Function):
 
         outs = [torch.empty_like(means), torch.empty_like(quats), torch.empty_like(log_scales)]
         wk.ensure_loaded("cpu")
-        _launch_rows(wk.project_bwd_kernel, N, ctx.num_threads, [means, quats, log_scales] + list(ctx.consts),
-                     [prep(g_means2d, (N, 2)), prep(g_conics, (N, 3)), prep(g_depths, (N,))] + outs)
+        grads = [prep(g_means2d, (N, 2)), prep(g_conics, (N, 3)), prep(g_depths, (N,))]
+        if ctx.simd:
+            _launch_lanes(sp.project_bwd_simd_kernel, N, ctx.num_threads, [means, quats, log_scales] + ctx.consts,
+                          grads + outs)
+        else:
+            _launch_rows(wk.project_bwd_kernel, N, ctx.num_threads, [means, quats, log_scales] + ctx.consts,
+                         grads + outs)
         return tuple(outs) + tail
 
 
 def project_gaussians_warp(means, quats, log_scales, viewmat, K, width, height, near=0.01, far=1e4,
-                           eps2d=0.3, num_threads=1) -> Projection:
+                           eps2d=0.3, num_threads=1, simd=True, cam_of_row=None) -> Projection:
     """:func:`gausslite.render.projection.project_gaussians` computed by :class:`ProjectWarp`
     (CPU, float32/float64 inputs of one dtype; same argument conventions; ``num_threads``
-    concurrent launches)."""
+    concurrent launches; ``simd``: the SIMD kernels, else the scalar Warp kernels; ``cam_of_row``: each row's
+    camera among B given as ``viewmat`` (B, 4, 4) and ``K`` (B, 3, 3), see :class:`ProjectWarp`).
+
+    Raises:
+        ValueError: ``cam_of_row`` without ``simd``, or not (N,) int32 with one camera per viewmat and K.
+    """
     means2d, conics, depths, radii = ProjectWarp.apply(means, quats, log_scales, viewmat, K, width,
-                                                       height, near, far, eps2d, int(num_threads))
+                                                       height, near, far, eps2d, int(num_threads), bool(simd),
+                                                       cam_of_row)
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from . import warp_kernels as wk
@@ -36,43 +37,69 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
         outside the padded frustum or wholly nearer than ``near`` / farther than ``far``.
 
     On CPU with float32 parameters one Warp launch tests the six planes per Gaussian
-    (:func:`gausslite.render.warp_kernels.frustum_cull_kernel`; measured about 3× faster than the torch ops
-    at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
+    (:func:`frustum_cull_masks`, :func:`gausslite.render.warp_kernels.frustum_cull_kernel`; measured about 3× faster
+    than the torch ops at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
     """
     if (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
             and len(means) > 0):
-        return _cull_warp(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas)
+        return frustum_cull_masks(means, log_scales, [viewmat], [K], width, [height], near, far, pad, sigmas)[0]
     return frustum_cull_mask_torch(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas)
 
 
-def _planes(viewmat, K, width: int, height: int, near: float, far: float, pad: float) -> torch.Tensor:
-    """(6, 4) float64 world-frame planes ``(n, d)`` of the padded frustum, unit normals pointing inside: the four
-    sides through the optical centre, then ``z > near`` and ``z < far`` (camera frame ``n_c · p + d_c`` becomes
-    ``(Rᵀ n_c) · μ + (n_c · t + d_c)`` for ``p = R μ + t``)."""
-    vm = torch.as_tensor(viewmat, dtype=torch.float64).cpu()
-    Kd = torch.as_tensor(K, dtype=torch.float64).cpu()
-    fx, fy, cx, cy = (float(v) for v in (Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]))
-    u0, u1 = -pad * width, (1.0 + pad) * width
-    v0, v1 = -pad * height, (1.0 + pad) * height
-    cam = torch.zeros(6, 4, dtype=torch.float64)
-    for i, (a, b, c) in enumerate(((fx, 0.0, cx - u0), (-fx, 0.0, u1 - cx), (0.0, fy, cy - v0), (0.0, -fy, v1 - cy))):
-        cam[i, :3] = torch.tensor([a, b, c], dtype=torch.float64) / math.sqrt(a * a + b * b + c * c)
-    cam[4] = torch.tensor([0.0, 0.0, 1.0, -near], dtype=torch.float64)
-    cam[5] = torch.tensor([0.0, 0.0, -1.0, far], dtype=torch.float64)
-    world = torch.empty_like(cam)
-    world[:, :3] = cam[:, :3] @ vm[:3, :3]
-    world[:, 3] = cam[:, :3] @ vm[:3, 3] + cam[:, 3]
-    return world.contiguous()
+def frustum_cull_masks(means: torch.Tensor, log_scales: torch.Tensor, viewmats: list, Ks: list, width: int,
+                       heights: list, near: float = 0.01, far: float = 1e4, pad: float = 0.5,
+                       sigmas: float = 3.0) -> torch.Tensor:
+    """:func:`frustum_cull_mask` for B views at once (the row bands of a rolling-shutter image): one pass over the
+    Gaussians tests each against every view's padded frustum.
 
-
-def _cull_warp(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas) -> torch.Tensor:
-    """:func:`frustum_cull_mask` by one Warp launch (CPU, float32 parameters)."""
-    keep = torch.empty(len(means), dtype=torch.uint8)
+    Args:
+        means, log_scales: as :func:`frustum_cull_mask` ((N, 3) metres, world frame; CPU float32 for the one-launch
+            path, else the reference per view).
+        viewmats: B (4, 4) world-to-camera matrices. Ks: B (3, 3) intrinsics (pixels). width: the views' width
+            (pixels). heights: B view heights (pixels). near, far, pad, sigmas: as :func:`frustum_cull_mask`.
+    Returns:
+        (B, N) bool: row b is :func:`frustum_cull_mask` of view b.
+    Raises:
+        ValueError: ``viewmats``, ``Ks`` and ``heights`` of different lengths.
+    """
+    B = len(viewmats)
+    if len(Ks) != B or len(heights) != B:
+        raise ValueError(f"need as many Ks ({len(Ks)}) and heights ({len(heights)}) as viewmats ({B})")
+    if not (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
+            and len(means) > 0):
+        return torch.stack([frustum_cull_mask_torch(means, log_scales, vm, K, width, h, near, far, pad, sigmas)
+                            for vm, K, h in zip(viewmats, Ks, heights)]) if B else torch.zeros(0, len(means),
+                                                                                                dtype=torch.bool)
+    keep = torch.empty(B, len(means), dtype=torch.uint8)
     wk.ensure_loaded("cpu")
     launch_cpu(wk.frustum_cull_kernel, len(means),
                [means.detach().contiguous(), log_scales.detach().contiguous(),
-                _planes(viewmat, K, width, height, near, far, pad), float(sigmas), keep])
+                _planes(viewmats, Ks, width, heights, near, far, pad), float(sigmas), keep])
     return keep.view(torch.bool)
+
+
+def _planes(viewmats, Ks, width: int, heights, near: float, far: float, pad: float) -> torch.Tensor:
+    """(B, 6, 4) float64 world-frame planes ``(n, d)`` of the B views' padded frusta, unit normals pointing inside:
+    the four sides through the optical centre, then ``z > near`` and ``z < far`` (camera frame ``n_c · p + d_c``
+    becomes ``(Rᵀ n_c) · μ + (n_c · t + d_c)`` for ``p = R μ + t``)."""
+    vm = np.stack([np.asarray(v.detach().cpu() if isinstance(v, torch.Tensor) else v, np.float64) for v in viewmats])
+    Kd = np.stack([np.asarray(k.detach().cpu() if isinstance(k, torch.Tensor) else k, np.float64) for k in Ks])
+    B = len(vm)
+    h = np.asarray(heights, np.float64)
+    fx, fy, cx, cy = Kd[:, 0, 0], Kd[:, 1, 1], Kd[:, 0, 2], Kd[:, 1, 2]
+    u0, u1 = -pad * width, (1.0 + pad) * width
+    v0, v1 = -pad * h, (1.0 + pad) * h
+    zero = np.zeros(B)
+    sides = np.stack([np.stack(abc, 1) for abc in ((fx, zero, cx - u0), (-fx, zero, u1 - cx),
+                                                  (zero, fy, cy - v0), (zero, -fy, v1 - cy))], 1)  # (B, 4, 3)
+    cam = np.zeros((B, 6, 4))
+    cam[:, :4, :3] = sides / np.sqrt((sides * sides).sum(-1, keepdims=True))
+    cam[:, 4] = (0.0, 0.0, 1.0, -near)
+    cam[:, 5] = (0.0, 0.0, -1.0, far)
+    world = np.empty_like(cam)
+    world[:, :, :3] = cam[:, :, :3] @ vm[:, :3, :3]
+    world[:, :, 3] = (cam[:, :, :3] @ vm[:, :3, 3:])[..., 0] + cam[:, :, 3]
+    return torch.from_numpy(world.reshape(B * 6, 4))
 
 
 def frustum_cull_mask_torch(means: torch.Tensor, log_scales: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
@@ -99,4 +126,4 @@ def frustum_cull_mask_torch(means: torch.Tensor, log_scales: torch.Tensor, viewm
         return keep
 
 
-__all__ = ["frustum_cull_mask", "frustum_cull_mask_torch"]
+__all__ = ["frustum_cull_mask", "frustum_cull_mask_torch", "frustum_cull_masks"]

@@ -76,7 +76,8 @@ _pool_lock = threading.Lock()
 
 def ensure_loaded(device: str) -> None:
     """Initialise Warp and compile/load the kernel modules (:data:`KERNEL_MODULES` and, on CPU,
-    :mod:`gausslite.render.simd_kernels`) for ``device`` once per process.
+    :mod:`gausslite.render.simd_kernels` and :mod:`gausslite.render.simd_projection`) for ``device`` once per
+    process.
 
     Must run before concurrent launches so that two threads never compile the module at the same
     time. Compiled binaries are cached on disk by Warp (``~/.cache/warp``) across processes.
@@ -85,6 +86,7 @@ def ensure_loaded(device: str) -> None:
         ensure_module_loaded(module, device)
     if device == "cpu":
         ensure_module_loaded("gausslite.render.simd_kernels", device)
+        ensure_module_loaded("gausslite.render.simd_projection", device)
 
 
 def ensure_module_loaded(module: str, device: str) -> None:

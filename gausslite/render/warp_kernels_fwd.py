@@ -524,20 +524,22 @@ def frustum_cull_kernel(
     log_scales: wp.array2d(dtype=wp.float32),
     planes: wp.array2d(dtype=wp.float64),
     sigmas: wp.float64,
-    keep: wp.array(dtype=wp.uint8),
+    keep: wp.array2d(dtype=wp.uint8),
 ):
-    """``keep[i] = 1`` unless Gaussian ``i``'s ``sigmas``-sphere lies wholly outside one of the six ``planes``
-    (rows ``(n_x, n_y, n_z, d)`` in the world frame, unit normals pointing inside: the signed distance
-    ``n · μ + d`` must exceed ``−r``), in float64 (:func:`gausslite.render.culling.frustum_cull_mask`)."""
+    """``keep[b, i] = 1`` unless Gaussian ``i``'s ``sigmas``-sphere lies wholly outside one of view ``b``'s six
+    planes, rows ``6 b … 6 b + 5`` of ``planes`` (``(n_x, n_y, n_z, d)`` in the world frame, unit normals pointing
+    inside: the signed distance ``n · μ + d`` must exceed ``−r``), in float64, for the B = ``keep.shape[0]`` views
+    (:func:`gausslite.render.culling.frustum_cull_masks`)."""
     i = wp.tid()
     x = wp.float64(means[i, 0])
     y = wp.float64(means[i, 1])
     z = wp.float64(means[i, 2])
     s = wp.max(wp.max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
     r = sigmas * wp.exp(wp.float64(s))
-    k = wp.uint8(1)
-    for p in range(6):
-        d = planes[p, 0] * x + planes[p, 1] * y + planes[p, 2] * z + planes[p, 3]
-        if not (d + r > wp.float64(0.0)):
-            k = wp.uint8(0)
-    keep[i] = k
+    for b in range(keep.shape[0]):
+        k = wp.uint8(1)
+        for p in range(6 * b, 6 * b + 6):
+            d = planes[p, 0] * x + planes[p, 1] * y + planes[p, 2] * z + planes[p, 3]
+            if not (d + r > wp.float64(0.0)):
+                k = wp.uint8(0)
+        keep[b, i] = k

@@ -72,3 +72,26 @@ def test_the_warp_cull_equals_the_torch_reference(seed):
         ref = frustum_cull_mask_torch(params[0], params[2], vm, K, 64, 48, pad=pad)
         assert got.dtype == torch.bool and 0 < int(ref.sum()) < len(ref)
         assert torch.equal(got, ref)
+
+
+def test_several_views_in_one_pass_equal_one_pass_per_view():
+    """frustum_cull_masks (the bands of a rolling-shutter image, each with its own pose, principal point and height)
+    keeps, view by view, exactly what the pure-PyTorch reference keeps for that view alone."""
+    from gausslite.render.culling import frustum_cull_mask_torch, frustum_cull_masks
+
+    params = _scene(3, n=20000)
+    vms, Ks, heights = [], [], []
+    for b in range(6):
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.05 * b, -0.2, 0.5]).as_matrix())
+        c2w[:3, 3] = torch.tensor([0.02 * b, -0.3, 0.1], dtype=torch.float64)
+        vms.append(torch.linalg.inv(c2w))
+        Ks.append(torch.tensor([[50.0, 0, 31.5], [0, 50.0, 23.5 - 8 * b], [0, 0, 1]]))
+        heights.append(8 if b < 5 else 9)
+    masks = frustum_cull_masks(params[0], params[2], vms, Ks, 64, heights)
+    assert masks.shape == (6, 20000) and masks.dtype == torch.bool
+    for b in range(6):
+        assert torch.equal(masks[b], frustum_cull_mask_torch(params[0], params[2], vms[b], Ks[b], 64, heights[b]))
+    assert not torch.equal(masks[0], masks[5])
+    with pytest.raises(ValueError, match="heights"):
+        frustum_cull_masks(params[0], params[2], vms, Ks, 64, heights[:2])
