@@ -21,13 +21,15 @@ from gausslite.datasets.annotations import task_roi
 from gausslite.datasets.base import Frame
 from gausslite.datasets.subset import NOVEL_EVERY, FrameSubset, withheld_indices  # noqa: F401  (re-exported)
 from gausslite.mapping.exposure import apply_exposure
-from gausslite.metrics import depth_l1, psnr, ssim
+from gausslite.metrics import GtStatsCache, depth_l1, psnr, ssim_with_mask
 from gausslite.render import RenderOutput, rasterize
 # the views a live map is scored at live in a module of their own; their names import from here as before
 from gausslite.tracked_views import (TrackedView, fit_exposure_outside_roi, has_exposure_records,  # noqa: F401
                                      predicted_view, track_view)
 
 RenderFn = Callable[[Frame], RenderOutput]
+#: the ground truth's SSIM statistics of the frames scored last (each frame is scored under several protocols and maps)
+_GT_STATS = GtStatsCache()
 
 
 @dataclass
@@ -75,18 +77,17 @@ def score_view(out: RenderOutput, frame: Frame, roi: Optional[np.ndarray] = None
     gt = torch.from_numpy(frame.rgb).to(dev, torch.float32) / 255.0
     gtd = torch.from_numpy(np.ascontiguousarray(frame.depth)).to(dev, torch.float32)
     pred = out.color.detach().clamp(0, 1)
-    s = FrameScore(
-        frame_id=frame.frame_id,
-        psnr=float(psnr(pred, gt)),
-        ssim=float(ssim(pred, gt)),
-        depth_l1=float(depth_l1(out.depth.detach(), gtd)),
-    )
-    if roi is not None:
-        m = torch.from_numpy(np.asarray(roi, bool)).to(dev)
+    m = torch.from_numpy(np.asarray(roi, bool)).to(dev) if roi is not None else None
+    # one SSIM map for the image and the ROI, against the frame's statistics (cached: scored again and again)
+    with torch.no_grad():
+        full, in_roi = ssim_with_mask(pred, gt, m, _GT_STATS.get(frame.rgb, gt, pred.dtype))
+    s = FrameScore(frame_id=frame.frame_id, psnr=float(psnr(pred, gt)), ssim=float(full),
+                   depth_l1=float(depth_l1(out.depth.detach(), gtd)))
+    if m is not None:
         s.roi_fraction = float(m.float().mean())
         if bool(m.any()):
             s.roi_psnr = float(psnr(pred, gt, mask=m))
-            s.roi_ssim = float(ssim(pred, gt, mask=m))
+            s.roi_ssim = float(in_roi)
     return s
 
 

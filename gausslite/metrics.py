@@ -19,17 +19,23 @@ channel with zero padding to "same" size exactly as the reference 3DGS code (Ker
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
+from collections import OrderedDict
 from typing import Optional
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 __all__ = [
+    "GtStatsCache",
     "gaussian_window",
     "psnr",
     "ssim_map",
     "ssim",
+    "ssim_with_mask",
     "depth_l1",
 ]
 
@@ -182,6 +188,56 @@ def ssim(
     if m.numel() == 0:
         return torch.tensor(math.nan, dtype=pred.dtype, device=pred.device)
     return m.mean()
+
+
+def ssim_with_mask(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None,
+                   gt_stats: Optional[tuple[torch.Tensor, torch.Tensor]] = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`ssim` over the whole image and over ``mask``, from one SSIM map (the values of two :func:`ssim` calls,
+    for half the filtering; with ``gt_stats``, :func:`ssim_gt_stats` of ``gt``, none of the ground truth's).
+
+    Args:
+        pred, gt: (H, W, C) float images in [0, 1]. mask: optional (H, W) bool.
+        gt_stats: optional (mu, var) of ``gt`` in ``pred``'s dtype (default window and sigma).
+    Returns:
+        ``(full, masked)``: 0-dim tensors in the input dtype; ``masked`` is ``nan`` without a mask or for an empty
+        one.
+    Raises:
+        ValueError: shape or device mismatch.
+    """
+    _check_images(pred, gt, mask)
+    m = ssim_map(pred, gt, gt_stats=gt_stats)
+    nan = torch.tensor(math.nan, dtype=pred.dtype, device=pred.device)
+    if mask is None or not bool(mask.any()):
+        return m.mean(), nan
+    return m.mean(), m[mask].mean()
+
+
+class GtStatsCache:
+    """:func:`ssim_gt_stats` of uint8 ground-truth images, kept by content (a BLAKE2b digest of the pixels, so a frame
+    loaded twice hits and an image that changed misses) for the ``size`` most recent: scoring renders the same frames
+    under several protocols and maps. Thread-safe."""
+
+    def __init__(self, size: int = 256) -> None:
+        self.size = int(size)
+        self._lock = threading.Lock()
+        self._stats: OrderedDict = OrderedDict()
+
+    def get(self, rgb: np.ndarray, gt: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mu, var) of ``gt`` ((H, W, C) float in [0, 1], made from ``rgb``, its (H, W, C) uint8 pixels) in
+        ``dtype``."""
+        key = (rgb.shape, str(dtype), str(gt.device), hashlib.blake2b(np.ascontiguousarray(rgb).data,
+                                                                      digest_size=16).digest())
+        with self._lock:
+            hit = self._stats.get(key)
+            if hit is not None:
+                self._stats.move_to_end(key)
+                return hit
+        stats = ssim_gt_stats(gt, dtype=dtype)
+        with self._lock:
+            self._stats[key] = stats
+            while len(self._stats) > self.size:
+                self._stats.popitem(last=False)
+        return stats
 
 
 def depth_l1(pred: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None) -> torch.Tensor:

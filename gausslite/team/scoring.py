@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
@@ -148,38 +150,54 @@ def score_fused_maps(out: Path, plans: List[AgentPlan], eval_frames: Dict[str, t
     renders = []
     (out / "renders").mkdir(exist_ok=True)
     vote = None
-    for key in FUSED_KEYS:
-        log.info("fusing: %s", key)
-        if key == "with_own":
-            gmaps, res = _with_own_maps(out, plans, vote, eval_frames, kf_poses, backend)
-        else:
-            gmaps, res = fuse(key)
-        if key == "vote" and gmaps is not None:
-            vote = (next(iter(gmaps.values())), res)
-        if gmaps is None:
-            continue
-        files = save_fused_maps(out, key, gmaps)
-        per_task, protos = {}, {}
-        for p in plans:
-            gmap = gmaps[p.name]
-            ds, frames = eval_frames[p.name]
-            protos[p.task_id] = fused_protocols(gmap, frames, ds.annotations, p.task_id, scoring,
-                                                kf_poses.get(p.name, {}), backend, (views or {}).get(p.name),
-                                                (novel_views or {}).get(p.name))
-            per_task[p.task_id] = protos[p.task_id]["sensor"]["roi_psnr"]  # evaluate_fused's figure
-            render = _write_fused_render(out, key, gmap, frames, ds.annotations, p.task_id, backend)
-            if render is not None:
-                renders.append(render)
-        vals = [v for v in per_task.values() if v is not None]
-        fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
-                      "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
-                      "fused_version": int(res.fused_version), "kept": dict(res.kept), "ply": files,
-                      "protocols": {q: {t: protos[t][q] for t in protos if q in protos[t]}
-                                    for q in [*scoring.chosen(), *[f"{a}@own" for a in AT_OWN]]
-                                    if any(q in v for v in protos.values())},
-                      "refine_record": dict(res.refine_record) or None}
-        log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: fmt(v) for k, v in per_task.items()})
+    # the robots' tasks are scored side by side, a thread each (the kernels and torch release the GIL): one robot's
+    # scoring alone leaves every other core idle
+    with ThreadPoolExecutor(max_workers=max(1, min(len(plans), os.cpu_count() or 1)),
+                            thread_name_prefix="gausslite-score") as pool:
+        for key in FUSED_KEYS:
+            vote = _score_fused_key(key, out, plans, eval_frames, scoring, kf_poses, backend, fuse, views,
+                                    novel_views, vote, fused, renders, pool)
     return fused, renders
+
+
+def _score_fused_key(key: str, out: Path, plans: List[AgentPlan], eval_frames: Dict[str, tuple], scoring,
+                     kf_poses: Dict[str, dict], backend: str, fuse: Callable[[str], tuple], views, novel_views, vote,
+                     fused: Dict[str, dict], renders: list, pool: ThreadPoolExecutor):
+    """:func:`score_fused_maps` of one fused-map key: made, saved, scored on every robot's task (one ``pool`` task
+    per robot) into ``fused`` and ``renders``. Returns the vote (map, result) once ``vote`` is made, else ``vote``."""
+    log.info("fusing: %s", key)
+    if key == "with_own":
+        gmaps, res = _with_own_maps(out, plans, vote, eval_frames, kf_poses, backend)
+    else:
+        gmaps, res = fuse(key)
+    if key == "vote" and gmaps is not None:
+        vote = (next(iter(gmaps.values())), res)
+    if gmaps is None:
+        return vote
+    files = save_fused_maps(out, key, gmaps)
+    per_task, protos = {}, {}
+
+    def score(p: AgentPlan) -> tuple:
+        ds, frames = eval_frames[p.name]
+        proto = fused_protocols(gmaps[p.name], frames, ds.annotations, p.task_id, scoring, kf_poses.get(p.name, {}),
+                                backend, (views or {}).get(p.name), (novel_views or {}).get(p.name))
+        return proto, _write_fused_render(out, key, gmaps[p.name], frames, ds.annotations, p.task_id, backend)
+
+    for p, (proto, render) in zip(plans, pool.map(score, plans)):
+        protos[p.task_id] = proto
+        per_task[p.task_id] = proto["sensor"]["roi_psnr"]  # evaluate_fused's figure
+        if render is not None:
+            renders.append(render)
+    vals = [v for v in per_task.values() if v is not None]
+    fused[key] = {"roi_psnr_mean": float(np.mean(vals)) if vals else None, "roi_psnr_per_task": per_task,
+                  "n_gaussians": int(res.n_gaussians), "seconds": float(res.seconds),
+                  "fused_version": int(res.fused_version), "kept": dict(res.kept), "ply": files,
+                  "protocols": {q: {t: protos[t][q] for t in protos if q in protos[t]}
+                                for q in [*scoring.chosen(), *[f"{a}@own" for a in AT_OWN]]
+                                if any(q in v for v in protos.values())},
+                  "refine_record": dict(res.refine_record) or None}
+    log.info("  %s: %d Gaussians, ROI PSNR %s", key, res.n_gaussians, {k: fmt(v) for k, v in per_task.items()})
+    return vote
 
 
 @dataclass

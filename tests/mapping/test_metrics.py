@@ -182,3 +182,26 @@ def test_ssim_map_fast_path_matches_full_filtering():
     c = pred0.clone().requires_grad_(True)
     cached = ssim_map(c, gt, gt_stats=ssim_gt_stats(gt))
     torch.testing.assert_close(cached, fast.detach(), rtol=0, atol=0)
+
+
+def test_ssim_with_mask_gives_both_ssim_values_from_one_map_and_cached_statistics():
+    from gausslite.metrics import GtStatsCache, ssim_with_mask
+
+    g = torch.Generator().manual_seed(3)
+    rgb = (torch.rand(40, 56, 3, generator=g) * 255).to(torch.uint8).numpy()
+    gt = torch.from_numpy(rgb).float() / 255.0
+    pred = (gt + 0.05 * torch.randn(40, 56, 3, generator=g)).clamp(0, 1)
+    mask = torch.zeros(40, 56, dtype=torch.bool)
+    mask[10:25, 5:30] = True
+    cache = GtStatsCache(size=2)
+    stats = cache.get(rgb, gt, pred.dtype)
+    assert cache.get(rgb.copy(), gt, pred.dtype) is stats  # the same pixels, another array: a hit
+    full, roi = ssim_with_mask(pred, gt, mask, stats)
+    assert float(full) == float(ssim(pred, gt)) and float(roi) == float(ssim(pred, gt, mask=mask))
+    full2, none = ssim_with_mask(pred, gt, torch.zeros_like(mask))
+    assert float(full2) == float(full) and math.isnan(float(none))
+    changed = rgb.copy()
+    changed[0, 0, 0] ^= 1
+    assert cache.get(changed, torch.from_numpy(changed).float() / 255.0, pred.dtype) is not stats
+    with pytest.raises(ValueError):
+        ssim_with_mask(pred, gt, mask[:-1])
