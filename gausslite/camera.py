@@ -71,6 +71,19 @@ class Intrinsics:
         return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
 
+def rotation_angle(R) -> np.ndarray:
+    """Angle (radians, in [0, π]) of rotation matrices: ``arccos((trace(R) − 1) / 2)``, its argument clipped to
+    [−1, 1] against rounding.
+
+    Args:
+        R: (..., 3, 3) rotation matrices or (..., 4, 4) poses (their rotation block), any float dtype.
+    Returns:
+        (...) float64 array (0-dimensional for one matrix).
+    """
+    R = np.asarray(R, np.float64)[..., :3, :3]
+    return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
+
+
 def check_rigid(c2w: np.ndarray, atol: float = 1e-3, what: str = "pose") -> np.ndarray:
     """Validate a 4x4 rigid transform and return it as float64.
 

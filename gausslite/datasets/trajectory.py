@@ -26,6 +26,7 @@ from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from gausslite.camera import rotation_angle
 from gausslite.ros.transforms import quat_to_rot
 
 __all__ = ["read_tum_trajectory", "write_tum_trajectory", "rot_to_quat", "align_rigid", "ate_rmse", "rpe",
@@ -175,7 +176,7 @@ def ate_rmse(est: np.ndarray, ref: np.ndarray) -> float:
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     """The angle (degrees) of a (3, 3) rotation matrix."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(np.asarray(R)[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.degrees(rotation_angle(np.asarray(R)[:3, :3])))
 
 
 def rpe(est: np.ndarray, ref: np.ndarray, timestamps: Optional[np.ndarray] = None, delta: float = 1,

@@ -21,7 +21,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from gausslite.camera import Intrinsics, backproject
+from gausslite.camera import Intrinsics, backproject, rotation_angle
 from gausslite.wire.images import encode_color_jpeg, encode_color_png, encode_depth_png, encode_roi_png
 
 __all__ = ["roi_crop", "region_points", "view_bytes", "ViewBudget", "next_view", "pose_distance"]
@@ -101,7 +101,7 @@ def pose_distance(a: np.ndarray, b: np.ndarray, rot_weight_m: float = 0.5) -> fl
     """Distance between two (4, 4) camera-to-world poses: translation (m) + ``rot_weight_m`` × rotation angle (rad)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     r = a[:3, :3].T @ b[:3, :3]
-    angle = float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = float(rotation_angle(r))
     return float(np.linalg.norm(a[:3, 3] - b[:3, 3])) + rot_weight_m * angle
 
 

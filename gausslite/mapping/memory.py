@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from gausslite.camera import Intrinsics, backproject
+from gausslite.camera import Intrinsics, backproject, rotation_angle
 from gausslite.mapping.views import StoredKeyframe, StoredViews, closest_pose_pair, roi_box
 
 
@@ -114,7 +114,7 @@ class KeyframeStore(StoredViews):
         c2w = torch.stack([k.c2w for k in self._items[: n_old + 1]]).numpy()
         dt = np.linalg.norm(c2w[1:, :3, 3] - c2w[:-1, :3, 3], axis=1)
         rel = np.einsum("nji,njk->nik", c2w[:-1, :3, :3], c2w[1:, :3, :3])
-        ang = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+        ang = rotation_angle(rel)
         cost = dt + self.rot_weight_m * ang  # distance of keyframe j+1 to keyframe j, j+1 ∈ [1, n_old]
         j = int(np.argmin(cost[: n_old - 1])) + 1  # never the first keyframe, never the window
         self._items.pop(j)

@@ -29,7 +29,7 @@ from typing import Mapping, Optional
 import numpy as np
 import torch
 
-from gausslite.camera import nearest_rigid
+from gausslite.camera import nearest_rigid, rotation_angle
 
 
 def so3_exp(omega: torch.Tensor) -> torch.Tensor:
@@ -364,7 +364,7 @@ class PoseRefiner:
         if not self.corrections:
             return np.zeros(0), np.zeros(0)
         E = np.stack(list(self.corrections.values()))
-        ang = np.degrees(np.arccos(np.clip((np.trace(E[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        ang = np.degrees(rotation_angle(E))
         return ang, np.linalg.norm(E[:, :3, 3], axis=1)
 
 

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import torch
 
-from gausslite.camera import Intrinsics, backproject
+from gausslite.camera import Intrinsics, backproject, rotation_angle
 from gausslite.mapping.poses import PoseRefiner, nearest_key
 from gausslite.mapping.views import (Keyframe, StoredKeyframe, StoredViews, closest_pose_pair, keyframe_from_frame,
                                      roi_box, window_keyframe)
@@ -153,7 +153,7 @@ class RoiViewStore(StoredViews):
         t = c2w[:, :3, 3]
         dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
         rel = np.einsum("aji,bjk->abik", c2w[:, :3, :3], c2w[:, :3, :3])
-        ang = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+        ang = rotation_angle(rel)
         cost = dt + self.rot_weight_m * ang
         np.fill_diagonal(cost, np.inf)
         a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)

@@ -34,6 +34,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from gausslite.camera import rotation_angle
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.model import cosine_lr_factor
@@ -230,7 +231,7 @@ class FrameTracker:
         logged); ``c2w0`` when nothing was tracked."""
         pc = self.cfg.pose
         E = np.linalg.inv(c2w0) @ c2w
-        rot = float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+        rot = float(np.degrees(rotation_angle(E)))
         trans = float(np.linalg.norm(E[:3, 3]))
         if not math.isfinite(loss):  # no render covered enough of the view
             return TrackResult(c2w0.copy(), iters, False, stop, 0.0, 0.0, loss0, loss0)

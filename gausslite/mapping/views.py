@@ -19,6 +19,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from gausslite.camera import rotation_angle
 from gausslite.datasets.base import Frame
 
 
@@ -319,7 +320,7 @@ def closest_pose_pair(c2w: np.ndarray, rot_weight_m: float) -> tuple[int, int]:
     t = c2w[:, :3, 3]
     dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
     rel = np.einsum("aji,bjk->abik", c2w[:, :3, :3], c2w[:, :3, :3])
-    ang = np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0))
+    ang = rotation_angle(rel)
     cost = dt + rot_weight_m * ang
     np.fill_diagonal(cost, np.inf)
     a, b = np.unravel_index(int(np.argmin(cost)), cost.shape)

@@ -289,3 +289,19 @@ def test_cli_make_scene(tmp_path: Path) -> None:
     assert main(["make-scene", "--out", str(one), "--width", "32", "--height", "24", "--frames", "2",
                  "--agents", "agent_a", "--quiet"]) == 0
     assert (one / "agent_a" / "traj.txt").is_file() and not (one / "agent_b").exists()
+
+
+def test_rotation_angle_of_single_and_batched_rotations_and_poses():
+    from scipy.spatial.transform import Rotation
+
+    from gausslite.camera import rotation_angle
+
+    angles = np.array([0.0, 0.3, 1.2, np.pi - 1e-9, np.pi])
+    R = Rotation.from_rotvec(angles[:, None] * np.array([[0.6, 0.0, 0.8]])).as_matrix()
+    np.testing.assert_allclose(rotation_angle(R), angles, atol=2e-7)  # arccos is flat at 0 and π
+    poses = np.tile(np.eye(4), (2, 5, 1, 1))
+    poses[:, :, :3, :3] = R
+    assert rotation_angle(poses).shape == (2, 5)
+    np.testing.assert_allclose(rotation_angle(poses)[1], angles, atol=2e-7)
+    assert float(rotation_angle(R[2].astype(np.float32))) == pytest.approx(1.2, abs=1e-6)
+    assert float(rotation_angle(np.eye(3) * (1 + 1e-12))) == 0.0  # rounding above 1 is clipped, never NaN
