@@ -34,6 +34,15 @@ from gausslite.render.culling import frustum_cull_mask, frustum_cull_masks
 TILE_SIZE = 16
 
 
+def _within(vis: torch.Tensor, subset: Optional[torch.Tensor]) -> torch.Tensor:
+    """Culling masks ``vis`` ((N,) or (B, N) bool, modified in place) narrowed to ``subset`` (None, (N,) bool or
+    int64 rows)."""
+    if subset is not None:
+        vis &= subset if subset.dtype == torch.bool else torch.zeros(vis.shape[-1], dtype=torch.bool,
+                                                                     device=vis.device).index_fill_(0, subset, True)
+    return vis
+
+
 class SensorRenderer:
     """Renders a :class:`~gausslite.mapping.model.GaussianModel` as the sensor saw each view.
 
@@ -210,10 +219,7 @@ class SensorRenderer:
         """``subset`` narrowed to the Gaussians that may reach the view (frustum culling when the map has
         ``frustum_cull_min`` Gaussians or more, or ``cull``), and a deterministic clock charged for the render."""
         if self.cfg.performance.frustum_cull and (len(means) >= self.cfg.performance.frustum_cull_min or cull):
-            vis = frustum_cull_mask(means, log_scales, vm, K, width, height)
-            if subset is not None:
-                vis &= subset if subset.dtype == torch.bool else torch.zeros_like(vis).index_fill_(0, subset, True)
-            subset = vis
+            subset = _within(frustum_cull_mask(means, log_scales, vm, K, width, height), subset)
         if self.clock.charges:
             n_render = len(means) if subset is None else (
                 int(subset.sum()) if subset.dtype == torch.bool else int(subset.numel()))
@@ -228,10 +234,7 @@ class SensorRenderer:
         if not self.cfg.performance.frustum_cull:
             return [self._visible(means, log_scales, vm, K, width, h, subset, True)
                     for vm, K, h in zip(vms, Ks, heights)]
-        vis = frustum_cull_masks(means, log_scales, vms, Ks, width, heights)
-        if subset is not None:
-            vis &= (subset if subset.dtype == torch.bool
-                    else torch.zeros(len(means), dtype=torch.bool, device=means.device).index_fill_(0, subset, True))
+        vis = _within(frustum_cull_masks(means, log_scales, vms, Ks, width, heights), subset)
         if self.clock.charges:
             for b, h in enumerate(heights):
                 self.clock.charge_render(int(width) * int(h), int(vis[b].sum()), torch.is_grad_enabled())

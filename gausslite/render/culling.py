@@ -38,12 +38,10 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
 
     On CPU with float32 parameters one Warp launch tests the six planes per Gaussian
     (:func:`frustum_cull_masks`, :func:`gausslite.render.warp_kernels.frustum_cull_kernel`; measured about 3× faster
-    than the torch ops at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested against.
+    than the torch ops at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the
+    reference it is tested against.
     """
-    if (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
-            and len(means) > 0):
-        return frustum_cull_masks(means, log_scales, [viewmat], [K], width, [height], near, far, pad, sigmas)[0]
-    return frustum_cull_mask_torch(means, log_scales, viewmat, K, width, height, near, far, pad, sigmas)
+    return frustum_cull_masks(means, log_scales, [viewmat], [K], width, [height], near, far, pad, sigmas)[0]
 
 
 def frustum_cull_masks(means: torch.Tensor, log_scales: torch.Tensor, viewmats: list, Ks: list, width: int,
@@ -65,11 +63,12 @@ def frustum_cull_masks(means: torch.Tensor, log_scales: torch.Tensor, viewmats: 
     B = len(viewmats)
     if len(Ks) != B or len(heights) != B:
         raise ValueError(f"need as many Ks ({len(Ks)}) and heights ({len(heights)}) as viewmats ({B})")
+    if B == 0:
+        return torch.zeros(0, len(means), dtype=torch.bool, device=means.device)
     if not (means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32
             and len(means) > 0):
         return torch.stack([frustum_cull_mask_torch(means, log_scales, vm, K, width, h, near, far, pad, sigmas)
-                            for vm, K, h in zip(viewmats, Ks, heights)]) if B else torch.zeros(0, len(means),
-                                                                                                dtype=torch.bool)
+                            for vm, K, h in zip(viewmats, Ks, heights)])
     keep = torch.empty(B, len(means), dtype=torch.uint8)
     wk.ensure_loaded("cpu")
     launch_cpu(wk.frustum_cull_kernel, len(means),

@@ -6,8 +6,8 @@ Same formulas, culling, radius rule and gradient conventions as the Warp kernels
 :mod:`gausslite.render.warp_kernels_common`, "EWA projection"), in float64 whatever the input dtype: the
 eight Gaussians' rows are loaded into 8-lane double vectors (one AVX-512 register; two AVX2 ones), every
 branch of the scalar kernels becomes a lane mask and a select, and the rows are written back lane by lane.
-``exp`` of the log-scales is libm's, lane by lane; everything else is vector arithmetic, compiled with
-``#pragma clang fp contract(fast)``, so products and sums fuse into FMAs: the results move from the Warp
+``exp`` of the log-scales is a vector Cephes ``exp`` (within 1–2 ulp of libm's); everything is vector arithmetic,
+compiled with ``#pragma clang fp contract(fast)``, so products and sums fuse into FMAs: the results move from the Warp
 kernels' at float64 rounding (the outputs are float32 or float64 rows; tests/render/test_render_projection.py
 holds the parity test against the Warp kernels and the pure-PyTorch reference).
 
