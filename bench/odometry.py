@@ -35,7 +35,9 @@ photometric Huber threshold, 0.1, instead of 0.5), ``photometric`` (the colour t
 (point-to-plane alone); and how a loop candidate is registered (``loop.registration``, gates 2-3 of
 ``gausslite.datasets.pose_graph``): ``hybrid_loops`` (the tracker's own RGB-D registration), ``point_to_plane_loops``
 (the same with its depth term alone) and ``fine_icp_loops`` (the default ICP on every depth point, up to 30 iterations
-per level, instead of one point per 4 cm voxel and 15).
+per level, instead of one point per 4 cm voxel and 15); and which loops get through: ``no_basin`` (without gate 3's
+restarts along the least-pinned direction, ``loop.basin_m``) and ``two_candidates_no_basin`` (that, with 2 loop
+candidates tried per keyframe instead of 4).
 
 ``--walk-seeds 0,1,2`` runs each synthetic walk once per rendering (its trajectory's and sensor's random draws; the
 rows of seed s ≠ 0 are the sequence ``<name>_seed<s>``), as ``bench.sensor_calibration`` renders them.
@@ -97,7 +99,11 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             # how a loop candidate is registered and verified (gates 2-3 of gausslite.datasets.pose_graph)
             "hybrid_loops": {"loop": {"registration": "hybrid"}},
             "point_to_plane_loops": {"loop": {"registration": "point_to_plane"}},
-            "fine_icp_loops": {"loop": {"icp_voxel_m": None, "icp_iterations": 30, "icp_relative_change": 1e-6}}}
+            "fine_icp_loops": {"loop": {"icp_voxel_m": None, "icp_iterations": 30, "icp_relative_change": 1e-6}},
+            # which loops get through: gate 3 without its restarts along the least-pinned direction; and the
+            # candidates tried per keyframe, 2 instead of 4, without the restarts
+            "no_basin": {"loop": {"basin_m": None}},
+            "two_candidates_no_basin": {"loop": {"max_candidates": 2, "basin_m": None}}}
 SEQUENCES = ("tum_fr1_rpy", "synthetic_circle", "room0", "synthetic_walk", "synthetic_walk_covered",
              "synthetic_walk_tum", "synthetic_scan_walk_tum")
 #: the name prefixes of the synthetic walks (rendered per ``--walk-seeds``; :func:`walk_dir`)
@@ -213,7 +219,9 @@ def loop_errors(odo: RGBDOdometry, frames: list) -> list:
 #: the agent's own loop-closing thread (``RGBDOdometry(background_loops=...)``)
 LIVE_VARIANTS = {"default": ([], True), "loops_inline": ([], False),
                  "no_loops": (["agent.odometry.loop.enabled=false"], True),
-                 "hybrid_loops": (["agent.odometry.loop.registration=hybrid"], True)}
+                 "hybrid_loops": (["agent.odometry.loop.registration=hybrid"], True),
+                 "two_candidates_no_basin": (["agent.odometry.loop.max_candidates=2",
+                                              "agent.odometry.loop.basin_m=null"], True)}
 
 
 def live(rate: float, budget: float, variant: str = "default") -> dict:

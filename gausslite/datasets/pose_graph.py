@@ -17,7 +17,11 @@ Loop edges are gated hard, since one false loop bends the whole map:
    keyframe's points as inliers within ``icp_distance_m`` at an inlier RMSE of at most ``icp_max_rmse_m``;
 3. **verification**: the same ICP the other way round (the old keyframe's cloud onto the new one's, from the inverse
    of the result) lands on the same pose within ``agree_m`` and ``agree_deg`` (a wrong local minimum is rarely one
-   from both sides).
+   from both sides); and the result is a minimum along the direction the surfaces pin down least (the eigenvector
+   of the smallest eigenvalue of the inliers' mean ``n nᵀ``, ``n`` the target's normals; Zhang, Kaess, Singh, ICRA
+   2016), when that direction holds under ``basin_below`` of the normals' weight: ICP restarted from the result
+   shifted by ``basin_m`` either way along it comes back within ``agree_m``. Two clouds that can slide along a wall or down a corridor fit anywhere along it, from either side,
+   and this is the check that finds them out (``basin_m: null`` turns it off).
 
    With ``registration: hybrid`` or ``point_to_plane``, gate 2 is Open3D's RGB-D odometry with those residuals
    (the tracker's own registration) from the estimated relative pose, with at least ``min_fitness`` of the new
@@ -59,7 +63,7 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopConfig", "RelocConfig", "LoopEdge", "KeyframeGraph", "verify_registration", "relocalise",
-           "thumbnail", "open3d_module", "loop_information", "DepthClouds"]
+           "thumbnail", "open3d_module", "loop_information", "DepthClouds", "least_pinned_direction"]
 
 
 def open3d_module():
@@ -101,6 +105,9 @@ class LoopConfig(BaseModel):
         registration: how gates 2-3 register a pair: ``icp`` (point-to-plane ICP coarse to fine over
             ``icp_levels_m``, then from the other side) or ``hybrid`` / ``point_to_plane`` (Open3D's RGB-D odometry
             with those residuals both ways, then ICP).
+        basin_m: gate 3's restarts along the least-pinned direction start this far either side of the result
+            (metres; None: no restarts); basin_below: they run when that direction's eigenvalue of the inliers' mean
+            ``n nᵀ`` (trace 1: 0 for one plane, 1/3 for normals facing every way alike) is below this.
         icp_levels_m: the correspondence distances of the ``icp`` registration's levels, coarsest first (metres).
         icp_voxel_m: the ``icp`` registration's clouds are thinned to one point per voxel of this size (metres; None:
             every depth pixel's point); icp_iterations: ICP iterations per level at most; icp_relative_change: a level
@@ -114,7 +121,7 @@ class LoopConfig(BaseModel):
     min_gap: int = Field(5, ge=1)
     radius_m: float = Field(0.4, gt=0)
     max_angle_deg: float = Field(25.0, gt=0)
-    max_candidates: int = Field(2, ge=1)
+    max_candidates: int = Field(4, ge=1)
     min_fitness: float = Field(0.45, gt=0, le=1)
     icp_distance_m: float = Field(0.05, gt=0)
     icp_max_rmse_m: float = Field(0.035, gt=0)
@@ -128,6 +135,8 @@ class LoopConfig(BaseModel):
     keyframe_images_max: int = Field(2000, ge=1)
     registration: Literal["icp", "hybrid", "point_to_plane"] = "icp"
     icp_levels_m: List[float] = Field(default_factory=lambda: [0.15, 0.08, 0.04, 0.02], min_length=1)
+    basin_m: Optional[float] = Field(0.05, gt=0)
+    basin_below: float = Field(0.05, gt=0, le=1.0 / 3.0)
     icp_voxel_m: Optional[float] = Field(0.04, gt=0)
     icp_iterations: int = Field(15, ge=1)
     icp_relative_change: float = Field(1e-6, gt=0)
@@ -401,10 +410,47 @@ def _verify_icp(odo, frame, target, init: np.ndarray, min_fitness: float, cfg: L
     if fit.fitness < min_fitness or fit.inlier_rmse > cfg.icp_max_rmse_m:
         return None
     back = _icp(tgt, src, np.linalg.inv(T), cfg.icp_levels_m[len(cfg.icp_levels_m) // 2:], cfg)
-    if not _agree(T @ back, np.eye(4), cfg):
+    if not _agree(T @ back, np.eye(4), cfg) or not _in_basin(src, tgt, T, fit.correspondence_set, cfg):
         return None
     info = reg.get_information_matrix_from_point_clouds(src, tgt, cfg.icp_distance_m, T)
     return T, np.asarray(info), float(fit.fitness), float(fit.inlier_rmse)
+
+
+def least_pinned_direction(tgt, correspondences) -> Tuple[float, np.ndarray]:
+    """The translation an ICP result's inliers constrain least: ``(eigenvalue, (3,) unit direction)`` of the smallest
+    eigenvalue of the mean ``n nᵀ`` over the inlier pairs' target normals ``n`` (the target's frame). The eigenvalue
+    is 0 for one plane (sliding along it costs nothing) and 1/3 for normals spread evenly over every direction.
+
+    Args:
+        tgt: the target Open3D cloud, with normals. correspondences: (M, 2) int (source, target) inlier indices.
+    Raises:
+        ValueError: no correspondences.
+    """
+    idx = np.asarray(correspondences, np.int64).reshape(-1, 2)[:, 1]
+    if not len(idx):
+        raise ValueError("no inlier correspondences")
+    n = np.asarray(tgt.normals)[idx]
+    values, vectors = np.linalg.eigh(n.T @ n / len(n))
+    return float(values[0]), vectors[:, 0]
+
+
+def _in_basin(src, tgt, T: np.ndarray, correspondences, cfg: LoopConfig) -> bool:
+    """Gate 3's restarts: ICP from ``T`` shifted by ``cfg.basin_m`` either way along the least-pinned direction comes
+    back within ``cfg.agree_m`` and ``cfg.agree_deg`` of ``T``, from the finest level wider than the shift (True when
+    ``basin_m`` is None or that direction is pinned by at least ``cfg.basin_below``)."""
+    if cfg.basin_m is None:
+        return True
+    value, direction = least_pinned_direction(tgt, correspondences)
+    if value >= cfg.basin_below:
+        return True
+    wider = [d for d in cfg.icp_levels_m if d > cfg.basin_m]
+    levels = wider[-1:] + [d for d in cfg.icp_levels_m if d <= cfg.basin_m]
+    for sign in (1.0, -1.0):
+        shift = np.eye(4)
+        shift[:3, 3] = sign * cfg.basin_m * direction
+        if not _agree(T, _icp(src, tgt, shift @ T, levels, cfg), cfg):
+            return False
+    return True
 
 
 @dataclass

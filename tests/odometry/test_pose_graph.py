@@ -209,3 +209,67 @@ def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeyp
         gate.set()
         odo.close()
     assert not odo.loops.thread.is_alive()
+
+
+def _cloud(points: np.ndarray):
+    """An Open3D cloud of ``points`` (N, 3) metres with normals estimated as the loop check's clouds are."""
+    from gausslite.datasets.pose_graph import open3d_module
+
+    o3d = open3d_module()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.1, max_nn=30))
+    return pcd
+
+
+def _grid(u: np.ndarray, v: np.ndarray, axes: tuple, offset: float, normal_axis: int) -> np.ndarray:
+    uu, vv = np.meshgrid(u, v)
+    p = np.zeros((uu.size, 3))
+    p[:, axes[0]], p[:, axes[1]], p[:, normal_axis] = uu.ravel(), vv.ravel(), offset
+    return p
+
+
+def _corridor() -> np.ndarray:
+    """Two walls (x = ±0.6 m) and a floor (y = 0.5 m) along z from 1 to 4 m, 3 cm apart: nothing faces along z."""
+    z, s = np.arange(1.0, 4.0, 0.03), np.arange(-0.6, 0.6, 0.03)
+    walls = [_grid(s[s < 0.5], z, (1, 2), x, 0) for x in (-0.6, 0.6)]
+    return np.concatenate(walls + [_grid(s, z, (0, 2), 0.5, 1)])
+
+
+def _corner() -> np.ndarray:
+    """The corridor closed by an end wall (z = 4 m): every direction is pinned."""
+    s = np.arange(-0.6, 0.6, 0.03)
+    return np.concatenate([_corridor(), _grid(s, s[s < 0.5], (0, 1), 4.0, 2)])
+
+
+def test_the_least_pinned_direction_is_along_a_corridor_and_none_in_a_closed_room():
+    from gausslite.datasets.pose_graph import least_pinned_direction
+
+    for points, pinned in ((_corridor(), False), (_corner(), True)):
+        tgt = _cloud(points)
+        value, direction = least_pinned_direction(tgt, np.stack([np.arange(len(points))] * 2, 1))
+        assert abs(np.linalg.norm(direction) - 1.0) < 1e-9
+        if pinned:
+            assert value > 0.1  # the end wall faces along z
+        else:
+            assert value < 1e-3 and abs(direction[2]) > 0.99  # sliding down the corridor costs nothing
+    with pytest.raises(ValueError, match="no inlier"):
+        least_pinned_direction(_cloud(_corner()), np.zeros((0, 2), np.int64))
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_a_registration_that_can_slide_is_turned_away_by_the_restarts(closed):
+    # the same view of a corridor, "registered" 8 cm down it: a plane-to-plane fit everywhere along it, so gates 2-3
+    # pass from either side; the restarts along the corridor do not come back, and the loop is turned away. With an
+    # end wall the restarts return to the true pose, and the check passes.
+    from gausslite.datasets.pose_graph import _icp, _in_basin, open3d_module
+
+    points = _corner() if closed else _corridor()
+    src, tgt = _cloud(points), _cloud(points)
+    cfg = LoopConfig()
+    start = np.eye(4)
+    start[2, 3] = 0.08
+    T = _icp(src, tgt, start if not closed else np.eye(4), cfg.icp_levels_m, cfg)
+    fit = open3d_module().pipelines.registration.evaluate_registration(src, tgt, cfg.icp_distance_m, T)
+    assert fit.fitness > 0.9  # a perfect fit by the inlier gates in both cases
+    assert _in_basin(src, tgt, T, fit.correspondence_set, cfg) is closed
+    assert _in_basin(src, tgt, T, fit.correspondence_set, LoopConfig(basin_m=None))  # the check turned off
