@@ -20,8 +20,9 @@ Loop edges are gated hard, since one false loop bends the whole map:
    from both sides); and the result is a minimum along the direction the surfaces pin down least (the eigenvector
    of the smallest eigenvalue of the inliers' mean ``n nᵀ``, ``n`` the target's normals; Zhang, Kaess, Singh, ICRA
    2016), when that direction holds under ``basin_below`` of the normals' weight: ICP restarted from the result
-   shifted by ``basin_m`` either way along it comes back within ``agree_m``. Two clouds that can slide along a wall or down a corridor fit anywhere along it, from either side,
-   and this is the check that finds them out (``basin_m: null`` turns it off).
+   shifted by ``basin_m`` either way along it comes back within ``agree_m`` and ``agree_deg``. Two clouds that can
+   slide along a wall or down a corridor fit anywhere along it, from either side, and this is the check that finds
+   them out (``basin_m: null`` turns it off).
 
    With ``registration: hybrid`` or ``point_to_plane``, gate 2 is Open3D's RGB-D odometry with those residuals
    (the tracker's own registration) from the estimated relative pose, with at least ``min_fitness`` of the new
