@@ -94,7 +94,7 @@ def test_the_installed_services_are_this_checkouts():
 def test_the_entry_points_name_the_installed_package():
     dist = metadata.distribution("gausslite")
     eps = {(ep.group, ep.name): ep for ep in dist.entry_points}
-    assert eps[("console_scripts", "gausslite")].value == "gausslite.cli:main"
+    assert eps[("console_scripts", "gausslite")].value == "gausslite.cli:run_as_program"
     commands = eps[("gausslite.commands", "services")]
     assert commands.value == "gausslite_services.cli"
     assert Path(commands.load().__file__).resolve().parent == ROOT / "services" / "cli"
@@ -134,4 +134,4 @@ def test_the_wheel_holds_gausslite_services(tmp_path):
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     with zipfile.ZipFile(whl) as z:
         text = z.read(entry_points).decode()
-    assert "services = gausslite_services.cli" in text and "gausslite = gausslite.cli:main" in text
+    assert "services = gausslite_services.cli" in text and "gausslite = gausslite.cli:run_as_program" in text

@@ -1,3 +1,3 @@
-from gausslite.cli import main
-import sys
-sys.exit(main())
+from gausslite.cli import run_as_program
+
+run_as_program()

@@ -62,12 +62,22 @@ def hash2(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
     Returns:
         float64 array of the broadcast shape with values in [0, 1).
     """
-    x = (np.asarray(ix, dtype=np.int64) * 374761393 + np.asarray(iy, dtype=np.int64) * 668265263
-         + (int(seed) % 1000003) * 1442695041) & 0xFFFFFFFF
-    x = ((x ^ (x >> 13)) * 1274126177) & 0xFFFFFFFF
-    x = ((x ^ (x >> 16)) * 2246822519) & 0xFFFFFFFF
-    x = x ^ (x >> 15)
-    return x.astype(np.float64) / 4294967296.0
+    return _avalanche(_lattice(np.asarray(ix), np.asarray(iy), seed))
+
+
+def _lattice(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
+    """The hash's linear start, ``ix·374761393 + iy·668265263 + seed'·1442695041`` modulo 2³², as uint32 (the
+    products wrap in 32 bits exactly as the int64 sum's low 32 bits: the arithmetic is modulo 2³² either way)."""
+    return (ix.astype(np.uint32) * np.uint32(374761393) + iy.astype(np.uint32) * np.uint32(668265263)
+            + np.uint32((int(seed) % 1000003) * 1442695041 % 4294967296))
+
+
+def _avalanche(x: np.ndarray) -> np.ndarray:
+    """:func:`hash2`'s avalanche of the uint32 lattice value ``x`` (modulo 2³²), mapped to float64 in [0, 1)."""
+    x = (x ^ (x >> np.uint32(13))) * np.uint32(1274126177)
+    x = (x ^ (x >> np.uint32(16))) * np.uint32(2246822519)
+    x = x ^ (x >> np.uint32(15))
+    return x * (1.0 / 4294967296.0)
 
 
 def value_noise(u: np.ndarray, v: np.ndarray, cell: float, seed: int) -> np.ndarray:
@@ -80,12 +90,12 @@ def value_noise(u: np.ndarray, v: np.ndarray, cell: float, seed: int) -> np.ndar
     fy = y - iy
     sx = fx * fx * (3.0 - 2.0 * fx)
     sy = fy * fy * (3.0 - 2.0 * fy)
-    ix = ix.astype(np.int64)
-    iy = iy.astype(np.int64)
-    a = hash2(ix, iy, seed)
-    b = hash2(ix + 1, iy, seed)
-    c = hash2(ix, iy + 1, seed)
-    d = hash2(ix + 1, iy + 1, seed)
+    # the four corners' lattice values differ by the constant steps of ix + 1 and iy + 1 (modulo 2**32)
+    base = _lattice(ix.astype(np.int64), iy.astype(np.int64), seed)
+    a = _avalanche(base)
+    b = _avalanche(base + np.uint32(374761393))
+    c = _avalanche(base + np.uint32(668265263))
+    d = _avalanche(base + np.uint32(374761393 + 668265263))
     return (a * (1 - sx) + b * sx) * (1 - sy) + (c * (1 - sx) + d * sx) * sy
 
 

@@ -2,6 +2,6 @@
 
 import sys
 
-from gausslite.cli import main
+from gausslite.cli import run_as_program
 
-sys.exit(main(["serve", "agent", *sys.argv[1:]]))
+run_as_program(["serve", "agent", *sys.argv[1:]])

@@ -1,7 +1,6 @@
 """``python -m gausslite_services.fusion_server [--host H] [--port P] [--data-dir D] [--port-file F] ...``."""
 
-import sys
-
+from gausslite.cli import run_as_program
 from gausslite_services.fusion_server.server import main
 
-sys.exit(main())
+run_as_program(program=main)

@@ -80,6 +80,68 @@ def test_deterministic_bytes(scene_dir: Path, tmp_path: Path) -> None:
     assert c["agent_a/results/frame000000.jpg"] != a["agent_a/results/frame000000.jpg"]
 
 
+def test_robots_rendered_in_processes_write_the_same_bytes_as_in_threads(scene_dir: Path, tmp_path: Path,
+                                                                        monkeypatch) -> None:
+    """Above ``PROCESS_PIXELS`` each robot renders in a Python process of its own; the files are the threads' byte for
+    byte (each robot's noise stream is its own), with sensor noise too, and the progress bar counts every frame."""
+    import gausslite.synthetic.writer as writer
+
+    threads_noisy = tmp_path / "threads_noisy"
+    make_scene(threads_noisy, seed=SEED, width=W, height=H, frames=N, progress=False, sensor_noise="realistic")
+    counted = []
+    real_tqdm = writer.tqdm
+
+    def counting_tqdm(*a, **k):
+        bar = real_tqdm(*a, **k)
+        update = bar.update
+        bar.update = lambda n=1: (counted.append(n), update(n))[1]
+        return bar
+
+    monkeypatch.setattr(writer, "PROCESS_PIXELS", 1)
+    monkeypatch.setattr(writer, "tqdm", counting_tqdm)
+    if (writer.os.cpu_count() or 1) < 2:
+        monkeypatch.setattr(writer.os, "cpu_count", lambda: 2)
+    calls = []
+    real = writer._render_in_processes
+    monkeypatch.setattr(writer, "_render_in_processes", lambda jobs, bar: calls.append(len(jobs)) or real(jobs, bar))
+    summary = make_scene(tmp_path / "procs", seed=SEED, width=W, height=H, frames=N, progress=False)
+    assert calls == [2] and sum(counted) == 2 * N
+    assert _files(tmp_path / "procs") == _files(scene_dir)
+    assert summary["roi_fraction"] == _read_json(scene_dir / "scene.json")["roi_fraction_mean"]
+    make_scene(tmp_path / "procs_noisy", seed=SEED, width=W, height=H, frames=N, progress=False,
+               sensor_noise="realistic")
+    assert calls == [2, 2] and _files(tmp_path / "procs_noisy") == _files(threads_noisy)
+
+
+def test_a_failed_rendering_process_is_an_error_naming_the_robot(tmp_path: Path, monkeypatch) -> None:
+    import gausslite.synthetic.writer as writer
+
+    job = (str(tmp_path / "x"), "agent_a", SEED, N, "no_such_trajectory", default_intrinsics(W, H), "none", 30.0)
+    with pytest.raises(RuntimeError, match=r"rendering agent_a failed \(exit 1\).*no_such_trajectory"):
+        writer._render_in_processes([job], writer.tqdm(disable=True))
+
+
+def test_the_texture_hash_is_the_64_bit_formula_modulo_2_32() -> None:
+    """hash2 in uint32 arithmetic equals its 64-bit statement (every product and sum taken modulo 2**32), for
+    negative and large lattice coordinates alike."""
+    from gausslite.synthetic.textures import hash2
+
+    def hash64(ix, iy, seed):
+        x = (ix.astype(np.int64) * 374761393 + iy.astype(np.int64) * 668265263
+             + (seed % 1000003) * 1442695041) & 0xFFFFFFFF
+        x = ((x ^ (x >> 13)) * 1274126177) & 0xFFFFFFFF
+        x = ((x ^ (x >> 16)) * 2246822519) & 0xFFFFFFFF
+        return (x ^ (x >> 15)).astype(np.float64) / 4294967296.0
+
+    rng = np.random.default_rng(0)
+    for seed in (0, 7, 7919 * 3 + 11, 123456789):
+        ix = np.concatenate([rng.integers(-2**30, 2**30, 20000), [-2**30, -1, 0, 1, 2**30 - 1]])
+        iy = np.concatenate([rng.integers(-2**30, 2**30, 20000), [2**30 - 1, 0, -1, 1, -2**30]])
+        h = hash2(ix, iy, seed)
+        assert h.dtype == np.float64 and np.array_equal(h, hash64(ix, iy, seed))
+        assert h.min() >= 0.0 and h.max() < 1.0
+
+
 def test_one_robot_is_written_as_it_is_in_the_two_robot_scene(scene_dir: Path, tmp_path: Path) -> None:
     """``agents`` writes only the named robots, each byte for byte as in the two-robot scene (its own noise stream
     and trajectory), with the same scene files apart from the robots ``scene.json`` lists; a bad name is refused."""
