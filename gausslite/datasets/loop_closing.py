@@ -38,6 +38,9 @@ class LoopClosing:
         self.odometry = odometry
         self.queue: "queue.Queue" = queue.Queue()
         self.thread: Optional[threading.Thread] = None
+        #: the keyframes' depth clouds, each made once for every search that registers to it (pruned to the loop
+        #: keyframes' thinned clouds in :meth:`commit`, under the lock; used by one search at a time)
+        self.clouds = DepthClouds(odometry.config.depth_max_m)
 
     def close_loops(self, kf) -> int:
         """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.datasets.pose_graph`)
@@ -76,9 +79,8 @@ class LoopClosing:
         odo = self.odometry
         cfg = odo.config.loop
         added = []
-        clouds = DepthClouds(odo.config.depth_max_m)
         for target, init, bound_m, bound_deg in cands:
-            got = verify_registration(odo, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, clouds)
+            got = verify_registration(odo, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, self.clouds)
             d = None if got is None else np.linalg.inv(init) @ got[0]
             if d is None or float(np.linalg.norm(d[:3, 3])) > bound_m or rotation_angle_deg(d) > bound_deg:
                 continue
@@ -89,6 +91,7 @@ class LoopClosing:
         """Add the verified loop edges ``added`` of ``kf`` (``tried`` candidates) to the pose graph and optimise it;
         the keyframes move when the optimisation holds (under the lock). Returns the loops accepted."""
         odo = self.odometry
+        self.clouds.keep([k.frame for k in odo.loop_keyframes.values()], odo.config.loop.icp_voxel_m)
         g = odo.graph
         g.n_loop_tried += tried
         g.n_loop_rejected += tried - len(added)

@@ -64,7 +64,8 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 log = logging.getLogger(__name__)
 
 __all__ = ["LoopConfig", "RelocConfig", "LoopEdge", "KeyframeGraph", "verify_registration", "relocalise",
-           "thumbnail", "open3d_module", "loop_information", "DepthClouds", "least_pinned_direction"]
+           "thumbnail", "open3d_module", "loop_information", "DepthClouds", "least_pinned_direction",
+           "icp_information"]
 
 
 def open3d_module():
@@ -317,7 +318,8 @@ def thumbnail(rgb: np.ndarray) -> np.ndarray:
 class DepthClouds:
     """Open3D point clouds (camera frame, metres, with normals) of frames' depth up to ``depth_max`` metres, each made
     once: one search (a keyframe's loop candidates, a lost frame's re-localisation) registers the same frame to
-    several keyframes. Keyed by the frame object, so it lives only as long as that search."""
+    several keyframes, and later searches register to the same keyframes again. Keyed by the frame object (a cloud
+    depends on the depth alone, not the pose); :meth:`keep` drops what later searches do not need."""
 
     def __init__(self, depth_max: float) -> None:
         self.depth_max = depth_max
@@ -344,6 +346,12 @@ class DepthClouds:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.1, max_nn=30))
         self._made[key] = (frame, pcd)
         return pcd
+
+    def keep(self, frames, voxel_m: Optional[float]) -> None:
+        """Keep only the clouds of ``frames`` thinned to ``voxel_m`` (a cache that outlives one search holds what
+        later searches register to: the keyframes' thinned clouds, tens of kilobytes each, not the full ones)."""
+        ids = {id(f) for f in frames}
+        self._made = {k: v for k, v in self._made.items() if k[0] in ids and k[1] == voxel_m}
 
 
 def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness: float, cfg: LoopConfig,
@@ -400,7 +408,7 @@ def _verify_icp(odo, frame, target, init: np.ndarray, min_fitness: float, cfg: L
     (``icp_levels_m``), keeps ``min_fitness`` of the frame's points as inliers within ``icp_distance_m`` at an inlier
     RMSE of at most ``icp_max_rmse_m``, and the same ICP from the other side (the keyframe's cloud onto the frame's,
     from the inverse of the result, at the finer half of the levels) lands on the same pose within ``agree_m`` and
-    ``agree_deg``. Returns what :func:`verify_registration` does; the information is Open3D's of the two clouds."""
+    ``agree_deg``. Returns what :func:`verify_registration` does; the information is :func:`icp_information`'s."""
     reg = open3d_module().pipelines.registration
     clouds = clouds or DepthClouds(odo.config.depth_max_m)
     src, tgt = clouds.of(frame, cfg.icp_voxel_m), clouds.of(target.frame, cfg.icp_voxel_m)
@@ -413,8 +421,24 @@ def _verify_icp(odo, frame, target, init: np.ndarray, min_fitness: float, cfg: L
     back = _icp(tgt, src, np.linalg.inv(T), cfg.icp_levels_m[len(cfg.icp_levels_m) // 2:], cfg)
     if not _agree(T @ back, np.eye(4), cfg) or not _in_basin(src, tgt, T, fit.correspondence_set, cfg):
         return None
-    info = reg.get_information_matrix_from_point_clouds(src, tgt, cfg.icp_distance_m, T)
-    return T, np.asarray(info), float(fit.fitness), float(fit.inlier_rmse)
+    return T, icp_information(tgt, fit.correspondence_set), float(fit.fitness), float(fit.inlier_rmse)
+
+
+def icp_information(tgt, correspondences) -> np.ndarray:
+    """The (6, 6) float64 information of a registration from its inlier pairs, as Open3D's
+    ``get_information_matrix_from_point_clouds`` gives it (Choi, Zhou, Koltun, CVPR 2015): ``Σ GᵢᵀGᵢ`` over the
+    inliers' target points ``t``, ``G = [[t]ₓᵀ | I₃]`` (rotation first), from the correspondences an evaluation at the
+    same distance and pose already found instead of a second nearest-neighbour search.
+
+    Args:
+        tgt: the target Open3D cloud. correspondences: (M, 2) int (source, target) inlier indices.
+    """
+    t = np.asarray(tgt.points)[np.asarray(correspondences, np.int64).reshape(-1, 2)[:, 1]]
+    G = np.zeros((len(t), 3, 6))
+    x, y, z = t[:, 0], t[:, 1], t[:, 2]
+    G[:, 0, 1], G[:, 0, 2], G[:, 1, 0], G[:, 1, 2], G[:, 2, 0], G[:, 2, 1] = z, -y, -z, x, y, -x
+    G[:, 0, 3] = G[:, 1, 4] = G[:, 2, 5] = 1.0
+    return np.einsum("nki,nkj->ij", G, G)
 
 
 def least_pinned_direction(tgt, correspondences) -> Tuple[float, np.ndarray]:

@@ -95,8 +95,8 @@ def _dump_json(path: Path, data: dict) -> None:
 
 
 def _write_agent(out: Path, agent: str, poses: np.ndarray, scene, intr: Intrinsics, by_id: dict,
-                 advance: Callable[[int], object], noise: Optional[SensorErrorModel], rng: Optional[np.random.Generator],
-                 fps: float):
+                 advance: Callable[[int], object], noise: Optional[SensorErrorModel],
+                 rng: Optional[np.random.Generator], fps: float):
     """Render and write one agent's frames and ``traj.txt``, calling ``advance(1)`` after each frame; returns ``(roi
     fraction sum, frames with ROI)``, each task id -> float / int, over the written depth."""
     res_dir = out / agent / "results"

@@ -128,6 +128,51 @@ def test_a_loop_is_registered_from_an_estimate_centimetres_off(frames):
     assert got[1].shape == (6, 6) and got[2] >= cfg.min_fitness and 0.0 <= got[3] <= cfg.icp_max_rmse_m
 
 
+def test_a_loops_information_is_open3ds_from_the_inliers_already_found(frames):
+    """icp_information gives what Open3D's get_information_matrix_from_point_clouds does, from the correspondences of
+    an evaluation at the same distance and pose (no second nearest-neighbour search)."""
+    from gausslite.datasets.pose_graph import DepthClouds, icp_information, open3d_module
+
+    reg = open3d_module().pipelines.registration
+    clouds = DepthClouds(4.0)
+    src, tgt = clouds.of(frames[5], 0.02), clouds.of(frames[3], 0.02)
+    T = np.linalg.inv(frames[3].c2w) @ frames[5].c2w
+    fit = reg.evaluate_registration(src, tgt, 0.05, T)
+    assert len(fit.correspondence_set) > 100
+    want = np.asarray(reg.get_information_matrix_from_point_clouds(src, tgt, 0.05, T))
+    got = icp_information(tgt, fit.correspondence_set)
+    assert got.shape == (6, 6) and np.allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+
+
+def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyframes_thinned_clouds(frames,
+                                                                                                 monkeypatch):
+    """A keyframe's depth cloud is made once for every later loop search that registers to it; the cache holds the
+    loop keyframes' thinned clouds alone, and the poses are those of a search without it."""
+    from gausslite.datasets import pose_graph
+
+    made = []
+    real = pose_graph.DepthClouds.of
+
+    def counting(self, frame, voxel_m=None):
+        key = (id(frame), voxel_m)
+        if key not in self._made:
+            made.append((int(frame.frame_id), voxel_m))
+        return real(self, frame, voxel_m)
+
+    cfg = OdometryConfig(loop=LoopConfig(min_gap=1, radius_m=2.0, max_angle_deg=180.0))
+    plain = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
+    plain_poses = [plain.track(f).c2w for f in frames]
+    monkeypatch.setattr(pose_graph.DepthClouds, "of", counting)
+    odo = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
+    poses = [odo.track(f).c2w for f in frames]
+    thinned = [m for m in made if m[1] == cfg.loop.icp_voxel_m]
+    assert odo.graph.n_loop_tried > len(odo.loop_keyframes) and len(thinned) == len(set(thinned))
+    kept = {k for k, _ in odo.loops.clouds._made}
+    assert kept <= {id(k.frame) for k in odo.loop_keyframes.values()}
+    assert {v for _, v in odo.loops.clouds._made} == {cfg.loop.icp_voxel_m}
+    assert all(np.array_equal(a, b) for a, b in zip(poses, plain_poses))
+
+
 def test_a_lost_frame_is_relocalised_when_the_camera_comes_back(frames):
     blank = dataclasses.replace(frames[8], depth=np.zeros_like(frames[8].depth))  # the camera covered
     stream = frames[:14] + [dataclasses.replace(blank, frame_id=100 + i) for i in range(3)]
