@@ -127,10 +127,10 @@ def _move_gaussians(means: torch.Tensor, quats: torch.Tensor, c2w: torch.Tensor,
     return moved, quat_mul(qM, quats)
 
 
-def _axial(A: torch.Tensor) -> torch.Tensor:
+def _axial(A: np.ndarray) -> np.ndarray:
     """(3,) ``(A[1,2] − A[2,1], A[2,0] − A[0,2], A[0,1] − A[1,0])`` of a (3, 3) ``A``: for ``A = Σ_i a_i b_iᵀ`` it is
     ``Σ_i a_i × b_i``."""
-    return torch.stack([A[1, 2] - A[2, 1], A[2, 0] - A[0, 2], A[0, 1] - A[1, 0]])
+    return np.array([A[1, 2] - A[2, 1], A[2, 0] - A[0, 2], A[0, 1] - A[1, 0]])
 
 
 class _PoseDeltaAtZero(torch.autograd.Function):
@@ -151,21 +151,24 @@ class _PoseDeltaAtZero(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_means, g_quats):
         means, quats, c2w = ctx.saved_tensors
-        Rc, tc = c2w[:3, :3].to(torch.float64), c2w[:3, 3].to(torch.float64)
-        d_u = torch.zeros(3, dtype=torch.float64, device=c2w.device)
-        d_v = torch.zeros(3, dtype=torch.float64, device=c2w.device)
+        # the (N, ·) products in torch, the (3,)-sized rest in NumPy float64 (a few microseconds, where each of about
+        # twenty small torch operations cost several)
+        pose = c2w.detach().cpu().to(torch.float64).numpy()
+        Rc, tc = pose[:3, :3], pose[:3, 3]
+        d_u, d_v = np.zeros(3), np.zeros(3)
         if g_means is not None:
             # Σ g × (μ − tc) = Σ g × μ − (Σ g) × tc, with Σ g × μ the axial vector of A − Aᵀ, A = Σ g μᵀ (3, 3):
             # one (3, N) @ (N, 3) product in the map's dtype instead of N cross products
-            A = (g_means.T @ means).to(torch.float64)
-            g_sum = g_means.sum(0, dtype=torch.float64)
-            d_u = d_u + _axial(A) - torch.linalg.cross(g_sum, tc)
+            A = (g_means.T @ means).cpu().to(torch.float64).numpy()
+            g_sum = g_means.sum(0, dtype=torch.float64).cpu().numpy()
+            d_u = d_u + _axial(A) - np.cross(g_sum, tc)
             d_v = -(Rc.T @ g_sum)
         if g_quats is not None:
-            B = (quats.T @ g_quats).to(torch.float64)  # B[i, j] = Σ q_i g_j, (w, x, y, z)
+            B = (quats.T @ g_quats).cpu().to(torch.float64).numpy()  # B[i, j] = Σ q_i g_j, (w, x, y, z)
             # Σ (g_w q_v − q_w g_v − q_v × g_v) / 2, with Σ q_v × g_v the axial vector of B[1:, 1:]
             d_u = d_u + 0.5 * (B[1:, 0] - B[0, 1:] - _axial(B[1:, 1:]))
-        d_xi = torch.cat([Rc.T @ d_u, d_v]) if ctx.needs_input_grad[3] else None
+        d_xi = (torch.from_numpy(np.concatenate([Rc.T @ d_u, d_v])).to(c2w.device)
+                if ctx.needs_input_grad[3] else None)
         return (g_means if ctx.needs_input_grad[0] else None, g_quats if ctx.needs_input_grad[1] else None,
                 None, d_xi)
 
