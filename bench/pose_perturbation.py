@@ -1,7 +1,8 @@
 """Robustness to pose error: how much of GaussLite's ROI gain over uniform mapping survives SLAM-like poses?
 
     python -m bench.pose_perturbation [--mode live|offline] [--scenes synthetic_circle,synthetic_walk]
-                                      [--levels exact,1cm_0.5deg,3cm_1.5deg] [--seeds 3] [--modes uniform,gausslite]
+                                      [--levels exact,1cm_0.5deg,3cm_1.5deg[,odometry]] [--seeds 3]
+                                      [--modes uniform,gausslite]
                                       [--refine off,on] [--withhold-every K] [--track-iters 20] [--set KEY=VALUE ...]
                                       [--out FILE] [--resume|--fresh] [--max-runs N] [--allow-failed]
                                       live: [--budget 0.5]; offline: [--frames 40] [--jobs 2]
@@ -22,6 +23,10 @@ the perturbed poses. The scenes (:data:`LIVE_SCENES`) are ``bench.realtime``'s a
   frames at 320×240 and 30 Hz (10 s), agent_a, task ``synth-pick-object``, cap 6,000;
 - ``synthetic_walk``: the room along ``make-scene --trajectory walk`` (525 frames at 320×240 and 30 Hz: a 7 m
   hand-held walk, two loops in front of the desk, 17.5 s), agent_a, same task and cap.
+
+The live level ``odometry`` leaves the given poses aside: the robot tracks itself with its own RGB-D odometry
+(``agent.pose_source: odometry``, from the first frame's pose, exact at every level), the runtime withholds the frames
+(tracked, not mapped), and the map is scored at the odometry's estimates (its pose error is the odometry's).
 
 Every 10th frame is withheld by default (``bench.realtime``'s ``novel`` protocol). The missions are wall-clock
 measurements: they run one at a time in this process, each map scored right after its mission ended, and nothing else
@@ -132,6 +137,9 @@ LIVE_SCENES = {
 #: how the benchmark maps: live agent missions under a keyframe budget, or offline at fixed iterations
 RUN_MODES = ("live", "offline")
 LEVELS = tuple(POSE_ERROR_LEVELS)
+#: the live level whose robot tracks itself (``agent.pose_source: odometry``, from the first frame's pose, which every
+#: level keeps exact): its map's given poses are the odometry's estimates, its withheld frames tracked but not mapped
+ODOMETRY = "odometry"
 MODES = ("uniform", "gausslite")
 #: the fields that name a run (a job or its result)
 RUN_KEYS = ("scene", "level", "refine", "mode", "seed")
@@ -313,11 +321,16 @@ def live_job(job: dict) -> dict:
     ``mapper.pose.track_iters``, then ``job["overrides"]``."""
     refine = ["mapper.pose.refine=true", f"mapper.pose.track_iters={job['track_iters']}"] if job["refine"] else []
     spec = LIVE_SCENES[job["scene"]]
+    if job["level"] == ODOMETRY:
+        # the runtime withholds the frames itself, so that its odometry still tracks them in order, unmapped
+        source = ["agent.pose_source=odometry", f"agent.scoring.novel_every={job['withhold_every']}",
+                  "agent.scoring.protocols=[sensor,novel]"]
+    else:  # the bench withholds the frames itself (training_frames): the agent's replay streams every other one
+        source = ["agent.scoring.protocols=[sensor]"]
     return {"scene": job["scene"], "spec": {"kind": "synthetic"}, "path": job["path"], "task": spec["task"],
             "mode": job["mode"], "budget": job["budget"], "run": job["seed"], "cap": spec["cap"], "clock": "scaled",
-            "novel_every": job["withhold_every"], "pose_source": "given",
-            # the bench withholds the frames itself (training_frames): the agent's replay streams every other one
-            "overrides": ["agent.scoring.protocols=[sensor]", *refine, *job["overrides"]]}
+            "novel_every": job["withhold_every"], "pose_source": "odometry" if job["level"] == ODOMETRY else "given",
+            "overrides": [*source, *refine, *job["overrides"]]}
 
 
 def live_one(job: dict) -> dict:
@@ -339,16 +352,19 @@ def live_one(job: dict) -> dict:
     mjob = live_job(job)
     rate = realtime.REFERENCE_BUDGET_S / job["budget"]
     poses: dict = {}
+    odometry = job["level"] == ODOMETRY
 
     def relevance(ds, ann, task):
-        """The task's ground-truth ROI from the true poses; the frames' poses perturbed (kept in ``poses``)."""
-        est = perturb_trajectory(np.stack([ds[i].c2w for i in range(len(ds))]), job["level"], seed=job["seed"])
+        """The task's ground-truth ROI from the true poses; the frames' poses perturbed (kept in ``poses``; the true
+        ones for the odometry, which reads only the first)."""
+        true = np.stack([ds[i].c2w for i in range(len(ds))])
+        est = true if odometry else perturb_trajectory(true, job["level"], seed=job["seed"])
         poses["given"] = {int(ds[i].frame_id): est[i] for i in range(len(ds))}
         poses["view"] = EstimatedPoses(ds, poses["given"])
         return poses["view"].roi_fn(ann, task.id)
 
     ds, ann, task, rt, _ = start_mission(mjob, rate, relevance=relevance)
-    train = training_frames(mjob, poses["view"])
+    train = poses["view"] if odometry else training_frames(mjob, poses["view"])
     t0 = time.perf_counter()
     try:
         rt.replay(train).join()
@@ -370,8 +386,15 @@ def live_one(job: dict) -> dict:
         rt.close()
     mapper = rt.mapper
     frames = ScaledFrames(ds, factor) if factor != 1 else ds  # scored at the resolution the mission mapped at
-    run = MappedSequence(mapper, [frames[i] for i in range(len(frames))], poses["given"],
-                         sorted(int(s.frame_id) for s in mapper.stats), novel_ids(mjob, ds) or [], ann, wall)
+    frames, given, held = [frames[i] for i in range(len(frames))], poses["given"], novel_ids(mjob, ds) or []
+    if odometry:  # the map's poses are the odometry's; a frame it lost has none and is not scored
+        given = {int(k): np.asarray(v, np.float64) for k, v in rt.estimated_poses.items()}
+        frames, held = [f for f in frames if int(f.frame_id) in given], [i for i in held if i in given]
+        live["frames_estimated"] = len(given)
+    mapped = sorted(int(s.frame_id) for s in mapper.stats)
+    if set(mapped) & set(held):
+        raise ValueError(f"withheld frames {sorted(set(mapped) & set(held))[:5]} were mapped: not novel")
+    run = MappedSequence(mapper, frames, given, mapped, held, ann, wall)
     if not failed(live):
         return {**figures(job, run, task.id), **live}
     try:  # what is left of a failed mission's map, for the record: it is never averaged
@@ -538,7 +561,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="live: live agent missions under a keyframe budget, as bench.realtime runs them (default); "
                          "offline: a sparse sequence mapped at fixed iterations per frame, no time budget")
     ap.add_argument("--scenes", default=",".join(SCENES), help="comma list of " + ", ".join(SCENES))
-    ap.add_argument("--levels", default=",".join(LEVELS), help="comma list of pose error levels ('exact', '<x>cm_<y>deg')")
+    ap.add_argument("--levels", default=",".join(LEVELS),
+                    help=f"comma list of pose error levels ('exact', '<x>cm_<y>deg'; live also '{ODOMETRY}': the "
+                         "robot tracks itself with its RGB-D odometry instead of using the given poses)")
     ap.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--refine", default="off,on", help="pose refinement variants: off, on or off,on (default)")
@@ -638,6 +663,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         ap.error("--max-runs must be >= 1")
     if live and args.jobs not in (None, 1):
         ap.error("--jobs: live missions are wall-clock measurements and run one at a time")
+    if not live and ODOMETRY in levels:
+        ap.error(f"--levels {ODOMETRY}: the robot's own odometry runs in live missions only")
     args.jobs = args.jobs or 2
     if args.withhold_every is None:
         args.withhold_every = NOVEL_EVERY if live else 5

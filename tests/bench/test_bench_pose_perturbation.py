@@ -221,6 +221,44 @@ def test_live_mode_runs_missions_at_perturbed_poses_and_records_a_failed_one(tmp
     assert res["failed_runs"] == [] and res["summary"]["synthetic_circle"]["refine_off"]["3cm_1.5deg"]["seeds"] == [0]
 
 
+def test_the_odometry_level_maps_and_scores_at_the_robots_own_estimates(tmp_path, monkeypatch):
+    """``--levels odometry``: the mission tracks itself (``agent.pose_source: odometry``), the runtime withholds every
+    k-th frame (tracked, not mapped), and the map is scored at the odometry's estimates: its pose error is the
+    odometry's against the truth, and the withheld frames are rendered where the robot believes it is."""
+    import json
+
+    import bench.pose_perturbation as pp
+    from gausslite.mapping.mapper import Mapper
+
+    from gausslite.datasets.subset import withheld_indices
+
+    # the robots' arcs at a hand-held pace (every frame tracks), 14 frames at 96x72
+    monkeypatch.setitem(pp.LIVE_SCENES, "synthetic_circle", {**pp.LIVE_SCENES["synthetic_circle"], "trajectory": "arcs",
+                                                             "frames": 14, "width": 96, "height": 72, "cap": 300})
+    real = Mapper.map_frame
+    mapped = {}
+
+    def spy(self, frame, *args, **kwargs):
+        mapped[int(frame.frame_id)] = np.asarray(frame.c2w).copy()
+        return real(self, frame, *args, **kwargs)
+
+    monkeypatch.setattr(Mapper, "map_frame", spy)
+    out = tmp_path / "odo.json"
+    assert pp.main(["--scenes", "synthetic_circle", "--levels", "odometry", "--seeds", "1", "--refine", "off",
+                    "--modes", "gausslite", "--budget", "0.1", "--withhold-every", "4",
+                    "--set", "mapper.seeding.seeds_per_frame=300", "--work", str(tmp_path / "work"),
+                    "--out", str(out)]) == 0
+    (r,) = json.loads(out.read_text())["runs"]
+    assert r["level"] == "odometry" and r["mission"]["pose_source"] == "odometry" and r["end_state"] == "FINISHED"
+    held = {int(i) for i in withheld_indices(14, 4)}  # frame ids are the indices here
+    assert r["frames_estimated"] == 14 and r["frames_sent"] == 14 - len(held)  # all tracked, the withheld not mapped
+    assert r["n_withheld"] == len(held) > 0 and not set(mapped) & held and r["n_mapped"] == len(mapped)
+    assert 0.0 < r["pose_error"]["ate_m"] < 0.05  # the odometry's own error, not the truth's zero
+    assert set(r["roi_psnr_per_frame"]) <= {str(i) for i in held} and r["psnr"] > 5.0
+    with pytest.raises(SystemExit):  # offline maps at given poses only
+        pp.main(["--mode", "offline", "--levels", "odometry"])
+
+
 def test_live_mode_refuses_parallel_missions_and_unknown_scenes():
     import bench.pose_perturbation as pp
 
