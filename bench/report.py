@@ -1075,6 +1075,8 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "pose-perturbation-live": Region("bench/results/pose_perturbation_live.json", pose_perturbation_table),
     "pose-perturbation-live-walk": Region("bench/results/pose_perturbation_live_walk.json", pose_perturbation_table),
+    "pose-perturbation-live-odometry": Region("bench/results/pose_perturbation_live_odometry.json",
+                                              pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
     "throughput": Region("bench/results/throughput.json", throughput_table),
     "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),

@@ -146,7 +146,15 @@ class LoopClosing:
             return q.all_tasks_done.wait_for(lambda: q.unfinished_tasks == 0, timeout_s)
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop the loop-closing thread (keyframes still queued are not checked). Safe to call more than once."""
+        """Stop the loop-closing thread: keyframes still queued are dropped unchecked (the thread ends after the one
+        it is checking, instead of working through a backlog after the odometry is closed, where the interpreter's
+        exit would stop it inside Open3D and abort the process). Safe to call more than once."""
         if self.thread is not None and self.thread.is_alive():
+            while True:
+                try:
+                    self.queue.get_nowait()
+                except queue.Empty:
+                    break
+                self.queue.task_done()
             self.queue.put(None)
             self.thread.join(timeout_s)

@@ -208,6 +208,30 @@ def test_frames_follow_their_anchor_keyframe_when_the_graph_moves_it(frames):
     assert moved.keys() == new.keys()
 
 
+def test_stopping_the_loop_thread_drops_its_backlog_and_ends_it():
+    """stop() ends the loop-closing thread after the keyframe it is checking: a backlog of queued keyframes is
+    dropped unchecked (a thread still inside Open3D when the interpreter exits aborts the process)."""
+    import time
+    from types import SimpleNamespace
+
+    from gausslite.datasets.loop_closing import LoopClosing
+
+    loops = LoopClosing(SimpleNamespace(config=OdometryConfig(), lock=threading.Lock()))
+    checked = []
+    loops.candidates = lambda kf: []
+    loops.verify = lambda kf, cands: (time.sleep(0.2), checked.append(kf))[1] or []
+    loops.commit = lambda kf, added, tried: 0
+    for k in range(50):
+        loops.later(k)
+    while not checked:
+        time.sleep(0.01)
+    t0 = time.perf_counter()
+    loops.stop(timeout_s=5.0)
+    assert not loops.thread.is_alive() and time.perf_counter() - t0 < 2.0
+    assert 1 <= len(checked) <= 3 and loops.queue.unfinished_tasks == 0
+    loops.stop()  # again: a no-op
+
+
 def test_thumbnails_match_the_same_view_best(frames):
     th = [thumbnail(f.rgb) for f in frames]
     sims = np.array([[a @ b for b in th] for a in th])
