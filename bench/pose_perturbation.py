@@ -103,7 +103,7 @@ from bench._missions import (FAILED_MARK, add_allow_failed, exit_code, failed, f
                              mission_outcome, succeeded)
 from bench.realtime import scenes as realtime
 from bench.realtime.missions import mission_settings, start_mission
-from bench.realtime.protocol import novel_ids, training_frames
+from bench.realtime.protocol import check_withheld, novel_ids, training_frames
 from bench._results import write_results
 from bench.long_mission import load_partial
 from gausslite.config import load_mapper_config
@@ -392,8 +392,7 @@ def live_one(job: dict) -> dict:
         frames, held = [f for f in frames if int(f.frame_id) in given], [i for i in held if i in given]
         live["frames_estimated"] = len(given)
     mapped = sorted(int(s.frame_id) for s in mapper.stats)
-    if set(mapped) & set(held):
-        raise ValueError(f"withheld frames {sorted(set(mapped) & set(held))[:5]} were mapped: not novel")
+    check_withheld(held, mapped, mapper.roi_views.frame_ids)
     run = MappedSequence(mapper, frames, given, mapped, held, ann, wall)
     if not failed(live):
         return {**figures(job, run, task.id), **live}
