@@ -19,7 +19,12 @@ from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger("gausslite.datasets.odometry")  # one logger for the odometry
 
-__all__ = ["LoopClosing"]
+__all__ = ["LoopClosing", "CLOUDS_KEPT"]
+
+#: keyframe depth clouds the loop search keeps between searches, the most recently used (about 0.5 MB each at the
+#: tracking size: a mission's keyframes alone would hold hundreds of megabytes); a search's candidates are the
+#: keyframes near the new one, so the next searches register to the same few again
+CLOUDS_KEPT = 32
 
 
 class LoopClosing:
@@ -38,8 +43,8 @@ class LoopClosing:
         self.odometry = odometry
         self.queue: "queue.Queue" = queue.Queue()
         self.thread: Optional[threading.Thread] = None
-        #: the keyframes' depth clouds, each made once for every search that registers to it (pruned to the loop
-        #: keyframes' thinned clouds in :meth:`commit`, under the lock; used by one search at a time)
+        #: the keyframes' depth clouds, each made once for the searches that register to it (pruned in :meth:`commit`,
+        #: under the lock, to the :data:`CLOUDS_KEPT` thinned clouds of loop keyframes used last; one search at a time)
         self.clouds = DepthClouds(odometry.config.depth_max_m)
 
     def close_loops(self, kf) -> int:
@@ -91,7 +96,7 @@ class LoopClosing:
         """Add the verified loop edges ``added`` of ``kf`` (``tried`` candidates) to the pose graph and optimise it;
         the keyframes move when the optimisation holds (under the lock). Returns the loops accepted."""
         odo = self.odometry
-        self.clouds.keep([k.frame for k in odo.loop_keyframes.values()], odo.config.loop.icp_voxel_m)
+        self.clouds.keep([k.frame for k in odo.loop_keyframes.values()], odo.config.loop.icp_voxel_m, CLOUDS_KEPT)
         g = odo.graph
         g.n_loop_tried += tried
         g.n_loop_rejected += tried - len(added)

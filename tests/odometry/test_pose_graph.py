@@ -174,6 +174,22 @@ def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyf
     assert all(np.array_equal(a, b) for a, b in zip(poses, plain_poses))
 
 
+def test_the_cloud_cache_keeps_the_thinned_clouds_used_last(frames):
+    """keep(frames, voxel, limit) holds the thinned clouds of those frames alone, at most ``limit``, the most
+    recently used; a kept cloud is the same object on the next use."""
+    from gausslite.datasets.pose_graph import DepthClouds
+
+    clouds = DepthClouds(4.0)
+    made = [clouds.of(f, 0.04) for f in frames[:3]]
+    assert clouds.of(frames[0], 0.04) is made[0]  # used again: now the most recent
+    clouds.keep(frames[:3], 0.04, limit=2)
+    assert {k for k, _ in clouds._made} == {id(frames[0]), id(frames[2])}
+    assert {v for _, v in clouds._made} == {0.04}  # the full clouds are gone
+    assert clouds.of(frames[2], 0.04) is made[2] and clouds.of(frames[1], 0.04) is not made[1]
+    clouds.keep(frames[1:2], 0.04)
+    assert [k for k, _ in clouds._made] == [id(frames[1])]
+
+
 def test_a_lost_frame_is_relocalised_when_the_camera_comes_back(frames):
     blank = dataclasses.replace(frames[8], depth=np.zeros_like(frames[8].depth))  # the camera covered
     stream = frames[:14] + [dataclasses.replace(blank, frame_id=100 + i) for i in range(3)]
