@@ -1,4 +1,5 @@
-"""Adam on selected rows of a parameter, in one Warp launch (CPU, float32): the ROI phase's masked step.
+"""The map's Adam (:class:`Adam`), and Adam on selected rows of a parameter in one Warp launch (CPU, float32): the
+ROI phase's masked step.
 
 :meth:`GaussianModel.step(update=...) <gausslite.mapping.model.GaussianModel.step>` updates only the rows of the
 active Gaussians (paper Sec. III-D.1). In torch that step is about ten small ops per parameter tensor (gathers of
@@ -9,11 +10,19 @@ Ba 2015; no weight decay, no amsgrad):
 
     m ← m + (1 − β₁)(g − m),  v ← β₂ v + (1 − β₂) g²,  p ← p − lr / (1 − β₁ᵗ) · m / (√v / √(1 − β₂ᵗ) + ε).
 
-:meth:`GaussianModel._masked_adam_torch <gausslite.mapping.model.GaussianModel._masked_adam_torch>` is the torch
-reference; they agree to float32 rounding (tests/mapping/test_model_step.py).
+:func:`adam_torch_` is the torch reference; they agree to float32 rounding, and both with ``torch.optim.Adam``
+(tests/mapping/test_model_step.py).
+
+:class:`Adam` is the optimiser of :class:`~gausslite.mapping.model.GaussianModel` in place of ``torch.optim.Adam``: the
+same update and the same state layout (``param_groups``, ``state[p]`` with ``step``, ``exp_avg``, ``exp_avg_sq``), a
+full step taken by the same kernel over every row. ``torch.optim`` is not imported: its first optimiser imports
+``torch._dynamo``, about a second of every mapping process's start (a robot's mission, each service of the
+simulation, every CLI call that maps).
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 import warp as wp
@@ -74,4 +83,78 @@ def masked_adam_(param: torch.Tensor, grad: torch.Tensor, exp_avg: torch.Tensor,
                 (1.0 - b2 ** step) ** 0.5, float(eps), p2, m2, v2])
 
 
-__all__ = ["fused_available", "masked_adam_", "masked_adam_kernel"]
+@torch.no_grad()
+def adam_torch_(param: torch.Tensor, state: dict, rows: Optional[torch.Tensor], lr: float, b1: float, b2: float,
+                eps: float, step: int) -> None:
+    """:func:`masked_adam_`'s update by torch ops, on any device and dtype: step ``step`` (1-based, already counted
+    in ``state``) of ``param`` (N, ...) in place, its gradient ``param.grad`` and its moments ``state["exp_avg"]`` /
+    ``state["exp_avg_sq"]`` (tensors of its shape), on ``rows`` (K,) int64 distinct rows, or every row when None.
+    The reference of the Warp kernel."""
+    if rows is None:
+        m = state["exp_avg"].lerp_(param.grad, 1.0 - b1)
+        v = state["exp_avg_sq"].mul_(b2).addcmul_(param.grad, param.grad, value=1.0 - b2)
+        param.addcdiv_(m, (v.sqrt() / ((1.0 - b2 ** step) ** 0.5)).add_(eps), value=-lr / (1.0 - b1 ** step))
+        return
+    g = param.grad.index_select(0, rows)
+    m = state["exp_avg"].index_select(0, rows).lerp_(g, 1.0 - b1)
+    v = state["exp_avg_sq"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
+    state["exp_avg"].index_copy_(0, rows, m)
+    state["exp_avg_sq"].index_copy_(0, rows, v)
+    denom = (v.sqrt() / ((1.0 - b2 ** step) ** 0.5)).add_(eps)
+    param.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** step))
+
+
+class Adam:
+    """Adam (Kingma & Ba 2015; no weight decay, no amsgrad) over parameter groups, with ``torch.optim.Adam``'s
+    update and state layout (module docstring).
+
+    Args:
+        groups: ``[{"params": [tensor, ...], "lr": float, ...}]``; other keys (a group's ``name``) are kept.
+        betas: (β₁, β₂); eps: ε (added to the bias-corrected √v).
+    Attributes:
+        param_groups: the groups, each with ``lr``, ``betas`` and ``eps``; a group's ``lr`` may be changed between
+            steps (:meth:`GaussianModel.set_lr_scale <gausslite.mapping.model.GaussianModel.set_lr_scale>`).
+        state: parameter → ``{"step": () float32 tensor, "exp_avg", "exp_avg_sq"}``, made at its first step.
+    """
+
+    def __init__(self, groups: list, betas: tuple = (0.9, 0.999), eps: float = 1e-8) -> None:
+        self.param_groups = [{**g, "params": list(g["params"]), "betas": tuple(betas), "eps": float(eps)}
+                             for g in groups]
+        self.state: dict = {}
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Clear every parameter's gradient (None, or zeros when ``set_to_none`` is False)."""
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is not None:
+                    if set_to_none:
+                        p.grad = None
+                    else:
+                        p.grad.zero_()
+
+    @torch.no_grad()
+    def step(self, rows: Optional[torch.Tensor] = None, fused: bool = True) -> None:
+        """One step of every parameter that has a gradient, on ``rows`` (K,) int64 distinct rows of each (every row
+        when None); the step count advances as in a full step. Contiguous CPU float32 parameters take one Warp
+        launch each (:func:`masked_adam_`; not with ``fused`` False), any other one :func:`adam_torch_`."""
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            lr, eps = float(group["lr"]), float(group["eps"])
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state.get(p)
+                if not st:
+                    st = self.state[p] = {"step": torch.zeros((), dtype=torch.float32),
+                                          "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+                                          "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
+                st["step"] += 1
+                t = int(st["step"])
+                if fused and all(fused_available(x) for x in (p, p.grad, st["exp_avg"], st["exp_avg_sq"])):
+                    r = rows if rows is not None else torch.arange(len(p), dtype=torch.int64)
+                    masked_adam_(p.data, p.grad, st["exp_avg"], st["exp_avg_sq"], r, lr, b1, b2, eps, t)
+                else:
+                    adam_torch_(p, st, rows, lr, b1, b2, eps, t)
+
+
+__all__ = ["Adam", "adam_torch_", "fused_available", "masked_adam_", "masked_adam_kernel"]

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from gausslite.gaussians import GaussianMap
-from gausslite.mapping.adam import fused_available, masked_adam_
+from gausslite.mapping.adam import Adam
 from gausslite.mapping.config import LearningRates
 from gausslite.mapping.poses import quat_mul, quat_of_rotvec
 
@@ -45,14 +45,15 @@ class GaussianModel:
             original, clones, split daughters) keeps the parent's anchor; new seeds take ``set_map``'s
             ``new_anchor``. :meth:`Mapper.apply_pose_corrections
             <gausslite.mapping.mapper.Mapper.apply_pose_corrections>` moves the rows of a keyframe whose pose changed.
-        optimizer: ``torch.optim.Adam`` with one parameter group per field.
+        optimizer: :class:`~gausslite.mapping.adam.Adam` (``torch.optim.Adam``'s update) with one parameter group
+            per field.
     """
 
     def __init__(self, lr: LearningRates, device: str | torch.device = "cpu") -> None:
         self.lr = lr
         self.device = torch.device(device)
         self.params: dict[str, torch.nn.Parameter] = {}
-        self.optimizer: Optional[torch.optim.Adam] = None
+        self.optimizer: Optional[Adam] = None
         self.ids = torch.zeros(0, dtype=torch.int64)
         self.anchors = torch.zeros(0, dtype=torch.int64)
         self._next_id = 0
@@ -97,7 +98,7 @@ class GaussianModel:
         self.active = gmap.active.to(self.device, torch.bool).clone()
         self.kappa = gmap.kappa.to(self.device, torch.int64).clone()
         groups = [{"params": [new_params[n]], "lr": getattr(self.lr, n), "name": n} for n in PARAM_NAMES]
-        opt = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        opt = Adam(groups, eps=1e-15)
         if parent_index is not None and old_state:
             pi = parent_index.to(self.device)
             # only the first child of a parent keeps its Adam moments; clones and further daughters start
@@ -246,43 +247,11 @@ class GaussianModel:
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
-    @torch.no_grad()
     def _masked_adam(self, rows: torch.Tensor, fused: bool = True) -> None:
-        """Adam (Kingma & Ba 2015, as ``torch.optim.Adam`` without weight decay or amsgrad) on ``rows``
-        (K,) int64 of every parameter that has a gradient; the step count advances as in a full step. A CPU
-        float32 parameter takes one Warp launch (:func:`gausslite.mapping.adam.masked_adam_`; not with
-        ``fused`` False), any other one the torch ops of :meth:`_masked_adam_torch`."""
-        opt = self.optimizer
-        for group in opt.param_groups:
-            b1, b2 = group["betas"]
-            lr, eps = float(group["lr"]), float(group["eps"])
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                st = opt.state[p]
-                if len(st) == 0:
-                    st["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
-                    st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                    st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                st["step"] += 1
-                t = float(st["step"])
-                if fused and all(fused_available(x) for x in (p, p.grad, st["exp_avg"], st["exp_avg_sq"])):
-                    masked_adam_(p.data, p.grad, st["exp_avg"], st["exp_avg_sq"], rows, lr, b1, b2, eps, int(t))
-                else:
-                    self._masked_adam_torch(p, st, rows, lr, b1, b2, eps, t)
-
-    @staticmethod
-    def _masked_adam_torch(p: torch.Tensor, st: dict, rows: torch.Tensor, lr: float, b1: float, b2: float,
-                           eps: float, t: float) -> None:
-        """:meth:`_masked_adam`'s update of parameter ``p`` (its Adam state ``st``, step ``t`` already counted)
-        on ``rows`` with torch ops: the reference of :func:`gausslite.mapping.adam.masked_adam_`."""
-        g = p.grad.index_select(0, rows)
-        m = st["exp_avg"].index_select(0, rows).lerp_(g, 1.0 - b1)
-        v = st["exp_avg_sq"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1.0 - b2)
-        st["exp_avg"].index_copy_(0, rows, m)
-        st["exp_avg_sq"].index_copy_(0, rows, v)
-        denom = (v.sqrt() / ((1.0 - b2 ** t) ** 0.5)).add_(eps)
-        p.index_add_(0, rows, m / denom, alpha=-lr / (1.0 - b1 ** t))
+        """Adam (as ``torch.optim.Adam``) on ``rows`` (K,) int64 of every parameter that has a gradient; the step
+        count advances as in a full step (:meth:`Adam.step <gausslite.mapping.adam.Adam.step>`: a Warp launch per
+        CPU float32 parameter, the torch ops of :func:`~gausslite.mapping.adam.adam_torch_` without ``fused``)."""
+        self.optimizer.step(rows, fused=fused)
 
 
 def quat_of_matrix(R: np.ndarray) -> torch.Tensor:
@@ -295,9 +264,9 @@ def quat_of_matrix(R: np.ndarray) -> torch.Tensor:
 
 
 def masked_step_reference(model: GaussianModel, update: torch.Tensor) -> None:
-    """Reference for :meth:`GaussianModel.step` with a mask: a full ``optimizer.step()`` on every row,
-    then the rows outside ``update`` (and their Adam moments, zero before the first step) restored.
-    Slow (copies every tensor twice); kept for the parity test."""
+    """Reference for :meth:`GaussianModel.step` with a mask: a full step on every row by torch ops
+    (:func:`~gausslite.mapping.adam.adam_torch_`), then the rows outside ``update`` (and their Adam moments, zero
+    before the first step) restored. Slow (copies every tensor twice); kept for the parity test."""
     opt = model.optimizer
     keep = ~update
     frozen = {}
@@ -305,7 +274,7 @@ def masked_step_reference(model: GaussianModel, update: torch.Tensor) -> None:
         st = opt.state.get(p) or {"exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
         frozen[name] = (p.detach()[keep].clone(),
                         {k: v[keep].clone() for k, v in st.items() if torch.is_tensor(v) and v.dim() > 0})
-    opt.step()
+    opt.step(fused=False)
     opt.zero_grad(set_to_none=True)
     with torch.no_grad():
         for name, (vals, st) in frozen.items():

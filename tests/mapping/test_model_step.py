@@ -229,3 +229,62 @@ def test_finetune_and_refine_reject_a_bad_final_lr():
             finetune_subset(g, [], 5, final_lr=bad)
         with pytest.raises(ValueError, match="final_lr"):
             refine_map(g, [], 5, final_lr=bad)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_the_maps_adam_is_torch_optim_adam(fused):
+    """The map's optimiser (a Warp launch per parameter, or its torch ops) against ``torch.optim.Adam`` with the
+    mapper's groups, learning rates and ε over 6 full steps, one learning-rate change between them: values and both
+    moments within float32 rounding, the same step count."""
+    from gausslite.mapping.adam import Adam
+
+    ours, ref = _model(300, 4), _model(300, 4)
+    groups = [{"params": [ref.params[n]], "lr": g["lr"]} for n, g in zip(ref.params, ours.optimizer.param_groups)]
+    torch_adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    assert isinstance(ours.optimizer, Adam)
+    for i in range(6):
+        if i == 3:
+            for a, b in zip(ours.optimizer.param_groups, torch_adam.param_groups):
+                a["lr"] = b["lr"] = 0.5 * b["lr"]
+        _grads(ours, 20 + i)
+        _grads(ref, 20 + i)
+        ours.optimizer.step(fused=fused)
+        torch_adam.step()
+        for name in ours.params:
+            torch.testing.assert_close(ours.params[name].detach(), ref.params[name].detach(), rtol=1e-5, atol=1e-7)
+            sa, sb = ours.optimizer.state[ours.params[name]], torch_adam.state[ref.params[name]]
+            assert float(sa["step"]) == float(sb["step"]) == i + 1
+            for k in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(sa[k], sb[k], rtol=1e-5, atol=2e-10)
+        ours.optimizer.zero_grad()
+        torch_adam.zero_grad()
+    assert all(p.grad is None for p in ours.params.values())
+
+
+def test_mapping_does_not_import_torch_dynamo():
+    """A mapper's whole step runs without ``torch._dynamo``, which the first ``torch.optim`` optimiser imports (about
+    a second of every mapping process's start): checked in a fresh interpreter that maps two frames, and that an
+    optimiser of ``torch.optim`` does import it there (the check can fail)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from gausslite.mapping.config import MapperConfig\n"
+        "from gausslite.mapping.mapper import Mapper\n"
+        "from tests._scenes import plane_frame\n"
+        "m = Mapper(MapperConfig(iters_per_frame=6, warmup_iters=2, seeding={'seeds_per_frame': 200}))\n"
+        "roi = np.zeros((40, 56), bool); roi[10:26, 14:34] = True\n"
+        "for i in range(2): st = m.map_frame(plane_frame(i, 0.0, 40, 56), roi)\n"
+        "assert st.iters == 6 and len(m.model) > 0\n"
+        "print(sorted(k for k in sys.modules if k.startswith('torch._dynamo')))\n"
+        "import torch\n"
+        "torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))])\n"
+        "print('torch._dynamo' in sys.modules)\n")
+    root = str(Path(__file__).resolve().parents[2])
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True,
+                         cwd=root, env={**os.environ, "PYTHONPATH": root})
+    assert out.stdout.strip().splitlines()[-2:] == ["[]", "True"], out.stdout

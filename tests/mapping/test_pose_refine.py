@@ -85,14 +85,15 @@ def _cfg(**kw) -> MapperConfig:
     return cfg
 
 
-def _mapped_with_a_wrong_fourth_pose(cfg: MapperConfig):
-    """Frames 0–2 of the plane at their true poses, then frame 3 (true x 0.12 m) given 12 cm off along x."""
+def _mapped_with_a_wrong_fourth_pose(cfg: MapperConfig, offset: float = 0.12):
+    """Frames 0–2 of the plane at their true poses, then frame 3 (true x 0.12 m) given ``offset`` metres off along
+    x (+0.12: 16 cm beyond the last mapped frame, its given view partly off the map)."""
     m = Mapper(cfg)
     for i in range(3):
         m.map_frame(plane_frame(i, 0.04 * i, H, W))
     true_x = 0.12
     fr = plane_frame(3, true_x, H, W)
-    fr.c2w[0, 3] = true_x + 0.12
+    fr.c2w[0, 3] = true_x + offset
     m.map_frame(fr)
     return m, fr, true_x
 
@@ -158,9 +159,14 @@ def test_a_frame_between_keyframes_takes_the_interpolated_correction():
 
 def test_tracking_corrects_a_new_frame_before_it_is_seeded():
     """With pose_track_iters, frame 3's 12 cm pose error shrinks before its seeds are placed, so its
-    seeds land on the plane where the earlier frames put it (not 12 cm aside)."""
-    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(_cfg(pose={"track_iters": 40}, iters_per_frame=20, warmup_iters=15))
-    assert abs(m.pose_of(3, fr.c2w)[0, 3] - true_x) < 0.05
+    seeds land on the plane where the earlier frames put it (not 12 cm aside). The given pose lies 12 cm back, over
+    the mapped frames: tracked, frame 3 ends within 2 cm (0.04-0.13 cm measured, under three Adam roundings);
+    untracked, mapping's own refinement leaves 6.2 cm. (Given 12 cm ahead instead, its view partly off the map, the
+    tracked pose's acceptance check sits at its threshold: accepted or not by float rounding.)"""
+    m, fr, true_x = _mapped_with_a_wrong_fourth_pose(
+        _cfg(pose={"track_iters": 40}, iters_per_frame=20, warmup_iters=15), offset=-0.12)
+    assert m.stats[-1].track_accepted
+    assert abs(m.pose_of(3, fr.c2w)[0, 3] - true_x) < 0.02
 
 
 @pytest.mark.parametrize("init", ["inherit", "identity"])
