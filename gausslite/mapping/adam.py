@@ -13,11 +13,11 @@ Ba 2015; no weight decay, no amsgrad):
 :func:`adam_torch_` is the torch reference; they agree to float32 rounding, and both with ``torch.optim.Adam``
 (tests/mapping/test_model_step.py).
 
-:class:`Adam` is the optimiser of :class:`~gausslite.mapping.model.GaussianModel` in place of ``torch.optim.Adam``: the
-same update and the same state layout (``param_groups``, ``state[p]`` with ``step``, ``exp_avg``, ``exp_avg_sq``), a
-full step taken by the same kernel over every row. ``torch.optim`` is not imported: its first optimiser imports
-``torch._dynamo``, about a second of every mapping process's start (a robot's mission, each service of the
-simulation, every CLI call that maps).
+:class:`Adam` is the optimiser of :class:`~gausslite.mapping.model.GaussianModel` in place of ``torch.optim.Adam``:
+the same update, the same state layout (``param_groups``, ``state[p]`` with ``step``, ``exp_avg``, ``exp_avg_sq``)
+and, for a full step, the same fused kernel; a masked step is the Warp launch above. ``torch.optim``'s optimisers
+are not used: the first one a process makes imports ``torch._dynamo``, about a second of every mapping process's
+start (a robot's mission, each service of the simulation, every CLI call that maps).
 """
 
 from __future__ import annotations
@@ -135,8 +135,10 @@ class Adam:
     @torch.no_grad()
     def step(self, rows: Optional[torch.Tensor] = None, fused: bool = True) -> None:
         """One step of every parameter that has a gradient, on ``rows`` (K,) int64 distinct rows of each (every row
-        when None); the step count advances as in a full step. Contiguous CPU float32 parameters take one Warp
-        launch each (:func:`masked_adam_`; not with ``fused`` False), any other one :func:`adam_torch_`."""
+        when None); the step count advances as in a full step. Contiguous CPU float32 parameters take, with
+        ``fused``, torch's fused Adam kernel on every row (``torch._fused_adam_``, the one ``torch.optim.Adam(
+        fused=True)`` calls: vectorised, and the same rounding) or one Warp launch on selected rows
+        (:func:`masked_adam_`); any other parameter, or ``fused`` False, :func:`adam_torch_`."""
         for group in self.param_groups:
             b1, b2 = group["betas"]
             lr, eps = float(group["lr"]), float(group["eps"])
@@ -151,8 +153,12 @@ class Adam:
                 st["step"] += 1
                 t = int(st["step"])
                 if fused and all(fused_available(x) for x in (p, p.grad, st["exp_avg"], st["exp_avg_sq"])):
-                    r = rows if rows is not None else torch.arange(len(p), dtype=torch.int64)
-                    masked_adam_(p.data, p.grad, st["exp_avg"], st["exp_avg_sq"], r, lr, b1, b2, eps, t)
+                    if rows is None:  # the kernel torch.optim.Adam(fused=True) calls; it reads the counted step
+                        torch._fused_adam_([p.data], [p.grad], [st["exp_avg"]], [st["exp_avg_sq"]], [], [st["step"]],
+                                           lr=lr, beta1=b1, beta2=b2, weight_decay=0.0, eps=eps, amsgrad=False,
+                                           maximize=False)
+                    else:
+                        masked_adam_(p.data, p.grad, st["exp_avg"], st["exp_avg_sq"], rows, lr, b1, b2, eps, t)
                 else:
                     adam_torch_(p, st, rows, lr, b1, b2, eps, t)
 
