@@ -538,6 +538,13 @@ def sim_time_table(r: dict) -> str:
     return table(r) + "\n"
 
 
+def map_time_table(r: dict) -> str:
+    """``gausslite map``'s wall time and what its time budget bought, per tree (``bench/results/map_time.json``)."""
+    from bench.map_time import table  # lazy: the page's other regions need none of it
+
+    return table(r) + "\n"
+
+
 def sensor_calibration_table(r: dict) -> str:
     """Every statistic of TUM fr1/rpy against the synthetic walks' (``bench/results/sensor_calibration.json``)."""
     from bench.sensor_calibration import table  # lazy: the page's other regions need none of it
@@ -1081,6 +1088,7 @@ REGIONS: Dict[str, Region] = {
     "throughput": Region("bench/results/throughput.json", throughput_table),
     "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
+    "map-time": Region("bench/results/map_time.json", map_time_table),
     "sensor-calibration": Region("bench/results/sensor_calibration.json", sensor_calibration_table),
     "quality-split-axis": Region("bench/results/quality_split_axis.json", quality_per_iteration_table),
     "quality-per-iteration-1cddfb0": Region("bench/results/quality_per_iteration_1cddfb0.json",
