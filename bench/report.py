@@ -1099,6 +1099,7 @@ REGIONS: Dict[str, Region] = {
     "realtime-split-axis": Region("bench/results/realtime_split_axis.json", realtime_protocol_table),
     "realtime-region-05": Region("bench/results/realtime_region_05.json", realtime_protocol_table),
     "realtime-region-43a6a8d-15": Region("bench/results/realtime_region_43a6a8d_15.json", realtime_protocol_table),
+    "realtime-tum-05": Region("bench/results/realtime_tum_05.json", realtime_protocol_table),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
     "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),
