@@ -44,8 +44,9 @@ RESULTS = REPO / "bench" / "results" / "map_time.json"
 SCENE = ["--frames", "40", "--width", "640", "--height", "480", "--trajectory", "circle", "--sensor-noise",
          "realistic", "--agents", "agent_a"]
 QUICK_SCENE = ["--frames", "6", "--width", "64", "--height", "48", "--trajectory", "circle", "--agents", "agent_a"]
-#: what ``--quick`` adds to every map run (a few iterations on tiny frames)
-QUICK_SET = ["--iters", "3", "--set", "warmup_iters=1", "--seeds-per-frame", "150"]
+#: what ``--quick`` adds to every map run (fewer seeds on tiny frames), and to the fixed schedule's (a few iterations)
+QUICK_SET = ["--seeds-per-frame", "150"]
+QUICK_FIXED = ["--iters", "3", "--set", "warmup_iters=1"]
 #: the metrics.json figures a run keeps (None where the tree's map did not write one)
 METRICS = ("psnr", "roi_psnr", "heldout_psnr", "heldout_roi_psnr", "n_gaussians")
 
@@ -69,7 +70,9 @@ def map_command(dataset: Path, out: Path, job: str, downscale: float, budget_min
     cmd = [sys.executable, "-m", "gausslite.cli", "map", "--dataset", str(dataset), "--downscale", f"{downscale:g}",
            "--mode", "gausslite", "--withhold", str(withhold), "--no-progress", "--out", str(out),
            "--time-budget", "none" if job == "fixed" else f"{budget_min:g}"]
-    return cmd + (QUICK_SET if quick and job == "fixed" else ["--seeds-per-frame", "150"] if quick else [])
+    if quick:
+        cmd += QUICK_SET + (QUICK_FIXED if job == "fixed" else [])
+    return cmd
 
 
 def run_map(tree: Path, shim: Path, cmd: list[str], out: Path, timeout_s: float) -> dict:
@@ -150,12 +153,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds one run may take")
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} unless --quick)")
     args = ap.parse_args(argv)
-    from contextlib import nullcontext
-
     from tqdm import tqdm
 
     from bench._results import publish
-    from bench.throughput import git, worktree
+    from bench.sim_time import trees_and_shims
 
     budget = args.budget if args.budget is not None else (0.25 if args.quick else 1.0)
     downscale = 1.0 if args.quick and args.dataset is None else args.downscale
@@ -163,15 +164,10 @@ def main(argv=None) -> dict:
     t_start = time.perf_counter()
     runs: list[dict] = []
     jobs = ["fixed", "budget"]
-    with (worktree(args.against) if args.against else nullcontext()) as other, \
-            tempfile.TemporaryDirectory(prefix="gausslite-map-time-") as tmp:
-        trees = {"this": REPO} if other is None else {"this": REPO, "that": other[0]}
-        shims = {t: Path(tmp) / f"shim_{t}" for t in trees}
-        for s in shims.values():
-            s.mkdir()
+    with trees_and_shims(args.against, "gausslite-map-time-") as (trees, shims, tmp, info):
         plan = [(t, j) for _ in range(args.rounds) for j in jobs for t in trees]
         for k, (t, j) in enumerate(tqdm(plan, desc="bench.map_time", unit="run")):
-            out = Path(tmp) / f"map_{k}_{t}_{j}"
+            out = tmp / f"map_{k}_{t}_{j}"
             cmd = map_command(dataset, out, j, downscale, budget, args.withhold, args.quick)
             res = {"tree": t, "job": j, **run_map(trees[t], shims[t], cmd, out, args.timeout)}
             runs.append(res)
@@ -183,11 +179,9 @@ def main(argv=None) -> dict:
                            "downscale": downscale, "budget_min": budget, "withhold": args.withhold,
                            "command": map_command(Path("DATASET"), Path("OUT"), "fixed", downscale, budget,
                                                   args.withhold, args.quick)[1:]},
-              "trees": {"this": {"commit": git("rev-parse", "HEAD")}} | (
-                  {} if other is None else {"that": {"ref": args.against, "commit": other[1]}}),
-              "runs": runs, "summary": summary, "wall_s": time.perf_counter() - t_start}
+              "trees": info, "runs": runs, "summary": summary, "wall_s": time.perf_counter() - t_start}
     fixed = {t: summary[t]["fixed"]["wall_s"] for t in trees}
-    if other is not None and fixed["this"] and fixed["that"]:
+    if "that" in trees and fixed["this"] and fixed["that"]:
         result["ratio"] = fixed["that"] / fixed["this"]
     publish(args.out if args.out is not None else (None if args.quick else RESULTS), "map_time", argv, table(result),
             result)

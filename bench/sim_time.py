@@ -33,8 +33,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results" / "sim_time.json"
@@ -52,6 +53,25 @@ def tree_env(tree: Path, shim: Path) -> dict:
     if not link.exists():
         link.symlink_to(Path(tree).resolve() / "services", target_is_directory=True)
     return dict(os.environ, PYTHONPATH=f"{Path(tree).resolve()}{os.pathsep}{shim}")
+
+
+@contextmanager
+def trees_and_shims(against: Optional[str], prefix: str) -> Iterator[tuple[dict, dict, Path, dict]]:
+    """This tree and, with ``against``, a git worktree of that commit (:func:`bench.throughput.worktree`), each with a
+    shim folder for :func:`tree_env`, under a temporary folder. Yields ``(trees, shims, tmp, info)``: ``"this"`` /
+    ``"that"`` → tree root, → shim folder, the temporary folder the runs write under, and the result's ``trees``
+    block (each tree's commit, and the ref asked for)."""
+    from bench.throughput import git, worktree
+
+    with (worktree(against) if against else nullcontext()) as other, \
+            tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+        trees = {"this": REPO} if other is None else {"this": REPO, "that": other[0]}
+        shims = {t: Path(tmp) / f"shim_{t}" for t in trees}
+        for s in shims.values():
+            s.mkdir()
+        info = {"this": {"commit": git("rev-parse", "HEAD")}} | (
+            {} if other is None else {"that": {"ref": against, "commit": other[1]}})
+        yield trees, shims, Path(tmp), info
 
 
 def run_sim(tree: Path, out: Path, overrides: list, timeout_s: float, shim: Path) -> dict:
@@ -122,27 +142,19 @@ def main(argv=None) -> dict:
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds one sim may take")
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} unless --quick)")
     args = ap.parse_args(argv)
-    from contextlib import nullcontext
-
     from tqdm import tqdm
 
     from bench._results import publish
-    from bench.throughput import git, worktree
 
     overrides = QUICK_SET if args.quick else []
     t_start = time.perf_counter()
     runs: list[dict] = []
-    with (worktree(args.against) if args.against else nullcontext()) as other, \
-            tempfile.TemporaryDirectory(prefix="gausslite-sim-time-") as tmp:
-        trees = {"this": REPO} if other is None else {"this": REPO, "that": other[0]}
-        shims = {t: Path(tmp) / f"shim_{t}" for t in trees}
-        for s in shims.values():
-            s.mkdir()
+    with trees_and_shims(args.against, "gausslite-sim-time-") as (trees, shims, tmp, info):
         # twice per tree, the faster kept: the first import of a tree reads its files cold
         imports = {t: min(import_seconds(trees[t], shims[t]) for _ in range(2)) for t in trees}
         jobs = [t for _ in range(args.rounds) for t in trees]
         for k, t in enumerate(tqdm(jobs, desc="bench.sim_time", unit="sim")):
-            out = Path(tmp) / f"sim_{k}_{t}"
+            out = tmp / f"sim_{k}_{t}"
             res = run_sim(trees[t], out, overrides, args.timeout, shims[t])
             res["tree"] = t
             runs.append(res)
@@ -150,10 +162,8 @@ def main(argv=None) -> dict:
     summary = {t: {"wall_s": _median([r["wall_s"] for r in runs if r["tree"] == t and r["returncode"] == 0]) or
                    float("nan"), "import_s": imports[t]} for t in trees}
     result = {"settings": {"quick": args.quick, "rounds": args.rounds, "overrides": overrides},
-              "trees": {"this": {"commit": git("rev-parse", "HEAD")}} | (
-                  {} if other is None else {"that": {"ref": args.against, "commit": other[1]}}),
-              "runs": runs, "summary": summary, "wall_s": time.perf_counter() - t_start}
-    if other is not None:
+              "trees": info, "runs": runs, "summary": summary, "wall_s": time.perf_counter() - t_start}
+    if "that" in trees:
         result["ratio"] = summary["that"]["wall_s"] / summary["this"]["wall_s"]
     md = table(result)
     publish(args.out if args.out is not None else (None if args.quick else RESULTS), "sim_time", argv, md, result)
