@@ -233,24 +233,35 @@ def test_finetune_and_refine_reject_a_bad_final_lr():
 
 @pytest.mark.parametrize("fused", [True, False])
 def test_the_maps_adam_is_torch_optim_adam(fused):
-    """The map's optimiser (a Warp launch per parameter, or its torch ops) against ``torch.optim.Adam`` with the
-    mapper's groups, learning rates and ε over 6 full steps, one learning-rate change between them: values and both
-    moments within float32 rounding, the same step count."""
+    """The map's optimiser (torch's fused kernel, or its torch ops) against ``torch.optim.Adam`` with the mapper's
+    groups, learning rates and ε over 6 full steps, one learning-rate change between them: values and both moments
+    within float32 rounding of its foreach update, the same step count; the fused step equal bit for bit to
+    ``torch.optim.Adam(fused=True)``, the mapper's optimiser before (so a map's arithmetic did not change)."""
     from gausslite.mapping.adam import Adam
 
-    ours, ref = _model(300, 4), _model(300, 4)
-    groups = [{"params": [ref.params[n]], "lr": g["lr"]} for n, g in zip(ref.params, ours.optimizer.param_groups)]
-    torch_adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    ours, ref, ref_fused = _model(300, 4), _model(300, 4), _model(300, 4)
+
+    def torch_adam_of(model, **kw):
+        return torch.optim.Adam([{"params": [model.params[n]], "lr": g["lr"]}
+                                 for n, g in zip(model.params, ours.optimizer.param_groups)], lr=0.0, eps=1e-15, **kw)
+
+    torch_adam, torch_fused = torch_adam_of(ref), torch_adam_of(ref_fused, fused=True)
     assert isinstance(ours.optimizer, Adam)
     for i in range(6):
         if i == 3:
-            for a, b in zip(ours.optimizer.param_groups, torch_adam.param_groups):
-                a["lr"] = b["lr"] = 0.5 * b["lr"]
-        _grads(ours, 20 + i)
-        _grads(ref, 20 + i)
+            for a, b, c in zip(ours.optimizer.param_groups, torch_adam.param_groups, torch_fused.param_groups):
+                a["lr"] = b["lr"] = c["lr"] = 0.5 * b["lr"]
+        for m in (ours, ref, ref_fused):
+            _grads(m, 20 + i)
         ours.optimizer.step(fused=fused)
         torch_adam.step()
+        torch_fused.step()
         for name in ours.params:
+            if fused:
+                assert torch.equal(ours.params[name], ref_fused.params[name])
+                for k in ("exp_avg", "exp_avg_sq"):
+                    assert torch.equal(ours.optimizer.state[ours.params[name]][k],
+                                       torch_fused.state[ref_fused.params[name]][k])
             torch.testing.assert_close(ours.params[name].detach(), ref.params[name].detach(), rtol=1e-5, atol=1e-7)
             sa, sb = ours.optimizer.state[ours.params[name]], torch_adam.state[ref.params[name]]
             assert float(sa["step"]) == float(sb["step"]) == i + 1
@@ -258,6 +269,7 @@ def test_the_maps_adam_is_torch_optim_adam(fused):
                 torch.testing.assert_close(sa[k], sb[k], rtol=1e-5, atol=2e-10)
         ours.optimizer.zero_grad()
         torch_adam.zero_grad()
+        torch_fused.zero_grad()
     assert all(p.grad is None for p in ours.params.values())
 
 
