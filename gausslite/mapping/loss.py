@@ -6,7 +6,7 @@ from typing import Optional
 
 import torch
 
-from gausslite.fused_ssim import ssim_mean
+from gausslite.fused_ssim import FusedPhotometric, fused_ssim_available, ssim_mean
 from gausslite.mapping.views import Keyframe
 from gausslite.metrics import ssim_gt_stats, ssim_map
 from gausslite.render import RenderOutput
@@ -35,14 +35,17 @@ def photometric_loss(
         kf: the keyframe (ground truth).
         mask: (H, W) bool pixels the terms are restricted to (ROI ∩ footprint in the active phase),
             None = full image. The depth term also requires valid ground-truth depth.
-        reference: SSIM by the slow reference path (:func:`gausslite.metrics.ssim_map`), no cached
-            ground-truth statistics (``MapperConfig.performance.reference_paths``); otherwise
-            :func:`gausslite.fused_ssim.ssim_mean` (fused native SSIM on CPU, 20 -> 4 ms forward and
-            backward at 300x170).
+        reference: the terms as torch expressions, SSIM by the slow reference path
+            (:func:`gausslite.metrics.ssim_map`), no cached ground-truth statistics
+            (``MapperConfig.performance.reference_paths``). Otherwise, for a CPU float32 render, the three terms
+            in one native pass without an autograd graph (:class:`gausslite.fused_ssim.FusedPhotometric`; the
+            same values to float32 rounding); elsewhere the torch terms with :func:`gausslite.fused_ssim.ssim_mean`.
     Returns:
         scalar tensor (0 with a zero-gradient graph when the mask is empty). With a mask and λ_s = 0
         SSIM is not computed.
     """
+    if not reference and _fused(out, kf):
+        return _fused_loss(out, kf, lambda_depth, lambda_ssim, mask)
     valid_d = kf.depth > 0
     if mask is None:
         l1c = (out.color - kf.rgb).abs().mean()
@@ -67,6 +70,27 @@ def photometric_loss(
     # torch.where, not a product: a NaN of an invalid pixel stays out of the sum
     l1d = (torch.where(dmask, (out.depth - kf.depth).abs(), 0.0).sum() / n_d if bool(n_d > 0)
            else out.depth.sum() * 0.0)
+    return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
+
+
+def _fused(out: RenderOutput, kf: Keyframe) -> bool:
+    """Whether :func:`photometric_loss` takes the fused path: CPU float32 render and ground truth of one size."""
+    return (fused_ssim_available(out.color) and out.depth.dtype == torch.float32 and out.depth.device.type == "cpu"
+            and tuple(kf.rgb.shape) == tuple(out.color.shape) and tuple(kf.depth.shape) == tuple(out.depth.shape))
+
+
+def _fused_loss(out: RenderOutput, kf: Keyframe, lambda_depth: float, lambda_ssim: float,
+                mask: Optional[torch.Tensor]) -> torch.Tensor:
+    """:func:`photometric_loss` by :class:`~gausslite.fused_ssim.FusedPhotometric` (same terms and masks)."""
+    weight = None
+    if mask is not None:
+        n = int(mask.sum())
+        if n == 0:
+            return out.color.sum() * 0.0
+        weight = mask.to(torch.float32) / n
+    with_ssim = bool(lambda_ssim)  # λ_s = 0: the term is 0 whatever SSIM is
+    mu, var = _gt_ssim_stats(kf, out.color.dtype) if with_ssim else (kf.rgb, kf.rgb)
+    l1c, l1d, s = FusedPhotometric.apply(out.color, out.depth, kf.rgb, kf.depth, mu, var, weight, with_ssim)
     return l1c + lambda_depth * l1d + lambda_ssim * (1.0 - s)
 
 
