@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
+from . import native_binning as nb
 from . import warp_kernels as wk
 from .launch import launch_cpu
 
@@ -106,8 +107,12 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     banded = int(tile_rows is not None)
     t_rows = (tile_rows.to(torch.int32).contiguous() if banded else torch.zeros(1, 2, dtype=torch.int32))
     wk.ensure_loaded("cpu")
-    launch_cpu(wk.bin_count_kernel, 1, [uv, rad, dep, tile_size, tiles_x, tiles_y, f32, t_rows, banded, keys, rows,
-                                        n_rows, tile_start, tile_end])
+    wk.ensure_module_loaded(nb.__name__, "cpu")
+    is64 = 1 - f32
+    ptr = torch.Tensor.data_ptr
+    launch_cpu(nb.bin_count_native_kernel, 1, [ptr(uv), ptr(rad), ptr(dep), is64, M, tile_size, tiles_x, tiles_y,
+                                               ptr(t_rows), banded, ptr(keys), ptr(rows), ptr(n_rows),
+                                               ptr(tile_start), ptr(tile_end)])
     n = int(n_rows[0])
     n_isect = int(tile_end[-1])
     gids = torch.empty(n_isect, dtype=torch.int32)
@@ -119,8 +124,9 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     nstripes = max(1, min(int(num_threads), tiles_y))
 
     def scatter(s):
-        launch_cpu(wk.bin_scatter_kernel, 1,
-                   [uv, rad, rows, n, tile_size, tiles_x, tiles_y, f32, t_rows, banded, s, nstripes, cursor, gids])
+        launch_cpu(nb.bin_scatter_native_kernel, 1,
+                   [ptr(uv), ptr(rad), ptr(rows), n, is64, tile_size, tiles_x, tiles_y, ptr(t_rows), banded, s,
+                    nstripes, ptr(cursor), ptr(gids)])
 
     wk.run_parallel([lambda s=s: scatter(s) for s in range(nstripes)])
     return TileBins(gids, tile_start, tile_end, tiles_x, tiles_y)

@@ -95,3 +95,27 @@ def test_several_views_in_one_pass_equal_one_pass_per_view():
     assert not torch.equal(masks[0], masks[5])
     with pytest.raises(ValueError, match="heights"):
         frustum_cull_masks(params[0], params[2], vms, Ks, 64, heights[:2])
+
+
+def test_the_native_cull_equals_the_warp_kernel_it_replaced():
+    """frustum_cull_native_kernel gives the Warp kernel's masks (its reference) for several views, with a count that is
+    neither a multiple of the eight-Gaussian blocks nor of a thread's chunk."""
+    from gausslite.render import warp_kernels as wk
+    from gausslite.render.culling import CULL_CHUNK, _planes, frustum_cull_masks
+    from gausslite.render.launch import launch_cpu
+
+    n = 2 * CULL_CHUNK + 13
+    params = _scene(5, n=n)
+    vms, Ks = [], []
+    for b in range(3):
+        c2w = torch.eye(4, dtype=torch.float64)
+        c2w[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.1 * b, 0.3, -0.2]).as_matrix())
+        c2w[:3, 3] = torch.tensor([0.1, 0.05 * b, -0.2], dtype=torch.float64)
+        vms.append(torch.linalg.inv(c2w))
+        Ks.append(torch.tensor([[50.0, 0, 31.5], [0, 50.0, 23.5 - 16 * b], [0, 0, 1]]))
+    got = frustum_cull_masks(params[0], params[2], vms, Ks, 64, [16, 16, 16], pad=0.2)
+    wk.ensure_loaded("cpu")
+    ref = torch.empty(3, n, dtype=torch.uint8)
+    launch_cpu(wk.frustum_cull_kernel, n, [params[0].contiguous(), params[2].contiguous(),
+                                          _planes(vms, Ks, 64, [16, 16, 16], 0.01, 1e4, 0.2), 3.0, ref])
+    assert 0 < int(ref.sum()) < ref.numel() and torch.equal(got, ref.view(torch.bool))
