@@ -21,6 +21,7 @@ import os
 import torch
 import warp as wp
 
+from . import native_pack as pk
 from . import simd_kernels as sk
 from . import simd_projection as sp
 from . import warp_kernels as wk
@@ -96,7 +97,8 @@ def _pixel_grad(g, HW: int, cols: int, dev) -> torch.Tensor:
 
 
 def _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit: bool = False) -> torch.Tensor:
-    """(M, 16) float32 ``gdata`` rows (layout in :mod:`warp_kernels`), built by one Warp launch.
+    """(M, 16) float32 ``gdata`` rows (layout in :mod:`warp_kernels`), built by one launch (on CPU the native loop of
+    :mod:`~gausslite.render.native_pack`, elsewhere the Warp kernel).
 
     ``opacities`` are post-sigmoid opacities, or logits (sigmoid applied in the kernel) if
     ``opacity_is_logit``."""
@@ -112,7 +114,10 @@ def _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit: bo
         wdev = _wp_device(dev)
         wk.ensure_loaded(wdev)
         if dev.type == "cpu":
-            launch_cpu(wk.pack_gdata_kernel, M, ins + [int(bool(opacity_is_logit)), gdata])
+            wk.ensure_module_loaded(pk.__name__, "cpu")
+            launch_cpu(pk.pack_gdata_native_kernel, -(-M // pk.CHUNK),
+                       [t.data_ptr() for t in ins] + [int(ins[0].dtype == torch.float64), int(bool(opacity_is_logit)),
+                                                      M, gdata.data_ptr()])
         else:
             wp.launch(wk.pack_gdata_kernel, dim=M,
                       inputs=[wp.from_torch(t) for t in ins] + [int(bool(opacity_is_logit))],
@@ -123,7 +128,7 @@ def _pack_gdata(means2d, conics, opacities, colors, depths, opacity_is_logit: bo
 def _unpack_grads(bufs: torch.Tensor, opacities: torch.Tensor, opacity_is_logit: bool, dtypes):
     """Sum the (S, M, 10) float32 per-thread gradient buffers into the gradients of (means2d,
     conics, opacities, colors, depths), each in its input dtype (opacity gradient w.r.t. the logits
-    if ``opacity_is_logit``)."""
+    if ``opacity_is_logit``): one launch (on CPU the native loop of :mod:`~gausslite.render.native_pack`)."""
     M = bufs.shape[1]
     dev = bufs.device
     shapes = ((M, 2), (M, 3), (M,), (M, 3), (M,))
@@ -135,7 +140,11 @@ def _unpack_grads(bufs: torch.Tensor, opacities: torch.Tensor, opacity_is_logit:
         wk.ensure_loaded(wdev)
         ops = opacities.detach().contiguous()
         if dev.type == "cpu":
-            launch_cpu(wk.unpack_grads_kernel, M, [bufs, ops, int(bool(opacity_is_logit))] + outs)
+            wk.ensure_module_loaded(pk.__name__, "cpu")
+            bufs = bufs.contiguous()
+            launch_cpu(pk.unpack_grads_native_kernel, -(-M // pk.CHUNK),
+                       [bufs.data_ptr(), bufs.shape[0], M, ops.data_ptr(), int(dt == torch.float64),
+                        int(bool(opacity_is_logit))] + [t.data_ptr() for t in outs])
         else:
             wp.launch(wk.unpack_grads_kernel, dim=M, inputs=[wp.from_torch(bufs), wp.from_torch(ops),
                                                              int(bool(opacity_is_logit))],

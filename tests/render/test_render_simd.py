@@ -108,3 +108,37 @@ def _child_render(seed):
     params, _ = make_scene(seed=seed, n=100, dtype=torch.float32)
     with torch.no_grad():
         return rasterize(*params, K=K, width=W, height=H, c2w=C2W, num_threads=2).color.numpy()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("logit", [False, True])
+def test_native_pack_and_unpack_equal_the_warp_kernels(dtype, logit):
+    """The native gdata packing and gradient unpacking (gausslite.render.native_pack) give the Warp kernels' rows and
+    gradients bit for bit: several chunks of rows, degenerate conics (not positive definite), opacities near 0."""
+    from gausslite.render import native_pack as pk
+    from gausslite.render import warp_kernels as wk
+    from gausslite.render.autograd import _pack_gdata, _unpack_grads
+    from gausslite.render.launch import launch_cpu
+
+    m = 2 * pk.CHUNK + 77
+    g = torch.Generator().manual_seed(int(logit) + 2 * (dtype == torch.float64))
+    means2d = (torch.rand(m, 2, generator=g, dtype=torch.float64) * 300 - 10).to(dtype)
+    conics = (torch.rand(m, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 1.0, 2.0])
+              - torch.tensor([0.1, 0.5, 0.1])).to(dtype)  # some not positive definite
+    ops = (torch.randn(m, generator=g, dtype=torch.float64) * 4 if logit
+           else torch.rand(m, generator=g, dtype=torch.float64)).to(dtype)
+    ops[:5] = 0.0 if not logit else -80.0
+    colors = torch.rand(m, 3, generator=g, dtype=torch.float64).to(dtype)
+    depths = (torch.rand(m, generator=g, dtype=torch.float64) * 5 + 0.1).to(dtype)
+    wk.ensure_loaded("cpu")
+    ref = torch.empty(m, 16, dtype=torch.float32)
+    launch_cpu(wk.pack_gdata_kernel, m, [means2d, conics, ops, colors, depths, int(logit), ref])
+    got = _pack_gdata(means2d, conics, ops, colors, depths, opacity_is_logit=logit)
+    assert torch.equal(got.view(torch.int32), ref.view(torch.int32))
+    assert (ref[:, 15] == 1e38).any() and (ref[:, 15] < 1e38).any()
+    bufs = torch.randn(3, m, 10, generator=g, dtype=torch.float64).to(torch.float32)
+    outs = [torch.empty(s, dtype=dtype) for s in ((m, 2), (m, 3), (m,), (m, 3), (m,))]
+    launch_cpu(wk.unpack_grads_kernel, m, [bufs, ops, int(logit)] + outs)
+    got = _unpack_grads(bufs, ops, logit, (dtype,) * 5)
+    for a, b in zip(got, outs):
+        assert a.dtype == dtype and torch.equal(a, b)
