@@ -7,11 +7,11 @@ front-to-back (Kerbl et al. 2023, ``duplicateWithKeys`` + radix sort; gsplat ``i
 Both backends use this exact function, so their per-pixel Gaussian lists are identical.
 
 On CPU (float32/float64 ``means2d``) the same lists are built without materialising and sorting
-the keys: serial Warp kernels list the visible rows and count their tiles, Warp's stable radix
+the keys: a serial native loop lists the visible rows and counts their tiles, Warp's stable radix
 sort orders the visible rows by depth (ties stay in row order), and each row is appended to the
-tiles it covers in that order (:func:`gausslite.render.warp_kernels.bin_count_kernel` /
-``bin_scatter_kernel``). Elsewhere the vectorised torch version below is used; both give
-identical output.
+tiles it covers in that order (:mod:`gausslite.render.native_binning`; the Warp kernels
+:func:`gausslite.render.warp_kernels.bin_count_kernel` / ``bin_scatter_kernel`` are its reference).
+Elsewhere the vectorised torch version below is used; all give identical output.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def bin_gaussians(
 
 
 def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threads=1, tile_rows=None) -> TileBins:
-    """CPU binning with Warp kernels and Warp's stable radix sort (same output as
+    """CPU binning with the native count and scatter loops and Warp's stable radix sort (same output as
     :func:`_bin_torch`); no per-element torch ops. The scatter pass is split over
     ``num_threads`` stripes of tile rows run concurrently."""
     M = means2d.shape[0]

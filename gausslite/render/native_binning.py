@@ -10,7 +10,7 @@ equals the Warp kernels' float64 evaluation rounded back to float32.
 
 Why: the Warp kernels index their generic 2-D arrays through strides and evaluate in float64 with conversions; on the
 mapper's keyframe case (18k visible rows, 38k tile entries, three row bands) the count pass took 0.55 ms and the scatter
-pass 0.83 ms of binning's 1.7 ms (docs/mapper.md, "What makes fast fast").
+pass 0.83 ms of binning's 1.7 ms (docs/realtime.md, "Mapping throughput").
 """
 
 from __future__ import annotations
