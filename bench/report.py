@@ -1095,6 +1095,8 @@ REGIONS: Dict[str, Region] = {
                                             quality_per_iteration_table),
     "quality-per-iteration-e8c82ef": Region("bench/results/quality_per_iteration_e8c82ef.json",
                                             quality_per_iteration_table),
+    "quality-per-iteration-8615a4f": Region("bench/results/quality_per_iteration_8615a4f.json",
+                                            quality_per_iteration_table),
     "realtime-split-sample": Region("bench/results/realtime_split_sample.json", realtime_protocol_table),
     "realtime-split-axis": Region("bench/results/realtime_split_axis.json", realtime_protocol_table),
     "realtime-region-05": Region("bench/results/realtime_region_05.json", realtime_protocol_table),
