@@ -9,9 +9,8 @@ Both backends use this exact function, so their per-pixel Gaussian lists are ide
 On CPU (float32/float64 ``means2d``) the same lists are built without materialising and sorting
 the keys: a serial native loop lists the visible rows and counts their tiles, Warp's stable radix
 sort orders the visible rows by depth (ties stay in row order), and each row is appended to the
-tiles it covers in that order (:mod:`gausslite.render.native_binning`; the Warp kernels
-:func:`gausslite.render.warp_kernels.bin_count_kernel` / ``bin_scatter_kernel`` are its reference).
-Elsewhere the vectorised torch version below is used; all give identical output.
+tiles it covers in that order (:mod:`gausslite.render.native_binning`). Elsewhere the
+vectorised torch version below is used; both give identical output.
 """
 
 from __future__ import annotations
@@ -98,7 +97,6 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     rad = radii if radii.dtype == torch.int32 else radii.to(torch.int32)
     rad = rad.contiguous()
     dep = depths.detach().to(uv.dtype).contiguous()
-    f32 = int(uv.dtype == torch.float32)
     keys = torch.empty(2 * M, dtype=torch.float32)  # radix sort needs 2x storage
     rows = torch.empty(2 * M, dtype=torch.int32)
     n_rows = torch.empty(1, dtype=torch.int32)
@@ -106,9 +104,8 @@ def _bin_cpu_warp(means2d, radii, depths, tile_size, tiles_x, tiles_y, num_threa
     tile_end = torch.zeros(n_tiles, dtype=torch.int32)
     banded = int(tile_rows is not None)
     t_rows = (tile_rows.to(torch.int32).contiguous() if banded else torch.zeros(1, 2, dtype=torch.int32))
-    wk.ensure_loaded("cpu")
     wk.ensure_module_loaded(nb.__name__, "cpu")
-    is64 = 1 - f32
+    is64 = int(uv.dtype == torch.float64)
     ptr = torch.Tensor.data_ptr
     launch_cpu(nb.bin_count_native_kernel, 1, [ptr(uv), ptr(rad), ptr(dep), is64, M, tile_size, tiles_x, tiles_y,
                                                ptr(t_rows), banded, ptr(keys), ptr(rows), ptr(n_rows),

@@ -26,7 +26,7 @@ wp.set_module_options({"enable_backward": False})
 CULL_CHUNK = 2048
 
 # eight Gaussians at a time: their centres and radii, then each plane's signed distances as 8-lane loops (no FMA
-# contraction: the same float64 rounding as frustum_cull_kernel's separate products and sums)
+# contraction: each product and sum rounded on its own)
 _CULL = r"""
 #pragma clang fp contract(off)
 const float* M = (const float*)means;
@@ -67,9 +67,11 @@ def _cull_native(means: wp.uint64, log_scales: wp.uint64, planes: wp.uint64, nvi
 @wp.kernel
 def frustum_cull_native_kernel(means: wp.uint64, log_scales: wp.uint64, planes: wp.uint64, nviews: int,
                                sigmas: wp.float64, count: int, keep: wp.uint64):
-    """:func:`gausslite.render.warp_kernels.frustum_cull_kernel` (its reference, the same masks bit for bit) on
-    pointers to C-contiguous arrays, :data:`CULL_CHUNK` Gaussians per thread: ``means`` and ``log_scales`` (count, 3)
-    float32, ``planes`` (6 nviews, 4) float64, ``keep`` (nviews, count) uint8."""
+    """``keep[b, i] = 1`` unless Gaussian ``i``'s ``sigmas``-sphere lies wholly outside one of view ``b``'s six
+    planes, rows ``6 b … 6 b + 5`` of ``planes`` (``(n_x, n_y, n_z, d)`` in the world frame, unit normals pointing
+    inside: the signed distance ``n · μ + d`` must exceed ``−r``), in float64, on pointers to C-contiguous arrays,
+    :data:`CULL_CHUNK` Gaussians per thread: ``means`` and ``log_scales`` (count, 3) float32, ``planes``
+    (6 nviews, 4) float64, ``keep`` (nviews, count) uint8 (:func:`frustum_cull_masks`)."""
     s = wp.tid() * CULL_CHUNK
     _cull_native(means, log_scales, planes, nviews, sigmas, count, s, wp.min(s + CULL_CHUNK, count), keep)
 
@@ -91,10 +93,9 @@ def frustum_cull_mask(means: torch.Tensor, log_scales: torch.Tensor, viewmat: to
         outside the padded frustum or wholly nearer than ``near`` / farther than ``far``.
 
     On CPU with float32 parameters one native launch tests the six planes per Gaussian, eight Gaussians at a time
-    (:func:`frustum_cull_masks`, :func:`frustum_cull_native_kernel`; the Warp kernel
-    :func:`gausslite.render.warp_kernels.frustum_cull_kernel` it replaced was about 3× faster than the torch ops at
-    15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere :func:`frustum_cull_mask_torch`, the reference it is tested
-    against.
+    (:func:`frustum_cull_masks`, :func:`frustum_cull_native_kernel`; the one-launch Warp kernel it replaced was
+    about 3× faster than the torch ops at 15k Gaussians, 0.4 against 1.1–1.4 ms); elsewhere
+    :func:`frustum_cull_mask_torch`, the reference it is tested against.
     """
     return frustum_cull_masks(means, log_scales, [viewmat], [K], width, [height], near, far, pad, sigmas)[0]
 

@@ -1,16 +1,15 @@
 """Native CPU tile binning: the count and scatter passes of :func:`gausslite.render.binning.bin_gaussians` as plain C++
 loops (``wp.func_native``).
 
-Same algorithm, arithmetic and output as the Warp kernels :func:`~gausslite.render.warp_kernels.bin_count_kernel` and
-:func:`~gausslite.render.warp_kernels.bin_scatter_kernel`, which stay their reference
-(tests/render/test_render_binning.py: identical lists, counts, keys and rows, float32 and float64, banded or not, one or
-more stripes). A row's tile rectangle is ``floor((u -+ r) / ts)`` (and likewise in v) clamped to the grid, evaluated in
-the input dtype: each of ``u - r`` and ``(u - r) / ts`` is one correctly rounded operation, so float32 arithmetic here
-equals the Warp kernels' float64 evaluation rounded back to float32.
+The same tile lists as the torch binning :func:`~gausslite.render.binning._bin_torch`, their reference
+(tests/render/test_render_binning.py: identical lists and counts, float32 and float64, banded or not, one or more
+stripes). A row's tile rectangle is ``floor((u -+ r) / ts)`` (and likewise in v) clamped to the grid, evaluated in the
+input dtype, as the torch expression evaluates it.
 
-Why: the Warp kernels index their generic 2-D arrays through strides and evaluate in float64 with conversions; on the
-mapper's keyframe case (18k visible rows, 38k tile entries, three row bands) the count pass took 0.55 ms and the scatter
-pass 0.83 ms of binning's 1.7 ms (docs/realtime.md, "Mapping throughput").
+Why: the Warp kernels these loops replaced indexed generic 2-D arrays through strides and evaluated in float64 with
+conversions; on the mapper's keyframe case (18k visible rows, 38k tile entries, three row bands) their count pass took
+0.55 ms and their scatter pass 0.83 ms of binning's 1.7 ms, these 0.32 and 0.46 ms (docs/realtime.md, "Mapping
+throughput").
 """
 
 from __future__ import annotations
@@ -106,11 +105,14 @@ def bin_count_native_kernel(means2d: wp.uint64, radii: wp.uint64, depths: wp.uin
                             tile_size: int, tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int,
                             keys: wp.uint64, rows: wp.uint64, n_rows: wp.uint64, tile_start: wp.uint64,
                             tile_end: wp.uint64):
-    """Serial (dim=1): :func:`~gausslite.render.warp_kernels.bin_count_kernel` on pointers to C-contiguous arrays:
-    ``means2d`` (m, 2) and ``depths`` (m,) float64 if ``is64`` else float32, ``radii`` (m,) int32, ``tile_rows``
-    (m, 2) int32 (read only when ``banded`` != 0); outputs ``keys`` (float32) and ``rows`` (int32) of at least the
-    visible rows, ``n_rows`` (1,) int32, ``tile_start`` and ``tile_end`` (tiles,) int32, ``tile_end`` zero on
-    entry."""
+    """Serial (dim=1). Lists the rows with radius > 0 in increasing order in ``rows[:n]`` with their float32 depth in
+    ``keys[:n]`` (``n_rows[0] = n``), and turns their per-tile intersection counts into ``tile_start`` / ``tile_end``
+    (exclusive / inclusive prefix sums, so the number of intersections is ``tile_end[-1]``). ``banded`` != 0: row
+    ``i`` is binned only to the tile rows ``tile_rows[i, 0] .. tile_rows[i, 1]`` (a row band of the image rendered
+    from its own pose, :func:`gausslite.render.rasterize_bands`). Pointers to C-contiguous arrays: ``means2d`` (m, 2)
+    and ``depths`` (m,) float64 if ``is64`` else float32, ``radii`` (m,) int32, ``tile_rows`` (m, 2) int32 (read
+    only when banded); outputs ``keys`` (float32) and ``rows`` (int32) of at least the visible rows, ``n_rows`` (1,)
+    int32, ``tile_start`` and ``tile_end`` (tiles,) int32, ``tile_end`` zero on entry."""
     _count_native(means2d, radii, depths, is64, m, tile_size, tiles_x, tiles_y, tile_rows, banded, keys, rows, n_rows,
                   tile_start, tile_end)
 
@@ -119,9 +121,10 @@ def bin_count_native_kernel(means2d: wp.uint64, radii: wp.uint64, depths: wp.uin
 def bin_scatter_native_kernel(means2d: wp.uint64, radii: wp.uint64, rows: wp.uint64, n: int, is64: int,
                               tile_size: int, tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int,
                               stripe: int, nstripes: int, cursor: wp.uint64, gids: wp.uint64):
-    """Serial (dim=1): :func:`~gausslite.render.warp_kernels.bin_scatter_kernel` on pointers (the arrays of
-    :func:`bin_count_native_kernel`; ``cursor`` (tiles,) int32 starts as a copy of ``tile_start``, ``gids`` (entries,)
-    int32): the rows ``rows[:n]`` appended to the lists of their tiles in tile rows ``ty % nstripes == stripe``."""
+    """Serial (dim=1): append the rows ``rows[:n]`` (visited in that order) to the list of each tile they cover, for
+    the tile rows ``ty`` with ``ty % nstripes == stripe`` (one launch per stripe; stripes write disjoint tiles).
+    Pointers: the arrays of :func:`bin_count_native_kernel`, ``cursor`` (tiles,) int32 (starts as a copy of
+    ``tile_start``, ends equal to ``tile_end``) and ``gids`` (entries,) int32."""
     _scatter_native(means2d, radii, rows, n, is64, tile_size, tiles_x, tiles_y, tile_rows, banded, stripe, nstripes,
                     cursor, gids)
 

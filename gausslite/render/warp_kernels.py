@@ -32,10 +32,10 @@ pixel (see :func:`rasterize_bwd_tile_kernel`). :func:`pack_gdata_kernel` can app
 sigmoid and :func:`unpack_grads_kernel` sums the per-thread gradient buffers (and applies the
 sigmoid derivative), so that no per-element torch op remains around the CPU launches.
 
-:func:`project_fwd_kernel` / :func:`project_bwd_kernel` (CPU path of
-:class:`gausslite.render.autograd.ProjectWarp`) and :func:`bin_count_kernel` /
-:func:`bin_scatter_kernel` (CPU path of :func:`gausslite.render.binning.bin_gaussians`) replace
-the vectorised torch code of those stages; see their section comments.
+:func:`project_fwd_kernel` / :func:`project_bwd_kernel` (the scalar CPU path of
+:class:`gausslite.render.autograd.ProjectWarp`) replace the vectorised torch code of that stage; see its section
+comment. CPU binning and frustum culling are native loops (:mod:`gausslite.render.native_binning`,
+:func:`gausslite.render.culling.frustum_cull_native_kernel`), tested against their torch references.
 
 The image is processed in horizontal stripes: launch ``stripe`` of ``nstripes`` covers tile rows
 ``stripe, stripe + nstripes, ...`` so several CPU launches (one per Python thread) can run in
@@ -43,7 +43,7 @@ parallel with balanced work. Thread ``tid`` of a launch maps to pixel
 ``py = ((tid // W) // ts * nstripes + stripe) * ts + (tid // W) % ts``, ``px = tid % W``.
 
 The kernels live in three modules, re-exported here: :mod:`~gausslite.render.warp_kernels_fwd` (the forward
-kernels: compositing, ``gdata`` packing, binning, projection), :mod:`~gausslite.render.warp_kernels_bwd` (their
+kernels: compositing, ``gdata`` packing, projection), :mod:`~gausslite.render.warp_kernels_bwd` (their
 hand-written backward kernels and the gradient unpacking) and :mod:`~gausslite.render.warp_kernels_common` (the
 thresholds and the ``@wp.func`` helpers both call). Warp compiles each Python module that defines kernels as one
 module, with the helpers it calls from other modules compiled into it; :func:`ensure_loaded` loads every one. This
@@ -61,8 +61,7 @@ import warp as wp
 from .warp_kernels_bwd import (bwd_tile_init, project_bwd_kernel, rasterize_bwd_kernel, rasterize_bwd_tile_kernel,
                                unpack_grads_kernel)
 from .warp_kernels_common import ALPHA_MAX, ALPHA_MIN, DEPTH_ALPHA_MIN, T_MIN, tile_box, vec5i
-from .warp_kernels_fwd import (bin_count_kernel, bin_scatter_kernel, frustum_cull_kernel, pack_gdata_kernel,
-                               project_fwd_kernel, rasterize_fwd_kernel, rasterize_fwd_tile_kernel)
+from .warp_kernels_fwd import pack_gdata_kernel, project_fwd_kernel, rasterize_fwd_kernel, rasterize_fwd_tile_kernel
 
 #: the modules that define the rasterizer's Warp kernels (each one Warp module), loaded by :func:`ensure_loaded`
 KERNEL_MODULES = ("gausslite.render.warp_kernels_fwd", "gausslite.render.warp_kernels_bwd")
@@ -137,9 +136,7 @@ def run_parallel(fns) -> None:
             f.result()
 
 
-__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bin_count_kernel",
-           "bin_scatter_kernel", "bwd_tile_init", "ensure_loaded", "ensure_module_loaded", "frustum_cull_kernel",
-           "pack_gdata_kernel",
-           "project_bwd_kernel", "project_fwd_kernel", "rasterize_bwd_kernel", "rasterize_bwd_tile_kernel",
-           "rasterize_fwd_kernel", "rasterize_fwd_tile_kernel", "run_parallel", "tile_box", "unpack_grads_kernel",
-           "vec5i"]
+__all__ = ["ALPHA_MAX", "ALPHA_MIN", "DEPTH_ALPHA_MIN", "KERNEL_MODULES", "T_MIN", "bwd_tile_init", "ensure_loaded",
+           "ensure_module_loaded", "pack_gdata_kernel", "project_bwd_kernel", "project_fwd_kernel",
+           "rasterize_bwd_kernel", "rasterize_bwd_tile_kernel", "rasterize_fwd_kernel", "rasterize_fwd_tile_kernel",
+           "run_parallel", "tile_box", "unpack_grads_kernel", "vec5i"]
