@@ -93,7 +93,7 @@ const float* X = (const float*)pred.data;
 const float* Y = (const float*)gt.data;
 const float* WT = (const float*)weight.data;
 const long HW = (long)H * W;
-float* base = (float*)scratch.data + (long)c * 8 * (HW + W + 16);
+float* base = (float*)scratch.data + (long)c * (4 * HW + W + 16);
 float* q0 = base; float* q1 = base + HW; float* q2 = base + 2 * HW; float* tmp = base + 3 * HW;
 float* pad = base + 4 * HW;
 const float* g = (const float*)win.data;
@@ -107,7 +107,7 @@ for (int yy = 0; yy < H; ++yy) {
     for (int xx = 0; xx < W; ++xx) {
         const long i = (long)yy * W + xx;
         const float x = X[3 * i + c], y = Y[3 * i + c];
-        q0[i] = x; q1[i] = x * x; q2[i] = x * y;
+        if (do_ssim) { q0[i] = x; q1[i] = x * x; q2[i] = x * y; }
         acc += (use_w ? WT[i] : 1.0f) * fabsf(x - y);
     }
     l1 += (double)acc;
@@ -235,7 +235,7 @@ def ssim_fwd_kernel(pred: wp.array(dtype=wp.float32), gt: wp.array(dtype=wp.floa
     """Channel ``c`` of the fused forward: ``lsum[c]`` = Σ over pixels of |pred − gt| and, when ``do_ssim`` != 0,
     ``ssum[c]`` = Σ of SSIM and ``deriv[c]`` its three (H, W) derivative maps (``ssum[c]`` = 0 otherwise), each
     term times ``weight`` (H*W) when ``use_w`` != 0. ``pred``/``gt`` flat (H*W*3) float32 HWC; ``mu_y``/``sig_y``
-    (the variance of y) flat (3*H*W) planar; ``win`` (11,) window; ``scratch`` per channel 8 * (H*W + W + 16)
+    (the variance of y) flat (3*H*W) planar; ``win`` (11,) window; ``scratch`` per channel 4 * H*W + W + 16
     floats."""
     _ssim_fwd_native(pred, gt, mu_y, sig_y, win, weight, use_w, do_ssim, H, W, c, c1, c2, scratch, deriv, ssum,
                      lsum)
@@ -284,7 +284,7 @@ class _ColourPass:
         self.use_w = weight is not None
         self.wt = _flat(weight) if self.use_w else torch.zeros(1)
         self.do_ssim = bool(do_ssim)
-        self.scratch = torch.empty(C * 8 * (H * W + W + 16), dtype=torch.float32)
+        self.scratch = torch.empty(C * (4 * H * W + W + 16), dtype=torch.float32)
         self.deriv = torch.empty(C * 3 * H * W, dtype=torch.float32) if do_ssim else torch.zeros(1)
         self.ssum = torch.zeros(C, dtype=torch.float64)
         self.lsum = torch.zeros(C, dtype=torch.float64)
