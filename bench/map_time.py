@@ -156,7 +156,7 @@ def main(argv=None) -> dict:
     from tqdm import tqdm
 
     from bench._results import publish
-    from bench.sim_time import trees_and_shims
+    from bench.sim_time import raise_if_failed, trees_and_shims
 
     budget = args.budget if args.budget is not None else (0.25 if args.quick else 1.0)
     downscale = 1.0 if args.quick and args.dataset is None else args.downscale
@@ -185,9 +185,7 @@ def main(argv=None) -> dict:
         result["ratio"] = fixed["that"] / fixed["this"]
     publish(args.out if args.out is not None else (None if args.quick else RESULTS), "map_time", argv, table(result),
             result)
-    failed = [r for r in runs if r["returncode"] != 0]
-    if failed:
-        raise SystemExit(f"{len(failed)} map run(s) failed; the first: {failed[0].get('stderr_tail', '')}")
+    raise_if_failed(runs, "map run(s)")
     return result
 
 

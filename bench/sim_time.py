@@ -55,6 +55,14 @@ def tree_env(tree: Path, shim: Path) -> dict:
     return dict(os.environ, PYTHONPATH=f"{Path(tree).resolve()}{os.pathsep}{shim}")
 
 
+def raise_if_failed(runs: list, what: str) -> None:
+    """Raise SystemExit when a timed run of ``runs`` (each with its process's ``returncode``) exited non-zero, after
+    the result is written: ``"<n> <what> failed; the first: <its stderr tail>"``."""
+    failed = [r for r in runs if r["returncode"] != 0]
+    if failed:
+        raise SystemExit(f"{len(failed)} {what} failed; the first: {failed[0].get('stderr_tail', '')}")
+
+
 @contextmanager
 def trees_and_shims(against: Optional[str], prefix: str) -> Iterator[tuple[dict, dict, Path, dict]]:
     """This tree and, with ``against``, a git worktree of that commit (:func:`bench.throughput.worktree`), each with a
@@ -167,9 +175,7 @@ def main(argv=None) -> dict:
         result["ratio"] = summary["that"]["wall_s"] / summary["this"]["wall_s"]
     md = table(result)
     publish(args.out if args.out is not None else (None if args.quick else RESULTS), "sim_time", argv, md, result)
-    failed = [r for r in runs if r["returncode"] != 0]
-    if failed:
-        raise SystemExit(f"{len(failed)} sim(s) failed; the first: {failed[0].get('stderr_tail', '')}")
+    raise_if_failed(runs, "sim(s)")
     return result
 
 
