@@ -83,6 +83,7 @@ class LoopClosing:
         loop-closing thread runs this without the lock)."""
         odo = self.odometry
         cfg = odo.config.loop
+        odo.pin_threads()
         added = []
         for target, init, bound_m, bound_deg in cands:
             got = verify_registration(odo, kf.frame, kf.image, target, init, cfg.min_fitness, cfg, self.clouds)

@@ -46,6 +46,7 @@ from gausslite.datasets.loop_closing import LoopClosing
 # the settings and results live in a module of their own; their names import from here as before
 from gausslite.datasets.odometry_config import POSE_SOURCES, OdometryConfig, PoseSource, TrackResult  # noqa: F401
 from gausslite.datasets.pose_graph import KeyframeGraph, open3d_module, relocalise, thumbnail
+from gausslite.datasets.pyramid import rgbd_pyramid
 from gausslite.datasets.trajectory import rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -57,7 +58,7 @@ __all__ = ["OdometryConfig", "TrackResult", "RGBDOdometry", "OdometryDataset", "
 class _Keyframe:
     frame_id: int
     c2w: np.ndarray
-    image: object  # open3d.geometry.RGBDImage of ``frame``
+    image: object  # list of open3d.t.geometry.RGBDImage: ``frame``'s pyramid, finest first (RGBDOdometry._image)
     frame: Frame  # at the tracking size (for the state)
     thumb: Optional[np.ndarray] = None  # appearance for re-localisation (pose_graph.thumbnail)
 
@@ -112,19 +113,23 @@ class RGBDOdometry:
         self._prev: Optional[_Keyframe] = None
         o3d = open3d_module()
         c, odometry = self.config, o3d.t.pipelines.odometry
-        if c.threads:
-            o3d.utility.set_max_threads(c.threads)
+        self.pin_threads()
         self._criteria = [odometry.OdometryConvergenceCriteria(n) for n in c.iterations]
         self._methods = {"hybrid": odometry.Method.Hybrid, "color": odometry.Method.Intensity,
                          "point_to_plane": odometry.Method.PointToPlane}
         self._loss = odometry.OdometryLossParams(c.depth_diff_max_m, c.depth_huber_delta_m, c.intensity_huber_delta)
 
-    def _image(self, frame: Frame):
-        """Open3D's RGB-D image of ``frame`` (tensor geometry: colour as float32 in 0..1, depth in metres)."""
+    def _image(self, frame: Frame) -> list:
+        """Open3D's RGB-D images of ``frame``'s pyramid, finest first, one level per entry of ``iterations``
+        (tensor geometry: colour as float32 in 0..1, depth in metres, 0 where invalid; made by
+        :func:`~gausslite.datasets.pyramid.rgbd_pyramid`, which repeats exactly on any CPU, unlike Open3D's own)."""
         o3d = open3d_module()
-        return o3d.t.geometry.RGBDImage(
-            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.rgb, dtype=np.float32) / 255.0)),
-            o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.depth, dtype=np.float32))))
+        c = self.config
+        levels = rgbd_pyramid(np.ascontiguousarray(frame.rgb, dtype=np.float32) / np.float32(255.0),
+                              np.ascontiguousarray(frame.depth, dtype=np.float32), len(c.iterations),
+                              2.0 * c.depth_diff_max_m)
+        return [o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(o3d.core.Tensor(rgb)),
+                                         o3d.t.geometry.Image(o3d.core.Tensor(depth))) for rgb, depth in levels]
 
     def _at_tracking_size(self, frame: Frame) -> Frame:
         """``frame`` downscaled by the integer factor that brings its width nearest ``track_width`` (colour by area,
@@ -183,7 +188,18 @@ class RGBDOdometry:
         with self.lock:
             return self._track(frame)
 
+    def pin_threads(self) -> None:
+        """Apply ``config.threads`` to Open3D's process-wide thread limit where something else in the process changed
+        it since (``threads`` 0: leave it). Called before each frame's and each loop search's Open3D calls, so that
+        the poses do not depend on what else the process set (:class:`OdometryConfig`'s ``threads``)."""
+        n = self.config.threads
+        if n:
+            o3d = open3d_module()
+            if o3d.utility.get_max_threads() != n:
+                o3d.utility.set_max_threads(n)
+
     def _track(self, frame: Frame) -> TrackResult:
+        self.pin_threads()
         frame = self._at_tracking_size(frame)
         image = self._image(frame)
         if self.last_pose is None:  # the first frame fixes the world frame
@@ -281,7 +297,7 @@ class RGBDOdometry:
                            T_anchor=np.linalg.inv(kf.c2w) @ c2w, relocalised=True)
 
     def register(self, frame: Frame, image, ref, init: np.ndarray, method: Optional[str] = None):
-        """Open3D's odometry of ``frame`` (at the tracking size; ``image`` its Open3D RGB-D image) to ``ref`` (a
+        """Open3D's odometry of ``frame`` (at the tracking size; ``image`` its Open3D RGB-D pyramid, :meth:`_image`) to ``ref`` (a
         keyframe: ``frame``, ``image``) from ``init`` (4, 4) T_ref_frame, with the residuals ``method``
         (:class:`OdometryConfig`'s ``method`` values; None: the configured one).
 
@@ -291,21 +307,30 @@ class RGBDOdometry:
         """
         o3d = open3d_module()
         odometry, c, intr = o3d.t.pipelines.odometry, self.config, frame.intrinsics
-        K = o3d.core.Tensor(np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]]))
+        K = np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+        T_l = np.asarray(init, np.float64)
         try:
-            init_t = o3d.core.Tensor(np.asarray(init, np.float64))
-            result = odometry.rgbd_odometry_multi_scale(image, ref.image, K, init_t, 1.0, c.depth_max_m,
-                                                        self._criteria, self._methods[method or c.method], self._loss)
+            # coarse to fine, one level per call on the pyramid of _image (Open3D's multi-scale loop, level by level:
+            # its own pyramid does not repeat on every CPU, gausslite.datasets.pyramid)
+            n = len(self._criteria)
+            for level in reversed(range(n)):  # level 0 is the finest; the criteria are the coarsest first
+                K_l = K / 2.0 ** level
+                K_l[2, 2] = 1.0
+                result = odometry.rgbd_odometry_multi_scale(
+                    image[level], ref.image[level], o3d.core.Tensor(K_l), o3d.core.Tensor(T_l), 1.0, c.depth_max_m,
+                    [self._criteria[n - 1 - level]], self._methods[method or c.method], self._loss)
+                T_l = result.transformation.numpy().astype(np.float64)
         except RuntimeError as e:  # Open3D raises when a level has too few correspondences to solve
             log.debug("frame %s: Open3D's odometry failed: %s", frame.frame_id, e)
             return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0
+        K = o3d.core.Tensor(K)
         ok, T = result.fitness > 0, result.transformation.numpy().astype(np.float64)
         if not np.all(np.isfinite(T)):
             return False, np.asarray(init, np.float64), np.zeros((6, 6)), 0.0
         # Open3D solves each level in float32: its rotation is orthonormal to about 1e-7, and chained products of such
         # registrations drift off SO(3) unless projected back
         T = nearest_rigid(T, f"frame {frame.frame_id}'s registration")
-        info = odometry.compute_odometry_information_matrix(image.depth, ref.image.depth, K, result.transformation,
+        info = odometry.compute_odometry_information_matrix(image[0].depth, ref.image[0].depth, K, result.transformation,
                                                             c.depth_diff_max_m, 1.0, c.depth_max_m).numpy()
         valid = int(np.count_nonzero((frame.depth > 0) & (frame.depth < c.depth_max_m)))
         # the information matrix is the sum over correspondences of J^T J with J = [-[p]x | I]: its translation

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gausslite.datasets.pose_graph import LoopConfig, RelocConfig
 
-__all__ = ["PoseSource", "POSE_SOURCES", "OdometryConfig", "TrackResult"]
+__all__ = ["PoseSource", "POSE_SOURCES", "OdometryConfig", "TrackResult", "REPEAT_BOUND_M"]
 
 #: where the camera poses (camera-to-world) come from: the frames' own (``given``: the sequence's pose file, a bag's
 #: TF or pose topic, the pose each streamed frame carries) or the RGB-D odometry's estimate (``odometry``). The type of
@@ -23,6 +23,12 @@ PoseSource = Literal["given", "odometry"]
 #: the values a loader takes (``load_dataset(pose_source=...)``, ``gausslite map --pose-source``): a
 #: :data:`PoseSource`, or ``auto`` (``given`` when the sequence has poses, else ``odometry``)
 POSE_SOURCES = ("auto", *get_args(PoseSource))
+
+#: how far two runs of the tracker on the same input may part with ``threads`` 1 (metres, and the same bound on each
+#: element of the rotation): its poses repeat bit for bit on every CPU measured (AVX-512, and AVX2 without it), and
+#: the tests hold every repetition to this bound rather than to one machine's rounding (``docs/mapper.md``,
+#: "Repeatable tracking")
+REPEAT_BOUND_M = 1e-6
 
 
 class OdometryConfig(BaseModel):
@@ -43,11 +49,15 @@ class OdometryConfig(BaseModel):
         intensity_huber_delta: the photometric residual's Huber threshold (intensity in 0..1). Open3D's default,
             0.1, down-weights most of a hand-held camera's photometric residuals (exposure, blur) and drifts; 0.5
             measures best on every sequence of ``bench.odometry`` (``docs/mapper.md``, "Poses from odometry").
-        iterations: Gauss-Newton iterations per pyramid level, the finest level first (Open3D's order).
-        threads: Open3D's worker threads (a process-wide Open3D setting, applied when the odometry is built; 0 leaves
-            Open3D's default, every core). With 1 the poses repeat exactly from run to run: Open3D's multi-threaded
-            reductions sum in a varying order, and over a sequence that moves poses by millimetres to centimetres.
-            One thread is also faster at the tracking size on 2 cores beside the mapper.
+        iterations: Gauss-Newton iterations per pyramid level, the coarsest level first (Open3D's order: its
+            multi-scale odometry runs ``criteria[0]`` on the coarsest level).
+        threads: Open3D's worker threads (a process-wide Open3D setting, applied when the odometry is built and again
+            before each frame and each loop search where something else changed it; 0 leaves Open3D's setting as it
+            is). With 1 (the default) the poses repeat to within 1e-6 m from run to run, at any thread count of the
+            rest of the process (torch, OpenMP, BLAS), on every CPU measured: bit for bit on AVX-512 and on AVX2
+            (``docs/mapper.md``, "Repeatable tracking"). With more, Open3D's reductions sum in a varying order and a
+            sequence parts by millimetres over tens of frames (5e-4 m over 12 frames of the synthetic scene). One
+            thread is also faster at the tracking size on 2 cores beside the mapper.
         min_fitness: a frame whose share of valid depth pixels with a correspondence is below this fails.
         track_width: frames are tracked downscaled by the integer factor that brings their width nearest this
             (pixels; None: at the frames' own resolution). 160 tracks TUM as well as 320 does, at a third of the cost.

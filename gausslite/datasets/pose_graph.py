@@ -364,7 +364,7 @@ def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness
 
     Args:
         odo: the :class:`~gausslite.datasets.odometry.RGBDOdometry` (its ``register`` and settings).
-        frame, image: the frame at the tracking size and its Open3D RGB-D image.
+        frame, image: the frame at the tracking size and its Open3D RGB-D pyramid (``RGBDOdometry._image``).
         target: the keyframe (``frame``, ``image``, ``c2w``).
         init: (4, 4) initial ``c2w_target⁻¹ c2w_frame``.
         min_fitness: the fitness gate of gates 2-3; cfg: the other gates and the registration.
@@ -502,7 +502,7 @@ def relocalise(odo, frame, image, pred: np.ndarray,
 
     Args:
         odo: the odometry (its keyframe store ``loop_keyframes`` and gates).
-        frame, image: the frame at the tracking size and its Open3D RGB-D image.
+        frame, image: the frame at the tracking size and its Open3D RGB-D pyramid (``RGBDOdometry._image``).
         pred: (4, 4) c2w the motion predicts for the frame (the last good pose moved by the last motion).
         cfg: the settings.
     Returns:

@@ -12,6 +12,7 @@ import pytest
 
 from gausslite.datasets import load_dataset
 from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
+from gausslite.datasets.odometry_config import REPEAT_BOUND_M
 from gausslite.datasets.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, thumbnail
 from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg
 from gausslite.synthetic import make_scene
@@ -171,7 +172,8 @@ def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyf
     kept = {k for k, _ in odo.loops.clouds._made}
     assert kept <= {id(k.frame) for k in odo.loop_keyframes.values()}
     assert {v for _, v in odo.loops.clouds._made} == {cfg.loop.icp_voxel_m}
-    assert all(np.array_equal(a, b) for a, b in zip(poses, plain_poses))
+    # the poses of a search without the cache, to the bound two runs of the tracker repeat to
+    assert float(np.abs(np.stack(poses) - np.stack(plain_poses)).max()) <= REPEAT_BOUND_M
 
 
 def test_the_cloud_cache_keeps_the_thinned_clouds_used_last(frames):
