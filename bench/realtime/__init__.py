@@ -53,8 +53,9 @@ map under the protocols), :mod:`~bench.realtime.missions` (the live runs, the tw
 """
 
 from bench.realtime.cli import main, reaggregate
-from bench.realtime.missions import (agent_config, calibrate, keyframe_schedule, load_average, mission_result,
-                                     mission_settings, run_key, run_one, start_mission, twin_one)
+from bench.realtime.missions import (RESOLUTION_KEYS, agent_config, calibrate, first_choice, keyframe_schedule,
+                                     load_average, mission_result, mission_settings, run_key, run_one,
+                                     shared_resolution, start_mission, twin_one)
 from bench.realtime.protocol import (TRACK_ITERS, TRACK_STRIDE, check_withheld, map_scores, novel_ids, save_render,
                                      score, score_deferred, training_frames)
 from bench.realtime.scenes import (MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, SHARED, Preloaded, dataset_scenes,
@@ -62,7 +63,8 @@ from bench.realtime.scenes import (MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, S
 from bench.realtime.summary import budget_key, mapping_resolution, pairable_runs, summarise
 from bench.realtime.tables import failed_mark, gain_cell, plot_scene, protocol_table, table
 
-__all__ = ["MODES", "REFERENCE_BUDGET_S", "RESULTS", "SCENES", "SHARED", "TRACK_ITERS", "TRACK_STRIDE", "Preloaded",
+__all__ = ["MODES", "REFERENCE_BUDGET_S", "RESOLUTION_KEYS", "RESULTS", "SCENES", "SHARED", "TRACK_ITERS",
+           "TRACK_STRIDE", "Preloaded", "first_choice", "shared_resolution",
            "agent_config", "budget_key", "calibrate", "check_withheld", "dataset_scenes", "failed_mark", "gain_cell",
            "keyframe_schedule", "load_average", "load_scene", "main", "map_scores", "mapping_resolution",
            "mission_result", "mission_settings", "novel_ids", "pairable_runs", "plot_scene", "protocol_table",

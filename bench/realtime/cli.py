@@ -27,10 +27,10 @@ from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS
 
 from bench._missions import add_allow_failed, exit_code, failed, failure_rows
 from bench._results import provenance, write_json
-from bench.realtime.missions import calibrate, run_key, run_one, twin_one
+from bench.realtime.missions import RESOLUTION_KEYS, calibrate, run_key, run_one, shared_resolution, twin_one
 from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score_deferred
 from bench.realtime.scenes import MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, dataset_scenes, scene_path
-from bench.realtime.summary import summarise
+from bench.realtime.summary import budget_key, summarise
 from bench.realtime.tables import plot_scene, protocol_table, table
 from bench.realtime_late import LATE_VIA
 
@@ -118,6 +118,12 @@ def _parser(prog: Optional[str] = None) -> argparse.ArgumentParser:
                     help="the poses the agents map and are scored at: the sequence's own (given), or the RGB-D "
                          "odometry's estimates of every frame, the withheld ones included (agent.pose_source "
                          "odometry: a camera without SLAM); the ROI is the given poses' either way")
+    ap.add_argument("--resolution", choices=("shared", "agent"), default="shared",
+                    help="shared (default): both modes map at one resolution per scene and budget, the agent "
+                         "governor's first choice under the uniform settings, background and task region alike, so "
+                         "that every run pairs; agent: each mission's own governor (a finer region level, changes "
+                         "mid-mission), as a robot runs it. A --set of agent.resolution.downscale or roi_downscale "
+                         "pins it instead")
     ap.add_argument("--score-at", choices=("mapping", "scene"), default="mapping",
                     help="score each map at the resolution its mission mapped at (mapping), or at the scene's own "
                          "resolution whatever the agent mapped at (scene: runs mapped at different resolutions pair, "
@@ -202,6 +208,11 @@ def _checked_scenes(ap: argparse.ArgumentParser, args: argparse.Namespace) -> tu
     return protocols, scenes, specs
 
 
+#: scene → budget key → the resolution both modes mapped at under ``--resolution shared``
+#: (:func:`~bench.realtime.missions.shared_resolution`), for the result's settings
+SHARED_CHOICES: dict = {}
+
+
 def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protocols: tuple, budgets: list[float],
                 fp_budgets: set, modes: list[str], out: Path, done: set) -> tuple[list[dict], dict]:
     """The (scene, run, budget, mode) jobs not ``done`` yet, and each scene's name (``_late`` ...) with its cap."""
@@ -209,18 +220,28 @@ def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protoc
     work.mkdir(parents=True, exist_ok=True)
     jobs = []
     names = {}
+    pinned_by_user = any(o.split("=", 1)[0].strip() in RESOLUTION_KEYS for o in args.overrides)
     for scene in scenes:
         spec = specs[scene]
         path = Path(spec["path"]) if "path" in spec else scene_path(scene, work)
         cap = args.cap or spec["cap"]
         name = (scene + ("_late" if args.late_via == "task" else "_late_detection")) if args.late else scene
         names[name] = cap
+        shared = {}
+        if args.resolution == "shared" and not (pinned_by_user or args.twin or args.score_only):
+            # one resolution per scene and budget for both modes, chosen before any mission (the same for every run)
+            shared = {b: shared_resolution(spec, path, b, cap, args.overrides) for b in budgets}
+            for b, choice in shared.items():
+                SHARED_CHOICES.setdefault(name, {})[budget_key(b)] = choice
         for run in range(args.runs):
             for b in budgets:
                 for mode in modes:
                     job = {"scene": name, "spec": spec, "path": str(path), "task": args.task or spec["task"],
                            "mode": mode, "budget": b, "run": run, "cap": cap, "clock": args.clock,
-                           "final_pass": b in fp_budgets, "overrides": list(args.overrides), "share": args.share,
+                           "final_pass": b in fp_budgets,
+                           "overrides": list(args.overrides) + (shared[b]["overrides"] if shared else []),
+                           "resolution_mode": "shared" if shared else "pinned" if pinned_by_user else "agent",
+                           "share": args.share,
                            "late": args.late, "late_via": args.late_via, "protocols": protocols,
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "track_iters": args.track_iters,
@@ -329,7 +350,8 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
                            "cpus": os.cpu_count(), "wall_s": time.time() - t0, "protocols": list(protocols),
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
-                           "score_at": args.score_at,
+                           "score_at": args.score_at, "resolution": args.resolution,
+                           "shared_resolution": {k: SHARED_CHOICES[k] for k in names if k in SHARED_CHOICES},
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "failed_runs": failure_rows(runs, RUN_KEYS), "runs": runs}
     for scene, cap in names.items():

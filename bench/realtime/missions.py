@@ -50,6 +50,42 @@ def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, pro
     return cfg.model_copy(update={"mapper": m}), final_per_kf
 
 
+def first_choice(config, width: int, height: int, budget: float, cap: int):
+    """The mapping resolution an agent of ``config`` (an ``AgentConfig``) picks at its first frame (``width`` ×
+    ``height`` native pixels, ``budget`` seconds per keyframe, ``cap`` Gaussians): its governor's choice
+    (:func:`~gausslite.mapping.resolution.choose_downscale`) from the work model ``mapper.work_cost`` and
+    ``agent.resolution``'s target, levels and pinned factor. Returns the
+    :class:`~gausslite.mapping.resolution.ResolutionChoice`."""
+    rc = config.resolution
+    return choose_downscale(width, height, budget, cap, WorkCost(**config.mapper.work_cost.model_dump()),
+                            rc.target_iters, rc.max_downscale, rc.pinned, min_width=rc.min_width)
+
+
+#: the agent settings that pin the mapping resolution of the background and of the task region
+RESOLUTION_KEYS = ("agent.resolution.downscale", "agent.resolution.roi_downscale")
+
+
+def shared_resolution(spec: dict, path: Path, budget: float, cap: int, overrides=()) -> dict:
+    """The one mapping resolution both modes of a comparison map at (``--resolution shared``), chosen once per scene
+    and budget: the first choice of the agent governor (:func:`first_choice`) under the uniform mode's settings with
+    ``overrides``, at the scene's size as loaded. Both modes get the same inputs (the same work model, the same
+    target), so the choice does not depend on the mode, and every run pairs (:func:`~bench.realtime.summary.
+    pairable_runs`); the region is mapped at the same level. The agents' own governor (a finer region level, changes
+    mid-mission) is what ``--resolution agent`` measures.
+
+    Returns:
+        ``{"downscale": factor, "size": [w, h], "native_size": [W, H], "predicted_iters", "reason",
+        "overrides": [the two RESOLUTION_KEYS settings that pin it]}``.
+    """
+    ds, profile = load_scene(spec, path)
+    cfg, _ = agent_config("uniform", budget, cap, 0, 1.0, profile, overrides)
+    w, h = ds.intrinsics.width, ds.intrinsics.height
+    c = first_choice(cfg, w, h, budget, cap)
+    return {"downscale": c.factor, "size": [c.width, c.height], "native_size": [w, h],
+            "predicted_iters": c.predicted_iters, "reason": c.reason,
+            "overrides": [f"{k}={c.factor:g}" for k in RESOLUTION_KEYS]}
+
+
 def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None,
                   relevance: Optional[Callable] = None):
     """The bench agent of ``job`` (in process), built and not started.
@@ -97,6 +133,7 @@ def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields)
            "evicted": int(sum(s.n_evicted for s in mapper.stats)), "roi_views": len(mapper.roi_views),
            "roi_views_added": int(mapper.roi_views.n_added), "withheld": len(novel_ids(job, ds) or []),
            "mapping_downscale": float(job.get("mapping_downscale") or 1.0),
+           "resolution_mode": job.get("resolution_mode", "agent"),
            "pose_source": job.get("pose_source") or "given",
            "mission": mission_settings(job, mapper.cfg, fields.get("iters_per_keyframe"))}
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
@@ -246,10 +283,8 @@ def twin_one(job: dict) -> dict:
     try:
         mapper = rt.mapper
         # the mapping resolution the agent would pick (agent.resolution) from the work model of the twin's clock
-        rc, fr0 = rt.config.resolution, ds[0]
-        choice = choose_downscale(fr0.intrinsics.width, fr0.intrinsics.height, job["budget"], job["cap"],
-                                  WorkCost(**mapper.cfg.work_cost.model_dump()), rc.target_iters, rc.max_downscale,
-                                  rc.pinned, min_width=rc.min_width)
+        fr0 = ds[0]
+        choice = first_choice(rt.config, fr0.intrinsics.width, fr0.intrinsics.height, job["budget"], job["cap"])
         job = {**job, "mapping_downscale": choice.factor, "rate": 1.0,
                "resolution": {"downscale": choice.factor, "size": [choice.width, choice.height],
                               "native_size": [fr0.intrinsics.width, fr0.intrinsics.height], "changes": 0}}

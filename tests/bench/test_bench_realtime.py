@@ -354,6 +354,9 @@ def test_live_missions_back_to_back_then_scored_apart(tmp_path):
     assert rt.main(base + ["--budgets", "0.4", "--modes", "uniform", "--missions-only", "--resume"]) == 0
     saved = json.loads(out.with_suffix(".partial.json").read_text())["runs"]
     assert len(saved) == 3 and all("state_path" in r and "protocols" not in r for r in saved)
+    # both modes mapped at the one resolution chosen for the scene and budget (--resolution shared, the default)
+    assert {r["resolution_mode"] for r in saved} == {"shared"}
+    assert len({(r["budget"], r["mapping_downscale"]) for r in saved if r["budget"] == 0.2}) == 1
     assert not out.exists()
     # another result file sharing the work folder (the same scene, mode, budget and run) keeps its maps apart
     other = tmp_path / "other.json"
@@ -428,3 +431,40 @@ def test_live_missions_with_poses_from_odometry_are_scored_at_the_estimates(tmp_
     blk = res["scenes"]["synth-pick-object"]["budgets"]["0.1"]["protocols"]
     assert blk["novel"]["gausslite"]["frames_scored"] == 3 and blk["novel"]["gain"] is not None
     assert blk["sensor"]["uniform"]["frames_scored"] == 14
+
+
+def test_both_modes_get_one_resolution_per_scene_and_budget_unless_a_user_pins_it(tmp_path):
+    """``--resolution shared`` (the default) gives every job of a scene and budget the same two pins (background and
+    task region), the agent governor's first choice under the uniform settings, which the GaussLite settings would
+    choose alike; ``--resolution agent`` or a user's own pin leaves each mission's governor (or the pin) alone."""
+    from bench.realtime import cli
+    from gausslite.synthetic import make_scene
+
+    make_scene(tmp_path / "scene", frames=4, width=64, height=48, trajectory="circle")
+    base = ["--dataset", str(tmp_path / "scene" / "agent_a"), "--tasks", "synth-pick-object", "--runs", "2",
+            "--cap", "300", "--budgets", "0.05,2", "--work", str(tmp_path / "work"), "--out", str(tmp_path / "r.json")]
+
+    def jobs(extra):
+        ap = cli._parser()
+        args = ap.parse_args(base + extra)
+        protocols, scenes, specs = cli._checked_scenes(ap, args)
+        got, _ = cli._build_jobs(args, scenes, specs, protocols, [0.05, 2.0], set(), ["uniform", "gausslite"],
+                                 tmp_path / "r.json", set())
+        return got
+
+    shared = jobs([])
+    assert len(shared) == 8 and {j["resolution_mode"] for j in shared} == {"shared"}
+    for b in (0.05, 2.0):
+        pins = {tuple(o for o in j["overrides"] if o.startswith("agent.resolution.")) for j in shared
+                if j["budget"] == b}
+        assert len(pins) == 1
+        (down, roi), = pins
+        assert down.split("=")[1] == roi.split("=")[1]  # the region at the background's level
+    choice = rt.shared_resolution(shared[0]["spec"], Path(shared[0]["path"]), 0.05, 300)
+    _, profile = rt.load_scene(shared[0]["spec"], Path(shared[0]["path"]))
+    g, _ = rt.agent_config("gausslite", 0.05, 300, 0, 1.0, profile)
+    assert rt.first_choice(g, *choice["native_size"], 0.05, 300).factor == choice["downscale"]
+    assert all(j["overrides"] == [] and j["resolution_mode"] == "agent" for j in jobs(["--resolution", "agent"]))
+    pinned = jobs(["--set", "agent.resolution.downscale=2"])
+    assert all(j["overrides"] == ["agent.resolution.downscale=2"] and j["resolution_mode"] == "pinned"
+               for j in pinned)
