@@ -66,8 +66,9 @@ class ScoringConfig(BaseModel):
 class ResolutionConfig(BaseModel):
     """The mapping resolutions of a live agent (``agent.resolution`` in YAML; :mod:`gausslite.mapping.resolution`,
     docs/live.md#mapping-resolution): the image downscale at which a keyframe gets ``target_iters`` iterations
-    under its budget (``mapper.keyframe_budget_s``), chosen from the first frame and corrected one level at a time
-    both ways as the iterations keyframes get change; with the mapper's detail layer (``mapper.detail.enabled``) the
+    under its budget (``mapper.keyframe_budget_s``), chosen from the first frame and corrected one level coarser at a
+    time when keyframes fall short (finer again too with ``finer``); with the mapper's detail layer
+    (``mapper.detail.enabled``) the
     task region's own, finer level, corrected from its ROI-phase iterations.
 
     Attributes:
@@ -77,7 +78,9 @@ class ResolutionConfig(BaseModel):
         min_width: an automatic level never maps images narrower than this (pixels).
         adapt_after: keyframes measured before each correction (the first keyframe is never counted).
         tolerance: a level holds while its keyframes get this share of ``target_iters``; below it, one level coarser.
-        finer: take a finer level again when iterations recover (False: only ever coarser).
+        finer: take a finer level again when iterations recover (False, the default: after the first choice only
+            ever coarser; measured on TUM fr1/rpy given at 640×480, docs/live.md#mapping-resolution: stepping finer
+            mid-mission to native size left GaussLite's region no sharper and the whole image 0.7 dB lower).
         finer_share: one level finer when the iterations measured at this level, carried to the finer level by the
             work model (``mapper.work_cost``), reach this share of the target (taken as at least ``tolerance``).
         hold_keyframes: keyframes measured at a level before a finer step (doubled after a finer step that had to be
@@ -98,7 +101,7 @@ class ResolutionConfig(BaseModel):
     min_width: int = Field(160, ge=16)
     adapt_after: int = Field(5, ge=1)
     tolerance: float = Field(0.5, gt=0, le=1)
-    finer: bool = True
+    finer: bool = False
     finer_share: float = Field(0.75, gt=0, le=4)
     hold_keyframes: int = Field(10, ge=1)
     roi_downscale: Union[Literal["auto"], float] = "auto"

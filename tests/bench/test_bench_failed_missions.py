@@ -77,8 +77,9 @@ def test_realtime_records_a_failed_mission_leaves_it_out_marks_it_and_exits_1(tm
     monkeypatch.setattr(cli, "run_one", fake)
     monkeypatch.setattr(cli, "scene_path", lambda scene, work: tmp_path)  # no scene is rendered
     out = tmp_path / "rt.json"
+    # each mission's own governor: no scene is loaded to choose a shared resolution before the (fake) missions
     argv = ["--scenes", "synthetic_circle", "--budgets", "0.5", "--runs", "3", "--final-pass-budgets=",
-            "--protocols", "sensor", "--work", str(tmp_path / "w"), "--out", str(out)]
+            "--protocols", "sensor", "--resolution", "agent", "--work", str(tmp_path / "w"), "--out", str(out)]
     assert cli.main(argv) == 1
     assert f"run=1: FAILED ({FAIL})" in capsys.readouterr().err
     res = json.loads(out.read_text())

@@ -167,6 +167,9 @@ def test_the_config_builds_both_levels():
     rc = ResolutionConfig(roi_downscale=1, finer_share=0.9, hold_keyframes=7, roi_ratio=3)
     g = rc.governor(MapperConfig(warmup_iters=10, iters_per_frame=30))
     assert (g.roi_pinned, g.finer_share, g.hold_keyframes, g.roi_ratio) == (1.0, 0.9, 7, 3.0)
+    # one-way by default (docs/live.md, "Mapping resolution": the finer step does not pay on real data)
+    assert ResolutionConfig().finer is False and not g.finer and ResolutionConfig(finer=True).governor(
+        MapperConfig()).finer
     assert g.roi_target_iters == pytest.approx(10 * 2 / 3)  # the ROI phase's share of the keyframe's target
     assert ResolutionConfig(roi_target_iters=4).roi_target(MapperConfig()) == 4.0
     assert AgentConfig().resolution.governor(MapperConfig()).cost == WorkCost(**MapperConfig().work_cost.model_dump())

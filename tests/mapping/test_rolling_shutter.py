@@ -197,5 +197,9 @@ def test_blur_samples_and_bands_in_one_pass_equal_their_renders_averaged():
                 delta = motion_deltas(xi_b, n_blur, t / m.cfg.sensor.blur_exposure_s)[k]
                 rows.append(m.sensor.rasterize(c2w, K, W, H, None, view_delta=delta).color[y0:y1])
             samples.append(torch.cat(rows))
-    torch.testing.assert_close(got.color, torch.stack(samples).mean(0), atol=1e-5, rtol=0)
+    # the one-pass render and the per-band renders sum in different orders (float32), so a Gaussian whose alpha lies
+    # at the 1/255 cut may be drawn in one and skipped in the other: a pixel may differ by less than that cut (seen:
+    # 3 of 6,720 values by up to 1.5e-4 on one CPU, none on another); every other value agrees to rounding
+    diff = (got.color - torch.stack(samples).mean(0)).abs()
+    assert float(diff.max()) < 1.0 / 255 and float((diff > 1e-5).float().mean()) < 1e-3
     assert (samples[0] - samples[-1]).abs().max() > 0.05  # the samples see different pixels
