@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
+from gausslite.cli.cmd_ablate import SWITCHES
 from gausslite.evaluation import current_protocols
 from gausslite.mapping.config import ablation_rows
 from gausslite.stats import aggregate, paired_gain
@@ -38,10 +39,11 @@ from gausslite.stats import aggregate, paired_gain
 from bench import realtime
 from bench._results import write_json
 
-SWITCHES = ("sb", "mvo", "roi", "sis", "gfd")
 #: the paper's Table 3 on its real rover data (Campus), ROI PSNR in dB, rows enabled cumulatively
 PAPER_CAMPUS = {"none": 21.50, "+SB": 21.61, "+MVO": 22.55, "+ROI": 22.15, "+SIS": 25.14, "+GFD": 25.25}
 PROTOCOL = "novel"
+#: the full pipeline's row (the last progressive one), which the leave-one-out rows are compared with
+FULL = ablation_rows()[-1][0]
 #: what the result keeps of each run (besides its ``novel`` figures)
 RUN_FIELDS = ("scene", "run", "budget", "n_gaussians", "iters_per_keyframe", "roi_iters", "keyframes",
               "mapping_downscale", "resolution_mode", "end_state")
@@ -86,8 +88,8 @@ def summarise(by_row: dict) -> dict:
         rs = [r for r in by_row[name] if _figures(r)[0] is not None]
         blk = aggregate([{"roi_psnr": _figures(r)[0], "psnr": _figures(r)[1]} for r in rs], ["roi_psnr", "psnr"])
         blk["runs"] = len(rs)
-        if name.startswith("full-") and "+GFD" in by_row:
-            blk["vs_full"] = _paired(rs, by_row["+GFD"])  # negative: the component pays
+        if name.startswith("full-") and FULL in by_row:
+            blk["vs_full"] = _paired(rs, by_row[FULL])  # negative: the component pays
         elif name in progressive and progressive.index(name) > 0:
             blk["step"] = _paired(rs, by_row[progressive[progressive.index(name) - 1]])
         if name != "none" and "none" in by_row:

@@ -89,6 +89,15 @@ def main(argv: Optional[list[str]] = None, prog: Optional[str] = None) -> int:
     return exit_code(runs, args.allow_failed, "bench.realtime", RUN_KEYS)
 
 
+def _shared_resolutions(runs: list[dict]) -> dict:
+    """scene → budget key → the downscale both modes mapped at, for the runs under ``--resolution shared``."""
+    out: dict = {}
+    for r in runs:
+        if r.get("resolution_mode") == "shared":
+            out.setdefault(r["scene"], {})[budget_key(r["budget"])] = r["mapping_downscale"]
+    return out
+
+
 def _drop_failed(runs: list[dict]) -> list[dict]:
     """``runs`` without its failed missions (their saved maps removed), so that a resumed invocation runs them
     again."""
@@ -208,11 +217,6 @@ def _checked_scenes(ap: argparse.ArgumentParser, args: argparse.Namespace) -> tu
     return protocols, scenes, specs
 
 
-#: scene → budget key → the resolution both modes mapped at under ``--resolution shared``
-#: (:func:`~bench.realtime.missions.shared_resolution`), for the result's settings
-SHARED_CHOICES: dict = {}
-
-
 def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protocols: tuple, budgets: list[float],
                 fp_budgets: set, modes: list[str], out: Path, done: set) -> tuple[list[dict], dict]:
     """The (scene, run, budget, mode) jobs not ``done`` yet, and each scene's name (``_late`` ...) with its cap."""
@@ -230,9 +234,7 @@ def _build_jobs(args: argparse.Namespace, scenes: list[str], specs: dict, protoc
         shared = {}
         if args.resolution == "shared" and not (pinned_by_user or args.twin or args.score_only):
             # one resolution per scene and budget for both modes, chosen before any mission (the same for every run)
-            shared = {b: shared_resolution(spec, path, b, cap, args.overrides) for b in budgets}
-            for b, choice in shared.items():
-                SHARED_CHOICES.setdefault(name, {})[budget_key(b)] = choice
+            shared = shared_resolution(spec, path, budgets, cap, args.overrides)
         for run in range(args.runs):
             for b in budgets:
                 for mode in modes:
@@ -351,7 +353,7 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
                            "track_iters": args.track_iters, "track_stride": args.track_stride, "late": args.late,
                            "novel_every": args.novel_every, "pose_source": args.pose_source,
                            "score_at": args.score_at, "resolution": args.resolution,
-                           "shared_resolution": {k: SHARED_CHOICES[k] for k in names if k in SHARED_CHOICES},
+                           "shared_resolution": _shared_resolutions(runs),
                            "late_via": args.late_via if args.late else None, "dataset": args.dataset},
               "scenes": {}, "failed_runs": failure_rows(runs, RUN_KEYS), "runs": runs}
     for scene, cap in names.items():

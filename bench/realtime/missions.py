@@ -65,25 +65,28 @@ def first_choice(config, width: int, height: int, budget: float, cap: int):
 RESOLUTION_KEYS = ("agent.resolution.downscale", "agent.resolution.roi_downscale")
 
 
-def shared_resolution(spec: dict, path: Path, budget: float, cap: int, overrides=()) -> dict:
+def shared_resolution(spec: dict, path: Path, budgets, cap: int, overrides=()) -> dict:
     """The one mapping resolution both modes of a comparison map at (``--resolution shared``), chosen once per scene
     and budget: the first choice of the agent governor (:func:`first_choice`) under the uniform mode's settings with
-    ``overrides``, at the scene's size as loaded. Both modes get the same inputs (the same work model, the same
-    target), so the choice does not depend on the mode, and every run pairs (:func:`~bench.realtime.summary.
-    pairable_runs`); the region is mapped at the same level. The agents' own governor (a finer region level, changes
-    mid-mission) is what ``--resolution agent`` measures.
+    ``overrides``, at the scene's size as loaded (the scene is loaded once for every budget). Both modes get the same
+    inputs (the same work model, the same target), so the choice does not depend on the mode, and every run pairs
+    (:func:`~bench.realtime.summary.pairable_runs`); the region is mapped at the same level. The agents' own governor
+    (a finer region level, changes mid-mission) is what ``--resolution agent`` measures.
 
     Returns:
-        ``{"downscale": factor, "size": [w, h], "native_size": [W, H], "predicted_iters", "reason",
-        "overrides": [the two RESOLUTION_KEYS settings that pin it]}``.
+        ``{budget: {"downscale": factor, "size": [w, h], "native_size": [W, H], "predicted_iters", "reason",
+        "overrides": [the two RESOLUTION_KEYS settings that pin it]}}`` for each of ``budgets`` (seconds).
     """
     ds, profile = load_scene(spec, path)
-    cfg, _ = agent_config("uniform", budget, cap, 0, 1.0, profile, overrides)
     w, h = ds.intrinsics.width, ds.intrinsics.height
-    c = first_choice(cfg, w, h, budget, cap)
-    return {"downscale": c.factor, "size": [c.width, c.height], "native_size": [w, h],
-            "predicted_iters": c.predicted_iters, "reason": c.reason,
-            "overrides": [f"{k}={c.factor:g}" for k in RESOLUTION_KEYS]}
+    out = {}
+    for b in budgets:
+        cfg, _ = agent_config("uniform", b, cap, 0, 1.0, profile, overrides)
+        c = first_choice(cfg, w, h, b, cap)
+        out[b] = {"downscale": c.factor, "size": [c.width, c.height], "native_size": [w, h],
+                  "predicted_iters": c.predicted_iters, "reason": c.reason,
+                  "overrides": [f"{k}={c.factor:g}" for k in RESOLUTION_KEYS]}
+    return out
 
 
 def start_mission(job: dict, rate: float, extra_overrides=(), fusion: Optional[FusionPort] = None,

@@ -369,6 +369,9 @@ def test_live_missions_back_to_back_then_scored_apart(tmp_path):
     blk = res["scenes"]["synth-pick-object"]["budgets"]
     assert set(blk) == {"0.2", "0.4"} and blk["0.2"]["protocols"]["tracked"]["runs"] == 1
     assert "gausslite" not in blk["0.4"] and blk["0.4"]["uniform"]["runs"] == 1
+    # the shared resolutions come from the runs, so a scoring-only invocation records them too
+    assert res["settings"]["shared_resolution"]["synth-pick-object"] == {
+        b: next(r["mapping_downscale"] for r in res["runs"] if f"{r['budget']:g}" == b) for b in ("0.2", "0.4")}
     assert all("protocols" in r and "state_path" not in r for r in res["runs"])
     assert not list((tmp_path / "work" / "maps" / "live").glob("*.pt")) and Path(theirs).is_file()
 
@@ -460,7 +463,7 @@ def test_both_modes_get_one_resolution_per_scene_and_budget_unless_a_user_pins_i
         assert len(pins) == 1
         (down, roi), = pins
         assert down.split("=")[1] == roi.split("=")[1]  # the region at the background's level
-    choice = rt.shared_resolution(shared[0]["spec"], Path(shared[0]["path"]), 0.05, 300)
+    choice = rt.shared_resolution(shared[0]["spec"], Path(shared[0]["path"]), [0.05], 300)[0.05]
     _, profile = rt.load_scene(shared[0]["spec"], Path(shared[0]["path"]))
     g, _ = rt.agent_config("gausslite", 0.05, 300, 0, 1.0, profile)
     assert rt.first_choice(g, *choice["native_size"], 0.05, 300).factor == choice["downscale"]
