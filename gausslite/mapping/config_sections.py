@@ -232,6 +232,28 @@ class PoseConfig(StrictModel):
         "('inherit', for pose errors correlated over consecutive frames) or from the sensor's pose ('identity'; "
         "'inherit' drifts on TUM fr1/rpy, measured: docs/results.md)"
     )
+    align: Literal["off", "depth"] = Field(
+        "off", description="keyframe alignment: a new keyframe's depth registered, point to plane, to the raw depth "
+        "of the keyframes mapped before it, at the poses the map holds for them, before it seeds or trains "
+        "(frame-to-model, KinectFusion Sec. 3.5; gausslite.mapping.alignment): for poses with errors of "
+        "centimetres (a robot's odometry, a SLAM estimate); it starts from the latest keyframe's correction. "
+        "'off': the keyframe keeps its pose (measured per sensor: docs/mapper.md#keyframe-alignment)"
+    )
+    align_voxel_m: float = Field(
+        0.02, gt=0, description="keyframe alignment: the depth model's voxel size δ (metres); the registration runs "
+        "at 2δ, then δ"
+    )
+    align_width: int = Field(
+        80, ge=8, description="keyframe alignment: a keyframe's depth is sampled every W // align_width pixels"
+    )
+    align_min_fitness: float = Field(
+        0.3, ge=0, le=1, description="keyframe alignment: the least share of the keyframe's sampled points with a "
+        "model point within 1.5δ for the alignment to be kept (less: too little overlap, the keyframe keeps its pose)"
+    )
+    align_max_keyframes: int = Field(
+        1000, ge=1, description="keyframe alignment: depth clouds kept (about 40 kB each); beyond it the oldest are "
+        "dropped, the first keyframe's kept"
+    )
 
 
 class SensorConfig(StrictModel):

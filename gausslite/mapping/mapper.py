@@ -65,6 +65,7 @@ import torch
 
 from gausslite.datasets.base import Frame
 from gausslite.gaussians import GaussianMap
+from gausslite.mapping.alignment import AlignResult, KeyframeAligner
 from gausslite.mapping.budget import WallClock, WorkClock, WorkCost
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.detail import DetailCrop, DetailView, check_detail, cut_detail, detail_pad, detail_scale
@@ -108,6 +109,12 @@ class FrameStats:
     track_rot_deg: float = 0.0  #: keyframe placement: the tracked correction's rotation, degrees (rejected or not)
     track_trans_m: float = 0.0  #: keyframe placement: the tracked correction's translation, metres
     detail_px: int = 0  #: pixels (w × h) of the detail crop the keyframe stored (``detail``; 0: none)
+    #: keyframe alignment (``pose.align``): the aligned pose was kept (None: not aligned; False: the gates rejected it)
+    align_accepted: Optional[bool] = None
+    align_fitness: float = 0.0  #: keyframe alignment: share of the keyframe's sampled points with a correspondence
+    align_rot_deg: float = 0.0  #: keyframe alignment: the correction's rotation from its start pose, degrees
+    align_trans_m: float = 0.0  #: keyframe alignment: the correction's translation, metres
+    align_s: float = 0.0  #: keyframe alignment: wall time, seconds
 
 
 class Mapper:
@@ -147,7 +154,13 @@ class Mapper:
         # the per-keyframe corrections: refined with the map (pose.refine), set by keyframe placement
         # (pose.track_iters), or by a pose graph (apply_pose_corrections)
         self.poses: Optional[PoseRefiner] = (self._new_pose_record() if cfg.pose.refine or cfg.pose.track_iters
-                                             else None)
+                                             or cfg.pose.align != "off" else None)
+        pc = cfg.pose
+        #: keyframe alignment to the depth of the keyframes before it (``pose.align``), or None
+        self.aligner: Optional[KeyframeAligner] = (
+            KeyframeAligner(pc.align_voxel_m, pc.align_width, pc.align_min_fitness, pc.track_max_trans_m,
+                            pc.track_max_rot_deg, max_keyframes=pc.align_max_keyframes)
+            if pc.align != "off" else None)
         #: frame id → (4, 4) float64 pose each mapped frame came with (before any correction), the anchor frames
         self.input_poses: dict[int, np.ndarray] = {}
         #: ROI crops of the frames between keyframes (``roi_views``), drawn by ROI-phase iterations
@@ -423,7 +436,7 @@ class Mapper:
             for fr in between:
                 self.sensor.observe(fr)
         self.sensor.observe(frame)  # the camera's motion over this frame's exposure (motion blur, rolling shutter)
-        frame, placed = self._place_keyframe(
+        frame, placed, aligned = self._place_keyframe(
             frame, relevance, None if budget is None else t0 + cfg.pose.track_budget_frac * budget)
         exposure = self.sensor.exposure
         if exposure is not None:
@@ -451,6 +464,9 @@ class Mapper:
                         loss, active_iters, dstats, n_iters, unexplained=seeded.unexplained,
                         budget=int(self.strategy.budget or 0), n_evicted=seeded.n_evicted,
                         n_adopted=seeded.n_adopted, n_gap_seeds=seeded.n_gap_seeds)
+        if aligned is not None:
+            st.align_accepted, st.align_fitness, st.align_s = aligned.accepted, aligned.fitness, aligned.seconds
+            st.align_rot_deg, st.align_trans_m = aligned.rot_deg, aligned.trans_m
         if placed is not None:
             st.track_iters, st.track_accepted = placed.iters, placed.accepted
             st.track_rot_deg, st.track_trans_m = placed.rot_deg, placed.trans_m
@@ -459,28 +475,40 @@ class Mapper:
         self.stats.append(st)
         return st
 
-    def _place_keyframe(self, frame: Frame, relevance: Optional[np.ndarray],
-                        deadline: Optional[float]) -> tuple[Frame, Optional[TrackResult]]:
+    def _place_keyframe(self, frame: Frame, relevance: Optional[np.ndarray], deadline: Optional[float]
+                        ) -> tuple[Frame, Optional[TrackResult], Optional[AlignResult]]:
         """The pose a new keyframe seeds and trains at: its input pose with the correction it starts from (the latest
-        keyframe's under ``pose.init: inherit``; the first keyframe fixes the gauge), then, under
-        ``pose.track_iters``, placed against the frozen map (:class:`~gausslite.mapping.tracking.FrameTracker`,
-        stopped at ``deadline`` clock seconds when given). Records the input pose (:attr:`input_poses`) and the
-        correction (:attr:`poses`). Returns the frame at that pose and the tracker's result (None: not tracked)."""
+        keyframe's under ``pose.init: inherit``; the first keyframe fixes the gauge); under ``pose.align``, aligned
+        to the depth of the keyframes before it from the input pose times the latest keyframe's correction
+        (:class:`~gausslite.mapping.alignment.KeyframeAligner`; kept when it passes the gates); then, under
+        ``pose.track_iters``, placed against the frozen map (:class:`~gausslite.mapping.tracking.FrameTracker`). Both
+        stop at ``deadline`` clock seconds when given. Records the input pose (:attr:`input_poses`) and the
+        correction (:attr:`poses`), and stores the keyframe's depth cloud for the next alignments. Returns the frame
+        at that pose, the tracker's result and the alignment's (each None when it did not run)."""
         cfg = self.cfg
         fid = int(frame.frame_id)
         self.input_poses[fid] = np.asarray(frame.c2w, np.float64).copy()
         if self.poses is None:
-            return frame, None
+            return frame, None, None
         E0 = self.poses.initial_correction(fid) if cfg.pose.init == "inherit" else np.eye(4)
+        aligned = None
+        if self.aligner is not None and self.n_mapped > 0:
+            start = self.input_poses[fid] @ self.poses.initial_correction(fid)
+            aligned = self.aligner.align(frame, start, lambda k: self.pose_of(k, self.input_poses[k]), deadline,
+                                         self.clock.now)
+            if aligned.accepted:
+                E0 = np.linalg.inv(self.input_poses[fid]) @ aligned.c2w
         frame = dataclasses.replace(frame, c2w=self.input_poses[fid] @ E0)
         self.poses.register(fid, E0, fixed=self.n_mapped == 0)
+        if self.aligner is not None:
+            self.aligner.add(frame)
         if not (cfg.pose.track_iters and self.n_mapped > 0 and len(self.model)):
-            return frame, None
+            return frame, None, aligned
         res = self.tracker.track(frame, relevance, deadline)
         if res.accepted:
             self.poses.register(fid, np.linalg.inv(self.input_poses[fid]) @ res.c2w)
             frame = dataclasses.replace(frame, c2w=res.c2w.copy())
-        return frame, res
+        return frame, res, aligned
 
     def optimize(self, max_seconds: Optional[float] = None, n_iters: Optional[int] = None) -> int:
         """Keep optimising between keyframes (MVO over the stored keyframes; paper III-D.2).
@@ -537,6 +565,7 @@ class Mapper:
             "rng": self.rng.bit_generator.state,
             "pose_corrections": None if self.poses is None else self.poses.state_dict(),
             "input_poses": {k: v.copy() for k, v in self.input_poses.items()},
+            "alignment": None if self.aligner is None else self.aligner.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -561,3 +590,5 @@ class Mapper:
             self.poses.load_state_dict(state["pose_corrections"])
         self.input_poses = {int(k): np.asarray(v, np.float64).copy()
                             for k, v in (state.get("input_poses") or {}).items()}  # absent in older checkpoints
+        if self.aligner is not None and state.get("alignment"):  # absent in older checkpoints and without pose.align
+            self.aligner.load_state_dict(state["alignment"])
