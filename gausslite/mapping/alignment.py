@@ -129,6 +129,9 @@ class KeyframeAligner:
         self.max_trans_m, self.max_rot_deg, self.margin_m = float(max_trans_m), float(max_rot_deg), float(margin_m)
         self.max_keyframes = int(max_keyframes)
         self.clouds: Dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        from gausslite.datasets.pose_graph import open3d_module  # lazy: Open3D loads only for mappers that align
+
+        self._o3d = open3d_module()  # here, so that its import (about a second) is not taken from a keyframe's budget
 
     def __len__(self) -> int:
         return len(self.clouds)
@@ -140,9 +143,11 @@ class KeyframeAligner:
         """One point per ``voxel`` cell: the mean of its points and the normalised mean of their normals."""
         if len(pts) == 0:
             return pts, nrm
-        key = np.floor(pts / voxel).astype(np.int64)
-        _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        inv = inv.reshape(-1)
+        cell = np.floor(pts / voxel).astype(np.int64)
+        cell -= cell.min(0)
+        span = cell.max(0) + 1
+        key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]  # one integer per cell
+        _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
         p = np.zeros((len(count), 3))
         n = np.zeros((len(count), 3))
         np.add.at(p, inv, pts)
@@ -161,23 +166,25 @@ class KeyframeAligner:
             for fid in ids[1:len(ids) - self.max_keyframes + 1]:
                 del self.clouds[fid]
 
-    def _model(self, box_min: np.ndarray, box_max: np.ndarray,
-               pose_of: Callable[[int], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """World points and normals of the stored clouds that reach the box (one per voxel)."""
+    def _model(self, box_min: np.ndarray, box_max: np.ndarray, pose_of: Callable[[int], np.ndarray]):
+        """The stored clouds' points inside the box, in the world at their keyframes' poses now: an Open3D point cloud
+        with unit normals (None when no point is inside)."""
         P, N = [], []
         for fid, (pts, nrm) in self.clouds.items():
             if len(pts) == 0:
                 continue
             T = pose_of(fid)
             wp = pts @ T[:3, :3].T + T[:3, 3]
-            if np.any(wp.max(0) < box_min) or np.any(wp.min(0) > box_max):
-                continue
             inside = np.all((wp >= box_min) & (wp <= box_max), axis=1)
-            P.append(wp[inside])
-            N.append(nrm[inside] @ T[:3, :3].T)
+            if inside.any():
+                P.append(wp[inside])
+                N.append(nrm[inside] @ T[:3, :3].T)
         if not P:
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        return self._voxelised(np.concatenate(P), np.concatenate(N), self.voxel_m)
+            return None
+        o3d = self._o3d
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(P)))
+        cloud.normals = o3d.utility.Vector3dVector(np.concatenate(N))
+        return cloud  # one point per voxel per keyframe: where keyframes overlap, a point of each
 
     def align(self, frame: Frame, c2w: np.ndarray, pose_of: Callable[[int], np.ndarray],
               deadline: Optional[float] = None, clock: Callable[[], float] = time.perf_counter) -> AlignResult:
@@ -192,8 +199,6 @@ class KeyframeAligner:
         Returns:
             :class:`AlignResult` (not accepted, at ``c2w``, when there is no model yet or too little overlap).
         """
-        from gausslite.datasets.pose_graph import open3d_module  # lazy: Open3D loads only for missions that align
-
         t0 = time.perf_counter()
         start = np.asarray(c2w, np.float64)
         pts, _ = depth_cloud(frame, self._stride(frame))
@@ -201,16 +206,14 @@ class KeyframeAligner:
             return AlignResult(start.copy(), False, seconds=time.perf_counter() - t0)
         wp = pts @ start[:3, :3].T + start[:3, 3]
         grow = self.margin_m + self.max_trans_m
-        tp, tn = self._model(wp.min(0) - grow, wp.max(0) + grow, pose_of)
-        if len(tp) < 6:
+        tgt_all = self._model(wp.min(0) - grow, wp.max(0) + grow, pose_of)
+        if tgt_all is None or len(tgt_all.points) < 6:
             return AlignResult(start.copy(), False, seconds=time.perf_counter() - t0)
-        o3d = open3d_module()
+        o3d = self._o3d
         if o3d.utility.get_max_threads() != 1:
             o3d.utility.set_max_threads(1)  # a repeatable sum (module doc)
         reg = o3d.pipelines.registration
         src_all = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        tgt_all = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tp))
-        tgt_all.normals = o3d.utility.Vector3dVector(tn)
         T, result = start, None
         for i, (scale, iters) in enumerate(LEVELS):
             if i and deadline is not None and clock() >= deadline:
