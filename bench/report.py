@@ -507,6 +507,21 @@ def pose_perturbation_table(r: dict) -> str:
     return table(r["summary"]) + "\n"
 
 
+def ablation_live_table(r: dict) -> str:
+    """The paper's ablation live on real data (``bench/results/ablation_live.json``), as ``bench.ablation`` writes it."""
+    from bench.ablation import table  # lazy: the page's other regions need none of it
+
+    return typographic_minus(table(r)) + "\n"
+
+
+def faults_table(r: dict) -> str:
+    """The walk through TUM fr1's camera with one fault at a time (``bench/results/faults_live.json``), as
+    ``bench.faults`` writes it."""
+    from bench.faults import table  # lazy: the page's other regions need none of it
+
+    return typographic_minus(table(r)) + "\n"
+
+
 def throughput_table(r: dict) -> str:
     """Mapping iterations per second per case, this release against another commit when the run had one
     (``bench/results/throughput.json``)."""
@@ -1082,6 +1097,13 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "pose-perturbation-live": Region("bench/results/pose_perturbation_live.json", pose_perturbation_table),
     "pose-perturbation-live-walk": Region("bench/results/pose_perturbation_live_walk.json", pose_perturbation_table),
+    "pose-perturbation-live-walk-off": Region("bench/results/pose_perturbation_live_walk_off.json",
+                                              pose_perturbation_table),
+    "pose-perturbation-live-walk-align": Region("bench/results/pose_perturbation_live_walk_align.json",
+                                                pose_perturbation_table),
+    "ablation-live": Region("bench/results/ablation_live.json", ablation_live_table),
+    "faults-live": Region("bench/results/faults_live.json", faults_table),
+    "faults-live-handheld": Region("bench/results/faults_live_handheld.json", faults_table),
     "pose-perturbation-live-odometry": Region("bench/results/pose_perturbation_live_odometry.json",
                                               pose_perturbation_table),
     "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
@@ -1102,6 +1124,8 @@ REGIONS: Dict[str, Region] = {
     "realtime-region-05": Region("bench/results/realtime_region_05.json", realtime_protocol_table),
     "realtime-region-43a6a8d-15": Region("bench/results/realtime_region_43a6a8d_15.json", realtime_protocol_table),
     "realtime-tum-05": Region("bench/results/realtime_tum_05.json", realtime_protocol_table),
+    "realtime-tum-align": Region("bench/results/realtime_tum_align.json", realtime_protocol_table),
+    "realtime-tum-align-off": Region("bench/results/realtime_tum_align_off.json", realtime_protocol_table),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
     "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),

@@ -8,6 +8,10 @@ import logging
 
 log = logging.getLogger(__name__)
 
+#: ``gausslite.synthetic.SENSOR_NOISE``, named here so that the command line starts without loading the library
+SENSOR_NOISE_NAMES = ("none", "realistic", "tum", "tum-clean", "tum-exposure", "tum-blur", "tum-misregistration",
+                      "tum-depth-noise", "tum-depth-holes")
+
 
 def _handler(args: argparse.Namespace) -> int:
     """Run :func:`gausslite.synthetic.make_scene` with the parsed arguments; returns the exit code
@@ -47,11 +51,13 @@ def register(subparsers) -> None:
                         "room, for long missions (e.g. --frames 600, mapped with --stride 2); walk: a 7 m hand-held "
                         "walk, two loops in front of the desk (--frames 525 at 30 fps = 0.40 m/s); scan_walk: the "
                         "same walk looking around as it goes (about 52 degrees/s, as TUM fr1/rpy)")
-    p.add_argument("--sensor-noise", dest="sensor_noise", choices=["none", "realistic", "tum"], default="none",
+    p.add_argument("--sensor-noise", dest="sensor_noise", choices=SENSOR_NOISE_NAMES, default="none",
                    help="none: exact renders (default); realistic: Kinect-like depth noise and holes, motion blur, "
                         "rolling shutter, exposure changes and colour noise; tum: the Kinect v1 of TUM RGB-D fr1 as "
                         "measured (its field of view, disparity-quantised depth, holes, colour-depth misregistration "
-                        "and delay, exposure, blur and rolling shutter; seeded by --seed)")
+                        "and delay, exposure, blur and rolling shutter; seeded by --seed); tum-<fault>: one group of tum's faults "
+                        "alone on its camera (exposure, blur, misregistration, depth-noise, depth-holes; tum-clean: "
+                        "none)")
     p.add_argument("--fps", type=float, default=30.0,
                    help="frame rate of the sequence: the walk's clock and the sensor model's (default 30, the "
                         "rate the Replica loader replays it at)")

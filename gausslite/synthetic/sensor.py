@@ -46,6 +46,10 @@ fr1"). Besides other values for the parameters above it turns on (:mod:`gausslit
   Gaussian jitter ``depth_time_jitter_s`` per frame), rotated against the colour camera (``misregistration_*_mrad``:
   :func:`misregistration`), its rows read out over ``depth_readout_s`` (:func:`depth_render`).
 
+``"tum-<fault>"`` (:func:`tum_fault`) turns on one group of the ``"tum"`` level's faults alone
+(:data:`TUM_FAULTS`: ``exposure``, ``blur``, ``misregistration``, ``depth-noise``, ``depth-holes``) on its camera;
+``"tum-clean"`` is that camera with none (``python -m bench.faults`` maps each).
+
 Poses between frames (blur instants, shutter rows, the depth's delay) come from the trajectory by :func:`pose_at`
 (rotation slerp, translation linear interpolation, in fractional frame index at the writer's frame rate). All
 randomness is drawn from one seeded generator per agent, so equal arguments give byte-identical files; a part that
@@ -55,7 +59,7 @@ is off draws nothing, so the ``"realistic"`` level's files are those it wrote be
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Optional, Tuple
 
 import cv2
@@ -67,7 +71,8 @@ from gausslite.synthetic.raycast import RenderResult, camera_rays, render
 from gausslite.synthetic.scene import Scene
 
 #: names accepted by ``make_scene(sensor_noise=...)`` / ``make-scene --sensor-noise``
-SENSOR_NOISE = ("none", "realistic", "tum")
+SENSOR_NOISE = ("none", "realistic", "tum", "tum-clean", "tum-exposure", "tum-blur", "tum-misregistration",
+                "tum-depth-noise", "tum-depth-holes")
 
 
 @dataclass(frozen=True)
@@ -171,13 +176,52 @@ TUM_FR1 = SensorErrorModel(
     fx_per_width=546.75 / 640, fy_per_height=543.09 / 480,
 )
 
+#: :data:`TUM_FR1`'s faults, each group of its fields alone: the walk rendered with one of them (``tum-<fault>``)
+#: against the same camera without any (``tum-clean``) tells what that fault of a real sensor costs the map
+TUM_FAULTS = {
+    "exposure": ("gain_log_std", "white_balance_std", "offset_std", "exposure_smooth_s"),
+    "blur": ("exposure_s", "readout_s", "max_blur_samples"),  # the colour camera's motion blur and rolling shutter
+    # the depth camera registered off the colour camera, in angle and in time
+    "misregistration": ("misregistration_x_mrad", "misregistration_y_mrad", "depth_time_offset_s",
+                        "depth_time_jitter_s", "depth_readout_s"),
+    "depth-noise": ("depth_sigma_a", "depth_sigma_b", "depth_sigma_z0", "depth_sigma_angle", "depth_noise_corr_px",
+                    "depth_quant_per_m"),
+    # holes (grazing angles, blobs, dark surfaces, border bands, shadows) and flying pixels at depth edges
+    "depth-holes": ("grazing_start_deg", "grazing_full_deg", "edge_jump_m", "edge_jump_rel", "edge_drop_p",
+                    "blob_fraction", "speckle_fraction", "dark_dropout", "shadow_p", "shadow_mean_px", "flying_p",
+                    "border_top", "border_bottom", "border_left", "border_right"),
+}
+#: TUM fr1's camera without any of its faults: exact colour and depth (within its 0.4-5 m range) through its lens
+TUM_CLEAN = SensorErrorModel(
+    depth_sigma_a=0.0, depth_sigma_b=0.0, depth_sigma_angle=0.0, grazing_start_deg=90.0, grazing_full_deg=91.0,
+    edge_drop_p=0.0, blob_fraction=0.0, speckle_fraction=0.0, exposure_s=0.0, readout_s=0.0, gain_log_std=0.0,
+    white_balance_std=0.0, offset_std=0.0, read_noise=0.0, shot_noise=0.0,
+    fx_per_width=TUM_FR1.fx_per_width, fy_per_height=TUM_FR1.fy_per_height,
+)
+
+
+def tum_fault(name: str) -> SensorErrorModel:
+    """:data:`TUM_CLEAN` with one fault of :data:`TUM_FR1` (a :data:`TUM_FAULTS` name; ``"clean"``: none).
+
+    Raises:
+        ValueError: an unknown fault.
+    """
+    if name == "clean":
+        return TUM_CLEAN
+    if name not in TUM_FAULTS:
+        raise ValueError(f"unknown fault {name!r}; expected clean or one of {tuple(TUM_FAULTS)}")
+    return replace(TUM_CLEAN, **{f: getattr(TUM_FR1, f) for f in TUM_FAULTS[name]})
+
+
 #: the levels of ``make_scene(sensor_noise=...)``: None = exact renders
-SENSOR_LEVELS = {"none": None, "realistic": SensorErrorModel(), "tum": TUM_FR1}
+SENSOR_LEVELS = {"none": None, "realistic": SensorErrorModel(), "tum": TUM_FR1,
+                 **{f"tum-{f}": tum_fault(f) for f in ("clean", *TUM_FAULTS)}}
 
 
 def sensor_model(name: str) -> Optional[SensorErrorModel]:
     """The model named ``name``: None for ``"none"``, the default :class:`SensorErrorModel` for ``"realistic"``,
-    :data:`TUM_FR1` for ``"tum"``.
+    :data:`TUM_FR1` for ``"tum"``, one of its faults alone for ``"tum-<fault>"`` (:func:`tum_fault`; ``"tum-clean"``:
+    its camera without any).
 
     Raises:
         ValueError: an unknown name.

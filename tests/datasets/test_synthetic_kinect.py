@@ -174,3 +174,40 @@ def test_cli_selects_the_tum_sensor(tmp_path: Path) -> None:
     assert main(["make-scene", "--out", str(out), "--width", "32", "--height", "24", "--frames", "2",
                  "--trajectory", "walk", "--sensor-noise", "tum", "--agents", "agent_a", "--quiet"]) == 0
     assert json.loads((out / "scene.json").read_text())["sensor_noise"] == "tum"
+
+
+def test_each_tum_fault_alone_on_the_clean_tum_camera(tmp_path: Path) -> None:
+    from gausslite.cli.cmd_make_scene import SENSOR_NOISE_NAMES
+    from gausslite.synthetic import SENSOR_NOISE
+    from gausslite.synthetic.sensor import TUM_CLEAN, TUM_FAULTS, tum_fault
+
+    assert SENSOR_NOISE_NAMES == SENSOR_NOISE  # the command line offers every level
+    groups = [f for fields in TUM_FAULTS.values() for f in fields]
+    assert len(groups) == len(set(groups))  # each field in one fault
+    for name, fields in TUM_FAULTS.items():
+        m = sensor_model(f"tum-{name}")
+        assert m == tum_fault(name)
+        for f in dataclasses.fields(SensorErrorModel):
+            want = getattr(TUM_FR1 if f.name in fields else TUM_CLEAN, f.name)
+            assert getattr(m, f.name) == want, (name, f.name)
+    # the clean camera renders exact depth and colour through TUM's lens
+    scene = build_default_scene(SEED)
+    intr = sensor_intrinsics(TUM_CLEAN, 64, 48)
+    assert intr.fx == pytest.approx(64 * 546.75 / 640)
+    P = make_trajectories(40, SEED, "walk")["agent_a"]
+    exact = render(scene, intr, P[20])
+    r, c2w = depth_render(scene, intr, P, 20, 30.0, TUM_CLEAN, np.random.default_rng(0))
+    d = depth_with_errors(r, intr, c2w, TUM_CLEAN, np.random.default_rng(1))
+    inside = (exact.depth >= TUM_CLEAN.depth_min_m) & (exact.depth <= TUM_CLEAN.depth_max_m)
+    np.testing.assert_array_equal(d[inside], exact.depth[inside])
+    assert np.all(d[~inside] == 0)
+    with pytest.raises(ValueError, match="unknown fault"):
+        tum_fault("lens-flare")
+    from gausslite.cli import main
+
+    out = tmp_path / "fault"
+    assert main(["make-scene", "--out", str(out), "--width", "32", "--height", "24", "--frames", "2",
+                 "--trajectory", "walk", "--sensor-noise", "tum-exposure", "--agents", "agent_a", "--quiet"]) == 0
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["sensor_noise"] == "tum-exposure" and meta["sensor_model"]["gain_log_std"] == TUM_FR1.gain_log_std
+    assert meta["sensor_model"]["exposure_s"] == 0.0
