@@ -1102,6 +1102,7 @@ REGIONS: Dict[str, Region] = {
     "pose-perturbation-live-walk-align": Region("bench/results/pose_perturbation_live_walk_align.json",
                                                 pose_perturbation_table),
     "ablation-live": Region("bench/results/ablation_live.json", ablation_live_table),
+    "ablation-walk-live": Region("bench/results/ablation_walk_live.json", ablation_live_table),
     "faults-live": Region("bench/results/faults_live.json", faults_table),
     "faults-live-handheld": Region("bench/results/faults_live_handheld.json", faults_table),
     "pose-perturbation-live-odometry": Region("bench/results/pose_perturbation_live_odometry.json",
