@@ -62,17 +62,29 @@ def row_overrides(switches: dict) -> list[str]:
     return [f"mapper.components.{s}={'true' if switches[s] else 'false'}" for s in SWITCHES]
 
 
-def _figures(run: dict) -> tuple:
-    """(ROI PSNR, PSNR, per-frame ROI PSNR) of one scored run under :data:`PROTOCOL`."""
-    p = current_protocols(run.get("protocols")).get(PROTOCOL) or {}
+def _entry(run: dict) -> dict:
+    """A scored ``bench.realtime`` run's :data:`PROTOCOL` entry ({} when it has none)."""
+    return current_protocols(run.get("protocols")).get(PROTOCOL) or {}
+
+
+def figures(run: dict) -> tuple:
+    """(ROI PSNR, PSNR, per-frame ROI PSNR) of one scored ``bench.realtime`` run under :data:`PROTOCOL`."""
+    p = _entry(run)
     return p.get("roi_psnr"), p.get("psnr"), p.get("roi_psnr_per_frame")
 
 
-def _paired(a: list, b: list) -> Optional[dict]:
-    """Row ``a`` − row ``b`` (their runs, paired by seed): :func:`paired_gain` over the per-frame ROI PSNR."""
+def kept_protocol(run: dict) -> dict:
+    """What a result keeps of a scored run's scores: ``{PROTOCOL: {roi_psnr, psnr, roi_psnr_per_frame, pose}}``."""
+    p = _entry(run)
+    return {PROTOCOL: {k: p.get(k) for k in ("roi_psnr", "psnr", "roi_psnr_per_frame", "pose")}}
+
+
+def paired(a: list, b: list) -> Optional[dict]:
+    """Runs ``a`` − runs ``b`` (paired by run id): :func:`paired_gain` over the per-frame ROI PSNR, as ``{gain, ci,
+    runs, interval}``; None without a pair or with a run lacking its per-frame figures."""
     by_b = {r["run"]: r for r in b}
     pairs = [(r, by_b[r["run"]]) for r in a if r["run"] in by_b]
-    fa, fb = [_figures(x)[2] for x, _ in pairs], [_figures(y)[2] for _, y in pairs]
+    fa, fb = [figures(x)[2] for x, _ in pairs], [figures(y)[2] for _, y in pairs]
     if not pairs or any(f is None for f in fa + fb):
         return None
     g = paired_gain(fa, fb)
@@ -85,21 +97,22 @@ def summarise(by_row: dict) -> dict:
     names = [n for n, _ in rows() if n in by_row]
     progressive = [n for n in names if not n.startswith("full-")]
     for name in names:
-        rs = [r for r in by_row[name] if _figures(r)[0] is not None]
-        blk = aggregate([{"roi_psnr": _figures(r)[0], "psnr": _figures(r)[1]} for r in rs], ["roi_psnr", "psnr"])
+        rs = [r for r in by_row[name] if figures(r)[0] is not None]
+        blk = aggregate([{"roi_psnr": figures(r)[0], "psnr": figures(r)[1]} for r in rs], ["roi_psnr", "psnr"])
         blk["runs"] = len(rs)
         if name.startswith("full-") and FULL in by_row:
-            blk["vs_full"] = _paired(rs, by_row[FULL])  # negative: the component pays
+            blk["vs_full"] = paired(rs, by_row[FULL])  # negative: the component pays
         elif name in progressive and progressive.index(name) > 0:
-            blk["step"] = _paired(rs, by_row[progressive[progressive.index(name) - 1]])
+            blk["step"] = paired(rs, by_row[progressive[progressive.index(name) - 1]])
         if name != "none" and "none" in by_row:
-            blk["vs_none"] = _paired(rs, by_row["none"])
+            blk["vs_none"] = paired(rs, by_row["none"])
         blk["paper_campus"] = PAPER_CAMPUS.get(name)
         out[name] = blk
     return out
 
 
-def _cell(d: Optional[dict]) -> str:
+def gain_cell(d: Optional[dict]) -> str:
+    """A :func:`paired` difference as a table cell: ``+0.58 [+0.48, +0.69]*`` (* the interval excludes zero)."""
     if not d or d.get("gain") is None:
         return ""
     lo, hi = d["ci"]
@@ -120,8 +133,8 @@ def table(result: dict) -> str:
             roi = "" if r.get("roi_psnr") is None else f"{r['roi_psnr']:.2f} ± {r['roi_psnr_std'] or 0:.2f}"
             psnr = "" if r.get("psnr") is None else f"{r['psnr']:.2f} ± {r['psnr_std'] or 0:.2f}"
             paper = "" if r["paper_campus"] is None else f"{r['paper_campus']:.2f}"
-            lines.append(f"| {scene} | {name} | {roi} | {psnr} | {_cell(r.get('step'))} | {_cell(r.get('vs_none'))} "
-                         f"| {_cell(r.get('vs_full'))} | {paper} |")
+            lines.append(f"| {scene} | {name} | {roi} | {psnr} | {gain_cell(r.get('step'))} "
+                         f"| {gain_cell(r.get('vs_none'))} | {gain_cell(r.get('vs_full'))} | {paper} |")
     return "\n".join(lines)
 
 
@@ -165,9 +178,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                                                                                str(args.jobs)]):
             return 1
         for r in json.loads((args.work / f"{name}.json").read_text())["runs"]:
-            entry = current_protocols(r.get("protocols")).get(PROTOCOL) or {}
             kept = {k: r.get(k) for k in RUN_FIELDS}
-            kept["protocols"] = {PROTOCOL: {k: entry.get(k) for k in ("roi_psnr", "psnr", "roi_psnr_per_frame", "pose")}}
+            kept["protocols"] = kept_protocol(r)
             runs.setdefault(r["scene"], {}).setdefault(name, []).append(kept)
     result = {"settings": {"budget": args.budget, "runs": args.runs, "rows": chosen, "protocol": PROTOCOL,
                            "overrides": args.overrides, "scenes": args.scenes if not args.dataset else None,

@@ -33,18 +33,17 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from gausslite.evaluation import current_protocols
-from gausslite.stats import aggregate, paired_gain
-from gausslite.synthetic import make_scene
 from gausslite.mapping.profiles import HANDHELD
+from gausslite.stats import aggregate
+from gausslite.synthetic import make_scene
 from gausslite.synthetic.sensor import TUM_FAULTS
 
 from bench import realtime
 from bench._results import write_results
+from bench.ablation import PROTOCOL, figures, gain_cell, kept_protocol, paired
 
 #: the rows: no fault, each fault alone, all of them (the ``tum`` level)
 FAULTS = ("clean", *TUM_FAULTS, "all")
-PROTOCOL = "novel"
 TASK = "synth-pick-object"
 #: the walk every row renders (``make_scene`` arguments)
 WALK = {"frames": 525, "width": 320, "height": 240, "trajectory": "walk", "seed": 0}
@@ -66,30 +65,20 @@ def walk_path(fault: str, work: Path, walk: Optional[dict] = None) -> Path:
     return out / "agent_a"
 
 
-def _figures(run: dict) -> tuple:
-    """(ROI PSNR, PSNR, per-frame ROI PSNR) of one scored run under :data:`PROTOCOL`."""
-    p = current_protocols(run.get("protocols")).get(PROTOCOL) or {}
-    return p.get("roi_psnr"), p.get("psnr"), p.get("roi_psnr_per_frame")
-
-
 def summarise(runs: list[dict]) -> dict:
     """One row's figures from its scored ``bench.realtime`` runs (both modes)."""
     out: dict = {}
     by_mode: dict = {}
     for r in runs:
-        if _figures(r)[0] is not None and r.get("end_state", "FINISHED") == "FINISHED":
-            by_mode.setdefault(r["mode"], {})[r["run"]] = r
+        if figures(r)[0] is not None and r.get("end_state", "FINISHED") == "FINISHED":
+            by_mode.setdefault(r["mode"], []).append(r)
     for mode, rs in by_mode.items():
-        blk = aggregate([{"roi_psnr": _figures(r)[0], "psnr": _figures(r)[1]} for r in rs.values()],
-                        ["roi_psnr", "psnr"])
+        blk = aggregate([{"roi_psnr": figures(r)[0], "psnr": figures(r)[1]} for r in rs], ["roi_psnr", "psnr"])
         out[mode] = {**blk, "runs": len(rs),
-                     "iters_per_keyframe": sum(r.get("iters_per_keyframe") or 0 for r in rs.values()) / len(rs)}
-    g, u = by_mode.get("gausslite", {}), by_mode.get("uniform", {})
-    paired = sorted(set(g) & set(u))
-    if paired:
-        pg = paired_gain([_figures(g[k])[2] for k in paired], [_figures(u[k])[2] for k in paired])
-        out["gain"] = {"gain": pg["gain"], "ci": [pg["ci_low"], pg["ci_high"]], "runs": pg["runs"],
-                       "interval": pg["interval"]}
+                     "iters_per_keyframe": sum(r.get("iters_per_keyframe") or 0 for r in rs) / len(rs)}
+    gain = paired(by_mode.get("gausslite", []), by_mode.get("uniform", []))
+    if gain is not None:
+        out["gain"] = gain
     return out
 
 
@@ -110,12 +99,8 @@ def table(result: dict) -> str:
 
     for fault, row in result["rows"].items():
         u, g, d = row.get("uniform"), row.get("gausslite"), row.get("gain")
-        gain = kept = ""
-        if d and d.get("gain") is not None:
-            lo, hi = d["ci"]
-            star = "*" if lo is not None and (lo > 0 or hi < 0) else ""
-            gain = f"{d['gain']:+.2f} [{lo:+.2f}, {hi:+.2f}]{star}" if lo is not None else f"{d['gain']:+.2f}"
-            kept = f"{100 * d['gain'] / clean:.0f} %" if clean else ""
+        gain = gain_cell(d)
+        kept = f"{100 * d['gain'] / clean:.0f} %" if gain and clean else ""
         iters = (f"{u['iters_per_keyframe']:.1f} / {g['iters_per_keyframe']:.1f}" if u and g else "")
         lines.append(f"| {fault} | {cell(u, 'roi_psnr')} | {cell(g, 'roi_psnr')} | {gain} | {kept} "
                      f"| {cell(u, 'psnr')} | {cell(g, 'psnr')} | {iters} |")
@@ -127,7 +112,8 @@ def profile_overrides(name: str) -> list[str]:
     (:mod:`gausslite.mapping.profiles`; ``rendered``: the walk's own, none), e.g. ``handheld``: TUM's."""
     if name == "rendered":
         return []
-    profile = {HANDHELD.name: HANDHELD}[name]
+    if name != HANDHELD.name:
+        raise ValueError(f"unknown profile {name!r} (rendered or {HANDHELD.name})")
 
     def flat(d: dict, prefix: str) -> list[str]:
         out = []
@@ -138,7 +124,7 @@ def profile_overrides(name: str) -> list[str]:
                 out.append(f"{prefix}{k}={str(v).lower() if isinstance(v, bool) else v}")
         return out
 
-    return flat(profile.mapper, "mapper.")
+    return flat(HANDHELD.mapper, "mapper.")
 
 
 def _realtime_args(args: argparse.Namespace, fault: str, path: Path) -> list[str]:
@@ -188,9 +174,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         rows[f] = summarise(runs)
         kept_runs[f] = [{"mode": r["mode"], "run": r["run"], "end_state": r.get("end_state"),
                          "iters_per_keyframe": r.get("iters_per_keyframe"), "keyframes": r.get("keyframes"),
-                         "mapping_downscale": r.get("mapping_downscale"),
-                         "protocols": {PROTOCOL: {k: (current_protocols(r.get("protocols")).get(PROTOCOL) or {}).get(k)
-                                                  for k in ("roi_psnr", "psnr", "roi_psnr_per_frame", "pose")}}}
+                         "mapping_downscale": r.get("mapping_downscale"), "protocols": kept_protocol(r)}
                         for r in runs]
     result = {"settings": {"budget": args.budget, "runs": args.runs, "faults": chosen, "protocol": PROTOCOL,
                            "task": TASK, "cap": args.cap, "walk": walk, "profile": args.profile,

@@ -129,6 +129,9 @@ class KeyframeAligner:
         self.max_trans_m, self.max_rot_deg, self.margin_m = float(max_trans_m), float(max_rot_deg), float(margin_m)
         self.max_keyframes = int(max_keyframes)
         self.clouds: Dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        #: frame id → (8, 3) corners of its cloud's box in its camera frame (a cloud whose box, placed at its pose,
+        #: misses a keyframe's view is passed over without moving its points)
+        self._corners: Dict[int, np.ndarray] = {}
         from gausslite.datasets.pose_graph import open3d_module  # lazy: Open3D loads only for mappers that align
 
         self._o3d = open3d_module()  # here, so that its import (about a second) is not taken from a keyframe's budget
@@ -157,14 +160,23 @@ class KeyframeAligner:
         keep = norm > 1e-6
         return p[keep], n[keep] / norm[keep][:, None]
 
+    def _store(self, fid: int, pts: np.ndarray, nrm: np.ndarray) -> None:
+        """Keep a cloud and its box's corners."""
+        self.clouds[fid] = (pts, nrm)
+        if len(pts):
+            lo, hi = pts.min(0), pts.max(0)
+            self._corners[fid] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                           for z in (lo[2], hi[2])])
+
     def add(self, frame: Frame) -> None:
         """Store a mapped keyframe's cloud (its camera frame; placed at its pose when a later keyframe aligns)."""
         pts, nrm = depth_cloud(frame, self._stride(frame))
-        self.clouds[int(frame.frame_id)] = self._voxelised(pts, nrm, self.voxel_m)
+        self._store(int(frame.frame_id), *self._voxelised(pts, nrm, self.voxel_m))
         if len(self.clouds) > self.max_keyframes:
             ids = sorted(self.clouds)
             for fid in ids[1:len(ids) - self.max_keyframes + 1]:
                 del self.clouds[fid]
+                self._corners.pop(fid, None)
 
     def _model(self, box_min: np.ndarray, box_max: np.ndarray, pose_of: Callable[[int], np.ndarray]):
         """The stored clouds' points inside the box, in the world at their keyframes' poses now: an Open3D point cloud
@@ -174,6 +186,9 @@ class KeyframeAligner:
             if len(pts) == 0:
                 continue
             T = pose_of(fid)
+            box = self._corners[fid] @ T[:3, :3].T + T[:3, 3]
+            if np.any(box.max(0) < box_min) or np.any(box.min(0) > box_max):
+                continue  # no point of it can be inside
             wp = pts @ T[:3, :3].T + T[:3, 3]
             inside = np.all((wp >= box_min) & (wp <= box_max), axis=1)
             if inside.any():
@@ -239,11 +254,6 @@ class KeyframeAligner:
         return AlignResult(T.copy() if ok else start.copy(), bool(ok), fitness, rmse, rot, trans,
                            time.perf_counter() - t0)
 
-    def forget(self, frame_ids) -> None:
-        """Drop stored clouds (frames no longer in the map)."""
-        for fid in frame_ids:
-            self.clouds.pop(int(fid), None)
-
     def state_dict(self) -> dict:
         """Plain-data copy for checkpoints: ``{"clouds": {frame id: (points, normals) float32}}``."""
         return {"clouds": {k: (p.astype(np.float32), n.astype(np.float32)) for k, (p, n) in self.clouds.items()}}
@@ -260,7 +270,9 @@ class KeyframeAligner:
             if p.ndim != 2 or p.shape[1:] != (3,) or p.shape != n.shape:
                 raise ValueError(f"keyframe {fid}'s alignment cloud has shapes {p.shape} and {n.shape}")
             clouds[int(fid)] = (p, n)
-        self.clouds = clouds
+        self.clouds, self._corners = {}, {}
+        for fid, (p, n) in clouds.items():
+            self._store(fid, p, n)
 
 
 __all__ = ["KeyframeAligner", "AlignResult", "depth_cloud", "LEVELS"]

@@ -490,10 +490,11 @@ class Mapper:
         self.input_poses[fid] = np.asarray(frame.c2w, np.float64).copy()
         if self.poses is None:
             return frame, None, None
-        E0 = self.poses.initial_correction(fid) if cfg.pose.init == "inherit" else np.eye(4)
+        latest = self.poses.initial_correction(fid)
+        E0 = latest if cfg.pose.init == "inherit" else np.eye(4)
         aligned = None
         if self.aligner is not None and self.n_mapped > 0:
-            start = self.input_poses[fid] @ self.poses.initial_correction(fid)
+            start = self.input_poses[fid] @ latest
             aligned = self.aligner.align(frame, start, lambda k: self.pose_of(k, self.input_poses[k]), deadline,
                                          self.clock.now)
             if aligned.accepted:

@@ -70,11 +70,6 @@ from gausslite.synthetic import kinect
 from gausslite.synthetic.raycast import RenderResult, camera_rays, render
 from gausslite.synthetic.scene import Scene
 
-#: names accepted by ``make_scene(sensor_noise=...)`` / ``make-scene --sensor-noise``
-SENSOR_NOISE = ("none", "realistic", "tum", "tum-clean", "tum-exposure", "tum-blur", "tum-misregistration",
-                "tum-depth-noise", "tum-depth-holes")
-
-
 @dataclass(frozen=True)
 class SensorErrorModel:
     """Parameters of the sensor error model (module docstring; lengths in metres, times in seconds, angles in
@@ -216,6 +211,8 @@ def tum_fault(name: str) -> SensorErrorModel:
 #: the levels of ``make_scene(sensor_noise=...)``: None = exact renders
 SENSOR_LEVELS = {"none": None, "realistic": SensorErrorModel(), "tum": TUM_FR1,
                  **{f"tum-{f}": tum_fault(f) for f in ("clean", *TUM_FAULTS)}}
+#: names accepted by ``make_scene(sensor_noise=...)`` / ``make-scene --sensor-noise``
+SENSOR_NOISE = tuple(SENSOR_LEVELS)
 
 
 def sensor_model(name: str) -> Optional[SensorErrorModel]:
