@@ -1,8 +1,7 @@
 """How a benchmark records the missions it ran, and what it does when one failed.
 
 The rule, for every benchmark that runs live agent missions (``bench.realtime`` and the benchmarks built on it,
-``bench.pose_perturbation --mode live``, ``bench.team``, ``bench.cross_scoring``, ``bench.compute_sweep``,
-``bench.soak``, ``bench.ingest``; ``bench.detail_live`` reads ``bench.realtime`` results):
+``bench.pose_perturbation --mode live``, ``bench.team``):
 
 - **Every run records how its mission ended** (:func:`mission_outcome`): ``end_state`` (the
   :class:`~gausslite.mission.state.MissionState` name, ``"FINISHED"`` for a mission that ended well), ``error`` (the

@@ -149,7 +149,7 @@ def write_results(out: Path, module: str, argv: Optional[Sequence[str]], details
 
     Args:
         out: the JSON path (its folder is created).
-        module: the bench module's name (``sim_seeds``).
+        module: the bench module's name (``team_map``).
         argv: the arguments the bench ran with (None: ``sys.argv[1:]``).
         details: text right after the command's closing backtick.
         md: the Markdown table.

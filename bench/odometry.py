@@ -1,4 +1,4 @@
-"""Tracking error and cost of the RGB-D odometry (``gausslite.datasets.odometry``), the pose source of input without
+"""Tracking error and cost of the RGB-D odometry (``gausslite.odometry.rgbd``), the pose source of input without
 poses (docs/mapper.md, "Poses from odometry").
 
 Per sequence, at the mapping resolution of ``bench.realtime``'s scenes:
@@ -33,7 +33,7 @@ registering against the previous frame only), ``no_loops`` (the shipped settings
 ``no_relocalisation`` (without re-localisation), and the registration's residuals: ``open3d_huber`` (Open3D's own
 photometric Huber threshold, 0.1, instead of 0.5), ``photometric`` (the colour term alone) and ``geometric``
 (point-to-plane alone); and how a loop candidate is registered (``loop.registration``, gates 2-3 of
-``gausslite.datasets.pose_graph``): ``hybrid_loops`` (the tracker's own RGB-D registration), ``point_to_plane_loops``
+``gausslite.odometry.pose_graph``): ``hybrid_loops`` (the tracker's own RGB-D registration), ``point_to_plane_loops``
 (the same with its depth term alone) and ``fine_icp_loops`` (the default ICP on every depth point, up to 30 iterations
 per level, instead of one point per 4 cm voxel and 15); and which loops get through: ``no_basin`` (without gate 3's
 restarts along the least-pinned direction, ``loop.basin_m``) and ``two_candidates_no_basin`` (that, with 2 loop
@@ -81,7 +81,7 @@ from tqdm import tqdm
 from bench._results import write_results
 from gausslite.stats import fmt, mean_std
 from gausslite.datasets import load_dataset
-from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
+from gausslite.odometry.rgbd import OdometryConfig, RGBDOdometry
 from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg, rpe
 from gausslite.synthetic import make_scene
 
@@ -96,7 +96,7 @@ VARIANTS = {"default": {}, "mapping_resolution": {"track_width": None},
             # the registration's residuals: Open3D's own Huber threshold on the photometric term, and each term alone
             "open3d_huber": {"intensity_huber_delta": 0.1}, "photometric": {"method": "color"},
             "geometric": {"method": "point_to_plane"},
-            # how a loop candidate is registered and verified (gates 2-3 of gausslite.datasets.pose_graph)
+            # how a loop candidate is registered and verified (gates 2-3 of gausslite.odometry.pose_graph)
             "hybrid_loops": {"loop": {"registration": "hybrid"}},
             "point_to_plane_loops": {"loop": {"registration": "point_to_plane"}},
             "fine_icp_loops": {"loop": {"icp_voxel_m": None, "icp_iterations": 30, "icp_relative_change": 1e-6}},
@@ -399,7 +399,7 @@ def loop_accuracy(frames: list, registrations=LOOP_REGISTRATIONS) -> dict:
         ``{"candidates": n, "init": stats, <registration>: stats}``, ``stats`` = ``{"median_cm", "median_deg",
         "within_2cm", "within_3cm", "ms_median"}`` (``within_*``: candidates within 2 / 3 cm of the truth).
     """
-    from gausslite.datasets import loop_closing, pose_graph  # noqa: PLC0415 - only this measurement wraps them
+    from gausslite.odometry import loop_closing, pose_graph  # noqa: PLC0415 - only this measurement wraps them
 
     truth = {int(f.frame_id): f.c2w for f in frames}
     errs: dict = {k: [] for k in ("init", *registrations)}

@@ -420,7 +420,7 @@ def pose_gains_table(r: dict) -> str:
 
 
 def solvers_table(r: dict) -> str:
-    """Open3D's and gtsam's pose-graph solutions (``bench/results/pose_graph_solvers.json``)."""
+    """Open3D's and gtsam's pose-graph solutions (``bench/results/history/pose_graph_solvers.json``)."""
     rows = ["| sequence | keyframes | loops | chained (cm) | Open3D (cm) | gtsam (cm) | Open3D (ms) | gtsam (ms) |",
             "|---|---|---|---|---|---|---|---|"]
     for seq, name in ODOMETRY_SEQUENCES.items():
@@ -484,20 +484,64 @@ def odometry_live_table(r: dict) -> str:
     return live_table(r["live"]) + "\n"
 
 
+#: the scores of ``gausslite map``'s time-budget runs (``bench/results/history/map_budget.json``)
+MAP_BUDGET_SCORES = ("psnr", "roi_psnr", "heldout_psnr", "heldout_roi_psnr")
+
+
 def map_budget_table(r: dict) -> str:
-    """Offline ``gausslite map`` under its time budget against the fixed schedule (``bench/results/map_budget.json``)."""
-    import argparse
+    """Offline ``gausslite map`` under its time budget against the fixed schedule
+    (``bench/results/history/map_budget.json``)."""
+    from gausslite.stats import fmt  # lazy: the page's other regions need none of it
 
-    from bench.map_budget import table  # lazy: the page's other regions need none of it
+    agg, sub = r["summary"], min(r["fixed_frames"], r["frames"])
+    lines = ["| run | frames | wall (s) | wall for all frames (s) | keyframes | iters / keyframe | ATE (cm) | PSNR | "
+             "ROI PSNR | held-out PSNR | held-out ROI PSNR |\n|---|---|---|---|---|---|---|---|---|---|---|"]
+    for config, n in (("budget", r["frames"]), ("budget_subset", sub), ("fixed", sub)):
+        a = agg[config]
 
-    return table(r["summary"], argparse.Namespace(frames=r["frames"], fixed_frames=r["fixed_frames"])) + "\n"
+        def cell(k, d=2, scale=1.0):
+            m, s = a[k]["mean"], a[k]["std"]
+            return fmt(None if m is None else m * scale, None if s is None else s * scale, d)
+
+        extra = " (extrapolated)" if config == "fixed" else ""
+        lines.append(f"| {config} | {n} | {cell('wall_s', 0)} | {cell('wall_s_all_frames', 0)}{extra} | "
+                     f"{cell('n_keyframes', 0)} | {cell('iters_per_keyframe', 1)} | {cell('ate_m', 2, 100.0)} | "
+                     f"{cell('psnr')} | {cell('roi_psnr')} | {cell('heldout_psnr')} | {cell('heldout_roi_psnr')} |")
+    g = agg["budget_subset_minus_fixed"]
+    lines.append("\nbudget_subset − fixed (paired by seed, dB): " + ", ".join(
+        f"{k} {fmt(g[k].get('gain'), g[k].get('gain_std'))}" for k in MAP_BUDGET_SCORES))
+    return "\n".join(lines) + "\n"
+
+
+def _plain_gain(g: dict) -> str:
+    ci, m = g.get("gain_ci") or g.get("ci"), g.get("gain", g.get("mean"))
+    return f"{m:+.2f}" + ("" if ci is None else f" [{ci[0]:+.2f}, {ci[1]:+.2f}]")
 
 
 def detail_live_table(r: dict) -> str:
-    """Live missions with and without the task region's own resolution (``bench/results/detail_live.json``)."""
-    from bench.detail_live import table  # lazy: the page's other regions need none of it
+    """Live missions with and without the task region's own resolution, per cell
+    (``bench/results/history/detail_live.json``)."""
+    from bench._missions import FAILED_MARK, failed_note  # lazy: the page's other regions need none of it
+    from gausslite.stats import fmt
 
-    return table(r["cells"]) + "\n"
+    rows = ["| cell | scene | uniform ROI PSNR | GaussLite ROI PSNR, one resolution / detail | GaussLite iters per "
+            "keyframe, one / detail | GaussLite mapped at, one / detail | gain, one resolution | gain, detail | "
+            "detail − one |", "|---|---|---|---|---|---|---|---|---|"]
+    for cell, scenes in r["cells"].items():
+        for scene, v in scenes.items():
+            o, n = v["off"], v["on"]
+            mark = f" {FAILED_MARK}" if v.get("failed_runs") else ""
+            rows.append(
+                f"| {cell} | {scene}{mark} | {o['roi_psnr']['uniform']:.2f} / {n['roi_psnr']['uniform']:.2f} | "
+                f"{o['roi_psnr']['gausslite']:.2f} / {n['roi_psnr']['gausslite']:.2f} | "
+                f"{fmt(o['gausslite']['iters_per_keyframe'], o['gausslite']['iters_per_keyframe_std'], 1)} / "
+                f"{fmt(n['gausslite']['iters_per_keyframe'], n['gausslite']['iters_per_keyframe_std'], 1)} | "
+                f"{', '.join(o['gausslite']['mapping_sizes']) or '–'} / "
+                f"{', '.join(n['gausslite']['mapping_sizes']) or '–'} | "
+                f"{_plain_gain(o)} | {_plain_gain(n)} | {_plain_gain(v['on_minus_off'])} |")
+    if any(v.get("failed_runs") for scenes in r["cells"].values() for v in scenes.values()):
+        rows += ["", failed_note("scene with a run")]
+    return "\n".join(rows) + "\n"
 
 
 def pose_perturbation_table(r: dict) -> str:
@@ -530,12 +574,37 @@ def throughput_table(r: dict) -> str:
     return table(r) + "\n"
 
 
-def quality_per_iteration_table(r: dict) -> str:
-    """PSNR against iterations, this tree against another commit, paired by seed
-    (``bench/results/quality_per_iteration.json``)."""
-    from bench.quality_per_iteration import table  # lazy: the page's other regions need none of it
+def _dash(x: Optional[float], nd: int = 2, sign: bool = False) -> str:
+    """``x`` with ``nd`` decimals (its sign written when ``sign``), ``–`` for None."""
+    return "–" if x is None else (f"{x:+.{nd}f}" if sign else f"{x:.{nd}f}")
 
-    return table(r["summary"]) + "\n"
+
+def quality_per_iteration_table(r: dict) -> str:
+    """PSNR against iterations, this tree against another commit, paired by seed: per scene and checkpoint, the
+    trees' PSNR (training frames, withheld frames, the region's) and the paired difference ± its std over seeds
+    (``bench/results/history/quality_per_iteration.json``)."""
+    lines = ["| scene | iterations | keyframes this / that | Δ keyframes | novel this / that | Δ novel | "
+             "ROI novel this / that | Δ ROI novel |", "|---|---|---|---|---|---|---|---|"]
+    for scene, rows in r["summary"].items():
+        for row in rows:
+            cells = [scene, f"{row['iters']:,}"]
+            for key in ("keyframes", "novel", "roi_novel"):
+                cells.append(f"{_dash(row[f'this_{key}'])} / {_dash(row[f'that_{key}'])}")
+                sd = row[f"diff_{key}_std"]
+                cells.append(_dash(row[f"diff_{key}"], sign=True) + ("" if sd is None else f" ± {sd:.2f}"))
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def realtime_trace(r: dict) -> str:
+    """The per-keyframe trace of a ``bench.realtime`` result scored under the ``sensor`` protocol, each scene and
+    budget (:func:`bench.realtime.tables.trace_table`)."""
+    from bench.realtime.tables import trace_table  # lazy: only this region reads a run's trace
+
+    tables = [trace_table(r["runs"], scene, float(b)) for scene in r["scenes"] for b in r["settings"]["budgets"]]
+    if not any(tables):
+        raise ReportError("the result holds no per-keyframe trace (score it under the sensor protocol)")
+    return "\n\n".join(t for t in tables if t) + "\n"
 
 
 def realtime_protocol_table(r: dict) -> str:
@@ -554,24 +623,127 @@ def sim_time_table(r: dict) -> str:
 
 
 def map_time_table(r: dict) -> str:
-    """``gausslite map``'s wall time and what its time budget bought, per tree (``bench/results/map_time.json``)."""
-    from bench.map_time import table  # lazy: the page's other regions need none of it
+    """``gausslite map``'s wall time and what its time budget bought, per tree: the fixed schedule's wall seconds
+    (median and each run), its quality, what the budget bought, the fixed job's ratio that / this
+    (``bench/results/history/map_time.json``)."""
+    budget = r["settings"]["budget_min"]
+    lines = [f"| tree | commit | fixed: wall s (median) | each run s | fixed: PSNR / ROI PSNR | fixed: held-out "
+             f"PSNR / ROI PSNR | {budget:g} min budget: wall s | keyframes | iterations | held-out PSNR / ROI PSNR | "
+             f"that / this (fixed) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for t, s in r["summary"].items():
+        f, b = s["fixed"], s["budget"]
+        each = ", ".join(f"{run['wall_s']:.0f}" + ("" if run["returncode"] == 0 else " (failed)")
+                         for run in r["runs"] if run["tree"] == t and run["job"] == "fixed")
+        ratio = r.get("ratio") if t == "this" else None
+        lines.append(f"| {t} | {r['trees'][t]['commit'][:7]} | {_dash(f['wall_s'], 1)} | {each} | "
+                     f"{_dash(f['psnr'])} / {_dash(f['roi_psnr'])} | {_dash(f['heldout_psnr'])} / "
+                     f"{_dash(f['heldout_roi_psnr'])} | {_dash(b['wall_s'], 1)} | {_dash(b['keyframes'], 0)} | "
+                     f"{_dash(b['iters'], 0)} | {_dash(b['heldout_psnr'])} / {_dash(b['heldout_roi_psnr'])} | "
+                     f"{_dash(ratio)} |")
+    return "\n".join(lines) + "\n"
 
-    return table(r) + "\n"
+
+#: the rows of the sensor calibration's table: label, path into a sequence's statistics, scale, digits
+SENSOR_ROWS = [("depth step, z 1.0–1.5 m (mm)", "quantisation/step_m/1.0-1.5", 1e3, 1),
+               ("depth step, z 2.0–2.5 m (mm)", "quantisation/step_m/2.0-2.5", 1e3, 1),
+               ("depth step, z 3.0–4.0 m (mm)", "quantisation/step_m/3.0-4.0", 1e3, 1),
+               ("c of step = c z² (1/m)", "quantisation/c_per_m", 1e3, 2),
+               *[(f"plane residual {k}, z {b} m (mm)", f"noise/{k}_mm/{b}", 1.0, 2)
+                 for k in ("3x3", "5x5") for b in ("1.0-1.5", "2.0-2.5", "3.0-4.0")],
+               ("holes, all (%)", "holes/all", 100, 1), ("holes, border bands (%)", "holes/border", 100, 1),
+               ("holes, interior (%)", "holes/interior", 100, 1),
+               ("holes, interior, grey 0–20 (%)", "holes/by_grey/0-20/holes", 100, 1),
+               ("holes, interior, grey 20–40 (%)", "holes/by_grey/20-40/holes", 100, 1),
+               ("holes, interior, grey 130–255 (%)", "holes/by_grey/130-256/holes", 100, 1),
+               ("depth jumps with holes between (%)", "edges/with_holes", 100, 1),
+               ("mean hole run at a jump (px)", "edges/run_mean_px", 1.0, 2),
+               ("edge pixels flying (%)", "edges/pixel_between/flying", 100, 2),
+               ("edge pixels without depth (%)", "edges/pixel_between/hole", 100, 2),
+               ("colour − depth edge offset, x (px)", "misregistration/x/offset_px", 1.0, 2),
+               ("colour − depth edge offset, y (px)", "misregistration/y/offset_px", 1.0, 2),
+               ("depth delay from edge offsets, x (ms)", "misregistration/x/delay_ms", 1.0, 1),
+               ("depth delay from edge offsets, y (ms)", "misregistration/y/delay_ms", 1.0, 1),
+               ("depth − colour timestamp, mean (ms)", "time_offset/mean_ms", 1.0, 1),
+               ("depth − colour timestamp, std (ms)", "time_offset/std_ms", 1.0, 1),
+               *[(f"log gain spread over {2 ** j}/15 s", f"exposure/log_gain_spread/{j}", 1.0, 3) for j in (0, 2, 4)],
+               ("log gain std (fit)", "exposure/gain_log_std", 1.0, 3),
+               ("log gain smoothing (fit, s)", "exposure/smooth_s", 1.0, 2),
+               ("white balance std (fit)", "exposure/white_balance_std", 1.0, 3),
+               ("median image speed (px/s)", "blur/median_speed_px_s", 1.0, 0),
+               ("exposure time from blur (ms)", "blur/exposure_s", 1e3, 1),
+               ("colour noise (grey levels)", "colour_noise/sigma_grey", 1.0, 2),
+               ("frame spacing (ms)", "motion/frame_spacing_s", 1e3, 1),
+               ("rotation per frame, median (°)", "motion/deg_per_frame", 1.0, 2),
+               ("rotation speed, median (°/s)", "motion/deg_per_s", 1.0, 1),
+               ("translation speed, median (m/s)", "motion/m_per_s", 1.0, 3),
+               ("odometry ATE, default settings, mean over runs (cm)", "odometry/ate_rmse_m", 100, 2),
+               ("odometry ATE, std over runs (cm)", "odometry/ate_std_m", 100, 2),
+               ("odometry ATE online, mean (cm)", "odometry/ate_online_m", 100, 2),
+               ("loops closed per run", "odometry/loops", 1.0, 1),
+               ("false loops", "odometry/false_loops", 1.0, 0)]
+
+
+def _at(d, path: str):
+    """The value at ``path`` (``/``-separated keys, or indices into lists) in ``d``, None where it is missing."""
+    for k in path.split("/"):
+        if isinstance(d, list):
+            d = d[int(k)] if k.isdigit() and int(k) < len(d) else None
+        elif isinstance(d, dict):
+            d = d.get(k)
+        if d is None:
+            return None
+    return d
 
 
 def sensor_calibration_table(r: dict) -> str:
-    """Every statistic of TUM fr1/rpy against the synthetic walks' (``bench/results/sensor_calibration.json``)."""
-    from bench.sensor_calibration import table  # lazy: the page's other regions need none of it
+    """Every statistic of TUM fr1/rpy against the synthetic walks', one row per statistic (:data:`SENSOR_ROWS`), one
+    column per sequence (``bench/results/history/sensor_calibration.json``)."""
+    results = r["statistics"]
+    cols = list(results)
+    rows = ["| statistic | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for label, path, scale, digits in SENSOR_ROWS:
+        cells = ["—" if (v := _at(results[c], path)) is None else f"{scale * v:.{digits}f}" for c in cols]
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(rows) + "\n"
 
-    return table(r["statistics"]) + "\n"
 
+def compute_sweep_table(r: dict, protocol: str = "novel") -> str:
+    """The gain per compute cell: per scene and cell, both modes' iterations per keyframe, GaussLite's ROI-phase
+    iterations per keyframe, the mapping sizes, both modes' ROI PSNR and the ROI gain under ``protocol``
+    (:func:`bench.realtime.tables.gain_cell`), and the load average (``bench/results/history/compute_sweep*.json``)."""
+    from bench._missions import FAILED_MARK, failed_note  # lazy: the page's other regions need none of it
+    from bench.realtime.tables import gain_cell
+    from gausslite.stats import fmt
 
-def compute_sweep_table(r: dict) -> str:
-    """The gain per compute cell (``bench/results/compute_sweep*.json``)."""
-    from bench.compute_sweep import table  # lazy: the page's other regions need none of it
-
-    return table(r) + "\n"
+    lines = [f"| scene | cell | threads | budget (s) | load | iters/kf GaussLite / uniform | ROI iters/kf GaussLite | "
+             f"mapping size GaussLite / uniform | {protocol} ROI PSNR uniform | {protocol} ROI PSNR GaussLite | "
+             f"{protocol} ROI gain | load avg (1 min) |", "|" + "---|" * 12]
+    for scene, by_cell in r["scenes"].items():
+        for name, s in by_cell.items():
+            it, sd = s["iters_per_keyframe"], s["iters_per_keyframe_std"]
+            pv = s["protocols"].get(protocol, {})
+            psnr, psd = pv.get("roi_psnr", {}), pv.get("roi_psnr_std", {})
+            size = " / ".join(", ".join(x.removeprefix("mapping ") for x in s["sizes"].get(m, [])) or "–"
+                              for m in ("gausslite", "uniform"))
+            mark = f" {FAILED_MARK}" if s.get("failed_runs") else ""
+            lines.append(f"| {scene} | {name}{mark} | {s['threads']} | {s['budget']:g} | {s['load'] or 'none'} | "
+                         f"{fmt(it.get('gausslite'), sd.get('gausslite'), 1)} / "
+                         f"{fmt(it.get('uniform'), sd.get('uniform'), 1)} | "
+                         f"{fmt(s['roi_iters_per_keyframe'].get('gausslite'), None, 1)} | {size} | "
+                         f"{fmt(psnr.get('uniform'), psd.get('uniform'))} | "
+                         f"{fmt(psnr.get('gausslite'), psd.get('gausslite'))} | {gain_cell(pv)} | "
+                         f"{fmt(s['load_avg_1m'], None)} |")
+    scored = ", ".join(sorted({f"{w}x{h}" for by_cell in r["scenes"].values() for s in by_cell.values()
+                               for w, h in s["scored_size"]})) or "–"
+    lines += ["", f"Every map scored at the scene's resolution ({scored}). ROI gain: GaussLite − uniform, "
+              "paired frame by frame within each run: the mean of the per-run gains [95 % run-clustered interval], "
+              "σ runs their spread; * the interval excludes zero. iters/kf: mean ± std over runs of the iterations "
+              "each keyframe got. Mapping size: what the agent's governor chose (several: it changed between runs "
+              "or the governor reports more than one resolution)."]
+    if any(s.get("failed_runs") for by_cell in r["scenes"].values() for s in by_cell.values()):
+        lines += ["", failed_note("cell with a run")]
+    return "\n".join(lines) + "\n"
 
 
 def team_long_table(r: dict) -> str:
@@ -1068,11 +1240,12 @@ REGIONS: Dict[str, Region] = {
     "headline": Region("bench/results/realtime.json", headline_table),
     "glance-realtime": Region("bench/results/realtime.json", glance_realtime),
     "realtime-protocols": Region("bench/results/realtime.json", protocols_table),
-    "glance-sim-synthetic": Region("bench/results/sim_seeds_share25.json", lambda r: sim_glance(r, "synthetic")),
-    "glance-sim-room0": Region("bench/results/sim_seeds_share25.json", lambda r: sim_glance(r, "room0")),
-    "sim-defaults": Region("bench/results/sim_seeds_share25.json", sim_seeds_table),
-    "sim-seeds": Region("bench/results/sim_seeds.json", sim_seeds_table),
-    "sim-seeds-minutes": Region("bench/results/sim_seeds.json", sim_seeds_minutes),
+    "glance-sim-synthetic": Region("bench/results/history/sim_seeds_share25.json",
+                                   lambda r: sim_glance(r, "synthetic")),
+    "glance-sim-room0": Region("bench/results/history/sim_seeds_share25.json", lambda r: sim_glance(r, "room0")),
+    "sim-defaults": Region("bench/results/history/sim_seeds_share25.json", sim_seeds_table),
+    "sim-seeds": Region("bench/results/history/sim_seeds.json", sim_seeds_table),
+    "sim-seeds-minutes": Region("bench/results/history/sim_seeds.json", sim_seeds_minutes),
     "first-run": Region("bench/results/first_run.json", first_run_table),
     "slowest-tests": Region("bench/results/first_run.json", slowest_tests_table),
     "sim-seconds": Region("bench/results/first_run.json", sim_seconds),
@@ -1091,9 +1264,9 @@ REGIONS: Dict[str, Region] = {
     "odometry-live-loops": Region("bench/results/odometry_live_loops.json", odometry_live_table),
     "odometry-live-loops-swapped": Region("bench/results/odometry_live_loops_swapped.json", odometry_live_table),
     "odometry-live-candidates": Region("bench/results/odometry_live_candidates.json", odometry_live_table),
-    "map-budget": Region("bench/results/map_budget.json", map_budget_table),
-    "detail-live": Region("bench/results/detail_live.json", detail_live_table),
-    "pose-graph-solvers": Region("bench/results/pose_graph_solvers.json", solvers_table),
+    "map-budget": Region("bench/results/history/map_budget.json", map_budget_table),
+    "detail-live": Region("bench/results/history/detail_live.json", detail_live_table),
+    "pose-graph-solvers": Region("bench/results/history/pose_graph_solvers.json", solvers_table),
     "pose-perturbation": Region("bench/results/pose_perturbation.json", pose_perturbation_table),
     "pose-perturbation-live": Region("bench/results/pose_perturbation_live.json", pose_perturbation_table),
     "pose-perturbation-live-walk": Region("bench/results/pose_perturbation_live_walk.json", pose_perturbation_table),
@@ -1107,18 +1280,18 @@ REGIONS: Dict[str, Region] = {
     "faults-live-handheld": Region("bench/results/faults_live_handheld.json", faults_table),
     "pose-perturbation-live-odometry": Region("bench/results/pose_perturbation_live_odometry.json",
                                               pose_perturbation_table),
-    "compute-sweep": Region("bench/results/compute_sweep.json", compute_sweep_table),
+    "compute-sweep": Region("bench/results/history/compute_sweep.json", compute_sweep_table),
     "throughput": Region("bench/results/throughput.json", throughput_table),
-    "quality-per-iteration": Region("bench/results/quality_per_iteration.json", quality_per_iteration_table),
+    "quality-per-iteration": Region("bench/results/history/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
-    "map-time": Region("bench/results/map_time.json", map_time_table),
-    "sensor-calibration": Region("bench/results/sensor_calibration.json", sensor_calibration_table),
-    "quality-split-axis": Region("bench/results/quality_split_axis.json", quality_per_iteration_table),
-    "quality-per-iteration-1cddfb0": Region("bench/results/quality_per_iteration_1cddfb0.json",
+    "map-time": Region("bench/results/history/map_time.json", map_time_table),
+    "sensor-calibration": Region("bench/results/history/sensor_calibration.json", sensor_calibration_table),
+    "quality-split-axis": Region("bench/results/history/quality_split_axis.json", quality_per_iteration_table),
+    "quality-per-iteration-1cddfb0": Region("bench/results/history/quality_per_iteration_1cddfb0.json",
                                             quality_per_iteration_table),
-    "quality-per-iteration-e8c82ef": Region("bench/results/quality_per_iteration_e8c82ef.json",
+    "quality-per-iteration-e8c82ef": Region("bench/results/history/quality_per_iteration_e8c82ef.json",
                                             quality_per_iteration_table),
-    "quality-per-iteration-8615a4f": Region("bench/results/quality_per_iteration_8615a4f.json",
+    "quality-per-iteration-8615a4f": Region("bench/results/history/quality_per_iteration_8615a4f.json",
                                             quality_per_iteration_table),
     "realtime-split-sample": Region("bench/results/realtime_split_sample.json", realtime_protocol_table),
     "realtime-split-axis": Region("bench/results/realtime_split_axis.json", realtime_protocol_table),
@@ -1127,6 +1300,8 @@ REGIONS: Dict[str, Region] = {
     "realtime-tum-05": Region("bench/results/realtime_tum_05.json", realtime_protocol_table),
     "realtime-tum-align": Region("bench/results/realtime_tum_align.json", realtime_protocol_table),
     "realtime-tum-align-off": Region("bench/results/realtime_tum_align_off.json", realtime_protocol_table),
+    "realtime-tum-trace": Region("bench/results/realtime_tum_trace.json", realtime_protocol_table),
+    "realtime-tum-trace-keyframes": Region("bench/results/realtime_tum_trace.json", realtime_trace),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
     "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),
@@ -1135,7 +1310,7 @@ REGIONS: Dict[str, Region] = {
     "team-long-curve": Region("bench/results/team_long_share.json", team_long_curve_table),
     "team-long-reserve": Region("bench/results/team_long_reserve.json", team_long_table),
     "team-long-reserve-between": Region("bench/results/team_long_reserve_between.json", team_long_table),
-    "compute-sweep-synthetic": Region("bench/results/compute_sweep_synthetic.json", compute_sweep_table),
+    "compute-sweep-synthetic": Region("bench/results/history/compute_sweep_synthetic.json", compute_sweep_table),
     # docs/results.md's summary
     "ablation-room0": Region("bench/results/ablation_room0.json", ablation_cells),
     "ablation-synth": Region("bench/results/ablation_synth.json", ablation_cells),
@@ -1153,36 +1328,36 @@ REGIONS: Dict[str, Region] = {
                                      lambda r: long_mission_cells(r, "tum_fr1_rpy")),
     "long-mission-no-roi-phase": Region("bench/results/long_mission_tum160_no_roi_phase.json",
                                         lambda r: long_mission_cells(r, "tum_fr1_rpy")),
-    "roi-ceiling": Region("bench/results/roi_ceiling_synthetic_long.json", roi_ceiling_text),
-    "mapper-speed": Region("bench/results/mapper.json", mapper_speed_table),
-    "map-tracking": Region("bench/results/map_tracking.json", map_tracking_text),
-    "map-tracking-budget": Region("bench/results/map_tracking_budget.json", map_tracking_text),
-    "rolling-shutter": Region("bench/results/rolling_shutter.json", rolling_shutter_text),
+    "roi-ceiling": Region("bench/results/history/roi_ceiling_synthetic_long.json", roi_ceiling_text),
+    "mapper-speed": Region("bench/results/history/mapper.json", mapper_speed_table),
+    "map-tracking": Region("bench/results/history/map_tracking.json", map_tracking_text),
+    "map-tracking-budget": Region("bench/results/history/map_tracking_budget.json", map_tracking_text),
+    "rolling-shutter": Region("bench/results/history/rolling_shutter.json", rolling_shutter_text),
     "team-live": Region("bench/results/team.json", team_live_table),
     "team-tum-halves": Region("bench/results/team_tum_halves.json", lambda r: team_agents_text(r, "tum_halves")),
     "team-map-offline": Region("bench/results/team_map_sim.json", team_map_gains),
     "team-map-live": Region("bench/results/team_map_sim_rt.json", team_map_gains),
     "team-map-sim": Region("bench/results/team_map_sim.json", team_map_table),
     "team-map-sim-live": Region("bench/results/team_map_sim_rt.json", team_map_table),
-    "team-map-acks": Region("bench/results/team_map_acks.json", team_map_acks_text),
-    "share-finetune": Region("bench/results/share_finetune.json", share_finetune_text),
-    "share-refresh": Region("bench/results/share_refresh_room0_low.json", share_refresh_text),
-    "keyframe-format": Region("bench/results/share_sim_seeds/refine_jpeg_vs_png_room0.json", keyframe_format_text),
-    "frontend": Region("bench/results/frontend.json", frontend_table),
+    "team-map-acks": Region("bench/results/history/team_map_acks.json", team_map_acks_text),
+    "share-finetune": Region("bench/results/history/share_finetune.json", share_finetune_text),
+    "share-refresh": Region("bench/results/history/share_refresh_room0_low.json", share_refresh_text),
+    "keyframe-format": Region("bench/results/history/refine_jpeg_vs_png_room0.json", keyframe_format_text),
+    "frontend": Region("bench/results/history/frontend.json", frontend_table),
     "perception-annotation": Region("bench/results/realtime_perception_annotation.json", live_mission_cells),
     "perception-onnx": Region("bench/results/realtime_perception_onnx.json", live_mission_cells),
     "perception-onnx-worker": Region("bench/results/realtime_perception_onnx_worker.json", live_mission_cells),
-    "ingest": Region("bench/results/ingest.json", ingest_text),
-    "soak-60min": Region("bench/results/soak_60min.json", soak_text),
-    "soak": Region("bench/results/soak.json", soak_text),
+    "ingest": Region("bench/results/history/ingest.json", ingest_text),
+    "soak-60min": Region("bench/results/history/soak_60min.json", soak_text),
+    "soak": Region("bench/results/history/soak.json", soak_text),
     "live-sim-tum": Region("bench/results/live_tum_realtime_ab.json", live_sim_text),
     "fleet": Region("bench/results/fleet.json", fleet_text),
     "fleet-site": Region("bench/results/fleet_site.json", fleet_text),
     "fleet-db-outage": Region("bench/results/fleet_db_outage.json", fleet_outage_text),
-    "bag-round-trip": Region("bench/results/bag.json", bag_round_trip_text),
-    "bag-registration": Region("bench/results/bag.json", bag_registration_text),
-    "quant-psnr": Region("bench/results/quant_psnr.json", quant_psnr_text),
-    "wire-fuzz": Region("bench/results/wire_fuzz.json", wire_fuzz_text),
+    "bag-round-trip": Region("bench/results/history/bag.json", bag_round_trip_text),
+    "bag-registration": Region("bench/results/history/bag.json", bag_registration_text),
+    "quant-psnr": Region("bench/results/history/quant_psnr.json", quant_psnr_text),
+    "wire-fuzz": Region("bench/results/history/wire_fuzz.json", wire_fuzz_text),
     "vote": Region("bench/results/vote.json", vote_text),
     "rasterizer": Region("bench/results/rasterizer.json", rasterizer_text),
 }

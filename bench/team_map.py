@@ -38,8 +38,7 @@ from typing import Dict, List, Optional
 
 from tqdm import tqdm
 
-from bench._results import write_results
-from bench.sim_seeds import scene_args
+from bench._results import DATASETS, write_results
 from gausslite.evaluation import PROTOCOL_QUESTIONS, current_protocols
 from gausslite.stats import fmt, fmt_gain, mean_std, paired_gain
 
@@ -47,6 +46,19 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 KEYS = ("vote", "for_robot", "with_own", "refine", "team_map")
 PROTOCOLS = ("sensor", "keyframes", "novel", "tracked", "novel-tracked", "tracked@own", "novel-tracked@own")
+
+
+def scene_args(scene: str) -> list[str]:
+    """``gausslite sim`` arguments of a bench scene: ``room0`` (Replica room0 from :data:`bench._results.DATASETS` at
+    ``--downscale 4``) or ``synthetic`` (the embedded scene)."""
+    if scene == "room0":
+        path = DATASETS / "Replica_room0" / "room0"
+        if not path.is_dir():
+            raise FileNotFoundError(f"{path} not found (set GAUSSLITE_SHARED)")
+        return ["--dataset", str(path), "--downscale", "4"]
+    if scene == "synthetic":
+        return []
+    raise ValueError(f"unknown scene {scene!r} (room0, synthetic)")
 
 
 def _own_frames(report: dict) -> Dict[str, Dict[str, dict]]:

@@ -84,6 +84,11 @@ def rotation_angle(R) -> np.ndarray:
     return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
 
 
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle (degrees) of a (3, 3) rotation matrix."""
+    return float(np.degrees(rotation_angle(np.asarray(R)[:3, :3])))
+
+
 def check_rigid(c2w: np.ndarray, atol: float = 1e-3, what: str = "pose") -> np.ndarray:
     """Validate a 4x4 rigid transform and return it as float64.
 

@@ -229,7 +229,8 @@ def finetune_subset(subset, keyframes: Sequence, iters: int, cfg: Optional[Mappe
     flags of the result are those of the input (the fine-tune steps are not active-optimisation
     counts of the agent's map).
 
-    Measured (``bench.share_finetune``; room0 pick-plant / find-ottoman, deployed agent settings with
+    Measured (``bench.share_finetune``, retired: docs/history.md#share_finetune-and-share_refresh; room0 pick-plant /
+    find-ottoman, deployed agent settings with
     ``roi_render: context``, 3 seeds): the subset alone renders its ROI at 28.17 / 27.71 dB on average
     before, and 37.40 / 38.88, 37.62 / 38.63, 37.91 / 39.16 dB after 200 iterations with ``final_lr``
     0.05, against the agent's own full map 36.70 / 35.67, 37.47 / 38.54, 32.77 / 38.75 dB. 60
@@ -327,7 +328,8 @@ def update_shared_subset(arrays, ids, base, base_ids, keyframes: Sequence, iters
 
     Measured on room0 (both tasks, seeds 0 and 1, ground-truth ROI, refresh 0.1, the copy alone): ranking
     by movement beat ranking by ROI contribution × movement (−0.5 dB) and by loss gradient (−0.1 to −0.4
-    dB), and a final pass of ``iters`` beat one of ``iters // 4`` by 0.3–0.6 dB. ``bench.share_refresh``
+    dB), and a final pass of ``iters`` beat one of ``iters // 4`` by 0.3–0.6 dB. ``bench.share_refresh``, retired:
+    docs/history.md#share_finetune-and-share_refresh
     (3 seeds): starting the held rows from the server's values is by itself worth +0.8 to +1.6 dB over
     fine-tuning the agent's values afresh at every push (refresh 1).
 

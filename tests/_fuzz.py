@@ -1,7 +1,7 @@
 """Hypothesis properties of the wire codec (docs/wire-format.md) and the tools of a hostile sender (not a test
 module): hostile bytes raise only WireError subclasses, valid subsets and deltas round-trip within the documented
-precision. ``tests/wire/test_wire_fuzz.py`` runs every property briefly; ``python -m bench.wire_fuzz`` runs them
-at length."""
+precision. ``tests/wire/test_wire_fuzz.py`` runs every property briefly; at length they ran
+100,000 examples without a failure (docs/history.md, "wire_fuzz")."""
 
 from __future__ import annotations
 

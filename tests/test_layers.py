@@ -23,6 +23,7 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("core", ("gausslite", "gausslite.core", "gausslite.errors", "gausslite.camera", "gausslite.stats",
               "gausslite.metrics", "gausslite.gaussians")),
     ("formats", ("gausslite.wire", "gausslite.ros")),
+    ("odometry", ("gausslite.odometry",)),
     ("datasets", ("gausslite.datasets", "gausslite.synthetic")),
     ("perception", ("gausslite.parser", "gausslite.attention")),
     ("render", ("gausslite.render", "gausslite.fused_ssim")),

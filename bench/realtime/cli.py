@@ -22,7 +22,7 @@ from typing import Optional, get_args
 
 from tqdm import tqdm
 
-from gausslite.datasets.odometry import PoseSource
+from gausslite.odometry.rgbd import PoseSource
 from gausslite.evaluation import NOVEL_EVERY, PROTOCOLS
 
 from bench._missions import add_allow_failed, exit_code, failed, failure_rows
@@ -31,8 +31,8 @@ from bench.realtime.missions import RESOLUTION_KEYS, calibrate, run_key, run_one
 from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score_deferred
 from bench.realtime.scenes import MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, dataset_scenes, scene_path
 from bench.realtime.summary import budget_key, summarise
-from bench.realtime.tables import plot_scene, protocol_table, table
-from bench.realtime_late import LATE_VIA
+from bench.realtime.tables import plot_scene, plot_trace, protocol_table, table, trace_table
+from bench.realtime.late import LATE_VIA
 
 
 #: the fields that name a run in a failed mission's message
@@ -337,7 +337,7 @@ def reaggregate(out: Path, argv: Optional[list[str]] = None) -> dict:
     result["failed_runs"] = failure_rows(result["runs"], RUN_KEYS)
     result["aggregation"] = provenance("realtime", argv)
     write_json(out, result, "realtime", argv, indent=1)
-    md = table(result) + "\n\n" + protocol_table(result)
+    md = _tables(result, Path(out))
     Path(out).with_suffix(".md").write_text(md + "\n")
     print(md)
     return result
@@ -362,6 +362,20 @@ def _write_result(args: argparse.Namespace, runs: list[dict], names: dict, budge
         if len(blk["budgets"]) > 1:
             plot_scene(blk, scene, out.with_name(f"{out.stem}_{scene}.png"))
     write_json(out, result, "realtime", argv, indent=1)
-    md = table(result) + "\n\n" + protocol_table(result)
+    md = _tables(result, out)
     out.with_suffix(".md").write_text(md + "\n")
     print(md)
+
+
+def _tables(result: dict, out: Path) -> str:
+    """A result's markdown: the table, the protocols' table and, when its runs were scored under the sensor protocol,
+    each scene's per-keyframe trace (also plotted beside ``out``: ``<stem>_trace_<scene>_<budget>.png``)."""
+    md = table(result) + "\n\n" + protocol_table(result)
+    runs, budgets = result["runs"], [float(b) for b in result["settings"]["budgets"]]
+    traces = [trace_table(runs, scene, b) for scene in result["scenes"] for b in budgets]
+    if any(traces):
+        md += "\n\n## Per-keyframe trace\n\n" + "\n\n".join(x for x in traces if x)
+        for scene in result["scenes"]:
+            for b in budgets:
+                plot_trace(runs, scene, b, out.with_name(f"{out.stem}_trace_{scene}_{b:g}.png"))
+    return md

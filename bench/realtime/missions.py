@@ -33,7 +33,7 @@ from bench._missions import END_OK, failed, mission_outcome
 from bench.realtime.protocol import map_scores, novel_ids, training_frames
 from bench.realtime.scenes import REFERENCE_BUDGET_S, SCENES, Preloaded, load_scene, scene_path
 from bench.realtime.summary import budget_key
-from bench.realtime_late import give_late_task, late_relevance
+from bench.realtime.late import give_late_task, late_relevance
 
 
 def agent_config(mode: str, budget: float, cap: int, seed: int, rate: float, profile, overrides=()):
@@ -138,7 +138,8 @@ def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields)
            "mapping_downscale": float(job.get("mapping_downscale") or 1.0),
            "resolution_mode": job.get("resolution_mode", "agent"),
            "pose_source": job.get("pose_source") or "given",
-           "mission": mission_settings(job, mapper.cfg, fields.get("iters_per_keyframe"))}
+           "mission": mission_settings(job, mapper.cfg, fields.get("iters_per_keyframe")),
+           "trace": keyframe_trace(mapper.stats)}
     kf_ids = sorted(int(s.frame_id) for s in mapper.stats)
     if job.get("defer_dir"):
         # scored after every mission ran (score_deferred): scoring never shares the machine with a live mission
@@ -159,6 +160,17 @@ def mission_result(job: dict, mapper, ds, ann, task, fp_per_kf: float, **fields)
             raise
         res["score_error"] = f"{type(e).__name__}: {e}"  # what is left of a failed mission's map: never averaged
     return res
+
+
+#: what a run's per-keyframe trace keeps of each keyframe's ``FrameStats``
+TRACE_FIELDS = ("frame_id", "iters", "active_iters", "n_gaussians", "n_active", "active_scale_m", "n_roi_seeds")
+
+
+def keyframe_trace(stats) -> dict:
+    """A mission's per-keyframe trace: ``{field: [value per keyframe in mapping order]}`` for :data:`TRACE_FIELDS` of
+    the mapper's ``FrameStats`` (``active_iters``: the ROI phase's iterations; ``n_active``: task Gaussians after the
+    keyframe; ``active_scale_m``: their median largest-axis standard deviation, metres)."""
+    return {f: [getattr(s, f) for s in stats] for f in TRACE_FIELDS}
 
 
 def mission_settings(job: dict, cfg: MapperConfig, iters_per_keyframe: Optional[float]) -> dict:

@@ -143,3 +143,101 @@ def plot_scene(block: dict, scene: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+#: the protocol whose per-frame scores a trace reads: the final map at every frame of the sequence, keyframes included
+TRACE_PROTOCOL = "sensor"
+
+
+def _trace_rows(runs: list[dict], scene: str, budget: float) -> dict:
+    """Per mode, the runs' per-keyframe traces (``run["trace"]``, :func:`bench.realtime.missions.keyframe_trace`)
+    of one scene and budget, averaged over runs keyframe by keyframe (the k-th keyframe of each run; runs keep about
+    the same keyframes, the live selector takes the frame that is waiting when the mapper is free), and the per-frame
+    region PSNR of the final maps under :data:`TRACE_PROTOCOL`, averaged over runs: ``{mode: {"k": [...], "frame":
+    [median frame id], field: [mean], "roi_psnr": {frame id: mean dB}}}``."""
+    import numpy as np
+
+    out = {}
+    for mode in MODES:
+        rs = [r for r in runs if r["scene"] == scene and r["mode"] == mode and abs(r["budget"] - budget) < 1e-9
+              and r.get("trace") and (r.get("protocols") or {}).get(TRACE_PROTOCOL)]
+        if not rs:
+            continue
+        n = min(len(r["trace"]["frame_id"]) for r in rs)
+        m = {"k": list(range(n)), "runs": len(rs),
+             "frame": [int(np.median([r["trace"]["frame_id"][k] for r in rs])) for k in range(n)]}
+        for f in ("iters", "active_iters", "n_gaussians", "n_active", "active_scale_m"):
+            m[f] = [float(np.mean([r["trace"][f][k] for r in rs])) for k in range(n)]
+        per = {}
+        for r in rs:
+            for fid, v in r["protocols"][TRACE_PROTOCOL]["roi_psnr_per_frame"].items():
+                per.setdefault(int(fid), []).append(float(v))
+        m["roi_psnr"] = {fid: float(np.mean(v)) for fid, v in sorted(per.items()) if len(v) == len(rs)}
+        out[mode] = m
+    return out
+
+
+def trace_table(runs: list[dict], scene: str, budget: float) -> str:
+    """Markdown per-keyframe trace of one scene and budget (GaussLite's keyframes, :func:`_trace_rows`): the region
+    PSNR of both modes' final maps at the keyframe's frame, GaussLite's task Gaussians, their median scale and the ROI
+    phase's iterations, and both modes' iterations. Empty when the runs hold no trace."""
+    t = _trace_rows(runs, scene, budget)
+    g, u = t.get("gausslite"), t.get("uniform")
+    if not g:
+        return ""
+    lines = [f"{scene}, {budget:g} s per keyframe, GaussLite's k-th keyframe (median frame over {g['runs']} runs); "
+             f"region PSNR of the final maps at that frame ({TRACE_PROTOCOL} protocol, mean over runs)",
+             "", "| k | frame | region PSNR GaussLite | uniform | gain | task Gaussians | median scale (mm) | "
+             "ROI iterations | iterations GaussLite / uniform |", "|" + "---|" * 9]
+    for k in g["k"]:
+        fid = g["frame"][k]
+        pg = g["roi_psnr"].get(fid)
+        pu = u["roi_psnr"].get(fid) if u else None
+        gain = f"{pg - pu:+.2f}" if pg is not None and pu is not None else "–"
+        iu = f"{u['iters'][k]:.1f}" if u and k < len(u["iters"]) else "–"
+        lines.append(f"| {k} | {fid} | {fmt(pg, None)} | {fmt(pu, None)} | {gain} | {g['n_active'][k]:.0f} | "
+                     f"{1e3 * g['active_scale_m'][k]:.1f} | {g['active_iters'][k]:.1f} | {g['iters'][k]:.1f} / {iu} |")
+    return "\n".join(lines)
+
+
+def plot_trace(runs: list[dict], scene: str, budget: float, path: Path) -> bool:
+    """The per-keyframe trace as a figure (:func:`_trace_rows`): both modes' region PSNR at every frame (GaussLite's
+    keyframes marked), GaussLite's task Gaussians and their median scale, and the iterations per keyframe. Returns
+    False (nothing written) when the runs hold no trace."""
+    t = _trace_rows(runs, scene, budget)
+    if "gausslite" not in t:
+        return False
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib
+
+    matplotlib.use("Agg")
+    # lazy: heavy optional dependency, loaded only on this path
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    g = t["gausslite"]
+    for mode, colour in (("uniform", "tab:gray"), ("gausslite", "tab:red")):
+        if mode in t:
+            fr = sorted(t[mode]["roi_psnr"])
+            axes[0].plot(fr, [t[mode]["roi_psnr"][f] for f in fr], color=colour, lw=1, label=mode)
+    kf = [f for f in g["frame"] if f in g["roi_psnr"]]
+    axes[0].plot(kf, [g["roi_psnr"][f] for f in kf], "o", ms=3, color="tab:red", label="GaussLite's keyframes")
+    axes[0].set_ylabel("region PSNR (dB)")
+    axes[0].legend(fontsize=8)
+    axes[1].plot(g["frame"], g["n_active"], marker=".", color="tab:red", label="task Gaussians")
+    axes[1].set_ylabel("task Gaussians")
+    ax2 = axes[1].twinx()
+    ax2.plot(g["frame"], [1e3 * s for s in g["active_scale_m"]], marker=".", color="tab:blue")
+    ax2.set_ylabel("median scale (mm)", color="tab:blue")
+    axes[2].plot(g["frame"], g["iters"], marker=".", color="tab:red", label="GaussLite")
+    axes[2].plot(g["frame"], g["active_iters"], marker=".", ls="--", color="tab:red", label="GaussLite ROI phase")
+    if "uniform" in t:
+        axes[2].plot(t["uniform"]["frame"], t["uniform"]["iters"], marker=".", color="tab:gray", label="uniform")
+    axes[2].set_ylabel("iterations")
+    axes[2].set_xlabel("frame")
+    axes[2].legend(fontsize=8)
+    axes[0].set_title(f"{scene}: per-keyframe trace, {budget:g} s per keyframe, mean over {g['runs']} runs")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True

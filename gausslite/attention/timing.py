@@ -1,6 +1,7 @@
 """Backends that spend one backend's compute time and give another backend's answer: the cost of real
 networks (e.g. random-weight ONNX exports, whose detections mean nothing) with the relevance of a working
-source (the scene's annotations). Used by ``bench.frontend`` and the agent's ``relevance_backend: onnx_cost``
+source (the scene's annotations). Used by the retired ``bench.frontend`` (docs/history.md#frontend) and the agent's
+``relevance_backend: onnx_cost``
 to measure how the front-end's compute changes mapping, separately from how its accuracy does."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """RGB-D dataset loaders (Replica / NICE-SLAM layout, TUM RGB-D, 7-Scenes, ROS bags, RealSense recordings, camera-file
-folders), poses from RGB-D odometry for input without them, and scene annotations.
+folders) and scene annotations; poses for input without them come from :mod:`gausslite.odometry`.
 
 Every loader is an :class:`RGBDDataset` yielding :class:`Frame` objects lazily; ``load_dataset`` picks
 the loader from the folder layout. ``dataset.annotations`` is a :class:`SceneAnnotations` or None.
@@ -19,7 +19,6 @@ from gausslite.datasets.common import PosedImageDataset, downscale_depth, downsc
 from gausslite.datasets.bag import BagDataset, BagError, BagOptions
 from gausslite.datasets.camera_folder import CameraFolderDataset
 from gausslite.datasets.loader import detect_layout, load_dataset
-from gausslite.datasets.odometry import OdometryConfig, OdometryDataset, RGBDOdometry
 from gausslite.datasets.realsense import RealSenseBagDataset
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.datasets.replica import ReplicaDataset
@@ -36,9 +35,6 @@ __all__ = [
     "BagDataset",
     "CameraFolderDataset",
     "RealSenseBagDataset",
-    "OdometryConfig",
-    "OdometryDataset",
-    "RGBDOdometry",
     "BagOptions",
     "BagError",
     "DepthCamera",

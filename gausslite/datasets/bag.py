@@ -454,7 +454,7 @@ class BagDataset(RGBDDataset):
     def pose_source(self) -> str:
         """The old name of :attr:`pose_topic` (``"tf"`` or the pose topic the poses were read from); reading it warns
         (DeprecationWarning). ``pose_source`` names where poses come from across GaussLite
-        (:data:`gausslite.datasets.odometry.PoseSource`: ``given`` / ``odometry``); a bag's are ``given``."""
+        (:data:`gausslite.odometry.rgbd.PoseSource`: ``given`` / ``odometry``); a bag's are ``given``."""
         warnings.warn("BagDataset.pose_source is renamed pose_topic (\"tf\" or the pose topic read)",
                       DeprecationWarning, stacklevel=2)
         return self.pose_topic

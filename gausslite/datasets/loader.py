@@ -15,7 +15,8 @@ from gausslite.datasets.base import RGBDDataset
 from gausslite.datasets.camera_folder import CameraFolderDataset, is_camera_folder
 from gausslite.datasets.common import PathLike
 from gausslite.datasets.labelling import resolve_annotations
-from gausslite.datasets.odometry import OdometryConfig, PoseSource, with_pose_source
+from gausslite.odometry.config import OdometryConfig, PoseSource
+from gausslite.odometry.rgbd import with_pose_source
 from gausslite.datasets.realsense import RealSenseBagDataset, is_realsense_bag
 from gausslite.datasets.replica import ReplicaDataset
 from gausslite.datasets.sevenscenes import SevenScenesDataset
@@ -128,9 +129,9 @@ def load_dataset(
         stride: keep every ``stride``-th frame.
         bag: ``BagOptions`` or dict (topics, frames, tolerances) used when the path is a ROS bag; a
             non-empty value for another layout is an error.
-        pose_source: a :data:`~gausslite.datasets.odometry.PoseSource`, ``given`` (its poses; an error when it
+        pose_source: a :data:`~gausslite.odometry.rgbd.PoseSource`, ``given`` (its poses; an error when it
             has none) or ``odometry``, or ``auto`` (the sequence's poses, else odometry;
-            :func:`gausslite.datasets.odometry.with_pose_source`).
+            :func:`gausslite.odometry.rgbd.with_pose_source`).
         odometry: the odometry's settings (``OdometryConfig``; None: the defaults).
         progress: the odometry shows a progress bar.
         annotations: which scene annotations the dataset carries (:func:`gausslite.datasets.labelling.resolve_annotations`):

@@ -22,7 +22,7 @@ coefficients are usually zero; a non-zero one is logged).
 
 Frames: each colour message is paired with the depth message nearest in bag time within ``max_depth_dt``; the
 frame's timestamp is its bag time (seconds). A recording has no poses: ``has_poses`` is False and odometry
-estimates them (:mod:`gausslite.datasets.odometry`).
+estimates them (:mod:`gausslite.odometry.rgbd`).
 """
 
 from __future__ import annotations

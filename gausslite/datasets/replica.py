@@ -184,7 +184,7 @@ class ReplicaDataset(PosedImageDataset):
         for k, dp in zip(nums, depth_all):
             if not dp.is_file():
                 raise FileNotFoundError(f"depth image not found for {by_num[k][0].name}: {dp}")
-        # no traj.txt at all: a sequence without poses (odometry estimates them, gausslite.datasets.odometry)
+        # no traj.txt at all: a sequence without poses (odometry estimates them, gausslite.odometry.rgbd)
         poses_all = read_traj(seq / "traj.txt", n_all) if (seq / "traj.txt").exists() else None
         #: the pose file a sequence without poses lacks (for the error of pose_source "given")
         self.missing_poses = str(seq / "traj.txt")

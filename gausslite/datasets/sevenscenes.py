@@ -149,7 +149,7 @@ class SevenScenesDataset(PosedImageDataset):
         nums = sorted(by_num)
         idx = select_indices(len(nums), stride, max_frames)
         rgb_paths, depth_paths, poses, names = [], [], [], []
-        # no pose file at all: a sequence without poses (odometry estimates them, gausslite.datasets.odometry)
+        # no pose file at all: a sequence without poses (odometry estimates them, gausslite.odometry.rgbd)
         posed = any(seq.glob("frame-*.pose.txt"))
         #: the pose files a sequence without poses lacks (for the error of pose_source "given")
         self.missing_poses = str(seq / "frame-NNNNNN.pose.txt")

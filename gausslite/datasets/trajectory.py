@@ -26,7 +26,7 @@ from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from gausslite.camera import rotation_angle
+from gausslite.camera import rotation_angle_deg
 from gausslite.ros.transforms import quat_to_rot
 
 __all__ = ["read_tum_trajectory", "write_tum_trajectory", "rot_to_quat", "align_rigid", "ate_rmse", "rpe",
@@ -172,11 +172,6 @@ def ate_rmse(est: np.ndarray, ref: np.ndarray) -> float:
     R, t = align_rigid(est[:, :3, 3], ref[:, :3, 3])
     err = est[:, :3, 3] @ R.T + t - ref[:, :3, 3]
     return float(np.sqrt((err ** 2).sum(1).mean()))
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle (degrees) of a (3, 3) rotation matrix."""
-    return float(np.degrees(rotation_angle(np.asarray(R)[:3, :3])))
 
 
 def rpe(est: np.ndarray, ref: np.ndarray, timestamps: Optional[np.ndarray] = None, delta: float = 1,

@@ -24,7 +24,7 @@ at its own timestamp into the colour camera at the colour timestamp, both poses 
 groundtruth, as a depth→colour extrinsic ``T_color_depth = T_wc(t_colour)^-1 T_wc(t_depth)``.
 
 Without ``groundtruth.txt`` the sequence has no poses (``has_poses`` False; odometry estimates them,
-:mod:`gausslite.datasets.odometry`). A camera file beside ``rgb.txt`` (``camera.yaml`` / ``camera.json``,
+:mod:`gausslite.odometry.rgbd`). A camera file beside ``rgb.txt`` (``camera.yaml`` / ``camera.json``,
 :mod:`gausslite.datasets.camera_file`) overrides the camera below: its size, intrinsics, ``depth_scale`` and
 distortion.
 
@@ -248,7 +248,7 @@ class TUMDataset(PosedImageDataset):
         rgb_file = seq / "rgb.txt"
         rgb_ts, rgb_names = read_file_list(rgb_file)
         depth_ts, depth_names = read_file_list(seq / "depth.txt")
-        # no groundtruth.txt: a sequence without poses (odometry estimates them, gausslite.datasets.odometry); the
+        # no groundtruth.txt: a sequence without poses (odometry estimates them, gausslite.odometry.rgbd); the
         # pose interpolation and the depth time alignment need the ground truth and are off
         gt = read_groundtruth(seq / "groundtruth.txt") if (seq / "groundtruth.txt").exists() else None
         #: the pose file a sequence without poses lacks (for the error of pose_source "given")

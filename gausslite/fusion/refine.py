@@ -6,7 +6,8 @@ loss (Eq. 1) and adaptive density control, with every Gaussian treated as active
 rendering, all Gaussians updated). By default the loss covers the map's rendered footprint, since a
 fused map holds only ROI subsets, and within it the keyframe's ROI when the agent sent one: the
 footprint alone also covers the fringes of the subsets outside the ROI, and fitting those cost the ROI
-1.6-1.7 dB on room0 (``bench.share_finetune``) and 0.8-0.9 dB on the synthetic sim scene. κ and the
+1.6-1.7 dB on room0 (``bench.share_finetune``, retired: docs/history.md#share_finetune-and-share_refresh) and 0.8-0.9
+dB on the synthetic sim scene. κ and the
 active flags are carried through unchanged (daughters inherit them), so a refined map can be voted
 again.
 
@@ -85,11 +86,13 @@ def refine_map(
             ``MapperConfig()``); ``overrides`` are applied on top (e.g. ``lambda_ssim=0.0``; a group is merged key by
             key, ``budget={"max_gaussians": N}``).
         roi_loss: with ``footprint_only``, restrict the loss of a keyframe that carries an ROI to it
-            (room0, 3 seeds, ``bench.share_finetune``; synthetic sim scene seed 0: 26.81 / 27.14 dB with
+            (room0, 3 seeds, ``bench.share_finetune``, retired: docs/history.md#share_finetune-and-share_refresh;
+            synthetic sim scene seed 0: 26.81 / 27.14 dB with
             it against 25.95 / 26.31 without).
         final_lr: the learning rates follow a cosine from the mapper's down to ``final_lr`` × them (1 =
             constant, the default). Measured with 100 iterations on the vote of two fine-tuned subsets
-            (``bench.share_finetune``): on room0 0.05 gains (seeds 0/1/2, pick-plant 35.39/35.92/35.49 dB
+            (``bench.share_finetune``, retired: docs/history.md#share_finetune-and-share_refresh): on room0 0.05
+            gains (seeds 0/1/2, pick-plant 35.39/35.92/35.49 dB
             constant against 35.95/36.62/36.40; find-ottoman 37.62/37.75/37.98 against 38.36/39.14/39.02),
             on the synthetic sim scene it loses (seed 0: 25.95/26.31 against 25.04/25.92), so the default
             stays constant.

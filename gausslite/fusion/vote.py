@@ -17,7 +17,8 @@ Gaussians *in the voxel* are kept (if the winner has none there, the voxel is em
 is exactly the rule above. Why: the agents share subsets fine-tuned to render their own ROI alone, and
 at δ = 0.10 m another agent's Gaussians in the voxels next to an ROI (not contested with the owner,
 who has none there) still project into it. Room0, two agents with the ground-truth ROI, fine-tuned
-subsets, three seeds (``bench.share_finetune``): vote ROI PSNR pick-plant 35.30 / 36.87 / 36.65 dB with
+subsets, three seeds (``bench.share_finetune``, retired: docs/history.md#share_finetune-and-share_refresh): vote ROI
+PSNR pick-plant 35.30 / 36.87 / 36.65 dB with
 r = 0 against 37.40 / 37.62 / 37.91 with r = 1 (the owner's subset alone: 37.40 / 37.62 / 37.91).
 
 Output order is canonical (agents in sorted id order, each agent's rows in input order), so the

@@ -132,7 +132,7 @@ class KeyframeAligner:
         #: frame id → (8, 3) corners of its cloud's box in its camera frame (a cloud whose box, placed at its pose,
         #: misses a keyframe's view is passed over without moving its points)
         self._corners: Dict[int, np.ndarray] = {}
-        from gausslite.datasets.pose_graph import open3d_module  # lazy: Open3D loads only for mappers that align
+        from gausslite.odometry.pose_graph import open3d_module  # lazy: Open3D loads only for mappers that align
 
         self._o3d = open3d_module()  # here, so that its import (about a second) is not taken from a keyframe's budget
 

@@ -379,7 +379,8 @@ class PerformanceConfig(StrictModel):
     cpu_kernel: Literal["simd", "tile"] = Field(
         "simd", description="CPU compositing kernels (gausslite.render.simd_kernels): 'simd' = vectorised "
         "native tile loops (default; room0 300x170: forward 20 -> 11 ms, backward 25 -> 16 ms), 'tile' = the "
-        "Warp tile kernels they replace (bench.mapper baseline); the same renders to float32 rounding"
+        "Warp tile kernels they replace (the baseline of the retired bench.mapper, docs/history.md#mapper); the same "
+        "renders to float32 rounding"
     )
     frustum_cull: bool = Field(
         True, description="render only the Gaussians whose 3σ sphere reaches the (padded) view frustum "
@@ -389,7 +390,8 @@ class PerformanceConfig(StrictModel):
     reference_paths: bool = Field(
         False, description="use the slow reference implementations of the ROI-phase Adam step (full step, "
         "then frozen rows restored) and of SSIM (15 filtered channels, no cached ground-truth statistics): "
-        "the same results to float rounding, for parity checks and as bench.mapper's baseline"
+        "the same results to float rounding, for parity checks and as the retired bench.mapper's baseline "
+        "(docs/history.md#mapper)"
     )
     ssim_cache_views: int = Field(
         32, ge=0, description="keep the ground-truth SSIM statistics of this many recently used views (full "

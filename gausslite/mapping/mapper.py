@@ -115,6 +115,8 @@ class FrameStats:
     align_rot_deg: float = 0.0  #: keyframe alignment: the correction's rotation from its start pose, degrees
     align_trans_m: float = 0.0  #: keyframe alignment: the correction's translation, metres
     align_s: float = 0.0  #: keyframe alignment: wall time, seconds
+    n_active: int = 0  #: task Gaussians (``active``) after this frame
+    active_scale_m: float = 0.0  #: their median largest-axis standard deviation, metres (0: none)
 
 
 class Mapper:
@@ -472,6 +474,7 @@ class Mapper:
             st.track_rot_deg, st.track_trans_m = placed.rot_deg, placed.trans_m
         if stored is not None and stored.detail is not None:
             st.detail_px = int(stored.detail.width * stored.detail.height)
+        st.n_active, st.active_scale_m = self.model.active_size()
         self.stats.append(st)
         return st
 

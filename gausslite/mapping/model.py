@@ -62,6 +62,16 @@ class GaussianModel:
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
 
+    def active_size(self) -> tuple[int, float]:
+        """``(task Gaussians, the median over them of their largest axis's standard deviation in metres)``;
+        ``(0, 0.0)`` without task Gaussians."""
+        n = int(self.active.sum())
+        if n == 0:
+            return 0, 0.0
+        with torch.no_grad():
+            largest = self.params["log_scales"].detach()[self.active].max(dim=1).values
+            return n, float(torch.exp(largest.median()))
+
     def to_map(self) -> GaussianMap:
         """A detached ``GaussianMap`` snapshot of the current parameters (shares storage)."""
         p = {k: v.detach() for k, v in self.params.items()}

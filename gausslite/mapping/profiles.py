@@ -37,7 +37,8 @@ class SensorProfile:
 #: pose refinement from the sensor's pose, a depth loss weight of 0.3 instead of 1 (Kinect depth is noisy and not
 #: exactly registered), 20 final iterations per keyframe instead of 5 (the final pass draws every keyframe alike),
 #: per-keyframe exposure compensation (the Kinect's auto-exposure and white balance), the camera's motion blur, and
-#: the colour camera's rolling shutter with a 20 ms readout (calibrated by bench.rolling_shutter)
+#: the colour camera's rolling shutter with a 20 ms readout (calibrated by bench.rolling_shutter, retired:
+#: docs/history.md#rolling_shutter)
 _HANDHELD_MAPPER = {"final_iters_per_keyframe": 20.0, "pose": {"refine": True}, "lambda_depth": 0.3,
                     "sensor": {"exposure_comp": True, "motion_blur": True, "rolling_shutter_s": 0.02}}
 
@@ -105,7 +106,8 @@ def _explicit(model) -> dict:
     return out
 
 
-#: Mapper speed presets (``python -m bench.mapper``): MapperConfig overrides applied on top of
+#: Mapper speed presets (``python -m bench.mapper``, retired: docs/history.md#mapper): MapperConfig overrides applied
+#: on top of
 #: the sensor profile. ``baseline`` is the mapper before the CPU speed work: the reference paths
 #: of the ROI-phase Adam step and of SSIM, and the Warp tile compositing kernels. ``fast`` is today's
 #: default (the same results to float rounding; SIMD compositing kernels). ``coarse`` and ``window`` cut

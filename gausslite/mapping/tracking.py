@@ -1,6 +1,6 @@
 """Keyframe placement: a new keyframe's pose tracked against the frozen Gaussian map before it seeds or trains.
 
-A keyframe arrives with a pose from the robot (motion capture, its own SLAM, or :mod:`gausslite.datasets.odometry`).
+A keyframe arrives with a pose from the robot (motion capture, its own SLAM, or :mod:`gausslite.odometry.rgbd`).
 Seeding back-projects its depth at that pose, so a pose a few centimetres off puts its new Gaussians a few
 centimetres beside the surfaces the map already holds, and every later iteration on the keyframe pulls the map
 towards the wrong place. :class:`FrameTracker` first aligns the keyframe with what the map already explains, as

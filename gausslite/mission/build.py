@@ -36,7 +36,7 @@ def build_mission(config: AgentConfig, task_text: str, graph=None, *, agent_id: 
 
     The mission then takes its frames from a replay (``rt.replay(dataset)``, e.g. a dataset of
     :func:`replay_dataset`) or from a stream (``rt.submit(frame)``); poses come with the frames or from the RGB-D
-    odometry (``config.pose_source``, a :data:`~gausslite.datasets.odometry.PoseSource`).
+    odometry (``config.pose_source``, a :data:`~gausslite.odometry.rgbd.PoseSource`).
 
     Args:
         config: the agent's settings (``load_config(...).agent``); not modified.

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from gausslite.camera import check_rigid, nearest_rigid
 from gausslite.datasets.bag import BagOptions
-from gausslite.datasets.odometry import OdometryConfig, PoseSource
+from gausslite.odometry.rgbd import OdometryConfig, PoseSource
 from gausslite.mapping.config import MapperConfig, migrate_flat_names
 
 __all__ = ["OnnxRelevanceConfig", "ScoringConfig", "FrameConfig", "ShareConfig", "PushConfig", "AgentConfig",
@@ -439,12 +439,12 @@ class AgentConfig(BaseModel):
         refine_views: the views sent for the fusion refinement (:class:`RefineViewsConfig`): ROI crops, frames
             between keyframes, the byte budget.
         frame: this robot's map frame in the team's world frame (:class:`FrameConfig`, ``frame.T_world_map``).
-        pose_source: a :data:`~gausslite.datasets.odometry.PoseSource`: ``given`` (each frame's own pose) or
+        pose_source: a :data:`~gausslite.odometry.rgbd.PoseSource`: ``given`` (each frame's own pose) or
             ``odometry``: every streamed or replayed frame is tracked by RGB-D odometry
-            (:mod:`gausslite.datasets.odometry`) as it arrives, beside the mapper; the keyframe selection uses the
+            (:mod:`gausslite.odometry.rgbd`) as it arrives, beside the mapper; the keyframe selection uses the
             estimate, and a frame whose tracking fails is logged, counted (``frames_rejected``) and not mapped; the
             tracker's state is saved with the mission's checkpoint.
-        odometry: the odometry's settings (:class:`~gausslite.datasets.odometry.OdometryConfig`).
+        odometry: the odometry's settings (:class:`~gausslite.odometry.rgbd.OdometryConfig`).
         mapper: the mapper configuration (default mode ``gausslite``).
     """
 

@@ -3,7 +3,8 @@
 A long mission allocates and frees large temporary buffers again and again (map copies for the share selection,
 renders, encoded keyframes) from several threads. glibc's allocator keeps much of that freed memory in its arenas
 instead of returning it, so a process's resident memory creeps up over an hour although its live data is bounded
-(``bench.soak``). After each push the agent and its share worker ask the allocator to give free pages back
+(``bench.soak``, retired: docs/history.md#soak). After each push the agent and its share worker ask the allocator to
+give free pages back
 (``malloc_trim(0)``), as Dask's workers do for the same reason (distributed, "Memory not released back to the OS").
 """
 

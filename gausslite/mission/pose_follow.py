@@ -2,8 +2,8 @@
 to them move, and with them the Gaussians those frames seeded (:meth:`gausslite.mapping.mapper.Mapper.apply_pose_corrections`).
 
 Each frame the odometry tracks holds its pose relative to an anchor keyframe of the odometry
-(:attr:`gausslite.datasets.odometry.TrackResult.anchor`, ``T_anchor``). When the pose graph moves the anchor
-(:attr:`gausslite.datasets.odometry.RGBDOdometry.on_correction`, called from its loop-closing thread), this module only
+(:attr:`gausslite.odometry.rgbd.TrackResult.anchor`, ``T_anchor``). When the pose graph moves the anchor
+(:attr:`gausslite.odometry.rgbd.RGBDOdometry.on_correction`, called from its loop-closing thread), this module only
 notes it; the mapping worker then, between two keyframes (:meth:`MapFollower.apply`), moves every mapped frame by the
 correction of its anchor, applied on the left in the world frame: a frame mapped at ``P`` (its sensor pose, before the
 map's own pose refinement) whose new sensor pose is ``P'`` moves by ``W P' P⁻¹ W⁻¹``, with ``W`` the transform from
@@ -36,7 +36,7 @@ class MapFollower:
     """Keeps each tracked frame's anchor and moves the map's frames when the odometry corrects their anchors.
 
     Args:
-        odometry: the mission's :class:`~gausslite.datasets.odometry.RGBDOdometry` (its ``graph`` holds the anchors'
+        odometry: the mission's :class:`~gausslite.odometry.rgbd.RGBDOdometry` (its ``graph`` holds the anchors'
             current poses); its ``on_correction`` is set to :meth:`on_correction`.
 
     Attributes:
@@ -59,7 +59,7 @@ class MapFollower:
         self.n_rejected = 0
 
     def record(self, frame_id: int, result, W: Optional[np.ndarray] = None) -> None:
-        """Note a tracked frame (tracking thread): ``result`` its :class:`~gausslite.datasets.odometry.TrackResult`,
+        """Note a tracked frame (tracking thread): ``result`` its :class:`~gausslite.odometry.rgbd.TrackResult`,
         ``W`` (4, 4) the transform from the odometry's frame into the map's (None: the identity)."""
         if result.anchor < 0 or result.T_anchor is None:
             return

@@ -1,6 +1,6 @@
-"""Where a mission's poses come from (``agent.pose_source``, a :data:`gausslite.datasets.odometry.PoseSource`): the
+"""Where a mission's poses come from (``agent.pose_source``, a :data:`gausslite.odometry.rgbd.PoseSource`): the
 poses each frame carries (``given``), or the RGB-D odometry tracking every frame as it arrives (``odometry``,
-:class:`gausslite.datasets.odometry.RGBDOdometry`), whose loop closures the map then follows
+:class:`gausslite.odometry.rgbd.RGBDOdometry`), whose loop closures the map then follows
 (:class:`gausslite.mission.pose_follow.MapFollower`). :class:`MissionPoses` is the mission's part that holds them.
 
 Poses are camera-to-world, (4, 4) float64, metres, OpenCV camera axes.
@@ -15,7 +15,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from gausslite.datasets.base import Frame
-from gausslite.datasets.odometry_config import TrackResult
+from gausslite.odometry.config import TrackResult
 from gausslite.mission.config import AgentConfig
 from gausslite.mission.errors import stops_the_mission
 from gausslite.mission.pose_follow import MapFollower
@@ -32,7 +32,7 @@ def odometry_for(config: AgentConfig):
     if config.pose_source != "odometry":
         return None
     # lazy: Open3D loads only for missions that track
-    from gausslite.datasets.odometry import RGBDOdometry
+    from gausslite.odometry.rgbd import RGBDOdometry
 
     # a live stream: loop closure on its own thread, so that a keyframe's loop registrations never delay tracking
     return RGBDOdometry(config.odometry, background_loops=True)
@@ -47,7 +47,7 @@ class MissionPoses:
             counted as received and rejected there, with ``last_error``).
 
     Attributes:
-        odometry: the :class:`~gausslite.datasets.odometry.RGBDOdometry`, or None for given poses.
+        odometry: the :class:`~gausslite.odometry.rgbd.RGBDOdometry`, or None for given poses.
         follower: the :class:`~gausslite.mission.pose_follow.MapFollower` moving the map after the odometry's loop
             closures, or None.
         estimated_poses: frame id → (4, 4) float64 c2w the odometry estimated, in the world frame, for every frame

@@ -6,7 +6,7 @@ inputs and the generator it is handed, in pixels of the image it is given:
 
 - :func:`quantise_disparity`: the Kinect v1 measures disparity in 1/8 pixel steps, so depth takes values on a lattice
   equally spaced in ``1 / z`` and its step grows as ``c * z^2`` (Khoshelham and Elberink, Sensors 2012, Sec. 3;
-  ``c`` measured on TUM fr1 by ``python -m bench.sensor_calibration``);
+  ``c`` measured on TUM fr1 by ``python -m bench.sensor_calibration``, retired: docs/history.md#sensor_calibration);
 - :func:`correlated_field`: axial noise that is correlated over a few pixels, as block-matched disparity is;
 - :func:`border_holes`: the bands of the colour image the depth camera does not see after registration;
 - :func:`dark_dropout`: no return from dark surfaces, a probability by grey level;

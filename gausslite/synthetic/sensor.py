@@ -32,7 +32,8 @@ images:
 
 The numbers above are the ``"realistic"`` level's (the :class:`SensorErrorModel` defaults). The ``"tum"`` level
 (:data:`TUM_FR1`) is a sensor as hard as TUM RGB-D fr1's Kinect v1, each value calibrated against a statistic
-measured on fr1/rpy (``python -m bench.sensor_calibration``; docs/mapper.md, "The synthetic sensor calibrated on TUM
+measured on fr1/rpy (``python -m bench.sensor_calibration``, retired: docs/history.md#sensor_calibration;
+docs/mapper.md, "The synthetic sensor calibrated on TUM
 fr1"). Besides other values for the parameters above it turns on (:mod:`gausslite.synthetic.kinect`):
 
 - the Kinect's field of view (``fx_per_width``, ``fy_per_height``: :func:`sensor_intrinsics`) instead of the
@@ -148,12 +149,14 @@ def sensor_intrinsics(model: SensorErrorModel, width: int, height: int) -> Intri
 
 
 #: The ``"tum"`` level: the Kinect v1 of TUM RGB-D fr1, each value measured on fr1/rpy as ``bench.odometry`` reads it
-#: (320x240, undistorted) by ``python -m bench.sensor_calibration`` (docs/mapper.md, "The synthetic sensor calibrated
+#: (320x240, undistorted) by ``python -m bench.sensor_calibration``, retired: docs/history.md#sensor_calibration
+#: (docs/mapper.md, "The synthetic sensor calibrated
 #: on TUM fr1"). Read from a TUM statistic directly: the camera (the undistorted fr1 camera, 546.75 / 640 and
 #: 543.09 / 480), the disparity lattice (depth step 2.8e-3 z^2), the border bands without depth, the holes by grey
 #: level, the misregistration (depth edges 1.04 px below colour edges at fy 271.5: 3.8 mrad), the depth's delay (the
 #: depth minus colour timestamps, 7.6 +- 4.7 ms), the exposure track (log gain 0.16, smoothed over 0.325 s, white
-#: balance 0.035) and the colour readout (25 ms, ``python -m bench.rolling_shutter``). Chosen so that the walk's
+#: balance 0.035) and the colour readout (25 ms, ``python -m bench.rolling_shutter``, retired:
+#: docs/history.md#rolling_shutter). Chosen so that the walk's
 #: statistic matches TUM's: the axial noise (a, b, correlation: the plane-fit residuals), blobs, shadows, grazing
 #: angles and flying pixels (the holes and the pixels at depth edges), the exposure time (the blur estimate on a walk
 #: moving as fast as TUM's images) and no added colour noise (TUM's images are smoother than the renders). The

@@ -76,7 +76,8 @@ A field whose predict-mask bit is set stores, per component, ``zigzag(wrap(c[i] 
 
 Precision of the quantised mode (defaults of :class:`QuantConfig`)
 ------------------------------------------------------------------
-* means: fixed point on a grid of step ``mean_step`` (0.25 mm; 0.5 mm cost 0.10 dB ROI PSNR on Replica room0, bench.quant_psnr) anchored at the chunk's bounding-box
+* means: fixed point on a grid of step ``mean_step`` (0.25 mm; 0.5 mm cost 0.10 dB ROI PSNR on Replica room0,
+bench.quant_psnr, retired: docs/history.md#quant_psnr) anchored at the chunk's bounding-box
   minimum, so the error is at most 0.125 mm (plus float32 rounding of the world coordinate) whatever
   the box size; the code width grows with the box: 1 byte per axis up to 6.4 cm, 2 bytes (16 bit)
   up to 16.4 m (a room), 3 bytes up to 4.2 km, else 4.  A fixed step rather than extent / 65535
@@ -88,7 +89,8 @@ Precision of the quantised mode (defaults of :class:`QuantConfig`)
   component e <= (1/sqrt(2)) / (2^b - 1), hence |Δq| <= sqrt(12)·e and rotation error
   <= 4·asin(sqrt(3)·e) (about 7e rad): 0.55 degree bound / 0.42 degree measured on random rotations
   at b = 9; the default b = 8 (26 bits in a 4-byte code) doubles that and costs no measurable
-  ROI PSNR on room0 (+0.004 dB with 7-bit opacity, bench.quant_psnr); 0.27 degree bound at b = 10.
+  ROI PSNR on room0 (+0.004 dB with 7-bit opacity, bench.quant_psnr, retired: docs/history.md#quant_psnr); 0.27
+  degree bound at b = 10.
 * log_scales / colours: affine over the chunk's [min, max], clamped to ``scale_clamp`` /
   ``color_clamp``; error <= (hi - lo) / (2 (2^bits - 1)) for values inside the clamp.
 * opacity: quantised in opacity space, error in sigmoid(logit) <= 0.5 / (2^bits - 1) (0.0039 at the
@@ -226,8 +228,10 @@ class QuantConfig:
     """
 
     lossless: bool = False
-    mean_step: float = 2.5e-4  # 0.25 mm; 0.35 mm cost a further 0.013 dB ROI PSNR on room0 (bench.quant_psnr)
-    # bench.quant_psnr on a room0 map, B per active Gaussian / ROI PSNR vs lossless: quat 9, scale 9,
+    # 0.25 mm; 0.35 mm cost a further 0.013 dB ROI PSNR on room0 (bench.quant_psnr, retired: docs/history.md#quant_psnr)
+    mean_step: float = 2.5e-4
+    # bench.quant_psnr, retired: docs/history.md#quant_psnr on a room0 map, B per active Gaussian / ROI PSNR vs
+    # lossless: quat 9, scale 9,
     # opacity 8 bits 12.51 B / +0.001 dB; quat 8, opacity 7: 11.55 B / +0.004 dB; and scale 8:
     # 11.10 B / -0.020 dB (the sim's room0 subsets compress about 0.5 B worse than this map's)
     quat_bits: int = 8

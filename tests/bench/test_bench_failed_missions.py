@@ -172,27 +172,3 @@ def test_a_team_run_the_harness_stopped_is_recorded_and_the_team_bench_exits_1(t
     assert "- † team=synthetic budget=0.5 run=0: FAILED" in out.with_suffix(".md").read_text()
     assert team.main([*argv, "--allow-failed"]) == 0
 
-
-def test_detail_live_marks_a_scene_with_failed_runs_and_exits_1(tmp_path):
-    import bench.detail_live as dl
-
-    def result(overrides=(), failed_run=None):
-        novel = {"gain": 1.0, "gain_ci": [0.0, 2.0], "uniform": {"roi_psnr": 20.0, "runs": 2},
-                 "gausslite": {"roi_psnr": 21.0, "runs": 2}}
-        runs = [{"scene": "tum_fr1_rpy", "mode": "gausslite", "budget": 0.25, "run": i, "iters_per_keyframe": 10.0,
-                 "roi_iters": 70, "keyframes": 10, "mission": {"mapping_size": [160, 120]},
-                 "end_state": "FAILED" if i == failed_run else "FINISHED", "error": FAIL if i == failed_run else ""}
-                for i in range(3)]
-        return {"settings": {"overrides": list(overrides)}, "runs": runs,
-                "scenes": {"tum_fr1_rpy": {"budgets": {"0.25": {"protocols": {"novel": novel}}}}}}
-
-    off, on = tmp_path / "off.json", tmp_path / "on.json"
-    off.write_text(json.dumps(result()))
-    on.write_text(json.dumps(result(["mapper.detail.enabled=true"], failed_run=2)))
-    v = dl.compare(json.loads(off.read_text()), json.loads(on.read_text()))["tum_fr1_rpy"]
-    assert v["failed_runs"] == {"off": [], "on": [{"scene": "tum_fr1_rpy", "mode": "gausslite", "budget": 0.25,
-                                                     "run": 2, "end_state": "FAILED", "error": FAIL}]}
-    assert v["on"]["gausslite"]["iters_per_keyframe"] == pytest.approx(10.0)
-    assert "| b | tum_fr1_rpy † |" in dl.table({"b": {"tum_fr1_rpy": v}})
-    argv = ["--pair", f"b={off},{on}", "--out", str(tmp_path / "d.json")]
-    assert dl.main(argv) == 1 and dl.main([*argv, "--allow-failed"]) == 0

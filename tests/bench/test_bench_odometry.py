@@ -54,7 +54,7 @@ def test_loop_accuracy_registers_each_candidate_with_each_registration(tmp_path,
         assert 0 <= v["within_2cm"] <= v["within_3cm"] <= acc["candidates"] and v["ms_median"] > 0
         assert v["median_cm"] >= 0 and v["median_deg"] >= 0
     # the candidates are the shipped odometry's: its loop closure is what wraps the registrations, and it is restored
-    from gausslite.datasets import loop_closing, pose_graph
+    from gausslite.odometry import loop_closing, pose_graph
     assert loop_closing.verify_registration is pose_graph.verify_registration
     printed = capsys.readouterr().out
     assert printed.count("| synthetic_circle |") == 1 + len(bo.LOOP_REGISTRATIONS)
@@ -131,7 +131,8 @@ def test_the_scan_walk_is_the_tum_walk_looking_around(tmp_path):
 
 def test_walk_seeds_are_their_own_sequences(tmp_path):
     """``--walk-seeds 0,1``: the walk once per rendering, seed 1 as ``<name>_seed1`` from its own folder (the folder
-    bench.sensor_calibration renders it into), with another trajectory; sequences that are not walks run once."""
+    bench.sensor_calibration, retired: docs/history.md#sensor_calibration renders it into), with another trajectory;
+    sequences that are not walks run once."""
     import numpy as np
 
     import bench.odometry as bo

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bench import realtime as rt
-from bench.realtime_late import give_late_task, late_index
+from bench.realtime.late import give_late_task, late_index
 
 
 class _Frames:
@@ -471,3 +471,40 @@ def test_both_modes_get_one_resolution_per_scene_and_budget_unless_a_user_pins_i
     pinned = jobs(["--set", "agent.resolution.downscale=2"])
     assert all(j["overrides"] == ["agent.resolution.downscale=2"] and j["resolution_mode"] == "pinned"
                for j in pinned)
+
+
+def _traced_run(mode, run, frames, n_active, region):
+    """A scored run with a per-keyframe trace (keyframes ``frames``) and the sensor protocol's per-frame region."""
+    n = len(frames)
+    return {"scene": "tum_fr1_rpy", "mode": mode, "budget": 0.5, "run": run,
+            "trace": {"frame_id": frames, "iters": [20] * n, "active_iters": [8] * n, "n_gaussians": [6000] * n,
+                      "n_active": n_active, "active_scale_m": [0.004] * n, "n_roi_seeds": [100] * n},
+            "protocols": {"sensor": {"roi_psnr_per_frame": {str(f): v for f, v in region.items()}}}}
+
+
+def test_the_keyframe_trace_pairs_both_modes_region_at_gausslites_keyframes(tmp_path):
+    from bench.realtime.tables import plot_trace, trace_table
+
+    region_g = {0: 25.0, 7: 24.0, 14: 22.0}
+    region_u = {0: 24.0, 7: 24.5, 14: 21.0}
+    runs = [_traced_run("gausslite", r, [0, 7 + r, 14], [100, 200 + 10 * r, 300], region_g) for r in range(3)]
+    runs += [_traced_run("uniform", r, [0, 7, 14], [0, 0, 0], region_u) for r in range(3)]
+    rows = trace_table(runs, "tum_fr1_rpy", 0.5).splitlines()
+    # the k-th keyframe's median frame over runs, both modes' region there, the gain, the task's Gaussians, scale
+    assert rows[4] == "| 0 | 0 | 25.00 | 24.00 | +1.00 | 100 | 4.0 | 8.0 | 20.0 / 20.0 |"
+    assert rows[5].startswith("| 1 | 8 | – | – | – | 210 |")  # frame 8 is no scored frame: no region there
+    assert rows[6].startswith("| 2 | 14 | 22.00 | 21.00 | +1.00 | 300 |")
+    assert plot_trace(runs, "tum_fr1_rpy", 0.5, tmp_path / "trace.png") and (tmp_path / "trace.png").stat().st_size
+    untraced = [{k: v for k, v in r.items() if k != "trace"} for r in runs]
+    assert trace_table(untraced, "tum_fr1_rpy", 0.5) == ""
+    assert not plot_trace(untraced, "tum_fr1_rpy", 0.5, tmp_path / "none.png")
+
+
+def test_a_missions_trace_keeps_each_keyframes_stats_in_mapping_order():
+    from types import SimpleNamespace
+
+    from bench.realtime.missions import TRACE_FIELDS, keyframe_trace
+
+    stats = [SimpleNamespace(**{f: i * 10 + j for j, f in enumerate(TRACE_FIELDS)}) for i in range(3)]
+    t = keyframe_trace(stats)
+    assert list(t) == list(TRACE_FIELDS) and t["frame_id"] == [0, 10, 20] and t["iters"] == [1, 11, 21]

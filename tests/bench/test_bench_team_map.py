@@ -1,6 +1,5 @@
-"""bench.team_map (the team map over several sim runs) and bench.team_map_acks (push acknowledgements while the team
-map refines): the summary's arithmetic on hand-made reports, the acknowledgement bench end to end on a tiny load, and
-its goal (a ratio to the same load without a team map)."""
+"""bench.team_map (the team map over several sim runs): the summary's arithmetic on hand-made reports, a report file
+summarised from the command line, and the sim arguments of each bench scene."""
 
 from __future__ import annotations
 
@@ -8,7 +7,7 @@ import json
 
 import pytest
 
-from bench import team_map, team_map_acks
+from bench import team_map
 
 
 OLD = ("sensor", "keyframes", "tracked", "novel", "tracked@own", "novel@own")  # an older report's protocol names
@@ -86,29 +85,8 @@ def test_a_report_file_is_summarised_from_the_command_line(tmp_path):
     assert (tmp_path / "tm.md").read_text().count("| refine | t1 |") == 1
 
 
-@pytest.mark.integration
-def test_push_acknowledgements_are_timed_while_the_team_map_refines(tmp_path):
-    out = tmp_path / "acks.json"
-    team_map_acks.main(["--seconds", "2", "--every", "0.3", "--gaussians", "400", "--views", "4", "--settle", "1",
-                        "--work", str(tmp_path / "w"), "--out", str(out)])
-    got = json.loads(out.read_text())
-    on, off = got["phases"]
-    assert on["team_map"] and not off["team_map"] and on["pushes"] >= 3 and off["pushes"] >= 3
-    assert on["refining_throughout"] is True  # the refinement was running during the pushes
-    assert on["push_ack_ms"]["p99"] > 0 and on["team_maps_made"] == 0 and off["team_maps_made"] is None
-    assert got["p99_ratio"] == pytest.approx(on["push_ack_ms"]["p99"] / off["push_ack_ms"]["p99"])
-    assert got["goal_met"] == (got["p99_ratio"] <= team_map_acks.GOAL_RATIO)
-    assert "| yes | " in (tmp_path / "acks.md").read_text()
 
-
-def _phase(p99, refining=None, made=None):
-    return {"push_ack_ms": {"p99": p99}, "refining_throughout": refining, "team_maps_made": made}
-
-
-def test_the_acknowledgement_goal_is_a_ratio_to_the_server_without_a_team_map_and_needs_a_refinement():
-    off = _phase(10.0)
-    assert team_map_acks.goal(_phase(20.0, True, 0), off) == (True, 2.0)
-    assert team_map_acks.goal(_phase(21.0, True, 0), off) == (False, 2.1)
-    assert team_map_acks.goal(_phase(12.0, False, 5), off) == (True, 1.2)  # short refinements, made again and again
-    assert team_map_acks.goal(_phase(12.0, False, 1), off)[0] is False  # nothing refined during the pushes
-    assert team_map_acks.goal(_phase(None), off) == (False, None)
+def test_each_bench_scene_gives_its_sim_arguments():
+    assert team_map.scene_args("synthetic") == []
+    with pytest.raises(ValueError, match="unknown scene"):
+        team_map.scene_args("kitchen")

@@ -150,7 +150,7 @@ def test_the_pages_show_the_run_clustered_interval_of_the_committed_runs():
 
 
 def test_the_sim_figures_are_the_mean_of_both_agents():
-    result = json.loads((report.RESULTS / "sim_seeds.json").read_text())
+    result = json.loads((report.RESULTS / "history" / "sim_seeds.json").read_text())
     agents = list(result["summary"]["synthetic"].values())
     text = report.sim_glance(result, "synthetic")
     for key, label in (("vote", "vote"), ("refine", "vote+refine")):

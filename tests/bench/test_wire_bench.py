@@ -16,7 +16,8 @@ def test_codec_bench_quick(tmp_path):
     q, ll = by["quantised (default)"], by["lossless"]
     # The synthetic room has uniformly random rotations and attributes (close to incompressible); with
     # the precision that keeps the ROI PSNR cost within 0.05 dB (0.25 mm means, 9-bit log-scales) it
-    # takes 16.25 B/G, while a real mapped map (Replica room0) takes 15.22 B/G (bench.quant_psnr).
+    # takes 16.25 B/G, while a real mapped map (Replica room0) takes 15.22 B/G (bench.quant_psnr, retired:
+    # docs/history.md#quant_psnr).
     assert q["bytes_per_gaussian"] < 16.5 < ll["bytes_per_gaussian"] < codec.PLY_BYTES_PER_GAUSSIAN
     assert q["errors"]["means_mm"]["max"] <= 0.26 and q["errors"]["kappa_exact"]
     assert ll["errors"]["means_mm"]["max"] == 0.0 and ll["errors"]["quat_deg"]["max"] == 0.0

@@ -190,7 +190,7 @@ def test_time_budget_none_keeps_the_fixed_schedule(scene, tmp_path, capsys):
 def test_the_docs_show_the_budget_and_how_to_turn_it_off():
     mapper = (REPO / "docs" / "mapper.md").read_text()
     running = mapper.split("## Running it", 1)[1].split("\n## ", 1)[0]
-    assert "--time-budget MIN" in running and "--time-budget none" in running and "python -m bench.map_budget" in running
+    assert "--time-budget MIN" in running and "--time-budget none" in running and "history.md#map_budget" in running
     row = next(line for line in (REPO / "docs" / "reference.md").read_text().splitlines()
                if line.startswith("| `gausslite map "))
     assert "--time-budget" in row and "none" in row

@@ -80,7 +80,8 @@ def test_export_bag_cli_and_mapping_gives_the_same_psnr(tmp_path, tum_rpy_dir):
         metrics[name] = json.loads((tmp_path / name / "metrics.json").read_text())
     assert metrics["bag"]["n_frames"] == metrics["folder"]["n_frames"] == 3
     # The bag's poses differ from the folder's by ~1e-16 (quaternion round trip). The mapper is chaotic in
-    # them (a 1e-15 pose perturbation moves PSNR by ~0.1 dB after 20 iterations/frame, bench/bag.py), so
+    # them (a 1e-15 pose perturbation moves PSNR by ~0.1 dB after 20 iterations/frame, bench/bag.py, retired:
+    # docs/history.md#bag), so
     # the direct comparison is close but not exact at these few iterations ...
     assert metrics["bag"]["psnr"] == pytest.approx(metrics["folder"]["psnr"], abs=1e-3)
     assert metrics["bag"]["depth_l1"] == pytest.approx(metrics["folder"]["depth_l1"], rel=1e-3)

@@ -14,7 +14,7 @@ from gausslite.camera import Intrinsics
 from gausslite.datasets import detect_layout, load_dataset
 from gausslite.datasets.camera_file import read_camera_file
 from gausslite.datasets.camera_folder import CameraFolderDataset
-from gausslite.datasets.odometry import OdometryDataset
+from gausslite.odometry.rgbd import OdometryDataset
 from gausslite.datasets.trajectory import write_tum_trajectory
 
 W, H = 48, 36

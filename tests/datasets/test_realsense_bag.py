@@ -9,7 +9,7 @@ import pytest
 
 from gausslite.camera import Intrinsics
 from gausslite.datasets import detect_layout, load_dataset
-from gausslite.datasets.odometry import OdometryDataset
+from gausslite.odometry.rgbd import OdometryDataset
 from gausslite.datasets.realsense import RealSenseBagDataset, is_realsense_bag
 from gausslite.datasets.registration import DepthCamera, register_depth
 from gausslite.ros.bagio import BagWriter

@@ -55,6 +55,9 @@ def test_kappa_counts_active_iterations_and_active_comes_from_w():
     u = np.round(mu[:, 0] / mu[:, 2] * K.fx + K.cx).astype(int)
     v = np.round(mu[:, 1] / mu[:, 2] * K.fy + K.cy).astype(int)
     assert np.array_equal(_roi()[v, u], act.numpy())
+    # the keyframe's stats count the task Gaussians it left and their median largest-axis scale
+    largest = torch.exp(m.model.params["log_scales"].detach()[act].max(dim=1).values)
+    assert st.n_active == int(act.sum()) and st.active_scale_m == pytest.approx(float(largest.median()))
 
 
 @pytest.mark.parametrize("mode", ["context", "active", "alternate"])

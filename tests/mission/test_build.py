@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gausslite.config import load_config
-from gausslite.datasets.odometry import POSE_SOURCES, PoseSource
+from gausslite.odometry.rgbd import POSE_SOURCES, PoseSource
 from gausslite.mapping.profiles import profile_for_layout, with_profile
 from gausslite.mission import AgentRuntime, build_mission, replay_dataset
 from gausslite.mission.fakes import SinkFusion

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from gausslite.datasets.odometry import TrackResult
+from gausslite.odometry.rgbd import TrackResult
 from gausslite.mission.pose_follow import MapFollower
 
 

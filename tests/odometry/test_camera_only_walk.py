@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from gausslite.config import load_config
 from gausslite.datasets import load_dataset
-from gausslite.datasets.odometry import RGBDOdometry
+from gausslite.odometry.rgbd import RGBDOdometry
 from gausslite.mission import AgentRuntime
 from gausslite.mission.state import MissionState
 from gausslite.parser import TaskParser

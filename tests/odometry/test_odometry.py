@@ -1,4 +1,4 @@
-"""Poses from RGB-D odometry (gausslite.datasets.odometry) and the trajectory tools (gausslite.datasets.trajectory):
+"""Poses from RGB-D odometry (gausslite.odometry.rgbd) and the trajectory tools (gausslite.datasets.trajectory):
 the TUM trajectory file, ATE / RPE as the TUM benchmark computes them, tracking the synthetic scene, a lost frame
 flagged and not chained, and the pose source of a dataset with and without poses."""
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from gausslite.datasets import load_dataset
-from gausslite.datasets.odometry import OdometryConfig, OdometryDataset, RGBDOdometry, with_pose_source
-from gausslite.datasets.odometry_config import REPEAT_BOUND_M
+from gausslite.odometry.rgbd import OdometryConfig, OdometryDataset, RGBDOdometry, with_pose_source
+from gausslite.odometry.config import REPEAT_BOUND_M
 from gausslite.datasets.trajectory import (align_rigid, ate_rmse, read_tum_trajectory, rot_to_quat, rpe,
                                            write_tum_trajectory)
 from gausslite.ros.transforms import quat_to_rot
@@ -113,7 +113,7 @@ def test_a_lost_frame_is_detected_counted_logged_and_not_chained(scene, caplog):
     frames[6] = dataclasses.replace(frames[6], rgb=rng.integers(0, 255, frames[6].rgb.shape, dtype=np.uint8),
                                     depth=np.zeros_like(frames[6].depth))  # a frame with nothing to register
     odo = RGBDOdometry(initial_pose=frames[0].c2w)
-    with caplog.at_level(logging.WARNING, logger="gausslite.datasets.odometry"):
+    with caplog.at_level(logging.WARNING, logger="gausslite.odometry.rgbd"):
         results = [odo.track(f) for f in frames]
     assert [r.ok for r in results].count(False) == 1 and not results[6].ok and results[6].reason
     assert np.array_equal(results[6].c2w, results[5].c2w)  # it keeps the last good pose
@@ -272,7 +272,7 @@ def test_the_tracker_state_round_trips_mid_sequence(scene):
 def test_an_open3d_that_does_not_load_is_one_clear_error(monkeypatch):
     import builtins
 
-    from gausslite.datasets import odometry
+    from gausslite.odometry import rgbd as odometry
 
     real = builtins.__import__
 

@@ -1,4 +1,4 @@
-"""Drift correction for the RGB-D odometry (gausslite.datasets.pose_graph): the keyframe pose graph removes the drift
+"""Drift correction for the RGB-D odometry (gausslite.odometry.pose_graph): the keyframe pose graph removes the drift
 a loop measures, its gates turn false loops away, the map's frames follow the corrected keyframes, and a lost frame
 is re-localised against the keyframes when the camera comes back."""
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from gausslite.datasets import load_dataset
-from gausslite.datasets.odometry import OdometryConfig, RGBDOdometry
-from gausslite.datasets.odometry_config import REPEAT_BOUND_M
-from gausslite.datasets.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, thumbnail
+from gausslite.odometry.rgbd import OdometryConfig, RGBDOdometry
+from gausslite.odometry.config import REPEAT_BOUND_M
+from gausslite.odometry.pose_graph import KeyframeGraph, LoopConfig, LoopEdge, thumbnail
 from gausslite.datasets.trajectory import ate_rmse, rotation_angle_deg
 from gausslite.synthetic import make_scene
 
@@ -90,7 +90,7 @@ def test_false_loops_between_different_places_are_turned_away(frames, registrati
     kfs = kfs[::2][:5]  # views 0.4 m or more apart
     # every pair of keyframes, each registered as if the camera stood where the other one does: a "loop" between
     # views that do not show the same place (or do, at the wrong pose) must not pass the gates
-    from gausslite.datasets.pose_graph import verify_registration
+    from gausslite.odometry.pose_graph import verify_registration
 
     cfg = odo.config.loop
     accepted_wrong = 0
@@ -112,7 +112,7 @@ def test_false_loops_between_different_places_are_turned_away(frames, registrati
 def test_a_loop_is_registered_from_an_estimate_centimetres_off(frames):
     # a loop's estimated relative pose carries the odometry's drift: from 5 cm and 3 degrees off, the registration
     # lands on the true relative pose of two keyframes and passes the gates
-    from gausslite.datasets.pose_graph import verify_registration
+    from gausslite.odometry.pose_graph import verify_registration
 
     odo = RGBDOdometry(OdometryConfig(track_width=None), initial_pose=frames[0].c2w)
     for f in frames:
@@ -132,7 +132,7 @@ def test_a_loop_is_registered_from_an_estimate_centimetres_off(frames):
 def test_a_loops_information_is_open3ds_from_the_inliers_already_found(frames):
     """icp_information gives what Open3D's get_information_matrix_from_point_clouds does, from the correspondences of
     an evaluation at the same distance and pose (no second nearest-neighbour search)."""
-    from gausslite.datasets.pose_graph import DepthClouds, icp_information, open3d_module
+    from gausslite.odometry.pose_graph import DepthClouds, icp_information, open3d_module
 
     reg = open3d_module().pipelines.registration
     clouds = DepthClouds(4.0)
@@ -149,7 +149,7 @@ def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyf
                                                                                                  monkeypatch):
     """A keyframe's depth cloud is made once for every later loop search that registers to it; the cache holds the
     loop keyframes' thinned clouds alone, and the poses are those of a search without it."""
-    from gausslite.datasets import pose_graph
+    from gausslite.odometry import pose_graph
 
     made = []
     real = pose_graph.DepthClouds.of
@@ -179,7 +179,7 @@ def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyf
 def test_the_cloud_cache_keeps_the_thinned_clouds_used_last(frames):
     """keep(frames, voxel, limit) holds the thinned clouds of those frames alone, at most ``limit``, the most
     recently used; a kept cloud is the same object on the next use."""
-    from gausslite.datasets.pose_graph import DepthClouds
+    from gausslite.odometry.pose_graph import DepthClouds
 
     clouds = DepthClouds(4.0)
     made = [clouds.of(f, 0.04) for f in frames[:3]]
@@ -233,7 +233,7 @@ def test_stopping_the_loop_thread_drops_its_backlog_and_ends_it():
     import time
     from types import SimpleNamespace
 
-    from gausslite.datasets.loop_closing import LoopClosing
+    from gausslite.odometry.loop_closing import LoopClosing
 
     loops = LoopClosing(SimpleNamespace(config=OdometryConfig(), lock=threading.Lock()))
     checked = []
@@ -301,7 +301,7 @@ def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeyp
 
 def _cloud(points: np.ndarray):
     """An Open3D cloud of ``points`` (N, 3) metres with normals estimated as the loop check's clouds are."""
-    from gausslite.datasets.pose_graph import open3d_module
+    from gausslite.odometry.pose_graph import open3d_module
 
     o3d = open3d_module()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -330,7 +330,7 @@ def _corner() -> np.ndarray:
 
 
 def test_the_least_pinned_direction_is_along_a_corridor_and_none_in_a_closed_room():
-    from gausslite.datasets.pose_graph import least_pinned_direction
+    from gausslite.odometry.pose_graph import least_pinned_direction
 
     for points, pinned in ((_corridor(), False), (_corner(), True)):
         tgt = _cloud(points)
@@ -349,7 +349,7 @@ def test_a_registration_that_can_slide_is_turned_away_by_the_restarts(closed):
     # the same view of a corridor, "registered" 8 cm down it: a plane-to-plane fit everywhere along it, so gates 2-3
     # pass from either side; the restarts along the corridor do not come back, and the loop is turned away. With an
     # end wall the restarts return to the true pose, and the check passes.
-    from gausslite.datasets.pose_graph import _icp, _in_basin, open3d_module
+    from gausslite.odometry.pose_graph import _icp, _in_basin, open3d_module
 
     points = _corner() if closed else _corridor()
     src, tgt = _cloud(points), _cloud(points)

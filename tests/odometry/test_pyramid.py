@@ -1,4 +1,4 @@
-"""The odometry's image pyramid (gausslite.datasets.pyramid): the reductions Open3D's multi-scale odometry makes, in
+"""The odometry's image pyramid (gausslite.odometry.pyramid): the reductions Open3D's multi-scale odometry makes, in
 arithmetic that repeats on any CPU."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gausslite.datasets.pyramid import GAUSS5, pyrdown_depth, pyrdown_rgb, rgbd_pyramid
+from gausslite.odometry.pyramid import GAUSS5, pyrdown_depth, pyrdown_rgb, rgbd_pyramid
 
 
 def _reference_rgb(img: np.ndarray) -> np.ndarray:

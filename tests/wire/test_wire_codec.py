@@ -96,7 +96,8 @@ def test_quantised_round_trip_within_documented_bounds_and_small():
     check_quantised(g, out, q)
     assert not meta.lossless
     # uniform random data is the incompressible worst case: still < 19 B/G vs 56 for PLY
-    # (0.25 mm means and 9-bit log-scales, chosen by bench.quant_psnr, add 6 bits over 18 B/G)
+    # (0.25 mm means and 9-bit log-scales, chosen by bench.quant_psnr, retired: docs/history.md#quant_psnr, add 6
+    # bits over 18 B/G)
     assert sum(map(len, chunks)) / len(g) < 19.0
     lossless = sum(map(len, encode_subset(g, "a", 1, quant=LOSSLESS))) / len(g)
     assert lossless > 40.0

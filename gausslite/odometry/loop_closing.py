@@ -1,6 +1,6 @@
 """Loop closure over an RGB-D odometry's keyframes (:class:`LoopClosing`, the part of
-:class:`~gausslite.datasets.odometry.RGBDOdometry` at ``odometry.loops``): a new keyframe's candidates (older keyframes
-near it), their registrations checked against the drift the pose graph allows (:mod:`gausslite.datasets.pose_graph`),
+:class:`~gausslite.odometry.rgbd.RGBDOdometry` at ``odometry.loops``): a new keyframe's candidates (older keyframes
+near it), their registrations checked against the drift the pose graph allows (:mod:`gausslite.odometry.pose_graph`),
 and the pose graph optimised over the loops that pass, which moves the keyframes. It runs on the tracking thread, or on
 a thread of its own (``background_loops``) so that a keyframe's registrations never hold up the next frame.
 """
@@ -14,10 +14,10 @@ from typing import List, Optional
 
 import numpy as np
 
-from gausslite.datasets.pose_graph import DepthClouds, LoopEdge, verify_registration
-from gausslite.datasets.trajectory import rotation_angle_deg
+from gausslite.camera import rotation_angle_deg
+from gausslite.odometry.pose_graph import DepthClouds, LoopEdge, verify_registration
 
-log = logging.getLogger("gausslite.datasets.odometry")  # one logger for the odometry
+log = logging.getLogger("gausslite.odometry.rgbd")  # one logger for the odometry
 
 __all__ = ["LoopClosing", "CLOUDS_KEPT"]
 
@@ -32,7 +32,7 @@ class LoopClosing:
     tracking-size ``frame``).
 
     Args:
-        odometry: the :class:`~gausslite.datasets.odometry.RGBDOdometry` whose keyframes, pose graph, settings
+        odometry: the :class:`~gausslite.odometry.rgbd.RGBDOdometry` whose keyframes, pose graph, settings
             (``config.loop``), lock and corrections (``apply_correction``) the loops use.
 
     Attributes:
@@ -48,7 +48,7 @@ class LoopClosing:
         self.clouds = DepthClouds(odometry.config.depth_max_m)
 
     def close_loops(self, kf) -> int:
-        """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.datasets.pose_graph`)
+        """Look for loops from the new keyframe ``kf`` to older ones, gate them (:mod:`~gausslite.odometry.pose_graph`)
         and, when one passes, optimise the pose graph and move the keyframes, the last pose and the previous frame
         with it (the caller holds the tracker's lock). Returns the loops accepted."""
         odo = self.odometry

@@ -24,8 +24,8 @@ Poses are camera-to-world (c2w, 4 × 4 float64, metres, OpenCV camera axes: x ri
 frame is the first frame's camera frame, or the pose given to it (``initial_pose``).
 
 Open3D (the ``open3d-cpu`` wheel of the ``mapper`` extra) is imported on first use. The settings and results are
-:mod:`gausslite.datasets.odometry_config`'s (re-exported here); loop closure over the keyframes is
-:class:`~gausslite.datasets.loop_closing.LoopClosing`'s (``RGBDOdometry.loops``).
+:mod:`gausslite.odometry.config`'s (re-exported here); loop closure over the keyframes is
+:class:`~gausslite.odometry.loop_closing.LoopClosing`'s (``RGBDOdometry.loops``).
 """
 
 from __future__ import annotations
@@ -39,15 +39,13 @@ from typing import Callable, Dict, List, Literal, Optional, Union
 import numpy as np
 from tqdm import tqdm
 
-from gausslite.camera import Intrinsics, nearest_rigid
-from gausslite.datasets.base import Frame, RGBDDataset
-from gausslite.datasets.common import downscale_frame
-from gausslite.datasets.loop_closing import LoopClosing
-# the settings and results live in a module of their own; their names import from here as before
-from gausslite.datasets.odometry_config import POSE_SOURCES, OdometryConfig, PoseSource, TrackResult  # noqa: F401
-from gausslite.datasets.pose_graph import KeyframeGraph, open3d_module, relocalise, thumbnail
-from gausslite.datasets.pyramid import rgbd_pyramid
-from gausslite.datasets.trajectory import rotation_angle_deg
+from gausslite.camera import Intrinsics, nearest_rigid, rotation_angle_deg
+from gausslite.core.frames import Frame, RGBDDataset, downscale_frame
+# the settings and results live in a module of their own; their names import from here as well
+from gausslite.odometry.config import POSE_SOURCES, OdometryConfig, PoseSource, TrackResult  # noqa: F401
+from gausslite.odometry.loop_closing import LoopClosing
+from gausslite.odometry.pose_graph import KeyframeGraph, open3d_module, relocalise, thumbnail
+from gausslite.odometry.pyramid import rgbd_pyramid
 
 log = logging.getLogger(__name__)
 
@@ -79,11 +77,11 @@ class RGBDOdometry:
         n_tracked, n_failed: frames tracked and frames that failed so far (the first frame counts as tracked;
             a re-localised frame counts as tracked).
         n_keyframes: keyframes taken so far.
-        n_relocalised: lost frames found again against a keyframe (:func:`~gausslite.datasets.pose_graph.relocalise`).
+        n_relocalised: lost frames found again against a keyframe (:func:`~gausslite.odometry.pose_graph.relocalise`).
         failed_ids: frame ids of the failed frames.
-        graph: the keyframe pose graph with its loop closures (:class:`~gausslite.datasets.pose_graph.KeyframeGraph`).
+        graph: the keyframe pose graph with its loop closures (:class:`~gausslite.odometry.pose_graph.KeyframeGraph`).
         loop_keyframes: frame id → keyframe kept with its images for loops and re-localisation.
-        loops: loop closure over the keyframes (:class:`~gausslite.datasets.loop_closing.LoopClosing`).
+        loops: loop closure over the keyframes (:class:`~gausslite.odometry.loop_closing.LoopClosing`).
         lock: held while a frame is tracked and while the loop-closing thread changes the pose graph.
         on_correction: called with ``{frame id: new (4, 4) c2w}`` of every keyframe after the pose graph moved them
             (from the tracking thread, or the loop-closing thread under ``background_loops``), e.g. to move the map
@@ -122,7 +120,7 @@ class RGBDOdometry:
     def _image(self, frame: Frame) -> list:
         """Open3D's RGB-D images of ``frame``'s pyramid, finest first, one level per entry of ``iterations``
         (tensor geometry: colour as float32 in 0..1, depth in metres, 0 where invalid; made by
-        :func:`~gausslite.datasets.pyramid.rgbd_pyramid`, which repeats exactly on any CPU, unlike Open3D's own)."""
+        :func:`~gausslite.odometry.pyramid.rgbd_pyramid`, which repeats exactly on any CPU, unlike Open3D's own)."""
         o3d = open3d_module()
         c = self.config
         levels = rgbd_pyramid(np.ascontiguousarray(frame.rgb, dtype=np.float32) / np.float32(255.0),
@@ -275,7 +273,7 @@ class RGBDOdometry:
             self.on_correction({fid: c2w.copy() for fid, c2w in new.items()})
 
     def _relocalise(self, frame: Frame, image, pred: np.ndarray) -> Optional[TrackResult]:
-        """A lost frame found again against the keyframes (:func:`~gausslite.datasets.pose_graph.relocalise`, from
+        """A lost frame found again against the keyframes (:func:`~gausslite.odometry.pose_graph.relocalise`, from
         ``pred`` (4, 4), the pose the motion predicts), as a tracked frame, or None."""
         cfg = self.config.relocalise
         if not cfg.enabled or self._since_good % cfg.every != 0:
@@ -311,7 +309,7 @@ class RGBDOdometry:
         T_l = np.asarray(init, np.float64)
         try:
             # coarse to fine, one level per call on the pyramid of _image (Open3D's multi-scale loop, level by level:
-            # its own pyramid does not repeat on every CPU, gausslite.datasets.pyramid)
+            # its own pyramid does not repeat on every CPU, gausslite.odometry.pyramid)
             n = len(self._criteria)
             for level in reversed(range(n)):  # level 0 is the finest; the criteria are the coarsest first
                 K_l = K / 2.0 ** level

@@ -1,6 +1,6 @@
 """Drift correction for the RGB-D odometry: a keyframe pose graph with verified loop closures, and re-localisation.
 
-The odometry (:mod:`gausslite.datasets.odometry`) registers each frame to a nearby keyframe, so its error grows with
+The odometry (:mod:`gausslite.odometry.rgbd`) registers each frame to a nearby keyframe, so its error grows with
 the path: a room-sized walk drifts by centimetres. As keyframe SLAM systems do (DVO-SLAM, Kerl, Sturm, Cremers, IROS
 2013; ORB-SLAM, Mur-Artal et al., T-RO 2015), this module keeps every keyframe as a node of a pose graph and, when
 the camera comes back to a place it saw before, adds a **loop edge** between the new keyframe and the old one and
@@ -58,8 +58,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gausslite.camera import nearest_rigid
-from gausslite.datasets.trajectory import rotation_angle_deg
+from gausslite.camera import nearest_rigid, rotation_angle_deg
 
 log = logging.getLogger(__name__)
 
@@ -363,7 +362,7 @@ def verify_registration(odo, frame, image, target, init: np.ndarray, min_fitness
     """Register ``frame`` to the keyframe ``target`` from ``init`` and apply gates 2-3 of the module docstring.
 
     Args:
-        odo: the :class:`~gausslite.datasets.odometry.RGBDOdometry` (its ``register`` and settings).
+        odo: the :class:`~gausslite.odometry.rgbd.RGBDOdometry` (its ``register`` and settings).
         frame, image: the frame at the tracking size and its Open3D RGB-D pyramid (``RGBDOdometry._image``).
         target: the keyframe (``frame``, ``image``, ``c2w``).
         init: (4, 4) initial ``c2w_target⁻¹ c2w_frame``.

@@ -5,7 +5,7 @@ its colour reduction (``Image.pyrdown``: a Gaussian blur and a 2:1 subsample, th
 with the wheel) does not repeat on every CPU: on an x86-64 CPU with AVX2 and no AVX-512 the same call on the same
 40 × 30 image returns pixels that differ in the last bit from one call to the next, with one thread (docs/mapper.md,
 "Poses from odometry": repeatable tracking). A registration started from such a level ends 1e-5 to 1e-4 m away,
-and a tracked sequence then parts by up to 4e-4 m over a dozen frames. :class:`~gausslite.datasets.odometry.
+and a tracked sequence then parts by up to 4e-4 m over a dozen frames. :class:`~gausslite.odometry.rgbd.
 RGBDOdometry` registers one level at a time on the levels made here instead: the same reductions as Open3D's
 (colour: a 5-tap Gaussian of σ = 1 pixel, then every other pixel; depth: Open3D's ``PyrDownDepth``), in elementwise
 float32 arithmetic whose result does not depend on the vector width.

@@ -1,4 +1,4 @@
-"""The settings and results of the RGB-D odometry (:mod:`gausslite.datasets.odometry`, which re-exports them): where
+"""The settings and results of the RGB-D odometry (:mod:`gausslite.odometry.rgbd`, which re-exports them): where
 camera poses come from (:data:`PoseSource`, :data:`POSE_SOURCES`), the odometry's settings (:class:`OdometryConfig`)
 and what tracking one frame gives (:class:`TrackResult`).
 """
@@ -11,7 +11,7 @@ from typing import List, Literal, Optional, get_args
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gausslite.datasets.pose_graph import LoopConfig, RelocConfig
+from gausslite.odometry.pose_graph import LoopConfig, RelocConfig
 
 __all__ = ["PoseSource", "POSE_SOURCES", "OdometryConfig", "TrackResult", "REPEAT_BOUND_M"]
 
@@ -66,8 +66,8 @@ class OdometryConfig(BaseModel):
             pose) from the motion's prediction gets a second registration, to the previous good frame, kept when it
             passes the fitness check and lands within these bounds and nearer the prediction (a registration to a
             keyframe far back in time can converge to a wrong pose that passes the fitness check).
-        loop: loop closure over the keyframes (:class:`~gausslite.datasets.pose_graph.LoopConfig`).
-        relocalise: re-localisation of lost frames (:class:`~gausslite.datasets.pose_graph.RelocConfig`).
+        loop: loop closure over the keyframes (:class:`~gausslite.odometry.pose_graph.LoopConfig`).
+        relocalise: re-localisation of lost frames (:class:`~gausslite.odometry.pose_graph.RelocConfig`).
     """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
