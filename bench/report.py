@@ -1302,6 +1302,7 @@ REGIONS: Dict[str, Region] = {
     "realtime-tum-align-off": Region("bench/results/realtime_tum_align_off.json", realtime_protocol_table),
     "realtime-tum-trace": Region("bench/results/realtime_tum_trace.json", realtime_protocol_table),
     "realtime-tum-trace-keyframes": Region("bench/results/realtime_tum_trace.json", realtime_trace),
+    "realtime-tum-split5mm": Region("bench/results/realtime_tum_split5mm.json", realtime_protocol_table),
     "realtime-throughput": Region("bench/results/realtime_throughput.json", realtime_protocol_table),
     "realtime-governor-t20": Region("bench/results/realtime_governor_t20.json", realtime_protocol_table),
     "realtime-governor-t30": Region("bench/results/realtime_governor_t30.json", realtime_protocol_table),
