@@ -598,13 +598,13 @@ def quality_per_iteration_table(r: dict) -> str:
 
 def realtime_trace(r: dict) -> str:
     """The per-keyframe trace of a ``bench.realtime`` result scored under the ``sensor`` protocol, each scene and
-    budget (:func:`bench.realtime.tables.trace_table`)."""
-    from bench.realtime.tables import trace_table  # lazy: only this region reads a run's trace
+    budget (:func:`bench.realtime.tables.trace_tables`)."""
+    from bench.realtime.tables import trace_tables  # lazy: only this region reads a run's trace
 
-    tables = [trace_table(r["runs"], scene, float(b)) for scene in r["scenes"] for b in r["settings"]["budgets"]]
-    if not any(tables):
+    tables = trace_tables(r)
+    if not tables:
         raise ReportError("the result holds no per-keyframe trace (score it under the sensor protocol)")
-    return "\n\n".join(t for t in tables if t) + "\n"
+    return tables + "\n"
 
 
 def realtime_protocol_table(r: dict) -> str:

@@ -14,7 +14,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from gausslite.camera import rotation_angle
+from gausslite.camera import rotation_angle_deg
 from gausslite.datasets.base import Frame
 from gausslite.mapping.exposure import apply_exposure
 from gausslite.mapping.poses import VectorAdam, pose_delta
@@ -49,7 +49,7 @@ class TrackedView:
 def pose_offset(c2w0: np.ndarray, c2w: np.ndarray) -> tuple[float, float]:
     """Rotation (degrees) and translation (metres) of ``c2w`` away from ``c2w0`` (both (4, 4))."""
     E = np.linalg.inv(np.asarray(c2w0, np.float64)) @ np.asarray(c2w, np.float64)
-    ang = float(np.degrees(rotation_angle(E)))
+    ang = rotation_angle_deg(E)
     return ang, float(np.linalg.norm(E[:3, 3]))
 
 

@@ -31,7 +31,7 @@ from bench.realtime.missions import RESOLUTION_KEYS, calibrate, run_key, run_one
 from bench.realtime.protocol import TRACK_ITERS, TRACK_STRIDE, score_deferred
 from bench.realtime.scenes import MODES, REFERENCE_BUDGET_S, RESULTS, SCENES, dataset_scenes, scene_path
 from bench.realtime.summary import budget_key, summarise
-from bench.realtime.tables import plot_scene, plot_trace, protocol_table, table, trace_table
+from bench.realtime.tables import plot_scene, plot_trace, protocol_table, table, trace_tables
 from bench.realtime.late import LATE_VIA
 
 
@@ -371,11 +371,10 @@ def _tables(result: dict, out: Path) -> str:
     """A result's markdown: the table, the protocols' table and, when its runs were scored under the sensor protocol,
     each scene's per-keyframe trace (also plotted beside ``out``: ``<stem>_trace_<scene>_<budget>.png``)."""
     md = table(result) + "\n\n" + protocol_table(result)
-    runs, budgets = result["runs"], [float(b) for b in result["settings"]["budgets"]]
-    traces = [trace_table(runs, scene, b) for scene in result["scenes"] for b in budgets]
-    if any(traces):
-        md += "\n\n## Per-keyframe trace\n\n" + "\n\n".join(x for x in traces if x)
+    traces = trace_tables(result)
+    if traces:
+        md += "\n\n## Per-keyframe trace\n\n" + traces
         for scene in result["scenes"]:
-            for b in budgets:
-                plot_trace(runs, scene, b, out.with_name(f"{out.stem}_trace_{scene}_{b:g}.png"))
+            for b in result["settings"]["budgets"]:
+                plot_trace(result["runs"], scene, float(b), out.with_name(f"{out.stem}_trace_{scene}_{float(b):g}.png"))
     return md

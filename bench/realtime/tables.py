@@ -200,6 +200,14 @@ def trace_table(runs: list[dict], scene: str, budget: float) -> str:
     return "\n".join(lines)
 
 
+def trace_tables(result: dict) -> str:
+    """Every scene's and budget's per-keyframe trace of a ``bench.realtime`` result (:func:`trace_table`), one after
+    the other; empty when its runs hold no trace (they were not scored under :data:`TRACE_PROTOCOL`)."""
+    budgets = [float(b) for b in result["settings"]["budgets"]]
+    return "\n\n".join(t for t in (trace_table(result["runs"], scene, b) for scene in result["scenes"]
+                                     for b in budgets) if t)
+
+
 def plot_trace(runs: list[dict], scene: str, budget: float, path: Path) -> bool:
     """The per-keyframe trace as a figure (:func:`_trace_rows`): both modes' region PSNR at every frame (GaussLite's
     keyframes marked), GaussLite's task Gaussians and their median scale, and the iterations per keyframe. Returns

@@ -1,6 +1,6 @@
 """Exporting real detector and segmenter networks to the ONNX files the ONNX backends load
 (:mod:`gausslite.attention.onnx_backends`); used by ``gausslite export models``, the tests and
-``bench.frontend``, retired: docs/history.md#frontend. Nothing here downloads anything: sources are local
+the retired ``bench.frontend`` (docs/history.md#frontend). Nothing here downloads anything: sources are local
 folders/files, or hub ids that are
 already in the local Hugging Face cache (``local_files_only=True``) or, when the caller allows it, that the
 machine can reach.

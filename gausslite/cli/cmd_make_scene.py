@@ -55,9 +55,9 @@ def register(subparsers) -> None:
                    help="none: exact renders (default); realistic: Kinect-like depth noise and holes, motion blur, "
                         "rolling shutter, exposure changes and colour noise; tum: the Kinect v1 of TUM RGB-D fr1 as "
                         "measured (its field of view, disparity-quantised depth, holes, colour-depth misregistration "
-                        "and delay, exposure, blur and rolling shutter; seeded by --seed); tum-<fault>: one group of tum's faults "
-                        "alone on its camera (exposure, blur, misregistration, depth-noise, depth-holes; tum-clean: "
-                        "none)")
+                        "and delay, exposure, blur and rolling shutter; seeded by --seed); tum-<fault>: one group of "
+                        "tum's faults alone on its camera (exposure, blur, misregistration, depth-noise, depth-holes; "
+                        "tum-clean: none)")
     p.add_argument("--fps", type=float, default=30.0,
                    help="frame rate of the sequence: the walk's clock and the sensor model's (default 30, the "
                         "rate the Replica loader replays it at)")

@@ -214,7 +214,7 @@ def downscale_depth(depth: np.ndarray, factor: Union[int, float]) -> np.ndarray:
 
 def downscale_frame(frame: Frame, factor: Union[int, float]) -> Frame:
     """``frame`` at 1/``factor`` resolution: colour by area, depth by the valid sample nearest each block's centre
-    (:func:`~gausslite.datasets.common.downscale_depth`), intrinsics scaled (:meth:`Intrinsics.scaled`); pose,
+    (:func:`downscale_depth`), intrinsics scaled (:meth:`Intrinsics.scaled`); pose,
     time and id unchanged. ``factor`` 1 returns ``frame``.
 
     Raises:

@@ -1,5 +1,5 @@
-"""Frame and dataset interfaces shared by every loader (Replica, TUM RGB-D, 7-Scenes, synthetic). (defined in :mod:`gausslite.core.frames`,
-which the odometry shares)."""
+"""Frame and dataset interfaces shared by every loader (Replica, TUM RGB-D, 7-Scenes, synthetic), named here for the
+loaders; they are defined in :mod:`gausslite.core.frames`, which the odometry shares."""
 
 from gausslite.core.frames import Frame, RGBDDataset
 

@@ -36,7 +36,7 @@ from typing import Callable, Dict, Mapping, Optional
 
 import numpy as np
 
-from gausslite.camera import rotation_angle
+from gausslite.camera import rotation_angle_deg
 from gausslite.datasets.base import Frame
 
 log = logging.getLogger(__name__)
@@ -244,7 +244,7 @@ class KeyframeAligner:
                                           reg.ICPConvergenceCriteria(1e-6, 1e-6, iters))
             T = np.asarray(result.transformation, np.float64)
         D = np.linalg.inv(start) @ T
-        rot, trans = float(np.degrees(rotation_angle(D[:3, :3]))), float(np.linalg.norm(D[:3, 3]))
+        rot, trans = rotation_angle_deg(D), float(np.linalg.norm(D[:3, 3]))
         fitness, rmse = float(result.fitness), float(result.inlier_rmse)
         ok = (np.all(np.isfinite(T)) and fitness >= self.min_fitness and trans <= self.max_trans_m
               and rot <= self.max_rot_deg)

@@ -18,8 +18,8 @@ at the frame's timestamp. The image is rendered in horizontal bands, one pose pe
 rows of a band are rendered by the rasterizer alone (the principal point shifted by the band's first row),
 so the pixels rendered stay those of one image; only the per-render projection is repeated.
 
-Calibrated by ``python -m bench.rolling_shutter``, retired: docs/history.md#rolling_shutter on TUM fr1/rpy, 320×240,
-60 random pairs of overlapping frames
+Calibrated on TUM fr1/rpy (``bench.rolling_shutter``, retired: docs/history.md#rolling_shutter), 320×240, 60 random
+pairs of overlapping frames
 ≥ 8 frames apart (one of them turning faster than 40°/s), warping one frame into the other with its depth and the
 sensor's poses: mean warp PSNR +1.02 dB with ``t_r`` = 20 ms (top row first; 25 ms +1.10), −1.29 dB with the rows
 taken bottom first, and +2.18 dB with 20 ms when the poses are also read 5 ms earlier (a clock offset that

@@ -34,7 +34,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from gausslite.camera import rotation_angle
+from gausslite.camera import rotation_angle_deg
 from gausslite.datasets.base import Frame
 from gausslite.mapping.config import MapperConfig
 from gausslite.mapping.model import cosine_lr_factor
@@ -231,7 +231,7 @@ class FrameTracker:
         logged); ``c2w0`` when nothing was tracked."""
         pc = self.cfg.pose
         E = np.linalg.inv(c2w0) @ c2w
-        rot = float(np.degrees(rotation_angle(E)))
+        rot = rotation_angle_deg(E)
         trans = float(np.linalg.norm(E[:3, 3]))
         if not math.isfinite(loss):  # no render covered enough of the view
             return TrackResult(c2w0.copy(), iters, False, stop, 0.0, 0.0, loss0, loss0)

@@ -230,7 +230,7 @@ class QuantConfig:
     lossless: bool = False
     # 0.25 mm; 0.35 mm cost a further 0.013 dB ROI PSNR on room0 (bench.quant_psnr, retired: docs/history.md#quant_psnr)
     mean_step: float = 2.5e-4
-    # bench.quant_psnr, retired: docs/history.md#quant_psnr on a room0 map, B per active Gaussian / ROI PSNR vs
+    # on a room0 map (bench.quant_psnr, retired: docs/history.md#quant_psnr), B per active Gaussian / ROI PSNR vs
     # lossless: quat 9, scale 9,
     # opacity 8 bits 12.51 B / +0.001 dB; quat 8, opacity 7: 11.55 B / +0.004 dB; and scale 8:
     # 11.10 B / -0.020 dB (the sim's room0 subsets compress about 0.5 B worse than this map's)

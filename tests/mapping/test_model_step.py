@@ -308,7 +308,8 @@ def test_active_size_counts_the_task_gaussians_and_their_median_largest_axis():
     assert m.active_size() == (0, 0.0)
     m.active[:5] = True
     with torch.no_grad():
-        m.params["log_scales"][:5] = torch.log(torch.tensor([[0.01, 0.02, 0.005], [0.03, 0.01, 0.01], [0.001, 0.001, 0.04],
-                                                             [0.02, 0.02, 0.02], [0.05, 0.01, 0.01]]))
+        m.params["log_scales"][:5] = torch.log(torch.tensor([[0.01, 0.02, 0.005], [0.03, 0.01, 0.01],
+                                                             [0.001, 0.001, 0.04], [0.02, 0.02, 0.02],
+                                                             [0.05, 0.01, 0.01]]))
     n, scale = m.active_size()
     assert n == 5 and scale == pytest.approx(0.03)  # the largest axes 0.02, 0.03, 0.04, 0.02, 0.05: median 0.03
