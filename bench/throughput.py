@@ -6,6 +6,7 @@ Usage::
     python -m bench.throughput                       # 4 size cases + the keyframe case: bench/results/throughput.*
     python -m bench.throughput --against 43a6a8d     # the same cases for that commit too, case by case (A B), this/that
     python -m bench.throughput --quick               # tiny sizes (seconds), prints only unless --out is given
+    python -m bench.throughput --against 718445f --isa avx2   # both trees built for AVX2: throughput_avx2.*
 
 **What is timed.** The step the mapper runs, not a re-implementation of it: ``Mapper.optimize(n_iters=...)``, whose
 iterations are :class:`gausslite.mapping.step.TrainStep`'s (the view drawn from the stored keyframes, the render as
@@ -66,6 +67,16 @@ SIMD kernels' inner loops, :mod:`gausslite.render.simd_kernels`: the offset and 
 per-row work not counted), and every FLOP could issue as half of an FMA at the loop's rate: an upper bound on the
 pairs per second the cores allow, so the fraction is a lower bound of how much of the machine the kernels use.
 
+**Pairs.** Once per tree and case (the first round's worker), the pixel–Gaussian pairs the tile lists hold are
+counted by what becomes of them (:func:`pair_census`, the views of the roofline): ``listed`` (each tile's pixels ×
+its list's entries), ``passing`` (alpha >= 1/255), ``contributing`` (passing, before the pixel stopped) and
+``after_stop`` (listed after the entry where a pixel stopped). ``listed`` over ``contributing`` is the room the tile
+lists leave; the SIMD lanes over ``contributing`` what the kernels visit per pair that counts.
+
+**Instruction sets.** ``--isa avx2`` / ``avx512`` builds every Warp module of both trees (the SIMD kernels among
+them) for x86-64-v3 (AVX2, FMA: a 16-lane vector is two 8-lane halves) or x86-64-v4 (AVX-512) instead of the host's
+CPU (:data:`ISA_FLAGS`; a build needs a host that can run it), so that one machine measures both vector widths.
+
 Output: a table (printed) and, in full mode or with ``--out``, JSON through :mod:`bench._results` with ``settings``,
 ``trees`` (``this`` / ``that``: commit, root, the ``gausslite.__file__`` its workers imported), ``roofline``
 (``fma_gflops_1``, ``fma_gflops_all`` GFLOP/s, ``threads_all``, ``flops_per_pair``, ``pairs_per_s_1`` /
@@ -73,7 +84,8 @@ Output: a table (printed) and, in full mode or with ``--out``, JSON through :mod
 block holding ``n_gaussians``, ``width``, ``height`` (px), ``it_per_s``, ``full_it_per_s``, ``roi_it_per_s``
 (iterations s⁻¹; medians), ``cycle_s`` / ``full_s`` / ``roi_s`` (seconds of every repeat) and ``raster``: ``views``,
 ``fwd_bwd_s`` (seconds, summed over the views' medians), ``tile_pairs``, ``lane_pairs_fwd``, ``lane_pairs_bwd``
-(counts per fwd+bwd of all views), ``pairs_per_s`` (forward lanes s⁻¹), ``gflops`` and ``roofline_fraction``
+(counts per fwd+bwd of all views), ``entries`` (tile-list entries), the census's counts in the first round's
+worker, ``pairs_per_s`` (forward lanes s⁻¹), ``gflops`` and ``roofline_fraction``
 (against one core's ceiling × the render threads, capped at all cores).
 """
 
@@ -116,6 +128,16 @@ TASK = "synth-pick-object"
 FWD_FLOPS, BWD_FLOPS = 43, 61
 #: the worker's result line on stdout
 RESULT_TAG = "THROUGHPUT_RESULT "
+#: :func:`pair_census`'s counts
+CENSUS_KEYS = ("listed", "passing", "contributing", "after_stop")
+#: ``--isa``: the compiler flags every Warp module (the SIMD kernels among them) is built with in the workers, for
+#: this tree and the other alike: Warp's default flags (``wp.config.cpu_compiler_flags``) with the host's CPU
+#: (``-march=native``) replaced by a fixed target, x86-64-v3 (AVX2, FMA) or x86-64-v4 (AVX-512 F/BW/CD/DQ/VL); Warp's
+#: in-process clang takes the target as the compiler front end's ``-target-cpu``. ``native``: Warp's default.
+_LLVM_FLAGS = ("-mllvm=-inline-threshold=9000 -mllvm=-inline-cold-callsite-threshold=3000"
+               " -mllvm=-slp-recursion-max-depth=4")
+ISA_FLAGS = {"native": None, "avx2": f"-target-cpu x86-64-v3 {_LLVM_FLAGS}",
+             "avx512": f"-target-cpu x86-64-v4 {_LLVM_FLAGS}"}
 #: run this file as ``__main__`` without putting its folder on ``sys.path`` (``bench/`` holds modules whose names a
 #: library might import), so that ``PYTHONPATH`` alone decides which ``gausslite`` the worker imports
 _BOOT = "import runpy, sys; p = sys.argv[1]; sys.argv = sys.argv[1:]; runpy.run_path(p, run_name='__main__')"
@@ -248,7 +270,8 @@ def run_size_case(spec: dict) -> dict:
            "full_s": full_s, "roi_s": roi_s, "cycle_s": [a + b for a, b in zip(full_s, roi_s)],
            "config": _sensor_summary(cfg)}
     mapper.load_state_dict(copy.deepcopy(snapshot))
-    out["raster"] = rasterizer_rate(mapper, frames[:int(spec["raster_views"])], int(spec["raster_repeats"]))
+    out["raster"] = rasterizer_rate(mapper, frames[:int(spec["raster_views"])], int(spec["raster_repeats"]),
+                                    bool(spec.get("census")))
     return out
 
 
@@ -283,17 +306,18 @@ def run_keyframe_case(spec: dict) -> dict:
             "keyframe_s": [r["seconds"] for r in runs], "config": _sensor_summary(cfg)}
 
 
-def rasterizer_rate(mapper, frames: list, repeats: int) -> dict:
+def rasterizer_rate(mapper, frames: list, repeats: int, census: bool = False) -> dict:
     """The rasterizer's forward + backward on full views of ``mapper``'s map from ``frames``' poses, at the mapper's
     render threads, backend and CPU kernel: seconds (the median of ``repeats`` after one warm-up, summed over the
     views) and the pairs the kernels evaluated (:func:`count_pairs`; None where the render's saved state cannot be
-    read)."""
+    read; with ``census`` also :func:`pair_census`'s)."""
     import torch
     from gausslite.render import rasterize
 
     perf = mapper.cfg.performance
     names = ("means", "quats", "log_scales", "opacity_logits", "colors")
-    total_s, counts, ok = 0.0, {"tile_pairs": 0, "lane_pairs_fwd": 0, "lane_pairs_bwd": 0}, True
+    keys = ("tile_pairs", "entries", "lane_pairs_fwd", "lane_pairs_bwd") + (CENSUS_KEYS if census else ())
+    total_s, counts, ok = 0.0, dict.fromkeys(keys, 0), True
     gen = torch.Generator().manual_seed(0)
     for fr in frames:
         W, H = fr.intrinsics.width, fr.intrinsics.height
@@ -307,7 +331,7 @@ def rasterizer_rate(mapper, frames: list, repeats: int) -> dict:
                             num_threads=perf.render_threads, cpu_kernel=perf.cpu_kernel)
             t1 = time.perf_counter()
             if rep == 0 and ok:  # untimed, and before the backward frees the saved state
-                c = count_pairs(out)
+                c = count_pairs(out, census)
                 ok = c is not None
                 for key in counts:
                     counts[key] += c[key] if ok else 0
@@ -328,13 +352,14 @@ def _tile_max(img: np.ndarray, ts: int, tiles_x: int, tiles_y: int, fill) -> np.
     return pad.reshape(tiles_y, ts, tiles_x, ts).max(axis=(1, 3)).reshape(-1)
 
 
-def count_pairs(out) -> Optional[dict]:
+def count_pairs(out, census: bool = False) -> Optional[dict]:
     """The pixel–Gaussian pairs the CPU compositing kernels evaluated for render ``out`` (a ``RenderOutput`` whose
     alpha came from the Warp rasterizer), read from the state its forward pass saved for the backward: ``gdata``
     (M, 16) float32 rows, the depth-sorted tile lists ``gids`` / ``tile_start``, the final transmittance ``T`` and each
     pixel's last contributing entry ``last`` (module docstring, "Roofline"). Returns ``tile_pairs``,
-    ``lane_pairs_fwd``, ``lane_pairs_bwd`` (ints), or None when the render did not save that state (another backend,
-    or kernels whose saved state differs)."""
+    ``entries`` (tile-list entries), ``lane_pairs_fwd``, ``lane_pairs_bwd`` (ints) and with ``census``
+    :func:`pair_census`'s counts, or None when the render did not save that state (another backend, or kernels whose
+    saved state differs)."""
     try:
         node = out.alpha.grad_fn
         gdata, gids, tile_start, T, last = (t.detach().cpu().numpy() for t in node.saved_tensors[:5])
@@ -354,9 +379,45 @@ def count_pairs(out) -> Optional[dict]:
     tx = np.arange(n_tiles) % tiles_x
     ty = np.arange(n_tiles) // tiles_x
     px = (np.minimum((tx + 1) * ts, width) - tx * ts) * (np.minimum((ty + 1) * ts, height) - ty * ts)
-    return {"tile_pairs": int(((end - start) * px).sum()),
-            "lane_pairs_fwd": _lanes(gdata, gids, start, stop_fwd, ts, tiles_x, width, height, simd),
-            "lane_pairs_bwd": _lanes(gdata, gids, start, maxlast, ts, tiles_x, width, height, simd)}
+    res = {"tile_pairs": int(((end - start) * px).sum()), "entries": int(len(gids)),
+           "lane_pairs_fwd": _lanes(gdata, gids, start, stop_fwd, ts, tiles_x, width, height, simd),
+           "lane_pairs_bwd": _lanes(gdata, gids, start, maxlast, ts, tiles_x, width, height, simd)}
+    if census:
+        res.update(pair_census(gdata, gids, start, end, ts, tiles_x, width, height))
+    return res
+
+
+def pair_census(gdata, gids, start, end, ts: int, tiles_x: int, width: int, height: int) -> dict:
+    """What becomes of the pixel–Gaussian pairs the tile lists hold (every pixel of a tile × every entry of its
+    list), evaluated in float32 from the packed rows as the kernels composite them (Kerbl et al. 2023: ``alpha =
+    min(0.99, o exp(power))``, a pair with ``power > 0`` or ``alpha < 1/255`` skipped, a pixel stops at the entry
+    that would take its transmittance below 1e-4): ``listed`` (all pairs), ``passing`` (alpha >= 1/255),
+    ``contributing`` (passing, before the pixel stopped) and ``after_stop`` (the listed pairs from the entry where
+    a pixel stopped to its tile's end, which a stopped pixel skips)."""
+    f32 = np.float32
+    out = {"listed": 0, "passing": 0, "contributing": 0, "after_stop": 0}
+    for t in range(len(start)):
+        a, b = int(start[t]), int(end[t])
+        if b <= a:
+            continue
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        xs, ys = np.arange(x0, min(x0 + ts, width), dtype=f32), np.arange(y0, min(y0 + ts, height), dtype=f32)
+        px, py = (m.reshape(-1, 1) for m in np.meshgrid(xs, ys))
+        r = gdata[gids[a:b]]
+        dx, dy = r[:, 0] - px + r[:, 10], r[:, 1] - py + r[:, 11]
+        power = f32(-0.5) * (r[:, 2] * dx * dx + r[:, 4] * dy * dy) - r[:, 3] * dx * dy
+        with np.errstate(over="ignore"):
+            alpha = np.minimum(f32(0.99), r[:, 5] * np.exp(power))
+        ok = (power <= 0) & (alpha >= f32(1.0 / 255.0))
+        trans = np.cumprod(np.where(ok, f32(1) - alpha, f32(1)), axis=1)
+        stopped = ok & (trans < f32(1e-4))
+        stop = np.where(stopped.any(axis=1), stopped.argmax(axis=1), b - a)
+        before = np.arange(b - a)[None, :] < stop[:, None]
+        out["listed"] += ok.size
+        out["passing"] += int(ok.sum())
+        out["contributing"] += int((ok & before).sum())
+        out["after_stop"] += int((b - a - stop).sum())
+    return out
 
 
 def _lanes(gdata, gids, start, stop, ts, tiles_x, width, height, simd: bool, chunk: int = 1 << 17) -> int:
@@ -397,6 +458,8 @@ def _lanes(gdata, gids, start, stop, ts, tiles_x, width, height, simd: bool, chu
 def worker(spec: dict) -> dict:
     """Run one case (``spec["kind"]``: ``size`` or ``keyframe``) in this process; the result carries which
     ``gausslite`` was imported (``gausslite_file``) and the library versions."""
+    if spec.get("cpu_flags") is not None:  # before any Warp module of gausslite is built
+        wp.config.cpu_compiler_flags = spec["cpu_flags"]
     import torch
 
     import gausslite
@@ -539,6 +602,19 @@ def table(result: dict) -> str:
                          f"{_fmt(b.get('full_it_per_s'))} | {_fmt(b.get('roi_it_per_s'))} | {_fmt(ratio, 3)} | "
                          f"{_fmt(ras.get('fwd_bwd_s'), 3)} | {_fmt(None if pps is None else pps / 1e6, 1)} | "
                          f"{'–' if frac is None else f'{100 * frac:.1f} %'} |")
+    lines += ["", "| case | tree | tile entries | pairs listed / px | passing 1/255 / px | contributing / px | "
+              "after a pixel stopped / px | listed per contributing | SIMD lanes per contributing |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for name, blk in result["cases"].items():
+        for t in trees:
+            ras, b = blk[t].get("raster") or {}, blk[t]
+            if not ras.get("listed"):
+                continue
+            px = b["width"] * b["height"] * ras["views"]
+            lines.append(f"| {name} | {t} | {ras['entries']:,} | {ras['listed'] / px:.1f} | "
+                         f"{ras['passing'] / px:.1f} | {ras['contributing'] / px:.1f} | {ras['after_stop'] / px:.1f} | "
+                         f"{ras['listed'] / ras['contributing']:.2f} | "
+                         f"{ras['lane_pairs_fwd'] / ras['contributing']:.2f} |")
     rf = result["roofline"]
     lines.append("")
     lines.append(f"Roofline: the FMA loop reaches {rf['fma_gflops_1']:.1f} GFLOP/s on one core, "
@@ -567,6 +643,9 @@ def _parse(argv) -> argparse.Namespace:
     ap.add_argument("--raster-repeats", type=int, default=3, help="timed rasterizer passes per view")
     ap.add_argument("--work", type=Path, default=WORK, help="where the synthetic scene is generated once")
     ap.add_argument("--out", type=Path, default=None, help=f"JSON output (default {RESULTS} unless --quick)")
+    ap.add_argument("--isa", choices=tuple(ISA_FLAGS), default="native",
+                    help="instruction set the kernels of both trees are built for (default: the host's); results "
+                         "go to throughput_<isa>.json unless native")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     return ap.parse_args(argv)
 
@@ -587,7 +666,7 @@ def _specs(args, scene_dir: Path, scene: dict) -> list[dict]:
     common = {"scene": str(scene_dir), "fps": fps, "profile": args.profile, "overrides": list(args.overrides),
               "repeats": args.repeats or (1 if args.quick else 3), "warmup": args.warmup,
               "keyframes": args.keyframes or (4 if args.quick else 12), "raster_views": args.raster_views,
-              "raster_repeats": args.raster_repeats}
+              "raster_repeats": args.raster_repeats, "isa": args.isa, "cpu_flags": ISA_FLAGS[args.isa]}
     return [{**common, "name": name, "n": n, "downscale": ds, "kind": kind} for name, n, ds, kind in cases]
 
 
@@ -597,9 +676,9 @@ def run_cases(specs: list[dict], trees: dict, rounds: int) -> dict:
     from tqdm import tqdm
 
     runs: dict = {s["name"]: {t: [] for t in trees} for s in specs}
-    jobs = [(s, t) for s in specs for _ in range(rounds) for t in trees]
-    for spec, t in tqdm(jobs, desc="bench.throughput", unit="worker"):
-        res = run_worker(trees[t], spec)
+    jobs = [(s, t, k) for s in specs for k in range(rounds) for t in trees]
+    for spec, t, k in tqdm(jobs, desc="bench.throughput", unit="worker"):
+        res = run_worker(trees[t], {**spec, "census": k == 0})  # the pairs are counted once per tree and case
         runs[spec["name"]][t].append(res)
         rate = (res["iters_per_frame"] / statistics.median(res["cycle_s"]) if res["kind"] == "size"
                 else statistics.median(r["iters"] / r["seconds"] for r in res["runs"]))
@@ -631,6 +710,8 @@ def main(argv=None) -> dict:
     from bench._results import portable_path, publish  # lazy: a worker may run against another tree's bench
 
     t_start = time.perf_counter()
+    if ISA_FLAGS[args.isa] is not None:  # the roofline's FMA loop as the kernels are built
+        wp.config.cpu_compiler_flags = ISA_FLAGS[args.isa]
     scene = QUICK_SCENE if args.quick else FULL_SCENE
     scene_dir = ensure_scene(args.work, scene)
     specs = _specs(args, scene_dir, scene)
@@ -643,7 +724,8 @@ def main(argv=None) -> dict:
     result: dict = {
         "settings": {"quick": args.quick, "profile": args.profile, "overrides": list(args.overrides),
                      "repeats": specs[0]["repeats"], "rounds": args.rounds, "warmup_iters": args.warmup,
-                     "keyframes": specs[0]["keyframes"], "scene": {**scene, "fps": specs[0]["fps"], "task": TASK,
+                     "keyframes": specs[0]["keyframes"], "isa": args.isa, "cpu_flags": ISA_FLAGS[args.isa],
+                     "cpu": _cpu_model(), "scene": {**scene, "fps": specs[0]["fps"], "task": TASK,
                                                                      "path": portable_path(scene_dir)}},
         "trees": {"this": {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain",
                                                                                   "--untracked-files=no"))},
@@ -662,8 +744,21 @@ def main(argv=None) -> dict:
     result["load_average"] = {"before": load_before, "after": list(os.getloadavg())}
     result["wall_s"] = time.perf_counter() - t_start
     md = table(result)
-    publish(args.out if args.out is not None else (None if args.quick else RESULTS), "throughput", argv, md, result)
+    default_out = RESULTS if args.isa == "native" else RESULTS.with_name(f"throughput_{args.isa}.json")
+    publish(args.out if args.out is not None else (None if args.quick else default_out), "throughput", argv, md,
+            result)
     return result
+
+
+def _cpu_model() -> Optional[str]:
+    """The CPU's model name (``/proc/cpuinfo``), None where it cannot be read."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
 
 
 @contextmanager

@@ -20,6 +20,7 @@ wp.set_module_options({"enable_backward": False})
 
 # the tile rectangle (tx0, tx1, ty0, ty1) of row i, clipped to its band's tile rows when banded
 _RECT = r"""
+#pragma clang fp contract(off)
 const int* RAD = (const int*)radii;
 const int* TR = (const int*)tile_rows;
 auto rect = [&](auto zero, const decltype(zero)* uv, const long i, int* q) {
@@ -40,6 +41,43 @@ auto rect = [&](auto zero, const decltype(zero)* uv, const long i, int* q) {
         if (TR[2 * i + 1] < q[3]) q[3] = TR[2 * i + 1];
     }
 };
+// the tiles s[0] .. s[1] (none when s[0] > s[1]) of tile row ty that row i is binned to: its rectangle's columns q[0]
+// .. q[1], narrowed, when tight, to the columns that the ellipse a dx^2 + 2 b dx dy + c dy^2 <= t (conic (a, b, c),
+// level t = levels[i]) reaches within the tile row's pixel rows, widened by a pixel on each side; t <= 0: no tile
+const auto* CON = (const void*)conics;
+auto span = [&](auto zero, const decltype(zero)* uv, const long i, const int* q, const int ty, int* s) {
+    using T = decltype(zero);
+    s[0] = q[0]; s[1] = q[1];
+    if (!tight) return;
+    const T* C = (const T*)CON;
+    const T a = C[3 * i], b = C[3 * i + 1], c = C[3 * i + 2], t = ((const T*)levels)[i];
+    const T det = a * c - b * b;
+    if (!(a > (T)0) || !(c > (T)0) || !(det > (T)0) || !__builtin_isfinite(det) || !__builtin_isfinite(t)) return;
+    if (!(t > (T)0)) { s[0] = 1; s[1] = 0; return; }
+    const T ts = (T)tile_size, one = (T)1;
+    const T u = uv[2 * i], v = uv[2 * i + 1];
+    const T ymax = __builtin_sqrt(t * a / det);
+    const T dyr = -(b / c) * __builtin_sqrt(t * c / det);  // dy of the ellipse's rightmost point
+    const T dy0 = (T)ty * ts - v, dy1 = dy0 + (ts - one);
+    if (dy0 > ymax + one || dy1 < -ymax - one) { s[0] = 1; s[1] = 0; return; }
+    T lo = dy0 > -ymax ? dy0 : -ymax, hi = dy1 < ymax ? dy1 : ymax;
+    if (lo > hi) { lo = dy0 > (T)0 ? ymax : -ymax; hi = lo; }
+    const T dR = dyr < lo ? lo : (dyr > hi ? hi : dyr);
+    const T dL = -dyr < lo ? lo : (-dyr > hi ? hi : -dyr);
+    T wR = a * t - det * dR * dR, wL = a * t - det * dL * dL;
+    if (!(wR > (T)0)) wR = (T)0;
+    if (!(wL > (T)0)) wL = (T)0;
+    const T xr = (__builtin_sqrt(wR) - b * dR) / a, xl = (-__builtin_sqrt(wL) - b * dL) / a;
+    auto cell = [&](const T x) -> int {
+        T f = (T)__builtin_floor((double)(x / ts));
+        if (f < (T)0) f = (T)0;
+        if (f > (T)(tiles_x - 1)) f = (T)(tiles_x - 1);
+        return (int)f;
+    };
+    const int c0 = cell(u + xl - one), c1 = cell(u + xr + one);
+    if (c0 > s[0]) s[0] = c0;
+    if (c1 < s[1]) s[1] = c1;
+};
 """
 
 _COUNT = _RECT + r"""
@@ -54,10 +92,12 @@ auto body = [&](auto zero, const decltype(zero)* uv, const decltype(zero)* dep) 
         K[n] = (float)dep[i];
         R[n] = (int)i;
         ++n;
-        int q[4];
+        int q[4], sp[2];
         rect(zero, uv, i, q);
-        for (int ty = q[2]; ty <= q[3]; ++ty)
-            for (int tx = q[0]; tx <= q[1]; ++tx) TE[ty * tiles_x + tx] += 1;
+        for (int ty = q[2]; ty <= q[3]; ++ty) {
+            span(zero, uv, i, q, ty, sp);
+            for (int tx = sp[0]; tx <= sp[1]; ++tx) TE[ty * tiles_x + tx] += 1;
+        }
     }
 };
 if (is64) body(0.0, (const double*)means2d, (const double*)depths);
@@ -74,14 +114,16 @@ int* G = (int*)gids;
 auto body = [&](auto zero, const decltype(zero)* uv) {
     for (int k = 0; k < n; ++k) {
         const int i = R[k];
-        int q[4];
+        int q[4], sp[2];
         rect(zero, uv, i, q);
         const int ty0 = q[2] + (stripe - q[2] % nstripes + nstripes) % nstripes;
-        for (int ty = ty0; ty <= q[3]; ty += nstripes)
-            for (int tx = q[0]; tx <= q[1]; ++tx) {
+        for (int ty = ty0; ty <= q[3]; ty += nstripes) {
+            span(zero, uv, i, q, ty, sp);
+            for (int tx = sp[0]; tx <= sp[1]; ++tx) {
                 const int t = ty * tiles_x + tx;
                 G[C[t]++] = i;
             }
+        }
     }
 };
 if (is64) body(0.0, (const double*)means2d); else body(0.0f, (const float*)means2d);
@@ -90,43 +132,48 @@ if (is64) body(0.0, (const double*)means2d); else body(0.0f, (const float*)means
 
 @wp.func_native(_COUNT)
 def _count_native(means2d: wp.uint64, radii: wp.uint64, depths: wp.uint64, is64: int, m: int, tile_size: int,
-                  tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int, keys: wp.uint64, rows: wp.uint64,
-                  n_rows: wp.uint64, tile_start: wp.uint64, tile_end: wp.uint64): ...
+                  tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int, conics: wp.uint64, levels: wp.uint64,
+                  tight: int, keys: wp.uint64, rows: wp.uint64, n_rows: wp.uint64, tile_start: wp.uint64,
+                  tile_end: wp.uint64): ...
 
 
 @wp.func_native(_SCATTER)
 def _scatter_native(means2d: wp.uint64, radii: wp.uint64, rows: wp.uint64, n: int, is64: int, tile_size: int,
-                    tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int, stripe: int, nstripes: int,
-                    cursor: wp.uint64, gids: wp.uint64): ...
+                    tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int, conics: wp.uint64,
+                    levels: wp.uint64, tight: int, stripe: int, nstripes: int, cursor: wp.uint64,
+                    gids: wp.uint64): ...
 
 
 @wp.kernel
 def bin_count_native_kernel(means2d: wp.uint64, radii: wp.uint64, depths: wp.uint64, is64: int, m: int,
                             tile_size: int, tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int,
-                            keys: wp.uint64, rows: wp.uint64, n_rows: wp.uint64, tile_start: wp.uint64,
-                            tile_end: wp.uint64):
+                            conics: wp.uint64, levels: wp.uint64, tight: int, keys: wp.uint64, rows: wp.uint64,
+                            n_rows: wp.uint64, tile_start: wp.uint64, tile_end: wp.uint64):
     """Serial (dim=1). Lists the rows with radius > 0 in increasing order in ``rows[:n]`` with their float32 depth in
     ``keys[:n]`` (``n_rows[0] = n``), and turns their per-tile intersection counts into ``tile_start`` / ``tile_end``
     (exclusive / inclusive prefix sums, so the number of intersections is ``tile_end[-1]``). ``banded`` != 0: row
     ``i`` is binned only to the tile rows ``tile_rows[i, 0] .. tile_rows[i, 1]`` (a row band of the image rendered
     from its own pose, :func:`gausslite.render.rasterize_bands`). Pointers to C-contiguous arrays: ``means2d`` (m, 2)
     and ``depths`` (m,) float64 if ``is64`` else float32, ``radii`` (m,) int32, ``tile_rows`` (m, 2) int32 (read
-    only when banded); outputs ``keys`` (float32) and ``rows`` (int32) of at least the visible rows, ``n_rows`` (1,)
+    only when banded); when ``tight`` != 0, ``conics`` (m, 3) and ``levels`` (m,) in the dtype of ``means2d`` narrow
+    each tile row to the columns the row's footprint ellipse reaches (:func:`gausslite.render.binning.bin_gaussians`);
+    outputs ``keys`` (float32) and ``rows`` (int32) of at least the visible rows, ``n_rows`` (1,)
     int32, ``tile_start`` and ``tile_end`` (tiles,) int32, ``tile_end`` zero on entry."""
-    _count_native(means2d, radii, depths, is64, m, tile_size, tiles_x, tiles_y, tile_rows, banded, keys, rows, n_rows,
-                  tile_start, tile_end)
+    _count_native(means2d, radii, depths, is64, m, tile_size, tiles_x, tiles_y, tile_rows, banded, conics, levels,
+                  tight, keys, rows, n_rows, tile_start, tile_end)
 
 
 @wp.kernel
 def bin_scatter_native_kernel(means2d: wp.uint64, radii: wp.uint64, rows: wp.uint64, n: int, is64: int,
                               tile_size: int, tiles_x: int, tiles_y: int, tile_rows: wp.uint64, banded: int,
-                              stripe: int, nstripes: int, cursor: wp.uint64, gids: wp.uint64):
+                              conics: wp.uint64, levels: wp.uint64, tight: int, stripe: int, nstripes: int,
+                              cursor: wp.uint64, gids: wp.uint64):
     """Serial (dim=1): append the rows ``rows[:n]`` (visited in that order) to the list of each tile they cover, for
     the tile rows ``ty`` with ``ty % nstripes == stripe`` (one launch per stripe; stripes write disjoint tiles).
     Pointers: the arrays of :func:`bin_count_native_kernel`, ``cursor`` (tiles,) int32 (starts as a copy of
     ``tile_start``, ends equal to ``tile_end``) and ``gids`` (entries,) int32."""
-    _scatter_native(means2d, radii, rows, n, is64, tile_size, tiles_x, tiles_y, tile_rows, banded, stripe, nstripes,
-                    cursor, gids)
+    _scatter_native(means2d, radii, rows, n, is64, tile_size, tiles_x, tiles_y, tile_rows, banded, conics, levels,
+                    tight, stripe, nstripes, cursor, gids)
 
 
 __all__ = ["bin_count_native_kernel", "bin_scatter_native_kernel"]

@@ -10,9 +10,10 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from bench.rasterizer import make_scene
-from bench.throughput import FWD_FLOPS, BWD_FLOPS, count_pairs, main
+from bench.throughput import CENSUS_KEYS, FWD_FLOPS, BWD_FLOPS, count_pairs, main
 from gausslite.render import rasterize
 from tests._git import has_git
 
@@ -54,7 +55,7 @@ def test_pairs_counted_from_the_saved_state_match_the_kernels_bounds():
     params, K = make_scene(150, 40, 30, seed=3)
     out = rasterize(*params, K=K, width=40, height=30, viewmat=np.eye(4), num_threads=1)
     c = count_pairs(out)
-    assert c is not None and set(c) == {"tile_pairs", "lane_pairs_fwd", "lane_pairs_bwd"}
+    assert c is not None and set(c) == {"tile_pairs", "entries", "lane_pairs_fwd", "lane_pairs_bwd"}
     node = out.alpha.grad_fn
     gdata, gids, tile_start = (t.detach().numpy() for t in node.saved_tensors[:3])
     width, height, ts, tiles_x, _, _ = node.dims
@@ -65,6 +66,41 @@ def test_pairs_counted_from_the_saved_state_match_the_kernels_bounds():
     assert 0 < c["lane_pairs_bwd"] <= c["lane_pairs_fwd"] <= c["tile_pairs"]
     out.alpha.sum().backward()  # the saved state is freed: nothing to count
     assert count_pairs(out) is None
+
+
+def test_the_census_counts_each_listed_pair_once_and_the_pairs_a_stopped_pixel_skips():
+    """Sparse Gaussians: every listed pair is counted, the passing ones are those whose float64 alpha is >= 1/255 (to
+    boundary rounding), no pixel stops. Opaque ones: pixels stop, and the pairs after their stop are the listed pairs
+    neither before it nor at it."""
+    params, K = make_scene(150, 40, 30, seed=3)
+    out = rasterize(*params, K=K, width=40, height=30, viewmat=np.eye(4), num_threads=1)
+    c = count_pairs(out, census=True)
+    assert set(CENSUS_KEYS) <= set(c)
+    node = out.alpha.grad_fn
+    gdata, gids, tile_start = (t.detach().numpy().astype(np.float64) if i == 0 else t.detach().numpy()
+                               for i, t in enumerate(node.saved_tensors[:3]))
+    width, height, ts, tiles_x, _, _ = node.dims
+    end = np.append(tile_start[1:], len(gids))
+    listed = passing = 0
+    for t in range(len(tile_start)):
+        x0, y0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        py, px = np.mgrid[y0:min(y0 + ts, height), x0:min(x0 + ts, width)]
+        for j in range(tile_start[t], end[t]):
+            r = gdata[gids[j]]
+            dx, dy = r[0] + r[10] - px, r[1] + r[11] - py
+            power = -0.5 * (r[2] * dx * dx + r[4] * dy * dy) - r[3] * dx * dy
+            alpha = np.minimum(0.99, r[5] * np.exp(power))
+            listed += px.size
+            passing += int(((power <= 0) & (alpha >= 1 / 255)).sum())
+    assert c["listed"] == listed == c["tile_pairs"] and abs(c["passing"] - passing) <= 0.01 * passing
+    assert c["after_stop"] == 0 and c["contributing"] == c["passing"] > 0
+    dense, K = make_scene(1500, 40, 30, seed=4)
+    with torch.no_grad():
+        dense[3].add_(6.0)
+        dense[2].add_(1.5)
+    d = count_pairs(rasterize(*dense, K=K, width=40, height=30, viewmat=np.eye(4), num_threads=1), census=True)
+    assert d["after_stop"] > 0 and 0 < d["contributing"] < d["passing"] <= d["listed"]
+    assert d["contributing"] + d["after_stop"] <= d["listed"]
 
 
 def _positive(x) -> bool:
