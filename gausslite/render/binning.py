@@ -90,8 +90,8 @@ def bin_gaussians(
     in x (clamped to the grid), likewise in y. With ``conics`` and ``levels``, each tile row of that rectangle keeps
     only the columns its footprint ellipse reaches (module docstring): ``floor((u + x_l - 1) / ts) .. floor((u + x_r +
     1) / ts)``, ``x_l`` / ``x_r`` the ellipse's extreme offsets over the tile row's pixel rows ``ty ts .. ty ts + ts -
-    1``; none where ``t <= 0`` or the ellipse ends a pixel before the tile row; a row whose conic is not positive
-    definite keeps its rectangle.
+    1`` (a rectangle one tile wide keeps its column); none where ``t <= 0`` or the ellipse ends a pixel before the
+    tile row; a row whose conic is not positive definite keeps its rectangle.
 
     Args:
         means2d: (M, 2) pixel coordinates of the centres (any float dtype; detached here).
@@ -245,8 +245,9 @@ def _row_spans(uv, conics, levels, ty, c0, c1, tile_size: int, tiles_x: int):
         xr, xl = (torch.sqrt(wR) - b * dR) / a, (-torch.sqrt(wL) - b * dL) / a
         s0 = torch.floor((u + xl - one) / ts).clamp(0, tiles_x - 1)
         s1 = torch.floor((u + xr + one) / ts).clamp(0, tiles_x - 1)
-    s0 = torch.where(ok, torch.maximum(torch.nan_to_num(s0).to(torch.int64), c0), c0)
-    s1 = torch.where(ok, torch.minimum(torch.nan_to_num(s1).to(torch.int64), c1), c1)
+    narrow = ok & (c1 > c0)  # a rectangle one tile wide keeps its column
+    s0 = torch.where(narrow, torch.maximum(torch.nan_to_num(s0).to(torch.int64), c0), c0)
+    s1 = torch.where(narrow, torch.minimum(torch.nan_to_num(s1).to(torch.int64), c1), c1)
     s0 = torch.where(ok & none, torch.ones_like(s0), s0)
     s1 = torch.where(ok & none, torch.zeros_like(s1), s1)
     return s0, s1

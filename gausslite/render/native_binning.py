@@ -43,23 +43,35 @@ auto rect = [&](auto zero, const decltype(zero)* uv, const long i, int* q) {
 };
 // the tiles s[0] .. s[1] (none when s[0] > s[1]) of tile row ty that row i is binned to: its rectangle's columns q[0]
 // .. q[1], narrowed, when tight, to the columns that the ellipse a dx^2 + 2 b dx dy + c dy^2 <= t (conic (a, b, c),
-// level t = levels[i]) reaches within the tile row's pixel rows, widened by a pixel on each side; t <= 0: no tile
+// level t = levels[i]) reaches within the tile row's pixel rows, widened by a pixel on each side (a rectangle one tile
+// wide keeps the tile rows that the ellipse reaches); t <= 0: no tile.
+// foot(i, f) evaluates the row's terms once into f (a, b, t, det, ymax, dy of the rightmost point, u, v) and returns
+// the mode (0: the rectangle, 1: the ellipse, 2: no tile); span(mode, zero, f, ...) narrows one tile row.
 const auto* CON = (const void*)conics;
-auto span = [&](auto zero, const decltype(zero)* uv, const long i, const int* q, const int ty, int* s) {
+auto foot = [&](auto zero, const decltype(zero)* uv, const long i, decltype(zero)* f) -> int {
     using T = decltype(zero);
-    s[0] = q[0]; s[1] = q[1];
-    if (!tight) return;
+    if (!tight) return 0;
     const T* C = (const T*)CON;
     const T a = C[3 * i], b = C[3 * i + 1], c = C[3 * i + 2], t = ((const T*)levels)[i];
     const T det = a * c - b * b;
-    if (!(a > (T)0) || !(c > (T)0) || !(det > (T)0) || !__builtin_isfinite(det) || !__builtin_isfinite(t)) return;
-    if (!(t > (T)0)) { s[0] = 1; s[1] = 0; return; }
+    if (!(a > (T)0) || !(c > (T)0) || !(det > (T)0) || !__builtin_isfinite(det) || !__builtin_isfinite(t)) return 0;
+    if (!(t > (T)0)) return 2;
+    f[0] = a; f[1] = b; f[2] = t; f[3] = det;
+    f[4] = __builtin_sqrt(t * a / det);
+    f[5] = -(b / c) * __builtin_sqrt(t * c / det);
+    f[6] = uv[2 * i]; f[7] = uv[2 * i + 1];
+    return 1;
+};
+auto span = [&](const int mode, auto zero, const decltype(zero)* f, const int* q, const int ty, int* s) {
+    using T = decltype(zero);
+    s[0] = q[0]; s[1] = q[1];
+    if (mode == 0) return;
+    if (mode == 2) { s[0] = 1; s[1] = 0; return; }
     const T ts = (T)tile_size, one = (T)1;
-    const T u = uv[2 * i], v = uv[2 * i + 1];
-    const T ymax = __builtin_sqrt(t * a / det);
-    const T dyr = -(b / c) * __builtin_sqrt(t * c / det);  // dy of the ellipse's rightmost point
-    const T dy0 = (T)ty * ts - v, dy1 = dy0 + (ts - one);
+    const T a = f[0], b = f[1], t = f[2], det = f[3], ymax = f[4], dyr = f[5];
+    const T dy0 = (T)ty * ts - f[7], dy1 = dy0 + (ts - one);
     if (dy0 > ymax + one || dy1 < -ymax - one) { s[0] = 1; s[1] = 0; return; }
+    if (q[0] == q[1]) return;  // one column: nothing to narrow
     T lo = dy0 > -ymax ? dy0 : -ymax, hi = dy1 < ymax ? dy1 : ymax;
     if (lo > hi) { lo = dy0 > (T)0 ? ymax : -ymax; hi = lo; }
     const T dR = dyr < lo ? lo : (dyr > hi ? hi : dyr);
@@ -69,12 +81,12 @@ auto span = [&](auto zero, const decltype(zero)* uv, const long i, const int* q,
     if (!(wL > (T)0)) wL = (T)0;
     const T xr = (__builtin_sqrt(wR) - b * dR) / a, xl = (-__builtin_sqrt(wL) - b * dL) / a;
     auto cell = [&](const T x) -> int {
-        T f = (T)__builtin_floor((double)(x / ts));
-        if (f < (T)0) f = (T)0;
-        if (f > (T)(tiles_x - 1)) f = (T)(tiles_x - 1);
-        return (int)f;
+        T c = (T)__builtin_floor((double)(x / ts));
+        if (c < (T)0) c = (T)0;
+        if (c > (T)(tiles_x - 1)) c = (T)(tiles_x - 1);
+        return (int)c;
     };
-    const int c0 = cell(u + xl - one), c1 = cell(u + xr + one);
+    const int c0 = cell(f[6] + xl - one), c1 = cell(f[6] + xr + one);
     if (c0 > s[0]) s[0] = c0;
     if (c1 < s[1]) s[1] = c1;
 };
@@ -94,8 +106,10 @@ auto body = [&](auto zero, const decltype(zero)* uv, const decltype(zero)* dep) 
         ++n;
         int q[4], sp[2];
         rect(zero, uv, i, q);
+        decltype(zero) f[8];
+        const int mode = foot(zero, uv, i, f);
         for (int ty = q[2]; ty <= q[3]; ++ty) {
-            span(zero, uv, i, q, ty, sp);
+            span(mode, zero, f, q, ty, sp);
             for (int tx = sp[0]; tx <= sp[1]; ++tx) TE[ty * tiles_x + tx] += 1;
         }
     }
@@ -117,8 +131,11 @@ auto body = [&](auto zero, const decltype(zero)* uv) {
         int q[4], sp[2];
         rect(zero, uv, i, q);
         const int ty0 = q[2] + (stripe - q[2] % nstripes + nstripes) % nstripes;
+        if (ty0 > q[3]) continue;
+        decltype(zero) f[8];
+        const int mode = foot(zero, uv, i, f);
         for (int ty = ty0; ty <= q[3]; ty += nstripes) {
-            span(zero, uv, i, q, ty, sp);
+            span(mode, zero, f, q, ty, sp);
             for (int tx = sp[0]; tx <= sp[1]; ++tx) {
                 const int t = ty * tiles_x + tx;
                 G[C[t]++] = i;
