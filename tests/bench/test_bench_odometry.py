@@ -29,15 +29,18 @@ def test_odometry_bench_smoke(tmp_path, capsys):
 def test_the_covered_walk_loses_the_covered_frames_and_counts_what_it_found_again(tmp_path):
     import bench.odometry as bo
 
+    # the walk in 50 frames of 96×72: its lens covered for 3 of them, re-localised after, loops closed on the way back
     out = tmp_path / "odometry.json"
-    assert bo.main(["--sequences", "synthetic_walk_covered", "--walk-frames", "70", "--synthetic-size", "160x120",
+    assert bo.main(["--sequences", "synthetic_walk_covered", "--walk-frames", "50", "--synthetic-size", "96x72",
                     "--variants", "default,no_relocalisation", "--work", str(tmp_path), "--out", str(out)]) == 0
     res = json.loads(out.read_text())["sequences"]["synthetic_walk_covered"]
-    n_covered = len(bo.covered(70))
-    assert n_covered == 4
+    covered = list(bo.covered(50))
+    assert len(covered) == 3
     for variant in ("default", "no_relocalisation"):
         r = res[variant]
-        assert r["frames"] == 70 and r["lost"] >= n_covered and r["loops"]["false"] == 0
+        assert r["frames"] == 50 and r["lost"] >= len(covered) and set(covered) <= set(r["lost_frame_ids"])
+        assert r["loops"]["false"] == 0
+    assert res["default"]["relocalised"] >= 1 and res["default"]["loops"]["accepted"] >= 1
     assert res["no_relocalisation"]["relocalised"] == 0
 
 
