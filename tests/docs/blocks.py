@@ -206,7 +206,7 @@ class PageRunner:
                 ok = _answers(block.serves)
                 time.sleep(0.3)
         finally:
-            _stop_group(proc.pid)
+            _stop_group(proc.pid, proc)
             proc.wait(10)
         assert ok, f"{block.name}: {block.serves} never answered:\n{block.code}\n--- output:\n{log.read_text(errors='replace')[-4000:]}"
 
@@ -250,15 +250,20 @@ def _answers(url: str) -> bool:
         return False
 
 
-def _stop_group(pgid: int) -> None:
-    """SIGTERM the process group, SIGKILL what is left after 5 s."""
+def _stop_group(pgid: int, leader: Optional[subprocess.Popen] = None) -> None:
+    """SIGTERM the process group, SIGKILL what is left after 5 s. ``leader``: the group's first process, ours to reap:
+    until it is waited for, it counts as a member of its group after it exited."""
     for sig, wait in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 0.0)):
         try:
             os.killpg(pgid, sig)
         except ProcessLookupError:
             return
         deadline = time.monotonic() + wait
-        while time.monotonic() < deadline and _group_alive(pgid):
+        while time.monotonic() < deadline:
+            if leader is not None:
+                leader.poll()  # reaped once it exited
+            if not _group_alive(pgid):
+                break
             time.sleep(0.1)
 
 
