@@ -161,7 +161,7 @@ def test_the_loop_search_makes_each_keyframes_cloud_once_and_keeps_only_the_keyf
         return real(self, frame, voxel_m)
 
     cfg = OdometryConfig(loop=LoopConfig(min_gap=1, radius_m=2.0, max_angle_deg=180.0, max_candidates=2))
-    stream = frames[:10]
+    stream = frames[:7]
     plain = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
     plain_poses = [plain.track(f).c2w for f in stream]
     monkeypatch.setattr(pose_graph.DepthClouds, "of", counting)
@@ -266,8 +266,8 @@ def _there_and_back(frames):
 
 
 def test_loops_closed_on_their_own_thread_never_hold_up_tracking(frames, monkeypatch):
-    stream = _there_and_back(frames)
-    # one loop candidate a keyframe (a quarter of the registrations): the way back still closes a dozen loops
+    stream = _there_and_back(frames[:10])
+    # one loop candidate a keyframe (a quarter of the registrations): the way back still closes eight loops
     cfg = OdometryConfig(track_width=None, reference_keyframes_max=2, loop=LoopConfig(max_candidates=1))
     inline = RGBDOdometry(cfg, initial_pose=frames[0].c2w)
     for f in stream:
