@@ -3,14 +3,23 @@ ms per frame, tracked fraction, the run's provenance and load average) and the p
 
 import json
 
+import pytest
 
-def test_odometry_bench_smoke(tmp_path, capsys):
+
+@pytest.fixture(scope="module")
+def circle(tmp_path_factory):
+    """The ``--work`` folder of the synthetic circle's 90 frames at 160×120, rendered by the first test that reads it
+    and read by the next (the bench renders a sequence once into ``--work``)."""
+    return tmp_path_factory.mktemp("circle")
+
+
+def test_odometry_bench_smoke(tmp_path, capsys, circle):
     import bench.odometry as bo
 
     out = tmp_path / "odometry.json"
     # at 160×120 the mapping resolution is the default's tracking size: the two variants would be the same run
     assert bo.main(["--sequences", "synthetic_circle", "--synthetic-frames", "90", "--synthetic-size", "160x120",
-                    "--variants", "default,frame_to_frame", "--out", str(out)]) == 0
+                    "--variants", "default,frame_to_frame", "--work", str(circle), "--out", str(out)]) == 0
     res = json.loads(out.read_text())
     assert res["provenance"]["command"].startswith("python -m bench.odometry --sequences synthetic_circle")
     assert len(res["load_average_before"]) == 3 and res["odometry_defaults"]["reference"] == "nearest_keyframe"
@@ -44,12 +53,12 @@ def test_the_covered_walk_loses_the_covered_frames_and_counts_what_it_found_agai
     assert res["no_relocalisation"]["relocalised"] == 0
 
 
-def test_loop_accuracy_registers_each_candidate_with_each_registration(tmp_path, capsys):
+def test_loop_accuracy_registers_each_candidate_with_each_registration(tmp_path, capsys, circle):
     import bench.odometry as bo
 
     out = tmp_path / "odometry.json"
-    assert bo.main(["--sequences", "synthetic_circle", "--synthetic-frames", "120", "--synthetic-size", "160x120",
-                    "--loop-accuracy", "--out", str(out)]) == 0
+    assert bo.main(["--sequences", "synthetic_circle", "--synthetic-frames", "90", "--synthetic-size", "160x120",
+                    "--loop-accuracy", "--work", str(circle), "--out", str(out)]) == 0
     acc = json.loads(out.read_text())["loop_accuracy"]["synthetic_circle"]
     assert acc["candidates"] > 0
     for name in bo.LOOP_REGISTRATIONS:
@@ -89,8 +98,6 @@ def _realtime_result(pose_source, gain, ci, uniform, gausslite):
 
 
 def test_the_gain_at_the_odometrys_poses_is_compared_with_the_gain_at_the_given_ones(tmp_path):
-    import pytest
-
     import bench.odometry as bo
 
     given, odo = tmp_path / "given.json", tmp_path / "odo.json"
