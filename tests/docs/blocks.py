@@ -6,7 +6,8 @@ Markers, an HTML comment on the line right before a fence (invisible on a render
 - ``<!-- not run: REASON -->``: the block is not run by the tests; REASON says why (a ROS 2 install, a Docker engine,
   a benchmark of an hour) and, where one exists, which test runs the same command on a smaller input.
 - ``<!-- after: PAGE#ANCHOR -->``: before this block, the blocks of that section run first (the services the
-  README starts, say), so that a page can link to a block instead of copying it.
+  README starts, say), so that a page can link to a block instead of copying it; a section of another page that
+  already ran in the same work folder and left nothing running (files it wrote, a map) is not run again.
 - ``<!-- serves: URL -->``: the block serves until stopped (a viewer): it passes once URL answers HTTP 200, and is
   then stopped.
 - ``<!-- writes: PATH -->``: the block (JSON, YAML, any language) is a file the user writes: the runner writes it to
@@ -127,7 +128,8 @@ def section(ref: str) -> List[Block]:
 class PageRunner:
     """Runs blocks in a work folder; stops every process group a ``bash`` block left running on :meth:`close`."""
 
-    def __init__(self, workdir: Path, env: Optional[dict] = None, timeout_s: float = 600.0):
+    def __init__(self, workdir: Path, env: Optional[dict] = None, timeout_s: float = 600.0,
+                 ran: Optional[set] = None):
         self.workdir = Path(workdir)
         self.env = dict(os.environ if env is None else env)
         venv_bin = str(Path(sys.executable).parent)
@@ -145,6 +147,12 @@ class PageRunner:
         self.namespaces: Dict[str, dict] = {}
         self.groups: List[int] = []
         self.done: set = set()
+        #: the sections (``PAGE#ANCHOR``) whose every block ran in this work folder and left no process running, by
+        #: this runner or, through a ``ran`` shared by the runners of one folder, an earlier one: another page that is
+        #: to run after such a section finds its files there and does not run it again (a section that starts
+        #: services does run again, and a page's own sections always run in its namespace)
+        self.ran: set = set() if ran is None else ran
+        self.left_running: set = set()
         self.logs: List[Path] = []
         #: (block name, seconds) of each block run, in order
         self.timings: List[tuple] = []
@@ -156,17 +164,36 @@ class PageRunner:
             AssertionError: the block failed (a bash exit status other than 0, with its output; a Python exception).
         """
         for ref in block.after:
+            if ref in self.ran and not ref.startswith(f"{block.page}#"):
+                continue
             for dep in section(ref):
                 self.run(dep)
         key = (block.page, block.line)
         if key in self.done:
             return
         self.done.add(key)
+        groups = len(self.groups)
         t0 = time.monotonic()
         try:
             self._dispatch(block)
         finally:
             self.timings.append((block.name, time.monotonic() - t0))
+        self._note_section(block, self.groups[groups:])
+
+    def _note_section(self, block: Block, groups: List[int]) -> None:
+        """Add ``block``'s section to :attr:`ran` once its every block ran, unless one of them (``block``: with the
+        process groups it started) left a process running."""
+        ref = f"{block.page}#{block.anchor}"
+        if any(_group_alive(g) for g in groups):
+            self.left_running.add(ref)
+        if ref in self.left_running:
+            return
+        try:
+            blocks = section(ref)
+        except (OSError, ValueError):  # a block of no page (the runner's own tests)
+            return
+        if all((b.page, b.line) in self.done for b in blocks):
+            self.ran.add(ref)
 
     def _dispatch(self, block: Block) -> None:
         if block.writes:

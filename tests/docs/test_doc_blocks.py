@@ -71,6 +71,30 @@ def test_the_runner_keeps_services_for_the_next_block_and_stops_them(tmp_path):
         os.killpg(pgid, 0)
 
 
+def test_a_section_that_ran_in_the_folder_and_left_nothing_running_is_not_run_again(tmp_path, monkeypatch):
+    import tests.docs.blocks as blocks
+
+    files = Block("A.md", "files", "bash", "echo x >> made.txt", 1)
+    service = Block("A.md", "service", "bash", "sleep 60 &", 2)
+    sections = {"A.md#files": [files], "A.md#service": [service]}
+    monkeypatch.setattr(blocks, "section", lambda ref: sections.get(ref, []))
+    ran: set = set()
+    first = PageRunner(tmp_path, timeout_s=60, ran=ran)
+    try:
+        first.run(files)
+        first.run(service)
+    finally:
+        first.close()
+    assert ran == {"A.md#files"}  # the service's section left a process running: a page after it runs it again
+    second = PageRunner(tmp_path, timeout_s=60, ran=ran)
+    try:
+        second.run(Block("B.md", "b", "bash", "cat made.txt", 1, after=["A.md#files"]))
+    finally:
+        second.close()
+    assert (tmp_path / "made.txt").read_text() == "x\n"  # the files' section ran once in the folder
+    assert len(second.groups) == 1 and "x" in second.output()
+
+
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     """A user's folder: the synthetic scene (two robots' frames, ``objects.json``, ``tasks.json``) and each robot's
@@ -99,6 +123,9 @@ def test_pages_with_a_runner_of_their_own_have_it():
         assert runnable(page) and (REPO / runner).is_file() and page in (REPO / runner).read_text(encoding="utf-8")
 
 
+#: per work folder, the sections whose blocks ran there and left nothing running (:attr:`PageRunner.ran`): README's
+#: Python API, which docs/mapper.md and docs/fusion-and-deploy.md run after, runs once a folder
+RAN: dict = {}
 #: held while a page that serves on the pages' fixed ports runs, so that one such page at a time runs on this machine,
 #: whichever pytest worker or run it is in (the ports are the machine's); the other pages run side by side
 PORTS_LOCK = Path(tempfile.gettempdir()) / "gausslite-doc-pages-ports.lock"
@@ -125,7 +152,7 @@ def test_the_page_runs_as_written(page, workdir):
     with contextlib.ExitStack() as stack:
         if serves_on_fixed_ports(page):
             fcntl.flock(stack.enter_context(open(PORTS_LOCK, "w")), fcntl.LOCK_EX)  # released when the file closes
-        runner = PageRunner(workdir, timeout_s=900)
+        runner = PageRunner(workdir, timeout_s=900, ran=RAN.setdefault(str(workdir), set()))
         stack.callback(runner.close)
         for block in runnable(page):
             if block.skip is None:
