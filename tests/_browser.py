@@ -91,6 +91,26 @@ def changed_fraction(a: np.ndarray, b: np.ndarray, threshold: int = 24) -> float
     return float((diff > threshold).mean())
 
 
+def wait_until_still(driver, timeout_s: float = 60.0, interval_s: float = 0.25) -> np.ndarray:
+    """Screenshots ``interval_s`` apart until two in a row are alike (:func:`changed_fraction` 0): the page shows what
+    it has drawn. Returns the last one (the last taken when ``timeout_s`` passes first)."""
+    from selenium.common.exceptions import TimeoutException
+
+    deadline = time.monotonic() + timeout_s
+    prev = None
+    while True:
+        try:
+            img = screenshot(driver)
+        except TimeoutException:  # swiftshader busy rendering on a loaded CPU: ask again until the deadline
+            img = prev
+        if img is not None and prev is not None and img is not prev and changed_fraction(img, prev) == 0.0:
+            return img
+        if time.monotonic() >= deadline and img is not None:
+            return img
+        prev = img
+        time.sleep(interval_s)
+
+
 def wait_for_change(driver, reference: np.ndarray, min_fraction: float, timeout_s: float = 240.0) -> tuple:
     """Take screenshots until the changed fraction vs ``reference`` exceeds ``min_fraction`` and is stable
     (two shots within 0.5 percentage points), or ``timeout_s`` passes. Returns (image, fraction)."""

@@ -545,7 +545,7 @@ def test_cli_view_follows_fusion(fusion_with_two_agents):
 def test_browser_renders_splats(tmp_path):
     """Headless Chromium opens the viser page: the empty scene, then the map; ≥ 5 % of pixels change."""
     from tests._browser import changed_fraction, headless_chromium, hide_overlays, keep_artifact, require_chromium, \
-        screenshot, wait_for_change
+        wait_for_change, wait_until_still
     from gausslite.viewer.app import MapViewer
 
     require_chromium()
@@ -555,8 +555,7 @@ def test_browser_renders_splats(tmp_path):
             driver.get(viewer.url)
             assert viewer.wait_for_client(30), "the page never connected to the viser server"
             hide_overlays(driver)  # measure the 3D scene, not the GUI panel and its toasts
-            time.sleep(3.0)  # empty scene rendered
-            empty = screenshot(driver)
+            empty = wait_until_still(driver)  # the empty scene as drawn
             n = viewer.set_map(shell_map(6000), label="sphere")
             assert n == 6000
             img, frac = wait_for_change(driver, empty, min_fraction=0.05)
@@ -576,8 +575,8 @@ def test_browser_renders_splats(tmp_path):
 
 def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
     """`view --fusion` path in the browser: fused splats plus both agents' trajectories and frusta."""
-    from tests._browser import headless_chromium, hide_overlays, keep_artifact, require_chromium, screenshot, \
-        wait_for_change
+    from tests._browser import headless_chromium, hide_overlays, keep_artifact, require_chromium, wait_for_change, \
+        wait_until_still
     from gausslite.viewer.app import MapViewer
     from gausslite_services.viewer.feed import FusionFeed
 
@@ -589,8 +588,7 @@ def test_browser_follows_fusion_server(tmp_path, fusion_with_two_agents):
             driver.get(viewer.url)
             assert viewer.wait_for_client(30)
             hide_overlays(driver)
-            time.sleep(3.0)
-            empty = screenshot(driver)
+            empty = wait_until_still(driver)  # the empty scene as drawn
             fc.fuse("vote", voxel_size=0.05)
             feed = FusionFeed(viewer, fc, poll_s=0.5)
             assert feed.poll_once() is True
