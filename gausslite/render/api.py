@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .autograd import RasterizeWarp, default_num_threads, project_gaussians_warp
-from .binning import bin_gaussians, footprint_levels
+from .binning import bin_gaussians
 from .gsplat_backend import gsplat_available, rasterize_gsplat
 from .projection import Projection, project_gaussians
 from .reference import rasterize_reference
@@ -184,8 +184,7 @@ def _composite_warp_cpu(proj: Projection, ol, col, ids, width: int, height: int,
     means2d, radii = proj.means2d, proj.radii
     if torch.is_grad_enabled() and means2d.requires_grad:
         means2d.retain_grad()
-    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt, tile_rows=tile_rows,
-                         conics=proj.conics, levels=footprint_levels(ol.detach(), logit=True))
+    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, num_threads=nt, tile_rows=tile_rows)
     color, depth, alpha = RasterizeWarp.apply(
         means2d, proj.conics, ol, col, proj.depths, bins.gids, bins.tile_start,
         bins.tile_end, width, height, tile_size, bins.tiles_x, bins.tiles_y, nt, True, bg, cpu_kernel,
@@ -209,8 +208,7 @@ def _rasterize_raw(m, q, ls, ol, col, vm64, K64, width, height, *, backend, near
     if torch.is_grad_enabled() and means2d.requires_grad:
         means2d.retain_grad()
     opac = torch.sigmoid(ol)
-    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size, conics=proj.conics,
-                         levels=footprint_levels(opac.detach()))
+    bins = bin_gaussians(means2d, radii, proj.depths, width, height, tile_size)
     if backend == "warp":
         color_raw, depth_sum, alpha = RasterizeWarp.apply(
             means2d, proj.conics, opac, col, proj.depths, bins.gids, bins.tile_start,

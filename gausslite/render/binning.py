@@ -12,7 +12,9 @@ leftmost and the rightmost point of the ellipse ``a dx^2 + 2 b dx dy + c dy^2 <=
 rows, one pixel wider on each side, with ``t = 2 (ln(255 o) + FOOTPRINT_MARGIN)`` the Mahalanobis level below which
 ``o exp(-m / 2)`` reaches 1/255. The compositing kernels composite a pair only where alpha >= 1/255 within that same
 footprint (the SIMD kernels' lane test, :mod:`gausslite.render.simd_kernels`), so a tile left out held no pixel that
-the row could reach: the images and gradients are those of the square's lists, with fewer pairs to visit.
+the row could reach: the images and gradients are those of the square's lists, with fewer pairs to visit. The
+rasterizer bins squares: at the mapper's sizes the narrowed lists cost more to build than the kernels save on them
+(docs/realtime.md, "Fewer pairs").
 
 On CPU (float32/float64 ``means2d``) the same lists are built without materialising and sorting
 the keys: a serial native loop lists the visible rows and counts their tiles, Warp's stable radix
