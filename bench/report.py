@@ -567,8 +567,8 @@ def faults_table(r: dict) -> str:
 
 
 def throughput_table(r: dict) -> str:
-    """Mapping iterations per second per case, this release against another commit when the run had one
-    (``bench/results/throughput.json``)."""
+    """Mapping iterations per second per case, this release against another commit when the run had one, and the
+    pairs the tile lists hold (``bench/results/throughput.json``, ``throughput_avx2.json``)."""
     from bench.throughput import table  # lazy: the page's other regions need none of it
 
     return table(r) + "\n"
@@ -1282,6 +1282,8 @@ REGIONS: Dict[str, Region] = {
                                               pose_perturbation_table),
     "compute-sweep": Region("bench/results/history/compute_sweep.json", compute_sweep_table),
     "throughput": Region("bench/results/throughput.json", throughput_table),
+    "throughput-43a6a8d": Region("bench/results/history/throughput_43a6a8d.json", throughput_table),
+    "throughput-avx2": Region("bench/results/throughput_avx2.json", throughput_table),
     "quality-per-iteration": Region("bench/results/history/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
     "map-time": Region("bench/results/history/map_time.json", map_time_table),

@@ -14,8 +14,7 @@ compositing; alpha clamped to 0.99, alpha < 1/255 skipped, a pixel stops before 
   (one AVX-512 register, two AVX2 ones). Each row costs only its offset ``dy``: no per-row square root, rounding
   or span branches, and the row-independent column terms of ``power`` (``dx``, ``ca dx^2``, ``cb dx``) are
   computed once per Gaussian. The per-pixel branches (terminated pixel, footprint test ``power`` in
-  ``[p_min, 0]``, alpha threshold, termination) are lane masks and selects. A row block whose lanes have all
-  stopped (forward) or all composited their last entry (backward) is skipped: it would add nothing. The lane test alone decides which
+  ``[p_min, 0]``, alpha threshold, termination) are lane masks and selects. The lane test alone decides which
   pixels composite (the box holds every pixel with ``power >= p_min``), so the result is the per-row spans'.
 - **Column sums in the backward pass.** The sums over a Gaussian's pixels (dL/dpower times 1, dx, dx^2, dy,
   dx dy, dy^2 and the colour gradients) are kept per lane across the rows -- as sums of dL/dpower times 1, dy,
@@ -183,10 +182,8 @@ for (int j = start; j < end; ++j) {
         using VF = decltype(P + 0.0f);
         using VI = decltype(P < 0.0f);
         const VF Tk = *(const VF*)(T + k);
-        const VI alive = Tk >= 0.0f;
-        if (!__builtin_reduce_or(alive)) return;  // every lane stopped or outside the tile: the block changes nothing
         const VF power = -0.5f * (P + cdy) - Q * dy;
-        const VI in = alive & (power <= 0.0f) & (power >= pm);
+        const VI in = (Tk >= 0.0f) & (power <= 0.0f) & (power >= pm);
         const VF x = in ? power : (VF)(-1.0f);
 @EXP@
         VF alpha = op * e;
@@ -280,10 +277,8 @@ for (int j = maxlast - 1; j >= start; --j) {
                      auto& MYY, auto& F0, auto& F1, auto& F2, auto& F3, auto& hit) {
         using VF = decltype(P + 0.0f);
         using VI = decltype(P < 0.0f);
-        const VI live = j < *(const VI*)(L + k);
-        if (!__builtin_reduce_or(live)) return;  // every lane composited its last entry before j: nothing to add
         const VF power = -0.5f * (P + cdy) - Q * dy;
-        const VI in = live & (power <= 0.0f) & (power >= pm);
+        const VI in = (j < *(const VI*)(L + k)) & (power <= 0.0f) & (power >= pm);
         const VF x = in ? power : (VF)(-1.0f);
 @EXP@
         const VF raw = op * e;
