@@ -725,7 +725,7 @@ def main(argv=None) -> dict:
         "settings": {"quick": args.quick, "profile": args.profile, "overrides": list(args.overrides),
                      "repeats": specs[0]["repeats"], "rounds": args.rounds, "warmup_iters": args.warmup,
                      "keyframes": specs[0]["keyframes"], "isa": args.isa, "cpu_flags": ISA_FLAGS[args.isa],
-                     "cpu": _cpu_model(), "scene": {**scene, "fps": specs[0]["fps"], "task": TASK,
+                     "scene": {**scene, "fps": specs[0]["fps"], "task": TASK,
                                                                      "path": portable_path(scene_dir)}},
         "trees": {"this": {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain",
                                                                                   "--untracked-files=no"))},
@@ -748,17 +748,6 @@ def main(argv=None) -> dict:
     publish(args.out if args.out is not None else (None if args.quick else default_out), "throughput", argv, md,
             result)
     return result
-
-
-def _cpu_model() -> Optional[str]:
-    """The CPU's model name (``/proc/cpuinfo``), None where it cannot be read."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return None
 
 
 @contextmanager

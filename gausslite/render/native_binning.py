@@ -23,17 +23,19 @@ _RECT = r"""
 #pragma clang fp contract(off)
 const int* RAD = (const int*)radii;
 const int* TR = (const int*)tile_rows;
+// the tile of coordinate c (pixels, in the input dtype): floor(c / tile_size) clamped to 0 .. n - 1
+auto cell = [&](auto c, const int n) -> int {
+    using T = decltype(c);
+    const T qt = c / (T)tile_size;
+    T t = (T)__builtin_floor((double)qt);
+    if (t < (T)0) t = (T)0;
+    if (t > (T)(n - 1)) t = (T)(n - 1);
+    return (int)t;
+};
 auto rect = [&](auto zero, const decltype(zero)* uv, const long i, int* q) {
     using T = decltype(zero);
-    const T ts = (T)tile_size, r = (T)RAD[i];
+    const T r = (T)RAD[i];
     const T u = uv[2 * i], v = uv[2 * i + 1];
-    auto cell = [&](const T c, const int n) -> int {
-        const T qt = c / ts;
-        T t = (T)__builtin_floor((double)qt);
-        if (t < (T)0) t = (T)0;
-        if (t > (T)(n - 1)) t = (T)(n - 1);
-        return (int)t;
-    };
     q[0] = cell(u - r, tiles_x); q[1] = cell(u + r, tiles_x);
     q[2] = cell(v - r, tiles_y); q[3] = cell(v + r, tiles_y);
     if (banded) {
@@ -80,13 +82,7 @@ auto span = [&](const int mode, auto zero, const decltype(zero)* f, const int* q
     if (!(wR > (T)0)) wR = (T)0;
     if (!(wL > (T)0)) wL = (T)0;
     const T xr = (__builtin_sqrt(wR) - b * dR) / a, xl = (-__builtin_sqrt(wL) - b * dL) / a;
-    auto cell = [&](const T x) -> int {
-        T c = (T)__builtin_floor((double)(x / ts));
-        if (c < (T)0) c = (T)0;
-        if (c > (T)(tiles_x - 1)) c = (T)(tiles_x - 1);
-        return (int)c;
-    };
-    const int c0 = cell(f[6] + xl - one), c1 = cell(f[6] + xr + one);
+    const int c0 = cell(f[6] + xl - one, tiles_x), c1 = cell(f[6] + xr + one, tiles_x);
     if (c0 > s[0]) s[0] = c0;
     if (c1 < s[1]) s[1] = c1;
 };
