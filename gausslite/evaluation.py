@@ -11,7 +11,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Mapping, Optional, Sequence
+from typing import Callable, Dict, Iterable, Mapping, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -378,7 +378,8 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
 
     - ``tracked``: every ``track_stride``-th frame at a pose and affine exposure fitted to that frame against the
       frozen map (:func:`track_view`, ``track_iters`` full-image steps from the sensor's pose), MonoGS's protocol;
-    - ``novel-tracked``: the withheld frames, tracked like ``tracked``'s.
+    - ``novel-tracked``: the withheld frames, tracked like ``tracked``'s. A frame both protocols score is fitted
+      once: the same start, map and steps give the same view.
 
     Args:
         mapper: the map to score (not modified). frames: the sequence's frames (ground truth): a list, or a dataset
@@ -423,6 +424,9 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
               if keyframe_ids is None else {int(i) for i in keyframe_ids})
     res = {}
     n = len(frames)
+    # a frame that both tracked protocols score (every ``track_stride``-th frame among the withheld ones) is fitted,
+    # rendered and scored once: the same start, map and iterations give the same view
+    fitted: Dict[int, tuple] = {}
     for protocol in protocols:
         # one frame in memory at a time (``frames`` may be a dataset that loads each on access)
         if protocol == "keyframes":
@@ -437,9 +441,19 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         ss = []
         for fr in chosen:
             fid = int(fr.frame_id)
-            roi = roi_fn(fr)
-            s = score_view(_protocol_render(mapper, fr, protocol, track_iters, roi, poses.get(fid), given_of.get(fid),
-                                            rec, fit_exposure), fr, roi)
+            if protocol in TRACKED_PROTOCOLS and fid in fitted:
+                view, s = fitted[fid]
+                if rec is not None:
+                    rec[fid] = view
+            else:
+                roi = roi_fn(fr)
+                seen = {} if protocol in TRACKED_PROTOCOLS else rec
+                s = score_view(_protocol_render(mapper, fr, protocol, track_iters, roi, poses.get(fid),
+                                                given_of.get(fid), seen, fit_exposure), fr, roi)
+                if protocol in TRACKED_PROTOCOLS:
+                    fitted[fid] = (seen[fid], s)
+                    if rec is not None:
+                        rec[fid] = seen[fid]
             out["psnr_per_frame"][fid] = s.psnr
             ss.append(s.ssim)
             if not math.isnan(s.roi_psnr):

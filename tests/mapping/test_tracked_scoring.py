@@ -255,3 +255,30 @@ def test_older_results_name_the_tracked_novel_figure_novel_tracked():
     new = {"novel": {"roi_psnr": 21.0, "pose": "predicted"}, "novel-tracked": {"roi_psnr": 22.0}}
     assert current_protocols(new) == new
     assert current_protocol_name("novel", {"t": {"roi_psnr": 1.0, "pose": "predicted"}}) == "novel"
+
+
+def test_a_frame_both_tracked_protocols_score_is_fitted_once_with_the_same_figures(monkeypatch):
+    """``tracked`` (every 2nd frame: 0, 2, 4, 6) and ``novel-tracked`` (withheld 4, 5, 6, 7) share frames 4 and 6: each
+    is fitted once, and both protocols get exactly the figures and views that scoring each alone gives."""
+    import gausslite.evaluation as ev
+
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(8)]
+    m = _plane_map()  # mapped frames 0..3
+    roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
+    calls = []
+    real = ev.track_view
+    monkeypatch.setattr(ev, "track_view",
+                        lambda sensor, fr, *a, **k: calls.append(fr.frame_id) or real(sensor, fr, *a, **k))
+    record = {}
+    both = score_live_map(m, frames, roi, ("tracked", "novel-tracked"), track_iters=3, track_stride=2,
+                          novel_ids=[4, 5, 6, 7], record=record)
+    assert sorted(calls) == [0, 2, 4, 5, 6, 7]
+    assert set(record) == {0, 2, 4, 5, 6, 7}
+    for q in ("tracked", "novel-tracked"):
+        alone_rec = {}
+        alone = score_live_map(m, frames, roi, (q,), track_iters=3, track_stride=2, novel_ids=[4, 5, 6, 7],
+                               record=alone_rec)[q]
+        assert alone["psnr_per_frame"] == both[q]["psnr_per_frame"]
+        assert alone["roi_psnr_per_frame"] == both[q]["roi_psnr_per_frame"] and alone["ssim"] == both[q]["ssim"]
+        for fid, view in alone_rec.items():
+            assert np.array_equal(view.c2w, record[fid].c2w) and np.array_equal(view.theta, record[fid].theta)
