@@ -18,7 +18,8 @@ from gausslite_services.common.server import ServerOptions
 from tests._waits import WORK_S
 
 TINY = ["agent.ingest=every_frame", "agent.push.every=100", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=4",
-        "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300"]
+        "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=300",
+        "agent.share.worker=thread"]  # the share worker process has tests of its own (test_agent_live.py)
 OBJECT = "Prepare to pick up the object on the desk"
 CHAIR = "Identify the chair closest to the table"
 

@@ -24,7 +24,8 @@ from gausslite_services.sim.launch import check_bags
 from tests._waits import WORK_S
 
 TINY = ["agent.push.every=2", "agent.upload_keyframe_every=1", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
-        "mapper.seeding.seeds_per_frame=150"]
+        "mapper.seeding.seeds_per_frame=150",
+        "agent.share.worker=thread"]  # the share worker process has tests of its own (test_agent_live.py)
 
 
 @pytest.fixture(scope="module")

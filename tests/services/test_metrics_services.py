@@ -25,7 +25,8 @@ from tests._waits import WORK_S
 # every_frame ingest: the test counts mapped frames exactly (keyframe ingest maps a selection; test_agent_live.py)
 TINY = ["agent.ingest=every_frame", "agent.push.every=2", "agent.upload_keyframe_every=1", "agent.push.backoff_s=0.1", "agent.push.max_backoff_s=0.5",
         "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=200",
-        "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null"]  # whole keyframes, all counted
+        "agent.refine_views.crop=false", "agent.refine_views.budget_ratio=null",  # whole keyframes, all counted
+        "agent.share.worker=thread"]  # the share worker process has tests of its own (test_agent_live.py)
 
 
 def scrape(url: str) -> dict:
@@ -186,8 +187,8 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
             c.wait_ready(10)
             m = c.start_mission(ds.annotations.task_by_id("synth-pick-object").text)
             assert c.stream_frames(m.mission_id, list(ds), timeout_s=120).frames_received == 4
-            # Finish maps what is queued, makes the final pass and push (the share worker starts for it): on a busy
-            # machine that can take minutes; the bound only keeps a hung agent from holding the suite
+            # Finish maps what is queued, makes the final pass and push: on a busy machine that can take minutes; the
+            # bound only keeps a hung agent from holding the suite
             s = c.finish(timeout_s=WORK_S)
             assert s.final_push_ok, s.status.last_error
         a1 = scrape(agent_url)
