@@ -48,9 +48,12 @@ def parser_server():
 
 
 def _fusion(data_dir, port=0):
+    """A fusion server without the team map (tests/services/test_team_map.py): no refinement process beside the
+    agents' pushes."""
+    from gausslite.config import FusionSettings
     from gausslite_services.fusion_server.server import serve
 
-    return serve(ServerOptions(port=port), data_dir=str(data_dir))
+    return serve(ServerOptions(port=port), FusionSettings(team_map={"enabled": False}), data_dir=str(data_dir))
 
 
 def _code(excinfo) -> grpc.StatusCode:

@@ -130,7 +130,10 @@ def test_fusion_and_agent_metrics_move(tmp_path, scene):
     from gausslite_services.fusion_server.client import FusionClient
     from gausslite_services.fusion_server.server import serve as serve_fusion
 
+    from gausslite.config import FusionSettings
+
     fusion = serve_fusion(ServerOptions(port=0, metrics_port=0, max_message_bytes=1 << 20),
+                          FusionSettings(team_map={"enabled": False}),  # no refinement process (test_team_map.py)
                           data_dir=str(tmp_path / "fusion"))
     agent = serve_agent(ServerOptions(port=0, metrics_port=0), AgentSettings(
         agent_id="robot_m", fusion_address=fusion.address, annotations_path=str(scene),

@@ -445,11 +445,14 @@ def _kf(i: int, x: float) -> Frame:
 
 @pytest.fixture()
 def fusion_with_two_agents(tmp_path):
+    from gausslite.config import FusionSettings
     from gausslite_services.common.server import ServerOptions
     from gausslite_services.fusion_server.client import FusionClient
     from gausslite_services.fusion_server.server import serve
 
-    srv = serve(ServerOptions(port=0, max_workers=8), data_dir=str(tmp_path / "fusion"))
+    # the viewer follows the fused versions: no team map refined in a process of its own beside them
+    srv = serve(ServerOptions(port=0, max_workers=8), FusionSettings(team_map={"enabled": False}),
+                data_dir=str(tmp_path / "fusion"))
     fc = FusionClient(srv.address, timeout_s=20)
     fc.wait_ready(10)
     for j, agent in enumerate(("robot_a", "robot_b")):
