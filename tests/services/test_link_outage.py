@@ -36,8 +36,10 @@ def _start_fusion(data_dir: Path, port_file: Path, port: int = 0) -> tuple[subpr
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     log = data_dir.parent / f"{port_file.name}.log"
     with open(log, "ab") as out:
+        # no team map (tests/services/test_team_map.py): no refinement process beside the uploads
         proc = subprocess.Popen([sys.executable, "-m", "gausslite_services.fusion_server", "--port", str(port),
-                                 "--data-dir", str(data_dir), "--port-file", str(port_file)], cwd=str(REPO), env=env,
+                                 "--data-dir", str(data_dir), "--port-file", str(port_file),
+                                 "--set", "fusion.team_map.enabled=false"], cwd=str(REPO), env=env,
                                 stdout=out, stderr=subprocess.STDOUT)
     wait_for_start(proc, lambda: port_file.exists() and port_file.read_text().strip(),
                    f"the fusion server's port file {port_file}", log)
