@@ -437,32 +437,43 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
             chosen = (frames[i] for i in range(0, n, track_stride if protocol == "tracked" else 1))
         given_of = (novel_views if protocol == "novel" else views if protocol in TRACKED_PROTOCOLS else None) or {}
         rec = predicted if protocol == "novel" else record if protocol in TRACKED_PROTOCOLS else None
-        out = _empty_result(protocol)
-        ss = []
-        for fr in chosen:
-            fid = int(fr.frame_id)
-            if protocol in TRACKED_PROTOCOLS and fid in fitted:
-                view, s = fitted[fid]
-                if rec is not None:
-                    rec[fid] = view
-            else:
-                roi = roi_fn(fr)
-                seen = {} if protocol in TRACKED_PROTOCOLS else rec
-                s = score_view(_protocol_render(mapper, fr, protocol, track_iters, roi, poses.get(fid),
-                                                given_of.get(fid), seen, fit_exposure), fr, roi)
-                if protocol in TRACKED_PROTOCOLS:
-                    fitted[fid] = (seen[fid], s)
-                    if rec is not None:
-                        rec[fid] = seen[fid]
-            out["psnr_per_frame"][fid] = s.psnr
-            ss.append(s.ssim)
-            if not math.isnan(s.roi_psnr):
-                out["roi_psnr_per_frame"][fid] = s.roi_psnr
-        rps, ps = list(out["roi_psnr_per_frame"].values()), list(out["psnr_per_frame"].values())
-        out.update(roi_psnr=float(np.mean(rps)) if rps else None, psnr=float(np.mean(ps)) if ps else None,
-                   ssim=float(np.mean(ss)) if ss else None, frames_scored=len(ps), roi_frames=len(rps))
-        res[protocol] = out
+        res[protocol] = _score_frames(
+            protocol, chosen, lambda fr, roi, seen: _protocol_render(
+                mapper, fr, protocol, track_iters, roi, poses.get(int(fr.frame_id)), given_of.get(int(fr.frame_id)),
+                seen, fit_exposure), roi_fn, rec, fitted)
     return res
+
+
+def _score_frames(protocol: str, chosen: Iterable[Frame], render: Callable, roi_fn: Callable, rec: Optional[dict],
+                  fitted: Dict[int, tuple]) -> dict:
+    """:func:`score_live_map`'s figures of one protocol over the ``chosen`` frames: ``render(frame, roi, record)``
+    renders a frame (filling ``record`` with its view); a tracked protocol's frame already in ``fitted`` (frame id →
+    ``(view, score)``, filled here) is not rendered again; ``rec``: the caller's record of the views."""
+    out = _empty_result(protocol)
+    ss = []
+    tracked = protocol in TRACKED_PROTOCOLS
+    for fr in chosen:
+        fid = int(fr.frame_id)
+        if tracked and fid in fitted:
+            view, s = fitted[fid]
+            if rec is not None:
+                rec[fid] = view
+        else:
+            roi = roi_fn(fr)
+            seen = {} if tracked else rec
+            s = score_view(render(fr, roi, seen), fr, roi)
+            if tracked:
+                fitted[fid] = (seen[fid], s)
+                if rec is not None:
+                    rec[fid] = seen[fid]
+        out["psnr_per_frame"][fid] = s.psnr
+        ss.append(s.ssim)
+        if not math.isnan(s.roi_psnr):
+            out["roi_psnr_per_frame"][fid] = s.roi_psnr
+    rps, ps = list(out["roi_psnr_per_frame"].values()), list(out["psnr_per_frame"].values())
+    out.update(roi_psnr=float(np.mean(rps)) if rps else None, psnr=float(np.mean(ps)) if ps else None,
+               ssim=float(np.mean(ss)) if ss else None, frames_scored=len(ps), roi_frames=len(rps))
+    return out
 
 
 def frozen_mapper(gmap, backend: str = "auto"):
