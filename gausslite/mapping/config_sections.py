@@ -153,6 +153,15 @@ class BudgetConfig(StrictModel):
         4.0, ge=1, description="eviction: active (ROI) Gaussians' contribution counts this many times "
         "(gausslite mode only; uniform mode has no active Gaussians)"
     )
+    prune_contribution: float = Field(
+        0.0, ge=0, description="prune, after each keyframe, the Gaussians mapped for at least prune_after keyframes "
+        "whose contribution (the eviction score: alpha-blending weight summed over the pixels of the keyframes "
+        "since their birth, active ones × roi_protect) is below this many pixels; needs evict: contribution. "
+        "0: off (measured live: docs/realtime.md#pruning)"
+    )
+    prune_after: int = Field(
+        3, ge=1, description="keyframes a Gaussian is mapped for before prune_contribution may prune it"
+    )
 
 
 class PoseConfig(StrictModel):

@@ -331,6 +331,7 @@ class Mapper:
         strategy's contribution, the eviction score (:meth:`DensityStrategy.eviction_score`)."""
         if len(self.model):
             self.strategy.add_contribution(self.sensor.blend_weights(kf.K, kf.width, kf.height, kf.c2w))
+            self.strategy.prune_idle()  # budget.prune_contribution
 
     def add_roi_views(self, frames, current: Optional[Keyframe] = None, scale: Optional[float] = None) -> int:
         """Store the ROI crop of frames between keyframes (``roi_views``; gausslite mode with a task in view).

@@ -7,6 +7,10 @@ settings in the typed config, state in :class:`DensityStrategy`, hooks the mappe
 - **Eviction** (:meth:`DensityStrategy.eviction_score`): at the budget, new seeds replace the Gaussians with
   the lowest alpha-blending weight accumulated over the keyframes that saw them (``evict: contribution``),
   ROI Gaussians weighted by ``roi_protect``; or the lowest opacity.
+- **Pruning** (:meth:`DensityStrategy.prune_idle`, after each keyframe's contribution): the Gaussians that a few
+  keyframes have mapped and that still contribute under ``budget.prune_contribution`` pixels are removed, whether
+  the budget is reached or not (Speedy-Splat's pruning of low-contribution Gaussians during training, Hanson et
+  al. CVPR 2025).
 - **Density control** (:meth:`DensityStrategy.accumulate` after each backward pass,
   :meth:`DensityStrategy.densify_and_prune` every ``densify.every`` iterations): clone/split on the mean
   view-space gradient norm, prune transparent or oversized Gaussians, within the budget.
@@ -45,6 +49,8 @@ class DensityStrategy:
         voxels: coarse voxels observed so far (scene budget).
         contribution: (N,) float32 alpha-blending weight each Gaussian accumulated over the keyframes that saw it,
             aligned with the model's rows.
+        age: (N,) int32 keyframes whose contribution each Gaussian's row (or the row it derives from) took part in.
+        pruned: Gaussians :meth:`prune_idle` removed so far.
         grad_accum, grad_count: (N,) float32 view-space gradient norm sums and counts since the last density step.
     """
 
@@ -56,6 +62,8 @@ class DensityStrategy:
         self.budget: Optional[int] = cfg.budget.max_gaussians
         self.voxels = SurfaceVoxels(cfg.budget.voxel_m)
         self.contribution = torch.zeros(0, device=self.device)
+        self.age = torch.zeros(0, dtype=torch.int32, device=self.device)
+        self.pruned = 0
         self.reset_stats()
 
     # ------------------------------------------------------------------ budget and eviction
@@ -85,8 +93,27 @@ class DensityStrategy:
 
     def add_contribution(self, weights: torch.Tensor) -> None:
         """Add one keyframe's (N,) alpha-blending weights (:meth:`SensorRenderer.blend_weights
-        <gausslite.mapping.sensor.SensorRenderer.blend_weights>`) to :attr:`contribution`."""
+        <gausslite.mapping.sensor.SensorRenderer.blend_weights>`) to :attr:`contribution`; every row ages by one
+        keyframe."""
         self.contribution += weights
+        self.age += 1
+
+    def prune_idle(self) -> int:
+        """Remove the Gaussians of at least ``budget.prune_after`` keyframes whose :meth:`eviction_score` (pixels)
+        is below ``budget.prune_contribution``: those that the views mapping them have hardly drawn, hidden or
+        transparent. Call after :meth:`add_contribution`; no-op when ``prune_contribution`` is 0 or eviction is
+        not by contribution. Returns the number removed."""
+        bc = self.cfg.budget
+        if bc.prune_contribution <= 0 or bc.evict != "contribution" or len(self.model) == 0:
+            return 0
+        gmap = self.model.to_map()
+        idle = (self.age >= bc.prune_after) & (self.eviction_score(gmap) < bc.prune_contribution)
+        n = int(idle.sum())
+        if n:
+            keep = ~idle
+            self.set_map(gmap.prune(keep), torch.nonzero(keep).squeeze(1))
+            self.pruned += n
+        return n
 
     # ------------------------------------------------------------------ map changes
     def set_map(self, gmap: GaussianMap, parent: torch.Tensor, new_anchor: int = -1) -> None:
@@ -94,23 +121,28 @@ class DensityStrategy:
         a new one, whose keyframe anchor is ``new_anchor``; :meth:`GaussianModel.set_map`), carry
         :attr:`contribution` along ``parent`` (new rows start at 0) and reset the density statistics."""
         new = torch.zeros(parent.shape[0], device=self.device)
+        age = torch.zeros(parent.shape[0], dtype=torch.int32, device=self.device)
         has = parent >= 0  # rows of the current map: len(contribution) == len(model) always holds
         new[has] = self.contribution[parent[has]]
-        self.contribution = new
+        age[has] = self.age[parent[has]]
+        self.contribution, self.age = new, age
         self.model.set_map(gmap, parent, new_anchor)
         self.reset_stats()
 
-    def reset(self, contribution: Optional[torch.Tensor] = None) -> None:
-        """After the whole map was replaced from outside (a loaded map): ``contribution`` (N,) float32, default
-        zeros, and fresh density statistics.
+    def reset(self, contribution: Optional[torch.Tensor] = None, age: Optional[torch.Tensor] = None) -> None:
+        """After the whole map was replaced from outside (a loaded map): ``contribution`` (N,) float32 and ``age``
+        (N,) int32, default zeros, and fresh density statistics.
 
         Raises:
-            ValueError: ``contribution`` of another length than the model.
+            ValueError: ``contribution`` or ``age`` of another length than the model.
         """
-        if contribution is not None and int(contribution.shape[0]) != len(self.model):
-            raise ValueError(f"contribution has {contribution.shape[0]} rows, map has {len(self.model)}")
+        for name, t in (("contribution", contribution), ("age", age)):
+            if t is not None and int(t.shape[0]) != len(self.model):
+                raise ValueError(f"{name} has {t.shape[0]} rows, map has {len(self.model)}")
         self.contribution = (contribution.to(self.device, torch.float32).clone() if contribution is not None
                              else torch.zeros(len(self.model), device=self.device))
+        self.age = (age.to(self.device, torch.int32).clone() if age is not None
+                    else torch.zeros(len(self.model), dtype=torch.int32, device=self.device))
         self.reset_stats()
 
     # ------------------------------------------------------------------ density control
@@ -196,10 +228,11 @@ class DensityStrategy:
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """Plain-data copy for checkpoints: ``contribution`` (N,) float32 CPU, ``budget``, ``voxel_keys``
-        (not the gradient statistics, which restart at every density step anyway)."""
-        return {"contribution": self.contribution.detach().cpu().clone(), "budget": self.budget,
-                **self.voxels.state_dict()}
+        """Plain-data copy for checkpoints: ``contribution`` (N,) float32 CPU, ``age`` (N,) int32 CPU,
+        ``pruned``, ``budget``, ``voxel_keys`` (not the gradient statistics, which restart at every density step
+        anyway)."""
+        return {"contribution": self.contribution.detach().cpu().clone(), "age": self.age.cpu().clone(),
+                "pruned": self.pruned, "budget": self.budget, **self.voxels.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a :meth:`state_dict` after the model's rows were loaded.
@@ -207,7 +240,8 @@ class DensityStrategy:
         Raises:
             KeyError: no ``budget``. ValueError: a contribution of another length than the model.
         """
-        self.reset(state.get("contribution"))
+        self.reset(state.get("contribution"), state.get("age"))
+        self.pruned = int(state.get("pruned", 0))
         self.budget = state["budget"]
         self.voxels.load_state_dict(state)
 

@@ -538,3 +538,33 @@ def test_roi_grad_factor_densifies_active_gaussians_at_a_lower_threshold(mode):
     expect = int(act.sum()) if mode == "gausslite" else 0
     assert stats["split"] == expect
     assert len(m.model) == n + expect
+
+
+@pytest.mark.parametrize("threshold", [0.0, 0.05])
+def test_pruning_removes_the_gaussians_the_keyframes_never_draw(threshold):
+    """``budget.prune_contribution``: 200 Gaussians hidden 1 m behind the plane (alpha 0.88 or more) contribute
+    under 0.05 pixel to its keyframes and go once they are ``prune_after`` keyframes old; the plane's own stay, the
+    counter and the checkpoint state follow. Off (0), nothing is pruned."""
+    from gausslite.gaussians import GaussianMap
+
+    cfg = _cfg(mode="uniform", seeding={"seeds_per_frame": 1500}, iters_per_frame=10,
+               budget={"prune_contribution": threshold, "prune_after": 2})
+    m = Mapper(cfg)
+    m.map_frame(_frame(0))
+    g = torch.Generator().manual_seed(0)
+    hidden = GaussianMap.from_points(torch.cat([torch.rand(200, 2, generator=g) - 0.5, torch.full((200, 1), 3.0)], 1),
+                                     torch.rand(200, 3, generator=g), 0.01, 0.9)
+    n_plane = len(m.model)
+    m.load_map(m.model.to_map().detach().clone().append(hidden))
+    assert m.strategy.age.tolist() == [0] * (n_plane + 200)
+    m.map_frame(_frame(1, 0.01))
+    assert int((m.model.params["means"].detach()[:, 2] > 2.5).sum()) == 200  # one keyframe old: kept
+    m.map_frame(_frame(2, 0.02))
+    behind = int((m.model.params["means"].detach()[:, 2] > 2.5).sum())
+    if threshold == 0:
+        assert behind == 200 and m.strategy.pruned == 0
+        return
+    assert behind == 0 and 200 <= m.strategy.pruned < 200 + 0.1 * n_plane  # the plane keeps 90 % or more
+    assert len(m.strategy.age) == len(m.model) == len(m.strategy.contribution)
+    state = m.strategy.state_dict()
+    assert state["pruned"] == m.strategy.pruned and torch.equal(state["age"], m.strategy.age)
