@@ -110,9 +110,13 @@ def protocols_of(blk: dict, new_names: bool) -> Dict[str, dict]:
 
 def uses_new_protocol_names(result: dict) -> bool:
     """Whether ``result`` was written after ``novel`` moved to the predicted pose: it names ``novel-tracked`` (or
-    ``novel_tracked``) somewhere, or marks a ``novel`` entry ``"pose": "predicted"``."""
+    ``novel_tracked``) somewhere, or marks a ``novel`` entry ``"pose": "predicted"`` (in its summary, or in a run's
+    protocols: a result that scored ``novel`` alone)."""
     text = json.dumps({k: v for k, v in result.items() if k != "runs"})
-    return "novel-tracked" in text or "novel_tracked" in text or '"pose": "predicted"' in text
+    if "novel-tracked" in text or "novel_tracked" in text or '"pose": "predicted"' in text:
+        return True
+    return any(((r.get("protocols") or {}).get("novel") or {}).get("pose") == "predicted"
+               for r in result.get("runs", []))
 
 
 def protocol(result: dict, scene: str, name: str, budget: str = "0.5") -> dict:
@@ -1225,6 +1229,36 @@ def rasterizer_text(r: dict) -> str:
             f"{r['speedup_' + b]:.1f}×)")
 
 
+# ---------------------------------------------------------------- pruning (bench.realtime --set mapper.budget.prune_contribution=…)
+
+PRUNING_SCENES = (("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"), ("tum_fr1_rpy", "TUM fr1/rpy, find the mouse"))
+
+
+def _run_mean(result: dict, scene: str, mode: str, key: str) -> Optional[float]:
+    vals = [r[key] for r in result.get("runs", []) if r["scene"] == scene and r["mode"] == mode and key in r]
+    return sum(vals) / len(vals) if vals else None
+
+
+def pruning_table(result: dict) -> str:
+    """docs/realtime.md#pruning, one setting of ``mapper.budget.prune_contribution``: per TUM task, both modes' ROI
+    PSNR under :data:`HEADLINE_PRIMARY` (mean ± std over runs), the gain (:func:`gain_text`), and per mode (GaussLite
+    / uniform) the final Gaussians, the Gaussians pruned (– where the runs did not record it) and the iterations per
+    keyframe."""
+    p0 = f"`{HEADLINE_PRIMARY}`"
+    head = ["scene, task", f"uniform ROI PSNR, {p0}", "GaussLite", "gain [95 %, run-clustered]",
+            "Gaussians, GaussLite / uniform", "pruned", "iterations per keyframe"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for scene, label in PRUNING_SCENES:
+        p = protocol(result, scene, HEADLINE_PRIMARY)
+        u, g = p["uniform"], p["gausslite"]
+        pair = lambda key, nd: " / ".join("–" if v is None else f"{v:,.{nd}f}"  # noqa: E731
+                                          for v in (_run_mean(result, scene, m, key) for m in ("gausslite", "uniform")))
+        cells = [label, pm(u["roi_psnr"], u["roi_psnr_std"]), pm(g["roi_psnr"], g["roi_psnr_std"]), gain_text(p),
+                 pair("n_gaussians", 0), pair("pruned", 0), pair("iters_per_keyframe", 1)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------- regions
 
 
@@ -1284,6 +1318,10 @@ REGIONS: Dict[str, Region] = {
     "throughput": Region("bench/results/throughput.json", throughput_table),
     "throughput-43a6a8d": Region("bench/results/history/throughput_43a6a8d.json", throughput_table),
     "throughput-avx2": Region("bench/results/throughput_avx2.json", throughput_table),
+    "pruning-off": Region("bench/results/realtime_prune_off.json", pruning_table),
+    "pruning-1": Region("bench/results/realtime_prune_1.json", pruning_table),
+    "pruning-5": Region("bench/results/realtime_prune_5.json", pruning_table),
+    "pruning-20": Region("bench/results/realtime_prune_20.json", pruning_table),
     "quality-per-iteration": Region("bench/results/history/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
     "map-time": Region("bench/results/history/map_time.json", map_time_table),

@@ -16,7 +16,9 @@ from gausslite_services.sim import plan_agents, run_sim
 TINY = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
         "agent.push.every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1", "mapper.seeding.seeds_per_frame=150",
         "sim.fuse.refine_iters=3", "agent.share.finetune_iters=20", "agent.refine_views.min_roi_px=1",
-        "agent.refine_views.budget_ratio=8", "fusion.team_map.refine_iters=3"]
+        "agent.refine_views.budget_ratio=8", "fusion.team_map.refine_iters=3",
+        # the team map made from the final subsets starts at once, not min_interval_s after the one before it
+        "fusion.team_map.min_interval_s=0"]
 
 
 def test_tiny_sim_writes_report_and_cleans_up(tmp_path):
