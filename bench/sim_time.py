@@ -43,7 +43,8 @@ RESULTS = REPO / "bench" / "results" / "sim_time.json"
 QUICK_SET = ["sim.scene.width=64", "sim.scene.height=48", "sim.scene.frames=3", "agent.downscale=1",
              "agent.push.every=2", "mapper.iters_per_frame=3", "mapper.warmup_iters=1",
              "mapper.seeding.seeds_per_frame=150", "sim.fuse.refine_iters=3", "agent.share.finetune_iters=20",
-             "agent.refine_views.min_roi_px=1", "agent.refine_views.budget_ratio=8", "fusion.team_map.refine_iters=3"]
+             "agent.refine_views.min_roi_px=1", "agent.refine_views.budget_ratio=8", "fusion.team_map.refine_iters=3",
+             "fusion.team_map.min_interval_s=0"]
 
 
 def tree_env(tree: Path, shim: Path) -> dict:
