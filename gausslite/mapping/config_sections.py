@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = ["StrictModel", "LearningRates", "DensifyConfig", "WorkCostConfig", "ComponentSwitches", "SeedingConfig",
            "BudgetConfig", "PoseConfig", "SensorConfig", "RoiViewConfig", "DetailConfig", "PerformanceConfig"]
@@ -162,6 +162,13 @@ class BudgetConfig(StrictModel):
     prune_after: int = Field(
         3, ge=1, description="keyframes a Gaussian is mapped for before prune_contribution may prune it"
     )
+
+    @model_validator(mode="after")
+    def _check_pruning(self) -> "BudgetConfig":
+        if self.prune_contribution > 0 and self.evict != "contribution":
+            raise ValueError(f"prune_contribution ({self.prune_contribution}) prunes by contribution, which is only "
+                             f"accumulated with evict: contribution, not {self.evict!r}")
+        return self
 
 
 class PoseConfig(StrictModel):

@@ -101,10 +101,10 @@ class DensityStrategy:
     def prune_idle(self) -> int:
         """Remove the Gaussians of at least ``budget.prune_after`` keyframes whose :meth:`eviction_score` (pixels)
         is below ``budget.prune_contribution``: those that the views mapping them have hardly drawn, hidden or
-        transparent. Call after :meth:`add_contribution`; no-op when ``prune_contribution`` is 0 or eviction is
-        not by contribution. Returns the number removed."""
+        transparent. Call after :meth:`add_contribution` (which ``budget.evict: contribution`` runs, as the config
+        requires with pruning on); no-op when ``prune_contribution`` is 0. Returns the number removed."""
         bc = self.cfg.budget
-        if bc.prune_contribution <= 0 or bc.evict != "contribution" or len(self.model) == 0:
+        if bc.prune_contribution <= 0 or len(self.model) == 0:
             return 0
         gmap = self.model.to_map()
         idle = (self.age >= bc.prune_after) & (self.eviction_score(gmap) < bc.prune_contribution)

@@ -568,3 +568,16 @@ def test_pruning_removes_the_gaussians_the_keyframes_never_draw(threshold):
     assert len(m.strategy.age) == len(m.model) == len(m.strategy.contribution)
     state = m.strategy.state_dict()
     assert state["pruned"] == m.strategy.pruned and torch.equal(state["age"], m.strategy.age)
+
+
+def test_pruning_needs_eviction_by_contribution():
+    """Pruning reads the contribution that only ``evict: contribution`` accumulates: asked for with ``evict:
+    opacity`` it is refused, at construction and on assignment, instead of silently doing nothing."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="evict: contribution"):
+        _cfg(budget={"prune_contribution": 5.0, "evict": "opacity"})
+    cfg = _cfg(budget={"prune_contribution": 5.0})
+    with pytest.raises(ValidationError, match="evict: contribution"):
+        cfg.budget.evict = "opacity"
+    assert _cfg(budget={"evict": "opacity"}).budget.prune_contribution == 0.0
