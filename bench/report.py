@@ -193,11 +193,16 @@ def headline_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def run_mean(result: dict, scene: str, mode: str, key: str) -> Optional[float]:
+    """The mean of ``key`` over ``mode``'s runs of ``scene`` that record it; None when none does."""
+    vals = [r[key] for r in result.get("runs", [])
+            if r["scene"] == scene and r["mode"] == mode and r.get(key) is not None]
+    return sum(vals) / len(vals) if vals else None
+
+
 def iters_per_keyframe(result: dict, scene: str, mode: str) -> Optional[float]:
     """The mean mapping iterations per keyframe of ``mode``'s runs of ``scene`` (what the budget bought them)."""
-    vals = [r["iters_per_keyframe"] for r in result.get("runs", [])
-            if r["scene"] == scene and r["mode"] == mode and r.get("iters_per_keyframe") is not None]
-    return sum(vals) / len(vals) if vals else None
+    return run_mean(result, scene, mode, "iters_per_keyframe")
 
 
 #: docs/realtime.md's table of every protocol: scene key of ``realtime.json`` and the row's label, in page order
@@ -1234,11 +1239,6 @@ def rasterizer_text(r: dict) -> str:
 PRUNING_SCENES = (("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"), ("tum_fr1_rpy", "TUM fr1/rpy, find the mouse"))
 
 
-def _run_mean(result: dict, scene: str, mode: str, key: str) -> Optional[float]:
-    vals = [r[key] for r in result.get("runs", []) if r["scene"] == scene and r["mode"] == mode and key in r]
-    return sum(vals) / len(vals) if vals else None
-
-
 def pruning_table(result: dict) -> str:
     """docs/realtime.md#pruning, one setting of ``mapper.budget.prune_contribution``: per TUM task, both modes' ROI
     PSNR under :data:`HEADLINE_PRIMARY` (mean ± std over runs), the gain (:func:`gain_text`), and per mode (GaussLite
@@ -1252,7 +1252,7 @@ def pruning_table(result: dict) -> str:
         p = protocol(result, scene, HEADLINE_PRIMARY)
         u, g = p["uniform"], p["gausslite"]
         pair = lambda key, nd: " / ".join("–" if v is None else f"{v:,.{nd}f}"  # noqa: E731
-                                          for v in (_run_mean(result, scene, m, key) for m in ("gausslite", "uniform")))
+                                          for v in (run_mean(result, scene, m, key) for m in ("gausslite", "uniform")))
         cells = [label, pm(u["roi_psnr"], u["roi_psnr_std"]), pm(g["roi_psnr"], g["roi_psnr_std"]), gain_text(p),
                  pair("n_gaussians", 0), pair("pruned", 0), pair("iters_per_keyframe", 1)]
         lines.append("| " + " | ".join(cells) + " |")
