@@ -424,9 +424,10 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
               if keyframe_ids is None else {int(i) for i in keyframe_ids})
     res = {}
     n = len(frames)
-    # a frame that both tracked protocols score (every ``track_stride``-th frame among the withheld ones) is fitted,
-    # rendered and scored once: the same start, map and iterations give the same view
-    fitted: Dict[int, tuple] = {}
+    # a frame that two protocols render the same way is rendered and scored once (:func:`_view_key`): a frame that
+    # both tracked protocols score (the same start, map and iterations give the same view), and a frame that
+    # ``sensor``, ``keyframes`` and ``novel`` render at the same pose and exposure through the same path
+    shown: Dict[tuple, tuple] = {}
     for protocol in protocols:
         # one frame in memory at a time (``frames`` may be a dataset that loads each on access)
         if protocol == "keyframes":
@@ -440,32 +441,60 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
         res[protocol] = _score_frames(
             protocol, chosen, lambda fr, roi, seen: _protocol_render(
                 mapper, fr, protocol, track_iters, roi, poses.get(int(fr.frame_id)), given_of.get(int(fr.frame_id)),
-                seen, fit_exposure), roi_fn, rec, fitted)
+                seen, fit_exposure), roi_fn, rec, shown,
+            lambda fr: _view_key(mapper, fr, protocol, poses.get(int(fr.frame_id)), given_of.get(int(fr.frame_id)),
+                                 fit_exposure),
+            lambda fr: given_of.get(int(fr.frame_id)) or predicted_view(mapper, fr))
     return res
 
 
+def _view_key(mapper, frame: Frame, protocol: str, pose: Optional[np.ndarray], given: Optional[TrackedView],
+              fit_exposure: bool) -> Optional[tuple]:
+    """What :func:`_protocol_render` renders ``frame`` from under ``protocol`` (its arguments), as a key: two
+    protocols whose frames get the same key render the same image (the same path, pose and exposure: the renders are
+    deterministic), so :func:`score_live_map` renders and scores it once. ``("fitted", id)``: the tracked protocols'
+    view, fitted once or ``given``; ``("frame", id)``: :meth:`Mapper.render_frame`'s (``sensor``, ``keyframes`` at the
+    refined pose, ``novel`` at the predicted view; ``keyframes`` at a given ``pose`` too when that is the pose
+    ``render_frame`` takes and the map has no exposure records, whose response it would apply); ``("pose", …)`` /
+    ``("view", …)``: a ``keyframes`` pose / a given ``novel`` view of its own. None: an exposure fitted on the render
+    itself (``fit_exposure``), never shared."""
+    fid = int(frame.frame_id)
+    if protocol in TRACKED_PROTOCOLS:
+        return ("fitted", fid)
+    if protocol == "keyframes" and pose is not None:
+        pose = np.asarray(pose, np.float64)
+        same = not has_exposure_records(mapper) and np.array_equal(pose, mapper.pose_of(fid, frame.c2w))
+        return ("frame", fid) if same else ("pose", fid, pose.tobytes())
+    if protocol == "novel" and given is not None:
+        return ("view", fid, np.asarray(given.c2w, np.float64).tobytes(), np.asarray(given.theta, np.float64).tobytes())
+    if protocol == "novel" and fit_exposure and not has_exposure_records(mapper):
+        return None
+    return ("frame", fid)
+
+
 def _score_frames(protocol: str, chosen: Iterable[Frame], render: Callable, roi_fn: Callable, rec: Optional[dict],
-                  fitted: Dict[int, tuple]) -> dict:
+                  shown: Dict[tuple, tuple], key_of: Callable, view_of: Callable) -> dict:
     """:func:`score_live_map`'s figures of one protocol over the ``chosen`` frames: ``render(frame, roi, record)``
-    renders a frame (filling ``record`` with its view); a tracked protocol's frame already in ``fitted`` (frame id →
-    ``(view, score)``, filled here) is not rendered again; ``rec``: the caller's record of the views."""
+    renders a frame (filling ``record`` with its view); a frame whose :func:`_view_key` (``key_of``) is already in
+    ``shown`` (key → ``(view, score)``, filled here) is not rendered again; ``rec``: the caller's record of the views
+    (``view_of(frame)``: the view of a ``novel`` frame whose render another protocol made)."""
     out = _empty_result(protocol)
     ss = []
-    tracked = protocol in TRACKED_PROTOCOLS
     for fr in chosen:
         fid = int(fr.frame_id)
-        if tracked and fid in fitted:
-            view, s = fitted[fid]
+        key = key_of(fr)
+        if key is not None and key in shown:
+            view, s = shown[key]
             if rec is not None:
-                rec[fid] = view
+                rec[fid] = view if view is not None else view_of(fr)
         else:
             roi = roi_fn(fr)
-            seen = {} if tracked else rec
+            seen: dict = {}
             s = score_view(render(fr, roi, seen), fr, roi)
-            if tracked:
-                fitted[fid] = (seen[fid], s)
-                if rec is not None:
-                    rec[fid] = seen[fid]
+            if rec is not None and fid in seen:
+                rec[fid] = seen[fid]
+            if key is not None:
+                shown[key] = (seen.get(fid), s)
         out["psnr_per_frame"][fid] = s.psnr
         ss.append(s.ssim)
         if not math.isnan(s.roi_psnr):

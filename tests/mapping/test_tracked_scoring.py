@@ -171,7 +171,7 @@ def test_novel_renders_a_withheld_frame_at_the_predicted_pose_and_fits_nothing(m
     real = m.sensor.render_view
 
     def spy(c2w, *a, **kw):
-        used.append(np.array(c2w, np.float64))
+        used.append((int(a[3]), np.array(c2w, np.float64)))  # (frame id, pose)
         return real(c2w, *a, **kw)
 
     def no_tracking(*a, **kw):
@@ -183,7 +183,9 @@ def test_novel_renders_a_withheld_frame_at_the_predicted_pose_and_fits_nothing(m
     views: dict = {}
     res = ev.score_live_map(m, frames, roi, ("sensor", "novel"), novel_ids=[2], predicted=views)
     want = frames[2].c2w @ interpolate_pose(m.poses.corrections[1], m.poses.corrections[3], 0.5)
-    assert np.array_equal(used[-1], want) and np.array_equal(views[2].c2w, want)
+    # frame 2 rendered once, at that pose: ``sensor``'s render is ``novel``'s
+    at2 = [c2w for fid, c2w in used if fid == 2]
+    assert len(at2) == 1 and np.array_equal(at2[0], want) and np.array_equal(views[2].c2w, want)
     assert np.array_equal(views[2].theta, 0.5 * (m.sensor.exposure.params[1] + m.sensor.exposure.params[3]))
     assert views[2].iters == 0 and views[2].trans_m > 0.005
     # the very figure the sensor protocol gives that frame
@@ -282,3 +284,42 @@ def test_a_frame_both_tracked_protocols_score_is_fitted_once_with_the_same_figur
         assert alone["roi_psnr_per_frame"] == both[q]["roi_psnr_per_frame"] and alone["ssim"] == both[q]["ssim"]
         for fid, view in alone_rec.items():
             assert np.array_equal(view.c2w, record[fid].c2w) and np.array_equal(view.theta, record[fid].theta)
+
+
+def test_a_view_that_several_protocols_render_alike_is_rendered_once(monkeypatch):
+    """``sensor`` renders every frame at the pose and exposure ``keyframes`` and ``novel`` take for theirs (the refined
+    keyframe pose, the predicted view): each frame is rendered and scored once, with exactly the figures and views
+    that scoring each protocol alone gives. On a map without exposure records (``score_map``), a keyframe given at the
+    sensor's pose shares the sensor's render and one given elsewhere does not."""
+    from gausslite.evaluation import score_map
+    from gausslite.mapping.sensor import SensorRenderer
+
+    frames = [plane_frame(i, 0.015 * i, H, W) for i in range(8)]
+    m = _plane_map()  # mapped frames 0..3, exposure records and refined poses
+    roi = lambda fr: np.ones((H, W), bool)  # noqa: E731
+    calls = []
+    real = SensorRenderer.render_view
+    monkeypatch.setattr(SensorRenderer, "render_view",
+                        lambda self, c2w, K, w, h, fid, *a, **k: calls.append(int(fid)) or real(self, c2w, K, w, h,
+                                                                                                 fid, *a, **k))
+    predicted = {}
+    all3 = score_live_map(m, frames, roi, ("sensor", "keyframes", "novel"), novel_ids=[5, 7], predicted=predicted)
+    assert sorted(calls) == list(range(8))
+    assert all3["keyframes"]["frames_scored"] == 4 and all3["novel"]["frames_scored"] == 2
+    for q in ("sensor", "keyframes", "novel"):
+        alone_pred = {}
+        alone = score_live_map(m, frames, roi, (q,), novel_ids=[5, 7], predicted=alone_pred)[q]
+        assert alone["psnr_per_frame"] == all3[q]["psnr_per_frame"] and alone["ssim"] == all3[q]["ssim"]
+        assert alone["roi_psnr_per_frame"] == all3[q]["roi_psnr_per_frame"]
+        assert set(alone_pred) == ({5, 7} if q == "novel" else set())
+        for fid, view in alone_pred.items():
+            assert np.array_equal(view.c2w, predicted[fid].c2w) and np.array_equal(view.theta, predicted[fid].theta)
+    gmap = m.gmap
+    off = _perturbed(frames[2].c2w, [0.0, 0.0, np.radians(1.0), 0.03, 0.0, 0.0])
+    calls.clear()
+    both = score_map(gmap, frames, roi, ("sensor", "keyframes"), backend="warp",
+                     keyframe_poses={0: frames[0].c2w, 2: off})
+    assert sorted(calls) == sorted([*range(8), 2])  # frame 0's keyframe is the sensor's render; frame 2's is its own
+    kf = score_map(gmap, frames, roi, ("keyframes",), backend="warp", keyframe_poses={0: frames[0].c2w, 2: off})
+    assert kf["keyframes"]["psnr_per_frame"] == both["keyframes"]["psnr_per_frame"]
+    assert both["keyframes"]["psnr_per_frame"][0] == both["sensor"]["psnr_per_frame"][0]
