@@ -1236,11 +1236,13 @@ def rasterizer_text(r: dict) -> str:
 
 # ---------------------------------------------------------------- pruning (bench.realtime --set mapper.budget.prune_contribution=…)
 
-PRUNING_SCENES = (("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"), ("tum_fr1_rpy", "TUM fr1/rpy, find the mouse"))
+PRUNING_SCENES = (("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"), ("tum_fr1_rpy", "TUM fr1/rpy, find the mouse"),
+                  ("synth-pick-object", "the walk with TUM's sensor, pick up the object"))
 
 
 def pruning_table(result: dict) -> str:
-    """docs/realtime.md#pruning, one setting of ``mapper.budget.prune_contribution``: per TUM task, both modes' ROI
+    """docs/realtime.md#pruning, one setting of ``mapper.budget.prune_contribution``: per scene of
+    :data:`PRUNING_SCENES` the result holds (the TUM tasks, or the rendered walk's), both modes' ROI
     PSNR under :data:`HEADLINE_PRIMARY` (mean ± std over runs), the gain (:func:`gain_text`), and per mode (GaussLite
     / uniform) the final Gaussians, the Gaussians pruned (– where the runs did not record it) and the iterations per
     keyframe."""
@@ -1248,7 +1250,7 @@ def pruning_table(result: dict) -> str:
     head = ["scene, task", f"uniform ROI PSNR, {p0}", "GaussLite", "gain [95 %, run-clustered]",
             "Gaussians, GaussLite / uniform", "pruned", "iterations per keyframe"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for scene, label in PRUNING_SCENES:
+    for scene, label in (sl for sl in PRUNING_SCENES if sl[0] in result["scenes"]):
         p = protocol(result, scene, HEADLINE_PRIMARY)
         u, g = p["uniform"], p["gausslite"]
         pair = lambda key, nd: " / ".join("–" if v is None else f"{v:,.{nd}f}"  # noqa: E731
@@ -1322,6 +1324,10 @@ REGIONS: Dict[str, Region] = {
     "pruning-1": Region("bench/results/realtime_prune_1.json", pruning_table),
     "pruning-5": Region("bench/results/realtime_prune_5.json", pruning_table),
     "pruning-20": Region("bench/results/realtime_prune_20.json", pruning_table),
+    "pruning-walk-off": Region("bench/results/realtime_prune_walk_off.json", pruning_table),
+    "pruning-walk-1": Region("bench/results/realtime_prune_walk_1.json", pruning_table),
+    "pruning-walk-5": Region("bench/results/realtime_prune_walk_5.json", pruning_table),
+    "pruning-walk-20": Region("bench/results/realtime_prune_walk_20.json", pruning_table),
     "quality-per-iteration": Region("bench/results/history/quality_per_iteration.json", quality_per_iteration_table),
     "sim-time": Region("bench/results/sim_time.json", sim_time_table),
     "map-time": Region("bench/results/history/map_time.json", map_time_table),
