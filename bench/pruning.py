@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Optional
 
 from bench._results import write_results
-from bench.report import HEADLINE_PRIMARY, PRUNING_SCENES, gain_text, pm, protocol, run_mean
+from bench.report import HEADLINE_PRIMARY, gain_text, pm, protocol, pruning_scenes, run_mean
 
 RESULTS = Path(__file__).resolve().parent / "results"
 #: the settings of ``mapper.budget.prune_contribution`` (pixels) and the result files' suffix of each
@@ -29,7 +29,7 @@ MODES = ("gausslite", "uniform")
 
 
 def curve_points(results: Path) -> list[dict]:
-    """One point per scene of :data:`~bench.report.PRUNING_SCENES`, mode and setting found under ``results``: the
+    """One point per scene of :data:`~bench.report.PRUNING_SCENES` (:func:`~bench.report.pruning_scenes`), mode and setting found under ``results``: the
     setting (pixels), the pruned share (0 … 1), the final Gaussians, the region's PSNR under ``novel`` (dB, mean and
     std over runs), the gain (GaussLite − uniform, dB) with its interval and the runs.
 
@@ -43,7 +43,7 @@ def curve_points(results: Path) -> list[dict]:
             if not path.is_file():
                 continue
             res = json.loads(path.read_text())
-            for scene, label in (sl for sl in PRUNING_SCENES if sl[0] in res["scenes"]):
+            for scene, label in pruning_scenes(res):
                 p = protocol(res, scene, HEADLINE_PRIMARY)
                 for mode in MODES:
                     final = run_mean(res, scene, mode, "n_gaussians")

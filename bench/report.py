@@ -1240,6 +1240,11 @@ PRUNING_SCENES = (("tum_fr1_rpy_cup", "TUM fr1/rpy, pick up the cup"), ("tum_fr1
                   ("synth-pick-object", "the walk with TUM's sensor, pick up the object"))
 
 
+def pruning_scenes(result: dict) -> list:
+    """The ``(scene, label)`` pairs of :data:`PRUNING_SCENES` that ``result`` holds, in that order."""
+    return [sl for sl in PRUNING_SCENES if sl[0] in result["scenes"]]
+
+
 def pruning_table(result: dict) -> str:
     """docs/realtime.md#pruning, one setting of ``mapper.budget.prune_contribution``: per scene of
     :data:`PRUNING_SCENES` the result holds (the TUM tasks, or the rendered walk's), both modes' ROI
@@ -1250,7 +1255,7 @@ def pruning_table(result: dict) -> str:
     head = ["scene, task", f"uniform ROI PSNR, {p0}", "GaussLite", "gain [95 %, run-clustered]",
             "Gaussians, GaussLite / uniform", "pruned", "iterations per keyframe"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for scene, label in (sl for sl in PRUNING_SCENES if sl[0] in result["scenes"]):
+    for scene, label in pruning_scenes(result):
         p = protocol(result, scene, HEADLINE_PRIMARY)
         u, g = p["uniform"], p["gausslite"]
         pair = lambda key, nd: " / ".join("–" if v is None else f"{v:,.{nd}f}"  # noqa: E731

@@ -444,7 +444,7 @@ def score_live_map(mapper, frames: Sequence[Frame], roi_fn: Callable[[Frame], np
                 seen, fit_exposure), roi_fn, rec, shown,
             lambda fr: _view_key(mapper, fr, protocol, poses.get(int(fr.frame_id)), given_of.get(int(fr.frame_id)),
                                  fit_exposure),
-            lambda fr: given_of.get(int(fr.frame_id)) or predicted_view(mapper, fr))
+            lambda fr: predicted_view(mapper, fr))
     return res
 
 
@@ -477,7 +477,8 @@ def _score_frames(protocol: str, chosen: Iterable[Frame], render: Callable, roi_
     """:func:`score_live_map`'s figures of one protocol over the ``chosen`` frames: ``render(frame, roi, record)``
     renders a frame (filling ``record`` with its view); a frame whose :func:`_view_key` (``key_of``) is already in
     ``shown`` (key → ``(view, score)``, filled here) is not rendered again; ``rec``: the caller's record of the views
-    (``view_of(frame)``: the view of a ``novel`` frame whose render another protocol made)."""
+    (``view_of(frame)``: the predicted view of a ``novel`` frame whose render ``sensor`` or ``keyframes`` made, which
+    record none; a given or fitted view is stored with its score)."""
     out = _empty_result(protocol)
     ss = []
     for fr in chosen:
